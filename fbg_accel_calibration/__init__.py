@@ -1,0 +1,1 @@
+"""Calibration toolchain: recording, fitting, degree selection, noise and diagnosis."""

@@ -1,0 +1,77 @@
+"""In-memory calibration recording: the arrays every fitting and diagnosis step works on.
+
+Pure numpy. Produced by the MCAP reader (``mcap_io``), the CSV importer and the simulator's
+batch API, so the fit and the diagnosis never care where the data came from.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass
+class Recording:
+    """Time-ordered samples of one run (N samples).
+
+    * ``t_s`` (N,): board time in seconds (monotonic within a run).
+    * ``ref`` (N,): reference photodetector ADC counts.
+    * ``xyz`` (N, 3): x, y, z channel ADC counts.
+    * ``temp_c`` (N,): AHT10 temperature in degC, NaN where the sensor reported invalid.
+    * ``gref_mps2`` (N, 3): reference specific force of the pose in the table frame, m/s^2;
+      NaN rows where no reference is known (between poses).
+    * ``pose_id`` (N,): integer id of the commanded pose, -1 while moving or unknown.
+    * ``run_id`` (N,): integer id of the run (file / temperature level) each sample came from.
+    * ``metadata``: free-form run information (sensor id, plan, operator notes, source files).
+    """
+
+    t_s: np.ndarray
+    ref: np.ndarray
+    xyz: np.ndarray
+    temp_c: np.ndarray
+    gref_mps2: np.ndarray
+    pose_id: np.ndarray
+    run_id: np.ndarray | None = None
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.t_s = np.asarray(self.t_s, dtype=float)
+        n = self.t_s.shape[0]
+        self.ref = np.asarray(self.ref, dtype=float).reshape(n)
+        self.xyz = np.asarray(self.xyz, dtype=float).reshape(n, 3)
+        self.temp_c = np.broadcast_to(np.asarray(self.temp_c, dtype=float), (n,)).copy()
+        self.gref_mps2 = np.asarray(self.gref_mps2, dtype=float).reshape(n, 3)
+        self.pose_id = np.asarray(self.pose_id, dtype=int).reshape(n)
+        self.run_id = np.zeros(n, dtype=int) if self.run_id is None else np.asarray(self.run_id, int).reshape(n)
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+    def select(self, mask: np.ndarray) -> Recording:
+        """A new recording with the samples where ``mask`` is true (order kept)."""
+        return Recording(
+            self.t_s[mask], self.ref[mask], self.xyz[mask], self.temp_c[mask],
+            self.gref_mps2[mask], self.pose_id[mask], self.run_id[mask], dict(self.metadata),
+        )
+
+    @staticmethod
+    def concatenate(parts: list[Recording]) -> Recording:
+        """Join runs; each part keeps its own ``run_id`` offset so runs stay distinguishable."""
+        if not parts:
+            raise ValueError("no recordings to concatenate")
+        run_ids, offset = [], 0
+        for p in parts:
+            run_ids.append(p.run_id + offset)
+            offset += int(p.run_id.max()) + 1 if len(p) else 1
+        return Recording(
+            np.concatenate([p.t_s for p in parts]),
+            np.concatenate([p.ref for p in parts]),
+            np.concatenate([p.xyz for p in parts]),
+            np.concatenate([p.temp_c for p in parts]),
+            np.concatenate([p.gref_mps2 for p in parts]),
+            np.concatenate([p.pose_id for p in parts]),
+            np.concatenate(run_ids),
+            {"parts": [p.metadata for p in parts]},
+        )

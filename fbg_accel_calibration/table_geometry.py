@@ -1,0 +1,36 @@
+"""Reference specific force on a two-axis rotation table (pure numpy).
+
+Convention of ``../shared/data/measured/README.md``: theta turns about the table's x axis
+(outer axis), psi about its z axis (inner axis); the specific force sensed at rest is
+``f = Rz(psi)^T Rx(theta)^T (0, 0, g)`` in the table frame, in m/s^2 (REP 103: an accelerometer
+at rest, z up, reads +g on z). Any fixed mounting rotation of the sensor on the table is absorbed
+by the calibration matrix.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+STANDARD_GRAVITY = 9.80665  # m/s^2; local g of a calibration site goes in the pose plan
+
+
+def rot_x(angle_rad: np.ndarray) -> np.ndarray:
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    o, z = np.ones_like(c), np.zeros_like(c)
+    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
+
+
+def rot_z(angle_rad: np.ndarray) -> np.ndarray:
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    o, z = np.ones_like(c), np.zeros_like(c)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+
+
+def table_specific_force(psi_deg: np.ndarray, theta_deg: np.ndarray, g: float = STANDARD_GRAVITY) -> np.ndarray:
+    """Specific force (N, 3) in m/s^2 for table angles in degrees (arrays of shape (N,))."""
+    psi = np.radians(np.atleast_1d(np.asarray(psi_deg, dtype=float)))
+    theta = np.radians(np.atleast_1d(np.asarray(theta_deg, dtype=float)))
+    up = np.array([0.0, 0.0, g])
+    rz_t = np.swapaxes(rot_z(psi), -1, -2)
+    rx_t = np.swapaxes(rot_x(theta), -1, -2)
+    return np.einsum("nij,njk,k->ni", rz_t, rx_t, up)

@@ -1,0 +1,1 @@
+"""FBG triaxial accelerometer: board protocol, calibration model, driver and simulator."""

@@ -1,0 +1,1 @@
+"""Physics-based simulator of the acquisition board (no ROS imports)."""

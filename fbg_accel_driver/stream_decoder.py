@@ -1,0 +1,152 @@
+"""Streaming decoder for the board's byte stream (pure Python, no ROS).
+
+Feed it arbitrary chunks as they arrive from the serial port; it returns the intact frames and
+keeps counters of everything it rejected. It never raises on any input and never blocks.
+
+Rules (see docs/protocol.md):
+
+* A frame candidate starts at ``SYNC`` with a known ``version`` and its ``body_len``. If its
+  CRC fails, the candidate is counted in ``crc_errors`` and the search resumes one byte after
+  the sync, so a frame hidden behind a truncated one or behind garbage is still recovered.
+* Bytes that are not part of an accepted frame are counted in ``bytes_discarded``.
+* A CRC-valid frame with the sync of a version this decoder does not know is skipped whole
+  (``unsupported_version``) using its ``body_len``.
+* Sequence tracking, for frames whose board clock moves forward: a gap of ``g`` sequence
+  numbers (modulo 2**16) adds ``g - 1`` to ``lost_frames``. Frames rejected for CRC are
+  therefore also counted as lost: ``lost_frames`` is what the host did not receive intact.
+* A frame identical in ``seq`` and ``t_us`` to the previous one is a ``duplicate`` and dropped.
+* A board clock that goes backwards, or a frame with the BOOT status bit after the first
+  frame, is a board ``reset``: tracking restarts and no loss is counted across it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from .frame_codec import (
+    ADC_MAX,
+    BODY_LEN_V1,
+    CRC_SIZE,
+    HEADER_SIZE,
+    PROTOCOL_VERSION,
+    SEQ_MODULO,
+    SYNC,
+    Frame,
+    Status,
+    crc16,
+    decode_body_v1,
+)
+
+# Longest body any future version may declare; a larger body_len means "not a frame".
+MAX_BODY_LEN = 200
+
+
+@dataclass
+class DecoderStats:
+    """Cumulative counters since the decoder was created (all counts, never reset)."""
+
+    frames: int = 0
+    bytes_received: int = 0
+    bytes_discarded: int = 0
+    crc_errors: int = 0
+    invalid_frames: int = 0  # CRC fine but a field out of range (ADC counts above 12 bits)
+    unsupported_version: int = 0
+    lost_frames: int = 0
+    duplicates: int = 0
+    resets: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
+class StreamDecoder:
+    """Incremental decoder: ``feed(chunk) -> list[Frame]``."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+        self.stats = DecoderStats()
+        self._last_seq: int | None = None
+        self._last_t_us: int | None = None
+        self.reset_pending = False  # set when a reset was detected; the caller may clear it
+
+    def feed(self, chunk: bytes | bytearray | memoryview) -> list[Frame]:
+        """Consume ``chunk`` and return the intact, non-duplicate frames it completed."""
+        out: list[Frame] = []
+        try:
+            data = bytes(chunk)
+        except (TypeError, ValueError):
+            return out
+        if not data:
+            return out
+        self.stats.bytes_received += len(data)
+        buf = self._buf
+        buf += data
+        pos = 0
+        n = len(buf)
+        while True:
+            start = buf.find(SYNC, pos)
+            if start < 0:
+                # Keep a trailing first sync byte that may pair with the next chunk.
+                keep_from = n - 1 if n > pos and buf[n - 1] == SYNC[0] else n
+                self.stats.bytes_discarded += keep_from - pos
+                pos = keep_from
+                break
+            if start > pos:
+                self.stats.bytes_discarded += start - pos
+                pos = start
+            if n - pos < HEADER_SIZE:
+                break  # wait for the header
+            version = buf[pos + 2]
+            body_len = buf[pos + 3]
+            if version == 0 or body_len == 0 or body_len > MAX_BODY_LEN or (
+                version == PROTOCOL_VERSION and body_len != BODY_LEN_V1
+            ):
+                self.stats.bytes_discarded += 1
+                pos += 1
+                continue
+            total = HEADER_SIZE + body_len + CRC_SIZE
+            if n - pos < total:
+                break  # wait for the rest of the candidate
+            crc_rx = buf[pos + total - 2] | (buf[pos + total - 1] << 8)
+            if crc16(memoryview(buf)[pos + 2 : pos + total - 2]) != crc_rx:
+                self.stats.crc_errors += 1
+                self.stats.bytes_discarded += 1
+                pos += 1
+                continue
+            if version != PROTOCOL_VERSION:
+                self.stats.unsupported_version += 1
+                self.stats.bytes_discarded += total
+                pos += total
+                continue
+            frame = decode_body_v1(buf, pos + HEADER_SIZE)
+            pos += total
+            if max(frame.ref, frame.x, frame.y, frame.z) > ADC_MAX:
+                self.stats.invalid_frames += 1
+                self.stats.bytes_discarded += total
+                continue
+            if self._accept(frame):
+                out.append(frame)
+        if pos:
+            del buf[:pos]
+        return out
+
+    def _accept(self, frame: Frame) -> bool:
+        """Sequence and clock bookkeeping; False for a duplicate."""
+        last_seq, last_t = self._last_seq, self._last_t_us
+        if last_seq is not None and last_t is not None:
+            if frame.seq == last_seq and frame.t_us == last_t:
+                self.stats.duplicates += 1
+                return False
+            if frame.t_us < last_t or (frame.status & Status.BOOT):
+                self.stats.resets += 1
+                self.reset_pending = True
+            else:
+                self.stats.lost_frames += (frame.seq - last_seq - 1) % SEQ_MODULO
+        self._last_seq, self._last_t_us = frame.seq, frame.t_us
+        self.stats.frames += 1
+        return True
+
+    @property
+    def buffered(self) -> int:
+        """Bytes held while waiting for the rest of a frame."""
+        return len(self._buf)
