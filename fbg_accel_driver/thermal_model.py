@@ -131,7 +131,7 @@ class ThermalCalibration:
             "units": dict(UNITS),
             "model": "thermal_polynomial",
             "sensor_id": self.sensor_id,
-            "created": self.created or _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "created": self.created or _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
             "degree": self.degree,
             "temperature_center_c": float(self.t_center_c),
             "temperature_scale_c": float(self.t_scale_c),
