@@ -73,7 +73,7 @@ class StreamDecoder:
         """Consume ``chunk`` and return the intact, non-duplicate frames it completed."""
         out: list[Frame] = []
         try:
-            data = bytes(chunk)
+            data = bytes(memoryview(chunk))  # bytes-like only: bytes(int) would allocate int zero bytes
         except (TypeError, ValueError):
             return out
         if not data:

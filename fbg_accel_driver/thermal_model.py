@@ -159,7 +159,8 @@ class ThermalCalibration:
             raise CalibrationFileError(f"{source}: top level is not a mapping")
         if need("format") != FORMAT_NAME:
             raise CalibrationFileError(f"{source}: format is '{d['format']}', expected '{FORMAT_NAME}'")
-        if need("format_version") != FORMAT_VERSION:
+        version = need("format_version")
+        if not isinstance(version, int) or isinstance(version, bool) or version != FORMAT_VERSION:
             raise CalibrationFileError(
                 f"{source}: format_version {d['format_version']!r} is not supported (this driver reads {FORMAT_VERSION})"
             )
@@ -171,12 +172,12 @@ class ThermalCalibration:
                 raise CalibrationFileError(f"{source}: unit of '{key}' is {units.get(key)!r}, expected '{unit}'")
         if need("model") != "thermal_polynomial":
             raise CalibrationFileError(f"{source}: model '{d['model']}' is not supported")
+        M_raw, b_raw, rng = need("M"), need("b"), need("temperature_range_c")  # outside the try: keep their message
         try:
-            M = np.asarray(need("M"), dtype=float)
-            b = np.asarray(need("b"), dtype=float)
-            rng = need("temperature_range_c")
+            M = np.asarray(M_raw, dtype=float)
+            b = np.asarray(b_raw, dtype=float)
             noise = np.asarray(d.get("noise_sigma_mps2", [0.01, 0.01, 0.01]), dtype=float)
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, OverflowError) as exc:
             raise CalibrationFileError(f"{source}: coefficients are not numeric arrays ({exc})") from None
         degree = need("degree")
         if not isinstance(degree, int) or isinstance(degree, bool) or degree < 0:
@@ -194,7 +195,7 @@ class ThermalCalibration:
             raise CalibrationFileError(f"{source}: 'corrections' must be a list")
         try:
             corrections = [correction_from_dict(c) for c in corrections_raw]
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:
             raise CalibrationFileError(f"{source}: bad correction term: {exc}") from None
         try:
             return cls(
@@ -209,7 +210,7 @@ class ThermalCalibration:
                 fit=dict(d.get("fit") or {}),
                 corrections=corrections,
             )
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, OverflowError) as exc:
             raise CalibrationFileError(f"{source}: {exc}") from None
 
     @classmethod
@@ -218,10 +219,34 @@ class ThermalCalibration:
         if not p.is_file():
             raise CalibrationFileError(f"{p}: calibration file not found")
         try:
-            data = yaml.safe_load(p.read_text())
-        except (yaml.YAMLError, UnicodeDecodeError) as exc:
+            text = p.read_text()
+        except OSError as exc:
+            raise CalibrationFileError(f"{p}: calibration file cannot be read ({exc.strerror or exc})") from None
+        except UnicodeDecodeError as exc:
             raise CalibrationFileError(f"{p}: not valid YAML ({exc})") from None
+        try:
+            data = yaml.load(text, Loader=_NoAliasSafeLoader)  # a SafeLoader subclass: no arbitrary objects
+        except (yaml.YAMLError, ValueError, TypeError) as exc:  # ValueError: e.g. a date like 2024-13-45
+            raise CalibrationFileError(f"{p}: not valid YAML ({exc})") from None
+        except RecursionError:
+            raise CalibrationFileError(f"{p}: not valid YAML (nested too deeply)") from None
         return cls.from_dict(data, source=str(p))
+
+
+class _NoAliasSafeLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses aliases (``*name``).
+
+    A few aliased lines can expand into a structure that refers to itself or holds billions of
+    elements, which numpy would then try to convert (memory exhaustion); a calibration file never
+    needs aliases (``save`` does not write any).
+    """
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            raise yaml.composer.ComposerError(
+                None, None, "aliases (*name) are not allowed in a calibration file", self.peek_event().start_mark
+            )
+        return super().compose_node(parent, index)
 
 
 def normalise(xyz: np.ndarray, ref: np.ndarray) -> np.ndarray:

@@ -1,0 +1,530 @@
+"""Tests of the streaming decoder (fbg_accel_driver.stream_decoder): unit cases and hypothesis properties.
+
+Properties (docs/protocol.md, "Decoder rules"):
+
+* every intact frame fed in is returned, once, in order, whatever garbage, truncated or bit-flipped
+  frames surround it and however the bytes are cut into chunks;
+* nothing raises; the decoder's memory stays bounded;
+* counters are exact: ``crc_errors`` when only body/CRC bytes were corrupted, ``lost_frames`` from
+  the sequence gaps (with wrap-around at 65535), ``duplicates``, ``resets`` (BOOT flag or clock going
+  backwards), and a byte balance ``received = discarded + 27 * (frames + duplicates) + buffered``.
+
+The one thing a sync/CRC protocol cannot do is tell a garbage candidate whose CRC happens to be
+valid (probability 2^-16) from a real frame; generated streams containing one are discarded with
+``assume`` (``has_foreign_valid_candidate``), everything else must hold exactly.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+
+from fbg_accel_driver.frame_codec import (
+    ADC_MAX,
+    CRC_SIZE,
+    FRAME_SIZE_V1,
+    HEADER_SIZE,
+    SEQ_MODULO,
+    SYNC,
+    Frame,
+    Status,
+    crc16,
+    encode_frame,
+)
+from fbg_accel_driver.stream_decoder import MAX_BODY_LEN, StreamDecoder
+
+MAX_CANDIDATE = HEADER_SIZE + MAX_BODY_LEN + CRC_SIZE  # longest candidate the decoder may wait for (206 bytes)
+# Zero bytes appended after a test stream: "the line carries on", so a false header in garbage that
+# announced a long body is completed, rejected, and the frames held behind it come out.
+LINE_CONTINUES = bytes(MAX_CANDIDATE)
+OK_STATUS = int(Status.TEMP_VALID | Status.TEMP_PRESENT)
+
+PROPERTY = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+# ----------------------------------------------------------------------------- helpers
+def make_frames(n: int, seq0: int = 0, t0: int = 1_000_000, dt: int = 10_000, status: int = OK_STATUS) -> list[Frame]:
+    """``n`` consecutive frames of one boot session (seq +1 mod 65536, clock +dt us)."""
+    return [
+        Frame(
+            seq=(seq0 + i) % SEQ_MODULO,
+            t_us=t0 + i * dt,
+            ref=3000 + i % 5,
+            x=1000 + i % 7,
+            y=2000,
+            z=(i * 37) % (ADC_MAX + 1),
+            temp_cc=2345,
+            status=status,
+        )
+        for i in range(n)
+    ]
+
+
+def wire(frames: list[Frame]) -> bytes:
+    return b"".join(encode_frame(f) for f in frames)
+
+
+def v2_frame(body: bytes) -> bytes:
+    """A CRC-valid frame of a hypothetical protocol version 2 with a longer body."""
+    covered = bytes([2, len(body)]) + body
+    return SYNC + covered + crc16(covered).to_bytes(2, "little")
+
+
+def split(stream: bytes, sizes: list[int]) -> list[bytes]:
+    """Cut ``stream`` into chunks of the given sizes (cycled), the last chunk takes the rest."""
+    chunks, pos, i = [], 0, 0
+    while pos < len(stream):
+        size = sizes[i % len(sizes)] if sizes else len(stream)
+        chunks.append(stream[pos : pos + size])
+        pos += size
+        i += 1
+    return chunks
+
+
+def run(chunks: list[bytes], dec: StreamDecoder | None = None) -> tuple[StreamDecoder, list[Frame]]:
+    dec = dec or StreamDecoder()
+    out: list[Frame] = []
+    for chunk in chunks:
+        out.extend(dec.feed(chunk))
+        assert dec.buffered < MAX_CANDIDATE
+    check_byte_balance(dec)
+    return dec, out
+
+
+def check_byte_balance(dec: StreamDecoder) -> None:
+    s = dec.stats
+    assert s.bytes_received == s.bytes_discarded + FRAME_SIZE_V1 * (s.frames + s.duplicates) + dec.buffered
+    assert min(s.as_dict().values()) >= 0
+
+
+def has_foreign_valid_candidate(stream: bytes, intact_starts: set[int]) -> bool:
+    """True if a sync at a position other than an intact frame starts a CRC-valid candidate.
+
+    Conservative (ignores the decoder's header rules): any body length byte > 0 whose CRC checks.
+    """
+    i = stream.find(SYNC)
+    while i >= 0:
+        if i not in intact_starts and i + HEADER_SIZE <= len(stream):
+            end = i + HEADER_SIZE + stream[i + 3] + CRC_SIZE
+            if stream[i + 3] and end <= len(stream):
+                if crc16(stream[i + 2 : end - 2]) == int.from_bytes(stream[end - 2 : end], "little"):
+                    return True
+        i = stream.find(SYNC, i + 1)
+    return False
+
+
+# ----------------------------------------------------------------------------- strategies
+adc = st.integers(0, ADC_MAX)
+status_no_boot = st.integers(0, 255).map(lambda s: s & ~int(Status.BOOT))
+
+
+@st.composite
+def sessions(draw: st.DrawFn, max_frames: int = 40, boot_first: bool = False) -> list[Frame]:
+    """Consecutive frames of one boot session, often starting near the sequence wrap-around."""
+    n = draw(st.integers(1, max_frames))
+    seq0 = draw(st.one_of(st.integers(SEQ_MODULO - max_frames, SEQ_MODULO - 1), st.integers(0, SEQ_MODULO - 1)))
+    t = draw(st.integers(0, 2**40)) if not boot_first else draw(st.integers(0, 5_000))
+    out = []
+    for i in range(n):
+        status = draw(status_no_boot)
+        if boot_first and i == 0:
+            status |= int(Status.BOOT)
+        out.append(
+            Frame(
+                seq=(seq0 + i) % SEQ_MODULO,
+                t_us=t,
+                ref=draw(adc),
+                x=draw(adc),
+                y=draw(adc),
+                z=draw(adc),
+                temp_cc=draw(st.integers(-(2**15), 2**15 - 1)),
+                status=status,
+            )
+        )
+        t += draw(st.integers(1, 100_000))
+    return out
+
+
+garbage = st.one_of(
+    st.binary(max_size=40),
+    # sync-rich garbage: false headers of every kind
+    st.lists(
+        st.sampled_from([b"\xa5", b"\x5a", SYNC, SYNC + b"\x01\x15", b"\x01", b"\x15", b"\x00", b"\xc8", b"\xff"]), max_size=12
+    ).map(b"".join),
+)
+
+
+@dataclass
+class Built:
+    """A generated byte stream and what an ideal decoder must report for it."""
+
+    stream: bytes = b""
+    intact_starts: set[int] = field(default_factory=set)
+    expected: list[Frame] = field(default_factory=list)  # intact frames, in order, once
+    duplicates: int = 0
+    body_corrupted: int = 0  # frames with only body/CRC bytes altered
+    lost: int = 0
+    resets: int = 0
+
+
+ACTIONS_EXACT = ["keep", "keep", "keep", "drop", "corrupt_body", "duplicate"]
+ACTIONS_ALL = [*ACTIONS_EXACT, "corrupt_header", "truncate"]
+
+
+@st.composite
+def built_streams(draw: st.DrawFn, actions: list[str], with_garbage: bool, n_sessions: int = 1) -> Built:
+    """Sessions of frames, each frame kept, dropped, duplicated, corrupted or truncated, with garbage between."""
+    b = Built()
+    parts: list[bytes] = []
+    pos = 0
+    last_received: Frame | None = None
+    sessions_seen = 0
+    for k in range(n_sessions):
+        frames = draw(sessions(boot_first=n_sessions > 1))
+        acts = draw(st.lists(st.sampled_from(actions), min_size=len(frames), max_size=len(frames)))
+        received_idx: list[int] = []
+        for i, (f, act) in enumerate(zip(frames, acts, strict=True)):
+            if with_garbage:
+                g = draw(garbage)
+                parts.append(g)
+                pos += len(g)
+            enc = encode_frame(f)
+            if act in ("keep", "duplicate"):
+                copies = 2 if act == "duplicate" else 1
+                for c in range(copies):
+                    if c and with_garbage:
+                        g = draw(garbage)
+                        parts.append(g)
+                        pos += len(g)
+                    b.intact_starts.add(pos)
+                    parts.append(enc)
+                    pos += len(enc)
+                if not received_idx and k > 0 and sessions_seen:
+                    # first frame received of a new session: the decoder must be able to see the reset
+                    # (BOOT frame received or clock behind), and it must not look like a repeat of the last frame
+                    assert last_received is not None
+                    assume((f.seq, f.t_us) != (last_received.seq, last_received.t_us))
+                    assume(bool(f.status & Status.BOOT) or f.t_us < last_received.t_us)
+                    b.resets += 1
+                b.expected.append(f)
+                b.duplicates += copies - 1
+                received_idx.append(i)
+                last_received = f
+            elif act == "corrupt_body":
+                off = draw(st.integers(HEADER_SIZE, FRAME_SIZE_V1 - 1))
+                mask = draw(st.integers(1, 255))
+                bad = bytearray(enc)
+                bad[off] ^= mask
+                parts.append(bytes(bad))
+                pos += len(bad)
+                b.body_corrupted += 1
+            elif act == "corrupt_header":
+                off = draw(st.integers(0, HEADER_SIZE - 1))
+                bad = bytearray(enc)
+                bad[off] ^= 1 << draw(st.integers(0, 7))
+                parts.append(bytes(bad))
+                pos += len(bad)
+            elif act == "truncate":
+                cut = enc[: draw(st.integers(1, FRAME_SIZE_V1 - 1))]
+                parts.append(cut)
+                pos += len(cut)
+            # "drop": nothing on the wire
+        b.lost += sum(j - i - 1 for i, j in itertools.pairwise(received_idx))
+        if received_idx:
+            sessions_seen += 1
+    if with_garbage:
+        parts.append(draw(garbage))
+    b.stream = b"".join(parts) + LINE_CONTINUES
+    assume(not has_foreign_valid_candidate(b.stream, b.intact_starts))
+    return b
+
+
+chunk_sizes = st.lists(st.integers(1, 64), min_size=1, max_size=8)
+
+
+# ----------------------------------------------------------------------------- unit tests
+def test_clean_stream_in_one_chunk() -> None:
+    frames = make_frames(50)
+    dec, out = run([wire(frames)])
+    assert out == frames
+    s = dec.stats
+    assert (s.frames, s.crc_errors, s.lost_frames, s.duplicates, s.resets, s.bytes_discarded) == (50, 0, 0, 0, 0, 0)
+    assert dec.buffered == 0
+
+
+def test_byte_by_byte_feeding() -> None:
+    frames = make_frames(5)
+    data = wire(frames)
+    dec = StreamDecoder()
+    out = []
+    for i in range(len(data)):
+        got = dec.feed(data[i : i + 1])
+        # a frame comes out exactly when its last byte arrives
+        assert len(got) == (1 if (i + 1) % FRAME_SIZE_V1 == 0 else 0)
+        out += got
+    assert out == frames
+
+
+def test_accepts_bytes_like_inputs() -> None:
+    frames = make_frames(3)
+    data = wire(frames)
+    dec = StreamDecoder()
+    out = dec.feed(bytearray(data[:30])) + dec.feed(memoryview(data)[30:60]) + dec.feed(np.frombuffer(data[60:], np.uint8))
+    assert out == frames
+
+
+@pytest.mark.parametrize("bad", [None, "a5 5a", 5, 10**12, -3, 3.5, object(), [0xA5, 0x5A]])
+def test_non_bytes_input_is_ignored_without_raising(bad: object) -> None:
+    dec = StreamDecoder()
+    assert dec.feed(bad) == []  # type: ignore[arg-type]
+    assert dec.stats.bytes_received == 0
+    assert dec.buffered == 0
+    assert dec.feed(wire(make_frames(1))) == make_frames(1)
+
+
+def test_empty_chunk() -> None:
+    dec = StreamDecoder()
+    assert dec.feed(b"") == []
+    assert dec.stats.bytes_received == 0
+
+
+def test_garbage_around_frames_is_discarded_and_counted() -> None:
+    frames = make_frames(3)
+    junk = b"\x00\x11\x22\xa5\x33"
+    dec, out = run([junk + encode_frame(frames[0]) + junk + encode_frame(frames[1]) + encode_frame(frames[2]) + junk])
+    assert out == frames
+    assert dec.stats.bytes_discarded == 3 * len(junk)
+    assert dec.stats.crc_errors == 0
+
+
+def test_trailing_first_sync_byte_is_kept_for_the_next_chunk() -> None:
+    f = make_frames(1)[0]
+    enc = encode_frame(f)
+    dec = StreamDecoder()
+    assert dec.feed(b"\x00\x00\xa5") == []
+    assert dec.buffered == 1
+    assert dec.feed(enc[1:]) == [f]
+    assert dec.stats.bytes_discarded == 2
+
+
+def test_truncated_frame_then_intact_frame() -> None:
+    a, b = make_frames(2)
+    dec, out = run([encode_frame(a)[:15] + encode_frame(b)])
+    assert out == [b]
+    # the truncated candidate swallowed the start of b, failed its CRC, and the search resumed
+    assert dec.stats.crc_errors == 1
+    assert dec.stats.bytes_discarded == 15
+
+
+def test_body_bit_flip_counts_one_crc_error_and_one_lost_frame() -> None:
+    frames = make_frames(3)
+    bad = bytearray(encode_frame(frames[1]))
+    bad[10] ^= 0x10
+    dec, out = run([encode_frame(frames[0]) + bytes(bad) + encode_frame(frames[2])])
+    assert out == [frames[0], frames[2]]
+    assert (dec.stats.crc_errors, dec.stats.lost_frames) == (1, 1)
+
+
+def test_false_header_with_long_body_only_delays_frames() -> None:
+    frames = make_frames(8)
+    false_header = SYNC + bytes([7, MAX_BODY_LEN])  # unknown version, longest body: waits for 206 bytes
+    dec = StreamDecoder()
+    assert dec.feed(false_header + wire(frames[:3])) == []  # 85 bytes: the candidate is not complete yet
+    assert dec.feed(wire(frames[3:])) == frames  # 220 bytes: candidate rejected, all frames behind it recovered
+    assert dec.stats.crc_errors == 1
+    assert dec.stats.lost_frames == 0
+
+
+@pytest.mark.parametrize(
+    "header",
+    [SYNC + b"\x00\x15", SYNC + b"\x01\x00", SYNC + bytes([3, MAX_BODY_LEN + 1]), SYNC + b"\x01\x16", SYNC + b"\x01\x14"],
+    ids=["version0", "body_len0", "body_len_too_long", "v1_long", "v1_short"],
+)
+def test_impossible_headers_are_rejected_without_waiting(header: bytes) -> None:
+    f = make_frames(1)[0]
+    dec = StreamDecoder()
+    assert dec.feed(header + encode_frame(f)) == [f]
+    assert dec.stats.crc_errors == 0
+    assert dec.stats.bytes_discarded == len(header)
+
+
+def test_unknown_version_frame_is_skipped_whole() -> None:
+    frames = make_frames(4)
+    v2 = v2_frame(bytes(range(30)) + SYNC + bytes(10))  # body with a sync inside: must be skipped as a unit
+    dec, out = run([encode_frame(frames[0]) + encode_frame(frames[1]) + v2 + encode_frame(frames[2]) + encode_frame(frames[3])])
+    assert out == frames
+    s = dec.stats
+    assert (s.unsupported_version, s.crc_errors, s.lost_frames) == (1, 0, 0)
+    assert s.bytes_discarded == len(v2)
+
+
+def test_adc_counts_above_12_bits_are_invalid_and_lost() -> None:
+    a, b, c = make_frames(3)
+    b_bad = Frame(b.seq, b.t_us, ADC_MAX + 1, b.x, b.y, b.z, b.temp_cc, b.status)
+    dec, out = run([wire([a, b_bad, c])])
+    assert out == [a, c]
+    assert (dec.stats.invalid_frames, dec.stats.crc_errors, dec.stats.lost_frames) == (1, 0, 1)
+
+
+def test_immediate_duplicate_is_dropped() -> None:
+    a, b = make_frames(2)
+    dec, out = run([wire([a, a, b, b, b])])
+    assert out == [a, b]
+    assert (dec.stats.duplicates, dec.stats.lost_frames, dec.stats.resets) == (3, 0, 0)
+
+
+def test_sequence_wrap_is_not_a_loss() -> None:
+    frames = make_frames(6, seq0=65533)
+    assert [f.seq for f in frames] == [65533, 65534, 65535, 0, 1, 2]
+    dec, out = run([wire(frames)])
+    assert out == frames
+    assert (dec.stats.lost_frames, dec.stats.resets) == (0, 0)
+
+
+def test_loss_across_wrap() -> None:
+    frames = make_frames(6, seq0=65533)
+    dec, out = run([wire(frames[:2] + frames[4:])])  # 65535 and 0 missing
+    assert out == frames[:2] + frames[4:]
+    assert (dec.stats.lost_frames, dec.stats.resets) == (2, 0)
+
+
+def test_large_gap_counts_all_missing_frames() -> None:
+    a = make_frames(1, seq0=10)[0]
+    b = make_frames(1, seq0=9, t0=5_000_000)[0]  # seq 9 after seq 10, clock forward: 65534 frames missed
+    dec, _ = run([wire([a, b])])
+    assert dec.stats.lost_frames == SEQ_MODULO - 2
+
+
+def test_boot_flag_is_a_reset_and_no_loss_is_counted_across_it() -> None:
+    before = make_frames(5, seq0=1000, t0=50_000_000)
+    after = make_frames(5, seq0=0, t0=60_000_000)  # clock even moves forward: the BOOT flag alone decides
+    after[0] = replace(after[0], status=OK_STATUS | int(Status.BOOT))
+    dec, out = run([wire(before + after)])
+    assert out == before + after
+    assert (dec.stats.resets, dec.stats.lost_frames) == (1, 0)
+    assert dec.reset_pending
+
+
+def test_clock_going_backwards_is_a_reset_even_without_boot_frame() -> None:
+    before = make_frames(5, seq0=40_000, t0=900_000_000)
+    after = make_frames(5, seq0=0, t0=200_000)
+    dec, out = run([wire(before + after[2:])])  # BOOT frame and the next one lost
+    assert out == before + after[2:]
+    assert (dec.stats.resets, dec.stats.lost_frames) == (1, 0)
+
+
+def test_clock_one_microsecond_backwards_is_a_reset() -> None:
+    a = make_frames(1, seq0=5, t0=10_000)[0]
+    b = make_frames(1, seq0=6, t0=9_999)[0]
+    dec, out = run([wire([a, b])])
+    assert out == [a, b]
+    assert dec.stats.resets == 1
+
+
+def test_same_sequence_number_with_another_clock_is_not_a_duplicate() -> None:
+    a = make_frames(1, seq0=5, t0=10_000)[0]
+    b = make_frames(1, seq0=5, t0=20_000)[0]  # 65536 frames later (or a re-sent number): a new sample
+    dec, out = run([wire([a, b])])
+    assert out == [a, b]
+    assert (dec.stats.duplicates, dec.stats.lost_frames) == (0, SEQ_MODULO - 1)
+
+
+def test_first_frame_with_boot_flag_is_not_a_reset() -> None:
+    frames = make_frames(3, seq0=0, t0=0)
+    frames[0] = Frame(0, 0, 1, 1, 1, 1, 0, OK_STATUS | Status.BOOT)
+    dec, out = run([wire(frames)])
+    assert out == frames
+    assert dec.stats.resets == 0
+    assert not dec.reset_pending
+
+
+def test_duplicate_of_boot_frame_is_a_duplicate_not_a_second_reset() -> None:
+    before = make_frames(2, seq0=7, t0=10_000_000)
+    boot = Frame(0, 100, 1, 1, 1, 1, 0, OK_STATUS | Status.BOOT)
+    dec, out = run([wire([*before, boot, boot])])
+    assert out == [*before, boot]
+    assert (dec.stats.resets, dec.stats.duplicates) == (1, 1)
+
+
+def test_endless_garbage_keeps_memory_bounded() -> None:
+    rng = np.random.default_rng(1)
+    dec = StreamDecoder()
+    adversarial = (SYNC + bytes([9, MAX_BODY_LEN])) * 64  # false headers that each announce the longest body
+    for i in range(300):
+        chunk = adversarial if i % 3 == 0 else rng.integers(0, 256, 4096, dtype=np.uint8).tobytes()
+        dec.feed(chunk)
+        assert dec.buffered < MAX_CANDIDATE
+    check_byte_balance(dec)
+    # still decodes after all that
+    tail = make_frames(3, seq0=5)
+    assert dec.feed(LINE_CONTINUES + wire(tail))[-3:] == tail
+
+
+# ----------------------------------------------------------------------------- properties
+@PROPERTY
+@given(b=built_streams(ACTIONS_EXACT, with_garbage=False), sizes=chunk_sizes)
+def test_property_body_corruption_counts_are_exact(b: Built, sizes: list[int]) -> None:
+    """Only body/CRC bytes corrupted, no garbage: crc_errors == corrupted frames, exactly."""
+    assume(b.stream.count(SYNC) == len(b.intact_starts) + b.body_corrupted)  # no sync inside any frame body
+    dec, out = run(split(b.stream, sizes))
+    assert out == b.expected
+    s = dec.stats
+    assert s.crc_errors == b.body_corrupted
+    assert s.frames == len(b.expected)
+    assert s.duplicates == b.duplicates
+    assert s.lost_frames == b.lost
+    assert s.resets == 0
+    assert s.invalid_frames == s.unsupported_version == 0
+
+
+@PROPERTY
+@given(b=built_streams(ACTIONS_ALL, with_garbage=True), sizes=chunk_sizes)
+def test_property_garbage_truncation_bit_flips(b: Built, sizes: list[int]) -> None:
+    """Interleaved garbage, truncated and bit-flipped frames, random chunking: every intact frame, in order."""
+    dec, out = run(split(b.stream, sizes))
+    assert out == b.expected
+    s = dec.stats
+    assert s.frames == len(b.expected)
+    assert s.duplicates == b.duplicates
+    assert s.lost_frames == b.lost
+    assert s.resets == 0
+    # every body-corrupted frame is seen as a CRC error; nothing but sync positions can be one
+    assert b.body_corrupted <= s.crc_errors <= b.stream.count(SYNC) - len(b.intact_starts)
+
+
+@settings(PROPERTY, max_examples=100)
+@given(b=built_streams(ACTIONS_ALL, with_garbage=True, n_sessions=3), sizes=chunk_sizes)
+def test_property_resets_across_boot_sessions(b: Built, sizes: list[int]) -> None:
+    """Three boot sessions (BOOT flag on the first frame, clock restarting near 0): resets and losses exact."""
+    dec, out = run(split(b.stream, sizes))
+    assert out == b.expected
+    s = dec.stats
+    assert s.resets == b.resets
+    assert s.lost_frames == b.lost
+    assert s.duplicates == b.duplicates
+    assert dec.reset_pending == (b.resets > 0)
+
+
+@PROPERTY
+@given(b=built_streams(ACTIONS_ALL, with_garbage=True), sizes=chunk_sizes)
+def test_property_chunking_does_not_change_anything(b: Built, sizes: list[int]) -> None:
+    whole, out_whole = run([b.stream])
+    chunked, out_chunked = run(split(b.stream, sizes))
+    assert out_chunked == out_whole
+    assert chunked.stats == whole.stats
+    assert chunked.buffered == whole.buffered
+
+
+@PROPERTY
+@given(data=st.binary(max_size=2000), sizes=chunk_sizes)
+def test_property_random_bytes_never_raise(data: bytes, sizes: list[int]) -> None:
+    dec, out = run(split(data, sizes))
+    assert dec.stats.bytes_received == len(data)
+    assert len(out) == dec.stats.frames
+    for f in out:
+        assert max(f.ref, f.x, f.y, f.z) <= ADC_MAX

@@ -1,0 +1,490 @@
+"""Tests of the thermal calibration model and its YAML file (fbg_accel_driver.thermal_model).
+
+Covers: eq. 24 normalisation and eq. 28 evaluation against a plain-loop reference, the equivalence
+of the centred/scaled parametrisation with the paper's raw polynomial in degC, save/load round
+trip, and every refusal of the loader with its message (docs/calibration_file.md).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from fbg_accel_driver import correction_terms
+from fbg_accel_driver.thermal_model import (
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    UNITS,
+    CalibrationFileError,
+    ThermalCalibration,
+    normalise,
+)
+
+
+def make_cal(degree: int = 2, center: float = 25.0, scale: float = 10.0, seed: int = 3) -> ThermalCalibration:
+    rng = np.random.default_rng(seed)
+    M = rng.normal(0.0, 0.2, (degree + 1, 3, 3))
+    M[0] += np.diag([9.0, -8.5, 10.2])  # m/s^2 per unit Psi: a realistic leading term
+    b = rng.normal(0.0, 0.3, (degree + 1, 3))
+    return ThermalCalibration(
+        M=M,
+        b=b,
+        temperature_range_c=(14.5, 46.0),
+        sensor_id="fbg-sim-001",
+        t_center_c=center,
+        t_scale_c=scale,
+        noise_sigma_mps2=np.array([0.011, 0.012, 0.013]),
+        created="2026-11-21T12:00:00+00:00",
+        fit={"rmse_mps2": [0.001, 0.002, 0.003], "n_samples": 1800, "source": "unit test"},
+    )
+
+
+def reference_eq28(cal: ThermalCalibration, ref: np.ndarray, xyz: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
+    """Eq. 24 + eq. 28 with plain loops, independent of the vectorised implementation."""
+    out = np.zeros((len(ref), 3))
+    for i in range(len(ref)):
+        psi = xyz[i] / ref[i]
+        tau = (temp_c[i] - cal.t_center_c) / cal.t_scale_c
+        acc = np.zeros(3)
+        for k in range(cal.degree + 1):
+            acc += (cal.M[k] @ psi) * tau**k + cal.b[k] * tau**k
+        out[i] = acc
+    return out
+
+
+def to_raw_parametrisation(cal: ThermalCalibration) -> ThermalCalibration:
+    """Expand sum_k M_k ((T - c)/s)^k into the paper's sum_j M'_j T^j (binomial theorem), same for b."""
+    c, s, n = cal.t_center_c, cal.t_scale_c, cal.degree
+    M_raw = np.zeros_like(cal.M)
+    b_raw = np.zeros_like(cal.b)
+    for k in range(n + 1):
+        for j in range(k + 1):
+            w = math.comb(k, j) * (-c) ** (k - j) / s**k
+            M_raw[j] += w * cal.M[k]
+            b_raw[j] += w * cal.b[k]
+    return ThermalCalibration(M=M_raw, b=b_raw, temperature_range_c=cal.temperature_range_c, t_center_c=0.0, t_scale_c=1.0)
+
+
+def counts_batch(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    ref = rng.integers(1500, 4096, n).astype(float)
+    xyz = rng.integers(0, 4096, (n, 3)).astype(float)
+    temp = rng.uniform(10.0, 50.0, n)
+    t_s = np.arange(n) * 0.01
+    return ref, xyz, temp, t_s
+
+
+# ----------------------------------------------------------------------------- evaluation
+@pytest.mark.parametrize("degree", [0, 1, 3])
+def test_apply_counts_matches_eq28_reference(degree: int) -> None:
+    cal = make_cal(degree=degree)
+    ref, xyz, temp, t_s = counts_batch(200)
+    got = cal.apply_counts(ref, xyz, temp, t_s)
+    assert got.shape == (200, 3)
+    np.testing.assert_allclose(got, reference_eq28(cal, ref, xyz, temp), rtol=1e-12, atol=1e-12)
+
+
+def test_base_acceleration_broadcasts_scalar_temperature() -> None:
+    cal = make_cal()
+    psi = np.array([[0.3, 0.4, 0.5], [0.1, 0.2, 0.9]])
+    np.testing.assert_allclose(cal.base_acceleration(psi, 30.0), cal.base_acceleration(psi, np.array([30.0, 30.0])))
+
+
+def test_degree_zero_is_the_linear_model_eq25() -> None:
+    """n = 0: a = M_0 Psi + b_0, independent of temperature (paper eq. 25)."""
+    cal = make_cal(degree=0)
+    psi = np.array([[0.2, 0.5, 0.7]])
+    expected = cal.M[0] @ psi[0] + cal.b[0]
+    for temp in (-40.0, 0.0, 85.0):
+        np.testing.assert_allclose(cal.base_acceleration(psi, temp)[0], expected, rtol=1e-12)
+
+
+@pytest.mark.parametrize("degree", [1, 2, 4])
+def test_centred_scaled_model_equals_paper_eq28_in_degc(degree: int) -> None:
+    cal = make_cal(degree=degree, center=27.5, scale=15.5)
+    raw = to_raw_parametrisation(cal)
+    ref, xyz, temp, t_s = counts_batch(300, seed=7)
+    np.testing.assert_allclose(cal.apply_counts(ref, xyz, temp, t_s), raw.apply_counts(ref, xyz, temp, t_s), rtol=1e-9, atol=1e-9)
+    # and the raw form is literally sum_k M_k T^k Psi + sum_k b_k T^k
+    psi = xyz / ref[:, None]
+    lit = sum(raw.M[k] @ psi[0] * temp[0] ** k + raw.b[k] * temp[0] ** k for k in range(degree + 1))
+    np.testing.assert_allclose(cal.apply_counts(ref[:1], xyz[:1], temp[:1], t_s[:1])[0], lit, rtol=1e-9)
+
+
+def test_zero_or_negative_reference_gives_nan_row_not_an_exception() -> None:
+    cal = make_cal()
+    ref = np.array([3000.0, 0.0, -5.0, 2500.0])
+    xyz = np.full((4, 3), 1200.0)
+    temp = np.full(4, 25.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no divide-by-zero RuntimeWarning either
+        out = cal.apply_counts(ref, xyz, temp, np.zeros(4))
+        psi = normalise(xyz, ref)
+    assert np.all(np.isnan(out[1])) and np.all(np.isnan(out[2]))
+    assert np.all(np.isfinite(out[[0, 3]]))
+    assert np.all(np.isnan(psi[1])) and np.all(np.isfinite(psi[0]))
+    np.testing.assert_allclose(psi[0], xyz[0] / 3000.0)
+
+
+def test_in_range_and_degree() -> None:
+    cal = make_cal(degree=3)
+    assert cal.degree == 3
+    assert cal.in_range(14.5) and cal.in_range(46.0) and cal.in_range(30.0)
+    assert not cal.in_range(14.49) and not cal.in_range(46.01)
+    assert cal.new_state() == []
+
+
+# ----------------------------------------------------------------------------- file round trip
+def test_save_load_round_trip_is_exact(tmp_path: Path) -> None:
+    cal = make_cal(degree=3)
+    path = tmp_path / "cal.yaml"
+    cal.save(path)
+    text = path.read_text()
+    assert text.startswith("#")
+    doc = yaml.safe_load(text)
+    assert (doc["format"], doc["format_version"], doc["units"]) == (FORMAT_NAME, FORMAT_VERSION, UNITS)
+    back = ThermalCalibration.load(path)
+    np.testing.assert_array_equal(back.M, cal.M)
+    np.testing.assert_array_equal(back.b, cal.b)
+    np.testing.assert_array_equal(back.noise_sigma_mps2, cal.noise_sigma_mps2)
+    assert back.temperature_range_c == cal.temperature_range_c
+    assert (back.t_center_c, back.t_scale_c, back.sensor_id, back.created) == (25.0, 10.0, "fbg-sim-001", cal.created)
+    assert back.fit == cal.fit
+    ref, xyz, temp, t_s = counts_batch(50)
+    np.testing.assert_array_equal(back.apply_counts(ref, xyz, temp, t_s), cal.apply_counts(ref, xyz, temp, t_s))
+
+
+def test_save_converts_numpy_values_in_fit(tmp_path: Path) -> None:
+    cal = make_cal()
+    cal.fit = {"rmse": np.float64(0.5), "per_axis": np.array([1.0, 2.0, 3.0]), "n": np.int64(7), 3: "int key"}
+    cal.save(tmp_path / "c.yaml")
+    back = ThermalCalibration.load(tmp_path / "c.yaml")
+    assert back.fit == {"rmse": 0.5, "per_axis": [1.0, 2.0, 3.0], "n": 7, "3": "int key"}
+
+
+def test_created_is_stamped_when_empty(tmp_path: Path) -> None:
+    cal = make_cal()
+    cal.created = ""
+    cal.save(tmp_path / "c.yaml")
+    assert ThermalCalibration.load(tmp_path / "c.yaml").created.startswith("20")
+
+
+class _CountingOffset:
+    """Test-only correction term: adds offset * (number of samples seen before) on x; stateful."""
+
+    kind = "test_counting_offset"
+
+    def __init__(self, offset: float) -> None:
+        self.offset = offset
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "offset_mps2": self.offset}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> _CountingOffset:
+        return cls(float(d["offset_mps2"]))
+
+    def new_state(self) -> dict[str, int]:
+        return {"seen": 0}
+
+    def contribution(self, cal: ThermalCalibration, inputs: dict[str, np.ndarray], state: dict[str, int]) -> np.ndarray:
+        n = len(inputs["ref"])
+        out = np.zeros((n, 3))
+        out[:, 0] = self.offset * (state["seen"] + np.arange(n))
+        state["seen"] += n
+        return out
+
+
+def test_correction_terms_round_trip_and_carry_state(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(correction_terms.CORRECTION_TYPES, _CountingOffset.kind, _CountingOffset)
+    cal = make_cal()
+    cal.corrections = [_CountingOffset(0.5)]
+    cal.save(tmp_path / "c.yaml")
+    back = ThermalCalibration.load(tmp_path / "c.yaml")
+    assert [c.to_dict() for c in back.corrections] == [{"kind": "test_counting_offset", "offset_mps2": 0.5}]
+    ref, xyz, temp, t_s = counts_batch(10)
+    whole = back.apply_counts(ref, xyz, temp, t_s)
+    state = back.new_state()
+    parts = np.vstack(
+        [
+            back.apply_counts(ref[:4], xyz[:4], temp[:4], t_s[:4], state),
+            back.apply_counts(ref[4:], xyz[4:], temp[4:], t_s[4:], state),
+        ]
+    )
+    np.testing.assert_allclose(parts, whole)
+    np.testing.assert_allclose(whole[:, 0] - back.base_acceleration(xyz / ref[:, None], temp)[:, 0], 0.5 * np.arange(10))
+
+
+# ----------------------------------------------------------------------------- loader refusals
+@pytest.fixture()
+def good_doc() -> dict[str, Any]:
+    return make_cal(degree=2).to_dict()
+
+
+def write(tmp_path: Path, doc: Any) -> Path:
+    path = tmp_path / "cal.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+def refused(path: Path) -> str:
+    with pytest.raises(CalibrationFileError) as info:
+        ThermalCalibration.load(path)
+    msg = str(info.value)
+    assert msg.startswith(f"{path}: "), msg  # every message names the file
+    return msg
+
+
+def test_good_doc_loads(tmp_path: Path, good_doc: dict[str, Any]) -> None:
+    assert ThermalCalibration.load(write(tmp_path, good_doc)).degree == 2
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    assert refused(tmp_path / "nope.yaml").endswith("calibration file not found")
+
+
+def test_directory_is_not_a_file(tmp_path: Path) -> None:
+    assert refused(tmp_path).endswith("calibration file not found")
+
+
+def test_unreadable_file(tmp_path: Path, good_doc: dict[str, Any], monkeypatch: pytest.MonkeyPatch) -> None:
+    path = write(tmp_path, good_doc)
+
+    def deny(self: Path, *args: Any, **kwargs: Any) -> str:
+        raise PermissionError(13, "Permission denied", str(self))
+
+    monkeypatch.setattr(Path, "read_text", deny)  # running as root: chmod 000 would not stop the read
+    assert "calibration file cannot be read (Permission denied)" in refused(path)
+
+
+@pytest.mark.parametrize(
+    "content",
+    [b"M: [1, 2\nb: {", b"\xff\xfe\x00binary\x00", b"key: value\n  bad indent: [", b"a: " + b"[" * 3000 + b"]" * 3000],
+    ids=["unclosed", "binary", "indent", "nested_too_deeply"],
+)
+def test_not_yaml(tmp_path: Path, content: bytes) -> None:
+    path = tmp_path / "cal.yaml"
+    path.write_bytes(content)
+    assert "not valid YAML" in refused(path)
+
+
+@pytest.mark.parametrize("content", ["", "just a string\n", "- 1\n- 2\n", "42\n"], ids=["empty", "string", "list", "number"])
+def test_top_level_not_a_mapping(tmp_path: Path, content: str) -> None:
+    path = tmp_path / "cal.yaml"
+    path.write_text(content)
+    assert refused(path).endswith("top level is not a mapping")
+
+
+@pytest.mark.parametrize("key", ["format", "format_version", "units", "model", "M", "b", "temperature_range_c", "degree"])
+def test_missing_required_key(tmp_path: Path, good_doc: dict[str, Any], key: str) -> None:
+    del good_doc[key]
+    assert refused(write(tmp_path, good_doc)).endswith(f"missing key '{key}'")
+
+
+def test_wrong_format_name(tmp_path: Path, good_doc: dict[str, Any]) -> None:
+    good_doc["format"] = "imu_calibration"
+    assert refused(write(tmp_path, good_doc)).endswith("format is 'imu_calibration', expected 'fbg_accel_calibration'")
+
+
+@pytest.mark.parametrize("version", [2, 0, "1", True, None, 1.5], ids=repr)
+def test_unknown_format_version(tmp_path: Path, good_doc: dict[str, Any], version: Any) -> None:
+    good_doc["format_version"] = version
+    assert refused(write(tmp_path, good_doc)).endswith(f"format_version {version!r} is not supported (this driver reads 1)")
+
+
+@pytest.mark.parametrize("key,bad", [("acceleration", "g"), ("temperature", "K"), ("psi", "counts"), ("time", None)])
+def test_wrong_unit(tmp_path: Path, good_doc: dict[str, Any], key: str, bad: Any) -> None:
+    if bad is None:
+        del good_doc["units"][key]
+    else:
+        good_doc["units"][key] = bad
+    assert refused(write(tmp_path, good_doc)).endswith(f"unit of '{key}' is {bad!r}, expected '{UNITS[key]}'")
+
+
+def test_units_not_a_mapping(tmp_path: Path, good_doc: dict[str, Any]) -> None:
+    good_doc["units"] = ["m/s^2"]
+    assert refused(write(tmp_path, good_doc)).endswith("'units' is not a mapping")
+
+
+def test_unknown_model(tmp_path: Path, good_doc: dict[str, Any]) -> None:
+    good_doc["model"] = "neural_net"
+    assert refused(write(tmp_path, good_doc)).endswith("model 'neural_net' is not supported")
+
+
+def test_wrong_matrix_shape(tmp_path: Path, good_doc: dict[str, Any]) -> None:
+    good_doc["M"] = [[row[:2] for row in mk] for mk in good_doc["M"]]  # 3x2 matrices
+    assert refused(write(tmp_path, good_doc)).endswith("M has shape (3, 3, 2), expected (3, 3, 3) for degree 2")
+
+
+def test_wrong_bias_shape(tmp_path: Path, good_doc: dict[str, Any]) -> None:
+    good_doc["b"] = [[*bk, 0.0] for bk in good_doc["b"]]
+    assert refused(write(tmp_path, good_doc)).endswith("b has shape (3, 4), expected (3, 3) for degree 2")
+
+
+def test_ragged_matrix(tmp_path: Path, good_doc: dict[str, Any]) -> None:
+    good_doc["M"][1][2] = [1.0, 2.0]
+    assert "coefficients are not numeric arrays" in refused(write(tmp_path, good_doc))
+
+
+@pytest.mark.parametrize("degree", [1, 3])
+def test_degree_mismatch(tmp_path: Path, good_doc: dict[str, Any], degree: int) -> None:
+    good_doc["degree"] = degree
+    assert refused(write(tmp_path, good_doc)).endswith(
+        f"M has shape (3, 3, 3), expected ({degree + 1}, 3, 3) for degree {degree}"
+    )
+
+
+def test_degree_mismatch_between_m_and_b(tmp_path: Path, good_doc: dict[str, Any]) -> None:
+    good_doc["b"] = good_doc["b"][:2]
+    assert refused(write(tmp_path, good_doc)).endswith("b has shape (2, 3), expected (3, 3) for degree 2")
+
+
+@pytest.mark.parametrize("degree", [-1, 2.0, True, "2"], ids=repr)
+def test_bad_degree(tmp_path: Path, good_doc: dict[str, Any], degree: Any) -> None:
+    good_doc["degree"] = degree
+    assert refused(write(tmp_path, good_doc)).endswith(f"degree must be a non-negative integer, got {degree!r}")
+
+
+@pytest.mark.parametrize("name", ["M", "b", "noise_sigma_mps2"])
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")], ids=["nan", "inf", "-inf"])
+def test_non_finite_coefficients(tmp_path: Path, good_doc: dict[str, Any], name: str, value: float) -> None:
+    if name == "M":
+        good_doc["M"][1][0][2] = value
+    elif name == "b":
+        good_doc["b"][2][1] = value
+    else:
+        good_doc["noise_sigma_mps2"][0] = value
+    assert refused(write(tmp_path, good_doc)).endswith(f"{name} contains NaN or infinite values")
+
+
+@pytest.mark.parametrize("value", ["abc", [1, 2], {"a": 1}, 10**400], ids=["text", "list", "mapping", "huge_int"])
+def test_non_numeric_coefficient(tmp_path: Path, good_doc: dict[str, Any], value: Any) -> None:
+    good_doc["M"][0][0][0] = value
+    assert "coefficients are not numeric arrays" in refused(write(tmp_path, good_doc))
+
+
+def test_numeric_strings_are_read_as_numbers(tmp_path: Path, good_doc: dict[str, Any]) -> None:
+    """PyYAML (YAML 1.1) reads a hand-written 1e-3 as a string; the loader converts it (documented)."""
+    path = write(tmp_path, good_doc)
+    path.write_text(path.read_text().replace("noise_sigma_mps2:", "noise_sigma_mps2: [1e-3, 2e-3, 3e-3]\nignored_old:", 1))
+    np.testing.assert_array_equal(ThermalCalibration.load(path).noise_sigma_mps2, [1e-3, 2e-3, 3e-3])
+
+
+@pytest.mark.parametrize(
+    "rng,message",
+    [
+        ([40.0, 10.0], "temperature_range_c must be finite [min, max], got [40.0, 10.0]"),
+        ([float("nan"), 10.0], "temperature_range_c must be finite [min, max], got [nan, 10.0]"),
+        ([0.0, float("inf")], "temperature_range_c must be finite [min, max], got [0.0, inf]"),
+        ([10.0], "temperature_range_c must be [min, max]"),
+        ([1.0, 2.0, 3.0], "temperature_range_c must be [min, max]"),
+        ("hot", "temperature_range_c must be [min, max]"),
+        (["cold", 3.0], "could not convert string to float: 'cold'"),
+        ([10**400, 3.0], "int too large to convert to float"),
+    ],
+    ids=["reversed", "nan", "inf", "one", "three", "text", "text_item", "huge"],
+)
+def test_bad_temperature_range(tmp_path: Path, good_doc: dict[str, Any], rng: Any, message: str) -> None:
+    good_doc["temperature_range_c"] = rng
+    assert refused(write(tmp_path, good_doc)).endswith(message)
+
+
+@pytest.mark.parametrize(
+    "key,value",
+    [
+        ("temperature_scale_c", 0.0),
+        ("temperature_scale_c", -3.0),
+        ("temperature_scale_c", float("nan")),
+        ("temperature_center_c", float("inf")),
+    ],
+)
+def test_bad_temperature_scaling(tmp_path: Path, good_doc: dict[str, Any], key: str, value: float) -> None:
+    good_doc[key] = value
+    assert refused(write(tmp_path, good_doc)).endswith("temperature_scale_c must be positive and temperature_center_c finite")
+
+
+@pytest.mark.parametrize(
+    "noise,message",
+    [
+        ([0.1, -0.1, 0.1], "noise_sigma_mps2 must be non-negative"),
+        ([0.1, 0.1], "noise_sigma_mps2 must have 3 entries, got shape (2,)"),
+    ],
+)
+def test_bad_noise(tmp_path: Path, good_doc: dict[str, Any], noise: list[float], message: str) -> None:
+    good_doc["noise_sigma_mps2"] = noise
+    assert refused(write(tmp_path, good_doc)).endswith(message)
+
+
+def test_unknown_correction_kind(tmp_path: Path, good_doc: dict[str, Any]) -> None:
+    good_doc["corrections"] = [{"kind": "warp_drive", "gain": 1.0}]
+    msg = refused(write(tmp_path, good_doc))
+    assert "bad correction term: unknown correction kind 'warp_drive' (known: [" in msg
+
+
+@pytest.mark.parametrize(
+    "corrections,message",
+    [
+        ({"kind": "x"}, "'corrections' must be a list"),
+        ([{"gain": 1.0}], "bad correction term: a correction term must be a mapping with a 'kind'"),
+        (["time_drift"], "bad correction term: a correction term must be a mapping with a 'kind'"),
+    ],
+    ids=["mapping", "no_kind", "bare_string"],
+)
+def test_malformed_corrections(tmp_path: Path, good_doc: dict[str, Any], corrections: Any, message: str) -> None:
+    good_doc["corrections"] = corrections
+    assert refused(write(tmp_path, good_doc)).endswith(message)
+
+
+def test_constructor_validates_too() -> None:
+    with pytest.raises(ValueError, match="M must have shape"):
+        ThermalCalibration(M=np.zeros((3, 3)), b=np.zeros((1, 3)), temperature_range_c=(0, 1))
+    with pytest.raises(ValueError, match="b must have shape"):
+        ThermalCalibration(M=np.zeros((2, 3, 3)), b=np.zeros((1, 3)), temperature_range_c=(0, 1))
+
+
+@pytest.mark.parametrize(
+    "key,value",
+    [
+        ("noise_sigma_mps2", "&r [*r, *r, *r]"),  # self-referencing: numpy would expand it until memory runs out
+        ("sensor_id", "&s fbg-01\nsensor_alias: *s"),  # harmless, but aliases are refused as a rule
+    ],
+    ids=["self_reference", "harmless_alias"],
+)
+def test_yaml_aliases_are_refused(tmp_path: Path, good_doc: dict[str, Any], key: str, value: str) -> None:
+    path = write(tmp_path, good_doc)
+    path.write_text(path.read_text().replace(f"\n{key}:", f"\n{key}: {value}\nold_{key}:", 1))
+    assert "not valid YAML (aliases (*name) are not allowed in a calibration file" in refused(path)
+
+
+def test_anchor_without_alias_is_accepted(tmp_path: Path, good_doc: dict[str, Any]) -> None:
+    path = write(tmp_path, good_doc)
+    path.write_text(path.read_text().replace("\nsensor_id:", "\nsensor_id: &s fbg-01\nold_sensor_id:", 1))
+    assert ThermalCalibration.load(path).sensor_id == "fbg-01"
+
+
+def test_impossible_date_is_not_valid_yaml(tmp_path: Path, good_doc: dict[str, Any]) -> None:
+    path = write(tmp_path, good_doc)
+    path.write_text(path.read_text().replace("\ncreated:", "\ncreated: 2026-13-45\nold_created:", 1))
+    assert refused(path).endswith("not valid YAML (month must be in 1..12)")
+
+
+def test_yaml_written_by_save_has_no_aliases(tmp_path: Path) -> None:
+    cal = make_cal()
+    shared = [1.0, 2.0]
+    cal.fit = {"a": shared, "b": shared}  # the same object twice: safe_dump would anchor it if _plain did not copy
+    cal.save(tmp_path / "c.yaml")
+    assert "*id" not in (tmp_path / "c.yaml").read_text()
+    assert ThermalCalibration.load(tmp_path / "c.yaml").fit == {"a": [1.0, 2.0], "b": [1.0, 2.0]}
+
+
+def test_correction_parameter_too_large_for_a_float(tmp_path: Path, good_doc: dict[str, Any]) -> None:
+    """Found by test_fuzz_inputs: an OverflowError from a term's parameter parsing escaped the loader."""
+    assert "thermal_lag" in correction_terms.CORRECTION_TYPES
+    good_doc["corrections"] = [{"kind": "thermal_lag", "tau_s": 10**400}]
+    assert "bad correction term:" in refused(write(tmp_path, good_doc))
