@@ -27,6 +27,8 @@ setup(
         "console_scripts": [
             "driver = fbg_accel_driver.driver_node:main",
             "board_sim = fbg_accel_driver.sim.board_sim:main",
+            "calibration = fbg_accel_calibration.calibration_node:main",
+            "fbg-accel-calib = fbg_accel_calibration.cli:main",
         ],
     },
 )

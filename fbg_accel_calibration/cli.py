@@ -1,0 +1,253 @@
+"""``fbg-accel-calib``: offline calibration tool (console script; also ``ros2 run fbg_accel_driver fbg-accel-calib``).
+
+Subcommands (``fbg-accel-calib SUBCOMMAND --help`` for the options):
+
+* ``import``   CSV (interchange format, docs/csv_interchange.md) -> calibration MCAP.
+* ``fit``      one or more MCAP (or CSV) files, e.g. one per chamber temperature -> calibration YAML;
+               the degree is chosen by held-out cross-validation unless ``--degree`` is given.
+* ``allan``    a static recording + calibration -> Allan deviation PNG, VRW and bias instability per axis.
+* ``report``   a fit -> markdown report with tables and PNG plots (calibrated vs reference per pose,
+               residuals per degree).
+* ``report-measured``  the paper's measured series (../shared) -> docs/results_measured_fit.md + PNG.
+* ``diagnose`` residual diagnosis (``fbg_accel_calibration.diagnose_cli``).
+
+Exit codes: 0 success, 2 bad input (message on stderr).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from . import diagnose_cli
+from .table_geometry import STANDARD_GRAVITY
+
+
+def _add_csv_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--rate", type=float, default=None, help="CSV without t_s: sample rate in Hz (time = sample index / rate)")
+    p.add_argument("--temperature", type=float, default=None, help="CSV without temperature_c: temperature of every sample, degC")
+    p.add_argument("--g", type=float, default=STANDARD_GRAVITY, help="gravity for psi/theta references, m/s^2 (default 9.80665)")
+
+
+def _add_detector_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--window", type=int, default=5, help="static detector window, samples (default 5)")
+    p.add_argument("--min-interval", type=int, default=5, help="shortest static interval kept, samples (default 5)")
+    p.add_argument("--level-gap", type=float, default=1.0,
+                   help="temperatures further apart than this (degC) are different temperature levels (default 1)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="fbg-accel-calib", description="Offline calibration of the FBG triaxial accelerometer.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("import", help="CSV (interchange format) to a calibration MCAP")
+    p.add_argument("csv", type=Path)
+    p.add_argument("-o", "--output", type=Path, required=True, help="MCAP file to write")
+    _add_csv_options(p)
+    p.add_argument("--drop-bad-rows", action="store_true",
+                   help="import the good rows and list every rejected line (default: reject the file)")
+    p.add_argument("--sensor-id", default="unknown")
+    p.add_argument("--notes", default="", help="operator notes stored in the MCAP metadata")
+    p.set_defaults(func=cmd_import)
+
+    p = sub.add_parser("fit", help="MCAP (or CSV) files to a calibration YAML")
+    p.add_argument("inputs", nargs="+", type=Path)
+    p.add_argument("-o", "--output", type=Path, required=True, help="calibration YAML to write")
+    p.add_argument("--degree", type=int, default=None, help="force the degree n (default: held-out cross-validation)")
+    p.add_argument("--max-degree", type=int, default=6, help="largest degree scored (default 6, as paper Table 4)")
+    p.add_argument("--sensor-id", default=None)
+    _add_detector_options(p)
+    _add_csv_options(p)
+    p.set_defaults(func=cmd_fit)
+
+    p = sub.add_parser("allan", help="static recording to Allan deviation, VRW and bias instability")
+    p.add_argument("inputs", nargs="+", type=Path, help="static recording(s): MCAP or CSV")
+    p.add_argument("--calibration", type=Path, required=True, help="calibration YAML applied to the counts")
+    p.add_argument("-o", "--output", type=Path, default=Path("allan.png"), help="PNG plot (default allan.png)")
+    p.add_argument("--json", type=Path, default=None, help="write the figures as JSON here")
+    p.add_argument("--skip", type=float, default=0.0, help="seconds to drop at the start (warm-up)")
+    _add_csv_options(p)
+    p.set_defaults(func=cmd_allan)
+
+    p = sub.add_parser("report", help="tables and plots of a fit")
+    p.add_argument("inputs", nargs="+", type=Path)
+    p.add_argument("--calibration", type=Path, required=True)
+    p.add_argument("-o", "--output-dir", type=Path, required=True, help="directory for report.md and PNGs")
+    p.add_argument("--max-degree", type=int, default=6)
+    _add_detector_options(p)
+    _add_csv_options(p)
+    p.set_defaults(func=cmd_report)
+
+    p = sub.add_parser("report-measured", help="fit the paper's measured series (../shared) and write its report")
+    from .measured_report import DEFAULT_CSV, DEFAULT_MD, DEFAULT_PNG
+
+    p.add_argument("--csv", type=Path, default=DEFAULT_CSV, help=f"measured CSV (default {DEFAULT_CSV}, relative to the cwd)")
+    p.add_argument("--md", type=Path, default=DEFAULT_MD, help=f"markdown output (default {DEFAULT_MD})")
+    p.add_argument("--png", type=Path, default=DEFAULT_PNG, help=f"plot output (default {DEFAULT_PNG})")
+    p.set_defaults(func=cmd_report_measured)
+
+    diagnose_cli.register(sub)
+    return parser
+
+
+def _load(paths: list[Path], args: argparse.Namespace):
+    """Recording from MCAP and/or CSV files (one run per file)."""
+    from .csv_import import import_csv
+    from .mcap_io import read_recording
+    from .recording import Recording
+
+    parts = []
+    for path in paths:
+        if not path.is_file():
+            raise ValueError(f"{path}: file not found")
+        if path.suffix.lower() == ".csv":
+            parts.append(import_csv(path, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g)[0])
+        else:
+            rec = read_recording(path)
+            report = rec.metadata.get("read_report", {})
+            if report and not report.get("complete", True):
+                print(f"warning: {path} is truncated ({report.get('stopped_at')}); recovered {report.get('messages')} "
+                      "messages up to the last complete chunk", file=sys.stderr)
+            parts.append(rec)
+    return parts[0] if len(parts) == 1 else Recording.concatenate(parts)
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    from .csv_import import import_csv
+    from .mcap_io import write_recording
+
+    rec, report = import_csv(args.csv, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g,
+                             drop_bad_rows=args.drop_bad_rows)
+    metadata = {"sensor_id": args.sensor_id, "operator_notes": args.notes, "source": str(args.csv),
+                "import": report.as_dict(), "plan": "imported from CSV"}
+    n = write_recording(args.output, rec, metadata, sensor_id=args.sensor_id)
+    print(report.summary())
+    print(f"wrote {args.output}: {len(rec)} samples, {int(rec.pose_id.max()) + 1} poses, {n} messages")
+    return 0
+
+
+def cmd_fit(args: argparse.Namespace) -> int:
+    from .model_selection import select_degree
+    from .thermal_fit import FULL_SCALE_MPS2, fit_thermal, prepare
+
+    rec = _load(args.inputs, args)
+    data = prepare(rec, args.window, args.min_interval, args.level_gap)
+    selection = select_degree(data, max_degree=max(args.max_degree, args.degree or 0))
+    print(f"degree selection ({selection.criterion}):")
+    print(selection.table_markdown())
+    for note in selection.notes:
+        print(f"note: {note}")
+    degree = args.degree if args.degree is not None else selection.chosen_degree
+    if degree is None:
+        raise ValueError("no degree could be validated on held-out data; give --degree")
+    if args.degree is not None:
+        chosen = selection.scores[args.degree]
+        if not chosen.identified:
+            raise ValueError(f"--degree {args.degree}: {chosen.note}")
+        if args.degree != selection.chosen_degree:
+            print(f"note: --degree {args.degree} overrides the cross-validated choice {selection.chosen_degree}")
+    cal = fit_thermal(data, degree, sensor_id=args.sensor_id or _sensor_id(rec))
+    cal.fit["sources"] = [str(p) for p in args.inputs]
+    cal.fit["degree_selection"] = selection.as_dict()
+    cal.save(args.output)
+    rmse = np.asarray(cal.fit["rmse_mps2"])
+    print(f"degree n = {degree}: in-sample RMSE x/y/z " + " / ".join(f"{v:.4f}" for v in rmse) + " m/s^2 ("
+          + " / ".join(f"{v / FULL_SCALE_MPS2:.2e}" for v in rmse) + " of 20 g), within-pose noise "
+          + " / ".join(f"{v:.4f}" for v in cal.noise_sigma_mps2) + " m/s^2")
+    print(f"temperature range {cal.temperature_range_c[0]:.2f} .. {cal.temperature_range_c[1]:.2f} degC; "
+          f"{cal.fit['samples_used']} of {cal.fit['samples_total']} samples used")
+    print(f"wrote {args.output}")
+    return 0
+
+
+def _sensor_id(rec) -> str | None:
+    md = rec.metadata
+    for cand in (md.get("run"), *(p.get("run") for p in md.get("parts", []) if isinstance(p, dict))):
+        if isinstance(cand, dict) and cand.get("sensor_id"):
+            return str(cand["sensor_id"])
+    return None
+
+
+def cmd_allan(args: argparse.Namespace) -> int:
+    from fbg_accel_driver.thermal_model import ThermalCalibration
+
+    from .allan import allan_deviation, plot_allan
+
+    cal = ThermalCalibration.load(args.calibration)
+    rec = _load(args.inputs, args)
+    if len(np.unique(rec.run_id)) > 1:
+        raise ValueError("allan needs one continuous static recording")
+    dt = np.diff(rec.t_s)
+    if len(dt) == 0 or np.median(dt) <= 0:
+        raise ValueError("cannot determine the sample rate from the time stamps")
+    rate = 1.0 / float(np.median(dt))
+    gaps = int(np.sum(dt > 1.5 / rate))
+    keep = rec.t_s >= rec.t_s[0] + args.skip
+    sel = rec.select(keep)
+    accel = cal.apply_counts(sel.ref, sel.xyz, sel.temp_c, sel.t_s)
+    ok = np.all(np.isfinite(accel), axis=1)
+    if not ok.all():
+        print(f"warning: {int((~ok).sum())} samples without a valid calibrated output dropped", file=sys.stderr)
+    if gaps:
+        print(f"warning: {gaps} gaps longer than 1.5 sample periods in the time stamps (ADEV assumes uniform sampling)",
+              file=sys.stderr)
+    res = allan_deviation(accel[ok], rate)
+    plot_allan(res, args.output, title=f"Allan deviation of {', '.join(p.name for p in args.inputs)}")
+    print(res.table_markdown())
+    print(f"wrote {args.output}")
+    if args.json:
+        args.json.write_text(json.dumps(res.as_dict(), indent=2))
+        print(f"wrote {args.json}")
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from fbg_accel_driver.thermal_model import ThermalCalibration
+
+    from .fit_report import fit_report_markdown, plot_calibrated_vs_reference, plot_residuals_per_degree, pose_statistics
+    from .model_selection import select_degree
+    from .static_detector import calibration_samples
+    from .thermal_fit import prepare
+
+    cal = ThermalCalibration.load(args.calibration)
+    rec = _load(args.inputs, args)
+    usable, _ = calibration_samples(rec, window=args.window, min_interval=args.min_interval)
+    data = prepare(rec, usable=usable, level_gap_c=args.level_gap)
+    selection = select_degree(data, max_degree=args.max_degree)
+    out = args.output_dir
+    out.mkdir(parents=True, exist_ok=True)
+    stats = pose_statistics(cal, rec, usable & np.isfinite(rec.temp_c))
+    plot_calibrated_vs_reference(cal, rec, usable, out / "calibrated_vs_reference.png")
+    plot_residuals_per_degree(selection, out / "residuals_per_degree.png")
+    command = "fbg-accel-calib " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    text = fit_report_markdown(cal, selection, stats, {"calibrated vs reference": "calibrated_vs_reference.png",
+                                                       "residuals per degree": "residuals_per_degree.png"}, command)
+    (out / "report.md").write_text(text)
+    print(selection.table_markdown())
+    print(f"wrote {out / 'report.md'}, {out / 'calibrated_vs_reference.png'}, {out / 'residuals_per_degree.png'}")
+    return 0
+
+
+def cmd_report_measured(args: argparse.Namespace) -> int:
+    from .measured_report import main_args
+
+    return main_args(args.csv, args.md, args.png)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (OSError, ValueError) as exc:
+        print(f"fbg-accel-calib {args.command}: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

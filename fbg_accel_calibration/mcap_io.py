@@ -1,0 +1,686 @@
+"""Calibration recordings as MCAP files with the ROS 2 profile (ros2msg schemas, CDR messages).
+
+Pure Python + numpy + ``mcap``/``mcap_ros2`` (no rclpy): the calibration node, the CSV importer and
+the tests all write through :class:`RecordingWriter`; the fit and the diagnosis read through
+:func:`read_recording`. Files open in ``ros2 bag info``/``ros2 bag play`` (rosbag2 MCAP storage)
+and Foxglove because every schema is the full concatenated ``.msg`` text of the type and its
+dependencies, exactly as rosbag2 writes it.
+
+Topics (stamps are ROS time in ns; the MCAP log time of every message equals its stamp):
+
+* ``imu/raw`` -- ``sensor_msgs/msg/JointState``, the driver's raw topic (see docs/topics.md):
+  ``name`` = :data:`RAW_NAMES`, ``position`` = the values as float64 (temperature_c NaN if never valid).
+* ``imu/temperature`` -- ``sensor_msgs/msg/Temperature`` (degC, variance in degC^2).
+* ``calibration/reference_gravity`` -- ``geometry_msgs/msg/Vector3Stamped``: reference specific force
+  of a pose in the table frame, m/s^2, written when the pose's reference becomes known (frame_id
+  ``calibration_table``).
+* ``calibration/pose`` -- ``diagnostic_msgs/msg/DiagnosticStatus`` (chosen over std_msgs/String+JSON
+  because it is a standard message whose key/value list Foxglove and ``ros2 topic echo`` show
+  readably): ``name`` = ``calibration/pose``, ``message`` = the pose state, ``hardware_id`` = sensor
+  id, ``values`` = key/value pairs ``pose_id``, ``state``, ``index``, ``count`` and optionally
+  ``psi_deg``, ``theta_deg``, ``setpoint_c``. ``level`` is OK while recording, WARN while moving or
+  settling.
+
+Pose states (:data:`POSE_STATES`): ``moving`` (table moving, no reference), ``settling`` (table at the
+pose, waiting for the static detector), ``recording`` (static, samples belong to the pose), ``done``.
+:func:`read_recording` gives a sample the pose id and reference gravity of the latest pose event at
+or before its stamp when that event's state is ``recording``; otherwise pose_id -1 and NaN reference.
+
+Run metadata (sensor id, plan, operator notes, ...) are MCAP Metadata records named ``run``
+(string -> string; non-string values are stored as JSON).
+
+Crash safety: the file is written through an unbuffered OS file with small chunks (default 32 KiB
+uncompressed); every finished chunk goes to the OS at once, so a writer killed with SIGKILL leaves
+a file whose complete chunks read back (:func:`read_recording` stops at the first incomplete
+record and reports how many messages it recovered).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import math
+import os
+import re
+import struct
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, Metadata, Schema
+from mcap.stream_reader import get_chunk_data_stream
+from mcap.well_known import MessageEncoding, SchemaEncoding
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
+from mcap_ros2._dynamic import serialize_dynamic
+from mcap_ros2.decoder import DecoderFactory
+
+from .recording import Recording
+
+LOG = logging.getLogger(__name__)
+
+TOPIC_RAW = "imu/raw"
+TOPIC_TEMPERATURE = "imu/temperature"
+TOPIC_REFERENCE_GRAVITY = "calibration/reference_gravity"
+TOPIC_POSE = "calibration/pose"
+
+TYPE_RAW = "sensor_msgs/msg/JointState"
+TYPE_TEMPERATURE = "sensor_msgs/msg/Temperature"
+TYPE_REFERENCE_GRAVITY = "geometry_msgs/msg/Vector3Stamped"
+TYPE_POSE = "diagnostic_msgs/msg/DiagnosticStatus"
+
+RAW_NAMES = ("ref_counts", "x_counts", "y_counts", "z_counts", "temperature_c", "temperature_valid",
+             "status", "seq", "board_time_s")
+POSE_STATES = ("moving", "settling", "recording", "done")
+TABLE_FRAME = "calibration_table"
+DEFAULT_CHUNK_BYTES = 32 * 1024
+
+_PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32",
+               "uint32", "int64", "uint64", "string", "wstring"}
+_SEPARATOR = "=" * 80
+_CONSTANT = re.compile(r"^\S+\s+[A-Z][A-Z0-9_]*\s*=")
+
+
+class McapRecordingError(ValueError):
+    """An MCAP file cannot be written or read as a calibration recording."""
+
+
+# ---------------------------------------------------------------------------- message definitions
+def _msg_search_prefixes() -> list[Path]:
+    prefixes = [Path(p) for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+    prefixes.append(Path(sys.prefix))
+    return prefixes
+
+
+def _find_msg_file(package: str, name: str) -> Path:
+    tried = []
+    for prefix in _msg_search_prefixes():
+        candidate = prefix / "share" / package / "msg" / f"{name}.msg"
+        tried.append(str(candidate))
+        if candidate.is_file():
+            return candidate
+    raise McapRecordingError(f"message definition {package}/msg/{name} not found; looked in: {', '.join(tried)}")
+
+
+def _dependencies(package: str, text: str) -> list[tuple[str, str]]:
+    """Non-primitive field types (package, name) referenced by a .msg text, in order of appearance."""
+    deps: list[tuple[str, str]] = []
+    for raw_line in text.splitlines():
+        line = raw_line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        if _CONSTANT.match(line):
+            continue  # constant definition "type NAME=value"
+        field_type = line.split()[0]
+        base = re.sub(r"\[.*?\]$", "", field_type)
+        base = re.sub(r"<=\d+$", "", base)
+        if base in _PRIMITIVES:
+            continue
+        parts = base.split("/")
+        if len(parts) == 1:
+            dep = (package, parts[0])
+        elif len(parts) == 2:
+            dep = (parts[0], parts[1])
+        else:
+            dep = (parts[0], parts[-1])
+        if dep not in deps:
+            deps.append(dep)
+    return deps
+
+
+def message_definition(datatype: str) -> str:
+    """Full ros2msg schema text of ``datatype`` (``pkg/msg/Name``): its .msg text followed by every
+    dependency as ``====...`` / ``MSG: pkg/Name`` / text, the format rosbag2 writes into MCAP."""
+    package, _, name = datatype.split("/")
+    main_text = _find_msg_file(package, name).read_text()
+    out = [main_text.rstrip("\n")]
+    seen = {(package, name)}
+    queue = _dependencies(package, main_text)
+    while queue:
+        dep = queue.pop(0)
+        if dep in seen:
+            continue
+        seen.add(dep)
+        text = _find_msg_file(*dep).read_text()
+        out.append(f"{_SEPARATOR}\nMSG: {dep[0]}/{dep[1]}\n{text.rstrip(chr(10))}")
+        queue.extend(d for d in _dependencies(dep[0], text) if d not in seen)
+    return "\n".join(out) + "\n"
+
+
+# ---------------------------------------------------------------------------- writer
+class _UnbufferedSink:
+    """Write-through file wrapper: every ``write`` reaches the OS before returning (SIGKILL-safe)."""
+
+    def __init__(self, path: Path) -> None:
+        self._raw = io.FileIO(str(path), "wb")
+        self._pos = 0
+
+    def write(self, data: bytes) -> int:
+        view = memoryview(data)
+        while view:
+            written = self._raw.write(view)
+            if written is None:  # pragma: no cover - only for non-blocking files
+                continue
+            view = view[written:]
+        self._pos += len(data)
+        return len(data)
+
+    def tell(self) -> int:
+        return self._pos
+
+    def flush(self) -> None:
+        """Nothing is buffered in this process; ``os.fsync`` is left to :meth:`sync`."""
+
+    def sync(self) -> None:
+        os.fsync(self._raw.fileno())
+
+    def close(self) -> None:
+        self._raw.close()
+
+
+class FixedJointStateCodec:
+    """Fast CDR (XCDR1, little endian) encoder/decoder of ``sensor_msgs/msg/JointState`` messages whose
+    frame_id and name list are fixed and whose velocity/effort are empty -- the ``imu/raw`` layout.
+
+    Byte-identical to the ``mcap_ros2`` encoder (checked on a probe message when the writer starts;
+    the writer falls back to the generic encoder otherwise, and the reader decodes every message that
+    does not match the layout with the ``mcap_ros2`` decoder).
+    """
+
+    ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR_LE
+
+    def __init__(self, frame_id: str, names: tuple[str, ...]) -> None:
+        body = bytearray(8)  # stamp sec, nanosec
+        self._put_string(body, frame_id)
+        self._align(body, 4)
+        body += struct.pack("<I", len(names))
+        for name in names:
+            self._align(body, 4)
+            self._put_string(body, name)
+        self._align(body, 4)
+        body += struct.pack("<I", len(names))
+        self._align(body, 8)
+        self.middle = bytes(body[8:])
+        self.n_values = len(names)
+        self.values_offset = 4 + len(body)
+        tail = bytearray(body)
+        tail += b"\x00" * (8 * len(names))
+        start = len(tail)
+        self._align(tail, 4)
+        tail += struct.pack("<II", 0, 0)  # velocity[], effort[] empty
+        self.tail = bytes(tail[start:])
+        self.size = 4 + len(tail)
+        self._values = struct.Struct(f"<{self.n_values}d")
+        self.dtype = np.dtype([("enc", "V4"), ("sec", "<i4"), ("nanosec", "<u4"), ("mid", f"V{len(self.middle)}"),
+                               ("values", "<f8", (self.n_values,)), ("tail", f"V{len(self.tail)}")])
+
+    @staticmethod
+    def _align(buf: bytearray, n: int) -> None:
+        buf += b"\x00" * (-len(buf) % n)
+
+    @staticmethod
+    def _put_string(buf: bytearray, text: str) -> None:
+        raw = text.encode() + b"\x00"
+        buf += struct.pack("<I", len(raw)) + raw
+
+    def encode(self, stamp_ns: int, values: list[float]) -> bytes:
+        sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+        return b"".join((self.ENCAPSULATION, struct.pack("<iI", sec, nsec), self.middle, self._values.pack(*values), self.tail))
+
+    def matches(self, data: bytes) -> bool:
+        return len(data) == self.size and data[:4] == self.ENCAPSULATION and data[12:12 + len(self.middle)] == self.middle
+
+    def decode_many(self, datas: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
+        """Stamps (N,) int ns and values (N, n_values) of messages that all :meth:`match`."""
+        arr = np.frombuffer(b"".join(datas), dtype=self.dtype)
+        stamps = arr["sec"].astype(np.int64) * 1_000_000_000 + arr["nanosec"].astype(np.int64)
+        return stamps, arr["values"].astype(float)
+
+
+def _stamp(ns: int) -> dict[str, int]:
+    ns = int(ns)
+    return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
+
+
+class RecordingWriter:
+    """Incremental MCAP writer of one calibration run (ROS 2 profile, CDR, zstd chunks).
+
+    ``metadata`` is written at once as the MCAP metadata record ``run`` (e.g. ``sensor_id``, ``plan``,
+    ``operator_notes``); :meth:`add_metadata` adds more records later. All ``stamp_ns`` arguments
+    are ROS time in nanoseconds. Use as a context manager or call :meth:`close`.
+    """
+
+    def __init__(self, path: str | Path, metadata: dict[str, Any] | None = None, *,
+                 chunk_bytes: int = DEFAULT_CHUNK_BYTES, compression: str = "zstd",
+                 frame_id: str = "fbg_accel_link") -> None:
+        self.path = Path(path)
+        comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+        if compression not in comp:
+            raise McapRecordingError(f"compression must be one of {sorted(comp)}, got {compression!r}")
+        self.frame_id = frame_id
+        self._sink = _UnbufferedSink(self.path)
+        self._writer = McapWriter(self._sink, chunk_size=chunk_bytes, compression=comp[compression])
+        self._writer.start(profile="ros2", library="fbg_accel_calibration.mcap_io")
+        self._channels: dict[str, int] = {}
+        self._encoders: dict[str, Any] = {}
+        self._closed = False
+        self.message_count = 0
+        for topic, datatype in ((TOPIC_RAW, TYPE_RAW), (TOPIC_TEMPERATURE, TYPE_TEMPERATURE),
+                                (TOPIC_REFERENCE_GRAVITY, TYPE_REFERENCE_GRAVITY), (TOPIC_POSE, TYPE_POSE)):
+            self._register(topic, datatype)
+        self._raw_codec: FixedJointStateCodec | None = FixedJointStateCodec(frame_id, RAW_NAMES)
+        probe_values = [float(i) + 0.5 for i in range(len(RAW_NAMES))]
+        probe = self._encoders[TOPIC_RAW]({"header": {"stamp": _stamp(1_500_000_123), "frame_id": frame_id},
+                                           "name": list(RAW_NAMES), "position": probe_values, "velocity": [], "effort": []})
+        if self._raw_codec.encode(1_500_000_123, probe_values) != probe:
+            self._raw_codec = None  # layout differs from the generic encoder: use the generic one
+        if metadata:
+            self.add_metadata("run", metadata)
+
+    def _register(self, topic: str, datatype: str) -> None:
+        text = message_definition(datatype)
+        schema_id = self._writer.register_schema(datatype, SchemaEncoding.ROS2, text.encode())
+        self._channels[topic] = self._writer.register_channel(topic, MessageEncoding.CDR, schema_id)
+        self._encoders[topic] = serialize_dynamic(datatype, text)[datatype]
+
+    def _write(self, topic: str, stamp_ns: int, msg: dict[str, Any] | bytes) -> None:
+        if self._closed:
+            raise McapRecordingError(f"{self.path}: writer is closed")
+        data = msg if isinstance(msg, bytes) else self._encoders[topic](msg)
+        self._writer.add_message(self._channels[topic], log_time=int(stamp_ns), data=data,
+                                 publish_time=int(stamp_ns), sequence=self.message_count)
+        self.message_count += 1
+
+    # -- message kinds
+    def write_raw(self, stamp_ns: int, ref_counts: float, xyz_counts: Any, temperature_c: float = math.nan,
+                  temperature_valid: bool = True, status: int = 0, seq: int = 0,
+                  board_time_s: float | None = None) -> None:
+        """One ``imu/raw`` JointState: counts, AHT10 temperature (degC), status flags, sequence, board time (s)."""
+        x, y, z = (float(v) for v in xyz_counts)
+        values = [float(ref_counts), x, y, z, float(temperature_c), 1.0 if temperature_valid else 0.0,
+                  float(status), float(seq), float(stamp_ns) * 1e-9 if board_time_s is None else float(board_time_s)]
+        if self._raw_codec is not None:
+            self._write(TOPIC_RAW, stamp_ns, self._raw_codec.encode(stamp_ns, values))
+            return
+        self._write(TOPIC_RAW, stamp_ns, {
+            "header": {"stamp": _stamp(stamp_ns), "frame_id": self.frame_id},
+            "name": list(RAW_NAMES), "position": values, "velocity": [], "effort": []})
+
+    def write_temperature(self, stamp_ns: int, temperature_c: float, variance_c2: float = 0.0) -> None:
+        """One ``imu/temperature`` message (degC, variance degC^2)."""
+        self._write(TOPIC_TEMPERATURE, stamp_ns, {
+            "header": {"stamp": _stamp(stamp_ns), "frame_id": self.frame_id},
+            "temperature": float(temperature_c), "variance": float(variance_c2)})
+
+    def write_reference_gravity(self, stamp_ns: int, gref_mps2: Any) -> None:
+        """Reference specific force (3,) of the current pose in the table frame, m/s^2."""
+        gx, gy, gz = (float(v) for v in gref_mps2)
+        self._write(TOPIC_REFERENCE_GRAVITY, stamp_ns, {
+            "header": {"stamp": _stamp(stamp_ns), "frame_id": TABLE_FRAME},
+            "vector": {"x": gx, "y": gy, "z": gz}})
+
+    def write_pose(self, stamp_ns: int, pose_id: int, state: str, index: int = -1, count: int = -1,
+                   extra: dict[str, Any] | None = None, sensor_id: str = "") -> None:
+        """Pose event: ``state`` in :data:`POSE_STATES`; ``index``/``count`` = pose k of N (0-based k)."""
+        if state not in POSE_STATES:
+            raise McapRecordingError(f"pose state must be one of {POSE_STATES}, got {state!r}")
+        values = {"pose_id": int(pose_id), "state": state, "index": int(index), "count": int(count)}
+        values.update(extra or {})
+        self._write(TOPIC_POSE, stamp_ns, {
+            "level": 0 if state == "recording" else 1, "name": TOPIC_POSE, "message": state,
+            "hardware_id": sensor_id,
+            "values": [{"key": str(k), "value": _to_text(v)} for k, v in values.items()]})
+
+    def add_metadata(self, name: str, metadata: dict[str, Any]) -> None:
+        """An MCAP metadata record (values that are not strings are stored as JSON)."""
+        self._writer.add_metadata(name, {str(k): _to_text(v) for k, v in metadata.items()})
+
+    def flush(self) -> None:
+        """End the chunk in progress now (e.g. at the end of a pose) so it survives a crash."""
+        if not self._closed:
+            self._writer.flush()
+
+    def close(self) -> None:
+        """Finish the file (summary, index, footer) and close it. Idempotent."""
+        if self._closed:
+            return
+        self._writer.finish()
+        self._sink.sync()
+        self._sink.close()
+        self._closed = True
+
+    def __enter__(self) -> RecordingWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _to_text(value: Any) -> str:
+    if isinstance(value, str):
+        return value
+    return json.dumps(value, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+
+
+# ---------------------------------------------------------------------------- reader
+@dataclass
+class FileReadReport:
+    """What :func:`read_recording` got out of one file."""
+
+    path: str
+    messages: int = 0
+    messages_per_topic: dict[str, int] = field(default_factory=dict)
+    complete: bool = False  # the footer was reached
+    stopped_at: str = ""  # why reading stopped early (truncation, corruption)
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+
+    def summary(self) -> str:
+        state = "complete" if self.complete else f"TRUNCATED ({self.stopped_at}); recovered up to the last complete chunk"
+        return f"{self.path}: {self.messages} messages, {state}"
+
+
+def iter_file_messages(path: str | Path, report: FileReadReport | None = None, undecoded: frozenset[str] = frozenset()):
+    """Yield ``(topic, log_time_ns, decoded_message)`` for every message of a (possibly truncated) MCAP.
+
+    Uses the ``mcap`` stream reader and the ``mcap_ros2`` decoder; stops quietly at the first
+    incomplete or corrupt record and notes why in ``report``. Messages of the topics in ``undecoded``
+    are yielded as ``(topic, log_time_ns, (cdr_bytes, decoder))`` for batch decoding.
+    """
+    report = report if report is not None else FileReadReport(str(path))
+    factory = DecoderFactory()
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    decoders: dict[int, Any] = {}
+    with open(path, "rb") as fh:
+        records = _records(fh)
+        while True:
+            try:
+                record = next(records)
+            except StopIteration:
+                report.complete = True
+                break
+            except Exception as exc:  # truncated or corrupt tail: keep what was read
+                report.stopped_at = f"{type(exc).__name__} {exc}".strip()
+                break
+            if isinstance(record, tuple):
+                channel_id, log_time, data = record
+                channel = channels.get(channel_id)
+                if channel is None:
+                    raise McapRecordingError(f"{path}: message on unknown channel {channel_id}")
+                decoder = decoders.get(channel.id)
+                if decoder is None:
+                    decoder = factory.decoder_for(channel.message_encoding, schemas.get(channel.schema_id))
+                    if decoder is None:
+                        raise McapRecordingError(f"{path}: no ROS 2 decoder for topic {channel.topic}")
+                    decoders[channel.id] = decoder
+                report.messages += 1
+                report.messages_per_topic[channel.topic] = report.messages_per_topic.get(channel.topic, 0) + 1
+                if channel.topic in undecoded:
+                    yield channel.topic, log_time, (data, decoder)
+                else:
+                    yield channel.topic, log_time, decoder(data)
+            elif isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Metadata):
+                report.metadata[record.name] = dict(record.metadata)
+
+
+_RECORD_HEAD = struct.Struct("<BQ")
+_MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
+
+
+_MAGIC = b"\x89MCAP0\r\n"
+_CHUNK_HEAD = struct.Struct("<QQQI")  # message start/end time, uncompressed size, uncompressed CRC
+_SKIPPED = {Opcode.MESSAGE_INDEX, Opcode.CHUNK_INDEX, Opcode.ATTACHMENT, Opcode.ATTACHMENT_INDEX, Opcode.STATISTICS,
+            Opcode.METADATA_INDEX, Opcode.SUMMARY_OFFSET, Opcode.DATA_END, Opcode.HEADER}
+_PARSED = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel, Opcode.METADATA: Metadata}
+
+
+class _TruncatedError(McapRecordingError):
+    """The file ends inside a record."""
+
+
+def _read_exact(fh: Any, n: int) -> bytes:
+    data = fh.read(n)
+    if len(data) != n:
+        raise _TruncatedError(f"file ends {n - len(data)} bytes inside a record")
+    return data
+
+
+def _records(fh: Any):
+    """Records of an MCAP file: Schema/Channel/Metadata (``mcap.records`` objects) and, for messages,
+    tuples ``(channel_id, log_time_ns, data)``.
+
+    Top-level records are framed here (opcode, length) and the index/summary records skipped
+    unparsed; a chunk is used only when complete, its decompression and CRC check are
+    ``mcap.stream_reader.get_chunk_data_stream``; its records are split with ``struct``. This is
+    several times faster than one ``Message`` object per record and stops cleanly at a truncated
+    record (the caller reports it).
+    """
+    if fh.read(len(_MAGIC)) != _MAGIC:
+        raise McapRecordingError("not an MCAP file (bad magic)")
+    while True:
+        head = fh.read(9)
+        if not head:
+            raise _TruncatedError("file ends without a footer")
+        if len(head) < 9:
+            raise _TruncatedError("file ends inside a record header")
+        opcode, length = _RECORD_HEAD.unpack(head)
+        if opcode == Opcode.FOOTER:
+            return
+        if opcode in _SKIPPED:
+            skipped = fh.seek(length, io.SEEK_CUR)
+            if skipped > fh.seek(0, io.SEEK_END):
+                raise _TruncatedError("file ends inside a record")
+            fh.seek(skipped)
+            continue
+        body = _read_exact(fh, length)
+        if opcode == Opcode.CHUNK:
+            yield from _chunk_records(body)
+        elif opcode in _PARSED:
+            yield _PARSED[opcode].read(ReadDataStream(io.BytesIO(body)))
+        elif opcode == Opcode.MESSAGE:
+            channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(body, 0)
+            yield channel_id, log_time, body[22:]
+
+
+def _chunk_records(body: bytes):
+    start_t, end_t, size, crc = _CHUNK_HEAD.unpack_from(body, 0)
+    (clen,) = struct.unpack_from("<I", body, 28)
+    compression = body[32:32 + clen].decode()
+    (rlen,) = struct.unpack_from("<Q", body, 32 + clen)
+    records = body[40 + clen:40 + clen + rlen]
+    chunk = Chunk(compression=compression, data=records, message_start_time=start_t, message_end_time=end_t,
+                  uncompressed_crc=crc, uncompressed_size=size)
+    stream, size = get_chunk_data_stream(chunk, validate_crc=True)
+    data = stream.read(size) if size else b""
+    pos = 0
+    while pos < size:
+        opcode, length = _RECORD_HEAD.unpack_from(data, pos)
+        start, end = pos + 9, pos + 9 + length
+        if end > size:
+            raise McapRecordingError("record overruns its chunk")
+        if opcode == Opcode.MESSAGE:
+            channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(data, start)
+            yield channel_id, log_time, data[start + 22:end]
+        elif opcode in _PARSED:
+            yield _PARSED[opcode].read(ReadDataStream(io.BytesIO(data[start:end])))
+        pos = end
+
+
+def _stamp_ns(header: Any) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def read_file(path: str | Path) -> tuple[Recording, FileReadReport]:
+    """One MCAP file to a :class:`Recording` (run_id 0) and the report of what was read."""
+    path = Path(path)
+    if not path.is_file():
+        raise McapRecordingError(f"{path}: file not found")
+    report = FileReadReport(str(path))
+    temp_t: list[int] = []
+    temp_v: list[float] = []
+    gref_events: list[tuple[int, tuple[float, float, float]]] = []
+    pose_events: list[tuple[int, int, str]] = []
+    raw_data: list[bytes] = []
+    raw_decoder = None
+    for topic, log_time, msg in iter_file_messages(path, report, undecoded=frozenset({TOPIC_RAW})):
+        if topic == TOPIC_RAW:
+            raw_data.append(msg[0])
+            raw_decoder = msg[1]
+        elif topic == TOPIC_TEMPERATURE:
+            temp_t.append(_stamp_ns(msg.header))
+            temp_v.append(float(msg.temperature))
+        elif topic == TOPIC_REFERENCE_GRAVITY:
+            gref_events.append((_stamp_ns(msg.header), (msg.vector.x, msg.vector.y, msg.vector.z)))
+        elif topic == TOPIC_POSE:
+            values = {kv.key: kv.value for kv in msg.values}
+            pose_events.append((log_time, int(values.get("pose_id", "-1")), values.get("state", msg.message)))
+    if not report.complete:
+        LOG.warning("%s", report.summary())
+    if not raw_data:
+        raise McapRecordingError(f"{path}: no readable {TOPIC_RAW} messages ({report.summary()})")
+    raw_t, raw_rows, names = _decode_raw(path, raw_data, raw_decoder)
+    stamps = np.asarray(raw_t, dtype=np.int64)
+    order = np.argsort(stamps, kind="stable")
+    stamps = stamps[order]
+    rows = raw_rows[order]
+    col = {n: i for i, n in enumerate(names)}
+    xyz = rows[:, [col["x_counts"], col["y_counts"], col["z_counts"]]]
+    if "temperature_c" in col:
+        temp = rows[:, col["temperature_c"]].copy()
+        if "temperature_valid" in col:
+            temp[rows[:, col["temperature_valid"]] < 0.5] = np.nan
+    elif temp_t:
+        ts = np.asarray(temp_t, dtype=np.int64)
+        o = np.argsort(ts, kind="stable")
+        idx = np.searchsorted(ts[o], stamps, side="right") - 1
+        temp = np.where(idx >= 0, np.asarray(temp_v)[o][np.clip(idx, 0, None)], np.nan)
+    else:
+        temp = np.full(len(stamps), np.nan)
+    t_s = rows[:, col["board_time_s"]] if "board_time_s" in col else stamps * 1e-9
+    pose_id, gref = assign_poses(stamps, pose_events, gref_events)
+    metadata: dict[str, Any] = {name: dict(md) for name, md in report.metadata.items()}
+    metadata["source"] = str(path)
+    metadata["read_report"] = {"messages": report.messages, "complete": report.complete,
+                               "stopped_at": report.stopped_at, "per_topic": dict(report.messages_per_topic)}
+    rec = Recording(t_s=t_s, ref=rows[:, col["ref_counts"]], xyz=xyz, temp_c=temp, gref_mps2=gref,
+                    pose_id=pose_id, metadata=metadata)
+    return rec, report
+
+
+def _decode_raw(path: Path, datas: list[bytes], decoder: Any) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
+    """Stamps (N,) ns, values (N, k) and joint names of the ``imu/raw`` messages, in file order.
+
+    The first message is decoded with the ``mcap_ros2`` decoder; every message with the same byte
+    layout (same frame_id and names) is then decoded in one numpy pass, any other one generically.
+    """
+    first = decoder(datas[0])
+    names = tuple(first.name)
+    missing = [n for n in RAW_NAMES[:4] if n not in names]
+    if missing:
+        raise McapRecordingError(f"{path}: {TOPIC_RAW} lacks joint names {missing}")
+    codec = FixedJointStateCodec(first.header.frame_id, names)
+    fast = np.fromiter((codec.matches(d) for d in datas), dtype=bool, count=len(datas))
+    stamps = np.zeros(len(datas), dtype=np.int64)
+    values = np.zeros((len(datas), len(names)))
+    if fast.any():
+        idx = np.flatnonzero(fast)
+        stamps[idx], values[idx] = codec.decode_many([datas[i] for i in idx])
+    for i in np.flatnonzero(~fast):
+        msg = decoder(datas[i])
+        if tuple(msg.name) != names:
+            raise McapRecordingError(f"{path}: {TOPIC_RAW} changes its name list at message {i}")
+        if len(msg.position) != len(names):
+            raise McapRecordingError(f"{path}: {TOPIC_RAW} message {i} has {len(msg.position)} values for {len(names)} names")
+        stamps[i] = _stamp_ns(msg.header)
+        values[i] = msg.position
+    return stamps, values, names
+
+
+def assign_poses(stamps_ns: np.ndarray, pose_events: list[tuple[int, int, str]],
+                 gref_events: list[tuple[int, tuple[float, float, float]]]) -> tuple[np.ndarray, np.ndarray]:
+    """Pose id (N,) and reference gravity (N, 3) for samples at ``stamps_ns``.
+
+    A sample belongs to the latest pose event at or before its stamp if that event's state is
+    ``recording``; its reference is the latest reference-gravity message at or before its stamp.
+    Other samples get pose id -1 and a NaN reference.
+    """
+    n = len(stamps_ns)
+    pose_id = np.full(n, -1, dtype=int)
+    gref = np.full((n, 3), np.nan)
+    if not pose_events:
+        return pose_id, gref
+    pe = sorted(pose_events, key=lambda e: e[0])
+    pt = np.asarray([e[0] for e in pe], dtype=np.int64)
+    pid = np.asarray([e[1] if e[2] == "recording" else -1 for e in pe], dtype=int)
+    k = np.searchsorted(pt, stamps_ns, side="right") - 1
+    has = k >= 0
+    pose_id[has] = pid[k[has]]
+    if gref_events:
+        ge = sorted(gref_events, key=lambda e: e[0])
+        gt = np.asarray([e[0] for e in ge], dtype=np.int64)
+        gv = np.asarray([e[1] for e in ge], dtype=float)
+        j = np.searchsorted(gt, stamps_ns, side="right") - 1
+        ok = (j >= 0) & (pose_id >= 0)
+        gref[ok] = gv[j[ok]]
+    return pose_id, gref
+
+
+def read_recording(paths: str | Path | list[str | Path]) -> Recording:
+    """Read one or more calibration MCAPs (e.g. one per chamber temperature) into one Recording.
+
+    Each file becomes its own ``run_id``. A truncated file (writer killed) is read up to its last
+    complete chunk; ``metadata['parts'][i]['read_report']`` says how many messages were recovered and
+    why reading stopped, and a warning is logged.
+    """
+    if isinstance(paths, str | Path):
+        paths = [paths]
+    if not paths:
+        raise McapRecordingError("no MCAP files given")
+    parts = [read_file(p)[0] for p in paths]
+    if len(parts) == 1:
+        parts[0].metadata = {"parts": [parts[0].metadata], **parts[0].metadata}
+        return parts[0]
+    return Recording.concatenate(parts)
+
+
+def write_recording(path: str | Path, rec: Recording, metadata: dict[str, Any] | None = None,
+                    t0_ns: int = 0, sensor_id: str = "") -> int:
+    """Write a :class:`Recording` (e.g. from the CSV importer) as a calibration MCAP; returns messages written.
+
+    Stamps are ``t0_ns + t_s * 1e9``. A pose event (``recording`` with its reference gravity, or
+    ``moving`` for pose id -1 or an unknown reference) is written whenever the pose id or the
+    reference changes; a sample with a pose id but no reference reads back as pose -1.
+    """
+    stamps = t0_ns + np.round(rec.t_s * 1e9).astype(np.int64)
+    if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
+        raise McapRecordingError("sample times must be strictly increasing")
+    known = np.all(np.isfinite(rec.gref_mps2), axis=1)
+    pose = np.where((rec.pose_id >= 0) & known, rec.pose_id, -1)
+    change = np.ones(len(rec), dtype=bool)
+    if len(rec) > 1:
+        change[1:] = (pose[1:] != pose[:-1]) | (known[1:] & np.any(rec.gref_mps2[1:] != rec.gref_mps2[:-1], axis=1))
+    n_poses = int(rec.pose_id.max()) + 1 if len(rec) else 0
+    stamp_list, ref_list, xyz_list = stamps.tolist(), rec.ref.tolist(), rec.xyz.tolist()
+    temp_list, t_list, pose_list = rec.temp_c.tolist(), rec.t_s.tolist(), pose.tolist()
+    with RecordingWriter(path, metadata) as w:
+        for i in range(len(rec)):
+            stamp = stamp_list[i]
+            if change[i]:
+                if pose_list[i] >= 0:
+                    w.write_reference_gravity(stamp, rec.gref_mps2[i])
+                    w.write_pose(stamp, pose_list[i], "recording", index=pose_list[i], count=n_poses, sensor_id=sensor_id)
+                else:
+                    w.write_pose(stamp, -1, "moving", sensor_id=sensor_id)
+            temp = temp_list[i]
+            w.write_raw(stamp, ref_list[i], xyz_list[i], temperature_c=temp, temperature_valid=math.isfinite(temp),
+                        seq=i, board_time_s=t_list[i])
+        return w.message_count

@@ -1,0 +1,199 @@
+"""Choose the temperature degree n of eq. 28 by cross-validation (pure numpy).
+
+Paper Table 4 reports, per degree, the *in-sample* RMSE normalised by the 20 g full scale and
+picks n = 3 from three temperature levels (16, 24, 45 degC). In-sample RMSE can only fall with
+the degree, and with L levels a degree >= L is not even identified. This module therefore reports
+for every degree 0..max:
+
+* ``in_sample``: RMSE of the fit on its own samples;
+* ``held_out_pose``: leave-one-pose-out -- each pose (all its samples, at every temperature level)
+  is predicted by the model fitted without it;
+* ``held_out_level`` (only with L >= 2 levels): leave-one-temperature-level-out -- each level is
+  predicted by the model fitted on the other L - 1 levels (interpolation for inner levels,
+  extrapolation for the outer ones). A degree >= L - 1 cannot be fitted without one level, so it
+  has no value there.
+
+All figures are RMSE per axis over the predicted samples, m/s^2 and divided by the 20 g full
+scale (196.1 m/s^2). Folds remove cells from the streamed normal-equation sums of
+:mod:`thermal_fit`, so cross-validation costs one pass over the data.
+
+Choice: a degree is *eligible* when it is identified (n < L) and every applicable held-out score
+exists for it (with several levels: held out by level, i.e. n <= L - 2; with one level: held out
+by pose). The chosen degree has the smallest held-out score, the mean over axes of the held-out
+RMSE (by level when there are several levels, else by pose); a degree that is not identified is
+never chosen, and one without a held-out score is reported but not chosen.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .recording import Recording
+from .static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW
+from .thermal_fit import (
+    DEFAULT_CHUNK,
+    DEFAULT_LEVEL_GAP_C,
+    FULL_SCALE_MPS2,
+    CellStats,
+    FitData,
+    NotIdentifiedError,
+    accumulate_cells,
+    design_matrix,
+    prepare,
+    solve_normal_equations,
+    temperature_scaling,
+)
+
+
+@dataclass
+class DegreeScores:
+    """Scores of one degree; RMSE arrays are (3,) in m/s^2, NaN where not computable."""
+
+    degree: int
+    identified: bool
+    in_sample: np.ndarray
+    held_out_pose: np.ndarray
+    held_out_level: np.ndarray
+    note: str = ""
+
+    def score(self, by_level: bool) -> float:
+        """Selection score: mean over axes of the held-out RMSE (m/s^2)."""
+        return float(np.mean(self.held_out_level if by_level else self.held_out_pose))
+
+
+@dataclass
+class SelectionResult:
+    """Cross-validation over degrees, like paper Table 4 plus held-out columns."""
+
+    scores: list[DegreeScores]
+    n_levels: int
+    level_means_c: list[float]
+    n_poses: int
+    n_samples: int
+    chosen_degree: int | None
+    criterion: str
+    notes: list[str] = field(default_factory=list)
+
+    def table_markdown(self) -> str:
+        """Markdown table: RMSE / full scale per axis, in sample and held out, per degree."""
+        def fmt(v: np.ndarray) -> str:
+            return " / ".join("n/a" if not np.isfinite(x) else f"{x / FULL_SCALE_MPS2:.2e}" for x in v)
+
+        lines = ["| n | identified | in-sample RMSE/FS x / y / z | held out by pose x / y / z | "
+                 "held out by temperature level x / y / z | note |", "|---|---|---|---|---|---|"]
+        for s in self.scores:
+            mark = " **(chosen)**" if s.degree == self.chosen_degree else ""
+            lines.append(f"| {s.degree}{mark} | {'yes' if s.identified else 'NO'} | {fmt(s.in_sample)} | "
+                         f"{fmt(s.held_out_pose)} | {fmt(s.held_out_level)} | {s.note} |")
+        return "\n".join(lines)
+
+    def as_dict(self) -> dict:
+        return {
+            "n_levels": self.n_levels, "level_means_c": self.level_means_c, "n_poses": self.n_poses,
+            "n_samples": self.n_samples, "chosen_degree": self.chosen_degree, "criterion": self.criterion,
+            "notes": list(self.notes), "full_scale_mps2": FULL_SCALE_MPS2,
+            "degrees": [{"degree": s.degree, "identified": s.identified, "note": s.note,
+                         "in_sample_rmse_mps2": s.in_sample.tolist(),
+                         "held_out_pose_rmse_mps2": s.held_out_pose.tolist(),
+                         "held_out_level_rmse_mps2": s.held_out_level.tolist()} for s in self.scores],
+        }
+
+
+def _fit_cells(stats: CellStats, cells: np.ndarray, degree: int) -> np.ndarray:
+    xtx, xtg, _, _ = stats.select(cells, degree)
+    return solve_normal_equations(xtx, xtg)[0]
+
+
+def _held_out(stats: CellStats, groups: np.ndarray, degree: int, min_levels: int) -> np.ndarray:
+    """RMSE (3,) of predicting each group's cells from a fit on all other cells; NaN if any fold fails."""
+    rss = np.zeros(3)
+    n = 0.0
+    for g in np.unique(groups):
+        test = groups == g
+        train = ~test
+        if len(np.unique(stats.level[train])) < min_levels:
+            return np.full(3, np.nan)
+        try:
+            A = _fit_cells(stats, train, degree)
+        except NotIdentifiedError:
+            return np.full(3, np.nan)
+        rss += stats.cell_rss(A, degree)[test].sum(axis=0)
+        n += stats.count[test].sum()
+    return np.sqrt(rss / n)
+
+
+def select_degree(rec: Recording | FitData, max_degree: int = 6, *, window: int = DEFAULT_WINDOW,
+                  min_interval: int = DEFAULT_MIN_INTERVAL, level_gap_c: float = DEFAULT_LEVEL_GAP_C,
+                  chunk: int = DEFAULT_CHUNK, usable: np.ndarray | None = None) -> SelectionResult:
+    """Score degrees 0..``max_degree`` and choose one (see module docstring)."""
+    data = rec if isinstance(rec, FitData) else prepare(rec, window, min_interval, level_gap_c, usable)
+    if len(data) == 0:
+        raise NotIdentifiedError("no usable static samples")
+    n_levels = len(data.level_means_c)
+    center, scale = temperature_scaling(data.temp_c)
+    tau = (data.temp_c - center) / scale
+    stats = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, max_degree, chunk)
+    all_cells = np.ones(len(stats.count), dtype=bool)
+    n_total = stats.count.sum()
+    by_level = n_levels >= 2
+    notes: list[str] = []
+    scores: list[DegreeScores] = []
+    for degree in range(max_degree + 1):
+        nan3 = np.full(3, np.nan)
+        if degree >= n_levels:
+            scores.append(DegreeScores(degree, False, nan3, nan3, nan3,
+                                       f"not identified: degree >= {n_levels} temperature level(s)"))
+            continue
+        try:
+            A = _fit_cells(stats, all_cells, degree)
+        except NotIdentifiedError as exc:
+            scores.append(DegreeScores(degree, False, nan3, nan3, nan3, f"not identified: {exc}"))
+            continue
+        in_sample = np.sqrt(stats.cell_rss(A, degree).sum(axis=0) / n_total)
+        pose_cv = _held_out(stats, stats.pose, degree, min_levels=degree + 1)
+        level_cv = _held_out(stats, stats.level, degree, min_levels=degree + 1) if by_level else nan3
+        note = ""
+        if by_level and not np.all(np.isfinite(level_cv)):
+            note = f"no level hold-out: degree {degree} needs {degree + 1} levels in each fold"
+        elif not np.all(np.isfinite(pose_cv)):
+            note = "no pose hold-out: too few poses without one"
+        scores.append(DegreeScores(degree, True, in_sample, pose_cv, level_cv, note))
+    criterion = ("mean over axes of the RMSE held out by temperature level" if by_level
+                 else "mean over axes of the RMSE held out by pose (one temperature level)")
+    eligible = [s for s in scores if s.identified and np.isfinite(s.score(by_level))]
+    chosen = min(eligible, key=lambda s: s.score(by_level)).degree if eligible else None
+    if n_levels == 1:
+        notes.append("one temperature level: only degree 0 (the paper's linear model, eq. 25) is identified")
+    if max_degree >= n_levels:
+        notes.append(f"degrees >= {n_levels} are not identified by {n_levels} temperature level(s) and are never chosen")
+    if chosen is None:
+        notes.append("no degree could be validated on held-out data")
+    return SelectionResult(scores, n_levels, [float(v) for v in data.level_means_c], len(np.unique(data.pose)),
+                           int(n_total), chosen, criterion, notes)
+
+
+def held_out_predictions(data: FitData, degree: int, by: str = "pose", chunk: int = DEFAULT_CHUNK) -> np.ndarray:
+    """Calibrated output (N, 3) m/s^2 of every prepared sample predicted by the model fitted without
+    its pose (``by='pose'``) or without its temperature level (``by='level'``); NaN where that fold
+    cannot be fitted."""
+    if by not in ("pose", "level"):
+        raise ValueError(f"by must be 'pose' or 'level', got {by!r}")
+    center, scale = temperature_scaling(data.temp_c)
+    tau = (data.temp_c - center) / scale
+    stats = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, degree, chunk)
+    cell_group = stats.pose if by == "pose" else stats.level
+    sample_group = data.pose if by == "pose" else data.level
+    out = np.full((len(data), 3), np.nan)
+    for g in np.unique(cell_group):
+        train = cell_group != g
+        if len(np.unique(stats.level[train])) <= degree:
+            continue
+        try:
+            A = _fit_cells(stats, train, degree)
+        except NotIdentifiedError:
+            continue
+        rows = np.flatnonzero(sample_group == g)
+        out[rows] = design_matrix(data.psi[rows], tau[rows], degree) @ A
+    return out

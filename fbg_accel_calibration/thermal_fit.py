@@ -1,0 +1,373 @@
+"""Least-squares fit of the thermal calibration model (paper eq. 28-30) for any degree n.
+
+Pure numpy. Per sample i, with tau_i = (T_i - t_center_c) / t_scale_c::
+
+    a_i = sum_{k=0..n} M_k tau_i^k Psi_i + sum_{k=0..n} b_k tau_i^k          (eq. 28, m/s^2)
+
+which is linear in the 12(n+1) coefficients. The regressor row (eq. 29) is::
+
+    x_i = [Psi_i, Psi_i tau_i, ..., Psi_i tau_i^n, 1, tau_i, ..., tau_i^n]  (4(n+1) values)
+
+and the three output axes share it: A = (X^T X)^-1 X^T G (eq. 30, written here for row-wise
+samples; the paper's Â = G X^T (X X^T)^-1 is the same with column-wise samples). M_k[i, j] =
+A[3k + j, i], b_k[i] = A[3(n+1) + k, i].
+
+Streaming: X^T X, X^T G, G^T G and sum(X) are accumulated chunk by chunk and per *cell* (one pose
+at one temperature level), so memory is bounded by one chunk of the design matrix whatever the
+number of samples, and cross-validation (``model_selection``) can remove whole poses or whole
+temperature levels from the sums without touching the samples again. Residual sums of squares
+follow from the same sums: RSS = G^T G - 2 diag(A^T X^T G) + diag(A^T X^T X A).
+
+Temperature is centred and scaled (tau in [-1, 1] over the data) so that high degrees stay well
+conditioned; ``ThermalCalibration`` stores centre and scale, and with centre 0 and scale 1 the
+coefficients are exactly the paper's.
+
+Identifiability: with L distinct temperature levels the columns tau^k, k >= L, are linear
+combinations of lower powers on the data (a polynomial of degree >= L through L points is not
+unique), so a degree n >= L is refused with :class:`NotIdentifiedError`.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import itertools
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
+
+from .recording import Recording
+from .static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW, calibration_samples
+
+STANDARD_GRAVITY = 9.80665
+FULL_SCALE_MPS2 = 20.0 * STANDARD_GRAVITY  # paper: +-20 g; Table 4 RMSE is normalised by it
+DEFAULT_LEVEL_GAP_C = 1.0  # degC: sorted temperatures further apart than this belong to different levels
+DEFAULT_LEVEL_WIDTH_C = 3.0  # degC: a wider cluster (a sweep, not a set-point) is split into bins this wide
+DEFAULT_CHUNK = 65536
+
+
+class NotIdentifiedError(ValueError):
+    """The requested model cannot be determined from the data (degree >= levels, too few poses)."""
+
+
+def n_params(degree: int) -> int:
+    """Regressors per output axis: 3(n+1) for M, (n+1) for b."""
+    return 4 * (degree + 1)
+
+
+def design_matrix(psi: np.ndarray, tau: np.ndarray, degree: int, out: np.ndarray | None = None) -> np.ndarray:
+    """Eq. 29 regressor rows (N, 4(n+1)) from Psi (N, 3) and scaled temperature tau (N,).
+
+    ``out`` (N, 4(n+1)) may be given to reuse a buffer.
+    """
+    psi = np.asarray(psi, dtype=float)
+    tau = np.asarray(tau, dtype=float)
+    n, q = len(tau), 3 * (degree + 1)
+    X = np.empty((n, n_params(degree))) if out is None else out[:n]
+    X[:, q] = 1.0
+    X[:, 0:3] = psi
+    for k in range(1, degree + 1):
+        np.multiply(X[:, q + k - 1], tau, out=X[:, q + k])
+        np.multiply(X[:, 3 * (k - 1):3 * k], tau[:, None], out=X[:, 3 * k:3 * (k + 1)])
+    return X
+
+
+def sub_columns(degree: int, of_degree: int) -> np.ndarray:
+    """Column indices of the degree-``degree`` regressors inside a degree-``of_degree`` design matrix."""
+    if degree > of_degree:
+        raise ValueError(f"degree {degree} > {of_degree}")
+    psi_cols = np.arange(3 * (degree + 1))
+    const_cols = 3 * (of_degree + 1) + np.arange(degree + 1)
+    return np.concatenate([psi_cols, const_cols])
+
+
+def coefficients_to_model(A: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray]:
+    """Split A (4(n+1), 3) into M (n+1, 3, 3) and b (n+1, 3)."""
+    m_part = A[: 3 * (degree + 1)].reshape(degree + 1, 3, 3)  # [k, j, i]
+    M = np.transpose(m_part, (0, 2, 1))
+    b = A[3 * (degree + 1):]
+    return M, b
+
+
+def model_to_coefficients(M: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`coefficients_to_model`."""
+    degree = M.shape[0] - 1
+    return np.vstack([np.transpose(M, (0, 2, 1)).reshape(3 * (degree + 1), 3), b])
+
+
+def temperature_levels(temp_c: np.ndarray, gap_c: float = DEFAULT_LEVEL_GAP_C,
+                       max_width_c: float = DEFAULT_LEVEL_WIDTH_C) -> tuple[np.ndarray, np.ndarray]:
+    """Cluster temperatures into levels (chamber set-points).
+
+    Sorted temperatures further apart than ``gap_c`` start a new level; a cluster wider than
+    ``max_width_c`` (a slow sweep rather than a set-point) is split into equal-width bins no wider
+    than ``max_width_c``, so a continuous sweep counts as several levels for identifiability and
+    for hold-out by temperature. Returns ``(labels (N,), level_means_c (L,))`` with levels ordered
+    by temperature; NaN temperatures get label -1.
+    """
+    t = np.asarray(temp_c, dtype=float)
+    labels = np.full(t.shape, -1, dtype=int)
+    ok = np.isfinite(t)
+    if not ok.any():
+        return labels, np.zeros(0)
+    order = np.argsort(t[ok], kind="stable")
+    ts = t[ok][order]
+    cluster = np.concatenate([[0], np.cumsum(np.diff(ts) > gap_c)])
+    lab_sorted = np.empty_like(cluster)
+    next_label = 0
+    for c in range(int(cluster[-1]) + 1):
+        sel = cluster == c
+        lo, hi = ts[sel][0], ts[sel][-1]
+        bins = max(1, int(np.ceil((hi - lo) / max_width_c - 1e-9)))
+        sub = np.minimum(((ts[sel] - lo) / max((hi - lo) / bins, 1e-12)).astype(int), bins - 1) if bins > 1 else 0
+        lab_sorted[sel] = next_label + sub
+        next_label += bins
+    present = np.flatnonzero(np.bincount(lab_sorted))  # drop empty bins
+    relabel = np.zeros(next_label, dtype=np.int64)
+    relabel[present] = np.arange(len(present))
+    lab_sorted = relabel[lab_sorted]
+    lab = np.empty_like(lab_sorted)
+    lab[order] = lab_sorted
+    labels[ok] = lab
+    means = np.bincount(lab, weights=t[ok]) / np.bincount(lab)
+    return labels, means
+
+
+@dataclass
+class CellStats:
+    """Normal-equation sums per cell (pose x temperature level) for the maximum degree.
+
+    ``xtx`` (C, p, p), ``xtg`` (C, p, 3), ``gtg`` (C, 3), ``xsum`` (C, p), ``gsum`` (C, 3),
+    ``count`` (C,), with ``p = 4(degree+1)``; ``pose`` (C,) and ``level`` (C,) label the cells.
+    """
+
+    degree: int
+    pose: np.ndarray
+    level: np.ndarray
+    xtx: np.ndarray
+    xtg: np.ndarray
+    gtg: np.ndarray
+    xsum: np.ndarray
+    gsum: np.ndarray
+    count: np.ndarray
+
+    def select(self, cells: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Summed (XtX, XtG, GtG, n) over boolean ``cells`` for a degree <= self.degree."""
+        cols = sub_columns(degree, self.degree)
+        xtx = self.xtx[cells].sum(axis=0)[np.ix_(cols, cols)]
+        xtg = self.xtg[cells].sum(axis=0)[cols]
+        return xtx, xtg, self.gtg[cells].sum(axis=0), float(self.count[cells].sum())
+
+    def cell_rss(self, A: np.ndarray, degree: int) -> np.ndarray:
+        """Residual sum of squares (C, 3) of coefficients A (degree ``degree``) on each cell."""
+        cols = sub_columns(degree, self.degree)
+        xtx = self.xtx[:, cols][:, :, cols]
+        xtg = self.xtg[:, cols]
+        quad = np.einsum("pi,cpq,qi->ci", A, xtx, A)
+        lin = np.einsum("pi,cpi->ci", A, xtg)
+        return np.maximum(self.gtg - 2.0 * lin + quad, 0.0)
+
+    def cell_output_scatter(self, A: np.ndarray, degree: int) -> np.ndarray:
+        """Sum over each cell of squared deviations of the calibrated output from its cell mean (C, 3)."""
+        cols = sub_columns(degree, self.degree)
+        xtx = self.xtx[:, cols][:, :, cols]
+        quad = np.einsum("pi,cpq,qi->ci", A, xtx, A)
+        mean = self.xsum[:, cols] @ A / self.count[:, None]
+        return np.maximum(quad - self.count[:, None] * mean**2, 0.0)
+
+
+def accumulate_cells(psi: np.ndarray, tau: np.ndarray, gref: np.ndarray, pose: np.ndarray, level: np.ndarray,
+                     degree: int, chunk: int = DEFAULT_CHUNK) -> CellStats:
+    """Stream the samples in chunks of ``chunk`` rows into per-cell normal-equation sums."""
+    pose = np.asarray(pose, dtype=np.int64)
+    level = np.asarray(level, dtype=np.int64)
+    if len(pose):
+        p0, l0 = int(pose.min()), int(level.min())
+        width = int(level.max()) - l0 + 1
+        key = (pose - p0) * width + (level - l0)
+        present = np.flatnonzero(np.bincount(key))
+        lookup = np.full(int(key.max()) + 1, -1, dtype=np.int64)
+        lookup[present] = np.arange(len(present))
+        cell_of = lookup[key]
+        keys = np.stack([present // width + p0, present % width + l0], axis=1)
+    else:
+        cell_of = np.zeros(0, np.int64)
+        keys = np.zeros((0, 2), np.int64)
+    n_cells, p = len(keys), n_params(degree)
+    xtx = np.zeros((n_cells, p, p))
+    xtg = np.zeros((n_cells, p, 3))
+    gtg = np.zeros((n_cells, 3))
+    xsum = np.zeros((n_cells, p))
+    gsum = np.zeros((n_cells, 3))
+    count = np.zeros(n_cells)
+    buffer = np.empty((min(chunk, len(tau)), p))
+    for start in range(0, len(tau), chunk):
+        sl = slice(start, start + chunk)
+        X = design_matrix(psi[sl], tau[sl], degree, out=buffer)
+        G = np.asarray(gref[sl], dtype=float)
+        cells = cell_of[sl]
+        change = np.flatnonzero(cells[1:] != cells[:-1]) + 1
+        if len(change) < len(cells) // 64:  # samples come pose by pose: contiguous slices, no copy
+            bounds = np.r_[0, change, len(cells)]
+            segments = [(int(cells[a]), slice(a, b)) for a, b in itertools.pairwise(bounds)]
+        else:  # interleaved cells: group by sorting
+            order = np.argsort(cells, kind="stable")
+            cs = cells[order]
+            bounds = np.flatnonzero(np.r_[True, cs[1:] != cs[:-1], True])
+            segments = [(int(cs[a]), order[a:b]) for a, b in itertools.pairwise(bounds)]
+        for c, rows in segments:
+            Xc, Gc = X[rows], G[rows]
+            xtx[c] += Xc.T @ Xc
+            xtg[c] += Xc.T @ Gc
+            gtg[c] += np.einsum("ni,ni->i", Gc, Gc)
+            xsum[c] += Xc.sum(axis=0)
+            gsum[c] += Gc.sum(axis=0)
+            count[c] += len(Gc)
+    return CellStats(degree, keys[:, 0], keys[:, 1], xtx, xtg, gtg, xsum, gsum, count)
+
+
+def solve_normal_equations(xtx: np.ndarray, xtg: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, float]:
+    """Solve (X^T X) A = X^T G with Jacobi scaling; returns (A, condition number of the scaled X^T X).
+
+    Raises :class:`NotIdentifiedError` when the scaled matrix is (numerically) singular.
+    """
+    d = np.sqrt(np.diag(xtx))
+    if np.any(d <= 0.0):
+        raise NotIdentifiedError("a regressor is identically zero on the data")
+    s = xtx / np.outer(d, d)
+    eig = np.linalg.eigvalsh(s)
+    cond = float(eig[-1] / eig[0]) if eig[0] > 0 else float("inf")
+    if not eig[0] > rcond * eig[-1]:
+        raise NotIdentifiedError(f"normal equations are singular (condition number {cond:.3g})")
+    A = np.linalg.solve(s, xtg / d[:, None]) / d[:, None]
+    return A, cond
+
+
+@dataclass
+class FitData:
+    """Samples prepared for fitting: Psi, temperature, reference, pose, level and run of the usable samples."""
+
+    psi: np.ndarray
+    temp_c: np.ndarray
+    gref: np.ndarray
+    pose: np.ndarray
+    level: np.ndarray
+    run: np.ndarray
+    level_means_c: np.ndarray
+    n_total: int
+    n_excluded_motion: int
+    n_excluded_other: int
+    detector: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.temp_c)
+
+
+def prepare(rec: Recording, window: int = DEFAULT_WINDOW, min_interval: int = DEFAULT_MIN_INTERVAL,
+            level_gap_c: float = DEFAULT_LEVEL_GAP_C, usable: np.ndarray | None = None) -> FitData:
+    """Select the fit samples of a recording: static (signal and reference), in a pose, valid temperature
+    and reference. ``usable`` overrides the static detector (tests, diagnosis)."""
+    if usable is None:
+        usable, det = calibration_samples(rec, window=window, min_interval=min_interval)
+        det_info = {"window_samples": window, "min_interval_samples": min_interval,
+                    "noise_var_psi": det.noise_var.tolist(), "threshold_var_psi": det.threshold.tolist()}
+    else:
+        usable = np.asarray(usable, dtype=bool)
+        det_info = {"mask": "given by caller"}
+    psi = normalise(rec.xyz, rec.ref)
+    valid = (rec.pose_id >= 0) & np.all(np.isfinite(rec.gref_mps2), axis=1) & np.isfinite(rec.temp_c)
+    valid &= np.all(np.isfinite(psi), axis=1)
+    keep = usable & valid
+    level, means = temperature_levels(rec.temp_c[keep], level_gap_c)
+    # a pose is identified by (run, pose id) only through the pose id: the same id in another run is
+    # the same commanded orientation of the plan (held out together)
+    return FitData(psi[keep], rec.temp_c[keep], rec.gref_mps2[keep], rec.pose_id[keep], level, rec.run_id[keep],
+                   means, len(rec), int((valid & ~usable).sum()), int((~valid).sum()), det_info)
+
+
+def temperature_scaling(temp_c: np.ndarray) -> tuple[float, float]:
+    """Centre and half-range (degC) mapping the data's temperatures onto [-1, 1] (scale 1 for one level)."""
+    lo, hi = float(np.min(temp_c)), float(np.max(temp_c))
+    half = (hi - lo) / 2.0
+    return (lo + hi) / 2.0, half if half > 0.5 else 1.0
+
+
+def check_identified(degree: int, n_levels: int) -> None:
+    """Refuse a degree that L temperature levels cannot determine."""
+    if degree < 0:
+        raise NotIdentifiedError(f"degree must be >= 0, got {degree}")
+    if degree >= n_levels:
+        raise NotIdentifiedError(
+            f"degree {degree} in temperature is not identified by {n_levels} temperature level(s): "
+            f"a polynomial of degree >= L through L levels is not unique; use degree <= {n_levels - 1} "
+            "or record more temperature levels")
+
+
+def fit_thermal(rec: Recording | FitData, degree: int, *, sensor_id: str | None = None,
+                window: int = DEFAULT_WINDOW, min_interval: int = DEFAULT_MIN_INTERVAL,
+                level_gap_c: float = DEFAULT_LEVEL_GAP_C, chunk: int = DEFAULT_CHUNK,
+                usable: np.ndarray | None = None) -> ThermalCalibration:
+    """Fit eq. 28 of degree ``degree`` to a recording (or prepared :class:`FitData`).
+
+    The result's ``fit`` dict holds sample counts, temperature levels, the in-sample RMSE per axis
+    (m/s^2 and normalised by the 20 g full scale), the within-pose noise floor of the calibrated
+    output and the condition number. ``noise_sigma_mps2`` is that within-pose noise floor.
+    """
+    data = rec if isinstance(rec, FitData) else prepare(rec, window, min_interval, level_gap_c, usable)
+    if len(data) == 0:
+        raise NotIdentifiedError("no usable static samples (check pose ids, reference and the static detector)")
+    n_levels = len(data.level_means_c)
+    check_identified(degree, n_levels)
+    n_poses = len(np.unique(data.pose))
+    if n_poses < 4:
+        raise NotIdentifiedError(f"{n_poses} pose(s): at least 4 non-coplanar poses are needed for M and b")
+    center, scale = temperature_scaling(data.temp_c)
+    tau = (data.temp_c - center) / scale
+    stats = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, degree, chunk)
+    xtx, xtg, _, n = stats.select(np.ones(len(stats.count), bool), degree)
+    A, cond = solve_normal_equations(xtx, xtg)
+    rss = stats.cell_rss(A, degree).sum(axis=0)
+    rmse = np.sqrt(rss / n)
+    scatter = stats.cell_output_scatter(A, degree).sum(axis=0)
+    noise = np.sqrt(scatter / max(n - len(stats.count), 1.0))
+    M, b = coefficients_to_model(A, degree)
+    src = rec.metadata.get("sources", rec.metadata.get("source")) if isinstance(rec, Recording) else None
+    fit_info = {
+        "method": "least squares, eq. 28-30, streamed normal equations",
+        "degree": degree,
+        "samples_used": int(n),
+        "samples_total": data.n_total,
+        "samples_excluded_in_motion": data.n_excluded_motion,
+        "samples_excluded_invalid": data.n_excluded_other,
+        "poses": n_poses,
+        "temperature_levels_c": [round(float(v), 3) for v in data.level_means_c],
+        "rmse_mps2": rmse.tolist(),
+        "rmse_over_full_scale": (rmse / FULL_SCALE_MPS2).tolist(),
+        "within_pose_noise_mps2": noise.tolist(),
+        "condition_number_scaled": cond,
+        "static_detector": data.detector,
+    }
+    if src is not None:
+        fit_info["sources"] = src
+    return ThermalCalibration(
+        M=M, b=b, temperature_range_c=(float(np.min(data.temp_c)), float(np.max(data.temp_c))),
+        sensor_id=sensor_id or _sensor_id(rec), t_center_c=center, t_scale_c=scale, noise_sigma_mps2=noise,
+        created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), fit=fit_info)
+
+
+def _sensor_id(rec: Recording | FitData) -> str:
+    if isinstance(rec, Recording):
+        md = rec.metadata
+        for candidate in (md.get("run", {}), md, *(p.get("run", {}) for p in md.get("parts", []) if isinstance(p, dict))):
+            if isinstance(candidate, dict) and candidate.get("sensor_id"):
+                return str(candidate["sensor_id"])
+    return "unknown"
+
+
+def residuals(cal: ThermalCalibration, rec: Recording, mask: np.ndarray | None = None) -> np.ndarray:
+    """Calibrated output minus reference (N, 3) m/s^2 (eq. 28 without corrections) on ``mask``."""
+    sel = rec if mask is None else rec.select(mask)
+    psi = normalise(sel.xyz, sel.ref)
+    return cal.base_acceleration(psi, sel.temp_c) - sel.gref_mps2

@@ -1,0 +1,68 @@
+"""The paper's measured multi-position series (../shared/data/measured): import, static detection, linear fit.
+
+Needs the team's shared directory next to the repository; fails with a clear message if it is absent.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fbg_accel_calibration.cli import main as cli_main
+from fbg_accel_calibration.measured_report import PAPER_B_ABS, PAPER_M, fit_measured
+
+CSV = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "measured" / "fig13_multiposition_23C.csv"
+
+
+@pytest.fixture(scope="module")
+def measured():
+    if not CSV.is_file():
+        pytest.fail(f"measured data missing: {CSV} (the shared data directory ../shared is not next to the repository)")
+    return fit_measured(CSV)
+
+
+def test_static_detector_excludes_the_moving_samples(measured) -> None:
+    rec, usable = measured.rec, measured.usable
+    assert len(rec) == 1560
+    assert 1000 <= usable.sum() <= 1400
+    # samples taken while the table moved have intermediate angles (README); every one the detector kept
+    # must have the same reference as both neighbours (turning psi about the vertical changes nothing)
+    raw = np.genfromtxt(CSV, delimiter=",", names=True)
+    inter = (np.mod(raw["psi_deg"], 30.0) != 0) | (np.mod(raw["theta_deg"], 30.0) != 0)
+    assert inter.sum() == measured.n_intermediate == 163
+    for i in np.flatnonzero(inter & usable):
+        np.testing.assert_allclose(rec.gref_mps2[i - 1:i + 2], np.repeat(rec.gref_mps2[i][None], 3, 0), atol=1e-9)
+    assert (inter & ~usable).sum() >= 150
+
+
+def test_linear_fit_matches_the_published_values(measured) -> None:
+    P = measured.perm
+    M, b = P @ measured.M, P @ measured.b
+    assert np.allclose(np.abs(P).sum(axis=0), 1) and np.allclose(np.abs(P).sum(axis=1), 1)  # a signed permutation
+    np.testing.assert_allclose(np.abs(M), PAPER_M, atol=0.6)  # published to 0.01; signs partly lost in the paper
+    np.testing.assert_allclose(np.abs(b), PAPER_B_ABS, atol=1.5)
+    assert measured.selection.chosen_degree == 0
+    assert not any(s.identified for s in measured.selection.scores if s.degree >= 1)
+
+
+def test_rmse_against_noise_floor(measured) -> None:
+    rin, rout, floor = measured.rmse_in, measured.rmse_held_out, measured.noise_floor
+    assert np.all(rout >= rin) and np.all(rout < 1.2 * rin)  # held out is a little worse, not much
+    assert np.all(rin >= floor)  # a fit cannot beat the within-pose scatter
+    assert np.all(rin / 196.133 < 5e-3)  # order of the paper's Table 4 figures (1e-3 of the 20 g full scale)
+    assert np.all((floor > 0.1) & (floor < 0.5))
+
+
+def test_report_measured_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    if not CSV.is_file():
+        pytest.fail(f"measured data missing: {CSV}")
+    md, png = tmp_path / "r.md", tmp_path / "img" / "m.png"
+    assert cli_main(["report-measured", "--csv", str(CSV), "--md", str(md), "--png", str(png)]) == 0
+    text = md.read_text()
+    assert "held-out RMSE" in text and "81.60" in text and "![" in text
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    assert cli_main(["report-measured", "--csv", str(tmp_path / "nope.csv"), "--md", str(md), "--png", str(png)]) == 2
+    err = capsys.readouterr().err
+    assert "measured data not found" in err and "nope.csv" in err

@@ -1,0 +1,201 @@
+"""Thermal model fit (eq. 28-30) and degree selection by held-out cross-validation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fbg_accel_calibration.model_selection import held_out_predictions, select_degree
+from fbg_accel_calibration.recording import Recording
+from fbg_accel_calibration.thermal_fit import (
+    FULL_SCALE_MPS2,
+    NotIdentifiedError,
+    accumulate_cells,
+    coefficients_to_model,
+    design_matrix,
+    fit_thermal,
+    model_to_coefficients,
+    prepare,
+    residuals,
+    temperature_levels,
+)
+from fbg_accel_driver.thermal_model import ThermalCalibration
+
+G = 9.80665
+
+
+def _truth(degree: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    M = [np.diag([80.0, 78.0, 107.0]) + rng.normal(0.0, 2.0, (3, 3))]
+    M += [rng.normal(0.0, 1.0, (3, 3)) / k for k in range(1, degree + 1)]
+    b = [np.array([-101.0, 153.0, -137.0])] + [rng.normal(0.0, 1.0, 3) / k for k in range(1, degree + 1)]
+    return np.array(M), np.array(b)
+
+
+def _simulate(M: np.ndarray, b: np.ndarray, levels: tuple[float, ...], *, n_poses: int = 10, n: int = 60,
+              psi_noise: float = 1e-5, center: float, scale: float, seed: int = 0, moves: int = 0) -> Recording:
+    """Counts that eq. 28 with (M, b) maps exactly onto random gravity poses, plus Psi noise.
+
+    ``moves`` > 0 inserts that many samples between poses whose signal ramps to the next pose while
+    the reference already shows the next pose (the table's angle reading leads the sensor)."""
+    rng = np.random.default_rng(seed)
+    poses = rng.normal(size=(n_poses, 3))
+    poses = G * poses / np.linalg.norm(poses, axis=1)[:, None]
+    parts = []
+    t0 = 0.0
+    for li, temp_c in enumerate(levels):
+        tau = (temp_c - center) / scale
+        Mt = sum(M[k] * tau**k for k in range(len(M)))
+        bt = sum(b[k] * tau**k for k in range(len(b)))
+        psi_of = np.linalg.solve(Mt, (poses - bt).T).T  # (P, 3)
+        for p in range(n_poses):
+            psi = psi_of[p] + rng.normal(0.0, psi_noise, (n, 3))
+            parts.append((psi, np.full(n, temp_c), np.repeat(poses[p][None], n, 0), np.full(n, p), np.full(n, li)))
+            if moves and p + 1 < n_poses:
+                frac = (np.arange(1, moves + 1) / (moves + 1))[:, None]
+                ramp = psi_of[p] + frac * (psi_of[p + 1] - psi_of[p]) + rng.normal(0.0, psi_noise, (moves, 3))
+                parts.append((ramp, np.full(moves, temp_c), np.repeat(poses[p + 1][None], moves, 0),
+                              np.full(moves, p + 1), np.full(moves, li)))
+    psi, temp, gref, pose, run = (np.concatenate(x) for x in zip(*parts, strict=True))
+    ref = np.full(len(temp), 880.0)
+    t = t0 + np.arange(len(temp)) * 0.01
+    return Recording(t, ref, psi * ref[:, None], temp, gref, pose, run)
+
+
+def test_design_matrix_matches_eq_29_and_coefficients_round_trip() -> None:
+    rng = np.random.default_rng(0)
+    psi, tau = rng.normal(size=(5, 3)), rng.normal(size=5)
+    X = design_matrix(psi, tau, 2)
+    expected = np.hstack([psi, psi * tau[:, None], psi * tau[:, None] ** 2, np.ones((5, 1)), tau[:, None], tau[:, None] ** 2])
+    np.testing.assert_allclose(X, expected)
+    M, b = _truth(2, rng)
+    A = model_to_coefficients(M, b)
+    M2, b2 = coefficients_to_model(A, 2)
+    np.testing.assert_array_equal(M2, M)
+    np.testing.assert_array_equal(b2, b)
+    cal = ThermalCalibration(M=M, b=b, temperature_range_c=(0, 1))
+    np.testing.assert_allclose(X @ A, cal.base_acceleration(psi, tau), rtol=1e-12)
+
+
+def test_recovers_known_coefficients() -> None:
+    rng = np.random.default_rng(1)
+    M, b = _truth(2, rng)
+    rec = _simulate(M, b, (16.0, 24.0, 45.0), center=30.5, scale=14.5, psi_noise=2e-6)
+    cal = fit_thermal(rec, 2, usable=np.ones(len(rec), bool))
+    assert (cal.t_center_c, cal.t_scale_c) == (30.5, 14.5)
+    np.testing.assert_allclose(cal.M, M, atol=2e-3)
+    np.testing.assert_allclose(cal.b, b, atol=2e-3)
+    assert cal.temperature_range_c == (16.0, 45.0)
+    assert cal.fit["temperature_levels_c"] == [16.0, 24.0, 45.0]
+    # RMSE from the streamed sums equals the RMSE of the explicit residuals
+    res = residuals(cal, rec)
+    np.testing.assert_allclose(cal.fit["rmse_mps2"], np.sqrt((res**2).mean(axis=0)), rtol=1e-4)
+    # the within-pose noise floor is the injected Psi noise through M
+    expected_noise = 2e-6 * np.sqrt((M[0] ** 2).sum(axis=1))
+    np.testing.assert_allclose(cal.noise_sigma_mps2, expected_noise, rtol=0.15)
+
+
+def test_streaming_equals_one_shot_least_squares() -> None:
+    rng = np.random.default_rng(2)
+    M, b = _truth(1, rng)
+    rec = _simulate(M, b, (10.0, 30.0), center=20.0, scale=10.0, psi_noise=1e-3)
+    data = prepare(rec, usable=np.ones(len(rec), bool))
+    tau = (data.temp_c - 20.0) / 10.0
+    small = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, 1, chunk=7)
+    big = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, 1, chunk=10**6)
+    np.testing.assert_allclose(small.xtx, big.xtx, rtol=1e-10)
+    np.testing.assert_allclose(small.xtg, big.xtg, rtol=1e-10)
+    cal = fit_thermal(data, 1, chunk=7)
+    X = design_matrix(data.psi, tau, 1)
+    A_ref, *_ = np.linalg.lstsq(X, data.gref, rcond=None)
+    np.testing.assert_allclose(model_to_coefficients(cal.M, cal.b), A_ref, rtol=1e-7, atol=1e-9)
+
+
+def test_degree_not_identified_by_levels_is_refused() -> None:
+    rng = np.random.default_rng(3)
+    M, b = _truth(1, rng)
+    rec = _simulate(M, b, (16.0, 24.0, 45.0), center=30.5, scale=14.5)
+    fit_thermal(rec, 2, usable=np.ones(len(rec), bool))  # degree 2 < 3 levels: fine
+    with pytest.raises(NotIdentifiedError, match="degree 3 in temperature is not identified by 3 temperature level"):
+        fit_thermal(rec, 3, usable=np.ones(len(rec), bool))
+    one = rec.select(rec.run_id == 0)
+    with pytest.raises(NotIdentifiedError, match="not identified by 1 temperature level"):
+        fit_thermal(one, 1, usable=np.ones(len(one), bool))
+    few = rec.select((rec.run_id == 0) & (rec.pose_id < 3))
+    with pytest.raises(NotIdentifiedError, match="poses"):
+        fit_thermal(few, 0, usable=np.ones(len(few), bool))
+
+
+def test_temperature_levels() -> None:
+    t = np.r_[np.full(5, 16.0) + np.linspace(0, 0.3, 5), np.nan, np.full(4, 24.2), np.linspace(40.0, 49.0, 50)]
+    labels, means = temperature_levels(t, gap_c=1.0, max_width_c=3.0)
+    assert labels[5] == -1
+    assert len(means) == 2 + 3  # two set-points, the 9 degC sweep split into 3 bins
+    assert np.all(np.diff(means) > 0)
+    assert len(set(labels[:5])) == 1 and len(set(labels[6:10])) == 1
+
+
+def test_cross_validation_chooses_the_true_degree_and_matches_explicit_refits() -> None:
+    rng = np.random.default_rng(4)
+    M, b = _truth(1, rng)
+    M[1] *= 3.0
+    levels = (10.0, 20.0, 30.0, 40.0)
+    rec = _simulate(M, b, levels, center=25.0, scale=15.0, psi_noise=1e-4, n=30)
+    usable = np.ones(len(rec), bool)
+    sel = select_degree(rec, max_degree=4, usable=usable)
+    assert sel.n_levels == 4
+    assert sel.chosen_degree == 1
+    by_degree = {s.degree: s for s in sel.scores}
+    assert not by_degree[4].identified and "not identified" in by_degree[4].note
+    assert by_degree[3].identified and np.isnan(by_degree[3].held_out_level).all()  # needs 4 levels per fold
+    assert np.isfinite(by_degree[2].held_out_level).all()
+    # held out by level, degree 1: explicit refits without each level
+    rss, n = np.zeros(3), 0
+    for lv in range(4):
+        train = rec.select(rec.run_id != lv)
+        test = rec.select(rec.run_id == lv)
+        cal = fit_thermal(train, 1, usable=np.ones(len(train), bool))
+        # same temperature scaling as the CV (centre/scale of all data) does not change predictions
+        r = residuals(cal, test)
+        rss += (r**2).sum(axis=0)
+        n += len(test)
+    np.testing.assert_allclose(by_degree[1].held_out_level, np.sqrt(rss / n), rtol=1e-5)
+    # held out by pose, degree 0: explicit refits
+    rss, n = np.zeros(3), 0
+    for p in range(10):
+        cal = fit_thermal(rec.select(rec.pose_id != p), 0, usable=np.ones(int((rec.pose_id != p).sum()), bool))
+        r = residuals(cal, rec.select(rec.pose_id == p))
+        rss += (r**2).sum(axis=0)
+        n += int((rec.pose_id == p).sum())
+    np.testing.assert_allclose(by_degree[0].held_out_pose, np.sqrt(rss / n), rtol=1e-5)
+    assert by_degree[1].held_out_pose.mean() < by_degree[0].held_out_pose.mean()
+    table = sel.table_markdown()
+    assert "| 1 **(chosen)** |" in table and "NO" in table
+    # per-sample held-out predictions agree with the scores
+    data = prepare(rec, usable=usable)
+    pred = held_out_predictions(data, 1, by="level")
+    np.testing.assert_allclose(np.sqrt(((pred - data.gref) ** 2).mean(axis=0)), by_degree[1].held_out_level, rtol=1e-6)
+
+
+def test_three_levels_like_the_paper_never_pick_degree_three() -> None:
+    rng = np.random.default_rng(5)
+    M, b = _truth(3, rng)
+    rec = _simulate(M, b, (16.0, 24.0, 45.0), center=30.5, scale=14.5, psi_noise=1e-4, n=30)
+    sel = select_degree(rec, max_degree=6, usable=np.ones(len(rec), bool))
+    assert sel.chosen_degree is not None and sel.chosen_degree <= 1  # level hold-out exists only for n <= L - 2
+    assert all(not s.identified for s in sel.scores if s.degree >= 3)
+    assert any("not identified" in note for note in sel.notes)
+    # in-sample RMSE keeps falling with the degree, which is why the paper's in-sample choice misleads
+    ins = [s.in_sample.mean() for s in sel.scores if s.identified]
+    assert ins == sorted(ins, reverse=True)
+    assert sel.as_dict()["full_scale_mps2"] == pytest.approx(FULL_SCALE_MPS2)
+
+
+def test_static_detector_keeps_motion_out_of_the_fit() -> None:
+    rng = np.random.default_rng(6)
+    M, b = _truth(0, rng)
+    rec = _simulate(M, b, (23.4,), center=23.4, scale=1.0, psi_noise=2e-5, n=80, moves=6, n_poses=12)
+    good = fit_thermal(rec, 0)  # static detector decides
+    naive = fit_thermal(rec, 0, usable=np.ones(len(rec), bool))  # every sample with its table reading
+    assert good.fit["samples_excluded_in_motion"] >= 6 * 11
+    assert np.abs(good.M - M).max() < 0.05 and np.abs(good.b - b).max() < 0.05
+    assert np.max(good.fit["rmse_mps2"]) < 0.3 * np.min(naive.fit["rmse_mps2"])
