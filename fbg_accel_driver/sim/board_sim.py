@@ -1,2 +1,105 @@
-def main():
-    print("sim stub")
+"""``board_sim``: the simulated acquisition board (command-line entry point, no ROS).
+
+Serves the board's binary frames on a pseudo-terminal in real time and prints exactly one line
+``PTY <path>`` on stdout once the port is ready; or, with ``--output FILE``, writes the same byte
+stream to a file as fast as it can. ``--truth FILE.npz`` saves the truth arrays and the fault
+counters (what a decoder must report). SIGTERM/SIGINT end the run cleanly (truth is written).
+
+Examples::
+
+    board_sim --link /tmp/fbg_board                       # real time, symlink to the current pty
+    board_sim --rate 1000 --set effects.tia_lowpass.scale=0
+    board_sim --duration 60 --output run.bin --truth run_truth.npz --set faults.bit_flips.count=5
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import signal
+import sys
+from pathlib import Path
+
+from .board_physics import BoardSimulator
+from .pty_server import TruthRecorder, serve_pty
+from .sim_config import SimConfig, SimConfigError, parse_set_argument
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="board_sim", description="Simulated FBG accelerometer board (binary frames v1).")
+    p.add_argument("--config", help="simulator config YAML merged on config/sim_default.yaml")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config key (dotted, value parsed as YAML); repeatable")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--duration", type=float, default=None, help="seconds to run (default: scenario end, or until killed)")
+    p.add_argument("--rate", type=float, default=None, help="board sample rate in Hz (scenario.rate_hz)")
+    p.add_argument("--output", help="write the byte stream to this file instead of a pty (not paced)")
+    p.add_argument("--truth", help="write truth arrays and fault counters to this .npz at exit")
+    p.add_argument("--link", help="symlink kept pointing at the current pty slave (re-pointed after a disconnect)")
+    p.add_argument("--no-wait-client", action="store_true",
+                   help="start streaming at once instead of when a client first opens the pty (board reset on open)")
+    p.add_argument("--print-config", action="store_true", help="print the merged config as YAML and exit")
+    return p
+
+
+def load_config(args: argparse.Namespace) -> SimConfig:
+    cfg = SimConfig.load(args.config) if args.config else SimConfig.default()
+    overrides = dict(parse_set_argument(s) for s in args.set)
+    if args.rate is not None:
+        overrides["scenario.rate_hz"] = float(args.rate)
+    if args.duration is not None:
+        overrides["scenario.duration_s"] = float(args.duration)
+    return cfg.with_overrides(overrides) if overrides else cfg
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        cfg = load_config(args)
+        if args.print_config:
+            print(cfg.to_yaml())
+            return 0
+        sim = BoardSimulator(cfg, seed=args.seed)
+    except (SimConfigError, ValueError, OSError) as exc:
+        print(f"board_sim: error: {exc}", file=sys.stderr)
+        return 2
+
+    stop = {"flag": False}
+
+    def on_signal(signum, frame):
+        stop["flag"] = True
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    truth = TruthRecorder() if args.truth else None
+    duration = sim.duration_s
+    extra: dict = {"disconnect_windows_s": [[t, t + d] for t, d in sim.disconnects] or [[math.nan, math.nan]]}
+    try:
+        if args.output:
+            if not math.isfinite(duration):
+                print("board_sim: error: --output needs a finite run: give --duration (the scenario never ends)",
+                      file=sys.stderr)
+                return 2
+            n_total = sim.samples_for(duration)
+            with open(args.output, "wb") as fh:
+                while sim.sample_index < n_total and not stop["flag"]:
+                    block = sim.step(min(65536, n_total - sim.sample_index))
+                    fh.write(block.wire_bytes())
+                    if truth is not None:
+                        truth.add(block)
+        else:
+            stats = serve_pty(sim, duration, args.link, truth, lambda: stop["flag"],
+                              announce=lambda line: print(line, flush=True), wait_client=not args.no_wait_client)
+            extra.update({"reconnects": stats["reconnects"], "overflow_bytes": stats["overflow_bytes"],
+                          "written_bytes": stats["written_bytes"], "frames_lost_no_client": stats["frames_lost_no_client"]})
+    except OSError as exc:
+        print(f"board_sim: error: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        if truth is not None:
+            truth.save(Path(args.truth), sim, extra)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,712 @@
+"""Physics-based simulator of the FBG accelerometer's acquisition board (pure numpy, no ROS).
+
+Batch API (contract in the team brief)::
+
+    cfg = SimConfig.load("config/sim_default.yaml").with_overrides({"scenario.rate_hz": 100.0})
+    sim = BoardSimulator(cfg, seed=0)
+    block = sim.step(n)          # next n board samples: truth arrays + frames() + wire_bytes()
+    rec = simulate_recording(cfg, seed=0, duration_s=60.0)   # -> Recording
+
+Signal chain per sample (docs/simulator.md has the equations and the source of each effect):
+
+    table angles (t - delay) -> specific force f (table frame) -> mount rotation + vibration
+    -> axis inputs u = A f + equivalent biases (time drift, hysteresis, cable torque)
+    -> FBG pair separation d = d0 - S u + thermal mismatch -> Gaussian spectral overlap (eq. 13)
+    -> optical power x source power (temperature, wander, dropout) x chain gains (SLD wavelength
+       drift, couplers, photodiodes) -> counts at rest scale -> TIA first-order low-pass
+    -> + noise (Table 2) + dark offsets -> 12-bit ADC (round, clip 0..4095)
+    AHT10: chamber -> optics (thermal inertia) -> sensor (thermal lag) -> offset, noise, 0.01 degC
+
+Everything random is drawn per fixed-size generation chunk from ``(seed, chunk, stream)``, so the
+output depends only on the seed and the config, never on how ``step`` calls are sized.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fbg_accel_calibration.table_geometry import table_specific_force
+
+from ..frame_codec import FRAME_SIZE_V1, SEQ_MODULO, Frame, Status, crc16
+from . import faults as fz
+from .noise import GaussMarkovBank, NoiseModel, first_order_filter
+from .optics import STANDARD_G, grating_sigma_nm, overlap, overlap_slope, relative_response, source_factor
+from .scenario import TemperatureProfile, build_trajectory, vibration
+from .sim_config import SimConfig
+
+CHUNK = 2048  # samples per generation chunk (fixed: determinism does not depend on step sizes)
+CHANNELS = ("ref", "x", "y", "z")
+_STREAM_NOISE, _STREAM_SOURCE, _STREAM_AHT, _STREAM_WIRE, _STREAM_REFNOISE = 1, 2, 3, 4, 5
+
+__all__ = ["CHUNK", "BoardSimulator", "SimBlock", "SimConfig", "simulate_recording"]
+
+
+def _rot(axis: int, deg: float) -> np.ndarray:
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    m = np.eye(3)
+    i, j = [(1, 2), (0, 2), (0, 1)][axis]
+    m[i, i], m[i, j], m[j, i], m[j, j] = c, -s, s, c
+    if axis == 1:
+        m[i, j], m[j, i] = s, -s
+    return m
+
+
+def _first_order(x: np.ndarray, alpha: float, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """y[k] = alpha y[k-1] + (1 - alpha) x[k] along axis 0 (columns independent); returns (y, new state)."""
+    if alpha <= 0.0:
+        return x.copy(), np.atleast_1d(x[-1]).copy()
+    y = first_order_filter(x, alpha, -math.expm1(math.log(alpha)), np.asarray(state, float).reshape(x.shape[1:]))
+    return y, np.atleast_1d(y[-1]).copy()
+
+
+@dataclass
+class _Chunk:
+    """Everything generated for one chunk of CHUNK samples (arrays of length CHUNK)."""
+
+    arrays: dict[str, np.ndarray]
+    flip_bit: dict[int, int]
+    trunc_len: dict[int, int]
+    garbage: dict[int, bytes]
+    pieces: list[bytes] | None = None  # wire bytes per sample (lazy)
+
+
+@dataclass
+class SimBlock:
+    """``n`` consecutive board samples: truth arrays (N,) / (N, k), fault log, frames and bytes."""
+
+    arrays: dict[str, np.ndarray]
+    counters: dict[str, int]
+    _pieces: list[bytes] | None = field(repr=False, default_factory=list)
+
+    def __getattr__(self, name: str) -> Any:
+        arrays = self.__dict__.get("arrays", {})
+        if name in arrays:
+            return arrays[name]
+        counters = self.__dict__.get("counters", {})
+        if name in counters:
+            return counters[name]
+        raise AttributeError(name)
+
+    def __len__(self) -> int:
+        return int(self.arrays["t_s"].shape[0])
+
+    @property
+    def ref(self) -> np.ndarray:
+        return self.arrays["counts"][:, 0]
+
+    @property
+    def x(self) -> np.ndarray:
+        return self.arrays["counts"][:, 1]
+
+    @property
+    def y(self) -> np.ndarray:
+        return self.arrays["counts"][:, 2]
+
+    @property
+    def z(self) -> np.ndarray:
+        return self.arrays["counts"][:, 3]
+
+    @property
+    def xyz(self) -> np.ndarray:
+        return self.arrays["counts"][:, 1:]
+
+    def wire_bytes(self) -> bytes:
+        """The byte stream the board puts on the link for these samples, faults included."""
+        if self._pieces is None:
+            raise RuntimeError("this simulator was created with wire=False: no byte stream")
+        return b"".join(self._pieces)
+
+    def wire_pieces(self) -> list[bytes]:
+        """Bytes on the wire per sample (garbage burst before it + its frame as sent; b"" if unsent)."""
+        if self._pieces is None:
+            raise RuntimeError("this simulator was created with wire=False: no byte stream")
+        return list(self._pieces)
+
+    def frames(self) -> list[Frame]:
+        """Frames that arrive intact, in wire order (a duplicated frame appears twice; dropped,
+        bit-flipped and truncated frames are absent)."""
+        a = self.arrays
+        out: list[Frame] = []
+        deliver = a["sent"] & ~np.isin(a["wire_fault"], (fz.DROP, fz.BIT_FLIP, fz.TRUNCATE))
+        for i in np.flatnonzero(deliver):
+            f = Frame(int(a["seq"][i]), int(a["t_us"][i]), *(int(v) for v in a["counts"][i]), int(a["temp_cc"][i]),
+                      int(a["status"][i]))
+            out.append(f)
+            if a["wire_fault"][i] == fz.DUPLICATE:
+                out.append(f)
+        return out
+
+    def truth_dict(self) -> dict[str, Any]:
+        return {**self.arrays, **self.counters}
+
+
+class BoardSimulator:
+    """Streaming simulator of the board: ``step(n) -> SimBlock`` (deterministic for a seed)."""
+
+    def __init__(self, cfg: SimConfig | None = None, seed: int = 0, wire: bool = True) -> None:
+        """``wire=False`` skips building the byte stream (faster batch runs; ``expected_bytes_discarded``
+        then uses the nominal truncation lengths, which the wire guards may shorten)."""
+        self.wire = wire
+        self.cfg = cfg if cfg is not None else SimConfig.default()
+        self.seed = int(seed)
+        c = self.cfg
+        sc = c.get("scenario")
+        self.rate_hz = float(sc["rate_hz"])
+        if not (self.rate_hz > 0):
+            raise ValueError("scenario.rate_hz must be > 0")
+        self.clock_ppm = float(c.get("board.clock_ppm"))
+        # The board clock runs (1 + ppm) fast: it takes rate_hz (1 + ppm 1e-6) samples per true second.
+        self.rate_true_hz = self.rate_hz * (1.0 + self.clock_ppm * 1e-6)
+        self.dt_true = 1.0 / self.rate_true_hz
+        self.trajectory = build_trajectory(sc["poses"])
+        self.chamber = TemperatureProfile(float(sc["temperature"]["initial_c"]), sc["temperature"]["profile"])
+        self.gravity = float(sc["gravity_mps2"])
+        self.sines = sc["vibration"]["sines"]
+        dur = sc.get("duration_s")
+        self.duration_s = float(dur) if dur is not None else self.trajectory.duration_s
+        self._setup_optics()
+        self._setup_noise()
+        self._setup_board_and_faults()
+        self._setup_state()
+        self.sample_index = 0
+        self._chunks: dict[int, _Chunk] = {}
+        self.totals: dict[str, int] = {}
+        self._expected = fz.ExpectedDecoder()
+
+    # ------------------------------------------------------------------ setup
+    def _setup_optics(self) -> None:
+        c = self.cfg
+        o = c.get("optics")
+        rc = o["rest_counts"]
+        # rest_counts are what the ADC shows at rest with the nominal dark offsets; the optical signal part
+        # excludes them, so switching reference_dark_offset off removes the offset and keeps the signal.
+        nominal_dark = np.asarray(c.get("effects.reference_dark_offset.counts"), float)
+        self.rest_counts = np.array([float(rc[k]) for k in CHANNELS]) - nominal_dark
+        self.d0 = float(o["pair_separation_nm"])
+        self.S = float(o["differential_sensitivity_pm_per_g"]) * 1e-3 / STANDARD_G  # nm per m/s^2
+        self.sigma_g = grating_sigma_nm(np.asarray(o["grating_fwhm_nm"], float))
+        self.pair_center = np.asarray(o["pair_center_nm"], float)
+        self.fbg_thermal_nm = float(o["fbg_thermal_pm_per_c"]) * 1e-3
+        self.sigma_s = float(c.get("source.fwhm_nm")) / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+        self.source_center = float(c.get("source.center_nm"))
+        if o.get("cross_axis_from_published_M", True):
+            J = np.linalg.inv(np.asarray(o["published_M"], float))
+            self.A = J / np.diag(J)[:, None]
+        else:
+            self.A = np.eye(3)
+        r, p, y = (float(v) for v in o["mount_rpy_deg"])
+        self.R_mount = (_rot(2, y) @ _rot(1, p) @ _rot(0, r)).T  # f_sensor = R_mount f_table
+        self.T_ref = float(c.get("thermal.reference_temperature_c"))
+        # Small-signal slope of the axis counts per m/s^2 of axis input at rest (linearised overlap).
+        o0 = overlap(self.d0, self.sigma_g)
+        self.rel_slope = -overlap_slope(self.d0, self.sigma_g) / o0 * self.S  # 1/(m/s^2)
+        self.counts_per_mps2 = self.rest_counts[1:] * self.rel_slope
+        self.src0 = source_factor(self.pair_center - self.source_center, self.sigma_g, self.sigma_s)
+        fc = np.asarray(c.get("electronics.tia_cutoff_hz"), float)
+        self.tia_tau = 1.0 / (2.0 * math.pi * fc)
+        self.adc_max = int(c.get("electronics.adc_max_counts"))
+
+    def _setup_noise(self) -> None:
+        n = self.cfg.get("noise")
+        fc = np.asarray(self.cfg.get("electronics.tia_cutoff_hz"), float)[1:]
+        self.noise_model = NoiseModel(n["vrw_mps_per_sqrt_h"], n["bias_instability_mg"], fc,
+                                      n["bias_instability_time_constants_s"], self.rate_hz)
+        self.white_scale = self.cfg.scale("white_noise")
+        self.bi_scale = self.cfg.scale("bias_instability")
+        self.ref_noise = float(n["reference_noise_counts"])
+
+    def _setup_board_and_faults(self) -> None:
+        c = self.cfg
+        f = c.get("faults")
+        self.fcfg = f
+        gap_n = max(1, round(float(c.get("board.boot_gap_s")) * self.rate_true_hz))
+        resets = sorted(float(t) for t in (f["resets"].get("at_s") or []))
+        self.reset_k = np.array([math.ceil(t * self.rate_true_hz - 1e-9) for t in resets], dtype=np.int64)
+        self.epoch_start = np.concatenate([[0], self.reset_k + gap_n]).astype(np.int64)
+        self.gap_n = gap_n
+        dspec = f["disconnects"]
+        self.disconnects = [(float(t), float(dspec.get("down_s", 1.0))) for t in (dspec.get("at_s") or [])]
+        self._disc_k = [(math.ceil(t * self.rate_true_hz - 1e-9), math.ceil((t + d) * self.rate_true_hz - 1e-9))
+                        for t, d in self.disconnects]
+        end = f.get("end_s")
+        end_s = float(end) if end is not None else self.duration_s
+        rng = np.random.default_rng([self.seed, 0, _STREAM_WIRE])
+        self.schedule = fz.schedule_faults(f, self.rate_true_hz, end_s, rng, self._unsent_k, CHUNK)
+        self._wire_k = np.array(sorted(self.schedule.wire), dtype=np.int64)
+        self._garbage_k = np.array(sorted(self.schedule.garbage), dtype=np.int64)
+        self.windows = {name: list(f[name].get("windows") or []) for name in
+                        ("adc_saturation", "source_dropout", "temperature_invalid", "temperature_absent", "adc_overrun")}
+        self.temp_absent_from_boot = bool(f["temperature_absent"].get("from_boot", False))
+
+    def _unsent_k(self, k: int) -> bool:
+        for r in self.reset_k:
+            if r <= k < r + self.gap_n:
+                return True
+        return any(a <= k < b for a, b in self._disc_k)
+
+    def _setup_state(self) -> None:
+        c = self.cfg
+        rng = np.random.default_rng([self.seed, 0, 0])
+        aht = c.get("aht10")
+        off = aht.get("offset_c")
+        acc = float(aht["accuracy_c"])
+        self.aht_offset = float(off) if off is not None else float(rng.uniform(-acc, acc))
+        t_init = c.get("thermal.initial_optics_c")
+        t0 = float(self.chamber(np.array([0.0]))[0])
+        self._T_opt = np.array([float(t_init) if t_init is not None else t0])
+        self._T_sen = self._T_opt.copy()
+        self._play = float(self._T_opt[0])
+        self._tia_state: np.ndarray | None = None
+        nm = self.noise_model
+        self._white_bank = GaussMarkovBank([ax.white_q for ax in nm.axes], [ax.white_rho for ax in nm.axes], rng)
+        self._bi_bank = GaussMarkovBank(np.concatenate([ax.bi_q for ax in nm.axes]),
+                                        np.concatenate([ax.bi_rho for ax in nm.axes]), rng)
+        w = c.get("effects.source_power_wander")
+        self._wander_bank = GaussMarkovBank([float(w["relative_sigma"]) ** 2],
+                                            [math.exp(-self.dt_true / float(w["time_constant_s"]))], rng)
+        self._aht_last = (-1, 0.0)  # (read index, value degC)
+        self._last_valid_cc = 0
+
+    # ------------------------------------------------------------------ public API
+    @property
+    def t_s(self) -> float:
+        """True time (s) of the next sample."""
+        return self.sample_index * self.dt_true
+
+    def samples_for(self, duration_s: float) -> int:
+        return math.floor(duration_s * self.rate_true_hz + 1e-9)
+
+    def step(self, n: int, deliver: bool = True) -> SimBlock:
+        """The next ``n`` samples. ``deliver=False``: the link is down for them (nothing is sent; the
+        samples count as ``unsent_frames`` and the expected decoder counts them as lost)."""
+        if n < 0:
+            raise ValueError("n must be >= 0")
+        k0, k1 = self.sample_index, self.sample_index + n
+        parts: dict[str, list[np.ndarray]] = {}
+        pieces: list[bytes] = []
+        want_wire = self.wire
+        last_chunk = (k1 - 1) // CHUNK if n else k0 // CHUNK - 1
+        for ci in range(k0 // CHUNK, last_chunk + 1):
+            ch = self._get_chunk(ci)
+            a = max(k0, ci * CHUNK) - ci * CHUNK
+            b = min(k1, (ci + 1) * CHUNK) - ci * CHUNK
+            for key, arr in ch.arrays.items():
+                parts.setdefault(key, []).append(arr[a:b])
+            if want_wire:
+                pieces.extend(self._wire_pieces(ch, ci)[a:b])
+            if b == CHUNK:
+                self._chunks.pop(ci, None)
+        arrays = {k: np.concatenate(v) for k, v in parts.items()} if n else self._empty_arrays()
+        if not deliver:
+            arrays["sent"] = np.zeros(n, bool)
+            pieces = [b""] * n
+        if not want_wire:
+            pieces = None
+        self.sample_index = k1
+        counters = self._count(arrays)
+        return SimBlock(arrays, counters, pieces)
+
+    def step_bytes(self, n: int) -> bytes:
+        """Wire bytes of the next ``n`` samples only (fast path of the pty server; the truth counters
+        ``totals`` and ``expected_decoder_stats`` are not updated by this call)."""
+        k0, k1 = self.sample_index, self.sample_index + n
+        out: list[bytes] = []
+        for ci in range(k0 // CHUNK, (k1 - 1) // CHUNK + 1 if n else k0 // CHUNK):
+            ch = self._get_chunk(ci)
+            a = max(k0, ci * CHUNK) - ci * CHUNK
+            b = min(k1, (ci + 1) * CHUNK) - ci * CHUNK
+            out.extend(self._wire_pieces(ch, ci)[a:b])
+            if b == CHUNK:
+                self._chunks.pop(ci, None)
+        self.sample_index = k1
+        return b"".join(out)
+
+    def run(self, duration_s: float, block: int = 65536) -> SimBlock:
+        """Concatenated blocks for ``duration_s`` of true time from the current sample (truth only;
+        ``wire_bytes``/``frames`` of the result cover the whole span)."""
+        n_total = self.samples_for(duration_s)
+        blocks = []
+        while n_total > 0:
+            m = min(block, n_total)
+            blocks.append(self.step(m))
+            n_total -= m
+        if not blocks:
+            return self.step(0)
+        arrays = {k: np.concatenate([b.arrays[k] for b in blocks]) for k in blocks[0].arrays}
+        counters = {k: sum(b.counters[k] for b in blocks) if not k.startswith("total_") else blocks[-1].counters[k]
+                    for k in blocks[0].counters}
+        pieces = [p for b in blocks for p in b._pieces] if self.wire else None
+        return SimBlock(arrays, counters, pieces)
+
+    def expected_decoder_stats(self) -> dict[str, int]:
+        """What a ``StreamDecoder`` fed all bytes so far from the first one must report."""
+        e = self._expected
+        t = self.totals
+        return {"frames": e.frames, "crc_errors": t.get("injected_crc_errors", 0), "lost_frames": e.lost_frames,
+                "duplicates": e.duplicates, "resets": e.resets, "bytes_discarded": t.get("expected_bytes_discarded", 0),
+                "invalid_frames": 0, "unsupported_version": 0}
+
+    def configured_noise(self) -> dict[str, Any]:
+        """Noise targets and the model a test of the Allan tool compares with (m/s^2, s)."""
+        nm = self.noise_model
+        return {"vrw_mps_per_sqrt_h": nm.vrw * self.white_scale, "bias_instability_mg": nm.bi_mg * self.bi_scale,
+                "adev_1s_mps2": nm.expected_adev([1.0], self.white_scale, self.bi_scale)[0],
+                "min_adev_mps2": nm.target_min_adev, "min_adev_tau_s": nm.min_adev_tau_s,
+                "sample_sigma_mps2": nm.sample_sigma(self.white_scale, self.bi_scale), "model": nm}
+
+    # ------------------------------------------------------------------ generation
+    def _empty_arrays(self) -> dict[str, np.ndarray]:
+        ch = self._get_chunk(self.sample_index // CHUNK)
+        return {k: v[:0] for k, v in ch.arrays.items()}
+
+    def _get_chunk(self, ci: int) -> _Chunk:
+        if ci not in self._chunks:
+            nxt = self._generated_upto + 1
+            while nxt <= ci:  # generate sequentially (state carries from chunk to chunk)
+                self._chunks[nxt] = self._generate(nxt)
+                nxt += 1
+        return self._chunks[ci]
+
+    _generated_upto = -1
+
+    def _generate(self, ci: int) -> _Chunk:
+        if ci != self._generated_upto + 1:
+            raise RuntimeError("chunks must be generated in order")
+        self._generated_upto = ci
+        c = self.cfg
+        eff = c.get("effects")
+        n = CHUNK
+        k = np.arange(ci * CHUNK, (ci + 1) * CHUNK, dtype=np.int64)
+        t = k * self.dt_true
+        rng_noise = np.random.default_rng([self.seed, ci + 1, _STREAM_NOISE])
+        rng_src = np.random.default_rng([self.seed, ci + 1, _STREAM_SOURCE])
+        rng_aht = np.random.default_rng([self.seed, ci + 1, _STREAM_AHT])
+        rng_wire = np.random.default_rng([self.seed, ci + 1, _STREAM_WIRE])
+        rng_ref = np.random.default_rng([self.seed, ci + 1, _STREAM_REFNOISE])
+
+        # --- table (reading at t; what the sensor feels at t - delay: channel_delay effect)
+        psi, theta, pose_id, moving, visit = self.trajectory.evaluate(t)
+        arrival = self.trajectory.arrival_time(t)
+        gref = table_specific_force(psi, theta, self.gravity)
+        delay = float(eff["channel_delay"]["scale"]) * float(eff["channel_delay"]["delay_s"])
+        if delay != 0.0:
+            psi_d, theta_d, *_ = self.trajectory.evaluate(t - delay)
+            f_phys_table = table_specific_force(psi_d, theta_d, self.gravity)
+            vib_phys = vibration(t - delay, self.sines)
+        else:
+            psi_d, f_phys_table = psi, gref
+            vib_phys = vibration(t, self.sines)
+        accel_true = gref @ self.R_mount.T + (vibration(t, self.sines) if delay != 0.0 else vib_phys)
+        f_phys = f_phys_table @ self.R_mount.T + vib_phys
+
+        # --- temperatures: chamber -> optics (thermal inertia, paper 4.4) -> AHT10 die (thermal_lag)
+        T_ch = self.chamber(t)
+        a_opt = math.exp(-self.dt_true / float(c.get("thermal.optics_time_constant_s")))
+        T_opt, self._T_opt = _first_order(T_ch, a_opt, self._T_opt)
+        lag = float(eff["thermal_lag"]["scale"]) * float(eff["thermal_lag"]["time_constant_s"])
+        a_lag = math.exp(-self.dt_true / lag) if lag > 0 else 0.0
+        T_sen, self._T_sen = _first_order(T_opt, a_lag, self._T_sen)
+        dT = T_opt - self.T_ref
+
+        # --- equivalent acceleration biases on the axis inputs (m/s^2)
+        bias = np.zeros((n, 3))
+        td = eff["time_drift"]
+        if float(td["scale"]) != 0.0:
+            w = np.asarray(td["warmup_amplitude_mps2"], float) * -np.expm1(-t / float(td["warmup_time_constant_s"]))[:, None]
+            bias += float(td["scale"]) * (w + np.asarray(td["creep_mps2_per_h"], float) * (t / 3600.0)[:, None])
+        hy = eff["thermal_hysteresis"]
+        if float(hy["scale"]) != 0.0:
+            width = float(hy["play_width_c"])
+            u_play = np.empty(n)
+            p = self._play
+            half = 0.5 * width
+            for i, temp in enumerate(T_opt.tolist()):
+                if temp - p > half:
+                    p = temp - half
+                elif p - temp > half:
+                    p = temp + half
+                u_play[i] = p
+            self._play = p
+            branch = (T_opt - u_play) / width if width > 0 else np.zeros(n)  # in [-1/2, 1/2]
+            bias += float(hy["scale"]) * branch[:, None] * np.asarray(hy["amplitude_mps2"], float)
+        ct = eff["unmodelled_cable_torque"]
+        if float(ct["scale"]) != 0.0:
+            ang = np.radians(float(ct["harmonic"]) * psi_d + float(ct["phase_deg"]))
+            bias += float(ct["scale"]) * np.sin(ang)[:, None] * np.asarray(ct["amplitude_mps2"], float)
+        u = f_phys @ self.A.T + bias
+
+        # --- optics: pair separation and spectral overlap (paper eq. 13, 22)
+        mm = eff["fbg_pair_thermal_mismatch"]
+        d_extra = float(mm["scale"]) * dT[:, None] * np.asarray(mm["pm_per_c"], float)[None, :] * 1e-3
+        resp = relative_response(u, self.d0, self.S, self.sigma_g, float(eff["spectral_nonlinearity"]["scale"]), d_extra)
+
+        # --- source power and chain gains (paper 3.3, 3.6.2)
+        sp = eff["source_power_thermal"]
+        p_src = 1.0 + float(sp["scale"]) * float(sp["tempco_per_c"]) * dT
+        wander = self._wander_bank.step(rng_src, n)[:, 0] * float(eff["source_power_wander"]["scale"])
+        p_src = p_src * (1.0 + wander)
+        for wdw in self.windows["source_dropout"]:
+            inside = (t >= float(wdw["start_s"])) & (t < float(wdw["start_s"]) + float(wdw["duration_s"]))
+            p_src = np.where(inside, p_src * float(wdw.get("level", 0.0)), p_src)
+        gain = np.ones((n, 4))
+        for name in ("coupler_thermal", "photodetector_thermal"):
+            e = eff[name]
+            gain *= 1.0 + float(e["scale"]) * dT[:, None] * np.asarray(e["tempco_per_c"], float)[None, :]
+        sw = eff["source_wavelength_drift"]
+        shift = float(sw["scale"]) * float(sw["drift_nm_per_c"]) * dT - self.fbg_thermal_nm * dT  # source minus gratings
+        off = (self.pair_center - self.source_center)[None, :] - shift[:, None]
+        gain[:, 1:] *= source_factor(off, self.sigma_g, self.sigma_s) / self.src0
+        signal = self.rest_counts[None, :] * p_src[:, None] * gain
+        signal[:, 1:] *= resp
+
+        # --- TIA first-order low-pass per channel (paper 3.5, Table 1), scaled by the tia_lowpass effect
+        tia_scale = float(eff["tia_lowpass"]["scale"])
+        if self._tia_state is None:
+            self._tia_state = signal[0].copy()
+        filtered = np.empty_like(signal)
+        for j in range(4):
+            tau = tia_scale * self.tia_tau[j]
+            alpha = math.exp(-self.dt_true / tau) if tau > 0 else 0.0
+            y, st = _first_order(signal[:, j], alpha, self._tia_state[j:j + 1])
+            filtered[:, j] = y
+            self._tia_state[j] = st[0]
+
+        # --- noise (paper Table 2), defined on the calibrated output, injected through the small-signal slope
+        n_a = self.white_scale * self._white_bank.step(rng_noise, n)
+        bi = self._bi_bank.step(rng_noise, n).reshape(n, 3, -1).sum(axis=2)
+        n_a = n_a + self.bi_scale * bi
+        filtered[:, 1:] += (n_a @ self.A.T) * self.counts_per_mps2[None, :]
+        if self.ref_noise > 0:
+            filtered[:, 0] += rng_ref.standard_normal(n) * self.ref_noise
+
+        # --- dark offsets + ADC
+        do = eff["reference_dark_offset"]
+        filtered += float(do["scale"]) * np.asarray(do["counts"], float)[None, :]
+        counts_f = filtered.copy()
+        for wdw in self.windows["adc_saturation"]:
+            inside = (t >= float(wdw["start_s"])) & (t < float(wdw["start_s"]) + float(wdw["duration_s"]))
+            for chn in wdw.get("channels", ["x"]):
+                counts_f[inside, CHANNELS.index(chn)] = float(self.adc_max)
+        counts_f = np.clip(counts_f, 0.0, float(self.adc_max))
+        if float(eff["adc_quantisation"]["scale"]) != 0.0:
+            counts_f = np.round(counts_f)
+        counts = np.clip(np.round(counts_f), 0, self.adc_max).astype(np.int64)
+
+        # --- AHT10 reading: sample-and-hold at read_rate_hz, offset (accuracy) + noise, 0.01 degC resolution
+        aht = c.get("aht10")
+        ae = float(eff["aht10_error"]["scale"])
+        r_idx = np.floor(t * float(aht["read_rate_hz"])).astype(np.int64)
+        noise_aht = rng_aht.standard_normal(n) * float(aht["noise_c"]) * ae
+        raw = T_sen + ae * self.aht_offset + noise_aht
+        prev_idx = np.concatenate([[self._aht_last[0]], r_idx[:-1]])
+        change = r_idx != prev_idx
+        pos = np.where(change, np.arange(n), -1)
+        held_pos = np.maximum.accumulate(pos)
+        reading = np.where(held_pos >= 0, raw[np.maximum(held_pos, 0)], self._aht_last[1])
+        self._aht_last = (int(r_idx[-1]), float(reading[-1]))
+        if ae > 0:
+            res = float(aht["resolution_c"])
+            reading = np.round(reading / res) * res
+        temp_cc = np.round(reading * 100.0).astype(np.int64)
+        present = np.full(n, not self.temp_absent_from_boot)
+        valid = present.copy()
+        for wdw in self.windows["temperature_absent"]:
+            inside = (t >= float(wdw["start_s"])) & (t < float(wdw["start_s"]) + float(wdw["duration_s"]))
+            present &= ~inside
+        valid &= present
+        for wdw in self.windows["temperature_invalid"]:
+            inside = (t >= float(wdw["start_s"])) & (t < float(wdw["start_s"]) + float(wdw["duration_s"]))
+            valid &= ~inside
+        # invalid: the firmware keeps sending the last good value; absent: 0
+        vpos = np.maximum.accumulate(np.where(valid, np.arange(n), -1))
+        held_cc = np.where(vpos >= 0, temp_cc[np.maximum(vpos, 0)], self._last_valid_cc)
+        if valid.any():
+            self._last_valid_cc = int(temp_cc[np.flatnonzero(valid)[-1]])
+        temp_cc = np.where(valid, temp_cc, np.where(present, held_cc, 0))
+
+        # --- board: epochs (resets), sequence, clock, status, sent
+        epoch = np.searchsorted(self.epoch_start, k, side="right") - 1
+        start = self.epoch_start[epoch]
+        seq = (k - start) % SEQ_MODULO
+        reset_t = np.concatenate([[0.0], self.reset_k * self.dt_true])
+        t_epoch0 = reset_t[epoch]
+        board_t = np.where(epoch > 0, (t - t_epoch0) * (1.0 + self.clock_ppm * 1e-6), k / self.rate_hz)
+        t_us = np.round(board_t * 1e6).astype(np.int64)
+        sent = np.ones(n, bool)
+        for r in self.reset_k:
+            sent &= ~((k >= r) & (k < r + self.gap_n))
+        for a0, b0 in self._disc_k:
+            sent &= ~((k >= a0) & (k < b0))
+        status = np.where(present, int(Status.TEMP_PRESENT), 0) | np.where(valid, int(Status.TEMP_VALID), 0)
+        status = status | np.where(k == start, int(Status.BOOT), 0)
+        for wdw in self.windows["adc_overrun"]:
+            inside = (t >= float(wdw["start_s"])) & (t < float(wdw["start_s"]) + float(wdw["duration_s"]))
+            status = status | np.where(inside, int(Status.ADC_OVERRUN), 0)
+        status = status.astype(np.int64)
+
+        # --- wire faults of this chunk
+        wire_fault = np.zeros(n, np.int8)
+        garbage_len = np.zeros(n, np.int64)
+        flip_bit: dict[int, int] = {}
+        trunc_len: dict[int, int] = {}
+        garbage: dict[int, bytes] = {}
+        k0 = ci * CHUNK
+        for kk in self._wire_k[(self._wire_k >= k0) & (self._wire_k < k0 + CHUNK)].tolist():
+            code = self.schedule.wire[kk]
+            i = kk - k0
+            wire_fault[i] = code
+            if code == fz.BIT_FLIP:
+                flip_bit[i] = int(rng_wire.integers(0, 8 * (FRAME_SIZE_V1 - fz.FLIP_FIRST_BYTE)))
+            elif code == fz.TRUNCATE:
+                trunc_len[i] = int(rng_wire.integers(fz.TRUNC_MIN, fz.TRUNC_MAX + 1))
+        for kk in self._garbage_k[(self._garbage_k >= k0) & (self._garbage_k < k0 + CHUNK)].tolist():
+            g = self.schedule.garbage[kk]
+            garbage_len[kk - k0] = g
+            garbage[kk - k0] = fz.garbage_bytes(rng_wire, g)
+        trunc_arr = np.zeros(n, np.int64)
+        for i, v in trunc_len.items():
+            trunc_arr[i] = v
+
+        arrays = {
+            "t_s": t, "board_t_s": board_t, "pose_id": pose_id.astype(np.int64), "in_motion": moving,
+            "visit": visit.astype(np.int64), "time_at_pose_s": arrival,
+            "psi_deg": psi, "theta_deg": theta, "accel_true_mps2": accel_true, "gref_mps2": gref,
+            "temp_chamber_c": T_ch, "temp_optics_c": T_opt, "temp_sensor_true_c": T_sen,
+            "temp_sensor_c": reading, "temp_valid": valid, "temp_present": present,
+            "counts": counts, "counts_float": counts_f, "saturated": counts >= self.adc_max,
+            "seq": seq.astype(np.int64), "t_us": t_us, "status": status, "temp_cc": temp_cc,
+            "reset_start": (k == start) & (epoch > 0),
+            "sent": sent, "wire_fault": wire_fault, "garbage_before": garbage_len,
+            "trunc_len": trunc_arr,
+        }
+        return _Chunk(arrays, flip_bit, trunc_len, garbage)
+
+    # ------------------------------------------------------------------ wire
+    def _wire_pieces(self, ch: _Chunk, ci: int) -> list[bytes]:
+        if ch.pieces is not None:
+            return ch.pieces
+        a = ch.arrays
+        rec = fz.encode_frames(a["seq"], a["t_us"], a["counts"], a["temp_cc"], a["status"])
+        raw = rec.tobytes()
+        frames = [raw[i * FRAME_SIZE_V1:(i + 1) * FRAME_SIZE_V1] for i in range(CHUNK)]
+        pieces: list[bytes] = []
+        for i in range(CHUNK):
+            g = ch.garbage.get(i, b"")
+            if not a["sent"][i]:
+                pieces.append(b"")
+                continue
+            code = int(a["wire_fault"][i])
+            fr = frames[i]
+            if code == fz.DROP:
+                body = b""
+            elif code == fz.DUPLICATE:
+                body = fr + fr
+            elif code == fz.BIT_FLIP:
+                bit = ch.flip_bit[i]
+                nbits = 8 * (FRAME_SIZE_V1 - fz.FLIP_FIRST_BYTE)
+                for j in range(nbits):
+                    cand = fz.corrupt_flip(fr, (bit + j) % nbits)
+                    if not fz.hides_sync(cand):
+                        body = cand
+                        break
+                else:  # pragma: no cover - impossible: flipping a bit inside an internal sync removes it
+                    raise RuntimeError("no safe bit to flip")
+            elif code == fz.TRUNCATE:
+                body = self._safe_truncation(fr, ch.trunc_len[i], frames, ch, i)
+                ch.arrays["trunc_len"][i] = len(body)
+            else:
+                body = fr
+            pieces.append(g + body)
+        ch.pieces = pieces
+        return pieces
+
+    @staticmethod
+    def _safe_truncation(fr: bytes, length: int, frames: list[bytes], ch: _Chunk, i: int) -> bytes:
+        """A prefix of ``fr`` (>= 4 bytes) with no inner sync and whose 27-byte candidate window fails the CRC."""
+        # Bytes that follow on the wire: garbage before the next sample + the next frame (guaranteed sent
+        # and in the same chunk by the scheduler; a duplicate or fault on it only matters after the window).
+        follow = ch.garbage.get(i + 1, b"") + frames[i + 1] if i + 1 < CHUNK else b""
+        for L in [length, *range(fz.TRUNC_MAX, fz.TRUNC_MIN - 1, -1)]:
+            cand = fr[:L]
+            if fz.hides_sync(cand):
+                continue
+            window = (cand + follow)[:FRAME_SIZE_V1]
+            if len(window) == FRAME_SIZE_V1 and crc16(window[2:25]) == (window[25] | (window[26] << 8)):
+                continue
+            return cand
+        raise RuntimeError("no safe truncation length")  # pragma: no cover
+
+    # ------------------------------------------------------------------ counters
+    def _count(self, a: dict[str, np.ndarray]) -> dict[str, int]:
+        sent = a["sent"]
+        wf = np.where(sent, a["wire_fault"], 0)
+        flips = int((wf == fz.BIT_FLIP).sum())
+        truncs = int((wf == fz.TRUNCATE).sum())
+        c = {
+            "injected_dropped": int((wf == fz.DROP).sum()),
+            "injected_duplicates": int((wf == fz.DUPLICATE).sum()),
+            "injected_bit_flips": flips,
+            "injected_truncated": truncs,
+            "injected_crc_errors": flips + truncs,
+            "injected_garbage_bytes": int(a["garbage_before"][sent].sum()),
+            "injected_garbage_bursts": int((a["garbage_before"][sent] > 0).sum()),
+            "injected_resets": int(a["reset_start"].sum()),
+            "unsent_frames": int((~sent).sum()),
+            "saturated_samples": int(a["saturated"].any(axis=1).sum()),
+            "temp_invalid_samples": int((~a["temp_valid"]).sum()),
+            "expected_bytes_discarded": int(a["garbage_before"][sent].sum() + FRAME_SIZE_V1 * flips
+                                            + a["trunc_len"][sent & (wf == fz.TRUNCATE)].sum()),
+        }
+        deliver = sent & ~np.isin(wf, (fz.DROP, fz.BIT_FLIP, fz.TRUNCATE))
+        rep = np.where(wf == fz.DUPLICATE, 2, 1)[deliver]
+        self._expected.feed(np.repeat(a["seq"][deliver], rep), np.repeat(a["t_us"][deliver], rep),
+                            np.repeat(a["status"][deliver], rep))
+        for key, v in c.items():
+            self.totals[key] = self.totals.get(key, 0) + v
+        e = self._expected
+        c.update({"total_expected_frames": e.frames, "total_expected_lost_frames": e.lost_frames,
+                  "total_expected_duplicates": e.duplicates, "total_expected_resets": e.resets})
+        return c
+
+
+def _recording_duration(sim: BoardSimulator, duration_s: float | None) -> float:
+    d = duration_s if duration_s is not None else sim.duration_s
+    if d is None or not math.isfinite(d):
+        raise ValueError("the scenario never ends (static pose or looping plan): pass duration_s")
+    return float(d)
+
+
+def simulate_recording(cfg: SimConfig | None = None, seed: int = 0, duration_s: float | None = None, run_id: int = 0):
+    """Simulate a run and return what the calibration recorder would store (a ``Recording``).
+
+    Samples that do not reach the host intact (dropped, corrupted, not sent) are absent; duplicates
+    appear once. ``t_s`` is the board clock in seconds, continuous across board resets; ``temp_c`` is
+    NaN where the AHT10 reading is not valid; ``gref_mps2`` is the table reference at the table's
+    angle reading (defined while moving too); ``pose_id`` is -1 while the table moves. The truth of
+    the kept samples is in ``metadata["truth"]``.
+    """
+    from fbg_accel_calibration.recording import Recording
+
+    sim = BoardSimulator(cfg, seed=seed)
+    sim.wire = False
+    blk = sim.run(_recording_duration(sim, duration_s))
+    a = blk.arrays
+    keep = a["sent"] & ~np.isin(a["wire_fault"], (fz.DROP, fz.BIT_FLIP, fz.TRUNCATE))
+    t_board = a["t_s"] * (1.0 + sim.clock_ppm * 1e-6)
+    temp = np.where(a["temp_valid"], a["temp_sensor_c"], np.nan)
+    eff = sim.cfg.get("effects")
+    truth_keys = ("t_s", "accel_true_mps2", "temp_optics_c", "temp_chamber_c", "temp_sensor_true_c", "in_motion",
+                  "psi_deg", "theta_deg", "time_at_pose_s", "visit", "counts_float", "saturated")
+    meta = {
+        "source": "board_sim", "config": sim.cfg.source, "seed": seed, "sensor_id": sim.cfg.get("sensor_id"),
+        "rate_hz": sim.rate_hz, "effect_scales": {k: float(v["scale"]) for k, v in eff.items()},
+        "aht10_offset_c": sim.aht_offset, "noise": {k: v for k, v in sim.configured_noise().items() if k != "model"},
+        "truth": {k: a[k][keep] for k in truth_keys}, "fault_counters": dict(blk.counters),
+    }
+    return Recording(t_s=t_board[keep], ref=a["counts_float"][keep, 0], xyz=a["counts_float"][keep, 1:], temp_c=temp[keep],
+                     gref_mps2=a["gref_mps2"][keep], pose_id=a["pose_id"][keep], run_id=np.full(int(keep.sum()), run_id),
+                     metadata=meta)

@@ -1,0 +1,278 @@
+"""Serve the simulated board's byte stream on a pseudo-terminal, in real time (no ROS).
+
+The slave side of the pty behaves like the board's USB/Bluetooth serial port: a driver opens it
+with pyserial exactly as it opens /dev/ttyUSB0. The server
+
+* puts the pty in raw mode (no echo, no line discipline: binary frames pass unchanged),
+* keeps its own handle on the slave so the port survives a client closing and reopening it,
+* paces the frames against ``time.monotonic()`` (sample k is written when its board time is
+  due; no sleep drift accumulates, a late loop catches up by writing several frames),
+* on a simulated disconnect closes the pty (the client's reads fail as on an unplugged USB
+  adapter) and after the down time opens a new one, re-pointing the ``--link`` symlink (as
+  /dev/serial/by-id does) so a reconnecting client finds it under the same name,
+* by default waits until a client opens the port before the board starts (an ESP32 board
+  reboots when its USB-serial port is opened: DTR auto-reset); bytes written to a pty that no
+  client ever opened are garbled by the line discipline, so nothing is written before,
+* never blocks on a client that does not read: bytes the pty cannot take (about 20 KB) wait in a
+  backlog of ``backlog_s`` seconds of data; beyond that they are dropped, as a UART overflows,
+  and counted in ``overflow_bytes``.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+import select
+import struct
+import sys
+import termios
+import time
+import tty
+from pathlib import Path
+
+import numpy as np
+
+from .board_physics import BoardSimulator, SimBlock
+
+
+class PtyEndpoint:
+    """One pseudo-terminal pair; ``path`` is the slave device name."""
+
+    def __init__(self, link: str | None = None, max_backlog_bytes: int = 65536) -> None:
+        self.link = link
+        self.master = -1
+        self.slave = -1
+        self.path = ""
+        self.overflow_bytes = 0
+        self.max_backlog_bytes = max_backlog_bytes
+        self._pending = bytearray()
+
+    def open(self, hold: bool = True) -> str:
+        """Create a new pty (raw mode). ``hold``: keep a slave handle so the port persists between clients."""
+        self.master, slave = os.openpty()
+        tty.setraw(slave)
+        os.set_blocking(self.master, False)
+        self.path = os.ttyname(slave)
+        self._pending.clear()
+        if hold:
+            self.slave = slave
+        else:
+            os.close(slave)
+            self.slave = -1
+        if self.link:
+            tmp = f"{self.link}.tmp{os.getpid()}"
+            if os.path.lexists(tmp):
+                os.unlink(tmp)
+            os.symlink(self.path, tmp)
+            os.replace(tmp, self.link)  # atomic re-point
+        return self.path
+
+    def client_present(self) -> bool:
+        """True once some process has the slave open (the master stops reporting POLLHUP)."""
+        p = select.poll()
+        p.register(self.master, select.POLLHUP)
+        return not any(ev & select.POLLHUP for _, ev in p.poll(0))
+
+    def wait_client(self, should_stop, poll_s: float = 0.01) -> bool:
+        """Block until a client opens the port (or ``should_stop()``). False if stopped."""
+        while not self.client_present():
+            if should_stop():
+                return False
+            time.sleep(poll_s)
+        return True
+
+    def hold_slave(self) -> None:
+        """Keep our own slave handle so the port (and its raw settings) survive a client closing it."""
+        if self.slave < 0:
+            self.slave = os.open(self.path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+
+    def close(self) -> None:
+        for fd in (self.master, self.slave):
+            if fd >= 0:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        self.master = self.slave = -1
+
+    def remove_link(self) -> None:
+        if self.link and os.path.islink(self.link):
+            try:
+                if os.readlink(self.link) == self.path:
+                    os.unlink(self.link)
+            except OSError:
+                pass
+
+    def write(self, data: bytes) -> int:
+        """Write without blocking; bytes that do not fit are dropped and counted. Returns bytes written."""
+        if self.master < 0:
+            return 0
+        self._pending += data
+        view = memoryview(self._pending)
+        written = 0
+        while written < len(view):
+            try:
+                written += os.write(self.master, view[written:])
+            except BlockingIOError:
+                break
+            except OSError as exc:
+                if exc.errno in (errno.EIO, errno.EAGAIN):
+                    break
+                raise
+        view.release()
+        del self._pending[:written]
+        excess = len(self._pending) - self.max_backlog_bytes
+        if excess > 0:  # UART overflow: the newest bytes are lost
+            del self._pending[len(self._pending) - excess:]
+            self.overflow_bytes += excess
+        self.drain_input()
+        return written
+
+    def unread_bytes(self) -> int:
+        """Bytes written but not yet read by the client (TIOCINQ on the slave)."""
+        if self.slave < 0:
+            return 0
+        try:
+            return struct.unpack("i", fcntl.ioctl(self.slave, termios.TIOCINQ, b"\0\0\0\0"))[0]
+        except OSError:
+            return 0
+
+    def linger(self, timeout_s: float, grace_s: float) -> None:
+        """At the end of a finite run, give the client up to ``timeout_s`` to read what is buffered, then
+        ``grace_s`` more: a reader blocked in ``read(n)`` with a timeout holds bytes it has taken from
+        the pty until the call returns, and pyserial discards them if the port vanishes meanwhile."""
+        deadline = time.monotonic() + timeout_s
+        while (self._pending or self.unread_bytes() > 0) and time.monotonic() < deadline:
+            if self._pending:
+                self.write(b"")
+            time.sleep(0.005)
+        time.sleep(grace_s)
+
+    def drain_input(self) -> None:
+        """Discard what the client wrote (the board ignores host commands)."""
+        try:
+            while os.read(self.master, 4096):
+                pass
+        except (BlockingIOError, OSError):
+            pass
+
+
+class TruthRecorder:
+    """Accumulates the truth arrays of served blocks (only when a truth file was requested)."""
+
+    def __init__(self) -> None:
+        self.blocks: list[SimBlock] = []
+
+    def add(self, block: SimBlock) -> None:
+        if len(block):
+            self.blocks.append(block)
+
+    def save(self, path: str | Path, sim: BoardSimulator, extra: dict) -> None:
+        out: dict[str, np.ndarray] = {}
+        if self.blocks:
+            for key in self.blocks[0].arrays:
+                out[key] = np.concatenate([b.arrays[key] for b in self.blocks])
+        for key, value in sim.totals.items():
+            out[key] = np.array(value)
+        for key, value in sim.expected_decoder_stats().items():
+            out[f"expected_{key}"] = np.array(value)
+        noise = sim.configured_noise()
+        for key in ("vrw_mps_per_sqrt_h", "bias_instability_mg", "adev_1s_mps2", "min_adev_mps2", "min_adev_tau_s",
+                    "sample_sigma_mps2"):
+            out[f"noise_{key}"] = np.asarray(noise[key])
+        out["aht10_offset_c"] = np.array(sim.aht_offset)
+        out["config_yaml"] = np.array(sim.cfg.to_yaml())
+        out["seed"] = np.array(sim.seed)
+        for key, value in extra.items():
+            out[key] = np.asarray(value)
+        tmp = Path(str(path) + ".partial.npz")
+        np.savez_compressed(tmp, **out)
+        os.replace(tmp, path)
+
+
+def serve_pty(sim: BoardSimulator, duration_s: float, link: str | None, truth: TruthRecorder | None,
+              should_stop, announce=print, linger_s: float = 2.0, grace_s: float = 1.0, wait_client: bool = True,
+              backlog_s: float = 2.0, client_settle_s: float = 0.05) -> dict:
+    """Serve until ``duration_s`` (inf: until ``should_stop()``). Returns serving statistics.
+
+    The board starts when a client first opens the pty (unless ``wait_client`` is False). After a
+    simulated disconnect the new pty gets no bytes until a client has opened it and
+    ``client_settle_s`` has passed (pyserial flushes the input queue while it opens the port); the
+    frames the board produces meanwhile are lost, and are logged as unsent in the truth, so the truth
+    still predicts the decoder's counts exactly. When the run reaches its end (not when stopped by a
+    signal) the pty stays open until the client has read everything, at most ``linger_s``, plus
+    ``grace_s``.
+    """
+    ep = PtyEndpoint(link, max_backlog_bytes=max(65536, int(backlog_s * sim.rate_true_hz * 27)))
+    path = ep.open(hold=not wait_client)
+    announce(f"PTY {path}")
+    stats = {"reconnects": 0, "written_bytes": 0, "paths": [path], "overflow_bytes": 0, "frames_lost_no_client": 0}
+    if wait_client:
+        if not ep.wait_client(should_stop):
+            ep.close()
+            ep.remove_link()
+            return stats
+        time.sleep(client_settle_s)
+        ep.hold_slave()
+    n_total = sim.samples_for(duration_s) if np.isfinite(duration_s) else None
+    bounds = sorted({b for a0, b0 in sim._disc_k for b in (a0, b0)})
+    disc_starts = {a0 for a0, _ in sim._disc_k}
+    disc_ends = {b0 for _, b0 in sim._disc_k}
+    dt = sim.dt_true
+    t0 = time.monotonic()
+    k = sim.sample_index
+    state = "open"  # open | down | waiting | settling
+    settle_until = 0.0
+    try:
+        while not should_stop():
+            if n_total is not None and k >= n_total:
+                break
+            if k in disc_ends and state == "down":
+                path = ep.open(hold=False)
+                state = "waiting"
+                stats["reconnects"] += 1
+                stats["paths"].append(path)
+                print(f"RECONNECT {path}", file=sys.stderr, flush=True)
+            if k in disc_starts and state != "down":
+                if state == "open":  # let the client take what was sent before the "unplug" (at most 50 ms)
+                    ep.linger(0.05, 0.0)
+                ep.close()
+                state = "down"
+                print("DISCONNECT", file=sys.stderr, flush=True)
+            now = time.monotonic()
+            if state == "waiting" and ep.client_present():
+                state, settle_until = "settling", now + client_settle_s
+            if state == "settling" and now >= settle_until:
+                ep.hold_slave()
+                state = "open"
+            due = int((now - t0) / dt) + 1  # samples whose time has come
+            if due <= k:
+                time.sleep(min(0.002, max(0.0, t0 + k * dt - now)))
+                continue
+            n = due - k
+            if n_total is not None:
+                n = min(n, n_total - k)
+            nxt = [b for b in bounds if b > k]
+            if nxt:
+                n = min(n, nxt[0] - k)
+            n = min(n, 4096)
+            deliver = state == "open"
+            if truth is not None:
+                block = sim.step(n, deliver=deliver)
+                data = block.wire_bytes()
+                truth.add(block)
+            else:
+                data = sim.step_bytes(n)
+            if not deliver and state != "down":
+                stats["frames_lost_no_client"] += n
+            k = sim.sample_index
+            if deliver:
+                stats["written_bytes"] += ep.write(data)
+        if state == "open" and not should_stop():
+            ep.linger(linger_s, grace_s)
+    finally:
+        stats["overflow_bytes"] = ep.overflow_bytes
+        ep.close()
+        ep.remove_link()
+    return stats
