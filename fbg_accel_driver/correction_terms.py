@@ -1,16 +1,41 @@
 """Declared extra model terms added by ``fbg-accel-calib diagnose`` (registry; pure numpy).
 
 Each term is a class with a ``kind`` string, ``to_dict``/``from_dict`` for the calibration
-YAML, ``new_state()`` for streaming state (or ``None``), and
-``contribution(cal, inputs, state) -> (N, 3)`` additive m/s^2 on top of eq. 28, where
-``inputs`` has ``ref`` (N,), ``xyz`` (N, 3) counts, ``psi`` (N, 3), ``temp_c`` (N,), ``t_s`` (N,).
+YAML (``from_dict`` refuses missing, non-numeric, wrongly shaped or unphysical parameters with a
+``ValueError`` naming the term and parameter), ``new_state()`` for streaming state (``None`` for a
+stateless term) and ``contribution(cal, inputs, state) -> (N, 3)`` additive m/s^2 on top of
+eq. 28, where ``inputs`` has ``ref`` (N,), ``xyz`` (N, 3) counts, ``psi`` (N, 3), ``temp_c``
+(N,) degC and ``t_s`` (N,) board time in s.
+
+Terms are evaluated in list order. Two families exist:
+
+* *input corrections* (``tia_inverse_filter``, ``reference_dark_offset``, ``thermal_lag``)
+  correct what eq. 28 is fed with (counts, Psi or temperature). Such a term writes the corrected
+  arrays back into ``inputs`` (so later terms see them) and contributes the resulting change of
+  eq. 28, ``base(psi', T') - base(psi, T)``. The contributions telescope, so the calibrated output
+  is exactly eq. 28 evaluated on the fully corrected inputs, plus the additive terms.
+* *additive terms* (``spectral_nonlinearity``, ``time_drift``, ``thermal_hysteresis``,
+  ``channel_offset``) add their own regressors times fitted coefficients (m/s^2).
+
+Stateful terms (filters) keep everything they need from the previous batch in their state, so a
+stream processed in one batch or in many consecutive batches with the same state gives the same
+result (``test/test_correction_terms.py``). ``fbg_accel_calibration.effects`` builds the same
+regressors for the fit, from these very classes, so the driver and the offline model agree.
 """
 
 from __future__ import annotations
 
-from typing import Any
+import itertools
+import math
+from typing import Any, ClassVar
+
+import numpy as np
 
 CORRECTION_TYPES: dict[str, type] = {}
+
+# Order of the stages; diagnose sorts declared terms by it (input corrections first).
+STAGE_ORDER = ("chain_dynamics", "tia_inverse_filter", "reference_dark_offset", "thermal_lag",
+               "spectral_nonlinearity", "channel_offset", "time_drift", "thermal_hysteresis")
 
 
 def correction_from_dict(d: Any) -> Any:
@@ -21,3 +46,451 @@ def correction_from_dict(d: Any) -> Any:
     if kind not in CORRECTION_TYPES:
         raise ValueError(f"unknown correction kind '{kind}' (known: {sorted(CORRECTION_TYPES)})")
     return CORRECTION_TYPES[kind].from_dict(d)
+
+
+def _register(cls: type) -> type:
+    CORRECTION_TYPES[cls.kind] = cls
+    return cls
+
+
+# ----------------------------------------------------------------------------- parameter parsing
+def _scalar(d: dict, key: str, kind: str, *, positive: bool = False, nonneg: bool = False,
+            nonzero: bool = False, default: float | None = None) -> float:
+    if key not in d:
+        if default is not None:
+            return float(default)
+        raise ValueError(f"{kind}: missing parameter '{key}'")
+    v = d[key]
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise ValueError(f"{kind}: parameter '{key}' must be a number, got {v!r}")
+    v = float(v)
+    if not math.isfinite(v):
+        raise ValueError(f"{kind}: parameter '{key}' must be finite, got {v}")
+    if positive and v <= 0:
+        raise ValueError(f"{kind}: parameter '{key}' must be > 0, got {v}")
+    if nonneg and v < 0:
+        raise ValueError(f"{kind}: parameter '{key}' must be >= 0, got {v}")
+    if nonzero and v == 0:
+        raise ValueError(f"{kind}: parameter '{key}' must be non-zero")
+    return v
+
+
+def _array(d: dict, key: str, kind: str, shape: tuple[int, ...], *, nonneg: bool = False) -> np.ndarray:
+    if key not in d:
+        raise ValueError(f"{kind}: missing parameter '{key}'")
+    try:
+        a = np.asarray(d[key], dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{kind}: parameter '{key}' is not numeric") from None
+    if a.shape != shape:
+        raise ValueError(f"{kind}: parameter '{key}' has shape {a.shape}, expected {shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{kind}: parameter '{key}' contains NaN or infinite values")
+    if nonneg and np.any(a < 0):
+        raise ValueError(f"{kind}: parameter '{key}' must be >= 0")
+    return a
+
+
+def _lst(a: np.ndarray) -> list:
+    return np.asarray(a, dtype=float).tolist()
+
+
+def _check_kind(d: dict, kind: str) -> None:
+    if d.get("kind") != kind:
+        raise ValueError(f"expected kind '{kind}', got {d.get('kind')!r}")
+
+
+# ----------------------------------------------------------------------------- streaming filters
+def first_order_lowpass(x: np.ndarray, t_s: np.ndarray, tau_s: float, state: dict | None) -> np.ndarray:
+    """Exact first-order low-pass y' = (x - y)/tau for a piecewise-constant input sampled at ``t_s``.
+
+    ``x`` (N,); ``state`` (dict with ``y`` and ``t``, updated in place) continues a previous
+    batch; ``None`` or an empty state starts the filter at the first finite sample. NaN input
+    samples hold the filter and give NaN output. Vectorised (scipy ``lfilter``) on runs of
+    uniform sampling, so 10^6 samples take milliseconds.
+    """
+    from scipy.signal import lfilter
+
+    x = np.asarray(x, dtype=float).reshape(-1)
+    t_s = np.asarray(t_s, dtype=float).reshape(-1)
+    st = state if state is not None else {}
+    out = np.full_like(x, np.nan)
+    good = np.flatnonzero(np.isfinite(x))
+    if good.size == 0:
+        return out
+    xs, ts = x[good], t_s[good]
+    y_prev, t_prev = st.get("y"), st.get("t")
+    if y_prev is None:
+        y_prev, t_prev = float(xs[0]), float(ts[0])
+    t_all = np.concatenate([[t_prev], ts])
+    dt = np.maximum(np.diff(t_all), 0.0)
+    a = 1.0 - np.exp(-dt / tau_s)
+    ys = np.empty_like(xs)
+    # split into runs of (nearly) constant coefficient a (uniform sampling) and filter each run at once
+    cut = np.flatnonzero(np.abs(np.diff(a)) > 1e-9 * np.maximum(a[1:], 1e-300)) + 1
+    bounds = np.concatenate([[0], cut, [xs.size]])
+    for i, j in itertools.pairwise(bounds):
+        ai = a[i]
+        seg, _ = lfilter([ai], [1.0, ai - 1.0], xs[i:j], zi=[(1.0 - ai) * y_prev])
+        ys[i:j] = seg
+        y_prev = float(seg[-1])
+    out[good] = ys
+    st["y"], st["t"] = y_prev, float(ts[-1])
+    return out
+
+
+class _Base:
+    kind: ClassVar[str] = ""
+
+    def new_state(self) -> Any:
+        return None
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.to_dict()})"
+
+    def to_dict(self) -> dict[str, Any]:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def __eq__(self, other: object) -> bool:
+        return type(self) is type(other) and self.to_dict() == other.to_dict()  # type: ignore[attr-defined]
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+# ----------------------------------------------------------------------------- input corrections
+@_register
+class TiaInverseFilter(_Base):
+    """Inverse of the first-order TIA low-pass of each channel (paper §3.5, Table 1 cut-offs).
+
+    ``tau_s`` (4,) time constants of ref, x, y, z in s (0 = channel not corrected). The exact
+    inverse of the discrete low-pass ``y_k = y_{k-1} + a (x_k - y_{k-1})``, ``a = 1 - exp(-dt/tau)``,
+    is ``x_k = y_{k-1} + (y_k - y_{k-1}) / a``; it restores the step response and amplifies
+    white noise by about ``1/a``. State: the previous raw counts and board time.
+    """
+
+    kind = "tia_inverse_filter"
+
+    def __init__(self, tau_s: np.ndarray) -> None:
+        self.tau_s = np.asarray(tau_s, dtype=float).reshape(4)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TiaInverseFilter:
+        _check_kind(d, cls.kind)
+        return cls(_array(d, "tau_s", cls.kind, (4,), nonneg=True))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "tau_s": _lst(self.tau_s), "channels": ["ref", "x", "y", "z"]}
+
+    def new_state(self) -> dict:
+        return {"prev": None, "t": None}
+
+    def correct_counts(self, counts: np.ndarray, t_s: np.ndarray, state: dict) -> np.ndarray:
+        """Counts (N, 4) [ref, x, y, z] -> inverse-filtered counts (N, 4); updates ``state``."""
+        counts = np.asarray(counts, dtype=float).reshape(-1, 4)
+        t_s = np.asarray(t_s, dtype=float).reshape(-1)
+        if counts.shape[0] == 0:
+            return counts.copy()
+        prev, t_prev = state.get("prev"), state.get("t")
+        have_prev = prev is not None
+        prev_rows = np.vstack([prev if have_prev else counts[0], counts[:-1]])
+        prev_t = np.concatenate([[t_prev if have_prev else t_s[0]], t_s[:-1]])
+        dt = (t_s - prev_t)[:, None]
+        tau = self.tau_s[None, :]
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            a = -np.expm1(-dt / np.where(tau > 0, tau, np.inf))
+            inv = prev_rows + (counts - prev_rows) / a
+        use = (tau > 0) & (dt > 0)
+        out = np.where(use, inv, counts)
+        state["prev"], state["t"] = counts[-1].copy(), float(t_s[-1])
+        return out
+
+    def contribution(self, cal: Any, inputs: dict, state: dict | None) -> np.ndarray:
+        if state is None:
+            state = self.new_state()
+        counts = np.column_stack([inputs["ref"], inputs["xyz"]])
+        corr = self.correct_counts(counts, inputs["t_s"], state)
+        return _replace_psi(cal, inputs, corr[:, 0], corr[:, 1:])
+
+
+@_register
+class ReferenceDarkOffset(_Base):
+    """Dark current / ADC offset of the reference detector: Psi' = xyz / (ref - d) (paper eq. 24).
+
+    ``ref_offset_counts`` d in ADC counts. Eq. 24 only cancels source-power changes if the counts
+    are proportional to optical power; an offset d on the reference breaks that. Offsets on the
+    axis channels are the separate ``channel_offset`` term (regressor 1/(ref - d)). Stateless.
+    """
+
+    kind = "reference_dark_offset"
+
+    def __init__(self, ref_offset_counts: float) -> None:
+        self.ref_offset_counts = float(ref_offset_counts)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ReferenceDarkOffset:
+        _check_kind(d, cls.kind)
+        v = _scalar(d, "ref_offset_counts", cls.kind)
+        if abs(v) >= 4096:
+            raise ValueError(f"{cls.kind}: ref_offset_counts {v} is outside the 12-bit ADC range")
+        return cls(v)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "ref_offset_counts": self.ref_offset_counts}
+
+    def contribution(self, cal: Any, inputs: dict, state: Any) -> np.ndarray:
+        return _replace_psi(cal, inputs, inputs["ref"] - self.ref_offset_counts, inputs["xyz"])
+
+
+@_register
+class ThermalLag(_Base):
+    """The optics and the AHT10 are not at the same temperature while it changes (paper §3.6).
+
+    ``tau_s`` > 0: the optics lag the sensor, T_optics = LPF_tau(T). ``tau_s`` < 0: the sensor lags
+    the optics (AHT10 on the PCB): T_optics = T + |tau| dT/dt, with the rate estimated as
+    (T - LPF_s(T)) / s, ``s = rate_smoothing_s`` (default |tau|/4); exact on a ramp after ~3 s, and
+    it amplifies the AHT10 noise by about |tau|/s. Eq. 28 is evaluated at T_optics. State: filter.
+    """
+
+    kind = "thermal_lag"
+
+    def __init__(self, tau_s: float, rate_smoothing_s: float | None = None) -> None:
+        self.tau_s = float(tau_s)
+        self.rate_smoothing_s = float(rate_smoothing_s) if rate_smoothing_s is not None else abs(self.tau_s) / 4.0
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ThermalLag:
+        _check_kind(d, cls.kind)
+        tau = _scalar(d, "tau_s", cls.kind, nonzero=True)
+        return cls(tau, _scalar(d, "rate_smoothing_s", cls.kind, positive=True, default=abs(tau) / 4.0))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "tau_s": self.tau_s, "rate_smoothing_s": self.rate_smoothing_s}
+
+    def new_state(self) -> dict:
+        return {}
+
+    def effective_temperature(self, temp_c: np.ndarray, t_s: np.ndarray, state: dict | None) -> np.ndarray:
+        """Optics temperature (N,) degC from the AHT10 reading; updates ``state``."""
+        temp_c = np.asarray(temp_c, float)
+        if self.tau_s > 0:
+            return first_order_lowpass(temp_c, t_s, self.tau_s, state)
+        s = self.rate_smoothing_s
+        lp = first_order_lowpass(temp_c, t_s, s, state)
+        return temp_c + (abs(self.tau_s) / s) * (temp_c - lp)
+
+    def contribution(self, cal: Any, inputs: dict, state: dict | None) -> np.ndarray:
+        t_eff = self.effective_temperature(inputs["temp_c"], inputs["t_s"], state if state is not None else {})
+        before = cal.base_acceleration(inputs["psi"], inputs["temp_c"])
+        after = cal.base_acceleration(inputs["psi"], t_eff)
+        inputs["temp_c"] = t_eff
+        return after - before
+
+
+def _replace_psi(cal: Any, inputs: dict, ref: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        psi_new = np.asarray(xyz, float) / np.where(np.asarray(ref) > 0, ref, np.nan)[:, None]
+    before = cal.base_acceleration(inputs["psi"], inputs["temp_c"])
+    after = cal.base_acceleration(psi_new, inputs["temp_c"])
+    inputs["ref"], inputs["xyz"], inputs["psi"] = np.asarray(ref, float), np.asarray(xyz, float), psi_new
+    return after - before
+
+
+@_register
+class ChainDynamics(_Base):
+    """Declared dynamics of the measuring chain, found by the diagnosis: TIA time constants and delay.
+
+    ``tia_tau_s`` (4,) first-order time constants of ref, x, y, z (s; paper Table 1) and ``delay_s``
+    (s) of the sensor channels behind the table reference. The calibration accounts for them on the
+    reference side (the fit compares the output with the filtered/delayed reference), so the model's
+    M and b are free of them. At run time the contribution is zero: the output keeps the chain's
+    band limit (deconvolving it would amplify the noise by ~1/(1 - exp(-dt/tau)), about 10 at 100 Hz;
+    use ``tia_inverse_filter`` deliberately if that is wanted). ``group_delay_s`` (delay plus the
+    low-frequency group delay of the axis filters) is what a consumer may subtract from time stamps.
+    Stateless.
+    """
+
+    kind = "chain_dynamics"
+
+    def __init__(self, tia_tau_s: np.ndarray, delay_s: float) -> None:
+        self.tia_tau_s = np.asarray(tia_tau_s, float).reshape(4)
+        self.delay_s = float(delay_s)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ChainDynamics:
+        _check_kind(d, cls.kind)
+        return cls(_array(d, "tia_tau_s", cls.kind, (4,), nonneg=True), _scalar(d, "delay_s", cls.kind, nonneg=True))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "tia_tau_s": _lst(self.tia_tau_s), "delay_s": self.delay_s,
+                "group_delay_s": _lst(self.group_delay_s), "channels": ["ref", "x", "y", "z"], "runtime": "none"}
+
+    @property
+    def group_delay_s(self) -> np.ndarray:
+        """(3,) low-frequency group delay of the x, y, z outputs (s)."""
+        return self.delay_s + self.tia_tau_s[1:]
+
+    def contribution(self, cal: Any, inputs: dict, state: Any) -> np.ndarray:
+        return np.zeros((np.asarray(inputs["ref"]).shape[0], 3))
+
+
+# ----------------------------------------------------------------------------- additive terms
+def quadratic_features(psi: np.ndarray, psi0: np.ndarray) -> np.ndarray:
+    """(N, 6) second-order monomials of Psi - psi0: xx, yy, zz, xy, xz, yz (dimensionless)."""
+    u = np.asarray(psi, float) - psi0
+    return np.column_stack([u[:, 0] ** 2, u[:, 1] ** 2, u[:, 2] ** 2, u[:, 0] * u[:, 1], u[:, 0] * u[:, 2], u[:, 1] * u[:, 2]])
+
+
+@_register
+class SpectralNonlinearity(_Base):
+    """Second-order terms of the spectral-overlap response (paper §3.4, §4.2, Figs. 9 and 12).
+
+    a += Q · [u_x², u_y², u_z², u_x u_y, u_x u_z, u_y u_z], u = Psi - psi0; Q (3, 6) in m/s^2,
+    ``psi0`` (3,) the centre of the calibration data (conditioning only). Stateless.
+    """
+
+    kind = "spectral_nonlinearity"
+
+    def __init__(self, psi0: np.ndarray, coeff_mps2: np.ndarray) -> None:
+        self.psi0 = np.asarray(psi0, float).reshape(3)
+        self.coeff_mps2 = np.asarray(coeff_mps2, float).reshape(3, 6)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> SpectralNonlinearity:
+        _check_kind(d, cls.kind)
+        return cls(_array(d, "psi0", cls.kind, (3,)), _array(d, "coeff_mps2", cls.kind, (3, 6)))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "psi0": _lst(self.psi0), "coeff_mps2": _lst(self.coeff_mps2),
+                "features": ["xx", "yy", "zz", "xy", "xz", "yz"]}
+
+    def contribution(self, cal: Any, inputs: dict, state: Any) -> np.ndarray:
+        return quadratic_features(inputs["psi"], self.psi0) @ self.coeff_mps2.T
+
+
+@_register
+class ChannelOffset(_Base):
+    """Dark/ADC offsets c0 on the axis channels: (xyz - c0)/ref adds -M c0 / ref, i.e. k / ref.
+
+    ``coeff_mps2_counts`` k (3,) in m/s^2·counts (k = -M0 c0). Uses the (corrected) reference of
+    ``inputs``. Stateless.
+    """
+
+    kind = "channel_offset"
+
+    def __init__(self, coeff_mps2_counts: np.ndarray) -> None:
+        self.coeff_mps2_counts = np.asarray(coeff_mps2_counts, float).reshape(3)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ChannelOffset:
+        _check_kind(d, cls.kind)
+        return cls(_array(d, "coeff_mps2_counts", cls.kind, (3,)))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "coeff_mps2_counts": _lst(self.coeff_mps2_counts)}
+
+    def contribution(self, cal: Any, inputs: dict, state: Any) -> np.ndarray:
+        ref = np.asarray(inputs["ref"], float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / np.where(ref > 0, ref, np.nan)
+        return inv[:, None] * self.coeff_mps2_counts[None, :]
+
+
+@_register
+class TimeDrift(_Base):
+    """Bias drift with board time since power-on: warm-up exponential and linear creep (§4.4).
+
+    a += creep (t - t0) + warmup exp(-(t - t0)/tau); ``creep_mps2_per_s`` (3,), ``warmup_mps2``
+    (3,), ``warmup_tau_s`` > 0 (s), ``t0_s`` board time origin. Only meaningful if the board
+    clock restarts at power-on. Stateless.
+    """
+
+    kind = "time_drift"
+
+    def __init__(self, creep_mps2_per_s: np.ndarray, warmup_mps2: np.ndarray, warmup_tau_s: float, t0_s: float = 0.0) -> None:
+        self.creep_mps2_per_s = np.asarray(creep_mps2_per_s, float).reshape(3)
+        self.warmup_mps2 = np.asarray(warmup_mps2, float).reshape(3)
+        self.warmup_tau_s = float(warmup_tau_s)
+        self.t0_s = float(t0_s)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TimeDrift:
+        _check_kind(d, cls.kind)
+        return cls(_array(d, "creep_mps2_per_s", cls.kind, (3,)), _array(d, "warmup_mps2", cls.kind, (3,)),
+                   _scalar(d, "warmup_tau_s", cls.kind, positive=True), _scalar(d, "t0_s", cls.kind, default=0.0))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "creep_mps2_per_s": _lst(self.creep_mps2_per_s), "warmup_mps2": _lst(self.warmup_mps2),
+                "warmup_tau_s": self.warmup_tau_s, "t0_s": self.t0_s}
+
+    @staticmethod
+    def features(t_s: np.ndarray, tau_s: float, t0_s: float) -> np.ndarray:
+        """(N, 2): [t - t0 (s), exp(-(t - t0)/tau)]."""
+        dt = np.asarray(t_s, float) - t0_s
+        return np.column_stack([dt, np.exp(-dt / tau_s)])
+
+    def contribution(self, cal: Any, inputs: dict, state: Any) -> np.ndarray:
+        f = self.features(inputs["t_s"], self.warmup_tau_s, self.t0_s)
+        return f[:, [0]] * self.creep_mps2_per_s + f[:, [1]] * self.warmup_mps2
+
+
+@_register
+class ThermalHysteresis(_Base):
+    """Bias that differs between heating and cooling branches (paper §4.4 warm-up, §3.6.2).
+
+    The branch s = +1 (heating) / -1 (cooling) follows the sign of the temperature rate, smoothed
+    by a first-order low-pass ``rate_tau_s`` (s); it only switches when the smoothed rate passes
+    ``deadband_c_per_s`` (degC/s) the other way, so it keeps its memory across a constant
+    temperature (that is the hysteresis). a += s · ``half_gap_mps2`` (3,). State: filter + branch.
+    """
+
+    kind = "thermal_hysteresis"
+
+    def __init__(self, half_gap_mps2: np.ndarray, rate_tau_s: float, deadband_c_per_s: float) -> None:
+        self.half_gap_mps2 = np.asarray(half_gap_mps2, float).reshape(3)
+        self.rate_tau_s = float(rate_tau_s)
+        self.deadband_c_per_s = float(deadband_c_per_s)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ThermalHysteresis:
+        _check_kind(d, cls.kind)
+        return cls(_array(d, "half_gap_mps2", cls.kind, (3,)), _scalar(d, "rate_tau_s", cls.kind, positive=True),
+                   _scalar(d, "deadband_c_per_s", cls.kind, nonneg=True))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "half_gap_mps2": _lst(self.half_gap_mps2), "rate_tau_s": self.rate_tau_s,
+                "deadband_c_per_s": self.deadband_c_per_s}
+
+    def new_state(self) -> dict:
+        return {"lp": {}, "branch": 0.0, "tprev": None, "lpprev": None}
+
+    @staticmethod
+    def branch(temp_c: np.ndarray, t_s: np.ndarray, rate_tau_s: float, deadband: float, state: dict) -> np.ndarray:
+        """(N,) branch indicator +1/-1 (0 before the first decision); updates ``state``."""
+        t_s = np.asarray(t_s, float).reshape(-1)
+        lp = first_order_lowpass(np.asarray(temp_c, float), t_s, rate_tau_s, state["lp"])
+        n = lp.shape[0]
+        good = np.flatnonzero(np.isfinite(lp))
+        decision = np.full(n, np.nan)  # +1 / -1 where the rate decides, NaN where the branch is held
+        if good.size:
+            lp_prev = np.concatenate([[state["lpprev"] if state["lpprev"] is not None else np.nan], lp[good][:-1]])
+            t_prev = np.concatenate([[state["tprev"] if state["tprev"] is not None else np.nan], t_s[good][:-1]])
+            dt = t_s[good] - t_prev
+            with np.errstate(invalid="ignore", divide="ignore"):
+                rate = np.where(dt > 0, (lp[good] - lp_prev) / dt, np.nan)
+            d = np.full(good.size, np.nan)
+            d[rate > deadband] = 1.0
+            d[rate < -deadband] = -1.0
+            decision[good] = d
+            state["tprev"], state["lpprev"] = float(t_s[good][-1]), float(lp[good][-1])
+        # forward-fill the last decision (the hysteresis memory), starting from the stored branch
+        idx = np.where(np.isfinite(decision), np.arange(n), -1)
+        np.maximum.accumulate(idx, out=idx)
+        out = np.where(idx >= 0, decision[np.maximum(idx, 0)], state["branch"])
+        if n:
+            state["branch"] = float(out[-1])
+        return out
+
+    def contribution(self, cal: Any, inputs: dict, state: dict | None) -> np.ndarray:
+        st = state if state is not None else self.new_state()
+        s = self.branch(inputs["temp_c"], inputs["t_s"], self.rate_tau_s, self.deadband_c_per_s, st)
+        return s[:, None] * self.half_gap_mps2[None, :]

@@ -1,0 +1,120 @@
+"""``fbg-accel-calib diagnose``: argparse wiring of the residual diagnosis (issue 4).
+
+The CLI module (``cli.py``) calls ``register(subparsers)``; this module only parses arguments,
+loads the recording(s) and hands them to :func:`fbg_accel_calibration.diagnose.diagnose` and
+:mod:`fbg_accel_calibration.diagnose_report`.
+
+Example (the measured series of the paper, no time base and no temperature column)::
+
+    .venv/bin/fbg-accel-calib diagnose /work/shared/data/measured/fig13_multiposition_23C.csv \\
+        --rate 1 --temperature 23.4 --g 9.81 --out docs/results_measured_diagnosis.md \\
+        --yaml docs/results_measured_diagnosis.yaml
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from pathlib import Path
+
+
+def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add the ``diagnose`` subcommand to the ``fbg-accel-calib`` parser; returns the sub-parser."""
+    p = subparsers.add_parser(
+        "diagnose",
+        help="fit the declared model, trace its residual to candidate physical effects, add the winners",
+        description="Fit eq. 28 (degree by held-out CV over pose groups), test the candidate-effect library "
+        "(docs/effects.md) on the static residual, add significant effects as declared correction terms of the "
+        "calibration YAML and report before/after on held-out poses next to the noise floor.",
+    )
+    p.add_argument("inputs", nargs="+", help="recordings: .csv (interchange format, docs/csv_interchange.md) or .mcap")
+    p.add_argument("--rate", type=float, default=None,
+                   help="CSV without t_s: sample rate in Hz (time = sample index / rate). Default 1.0, i.e. time in samples")
+    p.add_argument("--temperature", type=float, default=None,
+                   help="CSV without temperature_c: temperature of every sample, degC")
+    p.add_argument("--g", type=float, default=None, help="local gravity for psi/theta CSV columns, m/s^2 (default 9.80665)")
+    p.add_argument("--static", choices=["table", "detector", "all"], default="table",
+                   help="samples to fit and judge: 'table' (default) every sample of a pose the table held for >= 5 "
+                        "samples; 'detector' the fit's static-interval detector (hides settling, i.e. chain dynamics); "
+                        "'all' also the samples taken while the table moves (needs the table's angle readings during "
+                        "motion, e.g. simulator recordings)")
+    p.add_argument("--degree", type=int, default=None, help="force the degree of eq. 28 (default: held-out CV)")
+    p.add_argument("--max-degree", type=int, default=4)
+    p.add_argument("--folds", type=int, default=10, help="cross-validation folds over pose groups")
+    p.add_argument("--alpha", type=float, default=0.01, help="family-wise significance level per selection step")
+    p.add_argument("--min-gain", type=float, default=0.02,
+                   help="minimum held-out gain (fraction of the noise-weighted MSE) for an effect to be added")
+    p.add_argument("--max-effects", type=int, default=3)
+    p.add_argument("--seed", type=int, default=0, help="seed of the fold assignment")
+    p.add_argument("--sensor-id", default=None)
+    p.add_argument("--out", type=Path, default=None, help="markdown report (PNG plots go to --img-dir)")
+    p.add_argument("--img-dir", type=Path, default=None, help="directory for the PNG plots (default: <out dir>/img)")
+    p.add_argument("--yaml", type=Path, default=None, help="write the refitted calibration (with the added terms) here")
+    p.set_defaults(func=run)
+    return p
+
+
+def load_inputs(paths: list[str], rate: float | None, temperature: float | None, g: float | None):
+    """Recording from CSV and/or MCAP files (one run per file)."""
+    from .recording import Recording
+
+    parts = []
+    for raw in paths:
+        path = Path(raw)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: input file not found")
+        if path.suffix.lower() == ".csv":
+            from .csv_import import import_csv
+            from .table_geometry import STANDARD_GRAVITY
+
+            rec, _ = import_csv(path, rate_hz=rate if rate is not None else 1.0, temperature_c=temperature,
+                                g_mps2=g if g is not None else STANDARD_GRAVITY)
+        else:
+            from .mcap_io import read_recording
+
+            rec = read_recording(path)
+        parts.append(rec)
+    return parts[0] if len(parts) == 1 else Recording.concatenate(parts)
+
+
+def run(args: argparse.Namespace) -> int:
+    from .diagnose import diagnose
+    from .diagnose_report import text, write_report
+
+    try:
+        rec = load_inputs(args.inputs, args.rate, args.temperature, args.g)
+    except (OSError, ValueError) as exc:
+        print(f"fbg-accel-calib diagnose: {exc}", file=sys.stderr)
+        return 2
+    sensor_id = args.sensor_id or str(rec.metadata.get("sensor_id", "unknown"))
+    try:
+        res = diagnose(rec, static=args.static, max_degree=args.max_degree, folds=args.folds, alpha=args.alpha,
+                       min_rel_gain=args.min_gain, max_effects=args.max_effects, degree=args.degree,
+                       sensor_id=sensor_id, seed=args.seed)
+    except ValueError as exc:
+        print(f"fbg-accel-calib diagnose: {exc}", file=sys.stderr)
+        return 2
+    print(text(res), end="")
+    command = "fbg-accel-calib diagnose " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 2 else ""
+    if args.out is not None:
+        for p in write_report(res, args.out, args.img_dir, command=command):
+            print(f"wrote {p}")
+    if args.yaml is not None:
+        res.calibration.fit.setdefault("source", [str(p) for p in args.inputs])
+        res.calibration.save(args.yaml)
+        print(f"wrote {args.yaml}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Stand-alone entry (``python -m fbg_accel_calibration.diagnose_cli ...``) until ``cli.py`` wires it."""
+    parser = argparse.ArgumentParser(prog="fbg-accel-calib")
+    sub = parser.add_subparsers(dest="command", required=True)
+    register(sub)
+    args = parser.parse_args(argv)
+    return int(args.func(args))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

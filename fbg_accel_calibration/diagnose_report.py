@@ -1,0 +1,316 @@
+"""Text and markdown report and residual-versus-candidate plots of a diagnosis (matplotlib Agg).
+
+Pure presentation of a :class:`fbg_accel_calibration.diagnose.DiagnosisResult`; no numbers are
+computed here that the engine did not compute, except the conversion of the channel-offset
+coefficient to counts (c0 = -M0^-1 k) for reading.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .diagnose import FULL_SCALE_MPS2, CandidateResult, DiagnosisResult
+from .effects import library_by_name
+
+AXES = "xyz"
+
+
+def _v(a: np.ndarray | None, fmt: str = "{:.3f}") -> str:
+    if a is None:
+        return "-"
+    return " / ".join("n/a" if not np.isfinite(x) else fmt.format(float(x)) for x in np.asarray(a, dtype=float).ravel())
+
+
+def _p(p: float) -> str:
+    return f"{p:.1e}" if p < 1e-3 else f"{p:.3f}"
+
+
+def candidate_rows(cands: list[CandidateResult]) -> list[list[str]]:
+    rows = []
+    for i, c in enumerate(cands, 1):
+        if not c.applicable:
+            rows.append([str(i), c.name, "not testable", "-", "-", "-", "-", c.reason])
+            continue
+        rows.append([str(i), c.name, f"{100 * c.rel_gain:+.1f} %", _p(c.p_value), "yes" if c.significant else "no",
+                     _v(c.heldout_rmse), _v(c.corr_with_residual, "{:+.2f}"), c.detail])
+    return rows
+
+
+CAND_HEAD = ["rank", "candidate", "held-out gain", "p (Wilcoxon, poses)", "significant",
+             "held-out RMSE x/y/z [m/s^2]", "corr. with residual x/y/z", "fitted"]
+
+
+def _md_table(head: list[str], rows: list[list[str]]) -> str:
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    out += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(out)
+
+
+def channel_offsets_counts(res: DiagnosisResult) -> np.ndarray | None:
+    """Axis-channel offsets c0 (3,) in counts implied by a channel_offset term (k = -M0 c0)."""
+    for term in res.calibration.corrections:
+        if term.kind == "channel_offset":
+            return -np.linalg.solve(res.calibration.M[0], term.coeff_mps2_counts)
+    return None
+
+
+def summary(res: DiagnosisResult, img_prefix: str = "img/") -> list[str]:
+    """Bullet points: which effect, how it was traced, before/after per axis, floor, confounding, what remains."""
+    out = []
+    if res.added:
+        for name, _, desc in res.added:
+            c = next((c for st in res.steps for c in st.candidates if c.name == name and st.chosen == name), None)
+            how = ""
+            if c is not None:
+                how = (f"; traced by its held-out gain {100 * c.rel_gain:.1f} % (p = {_p(c.p_value)} over {c.n_groups} pose "
+                       f"groups) and the correlation {_v(c.corr_with_residual, '{:+.2f}')} (x/y/z) of its contribution with "
+                       f"the residual, plot `{img_prefix}candidate_{name}.png`")
+            conf = [c.b if c.a == name else c.a for st in res.steps if st.chosen == name for c in st.confounding
+                    if c.verdict == "confounded" and name in (c.a, c.b)]
+            if conf:
+                how += (f". **Confounded with {', '.join(conf)} on this data: the data do not support choosing {name} "
+                        f"over {', '.join(conf)}** (it was taken for its slightly larger held-out gain; see below)")
+            out.append(f"- **Added: {name}** ({desc}){how}.")
+    else:
+        out.append("- **Nothing added**: no candidate improves the held-out error significantly.")
+    out.append("- Held-out RMSE per axis x/y/z: before " + _v(res.before_heldout_rmse) + " m/s^2, after "
+               + _v(res.after_heldout_rmse) + " m/s^2; noise floor " + _v(res.noise_floor) + " m/s^2.")
+    for st in res.steps:
+        for c in st.confounding:
+            if c.verdict == "confounded":
+                out.append(f"- **{c.a} and {c.b} are confounded on this data** (each adds nothing beyond the other; "
+                           f"correlation of their contributions {c.corr_contributions:+.2f}). To separate them: "
+                           f"{c.separating_measurement}.")
+            elif abs(c.corr_contributions) > 0.7:
+                out.append(f"- {c.a} and {c.b} look alike here (correlation of their contributions "
+                           f"{c.corr_contributions:+.2f}) but the data tell them apart: {c.verdict} "
+                           f"({c.b} on top of {c.a}: {100 * c.gain_b_beyond_a:+.1f} % held-out gain, p = {_p(c.p_b_beyond_a)}; "
+                           f"{c.a} on top of {c.b}: {100 * c.gain_a_beyond_b:+.1f} %, p = {_p(c.p_a_beyond_b)}; an effect is "
+                           f"kept only with p below the step's level and a gain of at least "
+                           f"{100 * res.settings['min_rel_gain']:.0f} %). "
+                           f"A measurement that would separate them cleanly: {c.separating_measurement}.")
+    out.append(f"- What remains: {res.structure.verdict}.")
+    return out
+
+
+def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") -> str:
+    s = res.structure
+    lines = ["# Residual diagnosis", ""]
+    if command:
+        lines += ["Produced by:", "", "```", command, "```", ""]
+    d = res.data
+    lines += [f"Static samples used: {res.n_static} in {res.n_groups} pose groups "
+              f"(selection: {res.settings['static']}), {res.settings['folds']}-fold cross-validation over pose groups, "
+              f"temperature levels: {res.n_levels} ({np.nanmin(d.temp_c[d.use]):.2f}-{np.nanmax(d.temp_c[d.use]):.2f} degC), "
+              f"time span {d.duration_s:.4g} s.", ""]
+    lines += ["## Summary", "", *summary(res, img_prefix), ""]
+    lines += ["## Declared model and degree (eq. 28)", ""]
+    rows = []
+    for t in res.degree_table:
+        if not t["identified"]:
+            rows.append([str(t["degree"]), "-", "-", t["note"]])
+        else:
+            rows.append([str(t["degree"]), _v(t["insample_rmse_fs"], "{:.2e}"), _v(t["heldout_rmse_fs"], "{:.2e}"),
+                         ("chosen; " if t["degree"] == res.degree else "") + str(t.get("note", ""))])
+    lines += [_md_table(["degree n", "in-sample RMSE / 20 g (x/y/z)", "held-out RMSE / 20 g (x/y/z)", ""], rows), ""]
+    lines += ["Noise floor (pooled within-pose standard deviation of the declared model's residual, a straight line "
+              "in time removed in every pose): "
+              f"**{_v(res.noise_floor)} m/s^2** (x/y/z).", ""]
+    for st in res.steps:
+        title = "on the declared model" if not st.model else "on top of " + " + ".join(st.model)
+        lines += [f"## Step {st.step}: candidates {title}", "",
+                  f"Significant = one-sided Wilcoxon p < {st.alpha_each:.2g} (alpha {res.settings['alpha']} / "
+                  f"candidates tested) and held-out gain >= {100 * res.settings['min_rel_gain']:.0f} % of the "
+                  "noise-weighted held-out MSE.", ""]
+        lines += [_md_table(CAND_HEAD, candidate_rows(st.candidates)), ""]
+        if st.confounding:
+            lines += ["Confounding among the significant candidates (each added on top of the other):", ""]
+            crow = [[c.a, c.b, f"{c.corr_contributions:+.2f}", f"{100 * c.gain_b_beyond_a:+.1f} %, p {_p(c.p_b_beyond_a)}",
+                     f"{100 * c.gain_a_beyond_b:+.1f} %, p {_p(c.p_a_beyond_b)}", c.verdict,
+                     c.separating_measurement if c.verdict == "confounded" or abs(c.corr_contributions) > 0.7 else ""]
+                    for c in st.confounding]
+            head = ["A", "B", "corr. of contributions", "B on top of A: gain, p", "A on top of B: gain, p", "verdict",
+                    "measurement that separates them"]
+            lines += [_md_table(head, crow), ""]
+        lines += [f"Chosen: **{st.chosen or 'nothing (no significant candidate)'}**", ""]
+        for c in st.candidates:
+            if c.name == "channel_delay" and c.cross_correlation_delay_s is not None:
+                lines += [f"Cross-correlation delay of the model output against the reference (finddelay): "
+                          f"{c.cross_correlation_delay_s:.4g} s.", ""]
+    lines += ["## Added to the model", ""]
+    if res.added:
+        for name, _, desc in res.added:
+            lines.append(f"- **{name}**: {desc}")
+        c0 = channel_offsets_counts(res)
+        if c0 is not None:
+            lines.append(f"- implied axis-channel offsets c0 = {_v(c0, '{:.1f}')} counts (x/y/z)")
+    else:
+        lines.append("- nothing: no candidate is significant; the declared model stands.")
+    lines += ["", "## Before and after (held out, per axis)", ""]
+    rows = []
+    for j, a in enumerate(AXES):
+        rows.append([a, f"{res.before_insample_rmse[j]:.3f}", f"{res.before_heldout_rmse[j]:.3f}",
+                     f"{res.after_insample_rmse[j]:.3f}", f"{res.after_heldout_rmse[j]:.3f}", f"{res.noise_floor[j]:.3f}",
+                     f"{res.after_heldout_rmse[j] / res.noise_floor[j]:.2f}",
+                     f"{res.after_heldout_rmse[j] / FULL_SCALE_MPS2:.1e}"])
+    lines += [_md_table(["axis", "before in-sample [m/s^2]", "before held-out [m/s^2]", "after in-sample [m/s^2]",
+                         "after held-out [m/s^2]", "noise floor [m/s^2]", "after / floor", "after / 20 g"], rows), ""]
+    lines += [f"![before/after]({img_prefix}before_after.png)", ""]
+    lines += ["## What remains", "", f"**{s.verdict}**", "",
+              f"- pose-mean RMS of the held-out residual: {_v(s.pose_mean_rms)} m/s^2 (x/y/z)",
+              f"- excess over the floor sqrt(RMSE^2 - floor^2): {_v(s.excess_rms)} m/s^2",
+              f"- chi^2 p-value of the pose means against noise: {' / '.join(_p(p) for p in s.pose_chi2_p)} "
+              f"(effective samples per pose from lag-1 autocorrelation {_v(s.lag1_autocorr, '{:.2f}')})",
+              f"- Spearman correlation of pose means with time: {_v(s.corr_time, '{:+.2f}')}, "
+              f"with temperature: {_v(s.corr_temperature, '{:+.2f}')}",
+              f"- correlation of consecutive pose means in time order (slow wander gives values near 1, a pose- or "
+              f"angle-dependent effect values near 0 or below): {_v(s.serial_corr_pose_means, '{:+.2f}')}",
+              f"- share of pose-mean variance explained by orientation (quadratic in the reference direction): "
+              f"{_v(s.orientation_r2, '{:.2f}')}", ""]
+    rows = [[str(p["pose"]), str(p["n"]), _v(p["mean_mps2"]), _v(p["z"], "{:+.1f}"), _v(p["gref_mps2"], "{:.2f}"),
+             f"{p['t_s']:.4g}", f"{p['temp_c']:.2f}"] for p in s.per_pose[:10]]
+    lines += ["Poses with the largest residual (held out):", "",
+              _md_table(["pose", "n", "mean residual x/y/z [m/s^2]", "z-score x/y/z", "reference x/y/z [m/s^2]",
+                         "time [s]", "temp [degC]"], rows), ""]
+    lines += [f"![residual structure]({img_prefix}residual_structure.png)", ""]
+    if res.moving_residual_rms is not None:
+        lines += [f"Samples not used (moving or settling), final model against the time-interpolated reference: "
+                  f"RMS {_v(res.moving_residual_rms)} m/s^2 (these carry table motion, not calibration error).", ""]
+    lines += [f"Driver check: `ThermalCalibration.apply_counts` with the added terms, streamed with state, reproduces "
+              f"the fit's prediction to {res.consistency_max_abs_mps2:.1e} m/s^2.", ""]
+    lines += ["## Residual versus candidates", ""]
+    for c in res.ranked:
+        if c.applicable:
+            lines += [f"![{c.name}]({img_prefix}candidate_{c.name}.png)", ""]
+    return "\n".join(lines) + "\n"
+
+
+def text(res: DiagnosisResult) -> str:
+    out = [f"declared model: eq. 28, degree {res.degree} ({res.n_levels} temperature level(s)); "
+           f"{res.n_static} static samples, {res.n_groups} pose groups",
+           f"noise floor x/y/z: {_v(res.noise_floor)} m/s^2"]
+    for st in res.steps:
+        out.append(f"step {st.step} (model: {' + '.join(['eq28', *st.model])}):")
+        for row in candidate_rows(st.candidates):
+            out.append("  " + " | ".join(row))
+        for c in st.confounding:
+            out.append(f"  confounding {c.a} / {c.b}: corr {c.corr_contributions:+.2f}, "
+                       f"{c.b} on top: {100 * c.gain_b_beyond_a:+.1f} % p {c.p_b_beyond_a:.2g}, "
+                       f"{c.a} on top: {100 * c.gain_a_beyond_b:+.1f} % p {c.p_a_beyond_b:.2g}: {c.verdict}")
+        out.append(f"  chosen: {st.chosen or 'nothing'}")
+    out.append("added: " + (", ".join(f"{n} ({d})" for n, _, d in res.added) if res.added else "nothing"))
+    for j, a in enumerate(AXES):
+        out.append(f"axis {a}: held-out RMSE before {res.before_heldout_rmse[j]:.3f} -> after {res.after_heldout_rmse[j]:.3f} "
+                   f"m/s^2, noise floor {res.noise_floor[j]:.3f} m/s^2")
+    out.append(res.structure.verdict)
+    return "\n".join(out) + "\n"
+
+
+# ----------------------------------------------------------------------------- plots
+def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    d = res.data
+    r = d.use & np.all(np.isfinite(res.residual_before), axis=1)
+    written = []
+
+    # candidates: residual of the current model (held out) against the candidate's contribution
+    for c in res.ranked:
+        if not c.applicable or c.delta is None:
+            continue
+        fig, axs = plt.subplots(1, 4, figsize=(15, 3.6))
+        for j in range(3):
+            axs[j].plot(c.delta[r, j], res.residual_before[r, j], ".", ms=2, alpha=0.4)
+            lim = np.nanmax(np.abs(c.delta[r, j])) if np.any(r) else 1
+            axs[j].plot([-lim, lim], [-lim, lim], "k--", lw=0.8)
+            axs[j].set_xlabel(f"candidate contribution {AXES[j]} [m/s^2]")
+            axs[j].set_ylabel(f"held-out residual {AXES[j]} [m/s^2]")
+            axs[j].set_title(f"corr {c.corr_with_residual[j]:+.2f}")
+        if c.hyper_profile:
+            h, v = np.array(c.hyper_profile).T
+            axs[3].plot(h, v, "o-")
+            if c.hyper is not None:
+                axs[3].axvline(c.hyper, color="r", lw=0.8)
+            eff = library_by_name().get(c.name)
+            axs[3].set_xlabel(f"{eff.hyper_name} [{eff.hyper_unit}]" if eff is not None and eff.hyper_name else "hyper-parameter")
+            axs[3].set_ylabel("weighted training RSS")
+        else:
+            axs[3].axis("off")
+        fig.suptitle(f"{c.name}: held-out gain {100 * c.rel_gain:+.1f} %, p = {_p(c.p_value)}")
+        fig.tight_layout()
+        p = out_dir / f"candidate_{c.name}.png"
+        fig.savefig(p, dpi=90)
+        plt.close(fig)
+        written.append(p)
+
+    # before / after
+    fig, axs = plt.subplots(2, 3, figsize=(15, 6.5))
+    for j in range(3):
+        ax = axs[0, j]
+        ax.plot(d.t_s[r], res.residual_before[r, j], ".", ms=2, alpha=0.5, label="declared model (held out)")
+        ra = r & np.all(np.isfinite(res.residual_after), axis=1)
+        ax.plot(d.t_s[ra], res.residual_after[ra, j], ".", ms=2, alpha=0.5, label="with added effects (held out)")
+        ax.axhline(res.noise_floor[j], color="k", lw=0.6, ls=":")
+        ax.axhline(-res.noise_floor[j], color="k", lw=0.6, ls=":")
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel(f"residual {AXES[j]} [m/s^2]")
+        ax.legend(fontsize=7)
+        ax = axs[1, j]
+        ax.plot(d.ref[r], res.residual_before[r, j], ".", ms=2, alpha=0.5, label="declared model")
+        ax.plot(d.ref[ra], res.residual_after[ra, j], ".", ms=2, alpha=0.5, label="with added effects")
+        ax.set_xlabel("reference counts")
+        ax.set_ylabel(f"residual {AXES[j]} [m/s^2]")
+    fig.suptitle("held-out residual before/after; dotted: ± noise floor. RMSE x/y/z before "
+                 f"{_v(res.before_heldout_rmse)} -> after {_v(res.after_heldout_rmse)} m/s^2")
+    fig.tight_layout()
+    p = out_dir / "before_after.png"
+    fig.savefig(p, dpi=90)
+    plt.close(fig)
+    written.append(p)
+
+    # structure of what remains: pose means vs time, temperature and orientation
+    s = res.structure
+    pm = np.array([q["mean_mps2"] for q in s.per_pose])
+    pt = np.array([q["t_s"] for q in s.per_pose])
+    pT = np.array([q["temp_c"] for q in s.per_pose])
+    pg = np.array([q["gref_mps2"] for q in s.per_pose])
+    fig, axs = plt.subplots(3, 3, figsize=(15, 9))
+    for j in range(3):
+        axs[0, j].plot(pt, pm[:, j], "o", ms=3)
+        axs[0, j].set_xlabel("time [s]")
+        axs[1, j].plot(pT, pm[:, j], "o", ms=3)
+        axs[1, j].set_xlabel("temperature [degC]")
+        sc = axs[2, j].scatter(pg[:, 0], pg[:, 1], c=pm[:, j], cmap="coolwarm", s=18)
+        axs[2, j].set_xlabel("reference x [m/s^2]")
+        axs[2, j].set_ylabel("reference y [m/s^2]")
+        fig.colorbar(sc, ax=axs[2, j], label=f"pose mean {AXES[j]} [m/s^2]")
+        for i in range(2):
+            axs[i, j].set_ylabel(f"pose-mean residual {AXES[j]} [m/s^2]")
+            axs[i, j].axhline(0, color="k", lw=0.5)
+    fig.suptitle(s.verdict[:150])
+    fig.tight_layout()
+    p = out_dir / "residual_structure.png"
+    fig.savefig(p, dpi=90)
+    plt.close(fig)
+    written.append(p)
+    return written
+
+
+def write_report(res: DiagnosisResult, md_path: str | Path, img_dir: str | Path | None = None, command: str = "") -> list[Path]:
+    """Markdown report at ``md_path`` with its PNGs in ``img_dir`` (default: ``<md dir>/img``)."""
+    md_path = Path(md_path)
+    img_dir = Path(img_dir) if img_dir is not None else md_path.parent / "img"
+    written = write_plots(res, img_dir)
+    import os
+
+    rel = os.path.relpath(img_dir, md_path.parent).replace(os.sep, "/")
+    md_path.parent.mkdir(parents=True, exist_ok=True)
+    md_path.write_text(markdown(res, command, img_prefix=f"{rel}/"))
+    return [md_path, *written]

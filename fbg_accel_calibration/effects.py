@@ -1,0 +1,460 @@
+"""Library of candidate physical effects the declared model (paper eq. 28) may lack (pure numpy).
+
+Each candidate is a physical hypothesis with its own regressors and, where the effect is
+non-linear in a parameter, one hyper-parameter found by a 1-D search (grid, then bounded refine):
+
+* ``reference_dark_offset``: offset d on the reference detector and offsets on the axis channels;
+  Psi = xyz / (ref - d) plus a regressor 1/(ref - d). Hyper: d (counts).
+* ``thermal_lag``: eq. 28 evaluated at a lagged (tau > 0) or leading (tau < 0) temperature. Hyper: tau (s).
+* ``spectral_nonlinearity``: quadratic and cross terms of Psi (6 regressors). No hyper.
+* ``time_drift``: linear creep t and warm-up exp(-t/tau). Hyper: tau (s).
+* ``channel_delay``: the sensor channels lag the table reference by D; the reference is
+  re-aligned to t - D. Hyper: D (s), bracketed by the cross-correlation of the calibrated output
+  with the reference (D'Emilia et al. 2019, finddelay).
+* ``tia_lowpass``: first-order TIA low-pass of the axis channels (Table 1 cut-off ratios); the
+  noise-free expected Psi of the reference is passed through the filters and mapped back, i.e. the
+  reference is filtered like the signal. Hyper: scale of the Table 1 time constants.
+* ``thermal_hysteresis``: bias of opposite sign on heating and cooling branches. Hyper: the time
+  constant of the rate filter that decides the branch (s).
+
+The regressors are built with the same code as the run-time terms in
+``fbg_accel_driver.correction_terms``, so a fitted candidate becomes declared terms that the
+driver evaluates identically. The rationale of every candidate is in ``docs/effects.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fbg_accel_driver.correction_terms import (
+    ChainDynamics,
+    ChannelOffset,
+    ReferenceDarkOffset,
+    SpectralNonlinearity,
+    ThermalHysteresis,
+    ThermalLag,
+    TimeDrift,
+    first_order_lowpass,
+    quadratic_features,
+)
+
+# Table 1 of the paper: TIA cut-off frequencies (Hz) of ref, x, y, z (static-test build).
+TIA_CUTOFF_HZ = np.array([1.0, 1.7, 1.3, 1.3])
+TIA_TAU_S = 1.0 / (2.0 * np.pi * TIA_CUTOFF_HZ)
+AHT10_RESOLUTION_C = 0.01  # paper §3.6
+
+
+@dataclass
+class DiagnosisData:
+    """The arrays a candidate needs, all (N,) or (N, 3), time-ordered within each run.
+
+    ``use`` marks the static samples that enter fits and residuals; ``gref_filled`` is the
+    reference with the gaps between poses linearly interpolated in time (an approximation of the
+    table's motion, used only to re-align the reference in time for ``channel_delay``).
+    """
+
+    t_s: np.ndarray
+    ref: np.ndarray
+    xyz: np.ndarray
+    temp_c: np.ndarray
+    gref: np.ndarray
+    pose_id: np.ndarray
+    run_id: np.ndarray
+    use: np.ndarray
+    gref_filled: np.ndarray = field(default=None)  # type: ignore[assignment]
+    group: np.ndarray = field(default=None)  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        if self.gref_filled is None:
+            self.gref_filled = fill_reference_gaps(self.t_s, self.gref, self.run_id)
+        if self.group is None:
+            self.group = motion_groups(self.pose_id, self.run_id)
+
+    @property
+    def dt_s(self) -> float:
+        d = np.diff(self.t_s)
+        d = d[d > 0]
+        return float(np.median(d)) if d.size else 1.0
+
+    @property
+    def duration_s(self) -> float:
+        return float(np.ptp(self.t_s)) if self.t_s.size else 0.0
+
+    def temperature_span_c(self) -> float:
+        t = self.temp_c[self.use]
+        t = t[np.isfinite(t)]
+        return float(np.ptp(t)) if t.size else 0.0
+
+
+def motion_groups(pose_id: np.ndarray, run_id: np.ndarray) -> np.ndarray:
+    """Cross-validation group (N,) of every sample: its pose id; a sample taken while the table moves
+    belongs to the pose the table moves to (the previous one at the end of a run), -1 if none."""
+    pose_id = np.asarray(pose_id)
+    out = np.array(pose_id, copy=True)
+    for r in np.unique(run_id):
+        idx = np.flatnonzero(run_id == r)
+        p = pose_id[idx]
+        n = len(p)
+        pos = np.where(p >= 0, np.arange(n), n)
+        nxt = np.minimum.accumulate(pos[::-1])[::-1]  # index of the next pose sample (n if none)
+        prv = np.maximum.accumulate(np.where(p >= 0, np.arange(n), -1))
+        fill = np.where(nxt < n, p[np.minimum(nxt, n - 1)], np.where(prv >= 0, p[np.maximum(prv, 0)], -1))
+        out[idx] = np.where(p >= 0, p, fill)
+    return out
+
+
+def fill_reference_gaps(t_s: np.ndarray, gref: np.ndarray, run_id: np.ndarray) -> np.ndarray:
+    """Reference (N, 3) with NaN gaps linearly interpolated in time within each run."""
+    out = np.array(gref, dtype=float, copy=True)
+    for r in np.unique(run_id):
+        idx = np.flatnonzero(run_id == r)
+        ok = np.all(np.isfinite(out[idx]), axis=1)
+        if ok.sum() < 2:
+            continue
+        for j in range(3):
+            out[idx, j] = np.interp(t_s[idx], t_s[idx][ok], out[idx][ok, j])
+    return out
+
+
+@dataclass
+class Inputs:
+    """What eq. 28 is fed with after the input corrections, plus the reference it is compared to."""
+
+    ref: np.ndarray
+    xyz: np.ndarray
+    temp_c: np.ndarray
+    t_s: np.ndarray
+    gref: np.ndarray
+    valid: np.ndarray
+
+    @property
+    def psi(self) -> np.ndarray:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return self.xyz / np.where(self.ref > 0, self.ref, np.nan)[:, None]
+
+
+class Effect:
+    """Base class of a candidate effect. Subclasses set the class attributes and override hooks."""
+
+    name: str = ""
+    stage: int = 0  # application order: input corrections first, additive terms after
+    hyper_name: str | None = None
+    hyper_unit: str = ""
+    hyper_null: float | None = None  # value at which the hyper-parameter has no effect (kept unless the data need another)
+    title: str = ""
+    n_columns: int = 0  # extra regressors (each gets 3 coefficients, one per axis)
+
+    def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
+        """Whether the data can show this effect at all (e.g. temperature must vary)."""
+        return True, ""
+
+    def hyper_grid(self, data: DiagnosisData) -> np.ndarray | None:
+        """Grid of the hyper-parameter for the 1-D search; ``None`` if the effect has none."""
+        return None
+
+    def hyper_bounds(self, data: DiagnosisData) -> tuple[float, float] | None:
+        g = self.hyper_grid(data)
+        return None if g is None else (float(np.min(g)), float(np.max(g)))
+
+    def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
+        """Input corrections: modify ``inp`` in place (counts, temperature, reference alignment)."""
+
+    def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray | None:
+        """Extra regressors (N, n_columns) computed from the corrected inputs; None if none."""
+        return None
+
+    def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
+        """Declared correction terms for the calibration YAML; ``coeff`` (3, n_columns) m/s^2 per unit."""
+        return []
+
+    def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
+        """One line with the fitted parameter values, for the report."""
+        return "" if h is None else f"{self.hyper_name} = {h:.4g} {self.hyper_unit}"
+
+
+class ReferenceDarkOffsetEffect(Effect):
+    name = "reference_dark_offset"
+    stage = 10
+    hyper_name = "d_ref"
+    hyper_unit = "counts"
+    hyper_null = 0.0
+    title = "reference normalisation offset"
+    n_columns = 1
+
+    def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
+        lo = float(np.nanmin(data.ref[data.use]))
+        return np.linspace(-0.9 * lo, 0.9 * lo, 37)  # includes 0 (the null value)
+
+    def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
+        inp.ref = inp.ref - float(h)
+        inp.valid &= inp.ref > 0
+
+    def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return (1.0 / np.where(inp.ref > 0, inp.ref, np.nan))[:, None]
+
+    def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
+        return [ReferenceDarkOffset(float(h)), ChannelOffset(np.asarray(coeff)[:, 0])]
+
+    def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
+        k = np.asarray(coeff)[:, 0] if coeff is not None else np.zeros(3)
+        return (f"reference offset d_ref = {h:.1f} counts; axis-channel offsets via k = [{k[0]:.4g}, {k[1]:.4g}, {k[2]:.4g}] "
+                "m/s^2·counts (regressor 1/(ref - d_ref))")
+
+
+class ThermalLagEffect(Effect):
+    name = "thermal_lag"
+    stage = 30
+    hyper_name = "tau"
+    hyper_unit = "s"
+    title = "thermal lag between optics and AHT10"
+
+    def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
+        if data.temperature_span_c() < 20 * AHT10_RESOLUTION_C:
+            return False, "temperature does not change in this recording"
+        return True, ""
+
+    def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
+        lo, hi = max(5 * data.dt_s, data.duration_s / 2000), max(data.duration_s / 3, 10 * data.dt_s)
+        pos = np.geomspace(lo, hi, 14)
+        return np.concatenate([-pos[::-1], pos])
+
+    def hyper_bounds(self, data: DiagnosisData) -> tuple[float, float] | None:
+        return None  # two-signed grid: refine within the bracket of the best grid point
+
+    def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
+        term = ThermalLag(float(h))
+        out = np.array(inp.temp_c, copy=True)
+        for r in np.unique(data.run_id):
+            idx = data.run_id == r
+            out[idx] = term.effective_temperature(inp.temp_c[idx], inp.t_s[idx], {})
+        inp.temp_c = out
+
+    def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
+        return [ThermalLag(float(h))]
+
+    def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
+        who = "optics lag the AHT10" if h > 0 else "AHT10 lags the optics"
+        return f"tau = {h:.4g} s ({who})"
+
+
+class SpectralNonlinearityEffect(Effect):
+    name = "spectral_nonlinearity"
+    stage = 50
+    title = "acceleration non-linearity of the spectral overlap"
+    n_columns = 6
+
+    def _psi0(self, data: DiagnosisData) -> np.ndarray:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            psi = data.xyz[data.use] / data.ref[data.use, None]
+        return np.nanmean(psi, axis=0)
+
+    def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
+        return quadratic_features(inp.psi, self._psi0(data))
+
+    def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
+        return [SpectralNonlinearity(self._psi0(data), np.asarray(coeff))]
+
+    def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
+        c = np.asarray(coeff) if coeff is not None else np.zeros((3, 6))
+        return "largest quadratic coefficient per axis = " + ", ".join(f"{v:.3g}" for v in np.max(np.abs(c), axis=1)) + " m/s^2"
+
+
+class TimeDriftEffect(Effect):
+    name = "time_drift"
+    stage = 70
+    hyper_name = "tau_warmup"
+    hyper_unit = "s"
+    title = "drift with time (warm-up, creep)"
+    n_columns = 2
+
+    def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
+        if data.duration_s <= 0:
+            return False, "no time base"
+        return True, ""
+
+    def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
+        d = max(data.duration_s, 1e-9)
+        return np.geomspace(d / 100, d * 3, 16)
+
+    def _t0(self, data: DiagnosisData) -> float:
+        return float(np.min(data.t_s)) if data.t_s.size else 0.0
+
+    def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
+        return TimeDrift.features(inp.t_s, float(h), self._t0(data))
+
+    def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
+        c = np.asarray(coeff)
+        return [TimeDrift(c[:, 0], c[:, 1], float(h), self._t0(data))]
+
+    def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
+        c = np.asarray(coeff) if coeff is not None else np.zeros((3, 2))
+        return (f"warm-up tau = {h:.4g} s, amplitude [{c[0, 1]:.3g}, {c[1, 1]:.3g}, {c[2, 1]:.3g}] m/s^2; "
+                f"creep [{c[0, 0]:.3g}, {c[1, 0]:.3g}, {c[2, 0]:.3g}] m/s^2/s")
+
+
+class ChannelDelayEffect(Effect):
+    name = "channel_delay"
+    stage = 1
+    hyper_name = "D"
+    hyper_unit = "s"
+    title = "delay of the sensor channels against the reference angles"
+
+    def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
+        return np.arange(0.0, 12.5, 0.5) * data.dt_s
+
+    def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
+        # the sample taken at t shows the table at t - D: compare it with the reference at t - D
+        D = float(h)
+        if D == 0:
+            return
+        g = np.array(inp.gref, copy=True)
+        valid = np.array(inp.valid, copy=True)
+        for r in np.unique(data.run_id):
+            idx = np.flatnonzero(data.run_id == r)
+            t = data.t_s[idx]
+            tq = t - D
+            for j in range(3):
+                g[idx, j] = np.interp(tq, t, data.gref_filled[idx, j])
+            valid[idx] &= tq >= t[0]
+        inp.gref = g
+        inp.valid = valid
+
+    def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
+        # a pure delay is a time-stamp correction, not an acceleration term (see docs/effects.md)
+        return [ChainDynamics(np.zeros(4), float(h))]
+
+    def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
+        return f"D = {h:.4g} s (sensor channels late against the reference)"
+
+
+class TiaLowpassEffect(Effect):
+    name = "tia_lowpass"
+    stage = 2
+    hyper_name = "tau_scale"
+    hyper_unit = "x Table 1"
+    title = "TIA first-order low-pass of the axis channels"
+
+    def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
+        # axis time constants from 0.05 sample to ~30 samples (Table 1 ratios between channels)
+        lo = 0.05 * data.dt_s / TIA_TAU_S[1:].min()
+        hi = 30 * data.dt_s / TIA_TAU_S[1:].min()
+        return np.geomspace(lo, hi, 22)
+
+    def taus(self, h: float) -> np.ndarray:
+        return TIA_TAU_S * float(h)
+
+    def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
+        # Filter the noise-free reference, not the noisy signal: the sensor shows LPF(Psi_true), so the
+        # reference it must match is the one whose expected Psi went through the same filters. Inverting
+        # the filter on the counts instead would amplify the (already filtered) noise by ~1/a.
+        g = fill_reference_gaps(inp.t_s, inp.gref, data.run_id)
+        P, q = expected_psi_map(data, inp)
+        psi_hat = g @ P.T + q
+        psi_f = np.array(psi_hat, copy=True)
+        tau = self.taus(float(h))
+        for r in np.unique(data.run_id):
+            idx = data.run_id == r
+            for j in range(3):
+                psi_f[idx, j] = first_order_lowpass(psi_hat[idx, j], inp.t_s[idx], tau[j + 1], {})
+        inp.gref = g + np.linalg.solve(P, (psi_f - psi_hat).T).T
+        inp.valid &= np.all(np.isfinite(inp.gref), axis=1)
+
+    def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
+        return [ChainDynamics(self.taus(float(h)), 0.0)]
+
+    def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
+        t = self.taus(float(h))
+        return f"scale = {h:.3g} x Table 1: tau x/y/z = {t[1]:.3g}/{t[2]:.3g}/{t[3]:.3g} s"
+
+
+def expected_psi_map(data: DiagnosisData, inp: Inputs) -> tuple[np.ndarray, np.ndarray]:
+    """Linear map Psi ~ P g + q (P (3, 3), q (3,)) fitted on the static samples (eq. 25 inverted):
+    the noise-free Psi the sensor shows for a reference g."""
+    psi = inp.psi
+    rows = data.use & np.all(np.isfinite(psi), axis=1) & np.all(np.isfinite(data.gref), axis=1)
+    X = np.column_stack([data.gref[rows], np.ones(int(rows.sum()))])
+    coef = np.linalg.lstsq(X, psi[rows], rcond=None)[0]
+    return coef[:3].T, coef[3]
+
+
+class ThermalHysteresisEffect(Effect):
+    name = "thermal_hysteresis"
+    stage = 80
+    hyper_name = "rate_tau"
+    hyper_unit = "s"
+    title = "hysteresis: heating versus cooling branch"
+    n_columns = 1
+
+    def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
+        if data.temperature_span_c() < 50 * AHT10_RESOLUTION_C:
+            return False, "temperature does not change in this recording"
+        return True, ""
+
+    def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
+        return np.geomspace(max(5 * data.dt_s, data.duration_s / 1000), max(data.duration_s / 10, 10 * data.dt_s), 10)
+
+    @staticmethod
+    def deadband(h: float) -> float:
+        return 2 * AHT10_RESOLUTION_C / float(h)
+
+    def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
+        out = np.zeros(len(inp.t_s))
+        for r in np.unique(data.run_id):
+            idx = data.run_id == r
+            st = ThermalHysteresis(np.zeros(3), float(h), self.deadband(float(h))).new_state()
+            out[idx] = ThermalHysteresis.branch(inp.temp_c[idx], inp.t_s[idx], float(h), self.deadband(float(h)), st)
+        return out[:, None]
+
+    def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
+        return [ThermalHysteresis(np.asarray(coeff)[:, 0], float(h), self.deadband(float(h)))]
+
+    def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
+        c = np.asarray(coeff)[:, 0] if coeff is not None else np.zeros(3)
+        return f"rate filter {h:.4g} s; half gap heating-cooling [{c[0]:.3g}, {c[1]:.3g}, {c[2]:.3g}] m/s^2"
+
+
+LIBRARY: tuple[Effect, ...] = (
+    ReferenceDarkOffsetEffect(),
+    ThermalLagEffect(),
+    SpectralNonlinearityEffect(),
+    TimeDriftEffect(),
+    ChannelDelayEffect(),
+    TiaLowpassEffect(),
+    ThermalHysteresisEffect(),
+)
+
+
+def library_by_name() -> dict[str, Effect]:
+    return {e.name: e for e in LIBRARY}
+
+
+# What measurement separates two candidates that this data cannot tell apart (for the report).
+SEPARATING_MEASUREMENT: dict[frozenset[str], str] = {
+    frozenset({"reference_dark_offset", "time_drift"}): (
+        "change the source power independently of time (step the SLD drive current or insert a calibrated "
+        "attenuator after the source at fixed poses, and repeat the pose sequence in reverse order): a dark "
+        "offset follows the reference counts, a drift follows the clock; also record the detectors dark "
+        "(source off) to measure d directly"),
+    frozenset({"channel_delay", "tia_lowpass"}): (
+        "record the transitions at a higher sample rate (or a fast tilt step) and compare the step response: "
+        "a delay is a shifted step, the TIA low-pass an exponential approach; a sine sweep separates them by "
+        "the phase (linear in frequency for a delay, arctan for a first-order low-pass)"),
+    frozenset({"thermal_lag", "thermal_hysteresis"}): (
+        "hold temperature plateaus long enough (> 5 time constants) after heating and after cooling: a lag "
+        "decays on the plateau, hysteresis stays"),
+    frozenset({"thermal_lag", "time_drift"}): (
+        "repeat the run with a different temperature profile (e.g. a plateau then a ramp): a thermal lag "
+        "follows the temperature rate, a drift follows time since power-on"),
+    frozenset({"time_drift", "thermal_hysteresis"}): (
+        "cycle the temperature up and down twice: hysteresis repeats with the branch, drift does not"),
+}
+
+
+def separating_measurement(a: str, b: str) -> str:
+    return SEPARATING_MEASUREMENT.get(frozenset({a, b}), (
+        "repeat the calibration with the two explanatory variables decorrelated (randomised pose order, "
+        "temperature and power changes at different times)"))

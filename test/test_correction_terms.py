@@ -1,0 +1,170 @@
+"""Correction terms of the calibration model: YAML round trip, refusal of bad parameters, and the
+same result whether a stream is processed in one batch or in consecutive batches with one state."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fbg_accel_driver.correction_terms import (
+    CORRECTION_TYPES,
+    ChainDynamics,
+    ChannelOffset,
+    ReferenceDarkOffset,
+    SpectralNonlinearity,
+    ThermalHysteresis,
+    ThermalLag,
+    TiaInverseFilter,
+    TimeDrift,
+    correction_from_dict,
+    first_order_lowpass,
+)
+from fbg_accel_driver.thermal_model import CalibrationFileError, ThermalCalibration
+
+
+def _all_terms() -> list:
+    return [
+        TiaInverseFilter(np.array([0.16, 0.094, 0.12, 0.0])),
+        ReferenceDarkOffset(-35.0),
+        ThermalLag(40.0),
+        ThermalLag(-25.0),
+        SpectralNonlinearity(np.array([1.2, 1.8, 1.3]), np.arange(18.0).reshape(3, 6) * 0.5 - 4.0),
+        ChannelOffset(np.array([300.0, -200.0, 50.0])),
+        TimeDrift(np.array([1e-5, -2e-5, 0.0]), np.array([0.3, -0.1, 0.05]), 600.0, 0.0),
+        ThermalHysteresis(np.array([0.05, -0.02, 0.03]), 30.0, 1e-3),
+        ChainDynamics(np.array([0.16, 0.094, 0.12, 0.12]), 0.02),
+    ]
+
+
+def _cal(corrections: list) -> ThermalCalibration:
+    M = np.zeros((3, 3, 3))
+    M[0] = np.diag([81.6, 77.7, 107.7])
+    M[1] = np.diag([0.5, -0.3, 0.2])
+    M[2] = np.diag([0.05, 0.02, -0.01])
+    b = np.array([[-101.0, -153.6, -137.2], [0.2, 0.1, -0.3], [0.01, 0.0, 0.02]])
+    return ThermalCalibration(M=M, b=b, temperature_range_c=(15.0, 45.0), t_center_c=25.0, t_scale_c=10.0,
+                              corrections=corrections)
+
+
+def _stream(n: int = 1500, seed: int = 3) -> dict:
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(np.full(n, 0.01))
+    t[700:] += 0.05  # one irregular gap
+    ref = 870 + 5 * np.sin(t / 3) + rng.normal(0, 1, n)
+    step = (np.floor(t / 2.0) % 3)[:, None] * np.array([[40.0, -30.0, 20.0]])
+    xyz = np.array([1130.0, 1650.0, 1130.0]) + step + rng.normal(0, 2, (n, 3))
+    temp = 20 + 10 * np.sin(t / 4) + np.round(rng.normal(0, 0.01, n), 2)
+    temp[100:105] = np.nan  # AHT10 invalid for a moment
+    return {"ref": ref, "xyz": xyz, "temp_c": temp, "t_s": t}
+
+
+def test_registry_has_every_kind_and_round_trips() -> None:
+    assert set(CORRECTION_TYPES) == {t.kind for t in _all_terms()}
+    for term in _all_terms():
+        again = correction_from_dict(term.to_dict())
+        assert again == term
+        assert again.to_dict()["kind"] == term.kind
+
+
+def test_calibration_yaml_round_trip_keeps_corrections(tmp_path) -> None:
+    cal = _cal(_all_terms())
+    path = tmp_path / "cal.yaml"
+    cal.save(path)
+    back = ThermalCalibration.load(path)
+    assert back.corrections == cal.corrections
+    s = _stream(300)
+    np.testing.assert_allclose(back.apply_counts(**s), cal.apply_counts(**s), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"kind": "reference_dark_offset"},
+        {"kind": "reference_dark_offset", "ref_offset_counts": "ten"},
+        {"kind": "reference_dark_offset", "ref_offset_counts": 5000.0},
+        {"kind": "reference_dark_offset", "ref_offset_counts": float("nan")},
+        {"kind": "thermal_lag", "tau_s": 0.0},
+        {"kind": "thermal_lag", "tau_s": True},
+        {"kind": "tia_inverse_filter", "tau_s": [0.1, 0.1, 0.1]},
+        {"kind": "tia_inverse_filter", "tau_s": [0.1, -0.1, 0.1, 0.1]},
+        {"kind": "spectral_nonlinearity", "psi0": [1, 1, 1], "coeff_mps2": [[0] * 6] * 2},
+        {"kind": "channel_offset", "coeff_mps2_counts": [1.0, float("inf"), 0.0]},
+        {"kind": "time_drift", "creep_mps2_per_s": [0, 0, 0], "warmup_mps2": [0, 0, 0], "warmup_tau_s": -1.0},
+        {"kind": "thermal_hysteresis", "half_gap_mps2": [0, 0, 0], "rate_tau_s": 10.0, "deadband_c_per_s": -1.0},
+        {"kind": "chain_dynamics", "tia_tau_s": [0.1, 0.1, 0.1, 0.1], "delay_s": -0.01},
+        {"kind": "no_such_term"},
+        {"tau_s": 1.0},
+    ],
+)
+def test_bad_parameters_are_refused_with_a_clear_message(bad: dict) -> None:
+    with pytest.raises(ValueError) as err:
+        correction_from_dict(bad)
+    assert str(err.value)
+    d = _cal([]).to_dict()
+    d["corrections"] = [bad]
+    with pytest.raises(CalibrationFileError, match="correction"):
+        ThermalCalibration.from_dict(d)
+
+
+@pytest.mark.parametrize("chunks", [[1500], [1, 1, 498, 1000], [7] * 214 + [2], [750, 0, 750]])
+def test_stream_in_chunks_equals_one_batch(chunks: list[int]) -> None:
+    cal = _cal(_all_terms())
+    s = _stream()
+    whole = cal.apply_counts(**s)
+    state = cal.new_state()
+    parts, i = [], 0
+    for n in chunks:
+        sl = slice(i, i + n)
+        parts.append(cal.apply_counts(s["ref"][sl], s["xyz"][sl], s["temp_c"][sl], s["t_s"][sl], state))
+        i += n
+    chunked = np.concatenate(parts)
+    assert chunked.shape == whole.shape == (1500, 3)
+    np.testing.assert_allclose(chunked, whole, rtol=0, atol=1e-9, equal_nan=True)
+    # and the corrections do change the output (so the test can fail)
+    assert np.nanmax(np.abs(whole - _cal([]).apply_counts(**s))) > 1e-3
+
+
+@pytest.mark.parametrize("term", _all_terms(), ids=lambda t: t.kind + str(id(t) % 7))
+def test_each_term_alone_is_chunk_invariant(term) -> None:
+    cal = _cal([term])
+    s = _stream(400, seed=11)
+    whole = cal.apply_counts(**s)
+    state = cal.new_state()
+    chunked = np.concatenate([cal.apply_counts(s["ref"][a:a + 37], s["xyz"][a:a + 37], s["temp_c"][a:a + 37],
+                                               s["t_s"][a:a + 37], state) for a in range(0, 400, 37)])
+    np.testing.assert_allclose(chunked, whole, rtol=0, atol=1e-9, equal_nan=True)
+
+
+def test_lowpass_matches_the_exact_recursion_and_inverse_filter_undoes_it() -> None:
+    rng = np.random.default_rng(0)
+    t = np.cumsum(rng.choice([0.01, 0.01, 0.02], 500))
+    x = np.cumsum(rng.normal(0, 1, 500))
+    y = first_order_lowpass(x, t, 0.12, {})
+    ref = [x[0]]
+    for i in range(1, 500):
+        a = 1 - math.exp(-(t[i] - t[i - 1]) / 0.12)
+        ref.append(ref[-1] + a * (x[i] - ref[-1]))
+    np.testing.assert_allclose(y, ref, rtol=0, atol=1e-9)
+    inv = TiaInverseFilter(np.full(4, 0.12))
+    counts = np.column_stack([y, y, y, y])
+    back = inv.correct_counts(counts, t, inv.new_state())
+    np.testing.assert_allclose(back[1:], np.column_stack([x, x, x, x])[1:], rtol=0, atol=1e-6)
+
+
+def test_thermal_lag_follows_a_ramp() -> None:
+    t = np.arange(0, 2000.0, 0.1)
+    temp = 20 + 0.01 * t
+    lag = ThermalLag(50.0).effective_temperature(temp, t, {})
+    lead = ThermalLag(-50.0).effective_temperature(temp, t, {})
+    assert lag[-1] == pytest.approx(temp[-1] - 0.5, abs=0.01)  # lags by tau * rate (within one sample step)
+    assert lead[-1] == pytest.approx(temp[-1] + 0.5, abs=0.01)
+
+
+def test_hysteresis_branch_remembers_direction_at_constant_temperature() -> None:
+    t = np.arange(0, 3000.0, 1.0)
+    temp = np.interp(t, [0, 1000, 1500, 2500, 3000], [20, 30, 30, 20, 20])
+    s = ThermalHysteresis.branch(temp, t, 20.0, 1e-3, ThermalHysteresis(np.zeros(3), 20.0, 1e-3).new_state())
+    assert s[500] == 1.0 and s[1400] == 1.0  # heating, then held on the plateau
+    assert s[2000] == -1.0 and s[2900] == -1.0  # cooling, then held

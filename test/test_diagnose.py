@@ -1,0 +1,201 @@
+"""Diagnosis engine on synthetic recordings built here with numpy (known truth), the driver/offline
+equality of the added terms, the CLI, and the measured series of the paper."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fbg_accel_calibration.diagnose import diagnose, paired_gain_test
+from fbg_accel_calibration.diagnose_cli import main as diagnose_main
+from fbg_accel_calibration.diagnose_report import markdown, write_report
+from fbg_accel_calibration.recording import Recording
+from fbg_accel_calibration.table_geometry import table_specific_force
+from fbg_accel_driver.correction_terms import ThermalLag, TiaInverseFilter
+from fbg_accel_driver.driver_core import DriverCore
+from fbg_accel_driver.frame_codec import Frame, Status, encode_frame
+from fbg_accel_driver.thermal_model import ThermalCalibration
+
+MEASURED = Path(__file__).resolve().parents[2] / "shared" / "data" / "measured" / "fig13_multiposition_23C.csv"
+M_TRUE = np.array([[81.60, 2.89, 0.71], [1.59, 77.66, 3.75], [0.24, 1.23, 107.66]])
+B_TRUE = np.array([-101.08, -153.59, -137.16])
+
+
+def synthetic(seed: int, *, dark: float = 0.0, pose_disturbance: float = 0.0, dwell: int = 40, move: int = 4,
+              sigma: float = 0.05, channel_dark: float = 0.0, power_ramp: float = 0.0) -> Recording:
+    """Multi-position run (theta 0..330 step 30, psi 0..330 step 60), linear sensor, white noise.
+
+    ``dark``: offset (counts) added to the reference ADC while the source power wanders by +-1 %,
+    so Psi = xyz/ref does not cancel it. ``pose_disturbance``: a force ~ sin(2 psi) on x (m/s^2),
+    constant in every pose, that no library effect describes. ``channel_dark``: offset (counts) on
+    the three axis channels; ``power_ramp``: relative source-power change over the run, linear in time
+    (instead of the +-1 % wander), which makes a normalisation offset look exactly like a drift.
+    """
+    rng = np.random.default_rng(seed)
+    poses = [(p, t) for t in range(0, 360, 30) for p in range(0, 360, 60)]
+    psi_l, th_l, pid_l = [], [], []
+    for k, (p, t) in enumerate(poses):
+        if k:
+            p0, t0 = poses[k - 1]
+            for f in (np.arange(move) + 1) / (move + 1):  # intermediate angles while moving
+                psi_l.append(p0 + f * (p - p0))
+                th_l.append(t0 + f * (t - t0))
+                pid_l.append(-1)
+        psi_l += [p] * dwell
+        th_l += [t] * dwell
+        pid_l += [k] * dwell
+    psi, th, pid = np.array(psi_l, float), np.array(th_l, float), np.array(pid_l)
+    n = len(psi)
+    g = table_specific_force(psi, th, 9.81)
+    g_sensor = g + pose_disturbance * np.sin(2 * np.radians(psi))[:, None] * np.array([1.0, 0.3, 0.0])
+    psi_true = np.linalg.solve(M_TRUE, (g_sensor - B_TRUE).T).T
+    power = 1.0 + 0.01 * np.sin(np.arange(n) / n * 2 * np.pi * 1.5 + rng.uniform(0, 6))
+    if power_ramp:
+        power = 1.0 + power_ramp * np.arange(n) / n
+    ref_true = 870.0 * power
+    xyz = psi_true * ref_true[:, None]
+    xyz += rng.normal(0, 1.0, (n, 3)) * sigma / np.diag(M_TRUE) * 870.0
+    xyz += channel_dark
+    ref = ref_true + dark
+    gref = np.where(pid[:, None] >= 0, g, np.nan)
+    return Recording(np.arange(n) * 0.1, ref, xyz, 23.4 + rng.normal(0, 0.01, n), gref, pid)
+
+
+def test_injected_dark_offset_is_found_and_fixed() -> None:
+    rec = synthetic(1, dark=-150.0)
+    res = diagnose(rec, static="table")
+    assert res.ranked[0].name == "reference_dark_offset"
+    assert res.ranked[0].significant
+    assert [a[0] for a in res.added] == ["reference_dark_offset"]
+    assert np.max(res.before_heldout_rmse / res.noise_floor) > 1.5  # the effect was visible
+    assert np.all(res.after_heldout_rmse < 1.2 * res.noise_floor)
+    assert not res.structure.significant
+    assert res.consistency_max_abs_mps2 < 1e-9
+
+
+@pytest.mark.parametrize("seed", [2, 3, 4])
+def test_nothing_injected_nothing_added(seed: int) -> None:
+    res = diagnose(synthetic(seed), static="table")
+    assert res.added == []
+    assert res.steps[0].chosen is None
+    assert not res.structure.significant
+    assert res.calibration.corrections == []
+
+
+def test_unlisted_pose_disturbance_is_reported_not_claimed() -> None:
+    res = diagnose(synthetic(5, pose_disturbance=0.3), static="table")
+    s = res.structure
+    assert s.significant, s.verdict
+    assert "significant unexplained residual" in s.verdict
+    assert s.ratio[0] > 1.5  # x carries it
+    assert s.pose_chi2_p[0] < 1e-6
+    worst = s.per_pose[0]
+    assert abs(worst["mean_mps2"][0]) > 0.15  # the structure is reported per pose
+    text = markdown(res)
+    assert "What remains" in text and "significant unexplained residual" in text
+
+
+def test_offset_and_drift_that_look_the_same_are_reported_as_confounded() -> None:
+    """Axis-channel offsets with a source power that falls linearly in time: the error c0/ref is then a
+    linear function of time, exactly what a creep term gives. The diagnosis must say so."""
+    res = diagnose(synthetic(9, channel_dark=300.0, power_ramp=-0.05), static="table")
+    top = {c.name for c in res.ranked[:2]}
+    assert top == {"reference_dark_offset", "time_drift"}
+    assert all(c.significant for c in res.ranked[:2])
+    conf = [c for c in res.steps[0].confounding if {c.a, c.b} == top]
+    assert conf and conf[0].verdict == "confounded", conf
+    assert conf[0].corr_contributions > 0.9
+    text = markdown(res)
+    assert "confounded on this data" in text and "source power independently of time" in text
+    assert "Confounded with" in text  # the added effect carries the warning, it is not silently picked
+    assert res.calibration.fit["confounded_with"] == {res.added[0][0]: [n for n in top if n != res.added[0][0]]}
+    assert np.all(res.after_heldout_rmse < 1.2 * res.noise_floor)  # whichever is added, the fit is fixed
+
+
+def test_paired_gain_test_detects_and_refuses() -> None:
+    rng = np.random.default_rng(0)
+    groups = np.repeat(np.arange(30), 20)
+    rows = np.ones(600, bool)
+    r0 = rng.normal(0, 1, (600, 3))
+    gain, p, ng = paired_gain_test(r0, r0 * 0.7, groups, rows, np.ones(3))
+    assert ng == 30 and p < 1e-6 and gain == pytest.approx(0.51, abs=1e-9)
+    gain, p, _ = paired_gain_test(r0, r0 + rng.normal(0, 0.1, (600, 3)), groups, rows, np.ones(3))
+    assert p > 0.01 and gain < 0
+
+
+def _frames_from(ref, xyz, temp_c, t_s) -> bytes:
+    out = b""
+    for i in range(len(ref)):
+        f = Frame(seq=i % 65536, t_us=round(t_s[i] * 1e6), ref=int(ref[i]), x=int(xyz[i, 0]), y=int(xyz[i, 1]),
+                  z=int(xyz[i, 2]), temp_cc=round(temp_c[i] * 100), status=int(Status.TEMP_VALID | Status.TEMP_PRESENT))
+        out += encode_frame(f)
+    return out
+
+
+def test_driver_core_output_equals_offline_model_with_stateful_terms() -> None:
+    """Frames through the driver's DriverCore (chunked bytes, persistent state) equal apply_counts in one batch."""
+    rec = synthetic(7, dark=-40.0)
+    res = diagnose(rec, static="table")
+    cal = res.calibration
+    assert any(t.kind == "reference_dark_offset" for t in cal.corrections)
+    # add the stateful terms too, so the streaming state is exercised
+    cal = ThermalCalibration(M=cal.M, b=cal.b, temperature_range_c=(0.0, 60.0), t_center_c=cal.t_center_c,
+                             t_scale_c=cal.t_scale_c, corrections=[TiaInverseFilter(np.array([0.0, 0.09, 0.12, 0.12])),
+                                                                   *cal.corrections, ThermalLag(30.0)])
+    n = 900
+    ref = np.round(rec.ref[:n])
+    xyz = np.round(rec.xyz[:n])
+    temp = np.round((22.0 + 0.002 * np.arange(n)) * 100) / 100
+    t_s = np.arange(n) * 0.01
+    offline = cal.apply_counts(ref, xyz, temp, t_s, cal.new_state())
+    core = DriverCore(cal)
+    data = _frames_from(ref, xyz, temp, t_s)
+    got = []
+    for i, k in enumerate(range(0, len(data), 101)):  # odd chunk size: frames split across reads
+        got += [r.accel_mps2 for r in core.feed(data[k:k + 101], 1_000_000_000 + i * 10_000_000).imu]
+    got = np.array(got)
+    assert got.shape == offline.shape
+    np.testing.assert_allclose(got, offline, rtol=0, atol=1e-9)
+    # and the terms matter (the test can fail)
+    plain = ThermalCalibration(M=cal.M, b=cal.b, temperature_range_c=(0.0, 60.0), t_center_c=cal.t_center_c,
+                               t_scale_c=cal.t_scale_c)
+    assert np.max(np.abs(plain.apply_counts(ref, xyz, temp, t_s) - offline)) > 0.01
+
+
+def test_cli_writes_report_yaml_and_plots(tmp_path: Path) -> None:
+    rec = synthetic(8, dark=-150.0)
+    csv = tmp_path / "run.csv"
+    rows = ["t_s,ref_counts,x_counts,y_counts,z_counts,gref_x_mps2,gref_y_mps2,gref_z_mps2,temperature_c,pose"]
+    from fbg_accel_calibration.effects import fill_reference_gaps
+
+    g = fill_reference_gaps(rec.t_s, rec.gref_mps2, rec.run_id)  # moving rows: interpolated angles
+    for i in range(len(rec)):
+        rows.append(f"{rec.t_s[i]:.3f},{rec.ref[i]:.3f},{rec.xyz[i, 0]:.3f},{rec.xyz[i, 1]:.3f},{rec.xyz[i, 2]:.3f},"
+                    f"{g[i, 0]:.6f},{g[i, 1]:.6f},{g[i, 2]:.6f},{rec.temp_c[i]:.3f},{rec.pose_id[i]}")
+    csv.write_text("\n".join(rows) + "\n")
+    out = tmp_path / "report" / "diag.md"
+    yml = tmp_path / "cal.yaml"
+    assert diagnose_main(["diagnose", str(csv), "--static", "table", "--out", str(out), "--yaml", str(yml)]) == 0
+    text = out.read_text()
+    assert "reference_dark_offset" in text and "Before and after" in text
+    assert (out.parent / "img" / "before_after.png").stat().st_size > 1000
+    cal = ThermalCalibration.load(yml)
+    assert [t.kind for t in cal.corrections] == ["reference_dark_offset", "channel_offset"]
+    assert diagnose_main(["diagnose", str(tmp_path / "missing.csv")]) == 2
+
+
+def test_measured_series_dark_offset_explains_the_drift(tmp_path: Path) -> None:
+    assert MEASURED.is_file(), f"measured data not found: {MEASURED} (../shared/data/measured/ is needed for this test)"
+    from fbg_accel_calibration.csv_import import import_csv
+
+    rec, _ = import_csv(MEASURED, rate_hz=1.0, temperature_c=23.4, g_mps2=9.81)
+    res = diagnose(rec)
+    assert res.degree == 0  # one temperature level: no temperature term is identified
+    assert res.ranked[0].name == "reference_dark_offset" and res.ranked[0].significant
+    assert res.added[0][0] == "reference_dark_offset"
+    assert res.after_heldout_rmse[0] < 0.75 * res.before_heldout_rmse[0]
+    assert np.all(res.after_heldout_rmse < res.before_heldout_rmse)
+    paths = write_report(res, tmp_path / "m.md")
+    assert all(p.exists() for p in paths)
