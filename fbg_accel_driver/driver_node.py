@@ -1,2 +1,348 @@
-def main():
-    print("driver stub")
+"""ROS 2 node ``driver``: the thin rclpy shell around SerialLink + DriverCore + DriverDiagnostics.
+
+Topics (see docs/topics.md): ``imu/data_raw`` (sensor_msgs/Imu), ``imu/temperature``
+(sensor_msgs/Temperature), ``imu/raw`` (sensor_msgs/JointState), ``/diagnostics``
+(diagnostic_msgs/DiagnosticArray, 1 Hz). Streams use the sensor-data QoS profile.
+
+The serial port is read in ``SerialLink``'s own thread; the thread triggers a guard condition and
+the executor drains the queue, so the executor never blocks on the port and the port is read
+even while the executor is busy publishing.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+PACKAGE = "fbg_accel_driver"
+DEFAULT_CALIBRATION = "calibration_sim.yaml"
+RAW_NAMES = [
+    "ref_counts",
+    "x_counts",
+    "y_counts",
+    "z_counts",
+    "temperature_c",
+    "temperature_valid",
+    "status",
+    "seq",
+    "board_time_s",
+]
+
+# name: (type, default, description); the ROS types are resolved lazily so --help needs no ROS.
+PARAMETERS: dict[str, tuple[str, Any, str]] = {
+    "port": ("string", "/dev/ttyUSB0", "serial device of the board (a pty path for the simulator)"),
+    "baud": ("integer", 921600, "UART baud rate, 1200..4000000"),
+    "frame_id": ("string", "fbg_accel_link", "frame_id of the published messages (sensor frame)"),
+    "calibration_file": (
+        "string",
+        "",
+        f"calibration YAML (empty: the package's config/{DEFAULT_CALIBRATION}, the simulated sensor)",
+    ),
+    "decimation": ("integer", 1, "average this many board samples per imu/data_raw message, 1..10000"),
+    "covariance_source": (
+        "string",
+        "calibration",
+        "linear_acceleration_covariance from: calibration (noise_sigma_mps2), parameter (accel_stddev_mps2), unknown (zeros)",
+    ),
+    "accel_stddev_mps2": ("double", 0.0, "per-axis sigma in m/s^2 when covariance_source is 'parameter'"),
+    "min_reference_counts": ("integer", 50, "reference counts below this: reference power too low, sample not published"),
+    "temperature_hold_s": ("double", 5.0, "seconds the last good temperature may be used while the sensor is invalid"),
+    "out_of_range_variance_factor": ("double", 10.0, "variance factor outside the calibrated temperature range (>= 1)"),
+    "reconnect_backoff_max_s": ("double", 2.0, "longest wait between reconnection attempts (back-off doubles from 0.1 s)"),
+    "silence_timeout_s": ("double", 2.0, "reopen the port after this many seconds without any byte (0 = never)"),
+}
+
+USAGE = f"""usage: driver [-h] [--ros-args -p NAME:=VALUE ... | --params-file FILE]
+
+ROS 2 driver for the FBG triaxial accelerometer acquisition board (package {PACKAGE}).
+Reads binary frames from a serial port (pyserial), stamps them with the board clock mapped to ROS
+time, applies the thermal calibration (paper eq. 24 and 28) and publishes:
+  imu/data_raw     sensor_msgs/Imu          specific force in m/s^2 (REP 145)
+  imu/temperature  sensor_msgs/Temperature  AHT10 temperature in degC
+  imu/raw          sensor_msgs/JointState   raw counts, temperature, status, seq, board time
+  /diagnostics     diagnostic_msgs/DiagnosticArray, 1 Hz
+
+parameters:
+""" + "".join(f"  {n:<30} {t:<8} default {d!r}\n      {desc}\n" for n, (t, d, desc) in PARAMETERS.items()) + """
+example:
+  ros2 run fbg_accel_driver driver --ros-args -p port:=/dev/ttyUSB0 -p decimation:=10
+exit status: 0 on clean shutdown, 2 on invalid parameters or calibration file.
+"""
+
+
+class StartupError(Exception):
+    """A configuration problem that stops start-up with one clear message."""
+
+
+def default_calibration_path() -> Path:
+    """The shipped calibration: the installed share directory, else the source tree's config/."""
+    candidates: list[Path] = []
+    try:
+        from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+
+        try:
+            candidates.append(Path(get_package_share_directory(PACKAGE)) / "config" / DEFAULT_CALIBRATION)
+        except (PackageNotFoundError, ValueError, LookupError, OSError):
+            pass
+    except ImportError:
+        pass
+    here = Path(__file__).resolve()
+    # colcon install layout: <prefix>/lib/pythonX.Y/site-packages/fbg_accel_driver/driver_node.py
+    for parent in here.parents:
+        candidates.append(parent / "share" / PACKAGE / "config" / DEFAULT_CALIBRATION)
+        if parent.name == "lib":
+            break
+    candidates.append(here.parents[1] / "config" / DEFAULT_CALIBRATION)  # source tree / editable install
+    for c in candidates:
+        if c.is_file():
+            return c
+    return candidates[-1]
+
+
+def _wants_help(argv: list[str]) -> bool:
+    user = argv[: argv.index("--ros-args")] if "--ros-args" in argv else argv
+    return any(a in ("-h", "--help") for a in user)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if _wants_help(argv):
+        print(USAGE, end="")
+        print(f"default calibration file: {default_calibration_path()}")
+        return 0
+    try:
+        user = argv[: argv.index("--ros-args")] if "--ros-args" in argv else argv
+        if user:
+            raise StartupError(f"unknown argument(s) {user}; parameters go after --ros-args (see driver --help)")
+        return _run(argv)
+    except StartupError as exc:
+        print(f"driver: error: {_one_line(str(exc))}", file=sys.stderr, flush=True)
+        return 2
+    except KeyboardInterrupt:
+        return 0
+
+
+def _run(argv: list[str]) -> int:
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+
+    try:
+        rclpy.init(args=["driver", *argv])
+    except Exception as exc:  # RCLError: unparsable --ros-args; its text is the only useful part
+        raise StartupError(f"invalid ROS arguments {argv}: {_first_line(exc)}") from None
+    node = None
+    try:
+        node = _make_node()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        try:
+            executor.spin()
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        return 0
+    finally:
+        if node is not None:
+            node.close()
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.try_shutdown()
+
+
+def _make_node() -> Any:
+    """Build the node class lazily (keeps rclpy out of --help and of the pure modules)."""
+    from builtin_interfaces.msg import Time
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+    from rclpy.exceptions import ParameterException
+    from rclpy.node import Node
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import Imu, JointState, Temperature
+
+    from .driver_core import COVARIANCE_SOURCES, CoreConfig, DriverCore
+    from .driver_diagnostics import DiagnosticsSnapshot, DriverDiagnostics
+    from .serial_link import LinkState, SerialLink
+    from .thermal_model import CalibrationFileError, ThermalCalibration
+
+    ptypes = {"string": ParameterType.PARAMETER_STRING, "integer": ParameterType.PARAMETER_INTEGER,
+              "double": ParameterType.PARAMETER_DOUBLE}
+    int_ranges = {"baud": (1200, 4_000_000), "decimation": (1, 10000), "min_reference_counts": (0, 4095)}
+    float_ranges = {"temperature_hold_s": (0.0, 3600.0), "out_of_range_variance_factor": (1.0, 1e6),
+                    "reconnect_backoff_max_s": (0.1, 60.0), "accel_stddev_mps2": (0.0, 1000.0),
+                    "silence_timeout_s": (0.0, 3600.0)}
+
+    def stamp_msg(ns: int) -> Time:
+        return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+    class DriverNode(Node):
+        def __init__(self) -> None:
+            super().__init__("fbg_accel_driver")
+            p = self._declare_all()
+            self.frame_id: str = p["frame_id"]
+            cal_path = Path(p["calibration_file"]) if p["calibration_file"] else default_calibration_path()
+            try:
+                self.calibration = ThermalCalibration.load(cal_path)
+            except CalibrationFileError as exc:
+                raise StartupError(f"calibration file rejected: {exc}") from None
+            core_cfg = CoreConfig(
+                decimation=p["decimation"],
+                min_reference_counts=p["min_reference_counts"],
+                temperature_hold_s=p["temperature_hold_s"],
+                covariance_source=p["covariance_source"],
+                accel_stddev_mps2=p["accel_stddev_mps2"],
+                out_of_range_variance_factor=p["out_of_range_variance_factor"],
+            )
+            try:
+                self.core = DriverCore(self.calibration, core_cfg)
+            except ValueError as exc:
+                raise StartupError(f"invalid parameter: {exc}") from None
+            self.cal_info = {"calibration_file": str(cal_path), "sensor_id": self.calibration.sensor_id,
+                             "degree": self.calibration.degree}
+            self.diag = DriverDiagnostics(prefix="fbg_accel_driver")
+            self.pub_imu = self.create_publisher(Imu, "imu/data_raw", qos_profile_sensor_data)
+            self.pub_temp = self.create_publisher(Temperature, "imu/temperature", qos_profile_sensor_data)
+            self.pub_raw = self.create_publisher(JointState, "imu/raw", qos_profile_sensor_data)
+            self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+            self.guard = self.create_guard_condition(self._drain)
+            clock = self.get_clock()
+            self.link = SerialLink(
+                p["port"], p["baud"], notify=self.guard.trigger,
+                clock_ns=lambda: clock.now().nanoseconds,
+                backoff_max_s=p["reconnect_backoff_max_s"], silence_timeout_s=p["silence_timeout_s"],
+            )
+            self._link_state = LinkState.CONNECTING
+            self._link_changes = 0
+            self.timer = self.create_timer(1.0, self._publish_diagnostics)
+            self.link.start()
+            self.get_logger().info(
+                f"reading {p['port']} at {p['baud']} baud, calibration {cal_path} (sensor {self.calibration.sensor_id}, "
+                f"degree {self.calibration.degree}, {self.calibration.temperature_range_c[0]:g}.."
+                f"{self.calibration.temperature_range_c[1]:g} degC), decimation {p['decimation']}"
+            )
+
+        # ------------------------------------------------------------ parameters
+        def _declare_all(self) -> dict[str, Any]:
+            values: dict[str, Any] = {}
+            for name, (typ, default, desc) in PARAMETERS.items():
+                d = ParameterDescriptor(name=name, type=ptypes[typ], description=desc, read_only=True)
+                if name in int_ranges:
+                    lo, hi = int_ranges[name]
+                    d.integer_range = [IntegerRange(from_value=lo, to_value=hi, step=1)]
+                    d.additional_constraints = f"{lo}..{hi}"
+                if name in float_ranges:
+                    lo, hi = float_ranges[name]
+                    d.floating_point_range = [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]
+                    d.additional_constraints = f"{lo}..{hi}"
+                if name == "covariance_source":
+                    d.additional_constraints = "one of " + ", ".join(COVARIANCE_SOURCES)
+                try:
+                    values[name] = self.declare_parameter(name, default, d).value
+                except ParameterException as exc:
+                    raise StartupError(f"invalid parameter '{name}': {_first_line(exc)} ({desc})") from None
+            if not values["port"]:
+                raise StartupError("invalid parameter 'port': empty (give the serial device, e.g. -p port:=/dev/ttyUSB0)")
+            fid = values["frame_id"]
+            if not fid or fid.startswith("/") or any(c.isspace() for c in fid):
+                raise StartupError(f"invalid parameter 'frame_id': {fid!r} (non-empty, no leading '/', no spaces)")
+            for name in ("temperature_hold_s", "out_of_range_variance_factor", "accel_stddev_mps2"):
+                if not math.isfinite(values[name]):
+                    raise StartupError(f"invalid parameter '{name}': {values[name]} is not finite")
+            return values
+
+        # ------------------------------------------------------------ data path
+        def _drain(self) -> None:
+            q = self.link.queue
+            while True:
+                try:
+                    host_ns, chunk = q.get_nowait()
+                except Exception:  # queue.Empty
+                    break
+                self._publish(self.core.feed(chunk, host_ns))
+            status = self.link.status()
+            if status.state is not self._link_state or self.link.state_changes != self._link_changes:
+                if status.state is LinkState.CONNECTED:
+                    self.get_logger().info(f"serial link up: {status.port}")
+                elif status.state is LinkState.DISCONNECTED and self._link_state is not LinkState.DISCONNECTED:
+                    self.get_logger().error(f"serial link down: {status.message}; retrying with back-off")
+                self._link_state = status.state
+                self._link_changes = self.link.state_changes
+
+        def _publish(self, out: Any) -> None:
+            fid = self.frame_id
+            for r in out.raw:
+                m = JointState()
+                m.header.stamp = stamp_msg(r.stamp_ns)
+                m.header.frame_id = fid
+                m.name = RAW_NAMES
+                f = r.frame
+                m.position = [float(f.ref), float(f.x), float(f.y), float(f.z), float(r.temperature_c),
+                              1.0 if r.temperature_valid else 0.0, float(f.status), float(f.seq), f.t_us * 1e-6]
+                self.pub_raw.publish(m)
+            for t in out.temperature:
+                m = Temperature()
+                m.header.stamp = stamp_msg(t.stamp_ns)
+                m.header.frame_id = fid
+                m.temperature = t.temperature_c
+                m.variance = t.variance
+                self.pub_temp.publish(m)
+            for s in out.imu:
+                m = Imu()
+                m.header.stamp = stamp_msg(s.stamp_ns)
+                m.header.frame_id = fid
+                m.orientation_covariance[0] = -1.0  # REP 145: orientation not provided
+                m.angular_velocity_covariance[0] = -1.0  # REP 145: angular velocity not provided
+                m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z = s.accel_mps2
+                m.linear_acceleration_covariance = list(s.covariance)
+                self.pub_imu.publish(m)
+
+        # ------------------------------------------------------------ diagnostics
+        def _publish_diagnostics(self) -> None:
+            st = self.link.status()
+            core = self.core
+            snap = DiagnosticsSnapshot(
+                now_s=time.monotonic(),
+                link_connected=st.state is LinkState.CONNECTED,
+                link_message=st.message,
+                link_values={"port": st.port, "baud": st.baud, "connects": st.connects, "disconnects": st.disconnects,
+                             "failed_attempts": st.failed_attempts, "next_retry_s": st.next_retry_s,
+                             "bytes_read": st.bytes_read, "reader_thread_alive": st.thread_alive,
+                             "python_threads": threading.active_count()},
+                decoder=core.decoder.stats.as_dict(),
+                core=core.counters.as_dict(),
+                temperature_valid=core.last_temperature_valid,
+                temperature_age_s=core.temperature_age_s,
+                last_temperature_c=core.last_good_temperature_c,
+                temperature_hold_s=core.config.temperature_hold_s,
+                temperature_range_c=self.calibration.temperature_range_c,
+                calibration=self.cal_info,
+            )
+            arr = DiagnosticArray()
+            arr.header.stamp = self.get_clock().now().to_msg()
+            for e in self.diag.report(snap):
+                arr.status.append(DiagnosticStatus(
+                    level=bytes([e.level]), name=e.name, message=e.message, hardware_id=f"fbg_accel:{st.port}",
+                    values=[KeyValue(key=k, value=v) for k, v in e.values],
+                ))
+            self.pub_diag.publish(arr)
+
+        def close(self) -> None:
+            self.link.stop()
+
+    return DriverNode()
+
+
+def _one_line(text: str) -> str:
+    """Fold a multi-line message (e.g. a YAML parser error with its caret lines) into one line."""
+    parts = [ln.strip() for ln in text.splitlines()]
+    return " ".join(p for p in parts if p and set(p) != {"^"})
+
+
+def _first_line(exc: BaseException) -> str:
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+
+
+if __name__ == "__main__":
+    sys.exit(main())

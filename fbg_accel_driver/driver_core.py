@@ -1,0 +1,328 @@
+"""Driver core: board bytes -> stamped, calibrated, flagged samples (pure Python + numpy, no ROS).
+
+``DriverCore.feed(chunk, host_ns)`` decodes the bytes (``StreamDecoder``), maps board time to
+host/ROS time (``ClockSync``), normalises and calibrates (``ThermalCalibration.apply_counts``,
+paper eq. 24 and 28, with persistent state for stateful correction terms), applies the sample
+policies below and decimates. The ROS node only turns the returned records into messages.
+
+Sample policies (documented in docs/topics.md; each has a counter and a diagnostic):
+
+* **Reference too low** (``ref < min_reference_counts``, including 0): Psi = counts/ref is
+  meaningless (eq. 24 divides by the source power), so no acceleration is published for that
+  sample (counted in ``reference_low``). The raw record is still published: nothing is lost for
+  calibration, and no division by zero ever happens.
+* **ADC saturation** (any of ref/x/y/z at 4095): the sample is published but the variance of the
+  affected axes (all axes if the reference saturated) is raised to ``full_scale_mps2**2``: the
+  value is clipped and only bounded by the full scale (counted in ``adc_saturated``).
+* **Temperature invalid** (TEMP_VALID clear, or a reading outside the AHT10's -40..85 degC): the
+  last good temperature is used for at most ``temperature_hold_s`` seconds of stamped time
+  (diagnostic WARN). After that, or when no good temperature was ever seen, the thermal model
+  cannot be evaluated honestly: acceleration samples are dropped (``temperature_stale_dropped``)
+  and diagnostics report ERROR until a valid reading returns.
+* **Outside the calibrated temperature range**: the model is extrapolating. The sample is
+  published with each axis variance raised to ``out_of_range_variance_factor * sigma**2`` plus
+  the square of the difference between the extrapolated output and the output at the nearest
+  edge of the range (a measure of how far the polynomial has wandered); diagnostics WARN.
+* **Non-finite output** (cannot happen with a validated calibration, kept as a last guard): the
+  sample is dropped (``non_finite_dropped``). Nothing non-finite ever reaches a topic, except the
+  documented NaN temperature in the raw record before the first valid reading.
+
+Start-up: the frames of the first ``ClockSyncConfig.prime_s`` (0.2 s) after a start or board
+reset are held until the clock estimate has seen that much data, then released together (a
+one-off latency, so that no stamp has to be stepped back later).
+
+Decimation: ``decimation`` consecutive published samples are averaged (boxcar); the stamp is
+their mean stamp (the group-delay centre), the variance is ``sum(var_i) / N**2``. Raw records
+are always produced for every board sample.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .clock_sync import ClockSync, ClockSyncConfig
+from .frame_codec import ADC_MAX, Frame, Status
+from .stream_decoder import StreamDecoder
+from .thermal_model import ThermalCalibration
+
+STANDARD_GRAVITY = 9.80665  # m/s^2
+AHT10_MIN_C = -40.0  # AHT10 datasheet operating range
+AHT10_MAX_C = 85.0
+AHT10_SIGMA_C = 0.3  # AHT10 datasheet typical accuracy +-0.3 degC, used as 1 sigma
+COVARIANCE_SOURCES = ("calibration", "parameter", "unknown")
+
+
+@dataclass(frozen=True)
+class CoreConfig:
+    """Policy settings of the driver core (SI units)."""
+
+    decimation: int = 1
+    min_reference_counts: int = 50  # ADC counts; ~6 % of the ~870 counts the measured board shows at rest
+    temperature_hold_s: float = 5.0  # board seconds a stale temperature may be used
+    covariance_source: str = "calibration"  # "calibration" | "parameter" | "unknown"
+    accel_stddev_mps2: float = 0.0  # per-axis sigma when covariance_source == "parameter"
+    out_of_range_variance_factor: float = 10.0
+    full_scale_mps2: float = 20.0 * STANDARD_GRAVITY  # paper: +-20 g full scale
+
+    def validate(self) -> None:
+        """Raise ValueError with a message naming the bad setting."""
+        if not 1 <= self.decimation <= 10000:
+            raise ValueError(f"decimation must be in 1..10000, got {self.decimation}")
+        if not 0 <= self.min_reference_counts <= ADC_MAX:
+            raise ValueError(f"min_reference_counts must be in 0..{ADC_MAX}, got {self.min_reference_counts}")
+        if not (math.isfinite(self.temperature_hold_s) and self.temperature_hold_s >= 0):
+            raise ValueError(f"temperature_hold_s must be a finite value >= 0, got {self.temperature_hold_s}")
+        if self.covariance_source not in COVARIANCE_SOURCES:
+            raise ValueError(f"covariance_source must be one of {COVARIANCE_SOURCES}, got '{self.covariance_source}'")
+        if not (math.isfinite(self.accel_stddev_mps2) and self.accel_stddev_mps2 >= 0):
+            raise ValueError(f"accel_stddev_mps2 must be a finite value >= 0, got {self.accel_stddev_mps2}")
+        if self.covariance_source == "parameter" and self.accel_stddev_mps2 <= 0:
+            raise ValueError("covariance_source 'parameter' needs accel_stddev_mps2 > 0")
+        if not (math.isfinite(self.out_of_range_variance_factor) and self.out_of_range_variance_factor >= 1):
+            raise ValueError(f"out_of_range_variance_factor must be >= 1, got {self.out_of_range_variance_factor}")
+
+
+@dataclass(frozen=True, slots=True)
+class RawRecord:
+    """One board sample as received (for ``imu/raw``); ``stamp_ns`` is ROS time in ns."""
+
+    stamp_ns: int
+    frame: Frame
+    temperature_c: float  # the valid reading, else the last good one, NaN if never valid
+    temperature_valid: bool
+
+
+@dataclass(frozen=True, slots=True)
+class ImuRecord:
+    """One calibrated (possibly decimated) specific-force sample in the sensor frame."""
+
+    stamp_ns: int
+    accel_mps2: tuple[float, float, float]
+    covariance: tuple[float, ...]  # 9 entries, row-major 3x3, (m/s^2)^2; all 0 = unknown (REP 145)
+    temperature_c: float  # temperature used by the thermal model
+    flags: frozenset[str]  # subset of {"adc_saturated", "temperature_held", "temperature_out_of_range"}
+
+
+@dataclass(frozen=True, slots=True)
+class TemperatureRecord:
+    """A fresh valid AHT10 reading (degC) with its variance (degC^2)."""
+
+    stamp_ns: int
+    temperature_c: float
+    variance: float
+
+
+@dataclass
+class CoreOutput:
+    raw: list[RawRecord] = field(default_factory=list)
+    imu: list[ImuRecord] = field(default_factory=list)
+    temperature: list[TemperatureRecord] = field(default_factory=list)
+
+
+@dataclass
+class CoreCounters:
+    """Cumulative sample counters (all since start)."""
+
+    samples: int = 0  # frames accepted by the decoder
+    imu_published: int = 0  # ImuRecords emitted (after decimation)
+    samples_calibrated: int = 0  # board samples that went into an ImuRecord
+    reference_low: int = 0
+    adc_saturated: int = 0
+    temperature_invalid: int = 0  # frames without a valid temperature reading
+    temperature_held: int = 0  # of those, calibrated with a held temperature
+    temperature_stale_dropped: int = 0
+    temperature_out_of_range: int = 0
+    non_finite_dropped: int = 0
+    board_resets: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(self.__dict__)
+
+
+class DriverCore:
+    """Stateful pipeline for one board stream (see module docstring)."""
+
+    def __init__(
+        self,
+        calibration: ThermalCalibration,
+        config: CoreConfig | None = None,
+        clock_config: ClockSyncConfig | None = None,
+    ) -> None:
+        self.cal = calibration
+        self.config = config or CoreConfig()
+        self.config.validate()
+        self.decoder = StreamDecoder()
+        self.clock = ClockSync(clock_config)
+        self.counters = CoreCounters()
+        self._cal_state = calibration.new_state()
+        self._last_good_temp_c: float | None = None
+        self._last_good_stamp_ns: int | None = None
+        self._last_stamp_ns: int | None = None
+        self._prev_t_us: int | None = None
+        self._last_raw_temp_valid: bool | None = None
+        self._pending: list[tuple[int, np.ndarray, np.ndarray, float, frozenset[str]]] = []
+        self._unstamped: list[Frame] = []  # frames waiting for the clock estimate to be primed
+        sigma = self._base_sigma()
+        self._base_var = sigma**2
+
+    def _base_sigma(self) -> np.ndarray:
+        src = self.config.covariance_source
+        if src == "calibration":
+            return np.asarray(self.cal.noise_sigma_mps2, dtype=float)
+        if src == "parameter":
+            return np.full(3, self.config.accel_stddev_mps2)
+        return np.zeros(3)
+
+    # ------------------------------------------------------------------ state for diagnostics
+    @property
+    def last_good_temperature_c(self) -> float | None:
+        return self._last_good_temp_c
+
+    @property
+    def temperature_age_s(self) -> float | None:
+        """Seconds (of stamped time, continuous across board resets) since the last valid reading.
+
+        None if no valid reading was ever received.
+        """
+        if self._last_good_stamp_ns is None or self._last_stamp_ns is None:
+            return None
+        return max(0.0, (self._last_stamp_ns - self._last_good_stamp_ns) * 1e-9)
+
+    @property
+    def last_temperature_valid(self) -> bool | None:
+        return self._last_raw_temp_valid
+
+    # ------------------------------------------------------------------ pipeline
+    def feed(self, chunk: bytes, host_ns: int) -> CoreOutput:
+        """Consume bytes that had arrived by ``host_ns`` (ROS time, ns); return the records."""
+        out = CoreOutput()
+        frames = self.decoder.feed(chunk)
+        if not frames:
+            return out
+        # Split at board resets (same rule as the decoder: clock backwards or BOOT after the
+        # first frame) so each part is stamped with its own clock estimate.
+        start = 0
+        for i, frame in enumerate(frames):
+            if self._prev_t_us is not None and (frame.t_us < self._prev_t_us or frame.status & Status.BOOT):
+                self._process(frames[start:i], host_ns, out, flush=True)
+                self._on_reset()
+                start = i
+            self._prev_t_us = frame.t_us
+        self._process(frames[start:], host_ns, out)
+        self.decoder.reset_pending = False
+        return out
+
+    def flush(self) -> CoreOutput:
+        """End of stream: stamp and release frames still held for clock priming (partial decimation blocks stay)."""
+        out = CoreOutput()
+        self._process([], 0, out, flush=True)
+        return out
+
+    def _on_reset(self) -> None:
+        self.counters.board_resets += 1
+        self.clock.reset()
+        self._pending.clear()  # never average across a reboot
+
+    def _process(self, frames: list[Frame], host_ns: int, out: CoreOutput, flush: bool = False) -> None:
+        clock = self.clock
+        for f in frames:
+            clock.observe(f.t_us, host_ns)
+        if self._unstamped or not clock.primed:
+            # Hold the first frames after a (re)start until the clock estimate is primed (ClockSync.primed).
+            self._unstamped.extend(frames)
+            if not (clock.primed or flush):
+                return
+            frames, self._unstamped = self._unstamped, []
+        if not frames:
+            return
+        cfg = self.config
+        n = len(frames)
+        stamps = np.empty(n, dtype=np.int64)
+        temps = np.full(n, np.nan)
+        use = np.zeros(n, dtype=bool)
+        held = np.zeros(n, dtype=bool)
+        for i, f in enumerate(frames):
+            stamps[i] = stamp_ns = clock.stamp(f.t_us)
+            self.counters.samples += 1
+            t_c = f.temp_cc / 100.0
+            valid = f.temp_valid and AHT10_MIN_C <= t_c <= AHT10_MAX_C
+            if valid:
+                self._last_good_temp_c, self._last_good_stamp_ns = t_c, stamp_ns
+                out.temperature.append(TemperatureRecord(stamp_ns, t_c, AHT10_SIGMA_C**2))
+            else:
+                self.counters.temperature_invalid += 1
+            self._last_stamp_ns = stamp_ns
+            self._last_raw_temp_valid = valid
+            raw_t = self._last_good_temp_c if self._last_good_temp_c is not None else math.nan
+            out.raw.append(RawRecord(stamp_ns, f, raw_t, valid))
+            if f.ref < cfg.min_reference_counts:
+                self.counters.reference_low += 1
+                continue
+            if not valid:
+                age = self.temperature_age_s
+                if age is None or age > cfg.temperature_hold_s or self._last_good_temp_c is None:
+                    self.counters.temperature_stale_dropped += 1
+                    continue
+                held[i] = True
+                self.counters.temperature_held += 1
+            temps[i] = self._last_good_temp_c
+            use[i] = True
+        if not use.any():
+            return
+        idx = np.flatnonzero(use)
+        sel = [frames[i] for i in idx]
+        ref = np.fromiter((f.ref for f in sel), dtype=float, count=len(sel))
+        xyz = np.array([(f.x, f.y, f.z) for f in sel], dtype=float).reshape(-1, 3)
+        t_s = np.fromiter((f.t_us * 1e-6 for f in sel), dtype=float, count=len(sel))
+        temp_sel = temps[idx]
+        accel = self.cal.apply_counts(ref, xyz, temp_sel, t_s, self._cal_state)
+        var = np.broadcast_to(self._base_var, accel.shape).copy()
+        lo, hi = self.cal.temperature_range_c
+        outside = (temp_sel < lo) | (temp_sel > hi)
+        if outside.any():
+            self.counters.temperature_out_of_range += int(outside.sum())
+            edge = np.clip(temp_sel[outside], lo, hi)
+            psi = xyz[outside] / ref[outside, None]
+            extrap = self.cal.base_acceleration(psi, temp_sel[outside]) - self.cal.base_acceleration(psi, edge)
+            var[outside] = var[outside] * cfg.out_of_range_variance_factor + extrap**2
+        sat_ref = ref >= ADC_MAX
+        sat_axes = (xyz >= ADC_MAX) | sat_ref[:, None]
+        sat_any = sat_axes.any(axis=1)
+        if sat_any.any():
+            self.counters.adc_saturated += int(sat_any.sum())
+            var[sat_axes] = np.maximum(var[sat_axes], cfg.full_scale_mps2**2)
+        finite = np.isfinite(accel).all(axis=1) & np.isfinite(var).all(axis=1)
+        for j, i in enumerate(idx):
+            if not finite[j]:
+                self.counters.non_finite_dropped += 1
+                continue
+            flags = set()
+            if sat_any[j]:
+                flags.add("adc_saturated")
+            if held[i]:
+                flags.add("temperature_held")
+            if outside[j]:
+                flags.add("temperature_out_of_range")
+            self._pending.append((int(stamps[i]), accel[j], var[j], float(temp_sel[j]), frozenset(flags)))
+            self.counters.samples_calibrated += 1
+            if len(self._pending) >= cfg.decimation:
+                out.imu.append(self._emit())
+
+    def _emit(self) -> ImuRecord:
+        block = self._pending
+        n = len(block)
+        if n == 1:
+            stamp, acc, var, temp, flags = block[0]
+        else:
+            stamp = sum(b[0] for b in block) // n
+            acc = np.mean([b[1] for b in block], axis=0)
+            var = np.sum([b[2] for b in block], axis=0) / n**2
+            temp = float(np.mean([b[3] for b in block]))
+            flags = frozenset().union(*(b[4] for b in block))
+        self._pending = []
+        cov = (float(var[0]), 0.0, 0.0, 0.0, float(var[1]), 0.0, 0.0, 0.0, float(var[2]))
+        self.counters.imu_published += 1
+        return ImuRecord(stamp, (float(acc[0]), float(acc[1]), float(acc[2])), cov, temp, flags)

@@ -1,0 +1,187 @@
+"""Driver diagnostics: counters and states -> status entries (pure Python, no ROS).
+
+``DriverDiagnostics.report(snapshot)`` returns a list of ``DiagnosticEntry`` (level, name,
+message, key/values), one per concern, which the node turns into a
+``diagnostic_msgs/DiagnosticArray``. Counters in the key/values are cumulative since start;
+levels look at what changed since the previous report (a CRC error last minute is not a
+problem now) or at the current state.
+
+Entries (names are prefixed with ``<prefix>: ``):
+
+=========================  =====================================================================
+name                       level
+=========================  =====================================================================
+serial link                OK connected and frames flowing; ERROR disconnected (message: reason,
+                           back-off); ERROR connected but no frame for ``no_data_timeout_s``
+frames                     OK; WARN if CRC errors, lost frames, invalid frames or unsupported
+                           versions appeared since the previous report
+board resets               OK; WARN if the board rebooted since the previous report
+ADC saturation             OK; WARN if saturated samples appeared since the previous report
+reference power            OK; ERROR if reference-too-low samples appeared since the previous report
+temperature sensor         OK valid; WARN invalid but holding the last good value; ERROR when
+                           the hold time ran out or no valid reading was ever received
+temperature range          OK inside the calibrated range; WARN outside (extrapolation)
+=========================  =====================================================================
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+OK, WARN, ERROR, STALE = 0, 1, 2, 3  # diagnostic_msgs/DiagnosticStatus levels
+
+
+@dataclass(frozen=True)
+class DiagnosticEntry:
+    level: int
+    name: str
+    message: str
+    values: tuple[tuple[str, str], ...]
+
+
+@dataclass
+class DiagnosticsSnapshot:
+    """Everything the report needs, sampled by the node at report time."""
+
+    now_s: float  # monotonic seconds (any origin), for rates
+    link_connected: bool
+    link_message: str
+    link_values: dict[str, Any]  # port, baud, connects, disconnects, failed_attempts, next_retry_s ...
+    decoder: dict[str, int]  # StreamDecoder.stats.as_dict()
+    core: dict[str, int]  # CoreCounters.as_dict()
+    temperature_valid: bool | None  # validity of the latest frame (None: no frame yet)
+    temperature_age_s: float | None  # since the last valid reading (None: never valid)
+    last_temperature_c: float | None
+    temperature_hold_s: float
+    temperature_range_c: tuple[float, float]
+    calibration: dict[str, Any] = field(default_factory=dict)  # sensor id, file, degree
+
+
+class DriverDiagnostics:
+    """Turns successive snapshots into diagnostic entries (keeps the previous counters)."""
+
+    def __init__(self, prefix: str = "fbg_accel_driver", no_data_timeout_s: float = 1.0) -> None:
+        self.prefix = prefix
+        self.no_data_timeout_s = no_data_timeout_s
+        self._prev: DiagnosticsSnapshot | None = None
+        self._last_frame_change_s: float | None = None
+
+    def _name(self, what: str) -> str:
+        return f"{self.prefix}: {what}"
+
+    def report(self, snap: DiagnosticsSnapshot) -> list[DiagnosticEntry]:
+        prev = self._prev
+        dec, core = snap.decoder, snap.core
+        pdec = prev.decoder if prev else {k: 0 for k in dec}
+        pcore = prev.core if prev else {k: 0 for k in core}
+
+        def delta(cur: dict[str, int], old: dict[str, int], key: str) -> int:
+            return int(cur.get(key, 0)) - int(old.get(key, 0))
+
+        frames_new = delta(dec, pdec, "frames")
+        if frames_new > 0 or self._last_frame_change_s is None:
+            self._last_frame_change_s = snap.now_s
+        dt = snap.now_s - prev.now_s if prev else 0.0
+        rate = frames_new / dt if dt > 0 else 0.0
+        entries: list[DiagnosticEntry] = []
+
+        # serial link
+        link_vals = {**snap.link_values, "state": "connected" if snap.link_connected else "disconnected"}
+        silent_s = snap.now_s - self._last_frame_change_s
+        if not snap.link_connected:
+            entries.append(self._entry(ERROR, "serial link", f"disconnected: {snap.link_message}", link_vals))
+        elif dec.get("frames", 0) == 0 or (frames_new == 0 and silent_s >= self.no_data_timeout_s):
+            link_vals["seconds_without_frames"] = round(silent_s, 3)
+            entries.append(self._entry(ERROR, "serial link", "connected but no frames received", link_vals))
+        else:
+            entries.append(self._entry(OK, "serial link", "connected, receiving frames", link_vals))
+
+        # frames
+        frame_vals = {"frame_rate_hz": round(rate, 3), **dec, "samples": core.get("samples", 0),
+                      "imu_published": core.get("imu_published", 0)}
+        problems = {k: delta(dec, pdec, k) for k in ("crc_errors", "lost_frames", "invalid_frames", "unsupported_version")}
+        bad = {k: v for k, v in problems.items() if v > 0}
+        if bad:
+            msg = "since last report: " + ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in bad.items())
+            entries.append(self._entry(WARN, "frames", msg, frame_vals))
+        else:
+            entries.append(self._entry(OK, "frames", f"{rate:.1f} frames/s, no errors since last report", frame_vals))
+
+        # board resets
+        resets = delta(dec, pdec, "resets")
+        reset_vals = {"resets": dec.get("resets", 0), "duplicates": dec.get("duplicates", 0)}
+        if resets > 0:
+            entries.append(self._entry(WARN, "board resets", f"board reset {resets} time(s) since last report", reset_vals))
+        else:
+            entries.append(self._entry(OK, "board resets", "no reset since last report", reset_vals))
+
+        # ADC saturation
+        sat = delta(core, pcore, "adc_saturated")
+        sat_vals = {"adc_saturated": core.get("adc_saturated", 0)}
+        if sat > 0:
+            msg = f"{sat} sample(s) with an ADC channel at full scale (4095) since last report; variance inflated"
+            entries.append(self._entry(WARN, "ADC saturation", msg, sat_vals))
+        else:
+            entries.append(self._entry(OK, "ADC saturation", "no saturated sample since last report", sat_vals))
+
+        # reference power
+        low = delta(core, pcore, "reference_low")
+        ref_vals = {"reference_low": core.get("reference_low", 0)}
+        if low > 0:
+            msg = f"reference power too low in {low} sample(s) since last report; acceleration not published for them"
+            entries.append(self._entry(ERROR, "reference power", msg, ref_vals))
+        else:
+            entries.append(self._entry(OK, "reference power", "reference power sufficient", ref_vals))
+
+        # temperature sensor
+        t_vals = {
+            "temperature_invalid": core.get("temperature_invalid", 0),
+            "temperature_held": core.get("temperature_held", 0),
+            "temperature_stale_dropped": core.get("temperature_stale_dropped", 0),
+            "last_good_temperature_c": _fmt(snap.last_temperature_c),
+            "seconds_since_valid": _fmt(snap.temperature_age_s),
+            "hold_s": snap.temperature_hold_s,
+        }
+        age = snap.temperature_age_s
+        if snap.temperature_valid is None:
+            entries.append(self._entry(STALE, "temperature sensor", "no frame received yet", t_vals))
+        elif snap.temperature_valid:
+            entries.append(self._entry(OK, "temperature sensor", "valid", t_vals))
+        elif age is None:
+            msg = "temperature sensor invalid, no valid reading yet: acceleration not published"
+            entries.append(self._entry(ERROR, "temperature sensor", msg, t_vals))
+        elif age > snap.temperature_hold_s:
+            msg = f"temperature sensor invalid for {age:.1f} s (> hold {snap.temperature_hold_s:g} s): acceleration not published"
+            entries.append(self._entry(ERROR, "temperature sensor", msg, t_vals))
+        else:
+            msg = f"temperature sensor invalid, holding last good value for {age:.1f} s (max {snap.temperature_hold_s:g} s)"
+            entries.append(self._entry(WARN, "temperature sensor", msg, t_vals))
+
+        # temperature range
+        lo, hi = snap.temperature_range_c
+        r_vals = {"calibrated_min_c": lo, "calibrated_max_c": hi,
+                  "temperature_out_of_range": core.get("temperature_out_of_range", 0), **snap.calibration}
+        t = snap.last_temperature_c
+        oor = delta(core, pcore, "temperature_out_of_range")
+        if t is not None and not (lo <= t <= hi):
+            msg = f"temperature {t:.2f} degC outside calibrated range [{lo:g}, {hi:g}] degC: extrapolating, covariance inflated"
+            entries.append(self._entry(WARN, "temperature range", msg, r_vals))
+        elif oor > 0:
+            msg = f"{oor} sample(s) outside calibrated range [{lo:g}, {hi:g}] degC since last report"
+            entries.append(self._entry(WARN, "temperature range", msg, r_vals))
+        else:
+            entries.append(self._entry(OK, "temperature range", "inside calibrated range", r_vals))
+
+        self._prev = snap
+        return entries
+
+    def _entry(self, level: int, what: str, message: str, values: dict[str, Any]) -> DiagnosticEntry:
+        return DiagnosticEntry(level, self._name(what), message, tuple((str(k), str(v)) for k, v in values.items()))
+
+
+def _fmt(v: float | None) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "none"
+    return f"{v:.3f}"

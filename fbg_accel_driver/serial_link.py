@@ -1,0 +1,202 @@
+"""Serial link to the acquisition board: a pyserial reader in its own thread (no ROS).
+
+The reader thread owns the port. It opens it, reads whatever bytes are available and puts
+``(host_ns, bytes)`` chunks on a queue, stamped with the host time right after the read
+returned (the clock is injectable so the ROS node can pass its ROS clock). It never blocks its
+consumer: the consumer drains the queue when ``notify`` (e.g. an rclpy guard condition) fires.
+
+When the port vanishes or fails (unplugged USB adapter, closed pty, I/O error, the path does not
+exist yet) the thread closes it, reports the link as DISCONNECTED with the reason, and tries
+again after an exponential back-off (``backoff_initial_s`` doubling up to ``backoff_max_s``),
+forever, until ``stop()``. The back-off resets once a connection delivered data. One thread for
+the whole life of the link: reconnecting never starts another thread.
+"""
+
+from __future__ import annotations
+
+import enum
+import os
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import serial
+
+
+class LinkState(enum.Enum):
+    """State of the serial link as reported in diagnostics."""
+
+    CONNECTING = "connecting"  # not opened yet (first attempt pending)
+    CONNECTED = "connected"
+    DISCONNECTED = "disconnected"  # failed or vanished; waiting for the back-off to retry
+    STOPPED = "stopped"
+
+
+@dataclass(frozen=True)
+class LinkStatus:
+    """Snapshot of the link for diagnostics."""
+
+    state: LinkState
+    port: str
+    baud: int
+    message: str  # last error or "open"
+    connects: int  # successful opens
+    disconnects: int  # connections lost or attempts failed after a success
+    failed_attempts: int  # opens that failed
+    next_retry_s: float  # back-off currently applied (0 when connected)
+    bytes_read: int
+    thread_alive: bool
+
+
+class SerialLink:
+    """Reader thread for one serial port, with reconnect and exponential back-off."""
+
+    def __init__(
+        self,
+        port: str,
+        baud: int,
+        notify: Callable[[], None] | None = None,
+        clock_ns: Callable[[], int] = time.time_ns,
+        backoff_initial_s: float = 0.1,
+        backoff_max_s: float = 2.0,
+        read_timeout_s: float = 0.1,
+        max_chunk: int = 65536,
+        silence_timeout_s: float = 0.0,
+    ) -> None:
+        self.port = port
+        self.baud = baud
+        self.queue: queue.SimpleQueue[tuple[int, bytes]] = queue.SimpleQueue()
+        self._notify = notify or (lambda: None)
+        self._clock_ns = clock_ns
+        self._backoff_initial = backoff_initial_s
+        self._backoff_max = backoff_max_s
+        self._read_timeout = read_timeout_s
+        self._max_chunk = max_chunk
+        self._silence_timeout = silence_timeout_s
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._state = LinkState.CONNECTING
+        self._message = "not opened yet"
+        self._connects = 0
+        self._disconnects = 0
+        self._failed = 0
+        self._backoff = 0.0
+        self._bytes = 0
+        self._state_changes = 0
+
+    # ------------------------------------------------------------------ control
+    def start(self) -> None:
+        if self._thread is not None:
+            raise RuntimeError("SerialLink already started")
+        self._thread = threading.Thread(target=self._run, name=f"serial-link {self.port}", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        """Stop the reader thread and close the port (idempotent)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+        self._set_state(LinkState.STOPPED, "stopped")
+
+    def status(self) -> LinkStatus:
+        with self._lock:
+            return LinkStatus(
+                state=self._state,
+                port=self.port,
+                baud=self.baud,
+                message=self._message,
+                connects=self._connects,
+                disconnects=self._disconnects,
+                failed_attempts=self._failed,
+                next_retry_s=self._backoff if self._state is LinkState.DISCONNECTED else 0.0,
+                bytes_read=self._bytes,
+                thread_alive=self._thread is not None and self._thread.is_alive(),
+            )
+
+    @property
+    def state_changes(self) -> int:
+        """Number of state transitions so far (lets a consumer notice a flap between polls)."""
+        return self._state_changes
+
+    # ------------------------------------------------------------------ thread
+    def _set_state(self, state: LinkState, message: str) -> None:
+        with self._lock:
+            if state is not self._state:
+                self._state_changes += 1
+            self._state, self._message = state, message
+        self._wake()
+
+    def _wake(self) -> None:
+        """Tell the consumer there is something to look at; a failing consumer must not kill the reader."""
+        try:
+            self._notify()
+        except Exception:  # e.g. the ROS context is already shut down while the node exits
+            pass
+
+    def _run(self) -> None:
+        backoff = self._backoff_initial
+        while not self._stop.is_set():
+            try:
+                ser = serial.Serial(self.port, self.baud, timeout=self._read_timeout)
+            except (serial.SerialException, OSError, ValueError) as exc:
+                with self._lock:
+                    self._failed += 1
+                    self._backoff = backoff
+                self._set_state(LinkState.DISCONNECTED, f"cannot open {self.port}: {_reason(exc)}")
+                if self._stop.wait(backoff):
+                    break
+                backoff = min(backoff * 2.0, self._backoff_max)
+                continue
+            with self._lock:
+                self._connects += 1
+            self._set_state(LinkState.CONNECTED, "open")
+            got_data = False
+            opened_target = os.path.realpath(self.port)
+            last_data = time.monotonic()
+            try:
+                while not self._stop.is_set():
+                    waiting = ser.in_waiting
+                    data = ser.read(min(max(waiting, 1), self._max_chunk))
+                    if not data:
+                        silent = time.monotonic() - last_data
+                        if self._silence_timeout > 0 and silent >= self._silence_timeout:
+                            raise _StaleLinkError(f"no data for {silent:.1f} s")
+                        if os.path.realpath(self.port) != opened_target:
+                            raise _StaleLinkError(f"{self.port} now points to {os.path.realpath(self.port)}")
+                        continue
+                    host_ns = self._clock_ns()
+                    last_data = time.monotonic()
+                    with self._lock:
+                        self._bytes += len(data)
+                    self.queue.put((host_ns, data))
+                    self._wake()
+                    if not got_data:
+                        got_data = True
+                        backoff = self._backoff_initial
+            except (serial.SerialException, OSError, TypeError, ValueError, _StaleLinkError) as exc:
+                # TypeError/ValueError: pyserial on a closed fd can raise these instead of SerialException.
+                if not self._stop.is_set():
+                    with self._lock:
+                        self._disconnects += 1
+                        self._backoff = backoff
+                    self._set_state(LinkState.DISCONNECTED, f"{self.port} lost: {_reason(exc)}")
+            finally:
+                try:
+                    ser.close()
+                except (serial.SerialException, OSError):
+                    pass
+            if self._stop.wait(backoff if not self._stop.is_set() else 0):
+                break
+            backoff = min(backoff * 2.0, self._backoff_max)
+
+
+class _StaleLinkError(Exception):
+    """The open port stopped delivering (silence) or its name now points to another device."""
+
+
+def _reason(exc: BaseException) -> str:
+    text = str(exc).strip() or type(exc).__name__
+    return text.splitlines()[0][:200]

@@ -1,0 +1,326 @@
+"""Unit tests of the pure driver core and its diagnostics (frames built with frame_codec)."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fbg_accel_driver import correction_terms
+from fbg_accel_driver.driver_core import AHT10_SIGMA_C, CoreConfig, DriverCore
+from fbg_accel_driver.driver_diagnostics import ERROR, OK, STALE, WARN, DiagnosticsSnapshot, DriverDiagnostics
+from fbg_accel_driver.frame_codec import ADC_MAX, Frame, Status, encode_frame
+from fbg_accel_driver.thermal_model import ThermalCalibration
+
+T0_NS = 1_700_000_000_000_000_000
+GOOD = int(Status.TEMP_VALID | Status.TEMP_PRESENT)
+
+
+def make_cal(**kw: Any) -> ThermalCalibration:
+    """Degree-1 model with distinct, non-trivial coefficients (range 10..40 degC)."""
+    M = np.array([[[80.0, 3.0, 0.7], [1.6, 77.0, 3.7], [0.2, 1.2, 107.0]], np.diag([0.05, -0.03, 0.02])])
+    b = np.array([[-100.0, -150.0, -137.0], [0.1, 0.2, -0.1]])
+    args = {"M": M, "b": b, "temperature_range_c": (10.0, 40.0), "t_center_c": 25.0, "t_scale_c": 10.0,
+            "noise_sigma_mps2": np.array([0.02, 0.03, 0.04]), "sensor_id": "unit"}
+    args.update(kw)
+    return ThermalCalibration(**args)
+
+
+def frame(i: int, ref: int = 870, xyz: tuple[int, int, int] = (1100, 1600, 1100), temp_cc: int = 2340,
+          status: int = GOOD, t0_us: int = 0) -> Frame:
+    return Frame(seq=i % 65536, t_us=t0_us + i * 10_000, ref=ref, x=xyz[0], y=xyz[1], z=xyz[2], temp_cc=temp_cc, status=status)
+
+
+def feed_frames(core: DriverCore, frames: list[Frame], chunk: int = 5) -> tuple[list, list, list]:
+    """Feed frames in chunks of ``chunk`` frames, as arriving 2 ms after their board time."""
+    raw, imu, temp = [], [], []
+    for k in range(0, len(frames), chunk):
+        part = frames[k : k + chunk]
+        data = b"".join(encode_frame(f) for f in part)
+        out = core.feed(data, T0_NS + part[-1].t_us * 1000 + 2_000_000)
+        raw += out.raw
+        imu += out.imu
+        temp += out.temperature
+    out = core.flush()
+    return raw + out.raw, imu + out.imu, temp + out.temperature
+
+
+def all_finite(records: list) -> bool:
+    return all(math.isfinite(v) for r in records for v in (*r.accel_mps2, *r.covariance, r.temperature_c))
+
+
+def test_calibrated_values_match_eq24_eq28() -> None:
+    cal = make_cal()
+    core = DriverCore(cal)
+    rng = np.random.default_rng(0)
+    frames = [frame(i, ref=int(rng.integers(800, 900)), xyz=tuple(int(v) for v in rng.integers(900, 1800, 3)),
+                    temp_cc=int(rng.integers(1500, 3500))) for i in range(50)]
+    raw, imu, temp = feed_frames(core, frames, chunk=7)
+    assert len(raw) == len(imu) == len(temp) == 50
+    ref = np.array([f.ref for f in frames], float)
+    xyz = np.array([(f.x, f.y, f.z) for f in frames], float)
+    t = np.array([f.temp_cc / 100 for f in frames])
+    psi = xyz / ref[:, None]  # eq. 24
+    tau = (t - 25.0) / 10.0
+    expected = np.einsum("nij,nj->ni", cal.M[0] + tau[:, None, None] * cal.M[1], psi) + cal.b[0] + tau[:, None] * cal.b[1]
+    got = np.array([r.accel_mps2 for r in imu])
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-9)
+    cov = np.array(imu[0].covariance).reshape(3, 3)
+    np.testing.assert_allclose(np.diag(cov), cal.noise_sigma_mps2**2)
+    assert cov[0, 1] == cov[1, 2] == 0.0
+    assert temp[3].temperature_c == frames[3].temp_cc / 100 and temp[3].variance == AHT10_SIGMA_C**2
+    assert [r.frame for r in raw] == frames
+    stamps = [r.stamp_ns for r in raw]
+    assert stamps == [r.stamp_ns for r in imu] and all(np.diff(stamps) > 0)
+
+
+def test_stateful_correction_state_persists_across_chunks(monkeypatch: pytest.MonkeyPatch) -> None:
+    class CountingTerm:
+        """Test term: adds 1e-3 m/s^2 times the running sample index (needs streaming state)."""
+
+        kind = "unit_counter"
+
+        def new_state(self) -> dict:
+            return {"n": 0}
+
+        def contribution(self, cal: Any, inputs: dict, state: dict) -> np.ndarray:
+            n = inputs["ref"].shape[0]
+            idx = state["n"] + np.arange(n)
+            state["n"] += n
+            return np.repeat(idx[:, None] * 1e-3, 3, axis=1)
+
+        def to_dict(self) -> dict:
+            return {"kind": self.kind}
+
+    monkeypatch.setitem(correction_terms.CORRECTION_TYPES, "unit_counter", CountingTerm)
+    cal = make_cal(corrections=[CountingTerm()])
+    frames = [frame(i) for i in range(40)]
+    _, one_by_one, _ = feed_frames(DriverCore(cal), frames, chunk=1)
+    _, batched, _ = feed_frames(DriverCore(cal), frames, chunk=40)
+    a1 = np.array([r.accel_mps2 for r in one_by_one])
+    a2 = np.array([r.accel_mps2 for r in batched])
+    np.testing.assert_allclose(a1, a2, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(a1[39] - a1[0], 39e-3, atol=1e-9)
+
+
+def test_zero_and_low_reference_are_dropped_never_nan() -> None:
+    core = DriverCore(make_cal(), CoreConfig(min_reference_counts=50))
+    frames = [frame(0), frame(1, ref=0), frame(2, ref=49), frame(3, ref=50), frame(4, ref=0, xyz=(0, 0, 0))]
+    raw, imu, _ = feed_frames(core, frames)
+    assert len(raw) == 5  # raw counts always published
+    assert len(imu) == 2 and all_finite(imu)
+    assert core.counters.reference_low == 3
+    assert core.decoder.stats.frames == 5
+
+
+def test_adc_saturation_inflates_covariance_of_affected_axes() -> None:
+    cfg = CoreConfig()
+    core = DriverCore(make_cal(), cfg)
+    frames = [frame(0), frame(1, xyz=(ADC_MAX, 1600, 1100)), frame(2, ref=ADC_MAX)]
+    _, imu, _ = feed_frames(core, frames)
+    assert len(imu) == 3 and all_finite(imu)
+    c0, c1, c2 = (np.diag(np.reshape(r.covariance, (3, 3))) for r in imu)
+    fs2 = cfg.full_scale_mps2**2
+    assert c1[0] == fs2 and c1[1] == c0[1] and c1[2] == c0[2]
+    np.testing.assert_array_equal(c2, [fs2] * 3)
+    assert "adc_saturated" in imu[1].flags and not imu[0].flags
+    assert core.counters.adc_saturated == 2
+
+
+def test_temperature_invalid_is_held_then_dropped() -> None:
+    core = DriverCore(make_cal(), CoreConfig(temperature_hold_s=0.5))
+    # 10 valid frames at 24 degC, then 100 frames (1 s) with the AHT10 invalid and garbage temperature.
+    frames = [frame(i, temp_cc=2400) for i in range(10)]
+    frames += [frame(i, temp_cc=-27315, status=int(Status.TEMP_PRESENT)) for i in range(10, 110)]
+    frames += [frame(i, temp_cc=2500) for i in range(110, 115)]
+    raw, imu, temp = feed_frames(core, frames)
+    c = core.counters
+    assert c.temperature_invalid == 100
+    assert c.temperature_held == 50  # 0.01 .. 0.50 s after the last good reading
+    assert c.temperature_stale_dropped == 50
+    assert len(imu) == 10 + 50 + 5 and all_finite(imu)
+    assert all(r.temperature_c == 24.0 for r in imu[10:60]) and all("temperature_held" in r.flags for r in imu[10:60])
+    assert len(temp) == 15  # only fresh valid readings go to imu/temperature
+    assert raw[50].temperature_c == 24.0 and not raw[50].temperature_valid
+    assert core.last_temperature_valid is True
+
+
+def test_temperature_never_valid_drops_imu_and_raw_temperature_is_nan() -> None:
+    core = DriverCore(make_cal())
+    frames = [frame(i, status=0) for i in range(20)]
+    raw, imu, temp = feed_frames(core, frames)
+    assert imu == [] and temp == []
+    assert all(math.isnan(r.temperature_c) for r in raw)
+    assert core.counters.temperature_stale_dropped == 20
+    assert core.temperature_age_s is None
+
+
+def test_out_of_range_temperature_inflates_covariance() -> None:
+    cfg = CoreConfig(out_of_range_variance_factor=10.0)
+    core = DriverCore(make_cal(), cfg)
+    frames = [frame(0, temp_cc=2500), frame(1, temp_cc=5000), frame(2, temp_cc=500)]
+    _, imu, _ = feed_frames(core, frames)
+    base = np.diag(np.reshape(imu[0].covariance, (3, 3)))
+    for r in imu[1:]:
+        var = np.diag(np.reshape(r.covariance, (3, 3)))
+        assert np.all(var >= 10.0 * base) and "temperature_out_of_range" in r.flags
+    assert core.counters.temperature_out_of_range == 2 and all_finite(imu)
+    # The extrapolation term is the distance between the model at 50 degC and at the 40 degC edge.
+    var1 = np.diag(np.reshape(imu[1].covariance, (3, 3)))
+    assert np.all(var1 > 10.0 * base)
+
+
+def test_decimation_averages_and_scales_variance() -> None:
+    cal = make_cal()
+    frames = [frame(i, xyz=(1000 + i, 1600, 1100 - i)) for i in range(22)]
+    _, full, _ = feed_frames(DriverCore(cal), frames)
+    _, dec, _ = feed_frames(DriverCore(cal, CoreConfig(decimation=4)), frames, chunk=3)
+    assert len(dec) == 5  # 22 // 4, the last 2 samples wait for their block
+    for k, r in enumerate(dec):
+        block = full[4 * k : 4 * k + 4]
+        np.testing.assert_allclose(r.accel_mps2, np.mean([b.accel_mps2 for b in block], axis=0), rtol=1e-12)
+        np.testing.assert_allclose(r.covariance, np.array(block[0].covariance) / 4, rtol=1e-12)
+        assert r.stamp_ns == sum(b.stamp_ns for b in block) // 4
+
+
+def test_board_reset_bad_crc_duplicates_counted_every_intact_frame_once() -> None:
+    core = DriverCore(make_cal())
+    first = [frame(i) for i in range(30)]
+    second = [frame(i, status=GOOD | int(Status.BOOT) if i == 0 else GOOD, t0_us=5_000) for i in range(20)]
+    stream = b""
+    for f in first[:10]:
+        stream += encode_frame(f)
+    bad = bytearray(encode_frame(first[10]))
+    bad[12] ^= 0x10  # bit flip
+    stream += bytes(bad) + b"\x00\xa5garbage\xa5\x5a" + encode_frame(first[11]) + encode_frame(first[11])  # duplicate
+    stream += encode_frame(first[12])[:15]  # truncated
+    stream += b"".join(encode_frame(f) for f in first[13:]) + b"".join(encode_frame(f) for f in second)
+    raw, imu = [], []
+    decimated = DriverCore(make_cal(), CoreConfig(decimation=3))
+    n_dec = 0
+    for k in range(0, len(stream), 13):  # odd chunk size, frames straddle chunks
+        out = core.feed(stream[k : k + 13], T0_NS + k * 40_000)
+        raw += out.raw
+        imu += out.imu
+        n_dec += len(decimated.feed(stream[k : k + 13], T0_NS + k * 40_000).imu)
+    out = core.flush()
+    raw += out.raw
+    imu += out.imu
+    n_dec += len(decimated.flush().imu)
+    assert n_dec == 28 // 3 + 20 // 3  # a decimation block never spans a board reset
+    intact = first[:10] + first[11:12] + first[13:] + second
+    assert [r.frame for r in raw] == intact
+    assert len(imu) == len(intact)
+    s = core.decoder.stats
+    assert s.crc_errors >= 2 and s.duplicates == 1 and s.resets == 1 and s.lost_frames == 2
+    assert core.counters.board_resets == 1
+    stamps = [r.stamp_ns for r in raw]
+    assert all(b > a for a, b in itertools.pairwise(stamps))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    fields=st.lists(
+        st.tuples(st.integers(0, ADC_MAX), st.integers(0, ADC_MAX), st.integers(0, ADC_MAX), st.integers(0, ADC_MAX),
+                  st.integers(-32768, 32767), st.integers(0, 255)),
+        min_size=1, max_size=40),
+    noise=st.binary(max_size=64),
+)
+def test_nothing_non_finite_ever_leaves_the_core(fields: list, noise: bytes) -> None:
+    core = DriverCore(make_cal())
+    frames = [Frame(i, i * 10_000, *f) for i, f in enumerate(fields)]
+    data = noise + b"".join(encode_frame(f) for f in frames)
+    out = core.feed(data, T0_NS)
+    rest = core.flush()
+    out.raw += rest.raw
+    out.imu += rest.imu
+    out.temperature += rest.temperature
+    assert all_finite(out.imu)
+    assert all(math.isfinite(t.temperature_c) for t in out.temperature)
+    assert len(out.raw) == core.decoder.stats.frames
+
+
+def test_core_config_validation() -> None:
+    for bad in (CoreConfig(decimation=0), CoreConfig(covariance_source="guess"), CoreConfig(temperature_hold_s=math.nan),
+                CoreConfig(covariance_source="parameter", accel_stddev_mps2=0.0)):
+        with pytest.raises(ValueError):
+            DriverCore(make_cal(), bad)
+    core = DriverCore(make_cal(), CoreConfig(covariance_source="parameter", accel_stddev_mps2=0.5))
+    _, imu, _ = feed_frames(core, [frame(0)])
+    np.testing.assert_allclose(np.diag(np.reshape(imu[0].covariance, (3, 3))), [0.25] * 3)
+    core = DriverCore(make_cal(), CoreConfig(covariance_source="unknown"))
+    _, imu, _ = feed_frames(core, [frame(0)])
+    assert imu[0].covariance == (0.0,) * 9
+
+
+# ----------------------------------------------------------------------------- diagnostics
+def snapshot(now: float, *, connected: bool = True, frames: int = 0, crc: int = 0, lost: int = 0,
+             core: dict | None = None, temp_valid: bool | None = True, age: float | None = 0.0,
+             last_t: float | None = 24.0) -> DiagnosticsSnapshot:
+    return DiagnosticsSnapshot(
+        now_s=now, link_connected=connected, link_message="open" if connected else "cannot open /dev/x: gone",
+        link_values={"port": "/dev/x"}, decoder={"frames": frames, "crc_errors": crc, "lost_frames": lost, "resets": 0},
+        core=core or {}, temperature_valid=temp_valid, temperature_age_s=age, last_temperature_c=last_t,
+        temperature_hold_s=5.0, temperature_range_c=(10.0, 40.0),
+    )
+
+
+def levels(entries: list) -> dict[str, int]:
+    return {e.name.split(": ", 1)[1]: e.level for e in entries}
+
+
+def values(entries: list, what: str) -> dict[str, str]:
+    return dict(next(e for e in entries if e.name.endswith(what)).values)
+
+
+def test_diagnostics_levels_follow_deltas_and_states() -> None:
+    d = DriverDiagnostics()
+    e = d.report(snapshot(0.0, frames=0, temp_valid=None, age=None, last_t=None))
+    assert levels(e)["serial link"] == ERROR and levels(e)["temperature sensor"] == STALE
+    e = d.report(snapshot(1.0, frames=100))
+    assert set(levels(e).values()) == {OK}
+    assert float(values(e, "frames")["frame_rate_hz"]) == pytest.approx(100.0)
+    e = d.report(snapshot(2.0, frames=195, crc=3, lost=5))
+    assert levels(e)["frames"] == WARN
+    v = values(e, "frames")
+    assert v["crc_errors"] == "3" and v["lost_frames"] == "5"
+    e = d.report(snapshot(3.0, frames=295, crc=3, lost=5))
+    assert levels(e)["frames"] == OK and values(e, "frames")["crc_errors"] == "3"  # cumulative count kept
+    e = d.report(snapshot(4.0, connected=False, frames=295, crc=3, lost=5))
+    assert levels(e)["serial link"] == ERROR
+    e = d.report(snapshot(5.0, frames=300, core={"adc_saturated": 2, "reference_low": 1}, temp_valid=False, age=2.0))
+    lv = levels(e)
+    assert lv["serial link"] == OK and lv["ADC saturation"] == WARN and lv["reference power"] == ERROR
+    assert lv["temperature sensor"] == WARN
+    e = d.report(snapshot(6.0, frames=400, core={"adc_saturated": 2, "reference_low": 1}, temp_valid=False, age=6.0))
+    lv = levels(e)
+    assert lv["temperature sensor"] == ERROR and lv["ADC saturation"] == OK and lv["reference power"] == OK
+    e = d.report(snapshot(7.0, frames=500, last_t=45.0))
+    assert levels(e)["temperature range"] == WARN
+    e = d.report(snapshot(8.0, frames=500))
+    assert levels(e)["serial link"] == ERROR  # connected, but silent for a second
+
+
+def test_start_up_stall_does_not_break_stamp_spacing() -> None:
+    """The first chunk arrives 80 ms late (process start-up); later ones 2 ms after sampling.
+
+    Stamping the first frames from that one delay would need a 78 ms step back later; the core
+    holds them until the clock estimate is primed, so every spacing stays the board period.
+    """
+    core = DriverCore(make_cal())
+    frames = [frame(i) for i in range(300)]
+    stamps = []
+    for k in range(0, 300, 5):
+        part = frames[k : k + 5]
+        delay_ns = 80_000_000 if k == 0 else 2_000_000
+        out = core.feed(b"".join(encode_frame(f) for f in part), T0_NS + part[-1].t_us * 1000 + delay_ns)
+        stamps += [r.stamp_ns for r in out.raw]
+    assert len(stamps) == 300 and core.clock.steps == 0
+    spacing = np.diff(stamps) * 1e-9
+    assert np.all(np.abs(spacing - 0.01) < 0.01 * 0.01), (spacing.min(), spacing.max())
+    assert abs(stamps[-1] - (T0_NS + frames[-1].t_us * 1000)) < 3_000_000  # within the 2 ms floor (+ slew residue)

@@ -1,0 +1,110 @@
+"""SerialLink against a real pseudo-terminal through pyserial (no ROS): data, vanish, back-off, reconnect."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+import tty
+from collections.abc import Callable
+from pathlib import Path
+
+from fbg_accel_driver.serial_link import LinkState, SerialLink
+
+
+def wait_for(cond: Callable[[], bool], timeout_s: float, what: str) -> None:
+    """Poll a condition with a deadline (the reader thread does the work; we only observe it)."""
+    deadline = time.monotonic() + timeout_s
+    event = threading.Event()
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s:g} s waiting for: {what}")
+        event.wait(0.005)
+
+
+def open_pty(link: Path) -> tuple[int, int]:
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    tmp = link.with_suffix(".tmp")
+    os.symlink(os.ttyname(slave), tmp)
+    os.replace(tmp, link)
+    return master, slave
+
+
+def drain(link: SerialLink) -> bytes:
+    out = b""
+    while not link.queue.empty():
+        out += link.queue.get_nowait()[1]
+    return out
+
+
+def test_reads_survives_vanish_backs_off_and_reconnects_in_one_thread(tmp_path: Path) -> None:
+    path = tmp_path / "board"
+    notified = threading.Event()
+    link = SerialLink(str(path), 115200, notify=notified.set, backoff_initial_s=0.05, backoff_max_s=0.2)
+    threads_before = threading.active_count()
+    link.start()
+    try:
+        # Port missing at start: retries with exponential back-off 0.05, 0.1, 0.2, 0.2 ...
+        seen: set[tuple[int, float]] = set()
+
+        def record() -> bool:
+            st = link.status()
+            if st.state is LinkState.DISCONNECTED:
+                seen.add((st.failed_attempts, st.next_retry_s))
+            return st.failed_attempts >= 4
+
+        wait_for(record, 10, "four failed open attempts")
+        assert seen and all(r == min(0.05 * 2 ** (k - 1), 0.2) for k, r in seen), seen
+        assert "cannot open" in link.status().message
+
+        master, slave = open_pty(path)
+        wait_for(lambda: link.status().state is LinkState.CONNECTED, 10, "connected")
+        os.write(master, b"hello board")
+        wait_for(lambda: link.status().bytes_read >= 11, 10, "bytes read")
+        assert drain(link) == b"hello board" and notified.is_set()
+        assert threading.active_count() == threads_before + 1
+
+        # The port vanishes (pty closed, as when the simulator disconnects or a USB adapter is pulled).
+        os.close(master)
+        os.close(slave)
+        path.unlink()
+        wait_for(lambda: link.status().state is LinkState.DISCONNECTED, 10, "disconnected")
+        assert link.status().disconnects == 1
+
+        master, slave = open_pty(path)
+        wait_for(lambda: link.status().state is LinkState.CONNECTED, 10, "reconnected")
+        os.write(master, b"again")
+        wait_for(lambda: link.status().bytes_read >= 16, 10, "bytes after reconnect")
+        assert drain(link) == b"again"
+        st = link.status()
+        assert st.connects == 2 and st.thread_alive
+        assert threading.active_count() == threads_before + 1  # no thread per reconnect
+
+        # The name is re-pointed to another device while the old one stays open (udev by-id after a replug).
+        master2, slave2 = open_pty(path)
+        wait_for(lambda: link.status().connects == 3, 10, "reopened after the link was re-pointed")
+        os.write(master2, b"third")
+        wait_for(lambda: link.status().bytes_read >= 21, 10, "bytes from the new device")
+        assert drain(link) == b"third"
+        assert link.status().disconnects == 2
+        for fd in (master, slave, master2, slave2):
+            os.close(fd)
+    finally:
+        link.stop()
+    assert not link.status().thread_alive and link.status().state is LinkState.STOPPED
+    assert threading.active_count() == threads_before
+
+
+def test_silent_port_is_reopened(tmp_path: Path) -> None:
+    path = tmp_path / "board"
+    master, slave = open_pty(path)
+    link = SerialLink(str(path), 115200, backoff_initial_s=0.05, backoff_max_s=0.1, silence_timeout_s=0.3)
+    link.start()
+    try:
+        wait_for(lambda: link.status().connects >= 2, 10, "reopen after 0.3 s of silence")
+        assert link.status().disconnects >= 1
+    finally:
+        link.stop()
+        os.close(master)
+        os.close(slave)
