@@ -66,11 +66,12 @@ def test_differential_sensitivity_is_112_pm_per_g(cfg: SimConfig) -> None:
 def test_overlap_monotonic_within_20g_and_not_injective_beyond_22g(cfg: SimConfig) -> None:
     sim = BoardSimulator(cfg, seed=0)
     for axis in range(3):
+        pair = sim.pair.select(axis)
         a = np.linspace(-20.0, 20.0, 2001) * G
-        r = optics.relative_response(a, sim.d0, sim.S, sim.sigma_g[axis], 1.0)
+        r = optics.relative_response(a[:, None], sim.d0, sim.S, pair, 1.0)[:, 0]
         assert np.all(np.diff(r) > 0), f"axis {axis} not monotonic in +-20 g"
         beyond = np.linspace(20.0, 30.0, 1001) * G
-        rb = optics.relative_response(beyond, sim.d0, sim.S, sim.sigma_g[axis], 1.0)
+        rb = optics.relative_response(beyond[:, None], sim.d0, sim.S, pair, 1.0)[:, 0]
         peak = beyond[np.argmax(rb)] / G
         assert 22.0 < peak < 22.6  # the spectra cross: maximum overlap, then the response folds back
         assert rb[-1] < rb.max() - 0.01
@@ -81,10 +82,56 @@ def test_overlap_monotonic_within_20g_and_not_injective_beyond_22g(cfg: SimConfi
 def test_spectral_nonlinearity_scale_zero_is_linear(cfg: SimConfig) -> None:
     sim = BoardSimulator(cfg, seed=0)
     a = np.linspace(-20.0, 20.0, 101) * G
-    lin = optics.relative_response(a, sim.d0, sim.S, sim.sigma_g[0], 0.0)
+    pair = sim.pair.select(0)
+    lin = optics.relative_response(a[:, None], sim.d0, sim.S, pair, 0.0)[:, 0]
     assert np.max(np.abs(np.diff(lin, 2))) < 1e-12
-    phys = optics.relative_response(a, sim.d0, sim.S, sim.sigma_g[0], 1.0)
+    np.testing.assert_allclose(np.diff(lin) / np.diff(a), sim.rel_slope[0], rtol=1e-9)  # the tangent at rest
+    phys = optics.relative_response(a[:, None], sim.d0, sim.S, pair, 1.0)[:, 0]
     assert np.max(np.abs(np.diff(phys, 2))) > 1e-4
+
+
+def test_numerical_overlap_of_order_one_is_the_gaussian_closed_form() -> None:
+    # order 1 = Gaussian gratings: the overlap integral of eq. 13 is exp(-d^2 / (4 sigma^2)) exactly
+    fwhm = np.array([2.5, 3.0, 4.0])
+    pair = optics.PairOverlap(fwhm, [1.0, 1.0, 1.0])
+    d = np.linspace(-7.0, 7.0, 1401)[:, None]
+    np.testing.assert_allclose(pair.values(d), optics.gaussian_overlap(d, optics.grating_sigma_nm(fwhm)), atol=1e-9)
+    k1, k2 = pair.log_derivatives(2.5)
+    s2 = optics.grating_sigma_nm(fwhm) ** 2
+    np.testing.assert_allclose(k1, -2.5 / (2 * s2), rtol=1e-5)
+    np.testing.assert_allclose(k2, 2.5**2 / (4 * s2**2) - 1 / (2 * s2), rtol=1e-3)
+    # a flatter top (higher order) at the same FWHM is steeper at the 2.5 nm rest separation
+    assert -optics.PairOverlap([3.0], [2.0]).log_derivatives(2.5)[0][0] > -k1[1]
+
+
+def test_nonlinearity_metric_on_known_curves() -> None:
+    a = np.linspace(-180.0, 180.0, 721)
+    assert optics.nonlinearity_percent_fs(a, 3.0 + 0.01 * a) < 1e-10
+    # y = b a + c a^2 over [-X, X]: the line is b a + c X^2/3, the largest deviation 2 c X^2/3 at the ends,
+    # FS = span = y(X) - y(-X) = 2 b X  ->  100 c X / (3 b)
+    b, c, x = 0.01, 2e-6, 180.0
+    assert optics.nonlinearity_percent_fs(a, b * a + c * a * a) == pytest.approx(100 * c * x / (3 * b), rel=2e-3)
+
+
+def test_nonlinearity_per_axis_against_the_paper(cfg: SimConfig) -> None:
+    # paper 4.2 / Fig. 12: x 6.6 %, y 6.3 % FS at 180 m/s^2, z lowest. The published calibration matrix (with the
+    # measured rest counts and 112 pm/g) forces a small-signal slope that no super-Gaussian pair of order 1..4 makes
+    # that linear (docs/simulator.md): the simulator takes the closest it allows, x 13.8, y 7.7, z 8.7 % FS.
+    rep = optics.linearity_report(cfg)["axes"]
+    eps = {k: v["nonlinearity_pct_fs_pm180"] for k, v in rep.items()}
+    assert eps["x"] == max(eps.values())  # x worst, as in the paper
+    assert abs(eps["y"] - 6.3) < 1.6  # y within 1.6 % FS of the paper
+    assert eps["x"] - 6.6 < 7.5 and eps["z"] - eps["y"] < 1.2  # the documented gaps, not allowed to grow
+    for v in rep.values():
+        assert v["monotonic_pm20g"] and 22.0 < v["max_overlap_at_g"] < 22.6
+        assert v["log_slope_at_rest_per_nm"] == pytest.approx(v["log_slope_for_published_M_per_nm"], rel=2e-3)
+        assert 2.5 <= v["grating_fwhm_nm"] <= 4.5  # "about 3 nm" (paper 3.2), widened for linearity
+    # the choice is the one --scan-orders makes: no order in 1..4 gets more than 0.25 % FS closer
+    scan = optics.order_scan(cfg, optics.SCAN_ORDERS)
+    for k, rows in scan.items():
+        best = min(r["nonlinearity_pct_fs_pm180"] for r in rows)
+        assert eps[k] <= best + optics.ORDER_TOLERANCE_PCT_FS + 1e-6
+        assert rep[k]["super_gaussian_order"] == optics.choose_order(rows)["order"]
 
 
 def test_first_order_filter_matches_the_recursion() -> None:

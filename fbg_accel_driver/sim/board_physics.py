@@ -11,7 +11,7 @@ Signal chain per sample (docs/simulator.md has the equations and the source of e
 
     table angles (t - delay) -> specific force f (table frame) -> mount rotation + vibration
     -> axis inputs u = A f + equivalent biases (time drift, hysteresis, cable torque)
-    -> FBG pair separation d = d0 - S u + thermal mismatch -> Gaussian spectral overlap (eq. 13)
+    -> FBG pair separation d = d0 - S u + thermal mismatch -> super-Gaussian spectral overlap (eq. 13)
     -> optical power x source power (temperature, wander, dropout) x chain gains (SLD wavelength
        drift, couplers, photodiodes) -> counts at rest scale -> TIA first-order low-pass
     -> + noise (Table 2) + dark offsets -> 12-bit ADC (round, clip 0..4095)
@@ -34,7 +34,7 @@ from fbg_accel_calibration.table_geometry import table_specific_force
 from ..frame_codec import FRAME_SIZE_V1, SEQ_MODULO, Frame, Status, crc16
 from . import faults as fz
 from .noise import GaussMarkovBank, NoiseModel, first_order_filter
-from .optics import STANDARD_G, grating_sigma_nm, overlap, overlap_slope, relative_response, source_factor
+from .optics import STANDARD_G, PairOverlap, grating_sigma_nm, relative_response, source_factor
 from .scenario import TemperatureProfile, build_trajectory, vibration
 from .sim_config import SimConfig
 
@@ -188,7 +188,8 @@ class BoardSimulator:
         self.rest_counts = np.array([float(rc[k]) for k in CHANNELS]) - nominal_dark
         self.d0 = float(o["pair_separation_nm"])
         self.S = float(o["differential_sensitivity_pm_per_g"]) * 1e-3 / STANDARD_G  # nm per m/s^2
-        self.sigma_g = grating_sigma_nm(np.asarray(o["grating_fwhm_nm"], float))
+        self.sigma_g = grating_sigma_nm(np.asarray(o["grating_fwhm_nm"], float))  # equivalent Gaussian (source factor)
+        self.pair = PairOverlap(o["grating_fwhm_nm"], o["grating_super_gaussian_order"])
         self.pair_center = np.asarray(o["pair_center_nm"], float)
         self.fbg_thermal_nm = float(o["fbg_thermal_pm_per_c"]) * 1e-3
         self.sigma_s = float(c.get("source.fwhm_nm")) / (2.0 * math.sqrt(2.0 * math.log(2.0)))
@@ -202,8 +203,8 @@ class BoardSimulator:
         self.R_mount = (_rot(2, y) @ _rot(1, p) @ _rot(0, r)).T  # f_sensor = R_mount f_table
         self.T_ref = float(c.get("thermal.reference_temperature_c"))
         # Small-signal slope of the axis counts per m/s^2 of axis input at rest (linearised overlap).
-        o0 = overlap(self.d0, self.sigma_g)
-        self.rel_slope = -overlap_slope(self.d0, self.sigma_g) / o0 * self.S  # 1/(m/s^2)
+        self.rest_log_slope = self.pair.log_derivatives(self.d0)[0]  # O'/O at d0, 1/nm (negative)
+        self.rel_slope = -self.rest_log_slope * self.S  # 1/(m/s^2)
         self.counts_per_mps2 = self.rest_counts[1:] * self.rel_slope
         self.src0 = source_factor(self.pair_center - self.source_center, self.sigma_g, self.sigma_s)
         fc = np.asarray(c.get("electronics.tia_cutoff_hz"), float)
@@ -442,7 +443,8 @@ class BoardSimulator:
         # --- optics: pair separation and spectral overlap (paper eq. 13, 22)
         mm = eff["fbg_pair_thermal_mismatch"]
         d_extra = float(mm["scale"]) * dT[:, None] * np.asarray(mm["pm_per_c"], float)[None, :] * 1e-3
-        resp = relative_response(u, self.d0, self.S, self.sigma_g, float(eff["spectral_nonlinearity"]["scale"]), d_extra)
+        resp = relative_response(u, self.d0, self.S, self.pair, float(eff["spectral_nonlinearity"]["scale"]), d_extra,
+                                 self.rest_log_slope)
 
         # --- source power and chain gains (paper 3.3, 3.6.2)
         sp = eff["source_power_thermal"]
