@@ -88,14 +88,14 @@ class PairOverlap:
         if np.any(~(self.fwhm_nm > 0)) or np.any(~(self.order >= 0.5)):
             raise ValueError("grating FWHM must be > 0 nm and super-Gaussian order >= 0.5")
         h = _TABLE_STEP_NM
-        n_lag = int(round(max_lag_nm / h))
+        n_lag = round(max_lag_nm / h)
         self.lag_nm = np.arange(n_lag + 1) * h
         tables = []
         for w, m in zip(self.fwhm_nm, self.order, strict=True):
             half = _profile_half_support(w, m)
             x = np.arange(-half, half + h / 2, h)
             p = super_gaussian(x, w, m)
-            nfft = 1 << int(math.ceil(math.log2(max(2 * len(x), n_lag + 1))))
+            nfft = 1 << math.ceil(math.log2(max(2 * len(x), n_lag + 1)))
             f = np.fft.rfft(p, nfft)
             ac = np.fft.irfft(f * np.conj(f), nfft)[: n_lag + 1] * h  # lag j*h: sum p(x) p(x + j h) h
             tables.append(ac / ac[0])
@@ -253,6 +253,8 @@ def linearity_report(cfg: Any) -> dict[str, Any]:
             "reflectivity_at_crossing_rel_peak": cross,
             "log_slope_at_rest_per_nm": float(-k1[j]), "log_slope_for_published_M_per_nm": float(target[j]),
             "relative_slope_per_g": float(-k1[j] * s * STANDARD_G),
+            # where the tangent at rest reaches zero power: a response this steep at rest cannot stay linear beyond
+            "tangent_zero_power_at_g": float(1.0 / (k1[j] * s * STANDARD_G)),
             "curvature_at_rest_per_mps2_sq": float(0.5 * k2[j] * s * s),
             "nonlinearity_1g_percent_of_1g": float(0.5 * k2[j] * s * s * STANDARD_G / (-k1[j] * s) * 100.0),
             "nonlinearity_pct_fs_pm180": eps_paper[j], "nonlinearity_pct_fs_pm20g": eps_20g[j],
@@ -303,13 +305,17 @@ def choose_order(rows: list[dict[str, float]], tol_pct_fs: float = ORDER_TOLERAN
 
 def _print_report(rep: dict[str, Any]) -> None:
     print(f"non-linearity metric: {rep['metric']}")
-    print("axis  order  FWHM_nm  r(d0/2)/R  O'/O@rest  (for M)  curv_1g_%  NL_%FS_+-180  NL_%FS_+-20g  paper  monotonic  peak_g")
+    print("axis  order  FWHM_nm  r(d0/2)/R  O'/O@rest  (for M)  tangent_0_g  curv_1g_%  NL_%FS_+-180  NL_%FS_+-20g  paper"
+          "  monotonic  peak_g")
     for name, a in rep["axes"].items():
         paper = a["paper_nonlinearity_pct_fs_180"]
-        print(f"{name:>4}  {a['super_gaussian_order']:5.2f}  {a['grating_fwhm_nm']:7.3f}  {a['reflectivity_at_crossing_rel_peak']:9.2f}"
+        paper_txt = f"{paper:.1f}" if paper else "lowest"
+        print(f"{name:>4}  {a['super_gaussian_order']:5.2f}  {a['grating_fwhm_nm']:7.3f}"
+              f"  {a['reflectivity_at_crossing_rel_peak']:9.2f}"
               f"  {a['log_slope_at_rest_per_nm']:9.4f}  {a['log_slope_for_published_M_per_nm']:7.4f}"
+              f"  {a['tangent_zero_power_at_g']:11.2f}"
               f"  {a['nonlinearity_1g_percent_of_1g']:9.2f}  {a['nonlinearity_pct_fs_pm180']:12.2f}"
-              f"  {a['nonlinearity_pct_fs_pm20g']:12.2f}  {('%.1f' % paper) if paper else 'lowest':>5}"
+              f"  {a['nonlinearity_pct_fs_pm20g']:12.2f}  {paper_txt:>5}"
               f"  {a['monotonic_pm20g']!s:>9}  {a['max_overlap_at_g']:6.2f}")
 
 
@@ -323,7 +329,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--config", default=None, help="simulator config merged on sim_default.yaml")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key (repeatable)")
     p.add_argument("--scan-orders", action="store_true",
-                   help="for super-Gaussian orders 1..4: the FWHM reproducing the published M, its non-linearity, the chosen order")
+                   help="for super-Gaussian orders 1..4: the FWHM reproducing the published M, its non-linearity, "
+                        "the chosen order")
     p.add_argument("--json", default=None, help="also write the figures to this JSON file")
     args = p.parse_args(argv)
     if not (args.report or args.scan_orders):
