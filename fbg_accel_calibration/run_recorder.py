@@ -1,0 +1,406 @@
+"""One calibration run from raw samples to an MCAP file (pure core of the ``calibration`` node, no ROS).
+
+The node hands every ``imu/raw`` message to :meth:`RunRecorder.on_raw` and every
+``imu/temperature`` message to :meth:`RunRecorder.on_temperature`. The recorder
+
+1. writes each message to the run's MCAP at once (:class:`~fbg_accel_calibration.mcap_io.RecordingWriter`,
+   incremental, so a killed run leaves a readable file; the chunk is also ended after every pose);
+2. computes Psi = counts / reference (paper eq. 24) and feeds it to the static-interval detector
+   (:class:`~fbg_accel_calibration.static_detector.StillnessMonitor`), whose verdict drives the
+   :class:`~fbg_accel_calibration.pose_sequencer.PoseSequencer`;
+3. tells the sequencer whether the signal has *left the pose* (``DEPART_SIGMAS`` noise sigmas from
+   the pose's mean Psi for ``DEPART_CONFIRM`` samples), so a detector false alarm or a knock at the
+   pose pauses the recording instead of being taken for the table's move to the next pose;
+4. writes a ``calibration/pose`` event whenever the sequencer's state changes and the pose's
+   reference gravity when its recording starts, so the file carries the pose of every sample;
+5. counts lost and repeated messages from the driver's ``seq`` field and checks the sensor
+   temperature against the chamber set-point of the run.
+
+Detector settings (:class:`DetectorSettings`). The window and the hold time are given in seconds
+and turned into samples with the board rate measured at the start of the run. The noise floor of
+Psi is either given (``noise_std``, per axis) or learnt during the first ``learn_s`` seconds of the
+run as the robust floor of :func:`~fbg_accel_calibration.static_detector.estimate_noise_var`
+(the sensor must be still then: the table at the first pose, whose dwell the plan can lengthen; if
+the means of the four quarters of that period differ by more than ``LEARN_SHIFT_LIMIT`` noise
+sigmas the table moved: service mode learns again, auto mode aborts the run because the pose
+sequence is out of step). It never goes below the ADC quantisation floor of Psi,
+(1 / ref)^2 / 12 per axis. The detector threshold is then the chi-square bound of
+``static_detector`` (false-alarm probability ``false_alarm`` per window, times ``margin``).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .mcap_io import RecordingWriter
+from .pose_plan import PosePlan
+from .pose_sequencer import Mode, Phase, PoseSequencer, SequencerEvent
+from .static_detector import DEFAULT_FALSE_ALARM, StillnessMonitor, estimate_noise_var, moving_variance
+
+LEARN_BLOCKS = 4  # the learning period is cut into this many blocks whose means must agree
+LEARN_SHIFT_LIMIT = 8.0  # largest block-mean difference (in noise sigmas) accepted as "still" while learning
+DEPART_SIGMAS = 10.0  # a sample this many noise sigmas from the pose's mean Psi is off the pose
+DEPART_CONFIRM = 5  # consecutive such samples: the table has left the pose (not a glitch or a knock)
+RECENT_SAMPLES = 20  # still samples before a pose's first recorded one that seed its mean Psi
+SEQ_MODULO = 1 << 16  # the board's frame sequence counter is u16 (frame protocol v1)
+MIN_RATE_SAMPLES = 20  # samples needed to measure the board rate
+
+
+@dataclass(frozen=True)
+class DetectorSettings:
+    """Static detector of the node: ``window_s`` (s) moving window, ``hold_s`` (s) of continuous
+    stillness before a pose is recorded, ``noise_std`` Psi noise floor per axis (None: learn it during
+    ``learn_s`` s), ``false_alarm`` and ``margin`` as in ``static_detector``."""
+
+    window_s: float = 0.25
+    hold_s: float = 1.0
+    noise_std: tuple[float, float, float] | None = None
+    learn_s: float = 2.0
+    false_alarm: float = DEFAULT_FALSE_ALARM
+    margin: float = 5.0
+
+    def validate(self) -> None:
+        for name in ("window_s", "hold_s", "learn_s", "margin"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"detector {name} must be > 0, got {v}")
+        if not 0 < self.false_alarm < 1:
+            raise ValueError(f"detector false_alarm must be in (0, 1), got {self.false_alarm}")
+        if self.noise_std is not None and (len(self.noise_std) != 3 or not all(math.isfinite(s) and s > 0
+                                                                              for s in self.noise_std)):
+            raise ValueError(f"detector noise_std must be 3 positive numbers (Psi units), got {self.noise_std}")
+
+
+def learning_shift(psi: np.ndarray, noise_var: np.ndarray, blocks: int = LEARN_BLOCKS) -> float:
+    """Largest difference between the means of ``blocks`` consecutive blocks of ``psi`` (N, 3), in units
+    of the per-sample noise sigma of the axis. A still sensor gives a few sigma at most (the block means
+    of even strongly low-pass-filtered noise scatter less than one sample sigma); a table move of
+    0.1 g or more gives tens to hundreds."""
+    parts = np.array_split(np.asarray(psi, dtype=float), blocks)
+    means = np.array([p.mean(axis=0) for p in parts if len(p)])
+    spread = means.max(axis=0) - means.min(axis=0)
+    return float(np.max(spread / np.sqrt(noise_var)))
+
+
+@dataclass(frozen=True)
+class RawSample:
+    """One ``imu/raw`` message: ROS stamp (ns), counts, AHT10 temperature (degC), flags, board time (s)."""
+
+    stamp_ns: int
+    ref: float
+    x: float
+    y: float
+    z: float
+    temperature_c: float = math.nan
+    temperature_valid: bool = True
+    status: int = 0
+    seq: int = 0
+    board_time_s: float | None = None
+    frame_id: str = ""
+
+
+@dataclass
+class RunCounters:
+    messages_raw: int = 0
+    messages_temperature: int = 0
+    lost: int = 0  # gaps in the driver's seq (frames the driver did not publish or DDS dropped)
+    repeated: int = 0  # seq equal to or just behind the previous one
+    invalid_reference: int = 0  # ref < 1 count: Psi undefined, the sample is written but not judged still
+    stamps_not_increasing: int = 0
+
+
+@dataclass
+class RunRecorder:
+    """See the module docstring. ``metadata`` goes into the MCAP ``run`` record."""
+
+    plan: PosePlan
+    writer: RecordingWriter
+    mode: Mode = Mode.SERVICE
+    detector: DetectorSettings = field(default_factory=DetectorSettings)
+    sensor_id: str = "unknown"
+    setpoint_c: float | None = None
+    motion_expect_g: float = 0.1
+
+    def __post_init__(self) -> None:
+        self.detector.validate()
+        self.sequencer = PoseSequencer(self.plan, Mode(self.mode), self.motion_expect_g)
+        self.counters = RunCounters()
+        self.messages: list[tuple[str, str]] = []  # (level, text) for the node's log
+        self.monitor: StillnessMonitor | None = None
+        self.rate_hz = math.nan
+        self.noise_std = np.full(3, math.nan)
+        self._startup_t: list[float] = []
+        self._startup_psi: list[np.ndarray] = []
+        self._startup_ref: list[float] = []
+        self._last_seq: int | None = None
+        self._last_stamp: int | None = None
+        self._event_key: tuple[str, int] | None = None
+        self._frame_id: str | None = None
+        self._temperature_c = math.nan
+        self._temp_warned = False
+        self.temperature_seen_c = [math.inf, -math.inf]
+        self.last_pose_id = -1
+        self.finished_reason = ""
+        self._recent: deque[np.ndarray] = deque(maxlen=RECENT_SAMPLES)
+        self._pose_level_index = -1
+        self._pose_sum = np.zeros(3)
+        self._pose_n = 0
+        self._depart_run = 0
+
+    # ------------------------------------------------------------------ inputs
+    def on_raw(self, s: RawSample) -> int:
+        """Record one raw sample; returns its pose id (-1 when not one of a pose's recorded samples)."""
+        c = self.counters
+        c.messages_raw += 1
+        self._check_seq(int(s.seq))
+        if self._last_stamp is not None and s.stamp_ns <= self._last_stamp:
+            c.stamps_not_increasing += 1
+        self._last_stamp = s.stamp_ns
+        if self._frame_id is None:
+            self._frame_id = s.frame_id or self.writer.frame_id
+            self.writer.frame_id = self._frame_id
+        elif s.frame_id and s.frame_id != self._frame_id:
+            self._say("warn", f"imu/raw frame_id changed from {self._frame_id!r} to {s.frame_id!r}")
+            self._frame_id = s.frame_id
+            self.writer.frame_id = s.frame_id
+        temp = float(s.temperature_c)
+        if s.temperature_valid and math.isfinite(temp):
+            self._temperature_c = temp
+            self.temperature_seen_c = [min(self.temperature_seen_c[0], temp), max(self.temperature_seen_c[1], temp)]
+            self._check_setpoint(temp)
+        t_s = float(s.board_time_s) if s.board_time_s is not None and math.isfinite(s.board_time_s) else s.stamp_ns * 1e-9
+        if s.ref >= 1:
+            psi = np.array([s.x, s.y, s.z], dtype=float) / float(s.ref)
+        else:
+            c.invalid_reference += 1
+            psi = np.full(3, np.nan)
+
+        pose_id = -1
+        if self.monitor is None:
+            self._startup(t_s, psi, s.ref)
+        if self.monitor is not None and not self.sequencer.finished:
+            still = self.monitor.update(psi)
+            pose_id = self.sequencer.step(t_s, still, self._departed(psi))
+            self._track_pose_level(pose_id, psi)
+        self._write_pose_event(s.stamp_ns, pose_id)
+        self.writer.write_raw(s.stamp_ns, s.ref, (s.x, s.y, s.z), temperature_c=temp,
+                              temperature_valid=bool(s.temperature_valid), status=int(s.status), seq=int(s.seq),
+                              board_time_s=t_s)
+        if self.last_pose_id >= 0 and pose_id != self.last_pose_id:
+            self.writer.flush()  # a pose's samples are complete: end the chunk so a crash keeps them
+        self.last_pose_id = pose_id
+        return pose_id
+
+    def on_temperature(self, stamp_ns: int, temperature_c: float, variance_c2: float) -> None:
+        self.counters.messages_temperature += 1
+        self.writer.write_temperature(stamp_ns, temperature_c, variance_c2)
+
+    def request_next(self) -> tuple[bool, str]:
+        if self.monitor is None:
+            return False, "still measuring the board rate / learning the noise floor; try again in a moment"
+        return self.sequencer.request_next()
+
+    def abort(self, reason: str) -> None:
+        self.sequencer.abort(reason)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def done(self) -> bool:
+        return self.sequencer.phase is Phase.DONE
+
+    @property
+    def finished(self) -> bool:
+        return self.sequencer.finished
+
+    @property
+    def temperature_c(self) -> float:
+        return self._temperature_c
+
+    def pop_events(self) -> list[SequencerEvent]:
+        return self.sequencer.pop_events()
+
+    def pop_messages(self) -> list[tuple[str, str]]:
+        out, self.messages = self.messages, []
+        return out
+
+    def summary(self) -> dict[str, Any]:
+        """Run summary for the ``run_end`` metadata record and the final log."""
+        c = self.counters
+        lo, hi = self.temperature_seen_c
+        return {
+            "ended": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+            "result": self.sequencer.phase.value,
+            "reason": self.finished_reason,
+            "poses": self.sequencer.summary(),
+            "messages_raw": c.messages_raw,
+            "messages_temperature": c.messages_temperature,
+            "lost_messages": c.lost,
+            "repeated_messages": c.repeated,
+            "invalid_reference": c.invalid_reference,
+            "stamps_not_increasing": c.stamps_not_increasing,
+            "board_rate_hz": self.rate_hz,
+            "detector_noise_std_psi": [float(v) for v in self.noise_std],
+            "temperature_range_c": [lo, hi] if math.isfinite(lo) else [],
+        }
+
+    def close(self, reason: str) -> dict[str, Any]:
+        """Write the closing pose event and the ``run_end`` record, finish the MCAP; returns the summary."""
+        self.finished_reason = reason
+        if self._last_stamp is not None and self._event_key != ("done", self.sequencer.index):
+            # 1 ns after the last sample: an event applies to samples at or after its stamp
+            self.writer.write_pose(self._last_stamp + 1, -1, "done", index=self.sequencer.index, count=len(self.plan),
+                                   extra={"phase": self.sequencer.phase.value}, sensor_id=self.sensor_id)
+        summary = self.summary()
+        self.writer.add_metadata("run_end", summary)
+        self.writer.close()
+        return summary
+
+    # ------------------------------------------------------------------ internals
+    def _say(self, level: str, text: str) -> None:
+        self.messages.append((level, text))
+
+    def _check_seq(self, seq: int) -> None:
+        if self._last_seq is not None:
+            gap = (seq - self._last_seq) % SEQ_MODULO
+            if gap == 0 or gap > SEQ_MODULO // 2:
+                self.counters.repeated += 1
+            elif gap > 1:
+                self.counters.lost += gap - 1
+        self._last_seq = seq
+
+    def _check_setpoint(self, temp: float) -> None:
+        if self.setpoint_c is None or self._temp_warned or self.plan.chamber is None:
+            return
+        if abs(temp - self.setpoint_c) > self.plan.chamber.tolerance_c:
+            self._temp_warned = True
+            self._say("warn", f"sensor temperature {temp:.2f} degC is {temp - self.setpoint_c:+.2f} degC from the chamber "
+                      f"set-point {self.setpoint_c:g} degC (tolerance {self.plan.chamber.tolerance_c:g}); still soaking?")
+
+    def _startup(self, t_s: float, psi: np.ndarray, ref: float) -> None:
+        """Collect the first samples: board rate, then (if not configured) the Psi noise floor."""
+        if np.all(np.isfinite(psi)):
+            self._startup_t.append(t_s)
+            self._startup_psi.append(psi)
+            self._startup_ref.append(float(ref))
+        n = len(self._startup_t)
+        if n < MIN_RATE_SAMPLES:
+            return
+        span = self._startup_t[-1] - self._startup_t[0]
+        need = self.detector.learn_s if self.detector.noise_std is None else 0.0
+        if span < need:
+            return
+        dt = np.diff(np.asarray(self._startup_t))
+        dt = dt[dt > 0]
+        if dt.size == 0:
+            return
+        self.rate_hz = float(1.0 / np.median(dt))
+        window = max(3, round(self.detector.window_s * self.rate_hz))
+        hold = max(1, round(self.detector.hold_s * self.rate_hz))
+        quant_var = (1.0 / np.median(self._startup_ref)) ** 2 / 12.0  # ADC quantisation of 1 count, in Psi^2
+        if self.detector.noise_std is None:
+            psi_arr = np.asarray(self._startup_psi)
+            stat = moving_variance(psi_arr, window)[window // 2: len(psi_arr) - window // 2]
+            learnt = estimate_noise_var(stat, window)
+            noise_var = np.maximum(learnt, quant_var)
+            shift = learning_shift(psi_arr, noise_var)
+            if shift > LEARN_SHIFT_LIMIT:
+                self._motion_while_learning(shift)
+                return
+            source = f"learnt from the first {span:.2f} s"
+        else:
+            noise_var = np.maximum(np.asarray(self.detector.noise_std, float) ** 2, quant_var)
+            source = "configured"
+        self.noise_std = np.sqrt(noise_var)
+        self.monitor = StillnessMonitor(noise_var, window=window, min_interval=hold,
+                                        false_alarm=self.detector.false_alarm, margin=self.detector.margin)
+        self._say("info", f"board rate {self.rate_hz:.1f} Hz; static detector: window {window} samples, hold {hold} samples, "
+                  f"Psi noise floor {', '.join(f'{v:.2e}' for v in self.noise_std)} ({source}), "
+                  f"threshold (std) {', '.join(f'{v:.2e}' for v in np.sqrt(self.monitor.threshold))}")
+        shortest = min(p.dwell_s for p in self.plan.poses)
+        needed = self.detector.hold_s + self.detector.window_s + max(p.samples for p in self.plan.poses) / self.rate_hz
+        if needed > shortest:
+            self._say("warn", f"the shortest dwell ({shortest:g} s) is shorter than window + hold + samples/rate "
+                      f"({needed:.2f} s) at {self.rate_hz:.0f} Hz: poses may be closed short")
+        self._startup_t.clear()
+        self._startup_psi.clear()
+        self._startup_ref.clear()
+
+    def _departed(self, psi: np.ndarray) -> bool | None:
+        """Has the signal left the level of the current / last recorded pose (the table really moved)?
+
+        True after ``DEPART_CONFIRM`` consecutive samples further than ``DEPART_SIGMAS`` noise sigmas
+        from the pose's mean Psi on some axis; None while no pose level is known yet.
+        """
+        if self._pose_n < 1:
+            return None
+        mean = self._pose_sum / self._pose_n
+        far = bool(np.any(np.abs(psi - mean) > DEPART_SIGMAS * self.noise_std))
+        self._depart_run = self._depart_run + 1 if far else 0
+        return self._depart_run >= DEPART_CONFIRM
+
+    def _track_pose_level(self, pose_id: int, psi: np.ndarray) -> None:
+        """Mean Psi of the pose being recorded, seeded with the still window that preceded its first sample."""
+        if pose_id >= 0 and np.all(np.isfinite(psi)):
+            if pose_id != self._pose_level_index:
+                self._pose_level_index = pose_id
+                prior = list(self._recent)
+                self._pose_sum = np.sum(prior, axis=0) if prior else np.zeros(3)
+                self._pose_n = len(prior)
+                self._depart_run = 0
+            self._pose_sum = self._pose_sum + psi
+            self._pose_n += 1
+        if np.all(np.isfinite(psi)):
+            self._recent.append(psi)
+
+    def _motion_while_learning(self, shift: float) -> None:
+        """The table moved while the noise floor was being learnt (the sensor must be still then)."""
+        self._startup_t.clear()
+        self._startup_psi.clear()
+        self._startup_ref.clear()
+        if self.sequencer.mode is Mode.AUTO:
+            # the table is following the plan without us: which pose it is at is unknown now
+            self._say("warn", f"the table moved while the noise floor was being learnt (mean shift {shift:.0f} sigma): "
+                      "in auto mode the pose sequence is out of step. Give the plan's first pose a dwell covering the "
+                      "node's start-up (learn_s + hold + samples/rate) or set still_noise_std; run aborted")
+            self.sequencer.abort("table moved during start-up (auto mode)")
+        else:
+            self._say("warn", f"the table moved while the noise floor was being learnt (mean shift {shift:.0f} sigma); "
+                      "keep it still at pose 0; learning again")
+
+    def _write_pose_event(self, stamp_ns: int, pose_id: int) -> None:
+        """Pose event before the sample at ``stamp_ns`` when its state differs from the previous sample's.
+
+        The state follows the sample's label (a pose's last recorded sample is still ``recording``
+        although the sequencer has moved on), else the sequencer phase.
+        """
+        seq = self.sequencer
+        if pose_id >= 0:
+            key = ("recording", pose_id)
+        elif self.monitor is None:
+            key = ("settling", -1)
+        else:
+            state = {Phase.WAIT_STILL: "settling", Phase.WAIT_MOTION: "moving"}.get(seq.phase, "done")
+            key = (state, seq.index)
+        if key == self._event_key:
+            return
+        self._event_key = key
+        state, index = key
+        extra: dict[str, Any] = {"phase": "startup" if self.monitor is None else seq.phase.value}
+        if index >= 0:
+            pose = self.plan.poses[index]
+            extra["name"] = pose.name
+            if pose.psi_deg is not None:
+                extra["psi_deg"] = pose.psi_deg
+                extra["theta_deg"] = pose.theta_deg
+            if state == "recording":
+                self.writer.write_reference_gravity(stamp_ns, pose.gref_mps2)
+        if self.setpoint_c is not None:
+            extra["setpoint_c"] = self.setpoint_c
+        self.writer.write_pose(stamp_ns, pose_id, state, index=index, count=len(self.plan), extra=extra,
+                               sensor_id=self.sensor_id)

@@ -1,0 +1,95 @@
+"""Refit at the end of a calibration run: MCAP files to a calibration YAML and a fit report (pure, no ROS).
+
+Used by the ``calibration`` node once its run is complete; the same steps as ``fbg-accel-calib
+fit``: read the run's MCAP together with earlier runs (other chamber temperatures), choose the
+temperature degree by held-out cross-validation (``model_selection.select_degree``) unless a
+degree is given, fit eq. 28 (``thermal_fit.fit_thermal``) and save the result in the driver's
+calibration file format (``ThermalCalibration.save``).
+"""
+
+from __future__ import annotations
+
+import glob
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fbg_accel_driver.thermal_model import ThermalCalibration
+
+from .mcap_io import read_recording
+from .model_selection import SelectionResult, select_degree
+from .thermal_fit import FULL_SCALE_MPS2, NotIdentifiedError, fit_thermal
+
+MAX_AUTO_DEGREE = 6  # paper Table 4 goes up to n = 6
+
+
+class RefitError(ValueError):
+    """The run's data cannot give a calibration (with the reason)."""
+
+
+@dataclass
+class RefitResult:
+    calibration: ThermalCalibration
+    selection: SelectionResult | None
+    sources: list[str]
+    output: Path
+
+    def report(self) -> str:
+        """Human-readable fit report (degree table like paper Table 4, RMSE, noise, range)."""
+        cal, fit = self.calibration, self.calibration.fit
+        lines = [f"calibration fit of {len(self.sources)} file(s): " + ", ".join(self.sources)]
+        if self.selection is not None:
+            lines += ["degree selection (" + self.selection.criterion + "):", self.selection.table_markdown()]
+            lines += [f"note: {n}" for n in self.selection.notes]
+        rmse = np.asarray(fit.get("rmse_mps2", [np.nan] * 3))
+        noise = np.asarray(cal.noise_sigma_mps2)
+        lines += [
+            f"degree n = {cal.degree}; {fit.get('samples_used')} static samples used of {fit.get('samples_total')} "
+            f"({fit.get('samples_excluded_in_motion')} excluded as in motion), {fit.get('poses')} poses, "
+            f"temperature levels {fit.get('temperature_levels_c')} degC",
+            "in-sample RMSE x/y/z: " + " / ".join(f"{v:.4f}" for v in rmse) + " m/s^2 = "
+            + " / ".join(f"{v / FULL_SCALE_MPS2:.2e}" for v in rmse) + " of the 20 g full scale",
+            "within-pose noise floor x/y/z: " + " / ".join(f"{v:.4f}" for v in noise) + " m/s^2",
+            f"temperature range covered: {cal.temperature_range_c[0]:.2f} .. {cal.temperature_range_c[1]:.2f} degC",
+            f"calibration written to {self.output}",
+        ]
+        return "\n".join(lines)
+
+
+def expand_sources(run_file: str | Path, extra: list[str]) -> list[str]:
+    """The run's file plus ``extra`` paths or glob patterns (sorted, without duplicates)."""
+    out = [str(Path(run_file))]
+    for pattern in extra:
+        if not pattern:
+            continue
+        matches = sorted(glob.glob(pattern)) if any(c in pattern for c in "*?[") else [pattern]
+        if not matches:
+            raise RefitError(f"fit_with: {pattern!r} matches no file")
+        for m in matches:
+            if not Path(m).is_file():
+                raise RefitError(f"fit_with: {m} is not a file")
+            if all(Path(m).resolve() != Path(o).resolve() for o in out):
+                out.append(m)
+    return out
+
+
+def refit(sources: list[str], output: str | Path, degree: int | None = None, sensor_id: str | None = None) -> RefitResult:
+    """Fit ``sources`` (MCAP files) at ``degree`` (None: chosen by cross-validation) and save to ``output``."""
+    rec = read_recording(sources)
+    selection = None
+    try:
+        if degree is None:
+            selection = select_degree(rec, max_degree=MAX_AUTO_DEGREE)
+            if selection.chosen_degree is None:
+                raise RefitError("no degree could be validated on held-out data: " + "; ".join(selection.notes))
+            degree = selection.chosen_degree
+        cal = fit_thermal(rec, degree, sensor_id=sensor_id)
+    except NotIdentifiedError as exc:
+        raise RefitError(str(exc)) from None
+    cal.fit["sources"] = list(sources)
+    if selection is not None:
+        cal.fit["degree_selection"] = selection.as_dict()
+    out = Path(output)
+    cal.save(out)
+    return RefitResult(cal, selection, list(sources), out)

@@ -1,0 +1,511 @@
+"""The ``calibration`` node as a real process over real DDS (ROS_DOMAIN_ID from the environment).
+
+The test process publishes a synthetic ``imu/raw`` stream (a known linear sensor model on a table
+following the plan, noise, integer ADC counts) and checks what the node wrote:
+
+* the MCAP round-trips through the ``mcap`` reader with the ROS 2 decoder (``mcap_ros2``), message
+  for message against what was published (count and content), with the poses labelled;
+* SIGKILL mid-run leaves a file that reads up to its last chunk, and the fit uses it;
+* SIGINT / SIGTERM close the file cleanly (summary and footer), exit status 3;
+* operator mode over the ``calibration/next_pose`` service; bad start-up input gives one clear error.
+
+No sleeps as synchronisation: every wait is on a condition (a line printed by the node, a process
+exit, a DDS match, a future) with a deadline.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from fbg_accel_calibration.mcap_io import read_file, read_recording
+from fbg_accel_calibration.pose_plan import PosePlan
+from fbg_accel_calibration.table_geometry import table_specific_force
+
+ROOT = Path(__file__).resolve().parents[1]
+CALIBRATION_EXE = Path(sys.executable).parent / "calibration"
+RATE_HZ = 200.0  # board rate of the synthetic stream (board time; published faster than real time)
+PUBLISH_BATCH = 5  # messages per 5 ms timer tick: 1000 messages/s of wall time
+# Known linear sensor (paper section 4.3 magnitudes): a = M Psi + b, Psi = M^-1 (a - b)
+M_TRUE = np.array([[81.60, 2.89, 0.71], [1.59, 77.66, 3.75], [0.24, 1.23, 107.66]])
+B_TRUE = np.array([-101.08, -153.59, -137.16])
+REF_COUNTS = 870.0
+PSI_NOISE = 8e-4  # Psi noise std per sample (~0.07 m/s^2)
+
+PLAN = {
+    "format": "fbg_accel_pose_plan", "format_version": 1, "name": "process_test",
+    "samples_per_pose": 60, "dwell_s": 2.0, "move_s": 0.5,
+    "poses": [
+        {"name": "z_up", "psi_deg": 0, "theta_deg": 0, "dwell_s": 4.0},  # first pose: noise learning (2 s) + record
+        {"name": "z_down", "psi_deg": 0, "theta_deg": 180},
+        {"name": "x_up", "psi_deg": 90, "theta_deg": 90},
+        {"name": "y_up", "psi_deg": 0, "theta_deg": 90},
+        {"name": "x_down", "psi_deg": 270, "theta_deg": 90},
+    ],
+}
+
+pytestmark = pytest.mark.timeout(120)
+
+
+# ---------------------------------------------------------------------------- synthetic stream
+@dataclass
+class Stream:
+    positions: np.ndarray  # (N, 9) JointState.position in RAW_NAMES order
+    stamps_ns: np.ndarray  # (N,)
+    pose_of_sample: np.ndarray  # (N,) pose index while the table stands, -1 while it moves
+
+
+def make_stream(plan: PosePlan, seed: int = 0, t0_ns: int = 1_700_000_000_000_000_000, tail_s: float = 1.0) -> Stream:
+    """Table following the plan (dwell, then a linear move in the table angles), sensor = known linear model."""
+    rng = np.random.default_rng(seed)
+    seg_g, seg_pose = [], []
+    angles = [(p.psi_deg, p.theta_deg) for p in plan.poses]
+    for k, p in enumerate(plan.poses):
+        n = round(p.dwell_s * RATE_HZ)
+        seg_g.append(np.repeat(p.gref_mps2[None], n, axis=0))
+        seg_pose.append(np.full(n, k))
+        if k + 1 < len(plan.poses):
+            m = round(plan.move_s * RATE_HZ)
+            s = np.linspace(0, 1, m + 2)[1:-1]
+            (pa, ta), (pb, tb) = angles[k], angles[k + 1]
+            seg_g.append(table_specific_force(pa + s * (pb - pa), ta + s * (tb - ta), plan.local_g_mps2))
+            seg_pose.append(np.full(m, -1))
+    n_tail = int(tail_s * RATE_HZ)
+    seg_g.append(np.repeat(plan.poses[-1].gref_mps2[None], n_tail, axis=0))
+    seg_pose.append(np.full(n_tail, len(plan.poses) - 1))
+    g = np.vstack(seg_g)
+    n = len(g)
+    psi = np.linalg.solve(M_TRUE, (g - B_TRUE).T).T + rng.normal(0, PSI_NOISE, (n, 3))
+    ref = np.round(REF_COUNTS + rng.normal(0, 1.0, n))
+    counts = np.round(psi * ref[:, None])
+    temp = np.round((23.4 + rng.normal(0, 0.01, n)) * 100) / 100
+    t_board = np.arange(n) / RATE_HZ
+    seq = np.arange(n) % 65536
+    pos = np.column_stack([ref, counts, temp, np.ones(n), np.full(n, 3.0), seq, t_board])
+    return Stream(pos, t0_ns + np.round(t_board * 1e9).astype(np.int64), np.concatenate(seg_pose))
+
+
+def psi_to_accel(ref: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    return (M_TRUE @ (xyz / ref[:, None]).T).T + B_TRUE
+
+
+# ---------------------------------------------------------------------------- ROS side of the test
+def wait_for(pred: Callable[[], bool], timeout: float, what: str, poll: float = 0.02) -> None:
+    """Wait until ``pred()`` holds (condition with deadline, no fixed sleep)."""
+    deadline = time.monotonic() + timeout
+    ev = threading.Event()
+    while not pred():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+        ev.wait(poll)
+
+
+class RosHarness:
+    """rclpy in the test process: a publisher of the synthetic stream and service clients."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import qos_profile_sensor_data
+        from sensor_msgs.msg import JointState, Temperature
+        from std_srvs.srv import Trigger
+
+        self.rclpy = rclpy
+        self.JointState, self.Temperature, self.Trigger = JointState, Temperature, Trigger
+        self.context = rclpy.context.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("calibration_test_publisher", context=self.context)
+        # the driver's QoS: sensor data (best effort)
+        self._qos = qos_profile_sensor_data
+        self._endpoints: dict[str, tuple] = {}
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._lock = threading.Lock()
+        self._stream: Stream | None = None
+        self._next = 0
+        self._stop_at = 0
+        self.published_temperature: list[tuple[int, float]] = []
+        self.timer = self.node.create_timer(0.005, self._tick)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    def use(self, ns: str) -> None:
+        """Talk to the node in namespace ``/ns`` (each test has its own, so a SIGKILLed node's reader, which
+        DDS keeps announcing until its lease expires, never shares a topic with a later test)."""
+        if ns not in self._endpoints:
+            self._endpoints[ns] = (
+                self.node.create_publisher(self.JointState, f"/{ns}/imu/raw", self._qos),
+                self.node.create_publisher(self.Temperature, f"/{ns}/imu/temperature", self._qos),
+                self.node.create_client(self.Trigger, f"/{ns}/calibration/next_pose"),
+                self.node.create_client(self.Trigger, f"/{ns}/calibration/abort"))
+        with self._lock:
+            self.pub_raw, self.pub_temp, self.next_client, self.abort_client = self._endpoints[ns]
+
+    @property
+    def published(self) -> int:
+        with self._lock:
+            return self._next
+
+    def publish(self, stream: Stream, stop_at: int | None = None) -> None:
+        """Start publishing ``stream`` from its beginning (up to sample ``stop_at``)."""
+        with self._lock:
+            self._stream, self._next = stream, 0
+            self._stop_at = len(stream.stamps_ns) if stop_at is None else stop_at
+            self.published_temperature = []
+
+    def resume(self, stop_at: int | None = None) -> None:
+        with self._lock:
+            assert self._stream is not None
+            self._stop_at = len(self._stream.stamps_ns) if stop_at is None else stop_at
+
+    def pause(self) -> None:
+        with self._lock:
+            self._stop_at = self._next
+
+    def _tick(self) -> None:
+        with self._lock:
+            s = self._stream
+            if s is None:
+                return
+            end = min(self._next + PUBLISH_BATCH, self._stop_at)
+            for i in range(self._next, end):
+                m = self.JointState()
+                ns = int(s.stamps_ns[i])
+                m.header.stamp.sec, m.header.stamp.nanosec = ns // 1_000_000_000, ns % 1_000_000_000
+                m.header.frame_id = "fbg_accel_link"
+                m.name = ["ref_counts", "x_counts", "y_counts", "z_counts", "temperature_c", "temperature_valid",
+                          "status", "seq", "board_time_s"]
+                m.position = [float(v) for v in s.positions[i]]
+                self.pub_raw.publish(m)
+                if i % 20 == 0:  # the driver publishes the temperature at a lower rate
+                    t = self.Temperature()
+                    t.header = m.header
+                    t.temperature, t.variance = float(s.positions[i, 4]), 0.09
+                    self.pub_temp.publish(t)
+                    self.published_temperature.append((ns, t.temperature))
+            self._next = max(self._next, end)
+
+    def wait_subscribed(self, node: NodeProcess, timeout: float = 30.0) -> None:
+        self.use(node.ns)
+        def matched() -> bool:
+            if node.proc.poll() is not None:
+                raise AssertionError(f"node exited ({node.proc.returncode}):\n{node.output()}")
+            return self.pub_raw.get_subscription_count() >= 1 and self.pub_temp.get_subscription_count() >= 1
+
+        wait_for(matched, timeout, "the calibration node to subscribe to imu/raw and imu/temperature")
+        # best effort: the node's reader must know our writer too, or the first messages are dropped
+        node.wait_line(r"imu/raw: \d+ publisher\(s\) matched", timeout)
+        node.wait_line(r"imu/temperature: \d+ publisher\(s\) matched", timeout)
+
+    def call(self, client, node: NodeProcess, timeout: float = 10.0):
+        assert client.wait_for_service(timeout_sec=timeout), f"service {client.srv_name} not available"
+        fut = client.call_async(self.Trigger.Request())
+
+        def answered() -> bool:
+            if node.proc.poll() is not None:
+                raise AssertionError(f"node exited ({node.proc.returncode}) during {client.srv_name}:\n{node.output()}")
+            return fut.done()
+
+        wait_for(answered, timeout, f"response of {client.srv_name}")
+        return fut.result()
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.rclpy.shutdown(context=self.context)
+        self.thread.join(timeout=5)
+
+
+@pytest.fixture(scope="module")
+def ros():
+    if "ROS_DOMAIN_ID" not in os.environ:
+        pytest.fail("ROS_DOMAIN_ID is not set: ROS tests must run in their own DDS domain (scripts/test.sh sets one)")
+    h = RosHarness()
+    yield h
+    h.close()
+
+
+class NodeProcess:
+    """The ``calibration`` executable with its stdout collected line by line."""
+
+    def __init__(self, tmp: Path, *params: str, label: str = "run") -> None:
+        assert CALIBRATION_EXE.is_file(), f"{CALIBRATION_EXE} missing: run .venv/bin/pip install --no-deps -e ."
+        self.ns = f"calib_test_{label}"
+        args = [str(CALIBRATION_EXE), "--ros-args", "-r", f"__ns:=/{self.ns}", "-p", f"plan_file:={tmp / 'plan.yaml'}",
+                "-p", f"output_dir:={tmp}", "-p", f"run_label:={label}", "-p", "sensor_id:=synthetic",
+                "-p", "operator_notes:=process test"]
+        for p in params:
+            args += ["-p", p]
+        self.mcap = tmp / f"{label}.mcap"
+        self.yaml = tmp / f"{label}_calibration.yaml"
+        self.proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+        self.lines: list[str] = []
+        self._lock = threading.Lock()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            with self._lock:
+                self.lines.append(line.rstrip("\n"))
+
+    def output(self) -> str:
+        with self._lock:
+            return "\n".join(self.lines)
+
+    def wait_line(self, pattern: str, timeout: float = 30.0) -> str:
+        rx = re.compile(pattern)
+        found: list[str] = []
+
+        def seen() -> bool:
+            with self._lock:
+                found[:] = [ln for ln in self.lines if rx.search(ln)]
+            if not found and self.proc.poll() is not None:
+                raise AssertionError(f"node exited ({self.proc.returncode}) before printing /{pattern}/:\n{self.output()}")
+            return bool(found)
+
+        wait_for(seen, timeout, f"node output /{pattern}/\n--- output so far:\n{self.output()}")
+        return found[0]
+
+    def wait_exit(self, timeout: float = 30.0) -> int:
+        try:
+            rc = self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            raise AssertionError(f"node did not exit within {timeout} s:\n{self.output()}") from None
+        self._reader.join(timeout=5)
+        return rc
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(timeout=10)
+
+
+@pytest.fixture()
+def plan_dir(tmp_path: Path) -> Path:
+    (tmp_path / "plan.yaml").write_text(yaml.safe_dump(PLAN, sort_keys=False))
+    return tmp_path
+
+
+@pytest.fixture()
+def procs():
+    started: list[NodeProcess] = []
+    yield started
+    for p in started:
+        p.kill()
+
+
+# ---------------------------------------------------------------------------- checks
+def read_raw_with_mcap_ros2(path: Path) -> tuple[list, list]:
+    """imu/raw and imu/temperature of a *complete* file through the mcap reader + ROS 2 decoder."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    raw, temp = [], []
+    with open(path, "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        assert summary is not None, "file has no summary section"
+        for schema, channel, message, decoded in reader.iter_decoded_messages():
+            if channel.topic == "imu/raw":
+                assert schema.name == "sensor_msgs/msg/JointState" and channel.message_encoding == "cdr"
+                raw.append((message.log_time, decoded))
+            elif channel.topic == "imu/temperature":
+                temp.append((message.log_time, decoded))
+    return raw, temp
+
+
+def assert_raw_matches_published(decoded: list, stream: Stream) -> None:
+    """Message for message: stamp, frame, names and every position value equal what was published."""
+    assert len(decoded) > 0
+    for i, (log_time, msg) in enumerate(decoded):
+        ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        assert ns == stream.stamps_ns[i] == log_time, f"message {i}: stamp {ns} != published {stream.stamps_ns[i]}"
+        assert msg.header.frame_id == "fbg_accel_link"
+        assert list(msg.name)[:4] == ["ref_counts", "x_counts", "y_counts", "z_counts"]
+        np.testing.assert_array_equal(np.asarray(msg.position), stream.positions[i], err_msg=f"message {i}")
+
+
+def _stream_and_plan(plan_dir: Path, seed: int = 0) -> tuple[PosePlan, Stream]:
+    plan = PosePlan.load(plan_dir / "plan.yaml")
+    return plan, make_stream(plan, seed=seed)
+
+
+# ---------------------------------------------------------------------------- tests
+def test_mcap_round_trips_message_for_message_and_the_run_is_fitted(ros, plan_dir, procs):
+    plan, stream = _stream_and_plan(plan_dir)
+    node = NodeProcess(plan_dir, "mode:=auto", "fit_degree:=0")
+    procs.append(node)
+    ros.wait_subscribed(node)
+    ros.publish(stream)
+    rc = node.wait_exit(timeout=60)
+    out = node.output()
+    assert rc == 0, out
+    assert "calibration written to" in out and "lost" in out
+
+    # (1) the mcap reader + ROS 2 decoder give back exactly what was published, in order
+    raw, temp = read_raw_with_mcap_ros2(node.mcap)
+    n = len(raw)
+    assert n <= ros.published and n > 0.8 * len(stream.stamps_ns)
+    assert_raw_matches_published(raw, stream)
+    published_temp = [t for t in ros.published_temperature if t[0] <= stream.stamps_ns[n - 1]]
+    assert [(lt, m.temperature) for lt, m in temp] == published_temp[: len(temp)]
+    assert len(temp) >= len(published_temp) - 1  # the last one may race the end of the run
+
+    # (2) poses: exactly N samples each, taken only while the table stood at that pose, with its reference
+    rec = read_recording(node.mcap)
+    assert rec.metadata["read_report"]["complete"]
+    assert rec.metadata["run"]["sensor_id"] == "synthetic" and rec.metadata["run"]["operator_notes"] == "process test"
+    assert PosePlan.from_dict(yaml.safe_load(rec.metadata["run"]["plan"])).gref_mps2.shape == (5, 3)
+    assert rec.metadata["run_end"]["lost_messages"] == "0" and rec.metadata["run_end"]["result"] == "done"
+    for k, pose in enumerate(plan.poses):
+        idx = np.flatnonzero(rec.pose_id == k)
+        assert len(idx) == pose.samples, f"pose {k}: {len(idx)} samples"
+        assert np.all(stream.pose_of_sample[idx] == k), f"pose {k} labelled samples outside the pose"
+        np.testing.assert_allclose(rec.gref_mps2[idx], np.repeat(pose.gref_mps2[None], len(idx), 0))
+    # (3) the fitted calibration is the driver's format and recovers the known sensor
+    from fbg_accel_driver.thermal_model import ThermalCalibration
+
+    cal = ThermalCalibration.load(node.yaml)
+    assert cal.degree == 0 and cal.sensor_id == "synthetic"
+    sel = rec.pose_id >= 0
+    est = cal.apply_counts(rec.ref[sel], rec.xyz[sel], rec.temp_c[sel], rec.t_s[sel])
+    truth = psi_to_accel(rec.ref[sel], rec.xyz[sel])
+    assert np.sqrt(np.mean((est - truth) ** 2)) < 0.05  # m/s^2, against ~0.07 m/s^2 noise per sample
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_signal_closes_the_file_cleanly_in_operator_mode(ros, plan_dir, procs, sig):
+    plan, stream = _stream_and_plan(plan_dir, seed=2)
+    node = NodeProcess(plan_dir, "mode:=service", label=f"closed_{sig.name}")
+    procs.append(node)
+    ros.wait_subscribed(node)
+    # publish pose 0 only (the table waits for the operator); the move to pose 1 is held back
+    end_pose0 = int(np.flatnonzero(stream.pose_of_sample == 0)[-1]) + 1
+    ros.publish(stream, stop_at=end_pose0)
+    node.wait_line(r"pose 0 \(z_up\) recorded", timeout=60)
+    resp = ros.call(ros.next_client, node)
+    assert resp.success, resp.message
+    assert "move the table" in resp.message  # plan expects motion: the node waits for it
+    resp = ros.call(ros.next_client, node)
+    assert not resp.success and "already waiting" in resp.message
+    ros.resume()  # the table turns to pose 1 and stands
+    node.wait_line(r"pose 1 \(z_down\) still, recording", timeout=60)
+    wait_for(lambda: ros.published >= len(stream.stamps_ns) or node.proc.poll() is not None, 30, "the stream")
+    node.proc.send_signal(sig)
+    rc = node.wait_exit(timeout=20)
+    assert rc == 3, node.output()
+
+    raw, _ = read_raw_with_mcap_ros2(node.mcap)  # needs the summary: proves the clean close
+    assert_raw_matches_published(raw, stream)
+    rec, report = read_file(node.mcap)
+    assert report.complete
+    assert int(np.sum(rec.pose_id == 0)) == plan.poses[0].samples
+    assert int(np.sum(rec.pose_id == 1)) == plan.poses[1].samples  # pose 1 completed before the signal
+    assert rec.metadata["run_end"]["reason"] == sig.name
+    assert not node.yaml.exists(), "an interrupted run must not write a calibration"
+
+
+def test_abort_service_ends_the_run(ros, plan_dir, procs):
+    _, stream = _stream_and_plan(plan_dir, seed=3)
+    node = NodeProcess(plan_dir, "mode:=service", label="aborted")
+    procs.append(node)
+    ros.wait_subscribed(node)
+    ros.publish(stream, stop_at=int(3.0 * RATE_HZ))
+    node.wait_line(r"static detector", timeout=60)
+    resp = ros.call(ros.abort_client, node)
+    assert resp.success, resp.message
+    assert node.wait_exit(timeout=20) == 3
+    rec, report = read_file(node.mcap)
+    assert report.complete and rec.metadata["run_end"]["result"] == "aborted"
+
+
+# runs after the other DDS tests of this module: a SIGKILLed participant stays announced until its lease expires
+def test_sigkill_mid_recording_leaves_a_file_read_up_to_its_last_chunk_that_the_fit_uses(ros, plan_dir, procs):
+    plan, stream = _stream_and_plan(plan_dir, seed=1)
+    node = NodeProcess(plan_dir, "mode:=auto", label="killed")
+    procs.append(node)
+    ros.wait_subscribed(node)
+    ros.publish(stream)
+    node.wait_line(r"pose 3 \(y_up\) recorded", timeout=60)  # 4 of 5 poses recorded: enough for M and b
+    # stop the stream first: Fast DDS's shared-memory transport can stall a writer that keeps pushing into
+    # the port of a SIGKILLed reader until its lease expires, which would starve the next test
+    ros.pause()
+    node.proc.send_signal(signal.SIGKILL)
+    node.wait_exit(timeout=10)
+    assert node.proc.returncode == -signal.SIGKILL
+
+    rec, report = read_file(node.mcap)
+    assert not report.complete, "a SIGKILLed writer cannot have written the footer"
+    assert report.messages > 0
+    # everything recovered is exactly the published prefix
+    from fbg_accel_calibration.mcap_io import iter_file_messages
+
+    raw = [(lt, m) for topic, lt, m in iter_file_messages(node.mcap) if topic == "imu/raw"]
+    assert_raw_matches_published(raw, stream)
+    for k in range(4):  # each finished pose ended a chunk, so all four are on disk
+        assert int(np.sum(rec.pose_id == k)) == plan.poses[k].samples, f"pose {k} lost"
+    # `fbg-accel-calib fit` uses the partial file
+    from fbg_accel_driver.thermal_model import ThermalCalibration
+
+    fit = subprocess.run([str(CALIBRATION_EXE.parent / "fbg-accel-calib"), "fit", str(node.mcap), "-o",
+                          str(plan_dir / "partial.yaml"), "--degree", "0"], capture_output=True, text=True, timeout=60)
+    assert fit.returncode == 0, fit.stdout + fit.stderr
+    cal = ThermalCalibration.load(plan_dir / "partial.yaml")
+    assert cal.fit["poses"] == 4
+    sel = rec.pose_id >= 0
+    est = cal.apply_counts(rec.ref[sel], rec.xyz[sel], rec.temp_c[sel], rec.t_s[sel])
+    assert np.sqrt(np.mean((est - psi_to_accel(rec.ref[sel], rec.xyz[sel])) ** 2)) < 0.05
+
+
+@pytest.mark.parametrize(
+    ("params", "message"),
+    [
+        ([], "parameter 'plan_file' is required"),
+        (["plan_file:=/etc/hostname"], "pose plan rejected"),
+        (["plan_file:=/nonexistent/plan.yaml"], "pose plan file not found"),
+        (["mode:=sometimes"], "invalid parameter 'mode'"),
+        (["fit_degree:=9"], "invalid parameter 'fit_degree'"),
+        (["temperature_level:=4"], "no 'chamber' section"),
+        (["still_window_s:=-1.0"], "invalid parameter 'still_window_s'"),
+        (["still_noise_std:=[1.0, 2.0]"], "noise_std must be 3 positive numbers"),
+    ],
+)
+def test_bad_start_up_input_gives_one_clear_error(plan_dir, params, message):
+    args = [str(CALIBRATION_EXE), "--ros-args", "-p", f"output_dir:={plan_dir}"]
+    if params and not any(p.startswith("plan_file:=") for p in params):
+        args += ["-p", f"plan_file:={plan_dir / 'plan.yaml'}"]
+    for p in params:
+        args += ["-p", p]
+    res = subprocess.run(args, capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2, res.stdout + res.stderr
+    assert message in res.stderr, res.stderr
+    assert not list(plan_dir.glob("*.mcap")), "no recording may be started on bad input"
+
+
+def test_an_existing_recording_is_never_overwritten(plan_dir):
+    (plan_dir / "keep.mcap").write_bytes(b"precious")
+    args = [str(CALIBRATION_EXE), "--ros-args", "-p", f"plan_file:={plan_dir / 'plan.yaml'}", "-p", f"output_dir:={plan_dir}",
+            "-p", "run_label:=keep"]
+    res = subprocess.run(args, capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and "never overwritten" in res.stderr
+    assert (plan_dir / "keep.mcap").read_bytes() == b"precious"
+
+
+def test_help_needs_no_ros():
+    res = subprocess.run([str(CALIBRATION_EXE), "--help"], capture_output=True, text=True, timeout=30)
+    assert res.returncode == 0 and "plan_file" in res.stdout and "calibration/next_pose" in res.stdout

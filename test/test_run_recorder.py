@@ -1,0 +1,200 @@
+"""RunRecorder (pure core of the calibration node): samples in, MCAP with pose labels out, no ROS."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fbg_accel_calibration.mcap_io import RecordingWriter, read_file
+from fbg_accel_calibration.pose_plan import PosePlan
+from fbg_accel_calibration.pose_sequencer import Mode, Phase
+from fbg_accel_calibration.run_recorder import DetectorSettings, RawSample, RunRecorder, learning_shift
+from fbg_accel_calibration.table_geometry import table_specific_force
+
+RATE = 100.0
+M = np.diag([81.6, 77.7, 107.7])
+B = np.array([-101.0, -153.6, -137.2])
+
+
+def _plan(first_dwell: float = 4.0) -> PosePlan:
+    return PosePlan.from_dict({
+        "dwell_s": 2.5, "move_s": 0.6, "samples_per_pose": 40, "chamber": {"levels_c": [24.0], "tolerance_c": 1.0},
+        "poses": [{"name": "z_up", "psi_deg": 0, "theta_deg": 0, "dwell_s": first_dwell},
+                  {"name": "z_down", "psi_deg": 0, "theta_deg": 180},
+                  {"name": "x_up", "psi_deg": 90, "theta_deg": 90}]})
+
+
+def _samples(plan: PosePlan, seed: int = 0, temp_c: float = 24.0, skip: int = 0):
+    """Yield (RawSample, true pose or -1) for a table following ``plan`` at RATE."""
+    rng = np.random.default_rng(seed)
+    gs, truth = [], []
+    for k, p in enumerate(plan.poses):
+        n = round(p.dwell_s * RATE)
+        gs.append(np.repeat(p.gref_mps2[None], n, 0))
+        truth += [k] * n
+        if k + 1 < len(plan):
+            m = round(plan.move_s * RATE)
+            s = np.linspace(0, 1, m + 2)[1:-1]
+            a, b = plan.poses[k], plan.poses[k + 1]
+            gs.append(table_specific_force(a.psi_deg + s * (b.psi_deg - a.psi_deg),
+                                           a.theta_deg + s * (b.theta_deg - a.theta_deg)))
+            truth += [-1] * m
+    g = np.vstack(gs)
+    psi = np.linalg.solve(M, (g - B).T).T + rng.normal(0, 1e-3, g.shape)
+    counts = np.round(psi * 870.0)
+    for i in range(skip, len(g)):
+        yield RawSample(stamp_ns=10**18 + i * 10_000_000, ref=870.0, x=counts[i, 0], y=counts[i, 1], z=counts[i, 2],
+                        temperature_c=temp_c, temperature_valid=True, status=3, seq=i % 65536, board_time_s=i / RATE,
+                        frame_id="fbg_accel_link"), truth[i]
+
+
+def _recorder(tmp_path, plan, mode=Mode.AUTO, **kw) -> RunRecorder:
+    writer = RecordingWriter(tmp_path / "run.mcap", {"sensor_id": "t"})
+    return RunRecorder(plan, writer, mode, DetectorSettings(learn_s=1.0, hold_s=0.5), sensor_id="t", **kw)
+
+
+def test_samples_are_labelled_in_the_file_exactly_as_the_sequencer_labelled_them(tmp_path):
+    plan = _plan()
+    rec = _recorder(tmp_path, plan)
+    labels, truth = [], []
+    for s, t in _samples(plan):
+        labels.append(rec.on_raw(s))
+        truth.append(t)
+    assert rec.done
+    summary = rec.close("complete")
+    assert summary["lost_messages"] == 0 and summary["result"] == "done"
+    r, report = read_file(tmp_path / "run.mcap")
+    assert report.complete
+    np.testing.assert_array_equal(r.pose_id, labels)  # boundaries included: no sample gained or lost
+    for k, p in enumerate(plan.poses):
+        idx = r.pose_id == k
+        assert idx.sum() == p.samples
+        assert np.all(np.asarray(truth)[idx] == k)
+        np.testing.assert_allclose(r.gref_mps2[idx], np.repeat(p.gref_mps2[None], p.samples, 0))
+    assert r.metadata["run_end"]["result"] == "done"
+
+
+def test_motion_while_learning_aborts_an_auto_run_instead_of_mislabelling(tmp_path):
+    plan = _plan(first_dwell=1.2)  # the table leaves pose 0 before the 1 s of learning is over (start 0.5 s late)
+    rec = _recorder(tmp_path, plan)
+    labels = [rec.on_raw(s) for s, _ in _samples(plan, skip=50)]
+    assert rec.sequencer.phase is Phase.ABORTED
+    assert set(labels) == {-1}
+    assert any("moved while the noise floor was being learnt" in t for _, t in rec.pop_messages())
+    rec.close("aborted")
+
+
+def test_motion_while_learning_restarts_learning_in_service_mode(tmp_path):
+    plan = _plan(first_dwell=1.2)
+    rec = _recorder(tmp_path, plan, Mode.SERVICE)
+    for s, _ in _samples(plan, skip=50):
+        rec.on_raw(s)
+    msgs = [t for _, t in rec.pop_messages()]
+    assert any("learning again" in t for t in msgs)
+    assert rec.monitor is not None and not rec.finished  # learnt later, at a still pose
+    rec.close("test")
+
+
+def test_learning_shift_is_small_for_noise_and_large_for_a_move():
+    rng = np.random.default_rng(0)
+    still = rng.normal(0, 1e-3, (200, 3))
+    assert learning_shift(still, np.full(3, 1e-6)) < 5
+    moved = still.copy()
+    moved[120:, 2] += 0.012  # 0.1 g on z (M_zz ~ 108)
+    assert learning_shift(moved, np.full(3, 1e-6)) > 8
+
+
+def test_lost_and_repeated_messages_and_setpoint_are_reported(tmp_path):
+    plan = _plan()
+    rec = _recorder(tmp_path, plan, setpoint_c=20.0)
+    samples = [s for s, _ in _samples(plan, temp_c=24.0)][:300]
+    del samples[100:103]  # three frames never arrived
+    samples.insert(200, samples[199])  # one arrived twice
+    for s in samples:
+        rec.on_raw(s)
+    c = rec.counters
+    assert (c.lost, c.repeated) == (3, 1)
+    msgs = [t for _, t in rec.pop_messages()]
+    assert any("set-point 20 degC" in t for t in msgs)
+    summary = rec.close("test")
+    assert summary["lost_messages"] == 3 and summary["temperature_range_c"] == [24.0, 24.0]
+
+
+def test_invalid_reference_is_recorded_but_never_labelled(tmp_path):
+    plan = _plan()
+    rec = _recorder(tmp_path, plan)
+    out = []
+    for s, _ in _samples(plan):
+        if 250 <= s.seq < 260:
+            s = RawSample(**{**s.__dict__, "ref": 0.0})
+        out.append(rec.on_raw(s))
+    assert rec.counters.invalid_reference == 10
+    assert all(v == -1 for v in out[250:260])
+    rec.close("test")
+    r, _ = read_file(tmp_path / "run.mcap")
+    assert len(r) == len(out) and np.all(r.ref[250:260] == 0)
+
+
+def test_detector_settings_are_validated():
+    with pytest.raises(ValueError, match="window_s"):
+        DetectorSettings(window_s=0).validate()
+    with pytest.raises(ValueError, match="noise_std"):
+        DetectorSettings(noise_std=(1.0, math.nan, 1.0)).validate()
+    with pytest.raises(ValueError, match="false_alarm"):
+        DetectorSettings(false_alarm=1.0).validate()
+
+
+# ------------------------------------------------------------------ end-of-run refit
+def _recorded_run(tmp_path, name: str, temp_c: float, seed: int):
+    plan = PosePlan.from_dict({
+        "dwell_s": 2.5, "move_s": 0.6, "samples_per_pose": 40,
+        "poses": [{"name": "z_up", "psi_deg": 0, "theta_deg": 0, "dwell_s": 3.5},
+                  {"name": "z_down", "psi_deg": 0, "theta_deg": 180}, {"name": "x_up", "psi_deg": 90, "theta_deg": 90},
+                  {"name": "y_up", "psi_deg": 0, "theta_deg": 90}, {"name": "x_down", "psi_deg": 270, "theta_deg": 90}]})
+    writer = RecordingWriter(tmp_path / f"{name}.mcap", {"sensor_id": "t"})
+    rec = RunRecorder(plan, writer, Mode.AUTO, DetectorSettings(learn_s=1.0, hold_s=0.5), sensor_id="t")
+    for s, _ in _samples(plan, seed=seed, temp_c=temp_c):
+        rec.on_raw(s)
+    assert rec.done
+    rec.close("complete")
+    return tmp_path / f"{name}.mcap"
+
+
+def test_refit_of_two_runs_writes_a_driver_calibration_with_a_report(tmp_path):
+    from fbg_accel_calibration.run_refit import expand_sources, refit
+    from fbg_accel_driver.thermal_model import ThermalCalibration
+
+    a = _recorded_run(tmp_path, "L0", 20.0, 1)
+    _recorded_run(tmp_path, "L1", 30.0, 2)
+    sources = expand_sources(a, [str(tmp_path / "L*.mcap")])
+    assert sources == [str(a), str(tmp_path / "L1.mcap")]  # the run itself once, then the others
+    result = refit(sources, tmp_path / "cal.yaml", degree=None, sensor_id="t")
+    cal = ThermalCalibration.load(tmp_path / "cal.yaml")
+    assert cal.degree in (0, 1) and cal.sensor_id == "t"
+    lo, hi = cal.temperature_range_c
+    assert lo == 20.0 and hi == 30.0
+    # the synthetic sensor is exactly linear and temperature-free: the fit recovers it to the noise
+    psi = np.array([[1.2, 1.9, 1.3]])
+    np.testing.assert_allclose(cal.base_acceleration(psi, 25.0)[0], M @ psi[0] + B, atol=0.05)
+    text = result.report()
+    assert "| n | identified |" in text and "temperature range covered: 20.00 .. 30.00 degC" in text
+
+
+def test_refit_refuses_missing_sources_and_too_few_poses(tmp_path):
+    from fbg_accel_calibration.run_refit import RefitError, expand_sources, refit
+
+    with pytest.raises(RefitError, match="matches no file"):
+        expand_sources(tmp_path / "a.mcap", [str(tmp_path / "none*.mcap")])
+    with pytest.raises(RefitError, match="is not a file"):
+        expand_sources(tmp_path / "a.mcap", [str(tmp_path / "missing.mcap")])
+    plan = _plan()  # three poses only: M and b need four
+    writer = RecordingWriter(tmp_path / "three.mcap", {"sensor_id": "t"})
+    rec = RunRecorder(plan, writer, Mode.AUTO, DetectorSettings(learn_s=1.0, hold_s=0.5))
+    for s, _ in _samples(plan):
+        rec.on_raw(s)
+    rec.close("complete")
+    with pytest.raises(RefitError, match="at least 4"):
+        refit([str(tmp_path / "three.mcap")], tmp_path / "cal.yaml", degree=0)
+    assert not (tmp_path / "cal.yaml").exists()
