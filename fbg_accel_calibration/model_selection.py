@@ -17,11 +17,22 @@ All figures are RMSE per axis over the predicted samples, m/s^2 and divided by t
 scale (196.1 m/s^2). Folds remove cells from the streamed normal-equation sums of
 :mod:`thermal_fit`, so cross-validation costs one pass over the data.
 
-Choice: a degree is *eligible* when it is identified (n < L) and every applicable held-out score
-exists for it (with several levels: held out by level, i.e. n <= L - 2; with one level: held out
-by pose). The chosen degree has the smallest held-out score, the mean over axes of the held-out
-RMSE (by level when there are several levels, else by pose); a degree that is not identified is
-never chosen, and one without a held-out score is reported but not chosen.
+Choice (three steps; every step is reported in ``criterion`` and ``notes``):
+
+1. Only identified degrees (n < L) with a pose hold-out score are candidates.
+2. Temperature guard (only with L >= 2 levels): the level hold-out tests interpolation between
+   temperature levels. Walking up from n = 0, the candidates stop at the first degree whose level
+   hold-out RMSE is worse than the best lower degree's: a temperature term that predicts unseen
+   levels worse is over-fitting temperature, and higher degrees are not tried. Degrees without a
+   level score (n = L - 1 passes exactly through the L level means) cannot be checked this way;
+   the notes say so when one is chosen.
+3. One-standard-error rule (Breiman et al. 1984, CART §3.4) on the pose hold-out: take the
+   candidate with the smallest mean squared held-out error, estimate that mean's standard error
+   from the per-pose fold errors, and choose the lowest candidate degree within one standard
+   error of it. A higher degree must beat a lower one by more than the pose-to-pose scatter of the
+   validation itself.
+
+In-sample RMSE never enters the choice (it can only fall with the degree).
 """
 
 from __future__ import annotations
@@ -57,10 +68,6 @@ class DegreeScores:
     held_out_pose: np.ndarray
     held_out_level: np.ndarray
     note: str = ""
-
-    def score(self, by_level: bool) -> float:
-        """Selection score: mean over axes of the held-out RMSE (m/s^2)."""
-        return float(np.mean(self.held_out_level if by_level else self.held_out_pose))
 
 
 @dataclass
@@ -106,22 +113,30 @@ def _fit_cells(stats: CellStats, cells: np.ndarray, degree: int) -> np.ndarray:
     return solve_normal_equations(xtx, xtg)[0]
 
 
-def _held_out(stats: CellStats, groups: np.ndarray, degree: int, min_levels: int) -> np.ndarray:
-    """RMSE (3,) of predicting each group's cells from a fit on all other cells; NaN if any fold fails."""
+def _held_out(stats: CellStats, groups: np.ndarray, degree: int, min_levels: int) -> tuple[np.ndarray, np.ndarray]:
+    """Predict each group's cells from a fit on all other cells.
+
+    Returns the RMSE (3,) over all predicted samples and the per-group mean squared error
+    (G,), averaged over axes, for the standard error of the score; NaN if any fold fails.
+    """
     rss = np.zeros(3)
     n = 0.0
+    group_mse = []
     for g in np.unique(groups):
         test = groups == g
         train = ~test
         if len(np.unique(stats.level[train])) < min_levels:
-            return np.full(3, np.nan)
+            return np.full(3, np.nan), np.full(1, np.nan)
         try:
             A = _fit_cells(stats, train, degree)
         except NotIdentifiedError:
-            return np.full(3, np.nan)
-        rss += stats.cell_rss(A, degree)[test].sum(axis=0)
-        n += stats.count[test].sum()
-    return np.sqrt(rss / n)
+            return np.full(3, np.nan), np.full(1, np.nan)
+        g_rss = stats.cell_rss(A, degree)[test].sum(axis=0)
+        g_n = stats.count[test].sum()
+        rss += g_rss
+        n += g_n
+        group_mse.append(float(g_rss.mean() / max(g_n, 1)))
+    return np.sqrt(rss / n), np.asarray(group_mse)
 
 
 def select_degree(rec: Recording | FitData, max_degree: int = 6, *, window: int = DEFAULT_WINDOW,
@@ -140,6 +155,7 @@ def select_degree(rec: Recording | FitData, max_degree: int = 6, *, window: int 
     by_level = n_levels >= 2
     notes: list[str] = []
     scores: list[DegreeScores] = []
+    pose_mse_by_degree: dict[int, np.ndarray] = {}
     for degree in range(max_degree + 1):
         nan3 = np.full(3, np.nan)
         if degree >= n_levels:
@@ -152,18 +168,17 @@ def select_degree(rec: Recording | FitData, max_degree: int = 6, *, window: int 
             scores.append(DegreeScores(degree, False, nan3, nan3, nan3, f"not identified: {exc}"))
             continue
         in_sample = np.sqrt(stats.cell_rss(A, degree).sum(axis=0) / n_total)
-        pose_cv = _held_out(stats, stats.pose, degree, min_levels=degree + 1)
-        level_cv = _held_out(stats, stats.level, degree, min_levels=degree + 1) if by_level else nan3
+        pose_cv, pose_group_mse = _held_out(stats, stats.pose, degree, min_levels=degree + 1)
+        level_cv = _held_out(stats, stats.level, degree, min_levels=degree + 1)[0] if by_level else nan3
+        pose_mse_by_degree[degree] = pose_group_mse
         note = ""
         if by_level and not np.all(np.isfinite(level_cv)):
             note = f"no level hold-out: degree {degree} needs {degree + 1} levels in each fold"
         elif not np.all(np.isfinite(pose_cv)):
             note = "no pose hold-out: too few poses without one"
         scores.append(DegreeScores(degree, True, in_sample, pose_cv, level_cv, note))
-    criterion = ("mean over axes of the RMSE held out by temperature level" if by_level
-                 else "mean over axes of the RMSE held out by pose (one temperature level)")
-    eligible = [s for s in scores if s.identified and np.isfinite(s.score(by_level))]
-    chosen = min(eligible, key=lambda s: s.score(by_level)).degree if eligible else None
+    chosen, criterion, guard_notes = _choose(scores, pose_mse_by_degree, by_level)
+    notes += guard_notes
     if n_levels == 1:
         notes.append("one temperature level: only degree 0 (the paper's linear model, eq. 25) is identified")
     if max_degree >= n_levels:
@@ -172,6 +187,43 @@ def select_degree(rec: Recording | FitData, max_degree: int = 6, *, window: int 
         notes.append("no degree could be validated on held-out data")
     return SelectionResult(scores, n_levels, [float(v) for v in data.level_means_c], len(np.unique(data.pose)),
                            int(n_total), chosen, criterion, notes)
+
+
+def _choose(scores: list[DegreeScores], pose_mse: dict[int, np.ndarray],
+            by_level: bool) -> tuple[int | None, str, list[str]]:
+    """Steps 1-3 of the module docstring: (chosen degree or None, criterion, notes)."""
+    notes: list[str] = []
+    candidates: list[DegreeScores] = []
+    best_level = np.inf
+    for s in scores:
+        if not (s.identified and np.all(np.isfinite(s.held_out_pose))):
+            continue
+        level = float(np.mean(s.held_out_level)) if by_level else np.nan
+        if np.isfinite(level):
+            if level > best_level:
+                notes.append(f"degree {s.degree} predicts held-out temperature levels worse than a lower degree "
+                             f"({level:.4g} > {best_level:.4g} m/s^2): it and higher degrees are not chosen")
+                break
+            best_level = level
+        candidates.append(s)
+    criterion = ("lowest degree within one standard error of the best pose hold-out"
+                 + (", after the temperature-level hold-out guard" if by_level else " (one temperature level)"))
+    if not candidates:
+        return None, criterion, notes
+    mse = {s.degree: pose_mse[s.degree] for s in candidates}
+    best = min(candidates, key=lambda s: float(mse[s.degree].mean()))
+    groups = mse[best.degree]
+    se = float(groups.std(ddof=1) / np.sqrt(len(groups))) if len(groups) > 1 else 0.0
+    limit = float(groups.mean()) + se
+    chosen = min(s.degree for s in candidates if float(mse[s.degree].mean()) <= limit)
+    if chosen != best.degree:
+        notes.append(f"degree {best.degree} has the lowest pose hold-out error, but degree {chosen} is within one "
+                     f"standard error of it ({limit:.4g} (m/s^2)^2) and is simpler")
+    chosen_scores = next(s for s in candidates if s.degree == chosen)
+    if by_level and not np.all(np.isfinite(chosen_scores.held_out_level)):
+        notes.append(f"degree {chosen} passes exactly through the temperature levels: its interpolation between "
+                     "levels is not validated by a level hold-out (that needs one more level)")
+    return chosen, criterion, notes
 
 
 def held_out_predictions(data: FitData, degree: int, by: str = "pose", chunk: int = DEFAULT_CHUNK) -> np.ndarray:
