@@ -22,6 +22,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from fbg_accel_driver.command_line import wants_help
+
 PACKAGE = "fbg_accel_driver"
 EXIT_OK, EXIT_FIT_FAILED, EXIT_STARTUP, EXIT_INTERRUPTED = 0, 1, 2, 3
 
@@ -73,14 +75,9 @@ class StartupError(Exception):
     """A configuration problem that stops start-up with one clear message."""
 
 
-def _wants_help(argv: list[str]) -> bool:
-    user = argv[: argv.index("--ros-args")] if "--ros-args" in argv else argv
-    return any(a in ("-h", "--help") for a in user)
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if _wants_help(argv):
+    if wants_help(argv):
         print(USAGE, end="")
         return EXIT_OK
     try:

@@ -18,6 +18,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from .command_line import wants_help
+
 PACKAGE = "fbg_accel_driver"
 DEFAULT_CALIBRATION = "calibration_sim.yaml"
 RAW_NAMES = [
@@ -103,14 +105,9 @@ def default_calibration_path() -> Path:
     return candidates[-1]
 
 
-def _wants_help(argv: list[str]) -> bool:
-    user = argv[: argv.index("--ros-args")] if "--ros-args" in argv else argv
-    return any(a in ("-h", "--help") for a in user)
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if _wants_help(argv):
+    if wants_help(argv):
         print(USAGE, end="")
         print(f"default calibration file: {default_calibration_path()}")
         return 0

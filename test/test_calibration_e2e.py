@@ -34,17 +34,14 @@ deadline.
 from __future__ import annotations
 
 import os
-import re
-import signal
 import subprocess
 import sys
 import threading
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
+from process_harness import ChildProcess
 
 from fbg_accel_calibration.mcap_io import read_recording
 from fbg_accel_calibration.pose_plan import PosePlan
@@ -64,71 +61,9 @@ NOISE_FACTOR = 1.5
 pytestmark = pytest.mark.timeout(240)
 
 
-def wait_for(pred: Callable[[], bool], timeout: float, what: str, poll: float = 0.05) -> None:
-    deadline = time.monotonic() + timeout
-    ev = threading.Event()
-    while not pred():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-        ev.wait(poll)
-
-
-class Proc:
-    """A child process whose combined output is collected line by line."""
-
-    def __init__(self, name: str, args: list[str]) -> None:
-        self.name = name
-        self.proc = subprocess.Popen([str(a) for a in args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                     bufsize=1)
-        self.lines: list[str] = []
-        self._lock = threading.Lock()
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            with self._lock:
-                self.lines.append(line.rstrip("\n"))
-
-    def output(self) -> str:
-        with self._lock:
-            return "\n".join(self.lines)
-
-    def find(self, pattern: str) -> str | None:
-        rx = re.compile(pattern)
-        with self._lock:
-            return next((ln for ln in self.lines if rx.search(ln)), None)
-
-    def wait_line(self, pattern: str, timeout: float) -> str:
-        def seen() -> bool:
-            if self.find(pattern) is None and self.proc.poll() is not None:
-                raise AssertionError(f"{self.name} exited ({self.proc.returncode}) before /{pattern}/:\n{self.output()}")
-            return self.find(pattern) is not None
-
-        wait_for(seen, timeout, f"{self.name}: /{pattern}/\n{self.output()}")
-        return self.find(pattern) or ""
-
-    def wait_exit(self, timeout: float) -> int:
-        try:
-            return self.proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            raise AssertionError(f"{self.name} did not exit within {timeout} s:\n{self.output()}") from None
-
-    def stop(self, timeout: float = 15.0) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(timeout=timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=5)
-        return self.proc.returncode
-
-
 @pytest.fixture()
 def procs():
-    started: list[Proc] = []
+    started: list[ChildProcess] = []
     try:
         yield started
     except BaseException:
@@ -140,26 +75,27 @@ def procs():
                 p.proc.wait(timeout=5)
 
 
-def dump(procs: list[Proc]) -> str:
+def dump(procs: list[ChildProcess]) -> str:
     """The last lines of every process (shown with a failure)."""
     return "\n".join(f"----- {p.name} (exit {p.proc.poll()}) -----\n" + "\n".join(p.output().splitlines()[-12:])
                      for p in procs)
 
 
-def start_sim(procs: list[Proc], tmp: Path, tag: str, level_c: float, seed: int, poses: list[str]) -> tuple[Proc, Path]:
+def start_sim(procs: list[ChildProcess], tmp: Path, tag: str, level_c: float, seed: int,
+              poses: list[str]) -> tuple[ChildProcess, Path]:
     link = tmp / f"pty_{tag}"
     args = [BIN / "board_sim", "--rate", str(RATE_HZ), "--seed", str(seed), "--link", link, "--truth", tmp / f"truth_{tag}.npz",
             "--set", f"scenario.temperature.initial_c={level_c}"]
     for p in [*SIM_SET, *poses]:
         args += ["--set", p]
-    sim = Proc(f"board_sim {tag}", args)
+    sim = ChildProcess(f"board_sim {tag}", args)
     procs.append(sim)
     sim.wait_line(r"^PTY ", timeout=30)
     return sim, link
 
 
-def start_driver(procs: list[Proc], tag: str, link: Path, calibration: Path) -> Proc:
-    drv = Proc(f"driver {tag}", [BIN / "driver", "--ros-args", "-r", f"__ns:=/{tag}", "-p", f"port:={link}",
+def start_driver(procs: list[ChildProcess], tag: str, link: Path, calibration: Path) -> ChildProcess:
+    drv = ChildProcess(f"driver {tag}", [BIN / "driver", "--ros-args", "-r", f"__ns:=/{tag}", "-p", f"port:={link}",
                                  "-p", f"calibration_file:={calibration}"])
     procs.append(drv)
     return drv
@@ -172,7 +108,7 @@ def test_simulated_end_to_end_calibration_at_three_chamber_temperatures(tmp_path
         raise AssertionError(f"{exc}\n{dump(procs)}") from None
 
 
-def run_end_to_end(tmp_path: Path, procs: list[Proc]) -> None:
+def run_end_to_end(tmp_path: Path, procs: list[ChildProcess]) -> None:
     if "ROS_DOMAIN_ID" not in os.environ:
         pytest.fail("ROS_DOMAIN_ID is not set: ROS tests must run in their own DDS domain (scripts/test.sh sets one)")
     plan = PosePlan.load(PLAN)
@@ -185,7 +121,7 @@ def run_end_to_end(tmp_path: Path, procs: list[Proc]) -> None:
     nodes = []
     for i, level in enumerate(levels):
         tag = f"e2e_rec{i}"
-        node = Proc(f"calibration {tag}", [
+        node = ChildProcess(f"calibration {tag}", [
             BIN / "calibration", "--ros-args", "-r", f"__ns:=/{tag}", "-p", f"plan_file:={PLAN}",
             "-p", f"output_dir:={tmp_path}", "-p", f"run_label:=level{i}", "-p", "mode:=auto",
             "-p", f"temperature_level:={i}", "-p", "fit:=false", "-p", "sensor_id:=sim-fbg-accel-001",

@@ -16,19 +16,17 @@ exit, a DDS match, a future) with a deadline.
 from __future__ import annotations
 
 import os
-import re
 import signal
 import subprocess
 import sys
 import threading
-import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from process_harness import ChildProcess, wait_for
 
 from fbg_accel_calibration.mcap_io import read_file, read_recording
 from fbg_accel_calibration.pose_plan import PosePlan
@@ -102,16 +100,6 @@ def psi_to_accel(ref: np.ndarray, xyz: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------- ROS side of the test
-def wait_for(pred: Callable[[], bool], timeout: float, what: str, poll: float = 0.02) -> None:
-    """Wait until ``pred()`` holds (condition with deadline, no fixed sleep)."""
-    deadline = time.monotonic() + timeout
-    ev = threading.Event()
-    while not pred():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-        ev.wait(poll)
-
-
 class RosHarness:
     """rclpy in the test process: a publisher of the synthetic stream and service clients."""
 
@@ -237,7 +225,7 @@ def ros():
     h.close()
 
 
-class NodeProcess:
+class NodeProcess(ChildProcess):
     """The ``calibration`` executable with its stdout collected line by line."""
 
     def __init__(self, tmp: Path, *params: str, label: str = "run") -> None:
@@ -250,49 +238,7 @@ class NodeProcess:
             args += ["-p", p]
         self.mcap = tmp / f"{label}.mcap"
         self.yaml = tmp / f"{label}_calibration.yaml"
-        self.proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
-        self.lines: list[str] = []
-        self._lock = threading.Lock()
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            with self._lock:
-                self.lines.append(line.rstrip("\n"))
-
-    def output(self) -> str:
-        with self._lock:
-            return "\n".join(self.lines)
-
-    def wait_line(self, pattern: str, timeout: float = 30.0) -> str:
-        rx = re.compile(pattern)
-        found: list[str] = []
-
-        def seen() -> bool:
-            with self._lock:
-                found[:] = [ln for ln in self.lines if rx.search(ln)]
-            if not found and self.proc.poll() is not None:
-                raise AssertionError(f"node exited ({self.proc.returncode}) before printing /{pattern}/:\n{self.output()}")
-            return bool(found)
-
-        wait_for(seen, timeout, f"node output /{pattern}/\n--- output so far:\n{self.output()}")
-        return found[0]
-
-    def wait_exit(self, timeout: float = 30.0) -> int:
-        try:
-            rc = self.proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            raise AssertionError(f"node did not exit within {timeout} s:\n{self.output()}") from None
-        self._reader.join(timeout=5)
-        return rc
-
-    def kill(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(timeout=10)
+        super().__init__("node", args)
 
 
 @pytest.fixture()

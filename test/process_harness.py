@@ -1,0 +1,88 @@
+"""Child processes for the process-level tests: output collected line by line, waits on conditions.
+
+No fixed sleeps: every wait polls a condition against a deadline and fails with the output so far.
+"""
+
+from __future__ import annotations
+
+import re
+import signal
+import subprocess
+import threading
+import time
+from collections.abc import Callable
+
+
+def wait_for(pred: Callable[[], bool], timeout: float, what: str, poll: float = 0.02) -> None:
+    """Wait until ``pred()`` holds (condition with deadline); AssertionError naming ``what`` otherwise."""
+    deadline = time.monotonic() + timeout
+    ev = threading.Event()
+    while not pred():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+        ev.wait(poll)
+
+
+class ChildProcess:
+    """A child process whose combined stdout/stderr is collected line by line in a thread."""
+
+    def __init__(self, name: str, args: list) -> None:
+        self.name = name
+        self.proc = subprocess.Popen([str(a) for a in args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                     text=True, bufsize=1)
+        self.lines: list[str] = []
+        self._lock = threading.Lock()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            with self._lock:
+                self.lines.append(line.rstrip("\n"))
+
+    def output(self) -> str:
+        with self._lock:
+            return "\n".join(self.lines)
+
+    def find(self, pattern: str) -> str | None:
+        """First output line matching the regular expression ``pattern``, or None."""
+        rx = re.compile(pattern)
+        with self._lock:
+            return next((ln for ln in self.lines if rx.search(ln)), None)
+
+    def wait_line(self, pattern: str, timeout: float = 30.0) -> str:
+        """Wait for an output line matching ``pattern``; fails early if the process exits first."""
+        def seen() -> bool:
+            if self.find(pattern) is None and self.proc.poll() is not None:
+                raise AssertionError(f"{self.name} exited ({self.proc.returncode}) before /{pattern}/:\n{self.output()}")
+            return self.find(pattern) is not None
+
+        wait_for(seen, timeout, f"{self.name} output /{pattern}/\n--- output so far:\n{self.output()}")
+        return self.find(pattern) or ""
+
+    def wait_exit(self, timeout: float = 30.0) -> int:
+        """Exit code; kills the process and fails if it does not exit within ``timeout`` s."""
+        try:
+            rc = self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            raise AssertionError(f"{self.name} did not exit within {timeout} s:\n{self.output()}") from None
+        self._reader.join(timeout=5)
+        return rc
+
+    def stop(self, timeout: float = 15.0) -> int:
+        """SIGINT, then SIGKILL if it does not exit within ``timeout`` s; returns the exit code."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=5)
+        return self.proc.returncode
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(timeout=10)
