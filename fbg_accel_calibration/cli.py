@@ -61,6 +61,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--degree", type=int, default=None, help="force the degree n (default: held-out cross-validation)")
     p.add_argument("--max-degree", type=int, default=6, help="largest degree scored (default 6, as paper Table 4)")
     p.add_argument("--sensor-id", default=None)
+    p.add_argument("--in-memory", action="store_true",
+                   help="load every sample before fitting (default: stream MCAP files block by block, same result)")
     _add_detector_options(p)
     _add_csv_options(p)
     p.set_defaults(func=cmd_fit)
@@ -131,13 +133,56 @@ def cmd_import(args: argparse.Namespace) -> int:
     return 0
 
 
+def _fit_streamed(args: argparse.Namespace, max_degree: int):
+    """Stream the MCAP inputs block by block into the fit's cell sums (``thermal_fit.prepare_stream``);
+    CSV inputs are imported in memory and served as blocks. Returns ``(StreamedFitData, metadata)``."""
+    from .csv_import import import_csv
+    from .mcap_io import McapSampleStream
+    from .thermal_fit import RecordingBlocks, prepare_stream
+
+    sources = []
+    for path in args.inputs:
+        if not path.is_file():
+            raise ValueError(f"{path}: file not found")
+        if path.suffix.lower() == ".csv":
+            rec = import_csv(path, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g)[0]
+            rec.run_id[:] = 0
+            sources.append(RecordingBlocks(rec))
+        else:
+            sources.append(McapSampleStream(path))
+    data = prepare_stream(sources, max_degree, args.window, args.min_interval, args.level_gap)
+    parts = []
+    for path, src in zip(args.inputs, sources, strict=True):
+        if isinstance(src, McapSampleStream):
+            md = src.metadata()
+            if not src.report.complete:
+                print(f"warning: {path} is truncated ({src.report.stopped_at}); recovered {src.report.messages} "
+                      "messages up to the last complete chunk", file=sys.stderr)
+        else:
+            md = dict(src.rec.metadata)
+        parts.append(md)
+    return data, {"parts": parts, **(parts[0] if len(parts) == 1 else {})}
+
+
 def cmd_fit(args: argparse.Namespace) -> int:
+    """Fit from the files. MCAP inputs are streamed (memory bounded by one block, docs/calibration_fit.md);
+    ``--in-memory`` (or an MCAP whose raw stamps go backwards) loads every sample first."""
+    from .mcap_io import StreamOrderError
     from .model_selection import select_degree
     from .thermal_fit import FULL_SCALE_MPS2, fit_thermal, prepare
 
-    rec = _load(args.inputs, args)
-    data = prepare(rec, args.window, args.min_interval, args.level_gap)
-    selection = select_degree(data, max_degree=max(args.max_degree, args.degree or 0))
+    max_degree = max(args.max_degree, args.degree or 0)
+    data = None
+    if not args.in_memory:
+        try:
+            data, metadata = _fit_streamed(args, max_degree)
+        except StreamOrderError as exc:
+            print(f"note: {exc}; reading all samples into memory instead", file=sys.stderr)
+    if data is None:
+        rec = _load(args.inputs, args)
+        metadata = rec.metadata
+        data = prepare(rec, args.window, args.min_interval, args.level_gap)
+    selection = select_degree(data, max_degree=max_degree)
     print(f"degree selection ({selection.criterion}):")
     print(selection.table_markdown())
     for note in selection.notes:
@@ -151,7 +196,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
             raise ValueError(f"--degree {args.degree}: {chosen.note}")
         if args.degree != selection.chosen_degree:
             print(f"note: --degree {args.degree} overrides the cross-validated choice {selection.chosen_degree}")
-    cal = fit_thermal(data, degree, sensor_id=args.sensor_id or _sensor_id(rec))
+    cal = fit_thermal(data, degree, sensor_id=args.sensor_id or _sensor_id_of(metadata))
     cal.fit["sources"] = [str(p) for p in args.inputs]
     cal.fit["degree_selection"] = selection.as_dict()
     cal.save(args.output)
@@ -165,8 +210,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     return 0
 
 
-def _sensor_id(rec) -> str | None:
-    md = rec.metadata
+def _sensor_id_of(md: dict) -> str | None:
     for cand in (md.get("run"), *(p.get("run") for p in md.get("parts", []) if isinstance(p, dict))):
         if isinstance(cand, dict) and cand.get("sensor_id"):
             return str(cand["sensor_id"])

@@ -45,11 +45,13 @@ import os
 import re
 import struct
 import sys
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import zstandard
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Metadata, Schema
@@ -684,3 +686,339 @@ def write_recording(path: str | Path, rec: Recording, metadata: dict[str, Any] |
             w.write_raw(stamp, ref_list[i], xyz_list[i], temperature_c=temp, temperature_valid=math.isfinite(temp),
                         seq=i, board_time_s=t_list[i])
         return w.message_count
+
+
+# ---------------------------------------------------------------------------- streaming reader
+class StreamOrderError(McapRecordingError):
+    """The ``imu/raw`` stamps of a file go backwards: it cannot be streamed in file order
+    (:func:`read_file` sorts such a file in memory)."""
+
+
+class McapSampleStream:
+    """One calibration MCAP read block by block, never as a whole (the streaming fit's input).
+
+    :meth:`blocks` yields :class:`Recording` blocks of exactly ``block_rows`` samples (the last one
+    shorter) in file order, with the same values :func:`read_file` gives the same samples:
+    temperature from the ``imu/raw`` field (or the latest ``imu/temperature`` message at or before
+    the stamp), pose id and reference from :func:`assign_poses`. Pose and reference events are
+    collected during the first complete pass (``with_poses=False``); later passes
+    (``with_poses=True``) assign them per block. State between passes: the pose, reference and
+    (only for raw messages without a temperature field) temperature events, O(poses) values.
+
+    ``imu/raw`` messages in the fixed layout of :class:`FixedJointStateCodec` are split out of each
+    decompressed chunk with one numpy view per run of equal records (no Python object per message);
+    other messages go through the ``mcap_ros2`` decoder. A truncated file is read up to its last
+    complete chunk, as :func:`read_file`; ``report`` tells what the last pass read.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise McapRecordingError(f"{self.path}: file not found")
+        self.report = FileReadReport(str(self.path))
+        self.names: tuple[str, ...] | None = None
+        self.samples: int | None = None  # raw samples of the file, known after the first pass
+        self._events_complete = False
+        self._pose_events: list[tuple[int, int, str]] = []
+        self._gref_events: list[tuple[int, tuple[float, float, float]]] = []
+        self._temp_t: list[int] = []
+        self._temp_v: list[float] = []
+
+    # -- record level
+    def _batches(self, collect_events: bool):
+        """Yield ``(stamps (k,) int64 ns, values (k, n))`` batches of ``imu/raw`` in file order."""
+        report = FileReadReport(str(self.path))
+        self.report = report
+        factory = DecoderFactory()
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        decoders: dict[int, Any] = {}
+        raw_channel: set[int] = set()
+        fast: dict[str, Any] = {}
+
+        def count(topic: str, n: int) -> None:
+            report.messages += n
+            report.messages_per_topic[topic] = report.messages_per_topic.get(topic, 0) + n
+
+        def decoder_of(channel: Channel) -> Any:
+            dec = decoders.get(channel.id)
+            if dec is None:
+                dec = factory.decoder_for(channel.message_encoding, schemas.get(channel.schema_id))
+                if dec is None:
+                    raise McapRecordingError(f"{self.path}: no ROS 2 decoder for topic {channel.topic}")
+                decoders[channel.id] = dec
+            return dec
+
+        def message(channel_id: int, log_time: int, data: bytes):
+            channel = channels.get(channel_id)
+            if channel is None:
+                raise McapRecordingError(f"{self.path}: message on unknown channel {channel_id}")
+            count(channel.topic, 1)
+            if channel.topic == TOPIC_RAW:
+                raw_channel.add(channel_id)
+                codec = fast.get("codec")
+                if codec is not None and codec.matches(data):
+                    s, v = codec.decode_many([data])
+                    return s, v
+                msg = decoder_of(channel)(data)
+                names = tuple(msg.name)
+                if self.names is None:
+                    missing = [n for n in RAW_NAMES[:4] if n not in names]
+                    if missing:
+                        raise McapRecordingError(f"{self.path}: {TOPIC_RAW} lacks joint names {missing}")
+                    self.names = names
+                elif names != self.names:
+                    raise McapRecordingError(f"{self.path}: {TOPIC_RAW} changes its name list")
+                if len(msg.position) != len(names):
+                    raise McapRecordingError(f"{self.path}: {TOPIC_RAW} message has {len(msg.position)} values "
+                                             f"for {len(names)} names")
+                if codec is None:
+                    _set_fast(fast, channel_id, FixedJointStateCodec(msg.header.frame_id, names))
+                return (np.asarray([_stamp_ns(msg.header)], dtype=np.int64),
+                        np.asarray(msg.position, dtype=float).reshape(1, -1))
+            if collect_events:
+                msg = decoder_of(channel)(data)
+                if channel.topic == TOPIC_TEMPERATURE:
+                    self._temp_t.append(_stamp_ns(msg.header))
+                    self._temp_v.append(float(msg.temperature))
+                elif channel.topic == TOPIC_REFERENCE_GRAVITY:
+                    self._gref_events.append((_stamp_ns(msg.header), (msg.vector.x, msg.vector.y, msg.vector.z)))
+                elif channel.topic == TOPIC_POSE:
+                    values = {kv.key: kv.value for kv in msg.values}
+                    self._pose_events.append((log_time, int(values.get("pose_id", "-1")), values.get("state", msg.message)))
+            return None
+
+        def emit(data: bytes):
+            for item in _split_chunk(data, fast):
+                if isinstance(item, tuple) and len(item) == 2:  # a run of fixed-layout raw records
+                    count(TOPIC_RAW, len(item[0]))
+                    yield item
+                elif isinstance(item, tuple):
+                    out = message(*item)
+                    if out is not None:
+                        yield out
+                else:
+                    _note_record(item, schemas, channels, report)
+
+        joined: list[bytes] = []
+        joined_bytes = 0
+        with open(self.path, "rb", buffering=1 << 20) as fh:
+            file_size = os.fstat(fh.fileno()).st_size
+            try:
+                if fh.read(len(_MAGIC)) != _MAGIC:
+                    raise McapRecordingError(f"{self.path}: not an MCAP file (bad magic)")
+            except _TruncatedError as exc:  # pragma: no cover - read() does not raise it
+                report.stopped_at = str(exc)
+                return
+            while True:
+                try:
+                    head = fh.read(9)
+                    if not head:
+                        raise _TruncatedError("file ends without a footer")
+                    if len(head) < 9:
+                        raise _TruncatedError("file ends inside a record header")
+                    opcode, length = _RECORD_HEAD.unpack(head)
+                    if opcode == Opcode.FOOTER:
+                        if joined:
+                            yield from emit(b"".join(joined))
+                        report.complete = True
+                        return
+                    if opcode in _SKIPPED:
+                        if fh.seek(length, io.SEEK_CUR) > file_size:
+                            raise _TruncatedError("file ends inside a record")
+                        continue
+                    body = _read_exact(fh, length)
+                    chunk_data = _chunk_bytes(body) if opcode == Opcode.CHUNK else None
+                except Exception as exc:  # truncated or corrupt tail: keep what was read
+                    report.stopped_at = f"{type(exc).__name__} {exc}".strip()
+                    if joined:
+                        yield from emit(b"".join(joined))
+                    return
+                if chunk_data is not None:  # records never span chunks: split several chunks at once
+                    joined.append(chunk_data)
+                    joined_bytes += len(chunk_data)
+                    if joined_bytes >= _JOIN_BYTES:
+                        yield from emit(b"".join(joined))
+                        joined, joined_bytes = [], 0
+                    continue
+                if joined:
+                    yield from emit(b"".join(joined))
+                    joined, joined_bytes = [], 0
+                if chunk_data is None:
+                    if opcode in _PARSED:
+                        rec = _PARSED[opcode].read(ReadDataStream(io.BytesIO(body)))
+                        _note_record(rec, schemas, channels, report)
+                    elif opcode == Opcode.MESSAGE:
+                        channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(body, 0)
+                        out = message(channel_id, log_time, body[22:])
+                        if out is not None:
+                            yield out
+                    continue
+
+    def blocks(self, block_rows: int, with_poses: bool) -> Any:
+        """Yield :class:`Recording` blocks of ``block_rows`` samples (run_id 0) in file order.
+
+        ``with_poses=False`` (the first pass) leaves pose id -1 and NaN reference and collects the
+        events; ``with_poses=True`` needs a complete earlier pass. Raises :class:`StreamOrderError`
+        when the stamps go backwards.
+        """
+        if with_poses and not self._events_complete:
+            raise McapRecordingError(f"{self.path}: pose events are known only after a first pass")
+        collect = not self._events_complete
+        if collect:
+            self._pose_events, self._gref_events, self._temp_t, self._temp_v = [], [], [], []
+        buf_s: np.ndarray | None = None  # one block of stamps and values, filled batch by batch
+        buf_v: np.ndarray | None = None
+        fill = 0
+        last_stamp = np.iinfo(np.int64).min
+        total = 0
+        for stamps, values in self._batches(collect):
+            if len(stamps) == 0:
+                continue
+            if stamps[0] < last_stamp or np.any(np.diff(stamps) < 0):
+                raise StreamOrderError(f"{self.path}: {TOPIC_RAW} stamps go backwards; the file cannot be streamed "
+                                       "in file order")
+            last_stamp = int(stamps[-1])
+            if buf_v is None or buf_v.shape[1] != values.shape[1]:
+                buf_s, buf_v = np.empty(block_rows, np.int64), np.empty((block_rows, values.shape[1]))
+            start = 0
+            while start < len(stamps):
+                take = min(block_rows - fill, len(stamps) - start)
+                buf_s[fill:fill + take] = stamps[start:start + take]
+                buf_v[fill:fill + take] = values[start:start + take]
+                fill += take
+                start += take
+                if fill == block_rows:
+                    yield self._block(buf_s, buf_v, with_poses)
+                    total += fill
+                    fill = 0
+        if fill:
+            yield self._block(buf_s[:fill], buf_v[:fill], with_poses)
+            total += fill
+        if collect:
+            self._events_complete = True
+            self.samples = total
+        if collect and not self.report.complete:
+            LOG.warning("%s", self.report.summary())
+        if total == 0:
+            raise McapRecordingError(f"{self.path}: no readable {TOPIC_RAW} messages ({self.report.summary()})")
+
+    def _block(self, stamps: np.ndarray, rows: np.ndarray, with_poses: bool) -> Recording:
+        """A Recording of copies (the caller reuses ``stamps`` and ``rows``)."""
+        stamps = stamps.copy()
+        col = {n: i for i, n in enumerate(self.names or ())}
+        xyz = rows[:, [col["x_counts"], col["y_counts"], col["z_counts"]]]
+        if "temperature_c" in col:
+            temp = rows[:, col["temperature_c"]].copy()
+            if "temperature_valid" in col:
+                temp[rows[:, col["temperature_valid"]] < 0.5] = np.nan
+        elif self._temp_t:
+            ts = np.asarray(self._temp_t, dtype=np.int64)
+            o = np.argsort(ts, kind="stable")
+            idx = np.searchsorted(ts[o], stamps, side="right") - 1
+            temp = np.where(idx >= 0, np.asarray(self._temp_v)[o][np.clip(idx, 0, None)], np.nan)
+        else:
+            temp = np.full(len(stamps), np.nan)
+        t_s = rows[:, col["board_time_s"]].copy() if "board_time_s" in col else stamps * 1e-9
+        if with_poses:
+            pose_id, gref = assign_poses(stamps, self._pose_events, self._gref_events)
+        else:
+            pose_id, gref = np.full(len(stamps), -1, dtype=int), np.full((len(stamps), 3), np.nan)
+        return Recording(t_s=t_s, ref=rows[:, col["ref_counts"]].copy(), xyz=xyz, temp_c=temp, gref_mps2=gref,
+                         pose_id=pose_id)
+
+    def metadata(self) -> dict[str, Any]:
+        """Run metadata and the read report, as :func:`read_file` puts them in ``Recording.metadata``."""
+        md: dict[str, Any] = {name: dict(m) for name, m in self.report.metadata.items()}
+        md["source"] = str(self.path)
+        md["read_report"] = {"messages": self.report.messages, "complete": self.report.complete,
+                             "stopped_at": self.report.stopped_at, "per_topic": dict(self.report.messages_per_topic)}
+        return md
+
+
+def _note_record(rec: Any, schemas: dict[int, Schema], channels: dict[int, Channel], report: FileReadReport) -> None:
+    if isinstance(rec, Schema):
+        schemas[rec.id] = rec
+    elif isinstance(rec, Channel):
+        channels[rec.id] = rec
+    elif isinstance(rec, Metadata):
+        report.metadata[rec.name] = dict(rec.metadata)
+
+
+def _set_fast(fast: dict[str, Any], channel_id: int, codec: FixedJointStateCodec) -> None:
+    """Record layout of one fixed-layout raw message inside a chunk (opcode, length, message header, CDR)."""
+    words = len(codec.middle) // 8  # the middle (frame_id, names) ends 8-aligned: compare it as uint64 words
+    msg = np.dtype([("enc", "<u4"), ("sec", "<i4"), ("nanosec", "<u4"), ("mid", "<u8", (words,)),
+                    ("values", "<f8", (codec.n_values,)), ("tail", f"V{len(codec.tail)}")])
+    if len(codec.middle) % 8 or msg.itemsize != codec.size:
+        return  # unexpected layout: no fast path, every message decoded one by one
+    fast["codec"] = codec
+    fast["channel"] = channel_id
+    fast["dtype"] = np.dtype([("op", "u1"), ("len", "<u8"), ("ch", "<u2"), ("seq", "<u4"), ("log", "<u8"),
+                              ("pub", "<u8"), ("msg", msg)])
+    fast["size"] = 9 + 22 + codec.size
+    fast["enc"] = np.frombuffer(codec.ENCAPSULATION, dtype="<u4")[0]
+    fast["mid"] = np.frombuffer(codec.middle, dtype="<u8")
+
+
+def _chunk_bytes(body: bytes) -> bytes:
+    """Decompressed, CRC-checked records of a chunk record body."""
+    start_t, end_t, size, crc = _CHUNK_HEAD.unpack_from(body, 0)
+    (clen,) = struct.unpack_from("<I", body, 28)
+    compression = body[32:32 + clen].decode()
+    (rlen,) = struct.unpack_from("<Q", body, 32 + clen)
+    chunk = Chunk(compression=compression, data=body[40 + clen:40 + clen + rlen], message_start_time=start_t,
+                  message_end_time=end_t, uncompressed_crc=crc, uncompressed_size=size)
+    if compression == "zstd" and size:
+        data = _ZSTD.decompress(chunk.data, max_output_size=size)
+        if len(data) != size:
+            raise McapRecordingError(f"chunk decompressed to {len(data)} bytes, expected {size}")
+        if crc != 0 and zlib.crc32(data) != crc:
+            raise McapRecordingError("chunk CRC mismatch")
+        return data
+    stream, size = get_chunk_data_stream(chunk, validate_crc=True)
+    return stream.read(size) if size else b""
+
+
+_ZSTD = zstandard.ZstdDecompressor()
+_JOIN_BYTES = 1 << 20  # decompressed chunks split together (records never span chunks)
+_FAST_RUN_MIN = 64
+_FAST_RUN_MAX = 16384  # records checked at once for a run of fixed-layout raw messages
+
+
+def _split_chunk(data: bytes, fast: dict[str, Any]):
+    """Records of decompressed chunk data: ``(stamps, values)`` for each run of consecutive fixed-layout
+    raw messages (one numpy view), ``(channel_id, log_time, data)`` for other messages, and parsed
+    Schema/Channel/Metadata records."""
+    size = len(data)
+    pos = 0
+    while pos < size:
+        rec_size = fast.get("size")
+        k = _FAST_RUN_MIN
+        while rec_size is not None:  # windows growing x4 while every record matches the raw layout
+            kk = min((size - pos) // rec_size, k)
+            if kk == 0:
+                break
+            arr = np.frombuffer(data, dtype=fast["dtype"], count=kk, offset=pos)
+            ok = (arr["op"] == Opcode.MESSAGE) & (arr["len"] == rec_size - 9) & (arr["ch"] == fast["channel"])
+            ok &= (arr["msg"]["enc"] == fast["enc"]) & np.all(arr["msg"]["mid"] == fast["mid"], axis=1)
+            n_ok = kk if ok.all() else int(np.argmin(ok))
+            if n_ok:
+                msg = arr["msg"][:n_ok]
+                yield msg["sec"].astype(np.int64) * 1_000_000_000 + msg["nanosec"].astype(np.int64), msg["values"].astype(float)
+                pos += n_ok * rec_size
+            if n_ok < kk:
+                break
+            k = min(4 * k, _FAST_RUN_MAX)
+        if pos >= size:
+            break
+        opcode, length = _RECORD_HEAD.unpack_from(data, pos)
+        start, end = pos + 9, pos + 9 + length
+        if end > size:
+            raise McapRecordingError("record overruns its chunk")
+        if opcode == Opcode.MESSAGE:
+            channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(data, start)
+            yield channel_id, log_time, data[start + 22:end]
+        elif opcode in _PARSED:
+            yield _PARSED[opcode].read(ReadDataStream(io.BytesIO(data[start:end])))
+        pos = end

@@ -50,6 +50,7 @@ from .thermal_fit import (
     CellStats,
     FitData,
     NotIdentifiedError,
+    StreamedFitData,
     accumulate_cells,
     design_matrix,
     prepare,
@@ -139,17 +140,20 @@ def _held_out(stats: CellStats, groups: np.ndarray, degree: int, min_levels: int
     return np.sqrt(rss / n), np.asarray(group_mse)
 
 
-def select_degree(rec: Recording | FitData, max_degree: int = 6, *, window: int = DEFAULT_WINDOW,
+def select_degree(rec: Recording | FitData | StreamedFitData, max_degree: int = 6, *, window: int = DEFAULT_WINDOW,
                   min_interval: int = DEFAULT_MIN_INTERVAL, level_gap_c: float = DEFAULT_LEVEL_GAP_C,
                   chunk: int = DEFAULT_CHUNK, usable: np.ndarray | None = None) -> SelectionResult:
     """Score degrees 0..``max_degree`` and choose one (see module docstring)."""
-    data = rec if isinstance(rec, FitData) else prepare(rec, window, min_interval, level_gap_c, usable)
+    data = rec if isinstance(rec, FitData | StreamedFitData) else prepare(rec, window, min_interval, level_gap_c, usable)
     if len(data) == 0:
         raise NotIdentifiedError("no usable static samples")
     n_levels = len(data.level_means_c)
-    center, scale = temperature_scaling(data.temp_c)
-    tau = (data.temp_c - center) / scale
-    stats = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, max_degree, chunk)
+    if isinstance(data, StreamedFitData):  # sums already streamed from the files (thermal_fit.prepare_stream)
+        stats = data.cell_stats(max_degree)
+    else:
+        center, scale = temperature_scaling(data.temp_c)
+        tau = (data.temp_c - center) / scale
+        stats = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, max_degree, chunk)
     all_cells = np.ones(len(stats.count), dtype=bool)
     n_total = stats.count.sum()
     by_level = n_levels >= 2
@@ -185,7 +189,8 @@ def select_degree(rec: Recording | FitData, max_degree: int = 6, *, window: int 
         notes.append(f"degrees >= {n_levels} are not identified by {n_levels} temperature level(s) and are never chosen")
     if chosen is None:
         notes.append("no degree could be validated on held-out data")
-    return SelectionResult(scores, n_levels, [float(v) for v in data.level_means_c], len(np.unique(data.pose)),
+    n_poses = data.n_poses if isinstance(data, StreamedFitData) else len(np.unique(data.pose))
+    return SelectionResult(scores, n_levels, [float(v) for v in data.level_means_c], n_poses,
                            int(n_total), chosen, criterion, notes)
 
 

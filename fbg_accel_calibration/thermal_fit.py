@@ -31,21 +31,34 @@ from __future__ import annotations
 
 import datetime as _dt
 import itertools
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
+from scipy.stats import chi2
 
 from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
 
 from .recording import Recording
-from .static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW, calibration_samples
+from .static_detector import (
+    BLOCK_ROWS,
+    DEFAULT_FALSE_ALARM,
+    DEFAULT_MARGIN,
+    DEFAULT_MIN_INTERVAL,
+    DEFAULT_REFERENCE_TOLERANCE_MPS2,
+    DEFAULT_WINDOW,
+    _moving_variance_block,
+    calibration_samples,
+    variance_threshold,
+)
 
 STANDARD_GRAVITY = 9.80665
 FULL_SCALE_MPS2 = 20.0 * STANDARD_GRAVITY  # paper: +-20 g; Table 4 RMSE is normalised by it
 DEFAULT_LEVEL_GAP_C = 1.0  # degC: sorted temperatures further apart than this belong to different levels
 DEFAULT_LEVEL_WIDTH_C = 3.0  # degC: a wider cluster (a sweep, not a set-point) is split into bins this wide
 DEFAULT_CHUNK = 65536
+_LEVEL_OFFSET = 1 << 16  # cell key = pose << 32 | (level + offset)
 
 
 class NotIdentifiedError(ValueError):
@@ -178,54 +191,93 @@ class CellStats:
         return np.maximum(quad - self.count[:, None] * mean**2, 0.0)
 
 
+class CellAccumulator:
+    """Per-cell normal-equation sums built chunk by chunk (cells appear as they come).
+
+    :func:`accumulate_cells` (in memory) and the streaming fit (:func:`prepare_stream`) both feed
+    it the same chunks of rows, so their sums are identical. Memory: one chunk's design matrix plus
+    O(cells).
+    """
+
+    def __init__(self, degree: int, chunk: int = DEFAULT_CHUNK) -> None:
+        self.degree = degree
+        self.p = n_params(degree)
+        self._buffer = np.empty((chunk, self.p))
+        self._index: dict[tuple[int, int], int] = {}
+        self._keys: list[tuple[int, int]] = []
+        self._xtx: list[np.ndarray] = []
+        self._xtg: list[np.ndarray] = []
+        self._gtg: list[np.ndarray] = []
+        self._xsum: list[np.ndarray] = []
+        self._gsum: list[np.ndarray] = []
+        self._count: list[float] = []
+
+    def _cell(self, key: int) -> int:
+        c = self._index.get(key)
+        if c is None:
+            c = self._index[key] = len(self._keys)
+            self._keys.append((key >> 32, (key & 0xFFFFFFFF) - _LEVEL_OFFSET))
+            self._xtx.append(np.zeros((self.p, self.p)))
+            self._xtg.append(np.zeros((self.p, 3)))
+            self._gtg.append(np.zeros(3))
+            self._xsum.append(np.zeros(self.p))
+            self._gsum.append(np.zeros(3))
+            self._count.append(0.0)
+        return c
+
+    def add(self, psi: np.ndarray, tau: np.ndarray, gref: np.ndarray, pose: np.ndarray, level: np.ndarray) -> None:
+        """Add one chunk (at most ``chunk`` rows): Psi (n, 3), tau (n,), reference (n, 3) m/s^2, pose, level."""
+        if len(tau) == 0:
+            return
+        X = design_matrix(psi, tau, self.degree, out=self._buffer)
+        G = np.asarray(gref, dtype=float)
+        pose = np.asarray(pose, np.int64)
+        level = np.asarray(level, np.int64)
+        if level.min() < -_LEVEL_OFFSET or level.max() >= _LEVEL_OFFSET:
+            raise ValueError(f"temperature level labels must lie in [-{_LEVEL_OFFSET}, {_LEVEL_OFFSET})")
+        key = (pose << 32) + (level + _LEVEL_OFFSET)
+        change = np.flatnonzero(key[1:] != key[:-1]) + 1
+        if len(change) < len(key) // 64:  # samples come pose by pose: contiguous slices, no copy
+            bounds = np.r_[0, change, len(key)]
+            segments = [(self._cell(int(key[a])), slice(a, b)) for a, b in itertools.pairwise(bounds)]
+        else:  # interleaved cells: group by sorting
+            order = np.argsort(key, kind="stable")
+            ks = key[order]
+            bounds = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1], True])
+            segments = [(self._cell(int(ks[a])), order[a:b]) for a, b in itertools.pairwise(bounds)]
+        for c, rows in segments:
+            Xc, Gc = X[rows], G[rows]
+            self._xtx[c] += Xc.T @ Xc
+            self._xtg[c] += Xc.T @ Gc
+            self._gtg[c] += np.einsum("ni,ni->i", Gc, Gc)
+            self._xsum[c] += Xc.sum(axis=0)
+            self._gsum[c] += Gc.sum(axis=0)
+            self._count[c] += len(Gc)
+
+    def finish(self, level_map: np.ndarray | None = None) -> CellStats:
+        """The sums as :class:`CellStats`, cells ordered by (pose, level); ``level_map`` relabels levels."""
+        p = self.p
+        if not self._keys:
+            z = np.zeros(0, np.int64)
+            return CellStats(self.degree, z, z.copy(), np.zeros((0, p, p)), np.zeros((0, p, 3)), np.zeros((0, 3)),
+                             np.zeros((0, p)), np.zeros((0, 3)), np.zeros(0))
+        keys = np.asarray(self._keys, dtype=np.int64)
+        if level_map is not None:
+            keys[:, 1] = level_map[keys[:, 1]]
+        order = np.lexsort((keys[:, 1], keys[:, 0]))
+        return CellStats(self.degree, keys[order, 0], keys[order, 1], np.asarray(self._xtx)[order],
+                         np.asarray(self._xtg)[order], np.asarray(self._gtg)[order], np.asarray(self._xsum)[order],
+                         np.asarray(self._gsum)[order], np.asarray(self._count)[order])
+
+
 def accumulate_cells(psi: np.ndarray, tau: np.ndarray, gref: np.ndarray, pose: np.ndarray, level: np.ndarray,
                      degree: int, chunk: int = DEFAULT_CHUNK) -> CellStats:
     """Stream the samples in chunks of ``chunk`` rows into per-cell normal-equation sums."""
-    pose = np.asarray(pose, dtype=np.int64)
-    level = np.asarray(level, dtype=np.int64)
-    if len(pose):
-        p0, l0 = int(pose.min()), int(level.min())
-        width = int(level.max()) - l0 + 1
-        key = (pose - p0) * width + (level - l0)
-        present = np.flatnonzero(np.bincount(key))
-        lookup = np.full(int(key.max()) + 1, -1, dtype=np.int64)
-        lookup[present] = np.arange(len(present))
-        cell_of = lookup[key]
-        keys = np.stack([present // width + p0, present % width + l0], axis=1)
-    else:
-        cell_of = np.zeros(0, np.int64)
-        keys = np.zeros((0, 2), np.int64)
-    n_cells, p = len(keys), n_params(degree)
-    xtx = np.zeros((n_cells, p, p))
-    xtg = np.zeros((n_cells, p, 3))
-    gtg = np.zeros((n_cells, 3))
-    xsum = np.zeros((n_cells, p))
-    gsum = np.zeros((n_cells, 3))
-    count = np.zeros(n_cells)
-    buffer = np.empty((min(chunk, len(tau)), p))
+    acc = CellAccumulator(degree, min(chunk, max(len(tau), 1)))
     for start in range(0, len(tau), chunk):
         sl = slice(start, start + chunk)
-        X = design_matrix(psi[sl], tau[sl], degree, out=buffer)
-        G = np.asarray(gref[sl], dtype=float)
-        cells = cell_of[sl]
-        change = np.flatnonzero(cells[1:] != cells[:-1]) + 1
-        if len(change) < len(cells) // 64:  # samples come pose by pose: contiguous slices, no copy
-            bounds = np.r_[0, change, len(cells)]
-            segments = [(int(cells[a]), slice(a, b)) for a, b in itertools.pairwise(bounds)]
-        else:  # interleaved cells: group by sorting
-            order = np.argsort(cells, kind="stable")
-            cs = cells[order]
-            bounds = np.flatnonzero(np.r_[True, cs[1:] != cs[:-1], True])
-            segments = [(int(cs[a]), order[a:b]) for a, b in itertools.pairwise(bounds)]
-        for c, rows in segments:
-            Xc, Gc = X[rows], G[rows]
-            xtx[c] += Xc.T @ Xc
-            xtg[c] += Xc.T @ Gc
-            gtg[c] += np.einsum("ni,ni->i", Gc, Gc)
-            xsum[c] += Xc.sum(axis=0)
-            gsum[c] += Gc.sum(axis=0)
-            count[c] += len(Gc)
-    return CellStats(degree, keys[:, 0], keys[:, 1], xtx, xtg, gtg, xsum, gsum, count)
+        acc.add(psi[sl], tau[sl], gref[sl], pose[sl], level[sl])
+    return acc.finish()
 
 
 def solve_normal_equations(xtx: np.ndarray, xtg: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, float]:
@@ -305,27 +357,36 @@ def check_identified(degree: int, n_levels: int) -> None:
             "or record more temperature levels")
 
 
-def fit_thermal(rec: Recording | FitData, degree: int, *, sensor_id: str | None = None,
+def fit_thermal(rec: Recording | FitData | StreamedFitData, degree: int, *, sensor_id: str | None = None,
                 window: int = DEFAULT_WINDOW, min_interval: int = DEFAULT_MIN_INTERVAL,
                 level_gap_c: float = DEFAULT_LEVEL_GAP_C, chunk: int = DEFAULT_CHUNK,
                 usable: np.ndarray | None = None) -> ThermalCalibration:
-    """Fit eq. 28 of degree ``degree`` to a recording (or prepared :class:`FitData`).
+    """Fit eq. 28 of degree ``degree`` to a recording (or prepared :class:`FitData`, or the streamed sums
+    of :class:`StreamedFitData` from :func:`prepare_stream`, accumulated at a degree >= ``degree``).
 
     The result's ``fit`` dict holds sample counts, temperature levels, the in-sample RMSE per axis
     (m/s^2 and normalised by the 20 g full scale), the within-pose noise floor of the calibrated
     output and the condition number. ``noise_sigma_mps2`` is that within-pose noise floor.
     """
-    data = rec if isinstance(rec, FitData) else prepare(rec, window, min_interval, level_gap_c, usable)
+    data = rec if isinstance(rec, FitData | StreamedFitData) else prepare(rec, window, min_interval, level_gap_c, usable)
     if len(data) == 0:
         raise NotIdentifiedError("no usable static samples (check pose ids, reference and the static detector)")
     n_levels = len(data.level_means_c)
     check_identified(degree, n_levels)
-    n_poses = len(np.unique(data.pose))
+    if isinstance(data, StreamedFitData):
+        if degree > data.stats.degree:
+            raise ValueError(f"degree {degree} > the degree {data.stats.degree} the streamed sums were accumulated for")
+        n_poses, (center, scale), t_range = data.n_poses, (data.t_center_c, data.t_scale_c), data.temperature_range_c
+        stats = data.cell_stats(degree)
+    else:
+        n_poses = len(np.unique(data.pose))
+        center, scale = temperature_scaling(data.temp_c)
+        t_range = (float(np.min(data.temp_c)), float(np.max(data.temp_c)))
     if n_poses < 4:
         raise NotIdentifiedError(f"{n_poses} pose(s): at least 4 non-coplanar poses are needed for M and b")
-    center, scale = temperature_scaling(data.temp_c)
-    tau = (data.temp_c - center) / scale
-    stats = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, degree, chunk)
+    if not isinstance(data, StreamedFitData):
+        tau = (data.temp_c - center) / scale
+        stats = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, degree, chunk)
     xtx, xtg, _, n = stats.select(np.ones(len(stats.count), bool), degree)
     A, cond = solve_normal_equations(xtx, xtg)
     rss = stats.cell_rss(A, degree).sum(axis=0)
@@ -352,7 +413,7 @@ def fit_thermal(rec: Recording | FitData, degree: int, *, sensor_id: str | None 
     if src is not None:
         fit_info["sources"] = src
     return ThermalCalibration(
-        M=M, b=b, temperature_range_c=(float(np.min(data.temp_c)), float(np.max(data.temp_c))),
+        M=M, b=b, temperature_range_c=t_range,
         sensor_id=sensor_id or _sensor_id(rec), t_center_c=center, t_scale_c=scale, noise_sigma_mps2=noise,
         created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), fit=fit_info)
 
@@ -371,3 +432,401 @@ def residuals(cal: ThermalCalibration, rec: Recording, mask: np.ndarray | None =
     sel = rec if mask is None else rec.select(mask)
     psi = normalise(sel.xyz, sel.ref)
     return cal.base_acceleration(psi, sel.temp_c) - sel.gref_mps2
+
+
+# ---------------------------------------------------------------------------- streaming preparation
+class SampleBlockSource(Protocol):
+    """One run (one file) served block by block; see :class:`fbg_accel_calibration.mcap_io.McapSampleStream`."""
+
+    def blocks(self, block_rows: int, with_poses: bool) -> Iterator[Recording]:
+        """Consecutive blocks of ``block_rows`` samples (the last one shorter) of the run, in time order.
+        With ``with_poses=False`` pose id and reference may be missing (the first pass)."""
+        ...
+
+
+class RecordingBlocks:
+    """A one-run :class:`Recording` already in memory served as a :class:`SampleBlockSource` (tests)."""
+
+    def __init__(self, rec: Recording) -> None:
+        if len(np.unique(rec.run_id)) > 1:
+            raise ValueError("RecordingBlocks serves one run; give one source per run")
+        self.rec = rec
+
+    def blocks(self, block_rows: int, with_poses: bool) -> Iterator[Recording]:
+        for start in range(0, len(self.rec), block_rows):
+            yield self.rec.select(slice(start, start + block_rows))
+
+
+class _ExactMedian:
+    """Exact ``np.nanmedian`` per column of a stream of (k)-column non-negative values, in passes.
+
+    Radix selection on the IEEE-754 bit pattern, which orders non-negative doubles: the first pass
+    histograms the top 16 bits; every further pass either narrows the bin holding each wanted rank
+    by 16 more bits or, once that bin holds at most ``cap`` values, collects and sorts them. Memory:
+    2^16 counts per column and rank plus ``cap`` values per column, whatever the number of samples.
+    Passes: one when the first pass's speculative collection (the values of the bins around the
+    first block's median, at most ``cap`` of them) holds the final median's bin -- the usual case
+    for a calibration run whose noise floor does not drift by 1/8 octave --, else two for up to
+    about ``cap`` / (fraction of the data in the median's 1/16-octave bin) samples, more beyond.
+    """
+
+    RADIX = 16
+    SPEC_BINS = 2  # bins either side of the first block's median bin kept during the first pass
+
+    def __init__(self, k: int, cap: int = 1 << 18) -> None:
+        self.k, self.cap = k, cap
+        self.count = np.zeros(k, np.int64)
+        self.hist0 = np.zeros((k, 1 << self.RADIX), np.int64)
+        self.targets: list[list[dict[str, Any]]] | None = None
+        self.result = np.full(k, np.nan)
+        self.done = False
+        # speculation: during the first pass, keep the values of the bins around the first block's
+        # median (at most ``cap`` values); if the final median falls in them, no second pass is needed
+        self.spec_bins: list[tuple[int, int] | None] = [None] * k
+        self.spec_values: list[list[np.ndarray] | None] = [[] for _ in range(k)]
+        self.spec_count = np.zeros(k, np.int64)
+
+    def add(self, values: np.ndarray) -> None:
+        v = np.asarray(values, dtype=float).reshape(-1, self.k) + 0.0  # -0.0 -> +0.0
+        for j in range(self.k):
+            col = v[:, j]
+            col = col[~np.isnan(col)]
+            bits = col.view(np.uint64)
+            if self.targets is None:
+                self.count[j] += len(col)
+                top = (bits >> np.uint64(64 - self.RADIX)).astype(np.int64)
+                self.hist0[j] += np.bincount(top, minlength=1 << self.RADIX)
+                if self.spec_bins[j] is None and self.count[j]:
+                    cum = np.cumsum(self.hist0[j])
+                    b = int(np.searchsorted(cum, (self.count[j] - 1) // 2, side="right"))
+                    self.spec_bins[j] = (b - self.SPEC_BINS, b + self.SPEC_BINS)
+                if self.spec_values[j] is not None and self.spec_bins[j] is not None:
+                    lo, hi = self.spec_bins[j]
+                    kept = col[(top >= lo) & (top <= hi)]
+                    self.spec_count[j] += len(kept)
+                    if self.spec_count[j] > self.cap:
+                        self.spec_values[j] = None  # too many: give up, a second pass collects exactly
+                    else:
+                        self.spec_values[j].append(kept)
+                continue
+            for t in self.targets[j]:
+                if t["value"] is not None:
+                    continue
+                sel = (bits >> np.uint64(t["shift"])) == np.uint64(t["prefix"])
+                if t["collect"]:
+                    t["values"].append(col[sel])
+                else:
+                    sub = (bits[sel] >> np.uint64(t["shift"] - self.RADIX)) & np.uint64((1 << self.RADIX) - 1)
+                    t["hist"] += np.bincount(sub.astype(np.int64), minlength=1 << self.RADIX)
+
+    def _narrow(self, t: dict[str, Any], hist: np.ndarray, prefix: int, shift: int) -> None:
+        cum = np.cumsum(hist)
+        b = int(np.searchsorted(cum, t["rank"], side="right"))
+        t["rank"] -= int(cum[b - 1]) if b else 0
+        t["prefix"], t["shift"] = (prefix << self.RADIX) | b, shift - self.RADIX
+        if t["shift"] == 0:
+            t["value"] = float(np.array([t["prefix"]], dtype=np.uint64).view(float)[0])
+        t["collect"] = int(hist[b]) <= self.cap
+        t["hist"] = np.zeros(1 << self.RADIX, np.int64)
+        t["values"] = []
+
+    def end_pass(self) -> None:
+        """Close a pass over the whole stream; :attr:`done` tells whether another pass is needed."""
+        if self.targets is None:
+            self.targets = []
+            for j in range(self.k):
+                m = int(self.count[j])
+                ranks = sorted({(m - 1) // 2, m // 2}) if m else []
+                ts = [{"rank": r, "value": None} for r in ranks]
+                spec = self.spec_values[j]
+                spec_sorted = np.sort(np.concatenate(spec)) if spec else None
+                for t in ts:
+                    self._narrow(t, self.hist0[j], 0, 64)
+                    lo, hi = self.spec_bins[j] or (1, 0)
+                    if t["value"] is None and spec_sorted is not None and lo <= t["prefix"] <= hi:
+                        in_bin = spec_sorted[(spec_sorted.view(np.uint64) >> np.uint64(t["shift"])) == np.uint64(t["prefix"])]
+                        t["value"] = float(in_bin[t["rank"]])
+                self.targets.append(ts)
+            self.hist0 = np.zeros((0, 0), np.int64)
+            self.spec_values = [None] * self.k
+        else:
+            for ts in self.targets:
+                for t in ts:
+                    if t["value"] is not None:
+                        continue
+                    if t["collect"]:
+                        t["value"] = float(np.sort(np.concatenate(t["values"]))[t["rank"]])
+                    else:
+                        self._narrow(t, t["hist"], t["prefix"], t["shift"])
+        self.done = all(t["value"] is not None for ts in self.targets for t in ts)
+        if self.done:
+            for j, ts in enumerate(self.targets):
+                if len(ts) == 1:
+                    self.result[j] = ts[0]["value"]
+                elif ts:  # even count: mean of the two middle values, as np.median
+                    self.result[j] = np.median(np.array([ts[0]["value"], ts[1]["value"]]))
+
+
+class _TemperatureClusters:
+    """Exact streaming form of the gap clustering of :func:`temperature_levels`.
+
+    Sorted temperatures further apart than ``gap_c`` separate clusters, so a cluster is fully
+    described by its lowest and highest temperature: the clusters of a union of samples are the
+    clusters of the parts merged wherever the gap between neighbours is <= ``gap_c``. State: two
+    floats per cluster. :meth:`labels` then applies the bin split of wide clusters as
+    :func:`temperature_levels` does (provisional labels; empty bins are dropped at the end).
+    """
+
+    def __init__(self, gap_c: float, max_width_c: float = DEFAULT_LEVEL_WIDTH_C) -> None:
+        self.gap_c, self.max_width_c = gap_c, max_width_c
+        self.lo = np.zeros(0)
+        self.hi = np.zeros(0)
+
+    def add(self, temp_c: np.ndarray) -> None:
+        t = np.sort(np.asarray(temp_c, dtype=float))
+        if len(t) == 0:
+            return
+        brk = np.flatnonzero(np.diff(t) > self.gap_c)
+        lo = np.r_[self.lo, t[np.r_[0, brk + 1]]]
+        hi = np.r_[self.hi, t[np.r_[brk, len(t) - 1]]]
+        order = np.argsort(lo, kind="stable")
+        out_lo, out_hi = [lo[order[0]]], [hi[order[0]]]
+        for a, b in zip(lo[order[1:]], hi[order[1:]], strict=True):
+            if a - out_hi[-1] > self.gap_c:
+                out_lo.append(a)
+                out_hi.append(b)
+            else:
+                out_hi[-1] = max(out_hi[-1], b)
+        self.lo, self.hi = np.asarray(out_lo), np.asarray(out_hi)
+
+    def finish(self) -> None:
+        """Fix the bins of each cluster (after all samples were added)."""
+        self.bins = np.array([max(1, int(np.ceil((h - lo) / self.max_width_c - 1e-9))) for lo, h in zip(self.lo, self.hi,
+                                                                                                    strict=True)], int)
+        self.offset = np.r_[0, np.cumsum(self.bins)[:-1]].astype(np.int64)
+        self.n_labels = int(self.bins.sum())
+
+    def labels(self, temp_c: np.ndarray) -> np.ndarray:
+        """Provisional level labels (N,) of temperatures that were added."""
+        t = np.asarray(temp_c, dtype=float)
+        c = np.searchsorted(self.lo, t, side="right") - 1
+        out = self.offset[c].copy()
+        for ci in np.flatnonzero(self.bins > 1):
+            sel = c == ci
+            lo, hi, bins = self.lo[ci], self.hi[ci], int(self.bins[ci])
+            out[sel] += np.minimum(((t[sel] - lo) / max((hi - lo) / bins, 1e-12)).astype(int), bins - 1)
+        return out
+
+
+def _signal_blocks(blocks: Iterator[Recording], window: int, with_reference: bool):
+    """Yield ``(block, psi, var_psi, var_gref)`` with the centred moving variances of each block computed
+    exactly as :func:`static_detector.moving_variance` computes them for the whole run (same
+    ``BLOCK_ROWS`` grid and window overlap: one block of lookahead, ``window`` rows carried)."""
+    half_lo = (window - 1) // 2
+    half_hi = window - 1 - half_lo
+    it = iter(blocks)
+    cur = next(it, None)
+    if cur is None:
+        return
+    cur_psi = normalise(cur.xyz, cur.ref)
+    tail_psi, tail_g = np.zeros((0, 3)), np.zeros((0, 3))
+    while cur is not None:
+        nxt = next(it, None)
+        nxt_psi = normalise(nxt.xyz, nxt.ref) if nxt is not None else np.zeros((0, 3))
+        head_g = nxt.gref_mps2[:half_hi] if nxt is not None else np.zeros((0, 3))
+        n, off = len(cur), len(tail_psi)
+        var = _moving_variance_block(np.vstack([tail_psi, cur_psi, nxt_psi[:half_hi]]), window)[off:off + n]
+        var_g = (_moving_variance_block(np.vstack([tail_g, cur.gref_mps2, head_g]), window)[off:off + n]
+                 if with_reference else None)
+        yield cur, cur_psi, var, var_g
+        tail_psi = np.vstack([tail_psi, cur_psi[-half_lo:]])[-half_lo:] if half_lo else np.zeros((0, 3))
+        tail_g = np.vstack([tail_g, cur.gref_mps2[-half_lo:]])[-half_lo:] if half_lo else np.zeros((0, 3))
+        cur, cur_psi = nxt, nxt_psi
+
+
+def _usable_from(still: np.ndarray, ref_still: np.ndarray, pose: np.ndarray, gref_ok: np.ndarray,
+                 min_interval: int) -> np.ndarray:
+    """The interval logic of :func:`static_detector.calibration_samples` on one stretch of one run."""
+    def run_lengths(change: np.ndarray) -> np.ndarray:
+        segment = np.cumsum(change) - 1
+        return np.bincount(segment)[segment]
+
+    if len(still) == 0:
+        return np.zeros(0, bool)
+    s8 = still.astype(np.int8)
+    det = still & (run_lengths(np.r_[True, np.diff(s8) != 0]) >= min_interval)
+    usable = det & ref_still & (pose >= 0) & gref_ok
+    change = np.r_[True, (np.diff(pose) != 0) | (np.diff(usable.astype(np.int8)) != 0)]
+    return usable & (run_lengths(change) >= min_interval)
+
+
+def _usable_blocks(blocks: Iterator[Recording], window: int, min_interval: int, threshold: np.ndarray,
+                   tolerance_mps2: float):
+    """Yield ``(block, psi, usable)`` with ``usable`` equal to :func:`calibration_samples` on the whole run.
+
+    The run-length rules (static runs and pose segments of >= ``min_interval`` samples) only look
+    ``2 * min_interval`` samples either way, so each block is decided with that much context carried
+    from the previous block and taken from the next one (one block of lookahead).
+    """
+    ctx = 2 * min_interval + 2
+
+    def flags(item):
+        blk, psi, var, var_g = item
+        still = np.all(var <= threshold, axis=1)
+        ref_still = np.all(var_g <= tolerance_mps2**2, axis=1)
+        gref_ok = np.all(np.isfinite(blk.gref_mps2), axis=1)
+        return blk, psi, np.stack([still, ref_still, gref_ok], axis=1), blk.pose_id
+
+    it = _signal_blocks(blocks, window, with_reference=True)
+    first = next(it, None)
+    if first is None:
+        return
+    cur = flags(first)
+    tail_f, tail_p = np.zeros((0, 3), bool), np.zeros(0, int)
+    while cur is not None:
+        nxt_item = next(it, None)
+        nxt = flags(nxt_item) if nxt_item is not None else None
+        head_f = nxt[2][:ctx] if nxt is not None else np.zeros((0, 3), bool)
+        head_p = nxt[3][:ctx] if nxt is not None else np.zeros(0, int)
+        blk, psi, f, p = cur
+        ff, pp = np.vstack([tail_f, f, head_f]), np.r_[tail_p, p, head_p]
+        off = len(tail_f)
+        usable = _usable_from(ff[:, 0], ff[:, 1], pp, ff[:, 2], min_interval)[off:off + len(p)]
+        yield blk, psi, usable
+        tail_f, tail_p = np.vstack([tail_f, f[-ctx:]])[-ctx:], np.r_[tail_p, p[-ctx:]][-ctx:]
+        cur = nxt
+
+
+@dataclass
+class StreamedFitData:
+    """Everything the fit and the degree selection need, accumulated without holding the samples.
+
+    ``stats`` are the per-cell sums at degree ``stats.degree`` (lower degrees are sub-blocks);
+    the other fields are those of :class:`FitData` reduced to what the fit reports.
+    """
+
+    stats: CellStats
+    level_means_c: np.ndarray
+    temperature_range_c: tuple[float, float]
+    t_center_c: float
+    t_scale_c: float
+    n_used: int
+    n_total: int
+    n_excluded_motion: int
+    n_excluded_other: int
+    n_poses: int
+    detector: dict[str, Any] = field(default_factory=dict)
+    metadata: dict[str, Any] = field(default_factory=dict)
+    passes: int = 0
+
+    def __len__(self) -> int:
+        return self.n_used
+
+    def cell_stats(self, degree: int) -> CellStats:
+        """The sums restricted to the regressors of ``degree`` (<= ``stats.degree``)."""
+        s = self.stats
+        if degree == s.degree:
+            return s
+        cols = sub_columns(degree, s.degree)
+        return CellStats(degree, s.pose, s.level, s.xtx[:, cols][:, :, cols], s.xtg[:, cols], s.gtg, s.xsum[:, cols],
+                         s.gsum, s.count)
+
+
+def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = DEFAULT_WINDOW,
+                   min_interval: int = DEFAULT_MIN_INTERVAL, level_gap_c: float = DEFAULT_LEVEL_GAP_C,
+                   chunk: int = DEFAULT_CHUNK, false_alarm: float = DEFAULT_FALSE_ALARM, margin: float = DEFAULT_MARGIN,
+                   tolerance_mps2: float = DEFAULT_REFERENCE_TOLERANCE_MPS2) -> StreamedFitData:
+    """:func:`prepare` + :func:`accumulate_cells` (at ``degree``) for runs read block by block.
+
+    Exact scheme, in passes over each run (``sources[i]`` is run i, as ``Recording.concatenate``):
+
+    1. noise floor: moving variance of Psi per block (window carried between blocks) into an exact
+       streaming median (:class:`_ExactMedian`, radix selection on the float bits): one pass to
+       histogram (it also collects the pose/reference events), usually one more to collect the
+       median's bin; this is the robust noise-floor estimate of :func:`detect_static`;
+    2. temperatures: the static detector and the interval rules (:func:`_usable_blocks`, context of
+       ``2 min_interval`` samples carried between blocks) select the fit samples; their temperatures
+       go into the exact gap clustering (:class:`_TemperatureClusters`) and the min/max that give the
+       temperature levels and the scaling tau = (T - centre)/scale;
+    3. sums: the same selection again, now with tau and the level of each sample, into
+       :class:`CellAccumulator`, in chunks of ``chunk`` selected rows exactly as the in-memory path.
+
+    Memory: a few blocks of ``static_detector.BLOCK_ROWS`` samples, one chunk of the design matrix
+    and O(cells + levels) state, independent of the number of samples. The result equals
+    :func:`prepare` + :func:`accumulate_cells` on the concatenated recording to rounding (the
+    selection and levels are identical; only the summation order of level means differs).
+    """
+    dof = window - 1
+    thresholds: list[np.ndarray] = []
+    noise_out, thr_out = np.zeros(3), np.zeros(3)
+    passes = 0
+    for src in sources:
+        med = _ExactMedian(3)
+        while not med.done:
+            for _blk, _psi, var, _ in _signal_blocks(src.blocks(BLOCK_ROWS, False), window, with_reference=False):
+                med.add(var)
+            med.end_pass()
+            passes += 1
+        nv = med.result / (chi2.median(dof) / dof)
+        thr = variance_threshold(nv, window, false_alarm, margin)
+        thresholds.append(thr)
+        noise_out, thr_out = np.maximum(noise_out, nv), np.maximum(thr_out, thr)
+
+    def kept_blocks():
+        for src, thr in zip(sources, thresholds, strict=True):
+            for blk, psi, usable in _usable_blocks(src.blocks(BLOCK_ROWS, True), window, min_interval, thr, tolerance_mps2):
+                valid = (blk.pose_id >= 0) & np.all(np.isfinite(blk.gref_mps2), axis=1) & np.isfinite(blk.temp_c)
+                valid &= np.all(np.isfinite(psi), axis=1)
+                yield blk, psi, usable, valid, usable & valid
+
+    clusters = _TemperatureClusters(level_gap_c)
+    n_total = n_motion = n_other = 0
+    t_min, t_max = np.inf, -np.inf
+    for blk, _psi, usable, valid, keep in kept_blocks():
+        n_total += len(blk)
+        n_motion += int((valid & ~usable).sum())
+        n_other += int((~valid).sum())
+        t = blk.temp_c[keep]
+        clusters.add(t)
+        if len(t):
+            t_min, t_max = min(t_min, float(t.min())), max(t_max, float(t.max()))
+    passes += 1
+    clusters.finish()
+    center, scale = temperature_scaling(np.array([t_min, t_max])) if np.isfinite(t_min) else (0.0, 1.0)
+
+    acc = CellAccumulator(degree, chunk)
+    buf_psi, buf_tau, buf_g = np.empty((chunk, 3)), np.empty(chunk), np.empty((chunk, 3))
+    buf_pose, buf_level = np.empty(chunk, np.int64), np.empty(chunk, np.int64)
+    fill = 0
+    level_sum = np.zeros(clusters.n_labels)
+    level_count = np.zeros(clusters.n_labels, np.int64)
+    for blk, psi, _usable, _valid, keep in kept_blocks():
+        rows = np.flatnonzero(keep)
+        t = blk.temp_c[rows]
+        lab = clusters.labels(t)
+        level_sum += np.bincount(lab, weights=t, minlength=clusters.n_labels)
+        level_count += np.bincount(lab, minlength=clusters.n_labels)
+        tau, ps, g, pz = (t - center) / scale, psi[rows], blk.gref_mps2[rows], blk.pose_id[rows]
+        start = 0
+        while start < len(rows):
+            take = min(chunk - fill, len(rows) - start)
+            sl, dst = slice(start, start + take), slice(fill, fill + take)
+            buf_psi[dst], buf_tau[dst], buf_g[dst], buf_pose[dst], buf_level[dst] = ps[sl], tau[sl], g[sl], pz[sl], lab[sl]
+            fill += take
+            start += take
+            if fill == chunk:
+                acc.add(buf_psi, buf_tau, buf_g, buf_pose, buf_level)
+                fill = 0
+    if fill:
+        acc.add(buf_psi[:fill], buf_tau[:fill], buf_g[:fill], buf_pose[:fill], buf_level[:fill])
+    passes += 1
+    present = np.flatnonzero(level_count)
+    level_map = np.full(max(clusters.n_labels, 1), -1, np.int64)
+    level_map[present] = np.arange(len(present))
+    stats = acc.finish(level_map)
+    n_used = int(level_count.sum())
+    detector = {"window_samples": window, "min_interval_samples": min_interval, "noise_var_psi": noise_out.tolist(),
+                "threshold_var_psi": thr_out.tolist()}
+    return StreamedFitData(stats, level_sum[present] / level_count[present],
+                           (t_min, t_max), center, scale, n_used, n_total, n_motion, n_other,
+                           len(np.unique(stats.pose)), detector, {}, passes)
