@@ -1,0 +1,170 @@
+#!/usr/bin/env python3
+"""Calibration benchmark: fit and diagnose on 10^6 simulated samples, MCAP write rate of the recorder.
+
+Not a test. Steps (wall clock, one process, numpy may use both cores for its BLAS calls):
+
+* ``simulate``: ``simulate_recording`` of the board simulator (default physics: every nominal effect
+  on) over a multi-temperature calibration run: the measured run's table grid (theta 0..360 and psi
+  0..330 degrees in 60-degree steps, 3 s dwell, 1 s moves, looped) at 100 Hz while the chamber holds
+  four levels 16 / 25 / 35 / 45 degC (``thermal.optics_time_constant_s`` shortened to 60 s so the
+  levels settle within the run), ``--samples`` samples (default 10^6 = 2.8 h of board time);
+* ``fit``: ``fit_thermal(rec, degree)`` (static detector, temperature levels, streamed least
+  squares, RMSE, noise floor): what ``fbg-accel-calib fit`` does after reading; best of ``--repeats``;
+* ``diagnose``: ``diagnose(rec)`` (degree selection, cross-validated effect library, residual
+  structure): what the diagnosis command does after reading; once;
+* ``mcap_write``: the recorder's ``RecordingWriter`` (via ``write_recording``: one ``write_raw`` per
+  sample plus pose and reference-gravity events at pose changes, zstd chunks, as the calibration node
+  writes them) for ``--mcap-samples`` samples (default 10^6); messages/s and MB/s of file written,
+  and the ratio to the 3413 messages/s the driver publishes on ``imu/raw`` at the 921600-baud link
+  limit; the file is read back with ``read_recording`` and the sample count checked.
+
+Peak resident memory (ru_maxrss) after each step is reported. Writes bench/results/calibration.json.
+
+    .venv/bin/python bench/bench_calibration.py [--samples 1000000] [--mcap-samples 1000000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import platform
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from fbg_accel_calibration.diagnose import diagnose  # noqa: E402
+from fbg_accel_calibration.mcap_io import read_recording, write_recording  # noqa: E402
+from fbg_accel_calibration.thermal_fit import fit_thermal  # noqa: E402
+from fbg_accel_driver.frame_codec import link_frame_rate_limit  # noqa: E402
+from fbg_accel_driver.sim.board_physics import simulate_recording  # noqa: E402
+from fbg_accel_driver.sim.sim_config import SimConfig  # noqa: E402
+
+RATE_HZ = 100.0
+LEVELS_C = (16.0, 25.0, 35.0, 45.0)
+
+
+def scenario(n_samples: int) -> tuple[SimConfig, float]:
+    """Simulator config of the benchmark run and its duration (s) for ``n_samples`` samples."""
+    cfg = SimConfig.default()
+    ppm = float(cfg.get("board.clock_ppm"))
+    duration = n_samples / (RATE_HZ * (1.0 + ppm * 1e-6))
+    hold = duration / len(LEVELS_C)
+    profile: list[dict] = []
+    for i, level in enumerate(LEVELS_C):
+        if i:
+            profile.append({"ramp_to_c": level, "duration_s": 60.0})
+        profile.append({"hold_s": hold - (60.0 if i else 0.0)})
+    cfg = cfg.with_overrides({
+        "scenario.rate_hz": RATE_HZ,
+        "scenario.poses.mode": "grid", "scenario.poses.dwell_s": 3.0, "scenario.poses.move_s": 1.0,
+        "scenario.poses.grid.theta_step_deg": 60.0, "scenario.poses.grid.psi_step_deg": 60.0,
+        "scenario.poses.repeat": 0,
+        "scenario.temperature.initial_c": LEVELS_C[0], "scenario.temperature.profile": profile,
+        "thermal.optics_time_constant_s": 60.0,
+    })
+    return cfg, duration
+
+
+def peak_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--samples", type=int, default=1_000_000, help="samples of the fit/diagnose recording (default 10^6)")
+    ap.add_argument("--mcap-samples", type=int, default=1_000_000, help="samples written to MCAP (default 10^6; 0: skip)")
+    ap.add_argument("--degree", type=int, default=2, help="polynomial degree of the timed fit (default 2, as calibration_sim)")
+    ap.add_argument("--repeats", type=int, default=3, help="timed repeats of the fit (best is reported)")
+    ap.add_argument("--skip-diagnose", action="store_true", help="do not run the diagnosis step")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "calibration.json")
+    args = ap.parse_args(argv)
+
+    steps: dict[str, dict] = {}
+    cfg, duration = scenario(args.samples)
+    t0 = time.perf_counter()
+    rec = simulate_recording(cfg, seed=args.seed, duration_s=duration)
+    steps["simulate"] = {"seconds": time.perf_counter() - t0, "samples": len(rec), "board_hours": duration / 3600,
+                         "peak_rss_mib": peak_rss_mib()}
+    print(f"simulate: {len(rec)} samples in {steps['simulate']['seconds']:.1f} s", flush=True)
+
+    times = []
+    cal = None
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        cal = fit_thermal(rec, args.degree)
+        times.append(time.perf_counter() - t0)
+    assert cal is not None
+    steps["fit"] = {"degree": args.degree, "seconds_best": min(times), "seconds_all": times,
+                    "samples_per_s": len(rec) / min(times), "samples_used": cal.fit.get("samples_used"),
+                    "rmse_mps2": [float(v) for v in cal.fit.get("rmse_mps2", [])], "peak_rss_mib": peak_rss_mib()}
+    print(f"fit (degree {args.degree}): best {min(times):.2f} s of {args.repeats}", flush=True)
+
+    if not args.skip_diagnose:
+        t0 = time.perf_counter()
+        res = diagnose(rec)
+        sec = time.perf_counter() - t0
+        steps["diagnose"] = {"seconds": sec, "samples_per_s": len(rec) / sec, "degree": res.degree,
+                             "ranked": [c.name for c in res.ranked][:5], "added": [a[0] for a in res.added],
+                             "noise_floor_mps2": [float(v) for v in res.noise_floor], "peak_rss_mib": peak_rss_mib()}
+        print(f"diagnose: {sec:.1f} s, added {steps['diagnose']['added']}", flush=True)
+
+    link_msgs = link_frame_rate_limit(921600)
+    if args.mcap_samples:
+        part = rec.select(np.arange(len(rec)) < args.mcap_samples)
+        with tempfile.TemporaryDirectory(prefix="bench_mcap_") as tmp:
+            path = Path(tmp) / "bench.mcap"
+            t0 = time.perf_counter()
+            n_msgs = write_recording(path, part, metadata={"sensor_id": "bench"})
+            sec = time.perf_counter() - t0
+            size = path.stat().st_size
+            t0 = time.perf_counter()
+            back = read_recording(path)
+            read_s = time.perf_counter() - t0
+            if len(back) != len(part):
+                raise RuntimeError(f"MCAP read back {len(back)} samples, wrote {len(part)}")
+        steps["mcap_write"] = {"samples": len(part), "messages": n_msgs, "seconds": sec, "messages_per_s": n_msgs / sec,
+                               "file_mb": size / 1e6, "mb_per_s": size / 1e6 / sec, "bytes_per_message": size / n_msgs,
+                               "compression": "zstd (RecordingWriter default)",
+                               "ratio_to_imu_raw_rate_at_link_limit": (n_msgs / sec) / link_msgs,
+                               "read_back_seconds": read_s, "read_back_samples": len(back), "peak_rss_mib": peak_rss_mib()}
+        print(f"mcap write: {n_msgs} messages in {sec:.1f} s = {n_msgs / sec:.0f} msg/s, {size / 1e6 / sec:.2f} MB/s", flush=True)
+
+    doc = {
+        "benchmark": "calibration: fit and diagnose on simulated samples, MCAP write rate of RecordingWriter",
+        "command": "python bench/bench_calibration.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "machine": {"cpu": cpu_model(), "logical_cpus": os.cpu_count(), "python": platform.python_version(),
+                    "numpy": np.__version__, "platform": platform.platform(), "load_average_1_5_15": list(os.getloadavg())},
+        "scenario": {"rate_hz": RATE_HZ, "levels_c": list(LEVELS_C), "poses": "grid 60 deg, dwell 3 s, move 1 s, looped",
+                     "seed": args.seed},
+        "imu_raw_messages_per_s_at_link_limit": link_msgs,
+        "steps": steps,
+    }
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(doc, indent=2) + "\n")
+    print(f"results written to {args.output}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,256 @@
+#!/usr/bin/env python3
+"""Per-frame cost of the driver's stages, to locate the hot path (companion of bench_driver_ingest.py).
+
+Not a test. Each stage is timed in this process with the CPU time of the calling thread
+(``time.thread_time_ns``), at the frame spacing of a real stream (100 Hz, 1 kHz, the 921600-baud
+link limit) or back to back, because the cost per frame of a Python + numpy pipeline depends a lot on
+whether the caches are warm:
+
+* ``serial_chunks``: ``SerialLink`` reading a pty on which one frame is written every 10 ms: chunks
+  (and consumer notifications) per frame;
+* ``core_feed``: ``DriverCore.feed`` (decoder, clock sync, calibration eq. 24/28, policies) with one
+  frame per call, split in 1 + 26 bytes as the serial link delivers it, and with 10 or 100 frames per call;
+* ``messages``: building the ``imu/raw`` JointState and ``imu/data_raw`` Imu of one frame and publishing
+  them (rclpy, sensor-data QoS, no subscriber);
+* ``executor_wakeup``: one wake-up of rclpy's ``SingleThreadedExecutor`` by a guard condition
+  triggered from another thread (how the driver node hands chunks to its publisher), against one
+  wake-up of a plain Python thread blocked in ``queue.SimpleQueue.get``.
+
+Writes bench/results/driver_stages.json. Needs ROS_DOMAIN_ID for the rclpy steps.
+
+    ROS_DOMAIN_ID=31 .venv/bin/python bench/bench_driver_stages.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import platform
+import queue
+import sys
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from fbg_accel_driver.driver_core import DriverCore  # noqa: E402
+from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, link_frame_rate_limit  # noqa: E402
+from fbg_accel_driver.sim.board_physics import BoardSimulator, SimConfig  # noqa: E402
+from fbg_accel_driver.thermal_model import ThermalCalibration  # noqa: E402
+
+LINK_RATE = link_frame_rate_limit(921600)
+RATES = {"back_to_back": None, "1khz": 1000.0, "100hz": 100.0}
+
+
+def frames_bytes(n: int) -> bytes:
+    sim = BoardSimulator(SimConfig.default().with_overrides({"scenario.rate_hz": 1000.0}), seed=0)
+    return sim.step_bytes(n)
+
+
+def paced(n: int, rate: float | None, work) -> float:
+    """Mean thread CPU (us) of ``work(i)`` called ``n`` times, ``1/rate`` apart (back to back if None)."""
+    total = 0
+    t_next = time.monotonic()
+    for i in range(n):
+        if rate:
+            t_next += 1.0 / rate
+            time.sleep(max(0.0, t_next - time.monotonic()))
+        t = time.thread_time_ns()
+        work(i)
+        total += time.thread_time_ns() - t
+    return total / n / 1e3
+
+
+def bench_core(n: int, data: bytes, cal: ThermalCalibration) -> dict:
+    out: dict[str, dict[str, float]] = {}
+    splits = {"1+26 bytes": None, "1 frame": 1, "10 frames": 10, "100 frames": 100}
+    for label, per in splits.items():
+        if per is None:
+            pieces = [p for i in range(0, len(data), FRAME_SIZE_V1) for p in (data[i:i + 1], data[i + 1:i + FRAME_SIZE_V1])]
+            calls_per_frame = 2
+        else:
+            pieces = [data[i:i + per * FRAME_SIZE_V1] for i in range(0, len(data), per * FRAME_SIZE_V1)]
+            calls_per_frame = 1 / per
+        out[label] = {}
+        for rname, rate in RATES.items():
+            if per is not None and per > 1 and rate:
+                continue  # batches only happen when the consumer is behind: back to back is the relevant case
+            core = DriverCore(cal)
+            h = time.time_ns()
+            m = min(len(pieces), int(n * calls_per_frame))
+            def work(i: int, c: DriverCore = core, p: list[bytes] = pieces, h: int = h) -> None:
+                c.feed(p[i], h + i * 500_000)
+
+            us = paced(m, rate * calls_per_frame if rate else None, work)
+            out[label][rname] = us * calls_per_frame  # per frame
+    return out
+
+
+def bench_messages(n: int) -> dict:
+    import rclpy
+    from builtin_interfaces.msg import Time
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import Imu, JointState
+
+    from fbg_accel_driver.driver_node import RAW_NAMES
+
+    node = rclpy.create_node("bench_driver_stages_pub")
+    pr = node.create_publisher(JointState, "bench_stages/raw", qos_profile_sensor_data)
+    pi = node.create_publisher(Imu, "bench_stages/imu", qos_profile_sensor_data)
+
+    def work(i: int) -> None:
+        m = JointState()
+        m.header.stamp = Time(sec=1, nanosec=i)
+        m.header.frame_id = "fbg_accel_link"
+        m.name = RAW_NAMES
+        m.position = [870.0, 1130.0, 1650.0, 1130.0, 23.4, 1.0, 3.0, float(i), i * 1e-3]
+        pr.publish(m)
+        q = Imu()
+        q.header.stamp = m.header.stamp
+        q.header.frame_id = "fbg_accel_link"
+        q.orientation_covariance[0] = -1.0
+        q.angular_velocity_covariance[0] = -1.0
+        q.linear_acceleration.x, q.linear_acceleration.y, q.linear_acceleration.z = 0.01, -0.02, 9.81
+        q.linear_acceleration_covariance = [0.01, 0.0, 0.0, 0.0, 0.01, 0.0, 0.0, 0.0, 0.01]
+        pi.publish(q)
+
+    res = {rname: paced(n if rate is None else min(n, int(3 * rate)), rate, work) for rname, rate in RATES.items()}
+    node.destroy_node()
+    return res
+
+
+def bench_wakeups(seconds: float) -> dict:
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    res: dict[str, dict[str, float]] = {"rclpy_guard_condition": {}, "python_queue_thread": {}}
+    for rname, rate in (("100hz", 100.0), ("1khz", 1000.0), ("link", LINK_RATE)):
+        # rclpy executor woken by a guard condition (the node also holds a 1 Hz timer, as the driver)
+        node = rclpy.create_node("bench_driver_stages_wake")
+        count = [0]
+        guard = node.create_guard_condition(lambda c=count: c.__setitem__(0, c[0] + 1))
+        node.create_timer(1.0, lambda: None)
+        ex = SingleThreadedExecutor()
+        ex.add_node(node)
+        stop = threading.Event()
+
+        def trigger(rate: float = rate, g=guard, stop: threading.Event = stop) -> None:
+            t_next = time.monotonic()
+            while not stop.is_set():
+                t_next += 1.0 / rate
+                time.sleep(max(0.0, t_next - time.monotonic()))
+                g.trigger()
+
+        th = threading.Thread(target=trigger, daemon=True)
+        th.start()
+        t_end = time.monotonic() + seconds
+        c0 = time.thread_time_ns()
+        while time.monotonic() < t_end:
+            ex.spin_once(timeout_sec=0.1)
+        cpu = time.thread_time_ns() - c0
+        stop.set()
+        th.join()
+        res["rclpy_guard_condition"][rname] = cpu / max(1, count[0]) / 1e3
+        ex.shutdown()
+        node.destroy_node()
+        # a plain thread blocked in SimpleQueue.get
+        q: queue.SimpleQueue = queue.SimpleQueue()
+        got = [0, 0]
+
+        def consumer(q=q, got=got) -> None:
+            c = time.thread_time_ns()
+            while (item := q.get()) is not None:
+                got[0] += 1
+                del item
+            got[1] = time.thread_time_ns() - c
+
+        th = threading.Thread(target=consumer, daemon=True)
+        th.start()
+        t_next = time.monotonic()
+        t_end = t_next + seconds
+        while t_next < t_end:
+            t_next += 1.0 / rate
+            time.sleep(max(0.0, t_next - time.monotonic()))
+            q.put(1)
+        q.put(None)
+        th.join()
+        res["python_queue_thread"][rname] = got[1] / max(1, got[0]) / 1e3
+    return res
+
+
+def bench_serial_chunks(n: int, data: bytes) -> dict:
+    from fbg_accel_driver.serial_link import SerialLink
+    from fbg_accel_driver.sim.pty_server import PtyEndpoint
+
+    ep = PtyEndpoint(None)
+    path = ep.open(hold=True)
+    wakes = [0]
+    link = SerialLink(path, 921600, notify=lambda: wakes.__setitem__(0, wakes[0] + 1))
+    link.start()
+    deadline = time.monotonic() + 10
+    while link.status().state.value != "connected" and time.monotonic() < deadline:
+        time.sleep(0.01)
+    wakes[0] = 0
+    t_next = time.monotonic()
+    for i in range(n):
+        t_next += 0.01
+        time.sleep(max(0.0, t_next - time.monotonic()))
+        ep.write(data[i * FRAME_SIZE_V1:(i + 1) * FRAME_SIZE_V1])
+    deadline = time.monotonic() + 5
+    chunks, nbytes = 0, 0
+    while nbytes < n * FRAME_SIZE_V1 and time.monotonic() < deadline:
+        try:
+            _, c = link.queue.get(timeout=0.1)
+        except queue.Empty:
+            continue
+        chunks += 1
+        nbytes += len(c)
+    link.stop()
+    ep.close()
+    return {"frames": n, "bytes": nbytes, "chunks": chunks, "chunks_per_frame": chunks / n,
+            "notifications_per_frame": wakes[0] / n}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=2000, help="frames per timed case (paced cases take at most 3 s)")
+    ap.add_argument("--wake-seconds", type=float, default=3.0, help="seconds per wake-up case")
+    ap.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "driver_stages.json")
+    args = ap.parse_args(argv)
+    import rclpy
+
+    data = frames_bytes(max(args.frames, 1000) * 2)
+    cal = ThermalCalibration.load(ROOT / "config" / "calibration_sim.yaml")
+    results: dict = {"serial_chunks_at_100hz": bench_serial_chunks(300, data)}
+    print("serial:", results["serial_chunks_at_100hz"], flush=True)
+    n100 = min(args.frames, 300)
+    results["core_feed_us_cpu_per_frame"] = bench_core(args.frames, data, cal) | {"frames_at_100hz": n100}
+    print("core:", json.dumps(results["core_feed_us_cpu_per_frame"]), flush=True)
+    rclpy.init()
+    try:
+        results["messages_build_publish_us_cpu_per_frame"] = bench_messages(args.frames)
+        print("messages:", results["messages_build_publish_us_cpu_per_frame"], flush=True)
+        results["wakeup_us_cpu"] = bench_wakeups(args.wake_seconds)
+        print("wake-ups:", results["wakeup_us_cpu"], flush=True)
+    finally:
+        rclpy.try_shutdown()
+    doc = {
+        "benchmark": "driver stage costs per frame (thread CPU time, us)",
+        "command": "python bench/bench_driver_stages.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "machine": {"logical_cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
+                    "load_average_1_5_15": list(os.getloadavg())},
+        "results": results,
+    }
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(doc, indent=2) + "\n")
+    print(f"results written to {args.output}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
