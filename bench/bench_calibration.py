@@ -41,6 +41,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from machine_info import cpu_model  # noqa: E402
+
 from fbg_accel_calibration.diagnose import diagnose  # noqa: E402
 from fbg_accel_calibration.mcap_io import read_recording, write_recording  # noqa: E402
 from fbg_accel_calibration.thermal_fit import fit_thermal  # noqa: E402
@@ -76,16 +78,6 @@ def scenario(n_samples: int) -> tuple[SimConfig, float]:
 
 def peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def main(argv: list[str] | None = None) -> int:

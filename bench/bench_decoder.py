@@ -32,6 +32,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from machine_info import cpu_model  # noqa: E402
+
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, Frame, Status, encode_frame, link_frame_rate_limit  # noqa: E402
 from fbg_accel_driver.stream_decoder import StreamDecoder  # noqa: E402
 
@@ -89,16 +91,6 @@ def time_decode(stream: bytes, chunk: int, repeats: int) -> tuple[list[float], d
         stats = dec.stats.as_dict()
         assert n_out == stats["frames"]
     return times, stats
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def main(argv: list[str] | None = None) -> int:

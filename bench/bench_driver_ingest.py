@@ -58,6 +58,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from machine_info import cpu_model  # noqa: E402
+
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, link_frame_rate_limit  # noqa: E402
 
 BAUD = 921600
@@ -505,16 +507,6 @@ def summarise_profile(path: Path, top: int = 25) -> dict | None:
         return [[f, round(100 * n / total, 1)] for f, n in sorted(d.items(), key=lambda kv: -kv[1])[:top]]
 
     return {"samples": total, "file": str(path), "inclusive_percent": share(incl), "self_percent": share(self_)}
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -26,11 +26,12 @@ import argparse
 import datetime as dt
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from machine_info import machine
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "bench"
@@ -46,25 +47,6 @@ SUITE: dict[str, tuple[str, str, list[str], list[str]]] = {
 }
 JSON_NAME = {"decoder": "decoder.json", "fit": "fit.json", "fit_stream": "fit_stream.json", "calibration": "calibration.json",
              "ingest": "driver_ingest.json"}
-
-
-def machine() -> dict:
-    """CPU model, logical CPUs, RAM, Python and OS of this machine."""
-    cpu = "unknown"
-    mem_gib = None
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemTotal:"):
-                mem_gib = int(line.split()[1]) / 1024**2
-                break
-    except OSError:
-        pass
-    return {"cpu": cpu, "logical_cpus": os.cpu_count(), "ram_gib": round(mem_gib, 1) if mem_gib else None,
-            "python": platform.python_version(), "platform": platform.platform()}
 
 
 def run_suite(names: list[str], quick: bool, results: Path) -> dict:
