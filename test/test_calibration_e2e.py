@@ -55,6 +55,9 @@ EXPECTED_DEGREE = 2  # the largest degree three temperature levels identify (see
 MODEL_EXTERNAL_EFFECTS = ["reference_dark_offset"]
 SIM_SET = [f"effects.{e}.scale=0.0" for e in MODEL_EXTERNAL_EFFECTS]
 HELD_OUT = [[45.0, 45.0], [210.0, 120.0], [300.0, 60.0]]  # (psi, theta) deg, none of them in the plan
+# Unchecked first pose of each validation run: the board streams from the moment the driver opens the pty, while
+# DDS discovery between the new driver and this test's subscriber takes ~1 s, and seconds on a loaded machine.
+LEAD_IN = [[0.0, 0.0]]
 SETTLED_S = 1.2  # s after arrival: the TIA low-pass (Table 1, >= 1 Hz) has settled to far below the noise
 NOISE_FACTOR = 1.5
 
@@ -193,13 +196,13 @@ def run_end_to_end(tmp_path: Path, procs: list[ChildProcess]) -> None:
     executor.add_node(node)
     spin = threading.Thread(target=executor.spin, daemon=True)
     spin.start()
-    dwell, move = 4.0, 0.8  # the first ~1 s of a run passes before DDS matches the new driver
+    dwell, move = 5.0, 0.8  # the first held-out pose starts dwell + move = 5.8 s after the stream
     try:
         sims = []
         for i, level in enumerate(levels):
             tag = f"e2e_val{i}"
             sim, link = start_sim(procs, tmp_path, tag, level, seed=20 + i, poses=[
-                "scenario.poses.mode=list", f"scenario.poses.list={HELD_OUT}", f"scenario.poses.dwell_s={dwell}",
+                "scenario.poses.mode=list", f"scenario.poses.list={LEAD_IN + HELD_OUT}", f"scenario.poses.dwell_s={dwell}",
                 f"scenario.poses.move_s={move}"])
             drv = start_driver(procs, tag, link, cal_path)
             drv.wait_line(r"calibration .*calibration_e2e\.yaml", timeout=30)  # the driver loaded the fitted file
@@ -234,7 +237,7 @@ def run_end_to_end(tmp_path: Path, procs: list[ChildProcess]) -> None:
         settled = (pose >= 0) & (truth["time_at_pose_s"][rows_a] >= SETTLED_S)
         err = est_a - truth["gref_mps2"][rows_a]
         for k in range(len(HELD_OUT)):  # every held-out pose is checked at every level
-            sel = settled & (pose == k)
+            sel = settled & (pose == k + len(LEAD_IN))
             assert sel.sum() > 100, f"{tag}: only {sel.sum()} settled samples of held-out pose {k} received"
             deviations.append(err[sel] - err[sel].mean(axis=0))
         errors.append(err[settled])
