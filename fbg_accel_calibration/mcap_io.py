@@ -494,27 +494,28 @@ def _records(fh: Any):
 
 
 def _chunk_records(body: bytes):
-    start_t, end_t, size, crc = _CHUNK_HEAD.unpack_from(body, 0)
-    (clen,) = struct.unpack_from("<I", body, 28)
-    compression = body[32:32 + clen].decode()
-    (rlen,) = struct.unpack_from("<Q", body, 32 + clen)
-    records = body[40 + clen:40 + clen + rlen]
-    chunk = Chunk(compression=compression, data=records, message_start_time=start_t, message_end_time=end_t,
-                  uncompressed_crc=crc, uncompressed_size=size)
-    stream, size = get_chunk_data_stream(chunk, validate_crc=True)
-    data = stream.read(size) if size else b""
-    pos = 0
+    """Messages ``(channel_id, log_time, data)`` and parsed Schema/Channel/Metadata records of a chunk."""
+    data = _chunk_bytes(body)
+    pos, size = 0, len(data)
     while pos < size:
-        opcode, length = _RECORD_HEAD.unpack_from(data, pos)
-        start, end = pos + 9, pos + 9 + length
-        if end > size:
-            raise McapRecordingError("record overruns its chunk")
-        if opcode == Opcode.MESSAGE:
-            channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(data, start)
-            yield channel_id, log_time, data[start + 22:end]
-        elif opcode in _PARSED:
-            yield _PARSED[opcode].read(ReadDataStream(io.BytesIO(data[start:end])))
-        pos = end
+        item, pos = _record_at(data, pos, size)
+        if item is not None:
+            yield item
+
+
+def _record_at(data: bytes, pos: int, size: int) -> tuple[Any, int]:
+    """The record at ``pos`` of decompressed chunk data and the next position; the record is a message
+    ``(channel_id, log_time, data)``, a parsed Schema/Channel/Metadata, or None for other opcodes."""
+    opcode, length = _RECORD_HEAD.unpack_from(data, pos)
+    start, end = pos + 9, pos + 9 + length
+    if end > size:
+        raise McapRecordingError("record overruns its chunk")
+    if opcode == Opcode.MESSAGE:
+        channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(data, start)
+        return (channel_id, log_time, data[start + 22:end]), end
+    if opcode in _PARSED:
+        return _PARSED[opcode].read(ReadDataStream(io.BytesIO(data[start:end]))), end
+    return None, end
 
 
 def _stamp_ns(header: Any) -> int:
@@ -1012,13 +1013,6 @@ def _split_chunk(data: bytes, fast: dict[str, Any]):
             k = min(4 * k, _FAST_RUN_MAX)
         if pos >= size:
             break
-        opcode, length = _RECORD_HEAD.unpack_from(data, pos)
-        start, end = pos + 9, pos + 9 + length
-        if end > size:
-            raise McapRecordingError("record overruns its chunk")
-        if opcode == Opcode.MESSAGE:
-            channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(data, start)
-            yield channel_id, log_time, data[start + 22:end]
-        elif opcode in _PARSED:
-            yield _PARSED[opcode].read(ReadDataStream(io.BytesIO(data[start:end])))
-        pos = end
+        item, pos = _record_at(data, pos, size)
+        if item is not None:
+            yield item
