@@ -10,6 +10,7 @@ from __future__ import annotations
 import struct
 
 import pytest
+from frame_strategies import frames
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -62,18 +63,6 @@ def manual_encode(f: Frame) -> bytes:
     return b"\xa5\x5a" + covered + crc16_bitwise(covered).to_bytes(2, "little")
 
 
-adc = st.integers(0, ADC_MAX)
-frames = st.builds(
-    Frame,
-    seq=st.integers(0, SEQ_MODULO - 1),
-    t_us=st.integers(0, 2**64 - 1),
-    ref=adc,
-    x=adc,
-    y=adc,
-    z=adc,
-    temp_cc=st.integers(-(2**15), 2**15 - 1),
-    status=st.integers(0, 255),
-)
 
 
 def test_sizes_and_constants() -> None:

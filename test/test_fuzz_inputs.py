@@ -22,11 +22,12 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+from frame_strategies import frames
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from fbg_accel_driver import correction_terms
-from fbg_accel_driver.frame_codec import ADC_MAX, CRC_SIZE, FRAME_SIZE_V1, HEADER_SIZE, SEQ_MODULO, Frame, encode_frame
+from fbg_accel_driver.frame_codec import CRC_SIZE, FRAME_SIZE_V1, HEADER_SIZE, Frame, encode_frame
 from fbg_accel_driver.stream_decoder import MAX_BODY_LEN, StreamDecoder
 from fbg_accel_driver.thermal_model import CalibrationFileError, ThermalCalibration
 
@@ -40,23 +41,11 @@ MAX_CANDIDATE = HEADER_SIZE + MAX_BODY_LEN + CRC_SIZE
 
 
 # ============================================================================ frame decoder
-adc = st.integers(0, ADC_MAX)
-frame_st = st.builds(
-    Frame,
-    seq=st.integers(0, SEQ_MODULO - 1),
-    t_us=st.integers(0, 2**64 - 1),
-    ref=adc,
-    x=adc,
-    y=adc,
-    z=adc,
-    temp_cc=st.integers(-(2**15), 2**15 - 1),
-    status=st.integers(0, 255),
-)
 
 
 @st.composite
 def mutated_streams(draw: st.DrawFn) -> bytes:
-    data = bytearray(b"".join(encode_frame(f) for f in draw(st.lists(frame_st, max_size=25))))
+    data = bytearray(b"".join(encode_frame(f) for f in draw(st.lists(frames, max_size=25))))
     for _ in range(draw(st.integers(0, 12))):
         op = draw(st.sampled_from(["flip", "insert", "delete", "repeat", "overwrite"]))
         at = draw(st.integers(0, len(data)))
