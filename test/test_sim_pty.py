@@ -82,6 +82,7 @@ def test_disconnect_repoints_the_link_and_serving_continues(tmp_path: Path) -> N
     assert proc.wait(timeout=10) == 0
     t = np.load(truth)
     assert int(t["reconnects"]) == 1 and opened[0] == first
+    assert int(t["unplug_unread_bytes"]) == 0  # the client read everything sent before the unplug
     assert dec.stats.frames == int(t["expected_frames"])
     assert dec.stats.lost_frames == int(t["expected_lost_frames"]) >= 100  # 0.5 s at 200 Hz unsent
 

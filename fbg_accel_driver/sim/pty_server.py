@@ -193,21 +193,25 @@ class TruthRecorder:
 
 def serve_pty(sim: BoardSimulator, duration_s: float, link: str | None, truth: TruthRecorder | None,
               should_stop, announce=print, linger_s: float = 2.0, grace_s: float = 1.0, wait_client: bool = True,
-              backlog_s: float = 2.0, client_settle_s: float = 0.05) -> dict:
+              backlog_s: float = 2.0, client_settle_s: float = 0.25, unplug_linger_s: float = 1.0) -> dict:
     """Serve until ``duration_s`` (inf: until ``should_stop()``). Returns serving statistics.
 
     The board starts when a client first opens the pty (unless ``wait_client`` is False). After a
     simulated disconnect the new pty gets no bytes until a client has opened it and
-    ``client_settle_s`` has passed (pyserial flushes the input queue while it opens the port); the
-    frames the board produces meanwhile are lost, and are logged as unsent in the truth, so the truth
-    still predicts the decoder's counts exactly. When the run reaches its end (not when stopped by a
-    signal) the pty stays open until the client has read everything, at most ``linger_s``, plus
-    ``grace_s``.
+    ``client_settle_s`` has passed (pyserial flushes the input queue while it opens the port, and a
+    loaded host can take tens of ms between the open and the flush); the frames the board produces
+    meanwhile are lost, and are logged as unsent in the truth, so the truth still predicts the
+    decoder's counts exactly. Before an "unplug" the client gets up to ``unplug_linger_s`` to read
+    what was already sent (a real unplug loses bytes in flight, but then no truth could predict the
+    decoder); bytes it still had not read are counted in ``unplug_unread_bytes``. When the run reaches
+    its end (not when stopped by a signal) the pty stays open until the client has read everything,
+    at most ``linger_s``, plus ``grace_s``.
     """
     ep = PtyEndpoint(link, max_backlog_bytes=max(65536, int(backlog_s * sim.rate_true_hz * 27)))
     path = ep.open(hold=not wait_client)
     announce(f"PTY {path}")
-    stats = {"reconnects": 0, "written_bytes": 0, "paths": [path], "overflow_bytes": 0, "frames_lost_no_client": 0}
+    stats = {"reconnects": 0, "written_bytes": 0, "paths": [path], "overflow_bytes": 0, "frames_lost_no_client": 0,
+             "unplug_unread_bytes": 0}
     if wait_client:
         if not ep.wait_client(should_stop):
             ep.close()
@@ -235,8 +239,9 @@ def serve_pty(sim: BoardSimulator, duration_s: float, link: str | None, truth: T
                 stats["paths"].append(path)
                 print(f"RECONNECT {path}", file=sys.stderr, flush=True)
             if k in disc_starts and state != "down":
-                if state == "open":  # let the client take what was sent before the "unplug" (at most 50 ms)
-                    ep.linger(0.05, 0.0)
+                if state == "open":  # let the client take what was sent before the "unplug"
+                    ep.linger(unplug_linger_s, 0.0)
+                    stats["unplug_unread_bytes"] += ep.unread_bytes() + len(ep._pending)
                 ep.close()
                 state = "down"
                 print("DISCONNECT", file=sys.stderr, flush=True)
