@@ -9,12 +9,13 @@ whether the caches are warm:
 * ``serial_chunks``: ``SerialLink`` reading a pty on which one frame is written every 10 ms: chunks
   (and consumer notifications) per frame;
 * ``core_feed``: ``DriverCore.feed`` (decoder, clock sync, calibration eq. 24/28, policies) with one
-  frame per call, split in 1 + 26 bytes as the serial link delivers it, and with 10 or 100 frames per call;
-* ``messages``: building the ``imu/raw`` JointState and ``imu/data_raw`` Imu of one frame and publishing
-  them (rclpy, sensor-data QoS, no subscriber);
+  frame per call (as the serial link delivers it at 100 Hz), also split in 1 + 26 bytes, and with 10 or
+  100 frames per call;
+* ``messages``: filling the ``imu/raw``, ``imu/temperature`` and ``imu/data_raw`` messages of one frame
+  (the driver's ``DriverMessages``) and publishing them (rclpy, sensor-data QoS, no subscriber);
 * ``executor_wakeup``: one wake-up of rclpy's ``SingleThreadedExecutor`` by a guard condition
-  triggered from another thread (how the driver node hands chunks to its publisher), against one
-  wake-up of a plain Python thread blocked in ``queue.SimpleQueue.get``.
+  triggered from another thread (how the driver node first handed chunks to its publisher), against one
+  wake-up of a plain Python thread blocked in ``queue.SimpleQueue.get`` (how it does now).
 
 Writes bench/results/driver_stages.json. Needs ROS_DOMAIN_ID for the rclpy steps.
 
@@ -92,31 +93,26 @@ def bench_core(n: int, data: bytes, cal: ThermalCalibration) -> dict:
 
 def bench_messages(n: int) -> dict:
     import rclpy
-    from builtin_interfaces.msg import Time
     from rclpy.qos import qos_profile_sensor_data
-    from sensor_msgs.msg import Imu, JointState
+    from sensor_msgs.msg import Imu, JointState, Temperature
 
-    from fbg_accel_driver.driver_node import RAW_NAMES
+    from fbg_accel_driver.driver_core import ImuRecord, RawRecord, TemperatureRecord
+    from fbg_accel_driver.frame_codec import Frame
+    from fbg_accel_driver.ros_messages import DriverMessages
 
     node = rclpy.create_node("bench_driver_stages_pub")
     pr = node.create_publisher(JointState, "bench_stages/raw", qos_profile_sensor_data)
+    pt = node.create_publisher(Temperature, "bench_stages/temperature", qos_profile_sensor_data)
     pi = node.create_publisher(Imu, "bench_stages/imu", qos_profile_sensor_data)
+    msgs = DriverMessages("fbg_accel_link")  # the driver node's message filling
+    frame = Frame(seq=1, t_us=1000, ref=870, x=1130, y=1650, z=1130, temp_cc=2340, status=3)
+    cov = (0.01, 0.0, 0.0, 0.0, 0.01, 0.0, 0.0, 0.0, 0.01)
 
     def work(i: int) -> None:
-        m = JointState()
-        m.header.stamp = Time(sec=1, nanosec=i)
-        m.header.frame_id = "fbg_accel_link"
-        m.name = RAW_NAMES
-        m.position = [870.0, 1130.0, 1650.0, 1130.0, 23.4, 1.0, 3.0, float(i), i * 1e-3]
-        pr.publish(m)
-        q = Imu()
-        q.header.stamp = m.header.stamp
-        q.header.frame_id = "fbg_accel_link"
-        q.orientation_covariance[0] = -1.0
-        q.angular_velocity_covariance[0] = -1.0
-        q.linear_acceleration.x, q.linear_acceleration.y, q.linear_acceleration.z = 0.01, -0.02, 9.81
-        q.linear_acceleration_covariance = [0.01, 0.0, 0.0, 0.0, 0.01, 0.0, 0.0, 0.0, 0.01]
-        pi.publish(q)
+        stamp = 1_000_000_000 + i
+        pr.publish(msgs.raw_msg(RawRecord(stamp, frame, 23.4, True)))
+        pt.publish(msgs.temperature_msg(TemperatureRecord(stamp, 23.4, 0.09)))
+        pi.publish(msgs.imu_msg(ImuRecord(stamp, (0.01, -0.02, 9.81), cov, 23.4, frozenset())))
 
     res = {rname: paced(n if rate is None else min(n, int(3 * rate)), rate, work) for rname, rate in RATES.items()}
     node.destroy_node()

@@ -62,6 +62,8 @@ from mcap.writer import Writer as McapWriter
 from mcap_ros2._dynamic import serialize_dynamic
 from mcap_ros2.decoder import DecoderFactory
 
+from fbg_accel_driver.driver_core import RAW_NAMES
+
 from .recording import Recording
 
 LOG = logging.getLogger(__name__)
@@ -76,8 +78,6 @@ TYPE_TEMPERATURE = "sensor_msgs/msg/Temperature"
 TYPE_REFERENCE_GRAVITY = "geometry_msgs/msg/Vector3Stamped"
 TYPE_POSE = "diagnostic_msgs/msg/DiagnosticStatus"
 
-RAW_NAMES = ("ref_counts", "x_counts", "y_counts", "z_counts", "temperature_c", "temperature_valid",
-             "status", "seq", "board_time_s")
 POSE_STATES = ("moving", "settling", "recording", "done")
 TABLE_FRAME = "calibration_table"
 DEFAULT_CHUNK_BYTES = 32 * 1024

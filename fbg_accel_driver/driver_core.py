@@ -1,8 +1,9 @@
 """Driver core: board bytes -> stamped, calibrated, flagged samples (pure Python + numpy, no ROS).
 
 ``DriverCore.feed(chunk, host_ns)`` decodes the bytes (``StreamDecoder``), maps board time to
-host/ROS time (``ClockSync``), normalises and calibrates (``ThermalCalibration.apply_counts``,
-paper eq. 24 and 28, with persistent state for stateful correction terms), applies the sample
+host/ROS time (``ClockSync``), normalises and calibrates (paper eq. 24 and 28 with
+``ThermalCalibration.coefficients_at``, plus ``correction_sum`` with persistent state for the
+stateful correction terms: the same numbers as ``ThermalCalibration.apply_counts``), applies the sample
 policies below and decimates. The ROS node only turns the returned records into messages.
 
 Sample policies (documented in docs/topics.md; each has a counter and a diagnostic):
@@ -46,13 +47,16 @@ import numpy as np
 from .clock_sync import ClockSync, ClockSyncConfig
 from .frame_codec import ADC_MAX, Frame, Status
 from .stream_decoder import StreamDecoder
-from .thermal_model import ThermalCalibration
+from .thermal_model import MIN_REFERENCE_COUNTS, ThermalCalibration
 
 STANDARD_GRAVITY = 9.80665  # m/s^2
 AHT10_MIN_C = -40.0  # AHT10 datasheet operating range
 AHT10_MAX_C = 85.0
 AHT10_SIGMA_C = 0.3  # AHT10 datasheet typical accuracy +-0.3 degC, used as 1 sigma
 COVARIANCE_SOURCES = ("calibration", "parameter", "unknown")
+# ``imu/raw`` (sensor_msgs/JointState): ``name`` of each ``position`` entry of a RawRecord, in order.
+RAW_NAMES = ("ref_counts", "x_counts", "y_counts", "z_counts", "temperature_c", "temperature_valid",
+             "status", "seq", "board_time_s")
 
 
 @dataclass(frozen=True)
@@ -163,10 +167,10 @@ class DriverCore:
         self._last_stamp_ns: int | None = None
         self._prev_t_us: int | None = None
         self._last_raw_temp_valid: bool | None = None
-        self._pending: list[tuple[int, np.ndarray, np.ndarray, float, frozenset[str]]] = []
+        self._pending: list[tuple[int, tuple[float, float, float], list[float], float, frozenset[str]]] = []
+        self._coef_cache: dict[float, tuple[tuple[float, ...], tuple[float, float, float]]] = {}
         self._unstamped: list[Frame] = []  # frames waiting for the clock estimate to be primed
-        sigma = self._base_sigma()
-        self._base_var = sigma**2
+        self._base_var = tuple(float(v) ** 2 for v in self._base_sigma())
 
     def _base_sigma(self) -> np.ndarray:
         src = self.config.covariance_source
@@ -226,6 +230,16 @@ class DriverCore:
         self.clock.reset()
         self._pending.clear()  # never average across a reboot
 
+    def _coefficients(self, temp_c: float) -> tuple[tuple[float, ...], tuple[float, float, float]]:
+        """M(T), b(T) of eq. 28, cached per temperature (the AHT10 reports 0.01 degC steps, so few distinct values)."""
+        cache = self._coef_cache
+        coef = cache.get(temp_c)
+        if coef is None:
+            if len(cache) >= 256:
+                cache.clear()
+            coef = cache[temp_c] = self.cal.coefficients_at(temp_c)
+        return coef
+
     def _process(self, frames: list[Frame], host_ns: int, out: CoreOutput, flush: bool = False) -> None:
         clock = self.clock
         for f in frames:
@@ -238,76 +252,83 @@ class DriverCore:
             frames, self._unstamped = self._unstamped, []
         if not frames:
             return
+        # One sample at a time in plain floats: at the driver's batch sizes (one frame per serial read
+        # at 100 Hz, tens at the link limit) numpy's per-call overhead costs more than it saves.
         cfg = self.config
-        n = len(frames)
-        stamps = np.empty(n, dtype=np.int64)
-        temps = np.full(n, np.nan)
-        use = np.zeros(n, dtype=bool)
-        held = np.zeros(n, dtype=bool)
-        for i, f in enumerate(frames):
-            stamps[i] = stamp_ns = clock.stamp(f.t_us)
-            self.counters.samples += 1
+        counters = self.counters
+        lo, hi = self.cal.temperature_range_c
+        base_var = self._base_var
+        full_var = cfg.full_scale_mps2**2
+        used: list[tuple[int, Frame, float, tuple[float, float, float], bool]] = []
+        for f in frames:
+            stamp_ns = clock.stamp(f.t_us)
+            counters.samples += 1
             t_c = f.temp_cc / 100.0
             valid = f.temp_valid and AHT10_MIN_C <= t_c <= AHT10_MAX_C
             if valid:
                 self._last_good_temp_c, self._last_good_stamp_ns = t_c, stamp_ns
                 out.temperature.append(TemperatureRecord(stamp_ns, t_c, AHT10_SIGMA_C**2))
             else:
-                self.counters.temperature_invalid += 1
+                counters.temperature_invalid += 1
             self._last_stamp_ns = stamp_ns
             self._last_raw_temp_valid = valid
-            raw_t = self._last_good_temp_c if self._last_good_temp_c is not None else math.nan
-            out.raw.append(RawRecord(stamp_ns, f, raw_t, valid))
-            if f.ref < cfg.min_reference_counts:
-                self.counters.reference_low += 1
+            temp = self._last_good_temp_c
+            out.raw.append(RawRecord(stamp_ns, f, math.nan if temp is None else temp, valid))
+            ref = f.ref
+            if ref < cfg.min_reference_counts or ref < MIN_REFERENCE_COUNTS:
+                counters.reference_low += 1
                 continue
             if not valid:
                 age = self.temperature_age_s
-                if age is None or age > cfg.temperature_hold_s or self._last_good_temp_c is None:
-                    self.counters.temperature_stale_dropped += 1
+                if temp is None or age is None or age > cfg.temperature_hold_s:
+                    counters.temperature_stale_dropped += 1
                     continue
-                held[i] = True
-                self.counters.temperature_held += 1
-            temps[i] = self._last_good_temp_c
-            use[i] = True
-        if not use.any():
+                counters.temperature_held += 1
+            m, b = self._coefficients(temp)
+            px, py, pz = f.x / ref, f.y / ref, f.z / ref
+            accel = (m[0] * px + m[1] * py + m[2] * pz + b[0],
+                     m[3] * px + m[4] * py + m[5] * pz + b[1],
+                     m[6] * px + m[7] * py + m[8] * pz + b[2])
+            used.append((stamp_ns, f, temp, accel, not valid))
+        if not used:
             return
-        idx = np.flatnonzero(use)
-        sel = [frames[i] for i in idx]
-        ref = np.fromiter((f.ref for f in sel), dtype=float, count=len(sel))
-        xyz = np.array([(f.x, f.y, f.z) for f in sel], dtype=float).reshape(-1, 3)
-        t_s = np.fromiter((f.t_us * 1e-6 for f in sel), dtype=float, count=len(sel))
-        temp_sel = temps[idx]
-        accel = self.cal.apply_counts(ref, xyz, temp_sel, t_s, self._cal_state)
-        var = np.broadcast_to(self._base_var, accel.shape).copy()
-        lo, hi = self.cal.temperature_range_c
-        outside = (temp_sel < lo) | (temp_sel > hi)
-        if outside.any():
-            self.counters.temperature_out_of_range += int(outside.sum())
-            edge = np.clip(temp_sel[outside], lo, hi)
-            psi = xyz[outside] / ref[outside, None]
-            extrap = self.cal.base_acceleration(psi, temp_sel[outside]) - self.cal.base_acceleration(psi, edge)
-            var[outside] = var[outside] * cfg.out_of_range_variance_factor + extrap**2
-        sat_ref = ref >= ADC_MAX
-        sat_axes = (xyz >= ADC_MAX) | sat_ref[:, None]
-        sat_any = sat_axes.any(axis=1)
-        if sat_any.any():
-            self.counters.adc_saturated += int(sat_any.sum())
-            var[sat_axes] = np.maximum(var[sat_axes], cfg.full_scale_mps2**2)
-        finite = np.isfinite(accel).all(axis=1) & np.isfinite(var).all(axis=1)
-        for j, i in enumerate(idx):
-            if not finite[j]:
-                self.counters.non_finite_dropped += 1
+        if self.cal.corrections:  # declared correction terms (diagnose): vectorised, with their stream state
+            ref_a = np.fromiter((u[1].ref for u in used), dtype=float, count=len(used))
+            xyz_a = np.array([(u[1].x, u[1].y, u[1].z) for u in used], dtype=float)
+            temp_a = np.fromiter((u[2] for u in used), dtype=float, count=len(used))
+            t_a = np.fromiter((u[1].t_us * 1e-6 for u in used), dtype=float, count=len(used))
+            extra = self.cal.correction_sum(ref_a, xyz_a, xyz_a / ref_a[:, None], temp_a, t_a, self._cal_state)
+            used = [(st, f, temp, (a[0] + float(e[0]), a[1] + float(e[1]), a[2] + float(e[2])), h)
+                    for (st, f, temp, a, h), e in zip(used, extra, strict=True)]
+        for stamp_ns, f, temp, accel, held in used:
+            var = list(base_var)
+            flags = []
+            if held:
+                flags.append("temperature_held")
+            if not lo <= temp <= hi:
+                # Extrapolating: inflate, and add how far the polynomial has moved from the range edge.
+                counters.temperature_out_of_range += 1
+                flags.append("temperature_out_of_range")
+                me, be = self._coefficients(min(max(temp, lo), hi))
+                m, b = self._coefficients(temp)
+                ref = f.ref
+                psi = (f.x / ref, f.y / ref, f.z / ref)
+                for a in range(3):
+                    d = sum((m[3 * a + j] - me[3 * a + j]) * psi[j] for j in range(3)) + b[a] - be[a]
+                    var[a] = var[a] * cfg.out_of_range_variance_factor + d * d
+            if f.ref >= ADC_MAX or f.x >= ADC_MAX or f.y >= ADC_MAX or f.z >= ADC_MAX:
+                # Clipped: the value is only bounded by the full scale (all axes if the reference clipped).
+                counters.adc_saturated += 1
+                flags.append("adc_saturated")
+                ref_sat = f.ref >= ADC_MAX
+                for a, c in enumerate((f.x, f.y, f.z)):
+                    if ref_sat or c >= ADC_MAX:
+                        var[a] = max(var[a], full_var)
+            if not all(math.isfinite(v) for v in (*accel, *var)):
+                counters.non_finite_dropped += 1
                 continue
-            flags = set()
-            if sat_any[j]:
-                flags.add("adc_saturated")
-            if held[i]:
-                flags.add("temperature_held")
-            if outside[j]:
-                flags.add("temperature_out_of_range")
-            self._pending.append((int(stamps[i]), accel[j], var[j], float(temp_sel[j]), frozenset(flags)))
-            self.counters.samples_calibrated += 1
+            self._pending.append((stamp_ns, accel, var, temp, frozenset(flags)))
+            counters.samples_calibrated += 1
             if len(self._pending) >= cfg.decimation:
                 out.imu.append(self._emit())
 
@@ -318,11 +339,11 @@ class DriverCore:
             stamp, acc, var, temp, flags = block[0]
         else:
             stamp = sum(b[0] for b in block) // n
-            acc = np.mean([b[1] for b in block], axis=0)
-            var = np.sum([b[2] for b in block], axis=0) / n**2
-            temp = float(np.mean([b[3] for b in block]))
+            acc = tuple(math.fsum(b[1][a] for b in block) / n for a in range(3))
+            var = [math.fsum(b[2][a] for b in block) / n**2 for a in range(3)]
+            temp = math.fsum(b[3] for b in block) / n
             flags = frozenset().union(*(b[4] for b in block))
         self._pending = []
         cov = (float(var[0]), 0.0, 0.0, 0.0, float(var[1]), 0.0, 0.0, 0.0, float(var[2]))
         self.counters.imu_published += 1
-        return ImuRecord(stamp, (float(acc[0]), float(acc[1]), float(acc[2])), cov, temp, flags)
+        return ImuRecord(stamp, (float(acc[0]), float(acc[1]), float(acc[2])), cov, float(temp), flags)

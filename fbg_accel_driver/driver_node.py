@@ -4,9 +4,11 @@ Topics (see docs/topics.md): ``imu/data_raw`` (sensor_msgs/Imu), ``imu/temperatu
 (sensor_msgs/Temperature), ``imu/raw`` (sensor_msgs/JointState), ``/diagnostics``
 (diagnostic_msgs/DiagnosticArray, 1 Hz). Streams use the sensor-data QoS profile.
 
-The serial port is read in ``SerialLink``'s own thread; the thread triggers a guard condition and
-the executor drains the queue, so the executor never blocks on the port and the port is read
-even while the executor is busy publishing.
+Threads: ``SerialLink``'s reader thread owns the port and queues byte chunks; a publisher thread
+blocks on that queue, runs ``DriverCore`` and publishes (rclpy publishers may be used from any
+thread); the executor only runs the 1 Hz diagnostics timer. Neither the executor nor the data path
+ever blocks on the port, and a chunk costs one thread wake-up, not an executor cycle (an rclpy
+guard-condition wake-up costs 180-280 us of CPU, a queue wake-up 10-30 us: bench/bench_driver_stages.py).
 """
 
 from __future__ import annotations
@@ -22,17 +24,6 @@ from .command_line import wants_help
 
 PACKAGE = "fbg_accel_driver"
 DEFAULT_CALIBRATION = "calibration_sim.yaml"
-RAW_NAMES = [
-    "ref_counts",
-    "x_counts",
-    "y_counts",
-    "z_counts",
-    "temperature_c",
-    "temperature_valid",
-    "status",
-    "seq",
-    "board_time_s",
-]
 
 # name: (type, default, description); the ROS types are resolved lazily so --help needs no ROS.
 PARAMETERS: dict[str, tuple[str, Any, str]] = {
@@ -74,6 +65,9 @@ example:
   ros2 run fbg_accel_driver driver --ros-args -p port:=/dev/ttyUSB0 -p decimation:=10
 exit status: 0 on clean shutdown, 2 on invalid parameters or calibration file.
 """
+
+
+_WAKE = object()  # queued by SerialLink's notify (state change) and by close(): wakes the publisher thread
 
 
 class StartupError(Exception):
@@ -151,7 +145,6 @@ def _run(argv: list[str]) -> int:
 
 def _make_node() -> Any:
     """Build the node class lazily (keeps rclpy out of --help and of the pure modules)."""
-    from builtin_interfaces.msg import Time
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
     from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
     from rclpy.exceptions import ParameterException
@@ -161,6 +154,7 @@ def _make_node() -> Any:
 
     from .driver_core import COVARIANCE_SOURCES, CoreConfig, DriverCore
     from .driver_diagnostics import DiagnosticsSnapshot, DriverDiagnostics
+    from .ros_messages import DriverMessages
     from .serial_link import LinkState, SerialLink
     from .thermal_model import CalibrationFileError, ThermalCalibration
 
@@ -170,9 +164,6 @@ def _make_node() -> Any:
     float_ranges = {"temperature_hold_s": (0.0, 3600.0), "out_of_range_variance_factor": (1.0, 1e6),
                     "reconnect_backoff_max_s": (0.1, 60.0), "accel_stddev_mps2": (0.0, 1000.0),
                     "silence_timeout_s": (0.0, 3600.0)}
-
-    def stamp_msg(ns: int) -> Time:
-        return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
     class DriverNode(Node):
         def __init__(self) -> None:
@@ -199,20 +190,24 @@ def _make_node() -> Any:
             self.cal_info = {"calibration_file": str(cal_path), "sensor_id": self.calibration.sensor_id,
                              "degree": self.calibration.degree}
             self.diag = DriverDiagnostics(prefix="fbg_accel_driver")
+            self.msgs = DriverMessages(self.frame_id)  # used by the publisher thread only
             self.pub_imu = self.create_publisher(Imu, "imu/data_raw", qos_profile_sensor_data)
             self.pub_temp = self.create_publisher(Temperature, "imu/temperature", qos_profile_sensor_data)
             self.pub_raw = self.create_publisher(JointState, "imu/raw", qos_profile_sensor_data)
             self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-            self.guard = self.create_guard_condition(self._drain)
             clock = self.get_clock()
             self.link = SerialLink(
-                p["port"], p["baud"], notify=self.guard.trigger,
+                p["port"], p["baud"], notify=self._wake_publisher,
                 clock_ns=lambda: clock.now().nanoseconds,
                 backoff_max_s=p["reconnect_backoff_max_s"], silence_timeout_s=p["silence_timeout_s"],
             )
             self._link_state = LinkState.CONNECTING
             self._link_changes = 0
+            self._stopping = threading.Event()
+            self._publisher_thread = threading.Thread(target=self._publisher_loop, name="fbg-accel publisher",
+                                                      daemon=True)
             self.timer = self.create_timer(1.0, self._publish_diagnostics)
+            self._publisher_thread.start()
             self.link.start()
             self.get_logger().info(
                 f"reading {p['port']} at {p['baud']} baud, calibration {cal_path} (sensor {self.calibration.sensor_id}, "
@@ -250,50 +245,47 @@ def _make_node() -> Any:
             return values
 
         # ------------------------------------------------------------ data path
-        def _drain(self) -> None:
+        def _wake_publisher(self) -> None:
+            """SerialLink's notify: only a state change needs it (data chunks wake the queue's reader)."""
+            if self.link.state_changes != self._link_changes:
+                self.link.queue.put(_WAKE)
+
+        def _publisher_loop(self) -> None:
+            """Publisher thread: block on the link's queue, decode, calibrate, publish; until close()."""
             q = self.link.queue
-            while True:
-                try:
-                    host_ns, chunk = q.get_nowait()
-                except Exception:  # queue.Empty
+            log = self.get_logger()
+            while not self._stopping.is_set():
+                item = q.get()
+                if self._stopping.is_set():
                     break
-                self._publish(self.core.feed(chunk, host_ns))
+                if item is not _WAKE:
+                    host_ns, chunk = item
+                    try:
+                        self._publish(self.core.feed(chunk, host_ns))
+                    except Exception as exc:  # a shut-down context while exiting, or a bug: never kill the data path
+                        if self._stopping.is_set():
+                            break
+                        log.error(f"publishing failed: {exc!r}", throttle_duration_sec=5.0)
+                if self.link.state_changes != self._link_changes:
+                    self._log_link_change()
+
+        def _log_link_change(self) -> None:
             status = self.link.status()
-            if status.state is not self._link_state or self.link.state_changes != self._link_changes:
-                if status.state is LinkState.CONNECTED:
-                    self.get_logger().info(f"serial link up: {status.port}")
-                elif status.state is LinkState.DISCONNECTED and self._link_state is not LinkState.DISCONNECTED:
-                    self.get_logger().error(f"serial link down: {status.message}; retrying with back-off")
-                self._link_state = status.state
-                self._link_changes = self.link.state_changes
+            if status.state is LinkState.CONNECTED:
+                self.get_logger().info(f"serial link up: {status.port}")
+            elif status.state is LinkState.DISCONNECTED and self._link_state is not LinkState.DISCONNECTED:
+                self.get_logger().error(f"serial link down: {status.message}; retrying with back-off")
+            self._link_state = status.state
+            self._link_changes = self.link.state_changes
 
         def _publish(self, out: Any) -> None:
-            fid = self.frame_id
+            msgs = self.msgs
             for r in out.raw:
-                m = JointState()
-                m.header.stamp = stamp_msg(r.stamp_ns)
-                m.header.frame_id = fid
-                m.name = RAW_NAMES
-                f = r.frame
-                m.position = [float(f.ref), float(f.x), float(f.y), float(f.z), float(r.temperature_c),
-                              1.0 if r.temperature_valid else 0.0, float(f.status), float(f.seq), f.t_us * 1e-6]
-                self.pub_raw.publish(m)
+                self.pub_raw.publish(msgs.raw_msg(r))
             for t in out.temperature:
-                m = Temperature()
-                m.header.stamp = stamp_msg(t.stamp_ns)
-                m.header.frame_id = fid
-                m.temperature = t.temperature_c
-                m.variance = t.variance
-                self.pub_temp.publish(m)
+                self.pub_temp.publish(msgs.temperature_msg(t))
             for s in out.imu:
-                m = Imu()
-                m.header.stamp = stamp_msg(s.stamp_ns)
-                m.header.frame_id = fid
-                m.orientation_covariance[0] = -1.0  # REP 145: orientation not provided
-                m.angular_velocity_covariance[0] = -1.0  # REP 145: angular velocity not provided
-                m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z = s.accel_mps2
-                m.linear_acceleration_covariance = list(s.covariance)
-                self.pub_imu.publish(m)
+                self.pub_imu.publish(msgs.imu_msg(s))
 
         # ------------------------------------------------------------ diagnostics
         def _publish_diagnostics(self) -> None:
@@ -327,6 +319,9 @@ def _make_node() -> Any:
 
         def close(self) -> None:
             self.link.stop()
+            self._stopping.set()
+            self.link.queue.put(_WAKE)
+            self._publisher_thread.join(2.0)
 
     return DriverNode()
 

@@ -1,9 +1,11 @@
 """Serial link to the acquisition board: a pyserial reader in its own thread (no ROS).
 
-The reader thread owns the port. It opens it, reads whatever bytes are available and puts
-``(host_ns, bytes)`` chunks on a queue, stamped with the host time right after the read
+The reader thread owns the port. It opens it, reads whatever bytes are available (a read that
+woke on one byte also takes what arrived with it, so a frame is one chunk, not 1 + 26 bytes) and
+puts ``(host_ns, bytes)`` chunks on a queue, stamped with the host time right after the read
 returned (the clock is injectable so the ROS node can pass its ROS clock). It never blocks its
-consumer: the consumer drains the queue when ``notify`` (e.g. an rclpy guard condition) fires.
+consumer: the consumer blocks on ``queue`` (the driver node's publisher thread), or drains it when
+``notify`` fires.
 
 When the port vanishes or fails (unplugged USB adapter, closed pty, I/O error, the path does not
 exist yet) the thread closes it, reports the link as DISCONNECTED with the reason, and tries
@@ -167,6 +169,9 @@ class SerialLink:
                         if os.path.realpath(self.port) != opened_target:
                             raise _StaleLinkError(f"{self.port} now points to {os.path.realpath(self.port)}")
                         continue
+                    rest = ser.in_waiting  # read(1) woke on a frame's first byte: take the rest of it too
+                    if rest and len(data) < self._max_chunk:
+                        data += ser.read(min(rest, self._max_chunk - len(data)))
                     host_ns = self._clock_ns()
                     last_data = time.monotonic()
                     with self._lock:

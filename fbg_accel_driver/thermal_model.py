@@ -87,6 +87,27 @@ class ThermalCalibration:
         b_t = powers @ self.b  # (N, 3)
         return np.einsum("nij,nj->ni", m_t, psi) + b_t
 
+    def coefficients_at(self, temp_c: float) -> tuple[tuple[float, ...], tuple[float, float, float]]:
+        """M(T) row-major (9 floats) and b(T) (3 floats, m/s^2) of eq. 28 at one temperature (degC).
+
+        Plain floats, for a caller that evaluates ``M(T) @ psi + b(T)`` one sample at a time without
+        numpy (the driver, whose temperature changes in 0.01 degC steps, caches them per reading).
+        """
+        tau = float(self.scaled_temperature(temp_c))
+        powers = tau ** np.arange(self.degree + 1)
+        m_t = np.tensordot(powers, self.M, axes=1)
+        b_t = powers @ self.b
+        return tuple(float(v) for v in m_t.ravel()), (float(b_t[0]), float(b_t[1]), float(b_t[2]))
+
+    def correction_sum(self, ref: np.ndarray, xyz: np.ndarray, psi: np.ndarray, temp_c: np.ndarray, t_s: np.ndarray,
+                       state: list[Any]) -> np.ndarray:
+        """Sum of the correction terms' contributions (N, 3) in m/s^2 (zeros without terms); ``state`` as in apply_counts."""
+        out = np.zeros_like(psi)
+        inputs = {"ref": ref, "xyz": xyz, "psi": psi, "temp_c": temp_c, "t_s": np.asarray(t_s, float)}
+        for term, term_state in zip(self.corrections, state, strict=True):
+            out = out + term.contribution(self, inputs, term_state)
+        return out
+
     def in_range(self, temp_c: float) -> bool:
         lo, hi = self.temperature_range_c
         return lo <= temp_c <= hi
@@ -116,11 +137,7 @@ class ThermalCalibration:
         psi = normalise(xyz, ref)
         out = self.base_acceleration(psi, temp_c)
         if self.corrections:
-            if state is None:
-                state = self.new_state()
-            inputs = {"ref": ref, "xyz": xyz, "psi": psi, "temp_c": temp_c, "t_s": np.asarray(t_s, float)}
-            for term, term_state in zip(self.corrections, state, strict=True):
-                out = out + term.contribution(self, inputs, term_state)
+            out = out + self.correction_sum(ref, xyz, psi, temp_c, t_s, self.new_state() if state is None else state)
         return out
 
     # ------------------------------------------------------------------ file I/O

@@ -171,8 +171,13 @@ def test_out_of_range_temperature_inflates_covariance() -> None:
         assert np.all(var >= 10.0 * base) and "temperature_out_of_range" in r.flags
     assert core.counters.temperature_out_of_range == 2 and all_finite(imu)
     # The extrapolation term is the distance between the model at 50 degC and at the 40 degC edge.
+    cal = make_cal()
+    f = frames[1]
+    psi = np.array([[f.x, f.y, f.z]], float) / f.ref
+    extrap = cal.base_acceleration(psi, 50.0)[0] - cal.base_acceleration(psi, cal.temperature_range_c[1])[0]
     var1 = np.diag(np.reshape(imu[1].covariance, (3, 3)))
-    assert np.all(var1 > 10.0 * base)
+    np.testing.assert_allclose(var1, 10.0 * base + extrap**2, rtol=1e-9)
+    assert np.all(extrap**2 > 1e-6)
 
 
 def test_decimation_averages_and_scales_variance() -> None:

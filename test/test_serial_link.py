@@ -108,3 +108,30 @@ def test_silent_port_is_reopened(tmp_path: Path) -> None:
         link.stop()
         os.close(master)
         os.close(slave)
+
+
+def test_a_frame_written_at_once_arrives_as_one_chunk(tmp_path: Path) -> None:
+    """A read that wakes on a frame's first byte takes the rest with it: one chunk (one consumer wake-up) per frame."""
+    path = tmp_path / "board"
+    master, slave = open_pty(path)
+    link = SerialLink(str(path), 921600)
+    link.start()
+    try:
+        wait_for(lambda: link.status().state is LinkState.CONNECTED, 10, "connected")
+        frames = [bytes([0xA5, k]) + bytes(range(25)) for k in range(20)]  # 27 bytes each, like a v1 frame
+        chunks: list[bytes] = []
+
+        def take(total: int) -> bool:
+            while not link.queue.empty():
+                chunks.append(link.queue.get_nowait()[1])
+            return sum(map(len, chunks)) >= total
+
+        for k, frame in enumerate(frames):
+            os.write(master, frame)
+            wait_for(lambda k=k: take(27 * (k + 1)), 10, f"frame {k} queued")
+        assert b"".join(chunks) == b"".join(frames)
+        assert len(chunks) == len(frames), [len(c) for c in chunks]  # with read(1) alone: 1 + 26 bytes, 40 chunks
+    finally:
+        link.stop()
+        os.close(master)
+        os.close(slave)
