@@ -77,6 +77,11 @@ def _load(results: Path, name: str) -> dict | None:
         return None
 
 
+def _other_load(pct: float) -> str:
+    """CPU % of one core of the rest of the machine; within the accounting noise of an idle machine: ~0."""
+    return "~0 %" if pct < 2.0 else f"{pct:.0f} %"
+
+
 def _f(v, fmt: str = ".2f", none: str = "n/a") -> str:
     return none if v is None else format(v, fmt)
 
@@ -106,7 +111,9 @@ def render(results: Path, run: dict) -> str:
                   f"{ing['link']['frames_per_s_limit']:.1f} frames/s. Latency = simulator write -> subscriber callback "
                   "(CLOCK_MONOTONIC in both processes); CPU = driver process (all threads), % of one core; sustained = frames "
                   "delivered before the writer finished, backlog = frames of the window still undelivered then (lost = never "
-                  "delivered); other load = CPU of the rest of the machine during the window, % of one core.", ""]
+                  "delivered); other load = CPU of the rest of the machine during the window, % of one core (busy time of "
+                  "/proc/stat minus the driver, subscriber and writer; /proc/stat is sampled per tick and per-process "
+                  "times are exact, so an idle machine can come out a few % below zero: shown as ~0).", ""]
         lines += ["| board rate | measured | frames written | received once | lost | backlog at end | sustained throughput | "
                   "x link limit | "
                   "imu/raw latency p50 / p99 / max | imu/data_raw p50 / p99 | driver CPU | "
@@ -124,7 +131,7 @@ def render(results: Path, run: dict) -> str:
                 f"{_f(lr['p50'])} / {_f(lr['p99'])} / {_f(lr['max'], '.1f')} ms | "
                 f"{_f(li.get('p50'))} / {_f(li.get('p99'))} ms | {r['driver_cpu_percent_of_core']:.1f} % | "
                 f"{rss['start']:.1f} -> {rss['end']:.1f} MiB ({_f(rss['slope_second_half_kib_per_min'], '+.0f')} KiB/min) | "
-                f"{r.get('other_processes_cpu_percent_of_core', float('nan')):.0f} % |")
+                f"{_other_load(r.get('other_processes_cpu_percent_of_core', float('nan')))} |")
         lines += ["", "Latency split at the driver's publish (DDS source timestamp), p50 / p99 in ms, "
                   "and where frames were lost:", "",
                   "| board rate | write -> driver publish | publish -> subscriber callback | lost in DDS delivery | "
