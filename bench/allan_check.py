@@ -21,16 +21,7 @@ import numpy as np
 from fbg_accel_calibration.allan import BI_FACTOR, MG_TO_MPS2, allan_deviation
 from fbg_accel_calibration.thermal_fit import fit_thermal
 from fbg_accel_driver.sim.board_physics import BoardSimulator, SimConfig, simulate_recording
-
-
-def flicker(n: int, rate_hz: float, b_mps2: float, rng: np.random.Generator) -> np.ndarray:
-    """One-sided PSD B^2/(pi f) (IEEE 952 two-sided B^2/(2 pi f)): ADEV floor 0.664 B."""
-    f = np.fft.rfftfreq(n, 1.0 / rate_hz)
-    psd = np.zeros_like(f)
-    psd[1:] = b_mps2**2 / (np.pi * f[1:])
-    spec = np.sqrt(n * psd * rate_hz / 2.0) * (rng.standard_normal(len(f)) + 1j * rng.standard_normal(len(f))) / np.sqrt(2.0)
-    spec[0] = 0.0
-    return np.fft.irfft(spec, n)
+from fbg_accel_driver.sim.noise import flicker_noise
 
 
 def flicker_hours() -> dict:
@@ -40,7 +31,7 @@ def flicker_hours() -> dict:
     ratios = []
     for seed in range(8):
         rng = np.random.default_rng(seed)
-        x = np.stack([flicker(n, rate, b[j], rng) for j in range(3)], axis=1) + rng.standard_normal((n, 3)) * sigma
+        x = np.stack([flicker_noise(n, rate, b[j], rng) for j in range(3)], axis=1) + rng.standard_normal((n, 3)) * sigma
         ratios.append(allan_deviation(x, rate).bias_instability_mg * MG_TO_MPS2 / b)
     r = np.array(ratios)
     return {"configured_bi_mg": (b / MG_TO_MPS2).tolist(), "floor_adev_mps2": (BI_FACTOR * b).tolist(),

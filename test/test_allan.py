@@ -8,19 +8,9 @@ import numpy as np
 import pytest
 
 from fbg_accel_calibration.allan import BI_FACTOR, MG_TO_MPS2, allan_deviation, plot_allan
+from fbg_accel_driver.sim.noise import flicker_noise
 
 RATE_HZ = 100.0
-
-
-def _flicker(n: int, rate_hz: float, b_mps2: float, rng: np.random.Generator) -> np.ndarray:
-    """Bias-instability (flicker) noise: one-sided PSD B^2/(pi f), i.e. IEEE 952's two-sided B^2/(2 pi f),
-    whose Allan deviation floor is sqrt(2 ln 2 / pi) B = 0.664 B. FFT-shaped Gaussian noise."""
-    f = np.fft.rfftfreq(n, 1.0 / rate_hz)
-    psd = np.zeros_like(f)
-    psd[1:] = b_mps2**2 / (np.pi * f[1:])
-    spec = np.sqrt(n * psd * rate_hz / 2.0) * (rng.standard_normal(len(f)) + 1j * rng.standard_normal(len(f))) / np.sqrt(2.0)
-    spec[0] = 0.0
-    return np.fft.irfft(spec, n)
 
 
 def test_white_noise_gives_the_velocity_random_walk() -> None:
@@ -49,7 +39,7 @@ def test_white_plus_bias_instability_are_both_reproduced(tmp_path: Path) -> None
     ratios, vrw_ratios = [], []
     for seed in range(8):
         rng = np.random.default_rng(seed)
-        x = np.stack([_flicker(n, rate, b[j], rng) for j in range(3)], axis=1) + rng.standard_normal((n, 3)) * sigma
+        x = np.stack([flicker_noise(n, rate, b[j], rng) for j in range(3)], axis=1) + rng.standard_normal((n, 3)) * sigma
         res = allan_deviation(x, rate)
         ratios.append(res.bias_instability_mg * MG_TO_MPS2 / b)
         vrw_ratios.append(res.vrw_mps_per_sqrt_h / (60.0 * expected_adev_1s))

@@ -180,3 +180,18 @@ class GaussMarkovBank:
             if n:
                 self.state[j] = out[-1, j]
         return out
+
+
+def flicker_noise(n: int, rate_hz: float, b_mps2: float, rng: np.random.Generator) -> np.ndarray:
+    """``n`` samples of pure bias-instability (flicker) noise, m/s^2, FFT-shaped Gaussian.
+
+    One-sided PSD B^2/(pi f), i.e. IEEE 952's two-sided B^2/(2 pi f), whose Allan deviation floor is
+    sqrt(2 ln 2 / pi) B = 0.664 B. A reference series with a known B for checking the Allan tool (the
+    simulator itself uses the Gauss-Markov bank above).
+    """
+    f = np.fft.rfftfreq(n, 1.0 / rate_hz)
+    psd = np.zeros_like(f)
+    psd[1:] = b_mps2**2 / (np.pi * f[1:])
+    spec = np.sqrt(n * psd * rate_hz / 2.0) * (rng.standard_normal(len(f)) + 1j * rng.standard_normal(len(f))) / np.sqrt(2.0)
+    spec[0] = 0.0
+    return np.fft.irfft(spec, n)
