@@ -28,8 +28,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import os
-import platform
 import resource
 import sys
 import tempfile
@@ -41,7 +39,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from machine_info import cpu_model  # noqa: E402
+from machine_info import machine  # noqa: E402
 
 from fbg_accel_calibration.diagnose import diagnose  # noqa: E402
 from fbg_accel_calibration.mcap_io import read_recording, write_recording  # noqa: E402
@@ -145,8 +143,7 @@ def main(argv: list[str] | None = None) -> int:
         "benchmark": "calibration: fit and diagnose on simulated samples, MCAP write rate of RecordingWriter",
         "command": "python bench/bench_calibration.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "machine": {"cpu": cpu_model(), "logical_cpus": os.cpu_count(), "python": platform.python_version(),
-                    "numpy": np.__version__, "platform": platform.platform(), "load_average_1_5_15": list(os.getloadavg())},
+        "machine": machine(),
         "scenario": {"rate_hz": RATE_HZ, "levels_c": list(LEVELS_C), "poses": "grid 60 deg, dwell 3 s, move 1 s, looped",
                      "seed": args.seed},
         "imu_raw_messages_per_s_at_link_limit": link_msgs,

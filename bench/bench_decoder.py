@@ -20,8 +20,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import os
-import platform
 import statistics
 import sys
 import time
@@ -32,7 +30,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from machine_info import cpu_model  # noqa: E402
+from machine_info import machine  # noqa: E402
 
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, Frame, Status, encode_frame, link_frame_rate_limit  # noqa: E402
 from fbg_accel_driver.stream_decoder import StreamDecoder  # noqa: E402
@@ -133,13 +131,7 @@ def main(argv: list[str] | None = None) -> int:
         "benchmark": "stream decoder throughput (StreamDecoder.feed, pure Python, one core, wall clock)",
         "command": "python bench/bench_decoder.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "machine": {
-            "cpu": cpu_model(),
-            "logical_cpus": os.cpu_count(),
-            "python": platform.python_version(),
-            "platform": platform.platform(),
-            "load_average_1_5_15": list(os.getloadavg()),
-        },
+        "machine": machine(),
         "link": {"baud": BAUD, "frame_bytes": FRAME_SIZE_V1, "bits_per_byte": 10, "frames_per_s_limit": link_rate},
         "frames_per_run": args.frames,
         "repeats": args.repeats,

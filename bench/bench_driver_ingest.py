@@ -44,7 +44,6 @@ import datetime as dt
 import itertools
 import json
 import os
-import platform
 import signal
 import subprocess
 import sys
@@ -58,7 +57,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from machine_info import cpu_model  # noqa: E402
+from machine_info import machine  # noqa: E402
 
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, link_frame_rate_limit  # noqa: E402
 
@@ -565,8 +564,7 @@ def main(argv: list[str] | None = None) -> int:
         "command": "python bench/bench_driver_ingest.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "quick": bool(args.quick),
         "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "machine": {"cpu": cpu_model(), "logical_cpus": os.cpu_count(), "python": platform.python_version(),
-                    "platform": platform.platform(), "load_average_1_5_15": list(os.getloadavg())},
+        "machine": machine(),
         "ros_domain_id": os.environ.get("ROS_DOMAIN_ID"),
         "link": {"baud": BAUD, "frame_bytes": FRAME_SIZE_V1, "bits_per_byte": 10, "frames_per_s_limit": LINK_RATE},
         "warmup_s_min": WARMUP_S,

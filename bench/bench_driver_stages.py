@@ -27,8 +27,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import os
-import platform
 import queue
 import sys
 import threading
@@ -37,6 +35,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from machine_info import machine  # noqa: E402
 
 from fbg_accel_driver.driver_core import DriverCore  # noqa: E402
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, link_frame_rate_limit  # noqa: E402
@@ -238,8 +238,7 @@ def main(argv: list[str] | None = None) -> int:
         "benchmark": "driver stage costs per frame (thread CPU time, us)",
         "command": "python bench/bench_driver_stages.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "machine": {"logical_cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
-                    "load_average_1_5_15": list(os.getloadavg())},
+        "machine": machine(),
         "results": results,
     }
     args.output.parent.mkdir(parents=True, exist_ok=True)

@@ -22,13 +22,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import time
 import tracemalloc
 from pathlib import Path
 
 import numpy as np
+from machine_info import machine
 
 from fbg_accel_calibration.mcap_io import read_recording, write_recording
 from fbg_accel_calibration.model_selection import select_degree
@@ -128,8 +127,7 @@ def main() -> None:
         "chunk_rows": 65536, "steps": results, "mcap_read": mcap_info,
         "fit_check": {"samples_used": cal.fit["samples_used"], "excluded_in_motion": cal.fit["samples_excluded_in_motion"],
                       "rmse_mps2": [round(v, 5) for v in cal.fit["rmse_mps2"]]},
-        "target": "full < 2 s (issue 3)", "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
-                                                       "numpy": np.__version__, "platform": platform.platform()},
+        "target": "full < 2 s (issue 3)", "machine": machine(),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=2) + "\n")

@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -36,6 +35,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from machine_info import machine
 
 HERE = Path(__file__).resolve().parent
 MODES = {
@@ -176,8 +176,7 @@ def main() -> None:
         "stream_memory_independent_of_samples": memory_check,
         "fit_check": {"samples_used": streamed.fit["samples_used"],
                       "rmse_mps2": [round(v, 5) for v in streamed.fit["rmse_mps2"]]},
-        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "numpy": np.__version__,
-                    "platform": platform.platform(), "load_avg_1min_at_end": round(os.getloadavg()[0], 2)},
+        "machine": machine(),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=2) + "\n")

@@ -19,7 +19,7 @@ def cpu_model() -> str:
 
 
 def machine() -> dict:
-    """CPU model, logical CPUs, RAM in GiB, Python and OS of this machine."""
+    """CPU model, logical CPUs, RAM in GiB, Python, numpy, OS and the load average right now."""
     mem_gib = None
     try:
         for line in Path("/proc/meminfo").read_text().splitlines():
@@ -28,5 +28,8 @@ def machine() -> dict:
                 break
     except OSError:
         pass
+    import numpy as np
+
     return {"cpu": cpu_model(), "logical_cpus": os.cpu_count(), "ram_gib": round(mem_gib, 1) if mem_gib else None,
-            "python": platform.python_version(), "platform": platform.platform()}
+            "python": platform.python_version(), "numpy": np.__version__, "platform": platform.platform(),
+            "load_average_1_5_15": [round(v, 2) for v in os.getloadavg()]}
