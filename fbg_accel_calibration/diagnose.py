@@ -41,7 +41,7 @@ from fbg_accel_driver.thermal_model import ThermalCalibration
 from .effects import LIBRARY, DiagnosisData, Effect, Inputs, motion_groups, separating_measurement
 from .recording import Recording
 from .static_detector import calibration_samples
-from .thermal_fit import NotIdentifiedError, design_matrix, temperature_levels, temperature_scaling
+from .thermal_fit import NotIdentifiedError, design_matrix, n_params, temperature_levels, temperature_scaling
 
 FULL_SCALE_MPS2 = 20 * 9.80665  # paper §3.4: ±20 g
 
@@ -120,17 +120,20 @@ def build_design(data: DiagnosisData, spec: ModelSpec) -> Design:
     for eff, h in ordered:
         eff.transform(data, inp, h)
     tau = (inp.temp_c - spec.t_center_c) / spec.t_scale_c
-    base = design_matrix(inp.psi, tau, spec.degree)
-    cols, blocks, p = [base], {}, base.shape[1]
+    n_base = n_params(spec.degree)
+    extra, blocks, p = [], {}, n_base
     for eff, h in ordered:
         c = eff.columns(data, inp, h)
         if c is not None:
             blocks[eff.name] = slice(p, p + c.shape[1])
-            cols.append(c)
+            extra.append(c)
             p += c.shape[1]
-    X = np.hstack(cols)
+    X = np.empty((len(tau), p))  # filled in place: no per-trial concatenation copy
+    design_matrix(inp.psi, tau, spec.degree, out=X)  # writes the first n_base columns
+    for c, sl in zip(extra, blocks.values(), strict=True):
+        X[:, sl] = c
     valid = inp.valid & np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(inp.gref), axis=1)
-    return Design(X, inp.gref, valid, blocks, base.shape[1])
+    return Design(X, inp.gref, valid, blocks, n_base)
 
 
 # ============================================================================ cross-validation
@@ -204,8 +207,9 @@ def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np
 
 def weighted_rss(des: Design, rows: np.ndarray, weights: np.ndarray) -> float:
     r = rows & des.valid
-    A = _solve(des.X[r].T @ des.X[r], des.X[r].T @ des.G[r])
-    res = des.G[r] - des.X[r] @ A
+    X, G = des.X[r], des.G[r]  # one copy each, not three
+    A = _solve(X.T @ X, X.T @ G)
+    res = G - X @ A
     return float(np.sum(res**2 * weights))
 
 

@@ -67,6 +67,16 @@ class DiagnosisData:
     gref_filled: np.ndarray = field(default=None)  # type: ignore[assignment]
     group: np.ndarray = field(default=None)  # type: ignore[assignment]
 
+    _psi_map: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
+
+    def static_psi_map(self) -> tuple[np.ndarray, np.ndarray]:
+        """``expected_psi_map`` of the recorded counts (computed once)."""
+        if self._psi_map is None:
+            inp = Inputs(np.array(self.ref, float), np.array(self.xyz, float), np.array(self.temp_c, float),
+                         np.array(self.t_s, float), np.array(self.gref, float), np.ones(len(self.t_s), bool))
+            self._psi_map = expected_psi_map(self, inp)
+        return self._psi_map
+
     def __post_init__(self) -> None:
         if self.gref_filled is None:
             self.gref_filled = fill_reference_gaps(self.t_s, self.gref, self.run_id)
@@ -129,6 +139,8 @@ class Inputs:
     t_s: np.ndarray
     gref: np.ndarray
     valid: np.ndarray
+    gref_moved: bool = False  # an earlier transform changed the reference (else it is data.gref)
+    counts_changed: bool = False  # an earlier transform changed ref or xyz (else psi is the data's)
 
     @property
     def psi(self) -> np.ndarray:
@@ -190,6 +202,7 @@ class ReferenceDarkOffsetEffect(Effect):
 
     def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
         inp.ref = inp.ref - float(h)
+        inp.counts_changed = True
         inp.valid &= inp.ref > 0
 
     def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
@@ -321,6 +334,7 @@ class ChannelDelayEffect(Effect):
                 g[idx, j] = np.interp(tq, t, data.gref_filled[idx, j])
             valid[idx] &= tq >= t[0]
         inp.gref = g
+        inp.gref_moved = True
         inp.valid = valid
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
@@ -351,8 +365,10 @@ class TiaLowpassEffect(Effect):
         # Filter the noise-free reference, not the noisy signal: the sensor shows LPF(Psi_true), so the
         # reference it must match is the one whose expected Psi went through the same filters. Inverting
         # the filter on the counts instead would amplify the (already filtered) noise by ~1/a.
-        g = fill_reference_gaps(inp.t_s, inp.gref, data.run_id)
-        P, q = expected_psi_map(data, inp)
+        # Neither depends on the time constant: reuse the data's own when no earlier stage changed the inputs
+        # (the hyper-parameter search calls this for every trial value).
+        g = fill_reference_gaps(inp.t_s, inp.gref, data.run_id) if inp.gref_moved else data.gref_filled
+        P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
         psi_hat = g @ P.T + q
         psi_f = np.array(psi_hat, copy=True)
         tau = self.taus(float(h))
