@@ -18,7 +18,9 @@ Not a test. Steps (wall clock, one process, numpy may use both cores for its BLA
   and the ratio to the 3413 messages/s the driver publishes on ``imu/raw`` at the 921600-baud link
   limit; the file is read back with ``read_recording`` and the sample count checked.
 
-Peak resident memory (ru_maxrss) after each step is reported. Writes bench/results/calibration.json.
+Peak resident memory (ru_maxrss) after each step is reported. ``--profile-diagnose`` runs the
+diagnosis under cProfile and stores its top functions (where the diagnosis spends its time).
+Writes bench/results/calibration.json.
 
     .venv/bin/python bench/bench_calibration.py [--samples 1000000] [--mcap-samples 1000000]
 """
@@ -26,8 +28,10 @@ Peak resident memory (ru_maxrss) after each step is reported. Writes bench/resul
 from __future__ import annotations
 
 import argparse
+import cProfile
 import datetime as dt
 import json
+import pstats
 import resource
 import sys
 import tempfile
@@ -78,6 +82,15 @@ def peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+def profile_top(profiler: cProfile.Profile, n: int = 15) -> dict[str, list[dict]]:
+    """The ``n`` functions with the most cumulative and the most own time (s, calls), as plain rows."""
+    st = pstats.Stats(profiler)
+    rows = [{"function": f"{Path(file).name}:{line}({name})", "calls": nc, "own_s": round(tt, 2), "cumulative_s": round(ct, 2)}
+            for (file, line, name), (_, nc, tt, ct, _) in st.stats.items()]
+    return {"by_cumulative": sorted(rows, key=lambda r: -r["cumulative_s"])[:n],
+            "by_own": sorted(rows, key=lambda r: -r["own_s"])[:n]}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--samples", type=int, default=1_000_000, help="samples of the fit/diagnose recording (default 10^6)")
@@ -86,6 +99,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=3, help="timed repeats of the fit (best is reported)")
     ap.add_argument("--skip-diagnose", action="store_true", help="do not run the diagnosis step")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--profile-diagnose", action="store_true",
+                    help="run the diagnosis under cProfile; its top functions (cumulative and own time) go into the JSON")
     ap.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "calibration.json")
     args = ap.parse_args(argv)
 
@@ -110,12 +125,19 @@ def main(argv: list[str] | None = None) -> int:
     print(f"fit (degree {args.degree}): best {min(times):.2f} s of {args.repeats}", flush=True)
 
     if not args.skip_diagnose:
+        profiler = cProfile.Profile() if args.profile_diagnose else None
         t0 = time.perf_counter()
+        if profiler is not None:
+            profiler.enable()
         res = diagnose(rec)
+        if profiler is not None:
+            profiler.disable()
         sec = time.perf_counter() - t0
         steps["diagnose"] = {"seconds": sec, "samples_per_s": len(rec) / sec, "degree": res.degree,
                              "ranked": [c.name for c in res.ranked][:5], "added": [a[0] for a in res.added],
                              "noise_floor_mps2": [float(v) for v in res.noise_floor], "peak_rss_mib": peak_rss_mib()}
+        if profiler is not None:
+            steps["diagnose"]["profile_top"] = profile_top(profiler)
         print(f"diagnose: {sec:.1f} s, added {steps['diagnose']['added']}", flush=True)
 
     link_msgs = link_frame_rate_limit(921600)
