@@ -90,6 +90,19 @@ def test_apply_counts_matches_eq28_reference(degree: int) -> None:
     np.testing.assert_allclose(got, reference_eq28(cal, ref, xyz, temp), rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("degree", [0, 1, 3])
+def test_coefficients_at_one_temperature_give_eq28(degree: int) -> None:
+    """M(T), b(T) as plain floats (the driver's per-sample path) reproduce eq. 28 sample by sample."""
+    cal = make_cal(degree=degree)
+    ref, xyz, temp, _ = counts_batch(20)
+    for i in range(20):
+        m, b = cal.coefficients_at(float(temp[i]))
+        assert len(m) == 9 and all(type(v) is float for v in (*m, *b))
+        psi = xyz[i] / ref[i]
+        got = np.reshape(m, (3, 3)) @ psi + np.asarray(b)
+        np.testing.assert_allclose(got, reference_eq28(cal, ref[i:i + 1], xyz[i:i + 1], temp[i:i + 1])[0], rtol=1e-12, atol=1e-12)
+
+
 def test_base_acceleration_broadcasts_scalar_temperature() -> None:
     cal = make_cal()
     psi = np.array([[0.3, 0.4, 0.5], [0.1, 0.2, 0.9]])
