@@ -468,6 +468,23 @@ def _records(fh: Any):
     """
     if fh.read(len(_MAGIC)) != _MAGIC:
         raise McapRecordingError("not an MCAP file (bad magic)")
+    for opcode, body in _top_level_records(fh):
+        if opcode == Opcode.CHUNK:
+            yield from _chunk_records(body)
+        elif opcode in _PARSED:
+            yield _PARSED[opcode].read(ReadDataStream(io.BytesIO(body)))
+        elif opcode == Opcode.MESSAGE:
+            channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(body, 0)
+            yield channel_id, log_time, body[22:]
+
+
+def _top_level_records(fh: Any):
+    """``(opcode, body)`` of each top-level record of an MCAP file (``fh`` just past its magic) up to
+    its footer, the index and summary records (``_SKIPPED``) passed over unread. Raises
+    ``_TruncatedError`` when the file ends inside a record or without a footer."""
+    pos = fh.tell()
+    file_size = fh.seek(0, io.SEEK_END)
+    fh.seek(pos)
     while True:
         head = fh.read(9)
         if not head:
@@ -478,19 +495,10 @@ def _records(fh: Any):
         if opcode == Opcode.FOOTER:
             return
         if opcode in _SKIPPED:
-            skipped = fh.seek(length, io.SEEK_CUR)
-            if skipped > fh.seek(0, io.SEEK_END):
+            if fh.seek(length, io.SEEK_CUR) > file_size:
                 raise _TruncatedError("file ends inside a record")
-            fh.seek(skipped)
             continue
-        body = _read_exact(fh, length)
-        if opcode == Opcode.CHUNK:
-            yield from _chunk_records(body)
-        elif opcode in _PARSED:
-            yield _PARSED[opcode].read(ReadDataStream(io.BytesIO(body)))
-        elif opcode == Opcode.MESSAGE:
-            channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(body, 0)
-            yield channel_id, log_time, body[22:]
+        yield opcode, _read_exact(fh, length)
 
 
 def _chunk_records(body: bytes):
@@ -804,32 +812,18 @@ class McapSampleStream:
         joined: list[bytes] = []
         joined_bytes = 0
         with open(self.path, "rb", buffering=1 << 20) as fh:
-            file_size = os.fstat(fh.fileno()).st_size
-            try:
-                if fh.read(len(_MAGIC)) != _MAGIC:
-                    raise McapRecordingError(f"{self.path}: not an MCAP file (bad magic)")
-            except _TruncatedError as exc:  # pragma: no cover - read() does not raise it
-                report.stopped_at = str(exc)
-                return
+            if fh.read(len(_MAGIC)) != _MAGIC:
+                raise McapRecordingError(f"{self.path}: not an MCAP file (bad magic)")
+            records = _top_level_records(fh)
             while True:
                 try:
-                    head = fh.read(9)
-                    if not head:
-                        raise _TruncatedError("file ends without a footer")
-                    if len(head) < 9:
-                        raise _TruncatedError("file ends inside a record header")
-                    opcode, length = _RECORD_HEAD.unpack(head)
-                    if opcode == Opcode.FOOTER:
-                        if joined:
-                            yield from emit(b"".join(joined))
-                        report.complete = True
-                        return
-                    if opcode in _SKIPPED:
-                        if fh.seek(length, io.SEEK_CUR) > file_size:
-                            raise _TruncatedError("file ends inside a record")
-                        continue
-                    body = _read_exact(fh, length)
+                    opcode, body = next(records)
                     chunk_data = _chunk_bytes(body) if opcode == Opcode.CHUNK else None
+                except StopIteration:  # the footer
+                    if joined:
+                        yield from emit(b"".join(joined))
+                    report.complete = True
+                    return
                 except Exception as exc:  # truncated or corrupt tail: keep what was read
                     report.stopped_at = f"{type(exc).__name__} {exc}".strip()
                     if joined:
@@ -845,16 +839,14 @@ class McapSampleStream:
                 if joined:
                     yield from emit(b"".join(joined))
                     joined, joined_bytes = [], 0
-                if chunk_data is None:
-                    if opcode in _PARSED:
-                        rec = _PARSED[opcode].read(ReadDataStream(io.BytesIO(body)))
-                        _note_record(rec, schemas, channels, report)
-                    elif opcode == Opcode.MESSAGE:
-                        channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(body, 0)
-                        out = message(channel_id, log_time, body[22:])
-                        if out is not None:
-                            yield out
-                    continue
+                if opcode in _PARSED:
+                    rec = _PARSED[opcode].read(ReadDataStream(io.BytesIO(body)))
+                    _note_record(rec, schemas, channels, report)
+                elif opcode == Opcode.MESSAGE:
+                    channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(body, 0)
+                    out = message(channel_id, log_time, body[22:])
+                    if out is not None:
+                        yield out
 
     def blocks(self, block_rows: int, with_poses: bool) -> Any:
         """Yield :class:`Recording` blocks of ``block_rows`` samples (run_id 0) in file order.
