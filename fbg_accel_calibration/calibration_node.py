@@ -24,6 +24,8 @@ from typing import Any
 
 from fbg_accel_driver.command_line import wants_help
 
+from .stillness_monitor import DEFAULT_FALSE_ALARM_PER_RUN, DEFAULT_NOISE_CORR_S
+
 PACKAGE = "fbg_accel_driver"
 EXIT_OK, EXIT_FIT_FAILED, EXIT_STARTUP, EXIT_INTERRUPTED = 0, 1, 2, 3
 
@@ -44,9 +46,10 @@ PARAMETERS: dict[str, tuple[str, Any, str]] = {
     "still_window_s": ("double", 0.25, "static detector moving window (s)"),
     "still_hold_s": ("double", 1.0, "continuous stillness (s) required before a pose is recorded (covers TIA settling)"),
     "still_noise_std": ("double_array", None, "Psi noise floor per axis x,y,z (unset: learnt at the start of the run)"),
-    "noise_learn_s": ("double", 2.0, "seconds at the start of the run used to learn the noise floor (table still)"),
-    "still_margin": ("double", 5.0, "detector threshold margin over the chi-square bound (>= 1; low-pass noise needs ~5)"),
-    "still_false_alarm": ("double", 1e-3, "detector false-alarm probability per window, (0, 1)"),
+    "still_noise_corr_s": ("double", DEFAULT_NOISE_CORR_S, "correlation time (s) of a configured still_noise_std (TIA low-pass)"),
+    "noise_learn_s": ("double", 5.0, "seconds at the start of the run used to learn the noise floor (table still)"),
+    "still_false_alarm_per_run": ("double", DEFAULT_FALSE_ALARM_PER_RUN,
+                                  "expected false still->moving transitions per run of a still sensor, (0, 1)"),
     "motion_expect_g": ("double", 0.1, "pose changes above this (g) must show motion before the next pose is recorded"),
     "exit_when_done": ("bool", True, "exit once the run is complete (and fitted)"),
     "progress": ("bool", True, "print the progress line (pose k of N, stillness, samples, temperature) on stdout"),
@@ -168,7 +171,8 @@ def _make_node() -> Any:
             noise = p["still_noise_std"]
             detector = DetectorSettings(window_s=p["still_window_s"], hold_s=p["still_hold_s"],
                                         noise_std=tuple(noise) if noise else None, learn_s=p["noise_learn_s"],
-                                        false_alarm=p["still_false_alarm"], margin=p["still_margin"])
+                                        false_alarm_per_run=p["still_false_alarm_per_run"],
+                                        noise_corr_s=p["still_noise_corr_s"])
             try:
                 detector.validate()
             except ValueError as exc:
@@ -194,7 +198,8 @@ def _make_node() -> Any:
                 "started": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
                 "static_detector": {"window_s": detector.window_s, "hold_s": detector.hold_s,
                                     "noise_std_psi": list(noise) if noise else "learnt", "learn_s": detector.learn_s,
-                                    "false_alarm": detector.false_alarm, "margin": detector.margin},
+                                    "noise_corr_s": detector.noise_corr_s,
+                                    "false_alarm_per_run": detector.false_alarm_per_run},
                 "node": "fbg_accel_driver calibration",
             }
             try:
@@ -233,7 +238,7 @@ def _make_node() -> Any:
                     raise StartupError(f"invalid parameter '{name}': {_first_line(exc)} ({desc})") from None
             if not values["plan_file"]:
                 raise StartupError("parameter 'plan_file' is required (e.g. -p plan_file:=config/pose_plan_six_position.yaml)")
-            for name in ("still_window_s", "still_hold_s", "noise_learn_s", "still_margin", "motion_expect_g"):
+            for name in ("still_window_s", "still_hold_s", "noise_learn_s", "motion_expect_g"):
                 if not (math.isfinite(values[name]) and values[name] > 0):
                     raise StartupError(f"invalid parameter '{name}': {values[name]} (must be > 0)")
             return values

@@ -6,7 +6,7 @@ The node hands every ``imu/raw`` message to :meth:`RunRecorder.on_raw` and every
 1. writes each message to the run's MCAP at once (:class:`~fbg_accel_calibration.mcap_io.RecordingWriter`,
    incremental, so a killed run leaves a readable file; the chunk is also ended after every pose);
 2. computes Psi = counts / reference (paper eq. 24) and feeds it to the static-interval detector
-   (:class:`~fbg_accel_calibration.static_detector.StillnessMonitor`), whose verdict drives the
+   (:class:`~fbg_accel_calibration.stillness_monitor.StillnessMonitor`), whose verdict drives the
    :class:`~fbg_accel_calibration.pose_sequencer.PoseSequencer`;
 3. tells the sequencer whether the signal has *left the pose* (``DEPART_SIGMAS`` noise sigmas from
    the pose's mean Psi for ``DEPART_CONFIRM`` samples), so a detector false alarm or a knock at the
@@ -18,14 +18,16 @@ The node hands every ``imu/raw`` message to :meth:`RunRecorder.on_raw` and every
 
 Detector settings (:class:`DetectorSettings`). The window and the hold time are given in seconds
 and turned into samples with the board rate measured at the start of the run. The noise floor of
-Psi is either given (``noise_std``, per axis) or learnt during the first ``learn_s`` seconds of the
-run as the robust floor of :func:`~fbg_accel_calibration.static_detector.estimate_noise_var`
-(the sensor must be still then: the table at the first pose, whose dwell the plan can lengthen; if
+Psi (per-sample variance and autocorrelation, :class:`~fbg_accel_calibration.stillness_monitor.NoiseFloor`)
+is either given (``noise_std`` per axis, low-passed with correlation time ``noise_corr_s``) or learnt
+during the first ``learn_s`` seconds of the run (:func:`~fbg_accel_calibration.stillness_monitor.learn_noise_floor`;
+the sensor must be still then: the table at the first pose, whose dwell the plan can lengthen; if
 the means of the four quarters of that period differ by more than ``LEARN_SHIFT_LIMIT`` noise
 sigmas the table moved: service mode learns again, auto mode aborts the run because the pose
 sequence is out of step). It never goes below the ADC quantisation floor of Psi,
-(1 / ref)^2 / 12 per axis. The detector threshold is then the chi-square bound of
-``static_detector`` (false-alarm probability ``false_alarm`` per window, times ``margin``).
+(1 / ref)^2 / 12 per axis. The detector (:class:`~fbg_accel_calibration.stillness_monitor.StillnessMonitor`)
+spends ``false_alarm_per_run`` over the plan's nominal duration: a still sensor is declared moving
+at most that many times per run in expectation.
 """
 
 from __future__ import annotations
@@ -41,7 +43,15 @@ import numpy as np
 from .mcap_io import RecordingWriter
 from .pose_plan import PosePlan
 from .pose_sequencer import Mode, Phase, PoseSequencer, SequencerEvent
-from .static_detector import DEFAULT_FALSE_ALARM, StillnessMonitor, estimate_noise_var, moving_variance
+from .static_detector import estimate_noise_var, moving_variance
+from .stillness_monitor import (
+    DEFAULT_FALSE_ALARM_PER_RUN,
+    DEFAULT_NOISE_CORR_S,
+    NoiseFloor,
+    StillnessMonitor,
+    first_order_noise_floor,
+    learn_noise_floor,
+)
 
 LEARN_BLOCKS = 4  # the learning period is cut into this many blocks whose means must agree
 LEARN_SHIFT_LIMIT = 8.0  # largest block-mean difference (in noise sigmas) accepted as "still" while learning
@@ -55,23 +65,29 @@ MIN_RATE_SAMPLES = 20  # samples needed to measure the board rate
 @dataclass(frozen=True)
 class DetectorSettings:
     """Static detector of the node: ``window_s`` (s) moving window, ``hold_s`` (s) of continuous
-    stillness before a pose is recorded, ``noise_std`` Psi noise floor per axis (None: learn it during
-    ``learn_s`` s), ``false_alarm`` and ``margin`` as in ``static_detector``."""
+    stillness before a pose is recorded, ``noise_std`` Psi noise floor per axis (per-sample standard
+    deviation; None: learn it during ``learn_s`` s), ``noise_corr_s`` (s) correlation time of a given
+    floor (the TIA low-pass, paper Table 1), ``false_alarm_per_run`` the expected number of false
+    still-to-moving transitions per run (``stillness_monitor``)."""
 
     window_s: float = 0.25
     hold_s: float = 1.0
     noise_std: tuple[float, float, float] | None = None
-    learn_s: float = 2.0
-    false_alarm: float = DEFAULT_FALSE_ALARM
-    margin: float = 5.0
+    # 5 s: with 2 s at 100 Hz the learnt autocorrelation is too uncertain and a 3e-5 threshold was exceeded
+    # 5.8e-5 of the time; with 5 s, 1.8e-5 (test_stillness_monitor, bench numbers in docs/calibration_node.md)
+    learn_s: float = 5.0
+    false_alarm_per_run: float = DEFAULT_FALSE_ALARM_PER_RUN
+    noise_corr_s: float = DEFAULT_NOISE_CORR_S
 
     def validate(self) -> None:
-        for name in ("window_s", "hold_s", "learn_s", "margin"):
+        for name in ("window_s", "hold_s", "learn_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"detector {name} must be > 0, got {v}")
-        if not 0 < self.false_alarm < 1:
-            raise ValueError(f"detector false_alarm must be in (0, 1), got {self.false_alarm}")
+        if not (math.isfinite(self.noise_corr_s) and self.noise_corr_s >= 0):
+            raise ValueError(f"detector noise_corr_s must be >= 0 s, got {self.noise_corr_s}")
+        if not 0 < self.false_alarm_per_run < 1:
+            raise ValueError(f"detector false_alarm_per_run must be in (0, 1), got {self.false_alarm_per_run}")
         if self.noise_std is not None and (len(self.noise_std) != 3 or not all(math.isfinite(s) and s > 0
                                                                               for s in self.noise_std)):
             raise ValueError(f"detector noise_std must be 3 positive numbers (Psi units), got {self.noise_std}")
@@ -303,25 +319,31 @@ class RunRecorder:
         window = max(3, round(self.detector.window_s * self.rate_hz))
         hold = max(1, round(self.detector.hold_s * self.rate_hz))
         quant_var = (1.0 / np.median(self._startup_ref)) ** 2 / 12.0  # ADC quantisation of 1 count, in Psi^2
+        floor: NoiseFloor
         if self.detector.noise_std is None:
             psi_arr = np.asarray(self._startup_psi)
+            # was the table still? Block means against the robust (median window variance) noise scale, which a
+            # move inside the period does not inflate as it does the floor's plain variance
             stat = moving_variance(psi_arr, window)[window // 2: len(psi_arr) - window // 2]
-            learnt = estimate_noise_var(stat, window)
-            noise_var = np.maximum(learnt, quant_var)
-            shift = learning_shift(psi_arr, noise_var)
+            shift = learning_shift(psi_arr, np.maximum(estimate_noise_var(stat, window), quant_var))
             if shift > LEARN_SHIFT_LIMIT:
                 self._motion_while_learning(shift)
                 return
+            floor = learn_noise_floor(psi_arr, max_lag=window).with_minimum_variance(quant_var)
             source = f"learnt from the first {span:.2f} s"
         else:
-            noise_var = np.maximum(np.asarray(self.detector.noise_std, float) ** 2, quant_var)
+            floor = first_order_noise_floor(np.asarray(self.detector.noise_std, float),
+                                            self.detector.noise_corr_s * self.rate_hz, window
+                                            ).with_minimum_variance(quant_var)
             source = "configured"
-        self.noise_std = np.sqrt(noise_var)
-        self.monitor = StillnessMonitor(noise_var, window=window, min_interval=hold,
-                                        false_alarm=self.detector.false_alarm, margin=self.detector.margin)
+        self.noise_std = floor.std
+        run_samples = max(1, round(self.plan.nominal_duration_s() * self.rate_hz))
+        self.monitor = StillnessMonitor(floor, window=window, hold=hold, run_samples=run_samples,
+                                        false_alarm_per_run=self.detector.false_alarm_per_run)
         self._say("info", f"board rate {self.rate_hz:.1f} Hz; static detector: window {window} samples, hold {hold} samples, "
                   f"Psi noise floor {', '.join(f'{v:.2e}' for v in self.noise_std)} ({source}), "
-                  f"threshold (std) {', '.join(f'{v:.2e}' for v in np.sqrt(self.monitor.threshold))}")
+                  f"leave threshold (std) {', '.join(f'{v:.2e}' for v in np.sqrt(self.monitor.leave_threshold))} "
+                  f"(false alarms <= {self.detector.false_alarm_per_run:g} per run of {run_samples} samples)")
         shortest = min(p.dwell_s for p in self.plan.poses)
         needed = self.detector.hold_s + self.detector.window_s + max(p.samples for p in self.plan.poses) / self.rate_hz
         if needed > shortest:

@@ -1,8 +1,8 @@
 """Static-interval detection from the sensor signal itself (multi-position calibration practice).
 
-Pure numpy/scipy. Used by the fit to exclude samples taken while the table moves, and by the
-calibration node (through :class:`StillnessMonitor`) to wait until the sensor is still before it
-records a pose.
+Pure numpy/scipy. Used by the fit to exclude samples taken while the table moves (offline, on a
+whole recording). The calibration node's live test, which must hold a false-alarm rate per run on
+correlated noise, is :mod:`fbg_accel_calibration.stillness_monitor`.
 
 Method (the static detector of multi-position IMU calibration, e.g. Tedaldi, Pretto & Menegatti,
 "A robust and easy to implement method for IMU calibration without external equipments", ICRA
@@ -166,48 +166,6 @@ def detect_static(signal: np.ndarray, window: int = DEFAULT_WINDOW, min_interval
         noise_out = np.maximum(noise_out, nv)
         thr_out = np.maximum(thr_out, thr)
     return StaticDetection(mask, intervals, stat, noise_out, thr_out)
-
-
-class StillnessMonitor:
-    """Streaming form of the detector for the calibration node: feed samples, ask whether still.
-
-    ``noise_var`` (k,) is the noise-floor variance of the fed signal (from configuration or from a
-    previous recording's :class:`StaticDetection`). The sensor is still once the last
-    ``min_interval`` windows (each of ``window`` trailing samples) were all below the threshold.
-    """
-
-    def __init__(self, noise_var: np.ndarray, window: int = DEFAULT_WINDOW, min_interval: int = DEFAULT_MIN_INTERVAL,
-                 false_alarm: float = DEFAULT_FALSE_ALARM, margin: float = DEFAULT_MARGIN) -> None:
-        if window < 2:
-            raise ValueError(f"window must be >= 2 samples, got {window}")
-        self.window = int(window)
-        self.min_interval = int(min_interval)
-        self.threshold = variance_threshold(np.asarray(noise_var, float), window, false_alarm, margin)
-        self._buf: list[np.ndarray] = []
-        self.still_count = 0  # consecutive samples whose trailing window was below threshold
-        self.last_variance = np.full(self.threshold.shape, np.nan)
-
-    def reset(self) -> None:
-        """Forget the history (call when the table starts moving to the next pose)."""
-        self._buf.clear()
-        self.still_count = 0
-
-    def update(self, sample: np.ndarray) -> bool:
-        """Add one sample (k,); returns :attr:`is_still`."""
-        sample = np.asarray(sample, dtype=float).reshape(self.threshold.shape)
-        self._buf.append(sample)
-        if len(self._buf) > self.window:
-            self._buf.pop(0)
-        if len(self._buf) < self.window or not np.all(np.isfinite(sample)):
-            self.still_count = 0
-            return False
-        self.last_variance = np.var(np.asarray(self._buf), axis=0, ddof=1)
-        self.still_count = self.still_count + 1 if np.all(self.last_variance <= self.threshold) else 0
-        return self.is_still
-
-    @property
-    def is_still(self) -> bool:
-        return self.still_count >= self.min_interval
 
 
 DEFAULT_REFERENCE_TOLERANCE_MPS2 = 1e-3

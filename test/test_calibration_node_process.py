@@ -46,7 +46,7 @@ PLAN = {
     "format": "fbg_accel_pose_plan", "format_version": 1, "name": "process_test",
     "samples_per_pose": 60, "dwell_s": 2.0, "move_s": 0.5,
     "poses": [
-        {"name": "z_up", "psi_deg": 0, "theta_deg": 0, "dwell_s": 4.0},  # first pose: noise learning (2 s) + record
+        {"name": "z_up", "psi_deg": 0, "theta_deg": 0, "dwell_s": 4.0},  # first pose: noise learning (2 s, set below) + record
         {"name": "z_down", "psi_deg": 0, "theta_deg": 180},
         {"name": "x_up", "psi_deg": 90, "theta_deg": 90},
         {"name": "y_up", "psi_deg": 0, "theta_deg": 90},
@@ -233,7 +233,10 @@ class NodeProcess(ChildProcess):
         self.ns = f"calib_test_{label}"
         args = [str(CALIBRATION_EXE), "--ros-args", "-r", f"__ns:=/{self.ns}", "-p", f"plan_file:={tmp / 'plan.yaml'}",
                 "-p", f"output_dir:={tmp}", "-p", f"run_label:={label}", "-p", "sensor_id:=synthetic",
-                "-p", "operator_notes:=process test"]
+                "-p", "operator_notes:=process test",
+                # 2 s of learning fits the short synthetic first pose; the learning statistics themselves are
+                # tested in test_stillness_monitor.py
+                "-p", "noise_learn_s:=2.0"]
         for p in params:
             args += ["-p", p]
         self.mcap = tmp / f"{label}.mcap"

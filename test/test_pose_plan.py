@@ -9,6 +9,7 @@ import pytest
 import yaml
 
 from fbg_accel_calibration.pose_plan import PosePlan, PosePlanError
+from fbg_accel_calibration.run_recorder import DetectorSettings
 from fbg_accel_calibration.table_geometry import STANDARD_GRAVITY, table_specific_force
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
@@ -38,9 +39,11 @@ def test_sim_e2e_plan_loads_and_spans_all_directions():
     plan = PosePlan.load(CONFIG / "pose_plan_sim_e2e.yaml")
     assert len(plan) == 6
     assert plan.chamber is not None and len(plan.chamber.levels_c) == 3
-    # the first dwell covers the node's start-up (2 s learning + window + hold + samples), the others window + hold +
+    # the first dwell covers the node's start-up (learning + window + hold + samples), the others window + hold +
     # 200 samples at the test's 100 Hz
-    assert plan.poses[0].dwell_s >= 2.0 + 0.25 + 1.0 + 2.0 and min(p.dwell_s for p in plan.poses) >= 0.25 + 1.0 + 2.0
+    d = DetectorSettings()
+    assert plan.poses[0].dwell_s >= d.learn_s + d.window_s + d.hold_s + 2.0
+    assert min(p.dwell_s for p in plan.poses) >= d.window_s + d.hold_s + 2.0
     # every axis sees both signs of gravity, so M and b are identified
     g = plan.gref_mps2
     assert np.all(g.max(axis=0) > 0.9 * plan.local_g_mps2) and np.all(g.min(axis=0) < -0.9 * plan.local_g_mps2)

@@ -7,7 +7,7 @@ import pytest
 
 from fbg_accel_calibration.pose_plan import PosePlan
 from fbg_accel_calibration.pose_sequencer import Mode, Phase, PoseSequencer
-from fbg_accel_calibration.static_detector import StillnessMonitor
+from fbg_accel_calibration.stillness_monitor import StillnessMonitor, first_order_noise_floor
 
 RATE_HZ = 100.0
 
@@ -228,7 +228,8 @@ def test_with_the_static_detector_on_a_synthetic_signal_only_static_samples_of_t
             truth += [-1] * 100
     psi = np.vstack(parts) + rng.normal(0, sigma, (sum(len(p) for p in parts), 3))
     truth = np.array(truth)
-    monitor = StillnessMonitor(np.full(3, sigma**2), window=10, min_interval=20)
+    monitor = StillnessMonitor(first_order_noise_floor(np.full(3, sigma), 0.0, 10), window=10, hold=20,
+                               run_samples=len(psi))
     seq = PoseSequencer(plan, mode)
     labels = []
     for i, row in enumerate(psi):

@@ -143,7 +143,9 @@ def test_detector_settings_are_validated():
     with pytest.raises(ValueError, match="noise_std"):
         DetectorSettings(noise_std=(1.0, math.nan, 1.0)).validate()
     with pytest.raises(ValueError, match="false_alarm"):
-        DetectorSettings(false_alarm=1.0).validate()
+        DetectorSettings(false_alarm_per_run=1.0).validate()
+    with pytest.raises(ValueError, match="noise_corr_s"):
+        DetectorSettings(noise_corr_s=-1.0).validate()
 
 
 # ------------------------------------------------------------------ end-of-run refit

@@ -7,7 +7,6 @@ import pytest
 
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_calibration.static_detector import (
-    StillnessMonitor,
     calibration_samples,
     detect_static,
     estimate_noise_var,
@@ -116,22 +115,6 @@ def test_reference_still_and_calibration_samples() -> None:
     usable, _ = calibration_samples(rec, window=3, min_interval=3)
     assert not usable[[19, 20, 21, 39, 40]].any()
     assert usable[[1, 10, 25, 50]].all()
-
-
-def test_stillness_monitor_waits_and_resets() -> None:
-    rng = np.random.default_rng(6)
-    mon = StillnessMonitor(noise_var=np.full(3, 1e-6), window=5, min_interval=10)
-    still_at = None
-    for i in range(40):
-        if mon.update(rng.normal(0, 1e-3, 3)) and still_at is None:
-            still_at = i
-    assert still_at == 5 - 1 + 10 - 1  # first full window, then min_interval windows below threshold
-    # a move (ramp) makes it not still at once
-    for i in range(5):
-        mon.update(np.full(3, 0.05 * (i + 1)))
-    assert not mon.is_still
-    mon.reset()
-    assert mon.still_count == 0 and not mon.is_still
 
 
 def test_bad_parameters() -> None:
