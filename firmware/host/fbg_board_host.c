@@ -3,11 +3,20 @@
  * firmware/core) run against a simulated board clock and a simulated AHT10 on a simulated I2C bus.
  *
  * Event-driven: the clock jumps to the next event (an ADC read time, possibly made late on
- * purpose with --late, or an AHT10 poll time). At equal times the AHT10 is polled first.
+ * purpose with --late K:US, or an AHT10 poll time). At equal times the AHT10 is polled first.
+ * Reading the four channels takes --adc-read-us (default 40 us, a simulation parameter, not a
+ * measured ESP32 figure): a read that catches up starts when the previous one is done, so t_us
+ * increases strictly.
+ *
+ * Options: --rate-mhz R (sample rate in mHz, default 100000 = 100 Hz), --samples N or
+ * --duration-us US, --output frames|times, --every N, --late K:US (repeatable), --adc-read-us US,
+ * --aht aht10|aht20|absent, --aht-fault nack|busy|badcrc|range|uncal|ones:START_US:END_US
+ * (repeatable), --temp-start-cc CC, --temp-slope-cc-per-s CC, --aht-period-us US, --aht-log.
  *
  * Output (stdout): --output frames (default) writes the protocol-v1 frames; --output times writes
- * "k t_us status" for every --every-th sample and for the last one. --aht-log writes one line per
- * completed AHT10 measurement on stderr: "AHT <t_us> <reason> <raw_t> <temp_cc> <status_bits>".
+ * "k seq t_us status" for every --every-th sample and for the last one. --aht-log writes one line per
+ * completed AHT10 measurement, or change of the temperature state the frames carry, on stderr:
+ * "AHT <t_us> <reason|state> <raw_t> <temp_cc> <status_bits>".
  * Usage errors: one line on stderr, exit code 2.
  */
 #include <errno.h>
@@ -83,6 +92,8 @@ int main(int argc, char **argv)
     uint64_t late_k[MAX_LATE], late_us[MAX_LATE];
     int n_late = 0;
     int absent_logged = 0;
+    uint8_t bits, last_bits = 0;
+    int16_t cc, last_cc = 0;
     static uint64_t now_us = 0;
     aht10_sim_device dev;
     fbg_aht10_config acfg = fbg_aht10_default_config();
@@ -91,6 +102,7 @@ int main(int argc, char **argv)
     fbg_scheduler sched;
     fbg_i2c_bus bus;
     uint64_t k = 0, aht_wake, last_counts_total = 0;
+    uint64_t adc_read_us = 40u, adc_free_us = 0;
     static char outbuf[1 << 16];
 
     aht10_sim_init(&dev, &now_us);
@@ -128,6 +140,10 @@ int main(int argc, char **argv)
                 output_times = 1;
             } else {
                 return usage("--output must be frames or times", v);
+            }
+        } else if (strcmp(a, "--adc-read-us") == 0) {
+            if (parse_u64(v, &adc_read_us) != 0 || adc_read_us == 0 || adc_read_us > 1000000u) {
+                return usage("--adc-read-us must be an integer in 1..1000000", v);
             }
         } else if (strcmp(a, "--late") == 0) { /* K:US: read k is taken US microseconds after its time */
             char buf[64];
@@ -225,6 +241,9 @@ int main(int argc, char **argv)
             }
         }
         read_at += extra;
+        if (read_at < adc_free_us) { /* catching up: the next read starts when the previous one is done */
+            read_at = adc_free_us;
+        }
         if (samples != 0 ? k >= samples : read_at >= duration_us) {
             break;
         }
@@ -236,11 +255,18 @@ int main(int argc, char **argv)
             for (r = 0; r < FBG_AHT10_REASONS; r++) {
                 total += aht.counts[r];
             }
-            if (aht_log && (total != last_counts_total || (aht.state == FBG_AHT10_S_ABSENT && !absent_logged))) {
-                fprintf(stderr, "AHT %" PRIu64 " %s %" PRIu32 " %d %u\n", now_us, REASON_NAMES[aht.last_reason],
-                        aht.last_raw, (int)fbg_aht10_temp_cc(&aht), (unsigned)fbg_aht10_status_bits(&aht));
+            bits = fbg_aht10_status_bits(&aht);
+            cc = fbg_aht10_temp_cc(&aht);
+            if (aht_log && (total != last_counts_total || bits != last_bits || cc != last_cc ||
+                            (aht.state == FBG_AHT10_S_ABSENT && !absent_logged))) {
+                fprintf(stderr, "AHT %" PRIu64 " %s %" PRIu32 " %d %u\n", now_us,
+                        total != last_counts_total || aht.state == FBG_AHT10_S_ABSENT ? REASON_NAMES[aht.last_reason]
+                                                                                      : "state",
+                        aht.last_raw, (int)cc, (unsigned)bits);
                 absent_logged = aht.state == FBG_AHT10_S_ABSENT;
             }
+            last_bits = bits;
+            last_cc = cc;
             last_counts_total = total;
             continue;
         }
@@ -250,13 +276,14 @@ int main(int argc, char **argv)
             uint32_t skipped = 0;
             int late;
             now_us = read_at;
+            adc_free_us = now_us + adc_read_us;
             synthetic_adc(sched.index, adc);
             late = fbg_sched_take(&sched, now_us, &skipped);
             fbg_board_next_sample(&board, now_us, adc, fbg_aht10_temp_cc(&aht), fbg_aht10_status_bits(&aht), late, &s);
             fbg_board_skip(&board, skipped);
             if (output_times) {
                 if (k % every == 0) {
-                    printf("%" PRIu64 " %" PRIu64 " %u\n", k, s.t_us, (unsigned)s.status);
+                    printf("%" PRIu64 " %u %" PRIu64 " %u\n", k, (unsigned)s.seq, s.t_us, (unsigned)s.status);
                 }
             } else {
                 uint8_t frame[FBG_FRAME_SIZE_V1];
@@ -270,7 +297,7 @@ int main(int argc, char **argv)
             if (output_times && ((samples != 0 && k == samples) ||
                                  (duration_us != 0 && fbg_sched_next_us(&sched) >= duration_us)) &&
                 (k - 1) % every != 0) {
-                printf("%" PRIu64 " %" PRIu64 " %u\n", k - 1, s.t_us, (unsigned)s.status);
+                printf("%" PRIu64 " %u %" PRIu64 " %u\n", k - 1, (unsigned)s.seq, s.t_us, (unsigned)s.status);
             }
         }
     }
