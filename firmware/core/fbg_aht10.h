@@ -30,6 +30,10 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 #define FBG_AHT10_ADDR 0x38u
 #define FBG_AHT10_TEMP_MIN_CC (-4000)
 #define FBG_AHT10_TEMP_MAX_CC 8500
@@ -112,5 +116,9 @@ int32_t fbg_aht10_raw_to_cc(uint32_t raw_t);
 
 /** CRC-8 of the AHT20 family: poly 0x31, init 0xFF, not reflected, no final XOR. */
 uint8_t fbg_aht10_crc8(const uint8_t *data, size_t n);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif

@@ -10,6 +10,10 @@
 
 #include "fbg_frame.h"
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 /** Per-boot state of the sample producer. */
 typedef struct {
     uint16_t next_seq;   /**< sequence number of the next sample */
@@ -31,5 +35,9 @@ void fbg_board_next_sample(fbg_board *b, uint64_t t_us, const uint16_t adc[4], i
 
 /** Account for ``n`` sample slots the sampler skipped (they count as samples the host did not get). */
 void fbg_board_skip(fbg_board *b, uint32_t n);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif

@@ -10,6 +10,10 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 #define FBG_SYNC0 0xA5u
 #define FBG_SYNC1 0x5Au
 #define FBG_PROTOCOL_VERSION 1u
@@ -43,5 +47,9 @@ uint16_t fbg_crc16_ccitt_false(const uint8_t *data, size_t n);
 
 /** Write the 27-byte version-1 frame of ``s`` into ``out``; returns FBG_FRAME_SIZE_V1. */
 size_t fbg_frame_encode_v1(const fbg_sample *s, uint8_t out[FBG_FRAME_SIZE_V1]);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif

@@ -11,6 +11,10 @@
 
 #include <stdint.h>
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 #define FBG_SCHED_MAX_CATCH_UP 4u /* late by more than this many periods: skip ahead instead of bursting */
 
 typedef struct {
@@ -40,5 +44,9 @@ uint64_t fbg_sched_next_us(const fbg_scheduler *s);
  * number by the same number, so the host counts the skipped reads as lost samples.
  */
 int fbg_sched_take(fbg_scheduler *s, uint64_t now_us, uint32_t *skipped);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif
