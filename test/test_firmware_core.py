@@ -16,6 +16,7 @@ missing compiler fails with a clear message, see firmware_build.py):
 from __future__ import annotations
 
 import subprocess
+import sys
 from dataclasses import dataclass
 from fractions import Fraction
 from math import floor
@@ -325,3 +326,14 @@ def test_missing_compiler_fails_with_a_clear_message(monkeypatch: pytest.MonkeyP
     monkeypatch.setattr(firmware_build.shutil, "which", lambda name: None)
     with pytest.raises(AssertionError, match="no C compiler found"):
         firmware_build.build_host_programs(tmp_path)
+
+
+def test_docs_link_budget_table_is_the_scripts_output() -> None:
+    """docs/firmware.md shows the numbers firmware/link_budget.py computes (no hand-edited figures)."""
+    from firmware_build import REPO
+
+    res = subprocess.run([sys.executable, str(REPO / "firmware" / "link_budget.py")], capture_output=True, text=True,
+                         timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() in (REPO / "docs" / "firmware.md").read_text()
+    assert "| 1000 | 27,000 | 270,000 | 29.3 % |" in res.stdout  # 27 B x 1 kHz x 10 bit / 921600 baud
