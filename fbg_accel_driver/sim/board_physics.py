@@ -231,6 +231,7 @@ class BoardSimulator:
         self.gap_n = gap_n
         dspec = f["disconnects"]
         self.disconnects = [(float(t), float(dspec.get("down_s", 1.0))) for t in (dspec.get("at_s") or [])]
+        self.disconnect_removes_link = bool(dspec.get("remove_link", False))
         self._disc_k = [(math.ceil(t * self.rate_true_hz - 1e-9), math.ceil((t + d) * self.rate_true_hz - 1e-9))
                         for t, d in self.disconnects]
         end = f.get("end_s")

@@ -9,7 +9,9 @@ with pyserial exactly as it opens /dev/ttyUSB0. The server
   due; no sleep drift accumulates, a late loop catches up by writing several frames),
 * on a simulated disconnect closes the pty (the client's reads fail as on an unplugged USB
   adapter) and after the down time opens a new one, re-pointing the ``--link`` symlink (as
-  /dev/serial/by-id does) so a reconnecting client finds it under the same name,
+  /dev/serial/by-id does) so a reconnecting client finds it under the same name; with
+  ``faults.disconnects.remove_link`` the name is removed while the link is down (an rfcomm device
+  that exists only while the Bluetooth connection is up),
 * by default waits until a client opens the port before the board starts (an ESP32 board
   reboots when its USB-serial port is opened: DTR auto-reset); bytes written to a pty that no
   client ever opened are garbled by the line discipline, so nothing is written before,
@@ -243,6 +245,8 @@ def serve_pty(sim: BoardSimulator, duration_s: float, link: str | None, truth: T
                     ep.linger(unplug_linger_s, 0.0)
                     stats["unplug_unread_bytes"] += ep.unread_bytes() + len(ep._pending)
                 ep.close()
+                if sim.disconnect_removes_link:  # the device name vanishes with the link (rfcomm-like)
+                    ep.remove_link()
                 state = "down"
                 print("DISCONNECT", file=sys.stderr, flush=True)
             now = time.monotonic()

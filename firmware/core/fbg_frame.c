@@ -1,0 +1,47 @@
+/* Frame encoder of protocol v1 (docs/protocol.md section 2 and 3). */
+#include "fbg_frame.h"
+
+uint16_t fbg_crc16_ccitt_false(const uint8_t *data, size_t n)
+{
+    uint16_t crc = 0xFFFFu;
+    size_t i;
+    int bit;
+    for (i = 0; i < n; i++) {
+        crc ^= (uint16_t)((uint16_t)data[i] << 8);
+        for (bit = 0; bit < 8; bit++) {
+            crc = (crc & 0x8000u) ? (uint16_t)((crc << 1) ^ 0x1021u) : (uint16_t)(crc << 1);
+        }
+    }
+    return crc;
+}
+
+static uint8_t *put_u16(uint8_t *p, uint16_t v)
+{
+    p[0] = (uint8_t)(v & 0xFFu);
+    p[1] = (uint8_t)(v >> 8);
+    return p + 2;
+}
+
+size_t fbg_frame_encode_v1(const fbg_sample *s, uint8_t out[FBG_FRAME_SIZE_V1])
+{
+    uint8_t *p = out;
+    int i;
+    uint16_t crc;
+    *p++ = FBG_SYNC0;
+    *p++ = FBG_SYNC1;
+    *p++ = FBG_PROTOCOL_VERSION;
+    *p++ = FBG_BODY_LEN_V1;
+    p = put_u16(p, s->seq);
+    for (i = 0; i < 8; i++) {
+        *p++ = (uint8_t)((s->t_us >> (8 * i)) & 0xFFu);
+    }
+    p = put_u16(p, s->ref);
+    p = put_u16(p, s->x);
+    p = put_u16(p, s->y);
+    p = put_u16(p, s->z);
+    p = put_u16(p, (uint16_t)s->temp_cc); /* two's complement, as int16 little-endian */
+    *p++ = s->status;
+    crc = fbg_crc16_ccitt_false(out + 2, (size_t)(p - (out + 2)));
+    p = put_u16(p, crc); /* low byte first */
+    return (size_t)(p - out);
+}
