@@ -52,6 +52,7 @@ from .thermal_fit import (
     NotIdentifiedError,
     StreamedFitData,
     accumulate_cells,
+    check_pose_excitation,
     design_matrix,
     prepare,
     solve_normal_equations,
@@ -154,6 +155,7 @@ def select_degree(rec: Recording | FitData | StreamedFitData, max_degree: int = 
         center, scale = temperature_scaling(data.temp_c)
         tau = (data.temp_c - center) / scale
         stats = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, max_degree, chunk)
+    check_pose_excitation(stats)
     all_cells = np.ones(len(stats.count), dtype=bool)
     n_total = stats.count.sum()
     by_level = n_levels >= 2

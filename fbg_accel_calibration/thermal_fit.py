@@ -58,6 +58,12 @@ FULL_SCALE_MPS2 = 20.0 * STANDARD_GRAVITY  # paper: +-20 g; Table 4 RMSE is norm
 DEFAULT_LEVEL_GAP_C = 1.0  # degC: sorted temperatures further apart than this belong to different levels
 DEFAULT_LEVEL_WIDTH_C = 3.0  # degC: a wider cluster (a sweep, not a set-point) is split into bins this wide
 DEFAULT_CHUNK = 65536
+# Smallest RMS spread (m/s^2) of the poses' reference specific force along any direction of the table
+# frame. Along a direction the poses do not span, eq. 28 fits the output to a constant: that row of M
+# comes out zero and the noise figure zero, a dead axis that looks perfect. The six-position plan spreads
+# g/sqrt(3) = 5.7 m/s^2 along every axis; coplanar poses (one tilt axis only, or a run stopped after its
+# 4th pose) spread exactly 0 along the normal of their plane. 0.05 g is a tilt of about +-4 deg.
+MIN_POSE_SPREAD_MPS2 = 0.05 * STANDARD_GRAVITY
 _LEVEL_OFFSET = 1 << 16  # cell key = pose << 32 | (level + offset)
 
 
@@ -280,6 +286,39 @@ def accumulate_cells(psi: np.ndarray, tau: np.ndarray, gref: np.ndarray, pose: n
     return acc.finish()
 
 
+def check_pose_excitation(stats: CellStats, min_spread_mps2: float = MIN_POSE_SPREAD_MPS2) -> np.ndarray:
+    """Refuse a pose set that does not excite every direction of the table frame.
+
+    The reference specific force of each cell (its mean, m/s^2, table frame) is weighted by the cell's
+    sample count; the square roots of the eigenvalues of their centred scatter are the RMS spreads of
+    the poses along the principal directions. Returns the spreads (3,) sorted ascending; raises
+    :class:`NotIdentifiedError` naming the weakest direction (and the output axis it is closest to)
+    when its spread is below ``min_spread_mps2``.
+    """
+    count = np.asarray(stats.count, dtype=float)
+    if len(count) == 0 or count.sum() <= 0:
+        raise NotIdentifiedError("no usable static samples")
+    means = stats.gsum / count[:, None]
+    centre = (count[:, None] * means).sum(axis=0) / count.sum()
+    d = means - centre
+    scatter = (count[:, None, None] * d[:, :, None] * d[:, None, :]).sum(axis=0) / count.sum()
+    eig, vec = np.linalg.eigh(scatter)
+    spread = np.sqrt(np.maximum(eig, 0.0))
+    if not spread[0] >= min_spread_mps2:
+        u = vec[:, 0] * np.sign(vec[np.argmax(np.abs(vec[:, 0])), 0])
+        u = np.where(np.abs(u) < 5e-3, 0.0, u)  # print 0.00, not -0.00
+        axis = "xyz"[int(np.argmax(np.abs(u)))]
+        n_poses = len(np.unique(stats.pose))
+        shape = "coincide" if spread[2] < min_spread_mps2 else ("are collinear" if spread[1] < min_spread_mps2
+                                                               else "are coplanar")
+        raise NotIdentifiedError(
+            f"the {n_poses} poses' reference specific forces {shape}: their RMS spread along the table direction "
+            f"({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}) is {spread[0]:.3g} m/s^2 (< {min_spread_mps2:.3g}), so the {axis} row "
+            "of M and b would be fitted to a constant (a dead axis); record poses that tilt that axis too "
+            "(at least 4 non-coplanar poses, e.g. the six-position plan)")
+    return spread
+
+
 def solve_normal_equations(xtx: np.ndarray, xtg: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, float]:
     """Solve (X^T X) A = X^T G with Jacobi scaling; returns (A, condition number of the scaled X^T X).
 
@@ -387,6 +426,7 @@ def fit_thermal(rec: Recording | FitData | StreamedFitData, degree: int, *, sens
     if not isinstance(data, StreamedFitData):
         tau = (data.temp_c - center) / scale
         stats = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, degree, chunk)
+    spread = check_pose_excitation(stats)
     xtx, xtg, _, n = stats.select(np.ones(len(stats.count), bool), degree)
     A, cond = solve_normal_equations(xtx, xtg)
     rss = stats.cell_rss(A, degree).sum(axis=0)
@@ -408,6 +448,7 @@ def fit_thermal(rec: Recording | FitData | StreamedFitData, degree: int, *, sens
         "rmse_over_full_scale": (rmse / FULL_SCALE_MPS2).tolist(),
         "within_pose_noise_mps2": noise.tolist(),
         "condition_number_scaled": cond,
+        "pose_spread_mps2": spread.tolist(),
         "static_detector": data.detector,
     }
     if src is not None:
