@@ -39,8 +39,19 @@ def _same(a: Path, b: Path) -> bool:
     return os.path.realpath(a) == os.path.realpath(b)
 
 
-def check_outputs(outputs: Iterable[Path | None], inputs: Iterable[Path | str], force: bool = False) -> None:
-    """Refuse unsafe outputs (see module docstring); ``None`` outputs are skipped. Raises :class:`OutputError`."""
+def _creatable_dir(d: Path) -> bool:
+    """True if ``d`` is a directory or could be created (its nearest existing ancestor is a directory)."""
+    for anc in (d, *d.parents):
+        if anc.exists():
+            return anc.is_dir()
+    return False
+
+
+def check_outputs(outputs: Iterable[Path | None], inputs: Iterable[Path | str], force: bool = False,
+                  create_dirs: bool = False) -> None:
+    """Refuse unsafe outputs (see module docstring); ``None`` outputs are skipped. With ``create_dirs`` a
+    missing directory is accepted if it can be created (the caller creates it when writing).
+    Raises :class:`OutputError`."""
     ins = [Path(p) for p in inputs]
     outs = [Path(p) for p in outputs if p is not None]
     for i, out in enumerate(outs):
@@ -51,6 +62,10 @@ def check_outputs(outputs: Iterable[Path | None], inputs: Iterable[Path | str], 
             if _same(out, other):
                 raise OutputError(f"{out}: given twice as an output")
         parent = out.parent
+        if create_dirs and not parent.exists():
+            if not _creatable_dir(parent):
+                raise OutputError(f"{out}: output directory {parent} cannot be created (a file is in its path)")
+            continue
         if not parent.is_dir():
             raise OutputError(f"{out}: output directory {parent} does not exist; create it first")
         if out.is_symlink() or out.exists():
@@ -61,13 +76,14 @@ def check_outputs(outputs: Iterable[Path | None], inputs: Iterable[Path | str], 
 
 
 def check_output_dir(out_dir: Path, files: Iterable[str], inputs: Iterable[Path | str], force: bool = False) -> None:
-    """Like :func:`check_outputs` for ``files`` inside ``out_dir`` (the directory may be created later)."""
+    """Like :func:`check_outputs` for ``files`` inside ``out_dir``, which is created when writing (with its
+    parents) if missing."""
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise OutputError(f"{out_dir}: exists and is not a directory")
     if not out_dir.exists():
-        if not out_dir.parent.is_dir():
-            raise OutputError(f"{out_dir}: its parent directory {out_dir.parent} does not exist; create it first")
+        if not _creatable_dir(out_dir):
+            raise OutputError(f"{out_dir}: cannot be created (a file is in its path)")
         ins = [Path(p) for p in inputs]
         for f in files:
             for src in ins:

@@ -214,7 +214,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     ``--in-memory`` (or an MCAP whose raw stamps go backwards) loads every sample first."""
     from .mcap_io import StreamOrderError
     from .model_selection import select_degree
-    from .thermal_fit import FULL_SCALE_MPS2, fit_thermal, prepare
+    from .thermal_fit import FULL_SCALE_MPS2, NotIdentifiedError, fit_thermal, prepare
 
     check_outputs([args.output], args.inputs, args.force)
     _check_inputs(args.inputs)
@@ -234,7 +234,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
                          f"({data.n_excluded_motion} not static, {data.n_excluded_other} without a pose, reference, "
                          "valid temperature or finite counts); check the temperature column (or --temperature), "
                          "the pose/reference columns and --window/--min-interval")
-    selection = select_degree(data, max_degree=max_degree)
+    try:
+        selection = select_degree(data, max_degree=max_degree)
+    except NotIdentifiedError as exc:
+        raise ValueError(f"{', '.join(map(str, args.inputs))}: {exc}") from None
     print(f"degree selection ({selection.criterion}):")
     print(selection.table_markdown())
     for note in selection.notes:
@@ -321,7 +324,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     usable, _ = calibration_samples(rec, window=args.window, min_interval=args.min_interval)
     data = prepare(rec, usable=usable, level_gap_c=args.level_gap)
     selection = select_degree(data, max_degree=args.max_degree)
-    out.mkdir(exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
     stats = pose_statistics(cal, rec, usable & np.isfinite(rec.temp_c))
     with atomic_path(out / "calibrated_vs_reference.png") as tmp:
         plot_calibrated_vs_reference(cal, rec, usable, tmp)

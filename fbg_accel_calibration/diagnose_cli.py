@@ -97,7 +97,10 @@ def check_diagnose_outputs(args: argparse.Namespace) -> None:
     """Before any computation: outputs are not inputs, exist only with --force, and their directories exist."""
     from .atomic_output import check_output_dir, check_outputs
 
-    check_outputs([args.out, args.yaml], args.inputs, args.force)
+    check_outputs([args.out], args.inputs, args.force, create_dirs=True)  # the report's directory is created
+    check_outputs([args.yaml], args.inputs, args.force)
+    if args.out is not None and args.yaml is not None:
+        check_outputs([args.out, args.yaml], [], True, create_dirs=True)  # not the same file twice
     img = _img_dir(args)
     if img is not None:
         check_output_dir(img, PLOT_FILES, args.inputs, args.force)
@@ -114,7 +117,8 @@ def write_outputs(res, args: argparse.Namespace, command: str) -> list[Path]:
     written: list[Path] = []
     if args.out is not None:
         img = _img_dir(args)
-        img.mkdir(exist_ok=True)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        img.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=img, prefix=".plots.") as tmp_dir:
             for p in write_plots(res, tmp_dir):
                 os.replace(p, img / p.name)
@@ -132,8 +136,11 @@ def write_outputs(res, args: argparse.Namespace, command: str) -> list[Path]:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from .diagnose import diagnose
     from .diagnose_report import text
+    from .thermal_fit import check_recording_excitation
 
     try:
         check_diagnose_outputs(args)
@@ -143,11 +150,16 @@ def run(args: argparse.Namespace) -> int:
         return 2
     sensor_id = args.sensor_id or str(rec.metadata.get("sensor_id", "unknown"))
     try:
+        check_recording_excitation(rec)
         res = diagnose(rec, static=args.static, max_degree=args.max_degree, folds=args.folds, alpha=args.alpha,
                        min_rel_gain=args.min_gain, max_effects=args.max_effects, degree=args.degree,
                        sensor_id=sensor_id, seed=args.seed)
     except ValueError as exc:
-        print(f"fbg-accel-calib diagnose: {exc}", file=sys.stderr)
+        print(f"fbg-accel-calib diagnose: {', '.join(args.inputs)}: {exc}", file=sys.stderr)
+        return 2
+    except np.linalg.LinAlgError as exc:  # a degenerate case the checks above did not foresee: still one line
+        print(f"fbg-accel-calib diagnose: {', '.join(args.inputs)}: the data do not determine the model ({exc}); "
+              "check that the poses differ and every channel responds", file=sys.stderr)
         return 2
     print(text(res), end="")
     command = "fbg-accel-calib diagnose " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 2 else ""

@@ -64,6 +64,10 @@ DEFAULT_CHUNK = 65536
 # g/sqrt(3) = 5.7 m/s^2 along every axis; coplanar poses (one tilt axis only, or a run stopped after its
 # 4th pose) spread exactly 0 along the normal of their plane. 0.05 g is a tilt of about +-4 deg.
 MIN_POSE_SPREAD_MPS2 = 0.05 * STANDARD_GRAVITY
+# Smallest spread of the poses' mean Psi along any direction, relative to the largest. A working sensor
+# spreads about equally along all three (each channel follows its own axis, paper eq. 25: ratios near 1
+# on the measured series); a dead or saturated channel, or copied samples, leave one direction flat.
+MIN_SIGNAL_SPREAD_RATIO = 1e-3
 _LEVEL_OFFSET = 1 << 16  # cell key = pose << 32 | (level + offset)
 
 
@@ -316,7 +320,33 @@ def check_pose_excitation(stats: CellStats, min_spread_mps2: float = MIN_POSE_SP
             f"({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}) is {spread[0]:.3g} m/s^2 (< {min_spread_mps2:.3g}), so the {axis} row "
             "of M and b would be fitted to a constant (a dead axis); record poses that tilt that axis too "
             "(at least 4 non-coplanar poses, e.g. the six-position plan)")
+    psi_means = stats.xsum[:, 0:3] / count[:, None]  # columns 0..2 of eq. 29: Psi at k = 0
+    d = psi_means - (count[:, None] * psi_means).sum(axis=0) / count.sum()
+    eig_p, vec_p = np.linalg.eigh((count[:, None, None] * d[:, :, None] * d[:, None, :]).sum(axis=0) / count.sum())
+    psi_spread = np.sqrt(np.maximum(eig_p, 0.0))
+    if not psi_spread[0] > MIN_SIGNAL_SPREAD_RATIO * psi_spread[2]:
+        u = np.where(np.abs(vec_p[:, 0]) < 5e-3, 0.0, vec_p[:, 0] * np.sign(vec_p[np.argmax(np.abs(vec_p[:, 0])), 0]))
+        if not psi_spread[2] > 1e-9:
+            why = "the counts give the same Psi = counts / ref in every pose (identical samples?)"
+        else:
+            why = (f"the sensor's Psi = counts / ref barely changes along ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}) "
+                   f"between poses ({psi_spread[0]:.3g}, vs {psi_spread[2]:.3g} along the strongest direction)")
+        raise NotIdentifiedError(f"{why}: a channel is dead, saturated or copied, so M cannot be determined; "
+                                 "check the x/y/z_counts columns and the fibre connections")
     return spread
+
+
+def check_recording_excitation(rec: Recording) -> np.ndarray:
+    """:func:`check_pose_excitation` on every sample of a recording that has a pose, a finite reference,
+    a valid temperature and finite Psi (no static detection: a cheap check before a long computation)."""
+    psi = normalise(rec.xyz, rec.ref)
+    ok = (rec.pose_id >= 0) & np.all(np.isfinite(rec.gref_mps2), axis=1) & np.isfinite(rec.temp_c)
+    ok &= np.all(np.isfinite(psi), axis=1)
+    if not ok.any():
+        raise NotIdentifiedError("no sample has a pose, a finite reference, a valid temperature and finite counts")
+    stats = accumulate_cells(psi[ok], np.zeros(int(ok.sum())), rec.gref_mps2[ok], rec.pose_id[ok],
+                             np.zeros(int(ok.sum()), np.int64), 0)
+    return check_pose_excitation(stats)
 
 
 def solve_normal_equations(xtx: np.ndarray, xtg: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, float]:
