@@ -179,32 +179,28 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 
 def _fit_streamed(args: argparse.Namespace, max_degree: int):
-    """Stream the MCAP inputs block by block into the fit's cell sums (``thermal_fit.prepare_stream``);
-    CSV inputs are imported in memory and served as blocks. Returns ``(StreamedFitData, metadata)``."""
-    from .csv_import import import_csv
+    """Stream the inputs block by block into the fit's cell sums (``thermal_fit.prepare_stream``): MCAP
+    files through ``McapSampleStream``, CSV files re-read on every pass (``csv_import.CsvSampleSource``),
+    so memory is a few blocks whatever the file sizes. Returns ``(StreamedFitData, metadata)``."""
+    from .csv_import import CsvSampleSource
     from .mcap_io import McapSampleStream
-    from .thermal_fit import RecordingBlocks, prepare_stream
+    from .thermal_fit import prepare_stream
 
     sources = []
     for path in args.inputs:
         if not path.is_file():
             raise ValueError(f"{path}: file not found")
         if path.suffix.lower() == ".csv":
-            rec = import_csv(path, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g)[0]
-            rec.run_id[:] = 0
-            sources.append(RecordingBlocks(rec))
+            sources.append(CsvSampleSource(path, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g))
         else:
             sources.append(McapSampleStream(path))
     data = prepare_stream(sources, max_degree, args.window, args.min_interval, args.level_gap)
     parts = []
     for path, src in zip(args.inputs, sources, strict=True):
-        if isinstance(src, McapSampleStream):
-            md = src.metadata()
-            if not src.report.complete:
-                print(f"warning: {path} is truncated ({src.report.stopped_at}); recovered {src.report.messages} "
-                      "messages up to the last complete chunk", file=sys.stderr)
-        else:
-            md = dict(src.rec.metadata)
+        md = src.metadata()
+        if isinstance(src, McapSampleStream) and not src.report.complete:
+            print(f"warning: {path} is truncated ({src.report.stopped_at}); recovered {src.report.messages} "
+                  "messages up to the last complete chunk", file=sys.stderr)
         parts.append(md)
     return data, {"parts": parts, **(parts[0] if len(parts) == 1 else {})}
 

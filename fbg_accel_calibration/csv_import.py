@@ -278,6 +278,27 @@ class CsvBlocks:
         return {"source": str(self.path), "import": self.report.as_dict(), "g_mps2": self.g_mps2}
 
 
+class CsvSampleSource:
+    """A CSV served as a ``thermal_fit.SampleBlockSource`` (one run): every pass re-reads the file block by
+    block, so the streamed fit of a CSV holds one block, never the file. After the first complete pass
+    the rows are checked as :func:`import_csv` checks them (a malformed row fails the fit)."""
+
+    def __init__(self, path: str | Path, *, rate_hz: float | None = None, temperature_c: float | None = None,
+                 g_mps2: float = STANDARD_GRAVITY) -> None:
+        self.csv = CsvBlocks(path, rate_hz=rate_hz, temperature_c=temperature_c, g_mps2=g_mps2)
+        self._checked = False
+
+    def blocks(self, block_rows: int, with_poses: bool) -> Iterator[Recording]:
+        self.csv.block_rows = block_rows
+        yield from self.csv.blocks()
+        if not self._checked:
+            self.csv.check(drop_bad_rows=False)
+            self._checked = True
+
+    def metadata(self) -> dict[str, Any]:
+        return self.csv.metadata()
+
+
 def import_csv(path: str | Path, *, rate_hz: float | None = None, temperature_c: float | None = None,
                g_mps2: float = STANDARD_GRAVITY, drop_bad_rows: bool = False) -> tuple[Recording, ImportReport]:
     """Read a CSV in the interchange format into a Recording (run_id 0) and an :class:`ImportReport`.

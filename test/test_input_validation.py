@@ -233,3 +233,18 @@ def test_streamed_import_equals_the_in_memory_import(tmp_path: Path, capsys: pyt
     assert len(blocks) == 43
     np.testing.assert_array_equal(np.concatenate([x.pose_id for x in blocks]), rec.pose_id)
     np.testing.assert_array_equal(np.concatenate([x.t_s for x in blocks]), rec.t_s)
+
+
+def test_streamed_fit_of_a_csv_equals_the_in_memory_fit(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`fit CSV` re-reads the CSV block by block on every pass instead of importing it whole."""
+    from fbg_accel_driver.thermal_model import ThermalCalibration
+
+    csv = six_pose_csv(tmp_path / "in.csv")
+    assert run(["fit", csv, "-o", tmp_path / "s.yaml"], capsys)[0] == 0
+    assert run(["fit", csv, "-o", tmp_path / "m.yaml", "--in-memory"], capsys)[0] == 0
+    a, b = ThermalCalibration.load(tmp_path / "s.yaml"), ThermalCalibration.load(tmp_path / "m.yaml")
+    np.testing.assert_allclose(a.M, b.M, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(a.b, b.b, rtol=1e-9, atol=1e-12)
+    bad = six_pose_csv(tmp_path / "bad.csv", "0.07,880,abc,1500,1200,0,0,9.8,23.4,0")
+    rc, err = run(["fit", bad, "-o", tmp_path / "b.yaml"], capsys)
+    assert rc == 2 and "line 9: x_counts = 'abc' is not a number" in err and not (tmp_path / "b.yaml").exists()
