@@ -290,6 +290,48 @@ def accumulate_cells(psi: np.ndarray, tau: np.ndarray, gref: np.ndarray, pose: n
     return acc.finish()
 
 
+def _reference_spread(gsum: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """RMS spreads (3,), ascending, m/s^2, and principal directions (3, 3 columns) of the cells' mean
+    reference specific force, weighted by sample count."""
+    means = gsum / count[:, None]
+    d = means - (count[:, None] * means).sum(axis=0) / count.sum()
+    eig, vec = np.linalg.eigh((count[:, None, None] * d[:, :, None] * d[:, None, :]).sum(axis=0) / count.sum())
+    return np.sqrt(np.maximum(eig, 0.0)), vec
+
+
+def level_excitation(stats: CellStats, min_spread_mps2: float = MIN_POSE_SPREAD_MPS2) -> tuple[int, list[str]]:
+    """Temperature levels whose own poses span the table frame: ``(count, notes on the others)``.
+
+    A temperature term M_k, b_k (k >= 1) along a direction is determined only by levels that excite that
+    direction: with coplanar poses at one level (e.g. that level's run stopped after its 4th pose) the
+    degree-n polynomial along the plane's normal passes through n levels only. Degree n >= 1 therefore
+    needs n + 1 fully excited levels (:func:`fit_thermal` refuses it, ``model_selection`` marks it not
+    identified)."""
+    ok, notes = 0, []
+    for lev in np.unique(stats.level):
+        sel = stats.level == lev
+        spread, vec = _reference_spread(stats.gsum[sel], np.asarray(stats.count[sel], dtype=float))
+        if spread[0] >= min_spread_mps2:
+            ok += 1
+        else:
+            u = np.where(np.abs(vec[:, 0]) < 5e-3, 0.0, vec[:, 0] * np.sign(vec[np.argmax(np.abs(vec[:, 0])), 0]))
+            notes.append(f"temperature level {int(lev)}: its {len(np.unique(stats.pose[sel]))} poses do not tilt "
+                         f"the table direction ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}) (spread {spread[0]:.3g} m/s^2)")
+    return ok, notes
+
+
+def check_level_excitation(stats: CellStats, degree: int) -> None:
+    """Refuse a temperature degree that the fully excited levels cannot determine (:func:`level_excitation`)."""
+    if degree < 1:
+        return
+    ok, notes = level_excitation(stats)
+    if degree >= ok:
+        raise NotIdentifiedError(
+            f"degree {degree} in temperature needs {degree + 1} temperature levels whose poses span the table "
+            f"frame, only {ok} do ({'; '.join(notes)}); use degree <= {max(ok - 1, 0)} or repeat the pose plan "
+            "at that level")
+
+
 def check_pose_excitation(stats: CellStats, min_spread_mps2: float = MIN_POSE_SPREAD_MPS2) -> np.ndarray:
     """Refuse a pose set that does not excite every direction of the table frame.
 
@@ -302,12 +344,7 @@ def check_pose_excitation(stats: CellStats, min_spread_mps2: float = MIN_POSE_SP
     count = np.asarray(stats.count, dtype=float)
     if len(count) == 0 or count.sum() <= 0:
         raise NotIdentifiedError("no usable static samples")
-    means = stats.gsum / count[:, None]
-    centre = (count[:, None] * means).sum(axis=0) / count.sum()
-    d = means - centre
-    scatter = (count[:, None, None] * d[:, :, None] * d[:, None, :]).sum(axis=0) / count.sum()
-    eig, vec = np.linalg.eigh(scatter)
-    spread = np.sqrt(np.maximum(eig, 0.0))
+    spread, vec = _reference_spread(stats.gsum, count)
     if not spread[0] >= min_spread_mps2:
         u = vec[:, 0] * np.sign(vec[np.argmax(np.abs(vec[:, 0])), 0])
         u = np.where(np.abs(u) < 5e-3, 0.0, u)  # print 0.00, not -0.00
@@ -457,6 +494,7 @@ def fit_thermal(rec: Recording | FitData | StreamedFitData, degree: int, *, sens
         tau = (data.temp_c - center) / scale
         stats = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, degree, chunk)
     spread = check_pose_excitation(stats)
+    check_level_excitation(stats, degree)
     xtx, xtg, _, n = stats.select(np.ones(len(stats.count), bool), degree)
     A, cond = solve_normal_equations(xtx, xtg)
     rss = stats.cell_rss(A, degree).sum(axis=0)

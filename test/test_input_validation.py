@@ -93,6 +93,28 @@ def test_six_position_run_cut_after_its_fourth_pose_is_refused(tmp_path: Path,
     assert not (tmp_path / "cal.yaml").exists()
 
 
+def test_a_level_cut_after_its_fourth_pose_limits_the_temperature_degree(tmp_path: Path,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """Three chamber levels, the 45 degC run stopped after x up: y is tilted at two levels only, so a
+    quadratic temperature term along y is not determined; the global span check alone would accept it."""
+    files = []
+    for i, (level, duration) in enumerate([(16.0, None), (24.0, None), (45.0, 150.0)]):
+        cfg = SimConfig.default().with_overrides({
+            "scenario.poses.mode": "six_position", "scenario.poses.dwell_s": 30.0, "scenario.poses.move_s": 10.0,
+            "scenario.poses.repeat": 1, "scenario.duration_s": duration, "scenario.temperature.initial_c": level,
+            "scenario.temperature.profile": [], "thermal.initial_optics_c": None})
+        files.append(tmp_path / f"run{i}.mcap")
+        write_recording(files[-1], simulate_recording(cfg, seed=10 + i), {"sensor_id": "sim"})
+    rc, err = run(["fit", *files, "-o", tmp_path / "q.yaml", "--degree", "2"], capsys)
+    line = one_line(err)
+    assert rc == 2 and "needs 3 temperature levels whose poses span the table frame, 2 do" in line
+    assert not (tmp_path / "q.yaml").exists()
+    rc = main(["fit", *map(str, files), "-o", str(tmp_path / "c.yaml")])
+    text = capsys.readouterr().out
+    assert rc == 0 and "degree n = 1" in text
+    assert "temperature level 2: its 4 poses do not tilt the table direction (0.00, 1.00, 0.00)" in text
+
+
 def test_identical_samples_are_refused_by_fit_and_diagnose(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Six poses, the same counts in each: diagnose raised 'Singular matrix' before."""
     rows = [f"{i},880,1000,1000,1000,{SIX[i // 50]},23,{i // 50}\n" for i in range(300)]
