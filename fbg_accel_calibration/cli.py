@@ -171,10 +171,10 @@ def cmd_import(args: argparse.Namespace) -> int:
     metadata = {"sensor_id": args.sensor_id, "operator_notes": args.notes, "source": str(args.csv),
                 "plan": "imported from CSV"}
     with atomic_path(args.output) as tmp:
-        n = write_mcap(src, tmp, metadata, sensor_id=args.sensor_id, drop_bad_rows=args.drop_bad_rows)
+        n, poses = write_mcap(src, tmp, metadata, sensor_id=args.sensor_id, drop_bad_rows=args.drop_bad_rows)
     report = src.report
     print(report.summary())
-    print(f"wrote {args.output}: {report.rows_kept} samples, {n} messages")
+    print(f"wrote {args.output}: {report.rows_kept} samples, {poses} poses, {n} messages")
     return 0
 
 

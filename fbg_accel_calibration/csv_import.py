@@ -392,13 +392,13 @@ def _pose(fields: list[str], col: dict[str, int]) -> float:
 
 
 def write_mcap(src: CsvBlocks, path: str | Path, metadata: dict[str, Any], sensor_id: str = "",
-               drop_bad_rows: bool = False) -> int:
+               drop_bad_rows: bool = False) -> tuple[int, int]:
     """Stream a CSV into a calibration MCAP at ``path`` (as :func:`mcap_io.write_recording` writes a
     Recording: stamps ``t_s * 1e9`` ns, a pose event at every change of pose or reference).
 
     Two passes over the CSV: the first checks every row and counts the poses (nothing is written when
     the import fails), the second writes block by block. Memory: one block. The ``run`` metadata
-    record (``metadata`` plus the import report) is written at the end. Returns the messages written.
+    record (``metadata`` plus the import report) is written at the end. Returns (messages written, poses).
     """
     from .mcap_io import McapRecordingError, RecordingWriter
 
@@ -433,4 +433,4 @@ def write_mcap(src: CsvBlocks, path: str | Path, metadata: dict[str, Any], senso
                 seq += 1
                 prev_pose, prev_g, prev_stamp = pose[i], g, stamp
         w.add_metadata("run", {**metadata, "import": src.report.as_dict(), "g_mps2": src.g_mps2})
-        return w.message_count
+        return w.message_count, n_poses
