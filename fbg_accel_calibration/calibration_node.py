@@ -183,7 +183,7 @@ def _make_node() -> Any:
                 raise StartupError(f"invalid parameter 'run_label': {label!r} (letters, digits, _ . + - only)")
             self.mcap_path = out_dir / f"{label}.mcap"
             self.yaml_path = Path(p["calibration_file"]) if p["calibration_file"] else out_dir / f"{label}_calibration.yaml"
-            if self.mcap_path.exists():
+            if self.mcap_path.exists() or self.mcap_path.is_symlink():
                 raise StartupError(f"{self.mcap_path} exists; choose another run_label (a recording is never overwritten)")
             try:
                 out_dir.mkdir(parents=True, exist_ok=True)
@@ -203,7 +203,10 @@ def _make_node() -> Any:
                 "node": "fbg_accel_driver calibration",
             }
             try:
-                writer = RecordingWriter(self.mcap_path, metadata)
+                writer = RecordingWriter(self.mcap_path, metadata, exclusive=True)
+            except FileExistsError:
+                raise StartupError(f"{self.mcap_path} exists (a file or a symbolic link); choose another run_label "
+                                   "(a recording is never overwritten nor written through a link)") from None
             except OSError as exc:
                 raise StartupError(f"cannot create {self.mcap_path}: {exc}") from None
             self.recorder = RunRecorder(self.plan, writer, self.mode, detector, sensor_id=p["sensor_id"],

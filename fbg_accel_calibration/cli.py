@@ -25,24 +25,43 @@ from pathlib import Path
 import numpy as np
 
 from . import diagnose_cli
+from . import input_validation as iv
+from .atomic_output import atomic_path, check_output_dir, check_outputs
 from .table_geometry import STANDARD_GRAVITY
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+class OneLineErrorParser(argparse.ArgumentParser):
+    """argparse parser whose usage errors are one line (option, value, accepted range) and exit 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def _add_force(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--force", action="store_true", help="replace existing output files (default: refuse)")
 
 
 def _add_csv_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--rate", type=float, default=None, help="CSV without t_s: sample rate in Hz (time = sample index / rate)")
-    p.add_argument("--temperature", type=float, default=None, help="CSV without temperature_c: temperature of every sample, degC")
-    p.add_argument("--g", type=float, default=STANDARD_GRAVITY, help="gravity for psi/theta references, m/s^2 (default 9.80665)")
+    p.add_argument("--rate", type=iv.rate_hz, default=None,
+                   help="CSV without t_s: sample rate in Hz (time = sample index / rate)")
+    p.add_argument("--temperature", type=iv.temperature_c, default=None,
+                   help="CSV without temperature_c: temperature of every sample, degC")
+    p.add_argument("--g", type=iv.gravity_mps2, default=STANDARD_GRAVITY,
+                   help="gravity for psi/theta references, m/s^2 (default 9.80665)")
 
 
 def _add_detector_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--window", type=int, default=5, help="static detector window, samples (default 5)")
-    p.add_argument("--min-interval", type=int, default=5, help="shortest static interval kept, samples (default 5)")
-    p.add_argument("--level-gap", type=float, default=1.0,
+    p.add_argument("--window", type=iv.window_samples, default=5, help="static detector window, samples (default 5)")
+    p.add_argument("--min-interval", type=iv.min_interval_samples, default=5,
+                   help="shortest static interval kept, samples (default 5)")
+    p.add_argument("--level-gap", type=iv.level_gap_c, default=1.0,
                    help="temperatures further apart than this (degC) are different temperature levels (default 1)")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="fbg-accel-calib", description="Offline calibration of the FBG triaxial accelerometer.")
+    parser = OneLineErrorParser(prog="fbg-accel-calib", description="Offline calibration of the FBG triaxial accelerometer.")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("import", help="CSV (interchange format) to a calibration MCAP")
@@ -53,16 +72,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="import the good rows and list every rejected line (default: reject the file)")
     p.add_argument("--sensor-id", default="unknown")
     p.add_argument("--notes", default="", help="operator notes stored in the MCAP metadata")
+    _add_force(p)
     p.set_defaults(func=cmd_import)
 
     p = sub.add_parser("fit", help="MCAP (or CSV) files to a calibration YAML")
     p.add_argument("inputs", nargs="+", type=Path)
     p.add_argument("-o", "--output", type=Path, required=True, help="calibration YAML to write")
-    p.add_argument("--degree", type=int, default=None, help="force the degree n (default: held-out cross-validation)")
-    p.add_argument("--max-degree", type=int, default=6, help="largest degree scored (default 6, as paper Table 4)")
+    p.add_argument("--degree", type=iv.degree, default=None, help="force the degree n (default: held-out cross-validation)")
+    p.add_argument("--max-degree", type=iv.degree, default=6, help="largest degree scored (default 6, as paper Table 4)")
     p.add_argument("--sensor-id", default=None)
     p.add_argument("--in-memory", action="store_true",
                    help="load every sample before fitting (default: stream MCAP files block by block, same result)")
+    _add_force(p)
     _add_detector_options(p)
     _add_csv_options(p)
     p.set_defaults(func=cmd_fit)
@@ -72,7 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calibration", type=Path, required=True, help="calibration YAML applied to the counts")
     p.add_argument("-o", "--output", type=Path, default=Path("allan.png"), help="PNG plot (default allan.png)")
     p.add_argument("--json", type=Path, default=None, help="write the figures as JSON here")
-    p.add_argument("--skip", type=float, default=0.0, help="seconds to drop at the start (warm-up)")
+    p.add_argument("--skip", type=iv.skip_s, default=0.0, help="seconds to drop at the start (warm-up)")
+    _add_force(p)
     _add_csv_options(p)
     p.set_defaults(func=cmd_allan)
 
@@ -80,7 +102,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("inputs", nargs="+", type=Path)
     p.add_argument("--calibration", type=Path, required=True)
     p.add_argument("-o", "--output-dir", type=Path, required=True, help="directory for report.md and PNGs")
-    p.add_argument("--max-degree", type=int, default=6)
+    p.add_argument("--max-degree", type=iv.degree, default=6)
+    _add_force(p)
     _add_detector_options(p)
     _add_csv_options(p)
     p.set_defaults(func=cmd_report)
@@ -110,6 +133,7 @@ def _load(paths: list[Path], args: argparse.Namespace):
         if path.suffix.lower() == ".csv":
             parts.append(import_csv(path, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g)[0])
         else:
+            check_mcap(path)
             rec = read_recording(path)
             report = rec.metadata.get("read_report", {})
             if report and not report.get("complete", True):
@@ -119,47 +143,64 @@ def _load(paths: list[Path], args: argparse.Namespace):
     return parts[0] if len(parts) == 1 else Recording.concatenate(parts)
 
 
-def cmd_import(args: argparse.Namespace) -> int:
-    from .csv_import import import_csv
-    from .mcap_io import write_recording
+def check_mcap(path: Path) -> None:
+    """Refuse a file that is not an MCAP (by its magic bytes) with a message saying what to give instead."""
+    with open(path, "rb") as fh:
+        head = fh.read(len(MCAP_MAGIC))
+    if head != MCAP_MAGIC:
+        raise ValueError(f"{path}: not an MCAP recording (it does not start with the MCAP magic bytes); give a .mcap "
+                         "file written by the calibration node or `fbg-accel-calib import`, or a .csv in the "
+                         "interchange format (docs/csv_interchange.md)")
 
-    rec, report = import_csv(args.csv, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g,
-                             drop_bad_rows=args.drop_bad_rows)
+
+def _check_inputs(paths: list[Path]) -> None:
+    for path in paths:
+        if not path.is_file():
+            raise ValueError(f"{path}: file not found")
+        if path.suffix.lower() != ".csv":
+            check_mcap(path)
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    """CSV -> MCAP, streamed block by block (memory: one block), written to a temporary file that replaces
+    the output only when the whole import succeeded."""
+    from .csv_import import CsvBlocks, write_mcap
+
+    check_outputs([args.output], [args.csv], args.force)
+    src = CsvBlocks(args.csv, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g)
     metadata = {"sensor_id": args.sensor_id, "operator_notes": args.notes, "source": str(args.csv),
-                "import": report.as_dict(), "plan": "imported from CSV"}
-    n = write_recording(args.output, rec, metadata, sensor_id=args.sensor_id)
+                "plan": "imported from CSV"}
+    with atomic_path(args.output) as tmp:
+        n, poses = write_mcap(src, tmp, metadata, sensor_id=args.sensor_id, drop_bad_rows=args.drop_bad_rows)
+    report = src.report
     print(report.summary())
-    print(f"wrote {args.output}: {len(rec)} samples, {int(rec.pose_id.max()) + 1} poses, {n} messages")
+    print(f"wrote {args.output}: {report.rows_kept} samples, {poses} poses, {n} messages")
     return 0
 
 
 def _fit_streamed(args: argparse.Namespace, max_degree: int):
-    """Stream the MCAP inputs block by block into the fit's cell sums (``thermal_fit.prepare_stream``);
-    CSV inputs are imported in memory and served as blocks. Returns ``(StreamedFitData, metadata)``."""
-    from .csv_import import import_csv
+    """Stream the inputs block by block into the fit's cell sums (``thermal_fit.prepare_stream``): MCAP
+    files through ``McapSampleStream``, CSV files re-read on every pass (``csv_import.CsvSampleSource``),
+    so memory is a few blocks whatever the file sizes. Returns ``(StreamedFitData, metadata)``."""
+    from .csv_import import CsvSampleSource
     from .mcap_io import McapSampleStream
-    from .thermal_fit import RecordingBlocks, prepare_stream
+    from .thermal_fit import prepare_stream
 
     sources = []
     for path in args.inputs:
         if not path.is_file():
             raise ValueError(f"{path}: file not found")
         if path.suffix.lower() == ".csv":
-            rec = import_csv(path, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g)[0]
-            rec.run_id[:] = 0
-            sources.append(RecordingBlocks(rec))
+            sources.append(CsvSampleSource(path, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g))
         else:
             sources.append(McapSampleStream(path))
     data = prepare_stream(sources, max_degree, args.window, args.min_interval, args.level_gap)
     parts = []
     for path, src in zip(args.inputs, sources, strict=True):
-        if isinstance(src, McapSampleStream):
-            md = src.metadata()
-            if not src.report.complete:
-                print(f"warning: {path} is truncated ({src.report.stopped_at}); recovered {src.report.messages} "
-                      "messages up to the last complete chunk", file=sys.stderr)
-        else:
-            md = dict(src.rec.metadata)
+        md = src.metadata()
+        if isinstance(src, McapSampleStream) and not src.report.complete:
+            print(f"warning: {path} is truncated ({src.report.stopped_at}); recovered {src.report.messages} "
+                  "messages up to the last complete chunk", file=sys.stderr)
         parts.append(md)
     return data, {"parts": parts, **(parts[0] if len(parts) == 1 else {})}
 
@@ -169,8 +210,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
     ``--in-memory`` (or an MCAP whose raw stamps go backwards) loads every sample first."""
     from .mcap_io import StreamOrderError
     from .model_selection import select_degree
-    from .thermal_fit import FULL_SCALE_MPS2, fit_thermal, prepare
+    from .thermal_fit import FULL_SCALE_MPS2, NotIdentifiedError, fit_thermal, prepare
 
+    check_outputs([args.output], args.inputs, args.force)
+    _check_inputs(args.inputs)
     max_degree = max(args.max_degree, args.degree or 0)
     data = None
     if not args.in_memory:
@@ -182,7 +225,15 @@ def cmd_fit(args: argparse.Namespace) -> int:
         rec = _load(args.inputs, args)
         metadata = rec.metadata
         data = prepare(rec, args.window, args.min_interval, args.level_gap)
-    selection = select_degree(data, max_degree=max_degree)
+    if len(data) == 0:
+        raise ValueError(f"{', '.join(map(str, args.inputs))}: none of the {data.n_total} samples can be fitted "
+                         f"({data.n_excluded_motion} not static, {data.n_excluded_other} without a pose, reference, "
+                         "valid temperature or finite counts); check the temperature column (or --temperature), "
+                         "the pose/reference columns and --window/--min-interval")
+    try:
+        selection = select_degree(data, max_degree=max_degree)
+    except NotIdentifiedError as exc:
+        raise ValueError(f"{', '.join(map(str, args.inputs))}: {exc}") from None
     print(f"degree selection ({selection.criterion}):")
     print(selection.table_markdown())
     for note in selection.notes:
@@ -199,7 +250,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     cal = fit_thermal(data, degree, sensor_id=args.sensor_id or _sensor_id_of(metadata))
     cal.fit["sources"] = [str(p) for p in args.inputs]
     cal.fit["degree_selection"] = selection.as_dict()
-    cal.save(args.output)
+    with atomic_path(args.output) as tmp:
+        cal.save(tmp)
     rmse = np.asarray(cal.fit["rmse_mps2"])
     print(f"degree n = {degree}: in-sample RMSE x/y/z " + " / ".join(f"{v:.4f}" for v in rmse) + " m/s^2 ("
           + " / ".join(f"{v / FULL_SCALE_MPS2:.2e}" for v in rmse) + " of 20 g), within-pose noise "
@@ -222,6 +274,7 @@ def cmd_allan(args: argparse.Namespace) -> int:
 
     from .allan import allan_deviation, plot_allan
 
+    check_outputs([args.output, args.json], [*args.inputs, args.calibration], args.force)
     cal = ThermalCalibration.load(args.calibration)
     rec = _load(args.inputs, args)
     if len(np.unique(rec.run_id)) > 1:
@@ -241,11 +294,13 @@ def cmd_allan(args: argparse.Namespace) -> int:
         print(f"warning: {gaps} gaps longer than 1.5 sample periods in the time stamps (ADEV assumes uniform sampling)",
               file=sys.stderr)
     res = allan_deviation(accel[ok], rate)
-    plot_allan(res, args.output, title=f"Allan deviation of {', '.join(p.name for p in args.inputs)}")
+    with atomic_path(args.output) as tmp:
+        plot_allan(res, tmp, title=f"Allan deviation of {', '.join(p.name for p in args.inputs)}")
     print(res.table_markdown())
     print(f"wrote {args.output}")
     if args.json:
-        args.json.write_text(json.dumps(res.as_dict(), indent=2))
+        with atomic_path(args.json) as tmp:
+            tmp.write_text(json.dumps(res.as_dict(), indent=2))
         print(f"wrote {args.json}")
     return 0
 
@@ -258,23 +313,30 @@ def cmd_report(args: argparse.Namespace) -> int:
     from .static_detector import calibration_samples
     from .thermal_fit import prepare
 
+    out = args.output_dir
+    check_output_dir(out, REPORT_FILES, [*args.inputs, args.calibration], args.force)
     cal = ThermalCalibration.load(args.calibration)
     rec = _load(args.inputs, args)
     usable, _ = calibration_samples(rec, window=args.window, min_interval=args.min_interval)
     data = prepare(rec, usable=usable, level_gap_c=args.level_gap)
     selection = select_degree(data, max_degree=args.max_degree)
-    out = args.output_dir
     out.mkdir(parents=True, exist_ok=True)
     stats = pose_statistics(cal, rec, usable & np.isfinite(rec.temp_c))
-    plot_calibrated_vs_reference(cal, rec, usable, out / "calibrated_vs_reference.png")
-    plot_residuals_per_degree(selection, out / "residuals_per_degree.png")
+    with atomic_path(out / "calibrated_vs_reference.png") as tmp:
+        plot_calibrated_vs_reference(cal, rec, usable, tmp)
+    with atomic_path(out / "residuals_per_degree.png") as tmp:
+        plot_residuals_per_degree(selection, tmp)
     command = "fbg-accel-calib " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     text = fit_report_markdown(cal, selection, stats, {"calibrated vs reference": "calibrated_vs_reference.png",
                                                        "residuals per degree": "residuals_per_degree.png"}, command)
-    (out / "report.md").write_text(text)
+    with atomic_path(out / "report.md") as tmp:
+        tmp.write_text(text)
     print(selection.table_markdown())
     print(f"wrote {out / 'report.md'}, {out / 'calibrated_vs_reference.png'}, {out / 'residuals_per_degree.png'}")
     return 0
+
+
+REPORT_FILES = ("report.md", "calibrated_vs_reference.png", "residuals_per_degree.png")
 
 
 def cmd_report_measured(args: argparse.Namespace) -> int:
@@ -291,6 +353,9 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError) as exc:
         print(f"fbg-accel-calib {args.command}: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"fbg-accel-calib {args.command}: interrupted; no output written", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -29,12 +29,14 @@ from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from . import input_validation as iv
 from .recording import Recording
 from .table_geometry import STANDARD_GRAVITY, table_specific_force
 
@@ -57,6 +59,7 @@ class ImportReport:
     rows_read: int = 0
     rows_kept: int = 0
     rejected: list[tuple[int, str]] = field(default_factory=list)
+    rejected_unlisted: int = 0  # rejected lines beyond MAX_STORED_REJECTS, counted only
     comment_or_blank_lines: int = 0
     ignored_columns: list[str] = field(default_factory=list)
     reference: str = ""
@@ -65,7 +68,8 @@ class ImportReport:
     pose_source: str = ""
 
     def summary(self) -> str:
-        lines = [f"{self.path}: {self.rows_read} data rows, {self.rows_kept} kept, {len(self.rejected)} rejected",
+        n_rejected = len(self.rejected) + self.rejected_unlisted
+        lines = [f"{self.path}: {self.rows_read} data rows, {self.rows_kept} kept, {n_rejected} rejected",
                  f"  reference: {self.reference}; time: {self.time_base}; temperature: {self.temperature}; "
                  f"poses: {self.pose_source}"]
         if self.comment_or_blank_lines:
@@ -73,11 +77,14 @@ class ImportReport:
         if self.ignored_columns:
             lines.append(f"  ignored columns: {', '.join(self.ignored_columns)}")
         lines += [f"  line {ln}: {why}" for ln, why in self.rejected]
+        if self.rejected_unlisted:
+            lines.append(f"  ... and {self.rejected_unlisted} more rejected line(s) not listed")
         return "\n".join(lines)
 
     def as_dict(self) -> dict[str, Any]:
         return {"path": self.path, "rows_read": self.rows_read, "rows_kept": self.rows_kept,
                 "rejected": [f"line {ln}: {why}" for ln, why in self.rejected],
+                "rejected_unlisted": self.rejected_unlisted,
                 "comment_or_blank_lines": self.comment_or_blank_lines, "ignored_columns": self.ignored_columns,
                 "reference": self.reference, "time_base": self.time_base, "temperature": self.temperature,
                 "pose_source": self.pose_source}
@@ -98,81 +105,216 @@ def _number(text: str, name: str, allow_empty: bool = False) -> float:
     return value
 
 
+MAX_LINE_BYTES = 65536  # a data row of this format is < 200 bytes; a longer line is refused, not parsed
+MAX_STORED_REJECTS = 10000  # rejected lines kept with their reason; beyond that only counted
+DEFAULT_BLOCK_ROWS = 65536  # rows per parsed block (memory of the importer: a few blocks, not the file)
+_BOM = b"\xef\xbb\xbf"
+
+
+class CsvBlocks:
+    """A CSV in the interchange format read block by block (memory: one block, whatever the file size).
+
+    Opening reads and checks the header (:class:`CsvImportError` on a header problem). Iterating
+    :meth:`blocks` parses the data rows into :class:`Recording` blocks of at most ``block_rows`` rows;
+    rejected rows are recorded in :attr:`report` as they are met (the caller decides after the last
+    block whether a rejected row fails the import). The time-order check and the pose numbering from
+    reference changes carry over block boundaries, so the blocks concatenated equal a whole-file read.
+    """
+
+    def __init__(self, path: str | Path, *, rate_hz: float | None = None, temperature_c: float | None = None,
+                 g_mps2: float = STANDARD_GRAVITY, block_rows: int = DEFAULT_BLOCK_ROWS) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise CsvImportError(f"{self.path}: file not found")
+        if not (math.isfinite(g_mps2) and g_mps2 > 0):
+            raise CsvImportError(f"{self.path}: gravity {g_mps2!r} m/s^2 must be finite and > 0 (--g)")
+        if rate_hz is not None and not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise CsvImportError(f"{self.path}: --rate {rate_hz!r} Hz must be finite and > 0")
+        self.rate_hz, self.temperature_c, self.g_mps2, self.block_rows = rate_hz, temperature_c, g_mps2, block_rows
+        self.report = ImportReport(str(self.path))
+        self.rejected_total = 0
+        self.valid_temperatures = 0
+        with open(self.path, "rb") as fh:
+            header = None
+            for line_no, text in self._lines(fh):
+                if text is None:
+                    raise CsvImportError(f"{self.path}: line {line_no}: header line is not UTF-8 text or too long; "
+                                         "save the file as UTF-8 CSV")
+                if not text.strip() or text.lstrip().startswith("#"):
+                    self.report.comment_or_blank_lines += 1
+                    continue
+                header = [h.strip() for h in next(csv.reader([text]))]
+                self.header_line = line_no
+                break
+            self._data_offset = fh.tell()
+        if header is None:
+            raise CsvImportError(f"{self.path}: no header line (expected column names such as "
+                                 f"{', '.join(COUNT_COLUMNS)})")
+        self.header = header
+        self.col = _check_header(self.path, header, self.header_line, rate_hz, temperature_c)
+        col = self.col
+        self.report.ignored_columns = [h for h in header if h not in col]
+        self.use_angles = "psi_deg" in col
+        self.report.reference = "table angles psi_deg/theta_deg" if self.use_angles else "gref_*_mps2 columns"
+        self.report.time_base = ("t_s column" if "t_s" in col else
+                                 f"{'sample column' if 'sample' in col else 'row index'} / {rate_hz} Hz")
+        self.report.temperature = "temperature_c column" if "temperature_c" in col else f"constant {temperature_c} degC"
+        self.report.pose_source = "pose column" if "pose" in col else "a new pose at every change of the reference"
+
+    def _lines(self, fh, first_line: int = 1):
+        """``(line number, text)`` of each line; text None for a line that is not UTF-8 or longer than
+        ``MAX_LINE_BYTES`` (its reason in :attr:`_line_problem`). A UTF-8 BOM at the start is dropped."""
+        line_no = first_line - 1
+        at_start = fh.tell() == 0
+        while True:
+            raw = fh.readline(MAX_LINE_BYTES + 1)
+            if not raw:
+                return
+            line_no += 1
+            if at_start:
+                at_start = False
+                if raw.startswith(_BOM):
+                    raw = raw[len(_BOM):]
+            if len(raw) > MAX_LINE_BYTES and not raw.endswith(b"\n"):
+                n = len(raw)
+                while raw and not raw.endswith(b"\n"):  # skip the rest of the line in bounded pieces
+                    raw = fh.readline(MAX_LINE_BYTES)
+                    n += len(raw)
+                self._line_problem = f"line longer than {MAX_LINE_BYTES} bytes ({n} bytes); not a data row"
+                yield line_no, None
+                continue
+            try:
+                yield line_no, raw.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                self._line_problem = (f"not UTF-8 text (byte 0x{raw[exc.start]:02x} at column {exc.start + 1}); "
+                                      "save the file as UTF-8")
+                yield line_no, None
+
+    def _reject(self, line_no: int, why: str) -> None:
+        self.rejected_total += 1
+        if len(self.report.rejected) < MAX_STORED_REJECTS:
+            self.report.rejected.append((line_no, why))
+        else:
+            self.report.rejected_unlisted += 1
+
+    def blocks(self) -> Iterator[Recording]:
+        """Parse the data rows (one pass; call again for another pass) into Recording blocks."""
+        report = self.report
+        report.rows_read = report.rows_kept = self.rejected_total = self.valid_temperatures = 0
+        report.rejected, report.rejected_unlisted = [], 0
+        comments = report.comment_or_blank_lines
+        buf = np.empty((self.block_rows, 10))
+        fill = 0
+        last_t = -math.inf
+        last_g: tuple[float, float, float] | None = None
+        pose_counter = -1
+        with open(self.path, "rb") as fh:
+            fh.seek(self._data_offset)
+            for line_no, text in self._lines(fh, self.header_line + 1):
+                if text is not None and (not text.strip() or text.lstrip().startswith("#")):
+                    comments += 1
+                    continue
+                report.rows_read += 1
+                if text is None:
+                    self._reject(line_no, self._line_problem)
+                    continue
+                try:
+                    fields = next(csv.reader([text]))
+                    row = _parse_row(fields, self.header, self.col, self.rate_hz, self.temperature_c,
+                                     report.rows_read - 1)
+                except (ValueError, csv.Error) as exc:
+                    self._reject(line_no, str(exc))
+                    continue
+                if row[0] <= last_t:
+                    self._reject(line_no, f"time {row[0]:g} s does not increase (previous {last_t:g} s)")
+                    continue
+                last_t = row[0]
+                if self.use_angles:
+                    g = tuple(float(v) for v in table_specific_force(np.array([row[6]]), np.array([row[7]]),
+                                                                       self.g_mps2)[0])
+                    row[6:9] = g
+                else:
+                    g = (row[6], row[7], row[8])
+                if "pose" not in self.col:
+                    if g != last_g:
+                        pose_counter += 1
+                    row[9] = pose_counter
+                last_g = g
+                if math.isfinite(row[5]):
+                    self.valid_temperatures += 1
+                buf[fill] = row
+                fill += 1
+                report.rows_kept += 1
+                if fill == self.block_rows:
+                    yield self._block(buf)
+                    fill = 0
+        if fill:
+            yield self._block(buf[:fill])
+        report.comment_or_blank_lines = comments
+        report.rejected.sort()
+
+    def _block(self, data: np.ndarray) -> Recording:
+        return Recording(data[:, 0].copy(), data[:, 1].copy(), data[:, 2:5].copy(), data[:, 5].copy(),
+                         data[:, 6:9].copy(), data[:, 9].astype(int), metadata={"source": str(self.path)})
+
+    def check(self, drop_bad_rows: bool) -> None:
+        """After a full pass: fail like :func:`import_csv` on rejected rows (unless ``drop_bad_rows``),
+        on a file without data rows and on a temperature column without a single valid reading."""
+        report = self.report
+        if self.rejected_total and not drop_bad_rows:
+            shown = report.rejected[:MAX_LISTED_ERRORS]
+            more = self.rejected_total - len(shown)
+            msg = "\n".join(f"  line {ln}: {why}" for ln, why in shown)
+            raise CsvImportError(f"{self.path}: {self.rejected_total} malformed row(s) (nothing imported; "
+                                 f"use --drop-bad-rows to import the others):\n{msg}"
+                                 + (f"\n  ... and {more} more" if more else ""))
+        if report.rows_kept == 0:
+            raise CsvImportError(f"{self.path}: no valid data rows")
+        if self.valid_temperatures == 0:
+            raise CsvImportError(f"{self.path}: temperature_c is empty on every row, so no sample can be fitted; "
+                                 "fill the column, or drop it and give the temperature with --temperature")
+
+    def metadata(self) -> dict[str, Any]:
+        return {"source": str(self.path), "import": self.report.as_dict(), "g_mps2": self.g_mps2}
+
+
+class CsvSampleSource:
+    """A CSV served as a ``thermal_fit.SampleBlockSource`` (one run): every pass re-reads the file block by
+    block, so the streamed fit of a CSV holds one block, never the file. After the first complete pass
+    the rows are checked as :func:`import_csv` checks them (a malformed row fails the fit)."""
+
+    def __init__(self, path: str | Path, *, rate_hz: float | None = None, temperature_c: float | None = None,
+                 g_mps2: float = STANDARD_GRAVITY) -> None:
+        self.csv = CsvBlocks(path, rate_hz=rate_hz, temperature_c=temperature_c, g_mps2=g_mps2)
+        self._checked = False
+
+    def blocks(self, block_rows: int, with_poses: bool) -> Iterator[Recording]:
+        self.csv.block_rows = block_rows
+        yield from self.csv.blocks()
+        if not self._checked:
+            self.csv.check(drop_bad_rows=False)
+            self._checked = True
+
+    def metadata(self) -> dict[str, Any]:
+        return self.csv.metadata()
+
+
 def import_csv(path: str | Path, *, rate_hz: float | None = None, temperature_c: float | None = None,
                g_mps2: float = STANDARD_GRAVITY, drop_bad_rows: bool = False) -> tuple[Recording, ImportReport]:
-    """Read a CSV in the interchange format into a Recording (run_id 0) and an :class:`ImportReport`."""
-    path = Path(path)
-    if not path.is_file():
-        raise CsvImportError(f"{path}: file not found")
-    report = ImportReport(str(path))
-    with open(path, newline="", encoding="utf-8") as fh:
-        lines = enumerate(fh, start=1)
-        header: list[str] | None = None
-        header_line = 0
-        for line_no, line in lines:
-            if not line.strip() or line.lstrip().startswith("#"):
-                report.comment_or_blank_lines += 1
-                continue
-            header = [h.strip() for h in next(csv.reader([line]))]
-            header_line = line_no
-            break
-        if header is None:
-            raise CsvImportError(f"{path}: no header line")
-        col = _check_header(path, header, header_line, rate_hz, temperature_c)
-        report.ignored_columns = [h for h in header if h not in col]
-        use_angles = "psi_deg" in col
-        report.reference = "table angles psi_deg/theta_deg" if use_angles else "gref_*_mps2 columns"
-        report.time_base = ("t_s column" if "t_s" in col else
-                            f"{'sample column' if 'sample' in col else 'row index'} / {rate_hz} Hz")
-        report.temperature = "temperature_c column" if "temperature_c" in col else f"constant {temperature_c} degC"
-        report.pose_source = "pose column" if "pose" in col else "a new pose at every change of the reference"
-        rows: list[list[float]] = []
-        row_lines: list[int] = []
-        for line_no, line in lines:
-            if not line.strip() or line.lstrip().startswith("#"):
-                report.comment_or_blank_lines += 1
-                continue
-            report.rows_read += 1
-            fields = next(csv.reader([line]))
-            try:
-                rows.append(_parse_row(fields, header, col, rate_hz, temperature_c, report.rows_read - 1))
-                row_lines.append(line_no)
-            except ValueError as exc:
-                report.rejected.append((line_no, str(exc)))
-    data = np.asarray(rows, dtype=float).reshape(-1, 10)
-    # time must increase strictly (checked on the parsed rows, so the line numbers are exact)
-    if len(data) > 1:
-        bad = np.flatnonzero(np.diff(data[:, 0]) <= 0) + 1
-        if len(bad):
-            for i in bad:
-                report.rejected.append((row_lines[i], f"time {data[i, 0]:g} s does not increase (previous {data[i - 1, 0]:g} s)"))
-            keep = np.ones(len(data), bool)
-            keep[bad] = False
-            data = data[keep]
-            row_lines = [ln for ln, k in zip(row_lines, keep, strict=True) if k]
-    report.rejected.sort()
-    if report.rejected and not drop_bad_rows:
-        shown = report.rejected[:MAX_LISTED_ERRORS]
-        more = len(report.rejected) - len(shown)
-        msg = "\n".join(f"  line {ln}: {why}" for ln, why in shown)
-        raise CsvImportError(f"{path}: {len(report.rejected)} malformed row(s) (nothing imported; "
-                             f"use --drop-bad-rows to import the others):\n{msg}"
-                             + (f"\n  ... and {more} more" if more else ""))
-    if len(data) == 0:
-        raise CsvImportError(f"{path}: no valid data rows")
-    report.rows_kept = len(data)
-    t_s, ref, xyz, temp = data[:, 0], data[:, 1], data[:, 2:5], data[:, 5]
-    if use_angles:
-        gref = table_specific_force(data[:, 6], data[:, 7], g_mps2)
+    """Read a CSV in the interchange format into a Recording (run_id 0) and an :class:`ImportReport`.
+
+    Parsed block by block into arrays (:class:`CsvBlocks`): memory is the samples' arrays (80 bytes a
+    row) plus one block, not Python objects per cell."""
+    src = CsvBlocks(path, rate_hz=rate_hz, temperature_c=temperature_c, g_mps2=g_mps2)
+    parts = list(src.blocks())
+    src.check(drop_bad_rows)
+    if len(parts) == 1:
+        rec = parts[0]
     else:
-        gref = data[:, 6:9]
-    if "pose" in col:
-        pose = data[:, 9].astype(int)
-    else:
-        changed = np.r_[True, np.any(np.diff(gref, axis=0) != 0.0, axis=1)]
-        pose = np.cumsum(changed) - 1
-    meta = {"source": str(path), "import": report.as_dict(), "g_mps2": g_mps2}
-    return Recording(t_s, ref, xyz, temp, gref, pose, metadata=meta), report
+        rec = Recording(*(np.concatenate([getattr(p, k) for p in parts]) for k in
+                          ("t_s", "ref", "xyz", "temp_c", "gref_mps2", "pose_id")))
+    rec.metadata = src.metadata()
+    return rec, src.report
 
 
 def _check_header(path: Path, header: list[str], line_no: int, rate_hz: float | None,
@@ -211,21 +353,32 @@ def _parse_row(fields: list[str], header: list[str], col: dict[str, int], rate_h
     counts = [_number(fields[col[c]], c) for c in COUNT_COLUMNS]
     if counts[0] <= 0:
         raise ValueError(f"ref_counts = {fields[col['ref_counts']].strip()} must be > 0")
-    for name, value in zip(COUNT_COLUMNS[1:], counts[1:], strict=True):
+    for name, value in zip(COUNT_COLUMNS, counts, strict=True):
         if value < 0:
             raise ValueError(f"{name} = {value:g} is negative")
+        if value > iv.ADC_MAX_COUNTS:
+            raise ValueError(f"{name} = {value:g} is beyond the 12-bit ADC range 0 .. {iv.ADC_MAX_COUNTS:g} counts")
     if "t_s" in col:
         t = _number(fields[col["t_s"]], "t_s")
     elif "sample" in col:
         t = _number(fields[col["sample"]], "sample") / float(rate_hz)
     else:
         t = index / float(rate_hz)
-    temp = _number(fields[col["temperature_c"]], "temperature_c", allow_empty=True) if "temperature_c" in col \
-        else float(temperature_c)
-    if "psi_deg" in col:
-        r = [_number(fields[col["psi_deg"]], "psi_deg"), _number(fields[col["theta_deg"]], "theta_deg"), math.nan]
+    lo, hi = iv.TIME_RANGE_S
+    if not lo <= t <= hi:
+        raise ValueError(f"time {t:g} s is outside {lo:g} .. {hi:g} s (the recordings' stamp range)")
+    if "temperature_c" in col:
+        temp = _number(fields[col["temperature_c"]], "temperature_c", allow_empty=True)
+        if math.isfinite(temp):
+            iv.check_range("temperature_c", temp, *iv.TEMPERATURE_RANGE_C, "degC (AHT10 range)")
     else:
-        r = [_number(fields[col[c]], c) for c in GREF_COLUMNS]
+        temp = float(temperature_c)
+    if "psi_deg" in col:
+        r = [iv.check_range(c, _number(fields[col[c]], c), -iv.ANGLE_LIMIT_DEG, iv.ANGLE_LIMIT_DEG, "deg")
+             for c in ANGLE_COLUMNS] + [math.nan]
+    else:
+        r = [iv.check_range(c, _number(fields[col[c]], c), -iv.FULL_SCALE_MPS2, iv.FULL_SCALE_MPS2, "m/s^2 (+-20 g)")
+             for c in GREF_COLUMNS]
     return [t, *counts, temp, *r, _pose(fields, col)]
 
 
@@ -233,6 +386,51 @@ def _pose(fields: list[str], col: dict[str, int]) -> float:
     if "pose" not in col:
         return -2.0
     value = _number(fields[col["pose"]], "pose")
-    if value != int(value) or value < -1:
-        raise ValueError(f"pose = {fields[col['pose']].strip()!r} must be an integer >= -1")
+    if value != int(value) or not -1 <= value <= iv.POSE_ID_MAX:
+        raise ValueError(f"pose = {fields[col['pose']].strip()!r} must be an integer in -1 .. {iv.POSE_ID_MAX}")
     return value
+
+
+def write_mcap(src: CsvBlocks, path: str | Path, metadata: dict[str, Any], sensor_id: str = "",
+               drop_bad_rows: bool = False) -> tuple[int, int]:
+    """Stream a CSV into a calibration MCAP at ``path`` (as :func:`mcap_io.write_recording` writes a
+    Recording: stamps ``t_s * 1e9`` ns, a pose event at every change of pose or reference).
+
+    Two passes over the CSV: the first checks every row and counts the poses (nothing is written when
+    the import fails), the second writes block by block. Memory: one block. The ``run`` metadata
+    record (``metadata`` plus the import report) is written at the end. Returns (messages written, poses).
+    """
+    from .mcap_io import McapRecordingError, RecordingWriter
+
+    n_poses = 0
+    for blk in src.blocks():
+        if len(blk):
+            n_poses = max(n_poses, int(blk.pose_id.max()) + 1)
+    src.check(drop_bad_rows)
+    prev_pose, prev_g, prev_stamp = None, None, -1
+    seq = 0
+    with RecordingWriter(path, None) as w:
+        for blk in src.blocks():
+            stamps = np.round(blk.t_s * 1e9).astype(np.int64)
+            known = np.all(np.isfinite(blk.gref_mps2), axis=1)
+            pose = np.where((blk.pose_id >= 0) & known, blk.pose_id, -1).tolist()
+            for i, stamp in enumerate(stamps.tolist()):
+                if stamp <= prev_stamp:
+                    raise McapRecordingError(f"{src.path}: times {prev_stamp} ns and {stamp} ns are not strictly "
+                                             "increasing at nanosecond resolution")
+                g = blk.gref_mps2[i]
+                change = (prev_pose is None or pose[i] != prev_pose
+                          or (bool(known[i]) and prev_g is not None and bool(np.any(g != prev_g))))
+                if change:
+                    if pose[i] >= 0:
+                        w.write_reference_gravity(stamp, g)
+                        w.write_pose(stamp, pose[i], "recording", index=pose[i], count=n_poses, sensor_id=sensor_id)
+                    else:
+                        w.write_pose(stamp, -1, "moving", sensor_id=sensor_id)
+                temp = float(blk.temp_c[i])
+                w.write_raw(stamp, float(blk.ref[i]), blk.xyz[i].tolist(), temperature_c=temp,
+                            temperature_valid=math.isfinite(temp), seq=seq, board_time_s=float(blk.t_s[i]))
+                seq += 1
+                prev_pose, prev_g, prev_stamp = pose[i], g, stamp
+        w.add_metadata("run", {**metadata, "import": src.report.as_dict(), "g_mps2": src.g_mps2})
+        return w.message_count, n_poses

@@ -18,6 +18,8 @@ import shlex
 import sys
 from pathlib import Path
 
+from . import input_validation as iv
+
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``diagnose`` subcommand to the ``fbg-accel-calib`` parser; returns the sub-parser."""
@@ -29,28 +31,30 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
         "calibration YAML and report before/after on held-out poses next to the noise floor.",
     )
     p.add_argument("inputs", nargs="+", help="recordings: .csv (interchange format, docs/csv_interchange.md) or .mcap")
-    p.add_argument("--rate", type=float, default=None,
+    p.add_argument("--rate", type=iv.rate_hz, default=None,
                    help="CSV without t_s: sample rate in Hz (time = sample index / rate). Default 1.0, i.e. time in samples")
-    p.add_argument("--temperature", type=float, default=None,
+    p.add_argument("--temperature", type=iv.temperature_c, default=None,
                    help="CSV without temperature_c: temperature of every sample, degC")
-    p.add_argument("--g", type=float, default=None, help="local gravity for psi/theta CSV columns, m/s^2 (default 9.80665)")
+    p.add_argument("--g", type=iv.gravity_mps2, default=None,
+                   help="local gravity for psi/theta CSV columns, m/s^2 (default 9.80665)")
     p.add_argument("--static", choices=["table", "detector", "all"], default="table",
                    help="samples to fit and judge: 'table' (default) every sample of a pose the table held for >= 5 "
                         "samples; 'detector' the fit's static-interval detector (hides settling, i.e. chain dynamics); "
                         "'all' also the samples taken while the table moves (needs the table's angle readings during "
                         "motion, e.g. simulator recordings)")
-    p.add_argument("--degree", type=int, default=None, help="force the degree of eq. 28 (default: held-out CV)")
-    p.add_argument("--max-degree", type=int, default=4)
-    p.add_argument("--folds", type=int, default=10, help="cross-validation folds over pose groups")
-    p.add_argument("--alpha", type=float, default=0.01, help="family-wise significance level per selection step")
-    p.add_argument("--min-gain", type=float, default=0.02,
+    p.add_argument("--degree", type=iv.degree, default=None, help="force the degree of eq. 28 (default: held-out CV)")
+    p.add_argument("--max-degree", type=iv.degree, default=4)
+    p.add_argument("--folds", type=iv.folds, default=10, help="cross-validation folds over pose groups")
+    p.add_argument("--alpha", type=iv.probability, default=0.01, help="family-wise significance level per selection step")
+    p.add_argument("--min-gain", type=iv.fraction, default=0.02,
                    help="minimum held-out gain (fraction of the noise-weighted MSE) for an effect to be added")
-    p.add_argument("--max-effects", type=int, default=3)
-    p.add_argument("--seed", type=int, default=0, help="seed of the fold assignment")
+    p.add_argument("--max-effects", type=iv.max_effects, default=3)
+    p.add_argument("--seed", type=iv.seed, default=0, help="seed of the fold assignment")
     p.add_argument("--sensor-id", default=None)
     p.add_argument("--out", type=Path, default=None, help="markdown report (PNG plots go to --img-dir)")
     p.add_argument("--img-dir", type=Path, default=None, help="directory for the PNG plots (default: <out dir>/img)")
     p.add_argument("--yaml", type=Path, default=None, help="write the refitted calibration (with the added terms) here")
+    p.add_argument("--force", action="store_true", help="replace existing output files (default: refuse)")
     p.set_defaults(func=run)
     return p
 
@@ -71,39 +75,101 @@ def load_inputs(paths: list[str], rate: float | None, temperature: float | None,
             rec, _ = import_csv(path, rate_hz=rate if rate is not None else 1.0, temperature_c=temperature,
                                 g_mps2=g if g is not None else STANDARD_GRAVITY)
         else:
+            from .cli import check_mcap
             from .mcap_io import read_recording
 
+            check_mcap(path)
             rec = read_recording(path)
         parts.append(rec)
     return parts[0] if len(parts) == 1 else Recording.concatenate(parts)
 
 
+PLOT_FILES = ("before_after.png", "residual_structure.png")  # plus candidate_<effect>.png
+
+
+def _img_dir(args: argparse.Namespace) -> Path | None:
+    if args.out is None:
+        return None
+    return Path(args.img_dir) if args.img_dir is not None else args.out.parent / "img"
+
+
+def check_diagnose_outputs(args: argparse.Namespace) -> None:
+    """Before any computation: outputs are not inputs, exist only with --force, and their directories exist."""
+    from .atomic_output import check_output_dir, check_outputs
+
+    check_outputs([args.out], args.inputs, args.force, create_dirs=True)  # the report's directory is created
+    check_outputs([args.yaml], args.inputs, args.force)
+    if args.out is not None and args.yaml is not None:
+        check_outputs([args.out, args.yaml], [], True, create_dirs=True)  # not the same file twice
+    img = _img_dir(args)
+    if img is not None:
+        check_output_dir(img, PLOT_FILES, args.inputs, args.force)
+
+
+def write_outputs(res, args: argparse.Namespace, command: str) -> list[Path]:
+    """Markdown report, its PNGs and the YAML, each written to a temporary file and renamed on success."""
+    import os
+    import tempfile
+
+    from .atomic_output import atomic_path
+    from .diagnose_report import markdown, write_plots
+
+    written: list[Path] = []
+    if args.out is not None:
+        img = _img_dir(args)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        img.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=img, prefix=".plots.") as tmp_dir:
+            for p in write_plots(res, tmp_dir):
+                os.replace(p, img / p.name)
+                written.append(img / p.name)
+        rel = os.path.relpath(img, args.out.parent).replace(os.sep, "/")
+        with atomic_path(args.out) as tmp:
+            tmp.write_text(markdown(res, command, img_prefix=f"{rel}/"))
+        written.insert(0, args.out)
+    if args.yaml is not None:
+        res.calibration.fit.setdefault("source", [str(p) for p in args.inputs])
+        with atomic_path(args.yaml) as tmp:
+            res.calibration.save(tmp)
+        written.append(args.yaml)
+    return written
+
+
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from .diagnose import diagnose
-    from .diagnose_report import text, write_report
+    from .diagnose_report import text
+    from .thermal_fit import check_recording_excitation
 
     try:
+        check_diagnose_outputs(args)
         rec = load_inputs(args.inputs, args.rate, args.temperature, args.g)
     except (OSError, ValueError) as exc:
         print(f"fbg-accel-calib diagnose: {exc}", file=sys.stderr)
         return 2
     sensor_id = args.sensor_id or str(rec.metadata.get("sensor_id", "unknown"))
     try:
+        check_recording_excitation(rec)
         res = diagnose(rec, static=args.static, max_degree=args.max_degree, folds=args.folds, alpha=args.alpha,
                        min_rel_gain=args.min_gain, max_effects=args.max_effects, degree=args.degree,
                        sensor_id=sensor_id, seed=args.seed)
     except ValueError as exc:
-        print(f"fbg-accel-calib diagnose: {exc}", file=sys.stderr)
+        print(f"fbg-accel-calib diagnose: {', '.join(args.inputs)}: {exc}", file=sys.stderr)
+        return 2
+    except np.linalg.LinAlgError as exc:  # a degenerate case the checks above did not foresee: still one line
+        print(f"fbg-accel-calib diagnose: {', '.join(args.inputs)}: the data do not determine the model ({exc}); "
+              "check that the poses differ and every channel responds", file=sys.stderr)
         return 2
     print(text(res), end="")
     command = "fbg-accel-calib diagnose " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 2 else ""
-    if args.out is not None:
-        for p in write_report(res, args.out, args.img_dir, command=command):
-            print(f"wrote {p}")
-    if args.yaml is not None:
-        res.calibration.fit.setdefault("source", [str(p) for p in args.inputs])
-        res.calibration.save(args.yaml)
-        print(f"wrote {args.yaml}")
+    try:
+        written = write_outputs(res, args, command)
+    except (OSError, ValueError) as exc:
+        print(f"fbg-accel-calib diagnose: {exc}", file=sys.stderr)
+        return 2
+    for p in written:
+        print(f"wrote {p}")
     return 0
 
 

@@ -158,8 +158,13 @@ def message_definition(datatype: str) -> str:
 class _UnbufferedSink:
     """Write-through file wrapper: every ``write`` reaches the OS before returning (SIGKILL-safe)."""
 
-    def __init__(self, path: Path) -> None:
-        self._raw = io.FileIO(str(path), "wb")
+    def __init__(self, path: Path, exclusive: bool = False) -> None:
+        if exclusive:  # never overwrite, never follow a link (atomic_output.create_exclusive)
+            from .atomic_output import create_exclusive
+
+            self._raw = io.FileIO(create_exclusive(path), "wb")
+        else:
+            self._raw = io.FileIO(str(path), "wb")
         self._pos = 0
 
     def write(self, data: bytes) -> int:
@@ -253,19 +258,20 @@ class RecordingWriter:
     """Incremental MCAP writer of one calibration run (ROS 2 profile, CDR, zstd chunks).
 
     ``metadata`` is written at once as the MCAP metadata record ``run`` (e.g. ``sensor_id``, ``plan``,
-    ``operator_notes``); :meth:`add_metadata` adds more records later. All ``stamp_ns`` arguments
-    are ROS time in nanoseconds. Use as a context manager or call :meth:`close`.
+    ``operator_notes``); :meth:`add_metadata` adds more records later. ``exclusive=True`` creates the
+    file with ``O_CREAT|O_EXCL|O_NOFOLLOW`` (``FileExistsError`` if a file or any symbolic link is there).
+    All ``stamp_ns`` arguments are ROS time in nanoseconds. Use as a context manager or call :meth:`close`.
     """
 
     def __init__(self, path: str | Path, metadata: dict[str, Any] | None = None, *,
                  chunk_bytes: int = DEFAULT_CHUNK_BYTES, compression: str = "zstd",
-                 frame_id: str = "fbg_accel_link") -> None:
+                 frame_id: str = "fbg_accel_link", exclusive: bool = False) -> None:
         self.path = Path(path)
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
         if compression not in comp:
             raise McapRecordingError(f"compression must be one of {sorted(comp)}, got {compression!r}")
         self.frame_id = frame_id
-        self._sink = _UnbufferedSink(self.path)
+        self._sink = _UnbufferedSink(self.path, exclusive)
         self._writer = McapWriter(self._sink, chunk_size=chunk_bytes, compression=comp[compression])
         self._writer.start(profile="ros2", library="fbg_accel_calibration.mcap_io")
         self._channels: dict[str, int] = {}

@@ -52,7 +52,9 @@ from .thermal_fit import (
     NotIdentifiedError,
     StreamedFitData,
     accumulate_cells,
+    check_pose_excitation,
     design_matrix,
+    level_excitation,
     prepare,
     solve_normal_equations,
     temperature_scaling,
@@ -154,6 +156,8 @@ def select_degree(rec: Recording | FitData | StreamedFitData, max_degree: int = 
         center, scale = temperature_scaling(data.temp_c)
         tau = (data.temp_c - center) / scale
         stats = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, max_degree, chunk)
+    check_pose_excitation(stats)
+    n_excited, excitation_notes = level_excitation(stats)
     all_cells = np.ones(len(stats.count), dtype=bool)
     n_total = stats.count.sum()
     by_level = n_levels >= 2
@@ -165,6 +169,11 @@ def select_degree(rec: Recording | FitData | StreamedFitData, max_degree: int = 
         if degree >= n_levels:
             scores.append(DegreeScores(degree, False, nan3, nan3, nan3,
                                        f"not identified: degree >= {n_levels} temperature level(s)"))
+            continue
+        if degree >= 1 and degree >= n_excited:
+            scores.append(DegreeScores(degree, False, nan3, nan3, nan3,
+                                       f"not identified: needs {degree + 1} temperature levels whose poses span the "
+                                       f"table frame, {n_excited} do"))
             continue
         try:
             A = _fit_cells(stats, all_cells, degree)
@@ -183,6 +192,9 @@ def select_degree(rec: Recording | FitData | StreamedFitData, max_degree: int = 
         scores.append(DegreeScores(degree, True, in_sample, pose_cv, level_cv, note))
     chosen, criterion, guard_notes = _choose(scores, pose_mse_by_degree, by_level)
     notes += guard_notes
+    if excitation_notes and n_levels > 1:
+        notes += [f"{n} (its poses do not constrain the temperature terms along that direction)"
+                  for n in excitation_notes]
     if n_levels == 1:
         notes.append("one temperature level: only degree 0 (the paper's linear model, eq. 25) is identified")
     if max_degree >= n_levels:

@@ -58,6 +58,16 @@ FULL_SCALE_MPS2 = 20.0 * STANDARD_GRAVITY  # paper: +-20 g; Table 4 RMSE is norm
 DEFAULT_LEVEL_GAP_C = 1.0  # degC: sorted temperatures further apart than this belong to different levels
 DEFAULT_LEVEL_WIDTH_C = 3.0  # degC: a wider cluster (a sweep, not a set-point) is split into bins this wide
 DEFAULT_CHUNK = 65536
+# Smallest RMS spread (m/s^2) of the poses' reference specific force along any direction of the table
+# frame. Along a direction the poses do not span, eq. 28 fits the output to a constant: that row of M
+# comes out zero and the noise figure zero, a dead axis that looks perfect. The six-position plan spreads
+# g/sqrt(3) = 5.7 m/s^2 along every axis; coplanar poses (one tilt axis only, or a run stopped after its
+# 4th pose) spread exactly 0 along the normal of their plane. 0.05 g is a tilt of about +-4 deg.
+MIN_POSE_SPREAD_MPS2 = 0.05 * STANDARD_GRAVITY
+# Smallest spread of the poses' mean Psi along any direction, relative to the largest. A working sensor
+# spreads about equally along all three (each channel follows its own axis, paper eq. 25: ratios near 1
+# on the measured series); a dead or saturated channel, or copied samples, leave one direction flat.
+MIN_SIGNAL_SPREAD_RATIO = 1e-3
 _LEVEL_OFFSET = 1 << 16  # cell key = pose << 32 | (level + offset)
 
 
@@ -280,6 +290,102 @@ def accumulate_cells(psi: np.ndarray, tau: np.ndarray, gref: np.ndarray, pose: n
     return acc.finish()
 
 
+def _reference_spread(gsum: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """RMS spreads (3,), ascending, m/s^2, and principal directions (3, 3 columns) of the cells' mean
+    reference specific force, weighted by sample count."""
+    means = gsum / count[:, None]
+    d = means - (count[:, None] * means).sum(axis=0) / count.sum()
+    eig, vec = np.linalg.eigh((count[:, None, None] * d[:, :, None] * d[:, None, :]).sum(axis=0) / count.sum())
+    return np.sqrt(np.maximum(eig, 0.0)), vec
+
+
+def level_excitation(stats: CellStats, min_spread_mps2: float = MIN_POSE_SPREAD_MPS2) -> tuple[int, list[str]]:
+    """Temperature levels whose own poses span the table frame: ``(count, notes on the others)``.
+
+    A temperature term M_k, b_k (k >= 1) along a direction is determined only by levels that excite that
+    direction: with coplanar poses at one level (e.g. that level's run stopped after its 4th pose) the
+    degree-n polynomial along the plane's normal passes through n levels only. Degree n >= 1 therefore
+    needs n + 1 fully excited levels (:func:`fit_thermal` refuses it, ``model_selection`` marks it not
+    identified)."""
+    ok, notes = 0, []
+    for lev in np.unique(stats.level):
+        sel = stats.level == lev
+        spread, vec = _reference_spread(stats.gsum[sel], np.asarray(stats.count[sel], dtype=float))
+        if spread[0] >= min_spread_mps2:
+            ok += 1
+        else:
+            u = np.where(np.abs(vec[:, 0]) < 5e-3, 0.0, vec[:, 0] * np.sign(vec[np.argmax(np.abs(vec[:, 0])), 0]))
+            notes.append(f"temperature level {int(lev)}: its {len(np.unique(stats.pose[sel]))} poses do not tilt "
+                         f"the table direction ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}) (spread {spread[0]:.3g} m/s^2)")
+    return ok, notes
+
+
+def check_level_excitation(stats: CellStats, degree: int) -> None:
+    """Refuse a temperature degree that the fully excited levels cannot determine (:func:`level_excitation`)."""
+    if degree < 1:
+        return
+    ok, notes = level_excitation(stats)
+    if degree >= ok:
+        raise NotIdentifiedError(
+            f"degree {degree} in temperature needs {degree + 1} temperature levels whose poses span the table "
+            f"frame, only {ok} do ({'; '.join(notes)}); use degree <= {max(ok - 1, 0)} or repeat the pose plan "
+            "at that level")
+
+
+def check_pose_excitation(stats: CellStats, min_spread_mps2: float = MIN_POSE_SPREAD_MPS2) -> np.ndarray:
+    """Refuse a pose set that does not excite every direction of the table frame.
+
+    The reference specific force of each cell (its mean, m/s^2, table frame) is weighted by the cell's
+    sample count; the square roots of the eigenvalues of their centred scatter are the RMS spreads of
+    the poses along the principal directions. Returns the spreads (3,) sorted ascending; raises
+    :class:`NotIdentifiedError` naming the weakest direction (and the output axis it is closest to)
+    when its spread is below ``min_spread_mps2``.
+    """
+    count = np.asarray(stats.count, dtype=float)
+    if len(count) == 0 or count.sum() <= 0:
+        raise NotIdentifiedError("no usable static samples")
+    spread, vec = _reference_spread(stats.gsum, count)
+    if not spread[0] >= min_spread_mps2:
+        u = vec[:, 0] * np.sign(vec[np.argmax(np.abs(vec[:, 0])), 0])
+        u = np.where(np.abs(u) < 5e-3, 0.0, u)  # print 0.00, not -0.00
+        axis = "xyz"[int(np.argmax(np.abs(u)))]
+        n_poses = len(np.unique(stats.pose))
+        shape = "coincide" if spread[2] < min_spread_mps2 else ("are collinear" if spread[1] < min_spread_mps2
+                                                               else "are coplanar")
+        raise NotIdentifiedError(
+            f"the {n_poses} poses' reference specific forces {shape}: their RMS spread along the table direction "
+            f"({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}) is {spread[0]:.3g} m/s^2 (< {min_spread_mps2:.3g}), so the {axis} row "
+            "of M and b would be fitted to a constant (a dead axis); record poses that tilt that axis too "
+            "(at least 4 non-coplanar poses, e.g. the six-position plan)")
+    psi_means = stats.xsum[:, 0:3] / count[:, None]  # columns 0..2 of eq. 29: Psi at k = 0
+    d = psi_means - (count[:, None] * psi_means).sum(axis=0) / count.sum()
+    eig_p, vec_p = np.linalg.eigh((count[:, None, None] * d[:, :, None] * d[:, None, :]).sum(axis=0) / count.sum())
+    psi_spread = np.sqrt(np.maximum(eig_p, 0.0))
+    if not psi_spread[0] > MIN_SIGNAL_SPREAD_RATIO * psi_spread[2]:
+        u = np.where(np.abs(vec_p[:, 0]) < 5e-3, 0.0, vec_p[:, 0] * np.sign(vec_p[np.argmax(np.abs(vec_p[:, 0])), 0]))
+        if not psi_spread[2] > 1e-9:
+            why = "the counts give the same Psi = counts / ref in every pose (identical samples?)"
+        else:
+            why = (f"the sensor's Psi = counts / ref barely changes along ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}) "
+                   f"between poses ({psi_spread[0]:.3g}, vs {psi_spread[2]:.3g} along the strongest direction)")
+        raise NotIdentifiedError(f"{why}: a channel is dead, saturated or copied, so M cannot be determined; "
+                                 "check the x/y/z_counts columns and the fibre connections")
+    return spread
+
+
+def check_recording_excitation(rec: Recording) -> np.ndarray:
+    """:func:`check_pose_excitation` on every sample of a recording that has a pose, a finite reference,
+    a valid temperature and finite Psi (no static detection: a cheap check before a long computation)."""
+    psi = normalise(rec.xyz, rec.ref)
+    ok = (rec.pose_id >= 0) & np.all(np.isfinite(rec.gref_mps2), axis=1) & np.isfinite(rec.temp_c)
+    ok &= np.all(np.isfinite(psi), axis=1)
+    if not ok.any():
+        raise NotIdentifiedError("no sample has a pose, a finite reference, a valid temperature and finite counts")
+    stats = accumulate_cells(psi[ok], np.zeros(int(ok.sum())), rec.gref_mps2[ok], rec.pose_id[ok],
+                             np.zeros(int(ok.sum()), np.int64), 0)
+    return check_pose_excitation(stats)
+
+
 def solve_normal_equations(xtx: np.ndarray, xtg: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, float]:
     """Solve (X^T X) A = X^T G with Jacobi scaling; returns (A, condition number of the scaled X^T X).
 
@@ -387,6 +493,8 @@ def fit_thermal(rec: Recording | FitData | StreamedFitData, degree: int, *, sens
     if not isinstance(data, StreamedFitData):
         tau = (data.temp_c - center) / scale
         stats = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, degree, chunk)
+    spread = check_pose_excitation(stats)
+    check_level_excitation(stats, degree)
     xtx, xtg, _, n = stats.select(np.ones(len(stats.count), bool), degree)
     A, cond = solve_normal_equations(xtx, xtg)
     rss = stats.cell_rss(A, degree).sum(axis=0)
@@ -408,6 +516,7 @@ def fit_thermal(rec: Recording | FitData | StreamedFitData, degree: int, *, sens
         "rmse_over_full_scale": (rmse / FULL_SCALE_MPS2).tolist(),
         "within_pose_noise_mps2": noise.tolist(),
         "condition_number_scaled": cond,
+        "pose_spread_mps2": spread.tolist(),
         "static_detector": data.detector,
     }
     if src is not None:

@@ -455,6 +455,18 @@ def test_an_existing_recording_is_never_overwritten(plan_dir):
     assert (plan_dir / "keep.mcap").read_bytes() == b"precious"
 
 
+def test_a_dangling_symlink_in_output_dir_is_not_followed(plan_dir, tmp_path):
+    """The never-overwrite check followed a dangling link and wrote the recording outside output_dir."""
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (plan_dir / "keep.mcap").symlink_to(outside / "victim.mcap")
+    args = [str(CALIBRATION_EXE), "--ros-args", "-p", f"plan_file:={plan_dir / 'plan.yaml'}", "-p", f"output_dir:={plan_dir}",
+            "-p", "run_label:=keep"]
+    res = subprocess.run(args, capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and "never overwritten" in res.stderr, res.stderr
+    assert not (outside / "victim.mcap").exists() and (plan_dir / "keep.mcap").is_symlink()
+
+
 def test_help_needs_no_ros():
     res = subprocess.run([str(CALIBRATION_EXE), "--help"], capture_output=True, text=True, timeout=30)
     assert res.returncode == 0 and "plan_file" in res.stdout and "calibration/next_pose" in res.stdout

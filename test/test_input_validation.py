@@ -1,0 +1,272 @@
+"""Issue 11, "wrong calibrations written with exit 0" and "inputs that give tracebacks": every hostile
+input is refused with exit 2 and one line naming the file/option, the field and what to do."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fbg_accel_calibration.cli import main
+from fbg_accel_calibration.csv_import import CsvImportError, import_csv
+from fbg_accel_calibration.mcap_io import write_recording
+from fbg_accel_driver.sim.board_physics import simulate_recording
+from fbg_accel_driver.sim.sim_config import SimConfig
+
+MEASURED = Path(__file__).resolve().parents[2] / "shared" / "data" / "measured" / "fig13_multiposition_23C.csv"
+MEASURED_OPTS = ["--rate", "1", "--temperature", "23.4", "--g", "9.81"]
+HEADER = "t_s,ref_counts,x_counts,y_counts,z_counts,gref_x_mps2,gref_y_mps2,gref_z_mps2,temperature_c,pose\n"
+SIX = ["0,0,9.8", "0,0,-9.8", "9.8,0,0", "-9.8,0,0", "0,9.8,0", "0,-9.8,0"]
+
+
+def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    """``main(argv)`` in process: (exit code, stderr); argparse usage errors give SystemExit(2)."""
+    try:
+        rc = main([str(a) for a in argv])
+    except SystemExit as exc:
+        rc = exc.code
+    err = capsys.readouterr().err
+    return rc, err
+
+
+def one_line(err: str) -> str:
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+def six_pose_csv(path: Path, row: str | None = None, at: int = 7) -> Path:
+    """A six-pose CSV (50 samples a pose, sensor-like counts); ``row`` replaces data row ``at``."""
+    rng = np.random.default_rng(0)
+    rows, i = [], 0
+    for p, g in enumerate(SIX):
+        gx, gy, gz = (float(v) for v in g.split(","))
+        for _ in range(50):
+            c = np.array([1000 + 80 * gx, 1500 + 80 * gy, 1200 + 80 * gz]) + rng.normal(0, 0.5, 3)
+            rows.append(f"{i * 0.01:.2f},880,{c[0]:.2f},{c[1]:.2f},{c[2]:.2f},{g},23.4,{p}\n")
+            i += 1
+    if row is not None:
+        rows[at] = row + "\n"
+    path.write_text(HEADER + "".join(rows))
+    return path
+
+
+# ---------------------------------------------------------------------------- rank / conditioning
+
+
+def test_coplanar_measured_poses_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The measured series restricted to psi = 0 (one tilt axis): every pose has f_x = 0. The old code wrote
+    an x row of M, b and noise of zero with exit 0."""
+    assert MEASURED.is_file(), f"measured data not found: {MEASURED}"
+    lines = MEASURED.read_text().splitlines()
+    kept = [lines[0]] + [ln for ln in lines[1:] if ln.split(",")[5] == "0.0"]
+    csv = tmp_path / "theta_only.csv"
+    csv.write_text("\n".join(kept) + "\n")
+    out = tmp_path / "cal.yaml"
+    rc, err = run(["fit", csv, "-o", out, *MEASURED_OPTS], capsys)
+    line = one_line(err)
+    assert rc == 2 and "coplanar" in line and "the x row of M" in line and "theta_only.csv" in line
+    assert not out.exists()
+    rc, err = run(["diagnose", csv, *MEASURED_OPTS, "--yaml", tmp_path / "d.yaml"], capsys)
+    assert rc == 2 and "coplanar" in one_line(err) and not (tmp_path / "d.yaml").exists()
+    # the whole series spans the frame and still fits
+    rc, _ = run(["fit", MEASURED, "-o", out, *MEASURED_OPTS], capsys)
+    assert rc == 0 and out.is_file()
+
+
+def test_six_position_run_cut_after_its_fourth_pose_is_refused(tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """z down, z up, x down, x up: the y axis was never tilted (the old fit gave a y row of zeros, exit 0)."""
+    cfg = SimConfig.default().with_overrides({
+        "scenario.poses.mode": "six_position", "scenario.poses.dwell_s": 30.0, "scenario.poses.move_s": 10.0,
+        "scenario.poses.repeat": 1, "scenario.duration_s": 150.0})  # 4 dwells + 3 moves
+    rec = simulate_recording(cfg, seed=1)
+    assert set(np.unique(rec.pose_id)) == {-1, 0, 1, 2, 3}
+    mcap = tmp_path / "cut.mcap"
+    write_recording(mcap, rec, {"sensor_id": "sim"})
+    rc, err = run(["fit", mcap, "-o", tmp_path / "cal.yaml"], capsys)
+    line = one_line(err)
+    assert rc == 2 and "the y row of M" in line and "(0.00, 1.00, 0.00)" in line
+    assert not (tmp_path / "cal.yaml").exists()
+
+
+def test_a_level_cut_after_its_fourth_pose_limits_the_temperature_degree(tmp_path: Path,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """Three chamber levels, the 45 degC run stopped after x up: y is tilted at two levels only, so a
+    quadratic temperature term along y is not determined; the global span check alone would accept it."""
+    files = []
+    for i, (level, duration) in enumerate([(16.0, None), (24.0, None), (45.0, 150.0)]):
+        cfg = SimConfig.default().with_overrides({
+            "scenario.poses.mode": "six_position", "scenario.poses.dwell_s": 30.0, "scenario.poses.move_s": 10.0,
+            "scenario.poses.repeat": 1, "scenario.duration_s": duration, "scenario.temperature.initial_c": level,
+            "scenario.temperature.profile": [], "thermal.initial_optics_c": None})
+        files.append(tmp_path / f"run{i}.mcap")
+        write_recording(files[-1], simulate_recording(cfg, seed=10 + i), {"sensor_id": "sim"})
+    rc, err = run(["fit", *files, "-o", tmp_path / "q.yaml", "--degree", "2"], capsys)
+    line = one_line(err)
+    assert rc == 2 and "needs 3 temperature levels whose poses span the table frame, 2 do" in line
+    assert not (tmp_path / "q.yaml").exists()
+    rc = main(["fit", *map(str, files), "-o", str(tmp_path / "c.yaml")])
+    text = capsys.readouterr().out
+    assert rc == 0 and "degree n = 1" in text
+    assert "temperature level 2: its 4 poses do not tilt the table direction (0.00, 1.00, 0.00)" in text
+
+
+def test_identical_samples_are_refused_by_fit_and_diagnose(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Six poses, the same counts in each: diagnose raised 'Singular matrix' before."""
+    rows = [f"{i},880,1000,1000,1000,{SIX[i // 50]},23,{i // 50}\n" for i in range(300)]
+    csv = tmp_path / "same.csv"
+    csv.write_text(HEADER + "".join(rows))
+    for argv in (["fit", csv, "-o", tmp_path / "a.yaml"], ["diagnose", csv]):
+        rc, err = run(argv, capsys)
+        line = one_line(err)
+        assert rc == 2 and "same Psi" in line and "same.csv" in line, line
+
+
+# ---------------------------------------------------------------------------- options
+
+
+@pytest.mark.parametrize(("argv", "needle"), [
+    (["fit", "{csv}", "-o", "{out}", "--g", "nan"], "argument --g: nan is outside"),
+    (["fit", "{csv}", "-o", "{out}", "--g", "-9.81"], "argument --g: -9.81 is outside"),
+    (["fit", "{csv}", "-o", "{out}", "--level-gap", "-1"], "argument --level-gap: -1 is outside"),
+    (["fit", "{csv}", "-o", "{out}", "--level-gap", "inf"], "argument --level-gap"),
+    (["fit", "{csv}", "-o", "{out}", "--window", "1"], "argument --window"),
+    (["fit", "{csv}", "-o", "{out}", "--min-interval", "0"], "argument --min-interval"),
+    (["fit", "{csv}", "-o", "{out}", "--degree", "-1"], "argument --degree"),
+    (["fit", "{csv}", "-o", "{out}", "--max-degree", "1000"], "argument --max-degree"),
+    (["fit", "{csv}", "-o", "{out}", "--temperature", "1e300"], "argument --temperature"),
+    (["import", "{csv}", "-o", "{out}", "--rate", "0"], "argument --rate: 0 is outside"),
+    (["import", "{csv}", "-o", "{out}", "--rate", "nan"], "argument --rate: nan is outside"),
+    (["import", "{csv}", "-o", "{out}", "--rate", "abc"], "argument --rate: 'abc' is not a number"),
+    (["allan", "{csv}", "--calibration", "{csv}", "--skip", "-5"], "argument --skip"),
+    (["diagnose", "{csv}", "--alpha", "nan"], "argument --alpha: nan is outside (0, 1)"),
+    (["diagnose", "{csv}", "--alpha", "1"], "argument --alpha"),
+    (["diagnose", "{csv}", "--min-gain", "-0.1"], "argument --min-gain"),
+    (["diagnose", "{csv}", "--folds", "1"], "argument --folds"),
+    (["diagnose", "{csv}", "--seed", "-1"], "argument --seed"),
+    (["diagnose", "{csv}", "--max-effects", "-2"], "argument --max-effects"),
+    (["diagnose", "{csv}", "--g", "0"], "argument --g"),
+])
+def test_implausible_options_give_one_line_and_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                      argv: list[str], needle: str) -> None:
+    csv = six_pose_csv(tmp_path / "in.csv")
+    out = tmp_path / "out.yaml"
+    rc, err = run([a.format(csv=csv, out=out) for a in argv], capsys)
+    assert rc == 2 and needle in one_line(err), err
+    assert not out.exists()
+
+
+# ---------------------------------------------------------------------------- CSV cells
+
+
+@pytest.mark.parametrize(("row", "needle"), [
+    ("0.07,60880,1000,1500,1200,0,0,9.8,23.4,0", "ref_counts = 60880 is beyond the 12-bit ADC range"),
+    ("0.07,880,1e300,1500,1200,0,0,9.8,23.4,0", "x_counts = 1e+300 is beyond the 12-bit ADC range"),
+    ("0.07,880,1000,1500,1200,0,0,9.8,23.4,1e300", "pose = '1e300' must be an integer in -1 .."),
+    ("0.07,880,1000,1500,1200,0,0,1e300,23.4,0", "gref_z_mps2 = 1e+300 is outside"),
+    ("0.07,880,1000,1500,1200,0,0,9.8,1e300,0", "temperature_c = 1e+300 is outside -40 .. 85"),
+    ("-0.07,880,1000,1500,1200,0,0,9.8,23.4,0", "time -0.07 s is outside 0 .."),
+    ("1e10,880,1000,1500,1200,0,0,9.8,23.4,0", "time 1e+10 s is outside 0 .."),
+    ("0.07,880,1000,1500,1200,0,0,9.8,23.4,0," + "x" * 200_000, "line longer than 65536 bytes"),
+])
+def test_implausible_csv_cells_are_named_with_their_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                         row: str, needle: str) -> None:
+    csv = six_pose_csv(tmp_path / "in.csv", row, at=7)
+    out = tmp_path / "out.mcap"
+    rc, err = run(["import", csv, "-o", out], capsys)
+    assert rc == 2 and "line 9: " + needle in err and "Traceback" not in err, err
+    assert not out.exists() and not list(tmp_path.glob(".*part*"))
+    rc, _ = run(["import", csv, "-o", out, "--drop-bad-rows"], capsys)  # the other rows import
+    assert rc == 0 and out.is_file()
+
+
+def test_negative_and_huge_times_were_accepted_before(tmp_path: Path) -> None:
+    """t_s = 1e10 gave a wrong 'not increasing' (ns overflow), a negative t_s a struct.error at write time."""
+    for t in ("-1", "1e10"):
+        with pytest.raises(CsvImportError, match=re.escape(f"line 9: time {float(t):g} s is outside")):
+            import_csv(six_pose_csv(tmp_path / "t.csv", f"{t},880,1000,1500,1200,0,0,9.8,23.4,0"))
+
+
+def test_utf8_bom_keeps_the_first_column(tmp_path: Path) -> None:
+    """A BOM hid 't_s' (the time became the sample index / --rate)."""
+    plain = six_pose_csv(tmp_path / "plain.csv")
+    bom = tmp_path / "bom.csv"
+    bom.write_bytes(b"\xef\xbb\xbf" + plain.read_bytes())
+    rec, report = import_csv(bom, rate_hz=1000.0)
+    assert report.time_base == "t_s column"
+    np.testing.assert_array_equal(rec.t_s, import_csv(plain)[0].t_s)
+
+
+def test_bad_utf8_names_file_and_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    csv = six_pose_csv(tmp_path / "in.csv")
+    data = csv.read_bytes().split(b"\n")
+    data[4] = data[4].replace(b"880", b"8\xff0", 1)
+    csv.write_bytes(b"\n".join(data))
+    rc, err = run(["import", csv, "-o", tmp_path / "o.mcap"], capsys)
+    assert rc == 2 and f"{csv}: 1 malformed row(s)" in err and "line 5: not UTF-8 text (byte 0xff at column" in err
+    bad_header = tmp_path / "h.csv"
+    bad_header.write_bytes(b"t_s,r\xe9f_counts\n")
+    rc, err = run(["import", bad_header, "-o", tmp_path / "o.mcap"], capsys)
+    assert rc == 2 and "h.csv: line 1: header line is not UTF-8" in one_line(err)
+
+
+def test_all_temperatures_missing_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """It said 'no usable static samples'."""
+    csv = six_pose_csv(tmp_path / "in.csv")
+    lines = csv.read_text().splitlines()
+    lines = [lines[0]] + [",".join([*ln.split(",")[:8], "", ln.split(",")[9]]) for ln in lines[1:]]
+    csv.write_text("\n".join(lines) + "\n")
+    rc, err = run(["fit", csv, "-o", tmp_path / "c.yaml"], capsys)
+    line = one_line(err)
+    assert rc == 2 and "temperature_c is empty on every row" in line and "--temperature" in line
+
+
+def test_non_mcap_file_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """It said 'TRUNCATED ... bad magic'."""
+    fake = tmp_path / "notes.mcap"
+    fake.write_text("hello\n")
+    for argv in (["fit", fake, "-o", tmp_path / "c.yaml"], ["diagnose", fake]):
+        rc, err = run(argv, capsys)
+        assert rc == 2 and "notes.mcap: not an MCAP recording" in one_line(err)
+
+
+def test_streamed_import_equals_the_in_memory_import(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`import` now streams the CSV into the MCAP; the file reads back as the whole-file import wrote it."""
+    from fbg_accel_calibration.csv_import import CsvBlocks
+    from fbg_accel_calibration.mcap_io import read_recording
+
+    csv = six_pose_csv(tmp_path / "in.csv")
+    rec, _ = import_csv(csv)
+    write_recording(tmp_path / "ref.mcap", rec)
+    rc, _ = run(["import", csv, "-o", tmp_path / "new.mcap"], capsys)
+    assert rc == 0
+    a, b = read_recording(tmp_path / "ref.mcap"), read_recording(tmp_path / "new.mcap")
+    for k in ("t_s", "ref", "xyz", "temp_c", "pose_id"):
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
+    np.testing.assert_array_equal(a.gref_mps2, b.gref_mps2)
+    assert b.metadata["run"]["import"]
+    # small blocks: the block boundaries change nothing
+    src = CsvBlocks(csv, block_rows=7)
+    blocks = list(src.blocks())
+    assert len(blocks) == 43
+    np.testing.assert_array_equal(np.concatenate([x.pose_id for x in blocks]), rec.pose_id)
+    np.testing.assert_array_equal(np.concatenate([x.t_s for x in blocks]), rec.t_s)
+
+
+def test_streamed_fit_of_a_csv_equals_the_in_memory_fit(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`fit CSV` re-reads the CSV block by block on every pass instead of importing it whole."""
+    from fbg_accel_driver.thermal_model import ThermalCalibration
+
+    csv = six_pose_csv(tmp_path / "in.csv")
+    assert run(["fit", csv, "-o", tmp_path / "s.yaml"], capsys)[0] == 0
+    assert run(["fit", csv, "-o", tmp_path / "m.yaml", "--in-memory"], capsys)[0] == 0
+    a, b = ThermalCalibration.load(tmp_path / "s.yaml"), ThermalCalibration.load(tmp_path / "m.yaml")
+    np.testing.assert_allclose(a.M, b.M, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(a.b, b.b, rtol=1e-9, atol=1e-12)
+    bad = six_pose_csv(tmp_path / "bad.csv", "0.07,880,abc,1500,1200,0,0,9.8,23.4,0")
+    rc, err = run(["fit", bad, "-o", tmp_path / "b.yaml"], capsys)
+    assert rc == 2 and "line 9: x_counts = 'abc' is not a number" in err and not (tmp_path / "b.yaml").exists()

@@ -1,0 +1,186 @@
+"""Issue 11, "data destroyed": outputs never overwrite an input, replace a file only with --force, are
+written to a temporary file and renamed on success, and leave nothing behind on failure or Ctrl-C."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fbg_accel_calibration import atomic_output
+from fbg_accel_calibration.cli import main
+from fbg_accel_calibration.mcap_io import RecordingWriter, read_recording
+
+HEADER = "t_s,ref_counts,x_counts,y_counts,z_counts,gref_x_mps2,gref_y_mps2,gref_z_mps2,temperature_c,pose\n"
+SIX = ["0,0,9.8", "0,0,-9.8", "9.8,0,0", "-9.8,0,0", "0,9.8,0", "0,-9.8,0"]
+
+
+def good_csv(path: Path, bad_last_row: bool = False) -> Path:
+    rng = np.random.default_rng(1)
+    rows, i = [], 0
+    for p, g in enumerate(SIX):
+        gx, gy, gz = (float(v) for v in g.split(","))
+        for _ in range(40):
+            c = np.array([1000 + 80 * gx, 1500 + 80 * gy, 1200 + 80 * gz]) + rng.normal(0, 0.5, 3)
+            rows.append(f"{i * 0.01:.2f},880,{c[0]:.2f},{c[1]:.2f},{c[2]:.2f},{g},23.4,{p}\n")
+            i += 1
+    if bad_last_row:
+        rows.append("9.99,880,abc,1,1,0,0,9.8,23.4,5\n")
+    path.write_text(HEADER + "".join(rows))
+    return path
+
+
+def run(argv: list, capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    try:
+        rc = main([str(a) for a in argv])
+    except SystemExit as exc:
+        rc = exc.code
+    return rc, capsys.readouterr().err
+
+
+def leftovers(d: Path) -> list[str]:
+    return sorted(p.name for p in d.iterdir() if ".part" in p.name)
+
+
+def test_output_that_is_an_input_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`import s.csv -o s.csv` replaced the CSV with MCAP; `fit good.mcap -o good.mcap` the recording with YAML."""
+    csv = good_csv(tmp_path / "s.csv")
+    before = csv.read_bytes()
+    for out in (csv, tmp_path / "." / "s.csv"):
+        rc, err = run(["import", csv, "-o", out, "--force"], capsys)
+        assert rc == 2 and "output is the input file" in err
+    link = tmp_path / "alias.csv"
+    link.symlink_to(csv)
+    rc, err = run(["import", csv, "-o", link, "--force"], capsys)
+    assert rc == 2 and "output is the input file" in err
+    assert csv.read_bytes() == before
+    mcap = tmp_path / "good.mcap"
+    assert run(["import", csv, "-o", mcap], capsys)[0] == 0
+    rec_bytes = mcap.read_bytes()
+    rc, err = run(["fit", mcap, "-o", mcap, "--force"], capsys)
+    assert rc == 2 and "output is the input file" in err and mcap.read_bytes() == rec_bytes
+    rc, err = run(["diagnose", mcap, "--yaml", mcap, "--force"], capsys)
+    assert rc == 2 and "output is the input file" in err and mcap.read_bytes() == rec_bytes
+    assert not leftovers(tmp_path)
+
+
+def test_existing_output_needs_force(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    csv = good_csv(tmp_path / "s.csv")
+    out = tmp_path / "out.mcap"
+    out.write_bytes(b"precious")
+    rc, err = run(["import", csv, "-o", out], capsys)
+    assert rc == 2 and "exists; give --force" in err and out.read_bytes() == b"precious"
+    assert run(["import", csv, "-o", out, "--force"], capsys)[0] == 0
+    assert len(read_recording(out)) == 240
+    assert (out.stat().st_mode & 0o777) == 0o644
+
+
+def test_failed_import_over_an_existing_file_leaves_it_untouched(tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """A failed import over an existing file left a 486-byte stub."""
+    csv = good_csv(tmp_path / "s.csv", bad_last_row=True)
+    out = tmp_path / "out.mcap"
+    out.write_bytes(b"precious")
+    rc, err = run(["import", csv, "-o", out, "--force"], capsys)
+    assert rc == 2 and "malformed" in err
+    assert out.read_bytes() == b"precious" and not leftovers(tmp_path)
+    rc, _ = run(["import", csv, "-o", tmp_path / "new.mcap"], capsys)
+    assert rc == 2 and not (tmp_path / "new.mcap").exists() and not leftovers(tmp_path)
+
+
+def test_ctrl_c_during_import_leaves_no_stub(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """KeyboardInterrupt after 100 samples were written (as Ctrl-C during a long import)."""
+    csv = good_csv(tmp_path / "s.csv")
+    out = tmp_path / "out.mcap"
+    out.write_bytes(b"precious")
+    real = RecordingWriter.write_raw
+    calls = {"n": 0}
+
+    def interrupted(self, *a, **k):
+        calls["n"] += 1
+        if calls["n"] == 100:
+            raise KeyboardInterrupt
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(RecordingWriter, "write_raw", interrupted)
+    rc, err = run(["import", csv, "-o", out, "--force"], capsys)
+    assert rc == 130 and "interrupted; no output written" in err and calls["n"] == 100
+    assert out.read_bytes() == b"precious" and not leftovers(tmp_path)
+
+
+def test_missing_output_directory_is_found_before_the_computation(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    csv = good_csv(tmp_path / "s.csv")
+    from fbg_accel_calibration import csv_import, diagnose
+
+    def never(*a, **k):
+        raise AssertionError("computation started before the output was checked")
+
+    monkeypatch.setattr(csv_import.CsvBlocks, "blocks", never)
+    monkeypatch.setattr(diagnose, "diagnose", never)
+    rc, err = run(["fit", csv, "-o", tmp_path / "nodir" / "c.yaml"], capsys)
+    assert rc == 2 and "output directory" in err and "does not exist" in err
+    rc, err = run(["diagnose", csv, "--yaml", tmp_path / "nodir" / "c.yaml"], capsys)
+    assert rc == 2 and "output directory" in err and "does not exist" in err
+    (tmp_path / "file").write_text("x")
+    rc, err = run(["diagnose", csv, "--out", tmp_path / "file" / "r" / "d.md"], capsys)
+    assert rc == 2 and "cannot be created" in err
+
+
+def test_fit_writes_through_a_temporary_file(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """The YAML appears only complete: a failure while saving leaves the old file and no temporary."""
+    from fbg_accel_driver.thermal_model import ThermalCalibration
+
+    csv = good_csv(tmp_path / "s.csv")
+    out = tmp_path / "c.yaml"
+    assert run(["fit", csv, "-o", out], capsys)[0] == 0
+    good = out.read_bytes()
+
+    def half_then_fail(self, path):
+        Path(path).write_text("format: fbg_accel")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(ThermalCalibration, "save", half_then_fail)
+    rc, err = run(["fit", csv, "-o", out, "--force"], capsys)
+    assert rc == 2 and "No space left" in err
+    assert out.read_bytes() == good and not leftovers(tmp_path)
+
+
+def test_atomic_path_keeps_the_suffix_and_cleans_up(tmp_path: Path) -> None:
+    target = tmp_path / "plot.png"
+    with atomic_output.atomic_path(target) as tmp:
+        assert tmp.parent == tmp_path and tmp.suffix == ".png" and tmp != target
+        tmp.write_bytes(b"png")
+    assert target.read_bytes() == b"png"
+    with pytest.raises(RuntimeError), atomic_output.atomic_path(target) as tmp:
+        tmp.write_bytes(b"half")
+        raise RuntimeError("boom")
+    assert target.read_bytes() == b"png" and not leftovers(tmp_path)
+
+
+def test_exclusive_create_refuses_a_dangling_symlink(tmp_path: Path) -> None:
+    """The calibration node's recording: a dangling link in output_dir was followed and written outside it."""
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    out_dir = tmp_path / "runs"
+    out_dir.mkdir()
+    link = out_dir / "run.mcap"
+    link.symlink_to(outside / "victim.mcap")  # dangling
+    with pytest.raises(FileExistsError):
+        atomic_output.create_exclusive(link)
+    with pytest.raises(FileExistsError):
+        RecordingWriter(link, {"sensor_id": "x"}, exclusive=True)
+    assert not (outside / "victim.mcap").exists() and link.is_symlink()
+    existing = out_dir / "old.mcap"
+    existing.write_bytes(b"precious")
+    with pytest.raises(FileExistsError):
+        RecordingWriter(existing, exclusive=True)
+    assert existing.read_bytes() == b"precious"
+    with RecordingWriter(out_dir / "new.mcap", {"sensor_id": "x"}, exclusive=True) as w:
+        w.write_raw(1_000_000, 880.0, [1.0, 2.0, 3.0], temperature_c=23.0, seq=0)
+    assert len(read_recording(out_dir / "new.mcap")) == 1
+    assert os.stat(out_dir / "new.mcap").st_size > 0
