@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic_output import OutputError, atomic_path, check_outputs
 from .csv_import import import_csv
 from .fit_report import AXES, PoseStats, plot_calibrated_vs_reference, pose_statistics
 from .model_selection import SelectionResult, held_out_predictions, select_degree
@@ -224,20 +225,29 @@ def run_report(csv_path: Path = DEFAULT_CSV, md_path: Path = DEFAULT_MD, png_pat
     from fbg_accel_driver.thermal_model import ThermalCalibration
 
     cal = ThermalCalibration(M=fit.M[None], b=fit.b[None], temperature_range_c=(TEMPERATURE_C, TEMPERATURE_C))
-    plot_calibrated_vs_reference(cal, fit.rec, fit.usable, png_path, title=cal_title, held_out_residual=fit.held_out_stats)
-    md_path = Path(md_path)
-    md_path.parent.mkdir(parents=True, exist_ok=True)
+    md_path, png_path = Path(md_path), Path(png_path)
+    for p in (md_path, png_path):
+        p.parent.mkdir(parents=True, exist_ok=True)
     try:
-        png_rel = str(Path(png_path).resolve().relative_to(md_path.parent.resolve()))
+        png_rel = str(png_path.resolve().relative_to(md_path.parent.resolve()))
     except ValueError:
         png_rel = str(png_path)
-    md_path.write_text(report_markdown(fit, png_rel, command or ".venv/bin/fbg-accel-calib report-measured"))
+    # each output is replaced whole or not at all (an interrupted run keeps the previous report)
+    with atomic_path(png_path) as tmp:
+        plot_calibrated_vs_reference(cal, fit.rec, fit.usable, tmp, title=cal_title, held_out_residual=fit.held_out_stats)
+    with atomic_path(md_path) as tmp:
+        tmp.write_text(report_markdown(fit, png_rel, command or ".venv/bin/fbg-accel-calib report-measured"))
     return fit
 
 
 def main_args(csv_path: Path, md_path: Path, png_path: Path) -> int:
     """CLI body of ``report-measured``; exit code 2 with a clear message when the data is absent."""
     command = "fbg-accel-calib report-measured" + ("".join(" " + shlex.quote(a) for a in sys.argv[2:]))
+    try:  # the report is regenerated in place (force), but never over its own input
+        check_outputs([md_path, png_path], [csv_path], force=True, create_dirs=True)
+    except OutputError as exc:
+        print(f"fbg-accel-calib report-measured: {exc}", file=sys.stderr)
+        return 2
     try:
         fit = run_report(csv_path, md_path, png_path, command=".venv/bin/" + command)
     except MeasuredDataMissingError as exc:

@@ -17,6 +17,7 @@ import numpy as np
 
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
+from .atomic_output import atomic_path
 from .mcap_io import read_recording
 from .model_selection import SelectionResult, select_degree
 from .thermal_fit import FULL_SCALE_MPS2, NotIdentifiedError, fit_thermal
@@ -91,5 +92,6 @@ def refit(sources: list[str], output: str | Path, degree: int | None = None, sen
     if selection is not None:
         cal.fit["degree_selection"] = selection.as_dict()
     out = Path(output)
-    cal.save(out)
+    with atomic_path(out) as tmp:  # never a half-written YAML next to the recording (SIGKILL, full disk)
+        cal.save(tmp)
     return RefitResult(cal, selection, list(sources), out)

@@ -13,6 +13,8 @@ name                       level
 =========================  =====================================================================
 serial link                OK connected and frames flowing; ERROR disconnected (message: reason,
                            back-off); ERROR connected but no frame for ``no_data_timeout_s``
+reader queue               OK; WARN if the reader dropped queued bytes since the previous report (the
+                           decoder fell ``queue_max_bytes`` behind; the oldest were dropped)
 frames                     OK; WARN if CRC errors, lost frames, invalid frames or unsupported
                            versions appeared since the previous report
 board resets               OK; WARN if the board rebooted since the previous report
@@ -21,6 +23,8 @@ reference power            OK; ERROR if reference-too-low samples appeared since
 temperature sensor         OK valid; WARN invalid but holding the last good value; ERROR when
                            the hold time ran out or no valid reading was ever received
 temperature range          OK inside the calibrated range; WARN outside (extrapolation)
+calibrated output          OK; ERROR if samples were dropped since the previous report because the
+                           calibration gave a non-finite acceleration (``non_finite_dropped``)
 =========================  =====================================================================
 """
 
@@ -98,6 +102,18 @@ class DriverDiagnostics:
         else:
             entries.append(self._entry(OK, "serial link", "connected, receiving frames", link_vals))
 
+        # reader queue (the serial reader thread -> decoder hand-off, bounded)
+        plink = prev.link_values if prev else {}
+        q_drop = int(snap.link_values.get("queue_dropped_bytes", 0)) - int(plink.get("queue_dropped_bytes", 0))
+        q_vals = {k: snap.link_values[k] for k in ("queued_bytes", "queue_max_bytes", "queue_dropped_chunks",
+                                                    "queue_dropped_bytes") if k in snap.link_values}
+        if q_drop > 0:
+            msg = (f"{q_drop} byte(s) dropped since last report: the decoder fell "
+                   f"{snap.link_values.get('queue_max_bytes', '?')} bytes behind the port (oldest dropped, newest kept)")
+            entries.append(self._entry(WARN, "reader queue", msg, q_vals))
+        else:
+            entries.append(self._entry(OK, "reader queue", "keeping up, nothing dropped since last report", q_vals))
+
         # frames
         frame_vals = {"frame_rate_hz": round(rate, 3), **dec, "samples": core.get("samples", 0),
                       "imu_published": core.get("imu_published", 0)}
@@ -173,6 +189,15 @@ class DriverDiagnostics:
             entries.append(self._entry(WARN, "temperature range", msg, r_vals))
         else:
             entries.append(self._entry(OK, "temperature range", "inside calibrated range", r_vals))
+
+        # calibrated output: the last guard of DriverCore (a validated calibration should never trip it)
+        nf = delta(core, pcore, "non_finite_dropped")
+        nf_vals = {"non_finite_dropped": core.get("non_finite_dropped", 0), "imu_published": core.get("imu_published", 0)}
+        if nf > 0:
+            msg = f"{nf} sample(s) dropped since last report: the calibration gave a non-finite acceleration"
+            entries.append(self._entry(ERROR, "calibrated output", msg, nf_vals))
+        else:
+            entries.append(self._entry(OK, "calibrated output", "no non-finite output since last report", nf_vals))
 
         self._prev = snap
         return entries

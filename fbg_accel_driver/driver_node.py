@@ -47,6 +47,11 @@ PARAMETERS: dict[str, tuple[str, Any, str]] = {
     "out_of_range_variance_factor": ("double", 10.0, "variance factor outside the calibrated temperature range (>= 1)"),
     "reconnect_backoff_max_s": ("double", 2.0, "longest wait between reconnection attempts (back-off doubles from 0.1 s)"),
     "silence_timeout_s": ("double", 2.0, "reopen the port after this many seconds without any byte (0 = never)"),
+    "reader_queue_max_bytes": (
+        "integer",
+        262144,
+        "bytes the serial reader may queue ahead of the decoder; beyond it the oldest are dropped and counted",
+    ),
 }
 
 USAGE = f"""usage: driver [-h] [--ros-args -p NAME:=VALUE ... | --params-file FILE]
@@ -65,9 +70,6 @@ example:
   ros2 run fbg_accel_driver driver --ros-args -p port:=/dev/ttyUSB0 -p decimation:=10
 exit status: 0 on clean shutdown, 2 on invalid parameters or calibration file.
 """
-
-
-_WAKE = object()  # queued by SerialLink's notify (state change) and by close(): wakes the publisher thread
 
 
 class StartupError(Exception):
@@ -160,7 +162,8 @@ def _make_node() -> Any:
 
     ptypes = {"string": ParameterType.PARAMETER_STRING, "integer": ParameterType.PARAMETER_INTEGER,
               "double": ParameterType.PARAMETER_DOUBLE}
-    int_ranges = {"baud": (1200, 4_000_000), "decimation": (1, 10000), "min_reference_counts": (0, 4095)}
+    int_ranges = {"baud": (1200, 4_000_000), "decimation": (1, 10000), "min_reference_counts": (0, 4095),
+                  "reader_queue_max_bytes": (4096, 1 << 30)}
     float_ranges = {"temperature_hold_s": (0.0, 3600.0), "out_of_range_variance_factor": (1.0, 1e6),
                     "reconnect_backoff_max_s": (0.1, 60.0), "accel_stddev_mps2": (0.0, 1000.0),
                     "silence_timeout_s": (0.0, 3600.0)}
@@ -200,6 +203,7 @@ def _make_node() -> Any:
                 p["port"], p["baud"], notify=self._wake_publisher,
                 clock_ns=lambda: clock.now().nanoseconds,
                 backoff_max_s=p["reconnect_backoff_max_s"], silence_timeout_s=p["silence_timeout_s"],
+                max_queued_bytes=p["reader_queue_max_bytes"],
             )
             self._link_state = LinkState.CONNECTING
             self._link_changes = 0
@@ -248,7 +252,7 @@ def _make_node() -> Any:
         def _wake_publisher(self) -> None:
             """SerialLink's notify: only a state change needs it (data chunks wake the queue's reader)."""
             if self.link.state_changes != self._link_changes:
-                self.link.queue.put(_WAKE)
+                self.link.queue.wake()
 
         def _publisher_loop(self) -> None:
             """Publisher thread: block on the link's queue, decode, calibrate, publish; until close()."""
@@ -258,7 +262,7 @@ def _make_node() -> Any:
                 item = q.get()
                 if self._stopping.is_set():
                     break
-                if item is not _WAKE:
+                if item is not None:  # None: a wake-up (link state change or close)
                     host_ns, chunk = item
                     try:
                         self._publish(self.core.feed(chunk, host_ns))
@@ -298,7 +302,9 @@ def _make_node() -> Any:
                 link_values={"port": st.port, "baud": st.baud, "connects": st.connects, "disconnects": st.disconnects,
                              "failed_attempts": st.failed_attempts, "next_retry_s": st.next_retry_s,
                              "bytes_read": st.bytes_read, "reader_thread_alive": st.thread_alive,
-                             "python_threads": threading.active_count()},
+                             "python_threads": threading.active_count(), "queued_bytes": st.queued_bytes,
+                             "queue_max_bytes": self.link.queue.max_bytes, "queue_dropped_chunks": st.queue_dropped_chunks,
+                             "queue_dropped_bytes": st.queue_dropped_bytes},
                 decoder=core.decoder.stats.as_dict(),
                 core=core.counters.as_dict(),
                 temperature_valid=core.last_temperature_valid,
@@ -320,7 +326,7 @@ def _make_node() -> Any:
         def close(self) -> None:
             self.link.stop()
             self._stopping.set()
-            self.link.queue.put(_WAKE)
+            self.link.queue.wake()
             self._publisher_thread.join(2.0)
 
     return DriverNode()

@@ -2,10 +2,11 @@
 
 The reader thread owns the port. It opens it, reads whatever bytes are available (a read that
 woke on one byte also takes what arrived with it, so a frame is one chunk, not 1 + 26 bytes) and
-puts ``(host_ns, bytes)`` chunks on a queue, stamped with the host time right after the read
-returned (the clock is injectable so the ROS node can pass its ROS clock). It never blocks its
-consumer: the consumer blocks on ``queue`` (the driver node's publisher thread), or drains it when
-``notify`` fires.
+puts ``(host_ns, bytes)`` chunks on a bounded queue (``chunk_queue.ChunkQueue``: the oldest chunks
+are dropped and counted when a consumer falls ``max_queued_bytes`` behind), stamped with the host
+time right after the read returned (the clock is injectable so the ROS node can pass its ROS clock).
+It never blocks on its consumer: the consumer blocks on ``queue`` (the driver node's publisher
+thread), or drains it when ``notify`` fires.
 
 When the port vanishes or fails (unplugged USB adapter, closed pty, I/O error, the path does not
 exist yet) the thread closes it, reports the link as DISCONNECTED with the reason, and tries
@@ -18,13 +19,14 @@ from __future__ import annotations
 
 import enum
 import os
-import queue
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import serial
+
+from .chunk_queue import ChunkQueue
 
 
 class LinkState(enum.Enum):
@@ -50,6 +52,9 @@ class LinkStatus:
     next_retry_s: float  # back-off currently applied (0 when connected)
     bytes_read: int
     thread_alive: bool
+    queued_bytes: int = 0  # waiting for the consumer now
+    queue_dropped_chunks: int = 0  # discarded (oldest first) because the consumer fell behind
+    queue_dropped_bytes: int = 0
 
 
 class SerialLink:
@@ -66,10 +71,11 @@ class SerialLink:
         read_timeout_s: float = 0.1,
         max_chunk: int = 65536,
         silence_timeout_s: float = 0.0,
+        max_queued_bytes: int = 262_144,
     ) -> None:
         self.port = port
         self.baud = baud
-        self.queue: queue.SimpleQueue[tuple[int, bytes]] = queue.SimpleQueue()
+        self.queue = ChunkQueue(max_queued_bytes)
         self._notify = notify or (lambda: None)
         self._clock_ns = clock_ns
         self._backoff_initial = backoff_initial_s
@@ -104,6 +110,7 @@ class SerialLink:
         self._set_state(LinkState.STOPPED, "stopped")
 
     def status(self) -> LinkStatus:
+        qs = self.queue.stats()
         with self._lock:
             return LinkStatus(
                 state=self._state,
@@ -116,6 +123,9 @@ class SerialLink:
                 next_retry_s=self._backoff if self._state is LinkState.DISCONNECTED else 0.0,
                 bytes_read=self._bytes,
                 thread_alive=self._thread is not None and self._thread.is_alive(),
+                queued_bytes=qs.queued_bytes,
+                queue_dropped_chunks=qs.dropped_chunks,
+                queue_dropped_bytes=qs.dropped_bytes,
             )
 
     @property
@@ -176,7 +186,7 @@ class SerialLink:
                     last_data = time.monotonic()
                     with self._lock:
                         self._bytes += len(data)
-                    self.queue.put((host_ns, data))
+                    self.queue.put(host_ns, data)
                     self._wake()
                     if not got_data:
                         got_data = True

@@ -329,3 +329,28 @@ def test_start_up_stall_does_not_break_stamp_spacing() -> None:
     spacing = np.diff(stamps) * 1e-9
     assert np.all(np.abs(spacing - 0.01) < 0.01 * 0.01), (spacing.min(), spacing.max())
     assert abs(stamps[-1] - (T0_NS + frames[-1].t_us * 1000)) < 3_000_000  # within the 2 ms floor (+ slew residue)
+
+
+def test_non_finite_drops_and_reader_queue_drops_are_reported() -> None:
+    """``non_finite_dropped`` (the core's last guard) is published and is an ERROR while it grows;
+    bytes dropped by the bounded reader queue are a WARN while they grow (issue 11)."""
+    d = DriverDiagnostics()
+    d.report(snapshot(0.0, frames=100))
+    e = d.report(snapshot(1.0, frames=200, core={"non_finite_dropped": 7}))
+    assert levels(e)["calibrated output"] == ERROR
+    assert values(e, "calibrated output")["non_finite_dropped"] == "7"
+    e = d.report(snapshot(2.0, frames=300, core={"non_finite_dropped": 7}))
+    assert levels(e)["calibrated output"] == OK and values(e, "calibrated output")["non_finite_dropped"] == "7"
+
+    def link(dropped: int) -> dict:
+        return {"port": "/dev/x", "queued_bytes": 10, "queue_max_bytes": 4096, "queue_dropped_chunks": dropped // 100,
+                "queue_dropped_bytes": dropped}
+
+    base = snapshot(3.0, frames=400)
+    e = d.report(DiagnosticsSnapshot(**{**base.__dict__, "link_values": link(0)}))
+    assert levels(e)["reader queue"] == OK
+    e = d.report(DiagnosticsSnapshot(**{**base.__dict__, "now_s": 4.0, "decoder": {**base.decoder, "frames": 500},
+                                        "link_values": link(5000)}))
+    assert levels(e)["reader queue"] == WARN and "5000 byte(s) dropped" in next(
+        x.message for x in e if x.name.endswith("reader queue"))
+    assert values(e, "reader queue")["queue_dropped_bytes"] == "5000"

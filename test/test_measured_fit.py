@@ -66,3 +66,34 @@ def test_report_measured_command(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert cli_main(["report-measured", "--csv", str(tmp_path / "nope.csv"), "--md", str(md), "--png", str(png)]) == 2
     err = capsys.readouterr().err
     assert "measured data not found" in err and "nope.csv" in err
+
+
+def test_report_measured_is_atomic_and_never_writes_over_its_input(tmp_path: Path, monkeypatch,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """An interrupted report keeps the previous one whole; an output naming the input CSV is refused
+    before any work (issue 11)."""
+    if not CSV.is_file():
+        pytest.fail(f"measured data missing: {CSV}")
+    import shutil
+
+    import fbg_accel_calibration.measured_report as mr
+
+    csv = tmp_path / "m.csv"
+    shutil.copy(CSV, csv)
+    before = csv.read_bytes()
+    assert cli_main(["report-measured", "--csv", str(csv), "--md", str(csv), "--png", str(tmp_path / "m.png")]) == 2
+    assert "is the input file" in capsys.readouterr().err and csv.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.csv"]
+
+    md, png = tmp_path / "r.md", tmp_path / "r.png"
+    md.write_text("previous report\n")
+    png.write_bytes(b"previous png")
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(mr, "report_markdown", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        mr.run_report(csv, md, png)
+    assert md.read_text() == "previous report\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.csv", "r.md", "r.png"]  # no temporary left behind

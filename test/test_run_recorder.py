@@ -200,3 +200,30 @@ def test_refit_refuses_missing_sources_and_too_few_poses(tmp_path):
     with pytest.raises(RefitError, match="at least 4"):
         refit([str(tmp_path / "three.mcap")], tmp_path / "cal.yaml", degree=0)
     assert not (tmp_path / "cal.yaml").exists()
+
+
+def test_refit_writes_the_calibration_atomically(tmp_path, monkeypatch):
+    """A refit cut off while writing (SIGINT, full disk) leaves the previous calibration file
+    untouched and no partial or temporary file beside it (issue 11)."""
+    from fbg_accel_calibration.run_refit import refit
+    from fbg_accel_driver.thermal_model import ThermalCalibration
+
+    a = _recorded_run(tmp_path, "L0", 20.0, 1)
+    out = tmp_path / "cal.yaml"
+    out.write_text("previous calibration\n")
+    real_save = ThermalCalibration.save
+
+    def cut_off(self, path):
+        real_save(self, path)
+        with open(path, "r+") as fh:  # half of the file written, then interrupted
+            fh.truncate(len(fh.read()) // 2)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ThermalCalibration, "save", cut_off)
+    with pytest.raises(KeyboardInterrupt):
+        refit([str(a)], out, degree=0, sensor_id="t")
+    assert out.read_text() == "previous calibration\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["L0.mcap", "cal.yaml"]
+    monkeypatch.setattr(ThermalCalibration, "save", real_save)
+    refit([str(a)], out, degree=0, sensor_id="t")
+    assert ThermalCalibration.load(out).degree == 0
