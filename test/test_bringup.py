@@ -4,7 +4,8 @@ launch_ros is not on PyPI, so a launch file is checked the way ``ros2 launch`` w
 compiles, its pure ``node_descriptions`` name executables that setup.py installs, parameter files
 that exist and hold only parameters the node declares (with their types), and the command line
 launch_ros builds from it (``<exe> --ros-args -r __node:=N -r __ns:=/NS --params-file F ...``, dict
-overrides as a ``/**`` params file, as launch_ros writes them) starts the node with those values.
+overrides as a params file keyed by the node's full name, as launch_ros writes them) starts the node
+with those values.
 One short process run per launch file; every wait is a condition with a deadline.
 """
 
@@ -108,15 +109,18 @@ def command_line(desc: dict[str, Any], tmp_path: Path) -> list[str]:
     if not desc.get("ros_node", True):
         return cmd
     ros: list[str] = []
+    ns = desc.get("namespace") or ""
+    ns = ns if not ns or ns.startswith("/") else "/" + ns
     if desc.get("name"):
         ros += ["-r", f"__node:={desc['name']}"]
-    if desc.get("namespace"):
-        ns = desc["namespace"]
-        ros += ["-r", f"__ns:={ns if ns.startswith('/') else '/' + ns}"]
+    if ns:
+        ros += ["-r", f"__ns:={ns}"]
+    # launch_ros (jazzy) writes a dict as a params file keyed by the node's full name, else by /**
+    key = f"{ns}/{desc['name']}" if desc.get("name") else "/**"
     for i, p in enumerate(desc.get("parameters", [])):
-        if isinstance(p, dict):  # launch_ros writes a dict as a /** params file
+        if isinstance(p, dict):
             f = tmp_path / f"launch_params_{desc['executable']}_{i}.yaml"
-            f.write_text(yaml.safe_dump({"/**": {"ros__parameters": p}}))
+            f.write_text(yaml.safe_dump({key: {"ros__parameters": p}}))
             p = str(f)
         ros += ["--params-file", p]
     return [*cmd, "--ros-args", *ros]
