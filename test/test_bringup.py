@@ -192,6 +192,73 @@ def test_launch_arguments_refuse_bad_values_with_their_name() -> None:
     assert [d["executable"] for d in descriptions("calibration.launch.py", start_driver="false")] == ["calibration"]
 
 
+def _fake_launch(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Stand-ins for launch, launch_ros and ament_index_python with the jazzy signatures (keyword-only
+    where the real ones are): a wrong keyword in launch_support.generate raises TypeError here."""
+    def module(name: str, **attrs: Any) -> None:
+        m = ModuleType(name)
+        m.__dict__.update(attrs)
+        monkeypatch.setitem(sys.modules, name, m)
+
+    class LaunchConfiguration:
+        def __init__(self, variable_name: str, *, default: Any = None) -> None:
+            self.variable_name = variable_name
+
+        def perform(self, context: dict[str, str]) -> str:
+            return context[self.variable_name]
+
+    def declare(name: str, *, default_value: Any = None, description: Any = None, choices: Any = None) -> tuple:
+        return ("argument", name, default_value)
+
+    def execute_process(*, cmd: list, prefix: Any = None, name: Any = None, cwd: Any = None, env: Any = None,
+                        additional_env: Any = None, output: str = "log") -> tuple:
+        return ("process", cmd, name, output)
+
+    def node(*, executable: str, package: Any = None, name: Any = None, namespace: Any = None, exec_name: Any = None,
+             parameters: Any = None, remappings: Any = None, ros_arguments: Any = None, arguments: Any = None,
+             output: str = "log") -> tuple:
+        return ("node", {"package": package, "executable": executable, "name": name, "namespace": namespace,
+                         "parameters": parameters, "arguments": arguments, "output": output})
+
+    def share(package_name: str) -> str:
+        assert package_name == "fbg_accel_driver", package_name
+        return str(REPO)
+
+    module("launch", LaunchDescription=lambda initial_entities=None: ("description", list(initial_entities or [])))
+    module("launch.actions", DeclareLaunchArgument=declare, ExecuteProcess=execute_process,
+           OpaqueFunction=lambda *, function, args=None, kwargs=None: ("opaque", function))
+    module("launch.substitutions", LaunchConfiguration=LaunchConfiguration)
+    module("launch_ros.actions", Node=node)
+    module("launch_ros.parameter_descriptions", ParameterValue=lambda value, *, value_type=None: ("value", value, value_type))
+    module("launch_ros.substitutions", ExecutableInPackage=lambda executable, package: ("exe", executable, package))
+    module("ament_index_python.packages", get_package_share_directory=share)
+
+
+@pytest.mark.parametrize("launch_file", LAUNCH_FILES)
+def test_generate_launch_description_starts_the_described_nodes(launch_file: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    module = load_launch(launch_file)
+    _fake_launch(monkeypatch)
+    kind, entities = module.generate_launch_description()
+    assert kind == "description"
+    declared = {e[1]: e[2] for e in entities if e[0] == "argument"}
+    assert declared == {n: d for n, (d, _) in module.launch_arguments(str(REPO)).items()}
+    (opaque,) = [e[1] for e in entities if e[0] == "opaque"]
+    given = {"namespace": "veh1"} | ({"sensor_id": "007"} if "sensor_id" in declared else {})
+    started = opaque(declared | given)
+    descs = module.node_descriptions(str(REPO), declared | given)
+    assert len(started) == len(descs)
+    for action, d in zip(started, descs, strict=True):
+        if not d.get("ros_node", True):
+            assert action == ("process", [("exe", d["executable"], "fbg_accel_driver"), *d["arguments"]],
+                              d["executable"], "screen")
+            continue
+        kind, kw = action
+        params = [p if isinstance(p, str) else {k: ("value", v, str) if isinstance(v, str) else v for k, v in p.items()}
+                  for p in d["parameters"]]
+        assert (kind, kw) == ("node", {"package": "fbg_accel_driver", "executable": d["executable"], "name": d["name"],
+                                       "namespace": "veh1", "parameters": params, "arguments": [], "output": "screen"})
+
+
 def _third_party_imports(paths: list[Path]) -> dict[str, set[str]]:
     """Top-level module -> files, for absolute imports that are neither stdlib nor the project's own."""
     found: dict[str, set[str]] = {}
