@@ -355,11 +355,15 @@ def driver_launch_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tupl
     tmp = tmp_path_factory.mktemp("driver_launch")
     port = str(tmp / "no_board_here")
     (desc,) = descriptions("driver.launch.py", port=port)
-    os.environ["PYTHONPROFILEIMPORTTIME"] = "1"
+    before = os.environ.get("PYTHONPROFILEIMPORTTIME")
+    os.environ["PYTHONPROFILEIMPORTTIME"] = "1"  # the child logs every import to stderr
     try:
         proc = ChildProcess("driver", command_line(desc, tmp))
     finally:
-        del os.environ["PYTHONPROFILEIMPORTTIME"]
+        if before is None:
+            del os.environ["PYTHONPROFILEIMPORTTIME"]
+        else:
+            os.environ["PYTHONPROFILEIMPORTTIME"] = before
     try:
         proc.wait_line(r"reading \S*no_board_here at", timeout=60)
     finally:
