@@ -15,8 +15,23 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
     ],
-    install_requires=["setuptools", "numpy", "pyserial", "PyYAML"],
+    # Every third-party module the code imports (test/test_bringup.py checks this against an import scan;
+    # exact pins for the venv are in requirements.txt). ROS packages (rclpy, message packages, launch)
+    # come from the ROS install or the ros-jazzy-* wheels and are declared in package.xml only.
+    install_requires=[
+        "setuptools",
+        "numpy",
+        "pyserial",
+        "PyYAML",
+        "mcap",
+        "mcap-ros2-support",
+        "zstandard",
+        "scipy",  # calibration fit, detector, diagnosis; the driver only for a declared correction term
+        "matplotlib",  # reports and plots (fbg-accel-calib); never imported by the driver
+        "AllanTools",
+    ],
     zip_safe=True,
     maintainer="fbg_accel_driver team",
     maintainer_email="fbg-accel@example.org",

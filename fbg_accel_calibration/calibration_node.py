@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from fbg_accel_driver.command_line import wants_help
+from fbg_accel_driver.command_line import version_line, wants_help, wants_version
 
 from .stillness_monitor import DEFAULT_FALSE_ALARM_PER_RUN, DEFAULT_NOISE_CORR_S
 
@@ -55,7 +55,7 @@ PARAMETERS: dict[str, tuple[str, Any, str]] = {
     "progress": ("bool", True, "print the progress line (pose k of N, stillness, samples, temperature) on stdout"),
 }
 
-USAGE = f"""usage: calibration [-h] --ros-args -p plan_file:=PLAN.yaml [-p NAME:=VALUE ...]
+USAGE = f"""usage: calibration [-h] [--version] --ros-args -p plan_file:=PLAN.yaml [-p NAME:=VALUE ...]
 
 Calibration recorder of the FBG triaxial accelerometer (package {PACKAGE}). Follows a pose plan,
 waits per pose until the sensor is still (static-interval detector on Psi = counts/ref), records
@@ -80,6 +80,9 @@ class StartupError(Exception):
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if wants_version(argv):
+        print(version_line("calibration"))
+        return EXIT_OK
     if wants_help(argv):
         print(USAGE, end="")
         return EXIT_OK

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fbg_accel_driver.command_line import version_line
+
 from . import diagnose_cli
 from . import input_validation as iv
 from .atomic_output import atomic_path, check_output_dir, check_outputs
@@ -62,6 +64,7 @@ def _add_detector_options(p: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineErrorParser(prog="fbg-accel-calib", description="Offline calibration of the FBG triaxial accelerometer.")
+    parser.add_argument("--version", action="version", version=version_line("fbg-accel-calib"))
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("import", help="CSV (interchange format) to a calibration MCAP")

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .command_line import wants_help
+from .command_line import version_line, wants_help, wants_version
 
 PACKAGE = "fbg_accel_driver"
 DEFAULT_CALIBRATION = "calibration_sim.yaml"
@@ -54,7 +54,7 @@ PARAMETERS: dict[str, tuple[str, Any, str]] = {
     ),
 }
 
-USAGE = f"""usage: driver [-h] [--ros-args -p NAME:=VALUE ... | --params-file FILE]
+USAGE = f"""usage: driver [-h] [--version] [--ros-args -p NAME:=VALUE ... | --params-file FILE]
 
 ROS 2 driver for the FBG triaxial accelerometer acquisition board (package {PACKAGE}).
 Reads binary frames from a serial port (pyserial), stamps them with the board clock mapped to ROS
@@ -103,6 +103,9 @@ def default_calibration_path() -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if wants_version(argv):
+        print(version_line("driver"))
+        return 0
     if wants_help(argv):
         print(USAGE, end="")
         print(f"default calibration file: {default_calibration_path()}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -40,6 +41,22 @@ def test_colcon_build_and_installed_driver_help(tmp_path: Path) -> None:
     default_cal = res.stdout.strip().splitlines()[-1].split(": ", 1)[1]
     assert Path(default_cal) == share / "config" / "calibration_sim.yaml", default_cal
     assert Path(default_cal).is_file()
+    # Bring-up files (issue 10): params and launch files in share/, version from the installed metadata.
+    for f in ("driver.yaml", "calibration.yaml"):
+        assert (share / "config" / f).is_file(), f"config/{f} not installed"
+    launch_files = sorted(p.name for p in (share / "launch").glob("*.launch.py"))
+    assert launch_files == ["calibration.launch.py", "driver.launch.py", "sim.launch.py"], launch_files
+    # what `ros2 launch fbg_accel_driver driver.launch.py` resolves: the params file in the share directory
+    probe = ("import importlib.util, sys; s = importlib.util.spec_from_file_location('l', sys.argv[1]); "
+             "m = importlib.util.module_from_spec(s); s.loader.exec_module(m); "
+             "a = {n: d for n, (d, _) in m.launch_arguments(sys.argv[2]).items()}; "
+             "print(m.node_descriptions(sys.argv[2], a)[0]['parameters'][0])")
+    res = subprocess.run([sys.executable, "-c", probe, str(share / "launch" / "driver.launch.py"), str(share)],
+                         env=run_env, capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert res.returncode == 0 and Path(res.stdout.strip()) == share / "config" / "driver.yaml", res.stdout + res.stderr
+    version = subprocess.run([str(exe), "--version"], env=run_env, capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    expected = ET.parse(REPO / "package.xml").getroot().findtext("version")
+    assert (version.returncode, version.stdout) == (0, f"driver {expected}\n"), version.stdout + version.stderr
     where = subprocess.run([sys.executable, "-c", "import fbg_accel_driver; print(fbg_accel_driver.__file__)"],
                            env=run_env, capture_output=True, text=True, timeout=60, cwd=tmp_path)
     assert where.stdout.strip().startswith(str(site)), where.stdout + where.stderr

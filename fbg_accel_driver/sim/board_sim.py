@@ -20,6 +20,7 @@ import signal
 import sys
 from pathlib import Path
 
+from ..command_line import version_line
 from .board_physics import BoardSimulator
 from .pty_server import TruthRecorder, serve_pty
 from .sim_config import SimConfig, SimConfigError, parse_set_argument
@@ -39,6 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-wait-client", action="store_true",
                    help="start streaming at once instead of when a client first opens the pty (board reset on open)")
     p.add_argument("--print-config", action="store_true", help="print the merged config as YAML and exit")
+    p.add_argument("--version", action="version", version=version_line("board_sim"))
     return p
 
 

@@ -1,0 +1,102 @@
+"""Shared glue of the package's launch files (``launch/*.launch.py``); no ROS import until :func:`generate`.
+
+Each launch file states what it starts as two pure functions, so that it can be checked (and its
+command lines run) without ``launch``/``launch_ros``, which are not on PyPI:
+
+* ``launch_arguments(share_dir) -> {name: (default, description)}``: its launch arguments, defaults
+  resolved against the package's share directory (``share/fbg_accel_driver``, or the source tree);
+* ``node_descriptions(share_dir, args) -> [NodeDescription, ...]``: the processes for the argument
+  values ``args`` (plain strings, exactly as given on the ``ros2 launch`` command line).
+
+:func:`generate` turns the two into a ``LaunchDescription``: one ``DeclareLaunchArgument`` each, and
+an ``OpaqueFunction`` that calls ``node_descriptions`` with the resolved values at launch time and
+starts a ``launch_ros`` ``Node`` per ROS node and an ``ExecuteProcess`` per plain program.
+"""
+
+from __future__ import annotations
+
+from typing import Any, TypedDict
+
+PACKAGE = "fbg_accel_driver"
+
+
+class _Executable(TypedDict):
+    executable: str
+
+
+class NodeDescription(_Executable, total=False):
+    """One process of a launch file.
+
+    ``executable`` is a console script of this package (setup.py ``entry_points``). ``parameters``
+    are applied in order, later ones win (as ``--params-file`` does): a ``str`` is a params YAML
+    path, a ``dict`` holds overrides with their Python types (str, int, float, bool).
+    ``ros_node`` False: a plain program without ``--ros-args`` (``board_sim``); then only
+    ``executable`` and ``arguments`` apply.
+    """
+
+    arguments: list[str]
+    ros_node: bool
+    name: str
+    namespace: str  # "" or absent: none (a relative name is made absolute by launch_ros)
+    parameters: list[str | dict[str, Any]]
+
+
+def bool_argument(args: dict[str, str], name: str) -> bool:
+    """A boolean launch argument (true/false, 1/0, yes/no; any case); ValueError naming it otherwise."""
+    value = args[name].strip().lower()
+    if value in ("true", "1", "yes"):
+        return True
+    if value in ("false", "0", "no"):
+        return False
+    raise ValueError(f"launch argument {name}:={args[name]!r} is not a boolean (true or false)")
+
+
+def int_argument(args: dict[str, str], name: str) -> int:
+    """An integer launch argument; ValueError naming it otherwise."""
+    try:
+        return int(args[name])
+    except ValueError:
+        raise ValueError(f"launch argument {name}:={args[name]!r} is not an integer") from None
+
+
+def defaults(arguments: dict[str, tuple[str, str]]) -> dict[str, str]:
+    """The argument values of a ``ros2 launch`` without any ``name:=value``."""
+    return {name: default for name, (default, _) in arguments.items()}
+
+
+def generate(launch_arguments: Any, node_descriptions: Any) -> Any:
+    """The ``LaunchDescription`` of a launch file given its two pure functions (imports launch lazily)."""
+    from ament_index_python.packages import get_package_share_directory
+    from launch import LaunchDescription
+    from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction
+    from launch.substitutions import LaunchConfiguration
+    from launch_ros.actions import Node
+    from launch_ros.parameter_descriptions import ParameterValue
+    from launch_ros.substitutions import ExecutableInPackage
+
+    share = get_package_share_directory(PACKAGE)
+    arguments: dict[str, tuple[str, str]] = launch_arguments(share)
+
+    def typed(params: dict[str, Any]) -> dict[str, Any]:
+        # launch_ros parses a str value as YAML ("007" would become an int): keep strings strings
+        return {k: ParameterValue(v, value_type=str) if isinstance(v, str) else v for k, v in params.items()}
+
+    def actions(context: Any) -> list[Any]:
+        values = {name: LaunchConfiguration(name).perform(context) for name in arguments}
+        out: list[Any] = []
+        for d in node_descriptions(share, values):
+            if not d.get("ros_node", True):
+                out.append(ExecuteProcess(cmd=[ExecutableInPackage(d["executable"], PACKAGE), *d.get("arguments", [])],
+                                          name=d["executable"], output="screen"))
+                continue
+            params = [p if isinstance(p, str) else typed(p) for p in d.get("parameters", [])]
+            out.append(Node(package=PACKAGE, executable=d["executable"], name=d.get("name"),
+                            namespace=d.get("namespace") or None, parameters=params,
+                            arguments=d.get("arguments", []), output="screen"))
+        return out
+
+    return LaunchDescription([
+        *(DeclareLaunchArgument(name, default_value=default, description=text)
+          for name, (default, text) in arguments.items()),
+        OpaqueFunction(function=actions),
+    ])

@@ -1,0 +1,41 @@
+"""The FBG accelerometer driver with its params file.
+
+    ros2 launch fbg_accel_driver driver.launch.py port:=/dev/ttyUSB0
+    ros2 launch fbg_accel_driver driver.launch.py namespace:=veh1 params_file:=/path/my_driver.yaml
+
+Every parameter comes from ``params_file`` (default: the package's config/driver.yaml); a
+non-empty ``port`` overrides the file's port. ``ros2 launch ... --show-args`` lists the arguments.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+DRIVER_PARAMS = "driver.yaml"
+
+
+def launch_arguments(share_dir: str) -> dict[str, tuple[str, str]]:
+    """Launch arguments: name -> (default, description)."""
+    return {
+        "params_file": (os.path.join(share_dir, "config", DRIVER_PARAMS), "driver parameters (ROS 2 params file)"),
+        "port": ("", "serial device of the board; empty: the params file's port"),
+        "namespace": ("", "namespace of the driver and its topics; empty: none"),
+    }
+
+
+def node_descriptions(share_dir: str, args: dict[str, str]) -> list[dict[str, Any]]:
+    """The driver node for the launch argument values ``args`` (see fbg_accel_driver.launch_support)."""
+    overrides = {"port": args["port"]} if args["port"] else {}
+    return [{
+        "executable": "driver",
+        "name": "fbg_accel_driver",
+        "namespace": args["namespace"],
+        "parameters": [args["params_file"], *([overrides] if overrides else [])],
+    }]
+
+
+def generate_launch_description() -> Any:
+    from fbg_accel_driver.launch_support import generate
+
+    return generate(launch_arguments, node_descriptions)

@@ -1,0 +1,59 @@
+"""The simulated board (``board_sim`` on a pseudo-terminal) and the driver reading it: no hardware.
+
+    ros2 launch fbg_accel_driver sim.launch.py
+    ros2 launch fbg_accel_driver sim.launch.py namespace:=veh1 sim_config:=/path/my_sim.yaml
+
+``board_sim`` keeps the symbolic link ``link`` pointing at its current pty; the driver opens that
+link (its reconnection back-off covers the moment before the link exists) and uses the simulated
+sensor's calibration. Other driver parameters come from ``params_file`` (default config/driver.yaml).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from typing import Any
+
+DRIVER_PARAMS = "driver.yaml"
+SIM_CONFIG = "sim_default.yaml"
+SIM_CALIBRATION = "calibration_sim.yaml"
+
+
+def launch_arguments(share_dir: str) -> dict[str, tuple[str, str]]:
+    """Launch arguments: name -> (default, description)."""
+    config = os.path.join(share_dir, "config")
+    return {
+        "params_file": (os.path.join(config, DRIVER_PARAMS), "driver parameters (ROS 2 params file)"),
+        "sim_config": (os.path.join(config, SIM_CONFIG), "board_sim configuration YAML (merged on sim_default.yaml)"),
+        "calibration_file": (os.path.join(config, SIM_CALIBRATION), "calibration the driver applies (the simulated sensor's)"),
+        "link": (os.path.join(tempfile.gettempdir(), f"fbg_accel_sim_board_{os.getuid()}"),
+                 "symbolic link to the simulator's pty, the driver's port"),
+        "seed": ("0", "board_sim random seed"),
+        "namespace": ("", "namespace of the driver and its topics; empty: none"),
+    }
+
+
+def node_descriptions(share_dir: str, args: dict[str, str]) -> list[dict[str, Any]]:
+    """board_sim (a plain program) and the driver on its pty link (see fbg_accel_driver.launch_support)."""
+    from fbg_accel_driver.launch_support import int_argument
+
+    return [
+        {
+            "executable": "board_sim",
+            "ros_node": False,
+            "arguments": ["--config", args["sim_config"], "--link", args["link"],
+                          "--seed", str(int_argument(args, "seed"))],
+        },
+        {
+            "executable": "driver",
+            "name": "fbg_accel_driver",
+            "namespace": args["namespace"],
+            "parameters": [args["params_file"], {"port": args["link"], "calibration_file": args["calibration_file"]}],
+        },
+    ]
+
+
+def generate_launch_description() -> Any:
+    from fbg_accel_driver.launch_support import generate
+
+    return generate(launch_arguments, node_descriptions)
