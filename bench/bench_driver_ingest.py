@@ -301,7 +301,8 @@ def run_case(name: str, rate_hz: float, duration_s: float, with_imu: bool, args:
     path = ep.open(hold=False)
     sub = SubscriberProc(sub_out, with_imu, env)
     drv_log = open(workdir / f"driver_{name}.log", "w")
-    drv = subprocess.Popen([sys.executable, "-m", "fbg_accel_driver.driver_node", "--ros-args", "-p", f"port:={path}"],
+    drv = subprocess.Popen([sys.executable, "-m", "fbg_accel_driver.driver_node", "--ros-args", "-p", f"port:={path}",
+                            "-p", "calibration_file:=sim"],
                            stdout=drv_log, stderr=subprocess.STDOUT, env=env, cwd=str(args.driver_src or ROOT))
     spy = None
     write_ns = np.zeros(len(pieces), np.int64)

@@ -123,6 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     listener = threading.Thread(target=diagnostics_listener, args=(latest, diag_ready, stop), daemon=True)
     listener.start()
     drv = subprocess.Popen([sys.executable, "-m", "fbg_accel_driver.driver_node", "--ros-args", "-p", f"port:={path}",
+                            "-p", "calibration_file:=sim",
                             "-p", f"reader_queue_max_bytes:={args.queue_bytes}"],
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=str(args.driver_src))
     rss: list[tuple[float, int]] = []

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 DISTRIBUTION = "fbg_accel_driver"  # the setup.py ``name`` whose metadata carries the version
 
 
@@ -33,3 +35,25 @@ def package_version() -> str:
 def version_line(prog: str) -> str:
     """What ``PROG --version`` prints, e.g. ``fbg-accel-calib 0.1.0``."""
     return f"{prog} {package_version()}"
+
+
+# Parameters every rclpy node has, besides its own (rclpy declares them itself).
+ROS_BUILTIN_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
+
+
+def unknown_parameters(given: Iterable[str], declared: Iterable[str]) -> list[str]:
+    """One message per parameter name in ``given`` (``-p``/params-file overrides) that the node did not
+    declare, naming the nearest declared name: rclpy would silently ignore them (``-p calibraton_file:=...``)."""
+    import difflib
+
+    known = set(declared) | ROS_BUILTIN_PARAMETERS
+    out = []
+    for name in sorted(set(given) - known):
+        if name.startswith("qos_overrides."):  # only declared for the node's own topics; others are typos too
+            near = difflib.get_close_matches(name, sorted(k for k in known if k.startswith("qos_overrides.")), n=1)
+        else:
+            near = difflib.get_close_matches(name, sorted(k for k in known if not k.startswith("qos_overrides.")), n=1,
+                                             cutoff=0.5)
+        hint = f" (did you mean '{near[0]}'?)" if near else ""
+        out.append(f"unknown parameter '{name}'{hint}")
+    return out

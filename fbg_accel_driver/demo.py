@@ -41,7 +41,7 @@ def start_board_sim(extra: list[str], timeout_s: float = 20.0) -> tuple[subproce
 
 
 def start_driver(port: str, extra_params: dict[str, Any] | None = None) -> subprocess.Popen:
-    args = [sys.executable, "-c", DRIVER_CMD, "--ros-args", "-p", f"port:={port}"]
+    args = [sys.executable, "-c", DRIVER_CMD, "--ros-args", "-p", f"port:={port}", "-p", "calibration_file:=sim"]
     for k, v in (extra_params or {}).items():
         args += ["-p", f"{k}:={v}"]
     return subprocess.Popen(args)

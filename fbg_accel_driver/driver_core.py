@@ -32,6 +32,10 @@ Start-up: the frames of the first ``ClockSyncConfig.prime_s`` (0.2 s) after a st
 reset are held until the clock estimate has seen that much data, then released together (a
 one-off latency, so that no stamp has to be stepped back later).
 
+Raw only: with ``calibration=None`` (the node's ``calibration_file: none``) every board sample gives
+its raw and temperature records and no acceleration is computed (a sensor not calibrated yet, e.g.
+while recording its first calibration run).
+
 Decimation: ``decimation`` consecutive published samples are averaged (boxcar); the stamp is
 their mean stamp (the group-delay centre), the variance is ``sum(var_i) / N**2``. Raw records
 are always produced for every board sample.
@@ -40,7 +44,7 @@ are always produced for every board sample.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -151,7 +155,7 @@ class DriverCore:
 
     def __init__(
         self,
-        calibration: ThermalCalibration,
+        calibration: ThermalCalibration | None,
         config: CoreConfig | None = None,
         clock_config: ClockSyncConfig | None = None,
     ) -> None:
@@ -161,7 +165,7 @@ class DriverCore:
         self.decoder = StreamDecoder()
         self.clock = ClockSync(clock_config)
         self.counters = CoreCounters()
-        self._cal_state = calibration.new_state()
+        self._cal_state = calibration.new_state() if calibration is not None else []
         self._last_good_temp_c: float | None = None
         self._last_good_stamp_ns: int | None = None
         self._last_stamp_ns: int | None = None
@@ -174,11 +178,28 @@ class DriverCore:
 
     def _base_sigma(self) -> np.ndarray:
         src = self.config.covariance_source
+        if src == "calibration" and self.cal is None:
+            return np.zeros(3)
         if src == "calibration":
             return np.asarray(self.cal.noise_sigma_mps2, dtype=float)
         if src == "parameter":
             return np.full(3, self.config.accel_stddev_mps2)
         return np.zeros(3)
+
+    RUNTIME_SETTABLE = frozenset({"decimation", "min_reference_counts", "temperature_hold_s",
+                                  "out_of_range_variance_factor"})
+
+    def reconfigure(self, **changes: object) -> None:
+        """Change the :data:`RUNTIME_SETTABLE` fields of the configuration while streaming (``ros2 param
+        set``). Validated as a whole first (``ValueError``, nothing changed); the new configuration is
+        swapped in by one assignment, which the data path picks up at its next chunk. A decimation block
+        in progress is emitted once it holds the new number of samples (its variance uses its own size)."""
+        unknown = set(changes) - self.RUNTIME_SETTABLE
+        if unknown:
+            raise ValueError(f"not settable at run time: {', '.join(sorted(unknown))}")
+        new = replace(self.config, **changes)
+        new.validate()
+        self.config = new
 
     # ------------------------------------------------------------------ state for diagnostics
     @property
@@ -256,7 +277,8 @@ class DriverCore:
         # at 100 Hz, tens at the link limit) numpy's per-call overhead costs more than it saves.
         cfg = self.config
         counters = self.counters
-        lo, hi = self.cal.temperature_range_c
+        cal = self.cal
+        lo, hi = cal.temperature_range_c if cal is not None else (-math.inf, math.inf)
         base_var = self._base_var
         full_var = cfg.full_scale_mps2**2
         used: list[tuple[int, Frame, float, tuple[float, float, float], bool]] = []
@@ -274,6 +296,8 @@ class DriverCore:
             self._last_raw_temp_valid = valid
             temp = self._last_good_temp_c
             out.raw.append(RawRecord(stamp_ns, f, math.nan if temp is None else temp, valid))
+            if cal is None:  # raw only
+                continue
             ref = f.ref
             if ref < cfg.min_reference_counts or ref < MIN_REFERENCE_COUNTS:
                 counters.reference_low += 1
@@ -292,12 +316,12 @@ class DriverCore:
             used.append((stamp_ns, f, temp, accel, not valid))
         if not used:
             return
-        if self.cal.corrections:  # declared correction terms (diagnose): vectorised, with their stream state
+        if cal.corrections:  # declared correction terms (diagnose): vectorised, with their stream state
             ref_a = np.fromiter((u[1].ref for u in used), dtype=float, count=len(used))
             xyz_a = np.array([(u[1].x, u[1].y, u[1].z) for u in used], dtype=float)
             temp_a = np.fromiter((u[2] for u in used), dtype=float, count=len(used))
             t_a = np.fromiter((u[1].t_us * 1e-6 for u in used), dtype=float, count=len(used))
-            extra = self.cal.correction_sum(ref_a, xyz_a, xyz_a / ref_a[:, None], temp_a, t_a, self._cal_state)
+            extra = cal.correction_sum(ref_a, xyz_a, xyz_a / ref_a[:, None], temp_a, t_a, self._cal_state)
             used = [(st, f, temp, (a[0] + float(e[0]), a[1] + float(e[1]), a[2] + float(e[2])), h)
                     for (st, f, temp, a, h), e in zip(used, extra, strict=True)]
         for stamp_ns, f, temp, accel, held in used:

@@ -2,7 +2,13 @@
 
 Topics (see docs/topics.md): ``imu/data_raw`` (sensor_msgs/Imu), ``imu/temperature``
 (sensor_msgs/Temperature), ``imu/raw`` (sensor_msgs/JointState), ``/diagnostics``
-(diagnostic_msgs/DiagnosticArray, 1 Hz). Streams use the sensor-data QoS profile.
+(diagnostic_msgs/DiagnosticArray, 1 Hz). Data topics are published with the system-default
+(reliable, volatile) QoS of REP 2003, keep-last 100, overridable per topic by the ``qos_overrides``
+parameters (rclpy ``QoSOverridingOptions``); consumers subscribe with the sensor-data profile (or
+any reliable profile: ``ros2 topic echo`` without flags works).
+
+Shutdown: SIGINT/SIGTERM only set a flag; the main loop then stops the serial reader and the
+publisher thread *before* the ROS context is shut down, so no publish races a dead context.
 
 Threads: ``SerialLink``'s reader thread owns the port and queues byte chunks; a publisher thread
 blocks on that queue, runs ``DriverCore`` and publishes (rclpy publishers may be used from any
@@ -20,10 +26,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .command_line import version_line, wants_help, wants_version
+from .command_line import unknown_parameters, version_line, wants_help, wants_version
 
 PACKAGE = "fbg_accel_driver"
 DEFAULT_CALIBRATION = "calibration_sim.yaml"
+CALIBRATION_SIM = "sim"  # calibration_file value: the simulated sensor's calibration shipped in config/
+CALIBRATION_NONE = "none"  # calibration_file value: raw counts and temperature only
+# parameters ``ros2 param set`` may change while streaming (DriverCore.reconfigure); the rest are read-only
+RUNTIME_PARAMETERS = ("decimation", "min_reference_counts", "temperature_hold_s", "out_of_range_variance_factor")
 
 # name: (type, default, description); the ROS types are resolved lazily so --help needs no ROS.
 PARAMETERS: dict[str, tuple[str, Any, str]] = {
@@ -33,18 +43,22 @@ PARAMETERS: dict[str, tuple[str, Any, str]] = {
     "calibration_file": (
         "string",
         "",
-        f"calibration YAML (empty: the package's config/{DEFAULT_CALIBRATION}, the simulated sensor)",
+        f"REQUIRED: the sensor's calibration YAML; '{CALIBRATION_SIM}' = the package's config/{DEFAULT_CALIBRATION} "
+        f"(the simulated sensor); '{CALIBRATION_NONE}' = no imu/data_raw, imu/raw and imu/temperature only",
     ),
-    "decimation": ("integer", 1, "average this many board samples per imu/data_raw message, 1..10000"),
+    "decimation": ("integer", 1, "average this many board samples per imu/data_raw message, 1..10000 (settable)"),
     "covariance_source": (
         "string",
         "calibration",
         "linear_acceleration_covariance from: calibration (noise_sigma_mps2), parameter (accel_stddev_mps2), unknown (zeros)",
     ),
     "accel_stddev_mps2": ("double", 0.0, "per-axis sigma in m/s^2 when covariance_source is 'parameter'"),
-    "min_reference_counts": ("integer", 50, "reference counts below this: reference power too low, sample not published"),
-    "temperature_hold_s": ("double", 5.0, "seconds the last good temperature may be used while the sensor is invalid"),
-    "out_of_range_variance_factor": ("double", 10.0, "variance factor outside the calibrated temperature range (>= 1)"),
+    "min_reference_counts": ("integer", 50,
+                             "reference counts below this: reference power too low, sample not published (settable)"),
+    "temperature_hold_s": ("double", 5.0,
+                           "seconds the last good temperature may be used while the sensor is invalid (settable)"),
+    "out_of_range_variance_factor": ("double", 10.0,
+                                     "variance factor outside the calibrated temperature range (>= 1) (settable)"),
     "reconnect_backoff_max_s": ("double", 2.0, "longest wait between reconnection attempts (back-off doubles from 0.1 s)"),
     "silence_timeout_s": ("double", 2.0, "reopen the port after this many seconds without any byte (0 = never)"),
     "reader_queue_max_bytes": (
@@ -108,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if wants_help(argv):
         print(USAGE, end="")
-        print(f"default calibration file: {default_calibration_path()}")
+        print(f"calibration_file '{CALIBRATION_SIM}': {default_calibration_path()}")
         return 0
     try:
         user = argv[: argv.index("--ros-args")] if "--ros-args" in argv else argv
@@ -123,38 +137,47 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(argv: list[str]) -> int:
+    import signal
+
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
 
     try:
-        rclpy.init(args=["driver", *argv])
+        # rclpy's own handler would shut the context down at once, under the publisher thread's feet
+        rclpy.init(args=["driver", *argv], signal_handler_options=SignalHandlerOptions.NO)
     except Exception as exc:  # RCLError: unparsable --ros-args; its text is the only useful part
         raise StartupError(f"invalid ROS arguments {argv}: {_first_line(exc)}") from None
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     node = None
     try:
         node = _make_node()
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         try:
-            executor.spin()
-        except (KeyboardInterrupt, ExternalShutdownException):
+            while not stop.is_set() and rclpy.ok():
+                executor.spin_once(timeout_sec=0.1)  # a signal is seen within 0.1 s
+        except ExternalShutdownException:
             pass
         return 0
     finally:
         if node is not None:
-            node.close()
+            node.close()  # reader and publisher threads end here, while the context is still valid
             node.destroy_node()
-        if rclpy.ok():
-            rclpy.try_shutdown()
+        rclpy.try_shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def _make_node() -> Any:
     """Build the node class lazily (keeps rclpy out of --help and of the pure modules)."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType, SetParametersResult
     from rclpy.exceptions import ParameterException
     from rclpy.node import Node
-    from rclpy.qos import qos_profile_sensor_data
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from rclpy.qos_overriding_options import QoSOverridingOptions
     from sensor_msgs.msg import Imu, JointState, Temperature
 
     from .driver_core import COVARIANCE_SOURCES, CoreConfig, DriverCore
@@ -171,16 +194,30 @@ def _make_node() -> Any:
                     "reconnect_backoff_max_s": (0.1, 60.0), "accel_stddev_mps2": (0.0, 1000.0),
                     "silence_timeout_s": (0.0, 3600.0)}
 
+    # REP 2003: sensor drivers publish with the system-default QoS (reliable, volatile); keep-last 100
+    # holds 0.1 s at 1 kHz for a reliable subscriber that is briefly slow
+    data_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.VOLATILE)
+
     class DriverNode(Node):
         def __init__(self) -> None:
             super().__init__("fbg_accel_driver")
             p = self._declare_all()
             self.frame_id: str = p["frame_id"]
-            cal_path = Path(p["calibration_file"]) if p["calibration_file"] else default_calibration_path()
-            try:
-                self.calibration = ThermalCalibration.load(cal_path)
-            except CalibrationFileError as exc:
-                raise StartupError(f"calibration file rejected: {exc}") from None
+            choice = p["calibration_file"].strip()
+            if not choice:
+                raise StartupError(
+                    f"parameter 'calibration_file' is required: the sensor's calibration YAML, '{CALIBRATION_SIM}' "
+                    f"for the simulated sensor's (config/{DEFAULT_CALIBRATION}), or '{CALIBRATION_NONE}' to publish "
+                    "imu/raw and imu/temperature only")
+            self.calibration: ThermalCalibration | None = None
+            cal_path: Path | None = None
+            if choice != CALIBRATION_NONE:
+                cal_path = default_calibration_path() if choice == CALIBRATION_SIM else Path(choice)
+                try:
+                    self.calibration = ThermalCalibration.load(cal_path)
+                except CalibrationFileError as exc:
+                    raise StartupError(f"calibration file rejected: {exc}") from None
             core_cfg = CoreConfig(
                 decimation=p["decimation"],
                 min_reference_counts=p["min_reference_counts"],
@@ -193,13 +230,19 @@ def _make_node() -> Any:
                 self.core = DriverCore(self.calibration, core_cfg)
             except ValueError as exc:
                 raise StartupError(f"invalid parameter: {exc}") from None
-            self.cal_info = {"calibration_file": str(cal_path), "sensor_id": self.calibration.sensor_id,
-                             "degree": self.calibration.degree}
+            cal = self.calibration
+            self.cal_info = {"calibration_file": str(cal_path) if cal_path else "none (raw only)",
+                             "sensor_id": cal.sensor_id if cal else "uncalibrated",
+                             "degree": cal.degree if cal else "none"}
+            self.temperature_range_c = cal.temperature_range_c if cal else (-math.inf, math.inf)
             self.diag = DriverDiagnostics(prefix="fbg_accel_driver")
             self.msgs = DriverMessages(self.frame_id)  # used by the publisher thread only
-            self.pub_imu = self.create_publisher(Imu, "imu/data_raw", qos_profile_sensor_data)
-            self.pub_temp = self.create_publisher(Temperature, "imu/temperature", qos_profile_sensor_data)
-            self.pub_raw = self.create_publisher(JointState, "imu/raw", qos_profile_sensor_data)
+            overridable = QoSOverridingOptions.with_default_policies()
+            self.pub_imu = self.create_publisher(Imu, "imu/data_raw", data_qos, qos_overriding_options=overridable) \
+                if cal is not None else None
+            self.pub_temp = self.create_publisher(Temperature, "imu/temperature", data_qos,
+                                                  qos_overriding_options=overridable)
+            self.pub_raw = self.create_publisher(JointState, "imu/raw", data_qos, qos_overriding_options=overridable)
             self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
             clock = self.get_clock()
             self.link = SerialLink(
@@ -213,20 +256,24 @@ def _make_node() -> Any:
             self._stopping = threading.Event()
             self._publisher_thread = threading.Thread(target=self._publisher_loop, name="fbg-accel publisher",
                                                       daemon=True)
+            self._refuse_unknown_parameters()
+            self.add_on_set_parameters_callback(self._on_set_parameters)
             self.timer = self.create_timer(1.0, self._publish_diagnostics)
             self._publisher_thread.start()
             self.link.start()
-            self.get_logger().info(
-                f"reading {p['port']} at {p['baud']} baud, calibration {cal_path} (sensor {self.calibration.sensor_id}, "
-                f"degree {self.calibration.degree}, {self.calibration.temperature_range_c[0]:g}.."
-                f"{self.calibration.temperature_range_c[1]:g} degC), decimation {p['decimation']}"
-            )
+            if cal is None:
+                what = "no calibration: publishing imu/raw and imu/temperature only"
+            else:
+                what = (f"calibration {cal_path} (sensor {cal.sensor_id}, degree {cal.degree}, "
+                        f"{cal.temperature_range_c[0]:g}..{cal.temperature_range_c[1]:g} degC)")
+            self.get_logger().info(f"reading {p['port']} at {p['baud']} baud, {what}, decimation {p['decimation']}")
 
         # ------------------------------------------------------------ parameters
         def _declare_all(self) -> dict[str, Any]:
             values: dict[str, Any] = {}
             for name, (typ, default, desc) in PARAMETERS.items():
-                d = ParameterDescriptor(name=name, type=ptypes[typ], description=desc, read_only=True)
+                d = ParameterDescriptor(name=name, type=ptypes[typ], description=desc,
+                                        read_only=name not in RUNTIME_PARAMETERS)
                 if name in int_ranges:
                     lo, hi = int_ranges[name]
                     d.integer_range = [IntegerRange(from_value=lo, to_value=hi, step=1)]
@@ -250,6 +297,26 @@ def _make_node() -> Any:
                 if not math.isfinite(values[name]):
                     raise StartupError(f"invalid parameter '{name}': {values[name]} is not finite")
             return values
+
+        def _refuse_unknown_parameters(self) -> None:
+            """A misspelt ``-p``/params-file name would be ignored by rclpy: refuse it, naming the nearest."""
+            given = getattr(self, "_parameter_overrides", {})  # what --ros-args and params files set
+            unknown = unknown_parameters(given, self._parameters)
+            if unknown:
+                raise StartupError("; ".join(unknown) + " (driver --help lists the parameters)")
+
+        def _on_set_parameters(self, params: list[Any]) -> Any:
+            """``ros2 param set``: RUNTIME_PARAMETERS go to DriverCore.reconfigure (validated as a whole);
+            read-only ones are already refused by rclpy through their descriptor."""
+            changes = {q.name: q.value for q in params if q.name in RUNTIME_PARAMETERS}
+            if not changes or not hasattr(self, "core"):  # during start-up: the declared values
+                return SetParametersResult(successful=True)
+            try:
+                self.core.reconfigure(**changes)
+            except ValueError as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
+            self.get_logger().info("set " + ", ".join(f"{k}={v}" for k, v in changes.items()))
+            return SetParametersResult(successful=True)
 
         # ------------------------------------------------------------ data path
         def _wake_publisher(self) -> None:
@@ -291,8 +358,9 @@ def _make_node() -> Any:
                 self.pub_raw.publish(msgs.raw_msg(r))
             for t in out.temperature:
                 self.pub_temp.publish(msgs.temperature_msg(t))
-            for s in out.imu:
-                self.pub_imu.publish(msgs.imu_msg(s))
+            if self.pub_imu is not None:
+                for s in out.imu:
+                    self.pub_imu.publish(msgs.imu_msg(s))
 
         # ------------------------------------------------------------ diagnostics
         def _publish_diagnostics(self) -> None:
@@ -314,14 +382,14 @@ def _make_node() -> Any:
                 temperature_age_s=core.temperature_age_s,
                 last_temperature_c=core.last_good_temperature_c,
                 temperature_hold_s=core.config.temperature_hold_s,
-                temperature_range_c=self.calibration.temperature_range_c,
+                temperature_range_c=self.temperature_range_c,
                 calibration=self.cal_info,
             )
             arr = DiagnosticArray()
             arr.header.stamp = self.get_clock().now().to_msg()
             for e in self.diag.report(snap):
                 arr.status.append(DiagnosticStatus(
-                    level=bytes([e.level]), name=e.name, message=e.message, hardware_id=f"fbg_accel:{st.port}",
+                    level=bytes([e.level]), name=e.name, message=e.message, hardware_id=self.cal_info["sensor_id"],
                     values=[KeyValue(key=k, value=v) for k, v in e.values],
                 ))
             self.pub_diag.publish(arr)

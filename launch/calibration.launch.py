@@ -32,6 +32,8 @@ def launch_arguments(share_dir: str) -> dict[str, tuple[str, str]]:
         "start_driver": ("true", "also start the driver (false: one is already running in this namespace)"),
         "driver_params_file": (os.path.join(config, DRIVER_PARAMS), "driver parameters (ROS 2 params file)"),
         "port": ("", "serial device of the board; empty: the driver params file's port"),
+        "calibration_file": ("none", "the driver's calibration: 'none' (the recorder needs raw counts only), "
+                                     "'sim' or a YAML; empty: the driver params file's"),
         "namespace": ("", "namespace of both nodes and their topics; empty: none"),
     }
 
@@ -48,7 +50,7 @@ def node_descriptions(share_dir: str, args: dict[str, str]) -> list[dict[str, An
         calib["temperature_level"] = int_argument(args, "temperature_level")
     nodes: list[dict[str, Any]] = []
     if bool_argument(args, "start_driver"):
-        overrides = {"port": args["port"]} if args["port"] else {}
+        overrides = {k: args[k] for k in ("port", "calibration_file") if args[k]}
         nodes.append({
             "executable": "driver",
             "name": "fbg_accel_driver",

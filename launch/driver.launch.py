@@ -1,10 +1,13 @@
 """The FBG accelerometer driver with its params file.
 
-    ros2 launch fbg_accel_driver driver.launch.py port:=/dev/ttyUSB0
+    ros2 launch fbg_accel_driver driver.launch.py port:=/dev/ttyUSB0 calibration_file:=/path/sensor_cal.yaml
     ros2 launch fbg_accel_driver driver.launch.py namespace:=veh1 params_file:=/path/my_driver.yaml
 
 Every parameter comes from ``params_file`` (default: the package's config/driver.yaml); a
-non-empty ``port`` overrides the file's port. ``ros2 launch ... --show-args`` lists the arguments.
+non-empty ``port`` or ``calibration_file`` overrides the file's. The driver needs an explicit
+``calibration_file`` (the sensor's YAML, ``sim`` for the simulated sensor, ``none`` for raw counts
+only): the shipped params file leaves it empty, so give it here or in your own params file.
+``ros2 launch ... --show-args`` lists the arguments.
 """
 
 from __future__ import annotations
@@ -20,13 +23,15 @@ def launch_arguments(share_dir: str) -> dict[str, tuple[str, str]]:
     return {
         "params_file": (os.path.join(share_dir, "config", DRIVER_PARAMS), "driver parameters (ROS 2 params file)"),
         "port": ("", "serial device of the board; empty: the params file's port"),
+        "calibration_file": ("", "the sensor's calibration YAML, 'sim' (simulated sensor) or 'none' (raw only); "
+                                 "empty: the params file's (required there)"),
         "namespace": ("", "namespace of the driver and its topics; empty: none"),
     }
 
 
 def node_descriptions(share_dir: str, args: dict[str, str]) -> list[dict[str, Any]]:
     """The driver node for the launch argument values ``args`` (see fbg_accel_driver.launch_support)."""
-    overrides = {"port": args["port"]} if args["port"] else {}
+    overrides = {k: args[k] for k in ("port", "calibration_file") if args[k]}
     return [{
         "executable": "driver",
         "name": "fbg_accel_driver",

@@ -111,9 +111,10 @@ def start_sim(args: list[str]) -> tuple[subprocess.Popen, str]:
     return proc, line.split(None, 1)[1].strip()
 
 
-def start_driver(params: dict[str, Any], log: Path) -> subprocess.Popen:
-    args = [str(BIN / "driver"), "--ros-args"]
-    for k, v in params.items():
+def start_driver(params: dict[str, Any], log: Path, ros_args: tuple[str, ...] = ()) -> subprocess.Popen:
+    """The driver process; ``calibration_file`` defaults to the simulated sensor's (``sim``)."""
+    args = [str(BIN / "driver"), "--ros-args", *ros_args]
+    for k, v in {"calibration_file": "sim", **params}.items():
         args += ["-p", f"{k}:={v}"]
     return subprocess.Popen(args, stdout=log.open("w"), stderr=subprocess.STDOUT)
 
@@ -332,9 +333,15 @@ def _calibration_variants(tmp_path: Path) -> dict[str, tuple[Path, str]]:
 def test_bad_configuration_stops_startup(tmp_path: Path) -> None:
     cases = {name: ({"port": "/dev/null", "calibration_file": str(path)}, expect)
              for name, (path, expect) in _calibration_variants(tmp_path).items()}
-    cases["decimation"] = ({"port": "/dev/null", "decimation": 0}, "decimation")
-    cases["covariance_source"] = ({"port": "/dev/null", "covariance_source": "guess"}, "covariance_source")
-    cases["frame_id"] = ({"port": "/dev/null", "frame_id": "/abs"}, "frame_id")
+    sim = {"port": "/dev/null", "calibration_file": "sim"}
+    cases["decimation"] = ({**sim, "decimation": 0}, "decimation")
+    cases["covariance_source"] = ({**sim, "covariance_source": "guess"}, "covariance_source")
+    cases["frame_id"] = ({**sim, "frame_id": "/abs"}, "frame_id")
+    # issue 10: no silent default calibration, no silently ignored misspelt parameter
+    cases["no_calibration_choice"] = ({"port": "/dev/null"}, "'calibration_file' is required")
+    cases["misspelt_parameter"] = ({**sim, "calibraton_file": "x.yaml"},
+                                   "unknown parameter 'calibraton_file' (did you mean 'calibration_file'?)")
+    cases["other_driver_parameter"] = ({**sim, "baudrate": 115200}, "unknown parameter 'baudrate' (did you mean 'baud'?)")
     commands = {name: [str(BIN / "driver"), "--ros-args"] + [a for k, v in params.items() for a in ("-p", f"{k}:={v}")]
                 for name, (params, _) in cases.items()}
     commands["not_a_ros_argument"] = [str(BIN / "driver"), "--port", "/dev/null"]
