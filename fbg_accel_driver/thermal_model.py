@@ -22,7 +22,9 @@ so the driver and the offline tools evaluate the same model on the same frames.
 from __future__ import annotations
 
 import datetime as _dt
+import difflib
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,6 +36,23 @@ FORMAT_NAME = "fbg_accel_calibration"
 FORMAT_VERSION = 1
 UNITS = {"psi": "1", "temperature": "degC", "acceleration": "m/s^2", "time": "s"}
 MIN_REFERENCE_COUNTS = 1  # a reference of 0 counts would divide by zero; see normalise()
+
+# The file contract (docs/calibration_file.md, sections 2 and 5): bounds a real calibration is far inside.
+TOP_LEVEL_KEYS = ("format", "format_version", "units", "model", "sensor_id", "created", "degree",
+                  "temperature_center_c", "temperature_scale_c", "temperature_range_c", "M", "b",
+                  "noise_sigma_mps2", "fit", "corrections", "notes")
+MAX_FILE_BYTES = 1 << 20  # a real file is a few kB; refused before parsing
+MAX_DEGREE = 6  # the fit tools choose <= 3; beyond 6 the polynomial is noise
+MAX_CORRECTIONS = 32
+MAX_TEXT_CHARS = 256  # sensor_id, created
+MAX_NOTES_CHARS = 65536
+TEMPERATURE_LIMITS_C = (-100.0, 200.0)  # range and centre: beyond any climatic chamber and the AHT10 (-40..85)
+SCALE_LIMITS_C = (1e-3, 1e3)  # temperature_scale_c
+FULL_SCALE_MPS2 = 20.0 * 9.80665  # paper: +-20 g
+NOISE_MAX_MPS2 = 0.1 * FULL_SCALE_MPS2  # a white noise of a tenth of the full scale: not an accelerometer
+OUTPUT_MAX_MPS2 = 100.0 * FULL_SCALE_MPS2  # |a| bound of the plausibility evaluation (section 5)
+AHT10_RANGE_C = (-40.0, 85.0)  # the temperatures the driver can ever evaluate the model at
+PLAUSIBILITY_REF_COUNTS = (256.0, 1024.0, 2048.0, 4095.0)  # reference counts of the evaluation grid
 
 
 class CalibrationFileError(ValueError):
@@ -60,6 +79,7 @@ class ThermalCalibration:
     created: str = ""
     fit: dict[str, Any] = field(default_factory=dict)
     corrections: list[Any] = field(default_factory=list)
+    notes: str = ""  # free text for people; the only place a file may carry prose
 
     def __post_init__(self) -> None:
         self.M = np.asarray(self.M, dtype=float)
@@ -158,6 +178,7 @@ class ThermalCalibration:
             "noise_sigma_mps2": [float(v) for v in self.noise_sigma_mps2],
             "fit": _plain(self.fit),
             "corrections": [term.to_dict() for term in self.corrections],
+            **({"notes": self.notes} if self.notes else {}),
         }
 
     def save(self, path: str | Path) -> None:
@@ -167,68 +188,97 @@ class ThermalCalibration:
 
     @classmethod
     def from_dict(cls, d: Any, source: str = "<dict>") -> ThermalCalibration:
+        """The calibration of a parsed file (``load``): migrated to the current format version, every key
+        known and typed, sizes bounded, and the model evaluated for plausibility (``check_plausible``)."""
+
+        def fail(msg: str) -> CalibrationFileError:
+            return CalibrationFileError(f"{source}: {msg}")
+
         def need(key: str) -> Any:
             if key not in d:
-                raise CalibrationFileError(f"{source}: missing key '{key}'")
+                raise fail(f"missing key '{key}'")
             return d[key]
 
         if not isinstance(d, dict):
-            raise CalibrationFileError(f"{source}: top level is not a mapping")
+            raise fail("top level is not a mapping")
         if need("format") != FORMAT_NAME:
-            raise CalibrationFileError(f"{source}: format is '{d['format']}', expected '{FORMAT_NAME}'")
-        version = need("format_version")
-        if not isinstance(version, int) or isinstance(version, bool) or version != FORMAT_VERSION:
-            raise CalibrationFileError(
-                f"{source}: format_version {d['format_version']!r} is not supported (this driver reads {FORMAT_VERSION})"
-            )
+            raise fail(f"format is '{d['format']}', expected '{FORMAT_NAME}'")
+        d = migrate(d, source)
+        _refuse_unknown(d, TOP_LEVEL_KEYS, "", fail)
         units = need("units")
         if not isinstance(units, dict):
-            raise CalibrationFileError(f"{source}: 'units' is not a mapping")
+            raise fail("'units' is not a mapping")
         for key, unit in UNITS.items():
             if units.get(key) != unit:
-                raise CalibrationFileError(f"{source}: unit of '{key}' is {units.get(key)!r}, expected '{unit}'")
+                raise fail(f"unit of '{key}' is {units.get(key)!r}, expected '{unit}'")
         if need("model") != "thermal_polynomial":
-            raise CalibrationFileError(f"{source}: model '{d['model']}' is not supported")
+            raise fail(f"model '{d['model']}' is not supported")
         M_raw, b_raw, rng = need("M"), need("b"), need("temperature_range_c")  # outside the try: keep their message
+        noise_raw = need("noise_sigma_mps2")
+        degree = need("degree")
+        if not isinstance(degree, int) or isinstance(degree, bool) or degree < 0:
+            raise fail(f"degree must be a non-negative integer, got {degree!r}")
+        if degree > MAX_DEGREE:
+            raise fail(f"degree {degree} is above {MAX_DEGREE} (docs/calibration_file.md, section 5)")
         try:
             M = np.asarray(M_raw, dtype=float)
             b = np.asarray(b_raw, dtype=float)
-            noise = np.asarray(d.get("noise_sigma_mps2", [0.01, 0.01, 0.01]), dtype=float)
+            noise = np.asarray(noise_raw, dtype=float)
         except (TypeError, ValueError, OverflowError) as exc:
-            raise CalibrationFileError(f"{source}: coefficients are not numeric arrays ({exc})") from None
-        degree = need("degree")
-        if not isinstance(degree, int) or isinstance(degree, bool) or degree < 0:
-            raise CalibrationFileError(f"{source}: degree must be a non-negative integer, got {degree!r}")
+            raise fail(f"coefficients are not numeric arrays ({exc})") from None
         if M.shape != (degree + 1, 3, 3):
-            raise CalibrationFileError(f"{source}: M has shape {M.shape}, expected {(degree + 1, 3, 3)} for degree {degree}")
+            raise fail(f"M has shape {M.shape}, expected {(degree + 1, 3, 3)} for degree {degree}")
         if b.shape != (degree + 1, 3):
-            raise CalibrationFileError(f"{source}: b has shape {b.shape}, expected {(degree + 1, 3)} for degree {degree}")
+            raise fail(f"b has shape {b.shape}, expected {(degree + 1, 3)} for degree {degree}")
         if not (isinstance(rng, list | tuple) and len(rng) == 2):
-            raise CalibrationFileError(f"{source}: temperature_range_c must be [min, max]")
+            raise fail("temperature_range_c must be [min, max]")
+        texts = {key: _text(d, key, MAX_NOTES_CHARS if key == "notes" else MAX_TEXT_CHARS, fail)
+                 for key in ("sensor_id", "created", "notes")}
+        fit = d.get("fit") or {}
+        if not isinstance(fit, dict):
+            raise fail(f"'fit' must be a mapping of figures, got {type(fit).__name__}")
         from .correction_terms import correction_from_dict  # local: keeps the import graph flat
 
         corrections_raw = d.get("corrections") or []
         if not isinstance(corrections_raw, list):
-            raise CalibrationFileError(f"{source}: 'corrections' must be a list")
+            raise fail("'corrections' must be a list")
+        if len(corrections_raw) > MAX_CORRECTIONS:
+            raise fail(f"{len(corrections_raw)} correction terms, at most {MAX_CORRECTIONS} are accepted")
+        corrections = []
+        for i, c in enumerate(corrections_raw):
+            where = f"corrections[{i}]"
+            if not isinstance(c, dict):
+                raise fail(f"{where} must be a mapping with a 'kind', got {type(c).__name__}")
+            if not isinstance(c.get("kind"), str):
+                raise fail(f"{where}.kind must be a string, got {type(c.get('kind')).__name__}")
+            try:
+                term = correction_from_dict(c)
+            except (KeyError, TypeError, ValueError, OverflowError) as exc:
+                raise fail(f"bad correction term: {where}: {exc}") from None
+            _refuse_unknown(c, (*term.to_dict(), "notes"), f"{where}.", fail)
+            corrections.append(term)
         try:
-            corrections = [correction_from_dict(c) for c in corrections_raw]
-        except (KeyError, TypeError, ValueError, OverflowError) as exc:
-            raise CalibrationFileError(f"{source}: bad correction term: {exc}") from None
-        try:
-            return cls(
+            cal = cls(
                 M=M,
                 b=b,
-                temperature_range_c=(float(rng[0]), float(rng[1])),
-                sensor_id=str(d.get("sensor_id", "unknown")),
-                t_center_c=float(d.get("temperature_center_c", 0.0)),
-                t_scale_c=float(d.get("temperature_scale_c", 1.0)),
+                temperature_range_c=(_number(rng[0], "temperature_range_c", fail), _number(rng[1], "temperature_range_c", fail)),
+                sensor_id=texts["sensor_id"] if "sensor_id" in d else "unknown",
+                t_center_c=_number(d.get("temperature_center_c", 0.0), "temperature_center_c", fail),
+                t_scale_c=_number(d.get("temperature_scale_c", 1.0), "temperature_scale_c", fail),
                 noise_sigma_mps2=noise,
-                created=str(d.get("created", "")),
-                fit=dict(d.get("fit") or {}),
+                created=texts["created"],
+                fit=dict(fit),
                 corrections=corrections,
+                notes=texts["notes"],
             )
         except (TypeError, ValueError, OverflowError) as exc:
-            raise CalibrationFileError(f"{source}: {exc}") from None
+            if isinstance(exc, CalibrationFileError):
+                raise
+            raise fail(str(exc)) from None
+        problem = check_plausible(cal)
+        if problem:
+            raise fail(problem)
+        return cal
 
     @classmethod
     def load(cls, path: str | Path) -> ThermalCalibration:
@@ -236,6 +286,10 @@ class ThermalCalibration:
         if not p.is_file():
             raise CalibrationFileError(f"{p}: calibration file not found")
         try:
+            size = p.stat().st_size
+            if size > MAX_FILE_BYTES:  # before parsing: 100 000 terms took 21.7 s and 658 MB
+                raise CalibrationFileError(f"{p}: file of {size} bytes is above the {MAX_FILE_BYTES}-byte bound of a "
+                                           "calibration file (docs/calibration_file.md, section 5)")
             text = p.read_text()
         except OSError as exc:
             raise CalibrationFileError(f"{p}: calibration file cannot be read ({exc.strerror or exc})") from None
@@ -290,6 +344,121 @@ def _validate(cal: ThermalCalibration) -> None:
         raise ValueError(f"temperature_range_c must be finite [min, max], got {[lo, hi]}")
     if not (math.isfinite(cal.t_scale_c) and cal.t_scale_c > 0 and math.isfinite(cal.t_center_c)):
         raise ValueError("temperature_scale_c must be positive and temperature_center_c finite")
+
+
+# ---------------------------------------------------------------------------- format versions
+# MIGRATIONS[v] turns a parsed file of format_version v into one of version v + 1 (a dict -> dict
+# function that also sets format_version). Version 1 is the first, so the table is empty; when version
+# 2 comes, its step is added here and ``migrate`` reads every older file (docs/calibration_file.md, 3).
+MIGRATIONS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {}
+
+
+def migrate(d: dict[str, Any], source: str = "<dict>") -> dict[str, Any]:
+    """A parsed calibration file brought to :data:`FORMAT_VERSION` through :data:`MIGRATIONS`, one version
+    at a time. Refuses a version that is not an integer, newer than this reader, or older without a path."""
+    version = d.get("format_version")
+    if "format_version" not in d:
+        raise CalibrationFileError(f"{source}: missing key 'format_version'")
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raise CalibrationFileError(
+            f"{source}: format_version {version!r} is not supported (this driver reads {FORMAT_VERSION})")
+    if version > FORMAT_VERSION:
+        raise CalibrationFileError(
+            f"{source}: format_version {version} is not supported (this driver reads {FORMAT_VERSION}); the file is "
+            "newer than this driver: update fbg_accel_driver")
+    while version < FORMAT_VERSION:
+        step = MIGRATIONS.get(version)
+        if step is None:
+            raise CalibrationFileError(
+                f"{source}: format_version {version} is not supported (this driver reads {FORMAT_VERSION})")
+        d = step(dict(d))
+        version += 1
+        if d.get("format_version") != version:
+            raise CalibrationFileError(f"{source}: migration to format_version {version} failed")
+    return d
+
+
+def check_plausible(cal: ThermalCalibration) -> str:
+    """Why ``cal`` cannot describe this sensor, or ``""``. Bounds (docs/calibration_file.md, section 5):
+
+    * temperature range and centre within :data:`TEMPERATURE_LIMITS_C`, scale within :data:`SCALE_LIMITS_C`;
+    * every ``noise_sigma_mps2`` at most :data:`NOISE_MAX_MPS2` (its square must be a usable variance);
+    * the model (eq. 28 and every correction term) evaluated on a grid of inputs: reference counts
+      :data:`PLAUSIBILITY_REF_COUNTS`, axis counts at 0, 2048 and 4095 (27 combinations), temperatures
+      across the calibrated range and across the AHT10 range :data:`AHT10_RANGE_C`. The output must be
+      finite everywhere the driver can evaluate it (AHT10 range), and at most :data:`OUTPUT_MAX_MPS2` in
+      magnitude inside the calibrated range. Each grid point is held for 0.5 s of samples at 100 Hz so
+      that stateful terms (filters) are judged on their settled output, not on the steps between points.
+    """
+    lo_lim, hi_lim = TEMPERATURE_LIMITS_C
+    lo, hi = cal.temperature_range_c
+    if not (lo_lim <= lo <= hi <= hi_lim):
+        return f"temperature_range_c {[lo, hi]} is outside {list(TEMPERATURE_LIMITS_C)} degC"
+    if not lo_lim <= cal.t_center_c <= hi_lim:
+        return f"temperature_center_c {cal.t_center_c} is outside {list(TEMPERATURE_LIMITS_C)} degC"
+    if not SCALE_LIMITS_C[0] <= cal.t_scale_c <= SCALE_LIMITS_C[1]:
+        return f"temperature_scale_c {cal.t_scale_c} is outside {list(SCALE_LIMITS_C)} degC"
+    if np.any(cal.noise_sigma_mps2 > NOISE_MAX_MPS2):
+        return f"noise_sigma_mps2 {cal.noise_sigma_mps2.tolist()} is above {NOISE_MAX_MPS2:.3g} m/s^2 (a tenth of full scale)"
+    levels = np.array([0.0, 2048.0, 4095.0])
+    xyz = np.stack(np.meshgrid(levels, levels, levels, indexing="ij"), axis=-1).reshape(-1, 3)
+    ref = np.repeat(np.asarray(PLAUSIBILITY_REF_COUNTS), len(xyz))
+    xyz = np.tile(xyz, (len(PLAUSIBILITY_REF_COUNTS), 1))
+    inside = np.unique(np.linspace(lo, hi, 5))
+    wide = np.array([AHT10_RANGE_C[0], AHT10_RANGE_C[1], *np.linspace(*AHT10_RANGE_C, 6)])
+    with np.errstate(all="ignore"):
+        for temps, bounded in ((inside, True), (wide, False)):
+            out = _evaluate_grid(cal, ref, xyz, temps)
+            if not np.all(np.isfinite(out)):
+                return ("the model gives a non-finite acceleration at temperatures the driver can read "
+                        f"({AHT10_RANGE_C[0]:g}..{AHT10_RANGE_C[1]:g} degC) and 12-bit counts: every such sample would "
+                        "be dropped (coefficients, temperature scaling or a correction term out of range)")
+            if bounded and np.max(np.abs(out)) > OUTPUT_MAX_MPS2:
+                return (f"the model gives |a| up to {np.max(np.abs(out)):.3g} m/s^2 inside its calibrated range, above "
+                        f"{OUTPUT_MAX_MPS2:.3g} (100x the +-20 g full scale): coefficients are absurd")
+    return ""
+
+
+def _evaluate_grid(cal: ThermalCalibration, ref: np.ndarray, xyz: np.ndarray, temps: np.ndarray) -> np.ndarray:
+    """Settled outputs (P*len(temps), 3) of ``cal`` for every (count point, temperature), see check_plausible."""
+    hold = 50 if cal.corrections else 1  # 0.5 s at 100 Hz settles the filters of the terms
+    n = len(ref) * len(temps)
+    ref_s = np.repeat(np.tile(ref, len(temps)), hold)
+    xyz_s = np.repeat(np.tile(xyz, (len(temps), 1)), hold, axis=0)
+    t_s = np.repeat(np.repeat(temps, len(ref)), hold)
+    time_s = np.arange(n * hold) * 0.01
+    return cal.apply_counts(ref_s, xyz_s, t_s, time_s)[hold - 1::hold]
+
+
+def _refuse_unknown(d: dict[str, Any], allowed: tuple[str, ...], where: str,
+                    fail: Callable[[str], CalibrationFileError]) -> None:
+    for key in d:
+        if key not in allowed:
+            near = difflib.get_close_matches(str(key), allowed, n=1, cutoff=0.6)
+            hint = f" (did you mean '{where}{near[0]}'?)" if near else f" (known: {', '.join(allowed)})"
+            raise fail(f"unknown key '{where}{key}'{hint}; free text goes under 'notes'")
+
+
+def _text(d: dict[str, Any], key: str, max_chars: int, fail: Callable[[str], CalibrationFileError]) -> str:
+    v = d.get(key, "")
+    if v is None:
+        v = ""
+    if not isinstance(v, str):
+        raise fail(f"'{key}' must be a string, got {type(v).__name__} {v!r:.40} (quote it in the YAML)")
+    if len(v) > max_chars:
+        raise fail(f"'{key}' has {len(v)} characters, at most {max_chars} are accepted")
+    return v
+
+
+def _number(v: Any, key: str, fail: Callable[[str], CalibrationFileError]) -> float:
+    if isinstance(v, bool):
+        raise fail(f"'{key}' must be a number, got {v!r}")
+    try:
+        return float(v)
+    except OverflowError:
+        raise fail(f"'{key}' is too large for a float") from None
+    except (TypeError, ValueError):
+        raise fail(f"'{key}' must be a number, got {type(v).__name__} {v!r:.40}") from None
 
 
 def _plain(obj: Any) -> Any:

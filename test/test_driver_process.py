@@ -327,6 +327,11 @@ def _calibration_variants(tmp_path: Path) -> dict[str, tuple[Path, str]]:
     nan_b = [list(r) for r in good["b"]]
     nan_b[0][1] = float("nan")
     write("nan", dict(good, b=nan_b), "NaN")
+    # finite but absurd (issue 11): the driver died with OverflowError / published nothing, all OK
+    write("noise_1e300", dict(good, noise_sigma_mps2=[1e300, 0.1, 0.1]), "noise_sigma_mps2")
+    write("dark_offset_full_scale", dict(good, corrections=[{"kind": "reference_dark_offset",
+                                                             "ref_offset_counts": 4095.0}]), "non-finite")
+    write("misspelt_key", dict(good, correction=[]), "did you mean 'corrections'?")
     return out
 
 
