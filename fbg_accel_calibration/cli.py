@@ -126,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _load(paths: list[Path], args: argparse.Namespace):
     """Recording from MCAP and/or CSV files (one run per file)."""
     from .csv_import import import_csv
-    from .mcap_io import read_recording
+    from .mcap_io import read_recording, read_warnings
     from .recording import Recording
 
     parts = []
@@ -138,10 +138,8 @@ def _load(paths: list[Path], args: argparse.Namespace):
         else:
             check_mcap(path)
             rec = read_recording(path)
-            report = rec.metadata.get("read_report", {})
-            if report and not report.get("complete", True):
-                print(f"warning: {path} is truncated ({report.get('stopped_at')}); recovered {report.get('messages')} "
-                      "messages up to the last complete chunk", file=sys.stderr)
+            for line in read_warnings(path, rec.metadata.get("read_report", {}), rec.metadata.get("pose_events")):
+                print(line, file=sys.stderr)
             parts.append(rec)
     return parts[0] if len(parts) == 1 else Recording.concatenate(parts)
 
@@ -186,7 +184,7 @@ def _fit_streamed(args: argparse.Namespace, max_degree: int):
     files through ``McapSampleStream``, CSV files re-read on every pass (``csv_import.CsvSampleSource``),
     so memory is a few blocks whatever the file sizes. Returns ``(StreamedFitData, metadata)``."""
     from .csv_import import CsvSampleSource
-    from .mcap_io import McapSampleStream
+    from .mcap_io import McapSampleStream, read_warnings
     from .thermal_fit import prepare_stream
 
     sources = []
@@ -201,9 +199,9 @@ def _fit_streamed(args: argparse.Namespace, max_degree: int):
     parts = []
     for path, src in zip(args.inputs, sources, strict=True):
         md = src.metadata()
-        if isinstance(src, McapSampleStream) and not src.report.complete:
-            print(f"warning: {path} is truncated ({src.report.stopped_at}); recovered {src.report.messages} "
-                  "messages up to the last complete chunk", file=sys.stderr)
+        if isinstance(src, McapSampleStream):
+            for line in read_warnings(path, md["read_report"], md["pose_events"]):
+                print(line, file=sys.stderr)
         parts.append(md)
     return data, {"parts": parts, **(parts[0] if len(parts) == 1 else {})}
 

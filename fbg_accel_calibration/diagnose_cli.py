@@ -76,10 +76,12 @@ def load_inputs(paths: list[str], rate: float | None, temperature: float | None,
                                 g_mps2=g if g is not None else STANDARD_GRAVITY)
         else:
             from .cli import check_mcap
-            from .mcap_io import read_recording
+            from .mcap_io import read_recording, read_warnings
 
             check_mcap(path)
             rec = read_recording(path)
+            for line in read_warnings(path, rec.metadata.get("read_report", {}), rec.metadata.get("pose_events")):
+                print(line, file=sys.stderr)
         parts.append(rec)
     return parts[0] if len(parts) == 1 else Recording.concatenate(parts)
 

@@ -377,6 +377,42 @@ def _to_text(value: Any) -> str:
 
 # ---------------------------------------------------------------------------- reader
 @dataclass
+class SkippedRange:
+    """A damaged stretch of an MCAP file that was passed over: a chunk whose CRC or decompression failed,
+    or bytes whose record framing was lost until the next intact chunk."""
+
+    offset: int  # byte offset of the damaged record in the file
+    end_offset: int  # where reading resumed
+    reason: str
+    start_ns: int | None = None  # log-time range of the chunk's messages (from its header), if known
+    end_ns: int | None = None
+    messages: dict[str, int] | None = None  # per topic, from the chunk's message index records; None = unknown
+    by_channel: dict[int, int] = field(default_factory=dict)  # the index counts per channel id, while reading
+
+    def resolve(self, topics: dict[int, str]) -> None:
+        """Name the channels of the index counts (channels may be defined after the damaged chunk was met)."""
+        if self.by_channel:
+            self.messages = {}
+            for cid, n in self.by_channel.items():
+                name = topics.get(cid, f"channel {cid}")
+                self.messages[name] = self.messages.get(name, 0) + n
+
+    def describe(self) -> str:
+        if self.offset < 0:
+            return self.reason
+        what = (f"{sum(self.messages.values())} messages ("
+                + ", ".join(f"{t} {n}" for t, n in sorted(self.messages.items())) + ")") if self.messages else \
+            "an unknown number of messages"
+        span = f", log time {self.start_ns * 1e-9:.3f}..{self.end_ns * 1e-9:.3f} s" \
+            if self.start_ns is not None and self.end_ns is not None else ""
+        return f"bytes {self.offset}..{self.end_offset}: {what}{span} ({self.reason})"
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"offset": self.offset, "end_offset": self.end_offset, "reason": self.reason,
+                "start_ns": self.start_ns, "end_ns": self.end_ns, "messages": self.messages}
+
+
+@dataclass
 class FileReadReport:
     """What :func:`read_recording` got out of one file."""
 
@@ -386,10 +422,49 @@ class FileReadReport:
     complete: bool = False  # the footer was reached
     stopped_at: str = ""  # why reading stopped early (truncation, corruption)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    skipped: list[SkippedRange] = field(default_factory=list)  # damaged chunks passed over
+    channel_topics: dict[int, str] = field(default_factory=dict)  # channel id -> topic, as read
+
+    def finish(self) -> None:
+        """Resolve the skipped chunks' per-channel counts to topics (call when reading ended)."""
+        for r in self.skipped:
+            r.resolve(self.channel_topics)
 
     def summary(self) -> str:
+        self.finish()
         state = "complete" if self.complete else f"TRUNCATED ({self.stopped_at}); recovered up to the last complete chunk"
-        return f"{self.path}: {self.messages} messages, {state}"
+        text = f"{self.path}: {self.messages} messages, {state}"
+        if self.skipped:
+            text += f"; {len(self.skipped)} damaged stretch(es) SKIPPED: " + "; ".join(r.describe() for r in self.skipped)
+        return text
+
+    def as_dict(self) -> dict[str, Any]:
+        """The form kept in ``Recording.metadata["read_report"]``."""
+        self.finish()
+        return {"messages": self.messages, "complete": self.complete, "stopped_at": self.stopped_at,
+                "per_topic": dict(self.messages_per_topic), "skipped": [r.as_dict() for r in self.skipped]}
+
+
+def read_warnings(path: str | Path, report: dict[str, Any], pose_events: list[tuple[int, int, str]] | None = None
+                  ) -> list[str]:
+    """Lines for stderr about a recording that was not read whole (``report`` = ``FileReadReport.as_dict()``):
+    truncation, and every skipped damaged stretch with the poses whose recording it overlapped. Lines that
+    mean data of the fit are missing start with ``WARNING:``."""
+    out = []
+    if report and not report.get("complete", True):
+        out.append(f"warning: {path} is truncated ({report.get('stopped_at')}); recovered {report.get('messages')} "
+                   "messages up to the last complete chunk")
+    for r in report.get("skipped", []) if report else []:
+        rng = SkippedRange(**{k: v for k, v in r.items() if k != "by_channel"})
+        lost = ""
+        if pose_events and rng.start_ns is not None and rng.end_ns is not None:
+            hit = sorted({pid for t, pid, _ in pose_events if rng.start_ns <= t <= rng.end_ns and pid >= 0})
+            lost = f"; poses with events in that time: {hit}" if hit else ""
+        raw = (rng.messages or {}).get(TOPIC_RAW)
+        n_raw = f"{raw} {TOPIC_RAW} samples" if raw is not None else f"an unknown number of {TOPIC_RAW} samples"
+        out.append(f"WARNING: {path}: damaged data skipped, {n_raw} lost: {rng.describe()}{lost}; the fit uses the "
+                   "rest of the file (check that every pose and temperature level it needs is still there)")
+    return out
 
 
 def iter_file_messages(path: str | Path, report: FileReadReport | None = None, undecoded: frozenset[str] = frozenset()):
@@ -405,7 +480,7 @@ def iter_file_messages(path: str | Path, report: FileReadReport | None = None, u
     channels: dict[int, Channel] = {}
     decoders: dict[int, Any] = {}
     with open(path, "rb") as fh:
-        records = _records(fh)
+        records = _records(fh, report)
         while True:
             try:
                 record = next(records)
@@ -415,6 +490,9 @@ def iter_file_messages(path: str | Path, report: FileReadReport | None = None, u
             except Exception as exc:  # truncated or corrupt tail: keep what was read
                 report.stopped_at = f"{type(exc).__name__} {exc}".strip()
                 break
+            if record is PARTIAL_RECORD:
+                _partial_noted(report)
+                continue
             if isinstance(record, tuple):
                 channel_id, log_time, data = record
                 channel = channels.get(channel_id)
@@ -422,20 +500,18 @@ def iter_file_messages(path: str | Path, report: FileReadReport | None = None, u
                     raise McapRecordingError(f"{path}: message on unknown channel {channel_id}")
                 decoder = decoders.get(channel.id)
                 if decoder is None:
-                    decoder = factory.decoder_for(channel.message_encoding, schemas.get(channel.schema_id))
-                    if decoder is None:
-                        raise McapRecordingError(f"{path}: no ROS 2 decoder for topic {channel.topic}")
-                    decoders[channel.id] = decoder
+                    decoder = decoders[channel.id] = _decoder_for(path, factory, channel, schemas)
                 report.messages += 1
                 report.messages_per_topic[channel.topic] = report.messages_per_topic.get(channel.topic, 0) + 1
                 if channel.topic in undecoded:
                     yield channel.topic, log_time, (data, decoder)
                 else:
-                    yield channel.topic, log_time, decoder(data)
+                    yield channel.topic, log_time, _decode(path, decoder, channel, data)
             elif isinstance(record, Schema):
                 schemas[record.id] = record
             elif isinstance(record, Channel):
                 channels[record.id] = record
+                report.channel_topics[record.id] = record.topic
             elif isinstance(record, Metadata):
                 report.metadata[record.name] = dict(record.metadata)
 
@@ -462,57 +538,141 @@ def _read_exact(fh: Any, n: int) -> bytes:
     return data
 
 
-def _records(fh: Any):
+def _records(fh: Any, report: FileReadReport):
     """Records of an MCAP file: Schema/Channel/Metadata (``mcap.records`` objects) and, for messages,
-    tuples ``(channel_id, log_time_ns, data)``.
-
-    Top-level records are framed here (opcode, length) and the index/summary records skipped
-    unparsed; a chunk is used only when complete, its decompression and CRC check are
-    ``mcap.stream_reader.get_chunk_data_stream``; its records are split with ``struct``. This is
-    several times faster than one ``Message`` object per record and stops cleanly at a truncated
-    record (the caller reports it).
-    """
+    tuples ``(channel_id, log_time_ns, data)``; damaged chunks are skipped (:func:`_file_records`)."""
     if fh.read(len(_MAGIC)) != _MAGIC:
         raise McapRecordingError("not an MCAP file (bad magic)")
-    for opcode, body in _top_level_records(fh):
+    for opcode, body in _file_records(fh, report):
         if opcode == Opcode.CHUNK:
             yield from _chunk_records(body)
         elif opcode in _PARSED:
             yield _PARSED[opcode].read(ReadDataStream(io.BytesIO(body)))
         elif opcode == Opcode.MESSAGE:
+            if len(body) < _MESSAGE_HEAD.size:
+                raise McapRecordingError("message record shorter than its header")
             channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(body, 0)
             yield channel_id, log_time, body[22:]
 
 
-def _top_level_records(fh: Any):
-    """``(opcode, body)`` of each top-level record of an MCAP file (``fh`` just past its magic) up to
-    its footer, the index and summary records (``_SKIPPED``) passed over unread. Raises
-    ``_TruncatedError`` when the file ends inside a record or without a footer."""
+_OPCODES = frozenset(int(o) for o in Opcode)
+_RESYNC_WINDOW = 64 << 20  # bytes searched for the next intact chunk after the framing is lost
+
+
+def _file_records(fh: Any, report: FileReadReport):
+    """``(opcode, payload)`` of each top-level record of an MCAP file (``fh`` just past its magic) up to its
+    footer, the index and summary records passed over; for a chunk the payload is its decompressed,
+    CRC-checked records. The one path both readers take through a file.
+
+    Damage is survived where the data allow it, and noted in ``report.skipped``:
+
+    * a chunk whose CRC or decompression fails is skipped; the message index records that follow it
+      give the number of messages lost per topic, its header their log-time range;
+    * a record whose framing is impossible (unknown opcode, or a length past the end of a file that
+      still ends in the MCAP magic, i.e. is not truncated) starts a search for the next chunk that
+      decompresses with a valid CRC; reading resumes there.
+
+    Raises ``_TruncatedError`` when the file ends inside a record or without a footer (the caller keeps
+    what was read), ``McapRecordingError`` when no intact chunk follows a framing error.
+    """
     pos = fh.tell()
     file_size = fh.seek(0, io.SEEK_END)
+    fh.seek(max(0, file_size - len(_MAGIC)))
+    ends_with_magic = file_size >= 2 * len(_MAGIC) and fh.read(len(_MAGIC)) == _MAGIC
     fh.seek(pos)
+    last_skip: SkippedRange | None = None
     while True:
+        start = fh.tell()
         head = fh.read(9)
         if not head:
             raise _TruncatedError("file ends without a footer")
         if len(head) < 9:
             raise _TruncatedError("file ends inside a record header")
         opcode, length = _RECORD_HEAD.unpack(head)
+        if opcode not in _OPCODES or start + 9 + length > file_size:
+            if opcode in _OPCODES and not ends_with_magic:
+                raise _TruncatedError("file ends inside a record")
+            resume = _resync(fh, start + 1, file_size)
+            if resume is None:
+                raise McapRecordingError(f"record framing lost at byte {start} (opcode {opcode}, length {length}) "
+                                         "and no intact chunk follows")
+            report.skipped.append(SkippedRange(start, resume, f"record framing lost at byte {start}"))
+            last_skip = None
+            fh.seek(resume)
+            continue
         if opcode == Opcode.FOOTER:
             return
-        if opcode in _SKIPPED:
-            if fh.seek(length, io.SEEK_CUR) > file_size:
-                raise _TruncatedError("file ends inside a record")
+        if opcode == Opcode.MESSAGE_INDEX and last_skip is not None:  # the lost chunk's index: count its messages
+            body = _read_exact(fh, length)
+            if len(body) >= 6:
+                (channel_id,) = struct.unpack_from("<H", body, 0)
+                (nbytes,) = struct.unpack_from("<I", body, 2)
+                last_skip.by_channel[channel_id] = last_skip.by_channel.get(channel_id, 0) + nbytes // 16
             continue
-        yield opcode, _read_exact(fh, length)
+        last_skip = None
+        if opcode in _SKIPPED:
+            fh.seek(length, io.SEEK_CUR)
+            continue
+        body = _read_exact(fh, length)
+        if opcode == Opcode.CHUNK:
+            try:
+                data = _chunk_bytes(body)
+            except Exception as exc:  # CRC mismatch, zstd error, bad header: skip this chunk only
+                start_ns = end_ns = None
+                if len(body) >= _CHUNK_HEAD.size:
+                    start_ns, end_ns = (int(v) for v in _CHUNK_HEAD.unpack_from(body, 0)[:2])
+                last_skip = SkippedRange(start, start + 9 + length, f"chunk unreadable: {type(exc).__name__} {exc}".strip(),
+                                         start_ns, end_ns)
+                report.skipped.append(last_skip)
+                continue
+            yield opcode, data
+            continue
+        yield opcode, body
 
 
-def _chunk_records(body: bytes):
-    """Messages ``(channel_id, log_time, data)`` and parsed Schema/Channel/Metadata records of a chunk."""
-    data = _chunk_bytes(body)
+def _resync(fh: Any, start: int, file_size: int) -> int | None:
+    """Offset of the first chunk record at or after ``start`` whose body decompresses with a valid CRC
+    (searched over at most :data:`_RESYNC_WINDOW` bytes), or None."""
+    fh.seek(start)
+    window = fh.read(min(_RESYNC_WINDOW, file_size - start))
+    at = window.find(bytes([Opcode.CHUNK]))
+    while at >= 0:
+        if at + 9 <= len(window):
+            (length,) = struct.unpack_from("<Q", window, at + 1)
+            end = at + 9 + length
+            if _CHUNK_HEAD.size + 12 <= length and end <= len(window):
+                try:
+                    _chunk_bytes(window[at + 9:end])
+                    return start + at
+                except Exception:
+                    pass
+        at = window.find(bytes([Opcode.CHUNK]), at + 1)
+    return None
+
+
+class _PartialRecordError(McapRecordingError):
+    """A record inside a chunk is cut short: an interrupted writer still wrote (and checksummed) its last
+    chunk. The records before it are good; the split stops there and yields :data:`PARTIAL_RECORD`."""
+
+
+PARTIAL_RECORD = SkippedRange(-1, -1, "a record cut short at the end of a chunk (interrupted writer); "
+                                      "the records after it in that chunk are lost")
+
+
+def _partial_noted(report: FileReadReport) -> None:
+    report.skipped.append(SkippedRange(PARTIAL_RECORD.offset, PARTIAL_RECORD.end_offset, PARTIAL_RECORD.reason))
+
+
+def _chunk_records(data: bytes):
+    """Messages ``(channel_id, log_time, data)`` and parsed Schema/Channel/Metadata records of a chunk's
+    decompressed records (then :data:`PARTIAL_RECORD` if the last one is cut short)."""
     pos, size = 0, len(data)
     while pos < size:
-        item, pos = _record_at(data, pos, size)
+        try:
+            item, pos = _record_at(data, pos, size)
+        except _PartialRecordError:
+            yield PARTIAL_RECORD
+            return
         if item is not None:
             yield item
 
@@ -520,11 +680,15 @@ def _chunk_records(body: bytes):
 def _record_at(data: bytes, pos: int, size: int) -> tuple[Any, int]:
     """The record at ``pos`` of decompressed chunk data and the next position; the record is a message
     ``(channel_id, log_time, data)``, a parsed Schema/Channel/Metadata, or None for other opcodes."""
+    if pos + 9 > size:
+        raise _PartialRecordError("record header overruns its chunk")
     opcode, length = _RECORD_HEAD.unpack_from(data, pos)
     start, end = pos + 9, pos + 9 + length
     if end > size:
-        raise McapRecordingError("record overruns its chunk")
+        raise _PartialRecordError("record overruns its chunk")
     if opcode == Opcode.MESSAGE:
+        if length < _MESSAGE_HEAD.size:
+            raise _PartialRecordError("message record shorter than its header")
         channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(data, start)
         return (channel_id, log_time, data[start + 22:end]), end
     if opcode in _PARSED:
@@ -560,7 +724,7 @@ def read_file(path: str | Path) -> tuple[Recording, FileReadReport]:
         elif topic == TOPIC_POSE:
             values = {kv.key: kv.value for kv in msg.values}
             pose_events.append((log_time, int(values.get("pose_id", "-1")), values.get("state", msg.message)))
-    if not report.complete:
+    if not report.complete or report.skipped:
         LOG.warning("%s", report.summary())
     if not raw_data:
         raise McapRecordingError(f"{path}: no readable {TOPIC_RAW} messages ({report.summary()})")
@@ -586,8 +750,8 @@ def read_file(path: str | Path) -> tuple[Recording, FileReadReport]:
     pose_id, gref = assign_poses(stamps, pose_events, gref_events)
     metadata: dict[str, Any] = {name: dict(md) for name, md in report.metadata.items()}
     metadata["source"] = str(path)
-    metadata["read_report"] = {"messages": report.messages, "complete": report.complete,
-                               "stopped_at": report.stopped_at, "per_topic": dict(report.messages_per_topic)}
+    metadata["read_report"] = report.as_dict()
+    metadata["pose_events"] = pose_events
     rec = Recording(t_s=t_s, ref=rows[:, col["ref_counts"]], xyz=xyz, temp_c=temp, gref_mps2=gref,
                     pose_id=pose_id, metadata=metadata)
     return rec, report
@@ -599,7 +763,8 @@ def _decode_raw(path: Path, datas: list[bytes], decoder: Any) -> tuple[np.ndarra
     The first message is decoded with the ``mcap_ros2`` decoder; every message with the same byte
     layout (same frame_id and names) is then decoded in one numpy pass, any other one generically.
     """
-    first = decoder(datas[0])
+    raw_channel = Channel(id=0, schema_id=0, topic=TOPIC_RAW, message_encoding="cdr", metadata={})
+    first = _decode(path, decoder, raw_channel, datas[0])
     names = tuple(first.name)
     missing = [n for n in RAW_NAMES[:4] if n not in names]
     if missing:
@@ -612,7 +777,7 @@ def _decode_raw(path: Path, datas: list[bytes], decoder: Any) -> tuple[np.ndarra
         idx = np.flatnonzero(fast)
         stamps[idx], values[idx] = codec.decode_many([datas[i] for i in idx])
     for i in np.flatnonzero(~fast):
-        msg = decoder(datas[i])
+        msg = _decode(path, decoder, raw_channel, datas[i])
         if tuple(msg.name) != names:
             raise McapRecordingError(f"{path}: {TOPIC_RAW} changes its name list at message {i}")
         if len(msg.position) != len(names):
@@ -758,10 +923,7 @@ class McapSampleStream:
         def decoder_of(channel: Channel) -> Any:
             dec = decoders.get(channel.id)
             if dec is None:
-                dec = factory.decoder_for(channel.message_encoding, schemas.get(channel.schema_id))
-                if dec is None:
-                    raise McapRecordingError(f"{self.path}: no ROS 2 decoder for topic {channel.topic}")
-                decoders[channel.id] = dec
+                dec = decoders[channel.id] = _decoder_for(self.path, factory, channel, schemas)
             return dec
 
         def message(channel_id: int, log_time: int, data: bytes):
@@ -775,7 +937,7 @@ class McapSampleStream:
                 if codec is not None and codec.matches(data):
                     s, v = codec.decode_many([data])
                     return s, v
-                msg = decoder_of(channel)(data)
+                msg = _decode(self.path, decoder_of(channel), channel, data)
                 names = tuple(msg.name)
                 if self.names is None:
                     missing = [n for n in RAW_NAMES[:4] if n not in names]
@@ -792,7 +954,7 @@ class McapSampleStream:
                 return (np.asarray([_stamp_ns(msg.header)], dtype=np.int64),
                         np.asarray(msg.position, dtype=float).reshape(1, -1))
             if collect_events:
-                msg = decoder_of(channel)(data)
+                msg = _decode(self.path, decoder_of(channel), channel, data)
                 if channel.topic == TOPIC_TEMPERATURE:
                     self._temp_t.append(_stamp_ns(msg.header))
                     self._temp_v.append(float(msg.temperature))
@@ -812,6 +974,8 @@ class McapSampleStream:
                     out = message(*item)
                     if out is not None:
                         yield out
+                elif item is PARTIAL_RECORD:
+                    _partial_noted(report)
                 else:
                     _note_record(item, schemas, channels, report)
 
@@ -820,11 +984,11 @@ class McapSampleStream:
         with open(self.path, "rb", buffering=1 << 20) as fh:
             if fh.read(len(_MAGIC)) != _MAGIC:
                 raise McapRecordingError(f"{self.path}: not an MCAP file (bad magic)")
-            records = _top_level_records(fh)
+            records = _file_records(fh, report)
             while True:
                 try:
                     opcode, body = next(records)
-                    chunk_data = _chunk_bytes(body) if opcode == Opcode.CHUNK else None
+                    chunk_data = body if opcode == Opcode.CHUNK else None
                 except StopIteration:  # the footer
                     if joined:
                         yield from emit(b"".join(joined))
@@ -849,6 +1013,9 @@ class McapSampleStream:
                     rec = _PARSED[opcode].read(ReadDataStream(io.BytesIO(body)))
                     _note_record(rec, schemas, channels, report)
                 elif opcode == Opcode.MESSAGE:
+                    if len(body) < _MESSAGE_HEAD.size:
+                        report.stopped_at = "message record shorter than its header"
+                        return
                     channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(body, 0)
                     out = message(channel_id, log_time, body[22:])
                     if out is not None:
@@ -897,7 +1064,7 @@ class McapSampleStream:
         if collect:
             self._events_complete = True
             self.samples = total
-        if collect and not self.report.complete:
+        if collect and (not self.report.complete or self.report.skipped):
             LOG.warning("%s", self.report.summary())
         if total == 0:
             raise McapRecordingError(f"{self.path}: no readable {TOPIC_RAW} messages ({self.report.summary()})")
@@ -930,9 +1097,41 @@ class McapSampleStream:
         """Run metadata and the read report, as :func:`read_file` puts them in ``Recording.metadata``."""
         md: dict[str, Any] = {name: dict(m) for name, m in self.report.metadata.items()}
         md["source"] = str(self.path)
-        md["read_report"] = {"messages": self.report.messages, "complete": self.report.complete,
-                             "stopped_at": self.report.stopped_at, "per_topic": dict(self.report.messages_per_topic)}
+        md["read_report"] = self.report.as_dict()
+        md["pose_events"] = list(self._pose_events)
         return md
+
+
+def _decoder_for(path: Path | str, factory: DecoderFactory, channel: Channel, schemas: dict[int, Schema]) -> Any:
+    """The ``mcap_ros2`` decoder of a channel, or one line saying why there is none: ``imu/raw`` of another
+    type, a schema that does not parse (instead of an AttributeError or InvalidResourceName traceback)."""
+    schema = schemas.get(channel.schema_id)
+    if channel.topic == TOPIC_RAW and (schema is None or schema.name != TYPE_RAW):
+        found = schema.name if schema is not None else "no schema"
+        raise McapRecordingError(f"{path}: topic '{TOPIC_RAW}' has type '{found}', expected '{TYPE_RAW}'")
+    try:
+        decoder = factory.decoder_for(channel.message_encoding, schema)
+    except Exception as exc:  # the ROS 2 msg parser raises many types on a malformed definition
+        name = schema.name if schema is not None else "?"
+        raise McapRecordingError(f"{path}: schema '{name}' of topic '{channel.topic}' cannot be parsed "
+                                 f"({type(exc).__name__}: {_first_line(exc)})") from None
+    if decoder is None:
+        raise McapRecordingError(f"{path}: no ROS 2 decoder for topic {channel.topic} "
+                                 f"(encoding '{channel.message_encoding}')")
+    return decoder
+
+
+def _decode(path: Path | str, decoder: Any, channel: Channel, data: bytes) -> Any:
+    """One message decoded, or one line naming the topic when its bytes do not match its schema."""
+    try:
+        return decoder(data)
+    except Exception as exc:
+        raise McapRecordingError(f"{path}: a '{channel.topic}' message does not decode with its schema "
+                                 f"({type(exc).__name__}: {_first_line(exc)})") from None
+
+
+def _first_line(exc: BaseException) -> str:
+    return (str(exc).strip().splitlines() or [""])[0][:200]
 
 
 def _note_record(rec: Any, schemas: dict[int, Schema], channels: dict[int, Channel], report: FileReadReport) -> None:
@@ -940,6 +1139,7 @@ def _note_record(rec: Any, schemas: dict[int, Schema], channels: dict[int, Chann
         schemas[rec.id] = rec
     elif isinstance(rec, Channel):
         channels[rec.id] = rec
+        report.channel_topics[rec.id] = rec.topic
     elif isinstance(rec, Metadata):
         report.metadata[rec.name] = dict(rec.metadata)
 
@@ -1011,6 +1211,10 @@ def _split_chunk(data: bytes, fast: dict[str, Any]):
             k = min(4 * k, _FAST_RUN_MAX)
         if pos >= size:
             break
-        item, pos = _record_at(data, pos, size)
+        try:
+            item, pos = _record_at(data, pos, size)
+        except _PartialRecordError:
+            yield PARTIAL_RECORD
+            return
         if item is not None:
             yield item

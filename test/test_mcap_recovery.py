@@ -1,0 +1,216 @@
+"""Damaged but recoverable recordings (issue 11): a corrupt chunk is skipped and reported, not the end
+of the file; a file cut anywhere, or finished over a half-written record, gives what it holds and no
+traceback; a recording whose ``imu/raw`` has another type or an unparsable schema gets one line.
+
+The damage is made on real recordings written by ``write_recording``; chunk positions are found by
+walking the file's record framing here, independently of the reader under test.
+"""
+
+from __future__ import annotations
+
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import Writer
+from test_fit_streaming import make_run
+
+from fbg_accel_calibration import mcap_io
+from fbg_accel_calibration.mcap_io import McapRecordingError, McapSampleStream, read_recording, write_recording
+from fbg_accel_calibration.recording import Recording
+
+BIN = Path(sys.executable).parent
+LEVELS_C = (15.0, 25.0, 35.0)
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Three temperature levels of ten poses in one file, as an imported multi-level CSV."""
+    runs = [make_run(i, t, t0_s=i * 100.0) for i, t in enumerate(LEVELS_C)]
+    for i, r in enumerate(runs):
+        r.pose_id[r.pose_id >= 0] += 10 * i
+    path = tmp_path_factory.mktemp("campaign") / "campaign.mcap"
+    write_recording(path, Recording.concatenate(runs), {"sensor_id": "fbg-test"})
+    return path
+
+
+def records(data: bytes) -> list[tuple[int, int, int]]:
+    """(offset, opcode, length) of every top-level record after the magic, up to the footer."""
+    out, pos = [], 8
+    while pos + 9 <= len(data):
+        op, length = struct.unpack_from("<BQ", data, pos)
+        out.append((pos, op, length))
+        if op == 0x02:
+            break
+        pos += 9 + length
+    return out
+
+
+def raw_stamps(path: Path) -> np.ndarray:
+    """Log times of every imu/raw message, read by the mcap library itself (the truth)."""
+    with open(path, "rb") as fh:
+        return np.array([m.log_time for _, ch, m in make_reader(fh).iter_messages(topics=["imu/raw"])], dtype=np.int64)
+
+
+def stream_count(path: Path) -> tuple[int, mcap_io.FileReadReport]:
+    src = McapSampleStream(path)
+    n = sum(len(b) for b in src.blocks(1000, with_poses=False))
+    return n, src.report
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([str(BIN / "fbg-accel-calib"), *args], capture_output=True, text=True, timeout=300)
+
+
+def test_a_flipped_bit_in_a_chunk_skips_that_chunk_only(campaign: Path, tmp_path: Path) -> None:
+    data = bytearray(campaign.read_bytes())
+    chunks = [(o, n) for o, op, n in records(bytes(data)) if op == 0x06]
+    assert len(chunks) >= 10, len(chunks)
+    off, length = chunks[len(chunks) // 2]
+    start_ns, end_ns = struct.unpack_from("<QQ", data, off + 9)
+    truth = raw_stamps(campaign)
+    lost = int(((truth >= start_ns) & (truth <= end_ns)).sum())
+    assert lost > 0
+    data[off + 9 + length // 2] ^= 0x10  # one bit inside the compressed records
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+
+    rec = read_recording(bad)
+    rep = rec.metadata["read_report"]
+    assert rep["complete"] and len(rep["skipped"]) == 1
+    skipped = rep["skipped"][0]
+    assert skipped["messages"]["imu/raw"] == lost and (skipped["start_ns"], skipped["end_ns"]) == (start_ns, end_ns)
+    assert len(rec) == len(truth) - lost
+    assert rec.t_s[-1] == read_recording(campaign).t_s[-1]  # the rest of the file after the bad chunk is there
+    n, report = stream_count(bad)
+    assert n == len(rec) and report.complete and [s.as_dict() for s in report.skipped] == rep["skipped"]
+
+    out = tmp_path / "cal.yaml"
+    res = run_cli("fit", str(bad), "-o", str(out))
+    assert res.returncode == 0, res.stderr
+    assert f"WARNING: {bad}: damaged data skipped, {lost} imu/raw samples lost" in res.stderr
+    assert "Traceback" not in res.stderr
+    import yaml
+
+    lo, hi = yaml.safe_load(out.read_text())["temperature_range_c"]
+    assert lo < LEVELS_C[0] + 1 and hi > LEVELS_C[-1] - 1  # every temperature level still in the fit
+
+
+def test_a_flipped_bit_in_a_chunk_length_resynchronises_on_the_next_chunk(campaign: Path, tmp_path: Path) -> None:
+    data = bytearray(campaign.read_bytes())
+    chunks = [(o, n) for o, op, n in records(bytes(data)) if op == 0x06]
+    off, _ = chunks[3]
+    data[off + 1 + 5] ^= 0x01  # a high byte of the length: the record now claims to run past the file
+    bad = tmp_path / "framing.mcap"
+    bad.write_bytes(bytes(data))
+    rec = read_recording(bad)
+    rep = rec.metadata["read_report"]
+    assert rep["complete"] and len(rep["skipped"]) == 1 and "framing lost" in rep["skipped"][0]["reason"]
+    truth = raw_stamps(campaign)
+    assert 0 < len(truth) - len(rec) < len(truth) // 5  # one chunk and its index lost, not the rest
+    assert stream_count(bad)[0] == len(rec)
+
+
+def test_a_file_cut_anywhere_gives_what_it_holds_in_both_readers(campaign: Path, tmp_path: Path) -> None:
+    data = campaign.read_bytes()
+    recs = records(data)
+    last_chunk = max(o for o, op, _ in recs if op == 0x06)
+    rng = np.random.default_rng(0)
+    cuts = sorted({*range(last_chunk - 20, last_chunk + 60), *range(len(data) - 300, len(data)),
+                   *rng.integers(9, len(data), 40).tolist()})
+    cut = tmp_path / "cut.mcap"
+    for at in cuts:
+        cut.write_bytes(data[:at])
+        try:
+            n_mem = len(read_recording(cut))
+        except McapRecordingError:
+            n_mem = 0
+        try:
+            n_stream = stream_count(cut)[0]
+        except McapRecordingError:
+            n_stream = 0
+        assert n_mem == n_stream, at
+
+
+def test_a_footer_written_over_a_half_written_record_is_tolerated(campaign: Path, tmp_path: Path) -> None:
+    """What an interrupted writer that still "finished" its file leaves: a chunk cut short, then a footer
+    and the closing magic. The readers keep every complete chunk before it; fit exits 0, no traceback."""
+    data = campaign.read_bytes()
+    chunks = [(o, n) for o, op, n in records(data) if op == 0x06]
+    off, length = chunks[-3]
+    footer = struct.pack("<BQ", 0x02, 20) + struct.pack("<QQI", 0, 0, 0) + b"\x89MCAP0\r\n"
+    bad = tmp_path / "half.mcap"
+    bad.write_bytes(data[: off + 9 + length // 2] + footer)
+    rec = read_recording(bad)
+    truth = raw_stamps(campaign)
+    kept = int((truth < struct.unpack_from("<Q", data, off + 9)[0]).sum())
+    assert len(rec) == kept and stream_count(bad)[0] == kept
+    res = run_cli("fit", str(bad), "-o", str(tmp_path / "cal.yaml"))
+    assert res.returncode in (0, 2) and "Traceback" not in res.stderr, res.stderr
+
+
+def _mcap_with_raw_schema(path: Path, schema_name: str, definition: bytes) -> None:
+    with open(path, "wb") as fh:
+        w = Writer(fh)
+        w.start(profile="ros2", library="test")
+        sid = w.register_schema(name=schema_name, encoding="ros2msg", data=definition)
+        cid = w.register_channel(topic="imu/raw", message_encoding="cdr", schema_id=sid)
+        w.add_message(cid, log_time=1, data=b"\x00\x01\x00\x00" + bytes(40), publish_time=1)
+        w.finish()
+
+
+@pytest.mark.parametrize("schema,definition,expected", [
+    ("sensor_msgs/msg/Imu", b"float64 x\n",
+     "topic 'imu/raw' has type 'sensor_msgs/msg/Imu', expected 'sensor_msgs/msg/JointState'"),
+    ("sensor_msgs/msg/JointState", b"this is -- not a message definition ]]\n",
+     "schema 'sensor_msgs/msg/JointState' of topic 'imu/raw' cannot be parsed"),
+])
+def test_wrong_raw_type_or_malformed_schema_is_one_line(tmp_path: Path, schema: str, definition: bytes,
+                                                        expected: str) -> None:
+    path = tmp_path / "other.mcap"
+    _mcap_with_raw_schema(path, schema, definition)
+    with pytest.raises(McapRecordingError, match=expected.replace("(", r"\(").replace(")", r"\)")):
+        read_recording(path)
+    with pytest.raises(McapRecordingError, match="imu/raw"):
+        stream_count(path)
+    res = run_cli("fit", str(path), "-o", str(tmp_path / "cal.yaml"))
+    assert res.returncode == 2 and expected in res.stderr and "Traceback" not in res.stderr, res.stderr
+    assert not (tmp_path / "cal.yaml").exists()
+
+
+def test_a_checksummed_chunk_ending_in_a_half_record_keeps_the_records_before_it(tmp_path: Path) -> None:
+    """An interrupted writer that still finished its file: its last chunk holds a record cut short, with a
+    valid CRC over it, then the footer. Both readers keep every message before that record; ``fit`` says
+    what happened instead of dying with ``struct.error``."""
+    import zlib
+
+    src = tmp_path / "plain.mcap"
+    rec = make_run(4, 25.0)
+    with mcap_io.RecordingWriter(src, {"sensor_id": "x"}, compression="none") as w:
+        for i in range(len(rec)):
+            w.write_raw(int(rec.t_s[i] * 1e9) + 1, rec.ref[i], rec.xyz[i].tolist(), temperature_c=rec.temp_c[i],
+                        temperature_valid=True, seq=i, board_time_s=rec.t_s[i])
+    data = src.read_bytes()
+    off, _, length = [r for r in records(data) if r[1] == 0x06][-1]
+    body = data[off + 9: off + 9 + length]
+    clen = struct.unpack_from("<I", body, 28)[0]
+    head, recs = body[:40 + clen], body[40 + clen:]
+    assert struct.unpack_from("<I", head, 24)[0] != 0  # the writer checksums its chunks
+    cut = recs[:len(recs) - 37]  # the last raw message record loses its tail
+    new_body = (head[:16] + struct.pack("<QI", len(cut), zlib.crc32(cut)) + head[28:32 + clen]
+                + struct.pack("<Q", len(cut)) + cut)
+    footer = struct.pack("<BQ", 0x02, 20) + struct.pack("<QQI", 0, 0, 0) + b"\x89MCAP0\r\n"
+    bad = tmp_path / "half_record.mcap"
+    bad.write_bytes(data[:off] + struct.pack("<BQ", 0x06, len(new_body)) + new_body + footer)
+    expected = len(raw_stamps(src)) - 1
+    got = read_recording(bad)
+    assert len(got) == expected
+    assert any(s["offset"] == -1 for s in got.metadata["read_report"]["skipped"])
+    assert stream_count(bad)[0] == expected
+    res = run_cli("fit", str(bad), "-o", str(tmp_path / "cal.yaml"))
+    assert res.returncode in (0, 2) and "Traceback" not in res.stderr and "struct" not in res.stderr, res.stderr
+    assert "cut short" in res.stderr
