@@ -75,6 +75,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="import the good rows and list every rejected line (default: reject the file)")
     p.add_argument("--sensor-id", default="unknown")
     p.add_argument("--notes", default="", help="operator notes stored in the MCAP metadata")
+    p.add_argument("--start-time", type=iv.start_time_ns, default=None,
+                   help="ROS time of the first row: ISO 8601 with zone (2026-11-20T09:30:00Z) or seconds since 1970; "
+                        "default: the file's own t_s (absolute if it is)")
     _add_force(p)
     p.set_defaults(func=cmd_import)
 
@@ -172,9 +175,13 @@ def cmd_import(args: argparse.Namespace) -> int:
     metadata = {"sensor_id": args.sensor_id, "operator_notes": args.notes, "source": str(args.csv),
                 "plan": "imported from CSV"}
     with atomic_path(args.output) as tmp:
-        n, poses = write_mcap(src, tmp, metadata, sensor_id=args.sensor_id, drop_bad_rows=args.drop_bad_rows)
+        n, poses, first_s = write_mcap(src, tmp, metadata, sensor_id=args.sensor_id,
+                                       drop_bad_rows=args.drop_bad_rows, start_ns=args.start_time)
     report = src.report
     print(report.summary())
+    if args.start_time is None and first_s is not None and first_s < 3.2e7:  # relative times (before 1971)
+        print(f"note: stamps are the file's t_s from {first_s:g} s, i.e. on 1970-01-01; give --start-time to place "
+              "the recording at its real time", file=sys.stderr)
     print(f"wrote {args.output}: {report.rows_kept} samples, {poses} poses, {n} messages")
     return 0
 

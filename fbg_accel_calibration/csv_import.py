@@ -339,7 +339,7 @@ def _check_header(path: Path, header: list[str], line_no: int, rate_hz: float | 
     if not any(has_g) and not any(has_a):
         raise CsvImportError(f"{path}: line {line_no}: no reference: need {list(GREF_COLUMNS)} or {list(ANGLE_COLUMNS)}")
     if "t_s" not in col and not (rate_hz and rate_hz > 0):
-        raise CsvImportError(f"{path}: no t_s column: give the sample rate (--rate, Hz)")
+        raise CsvImportError(f"{path}: no t_s column: give the sample rate (--rate, Hz; --rate 1 counts time in samples)")
     if "temperature_c" not in col and (temperature_c is None or not math.isfinite(temperature_c)):
         raise CsvImportError(f"{path}: no temperature_c column: give the temperature (--temperature, degC)")
     return col
@@ -392,13 +392,16 @@ def _pose(fields: list[str], col: dict[str, int]) -> float:
 
 
 def write_mcap(src: CsvBlocks, path: str | Path, metadata: dict[str, Any], sensor_id: str = "",
-               drop_bad_rows: bool = False) -> tuple[int, int]:
+               drop_bad_rows: bool = False, start_ns: int | None = None) -> tuple[int, int, float | None]:
     """Stream a CSV into a calibration MCAP at ``path`` (as :func:`mcap_io.write_recording` writes a
-    Recording: stamps ``t_s * 1e9`` ns, a pose event at every change of pose or reference).
+    Recording: a pose event at every change of pose or reference). Stamps are the file's own ``t_s * 1e9``
+    ns, or with ``start_ns`` (``import --start-time``) ``start_ns`` plus the time since the first row;
+    ``board_time_s`` in ``imu/raw`` keeps the file's ``t_s`` either way.
 
     Two passes over the CSV: the first checks every row and counts the poses (nothing is written when
     the import fails), the second writes block by block. Memory: one block. The ``run`` metadata
-    record (``metadata`` plus the import report) is written at the end. Returns (messages written, poses).
+    record (``metadata`` plus the import report) is written at the end. Returns (messages written, poses,
+    the first row's ``t_s`` in s or None for an empty file).
     """
     from .mcap_io import McapRecordingError, RecordingWriter
 
@@ -409,9 +412,16 @@ def write_mcap(src: CsvBlocks, path: str | Path, metadata: dict[str, Any], senso
     src.check(drop_bad_rows)
     prev_pose, prev_g, prev_stamp = None, None, -1
     seq = 0
+    shift: int | None = None if start_ns is not None else 0
+    first_t_s: float | None = None
     with RecordingWriter(path, None) as w:
         for blk in src.blocks():
             stamps = np.round(blk.t_s * 1e9).astype(np.int64)
+            if first_t_s is None and len(stamps):
+                first_t_s = float(blk.t_s[0])
+            if shift is None and len(stamps):
+                shift = int(start_ns) - int(stamps[0])
+            stamps = stamps + (shift or 0)
             known = np.all(np.isfinite(blk.gref_mps2), axis=1)
             pose = np.where((blk.pose_id >= 0) & known, blk.pose_id, -1).tolist()
             for i, stamp in enumerate(stamps.tolist()):
@@ -432,5 +442,6 @@ def write_mcap(src: CsvBlocks, path: str | Path, metadata: dict[str, Any], senso
                             temperature_valid=math.isfinite(temp), seq=seq, board_time_s=float(blk.t_s[i]))
                 seq += 1
                 prev_pose, prev_g, prev_stamp = pose[i], g, stamp
-        w.add_metadata("run", {**metadata, "import": src.report.as_dict(), "g_mps2": src.g_mps2})
-        return w.message_count, n_poses
+        w.add_metadata("run", {**metadata, "import": src.report.as_dict(), "g_mps2": src.g_mps2,
+                               "stamp_offset_ns": shift or 0})
+        return w.message_count, n_poses, first_t_s

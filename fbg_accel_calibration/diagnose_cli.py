@@ -32,7 +32,8 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     )
     p.add_argument("inputs", nargs="+", help="recordings: .csv (interchange format, docs/csv_interchange.md) or .mcap")
     p.add_argument("--rate", type=iv.rate_hz, default=None,
-                   help="CSV without t_s: sample rate in Hz (time = sample index / rate). Default 1.0, i.e. time in samples")
+                   help="CSV without t_s: sample rate in Hz (time = sample index / rate); no default, as for the "
+                        "other subcommands (--rate 1 counts time in samples)")
     p.add_argument("--temperature", type=iv.temperature_c, default=None,
                    help="CSV without temperature_c: temperature of every sample, degC")
     p.add_argument("--g", type=iv.gravity_mps2, default=None,
@@ -72,7 +73,7 @@ def load_inputs(paths: list[str], rate: float | None, temperature: float | None,
             from .csv_import import import_csv
             from .table_geometry import STANDARD_GRAVITY
 
-            rec, _ = import_csv(path, rate_hz=rate if rate is not None else 1.0, temperature_c=temperature,
+            rec, _ = import_csv(path, rate_hz=rate, temperature_c=temperature,
                                 g_mps2=g if g is not None else STANDARD_GRAVITY)
         else:
             from .cli import check_mcap

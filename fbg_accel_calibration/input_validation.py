@@ -89,3 +89,27 @@ min_interval_samples = int_in(1, 1_000_000)
 folds = int_in(2, 10_000)
 max_effects = int_in(0, 100)
 seed = int_in(0, 2**32 - 1)
+
+
+def start_time_ns(text: str) -> int:
+    """``--start-time``: an ISO 8601 time with its zone (``2026-11-20T09:30:00Z``, ``...+01:00``) or seconds
+    since the Unix epoch; returned as ns since the epoch. Refused: no zone (ambiguous), before 1970, or past
+    the int32-second limit of a ROS stamp (2038-01-19)."""
+    import datetime as dt
+
+    when: dt.datetime | None = None
+    try:
+        seconds = float(text)
+    except ValueError:
+        try:
+            when = dt.datetime.fromisoformat(text.replace("Z", "+00:00"))
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"{text!r} is neither an ISO 8601 time (e.g. 2026-11-20T09:30:00Z) nor seconds since 1970") from None
+    if when is not None:
+        if when.tzinfo is None:
+            raise argparse.ArgumentTypeError(f"{text!r} has no time zone; add Z (UTC) or an offset like +01:00")
+        seconds = when.timestamp()
+    if not (math.isfinite(seconds) and TIME_RANGE_S[0] <= seconds <= TIME_RANGE_S[1]):
+        raise argparse.ArgumentTypeError(f"{text!r} is outside 1970-01-01 .. 2038-01-19 (a ROS stamp's int32 seconds)")
+    return round(seconds * 1e9)

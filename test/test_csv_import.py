@@ -126,3 +126,47 @@ def test_cli_import_round_trip_to_mcap(tmp_path: Path, capsys: pytest.CaptureFix
     assert cli_main(["import", str(bad), "-o", str(tmp_path / "bad.mcap")]) == 2
     assert "line 2: x_counts = 'x' is not a number" in capsys.readouterr().err
     assert not (tmp_path / "bad.mcap").exists()
+
+
+def _raw_log_times(path: Path) -> list[int]:
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as fh:
+        return [m.log_time for _, _, m in make_reader(fh).iter_messages(topics=["imu/raw"])]
+
+
+def test_import_start_time_places_the_recording_in_real_time(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """issue 10: import wrote every recording on 1970-01-01; --start-time gives the first row's ROS time."""
+    csv = _write(tmp_path, GOOD)
+    rec, _ = import_csv(csv)
+    out = tmp_path / "a.mcap"
+    assert cli_main(["import", str(csv), "-o", str(out), "--start-time", "2026-11-20T09:30:00Z"]) == 0
+    start = 1_795_167_000 * 10**9  # 2026-11-20T09:30:00Z
+    stamps = np.array(_raw_log_times(out))
+    np.testing.assert_array_equal(stamps - start, np.round((rec.t_s - rec.t_s[0]) * 1e9).astype(np.int64))
+    back = read_recording(out)
+    np.testing.assert_allclose(back.t_s, rec.t_s)  # board time keeps the file's own t_s
+    assert "1970" not in capsys.readouterr().err
+    # without --start-time: the file's own times, and a note that they are relative
+    assert cli_main(["import", str(csv), "-o", str(tmp_path / "b.mcap")]) == 0
+    assert _raw_log_times(tmp_path / "b.mcap")[0] == round(rec.t_s[0] * 1e9)
+    assert "give --start-time" in capsys.readouterr().err
+    for bad in ("2026-11-20T09:30:00", "yesterday", "-5", "3e9"):
+        with pytest.raises(SystemExit) as info:
+            cli_main(["import", str(csv), "-o", str(tmp_path / "c.mcap"), "--start-time", bad])
+        assert info.value.code == 2
+        assert "--start-time" in capsys.readouterr().err
+    assert not (tmp_path / "c.mcap").exists()
+
+
+def test_import_and_diagnose_have_the_same_rate_rule(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """issue 10: a CSV without t_s needs --rate in every subcommand (diagnose silently assumed 1 Hz)."""
+    from fbg_accel_calibration.diagnose_cli import main as diagnose_main
+
+    lines = [ln for ln in GOOD.splitlines() if ln and not ln.startswith("#")]
+    keep = [i for i, c in enumerate(lines[0].split(",")) if c != "t_s"]
+    no_time = _write(tmp_path, "\n".join(",".join(ln.split(",")[i] for i in keep) for ln in lines) + "\n", "nt.csv")
+    assert cli_main(["import", str(no_time), "-o", str(tmp_path / "x.mcap")]) == 2
+    assert "give the sample rate (--rate" in capsys.readouterr().err
+    assert diagnose_main(["diagnose", str(no_time)]) == 2
+    assert "give the sample rate (--rate" in capsys.readouterr().err
