@@ -31,6 +31,7 @@ setup(
         "scipy",  # calibration fit, detector, diagnosis; the driver only for a declared correction term
         "matplotlib",  # reports and plots (fbg-accel-calib); never imported by the driver
         "AllanTools",
+        "tqdm",  # progress bars of fbg-accel-calib; never imported by the driver
     ],
     zip_safe=True,
     maintainer="fbg_accel_driver team",

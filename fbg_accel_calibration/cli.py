@@ -29,6 +29,7 @@ from fbg_accel_driver.command_line import version_line
 from . import diagnose_cli
 from . import input_validation as iv
 from .atomic_output import atomic_path, check_output_dir, check_outputs
+from .cli_progress import add_progress_option
 from .table_geometry import STANDARD_GRAVITY
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -79,6 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ROS time of the first row: ISO 8601 with zone (2026-11-20T09:30:00Z) or seconds since 1970; "
                         "default: the file's own t_s (absolute if it is)")
     _add_force(p)
+    add_progress_option(p)
     p.set_defaults(func=cmd_import)
 
     p = sub.add_parser("fit", help="MCAP (or CSV) files to a calibration YAML")
@@ -92,6 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_force(p)
     _add_detector_options(p)
     _add_csv_options(p)
+    add_progress_option(p)
     p.set_defaults(func=cmd_fit)
 
     p = sub.add_parser("allan", help="static recording to Allan deviation, VRW and bias instability")
@@ -171,7 +174,10 @@ def cmd_import(args: argparse.Namespace) -> int:
     from .csv_import import CsvBlocks, write_mcap
 
     check_outputs([args.output], [args.csv], args.force)
-    src = CsvBlocks(args.csv, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g)
+    from .cli_progress import CountedSource, enabled
+
+    src = CountedSource(CsvBlocks(args.csv, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g),
+                        f"import {args.csv.name} (1: check, 2: write)", enabled(args))
     metadata = {"sensor_id": args.sensor_id, "operator_notes": args.notes, "source": str(args.csv),
                 "plan": "imported from CSV"}
     with atomic_path(args.output) as tmp:
@@ -190,6 +196,7 @@ def _fit_streamed(args: argparse.Namespace, max_degree: int):
     """Stream the inputs block by block into the fit's cell sums (``thermal_fit.prepare_stream``): MCAP
     files through ``McapSampleStream``, CSV files re-read on every pass (``csv_import.CsvSampleSource``),
     so memory is a few blocks whatever the file sizes. Returns ``(StreamedFitData, metadata)``."""
+    from .cli_progress import CountedSource, enabled
     from .csv_import import CsvSampleSource
     from .mcap_io import McapSampleStream, read_warnings
     from .thermal_fit import prepare_stream
@@ -199,12 +206,14 @@ def _fit_streamed(args: argparse.Namespace, max_degree: int):
         if not path.is_file():
             raise ValueError(f"{path}: file not found")
         if path.suffix.lower() == ".csv":
-            sources.append(CsvSampleSource(path, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g))
+            src = CsvSampleSource(path, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g)
         else:
-            sources.append(McapSampleStream(path))
+            src = McapSampleStream(path)
+        sources.append(CountedSource(src, f"fit {path.name}", enabled(args)))
     data = prepare_stream(sources, max_degree, args.window, args.min_interval, args.level_gap)
     parts = []
-    for path, src in zip(args.inputs, sources, strict=True):
+    for path, counted in zip(args.inputs, sources, strict=True):
+        src = counted.source
         md = src.metadata()
         if isinstance(src, McapSampleStream):
             for line in read_warnings(path, md["read_report"], md["pose_events"]):

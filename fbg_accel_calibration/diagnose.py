@@ -30,6 +30,7 @@ correlated and a sample-level F-test would be far too optimistic.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -39,7 +40,7 @@ from scipy import optimize, stats
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .effects import LIBRARY, DiagnosisData, Effect, Inputs, motion_groups, separating_measurement
-from .recording import Recording
+from .recording import Recording, time_axis_label
 from .static_detector import calibration_samples
 from .thermal_fit import NotIdentifiedError, design_matrix, n_params, temperature_levels, temperature_scaling
 
@@ -527,8 +528,10 @@ class DiagnosisResult:
 
 def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degree: int = 4, folds: int = 10,
              alpha: float = 0.01, min_rel_gain: float = 0.02, max_effects: int = 3, library: tuple[Effect, ...] = LIBRARY,
-             degree: int | None = None, sensor_id: str = "unknown", seed: int = 0) -> DiagnosisResult:
-    """Run the whole diagnosis on a recording (see the module docstring)."""
+             degree: int | None = None, sensor_id: str = "unknown", seed: int = 0,
+             progress: Callable[[str], None] | None = None) -> DiagnosisResult:
+    """Run the whole diagnosis on a recording (see the module docstring). ``progress`` (optional) is called
+    with the candidate's name after each candidate evaluation (the CLI's progress bar)."""
     data = rec if isinstance(rec, DiagnosisData) else prepare_data(rec, static)
     groups = pose_groups(data)
     fold = make_folds(groups, data.use, folds, seed)
@@ -558,7 +561,11 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     steps: list[StepResult] = []
     remaining = [e for e in library]
     while remaining and len(spec.effects) < max_effects:
-        results = [ev.evaluate(spec, e, base_heldout, base_fitted, base_G) for e in remaining]
+        results = []
+        for e in remaining:
+            results.append(ev.evaluate(spec, e, base_heldout, base_fitted, base_G))
+            if progress is not None:
+                progress(e.name)
         tested = [r for r in results if r.applicable]
         alpha_each = alpha / max(len(tested), 1)
         for r in tested:
@@ -599,7 +606,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         consistency_max_abs_mps2=consistency, n_static=int(r_eval.sum()), n_groups=len(np.unique(groups[r_eval])),
         moving_residual_rms=moving,
         settings={"static": static if not isinstance(rec, DiagnosisData) else "given", "folds": int(fold.max()) + 1,
-                  "alpha": alpha, "min_rel_gain": min_rel_gain, "max_effects": max_effects, "seed": seed})
+                  "alpha": alpha, "min_rel_gain": min_rel_gain, "max_effects": max_effects, "seed": seed,
+                  "time_label": time_axis_label(rec.metadata) if isinstance(rec, Recording) else "time [s]"})
 
 
 def _confounding(ev: Evaluator, spec: ModelSpec, sig: list[CandidateResult], alpha_each: float,

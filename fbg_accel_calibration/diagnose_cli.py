@@ -19,6 +19,7 @@ import sys
 from pathlib import Path
 
 from . import input_validation as iv
+from .cli_progress import add_progress_option
 
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -56,6 +57,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--img-dir", type=Path, default=None, help="directory for the PNG plots (default: <out dir>/img)")
     p.add_argument("--yaml", type=Path, default=None, help="write the refitted calibration (with the added terms) here")
     p.add_argument("--force", action="store_true", help="replace existing output files (default: refuse)")
+    add_progress_option(p)
     p.set_defaults(func=run)
     return p
 
@@ -152,11 +154,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"fbg-accel-calib diagnose: {exc}", file=sys.stderr)
         return 2
     sensor_id = args.sensor_id or str(rec.metadata.get("sensor_id", "unknown"))
+    from .cli_progress import bar, enabled
+
     try:
         check_recording_excitation(rec)
-        res = diagnose(rec, static=args.static, max_degree=args.max_degree, folds=args.folds, alpha=args.alpha,
-                       min_rel_gain=args.min_gain, max_effects=args.max_effects, degree=args.degree,
-                       sensor_id=sensor_id, seed=args.seed)
+        with bar(enabled(args), "diagnose: candidate effects evaluated", unit="fits") as b:
+            res = diagnose(rec, static=args.static, max_degree=args.max_degree, folds=args.folds, alpha=args.alpha,
+                           min_rel_gain=args.min_gain, max_effects=args.max_effects, degree=args.degree,
+                           sensor_id=sensor_id, seed=args.seed, progress=lambda name: b.update(1))
     except ValueError as exc:
         print(f"fbg-accel-calib diagnose: {', '.join(args.inputs)}: {exc}", file=sys.stderr)
         return 2

@@ -173,7 +173,7 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
              f"{p['t_s']:.4g}", f"{p['temp_c']:.2f}"] for p in s.per_pose[:10]]
     lines += ["Poses with the largest residual (held out):", "",
               _md_table(["pose", "n", "mean residual x/y/z [m/s^2]", "z-score x/y/z", "reference x/y/z [m/s^2]",
-                         "time [s]", "temp [degC]"], rows), ""]
+                         res.settings.get("time_label", "time [s]"), "temp [degC]"], rows), ""]
     lines += [f"![residual structure]({img_prefix}residual_structure.png)", ""]
     if res.moving_residual_rms is not None:
         lines += [f"Samples not used (moving or settling), final model against the time-interpolated reference: "
@@ -193,6 +193,7 @@ def text(res: DiagnosisResult) -> str:
            f"noise floor x/y/z: {_v(res.noise_floor)} m/s^2"]
     for st in res.steps:
         out.append(f"step {st.step} (model: {' + '.join(['eq28', *st.model])}):")
+        out.append("  " + " | ".join(CAND_HEAD))
         for row in candidate_rows(st.candidates):
             out.append("  " + " | ".join(row))
         for c in st.confounding:
@@ -259,7 +260,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
         ax.plot(d.t_s[ra], res.residual_after[ra, j], ".", ms=2, alpha=0.5, label="with added effects (held out)")
         ax.axhline(res.noise_floor[j], color="k", lw=0.6, ls=":")
         ax.axhline(-res.noise_floor[j], color="k", lw=0.6, ls=":")
-        ax.set_xlabel("time [s]")
+        ax.set_xlabel(res.settings.get("time_label", "time [s]"))
         ax.set_ylabel(f"residual {AXES[j]} [m/s^2]")
         ax.legend(fontsize=7)
         ax = axs[1, j]
@@ -284,7 +285,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
     fig, axs = plt.subplots(3, 3, figsize=(15, 9))
     for j in range(3):
         axs[0, j].plot(pt, pm[:, j], "o", ms=3)
-        axs[0, j].set_xlabel("time [s]")
+        axs[0, j].set_xlabel(res.settings.get("time_label", "time [s]"))
         axs[1, j].plot(pT, pm[:, j], "o", ms=3)
         axs[1, j].set_xlabel("temperature [degC]")
         sc = axs[2, j].scatter(pg[:, 0], pg[:, 1], c=pm[:, j], cmap="coolwarm", s=18)

@@ -75,3 +75,17 @@ class Recording:
             np.concatenate(run_ids),
             {"parts": [p.metadata for p in parts]},
         )
+
+
+def time_axis_label(metadata: dict[str, Any]) -> str:
+    """Axis label of ``Recording.t_s`` for reports: ``time [s]`` when the source had a time base (MCAP board
+    time, a CSV ``t_s`` column), ``sample index`` for a CSV timed by ``--rate 1`` (time = row / 1 Hz),
+    ``sample index / <rate> Hz [s]`` for another rate. Several parts (concatenated runs): the first
+    part that has no time base decides, so a label never claims seconds that are not there."""
+    parts = metadata.get("parts") if isinstance(metadata.get("parts"), list) else [metadata]
+    for md in parts:
+        base = (md.get("import") or {}).get("time_base", "t_s column") if isinstance(md, dict) else "t_s column"
+        if base != "t_s column":
+            rate = base.rsplit("/", 1)[-1].replace("Hz", "").strip()
+            return "sample index" if rate in ("1", "1.0") else f"sample index / {rate} Hz [s]"
+    return "time [s]"

@@ -48,6 +48,7 @@ PYPI_MODULES = {
     "mcap_ros2": ("mcap-ros2-support", "mcap-ros2-support"),
     "zstandard": ("zstandard", "python3-zstandard-pip"),
     "allantools": ("AllanTools", "python3-allantools-pip"),
+    "tqdm": ("tqdm", "python3-tqdm"),
 }
 # ROS 2 packages (from the ROS install or the ros-jazzy-* wheels): module = package.xml exec_depend.
 ROS_MODULES = {"rclpy", "rcl_interfaces", "ament_index_python", "sensor_msgs", "diagnostic_msgs", "geometry_msgs",

@@ -199,3 +199,30 @@ def test_measured_series_dark_offset_explains_the_drift(tmp_path: Path) -> None:
     assert np.all(res.after_heldout_rmse < res.before_heldout_rmse)
     paths = write_report(res, tmp_path / "m.md")
     assert all(p.exists() for p in paths)
+
+
+def test_console_table_has_a_header_and_reports_say_sample_index_without_a_time_base(tmp_path: Path) -> None:
+    """issue 10, operator polish: the console candidate table names its columns; a CSV timed by --rate 1
+    (no t_s) is labelled 'sample index', never 'time [s]'."""
+    from fbg_accel_calibration.csv_import import import_csv
+    from fbg_accel_calibration.diagnose_report import CAND_HEAD, text
+    from fbg_accel_calibration.recording import time_axis_label
+
+    rec = synthetic(7)
+    rows = ["sample,ref_counts,x_counts,y_counts,z_counts,gref_x_mps2,gref_y_mps2,gref_z_mps2,temperature_c,pose"]
+    for i in range(len(rec)):
+        if np.all(np.isfinite(rec.gref_mps2[i])):
+            g = rec.gref_mps2[i]
+            rows.append(f"{i},{rec.ref[i]:.3f},{rec.xyz[i, 0]:.3f},{rec.xyz[i, 1]:.3f},{rec.xyz[i, 2]:.3f},"
+                        f"{g[0]:.6f},{g[1]:.6f},{g[2]:.6f},{rec.temp_c[i]:.3f},{rec.pose_id[i]}")
+    csv = tmp_path / "s.csv"
+    csv.write_text("\n".join(rows) + "\n")
+    by_index, _ = import_csv(csv, rate_hz=1.0)
+    assert time_axis_label(by_index.metadata) == "sample index"
+    assert time_axis_label(import_csv(csv, rate_hz=100.0)[0].metadata) == "sample index / 100.0 Hz [s]"
+    assert time_axis_label(rec.metadata) == "time [s]"
+    res = diagnose(by_index, static="table", max_effects=1)
+    out = text(res)
+    assert "  " + " | ".join(CAND_HEAD) in out.splitlines()
+    md = markdown(res, "cmd")
+    assert "| sample index |" in md and "time [s]" not in md
