@@ -68,7 +68,10 @@ PARAMETERS: dict[str, tuple[str, Any, str]] = {
     ),
 }
 
-USAGE = f"""usage: driver [-h] [--version] [--ros-args -p NAME:=VALUE ... | --params-file FILE]
+USAGE = f"""usage: driver [-h] [--version] [--managed] [--ros-args -p NAME:=VALUE ... | --params-file FILE]
+
+  --managed   run as a managed (lifecycle) node: configure loads the calibration and opens the port,
+              activate publishes, deactivate stops publishing, cleanup closes the port
 
 ROS 2 driver for the FBG triaxial accelerometer acquisition board (package {PACKAGE}).
 Reads binary frames from a serial port (pyserial), stamps them with the board clock mapped to ROS
@@ -126,9 +129,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     try:
         user = argv[: argv.index("--ros-args")] if "--ros-args" in argv else argv
+        managed = "--managed" in user
+        user = [a for a in user if a != "--managed"]
         if user:
             raise StartupError(f"unknown argument(s) {user}; parameters go after --ros-args (see driver --help)")
-        return _run(argv)
+        return _run([a for a in argv if a != "--managed"], managed)
     except StartupError as exc:
         print(f"driver: error: {_one_line(str(exc))}", file=sys.stderr, flush=True)
         return 2
@@ -136,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
 
-def _run(argv: list[str]) -> int:
+def _run(argv: list[str], managed: bool = False) -> int:
     import signal
 
     import rclpy
@@ -152,7 +157,7 @@ def _run(argv: list[str]) -> int:
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     node = None
     try:
-        node = _make_node()
+        node = _make_node(managed)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         try:
@@ -170,11 +175,12 @@ def _run(argv: list[str]) -> int:
             signal.signal(sig, handler)
 
 
-def _make_node() -> Any:
+def _make_node(managed: bool = False) -> Any:
     """Build the node class lazily (keeps rclpy out of --help and of the pure modules)."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
     from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType, SetParametersResult
     from rclpy.exceptions import ParameterException
+    from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
     from rclpy.node import Node
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from rclpy.qos_overriding_options import QoSOverridingOptions
@@ -199,10 +205,28 @@ def _make_node() -> Any:
     data_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.VOLATILE)
 
-    class DriverNode(Node):
+    base = LifecycleNode if managed else Node
+
+    class DriverNode(base):  # type: ignore[valid-type, misc]
+        """Plain node: configured and active from construction. Managed (``--managed``): configure loads the
+        calibration, creates the publishers and opens the port (the reader runs, frames are decoded and
+        diagnosed); activate publishes; deactivate stops publishing (the port stays open); cleanup
+        closes the port and drops the publishers."""
+
         def __init__(self) -> None:
             super().__init__("fbg_accel_driver")
-            p = self._declare_all()
+            self._declare_all()
+            self.core: DriverCore | None = None
+            self.link: SerialLink | None = None
+            self._publishing = False
+            self.add_on_set_parameters_callback(self._on_set_parameters)
+            if not managed:
+                self._configure()
+                self._activate()
+
+        # ------------------------------------------------------------ life cycle
+        def _configure(self) -> None:
+            p = self._read_parameters()
             self.frame_id: str = p["frame_id"]
             choice = p["calibration_file"].strip()
             if not choice:
@@ -227,7 +251,7 @@ def _make_node() -> Any:
                 out_of_range_variance_factor=p["out_of_range_variance_factor"],
             )
             try:
-                self.core = DriverCore(self.calibration, core_cfg)
+                core = DriverCore(self.calibration, core_cfg)
             except ValueError as exc:
                 raise StartupError(f"invalid parameter: {exc}") from None
             cal = self.calibration
@@ -238,12 +262,13 @@ def _make_node() -> Any:
             self.diag = DriverDiagnostics(prefix="fbg_accel_driver")
             self.msgs = DriverMessages(self.frame_id)  # used by the publisher thread only
             overridable = QoSOverridingOptions.with_default_policies()
-            self.pub_imu = self.create_publisher(Imu, "imu/data_raw", data_qos, qos_overriding_options=overridable) \
+            create = self.create_lifecycle_publisher if managed else self.create_publisher
+            self.pub_imu = create(Imu, "imu/data_raw", data_qos, qos_overriding_options=overridable) \
                 if cal is not None else None
-            self.pub_temp = self.create_publisher(Temperature, "imu/temperature", data_qos,
-                                                  qos_overriding_options=overridable)
-            self.pub_raw = self.create_publisher(JointState, "imu/raw", data_qos, qos_overriding_options=overridable)
-            self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+            self.pub_temp = create(Temperature, "imu/temperature", data_qos, qos_overriding_options=overridable)
+            self.pub_raw = create(JointState, "imu/raw", data_qos, qos_overriding_options=overridable)
+            self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)  # also while inactive
+            self._refuse_unknown_parameters()  # after the publishers: they declare the qos_overrides parameters
             clock = self.get_clock()
             self.link = SerialLink(
                 p["port"], p["baud"], notify=self._wake_publisher,
@@ -251,13 +276,12 @@ def _make_node() -> Any:
                 backoff_max_s=p["reconnect_backoff_max_s"], silence_timeout_s=p["silence_timeout_s"],
                 max_queued_bytes=p["reader_queue_max_bytes"],
             )
+            self.core = core
             self._link_state = LinkState.CONNECTING
             self._link_changes = 0
             self._stopping = threading.Event()
             self._publisher_thread = threading.Thread(target=self._publisher_loop, name="fbg-accel publisher",
                                                       daemon=True)
-            self._refuse_unknown_parameters()
-            self.add_on_set_parameters_callback(self._on_set_parameters)
             self.timer = self.create_timer(1.0, self._publish_diagnostics)
             self._publisher_thread.start()
             self.link.start()
@@ -268,9 +292,53 @@ def _make_node() -> Any:
                         f"{cal.temperature_range_c[0]:g}..{cal.temperature_range_c[1]:g} degC)")
             self.get_logger().info(f"reading {p['port']} at {p['baud']} baud, {what}, decimation {p['decimation']}")
 
+        def _activate(self) -> None:
+            self._publishing = True
+
+        def _deactivate(self) -> None:
+            self._publishing = False
+
+        def _cleanup(self) -> None:
+            """Stop the reader (the port is closed) and the publisher thread; drop publishers and timer."""
+            self._publishing = False
+            if self.link is None:
+                return
+            self.close()
+            self.destroy_timer(self.timer)
+            for pub in (self.pub_imu, self.pub_temp, self.pub_raw):
+                if pub is not None:
+                    (self.destroy_lifecycle_publisher if managed else self.destroy_publisher)(pub)
+            self.destroy_publisher(self.pub_diag)
+            self.link = None
+            self.core = None
+
+        def on_configure(self, state: Any) -> Any:
+            try:
+                self._configure()
+            except StartupError as exc:
+                self.get_logger().error(f"configure failed: {_one_line(str(exc))}")
+                self._cleanup()
+                return TransitionCallbackReturn.FAILURE
+            return super().on_configure(state)
+
+        def on_activate(self, state: Any) -> Any:
+            self._activate()
+            return super().on_activate(state)
+
+        def on_deactivate(self, state: Any) -> Any:
+            self._deactivate()
+            return super().on_deactivate(state)
+
+        def on_cleanup(self, state: Any) -> Any:
+            self._cleanup()
+            return super().on_cleanup(state)
+
+        def on_shutdown(self, state: Any) -> Any:
+            self._cleanup()
+            return super().on_shutdown(state)
+
         # ------------------------------------------------------------ parameters
-        def _declare_all(self) -> dict[str, Any]:
-            values: dict[str, Any] = {}
+        def _declare_all(self) -> None:
             for name, (typ, default, desc) in PARAMETERS.items():
                 d = ParameterDescriptor(name=name, type=ptypes[typ], description=desc,
                                         read_only=name not in RUNTIME_PARAMETERS)
@@ -285,9 +353,14 @@ def _make_node() -> Any:
                 if name == "covariance_source":
                     d.additional_constraints = "one of " + ", ".join(COVARIANCE_SOURCES)
                 try:
-                    values[name] = self.declare_parameter(name, default, d).value
+                    self.declare_parameter(name, default, d)
                 except ParameterException as exc:
                     raise StartupError(f"invalid parameter '{name}': {_first_line(exc)} ({desc})") from None
+
+        def _read_parameters(self) -> dict[str, Any]:
+            """The declared values (as set now: a managed node may have been given new ones before configure),
+            with the checks a range descriptor cannot express."""
+            values = {name: self.get_parameter(name).value for name in PARAMETERS}
             if not values["port"]:
                 raise StartupError("invalid parameter 'port': empty (give the serial device, e.g. -p port:=/dev/ttyUSB0)")
             fid = values["frame_id"]
@@ -309,7 +382,7 @@ def _make_node() -> Any:
             """``ros2 param set``: RUNTIME_PARAMETERS go to DriverCore.reconfigure (validated as a whole);
             read-only ones are already refused by rclpy through their descriptor."""
             changes = {q.name: q.value for q in params if q.name in RUNTIME_PARAMETERS}
-            if not changes or not hasattr(self, "core"):  # during start-up: the declared values
+            if not changes or getattr(self, "core", None) is None:  # not configured: read at configure
                 return SetParametersResult(successful=True)
             try:
                 self.core.reconfigure(**changes)
@@ -353,6 +426,8 @@ def _make_node() -> Any:
             self._link_changes = self.link.state_changes
 
         def _publish(self, out: Any) -> None:
+            if not self._publishing:  # managed and inactive: frames are decoded and diagnosed, not published
+                return
             msgs = self.msgs
             for r in out.raw:
                 self.pub_raw.publish(msgs.raw_msg(r))
@@ -395,6 +470,9 @@ def _make_node() -> Any:
             self.pub_diag.publish(arr)
 
         def close(self) -> None:
+            """Stop the reader thread (closing the port) and the publisher thread; idempotent."""
+            if self.link is None:
+                return
             self.link.stop()
             self._stopping.set()
             self.link.queue.wake()

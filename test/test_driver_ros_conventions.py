@@ -108,3 +108,72 @@ def test_qos_parameters_hardware_id_and_clean_shutdown(ros: Context, tmp_path: P
         stop(drv_a)
         stop(drv_b)
         listener.close()
+
+
+def _has_open(pid: int, path: Path) -> bool:
+    """Whether process ``pid`` holds ``path`` (the pty behind the simulator's link) open."""
+    import os
+
+    target = os.path.realpath(path)
+    fd_dir = Path(f"/proc/{pid}/fd")
+    for fd in fd_dir.iterdir():
+        try:
+            if os.readlink(fd) == target:
+                return True
+        except OSError:
+            continue
+    return False
+
+
+def test_managed_driver_follows_its_lifecycle(ros: Context, tmp_path: Path) -> None:
+    """``driver --managed``: unconfigured = port closed, nothing published; configure opens the port and
+    decodes (diagnostics count frames) without publishing; activate publishes; deactivate stops
+    publishing; cleanup closes the port; SIGINT exits 0."""
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState
+    from test_driver_process import BIN
+
+    link = tmp_path / "board"
+    listener = Listener("test_lifecycle", ros)
+    raw: list = []
+    from sensor_msgs.msg import JointState
+
+    listener.node.create_subscription(JointState, "imu/raw", raw.append, 10)
+    sim, _ = start_sim(["--link", str(link), "--duration", "60", "--seed", "6"])
+    log = tmp_path / "managed.log"
+    import subprocess
+
+    drv = subprocess.Popen([str(BIN / "driver"), "--managed", "--ros-args", "-p", f"port:={link}",
+                            "-p", "calibration_file:=sim"], stdout=log.open("w"), stderr=subprocess.STDOUT)
+    try:
+        node = listener.node
+        client = node.create_client(ChangeState, "/fbg_accel_driver/change_state")
+        assert client.wait_for_service(timeout_sec=30.0), log.read_text()
+
+        def change(tid: int) -> bool:
+            fut = client.call_async(ChangeState.Request(transition=Transition(id=tid)))
+            listener.wait_until(fut.done, 20, f"transition {tid}")
+            return fut.result().success
+
+        assert not _has_open(drv.pid, link) and not listener.diag  # unconfigured: nothing opened or published
+        assert change(Transition.TRANSITION_CONFIGURE)
+        listener.wait_until(lambda: bool(listener.diag) and int(listener.last("frames")[2]["frames"]) >= 50, 20,
+                            "configured: frames decoded and diagnosed")
+        assert _has_open(drv.pid, link) and raw == [] and listener.imu == []
+        assert change(Transition.TRANSITION_ACTIVATE)
+        listener.wait_until(lambda: len(raw) >= 50 and len(listener.imu) >= 50, 20, "active: data published")
+        assert change(Transition.TRANSITION_DEACTIVATE)
+        n_after = len(raw)
+        frames_then = int(listener.last("frames")[2]["frames"])
+        listener.wait_until(lambda: int(listener.last("frames")[2]["frames"]) >= frames_then + 150, 20,
+                            "inactive: 150 more frames decoded")
+        assert len(raw) <= n_after + 5  # at most what was already in flight
+        assert change(Transition.TRANSITION_CLEANUP)
+        assert not _has_open(drv.pid, link)  # the port is released
+        assert stop(drv) == 0
+        text = log.read_text()
+        assert "[ERROR]" not in text and "Traceback" not in text, text
+    finally:
+        stop(sim)
+        stop(drv)
+        listener.close()
