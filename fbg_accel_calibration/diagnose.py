@@ -95,10 +95,6 @@ class ModelSpec:
     def plus(self, effect: Effect, h: float | None) -> ModelSpec:
         return ModelSpec(self.degree, self.t_center_c, self.t_scale_c, [*self.effects, (effect, h)])
 
-    def with_hyper(self, name: str, h: float | None) -> ModelSpec:
-        return ModelSpec(self.degree, self.t_center_c, self.t_scale_c,
-                         [(e, h if e.name == name else hh) for e, hh in self.effects])
-
     @property
     def names(self) -> list[str]:
         return [e.name for e, _ in self.effects]

@@ -54,10 +54,6 @@ class StaticDetection:
     noise_var: np.ndarray
     threshold: np.ndarray
 
-    @property
-    def static_fraction(self) -> float:
-        return float(self.mask.mean()) if self.mask.size else 0.0
-
 
 BLOCK_ROWS = 65536  # moving variances are computed in blocks of this many rows (bounded memory)
 

@@ -176,10 +176,6 @@ class ClockSync:
             return False
         return self._last_obs_s - self._started_s >= self.config.prime_s
 
-    @property
-    def initialised(self) -> bool:
-        return self._applied is not None
-
     def stamp(self, t_us: int) -> int:
         """Host/ROS time in ns for board time ``t_us``; call ``observe`` for it first."""
         board_s = t_us * 1e-6

@@ -33,10 +33,6 @@ import numpy as np
 
 CORRECTION_TYPES: dict[str, type] = {}
 
-# Order of the stages; diagnose sorts declared terms by it (input corrections first).
-STAGE_ORDER = ("chain_dynamics", "tia_inverse_filter", "reference_dark_offset", "thermal_lag",
-               "spectral_nonlinearity", "channel_offset", "time_drift", "thermal_hysteresis")
-
 
 def correction_from_dict(d: Any) -> Any:
     """Build a correction term from its YAML mapping; unknown kinds are refused."""

@@ -140,9 +140,6 @@ class SimBlock:
                 out.append(f)
         return out
 
-    def truth_dict(self) -> dict[str, Any]:
-        return {**self.arrays, **self.counters}
-
 
 class BoardSimulator:
     """Streaming simulator of the board: ``step(n) -> SimBlock`` (deterministic for a seed)."""

@@ -29,7 +29,6 @@ import numpy as np
 from ..frame_codec import BODY_LEN_V1, FRAME_SIZE_V1, PROTOCOL_VERSION, SEQ_MODULO, SYNC, Status, crc16
 
 NONE, DROP, DUPLICATE, BIT_FLIP, TRUNCATE = 0, 1, 2, 3, 4
-WIRE_FAULT_NAMES = {DROP: "dropped", DUPLICATE: "duplicated", BIT_FLIP: "bit_flips", TRUNCATE: "truncated"}
 FLIP_FIRST_BYTE = 4  # first byte a bit flip may touch (after sync, version, body_len)
 TRUNC_MIN, TRUNC_MAX = 4, FRAME_SIZE_V1 - 1  # bytes kept of a truncated frame
 _GARBAGE_ALPHABET = np.array([b for b in range(256) if b not in (SYNC[0], SYNC[1])], dtype=np.uint8)

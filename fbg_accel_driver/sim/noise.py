@@ -157,10 +157,6 @@ class NoiseModel:
         """Per-sample standard deviation (3,) of the noise in m/s^2."""
         return np.sqrt(np.array([white_scale**2 * ax.white_q + bi_scale**2 * float(ax.bi_q.sum()) for ax in self.axes]))
 
-    def white_sample_sigma(self, white_scale: float = 1.0) -> np.ndarray:
-        """Per-sample standard deviation (3,) of the VRW (short-term) part in m/s^2."""
-        return white_scale * np.sqrt(np.array([ax.white_q for ax in self.axes]))
-
 
 class GaussMarkovBank:
     """Streaming generator of independent stationary GM processes (columns), exact discretisation."""
