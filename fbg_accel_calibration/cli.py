@@ -238,7 +238,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
             data, metadata = _fit_streamed(args, max_degree)
         except StreamOrderError as exc:
             print(f"note: {exc}; reading all samples into memory instead", file=sys.stderr)
-    if data is None:
+    in_memory = data is None
+    if in_memory:
         rec = _load(args.inputs, args)
         metadata = rec.metadata
         data = prepare(rec, args.window, args.min_interval, args.level_gap)
@@ -265,6 +266,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
         if args.degree != selection.chosen_degree:
             print(f"note: --degree {args.degree} overrides the cross-validated choice {selection.chosen_degree}")
     cal = fit_thermal(data, degree, sensor_id=args.sensor_id or _sensor_id_of(metadata))
+    # the first input's first samples, the same either way
+    first = rec.select(rec.run_id == rec.run_id[0]) if in_memory else _first_block(args.inputs[0], args)
+    _add_noise_correlation(cal, first, args)
     cal.fit["sources"] = [str(p) for p in args.inputs]
     cal.fit["degree_selection"] = selection.as_dict()
     with atomic_path(args.output) as tmp:
@@ -277,6 +281,33 @@ def cmd_fit(args: argparse.Namespace) -> int:
           f"{cal.fit['samples_used']} of {cal.fit['samples_total']} samples used")
     print(f"wrote {args.output}")
     return 0
+
+
+def _first_block(path: Path, args: argparse.Namespace):
+    """The first samples of one input (up to ``noise_correlation.SAMPLE_ROWS``), without pose events."""
+    from .csv_import import CsvSampleSource
+    from .mcap_io import McapSampleStream
+    from .noise_correlation import SAMPLE_ROWS
+
+    src = (CsvSampleSource(path, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g)
+           if path.suffix.lower() == ".csv" else McapSampleStream(path))
+    blocks = src.blocks(SAMPLE_ROWS, False)
+    try:
+        return next(iter(blocks))
+    finally:
+        blocks.close()
+
+
+def _add_noise_correlation(cal, rec, args: argparse.Namespace) -> None:
+    """Fit the white + first-order noise model of the calibrated output (the driver's decimated covariance)."""
+    from .noise_correlation import from_recording
+
+    corr = from_recording(rec, cal, args.window, args.min_interval)
+    cal.noise_correlated_fraction, cal.noise_time_constant_s = corr.correlated_fraction, corr.time_constant_s
+    cal.fit["noise_correlation"] = {**corr.as_dict(), "static_intervals": corr.segments, "samples": corr.samples}
+    print("noise correlation x/y/z: correlated fraction " + " / ".join(f"{v:.2f}" for v in corr.correlated_fraction)
+          + ", time constant " + " / ".join(f"{v:.3f}" for v in corr.time_constant_s)
+          + f" s ({corr.segments} static intervals, {corr.samples} samples)")
 
 
 def _sensor_id_of(md: dict) -> str | None:

@@ -88,6 +88,11 @@ def refit(sources: list[str], output: str | Path, degree: int | None = None, sen
         cal = fit_thermal(rec, degree, sensor_id=sensor_id)
     except NotIdentifiedError as exc:
         raise RefitError(str(exc)) from None
+    from .noise_correlation import from_recording
+
+    corr = from_recording(rec, cal)
+    cal.noise_correlated_fraction, cal.noise_time_constant_s = corr.correlated_fraction, corr.time_constant_s
+    cal.fit["noise_correlation"] = {**corr.as_dict(), "static_intervals": corr.segments, "samples": corr.samples}
     cal.fit["sources"] = list(sources)
     if selection is not None:
         cal.fit["degree_selection"] = selection.as_dict()

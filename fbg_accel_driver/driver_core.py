@@ -37,8 +37,11 @@ its raw and temperature records and no acceleration is computed (a sensor not ca
 while recording its first calibration run).
 
 Decimation: ``decimation`` consecutive published samples are averaged (boxcar); the stamp is
-their mean stamp (the group-delay centre), the variance is ``sum(var_i) / N**2``. Raw records
-are always produced for every board sample.
+their mean stamp (the group-delay centre). The variance is the mean of the samples' variances times
+``noise_model.mean_variance_factor``: the noise is low-passed by the transimpedance stages, so N
+correlated samples carry the information of fewer than N independent ones (white noise: 1/N; with
+the calibration's ``noise_correlation``, from the block's own sample interval). Raw records are always
+produced for every board sample.
 """
 
 from __future__ import annotations
@@ -50,6 +53,7 @@ import numpy as np
 
 from .clock_sync import ClockSync, ClockSyncConfig
 from .frame_codec import ADC_MAX, Frame, Status
+from .noise_model import mean_variance_factor
 from .stream_decoder import StreamDecoder
 from .thermal_model import MIN_REFERENCE_COUNTS, ThermalCalibration
 
@@ -175,6 +179,11 @@ class DriverCore:
         self._coef_cache: dict[float, tuple[tuple[float, ...], tuple[float, float, float]]] = {}
         self._unstamped: list[Frame] = []  # frames waiting for the clock estimate to be primed
         self._base_var = tuple(float(v) ** 2 for v in self._base_sigma())
+        if calibration is not None and self.config.covariance_source != "unknown":
+            self._noise_corr = tuple(zip(calibration.noise_correlated_fraction.tolist(),
+                                         calibration.noise_time_constant_s.tolist(), strict=True))
+        else:
+            self._noise_corr = ((0.0, 0.0),) * 3
 
     def _base_sigma(self) -> np.ndarray:
         src = self.config.covariance_source
@@ -364,7 +373,9 @@ class DriverCore:
         else:
             stamp = sum(b[0] for b in block) // n
             acc = tuple(math.fsum(b[1][a] for b in block) / n for a in range(3))
-            var = [math.fsum(b[2][a] for b in block) / n**2 for a in range(3)]
+            dt_s = (block[-1][0] - block[0][0]) * 1e-9 / (n - 1)  # the board's sample interval (stamps)
+            var = [math.fsum(b[2][a] for b in block) / n * mean_variance_factor(n, *self._noise_corr[a], dt_s)
+                   for a in range(3)]
             temp = math.fsum(b[3] for b in block) / n
             flags = frozenset().union(*(b[4] for b in block))
         self._pending = []

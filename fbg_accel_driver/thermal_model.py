@@ -40,7 +40,9 @@ MIN_REFERENCE_COUNTS = 1  # a reference of 0 counts would divide by zero; see no
 # The file contract (docs/calibration_file.md, sections 2 and 5): bounds a real calibration is far inside.
 TOP_LEVEL_KEYS = ("format", "format_version", "units", "model", "sensor_id", "created", "degree",
                   "temperature_center_c", "temperature_scale_c", "temperature_range_c", "M", "b",
-                  "noise_sigma_mps2", "fit", "corrections", "notes")
+                  "noise_sigma_mps2", "noise_correlation", "fit", "corrections", "notes")
+NOISE_CORRELATION_KEYS = ("correlated_fraction", "time_constant_s")
+MAX_NOISE_TIME_CONSTANT_S = 100.0  # the TIA low-passes are ~0.1-0.16 s (paper Table 1)
 MAX_FILE_BYTES = 1 << 20  # a real file is a few kB; refused before parsing
 MAX_DEGREE = 6  # the fit tools choose <= 3; beyond 6 the polynomial is noise
 MAX_CORRECTIONS = 32
@@ -80,11 +82,17 @@ class ThermalCalibration:
     fit: dict[str, Any] = field(default_factory=dict)
     corrections: list[Any] = field(default_factory=list)
     notes: str = ""  # free text for people; the only place a file may carry prose
+    # noise model (fbg_accel_driver.noise_model): variance fraction of the first-order part and its time
+    # constant in s, per axis; zeros = white noise
+    noise_correlated_fraction: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    noise_time_constant_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self) -> None:
         self.M = np.asarray(self.M, dtype=float)
         self.b = np.asarray(self.b, dtype=float)
         self.noise_sigma_mps2 = np.asarray(self.noise_sigma_mps2, dtype=float)
+        self.noise_correlated_fraction = np.asarray(self.noise_correlated_fraction, dtype=float)
+        self.noise_time_constant_s = np.asarray(self.noise_time_constant_s, dtype=float)
         lo, hi = self.temperature_range_c
         self.temperature_range_c = (float(lo), float(hi))
         _validate(self)
@@ -176,6 +184,9 @@ class ThermalCalibration:
             "M": [[[float(v) for v in row] for row in mk] for mk in self.M],
             "b": [[float(v) for v in bk] for bk in self.b],
             "noise_sigma_mps2": [float(v) for v in self.noise_sigma_mps2],
+            **({"noise_correlation": {"correlated_fraction": [float(v) for v in self.noise_correlated_fraction],
+                                      "time_constant_s": [float(v) for v in self.noise_time_constant_s]}}
+               if np.any(self.noise_correlated_fraction > 0) else {}),
             "fit": _plain(self.fit),
             "corrections": [term.to_dict() for term in self.corrections],
             **({"notes": self.notes} if self.notes else {}),
@@ -234,6 +245,15 @@ class ThermalCalibration:
             raise fail("temperature_range_c must be [min, max]")
         texts = {key: _text(d, key, MAX_NOTES_CHARS if key == "notes" else MAX_TEXT_CHARS, fail)
                  for key in ("sensor_id", "created", "notes")}
+        corr = d.get("noise_correlation") or {}
+        if not isinstance(corr, dict):
+            raise fail(f"'noise_correlation' must be a mapping, got {type(corr).__name__}")
+        _refuse_unknown(corr, NOISE_CORRELATION_KEYS, "noise_correlation.", fail)
+        try:
+            corr_f = np.asarray(corr.get("correlated_fraction", [0.0, 0.0, 0.0]), dtype=float)
+            corr_tau = np.asarray(corr.get("time_constant_s", [0.0, 0.0, 0.0]), dtype=float)
+        except (TypeError, ValueError, OverflowError) as exc:
+            raise fail(f"noise_correlation is not numeric ({exc})") from None
         fit = d.get("fit") or {}
         if not isinstance(fit, dict):
             raise fail(f"'fit' must be a mapping of figures, got {type(fit).__name__}")
@@ -270,6 +290,8 @@ class ThermalCalibration:
                 fit=dict(fit),
                 corrections=corrections,
                 notes=texts["notes"],
+                noise_correlated_fraction=corr_f,
+                noise_time_constant_s=corr_tau,
             )
         except (TypeError, ValueError, OverflowError) as exc:
             if isinstance(exc, CalibrationFileError):
@@ -339,6 +361,14 @@ def _validate(cal: ThermalCalibration) -> None:
             raise ValueError(f"{name} contains NaN or infinite values")
     if np.any(cal.noise_sigma_mps2 < 0):
         raise ValueError("noise_sigma_mps2 must be non-negative")
+    f, tau = cal.noise_correlated_fraction, cal.noise_time_constant_s
+    if f.shape != (3,) or tau.shape != (3,):
+        raise ValueError("noise_correlation.correlated_fraction and .time_constant_s must have 3 entries each")
+    if not (np.all(np.isfinite(f)) and np.all((f >= 0) & (f <= 1))):
+        raise ValueError(f"noise_correlation.correlated_fraction must be in 0..1, got {f.tolist()}")
+    if not (np.all(np.isfinite(tau)) and np.all((tau >= 0) & (tau <= MAX_NOISE_TIME_CONSTANT_S))):
+        raise ValueError(f"noise_correlation.time_constant_s must be in 0..{MAX_NOISE_TIME_CONSTANT_S:g} s, "
+                         f"got {tau.tolist()}")
     lo, hi = cal.temperature_range_c
     if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
         raise ValueError(f"temperature_range_c must be finite [min, max], got {[lo, hi]}")

@@ -9,7 +9,8 @@ squares on the static samples (table at rest for at least ``--settle`` seconds, 
 low-pass has settled), with the AHT10 reading as temperature, centred and scaled
 (tau = (T - t_center_c) / t_scale_c) for conditioning. ``noise_sigma_mps2`` is the within-pose
 standard deviation of the calibrated output (white noise at the board rate) and
-``temperature_range_c`` the span of the temperatures the fit saw.
+``temperature_range_c`` the span of the temperatures the fit saw; ``noise_correlation`` the white +
+first-order model of that noise fitted to the same visits (``fbg_accel_calibration.noise_correlation``).
 """
 
 from __future__ import annotations
@@ -82,6 +83,11 @@ def make_calibration(cfg: SimConfig | None = None, seed: int = 0, degree: int = 
         sel = visit == v
         within[sel] -= within[sel].mean(axis=0)
     cal.noise_sigma_mps2 = within.std(axis=0)
+    from fbg_accel_calibration.noise_correlation import estimate
+
+    segments = [within[visit == v] for v in np.unique(visit)]
+    corr = estimate(segments, float(np.median(np.diff(rec.t_s))))
+    cal.noise_correlated_fraction, cal.noise_time_constant_s = corr.correlated_fraction, corr.time_constant_s
     cal.created = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     cal.fit = {
         "method": "plain least squares of paper eq. 28 on simulated six-pose data "
