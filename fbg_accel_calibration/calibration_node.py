@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from fbg_accel_driver.command_line import version_line, wants_help, wants_version
+from fbg_accel_driver.command_line import StartupError, first_line, version_line, wants_help, wants_version
 
 from .stillness_monitor import DEFAULT_FALSE_ALARM_PER_RUN, DEFAULT_NOISE_CORR_S
 
@@ -74,10 +74,6 @@ exit status: 0 run complete (and fitted), 1 run complete but the fit failed (MCA
 """
 
 
-class StartupError(Exception):
-    """A configuration problem that stops start-up with one clear message."""
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if wants_version(argv):
@@ -107,7 +103,7 @@ def _run(argv: list[str]) -> int:
     try:
         rclpy.init(args=["calibration", *argv], signal_handler_options=SignalHandlerOptions.NO)
     except Exception as exc:  # rclpy raises RCLError (not exported) for malformed --ros-args
-        raise StartupError(f"invalid ROS arguments: {_first_line(exc)}") from None
+        raise StartupError(f"invalid ROS arguments: {first_line(exc)}") from None
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     node = None
     try:
@@ -241,7 +237,7 @@ def _make_node() -> Any:
                     value = default if default is not None else unset_types[typ]
                     values[name] = self.declare_parameter(name, value, d).value
                 except ParameterException as exc:
-                    raise StartupError(f"invalid parameter '{name}': {_first_line(exc)} ({desc})") from None
+                    raise StartupError(f"invalid parameter '{name}': {first_line(exc)} ({desc})") from None
             if not values["plan_file"]:
                 raise StartupError("parameter 'plan_file' is required (e.g. -p plan_file:=config/pose_plan_six_position.yaml)")
             for name in ("still_window_s", "still_hold_s", "noise_learn_s", "motion_expect_g"):
@@ -377,10 +373,6 @@ def _make_node() -> Any:
             return EXIT_OK
 
     return CalibrationNode()
-
-
-def _first_line(exc: BaseException) -> str:
-    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
 
 
 if __name__ == "__main__":

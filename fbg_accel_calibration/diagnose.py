@@ -37,15 +37,13 @@ from typing import Any
 import numpy as np
 from scipy import optimize, stats
 
+from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .effects import LIBRARY, DiagnosisData, Effect, Inputs, motion_groups, separating_measurement
 from .recording import Recording, time_axis_label
 from .static_detector import calibration_samples
 from .thermal_fit import NotIdentifiedError, design_matrix, n_params, temperature_levels, temperature_scaling
-
-FULL_SCALE_MPS2 = 20 * 9.80665  # paper §3.4: ±20 g
-
 
 # ============================================================================ data preparation
 SAMPLE_SELECTIONS = ("table", "detector", "all")

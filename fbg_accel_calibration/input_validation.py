@@ -17,13 +17,15 @@ import argparse
 import math
 from collections.abc import Callable
 
+from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2  # noqa: F401  (iv.FULL_SCALE_MPS2 for the CSV bounds)
+
 ADC_MAX_COUNTS = 4095.0  # ESP32 12-bit ADC (../shared/docs/sensor_facts.md): counts 0..4095
 # Local gravity on the Earth's surface: WGS-84 normal gravity 9.780 m/s^2 (equator) .. 9.832 m/s^2
 # (poles), minus 3.1e-6 m/s^2 per metre of altitude; 9.7 .. 9.9 leaves room for local anomalies.
 GRAVITY_RANGE_MPS2 = (9.7, 9.9)
 # AHT10 operating range -40 .. 85 degC (AHT10 datasheet, Aosong); the sensor cannot report outside it.
 TEMPERATURE_RANGE_C = (-40.0, 85.0)
-FULL_SCALE_MPS2 = 20.0 * 9.80665  # sensor range +-20 g (paper); a reference beyond it is not a table pose
+# a reference beyond the sensor's range (+-20 g, FULL_SCALE_MPS2) is not a table pose
 # MCAP / ROS stamps of the recordings: builtin_interfaces/Time has an int32 second field, so board times
 # must lie in 0 .. 2^31 - 1 s (68 years); a negative or larger time cannot be stored.
 TIME_RANGE_S = (0.0, float(2**31 - 1))

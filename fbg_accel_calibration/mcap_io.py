@@ -62,6 +62,7 @@ from mcap.writer import Writer as McapWriter
 from mcap_ros2._dynamic import serialize_dynamic
 from mcap_ros2.decoder import DecoderFactory
 
+from fbg_accel_driver.command_line import first_line
 from fbg_accel_driver.driver_core import RAW_NAMES
 
 from .recording import Recording
@@ -1114,7 +1115,7 @@ def _decoder_for(path: Path | str, factory: DecoderFactory, channel: Channel, sc
     except Exception as exc:  # the ROS 2 msg parser raises many types on a malformed definition
         name = schema.name if schema is not None else "?"
         raise McapRecordingError(f"{path}: schema '{name}' of topic '{channel.topic}' cannot be parsed "
-                                 f"({type(exc).__name__}: {_first_line(exc)})") from None
+                                 f"({type(exc).__name__}: {first_line(exc)[:200]})") from None
     if decoder is None:
         raise McapRecordingError(f"{path}: no ROS 2 decoder for topic {channel.topic} "
                                  f"(encoding '{channel.message_encoding}')")
@@ -1127,11 +1128,7 @@ def _decode(path: Path | str, decoder: Any, channel: Channel, data: bytes) -> An
         return decoder(data)
     except Exception as exc:
         raise McapRecordingError(f"{path}: a '{channel.topic}' message does not decode with its schema "
-                                 f"({type(exc).__name__}: {_first_line(exc)})") from None
-
-
-def _first_line(exc: BaseException) -> str:
-    return (str(exc).strip().splitlines() or [""])[0][:200]
+                                 f"({type(exc).__name__}: {first_line(exc)[:200]})") from None
 
 
 def _note_record(rec: Any, schemas: dict[int, Schema], channels: dict[int, Channel], report: FileReadReport) -> None:

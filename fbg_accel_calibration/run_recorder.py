@@ -40,6 +40,8 @@ from typing import Any
 
 import numpy as np
 
+from fbg_accel_driver.frame_codec import SEQ_MODULO
+
 from .mcap_io import RecordingWriter
 from .pose_plan import PosePlan
 from .pose_sequencer import Mode, Phase, PoseSequencer, SequencerEvent
@@ -58,7 +60,6 @@ LEARN_SHIFT_LIMIT = 8.0  # largest block-mean difference (in noise sigmas) accep
 DEPART_SIGMAS = 10.0  # a sample this many noise sigmas from the pose's mean Psi is off the pose
 DEPART_CONFIRM = 5  # consecutive such samples: the table has left the pose (not a glitch or a knock)
 RECENT_SAMPLES = 20  # still samples before a pose's first recorded one that seed its mean Psi
-SEQ_MODULO = 1 << 16  # the board's frame sequence counter is u16 (frame protocol v1)
 MIN_RATE_SAMPLES = 20  # samples needed to measure the board rate
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-STANDARD_GRAVITY = 9.80665  # m/s^2; local g of a calibration site goes in the pose plan
+from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
 
 
 def rot_x(angle_rad: np.ndarray) -> np.ndarray:

@@ -38,6 +38,7 @@ from typing import Any, Protocol
 import numpy as np
 from scipy.stats import chi2
 
+from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2, STANDARD_GRAVITY
 from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
 
 from .recording import Recording
@@ -53,8 +54,7 @@ from .static_detector import (
     variance_threshold,
 )
 
-STANDARD_GRAVITY = 9.80665
-FULL_SCALE_MPS2 = 20.0 * STANDARD_GRAVITY  # paper: +-20 g; Table 4 RMSE is normalised by it
+# Table 4 RMSE is normalised by the full scale (re-exported for the reports)
 DEFAULT_LEVEL_GAP_C = 1.0  # degC: sorted temperatures further apart than this belong to different levels
 DEFAULT_LEVEL_WIDTH_C = 3.0  # degC: a wider cluster (a sweep, not a set-point) is split into bins this wide
 DEFAULT_CHUNK = 65536

@@ -57,3 +57,18 @@ def unknown_parameters(given: Iterable[str], declared: Iterable[str]) -> list[st
         hint = f" (did you mean '{near[0]}'?)" if near else ""
         out.append(f"unknown parameter '{name}'{hint}")
     return out
+
+
+class StartupError(Exception):
+    """A configuration problem that stops a node's start-up with one clear message (exit status 2)."""
+
+
+def first_line(exc: BaseException) -> str:
+    """The first line of an exception's message (its type name if it has none)."""
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+
+
+def one_line(text: str) -> str:
+    """Fold a multi-line message (e.g. a YAML parser error with its caret lines) into one line."""
+    parts = [ln.strip() for ln in text.splitlines()]
+    return " ".join(p for p in parts if p and set(p) != {"^"})

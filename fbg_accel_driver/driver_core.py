@@ -54,10 +54,10 @@ import numpy as np
 from .clock_sync import ClockSync, ClockSyncConfig
 from .frame_codec import ADC_MAX, Frame, Status
 from .noise_model import mean_variance_factor
+from .sensor_constants import STANDARD_GRAVITY
 from .stream_decoder import StreamDecoder
 from .thermal_model import MIN_REFERENCE_COUNTS, ThermalCalibration
 
-STANDARD_GRAVITY = 9.80665  # m/s^2
 AHT10_MIN_C = -40.0  # AHT10 datasheet operating range
 AHT10_MAX_C = 85.0
 AHT10_SIGMA_C = 0.3  # AHT10 datasheet typical accuracy +-0.3 degC, used as 1 sigma
@@ -246,7 +246,6 @@ class DriverCore:
                 start = i
             self._prev_t_us = frame.t_us
         self._process(frames[start:], host_ns, out)
-        self.decoder.reset_pending = False
         return out
 
     def flush(self) -> CoreOutput:

@@ -26,7 +26,15 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .command_line import unknown_parameters, version_line, wants_help, wants_version
+from .command_line import (
+    StartupError,
+    first_line,
+    one_line,
+    unknown_parameters,
+    version_line,
+    wants_help,
+    wants_version,
+)
 
 PACKAGE = "fbg_accel_driver"
 DEFAULT_CALIBRATION = "calibration_sim.yaml"
@@ -89,10 +97,6 @@ exit status: 0 on clean shutdown, 2 on invalid parameters or calibration file.
 """
 
 
-class StartupError(Exception):
-    """A configuration problem that stops start-up with one clear message."""
-
-
 def default_calibration_path() -> Path:
     """The shipped calibration: the installed share directory, else the source tree's config/."""
     candidates: list[Path] = []
@@ -135,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
             raise StartupError(f"unknown argument(s) {user}; parameters go after --ros-args (see driver --help)")
         return _run([a for a in argv if a != "--managed"], managed)
     except StartupError as exc:
-        print(f"driver: error: {_one_line(str(exc))}", file=sys.stderr, flush=True)
+        print(f"driver: error: {one_line(str(exc))}", file=sys.stderr, flush=True)
         return 2
     except KeyboardInterrupt:
         return 0
@@ -152,7 +156,7 @@ def _run(argv: list[str], managed: bool = False) -> int:
         # rclpy's own handler would shut the context down at once, under the publisher thread's feet
         rclpy.init(args=["driver", *argv], signal_handler_options=SignalHandlerOptions.NO)
     except Exception as exc:  # RCLError: unparsable --ros-args; its text is the only useful part
-        raise StartupError(f"invalid ROS arguments {argv}: {_first_line(exc)}") from None
+        raise StartupError(f"invalid ROS arguments {argv}: {first_line(exc)}") from None
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     node = None
@@ -316,7 +320,7 @@ def _make_node(managed: bool = False) -> Any:
             try:
                 self._configure()
             except StartupError as exc:
-                self.get_logger().error(f"configure failed: {_one_line(str(exc))}")
+                self.get_logger().error(f"configure failed: {one_line(str(exc))}")
                 self._cleanup()
                 return TransitionCallbackReturn.FAILURE
             return super().on_configure(state)
@@ -355,7 +359,7 @@ def _make_node(managed: bool = False) -> Any:
                 try:
                     self.declare_parameter(name, default, d)
                 except ParameterException as exc:
-                    raise StartupError(f"invalid parameter '{name}': {_first_line(exc)} ({desc})") from None
+                    raise StartupError(f"invalid parameter '{name}': {first_line(exc)} ({desc})") from None
 
         def _read_parameters(self) -> dict[str, Any]:
             """The declared values (as set now: a managed node may have been given new ones before configure),
@@ -479,16 +483,6 @@ def _make_node(managed: bool = False) -> Any:
             self._publisher_thread.join(2.0)
 
     return DriverNode()
-
-
-def _one_line(text: str) -> str:
-    """Fold a multi-line message (e.g. a YAML parser error with its caret lines) into one line."""
-    parts = [ln.strip() for ln in text.splitlines()]
-    return " ".join(p for p in parts if p and set(p) != {"^"})
-
-
-def _first_line(exc: BaseException) -> str:
-    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
 
 
 if __name__ == "__main__":

@@ -67,7 +67,6 @@ class StreamDecoder:
         self.stats = DecoderStats()
         self._last_seq: int | None = None
         self._last_t_us: int | None = None
-        self.reset_pending = False  # set when a reset was detected; the caller may clear it
 
     def feed(self, chunk: bytes | bytearray | memoryview) -> list[Frame]:
         """Consume ``chunk`` and return the intact, non-duplicate frames it completed."""
@@ -139,7 +138,6 @@ class StreamDecoder:
                 return False
             if frame.t_us < last_t or (frame.status & Status.BOOT):
                 self.stats.resets += 1
-                self.reset_pending = True
             else:
                 self.stats.lost_frames += (frame.seq - last_seq - 1) % SEQ_MODULO
         self._last_seq, self._last_t_us = frame.seq, frame.t_us

@@ -32,6 +32,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from .sensor_constants import FULL_SCALE_MPS2
+
 FORMAT_NAME = "fbg_accel_calibration"
 FORMAT_VERSION = 1
 UNITS = {"psi": "1", "temperature": "degC", "acceleration": "m/s^2", "time": "s"}
@@ -50,7 +52,6 @@ MAX_TEXT_CHARS = 256  # sensor_id, created
 MAX_NOTES_CHARS = 65536
 TEMPERATURE_LIMITS_C = (-100.0, 200.0)  # range and centre: beyond any climatic chamber and the AHT10 (-40..85)
 SCALE_LIMITS_C = (1e-3, 1e3)  # temperature_scale_c
-FULL_SCALE_MPS2 = 20.0 * 9.80665  # paper: +-20 g
 NOISE_MAX_MPS2 = 0.1 * FULL_SCALE_MPS2  # a white noise of a tenth of the full scale: not an accelerometer
 OUTPUT_MAX_MPS2 = 100.0 * FULL_SCALE_MPS2  # |a| bound of the plausibility evaluation (section 5)
 AHT10_RANGE_C = (-40.0, 85.0)  # the temperatures the driver can ever evaluate the model at

@@ -407,7 +407,6 @@ def test_boot_flag_is_a_reset_and_no_loss_is_counted_across_it() -> None:
     dec, out = run([wire(before + after)])
     assert out == before + after
     assert (dec.stats.resets, dec.stats.lost_frames) == (1, 0)
-    assert dec.reset_pending
 
 
 def test_clock_going_backwards_is_a_reset_even_without_boot_frame() -> None:
@@ -440,7 +439,6 @@ def test_first_frame_with_boot_flag_is_not_a_reset() -> None:
     dec, out = run([wire(frames)])
     assert out == frames
     assert dec.stats.resets == 0
-    assert not dec.reset_pending
 
 
 def test_duplicate_of_boot_frame_is_a_duplicate_not_a_second_reset() -> None:
@@ -507,7 +505,6 @@ def test_property_resets_across_boot_sessions(b: Built, sizes: list[int]) -> Non
     assert s.resets == b.resets
     assert s.lost_frames == b.lost
     assert s.duplicates == b.duplicates
-    assert dec.reset_pending == (b.resets > 0)
 
 
 @PROPERTY
