@@ -18,16 +18,15 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import rclpy
 import yaml
-
-rclpy = pytest.importorskip("rclpy")
-from rcl_interfaces.msg import ParameterType  # noqa: E402
-from rclpy.context import Context  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
-from rclpy.qos import ReliabilityPolicy  # noqa: E402
-from sensor_msgs.msg import Imu  # noqa: E402
-from test_driver_process import REPO, Listener, start_driver, start_sim, stop  # noqa: E402
+from rcl_interfaces.msg import ParameterType
+from rclpy.context import Context
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+from rclpy.qos import ReliabilityPolicy
+from sensor_msgs.msg import Imu
+from test_driver_process import REPO, Listener, start_driver, start_sim, stop
 
 
 @pytest.fixture(scope="module")

@@ -21,9 +21,7 @@ import os
 from pathlib import Path
 
 import numpy as np
-import pytest
-
-pytest.importorskip("rclpy")
+import rclpy  # noqa: F401  (a missing rclpy must fail, never skip)
 from test_driver_process import (
     Listener,
     delivered_mask,
