@@ -53,7 +53,8 @@ def records(data: bytes) -> list[tuple[int, int, int]]:
 def raw_stamps(path: Path) -> np.ndarray:
     """Log times of every imu/raw message, read by the mcap library itself (the truth)."""
     with open(path, "rb") as fh:
-        return np.array([m.log_time for _, ch, m in make_reader(fh).iter_messages(topics=["imu/raw", "/imu/raw"])], dtype=np.int64)
+        messages = make_reader(fh).iter_messages(topics=["imu/raw", "/imu/raw"])
+        return np.array([m.log_time for _, ch, m in messages], dtype=np.int64)
 
 
 def stream_count(path: Path) -> tuple[int, mcap_io.FileReadReport]:
