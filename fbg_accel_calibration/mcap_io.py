@@ -240,6 +240,10 @@ def recording_files(path: str | Path, namespace: str | None = None, raw_topic: s
             info = bag_files(path)
         except BagInputError as exc:
             raise McapRecordingError(str(exc)) from None
+        if not info.topics:  # a metadata.yaml without its topic list: choose while reading, as a cut file
+            sel = TopicSelection(namespace, raw_topic)
+            sel._auto = not sel.fixed
+            return info.files, sel
         return info.files, TopicSelection.resolve(info.topics, namespace, raw_topic, path)
     if not path.is_file():
         raise McapRecordingError(f"{path}: file not found")

@@ -66,6 +66,8 @@ def bag_files(path: str | Path) -> BagInfo:
         raise BagInputError(f"{meta}: relative_file_paths must be a non-empty list of file names")
     files = []
     for name in rel:
+        if Path(name).is_absolute() or ".." in Path(name).parts:
+            raise BagInputError(f"{meta}: relative_file_paths entry {name!r} leaves the bag directory")
         candidate = path / name
         if not candidate.is_file() and (path / Path(name).name).is_file():
             candidate = path / Path(name).name  # older rosbag2 wrote the bag directory's name in front

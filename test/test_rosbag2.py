@@ -318,6 +318,11 @@ def test_several_namespaces_are_refused_and_a_missing_topic_lists_the_topics(tmp
     res = run_cli("fit", str(one), "-o", str(out), "--namespace", "/veh2")
     assert res.returncode == 2 and "no topic /veh2/imu/raw" in res.stderr and "/veh1/imu/raw (sensor_msgs/msg/JointState)" \
         in res.stderr, res.stderr
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())
+    meta["rosbag2_bagfile_information"]["relative_file_paths"] = ["../one.mcap"]
+    (bag / "metadata.yaml").write_text(yaml.safe_dump(meta))
+    res = run_cli("fit", str(bag), "-o", str(out))
+    assert res.returncode == 2 and "leaves the bag directory" in res.stderr, res.stderr
     (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {storage_identifier: sqlite3}\n")
     res = run_cli("fit", str(bag), "-o", str(out))
     assert res.returncode == 2 and "storage_identifier" in res.stderr and "-s mcap" in res.stderr, res.stderr
@@ -355,3 +360,20 @@ def test_rosbags_decodes_every_message_of_our_recording(tmp_path: Path, samples:
             assert decoded == count
         finally:
             reader.close()
+
+
+def test_a_bag_whose_metadata_lists_no_topics_is_read_choosing_while_reading(fitted: tuple[Path, Path, Path],
+                                                                           tmp_path: Path) -> None:
+    import shutil
+
+    ours, bag, _ = fitted
+    copy = tmp_path / "bare"
+    shutil.copytree(bag, copy)
+    meta = yaml.safe_load((copy / "metadata.yaml").read_text())
+    meta["rosbag2_bagfile_information"]["topics_with_message_count"] = []
+    (copy / "metadata.yaml").write_text(yaml.safe_dump(meta))
+    ref = read_recording(ours)
+    _same_samples(read_recording(copy), ref)
+    _same_samples(read_recording(copy, namespace="/veh1"), ref)
+    with pytest.raises(mcap_io.McapRecordingError, match=r"expected topic /veh2/imu/raw.*/veh1/imu/data \(sensor_msgs/msg/Imu\)"):
+        read_recording(copy, namespace="/veh2")
