@@ -202,7 +202,7 @@ def _make_node() -> Any:
                 "node": "fbg_accel_driver calibration",
             }
             try:
-                writer = RecordingWriter(self.mcap_path, metadata, exclusive=True)
+                writer = RecordingWriter(self.mcap_path, metadata, exclusive=True, namespace=self.get_namespace())
             except FileExistsError:
                 raise StartupError(f"{self.mcap_path} exists (a file or a symbolic link); choose another run_label "
                                    "(a recording is never overwritten nor written through a link)") from None

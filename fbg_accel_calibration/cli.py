@@ -3,7 +3,8 @@
 Subcommands (``fbg-accel-calib SUBCOMMAND --help`` for the options):
 
 * ``import``   CSV (interchange format, docs/csv_interchange.md) -> calibration MCAP.
-* ``fit``      one or more MCAP (or CSV) files, e.g. one per chamber temperature -> calibration YAML;
+* ``fit``      one or more MCAP (or CSV) files or rosbag2 bag directories (``--namespace``/``--topic``),
+               e.g. one per chamber temperature -> calibration YAML;
                the degree is chosen by held-out cross-validation unless ``--degree`` is given.
 * ``allan``    a static recording + calibration -> Allan deviation PNG, VRW and bias instability per axis.
 * ``report``   a fit -> markdown report with tables and PNG plots (calibrated vs reference per pose,
@@ -63,6 +64,15 @@ def _add_detector_options(p: argparse.ArgumentParser) -> None:
                    help="temperatures further apart than this (degC) are different temperature levels (default 1)")
 
 
+def add_topic_options(p: argparse.ArgumentParser) -> None:
+    """``--namespace``/``--topic``: which raw topic of an MCAP file or rosbag2 bag directory to read."""
+    p.add_argument("--namespace", default=None, metavar="NS",
+                   help="read NS/imu/raw and NS/calibration/* (e.g. /veh1; default: the single .../imu/raw of type "
+                        "sensor_msgs/msg/JointState)")
+    p.add_argument("--topic", default=None, metavar="TOPIC",
+                   help="full name of the raw JointState topic (e.g. /veh1/imu/raw; default: see --namespace)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineErrorParser(prog="fbg-accel-calib", description="Offline calibration of the FBG triaxial accelerometer.")
     parser.add_argument("--version", action="version", version=version_line("fbg-accel-calib"))
@@ -89,6 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--degree", type=iv.degree, default=None, help="force the degree n (default: held-out cross-validation)")
     p.add_argument("--max-degree", type=iv.degree, default=6, help="largest degree scored (default 6, as paper Table 4)")
     p.add_argument("--sensor-id", default=None)
+    add_topic_options(p)
     p.add_argument("--in-memory", action="store_true",
                    help="load every sample before fitting (default: stream MCAP files block by block, same result)")
     _add_force(p)
@@ -103,6 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, default=Path("allan.png"), help="PNG plot (default allan.png)")
     p.add_argument("--json", type=Path, default=None, help="write the figures as JSON here")
     p.add_argument("--skip", type=iv.skip_s, default=0.0, help="seconds to drop at the start (warm-up)")
+    add_topic_options(p)
     _add_force(p)
     _add_csv_options(p)
     p.set_defaults(func=cmd_allan)
@@ -112,6 +124,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calibration", type=Path, required=True)
     p.add_argument("-o", "--output-dir", type=Path, required=True, help="directory for report.md and PNGs")
     p.add_argument("--max-degree", type=iv.degree, default=6)
+    add_topic_options(p)
     _add_force(p)
     _add_detector_options(p)
     _add_csv_options(p)
@@ -137,13 +150,11 @@ def _load(paths: list[Path], args: argparse.Namespace):
 
     parts = []
     for path in paths:
-        if not path.is_file():
-            raise ValueError(f"{path}: file not found")
-        if path.suffix.lower() == ".csv":
+        check_input(path)
+        if path.suffix.lower() == ".csv" and path.is_file():
             parts.append(import_csv(path, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g)[0])
         else:
-            check_mcap(path)
-            rec = read_recording(path)
+            rec = read_recording(path, getattr(args, "namespace", None), getattr(args, "topic", None))
             for line in read_warnings(path, rec.metadata.get("read_report", {}), rec.metadata.get("pose_events")):
                 print(line, file=sys.stderr)
             parts.append(rec)
@@ -160,12 +171,24 @@ def check_mcap(path: Path) -> None:
                          "interchange format (docs/csv_interchange.md)")
 
 
+def check_input(path: Path) -> None:
+    """An input is a .csv file, an MCAP file or a rosbag2 bag directory (metadata.yaml + .mcap files);
+    anything else is refused in one line."""
+    if path.is_dir():
+        from .rosbag2_input import bag_files
+
+        for part in bag_files(path).files:
+            check_mcap(part)
+        return
+    if not path.is_file():
+        raise ValueError(f"{path}: file not found")
+    if path.suffix.lower() != ".csv":
+        check_mcap(path)
+
+
 def _check_inputs(paths: list[Path]) -> None:
     for path in paths:
-        if not path.is_file():
-            raise ValueError(f"{path}: file not found")
-        if path.suffix.lower() != ".csv":
-            check_mcap(path)
+        check_input(path)
 
 
 def cmd_import(args: argparse.Namespace) -> int:
@@ -203,12 +226,11 @@ def _fit_streamed(args: argparse.Namespace, max_degree: int):
 
     sources = []
     for path in args.inputs:
-        if not path.is_file():
-            raise ValueError(f"{path}: file not found")
-        if path.suffix.lower() == ".csv":
+        check_input(path)
+        if path.suffix.lower() == ".csv" and path.is_file():
             src = CsvSampleSource(path, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g)
         else:
-            src = McapSampleStream(path)
+            src = McapSampleStream(path, args.namespace, args.topic)
         sources.append(CountedSource(src, f"fit {path.name}", enabled(args)))
     data = prepare_stream(sources, max_degree, args.window, args.min_interval, args.level_gap)
     parts = []
@@ -290,7 +312,7 @@ def _first_block(path: Path, args: argparse.Namespace):
     from .noise_correlation import SAMPLE_ROWS
 
     src = (CsvSampleSource(path, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g)
-           if path.suffix.lower() == ".csv" else McapSampleStream(path))
+           if path.suffix.lower() == ".csv" and path.is_file() else McapSampleStream(path, args.namespace, args.topic))
     blocks = src.blocks(SAMPLE_ROWS, False)
     try:
         return next(iter(blocks))

@@ -31,7 +31,11 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
         "(docs/effects.md) on the static residual, add significant effects as declared correction terms of the "
         "calibration YAML and report before/after on held-out poses next to the noise floor.",
     )
-    p.add_argument("inputs", nargs="+", help="recordings: .csv (interchange format, docs/csv_interchange.md) or .mcap")
+    p.add_argument("inputs", nargs="+", help="recordings: .csv (interchange format, docs/csv_interchange.md), .mcap "
+                   "or a rosbag2 bag directory (ros2 bag record -s mcap)")
+    from .cli import add_topic_options
+
+    add_topic_options(p)
     p.add_argument("--rate", type=iv.rate_hz, default=None,
                    help="CSV without t_s: sample rate in Hz (time = sample index / rate); no default, as for the "
                         "other subcommands (--rate 1 counts time in samples)")
@@ -62,27 +66,29 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     return p
 
 
-def load_inputs(paths: list[str], rate: float | None, temperature: float | None, g: float | None):
-    """Recording from CSV and/or MCAP files (one run per file)."""
+def load_inputs(paths: list[str], rate: float | None, temperature: float | None, g: float | None,
+                namespace: str | None = None, topic: str | None = None):
+    """Recording from CSV and/or MCAP files and/or rosbag2 bag directories (one run per input);
+    ``namespace``/``topic`` choose the raw topic of MCAP inputs (``mcap_io.TopicSelection``)."""
     from .recording import Recording
 
     parts = []
     for raw in paths:
         path = Path(raw)
-        if not path.is_file():
+        if not path.is_file() and not path.is_dir():
             raise FileNotFoundError(f"{path}: input file not found")
-        if path.suffix.lower() == ".csv":
+        if path.suffix.lower() == ".csv" and path.is_file():
             from .csv_import import import_csv
             from .table_geometry import STANDARD_GRAVITY
 
             rec, _ = import_csv(path, rate_hz=rate, temperature_c=temperature,
                                 g_mps2=g if g is not None else STANDARD_GRAVITY)
         else:
-            from .cli import check_mcap
+            from .cli import check_input
             from .mcap_io import read_recording, read_warnings
 
-            check_mcap(path)
-            rec = read_recording(path)
+            check_input(path)
+            rec = read_recording(path, namespace, topic)
             for line in read_warnings(path, rec.metadata.get("read_report", {}), rec.metadata.get("pose_events")):
                 print(line, file=sys.stderr)
         parts.append(rec)
@@ -149,7 +155,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         check_diagnose_outputs(args)
-        rec = load_inputs(args.inputs, args.rate, args.temperature, args.g)
+        rec = load_inputs(args.inputs, args.rate, args.temperature, args.g, args.namespace, args.topic)
     except (OSError, ValueError) as exc:
         print(f"fbg-accel-calib diagnose: {exc}", file=sys.stderr)
         return 2

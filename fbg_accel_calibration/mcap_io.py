@@ -66,6 +66,7 @@ from fbg_accel_driver.command_line import first_line
 from fbg_accel_driver.driver_core import RAW_NAMES
 
 from .recording import Recording
+from .rosbag2_input import BagInputError, bag_files, offered_qos_yaml
 
 LOG = logging.getLogger(__name__)
 
@@ -78,6 +79,8 @@ TYPE_RAW = "sensor_msgs/msg/JointState"
 TYPE_TEMPERATURE = "sensor_msgs/msg/Temperature"
 TYPE_REFERENCE_GRAVITY = "geometry_msgs/msg/Vector3Stamped"
 TYPE_POSE = "diagnostic_msgs/msg/DiagnosticStatus"
+ROLES = (TOPIC_RAW, TOPIC_TEMPERATURE, TOPIC_REFERENCE_GRAVITY, TOPIC_POSE)  # topic names relative to the namespace
+ROLE_TYPES = dict(zip(ROLES, (TYPE_RAW, TYPE_TEMPERATURE, TYPE_REFERENCE_GRAVITY, TYPE_POSE), strict=True))
 
 POSE_STATES = ("moving", "settling", "recording", "done")
 TABLE_FRAME = "calibration_table"
@@ -91,6 +94,166 @@ _CONSTANT = re.compile(r"^\S+\s+[A-Z][A-Z0-9_]*\s*=")
 
 class McapRecordingError(ValueError):
     """An MCAP file cannot be written or read as a calibration recording."""
+
+
+# ---------------------------------------------------------------------------- topic names
+def normalize_namespace(namespace: str | None) -> str:
+    """ROS namespace with one leading slash and none trailing: ``""``/``"/"`` -> ``"/"``, ``"ns/"`` -> ``"/ns"``."""
+    ns = "/" + (namespace or "").strip().strip("/")
+    return ns
+
+
+def full_topic_name(namespace: str, relative: str) -> str:
+    """``/ns/relative`` (``/relative`` in the root namespace)."""
+    ns = normalize_namespace(namespace)
+    return ("" if ns == "/" else ns) + "/" + relative.strip("/")
+
+
+def _absolute(topic: str) -> str:
+    return topic if topic.startswith("/") else "/" + topic
+
+
+def _namespace_of(topic: str, relative: str = TOPIC_RAW) -> str:
+    """Namespace of a full ``.../<relative>`` name (``/`` for ``/imu/raw`` or a name of another form)."""
+    t = _absolute(topic)
+    suffix = "/" + relative
+    return normalize_namespace(t[: -len(suffix)]) if t.endswith(suffix) else "/"
+
+
+def _topic_list(topics: dict[str, str]) -> str:
+    return ", ".join(f"{t} ({ty})" for t, ty in sorted(topics.items())) or "none"
+
+
+class TopicSelection:
+    """Which channels of a recording are its ``imu/raw``, ``imu/temperature``, ``calibration/*`` topics.
+
+    Channel topics are compared as full names: a relative name (old recordings: ``imu/raw``) means the
+    root namespace (``/imu/raw``). ``namespace`` (e.g. ``/veh1``) selects ``/veh1/imu/raw`` and its
+    siblings; ``raw_topic`` names the raw topic itself (its namespace, unless given, is the part before
+    ``/imu/raw``). With neither, the first ``.../imu/raw`` channel of type ``sensor_msgs/msg/JointState``
+    fixes the namespace, and another namespace with such a channel is refused (give ``namespace``);
+    :meth:`resolve` makes that choice up front from a topic list (bag metadata or MCAP summary). Without a
+    topic list (a file cut short before its summary) the first message on any of the four topics, with its
+    type, fixes the namespace (a recorder writes pose events before the first sample).
+    """
+
+    def __init__(self, namespace: str | None = None, raw_topic: str | None = None) -> None:
+        self.namespace = normalize_namespace(namespace) if namespace is not None else None
+        self.raw_topic = _absolute(raw_topic) if raw_topic else None
+        if self.namespace is None and self.raw_topic is not None:
+            self.namespace = _namespace_of(self.raw_topic)
+        self._cache: dict[str, str | None] = {}
+
+    @property
+    def fixed(self) -> bool:
+        return self.namespace is not None
+
+    def expected_raw(self) -> str:
+        """The raw topic looked for, for messages (``.../imu/raw`` before the namespace is known)."""
+        if self.raw_topic is not None:
+            return self.raw_topic
+        return full_topic_name(self.namespace, TOPIC_RAW) if self.namespace is not None else f".../{TOPIC_RAW}"
+
+    def _names(self) -> dict[str, str]:
+        names = {full_topic_name(self.namespace or "/", rel): rel for rel in ROLES}
+        if self.raw_topic is not None:
+            names = {t: r for t, r in names.items() if r != TOPIC_RAW}
+            names[self.raw_topic] = TOPIC_RAW
+        return names
+
+    def role(self, topic: str, type_name: str | None, where: str | Path = "") -> str | None:
+        """The relative role name (:data:`ROLES`) of a channel, or None for a topic this reader ignores."""
+        if topic in self._cache and self.fixed:
+            return self._cache[topic]
+        full = _absolute(topic)
+        if not self.fixed:
+            rel = next((r for r in ROLES if full.endswith("/" + r) and type_name == ROLE_TYPES[r]), None)
+            if rel is None:
+                return None
+            self.namespace = _namespace_of(full, rel)
+            self._cache.clear()
+        elif (full.endswith("/" + TOPIC_RAW) and type_name == TYPE_RAW and self.raw_topic is None
+              and self._auto and _namespace_of(full) != self.namespace):
+            raise McapRecordingError(f"{where}: several namespaces have a {TYPE_RAW} {TOPIC_RAW} topic "
+                                     f"({full_topic_name(self.namespace, TOPIC_RAW)}, {full}); choose one with "
+                                     "--namespace")
+        role = self._names().get(full)
+        self._cache[topic] = role
+        return role
+
+    _auto = False  # True when the namespace was chosen by the reader (then a second one is an error)
+
+    @classmethod
+    def resolve(cls, topics: dict[str, str], namespace: str | None, raw_topic: str | None,
+                where: str | Path) -> TopicSelection:
+        """Choose the topics from ``topics`` (full or relative name -> type) before reading: with
+        ``namespace``/``raw_topic`` the expected raw topic must be there with type JointState; without,
+        exactly one namespace may have a JointState ``.../imu/raw``. One-line :class:`McapRecordingError`
+        listing the topics found (with types) otherwise."""
+        sel = cls(namespace, raw_topic)
+        absolute = {_absolute(t): ty for t, ty in topics.items()}
+        if sel.fixed:
+            raw = sel.expected_raw()
+            if raw not in absolute:
+                raise McapRecordingError(f"{where}: no topic {raw}; topics found: {_topic_list(topics)}; give "
+                                         "--namespace or --topic")
+            if absolute[raw] != TYPE_RAW:
+                raise McapRecordingError(f"{where}: topic '{raw}' has type '{absolute[raw]}', expected '{TYPE_RAW}'")
+            return sel
+        raws = sorted(t for t, ty in absolute.items() if t.endswith("/" + TOPIC_RAW) and ty == TYPE_RAW)
+        if not raws:
+            named = sorted(t for t in topics if _absolute(t).endswith("/" + TOPIC_RAW))
+            if named:
+                raise McapRecordingError(f"{where}: topic '{named[0]}' has type '{topics[named[0]]}', expected "
+                                         f"'{TYPE_RAW}'; topics found: {_topic_list(topics)}")
+            raise McapRecordingError(f"{where}: no {TYPE_RAW} topic named .../{TOPIC_RAW}; topics found: "
+                                     f"{_topic_list(topics)}; give --topic")
+        if len(raws) > 1:
+            raise McapRecordingError(f"{where}: several namespaces have a {TYPE_RAW} {TOPIC_RAW} topic ("
+                                     + ", ".join(raws) + "); choose one with --namespace")
+        sel.namespace = _namespace_of(raws[0])
+        return sel
+
+
+def _summary_topics(path: Path) -> dict[str, str] | None:
+    """Topic -> type from an MCAP file's summary section (None when it has none, e.g. a truncated file)."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as fh:
+            summary = make_reader(fh).get_summary()
+    except Exception:  # no or damaged summary: the readers find the topics while reading
+        return None
+    if summary is None or not summary.channels:
+        return None
+    return {c.topic: (summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "no schema")
+            for c in summary.channels.values()}
+
+
+def recording_files(path: str | Path, namespace: str | None = None, raw_topic: str | None = None
+                    ) -> tuple[list[Path], TopicSelection]:
+    """The MCAP files of one recording and its topic selection: a rosbag2 bag directory (its
+    ``metadata.yaml`` files in order, topics chosen from its topic list) or one MCAP file (topics chosen
+    from its summary, or while reading when it has none)."""
+    path = Path(path)
+    if path.is_dir():
+        try:
+            info = bag_files(path)
+        except BagInputError as exc:
+            raise McapRecordingError(str(exc)) from None
+        if not info.topics:  # a metadata.yaml without its topic list: choose while reading, as a cut file
+            sel = TopicSelection(namespace, raw_topic)
+            sel._auto = not sel.fixed
+            return info.files, sel
+        return info.files, TopicSelection.resolve(info.topics, namespace, raw_topic, path)
+    if not path.is_file():
+        raise McapRecordingError(f"{path}: file not found")
+    topics = _summary_topics(path)
+    if topics is None:
+        sel = TopicSelection(namespace, raw_topic)
+        sel._auto = not sel.fixed
+        return [path], sel
+    return [path], TopicSelection.resolve(topics, namespace, raw_topic, path)
 
 
 # ---------------------------------------------------------------------------- message definitions
@@ -266,8 +429,10 @@ class RecordingWriter:
 
     def __init__(self, path: str | Path, metadata: dict[str, Any] | None = None, *,
                  chunk_bytes: int = DEFAULT_CHUNK_BYTES, compression: str = "zstd",
-                 frame_id: str = "fbg_accel_link", exclusive: bool = False) -> None:
+                 frame_id: str = "fbg_accel_link", exclusive: bool = False, namespace: str = "/") -> None:
         self.path = Path(path)
+        self.namespace = normalize_namespace(namespace)
+        self.topics = {rel: full_topic_name(self.namespace, rel) for rel in ROLES}  # relative -> full name
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
         if compression not in comp:
             raise McapRecordingError(f"compression must be one of {sorted(comp)}, got {compression!r}")
@@ -292,9 +457,13 @@ class RecordingWriter:
             self.add_metadata("run", metadata)
 
     def _register(self, topic: str, datatype: str) -> None:
+        """Channel of the relative ``topic`` under the full name ``/<namespace>/<topic>``, with the
+        ``offered_qos_profiles`` metadata of the ROS 2 profile (reliable, volatile, keep_last 10)."""
         text = message_definition(datatype)
         schema_id = self._writer.register_schema(datatype, SchemaEncoding.ROS2, text.encode())
-        self._channels[topic] = self._writer.register_channel(topic, MessageEncoding.CDR, schema_id)
+        qos = offered_qos_yaml(reliable=True, depth=10)
+        self._channels[topic] = self._writer.register_channel(self.topics[topic], MessageEncoding.CDR, schema_id,
+                                                              metadata={"offered_qos_profiles": qos})
         self._encoders[topic] = serialize_dynamic(datatype, text)[datatype]
 
     def _write(self, topic: str, stamp_ns: int, msg: dict[str, Any] | bytes) -> None:
@@ -425,6 +594,8 @@ class FileReadReport:
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     skipped: list[SkippedRange] = field(default_factory=list)  # damaged chunks passed over
     channel_topics: dict[int, str] = field(default_factory=dict)  # channel id -> topic, as read
+    channel_types: dict[str, str] = field(default_factory=dict)  # topic -> type, as read
+    raw_topic: str = TOPIC_RAW  # full name of the raw topic read (for messages)
 
     def finish(self) -> None:
         """Resolve the skipped chunks' per-channel counts to topics (call when reading ended)."""
@@ -443,7 +614,14 @@ class FileReadReport:
         """The form kept in ``Recording.metadata["read_report"]``."""
         self.finish()
         return {"messages": self.messages, "complete": self.complete, "stopped_at": self.stopped_at,
-                "per_topic": dict(self.messages_per_topic), "skipped": [r.as_dict() for r in self.skipped]}
+                "per_topic": dict(self.messages_per_topic), "skipped": [r.as_dict() for r in self.skipped],
+                "raw_topic": self.raw_topic}
+
+    def no_raw_error(self, where: str | Path, selection: TopicSelection) -> McapRecordingError:
+        """The error of a recording without readable raw messages, listing the topics found with types."""
+        return McapRecordingError(f"{where}: no readable {TOPIC_RAW} messages (expected topic "
+                                  f"{selection.expected_raw()} of type {TYPE_RAW}); topics found: "
+                                  f"{_topic_list(self.channel_types)} ({self.summary()})")
 
 
 def read_warnings(path: str | Path, report: dict[str, Any], pose_events: list[tuple[int, int, str]] | None = None
@@ -461,19 +639,24 @@ def read_warnings(path: str | Path, report: dict[str, Any], pose_events: list[tu
         if pose_events and rng.start_ns is not None and rng.end_ns is not None:
             hit = sorted({pid for t, pid, _ in pose_events if rng.start_ns <= t <= rng.end_ns and pid >= 0})
             lost = f"; poses with events in that time: {hit}" if hit else ""
-        raw = (rng.messages or {}).get(TOPIC_RAW)
-        n_raw = f"{raw} {TOPIC_RAW} samples" if raw is not None else f"an unknown number of {TOPIC_RAW} samples"
+        raw_topic = report.get("raw_topic", TOPIC_RAW)
+        raw = (rng.messages or {}).get(raw_topic)
+        n_raw = f"{raw} {raw_topic} samples" if raw is not None else f"an unknown number of {TOPIC_RAW} samples"
         out.append(f"WARNING: {path}: damaged data skipped, {n_raw} lost: {rng.describe()}{lost}; the fit uses the "
                    "rest of the file (check that every pose and temperature level it needs is still there)")
     return out
 
 
-def iter_file_messages(path: str | Path, report: FileReadReport | None = None, undecoded: frozenset[str] = frozenset()):
+def iter_file_messages(path: str | Path, report: FileReadReport | None = None, undecoded: frozenset[str] = frozenset(),
+                       selection: TopicSelection | None = None):
     """Yield ``(topic, log_time_ns, decoded_message)`` for every message of a (possibly truncated) MCAP.
 
     Uses the ``mcap`` stream reader and the ``mcap_ros2`` decoder; stops quietly at the first
     incomplete or corrupt record and notes why in ``report``. Messages of the topics in ``undecoded``
     are yielded as ``(topic, log_time_ns, (cdr_bytes, decoder))`` for batch decoding.
+
+    With a ``selection`` only the messages of the recording's topics are decoded and yielded, ``topic``
+    being the relative role name (``imu/raw``, ... whatever the namespace); others are only counted.
     """
     report = report if report is not None else FileReadReport(str(path))
     factory = DecoderFactory()
@@ -499,22 +682,22 @@ def iter_file_messages(path: str | Path, report: FileReadReport | None = None, u
                 channel = channels.get(channel_id)
                 if channel is None:
                     raise McapRecordingError(f"{path}: message on unknown channel {channel_id}")
-                decoder = decoders.get(channel.id)
-                if decoder is None:
-                    decoder = decoders[channel.id] = _decoder_for(path, factory, channel, schemas)
                 report.messages += 1
                 report.messages_per_topic[channel.topic] = report.messages_per_topic.get(channel.topic, 0) + 1
-                if channel.topic in undecoded:
-                    yield channel.topic, log_time, (data, decoder)
+                name = channel.topic
+                if selection is not None:
+                    name = _role_of(path, selection, channel, schemas, report)
+                    if name is None:
+                        continue
+                decoder = decoders.get(channel.id)
+                if decoder is None:
+                    decoder = decoders[channel.id] = _decoder_for(path, factory, channel, schemas, name == TOPIC_RAW)
+                if name in undecoded:
+                    yield name, log_time, (data, decoder)
                 else:
-                    yield channel.topic, log_time, _decode(path, decoder, channel, data)
-            elif isinstance(record, Schema):
-                schemas[record.id] = record
-            elif isinstance(record, Channel):
-                channels[record.id] = record
-                report.channel_topics[record.id] = record.topic
-            elif isinstance(record, Metadata):
-                report.metadata[record.name] = dict(record.metadata)
+                    yield name, log_time, _decode(path, decoder, channel, data)
+            else:
+                _note_record(record, schemas, channels, report)
 
 
 _RECORD_HEAD = struct.Struct("<BQ")
@@ -701,11 +884,34 @@ def _stamp_ns(header: Any) -> int:
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
-def read_file(path: str | Path) -> tuple[Recording, FileReadReport]:
-    """One MCAP file to a :class:`Recording` (run_id 0) and the report of what was read."""
+def _role_of(path: str | Path, selection: TopicSelection, channel: Channel, schemas: dict[int, Schema],
+             report: FileReadReport) -> str | None:
+    """Role (relative topic name) of a channel under ``selection``; notes the raw topic's full name."""
+    schema = schemas.get(channel.schema_id)
+    role = selection.role(channel.topic, schema.name if schema is not None else None, path)
+    if role == TOPIC_RAW:
+        report.raw_topic = channel.topic
+    return role
+
+
+def _read_all(paths: list[Path], report: FileReadReport, selection: TopicSelection, undecoded: frozenset[str]):
+    """:func:`iter_file_messages` over the files of one recording in order (a split bag); ``report.complete``
+    only when every file was read to its footer."""
+    complete = True
+    for path in paths:
+        report.complete = False
+        yield from iter_file_messages(path, report, undecoded=undecoded, selection=selection)
+        complete &= report.complete
+    report.complete = complete
+
+
+def read_file(path: str | Path, namespace: str | None = None, topic: str | None = None
+              ) -> tuple[Recording, FileReadReport]:
+    """One recording -- an MCAP file or a rosbag2 bag directory (its files in order) -- to a
+    :class:`Recording` (run_id 0) and the report of what was read. ``namespace``/``topic`` choose the
+    raw topic and its siblings (:class:`TopicSelection`; default: the single ``.../imu/raw``)."""
     path = Path(path)
-    if not path.is_file():
-        raise McapRecordingError(f"{path}: file not found")
+    files, selection = recording_files(path, namespace, topic)
     report = FileReadReport(str(path))
     temp_t: list[int] = []
     temp_v: list[float] = []
@@ -713,22 +919,22 @@ def read_file(path: str | Path) -> tuple[Recording, FileReadReport]:
     pose_events: list[tuple[int, int, str]] = []
     raw_data: list[bytes] = []
     raw_decoder = None
-    for topic, log_time, msg in iter_file_messages(path, report, undecoded=frozenset({TOPIC_RAW})):
-        if topic == TOPIC_RAW:
+    for role, log_time, msg in _read_all(files, report, selection, frozenset({TOPIC_RAW})):
+        if role == TOPIC_RAW:
             raw_data.append(msg[0])
             raw_decoder = msg[1]
-        elif topic == TOPIC_TEMPERATURE:
+        elif role == TOPIC_TEMPERATURE:
             temp_t.append(_stamp_ns(msg.header))
             temp_v.append(float(msg.temperature))
-        elif topic == TOPIC_REFERENCE_GRAVITY:
+        elif role == TOPIC_REFERENCE_GRAVITY:
             gref_events.append((_stamp_ns(msg.header), (msg.vector.x, msg.vector.y, msg.vector.z)))
-        elif topic == TOPIC_POSE:
+        elif role == TOPIC_POSE:
             values = {kv.key: kv.value for kv in msg.values}
             pose_events.append((log_time, int(values.get("pose_id", "-1")), values.get("state", msg.message)))
     if not report.complete or report.skipped:
         LOG.warning("%s", report.summary())
     if not raw_data:
-        raise McapRecordingError(f"{path}: no readable {TOPIC_RAW} messages ({report.summary()})")
+        raise report.no_raw_error(path, selection)
     raw_t, raw_rows, names = _decode_raw(path, raw_data, raw_decoder)
     stamps = np.asarray(raw_t, dtype=np.int64)
     order = np.argsort(stamps, kind="stable")
@@ -764,7 +970,7 @@ def _decode_raw(path: Path, datas: list[bytes], decoder: Any) -> tuple[np.ndarra
     The first message is decoded with the ``mcap_ros2`` decoder; every message with the same byte
     layout (same frame_id and names) is then decoded in one numpy pass, any other one generically.
     """
-    raw_channel = Channel(id=0, schema_id=0, topic=TOPIC_RAW, message_encoding="cdr", metadata={})
+    raw_channel = Channel(id=0, schema_id=0, topic=TOPIC_RAW, message_encoding="cdr", metadata={})  # for messages
     first = _decode(path, decoder, raw_channel, datas[0])
     names = tuple(first.name)
     missing = [n for n in RAW_NAMES[:4] if n not in names]
@@ -817,10 +1023,12 @@ def assign_poses(stamps_ns: np.ndarray, pose_events: list[tuple[int, int, str]],
     return pose_id, gref
 
 
-def read_recording(paths: str | Path | list[str | Path]) -> Recording:
-    """Read one or more calibration MCAPs (e.g. one per chamber temperature) into one Recording.
+def read_recording(paths: str | Path | list[str | Path], namespace: str | None = None,
+                   topic: str | None = None) -> Recording:
+    """Read one or more calibration MCAPs or rosbag2 bag directories (e.g. one per chamber temperature)
+    into one Recording; ``namespace``/``topic`` as :func:`read_file`.
 
-    Each file becomes its own ``run_id``. A truncated file (writer killed) is read up to its last
+    Each file (or bag) becomes its own ``run_id``. A truncated file (writer killed) is read up to its last
     complete chunk; ``metadata['parts'][i]['read_report']`` says how many messages were recovered and
     why reading stopped, and a warning is logged.
     """
@@ -828,7 +1036,7 @@ def read_recording(paths: str | Path | list[str | Path]) -> Recording:
         paths = [paths]
     if not paths:
         raise McapRecordingError("no MCAP files given")
-    parts = [read_file(p)[0] for p in paths]
+    parts = [read_file(p, namespace, topic)[0] for p in paths]
     if len(parts) == 1:
         parts[0].metadata = {"parts": [parts[0].metadata], **parts[0].metadata}
         return parts[0]
@@ -892,10 +1100,9 @@ class McapSampleStream:
     complete chunk, as :func:`read_file`; ``report`` tells what the last pass read.
     """
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, namespace: str | None = None, topic: str | None = None) -> None:
         self.path = Path(path)
-        if not self.path.is_file():
-            raise McapRecordingError(f"{self.path}: file not found")
+        self.files, self.selection = recording_files(self.path, namespace, topic)
         self.report = FileReadReport(str(self.path))
         self.names: tuple[str, ...] | None = None
         self.samples: int | None = None  # raw samples of the file, known after the first pass
@@ -907,9 +1114,20 @@ class McapSampleStream:
 
     # -- record level
     def _batches(self, collect_events: bool):
-        """Yield ``(stamps (k,) int64 ns, values (k, n))`` batches of ``imu/raw`` in file order."""
+        """Yield ``(stamps (k,) int64 ns, values (k, n))`` batches of ``imu/raw`` in file order, the files of
+        a bag one after the other (``report.complete`` only when every file was read to its footer)."""
         report = FileReadReport(str(self.path))
         self.report = report
+        complete = True
+        for path in self.files:
+            report.complete = False
+            yield from self._file_batches(path, report, collect_events)
+            complete &= report.complete
+        report.complete = complete
+
+    def _file_batches(self, path: Path, report: FileReadReport, collect_events: bool):
+        """:meth:`_batches` of one MCAP file (channel and schema ids are per file)."""
+        sel = self.selection
         factory = DecoderFactory()
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
@@ -921,47 +1139,48 @@ class McapSampleStream:
             report.messages += n
             report.messages_per_topic[topic] = report.messages_per_topic.get(topic, 0) + n
 
-        def decoder_of(channel: Channel) -> Any:
+        def decoder_of(channel: Channel, role: str) -> Any:
             dec = decoders.get(channel.id)
             if dec is None:
-                dec = decoders[channel.id] = _decoder_for(self.path, factory, channel, schemas)
+                dec = decoders[channel.id] = _decoder_for(path, factory, channel, schemas, role == TOPIC_RAW)
             return dec
 
         def message(channel_id: int, log_time: int, data: bytes):
             channel = channels.get(channel_id)
             if channel is None:
-                raise McapRecordingError(f"{self.path}: message on unknown channel {channel_id}")
+                raise McapRecordingError(f"{path}: message on unknown channel {channel_id}")
             count(channel.topic, 1)
-            if channel.topic == TOPIC_RAW:
+            role = _role_of(path, sel, channel, schemas, report)
+            if role == TOPIC_RAW:
                 raw_channel.add(channel_id)
                 codec = fast.get("codec")
                 if codec is not None and codec.matches(data):
                     s, v = codec.decode_many([data])
                     return s, v
-                msg = _decode(self.path, decoder_of(channel), channel, data)
+                msg = _decode(path, decoder_of(channel, role), channel, data)
                 names = tuple(msg.name)
                 if self.names is None:
                     missing = [n for n in RAW_NAMES[:4] if n not in names]
                     if missing:
-                        raise McapRecordingError(f"{self.path}: {TOPIC_RAW} lacks joint names {missing}")
+                        raise McapRecordingError(f"{path}: {channel.topic} lacks joint names {missing}")
                     self.names = names
                 elif names != self.names:
-                    raise McapRecordingError(f"{self.path}: {TOPIC_RAW} changes its name list")
+                    raise McapRecordingError(f"{path}: {channel.topic} changes its name list")
                 if len(msg.position) != len(names):
-                    raise McapRecordingError(f"{self.path}: {TOPIC_RAW} message has {len(msg.position)} values "
+                    raise McapRecordingError(f"{path}: {channel.topic} message has {len(msg.position)} values "
                                              f"for {len(names)} names")
                 if codec is None:
                     _set_fast(fast, channel_id, FixedJointStateCodec(msg.header.frame_id, names))
                 return (np.asarray([_stamp_ns(msg.header)], dtype=np.int64),
                         np.asarray(msg.position, dtype=float).reshape(1, -1))
-            if collect_events:
-                msg = _decode(self.path, decoder_of(channel), channel, data)
-                if channel.topic == TOPIC_TEMPERATURE:
+            if collect_events and role is not None:
+                msg = _decode(path, decoder_of(channel, role), channel, data)
+                if role == TOPIC_TEMPERATURE:
                     self._temp_t.append(_stamp_ns(msg.header))
                     self._temp_v.append(float(msg.temperature))
-                elif channel.topic == TOPIC_REFERENCE_GRAVITY:
+                elif role == TOPIC_REFERENCE_GRAVITY:
                     self._gref_events.append((_stamp_ns(msg.header), (msg.vector.x, msg.vector.y, msg.vector.z)))
-                elif channel.topic == TOPIC_POSE:
+                elif role == TOPIC_POSE:
                     values = {kv.key: kv.value for kv in msg.values}
                     self._pose_events.append((log_time, int(values.get("pose_id", "-1")), values.get("state", msg.message)))
             return None
@@ -969,7 +1188,7 @@ class McapSampleStream:
         def emit(data: bytes):
             for item in _split_chunk(data, fast):
                 if isinstance(item, tuple) and len(item) == 2:  # a run of fixed-layout raw records
-                    count(TOPIC_RAW, len(item[0]))
+                    count(report.raw_topic, len(item[0]))
                     yield item
                 elif isinstance(item, tuple):
                     out = message(*item)
@@ -982,9 +1201,9 @@ class McapSampleStream:
 
         joined: list[bytes] = []
         joined_bytes = 0
-        with open(self.path, "rb", buffering=1 << 20) as fh:
+        with open(path, "rb", buffering=1 << 20) as fh:
             if fh.read(len(_MAGIC)) != _MAGIC:
-                raise McapRecordingError(f"{self.path}: not an MCAP file (bad magic)")
+                raise McapRecordingError(f"{path}: not an MCAP file (bad magic)")
             records = _file_records(fh, report)
             while True:
                 try:
@@ -1068,7 +1287,7 @@ class McapSampleStream:
         if collect and (not self.report.complete or self.report.skipped):
             LOG.warning("%s", self.report.summary())
         if total == 0:
-            raise McapRecordingError(f"{self.path}: no readable {TOPIC_RAW} messages ({self.report.summary()})")
+            raise self.report.no_raw_error(self.path, self.selection)
 
     def _block(self, stamps: np.ndarray, rows: np.ndarray, with_poses: bool) -> Recording:
         """A Recording of copies (the caller reuses ``stamps`` and ``rows``)."""
@@ -1103,13 +1322,15 @@ class McapSampleStream:
         return md
 
 
-def _decoder_for(path: Path | str, factory: DecoderFactory, channel: Channel, schemas: dict[int, Schema]) -> Any:
-    """The ``mcap_ros2`` decoder of a channel, or one line saying why there is none: ``imu/raw`` of another
+def _decoder_for(path: Path | str, factory: DecoderFactory, channel: Channel, schemas: dict[int, Schema],
+                 is_raw: bool | None = None) -> Any:
+    """The ``mcap_ros2`` decoder of a channel, or one line saying why there is none: the raw topic of another
     type, a schema that does not parse (instead of an AttributeError or InvalidResourceName traceback)."""
     schema = schemas.get(channel.schema_id)
-    if channel.topic == TOPIC_RAW and (schema is None or schema.name != TYPE_RAW):
+    is_raw = channel.topic == TOPIC_RAW if is_raw is None else is_raw
+    if is_raw and (schema is None or schema.name != TYPE_RAW):
         found = schema.name if schema is not None else "no schema"
-        raise McapRecordingError(f"{path}: topic '{TOPIC_RAW}' has type '{found}', expected '{TYPE_RAW}'")
+        raise McapRecordingError(f"{path}: topic '{channel.topic}' has type '{found}', expected '{TYPE_RAW}'")
     try:
         decoder = factory.decoder_for(channel.message_encoding, schema)
     except Exception as exc:  # the ROS 2 msg parser raises many types on a malformed definition
@@ -1137,6 +1358,8 @@ def _note_record(rec: Any, schemas: dict[int, Schema], channels: dict[int, Chann
     elif isinstance(rec, Channel):
         channels[rec.id] = rec
         report.channel_topics[rec.id] = rec.topic
+        schema = schemas.get(rec.schema_id)
+        report.channel_types[rec.topic] = schema.name if schema is not None else "no schema"
     elif isinstance(rec, Metadata):
         report.metadata[rec.name] = dict(rec.metadata)
 

@@ -259,8 +259,9 @@ def procs():
 
 
 # ---------------------------------------------------------------------------- checks
-def read_raw_with_mcap_ros2(path: Path) -> tuple[list, list]:
-    """imu/raw and imu/temperature of a *complete* file through the mcap reader + ROS 2 decoder."""
+def read_raw_with_mcap_ros2(path: Path, ns: str) -> tuple[list, list]:
+    """imu/raw and imu/temperature of a *complete* file through the mcap reader + ROS 2 decoder; the file
+    names them with the node's namespace ``/<ns>/...``."""
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
 
@@ -270,10 +271,10 @@ def read_raw_with_mcap_ros2(path: Path) -> tuple[list, list]:
         summary = reader.get_summary()
         assert summary is not None, "file has no summary section"
         for schema, channel, message, decoded in reader.iter_decoded_messages():
-            if channel.topic == "imu/raw":
+            if channel.topic == f"/{ns}/imu/raw":
                 assert schema.name == "sensor_msgs/msg/JointState" and channel.message_encoding == "cdr"
                 raw.append((message.log_time, decoded))
-            elif channel.topic == "imu/temperature":
+            elif channel.topic == f"/{ns}/imu/temperature":
                 temp.append((message.log_time, decoded))
     return raw, temp
 
@@ -307,7 +308,7 @@ def test_mcap_round_trips_message_for_message_and_the_run_is_fitted(ros, plan_di
     assert "calibration written to" in out and "lost" in out
 
     # (1) the mcap reader + ROS 2 decoder give back exactly what was published, in order
-    raw, temp = read_raw_with_mcap_ros2(node.mcap)
+    raw, temp = read_raw_with_mcap_ros2(node.mcap, node.ns)
     n = len(raw)
     assert n <= ros.published and n > 0.8 * len(stream.stamps_ns)
     assert_raw_matches_published(raw, stream)
@@ -359,7 +360,7 @@ def test_signal_closes_the_file_cleanly_in_operator_mode(ros, plan_dir, procs, s
     rc = node.wait_exit(timeout=20)
     assert rc == 3, node.output()
 
-    raw, _ = read_raw_with_mcap_ros2(node.mcap)  # needs the summary: proves the clean close
+    raw, _ = read_raw_with_mcap_ros2(node.mcap, node.ns)  # needs the summary: proves the clean close
     assert_raw_matches_published(raw, stream)
     rec, report = read_file(node.mcap)
     assert report.complete
@@ -404,7 +405,7 @@ def test_sigkill_mid_recording_leaves_a_file_read_up_to_its_last_chunk_that_the_
     # everything recovered is exactly the published prefix
     from fbg_accel_calibration.mcap_io import iter_file_messages
 
-    raw = [(lt, m) for topic, lt, m in iter_file_messages(node.mcap) if topic == "imu/raw"]
+    raw = [(lt, m) for topic, lt, m in iter_file_messages(node.mcap) if topic == f"/{node.ns}/imu/raw"]
     assert_raw_matches_published(raw, stream)
     for k in range(4):  # each finished pose ended a chunk, so all four are on disk
         assert int(np.sum(rec.pose_id == k)) == plan.poses[k].samples, f"pose {k} lost"

@@ -82,7 +82,7 @@ def test_round_trip_message_for_message_with_ros2_decoder(tmp_path: Path) -> Non
     assert b"MSG: std_msgs/Header" in raw_schema.data and b"MSG: builtin_interfaces/Time" in raw_schema.data
     assert len(got) == len(written)
     for (topic, stamp, fields), item in zip(written, got, strict=True):
-        assert item.channel.topic == topic
+        assert item.channel.topic == "/" + topic  # full names (root namespace)
         assert item.message.log_time == stamp
         msg = item.decoded_message
         if topic == TOPIC_RAW:

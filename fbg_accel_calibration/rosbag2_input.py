@@ -1,0 +1,95 @@
+"""rosbag2 bag directories as inputs of the offline tools (pure Python + PyYAML, no rclpy).
+
+``ros2 bag record -s mcap /ns/imu/raw ...`` writes a DIRECTORY: ``metadata.yaml`` (key
+``rosbag2_bagfile_information``) and one or more ``.mcap`` files named in its ``relative_file_paths``,
+in recording order (a split bag has several). :func:`bag_files` gives those files and the topics the
+metadata lists (full names with a leading slash, e.g. ``/veh1/imu/raw``, and their ROS 2 types), so a
+reader can choose the topics before opening any file. The files of one bag are ONE recording.
+
+Also: :func:`offered_qos_yaml`, the ``offered_qos_profiles`` channel metadata string the MCAP ROS 2
+profile requires and rosbag2's MCAP storage writes (a YAML list of QoS profiles, rosbag2 format 9
+spelling: policy names in lower case, durations as ``sec``/``nsec``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+METADATA_FILE = "metadata.yaml"
+_MAX_METADATA_BYTES = 16 << 20
+
+
+class BagInputError(ValueError):
+    """A bag directory cannot be read as a recording (one line naming the directory/file and the field)."""
+
+
+@dataclass
+class BagInfo:
+    """What ``metadata.yaml`` says about a bag: its data files in order and its topics (name -> type)."""
+
+    path: Path
+    files: list[Path]
+    topics: dict[str, str]
+
+
+def is_bag_dir(path: Path) -> bool:
+    """True when ``path`` is a directory holding a rosbag2 ``metadata.yaml``."""
+    return Path(path).is_dir() and (Path(path) / METADATA_FILE).is_file()
+
+
+def bag_files(path: str | Path) -> BagInfo:
+    """Parse ``<path>/metadata.yaml``: the ``.mcap`` files of ``relative_file_paths`` (in that order,
+    each must exist) and the topics of ``topics_with_message_count``. Raises :class:`BagInputError`."""
+    path = Path(path)
+    meta = path / METADATA_FILE
+    if not meta.is_file():
+        raise BagInputError(f"{path}: a directory without {METADATA_FILE}; give a rosbag2 bag directory "
+                            "(ros2 bag record -s mcap ...) or an .mcap/.csv file")
+    if meta.stat().st_size > _MAX_METADATA_BYTES:
+        raise BagInputError(f"{meta}: larger than {_MAX_METADATA_BYTES >> 20} MiB; not a rosbag2 metadata file")
+    try:
+        doc = yaml.safe_load(meta.read_text(encoding="utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise BagInputError(f"{meta}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
+    if not isinstance(info, dict):
+        raise BagInputError(f"{meta}: no 'rosbag2_bagfile_information' mapping; not a rosbag2 metadata file")
+    storage = info.get("storage_identifier", "")
+    if storage != "mcap":
+        raise BagInputError(f"{meta}: storage_identifier is {storage!r}; only 'mcap' bags are read "
+                            "(record with ros2 bag record -s mcap, or convert with ros2 bag convert)")
+    rel = info.get("relative_file_paths")
+    if not isinstance(rel, list) or not rel or not all(isinstance(r, str) and r for r in rel):
+        raise BagInputError(f"{meta}: relative_file_paths must be a non-empty list of file names")
+    files = []
+    for name in rel:
+        if Path(name).is_absolute() or ".." in Path(name).parts:
+            raise BagInputError(f"{meta}: relative_file_paths entry {name!r} leaves the bag directory")
+        candidate = path / name
+        if not candidate.is_file() and (path / Path(name).name).is_file():
+            candidate = path / Path(name).name  # older rosbag2 wrote the bag directory's name in front
+        if not candidate.is_file():
+            raise BagInputError(f"{meta}: relative_file_paths names {name!r}, which is not in {path}")
+        files.append(candidate)
+    topics: dict[str, str] = {}
+    for item in info.get("topics_with_message_count") or []:
+        tm = item.get("topic_metadata") if isinstance(item, dict) else None
+        if isinstance(tm, dict) and isinstance(tm.get("name"), str):
+            topics[tm["name"]] = str(tm.get("type", "?"))
+    return BagInfo(path, files, topics)
+
+
+def offered_qos_yaml(reliable: bool = True, depth: int = 10, transient_local: bool = False) -> str:
+    """``offered_qos_profiles`` channel metadata: a YAML list with one profile (keep_last ``depth``,
+    reliable or best_effort, volatile or transient_local, automatic liveliness; deadline, lifespan and
+    lease duration 0 s = the middleware default, i.e. unset)."""
+    unset = {"sec": 0, "nsec": 0}
+    profile = {"history": "keep_last", "depth": int(depth),
+               "reliability": "reliable" if reliable else "best_effort",
+               "durability": "transient_local" if transient_local else "volatile",
+               "deadline": dict(unset), "lifespan": dict(unset), "liveliness": "automatic",
+               "liveliness_lease_duration": dict(unset), "avoid_ros_namespace_conventions": False}
+    return yaml.safe_dump([profile], sort_keys=False, default_flow_style=False).strip()
