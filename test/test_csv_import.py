@@ -132,7 +132,7 @@ def _raw_log_times(path: Path) -> list[int]:
     from mcap.reader import make_reader
 
     with open(path, "rb") as fh:
-        return [m.log_time for _, _, m in make_reader(fh).iter_messages(topics=["imu/raw"])]
+        return [m.log_time for _, _, m in make_reader(fh).iter_messages(topics=["/imu/raw"])]
 
 
 def test_import_start_time_places_the_recording_in_real_time(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
