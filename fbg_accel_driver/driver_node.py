@@ -58,7 +58,8 @@ PARAMETERS: dict[str, tuple[str, Any, str]] = {
     "covariance_source": (
         "string",
         "calibration",
-        "linear_acceleration_covariance from: calibration (noise_sigma_mps2), parameter (accel_stddev_mps2), unknown (zeros)",
+        "linear_acceleration_covariance from: calibration (noise_sigma_mps2), parameter (accel_stddev_mps2), unknown "
+        "(zeros); decimated variance uses the calibration's noise_correlation",
     ),
     "accel_stddev_mps2": ("double", 0.0, "per-axis sigma in m/s^2 when covariance_source is 'parameter'"),
     "min_reference_counts": ("integer", 50,
