@@ -5,7 +5,7 @@ local gravity, how long the table dwells at each pose and how many samples the c
 node records per pose; optionally the climatic-chamber set-points of the temperature levels
 at which the plan is repeated (one run, one MCAP file per level). The format is documented in
 ``docs/calibration_node.md``; example plans are ``config/pose_plan_six_position.yaml`` and
-``config/pose_plan_sim_e2e.yaml``. The board simulator's pose-plan scenario reads the same
+``test/fixtures/pose_plan_sim_e2e.yaml`` (a test fixture). The board simulator's pose-plan scenario reads the same
 file, so the simulated table and the node follow the same angles and dwell times.
 
 Each pose gives its reference either as table angles ``psi_deg``/``theta_deg`` (degrees, the

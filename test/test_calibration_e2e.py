@@ -3,7 +3,7 @@
 Real processes over real DDS (ROS_DOMAIN_ID from the environment), each chain in its own namespace:
 
 1. Three chamber levels (16, 24, 45 degC, paper section 4.5), in parallel: ``board_sim`` runs the six-pose
-   plan ``config/pose_plan_sim_e2e.yaml`` at the paper's 100 Hz with its chamber at the level, the
+   plan ``test/fixtures/pose_plan_sim_e2e.yaml`` at the paper's 100 Hz with its chamber at the level, the
    ``driver`` reads its pty and publishes ``imu/raw``, the ``calibration`` node (auto mode) records one
    MCAP per level.
 2. ``fbg-accel-calib fit`` fits the three MCAPs into a calibration YAML.
@@ -49,7 +49,7 @@ from fbg_accel_driver.thermal_model import ThermalCalibration
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
-PLAN = ROOT / "config" / "pose_plan_sim_e2e.yaml"
+PLAN = ROOT / "test" / "fixtures" / "pose_plan_sim_e2e.yaml"
 RATE_HZ = 100.0  # paper section 3.5; the noise is low-passed at ~1 Hz (Table 1), a higher rate adds nothing
 EXPECTED_DEGREE = 2  # the largest degree three temperature levels identify (see the module docstring)
 MODEL_EXTERNAL_EFFECTS = ["reference_dark_offset"]

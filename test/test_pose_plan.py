@@ -36,7 +36,7 @@ def test_six_position_plan_is_the_papers_six_axis_poses():
 
 
 def test_sim_e2e_plan_loads_and_spans_all_directions():
-    plan = PosePlan.load(CONFIG / "pose_plan_sim_e2e.yaml")
+    plan = PosePlan.load(Path(__file__).resolve().parent / "fixtures" / "pose_plan_sim_e2e.yaml")
     assert len(plan) == 6
     assert plan.chamber is not None and len(plan.chamber.levels_c) == 3
     # the first dwell covers the node's start-up (learning + window + hold + samples), the others window + hold +

@@ -1,15 +1,18 @@
 """Each simulator effect can be switched off or scaled on its own (effects.<name>.scale), and the
-diagnosis baseline (config/sim_diagnosis_baseline.yaml) makes the declared eq. 28 model exact up to noise."""
+diagnosis baseline (test/fixtures/sim_diagnosis_baseline.yaml) makes the declared eq. 28 model exact up to noise."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from fbg_accel_driver.sim.board_physics import BoardSimulator, SimConfig, simulate_recording
 from fbg_accel_driver.sim.make_default_calibration import fit_eq28
-from fbg_accel_driver.sim.sim_config import config_dir
 from fbg_accel_driver.thermal_model import normalise
+
+FIXTURES = Path(__file__).resolve().parent / "fixtures"
 
 NAMED = ("reference_dark_offset", "thermal_lag", "spectral_nonlinearity", "time_drift", "channel_delay", "tia_lowpass",
          "thermal_hysteresis", "unmodelled_cable_torque")
@@ -25,7 +28,7 @@ BUSY = {"scenario.rate_hz": 20.0, "scenario.poses.mode": "grid", "scenario.poses
 
 
 def _baseline(**extra: float) -> SimConfig:
-    return SimConfig.load(config_dir() / "sim_diagnosis_baseline.yaml").with_overrides({**BUSY, **extra})
+    return SimConfig.load(FIXTURES / "sim_diagnosis_baseline.yaml").with_overrides({**BUSY, **extra})
 
 
 def _run(cfg: SimConfig, seed: int = 0):

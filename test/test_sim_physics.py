@@ -6,6 +6,8 @@ run (../shared/data/measured/README.md); each test states which.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -13,8 +15,10 @@ from fbg_accel_driver.sim import optics
 from fbg_accel_driver.sim.board_physics import CHUNK, BoardSimulator, SimConfig, simulate_recording
 from fbg_accel_driver.sim.make_default_calibration import fit_eq28
 from fbg_accel_driver.sim.noise import GaussMarkovBank, NoiseModel, first_order_filter, gm_avar
-from fbg_accel_driver.sim.sim_config import SimConfigError, config_dir
+from fbg_accel_driver.sim.sim_config import SimConfigError
 from fbg_accel_driver.thermal_model import normalise
+
+FIXTURES = Path(__file__).resolve().parent / "fixtures"
 
 G = 9.80665
 
@@ -214,5 +218,5 @@ def test_multiposition_grid_like_the_measured_run(cfg: SimConfig) -> None:
 def test_unknown_config_key_is_refused(cfg: SimConfig) -> None:
     with pytest.raises(SimConfigError, match=r"did you mean 'effects\.thermal_lag'"):
         cfg.with_overrides({"effects.thermal_lagg.scale": 1.0})
-    base = SimConfig.load(config_dir() / "sim_diagnosis_baseline.yaml")
+    base = SimConfig.load(FIXTURES / "sim_diagnosis_baseline.yaml")
     assert base.scale("thermal_lag") == 0.0 and base.get("scenario.poses.mode") == "grid"
