@@ -32,14 +32,20 @@ class ChildProcess:
                                      text=True, bufsize=1)
         self.lines: list[str] = []
         self._lock = threading.Lock()
+        self._new_output = threading.Condition(self._lock)  # notified per line and at end of output
+        self._ended = False
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
 
     def _read(self) -> None:
         assert self.proc.stdout is not None
         for line in self.proc.stdout:
-            with self._lock:
+            with self._new_output:
                 self.lines.append(line.rstrip("\n"))
+                self._new_output.notify_all()
+        with self._new_output:
+            self._ended = True
+            self._new_output.notify_all()
 
     def output(self) -> str:
         with self._lock:
@@ -52,14 +58,24 @@ class ChildProcess:
             return next((ln for ln in self.lines if rx.search(ln)), None)
 
     def wait_line(self, pattern: str, timeout: float = 30.0) -> str:
-        """Wait for an output line matching ``pattern``; fails early if the process exits first."""
-        def seen() -> bool:
-            if self.find(pattern) is None and self.proc.poll() is not None:
-                raise AssertionError(f"{self.name} exited ({self.proc.returncode}) before /{pattern}/:\n{self.output()}")
-            return self.find(pattern) is not None
-
-        wait_for(seen, timeout, f"{self.name} output /{pattern}/\n--- output so far:\n{self.output()}")
-        return self.find(pattern) or ""
+        """Wait for an output line matching ``pattern``, woken by each new line (no polling); fails early if
+        the process's output ends (it exited) first."""
+        rx = re.compile(pattern)
+        deadline = time.monotonic() + timeout
+        with self._new_output:
+            while True:
+                hit = next((ln for ln in self.lines if rx.search(ln)), None)
+                if hit is not None:
+                    return hit
+                if self._ended:
+                    self.proc.wait(timeout=10)
+                    raise AssertionError(f"{self.name} exited ({self.proc.returncode}) before /{pattern}/:\n"
+                                         + "\n".join(self.lines))
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {self.name} output /{pattern}/\n"
+                                         "--- output so far:\n" + "\n".join(self.lines))
+                self._new_output.wait(remaining)
 
     def wait_exit(self, timeout: float = 30.0) -> int:
         """Exit code; kills the process and fails if it does not exit within ``timeout`` s."""

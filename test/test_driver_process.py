@@ -54,13 +54,15 @@ def ros() -> Iterator[Context]:
 
 
 class Listener:
-    """Subscribes to the driver's topics and keeps every message (deep best-effort queues)."""
+    """Subscribes to the driver's topics and keeps every message: reliable, deep queues (the driver publishes
+    reliable per REP 2003, so a loss-free consumer can ask for retransmission; a best-effort reader could
+    lose a message under load and fail a count)."""
 
     def __init__(self, name: str, ctx: Context) -> None:
         self.node = rclpy.create_node(name, context=ctx)
         self.executor = SingleThreadedExecutor(context=ctx)
         self.executor.add_node(self.node)
-        qos = QoSProfile(depth=20000, reliability=ReliabilityPolicy.BEST_EFFORT)
+        qos = QoSProfile(depth=20000, reliability=ReliabilityPolicy.RELIABLE)
         self.imu: list[Imu] = []
         self.raw: list[JointState] = []
         self.temp: list[Temperature] = []
@@ -254,11 +256,13 @@ def test_disconnect_saturation_dropout_temperature_invalid(ros: Context, tmp_pat
     try:
         listener.wait_until(listener.matched, 30, "driver publishers discovered and diagnostics received")
         sim, _ = start_sim([
-            "--link", str(link), "--duration", "10", "--truth", str(truth_file), "--seed", "5",
+            # after the reconnect at 3 s the board waits for the driver to open the new pty plus 1 s
+            # (pyserial's input flush, pty_server client_settle_s), so the faults come after 4.5 s
+            "--link", str(link), "--duration", "11", "--truth", str(truth_file), "--seed", "5",
             "--set", "faults.disconnects={at_s: [2.0], down_s: 1.0}",
-            "--set", "faults.adc_saturation={windows: [{start_s: 3.5, duration_s: 0.3, channels: [x]}]}",
-            "--set", "faults.source_dropout={windows: [{start_s: 4.0, duration_s: 1.2, level: 0.0}]}",
-            "--set", "faults.temperature_invalid={windows: [{start_s: 5.5, duration_s: 3.0}]}",
+            "--set", "faults.adc_saturation={windows: [{start_s: 4.6, duration_s: 0.3, channels: [x]}]}",
+            "--set", "faults.source_dropout={windows: [{start_s: 5.1, duration_s: 1.2, level: 0.0}]}",
+            "--set", "faults.temperature_invalid={windows: [{start_s: 6.6, duration_s: 3.0}]}",
         ])
         listener.wait_until(lambda: listener.last("serial link")[0] == 0, 20, "serial link OK")
         threads_before = python_threads(listener)

@@ -12,14 +12,28 @@ from pathlib import Path
 from fbg_accel_driver.serial_link import LinkState, SerialLink
 
 
-def wait_for(cond: Callable[[], bool], timeout_s: float, what: str) -> None:
-    """Poll a condition with a deadline (the reader thread does the work; we only observe it)."""
-    deadline = time.monotonic() + timeout_s
-    event = threading.Event()
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s:g} s waiting for: {what}")
-        event.wait(0.005)
+class Notified:
+    """The link's ``notify`` callback (called on every queued chunk and every state change): a test waits
+    for a condition by re-checking it each time the link reports something, never on a timer."""
+
+    def __init__(self) -> None:
+        self._event = threading.Event()
+        self.calls = 0
+
+    def __call__(self) -> None:
+        self.calls += 1
+        self._event.set()
+
+    def wait_for(self, cond: Callable[[], bool], timeout_s: float, what: str) -> None:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self._event.clear()  # before the check: a notification after it wakes the wait below
+            if cond():
+                return
+            remaining = deadline - time.monotonic()
+            woke = remaining > 0 and self._event.wait(remaining)
+            if not woke and not cond():
+                raise AssertionError(f"timed out after {timeout_s:g} s waiting for: {what}")
 
 
 def open_pty(link: Path) -> tuple[int, int]:
@@ -40,8 +54,9 @@ def drain(link: SerialLink) -> bytes:
 
 def test_reads_survives_vanish_backs_off_and_reconnects_in_one_thread(tmp_path: Path) -> None:
     path = tmp_path / "board"
-    notified = threading.Event()
-    link = SerialLink(str(path), 115200, notify=notified.set, backoff_initial_s=0.05, backoff_max_s=0.2)
+    notified = Notified()
+    wait_for = notified.wait_for
+    link = SerialLink(str(path), 115200, notify=notified, backoff_initial_s=0.05, backoff_max_s=0.2)
     threads_before = threading.active_count()
     link.start()
     try:
@@ -62,7 +77,7 @@ def test_reads_survives_vanish_backs_off_and_reconnects_in_one_thread(tmp_path: 
         wait_for(lambda: link.status().state is LinkState.CONNECTED, 10, "connected")
         os.write(master, b"hello board")
         wait_for(lambda: link.status().bytes_read >= 11, 10, "bytes read")
-        assert drain(link) == b"hello board" and notified.is_set()
+        assert drain(link) == b"hello board" and notified.calls > 0
         assert threading.active_count() == threads_before + 1
 
         # The port vanishes (pty closed, as when the simulator disconnects or a USB adapter is pulled).
@@ -99,7 +114,10 @@ def test_reads_survives_vanish_backs_off_and_reconnects_in_one_thread(tmp_path: 
 def test_silent_port_is_reopened(tmp_path: Path) -> None:
     path = tmp_path / "board"
     master, slave = open_pty(path)
-    link = SerialLink(str(path), 115200, backoff_initial_s=0.05, backoff_max_s=0.1, silence_timeout_s=0.3)
+    notified = Notified()
+    wait_for = notified.wait_for
+    link = SerialLink(str(path), 115200, notify=notified, backoff_initial_s=0.05, backoff_max_s=0.1,
+                      silence_timeout_s=0.3)
     link.start()
     try:
         wait_for(lambda: link.status().connects >= 2, 10, "reopen after 0.3 s of silence")
@@ -114,7 +132,9 @@ def test_a_frame_written_at_once_arrives_as_one_chunk(tmp_path: Path) -> None:
     """A read that wakes on a frame's first byte takes the rest with it: one chunk (one consumer wake-up) per frame."""
     path = tmp_path / "board"
     master, slave = open_pty(path)
-    link = SerialLink(str(path), 921600)
+    notified = Notified()
+    wait_for = notified.wait_for
+    link = SerialLink(str(path), 921600, notify=notified)
     link.start()
     try:
         wait_for(lambda: link.status().state is LinkState.CONNECTED, 10, "connected")

@@ -195,13 +195,14 @@ class TruthRecorder:
 
 def serve_pty(sim: BoardSimulator, duration_s: float, link: str | None, truth: TruthRecorder | None,
               should_stop, announce=print, linger_s: float = 2.0, grace_s: float = 1.0, wait_client: bool = True,
-              backlog_s: float = 2.0, client_settle_s: float = 0.25, unplug_linger_s: float = 1.0) -> dict:
+              backlog_s: float = 2.0, client_settle_s: float = 1.0, unplug_linger_s: float = 1.0) -> dict:
     """Serve until ``duration_s`` (inf: until ``should_stop()``). Returns serving statistics.
 
     The board starts when a client first opens the pty (unless ``wait_client`` is False). After a
     simulated disconnect the new pty gets no bytes until a client has opened it and
     ``client_settle_s`` has passed (pyserial flushes the input queue while it opens the port, and a
-    loaded host can take tens of ms between the open and the flush); the frames the board produces
+    loaded host can take hundreds of ms between the open and the flush: 0.25 s was once too short while
+    the whole test suite ran on 2 cores, so 1 s); the frames the board produces
     meanwhile are lost, and are logged as unsent in the truth, so the truth still predicts the
     decoder's counts exactly. Before an "unplug" the client gets up to ``unplug_linger_s`` to read
     what was already sent (a real unplug loses bytes in flight, but then no truth could predict the
