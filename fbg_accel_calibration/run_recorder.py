@@ -209,9 +209,14 @@ class RunRecorder:
         self.writer.write_raw(s.stamp_ns, s.ref, (s.x, s.y, s.z), temperature_c=temp,
                               temperature_valid=bool(s.temperature_valid), status=int(s.status), seq=int(s.seq),
                               board_time_s=t_s)
-        if self.last_pose_id >= 0 and pose_id != self.last_pose_id:
-            self.writer.flush()  # a pose's samples are complete: end the chunk so a crash keeps them
-        self.last_pose_id = pose_id
+        seq = self.sequencer
+        completed = pose_id >= 0 and (seq.phase is not Phase.RECORDING or seq.index != pose_id)
+        interrupted = self.last_pose_id >= 0 and pose_id != self.last_pose_id
+        if completed or interrupted:
+            # end the chunk so a crash keeps the pose's samples: on its last sample (the one that
+            # reports "recorded") when it is complete, on the first unlabelled one when it pauses
+            self.writer.flush()
+        self.last_pose_id = -1 if completed else pose_id
         return pose_id
 
     def on_temperature(self, stamp_ns: int, temperature_c: float, variance_c2: float) -> None:

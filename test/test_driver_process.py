@@ -81,11 +81,12 @@ class Listener:
         if entries:
             self.diag.append(entries)
 
-    def wait_until(self, cond: Callable[[], bool], timeout_s: float, what: str) -> None:
+    def wait_until(self, cond: Callable[[], bool], timeout_s: float, what: str | Callable[[], str]) -> None:
+        """Spin until ``cond()``; ``what`` (or what it returns, evaluated at the timeout) says what was awaited."""
         deadline = time.monotonic() + timeout_s
         while not cond():
             if time.monotonic() > deadline:
-                raise AssertionError(f"timed out after {timeout_s:g} s waiting for: {what}")
+                raise AssertionError(f"timed out after {timeout_s:g} s waiting for: {what() if callable(what) else what}")
             self.executor.spin_once(timeout_sec=0.05)
 
     def matched(self) -> bool:

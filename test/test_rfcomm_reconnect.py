@@ -66,7 +66,10 @@ def test_rfcomm_like_device_removed_and_recreated(ros, tmp_path: Path) -> None: 
                     ("frames", "crc_errors", "lost_frames", "duplicates", "resets", "bytes_discarded")}
         assert expected["lost_frames"] >= 250 and expected["resets"] == 0  # >= 2.5 s at 100 Hz unsent, no reboot
         listener.wait_until(lambda: int(listener.last("frames")[2]["frames"]) >= expected["frames"]
-                            and len(listener.raw) >= expected["frames"], 15, f"{expected['frames']} frames published")
+                            and len(listener.raw) >= expected["frames"], 15,
+                            lambda: f"{expected['frames']} frames published: driver counters {listener.last('frames')[2]}, "
+                                    f"{len(listener.raw)} imu/raw received, truth {expected}, "
+                                    f"unread at the unplug {int(truth['unplug_unread_bytes'])} B")
         frames_vals = listener.last("frames")[2]
         for key, value in expected.items():
             assert int(frames_vals[key]) == value, (key, frames_vals)

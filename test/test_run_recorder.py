@@ -76,6 +76,25 @@ def test_samples_are_labelled_in_the_file_exactly_as_the_sequencer_labelled_them
     assert r.metadata["run_end"]["result"] == "done"
 
 
+def test_a_pose_is_on_disk_when_its_recorded_event_is_reported(tmp_path):
+    """The operator (and a test) sees "pose k recorded" on the pose's last sample; a SIGKILL right then
+    must not lose the pose. The chunk used to end only on the next sample, which may never come."""
+    plan = _plan()
+    rec = _recorder(tmp_path, plan)
+    for s, _ in _samples(plan):
+        rec.on_raw(s)
+        if any(ev.kind == "recorded" and ev.pose_index == 1 for ev in rec.pop_events()):
+            break
+    else:
+        pytest.fail("pose 1 was never recorded")
+    # read while the writer is still open, as after a SIGKILL: no footer, only the ended chunks
+    r, report = read_file(tmp_path / "run.mcap")
+    assert not report.complete
+    for k in (0, 1):
+        assert int(np.sum(r.pose_id == k)) == plan.poses[k].samples, f"pose {k} not on disk"
+    rec.close("test")
+
+
 def test_motion_while_learning_aborts_an_auto_run_instead_of_mislabelling(tmp_path):
     plan = _plan(first_dwell=1.2)  # the table leaves pose 0 before the 1 s of learning is over (start 0.5 s late)
     rec = _recorder(tmp_path, plan)

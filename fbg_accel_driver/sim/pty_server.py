@@ -194,8 +194,8 @@ class TruthRecorder:
 
 
 def serve_pty(sim: BoardSimulator, duration_s: float, link: str | None, truth: TruthRecorder | None,
-              should_stop, announce=print, linger_s: float = 2.0, grace_s: float = 1.0, wait_client: bool = True,
-              backlog_s: float = 2.0, client_settle_s: float = 1.0, unplug_linger_s: float = 1.0) -> dict:
+              should_stop, announce=print, linger_s: float = 5.0, grace_s: float = 1.0, wait_client: bool = True,
+              backlog_s: float = 2.0, client_settle_s: float = 1.0, unplug_linger_s: float = 5.0) -> dict:
     """Serve until ``duration_s`` (inf: until ``should_stop()``). Returns serving statistics.
 
     The board starts when a client first opens the pty (unless ``wait_client`` is False). After a
@@ -206,7 +206,9 @@ def serve_pty(sim: BoardSimulator, duration_s: float, link: str | None, truth: T
     meanwhile are lost, and are logged as unsent in the truth, so the truth still predicts the
     decoder's counts exactly. Before an "unplug" the client gets up to ``unplug_linger_s`` to read
     what was already sent (a real unplug loses bytes in flight, but then no truth could predict the
-    decoder); bytes it still had not read are counted in ``unplug_unread_bytes``. When the run reaches
+    decoder; the wait ends as soon as the client has read everything, so the 5 s bound costs nothing
+    on an idle host and covers a reader starved by a loaded one); bytes it still had not read are
+    counted in ``unplug_unread_bytes``. When the run reaches
     its end (not when stopped by a signal) the pty stays open until the client has read everything,
     at most ``linger_s``, plus ``grace_s``.
     """
