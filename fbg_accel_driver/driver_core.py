@@ -51,6 +51,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .chain_compensation import MODES as CHAIN_MODES
+from .chain_compensation import ChannelEqualiser
 from .clock_sync import ClockSync, ClockSyncConfig
 from .frame_codec import ADC_MAX, Frame, Status
 from .noise_model import mean_variance_factor
@@ -78,6 +80,8 @@ class CoreConfig:
     accel_stddev_mps2: float = 0.0  # per-axis sigma when covariance_source == "parameter"
     out_of_range_variance_factor: float = 10.0
     full_scale_mps2: float = 20.0 * STANDARD_GRAVITY  # paper: +-20 g full scale
+    chain_compensation: str = "none"  # "none" | "delay" | "equalise" (chain_compensation module)
+    equalise_bandwidth_hz: float = 10.0  # common low-pass the equaliser leaves in place of the TIA stages
 
     def validate(self) -> None:
         """Raise ValueError with a message naming the bad setting."""
@@ -95,6 +99,10 @@ class CoreConfig:
             raise ValueError("covariance_source 'parameter' needs accel_stddev_mps2 > 0")
         if not (math.isfinite(self.out_of_range_variance_factor) and self.out_of_range_variance_factor >= 1):
             raise ValueError(f"out_of_range_variance_factor must be >= 1, got {self.out_of_range_variance_factor}")
+        if self.chain_compensation not in CHAIN_MODES:
+            raise ValueError(f"chain_compensation must be one of {CHAIN_MODES}, got '{self.chain_compensation}'")
+        if not (math.isfinite(self.equalise_bandwidth_hz) and self.equalise_bandwidth_hz > 0):
+            raise ValueError(f"equalise_bandwidth_hz must be > 0, got {self.equalise_bandwidth_hz}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -184,6 +192,16 @@ class DriverCore:
                                          calibration.noise_time_constant_s.tolist(), strict=True))
         else:
             self._noise_corr = ((0.0, 0.0),) * 3
+        # chain compensation (issue 9): stamps moved back by the chain's delay, optionally equalised counts
+        mode = self.config.chain_compensation
+        self._dyn = calibration.dynamic if calibration is not None else None
+        if mode != "none" and self._dyn is None:
+            raise ValueError(f"chain_compensation '{mode}' needs a calibration with a 'dynamic' section "
+                             "(fbg-accel-calib dynamic; docs/dynamic_calibration.md)")
+        self._equaliser = ChannelEqualiser(self._dyn, self.config.equalise_bandwidth_hz) if mode == "equalise" else None
+        self._eq_prev_t_us: int | None = None
+        self._delay_ns = round(self._dyn.stamp_delay_s(mode) * 1e9) if mode == "delay" else 0
+        self._eq_cache: dict[int, tuple[int, tuple[float, float, float]]] = {}  # dt_us -> (delay ns, var factors)
 
     def _base_sigma(self) -> np.ndarray:
         src = self.config.covariance_source
@@ -258,6 +276,49 @@ class DriverCore:
         self.counters.board_resets += 1
         self.clock.reset()
         self._pending.clear()  # never average across a reboot
+        if self._equaliser is not None:  # nor filter across one
+            self._equaliser.reset()
+            self._eq_prev_t_us = None
+
+    def chain_status(self) -> dict[str, float | str]:
+        """Chain compensation for diagnostics: mode, bandwidth of the published acceleration (Hz; the
+        slowest axis's -3 dB point unless equalised) and the delay taken off the stamps (ms)."""
+        dyn = self._dyn
+        if dyn is None:
+            return {}
+        mode = self.config.chain_compensation
+        if self._equaliser is not None:
+            bandwidth = self._equaliser.bandwidth_hz
+            delays = [d for d, _ in self._eq_cache.values()]
+            delay_ms = delays[-1] * 1e-6 if delays else math.nan
+        else:
+            bandwidth = min(dyn.cutoff_hz[1:])
+            delay_ms = self._delay_ns * 1e-6
+        return {"mode": mode, "bandwidth_hz": round(bandwidth, 4), "applied_delay_ms": round(delay_ms, 3),
+                **{f"group_delay_dc_ms_{n}": round(dyn.group_delay_s(a) * 1e3, 3) for a, n in enumerate("xyz")}}
+
+    def _equalised(self, f: Frame) -> tuple[tuple[float, float, float, float], int, tuple[float, float, float]]:
+        """Equalised (ref, x, y, z) counts of ``f``, the stamp delay (ns) and the variance factors."""
+        eq = self._equaliser
+        prev = self._eq_prev_t_us
+        self._eq_prev_t_us = f.t_us
+        dt_us = f.t_us - prev if prev is not None else 0
+        if dt_us <= 0:  # first sample (or a repeated time): start the filters from it
+            eq.reset()
+            dt_us = 0
+        counts = eq.step(dt_us * 1e-6, (float(f.ref), float(f.x), float(f.y), float(f.z)))
+        if dt_us == 0:
+            return counts, self._delay_ns, (1.0, 1.0, 1.0)
+        cached = self._eq_cache.get(dt_us)
+        if cached is None:
+            if len(self._eq_cache) >= 64:
+                self._eq_cache.clear()
+            dt_s = dt_us * 1e-6
+            cached = self._eq_cache[dt_us] = (
+                round(self._dyn.stamp_delay_s("equalise", eq.bandwidth_hz, dt_s) * 1e9),
+                tuple(eq.variance_factor(a, dt_s, *self._noise_corr[a]) for a in range(3)))
+        self._delay_ns = cached[0]
+        return counts, cached[0], cached[1]
 
     def _coefficients(self, temp_c: float) -> tuple[tuple[float, ...], tuple[float, float, float]]:
         """M(T), b(T) of eq. 28, cached per temperature (the AHT10 reports 0.01 degC steps, so few distinct values)."""
@@ -289,7 +350,9 @@ class DriverCore:
         lo, hi = cal.temperature_range_c if cal is not None else (-math.inf, math.inf)
         base_var = self._base_var
         full_var = cfg.full_scale_mps2**2
-        used: list[tuple[int, Frame, float, tuple[float, float, float], bool]] = []
+        used: list[tuple[int, Frame, float, tuple[float, float, float], bool, tuple[float, float, float]]] = []
+        equaliser = self._equaliser
+        unit = (1.0, 1.0, 1.0)
         for f in frames:
             stamp_ns = clock.stamp(f.t_us)
             counters.samples += 1
@@ -306,8 +369,11 @@ class DriverCore:
             out.raw.append(RawRecord(stamp_ns, f, math.nan if temp is None else temp, valid))
             if cal is None:  # raw only
                 continue
-            ref = f.ref
-            if ref < cfg.min_reference_counts or ref < MIN_REFERENCE_COUNTS:
+            if equaliser is not None:  # every sample passes the filters, in order, whatever happens next
+                (ref, cx, cy, cz), delay_ns, vfac = self._equalised(f)
+            else:
+                ref, cx, cy, cz, delay_ns, vfac = f.ref, f.x, f.y, f.z, self._delay_ns, unit
+            if f.ref < cfg.min_reference_counts or ref < MIN_REFERENCE_COUNTS:
                 counters.reference_low += 1
                 continue
             if not valid:
@@ -317,11 +383,11 @@ class DriverCore:
                     continue
                 counters.temperature_held += 1
             m, b = self._coefficients(temp)
-            px, py, pz = f.x / ref, f.y / ref, f.z / ref
+            px, py, pz = cx / ref, cy / ref, cz / ref
             accel = (m[0] * px + m[1] * py + m[2] * pz + b[0],
                      m[3] * px + m[4] * py + m[5] * pz + b[1],
                      m[6] * px + m[7] * py + m[8] * pz + b[2])
-            used.append((stamp_ns, f, temp, accel, not valid))
+            used.append((stamp_ns - delay_ns, f, temp, accel, not valid, vfac))
         if not used:
             return
         if cal.corrections:  # declared correction terms (diagnose): vectorised, with their stream state
@@ -330,10 +396,10 @@ class DriverCore:
             temp_a = np.fromiter((u[2] for u in used), dtype=float, count=len(used))
             t_a = np.fromiter((u[1].t_us * 1e-6 for u in used), dtype=float, count=len(used))
             extra = cal.correction_sum(ref_a, xyz_a, xyz_a / ref_a[:, None], temp_a, t_a, self._cal_state)
-            used = [(st, f, temp, (a[0] + float(e[0]), a[1] + float(e[1]), a[2] + float(e[2])), h)
-                    for (st, f, temp, a, h), e in zip(used, extra, strict=True)]
-        for stamp_ns, f, temp, accel, held in used:
-            var = list(base_var)
+            used = [(st, f, temp, (a[0] + float(e[0]), a[1] + float(e[1]), a[2] + float(e[2])), h, vf)
+                    for (st, f, temp, a, h, vf), e in zip(used, extra, strict=True)]
+        for stamp_ns, f, temp, accel, held, vfac in used:
+            var = [base_var[0] * vfac[0], base_var[1] * vfac[1], base_var[2] * vfac[2]]
             flags = []
             if held:
                 flags.append("temperature_held")

@@ -61,6 +61,7 @@ class DiagnosticsSnapshot:
     temperature_hold_s: float
     temperature_range_c: tuple[float, float]
     calibration: dict[str, Any] = field(default_factory=dict)  # sensor id, file, degree
+    chain: dict[str, Any] = field(default_factory=dict)  # DriverCore.chain_status(); empty: no dynamic section
 
 
 class DriverDiagnostics:
@@ -198,6 +199,17 @@ class DriverDiagnostics:
             entries.append(self._entry(ERROR, "calibrated output", msg, nf_vals))
         else:
             entries.append(self._entry(OK, "calibrated output", "no non-finite output since last report", nf_vals))
+
+        # measuring-chain compensation (calibration's dynamic section)
+        if snap.chain:
+            c = snap.chain
+            if c["mode"] == "none":
+                msg = (f"not compensated: the published acceleration lags by about {c['group_delay_dc_ms_x']:g}/"
+                       f"{c['group_delay_dc_ms_y']:g}/{c['group_delay_dc_ms_z']:g} ms (x/y/z, at DC)")
+                entries.append(self._entry(OK, "chain compensation", msg, c))  # a choice, stated with its cost
+            else:
+                msg = f"{c['mode']}: stamps moved back by {c['applied_delay_ms']:g} ms, bandwidth {c['bandwidth_hz']:g} Hz"
+                entries.append(self._entry(OK, "chain compensation", msg, c))
 
         self._prev = snap
         return entries

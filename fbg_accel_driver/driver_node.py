@@ -62,6 +62,15 @@ PARAMETERS: dict[str, tuple[str, Any, str]] = {
         "(zeros); decimated variance uses the calibration's noise_correlation",
     ),
     "accel_stddev_mps2": ("double", 0.0, "per-axis sigma in m/s^2 when covariance_source is 'parameter'"),
+    "chain_compensation": (
+        "string",
+        "auto",
+        "measuring-chain dynamics from the calibration's 'dynamic' section: none, delay (stamps moved back by the "
+        "group delay at DC), equalise (each channel's TIA low-pass inverted before eq. 24), auto (= delay when the "
+        "calibration has a dynamic section, else none); docs/dynamic_calibration.md",
+    ),
+    "equalise_bandwidth_hz": ("double", 10.0,
+                              "common low-pass (Hz) left in place of the TIA stages by chain_compensation 'equalise'"),
     "min_reference_counts": ("integer", 50,
                              "reference counts below this: reference power too low, sample not published (settable)"),
     "temperature_hold_s": ("double", 5.0,
@@ -191,6 +200,7 @@ def _make_node(managed: bool = False) -> Any:
     from rclpy.qos_overriding_options import QoSOverridingOptions
     from sensor_msgs.msg import Imu, JointState, Temperature
 
+    from .chain_compensation import MODES as CHAIN_MODES
     from .driver_core import COVARIANCE_SOURCES, CoreConfig, DriverCore
     from .driver_diagnostics import DiagnosticsSnapshot, DriverDiagnostics
     from .ros_messages import DriverMessages
@@ -203,7 +213,7 @@ def _make_node(managed: bool = False) -> Any:
                   "reader_queue_max_bytes": (4096, 1 << 30)}
     float_ranges = {"temperature_hold_s": (0.0, 3600.0), "out_of_range_variance_factor": (1.0, 1e6),
                     "reconnect_backoff_max_s": (0.1, 60.0), "accel_stddev_mps2": (0.0, 1000.0),
-                    "silence_timeout_s": (0.0, 3600.0)}
+                    "silence_timeout_s": (0.0, 3600.0), "equalise_bandwidth_hz": (0.01, 1e5)}
 
     # REP 2003: sensor drivers publish with the system-default QoS (reliable, volatile); keep-last 100
     # holds 0.1 s at 1 kHz for a reliable subscriber that is briefly slow
@@ -254,6 +264,8 @@ def _make_node(managed: bool = False) -> Any:
                 covariance_source=p["covariance_source"],
                 accel_stddev_mps2=p["accel_stddev_mps2"],
                 out_of_range_variance_factor=p["out_of_range_variance_factor"],
+                chain_compensation=self._chain_mode(p["chain_compensation"]),
+                equalise_bandwidth_hz=p["equalise_bandwidth_hz"],
             )
             try:
                 core = DriverCore(self.calibration, core_cfg)
@@ -357,6 +369,8 @@ def _make_node(managed: bool = False) -> Any:
                     d.additional_constraints = f"{lo}..{hi}"
                 if name == "covariance_source":
                     d.additional_constraints = "one of " + ", ".join(COVARIANCE_SOURCES)
+                if name == "chain_compensation":
+                    d.additional_constraints = "one of auto, " + ", ".join(CHAIN_MODES)
                 try:
                     self.declare_parameter(name, default, d)
                 except ParameterException as exc:
@@ -375,6 +389,14 @@ def _make_node(managed: bool = False) -> Any:
                 if not math.isfinite(values[name]):
                     raise StartupError(f"invalid parameter '{name}': {values[name]} is not finite")
             return values
+
+        def _chain_mode(self, value: str) -> str:
+            if value == "auto":
+                cal = self.calibration
+                return "delay" if cal is not None and cal.dynamic is not None else "none"
+            if value not in CHAIN_MODES:
+                raise StartupError(f"invalid parameter 'chain_compensation': {value!r} (one of auto, {', '.join(CHAIN_MODES)})")
+            return value
 
         def _refuse_unknown_parameters(self) -> None:
             """A misspelt ``-p``/params-file name would be ignored by rclpy: refuse it, naming the nearest."""
@@ -464,6 +486,7 @@ def _make_node(managed: bool = False) -> Any:
                 temperature_hold_s=core.config.temperature_hold_s,
                 temperature_range_c=self.temperature_range_c,
                 calibration=self.cal_info,
+                chain=core.chain_status(),
             )
             arr = DiagnosticArray()
             arr.header.stamp = self.get_clock().now().to_msg()

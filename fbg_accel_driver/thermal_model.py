@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from .chain_compensation import ChainDynamics
 from .sensor_constants import FULL_SCALE_MPS2
 
 FORMAT_NAME = "fbg_accel_calibration"
@@ -42,7 +43,7 @@ MIN_REFERENCE_COUNTS = 1  # a reference of 0 counts would divide by zero; see no
 # The file contract (docs/calibration_file.md, sections 2 and 5): bounds a real calibration is far inside.
 TOP_LEVEL_KEYS = ("format", "format_version", "units", "model", "sensor_id", "created", "degree",
                   "temperature_center_c", "temperature_scale_c", "temperature_range_c", "M", "b",
-                  "noise_sigma_mps2", "noise_correlation", "fit", "corrections", "notes")
+                  "noise_sigma_mps2", "noise_correlation", "dynamic", "fit", "corrections", "notes")
 NOISE_CORRELATION_KEYS = ("correlated_fraction", "time_constant_s")
 MAX_NOISE_TIME_CONSTANT_S = 100.0  # the TIA low-passes are ~0.1-0.16 s (paper Table 1)
 MAX_FILE_BYTES = 1 << 20  # a real file is a few kB; refused before parsing
@@ -87,6 +88,8 @@ class ThermalCalibration:
     # constant in s, per axis; zeros = white noise
     noise_correlated_fraction: np.ndarray = field(default_factory=lambda: np.zeros(3))
     noise_time_constant_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    # dynamics of the measuring chain (optional ``dynamic`` section; fbg_accel_driver.chain_compensation)
+    dynamic: ChainDynamics | None = None
 
     def __post_init__(self) -> None:
         self.M = np.asarray(self.M, dtype=float)
@@ -188,6 +191,7 @@ class ThermalCalibration:
             **({"noise_correlation": {"correlated_fraction": [float(v) for v in self.noise_correlated_fraction],
                                       "time_constant_s": [float(v) for v in self.noise_time_constant_s]}}
                if np.any(self.noise_correlated_fraction > 0) else {}),
+            **({"dynamic": _plain(self.dynamic.to_dict())} if self.dynamic is not None else {}),
             "fit": _plain(self.fit),
             "corrections": [term.to_dict() for term in self.corrections],
             **({"notes": self.notes} if self.notes else {}),
@@ -258,6 +262,7 @@ class ThermalCalibration:
         fit = d.get("fit") or {}
         if not isinstance(fit, dict):
             raise fail(f"'fit' must be a mapping of figures, got {type(fit).__name__}")
+        dynamic = ChainDynamics.from_dict(d["dynamic"], fail) if "dynamic" in d else None
         from .correction_terms import correction_from_dict  # local: keeps the import graph flat
 
         corrections_raw = d.get("corrections") or []
@@ -293,6 +298,7 @@ class ThermalCalibration:
                 notes=texts["notes"],
                 noise_correlated_fraction=corr_f,
                 noise_time_constant_s=corr_tau,
+                dynamic=dynamic,
             )
         except (TypeError, ValueError, OverflowError) as exc:
             if isinstance(exc, CalibrationFileError):

@@ -1,0 +1,217 @@
+"""Dynamics of the measuring chain and its live compensation (issue 9; docs/dynamic_calibration.md).
+
+Pure Python + numpy, no ROS. The calibration file's optional ``dynamic`` section (:class:`ChainDynamics`)
+holds what a dynamic calibration measured:
+
+* ``cutoff_hz``: the first-order low-pass of each photodetector's transimpedance stage, for the
+  reference and the x, y, z channels (paper section 3.5 and Table 1: about 1, 1.7, 1.3, 1.3 Hz in the
+  static-test build, about 50 Hz in the flight build);
+* ``delay_s``: a pure delay of each axis channel (ESP32 sequential sampling skew, anything after the
+  analogue stage), s, positive when the channel lags the board time stamp.
+
+Two live compensations (driver parameter ``chain_compensation``):
+
+* ``delay``: the published stamp is moved back by the acceleration path's **group delay at DC**, the
+  mean over the axes of ``1 / (2 pi fc_axis) + delay_axis`` (a first-order low-pass delays slow
+  signals by its time constant; at a frequency f the delay is ``tau / (1 + (f/fc)^2)``, less: the
+  seed's point that a low-pass stage shifts phase well inside its band). The samples are unchanged.
+* ``equalise``: each channel's counts pass, **before** eq. 24, through a causal and stable filter
+  that cancels its own low-pass and puts a common one at ``bandwidth_hz`` in its place (the
+  discrete form of ``(1 + s/wc) / (1 + s/wp)``, :class:`ChannelEqualiser`). The reference and the
+  axes are filtered differently, so only a correction of each channel before the ratio restores
+  Psi = c_axis/c_ref when the source power or the acceleration moves. The stamp then moves back by
+  what remains: about ``1/(2 pi bandwidth_hz)`` plus the mean pure delay (exactly:
+  :meth:`ChainDynamics.stamp_delay_s`). The price is noise: the high-frequency gain is about
+  ``bandwidth_hz / fc`` (:meth:`ChannelEqualiser.variance_factor` gives the published variance
+  factor).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+DYNAMIC_FORMAT_VERSION = 1
+CHANNELS = ("reference", "x", "y", "z")
+AXES = ("x", "y", "z")
+MODES = ("none", "delay", "equalise")
+DYNAMIC_KEYS = ("format_version", "cutoff_hz", "delay_s", "fit")
+CUTOFF_LIMITS_HZ = (1e-3, 1e5)  # beyond a TIA stage's physics either way
+MAX_ABS_DELAY_S = 1.0  # a pure delay of a second is not a sampling skew
+
+
+@dataclass(frozen=True)
+class ChainDynamics:
+    """First-order low-pass per channel (reference, x, y, z; Hz) and pure delay per axis (s)."""
+
+    cutoff_hz: tuple[float, float, float, float]
+    delay_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    fit: dict[str, Any] = field(default_factory=dict)  # figures for people (points, uncertainties)
+
+    def __post_init__(self) -> None:
+        if len(self.cutoff_hz) != 4 or len(self.delay_s) != 3:
+            raise ValueError("cutoff_hz needs 4 values (reference, x, y, z), delay_s 3 (x, y, z)")
+        for name, fc in zip(CHANNELS, self.cutoff_hz, strict=True):
+            if not (isinstance(fc, float | int) and math.isfinite(fc) and CUTOFF_LIMITS_HZ[0] <= fc <= CUTOFF_LIMITS_HZ[1]):
+                lo, hi = CUTOFF_LIMITS_HZ
+                raise ValueError(f"cutoff_hz of {name} must be in {lo:g}..{hi:g} Hz, got {fc!r}")
+        for name, d in zip(AXES, self.delay_s, strict=True):
+            if not (isinstance(d, float | int) and math.isfinite(d) and abs(d) <= MAX_ABS_DELAY_S):
+                raise ValueError(f"delay_s of {name} must be within +-{MAX_ABS_DELAY_S:g} s, got {d!r}")
+
+    def group_delay_s(self, axis: int, f_hz: float = 0.0) -> float:
+        """Group delay (s) of axis ``axis`` (0..2) at ``f_hz``: ``tau / (1 + (f/fc)^2) + delay``."""
+        fc = self.cutoff_hz[axis + 1]
+        return 1.0 / (2.0 * math.pi * fc) / (1.0 + (f_hz / fc) ** 2) + self.delay_s[axis]
+
+    def stamp_delay_s(self, mode: str, bandwidth_hz: float = 0.0, dt_s: float = 0.0) -> float:
+        """Delay (s) the published stamps are moved back by in ``mode`` (module docstring).
+
+        ``equalise`` needs the sample interval ``dt_s``: the DC group delay that remains is the chain's
+        own (``tau + delay`` per axis) minus what :class:`ChannelEqualiser` removes (its exact inverse of
+        the sampled low-pass, ``r_c/(1-r_c) dt``) plus what its own low-pass adds (``r_p/(1-r_p) dt``).
+        """
+        if mode == "none":
+            return 0.0
+        if mode == "delay":
+            return sum(self.group_delay_s(a) for a in range(3)) / 3.0
+        if mode == "equalise":
+            if not dt_s > 0.0:
+                raise ValueError("equalise needs the sample interval dt_s > 0")
+            removed = sum(_dc_delay_samples(fc, dt_s) for fc in self.cutoff_hz[1:]) / 3.0 * dt_s
+            return (sum(self.group_delay_s(a) for a in range(3)) / 3.0 - removed
+                    + _dc_delay_samples(bandwidth_hz, dt_s) * dt_s)
+        raise ValueError(f"chain_compensation must be one of {MODES}, got {mode!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"format_version": DYNAMIC_FORMAT_VERSION,
+                "cutoff_hz": dict(zip(CHANNELS, (float(v) for v in self.cutoff_hz), strict=True)),
+                "delay_s": dict(zip(AXES, (float(v) for v in self.delay_s), strict=True)),
+                **({"fit": self.fit} if self.fit else {})}
+
+    @classmethod
+    def from_dict(cls, d: Any, fail: Callable[[str], Exception]) -> ChainDynamics:
+        """The ``dynamic`` section of a calibration file; ``fail(message)`` makes the error to raise."""
+        if not isinstance(d, dict):
+            raise fail(f"'dynamic' must be a mapping, got {type(d).__name__}")
+        unknown = sorted(set(d) - set(DYNAMIC_KEYS))
+        if unknown:
+            raise fail(f"unknown key 'dynamic.{unknown[0]}' (known: {', '.join(DYNAMIC_KEYS)})")
+        version = d.get("format_version")
+        if version != DYNAMIC_FORMAT_VERSION:
+            raise fail(f"dynamic.format_version {version!r} is not supported (this driver reads {DYNAMIC_FORMAT_VERSION})")
+
+        def mapping(key: str, names: tuple[str, ...], default: float | None) -> tuple[float, ...]:
+            m = d.get(key, {} if default is not None else None)
+            if not isinstance(m, dict):
+                raise fail(f"dynamic.{key} must be a mapping of {', '.join(names)}")
+            extra = sorted(set(m) - set(names))
+            if extra:
+                raise fail(f"unknown key 'dynamic.{key}.{extra[0]}' (known: {', '.join(names)})")
+            out = []
+            for n in names:
+                v = m.get(n, default)
+                if v is None:
+                    raise fail(f"missing key 'dynamic.{key}.{n}'")
+                if isinstance(v, bool) or not isinstance(v, int | float):
+                    raise fail(f"dynamic.{key}.{n} must be a number, got {v!r}")
+                out.append(float(v))
+            return tuple(out)
+
+        fit = d.get("fit") or {}
+        if not isinstance(fit, dict):
+            raise fail("dynamic.fit must be a mapping of figures")
+        try:
+            return cls(cutoff_hz=mapping("cutoff_hz", CHANNELS, None),  # type: ignore[arg-type]
+                       delay_s=mapping("delay_s", AXES, 0.0), fit=dict(fit))  # type: ignore[arg-type]
+        except ValueError as exc:
+            raise fail(f"dynamic: {exc}") from None
+
+
+def _dc_delay_samples(fc_hz: float, dt_s: float) -> float:
+    """DC group delay, in samples, of ``y_n = r y_{n-1} + (1-r) u_n`` with ``r = exp(-2 pi fc dt)``."""
+    r = math.exp(-2.0 * math.pi * fc_hz * dt_s)
+    return r / (1.0 - r)
+
+
+class ChannelEqualiser:
+    """Causal, stable per-channel inverse of the TIA low-passes (module docstring), in counts.
+
+    The TIA stage of time constant ``1/wc`` sampled every ``dt`` is the first-order recursion
+    ``c_n = c_{n-1} + (1 - r_c)(u_n - c_{n-1})``, ``r_c = exp(-wc dt)`` (the simulator's model of it,
+    board_physics). Each channel is inverted exactly, ``v_n = (c_n - r_c c_{n-1}) / (1 - r_c)``, and
+    low-passed again at ``bandwidth_hz``: ``y_n = y_{n-1} + (1 - r_p)(v_n - y_{n-1})``. Gain 1 at DC, one
+    pole ``r_p`` inside the unit circle for every ``dt > 0``, so causal and stable; the zero at ``r_c``
+    is the TIA's pole, cancelled. ``dt`` is each sample's own interval (board clock). The state starts
+    at the first sample (no start transient) and is cleared by :meth:`reset` (board reboot).
+    """
+
+    def __init__(self, dynamics: ChainDynamics, bandwidth_hz: float) -> None:
+        if not (math.isfinite(bandwidth_hz) and bandwidth_hz > max(dynamics.cutoff_hz)):
+            raise ValueError(f"equalise bandwidth {bandwidth_hz!r} Hz must be above every channel's cut-off "
+                             f"(max {max(dynamics.cutoff_hz):g} Hz)")
+        self.bandwidth_hz = float(bandwidth_hz)
+        self._wc = tuple(2.0 * math.pi * fc for fc in dynamics.cutoff_hz)
+        self._wp = 2.0 * math.pi * bandwidth_hz
+        self._prev: list[float] | None = None  # previous input counts per channel
+        self._out: list[float] = [0.0] * 4
+        self._coef_dt = -1.0
+        self._coef: tuple[tuple[float, float], ...] = ()
+        self._ap = 0.0
+
+    def reset(self) -> None:
+        self._prev = None
+
+    def _coefficients(self, dt_s: float) -> None:
+        dt = max(dt_s, 1e-9)
+        self._coef_dt = dt_s
+        self._coef = tuple((math.exp(-wc * dt), 1.0 / (1.0 - math.exp(-wc * dt))) for wc in self._wc)
+        self._ap = 1.0 - math.exp(-self._wp * dt)
+
+    def step(self, dt_s: float, counts: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+        """Equalised (reference, x, y, z) counts of one sample taken ``dt_s`` (s) after the previous one."""
+        prev = self._prev
+        if prev is None:
+            self._prev = list(counts)
+            self._out = list(counts)
+            return counts
+        if dt_s != self._coef_dt:
+            self._coefficients(dt_s)
+        out = self._out
+        ap = self._ap
+        for j in range(4):
+            rc, inv = self._coef[j]
+            u = counts[j]
+            v = (u - rc * prev[j]) * inv
+            prev[j] = u
+            out[j] += ap * (v - out[j])
+        return out[0], out[1], out[2], out[3]
+
+    def variance_factor(self, axis: int, dt_s: float, correlated_fraction: float, time_constant_s: float) -> float:
+        """Factor on the calibrated per-sample variance of axis ``axis`` (0..2) once equalised.
+
+        The noise is modelled as in :mod:`noise_model`: a white part and a first-order (AR(1)) part of
+        time constant ``time_constant_s``; each part's variance gain through the channel's filter is
+        summed from its impulse response. Psi's noise comes from the axis channel and from the reference
+        (eq. 24); their split is not in the calibration, so the larger of the two channels' factors is
+        used: the published variance is an upper bound, never an under-statement.
+        """
+        return max(self._gain_of_channel(j, dt_s, correlated_fraction, time_constant_s) for j in (0, axis + 1))
+
+    def _gain_of_channel(self, j: int, dt_s: float, frac: float, tau_s: float) -> float:
+        n = 4096
+        rc = math.exp(-self._wc[j] * dt_s)
+        rp = math.exp(-self._wp * dt_s)
+        lp = (1.0 - rp) * rp ** np.arange(n)
+        h = np.convolve(np.array([1.0, -rc]) / (1.0 - rc), lp)[:n]
+        white = float(np.sum(h * h))
+        if frac <= 0.0 or tau_s <= 0.0:
+            return white
+        rho = math.exp(-dt_s / tau_s)
+        ar = np.sqrt(1.0 - rho * rho) * rho ** np.arange(n)  # unit-variance AR(1) as filtered white noise
+        corr = float(np.sum(np.convolve(ar, h)[:n] ** 2))
+        return (1.0 - frac) * white + frac * corr

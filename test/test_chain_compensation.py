@@ -1,0 +1,127 @@
+"""The chain's dynamics section and its live compensation (fbg_accel_driver.chain_compensation)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fbg_accel_driver.chain_compensation import ChainDynamics, ChannelEqualiser
+
+FS = 100.0
+STATIC_BUILD = ChainDynamics(cutoff_hz=(1.0, 1.7, 1.3, 1.3), delay_s=(0.0, 0.0025, 0.005))
+
+
+def _lowpass(u: np.ndarray, fc: float, fs: float) -> np.ndarray:
+    """First-order low-pass, exact for a signal held between samples (the simulator's TIA model)."""
+    a = 1.0 - math.exp(-2 * math.pi * fc / fs)
+    y = np.empty_like(u)
+    s = u[0]
+    for i, v in enumerate(u):
+        s += a * (v - s)
+        y[i] = s
+    return y
+
+
+def _amp_phase(t: np.ndarray, y: np.ndarray, f: float) -> tuple[float, float]:
+    X = np.column_stack([np.sin(2 * np.pi * f * t), np.cos(2 * np.pi * f * t), np.ones_like(t)])
+    s, c, _ = np.linalg.lstsq(X, y, rcond=None)[0]
+    return float(np.hypot(s, c)), float(np.arctan2(c, s))
+
+
+@pytest.mark.parametrize("f_hz", [0.5, 2.0, 5.0])
+def test_equaliser_restores_amplitude_and_phase_of_every_channel(f_hz):
+    eq = ChannelEqualiser(STATIC_BUILD, bandwidth_hz=20.0)
+    t = np.arange(int(40 * FS)) / FS
+    u = 1000.0 + 200.0 * np.sin(2 * np.pi * f_hz * t)
+    chans = [_lowpass(u, fc, FS) for fc in STATIC_BUILD.cutoff_hz]
+    out = np.array([eq.step(1 / FS, tuple(float(c[i]) for c in chans)) for i in range(len(t))])
+    keep = t > 10.0
+    for j in range(4):
+        _, ph_in = _amp_phase(t[keep], chans[j][keep], f_hz)
+        amp, ph = _amp_phase(t[keep], out[keep, j], f_hz)
+        lag_before = ph_in  # negative: the TIA lags
+        assert abs(amp / 200.0 - 1.0) < 0.03, (j, amp)
+        # what remains is the 20 Hz low-pass (plus the discretisation): far below the TIA's own lag
+        assert abs(ph) < 0.15 * abs(lag_before) + 0.02, (j, ph, lag_before)
+        r, w = math.exp(-2 * math.pi * 20.0 / FS), 2 * math.pi * f_hz / FS
+        assert ph == pytest.approx(-math.atan2(r * math.sin(w), 1 - r * math.cos(w)), abs=2e-3)  # the new low-pass only
+
+
+def test_equaliser_is_unity_at_dc_and_stable_for_any_step():
+    eq = ChannelEqualiser(STATIC_BUILD, bandwidth_hz=10.0)
+    for _ in range(50):
+        out = eq.step(0.01, (870.0, 1100.0, 1600.0, 1100.0))
+    assert np.allclose(out, (870.0, 1100.0, 1600.0, 1100.0))
+    eq.reset()
+    eq.step(0.01, (0.0, 0.0, 0.0, 0.0))
+    ys = [eq.step(dt, (1.0, 1.0, 1.0, 1.0)) for dt in (0.01, 5.0, 1e-6, 0.3) * 20]
+    assert all(math.isfinite(v) and abs(v) <= 1e3 for y in ys for v in y)
+    assert np.allclose(ys[-1], 1.0, atol=1e-6)
+
+
+def test_equaliser_bandwidth_must_exceed_every_cutoff():
+    with pytest.raises(ValueError, match="above every channel"):
+        ChannelEqualiser(STATIC_BUILD, bandwidth_hz=1.5)
+
+
+def test_stamp_delay_is_the_group_delay_at_dc_of_the_axes():
+    tau = [1 / (2 * math.pi * fc) + d for fc, d in zip(STATIC_BUILD.cutoff_hz[1:], STATIC_BUILD.delay_s, strict=True)]
+    assert STATIC_BUILD.stamp_delay_s("delay", 0.0) == pytest.approx(np.mean(tau))
+    # equalised: the chain's own delay, minus the sampled low-pass the equaliser inverts, plus its own
+    dt = 1 / FS
+    r = [math.exp(-2 * math.pi * fc * dt) for fc in STATIC_BUILD.cutoff_hz[1:]]
+    rp = math.exp(-2 * math.pi * 20.0 * dt)
+    expected = np.mean(tau) - np.mean([x / (1 - x) for x in r]) * dt + rp / (1 - rp) * dt
+    assert STATIC_BUILD.stamp_delay_s("equalise", 20.0, dt) == pytest.approx(expected)
+    assert abs(expected - (np.mean(STATIC_BUILD.delay_s) + 1 / (2 * math.pi * 20))) < dt  # about tau_p + delay
+    assert STATIC_BUILD.stamp_delay_s("none", 20.0) == 0.0
+    # at a frequency the first-order delay is smaller: tau / (1 + (f/fc)^2)
+    assert STATIC_BUILD.group_delay_s(0, 1.7) == pytest.approx(0.5 / (2 * math.pi * 1.7) + 0.0)
+
+
+def test_variance_factor_matches_monte_carlo_for_white_and_correlated_noise():
+    eq = ChannelEqualiser(STATIC_BUILD, bandwidth_hz=10.0)
+    rng = np.random.default_rng(3)
+    n = 200_000
+    for frac, tau in ((0.0, 0.0), (0.7, 0.12)):
+        w = rng.normal(size=n)
+        rho = math.exp(-1 / FS / tau) if tau else 0.0
+        ar = np.empty(n)
+        s = 0.0
+        e = rng.normal(size=n) * math.sqrt(1 - rho * rho)
+        for i in range(n):
+            s = rho * s + e[i]
+            ar[i] = s
+        noise = math.sqrt(1 - frac) * w + math.sqrt(frac) * ar
+        base = 1000.0 + noise
+        chans = [base] * 4
+        eq.reset()
+        out = np.array([eq.step(1 / FS, tuple(float(c[i]) for c in chans)) for i in range(n)])
+        for axis in range(3):
+            empirical = float(np.var(out[1000:, axis + 1]) / np.var(noise))
+            predicted = eq._gain_of_channel(axis + 1, 1 / FS, frac, tau)
+            assert predicted == pytest.approx(empirical, rel=0.05)
+            assert eq.variance_factor(axis, 1 / FS, frac, tau) >= predicted  # the reference may add more
+    assert eq.variance_factor(0, 1 / FS, 0.0, 0.0) > 3.0  # the lead amplifies: the price is stated, not hidden
+
+
+def test_dynamic_section_round_trips_and_refuses_what_it_does_not_know():
+    def fail(msg: str) -> ValueError:
+        return ValueError(msg)
+
+    d = STATIC_BUILD.to_dict()
+    assert ChainDynamics.from_dict(d, fail) == STATIC_BUILD
+    for bad, message in [
+        ({**d, "format_version": 2}, "format_version 2 is not supported"),
+        ({**d, "cutof_hz": {}}, "unknown key 'dynamic.cutof_hz'"),
+        ({**d, "cutoff_hz": {"reference": 1.0, "x": 1.7, "y": 1.3}}, "missing key 'dynamic.cutoff_hz.z'"),
+        ({**d, "cutoff_hz": {**d["cutoff_hz"], "w": 1.0}}, "unknown key 'dynamic.cutoff_hz.w'"),
+        ({**d, "cutoff_hz": {**d["cutoff_hz"], "x": -1.0}}, "cutoff_hz of x must be in"),
+        ({**d, "cutoff_hz": {**d["cutoff_hz"], "x": "fast"}}, "must be a number"),
+        ({**d, "delay_s": {"x": 5.0}}, "delay_s of x must be within"),
+        ("none", "'dynamic' must be a mapping"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            ChainDynamics.from_dict(bad, fail)

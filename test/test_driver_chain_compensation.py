@@ -1,0 +1,123 @@
+"""DriverCore with a calibration's ``dynamic`` section: stamps moved back by the chain delay, counts
+equalised before eq. 24 (issue 9; fbg_accel_driver.chain_compensation)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from test_driver_core import feed_frames, make_cal
+
+from fbg_accel_driver.chain_compensation import ChainDynamics
+from fbg_accel_driver.driver_core import CoreConfig, DriverCore
+from fbg_accel_driver.frame_codec import Frame
+from fbg_accel_driver.thermal_model import ThermalCalibration
+
+FS = 100.0
+GOOD = 3
+DYN = ChainDynamics(cutoff_hz=(1.0, 1.7, 1.3, 1.3), delay_s=(0.0, 0.0, 0.0))
+
+
+def _lowpass(u: np.ndarray, fc: float) -> np.ndarray:
+    """The sampled first-order TIA stage (the simulator's model, board_physics)."""
+    r = math.exp(-2 * math.pi * fc / FS)
+    y = np.empty_like(u)
+    s = u[0]
+    for i, v in enumerate(u):
+        s = r * s + (1 - r) * v
+        y[i] = s
+    return y
+
+
+def _frames(true_counts: np.ndarray) -> list[Frame]:
+    """Frames of (N, 4) true channel counts (ref, x, y, z) after each channel's own TIA low-pass."""
+    seen = np.column_stack([_lowpass(true_counts[:, j], DYN.cutoff_hz[j]) for j in range(4)])
+    c = np.round(seen).astype(int)
+    return [Frame(seq=i % 65536, t_us=i * 10_000, ref=int(c[i, 0]), x=int(c[i, 1]), y=int(c[i, 2]), z=int(c[i, 3]),
+                  temp_cc=2340, status=GOOD) for i in range(len(c))]
+
+
+def _core(mode: str, bandwidth: float = 10.0) -> DriverCore:
+    return DriverCore(make_cal(dynamic=DYN), CoreConfig(chain_compensation=mode, equalise_bandwidth_hz=bandwidth))
+
+
+def _truth(cal: ThermalCalibration, true_counts: np.ndarray) -> np.ndarray:
+    n = len(true_counts)
+    return cal.apply_counts(true_counts[:, 0], true_counts[:, 1:], np.full(n, 23.4), np.arange(n) / FS)
+
+
+def test_delay_mode_moves_every_stamp_back_by_the_dc_group_delay_and_keeps_the_samples():
+    n = 400
+    counts = np.tile([870.0, 1100.0, 1600.0, 1100.0], (n, 1))
+    frames = _frames(counts)
+    raw0, imu0, _ = feed_frames(_core("none"), frames)
+    raw1, imu1, _ = feed_frames(_core("delay"), frames)
+    shift = round(DYN.stamp_delay_s("delay") * 1e9)
+    assert shift == pytest.approx(np.mean([1 / (2 * math.pi * fc) for fc in (1.7, 1.3, 1.3)]) * 1e9, abs=1)
+    assert [r.stamp_ns for r in raw1] == [r.stamp_ns for r in raw0]  # imu/raw keeps the board sample's time
+    assert [r.stamp_ns for r in imu1] == [r.stamp_ns - shift for r in imu0]
+    assert [r.accel_mps2 for r in imu1] == [r.accel_mps2 for r in imu0]
+
+
+def test_equalise_undoes_the_ratio_distortion_when_the_source_power_moves():
+    """Source power +-10 % at 0.5 Hz, no acceleration: Psi is constant, but the reference (1 Hz) and
+    the axes (1.3-1.7 Hz) low-pass it differently, so the plain ratio of eq. 24 oscillates."""
+    t = np.arange(int(30 * FS)) / FS
+    p = 1.0 + 0.1 * np.sin(2 * np.pi * 0.5 * t)
+    counts = np.column_stack([870.0 * p, 1100.0 * p, 1600.0 * p, 1100.0 * p])
+    frames = _frames(counts)
+    keep = slice(int(5 * FS), None)
+    ripple = {}  # amplitude of the 0.5 Hz component (the equaliser's gain also raises the quantisation noise)
+    for mode in ("none", "equalise"):
+        _, imu, _ = feed_frames(_core(mode), frames)
+        a = np.array([r.accel_mps2 for r in imu])[keep]
+        tk = t[keep][: len(a)]
+        X = np.column_stack([np.sin(2 * np.pi * 0.5 * tk), np.cos(2 * np.pi * 0.5 * tk), np.ones_like(tk)])
+        coef = np.linalg.lstsq(X, a, rcond=None)[0]
+        ripple[mode] = np.hypot(coef[0], coef[1])
+    assert np.all(ripple["none"] > 0.5)  # m/s^2: the distortion the issue describes
+    assert np.all(ripple["equalise"] < 0.05 * ripple["none"]), ripple
+
+
+@pytest.mark.parametrize("f_hz", [0.5, 2.0, 4.0])
+def test_equalised_output_follows_the_true_acceleration_at_its_stamps(f_hz):
+    t = np.arange(int(30 * FS)) / FS
+    s = np.sin(2 * np.pi * f_hz * t)
+    counts = np.column_stack([np.full_like(t, 870.0), 1100 + 300 * s, 1600 - 200 * s, 1100 + 100 * s])
+    cal = make_cal(dynamic=DYN)
+    true_t = t * 1e9
+    truth = _truth(cal, counts)
+    err = {}
+    for mode in ("none", "equalise"):
+        raw, imu, _ = feed_frames(_core(mode, bandwidth=20.0), _frames(counts))
+        t_raw0 = raw[0].stamp_ns  # board time 0 on the ROS time line
+        st = np.array([r.stamp_ns - t_raw0 for r in imu], dtype=float)
+        a = np.array([r.accel_mps2 for r in imu])
+        keep = st > 5e9
+        ref = np.column_stack([np.interp(st[keep], true_t, truth[:, k]) for k in range(3)])
+        err[mode] = np.sqrt(np.mean((a[keep] - ref) ** 2, axis=0))
+    assert np.all(err["equalise"] < 0.2 * err["none"]), err
+
+
+def test_equalised_covariance_carries_the_noise_gain():
+    counts = np.tile([870.0, 1100.0, 1600.0, 1100.0], (100, 1))
+    _, imu0, _ = feed_frames(_core("none"), _frames(counts))
+    _, imu1, _ = feed_frames(_core("equalise"), _frames(counts))
+    c0, c1 = np.array(imu0[-1].covariance), np.array(imu1[-1].covariance)
+    assert np.all(c1[[0, 4, 8]] > 3 * c0[[0, 4, 8]])
+
+
+def test_compensation_without_a_dynamic_section_is_refused():
+    with pytest.raises(ValueError, match="needs a calibration with a 'dynamic' section"):
+        DriverCore(make_cal(), CoreConfig(chain_compensation="delay"))
+    with pytest.raises(ValueError, match="chain_compensation must be one of"):
+        CoreConfig(chain_compensation="fast").validate()
+    with pytest.raises(ValueError, match="above every channel"):
+        _core("equalise", bandwidth=1.5)
+
+
+def test_dynamic_section_survives_the_calibration_file(tmp_path):
+    cal = make_cal(dynamic=DYN)
+    cal.save(tmp_path / "c.yaml")
+    assert ThermalCalibration.load(tmp_path / "c.yaml").dynamic == DYN
