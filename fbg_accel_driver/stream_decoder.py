@@ -5,6 +5,8 @@ keeps counters of everything it rejected. It never raises on any input and never
 
 Rules (see docs/protocol.md):
 
+* Versions 1 (27 bytes) and 2 (29 bytes: version 1 + ``aux``) are decoded; a version-2 frame
+  comes out as a ``Frame`` with ``aux`` set, a version-1 frame with ``aux`` None.
 * A frame candidate starts at ``SYNC`` with a known ``version`` and its ``body_len``. If its
   CRC fails, the candidate is counted in ``crc_errors`` and the search resumes one byte after
   the sync, so a frame hidden behind a truncated one or behind garbage is still recovered.
@@ -25,7 +27,7 @@ from dataclasses import asdict, dataclass
 
 from .frame_codec import (
     ADC_MAX,
-    BODY_LEN_V1,
+    BODY_LEN_BY_VERSION,
     CRC_SIZE,
     HEADER_SIZE,
     PROTOCOL_VERSION,
@@ -35,6 +37,7 @@ from .frame_codec import (
     Status,
     crc16,
     decode_body_v1,
+    decode_body_v2,
 )
 
 # Longest body any future version may declare; a larger body_len means "not a frame".
@@ -49,8 +52,8 @@ class DecoderStats:
     bytes_received: int = 0
     bytes_discarded: int = 0
     crc_errors: int = 0
-    invalid_frames: int = 0  # CRC fine but a field out of range (ADC counts above 12 bits)
-    unsupported_version: int = 0
+    invalid_frames: int = 0  # CRC fine but a field out of range (ADC counts, aux included, above 12 bits)
+    unsupported_version: int = 0  # CRC-valid frames of a version other than 1 and 2
     lost_frames: int = 0
     duplicates: int = 0
     resets: int = 0
@@ -67,6 +70,9 @@ class StreamDecoder:
         self.stats = DecoderStats()
         self._last_seq: int | None = None
         self._last_t_us: int | None = None
+        # Bytes of accepted and duplicate frames (27 per version-1 frame, 29 per version-2 frame):
+        # bytes_received = bytes_discarded + frame_bytes + buffered, whatever the mix of versions.
+        self.frame_bytes = 0
 
     def feed(self, chunk: bytes | bytearray | memoryview) -> list[Frame]:
         """Consume ``chunk`` and return the intact, non-duplicate frames it completed."""
@@ -97,8 +103,9 @@ class StreamDecoder:
                 break  # wait for the header
             version = buf[pos + 2]
             body_len = buf[pos + 3]
+            known_len = BODY_LEN_BY_VERSION.get(version)
             if version == 0 or body_len == 0 or body_len > MAX_BODY_LEN or (
-                version == PROTOCOL_VERSION and body_len != BODY_LEN_V1
+                known_len is not None and body_len != known_len
             ):
                 self.stats.bytes_discarded += 1
                 pos += 1
@@ -112,17 +119,23 @@ class StreamDecoder:
                 self.stats.bytes_discarded += 1
                 pos += 1
                 continue
-            if version != PROTOCOL_VERSION:
+            if known_len is None:
                 self.stats.unsupported_version += 1
                 self.stats.bytes_discarded += total
                 pos += total
                 continue
-            frame = decode_body_v1(buf, pos + HEADER_SIZE)
+            if version == PROTOCOL_VERSION:
+                frame = decode_body_v1(buf, pos + HEADER_SIZE)
+                top = max(frame.ref, frame.x, frame.y, frame.z)
+            else:  # version 2: the version-1 fields + aux
+                frame = decode_body_v2(buf, pos + HEADER_SIZE)
+                top = max(frame.ref, frame.x, frame.y, frame.z, frame.aux)
             pos += total
-            if max(frame.ref, frame.x, frame.y, frame.z) > ADC_MAX:
+            if top > ADC_MAX:
                 self.stats.invalid_frames += 1
                 self.stats.bytes_discarded += total
                 continue
+            self.frame_bytes += total  # accepted or duplicate
             if self._accept(frame):
                 out.append(frame)
         if pos:

@@ -1,4 +1,4 @@
-"""Hypothesis strategy for arbitrary valid board frames (shared by the codec and fuzz tests)."""
+"""Hypothesis strategies for arbitrary valid board frames, v1 and v2 (shared by the codec and fuzz tests)."""
 
 from __future__ import annotations
 
@@ -18,3 +18,5 @@ frames = st.builds(
     temp_cc=st.integers(-(2**15), 2**15 - 1),
     status=st.integers(0, 255),
 )
+# Version-2 frames: the version-1 fields + a 12-bit aux count.
+frames_v2 = st.builds(lambda f, aux: Frame(f.seq, f.t_us, f.ref, f.x, f.y, f.z, f.temp_cc, f.status, aux), frames, adc)

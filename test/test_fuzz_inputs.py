@@ -1,8 +1,8 @@
 """Bounded-time fuzzing (hypothesis) of the two inputs that come from outside: board bytes and calibration files.
 
-* Frame decoder: arbitrary bytes, mutated valid streams (overwrites, insertions, deletions,
-  repeated slices), arbitrary chunking and non-bytes arguments. It must never raise, keep its
-  memory bounded, keep its byte balance, and never output a frame that is not literally present,
+* Frame decoder: arbitrary bytes, mutated valid streams (version-1 and version-2 frames mixed;
+  overwrites, insertions, deletions, repeated slices), arbitrary chunking and non-bytes arguments.
+  It must never raise, keep its memory bounded, keep its byte balance, and never output a frame that is not literally present,
   CRC and all, in the input.
 * Calibration YAML loader: mutated valid documents (values replaced by arbitrary YAML values,
   keys deleted or added, nested coefficients replaced, text-level edits) and arbitrary text. The
@@ -22,12 +22,12 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
-from frame_strategies import frames
+from frame_strategies import frames, frames_v2
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from fbg_accel_driver import correction_terms
-from fbg_accel_driver.frame_codec import CRC_SIZE, FRAME_SIZE_V1, HEADER_SIZE, Frame, encode_frame
+from fbg_accel_driver.frame_codec import CRC_SIZE, HEADER_SIZE, Frame, encode_frame, frame_size
 from fbg_accel_driver.stream_decoder import MAX_BODY_LEN, StreamDecoder
 from fbg_accel_driver.thermal_model import CalibrationFileError, ThermalCalibration
 
@@ -45,7 +45,7 @@ MAX_CANDIDATE = HEADER_SIZE + MAX_BODY_LEN + CRC_SIZE
 
 @st.composite
 def mutated_streams(draw: st.DrawFn) -> bytes:
-    data = bytearray(b"".join(encode_frame(f) for f in draw(st.lists(frames, max_size=25))))
+    data = bytearray(b"".join(encode_frame(f) for f in draw(st.lists(st.one_of(frames, frames_v2), max_size=25))))
     for _ in range(draw(st.integers(0, 12))):
         op = draw(st.sampled_from(["flip", "insert", "delete", "repeat", "overwrite"]))
         at = draw(st.integers(0, len(data)))
@@ -81,7 +81,9 @@ def check_decoder_invariants(data: bytes, sizes: list[int]) -> None:
         assert dec.buffered < MAX_CANDIDATE
     s = dec.stats
     assert s.bytes_received == len(data)
-    assert s.bytes_received == s.bytes_discarded + FRAME_SIZE_V1 * (s.frames + s.duplicates) + dec.buffered
+    assert s.bytes_received == s.bytes_discarded + dec.frame_bytes + dec.buffered
+    if s.duplicates == 0:
+        assert dec.frame_bytes == sum(frame_size(f.version) for f in out)
     assert s.frames == len(out)
     assert min(s.as_dict().values()) >= 0
     for f in out:

@@ -69,9 +69,9 @@ def wire(frames: list[Frame]) -> bytes:
     return b"".join(encode_frame(f) for f in frames)
 
 
-def v2_frame(body: bytes) -> bytes:
-    """A CRC-valid frame of a hypothetical protocol version 2 with a longer body."""
-    covered = bytes([2, len(body)]) + body
+def future_frame(body: bytes, version: int = 3) -> bytes:
+    """A CRC-valid frame of a hypothetical protocol version (3: unknown to this decoder) with a longer body."""
+    covered = bytes([version, len(body)]) + body
     return SYNC + covered + crc16(covered).to_bytes(2, "little")
 
 
@@ -342,8 +342,9 @@ def test_false_header_with_long_body_only_delays_frames() -> None:
 
 @pytest.mark.parametrize(
     "header",
-    [SYNC + b"\x00\x15", SYNC + b"\x01\x00", SYNC + bytes([3, MAX_BODY_LEN + 1]), SYNC + b"\x01\x16", SYNC + b"\x01\x14"],
-    ids=["version0", "body_len0", "body_len_too_long", "v1_long", "v1_short"],
+    [SYNC + b"\x00\x15", SYNC + b"\x01\x00", SYNC + bytes([3, MAX_BODY_LEN + 1]), SYNC + b"\x01\x16", SYNC + b"\x01\x14",
+     SYNC + b"\x02\x15", SYNC + b"\x02\x18"],
+    ids=["version0", "body_len0", "body_len_too_long", "v1_long", "v1_short", "v2_with_v1_length", "v2_long"],
 )
 def test_impossible_headers_are_rejected_without_waiting(header: bytes) -> None:
     f = make_frames(1)[0]
@@ -355,12 +356,12 @@ def test_impossible_headers_are_rejected_without_waiting(header: bytes) -> None:
 
 def test_unknown_version_frame_is_skipped_whole() -> None:
     frames = make_frames(4)
-    v2 = v2_frame(bytes(range(30)) + SYNC + bytes(10))  # body with a sync inside: must be skipped as a unit
-    dec, out = run([encode_frame(frames[0]) + encode_frame(frames[1]) + v2 + encode_frame(frames[2]) + encode_frame(frames[3])])
+    v3 = future_frame(bytes(range(30)) + SYNC + bytes(10))  # body with a sync inside: must be skipped as a unit
+    dec, out = run([encode_frame(frames[0]) + encode_frame(frames[1]) + v3 + encode_frame(frames[2]) + encode_frame(frames[3])])
     assert out == frames
     s = dec.stats
     assert (s.unsupported_version, s.crc_errors, s.lost_frames) == (1, 0, 0)
-    assert s.bytes_discarded == len(v2)
+    assert s.bytes_discarded == len(v3)
 
 
 def test_adc_counts_above_12_bits_are_invalid_and_lost() -> None:

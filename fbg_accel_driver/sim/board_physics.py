@@ -9,13 +9,15 @@ Batch API (contract in the team brief)::
 
 Signal chain per sample (docs/simulator.md has the equations and the source of each effect):
 
-    table angles (t - delay) -> specific force f (table frame) -> mount rotation + vibration
+    table angles (t - delay) -> specific force f (table frame) -> mount rotation + vibration + slide
+       (dynamic inputs through the mechanical resonance; channel j evaluated j x ADC skew later)
     -> axis inputs u = A f + equivalent biases (time drift, hysteresis, cable torque)
     -> FBG pair separation d = d0 - S u + thermal mismatch -> super-Gaussian spectral overlap (eq. 13)
     -> optical power x source power (temperature, wander, dropout) x chain gains (SLD wavelength
        drift, couplers, photodiodes) -> counts at rest scale -> TIA first-order low-pass
     -> + noise (Table 2) + dark offsets -> 12-bit ADC (round, clip 0..4095)
     AHT10: chamber -> optics (thermal inertia) -> sensor (thermal lag) -> offset, noise, 0.01 degC
+    aux (protocol v2): true slide velocity (LDV, AC-coupled) or acceleration -> counts -> 12-bit ADC
 
 Everything random is drawn per fixed-size generation chunk from ``(seed, chunk, stream)``, so the
 output depends only on the seed and the config, never on how ``step`` calls are sized.
@@ -31,16 +33,16 @@ import numpy as np
 
 from fbg_accel_calibration.table_geometry import table_specific_force
 
-from ..frame_codec import FRAME_SIZE_V1, SEQ_MODULO, Frame, Status, crc16
+from ..frame_codec import BODY_LEN_BY_VERSION, SEQ_MODULO, Frame, Status, crc16, frame_size
 from . import faults as fz
 from .noise import GaussMarkovBank, NoiseModel, first_order_filter
 from .optics import STANDARD_G, PairOverlap, grating_sigma_nm, relative_response, source_factor
-from .scenario import TemperatureProfile, build_trajectory, vibration
+from .scenario import TemperatureProfile, build_slide, build_trajectory, second_order_response, vibration
 from .sim_config import SimConfig
 
 CHUNK = 2048  # samples per generation chunk (fixed: determinism does not depend on step sizes)
 CHANNELS = ("ref", "x", "y", "z")
-_STREAM_NOISE, _STREAM_SOURCE, _STREAM_AHT, _STREAM_WIRE, _STREAM_REFNOISE = 1, 2, 3, 4, 5
+_STREAM_NOISE, _STREAM_SOURCE, _STREAM_AHT, _STREAM_WIRE, _STREAM_REFNOISE, _STREAM_AUX = 1, 2, 3, 4, 5, 6
 
 __all__ = ["CHUNK", "BoardSimulator", "SimBlock", "SimConfig", "simulate_recording"]
 
@@ -63,6 +65,27 @@ def _first_order(x: np.ndarray, alpha: float, state: np.ndarray) -> tuple[np.nda
     return y, np.atleast_1d(y[-1]).copy()
 
 
+def _lowpass(x: np.ndarray, tau_s: float, dt_s: float, y_prev: float, x_prev: float,
+             linear: bool) -> tuple[np.ndarray, float, float]:
+    """First-order low-pass 1/(1 + s tau) of a 1-D sampled signal; returns (y, last y, last x).
+
+    ``linear``: exact response to an input linear between samples (first-order hold, no phase error);
+    else the input is held over each interval (y[k] = a y[k-1] + (1 - a) x[k]). ``tau_s`` 0: y = x.
+    """
+    x = np.asarray(x, float)
+    if tau_s <= 0.0:
+        return x.copy(), float(x[-1]), float(x[-1])
+    a = math.exp(-dt_s / tau_s)
+    if linear:
+        r = tau_s / dt_s * -math.expm1(-dt_s / tau_s)  # tau/dt (1 - a)
+        prev = np.concatenate([[x_prev], x[:-1]])
+        v = (1.0 - r) * x + (r - a) * prev
+        y = first_order_filter(v, a, 1.0, y_prev)
+    else:
+        y = first_order_filter(x, a, -math.expm1(-dt_s / tau_s), y_prev)
+    return y, float(y[-1]), float(x[-1])
+
+
 @dataclass
 class _Chunk:
     """Everything generated for one chunk of CHUNK samples (arrays of length CHUNK)."""
@@ -81,6 +104,7 @@ class SimBlock:
     arrays: dict[str, np.ndarray]
     counters: dict[str, int]
     _pieces: list[bytes] | None = field(repr=False, default_factory=list)
+    protocol_version: int = 1  # of the frames: 2 carries the aux counts
 
     def __getattr__(self, name: str) -> Any:
         arrays = self.__dict__.get("arrays", {})
@@ -132,9 +156,10 @@ class SimBlock:
         a = self.arrays
         out: list[Frame] = []
         deliver = a["sent"] & ~np.isin(a["wire_fault"], (fz.DROP, fz.BIT_FLIP, fz.TRUNCATE))
+        v2 = self.protocol_version == 2
         for i in np.flatnonzero(deliver):
             f = Frame(int(a["seq"][i]), int(a["t_us"][i]), *(int(v) for v in a["counts"][i]), int(a["temp_cc"][i]),
-                      int(a["status"][i]))
+                      int(a["status"][i]), int(a["aux"][i]) if v2 else None)
             out.append(f)
             if a["wire_fault"][i] == fz.DUPLICATE:
                 out.append(f)
@@ -163,8 +188,13 @@ class BoardSimulator:
         self.chamber = TemperatureProfile(float(sc["temperature"]["initial_c"]), sc["temperature"]["profile"])
         self.gravity = float(sc["gravity_mps2"])
         self.sines = sc["vibration"]["sines"]
+        self.slide = build_slide(sc["slide"])
         dur = sc.get("duration_s")
         self.duration_s = float(dur) if dur is not None else self.trajectory.duration_s
+        if dur is None and self.slide is not None and not math.isfinite(self.duration_s):
+            # A static table with a slide plan ends after the plan plus as much rest as before it.
+            self.duration_s = self.slide.end_s + float(self.slide.starts[0])
+        self._setup_dynamics()
         self._setup_optics()
         self._setup_noise()
         self._setup_board_and_faults()
@@ -175,6 +205,45 @@ class BoardSimulator:
         self._expected = fz.ExpectedDecoder()
 
     # ------------------------------------------------------------------ setup
+    def _setup_dynamics(self) -> None:
+        """Protocol version, ADC channel skew, filter discretisation, resonance, reference transducer."""
+        c = self.cfg
+        self.protocol_version = int(c.get("board.protocol_version"))
+        if self.protocol_version not in BODY_LEN_BY_VERSION:
+            raise ValueError(f"board.protocol_version {self.protocol_version} unknown (1 or 2)")
+        self.frame_size = frame_size(self.protocol_version)
+        self.skew_s = float(c.get("board.adc_channel_skew_us")) * 1e-6
+        if not (self.skew_s >= 0 and self.skew_s * 4 < 1.0 / self.rate_hz):
+            raise ValueError("board.adc_channel_skew_us must be >= 0 and 4 skews must fit in one sample period")
+        disc = str(c.get("electronics.filter_discretisation"))
+        if disc not in ("auto", "hold", "linear"):
+            raise ValueError(f"electronics.filter_discretisation '{disc}' unknown (auto, hold, linear)")
+        self.linear_filters = disc == "linear" or (disc == "auto" and self.slide is not None)
+        res = c.get("effects.mechanical_resonance")
+        r_scale, fn, zeta = float(res["scale"]), float(res["natural_freq_hz"]), float(res["damping_ratio"])
+        if r_scale != 0.0 and not (fn > 0 and zeta > 0):
+            raise ValueError("effects.mechanical_resonance: natural_freq_hz and damping_ratio must be > 0")
+        self.resonance = (None if r_scale == 0.0 else
+                          (lambda f: 1.0 + r_scale * (second_order_response(f, fn, zeta) - 1.0)))
+        ref = c.get("reference_transducer")
+        self.ref_type = str(ref["type"])
+        if self.ref_type not in ("ldv", "accelerometer", "none"):
+            raise ValueError(f"reference_transducer.type '{self.ref_type}' unknown (ldv, accelerometer, none)")
+        self.ref_cfg = ref
+        hp = ref["ldv"].get("ac_coupling_hz")
+        self.ldv_hp_tau = 1.0 / (2.0 * math.pi * float(hp)) if hp else 0.0
+        self._aux_lp: tuple[float, float] | None = None  # LDV AC-coupling state: (low-pass y, last input)
+        self._tia_xprev: np.ndarray | None = None  # last TIA input per channel (linear discretisation)
+
+    def _sensed_force(self, tt: np.ndarray) -> np.ndarray:
+        """Specific force (N, 3) m/s^2, sensor frame, that the seismic mass feels at times ``tt`` (s): table
+        gravity + vibration + slide, dynamic parts through the mechanical resonance."""
+        psi, theta, *_ = self.trajectory.evaluate(tt)
+        f = table_specific_force(psi, theta, self.gravity) @ self.R_mount.T + vibration(tt, self.sines, self.resonance)
+        if self.slide is not None:
+            f = f + self.slide.kinematics(tt, self.resonance)[2][:, None] * self.slide.direction[None, :]
+        return f
+
     def _setup_optics(self) -> None:
         c = self.cfg
         o = c.get("optics")
@@ -307,7 +376,7 @@ class BoardSimulator:
             pieces = None
         self.sample_index = k1
         counters = self._count(arrays)
-        return SimBlock(arrays, counters, pieces)
+        return SimBlock(arrays, counters, pieces, self.protocol_version)
 
     def step_bytes(self, n: int) -> bytes:
         """Wire bytes of the next ``n`` samples only (fast path of the pty server; the truth counters
@@ -339,7 +408,7 @@ class BoardSimulator:
         counters = {k: sum(b.counters[k] for b in blocks) if not k.startswith("total_") else blocks[-1].counters[k]
                     for k in blocks[0].counters}
         pieces = [p for b in blocks for p in b._pieces] if self.wire else None
-        return SimBlock(arrays, counters, pieces)
+        return SimBlock(arrays, counters, pieces, self.protocol_version)
 
     def expected_decoder_stats(self) -> dict[str, int]:
         """What a ``StreamDecoder`` fed all bytes so far from the first one must report."""
@@ -392,15 +461,25 @@ class BoardSimulator:
         arrival = self.trajectory.arrival_time(t)
         gref = table_specific_force(psi, theta, self.gravity)
         delay = float(eff["channel_delay"]["scale"]) * float(eff["channel_delay"]["delay_s"])
+        vib_true = vibration(t, self.sines)
         if delay != 0.0:
             psi_d, theta_d, *_ = self.trajectory.evaluate(t - delay)
             f_phys_table = table_specific_force(psi_d, theta_d, self.gravity)
-            vib_phys = vibration(t - delay, self.sines)
         else:
             psi_d, f_phys_table = psi, gref
-            vib_phys = vibration(t, self.sines)
-        accel_true = gref @ self.R_mount.T + (vibration(t, self.sines) if delay != 0.0 else vib_phys)
+        # What the mass feels: vibration (and slide) at t - delay through the mechanical resonance.
+        vib_phys = vibration(t - delay, self.sines, self.resonance) if delay != 0.0 or self.resonance else vib_true
+        accel_true = gref @ self.R_mount.T + vib_true
         f_phys = f_phys_table @ self.R_mount.T + vib_phys
+        # --- linear slide (seed 2, section 2): true motion at t (truth, reference transducer), felt at t - delay
+        if self.slide is not None:
+            sl_x, sl_v, sl_a = self.slide.kinematics(t)
+            accel_true = accel_true + sl_a[:, None] * self.slide.direction[None, :]
+            f_phys = f_phys + self.slide.kinematics(t - delay, self.resonance)[2][:, None] * self.slide.direction[None, :]
+            sl_seg = self.slide.segment_index(t)
+        else:
+            sl_x = sl_v = sl_a = np.zeros(n)
+            sl_seg = np.full(n, -1, dtype=np.int64)
 
         # --- temperatures: chamber -> optics (thermal inertia, paper 4.4) -> AHT10 die (thermal_lag)
         T_ch = self.chamber(t)
@@ -437,6 +516,11 @@ class BoardSimulator:
             ang = np.radians(float(ct["harmonic"]) * psi_d + float(ct["phase_deg"]))
             bias += float(ct["scale"]) * np.sin(ang)[:, None] * np.asarray(ct["amplitude_mps2"], float)
         u = f_phys @ self.A.T + bias
+        if self.skew_s > 0.0:
+            # ESP32 one-shot sequential conversion: axis channel j (x, y, z = 1, 2, 3 after ref) is converted
+            # j skews after t_us, so it sees the input of that later instant (an LTI chain commutes with the shift).
+            for j in range(3):
+                u[:, j] = self._sensed_force(t - delay + (j + 1) * self.skew_s) @ self.A[j] + bias[:, j]
 
         # --- optics: pair separation and spectral overlap (paper eq. 13, 22)
         mm = eff["fbg_pair_thermal_mismatch"]
@@ -467,9 +551,16 @@ class BoardSimulator:
         tia_scale = float(eff["tia_lowpass"]["scale"])
         if self._tia_state is None:
             self._tia_state = signal[0].copy()
+            self._tia_xprev = signal[0].copy()
         filtered = np.empty_like(signal)
         for j in range(4):
             tau = tia_scale * self.tia_tau[j]
+            if self.linear_filters:  # exact for an input linear between samples (dynamic runs)
+                y, ylast, xlast = _lowpass(signal[:, j], tau, self.dt_true, float(self._tia_state[j]),
+                                           float(self._tia_xprev[j]), linear=True)
+                filtered[:, j] = y
+                self._tia_state[j], self._tia_xprev[j] = ylast, xlast
+                continue
             alpha = math.exp(-self.dt_true / tau) if tau > 0 else 0.0
             y, st = _first_order(signal[:, j], alpha, self._tia_state[j:j + 1])
             filtered[:, j] = y
@@ -495,6 +586,8 @@ class BoardSimulator:
         if float(eff["adc_quantisation"]["scale"]) != 0.0:
             counts_f = np.round(counts_f)
         counts = np.clip(np.round(counts_f), 0, self.adc_max).astype(np.int64)
+        aux_f = self._aux_counts(t, eff, np.random.default_rng([self.seed, ci + 1, _STREAM_AUX]))
+        aux = np.clip(np.round(aux_f), 0, self.adc_max).astype(np.int64)
 
         # --- AHT10 reading: sample-and-hold at read_rate_hz, offset (accuracy) + noise, 0.01 degC resolution
         aht = c.get("aht10")
@@ -560,9 +653,9 @@ class BoardSimulator:
             i = kk - k0
             wire_fault[i] = code
             if code == fz.BIT_FLIP:
-                flip_bit[i] = int(rng_wire.integers(0, 8 * (FRAME_SIZE_V1 - fz.FLIP_FIRST_BYTE)))
+                flip_bit[i] = int(rng_wire.integers(0, 8 * (self.frame_size - fz.FLIP_FIRST_BYTE)))
             elif code == fz.TRUNCATE:
-                trunc_len[i] = int(rng_wire.integers(fz.TRUNC_MIN, fz.TRUNC_MAX + 1))
+                trunc_len[i] = int(rng_wire.integers(fz.TRUNC_MIN, self.frame_size))
         for kk in self._garbage_k[(self._garbage_k >= k0) & (self._garbage_k < k0 + CHUNK)].tolist():
             g = self.schedule.garbage[kk]
             garbage_len[kk - k0] = g
@@ -582,17 +675,52 @@ class BoardSimulator:
             "reset_start": (k == start) & (epoch > 0),
             "sent": sent, "wire_fault": wire_fault, "garbage_before": garbage_len,
             "trunc_len": trunc_arr,
+            "slide_displacement_m": sl_x, "slide_velocity_mps": sl_v, "slide_accel_mps2": sl_a,
+            "slide_segment": sl_seg, "aux": aux, "aux_float": aux_f,
         }
         return _Chunk(arrays, flip_bit, trunc_len, garbage)
+
+    def _aux_counts(self, t: np.ndarray, eff: dict[str, Any], rng: np.random.Generator) -> np.ndarray:
+        """Aux channel (N,) counts before rounding: the reference transducer measuring the true slide motion,
+        converted 4 skews after t_us (after ref, x, y, z), clipped to the ADC range (rounded if quantised)."""
+        n = t.shape[0]
+        rc = self.ref_cfg
+        if self.ref_type == "none":
+            return np.zeros(n)
+        if self.slide is not None:
+            _, vel, acc = self.slide.kinematics(t + 4.0 * self.skew_s)
+        else:
+            vel = acc = np.zeros(n)
+        if self.ref_type == "ldv":  # velocity output (seed 2, 2.1), AC coupling of the input (seed 2, Fig. 5)
+            sig = vel
+            if self.ldv_hp_tau > 0.0:
+                if self._aux_lp is None:
+                    self._aux_lp = (float(sig[0]), float(sig[0]))
+                lp, ylast, xlast = _lowpass(sig, self.ldv_hp_tau, self.dt_true, *self._aux_lp, linear=self.linear_filters)
+                self._aux_lp = (ylast, xlast)
+                sig = sig - lp  # first-order high-pass = input - low-pass
+            out = float(rc["ldv"]["offset_counts"]) + float(rc["ldv"]["sensitivity_counts_per_mps"]) * sig
+        else:  # reference accelerometer, DC coupled
+            out = (float(rc["accelerometer"]["offset_counts"])
+                   + float(rc["accelerometer"]["sensitivity_counts_per_mps2"]) * acc)
+        noise = float(rc["noise_counts"])
+        if noise > 0:
+            out = out + rng.standard_normal(n) * noise
+        out = np.clip(out, 0.0, float(self.adc_max))
+        if float(eff["adc_quantisation"]["scale"]) != 0.0:
+            out = np.round(out)
+        return out
 
     # ------------------------------------------------------------------ wire
     def _wire_pieces(self, ch: _Chunk, ci: int) -> list[bytes]:
         if ch.pieces is not None:
             return ch.pieces
         a = ch.arrays
-        rec = fz.encode_frames(a["seq"], a["t_us"], a["counts"], a["temp_cc"], a["status"])
+        rec = fz.encode_frames(a["seq"], a["t_us"], a["counts"], a["temp_cc"], a["status"],
+                               a["aux"] if self.protocol_version == 2 else None)
         raw = rec.tobytes()
-        frames = [raw[i * FRAME_SIZE_V1:(i + 1) * FRAME_SIZE_V1] for i in range(CHUNK)]
+        size = self.frame_size
+        frames = [raw[i * size:(i + 1) * size] for i in range(CHUNK)]
         pieces: list[bytes] = []
         for i in range(CHUNK):
             g = ch.garbage.get(i, b"")
@@ -607,7 +735,7 @@ class BoardSimulator:
                 body = fr + fr
             elif code == fz.BIT_FLIP:
                 bit = ch.flip_bit[i]
-                nbits = 8 * (FRAME_SIZE_V1 - fz.FLIP_FIRST_BYTE)
+                nbits = 8 * (size - fz.FLIP_FIRST_BYTE)
                 for j in range(nbits):
                     cand = fz.corrupt_flip(fr, (bit + j) % nbits)
                     if not fz.hides_sync(cand):
@@ -616,7 +744,7 @@ class BoardSimulator:
                 else:  # pragma: no cover - impossible: flipping a bit inside an internal sync removes it
                     raise RuntimeError("no safe bit to flip")
             elif code == fz.TRUNCATE:
-                body = self._safe_truncation(fr, ch.trunc_len[i], frames, ch, i)
+                body = self._safe_truncation(fr, ch.trunc_len[i], frames, ch, i, size)
                 ch.arrays["trunc_len"][i] = len(body)
             else:
                 body = fr
@@ -625,17 +753,17 @@ class BoardSimulator:
         return pieces
 
     @staticmethod
-    def _safe_truncation(fr: bytes, length: int, frames: list[bytes], ch: _Chunk, i: int) -> bytes:
-        """A prefix of ``fr`` (>= 4 bytes) with no inner sync and whose 27-byte candidate window fails the CRC."""
+    def _safe_truncation(fr: bytes, length: int, frames: list[bytes], ch: _Chunk, i: int, size: int) -> bytes:
+        """A prefix of ``fr`` (>= 4 bytes) with no inner sync and whose ``size``-byte candidate window fails the CRC."""
         # Bytes that follow on the wire: garbage before the next sample + the next frame (guaranteed sent
         # and in the same chunk by the scheduler; a duplicate or fault on it only matters after the window).
         follow = ch.garbage.get(i + 1, b"") + frames[i + 1] if i + 1 < CHUNK else b""
-        for L in [length, *range(fz.TRUNC_MAX, fz.TRUNC_MIN - 1, -1)]:
+        for L in [length, *range(size - 1, fz.TRUNC_MIN - 1, -1)]:
             cand = fr[:L]
             if fz.hides_sync(cand):
                 continue
-            window = (cand + follow)[:FRAME_SIZE_V1]
-            if len(window) == FRAME_SIZE_V1 and crc16(window[2:25]) == (window[25] | (window[26] << 8)):
+            window = (cand + follow)[:size]
+            if len(window) == size and crc16(window[2:size - 2]) == (window[size - 2] | (window[size - 1] << 8)):
                 continue
             return cand
         raise RuntimeError("no safe truncation length")  # pragma: no cover
@@ -658,7 +786,7 @@ class BoardSimulator:
             "unsent_frames": int((~sent).sum()),
             "saturated_samples": int(a["saturated"].any(axis=1).sum()),
             "temp_invalid_samples": int((~a["temp_valid"]).sum()),
-            "expected_bytes_discarded": int(a["garbage_before"][sent].sum() + FRAME_SIZE_V1 * flips
+            "expected_bytes_discarded": int(a["garbage_before"][sent].sum() + self.frame_size * flips
                                             + a["trunc_len"][sent & (wf == fz.TRUNCATE)].sum()),
         }
         deliver = sent & ~np.isin(wf, (fz.DROP, fz.BIT_FLIP, fz.TRUNCATE))

@@ -27,7 +27,8 @@ from .sim_config import SimConfig, SimConfigError, parse_set_argument
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="board_sim", description="Simulated FBG accelerometer board (binary frames v1).")
+    p = argparse.ArgumentParser(prog="board_sim",
+                                description="Simulated FBG accelerometer board (binary frames v1, or v2 with the aux channel).")
     p.add_argument("--config", help="simulator config YAML merged on config/sim_default.yaml")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config key (dotted, value parsed as YAML); repeatable")

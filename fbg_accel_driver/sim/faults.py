@@ -26,11 +26,22 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..frame_codec import BODY_LEN_V1, FRAME_SIZE_V1, PROTOCOL_VERSION, SEQ_MODULO, SYNC, Status, crc16
+from ..frame_codec import (
+    BODY_LEN_V1,
+    BODY_LEN_V2,
+    FRAME_SIZE_V1,
+    FRAME_SIZE_V2,
+    PROTOCOL_VERSION,
+    PROTOCOL_VERSION_V2,
+    SEQ_MODULO,
+    SYNC,
+    Status,
+    crc16,
+)
 
 NONE, DROP, DUPLICATE, BIT_FLIP, TRUNCATE = 0, 1, 2, 3, 4
 FLIP_FIRST_BYTE = 4  # first byte a bit flip may touch (after sync, version, body_len)
-TRUNC_MIN, TRUNC_MAX = 4, FRAME_SIZE_V1 - 1  # bytes kept of a truncated frame
+TRUNC_MIN, TRUNC_MAX = 4, FRAME_SIZE_V1 - 1  # bytes kept of a truncated frame (version 2: up to FRAME_SIZE_V2 - 1)
 _GARBAGE_ALPHABET = np.array([b for b in range(256) if b not in (SYNC[0], SYNC[1])], dtype=np.uint8)
 
 FRAME_DTYPE = np.dtype([
@@ -38,28 +49,40 @@ FRAME_DTYPE = np.dtype([
     ("ref", "<u2"), ("x", "<u2"), ("y", "<u2"), ("z", "<u2"), ("temp_cc", "<i2"), ("status", "u1"), ("crc", "<u2"),
 ])
 assert FRAME_DTYPE.itemsize == FRAME_SIZE_V1
+FRAME_DTYPE_V2 = np.dtype([
+    ("sync", "u1", (2,)), ("version", "u1"), ("body_len", "u1"), ("seq", "<u2"), ("t_us", "<u8"),
+    ("ref", "<u2"), ("x", "<u2"), ("y", "<u2"), ("z", "<u2"), ("temp_cc", "<i2"), ("status", "u1"), ("aux", "<u2"),
+    ("crc", "<u2"),
+])
+assert FRAME_DTYPE_V2.itemsize == FRAME_SIZE_V2
 
 
-def encode_frames(seq: np.ndarray, t_us: np.ndarray, counts: np.ndarray, temp_cc: np.ndarray, status: np.ndarray) -> np.ndarray:
-    """Vectorised ``frame_codec.encode_frame``: (N,) records of FRAME_DTYPE with valid CRCs."""
+def encode_frames(seq: np.ndarray, t_us: np.ndarray, counts: np.ndarray, temp_cc: np.ndarray, status: np.ndarray,
+                  aux: np.ndarray | None = None) -> np.ndarray:
+    """Vectorised ``frame_codec.encode_frame``: (N,) records with valid CRCs, version 1 (FRAME_DTYPE) or,
+    when ``aux`` (N,) counts are given, version 2 (FRAME_DTYPE_V2)."""
     n = len(seq)
-    rec = np.zeros(n, dtype=FRAME_DTYPE)
+    v2 = aux is not None
+    rec = np.zeros(n, dtype=FRAME_DTYPE_V2 if v2 else FRAME_DTYPE)
+    size = rec.dtype.itemsize
     rec["sync"] = np.frombuffer(SYNC, dtype=np.uint8)
-    rec["version"] = PROTOCOL_VERSION
-    rec["body_len"] = BODY_LEN_V1
+    rec["version"] = PROTOCOL_VERSION_V2 if v2 else PROTOCOL_VERSION
+    rec["body_len"] = BODY_LEN_V2 if v2 else BODY_LEN_V1
+    if v2:
+        rec["aux"] = aux
     rec["seq"] = np.asarray(seq) % SEQ_MODULO
     rec["t_us"] = t_us
     rec["ref"], rec["x"], rec["y"], rec["z"] = (counts[:, i] for i in range(4))
     rec["temp_cc"] = temp_cc
     rec["status"] = status
     raw = memoryview(rec.tobytes())
-    crc = np.fromiter((crc16(raw[i * FRAME_SIZE_V1 + 2: i * FRAME_SIZE_V1 + 25]) for i in range(n)), dtype=np.uint16, count=n)
+    crc = np.fromiter((crc16(raw[i * size + 2: (i + 1) * size - 2]) for i in range(n)), dtype=np.uint16, count=n)
     rec["crc"] = crc
     return rec
 
 
 def corrupt_flip(frame: bytes, bit_index: int) -> bytes:
-    """Flip bit ``bit_index`` (0-based over bytes FLIP_FIRST_BYTE..26) of a frame."""
+    """Flip bit ``bit_index`` (0-based over bytes FLIP_FIRST_BYTE..end of the CRC) of a frame."""
     b = bytearray(frame)
     byte = FLIP_FIRST_BYTE + bit_index // 8
     b[byte] ^= 1 << (bit_index % 8)

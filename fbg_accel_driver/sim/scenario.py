@@ -1,4 +1,4 @@
-"""Scenario of a simulated run: table angles over time, chamber temperature profile, vibration.
+"""Scenario of a simulated run: table angles over time, chamber temperature profile, vibration, slide.
 
 Pure numpy; every function is a deterministic function of time, so the simulator can evaluate
 it at any sample (and at ``t - delay`` for the channel-delay effect) without state.
@@ -179,12 +179,148 @@ class TemperatureProfile:
         return float(self.times[-1])
 
 
-def vibration(t_s: np.ndarray, sines: list[dict[str, Any]]) -> np.ndarray:
-    """Sum of sinusoidal vibrations (N, 3) in m/s^2, sensor frame."""
+def vibration(t_s: np.ndarray, sines: list[dict[str, Any]], response=None) -> np.ndarray:
+    """Sum of sinusoidal vibrations (N, 3) in m/s^2, sensor frame.
+
+    ``response(freq_hz) -> complex``: a linear frequency response applied to each sine (None: the true motion).
+    """
     t = np.asarray(t_s, float)
     out = np.zeros((t.shape[0], 3))
     for s in sines or []:
         amp = np.asarray(s.get("amplitude_mps2", [0.0, 0.0, 0.0]), float).reshape(3)
         ph = math.radians(float(s.get("phase_deg", 0.0)))
+        if response is not None:
+            h = complex(response(float(s["freq_hz"])))
+            amp, ph = amp * abs(h), ph + math.atan2(h.imag, h.real)
         out += np.sin(2.0 * np.pi * float(s["freq_hz"]) * t + ph)[:, None] * amp[None, :]
     return out
+
+
+# ----------------------------------------------------------------------------- dynamic excitation (linear slide)
+@dataclass(frozen=True)
+class SlideSegment:
+    """One sinusoidal segment of a slide plan: ``freq_hz`` (Hz), ``amplitude_mps2`` (m/s^2, steady-state
+    acceleration amplitude along the slide direction), ``duration_s`` (s, ramps included)."""
+
+    freq_hz: float
+    amplitude_mps2: float
+    duration_s: float
+
+
+class SlidePlan:
+    """Sinusoidal motion of a linear slide along a fixed unit ``direction`` of the sensor frame.
+
+    Second seed (amplitude_phase_calibration_paper.txt) section 2: a horizontal linear slide moved
+    according to a sinusoidal law, the accelerometer tilted so that one direction excites its three
+    axes at once (eqs. 1-3: a_x = a cos45 cos45, a_y = -a cos45 cos45, a_z = a sin45). Segments follow
+    one another from ``start_s`` with ``gap_s`` of rest between them; each starts at phase 0 and is
+    faded in and out over ``ramp_cycles`` periods (raised cosine, at most half the segment) so that the
+    slide's displacement and velocity stay continuous, as a real long-stroke shaker's must. In a
+    segment, displacement x = -e(t) A/w^2 sin(w tau), tau = t - segment start, so that in the
+    steady part the acceleration along ``direction`` is A sin(w tau) (m/s^2); velocity and
+    acceleration are the exact derivatives, envelope included.
+    """
+
+    def __init__(self, segments: list[SlideSegment], direction: np.ndarray, start_s: float = 0.0,
+                 gap_s: float = 0.0, ramp_cycles: float = 2.0) -> None:
+        d = np.asarray(direction, float).reshape(3)
+        norm = float(np.linalg.norm(d))
+        if not norm > 0:
+            raise ValueError("scenario.slide.direction must be a non-zero 3-vector (sensor frame)")
+        self.direction = d / norm
+        for i, s in enumerate(segments):
+            if not (s.freq_hz > 0 and s.duration_s > 0 and math.isfinite(s.amplitude_mps2)):
+                raise ValueError(f"scenario.slide.segments[{i}]: freq_hz and duration_s must be > 0, amplitude finite")
+        if start_s < 0 or gap_s < 0 or ramp_cycles < 0:
+            raise ValueError("scenario.slide: start_s, gap_s and ramp_cycles must be >= 0")
+        self.segments = list(segments)
+        self.ramp_cycles = float(ramp_cycles)
+        starts, t0 = [], float(start_s)
+        for s in self.segments:
+            starts.append(t0)
+            t0 += s.duration_s + gap_s
+        self.starts = np.asarray(starts, float)
+        self.end_s = float(self.starts[-1] + self.segments[-1].duration_s) if self.segments else float(start_s)
+
+    def segment_index(self, t_s: np.ndarray) -> np.ndarray:
+        """Index of the segment active at each time (N,), -1 at rest."""
+        t = np.asarray(t_s, float)
+        out = np.full(t.shape, -1, dtype=np.int64)
+        for i, (t0, s) in enumerate(zip(self.starts, self.segments, strict=True)):
+            out[(t >= t0) & (t < t0 + s.duration_s)] = i
+        return out
+
+    def kinematics(self, t_s: np.ndarray, response=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Displacement (m), velocity (m/s), acceleration (m/s^2) along ``direction`` at times ``t_s`` (N,).
+
+        ``response(freq_hz) -> complex`` applies a linear frequency response to each segment's sinusoid
+        (gain and phase at the segment frequency; quasi-steady for the slow envelope), e.g. the
+        mechanical resonance of the sensor; None: the true motion.
+        """
+        t = np.asarray(t_s, float)
+        x, v, a = np.zeros(t.shape), np.zeros(t.shape), np.zeros(t.shape)
+        for t0, s in zip(self.starts, self.segments, strict=True):
+            m = (t >= t0) & (t < t0 + s.duration_s)
+            if not m.any():
+                continue
+            w = 2.0 * math.pi * s.freq_hz
+            h = complex(response(s.freq_hz)) if response is not None else 1.0 + 0.0j
+            gain, ph = abs(h), math.atan2(h.imag, h.real)
+            tau = t[m] - t0
+            ramp = min(self.ramp_cycles / s.freq_hz, 0.5 * s.duration_s)
+            e, de, dde = np.ones(tau.shape), np.zeros(tau.shape), np.zeros(tau.shape)
+            if ramp > 0:
+                k = math.pi / ramp
+                up = tau < ramp
+                e[up] = 0.5 - 0.5 * np.cos(k * tau[up])
+                de[up] = 0.5 * k * np.sin(k * tau[up])
+                dde[up] = 0.5 * k * k * np.cos(k * tau[up])
+                rem = s.duration_s - tau
+                down = rem < ramp
+                e[down] = 0.5 - 0.5 * np.cos(k * rem[down])
+                de[down] = -0.5 * k * np.sin(k * rem[down])
+                dde[down] = 0.5 * k * k * np.cos(k * rem[down])
+            amp = gain * s.amplitude_mps2 / (w * w)
+            sn, cs = np.sin(w * tau + ph), np.cos(w * tau + ph)
+            sig, dsig, ddsig = -amp * sn, -amp * w * cs, amp * w * w * sn
+            x[m] = e * sig
+            v[m] = de * sig + e * dsig
+            a[m] = dde * sig + 2.0 * de * dsig + e * ddsig
+        return x, v, a
+
+
+def stepped_sine_segments(freqs_hz: list[float], amplitudes_mps2: list[float] | float,
+                          durations_s: list[float] | float) -> list[SlideSegment]:
+    """Segments of a stepped-sine plan (one amplitude/duration per frequency, or one for all)."""
+    n = len(freqs_hz)
+    amps = [float(amplitudes_mps2)] * n if np.isscalar(amplitudes_mps2) else [float(v) for v in amplitudes_mps2]
+    durs = [float(durations_s)] * n if np.isscalar(durations_s) else [float(v) for v in durations_s]
+    if len(amps) != n or len(durs) != n:
+        raise ValueError(f"stepped sine: {n} frequencies but {len(amps)} amplitudes and {len(durs)} durations")
+    return [SlideSegment(float(f), a, d) for f, a, d in zip(freqs_hz, amps, durs, strict=True)]
+
+
+def build_slide(slide_cfg: dict[str, Any]) -> SlidePlan | None:
+    """``SlidePlan`` from ``scenario.slide`` of the simulator config (None when not enabled)."""
+    if not slide_cfg or not slide_cfg.get("enabled", False):
+        return None
+    segs = slide_cfg.get("segments") or []
+    if not segs:
+        raise ValueError("scenario.slide.enabled but scenario.slide.segments is empty")
+    out = []
+    for i, s in enumerate(segs):
+        try:
+            out.append(SlideSegment(float(s["freq_hz"]), float(s["amplitude_mps2"]), float(s["duration_s"])))
+        except (KeyError, TypeError, ValueError):
+            raise ValueError(f"scenario.slide.segments[{i}]: expected {{freq_hz, amplitude_mps2, duration_s}}, "
+                             f"got {s!r}") from None
+    return SlidePlan(out, np.asarray(slide_cfg.get("direction", [0.0, 0.0, 1.0]), float),
+                     float(slide_cfg.get("start_s", 0.0)), float(slide_cfg.get("gap_s", 0.0)),
+                     float(slide_cfg.get("ramp_cycles", 2.0)))
+
+
+def second_order_response(freq_hz: float, natural_hz: float, damping: float) -> complex:
+    """H(f) = 1 / (1 - (f/fn)^2 + 2 j zeta f/fn): seismic mass on its suspension, acceleration in ->
+    relative displacement out, normalised to 1 at DC (unitless)."""
+    r = freq_hz / natural_hz
+    return 1.0 / complex(1.0 - r * r, 2.0 * damping * r)

@@ -19,7 +19,8 @@ import yaml
 DEFAULT_FILE_NAME = "sim_default.yaml"
 CONFIG_DIR_ENV = "FBG_ACCEL_CONFIG_DIR"
 # Sub-trees whose content is free-form (lists of events, segments, poses): merged by replacement.
-_FREE_FORM = ("scenario.poses.list", "scenario.temperature.profile", "scenario.vibration.sines")
+_FREE_FORM = ("scenario.poses.list", "scenario.temperature.profile", "scenario.vibration.sines",
+              "scenario.slide.segments", "scenario.slide.direction")
 
 
 class SimConfigError(ValueError):
