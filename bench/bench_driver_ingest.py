@@ -287,6 +287,26 @@ def latency_stats_ms(lat_ns: np.ndarray) -> dict[str, float | None]:
             "max": float(ms.max()) if len(ms) else None, "mean": float(ms.mean()) if len(ms) else None}
 
 
+def chain_calibration(mode: str, workdir: Path) -> str:
+    """``sim``, or with a chain compensation a copy of the simulated sensor's calibration with a
+    ``dynamic`` section holding the simulator's configured TIA cut-offs (config/sim_default.yaml):
+    the bench measures the driver's cost, not a dynamic calibration."""
+    if mode == "none":
+        return "sim"
+    import yaml
+
+    from fbg_accel_driver.chain_compensation import ChainDynamics
+    from fbg_accel_driver.driver_node import default_calibration_path
+    from fbg_accel_driver.thermal_model import ThermalCalibration
+
+    cutoffs = yaml.safe_load((ROOT / "config" / "sim_default.yaml").read_text())["electronics"]["tia_cutoff_hz"]
+    cal = ThermalCalibration.load(default_calibration_path())
+    cal.dynamic = ChainDynamics(cutoff_hz=tuple(float(v) for v in cutoffs))
+    out = workdir / f"calibration_{mode}.yaml"
+    cal.save(out)
+    return str(out)
+
+
 def run_case(name: str, rate_hz: float, duration_s: float, with_imu: bool, args: argparse.Namespace, workdir: Path) -> dict:
     from fbg_accel_driver.sim.pty_server import PtyEndpoint
 
@@ -301,8 +321,9 @@ def run_case(name: str, rate_hz: float, duration_s: float, with_imu: bool, args:
     path = ep.open(hold=False)
     sub = SubscriberProc(sub_out, with_imu, env)
     drv_log = open(workdir / f"driver_{name}.log", "w")
+    cal = chain_calibration(args.chain_compensation, workdir)
     drv = subprocess.Popen([sys.executable, "-m", "fbg_accel_driver.driver_node", "--ros-args", "-p", f"port:={path}",
-                            "-p", "calibration_file:=sim"],
+                            "-p", f"calibration_file:={cal}", "-p", f"chain_compensation:={args.chain_compensation}"],
                            stdout=drv_log, stderr=subprocess.STDOUT, env=env, cwd=str(args.driver_src or ROOT))
     spy = None
     write_ns = np.zeros(len(pieces), np.int64)
@@ -517,6 +538,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="short runs (20 s at 100 Hz, 10 s otherwise); not for the README")
     ap.add_argument("--duration", type=float, help="measured seconds of every selected case (overrides the defaults)")
     ap.add_argument("--seed", type=int, default=0, help="simulator seed")
+    ap.add_argument("--chain-compensation", choices=["none", "delay", "equalise"], default="none",
+                    help="driver parameter chain_compensation (a calibration with the simulator's TIA cut-offs)")
     ap.add_argument("--raw-only", action="store_true", help="subscribe imu/raw only (not imu/data_raw) in every case")
     ap.add_argument("--keep-rss", action="store_true", help="store the 1 s RSS series in the JSON")
     ap.add_argument("--driver-src", type=Path,

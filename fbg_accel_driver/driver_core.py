@@ -67,6 +67,7 @@ COVARIANCE_SOURCES = ("calibration", "parameter", "unknown")
 # ``imu/raw`` (sensor_msgs/JointState): ``name`` of each ``position`` entry of a RawRecord, in order.
 RAW_NAMES = ("ref_counts", "x_counts", "y_counts", "z_counts", "temperature_c", "temperature_valid",
              "status", "seq", "board_time_s")
+RAW_AUX_NAME = "aux_counts"  # appended by version-2 frames: the auxiliary ADC channel (reference transducer)
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from sensor_msgs.msg import Imu, JointState, Temperature
 
-from .driver_core import RAW_NAMES, ImuRecord, RawRecord, TemperatureRecord
+from .driver_core import RAW_AUX_NAME, RAW_NAMES, ImuRecord, RawRecord, TemperatureRecord
 
 
 class DriverMessages:
@@ -20,6 +20,8 @@ class DriverMessages:
         self._raw = JointState()
         self._raw.header.frame_id = frame_id
         self._raw.name = list(RAW_NAMES)
+        self._names_v1 = list(RAW_NAMES)
+        self._names_aux = [*RAW_NAMES, RAW_AUX_NAME]  # version-2 frames: the reference transducer's counts
         self._imu = Imu()
         self._imu.header.frame_id = frame_id
         self._imu.orientation_covariance[0] = -1.0  # REP 145: orientation not provided
@@ -34,6 +36,11 @@ class DriverMessages:
         f = r.frame
         m.position = [float(f.ref), float(f.x), float(f.y), float(f.z), float(r.temperature_c),
                       1.0 if r.temperature_valid else 0.0, float(f.status), float(f.seq), f.t_us * 1e-6]
+        if f.aux is None:
+            m.name = self._names_v1
+        else:
+            m.name = self._names_aux
+            m.position.append(float(f.aux))
         return m
 
     def imu_msg(self, s: ImuRecord) -> Imu:
