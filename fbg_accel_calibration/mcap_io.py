@@ -63,7 +63,7 @@ from mcap_ros2._dynamic import serialize_dynamic
 from mcap_ros2.decoder import DecoderFactory
 
 from fbg_accel_driver.command_line import first_line
-from fbg_accel_driver.driver_core import RAW_NAMES
+from fbg_accel_driver.driver_core import RAW_AUX_NAME, RAW_NAMES
 
 from .recording import Recording
 from .rosbag2_input import BagInputError, bag_files, offered_qos_yaml
@@ -960,7 +960,7 @@ def read_file(path: str | Path, namespace: str | None = None, topic: str | None 
     metadata["read_report"] = report.as_dict()
     metadata["pose_events"] = pose_events
     rec = Recording(t_s=t_s, ref=rows[:, col["ref_counts"]], xyz=xyz, temp_c=temp, gref_mps2=gref,
-                    pose_id=pose_id, metadata=metadata)
+                    pose_id=pose_id, metadata=metadata, aux=rows[:, col[RAW_AUX_NAME]] if RAW_AUX_NAME in col else None)
     return rec, report
 
 
@@ -1311,7 +1311,7 @@ class McapSampleStream:
         else:
             pose_id, gref = np.full(len(stamps), -1, dtype=int), np.full((len(stamps), 3), np.nan)
         return Recording(t_s=t_s, ref=rows[:, col["ref_counts"]].copy(), xyz=xyz, temp_c=temp, gref_mps2=gref,
-                         pose_id=pose_id)
+                         pose_id=pose_id, aux=rows[:, col[RAW_AUX_NAME]].copy() if RAW_AUX_NAME in col else None)
 
     def metadata(self) -> dict[str, Any]:
         """Run metadata and the read report, as :func:`read_file` puts them in ``Recording.metadata``."""

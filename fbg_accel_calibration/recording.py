@@ -25,6 +25,8 @@ class Recording:
     * ``pose_id`` (N,): integer id of the commanded pose, -1 while moving or unknown.
     * ``run_id`` (N,): integer id of the run (file / temperature level) each sample came from.
     * ``metadata``: free-form run information (sensor id, plan, operator notes, source files).
+    * ``aux`` (N,) or None: auxiliary ADC counts (protocol version 2: the reference transducer of a
+      dynamic calibration, same board clock); None when the source has no such channel.
     """
 
     t_s: np.ndarray
@@ -35,6 +37,7 @@ class Recording:
     pose_id: np.ndarray
     run_id: np.ndarray | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
+    aux: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.t_s = np.asarray(self.t_s, dtype=float)
@@ -45,6 +48,8 @@ class Recording:
         self.gref_mps2 = np.asarray(self.gref_mps2, dtype=float).reshape(n, 3)
         self.pose_id = np.asarray(self.pose_id, dtype=int).reshape(n)
         self.run_id = np.zeros(n, dtype=int) if self.run_id is None else np.asarray(self.run_id, int).reshape(n)
+        if self.aux is not None:
+            self.aux = np.asarray(self.aux, dtype=float).reshape(n)
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -54,6 +59,7 @@ class Recording:
         return Recording(
             self.t_s[mask], self.ref[mask], self.xyz[mask], self.temp_c[mask],
             self.gref_mps2[mask], self.pose_id[mask], self.run_id[mask], dict(self.metadata),
+            None if self.aux is None else self.aux[mask],
         )
 
     @staticmethod
@@ -74,6 +80,7 @@ class Recording:
             np.concatenate([p.pose_id for p in parts]),
             np.concatenate(run_ids),
             {"parts": [p.metadata for p in parts]},
+            np.concatenate([p.aux for p in parts]) if all(p.aux is not None for p in parts) else None,
         )
 
 

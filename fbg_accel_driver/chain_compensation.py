@@ -5,7 +5,9 @@ holds what a dynamic calibration measured:
 
 * ``cutoff_hz``: the first-order low-pass of each photodetector's transimpedance stage, for the
   reference and the x, y, z channels (paper section 3.5 and Table 1: about 1, 1.7, 1.3, 1.3 Hz in the
-  static-test build, about 50 Hz in the flight build);
+  static-test build, about 50 Hz in the flight build). A slide run with a constant source cannot see
+  the reference channel's stage (eq. 24 divides by a constant), so its value may be absent (NaN, ``null``
+  in the file): ``delay`` works without it, ``equalise`` needs it;
 * ``delay_s``: a pure delay of each axis channel (ESP32 sequential sampling skew, anything after the
   analogue stage), s, positive when the channel lags the board time stamp.
 
@@ -56,6 +58,8 @@ class ChainDynamics:
         if len(self.cutoff_hz) != 4 or len(self.delay_s) != 3:
             raise ValueError("cutoff_hz needs 4 values (reference, x, y, z), delay_s 3 (x, y, z)")
         for name, fc in zip(CHANNELS, self.cutoff_hz, strict=True):
+            if name == "reference" and isinstance(fc, float) and math.isnan(fc):
+                continue  # not measured
             if not (isinstance(fc, float | int) and math.isfinite(fc) and CUTOFF_LIMITS_HZ[0] <= fc <= CUTOFF_LIMITS_HZ[1]):
                 lo, hi = CUTOFF_LIMITS_HZ
                 raise ValueError(f"cutoff_hz of {name} must be in {lo:g}..{hi:g} Hz, got {fc!r}")
@@ -89,7 +93,7 @@ class ChainDynamics:
 
     def to_dict(self) -> dict[str, Any]:
         return {"format_version": DYNAMIC_FORMAT_VERSION,
-                "cutoff_hz": dict(zip(CHANNELS, (float(v) for v in self.cutoff_hz), strict=True)),
+                "cutoff_hz": dict(zip(CHANNELS, (None if math.isnan(v) else float(v) for v in self.cutoff_hz), strict=True)),
                 "delay_s": dict(zip(AXES, (float(v) for v in self.delay_s), strict=True)),
                 **({"fit": self.fit} if self.fit else {})}
 
@@ -114,6 +118,9 @@ class ChainDynamics:
                 raise fail(f"unknown key 'dynamic.{key}.{extra[0]}' (known: {', '.join(names)})")
             out = []
             for n in names:
+                if key == "cutoff_hz" and n == "reference" and n in m and m[n] is None:
+                    out.append(math.nan)  # not measured
+                    continue
                 v = m.get(n, default)
                 if v is None:
                     raise fail(f"missing key 'dynamic.{key}.{n}'")
@@ -151,6 +158,9 @@ class ChannelEqualiser:
     """
 
     def __init__(self, dynamics: ChainDynamics, bandwidth_hz: float) -> None:
+        if math.isnan(dynamics.cutoff_hz[0]):
+            raise ValueError("equalise needs the reference channel's cut-off, which the calibration does not hold "
+                             "(dynamic.cutoff_hz.reference is null: measure it, or use chain_compensation 'delay')")
         if not (math.isfinite(bandwidth_hz) and bandwidth_hz > max(dynamics.cutoff_hz)):
             raise ValueError(f"equalise bandwidth {bandwidth_hz!r} Hz must be above every channel's cut-off "
                              f"(max {max(dynamics.cutoff_hz):g} Hz)")

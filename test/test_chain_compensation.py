@@ -113,6 +113,12 @@ def test_dynamic_section_round_trips_and_refuses_what_it_does_not_know():
 
     d = STATIC_BUILD.to_dict()
     assert ChainDynamics.from_dict(d, fail) == STATIC_BUILD
+    # the reference channel's cut-off may be absent (a slide run with a constant source cannot see it)
+    no_ref = ChainDynamics.from_dict({**d, "cutoff_hz": {**d["cutoff_hz"], "reference": None}}, fail)
+    assert math.isnan(no_ref.cutoff_hz[0]) and no_ref.to_dict()["cutoff_hz"]["reference"] is None
+    assert no_ref.stamp_delay_s("delay") == STATIC_BUILD.stamp_delay_s("delay")
+    with pytest.raises(ValueError, match="needs the reference channel's cut-off"):
+        ChannelEqualiser(no_ref, 20.0)
     for bad, message in [
         ({**d, "format_version": 2}, "format_version 2 is not supported"),
         ({**d, "cutof_hz": {}}, "unknown key 'dynamic.cutof_hz'"),

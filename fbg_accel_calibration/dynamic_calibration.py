@@ -1,0 +1,158 @@
+"""Dynamic calibration of one slide run: recording + excitation plan + static calibration -> the
+measuring chain's dynamics (the calibration file's ``dynamic`` section) with points, fits and a report.
+
+Pure numpy/scipy, no ROS (``fbg-accel-calib dynamic`` is the shell). Steps (docs/dynamic_calibration.md):
+
+1. the slide's start on the recording's time base (:func:`excitation_plan.find_slide_start`), the steady
+   part of every segment (:meth:`ExcitationPlan.steady_windows`);
+2. the reference acceleration from the aux channel (:func:`excitation_plan.reference_acceleration`) and
+   the sensor's acceleration from its counts by the **static** calibration (eq. 24 and 28, no chain
+   compensation), so what is measured is the whole chain after eq. 28;
+3. amplitude and phase per frequency and axis with their budgets (:func:`dynamic_analysis.analyse_run`);
+4. per axis a first-order low-pass + pure delay (+ the LDV's AC-coupling high-pass on the reference
+   side when the plan declares one) fitted to the points (:func:`chain_model.fit_chain_models`);
+5. the ``dynamic`` section: the axes' cut-offs and delays; the reference channel's cut-off only when
+   given (a constant source hides it from a slide run).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fbg_accel_driver.chain_compensation import ChainDynamics
+from fbg_accel_driver.thermal_model import ThermalCalibration
+
+from .chain_model import ChainModel, fit_chain_models, group_delay_s
+from .dynamic_analysis import DynamicPoint, ReferenceUncertainty, analyse_run
+from .excitation_plan import ExcitationPlan, find_slide_start, reference_acceleration
+from .recording import Recording
+
+AXES = ("x", "y", "z")
+
+
+class DynamicCalibrationError(ValueError):
+    """The recording cannot give a dynamic calibration (no aux channel, too short, an axis not excited)."""
+
+
+@dataclass
+class DynamicCalibrationResult:
+    plan: ExcitationPlan
+    slide_start_s: float
+    windows: list[tuple[float, float, float]]
+    points: list[DynamicPoint]
+    models: dict[str, ChainModel]
+    dynamics: ChainDynamics
+    fs_hz: float
+    notes: list[str] = field(default_factory=list)
+
+    def report(self) -> str:
+        """Plain-text tables: points per frequency and axis, then the fitted chain per axis."""
+        lines = [f"dynamic calibration: plan '{self.plan.name}', slide starts at t = {self.slide_start_s:.3f} s, "
+                 f"{len(self.windows)} steady windows, sampling {self.fs_hz:.1f} Hz",
+                 "",
+                 "| f [Hz] | axis | sensitivity | diff from 2 Hz [%] | phase [deg] | delay xcorr [ms] | "
+                 "delay cross-spectrum [ms] | u(S) | u(phase) [deg] | u(delay) [ms] |",
+                 "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        for p in self.points:
+            if not p.measurable:
+                lines.append(f"| {p.f_hz:g} | {p.axis} | not measurable: {p.note} |||||||| |")
+                continue
+            lines.append(f"| {p.f_hz:g} | {p.axis} | {p.sensitivity:.4f} | {p.sensitivity_diff_pct:+.2f} | "
+                         f"{p.phase_deg:+.2f} | {p.delay_xcorr_s * 1e3:.2f} | {p.delay_cross_spectrum_s * 1e3:.2f} | "
+                         f"{p.u_sensitivity:.4f} | {p.u_phase_deg:.2f} | {p.u_delay_s * 1e3:.2f} |")
+        lines += ["", "| axis | gain | cut-off [Hz] | delay [ms] | group delay at DC [ms] | reference high-pass [Hz] |",
+                  "|---|---:|---:|---:|---:|---:|"]
+        for ax, m in self.models.items():
+            hp = (f"{m.highpass_cutoff_hz:.3f} +- {m.u_highpass_cutoff_hz:.3f}" if m.highpass_cutoff_hz is not None
+                  else "-")
+            lines.append(f"| {ax} | {m.gain:.4f} +- {m.u_gain:.4f} | {m.cutoff_hz:.4f} +- {m.u_cutoff_hz:.4f} | "
+                         f"{m.delay_s * 1e3:.2f} +- {m.u_delay_s * 1e3:.2f} | {group_delay_s(m, 0.0) * 1e3:.2f} | {hp} |")
+        ref = self.dynamics.cutoff_hz[0]
+        lines.append("")
+        lines.append("reference channel cut-off: " + ("not measured (constant source); chain_compensation 'delay' only"
+                                                       if math.isnan(ref) else f"{ref:g} Hz (given)"))
+        lines += [f"note: {n}" for n in self.notes]
+        return "\n".join(lines)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"plan": self.plan.name, "slide_start_s": self.slide_start_s, "fs_hz": self.fs_hz,
+                "windows": [list(w) for w in self.windows], "points": [p.to_dict() for p in self.points],
+                "models": {ax: m.to_dict() for ax, m in self.models.items()}, "dynamic": self.dynamics.to_dict(),
+                "notes": list(self.notes)}
+
+
+def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibration, *,
+                reference_cutoff_hz: float | None = None, highpass: bool | None = None,
+                slide_start_s: float | None = None, method: str = "sine") -> DynamicCalibrationResult:
+    """The dynamic calibration of one slide run (module docstring).
+
+    ``highpass``: fit the reference's AC-coupling high-pass (default: when the plan's LDV is AC-coupled);
+    ``slide_start_s``: the slide's start on the recording's time base (default: found from the aux channel).
+    """
+    if rec.aux is None or not np.any(np.isfinite(rec.aux)):
+        raise DynamicCalibrationError("the recording has no aux channel (protocol version 2 frames, imu/raw "
+                                      "'aux_counts', CSV column 'aux'): the reference transducer is missing")
+    order = np.argsort(rec.t_s, kind="stable")
+    t, aux = rec.t_s[order], rec.aux[order]
+    ok = np.isfinite(t) & np.isfinite(aux) & np.isfinite(rec.ref[order]) & np.all(np.isfinite(rec.xyz[order]), axis=1)
+    t, aux = t[ok], aux[ok]
+    ref_c, xyz = rec.ref[order][ok], rec.xyz[order][ok]
+    temp = _filled_temperature(rec.temp_c[order][ok])
+    dt = np.diff(t)
+    fs = 1.0 / float(np.median(dt))
+    notes: list[str] = []
+    start = find_slide_start(t, aux, plan) if slide_start_s is None else float(slide_start_s)
+    windows = [w for w in plan.steady_windows(start) if w[1] >= t[0] and w[2] <= t[-1]]
+    lost = len(plan.segments) - len(windows)
+    if lost:
+        notes.append(f"{lost} segment(s) of the plan are not (wholly) in the recording or too short once settled")
+    if len(windows) < 3:
+        raise DynamicCalibrationError(f"only {len(windows)} steady segment(s) in the recording: the chain model needs "
+                                      "at least 3 frequencies")
+    nyq = [w for w in windows if w[0] >= 0.45 * fs]
+    if nyq:
+        raise DynamicCalibrationError(f"segments at {', '.join(f'{w[0]:g}' for w in nyq)} Hz are too close to the "
+                                      f"Nyquist frequency of {fs / 2:.1f} Hz: record at a higher board rate")
+    a_ref = reference_acceleration(t, aux, plan, windows)
+    a_sensor = static_cal.apply_counts(ref_c, xyz, temp, t)
+    ru = ReferenceUncertainty(sensitivity_rel=plan.reference.relative_uncertainty,
+                              phase_deg=plan.reference.phase_uncertainty_deg)
+    points = analyse_run(t, np.nan_to_num(a_ref), a_sensor, plan.direction, windows, reference_uncertainty=ru,
+                         method=method)  # type: ignore[arg-type]
+    not_measurable = sorted({p.axis for p in points if not p.measurable})
+    if not_measurable:
+        raise DynamicCalibrationError(f"axes {not_measurable} are not excited by the slide direction {plan.direction}: "
+                                      "tilt the sensor so the direction has a component on every axis (seed 2, eqs. 1-3)")
+    use_hp = (plan.reference.type == "ldv" and plan.reference.ac_coupling_hz > 0) if highpass is None else highpass
+    models = fit_chain_models(points, highpass=use_hp, highpass_in="reference")
+    for ax in AXES:
+        models[ax].axis = ax
+        if abs(models[ax].gain - 1.0) > 3 * max(models[ax].u_gain, 1e-3):
+            notes.append(f"{ax}: dynamic gain {models[ax].gain:.4f} differs from 1: the static calibration's "
+                         "sensitivity and the slide reference disagree (check the reference's sensitivity)")
+    dyn = ChainDynamics(
+        cutoff_hz=(math.nan if reference_cutoff_hz is None else float(reference_cutoff_hz),
+                   *(float(models[ax].cutoff_hz) for ax in AXES)),
+        delay_s=tuple(float(models[ax].delay_s) for ax in AXES),  # type: ignore[arg-type]
+        fit={"plan": plan.name, "slide_start_s": start, "fs_hz": fs,
+             "frequencies_hz": sorted({w[0] for w in windows}),
+             "models": {ax: m.to_dict() for ax, m in models.items()},
+             "reference_cutoff": "given" if reference_cutoff_hz is not None else "not measured"})
+    return DynamicCalibrationResult(plan, start, windows, points, models, dyn, fs, notes)
+
+
+def _filled_temperature(temp: np.ndarray) -> np.ndarray:
+    """Temperatures with invalid readings (NaN) replaced by the last valid one (the first valid before it)."""
+    temp = np.asarray(temp, dtype=float).copy()
+    ok = np.isfinite(temp)
+    if not ok.any():
+        raise DynamicCalibrationError("no valid temperature in the recording: the static calibration cannot be applied")
+    idx = np.where(ok, np.arange(len(temp)), -1)
+    np.maximum.accumulate(idx, out=idx)
+    first = int(np.flatnonzero(ok)[0])
+    idx[idx < 0] = first
+    return temp[idx]

@@ -1,0 +1,298 @@
+"""Excitation plan of a dynamic calibration run (issue 9; docs/dynamic_calibration.md).
+
+A linear slide moves sinusoidally along one fixed direction of the sensor frame, segment after segment
+(a stepped sine), and a reference transducer on the board's auxiliary ADC channel (protocol version 2,
+same clock) measures the same motion (second seed, section 2). The plan is one YAML file that drives
+both the simulator (``board_sim --dynamic-plan``: :meth:`ExcitationPlan.sim_overrides`) and the
+processing (``fbg-accel-calib dynamic``): where the steady parts of the segments are, and how aux
+counts become the reference acceleration (:func:`reference_acceleration`).
+
+Units: s, Hz, m/s^2, m/s; ``direction`` is a unit vector in the sensor frame (REP 103).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+FORMAT_NAME = "fbg_accel_excitation_plan"
+FORMAT_VERSION = 1
+TOP_KEYS = ("format", "format_version", "name", "description", "direction", "start_s", "gap_s", "ramp_cycles",
+            "settle_s", "reference", "segments")
+REFERENCE_TYPES = ("ldv", "accelerometer")
+REFERENCE_KEYS = ("type", "sensitivity_counts_per_mps", "sensitivity_counts_per_mps2", "offset_counts",
+                  "ac_coupling_hz", "relative_uncertainty", "phase_uncertainty_deg")
+SEGMENT_KEYS = ("freq_hz", "amplitude_mps2", "duration_s")
+MAX_SEGMENTS = 200
+
+
+class ExcitationPlanError(ValueError):
+    """An excitation plan file is missing, malformed or not understood."""
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One sinusoidal segment: frequency (Hz), steady acceleration amplitude along the direction
+    (m/s^2), duration including its fade-in and fade-out ramps (s)."""
+
+    freq_hz: float
+    amplitude_mps2: float
+    duration_s: float
+
+
+@dataclass(frozen=True)
+class ReferenceTransducer:
+    """What the aux channel carries. ``ldv``: velocity along the direction, ``counts = offset +
+    sensitivity_counts_per_mps * v``, optionally AC-coupled (first-order high-pass at ``ac_coupling_hz``,
+    seed Fig. 5); ``accelerometer``: ``counts = offset + sensitivity_counts_per_mps2 * a``. The reference's
+    own standard uncertainties (relative sensitivity, phase in degrees) enter the budget (seed Tables 2-3)."""
+
+    type: str
+    sensitivity: float  # counts per m/s (ldv) or per m/s^2 (accelerometer)
+    offset_counts: float = 2048.0
+    ac_coupling_hz: float = 0.0
+    relative_uncertainty: float = 0.01
+    phase_uncertainty_deg: float = 0.5
+
+
+@dataclass(frozen=True)
+class ExcitationPlan:
+    name: str
+    direction: tuple[float, float, float]
+    segments: tuple[Segment, ...]
+    reference: ReferenceTransducer
+    start_s: float = 5.0
+    gap_s: float = 1.0
+    ramp_cycles: float = 2.0
+    settle_s: float = 1.0
+    description: str = ""
+
+    # ------------------------------------------------------------------ timing
+    def segment_starts_s(self) -> list[float]:
+        """Start (s after the slide's start) of each segment."""
+        out, t = [], 0.0
+        for seg in self.segments:
+            out.append(t)
+            t += seg.duration_s + self.gap_s
+        return out
+
+    @property
+    def duration_s(self) -> float:
+        """Seconds from the slide's start to the end of the last segment."""
+        return sum(s.duration_s for s in self.segments) + self.gap_s * (len(self.segments) - 1)
+
+    def steady_windows(self, slide_start_s: float) -> list[tuple[float, float, float]]:
+        """``(f_hz, t_start_s, t_end_s)`` of each segment's steady part on the recording's time base:
+        the fade ramps (``ramp_cycles`` periods, at most half the segment each) and ``settle_s``
+        after the fade-in (the TIA stages' transient: five time constants of the slowest, 1 Hz, stage is
+        0.8 s) are left out."""
+        out = []
+        for seg, t0 in zip(self.segments, self.segment_starts_s(), strict=True):
+            ramp = min(self.ramp_cycles / seg.freq_hz, 0.5 * seg.duration_s)  # as the simulator (scenario.SlidePlan)
+            a = slide_start_s + t0 + ramp + self.settle_s
+            b = slide_start_s + t0 + seg.duration_s - ramp
+            if b - a >= 1.0 / seg.freq_hz:
+                out.append((seg.freq_hz, a, b))
+        return out
+
+    def envelope(self, t_rel_s: np.ndarray) -> np.ndarray:
+        """Planned acceleration amplitude (m/s^2) at times after the slide's start (0 between segments)."""
+        env = np.zeros_like(np.asarray(t_rel_s, dtype=float))
+        for seg, t0 in zip(self.segments, self.segment_starts_s(), strict=True):
+            env[(t_rel_s >= t0) & (t_rel_s < t0 + seg.duration_s)] = seg.amplitude_mps2
+        return env
+
+    # ------------------------------------------------------------------ simulator
+    def sim_overrides(self) -> dict[str, Any]:
+        """Dotted simulator-config keys that make ``board_sim`` run this plan (protocol version 2)."""
+        ref = self.reference
+        out: dict[str, Any] = {
+            "board.protocol_version": 2,
+            "scenario.slide.enabled": True,
+            "scenario.slide.direction": list(self.direction),
+            "scenario.slide.start_s": self.start_s,
+            "scenario.slide.gap_s": self.gap_s,
+            "scenario.slide.ramp_cycles": self.ramp_cycles,
+            "scenario.slide.segments": [{"freq_hz": s.freq_hz, "amplitude_mps2": s.amplitude_mps2,
+                                         "duration_s": s.duration_s} for s in self.segments],
+            "reference_transducer.type": ref.type,
+        }
+        if ref.type == "ldv":
+            out["reference_transducer.ldv.sensitivity_counts_per_mps"] = ref.sensitivity
+            out["reference_transducer.ldv.offset_counts"] = ref.offset_counts
+            out["reference_transducer.ldv.ac_coupling_hz"] = ref.ac_coupling_hz
+        else:
+            out["reference_transducer.accelerometer.sensitivity_counts_per_mps2"] = ref.sensitivity
+            out["reference_transducer.accelerometer.offset_counts"] = ref.offset_counts
+        return out
+
+    # ------------------------------------------------------------------ file I/O
+    def to_dict(self) -> dict[str, Any]:
+        ref = self.reference
+        sens_key = "sensitivity_counts_per_mps" if ref.type == "ldv" else "sensitivity_counts_per_mps2"
+        return {"format": FORMAT_NAME, "format_version": FORMAT_VERSION, "name": self.name,
+                "description": self.description, "direction": list(self.direction), "start_s": self.start_s,
+                "gap_s": self.gap_s, "ramp_cycles": self.ramp_cycles, "settle_s": self.settle_s,
+                "reference": {"type": ref.type, sens_key: ref.sensitivity, "offset_counts": ref.offset_counts,
+                              "ac_coupling_hz": ref.ac_coupling_hz, "relative_uncertainty": ref.relative_uncertainty,
+                              "phase_uncertainty_deg": ref.phase_uncertainty_deg},
+                "segments": [{"freq_hz": s.freq_hz, "amplitude_mps2": s.amplitude_mps2, "duration_s": s.duration_s}
+                             for s in self.segments]}
+
+    @classmethod
+    def load(cls, path: str | Path) -> ExcitationPlan:
+        p = Path(path)
+        if not p.is_file():
+            raise ExcitationPlanError(f"{p}: excitation plan not found")
+        if p.stat().st_size > 1 << 20:
+            raise ExcitationPlanError(f"{p}: larger than 1 MiB, not an excitation plan")
+        try:
+            data = yaml.safe_load(p.read_text())
+        except (yaml.YAMLError, UnicodeDecodeError) as exc:
+            raise ExcitationPlanError(f"{p}: not valid YAML ({exc})") from None
+        return cls.from_dict(data, str(p))
+
+    @classmethod
+    def from_dict(cls, d: Any, source: str = "<dict>") -> ExcitationPlan:
+        def fail(msg: str) -> ExcitationPlanError:
+            return ExcitationPlanError(f"{source}: {msg}")
+
+        if not isinstance(d, dict):
+            raise fail("top level is not a mapping")
+        if d.get("format") != FORMAT_NAME:
+            raise fail(f"format is {d.get('format')!r}, expected '{FORMAT_NAME}'")
+        if d.get("format_version") != FORMAT_VERSION:
+            raise fail(f"format_version {d.get('format_version')!r} is not supported (this tool reads {FORMAT_VERSION})")
+        _refuse_unknown(d, TOP_KEYS, "", fail)
+        direction = d.get("direction")
+        if not (isinstance(direction, list) and len(direction) == 3):
+            raise fail("direction must be a list of 3 numbers (unit vector, sensor frame)")
+        v = np.array([_num(x, "direction", fail) for x in direction])
+        norm = float(np.linalg.norm(v))
+        if not norm > 0:
+            raise fail("direction must not be zero")
+        v = v / norm
+        ref_d = d.get("reference")
+        if not isinstance(ref_d, dict):
+            raise fail("reference must be a mapping {type, sensitivity..., offset_counts, ...}")
+        _refuse_unknown(ref_d, REFERENCE_KEYS, "reference.", fail)
+        rtype = ref_d.get("type")
+        if rtype not in REFERENCE_TYPES:
+            raise fail(f"reference.type must be one of {REFERENCE_TYPES}, got {rtype!r}")
+        sens_key = "sensitivity_counts_per_mps" if rtype == "ldv" else "sensitivity_counts_per_mps2"
+        if sens_key not in ref_d:
+            raise fail(f"reference.{sens_key} is required for a reference of type {rtype}")
+        sens = _num(ref_d[sens_key], f"reference.{sens_key}", fail)
+        if sens == 0:
+            raise fail(f"reference.{sens_key} must not be 0")
+        ref = ReferenceTransducer(
+            type=rtype, sensitivity=sens,
+            offset_counts=_num(ref_d.get("offset_counts", 2048.0), "reference.offset_counts", fail),
+            ac_coupling_hz=_num(ref_d.get("ac_coupling_hz", 0.0) or 0.0, "reference.ac_coupling_hz", fail, lo=0.0),
+            relative_uncertainty=_num(ref_d.get("relative_uncertainty", 0.01), "reference.relative_uncertainty", fail,
+                                      lo=0.0),
+            phase_uncertainty_deg=_num(ref_d.get("phase_uncertainty_deg", 0.5), "reference.phase_uncertainty_deg", fail,
+                                       lo=0.0))
+        segs_d = d.get("segments")
+        if not isinstance(segs_d, list) or not segs_d:
+            raise fail("segments must be a non-empty list of {freq_hz, amplitude_mps2, duration_s}")
+        if len(segs_d) > MAX_SEGMENTS:
+            raise fail(f"{len(segs_d)} segments, at most {MAX_SEGMENTS}")
+        segs = []
+        for i, s in enumerate(segs_d):
+            where = f"segments[{i}]"
+            if not isinstance(s, dict):
+                raise fail(f"{where} must be a mapping {{freq_hz, amplitude_mps2, duration_s}}")
+            _refuse_unknown(s, SEGMENT_KEYS, f"{where}.", fail)
+            for k in SEGMENT_KEYS:
+                if k not in s:
+                    raise fail(f"{where}.{k} is required")
+            f = _num(s["freq_hz"], f"{where}.freq_hz", fail, lo=1e-3)
+            seg = Segment(f, _num(s["amplitude_mps2"], f"{where}.amplitude_mps2", fail, lo=1e-9),
+                          _num(s["duration_s"], f"{where}.duration_s", fail, lo=1e-3))
+            if seg.duration_s * seg.freq_hz < 3:
+                raise fail(f"{where}: {seg.duration_s:g} s at {f:g} Hz is under 3 periods")
+            segs.append(seg)
+        name = d.get("name", "")
+        desc = d.get("description", "")
+        if not isinstance(name, str) or not isinstance(desc, str):
+            raise fail("name and description must be text")
+        return cls(name=name, direction=(float(v[0]), float(v[1]), float(v[2])), segments=tuple(segs), reference=ref,
+                   start_s=_num(d.get("start_s", 5.0), "start_s", fail, lo=0.0),
+                   gap_s=_num(d.get("gap_s", 1.0), "gap_s", fail, lo=0.0),
+                   ramp_cycles=_num(d.get("ramp_cycles", 2.0), "ramp_cycles", fail, lo=0.0),
+                   settle_s=_num(d.get("settle_s", 1.0), "settle_s", fail, lo=0.0), description=desc)
+
+
+def reference_acceleration(t_s: np.ndarray, aux_counts: np.ndarray, plan: ExcitationPlan,
+                           windows: list[tuple[float, float, float]]) -> np.ndarray:
+    """Reference acceleration (N,) along the slide direction, m/s^2, from the aux counts.
+
+    An accelerometer is scaled. An LDV's velocity is differentiated inside each steady window by the
+    central difference corrected for its tone, ``(v[k+1] - v[k-1]) / (2 dt) * (w dt / sin(w dt))``:
+    exact in amplitude and phase for a sinusoid at the window's frequency ``w`` (a plain central
+    difference reads 24 % low at 20 Hz and 100 Hz sampling). NaN outside the windows for an LDV.
+    """
+    t = np.asarray(t_s, dtype=float)
+    ref = plan.reference
+    x = (np.asarray(aux_counts, dtype=float) - ref.offset_counts) / ref.sensitivity
+    if ref.type == "accelerometer":
+        return x
+    out = np.full_like(x, np.nan)
+    for f, a, b in windows:
+        idx = np.flatnonzero((t >= a) & (t < b))
+        if idx.size < 3:
+            continue
+        lo, hi = max(idx[0], 1), min(idx[-1], len(t) - 2)
+        k = np.arange(lo, hi + 1)
+        dt = (t[k + 1] - t[k - 1]) / 2.0
+        wdt = 2.0 * math.pi * f * dt
+        if np.any(wdt >= math.pi):
+            raise ValueError(f"{f:g} Hz is above the Nyquist frequency of the recording")
+        out[k] = (x[k + 1] - x[k - 1]) / (2.0 * dt) * (wdt / np.sin(wdt))
+    return out
+
+
+def find_slide_start(t_s: np.ndarray, aux_counts: np.ndarray, plan: ExcitationPlan) -> float:
+    """Time (s, recording time base) the slide's first segment starts: the lag that best aligns the
+    aux channel's 0.5 s moving-RMS envelope with the plan's amplitude envelope (both normalised), so a
+    run can be processed whatever the recording started before the slide. Accurate to a fraction of the
+    0.5 s envelope window (0.03 s in the tests), ample since the steady windows leave out the ramps and
+    ``settle_s``."""
+    t = np.asarray(t_s, dtype=float)
+    x = np.asarray(aux_counts, dtype=float)
+    dt = float(np.median(np.diff(t)))
+    n_win = max(3, round(0.5 / dt))
+    dev = x - np.median(x)
+    kernel = np.ones(n_win) / n_win
+    env = np.sqrt(np.convolve(dev * dev, kernel, mode="same"))
+    env = env / (np.max(env) or 1.0)
+    n_plan = round(plan.duration_s / dt)
+    if n_plan >= len(t):
+        raise ValueError(f"the recording ({len(t) * dt:.1f} s) is shorter than the plan ({plan.duration_s:.1f} s)")
+    plan_env = (plan.envelope(np.arange(n_plan) * dt) > 0).astype(float)
+    score = np.correlate(env - env.mean(), plan_env - plan_env.mean(), mode="valid")
+    return float(t[0] + int(np.argmax(score)) * dt)
+
+
+def _num(v: Any, where: str, fail: Any, lo: float | None = None) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise fail(f"{where} must be a finite number, got {v!r}")
+    if lo is not None and v < lo:
+        raise fail(f"{where} must be >= {lo:g}, got {v!r}")
+    return float(v)
+
+
+def _refuse_unknown(d: dict[str, Any], allowed: tuple[str, ...], where: str, fail: Any) -> None:
+    import difflib
+
+    for key in d:
+        if key not in allowed:
+            near = difflib.get_close_matches(str(key), allowed, n=1)
+            hint = f" (did you mean '{where}{near[0]}'?)" if near else ""
+            raise fail(f"unknown key '{where}{key}'{hint}")
