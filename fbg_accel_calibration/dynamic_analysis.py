@@ -41,6 +41,7 @@ LOG = logging.getLogger(__name__)
 AXES = ("x", "y", "z")
 SENSITIVITY_REFERENCE_F_HZ = 2.0  # seed 3.2 eq. 5: differences from the value at 2 Hz
 MIN_DIRECTION_COMPONENT = 0.1  # |direction[i]| below this: the axis sees < 10 % of the slide's acceleration
+PEAK_TIE = 0.01  # correlation peaks within 1 % of the largest count as equal (periodic records)
 MAX_SUB_BLOCKS = 8  # repeatability from at most this many whole-period sub-blocks of one segment
 
 
@@ -139,6 +140,9 @@ def sine_approximation(t_s: np.ndarray, y: np.ndarray, f_hz: float, fit_frequenc
     u_phi = math.sqrt(max(float(g_phi @ cab @ g_phi), 0.0))
     u_w = math.sqrt(max(float(cov[3, 3]), 0.0)) if fit_frequency else 0.0
     phase0 = _wrap(phi_c - w * tc)  # cos(w (t - tc) + phi_c) = cos(w t + phi_c - w tc)
+    if fit_frequency:  # the phase at t = 0 also carries the frequency's uncertainty times tc
+        g = np.array([g_phi[0], g_phi[1], 0.0, -tc])
+        u_phi = math.sqrt(max(float(g @ cov @ g), 0.0))
     return SineFit(amp, phase0, off, float(w / (2 * np.pi)), math.sqrt(float(resid @ resid) / t.size), u_amp, u_phi,
                    u_w / (2 * np.pi), int(t.size))
 
@@ -158,17 +162,22 @@ class FftTone:
 
 
 def whole_period_length(n_samples: int, fs_hz: float, f_hz: float) -> tuple[int, int]:
-    """Largest ``(n_periods, n_used)`` with ``n_used <= n_samples`` samples spanning ``n_periods`` whole periods.
+    """``(n_periods, n_used)``: ``n_used <= n_samples`` samples spanning ``n_periods`` whole periods.
 
-    ``n_used = round(n_periods fs / f)``; when fs/f is not an integer the span differs from whole periods by
-    at most half a sample. Raises ``ValueError`` when not even one period fits.
+    ``n_used = round(n_periods fs / f)``. Among the period counts from half the maximum up to the maximum,
+    the one whose span is closest to a whole number of samples wins (ties: the longest), so that e.g. 9
+    periods of 1.5 Hz at 100 Hz (600 samples, exact) are preferred to 10 (666.7 samples); the span then
+    differs from whole periods by at most half a sample. Raises ``ValueError`` when not one period fits.
     """
     per = fs_hz / f_hz
-    k = int(np.floor(n_samples / per + 1e-9))
-    while k >= 1 and round(k * per) > n_samples:
-        k -= 1
-    if k < 1:
+    k_max = int(np.floor(n_samples / per + 1e-9))
+    while k_max >= 1 and round(k_max * per) > n_samples:
+        k_max -= 1
+    if k_max < 1:
         raise ValueError(f"less than one period of {f_hz} Hz in {n_samples} samples at {fs_hz} Hz")
+    ks = np.arange(max(1, (k_max + 1) // 2), k_max + 1)
+    frac = np.abs(ks * per - np.round(ks * per))
+    k = int(ks[np.flatnonzero(frac <= frac.min() + 1e-9)[-1]])
     return k, round(k * per)
 
 
@@ -200,10 +209,12 @@ def delay_by_cross_correlation(ref: np.ndarray, sig: np.ndarray, fs_hz: float, m
     """Delay of ``sig`` behind ``ref`` in s by the cross-correlation peak with sub-sample refinement (seed 2.2).
 
     Positive when the sensor ``sig`` lags the reference: ``sig(t) ~ ref(t - delay)``. Both records are
-    uniformly sampled at ``fs_hz`` on the same time base. Means are removed. The integer peak is the
-    maximum of the (biased) cross-correlation ``sum sig[n] ref[n - k]`` within ``|k| <= max_lag_s fs``
-    (default: all lags) -- the triangular envelope makes the peak nearest zero lag win for a periodic
-    signal, as MATLAB ``finddelay``. Refinement on the unbiased correlation (divided by the overlap):
+    uniformly sampled at ``fs_hz`` on the same time base; means are removed. The correlation at lag k is
+    ``sum sig[n] ref[n - k]`` divided by the number of overlapping samples (unbiased), over the lags with at
+    least half the record overlapping and ``|k| <= max_lag_s fs`` (default: no further limit). The integer
+    peak is the local maximum nearest zero lag among those within ``PEAK_TIE`` (relative) of the largest --
+    the equal peaks of a periodic record resolve to the one nearest zero, as MATLAB ``finddelay`` does;
+    a tone fixes a delay only modulo its period. Refinement around the integer peak:
 
     * ``"cosine"`` (default): fit ``A cos(w (k - d))`` through the three points around the peak; exact for a
       sinusoid, close to parabolic for broadband signals; falls back to parabolic when the three points
@@ -227,42 +238,37 @@ def delay_by_cross_correlation(ref: np.ndarray, sig: np.ndarray, fs_hz: float, m
         n = min(ref.size, sig.size)
         r = ref[:n] - ref[:n].mean()
         s = sig[:n] - sig[:n].mean()
-        cc_c = np.fft.irfft(np.conj(np.fft.rfft(r)) * np.fft.rfft(s), n)  # cc_c[k] = sum s[m] r[m - k mod n]
-        lags_c = np.arange(n)
-        lags_c[lags_c > n // 2] -= n
-        ok = np.ones(n, dtype=bool) if max_lag_s is None else np.abs(lags_c) <= max_lag_s * fs_hz
-        if not np.any(ok):
-            raise ValueError("no lag within max_lag_s")
-        idx = np.flatnonzero(ok)
-        # pick the peak under a triangular weight, as the linear correlation's envelope does, so that the
-        # equal peaks of a periodic record resolve to the one nearest zero lag
-        i = int(idx[np.argmax((cc_c * (1.0 - np.abs(lags_c) / n))[idx])])
-        d = float(lags_c[i])
-        if refine != "none":  # neighbours wrap around (periodic record)
-            d += _peak_offset(cc_c[(i - 1) % n], cc_c[i], cc_c[(i + 1) % n], refine)
-        return d / fs_hz
-    r = ref - ref.mean()
-    s = sig - sig.mean()
-    cc = signal.correlate(s, r, mode="full", method="fft")
-    lags = signal.correlation_lags(s.size, r.size, mode="full")
-    overlap = np.minimum(s.size, r.size + lags) - np.maximum(0, lags)
-    return _pick_peak(cc, lags, overlap, fs_hz, max_lag_s, refine)
-
-
-def _pick_peak(cc: np.ndarray, lags: np.ndarray, overlap: np.ndarray, fs_hz: float, max_lag_s: float | None,
-               refine: str) -> float:
-    """Integer peak of ``cc`` (within ``max_lag_s``) refined on ``cc / overlap``; delay in s."""
-    ok = overlap > 0
+        cc = np.fft.irfft(np.conj(np.fft.rfft(r)) * np.fft.rfft(s), n) / n  # cc[k] = mean s[m] r[m - k mod n]
+        lags = np.arange(n)
+        lags[lags > n // 2] -= n
+        ok = np.ones(n, dtype=bool)
+    else:
+        r = ref - ref.mean()
+        s = sig - sig.mean()
+        raw = signal.correlate(s, r, mode="full", method="fft")
+        lags = signal.correlation_lags(s.size, r.size, mode="full")
+        overlap = np.minimum(s.size, r.size + lags) - np.maximum(0, lags)
+        ok = overlap >= max(2, min(s.size, r.size) // 2)
+        cc = raw / np.maximum(overlap, 1)
     if max_lag_s is not None:
         ok &= np.abs(lags) <= max_lag_s * fs_hz
     if not np.any(ok):
         raise ValueError("no lag within max_lag_s")
-    idx = np.flatnonzero(ok)
-    i = int(idx[np.argmax(cc[idx])])
+    m = cc.size
+    prev = np.roll(cc, 1) if circular else np.concatenate([[-np.inf], cc[:-1]])
+    nxt = np.roll(cc, -1) if circular else np.concatenate([cc[1:], [-np.inf]])
+    top = float(np.max(cc[ok]))
+    cand = ok & (cc >= prev) & (cc >= nxt) & (cc >= top - PEAK_TIE * abs(top))
+    if not np.any(cand):  # the maximum sits on the edge of the allowed lags
+        cand = ok & (cc == top)
+    idx = np.flatnonzero(cand)
+    i = int(idx[np.argmin(np.abs(lags[idx]))])
     d = float(lags[i])
-    if refine != "none" and 0 < i < cc.size - 1 and overlap[i - 1] > 0 and overlap[i + 1] > 0:
-        ym, y0, yp = (cc[j] / overlap[j] for j in (i - 1, i, i + 1))
-        d += _peak_offset(ym, y0, yp, refine)
+    if refine != "none":
+        if circular:
+            d += _peak_offset(cc[(i - 1) % m], cc[i], cc[(i + 1) % m], refine)
+        elif 0 < i < m - 1:
+            d += _peak_offset(cc[i - 1], cc[i], cc[i + 1], refine)
     return d / fs_hz
 
 
