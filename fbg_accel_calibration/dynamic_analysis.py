@@ -176,8 +176,10 @@ def whole_period_length(n_samples: int, fs_hz: float, f_hz: float) -> tuple[int,
     if k_max < 1:
         raise ValueError(f"less than one period of {f_hz} Hz in {n_samples} samples at {fs_hz} Hz")
     ks = np.arange(max(1, (k_max + 1) // 2), k_max + 1)
-    frac = np.abs(ks * per - np.round(ks * per))
-    k = int(ks[np.flatnonzero(frac <= frac.min() + 1e-9)[-1]])
+    # misfit in samples, quantised to 0.01 sample so that a rate read from time stamps (1000.0000001 Hz)
+    # does not prefer a short span for a difference nobody can see
+    frac = np.round(np.abs(ks * per - np.round(ks * per)), 2)
+    k = int(ks[np.flatnonzero(frac == frac.min())[-1]])
     return k, round(k * per)
 
 
