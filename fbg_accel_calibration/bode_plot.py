@@ -17,6 +17,7 @@ from .chain_model import ChainModel, phase_delay_s, response
 from .dynamic_analysis import AXES, DynamicPoint
 
 COLORS = {"x": "tab:red", "y": "tab:green", "z": "tab:blue"}
+MARKERS = {"x": "o", "y": "s", "z": "^"}  # distinct shapes: axes with equal cut-offs overlap
 
 
 def plot_bode(points: Sequence[DynamicPoint], models: Mapping[str, ChainModel] | None, path: str | Path,
@@ -38,18 +39,19 @@ def plot_bode(points: Sequence[DynamicPoint], models: Mapping[str, ChainModel] |
             continue
         c = COLORS[ax]
         f = np.array([p.f_hz for p in sel])
-        ax_a.errorbar(f, [p.sensitivity for p in sel], yerr=[coverage * p.u_sensitivity for p in sel], fmt="o",
+        ax_a.errorbar(f, [p.sensitivity for p in sel], yerr=[coverage * p.u_sensitivity for p in sel], fmt=MARKERS[ax],
                       color=c, capsize=3, label=f"{ax} measured")
-        ax_p.errorbar(f, [p.phase_deg for p in sel], yerr=[coverage * p.u_phase_deg for p in sel], fmt="o",
+        ax_p.errorbar(f, [p.phase_deg for p in sel], yerr=[coverage * p.u_phase_deg for p in sel], fmt=MARKERS[ax],
                       color=c, capsize=3)
         m = (models or {}).get(ax)
         if m is not None:
             h = response(m, f_line)
             hp = "" if m.highpass_cutoff_hz is None else f", HP {m.highpass_cutoff_hz:.3g} Hz ({m.highpass_in})"
-            ax_a.semilogx(f_line, np.abs(h), "-", color=c, lw=1,
+            ls = {"x": "-", "y": "--", "z": ":"}[ax]
+            ax_a.semilogx(f_line, np.abs(h), ls, color=c, lw=1,
                           label=f"{ax} model: LP {m.cutoff_hz:.3g} Hz, delay {1e3 * m.delay_s:.3g} ms{hp}")
             # continuous phase from the model's parts (no wrapping jumps), in degrees
-            ax_p.semilogx(f_line, -360.0 * f_line * phase_delay_s(m, f_line), "-", color=c, lw=1)
+            ax_p.semilogx(f_line, -360.0 * f_line * phase_delay_s(m, f_line), ls, color=c, lw=1)
     ax_a.set_xscale("log")
     ax_a.set_ylabel("amplitude ratio sensor / reference [1]")
     ax_p.set_ylabel("phase [deg] (negative = sensor lags)")
