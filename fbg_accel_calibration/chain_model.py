@@ -82,6 +82,8 @@ class ChainModel:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ChainModel:
         """Inverse of :meth:`to_dict` (derived keys such as ``group_delay_dc_s`` are ignored)."""
+        if "cutoff_hz" not in d:
+            raise ValueError("chain model needs cutoff_hz")
         hp = d.get("highpass_cutoff_hz")
         where = str(d.get("highpass_in", "reference"))
         if where not in HP_LOCATIONS:

@@ -324,8 +324,9 @@ def test_chain_model_round_trips_through_a_dict() -> None:
     back = ChainModel.from_dict(d)
     np.testing.assert_allclose(response(back, [0.3, 2.0, 30.0]), response(m, [0.3, 2.0, 30.0]))
     assert back.u_cutoff_hz == 0.01
-    with pytest.raises(ValueError):
-        ChainModel.from_dict({"cutoff_hz": -1.0})
+    for bad in ({"cutoff_hz": -1.0}, {"delay_s": 0.0}, {"cutoff_hz": 1.0, "highpass_in": "ldv"}):
+        with pytest.raises(ValueError):
+            ChainModel.from_dict(bad)
 
 
 def test_group_delay_formula_matches_the_numerical_derivative() -> None:
