@@ -26,7 +26,7 @@ import numpy as np
 from fbg_accel_driver.chain_compensation import ChainDynamics
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
-from .chain_model import ChainModel, fit_chain_models, group_delay_s
+from .chain_model import ChainModel, fit_chain_models
 from .dynamic_analysis import DynamicPoint, ReferenceUncertainty, analyse_run
 from .excitation_plan import ExcitationPlan, find_slide_start, reference_acceleration
 from .recording import Recording
@@ -70,7 +70,7 @@ class DynamicCalibrationResult:
             hp = (f"{m.highpass_cutoff_hz:.3f} +- {m.u_highpass_cutoff_hz:.3f}" if m.highpass_cutoff_hz is not None
                   else "-")
             lines.append(f"| {ax} | {m.gain:.4f} +- {m.u_gain:.4f} | {m.cutoff_hz:.4f} +- {m.u_cutoff_hz:.4f} | "
-                         f"{m.delay_s * 1e3:.2f} +- {m.u_delay_s * 1e3:.2f} | {group_delay_s(m, 0.0) * 1e3:.2f} | {hp} |")
+                         f"{m.delay_s * 1e3:.2f} +- {m.u_delay_s * 1e3:.2f} | {_sensor_group_delay_s(m) * 1e3:.2f} | {hp} |")
         ref = self.dynamics.cutoff_hz[0]
         lines.append("")
         lines.append("reference channel cut-off: " + ("not measured (constant source); chain_compensation 'delay' only"
@@ -86,12 +86,16 @@ class DynamicCalibrationResult:
 
 
 def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibration, *,
-                reference_cutoff_hz: float | None = None, highpass: bool | None = None,
+                reference_cutoff_hz: float | None = None, fit_highpass: bool = False,
                 slide_start_s: float | None = None, method: str = "sine") -> DynamicCalibrationResult:
     """The dynamic calibration of one slide run (module docstring).
 
-    ``highpass``: fit the reference's AC-coupling high-pass (default: when the plan's LDV is AC-coupled);
-    ``slide_start_s``: the slide's start on the recording's time base (default: found from the aux channel).
+    The reference's AC coupling (an LDV's declared ``ac_coupling_hz``) is undone on the reference signal
+    (:func:`reference_acceleration`) unless ``fit_highpass``: then it is left in and fitted as a
+    parameter of the chain model (when the data-sheet value is unknown; it trades off against the gain
+    and the cut-off, so the cut-offs come out less certain). ``slide_start_s``: the slide's start on the
+    recording's time base (default: found from the aux channel). Parameter uncertainties come from the
+    points' budgets (``uncertainty_scaling='points'``).
     """
     if rec.aux is None or not np.any(np.isfinite(rec.aux)):
         raise DynamicCalibrationError("the recording has no aux channel (protocol version 2 frames, imu/raw "
@@ -117,7 +121,7 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
     if nyq:
         raise DynamicCalibrationError(f"segments at {', '.join(f'{w[0]:g}' for w in nyq)} Hz are too close to the "
                                       f"Nyquist frequency of {fs / 2:.1f} Hz: record at a higher board rate")
-    a_ref = reference_acceleration(t, aux, plan, windows)
+    a_ref = reference_acceleration(t, aux, plan, windows, undo_ac_coupling=not fit_highpass)
     a_sensor = static_cal.apply_counts(ref_c, xyz, temp, t)
     ru = ReferenceUncertainty(sensitivity_rel=plan.reference.relative_uncertainty,
                               phase_deg=plan.reference.phase_uncertainty_deg)
@@ -127,8 +131,7 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
     if not_measurable:
         raise DynamicCalibrationError(f"axes {not_measurable} are not excited by the slide direction {plan.direction}: "
                                       "tilt the sensor so the direction has a component on every axis (seed 2, eqs. 1-3)")
-    use_hp = (plan.reference.type == "ldv" and plan.reference.ac_coupling_hz > 0) if highpass is None else highpass
-    models = fit_chain_models(points, highpass=use_hp, highpass_in="reference")
+    models = fit_chain_models(points, highpass=fit_highpass, highpass_in="reference", uncertainty_scaling="points")
     for ax in AXES:
         models[ax].axis = ax
         if abs(models[ax].gain - 1.0) > 3 * max(models[ax].u_gain, 1e-3):
@@ -143,6 +146,12 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
              "models": {ax: m.to_dict() for ax, m in models.items()},
              "reference_cutoff": "given" if reference_cutoff_hz is not None else "not measured"})
     return DynamicCalibrationResult(plan, start, windows, points, models, dyn, fs, notes)
+
+
+def _sensor_group_delay_s(m: ChainModel) -> float:
+    """Group delay at DC (s) of the sensor's chain alone: ``1/(2 pi fc) + delay`` (a fitted reference
+    high-pass belongs to the reference, not to what the driver compensates)."""
+    return 1.0 / (2.0 * math.pi * m.cutoff_hz) + m.delay_s
 
 
 def _filled_temperature(temp: np.ndarray) -> np.ndarray:

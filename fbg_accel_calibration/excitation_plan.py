@@ -230,13 +230,17 @@ class ExcitationPlan:
 
 
 def reference_acceleration(t_s: np.ndarray, aux_counts: np.ndarray, plan: ExcitationPlan,
-                           windows: list[tuple[float, float, float]]) -> np.ndarray:
+                           windows: list[tuple[float, float, float]], undo_ac_coupling: bool = True) -> np.ndarray:
     """Reference acceleration (N,) along the slide direction, m/s^2, from the aux counts.
 
     An accelerometer is scaled. An LDV's velocity is differentiated inside each steady window by the
     central difference corrected for its tone, ``(v[k+1] - v[k-1]) / (2 dt) * (w dt / sin(w dt))``:
     exact in amplitude and phase for a sinusoid at the window's frequency ``w`` (a plain central
     difference reads 24 % low at 20 Hz and 100 Hz sampling). NaN outside the windows for an LDV.
+
+    An AC-coupled LDV (``ac_coupling_hz`` = f_h > 0, seed Fig. 5) measures ``v_m = s/(s + w_h) v``; with
+    ``undo_ac_coupling`` its declared high-pass is undone exactly: ``a = s v = (s + w_h) v_m =
+    dv_m/dt + w_h v_m`` (the seed corrects its reference the same way, by the data-sheet filter).
     """
     t = np.asarray(t_s, dtype=float)
     ref = plan.reference
@@ -255,6 +259,8 @@ def reference_acceleration(t_s: np.ndarray, aux_counts: np.ndarray, plan: Excita
         if np.any(wdt >= math.pi):
             raise ValueError(f"{f:g} Hz is above the Nyquist frequency of the recording")
         out[k] = (x[k + 1] - x[k - 1]) / (2.0 * dt) * (wdt / np.sin(wdt))
+        if undo_ac_coupling and ref.ac_coupling_hz > 0:
+            out[k] += 2.0 * math.pi * ref.ac_coupling_hz * (x[k] - np.mean(x[k]))
     return out
 
 
