@@ -41,9 +41,12 @@ def plot_bode(points: Sequence[DynamicPoint], models: Mapping[str, ChainModel] |
         f = np.array([p.f_hz for p in sel])
         ax_a.errorbar(f, [p.sensitivity for p in sel], yerr=[coverage * p.u_sensitivity for p in sel], fmt=MARKERS[ax],
                       color=c, capsize=3, label=f"{ax} measured")
-        ax_p.errorbar(f, [p.phase_deg for p in sel], yerr=[coverage * p.u_phase_deg for p in sel], fmt=MARKERS[ax],
-                      color=c, capsize=3)
         m = (models or {}).get(ax)
+        phase = np.array([p.phase_deg for p in sel])
+        if m is not None:  # a measured phase is known modulo 360 deg: show it on the model's branch
+            model_phase = -360.0 * f * phase_delay_s(m, f)
+            phase = phase + 360.0 * np.round((model_phase - phase) / 360.0)
+        ax_p.errorbar(f, phase, yerr=[coverage * p.u_phase_deg for p in sel], fmt=MARKERS[ax], color=c, capsize=3)
         if m is not None:
             h = response(m, f_line)
             hp = "" if m.highpass_cutoff_hz is None else f", HP {m.highpass_cutoff_hz:.3g} Hz ({m.highpass_in})"

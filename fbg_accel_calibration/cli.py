@@ -11,6 +11,9 @@ Subcommands (``fbg-accel-calib SUBCOMMAND --help`` for the options):
                residuals per degree).
 * ``report-measured``  the paper's measured series (../shared) -> docs/results_measured_fit.md + PNG.
 * ``diagnose`` residual diagnosis (``fbg_accel_calibration.diagnose_cli``).
+* ``dynamic``  a slide run (MCAP / bag with imu/raw ``aux_counts``, or a dynamic CSV) + excitation plan +
+               static calibration -> the calibration with its ``dynamic`` section (chain cut-offs and
+               delays), points and budgets, Bode PNG (docs/dynamic_calibration.md).
 
 Exit codes: 0 success, 2 bad input (message on stderr).
 """
@@ -137,6 +140,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--md", type=Path, default=DEFAULT_MD, help=f"markdown output (default {DEFAULT_MD})")
     p.add_argument("--png", type=Path, default=DEFAULT_PNG, help=f"plot output (default {DEFAULT_PNG})")
     p.set_defaults(func=cmd_report_measured)
+
+    p = sub.add_parser("dynamic", help="slide run to the chain's dynamics (calibration 'dynamic' section, Bode plot)")
+    p.add_argument("recording", type=Path, help="MCAP file or rosbag2 bag directory (imu/raw with aux_counts), or a "
+                   "dynamic-run CSV (t_s, ref, x, y, z, aux[, temperature_c])")
+    p.add_argument("--plan", type=Path, required=True, help="excitation plan YAML (config/excitation_plan_*.yaml)")
+    p.add_argument("--calibration", type=Path, required=True, help="the sensor's static calibration YAML")
+    p.add_argument("-o", "--output", type=Path, required=True,
+                   help="calibration YAML to write: the static calibration with the 'dynamic' section")
+    p.add_argument("--reference-cutoff-hz", type=iv.cutoff_hz, default=None,
+                   help="cut-off of the reference photodetector's TIA (Hz), from its own measurement or design; "
+                        "a slide run cannot see it (needed by chain_compensation 'equalise')")
+    p.add_argument("--fit-highpass", action="store_true",
+                   help="fit the reference's AC-coupling high-pass instead of undoing the plan's declared value")
+    p.add_argument("--method", choices=["sine", "fft"], default="sine",
+                   help="amplitude/phase per segment: sine approximation (default) or whole-period DFT")
+    p.add_argument("--slide-start", type=iv.float_in(*iv.TIME_RANGE_S, "s"), default=None,
+                   help="time (s, recording time base) the first segment starts (default: found from aux)")
+    p.add_argument("--bode", type=Path, default=None, help="write the Bode plot (PNG) here")
+    p.add_argument("--json", type=Path, default=None, help="write points, budgets and fits (JSON) here")
+    p.add_argument("--temperature", type=iv.temperature_c, default=None,
+                   help="CSV without temperature_c: the run's temperature, degC")
+    add_topic_options(p)
+    _add_force(p)
+    p.set_defaults(func=cmd_dynamic)
 
     diagnose_cli.register(sub)
     return parser
@@ -337,6 +364,56 @@ def _sensor_id_of(md: dict) -> str | None:
         if isinstance(cand, dict) and cand.get("sensor_id"):
             return str(cand["sensor_id"])
     return None
+
+
+def cmd_dynamic(args: argparse.Namespace) -> int:
+    """Slide run -> calibration with a ``dynamic`` section (+ report on stdout, optional Bode PNG / JSON)."""
+    from fbg_accel_driver.thermal_model import ThermalCalibration
+
+    from .dynamic_calibration import run_dynamic
+    from .dynamic_csv import read_dynamic_csv
+    from .excitation_plan import ExcitationPlan
+    from .mcap_io import read_recording, read_warnings
+
+    outputs = [o for o in (args.output, args.bode, args.json) if o is not None]
+    check_outputs(outputs, [args.recording, args.plan, args.calibration], args.force)
+    plan = ExcitationPlan.load(args.plan)
+    static_cal = ThermalCalibration.load(args.calibration)
+    check_input(args.recording)
+    if args.recording.suffix.lower() == ".csv" and args.recording.is_file():
+        rec = read_dynamic_csv(args.recording, args.temperature)
+    else:
+        rec = read_recording(args.recording, args.namespace, args.topic)
+        for line in read_warnings(args.recording, rec.metadata.get("read_report", {}), rec.metadata.get("pose_events")):
+            print(line, file=sys.stderr)
+    result = run_dynamic(rec, plan, static_cal, reference_cutoff_hz=args.reference_cutoff_hz,
+                         fit_highpass=args.fit_highpass, slide_start_s=args.slide_start, method=args.method)
+    print(result.report())
+    static_cal.dynamic = result.dynamics
+    static_cal.fit.setdefault("dynamic_sources", []).append(str(args.recording))
+    with atomic_path(args.output) as tmp:
+        static_cal.save(tmp)
+    ThermalCalibration.load(args.output)  # what was written loads (the driver's own check)
+    if args.bode is not None:
+        from .bode_plot import plot_bode
+
+        with atomic_path(args.bode) as tmp:
+            plot_bode(result.points, result.models, tmp, title=f"Dynamic calibration: {plan.name}")
+        print(f"wrote {args.bode}")
+    if args.json is not None:
+        with atomic_path(args.json) as tmp:
+            tmp.write_text(json.dumps(result.as_dict(), indent=1, default=_json_default))
+        print(f"wrote {args.json}")
+    print(f"wrote {args.output}")
+    return 0
+
+
+def _json_default(o: object) -> object:
+    if hasattr(o, "tolist"):
+        return o.tolist()  # type: ignore[attr-defined]
+    if hasattr(o, "to_dict"):
+        return o.to_dict()  # type: ignore[attr-defined]
+    return str(o)
 
 
 def cmd_allan(args: argparse.Namespace) -> int:
