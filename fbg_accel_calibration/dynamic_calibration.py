@@ -109,7 +109,10 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
     dt = np.diff(t)
     fs = 1.0 / float(np.median(dt))
     notes: list[str] = []
-    start = find_slide_start(t, aux, plan) if slide_start_s is None else float(slide_start_s)
+    try:
+        start = find_slide_start(t, aux, plan) if slide_start_s is None else float(slide_start_s)
+    except ValueError as exc:
+        raise DynamicCalibrationError(f"{exc}: give --slide-start to use the segments it holds") from None
     windows = [w for w in plan.steady_windows(start) if w[1] >= t[0] and w[2] <= t[-1]]
     lost = len(plan.segments) - len(windows)
     if lost:
