@@ -153,3 +153,21 @@ def test_a_ros2_bag_of_imu_raw_with_aux_counts_is_read(tmp_path, static_cal):
     fc_true, _ = _truth()
     for a, ax in enumerate("xyz"):
         assert section["cutoff_hz"][ax] == pytest.approx(fc_true[a + 1], rel=0.06)
+
+
+def test_board_sim_runs_the_plan_file_with_the_reference_on_aux(tmp_path):
+    from fbg_accel_driver.stream_decoder import StreamDecoder
+
+    out = tmp_path / "run.bin"
+    res = subprocess.run([str(Path(sys.executable).parent / "board_sim"), "--dynamic-plan",
+                          str(REPO / "config" / "excitation_plan_stepped_sine.yaml"), "--rate", "200", "--output", str(out)],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    frames = StreamDecoder().feed(out.read_bytes())
+    assert len(frames) >= round((PLAN.start_s + PLAN.duration_s) * 200) * 0.99  # the whole plan (link faults aside)
+    assert all(f.version == 2 for f in frames)
+    aux = np.array([f.aux for f in frames], float)
+    assert aux.max() - aux.min() > 500  # the LDV sees the slide
+    bad = subprocess.run([str(Path(sys.executable).parent / "board_sim"), "--dynamic-plan", "/nonexistent.yaml",
+                          "--output", str(tmp_path / "x.bin")], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "excitation plan not found" in bad.stderr

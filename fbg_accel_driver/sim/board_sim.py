@@ -32,6 +32,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="simulator config YAML merged on config/sim_default.yaml")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config key (dotted, value parsed as YAML); repeatable")
+    p.add_argument("--dynamic-plan", metavar="FILE",
+                   help="run an excitation plan (fbg_accel_excitation_plan YAML: slide + reference transducer on the "
+                        "aux channel, protocol version 2), e.g. config/excitation_plan_stepped_sine.yaml")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--duration", type=float, default=None, help="seconds to run (default: scenario end, or until killed)")
     p.add_argument("--rate", type=float, default=None, help="board sample rate in Hz (scenario.rate_hz)")
@@ -47,7 +50,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 def load_config(args: argparse.Namespace) -> SimConfig:
     cfg = SimConfig.load(args.config) if args.config else SimConfig.default()
-    overrides = dict(parse_set_argument(s) for s in args.set)
+    overrides: dict = {}
+    if args.dynamic_plan:
+        from fbg_accel_calibration.excitation_plan import ExcitationPlan, ExcitationPlanError
+
+        try:
+            plan = ExcitationPlan.load(args.dynamic_plan)
+        except ExcitationPlanError as exc:
+            raise SimConfigError(str(exc)) from None
+        overrides.update(plan.sim_overrides())
+        if args.duration is None:
+            overrides["scenario.duration_s"] = plan.start_s + plan.duration_s + 2.0
+    overrides.update(parse_set_argument(s) for s in args.set)
     if args.rate is not None:
         overrides["scenario.rate_hz"] = float(args.rate)
     if args.duration is not None:
