@@ -5,14 +5,18 @@ Pure numpy/scipy engine behind ``fbg-accel-calib diagnose`` (issue 4). Steps:
 1. Static samples: the static-interval detector of the fit (``static_detector.calibration_samples``,
    signal still AND table reference constant AND in a pose) or, with ``static="table"``, every
    sample the table reports in a pose.
-2. Declared model: eq. 28 at the degree chosen by cross-validation over pose groups (degree
-   < number of temperature levels, as in ``thermal_fit``). Noise floor = pooled within-pose
-   standard deviation of its residual per axis (what no static model can remove).
+2. Declared model: eq. 28 at the degree chosen by cross-validation over visits (degree
+   < number of temperature levels, as in ``thermal_fit``). Noise floor = pooled within-visit
+   standard deviation of its residual per axis over settled samples (what no static model can
+   remove); the settling transient after a table move is measured and reported on its own.
+   A visit is one contiguous static interval of one pose id in one run (``effects.visit_ids``); the
+   pose id is the orientation. Folds that would lose a direction of the table frame are split or
+   their visit kept in training (``check_folds``).
 3. Every candidate of ``effects.LIBRARY`` on top of the current model: hyper-parameter by a 1-D
    search (grid; nested inside each training fold for the held-out figures, then refined on all
-   data for the final value); held-out residuals by K-fold cross-validation over pose groups;
-   per-pose paired gain in noise-weighted held-out MSE; one-sided Wilcoxon signed-rank test over
-   pose groups (Bonferroni over the candidates of the step); correlation of the candidate's
+   data for the final value); held-out residuals by K-fold cross-validation over visits;
+   per-visit paired gain in noise-weighted held-out MSE; one-sided Wilcoxon signed-rank test over
+   visits (Bonferroni over the candidates of the step); correlation of the candidate's
    contribution with the held-out residual; pairwise confounding among the significant ones (each
    added on top of the other: does it still gain?).
 4. Forward selection: add the best significant candidate, repeat; stop when no candidate is
@@ -23,7 +27,7 @@ Pure numpy/scipy engine behind ``fbg-accel-calib diagnose`` (issue 4). Steps:
    next to the noise floor; test and describe what residual remains (per pose, axis, temperature,
    time, orientation).
 
-Significance is tested with pose groups as the independent units, not samples: the noise of this
+Significance is tested with visits as the independent units, not samples: the noise of this
 sensor is low-pass filtered (TIA ~1 Hz at 100 Hz sampling), so consecutive samples are strongly
 correlated and a sample-level F-test would be far too optimistic.
 """
