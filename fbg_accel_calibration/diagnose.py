@@ -5,14 +5,18 @@ Pure numpy/scipy engine behind ``fbg-accel-calib diagnose`` (issue 4). Steps:
 1. Static samples: the static-interval detector of the fit (``static_detector.calibration_samples``,
    signal still AND table reference constant AND in a pose) or, with ``static="table"``, every
    sample the table reports in a pose.
-2. Declared model: eq. 28 at the degree chosen by cross-validation over pose groups (degree
-   < number of temperature levels, as in ``thermal_fit``). Noise floor = pooled within-pose
-   standard deviation of its residual per axis (what no static model can remove).
+2. Declared model: eq. 28 at the degree chosen by cross-validation over visits (degree
+   < number of temperature levels, as in ``thermal_fit``). Noise floor = pooled within-visit
+   standard deviation of its residual per axis over settled samples (what no static model can
+   remove); the settling transient after a table move is measured and reported on its own.
+   A visit is one contiguous static interval of one pose id in one run (``effects.visit_ids``); the
+   pose id is the orientation. Folds that would lose a direction of the table frame are split or
+   their visit kept in training (``check_folds``).
 3. Every candidate of ``effects.LIBRARY`` on top of the current model: hyper-parameter by a 1-D
    search (grid; nested inside each training fold for the held-out figures, then refined on all
-   data for the final value); held-out residuals by K-fold cross-validation over pose groups;
-   per-pose paired gain in noise-weighted held-out MSE; one-sided Wilcoxon signed-rank test over
-   pose groups (Bonferroni over the candidates of the step); correlation of the candidate's
+   data for the final value); held-out residuals by K-fold cross-validation over visits;
+   per-visit paired gain in noise-weighted held-out MSE; one-sided Wilcoxon signed-rank test over
+   visits (Bonferroni over the candidates of the step); correlation of the candidate's
    contribution with the held-out residual; pairwise confounding among the significant ones (each
    added on top of the other: does it still gain?).
 4. Forward selection: add the best significant candidate, repeat; stop when no candidate is
@@ -23,7 +27,7 @@ Pure numpy/scipy engine behind ``fbg-accel-calib diagnose`` (issue 4). Steps:
    next to the noise floor; test and describe what residual remains (per pose, axis, temperature,
    time, orientation).
 
-Significance is tested with pose groups as the independent units, not samples: the noise of this
+Significance is tested with visits as the independent units, not samples: the noise of this
 sensor is low-pass filtered (TIA ~1 Hz at 100 Hz sampling), so consecutive samples are strongly
 correlated and a sample-level F-test would be far too optimistic.
 """
@@ -40,7 +44,15 @@ from scipy import optimize, stats
 from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
-from .effects import LIBRARY, DiagnosisData, Effect, Inputs, motion_groups, separating_measurement
+from .effects import (
+    LIBRARY,
+    TIA_TAU_S,
+    DiagnosisData,
+    Effect,
+    Inputs,
+    motion_groups,
+    separating_measurement,
+)
 from .recording import Recording, time_axis_label
 from .static_detector import calibration_samples
 from .thermal_fit import NotIdentifiedError, design_matrix, n_params, temperature_levels, temperature_scaling
@@ -132,19 +144,20 @@ def build_design(data: DiagnosisData, spec: ModelSpec) -> Design:
 
 
 # ============================================================================ cross-validation
-def pose_groups(data: DiagnosisData) -> np.ndarray:
-    """Group label (N,) of each sample: one group per pose id (the same commanded orientation in
-    several runs is held out together, as in ``thermal_fit``); samples in motion go with the pose the
-    table moves to (``effects.motion_groups``)."""
+def visit_groups(data: DiagnosisData) -> np.ndarray:
+    """Group label (N,) of each sample: its visit (``effects.visit_ids``: one contiguous static
+    interval of one pose id within one run; samples in motion go with the visit the table moves to).
+    The orientation is ``data.pose_id``; a repeated orientation is a new visit, so the changes between
+    visits (repeat, temperature level, run) are neither noise nor hidden from the folds."""
     return data.group
 
 
 def make_folds(groups: np.ndarray, rows: np.ndarray, k: int = 10, seed: int = 0) -> np.ndarray:
-    """Fold index (N,) per sample (-1 outside ``rows``): whole pose groups are assigned to folds."""
+    """Fold index (N,) per sample (-1 outside ``rows``): whole visits are assigned to folds."""
     ug = np.unique(groups[rows])
     k = int(min(k, len(ug)))
     if k < 2:
-        raise ValueError("need at least two pose groups for cross-validation")
+        raise ValueError("need at least two visits for cross-validation")
     perm = np.random.default_rng(seed).permutation(len(ug))
     fold_of_group = np.empty(len(ug), int)
     fold_of_group[perm] = np.arange(len(ug)) % k
@@ -152,6 +165,95 @@ def make_folds(groups: np.ndarray, rows: np.ndarray, k: int = 10, seed: int = 0)
     idx = np.searchsorted(ug, groups[rows])
     out[rows] = fold_of_group[idx]
     return out
+
+
+# The reference of a training set must span the table frame: its weakest direction (smallest
+# standard deviation of the visit-mean reference) must keep this fraction of the whole data's.
+MIN_SPAN_FRACTION = 0.1
+
+
+def _reference_spread(gmean: np.ndarray) -> tuple[float, np.ndarray]:
+    """(standard deviation m/s^2, unit direction (3,)) of the weakest direction of visit-mean references
+    (V, 3), table frame. An affine model (eq. 25: M Psi + b) is identified along a direction only if
+    the reference varies along it."""
+    if len(gmean) < 2:
+        return 0.0, np.array([0.0, 0.0, 1.0])
+    c = gmean - gmean.mean(axis=0)
+    w, v = np.linalg.eigh(c.T @ c / len(gmean))
+    return float(np.sqrt(max(w[0], 0.0))), v[:, 0]
+
+
+def check_folds(data: DiagnosisData, groups: np.ndarray, folds: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """Make every fold identifiable; returns (new folds (N,), notes for the report).
+
+    A fold is identifiable when the visits left for training still span the table frame: the
+    weakest direction of their visit-mean reference (m/s^2, table frame) keeps at least
+    ``MIN_SPAN_FRACTION`` of the whole data's spread. A fold that holds out every visit exciting one
+    direction (e.g. both +z and -z of a six-position plan) would otherwise predict a constant along
+    it (held-out residuals of exactly +-g). Such a fold is split into one fold per visit; a visit
+    whose own removal still loses a direction (the only one exciting it) is never held out: its fold
+    index becomes -2 (kept in every training set and the final fit, excluded from the held-out
+    figures), with a note.
+    """
+    rows = data.use & (folds >= 0) & np.all(np.isfinite(data.gref), axis=1)
+    ug, inv = np.unique(groups[rows], return_inverse=True)
+    if len(ug) == 0:
+        return folds, []
+    cnt = np.bincount(inv).astype(float)
+    gmean = np.stack([np.bincount(inv, weights=data.gref[rows, j]) / cnt for j in range(3)], axis=1)
+    fold_of = np.zeros(len(ug), int)
+    fold_of[inv] = folds[rows]
+    pose_of = np.zeros(len(ug), int)
+    pose_of[inv] = data.pose_id[rows]
+    full_sd, _ = _reference_spread(gmean)
+    limit = MIN_SPAN_FRACTION * full_sd
+    new_fold = fold_of.copy()
+    notes: list[str] = []
+    next_fold = int(fold_of.max()) + 1
+
+    def loses(held: np.ndarray) -> tuple[bool, float, np.ndarray]:
+        sd, direction = _reference_spread(gmean[~held])
+        return sd < limit or sd <= 1e-9, sd, direction
+
+    for f in np.unique(fold_of):
+        held = fold_of == f
+        bad, sd, direction = loses(held)
+        if not bad:
+            continue
+        members = np.flatnonzero(held)
+        split, skipped = [], []
+        for v in members:
+            one = np.zeros(len(ug), bool)
+            one[v] = True
+            if loses(one)[0]:
+                new_fold[v] = -2
+                skipped.append(v)
+            else:
+                new_fold[v] = next_fold
+                next_fold += 1
+                split.append(v)
+        dir_txt = "(" + ", ".join(f"{c:+.2f}" for c in direction) + ")"
+        note = (f"fold {f} held out every visit exciting the table direction {dir_txt} (training reference spread "
+                f"{sd:.3g} m/s^2 along it, whole data {full_sd:.3g} m/s^2): the fit could not predict that direction")
+        if split:
+            note += f"; split into {len(split)} fold(s) of one visit each"
+        if skipped:
+            note += ("; visit(s) " + ", ".join(f"{int(ug[v])} (pose {int(pose_of[v])})" for v in skipped)
+                     + " alone excite a direction and are never held out (kept in training; not in the held-out figures)")
+        notes.append(note)
+    if not notes:
+        return folds, []
+    # renumber the folds in use to 0..K-1 (-2: training only; -1: outside the rows)
+    used = np.unique(new_fold[new_fold >= 0])
+    remap = {int(u): i for i, u in enumerate(used)}
+    out = np.array(folds, copy=True)
+    vf = np.array([remap.get(int(x), int(x)) if x >= 0 else int(x) for x in new_fold])
+    out[rows] = vf[inv]
+    # samples of a visit that are outside ``rows`` only because their reference is not finite keep -1
+    if len(used) < 2:
+        raise NotIdentifiedError("cross-validation is not possible: no fold can be held out without losing a "
+                                 "direction of the table frame (" + "; ".join(notes) + ")")
+    return out, notes
 
 
 def _solve(xtx: np.ndarray, xtg: np.ndarray) -> np.ndarray:
@@ -173,7 +275,9 @@ class CvResult:
 
 
 def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np.ndarray) -> CvResult:
-    """K-fold CV by normal equations (per-fold sums subtracted from the total)."""
+    """K-fold CV by normal equations (per-fold sums subtracted from the total). Rows of ``rows`` with a
+    negative fold index (``check_folds``: -2, a visit that cannot be held out) are in every training
+    set and in the full fit, never held out (their held-out residual stays NaN)."""
     X, G = des.X, des.G
     r = rows & des.valid
     K = int(folds[r].max()) + 1
@@ -184,7 +288,11 @@ def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np
         m = r & (folds == f)
         Xf, Gf = X[m], G[m]
         xtx[f], xtg[f], gtg[f] = Xf.T @ Xf, Xf.T @ Gf, np.sum(Gf**2, axis=0)
-    XtX, XtG = xtx.sum(0), xtg.sum(0)
+    XtX, XtG, GtG = xtx.sum(0), xtg.sum(0), gtg.sum(0)
+    always = r & (folds < 0)
+    if always.any():
+        Xa, Ga = X[always], G[always]
+        XtX, XtG, GtG = XtX + Xa.T @ Xa, XtG + Xa.T @ Ga, GtG + np.sum(Ga**2, axis=0)
     heldout = np.full(G.shape, np.nan)
     train_rss = np.zeros(K)
     for f in range(K):
@@ -192,7 +300,7 @@ def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np
         m = r & (folds == f)
         heldout[m] = G[m] - X[m] @ A
         Xt, Gt = XtX - xtx[f], XtG - xtg[f]
-        gt = gtg.sum(0) - gtg[f]
+        gt = GtG - gtg[f]
         rss = gt - 2 * np.einsum("pi,pi->i", A, Gt) + np.einsum("pi,pq,qi->i", A, Xt, A)
         train_rss[f] = float(np.sum(rss * weights))
     A_full = _solve(XtX, XtG)
@@ -208,32 +316,207 @@ def weighted_rss(des: Design, rows: np.ndarray, weights: np.ndarray) -> float:
     return float(np.sum(res**2 * weights))
 
 
-# ============================================================================ noise floor, degree
-def within_pose_sigma(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_s: np.ndarray | None = None) -> np.ndarray:
-    """Pooled within-pose standard deviation (3,) of a residual, m/s^2: the noise floor.
+# ============================================================================ noise floor, settling, degree
+# Settling window after a table move, from the measuring chain's physics: every TIA is a first-order
+# low-pass (paper Table 1: 1 / 1.7 / 1.3 / 1.3 Hz for ref / x / y / z, time constants 0.09-0.16 s), so a
+# transient left at the end of a move decays as A exp(-t/tau). The floor leaves out the first sample of
+# every visit and every sample before the measured transient has fallen below a tenth of the noise
+# (t < tau ln(10 A / sigma): under 0.5 % on the floor in quadrature). Without a measurable transient only
+# the first sample goes. The window never exceeds 10 x the slowest TIA time constant (1.6 s): a slower
+# "transient" is not the chain's and is reported, not hidden.
+SETTLE_NOISE_FRACTION = 0.1
+MAX_SETTLE_S = float(10.0 * np.max(TIA_TAU_S))
 
-    With ``t_s`` a straight line in time is removed inside every pose first (dof n - 2 per pose), so
-    that slow changes within a pose (temperature ramps, drift) do not count as noise.
-    """
-    r = rows & np.all(np.isfinite(res), axis=1)
-    g = groups[r]
-    x = res[r]
+
+def settled_mask(t_s: np.ndarray, groups: np.ndarray, rows: np.ndarray, settle_s: float = 0.0) -> np.ndarray:
+    """Settled samples (N,) among ``rows``: the first sample of every visit and every sample less than
+    ``settle_s`` (s, board time) after it are dropped (the settling transient after a table move).
+    At least the first sample of a visit is always dropped, whatever the sample rate."""
+    idx = np.flatnonzero(rows)
+    out = np.zeros(len(t_s), bool)
+    if idx.size == 0:
+        return out
+    g = groups[idx]
+    t = t_s[idx]
+    ug, inv = np.unique(g, return_inverse=True)
+    t0 = np.full(len(ug), np.inf)
+    np.minimum.at(t0, inv, t)
+    age = t - t0[inv]
+    first = np.zeros(len(idx), bool)
+    first[np.unique(inv, return_index=True)[1]] = True  # idx is time-ordered within a run
+    out[idx] = (age >= settle_s) & ~first
+    return out
+
+
+def _visit_line(res: np.ndarray, groups: np.ndarray, fit_rows: np.ndarray, t_s: np.ndarray | None,
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per visit (over ``fit_rows``): (labels, count, mean (V, 3), slope (V, 3) per s, mean time (V,) s,
+    dof (V,), sum of squared centred times (V,) s^2, 0 where no slope is fitted).
+
+    The slope is zero for a visit whose ``fit_rows`` samples share one time (or with ``t_s`` None)."""
+    g = groups[fit_rows]
+    x = res[fit_rows]
     ug, inv = np.unique(g, return_inverse=True)
     cnt = np.bincount(inv).astype(float)
     means = np.stack([np.bincount(inv, weights=x[:, j]) / cnt for j in range(3)], axis=1)
-    dev = x - means[inv]
-    n_par = 1
+    slope = np.zeros_like(means)
+    tmean = np.zeros(len(ug))
+    dof = cnt - 1
+    stt_used = np.zeros(len(ug))
     if t_s is not None:
-        t = t_s[r]
-        tc = t - (np.bincount(inv, weights=t) / cnt)[inv]
-        stt = np.bincount(inv, weights=tc * tc)[inv]
-        ok = stt > 0
+        t = t_s[fit_rows]
+        tmean = np.bincount(inv, weights=t) / cnt
+        tc = t - tmean[inv]
+        stt = np.bincount(inv, weights=tc * tc)
+        ok = stt > 1e-12 * np.maximum(tmean**2, 1.0)
         for j in range(3):
-            slope = np.bincount(inv, weights=tc * dev[:, j])[inv]
-            dev[ok, j] -= (slope[ok] / stt[ok]) * tc[ok]
-        n_par = 2
-    dof = max(len(x) - n_par * len(ug), 1)
-    return np.sqrt(np.sum(dev**2, axis=0) / dof)
+            sxy = np.bincount(inv, weights=tc * (x[:, j] - means[inv, j]))
+            slope[ok, j] = sxy[ok] / stt[ok]
+        dof = dof - ok
+        stt_used = np.where(ok, stt, 0.0)
+    return ug, cnt, means, slope, tmean, np.maximum(dof, 0), stt_used
+
+
+def within_visit_sigma(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_s: np.ndarray | None = None) -> np.ndarray:
+    """Pooled within-visit standard deviation (3,) of a residual (m/s^2, table frame): the noise floor.
+
+    ``groups`` are visits (``visit_groups``), ``rows`` the samples that count (settled ones: see
+    ``settled_mask``). With ``t_s`` (s) a straight line in time is removed inside every visit first
+    (dof n - 2 per visit, n - 1 if its samples share one time, 0 for a single sample), so that slow
+    changes within a visit (temperature ramps, drift) do not count as noise.
+    """
+    r = rows & np.all(np.isfinite(res), axis=1)
+    if not r.any():
+        return np.full(3, np.nan)
+    ug, _, means, slope, tmean, dof, _ = _visit_line(res, groups, r, t_s)
+    inv = np.searchsorted(ug, groups[r])
+    dev = res[r] - means[inv]
+    if t_s is not None:
+        dev -= slope[inv] * (t_s[r] - tmean[inv])[:, None]
+    return np.sqrt(np.sum(dev**2, axis=0) / max(float(dof.sum()), 1.0))
+
+
+@dataclass
+class SettlingTransient:
+    """Settling transient after the table stops, measured on the declared model's residual (m/s^2).
+
+    Every visit's residual is referred to the mean of its middle samples; the excess power at the k-th
+    sample after the start of a visit over the k-th sample before its end (the same distance from the
+    middle, so noise of any colour and a linear drift cancel) is averaged over visits and modelled as
+    A^2 exp(-2 age/tau) (first-order chain), one tau for all axes.
+    """
+
+    settle_s: float  # samples within this time (s) of a visit's first sample are not in the floor
+    n_visits: int  # visits long enough to measure it
+    n_dropped: int  # static samples left out of the floor
+    age_s: np.ndarray  # (K,) median time since the visit's first sample, s
+    excess_rms: np.ndarray  # (K, 3) signed sqrt of the excess power, m/s^2
+    excess_se: np.ndarray  # (K, 3) standard error of the excess power, (m/s^2)^2
+    amplitude_mps2: np.ndarray  # (3,) A per axis at the first sample, m/s^2 (0 where none)
+    tau_s: float  # time constant, s (an upper bound if not resolved; NaN if not detected)
+    tau_resolved: bool  # the decay shows in at least two sample positions
+    detected: bool  # the excess at the first sample is > 3 standard errors on some axis
+    residual_after_settle_mps2: np.ndarray  # (3,) A exp(-settle_s/tau): what may still reach the floor
+
+    def summary(self) -> str:
+        drop = (f"{self.n_dropped} samples (the first of each visit"
+                + (f" and those within {self.settle_s:.3g} s of it" if self.settle_s > 0 else "")
+                + ") are left out of the noise floor")
+        if not self.detected:
+            first = self.excess_rms[0] if len(self.excess_rms) else np.zeros(3)
+            return (f"no settling transient above the noise at the first sample of a visit (excess "
+                    f"{_fmt3(first)} m/s^2, {self.n_visits} visits); {drop}")
+        tau = (f"time constant {self.tau_s:.3g} s" if self.tau_resolved else
+               f"gone by the next sample (time constant <= {self.tau_s:.3g} s, not resolved by the sample rate)")
+        return (f"settling transient after a table move: amplitude {_fmt3(self.amplitude_mps2)} m/s^2 (x/y/z, at the "
+                f"first sample of a visit, above the noise), {tau}, {self.n_visits} visits; {drop}")
+
+
+def _fmt3(v: np.ndarray) -> str:
+    return " / ".join(f"{x:.3g}" for x in v)
+
+
+def settling_transient(res: np.ndarray, t_s: np.ndarray, groups: np.ndarray, rows: np.ndarray,
+                       max_window_s: float = MAX_SETTLE_S) -> SettlingTransient:
+    """Measure the settling transient (see ``SettlingTransient``) from a residual (N, 3) m/s^2.
+
+    ``rows``: static samples of the visits (time-ordered, visits contiguous). Sample positions
+    k = 0 .. K-1 with K covering ``max_window_s`` (s) plus one sample, at most a third of the median visit;
+    visits shorter than 3 K samples are not used. ``settle_s`` and ``n_dropped`` are left at 0 (set by
+    the caller once the window is chosen).
+    """
+    r = rows & np.all(np.isfinite(res), axis=1)
+    idx = np.flatnonzero(r)
+    empty = SettlingTransient(0.0, 0, 0, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(3), np.nan,
+                              False, False, np.zeros(3))
+    if idx.size < 9:
+        return empty
+    g = groups[idx]
+    first = np.r_[True, g[1:] != g[:-1]]
+    vid = np.cumsum(first) - 1  # contiguous block number
+    length = np.bincount(vid)
+    start = np.flatnonzero(first)
+    pos = np.arange(len(idx)) - start[vid]
+    rpos = length[vid] - 1 - pos
+    dts = np.diff(t_s[idx])[~first[1:]]
+    dt = float(np.median(dts)) if dts.size else 1.0
+    K = int(min(np.ceil(max_window_s / max(dt, 1e-12)) + 1, np.median(length) // 3))
+    if K < 1:
+        return empty
+    ok_v = length >= 3 * K
+    if ok_v.sum() < 3:
+        return empty
+    mid = ok_v[vid] & (pos >= K) & (rpos >= K)
+    cnt = np.bincount(vid[mid], minlength=len(length)).astype(float)
+    x = res[idx]
+    mean = np.stack([np.bincount(vid[mid], weights=x[mid, j], minlength=len(length)) for j in range(3)], axis=1)
+    mean /= np.maximum(cnt, 1.0)[:, None]
+    d = x - mean[vid]
+    ages, P, SE = [], [], []
+    for k in range(K):
+        a = ok_v[vid] & (pos == k)
+        e = ok_v[vid] & (rpos == k)
+        diff = d[a] ** 2 - d[e] ** 2  # visits in the same order in both
+        P.append(diff.mean(axis=0))
+        SE.append(diff.std(axis=0, ddof=1) / np.sqrt(len(diff)) if len(diff) > 1 else np.full(3, np.inf))
+        ages.append(float(np.median(t_s[idx][a] - t_s[idx][start[vid[a]]])))
+    P, SE, age = np.array(P), np.maximum(np.array(SE), 1e-300), np.array(ages)
+    excess = np.sign(P) * np.sqrt(np.abs(P))
+    signif = P > 3 * SE
+    detected = bool(np.any(signif[0]))
+    amp, tau, resolved = np.zeros(3), np.nan, False
+    if detected:
+        resolved = bool(len(P) > 1 and np.any(signif[1]))
+        if resolved:
+            best = (np.inf, np.nan, np.zeros(3))
+            for tau_try in np.geomspace(dt / 20, max(age[-1], dt) * 5, 300):
+                f = np.exp(-2 * age / tau_try)
+                w = 1.0 / SE**2
+                a2 = np.clip(np.sum(w * f[:, None] * P, axis=0) / np.sum(w * f[:, None] ** 2, axis=0), 0, None)
+                sse = float(np.sum(w * (P - f[:, None] * a2[None, :]) ** 2))
+                if sse < best[0]:
+                    best = (sse, tau_try, a2)
+            tau, amp = float(best[1]), np.sqrt(best[2])
+        else:
+            amp = np.sqrt(np.clip(P[0], 0, None))
+            if len(P) > 1:  # below the detection limit one sample later: bound tau
+                ratio = float(np.max(np.clip(P[0], 0, None) / (3 * SE[1])))
+                tau = float((age[1] - age[0]) / max(0.5 * np.log(max(ratio, 1.0 + 1e-9)), 1e-9))
+            else:
+                tau = dt
+    return SettlingTransient(0.0, int(ok_v.sum()), 0, age, excess, SE, amp, tau, resolved, detected, np.zeros(3))
+
+
+def settle_window(st: SettlingTransient, sigma: np.ndarray) -> float:
+    """Time (s) after a visit's first sample that the floor leaves out: where the measured transient
+    A exp(-t/tau) falls below ``SETTLE_NOISE_FRACTION`` x the noise ``sigma`` (3,) m/s^2, capped at
+    ``MAX_SETTLE_S``; 0 (only the first sample) without a detected transient."""
+    if not st.detected or not np.isfinite(st.tau_s) or st.tau_s <= 0:
+        return 0.0
+    ratio = float(np.max(st.amplitude_mps2 / np.maximum(sigma, 1e-12)))
+    if ratio <= SETTLE_NOISE_FRACTION:
+        return 0.0
+    return float(min(st.tau_s * np.log(ratio / SETTLE_NOISE_FRACTION), MAX_SETTLE_S))
 
 
 def temperature_level_count(data: DiagnosisData) -> int:
@@ -368,11 +651,12 @@ class Evaluator:
 
     def __init__(self, data: DiagnosisData, folds: np.ndarray, weights: np.ndarray, groups: np.ndarray) -> None:
         self.data, self.folds, self.weights, self.groups = data, folds, weights, groups
-        self.rows = data.use & (folds >= 0)
+        self.rows = data.use & (folds >= 0)  # held out and judged
+        self.fit_rows = data.use & (folds != -1)  # fitted (also the visits that are never held out, fold -2)
 
     def cv(self, spec: ModelSpec) -> tuple[Design, CvResult]:
         des = build_design(self.data, spec)
-        return des, cross_validate(des, self.rows, self.folds, self.weights)
+        return des, cross_validate(des, self.fit_rows, self.folds, self.weights)
 
     def fit_hyper(self, spec: ModelSpec, eff: Effect) -> tuple[float | None, np.ndarray, list[tuple[float, float]]]:
         """Hyper-parameter of ``eff`` added to ``spec``: nested grid choice per fold for the held-out
@@ -399,7 +683,7 @@ class Evaluator:
         h_best = float(grid[j])
         if hi > lo:
             def obj(h: float) -> float:
-                return weighted_rss(build_design(self.data, spec.plus(eff, float(h))), self.rows, self.weights)
+                return weighted_rss(build_design(self.data, spec.plus(eff, float(h))), self.fit_rows, self.weights)
 
             res = optimize.minimize_scalar(obj, bounds=(float(lo), float(hi)), method="bounded",
                                            options={"xatol": 1e-3 * (hi - lo), "maxiter": 25})
@@ -408,8 +692,8 @@ class Evaluator:
         if eff.hyper_null is not None:
             # parsimony: keep the null value unless moving away from it is a significant improvement,
             # judged with pose groups as the independent units (likelihood ratio ~ chi^2(1), 1 %)
-            rss_best = weighted_rss(build_design(self.data, spec.plus(eff, h_best)), self.rows, self.weights)
-            rss_null = weighted_rss(build_design(self.data, spec.plus(eff, eff.hyper_null)), self.rows, self.weights)
+            rss_best = weighted_rss(build_design(self.data, spec.plus(eff, h_best)), self.fit_rows, self.weights)
+            rss_null = weighted_rss(build_design(self.data, spec.plus(eff, eff.hyper_null)), self.fit_rows, self.weights)
             n_groups = len(np.unique(self.groups[self.rows]))
             if (rss_null - rss_best) / max(rss_best / n_groups, 1e-300) < stats.chi2.ppf(0.99, 1):
                 h_best = float(eff.hyper_null)
@@ -514,6 +798,9 @@ class DiagnosisResult:
     n_groups: int
     moving_residual_rms: np.ndarray | None
     settings: dict[str, Any]
+    settling: SettlingTransient | None = None  # the settling transient after table moves (not in the floor)
+    fold_notes: list[str] = field(default_factory=list)  # folds split or visits never held out (check_folds)
+    n_floor_samples: int = 0  # settled samples the noise floor is computed from
 
     @property
     def ranked(self) -> list[CandidateResult]:
@@ -523,12 +810,14 @@ class DiagnosisResult:
 def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degree: int = 4, folds: int = 10,
              alpha: float = 0.01, min_rel_gain: float = 0.02, max_effects: int = 3, library: tuple[Effect, ...] = LIBRARY,
              degree: int | None = None, sensor_id: str = "unknown", seed: int = 0,
-             progress: Callable[[str], None] | None = None) -> DiagnosisResult:
+             progress: Callable[[str], None] | None = None, settle_s: float | None = None) -> DiagnosisResult:
     """Run the whole diagnosis on a recording (see the module docstring). ``progress`` (optional) is called
-    with the candidate's name after each candidate evaluation (the CLI's progress bar)."""
+    with the candidate's name after each candidate evaluation (the CLI's progress bar). ``settle_s`` (s):
+    samples this close to the start of a visit are left out of the noise floor (``settled_mask``); None: the
+    window where the measured settling transient falls below a tenth of the noise (``settle_window``)."""
     data = rec if isinstance(rec, DiagnosisData) else prepare_data(rec, static)
-    groups = pose_groups(data)
-    fold = make_folds(groups, data.use, folds, seed)
+    groups = visit_groups(data)
+    fold, fold_notes = check_folds(data, groups, make_folds(groups, data.use, folds, seed))
     n_levels = temperature_level_count(data)
     if isinstance(rec, Recording) and n_levels >= 3:
         # discrete chamber levels: exactly the calibration's choice (held out by temperature level)
@@ -545,8 +834,25 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     # declared model, noise floor and weights
     des0 = build_design(data, spec)
     cv0 = cross_validate(des0, data.use, fold, np.ones(3))
-    rows = data.use & des0.valid & (data.pose_id >= 0)  # the floor: scatter within poses, not during moves
-    noise = within_pose_sigma(des0.G - cv0.fitted_full, groups, rows, data.t_s)
+    rows = data.use & des0.valid & (data.pose_id >= 0)  # the floor: scatter within visits, not during moves
+    res0 = des0.G - cv0.fitted_full
+    settling = settling_transient(res0, data.t_s, groups, rows)
+    if settle_s is None:  # the rule of SETTLE_NOISE_FRACTION; the floor it compares with is itself settled
+        settle_s = 0.0
+        for _ in range(4):
+            sigma = within_visit_sigma(res0, groups, settled_mask(data.t_s, groups, rows, settle_s), data.t_s)
+            nxt = settle_window(settling, sigma)
+            if nxt <= settle_s * (1 + 1e-3):
+                break
+            settle_s = nxt
+    settled = settled_mask(data.t_s, groups, rows, settle_s)
+    noise = within_visit_sigma(res0, groups, settled, data.t_s)
+    if not np.all(np.isfinite(noise)) or np.any(noise <= 0):
+        raise ValueError(f"no noise floor: {int(settled.sum())} settled samples (every visit shorter than "
+                         f"{settle_s:.3g} s plus one sample?); lower settle_s")
+    settling.settle_s, settling.n_dropped = float(settle_s), int((rows & ~settled).sum())
+    if settling.detected and np.isfinite(settling.tau_s) and settling.tau_s > 0:
+        settling.residual_after_settle_mps2 = settling.amplitude_mps2 * np.exp(-max(settle_s, 1e-12) / settling.tau_s)
     weights = 1.0 / np.maximum(noise, 1e-12) ** 2
     ev = Evaluator(data, fold, weights, groups)
     base_heldout, base_fitted, base_G = cv0.heldout, cv0.fitted_full, des0.G
@@ -598,9 +904,10 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         after_insample_rmse=after_in, steps=steps, added=added, calibration=cal, base_calibration=base_cal,
         residual_before=residual_before, residual_after=cv_f.heldout, structure=structure,
         consistency_max_abs_mps2=consistency, n_static=int(r_eval.sum()), n_groups=len(np.unique(groups[r_eval])),
-        moving_residual_rms=moving,
+        moving_residual_rms=moving, settling=settling, fold_notes=fold_notes, n_floor_samples=int(settled.sum()),
         settings={"static": static if not isinstance(rec, DiagnosisData) else "given", "folds": int(fold.max()) + 1,
                   "alpha": alpha, "min_rel_gain": min_rel_gain, "max_effects": max_effects, "seed": seed,
+                  "settle_s": settle_s,
                   "time_label": time_axis_label(rec.metadata) if isinstance(rec, Recording) else "time [s]"})
 
 
@@ -757,7 +1064,11 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
             coef = np.linalg.lstsq(Q, means[:, j], rcond=None)[0]
             tot = np.sum((means[:, j] - means[:, j].mean()) ** 2)
             r2[j] = 1 - np.sum((means[:, j] - Q @ coef) ** 2) / tot if tot > 0 else 0.0
-    per_pose = [{"pose": int(ug[i]), "n": int(cnt[i]), "mean_mps2": means[i], "z": z[i],
+    pose_of = np.zeros(len(ug), int)
+    pose_of[inv] = data.pose_id[r]  # orientation of each visit (samples in motion: -1 may overwrite; fixed below)
+    static_r = r & (data.pose_id >= 0)
+    pose_of[np.searchsorted(ug, groups[static_r])] = data.pose_id[static_r]
+    per_pose = [{"visit": int(ug[i]), "pose": int(pose_of[i]), "n": int(cnt[i]), "mean_mps2": means[i], "z": z[i],
                  "gref_mps2": g_mean[i], "t_s": float(t_mean[i]), "temp_c": float(temp_mean[i])} for i in range(len(ug))]
     per_pose.sort(key=lambda d: -float(np.max(np.abs(d["z"]))))
     if significant:

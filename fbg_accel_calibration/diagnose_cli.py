@@ -50,7 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "motion, e.g. simulator recordings)")
     p.add_argument("--degree", type=iv.degree, default=None, help="force the degree of eq. 28 (default: held-out CV)")
     p.add_argument("--max-degree", type=iv.degree, default=4)
-    p.add_argument("--folds", type=iv.folds, default=10, help="cross-validation folds over pose groups")
+    p.add_argument("--folds", type=iv.folds, default=10, help="cross-validation folds over visits")
     p.add_argument("--alpha", type=iv.probability, default=0.01, help="family-wise significance level per selection step")
     p.add_argument("--min-gain", type=iv.fraction, default=0.02,
                    help="minimum held-out gain (fraction of the noise-weighted MSE) for an effect to be added")

@@ -64,7 +64,7 @@ def summary(res: DiagnosisResult, img_prefix: str = "img/") -> list[str]:
             c = next((c for st in res.steps for c in st.candidates if c.name == name and st.chosen == name), None)
             how = ""
             if c is not None:
-                how = (f"; traced by its held-out gain {100 * c.rel_gain:.1f} % (p = {_p(c.p_value)} over {c.n_groups} pose "
+                how = (f"; traced by its held-out gain {100 * c.rel_gain:.1f} % (p = {_p(c.p_value)} over {c.n_groups} "
                        f"groups) and the correlation {_v(c.corr_with_residual, '{:+.2f}')} (x/y/z) of its contribution with "
                        f"the residual, plot `{img_prefix}candidate_{name}.png`")
             conf = [c.b if c.a == name else c.a for st in res.steps if st.chosen == name for c in st.confounding
@@ -101,8 +101,9 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
     if command:
         lines += ["Produced by:", "", "```", command, "```", ""]
     d = res.data
-    lines += [f"Static samples used: {res.n_static} in {res.n_groups} pose groups "
-              f"(selection: {res.settings['static']}), {res.settings['folds']}-fold cross-validation over pose groups, "
+    lines += [f"Static samples used: {res.n_static} in {res.n_groups} visits (a visit: one contiguous static interval of "
+              f"one pose within one run; {len(np.unique(d.pose_id[d.use & (d.pose_id >= 0)]))} distinct pose ids) "
+              f"(selection: {res.settings['static']}), {res.settings['folds']}-fold cross-validation over visits, "
               f"temperature levels: {res.n_levels} ({np.nanmin(d.temp_c[d.use]):.2f}-{np.nanmax(d.temp_c[d.use]):.2f} degC), "
               f"time span {d.duration_s:.4g} s.", ""]
     lines += ["## Summary", "", *summary(res, img_prefix), ""]
@@ -115,9 +116,13 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
             rows.append([str(t["degree"]), _v(t["insample_rmse_fs"], "{:.2e}"), _v(t["heldout_rmse_fs"], "{:.2e}"),
                          ("chosen; " if t["degree"] == res.degree else "") + str(t.get("note", ""))])
     lines += [_md_table(["degree n", "in-sample RMSE / 20 g (x/y/z)", "held-out RMSE / 20 g (x/y/z)", ""], rows), ""]
-    lines += ["Noise floor (pooled within-pose standard deviation of the declared model's residual, a straight line "
-              "in time removed in every pose): "
-              f"**{_v(res.noise_floor)} m/s^2** (x/y/z).", ""]
+    lines += ["Noise floor (pooled within-visit standard deviation of the declared model's residual over the settled "
+              "samples, a straight line in time removed in every visit): "
+              f"**{_v(res.noise_floor)} m/s^2** (x/y/z), from {res.n_floor_samples} settled samples.", ""]
+    if res.settling is not None:
+        lines += ["Settling after a table move (an effect of its own, not in the floor): " + res.settling.summary() + ".", ""]
+    if res.fold_notes:
+        lines += ["Cross-validation folds that could not be used as drawn:", "", *[f"- {n}" for n in res.fold_notes], ""]
     for st in res.steps:
         title = "on the declared model" if not st.model else "on top of " + " + ".join(st.model)
         lines += [f"## Step {st.step}: candidates {title}", "",
@@ -169,10 +174,11 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
               f"angle-dependent effect values near 0 or below): {_v(s.serial_corr_pose_means, '{:+.2f}')}",
               f"- share of pose-mean variance explained by orientation (quadratic in the reference direction): "
               f"{_v(s.orientation_r2, '{:.2f}')}", ""]
-    rows = [[str(p["pose"]), str(p["n"]), _v(p["mean_mps2"]), _v(p["z"], "{:+.1f}"), _v(p["gref_mps2"], "{:.2f}"),
+    rows = [[f"{p.get('visit', p['pose'])} / {p['pose']}", str(p["n"]),
+             _v(p["mean_mps2"]), _v(p["z"], "{:+.1f}"), _v(p["gref_mps2"], "{:.2f}"),
              f"{p['t_s']:.4g}", f"{p['temp_c']:.2f}"] for p in s.per_pose[:10]]
-    lines += ["Poses with the largest residual (held out):", "",
-              _md_table(["pose", "n", "mean residual x/y/z [m/s^2]", "z-score x/y/z", "reference x/y/z [m/s^2]",
+    lines += ["Visits with the largest residual (held out):", "",
+              _md_table(["visit / pose", "n", "mean residual x/y/z [m/s^2]", "z-score x/y/z", "reference x/y/z [m/s^2]",
                          res.settings.get("time_label", "time [s]"), "temp [degC]"], rows), ""]
     lines += [f"![residual structure]({img_prefix}residual_structure.png)", ""]
     if res.moving_residual_rms is not None:
@@ -189,8 +195,11 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
 
 def text(res: DiagnosisResult) -> str:
     out = [f"declared model: eq. 28, degree {res.degree} ({res.n_levels} temperature level(s)); "
-           f"{res.n_static} static samples, {res.n_groups} pose groups",
-           f"noise floor x/y/z: {_v(res.noise_floor)} m/s^2"]
+           f"{res.n_static} static samples, {res.n_groups} visits",
+           f"noise floor x/y/z: {_v(res.noise_floor)} m/s^2 (settled samples, within visits)"]
+    if res.settling is not None:
+        out.append(res.settling.summary())
+    out += [f"folds: {n}" for n in res.fold_notes]
     for st in res.steps:
         out.append(f"step {st.step} (model: {' + '.join(['eq28', *st.model])}):")
         out.append("  " + " | ".join(CAND_HEAD))

@@ -54,6 +54,12 @@ class DiagnosisData:
     ``use`` marks the static samples that enter fits and residuals; ``gref_filled`` is the
     reference with the gaps between poses linearly interpolated in time (an approximation of the
     table's motion, used only to re-align the reference in time for ``channel_delay``).
+
+    Two keys identify where a sample was taken: ``pose_id`` is the *orientation* (the commanded
+    pose; the same id when the table comes back to it), ``group`` the *visit* (``visit_ids``: one
+    contiguous static interval of one pose id within one run). Visits are the unit of the noise
+    floor, of the cross-validation folds and of the significance tests; a change between two visits
+    of one orientation (repeat, another temperature level or run) is not noise.
     """
 
     t_s: np.ndarray
@@ -65,7 +71,7 @@ class DiagnosisData:
     run_id: np.ndarray
     use: np.ndarray
     gref_filled: np.ndarray = field(default=None)  # type: ignore[assignment]
-    group: np.ndarray = field(default=None)  # type: ignore[assignment]
+    group: np.ndarray = field(default=None)  # type: ignore[assignment]  # visit label (``visit_ids``)
 
     _psi_map: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
 
@@ -81,7 +87,7 @@ class DiagnosisData:
         if self.gref_filled is None:
             self.gref_filled = fill_reference_gaps(self.t_s, self.gref, self.run_id)
         if self.group is None:
-            self.group = motion_groups(self.pose_id, self.run_id)
+            self.group = visit_ids(self.pose_id, self.run_id)
 
     @property
     def dt_s(self) -> float:
@@ -100,8 +106,9 @@ class DiagnosisData:
 
 
 def motion_groups(pose_id: np.ndarray, run_id: np.ndarray) -> np.ndarray:
-    """Cross-validation group (N,) of every sample: its pose id; a sample taken while the table moves
-    belongs to the pose the table moves to (the previous one at the end of a run), -1 if none."""
+    """Orientation key (N,) of every sample: its pose id; a sample taken while the table moves
+    belongs to the pose the table moves to (the previous one at the end of a run), -1 if none.
+    (The visit, ``visit_ids``, is the grouping unit of the diagnosis; this is the orientation.)"""
     pose_id = np.asarray(pose_id)
     out = np.array(pose_id, copy=True)
     for r in np.unique(run_id):
@@ -114,6 +121,27 @@ def motion_groups(pose_id: np.ndarray, run_id: np.ndarray) -> np.ndarray:
         fill = np.where(nxt < n, p[np.minimum(nxt, n - 1)], np.where(prv >= 0, p[np.maximum(prv, 0)], -1))
         out[idx] = np.where(p >= 0, p, fill)
     return out
+
+
+def visit_ids(pose_id: np.ndarray, run_id: np.ndarray) -> np.ndarray:
+    """Visit label (N,) of every sample, numbered 0, 1, ... in time order.
+
+    A visit is one contiguous static interval of one pose id (>= 0) within one run: it starts where
+    the pose id or the run changes, so a second visit of the same orientation (a repeat, another
+    temperature level, another file) is a new visit. A sample taken while the table moves (pose id
+    -1) belongs to the visit the table moves to (the previous one at the end of a run), as in
+    ``motion_groups``; -1 if the run has no pose at all.
+    """
+    pose_id = np.asarray(pose_id)
+    run_id = np.asarray(run_id)
+    n = len(pose_id)
+    if n == 0:
+        return np.zeros(0, int)
+    start = np.r_[True, (np.diff(pose_id) != 0) | (np.diff(run_id) != 0)]
+    static_start = start & (pose_id >= 0)
+    label = np.cumsum(static_start) - 1
+    label = np.where(pose_id >= 0, label, -1)
+    return motion_groups(label, run_id)
 
 
 def fill_reference_gaps(t_s: np.ndarray, gref: np.ndarray, run_id: np.ndarray) -> np.ndarray:
