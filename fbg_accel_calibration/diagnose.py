@@ -525,7 +525,7 @@ def temperature_level_count(data: DiagnosisData) -> int:
 
 
 def select_degree(data: DiagnosisData, folds: np.ndarray, max_degree: int = 4) -> tuple[int, list[dict[str, Any]]]:
-    """Degree of eq. 28 with the lowest held-out RMSE (CV over pose groups), never >= the number of levels.
+    """Degree of eq. 28 with the lowest held-out RMSE (CV over visits), never >= the number of levels.
 
     Used with one or two temperature clusters (``thermal_fit.temperature_levels``): with one level it
     is the calibration's rule (held out by pose, degree 0); with a temperature *ramp* (which clusters
@@ -691,7 +691,7 @@ class Evaluator:
                 h_best = float(res.x)
         if eff.hyper_null is not None:
             # parsimony: keep the null value unless moving away from it is a significant improvement,
-            # judged with pose groups as the independent units (likelihood ratio ~ chi^2(1), 1 %)
+            # judged with visits as the independent units (likelihood ratio ~ chi^2(1), 1 %)
             rss_best = weighted_rss(build_design(self.data, spec.plus(eff, h_best)), self.fit_rows, self.weights)
             rss_null = weighted_rss(build_design(self.data, spec.plus(eff, eff.hyper_null)), self.fit_rows, self.weights)
             n_groups = len(np.unique(self.groups[self.rows]))

@@ -27,7 +27,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "diagnose",
         help="fit the declared model, trace its residual to candidate physical effects, add the winners",
-        description="Fit eq. 28 (degree by held-out CV over pose groups), test the candidate-effect library "
+        description="Fit eq. 28 (degree by held-out CV over visits), test the candidate-effect library "
         "(docs/effects.md) on the static residual, add significant effects as declared correction terms of the "
         "calibration YAML and report before/after on held-out poses next to the noise floor.",
     )

@@ -38,7 +38,7 @@ def candidate_rows(cands: list[CandidateResult]) -> list[list[str]]:
     return rows
 
 
-CAND_HEAD = ["rank", "candidate", "held-out gain", "p (Wilcoxon, poses)", "significant",
+CAND_HEAD = ["rank", "candidate", "held-out gain", "p (Wilcoxon, visits)", "significant",
              "held-out RMSE x/y/z [m/s^2]", "corr. with residual x/y/z", "fitted"]
 
 
