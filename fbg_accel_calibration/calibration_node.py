@@ -32,7 +32,8 @@ EXIT_OK, EXIT_FIT_FAILED, EXIT_STARTUP, EXIT_INTERRUPTED = 0, 1, 2, 3
 # name: (type, default, description); ROS types are resolved lazily so --help needs no ROS.
 # A default of None declares the parameter by type only (unset unless given).
 PARAMETERS: dict[str, tuple[str, Any, str]] = {
-    "plan_file": ("string", "", "pose plan YAML (required), e.g. config/pose_plan_six_position.yaml"),
+    "plan_file": ("string", "", "pose plan YAML (required), e.g. config/pose_plan_six_position.yaml, or an excitation "
+                  "plan (dynamic run: records imu/raw with aux_counts and the reference for the plan's duration)"),
     "output_dir": ("string", ".", "directory of the run's MCAP file and calibration YAML (created if missing)"),
     "run_label": ("string", "", "file stem of this run (empty: <sensor_id>[_L<level>]_<UTC time>)"),
     "sensor_id": ("string", "unknown", "sensor identifier written into the MCAP metadata and the calibration"),
@@ -72,6 +73,21 @@ example:
 exit status: 0 run complete (and fitted), 1 run complete but the fit failed (MCAP kept),
              2 invalid parameters or plan, 3 interrupted (SIGINT/SIGTERM/abort; MCAP closed cleanly).
 """
+
+
+def plan_format(path: str) -> str | None:
+    """The ``format`` key of a plan file (pose plan or excitation plan), None if unreadable (the plan's
+    own loader then says why)."""
+    import yaml
+
+    try:
+        p = Path(path)
+        if not p.is_file() or p.stat().st_size > 1 << 20:
+            return None
+        data = yaml.safe_load(p.read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return None
+    return data.get("format") if isinstance(data, dict) else None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -136,6 +152,11 @@ def _make_node() -> Any:
     from sensor_msgs.msg import JointState, Temperature
     from std_srvs.srv import Trigger
 
+    from fbg_accel_driver.driver_core import RAW_AUX_NAME
+
+    from .dynamic_recorder import DynamicRunRecorder
+    from .excitation_plan import FORMAT_NAME as EXCITATION_FORMAT
+    from .excitation_plan import ExcitationPlan, ExcitationPlanError
     from .mcap_io import RAW_NAMES, RecordingWriter
     from .pose_plan import PosePlan, PosePlanError
     from .pose_sequencer import Mode
@@ -157,6 +178,10 @@ def _make_node() -> Any:
             p = self._declare_all()
             self.p = p
             self.exit_when_done = bool(p["exit_when_done"])
+            self.dynamic = plan_format(p["plan_file"]) == EXCITATION_FORMAT
+            if self.dynamic:
+                self._start_dynamic(p)
+                return
             try:
                 self.plan = PosePlan.load(p["plan_file"])
                 self.setpoint_c = self.plan.level_setpoint_c(p["temperature_level"])
@@ -176,6 +201,51 @@ def _make_node() -> Any:
                 detector.validate()
             except ValueError as exc:
                 raise StartupError(f"invalid static detector parameter: {exc}") from None
+            self.fit_with = [s for s in (p["fit_with"] or []) if s]
+            metadata = {
+                "sensor_id": p["sensor_id"], "operator_notes": p["operator_notes"],
+                "mode": self.mode.value, "plan_file": str(Path(p["plan_file"]).resolve()), "plan_name": self.plan.name,
+                "plan": self.plan.to_yaml(), "temperature_level": p["temperature_level"],
+                "chamber_setpoint_c": "" if self.setpoint_c is None else self.setpoint_c,
+                "started": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+                "static_detector": {"window_s": detector.window_s, "hold_s": detector.hold_s,
+                                    "noise_std_psi": list(noise) if noise else "learnt", "learn_s": detector.learn_s,
+                                    "noise_corr_s": detector.noise_corr_s,
+                                    "false_alarm_per_run": detector.false_alarm_per_run},
+                "node": "fbg_accel_driver calibration",
+            }
+            writer = self._open_recording(p, metadata)
+            self.recorder = RunRecorder(self.plan, writer, self.mode, detector, sensor_id=p["sensor_id"],
+                                        setpoint_c=self.setpoint_c, motion_expect_g=p["motion_expect_g"])
+            self._subscribe()
+            how = ("call calibration/next_pose after each pose is recorded" if self.mode is Mode.SERVICE
+                   else "poses advance on table motion / dwell times")
+            sp = "" if self.setpoint_c is None else f", chamber level {p['temperature_level']} ({self.setpoint_c:g} degC)"
+            self.get_logger().info(
+                f"plan '{self.plan.name}': {len(self.plan)} poses, {self.plan.total_samples} samples{sp}; "
+                f"mode {self.mode.value} ({how}); recording to {self.mcap_path}")
+
+        def _start_dynamic(self, p: dict[str, Any]) -> None:
+            """A dynamic run (excitation plan): record for the plan's duration, no poses, no fit."""
+            try:
+                plan = ExcitationPlan.load(p["plan_file"])
+            except ExcitationPlanError as exc:
+                raise StartupError(f"excitation plan rejected: {exc}") from None
+            self.setpoint_c = None
+            writer = self._open_recording(p, {
+                "sensor_id": p["sensor_id"], "operator_notes": p["operator_notes"], "kind": "dynamic",
+                "plan_file": str(Path(p["plan_file"]).resolve()), "plan_name": plan.name,
+                "excitation_plan": plan.to_dict(), "started": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+                "node": "fbg_accel_driver calibration"})
+            self.recorder = DynamicRunRecorder(plan, writer, sensor_id=p["sensor_id"])
+            self._subscribe()
+            self.get_logger().info(
+                f"dynamic plan '{plan.name}': {len(plan.segments)} segments, "
+                f"{', '.join(f'{s.freq_hz:g}' for s in plan.segments)} Hz, {self.recorder.length_s:.0f} s from the "
+                f"first sample; recording imu/raw with aux_counts to {self.mcap_path}")
+
+        def _open_recording(self, p: dict[str, Any], metadata: dict[str, Any]) -> RecordingWriter:
+            """The run's MCAP, created exclusively (never over a file, never through a link)."""
             out_dir = Path(p["output_dir"])
             label = p["run_label"] or self._default_label(p["sensor_id"], p["temperature_level"])
             if not re.fullmatch(r"[A-Za-z0-9_.+-]+", label):
@@ -188,29 +258,17 @@ def _make_node() -> Any:
                 out_dir.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
                 raise StartupError(f"cannot create output_dir {out_dir}: {exc}") from None
-            self.fit_with = [s for s in (p["fit_with"] or []) if s]
-            metadata = {
-                "sensor_id": p["sensor_id"], "run_label": label, "operator_notes": p["operator_notes"],
-                "mode": self.mode.value, "plan_file": str(Path(p["plan_file"]).resolve()), "plan_name": self.plan.name,
-                "plan": self.plan.to_yaml(), "temperature_level": p["temperature_level"],
-                "chamber_setpoint_c": "" if self.setpoint_c is None else self.setpoint_c,
-                "started": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-                "static_detector": {"window_s": detector.window_s, "hold_s": detector.hold_s,
-                                    "noise_std_psi": list(noise) if noise else "learnt", "learn_s": detector.learn_s,
-                                    "noise_corr_s": detector.noise_corr_s,
-                                    "false_alarm_per_run": detector.false_alarm_per_run},
-                "node": "fbg_accel_driver calibration",
-            }
             try:
-                writer = RecordingWriter(self.mcap_path, metadata, exclusive=True, namespace=self.get_namespace())
+                return RecordingWriter(self.mcap_path, {"run_label": label, **metadata}, exclusive=True,
+                                       namespace=self.get_namespace())
             except FileExistsError:
                 raise StartupError(f"{self.mcap_path} exists (a file or a symbolic link); choose another run_label "
                                    "(a recording is never overwritten nor written through a link)") from None
             except OSError as exc:
                 raise StartupError(f"cannot create {self.mcap_path}: {exc}") from None
-            self.recorder = RunRecorder(self.plan, writer, self.mode, detector, sensor_id=p["sensor_id"],
-                                        setpoint_c=self.setpoint_c, motion_expect_g=p["motion_expect_g"])
-            self.display = ProgressDisplay(sys.stdout) if p["progress"] else None
+
+        def _subscribe(self) -> None:
+            self.display = ProgressDisplay(sys.stdout) if self.p["progress"] else None
             self._name_index: dict[tuple[str, ...], list[int | None]] = {}
             self._bad_names_warned = False
             self.sub_raw = self.create_subscription(
@@ -221,12 +279,6 @@ def _make_node() -> Any:
                 event_callbacks=SubscriptionEventCallbacks(matched=lambda info: self._on_matched("imu/temperature", info)))
             self.srv_next = self.create_service(Trigger, "calibration/next_pose", self._on_next)
             self.srv_abort = self.create_service(Trigger, "calibration/abort", self._on_abort)
-            how = ("call calibration/next_pose after each pose is recorded" if self.mode is Mode.SERVICE
-                   else "poses advance on table motion / dwell times")
-            sp = "" if self.setpoint_c is None else f", chamber level {p['temperature_level']} ({self.setpoint_c:g} degC)"
-            self.get_logger().info(
-                f"plan '{self.plan.name}': {len(self.plan)} poses, {self.plan.total_samples} samples{sp}; "
-                f"mode {self.mode.value} ({how}); recording to {self.mcap_path}")
 
         # ------------------------------------------------------------ parameters
         def _declare_all(self) -> dict[str, Any]:
@@ -266,7 +318,7 @@ def _make_node() -> Any:
             names = tuple(msg.name)
             idx = self._name_index.get(names)
             if idx is None:
-                idx = [names.index(n) if n in names else None for n in RAW_NAMES]
+                idx = [names.index(n) if n in names else None for n in (*RAW_NAMES, RAW_AUX_NAME)]
                 self._name_index[names] = idx
             if any(i is None for i in idx[:4]):
                 if not self._bad_names_warned:
@@ -284,7 +336,8 @@ def _make_node() -> Any:
             sample = RawSample(
                 stamp_ns=stamp_ns, ref=val(0, math.nan), x=val(1, math.nan), y=val(2, math.nan), z=val(3, math.nan),
                 temperature_c=val(4, math.nan), temperature_valid=val(5, 1.0) >= 0.5, status=int(val(6, 0.0)),
-                seq=int(val(7, 0.0)), board_time_s=val(8, math.nan), frame_id=msg.header.frame_id)
+                seq=int(val(7, 0.0)), board_time_s=val(8, math.nan), frame_id=msg.header.frame_id,
+                aux=val(9, math.nan))
             self.recorder.on_raw(sample)
             self._report()
 
@@ -352,6 +405,13 @@ def _make_node() -> Any:
             summary = rec.close(reason)
             self._end_progress_line()
             log = self.get_logger()
+            if self.dynamic:
+                log.info(f"dynamic run {reason}: {self.mcap_path} closed ({summary['messages_raw']} raw messages, "
+                         f"{summary['aux_samples']} with the reference, {summary['lost_messages']} lost, "
+                         f"{summary['recorded_s']:.1f} of {summary['planned_s']:.1f} s)")
+                log.info(f"fit it with: fbg-accel-calib dynamic {self.mcap_path} --plan {self.p['plan_file']} "
+                         "--calibration STATIC.yaml -o OUT.yaml")
+                return EXIT_OK if complete else EXIT_INTERRUPTED
             short = [p for p in summary["poses"] if p["samples"] < p["target"]]
             log.info(f"run {reason}: {self.mcap_path} closed ({summary['messages_raw']} raw messages, "
                      f"{summary['lost_messages']} lost, {len(short)} pose(s) short)")

@@ -453,6 +453,7 @@ class RecordingWriter:
                                            "name": list(RAW_NAMES), "position": probe_values, "velocity": [], "effort": []})
         if self._raw_codec.encode(1_500_000_123, probe_values) != probe:
             self._raw_codec = None  # layout differs from the generic encoder: use the generic one
+        self._aux_codec: FixedJointStateCodec | None = None  # imu/raw with aux_counts (created when first needed)
         if metadata:
             self.add_metadata("run", metadata)
 
@@ -477,17 +478,38 @@ class RecordingWriter:
     # -- message kinds
     def write_raw(self, stamp_ns: int, ref_counts: float, xyz_counts: Any, temperature_c: float = math.nan,
                   temperature_valid: bool = True, status: int = 0, seq: int = 0,
-                  board_time_s: float | None = None) -> None:
-        """One ``imu/raw`` JointState: counts, AHT10 temperature (degC), status flags, sequence, board time (s)."""
+                  board_time_s: float | None = None, aux_counts: float | None = None) -> None:
+        """One ``imu/raw`` JointState: counts, AHT10 temperature (degC), status flags, sequence, board time (s),
+        and the aux channel's counts of a version-2 board (``aux_counts``, appended as the driver does)."""
         x, y, z = (float(v) for v in xyz_counts)
         values = [float(ref_counts), x, y, z, float(temperature_c), 1.0 if temperature_valid else 0.0,
                   float(status), float(seq), float(stamp_ns) * 1e-9 if board_time_s is None else float(board_time_s)]
+        if aux_counts is not None:
+            if self._aux_codec is None:
+                self._aux_codec = FixedJointStateCodec(self.frame_id, (*RAW_NAMES, RAW_AUX_NAME))
+            self._write(TOPIC_RAW, stamp_ns, self._aux_codec.encode(stamp_ns, [*values, float(aux_counts)]))
+            return
         if self._raw_codec is not None:
             self._write(TOPIC_RAW, stamp_ns, self._raw_codec.encode(stamp_ns, values))
             return
         self._write(TOPIC_RAW, stamp_ns, {
             "header": {"stamp": _stamp(stamp_ns), "frame_id": self.frame_id},
             "name": list(RAW_NAMES), "position": values, "velocity": [], "effort": []})
+
+    def write_reference_motion(self, stamp_ns: int, kind: str, vector: Any) -> None:
+        """The reference transducer of a dynamic run on its own topic, ``calibration/reference_velocity``
+        (``kind`` 'velocity', m/s) or ``calibration/reference_acceleration`` ('acceleration', m/s^2):
+        ``geometry_msgs/Vector3Stamped``, the value along the slide direction as a vector in the sensor
+        frame. The channel is registered on first use."""
+        if kind not in ("velocity", "acceleration"):
+            raise McapRecordingError(f"reference kind must be 'velocity' or 'acceleration', got {kind!r}")
+        topic = f"calibration/reference_{kind}"
+        if topic not in self._channels:
+            self.topics[topic] = full_topic_name(self.namespace, topic)
+            self._register(topic, TYPE_REFERENCE_GRAVITY)
+        vx, vy, vz = (float(v) for v in vector)
+        self._write(topic, stamp_ns, {"header": {"stamp": _stamp(stamp_ns), "frame_id": self.frame_id},
+                                      "vector": {"x": vx, "y": vy, "z": vz}})
 
     def write_temperature(self, stamp_ns: int, temperature_c: float, variance_c2: float = 0.0) -> None:
         """One ``imu/temperature`` message (degC, variance degC^2)."""

@@ -120,6 +120,7 @@ class RawSample:
     seq: int = 0
     board_time_s: float | None = None
     frame_id: str = ""
+    aux: float = math.nan  # aux_counts of a version-2 board (the reference of a dynamic run)
 
 
 @dataclass

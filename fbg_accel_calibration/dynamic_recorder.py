@@ -1,0 +1,156 @@
+"""One dynamic calibration run from raw samples to an MCAP file (pure core of the ``calibration`` node
+when its ``plan_file`` is an excitation plan; issue 9; docs/dynamic_calibration.md). No ROS.
+
+The slide follows the plan by itself (its controller, or the simulator's ``--dynamic-plan``); the
+recorder writes every ``imu/raw`` message with the board's ``aux_counts`` as it arrives, the reference
+transducer's reading on its own topic (``calibration/reference_velocity`` for an LDV,
+``calibration/reference_acceleration`` for a reference accelerometer: the value along the slide
+direction as a vector in the sensor frame, converted with the plan's sensitivity and offset), ends
+the MCAP chunk every ``chunk_period_s`` of board time so a killed run keeps all but the last second,
+and is done ``start_s + duration + tail_s`` of board time after its first sample. The plan is in the
+file's metadata; ``fbg-accel-calib dynamic`` finds the slide's start in the aux channel itself.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+from typing import Any
+
+import numpy as np
+
+from fbg_accel_driver.frame_codec import SEQ_MODULO
+
+from .excitation_plan import ExcitationPlan
+from .mcap_io import RecordingWriter
+from .pose_sequencer import SequencerEvent
+from .run_recorder import RawSample, RunCounters
+
+PROGRESS_EVERY_S = 10.0
+
+
+class DynamicRunRecorder:
+    """Recorder of a dynamic run with the interface the node drives (``on_raw``, ``on_temperature``,
+    ``done``, ``finished``, ``pop_events``, ``pop_messages``, ``request_next``, ``abort``, ``close``)."""
+
+    monitor = None  # no stillness detector: the node shows no pose progress line
+
+    def __init__(self, plan: ExcitationPlan, writer: RecordingWriter, sensor_id: str = "", tail_s: float = 2.0,
+                 chunk_period_s: float = 1.0) -> None:
+        self.plan = plan
+        self.writer = writer
+        self.sensor_id = sensor_id
+        self.length_s = plan.start_s + plan.duration_s + tail_s
+        self.chunk_period_s = chunk_period_s
+        self.counters = RunCounters()
+        self.messages: list[tuple[str, str]] = []
+        self.events: list[SequencerEvent] = []
+        self.finished_reason = ""
+        self._t0: float | None = None
+        self._last_chunk_t = -math.inf
+        self._next_progress = PROGRESS_EVERY_S
+        self._elapsed = 0.0
+        self._last_seq: int | None = None
+        self._aux_missing_warned = False
+        self._aborted = False
+        self._direction = np.asarray(plan.direction, dtype=float)
+        self._kind = "velocity" if plan.reference.type == "ldv" else "acceleration"
+        self._temperature_c = math.nan
+        self.aux_samples = 0
+
+    # ------------------------------------------------------------------ inputs
+    def on_raw(self, s: RawSample) -> int:
+        """Record one raw sample (always -1: a dynamic run has no poses)."""
+        if self.finished:
+            return -1
+        c = self.counters
+        c.messages_raw += 1
+        if self._last_seq is not None:
+            gap = (int(s.seq) - self._last_seq) % SEQ_MODULO
+            if gap == 0 or gap > SEQ_MODULO // 2:
+                c.repeated += 1
+            elif gap > 1:
+                c.lost += gap - 1
+        self._last_seq = int(s.seq)
+        t = float(s.board_time_s) if s.board_time_s is not None and math.isfinite(s.board_time_s) else s.stamp_ns * 1e-9
+        if self._t0 is None:
+            self._t0 = t
+            self._last_chunk_t = t
+        if s.temperature_valid and math.isfinite(s.temperature_c):
+            self._temperature_c = float(s.temperature_c)
+        aux = s.aux if math.isfinite(s.aux) else None
+        self.writer.write_raw(s.stamp_ns, s.ref, (s.x, s.y, s.z), temperature_c=float(s.temperature_c),
+                              temperature_valid=bool(s.temperature_valid), status=int(s.status), seq=int(s.seq),
+                              board_time_s=t, aux_counts=aux)
+        if aux is not None:
+            self.aux_samples += 1
+            ref = self.plan.reference
+            value = (aux - ref.offset_counts) / ref.sensitivity
+            self.writer.write_reference_motion(s.stamp_ns, self._kind, value * self._direction)
+        elif not self._aux_missing_warned:
+            self._aux_missing_warned = True
+            self.messages.append(("warn", "imu/raw has no aux_counts: the board sends protocol version 1, so the "
+                                          "reference transducer is not recorded (docs/protocol.md, version 2)"))
+        self._elapsed = t - self._t0
+        if t - self._last_chunk_t >= self.chunk_period_s:
+            self.writer.flush()  # a killed run keeps everything up to here
+            self._last_chunk_t = t
+        if self._elapsed >= self._next_progress:
+            self._next_progress += PROGRESS_EVERY_S
+            self._event("progress", f"dynamic run: {self._elapsed:.0f} of {self.length_s:.0f} s recorded")
+        if self._elapsed >= self.length_s:
+            self.finished_reason = "complete"
+            self._event("done", f"dynamic run complete: {self.length_s:.0f} s, {c.messages_raw} samples")
+        return -1
+
+    def on_temperature(self, stamp_ns: int, temperature_c: float, variance_c2: float) -> None:
+        self.counters.messages_temperature += 1
+        self.writer.write_temperature(stamp_ns, temperature_c, variance_c2)
+
+    def request_next(self) -> tuple[bool, str]:
+        return False, "a dynamic run has no poses: the slide follows the plan by itself"
+
+    def abort(self, reason: str) -> None:
+        self._aborted = True
+        self.finished_reason = reason
+        self._event("aborted", f"dynamic run aborted: {reason}", warning=True)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def done(self) -> bool:
+        return not self._aborted and self._elapsed >= self.length_s
+
+    @property
+    def finished(self) -> bool:
+        return self._aborted or self._elapsed >= self.length_s
+
+    @property
+    def temperature_c(self) -> float:
+        return self._temperature_c
+
+    def pop_events(self) -> list[SequencerEvent]:
+        out, self.events = self.events, []
+        return out
+
+    def pop_messages(self) -> list[tuple[str, str]]:
+        out, self.messages = self.messages, []
+        return out
+
+    def summary(self) -> dict[str, Any]:
+        c = self.counters
+        return {"ended": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), "result": "done" if self.done else
+                "incomplete", "reason": self.finished_reason, "poses": [], "kind": "dynamic",
+                "recorded_s": self._elapsed, "planned_s": self.length_s, "messages_raw": c.messages_raw,
+                "messages_temperature": c.messages_temperature, "lost_messages": c.lost,
+                "repeated_messages": c.repeated, "aux_samples": self.aux_samples}
+
+    def close(self, reason: str) -> dict[str, Any]:
+        """Write the ``run_end`` record and finish the MCAP; returns the summary."""
+        self.finished_reason = self.finished_reason or reason
+        summary = self.summary()
+        self.writer.add_metadata("run_end", summary)
+        self.writer.close()
+        return summary
+
+    def _event(self, kind: str, message: str, warning: bool = False) -> None:
+        self.events.append(SequencerEvent(self._elapsed, kind, -1, message, warning))
