@@ -267,7 +267,8 @@ def reference_acceleration(t_s: np.ndarray, aux_counts: np.ndarray, plan: Excita
 def find_slide_start(t_s: np.ndarray, aux_counts: np.ndarray, plan: ExcitationPlan) -> float:
     """Time (s, recording time base) the slide's first segment starts: the lag that best aligns the
     aux channel's 0.5 s moving-RMS envelope with the plan's amplitude envelope (both normalised), so a
-    run can be processed whatever the recording started before the slide. Accurate to a fraction of the
+    run can be processed whatever the recording started before the slide, and a recording cut short
+    (a killed run) still aligns with the segments it holds. Accurate to a fraction of the
     0.5 s envelope window (0.03 s in the tests), ample since the steady windows leave out the ramps and
     ``settle_s``."""
     t = np.asarray(t_s, dtype=float)
@@ -279,10 +280,13 @@ def find_slide_start(t_s: np.ndarray, aux_counts: np.ndarray, plan: ExcitationPl
     env = np.sqrt(np.convolve(dev * dev, kernel, mode="same"))
     env = env / (np.max(env) or 1.0)
     n_plan = round(plan.duration_s / dt)
-    if n_plan >= len(t):
-        raise ValueError(f"the recording ({len(t) * dt:.1f} s) is shorter than the plan ({plan.duration_s:.1f} s)")
+    if len(t) * dt < plan.segments[0].duration_s:  # not even the first segment: nothing to align
+        raise ValueError(f"the recording ({len(t) * dt:.1f} s) is too short to align with the plan "
+                         f"(its first segment alone lasts {plan.segments[0].duration_s:g} s)")
     plan_env = (plan.envelope(np.arange(n_plan) * dt) > 0).astype(float)
-    score = np.correlate(env - env.mean(), plan_env - plan_env.mean(), mode="valid")
+    # a recording cut short (a killed run) still aligns: the plan may run past its end
+    padded = np.concatenate([env - env.mean(), np.zeros(n_plan)])
+    score = np.correlate(padded, plan_env - plan_env.mean(), mode="valid")[: len(env)]
     return float(t[0] + int(np.argmax(score)) * dt)
 
 

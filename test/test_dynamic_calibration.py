@@ -105,11 +105,13 @@ def test_runs_it_cannot_use_are_refused_with_the_reason(static_cal, tmp_path):
     no_aux.aux = None
     with pytest.raises(DynamicCalibrationError, match="no aux channel"):
         run_dynamic(no_aux, PLAN, static_cal)
-    short = rec.select(rec.t_s < 50.0)
-    with pytest.raises(DynamicCalibrationError, match="shorter than the plan"):
-        run_dynamic(short, PLAN, static_cal)
+    short = rec.select(rec.t_s < 50.0)  # killed early: the 0.5 Hz segment only
     with pytest.raises(DynamicCalibrationError, match=r"only 1 steady segment\(s\)"):
-        run_dynamic(short, PLAN, static_cal, slide_start_s=5.0)
+        run_dynamic(short, PLAN, static_cal)
+    with pytest.raises(DynamicCalibrationError, match="too short to align"):
+        run_dynamic(rec.select(rec.t_s < 20.0), PLAN, static_cal)
+    cut = run_dynamic(rec.select(rec.t_s < 90.0), PLAN, static_cal)  # killed in the 5 Hz segment
+    assert cut.slide_start_s == pytest.approx(PLAN.start_s, abs=0.1) and len(cut.windows) == 3
     d = PLAN.to_dict()
     d["direction"] = [1.0, 0.0, 0.05]
     with pytest.raises(DynamicCalibrationError, match="not excited"):
