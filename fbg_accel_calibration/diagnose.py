@@ -601,6 +601,7 @@ class CandidateResult:
     delta: np.ndarray | None = None  # (N, 3) change of the in-sample prediction vs the current model
     heldout: np.ndarray | None = None  # (N, 3)
     cross_correlation_delay_s: float | None = None
+    implausible: str = ""  # why the fitted values are not physical (then never significant, never added)
 
 
 def _group_mse(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -721,6 +722,10 @@ class Evaluator:
         out.n_params = 3 * eff.n_columns + (0 if h is None else 1)
         coeff = cvr.A_full[des.blocks[eff.name]].T if eff.name in des.blocks else None
         out.detail = eff.describe(h, coeff)
+        P, _ = self.data.static_psi_map()
+        out.implausible = eff.implausible(h, coeff, self.data, np.linalg.inv(P))
+        if out.implausible:
+            out.detail += f"; REFUSED: {out.implausible}"
         out.delta, out.heldout = delta, heldout
         if eff.name == "channel_delay":
             out.cross_correlation_delay_s = cross_correlation_delay(self.data, base_fitted)
@@ -801,6 +806,15 @@ class DiagnosisResult:
     settling: SettlingTransient | None = None  # the settling transient after table moves (not in the floor)
     fold_notes: list[str] = field(default_factory=list)  # folds split or visits never held out (check_folds)
     n_floor_samples: int = 0  # settled samples the noise floor is computed from
+    # filters against noise chosen like effects (e.g. the reference low-pass), not model effects: name, hyper, text
+    noise_remedies: list[tuple[str, float | None, str]] = field(default_factory=list)
+    noise_floor_after: np.ndarray | None = None  # (3,) floor of the final model (lower once a noise remedy is in)
+    warnings: list[str] = field(default_factory=list)  # results a reader must not take at face value
+
+    @property
+    def final_floor(self) -> np.ndarray:
+        """The floor the final held-out error is judged against (m/s^2, x/y/z)."""
+        return self.noise_floor if self.noise_floor_after is None else self.noise_floor_after
 
     @property
     def ranked(self) -> list[CandidateResult]:
@@ -869,7 +883,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         tested = [r for r in results if r.applicable]
         alpha_each = alpha / max(len(tested), 1)
         for r in tested:
-            r.significant = r.p_value < alpha_each and r.rel_gain >= min_rel_gain
+            r.significant = r.p_value < alpha_each and r.rel_gain >= min_rel_gain and not r.implausible
         results.sort(key=lambda r: (not r.applicable, -r.rel_gain))
         sig = [r for r in results if r.significant]
         conf = _confounding(ev, spec, sig, alpha_each, min_rel_gain) if len(sig) >= 2 else []
@@ -890,14 +904,28 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                               if c.verdict == "confounded" and st.chosen in (c.a, c.b)] for st in steps if st.chosen}
     confounded = {k: v for k, v in confounded.items() if v}
     cal, base_cal, added = _calibration_from(spec, des_f, cv_f, data, noise, sensor_id, confounded)
+    remedy_names = {e.name for e, _ in spec.effects if e.noise_remedy}
+    remedies = [a for a in added if a[0] in remedy_names]
+    added = [a for a in added if a[0] not in remedy_names]
+    noise_after = noise
+    if remedies:  # the filtered output is less noisy: its own floor, on the same settled samples
+        noise_after = within_visit_sigma(des_f.G - cv_f.fitted_full, groups, settled & rows_f, data.t_s)
+        cal.noise_sigma_mps2 = noise_after
     consistency = _consistency(cal, data, des_f, cv_f, rows_f)
     r_eval = rows_f & np.all(np.isfinite(residual_before), axis=1) & np.all(np.isfinite(cv_f.heldout), axis=1)
     before_ho = np.sqrt(np.mean(residual_before[r_eval] ** 2, axis=0))
     after_ho = np.sqrt(np.mean(cv_f.heldout[r_eval] ** 2, axis=0))
     before_in = np.sqrt(np.mean((des0.G - cv0.fitted_full)[r_eval] ** 2, axis=0))
     after_in = np.sqrt(np.mean((des_f.G - cv_f.fitted_full)[r_eval] ** 2, axis=0))
-    structure = residual_structure(data, cv_f.heldout, r_eval, groups, noise, alpha)
+    structure = residual_structure(data, cv_f.heldout, r_eval, groups, noise_after, alpha)
     moving = _moving_residual(data, cal)
+    warnings = []
+    below = after_ho < 0.9 * noise_after
+    if np.any(below):
+        warnings.append("held-out error below the noise floor on axis " + ", ".join(a for a, b in zip("xyz", below, strict=True)
+                        if b) + f" ({_fmt3(after_ho)} against {_fmt3(noise_after)} m/s^2): a model cannot predict "
+                        "held-out data better than the data repeat themselves, so the floor or the model is wrong "
+                        "(an added term that removes noise instead of an effect?)")
     return DiagnosisResult(
         data=data, degree=sel_degree, degree_table=degree_table, n_levels=n_levels, noise_floor=noise,
         before_heldout_rmse=before_ho, before_insample_rmse=before_in, after_heldout_rmse=after_ho,
@@ -905,10 +933,15 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         residual_before=residual_before, residual_after=cv_f.heldout, structure=structure,
         consistency_max_abs_mps2=consistency, n_static=int(r_eval.sum()), n_groups=len(np.unique(groups[r_eval])),
         moving_residual_rms=moving, settling=settling, fold_notes=fold_notes, n_floor_samples=int(settled.sum()),
+        noise_remedies=remedies, noise_floor_after=noise_after if remedies else None, warnings=warnings,
         settings={"static": static if not isinstance(rec, DiagnosisData) else "given", "folds": int(fold.max()) + 1,
                   "alpha": alpha, "min_rel_gain": min_rel_gain, "max_effects": max_effects, "seed": seed,
                   "settle_s": settle_s,
                   "time_label": time_axis_label(rec.metadata) if isinstance(rec, Recording) else "time [s]"})
+
+
+def _fmt3(v: np.ndarray) -> str:
+    return " / ".join(f"{x:.3f}" for x in v)
 
 
 def _confounding(ev: Evaluator, spec: ModelSpec, sig: list[CandidateResult], alpha_each: float,

@@ -75,8 +75,12 @@ def summary(res: DiagnosisResult, img_prefix: str = "img/") -> list[str]:
             out.append(f"- **Added: {name}** ({desc}){how}.")
     else:
         out.append("- **Nothing added**: no candidate improves the held-out error significantly.")
+    for name, _, desc in res.noise_remedies:
+        out.append(f"- **Noise remedy: {name}** ({desc}): a filter, not a model effect; the floor of the filtered "
+                   f"output is {_v(res.final_floor)} m/s^2.")
     out.append("- Held-out RMSE per axis x/y/z: before " + _v(res.before_heldout_rmse) + " m/s^2, after "
                + _v(res.after_heldout_rmse) + " m/s^2; noise floor " + _v(res.noise_floor) + " m/s^2.")
+    out += [f"- **Warning:** {w}." for w in res.warnings]
     for st in res.steps:
         for c in st.confounding:
             if c.verdict == "confounded":
@@ -157,8 +161,8 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
     rows = []
     for j, a in enumerate(AXES):
         rows.append([a, f"{res.before_insample_rmse[j]:.3f}", f"{res.before_heldout_rmse[j]:.3f}",
-                     f"{res.after_insample_rmse[j]:.3f}", f"{res.after_heldout_rmse[j]:.3f}", f"{res.noise_floor[j]:.3f}",
-                     f"{res.after_heldout_rmse[j] / res.noise_floor[j]:.2f}",
+                     f"{res.after_insample_rmse[j]:.3f}", f"{res.after_heldout_rmse[j]:.3f}", f"{res.final_floor[j]:.3f}",
+                     f"{res.after_heldout_rmse[j] / res.final_floor[j]:.2f}",
                      f"{res.after_heldout_rmse[j] / FULL_SCALE_MPS2:.1e}"])
     lines += [_md_table(["axis", "before in-sample [m/s^2]", "before held-out [m/s^2]", "after in-sample [m/s^2]",
                          "after held-out [m/s^2]", "noise floor [m/s^2]", "after / floor", "after / 20 g"], rows), ""]
@@ -211,9 +215,12 @@ def text(res: DiagnosisResult) -> str:
                        f"{c.a} on top: {100 * c.gain_a_beyond_b:+.1f} % p {c.p_a_beyond_b:.2g}: {c.verdict}")
         out.append(f"  chosen: {st.chosen or 'nothing'}")
     out.append("added: " + (", ".join(f"{n} ({d})" for n, _, d in res.added) if res.added else "nothing"))
+    for n, _, d in res.noise_remedies:
+        out.append(f"noise remedy: {n} ({d}); floor of the filtered output {_v(res.final_floor)} m/s^2")
     for j, a in enumerate(AXES):
         out.append(f"axis {a}: held-out RMSE before {res.before_heldout_rmse[j]:.3f} -> after {res.after_heldout_rmse[j]:.3f} "
-                   f"m/s^2, noise floor {res.noise_floor[j]:.3f} m/s^2")
+                   f"m/s^2, noise floor {res.final_floor[j]:.3f} m/s^2")
+    out += [f"WARNING: {w}" for w in res.warnings]
     out.append(res.structure.verdict)
     return "\n".join(out) + "\n"
 

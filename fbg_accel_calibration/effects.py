@@ -33,6 +33,7 @@ from fbg_accel_driver.correction_terms import (
     ChainDynamics,
     ChannelOffset,
     ReferenceDarkOffset,
+    ReferenceLowpass,
     SpectralNonlinearity,
     ThermalHysteresis,
     ThermalLag,
@@ -45,6 +46,10 @@ from fbg_accel_driver.correction_terms import (
 TIA_CUTOFF_HZ = np.array([1.0, 1.7, 1.3, 1.3])
 TIA_TAU_S = 1.0 / (2.0 * np.pi * TIA_CUTOFF_HZ)
 AHT10_RESOLUTION_C = 0.01  # paper §3.6
+# Plausibility bounds of fitted effects (issue 8): a fit beyond them is refused, never written to the YAML.
+MAX_CHANNEL_OFFSET_FRACTION = 0.25  # axis-channel offset / the channel's mean counts: dark current + ADC zero
+# offset are tens of counts (sim_default.yaml, reference_dark_offset); a quarter of the signal undoes eq. 24
+MAX_DRIFT_MPS2 = 0.05 * 20.0 * 9.80665  # warm-up amplitude or creep over the run: 5 % of full scale (1 g)
 
 
 @dataclass
@@ -186,6 +191,7 @@ class Effect:
     hyper_null: float | None = None  # value at which the hyper-parameter has no effect (kept unless the data need another)
     title: str = ""
     n_columns: int = 0  # extra regressors (each gets 3 coefficients, one per axis)
+    noise_remedy: bool = False  # a filter against noise (not a model effect): reported apart from the added effects
 
     def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
         """Whether the data can show this effect at all (e.g. temperature must vary)."""
@@ -213,6 +219,51 @@ class Effect:
     def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
         """One line with the fitted parameter values, for the report."""
         return "" if h is None else f"{self.hyper_name} = {h:.4g} {self.hyper_unit}"
+
+    def implausible(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData, M0: np.ndarray) -> str:
+        """Why the fitted values are not physical (empty if they are): such a fit is refused, not added.
+        ``M0`` (3, 3) is the model's matrix at the mean temperature (m/s^2 per unit Psi)."""
+        return ""
+
+
+class ReferenceReadNoiseEffect(Effect):
+    """Read noise of the reference channel, independent of the axis channels (ESP32 ADC): eq. 24 divides
+    by it, so it enters Psi. Remedy: a causal first-order low-pass of the reference before eq. 24
+    (:class:`~fbg_accel_driver.correction_terms.ReferenceLowpass`), the same in the fit and the driver."""
+
+    name = "reference_read_noise"
+    stage = 1
+    hyper_name = "tau_ref"
+    hyper_unit = "s"
+    hyper_null = 0.0
+    title = "read noise of the reference channel (low-pass it before eq. 24)"
+    noise_remedy = True
+
+    def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
+        if not data.dt_s > 0:
+            return False, "no time base"
+        return True, ""
+
+    def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
+        hi = min(ReferenceLowpass.MAX_TIME_CONSTANT_S, 50.0 * data.dt_s)
+        return np.concatenate([[0.0], np.geomspace(0.5 * data.dt_s, hi, 15)])  # 0: no filter (the null)
+
+    def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
+        if not h:
+            return
+        ref = np.array(inp.ref, dtype=float, copy=True)
+        for r in np.unique(data.run_id):
+            idx = data.run_id == r
+            ref[idx] = first_order_lowpass(inp.ref[idx], inp.t_s[idx], float(h), {})
+        inp.ref = ref
+        inp.counts_changed = True
+        inp.valid &= np.isfinite(ref) & (ref > 0)
+
+    def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
+        return [ReferenceLowpass(float(h))] if h else []
+
+    def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
+        return f"reference low-pass tau = {h:.3g} s before eq. 24" if h else "no low-pass (tau = 0)"
 
 
 class ReferenceDarkOffsetEffect(Effect):
@@ -244,6 +295,20 @@ class ReferenceDarkOffsetEffect(Effect):
         k = np.asarray(coeff)[:, 0] if coeff is not None else np.zeros(3)
         return (f"reference offset d_ref = {h:.1f} counts; axis-channel offsets via k = [{k[0]:.4g}, {k[1]:.4g}, {k[2]:.4g}] "
                 "m/s^2·counts (regressor 1/(ref - d_ref))")
+
+    def implausible(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData, M0: np.ndarray) -> str:
+        # the regressor k/ref is the model's M0 applied to axis-channel offsets c0: k = -M0 c0
+        if coeff is None:
+            return ""
+        c0 = -np.linalg.solve(M0, np.asarray(coeff)[:, 0])
+        mean_counts = np.nanmean(np.abs(data.xyz[data.use]), axis=0)
+        frac = np.abs(c0) / np.maximum(mean_counts, 1e-9)
+        if np.any(frac > MAX_CHANNEL_OFFSET_FRACTION):
+            return (f"implied axis-channel offsets {', '.join(f'{v:.0f}' for v in c0)} counts are "
+                    f"{', '.join(f'{100 * v:.0f}' for v in frac)} % of the channels' counts (limit "
+                    f"{100 * MAX_CHANNEL_OFFSET_FRACTION:.0f} %): the term would undo the normalisation by the reference "
+                    "(eq. 24) rather than describe an offset; reference read noise does this")
+        return ""
 
 
 class ThermalLagEffect(Effect):
@@ -335,6 +400,16 @@ class TimeDriftEffect(Effect):
         c = np.asarray(coeff) if coeff is not None else np.zeros((3, 2))
         return (f"warm-up tau = {h:.4g} s, amplitude [{c[0, 1]:.3g}, {c[1, 1]:.3g}, {c[2, 1]:.3g}] m/s^2; "
                 f"creep [{c[0, 0]:.3g}, {c[1, 0]:.3g}, {c[2, 0]:.3g}] m/s^2/s")
+
+    def implausible(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData, M0: np.ndarray) -> str:
+        if coeff is None:
+            return ""
+        c = np.asarray(coeff)
+        warm, creep = np.abs(c[:, 1]), np.abs(c[:, 0]) * max(data.duration_s, 0.0)
+        if np.any(warm > MAX_DRIFT_MPS2) or np.any(creep > MAX_DRIFT_MPS2):
+            return (f"warm-up amplitude up to {warm.max():.3g} m/s^2 and creep up to {creep.max():.3g} m/s^2 over the "
+                    f"run exceed {MAX_DRIFT_MPS2:.3g} m/s^2 (5 % of full scale): two large terms cancelling, not a drift")
+        return ""
 
 
 class ChannelDelayEffect(Effect):
@@ -462,6 +537,7 @@ class ThermalHysteresisEffect(Effect):
 
 
 LIBRARY: tuple[Effect, ...] = (
+    ReferenceReadNoiseEffect(),
     ReferenceDarkOffsetEffect(),
     ThermalLagEffect(),
     SpectralNonlinearityEffect(),

@@ -9,7 +9,7 @@ eq. 28, where ``inputs`` has ``ref`` (N,), ``xyz`` (N, 3) counts, ``psi`` (N, 3)
 
 Terms are evaluated in list order. Two families exist:
 
-* *input corrections* (``tia_inverse_filter``, ``reference_dark_offset``, ``thermal_lag``)
+* *input corrections* (``tia_inverse_filter``, ``reference_lowpass``, ``reference_dark_offset``, ``thermal_lag``)
   correct what eq. 28 is fed with (counts, Psi or temperature). Such a term writes the corrected
   arrays back into ``inputs`` (so later terms see them) and contributes the resulting change of
   eq. 28, ``base(psi', T') - base(psi, T)``. The contributions telescope, so the calibrated output
@@ -206,6 +206,43 @@ class TiaInverseFilter(_Base):
         counts = np.column_stack([inputs["ref"], inputs["xyz"]])
         corr = self.correct_counts(counts, inputs["t_s"], state)
         return _replace_psi(cal, inputs, corr[:, 0], corr[:, 1:])
+
+
+@_register
+class ReferenceLowpass(_Base):
+    """Causal first-order low-pass of the reference counts before eq. 24: ref' = LPF(ref).
+
+    The ESP32's ADC reads the reference photodetector with its own noise (about 1 count rms on the
+    measured series, uncorrelated with the axis channels); dividing by a noisy reference adds that
+    noise to Psi. The source power changes slowly (the SLD's wander: minutes), so averaging the
+    reference over ``time_constant_s`` (s) removes the read noise and keeps the normalisation
+    (issue 8). Exact for a piecewise-constant input (:func:`first_order_lowpass`); state: the filter
+    output and the board time of the last sample, so the driver's stream gives the offline result.
+    """
+
+    kind = "reference_lowpass"
+    MAX_TIME_CONSTANT_S = 100.0  # slower than that and the filter would smooth the source's own changes
+
+    def __init__(self, time_constant_s: float) -> None:
+        self.time_constant_s = float(time_constant_s)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ReferenceLowpass:
+        _check_kind(d, cls.kind)
+        tau = _scalar(d, "time_constant_s", cls.kind, positive=True)
+        if tau > cls.MAX_TIME_CONSTANT_S:
+            raise ValueError(f"{cls.kind}: time_constant_s {tau} s is above {cls.MAX_TIME_CONSTANT_S:g} s")
+        return cls(tau)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "time_constant_s": self.time_constant_s}
+
+    def new_state(self) -> dict:
+        return {}
+
+    def contribution(self, cal: Any, inputs: dict, state: dict | None) -> np.ndarray:
+        ref_f = first_order_lowpass(inputs["ref"], inputs["t_s"], self.time_constant_s, {} if state is None else state)
+        return _replace_psi(cal, inputs, ref_f, inputs["xyz"])
 
 
 @_register

@@ -13,6 +13,7 @@ from fbg_accel_driver.correction_terms import (
     ChainDynamics,
     ChannelOffset,
     ReferenceDarkOffset,
+    ReferenceLowpass,
     SpectralNonlinearity,
     ThermalHysteresis,
     ThermalLag,
@@ -27,6 +28,7 @@ from fbg_accel_driver.thermal_model import CalibrationFileError, ThermalCalibrat
 def _all_terms() -> list:
     return [
         TiaInverseFilter(np.array([0.16, 0.094, 0.12, 0.0])),
+        ReferenceLowpass(0.3),
         ReferenceDarkOffset(-35.0),
         ThermalLag(40.0),
         ThermalLag(-25.0),
@@ -81,6 +83,9 @@ def test_calibration_yaml_round_trip_keeps_corrections(tmp_path) -> None:
 @pytest.mark.parametrize(
     "bad",
     [
+        {"kind": "reference_lowpass"},
+        {"kind": "reference_lowpass", "time_constant_s": 0.0},
+        {"kind": "reference_lowpass", "time_constant_s": 1000.0},
         {"kind": "reference_dark_offset"},
         {"kind": "reference_dark_offset", "ref_offset_counts": "ten"},
         {"kind": "reference_dark_offset", "ref_offset_counts": 5000.0},
