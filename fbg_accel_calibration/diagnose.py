@@ -34,6 +34,7 @@ correlated and a sample-level F-test would be far too optimistic.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -873,6 +874,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     residual_before = base_heldout.copy()
 
     steps: list[StepResult] = []
+    detection_limit = ""
     remaining = [e for e in library]
     while remaining and len(spec.effects) < max_effects:
         results = []
@@ -882,6 +884,13 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                 progress(e.name)
         tested = [r for r in results if r.applicable]
         alpha_each = alpha / max(len(tested), 1)
+        n_vis = max((r.n_groups for r in tested), default=0)
+        if not steps and tested and 0.5 ** n_vis >= alpha_each:
+            detection_limit = (f"this campaign has {n_vis} visits: the one-sided signed-rank test over visits cannot "
+                               f"go below p = 2^-{n_vis} = {0.5 ** n_vis:.2g}, above the {alpha_each:.2g} each "
+                               f"candidate needs (alpha {alpha:g} over {len(tested)} candidates), so no effect can "
+                               f"be added whatever its size; at least {math.ceil(-math.log2(alpha_each)) + 1} visits "
+                               "are needed (repeat the poses, or visit more orientations)")
         for r in tested:
             r.significant = r.p_value < alpha_each and r.rel_gain >= min_rel_gain and not r.implausible
         results.sort(key=lambda r: (not r.applicable, -r.rel_gain))
@@ -919,7 +928,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     after_in = np.sqrt(np.mean((des_f.G - cv_f.fitted_full)[r_eval] ** 2, axis=0))
     structure = residual_structure(data, cv_f.heldout, r_eval, groups, noise_after, alpha)
     moving = _moving_residual(data, cal)
-    warnings = []
+    warnings = [detection_limit] if detection_limit else []
     below = after_ho < 0.9 * noise_after
     if np.any(below):
         warnings.append("held-out error below the noise floor on axis " + ", ".join(a for a, b in zip("xyz", below, strict=True)

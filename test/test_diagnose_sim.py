@@ -73,6 +73,7 @@ def test_nothing_injected_nothing_added(seed: int) -> None:
     assert res.calibration.corrections == []
     assert not res.structure.significant, res.structure.verdict
     assert np.all(res.after_heldout_rmse <= 1.1 * res.noise_floor)
+    assert not any("cannot go below" in w for w in res.warnings)  # 42 visits: a campaign that can add effects
 
 
 def test_effect_outside_the_library_is_reported_as_unexplained() -> None:

@@ -188,3 +188,11 @@ def test_visit_that_alone_excites_an_axis_is_never_held_out() -> None:
     assert np.all(np.isfinite(res.residual_before[others]))
     assert np.max(np.abs(res.residual_before[others])) < 1.0
     assert "never held out" in markdown(res)
+
+
+def test_a_campaign_too_small_to_add_anything_says_so():
+    """Issue 8, point 4: with six visits the signed-rank test over visits cannot reach the per-candidate alpha
+    (2^-6 = 0.016 > 0.01 / candidates): the report states it instead of silently adding nothing."""
+    res = diagnose(six_position(2))
+    assert res.added == []
+    assert any("cannot go below p = 2^-6" in w and "visits are needed" in w for w in res.warnings), res.warnings
