@@ -158,6 +158,7 @@ class CoreCounters:
     temperature_out_of_range: int = 0
     non_finite_dropped: int = 0
     board_resets: int = 0
+    chain_priming: int = 0  # first sample after a (re)start with chain_compensation 'equalise': not published
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)
@@ -298,18 +299,20 @@ class DriverCore:
         return {"mode": mode, "bandwidth_hz": round(bandwidth, 4), "applied_delay_ms": round(delay_ms, 3),
                 **{f"group_delay_dc_ms_{n}": round(dyn.group_delay_s(a) * 1e3, 3) for a, n in enumerate("xyz")}}
 
-    def _equalised(self, f: Frame) -> tuple[tuple[float, float, float, float], int, tuple[float, float, float]]:
-        """Equalised (ref, x, y, z) counts of ``f``, the stamp delay (ns) and the variance factors."""
+    def _equalised(self, f: Frame) -> tuple[tuple[float, float, float, float], int, tuple[float, float, float]] | None:
+        """Equalised (ref, x, y, z) counts of ``f``, the stamp delay (ns) and the variance factors; None for
+        the first sample after a (re)start: the inverse filter needs the previous sample and the stamp delay
+        the sample interval, so that sample is not published (its stamp could not be moved consistently)."""
         eq = self._equaliser
         prev = self._eq_prev_t_us
         self._eq_prev_t_us = f.t_us
         dt_us = f.t_us - prev if prev is not None else 0
         if dt_us <= 0:  # first sample (or a repeated time): start the filters from it
             eq.reset()
-            dt_us = 0
+            eq.step(0.0, (float(f.ref), float(f.x), float(f.y), float(f.z)))
+            self.counters.chain_priming += 1
+            return None
         counts = eq.step(dt_us * 1e-6, (float(f.ref), float(f.x), float(f.y), float(f.z)))
-        if dt_us == 0:
-            return counts, self._delay_ns, (1.0, 1.0, 1.0)
         cached = self._eq_cache.get(dt_us)
         if cached is None:
             if len(self._eq_cache) >= 64:
@@ -371,7 +374,10 @@ class DriverCore:
             if cal is None:  # raw only
                 continue
             if equaliser is not None:  # every sample passes the filters, in order, whatever happens next
-                (ref, cx, cy, cz), delay_ns, vfac = self._equalised(f)
+                eq_out = self._equalised(f)
+                if eq_out is None:
+                    continue
+                (ref, cx, cy, cz), delay_ns, vfac = eq_out
             else:
                 ref, cx, cy, cz, delay_ns, vfac = f.ref, f.x, f.y, f.z, self._delay_ns, unit
             if f.ref < cfg.min_reference_counts or ref < MIN_REFERENCE_COUNTS:

@@ -3,6 +3,7 @@ equalised before eq. 24 (issue 9; fbg_accel_driver.chain_compensation)."""
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -121,3 +122,20 @@ def test_dynamic_section_survives_the_calibration_file(tmp_path):
     cal = make_cal(dynamic=DYN)
     cal.save(tmp_path / "c.yaml")
     assert ThermalCalibration.load(tmp_path / "c.yaml").dynamic == DYN
+
+
+@pytest.mark.parametrize("mode", ["delay", "equalise"])
+def test_stamps_stay_strictly_increasing_from_the_first_sample_and_across_a_reboot(mode):
+    """The equaliser cannot shift the first sample after a (re)start consistently (no interval, no previous
+    sample): that one sample is not published, so the stamps never go back."""
+    counts = np.tile([870.0, 1100.0, 1600.0, 1100.0], (200, 1))
+    frames = _frames(counts)
+    reboot = [Frame(seq=i, t_us=i * 10_000, ref=870, x=1100, y=1600, z=1100, temp_cc=2340, status=GOOD | (8 if i == 0 else 0))
+              for i in range(200)]
+    core = _core(mode)
+    raw, imu, _ = feed_frames(core, frames + reboot)
+    stamps = [r.stamp_ns for r in imu]
+    assert all(b > a for a, b in itertools.pairwise(stamps))
+    primed = core.counters.chain_priming
+    assert primed == (2 if mode == "equalise" else 0) and core.counters.board_resets == 1
+    assert len(imu) == len(raw) - primed
