@@ -289,10 +289,9 @@ class DriverCore:
         if dyn is None:
             return {}
         mode = self.config.chain_compensation
-        if self._equaliser is not None:
+        if self._equaliser is not None:  # the delay depends on the sample interval: the latest sample's
             bandwidth = self._equaliser.bandwidth_hz
-            delays = [d for d, _ in self._eq_cache.values()]
-            delay_ms = delays[-1] * 1e-6 if delays else math.nan
+            delay_ms = self._delay_ns * 1e-6 if self._eq_cache else math.nan
         else:
             bandwidth = min(dyn.cutoff_hz[1:])
             delay_ms = self._delay_ns * 1e-6
