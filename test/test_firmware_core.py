@@ -25,10 +25,11 @@ from pathlib import Path
 import pytest
 from firmware_build import FirmwareHostPrograms, build_host_programs
 from frame_strategies import frames as frame_strategy
+from frame_strategies import frames_v2
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, SEQ_MODULO, Frame, Status, encode_frame
+from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, FRAME_SIZE_V2, SEQ_MODULO, Frame, Status, encode_frame
 from fbg_accel_driver.stream_decoder import StreamDecoder
 
 TEMP_BITS = int(Status.TEMP_VALID | Status.TEMP_PRESENT)
@@ -40,7 +41,8 @@ def fw(tmp_path_factory: pytest.TempPathFactory) -> FirmwareHostPrograms:
 
 
 def sample_line(f: Frame) -> str:
-    return f"{f.seq} {f.t_us} {f.ref} {f.x} {f.y} {f.z} {f.temp_cc} {f.status}\n"
+    aux = "" if f.aux is None else f" {f.aux}"
+    return f"{f.seq} {f.t_us} {f.ref} {f.x} {f.y} {f.z} {f.temp_cc} {f.status}{aux}\n"
 
 
 def run_encode(fw: FirmwareHostPrograms, frames: list[Frame]) -> bytes:
@@ -75,6 +77,21 @@ def test_encoder_is_byte_equal_to_python_and_decodes_to_the_same_values(fw: Firm
     for k, f in enumerate(frames):  # each frame alone: no sequence bookkeeping between unrelated samples
         decoded = StreamDecoder().feed(out[k * FRAME_SIZE_V1:(k + 1) * FRAME_SIZE_V1])
         assert decoded == [f]
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(st.one_of(frame_strategy, frames_v2), min_size=1, max_size=40))
+def test_version2_encoder_is_byte_equal_to_python_in_mixed_streams(fw: FirmwareHostPrograms, frames: list[Frame]) -> None:
+    """Protocol version 2 (aux channel, docs/protocol.md): the C encoder writes what frame_codec writes, for
+    v1 and v2 frames interleaved, and each frame decodes back to itself (aux included)."""
+    out = run_encode(fw, frames)
+    assert out == b"".join(encode_frame(f) for f in frames)
+    pos = 0
+    for f in frames:
+        size = FRAME_SIZE_V1 if f.aux is None else FRAME_SIZE_V2
+        assert StreamDecoder().feed(out[pos:pos + size]) == [f]
+        pos += size
+    assert pos == len(out)
 
 
 @st.composite
@@ -116,7 +133,8 @@ def test_encoded_stream_decodes_with_every_counter_exact_across_wrap_and_clock_r
     ("0 0 0 0 0 -1 0 0", "'z'"),
     ("0 0 0 0 0 0 32768 0", "'temp_cc' is not an integer in -32768..32767"),
     ("0 0 0 0 0 0 0 256", "'status'"),
-    ("0 0 0 0 0 0 0 0 9", "more than 8 fields"),
+    ("0 0 0 0 0 0 0 0 9 1", "more than 9 fields"),
+    ("0 0 0 0 0 0 0 0 4096", "'aux' is not an integer in 0..4095"),
     ("0 0 0x10 0 0 0 0 0", "'ref'"),
 ])
 def test_encoder_rejects_bad_lines_naming_line_and_field(fw: FirmwareHostPrograms, line: str, field: str) -> None:
@@ -135,12 +153,16 @@ def synthetic_adc(k: int) -> tuple[int, int, int, int]:
     return 800 + k % 100, (7 * k) % 4096, (13 * k + 1000) % 4096, 4095 - k % 4096
 
 
-def test_board_loop_frames_decode_exactly_across_the_sequence_wrap(fw: FirmwareHostPrograms) -> None:
+@pytest.mark.parametrize("aux", [False, True], ids=["v1", "v2_aux"])
+def test_board_loop_frames_decode_exactly_across_the_sequence_wrap(fw: FirmwareHostPrograms, aux: bool) -> None:
+    """With ``--aux`` the loop reads a fifth channel and sends protocol-version-2 frames (docs/protocol.md)."""
     n = 70_000  # 70 s at 1 kHz: the u16 sequence wraps once
-    out = run_board(fw, "--rate-mhz", "1000000", "--samples", str(n)).stdout
+    out = run_board(fw, "--rate-mhz", "1000000", "--samples", str(n), *(["--aux"] if aux else [])).stdout
     dec = StreamDecoder()
     frames = dec.feed(out)
-    assert dec.stats.as_dict() == {"frames": n, "bytes_received": n * FRAME_SIZE_V1, "bytes_discarded": 0,
+    size = FRAME_SIZE_V2 if aux else FRAME_SIZE_V1
+    assert [f.aux for f in frames] == ([(29 * k + 7) % 4096 for k in range(n)] if aux else [None] * n)
+    assert dec.stats.as_dict() == {"frames": n, "bytes_received": n * size, "bytes_discarded": 0,
                                    "crc_errors": 0, "invalid_frames": 0, "unsupported_version": 0,
                                    "lost_frames": 0, "duplicates": 0, "resets": 0}
     assert [f.seq for f in frames] == [k % SEQ_MODULO for k in range(n)]

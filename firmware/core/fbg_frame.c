@@ -1,4 +1,4 @@
-/* Frame encoder of protocol v1 (docs/protocol.md section 2 and 3). */
+/* Frame encoder of protocol versions 1 and 2 (docs/protocol.md sections 2 and 3). */
 #include "fbg_frame.h"
 
 uint16_t fbg_crc16_ccitt_false(const uint8_t *data, size_t n)
@@ -22,15 +22,15 @@ static uint8_t *put_u16(uint8_t *p, uint16_t v)
     return p + 2;
 }
 
-size_t fbg_frame_encode_v1(const fbg_sample *s, uint8_t out[FBG_FRAME_SIZE_V1])
+/* Header and the version-1 body fields; returns the write position (the body continues there). */
+static uint8_t *put_head_and_v1_body(const fbg_sample *s, uint8_t version, uint8_t body_len, uint8_t *out)
 {
     uint8_t *p = out;
     int i;
-    uint16_t crc;
     *p++ = FBG_SYNC0;
     *p++ = FBG_SYNC1;
-    *p++ = FBG_PROTOCOL_VERSION;
-    *p++ = FBG_BODY_LEN_V1;
+    *p++ = version;
+    *p++ = body_len;
     p = put_u16(p, s->seq);
     for (i = 0; i < 8; i++) {
         *p++ = (uint8_t)((s->t_us >> (8 * i)) & 0xFFu);
@@ -41,7 +41,25 @@ size_t fbg_frame_encode_v1(const fbg_sample *s, uint8_t out[FBG_FRAME_SIZE_V1])
     p = put_u16(p, s->z);
     p = put_u16(p, (uint16_t)s->temp_cc); /* two's complement, as int16 little-endian */
     *p++ = s->status;
-    crc = fbg_crc16_ccitt_false(out + 2, (size_t)(p - (out + 2)));
-    p = put_u16(p, crc); /* low byte first */
+    return p;
+}
+
+/* CRC over version..end of body (every version), low byte first; returns the frame size. */
+static size_t put_crc(uint8_t *out, uint8_t *p)
+{
+    uint16_t crc = fbg_crc16_ccitt_false(out + 2, (size_t)(p - (out + 2)));
+    p = put_u16(p, crc);
     return (size_t)(p - out);
+}
+
+size_t fbg_frame_encode_v1(const fbg_sample *s, uint8_t out[FBG_FRAME_SIZE_V1])
+{
+    return put_crc(out, put_head_and_v1_body(s, FBG_PROTOCOL_VERSION, FBG_BODY_LEN_V1, out));
+}
+
+size_t fbg_frame_encode_v2(const fbg_sample *s, uint16_t aux, uint8_t out[FBG_FRAME_SIZE_V2])
+{
+    uint8_t *p = put_head_and_v1_body(s, FBG_PROTOCOL_VERSION_V2, FBG_BODY_LEN_V2, out);
+    p = put_u16(p, aux > FBG_ADC_MAX ? (uint16_t)FBG_ADC_MAX : aux); /* 12-bit: the decoder refuses more */
+    return put_crc(out, p);
 }

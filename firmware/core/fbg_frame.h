@@ -1,5 +1,7 @@
 /*
- * Board protocol version 1 (docs/protocol.md): frame layout, CRC-16/CCITT-FALSE, status bits.
+ * Board protocol versions 1 and 2 (docs/protocol.md): frame layout, CRC-16/CCITT-FALSE, status bits.
+ * Version 2 appends the auxiliary ADC channel ``aux`` (the reference transducer of a dynamic
+ * calibration, sampled with the same clock) after the version-1 body.
  *
  * Portable C99: no Arduino or ESP-IDF headers. The encoder writes the fields byte by byte in
  * little-endian order, so it is independent of the host's byte order and of struct packing.
@@ -21,6 +23,9 @@ extern "C" {
 #define FBG_BODY_LEN_V1 21u
 #define FBG_CRC_SIZE 2u
 #define FBG_FRAME_SIZE_V1 (FBG_HEADER_SIZE + FBG_BODY_LEN_V1 + FBG_CRC_SIZE) /* 27 bytes */
+#define FBG_PROTOCOL_VERSION_V2 2u
+#define FBG_BODY_LEN_V2 23u                                                  /* v1 body + aux (u16) */
+#define FBG_FRAME_SIZE_V2 (FBG_HEADER_SIZE + FBG_BODY_LEN_V2 + FBG_CRC_SIZE) /* 29 bytes */
 #define FBG_ADC_MAX 4095u                                                    /* 12-bit full scale */
 
 /* Status bits of protocol v1 (docs/protocol.md section 2). Version 1 has no saturation bit:
@@ -47,6 +52,10 @@ uint16_t fbg_crc16_ccitt_false(const uint8_t *data, size_t n);
 
 /** Write the 27-byte version-1 frame of ``s`` into ``out``; returns FBG_FRAME_SIZE_V1. */
 size_t fbg_frame_encode_v1(const fbg_sample *s, uint8_t out[FBG_FRAME_SIZE_V1]);
+
+/** Write the 29-byte version-2 frame of ``s`` with the auxiliary channel's ``aux`` counts (0..4095)
+ * into ``out``; the CRC covers version..aux. Returns FBG_FRAME_SIZE_V2. */
+size_t fbg_frame_encode_v2(const fbg_sample *s, uint16_t aux, uint8_t out[FBG_FRAME_SIZE_V2]);
 
 #ifdef __cplusplus
 }

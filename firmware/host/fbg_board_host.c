@@ -9,7 +9,8 @@
  * increases strictly.
  *
  * Options: --rate-mhz R (sample rate in mHz, default 100000 = 100 Hz), --samples N or
- * --duration-us US, --output frames|times, --every N, --late K:US (repeatable), --adc-read-us US,
+ * --duration-us US, --output frames|times, --every N, --late K:US (repeatable), --adc-read-us US, --aux
+ * (a fifth synthetic channel, (29 k + 7) mod 4096 for read k, sent in protocol-version-2 frames),
  * --aht aht10|aht20|absent, --aht-fault nack|busy|badcrc|range|uncal|ones:START_US:END_US
  * (repeatable), --temp-start-cc CC, --temp-slope-cc-per-s CC, --aht-period-us US, --aht-log.
  *
@@ -77,6 +78,12 @@ static int parse_i64(const char *s, int64_t *out)
 }
 
 /* Synthetic ADC counts for sample k: deterministic, covering 0..4095. */
+/* The aux channel of read k (--aux): a ramp the test can predict (docs/protocol.md, version 2). */
+static uint16_t synthetic_aux(uint64_t k)
+{
+    return (uint16_t)((k * 29u + 7u) % 4096u);
+}
+
 static void synthetic_adc(uint64_t k, uint16_t adc[4])
 {
     adc[0] = (uint16_t)(800u + (k % 100u));
@@ -88,7 +95,7 @@ static void synthetic_adc(uint64_t k, uint16_t adc[4])
 int main(int argc, char **argv)
 {
     uint64_t rate_mhz = 100000u, samples = 0, duration_us = 0, every = 1;
-    int output_times = 0, aht_log = 0, i;
+    int output_times = 0, aht_log = 0, with_aux = 0, i;
     uint64_t late_k[MAX_LATE], late_us[MAX_LATE];
     int n_late = 0;
     int absent_logged = 0;
@@ -111,6 +118,10 @@ int main(int argc, char **argv)
         const char *v = (i + 1 < argc) ? argv[i + 1] : NULL;
         if (strcmp(a, "--aht-log") == 0) {
             aht_log = 1;
+            continue;
+        }
+        if (strcmp(a, "--aux") == 0) { /* a fifth channel (reference transducer): protocol-version-2 frames */
+            with_aux = 1;
             continue;
         }
         if (v == NULL) {
@@ -272,12 +283,14 @@ int main(int argc, char **argv)
         }
         {
             uint16_t adc[4];
+            uint16_t aux;
             fbg_sample s;
             uint32_t skipped = 0;
             int late;
             now_us = read_at;
             adc_free_us = now_us + adc_read_us;
             synthetic_adc(sched.index, adc);
+            aux = synthetic_aux(sched.index); /* read fifth, after z (ESP32 one-shot conversions in sequence) */
             late = fbg_sched_take(&sched, now_us, &skipped);
             fbg_board_next_sample(&board, now_us, adc, fbg_aht10_temp_cc(&aht), fbg_aht10_status_bits(&aht), late, &s);
             fbg_board_skip(&board, skipped);
@@ -286,9 +299,9 @@ int main(int argc, char **argv)
                     printf("%" PRIu64 " %u %" PRIu64 " %u\n", k, (unsigned)s.seq, s.t_us, (unsigned)s.status);
                 }
             } else {
-                uint8_t frame[FBG_FRAME_SIZE_V1];
-                fbg_frame_encode_v1(&s, frame);
-                if (fwrite(frame, 1, sizeof frame, stdout) != sizeof frame) {
+                uint8_t frame[FBG_FRAME_SIZE_V2];
+                size_t size = with_aux ? fbg_frame_encode_v2(&s, aux, frame) : fbg_frame_encode_v1(&s, frame);
+                if (fwrite(frame, 1, size, stdout) != size) {
                     fprintf(stderr, "fbg_board_host: error: cannot write to stdout\n");
                     return 1;
                 }

@@ -1,10 +1,10 @@
 /*
  * fbg_encode: host build of the firmware's frame encoder (firmware/core/fbg_frame.c).
  *
- * Reads one sample per line on stdin, eight decimal fields separated by blanks:
- *     seq t_us ref x y z temp_cc status
- * (blank lines and lines starting with '#' are skipped) and writes one 27-byte protocol-v1 frame
- * per sample to stdout. A malformed line stops the program with a one-line error naming the line
+ * Reads one sample per line on stdin, eight or nine decimal fields separated by blanks:
+ *     seq t_us ref x y z temp_cc status [aux]
+ * (blank lines and lines starting with '#' are skipped) and writes one frame per sample to stdout:
+ * 27-byte protocol v1, or 29-byte protocol v2 when the line has the aux counts (0..4095). A malformed line stops the program with a one-line error naming the line
  * and the field, and exit code 2; the frames of the lines before it have been written.
  */
 #include <errno.h>
@@ -17,12 +17,12 @@
 
 #define LINE_MAX_LEN 512
 
-static const char *const FIELD_NAMES[8] = {"seq", "t_us", "ref", "x", "y", "z", "temp_cc", "status"};
+static const char *const FIELD_NAMES[9] = {"seq", "t_us", "ref", "x", "y", "z", "temp_cc", "status", "aux"};
 
 static int fail(unsigned long line, const char *what)
 {
     fflush(stdout);
-    fprintf(stderr, "fbg_encode: error: stdin line %lu: %s (expected: seq t_us ref x y z temp_cc status, decimal)\n",
+    fprintf(stderr, "fbg_encode: error: stdin line %lu: %s (expected: seq t_us ref x y z temp_cc status [aux], decimal)\n",
             line, what);
     return 2;
 }
@@ -72,10 +72,12 @@ int main(void)
     setvbuf(stdout, outbuf, _IOFBF, sizeof outbuf);
     while (fgets(line, sizeof line, stdin) != NULL) {
         char *p = line;
-        uint64_t u[8] = {0};
+        uint64_t u[9] = {0};
+        int has_aux = 0;
         int64_t sv = 0;
         fbg_sample s;
-        uint8_t frame[FBG_FRAME_SIZE_V1];
+        uint8_t frame[FBG_FRAME_SIZE_V2];
+        size_t size;
         int i;
         lineno++;
         if (strchr(line, '\n') == NULL && !feof(stdin)) {
@@ -105,8 +107,19 @@ int main(void)
         while (*p == ' ' || *p == '\t' || *p == '\r' || *p == '\n') {
             p++;
         }
-        if (*p != '\0') {
-            return fail(lineno, "more than 8 fields");
+        if (*p != '\0') { /* the optional aux field: a version-2 frame */
+            int64_t unused = 0;
+            if (parse_field(&p, 0, 0, FBG_ADC_MAX, &u[8], &unused) != 0) {
+                snprintf(msg, sizeof msg, "field '%s' is not an integer in 0..%u", FIELD_NAMES[8], (unsigned)FBG_ADC_MAX);
+                return fail(lineno, msg);
+            }
+            has_aux = 1;
+            while (*p == ' ' || *p == '\t' || *p == '\r' || *p == '\n') {
+                p++;
+            }
+            if (*p != '\0') {
+                return fail(lineno, "more than 9 fields");
+            }
         }
         s.seq = (uint16_t)u[0];
         s.t_us = u[1];
@@ -116,8 +129,8 @@ int main(void)
         s.z = (uint16_t)u[5];
         s.temp_cc = (int16_t)sv;
         s.status = (uint8_t)u[7];
-        fbg_frame_encode_v1(&s, frame);
-        if (fwrite(frame, 1, sizeof frame, stdout) != sizeof frame) {
+        size = has_aux ? fbg_frame_encode_v2(&s, (uint16_t)u[8], frame) : fbg_frame_encode_v1(&s, frame);
+        if (fwrite(frame, 1, size, stdout) != size) {
             fprintf(stderr, "fbg_encode: error: cannot write to stdout\n");
             return 1;
         }

@@ -96,6 +96,12 @@ static void arm_next_read(void)
     }
 }
 
+#if FBG_PIN_AUX >= 0
+#define FBG_FRAME_SIZE FBG_FRAME_SIZE_V2 /* version 2: aux appended (docs/protocol.md) */
+#else
+#define FBG_FRAME_SIZE FBG_FRAME_SIZE_V1
+#endif
+
 static void sampler_task(void *arg)
 {
     (void)arg;
@@ -108,14 +114,21 @@ static void sampler_task(void *arg)
         adc[1] = (uint16_t)analogRead(FBG_PIN_X);
         adc[2] = (uint16_t)analogRead(FBG_PIN_Y);
         adc[3] = (uint16_t)analogRead(FBG_PIN_Z);
+#if FBG_PIN_AUX >= 0
+        uint16_t aux = (uint16_t)analogRead(FBG_PIN_AUX); /* fifth conversion: its skew is board.adc_channel_skew_us */
+#endif
         uint32_t skipped = 0;
         int late = fbg_sched_take(&g_sched, t_us, &skipped);
         uint32_t tw = g_temp_word;
         fbg_sample s;
         fbg_board_next_sample(&g_board, t_us, adc, (int16_t)(uint16_t)(tw & 0xFFFFu), (uint8_t)(tw >> 16), late, &s);
         fbg_board_skip(&g_board, skipped);
-        uint8_t frame[FBG_FRAME_SIZE_V1];
+        uint8_t frame[FBG_FRAME_SIZE];
+#if FBG_PIN_AUX >= 0
+        fbg_frame_encode_v2(&s, aux, frame);
+#else
         fbg_frame_encode_v1(&s, frame);
+#endif
         if (xQueueSend(g_frames, frame, 0) != pdTRUE) {
             g_frames_dropped++;
         }
@@ -127,7 +140,7 @@ static void sampler_task(void *arg)
 static void writer_task(void *arg)
 {
     (void)arg;
-    uint8_t frame[FBG_FRAME_SIZE_V1];
+    uint8_t frame[FBG_FRAME_SIZE];
     for (;;) {
         if (xQueueReceive(g_frames, frame, portMAX_DELAY) != pdTRUE) {
             continue;
@@ -166,7 +179,7 @@ void setup()
     /* First read one period after start-up, on the board clock (us since boot). */
     fbg_sched_init(&g_sched, FBG_RATE_MHZ, now + 1000000000ull / FBG_RATE_MHZ);
 
-    g_frames = xQueueCreate(FBG_FRAME_QUEUE_DEPTH, FBG_FRAME_SIZE_V1);
+    g_frames = xQueueCreate(FBG_FRAME_QUEUE_DEPTH, FBG_FRAME_SIZE);
     const esp_timer_create_args_t targs = {on_sample_timer, NULL, ESP_TIMER_TASK, "fbg_sample", false};
     esp_timer_create(&targs, &g_sample_timer);
     xTaskCreatePinnedToCore(writer_task, "fbg_writer", 4096, NULL, FBG_WRITER_PRIORITY, NULL, 1 - FBG_SAMPLER_CORE);

@@ -25,6 +25,10 @@
 #define FBG_PIN_X 39   /* x-axis channel TIA output */
 #define FBG_PIN_Y 34   /* y-axis channel TIA output */
 #define FBG_PIN_Z 35   /* z-axis channel TIA output */
+/* Auxiliary channel (protocol version 2, docs/protocol.md): the reference transducer of a dynamic
+ * calibration (LDV velocity output or a reference accelerometer), read fifth in each sample on the
+ * same clock. -1 = no aux input: the board sends version-1 frames. GPIO32 = ADC1_CH4. */
+#define FBG_PIN_AUX -1
 
 /* ---- AHT10 on I2C ------------------------------------------------------------------------------ */
 #define FBG_PIN_SDA 21
