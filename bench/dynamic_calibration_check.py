@@ -32,6 +32,7 @@ sys.path.insert(0, str(ROOT))
 from machine_info import machine  # noqa: E402
 
 from fbg_accel_calibration.bode_plot import plot_bode  # noqa: E402
+from fbg_accel_calibration.dynamic_analysis import budget_table_markdown  # noqa: E402
 from fbg_accel_calibration.dynamic_calibration import run_dynamic  # noqa: E402
 from fbg_accel_calibration.dynamic_check import step_check, tone_check  # noqa: E402
 from fbg_accel_calibration.excitation_plan import ExcitationPlan  # noqa: E402
@@ -101,12 +102,13 @@ def main(argv: list[str] | None = None) -> int:
            "first_seed": first.as_dict(), "tone_check": tone.as_dict(), "step_check": steps}
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(doc, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
-    args.md.write_text(markdown(doc, first.report(), args))
+    x2 = next(p for p in first.points if p.axis == "x" and p.f_hz == 2.0)
+    args.md.write_text(markdown(doc, first.report(), budget_table_markdown(x2)))
     print(f"wrote {args.output}, {args.md}, {args.png}")
     return 0
 
 
-def markdown(doc: dict, report: str, args: argparse.Namespace) -> str:
+def markdown(doc: dict, report: str, budget: str) -> str:
     t = doc["truth"]
     lines = ["# Dynamic calibration on the simulated board",
              "",
@@ -127,6 +129,7 @@ def markdown(doc: dict, report: str, args: argparse.Namespace) -> str:
     lines += ["", "Largest cut-off error: " + ", ".join(f"{ax} {v:.1f} %" for ax, v in doc["max_abs_cutoff_error_pct"].items())
               + "; largest delay error: " + ", ".join(f"{ax} {v:.2f} ms" for ax, v in doc["max_abs_delay_error_ms"].items())
               + ".", "", "## Points and fit of seed 0", "", "![Bode plot](img/dynamic_bode.png)", "", report, "",
+              "Uncertainty budget of one point (seed Tables 2-3):", "", budget, "",
               "## Seed Fig. 12: a frequency the fit did not use", ""]
     tone = doc["tone_check"]
     lines += [f"{tone['f_hz']:g} Hz, {tone['periods']} whole periods at 100 Hz through `DriverCore`; RMS difference between "

@@ -27,7 +27,7 @@ from fbg_accel_driver.chain_compensation import ChainDynamics
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .chain_model import ChainModel, fit_chain_models
-from .dynamic_analysis import DynamicPoint, ReferenceUncertainty, analyse_run
+from .dynamic_analysis import DynamicPoint, ReferenceUncertainty, analyse_run, points_table_markdown
 from .excitation_plan import ExcitationPlan, find_slide_start, reference_acceleration
 from .recording import Recording
 
@@ -54,16 +54,7 @@ class DynamicCalibrationResult:
         lines = [f"dynamic calibration: plan '{self.plan.name}', slide starts at t = {self.slide_start_s:.3f} s, "
                  f"{len(self.windows)} steady windows, sampling {self.fs_hz:.1f} Hz",
                  "",
-                 "| f [Hz] | axis | sensitivity | diff from 2 Hz [%] | phase [deg] | delay xcorr [ms] | "
-                 "delay cross-spectrum [ms] | u(S) | u(phase) [deg] | u(delay) [ms] |",
-                 "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
-        for p in self.points:
-            if not p.measurable:
-                lines.append(f"| {p.f_hz:g} | {p.axis} | not measurable: {p.note} |||||||| |")
-                continue
-            lines.append(f"| {p.f_hz:g} | {p.axis} | {p.sensitivity:.4f} | {p.sensitivity_diff_pct:+.2f} | "
-                         f"{p.phase_deg:+.2f} | {p.delay_xcorr_s * 1e3:.2f} | {p.delay_cross_spectrum_s * 1e3:.2f} | "
-                         f"{p.u_sensitivity:.4f} | {p.u_phase_deg:.2f} | {p.u_delay_s * 1e3:.2f} |")
+                 points_table_markdown(self.points)]
         lines += ["", "| axis | gain | cut-off [Hz] | delay [ms] | group delay at DC [ms] | reference high-pass [Hz] |",
                   "|---|---:|---:|---:|---:|---:|"]
         for ax, m in self.models.items():

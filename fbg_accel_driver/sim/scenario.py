@@ -289,17 +289,6 @@ class SlidePlan:
         return x, v, a
 
 
-def stepped_sine_segments(freqs_hz: list[float], amplitudes_mps2: list[float] | float,
-                          durations_s: list[float] | float) -> list[SlideSegment]:
-    """Segments of a stepped-sine plan (one amplitude/duration per frequency, or one for all)."""
-    n = len(freqs_hz)
-    amps = [float(amplitudes_mps2)] * n if np.isscalar(amplitudes_mps2) else [float(v) for v in amplitudes_mps2]
-    durs = [float(durations_s)] * n if np.isscalar(durations_s) else [float(v) for v in durations_s]
-    if len(amps) != n or len(durs) != n:
-        raise ValueError(f"stepped sine: {n} frequencies but {len(amps)} amplitudes and {len(durs)} durations")
-    return [SlideSegment(float(f), a, d) for f, a, d in zip(freqs_hz, amps, durs, strict=True)]
-
-
 def build_slide(slide_cfg: dict[str, Any]) -> SlidePlan | None:
     """``SlidePlan`` from ``scenario.slide`` of the simulator config (None when not enabled)."""
     if not slide_cfg or not slide_cfg.get("enabled", False):
