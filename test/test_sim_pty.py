@@ -32,7 +32,9 @@ def _read_until_exit(port: serial.Serial, proc: subprocess.Popen, dec: StreamDec
     while time.monotonic() < deadline:
         try:
             frames += dec.feed(port.read(port.in_waiting or 1))
-        except serial.SerialException:  # the board closed the port: end of run
+        except (serial.SerialException, OSError):
+            # the board closed the port: end of run. pyserial wraps a failed read() as SerialException
+            # but lets the TIOCINQ ioctl behind in_waiting raise a bare OSError (EIO on a hung-up pty)
             break
     return frames
 
