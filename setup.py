@@ -10,7 +10,8 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(include=["fbg_accel_driver", "fbg_accel_driver.*",
-                                    "fbg_accel_calibration", "fbg_accel_calibration.*"]),
+                                    "fbg_accel_calibration", "fbg_accel_calibration.*",
+                                    "fbg_accel_sim", "fbg_accel_sim.*"]),
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -42,7 +43,7 @@ setup(
     entry_points={
         "console_scripts": [
             "driver = fbg_accel_driver.driver_node:main",
-            "board_sim = fbg_accel_driver.sim.board_sim:main",
+            "board_sim = fbg_accel_sim.board_sim:main",
             "calibration = fbg_accel_calibration.calibration_node:main",
             "fbg-accel-calib = fbg_accel_calibration.cli:main",
         ],

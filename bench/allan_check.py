@@ -20,8 +20,8 @@ import numpy as np
 
 from fbg_accel_calibration.allan import BI_FACTOR, MG_TO_MPS2, allan_deviation
 from fbg_accel_calibration.thermal_fit import fit_thermal
-from fbg_accel_driver.sim.board_physics import BoardSimulator, SimConfig, simulate_recording
-from fbg_accel_driver.sim.noise import flicker_noise
+from fbg_accel_sim.board_physics import BoardSimulator, SimConfig, simulate_recording
+from fbg_accel_sim.noise import flicker_noise
 
 
 def flicker_hours() -> dict:

@@ -49,8 +49,8 @@ from fbg_accel_calibration.diagnose import diagnose  # noqa: E402
 from fbg_accel_calibration.mcap_io import read_recording, write_recording  # noqa: E402
 from fbg_accel_calibration.thermal_fit import fit_thermal  # noqa: E402
 from fbg_accel_driver.frame_codec import link_frame_rate_limit  # noqa: E402
-from fbg_accel_driver.sim.board_physics import simulate_recording  # noqa: E402
-from fbg_accel_driver.sim.sim_config import SimConfig  # noqa: E402
+from fbg_accel_sim.board_physics import simulate_recording  # noqa: E402
+from fbg_accel_sim.sim_config import SimConfig  # noqa: E402
 
 RATE_HZ = 100.0
 LEVELS_C = (16.0, 25.0, 35.0, 45.0)

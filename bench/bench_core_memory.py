@@ -30,8 +30,8 @@ from machine_info import machine  # noqa: E402
 from fbg_accel_driver.driver_core import DriverCore  # noqa: E402
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1  # noqa: E402
 from fbg_accel_driver.ros_messages import DriverMessages  # noqa: E402
-from fbg_accel_driver.sim.board_physics import BoardSimulator, SimConfig  # noqa: E402
 from fbg_accel_driver.thermal_model import ThermalCalibration  # noqa: E402
+from fbg_accel_sim.board_physics import BoardSimulator, SimConfig  # noqa: E402
 
 RATE_HZ = 100.0
 

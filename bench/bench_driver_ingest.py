@@ -260,7 +260,7 @@ def wait_for(cond, timeout_s: float, what: str, poll_s: float = 0.02) -> None:
 # ----------------------------------------------------------------------------- one case
 def make_frames(rate_true_hz: float, n: int, seed: int) -> tuple[list[bytes], np.ndarray, float]:
     """``n`` clean frames of the default simulated board at a true rate of ``rate_true_hz``."""
-    from fbg_accel_driver.sim.board_physics import BoardSimulator, SimConfig
+    from fbg_accel_sim.board_physics import BoardSimulator, SimConfig
 
     cfg = SimConfig.default()
     ppm = float(cfg.get("board.clock_ppm"))
@@ -308,7 +308,7 @@ def chain_calibration(mode: str, workdir: Path) -> str:
 
 
 def run_case(name: str, rate_hz: float, duration_s: float, with_imu: bool, args: argparse.Namespace, workdir: Path) -> dict:
-    from fbg_accel_driver.sim.pty_server import PtyEndpoint
+    from fbg_accel_sim.pty_server import PtyEndpoint
 
     n_warm = round(WARMUP_S * rate_hz)
     n_meas = round(duration_s * rate_hz)

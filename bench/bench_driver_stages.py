@@ -40,8 +40,8 @@ from machine_info import machine  # noqa: E402
 
 from fbg_accel_driver.driver_core import DriverCore  # noqa: E402
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, link_frame_rate_limit  # noqa: E402
-from fbg_accel_driver.sim.board_physics import BoardSimulator, SimConfig  # noqa: E402
 from fbg_accel_driver.thermal_model import ThermalCalibration  # noqa: E402
+from fbg_accel_sim.board_physics import BoardSimulator, SimConfig  # noqa: E402
 
 LINK_RATE = link_frame_rate_limit(921600)
 RATES = {"back_to_back": None, "1khz": 1000.0, "100hz": 100.0}
@@ -180,7 +180,7 @@ def bench_wakeups(seconds: float) -> dict:
 
 def bench_serial_chunks(n: int, data: bytes) -> dict:
     from fbg_accel_driver.serial_link import SerialLink
-    from fbg_accel_driver.sim.pty_server import PtyEndpoint
+    from fbg_accel_sim.pty_server import PtyEndpoint
 
     ep = PtyEndpoint(None)
     path = ep.open(hold=True)

@@ -26,7 +26,7 @@ import yaml
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_calibration.static_detector import estimate_noise_var, moving_variance, variance_threshold
 from fbg_accel_calibration.thermal_fit import fit_thermal
-from fbg_accel_driver.sim.board_physics import BoardSimulator, SimConfig, simulate_recording
+from fbg_accel_sim.board_physics import BoardSimulator, SimConfig, simulate_recording
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "results"

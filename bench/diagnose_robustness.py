@@ -21,7 +21,7 @@ sys.path.insert(0, str(ROOT / "test"))
 from test_diagnose_sim import SCENARIOS, _config  # noqa: E402
 
 from fbg_accel_calibration.diagnose import diagnose  # noqa: E402
-from fbg_accel_driver.sim.board_physics import simulate_recording  # noqa: E402
+from fbg_accel_sim.board_physics import simulate_recording  # noqa: E402
 
 
 def main() -> int:

@@ -37,9 +37,9 @@ from fbg_accel_calibration.dynamic_calibration import run_dynamic  # noqa: E402
 from fbg_accel_calibration.dynamic_check import step_check, tone_check  # noqa: E402
 from fbg_accel_calibration.excitation_plan import ExcitationPlan  # noqa: E402
 from fbg_accel_driver.driver_node import default_calibration_path  # noqa: E402
-from fbg_accel_driver.sim.dynamic_run import simulate_dynamic_run  # noqa: E402
-from fbg_accel_driver.sim.sim_config import SimConfig  # noqa: E402
 from fbg_accel_driver.thermal_model import ThermalCalibration  # noqa: E402
+from fbg_accel_sim.dynamic_run import simulate_dynamic_run  # noqa: E402
+from fbg_accel_sim.sim_config import SimConfig  # noqa: E402
 
 PLAN_FILE = ROOT / "config" / "excitation_plan_stepped_sine.yaml"
 REFERENCE_CUTOFF_HZ = 1.0  # paper Table 1 (design value of the reference TIA; a slide run cannot see it)

@@ -3,7 +3,7 @@
 Not a test (test/test_sim_physics.py asserts the per-axis figures). Writes
 bench/results/optics_linearity.json and .md with
 
-* ``report``: ``fbg_accel_driver.sim.optics.linearity_report`` of config/sim_default.yaml (paper 3.4 metric
+* ``report``: ``fbg_accel_sim.optics.linearity_report`` of config/sim_default.yaml (paper 3.4 metric
   over +-180 m/s^2 and +-20 g, slope and curvature at rest, monotonicity, crossing);
 * ``report_gaussian``: the same for the former all-Gaussian gratings (order 1, FWHM 2.896 / 3.412 / 3.326 nm);
 * ``curvature_1g``: the curvature of the response at rest within +-1 g, as the quadratic share of the 1 g
@@ -27,10 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from fbg_accel_calibration.table_geometry import table_specific_force
-from fbg_accel_driver.sim import optics
-from fbg_accel_driver.sim.board_physics import SimConfig, simulate_recording
-from fbg_accel_driver.sim.sim_config import config_dir
 from fbg_accel_driver.thermal_model import ThermalCalibration
+from fbg_accel_sim import optics
+from fbg_accel_sim.board_physics import SimConfig, simulate_recording
+from fbg_accel_sim.sim_config import config_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 MEASURED = ROOT.parent / "shared" / "data" / "measured" / "fig13_multiposition_23C.csv"

@@ -30,7 +30,7 @@ from fbg_accel_calibration.stillness_monitor import (
     ratio_quantile,
     window_variance_weights,
 )
-from fbg_accel_driver.sim.board_physics import BoardSimulator, SimConfig
+from fbg_accel_sim.board_physics import BoardSimulator, SimConfig
 
 OUT = Path(__file__).resolve().parents[1] / "bench" / "results"
 NOMINAL = [3e-2, 3e-3, 3e-4, 3e-5]

@@ -6,4 +6,4 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/bootstrap.sh
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 1 ))}
-exec .venv/bin/python -m fbg_accel_driver.demo --seconds "${1:-8}"
+exec .venv/bin/python -m fbg_accel_sim.demo --seconds "${1:-8}"

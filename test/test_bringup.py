@@ -176,7 +176,7 @@ def test_launch_file_names_installed_executables_existing_params_files_and_param
 
 
 def test_sim_launch_board_sim_arguments_parse_and_point_the_driver_at_its_link(tmp_path: Path) -> None:
-    from fbg_accel_driver.sim.board_sim import build_parser
+    from fbg_accel_sim.board_sim import build_parser
 
     link = str(tmp_path / "board")
     sim, driver = descriptions("sim.launch.py", link=link)

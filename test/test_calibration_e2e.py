@@ -118,7 +118,7 @@ def run_end_to_end(tmp_path: Path, procs: list[ChildProcess]) -> None:
     assert plan.chamber is not None
     levels = list(plan.chamber.levels_c)
     shipped_cal = ROOT / "config" / "calibration_sim.yaml"
-    assert shipped_cal.is_file(), f"missing {shipped_cal} (python -m fbg_accel_driver.sim.make_default_calibration)"
+    assert shipped_cal.is_file(), f"missing {shipped_cal} (python -m fbg_accel_sim.make_default_calibration)"
 
     # ---- 1. record: one chain per chamber level, in parallel
     nodes = []
@@ -167,7 +167,7 @@ def run_end_to_end(tmp_path: Path, procs: list[ChildProcess]) -> None:
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Imu, JointState
 
-    from fbg_accel_driver.sim.board_physics import BoardSimulator, SimConfig
+    from fbg_accel_sim.board_physics import BoardSimulator, SimConfig
 
     qos = QoSProfile(reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST, depth=5000)
     ctx = rclpy.context.Context()

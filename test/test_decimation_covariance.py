@@ -19,8 +19,8 @@ import pytest
 
 from fbg_accel_driver.driver_core import CoreConfig, DriverCore
 from fbg_accel_driver.noise_model import mean_variance_factor
-from fbg_accel_driver.sim.board_physics import BoardSimulator, SimConfig
 from fbg_accel_driver.thermal_model import ThermalCalibration
+from fbg_accel_sim.board_physics import BoardSimulator, SimConfig
 
 REPO = Path(__file__).resolve().parents[1]
 N_FRAMES = 120_000  # 20 min at 100 Hz

@@ -18,7 +18,7 @@ from test_diagnose_sim import _config
 from fbg_accel_calibration.diagnose import diagnose
 from fbg_accel_calibration.effects import ReferenceDarkOffsetEffect, SpectralNonlinearityEffect
 from fbg_accel_driver.correction_terms import ReferenceLowpass
-from fbg_accel_driver.sim.board_physics import simulate_recording
+from fbg_accel_sim.board_physics import simulate_recording
 
 READ_NOISE = {"noise.reference_noise_counts": 1.0}  # measured series: ~1 count rms on the reference
 

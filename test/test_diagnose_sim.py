@@ -1,6 +1,6 @@
 """Diagnosis on simulator recordings with an undeclared effect (issue 4).
 
-The simulator (``fbg_accel_driver.sim.board_physics.simulate_recording``, batch API, no ROS)
+The simulator (``fbg_accel_sim.board_physics.simulate_recording``, batch API, no ROS)
 injects one named effect that the declared model (eq. 28) does not have. ``diagnose`` must rank it
 first, add it, and bring the held-out error within 1.5x the noise floor. With every named effect off
 the declared model is exact up to noise and nothing may be added (several seeds). With the
@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 from fbg_accel_calibration.diagnose import diagnose
-from fbg_accel_driver.sim.board_physics import simulate_recording
-from fbg_accel_driver.sim.sim_config import SimConfig
+from fbg_accel_sim.board_physics import simulate_recording
+from fbg_accel_sim.sim_config import SimConfig
 
 NAMED = ("reference_dark_offset", "thermal_lag", "spectral_nonlinearity", "time_drift", "channel_delay", "tia_lowpass",
          "thermal_hysteresis", "unmodelled_cable_torque")

@@ -143,7 +143,7 @@ def raw_field(msg: JointState, name: str) -> float:
 
 def delivered_mask(truth: Any) -> np.ndarray:
     """Samples that reach the host intact (sent, not dropped / bit-flipped / truncated)."""
-    from fbg_accel_driver.sim import faults as fz
+    from fbg_accel_sim import faults as fz
 
     return truth["sent"] & ~np.isin(truth["wire_fault"], (fz.DROP, fz.BIT_FLIP, fz.TRUNCATE))
 

@@ -104,7 +104,7 @@ def test_slide_start_is_found_from_the_aux_envelope():
 
 
 def test_simulator_overrides_name_existing_keys():
-    from fbg_accel_driver.sim.sim_config import SimConfig
+    from fbg_accel_sim.sim_config import SimConfig
 
     plan = ExcitationPlan.load(PLAN_FILE)
     cfg = SimConfig.default().with_overrides(plan.sim_overrides())

@@ -12,8 +12,8 @@ import pytest
 from fbg_accel_calibration.cli import main
 from fbg_accel_calibration.csv_import import CsvImportError, import_csv
 from fbg_accel_calibration.mcap_io import write_recording
-from fbg_accel_driver.sim.board_physics import simulate_recording
-from fbg_accel_driver.sim.sim_config import SimConfig
+from fbg_accel_sim.board_physics import simulate_recording
+from fbg_accel_sim.sim_config import SimConfig
 
 MEASURED = Path(__file__).resolve().parents[2] / "shared" / "data" / "measured" / "fig13_multiposition_23C.csv"
 MEASURED_OPTS = ["--rate", "1", "--temperature", "23.4", "--g", "9.81"]

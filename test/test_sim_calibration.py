@@ -1,14 +1,14 @@
 """The shipped calibration of the simulated sensor (config/calibration_sim.yaml) is what
-``python -m fbg_accel_driver.sim.make_default_calibration`` produces, and it calibrates the simulator."""
+``python -m fbg_accel_sim.make_default_calibration`` produces, and it calibrates the simulator."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from fbg_accel_driver.sim.board_physics import BoardSimulator, SimConfig, simulate_recording
-from fbg_accel_driver.sim.make_default_calibration import main, make_calibration
-from fbg_accel_driver.sim.sim_config import config_dir
 from fbg_accel_driver.thermal_model import ThermalCalibration
+from fbg_accel_sim.board_physics import BoardSimulator, SimConfig, simulate_recording
+from fbg_accel_sim.make_default_calibration import main, make_calibration
+from fbg_accel_sim.sim_config import config_dir
 
 
 def test_shipped_calibration_is_reproduced_by_the_command(tmp_path) -> None:

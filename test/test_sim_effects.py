@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbg_accel_driver.sim.board_physics import BoardSimulator, SimConfig, simulate_recording
-from fbg_accel_driver.sim.make_default_calibration import fit_eq28
 from fbg_accel_driver.thermal_model import normalise
+from fbg_accel_sim.board_physics import BoardSimulator, SimConfig, simulate_recording
+from fbg_accel_sim.make_default_calibration import fit_eq28
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
 

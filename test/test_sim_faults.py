@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, SYNC, Status
-from fbg_accel_driver.sim import faults as fz
-from fbg_accel_driver.sim.board_physics import BoardSimulator, SimConfig, simulate_recording
 from fbg_accel_driver.stream_decoder import StreamDecoder
+from fbg_accel_sim import faults as fz
+from fbg_accel_sim.board_physics import BoardSimulator, SimConfig, simulate_recording
 
 FAULTS = {
     "scenario.rate_hz": 500.0, "scenario.duration_s": 20.0,

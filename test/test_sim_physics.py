@@ -1,4 +1,4 @@
-"""Board simulator physics (fbg_accel_driver.sim, pure numpy): determinism, count levels, optics, noise.
+"""Board simulator physics (fbg_accel_sim, pure numpy): determinism, count levels, optics, noise.
 
 Numbers come from the paper (../shared/seeds/fbg_triaxial_accelerometer_paper.txt) and the measured
 run (../shared/data/measured/README.md); each test states which.
@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbg_accel_driver.sim import optics
-from fbg_accel_driver.sim.board_physics import CHUNK, BoardSimulator, SimConfig, simulate_recording
-from fbg_accel_driver.sim.make_default_calibration import fit_eq28
-from fbg_accel_driver.sim.noise import GaussMarkovBank, NoiseModel, first_order_filter, gm_avar
-from fbg_accel_driver.sim.sim_config import SimConfigError
 from fbg_accel_driver.thermal_model import normalise
+from fbg_accel_sim import optics
+from fbg_accel_sim.board_physics import CHUNK, BoardSimulator, SimConfig, simulate_recording
+from fbg_accel_sim.make_default_calibration import fit_eq28
+from fbg_accel_sim.noise import GaussMarkovBank, NoiseModel, first_order_filter, gm_avar
+from fbg_accel_sim.sim_config import SimConfigError
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
 

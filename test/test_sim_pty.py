@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import serial
 
-from fbg_accel_driver.sim.board_physics import BoardSimulator, SimConfig
 from fbg_accel_driver.stream_decoder import StreamDecoder
+from fbg_accel_sim.board_physics import BoardSimulator, SimConfig
 
-BOARD_SIM = [sys.executable, "-m", "fbg_accel_driver.sim.board_sim"]
+BOARD_SIM = [sys.executable, "-m", "fbg_accel_sim.board_sim"]
 
 
 def _start(args: list[str]) -> tuple[subprocess.Popen, str]:

@@ -15,9 +15,9 @@ import math
 import numpy as np
 import pytest
 
-from fbg_accel_driver.sim.board_physics import BoardSimulator, SimConfig
-from fbg_accel_driver.sim.scenario import SlidePlan, SlideSegment, second_order_response
 from fbg_accel_driver.stream_decoder import StreamDecoder
+from fbg_accel_sim.board_physics import BoardSimulator, SimConfig
+from fbg_accel_sim.scenario import SlidePlan, SlideSegment, second_order_response
 
 DIRECTION = np.array([0.5, -0.5, math.sqrt(0.5)])  # seed 2 eqs. 1-3
 QUIET = {  # everything that is not the dynamic chain off: noise, quantisation, slow drifts, delay, curvature

@@ -23,7 +23,7 @@ from fbg_accel_calibration.stillness_monitor import (
     ratio_quantile,
     window_variance_weights,
 )
-from fbg_accel_driver.sim.board_physics import BoardSimulator, SimConfig
+from fbg_accel_sim.board_physics import BoardSimulator, SimConfig
 
 RATE_HZ = 100.0
 WINDOW = 25  # 0.25 s at 100 Hz, the node's default

@@ -20,7 +20,8 @@ import signal
 import sys
 from pathlib import Path
 
-from ..command_line import version_line
+from fbg_accel_driver.command_line import version_line
+
 from .board_physics import BoardSimulator
 from .pty_server import TruthRecorder, serve_pty
 from .sim_config import SimConfig, SimConfigError, parse_set_argument

@@ -10,7 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from ..stream_decoder import StreamDecoder
+from fbg_accel_driver.stream_decoder import StreamDecoder
+
 from .board_physics import BoardSimulator, SimBlock
 from .sim_config import SimConfig
 

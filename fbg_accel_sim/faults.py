@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..frame_codec import (
+from fbg_accel_driver.frame_codec import (
     BODY_LEN_V1,
     BODY_LEN_V2,
     FRAME_SIZE_V1,

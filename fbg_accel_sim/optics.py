@@ -33,7 +33,7 @@ paper's Fig. 9 draws the crossing on the negative side; that is a sign of the mo
 Non-linearity (paper 3.4, eq. after 22, and 4.2, Fig. 12): ``nonlinearity_percent_fs`` =
 max |y_m - y_f| / (max y_m - min y_m) x 100, y_m the relative optical power O(d0 - S a)/O(d0) on a
 uniform grid of a over [-a_fs, a_fs], y_f its least-squares line. ``python -m
-fbg_accel_driver.sim.optics --report`` prints it per axis for a config (docs/simulator.md).
+fbg_accel_sim.optics --report`` prints it per axis for a config (docs/simulator.md).
 """
 
 from __future__ import annotations
@@ -320,10 +320,10 @@ def _print_report(rep: dict[str, Any]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m fbg_accel_driver.sim.optics --report [--config F] [--set k=v]... [--scan-orders] [--json FILE]``."""
+    """``python -m fbg_accel_sim.optics --report [--config F] [--set k=v]... [--scan-orders] [--json FILE]``."""
     from .sim_config import SimConfig, SimConfigError, parse_set_argument
 
-    p = argparse.ArgumentParser(prog="python -m fbg_accel_driver.sim.optics",
+    p = argparse.ArgumentParser(prog="python -m fbg_accel_sim.optics",
                                 description="Per-axis optics figures of the simulated sensor (paper 3.4, 4.2).")
     p.add_argument("--report", action="store_true", help="print the per-axis non-linearity report")
     p.add_argument("--config", default=None, help="simulator config merged on sim_default.yaml")

@@ -33,7 +33,7 @@ def config_dir() -> Path:
     if os.environ.get(CONFIG_DIR_ENV):
         candidates.append(Path(os.environ[CONFIG_DIR_ENV]))
     here = Path(__file__).resolve()
-    candidates.append(here.parents[2] / "config")  # source checkout / editable install
+    candidates.append(here.parents[1] / "config")  # source checkout / editable install
     for base in (Path(sys.prefix), *here.parents):
         candidates.append(base / "share" / "fbg_accel_driver" / "config")
     for c in candidates:

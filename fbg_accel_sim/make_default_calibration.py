@@ -1,6 +1,6 @@
 """Produce ``config/calibration_sim.yaml``: the shipped calibration of the simulated sensor.
 
-    python -m fbg_accel_driver.sim.make_default_calibration [--output PATH] [--seed N] [--degree N]
+    python -m fbg_accel_sim.make_default_calibration [--output PATH] [--seed N] [--degree N]
 
 It does what the paper's thermal calibration does (section 3.6.2 and 4.5), on the simulator:
 the six-pose plan (z down/up, x down/up, y down/up) at the three chamber temperatures 16, 24 and
@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from fbg_accel_calibration.recording import Recording
+from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
 
-from ..thermal_model import ThermalCalibration, normalise
 from .board_physics import simulate_recording
 from .sim_config import SimConfig, config_dir
 
@@ -91,7 +91,7 @@ def make_calibration(cfg: SimConfig | None = None, seed: int = 0, degree: int = 
     cal.created = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     cal.fit = {
         "method": "plain least squares of paper eq. 28 on simulated six-pose data "
-                  "(python -m fbg_accel_driver.sim.make_default_calibration)",
+                  "(python -m fbg_accel_sim.make_default_calibration)",
         "source": f"board simulator, config {Path(cfg.source).name}, seed {seed}, chamber levels {list(LEVELS_C)} degC",
         "degree": degree, "samples": int(m.sum()), "settle_s": settle_s,
         "rmse_mps2": [float(v) for v in np.sqrt(np.mean(resid**2, axis=0))],

@@ -32,8 +32,8 @@ from typing import Any
 import numpy as np
 
 from fbg_accel_calibration.table_geometry import table_specific_force
+from fbg_accel_driver.frame_codec import BODY_LEN_BY_VERSION, SEQ_MODULO, Frame, Status, crc16, frame_size
 
-from ..frame_codec import BODY_LEN_BY_VERSION, SEQ_MODULO, Frame, Status, crc16, frame_size
 from . import faults as fz
 from .noise import GaussMarkovBank, NoiseModel, first_order_filter
 from .optics import STANDARD_G, PairOverlap, grating_sigma_nm, relative_response, source_factor

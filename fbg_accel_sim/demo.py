@@ -1,6 +1,6 @@
 """Live demo: simulated board on a pty + the driver, acceleration and temperature printed live.
 
-``python -m fbg_accel_driver.demo --seconds N`` (used by scripts/demo.sh) starts ``board_sim``
+``python -m fbg_accel_sim.demo --seconds N`` (used by scripts/demo.sh) starts ``board_sim``
 and ``driver`` as separate processes (exactly as on a ROS machine: the driver reads the pty
 through pyserial), subscribes with rclpy, prints a line twice a second for N seconds, then stops
 both processes with SIGINT and reports what it received. Uses the ROS_DOMAIN_ID of the
@@ -18,7 +18,7 @@ import sys
 import time
 from typing import Any
 
-SIM_CMD = "import sys; from fbg_accel_driver.sim.board_sim import main; sys.exit(main())"
+SIM_CMD = "import sys; from fbg_accel_sim.board_sim import main; sys.exit(main())"
 DRIVER_CMD = "import sys; from fbg_accel_driver.driver_node import main; sys.exit(main())"
 
 
@@ -131,7 +131,7 @@ def run(seconds: float) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m fbg_accel_driver.demo", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m fbg_accel_sim.demo", description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=8.0, help="how long to show live data (s, default 8)")
     args = ap.parse_args(argv)
     if args.seconds <= 0:
