@@ -1,9 +1,9 @@
 """Driver core: board bytes -> stamped, calibrated, flagged samples (pure Python + numpy, no ROS).
 
 ``DriverCore.feed(chunk, host_ns)`` decodes the bytes (``StreamDecoder``), maps board time to
-host/ROS time (``ClockSync``), normalises and calibrates (paper eq. 24 and 28 with
-``ThermalCalibration.coefficients_at``, plus ``correction_sum`` with persistent state for the
-stateful correction terms: the same numbers as ``ThermalCalibration.apply_counts``), applies the sample
+host/ROS time (``ClockSync``), normalises and calibrates (paper eq. 24, and eq. 28 by the calibration
+object itself: ``ThermalCalibration.acceleration_at`` per sample, plus ``correction_sum`` with persistent
+state for the stateful correction terms), applies the sample
 policies below and decimates. The ROS node only turns the returned records into messages.
 
 Sample policies (documented in docs/topics.md; each has a counter and a diagnostic):
@@ -186,7 +186,6 @@ class DriverCore:
         self._prev_t_us: int | None = None
         self._last_raw_temp_valid: bool | None = None
         self._pending: list[tuple[int, tuple[float, float, float], list[float], float, frozenset[str]]] = []
-        self._coef_cache: dict[float, tuple[tuple[float, ...], tuple[float, float, float]]] = {}
         self._unstamped: list[Frame] = []  # frames waiting for the clock estimate to be primed
         self._base_var = tuple(float(v) ** 2 for v in self._base_sigma())
         if calibration is not None and self.config.covariance_source != "unknown":
@@ -323,16 +322,6 @@ class DriverCore:
         self._delay_ns = cached[0]
         return counts, cached[0], cached[1]
 
-    def _coefficients(self, temp_c: float) -> tuple[tuple[float, ...], tuple[float, float, float]]:
-        """M(T), b(T) of eq. 28, cached per temperature (the AHT10 reports 0.01 degC steps, so few distinct values)."""
-        cache = self._coef_cache
-        coef = cache.get(temp_c)
-        if coef is None:
-            if len(cache) >= 256:
-                cache.clear()
-            coef = cache[temp_c] = self.cal.coefficients_at(temp_c)
-        return coef
-
     def _process(self, frames: list[Frame], host_ns: int, out: CoreOutput, flush: bool = False) -> None:
         clock = self.clock
         for f in frames:
@@ -388,11 +377,7 @@ class DriverCore:
                     counters.temperature_stale_dropped += 1
                     continue
                 counters.temperature_held += 1
-            m, b = self._coefficients(temp)
-            px, py, pz = cx / ref, cy / ref, cz / ref
-            accel = (m[0] * px + m[1] * py + m[2] * pz + b[0],
-                     m[3] * px + m[4] * py + m[5] * pz + b[1],
-                     m[6] * px + m[7] * py + m[8] * pz + b[2])
+            accel = cal.acceleration_at(cx / ref, cy / ref, cz / ref, temp)
             used.append((stamp_ns - delay_ns, f, temp, accel, not valid, vfac))
         if not used:
             return
@@ -413,12 +398,10 @@ class DriverCore:
                 # Extrapolating: inflate, and add how far the polynomial has moved from the range edge.
                 counters.temperature_out_of_range += 1
                 flags.append("temperature_out_of_range")
-                me, be = self._coefficients(min(max(temp, lo), hi))
-                m, b = self._coefficients(temp)
-                ref = f.ref
-                psi = (f.x / ref, f.y / ref, f.z / ref)
+                psi = (f.x / f.ref, f.y / f.ref, f.z / f.ref)
+                here, edge = cal.acceleration_at(*psi, temp), cal.acceleration_at(*psi, min(max(temp, lo), hi))
                 for a in range(3):
-                    d = sum((m[3 * a + j] - me[3 * a + j]) * psi[j] for j in range(3)) + b[a] - be[a]
+                    d = here[a] - edge[a]
                     var[a] = var[a] * cfg.out_of_range_variance_factor + d * d
             if f.ref >= ADC_MAX or f.x >= ADC_MAX or f.y >= ADC_MAX or f.z >= ADC_MAX:
                 # Clipped: the value is only bounded by the full scale (all axes if the reference clipped).

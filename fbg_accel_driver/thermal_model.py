@@ -90,6 +90,10 @@ class ThermalCalibration:
     noise_time_constant_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
     # dynamics of the measuring chain (optional ``dynamic`` section; fbg_accel_driver.chain_compensation)
     dynamic: ChainDynamics | None = None
+    # M(T), b(T) as plain floats per temperature reading (coefficients_at); the coefficients are not
+    # changed after construction (a new calibration is a new object, with an empty cache)
+    _coef_cache: dict[float, tuple[tuple[float, ...], tuple[float, float, float]]] = field(
+        default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.M = np.asarray(self.M, dtype=float)
@@ -110,26 +114,43 @@ class ThermalCalibration:
     def scaled_temperature(self, temp_c: np.ndarray | float) -> np.ndarray:
         return (np.asarray(temp_c, dtype=float) - self.t_center_c) / self.t_scale_c
 
+    def coefficients(self, temp_c: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        """M(T) (N, 3, 3) and b(T) (N, 3) m/s^2 of eq. 28 at temperatures ``temp_c`` (N,) or scalar, degC."""
+        tau = np.atleast_1d(self.scaled_temperature(temp_c))
+        powers = tau[:, None] ** np.arange(self.degree + 1)[None, :]  # (N, n+1)
+        return np.einsum("nk,kij->nij", powers, self.M), powers @ self.b
+
     def base_acceleration(self, psi: np.ndarray, temp_c: np.ndarray | float) -> np.ndarray:
         """Eq. 28 without corrections: ``psi`` (N, 3), ``temp_c`` (N,) or scalar -> (N, 3) m/s^2."""
         psi = np.atleast_2d(np.asarray(psi, dtype=float))
-        tau = np.broadcast_to(self.scaled_temperature(temp_c), (psi.shape[0],))
-        powers = tau[:, None] ** np.arange(self.degree + 1)[None, :]  # (N, n+1)
-        m_t = np.einsum("nk,kij->nij", powers, self.M)  # (N, 3, 3)
-        b_t = powers @ self.b  # (N, 3)
+        m_t, b_t = self.coefficients(np.broadcast_to(np.asarray(temp_c, dtype=float), (psi.shape[0],)))
         return np.einsum("nij,nj->ni", m_t, psi) + b_t
 
     def coefficients_at(self, temp_c: float) -> tuple[tuple[float, ...], tuple[float, float, float]]:
         """M(T) row-major (9 floats) and b(T) (3 floats, m/s^2) of eq. 28 at one temperature (degC).
 
-        Plain floats, for a caller that evaluates ``M(T) @ psi + b(T)`` one sample at a time without
-        numpy (the driver, whose temperature changes in 0.01 degC steps, caches them per reading).
+        Cached per temperature: the AHT10 reports 0.01 degC steps, so a stream has few distinct values
+        (the cache is emptied when it reaches 256 entries).
         """
-        tau = float(self.scaled_temperature(temp_c))
-        powers = tau ** np.arange(self.degree + 1)
-        m_t = np.tensordot(powers, self.M, axes=1)
-        b_t = powers @ self.b
-        return tuple(float(v) for v in m_t.ravel()), (float(b_t[0]), float(b_t[1]), float(b_t[2]))
+        coef = self._coef_cache.get(temp_c)
+        if coef is None:
+            if len(self._coef_cache) >= 256:
+                self._coef_cache.clear()
+            m_t, b_t = self.coefficients(temp_c)
+            coef = self._coef_cache[temp_c] = (tuple(float(v) for v in m_t[0].ravel()),
+                                               (float(b_t[0, 0]), float(b_t[0, 1]), float(b_t[0, 2])))
+        return coef
+
+    def acceleration_at(self, px: float, py: float, pz: float, temp_c: float) -> tuple[float, float, float]:
+        """Eq. 28 without corrections for one sample, in plain floats: ``M(T) Psi + b(T)`` in m/s^2.
+
+        The driver's per-sample path (at its batch sizes numpy's per-call overhead costs more than it
+        saves); ``base_acceleration`` is the same model for arrays.
+        """
+        m, b = self.coefficients_at(temp_c)
+        return (m[0] * px + m[1] * py + m[2] * pz + b[0],
+                m[3] * px + m[4] * py + m[5] * pz + b[1],
+                m[6] * px + m[7] * py + m[8] * pz + b[2])
 
     def correction_sum(self, ref: np.ndarray, xyz: np.ndarray, psi: np.ndarray, temp_c: np.ndarray, t_s: np.ndarray,
                        state: list[Any]) -> np.ndarray:

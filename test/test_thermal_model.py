@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -91,16 +92,30 @@ def test_apply_counts_matches_eq28_reference(degree: int) -> None:
 
 
 @pytest.mark.parametrize("degree", [0, 1, 3])
-def test_coefficients_at_one_temperature_give_eq28(degree: int) -> None:
-    """M(T), b(T) as plain floats (the driver's per-sample path) reproduce eq. 28 sample by sample."""
+def test_one_sample_in_plain_floats_gives_eq28(degree: int) -> None:
+    """``acceleration_at`` (the driver's per-sample path) reproduces eq. 28 sample by sample, in plain floats."""
     cal = make_cal(degree=degree)
     ref, xyz, temp, _ = counts_batch(20)
     for i in range(20):
-        m, b = cal.coefficients_at(float(temp[i]))
-        assert len(m) == 9 and all(type(v) is float for v in (*m, *b))
         psi = xyz[i] / ref[i]
-        got = np.reshape(m, (3, 3)) @ psi + np.asarray(b)
+        got = cal.acceleration_at(*(float(v) for v in psi), float(temp[i]))
+        assert all(type(v) is float for v in got)
         np.testing.assert_allclose(got, reference_eq28(cal, ref[i:i + 1], xyz[i:i + 1], temp[i:i + 1])[0], rtol=1e-12, atol=1e-12)
+
+
+def test_per_temperature_cache_is_the_objects_own() -> None:
+    """The cached M(T), b(T) belong to one calibration: a replaced calibration starts empty, and the
+    cache stays bounded over a long stream of distinct readings."""
+    cal = make_cal(degree=2)
+    first = cal.acceleration_at(0.1, 0.2, 0.3, 30.0)
+    b = cal.b.copy()
+    b[0] += 1.0  # b(T) = sum_k b_k tau^k: the constant term moves every axis by 1 m/s^2
+    other = replace(cal, b=b)
+    np.testing.assert_allclose(other.acceleration_at(0.1, 0.2, 0.3, 30.0), np.add(first, 1.0), rtol=1e-12)
+    assert cal.acceleration_at(0.1, 0.2, 0.3, 30.0) == first
+    for k in range(1000):
+        cal.coefficients_at(20.0 + 0.01 * k)
+    assert len(cal._coef_cache) <= 256
 
 
 def test_base_acceleration_broadcasts_scalar_temperature() -> None:
