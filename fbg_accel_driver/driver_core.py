@@ -54,7 +54,7 @@ import numpy as np
 from .chain_compensation import MODES as CHAIN_MODES
 from .chain_compensation import ChannelEqualiser
 from .clock_sync import ClockSync, ClockSyncConfig
-from .frame_codec import ADC_MAX, Frame, Status
+from .frame_codec import ADC_MAX, Frame
 from .noise_model import mean_variance_factor
 from .sensor_constants import STANDARD_GRAVITY
 from .stream_decoder import StreamDecoder
@@ -183,7 +183,6 @@ class DriverCore:
         self._last_good_temp_c: float | None = None
         self._last_good_stamp_ns: int | None = None
         self._last_stamp_ns: int | None = None
-        self._prev_t_us: int | None = None
         self._last_raw_temp_valid: bool | None = None
         self._pending: list[tuple[int, tuple[float, float, float], list[float], float, frozenset[str]]] = []
         self._unstamped: list[Frame] = []  # frames waiting for the clock estimate to be primed
@@ -255,15 +254,12 @@ class DriverCore:
         frames = self.decoder.feed(chunk)
         if not frames:
             return out
-        # Split at board resets (same rule as the decoder: clock backwards or BOOT after the
-        # first frame) so each part is stamped with its own clock estimate.
+        # Split at board resets (found by the decoder) so each part is stamped with its own clock estimate.
         start = 0
-        for i, frame in enumerate(frames):
-            if self._prev_t_us is not None and (frame.t_us < self._prev_t_us or frame.status & Status.BOOT):
-                self._process(frames[start:i], host_ns, out, flush=True)
-                self._on_reset()
-                start = i
-            self._prev_t_us = frame.t_us
+        for i in self.decoder.resets_at:
+            self._process(frames[start:i], host_ns, out, flush=True)
+            self._on_reset()
+            start = i
         self._process(frames[start:], host_ns, out)
         return out
 

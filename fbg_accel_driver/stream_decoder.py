@@ -63,7 +63,11 @@ class DecoderStats:
 
 
 class StreamDecoder:
-    """Incremental decoder: ``feed(chunk) -> list[Frame]``."""
+    """Incremental decoder: ``feed(chunk) -> list[Frame]``.
+
+    ``resets_at`` lists, after each ``feed``, the indices in its returned list of the frames that
+    start a new board run (the reset rule of the module docstring), so a consumer can split there.
+    """
 
     def __init__(self) -> None:
         self._buf = bytearray()
@@ -73,10 +77,12 @@ class StreamDecoder:
         # Bytes of accepted and duplicate frames (27 per version-1 frame, 29 per version-2 frame):
         # bytes_received = bytes_discarded + frame_bytes + buffered, whatever the mix of versions.
         self.frame_bytes = 0
+        self.resets_at: list[int] = []
 
     def feed(self, chunk: bytes | bytearray | memoryview) -> list[Frame]:
         """Consume ``chunk`` and return the intact, non-duplicate frames it completed."""
         out: list[Frame] = []
+        self.resets_at = []
         try:
             data = bytes(memoryview(chunk))  # bytes-like only: bytes(int) would allocate int zero bytes
         except (TypeError, ValueError):
@@ -136,26 +142,31 @@ class StreamDecoder:
                 self.stats.bytes_discarded += total
                 continue
             self.frame_bytes += total  # accepted or duplicate
-            if self._accept(frame):
+            accepted = self._accept(frame)
+            if accepted is not None:
+                if accepted:
+                    self.resets_at.append(len(out))
                 out.append(frame)
         if pos:
             del buf[:pos]
         return out
 
-    def _accept(self, frame: Frame) -> bool:
-        """Sequence and clock bookkeeping; False for a duplicate."""
+    def _accept(self, frame: Frame) -> bool | None:
+        """Sequence and clock bookkeeping: None for a duplicate, else whether the frame follows a reset."""
         last_seq, last_t = self._last_seq, self._last_t_us
+        reset = False
         if last_seq is not None and last_t is not None:
             if frame.seq == last_seq and frame.t_us == last_t:
                 self.stats.duplicates += 1
-                return False
-            if frame.t_us < last_t or (frame.status & Status.BOOT):
+                return None
+            reset = frame.t_us < last_t or bool(frame.status & Status.BOOT)
+            if reset:
                 self.stats.resets += 1
             else:
                 self.stats.lost_frames += (frame.seq - last_seq - 1) % SEQ_MODULO
         self._last_seq, self._last_t_us = frame.seq, frame.t_us
         self.stats.frames += 1
-        return True
+        return reset
 
     @property
     def buffered(self) -> int:

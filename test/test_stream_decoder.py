@@ -87,12 +87,19 @@ def split(stream: bytes, sizes: list[int]) -> list[bytes]:
 
 
 def run(chunks: list[bytes], dec: StreamDecoder | None = None) -> tuple[StreamDecoder, list[Frame]]:
+    """Feed ``chunks``; also check that ``resets_at`` marks exactly the frames that start a new board run."""
     dec = dec or StreamDecoder()
     out: list[Frame] = []
+    marked: list[int] = []
+    resets_before = dec.stats.resets
     for chunk in chunks:
-        out.extend(dec.feed(chunk))
+        frames = dec.feed(chunk)
+        marked += [len(out) + i for i in dec.resets_at]
+        out.extend(frames)
         assert dec.buffered < MAX_CANDIDATE
     check_byte_balance(dec)
+    assert len(marked) == dec.stats.resets - resets_before
+    assert all(out[i].t_us < out[i - 1].t_us or out[i].status & Status.BOOT for i in marked)
     return dec, out
 
 
