@@ -1,6 +1,7 @@
 """Child processes for the process-level tests: output collected line by line, waits on conditions.
 
-No fixed sleeps: every wait polls a condition against a deadline and fails with the output so far.
+No fixed sleeps and no polling: every wait is woken by the event it waits for (a line, the end of the
+output, a callback) and fails at a deadline with the output so far.
 """
 
 from __future__ import annotations
@@ -13,21 +14,38 @@ import time
 from collections.abc import Callable
 
 
-def wait_for(pred: Callable[[], bool], timeout: float, what: str, poll: float = 0.02) -> None:
-    """Wait until ``pred()`` holds (condition with deadline); AssertionError naming ``what`` otherwise."""
-    deadline = time.monotonic() + timeout
-    ev = threading.Event()
-    while not pred():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-        ev.wait(poll)
+class Notifier:
+    """A condition several sources notify: a ROS callback, a publishing thread, a child's output.
+
+    ``wait_until(pred)`` re-checks ``pred`` each time it is woken: a source changes its state, then calls
+    ``notify``. The predicate is checked and the wait begun under one lock, so no notification is lost.
+    """
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+
+    def notify(self, *_: object) -> None:
+        """Wake the waiters (any arguments are ignored, so this can be a callback as it is)."""
+        with self._cond:
+            self._cond.notify_all()
+
+    def wait_until(self, pred: Callable[[], bool], timeout: float, what: str) -> None:
+        """Return once ``pred()`` holds; AssertionError naming ``what`` after ``timeout`` s."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while not pred():
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+                self._cond.wait(remaining)
 
 
 class ChildProcess:
     """A child process whose combined stdout/stderr is collected line by line in a thread."""
 
-    def __init__(self, name: str, args: list) -> None:
+    def __init__(self, name: str, args: list, notifier: Notifier | None = None) -> None:
         self.name = name
+        self._notifier = notifier  # also woken by each line and at the end of the output
         self.proc = subprocess.Popen([str(a) for a in args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                      text=True, bufsize=1)
         self.lines: list[str] = []
@@ -43,9 +61,19 @@ class ChildProcess:
             with self._new_output:
                 self.lines.append(line.rstrip("\n"))
                 self._new_output.notify_all()
+            if self._notifier is not None:
+                self._notifier.notify()
         with self._new_output:
             self._ended = True
             self._new_output.notify_all()
+        if self._notifier is not None:
+            self._notifier.notify()
+
+    @property
+    def output_ended(self) -> bool:
+        """The child closed its output (it exited, or is exiting)."""
+        with self._lock:
+            return self._ended
 
     def output(self) -> str:
         with self._lock:

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from process_harness import ChildProcess, wait_for
+from process_harness import ChildProcess, Notifier
 
 from fbg_accel_calibration.mcap_io import read_file, read_recording
 from fbg_accel_calibration.pose_plan import PosePlan
@@ -105,12 +105,17 @@ class RosHarness:
 
     def __init__(self) -> None:
         import rclpy
+        from rclpy.event_handler import PublisherEventCallbacks
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import qos_profile_sensor_data
         from sensor_msgs.msg import JointState, Temperature
         from std_srvs.srv import Trigger
 
         self.rclpy = rclpy
+        # every wait below is woken by what it waits for: a publisher matched, a response, a batch published,
+        # a line of the node's output
+        self.notifier = Notifier()
+        self._matched = PublisherEventCallbacks(matched=self.notifier.notify)
         self.JointState, self.Temperature, self.Trigger = JointState, Temperature, Trigger
         self.context = rclpy.context.Context()
         rclpy.init(context=self.context)
@@ -134,8 +139,9 @@ class RosHarness:
         DDS keeps announcing until its lease expires, never shares a topic with a later test)."""
         if ns not in self._endpoints:
             self._endpoints[ns] = (
-                self.node.create_publisher(self.JointState, f"/{ns}/imu/raw", self._qos),
-                self.node.create_publisher(self.Temperature, f"/{ns}/imu/temperature", self._qos),
+                self.node.create_publisher(self.JointState, f"/{ns}/imu/raw", self._qos, event_callbacks=self._matched),
+                self.node.create_publisher(self.Temperature, f"/{ns}/imu/temperature", self._qos,
+                                           event_callbacks=self._matched),
                 self.node.create_client(self.Trigger, f"/{ns}/calibration/next_pose"),
                 self.node.create_client(self.Trigger, f"/{ns}/calibration/abort"))
         with self._lock:
@@ -184,15 +190,16 @@ class RosHarness:
                     self.pub_temp.publish(t)
                     self.published_temperature.append((ns, t.temperature))
             self._next = max(self._next, end)
+        self.notifier.notify()
 
     def wait_subscribed(self, node: NodeProcess, timeout: float = 30.0) -> None:
         self.use(node.ns)
         def matched() -> bool:
-            if node.proc.poll() is not None:
-                raise AssertionError(f"node exited ({node.proc.returncode}):\n{node.output()}")
+            if node.output_ended:
+                raise AssertionError(f"node exited ({node.proc.wait(timeout=10)}):\n{node.output()}")
             return self.pub_raw.get_subscription_count() >= 1 and self.pub_temp.get_subscription_count() >= 1
 
-        wait_for(matched, timeout, "the calibration node to subscribe to imu/raw and imu/temperature")
+        self.notifier.wait_until(matched, timeout, "the calibration node to subscribe to imu/raw and imu/temperature")
         # best effort: the node's reader must know our writer too, or the first messages are dropped
         node.wait_line(r"imu/raw: \d+ publisher\(s\) matched", timeout)
         node.wait_line(r"imu/temperature: \d+ publisher\(s\) matched", timeout)
@@ -200,13 +207,14 @@ class RosHarness:
     def call(self, client, node: NodeProcess, timeout: float = 10.0):
         assert client.wait_for_service(timeout_sec=timeout), f"service {client.srv_name} not available"
         fut = client.call_async(self.Trigger.Request())
+        fut.add_done_callback(self.notifier.notify)
 
         def answered() -> bool:
-            if node.proc.poll() is not None:
-                raise AssertionError(f"node exited ({node.proc.returncode}) during {client.srv_name}:\n{node.output()}")
+            if node.output_ended:
+                raise AssertionError(f"node exited during {client.srv_name}:\n{node.output()}")
             return fut.done()
 
-        wait_for(answered, timeout, f"response of {client.srv_name}")
+        self.notifier.wait_until(answered, timeout, f"response of {client.srv_name}")
         return fut.result()
 
     def close(self) -> None:
@@ -228,7 +236,7 @@ def ros():
 class NodeProcess(ChildProcess):
     """The ``calibration`` executable with its stdout collected line by line."""
 
-    def __init__(self, tmp: Path, *params: str, label: str = "run") -> None:
+    def __init__(self, tmp: Path, *params: str, label: str = "run", notifier: Notifier | None = None) -> None:
         assert CALIBRATION_EXE.is_file(), f"{CALIBRATION_EXE} missing: run .venv/bin/pip install --no-deps -e ."
         self.ns = f"calib_test_{label}"
         args = [str(CALIBRATION_EXE), "--ros-args", "-r", f"__ns:=/{self.ns}", "-p", f"plan_file:={tmp / 'plan.yaml'}",
@@ -241,7 +249,7 @@ class NodeProcess(ChildProcess):
             args += ["-p", p]
         self.mcap = tmp / f"{label}.mcap"
         self.yaml = tmp / f"{label}_calibration.yaml"
-        super().__init__("node", args)
+        super().__init__("node", args, notifier)
 
 
 @pytest.fixture()
@@ -298,7 +306,7 @@ def _stream_and_plan(plan_dir: Path, seed: int = 0) -> tuple[PosePlan, Stream]:
 # ---------------------------------------------------------------------------- tests
 def test_mcap_round_trips_message_for_message_and_the_run_is_fitted(ros, plan_dir, procs):
     plan, stream = _stream_and_plan(plan_dir)
-    node = NodeProcess(plan_dir, "mode:=auto", "fit_degree:=0")
+    node = NodeProcess(plan_dir, "mode:=auto", "fit_degree:=0", notifier=ros.notifier)
     procs.append(node)
     ros.wait_subscribed(node)
     ros.publish(stream)
@@ -341,7 +349,7 @@ def test_mcap_round_trips_message_for_message_and_the_run_is_fitted(ros, plan_di
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_signal_closes_the_file_cleanly_in_operator_mode(ros, plan_dir, procs, sig):
     plan, stream = _stream_and_plan(plan_dir, seed=2)
-    node = NodeProcess(plan_dir, "mode:=service", label=f"closed_{sig.name}")
+    node = NodeProcess(plan_dir, "mode:=service", label=f"closed_{sig.name}", notifier=ros.notifier)
     procs.append(node)
     ros.wait_subscribed(node)
     # publish pose 0 only (the table waits for the operator); the move to pose 1 is held back
@@ -355,7 +363,7 @@ def test_signal_closes_the_file_cleanly_in_operator_mode(ros, plan_dir, procs, s
     assert not resp.success and "already waiting" in resp.message
     ros.resume()  # the table turns to pose 1 and stands
     node.wait_line(r"pose 1 \(z_down\) still, recording", timeout=60)
-    wait_for(lambda: ros.published >= len(stream.stamps_ns) or node.proc.poll() is not None, 30, "the stream")
+    ros.notifier.wait_until(lambda: ros.published >= len(stream.stamps_ns) or node.output_ended, 30, "the stream")
     node.proc.send_signal(sig)
     rc = node.wait_exit(timeout=20)
     assert rc == 3, node.output()
@@ -372,7 +380,7 @@ def test_signal_closes_the_file_cleanly_in_operator_mode(ros, plan_dir, procs, s
 
 def test_abort_service_ends_the_run(ros, plan_dir, procs):
     _, stream = _stream_and_plan(plan_dir, seed=3)
-    node = NodeProcess(plan_dir, "mode:=service", label="aborted")
+    node = NodeProcess(plan_dir, "mode:=service", label="aborted", notifier=ros.notifier)
     procs.append(node)
     ros.wait_subscribed(node)
     ros.publish(stream, stop_at=int(3.0 * RATE_HZ))
@@ -387,7 +395,7 @@ def test_abort_service_ends_the_run(ros, plan_dir, procs):
 # runs after the other DDS tests of this module: a SIGKILLed participant stays announced until its lease expires
 def test_sigkill_mid_recording_leaves_a_file_read_up_to_its_last_chunk_that_the_fit_uses(ros, plan_dir, procs):
     plan, stream = _stream_and_plan(plan_dir, seed=1)
-    node = NodeProcess(plan_dir, "mode:=auto", label="killed")
+    node = NodeProcess(plan_dir, "mode:=auto", label="killed", notifier=ros.notifier)
     procs.append(node)
     ros.wait_subscribed(node)
     ros.publish(stream)
