@@ -169,23 +169,33 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _load(paths: list[Path], args: argparse.Namespace):
-    """Recording from MCAP and/or CSV files (one run per file)."""
+def load_recording(paths: list[Path] | list[str], *, rate: float | None = None, temperature: float | None = None,
+                   g: float | None = None, namespace: str | None = None, topic: str | None = None):
+    """Recording from CSV and/or MCAP files and/or rosbag2 bag directories (one run per input); ``rate``,
+    ``temperature`` and ``g`` (m/s^2, default standard gravity) complete a CSV, ``namespace``/``topic``
+    choose the raw topic of MCAP inputs (``mcap_io.TopicSelection``). Damaged-file warnings go to stderr."""
     from .csv_import import import_csv
     from .mcap_io import read_recording, read_warnings
     from .recording import Recording
 
     parts = []
-    for path in paths:
+    for path in map(Path, paths):
         check_input(path)
         if path.suffix.lower() == ".csv" and path.is_file():
-            parts.append(import_csv(path, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g)[0])
+            parts.append(import_csv(path, rate_hz=rate, temperature_c=temperature,
+                                    g_mps2=STANDARD_GRAVITY if g is None else g)[0])
         else:
-            rec = read_recording(path, getattr(args, "namespace", None), getattr(args, "topic", None))
+            rec = read_recording(path, namespace, topic)
             for line in read_warnings(path, rec.metadata.get("read_report", {}), rec.metadata.get("pose_events")):
                 print(line, file=sys.stderr)
             parts.append(rec)
     return parts[0] if len(parts) == 1 else Recording.concatenate(parts)
+
+
+def _load(paths: list[Path], args: argparse.Namespace):
+    """``load_recording`` with a subcommand's input options."""
+    return load_recording(paths, rate=args.rate, temperature=args.temperature, g=args.g,
+                          namespace=getattr(args, "namespace", None), topic=getattr(args, "topic", None))
 
 
 def check_mcap(path: Path) -> None:

@@ -66,35 +66,6 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     return p
 
 
-def load_inputs(paths: list[str], rate: float | None, temperature: float | None, g: float | None,
-                namespace: str | None = None, topic: str | None = None):
-    """Recording from CSV and/or MCAP files and/or rosbag2 bag directories (one run per input);
-    ``namespace``/``topic`` choose the raw topic of MCAP inputs (``mcap_io.TopicSelection``)."""
-    from .recording import Recording
-
-    parts = []
-    for raw in paths:
-        path = Path(raw)
-        if not path.is_file() and not path.is_dir():
-            raise FileNotFoundError(f"{path}: input file not found")
-        if path.suffix.lower() == ".csv" and path.is_file():
-            from .csv_import import import_csv
-            from .table_geometry import STANDARD_GRAVITY
-
-            rec, _ = import_csv(path, rate_hz=rate, temperature_c=temperature,
-                                g_mps2=g if g is not None else STANDARD_GRAVITY)
-        else:
-            from .cli import check_input
-            from .mcap_io import read_recording, read_warnings
-
-            check_input(path)
-            rec = read_recording(path, namespace, topic)
-            for line in read_warnings(path, rec.metadata.get("read_report", {}), rec.metadata.get("pose_events")):
-                print(line, file=sys.stderr)
-        parts.append(rec)
-    return parts[0] if len(parts) == 1 else Recording.concatenate(parts)
-
-
 PLOT_FILES = ("before_after.png", "residual_structure.png")  # plus candidate_<effect>.png
 
 
@@ -155,7 +126,10 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         check_diagnose_outputs(args)
-        rec = load_inputs(args.inputs, args.rate, args.temperature, args.g, args.namespace, args.topic)
+        from .cli import load_recording
+
+        rec = load_recording(args.inputs, rate=args.rate, temperature=args.temperature, g=args.g,
+                             namespace=args.namespace, topic=args.topic)
     except (OSError, ValueError) as exc:
         print(f"fbg-accel-calib diagnose: {exc}", file=sys.stderr)
         return 2

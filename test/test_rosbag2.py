@@ -291,9 +291,9 @@ def test_allan_report_and_diagnose_read_the_bag(fitted: tuple[Path, Path, Path],
     res = run_cli("report", str(bag), "--calibration", str(cal), "-o", str(tmp_path / "rep"), "--max-degree", "2")
     assert res.returncode == 0, res.stderr
     assert (tmp_path / "rep" / "report.md").is_file()
-    from fbg_accel_calibration.diagnose_cli import load_inputs
+    from fbg_accel_calibration.cli import load_recording
 
-    _same_samples(load_inputs([str(bag)], None, None, None, "/veh1", None), read_recording(ours))
+    _same_samples(load_recording([bag], namespace="/veh1"), read_recording(ours))
 
 
 def test_several_namespaces_are_refused_and_a_missing_topic_lists_the_topics(tmp_path: Path, samples: Recording
