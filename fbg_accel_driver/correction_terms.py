@@ -4,14 +4,14 @@ Each term is a class with a ``kind`` string, ``to_dict``/``from_dict`` for the c
 YAML (``from_dict`` refuses missing, non-numeric, wrongly shaped or unphysical parameters with a
 ``ValueError`` naming the term and parameter), ``new_state()`` for streaming state (``None`` for a
 stateless term) and ``contribution(cal, inputs, state) -> (N, 3)`` additive m/s^2 on top of
-eq. 28, where ``inputs`` has ``ref`` (N,), ``xyz`` (N, 3) counts, ``psi`` (N, 3), ``temp_c``
-(N,) degC and ``t_s`` (N,) board time in s.
+eq. 28, where ``inputs`` is a :class:`TermInputs` (``ref`` (N,), ``xyz`` (N, 3) counts, ``psi``
+(N, 3), ``temp_c`` (N,) degC, ``t_s`` (N,) board time in s). :class:`CorrectionTerm` is that contract.
 
 Terms are evaluated in list order. Two families exist:
 
 * *input corrections* (``tia_inverse_filter``, ``reference_lowpass``, ``reference_dark_offset``, ``thermal_lag``)
-  correct what eq. 28 is fed with (counts, Psi or temperature). Such a term writes the corrected
-  arrays back into ``inputs`` (so later terms see them) and contributes the resulting change of
+  correct what eq. 28 is fed with (counts, Psi or temperature). Such a term replaces the corrected
+  fields of ``inputs`` (so later terms see them) and contributes the resulting change of
   eq. 28, ``base(psi', T') - base(psi, T)``. The contributions telescope, so the calibrated output
   is exactly eq. 28 evaluated on the fully corrected inputs, plus the additive terms.
 * *additive terms* (``spectral_nonlinearity``, ``time_drift``, ``thermal_hysteresis``,
@@ -27,14 +27,45 @@ from __future__ import annotations
 
 import itertools
 import math
-from typing import Any, ClassVar
+from dataclasses import dataclass
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
+
+
+@dataclass
+class TermInputs:
+    """What eq. 28 is fed with, one row per sample; input corrections replace fields as they go."""
+
+    ref: np.ndarray  # (N,) reference counts
+    xyz: np.ndarray  # (N, 3) axis counts
+    psi: np.ndarray  # (N, 3) xyz / ref (eq. 24), dimensionless
+    temp_c: np.ndarray  # (N,) temperature, degC
+    t_s: np.ndarray  # (N,) board time, s
+
+
+class BaseModel(Protocol):
+    """What a term needs of the calibration: eq. 28 without corrections (``ThermalCalibration``)."""
+
+    def base_acceleration(self, psi: np.ndarray, temp_c: np.ndarray | float) -> np.ndarray: ...
+
+
+class CorrectionTerm(Protocol):
+    """A declared term of the calibration file (see the module docstring)."""
+
+    kind: ClassVar[str]
+
+    def new_state(self) -> Any: ...
+
+    def contribution(self, cal: BaseModel, inputs: TermInputs, state: Any) -> np.ndarray: ...
+
+    def to_dict(self) -> dict[str, Any]: ...
+
 
 CORRECTION_TYPES: dict[str, type] = {}
 
 
-def correction_from_dict(d: Any) -> Any:
+def correction_from_dict(d: Any) -> CorrectionTerm:
     """Build a correction term from its YAML mapping; unknown kinds are refused."""
     if not isinstance(d, dict) or "kind" not in d:
         raise ValueError("a correction term must be a mapping with a 'kind'")
@@ -200,11 +231,11 @@ class TiaInverseFilter(_Base):
         state["prev"], state["t"] = counts[-1].copy(), float(t_s[-1])
         return out
 
-    def contribution(self, cal: Any, inputs: dict, state: dict | None) -> np.ndarray:
+    def contribution(self, cal: BaseModel, inputs: TermInputs, state: dict | None) -> np.ndarray:
         if state is None:
             state = self.new_state()
-        counts = np.column_stack([inputs["ref"], inputs["xyz"]])
-        corr = self.correct_counts(counts, inputs["t_s"], state)
+        counts = np.column_stack([inputs.ref, inputs.xyz])
+        corr = self.correct_counts(counts, inputs.t_s, state)
         return _replace_psi(cal, inputs, corr[:, 0], corr[:, 1:])
 
 
@@ -240,9 +271,9 @@ class ReferenceLowpass(_Base):
     def new_state(self) -> dict:
         return {}
 
-    def contribution(self, cal: Any, inputs: dict, state: dict | None) -> np.ndarray:
-        ref_f = first_order_lowpass(inputs["ref"], inputs["t_s"], self.time_constant_s, {} if state is None else state)
-        return _replace_psi(cal, inputs, ref_f, inputs["xyz"])
+    def contribution(self, cal: BaseModel, inputs: TermInputs, state: dict | None) -> np.ndarray:
+        ref_f = first_order_lowpass(inputs.ref, inputs.t_s, self.time_constant_s, {} if state is None else state)
+        return _replace_psi(cal, inputs, ref_f, inputs.xyz)
 
 
 @_register
@@ -270,8 +301,8 @@ class ReferenceDarkOffset(_Base):
     def to_dict(self) -> dict[str, Any]:
         return {"kind": self.kind, "ref_offset_counts": self.ref_offset_counts}
 
-    def contribution(self, cal: Any, inputs: dict, state: Any) -> np.ndarray:
-        return _replace_psi(cal, inputs, inputs["ref"] - self.ref_offset_counts, inputs["xyz"])
+    def contribution(self, cal: BaseModel, inputs: TermInputs, state: Any) -> np.ndarray:
+        return _replace_psi(cal, inputs, inputs.ref - self.ref_offset_counts, inputs.xyz)
 
 
 @_register
@@ -311,20 +342,20 @@ class ThermalLag(_Base):
         lp = first_order_lowpass(temp_c, t_s, s, state)
         return temp_c + (abs(self.tau_s) / s) * (temp_c - lp)
 
-    def contribution(self, cal: Any, inputs: dict, state: dict | None) -> np.ndarray:
-        t_eff = self.effective_temperature(inputs["temp_c"], inputs["t_s"], state if state is not None else {})
-        before = cal.base_acceleration(inputs["psi"], inputs["temp_c"])
-        after = cal.base_acceleration(inputs["psi"], t_eff)
-        inputs["temp_c"] = t_eff
+    def contribution(self, cal: BaseModel, inputs: TermInputs, state: dict | None) -> np.ndarray:
+        t_eff = self.effective_temperature(inputs.temp_c, inputs.t_s, state if state is not None else {})
+        before = cal.base_acceleration(inputs.psi, inputs.temp_c)
+        after = cal.base_acceleration(inputs.psi, t_eff)
+        inputs.temp_c = t_eff
         return after - before
 
 
-def _replace_psi(cal: Any, inputs: dict, ref: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+def _replace_psi(cal: BaseModel, inputs: TermInputs, ref: np.ndarray, xyz: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         psi_new = np.asarray(xyz, float) / np.where(np.asarray(ref) > 0, ref, np.nan)[:, None]
-    before = cal.base_acceleration(inputs["psi"], inputs["temp_c"])
-    after = cal.base_acceleration(psi_new, inputs["temp_c"])
-    inputs["ref"], inputs["xyz"], inputs["psi"] = np.asarray(ref, float), np.asarray(xyz, float), psi_new
+    before = cal.base_acceleration(inputs.psi, inputs.temp_c)
+    after = cal.base_acceleration(psi_new, inputs.temp_c)
+    inputs.ref, inputs.xyz, inputs.psi = np.asarray(ref, float), np.asarray(xyz, float), psi_new
     return after - before
 
 
@@ -362,8 +393,8 @@ class ChainDynamics(_Base):
         """(3,) low-frequency group delay of the x, y, z outputs (s)."""
         return self.delay_s + self.tia_tau_s[1:]
 
-    def contribution(self, cal: Any, inputs: dict, state: Any) -> np.ndarray:
-        return np.zeros((np.asarray(inputs["ref"]).shape[0], 3))
+    def contribution(self, cal: BaseModel, inputs: TermInputs, state: Any) -> np.ndarray:
+        return np.zeros((np.asarray(inputs.ref).shape[0], 3))
 
 
 # ----------------------------------------------------------------------------- additive terms
@@ -396,8 +427,8 @@ class SpectralNonlinearity(_Base):
         return {"kind": self.kind, "psi0": _lst(self.psi0), "coeff_mps2": _lst(self.coeff_mps2),
                 "features": ["xx", "yy", "zz", "xy", "xz", "yz"]}
 
-    def contribution(self, cal: Any, inputs: dict, state: Any) -> np.ndarray:
-        return quadratic_features(inputs["psi"], self.psi0) @ self.coeff_mps2.T
+    def contribution(self, cal: BaseModel, inputs: TermInputs, state: Any) -> np.ndarray:
+        return quadratic_features(inputs.psi, self.psi0) @ self.coeff_mps2.T
 
 
 @_register
@@ -421,8 +452,8 @@ class ChannelOffset(_Base):
     def to_dict(self) -> dict[str, Any]:
         return {"kind": self.kind, "coeff_mps2_counts": _lst(self.coeff_mps2_counts)}
 
-    def contribution(self, cal: Any, inputs: dict, state: Any) -> np.ndarray:
-        ref = np.asarray(inputs["ref"], float)
+    def contribution(self, cal: BaseModel, inputs: TermInputs, state: Any) -> np.ndarray:
+        ref = np.asarray(inputs.ref, float)
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = 1.0 / np.where(ref > 0, ref, np.nan)
         return inv[:, None] * self.coeff_mps2_counts[None, :]
@@ -461,8 +492,8 @@ class TimeDrift(_Base):
         dt = np.asarray(t_s, float) - t0_s
         return np.column_stack([dt, np.exp(-dt / tau_s)])
 
-    def contribution(self, cal: Any, inputs: dict, state: Any) -> np.ndarray:
-        f = self.features(inputs["t_s"], self.warmup_tau_s, self.t0_s)
+    def contribution(self, cal: BaseModel, inputs: TermInputs, state: Any) -> np.ndarray:
+        f = self.features(inputs.t_s, self.warmup_tau_s, self.t0_s)
         return f[:, [0]] * self.creep_mps2_per_s + f[:, [1]] * self.warmup_mps2
 
 
@@ -523,7 +554,7 @@ class ThermalHysteresis(_Base):
             state["branch"] = float(out[-1])
         return out
 
-    def contribution(self, cal: Any, inputs: dict, state: dict | None) -> np.ndarray:
+    def contribution(self, cal: BaseModel, inputs: TermInputs, state: dict | None) -> np.ndarray:
         st = state if state is not None else self.new_state()
-        s = self.branch(inputs["temp_c"], inputs["t_s"], self.rate_tau_s, self.deadband_c_per_s, st)
+        s = self.branch(inputs.temp_c, inputs.t_s, self.rate_tau_s, self.deadband_c_per_s, st)
         return s[:, None] * self.half_gap_mps2[None, :]

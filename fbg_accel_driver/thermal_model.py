@@ -33,6 +33,7 @@ import numpy as np
 import yaml
 
 from .chain_compensation import ChainDynamics
+from .correction_terms import CorrectionTerm, TermInputs, correction_from_dict
 from .sensor_constants import FULL_SCALE_MPS2
 
 FORMAT_NAME = "fbg_accel_calibration"
@@ -82,7 +83,7 @@ class ThermalCalibration:
     noise_sigma_mps2: np.ndarray = field(default_factory=lambda: np.full(3, 0.01))
     created: str = ""
     fit: dict[str, Any] = field(default_factory=dict)
-    corrections: list[Any] = field(default_factory=list)
+    corrections: list[CorrectionTerm] = field(default_factory=list)
     notes: str = ""  # free text for people; the only place a file may carry prose
     # noise model (fbg_accel_driver.noise_model): variance fraction of the first-order part and its time
     # constant in s, per axis; zeros = white noise
@@ -156,7 +157,7 @@ class ThermalCalibration:
                        state: list[Any]) -> np.ndarray:
         """Sum of the correction terms' contributions (N, 3) in m/s^2 (zeros without terms); ``state`` as in apply_counts."""
         out = np.zeros_like(psi)
-        inputs = {"ref": ref, "xyz": xyz, "psi": psi, "temp_c": temp_c, "t_s": np.asarray(t_s, float)}
+        inputs = TermInputs(ref, xyz, psi, temp_c, np.asarray(t_s, float))
         for term, term_state in zip(self.corrections, state, strict=True):
             out = out + term.contribution(self, inputs, term_state)
         return out
@@ -284,7 +285,6 @@ class ThermalCalibration:
         if not isinstance(fit, dict):
             raise fail(f"'fit' must be a mapping of figures, got {type(fit).__name__}")
         dynamic = ChainDynamics.from_dict(d["dynamic"], fail) if "dynamic" in d else None
-        from .correction_terms import correction_from_dict  # local: keeps the import graph flat
 
         corrections_raw = d.get("corrections") or []
         if not isinstance(corrections_raw, list):

@@ -88,8 +88,8 @@ def test_stateful_correction_state_persists_across_chunks(monkeypatch: pytest.Mo
         def new_state(self) -> dict:
             return {"n": 0}
 
-        def contribution(self, cal: Any, inputs: dict, state: dict) -> np.ndarray:
-            n = inputs["ref"].shape[0]
+        def contribution(self, cal: Any, inputs: correction_terms.TermInputs, state: dict) -> np.ndarray:
+            n = inputs.ref.shape[0]
             idx = state["n"] + np.arange(n)
             state["n"] += n
             return np.repeat(idx[:, None] * 1e-3, 3, axis=1)

@@ -221,8 +221,8 @@ class _CountingOffset:
     def new_state(self) -> dict[str, int]:
         return {"seen": 0}
 
-    def contribution(self, cal: ThermalCalibration, inputs: dict[str, np.ndarray], state: dict[str, int]) -> np.ndarray:
-        n = len(inputs["ref"])
+    def contribution(self, cal: ThermalCalibration, inputs: correction_terms.TermInputs, state: dict[str, int]) -> np.ndarray:
+        n = len(inputs.ref)
         out = np.zeros((n, 3))
         out[:, 0] = self.offset * (state["seen"] + np.arange(n))
         state["seen"] += n
