@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -84,6 +84,69 @@ def _lowpass(x: np.ndarray, tau_s: float, dt_s: float, y_prev: float, x_prev: fl
     else:
         y = first_order_filter(x, a, -math.expm1(-dt_s / tau_s), y_prev)
     return y, float(y[-1]), float(x[-1])
+
+
+class _TableMotion(NamedTuple):
+    """Table stage of a chunk: readings at t, and what the seismic mass feels (arrays over the samples)."""
+
+    psi_deg: np.ndarray  # table angle readings at t (deg)
+    theta_deg: np.ndarray
+    pose_id: np.ndarray
+    in_motion: np.ndarray
+    visit: np.ndarray
+    time_at_pose_s: np.ndarray
+    gref_mps2: np.ndarray  # (N, 3) table reference specific force at the reading (m/s^2)
+    accel_true_mps2: np.ndarray  # (N, 3) true specific force at t, sensor frame (m/s^2)
+    felt_mps2: np.ndarray  # (N, 3) felt by the mass: at t - delay, dynamic parts through the resonance (m/s^2)
+    psi_felt_deg: np.ndarray  # inner angle at t - delay (deg): drives the cable torque
+
+
+class _Slide(NamedTuple):
+    """True linear-slide motion along its direction (arrays over the samples; segment -1 = at rest or no slide)."""
+
+    displacement_m: np.ndarray
+    velocity_mps: np.ndarray
+    accel_mps2: np.ndarray
+    segment: np.ndarray
+
+
+class _Temperatures(NamedTuple):
+    """Chamber, optics and AHT10 die temperatures (degC) and the optics' offset from the reference temperature."""
+
+    chamber_c: np.ndarray
+    optics_c: np.ndarray
+    sensor_c: np.ndarray
+    delta_ref_c: np.ndarray  # optics - thermal.reference_temperature_c
+
+
+class _TemperatureWord(NamedTuple):
+    """Temperature field of the frames: temp_cc (0.01 degC) and the TEMP_PRESENT / TEMP_VALID flags."""
+
+    temp_cc: np.ndarray
+    present: np.ndarray
+    valid: np.ndarray
+
+
+class _Framing(NamedTuple):
+    """Board side of the frames: board clock (s, us), sequence, status bits, sent flag, first sample after a reset."""
+
+    board_t_s: np.ndarray
+    t_us: np.ndarray
+    seq: np.ndarray
+    status: np.ndarray
+    sent: np.ndarray
+    reset_start: np.ndarray
+
+
+class _WireFaults(NamedTuple):
+    """Wire faults of a chunk: per-sample arrays and, by index in the chunk, the random details of each fault."""
+
+    code: np.ndarray  # fz.DROP, ... (0 = none)
+    garbage_before: np.ndarray  # bytes of garbage before the sample's frame
+    trunc_len_per_sample: np.ndarray  # nominal truncation length (bytes; the wire guards may shorten it)
+    flip_bit: dict[int, int]
+    trunc_len: dict[int, int]
+    garbage: dict[int, bytes]
 
 
 @dataclass
@@ -441,26 +504,69 @@ class BoardSimulator:
 
     _generated_upto = -1
 
+    def _rng(self, ci: int, stream: int) -> np.random.Generator:
+        """Random stream ``stream`` of chunk ``ci`` (chunk index 0 of the seed holds the set-up draws)."""
+        return np.random.default_rng([self.seed, ci + 1, stream])
+
+    @staticmethod
+    def _inside(t: np.ndarray, wdw: dict[str, Any]) -> np.ndarray:
+        """Samples at ``t`` (s) inside the fault window ``{start_s, duration_s}`` (start included, end excluded)."""
+        return (t >= float(wdw["start_s"])) & (t < float(wdw["start_s"]) + float(wdw["duration_s"]))
+
+    def _codes(self, x: np.ndarray) -> np.ndarray:
+        """ADC codes (int64, 0..adc_max) of counts ``x`` before the integer conversion."""
+        return np.clip(np.round(x), 0, self.adc_max).astype(np.int64)
+
     def _generate(self, ci: int) -> _Chunk:
+        """Chunk ``ci`` through the signal chain of the module docstring, one stage per physical effect. Each random
+        stream ``(seed, chunk, stream)`` feeds a single stage, which draws from it in a fixed order."""
         if ci != self._generated_upto + 1:
             raise RuntimeError("chunks must be generated in order")
         self._generated_upto = ci
-        c = self.cfg
-        eff = c.get("effects")
-        n = CHUNK
         k = np.arange(ci * CHUNK, (ci + 1) * CHUNK, dtype=np.int64)
         t = k * self.dt_true
-        rng_noise = np.random.default_rng([self.seed, ci + 1, _STREAM_NOISE])
-        rng_src = np.random.default_rng([self.seed, ci + 1, _STREAM_SOURCE])
-        rng_aht = np.random.default_rng([self.seed, ci + 1, _STREAM_AHT])
-        rng_wire = np.random.default_rng([self.seed, ci + 1, _STREAM_WIRE])
-        rng_ref = np.random.default_rng([self.seed, ci + 1, _STREAM_REFNOISE])
+        delay = self.cfg.scale("channel_delay") * float(self.cfg.get("effects.channel_delay.delay_s"))
+        table = self._table_motion(t, delay)
+        slide, table = self._linear_slide(t, delay, table)
+        temps = self._temperatures(t)
+        bias = self._axis_biases(t, temps.optics_c, table.psi_felt_deg)
+        u = self._axis_inputs(t, delay, table.felt_mps2, bias)
+        resp = self._optical_response(u, temps.delta_ref_c)
+        signal = self._source_and_gains(t, temps.delta_ref_c, resp, self._rng(ci, _STREAM_SOURCE))
+        filtered = self._tia_lowpass(signal)
+        filtered = self._output_noise(filtered, self._rng(ci, _STREAM_NOISE), self._rng(ci, _STREAM_REFNOISE))
+        counts_f, counts = self._adc(filtered, t)
+        aux_f = self._aux_counts(t, self.cfg.get("effects"), self._rng(ci, _STREAM_AUX))
+        reading = self._aht10_reading(t, temps.sensor_c, self._rng(ci, _STREAM_AHT))
+        word = self._temperature_word(t, reading)
+        board = self._board_framing(k, t, word.present, word.valid)
+        wire = self._wire_faults(ci, self._rng(ci, _STREAM_WIRE))
+        arrays = {
+            "t_s": t, "board_t_s": board.board_t_s, "pose_id": table.pose_id.astype(np.int64), "in_motion": table.in_motion,
+            "visit": table.visit.astype(np.int64), "time_at_pose_s": table.time_at_pose_s,
+            "psi_deg": table.psi_deg, "theta_deg": table.theta_deg, "accel_true_mps2": table.accel_true_mps2,
+            "gref_mps2": table.gref_mps2,
+            "temp_chamber_c": temps.chamber_c, "temp_optics_c": temps.optics_c, "temp_sensor_true_c": temps.sensor_c,
+            "temp_sensor_c": reading, "temp_valid": word.valid, "temp_present": word.present,
+            "counts": counts, "counts_float": counts_f, "saturated": counts >= self.adc_max,
+            "seq": board.seq.astype(np.int64), "t_us": board.t_us, "status": board.status, "temp_cc": word.temp_cc,
+            "reset_start": board.reset_start,
+            "sent": board.sent, "wire_fault": wire.code, "garbage_before": wire.garbage_before,
+            "trunc_len": wire.trunc_len_per_sample,
+            "slide_displacement_m": slide.displacement_m, "slide_velocity_mps": slide.velocity_mps,
+            "slide_accel_mps2": slide.accel_mps2, "slide_segment": slide.segment, "aux": self._codes(aux_f), "aux_float": aux_f,
+        }
+        return _Chunk(arrays, wire.flip_bit, wire.trunc_len, wire.garbage)
 
+    # ------------------------------------------------------------------ stages of the signal chain
+    def _table_motion(self, t: np.ndarray, delay: float) -> _TableMotion:
+        """Table angle readings at ``t`` (s, deg) and the specific force (m/s^2, sensor frame) the seismic mass feels
+        ``delay`` s later (channel_delay effect, ASSUMPTION): gravity through the table geometry and the mount rotation
+        plus the vibration sines, whose dynamic part goes through the mechanical resonance (facts; paper 2, 3.1)."""
         # --- table (reading at t; what the sensor feels at t - delay: channel_delay effect)
         psi, theta, pose_id, moving, visit = self.trajectory.evaluate(t)
         arrival = self.trajectory.arrival_time(t)
         gref = table_specific_force(psi, theta, self.gravity)
-        delay = float(eff["channel_delay"]["scale"]) * float(eff["channel_delay"]["delay_s"])
         vib_true = vibration(t, self.sines)
         if delay != 0.0:
             psi_d, theta_d, *_ = self.trajectory.evaluate(t - delay)
@@ -471,71 +577,110 @@ class BoardSimulator:
         vib_phys = vibration(t - delay, self.sines, self.resonance) if delay != 0.0 or self.resonance else vib_true
         accel_true = gref @ self.R_mount.T + vib_true
         f_phys = f_phys_table @ self.R_mount.T + vib_phys
-        # --- linear slide (seed 2, section 2): true motion at t (truth, reference transducer), felt at t - delay
-        if self.slide is not None:
-            sl_x, sl_v, sl_a = self.slide.kinematics(t)
-            accel_true = accel_true + sl_a[:, None] * self.slide.direction[None, :]
-            f_phys = f_phys + self.slide.kinematics(t - delay, self.resonance)[2][:, None] * self.slide.direction[None, :]
-            sl_seg = self.slide.segment_index(t)
-        else:
-            sl_x = sl_v = sl_a = np.zeros(n)
-            sl_seg = np.full(n, -1, dtype=np.int64)
+        return _TableMotion(psi, theta, pose_id, moving, visit, arrival, gref, accel_true, f_phys, psi_d)
 
+    def _linear_slide(self, t: np.ndarray, delay: float, table: _TableMotion) -> tuple[_Slide, _TableMotion]:
+        """Linear slide of a dynamic calibration (seed 2, section 2): its true motion at ``t`` along the slide direction
+        (m, m/s, m/s^2; truth and reference transducer) and ``table`` with the slide's acceleration added, true at ``t``
+        and felt at ``t - delay`` through the resonance (m/s^2). Without a slide: zeros, segment -1, ``table`` as is."""
+        # --- linear slide (seed 2, section 2): true motion at t (truth, reference transducer), felt at t - delay
+        if self.slide is None:
+            zero = np.zeros(t.shape[0])
+            return _Slide(zero, zero, zero, np.full(t.shape[0], -1, dtype=np.int64)), table
+        sl_x, sl_v, sl_a = self.slide.kinematics(t)
+        accel_true = table.accel_true_mps2 + sl_a[:, None] * self.slide.direction[None, :]
+        felt = table.felt_mps2 + self.slide.kinematics(t - delay, self.resonance)[2][:, None] * self.slide.direction[None, :]
+        return (_Slide(sl_x, sl_v, sl_a, self.slide.segment_index(t)),
+                table._replace(accel_true_mps2=accel_true, felt_mps2=felt))
+
+    def _temperatures(self, t: np.ndarray) -> _Temperatures:
+        """Chamber profile -> optics (first-order thermal inertia, paper 4.4: tau ~ 5000 s) -> AHT10 die (thermal_lag
+        effect, paper 3.5; tau ASSUMPTION), degC at ``t`` (s); ``delta_ref_c`` = optics - reference temperature (paper 4.3).
+        The optics and die filter states carry from chunk to chunk on the object."""
         # --- temperatures: chamber -> optics (thermal inertia, paper 4.4) -> AHT10 die (thermal_lag)
+        c = self.cfg
         T_ch = self.chamber(t)
         a_opt = math.exp(-self.dt_true / float(c.get("thermal.optics_time_constant_s")))
         T_opt, self._T_opt = _first_order(T_ch, a_opt, self._T_opt)
-        lag = float(eff["thermal_lag"]["scale"]) * float(eff["thermal_lag"]["time_constant_s"])
+        thermal_lag = c.get("effects.thermal_lag")
+        lag = float(thermal_lag["scale"]) * float(thermal_lag["time_constant_s"])
         a_lag = math.exp(-self.dt_true / lag) if lag > 0 else 0.0
         T_sen, self._T_sen = _first_order(T_opt, a_lag, self._T_sen)
-        dT = T_opt - self.T_ref
+        return _Temperatures(T_ch, T_opt, T_sen, T_opt - self.T_ref)
 
+    def _axis_biases(self, t: np.ndarray, T_opt: np.ndarray, psi_felt_deg: np.ndarray) -> np.ndarray:
+        """Equivalent acceleration biases (N, 3) on the axis inputs, m/s^2: time drift (warm-up and creep of the pair
+        separation, paper 3.4/4.4), thermal hysteresis (bond/mount stress; play operator on the optics temperature
+        ``T_opt``, degC) and the unmodelled cable torque ~ sin(harmonic psi) (fibre pigtail drag at the felt inner angle
+        ``psi_felt_deg``); amplitudes ASSUMPTION (config/sim_default.yaml)."""
         # --- equivalent acceleration biases on the axis inputs (m/s^2)
-        bias = np.zeros((n, 3))
+        eff = self.cfg.get("effects")
+        bias = np.zeros((t.shape[0], 3))
         td = eff["time_drift"]
         if float(td["scale"]) != 0.0:
             w = np.asarray(td["warmup_amplitude_mps2"], float) * -np.expm1(-t / float(td["warmup_time_constant_s"]))[:, None]
             bias += float(td["scale"]) * (w + np.asarray(td["creep_mps2_per_h"], float) * (t / 3600.0)[:, None])
         hy = eff["thermal_hysteresis"]
         if float(hy["scale"]) != 0.0:
-            width = float(hy["play_width_c"])
-            u_play = np.empty(n)
-            p = self._play
-            half = 0.5 * width
-            for i, temp in enumerate(T_opt.tolist()):
-                if temp - p > half:
-                    p = temp - half
-                elif p - temp > half:
-                    p = temp + half
-                u_play[i] = p
-            self._play = p
-            branch = (T_opt - u_play) / width if width > 0 else np.zeros(n)  # in [-1/2, 1/2]
+            branch = self._hysteresis_branch(T_opt, float(hy["play_width_c"]))
             bias += float(hy["scale"]) * branch[:, None] * np.asarray(hy["amplitude_mps2"], float)
         ct = eff["unmodelled_cable_torque"]
         if float(ct["scale"]) != 0.0:
-            ang = np.radians(float(ct["harmonic"]) * psi_d + float(ct["phase_deg"]))
+            ang = np.radians(float(ct["harmonic"]) * psi_felt_deg + float(ct["phase_deg"]))
             bias += float(ct["scale"]) * np.sin(ang)[:, None] * np.asarray(ct["amplitude_mps2"], float)
-        u = f_phys @ self.A.T + bias
+        return bias
+
+    def _hysteresis_branch(self, T_opt: np.ndarray, width: float) -> np.ndarray:
+        """Thermal hysteresis branch in [-1/2, 1/2]: (T_opt - play(T_opt)) / width, the play operator (backlash of
+        ``width`` degC) keeping its output in ``self._play`` from chunk to chunk."""
+        u_play = np.empty(T_opt.shape[0])
+        p = self._play
+        half = 0.5 * width
+        for i, temp in enumerate(T_opt.tolist()):
+            if temp - p > half:
+                p = temp - half
+            elif p - temp > half:
+                p = temp + half
+            u_play[i] = p
+        self._play = p
+        return (T_opt - u_play) / width if width > 0 else np.zeros(T_opt.shape[0])  # in [-1/2, 1/2]
+
+    def _axis_inputs(self, t: np.ndarray, delay: float, felt: np.ndarray, bias: np.ndarray) -> np.ndarray:
+        """Axis inputs u = A f + bias (N, 3), m/s^2, with A the cross-axis coupling derived from the published
+        calibration matrix (paper eq. 31a). With a channel skew (board.adc_channel_skew_us), the ESP32 one-shot
+        sequential conversion (ESP-IDF adc_oneshot_read) makes each axis see its own, later instant."""
+        u = felt @ self.A.T + bias
         if self.skew_s > 0.0:
             # ESP32 one-shot sequential conversion: axis channel j (x, y, z = 1, 2, 3 after ref) is converted
             # j skews after t_us, so it sees the input of that later instant (an LTI chain commutes with the shift).
             for j in range(3):
                 u[:, j] = self._sensed_force(t - delay + (j + 1) * self.skew_s) @ self.A[j] + bias[:, j]
+        return u
 
+    def _optical_response(self, u: np.ndarray, dT: np.ndarray) -> np.ndarray:
+        """Relative optical response (N, 3) of the axis pairs to the inputs ``u`` (m/s^2): pair separation
+        d = d0 - S u (nm; S = 112 pm/g, paper eq. 21) + thermal mismatch (fbg_pair_thermal_mismatch, paper 4.4; ``dT``
+        degC) through the super-Gaussian spectral overlap (paper eq. 13, 22; spectral_nonlinearity 0 = linearised)."""
         # --- optics: pair separation and spectral overlap (paper eq. 13, 22)
+        eff = self.cfg.get("effects")
         mm = eff["fbg_pair_thermal_mismatch"]
         d_extra = float(mm["scale"]) * dT[:, None] * np.asarray(mm["pm_per_c"], float)[None, :] * 1e-3
-        resp = relative_response(u, self.d0, self.S, self.pair, float(eff["spectral_nonlinearity"]["scale"]), d_extra,
+        return relative_response(u, self.d0, self.S, self.pair, float(eff["spectral_nonlinearity"]["scale"]), d_extra,
                                  self.rest_log_slope)
 
+    def _source_and_gains(self, t: np.ndarray, dT: np.ndarray, resp: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Optical signal (N, 4) in ADC counts before the TIA: rest counts x SLD power (tempco, paper 3.3, 3.6.2;
+        slow wander drawn from ``rng``, the chunk's source stream; source_dropout windows) x chain gains (coupler and
+        photodetector tempcos, SLD wavelength drift relative to the gratings: paper 3.6.2, 4.5) x the axes' ``resp``."""
         # --- source power and chain gains (paper 3.3, 3.6.2)
+        eff = self.cfg.get("effects")
+        n = t.shape[0]
         sp = eff["source_power_thermal"]
         p_src = 1.0 + float(sp["scale"]) * float(sp["tempco_per_c"]) * dT
-        wander = self._wander_bank.step(rng_src, n)[:, 0] * float(eff["source_power_wander"]["scale"])
+        wander = self._wander_bank.step(rng, n)[:, 0] * float(eff["source_power_wander"]["scale"])
         p_src = p_src * (1.0 + wander)
         for wdw in self.windows["source_dropout"]:
-            inside = (t >= float(wdw["start_s"])) & (t < float(wdw["start_s"]) + float(wdw["duration_s"]))
-            p_src = np.where(inside, p_src * float(wdw.get("level", 0.0)), p_src)
+            p_src = np.where(self._inside(t, wdw), p_src * float(wdw.get("level", 0.0)), p_src)
         gain = np.ones((n, 4))
         for name in ("coupler_thermal", "photodetector_thermal"):
             e = eff[name]
@@ -546,9 +691,13 @@ class BoardSimulator:
         gain[:, 1:] *= source_factor(off, self.sigma_g, self.sigma_s) / self.src0
         signal = self.rest_counts[None, :] * p_src[:, None] * gain
         signal[:, 1:] *= resp
+        return signal
 
+    def _tia_lowpass(self, signal: np.ndarray) -> np.ndarray:
+        """TIA first-order low-pass (N, 4) per channel, counts in and out (paper 3.5, Table 1; cut-offs in
+        electronics.tia_cutoff_hz, time constants scaled by the tia_lowpass effect). Filter states stay on the object."""
         # --- TIA first-order low-pass per channel (paper 3.5, Table 1), scaled by the tia_lowpass effect
-        tia_scale = float(eff["tia_lowpass"]["scale"])
+        tia_scale = self.cfg.scale("tia_lowpass")
         if self._tia_state is None:
             self._tia_state = signal[0].copy()
             self._tia_xprev = signal[0].copy()
@@ -565,35 +714,49 @@ class BoardSimulator:
             y, st = _first_order(signal[:, j], alpha, self._tia_state[j:j + 1])
             filtered[:, j] = y
             self._tia_state[j] = st[0]
+        return filtered
 
+    def _output_noise(self, filtered: np.ndarray, rng_noise: np.random.Generator,
+                      rng_ref: np.random.Generator) -> np.ndarray:
+        """``filtered`` (N, 4 counts) with noise added in place: the axes' white (VRW) and bias-instability noise of paper
+        Table 2, defined on the calibrated output (m/s^2) and injected through the small-signal slope (``rng_noise``:
+        white, then bias instability), and the reference channel's ADC read noise (counts rms; ``rng_ref``)."""
         # --- noise (paper Table 2), defined on the calibrated output, injected through the small-signal slope
+        n = filtered.shape[0]
         n_a = self.white_scale * self._white_bank.step(rng_noise, n)
         bi = self._bi_bank.step(rng_noise, n).reshape(n, 3, -1).sum(axis=2)
         n_a = n_a + self.bi_scale * bi
         filtered[:, 1:] += (n_a @ self.A.T) * self.counts_per_mps2[None, :]
         if self.ref_noise > 0:
             filtered[:, 0] += rng_ref.standard_normal(n) * self.ref_noise
+        return filtered
 
+    def _adc(self, filtered: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Dark offsets (detector dark current + ESP32 ADC zero offset, counts; ASSUMPTION) and the ESP32 12-bit ADC
+        (paper 3.5): adc_saturation windows force full scale, clip to 0..adc_max, round when adc_quantisation is on.
+        Returns (counts before the integer conversion, codes), both (N, 4)."""
         # --- dark offsets + ADC
-        do = eff["reference_dark_offset"]
-        filtered += float(do["scale"]) * np.asarray(do["counts"], float)[None, :]
-        counts_f = filtered.copy()
+        do = self.cfg.get("effects.reference_dark_offset")
+        counts_f = filtered + float(do["scale"]) * np.asarray(do["counts"], float)[None, :]
         for wdw in self.windows["adc_saturation"]:
-            inside = (t >= float(wdw["start_s"])) & (t < float(wdw["start_s"]) + float(wdw["duration_s"]))
+            inside = self._inside(t, wdw)
             for chn in wdw.get("channels", ["x"]):
                 counts_f[inside, CHANNELS.index(chn)] = float(self.adc_max)
         counts_f = np.clip(counts_f, 0.0, float(self.adc_max))
-        if float(eff["adc_quantisation"]["scale"]) != 0.0:
+        if self.cfg.scale("adc_quantisation") != 0.0:
             counts_f = np.round(counts_f)
-        counts = np.clip(np.round(counts_f), 0, self.adc_max).astype(np.int64)
-        aux_f = self._aux_counts(t, eff, np.random.default_rng([self.seed, ci + 1, _STREAM_AUX]))
-        aux = np.clip(np.round(aux_f), 0, self.adc_max).astype(np.int64)
+        return counts_f, self._codes(counts_f)
 
+    def _aht10_reading(self, t: np.ndarray, T_sen: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """AHT10 reading (degC) of the die temperature ``T_sen``: sample-and-hold at aht10.read_rate_hz (ASSUMPTION),
+        per-device offset (accuracy +-0.3 degC, paper 3.5) + noise (AHT10 datasheet repeatability; drawn from ``rng``)
+        and 0.01 degC resolution (paper 3.5, AHT10 datasheet) when aht10_error is on. The hold stays on the object."""
         # --- AHT10 reading: sample-and-hold at read_rate_hz, offset (accuracy) + noise, 0.01 degC resolution
-        aht = c.get("aht10")
-        ae = float(eff["aht10_error"]["scale"])
+        aht = self.cfg.get("aht10")
+        ae = self.cfg.scale("aht10_error")
+        n = t.shape[0]
         r_idx = np.floor(t * float(aht["read_rate_hz"])).astype(np.int64)
-        noise_aht = rng_aht.standard_normal(n) * float(aht["noise_c"]) * ae
+        noise_aht = rng.standard_normal(n) * float(aht["noise_c"]) * ae
         raw = T_sen + ae * self.aht_offset + noise_aht
         prev_idx = np.concatenate([[self._aht_last[0]], r_idx[:-1]])
         change = r_idx != prev_idx
@@ -604,23 +767,32 @@ class BoardSimulator:
         if ae > 0:
             res = float(aht["resolution_c"])
             reading = np.round(reading / res) * res
+        return reading
+
+    def _temperature_word(self, t: np.ndarray, reading: np.ndarray) -> _TemperatureWord:
+        """Temperature field of the frames (docs/protocol.md): ``reading`` (degC) in 0.01 degC, TEMP_PRESENT and
+        TEMP_VALID per sample (faults temperature_absent, temperature_invalid). Invalid: the firmware keeps sending the
+        last valid value (kept on the object across chunks); absent: 0."""
+        n = t.shape[0]
         temp_cc = np.round(reading * 100.0).astype(np.int64)
         present = np.full(n, not self.temp_absent_from_boot)
         valid = present.copy()
         for wdw in self.windows["temperature_absent"]:
-            inside = (t >= float(wdw["start_s"])) & (t < float(wdw["start_s"]) + float(wdw["duration_s"]))
-            present &= ~inside
+            present &= ~self._inside(t, wdw)
         valid &= present
         for wdw in self.windows["temperature_invalid"]:
-            inside = (t >= float(wdw["start_s"])) & (t < float(wdw["start_s"]) + float(wdw["duration_s"]))
-            valid &= ~inside
+            valid &= ~self._inside(t, wdw)
         # invalid: the firmware keeps sending the last good value; absent: 0
         vpos = np.maximum.accumulate(np.where(valid, np.arange(n), -1))
         held_cc = np.where(vpos >= 0, temp_cc[np.maximum(vpos, 0)], self._last_valid_cc)
         if valid.any():
             self._last_valid_cc = int(temp_cc[np.flatnonzero(valid)[-1]])
-        temp_cc = np.where(valid, temp_cc, np.where(present, held_cc, 0))
+        return _TemperatureWord(np.where(valid, temp_cc, np.where(present, held_cc, 0)), present, valid)
 
+    def _board_framing(self, k: np.ndarray, t: np.ndarray, present: np.ndarray, valid: np.ndarray) -> _Framing:
+        """Board side of each sample ``k`` (true time ``t``, s): epoch between resets (faults.resets), sequence number,
+        board clock t_us (crystal error board.clock_ppm; restarts at each reset), status bits (docs/protocol.md) and
+        whether it is sent at all (not during a boot gap, board.boot_gap_s, nor a disconnect)."""
         # --- board: epochs (resets), sequence, clock, status, sent
         epoch = np.searchsorted(self.epoch_start, k, side="right") - 1
         start = self.epoch_start[epoch]
@@ -629,7 +801,7 @@ class BoardSimulator:
         t_epoch0 = reset_t[epoch]
         board_t = np.where(epoch > 0, (t - t_epoch0) * (1.0 + self.clock_ppm * 1e-6), k / self.rate_hz)
         t_us = np.round(board_t * 1e6).astype(np.int64)
-        sent = np.ones(n, bool)
+        sent = np.ones(k.shape[0], bool)
         for r in self.reset_k:
             sent &= ~((k >= r) & (k < r + self.gap_n))
         for a0, b0 in self._disc_k:
@@ -637,11 +809,15 @@ class BoardSimulator:
         status = np.where(present, int(Status.TEMP_PRESENT), 0) | np.where(valid, int(Status.TEMP_VALID), 0)
         status = status | np.where(k == start, int(Status.BOOT), 0)
         for wdw in self.windows["adc_overrun"]:
-            inside = (t >= float(wdw["start_s"])) & (t < float(wdw["start_s"]) + float(wdw["duration_s"]))
-            status = status | np.where(inside, int(Status.ADC_OVERRUN), 0)
-        status = status.astype(np.int64)
+            status = status | np.where(self._inside(t, wdw), int(Status.ADC_OVERRUN), 0)
+        return _Framing(board_t, t_us, seq, status.astype(np.int64), sent, (k == start) & (epoch > 0))
 
+    def _wire_faults(self, ci: int, rng: np.random.Generator) -> _WireFaults:
+        """Wire faults scheduled (faults.schedule_faults) in chunk ``ci``, per sample: fault code, garbage burst length
+        (bytes) before it and nominal truncation length (bytes); the bit to flip, truncation lengths and garbage bytes
+        are drawn from ``rng`` (the chunk's wire stream): frame faults in sample order, then garbage in sample order."""
         # --- wire faults of this chunk
+        n = CHUNK
         wire_fault = np.zeros(n, np.int8)
         garbage_len = np.zeros(n, np.int64)
         flip_bit: dict[int, int] = {}
@@ -653,32 +829,17 @@ class BoardSimulator:
             i = kk - k0
             wire_fault[i] = code
             if code == fz.BIT_FLIP:
-                flip_bit[i] = int(rng_wire.integers(0, 8 * (self.frame_size - fz.FLIP_FIRST_BYTE)))
+                flip_bit[i] = int(rng.integers(0, 8 * (self.frame_size - fz.FLIP_FIRST_BYTE)))
             elif code == fz.TRUNCATE:
-                trunc_len[i] = int(rng_wire.integers(fz.TRUNC_MIN, self.frame_size))
+                trunc_len[i] = int(rng.integers(fz.TRUNC_MIN, self.frame_size))
         for kk in self._garbage_k[(self._garbage_k >= k0) & (self._garbage_k < k0 + CHUNK)].tolist():
             g = self.schedule.garbage[kk]
             garbage_len[kk - k0] = g
-            garbage[kk - k0] = fz.garbage_bytes(rng_wire, g)
+            garbage[kk - k0] = fz.garbage_bytes(rng, g)
         trunc_arr = np.zeros(n, np.int64)
         for i, v in trunc_len.items():
             trunc_arr[i] = v
-
-        arrays = {
-            "t_s": t, "board_t_s": board_t, "pose_id": pose_id.astype(np.int64), "in_motion": moving,
-            "visit": visit.astype(np.int64), "time_at_pose_s": arrival,
-            "psi_deg": psi, "theta_deg": theta, "accel_true_mps2": accel_true, "gref_mps2": gref,
-            "temp_chamber_c": T_ch, "temp_optics_c": T_opt, "temp_sensor_true_c": T_sen,
-            "temp_sensor_c": reading, "temp_valid": valid, "temp_present": present,
-            "counts": counts, "counts_float": counts_f, "saturated": counts >= self.adc_max,
-            "seq": seq.astype(np.int64), "t_us": t_us, "status": status, "temp_cc": temp_cc,
-            "reset_start": (k == start) & (epoch > 0),
-            "sent": sent, "wire_fault": wire_fault, "garbage_before": garbage_len,
-            "trunc_len": trunc_arr,
-            "slide_displacement_m": sl_x, "slide_velocity_mps": sl_v, "slide_accel_mps2": sl_a,
-            "slide_segment": sl_seg, "aux": aux, "aux_float": aux_f,
-        }
-        return _Chunk(arrays, flip_bit, trunc_len, garbage)
+        return _WireFaults(wire_fault, garbage_len, trunc_arr, flip_bit, trunc_len, garbage)
 
     def _aux_counts(self, t: np.ndarray, eff: dict[str, Any], rng: np.random.Generator) -> np.ndarray:
         """Aux channel (N,) counts before rounding: the reference transducer measuring the true slide motion,
