@@ -23,7 +23,9 @@ calibration run, where dwell times are much longer than moves.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.stats import chi2
@@ -126,6 +128,32 @@ def intervals_from_mask(mask: np.ndarray) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(edges[0::2], edges[1::2], strict=True)]
 
 
+def _run_lengths(change: np.ndarray) -> np.ndarray:
+    """Length of the run each sample belongs to; a run starts where ``change`` is True (``change[0]`` is)."""
+    segment = np.cumsum(change) - 1
+    return np.bincount(segment)[segment]
+
+
+def long_runs(mask: np.ndarray, min_interval: int) -> np.ndarray:
+    """``mask`` (N,) bool kept only in runs of at least ``min_interval`` consecutive True samples."""
+    mask = np.asarray(mask, dtype=bool)
+    if len(mask) == 0:
+        return mask.copy()
+    return mask & (_run_lengths(np.r_[True, np.diff(mask.astype(np.int8)) != 0]) >= min_interval)
+
+
+def usable_samples(static: np.ndarray, ref_still: np.ndarray, pose: np.ndarray, gref_ok: np.ndarray,
+                   min_interval: int) -> np.ndarray:
+    """The fit's interval rule on one run: static signal (``long_runs`` of the detector) AND still reference
+    AND in a pose with a finite reference, kept only in stretches of at least ``min_interval`` such samples
+    of one pose."""
+    usable = static & ref_still & (np.asarray(pose) >= 0) & gref_ok
+    if len(usable) == 0:
+        return usable
+    change = np.r_[True, (np.diff(pose) != 0) | (np.diff(usable.astype(np.int8)) != 0)]
+    return usable & (_run_lengths(change) >= min_interval)
+
+
 def detect_static(signal: np.ndarray, window: int = DEFAULT_WINDOW, min_interval: int = DEFAULT_MIN_INTERVAL,
                   false_alarm: float = DEFAULT_FALSE_ALARM, margin: float = DEFAULT_MARGIN,
                   noise_var: np.ndarray | None = None, groups: np.ndarray | None = None) -> StaticDetection:
@@ -153,11 +181,9 @@ def detect_static(signal: np.ndarray, window: int = DEFAULT_WINDOW, min_interval
         s = moving_variance(x[idx], window)
         nv = estimate_noise_var(s, window) if noise_var is None else np.broadcast_to(np.asarray(noise_var, float), (k,))
         thr = variance_threshold(nv, window, false_alarm, margin)
-        still = np.all(s <= thr, axis=1)  # NaN compares False -> not static
-        for a, b in intervals_from_mask(still):
-            if b - a >= min_interval:
-                mask[idx[a]:idx[a] + (b - a)] = True
-                intervals.append((int(idx[a]), int(idx[a] + (b - a))))
+        kept = long_runs(np.all(s <= thr, axis=1), min_interval)  # NaN compares False -> not static
+        mask[idx] = kept
+        intervals += [(int(idx[a]), int(idx[a] + (b - a))) for a, b in intervals_from_mask(kept)]
         stat[idx] = s
         noise_out = np.maximum(noise_out, nv)
         thr_out = np.maximum(thr_out, thr)
@@ -201,13 +227,204 @@ def calibration_samples(rec: Recording, window: int = DEFAULT_WINDOW, min_interv
     """
     psi = normalise(rec.xyz, rec.ref)
     det = detect_static(psi, window, min_interval, false_alarm, margin, groups=rec.run_id)
-    usable = det.mask & reference_still(rec.gref_mps2, window, tolerance_mps2, groups=rec.run_id)
-    usable &= (rec.pose_id >= 0) & np.all(np.isfinite(rec.gref_mps2), axis=1)
-    # keep only runs of >= min_interval usable samples of one pose within one run
-    if len(rec) == 0:
-        return usable, det
-    change = np.r_[True, (np.diff(rec.pose_id) != 0) | (np.diff(rec.run_id) != 0) | (np.diff(usable.astype(np.int8)) != 0)]
-    segment = np.cumsum(change) - 1
-    lengths = np.bincount(segment)
-    out = usable & (lengths[segment] >= min_interval)
+    ref_ok = reference_still(rec.gref_mps2, window, tolerance_mps2, groups=rec.run_id)
+    gref_ok = np.all(np.isfinite(rec.gref_mps2), axis=1)
+    out = np.zeros(len(rec), dtype=bool)
+    for run in np.unique(rec.run_id):
+        idx = np.flatnonzero(rec.run_id == run)  # contiguous (detect_static checked)
+        out[idx] = usable_samples(det.mask[idx], ref_ok[idx], rec.pose_id[idx], gref_ok[idx], min_interval)
     return out, det
+
+
+# ----------------------------------------------------------------------------- the same, streamed
+# A recording read block by block (``fbg-accel-calib fit`` on files larger than memory) goes through the
+# same kernels: moving variances on the ``BLOCK_ROWS`` grid of :func:`moving_variance`, the rules above
+# with the context they need carried between blocks, and an exact streaming median for the noise floor.
+class ExactMedian:
+    """Exact ``np.nanmedian`` per column of a stream of (k)-column non-negative values, in passes.
+
+    Radix selection on the IEEE-754 bit pattern, which orders non-negative doubles: the first pass
+    histograms the top 16 bits; every further pass either narrows the bin holding each wanted rank
+    by 16 more bits or, once that bin holds at most ``cap`` values, collects and sorts them. Memory:
+    2^16 counts per column and rank plus ``cap`` values per column, whatever the number of samples.
+    Passes: one when the first pass's speculative collection (the values of the bins around the
+    first block's median, at most ``cap`` of them) holds the final median's bin -- the usual case
+    for a calibration run whose noise floor does not drift by 1/8 octave --, else two for up to
+    about ``cap`` / (fraction of the data in the median's 1/16-octave bin) samples, more beyond.
+    """
+
+    RADIX = 16
+    SPEC_BINS = 2  # bins either side of the first block's median bin kept during the first pass
+
+    def __init__(self, k: int, cap: int = 1 << 18) -> None:
+        self.k, self.cap = k, cap
+        self.count = np.zeros(k, np.int64)
+        self.hist0 = np.zeros((k, 1 << self.RADIX), np.int64)
+        self.targets: list[list[dict[str, Any]]] | None = None
+        self.result = np.full(k, np.nan)
+        self.done = False
+        # speculation: during the first pass, keep the values of the bins around the first block's
+        # median (at most ``cap`` values); if the final median falls in them, no second pass is needed
+        self.spec_bins: list[tuple[int, int] | None] = [None] * k
+        self.spec_values: list[list[np.ndarray] | None] = [[] for _ in range(k)]
+        self.spec_count = np.zeros(k, np.int64)
+
+    def add(self, values: np.ndarray) -> None:
+        v = np.asarray(values, dtype=float).reshape(-1, self.k) + 0.0  # -0.0 -> +0.0
+        for j in range(self.k):
+            col = v[:, j]
+            col = col[~np.isnan(col)]
+            bits = col.view(np.uint64)
+            if self.targets is None:
+                self.count[j] += len(col)
+                top = (bits >> np.uint64(64 - self.RADIX)).astype(np.int64)
+                self.hist0[j] += np.bincount(top, minlength=1 << self.RADIX)
+                if self.spec_bins[j] is None and self.count[j]:
+                    cum = np.cumsum(self.hist0[j])
+                    b = int(np.searchsorted(cum, (self.count[j] - 1) // 2, side="right"))
+                    self.spec_bins[j] = (b - self.SPEC_BINS, b + self.SPEC_BINS)
+                if self.spec_values[j] is not None and self.spec_bins[j] is not None:
+                    lo, hi = self.spec_bins[j]
+                    kept = col[(top >= lo) & (top <= hi)]
+                    self.spec_count[j] += len(kept)
+                    if self.spec_count[j] > self.cap:
+                        self.spec_values[j] = None  # too many: give up, a second pass collects exactly
+                    else:
+                        self.spec_values[j].append(kept)
+                continue
+            for t in self.targets[j]:
+                if t["value"] is not None:
+                    continue
+                sel = (bits >> np.uint64(t["shift"])) == np.uint64(t["prefix"])
+                if t["collect"]:
+                    t["values"].append(col[sel])
+                else:
+                    sub = (bits[sel] >> np.uint64(t["shift"] - self.RADIX)) & np.uint64((1 << self.RADIX) - 1)
+                    t["hist"] += np.bincount(sub.astype(np.int64), minlength=1 << self.RADIX)
+
+    def _narrow(self, t: dict[str, Any], hist: np.ndarray, prefix: int, shift: int) -> None:
+        cum = np.cumsum(hist)
+        b = int(np.searchsorted(cum, t["rank"], side="right"))
+        t["rank"] -= int(cum[b - 1]) if b else 0
+        t["prefix"], t["shift"] = (prefix << self.RADIX) | b, shift - self.RADIX
+        if t["shift"] == 0:
+            t["value"] = float(np.array([t["prefix"]], dtype=np.uint64).view(float)[0])
+        t["collect"] = int(hist[b]) <= self.cap
+        t["hist"] = np.zeros(1 << self.RADIX, np.int64)
+        t["values"] = []
+
+    def end_pass(self) -> None:
+        """Close a pass over the whole stream; :attr:`done` tells whether another pass is needed."""
+        if self.targets is None:
+            self.targets = []
+            for j in range(self.k):
+                m = int(self.count[j])
+                ranks = sorted({(m - 1) // 2, m // 2}) if m else []
+                ts = [{"rank": r, "value": None} for r in ranks]
+                spec = self.spec_values[j]
+                spec_sorted = np.sort(np.concatenate(spec)) if spec else None
+                for t in ts:
+                    self._narrow(t, self.hist0[j], 0, 64)
+                    lo, hi = self.spec_bins[j] or (1, 0)
+                    if t["value"] is None and spec_sorted is not None and lo <= t["prefix"] <= hi:
+                        in_bin = spec_sorted[(spec_sorted.view(np.uint64) >> np.uint64(t["shift"])) == np.uint64(t["prefix"])]
+                        t["value"] = float(in_bin[t["rank"]])
+                self.targets.append(ts)
+            self.hist0 = np.zeros((0, 0), np.int64)
+            self.spec_values = [None] * self.k
+        else:
+            for ts in self.targets:
+                for t in ts:
+                    if t["value"] is not None:
+                        continue
+                    if t["collect"]:
+                        t["value"] = float(np.sort(np.concatenate(t["values"]))[t["rank"]])
+                    else:
+                        self._narrow(t, t["hist"], t["prefix"], t["shift"])
+        self.done = all(t["value"] is not None for ts in self.targets for t in ts)
+        if self.done:
+            for j, ts in enumerate(self.targets):
+                if len(ts) == 1:
+                    self.result[j] = ts[0]["value"]
+                elif ts:  # even count: mean of the two middle values, as np.median
+                    self.result[j] = np.median(np.array([ts[0]["value"], ts[1]["value"]]))
+
+
+def signal_blocks(blocks: Iterator[Recording], window: int, with_reference: bool):
+    """Yield ``(block, psi, var_psi, var_gref)`` with the centred moving variances of each block computed
+    exactly as :func:`moving_variance` computes them for the whole run (same
+    ``BLOCK_ROWS`` grid and window overlap: one block of lookahead, ``window`` rows carried)."""
+    half_lo = (window - 1) // 2
+    half_hi = window - 1 - half_lo
+    it = iter(blocks)
+    cur = next(it, None)
+    if cur is None:
+        return
+    cur_psi = normalise(cur.xyz, cur.ref)
+    tail_psi, tail_g = np.zeros((0, 3)), np.zeros((0, 3))
+    while cur is not None:
+        nxt = next(it, None)
+        nxt_psi = normalise(nxt.xyz, nxt.ref) if nxt is not None else np.zeros((0, 3))
+        head_g = nxt.gref_mps2[:half_hi] if nxt is not None else np.zeros((0, 3))
+        n, off = len(cur), len(tail_psi)
+        var = _moving_variance_block(np.vstack([tail_psi, cur_psi, nxt_psi[:half_hi]]), window)[off:off + n]
+        var_g = (_moving_variance_block(np.vstack([tail_g, cur.gref_mps2, head_g]), window)[off:off + n]
+                 if with_reference else None)
+        yield cur, cur_psi, var, var_g
+        tail_psi = np.vstack([tail_psi, cur_psi[-half_lo:]])[-half_lo:] if half_lo else np.zeros((0, 3))
+        tail_g = np.vstack([tail_g, cur.gref_mps2[-half_lo:]])[-half_lo:] if half_lo else np.zeros((0, 3))
+        cur, cur_psi = nxt, nxt_psi
+
+
+def usable_blocks(blocks: Iterator[Recording], window: int, min_interval: int, threshold: np.ndarray,
+                   tolerance_mps2: float):
+    """Yield ``(block, psi, usable)`` with ``usable`` equal to :func:`calibration_samples` on the whole run.
+
+    The run-length rules (static runs and pose segments of >= ``min_interval`` samples) only look
+    ``2 * min_interval`` samples either way, so each block is decided with that much context carried
+    from the previous block and taken from the next one (one block of lookahead).
+    """
+    ctx = 2 * min_interval + 2
+
+    def flags(item):
+        blk, psi, var, var_g = item
+        still = np.all(var <= threshold, axis=1)
+        ref_still = np.all(var_g <= tolerance_mps2**2, axis=1)
+        gref_ok = np.all(np.isfinite(blk.gref_mps2), axis=1)
+        return blk, psi, np.stack([still, ref_still, gref_ok], axis=1), blk.pose_id
+
+    it = signal_blocks(blocks, window, with_reference=True)
+    first = next(it, None)
+    if first is None:
+        return
+    cur = flags(first)
+    tail_f, tail_p = np.zeros((0, 3), bool), np.zeros(0, int)
+    while cur is not None:
+        nxt_item = next(it, None)
+        nxt = flags(nxt_item) if nxt_item is not None else None
+        head_f = nxt[2][:ctx] if nxt is not None else np.zeros((0, 3), bool)
+        head_p = nxt[3][:ctx] if nxt is not None else np.zeros(0, int)
+        blk, psi, f, p = cur
+        ff, pp = np.vstack([tail_f, f, head_f]), np.r_[tail_p, p, head_p]
+        off = len(tail_f)
+        usable = usable_samples(long_runs(ff[:, 0], min_interval), ff[:, 1], pp, ff[:, 2], min_interval)[off:off + len(p)]
+        yield blk, psi, usable
+        tail_f, tail_p = np.vstack([tail_f, f[-ctx:]])[-ctx:], np.r_[tail_p, p[-ctx:]][-ctx:]
+        cur = nxt
+
+
+def streamed_noise_floor(blocks: Callable[[], Iterator[Recording]], window: int,
+                         false_alarm: float = DEFAULT_FALSE_ALARM,
+                         margin: float = DEFAULT_MARGIN) -> tuple[np.ndarray, np.ndarray, int]:
+    """Noise floor and threshold (:func:`estimate_noise_var`, :func:`variance_threshold`) of one run whose
+    blocks ``blocks()`` yields (called once per pass); returns ``(noise_var, threshold, passes)``."""
+    dof = window - 1
+    med = ExactMedian(3)
+    passes = 0
+    while not med.done:
+        for _blk, _psi, var, _ in signal_blocks(blocks(), window, with_reference=False):
+            med.add(var)
+        med.end_pass()
+        passes += 1
+    nv = med.result / (chi2.median(dof) / dof)
+    return nv, variance_threshold(nv, window, false_alarm, margin), passes

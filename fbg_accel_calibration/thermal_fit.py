@@ -36,7 +36,6 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
-from scipy.stats import chi2
 
 from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2, STANDARD_GRAVITY
 from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
@@ -49,9 +48,9 @@ from .static_detector import (
     DEFAULT_MIN_INTERVAL,
     DEFAULT_REFERENCE_TOLERANCE_MPS2,
     DEFAULT_WINDOW,
-    _moving_variance_block,
     calibration_samples,
-    variance_threshold,
+    streamed_noise_floor,
+    usable_blocks,
 )
 
 # Table 4 RMSE is normalised by the full scale (re-exported for the reports)
@@ -566,116 +565,6 @@ class RecordingBlocks:
             yield self.rec.select(slice(start, start + block_rows))
 
 
-class _ExactMedian:
-    """Exact ``np.nanmedian`` per column of a stream of (k)-column non-negative values, in passes.
-
-    Radix selection on the IEEE-754 bit pattern, which orders non-negative doubles: the first pass
-    histograms the top 16 bits; every further pass either narrows the bin holding each wanted rank
-    by 16 more bits or, once that bin holds at most ``cap`` values, collects and sorts them. Memory:
-    2^16 counts per column and rank plus ``cap`` values per column, whatever the number of samples.
-    Passes: one when the first pass's speculative collection (the values of the bins around the
-    first block's median, at most ``cap`` of them) holds the final median's bin -- the usual case
-    for a calibration run whose noise floor does not drift by 1/8 octave --, else two for up to
-    about ``cap`` / (fraction of the data in the median's 1/16-octave bin) samples, more beyond.
-    """
-
-    RADIX = 16
-    SPEC_BINS = 2  # bins either side of the first block's median bin kept during the first pass
-
-    def __init__(self, k: int, cap: int = 1 << 18) -> None:
-        self.k, self.cap = k, cap
-        self.count = np.zeros(k, np.int64)
-        self.hist0 = np.zeros((k, 1 << self.RADIX), np.int64)
-        self.targets: list[list[dict[str, Any]]] | None = None
-        self.result = np.full(k, np.nan)
-        self.done = False
-        # speculation: during the first pass, keep the values of the bins around the first block's
-        # median (at most ``cap`` values); if the final median falls in them, no second pass is needed
-        self.spec_bins: list[tuple[int, int] | None] = [None] * k
-        self.spec_values: list[list[np.ndarray] | None] = [[] for _ in range(k)]
-        self.spec_count = np.zeros(k, np.int64)
-
-    def add(self, values: np.ndarray) -> None:
-        v = np.asarray(values, dtype=float).reshape(-1, self.k) + 0.0  # -0.0 -> +0.0
-        for j in range(self.k):
-            col = v[:, j]
-            col = col[~np.isnan(col)]
-            bits = col.view(np.uint64)
-            if self.targets is None:
-                self.count[j] += len(col)
-                top = (bits >> np.uint64(64 - self.RADIX)).astype(np.int64)
-                self.hist0[j] += np.bincount(top, minlength=1 << self.RADIX)
-                if self.spec_bins[j] is None and self.count[j]:
-                    cum = np.cumsum(self.hist0[j])
-                    b = int(np.searchsorted(cum, (self.count[j] - 1) // 2, side="right"))
-                    self.spec_bins[j] = (b - self.SPEC_BINS, b + self.SPEC_BINS)
-                if self.spec_values[j] is not None and self.spec_bins[j] is not None:
-                    lo, hi = self.spec_bins[j]
-                    kept = col[(top >= lo) & (top <= hi)]
-                    self.spec_count[j] += len(kept)
-                    if self.spec_count[j] > self.cap:
-                        self.spec_values[j] = None  # too many: give up, a second pass collects exactly
-                    else:
-                        self.spec_values[j].append(kept)
-                continue
-            for t in self.targets[j]:
-                if t["value"] is not None:
-                    continue
-                sel = (bits >> np.uint64(t["shift"])) == np.uint64(t["prefix"])
-                if t["collect"]:
-                    t["values"].append(col[sel])
-                else:
-                    sub = (bits[sel] >> np.uint64(t["shift"] - self.RADIX)) & np.uint64((1 << self.RADIX) - 1)
-                    t["hist"] += np.bincount(sub.astype(np.int64), minlength=1 << self.RADIX)
-
-    def _narrow(self, t: dict[str, Any], hist: np.ndarray, prefix: int, shift: int) -> None:
-        cum = np.cumsum(hist)
-        b = int(np.searchsorted(cum, t["rank"], side="right"))
-        t["rank"] -= int(cum[b - 1]) if b else 0
-        t["prefix"], t["shift"] = (prefix << self.RADIX) | b, shift - self.RADIX
-        if t["shift"] == 0:
-            t["value"] = float(np.array([t["prefix"]], dtype=np.uint64).view(float)[0])
-        t["collect"] = int(hist[b]) <= self.cap
-        t["hist"] = np.zeros(1 << self.RADIX, np.int64)
-        t["values"] = []
-
-    def end_pass(self) -> None:
-        """Close a pass over the whole stream; :attr:`done` tells whether another pass is needed."""
-        if self.targets is None:
-            self.targets = []
-            for j in range(self.k):
-                m = int(self.count[j])
-                ranks = sorted({(m - 1) // 2, m // 2}) if m else []
-                ts = [{"rank": r, "value": None} for r in ranks]
-                spec = self.spec_values[j]
-                spec_sorted = np.sort(np.concatenate(spec)) if spec else None
-                for t in ts:
-                    self._narrow(t, self.hist0[j], 0, 64)
-                    lo, hi = self.spec_bins[j] or (1, 0)
-                    if t["value"] is None and spec_sorted is not None and lo <= t["prefix"] <= hi:
-                        in_bin = spec_sorted[(spec_sorted.view(np.uint64) >> np.uint64(t["shift"])) == np.uint64(t["prefix"])]
-                        t["value"] = float(in_bin[t["rank"]])
-                self.targets.append(ts)
-            self.hist0 = np.zeros((0, 0), np.int64)
-            self.spec_values = [None] * self.k
-        else:
-            for ts in self.targets:
-                for t in ts:
-                    if t["value"] is not None:
-                        continue
-                    if t["collect"]:
-                        t["value"] = float(np.sort(np.concatenate(t["values"]))[t["rank"]])
-                    else:
-                        self._narrow(t, t["hist"], t["prefix"], t["shift"])
-        self.done = all(t["value"] is not None for ts in self.targets for t in ts)
-        if self.done:
-            for j, ts in enumerate(self.targets):
-                if len(ts) == 1:
-                    self.result[j] = ts[0]["value"]
-                elif ts:  # even count: mean of the two middle values, as np.median
-                    self.result[j] = np.median(np.array([ts[0]["value"], ts[1]["value"]]))
-
-
 class _TemperatureClusters:
     """Exact streaming form of the gap clustering of :func:`temperature_levels`.
 
@@ -727,85 +616,6 @@ class _TemperatureClusters:
         return out
 
 
-def _signal_blocks(blocks: Iterator[Recording], window: int, with_reference: bool):
-    """Yield ``(block, psi, var_psi, var_gref)`` with the centred moving variances of each block computed
-    exactly as :func:`static_detector.moving_variance` computes them for the whole run (same
-    ``BLOCK_ROWS`` grid and window overlap: one block of lookahead, ``window`` rows carried)."""
-    half_lo = (window - 1) // 2
-    half_hi = window - 1 - half_lo
-    it = iter(blocks)
-    cur = next(it, None)
-    if cur is None:
-        return
-    cur_psi = normalise(cur.xyz, cur.ref)
-    tail_psi, tail_g = np.zeros((0, 3)), np.zeros((0, 3))
-    while cur is not None:
-        nxt = next(it, None)
-        nxt_psi = normalise(nxt.xyz, nxt.ref) if nxt is not None else np.zeros((0, 3))
-        head_g = nxt.gref_mps2[:half_hi] if nxt is not None else np.zeros((0, 3))
-        n, off = len(cur), len(tail_psi)
-        var = _moving_variance_block(np.vstack([tail_psi, cur_psi, nxt_psi[:half_hi]]), window)[off:off + n]
-        var_g = (_moving_variance_block(np.vstack([tail_g, cur.gref_mps2, head_g]), window)[off:off + n]
-                 if with_reference else None)
-        yield cur, cur_psi, var, var_g
-        tail_psi = np.vstack([tail_psi, cur_psi[-half_lo:]])[-half_lo:] if half_lo else np.zeros((0, 3))
-        tail_g = np.vstack([tail_g, cur.gref_mps2[-half_lo:]])[-half_lo:] if half_lo else np.zeros((0, 3))
-        cur, cur_psi = nxt, nxt_psi
-
-
-def _usable_from(still: np.ndarray, ref_still: np.ndarray, pose: np.ndarray, gref_ok: np.ndarray,
-                 min_interval: int) -> np.ndarray:
-    """The interval logic of :func:`static_detector.calibration_samples` on one stretch of one run."""
-    def run_lengths(change: np.ndarray) -> np.ndarray:
-        segment = np.cumsum(change) - 1
-        return np.bincount(segment)[segment]
-
-    if len(still) == 0:
-        return np.zeros(0, bool)
-    s8 = still.astype(np.int8)
-    det = still & (run_lengths(np.r_[True, np.diff(s8) != 0]) >= min_interval)
-    usable = det & ref_still & (pose >= 0) & gref_ok
-    change = np.r_[True, (np.diff(pose) != 0) | (np.diff(usable.astype(np.int8)) != 0)]
-    return usable & (run_lengths(change) >= min_interval)
-
-
-def _usable_blocks(blocks: Iterator[Recording], window: int, min_interval: int, threshold: np.ndarray,
-                   tolerance_mps2: float):
-    """Yield ``(block, psi, usable)`` with ``usable`` equal to :func:`calibration_samples` on the whole run.
-
-    The run-length rules (static runs and pose segments of >= ``min_interval`` samples) only look
-    ``2 * min_interval`` samples either way, so each block is decided with that much context carried
-    from the previous block and taken from the next one (one block of lookahead).
-    """
-    ctx = 2 * min_interval + 2
-
-    def flags(item):
-        blk, psi, var, var_g = item
-        still = np.all(var <= threshold, axis=1)
-        ref_still = np.all(var_g <= tolerance_mps2**2, axis=1)
-        gref_ok = np.all(np.isfinite(blk.gref_mps2), axis=1)
-        return blk, psi, np.stack([still, ref_still, gref_ok], axis=1), blk.pose_id
-
-    it = _signal_blocks(blocks, window, with_reference=True)
-    first = next(it, None)
-    if first is None:
-        return
-    cur = flags(first)
-    tail_f, tail_p = np.zeros((0, 3), bool), np.zeros(0, int)
-    while cur is not None:
-        nxt_item = next(it, None)
-        nxt = flags(nxt_item) if nxt_item is not None else None
-        head_f = nxt[2][:ctx] if nxt is not None else np.zeros((0, 3), bool)
-        head_p = nxt[3][:ctx] if nxt is not None else np.zeros(0, int)
-        blk, psi, f, p = cur
-        ff, pp = np.vstack([tail_f, f, head_f]), np.r_[tail_p, p, head_p]
-        off = len(tail_f)
-        usable = _usable_from(ff[:, 0], ff[:, 1], pp, ff[:, 2], min_interval)[off:off + len(p)]
-        yield blk, psi, usable
-        tail_f, tail_p = np.vstack([tail_f, f[-ctx:]])[-ctx:], np.r_[tail_p, p[-ctx:]][-ctx:]
-        cur = nxt
-
-
 @dataclass
 class StreamedFitData:
     """Everything the fit and the degree selection need, accumulated without holding the samples.
@@ -850,10 +660,10 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
     Exact scheme, in passes over each run (``sources[i]`` is run i, as ``Recording.concatenate``):
 
     1. noise floor: moving variance of Psi per block (window carried between blocks) into an exact
-       streaming median (:class:`_ExactMedian`, radix selection on the float bits): one pass to
+       streaming median (:class:`static_detector.ExactMedian`, radix selection on the float bits): one pass to
        histogram (it also collects the pose/reference events), usually one more to collect the
        median's bin; this is the robust noise-floor estimate of :func:`detect_static`;
-    2. temperatures: the static detector and the interval rules (:func:`_usable_blocks`, context of
+    2. temperatures: the static detector and the interval rules (:func:`static_detector.usable_blocks`, context of
        ``2 min_interval`` samples carried between blocks) select the fit samples; their temperatures
        go into the exact gap clustering (:class:`_TemperatureClusters`) and the min/max that give the
        temperature levels and the scaling tau = (T - centre)/scale;
@@ -865,25 +675,18 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
     :func:`prepare` + :func:`accumulate_cells` on the concatenated recording to rounding (the
     selection and levels are identical; only the summation order of level means differs).
     """
-    dof = window - 1
     thresholds: list[np.ndarray] = []
     noise_out, thr_out = np.zeros(3), np.zeros(3)
     passes = 0
     for src in sources:
-        med = _ExactMedian(3)
-        while not med.done:
-            for _blk, _psi, var, _ in _signal_blocks(src.blocks(BLOCK_ROWS, False), window, with_reference=False):
-                med.add(var)
-            med.end_pass()
-            passes += 1
-        nv = med.result / (chi2.median(dof) / dof)
-        thr = variance_threshold(nv, window, false_alarm, margin)
+        nv, thr, n_passes = streamed_noise_floor(lambda src=src: src.blocks(BLOCK_ROWS, False), window, false_alarm, margin)
+        passes += n_passes
         thresholds.append(thr)
         noise_out, thr_out = np.maximum(noise_out, nv), np.maximum(thr_out, thr)
 
     def kept_blocks():
         for src, thr in zip(sources, thresholds, strict=True):
-            for blk, psi, usable in _usable_blocks(src.blocks(BLOCK_ROWS, True), window, min_interval, thr, tolerance_mps2):
+            for blk, psi, usable in usable_blocks(src.blocks(BLOCK_ROWS, True), window, min_interval, thr, tolerance_mps2):
                 valid = (blk.pose_id >= 0) & np.all(np.isfinite(blk.gref_mps2), axis=1) & np.isfinite(blk.temp_c)
                 valid &= np.all(np.isfinite(psi), axis=1)
                 yield blk, psi, usable, valid, usable & valid

@@ -18,7 +18,6 @@ from fbg_accel_calibration.mcap_io import McapSampleStream, RecordingWriter, Str
 from fbg_accel_calibration.model_selection import select_degree
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_calibration.thermal_fit import (
-    _ExactMedian,
     _TemperatureClusters,
     accumulate_cells,
     fit_thermal,
@@ -181,7 +180,7 @@ def test_exact_streaming_median_equals_nanmedian() -> None:
         values[rng.random((n, 3)) < 0.1] = np.nan
         values[: n // 3, 1] = np.round(values[: n // 3, 1], 8)  # ties
         values[0, 0] = -0.0
-        med = _ExactMedian(3, cap=cap)
+        med = static_detector.ExactMedian(3, cap=cap)
         passes = 0
         while not med.done:
             for part in np.array_split(values, 7):
@@ -194,7 +193,7 @@ def test_exact_streaming_median_equals_nanmedian() -> None:
         assert np.array_equal(med.result, expected, equal_nan=True), (n, cap)
         passes_seen.add(passes)
     shifted = np.r_[rng.chisquare(4, 3000) * 1e-7, rng.chisquare(4, 9000) * 1e-5][:, None]  # first block misleads
-    med = _ExactMedian(1)
+    med = static_detector.ExactMedian(1)
     passes = 0
     while not med.done:
         for part in np.array_split(shifted, 4):

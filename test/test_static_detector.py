@@ -137,3 +137,19 @@ def test_blocked_moving_variance_equals_one_block(monkeypatch: pytest.MonkeyPatc
     blocked = moving_variance(x, 5)
     np.testing.assert_allclose(blocked, whole, rtol=1e-9, atol=1e-12)
     assert np.array_equal(np.isnan(blocked), np.isnan(whole))
+
+
+def test_interval_rules_keep_only_long_enough_runs_of_one_pose() -> None:
+    """The one rule both the in-memory and the streamed detector apply (static_detector.usable_samples)."""
+    from fbg_accel_calibration.static_detector import long_runs, usable_samples
+
+    still = np.array([1, 1, 1, 0, 1, 1, 1, 1, 0, 1], bool)
+    np.testing.assert_array_equal(long_runs(still, 3), [1, 1, 1, 0, 1, 1, 1, 1, 0, 0])
+    assert long_runs(np.zeros(0, bool), 3).shape == (0,)
+    pose = np.array([0, 0, 0, 0, 0, 1, 1, 1, 1, 1])
+    ok = np.ones(10, bool)
+    # the pose changes inside the second static run: each part must be long enough on its own
+    np.testing.assert_array_equal(usable_samples(long_runs(still, 3), ok, pose, ok, 3), [1, 1, 1, 0, 0, 1, 1, 1, 0, 0])
+    ref_moving = ok.copy()
+    ref_moving[1] = False
+    np.testing.assert_array_equal(usable_samples(long_runs(still, 3), ref_moving, pose, ok, 2)[:3], [0, 0, 0])
