@@ -34,9 +34,8 @@ from . import diagnose_cli
 from . import input_validation as iv
 from .atomic_output import atomic_path, check_output_dir, check_outputs
 from .cli_progress import add_progress_option
+from .input_files import check_input, load_recording
 from .table_geometry import STANDARD_GRAVITY
-
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
 class OneLineErrorParser(argparse.ArgumentParser):
@@ -169,58 +168,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def load_recording(paths: list[Path] | list[str], *, rate: float | None = None, temperature: float | None = None,
-                   g: float | None = None, namespace: str | None = None, topic: str | None = None):
-    """Recording from CSV and/or MCAP files and/or rosbag2 bag directories (one run per input); ``rate``,
-    ``temperature`` and ``g`` (m/s^2, default standard gravity) complete a CSV, ``namespace``/``topic``
-    choose the raw topic of MCAP inputs (``mcap_io.TopicSelection``). Damaged-file warnings go to stderr."""
-    from .csv_import import import_csv
-    from .mcap_io import read_recording, read_warnings
-    from .recording import Recording
-
-    parts = []
-    for path in map(Path, paths):
-        check_input(path)
-        if path.suffix.lower() == ".csv" and path.is_file():
-            parts.append(import_csv(path, rate_hz=rate, temperature_c=temperature,
-                                    g_mps2=STANDARD_GRAVITY if g is None else g)[0])
-        else:
-            rec = read_recording(path, namespace, topic)
-            for line in read_warnings(path, rec.metadata.get("read_report", {}), rec.metadata.get("pose_events")):
-                print(line, file=sys.stderr)
-            parts.append(rec)
-    return parts[0] if len(parts) == 1 else Recording.concatenate(parts)
-
-
 def _load(paths: list[Path], args: argparse.Namespace):
     """``load_recording`` with a subcommand's input options."""
     return load_recording(paths, rate=args.rate, temperature=args.temperature, g=args.g,
                           namespace=getattr(args, "namespace", None), topic=getattr(args, "topic", None))
-
-
-def check_mcap(path: Path) -> None:
-    """Refuse a file that is not an MCAP (by its magic bytes) with a message saying what to give instead."""
-    with open(path, "rb") as fh:
-        head = fh.read(len(MCAP_MAGIC))
-    if head != MCAP_MAGIC:
-        raise ValueError(f"{path}: not an MCAP recording (it does not start with the MCAP magic bytes); give a .mcap "
-                         "file written by the calibration node or `fbg-accel-calib import`, or a .csv in the "
-                         "interchange format (docs/csv_interchange.md)")
-
-
-def check_input(path: Path) -> None:
-    """An input is a .csv file, an MCAP file or a rosbag2 bag directory (metadata.yaml + .mcap files);
-    anything else is refused in one line."""
-    if path.is_dir():
-        from .rosbag2_input import bag_files
-
-        for part in bag_files(path).files:
-            check_mcap(part)
-        return
-    if not path.is_file():
-        raise ValueError(f"{path}: file not found")
-    if path.suffix.lower() != ".csv":
-        check_mcap(path)
 
 
 def _check_inputs(paths: list[Path]) -> None:
@@ -252,128 +203,41 @@ def cmd_import(args: argparse.Namespace) -> int:
     return 0
 
 
-def _fit_streamed(args: argparse.Namespace, max_degree: int):
-    """Stream the inputs block by block into the fit's cell sums (``thermal_fit.prepare_stream``): MCAP
-    files through ``McapSampleStream``, CSV files re-read on every pass (``csv_import.CsvSampleSource``),
-    so memory is a few blocks whatever the file sizes. Returns ``(StreamedFitData, metadata)``."""
-    from .cli_progress import CountedSource, enabled
-    from .csv_import import CsvSampleSource
-    from .mcap_io import McapSampleStream, read_warnings
-    from .thermal_fit import prepare_stream
-
-    sources = []
-    for path in args.inputs:
-        check_input(path)
-        if path.suffix.lower() == ".csv" and path.is_file():
-            src = CsvSampleSource(path, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g)
-        else:
-            src = McapSampleStream(path, args.namespace, args.topic)
-        sources.append(CountedSource(src, f"fit {path.name}", enabled(args)))
-    data = prepare_stream(sources, max_degree, args.window, args.min_interval, args.level_gap)
-    parts = []
-    for path, counted in zip(args.inputs, sources, strict=True):
-        src = counted.source
-        md = src.metadata()
-        if isinstance(src, McapSampleStream):
-            for line in read_warnings(path, md["read_report"], md["pose_events"]):
-                print(line, file=sys.stderr)
-        parts.append(md)
-    return data, {"parts": parts, **(parts[0] if len(parts) == 1 else {})}
-
-
 def cmd_fit(args: argparse.Namespace) -> int:
-    """Fit from the files. MCAP inputs are streamed (memory bounded by one block, docs/calibration_fit.md);
-    ``--in-memory`` (or an MCAP whose raw stamps go backwards) loads every sample first."""
-    from .mcap_io import StreamOrderError
-    from .model_selection import select_degree
-    from .thermal_fit import FULL_SCALE_MPS2, NotIdentifiedError, fit_thermal, prepare
+    """Fit from the files (``fit_pipeline.fit_files``: MCAP streamed, memory bounded by one block,
+    docs/calibration_fit.md; ``--in-memory`` loads every sample first)."""
+    from .fit_pipeline import FitOptions, fit_files
+    from .thermal_fit import FULL_SCALE_MPS2
 
     check_outputs([args.output], args.inputs, args.force)
     _check_inputs(args.inputs)
-    max_degree = max(args.max_degree, args.degree or 0)
-    data = None
-    if not args.in_memory:
-        try:
-            data, metadata = _fit_streamed(args, max_degree)
-        except StreamOrderError as exc:
-            print(f"note: {exc}; reading all samples into memory instead", file=sys.stderr)
-    in_memory = data is None
-    if in_memory:
-        rec = _load(args.inputs, args)
-        metadata = rec.metadata
-        data = prepare(rec, args.window, args.min_interval, args.level_gap)
-    if len(data) == 0:
-        raise ValueError(f"{', '.join(map(str, args.inputs))}: none of the {data.n_total} samples can be fitted "
-                         f"({data.n_excluded_motion} not static, {data.n_excluded_other} without a pose, reference, "
-                         "valid temperature or finite counts); check the temperature column (or --temperature), "
-                         "the pose/reference columns and --window/--min-interval")
-    try:
-        selection = select_degree(data, max_degree=max_degree)
-    except NotIdentifiedError as exc:
-        raise ValueError(f"{', '.join(map(str, args.inputs))}: {exc}") from None
+    from .cli_progress import enabled
+
+    options = FitOptions(args.window, args.min_interval, args.level_gap, args.rate, args.temperature, args.g,
+                         getattr(args, "namespace", None), getattr(args, "topic", None), args.in_memory, enabled(args))
+    out = fit_files(args.inputs, degree=args.degree, max_degree=args.max_degree, sensor_id=args.sensor_id,
+                    options=options)
+    selection, cal = out.selection, out.calibration
     print(f"degree selection ({selection.criterion}):")
     print(selection.table_markdown())
     for note in selection.notes:
         print(f"note: {note}")
-    degree = args.degree if args.degree is not None else selection.chosen_degree
-    if degree is None:
-        raise ValueError("no degree could be validated on held-out data; give --degree")
-    if args.degree is not None:
-        chosen = selection.scores[args.degree]
-        if not chosen.identified:
-            raise ValueError(f"--degree {args.degree}: {chosen.note}")
-        if args.degree != selection.chosen_degree:
-            print(f"note: --degree {args.degree} overrides the cross-validated choice {selection.chosen_degree}")
-    cal = fit_thermal(data, degree, sensor_id=args.sensor_id or _sensor_id_of(metadata))
-    # the first input's first samples, the same either way
-    first = rec.select(rec.run_id == rec.run_id[0]) if in_memory else _first_block(args.inputs[0], args)
-    _add_noise_correlation(cal, first, args)
-    cal.fit["sources"] = [str(p) for p in args.inputs]
-    cal.fit["degree_selection"] = selection.as_dict()
+    if args.degree is not None and args.degree != selection.chosen_degree:
+        print(f"note: --degree {args.degree} overrides the cross-validated choice {selection.chosen_degree}")
+    corr = cal.fit["noise_correlation"]
+    print("noise correlation x/y/z: correlated fraction " + " / ".join(f"{v:.2f}" for v in cal.noise_correlated_fraction)
+          + ", time constant " + " / ".join(f"{v:.3f}" for v in cal.noise_time_constant_s)
+          + f" s ({corr['static_intervals']} static intervals, {corr['samples']} samples)")
     with atomic_path(args.output) as tmp:
         cal.save(tmp)
     rmse = np.asarray(cal.fit["rmse_mps2"])
-    print(f"degree n = {degree}: in-sample RMSE x/y/z " + " / ".join(f"{v:.4f}" for v in rmse) + " m/s^2 ("
+    print(f"degree n = {cal.degree}: in-sample RMSE x/y/z " + " / ".join(f"{v:.4f}" for v in rmse) + " m/s^2 ("
           + " / ".join(f"{v / FULL_SCALE_MPS2:.2e}" for v in rmse) + " of 20 g), within-pose noise "
           + " / ".join(f"{v:.4f}" for v in cal.noise_sigma_mps2) + " m/s^2")
     print(f"temperature range {cal.temperature_range_c[0]:.2f} .. {cal.temperature_range_c[1]:.2f} degC; "
           f"{cal.fit['samples_used']} of {cal.fit['samples_total']} samples used")
     print(f"wrote {args.output}")
     return 0
-
-
-def _first_block(path: Path, args: argparse.Namespace):
-    """The first samples of one input (up to ``noise_correlation.SAMPLE_ROWS``), without pose events."""
-    from .csv_import import CsvSampleSource
-    from .mcap_io import McapSampleStream
-    from .noise_correlation import SAMPLE_ROWS
-
-    src = (CsvSampleSource(path, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g)
-           if path.suffix.lower() == ".csv" and path.is_file() else McapSampleStream(path, args.namespace, args.topic))
-    blocks = src.blocks(SAMPLE_ROWS, False)
-    try:
-        return next(iter(blocks))
-    finally:
-        blocks.close()
-
-
-def _add_noise_correlation(cal, rec, args: argparse.Namespace) -> None:
-    """Fit the white + first-order noise model of the calibrated output (the driver's decimated covariance)."""
-    from .noise_correlation import from_recording
-
-    corr = from_recording(rec, cal, args.window, args.min_interval)
-    cal.noise_correlated_fraction, cal.noise_time_constant_s = corr.correlated_fraction, corr.time_constant_s
-    cal.fit["noise_correlation"] = {**corr.as_dict(), "static_intervals": corr.segments, "samples": corr.samples}
-    print("noise correlation x/y/z: correlated fraction " + " / ".join(f"{v:.2f}" for v in corr.correlated_fraction)
-          + ", time constant " + " / ".join(f"{v:.3f}" for v in corr.time_constant_s)
-          + f" s ({corr.segments} static intervals, {corr.samples} samples)")
-
-
-def _sensor_id_of(md: dict) -> str | None:
-    for cand in (md.get("run"), *(p.get("run") for p in md.get("parts", []) if isinstance(p, dict))):
-        if isinstance(cand, dict) and cand.get("sensor_id"):
-            return str(cand["sensor_id"])
-    return None
 
 
 def cmd_dynamic(args: argparse.Namespace) -> int:

@@ -126,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         check_diagnose_outputs(args)
-        from .cli import load_recording
+        from .input_files import load_recording
 
         rec = load_recording(args.inputs, rate=args.rate, temperature=args.temperature, g=args.g,
                              namespace=args.namespace, topic=args.topic)

@@ -1,10 +1,9 @@
 """Refit at the end of a calibration run: MCAP files to a calibration YAML and a fit report (pure, no ROS).
 
-Used by the ``calibration`` node once its run is complete; the same steps as ``fbg-accel-calib
-fit``: read the run's MCAP together with earlier runs (other chamber temperatures), choose the
-temperature degree by held-out cross-validation (``model_selection.select_degree``) unless a
-degree is given, fit eq. 28 (``thermal_fit.fit_thermal``) and save the result in the driver's
-calibration file format (``ThermalCalibration.save``).
+Used by the ``calibration`` node once its run is complete; the same fit as ``fbg-accel-calib fit``
+(``fit_pipeline.fit_files``): the run's MCAP together with earlier runs (other chamber temperatures),
+streamed, the temperature degree by held-out cross-validation unless a degree is given, eq. 28, and
+the result saved in the driver's calibration file format (``ThermalCalibration.save``).
 """
 
 from __future__ import annotations
@@ -18,9 +17,9 @@ import numpy as np
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .atomic_output import atomic_path
-from .mcap_io import read_recording
-from .model_selection import SelectionResult, select_degree
-from .thermal_fit import FULL_SCALE_MPS2, NotIdentifiedError, fit_thermal
+from .fit_pipeline import fit_files
+from .model_selection import SelectionResult
+from .thermal_fit import FULL_SCALE_MPS2
 
 MAX_AUTO_DEGREE = 6  # paper Table 4 goes up to n = 6
 
@@ -76,27 +75,15 @@ def expand_sources(run_file: str | Path, extra: list[str]) -> list[str]:
 
 
 def refit(sources: list[str], output: str | Path, degree: int | None = None, sensor_id: str | None = None) -> RefitResult:
-    """Fit ``sources`` (MCAP files) at ``degree`` (None: chosen by cross-validation) and save to ``output``."""
-    rec = read_recording(sources)
-    selection = None
+    """Fit ``sources`` (MCAP files) at ``degree`` (None: chosen by cross-validation) and save to ``output``:
+    the same fit as ``fbg-accel-calib fit`` with its default options (``fit_pipeline.fit_files``)."""
     try:
-        if degree is None:
-            selection = select_degree(rec, max_degree=MAX_AUTO_DEGREE)
-            if selection.chosen_degree is None:
-                raise RefitError("no degree could be validated on held-out data: " + "; ".join(selection.notes))
-            degree = selection.chosen_degree
-        cal = fit_thermal(rec, degree, sensor_id=sensor_id)
-    except NotIdentifiedError as exc:
+        out = fit_files([Path(s) for s in sources], degree=degree, max_degree=MAX_AUTO_DEGREE, sensor_id=sensor_id)
+    except ValueError as exc:  # NotIdentifiedError included
         raise RefitError(str(exc)) from None
-    from .noise_correlation import from_recording
-
-    corr = from_recording(rec, cal)
-    cal.noise_correlated_fraction, cal.noise_time_constant_s = corr.correlated_fraction, corr.time_constant_s
-    cal.fit["noise_correlation"] = {**corr.as_dict(), "static_intervals": corr.segments, "samples": corr.samples}
+    cal = out.calibration
     cal.fit["sources"] = list(sources)
-    if selection is not None:
-        cal.fit["degree_selection"] = selection.as_dict()
-    out = Path(output)
-    with atomic_path(out) as tmp:  # never a half-written YAML next to the recording (SIGKILL, full disk)
+    path = Path(output)
+    with atomic_path(path) as tmp:  # never a half-written YAML next to the recording (SIGKILL, full disk)
         cal.save(tmp)
-    return RefitResult(cal, selection, list(sources), out)
+    return RefitResult(cal, out.selection, list(sources), path)

@@ -291,7 +291,7 @@ def test_allan_report_and_diagnose_read_the_bag(fitted: tuple[Path, Path, Path],
     res = run_cli("report", str(bag), "--calibration", str(cal), "-o", str(tmp_path / "rep"), "--max-degree", "2")
     assert res.returncode == 0, res.stderr
     assert (tmp_path / "rep" / "report.md").is_file()
-    from fbg_accel_calibration.cli import load_recording
+    from fbg_accel_calibration.input_files import load_recording
 
     _same_samples(load_recording([bag], namespace="/veh1"), read_recording(ours))
 

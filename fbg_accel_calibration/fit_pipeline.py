@@ -1,0 +1,148 @@
+"""Files to a fitted calibration: the one fit path of ``fbg-accel-calib fit`` and of the calibration node.
+
+MCAP inputs (and rosbag2 bags) are streamed block by block into the fit's cell sums
+(``thermal_fit.prepare_stream``; CSV files are re-read on every pass), so memory is a few blocks
+whatever the file sizes; an MCAP whose raw stamps go backwards, or ``in_memory=True``, loads every
+sample first. Then: degree by held-out cross-validation (``model_selection.select_degree``) unless
+given, eq. 28 (``thermal_fit.fit_thermal``), and the noise model of the calibrated output
+(``noise_correlation``) on the first samples of the first input. Pure: no argparse, no ROS.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
+from fbg_accel_driver.thermal_model import ThermalCalibration
+
+from .model_selection import SelectionResult, select_degree
+from .static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW
+from .thermal_fit import DEFAULT_LEVEL_GAP_C, NotIdentifiedError, fit_thermal, prepare
+
+
+@dataclass
+class FitOptions:
+    """How the inputs are read and which samples are fitted (``fbg-accel-calib fit`` options)."""
+
+    window: int = DEFAULT_WINDOW  # static detector window, samples
+    min_interval: int = DEFAULT_MIN_INTERVAL  # shortest static interval kept, samples
+    level_gap_c: float = DEFAULT_LEVEL_GAP_C  # temperatures further apart belong to different levels, degC
+    rate_hz: float | None = None  # CSV without a time column
+    temperature_c: float | None = None  # CSV without a temperature column
+    g_mps2: float = STANDARD_GRAVITY  # local gravity for a CSV's pose columns, m/s^2
+    namespace: str | None = None  # raw topic of MCAP inputs (mcap_io.TopicSelection)
+    topic: str | None = None
+    in_memory: bool = False
+    progress: bool = False  # progress bars on stderr
+
+
+@dataclass
+class FitOutcome:
+    calibration: ThermalCalibration
+    selection: SelectionResult
+    metadata: dict[str, Any] = field(default_factory=dict)
+    streamed: bool = True
+
+
+def _source(path: Path, opt: FitOptions):
+    from .csv_import import CsvSampleSource
+    from .mcap_io import McapSampleStream
+
+    if path.suffix.lower() == ".csv" and path.is_file():
+        return CsvSampleSource(path, rate_hz=opt.rate_hz, temperature_c=opt.temperature_c, g_mps2=opt.g_mps2)
+    return McapSampleStream(path, opt.namespace, opt.topic)
+
+
+def _streamed(paths: list[Path], max_degree: int, opt: FitOptions, warn: Callable[[str], None]):
+    from .cli_progress import CountedSource
+    from .mcap_io import McapSampleStream, read_warnings
+    from .thermal_fit import prepare_stream
+
+    sources = [CountedSource(_source(p, opt), f"fit {p.name}", opt.progress) for p in paths]
+    data = prepare_stream(sources, max_degree, opt.window, opt.min_interval, opt.level_gap_c)
+    parts = []
+    for path, counted in zip(paths, sources, strict=True):
+        md = counted.source.metadata()
+        if isinstance(counted.source, McapSampleStream):
+            for line in read_warnings(path, md["read_report"], md["pose_events"]):
+                warn(line)
+        parts.append(md)
+    return data, {"parts": parts, **(parts[0] if len(parts) == 1 else {})}
+
+
+def _first_block(path: Path, opt: FitOptions):
+    """The first samples of one input (up to ``noise_correlation.SAMPLE_ROWS``), without pose events."""
+    from .noise_correlation import SAMPLE_ROWS
+
+    blocks = _source(path, opt).blocks(SAMPLE_ROWS, False)
+    try:
+        return next(iter(blocks))
+    finally:
+        blocks.close()
+
+
+def sensor_id_of(md: dict) -> str | None:
+    """The sensor id a recording's metadata names (its run, or the first part's), if any."""
+    for cand in (md.get("run"), *(p.get("run") for p in md.get("parts", []) if isinstance(p, dict))):
+        if isinstance(cand, dict) and cand.get("sensor_id"):
+            return str(cand["sensor_id"])
+    return None
+
+
+def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int = 4, sensor_id: str | None = None,
+              options: FitOptions | None = None, warn: Callable[[str], None] | None = None) -> FitOutcome:
+    """Fit eq. 28 to the recordings ``paths`` (one run each). ``degree`` None: the cross-validated choice.
+
+    Raises ``ValueError`` (``NotIdentifiedError`` included) with the reason when the data cannot give a
+    calibration. ``warn`` gets the damaged-file warnings and notes (default: stderr).
+    """
+    from .input_files import load_recording
+    from .mcap_io import StreamOrderError
+    from .noise_correlation import from_recording
+
+    opt = options or FitOptions()
+    warn = warn or (lambda line: print(line, file=sys.stderr))
+    paths = [Path(p) for p in paths]
+    max_degree = max(max_degree, degree or 0)
+    data = None
+    if not opt.in_memory:
+        try:
+            data, metadata = _streamed(paths, max_degree, opt, warn)
+        except StreamOrderError as exc:
+            warn(f"note: {exc}; reading all samples into memory instead")
+    rec = None
+    if data is None:
+        rec = load_recording(paths, rate=opt.rate_hz, temperature=opt.temperature_c, g=opt.g_mps2,
+                             namespace=opt.namespace, topic=opt.topic)
+        metadata = rec.metadata
+        data = prepare(rec, opt.window, opt.min_interval, opt.level_gap_c)
+    names = ", ".join(map(str, paths))
+    if len(data) == 0:
+        raise ValueError(f"{names}: none of the {data.n_total} samples can be fitted "
+                         f"({data.n_excluded_motion} not static, {data.n_excluded_other} without a pose, reference, "
+                         "valid temperature or finite counts); check the temperature column (or --temperature), "
+                         "the pose/reference columns and --window/--min-interval")
+    try:
+        selection = select_degree(data, max_degree=max_degree)
+    except NotIdentifiedError as exc:
+        raise NotIdentifiedError(f"{names}: {exc}") from None
+    if degree is None:
+        if selection.chosen_degree is None:
+            raise NotIdentifiedError("no degree could be validated on held-out data: " + "; ".join(selection.notes)
+                                     + " (give a degree)")
+        degree = selection.chosen_degree
+    elif not selection.scores[degree].identified:
+        raise NotIdentifiedError(f"degree {degree}: {selection.scores[degree].note}")
+    cal = fit_thermal(data, degree, sensor_id=sensor_id or sensor_id_of(metadata))
+    # the noise model from the first input's first samples, the same whether streamed or not
+    first = rec.select(rec.run_id == rec.run_id[0]) if rec is not None else _first_block(paths[0], opt)
+    corr = from_recording(first, cal, opt.window, opt.min_interval)
+    cal.noise_correlated_fraction, cal.noise_time_constant_s = corr.correlated_fraction, corr.time_constant_s
+    cal.fit["noise_correlation"] = {**corr.as_dict(), "static_intervals": corr.segments, "samples": corr.samples}
+    cal.fit["sources"] = [str(p) for p in paths]
+    cal.fit["degree_selection"] = selection.as_dict()
+    return FitOutcome(cal, selection, metadata, rec is None)
