@@ -44,7 +44,7 @@ setup(
         "console_scripts": [
             "driver = fbg_accel_driver.driver_main:main",
             "board_sim = fbg_accel_sim.board_sim:main",
-            "calibration = fbg_accel_calibration.calibration_node:main",
+            "calibration = fbg_accel_calibration.calibration_main:main",
             "fbg-accel-calib = fbg_accel_calibration.cli:main",
         ],
     },
