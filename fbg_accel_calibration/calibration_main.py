@@ -6,7 +6,6 @@ itself (``calibration_node``, rclpy) is imported only to run.
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 from fbg_accel_driver.command_line import ParameterTable, StartupError, parameter_help, print_help_or_version
 
@@ -59,21 +58,6 @@ example:
 exit status: 0 run complete (and fitted), 1 run complete but the fit failed (MCAP kept),
              2 invalid parameters or plan, 3 interrupted (SIGINT/SIGTERM/abort; MCAP closed cleanly).
 """
-
-
-def plan_format(path: str) -> str | None:
-    """The ``format`` key of a plan file (pose plan or excitation plan), None if unreadable (the plan's
-    own loader then says why)."""
-    import yaml
-
-    try:
-        p = Path(path)
-        if not p.is_file() or p.stat().st_size > 1 << 20:
-            return None
-        data = yaml.safe_load(p.read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError):
-        return None
-    return data.get("format") if isinstance(data, dict) else None
 
 
 def main(argv: list[str] | None = None) -> int:

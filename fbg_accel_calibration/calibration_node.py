@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import rclpy
+import yaml
 from rclpy.event_handler import QoSSubscriptionMatchedInfo, SubscriptionEventCallbacks
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -35,7 +36,7 @@ from fbg_accel_driver.command_line import StartupError
 from fbg_accel_driver.driver_core import RAW_AUX_NAME
 from fbg_accel_driver.node_support import declare_parameters, init_ros, signals_to
 
-from .calibration_main import EXIT_FIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, PARAMETERS, main, plan_format
+from .calibration_main import EXIT_FIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, PARAMETERS, main
 from .dynamic_recorder import DynamicRunRecorder
 from .excitation_plan import FORMAT_NAME as EXCITATION_FORMAT
 from .excitation_plan import ExcitationPlan, ExcitationPlanError
@@ -53,6 +54,19 @@ NODE_NAME = "calibration"
 # Deep best-effort queue: compatible with the driver's sensor-data publishers, and a burst while
 # the executor writes a chunk is queued instead of dropped. Losses are counted from seq anyway.
 RAW_QOS = QoSProfile(reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST, depth=2000)
+
+
+def plan_format(path: str) -> str | None:
+    """The ``format`` key of a plan file (pose plan or excitation plan), None if unreadable (the plan's
+    own loader then says why)."""
+    try:
+        p = Path(path)
+        if not p.is_file() or p.stat().st_size > 1 << 20:
+            return None
+        data = yaml.safe_load(p.read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return None
+    return data.get("format") if isinstance(data, dict) else None
 
 
 def run(argv: list[str]) -> int:
