@@ -42,9 +42,9 @@ setup(
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [
-            "driver = fbg_accel_driver.driver_node:main",
+            "driver = fbg_accel_driver.driver_main:main",
             "board_sim = fbg_accel_sim.board_sim:main",
-            "calibration = fbg_accel_calibration.calibration_node:main",
+            "calibration = fbg_accel_calibration.calibration_main:main",
             "fbg-accel-calib = fbg_accel_calibration.cli:main",
         ],
     },

@@ -36,7 +36,7 @@ from fbg_accel_calibration.dynamic_analysis import budget_table_markdown  # noqa
 from fbg_accel_calibration.dynamic_calibration import run_dynamic  # noqa: E402
 from fbg_accel_calibration.dynamic_check import step_check, tone_check  # noqa: E402
 from fbg_accel_calibration.excitation_plan import ExcitationPlan  # noqa: E402
-from fbg_accel_driver.driver_node import default_calibration_path  # noqa: E402
+from fbg_accel_driver.driver_main import default_calibration_path  # noqa: E402
 from fbg_accel_driver.thermal_model import ThermalCalibration  # noqa: E402
 from fbg_accel_sim.dynamic_run import simulate_dynamic_run  # noqa: E402
 from fbg_accel_sim.sim_config import SimConfig  # noqa: E402

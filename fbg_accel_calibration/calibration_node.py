@@ -1,8 +1,9 @@
 """ROS 2 node ``calibration``: record the poses of a pose plan to MCAP, then refit the thermal model.
 
-The thin rclpy shell around :class:`~fbg_accel_calibration.run_recorder.RunRecorder` (stillness,
-pose sequence, MCAP writing) and :func:`~fbg_accel_calibration.run_refit.refit` (the fit). See
-docs/calibration_node.md.
+``CalibrationNode``; the entry point, parameter table and usage are in ``calibration_main`` (no ROS
+import, so ``--help`` needs none). The thin rclpy shell around
+:class:`~fbg_accel_calibration.run_recorder.RunRecorder` (stillness, pose sequence, MCAP writing) and
+:func:`~fbg_accel_calibration.run_refit.refit` (the fit). See docs/calibration_node.md.
 
 Subscribes (best-effort, deep queue, matching the driver's sensor-data QoS):
   ``imu/raw`` sensor_msgs/JointState (raw counts, see docs/topics.md), ``imu/temperature`` sensor_msgs/Temperature.
@@ -22,64 +23,42 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from fbg_accel_driver.command_line import StartupError, first_line, version_line, wants_help, wants_version
+import rclpy
+import yaml
+from rclpy.event_handler import QoSSubscriptionMatchedInfo, SubscriptionEventCallbacks
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState, Temperature
+from std_srvs.srv import Trigger
 
-from .stillness_monitor import DEFAULT_FALSE_ALARM_PER_RUN, DEFAULT_NOISE_CORR_S
+from fbg_accel_driver.command_line import StartupError
+from fbg_accel_driver.driver_core import RAW_AUX_NAME
+from fbg_accel_driver.node_support import declare_parameters, init_ros, signals_to
 
-PACKAGE = "fbg_accel_driver"
-EXIT_OK, EXIT_FIT_FAILED, EXIT_STARTUP, EXIT_INTERRUPTED = 0, 1, 2, 3
+from .calibration_main import EXIT_FIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, PARAMETERS, main
+from .dynamic_recorder import DynamicRunRecorder
+from .excitation_plan import FORMAT_NAME as EXCITATION_FORMAT
+from .excitation_plan import ExcitationPlan, ExcitationPlanError
+from .mcap_io import RAW_NAMES, RecordingWriter
+from .pose_plan import PosePlan, PosePlanError
+from .pose_sequencer import Mode
+from .progress_display import ProgressDisplay
+from .run_recorder import DetectorSettings, RawSample, RunRecorder
+from .run_refit import RefitError, expand_sources, refit
 
-# name: (type, default, description); ROS types are resolved lazily so --help needs no ROS.
-# A default of None declares the parameter by type only (unset unless given).
-PARAMETERS: dict[str, tuple[str, Any, str]] = {
-    "plan_file": ("string", "", "pose plan YAML (required), e.g. config/pose_plan_six_position.yaml, or an excitation "
-                  "plan (dynamic run: records imu/raw with aux_counts and the reference for the plan's duration)"),
-    "output_dir": ("string", ".", "directory of the run's MCAP file and calibration YAML (created if missing)"),
-    "run_label": ("string", "", "file stem of this run (empty: <sensor_id>[_L<level>]_<UTC time>)"),
-    "sensor_id": ("string", "unknown", "sensor identifier written into the MCAP metadata and the calibration"),
-    "operator_notes": ("string", "", "free text stored in the MCAP metadata"),
-    "mode": ("string", "service", "pose advance: service (operator calls calibration/next_pose) or auto (table motion/dwell)"),
-    "temperature_level": ("integer", -1, "index of the plan's chamber level of this run (-1: none)"),
-    "fit": ("bool", True, "refit at the end of a complete run and write the calibration YAML"),
-    "fit_degree": ("integer", -1, "temperature degree n of eq. 28, 0..6 (-1: chosen by held-out cross-validation)"),
-    "fit_with": ("string_array", None, "earlier runs' MCAP files or glob patterns fitted together with this run"),
-    "calibration_file": ("string", "", "output calibration YAML (empty: <output_dir>/<run_label>_calibration.yaml)"),
-    "still_window_s": ("double", 0.25, "static detector moving window (s)"),
-    "still_hold_s": ("double", 1.0, "continuous stillness (s) required before a pose is recorded (covers TIA settling)"),
-    "still_noise_std": ("double_array", None, "Psi noise floor per axis x,y,z (unset: learnt at the start of the run)"),
-    "still_noise_corr_s": ("double", DEFAULT_NOISE_CORR_S, "correlation time (s) of a configured still_noise_std (TIA low-pass)"),
-    "noise_learn_s": ("double", 5.0, "seconds at the start of the run used to learn the noise floor (table still)"),
-    "still_false_alarm_per_run": ("double", DEFAULT_FALSE_ALARM_PER_RUN,
-                                  "expected false still->moving transitions per run of a still sensor, (0, 1)"),
-    "motion_expect_g": ("double", 0.1, "pose changes above this (g) must show motion before the next pose is recorded"),
-    "exit_when_done": ("bool", True, "exit once the run is complete (and fitted)"),
-    "progress": ("bool", True, "print the progress line (pose k of N, stillness, samples, temperature) on stdout"),
-}
+# main: scripts installed from an earlier setup.py (entry point calibration_node:main) and python -m still start here
+__all__ = ["CalibrationNode", "main", "run"]
 
-USAGE = f"""usage: calibration [-h] [--version] --ros-args -p plan_file:=PLAN.yaml [-p NAME:=VALUE ...]
-
-Calibration recorder of the FBG triaxial accelerometer (package {PACKAGE}). Follows a pose plan,
-waits per pose until the sensor is still (static-interval detector on Psi = counts/ref), records
-N samples per pose from imu/raw into one MCAP file (ROS 2 profile), advances on the
-calibration/next_pose service (mode service) or on table motion/dwell (mode auto), and at the end
-fits the thermal model (paper eq. 28) and writes a calibration YAML that the driver loads.
-
-parameters:
-""" + "".join(f"  {n:<20} {t:<13} default {d!r}\n      {desc}\n" for n, (t, d, desc) in PARAMETERS.items()) + """
-example:
-  ros2 run fbg_accel_driver calibration --ros-args -p plan_file:=config/pose_plan_six_position.yaml \\
-      -p output_dir:=runs -p sensor_id:=acc4 -p temperature_level:=0 -p mode:=service
-  ros2 service call /calibration/next_pose std_srvs/srv/Trigger
-exit status: 0 run complete (and fitted), 1 run complete but the fit failed (MCAP kept),
-             2 invalid parameters or plan, 3 interrupted (SIGINT/SIGTERM/abort; MCAP closed cleanly).
-"""
+NODE_NAME = "calibration"
+# Deep best-effort queue: compatible with the driver's sensor-data publishers, and a burst while
+# the executor writes a chunk is queued instead of dropped. Losses are counted from seq anyway.
+RAW_QOS = QoSProfile(reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST, depth=2000)
 
 
 def plan_format(path: str) -> str | None:
     """The ``format`` key of a plan file (pose plan or excitation plan), None if unreadable (the plan's
     own loader then says why)."""
-    import yaml
-
     try:
         p = Path(path)
         if not p.is_file() or p.stat().st_size > 1 << 20:
@@ -90,349 +69,288 @@ def plan_format(path: str) -> str | None:
     return data.get("format") if isinstance(data, dict) else None
 
 
-def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if wants_version(argv):
-        print(version_line("calibration"))
-        return EXIT_OK
-    if wants_help(argv):
-        print(USAGE, end="")
-        return EXIT_OK
-    try:
-        return _run(argv)
-    except StartupError as exc:
-        print(f"calibration: error: {exc}", file=sys.stderr, flush=True)
-        return EXIT_STARTUP
-
-
-def _run(argv: list[str]) -> int:
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
-
+def run(argv: list[str]) -> int:
+    """One run until it is complete (and ``exit_when_done``), aborted or interrupted; returns the exit status
+    (``argv``: the ROS arguments). StartupError on a refused start-up."""
     stop: list[str] = []
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        stop.append(signal.Signals(signum).name)
-
     # Own handlers: a signal only sets a flag, the loop below then closes the MCAP in order.
-    try:
-        rclpy.init(args=["calibration", *argv], signal_handler_options=SignalHandlerOptions.NO)
-    except Exception as exc:  # rclpy raises RCLError (not exported) for malformed --ros-args
-        raise StartupError(f"invalid ROS arguments: {first_line(exc)}") from None
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    node = None
-    try:
-        node = _make_node()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        while not stop and not (node.recorder.finished and node.exit_when_done):
-            executor.spin_once(timeout_sec=0.1)
-        executor.remove_node(node)
-        if stop:
-            node.recorder.abort(f"{stop[0]} received")
-        return node.finish(interrupted_by=stop[0] if stop else "")
-    finally:
-        for s, h in old.items():
-            signal.signal(s, h)
-        if node is not None:
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.try_shutdown()
+    init_ros("calibration", argv)
+    node: CalibrationNode | None = None
+    with signals_to(lambda signum: stop.append(signal.Signals(signum).name)):
+        try:
+            node = CalibrationNode()
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            while not stop and not (node.recorder.finished and node.exit_when_done):
+                executor.spin_once(timeout_sec=0.1)
+            executor.remove_node(node)
+            if stop:
+                node.recorder.abort(f"{stop[0]} received")
+            return node.finish(interrupted_by=stop[0] if stop else "")
+        finally:
+            if node is not None:
+                node.destroy_node()
+            if rclpy.ok():
+                rclpy.try_shutdown()
 
 
-def _make_node() -> Any:
-    """Build the node class lazily (keeps rclpy out of --help and of the pure modules)."""
-    from rcl_interfaces.msg import ParameterDescriptor, ParameterType
-    from rclpy.event_handler import SubscriptionEventCallbacks
-    from rclpy.exceptions import ParameterException
-    from rclpy.node import Node
-    from rclpy.parameter import Parameter
-    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import JointState, Temperature
-    from std_srvs.srv import Trigger
+class CalibrationNode(Node):
+    """One calibration run: records the plan's poses (or a dynamic run's excitation) from construction; a
+    StartupError if the parameters or the plan are refused. ``node_options`` go to rclpy's Node (context,
+    parameter_overrides, ...)."""
 
-    from fbg_accel_driver.driver_core import RAW_AUX_NAME
+    def __init__(self, **node_options: Any) -> None:
+        super().__init__(NODE_NAME, **node_options)
+        p = self._read_parameters()
+        self.p = p
+        self.exit_when_done = bool(p["exit_when_done"])
+        self.dynamic = plan_format(p["plan_file"]) == EXCITATION_FORMAT
+        if self.dynamic:
+            self._start_dynamic(p)
+            return
+        try:
+            self.plan = PosePlan.load(p["plan_file"])
+            self.setpoint_c = self.plan.level_setpoint_c(p["temperature_level"])
+        except PosePlanError as exc:
+            raise StartupError(f"pose plan rejected: {exc}") from None
+        try:
+            self.mode = Mode(p["mode"])
+        except ValueError:
+            raise StartupError(f"invalid parameter 'mode': {p['mode']!r} (auto or service)") from None
+        self.degree = self._parse_degree(p["fit_degree"])
+        noise = p["still_noise_std"]
+        detector = DetectorSettings(window_s=p["still_window_s"], hold_s=p["still_hold_s"],
+                                    noise_std=tuple(noise) if noise else None, learn_s=p["noise_learn_s"],
+                                    false_alarm_per_run=p["still_false_alarm_per_run"],
+                                    noise_corr_s=p["still_noise_corr_s"])
+        try:
+            detector.validate()
+        except ValueError as exc:
+            raise StartupError(f"invalid static detector parameter: {exc}") from None
+        self.fit_with = [s for s in (p["fit_with"] or []) if s]
+        metadata = {
+            "sensor_id": p["sensor_id"], "operator_notes": p["operator_notes"],
+            "mode": self.mode.value, "plan_file": str(Path(p["plan_file"]).resolve()), "plan_name": self.plan.name,
+            "plan": self.plan.to_yaml(), "temperature_level": p["temperature_level"],
+            "chamber_setpoint_c": "" if self.setpoint_c is None else self.setpoint_c,
+            "started": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+            "static_detector": {"window_s": detector.window_s, "hold_s": detector.hold_s,
+                                "noise_std_psi": list(noise) if noise else "learnt", "learn_s": detector.learn_s,
+                                "noise_corr_s": detector.noise_corr_s,
+                                "false_alarm_per_run": detector.false_alarm_per_run},
+            "node": "fbg_accel_driver calibration",
+        }
+        writer = self._open_recording(p, metadata)
+        self.recorder = RunRecorder(self.plan, writer, self.mode, detector, sensor_id=p["sensor_id"],
+                                    setpoint_c=self.setpoint_c, motion_expect_g=p["motion_expect_g"])
+        self._subscribe()
+        how = ("call calibration/next_pose after each pose is recorded" if self.mode is Mode.SERVICE
+               else "poses advance on table motion / dwell times")
+        sp = "" if self.setpoint_c is None else f", chamber level {p['temperature_level']} ({self.setpoint_c:g} degC)"
+        self.get_logger().info(
+            f"plan '{self.plan.name}': {len(self.plan)} poses, {self.plan.total_samples} samples{sp}; "
+            f"mode {self.mode.value} ({how}); recording to {self.mcap_path}")
 
-    from .dynamic_recorder import DynamicRunRecorder
-    from .excitation_plan import FORMAT_NAME as EXCITATION_FORMAT
-    from .excitation_plan import ExcitationPlan, ExcitationPlanError
-    from .mcap_io import RAW_NAMES, RecordingWriter
-    from .pose_plan import PosePlan, PosePlanError
-    from .pose_sequencer import Mode
-    from .progress_display import ProgressDisplay
-    from .run_recorder import DetectorSettings, RawSample, RunRecorder
-    from .run_refit import RefitError, expand_sources, refit
+    def _start_dynamic(self, p: dict[str, Any]) -> None:
+        """A dynamic run (excitation plan): record for the plan's duration, no poses, no fit."""
+        try:
+            plan = ExcitationPlan.load(p["plan_file"])
+        except ExcitationPlanError as exc:
+            raise StartupError(f"excitation plan rejected: {exc}") from None
+        self.setpoint_c = None
+        writer = self._open_recording(p, {
+            "sensor_id": p["sensor_id"], "operator_notes": p["operator_notes"], "kind": "dynamic",
+            "plan_file": str(Path(p["plan_file"]).resolve()), "plan_name": plan.name,
+            "excitation_plan": plan.to_dict(), "started": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+            "node": "fbg_accel_driver calibration"})
+        self.recorder = DynamicRunRecorder(plan, writer, sensor_id=p["sensor_id"])
+        self._subscribe()
+        self.get_logger().info(
+            f"dynamic plan '{plan.name}': {len(plan.segments)} segments, "
+            f"{', '.join(f'{s.freq_hz:g}' for s in plan.segments)} Hz, {self.recorder.length_s:.0f} s from the "
+            f"first sample; recording imu/raw with aux_counts to {self.mcap_path}")
 
-    ptypes = {"string": ParameterType.PARAMETER_STRING, "integer": ParameterType.PARAMETER_INTEGER,
-              "double": ParameterType.PARAMETER_DOUBLE, "bool": ParameterType.PARAMETER_BOOL,
-              "string_array": ParameterType.PARAMETER_STRING_ARRAY, "double_array": ParameterType.PARAMETER_DOUBLE_ARRAY}
-    unset_types = {"string_array": Parameter.Type.STRING_ARRAY, "double_array": Parameter.Type.DOUBLE_ARRAY}
-    # Deep best-effort queue: compatible with the driver's sensor-data publishers, and a burst while
-    # the executor writes a chunk is queued instead of dropped. Losses are counted from seq anyway.
-    raw_qos = QoSProfile(reliability=ReliabilityPolicy.BEST_EFFORT, history=HistoryPolicy.KEEP_LAST, depth=2000)
+    def _open_recording(self, p: dict[str, Any], metadata: dict[str, Any]) -> RecordingWriter:
+        """The run's MCAP, created exclusively (never over a file, never through a link)."""
+        out_dir = Path(p["output_dir"])
+        label = p["run_label"] or self._default_label(p["sensor_id"], p["temperature_level"])
+        if not re.fullmatch(r"[A-Za-z0-9_.+-]+", label):
+            raise StartupError(f"invalid parameter 'run_label': {label!r} (letters, digits, _ . + - only)")
+        self.mcap_path = out_dir / f"{label}.mcap"
+        self.yaml_path = Path(p["calibration_file"]) if p["calibration_file"] else out_dir / f"{label}_calibration.yaml"
+        if self.mcap_path.exists() or self.mcap_path.is_symlink():
+            raise StartupError(f"{self.mcap_path} exists; choose another run_label (a recording is never overwritten)")
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StartupError(f"cannot create output_dir {out_dir}: {exc}") from None
+        try:
+            return RecordingWriter(self.mcap_path, {"run_label": label, **metadata}, exclusive=True,
+                                   namespace=self.get_namespace())
+        except FileExistsError:
+            raise StartupError(f"{self.mcap_path} exists (a file or a symbolic link); choose another run_label "
+                               "(a recording is never overwritten nor written through a link)") from None
+        except OSError as exc:
+            raise StartupError(f"cannot create {self.mcap_path}: {exc}") from None
 
-    class CalibrationNode(Node):
-        def __init__(self) -> None:
-            super().__init__("calibration")
-            p = self._declare_all()
-            self.p = p
-            self.exit_when_done = bool(p["exit_when_done"])
-            self.dynamic = plan_format(p["plan_file"]) == EXCITATION_FORMAT
-            if self.dynamic:
-                self._start_dynamic(p)
-                return
-            try:
-                self.plan = PosePlan.load(p["plan_file"])
-                self.setpoint_c = self.plan.level_setpoint_c(p["temperature_level"])
-            except PosePlanError as exc:
-                raise StartupError(f"pose plan rejected: {exc}") from None
-            try:
-                self.mode = Mode(p["mode"])
-            except ValueError:
-                raise StartupError(f"invalid parameter 'mode': {p['mode']!r} (auto or service)") from None
-            self.degree = self._parse_degree(p["fit_degree"])
-            noise = p["still_noise_std"]
-            detector = DetectorSettings(window_s=p["still_window_s"], hold_s=p["still_hold_s"],
-                                        noise_std=tuple(noise) if noise else None, learn_s=p["noise_learn_s"],
-                                        false_alarm_per_run=p["still_false_alarm_per_run"],
-                                        noise_corr_s=p["still_noise_corr_s"])
-            try:
-                detector.validate()
-            except ValueError as exc:
-                raise StartupError(f"invalid static detector parameter: {exc}") from None
-            self.fit_with = [s for s in (p["fit_with"] or []) if s]
-            metadata = {
-                "sensor_id": p["sensor_id"], "operator_notes": p["operator_notes"],
-                "mode": self.mode.value, "plan_file": str(Path(p["plan_file"]).resolve()), "plan_name": self.plan.name,
-                "plan": self.plan.to_yaml(), "temperature_level": p["temperature_level"],
-                "chamber_setpoint_c": "" if self.setpoint_c is None else self.setpoint_c,
-                "started": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-                "static_detector": {"window_s": detector.window_s, "hold_s": detector.hold_s,
-                                    "noise_std_psi": list(noise) if noise else "learnt", "learn_s": detector.learn_s,
-                                    "noise_corr_s": detector.noise_corr_s,
-                                    "false_alarm_per_run": detector.false_alarm_per_run},
-                "node": "fbg_accel_driver calibration",
-            }
-            writer = self._open_recording(p, metadata)
-            self.recorder = RunRecorder(self.plan, writer, self.mode, detector, sensor_id=p["sensor_id"],
-                                        setpoint_c=self.setpoint_c, motion_expect_g=p["motion_expect_g"])
-            self._subscribe()
-            how = ("call calibration/next_pose after each pose is recorded" if self.mode is Mode.SERVICE
-                   else "poses advance on table motion / dwell times")
-            sp = "" if self.setpoint_c is None else f", chamber level {p['temperature_level']} ({self.setpoint_c:g} degC)"
-            self.get_logger().info(
-                f"plan '{self.plan.name}': {len(self.plan)} poses, {self.plan.total_samples} samples{sp}; "
-                f"mode {self.mode.value} ({how}); recording to {self.mcap_path}")
+    def _subscribe(self) -> None:
+        self.display = ProgressDisplay(sys.stdout) if self.p["progress"] else None
+        self._name_index: dict[tuple[str, ...], list[int | None]] = {}
+        self._bad_names_warned = False
+        self.sub_raw = self.create_subscription(
+            JointState, "imu/raw", self._on_raw, RAW_QOS,
+            event_callbacks=SubscriptionEventCallbacks(matched=lambda info: self._on_matched("imu/raw", info)))
+        self.sub_temp = self.create_subscription(
+            Temperature, "imu/temperature", self._on_temperature, RAW_QOS,
+            event_callbacks=SubscriptionEventCallbacks(matched=lambda info: self._on_matched("imu/temperature", info)))
+        self.srv_next = self.create_service(Trigger, "calibration/next_pose", self._on_next)
+        self.srv_abort = self.create_service(Trigger, "calibration/abort", self._on_abort)
 
-        def _start_dynamic(self, p: dict[str, Any]) -> None:
-            """A dynamic run (excitation plan): record for the plan's duration, no poses, no fit."""
-            try:
-                plan = ExcitationPlan.load(p["plan_file"])
-            except ExcitationPlanError as exc:
-                raise StartupError(f"excitation plan rejected: {exc}") from None
-            self.setpoint_c = None
-            writer = self._open_recording(p, {
-                "sensor_id": p["sensor_id"], "operator_notes": p["operator_notes"], "kind": "dynamic",
-                "plan_file": str(Path(p["plan_file"]).resolve()), "plan_name": plan.name,
-                "excitation_plan": plan.to_dict(), "started": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-                "node": "fbg_accel_driver calibration"})
-            self.recorder = DynamicRunRecorder(plan, writer, sensor_id=p["sensor_id"])
-            self._subscribe()
-            self.get_logger().info(
-                f"dynamic plan '{plan.name}': {len(plan.segments)} segments, "
-                f"{', '.join(f'{s.freq_hz:g}' for s in plan.segments)} Hz, {self.recorder.length_s:.0f} s from the "
-                f"first sample; recording imu/raw with aux_counts to {self.mcap_path}")
+    # ------------------------------------------------------------ parameters
+    def _read_parameters(self) -> dict[str, Any]:
+        """Declare the parameters (all read-only) and check what a descriptor cannot express."""
+        values = declare_parameters(self, PARAMETERS)
+        if not values["plan_file"]:
+            raise StartupError("parameter 'plan_file' is required (e.g. -p plan_file:=config/pose_plan_six_position.yaml)")
+        for name in ("still_window_s", "still_hold_s", "noise_learn_s", "motion_expect_g"):
+            if not (math.isfinite(values[name]) and values[name] > 0):
+                raise StartupError(f"invalid parameter '{name}': {values[name]} (must be > 0)")
+        return values
 
-        def _open_recording(self, p: dict[str, Any], metadata: dict[str, Any]) -> RecordingWriter:
-            """The run's MCAP, created exclusively (never over a file, never through a link)."""
-            out_dir = Path(p["output_dir"])
-            label = p["run_label"] or self._default_label(p["sensor_id"], p["temperature_level"])
-            if not re.fullmatch(r"[A-Za-z0-9_.+-]+", label):
-                raise StartupError(f"invalid parameter 'run_label': {label!r} (letters, digits, _ . + - only)")
-            self.mcap_path = out_dir / f"{label}.mcap"
-            self.yaml_path = Path(p["calibration_file"]) if p["calibration_file"] else out_dir / f"{label}_calibration.yaml"
-            if self.mcap_path.exists() or self.mcap_path.is_symlink():
-                raise StartupError(f"{self.mcap_path} exists; choose another run_label (a recording is never overwritten)")
-            try:
-                out_dir.mkdir(parents=True, exist_ok=True)
-            except OSError as exc:
-                raise StartupError(f"cannot create output_dir {out_dir}: {exc}") from None
-            try:
-                return RecordingWriter(self.mcap_path, {"run_label": label, **metadata}, exclusive=True,
-                                       namespace=self.get_namespace())
-            except FileExistsError:
-                raise StartupError(f"{self.mcap_path} exists (a file or a symbolic link); choose another run_label "
-                                   "(a recording is never overwritten nor written through a link)") from None
-            except OSError as exc:
-                raise StartupError(f"cannot create {self.mcap_path}: {exc}") from None
+    @staticmethod
+    def _parse_degree(degree: int) -> int | None:
+        if degree == -1:
+            return None
+        if not 0 <= degree <= 6:
+            raise StartupError(f"invalid parameter 'fit_degree': {degree} (-1 for auto, or 0..6)")
+        return degree
 
-        def _subscribe(self) -> None:
-            self.display = ProgressDisplay(sys.stdout) if self.p["progress"] else None
-            self._name_index: dict[tuple[str, ...], list[int | None]] = {}
-            self._bad_names_warned = False
-            self.sub_raw = self.create_subscription(
-                JointState, "imu/raw", self._on_raw, raw_qos,
-                event_callbacks=SubscriptionEventCallbacks(matched=lambda info: self._on_matched("imu/raw", info)))
-            self.sub_temp = self.create_subscription(
-                Temperature, "imu/temperature", self._on_temperature, raw_qos,
-                event_callbacks=SubscriptionEventCallbacks(matched=lambda info: self._on_matched("imu/temperature", info)))
-            self.srv_next = self.create_service(Trigger, "calibration/next_pose", self._on_next)
-            self.srv_abort = self.create_service(Trigger, "calibration/abort", self._on_abort)
+    @staticmethod
+    def _default_label(sensor_id: str, level: int) -> str:
+        stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%SZ")
+        safe = re.sub(r"[^A-Za-z0-9_.+-]", "_", sensor_id) or "sensor"
+        return f"{safe}_L{level}_{stamp}" if level >= 0 else f"{safe}_{stamp}"
 
-        # ------------------------------------------------------------ parameters
-        def _declare_all(self) -> dict[str, Any]:
-            values: dict[str, Any] = {}
-            for name, (typ, default, desc) in PARAMETERS.items():
-                d = ParameterDescriptor(name=name, type=ptypes[typ], description=desc, read_only=True)
-                try:
-                    value = default if default is not None else unset_types[typ]
-                    values[name] = self.declare_parameter(name, value, d).value
-                except ParameterException as exc:
-                    raise StartupError(f"invalid parameter '{name}': {first_line(exc)} ({desc})") from None
-            if not values["plan_file"]:
-                raise StartupError("parameter 'plan_file' is required (e.g. -p plan_file:=config/pose_plan_six_position.yaml)")
-            for name in ("still_window_s", "still_hold_s", "noise_learn_s", "motion_expect_g"):
-                if not (math.isfinite(values[name]) and values[name] > 0):
-                    raise StartupError(f"invalid parameter '{name}': {values[name]} (must be > 0)")
-            return values
+    # ------------------------------------------------------------ data path
+    def _on_raw(self, msg: JointState) -> None:
+        if self.recorder.finished:
+            return
+        names = tuple(msg.name)
+        idx = self._name_index.get(names)
+        if idx is None:
+            idx = [names.index(n) if n in names else None for n in (*RAW_NAMES, RAW_AUX_NAME)]
+            self._name_index[names] = idx
+        if any(i is None for i in idx[:4]):
+            if not self._bad_names_warned:
+                self._bad_names_warned = True
+                self.get_logger().error(f"imu/raw message without the count names {list(RAW_NAMES[:4])}: {list(names)}; "
+                                        "ignored (see docs/topics.md)")
+            return
+        pos = msg.position
 
-        @staticmethod
-        def _parse_degree(degree: int) -> int | None:
-            if degree == -1:
-                return None
-            if not 0 <= degree <= 6:
-                raise StartupError(f"invalid parameter 'fit_degree': {degree} (-1 for auto, or 0..6)")
-            return degree
+        def val(k: int, default: float) -> float:
+            i = idx[k]
+            return float(pos[i]) if i is not None and i < len(pos) else default
 
-        @staticmethod
-        def _default_label(sensor_id: str, level: int) -> str:
-            stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%SZ")
-            safe = re.sub(r"[^A-Za-z0-9_.+-]", "_", sensor_id) or "sensor"
-            return f"{safe}_L{level}_{stamp}" if level >= 0 else f"{safe}_{stamp}"
+        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        sample = RawSample(
+            stamp_ns=stamp_ns, ref=val(0, math.nan), x=val(1, math.nan), y=val(2, math.nan), z=val(3, math.nan),
+            temperature_c=val(4, math.nan), temperature_valid=val(5, 1.0) >= 0.5, status=int(val(6, 0.0)),
+            seq=int(val(7, 0.0)), board_time_s=val(8, math.nan), frame_id=msg.header.frame_id,
+            aux=val(9, math.nan))
+        self.recorder.on_raw(sample)
+        self._report()
 
-        # ------------------------------------------------------------ data path
-        def _on_raw(self, msg: JointState) -> None:
-            if self.recorder.finished:
-                return
-            names = tuple(msg.name)
-            idx = self._name_index.get(names)
-            if idx is None:
-                idx = [names.index(n) if n in names else None for n in (*RAW_NAMES, RAW_AUX_NAME)]
-                self._name_index[names] = idx
-            if any(i is None for i in idx[:4]):
-                if not self._bad_names_warned:
-                    self._bad_names_warned = True
-                    self.get_logger().error(f"imu/raw message without the count names {list(RAW_NAMES[:4])}: {list(names)}; "
-                                            "ignored (see docs/topics.md)")
-                return
-            pos = msg.position
+    def _on_matched(self, topic: str, info: QoSSubscriptionMatchedInfo) -> None:
+        """Publisher (dis)connected: say so, the operator sees whether the driver is there."""
+        if info.current_count_change > 0:
+            self.get_logger().info(f"{topic}: {info.current_count} publisher(s) matched")
+        elif info.current_count_change < 0:
+            self.get_logger().warning(f"{topic}: publisher lost ({info.current_count} left)")
 
-            def val(k: int, default: float) -> float:
-                i = idx[k]
-                return float(pos[i]) if i is not None and i < len(pos) else default
-
+    def _on_temperature(self, msg: Temperature) -> None:
+        if not self.recorder.finished:
             stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-            sample = RawSample(
-                stamp_ns=stamp_ns, ref=val(0, math.nan), x=val(1, math.nan), y=val(2, math.nan), z=val(3, math.nan),
-                temperature_c=val(4, math.nan), temperature_valid=val(5, 1.0) >= 0.5, status=int(val(6, 0.0)),
-                seq=int(val(7, 0.0)), board_time_s=val(8, math.nan), frame_id=msg.header.frame_id,
-                aux=val(9, math.nan))
-            self.recorder.on_raw(sample)
-            self._report()
+            self.recorder.on_temperature(stamp_ns, msg.temperature, msg.variance)
 
-        def _on_matched(self, topic: str, info: Any) -> None:
-            """Publisher (dis)connected: say so, the operator sees whether the driver is there."""
-            if info.current_count_change > 0:
-                self.get_logger().info(f"{topic}: {info.current_count} publisher(s) matched")
-            elif info.current_count_change < 0:
-                self.get_logger().warning(f"{topic}: publisher lost ({info.current_count} left)")
+    def _on_next(self, _req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
+        resp.success, resp.message = self.recorder.request_next()
+        # one call site per severity: rclpy refuses a severity change at a call site
+        if resp.success:
+            self.get_logger().info(f"next_pose: {resp.message}")
+        else:
+            self.get_logger().warning(f"next_pose: {resp.message}")
+        self._report()
+        return resp
 
-        def _on_temperature(self, msg: Temperature) -> None:
-            if not self.recorder.finished:
-                stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-                self.recorder.on_temperature(stamp_ns, msg.temperature, msg.variance)
+    def _on_abort(self, _req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
+        if self.recorder.finished:
+            resp.success, resp.message = False, "run already finished"
+        else:
+            self.recorder.abort("calibration/abort service")
+            resp.success, resp.message = True, f"run aborted; {self.mcap_path} will be closed"
+        self._report()
+        return resp
 
-        def _on_next(self, _req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
-            resp.success, resp.message = self.recorder.request_next()
-            # one call site per severity: rclpy refuses a severity change at a call site
-            if resp.success:
-                self.get_logger().info(f"next_pose: {resp.message}")
-            else:
-                self.get_logger().warning(f"next_pose: {resp.message}")
-            self._report()
-            return resp
-
-        def _on_abort(self, _req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
-            if self.recorder.finished:
-                resp.success, resp.message = False, "run already finished"
-            else:
-                self.recorder.abort("calibration/abort service")
-                resp.success, resp.message = True, f"run aborted; {self.mcap_path} will be closed"
-            self._report()
-            return resp
-
-        def _report(self) -> None:
-            log = self.get_logger()
-            for level, text in self.recorder.pop_messages():
-                self._end_progress_line()
-                if level == "warn":
-                    log.warning(text)
-                else:
-                    log.info(text)
-            for ev in self.recorder.pop_events():
-                if ev.warning:
-                    self._end_progress_line()
-                    log.warning(ev.message)
-                elif self.display is not None:
-                    self.display.event(ev)
-                else:
-                    log.info(ev.message)
-            if self.display is not None and self.recorder.monitor is not None:
-                self.display.update(self.recorder.sequencer.status(), self.recorder.temperature_c, self.setpoint_c)
-
-        def _end_progress_line(self) -> None:
-            if self.display is not None:
-                self.display.close()
-
-        # ------------------------------------------------------------ end of run
-        def finish(self, interrupted_by: str = "") -> int:
-            """Close the MCAP (summary + footer), then refit a complete run; returns the exit status."""
-            rec = self.recorder
-            self._report()
-            complete = rec.done
-            reason = interrupted_by or ("complete" if complete else "aborted")
-            summary = rec.close(reason)
+    def _report(self) -> None:
+        log = self.get_logger()
+        for level, text in self.recorder.pop_messages():
             self._end_progress_line()
-            log = self.get_logger()
-            if self.dynamic:
-                log.info(f"dynamic run {reason}: {self.mcap_path} closed ({summary['messages_raw']} raw messages, "
-                         f"{summary['aux_samples']} with the reference, {summary['lost_messages']} lost, "
-                         f"{summary['recorded_s']:.1f} of {summary['planned_s']:.1f} s)")
-                log.info(f"fit it with: fbg-accel-calib dynamic {self.mcap_path} --plan {self.p['plan_file']} "
-                         "--calibration STATIC.yaml -o OUT.yaml")
-                return EXIT_OK if complete else EXIT_INTERRUPTED
-            short = [p for p in summary["poses"] if p["samples"] < p["target"]]
-            log.info(f"run {reason}: {self.mcap_path} closed ({summary['messages_raw']} raw messages, "
-                     f"{summary['lost_messages']} lost, {len(short)} pose(s) short)")
-            if summary["lost_messages"]:
-                log.warning(f"{summary['lost_messages']} imu/raw messages missing (gaps in seq): driver/DDS losses")
-            if not complete:
-                log.warning(f"run not complete: no fit. Fit later with: fbg-accel-calib fit {self.mcap_path} ...")
-                return EXIT_INTERRUPTED
-            if not self.p["fit"]:
-                return EXIT_OK
-            try:
-                sources = expand_sources(self.mcap_path, self.fit_with)
-                result = refit(sources, self.yaml_path, self.degree, sensor_id=self.p["sensor_id"])
-            except (RefitError, ValueError, OSError) as exc:
-                log.error(f"fit failed: {exc}; the recording {self.mcap_path} is kept")
-                return EXIT_FIT_FAILED
-            print(result.report(), flush=True)
-            log.info(f"calibration written to {self.yaml_path}")
-            return EXIT_OK
+            if level == "warn":
+                log.warning(text)
+            else:
+                log.info(text)
+        for ev in self.recorder.pop_events():
+            if ev.warning:
+                self._end_progress_line()
+                log.warning(ev.message)
+            elif self.display is not None:
+                self.display.event(ev)
+            else:
+                log.info(ev.message)
+        if self.display is not None and self.recorder.monitor is not None:
+            self.display.update(self.recorder.sequencer.status(), self.recorder.temperature_c, self.setpoint_c)
 
-    return CalibrationNode()
+    def _end_progress_line(self) -> None:
+        if self.display is not None:
+            self.display.close()
+
+    # ------------------------------------------------------------ end of run
+    def finish(self, interrupted_by: str = "") -> int:
+        """Close the MCAP (summary + footer), then refit a complete run; returns the exit status."""
+        rec = self.recorder
+        self._report()
+        complete = rec.done
+        reason = interrupted_by or ("complete" if complete else "aborted")
+        summary = rec.close(reason)
+        self._end_progress_line()
+        log = self.get_logger()
+        if self.dynamic:
+            log.info(f"dynamic run {reason}: {self.mcap_path} closed ({summary['messages_raw']} raw messages, "
+                     f"{summary['aux_samples']} with the reference, {summary['lost_messages']} lost, "
+                     f"{summary['recorded_s']:.1f} of {summary['planned_s']:.1f} s)")
+            log.info(f"fit it with: fbg-accel-calib dynamic {self.mcap_path} --plan {self.p['plan_file']} "
+                     "--calibration STATIC.yaml -o OUT.yaml")
+            return EXIT_OK if complete else EXIT_INTERRUPTED
+        short = [p for p in summary["poses"] if p["samples"] < p["target"]]
+        log.info(f"run {reason}: {self.mcap_path} closed ({summary['messages_raw']} raw messages, "
+                 f"{summary['lost_messages']} lost, {len(short)} pose(s) short)")
+        if summary["lost_messages"]:
+            log.warning(f"{summary['lost_messages']} imu/raw messages missing (gaps in seq): driver/DDS losses")
+        if not complete:
+            log.warning(f"run not complete: no fit. Fit later with: fbg-accel-calib fit {self.mcap_path} ...")
+            return EXIT_INTERRUPTED
+        if not self.p["fit"]:
+            return EXIT_OK
+        try:
+            sources = expand_sources(self.mcap_path, self.fit_with)
+            result = refit(sources, self.yaml_path, self.degree, sensor_id=self.p["sensor_id"])
+        except (RefitError, ValueError, OSError) as exc:
+            log.error(f"fit failed: {exc}; the recording {self.mcap_path} is kept")
+            return EXIT_FIT_FAILED
+        print(result.report(), flush=True)
+        log.info(f"calibration written to {self.yaml_path}")
+        return EXIT_OK
 
 
 if __name__ == "__main__":

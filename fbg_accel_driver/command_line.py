@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
+from typing import Any
 
 DISTRIBUTION = "fbg_accel_driver"  # the setup.py ``name`` whose metadata carries the version
 
@@ -20,6 +21,28 @@ def wants_help(argv: list[str]) -> bool:
 def wants_version(argv: list[str]) -> bool:
     """True if ``--version`` appears among the user's arguments (those before ``--ros-args``)."""
     return "--version" in _user_args(argv)
+
+
+def print_help_or_version(prog: str, argv: list[str], usage: Callable[[], str]) -> bool:
+    """Answer ``--version`` or ``-h``/``--help`` (before any ROS start-up); True if one was answered."""
+    if wants_version(argv):
+        print(version_line(prog))
+        return True
+    if wants_help(argv):
+        print(usage(), end="")
+        return True
+    return False
+
+
+# A node's parameters, name: (type, default, description); the type is a word (string, integer, double,
+# bool, string_array, double_array) so that the table and --help need no ROS. A default of None declares
+# the parameter by type only (unset unless given).
+ParameterTable = dict[str, tuple[str, Any, str]]
+
+
+def parameter_help(table: ParameterTable, name_width: int, type_width: int) -> str:
+    """The ``parameters:`` section of a node's usage text."""
+    return "".join(f"  {n:<{name_width}} {t:<{type_width}} default {d!r}\n      {desc}\n" for n, (t, d, desc) in table.items())
 
 
 def package_version() -> str:

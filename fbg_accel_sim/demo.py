@@ -19,7 +19,7 @@ import time
 from typing import Any
 
 SIM_CMD = "import sys; from fbg_accel_sim.board_sim import main; sys.exit(main())"
-DRIVER_CMD = "import sys; from fbg_accel_driver.driver_node import main; sys.exit(main())"
+DRIVER_CMD = "import sys; from fbg_accel_driver.driver_main import main; sys.exit(main())"
 
 
 def start_board_sim(extra: list[str], timeout_s: float = 20.0) -> tuple[subprocess.Popen, str]:

@@ -1,0 +1,134 @@
+"""Entry point of the ROS 2 node ``driver`` (``ros2 run fbg_accel_driver driver``): its parameter table,
+usage text and ``main``. No ROS import: ``--help`` and ``--version`` answer without rclpy; the node itself
+(``driver_node``, rclpy) is imported only to run.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from .command_line import ParameterTable, StartupError, one_line, parameter_help, print_help_or_version
+
+PACKAGE = "fbg_accel_driver"
+DEFAULT_CALIBRATION = "calibration_sim.yaml"
+CALIBRATION_SIM = "sim"  # calibration_file value: the simulated sensor's calibration shipped in config/
+CALIBRATION_NONE = "none"  # calibration_file value: raw counts and temperature only
+# parameters ``ros2 param set`` may change while streaming (DriverCore.reconfigure); the rest are read-only
+RUNTIME_PARAMETERS = ("decimation", "min_reference_counts", "temperature_hold_s", "out_of_range_variance_factor")
+
+# name: (type, default, description), ROS-free so that --help needs no ROS (command_line.ParameterTable)
+PARAMETERS: ParameterTable = {
+    "port": ("string", "/dev/ttyUSB0", "serial device of the board (a pty path for the simulator)"),
+    "baud": ("integer", 921600, "UART baud rate, 1200..4000000"),
+    "frame_id": ("string", "fbg_accel_link", "frame_id of the published messages (sensor frame)"),
+    "calibration_file": (
+        "string",
+        "",
+        f"REQUIRED: the sensor's calibration YAML; '{CALIBRATION_SIM}' = the package's config/{DEFAULT_CALIBRATION} "
+        f"(the simulated sensor); '{CALIBRATION_NONE}' = no imu/data_raw, imu/raw and imu/temperature only",
+    ),
+    "decimation": ("integer", 1, "average this many board samples per imu/data_raw message, 1..10000 (settable)"),
+    "covariance_source": (
+        "string",
+        "calibration",
+        "linear_acceleration_covariance from: calibration (noise_sigma_mps2), parameter (accel_stddev_mps2), unknown "
+        "(zeros); decimated variance uses the calibration's noise_correlation",
+    ),
+    "accel_stddev_mps2": ("double", 0.0, "per-axis sigma in m/s^2 when covariance_source is 'parameter'"),
+    "chain_compensation": (
+        "string",
+        "auto",
+        "measuring-chain dynamics from the calibration's 'dynamic' section: none, delay (stamps moved back by the "
+        "group delay at DC), equalise (each channel's TIA low-pass inverted before eq. 24), auto (= delay when the "
+        "calibration has a dynamic section, else none); docs/dynamic_calibration.md",
+    ),
+    "equalise_bandwidth_hz": ("double", 10.0,
+                              "common low-pass (Hz) left in place of the TIA stages by chain_compensation 'equalise'"),
+    "min_reference_counts": ("integer", 50,
+                             "reference counts below this: reference power too low, sample not published (settable)"),
+    "temperature_hold_s": ("double", 5.0,
+                           "seconds the last good temperature may be used while the sensor is invalid (settable)"),
+    "out_of_range_variance_factor": ("double", 10.0,
+                                     "variance factor outside the calibrated temperature range (>= 1) (settable)"),
+    "reconnect_backoff_max_s": ("double", 2.0, "longest wait between reconnection attempts (back-off doubles from 0.1 s)"),
+    "silence_timeout_s": ("double", 2.0, "reopen the port after this many seconds without any byte (0 = never)"),
+    "reader_queue_max_bytes": (
+        "integer",
+        262144,
+        "bytes the serial reader may queue ahead of the decoder; beyond it the oldest are dropped and counted",
+    ),
+}
+
+USAGE = f"""usage: driver [-h] [--version] [--managed] [--ros-args -p NAME:=VALUE ... | --params-file FILE]
+
+  --managed   run as a managed (lifecycle) node: configure loads the calibration and opens the port,
+              activate publishes, deactivate stops publishing, cleanup closes the port
+
+ROS 2 driver for the FBG triaxial accelerometer acquisition board (package {PACKAGE}).
+Reads binary frames from a serial port (pyserial), stamps them with the board clock mapped to ROS
+time, applies the thermal calibration (paper eq. 24 and 28) and publishes:
+  imu/data_raw     sensor_msgs/Imu          specific force in m/s^2 (REP 145)
+  imu/temperature  sensor_msgs/Temperature  AHT10 temperature in degC
+  imu/raw          sensor_msgs/JointState   raw counts, temperature, status, seq, board time
+  /diagnostics     diagnostic_msgs/DiagnosticArray, 1 Hz
+
+parameters:
+""" + parameter_help(PARAMETERS, 30, 8) + """
+example:
+  ros2 run fbg_accel_driver driver --ros-args -p port:=/dev/ttyUSB0 -p decimation:=10
+exit status: 0 on clean shutdown, 2 on invalid parameters or calibration file.
+"""
+
+
+def default_calibration_path() -> Path:
+    """The shipped calibration: the installed share directory, else the source tree's config/."""
+    candidates: list[Path] = []
+    try:
+        from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+
+        try:
+            candidates.append(Path(get_package_share_directory(PACKAGE)) / "config" / DEFAULT_CALIBRATION)
+        except (PackageNotFoundError, ValueError, LookupError, OSError):
+            pass
+    except ImportError:
+        pass
+    here = Path(__file__).resolve()
+    # colcon install layout: <prefix>/lib/pythonX.Y/site-packages/fbg_accel_driver/driver_main.py
+    for parent in here.parents:
+        candidates.append(parent / "share" / PACKAGE / "config" / DEFAULT_CALIBRATION)
+        if parent.name == "lib":
+            break
+    candidates.append(here.parents[1] / "config" / DEFAULT_CALIBRATION)  # source tree / editable install
+    for c in candidates:
+        if c.is_file():
+            return c
+    return candidates[-1]
+
+
+def _usage() -> str:
+    return USAGE + f"calibration_file '{CALIBRATION_SIM}': {default_calibration_path()}\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if print_help_or_version("driver", argv, _usage):
+        return 0
+    try:
+        user = argv[: argv.index("--ros-args")] if "--ros-args" in argv else argv
+        managed = "--managed" in user
+        user = [a for a in user if a != "--managed"]
+        if user:
+            raise StartupError(f"unknown argument(s) {user}; parameters go after --ros-args (see driver --help)")
+        from .driver_node import run  # rclpy: only once neither --help nor --version answered
+
+        return run([a for a in argv if a != "--managed"], managed)
+    except StartupError as exc:
+        print(f"driver: error: {one_line(str(exc))}", file=sys.stderr, flush=True)
+        return 2
+    except KeyboardInterrupt:
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

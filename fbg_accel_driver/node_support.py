@@ -1,0 +1,95 @@
+"""What the two ROS shells (``driver_node`` here and the calibration package's ``calibration_node``) share:
+ROS start-up with a clear error, signals that only set a flag, and declaring a parameter table with descriptors.
+
+Only the node modules import this (it imports rclpy); the ROS-free conventions (``StartupError``,
+``--help``/``--version``, unknown-parameter messages) are in ``command_line``.
+"""
+
+from __future__ import annotations
+
+import signal
+from collections.abc import Callable, Collection, Iterator, Mapping
+from contextlib import contextmanager
+from typing import Any
+
+import rclpy
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rclpy.exceptions import ParameterException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.signals import SignalHandlerOptions
+
+from .command_line import ParameterTable, StartupError, first_line, unknown_parameters
+
+# table type word: (descriptor type, the value that declares an unset parameter of that type)
+_TYPES: dict[str, tuple[int, Any]] = {
+    "string": (ParameterType.PARAMETER_STRING, Parameter.Type.STRING),
+    "integer": (ParameterType.PARAMETER_INTEGER, Parameter.Type.INTEGER),
+    "double": (ParameterType.PARAMETER_DOUBLE, Parameter.Type.DOUBLE),
+    "bool": (ParameterType.PARAMETER_BOOL, Parameter.Type.BOOL),
+    "string_array": (ParameterType.PARAMETER_STRING_ARRAY, Parameter.Type.STRING_ARRAY),
+    "double_array": (ParameterType.PARAMETER_DOUBLE_ARRAY, Parameter.Type.DOUBLE_ARRAY),
+}
+
+
+def init_ros(prog: str, argv: list[str], *, name_arguments: bool = False) -> None:
+    """``rclpy.init`` with the node's ROS arguments and without rclpy's signal handler (that would shut the
+    context down at once, under a node that still writes); unparsable ``--ros-args`` become a StartupError."""
+    try:
+        rclpy.init(args=[prog, *argv], signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as exc:  # RCLError (not exported): its text is the only useful part
+        shown = f" {argv}" if name_arguments else ""
+        raise StartupError(f"invalid ROS arguments{shown}: {first_line(exc)}") from None
+
+
+@contextmanager
+def signals_to(handler: Callable[[int], None]) -> Iterator[None]:
+    """SIGINT and SIGTERM call ``handler(signum)`` (which only sets a flag) inside the block; restored after."""
+    previous = {sig: signal.signal(sig, lambda signum, _frame: handler(signum)) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
+def declare_parameters(
+    node: Node,
+    table: ParameterTable,
+    *,
+    writable: Collection[str] = (),
+    integer_ranges: Mapping[str, tuple[int, int]] | None = None,
+    float_ranges: Mapping[str, tuple[float, float]] | None = None,
+    constraints: Mapping[str, str] | None = None,
+) -> dict[str, Any]:
+    """Declare every parameter of ``table`` (read-only unless ``writable``) with its description, range and
+    constraint text; returns the values. A value rclpy refuses (wrong type, out of range) is a StartupError
+    naming the parameter and what it means."""
+    values: dict[str, Any] = {}
+    for name, (typ, default, desc) in table.items():
+        ptype, unset = _TYPES[typ]
+        d = ParameterDescriptor(name=name, type=ptype, description=desc, read_only=name not in writable)
+        if integer_ranges and name in integer_ranges:
+            lo, hi = integer_ranges[name]
+            d.integer_range = [IntegerRange(from_value=lo, to_value=hi, step=1)]
+            d.additional_constraints = f"{lo}..{hi}"
+        if float_ranges and name in float_ranges:
+            lo_f, hi_f = float_ranges[name]
+            d.floating_point_range = [FloatingPointRange(from_value=lo_f, to_value=hi_f, step=0.0)]
+            d.additional_constraints = f"{lo_f}..{hi_f}"
+        if constraints and name in constraints:
+            d.additional_constraints = constraints[name]
+        try:
+            values[name] = node.declare_parameter(name, unset if default is None else default, d).value
+        except ParameterException as exc:
+            raise StartupError(f"invalid parameter '{name}': {first_line(exc)} ({desc})") from None
+    return values
+
+
+def refuse_unknown_parameters(node: Node, prog: str) -> None:
+    """A misspelt ``-p``/params-file name would be ignored by rclpy: refuse it, naming the nearest. Call it
+    after every declaration (publishers declare their ``qos_overrides`` parameters)."""
+    given = getattr(node, "_parameter_overrides", {})  # what --ros-args, params files and the constructor set
+    unknown = unknown_parameters(given, node._parameters)
+    if unknown:
+        raise StartupError("; ".join(unknown) + f" ({prog} --help lists the parameters)")
