@@ -35,6 +35,7 @@ correlated and a sample-level F-test would be far too optimistic.
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -120,14 +121,62 @@ class Design:
     n_base: int
 
 
-def build_design(data: DiagnosisData, spec: ModelSpec) -> Design:
-    """Regressors of eq. 28 on the corrected inputs, then the extra columns of the additive effects."""
-    inp = Inputs(np.array(data.ref, float), np.array(data.xyz, float), np.array(data.temp_c, float),
-                 np.array(data.t_s, float), np.array(data.gref, float), np.ones(len(data.t_s), bool))
+def _transforms_inputs(eff: Effect) -> bool:
+    return type(eff).transform is not Effect.transform
+
+
+def _finite_rows(a: np.ndarray) -> np.ndarray:
+    """Rows of ``a`` (N, k) with every value finite (a row sum is finite exactly then, for values far below
+    the float range, as here: counts, m/s^2, powers of a scaled temperature)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        return np.isfinite(a.sum(axis=1))
+
+
+class DesignCache:
+    """The corrected inputs and eq. 28 columns of the last few sets of input corrections (bounded).
+
+    A hyper-parameter search over an additive effect, and every candidate tried on top of the same model,
+    feed eq. 28 the same corrected inputs: they are corrected and expanded once. Only for one recording.
+    """
+
+    def __init__(self, size: int = 2) -> None:
+        self.size = size
+        self._entries: OrderedDict[tuple, tuple[Inputs, np.ndarray, np.ndarray]] = OrderedDict()
+
+    def get(self, key: tuple) -> tuple[Inputs, np.ndarray, np.ndarray] | None:
+        hit = self._entries.get(key)
+        if hit is not None:
+            self._entries.move_to_end(key)
+        return hit
+
+    def put(self, key: tuple, value: tuple[Inputs, np.ndarray, np.ndarray]) -> None:
+        self._entries[key] = value
+        while len(self._entries) > self.size:
+            self._entries.popitem(last=False)
+
+
+def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None = None) -> Design:
+    """Regressors of eq. 28 on the corrected inputs, then the extra columns of the additive effects.
+
+    The input corrections (``Effect.transform``) run first in stage order; every effect's columns are then
+    computed from the fully corrected inputs. ``cache`` keeps the corrected inputs and eq. 28 columns of a
+    set of corrections for the next design that has the same ones (the arrays it holds are never written).
+    """
     ordered = sorted(spec.effects, key=lambda eh: eh[0].stage)
-    for eff, h in ordered:
-        eff.transform(data, inp, h)
-    tau = (inp.temp_c - spec.t_center_c) / spec.t_scale_c
+    key = (spec.degree, spec.t_center_c, spec.t_scale_c,
+           tuple((eff.name, h) for eff, h in ordered if _transforms_inputs(eff)))
+    hit = cache.get(key) if cache is not None else None
+    if hit is None:
+        inp = Inputs(np.array(data.ref, float), np.array(data.xyz, float), np.array(data.temp_c, float),
+                     np.array(data.t_s, float), np.array(data.gref, float), np.ones(len(data.t_s), bool))
+        for eff, h in ordered:
+            eff.transform(data, inp, h)
+        base = design_matrix(inp.psi, (inp.temp_c - spec.t_center_c) / spec.t_scale_c, spec.degree)
+        base_ok = inp.valid & _finite_rows(base) & _finite_rows(inp.gref)
+        if cache is not None:
+            cache.put(key, (inp, base, base_ok))
+    else:
+        inp, base, base_ok = hit
     n_base = n_params(spec.degree)
     extra, blocks, p = [], {}, n_base
     for eff, h in ordered:
@@ -136,11 +185,14 @@ def build_design(data: DiagnosisData, spec: ModelSpec) -> Design:
             blocks[eff.name] = slice(p, p + c.shape[1])
             extra.append(c)
             p += c.shape[1]
-    X = np.empty((len(tau), p))  # filled in place: no per-trial concatenation copy
-    design_matrix(inp.psi, tau, spec.degree, out=X)  # writes the first n_base columns
+    if not extra:
+        return Design(base, inp.gref, base_ok, blocks, n_base)
+    X = np.empty((p, base.shape[0])).T  # column-major, filled in place: no per-trial concatenation copy
+    X[:, :n_base] = base
+    valid = base_ok.copy()
     for c, sl in zip(extra, blocks.values(), strict=True):
         X[:, sl] = c
-    valid = inp.valid & np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(inp.gref), axis=1)
+        valid &= _finite_rows(c)
     return Design(X, inp.gref, valid, blocks, n_base)
 
 
@@ -278,31 +330,38 @@ class CvResult:
 def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np.ndarray) -> CvResult:
     """K-fold CV by normal equations (per-fold sums subtracted from the total). Rows of ``rows`` with a
     negative fold index (``check_folds``: -2, a visit that cannot be held out) are in every training
-    set and in the full fit, never held out (their held-out residual stays NaN)."""
+    set and in the full fit, never held out (their held-out residual stays NaN).
+
+    The fitted rows are gathered once in fold order (a stable counting sort of the small fold
+    numbers), so each fold's sums and held-out residual come from one contiguous slice.
+    """
     X, G = des.X, des.G
-    r = rows & des.valid
-    K = int(folds[r].max()) + 1
-    xtx = np.zeros((K, X.shape[1], X.shape[1]))
-    xtg = np.zeros((K, X.shape[1], 3))
+    idx = np.flatnonzero(rows & des.valid)
+    f_idx = folds[idx].astype(np.int16)  # a few folds: numpy's stable sort of int16 is a radix sort
+    order = np.argsort(f_idx, kind="stable")
+    idx, f_idx = idx[order], f_idx[order]
+    K = int(f_idx[-1]) + 1
+    start = np.searchsorted(f_idx, np.arange(-2, K + 1))  # [-2, -1, 0, .., K]: fold f is start[f+2]:start[f+3]
+    Xs, Gs = X[idx], G[idx]
+    p = X.shape[1]
+    xtx = np.zeros((K, p, p))
+    xtg = np.zeros((K, p, 3))
     gtg = np.zeros((K, 3))
     for f in range(K):
-        m = r & (folds == f)
-        Xf, Gf = X[m], G[m]
-        xtx[f], xtg[f], gtg[f] = Xf.T @ Xf, Xf.T @ Gf, np.sum(Gf**2, axis=0)
+        Xf, Gf = Xs[start[f + 2]:start[f + 3]], Gs[start[f + 2]:start[f + 3]]
+        xtx[f], xtg[f], gtg[f] = Xf.T @ Xf, Xf.T @ Gf, np.einsum("ij,ij->j", Gf, Gf)
     XtX, XtG, GtG = xtx.sum(0), xtg.sum(0), gtg.sum(0)
-    always = r & (folds < 0)
-    if always.any():
-        Xa, Ga = X[always], G[always]
-        XtX, XtG, GtG = XtX + Xa.T @ Xa, XtG + Xa.T @ Ga, GtG + np.sum(Ga**2, axis=0)
+    Xa, Ga = Xs[:start[2]], Gs[:start[2]]  # fold < 0: always trained on
+    if len(Xa):
+        XtX, XtG, GtG = XtX + Xa.T @ Xa, XtG + Xa.T @ Ga, GtG + np.einsum("ij,ij->j", Ga, Ga)
     heldout = np.full(G.shape, np.nan)
     train_rss = np.zeros(K)
     for f in range(K):
-        A = _solve(XtX - xtx[f], XtG - xtg[f])
-        m = r & (folds == f)
-        heldout[m] = G[m] - X[m] @ A
+        sl = slice(start[f + 2], start[f + 3])
         Xt, Gt = XtX - xtx[f], XtG - xtg[f]
-        gt = GtG - gtg[f]
-        rss = gt - 2 * np.einsum("pi,pi->i", A, Gt) + np.einsum("pi,pq,qi->i", A, Xt, A)
+        A = _solve(Xt, Gt)
+        heldout[idx[sl]] = Gs[sl] - Xs[sl] @ A
+        rss = GtG - gtg[f] - 2 * np.einsum("pi,pi->i", A, Gt) + np.einsum("pi,pq,qi->i", A, Xt, A)
         train_rss[f] = float(np.sum(rss * weights))
     A_full = _solve(XtX, XtG)
     fitted = X @ A_full
@@ -655,9 +714,13 @@ class Evaluator:
         self.data, self.folds, self.weights, self.groups = data, folds, weights, groups
         self.rows = data.use & (folds >= 0)  # held out and judged
         self.fit_rows = data.use & (folds != -1)  # fitted (also the visits that are never held out, fold -2)
+        self.designs = DesignCache()
+
+    def design(self, spec: ModelSpec) -> Design:
+        return build_design(self.data, spec, self.designs)
 
     def cv(self, spec: ModelSpec) -> tuple[Design, CvResult]:
-        des = build_design(self.data, spec)
+        des = self.design(spec)
         return des, cross_validate(des, self.fit_rows, self.folds, self.weights)
 
     def fit_hyper(self, spec: ModelSpec, eff: Effect) -> tuple[float | None, np.ndarray, list[tuple[float, float]]]:
@@ -685,7 +748,7 @@ class Evaluator:
         h_best = float(grid[j])
         if hi > lo:
             def obj(h: float) -> float:
-                return weighted_rss(build_design(self.data, spec.plus(eff, float(h))), self.fit_rows, self.weights)
+                return weighted_rss(self.design(spec.plus(eff, float(h))), self.fit_rows, self.weights)
 
             res = optimize.minimize_scalar(obj, bounds=(float(lo), float(hi)), method="bounded",
                                            options={"xatol": 1e-3 * (hi - lo), "maxiter": 25})
@@ -694,8 +757,8 @@ class Evaluator:
         if eff.hyper_null is not None:
             # parsimony: keep the null value unless moving away from it is a significant improvement,
             # judged with visits as the independent units (likelihood ratio ~ chi^2(1), 1 %)
-            rss_best = weighted_rss(build_design(self.data, spec.plus(eff, h_best)), self.fit_rows, self.weights)
-            rss_null = weighted_rss(build_design(self.data, spec.plus(eff, eff.hyper_null)), self.fit_rows, self.weights)
+            rss_best = weighted_rss(self.design(spec.plus(eff, h_best)), self.fit_rows, self.weights)
+            rss_null = weighted_rss(self.design(spec.plus(eff, eff.hyper_null)), self.fit_rows, self.weights)
             n_groups = len(np.unique(self.groups[self.rows]))
             if (rss_null - rss_best) / max(rss_best / n_groups, 1e-300) < stats.chi2.ppf(0.99, 1):
                 h_best = float(eff.hyper_null)
@@ -1027,8 +1090,7 @@ def _calibration_from(spec: ModelSpec, des: Design, cv: CvResult, data: Diagnosi
 def _consistency(cal: ThermalCalibration, data: DiagnosisData, des: Design, cv: CvResult, rows: np.ndarray) -> float:
     """Max |apply_counts - fit prediction| over the static rows, per run streamed with one state."""
     worst = 0.0
-    for r in np.unique(data.run_id):
-        idx = data.run_id == r
+    for idx in data.runs():
         out = cal.apply_counts(data.ref[idx], data.xyz[idx], data.temp_c[idx], data.t_s[idx], cal.new_state())
         m = rows[idx]
         if m.any():
@@ -1042,8 +1104,7 @@ def _moving_residual(data: DiagnosisData, cal: ThermalCalibration) -> np.ndarray
     if m.sum() < 3:
         return None
     out = np.full((len(data.t_s), 3), np.nan)
-    for r in np.unique(data.run_id):
-        idx = data.run_id == r
+    for idx in data.runs():
         out[idx] = cal.apply_counts(data.ref[idx], data.xyz[idx], data.temp_c[idx], data.t_s[idx], cal.new_state())
     d = out[m] - data.gref_filled[m]
     d = d[np.all(np.isfinite(d), axis=1)]

@@ -79,6 +79,13 @@ class DiagnosisData:
     group: np.ndarray = field(default=None)  # type: ignore[assignment]  # visit label (``visit_ids``)
 
     _psi_map: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
+    _runs: list[np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
+
+    def runs(self) -> list[np.ndarray]:
+        """Sample indices of each run (computed once; every filter restarts at a run's first sample)."""
+        if self._runs is None:
+            self._runs = [np.flatnonzero(self.run_id == r) for r in np.unique(self.run_id)]
+        return self._runs
 
     def static_psi_map(self) -> tuple[np.ndarray, np.ndarray]:
         """``expected_psi_map`` of the recorded counts (computed once)."""
@@ -252,8 +259,7 @@ class ReferenceReadNoiseEffect(Effect):
         if not h:
             return
         ref = np.array(inp.ref, dtype=float, copy=True)
-        for r in np.unique(data.run_id):
-            idx = data.run_id == r
+        for idx in data.runs():
             ref[idx] = first_order_lowpass(inp.ref[idx], inp.t_s[idx], float(h), {})
         inp.ref = ref
         inp.counts_changed = True
@@ -334,8 +340,7 @@ class ThermalLagEffect(Effect):
     def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
         term = ThermalLag(float(h))
         out = np.array(inp.temp_c, copy=True)
-        for r in np.unique(data.run_id):
-            idx = data.run_id == r
+        for idx in data.runs():
             out[idx] = term.effective_temperature(inp.temp_c[idx], inp.t_s[idx], {})
         inp.temp_c = out
 
@@ -429,8 +434,7 @@ class ChannelDelayEffect(Effect):
             return
         g = np.array(inp.gref, copy=True)
         valid = np.array(inp.valid, copy=True)
-        for r in np.unique(data.run_id):
-            idx = np.flatnonzero(data.run_id == r)
+        for idx in data.runs():
             t = data.t_s[idx]
             tq = t - D
             for j in range(3):
@@ -475,8 +479,7 @@ class TiaLowpassEffect(Effect):
         psi_hat = g @ P.T + q
         psi_f = np.array(psi_hat, copy=True)
         tau = self.taus(float(h))
-        for r in np.unique(data.run_id):
-            idx = data.run_id == r
+        for idx in data.runs():
             for j in range(3):
                 psi_f[idx, j] = first_order_lowpass(psi_hat[idx, j], inp.t_s[idx], tau[j + 1], {})
         inp.gref = g + np.linalg.solve(P, (psi_f - psi_hat).T).T
@@ -522,8 +525,7 @@ class ThermalHysteresisEffect(Effect):
 
     def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
         out = np.zeros(len(inp.t_s))
-        for r in np.unique(data.run_id):
-            idx = data.run_id == r
+        for idx in data.runs():
             st = ThermalHysteresis(np.zeros(3), float(h), self.deadband(float(h))).new_state()
             out[idx] = ThermalHysteresis.branch(inp.temp_c[idx], inp.t_s[idx], float(h), self.deadband(float(h)), st)
         return out[:, None]

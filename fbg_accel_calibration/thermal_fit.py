@@ -82,12 +82,13 @@ def n_params(degree: int) -> int:
 def design_matrix(psi: np.ndarray, tau: np.ndarray, degree: int, out: np.ndarray | None = None) -> np.ndarray:
     """Eq. 29 regressor rows (N, 4(n+1)) from Psi (N, 3) and scaled temperature tau (N,).
 
-    ``out`` (N, 4(n+1)) may be given to reuse a buffer.
+    ``out`` (N, 4(n+1)) may be given to reuse a buffer. A new matrix is column-major: it is filled a
+    column at a time, and the products that use it (X^T X, X A) take either layout.
     """
     psi = np.asarray(psi, dtype=float)
     tau = np.asarray(tau, dtype=float)
     n, q = len(tau), 3 * (degree + 1)
-    X = np.empty((n, n_params(degree))) if out is None else out[:n]
+    X = np.empty((n_params(degree), n)).T if out is None else out[:n]
     X[:, q] = 1.0
     X[:, 0:3] = psi
     for k in range(1, degree + 1):

@@ -232,3 +232,24 @@ def test_console_table_has_a_header_and_reports_say_sample_index_without_a_time_
     assert "  " + " | ".join(CAND_HEAD) in out.splitlines()
     md = markdown(res, "cmd")
     assert "| sample index |" in md and "time [s]" not in md
+
+
+def test_cached_designs_equal_designs_built_afresh() -> None:
+    """The Evaluator's design cache (corrected inputs and eq. 28 columns reused across hyper-parameter trials)
+    gives the same design as building it from scratch, for input corrections and additive effects alike,
+    and holds a bounded number of entries."""
+    from fbg_accel_calibration.diagnose import DesignCache, ModelSpec, build_design, prepare_data
+    from fbg_accel_calibration.effects import library_by_name
+
+    data = prepare_data(synthetic(4, dark=30.0))
+    lib = library_by_name()
+    base = ModelSpec(1, 23.4, 1.0, [(lib["reference_dark_offset"], 20.0)])
+    cache = DesignCache(size=2)
+    specs = [base.plus(lib["time_drift"], h) for h in (50.0, 200.0)] + [base.plus(lib["tia_lowpass"], h) for h in (0.5, 2.0)]
+    for spec in specs * 2:  # the second round hits the cache
+        got, fresh = build_design(data, spec, cache), build_design(data, spec)
+        np.testing.assert_array_equal(got.valid, fresh.valid)
+        np.testing.assert_array_equal(got.X[got.valid], fresh.X[fresh.valid])
+        np.testing.assert_array_equal(got.G, fresh.G)
+        assert got.blocks == fresh.blocks
+        assert len(cache._entries) <= 2
