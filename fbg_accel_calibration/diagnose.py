@@ -57,7 +57,14 @@ from .effects import (
 )
 from .recording import Recording, time_axis_label
 from .static_detector import calibration_samples
-from .thermal_fit import NotIdentifiedError, design_matrix, n_params, temperature_levels, temperature_scaling
+from .thermal_fit import (
+    NotIdentifiedError,
+    design_matrix,
+    n_params,
+    solve_normal_equations,
+    temperature_levels,
+    temperature_scaling,
+)
 
 # ============================================================================ data preparation
 SAMPLE_SELECTIONS = ("table", "detector", "all")
@@ -309,16 +316,6 @@ def check_folds(data: DiagnosisData, groups: np.ndarray, folds: np.ndarray) -> t
     return out, notes
 
 
-def _solve(xtx: np.ndarray, xtg: np.ndarray) -> np.ndarray:
-    d = np.sqrt(np.clip(np.diag(xtx), 1e-300, None))
-    s = xtx / np.outer(d, d)
-    try:
-        a = np.linalg.solve(s + 1e-13 * np.eye(len(d)), xtg / d[:, None])
-    except np.linalg.LinAlgError:
-        a = np.linalg.lstsq(s, xtg / d[:, None], rcond=1e-12)[0]
-    return a / d[:, None]
-
-
 @dataclass
 class CvResult:
     heldout: np.ndarray  # (N, 3) held-out residual (NaN outside the evaluated rows)
@@ -359,11 +356,11 @@ def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np
     for f in range(K):
         sl = slice(start[f + 2], start[f + 3])
         Xt, Gt = XtX - xtx[f], XtG - xtg[f]
-        A = _solve(Xt, Gt)
+        A = solve_normal_equations(Xt, Gt)[0]
         heldout[idx[sl]] = Gs[sl] - Xs[sl] @ A
         rss = GtG - gtg[f] - 2 * np.einsum("pi,pi->i", A, Gt) + np.einsum("pi,pq,qi->i", A, Xt, A)
         train_rss[f] = float(np.sum(rss * weights))
-    A_full = _solve(XtX, XtG)
+    A_full = solve_normal_equations(XtX, XtG)[0]
     fitted = X @ A_full
     return CvResult(heldout, train_rss, A_full, fitted)
 
@@ -371,7 +368,7 @@ def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np
 def weighted_rss(des: Design, rows: np.ndarray, weights: np.ndarray) -> float:
     r = rows & des.valid
     X, G = des.X[r], des.G[r]  # one copy each, not three
-    A = _solve(X.T @ X, X.T @ G)
+    A = solve_normal_equations(X.T @ X, X.T @ G)[0]
     res = G - X @ A
     return float(np.sum(res**2 * weights))
 
@@ -731,11 +728,19 @@ class Evaluator:
             _, cvr = self.cv(spec.plus(eff, None))
             return None, cvr.heldout, []
         K = int(self.folds[self.rows].max()) + 1
-        per_h, profile = [], []
+        per_h, profile, kept, unidentified = [], [], [], []
         for h in grid:
-            des, cvr = self.cv(spec.plus(eff, float(h)))
+            try:
+                des, cvr = self.cv(spec.plus(eff, float(h)))
+            except NotIdentifiedError as exc:  # this value makes the design singular: not a candidate
+                unidentified.append(f"{eff.hyper_name} = {h:.4g}: {exc}")
+                continue
             per_h.append((cvr.train_rss, cvr.heldout, des.valid))
             profile.append((float(h), float(np.sum(cvr.train_rss) / max(K - 1, 1))))
+            kept.append(float(h))
+        if not per_h:
+            raise NotIdentifiedError("no value of the grid is identified (" + unidentified[0] + ")")
+        grid = np.asarray(kept)
         heldout = np.full((len(self.data.t_s), 3), np.nan)
         for f in range(K):
             j = int(np.argmin([p[0][f] for p in per_h]))
@@ -746,10 +751,14 @@ class Evaluator:
         lo = grid[max(j - 1, 0)]
         hi = grid[min(j + 1, len(grid) - 1)]
         h_best = float(grid[j])
-        if hi > lo:
-            def obj(h: float) -> float:
-                return weighted_rss(self.design(spec.plus(eff, float(h))), self.fit_rows, self.weights)
 
+        def obj(h: float) -> float:
+            try:
+                return weighted_rss(self.design(spec.plus(eff, float(h))), self.fit_rows, self.weights)
+            except NotIdentifiedError:
+                return math.inf
+
+        if hi > lo:
             res = optimize.minimize_scalar(obj, bounds=(float(lo), float(hi)), method="bounded",
                                            options={"xatol": 1e-3 * (hi - lo), "maxiter": 25})
             if res.success and res.fun <= obj(h_best):
@@ -757,8 +766,7 @@ class Evaluator:
         if eff.hyper_null is not None:
             # parsimony: keep the null value unless moving away from it is a significant improvement,
             # judged with visits as the independent units (likelihood ratio ~ chi^2(1), 1 %)
-            rss_best = weighted_rss(self.design(spec.plus(eff, h_best)), self.fit_rows, self.weights)
-            rss_null = weighted_rss(self.design(spec.plus(eff, eff.hyper_null)), self.fit_rows, self.weights)
+            rss_best, rss_null = obj(h_best), obj(eff.hyper_null)  # a null value not identified is not kept
             n_groups = len(np.unique(self.groups[self.rows]))
             if (rss_null - rss_best) / max(rss_best / n_groups, 1e-300) < stats.chi2.ppf(0.99, 1):
                 h_best = float(eff.hyper_null)
@@ -771,8 +779,12 @@ class Evaluator:
         self.base_G = self.data.gref if base_G is None else base_G
         if not ok:
             return out
-        h, heldout, profile = self.fit_hyper(spec, eff)
-        des, cvr = self.cv(spec.plus(eff, h))
+        try:
+            h, heldout, profile = self.fit_hyper(spec, eff)
+            des, cvr = self.cv(spec.plus(eff, h))
+        except NotIdentifiedError as exc:  # the data cannot tell its columns from the model's: say so
+            out.applicable, out.reason = False, f"not identified on this data: {exc}"
+            return out
         r = self.rows & des.valid & np.all(np.isfinite(heldout), axis=1) & np.all(np.isfinite(base_heldout), axis=1)
         gain, p, ng = paired_gain_test(base_heldout, heldout, self.groups, r, self.weights)
         # what the candidate explains of the current residual (reference changes count too: delay, TIA)

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from fbg_accel_calibration.recording import Recording
+from fbg_accel_calibration.thermal_fit import coefficients_to_model, design_matrix, solve_normal_equations
 from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
 
 from .board_physics import simulate_recording
@@ -55,14 +56,10 @@ def static_mask(rec: Recording, settle_s: float) -> np.ndarray:
 
 def fit_eq28(psi: np.ndarray, temp_c: np.ndarray, gref: np.ndarray, degree: int, t_center_c: float,
              t_scale_c: float) -> tuple[np.ndarray, np.ndarray]:
-    """Plain least squares of eq. 28 (G = A X); returns M (n+1, 3, 3), b (n+1, 3)."""
-    tau = (temp_c - t_center_c) / t_scale_c
-    powers = tau[:, None] ** np.arange(degree + 1)[None, :]
-    X = np.concatenate([(psi[:, None, :] * powers[:, :, None]).reshape(len(psi), -1), powers], axis=1)
-    A, *_ = np.linalg.lstsq(X, gref, rcond=None)  # (4(n+1), 3)
-    M = A[: 3 * (degree + 1)].reshape(degree + 1, 3, 3).transpose(0, 2, 1)
-    b = A[3 * (degree + 1):]
-    return M, b
+    """Least squares of eq. 28 (G = A X) by the fit's own design and solver; returns M (n+1, 3, 3), b (n+1, 3)."""
+    X = design_matrix(psi, (temp_c - t_center_c) / t_scale_c, degree)
+    A, _ = solve_normal_equations(X.T @ X, X.T @ gref)
+    return coefficients_to_model(A, degree)
 
 
 def make_calibration(cfg: SimConfig | None = None, seed: int = 0, degree: int = 2, settle_s: float = 2.0) -> ThermalCalibration:

@@ -253,3 +253,22 @@ def test_cached_designs_equal_designs_built_afresh() -> None:
         np.testing.assert_array_equal(got.G, fresh.G)
         assert got.blocks == fresh.blocks
         assert len(cache._entries) <= 2
+
+
+def test_a_candidate_the_data_cannot_identify_is_reported_not_regularised() -> None:
+    """A candidate whose columns repeat the model's own (here a constant, which is b's) makes the normal
+    equations singular. The fit's solver refuses that (NotIdentifiedError); the diagnosis records the
+    candidate as not identified, with the reason, instead of fitting a silently regularised system."""
+    from fbg_accel_calibration.effects import Effect
+
+    class ConstantBias(Effect):
+        name, title, n_columns, stage = "constant_bias", "a second constant bias", 1, 90
+
+        def columns(self, data, inp, h):
+            return np.ones((len(inp.t_s), 1))
+
+    res = diagnose(synthetic(5), library=(ConstantBias(),), degree=0)
+    cand = res.steps[0].candidates[0]
+    assert cand.name == "constant_bias" and not cand.applicable
+    assert "not identified" in cand.reason and "singular" in cand.reason
+    assert res.added == []
