@@ -146,7 +146,7 @@ class DesignCache:
     feed eq. 28 the same corrected inputs: they are corrected and expanded once. Only for one recording.
     """
 
-    def __init__(self, size: int = 2) -> None:
+    def __init__(self, size: int = 1) -> None:
         self.size = size
         self._entries: OrderedDict[tuple, tuple[Inputs, np.ndarray, np.ndarray]] = OrderedDict()
 
@@ -972,6 +972,10 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         sig = [r for r in results if r.significant]
         conf = _confounding(ev, spec, sig, alpha_each, min_rel_gain) if len(sig) >= 2 else []
         chosen = sig[0].name if sig else None
+        for r in results:  # per-sample arrays (N, 3) are kept only where the report plots them: first step's deltas
+            r.heldout = None
+            if steps:
+                r.delta = None
         steps.append(StepResult(len(steps) + 1, spec.names, results, chosen, alpha_each, conf))
         if chosen is None:
             break
