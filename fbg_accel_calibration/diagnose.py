@@ -59,8 +59,10 @@ from .recording import Recording, time_axis_label
 from .static_detector import calibration_samples
 from .thermal_fit import (
     NotIdentifiedError,
+    coefficients_to_model,
     design_matrix,
     n_params,
+    scaled_condition,
     solve_normal_equations,
     temperature_levels,
     temperature_scaling,
@@ -728,24 +730,26 @@ class Evaluator:
             _, cvr = self.cv(spec.plus(eff, None))
             return None, cvr.heldout, []
         K = int(self.folds[self.rows].max()) + 1
-        per_h, profile, kept, unidentified = [], [], [], []
+        fold_rows = [self.rows & (self.folds == f) for f in range(K)]
+        # nested choice: each fold's held-out residual is the one of the grid value that fits the other folds
+        # best (the first such value on a tie), kept as the grid is walked: one (N, 3) array, not one per value
+        heldout = np.full((len(self.data.t_s), 3), np.nan)
+        best_train = np.full(K, np.inf)
+        profile, kept, unidentified = [], [], []
         for h in grid:
             try:
-                des, cvr = self.cv(spec.plus(eff, float(h)))
+                _, cvr = self.cv(spec.plus(eff, float(h)))
             except NotIdentifiedError as exc:  # this value makes the design singular: not a candidate
                 unidentified.append(f"{eff.hyper_name} = {h:.4g}: {exc}")
                 continue
-            per_h.append((cvr.train_rss, cvr.heldout, des.valid))
+            for f in np.flatnonzero(cvr.train_rss < best_train):
+                best_train[f] = cvr.train_rss[f]
+                heldout[fold_rows[f]] = cvr.heldout[fold_rows[f]]
             profile.append((float(h), float(np.sum(cvr.train_rss) / max(K - 1, 1))))
             kept.append(float(h))
-        if not per_h:
+        if not kept:
             raise NotIdentifiedError("no value of the grid is identified (" + unidentified[0] + ")")
         grid = np.asarray(kept)
-        heldout = np.full((len(self.data.t_s), 3), np.nan)
-        for f in range(K):
-            j = int(np.argmin([p[0][f] for p in per_h]))
-            m = self.rows & (self.folds == f)
-            heldout[m] = per_h[j][1][m]
         # final value on all rows: best grid point then bounded scalar refinement between its neighbours
         j = int(np.argmin([p[1] for p in profile]))
         lo = grid[max(j - 1, 0)]
@@ -886,6 +890,8 @@ class DiagnosisResult:
     noise_remedies: list[tuple[str, float | None, str]] = field(default_factory=list)
     noise_floor_after: np.ndarray | None = None  # (3,) floor of the final model (lower once a noise remedy is in)
     warnings: list[str] = field(default_factory=list)  # results a reader must not take at face value
+    condition_number: float = float("nan")  # of the final model's scaled normal matrix (column_conditioning)
+    column_correlation: dict[str, float] = field(default_factory=dict)  # added effect -> max |corr| with the others
 
     @property
     def final_floor(self) -> np.ndarray:
@@ -1008,6 +1014,12 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     structure = residual_structure(data, cv_f.heldout, r_eval, groups, noise_after, alpha)
     moving = _moving_residual(data, cal)
     warnings = [detection_limit] if detection_limit else []
+    cond, column_corr = column_conditioning(des_f, data.use & (fold != -1))
+    for name, c in column_corr.items():
+        if c > COLLINEAR_CORR:
+            warnings.append(f"a column of {name} correlates at |r| = {c:.4f} with another column of the model: their "
+                            "coefficients are not separately determined (large terms that cancel), whatever the "
+                            "held-out gain")
     below = after_ho < 0.9 * noise_after
     if np.any(below):
         warnings.append("held-out error below the noise floor on axis " + ", ".join(a for a, b in zip("xyz", below, strict=True)
@@ -1022,6 +1034,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         consistency_max_abs_mps2=consistency, n_static=int(r_eval.sum()), n_groups=len(np.unique(groups[r_eval])),
         moving_residual_rms=moving, settling=settling, fold_notes=fold_notes, n_floor_samples=int(settled.sum()),
         noise_remedies=remedies, noise_floor_after=noise_after if remedies else None, warnings=warnings,
+        condition_number=cond, column_correlation=column_corr,
         settings={"static": static if not isinstance(rec, DiagnosisData) else "given", "folds": int(fold.max()) + 1,
                   "alpha": alpha, "min_rel_gain": min_rel_gain, "max_effects": max_effects, "seed": seed,
                   "settle_s": settle_s,
@@ -1080,8 +1093,7 @@ def _calibration_from(spec: ModelSpec, des: Design, cv: CvResult, data: Diagnosi
                       ) -> tuple[ThermalCalibration, ThermalCalibration, list[tuple[str, float | None, str]]]:
     n = spec.degree
     A = cv.A_full
-    M = np.transpose(A[: 3 * (n + 1)].reshape(n + 1, 3, 3), (0, 2, 1))
-    b = A[3 * (n + 1): 4 * (n + 1)]
+    M, b = coefficients_to_model(A[: n_params(n)], n)
     t = data.temp_c[data.use]
     rng = (float(np.min(t)), float(np.max(t)))
     terms, added = [], []
@@ -1101,6 +1113,29 @@ def _calibration_from(spec: ModelSpec, des: Design, cv: CvResult, data: Diagnosi
     base = ThermalCalibration(M=M, b=b, temperature_range_c=rng, sensor_id=sensor_id, t_center_c=spec.t_center_c,
                               t_scale_c=spec.t_scale_c, noise_sigma_mps2=noise)
     return cal, base, added
+
+
+COLLINEAR_CORR = 0.99  # |correlation| of an added column with the model's others above which it is not separable
+
+
+def column_conditioning(des: Design, rows: np.ndarray) -> tuple[float, dict[str, float]]:
+    """How well the final model's coefficients are determined: the condition number of its scaled normal
+    matrix (the fit's solver), and per added effect the largest |correlation| of one of its columns with
+    any other column of the model, its own included (centred: the constant column, b's, is left out)."""
+    r = rows & des.valid
+    X = des.X[r]
+    cond = scaled_condition(X.T @ X)[2]
+    Xc = X - X.mean(axis=0)
+    sd = np.sqrt(np.einsum("ij,ij->j", Xc, Xc))
+    live = sd > 1e-12 * max(float(sd.max()), 1e-300)
+    corr = (Xc[:, live].T @ Xc[:, live]) / np.outer(sd[live], sd[live])
+    np.fill_diagonal(corr, 0.0)
+    col = np.flatnonzero(live)
+    out = {}
+    for name, sl in des.blocks.items():
+        own = np.isin(col, np.arange(sl.start, sl.stop))
+        out[name] = float(np.max(np.abs(corr[own]))) if own.any() else 0.0
+    return cond, out
 
 
 def _consistency(cal: ThermalCalibration, data: DiagnosisData, des: Design, cv: CvResult, rows: np.ndarray) -> float:

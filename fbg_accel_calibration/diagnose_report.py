@@ -81,6 +81,10 @@ def summary(res: DiagnosisResult, img_prefix: str = "img/") -> list[str]:
     out.append("- Held-out RMSE per axis x/y/z: before " + _v(res.before_heldout_rmse) + " m/s^2, after "
                + _v(res.after_heldout_rmse) + " m/s^2; noise floor " + _v(res.noise_floor) + " m/s^2.")
     out += [f"- **Warning:** {w}." for w in res.warnings]
+    out.append(f"- Conditioning of the final model: condition number {res.condition_number:.3g} (scaled normal "
+               "matrix)" + ("; largest |correlation| of each added effect's columns with the model's others: "
+                            + ", ".join(f"{n} {c:.3f}" for n, c in res.column_correlation.items())
+                            if res.column_correlation else "") + ".")
     for st in res.steps:
         for c in st.confounding:
             if c.verdict == "confounded":
@@ -221,6 +225,8 @@ def text(res: DiagnosisResult) -> str:
         out.append(f"axis {a}: held-out RMSE before {res.before_heldout_rmse[j]:.3f} -> after {res.after_heldout_rmse[j]:.3f} "
                    f"m/s^2, noise floor {res.final_floor[j]:.3f} m/s^2")
     out += [f"WARNING: {w}" for w in res.warnings]
+    out.append(f"condition number of the final model {res.condition_number:.3g}"
+               + "".join(f"; {n}: max |corr| with the model {c:.3f}" for n, c in res.column_correlation.items()))
     out.append(res.structure.verdict)
     return "\n".join(out) + "\n"
 

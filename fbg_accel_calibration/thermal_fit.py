@@ -386,18 +386,23 @@ def check_recording_excitation(rec: Recording) -> np.ndarray:
     return check_pose_excitation(stats)
 
 
-def solve_normal_equations(xtx: np.ndarray, xtg: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, float]:
-    """Solve (X^T X) A = X^T G with Jacobi scaling; returns (A, condition number of the scaled X^T X).
-
-    Raises :class:`NotIdentifiedError` when the scaled matrix is (numerically) singular.
-    """
+def scaled_condition(xtx: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Jacobi scaling of X^T X: (column norms d, scaled matrix, its condition number; inf if singular)."""
     d = np.sqrt(np.diag(xtx))
     if np.any(d <= 0.0):
         raise NotIdentifiedError("a regressor is identically zero on the data")
     s = xtx / np.outer(d, d)
     eig = np.linalg.eigvalsh(s)
-    cond = float(eig[-1] / eig[0]) if eig[0] > 0 else float("inf")
-    if not eig[0] > rcond * eig[-1]:
+    return d, s, float(eig[-1] / eig[0]) if eig[0] > 0 else float("inf")
+
+
+def solve_normal_equations(xtx: np.ndarray, xtg: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, float]:
+    """Solve (X^T X) A = X^T G with Jacobi scaling; returns (A, condition number of the scaled X^T X).
+
+    Raises :class:`NotIdentifiedError` when the scaled matrix is (numerically) singular.
+    """
+    d, s, cond = scaled_condition(xtx)
+    if not cond < 1.0 / rcond:
         raise NotIdentifiedError(f"normal equations are singular (condition number {cond:.3g})")
     A = np.linalg.solve(s, xtg / d[:, None]) / d[:, None]
     return A, cond

@@ -272,3 +272,22 @@ def test_a_candidate_the_data_cannot_identify_is_reported_not_regularised() -> N
     assert cand.name == "constant_bias" and not cand.applicable
     assert "not identified" in cand.reason and "singular" in cand.reason
     assert res.added == []
+
+
+def test_conditioning_flags_a_drift_whose_two_columns_cancel() -> None:
+    """A warm-up time constant far beyond the run makes exp(-t/tau) a straight line in t: the warm-up and
+    creep columns then correlate at |r| -> 1 and can only fit as two large terms that cancel. The report's
+    conditioning says so; a time constant within the run does not trip it."""
+    from fbg_accel_calibration.diagnose import COLLINEAR_CORR, ModelSpec, build_design, column_conditioning, prepare_data
+    from fbg_accel_calibration.effects import library_by_name
+
+    data = prepare_data(synthetic(6))
+    drift = library_by_name()["time_drift"]
+    span = float(data.t_s.max() - data.t_s.min())
+    rows = data.use
+    _, long_tau = column_conditioning(build_design(data, ModelSpec(0, 23.4, 1.0, [(drift, 100 * span)])), rows)
+    cond_short, short_tau = column_conditioning(build_design(data, ModelSpec(0, 23.4, 1.0, [(drift, span / 5)])), rows)
+    assert long_tau["time_drift"] > COLLINEAR_CORR > short_tau["time_drift"]
+    assert np.isfinite(cond_short) and cond_short > 1
+    res = diagnose(synthetic(6), degree=0)
+    assert np.isfinite(res.condition_number) and "Conditioning of the final model" in markdown(res)
