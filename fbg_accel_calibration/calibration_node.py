@@ -34,7 +34,7 @@ from std_srvs.srv import Trigger
 
 from fbg_accel_driver.command_line import StartupError
 from fbg_accel_driver.driver_core import RAW_AUX_NAME
-from fbg_accel_driver.node_support import declare_parameters, init_ros, signals_to
+from fbg_accel_driver.node_support import declare_parameters, init_ros, refuse_unknown_parameters, signals_to
 
 from .calibration_main import EXIT_FIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, PARAMETERS, main
 from .dynamic_recorder import DynamicRunRecorder
@@ -210,6 +210,7 @@ class CalibrationNode(Node):
     def _read_parameters(self) -> dict[str, Any]:
         """Declare the parameters (all read-only) and check what a descriptor cannot express."""
         values = declare_parameters(self, PARAMETERS)
+        refuse_unknown_parameters(self, "calibration")  # before any file is created
         if not values["plan_file"]:
             raise StartupError("parameter 'plan_file' is required (e.g. -p plan_file:=config/pose_plan_six_position.yaml)")
         for name in ("still_window_s", "still_hold_s", "noise_learn_s", "motion_expect_g"):

@@ -216,12 +216,15 @@ def test_calibration_node_aborted_run_closes_its_recording_with_status_interrupt
     ({"still_hold_s": 0.0}, "invalid parameter 'still_hold_s': 0.0 (must be > 0)"),
     ({"fit": "yes"}, "invalid parameter 'fit': "),
     ({"run_label": "a/b"}, "invalid parameter 'run_label': 'a/b'"),
+    ({"fit_degre": 2}, "unknown parameter 'fit_degre' (did you mean 'fit_degree'?)"),
 ])
 def test_calibration_node_refuses_a_bad_parameter_with_one_clear_message(make_calibration: Any, values: dict[str, Any],
-                                                                        message: str) -> None:
+                                                                        message: str, tmp_path: Path) -> None:
     with pytest.raises(StartupError) as err:
         make_calibration(**values)
     assert message in str(err.value)
+    if "run_label" not in values:  # refused before the recording is created
+        assert not any(tmp_path.glob("*.mcap"))
 
 
 def test_calibration_node_never_overwrites_a_recording(make_calibration: Any, tmp_path: Path) -> None:
