@@ -11,7 +11,7 @@ can carry, ``link_frame_rate_limit(921600)`` = 3413.3 frames/s) this script
   one ``write`` per frame, paced against ``CLOCK_MONOTONIC`` at the board rate (a pty does not
   emulate a baud rate, so the writer never offers more than the link could carry), and records the
   monotonic time just before each frame is written;
-* runs the real driver as a separate process (``python -m fbg_accel_driver.driver_node``, default
+* runs the real driver as a separate process (``python -m fbg_accel_driver.driver_main``, default
   parameters, only ``port`` set: the publishers are exactly what users get) and a subscriber as a
   third process (this script with ``--role subscriber``: rclpy, best-effort QoS with a 100000-deep
   history as docs/topics.md recommends for a loss-free consumer) that stamps every ``imu/raw`` and
@@ -322,7 +322,7 @@ def run_case(name: str, rate_hz: float, duration_s: float, with_imu: bool, args:
     sub = SubscriberProc(sub_out, with_imu, env)
     drv_log = open(workdir / f"driver_{name}.log", "w")
     cal = chain_calibration(args.chain_compensation, workdir)
-    drv = subprocess.Popen([sys.executable, "-m", "fbg_accel_driver.driver_node", "--ros-args", "-p", f"port:={path}",
+    drv = subprocess.Popen([sys.executable, "-m", "fbg_accel_driver.driver_main", "--ros-args", "-p", f"port:={path}",
                             "-p", f"calibration_file:={cal}", "-p", f"chain_compensation:={args.chain_compensation}"],
                            stdout=drv_log, stderr=subprocess.STDOUT, env=env, cwd=str(args.driver_src or ROOT))
     spy = None

@@ -9,7 +9,7 @@ grow without bound (322 MB, RSS +10 MB/s). This script
 * serves them on a raw pseudo-terminal as fast as the driver's reader thread takes them (blocking
   ``os.write`` of 64 KiB blocks: a pty carries several MB/s, far above the 92 kB/s of the real
   921600-baud link and above what the decoder and publishers handle);
-* runs the real driver as a separate process (``python -m fbg_accel_driver.driver_node``, only
+* runs the real driver as a separate process (``python -m fbg_accel_driver.driver_main``, only
   ``port`` and ``reader_queue_max_bytes`` set) and samples its VmRSS every second;
 * subscribes to ``/diagnostics`` in this process and keeps the driver's ``reader queue`` entry.
 
@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     diag_ready, stop = threading.Event(), threading.Event()
     listener = threading.Thread(target=diagnostics_listener, args=(latest, diag_ready, stop), daemon=True)
     listener.start()
-    drv = subprocess.Popen([sys.executable, "-m", "fbg_accel_driver.driver_node", "--ros-args", "-p", f"port:={path}",
+    drv = subprocess.Popen([sys.executable, "-m", "fbg_accel_driver.driver_main", "--ros-args", "-p", f"port:={path}",
                             "-p", "calibration_file:=sim",
                             "-p", f"reader_queue_max_bytes:={args.queue_bytes}"],
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=str(args.driver_src))

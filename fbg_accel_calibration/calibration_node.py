@@ -36,7 +36,7 @@ from fbg_accel_driver.command_line import StartupError
 from fbg_accel_driver.driver_core import RAW_AUX_NAME
 from fbg_accel_driver.node_support import declare_parameters, init_ros, refuse_unknown_parameters, signals_to
 
-from .calibration_main import EXIT_FIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, PARAMETERS, main
+from .calibration_main import EXIT_FIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, PARAMETERS
 from .dynamic_recorder import DynamicRunRecorder
 from .excitation_plan import FORMAT_NAME as EXCITATION_FORMAT
 from .excitation_plan import ExcitationPlan, ExcitationPlanError
@@ -47,8 +47,7 @@ from .progress_display import ProgressDisplay
 from .run_recorder import DetectorSettings, RawSample, RunRecorder
 from .run_refit import RefitError, expand_sources, refit
 
-# main: scripts installed from an earlier setup.py (entry point calibration_node:main) and python -m still start here
-__all__ = ["CalibrationNode", "main", "run"]
+__all__ = ["CalibrationNode", "run"]
 
 NODE_NAME = "calibration"
 # Deep best-effort queue: compatible with the driver's sensor-data publishers, and a burst while
@@ -353,6 +352,3 @@ class CalibrationNode(Node):
         log.info(f"calibration written to {self.yaml_path}")
         return EXIT_OK
 
-
-if __name__ == "__main__":
-    sys.exit(main())

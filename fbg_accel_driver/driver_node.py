@@ -23,7 +23,6 @@ guard-condition wake-up costs 180-280 us of CPU, a queue wake-up 10-30 us: bench
 from __future__ import annotations
 
 import math
-import sys
 import threading
 import time
 from pathlib import Path
@@ -52,15 +51,13 @@ from .driver_main import (
     PARAMETERS,
     RUNTIME_PARAMETERS,
     default_calibration_path,
-    main,
 )
 from .node_support import declare_parameters, init_ros, refuse_unknown_parameters, signals_to
 from .ros_messages import DriverMessages
 from .serial_link import LinkState, SerialLink
 from .thermal_model import CalibrationFileError, ThermalCalibration
 
-# main: scripts installed from an earlier setup.py (entry point driver_node:main) and python -m still start here
-__all__ = ["DriverNode", "ManagedDriverNode", "main", "run"]
+__all__ = ["DriverNode", "ManagedDriverNode", "run"]
 
 NODE_NAME = "fbg_accel_driver"
 INTEGER_RANGES = {"baud": (1200, 4_000_000), "decimation": (1, 10000), "min_reference_counts": (0, 4095),
@@ -379,6 +376,3 @@ class ManagedDriverNode(DriverNode, LifecycleNode):
         self._cleanup()
         return super().on_shutdown(state)
 
-
-if __name__ == "__main__":
-    sys.exit(main())
