@@ -140,14 +140,27 @@ class PtyEndpoint:
         except OSError:
             return 0
 
+    # Bytes written to the master reach the slave's read queue through the tty flip buffer, pushed by a
+    # kernel work item (Linux tty_buffer.c, flush_to_ldisc): until then TIOCINQ does not count them. An empty
+    # queue means "all read" only once it has stayed empty this long.
+    DRAINED_QUIET_S = 0.05
+
     def linger(self, timeout_s: float, grace_s: float) -> None:
-        """At the end of a finite run, give the client up to ``timeout_s`` to read what is buffered, then
-        ``grace_s`` more: a reader blocked in ``read(n)`` with a timeout holds bytes it has taken from
-        the pty until the call returns, and pyserial discards them if the port vanishes meanwhile."""
+        """Give the client up to ``timeout_s`` to read what was sent (before an unplug, at the end of a run),
+        then ``grace_s`` more: a reader blocked in ``read(n)`` with a timeout holds bytes it has taken from
+        the pty until the call returns, and pyserial discards them if the port vanishes meanwhile. Done
+        when nothing is pending and the slave's queue has been empty for ``DRAINED_QUIET_S``."""
         deadline = time.monotonic() + timeout_s
-        while (self._pending or self.unread_bytes() > 0) and time.monotonic() < deadline:
+        quiet_since: float | None = None
+        while (now := time.monotonic()) < deadline:
             if self._pending:
                 self.write(b"")
+            if self._pending or self.unread_bytes() > 0:
+                quiet_since = None
+            elif quiet_since is None:
+                quiet_since = now
+            elif now - quiet_since >= self.DRAINED_QUIET_S:
+                break
             time.sleep(0.005)
         time.sleep(grace_s)
 

@@ -117,3 +117,30 @@ def test_bad_config_key_is_a_clear_error() -> None:
     assert "unknown simulator key 'effects.tia_lowpas'" in res.stderr and "did you mean 'effects.tia_lowpass'" in res.stderr
     res = subprocess.run([*BOARD_SIM, "--output", "/dev/null"], capture_output=True, text=True, timeout=60)
     assert res.returncode == 2 and "--duration" in res.stderr
+
+
+def test_linger_does_not_take_bytes_still_in_the_kernel_for_bytes_read() -> None:
+    """Bytes written to a pty master reach the slave's queue through a kernel work item; right after a
+    write TIOCINQ often still reads 0 (about a third of writes on this machine). Before an unplug the board
+    waits for its client to read what was sent: with nobody reading, the wait must run to its timeout every
+    time, never end at once as if the bytes had been read (the truth then counted a frame as delivered that
+    the unplug destroyed: test_rfcomm_reconnect's rare failure in CI)."""
+    import tty
+
+    from fbg_accel_sim.pty_server import PtyEndpoint
+
+    ep = PtyEndpoint()
+    path = ep.open(hold=True)
+    client = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    tty.setraw(client)
+    try:
+        for _ in range(20):
+            t0 = time.monotonic()
+            ep.write(bytes(range(27)))
+            ep.linger(0.1, 0.0)  # nobody reads
+            assert time.monotonic() - t0 >= 0.1
+            assert ep.unread_bytes() == 27
+            assert os.read(client, 64) == bytes(range(27))
+    finally:
+        os.close(client)
+        ep.close()
