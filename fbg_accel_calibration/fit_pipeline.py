@@ -45,7 +45,6 @@ class FitOutcome:
     calibration: ThermalCalibration
     selection: SelectionResult
     metadata: dict[str, Any] = field(default_factory=dict)
-    streamed: bool = True
 
 
 def _source(path: Path, opt: FitOptions):
@@ -145,4 +144,4 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
     cal.fit["noise_correlation"] = {**corr.as_dict(), "static_intervals": corr.segments, "samples": corr.samples}
     cal.fit["sources"] = [str(p) for p in paths]
     cal.fit["degree_selection"] = selection.as_dict()
-    return FitOutcome(cal, selection, metadata, rec is None)
+    return FitOutcome(cal, selection, metadata)
