@@ -34,11 +34,11 @@ from machine_info import machine  # noqa: E402
 from fbg_accel_calibration.bode_plot import plot_bode  # noqa: E402
 from fbg_accel_calibration.dynamic_analysis import budget_table_markdown  # noqa: E402
 from fbg_accel_calibration.dynamic_calibration import run_dynamic  # noqa: E402
-from fbg_accel_calibration.dynamic_check import step_check, tone_check  # noqa: E402
+from fbg_accel_calibration.dynamic_check import step_check  # noqa: E402
 from fbg_accel_calibration.excitation_plan import ExcitationPlan  # noqa: E402
 from fbg_accel_driver.driver_main import default_calibration_path  # noqa: E402
 from fbg_accel_driver.thermal_model import ThermalCalibration  # noqa: E402
-from fbg_accel_sim.dynamic_run import simulate_dynamic_run  # noqa: E402
+from fbg_accel_sim.dynamic_run import simulate_dynamic_run, simulated_tone_check  # noqa: E402
 from fbg_accel_sim.sim_config import SimConfig  # noqa: E402
 
 PLAN_FILE = ROOT / "config" / "excitation_plan_stepped_sine.yaml"
@@ -81,13 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     plot_bode(first.points, first.models, args.png, title=f"Dynamic calibration (simulated, seed 0, {args.rate:g} Hz)")
 
     cal = ThermalCalibration.from_dict({**static.to_dict(), "dynamic": first.dynamics.to_dict()})
-    d = plan.to_dict()
-    d["segments"] = [{"freq_hz": 3.0, "amplitude_mps2": 8.0, "duration_s": 14.0}]
-    check_plan = ExcitationPlan.from_dict(d)
-    _, block, _ = simulate_dynamic_run(check_plan, rate_hz=100.0, seed=100)
-    _, a, b = check_plan.steady_windows(check_plan.start_s)[0]
-    tone = tone_check(block.wire_bytes(), block.arrays["t_s"], block.arrays["slide_accel_mps2"],
-                      np.array(check_plan.direction), 3.0, (a, b), cal)
+    tone = simulated_tone_check(plan.with_tone(3.0, 8.0, 14.0), cal, rate_hz=100.0, seed=100)
     steps = [step_check(cal, "delay", 100.0), step_check(cal, "equalise", 100.0, 10.0),
              step_check(cal, "equalise", 100.0, 20.0)]
 

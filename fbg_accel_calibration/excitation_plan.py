@@ -131,6 +131,13 @@ class ExcitationPlan:
             out["reference_transducer.accelerometer.offset_counts"] = ref.offset_counts
         return out
 
+    def with_tone(self, freq_hz: float, amplitude_mps2: float, duration_s: float) -> ExcitationPlan:
+        """This plan (slide, reference, timing) with one tone only, validated as a plan file is: a check at
+        a frequency the fit did not use (seed Fig. 12)."""
+        d = self.to_dict()
+        d["segments"] = [{"freq_hz": freq_hz, "amplitude_mps2": amplitude_mps2, "duration_s": duration_s}]
+        return ExcitationPlan.from_dict(d, source=f"{self.name} at {freq_hz:g} Hz")
+
     # ------------------------------------------------------------------ file I/O
     def to_dict(self) -> dict[str, Any]:
         ref = self.reference

@@ -42,3 +42,14 @@ def simulate_dynamic_run(plan: Any, rate_hz: float = 500.0, seed: int = 0, overr
                     gref_mps2=np.full((n_f, 3), np.nan), pose_id=np.full(n_f, -1), aux=arr[:, 7],
                     metadata={"source": "simulated dynamic run", "plan": plan.name, "rate_hz": rate_hz, "seed": seed})
     return rec, block, sim
+
+
+def simulated_tone_check(plan: Any, cal: Any, rate_hz: float = 100.0, seed: int = 0) -> Any:
+    """``dynamic_check.tone_check`` of ``cal`` on a simulated run of the one-tone ``plan``
+    (``ExcitationPlan.with_tone``), over the tone's steady window."""
+    from fbg_accel_calibration.dynamic_check import tone_check
+
+    _, block, _ = simulate_dynamic_run(plan, rate_hz=rate_hz, seed=seed)
+    _, a, b = plan.steady_windows(plan.start_s)[0]
+    return tone_check(block.wire_bytes(), block.arrays["t_s"], block.arrays["slide_accel_mps2"],
+                      np.array(plan.direction), plan.segments[0].freq_hz, (a, b), cal)

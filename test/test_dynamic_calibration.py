@@ -14,13 +14,13 @@ import pytest
 import yaml
 
 from fbg_accel_calibration.dynamic_calibration import DynamicCalibrationError, run_dynamic
-from fbg_accel_calibration.dynamic_check import step_check, tone_check
+from fbg_accel_calibration.dynamic_check import step_check
 from fbg_accel_calibration.dynamic_csv import DynamicCsvError, read_dynamic_csv, write_dynamic_csv
 from fbg_accel_calibration.excitation_plan import ExcitationPlan
 from fbg_accel_driver.driver_core import RAW_AUX_NAME, RAW_NAMES
 from fbg_accel_driver.driver_main import default_calibration_path
 from fbg_accel_driver.thermal_model import ThermalCalibration
-from fbg_accel_sim.dynamic_run import simulate_dynamic_run
+from fbg_accel_sim.dynamic_run import simulate_dynamic_run, simulated_tone_check
 from fbg_accel_sim.sim_config import SimConfig
 
 REPO = Path(__file__).resolve().parents[1]
@@ -74,13 +74,7 @@ def test_compensation_cuts_the_error_at_a_frequency_the_fit_did_not_use(static_c
     res = run_dynamic(rec, PLAN, static_cal, reference_cutoff_hz=1.0)
     assert 3.0 not in res.dynamics.fit["frequencies_hz"]
     cal = ThermalCalibration.from_dict({**static_cal.to_dict(), "dynamic": res.dynamics.to_dict()})
-    d = PLAN.to_dict()
-    d["segments"] = [{"freq_hz": 3.0, "amplitude_mps2": 8.0, "duration_s": 14.0}]
-    check_plan = ExcitationPlan.from_dict(d)
-    _, block, _ = simulate_dynamic_run(check_plan, rate_hz=100.0, seed=8)
-    _, a, b = check_plan.steady_windows(check_plan.start_s)[0]
-    chk = tone_check(block.wire_bytes(), block.arrays["t_s"], block.arrays["slide_accel_mps2"],
-                     np.array(check_plan.direction), 3.0, (a, b), cal)
+    chk = simulated_tone_check(PLAN.with_tone(3.0, 8.0, 14.0), cal, rate_hz=100.0, seed=8)
     assert chk.periods >= 20
     assert all(r >= 25.0 for r in chk.reduction_pct["equalise"]), chk.as_dict()
     assert all(r > 0.0 for r in chk.reduction_pct["delay"]), chk.as_dict()
