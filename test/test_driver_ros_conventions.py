@@ -17,8 +17,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import pytest
-import rclpy
 import yaml
 from rcl_interfaces.msg import ParameterType
 from rclpy.context import Context
@@ -26,15 +24,7 @@ from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import ReliabilityPolicy
 from sensor_msgs.msg import Imu
-from test_driver_process import REPO, Listener, start_driver, start_sim, stop
-
-
-@pytest.fixture(scope="module")
-def ros() -> Context:
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
+from test_driver_process import REPO, Listener, ros, start_driver, start_sim, stop  # noqa: F401  (ros: module fixture)
 
 
 def _call(listener: Listener, future, what: str):
@@ -42,7 +32,7 @@ def _call(listener: Listener, future, what: str):
     return future.result()
 
 
-def test_qos_parameters_hardware_id_and_clean_shutdown(ros: Context, tmp_path: Path) -> None:
+def test_qos_parameters_hardware_id_and_clean_shutdown(ros: Context, tmp_path: Path) -> None:  # noqa: F811
     link = tmp_path / "board"
     listener = Listener("test_ros_conventions", ros)
     default_imu: list[Imu] = []
@@ -124,7 +114,7 @@ def _has_open(pid: int, path: Path) -> bool:
     return False
 
 
-def test_managed_driver_follows_its_lifecycle(ros: Context, tmp_path: Path) -> None:
+def test_managed_driver_follows_its_lifecycle(ros: Context, tmp_path: Path) -> None:  # noqa: F811
     """``driver --managed``: unconfigured = port closed, nothing published; configure opens the port and
     decodes (diagnostics count frames) without publishing; activate publishes; deactivate stops
     publishing; cleanup closes the port; SIGINT exits 0."""
