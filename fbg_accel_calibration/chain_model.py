@@ -30,6 +30,8 @@ from typing import Any, Literal
 import numpy as np
 from scipy.optimize import least_squares
 
+from fbg_accel_driver.chain_compensation import first_order_group_delay_s
+
 from .dynamic_analysis import DynamicPoint
 
 HP_LOCATIONS = ("reference", "sensor")
@@ -134,17 +136,11 @@ def group_delay_s(model: ChainModel, f_hz: float | np.ndarray) -> np.ndarray | f
     exactly DC is its limit ``1 / (2 pi fhp)``, but its gain there is 0: quote it at a stated frequency.
     """
     f = np.asarray(f_hz, dtype=float)
-    g = model.delay_s + _first_order_group_delay(f, model.cutoff_hz)
+    g = model.delay_s + first_order_group_delay_s(model.cutoff_hz, f)
     if model.highpass_cutoff_hz is not None:
         sign = -1.0 if model.highpass_in == "reference" else 1.0
-        g = g + sign * _first_order_group_delay(f, model.highpass_cutoff_hz)
+        g = g + sign * first_order_group_delay_s(model.highpass_cutoff_hz, f)
     return float(g) if np.ndim(g) == 0 else g
-
-
-def _first_order_group_delay(f: np.ndarray, fc: float) -> np.ndarray:
-    if math.isinf(fc):
-        return np.zeros_like(f)
-    return (1.0 / (2 * np.pi * fc)) / (1.0 + (f / fc) ** 2)
 
 
 def phase_delay_s(model: ChainModel, f_hz: float | np.ndarray) -> np.ndarray | float:

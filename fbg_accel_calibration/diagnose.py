@@ -46,6 +46,7 @@ from scipy import optimize, stats
 from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
+from .dynamic_analysis import peak_offset
 from .effects import (
     LIBRARY,
     TIA_TAU_S,
@@ -698,11 +699,7 @@ def cross_correlation_delay(data: DiagnosisData, fitted: np.ndarray, max_lag: in
         vals[lag] = v
         if v > best_val:
             best_lag, best_val = lag, v
-    frac = 0.0
-    if 0 < best_lag < max_lag:
-        y0, y1, y2 = vals[best_lag - 1], vals[best_lag], vals[best_lag + 1]
-        den = y0 - 2 * y1 + y2
-        frac = 0.5 * (y0 - y2) / den if den != 0 else 0.0
+    frac = peak_offset(vals[best_lag - 1], vals[best_lag], vals[best_lag + 1]) if 0 < best_lag < max_lag else 0.0
     return (best_lag + frac) * data.dt_s
 
 

@@ -268,13 +268,13 @@ def delay_by_cross_correlation(ref: np.ndarray, sig: np.ndarray, fs_hz: float, m
     d = float(lags[i])
     if refine != "none":
         if circular:
-            d += _peak_offset(cc[(i - 1) % m], cc[i], cc[(i + 1) % m], refine)
+            d += peak_offset(cc[(i - 1) % m], cc[i], cc[(i + 1) % m], refine)
         elif 0 < i < m - 1:
-            d += _peak_offset(cc[i - 1], cc[i], cc[i + 1], refine)
+            d += peak_offset(cc[i - 1], cc[i], cc[i + 1], refine)
     return d / fs_hz
 
 
-def _peak_offset(ym: float, y0: float, yp: float, refine: str) -> float:
+def peak_offset(ym: float, y0: float, yp: float, refine: str = "parabolic") -> float:
     """Sub-sample offset (in samples, |offset| <= 1) of a peak sampled at -1, 0, +1."""
     if refine == "cosine" and y0 > 0:
         c = (ym + yp) / (2 * y0)

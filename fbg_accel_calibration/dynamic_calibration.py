@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from fbg_accel_driver.chain_compensation import ChainDynamics
+from fbg_accel_driver.chain_compensation import ChainDynamics, first_order_group_delay_s
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .chain_model import ChainModel, fit_chain_models
@@ -145,7 +145,7 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
 def _sensor_group_delay_s(m: ChainModel) -> float:
     """Group delay at DC (s) of the sensor's chain alone: ``1/(2 pi fc) + delay`` (a fitted reference
     high-pass belongs to the reference, not to what the driver compensates)."""
-    return 1.0 / (2.0 * math.pi * m.cutoff_hz) + m.delay_s
+    return float(first_order_group_delay_s(m.cutoff_hz)) + m.delay_s
 
 
 def _filled_temperature(temp: np.ndarray) -> np.ndarray:

@@ -69,8 +69,7 @@ class ChainDynamics:
 
     def group_delay_s(self, axis: int, f_hz: float = 0.0) -> float:
         """Group delay (s) of axis ``axis`` (0..2) at ``f_hz``: ``tau / (1 + (f/fc)^2) + delay``."""
-        fc = self.cutoff_hz[axis + 1]
-        return 1.0 / (2.0 * math.pi * fc) / (1.0 + (f_hz / fc) ** 2) + self.delay_s[axis]
+        return float(first_order_group_delay_s(self.cutoff_hz[axis + 1], f_hz)) + self.delay_s[axis]
 
     def stamp_delay_s(self, mode: str, bandwidth_hz: float = 0.0, dt_s: float = 0.0) -> float:
         """Delay (s) the published stamps are moved back by in ``mode`` (module docstring).
@@ -137,6 +136,12 @@ class ChainDynamics:
                        delay_s=mapping("delay_s", AXES, 0.0), fit=dict(fit))  # type: ignore[arg-type]
         except ValueError as exc:
             raise fail(f"dynamic: {exc}") from None
+
+
+def first_order_group_delay_s(cutoff_hz: float, f_hz: float | np.ndarray = 0.0) -> float | np.ndarray:
+    """Group delay (s) of a first-order low-pass at ``f_hz``: ``(1 / (2 pi fc)) / (1 + (f / fc)^2)``; 0 for an
+    infinite cut-off."""
+    return (1.0 / (2.0 * math.pi * cutoff_hz)) / (1.0 + (np.asarray(f_hz) / cutoff_hz) ** 2)
 
 
 def _dc_delay_samples(fc_hz: float, dt_s: float) -> float:
