@@ -198,6 +198,10 @@ class DriverCore:
         if mode != "none" and self._dyn is None:
             raise ValueError(f"chain_compensation '{mode}' needs a calibration with a 'dynamic' section "
                              "(fbg-accel-calib dynamic; docs/dynamic_calibration.md)")
+        if mode == "equalise" and any(t.kind == "tia_inverse_filter" for t in calibration.corrections):
+            raise ValueError("chain_compensation 'equalise' inverts the TIA stages, and the calibration's "
+                             "'tia_inverse_filter' term does too: the two would invert them twice; use 'delay' "
+                             "(or a calibration without that term)")
         self._equaliser = ChannelEqualiser(self._dyn, self.config.equalise_bandwidth_hz) if mode == "equalise" else None
         self._eq_prev_t_us: int | None = None
         self._delay_ns = round(self._dyn.stamp_delay_s(mode) * 1e9) if mode == "delay" else 0

@@ -118,6 +118,17 @@ def test_compensation_without_a_dynamic_section_is_refused():
         _core("equalise", bandwidth=1.5)
 
 
+def test_equalising_a_calibration_that_already_inverts_the_tia_is_refused():
+    """diagnose can declare a tia_inverse_filter term; equalise inverts the same stages: never both."""
+    from fbg_accel_driver.correction_terms import TiaInverseFilter
+
+    cal = make_cal(dynamic=DYN)
+    cal.corrections = [TiaInverseFilter(np.array([0.16, 0.094, 0.12, 0.12]))]
+    with pytest.raises(ValueError, match="invert them twice"):
+        DriverCore(cal, CoreConfig(chain_compensation="equalise"))
+    DriverCore(cal, CoreConfig(chain_compensation="delay"))  # a stamp shift does not touch the counts
+
+
 def test_dynamic_section_survives_the_calibration_file(tmp_path):
     cal = make_cal(dynamic=DYN)
     cal.save(tmp_path / "c.yaml")
