@@ -21,11 +21,13 @@ Choice (three steps; every step is reported in ``criterion`` and ``notes``):
 
 1. Only identified degrees (n < L) with a pose hold-out score are candidates.
 2. Temperature guard (only with L >= 2 levels): the level hold-out tests interpolation between
-   temperature levels. Walking up from n = 0, the candidates stop at the first degree whose level
-   hold-out RMSE is worse than the best lower degree's: a temperature term that predicts unseen
-   levels worse is over-fitting temperature, and higher degrees are not tried. Degrees without a
-   level score (n = L - 1 passes exactly through the L level means) cannot be checked this way;
-   the notes say so when one is chosen.
+   temperature levels. A degree whose level hold-out RMSE is worse than that of every lower degree's
+   best is not a candidate: a temperature term that predicts unseen levels worse is over-fitting
+   temperature. The walk goes on above it: a bias even in temperature makes the linear term
+   extrapolate the outer levels worse than the constant while the quadratic predicts them far better,
+   so stopping at the first worse degree would keep the wrong model. Degrees without a level score
+   (n = L - 1 passes exactly through the L level means) cannot be checked this way; the notes say so
+   when one is chosen.
 3. One-standard-error rule (Breiman et al. 1984, CART §3.4) on the pose hold-out: take the
    candidate with the smallest mean squared held-out error, estimate that mean's standard error
    from the per-pose fold errors, and choose the lowest candidate degree within one standard
@@ -190,7 +192,7 @@ def select_degree(rec: Recording | FitData | StreamedFitData, max_degree: int = 
         elif not np.all(np.isfinite(pose_cv)):
             note = "no pose hold-out: too few poses without one"
         scores.append(DegreeScores(degree, True, in_sample, pose_cv, level_cv, note))
-    chosen, criterion, guard_notes = _choose(scores, pose_mse_by_degree, by_level)
+    chosen, criterion, guard_notes = choose_degree(scores, pose_mse_by_degree, by_level)
     notes += guard_notes
     if excitation_notes and n_levels > 1:
         notes += [f"{n} (its poses do not constrain the temperature terms along that direction)"
@@ -206,9 +208,14 @@ def select_degree(rec: Recording | FitData | StreamedFitData, max_degree: int = 
                            int(n_total), chosen, criterion, notes)
 
 
-def _choose(scores: list[DegreeScores], pose_mse: dict[int, np.ndarray],
-            by_level: bool) -> tuple[int | None, str, list[str]]:
-    """Steps 1-3 of the module docstring: (chosen degree or None, criterion, notes)."""
+def choose_degree(scores: list[DegreeScores], group_mse: dict[int, np.ndarray], by_level: bool,
+                  unit: str = "pose") -> tuple[int | None, str, list[str]]:
+    """Steps 1-3 of the module docstring: (chosen degree or None, criterion, notes).
+
+    ``scores[i].held_out_pose`` is the RMSE (m/s^2, x/y/z) held out by ``unit`` (the calibration holds out
+    poses; ``diagnose`` re-selects the degree of a model with added effects holding out visits) and
+    ``group_mse[degree]`` the mean squared held-out error of each held-out group, whose scatter sets the
+    one-standard-error margin."""
     notes: list[str] = []
     candidates: list[DegreeScores] = []
     best_level = np.inf
@@ -219,22 +226,22 @@ def _choose(scores: list[DegreeScores], pose_mse: dict[int, np.ndarray],
         if np.isfinite(level):
             if level > best_level:
                 notes.append(f"degree {s.degree} predicts held-out temperature levels worse than a lower degree "
-                             f"({level:.4g} > {best_level:.4g} m/s^2): it and higher degrees are not chosen")
-                break
+                             f"({level:.4g} > {best_level:.4g} m/s^2): not chosen")
+                continue
             best_level = level
         candidates.append(s)
-    criterion = ("lowest degree within one standard error of the best pose hold-out"
+    criterion = (f"lowest degree within one standard error of the best {unit} hold-out"
                  + (", after the temperature-level hold-out guard" if by_level else " (one temperature level)"))
     if not candidates:
         return None, criterion, notes
-    mse = {s.degree: pose_mse[s.degree] for s in candidates}
+    mse = {s.degree: group_mse[s.degree] for s in candidates}
     best = min(candidates, key=lambda s: float(mse[s.degree].mean()))
     groups = mse[best.degree]
     se = float(groups.std(ddof=1) / np.sqrt(len(groups))) if len(groups) > 1 else 0.0
     limit = float(groups.mean()) + se
     chosen = min(s.degree for s in candidates if float(mse[s.degree].mean()) <= limit)
     if chosen != best.degree:
-        notes.append(f"degree {best.degree} has the lowest pose hold-out error, but degree {chosen} is within one "
+        notes.append(f"degree {best.degree} has the lowest {unit} hold-out error, but degree {chosen} is within one "
                      f"standard error of it ({limit:.4g} (m/s^2)^2) and is simpler")
     chosen_scores = next(s for s in candidates if s.degree == chosen)
     if by_level and not np.all(np.isfinite(chosen_scores.held_out_level)):

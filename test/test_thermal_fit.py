@@ -205,6 +205,22 @@ def test_temperature_guard_stops_at_a_degree_that_predicts_unseen_levels_worse()
     assert by_degree[2].in_sample.mean() < by_degree[0].in_sample.mean()
 
 
+def test_temperature_guard_walks_past_a_worse_degree_to_a_quadratic_truth() -> None:
+    """A bias even in temperature: the linear term extrapolates the outer levels worse than the constant,
+    but the quadratic predicts every held-out level far better than both and must stay a candidate (the guard
+    used to stop at the first worse degree and chose n = 0, leaving errors of 30x the noise)."""
+    rng = np.random.default_rng(7)
+    M, b = _truth(2, rng)
+    M[1:], b[1], b[2] = 0.0, 0.0, np.array([1.5, -1.0, 0.8])
+    rec = _simulate(M, b, (20.0, 25.0, 30.0, 35.0), center=27.5, scale=7.5, psi_noise=1e-4, n=30)
+    sel = select_degree(rec, max_degree=3, usable=np.ones(len(rec), bool))
+    by_degree = {s.degree: s for s in sel.scores}
+    assert by_degree[1].held_out_level.mean() > by_degree[0].held_out_level.mean()  # the case itself
+    assert by_degree[2].held_out_level.mean() < 0.1 * by_degree[0].held_out_level.mean()
+    assert sel.chosen_degree == 2, sel.notes
+    assert any(note.startswith("degree 1 predicts held-out temperature levels worse") for note in sel.notes)
+
+
 def test_static_detector_keeps_motion_out_of_the_fit() -> None:
     rng = np.random.default_rng(6)
     M, b = _truth(0, rng)
