@@ -56,6 +56,8 @@ from .effects import (
     motion_groups,
     separating_measurement,
 )
+from .model_selection import DegreeScores, choose_degree
+from .model_selection import select_degree as calibration_select_degree
 from .recording import Recording, time_axis_label
 from .static_detector import calibration_samples
 from .thermal_fit import (
@@ -584,60 +586,77 @@ def temperature_level_count(data: DiagnosisData) -> int:
     return max(len(means), 1)
 
 
-def select_degree(data: DiagnosisData, folds: np.ndarray, max_degree: int = 4) -> tuple[int, list[dict[str, Any]]]:
-    """Degree of eq. 28 with the lowest held-out RMSE (CV over visits), never >= the number of levels.
-
-    Used with one or two temperature clusters (``thermal_fit.temperature_levels``): with one level it
-    is the calibration's rule (held out by pose, degree 0); with a temperature *ramp* (which clusters
-    into one or two levels) holding out whole levels cannot validate any temperature term, whereas
-    poses recorded at many temperatures along the ramp can. With three or more discrete levels the
-    calibration's own selection (held out by level, ``model_selection``) is used instead.
-    """
-    L = temperature_level_count(data)
-    t = data.temp_c[data.use]
-    c, s = temperature_scaling(t)
-    table, best, best_score = [], 0, np.inf
-    for n in range(0, max_degree + 1):
-        if n >= L:
-            table.append({"degree": n, "identified": False,
-                          "note": f"not identified by {L} temperature level(s): not considered"})
-            continue
-        spec = ModelSpec(n, c, s)
-        des = build_design(data, spec)
-        try:
-            cv = cross_validate(des, data.use, folds, np.ones(3))
-        except NotIdentifiedError:
-            continue
-        r = data.use & des.valid
-        ho = np.sqrt(np.nanmean(cv.heldout[r] ** 2, axis=0))
-        ins = np.sqrt(np.mean((des.G[r] - cv.fitted_full[r]) ** 2, axis=0))
-        score = float(np.sum(ho**2))
-        table.append({"degree": n, "identified": True, "heldout_rmse_mps2": ho, "insample_rmse_mps2": ins,
-                      "heldout_rmse_fs": ho / FULL_SCALE_MPS2, "insample_rmse_fs": ins / FULL_SCALE_MPS2})
-        if score < best_score * (1 - 1e-3):
-            best, best_score = n, score
-    return best, table
-
-
-def _degree_as_calibration(rec: Recording, data: DiagnosisData, max_degree: int) -> tuple[int, list[dict[str, Any]]]:
-    """Degree chosen exactly as the calibration does (``model_selection.select_degree``: held out by
-    temperature level with several levels, by pose with one), on the diagnosis samples."""
-    from .model_selection import select_degree as calibration_select_degree
-
-    sel = calibration_select_degree(rec, max_degree, usable=data.use & (data.pose_id >= 0))
-    by_level = sel.n_levels >= 2
-    table = []
-    for sc in sel.scores:
+def _degree_rows(scores: list[DegreeScores], held_out: Callable[[DegreeScores], np.ndarray],
+                 note: str) -> list[dict[str, Any]]:
+    """The report's degree table (one dict per degree) from the selection's scores."""
+    table: list[dict[str, Any]] = []
+    for sc in scores:
         if not sc.identified:
             table.append({"degree": sc.degree, "identified": False, "note": sc.note})
             continue
-        ho = sc.held_out_level if by_level else sc.held_out_pose
+        ho = held_out(sc)
         table.append({"degree": sc.degree, "identified": True, "heldout_rmse_mps2": ho, "insample_rmse_mps2": sc.in_sample,
                       "heldout_rmse_fs": ho / FULL_SCALE_MPS2, "insample_rmse_fs": sc.in_sample / FULL_SCALE_MPS2,
-                      "note": sc.note or sel.criterion})
+                      "note": sc.note or note})
+    return table
+
+
+def select_degree(data: DiagnosisData, max_degree: int) -> tuple[int, list[dict[str, Any]]]:
+    """Degree of the declared model, chosen exactly as the calibration does (``model_selection.select_degree``:
+    held out by temperature level with several levels, by pose with one) on the diagnosis samples."""
+    rec = Recording(data.t_s, data.ref, data.xyz, data.temp_c, data.gref, data.pose_id, data.run_id)
+    sel = calibration_select_degree(rec, max_degree, usable=data.use & (data.pose_id >= 0))
+    by_level = sel.n_levels >= 2
+    table = _degree_rows(sel.scores, lambda sc: sc.held_out_level if by_level else sc.held_out_pose, sel.criterion)
     if sel.chosen_degree is None:
         raise NotIdentifiedError("no degree of eq. 28 could be validated on held-out data: " + "; ".join(sel.notes))
     return sel.chosen_degree, table
+
+
+def reselect_degree(ev: Evaluator, spec: ModelSpec, max_degree: int) -> tuple[ModelSpec, list[dict[str, Any]], list[str]]:
+    """Degree and effects chosen jointly (issue 8): once an effect is in the model, choose the degree of eq. 28
+    again with the effect in every candidate model, by the calibration's rule (``model_selection.choose_degree``:
+    temperature-level hold-out guard with two or more levels, then the lowest degree within one standard error
+    of the best held-out error), the held-out unit being the visit. A term that stood in for a missing effect
+    (a higher degree absorbing a drift) is dropped again; a degree an effect hid is taken up.
+    Returns (the spec at the chosen degree, the degree table, notes)."""
+    data = ev.data
+    labels = np.full(len(data.t_s), -1)
+    labels[data.use], means = temperature_levels(data.temp_c[data.use])
+    n_levels = max(len(means), 1)
+    by_level = n_levels >= 2
+    level_rows = data.use & (labels >= 0)
+    nan3 = np.full(3, np.nan)
+    scores: list[DegreeScores] = []
+    group_mse: dict[int, np.ndarray] = {}
+    for n in range(max_degree + 1):
+        if n >= n_levels:
+            scores.append(DegreeScores(n, False, nan3, nan3, nan3, f"not identified by {n_levels} temperature level(s)"))
+            continue
+        cand = ModelSpec(n, spec.t_center_c, spec.t_scale_c, spec.effects)
+        try:
+            des, cv = ev.cv(cand)
+        except NotIdentifiedError as exc:
+            scores.append(DegreeScores(n, False, nan3, nan3, nan3, f"not identified: {exc}"))
+            continue
+        r = ev.rows & des.valid & np.all(np.isfinite(cv.heldout), axis=1)
+        ho = np.sqrt(np.mean(cv.heldout[r] ** 2, axis=0))
+        ins = np.sqrt(np.mean((des.G - cv.fitted_full)[r] ** 2, axis=0))
+        level_ho = nan3
+        if by_level:
+            try:
+                lv = cross_validate(des, level_rows, labels, ev.weights).heldout
+                rl = level_rows & des.valid & np.all(np.isfinite(lv), axis=1)
+                level_ho = np.sqrt(np.mean(lv[rl] ** 2, axis=0))
+            except NotIdentifiedError:  # a fold without one level cannot fit this degree
+                pass
+        scores.append(DegreeScores(n, True, ins, ho, level_ho))
+        group_mse[n] = _group_mse(cv.heldout, ev.groups, r, np.full(3, 1.0 / 3))[1]
+    chosen, criterion, notes = choose_degree(scores, group_mse, by_level, unit="visit")
+    table = _degree_rows(scores, lambda sc: sc.held_out_pose, criterion)
+    if chosen is None:
+        return spec, table, ["no degree could be validated with the added effects: degree kept", *notes]
+    return ModelSpec(chosen, spec.t_center_c, spec.t_scale_c, spec.effects), table, notes
 
 
 # ============================================================================ candidate evaluation
@@ -801,6 +820,11 @@ class Evaluator:
         out.detail = eff.describe(h, coeff)
         P, _ = self.data.static_psi_map()
         out.implausible = eff.implausible(h, coeff, self.data, np.linalg.inv(P))
+        collinear = column_conditioning(des, self.fit_rows)[1].get(eff.name, 0.0)
+        if not out.implausible and collinear > COLLINEAR_CORR:  # a pair of terms that cancel (issue 8)
+            out.implausible = (f"a column correlates at |r| = {collinear:.4f} (limit {COLLINEAR_CORR}) with another "
+                               "column of the model: the coefficients are not separately determined (large terms that "
+                               "cancel)")
         if out.implausible:
             out.detail += f"; REFUSED: {out.implausible}"
         out.delta, out.heldout = delta, heldout
@@ -837,6 +861,9 @@ class StepResult:
     chosen: str | None
     alpha_each: float
     confounding: list[Confounding]
+    degree_table: list[dict[str, Any]] = field(default_factory=list)  # degree re-selected after adding ``chosen``
+    degree_note: str = ""
+    degree_after: int | None = None  # the re-selected degree
 
 
 @dataclass
@@ -889,6 +916,7 @@ class DiagnosisResult:
     warnings: list[str] = field(default_factory=list)  # results a reader must not take at face value
     condition_number: float = float("nan")  # of the final model's scaled normal matrix (column_conditioning)
     column_correlation: dict[str, float] = field(default_factory=dict)  # added effect -> max |corr| with the others
+    final_degree: int = -1  # degree of eq. 28 in the final model (re-selected after each added effect)
 
     @property
     def final_floor(self) -> np.ndarray:
@@ -912,11 +940,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     groups = visit_groups(data)
     fold, fold_notes = check_folds(data, groups, make_folds(groups, data.use, folds, seed))
     n_levels = temperature_level_count(data)
-    if isinstance(rec, Recording) and n_levels >= 3:
-        # discrete chamber levels: exactly the calibration's choice (held out by temperature level)
-        sel_degree, degree_table = _degree_as_calibration(rec, data, max_degree)
-    else:
-        sel_degree, degree_table = select_degree(data, fold, max_degree)
+    sel_degree, degree_table = select_degree(data, max_degree)
     if degree is not None:
         if degree >= n_levels:
             raise NotIdentifiedError(f"degree {degree} is not identified by {n_levels} temperature level(s)")
@@ -985,6 +1009,13 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         eff = next(e for e in remaining if e.name == chosen)
         spec = spec.plus(eff, sig[0].hyper)
         remaining = [e for e in remaining if e.name != chosen]
+        if degree is None and n_levels >= 2:  # with one level only degree 0 is identified: nothing to re-select
+            was = spec.degree
+            spec, steps[-1].degree_table, notes = reselect_degree(ev, spec, max_degree)
+            steps[-1].degree_after = spec.degree
+            steps[-1].degree_note = (f"degree of eq. 28 re-selected with {chosen} in the model: "
+                                     + (f"{was} -> {spec.degree}" if spec.degree != was else f"{was}, unchanged")
+                                     + "".join(f"; {n}" for n in notes))
         des_c, cv_c = ev.cv(spec)
         base_heldout, base_fitted, base_G = cv_c.heldout, cv_c.fitted_full, des_c.G
 
@@ -1031,7 +1062,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         consistency_max_abs_mps2=consistency, n_static=int(r_eval.sum()), n_groups=len(np.unique(groups[r_eval])),
         moving_residual_rms=moving, settling=settling, fold_notes=fold_notes, n_floor_samples=int(settled.sum()),
         noise_remedies=remedies, noise_floor_after=noise_after if remedies else None, warnings=warnings,
-        condition_number=cond, column_correlation=column_corr,
+        condition_number=cond, column_correlation=column_corr, final_degree=spec.degree,
         settings={"static": static if not isinstance(rec, DiagnosisData) else "given", "folds": int(fold.max()) + 1,
                   "alpha": alpha, "min_rel_gain": min_rel_gain, "max_effects": max_effects, "seed": seed,
                   "settle_s": settle_s,

@@ -103,6 +103,18 @@ def summary(res: DiagnosisResult, img_prefix: str = "img/") -> list[str]:
     return out
 
 
+def degree_table(table: list[dict], chosen: int | None) -> str:
+    """Markdown table of a degree selection (eq. 28): RMSE / full scale per axis, in sample and held out."""
+    rows = []
+    for t in table:
+        if not t["identified"]:
+            rows.append([str(t["degree"]), "-", "-", t["note"]])
+        else:
+            rows.append([str(t["degree"]), _v(t["insample_rmse_fs"], "{:.2e}"), _v(t["heldout_rmse_fs"], "{:.2e}"),
+                         ("chosen; " if t["degree"] == chosen else "") + str(t.get("note", ""))])
+    return _md_table(["degree n", "in-sample RMSE / 20 g (x/y/z)", "held-out RMSE / 20 g (x/y/z)", ""], rows)
+
+
 def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") -> str:
     s = res.structure
     lines = ["# Residual diagnosis", ""]
@@ -116,14 +128,7 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
               f"time span {d.duration_s:.4g} s.", ""]
     lines += ["## Summary", "", *summary(res, img_prefix), ""]
     lines += ["## Declared model and degree (eq. 28)", ""]
-    rows = []
-    for t in res.degree_table:
-        if not t["identified"]:
-            rows.append([str(t["degree"]), "-", "-", t["note"]])
-        else:
-            rows.append([str(t["degree"]), _v(t["insample_rmse_fs"], "{:.2e}"), _v(t["heldout_rmse_fs"], "{:.2e}"),
-                         ("chosen; " if t["degree"] == res.degree else "") + str(t.get("note", ""))])
-    lines += [_md_table(["degree n", "in-sample RMSE / 20 g (x/y/z)", "held-out RMSE / 20 g (x/y/z)", ""], rows), ""]
+    lines += [degree_table(res.degree_table, res.degree), ""]
     lines += ["Noise floor (pooled within-visit standard deviation of the declared model's residual over the settled "
               "samples, a straight line in time removed in every visit): "
               f"**{_v(res.noise_floor)} m/s^2** (x/y/z), from {res.n_floor_samples} settled samples.", ""]
@@ -148,6 +153,9 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
                     "measurement that separates them"]
             lines += [_md_table(head, crow), ""]
         lines += [f"Chosen: **{st.chosen or 'nothing (no significant candidate)'}**", ""]
+        if st.degree_note:
+            lines += [st.degree_note[0].upper() + st.degree_note[1:] + ".", "",
+                      degree_table(st.degree_table, st.degree_after), ""]
         for c in st.candidates:
             if c.name == "channel_delay" and c.cross_correlation_delay_s is not None:
                 lines += [f"Cross-correlation delay of the model output against the reference (finddelay): "
@@ -218,6 +226,8 @@ def text(res: DiagnosisResult) -> str:
                        f"{c.b} on top: {100 * c.gain_b_beyond_a:+.1f} % p {c.p_b_beyond_a:.2g}, "
                        f"{c.a} on top: {100 * c.gain_a_beyond_b:+.1f} % p {c.p_a_beyond_b:.2g}: {c.verdict}")
         out.append(f"  chosen: {st.chosen or 'nothing'}")
+        if st.degree_note:
+            out.append(f"  {st.degree_note}")
     out.append("added: " + (", ".join(f"{n} ({d})" for n, _, d in res.added) if res.added else "nothing"))
     for n, _, d in res.noise_remedies:
         out.append(f"noise remedy: {n} ({d}); floor of the filtered output {_v(res.final_floor)} m/s^2")

@@ -291,3 +291,55 @@ def test_conditioning_flags_a_drift_whose_two_columns_cancel() -> None:
     assert np.isfinite(cond_short) and cond_short > 1
     res = diagnose(synthetic(6), degree=0)
     assert np.isfinite(res.condition_number) and "Conditioning of the final model" in markdown(res)
+
+
+def test_a_candidate_whose_columns_cancel_is_refused_not_added() -> None:
+    """Issue 8 §3: a real drift, offered as two nearly equal ramps (|r| > 0.99). It gains on held-out data, but
+    only as two large coefficients that cancel: refused, never written to the YAML."""
+    from fbg_accel_calibration.diagnose import COLLINEAR_CORR
+    from fbg_accel_calibration.effects import Effect
+
+    class TwinRamps(Effect):
+        name, title, n_columns, stage = "twin_ramps", "two nearly equal ramps in time", 2, 90
+
+        def columns(self, data, inp, h):
+            t = (inp.t_s - inp.t_s.min()) / np.ptp(inp.t_s)
+            return np.column_stack([t, t + 0.02 * np.sin(40 * t)])
+
+    rec = synthetic(8)
+    rec.gref_mps2 = rec.gref_mps2 + np.outer(rec.t_s / rec.t_s.max(), [0.4, -0.3, 0.2])
+    res = diagnose(rec, library=(TwinRamps(),), degree=0)
+    cand = res.steps[0].candidates[0]
+    assert cand.applicable and cand.rel_gain > 0.1 and cand.p_value < 1e-3  # it would have been added
+    assert "cancel" in cand.implausible and f"limit {COLLINEAR_CORR}" in cand.implausible
+    assert not cand.significant and res.added == []
+
+
+def test_degree_is_re_selected_once_an_effect_is_in_the_model() -> None:
+    """Issue 8 §3: a warm-up drift across four temperature levels recorded one after the other makes a quadratic
+    temperature term look useful (it absorbs part of the drift). Once the drift is in the model the degree is
+    chosen again, with the drift in every candidate model, and falls back to the truth (linear)."""
+    rng = np.random.default_rng(1)
+    poses = [(p, t) for t in range(0, 360, 60) for p in range(0, 360, 90)]
+    levels, dwell, move = (20.0, 35.0, 25.0, 30.0), 30, 3
+    pose_seq = [(T, k, p, t) for T in levels for k, (p, t) in enumerate(poses)]
+    T = np.concatenate([np.full(move + dwell, T0) for T0, *_ in pose_seq])
+    pid = np.concatenate([np.r_[np.full(move, -1), np.full(dwell, k)] for _, k, _, _ in pose_seq])
+    psi = np.concatenate([np.full(move + dwell, float(p)) for *_, p, _ in pose_seq])
+    th = np.concatenate([np.full(move + dwell, float(t)) for *_, t in pose_seq])
+    n = len(T)
+    t_s = np.arange(n) * 0.1
+    g = table_specific_force(psi, th, 9.81)
+    b = B_TRUE + np.outer(0.2 * (T - 27.5), [1.0, -0.7, 0.5])  # linear in temperature
+    drift = 1.5 * np.exp(-t_s / (0.15 * t_s[-1]))[:, None] * np.array([1.0, -0.6, 0.8])
+    ref = 870.0 * (1 + 0.01 * np.sin(np.arange(n) / n * 9))
+    xyz = np.linalg.solve(M_TRUE, (g + drift - b).T).T * ref[:, None]
+    xyz += rng.normal(0, 1, (n, 3)) * 0.05 / np.diag(M_TRUE) * 870
+    rec = Recording(t_s, ref, xyz, T + rng.normal(0, 0.01, n), np.where(pid[:, None] >= 0, g, np.nan), pid)
+    res = diagnose(rec)
+    assert res.degree == 2  # the drift made the quadratic look useful on the declared model
+    assert [a[0] for a in res.added] == ["time_drift"]
+    assert res.final_degree == 1 == res.steps[0].degree_after
+    assert "2 -> 1" in res.steps[0].degree_note
+    assert res.calibration.M.shape[0] == 2  # the YAML carries the re-selected degree (n + 1 matrices)
+    assert "re-selected with time_drift" in markdown(res)
