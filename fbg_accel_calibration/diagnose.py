@@ -917,6 +917,7 @@ class DiagnosisResult:
     condition_number: float = float("nan")  # of the final model's scaled normal matrix (column_conditioning)
     column_correlation: dict[str, float] = field(default_factory=dict)  # added effect -> max |corr| with the others
     final_degree: int = -1  # degree of eq. 28 in the final model (re-selected after each added effect)
+    run_terms: list[tuple[str, float | None, str]] = field(default_factory=list)  # per-run terms (not in the YAML)
 
     @property
     def final_floor(self) -> np.ndarray:
@@ -1027,13 +1028,19 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     confounded = {k: v for k, v in confounded.items() if v}
     cal, base_cal, added = _calibration_from(spec, des_f, cv_f, data, noise, sensor_id, confounded)
     remedy_names = {e.name for e, _ in spec.effects if e.noise_remedy}
+    per_run_names = {e.name for e, _ in spec.effects if e.per_run}
     remedies = [a for a in added if a[0] in remedy_names]
-    added = [a for a in added if a[0] not in remedy_names]
+    run_terms = [a for a in added if a[0] in per_run_names]
+    added = [a for a in added if a[0] not in remedy_names | per_run_names]
     noise_after = noise
     if remedies:  # the filtered output is less noisy: its own floor, on the same settled samples
         noise_after = within_visit_sigma(des_f.G - cv_f.fitted_full, groups, settled & rows_f, data.t_s)
         cal.noise_sigma_mps2 = noise_after
-    consistency = _consistency(cal, data, des_f, cv_f, rows_f)
+    fitted_sensor = cv_f.fitted_full.copy()  # what the calibration file reproduces: without the per-run terms
+    for name in per_run_names:
+        sl = des_f.blocks[name]
+        fitted_sensor -= des_f.X[:, sl] @ cv_f.A_full[sl]
+    consistency = _consistency(cal, data, fitted_sensor, rows_f)
     r_eval = rows_f & np.all(np.isfinite(residual_before), axis=1) & np.all(np.isfinite(cv_f.heldout), axis=1)
     before_ho = np.sqrt(np.mean(residual_before[r_eval] ** 2, axis=0))
     after_ho = np.sqrt(np.mean(cv_f.heldout[r_eval] ** 2, axis=0))
@@ -1062,7 +1069,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         consistency_max_abs_mps2=consistency, n_static=int(r_eval.sum()), n_groups=len(np.unique(groups[r_eval])),
         moving_residual_rms=moving, settling=settling, fold_notes=fold_notes, n_floor_samples=int(settled.sum()),
         noise_remedies=remedies, noise_floor_after=noise_after if remedies else None, warnings=warnings,
-        condition_number=cond, column_correlation=column_corr, final_degree=spec.degree,
+        condition_number=cond, column_correlation=column_corr, final_degree=spec.degree, run_terms=run_terms,
         settings={"static": static if not isinstance(rec, DiagnosisData) else "given", "folds": int(fold.max()) + 1,
                   "alpha": alpha, "min_rel_gain": min_rel_gain, "max_effects": max_effects, "seed": seed,
                   "settle_s": settle_s,
@@ -1129,8 +1136,12 @@ def _calibration_from(spec: ModelSpec, des: Design, cv: CvResult, data: Diagnosi
         coeff = A[des.blocks[eff.name]].T if eff.name in des.blocks else None
         terms.extend(eff.make_terms(h, coeff, data))
         added.append((eff.name, h, eff.describe(h, coeff)))
-    fit = {"tool": "fbg-accel-calib diagnose", "degree": n, "added_effects": [a[0] for a in added],
-           "hyper_parameters": {a[0]: a[1] for a in added}}
+    per_run = [e.name for e, _ in spec.effects if e.per_run]
+    fit = {"tool": "fbg-accel-calib diagnose", "degree": n,
+           "added_effects": [a[0] for a in added if a[0] not in per_run],
+           "hyper_parameters": {a[0]: a[1] for a in added if a[0] not in per_run}}
+    if per_run:  # fitted so that they do not bias eq. 28; the driver cannot apply them (it does not know runs)
+        fit["per_run_terms_fitted_not_applied"] = per_run
     if confounded:
         fit["confounded_with"] = confounded
     delay = [h for e, h in spec.effects if e.name == "channel_delay"]
@@ -1166,14 +1177,14 @@ def column_conditioning(des: Design, rows: np.ndarray) -> tuple[float, dict[str,
     return cond, out
 
 
-def _consistency(cal: ThermalCalibration, data: DiagnosisData, des: Design, cv: CvResult, rows: np.ndarray) -> float:
-    """Max |apply_counts - fit prediction| over the static rows, per run streamed with one state."""
+def _consistency(cal: ThermalCalibration, data: DiagnosisData, fitted: np.ndarray, rows: np.ndarray) -> float:
+    """Max |apply_counts - fit prediction ``fitted`` (N, 3)| over the static rows, per run streamed with one state."""
     worst = 0.0
     for idx in data.runs():
         out = cal.apply_counts(data.ref[idx], data.xyz[idx], data.temp_c[idx], data.t_s[idx], cal.new_state())
         m = rows[idx]
         if m.any():
-            worst = max(worst, float(np.nanmax(np.abs(out[m] - cv.fitted_full[idx][m]))))
+            worst = max(worst, float(np.nanmax(np.abs(out[m] - fitted[idx][m]))))
     return worst
 
 

@@ -78,6 +78,10 @@ def summary(res: DiagnosisResult, img_prefix: str = "img/") -> list[str]:
     for name, _, desc in res.noise_remedies:
         out.append(f"- **Noise remedy: {name}** ({desc}): a filter, not a model effect; the floor of the filtered "
                    f"output is {_v(res.final_floor)} m/s^2.")
+    for name, _, desc in res.run_terms:
+        out.append(f"- **Per-run term: {name}** ({desc}): a property of these recordings, not of the sensor; fitted so "
+                   "that it does not bias eq. 28, not in the calibration file. Expect a run of your own to carry a "
+                   "term of this size that no calibration removes.")
     out.append("- Held-out RMSE per axis x/y/z: before " + _v(res.before_heldout_rmse) + " m/s^2, after "
                + _v(res.after_heldout_rmse) + " m/s^2; noise floor " + _v(res.noise_floor) + " m/s^2.")
     out += [f"- **Warning:** {w}." for w in res.warnings]
@@ -231,6 +235,8 @@ def text(res: DiagnosisResult) -> str:
     out.append("added: " + (", ".join(f"{n} ({d})" for n, _, d in res.added) if res.added else "nothing"))
     for n, _, d in res.noise_remedies:
         out.append(f"noise remedy: {n} ({d}); floor of the filtered output {_v(res.final_floor)} m/s^2")
+    for n, _, d in res.run_terms:
+        out.append(f"per-run term (fitted, not in the calibration file): {n} ({d})")
     for j, a in enumerate(AXES):
         out.append(f"axis {a}: held-out RMSE before {res.before_heldout_rmse[j]:.3f} -> after {res.after_heldout_rmse[j]:.3f} "
                    f"m/s^2, noise floor {res.final_floor[j]:.3f} m/s^2")

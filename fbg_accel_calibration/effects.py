@@ -16,6 +16,9 @@ non-linear in a parameter, one hyper-parameter found by a 1-D search (grid, then
   reference is filtered like the signal. Hyper: scale of the Table 1 time constants.
 * ``thermal_hysteresis``: bias of opposite sign on heating and cooling branches. Hyper: the time
   constant of the rate filter that decides the branch (s).
+* ``run_offset`` / ``run_drift``: each run (file, temperature level) has its own bias offset / its own linear
+  drift in time (issue 8). Properties of the recordings, not of the sensor: fitted so that they do not bias
+  eq. 28, reported, never written to the calibration (the driver cannot know runs). No hyper.
 
 The regressors are built with the same code as the run-time terms in
 ``fbg_accel_driver.correction_terms``, so a fitted candidate becomes declared terms that the
@@ -199,6 +202,7 @@ class Effect:
     title: str = ""
     n_columns: int = 0  # extra regressors (each gets 3 coefficients, one per axis)
     noise_remedy: bool = False  # a filter against noise (not a model effect): reported apart from the added effects
+    per_run: bool = False  # a property of each recording (run_offset, run_drift): fitted, reported, not in the YAML
 
     def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
         """Whether the data can show this effect at all (e.g. temperature must vary)."""
@@ -538,6 +542,66 @@ class ThermalHysteresisEffect(Effect):
         return f"rate filter {h:.4g} s; half gap heating-cooling [{c[0]:.3g}, {c[1]:.3g}, {c[2]:.3g}] m/s^2"
 
 
+class _PerRunEffect(Effect):
+    """Base of the per-run terms: one column per run (``run_offset``: every run but the first, whose offset is
+    eq. 28's b) whose coefficients are m/s^2 per axis. Runs count where ``use`` has samples."""
+
+    per_run = True
+    stage = 80
+    skip_first = False
+    unit_text = ""
+
+    def _runs(self, data: DiagnosisData) -> list[np.ndarray]:
+        return [idx for idx in data.runs() if data.use[idx].any()]
+
+    def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
+        if len(self._runs(data)) < 2:
+            return False, "one run (file / temperature level) in this recording"
+        return True, ""
+
+    def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
+        runs = self._runs(data)[1 if self.skip_first else 0:]
+        out = np.zeros((len(inp.t_s), len(runs)))
+        for j, idx in enumerate(runs):
+            out[idx, j] = self._shape(inp.t_s[idx])
+        return out
+
+    def _shape(self, t_s: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
+        c = np.asarray(coeff) if coeff is not None else np.zeros((3, 0))
+        first = 2 if self.skip_first else 1
+        return f"{self.unit_text}: " + "; ".join(f"run {first + j}: [{c[0, j]:.3g}, {c[1, j]:.3g}, {c[2, j]:.3g}]"
+                                                  for j in range(c.shape[1])) + " m/s^2 (not in the calibration file)"
+
+    def implausible(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData, M0: np.ndarray) -> str:
+        if coeff is not None and np.any(np.abs(coeff) > MAX_DRIFT_MPS2):
+            return (f"a per-run term of {np.max(np.abs(coeff)):.3g} m/s^2 exceeds {MAX_DRIFT_MPS2:.3g} m/s^2 (5 % of "
+                    "full scale): terms that cancel, not a drift")
+        return ""
+
+
+class RunOffsetEffect(_PerRunEffect):
+    name = "run_offset"
+    title = "bias offset of each run (file / temperature level) of its own"
+    unit_text = "correction added to the output, against run 1, x/y/z"
+    skip_first = True
+
+    def _shape(self, t_s: np.ndarray) -> np.ndarray:
+        return np.ones(len(t_s))
+
+
+class RunDriftEffect(_PerRunEffect):
+    name = "run_drift"
+    title = "linear drift of each run (file / temperature level) of its own"
+    unit_text = "correction added to the output over each run (end minus start), x/y/z"
+
+    def _shape(self, t_s: np.ndarray) -> np.ndarray:
+        span = float(np.ptp(t_s)) if len(t_s) else 0.0
+        return (t_s - 0.5 * (t_s.min() + t_s.max())) / span if span > 0 else np.zeros(len(t_s))
+
+
 LIBRARY: tuple[Effect, ...] = (
     ReferenceReadNoiseEffect(),
     ReferenceDarkOffsetEffect(),
@@ -547,6 +611,8 @@ LIBRARY: tuple[Effect, ...] = (
     ChannelDelayEffect(),
     TiaLowpassEffect(),
     ThermalHysteresisEffect(),
+    RunOffsetEffect(),
+    RunDriftEffect(),
 )
 
 
@@ -571,6 +637,11 @@ SEPARATING_MEASUREMENT: dict[frozenset[str], str] = {
     frozenset({"thermal_lag", "time_drift"}): (
         "repeat the run with a different temperature profile (e.g. a plateau then a ramp): a thermal lag "
         "follows the temperature rate, a drift follows time since power-on"),
+    frozenset({"run_drift", "time_drift"}): (
+        "record each run after the same warm-up from power-on: a drift shared by all runs follows the time since "
+        "power-on, a per-run drift comes back at every run start"),
+    frozenset({"run_offset", "thermal_lag"}): (
+        "hold each chamber level longer, until the housing temperature has settled: a lag ends, a run offset stays"),
     frozenset({"time_drift", "thermal_hysteresis"}): (
         "cycle the temperature up and down twice: hysteresis repeats with the branch, drift does not"),
 }

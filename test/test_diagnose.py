@@ -3,6 +3,7 @@ equality of the added terms, the CLI, and the measured series of the paper."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -343,3 +344,41 @@ def test_degree_is_re_selected_once_an_effect_is_in_the_model() -> None:
     assert "2 -> 1" in res.steps[0].degree_note
     assert res.calibration.M.shape[0] == 2  # the YAML carries the re-selected degree (n + 1 matrices)
     assert "re-selected with time_drift" in markdown(res)
+
+
+def test_a_drift_of_each_run_is_fitted_as_a_per_run_term_and_kept_out_of_the_yaml() -> None:
+    """Issue 8 §6: three runs (files / levels) drifting in different directions (+, -, +); no curve shared by
+    the runs describes that. run_drift is found, brings the error to the floor, and stays out of the
+    calibration file (the driver cannot know runs): the file still reproduces the fit without it."""
+    rec = synthetic(9)
+    third = np.minimum((3 * rec.t_s / (rec.t_s.max() + 1e-9)).astype(int), 2)
+    rec.run_id = third
+    slopes = np.array([[0.6, -0.4, 0.3], [-0.8, 0.5, -0.4], [0.5, 0.6, -0.5]])  # m/s^2 over each run
+    drift = np.zeros_like(rec.gref_mps2)
+    for r in range(3):
+        idx = third == r
+        t = rec.t_s[idx]
+        drift[idx] = np.outer((t - 0.5 * (t.min() + t.max())) / np.ptp(t), slopes[r])
+    rec.gref_mps2 = rec.gref_mps2 - drift  # the sensor reads g + drift
+    res = diagnose(rec, degree=0)
+    assert [n for n, _, _ in res.run_terms] == ["run_drift"], [(c.name, round(c.rel_gain, 3), c.p_value) for c in res.ranked]
+    assert res.added == [] and res.calibration.corrections == []
+    assert res.calibration.fit["per_run_terms_fitted_not_applied"] == ["run_drift"]
+    assert np.all(res.after_heldout_rmse <= 1.3 * res.noise_floor), res.after_heldout_rmse / res.noise_floor
+    assert res.consistency_max_abs_mps2 < 1e-6
+    assert "Per-run term: run_drift" in markdown(res)
+    single = diagnose(synthetic(9), degree=0)
+    cand = {c.name: c for c in single.ranked}
+    assert not cand["run_drift"].applicable and "one run" in cand["run_drift"].reason
+
+
+def test_an_offset_of_each_run_is_a_per_run_term() -> None:
+    """Issue 8 §6: three runs at one temperature, each with a bias offset of its own (a re-mounted sensor)."""
+    rec = synthetic(10)
+    rec.run_id = np.minimum((3 * rec.t_s / (rec.t_s.max() + 1e-9)).astype(int), 2)
+    rec.gref_mps2 = rec.gref_mps2 - np.array([[0.0, 0.0, 0.0], [0.5, -0.4, 0.3], [-0.3, 0.4, 0.5]])[rec.run_id]
+    res = diagnose(rec, degree=0)
+    assert [n for n, _, _ in res.run_terms] == ["run_offset"], [(c.name, round(c.rel_gain, 3), c.p_value) for c in res.ranked]
+    assert np.all(res.after_heldout_rmse <= 1.3 * res.noise_floor), res.after_heldout_rmse / res.noise_floor
+    fitted = [float(v) for v in re.findall(r"-?\d+\.\d+", res.run_terms[0][2].split(":", 1)[1])]
+    np.testing.assert_allclose(fitted, [-0.5, 0.4, -0.3, 0.3, -0.4, -0.5], atol=0.03)  # corrections: minus the offsets
