@@ -120,9 +120,9 @@ def test_paired_gain_test_detects_and_refuses() -> None:
     groups = np.repeat(np.arange(30), 20)
     rows = np.ones(600, bool)
     r0 = rng.normal(0, 1, (600, 3))
-    gain, p, ng = paired_gain_test(r0, r0 * 0.7, groups, rows, np.ones(3))
+    gain, p, ng, _ = paired_gain_test(r0, r0 * 0.7, groups, rows, np.ones(3))
     assert ng == 30 and p < 1e-6 and gain == pytest.approx(0.51, abs=1e-9)
-    gain, p, _ = paired_gain_test(r0, r0 + rng.normal(0, 0.1, (600, 3)), groups, rows, np.ones(3))
+    gain, p, _, _ = paired_gain_test(r0, r0 + rng.normal(0, 0.1, (600, 3)), groups, rows, np.ones(3))
     assert p > 0.01 and gain < 0
 
 
@@ -295,9 +295,10 @@ def test_conditioning_flags_a_drift_whose_two_columns_cancel() -> None:
 
 
 def test_a_candidate_whose_columns_cancel_is_refused_not_added() -> None:
-    """Issue 8 §3: a real drift, offered as two nearly equal ramps (|r| > 0.99). It gains on held-out data, but
-    only as two large coefficients that cancel: refused, never written to the YAML."""
-    from fbg_accel_calibration.diagnose import COLLINEAR_CORR
+    """Issue 8 §3: a real drift, offered as two nearly equal ramps (|r| > 0.99) whose small difference the data
+    also contain. It gains on held-out data, but only as two large coefficients that cancel: refused, never
+    written to the YAML. The same pair with nothing to cancel (a plain ramp) is kept."""
+    from fbg_accel_calibration.diagnose import CANCEL_RATIO, COLLINEAR_CORR
     from fbg_accel_calibration.effects import Effect
 
     class TwinRamps(Effect):
@@ -305,15 +306,22 @@ def test_a_candidate_whose_columns_cancel_is_refused_not_added() -> None:
 
         def columns(self, data, inp, h):
             t = (inp.t_s - inp.t_s.min()) / np.ptp(inp.t_s)
-            return np.column_stack([t, t + 0.02 * np.sin(40 * t)])
+            return np.column_stack([t, t + 0.002 * np.sin(40 * t)])
 
-    rec = synthetic(8)
-    rec.gref_mps2 = rec.gref_mps2 + np.outer(rec.t_s / rec.t_s.max(), [0.4, -0.3, 0.2])
-    res = diagnose(rec, library=(TwinRamps(),), degree=0)
+    def with_drift(wiggle: float) -> Recording:
+        rec = synthetic(8)
+        t = rec.t_s / rec.t_s.max()
+        rec.gref_mps2 = rec.gref_mps2 + np.outer(0.4 * t + wiggle * np.sin(40 * t), [1.0, -0.75, 0.5])
+        return rec
+
+    res = diagnose(with_drift(0.02), library=(TwinRamps(),), degree=0)
     cand = res.steps[0].candidates[0]
     assert cand.applicable and cand.rel_gain > 0.1 and cand.p_value < 1e-3  # it would have been added
     assert "cancel" in cand.implausible and f"limit {COLLINEAR_CORR}" in cand.implausible
+    assert f"limit {CANCEL_RATIO:g}" in cand.implausible
     assert not cand.significant and res.added == []
+    kept = diagnose(with_drift(0.0), library=(TwinRamps(),), degree=0)
+    assert [a[0] for a in kept.added] == ["twin_ramps"], kept.ranked[0].implausible
 
 
 def test_degree_is_re_selected_once_an_effect_is_in_the_model() -> None:

@@ -190,9 +190,27 @@ def test_visit_that_alone_excites_an_axis_is_never_held_out() -> None:
     assert "never held out" in markdown(res)
 
 
-def test_a_campaign_too_small_to_add_anything_says_so():
+def test_a_small_campaign_states_its_detection_limit_and_adds_nothing_clean():
     """Issue 8, point 4: with six visits the signed-rank test over visits cannot reach the per-candidate alpha
-    (2^-6 = 0.016 > 0.01 / candidates): the report states it instead of silently adding nothing."""
-    res = diagnose(six_position(2))
-    assert res.added == []
-    assert any("cannot go below p = 2^-6" in w and "visits are needed" in w for w in res.warnings), res.warnings
+    (2^-6 = 0.016 > 0.01 / candidates). The report says so, tests with a paired t-test over the visits instead,
+    states the smallest gain it can detect, and adds nothing to clean data (several seeds)."""
+    for seed in (2, 3, 4):
+        res = diagnose(six_position(seed))
+        assert res.added == [], [(c.name, c.rel_gain, c.p_value) for c in res.ranked]
+        warning = next(w for w in res.warnings if "cannot go below p = 2^-6" in w)
+        assert "visits are needed" in warning and "paired t-test" in warning
+        limit = float(warning.split("80 % power is ")[1].split(" %")[0])
+        assert 0 < limit < 100
+
+
+def test_a_small_campaign_can_add_a_large_effect():
+    """The six-position plan with a 40-count dark offset on the reference while the source power wanders by
+    +-5 %: the paired t-test over six visits finds it (the signed-rank test never could: min p = 2^-6 is above
+    the per-candidate alpha)."""
+    rec = six_position(2)
+    power = 1 + 0.05 * np.sin(2 * np.pi * rec.t_s / 7.0)
+    rec.xyz, rec.ref = rec.xyz * power[:, None], rec.ref * power + 40.0
+    res = diagnose(rec)
+    assert [a[0] for a in res.added] == ["reference_dark_offset"], [(c.name, c.rel_gain, c.p_value) for c in res.ranked]
+    assert res.ranked[0].p_value < 0.5**6  # below what any rank test over six visits can reach
+    assert np.all(res.after_heldout_rmse < 0.5 * res.before_heldout_rmse)
