@@ -747,6 +747,11 @@ class Evaluator:
         self.fit_rows = data.use & (folds != -1)  # fitted (also the visits that are never held out, fold -2)
         self.designs = DesignCache()
 
+    @property
+    def model_matrix(self) -> np.ndarray:
+        """(3, 3) model matrix at the mean temperature (m/s^2 per unit Psi), for the plausibility bounds."""
+        return np.linalg.inv(self.data.static_psi_map()[0])
+
     def design(self, spec: ModelSpec) -> Design:
         return build_design(self.data, spec, self.designs)
 
@@ -764,26 +769,33 @@ class Evaluator:
         K = int(self.folds[self.rows].max()) + 1
         fold_rows = [self.rows & (self.folds == f) for f in range(K)]
         # nested choice: each fold's held-out residual is the one of the grid value that fits the other folds
-        # best (the first such value on a tie), kept as the grid is walked: one (N, 3) array, not one per value
-        heldout = np.full((len(self.data.t_s), 3), np.nan)
-        best_train = np.full(K, np.inf)
-        profile, kept, unidentified = [], [], []
+        # best (the first such value on a tie), kept as the grid is walked: one (N, 3) array, not one per value.
+        # Values whose fit on all rows is not physical (Effect.implausible: e.g. a warm-up of 13 m/s^2 cancelled
+        # by a creep) are searched apart and used only when no value is plausible: the hypothesis is a
+        # physical effect, and the best implausible value must not hide a plausible one.
+        heldout = {ok: np.full((len(self.data.t_s), 3), np.nan) for ok in (True, False)}
+        best_train = {ok: np.full(K, np.inf) for ok in (True, False)}
+        profile, kept, plausible, unidentified = [], [], [], []
         for h in grid:
             try:
-                _, cvr = self.cv(spec.plus(eff, float(h)))
+                des, cvr = self.cv(spec.plus(eff, float(h)))
             except NotIdentifiedError as exc:  # this value makes the design singular: not a candidate
                 unidentified.append(f"{eff.hyper_name} = {h:.4g}: {exc}")
                 continue
-            for f in np.flatnonzero(cvr.train_rss < best_train):
-                best_train[f] = cvr.train_rss[f]
-                heldout[fold_rows[f]] = cvr.heldout[fold_rows[f]]
+            ok = not self.implausible(eff, float(h), des, cvr)
+            for f in np.flatnonzero(cvr.train_rss < best_train[ok]):
+                best_train[ok][f] = cvr.train_rss[f]
+                heldout[ok][fold_rows[f]] = cvr.heldout[fold_rows[f]]
             profile.append((float(h), float(np.sum(cvr.train_rss) / max(K - 1, 1))))
             kept.append(float(h))
+            plausible.append(ok)
         if not kept:
             raise NotIdentifiedError("no value of the grid is identified (" + unidentified[0] + ")")
-        grid = np.asarray(kept)
+        use_ok = any(plausible)
+        grid = np.asarray([h for h, ok in zip(kept, plausible, strict=True) if ok == use_ok])
+        rss_grid = [p[1] for p, ok in zip(profile, plausible, strict=True) if ok == use_ok]
         # final value on all rows: best grid point then bounded scalar refinement between its neighbours
-        j = int(np.argmin([p[1] for p in profile]))
+        j = int(np.argmin(rss_grid))
         lo = grid[max(j - 1, 0)]
         hi = grid[min(j + 1, len(grid) - 1)]
         h_best = float(grid[j])
@@ -798,7 +810,9 @@ class Evaluator:
             res = optimize.minimize_scalar(obj, bounds=(float(lo), float(hi)), method="bounded",
                                            options={"xatol": 1e-3 * (hi - lo), "maxiter": 25})
             if res.success and res.fun <= obj(h_best):
-                h_best = float(res.x)
+                h_ref = float(res.x)
+                if not (use_ok and self.implausible(eff, h_ref, *self.cv(spec.plus(eff, h_ref)))):
+                    h_best = h_ref
         if eff.hyper_null is not None:
             # parsimony: keep the null value unless moving away from it is a significant improvement,
             # judged with visits as the independent units (likelihood ratio ~ chi^2(1), 1 %)
@@ -806,7 +820,14 @@ class Evaluator:
             n_groups = len(np.unique(self.groups[self.rows]))
             if (rss_null - rss_best) / max(rss_best / n_groups, 1e-300) < stats.chi2.ppf(0.99, 1):
                 h_best = float(eff.hyper_null)
-        return h_best, heldout, profile
+        return h_best, heldout[use_ok], profile
+
+    def implausible(self, eff: Effect, h: float | None, des: Design, cvr: CvResult) -> str:
+        """Why the fit of ``eff`` at ``h`` (design ``des``, fit ``cvr`` on all rows) is not physical, or "": the
+        effect's own bounds (``Effect.implausible``) or columns that cancel (``cancelling_terms``)."""
+        coeff = cvr.A_full[des.blocks[eff.name]].T if eff.name in des.blocks else None
+        return (eff.implausible(h, coeff, self.data, self.model_matrix)
+                or cancelling_terms(des, cvr.A_full, eff.name, self.fit_rows))
 
     def evaluate(self, spec: ModelSpec, eff: Effect, base_heldout: np.ndarray, base_fitted: np.ndarray,
                  base_G: np.ndarray | None = None, alpha: float | None = None) -> CandidateResult:
@@ -836,9 +857,7 @@ class Evaluator:
         out.n_params = 3 * eff.n_columns + (0 if h is None else 1)
         coeff = cvr.A_full[des.blocks[eff.name]].T if eff.name in des.blocks else None
         out.detail = eff.describe(h, coeff)
-        P, _ = self.data.static_psi_map()
-        out.implausible = eff.implausible(h, coeff, self.data, np.linalg.inv(P))
-        out.implausible = out.implausible or cancelling_terms(des, cvr.A_full, eff.name, delta, self.fit_rows)
+        out.implausible = self.implausible(eff, h, des, cvr)
         if out.implausible:
             out.detail += f"; REFUSED: {out.implausible}"
         out.delta, out.heldout = delta, heldout
@@ -1180,12 +1199,12 @@ COLLINEAR_CORR = 0.99  # |correlation| of an added column with the model's other
 CANCEL_RATIO = 10.0  # a collinear column whose own contribution exceeds the net change it makes this many times
 
 
-def cancelling_terms(des: Design, A: np.ndarray, name: str, delta: np.ndarray, rows: np.ndarray) -> str:
+def cancelling_terms(des: Design, A: np.ndarray, name: str, rows: np.ndarray) -> str:
     """Why the effect ``name`` fits as large terms that cancel (issue 8), or "" if it does not: one of its columns
     correlates above ``COLLINEAR_CORR`` with another column of the model (its own included) AND that column's
-    contribution (coefficient x column, RMS over ``rows``) is more than ``CANCEL_RATIO`` times the RMS of the net
-    change ``delta`` (N, 3) the effect makes to the prediction, on some axis. Correlated columns whose
-    contributions stay modest (a warm-up over the run and a creep, each of 1 m/s^2) are not refused."""
+    contribution (coefficient x column, RMS over ``rows``) is more than ``CANCEL_RATIO`` times the RMS of the
+    effect's net contribution (all its columns), on some axis (e.g. a warm-up of 13 m/s^2 against a creep that
+    takes it back). Correlated columns whose contributions stay modest are not refused."""
     sl = des.blocks.get(name)
     if sl is None:
         return ""
@@ -1193,14 +1212,14 @@ def cancelling_terms(des: Design, A: np.ndarray, name: str, delta: np.ndarray, r
     if corr <= COLLINEAR_CORR:
         return ""
     r = rows & des.valid
-    net = np.sqrt(np.mean(delta[r] ** 2, axis=0))
-    biggest = max((np.sqrt(np.mean((des.X[r, k, None] * A[k]) ** 2, axis=0)) for k in range(sl.start, sl.stop)),
-                  key=lambda v: float(np.max(v / np.maximum(net, 1e-300))))
-    ratio = float(np.max(biggest / np.maximum(net, 1e-300)))
+    X = des.X[r]
+    net = np.maximum(np.sqrt(np.mean((X[:, sl] @ A[sl]) ** 2, axis=0)), 1e-300)
+    ratio = max(float(np.max(np.sqrt(np.mean((X[:, k, None] * A[k]) ** 2, axis=0)) / net))
+                for k in range(sl.start, sl.stop))
     if ratio <= CANCEL_RATIO:
         return ""
     return (f"a column correlates at |r| = {corr:.4f} (limit {COLLINEAR_CORR}) with another column of the model and "
-            f"contributes {ratio:.3g} times the net change the effect makes (limit {CANCEL_RATIO:g}): large terms that "
+            f"contributes {ratio:.3g} times the effect's net contribution (limit {CANCEL_RATIO:g}): large terms that "
             "cancel, not separately determined")
 
 
