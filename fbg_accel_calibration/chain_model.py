@@ -31,6 +31,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from fbg_accel_driver.chain_compensation import first_order_group_delay_s
+from fbg_accel_driver.mapping_fields import number
 
 from .dynamic_analysis import DynamicPoint
 
@@ -84,20 +85,23 @@ class ChainModel:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ChainModel:
         """Inverse of :meth:`to_dict` (derived keys such as ``group_delay_dc_s`` are ignored)."""
+        def num(key: str, default: float | None = None, **check: Any) -> float:
+            return number(d.get(key, default), key, ValueError, **check)
+
+        def uncertainty(key: str) -> float:  # absent or null: not known
+            return math.nan if d.get(key) is None else num(key, finite=False)
+
         if "cutoff_hz" not in d:
             raise ValueError("chain model needs cutoff_hz")
         hp = d.get("highpass_cutoff_hz")
         where = str(d.get("highpass_in", "reference"))
         if where not in HP_LOCATIONS:
             raise ValueError(f"highpass_in must be one of {HP_LOCATIONS}, got {where!r}")
-        m = cls(gain=float(d.get("gain", 1.0)), cutoff_hz=float(d["cutoff_hz"]), delay_s=float(d.get("delay_s", 0.0)),
-                highpass_cutoff_hz=None if hp is None else float(hp), highpass_in=where,
-                u_gain=_num(d.get("u_gain")), u_cutoff_hz=_num(d.get("u_cutoff_hz")), u_delay_s=_num(d.get("u_delay_s")),
-                u_highpass_cutoff_hz=_num(d.get("u_highpass_cutoff_hz")), axis=str(d.get("axis", "")),
-                fit=dict(d.get("fit", {})))
-        if not m.cutoff_hz > 0 or (m.highpass_cutoff_hz is not None and not m.highpass_cutoff_hz > 0):
-            raise ValueError("cut-off frequencies must be positive")
-        return m
+        return cls(gain=num("gain", 1.0), cutoff_hz=num("cutoff_hz", positive=True), delay_s=num("delay_s", 0.0),
+                   highpass_cutoff_hz=None if hp is None else num("highpass_cutoff_hz", positive=True), highpass_in=where,
+                   u_gain=uncertainty("u_gain"), u_cutoff_hz=uncertainty("u_cutoff_hz"), u_delay_s=uncertainty("u_delay_s"),
+                   u_highpass_cutoff_hz=uncertainty("u_highpass_cutoff_hz"),
+                   axis=str(d.get("axis", "")), fit=dict(d.get("fit", {})))
 
 
 def _plain(v: Any) -> Any:
@@ -107,10 +111,6 @@ def _plain(v: Any) -> Any:
     if isinstance(v, float) and math.isnan(v):
         return None
     return v
-
-
-def _num(v: Any) -> float:
-    return math.nan if v is None else float(v)
 
 
 def response(model: ChainModel, f_hz: float | np.ndarray) -> np.ndarray:

@@ -20,6 +20,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from fbg_accel_driver.mapping_fields import number, refuse_unknown
+
 FORMAT_NAME = "fbg_accel_excitation_plan"
 FORMAT_VERSION = 1
 TOP_KEYS = ("format", "format_version", "name", "description", "direction", "start_s", "gap_s", "ramp_cycles",
@@ -175,11 +177,11 @@ class ExcitationPlan:
             raise fail(f"format is {d.get('format')!r}, expected '{FORMAT_NAME}'")
         if d.get("format_version") != FORMAT_VERSION:
             raise fail(f"format_version {d.get('format_version')!r} is not supported (this tool reads {FORMAT_VERSION})")
-        _refuse_unknown(d, TOP_KEYS, "", fail)
+        refuse_unknown(d, TOP_KEYS, "", fail)
         direction = d.get("direction")
         if not (isinstance(direction, list) and len(direction) == 3):
             raise fail("direction must be a list of 3 numbers (unit vector, sensor frame)")
-        v = np.array([_num(x, "direction", fail) for x in direction])
+        v = np.array([number(x, "direction", fail) for x in direction])
         norm = float(np.linalg.norm(v))
         if not norm > 0:
             raise fail("direction must not be zero")
@@ -187,24 +189,24 @@ class ExcitationPlan:
         ref_d = d.get("reference")
         if not isinstance(ref_d, dict):
             raise fail("reference must be a mapping {type, sensitivity..., offset_counts, ...}")
-        _refuse_unknown(ref_d, REFERENCE_KEYS, "reference.", fail)
+        refuse_unknown(ref_d, REFERENCE_KEYS, "reference.", fail)
         rtype = ref_d.get("type")
         if rtype not in REFERENCE_TYPES:
             raise fail(f"reference.type must be one of {REFERENCE_TYPES}, got {rtype!r}")
         sens_key = "sensitivity_counts_per_mps" if rtype == "ldv" else "sensitivity_counts_per_mps2"
         if sens_key not in ref_d:
             raise fail(f"reference.{sens_key} is required for a reference of type {rtype}")
-        sens = _num(ref_d[sens_key], f"reference.{sens_key}", fail)
+        sens = number(ref_d[sens_key], f"reference.{sens_key}", fail)
         if sens == 0:
             raise fail(f"reference.{sens_key} must not be 0")
         ref = ReferenceTransducer(
             type=rtype, sensitivity=sens,
-            offset_counts=_num(ref_d.get("offset_counts", 2048.0), "reference.offset_counts", fail),
-            ac_coupling_hz=_num(ref_d.get("ac_coupling_hz", 0.0) or 0.0, "reference.ac_coupling_hz", fail, lo=0.0),
-            relative_uncertainty=_num(ref_d.get("relative_uncertainty", 0.01), "reference.relative_uncertainty", fail,
-                                      lo=0.0),
-            phase_uncertainty_deg=_num(ref_d.get("phase_uncertainty_deg", 0.5), "reference.phase_uncertainty_deg", fail,
-                                       lo=0.0))
+            offset_counts=number(ref_d.get("offset_counts", 2048.0), "reference.offset_counts", fail),
+            ac_coupling_hz=number(ref_d.get("ac_coupling_hz") or 0.0, "reference.ac_coupling_hz", fail, minimum=0.0),
+            relative_uncertainty=number(ref_d.get("relative_uncertainty", 0.01), "reference.relative_uncertainty", fail,
+                                        minimum=0.0),
+            phase_uncertainty_deg=number(ref_d.get("phase_uncertainty_deg", 0.5), "reference.phase_uncertainty_deg",
+                                         fail, minimum=0.0))
         segs_d = d.get("segments")
         if not isinstance(segs_d, list) or not segs_d:
             raise fail("segments must be a non-empty list of {freq_hz, amplitude_mps2, duration_s}")
@@ -215,13 +217,13 @@ class ExcitationPlan:
             where = f"segments[{i}]"
             if not isinstance(s, dict):
                 raise fail(f"{where} must be a mapping {{freq_hz, amplitude_mps2, duration_s}}")
-            _refuse_unknown(s, SEGMENT_KEYS, f"{where}.", fail)
+            refuse_unknown(s, SEGMENT_KEYS, f"{where}.", fail)
             for k in SEGMENT_KEYS:
                 if k not in s:
                     raise fail(f"{where}.{k} is required")
-            f = _num(s["freq_hz"], f"{where}.freq_hz", fail, lo=1e-3)
-            seg = Segment(f, _num(s["amplitude_mps2"], f"{where}.amplitude_mps2", fail, lo=1e-9),
-                          _num(s["duration_s"], f"{where}.duration_s", fail, lo=1e-3))
+            f = number(s["freq_hz"], f"{where}.freq_hz", fail, minimum=1e-3)
+            seg = Segment(f, number(s["amplitude_mps2"], f"{where}.amplitude_mps2", fail, minimum=1e-9),
+                          number(s["duration_s"], f"{where}.duration_s", fail, minimum=1e-3))
             if seg.duration_s * seg.freq_hz < 3:
                 raise fail(f"{where}: {seg.duration_s:g} s at {f:g} Hz is under 3 periods")
             segs.append(seg)
@@ -230,10 +232,10 @@ class ExcitationPlan:
         if not isinstance(name, str) or not isinstance(desc, str):
             raise fail("name and description must be text")
         return cls(name=name, direction=(float(v[0]), float(v[1]), float(v[2])), segments=tuple(segs), reference=ref,
-                   start_s=_num(d.get("start_s", 5.0), "start_s", fail, lo=0.0),
-                   gap_s=_num(d.get("gap_s", 1.0), "gap_s", fail, lo=0.0),
-                   ramp_cycles=_num(d.get("ramp_cycles", 2.0), "ramp_cycles", fail, lo=0.0),
-                   settle_s=_num(d.get("settle_s", 1.0), "settle_s", fail, lo=0.0), description=desc)
+                   start_s=number(d.get("start_s", 5.0), "start_s", fail, minimum=0.0),
+                   gap_s=number(d.get("gap_s", 1.0), "gap_s", fail, minimum=0.0),
+                   ramp_cycles=number(d.get("ramp_cycles", 2.0), "ramp_cycles", fail, minimum=0.0),
+                   settle_s=number(d.get("settle_s", 1.0), "settle_s", fail, minimum=0.0), description=desc)
 
 
 def reference_acceleration(t_s: np.ndarray, aux_counts: np.ndarray, plan: ExcitationPlan,
@@ -295,21 +297,3 @@ def find_slide_start(t_s: np.ndarray, aux_counts: np.ndarray, plan: ExcitationPl
     padded = np.concatenate([env - env.mean(), np.zeros(n_plan)])
     score = np.correlate(padded, plan_env - plan_env.mean(), mode="valid")[: len(env)]
     return float(t[0] + int(np.argmax(score)) * dt)
-
-
-def _num(v: Any, where: str, fail: Any, lo: float | None = None) -> float:
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-        raise fail(f"{where} must be a finite number, got {v!r}")
-    if lo is not None and v < lo:
-        raise fail(f"{where} must be >= {lo:g}, got {v!r}")
-    return float(v)
-
-
-def _refuse_unknown(d: dict[str, Any], allowed: tuple[str, ...], where: str, fail: Any) -> None:
-    import difflib
-
-    for key in d:
-        if key not in allowed:
-            near = difflib.get_close_matches(str(key), allowed, n=1)
-            hint = f" (did you mean '{where}{near[0]}'?)" if near else ""
-            raise fail(f"unknown key '{where}{key}'{hint}")

@@ -19,13 +19,14 @@ Every problem raises ``PosePlanError`` with one message naming the file and the 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
+
+from fbg_accel_driver.mapping_fields import number
 
 from .table_geometry import STANDARD_GRAVITY, table_specific_force
 
@@ -161,19 +162,6 @@ class PosePlan:
 
 
 # ---------------------------------------------------------------------------------------- parsing
-def _number(value: Any, where: str, *, positive: bool = False, minimum: float | None = None) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise PosePlanError(f"{where} must be a number, got {value!r}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise PosePlanError(f"{where} must be finite, got {value!r}")
-    if positive and v <= 0:
-        raise PosePlanError(f"{where} must be > 0, got {value!r}")
-    if minimum is not None and v < minimum:
-        raise PosePlanError(f"{where} must be >= {minimum}, got {value!r}")
-    return v
-
-
 def _count(value: Any, where: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
         raise PosePlanError(f"{where} must be a positive integer, got {value!r}")
@@ -196,13 +184,13 @@ def _parse(d: Any, source: str) -> PosePlan:
         raise PosePlanError(f"{source}: format_version {d['format_version']!r} is not supported "
                             f"(this tool reads {FORMAT_VERSION})")
     name = str(d.get("name", Path(source).stem))
-    g = _number(d.get("local_g_mps2", STANDARD_GRAVITY), f"{source}: local_g_mps2")
+    g = number(d.get("local_g_mps2", STANDARD_GRAVITY), f"{source}: local_g_mps2", PosePlanError)
     if not LOCAL_G_RANGE_MPS2[0] <= g <= LOCAL_G_RANGE_MPS2[1]:
         raise PosePlanError(f"{source}: local_g_mps2 = {g} m/s^2 is not a gravity on the Earth's surface "
                             f"({LOCAL_G_RANGE_MPS2[0]}..{LOCAL_G_RANGE_MPS2[1]}); is it in m/s^2?")
     default_samples = _count(d.get("samples_per_pose", DEFAULT_SAMPLES_PER_POSE), f"{source}: samples_per_pose")
-    default_dwell = _number(d["dwell_s"], f"{source}: dwell_s", positive=True) if "dwell_s" in d else None
-    move_s = _number(d.get("move_s", DEFAULT_MOVE_S), f"{source}: move_s", minimum=0.0)
+    default_dwell = number(d["dwell_s"], f"{source}: dwell_s", PosePlanError, positive=True) if "dwell_s" in d else None
+    move_s = number(d.get("move_s", DEFAULT_MOVE_S), f"{source}: move_s", PosePlanError, minimum=0.0)
 
     raw_poses = d.get("poses")
     if not isinstance(raw_poses, list) or not raw_poses:
@@ -226,15 +214,15 @@ def _parse(d: Any, source: str) -> PosePlan:
         if has_angles:
             if "psi_deg" not in rp or "theta_deg" not in rp:
                 raise PosePlanError(f"{where} ({pname}): table angles need both psi_deg and theta_deg")
-            psi = _number(rp["psi_deg"], f"{where}.psi_deg")
-            theta = _number(rp["theta_deg"], f"{where}.theta_deg")
+            psi = number(rp["psi_deg"], f"{where}.psi_deg", PosePlanError)
+            theta = number(rp["theta_deg"], f"{where}.theta_deg", PosePlanError)
             gref = table_specific_force(np.array([psi]), np.array([theta]), g)[0]
             gref = np.where(np.abs(gref) < 1e-12 * g, 0.0, gref)  # exact zeros for axis-aligned poses
         elif has_gref:
             vec = rp["gref_mps2"]
             if not isinstance(vec, list) or len(vec) != 3:
                 raise PosePlanError(f"{where}.gref_mps2 must be a list of 3 numbers (m/s^2), got {vec!r}")
-            gref = np.array([_number(v, f"{where}.gref_mps2[{k}]") for k, v in enumerate(vec)])
+            gref = np.array([number(v, f"{where}.gref_mps2[{k}]", PosePlanError) for k, v in enumerate(vec)])
             norm = float(np.linalg.norm(gref))
             if abs(norm - g) > GREF_NORM_TOLERANCE * g:
                 raise PosePlanError(f"{where} ({pname}): |gref_mps2| = {norm:.4f} m/s^2 but a static pose senses local g "
@@ -243,7 +231,7 @@ def _parse(d: Any, source: str) -> PosePlan:
             raise PosePlanError(f"{where} ({pname}): needs table angles psi_deg/theta_deg or a reference gref_mps2")
         if "dwell_s" not in rp and default_dwell is None:
             raise PosePlanError(f"{where} ({pname}): no dwell time: set the pose's or the plan's 'dwell_s' (s)")
-        dwell = _number(rp.get("dwell_s", default_dwell), f"{where}.dwell_s", positive=True)
+        dwell = number(rp.get("dwell_s", default_dwell), f"{where}.dwell_s", PosePlanError, positive=True)
         samples = _count(rp.get("samples", default_samples), f"{where}.samples")
         poses.append(Pose(i, pname, gref, dwell, samples, psi, theta))
 
@@ -263,10 +251,10 @@ def _parse_chamber(c: Any, where: str) -> ChamberPlan:
         raise PosePlanError(f"{where}.levels_c must be a non-empty list of set-points (degC)")
     out = []
     for k, v in enumerate(levels):
-        t = _number(v, f"{where}.levels_c[{k}]")
+        t = number(v, f"{where}.levels_c[{k}]", PosePlanError)
         if not CHAMBER_RANGE_C[0] <= t <= CHAMBER_RANGE_C[1]:
             raise PosePlanError(f"{where}.levels_c[{k}] = {t} degC is outside {CHAMBER_RANGE_C} degC; is it in degC?")
         out.append(t)
-    soak = _number(c.get("soak_s", 0.0), f"{where}.soak_s", minimum=0.0)
-    tol = _number(c.get("tolerance_c", 2.0), f"{where}.tolerance_c", positive=True)
+    soak = number(c.get("soak_s", 0.0), f"{where}.soak_s", PosePlanError, minimum=0.0)
+    tol = number(c.get("tolerance_c", 2.0), f"{where}.tolerance_c", PosePlanError, positive=True)
     return ChamberPlan(tuple(out), soak, tol)

@@ -37,6 +37,8 @@ from typing import Any
 
 import numpy as np
 
+from .mapping_fields import number, refuse_unknown
+
 DYNAMIC_FORMAT_VERSION = 1
 CHANNELS = ("reference", "x", "y", "z")
 AXES = ("x", "y", "z")
@@ -101,9 +103,7 @@ class ChainDynamics:
         """The ``dynamic`` section of a calibration file; ``fail(message)`` makes the error to raise."""
         if not isinstance(d, dict):
             raise fail(f"'dynamic' must be a mapping, got {type(d).__name__}")
-        unknown = sorted(set(d) - set(DYNAMIC_KEYS))
-        if unknown:
-            raise fail(f"unknown key 'dynamic.{unknown[0]}' (known: {', '.join(DYNAMIC_KEYS)})")
+        refuse_unknown(d, DYNAMIC_KEYS, "dynamic.", fail)
         version = d.get("format_version")
         if version != DYNAMIC_FORMAT_VERSION:
             raise fail(f"dynamic.format_version {version!r} is not supported (this driver reads {DYNAMIC_FORMAT_VERSION})")
@@ -112,9 +112,7 @@ class ChainDynamics:
             m = d.get(key, {} if default is not None else None)
             if not isinstance(m, dict):
                 raise fail(f"dynamic.{key} must be a mapping of {', '.join(names)}")
-            extra = sorted(set(m) - set(names))
-            if extra:
-                raise fail(f"unknown key 'dynamic.{key}.{extra[0]}' (known: {', '.join(names)})")
+            refuse_unknown(m, names, f"dynamic.{key}.", fail)
             out = []
             for n in names:
                 if key == "cutoff_hz" and n == "reference" and n in m and m[n] is None:
@@ -123,9 +121,7 @@ class ChainDynamics:
                 v = m.get(n, default)
                 if v is None:
                     raise fail(f"missing key 'dynamic.{key}.{n}'")
-                if isinstance(v, bool) or not isinstance(v, int | float):
-                    raise fail(f"dynamic.{key}.{n} must be a number, got {v!r}")
-                out.append(float(v))
+                out.append(number(v, f"dynamic.{key}.{n}", fail, finite=False))  # __post_init__ checks the range
             return tuple(out)
 
         fit = d.get("fit") or {}

@@ -26,11 +26,12 @@ regressors for the fit, from these very classes, so the driver and the offline m
 from __future__ import annotations
 
 import itertools
-import math
 from dataclasses import dataclass
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
+
+from .mapping_fields import number
 
 
 @dataclass
@@ -87,16 +88,7 @@ def _scalar(d: dict, key: str, kind: str, *, positive: bool = False, nonneg: boo
         if default is not None:
             return float(default)
         raise ValueError(f"{kind}: missing parameter '{key}'")
-    v = d[key]
-    if isinstance(v, bool) or not isinstance(v, int | float):
-        raise ValueError(f"{kind}: parameter '{key}' must be a number, got {v!r}")
-    v = float(v)
-    if not math.isfinite(v):
-        raise ValueError(f"{kind}: parameter '{key}' must be finite, got {v}")
-    if positive and v <= 0:
-        raise ValueError(f"{kind}: parameter '{key}' must be > 0, got {v}")
-    if nonneg and v < 0:
-        raise ValueError(f"{kind}: parameter '{key}' must be >= 0, got {v}")
+    v = number(d[key], f"{kind}: parameter '{key}'", ValueError, positive=positive, minimum=0.0 if nonneg else None)
     if nonzero and v == 0:
         raise ValueError(f"{kind}: parameter '{key}' must be non-zero")
     return v

@@ -22,7 +22,6 @@ so the driver and the offline tools evaluate the same model on the same frames.
 from __future__ import annotations
 
 import datetime as _dt
-import difflib
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -34,6 +33,7 @@ import yaml
 
 from .chain_compensation import ChainDynamics
 from .correction_terms import CorrectionTerm, TermInputs, correction_from_dict
+from .mapping_fields import number, refuse_unknown
 from .sensor_constants import FULL_SCALE_MPS2
 
 FORMAT_NAME = "fbg_accel_calibration"
@@ -232,6 +232,12 @@ class ThermalCalibration:
         def fail(msg: str) -> CalibrationFileError:
             return CalibrationFileError(f"{source}: {msg}")
 
+        def fail_key(msg: str) -> CalibrationFileError:  # an unknown key is often a note put in the wrong place
+            return fail(f"{msg}; free text goes under 'notes'")
+
+        def num(v: Any, key: str) -> float:  # numeric text too (YAML 1.1); _validate names a non-finite one better
+            return number(v, f"'{key}'", fail, finite=False, text=True)
+
         def need(key: str) -> Any:
             if key not in d:
                 raise fail(f"missing key '{key}'")
@@ -242,7 +248,7 @@ class ThermalCalibration:
         if need("format") != FORMAT_NAME:
             raise fail(f"format is '{d['format']}', expected '{FORMAT_NAME}'")
         d = migrate(d, source)
-        _refuse_unknown(d, TOP_LEVEL_KEYS, "", fail)
+        refuse_unknown(d, TOP_LEVEL_KEYS, "", fail_key)
         units = need("units")
         if not isinstance(units, dict):
             raise fail("'units' is not a mapping")
@@ -275,7 +281,7 @@ class ThermalCalibration:
         corr = d.get("noise_correlation") or {}
         if not isinstance(corr, dict):
             raise fail(f"'noise_correlation' must be a mapping, got {type(corr).__name__}")
-        _refuse_unknown(corr, NOISE_CORRELATION_KEYS, "noise_correlation.", fail)
+        refuse_unknown(corr, NOISE_CORRELATION_KEYS, "noise_correlation.", fail_key)
         try:
             corr_f = np.asarray(corr.get("correlated_fraction", [0.0, 0.0, 0.0]), dtype=float)
             corr_tau = np.asarray(corr.get("time_constant_s", [0.0, 0.0, 0.0]), dtype=float)
@@ -302,16 +308,16 @@ class ThermalCalibration:
                 term = correction_from_dict(c)
             except (KeyError, TypeError, ValueError, OverflowError) as exc:
                 raise fail(f"bad correction term: {where}: {exc}") from None
-            _refuse_unknown(c, (*term.to_dict(), "notes"), f"{where}.", fail)
+            refuse_unknown(c, (*term.to_dict(), "notes"), f"{where}.", fail_key)
             corrections.append(term)
         try:
             cal = cls(
                 M=M,
                 b=b,
-                temperature_range_c=(_number(rng[0], "temperature_range_c", fail), _number(rng[1], "temperature_range_c", fail)),
+                temperature_range_c=(num(rng[0], "temperature_range_c"), num(rng[1], "temperature_range_c")),
                 sensor_id=texts["sensor_id"] if "sensor_id" in d else "unknown",
-                t_center_c=_number(d.get("temperature_center_c", 0.0), "temperature_center_c", fail),
-                t_scale_c=_number(d.get("temperature_scale_c", 1.0), "temperature_scale_c", fail),
+                t_center_c=num(d.get("temperature_center_c", 0.0), "temperature_center_c"),
+                t_scale_c=num(d.get("temperature_scale_c", 1.0), "temperature_scale_c"),
                 noise_sigma_mps2=noise,
                 created=texts["created"],
                 fit=dict(fit),
@@ -488,15 +494,6 @@ def _evaluate_grid(cal: ThermalCalibration, ref: np.ndarray, xyz: np.ndarray, te
     return cal.apply_counts(ref_s, xyz_s, t_s, time_s)[hold - 1::hold]
 
 
-def _refuse_unknown(d: dict[str, Any], allowed: tuple[str, ...], where: str,
-                    fail: Callable[[str], CalibrationFileError]) -> None:
-    for key in d:
-        if key not in allowed:
-            near = difflib.get_close_matches(str(key), allowed, n=1, cutoff=0.6)
-            hint = f" (did you mean '{where}{near[0]}'?)" if near else f" (known: {', '.join(allowed)})"
-            raise fail(f"unknown key '{where}{key}'{hint}; free text goes under 'notes'")
-
-
 def _text(d: dict[str, Any], key: str, max_chars: int, fail: Callable[[str], CalibrationFileError]) -> str:
     v = d.get(key, "")
     if v is None:
@@ -506,17 +503,6 @@ def _text(d: dict[str, Any], key: str, max_chars: int, fail: Callable[[str], Cal
     if len(v) > max_chars:
         raise fail(f"'{key}' has {len(v)} characters, at most {max_chars} are accepted")
     return v
-
-
-def _number(v: Any, key: str, fail: Callable[[str], CalibrationFileError]) -> float:
-    if isinstance(v, bool):
-        raise fail(f"'{key}' must be a number, got {v!r}")
-    try:
-        return float(v)
-    except OverflowError:
-        raise fail(f"'{key}' is too large for a float") from None
-    except (TypeError, ValueError):
-        raise fail(f"'{key}' must be a number, got {type(v).__name__} {v!r:.40}") from None
 
 
 def _plain(obj: Any) -> Any:
