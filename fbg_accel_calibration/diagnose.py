@@ -327,6 +327,9 @@ class CvResult:
     train_rss: np.ndarray  # (K,) weighted training RSS per fold
     A_full: np.ndarray  # (p, 3) coefficients on all rows
     fitted_full: np.ndarray  # (N, 3) in-sample prediction with A_full
+    xtx: np.ndarray  # (p, p) X^T X over the fitted rows (all folds), for the conditioning checks
+    xsum: np.ndarray  # (p,) column sums over the fitted rows
+    n_fit: int  # fitted rows
 
 
 def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np.ndarray) -> CvResult:
@@ -367,7 +370,7 @@ def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np
         train_rss[f] = float(np.sum(rss * weights))
     A_full = solve_normal_equations(XtX, XtG)[0]
     fitted = X @ A_full
-    return CvResult(heldout, train_rss, A_full, fitted)
+    return CvResult(heldout, train_rss, A_full, fitted, XtX, Xs.sum(axis=0), len(idx))
 
 
 def weighted_rss(des: Design, rows: np.ndarray, weights: np.ndarray) -> float:
@@ -827,7 +830,7 @@ class Evaluator:
         effect's own bounds (``Effect.implausible``) or columns that cancel (``cancelling_terms``)."""
         coeff = cvr.A_full[des.blocks[eff.name]].T if eff.name in des.blocks else None
         return (eff.implausible(h, coeff, self.data, self.model_matrix)
-                or cancelling_terms(des, cvr.A_full, eff.name, self.fit_rows))
+                or cancelling_terms(des, cvr, eff.name))
 
     def evaluate(self, spec: ModelSpec, eff: Effect, base_heldout: np.ndarray, base_fitted: np.ndarray,
                  base_G: np.ndarray | None = None, alpha: float | None = None) -> CandidateResult:
@@ -1039,7 +1042,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
             r.significant = r.p_value < alpha_each and r.rel_gain >= min_rel_gain and not r.implausible
         results.sort(key=lambda r: (not r.applicable, -r.rel_gain))
         sig = [r for r in results if r.significant]
-        conf = _confounding(ev, spec, sig, alpha_each, min_rel_gain) if len(sig) >= 2 else []
+        conf = _confounding(ev, spec, sig, alpha_each, min_rel_gain, library) if len(sig) >= 2 else []
         chosen = sig[0].name if sig else None
         for r in results:  # per-sample arrays (N, 3) are kept only where the report plots them: first step's deltas
             r.heldout = None
@@ -1090,7 +1093,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     structure = residual_structure(data, cv_f.heldout, r_eval, groups, noise_after, alpha)
     moving = _moving_residual(data, cal)
     warnings = [detection_limit] if detection_limit else []
-    cond, column_corr = column_conditioning(des_f, data.use & (fold != -1))
+    cond, column_corr = gram_conditioning(cv_f.xtx, cv_f.xsum, cv_f.n_fit, des_f.blocks)
     for name, c in column_corr.items():
         if c > COLLINEAR_CORR:
             warnings.append(f"a column of {name} correlates at |r| = {c:.4f} with another column of the model: their "
@@ -1122,45 +1125,46 @@ def _fmt3(v: np.ndarray) -> str:
 
 
 def _confounding(ev: Evaluator, spec: ModelSpec, sig: list[CandidateResult], alpha_each: float,
-                 min_rel_gain: float) -> list[Confounding]:
-    """Pairwise: does each significant candidate still gain on top of the other one?"""
-    lib = {e.name: e for e in LIBRARY}
+                 min_rel_gain: float, library: tuple[Effect, ...]) -> list[Confounding]:
+    """The candidate about to be added (``sig[0]``, the largest gain) against each of the next three significant
+    ones: does each still gain on top of the other? (Pairs among the others are judged at the next step, on top
+    of the one added, so they are not worked out here.)"""
+    lib = {e.name: e for e in library}
     out = []
-    top = sig[:4]
-    for i in range(len(top)):
-        for j in range(i + 1, len(top)):
-            a, b = top[i], top[j]
-            ea, eb = lib[a.name], lib[b.name]
-            # each on top of the other (the added one's hyper-parameter searched again, nested), compared
-            # with the other alone at its final hyper-parameter, as the forward selection does
-            a_ho = ev.cv(spec.plus(ea, a.hyper))[1].heldout
-            b_ho = ev.cv(spec.plus(eb, b.hyper))[1].heldout
-            _, ho_b_on_a, _ = ev.fit_hyper(spec.plus(ea, a.hyper), eb)
-            _, ho_a_on_b, _ = ev.fit_hyper(spec.plus(eb, b.hyper), ea)
-            rows = ev.rows.copy()
-            for arr in (a_ho, b_ho, ho_b_on_a, ho_a_on_b):
-                rows &= np.all(np.isfinite(arr), axis=1)
-            g_b, p_b = paired_gain_test(a_ho, ho_b_on_a, ev.groups, rows, ev.weights, alpha_each)[:2]
-            g_a, p_a = paired_gain_test(b_ho, ho_a_on_b, ev.groups, rows, ev.weights, alpha_each)[:2]
-            r = rows & np.all(np.isfinite(a.delta), axis=1) & np.all(np.isfinite(b.delta), axis=1)
-            cc = _corr((a.delta[r] * np.sqrt(ev.weights)).ravel(), (b.delta[r] * np.sqrt(ev.weights)).ravel())
-            b_adds = p_b < alpha_each and g_b >= min_rel_gain
-            a_adds = p_a < alpha_each and g_a >= min_rel_gain
-            if a_adds and b_adds:
-                verdict = "both"
-            elif a_adds or b_adds:
-                verdict = f"{a.name} explains {b.name}" if a_adds else f"{b.name} explains {a.name}"
+    a = sig[0]
+    ea = lib[a.name]
+    a_ho = ev.cv(spec.plus(ea, a.hyper))[1].heldout
+    for b in sig[1:4]:
+        eb = lib[b.name]
+        # each on top of the other (the added one's hyper-parameter searched again, nested), compared
+        # with the other alone at its final hyper-parameter, as the forward selection does
+        b_ho = ev.cv(spec.plus(eb, b.hyper))[1].heldout
+        _, ho_b_on_a, _ = ev.fit_hyper(spec.plus(ea, a.hyper), eb)
+        _, ho_a_on_b, _ = ev.fit_hyper(spec.plus(eb, b.hyper), ea)
+        rows = ev.rows.copy()
+        for arr in (a_ho, b_ho, ho_b_on_a, ho_a_on_b):
+            rows &= np.all(np.isfinite(arr), axis=1)
+        g_b, p_b = paired_gain_test(a_ho, ho_b_on_a, ev.groups, rows, ev.weights, alpha_each)[:2]
+        g_a, p_a = paired_gain_test(b_ho, ho_a_on_b, ev.groups, rows, ev.weights, alpha_each)[:2]
+        r = rows & np.all(np.isfinite(a.delta), axis=1) & np.all(np.isfinite(b.delta), axis=1)
+        cc = _corr((a.delta[r] * np.sqrt(ev.weights)).ravel(), (b.delta[r] * np.sqrt(ev.weights)).ravel())
+        b_adds = p_b < alpha_each and g_b >= min_rel_gain
+        a_adds = p_a < alpha_each and g_a >= min_rel_gain
+        if a_adds and b_adds:
+            verdict = "both"
+        elif a_adds or b_adds:
+            verdict = f"{a.name} explains {b.name}" if a_adds else f"{b.name} explains {a.name}"
+        else:
+            # neither adds beyond the other: does one fit significantly better head to head?
+            g_ab, p_ab = paired_gain_test(b_ho, a_ho, ev.groups, rows, ev.weights, alpha_each)[:2]
+            g_ba, p_ba = paired_gain_test(a_ho, b_ho, ev.groups, rows, ev.weights, alpha_each)[:2]
+            if p_ab < alpha_each and g_ab >= min_rel_gain:
+                verdict = f"{a.name} explains {b.name}"
+            elif p_ba < alpha_each and g_ba >= min_rel_gain:
+                verdict = f"{b.name} explains {a.name}"
             else:
-                # neither adds beyond the other: does one fit significantly better head to head?
-                g_ab, p_ab = paired_gain_test(b_ho, a_ho, ev.groups, rows, ev.weights, alpha_each)[:2]
-                g_ba, p_ba = paired_gain_test(a_ho, b_ho, ev.groups, rows, ev.weights, alpha_each)[:2]
-                if p_ab < alpha_each and g_ab >= min_rel_gain:
-                    verdict = f"{a.name} explains {b.name}"
-                elif p_ba < alpha_each and g_ba >= min_rel_gain:
-                    verdict = f"{b.name} explains {a.name}"
-                else:
-                    verdict = "confounded"
-            out.append(Confounding(a.name, b.name, cc, p_b, p_a, verdict, g_b, g_a, separating_measurement(a.name, b.name)))
+                verdict = "confounded"
+        out.append(Confounding(a.name, b.name, cc, p_b, p_a, verdict, g_b, g_a, separating_measurement(a.name, b.name)))
     return out
 
 
@@ -1199,23 +1203,22 @@ COLLINEAR_CORR = 0.99  # |correlation| of an added column with the model's other
 CANCEL_RATIO = 10.0  # a collinear column whose own contribution exceeds the net change it makes this many times
 
 
-def cancelling_terms(des: Design, A: np.ndarray, name: str, rows: np.ndarray) -> str:
+def cancelling_terms(des: Design, cv: CvResult, name: str) -> str:
     """Why the effect ``name`` fits as large terms that cancel (issue 8), or "" if it does not: one of its columns
     correlates above ``COLLINEAR_CORR`` with another column of the model (its own included) AND that column's
-    contribution (coefficient x column, RMS over ``rows``) is more than ``CANCEL_RATIO`` times the RMS of the
-    effect's net contribution (all its columns), on some axis (e.g. a warm-up of 13 m/s^2 against a creep that
-    takes it back). Correlated columns whose contributions stay modest are not refused."""
+    contribution (coefficient x column, RMS over the fitted rows) is more than ``CANCEL_RATIO`` times the RMS of
+    the effect's net contribution (all its columns), on some axis (e.g. a warm-up of 13 m/s^2 against a creep that
+    takes it back). Correlated columns whose contributions stay modest are not refused. From the fit's sums."""
     sl = des.blocks.get(name)
     if sl is None:
         return ""
-    corr = column_conditioning(des, rows)[1].get(name, 0.0)
+    corr = gram_conditioning(cv.xtx, cv.xsum, cv.n_fit, des.blocks)[1].get(name, 0.0)
     if corr <= COLLINEAR_CORR:
         return ""
-    r = rows & des.valid
-    X = des.X[r]
-    net = np.maximum(np.sqrt(np.mean((X[:, sl] @ A[sl]) ** 2, axis=0)), 1e-300)
-    ratio = max(float(np.max(np.sqrt(np.mean((X[:, k, None] * A[k]) ** 2, axis=0)) / net))
-                for k in range(sl.start, sl.stop))
+    A = cv.A_full[sl]
+    net = np.sqrt(np.maximum(np.einsum("kj,kl,lj->j", A, cv.xtx[sl, sl], A), 0.0) / cv.n_fit)
+    own = np.abs(A) * np.sqrt(np.diag(cv.xtx)[sl] / cv.n_fit)[:, None]  # (k, 3) RMS of each column's contribution
+    ratio = float(np.max(own / np.maximum(net, 1e-300)))
     if ratio <= CANCEL_RATIO:
         return ""
     return (f"a column correlates at |r| = {corr:.4f} (limit {COLLINEAR_CORR}) with another column of the model and "
@@ -1223,24 +1226,30 @@ def cancelling_terms(des: Design, A: np.ndarray, name: str, rows: np.ndarray) ->
             "cancel, not separately determined")
 
 
-def column_conditioning(des: Design, rows: np.ndarray) -> tuple[float, dict[str, float]]:
-    """How well the final model's coefficients are determined: the condition number of its scaled normal
-    matrix (the fit's solver), and per added effect the largest |correlation| of one of its columns with
-    any other column of the model, its own included (centred: the constant column, b's, is left out)."""
-    r = rows & des.valid
-    X = des.X[r]
-    cond = scaled_condition(X.T @ X)[2]
-    Xc = X - X.mean(axis=0)
-    sd = np.sqrt(np.einsum("ij,ij->j", Xc, Xc))
-    live = sd > 1e-12 * max(float(sd.max()), 1e-300)
-    corr = (Xc[:, live].T @ Xc[:, live]) / np.outer(sd[live], sd[live])
+def gram_conditioning(xtx: np.ndarray, xsum: np.ndarray, n: int, blocks: dict[str, slice]) -> tuple[float, dict[str, float]]:
+    """How well a model's coefficients are determined, from its sums over the fitted rows (X^T X, column sums,
+    row count): the condition number of the scaled normal matrix (the fit's solver), and per effect block the
+    largest |correlation| of one of its columns with any other column of the model, its own included (centred:
+    the constant column, b's, is left out)."""
+    cond = scaled_condition(xtx)[2]
+    cov = xtx - np.outer(xsum, xsum) / max(n, 1)
+    var = np.diag(cov)
+    live = var > 1e-10 * np.maximum(np.diag(xtx), 1e-300)
+    sd = np.sqrt(var[live])
+    corr = cov[np.ix_(live, live)] / np.outer(sd, sd)
     np.fill_diagonal(corr, 0.0)
     col = np.flatnonzero(live)
     out = {}
-    for name, sl in des.blocks.items():
+    for name, sl in blocks.items():
         own = np.isin(col, np.arange(sl.start, sl.stop))
         out[name] = float(np.max(np.abs(corr[own]))) if own.any() else 0.0
     return cond, out
+
+
+def column_conditioning(des: Design, rows: np.ndarray) -> tuple[float, dict[str, float]]:
+    """``gram_conditioning`` of the design ``des`` over ``rows``."""
+    X = des.X[rows & des.valid]
+    return gram_conditioning(X.T @ X, X.sum(axis=0), len(X), des.blocks)
 
 
 def _consistency(cal: ThermalCalibration, data: DiagnosisData, fitted: np.ndarray, rows: np.ndarray) -> float:
