@@ -669,59 +669,6 @@ def read_warnings(path: str | Path, report: dict[str, Any], pose_events: list[tu
     return out
 
 
-def iter_file_messages(path: str | Path, report: FileReadReport | None = None, undecoded: frozenset[str] = frozenset(),
-                       selection: TopicSelection | None = None):
-    """Yield ``(topic, log_time_ns, decoded_message)`` for every message of a (possibly truncated) MCAP.
-
-    Uses the ``mcap`` stream reader and the ``mcap_ros2`` decoder; stops quietly at the first
-    incomplete or corrupt record and notes why in ``report``. Messages of the topics in ``undecoded``
-    are yielded as ``(topic, log_time_ns, (cdr_bytes, decoder))`` for batch decoding.
-
-    With a ``selection`` only the messages of the recording's topics are decoded and yielded, ``topic``
-    being the relative role name (``imu/raw``, ... whatever the namespace); others are only counted.
-    """
-    report = report if report is not None else FileReadReport(str(path))
-    factory = DecoderFactory()
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    decoders: dict[int, Any] = {}
-    with open(path, "rb") as fh:
-        records = _records(fh, report)
-        while True:
-            try:
-                record = next(records)
-            except StopIteration:
-                report.complete = True
-                break
-            except Exception as exc:  # truncated or corrupt tail: keep what was read
-                report.stopped_at = f"{type(exc).__name__} {exc}".strip()
-                break
-            if record is PARTIAL_RECORD:
-                _partial_noted(report)
-                continue
-            if isinstance(record, tuple):
-                channel_id, log_time, data = record
-                channel = channels.get(channel_id)
-                if channel is None:
-                    raise McapRecordingError(f"{path}: message on unknown channel {channel_id}")
-                report.messages += 1
-                report.messages_per_topic[channel.topic] = report.messages_per_topic.get(channel.topic, 0) + 1
-                name = channel.topic
-                if selection is not None:
-                    name = _role_of(path, selection, channel, schemas, report)
-                    if name is None:
-                        continue
-                decoder = decoders.get(channel.id)
-                if decoder is None:
-                    decoder = decoders[channel.id] = _decoder_for(path, factory, channel, schemas, name == TOPIC_RAW)
-                if name in undecoded:
-                    yield name, log_time, (data, decoder)
-                else:
-                    yield name, log_time, _decode(path, decoder, channel, data)
-            else:
-                _note_record(record, schemas, channels, report)
-
-
 _RECORD_HEAD = struct.Struct("<BQ")
 _MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 
@@ -744,23 +691,6 @@ def _read_exact(fh: Any, n: int) -> bytes:
     return data
 
 
-def _records(fh: Any, report: FileReadReport):
-    """Records of an MCAP file: Schema/Channel/Metadata (``mcap.records`` objects) and, for messages,
-    tuples ``(channel_id, log_time_ns, data)``; damaged chunks are skipped (:func:`_file_records`)."""
-    if fh.read(len(_MAGIC)) != _MAGIC:
-        raise McapRecordingError("not an MCAP file (bad magic)")
-    for opcode, body in _file_records(fh, report):
-        if opcode == Opcode.CHUNK:
-            yield from _chunk_records(body)
-        elif opcode in _PARSED:
-            yield _PARSED[opcode].read(ReadDataStream(io.BytesIO(body)))
-        elif opcode == Opcode.MESSAGE:
-            if len(body) < _MESSAGE_HEAD.size:
-                raise McapRecordingError("message record shorter than its header")
-            channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(body, 0)
-            yield channel_id, log_time, body[22:]
-
-
 _OPCODES = frozenset(int(o) for o in Opcode)
 _RESYNC_WINDOW = 64 << 20  # bytes searched for the next intact chunk after the framing is lost
 
@@ -768,7 +698,7 @@ _RESYNC_WINDOW = 64 << 20  # bytes searched for the next intact chunk after the 
 def _file_records(fh: Any, report: FileReadReport):
     """``(opcode, payload)`` of each top-level record of an MCAP file (``fh`` just past its magic) up to its
     footer, the index and summary records passed over; for a chunk the payload is its decompressed,
-    CRC-checked records. The one path both readers take through a file.
+    CRC-checked records. The one path of the reader (:class:`McapSampleStream`) through a file.
 
     Damage is survived where the data allow it, and noted in ``report.skipped``:
 
@@ -869,20 +799,6 @@ def _partial_noted(report: FileReadReport) -> None:
     report.skipped.append(SkippedRange(PARTIAL_RECORD.offset, PARTIAL_RECORD.end_offset, PARTIAL_RECORD.reason))
 
 
-def _chunk_records(data: bytes):
-    """Messages ``(channel_id, log_time, data)`` and parsed Schema/Channel/Metadata records of a chunk's
-    decompressed records (then :data:`PARTIAL_RECORD` if the last one is cut short)."""
-    pos, size = 0, len(data)
-    while pos < size:
-        try:
-            item, pos = _record_at(data, pos, size)
-        except _PartialRecordError:
-            yield PARTIAL_RECORD
-            return
-        if item is not None:
-            yield item
-
-
 def _record_at(data: bytes, pos: int, size: int) -> tuple[Any, int]:
     """The record at ``pos`` of decompressed chunk data and the next position; the record is a message
     ``(channel_id, log_time, data)``, a parsed Schema/Channel/Metadata, or None for other opcodes."""
@@ -916,104 +832,20 @@ def _role_of(path: str | Path, selection: TopicSelection, channel: Channel, sche
     return role
 
 
-def _read_all(paths: list[Path], report: FileReadReport, selection: TopicSelection, undecoded: frozenset[str]):
-    """:func:`iter_file_messages` over the files of one recording in order (a split bag); ``report.complete``
-    only when every file was read to its footer."""
-    complete = True
-    for path in paths:
-        report.complete = False
-        yield from iter_file_messages(path, report, undecoded=undecoded, selection=selection)
-        complete &= report.complete
-    report.complete = complete
-
-
 def read_file(path: str | Path, namespace: str | None = None, topic: str | None = None
               ) -> tuple[Recording, FileReadReport]:
     """One recording -- an MCAP file or a rosbag2 bag directory (its files in order) -- to a
     :class:`Recording` (run_id 0) and the report of what was read. ``namespace``/``topic`` choose the
-    raw topic and its siblings (:class:`TopicSelection`; default: the single ``.../imu/raw``)."""
-    path = Path(path)
-    files, selection = recording_files(path, namespace, topic)
-    report = FileReadReport(str(path))
-    temp_t: list[int] = []
-    temp_v: list[float] = []
-    gref_events: list[tuple[int, tuple[float, float, float]]] = []
-    pose_events: list[tuple[int, int, str]] = []
-    raw_data: list[bytes] = []
-    raw_decoder = None
-    for role, log_time, msg in _read_all(files, report, selection, frozenset({TOPIC_RAW})):
-        if role == TOPIC_RAW:
-            raw_data.append(msg[0])
-            raw_decoder = msg[1]
-        elif role == TOPIC_TEMPERATURE:
-            temp_t.append(_stamp_ns(msg.header))
-            temp_v.append(float(msg.temperature))
-        elif role == TOPIC_REFERENCE_GRAVITY:
-            gref_events.append((_stamp_ns(msg.header), (msg.vector.x, msg.vector.y, msg.vector.z)))
-        elif role == TOPIC_POSE:
-            values = {kv.key: kv.value for kv in msg.values}
-            pose_events.append((log_time, int(values.get("pose_id", "-1")), values.get("state", msg.message)))
-    if not report.complete or report.skipped:
-        LOG.warning("%s", report.summary())
-    if not raw_data:
-        raise report.no_raw_error(path, selection)
-    raw_t, raw_rows, names = _decode_raw(path, raw_data, raw_decoder)
-    stamps = np.asarray(raw_t, dtype=np.int64)
+    raw topic and its siblings (:class:`TopicSelection`; default: the single ``.../imu/raw``).
+
+    The same reader as the streaming fit (:class:`McapSampleStream`), in one pass holding every sample;
+    samples are put in stamp order, so a file whose stamps go backwards is read too."""
+    stream = McapSampleStream(path, namespace, topic)
+    stamps, rows = stream.all_rows()
     order = np.argsort(stamps, kind="stable")
-    stamps = stamps[order]
-    rows = raw_rows[order]
-    col = {n: i for i, n in enumerate(names)}
-    xyz = rows[:, [col["x_counts"], col["y_counts"], col["z_counts"]]]
-    if "temperature_c" in col:
-        temp = rows[:, col["temperature_c"]].copy()
-        if "temperature_valid" in col:
-            temp[rows[:, col["temperature_valid"]] < 0.5] = np.nan
-    elif temp_t:
-        ts = np.asarray(temp_t, dtype=np.int64)
-        o = np.argsort(ts, kind="stable")
-        idx = np.searchsorted(ts[o], stamps, side="right") - 1
-        temp = np.where(idx >= 0, np.asarray(temp_v)[o][np.clip(idx, 0, None)], np.nan)
-    else:
-        temp = np.full(len(stamps), np.nan)
-    t_s = rows[:, col["board_time_s"]] if "board_time_s" in col else stamps * 1e-9
-    pose_id, gref = assign_poses(stamps, pose_events, gref_events)
-    metadata: dict[str, Any] = {name: dict(md) for name, md in report.metadata.items()}
-    metadata["source"] = str(path)
-    metadata["read_report"] = report.as_dict()
-    metadata["pose_events"] = pose_events
-    rec = Recording(t_s=t_s, ref=rows[:, col["ref_counts"]], xyz=xyz, temp_c=temp, gref_mps2=gref,
-                    pose_id=pose_id, metadata=metadata, aux=rows[:, col[RAW_AUX_NAME]] if RAW_AUX_NAME in col else None)
-    return rec, report
-
-
-def _decode_raw(path: Path, datas: list[bytes], decoder: Any) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
-    """Stamps (N,) ns, values (N, k) and joint names of the ``imu/raw`` messages, in file order.
-
-    The first message is decoded with the ``mcap_ros2`` decoder; every message with the same byte
-    layout (same frame_id and names) is then decoded in one numpy pass, any other one generically.
-    """
-    raw_channel = Channel(id=0, schema_id=0, topic=TOPIC_RAW, message_encoding="cdr", metadata={})  # for messages
-    first = _decode(path, decoder, raw_channel, datas[0])
-    names = tuple(first.name)
-    missing = [n for n in RAW_NAMES[:4] if n not in names]
-    if missing:
-        raise McapRecordingError(f"{path}: {TOPIC_RAW} lacks joint names {missing}")
-    codec = FixedJointStateCodec(first.header.frame_id, names)
-    fast = np.fromiter((codec.matches(d) for d in datas), dtype=bool, count=len(datas))
-    stamps = np.zeros(len(datas), dtype=np.int64)
-    values = np.zeros((len(datas), len(names)))
-    if fast.any():
-        idx = np.flatnonzero(fast)
-        stamps[idx], values[idx] = codec.decode_many([datas[i] for i in idx])
-    for i in np.flatnonzero(~fast):
-        msg = _decode(path, decoder, raw_channel, datas[i])
-        if tuple(msg.name) != names:
-            raise McapRecordingError(f"{path}: {TOPIC_RAW} changes its name list at message {i}")
-        if len(msg.position) != len(names):
-            raise McapRecordingError(f"{path}: {TOPIC_RAW} message {i} has {len(msg.position)} values for {len(names)} names")
-        stamps[i] = _stamp_ns(msg.header)
-        values[i] = msg.position
-    return stamps, values, names
+    rec = stream.block(stamps[order], rows[order], with_poses=True)
+    rec.metadata = stream.metadata()
+    return rec, stream.report
 
 
 def assign_poses(stamps_ns: np.ndarray, pose_events: list[tuple[int, int, str]],
@@ -1106,12 +938,12 @@ class StreamOrderError(McapRecordingError):
 
 
 class McapSampleStream:
-    """One calibration MCAP read block by block, never as a whole (the streaming fit's input).
+    """The reader of a calibration MCAP (or rosbag2 bag): block by block for the streaming fit, or every
+    sample at once (:meth:`all_rows`, behind :func:`read_file`).
 
     :meth:`blocks` yields :class:`Recording` blocks of exactly ``block_rows`` samples (the last one
-    shorter) in file order, with the same values :func:`read_file` gives the same samples:
-    temperature from the ``imu/raw`` field (or the latest ``imu/temperature`` message at or before
-    the stamp), pose id and reference from :func:`assign_poses`. Pose and reference events are
+    shorter) in file order: temperature from the ``imu/raw`` field (or the latest ``imu/temperature``
+    message at or before the stamp), pose id and reference from :func:`assign_poses`. Pose and reference events are
     collected during the first complete pass (``with_poses=False``); later passes
     (``with_poses=True``) assign them per block. State between passes: the pose, reference and
     (only for raw messages without a temperature field) temperature events, O(poses) values.
@@ -1119,7 +951,7 @@ class McapSampleStream:
     ``imu/raw`` messages in the fixed layout of :class:`FixedJointStateCodec` are split out of each
     decompressed chunk with one numpy view per run of equal records (no Python object per message);
     other messages go through the ``mcap_ros2`` decoder. A truncated file is read up to its last
-    complete chunk, as :func:`read_file`; ``report`` tells what the last pass read.
+    complete chunk; ``report`` tells what the last pass read.
     """
 
     def __init__(self, path: str | Path, namespace: str | None = None, topic: str | None = None) -> None:
@@ -1272,9 +1104,7 @@ class McapSampleStream:
         """
         if with_poses and not self._events_complete:
             raise McapRecordingError(f"{self.path}: pose events are known only after a first pass")
-        collect = not self._events_complete
-        if collect:
-            self._pose_events, self._gref_events, self._temp_t, self._temp_v = [], [], [], []
+        collect = self._start_pass()
         buf_s: np.ndarray | None = None  # one block of stamps and values, filled batch by batch
         buf_v: np.ndarray | None = None
         fill = 0
@@ -1297,12 +1127,33 @@ class McapSampleStream:
                 fill += take
                 start += take
                 if fill == block_rows:
-                    yield self._block(buf_s, buf_v, with_poses)
+                    yield self.block(buf_s, buf_v, with_poses)
                     total += fill
                     fill = 0
         if fill:
-            yield self._block(buf_s[:fill], buf_v[:fill], with_poses)
+            yield self.block(buf_s[:fill], buf_v[:fill], with_poses)
             total += fill
+        self._end_pass(collect, total)
+
+    def all_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every ``imu/raw`` sample in file order, ``(stamps (N,) int64 ns, values (N, k))``, in one pass that
+        also collects the events (for a reader that holds the whole recording; stamps may go backwards)."""
+        collect = self._start_pass()
+        batches = [(s, v) for s, v in self._batches(collect) if len(s)]
+        self._end_pass(collect, sum(len(s) for s, _ in batches))
+        widths = {v.shape[1] for _, v in batches}
+        if len(widths) != 1:
+            raise McapRecordingError(f"{self.path}: {TOPIC_RAW} changes its name list")
+        return np.concatenate([s for s, _ in batches]), np.concatenate([v for _, v in batches])
+
+    def _start_pass(self) -> bool:
+        """Whether this pass collects the events (the first complete one); resets them if so."""
+        collect = not self._events_complete
+        if collect:
+            self._pose_events, self._gref_events, self._temp_t, self._temp_v = [], [], [], []
+        return collect
+
+    def _end_pass(self, collect: bool, total: int) -> None:
         if collect:
             self._events_complete = True
             self.samples = total
@@ -1311,7 +1162,7 @@ class McapSampleStream:
         if total == 0:
             raise self.report.no_raw_error(self.path, self.selection)
 
-    def _block(self, stamps: np.ndarray, rows: np.ndarray, with_poses: bool) -> Recording:
+    def block(self, stamps: np.ndarray, rows: np.ndarray, with_poses: bool) -> Recording:
         """A Recording of copies (the caller reuses ``stamps`` and ``rows``)."""
         stamps = stamps.copy()
         col = {n: i for i, n in enumerate(self.names or ())}
