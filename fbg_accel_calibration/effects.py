@@ -212,10 +212,6 @@ class Effect:
         """Grid of the hyper-parameter for the 1-D search; ``None`` if the effect has none."""
         return None
 
-    def hyper_bounds(self, data: DiagnosisData) -> tuple[float, float] | None:
-        g = self.hyper_grid(data)
-        return None if g is None else (float(np.min(g)), float(np.max(g)))
-
     def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
         """Input corrections: modify ``inp`` in place (counts, temperature, reference alignment)."""
 
@@ -337,9 +333,6 @@ class ThermalLagEffect(Effect):
         lo, hi = max(5 * data.dt_s, data.duration_s / 2000), max(data.duration_s / 3, 10 * data.dt_s)
         pos = np.geomspace(lo, hi, 14)
         return np.concatenate([-pos[::-1], pos])
-
-    def hyper_bounds(self, data: DiagnosisData) -> tuple[float, float] | None:
-        return None  # two-signed grid: refine within the bracket of the best grid point
 
     def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
         term = ThermalLag(float(h))

@@ -378,7 +378,6 @@ class FixedJointStateCodec:
         self._align(body, 8)
         self.middle = bytes(body[8:])
         self.n_values = len(names)
-        self.values_offset = 4 + len(body)
         tail = bytearray(body)
         tail += b"\x00" * (8 * len(names))
         start = len(tail)

@@ -35,11 +35,6 @@ class BagInfo:
     topics: dict[str, str]
 
 
-def is_bag_dir(path: Path) -> bool:
-    """True when ``path`` is a directory holding a rosbag2 ``metadata.yaml``."""
-    return Path(path).is_dir() and (Path(path) / METADATA_FILE).is_file()
-
-
 def bag_files(path: str | Path) -> BagInfo:
     """Parse ``<path>/metadata.yaml``: the ``.mcap`` files of ``relative_file_paths`` (in that order,
     each must exist) and the topics of ``topics_with_message_count``. Raises :class:`BagInputError`."""

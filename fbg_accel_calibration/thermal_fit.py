@@ -558,19 +558,6 @@ class SampleBlockSource(Protocol):
         ...
 
 
-class RecordingBlocks:
-    """A one-run :class:`Recording` already in memory served as a :class:`SampleBlockSource` (tests)."""
-
-    def __init__(self, rec: Recording) -> None:
-        if len(np.unique(rec.run_id)) > 1:
-            raise ValueError("RecordingBlocks serves one run; give one source per run")
-        self.rec = rec
-
-    def blocks(self, block_rows: int, with_poses: bool) -> Iterator[Recording]:
-        for start in range(0, len(self.rec), block_rows):
-            yield self.rec.select(slice(start, start + block_rows))
-
-
 class _TemperatureClusters:
     """Exact streaming form of the gap clustering of :func:`temperature_levels`.
 
