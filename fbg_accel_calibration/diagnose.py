@@ -167,45 +167,54 @@ class DesignCache:
             self._entries.popitem(last=False)
 
 
-def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None = None) -> Design:
+def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None = None,
+                 sub: np.ndarray | None = None) -> Design:
     """Regressors of eq. 28 on the corrected inputs, then the extra columns of the additive effects.
 
-    The input corrections (``Effect.transform``) run first in stage order; every effect's columns are then
-    computed from the fully corrected inputs. ``cache`` keeps the corrected inputs and eq. 28 columns of a
-    set of corrections for the next design that has the same ones (the arrays it holds are never written).
+    The input corrections (``Effect.transform``) run first in stage order, on the whole time series; every
+    effect's columns are then computed from the fully corrected inputs. ``sub`` (sample indices): the design
+    of those rows only (the corrections still see every sample). ``cache`` keeps the corrected inputs and
+    eq. 28 columns of a set of corrections for the next design that has the same ones (the arrays it holds
+    are never written).
     """
     ordered = sorted(spec.effects, key=lambda eh: eh[0].stage)
     key = (spec.degree, spec.t_center_c, spec.t_scale_c,
            tuple((eff.name, h) for eff, h in ordered if _transforms_inputs(eff)))
     hit = cache.get(key) if cache is not None else None
+
+    def rows(a: np.ndarray) -> np.ndarray:
+        return a if sub is None else a[sub]
+
     if hit is None:
         inp = Inputs(np.array(data.ref, float), np.array(data.xyz, float), np.array(data.temp_c, float),
                      np.array(data.t_s, float), np.array(data.gref, float), np.ones(len(data.t_s), bool))
         for eff, h in ordered:
             eff.transform(data, inp, h)
-        base = design_matrix(inp.psi, (inp.temp_c - spec.t_center_c) / spec.t_scale_c, spec.degree)
-        base_ok = inp.valid & _finite_rows(base) & _finite_rows(inp.gref)
+        base = design_matrix(rows(inp.psi), rows((inp.temp_c - spec.t_center_c) / spec.t_scale_c), spec.degree)
+        base_ok = rows(inp.valid) & _finite_rows(base) & _finite_rows(rows(inp.gref))
         if cache is not None:
             cache.put(key, (inp, base, base_ok))
     else:
         inp, base, base_ok = hit
+    gref = rows(inp.gref)
     n_base = n_params(spec.degree)
     extra, blocks, p = [], {}, n_base
     for eff, h in ordered:
         c = eff.columns(data, inp, h)
         if c is not None:
+            c = rows(c)
             blocks[eff.name] = slice(p, p + c.shape[1])
             extra.append(c)
             p += c.shape[1]
     if not extra:
-        return Design(base, inp.gref, base_ok, blocks, n_base)
+        return Design(base, gref, base_ok, blocks, n_base)
     X = np.empty((p, base.shape[0])).T  # column-major, filled in place: no per-trial concatenation copy
     X[:, :n_base] = base
     valid = base_ok.copy()
     for c, sl in zip(extra, blocks.values(), strict=True):
         X[:, sl] = c
         valid &= _finite_rows(c)
-    return Design(X, inp.gref, valid, blocks, n_base)
+    return Design(X, gref, valid, blocks, n_base)
 
 
 # ============================================================================ cross-validation
@@ -741,14 +750,35 @@ def cross_correlation_delay(data: DiagnosisData, fitted: np.ndarray, max_lag: in
     return (best_lag + frac) * data.dt_s
 
 
-class Evaluator:
-    """Evaluates specs on one recording with fixed folds, rows and noise weights (cached designs)."""
+SEARCH_ROWS = 100_000  # fitted samples above which hyper-parameters are searched on every k-th one
 
-    def __init__(self, data: DiagnosisData, folds: np.ndarray, weights: np.ndarray, groups: np.ndarray) -> None:
-        self.data, self.folds, self.weights, self.groups = data, folds, weights, groups
-        self.rows = data.use & (folds >= 0)  # held out and judged
-        self.fit_rows = data.use & (folds != -1)  # fitted (also the visits that are never held out, fold -2)
+
+class Evaluator:
+    """Evaluates specs on one recording with fixed folds, rows and noise weights (cached designs).
+
+    ``sub`` (sample indices): evaluate on those samples only (designs, folds, groups and held-out arrays are
+    then of that length). ``search_rows``: with more fitted samples than this, hyper-parameters are searched
+    on every k-th fitted sample (``self.thin``, about ``search_rows`` of them) and only the values the
+    search chose are cross-validated on all samples (``fit_hyper``): consecutive samples of a visit are
+    strongly correlated (TIA-filtered noise), so the thinned set carries nearly all the information
+    that decides a hyper-parameter, at a fraction of the cost.
+    """
+
+    def __init__(self, data: DiagnosisData, folds: np.ndarray, weights: np.ndarray, groups: np.ndarray,
+                 sub: np.ndarray | None = None, search_rows: int | None = None) -> None:
+        def rows(a: np.ndarray) -> np.ndarray:
+            return a if sub is None else a[sub]
+
+        self.data, self.weights, self.sub = data, weights, sub
+        self.folds, self.groups = rows(folds), rows(groups)
+        self.rows = rows(data.use) & (self.folds >= 0)  # held out and judged
+        self.fit_rows = rows(data.use) & (self.folds != -1)  # fitted (also the visits never held out, fold -2)
         self.designs = DesignCache()
+        n_fit = int(self.fit_rows.sum())
+        self.thin: Evaluator | None = None
+        if sub is None and search_rows is not None and n_fit > search_rows:
+            every = np.flatnonzero(self.fit_rows)[:: math.ceil(n_fit / search_rows)]
+            self.thin = Evaluator(data, folds, weights, groups, sub=every)
 
     @property
     def model_matrix(self) -> np.ndarray:
@@ -756,7 +786,7 @@ class Evaluator:
         return np.linalg.inv(self.data.static_psi_map()[0])
 
     def design(self, spec: ModelSpec) -> Design:
-        return build_design(self.data, spec, self.designs)
+        return build_design(self.data, spec, self.designs, self.sub)
 
     def cv(self, spec: ModelSpec) -> tuple[Design, CvResult]:
         des = self.design(spec)
@@ -764,11 +794,27 @@ class Evaluator:
 
     def fit_hyper(self, spec: ModelSpec, eff: Effect) -> tuple[float | None, np.ndarray, list[tuple[float, float]]]:
         """Hyper-parameter of ``eff`` added to ``spec``: nested grid choice per fold for the held-out
-        residual, and grid + bounded refinement on all rows for the final value."""
-        grid = eff.hyper_grid(self.data)
-        if grid is None:
+        residual, and grid + bounded refinement on all rows for the final value. Returns (value, held-out
+        residual (N, 3), profile of (value, mean training RSS))."""
+        if eff.hyper_grid(self.data) is None:
             _, cvr = self.cv(spec.plus(eff, None))
             return None, cvr.heldout, []
+        if self.thin is None:
+            return self._search(spec, eff)[:3]
+        # searched on the thinned samples; each fold's held-out residual on all samples, at the value the
+        # search chose for that fold (nested as before: the choice never saw the fold)
+        h_best, _, profile, choice = self.thin._search(spec, eff)
+        heldout = np.full((len(self.folds), 3), np.nan)
+        for h in dict.fromkeys(float(v) for v in choice if np.isfinite(v)):
+            cvr = self.cv(spec.plus(eff, h))[1]
+            for f in np.flatnonzero(choice == h):
+                fold = self.rows & (self.folds == f)
+                heldout[fold] = cvr.heldout[fold]
+        return h_best, heldout, profile
+
+    def _search(self, spec: ModelSpec, eff: Effect) -> tuple[float, np.ndarray, list[tuple[float, float]], np.ndarray]:
+        """:meth:`fit_hyper` on this evaluator's samples, plus the value chosen for each fold (K,)."""
+        grid = eff.hyper_grid(self.data)
         K = int(self.folds[self.rows].max()) + 1
         fold_rows = [self.rows & (self.folds == f) for f in range(K)]
         # nested choice: each fold's held-out residual is the one of the grid value that fits the other folds
@@ -776,8 +822,9 @@ class Evaluator:
         # Values whose fit on all rows is not physical (Effect.implausible: e.g. a warm-up of 13 m/s^2 cancelled
         # by a creep) are searched apart and used only when no value is plausible: the hypothesis is a
         # physical effect, and the best implausible value must not hide a plausible one.
-        heldout = {ok: np.full((len(self.data.t_s), 3), np.nan) for ok in (True, False)}
+        heldout = {ok: np.full((len(self.folds), 3), np.nan) for ok in (True, False)}
         best_train = {ok: np.full(K, np.inf) for ok in (True, False)}
+        choice = {ok: np.full(K, np.nan) for ok in (True, False)}
         profile, kept, plausible, unidentified = [], [], [], []
         for h in grid:
             try:
@@ -787,7 +834,7 @@ class Evaluator:
                 continue
             ok = not self.implausible(eff, float(h), des, cvr)
             for f in np.flatnonzero(cvr.train_rss < best_train[ok]):
-                best_train[ok][f] = cvr.train_rss[f]
+                best_train[ok][f], choice[ok][f] = cvr.train_rss[f], float(h)
                 heldout[ok][fold_rows[f]] = cvr.heldout[fold_rows[f]]
             profile.append((float(h), float(np.sum(cvr.train_rss) / max(K - 1, 1))))
             kept.append(float(h))
@@ -823,7 +870,7 @@ class Evaluator:
             n_groups = len(np.unique(self.groups[self.rows]))
             if (rss_null - rss_best) / max(rss_best / n_groups, 1e-300) < stats.chi2.ppf(0.99, 1):
                 h_best = float(eff.hyper_null)
-        return h_best, heldout[use_ok], profile
+        return h_best, heldout[use_ok], profile, choice[use_ok]
 
     def implausible(self, eff: Effect, h: float | None, des: Design, cvr: CvResult) -> str:
         """Why the fit of ``eff`` at ``h`` (design ``des``, fit ``cvr`` on all rows) is not physical, or "": the
@@ -968,11 +1015,14 @@ class DiagnosisResult:
 def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degree: int = 4, folds: int = 10,
              alpha: float = 0.01, min_rel_gain: float = 0.02, max_effects: int = 3, library: tuple[Effect, ...] = LIBRARY,
              degree: int | None = None, sensor_id: str = "unknown", seed: int = 0,
-             progress: Callable[[str], None] | None = None, settle_s: float | None = None) -> DiagnosisResult:
+             progress: Callable[[str], None] | None = None, settle_s: float | None = None,
+             search_rows: int | None = SEARCH_ROWS) -> DiagnosisResult:
     """Run the whole diagnosis on a recording (see the module docstring). ``progress`` (optional) is called
     with the candidate's name after each candidate evaluation (the CLI's progress bar). ``settle_s`` (s):
     samples this close to the start of a visit are left out of the noise floor (``settled_mask``); None: the
-    window where the measured settling transient falls below a tenth of the noise (``settle_window``)."""
+    window where the measured settling transient falls below a tenth of the noise (``settle_window``).
+    ``search_rows``: above this many fitted samples, hyper-parameters are searched on a thinned set
+    (``Evaluator``); None: always on every sample."""
     data = rec if isinstance(rec, DiagnosisData) else prepare_data(rec, static)
     groups = visit_groups(data)
     fold, fold_notes = check_folds(data, groups, make_folds(groups, data.use, folds, seed))
@@ -1008,7 +1058,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     if settling.detected and np.isfinite(settling.tau_s) and settling.tau_s > 0:
         settling.residual_after_settle_mps2 = settling.amplitude_mps2 * np.exp(-max(settle_s, 1e-12) / settling.tau_s)
     weights = 1.0 / np.maximum(noise, 1e-12) ** 2
-    ev = Evaluator(data, fold, weights, groups)
+    ev = Evaluator(data, fold, weights, groups, search_rows=search_rows)
     base_heldout, base_fitted, base_G = cv0.heldout, cv0.fitted_full, des0.G
     residual_before = base_heldout.copy()
 
@@ -1116,6 +1166,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         condition_number=cond, column_correlation=column_corr, final_degree=spec.degree, run_terms=run_terms,
         settings={"static": static if not isinstance(rec, DiagnosisData) else "given", "folds": int(fold.max()) + 1,
                   "alpha": alpha, "min_rel_gain": min_rel_gain, "max_effects": max_effects, "seed": seed,
+                  "search_rows": None if ev.thin is None else len(ev.thin.folds),
                   "settle_s": settle_s,
                   "time_label": time_axis_label(rec.metadata) if isinstance(rec, Recording) else "time [s]"})
 
