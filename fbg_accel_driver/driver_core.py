@@ -342,7 +342,8 @@ class DriverCore:
         lo, hi = cal.temperature_range_c if cal is not None else (-math.inf, math.inf)
         base_var = self._base_var
         full_var = cfg.full_scale_mps2**2
-        used: list[tuple[int, Frame, float, tuple[float, float, float], bool, tuple[float, float, float]]] = []
+        used: list[tuple[int, Frame, float, tuple[float, float, float], bool, tuple[float, float, float],
+                         tuple[float, float, float]]] = []
         equaliser = self._equaliser
         unit = (1.0, 1.0, 1.0)
         for f in frames:
@@ -377,8 +378,8 @@ class DriverCore:
                     counters.temperature_stale_dropped += 1
                     continue
                 counters.temperature_held += 1
-            accel = cal.acceleration_at(cx / ref, cy / ref, cz / ref, temp)
-            used.append((stamp_ns - delay_ns, f, temp, accel, not valid, vfac))
+            psi = (cx / ref, cy / ref, cz / ref)  # equalised under 'equalise'
+            used.append((stamp_ns - delay_ns, f, temp, cal.acceleration_at(*psi, temp), not valid, vfac, psi))
         if not used:
             return
         if cal.corrections:  # declared correction terms (diagnose): vectorised, with their stream state
@@ -387,9 +388,9 @@ class DriverCore:
             temp_a = np.fromiter((u[2] for u in used), dtype=float, count=len(used))
             t_a = np.fromiter((u[1].t_us * 1e-6 for u in used), dtype=float, count=len(used))
             extra = cal.correction_sum(ref_a, xyz_a, xyz_a / ref_a[:, None], temp_a, t_a, self._cal_state)
-            used = [(st, f, temp, (a[0] + float(e[0]), a[1] + float(e[1]), a[2] + float(e[2])), h, vf)
-                    for (st, f, temp, a, h, vf), e in zip(used, extra, strict=True)]
-        for stamp_ns, f, temp, accel, held, vfac in used:
+            used = [(st, f, temp, (a[0] + float(e[0]), a[1] + float(e[1]), a[2] + float(e[2])), h, vf, psi)
+                    for (st, f, temp, a, h, vf, psi), e in zip(used, extra, strict=True)]
+        for stamp_ns, f, temp, accel, held, vfac, psi in used:
             var = [base_var[0] * vfac[0], base_var[1] * vfac[1], base_var[2] * vfac[2]]
             flags = []
             if held:
@@ -398,7 +399,6 @@ class DriverCore:
                 # Extrapolating: inflate, and add how far the polynomial has moved from the range edge.
                 counters.temperature_out_of_range += 1
                 flags.append("temperature_out_of_range")
-                psi = (f.x / f.ref, f.y / f.ref, f.z / f.ref)
                 here, edge = cal.acceleration_at(*psi, temp), cal.acceleration_at(*psi, min(max(temp, lo), hi))
                 for a in range(3):
                     d = here[a] - edge[a]

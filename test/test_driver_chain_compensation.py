@@ -150,3 +150,27 @@ def test_stamps_stay_strictly_increasing_from_the_first_sample_and_across_a_rebo
     primed = core.counters.chain_priming
     assert primed == (2 if mode == "equalise" else 0) and core.counters.board_resets == 1
     assert len(imu) == len(raw) - primed
+
+
+def test_out_of_range_variance_comes_from_the_equalised_counts_the_value_comes_from():
+    """Beyond the calibrated range the variance grows by how far eq. 28 has moved from the range edge,
+    (a(Psi, T) - a(Psi, edge))^2. Under 'equalise' Psi must be the equalised one the published value comes
+    from: then the variance minus that term is the same for every sample while the source power swings."""
+    import dataclasses
+
+    n = 300
+    power = 1 + 0.2 * np.sin(2 * np.pi * 2.0 * np.arange(n) / FS)
+    counts = np.column_stack([870 * power, 1100 * power, 1600 * power, 1100 * power])
+    frames = [dataclasses.replace(f, temp_cc=5000) for f in _frames(counts)]  # 50 degC, range 10..40
+    core = _core("equalise")
+    _, imu, _ = feed_frames(core, frames)
+    cal = core.cal
+    M, b = cal.coefficients(50.0)
+    rest = []
+    for r in imu:
+        assert "temperature_out_of_range" in r.flags
+        psi = np.linalg.solve(M[0], np.array(r.accel_mps2) - b[0])
+        d = np.array(cal.acceleration_at(*psi, 50.0)) - np.array(cal.acceleration_at(*psi, 40.0))
+        rest.append(np.array(r.covariance)[[0, 4, 8]] - d**2)
+    assert len(rest) > 200
+    np.testing.assert_allclose(rest, np.repeat([rest[-1]], len(rest), 0), rtol=1e-9)
