@@ -8,7 +8,7 @@ each peak resident set (``ru_maxrss`` of the child, KiB -> MB) is its own:
 * ``import_csv``: ``csv_import.import_csv`` (the whole recording in arrays, used by fit/diagnose/allan
   when given a CSV), for comparison;
 * ``fit``: ``fbg-accel-calib fit CSV -o OUT.yaml --degree 0 --max-degree 0`` (streamed: the CSV is
-  re-read block by block on every pass of ``thermal_fit.prepare_stream``);
+  re-read block by block on every pass of ``fit_stream.prepare_stream``);
 * ``baseline``: a Python process that imports the same modules and opens and closes one empty MCAP
   writer (the fixed cost of the message definitions and the compressor), nothing else.
 

@@ -279,7 +279,7 @@ class CsvBlocks:
 
 
 class CsvSampleSource:
-    """A CSV served as a ``thermal_fit.SampleBlockSource`` (one run): every pass re-reads the file block by
+    """A CSV served as a ``fit_stream.SampleBlockSource`` (one run): every pass re-reads the file block by
     block, so the streamed fit of a CSV holds one block, never the file. After the first complete pass
     the rows are checked as :func:`import_csv` checks them (a malformed row fails the fit)."""
 

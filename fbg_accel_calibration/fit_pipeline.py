@@ -1,7 +1,7 @@
 """Files to a fitted calibration: the one fit path of ``fbg-accel-calib fit`` and of the calibration node.
 
 MCAP inputs (and rosbag2 bags) are streamed block by block into the fit's cell sums
-(``thermal_fit.prepare_stream``; CSV files are re-read on every pass), so memory is a few blocks
+(``fit_stream.prepare_stream``; CSV files are re-read on every pass), so memory is a few blocks
 whatever the file sizes; an MCAP whose raw stamps go backwards, or ``in_memory=True``, loads every
 sample first. Then: degree by held-out cross-validation (``model_selection.select_degree``) unless
 given, eq. 28 (``thermal_fit.fit_thermal``), and the noise model of the calibrated output
@@ -58,8 +58,8 @@ def _source(path: Path, opt: FitOptions):
 
 def _streamed(paths: list[Path], max_degree: int, opt: FitOptions, warn: Callable[[str], None]):
     from .cli_progress import CountedSource
+    from .fit_stream import prepare_stream
     from .mcap_io import McapSampleStream, read_warnings
-    from .thermal_fit import prepare_stream
 
     sources = [CountedSource(_source(p, opt), f"fit {p.name}", opt.progress) for p in paths]
     data = prepare_stream(sources, max_degree, opt.window, opt.min_interval, opt.level_gap_c)

@@ -40,11 +40,15 @@ In-sample RMSE never enters the choice (it can only fall with the degree).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .recording import Recording
 from .static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW
+
+if TYPE_CHECKING:
+    from .fit_stream import StreamedFitData
 from .thermal_fit import (
     DEFAULT_CHUNK,
     DEFAULT_LEVEL_GAP_C,
@@ -52,7 +56,6 @@ from .thermal_fit import (
     CellStats,
     FitData,
     NotIdentifiedError,
-    StreamedFitData,
     accumulate_cells,
     check_pose_excitation,
     design_matrix,
@@ -148,16 +151,11 @@ def select_degree(rec: Recording | FitData | StreamedFitData, max_degree: int = 
                   min_interval: int = DEFAULT_MIN_INTERVAL, level_gap_c: float = DEFAULT_LEVEL_GAP_C,
                   chunk: int = DEFAULT_CHUNK, usable: np.ndarray | None = None) -> SelectionResult:
     """Score degrees 0..``max_degree`` and choose one (see module docstring)."""
-    data = rec if isinstance(rec, FitData | StreamedFitData) else prepare(rec, window, min_interval, level_gap_c, usable)
+    data = prepare(rec, window, min_interval, level_gap_c, usable) if isinstance(rec, Recording) else rec
     if len(data) == 0:
         raise NotIdentifiedError("no usable static samples")
     n_levels = len(data.level_means_c)
-    if isinstance(data, StreamedFitData):  # sums already streamed from the files (thermal_fit.prepare_stream)
-        stats = data.cell_stats(max_degree)
-    else:
-        center, scale = temperature_scaling(data.temp_c)
-        tau = (data.temp_c - center) / scale
-        stats = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, max_degree, chunk)
+    stats = data.cell_stats(max_degree, chunk)  # streamed data: the sums already read from the files
     check_pose_excitation(stats)
     n_excited, excitation_notes = level_excitation(stats)
     all_cells = np.ones(len(stats.count), dtype=bool)
@@ -203,7 +201,7 @@ def select_degree(rec: Recording | FitData | StreamedFitData, max_degree: int = 
         notes.append(f"degrees >= {n_levels} are not identified by {n_levels} temperature level(s) and are never chosen")
     if chosen is None:
         notes.append("no degree could be validated on held-out data")
-    n_poses = data.n_poses if isinstance(data, StreamedFitData) else len(np.unique(data.pose))
+    n_poses = data.n_poses
     return SelectionResult(scores, n_levels, [float(v) for v in data.level_means_c], n_poses,
                            int(n_total), chosen, criterion, notes)
 

@@ -12,11 +12,12 @@ and the three output axes share it: A = (X^T X)^-1 X^T G (eq. 30, written here f
 samples; the paper's Â = G X^T (X X^T)^-1 is the same with column-wise samples). M_k[i, j] =
 A[3k + j, i], b_k[i] = A[3(n+1) + k, i].
 
-Streaming: X^T X, X^T G, G^T G and sum(X) are accumulated chunk by chunk and per *cell* (one pose
+Sums: X^T X, X^T G, G^T G and sum(X) are accumulated chunk by chunk and per *cell* (one pose
 at one temperature level), so memory is bounded by one chunk of the design matrix whatever the
 number of samples, and cross-validation (``model_selection``) can remove whole poses or whole
 temperature levels from the sums without touching the samples again. Residual sums of squares
-follow from the same sums: RSS = G^T G - 2 diag(A^T X^T G) + diag(A^T X^T X A).
+follow from the same sums: RSS = G^T G - 2 diag(A^T X^T G) + diag(A^T X^T X A). The same sums read
+from files block by block, without holding the samples, are :mod:`fit_stream`'s job.
 
 Temperature is centred and scaled (tau in [-1, 1] over the data) so that high degrees stay well
 conditioned; ``ThermalCalibration`` stores centre and scale, and with centre 0 and scale 1 the
@@ -31,9 +32,8 @@ from __future__ import annotations
 
 import datetime as _dt
 import itertools
-from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -41,17 +41,10 @@ from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2, STANDARD_GRAVITY
 from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
 
 from .recording import Recording
-from .static_detector import (
-    BLOCK_ROWS,
-    DEFAULT_FALSE_ALARM,
-    DEFAULT_MARGIN,
-    DEFAULT_MIN_INTERVAL,
-    DEFAULT_REFERENCE_TOLERANCE_MPS2,
-    DEFAULT_WINDOW,
-    calibration_samples,
-    streamed_noise_floor,
-    usable_blocks,
-)
+from .static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW, calibration_samples
+
+if TYPE_CHECKING:
+    from .fit_stream import StreamedFitData
 
 # Table 4 RMSE is normalised by the full scale (re-exported for the reports)
 DEFAULT_LEVEL_GAP_C = 1.0  # degC: sorted temperatures further apart than this belong to different levels
@@ -427,6 +420,27 @@ class FitData:
     def __len__(self) -> int:
         return len(self.temp_c)
 
+    @property
+    def n_poses(self) -> int:
+        return len(np.unique(self.pose))
+
+    @property
+    def temperature_range_c(self) -> tuple[float, float]:
+        return float(np.min(self.temp_c)), float(np.max(self.temp_c))
+
+    @property
+    def t_center_c(self) -> float:
+        return temperature_scaling(self.temp_c)[0]
+
+    @property
+    def t_scale_c(self) -> float:
+        return temperature_scaling(self.temp_c)[1]
+
+    def cell_stats(self, degree: int, chunk: int = DEFAULT_CHUNK) -> CellStats:
+        """Per-cell sums of eq. 28 at ``degree`` (the same interface as ``fit_stream.StreamedFitData``)."""
+        tau = (self.temp_c - self.t_center_c) / self.t_scale_c
+        return accumulate_cells(self.psi, tau, self.gref, self.pose, self.level, degree, chunk)
+
 
 def prepare(rec: Recording, window: int = DEFAULT_WINDOW, min_interval: int = DEFAULT_MIN_INTERVAL,
             level_gap_c: float = DEFAULT_LEVEL_GAP_C, usable: np.ndarray | None = None) -> FitData:
@@ -473,31 +487,20 @@ def fit_thermal(rec: Recording | FitData | StreamedFitData, degree: int, *, sens
                 level_gap_c: float = DEFAULT_LEVEL_GAP_C, chunk: int = DEFAULT_CHUNK,
                 usable: np.ndarray | None = None) -> ThermalCalibration:
     """Fit eq. 28 of degree ``degree`` to a recording (or prepared :class:`FitData`, or the streamed sums
-    of :class:`StreamedFitData` from :func:`prepare_stream`, accumulated at a degree >= ``degree``).
+    of ``fit_stream.StreamedFitData`` from ``fit_stream.prepare_stream``, accumulated at a degree >= ``degree``).
 
     The result's ``fit`` dict holds sample counts, temperature levels, the in-sample RMSE per axis
     (m/s^2 and normalised by the 20 g full scale), the within-pose noise floor of the calibrated
     output and the condition number. ``noise_sigma_mps2`` is that within-pose noise floor.
     """
-    data = rec if isinstance(rec, FitData | StreamedFitData) else prepare(rec, window, min_interval, level_gap_c, usable)
+    data = prepare(rec, window, min_interval, level_gap_c, usable) if isinstance(rec, Recording) else rec
     if len(data) == 0:
         raise NotIdentifiedError("no usable static samples (check pose ids, reference and the static detector)")
-    n_levels = len(data.level_means_c)
-    check_identified(degree, n_levels)
-    if isinstance(data, StreamedFitData):
-        if degree > data.stats.degree:
-            raise ValueError(f"degree {degree} > the degree {data.stats.degree} the streamed sums were accumulated for")
-        n_poses, (center, scale), t_range = data.n_poses, (data.t_center_c, data.t_scale_c), data.temperature_range_c
-        stats = data.cell_stats(degree)
-    else:
-        n_poses = len(np.unique(data.pose))
-        center, scale = temperature_scaling(data.temp_c)
-        t_range = (float(np.min(data.temp_c)), float(np.max(data.temp_c)))
-    if n_poses < 4:
-        raise NotIdentifiedError(f"{n_poses} pose(s): at least 4 non-coplanar poses are needed for M and b")
-    if not isinstance(data, StreamedFitData):
-        tau = (data.temp_c - center) / scale
-        stats = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, degree, chunk)
+    check_identified(degree, len(data.level_means_c))
+    if data.n_poses < 4:
+        raise NotIdentifiedError(f"{data.n_poses} pose(s): at least 4 non-coplanar poses are needed for M and b")
+    center, scale = data.t_center_c, data.t_scale_c
+    stats = data.cell_stats(degree, chunk)
     spread = check_pose_excitation(stats)
     check_level_excitation(stats, degree)
     xtx, xtg, _, n = stats.select(np.ones(len(stats.count), bool), degree)
@@ -515,7 +518,7 @@ def fit_thermal(rec: Recording | FitData | StreamedFitData, degree: int, *, sens
         "samples_total": data.n_total,
         "samples_excluded_in_motion": data.n_excluded_motion,
         "samples_excluded_invalid": data.n_excluded_other,
-        "poses": n_poses,
+        "poses": data.n_poses,
         "temperature_levels_c": [round(float(v), 3) for v in data.level_means_c],
         "rmse_mps2": rmse.tolist(),
         "rmse_over_full_scale": (rmse / FULL_SCALE_MPS2).tolist(),
@@ -527,7 +530,7 @@ def fit_thermal(rec: Recording | FitData | StreamedFitData, degree: int, *, sens
     if src is not None:
         fit_info["sources"] = src
     return ThermalCalibration(
-        M=M, b=b, temperature_range_c=t_range,
+        M=M, b=b, temperature_range_c=data.temperature_range_c,
         sensor_id=sensor_id or _sensor_id(rec), t_center_c=center, t_scale_c=scale, noise_sigma_mps2=noise,
         created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), fit=fit_info)
 
@@ -546,192 +549,3 @@ def residuals(cal: ThermalCalibration, rec: Recording, mask: np.ndarray | None =
     sel = rec if mask is None else rec.select(mask)
     psi = normalise(sel.xyz, sel.ref)
     return cal.base_acceleration(psi, sel.temp_c) - sel.gref_mps2
-
-
-# ---------------------------------------------------------------------------- streaming preparation
-class SampleBlockSource(Protocol):
-    """One run (one file) served block by block; see :class:`fbg_accel_calibration.mcap_io.McapSampleStream`."""
-
-    def blocks(self, block_rows: int, with_poses: bool) -> Iterator[Recording]:
-        """Consecutive blocks of ``block_rows`` samples (the last one shorter) of the run, in time order.
-        With ``with_poses=False`` pose id and reference may be missing (the first pass)."""
-        ...
-
-
-class _TemperatureClusters:
-    """Exact streaming form of the gap clustering of :func:`temperature_levels`.
-
-    Sorted temperatures further apart than ``gap_c`` separate clusters, so a cluster is fully
-    described by its lowest and highest temperature: the clusters of a union of samples are the
-    clusters of the parts merged wherever the gap between neighbours is <= ``gap_c``. State: two
-    floats per cluster. :meth:`labels` then applies the bin split of wide clusters as
-    :func:`temperature_levels` does (provisional labels; empty bins are dropped at the end).
-    """
-
-    def __init__(self, gap_c: float, max_width_c: float = DEFAULT_LEVEL_WIDTH_C) -> None:
-        self.gap_c, self.max_width_c = gap_c, max_width_c
-        self.lo = np.zeros(0)
-        self.hi = np.zeros(0)
-
-    def add(self, temp_c: np.ndarray) -> None:
-        t = np.sort(np.asarray(temp_c, dtype=float))
-        if len(t) == 0:
-            return
-        brk = np.flatnonzero(np.diff(t) > self.gap_c)
-        lo = np.r_[self.lo, t[np.r_[0, brk + 1]]]
-        hi = np.r_[self.hi, t[np.r_[brk, len(t) - 1]]]
-        order = np.argsort(lo, kind="stable")
-        out_lo, out_hi = [lo[order[0]]], [hi[order[0]]]
-        for a, b in zip(lo[order[1:]], hi[order[1:]], strict=True):
-            if a - out_hi[-1] > self.gap_c:
-                out_lo.append(a)
-                out_hi.append(b)
-            else:
-                out_hi[-1] = max(out_hi[-1], b)
-        self.lo, self.hi = np.asarray(out_lo), np.asarray(out_hi)
-
-    def finish(self) -> None:
-        """Fix the bins of each cluster (after all samples were added)."""
-        self.bins = np.array([max(1, int(np.ceil((h - lo) / self.max_width_c - 1e-9))) for lo, h in zip(self.lo, self.hi,
-                                                                                                    strict=True)], int)
-        self.offset = np.r_[0, np.cumsum(self.bins)[:-1]].astype(np.int64)
-        self.n_labels = int(self.bins.sum())
-
-    def labels(self, temp_c: np.ndarray) -> np.ndarray:
-        """Provisional level labels (N,) of temperatures that were added."""
-        t = np.asarray(temp_c, dtype=float)
-        c = np.searchsorted(self.lo, t, side="right") - 1
-        out = self.offset[c].copy()
-        for ci in np.flatnonzero(self.bins > 1):
-            sel = c == ci
-            lo, hi, bins = self.lo[ci], self.hi[ci], int(self.bins[ci])
-            out[sel] += np.minimum(((t[sel] - lo) / max((hi - lo) / bins, 1e-12)).astype(int), bins - 1)
-        return out
-
-
-@dataclass
-class StreamedFitData:
-    """Everything the fit and the degree selection need, accumulated without holding the samples.
-
-    ``stats`` are the per-cell sums at degree ``stats.degree`` (lower degrees are sub-blocks);
-    the other fields are those of :class:`FitData` reduced to what the fit reports.
-    """
-
-    stats: CellStats
-    level_means_c: np.ndarray
-    temperature_range_c: tuple[float, float]
-    t_center_c: float
-    t_scale_c: float
-    n_used: int
-    n_total: int
-    n_excluded_motion: int
-    n_excluded_other: int
-    n_poses: int
-    detector: dict[str, Any] = field(default_factory=dict)
-    metadata: dict[str, Any] = field(default_factory=dict)
-    passes: int = 0
-
-    def __len__(self) -> int:
-        return self.n_used
-
-    def cell_stats(self, degree: int) -> CellStats:
-        """The sums restricted to the regressors of ``degree`` (<= ``stats.degree``)."""
-        s = self.stats
-        if degree == s.degree:
-            return s
-        cols = sub_columns(degree, s.degree)
-        return CellStats(degree, s.pose, s.level, s.xtx[:, cols][:, :, cols], s.xtg[:, cols], s.gtg, s.xsum[:, cols],
-                         s.gsum, s.count)
-
-
-def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = DEFAULT_WINDOW,
-                   min_interval: int = DEFAULT_MIN_INTERVAL, level_gap_c: float = DEFAULT_LEVEL_GAP_C,
-                   chunk: int = DEFAULT_CHUNK, false_alarm: float = DEFAULT_FALSE_ALARM, margin: float = DEFAULT_MARGIN,
-                   tolerance_mps2: float = DEFAULT_REFERENCE_TOLERANCE_MPS2) -> StreamedFitData:
-    """:func:`prepare` + :func:`accumulate_cells` (at ``degree``) for runs read block by block.
-
-    Exact scheme, in passes over each run (``sources[i]`` is run i, as ``Recording.concatenate``):
-
-    1. noise floor: moving variance of Psi per block (window carried between blocks) into an exact
-       streaming median (:class:`static_detector.ExactMedian`, radix selection on the float bits): one pass to
-       histogram (it also collects the pose/reference events), usually one more to collect the
-       median's bin; this is the robust noise-floor estimate of :func:`detect_static`;
-    2. temperatures: the static detector and the interval rules (:func:`static_detector.usable_blocks`, context of
-       ``2 min_interval`` samples carried between blocks) select the fit samples; their temperatures
-       go into the exact gap clustering (:class:`_TemperatureClusters`) and the min/max that give the
-       temperature levels and the scaling tau = (T - centre)/scale;
-    3. sums: the same selection again, now with tau and the level of each sample, into
-       :class:`CellAccumulator`, in chunks of ``chunk`` selected rows exactly as the in-memory path.
-
-    Memory: a few blocks of ``static_detector.BLOCK_ROWS`` samples, one chunk of the design matrix
-    and O(cells + levels) state, independent of the number of samples. The result equals
-    :func:`prepare` + :func:`accumulate_cells` on the concatenated recording to rounding (the
-    selection and levels are identical; only the summation order of level means differs).
-    """
-    thresholds: list[np.ndarray] = []
-    noise_out, thr_out = np.zeros(3), np.zeros(3)
-    passes = 0
-    for src in sources:
-        nv, thr, n_passes = streamed_noise_floor(lambda src=src: src.blocks(BLOCK_ROWS, False), window, false_alarm, margin)
-        passes += n_passes
-        thresholds.append(thr)
-        noise_out, thr_out = np.maximum(noise_out, nv), np.maximum(thr_out, thr)
-
-    def kept_blocks():
-        for src, thr in zip(sources, thresholds, strict=True):
-            for blk, psi, usable in usable_blocks(src.blocks(BLOCK_ROWS, True), window, min_interval, thr, tolerance_mps2):
-                valid = (blk.pose_id >= 0) & np.all(np.isfinite(blk.gref_mps2), axis=1) & np.isfinite(blk.temp_c)
-                valid &= np.all(np.isfinite(psi), axis=1)
-                yield blk, psi, usable, valid, usable & valid
-
-    clusters = _TemperatureClusters(level_gap_c)
-    n_total = n_motion = n_other = 0
-    t_min, t_max = np.inf, -np.inf
-    for blk, _psi, usable, valid, keep in kept_blocks():
-        n_total += len(blk)
-        n_motion += int((valid & ~usable).sum())
-        n_other += int((~valid).sum())
-        t = blk.temp_c[keep]
-        clusters.add(t)
-        if len(t):
-            t_min, t_max = min(t_min, float(t.min())), max(t_max, float(t.max()))
-    passes += 1
-    clusters.finish()
-    center, scale = temperature_scaling(np.array([t_min, t_max])) if np.isfinite(t_min) else (0.0, 1.0)
-
-    acc = CellAccumulator(degree, chunk)
-    buf_psi, buf_tau, buf_g = np.empty((chunk, 3)), np.empty(chunk), np.empty((chunk, 3))
-    buf_pose, buf_level = np.empty(chunk, np.int64), np.empty(chunk, np.int64)
-    fill = 0
-    level_sum = np.zeros(clusters.n_labels)
-    level_count = np.zeros(clusters.n_labels, np.int64)
-    for blk, psi, _usable, _valid, keep in kept_blocks():
-        rows = np.flatnonzero(keep)
-        t = blk.temp_c[rows]
-        lab = clusters.labels(t)
-        level_sum += np.bincount(lab, weights=t, minlength=clusters.n_labels)
-        level_count += np.bincount(lab, minlength=clusters.n_labels)
-        tau, ps, g, pz = (t - center) / scale, psi[rows], blk.gref_mps2[rows], blk.pose_id[rows]
-        start = 0
-        while start < len(rows):
-            take = min(chunk - fill, len(rows) - start)
-            sl, dst = slice(start, start + take), slice(fill, fill + take)
-            buf_psi[dst], buf_tau[dst], buf_g[dst], buf_pose[dst], buf_level[dst] = ps[sl], tau[sl], g[sl], pz[sl], lab[sl]
-            fill += take
-            start += take
-            if fill == chunk:
-                acc.add(buf_psi, buf_tau, buf_g, buf_pose, buf_level)
-                fill = 0
-    if fill:
-        acc.add(buf_psi[:fill], buf_tau[:fill], buf_g[:fill], buf_pose[:fill], buf_level[:fill])
-    passes += 1
-    present = np.flatnonzero(level_count)
-    level_map = np.full(max(clusters.n_labels, 1), -1, np.int64)
-    level_map[present] = np.arange(len(present))
-    stats = acc.finish(level_map)
-    n_used = int(level_count.sum())
-    detector = {"window_samples": window, "min_interval_samples": min_interval, "noise_var_psi": noise_out.tolist(),
-                "threshold_var_psi": thr_out.tolist()}
-    return StreamedFitData(stats, level_sum[present] / level_count[present],
-                           (t_min, t_max), center, scale, n_used, n_total, n_motion, n_other,
-                           len(np.unique(stats.pose)), detector, {}, passes)

@@ -1,4 +1,4 @@
-"""The streamed fit from MCAP (``thermal_fit.prepare_stream`` + ``mcap_io.McapSampleStream``) equals the
+"""The streamed fit from MCAP (``fit_stream.prepare_stream`` + ``mcap_io.McapSampleStream``) equals the
 in-memory fit (``read_recording`` + ``prepare`` + ``select_degree`` + ``fit_thermal``) on generated files,
 including a truncated one, and its memory does not grow with the number of samples."""
 
@@ -12,17 +12,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbg_accel_calibration import mcap_io, static_detector, thermal_fit
+from fbg_accel_calibration import fit_stream, mcap_io, static_detector
 from fbg_accel_calibration.cli import main as cli_main
+from fbg_accel_calibration.fit_stream import _TemperatureClusters, prepare_stream
 from fbg_accel_calibration.mcap_io import McapSampleStream, RecordingWriter, StreamOrderError, read_recording, write_recording
 from fbg_accel_calibration.model_selection import select_degree
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_calibration.thermal_fit import (
-    _TemperatureClusters,
     accumulate_cells,
     fit_thermal,
     prepare,
-    prepare_stream,
     temperature_levels,
     temperature_scaling,
 )
@@ -62,7 +61,7 @@ def small_blocks(monkeypatch: pytest.MonkeyPatch) -> int:
     decompressed chunks are split 16 KiB at a time (instead of 1 MiB) so the small files exceed it."""
     monkeypatch.setattr(mcap_io, "_JOIN_BYTES", 1 << 14)
     monkeypatch.setattr(static_detector, "BLOCK_ROWS", 301)
-    monkeypatch.setattr(thermal_fit, "BLOCK_ROWS", 301)
+    monkeypatch.setattr(fit_stream, "BLOCK_ROWS", 301)
     return 301
 
 

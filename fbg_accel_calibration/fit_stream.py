@@ -1,0 +1,228 @@
+"""The fit's sums streamed from files: runs read block by block, never held whole (pure numpy).
+
+:func:`prepare_stream` gives what :func:`thermal_fit.prepare` + :func:`thermal_fit.accumulate_cells` give on a
+recording in memory -- the per-cell sums of eq. 28, the temperature levels and scaling, the sample counts --
+for runs served by a :class:`SampleBlockSource` (``mcap_io.McapSampleStream``, ``csv_import.CsvSampleSource``),
+in a few passes with memory independent of their length. ``thermal_fit.fit_thermal`` and
+``model_selection.select_degree`` take the result (:class:`StreamedFitData`) like prepared data.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from .recording import Recording
+from .static_detector import (
+    BLOCK_ROWS,
+    DEFAULT_FALSE_ALARM,
+    DEFAULT_MARGIN,
+    DEFAULT_MIN_INTERVAL,
+    DEFAULT_REFERENCE_TOLERANCE_MPS2,
+    DEFAULT_WINDOW,
+    streamed_noise_floor,
+    usable_blocks,
+)
+from .thermal_fit import (
+    DEFAULT_CHUNK,
+    DEFAULT_LEVEL_GAP_C,
+    DEFAULT_LEVEL_WIDTH_C,
+    CellAccumulator,
+    CellStats,
+    sub_columns,
+    temperature_scaling,
+)
+
+
+class SampleBlockSource(Protocol):
+    """One run (one file) served block by block; see :class:`fbg_accel_calibration.mcap_io.McapSampleStream`."""
+
+    def blocks(self, block_rows: int, with_poses: bool) -> Iterator[Recording]:
+        """Consecutive blocks of ``block_rows`` samples (the last one shorter) of the run, in time order.
+        With ``with_poses=False`` pose id and reference may be missing (the first pass)."""
+        ...
+
+
+class _TemperatureClusters:
+    """Exact streaming form of the gap clustering of ``thermal_fit.temperature_levels``.
+
+    Sorted temperatures further apart than ``gap_c`` separate clusters, so a cluster is fully
+    described by its lowest and highest temperature: the clusters of a union of samples are the
+    clusters of the parts merged wherever the gap between neighbours is <= ``gap_c``. State: two
+    floats per cluster. :meth:`labels` then applies the bin split of wide clusters as
+    ``temperature_levels`` does (provisional labels; empty bins are dropped at the end).
+    """
+
+    def __init__(self, gap_c: float, max_width_c: float = DEFAULT_LEVEL_WIDTH_C) -> None:
+        self.gap_c, self.max_width_c = gap_c, max_width_c
+        self.lo = np.zeros(0)
+        self.hi = np.zeros(0)
+
+    def add(self, temp_c: np.ndarray) -> None:
+        t = np.sort(np.asarray(temp_c, dtype=float))
+        if len(t) == 0:
+            return
+        brk = np.flatnonzero(np.diff(t) > self.gap_c)
+        lo = np.r_[self.lo, t[np.r_[0, brk + 1]]]
+        hi = np.r_[self.hi, t[np.r_[brk, len(t) - 1]]]
+        order = np.argsort(lo, kind="stable")
+        out_lo, out_hi = [lo[order[0]]], [hi[order[0]]]
+        for a, b in zip(lo[order[1:]], hi[order[1:]], strict=True):
+            if a - out_hi[-1] > self.gap_c:
+                out_lo.append(a)
+                out_hi.append(b)
+            else:
+                out_hi[-1] = max(out_hi[-1], b)
+        self.lo, self.hi = np.asarray(out_lo), np.asarray(out_hi)
+
+    def finish(self) -> None:
+        """Fix the bins of each cluster (after all samples were added)."""
+        self.bins = np.array([max(1, int(np.ceil((h - lo) / self.max_width_c - 1e-9))) for lo, h in zip(self.lo, self.hi,
+                                                                                                    strict=True)], int)
+        self.offset = np.r_[0, np.cumsum(self.bins)[:-1]].astype(np.int64)
+        self.n_labels = int(self.bins.sum())
+
+    def labels(self, temp_c: np.ndarray) -> np.ndarray:
+        """Provisional level labels (N,) of temperatures that were added."""
+        t = np.asarray(temp_c, dtype=float)
+        c = np.searchsorted(self.lo, t, side="right") - 1
+        out = self.offset[c].copy()
+        for ci in np.flatnonzero(self.bins > 1):
+            sel = c == ci
+            lo, hi, bins = self.lo[ci], self.hi[ci], int(self.bins[ci])
+            out[sel] += np.minimum(((t[sel] - lo) / max((hi - lo) / bins, 1e-12)).astype(int), bins - 1)
+        return out
+
+
+@dataclass
+class StreamedFitData:
+    """Everything the fit and the degree selection need, accumulated without holding the samples.
+
+    ``stats`` are the per-cell sums at degree ``stats.degree`` (lower degrees are sub-blocks);
+    the other fields are those of :class:`FitData` reduced to what the fit reports.
+    """
+
+    stats: CellStats
+    level_means_c: np.ndarray
+    temperature_range_c: tuple[float, float]
+    t_center_c: float
+    t_scale_c: float
+    n_used: int
+    n_total: int
+    n_excluded_motion: int
+    n_excluded_other: int
+    n_poses: int
+    detector: dict[str, Any] = field(default_factory=dict)
+    metadata: dict[str, Any] = field(default_factory=dict)
+    passes: int = 0
+
+    def __len__(self) -> int:
+        return self.n_used
+
+    def cell_stats(self, degree: int, chunk: int = DEFAULT_CHUNK) -> CellStats:
+        """The sums restricted to the regressors of ``degree`` (<= ``stats.degree``; ``chunk`` is not used: the
+        sums are already accumulated)."""
+        s = self.stats
+        if degree > s.degree:
+            raise ValueError(f"degree {degree} > the degree {s.degree} the streamed sums were accumulated for")
+        if degree == s.degree:
+            return s
+        cols = sub_columns(degree, s.degree)
+        return CellStats(degree, s.pose, s.level, s.xtx[:, cols][:, :, cols], s.xtg[:, cols], s.gtg, s.xsum[:, cols],
+                         s.gsum, s.count)
+
+
+def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = DEFAULT_WINDOW,
+                   min_interval: int = DEFAULT_MIN_INTERVAL, level_gap_c: float = DEFAULT_LEVEL_GAP_C,
+                   chunk: int = DEFAULT_CHUNK, false_alarm: float = DEFAULT_FALSE_ALARM, margin: float = DEFAULT_MARGIN,
+                   tolerance_mps2: float = DEFAULT_REFERENCE_TOLERANCE_MPS2) -> StreamedFitData:
+    """``thermal_fit.prepare`` + ``thermal_fit.accumulate_cells`` (at ``degree``) for runs read block by block.
+
+    Exact scheme, in passes over each run (``sources[i]`` is run i, as ``Recording.concatenate``):
+
+    1. noise floor: moving variance of Psi per block (window carried between blocks) into an exact
+       streaming median (:class:`static_detector.ExactMedian`, radix selection on the float bits): one pass to
+       histogram (it also collects the pose/reference events), usually one more to collect the
+       median's bin; this is the robust noise-floor estimate of :func:`detect_static`;
+    2. temperatures: the static detector and the interval rules (:func:`static_detector.usable_blocks`, context of
+       ``2 min_interval`` samples carried between blocks) select the fit samples; their temperatures
+       go into the exact gap clustering (:class:`_TemperatureClusters`) and the min/max that give the
+       temperature levels and the scaling tau = (T - centre)/scale;
+    3. sums: the same selection again, now with tau and the level of each sample, into
+       :class:`CellAccumulator`, in chunks of ``chunk`` selected rows exactly as the in-memory path.
+
+    Memory: a few blocks of ``static_detector.BLOCK_ROWS`` samples, one chunk of the design matrix
+    and O(cells + levels) state, independent of the number of samples. The result equals
+    ``prepare`` + ``accumulate_cells`` on the concatenated recording to rounding (the
+    selection and levels are identical; only the summation order of level means differs).
+    """
+    thresholds: list[np.ndarray] = []
+    noise_out, thr_out = np.zeros(3), np.zeros(3)
+    passes = 0
+    for src in sources:
+        nv, thr, n_passes = streamed_noise_floor(lambda src=src: src.blocks(BLOCK_ROWS, False), window, false_alarm, margin)
+        passes += n_passes
+        thresholds.append(thr)
+        noise_out, thr_out = np.maximum(noise_out, nv), np.maximum(thr_out, thr)
+
+    def kept_blocks():
+        for src, thr in zip(sources, thresholds, strict=True):
+            for blk, psi, usable in usable_blocks(src.blocks(BLOCK_ROWS, True), window, min_interval, thr, tolerance_mps2):
+                valid = (blk.pose_id >= 0) & np.all(np.isfinite(blk.gref_mps2), axis=1) & np.isfinite(blk.temp_c)
+                valid &= np.all(np.isfinite(psi), axis=1)
+                yield blk, psi, usable, valid, usable & valid
+
+    clusters = _TemperatureClusters(level_gap_c)
+    n_total = n_motion = n_other = 0
+    t_min, t_max = np.inf, -np.inf
+    for blk, _psi, usable, valid, keep in kept_blocks():
+        n_total += len(blk)
+        n_motion += int((valid & ~usable).sum())
+        n_other += int((~valid).sum())
+        t = blk.temp_c[keep]
+        clusters.add(t)
+        if len(t):
+            t_min, t_max = min(t_min, float(t.min())), max(t_max, float(t.max()))
+    passes += 1
+    clusters.finish()
+    center, scale = temperature_scaling(np.array([t_min, t_max])) if np.isfinite(t_min) else (0.0, 1.0)
+
+    acc = CellAccumulator(degree, chunk)
+    buf_psi, buf_tau, buf_g = np.empty((chunk, 3)), np.empty(chunk), np.empty((chunk, 3))
+    buf_pose, buf_level = np.empty(chunk, np.int64), np.empty(chunk, np.int64)
+    fill = 0
+    level_sum = np.zeros(clusters.n_labels)
+    level_count = np.zeros(clusters.n_labels, np.int64)
+    for blk, psi, _usable, _valid, keep in kept_blocks():
+        rows = np.flatnonzero(keep)
+        t = blk.temp_c[rows]
+        lab = clusters.labels(t)
+        level_sum += np.bincount(lab, weights=t, minlength=clusters.n_labels)
+        level_count += np.bincount(lab, minlength=clusters.n_labels)
+        tau, ps, g, pz = (t - center) / scale, psi[rows], blk.gref_mps2[rows], blk.pose_id[rows]
+        start = 0
+        while start < len(rows):
+            take = min(chunk - fill, len(rows) - start)
+            sl, dst = slice(start, start + take), slice(fill, fill + take)
+            buf_psi[dst], buf_tau[dst], buf_g[dst], buf_pose[dst], buf_level[dst] = ps[sl], tau[sl], g[sl], pz[sl], lab[sl]
+            fill += take
+            start += take
+            if fill == chunk:
+                acc.add(buf_psi, buf_tau, buf_g, buf_pose, buf_level)
+                fill = 0
+    if fill:
+        acc.add(buf_psi[:fill], buf_tau[:fill], buf_g[:fill], buf_pose[:fill], buf_level[:fill])
+    passes += 1
+    present = np.flatnonzero(level_count)
+    level_map = np.full(max(clusters.n_labels, 1), -1, np.int64)
+    level_map[present] = np.arange(len(present))
+    stats = acc.finish(level_map)
+    n_used = int(level_count.sum())
+    detector = {"window_samples": window, "min_interval_samples": min_interval, "noise_var_psi": noise_out.tolist(),
+                "threshold_var_psi": thr_out.tolist()}
+    return StreamedFitData(stats, level_sum[present] / level_count[present],
+                           (t_min, t_max), center, scale, n_used, n_total, n_motion, n_other,
+                           len(np.unique(stats.pose)), detector, {}, passes)
