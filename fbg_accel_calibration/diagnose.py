@@ -120,6 +120,11 @@ class ModelSpec:
         return ModelSpec(self.degree, self.t_center_c, self.t_scale_c, [*self.effects, (effect, h)])
 
     @property
+    def key(self) -> tuple:
+        """What identifies the model: degree, temperature scaling, effects with their hyper-parameters."""
+        return (self.degree, self.t_center_c, self.t_scale_c, tuple((e.name, h) for e, h in self.effects))
+
+    @property
     def names(self) -> list[str]:
         return [e.name for e, _ in self.effects]
 
@@ -774,6 +779,9 @@ class Evaluator:
         self.rows = rows(data.use) & (self.folds >= 0)  # held out and judged
         self.fit_rows = rows(data.use) & (self.folds != -1)  # fitted (also the visits never held out, fold -2)
         self.designs = DesignCache()
+        # results worked out by the confounding check that the next step needs again (see ``forget``)
+        self._cv_memo: dict[tuple, tuple[Design, CvResult]] = {}
+        self._hyper_memo: dict[tuple, tuple[float | None, np.ndarray, list[tuple[float, float]]]] = {}
         n_fit = int(self.fit_rows.sum())
         self.thin: Evaluator | None = None
         if sub is None and search_rows is not None and n_fit > search_rows:
@@ -788,14 +796,37 @@ class Evaluator:
     def design(self, spec: ModelSpec) -> Design:
         return build_design(self.data, spec, self.designs, self.sub)
 
-    def cv(self, spec: ModelSpec) -> tuple[Design, CvResult]:
+    def cv(self, spec: ModelSpec, remember: bool = False) -> tuple[Design, CvResult]:
+        """Design and cross-validation of ``spec``; ``remember``: keep them for a later call (``forget``)."""
+        hit = self._cv_memo.get(spec.key)
+        if hit is not None:
+            return hit
         des = self.design(spec)
-        return des, cross_validate(des, self.fit_rows, self.folds, self.weights)
+        out = des, cross_validate(des, self.fit_rows, self.folds, self.weights)
+        if remember:
+            self._cv_memo[spec.key] = out
+        return out
 
-    def fit_hyper(self, spec: ModelSpec, eff: Effect) -> tuple[float | None, np.ndarray, list[tuple[float, float]]]:
+    def forget(self, spec: ModelSpec) -> None:
+        """Drop remembered results except those on top of ``spec``, the model the next step starts from: the
+        confounding check has already worked out each candidate on top of the one that is then added."""
+        self._cv_memo = {k: v for k, v in self._cv_memo.items() if k == spec.key}
+        self._hyper_memo = {k: v for k, v in self._hyper_memo.items() if k[0] == spec.key}
+
+    def fit_hyper(self, spec: ModelSpec, eff: Effect,
+                  remember: bool = False) -> tuple[float | None, np.ndarray, list[tuple[float, float]]]:
         """Hyper-parameter of ``eff`` added to ``spec``: nested grid choice per fold for the held-out
         residual, and grid + bounded refinement on all rows for the final value. Returns (value, held-out
-        residual (N, 3), profile of (value, mean training RSS))."""
+        residual (N, 3), profile of (value, mean training RSS)). ``remember``: keep the result (``forget``)."""
+        key = (spec.key, eff.name)
+        if key in self._hyper_memo:
+            return self._hyper_memo[key]
+        out = self._fit_hyper(spec, eff)
+        if remember:
+            self._hyper_memo[key] = out
+        return out
+
+    def _fit_hyper(self, spec: ModelSpec, eff: Effect) -> tuple[float | None, np.ndarray, list[tuple[float, float]]]:
         if eff.hyper_grid(self.data) is None:
             _, cvr = self.cv(spec.plus(eff, None))
             return None, cvr.heldout, []
@@ -1112,6 +1143,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                                      + (f"{was} -> {spec.degree}" if spec.degree != was else f"{was}, unchanged")
                                      + "".join(f"; {n}" for n in notes))
         des_c, cv_c = ev.cv(spec)
+        ev.forget(spec)
         base_heldout, base_fitted, base_G = cv_c.heldout, cv_c.fitted_full, des_c.G
 
     # final model
@@ -1184,13 +1216,13 @@ def _confounding(ev: Evaluator, spec: ModelSpec, sig: list[CandidateResult], alp
     out = []
     a = sig[0]
     ea = lib[a.name]
-    a_ho = ev.cv(spec.plus(ea, a.hyper))[1].heldout
+    a_ho = ev.cv(spec.plus(ea, a.hyper), remember=True)[1].heldout  # the next step's starting model
     for b in sig[1:4]:
         eb = lib[b.name]
         # each on top of the other (the added one's hyper-parameter searched again, nested), compared
         # with the other alone at its final hyper-parameter, as the forward selection does
         b_ho = ev.cv(spec.plus(eb, b.hyper))[1].heldout
-        _, ho_b_on_a, _ = ev.fit_hyper(spec.plus(ea, a.hyper), eb)
+        _, ho_b_on_a, _ = ev.fit_hyper(spec.plus(ea, a.hyper), eb, remember=True)  # evaluated again next step
         _, ho_a_on_b, _ = ev.fit_hyper(spec.plus(eb, b.hyper), ea)
         rows = ev.rows.copy()
         for arr in (a_ho, b_ho, ho_b_on_a, ho_a_on_b):

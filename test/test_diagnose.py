@@ -390,3 +390,21 @@ def test_an_offset_of_each_run_is_a_per_run_term() -> None:
     assert np.all(res.after_heldout_rmse <= 1.3 * res.noise_floor), res.after_heldout_rmse / res.noise_floor
     fitted = [float(v) for v in re.findall(r"-?\d+\.\d+", res.run_terms[0][2].split(":", 1)[1])]
     np.testing.assert_allclose(fitted, [-0.5, 0.4, -0.3, 0.3, -0.4, -0.5], atol=0.03)  # corrections: minus the offsets
+
+
+def test_no_hyper_parameter_search_is_done_twice_for_the_same_model(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The confounding check works out each candidate on top of the one about to be added; the next step needs
+    exactly those again. They are remembered, so no (model, effect) search runs twice (issue 8 §7)."""
+    from fbg_accel_calibration.diagnose import Evaluator
+
+    seen: list[tuple] = []
+    real = Evaluator._fit_hyper
+
+    def counted(self, spec, eff):
+        seen.append((spec.key, eff.name))
+        return real(self, spec, eff)
+
+    monkeypatch.setattr(Evaluator, "_fit_hyper", counted)
+    res = diagnose(synthetic(9, channel_dark=300.0, power_ramp=-0.05), static="table")
+    assert res.steps[0].confounding and len(res.steps) >= 2  # the case: a confounding check, then a next step
+    assert len(seen) == len(set(seen)), [k for k in set(seen) if seen.count(k) > 1]
