@@ -97,7 +97,7 @@ class ChainModel:
         where = str(d.get("highpass_in", "reference"))
         if where not in HP_LOCATIONS:
             raise ValueError(f"highpass_in must be one of {HP_LOCATIONS}, got {where!r}")
-        return cls(gain=num("gain", 1.0), cutoff_hz=num("cutoff_hz", positive=True), delay_s=num("delay_s", 0.0),
+        return cls(gain=num("gain", 1.0), cutoff_hz=num("cutoff_hz", positive=True, finite=False), delay_s=num("delay_s", 0.0),
                    highpass_cutoff_hz=None if hp is None else num("highpass_cutoff_hz", positive=True), highpass_in=where,
                    u_gain=uncertainty("u_gain"), u_cutoff_hz=uncertainty("u_cutoff_hz"), u_delay_s=uncertainty("u_delay_s"),
                    u_highpass_cutoff_hz=uncertainty("u_highpass_cutoff_hz"),

@@ -324,9 +324,17 @@ def test_chain_model_round_trips_through_a_dict() -> None:
     back = ChainModel.from_dict(d)
     np.testing.assert_allclose(response(back, [0.3, 2.0, 30.0]), response(m, [0.3, 2.0, 30.0]))
     assert back.u_cutoff_hz == 0.01
-    for bad in ({"cutoff_hz": -1.0}, {"delay_s": 0.0}, {"cutoff_hz": 1.0, "highpass_in": "ldv"}):
+    for bad in ({"cutoff_hz": -1.0}, {"cutoff_hz": math.nan}, {"delay_s": 0.0}, {"cutoff_hz": 1.0, "highpass_in": "ldv"}):
         with pytest.raises(ValueError):
             ChainModel.from_dict(bad)
+
+
+def test_a_chain_without_a_lowpass_round_trips_through_yaml() -> None:
+    """The default chain has no low-pass (cut-off +inf): what to_dict writes, from_dict must read back."""
+    import yaml
+
+    back = ChainModel.from_dict(yaml.safe_load(yaml.safe_dump(ChainModel().to_dict())))
+    assert back.cutoff_hz == math.inf and back.gain == 1.0
 
 
 def test_group_delay_formula_matches_the_numerical_derivative() -> None:
