@@ -54,6 +54,7 @@ import numpy as np
 from .chain_compensation import MODES as CHAIN_MODES
 from .chain_compensation import ChannelEqualiser
 from .clock_sync import ClockSync, ClockSyncConfig
+from .correction_terms import TiaInverseFilter
 from .frame_codec import ADC_MAX, Frame
 from .noise_model import mean_variance_factor
 from .sensor_constants import STANDARD_GRAVITY
@@ -198,7 +199,7 @@ class DriverCore:
         if mode != "none" and self._dyn is None:
             raise ValueError(f"chain_compensation '{mode}' needs a calibration with a 'dynamic' section "
                              "(fbg-accel-calib dynamic; docs/dynamic_calibration.md)")
-        if mode == "equalise" and any(t.kind == "tia_inverse_filter" for t in calibration.corrections):
+        if mode == "equalise" and any(t.kind == TiaInverseFilter.kind for t in calibration.corrections):
             raise ValueError("chain_compensation 'equalise' inverts the TIA stages, and the calibration's "
                              "'tia_inverse_filter' term does too: the two would invert them twice; use 'delay' "
                              "(or a calibration without that term)")
@@ -342,8 +343,9 @@ class DriverCore:
         lo, hi = cal.temperature_range_c if cal is not None else (-math.inf, math.inf)
         base_var = self._base_var
         full_var = cfg.full_scale_mps2**2
+        # (stamp, frame, temperature, eq. 28 value, temperature held, variance factors, counts used: ref, x, y, z)
         used: list[tuple[int, Frame, float, tuple[float, float, float], bool, tuple[float, float, float],
-                         tuple[float, float, float]]] = []
+                         tuple[float, float, float, float]]] = []
         equaliser = self._equaliser
         unit = (1.0, 1.0, 1.0)
         for f in frames:
@@ -378,19 +380,19 @@ class DriverCore:
                     counters.temperature_stale_dropped += 1
                     continue
                 counters.temperature_held += 1
-            psi = (cx / ref, cy / ref, cz / ref)  # equalised under 'equalise'
-            used.append((stamp_ns - delay_ns, f, temp, cal.acceleration_at(*psi, temp), not valid, vfac, psi))
+            base = cal.acceleration_at(cx / ref, cy / ref, cz / ref, temp)
+            used.append((stamp_ns - delay_ns, f, temp, base, not valid, vfac, (ref, cx, cy, cz)))  # equalised counts
         if not used:
             return
-        if cal.corrections:  # declared correction terms (diagnose): vectorised, with their stream state
-            ref_a = np.fromiter((u[1].ref for u in used), dtype=float, count=len(used))
-            xyz_a = np.array([(u[1].x, u[1].y, u[1].z) for u in used], dtype=float)
+        extra = None
+        if cal.corrections:  # declared correction terms (diagnose): vectorised, with their stream state, fed the
+            counts = np.array([u[6] for u in used], dtype=float)  # same counts as eq. 28 (equalised or not)
             temp_a = np.fromiter((u[2] for u in used), dtype=float, count=len(used))
             t_a = np.fromiter((u[1].t_us * 1e-6 for u in used), dtype=float, count=len(used))
-            extra = cal.correction_sum(ref_a, xyz_a, xyz_a / ref_a[:, None], temp_a, t_a, self._cal_state)
-            used = [(st, f, temp, (a[0] + float(e[0]), a[1] + float(e[1]), a[2] + float(e[2])), h, vf, psi)
-                    for (st, f, temp, a, h, vf, psi), e in zip(used, extra, strict=True)]
-        for stamp_ns, f, temp, accel, held, vfac, psi in used:
+            extra = cal.correction_sum(counts[:, 0], counts[:, 1:], counts[:, 1:] / counts[:, :1], temp_a, t_a,
+                                       self._cal_state).tolist()
+        for i, (stamp_ns, f, temp, base, held, vfac, (ref, cx, cy, cz)) in enumerate(used):
+            accel = base if extra is None else (base[0] + extra[i][0], base[1] + extra[i][1], base[2] + extra[i][2])
             var = [base_var[0] * vfac[0], base_var[1] * vfac[1], base_var[2] * vfac[2]]
             flags = []
             if held:
@@ -399,9 +401,9 @@ class DriverCore:
                 # Extrapolating: inflate, and add how far the polynomial has moved from the range edge.
                 counters.temperature_out_of_range += 1
                 flags.append("temperature_out_of_range")
-                here, edge = cal.acceleration_at(*psi, temp), cal.acceleration_at(*psi, min(max(temp, lo), hi))
+                edge = cal.acceleration_at(cx / ref, cy / ref, cz / ref, min(max(temp, lo), hi))
                 for a in range(3):
-                    d = here[a] - edge[a]
+                    d = base[a] - edge[a]
                     var[a] = var[a] * cfg.out_of_range_variance_factor + d * d
             if f.ref >= ADC_MAX or f.x >= ADC_MAX or f.y >= ADC_MAX or f.z >= ADC_MAX:
                 # Clipped: the value is only bounded by the full scale (all axes if the reference clipped).
