@@ -691,7 +691,6 @@ class CandidateResult:
     p_value: float = 1.0
     n_groups: int = 0
     corr_with_residual: np.ndarray | None = None  # (3,)
-    n_params: int = 0
     significant: bool = False
     detail: str = ""
     delta: np.ndarray | None = None  # (N, 3) change of the in-sample prediction vs the current model
@@ -935,7 +934,6 @@ class Evaluator:
         out.base_heldout_rmse = np.sqrt(np.mean(base_heldout[r] ** 2, axis=0))
         out.rel_gain, out.p_value, out.n_groups = gain, p, ng
         out.corr_with_residual = corr
-        out.n_params = 3 * eff.n_columns + (0 if h is None else 1)
         coeff = cvr.A_full[des.blocks[eff.name]].T if eff.name in des.blocks else None
         out.detail = eff.describe(h, coeff)
         out.implausible = self.implausible(eff, h, des, cvr)
@@ -1028,7 +1026,7 @@ class DiagnosisResult:
     noise_remedies: list[tuple[str, float | None, str]] = field(default_factory=list)
     noise_floor_after: np.ndarray | None = None  # (3,) floor of the final model (lower once a noise remedy is in)
     warnings: list[str] = field(default_factory=list)  # results a reader must not take at face value
-    condition_number: float = float("nan")  # of the final model's scaled normal matrix (column_conditioning)
+    condition_number: float = float("nan")  # of the final model's scaled normal matrix (gram_conditioning)
     column_correlation: dict[str, float] = field(default_factory=dict)  # added effect -> max |corr| with the others
     final_degree: int = -1  # degree of eq. 28 in the final model (re-selected after each added effect)
     run_terms: list[tuple[str, float | None, str]] = field(default_factory=list)  # per-run terms (not in the YAML)
@@ -1327,12 +1325,6 @@ def gram_conditioning(xtx: np.ndarray, xsum: np.ndarray, n: int, blocks: dict[st
         own = np.isin(col, np.arange(sl.start, sl.stop))
         out[name] = float(np.max(np.abs(corr[own]))) if own.any() else 0.0
     return cond, out
-
-
-def column_conditioning(des: Design, rows: np.ndarray) -> tuple[float, dict[str, float]]:
-    """``gram_conditioning`` of the design ``des`` over ``rows``."""
-    X = des.X[rows & des.valid]
-    return gram_conditioning(X.T @ X, X.sum(axis=0), len(X), des.blocks)
 
 
 def _consistency(cal: ThermalCalibration, data: DiagnosisData, fitted: np.ndarray, rows: np.ndarray) -> float:

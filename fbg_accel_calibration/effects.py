@@ -200,7 +200,6 @@ class Effect:
     hyper_unit: str = ""
     hyper_null: float | None = None  # value at which the hyper-parameter has no effect (kept unless the data need another)
     title: str = ""
-    n_columns: int = 0  # extra regressors (each gets 3 coefficients, one per axis)
     noise_remedy: bool = False  # a filter against noise (not a model effect): reported apart from the added effects
     per_run: bool = False  # a property of each recording (run_offset, run_drift): fitted, reported, not in the YAML
 
@@ -216,11 +215,12 @@ class Effect:
         """Input corrections: modify ``inp`` in place (counts, temperature, reference alignment)."""
 
     def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray | None:
-        """Extra regressors (N, n_columns) computed from the corrected inputs; None if none."""
+        """Extra regressors (N, k) computed from the corrected inputs, each with 3 coefficients (one per axis);
+        None if none."""
         return None
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
-        """Declared correction terms for the calibration YAML; ``coeff`` (3, n_columns) m/s^2 per unit."""
+        """Declared correction terms for the calibration YAML; ``coeff`` (3, k) m/s^2 per unit."""
         return []
 
     def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
@@ -279,7 +279,6 @@ class ReferenceDarkOffsetEffect(Effect):
     hyper_unit = "counts"
     hyper_null = 0.0
     title = "reference normalisation offset"
-    n_columns = 1
 
     def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
         lo = float(np.nanmin(data.ref[data.use]))
@@ -353,7 +352,6 @@ class SpectralNonlinearityEffect(Effect):
     name = "spectral_nonlinearity"
     stage = 50
     title = "acceleration non-linearity of the spectral overlap"
-    n_columns = 6
 
     def _psi0(self, data: DiagnosisData) -> np.ndarray:
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -377,7 +375,6 @@ class TimeDriftEffect(Effect):
     hyper_name = "tau_warmup"
     hyper_unit = "s"
     title = "drift with time (warm-up, creep)"
-    n_columns = 2
 
     def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
         if data.duration_s <= 0:
@@ -506,7 +503,6 @@ class ThermalHysteresisEffect(Effect):
     hyper_name = "rate_tau"
     hyper_unit = "s"
     title = "hysteresis: heating versus cooling branch"
-    n_columns = 1
 
     def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
         if data.temperature_span_c() < 50 * AHT10_RESOLUTION_C:

@@ -263,7 +263,7 @@ def test_a_candidate_the_data_cannot_identify_is_reported_not_regularised() -> N
     from fbg_accel_calibration.effects import Effect
 
     class ConstantBias(Effect):
-        name, title, n_columns, stage = "constant_bias", "a second constant bias", 1, 90
+        name, title, stage = "constant_bias", "a second constant bias", 90
 
         def columns(self, data, inp, h):
             return np.ones((len(inp.t_s), 1))
@@ -279,8 +279,12 @@ def test_conditioning_flags_a_drift_whose_two_columns_cancel() -> None:
     """A warm-up time constant far beyond the run makes exp(-t/tau) a straight line in t: the warm-up and
     creep columns then correlate at |r| -> 1 and can only fit as two large terms that cancel. The report's
     conditioning says so; a time constant within the run does not trip it."""
-    from fbg_accel_calibration.diagnose import COLLINEAR_CORR, ModelSpec, build_design, column_conditioning, prepare_data
+    from fbg_accel_calibration.diagnose import COLLINEAR_CORR, ModelSpec, build_design, gram_conditioning, prepare_data
     from fbg_accel_calibration.effects import library_by_name
+
+    def column_conditioning(des, rows):
+        X = des.X[rows & des.valid]
+        return gram_conditioning(X.T @ X, X.sum(axis=0), len(X), des.blocks)
 
     data = prepare_data(synthetic(6))
     drift = library_by_name()["time_drift"]
@@ -302,7 +306,7 @@ def test_a_candidate_whose_columns_cancel_is_refused_not_added() -> None:
     from fbg_accel_calibration.effects import Effect
 
     class TwinRamps(Effect):
-        name, title, n_columns, stage = "twin_ramps", "two nearly equal ramps in time", 2, 90
+        name, title, stage = "twin_ramps", "two nearly equal ramps in time", 90
 
         def columns(self, data, inp, h):
             t = (inp.t_s - inp.t_s.min()) / np.ptp(inp.t_s)
