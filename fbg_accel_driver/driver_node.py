@@ -81,7 +81,7 @@ def _overridable() -> QoSOverridingOptions:
 
 def run(argv: list[str], managed: bool = False) -> int:
     """Run the node until SIGINT/SIGTERM (``argv``: the ROS arguments); StartupError on a refused start-up."""
-    init_ros("driver", argv, name_arguments=True)
+    init_ros("driver", argv)
     stop = threading.Event()
     node: DriverNode | None = None
     with signals_to(lambda _signum: stop.set()):

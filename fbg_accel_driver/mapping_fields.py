@@ -1,7 +1,9 @@
-"""Checks of the fields of a parsed YAML mapping, shared by every file reader (issue 12). Pure Python, no ROS.
+"""Checks of the fields of a parsed YAML mapping, shared by the file readers (issue 12). Pure Python, no ROS.
 
-``fail(message)`` builds the caller's own exception (usually with the file name in front), so a bad field
-reads the same in a calibration file, a pose plan or an excitation plan."""
+``fail(message)`` builds the caller's own exception (usually with the file name in front), so a bad number
+reads the same in a calibration file, a pose plan or an excitation plan. Unknown keys: the calibration file
+and the excitation plan use :func:`refuse_unknown`; the pose plan keeps its own check, which lists every
+unknown key at once."""
 
 from __future__ import annotations
 

@@ -32,14 +32,13 @@ _TYPES: dict[str, tuple[int, Any]] = {
 }
 
 
-def init_ros(prog: str, argv: list[str], *, name_arguments: bool = False) -> None:
+def init_ros(prog: str, argv: list[str]) -> None:
     """``rclpy.init`` with the node's ROS arguments and without rclpy's signal handler (that would shut the
     context down at once, under a node that still writes); unparsable ``--ros-args`` become a StartupError."""
     try:
         rclpy.init(args=[prog, *argv], signal_handler_options=SignalHandlerOptions.NO)
     except Exception as exc:  # RCLError (not exported): its text is the only useful part
-        shown = f" {argv}" if name_arguments else ""
-        raise StartupError(f"invalid ROS arguments{shown}: {first_line(exc)}") from None
+        raise StartupError(f"invalid ROS arguments {argv}: {first_line(exc)}") from None
 
 
 @contextmanager
