@@ -11,10 +11,8 @@ given, eq. 28 (``thermal_fit.fit_thermal``), and the noise model of the calibrat
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
 from fbg_accel_driver.thermal_model import ThermalCalibration
@@ -44,7 +42,6 @@ class FitOptions:
 class FitOutcome:
     calibration: ThermalCalibration
     selection: SelectionResult
-    metadata: dict[str, Any] = field(default_factory=dict)
 
 
 def _source(path: Path, opt: FitOptions):
@@ -56,7 +53,11 @@ def _source(path: Path, opt: FitOptions):
     return McapSampleStream(path, opt.namespace, opt.topic)
 
 
-def _streamed(paths: list[Path], max_degree: int, opt: FitOptions, warn: Callable[[str], None]):
+def _warn(line: str) -> None:
+    print(line, file=sys.stderr)
+
+
+def _streamed(paths: list[Path], max_degree: int, opt: FitOptions):
     from .cli_progress import CountedSource
     from .fit_stream import prepare_stream
     from .mcap_io import McapSampleStream, read_warnings
@@ -68,7 +69,7 @@ def _streamed(paths: list[Path], max_degree: int, opt: FitOptions, warn: Callabl
         md = counted.source.metadata()
         if isinstance(counted.source, McapSampleStream):
             for line in read_warnings(path, md["read_report"], md["pose_events"]):
-                warn(line)
+                _warn(line)
         parts.append(md)
     return data, {"parts": parts, **(parts[0] if len(parts) == 1 else {})}
 
@@ -93,26 +94,25 @@ def sensor_id_of(md: dict) -> str | None:
 
 
 def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int = 4, sensor_id: str | None = None,
-              options: FitOptions | None = None, warn: Callable[[str], None] | None = None) -> FitOutcome:
+              options: FitOptions | None = None) -> FitOutcome:
     """Fit eq. 28 to the recordings ``paths`` (one run each). ``degree`` None: the cross-validated choice.
 
     Raises ``ValueError`` (``NotIdentifiedError`` included) with the reason when the data cannot give a
-    calibration. ``warn`` gets the damaged-file warnings and notes (default: stderr).
+    calibration. The damaged-file warnings and notes go to stderr.
     """
     from .input_files import load_recording
     from .mcap_io import StreamOrderError
     from .noise_correlation import from_recording
 
     opt = options or FitOptions()
-    warn = warn or (lambda line: print(line, file=sys.stderr))
     paths = [Path(p) for p in paths]
     max_degree = max(max_degree, degree or 0)
     data = None
     if not opt.in_memory:
         try:
-            data, metadata = _streamed(paths, max_degree, opt, warn)
+            data, metadata = _streamed(paths, max_degree, opt)
         except StreamOrderError as exc:
-            warn(f"note: {exc}; reading all samples into memory instead")
+            _warn(f"note: {exc}; reading all samples into memory instead")
     rec = None
     if data is None:
         rec = load_recording(paths, rate=opt.rate_hz, temperature=opt.temperature_c, g=opt.g_mps2,
@@ -144,4 +144,4 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
     cal.fit["noise_correlation"] = {**corr.as_dict(), "static_intervals": corr.segments, "samples": corr.samples}
     cal.fit["sources"] = [str(p) for p in paths]
     cal.fit["degree_selection"] = selection.as_dict()
-    return FitOutcome(cal, selection, metadata)
+    return FitOutcome(cal, selection)

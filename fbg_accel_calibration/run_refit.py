@@ -31,7 +31,7 @@ class RefitError(ValueError):
 @dataclass
 class RefitResult:
     calibration: ThermalCalibration
-    selection: SelectionResult | None
+    selection: SelectionResult
     sources: list[str]
     output: Path
 
@@ -39,9 +39,8 @@ class RefitResult:
         """Human-readable fit report (degree table like paper Table 4, RMSE, noise, range)."""
         cal, fit = self.calibration, self.calibration.fit
         lines = [f"calibration fit of {len(self.sources)} file(s): " + ", ".join(self.sources)]
-        if self.selection is not None:
-            lines += ["degree selection (" + self.selection.criterion + "):", self.selection.table_markdown()]
-            lines += [f"note: {n}" for n in self.selection.notes]
+        lines += ["degree selection (" + self.selection.criterion + "):", self.selection.table_markdown()]
+        lines += [f"note: {n}" for n in self.selection.notes]
         rmse = np.asarray(fit.get("rmse_mps2", [np.nan] * 3))
         noise = np.asarray(cal.noise_sigma_mps2)
         lines += [
@@ -82,7 +81,7 @@ def refit(sources: list[str], output: str | Path, degree: int | None = None, sen
     except ValueError as exc:  # NotIdentifiedError included
         raise RefitError(str(exc)) from None
     cal = out.calibration
-    cal.fit["sources"] = list(sources)
+    cal.fit["sources"] = list(sources)  # as given (fit_files stores str(Path(s)): "./a.mcap" would become "a.mcap")
     path = Path(output)
     with atomic_path(path) as tmp:  # never a half-written YAML next to the recording (SIGKILL, full disk)
         cal.save(tmp)
