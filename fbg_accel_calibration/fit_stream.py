@@ -116,8 +116,6 @@ class StreamedFitData:
     n_excluded_other: int
     n_poses: int
     detector: dict[str, Any] = field(default_factory=dict)
-    metadata: dict[str, Any] = field(default_factory=dict)
-    passes: int = 0
 
     def __len__(self) -> int:
         return self.n_used
@@ -161,10 +159,8 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
     """
     thresholds: list[np.ndarray] = []
     noise_out, thr_out = np.zeros(3), np.zeros(3)
-    passes = 0
     for src in sources:
-        nv, thr, n_passes = streamed_noise_floor(lambda src=src: src.blocks(BLOCK_ROWS, False), window, false_alarm, margin)
-        passes += n_passes
+        nv, thr = streamed_noise_floor(lambda src=src: src.blocks(BLOCK_ROWS, False), window, false_alarm, margin)
         thresholds.append(thr)
         noise_out, thr_out = np.maximum(noise_out, nv), np.maximum(thr_out, thr)
 
@@ -186,7 +182,6 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
         clusters.add(t)
         if len(t):
             t_min, t_max = min(t_min, float(t.min())), max(t_max, float(t.max()))
-    passes += 1
     clusters.finish()
     center, scale = temperature_scaling(np.array([t_min, t_max])) if np.isfinite(t_min) else (0.0, 1.0)
 
@@ -215,7 +210,6 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
                 fill = 0
     if fill:
         acc.add(buf_psi[:fill], buf_tau[:fill], buf_g[:fill], buf_pose[:fill], buf_level[:fill])
-    passes += 1
     present = np.flatnonzero(level_count)
     level_map = np.full(max(clusters.n_labels, 1), -1, np.int64)
     level_map[present] = np.arange(len(present))
@@ -225,4 +219,4 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
                 "threshold_var_psi": thr_out.tolist()}
     return StreamedFitData(stats, level_sum[present] / level_count[present],
                            (t_min, t_max), center, scale, n_used, n_total, n_motion, n_other,
-                           len(np.unique(stats.pose)), detector, {}, passes)
+                           len(np.unique(stats.pose)), detector)

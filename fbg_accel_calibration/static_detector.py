@@ -415,16 +415,14 @@ def usable_blocks(blocks: Iterator[Recording], window: int, min_interval: int, t
 
 def streamed_noise_floor(blocks: Callable[[], Iterator[Recording]], window: int,
                          false_alarm: float = DEFAULT_FALSE_ALARM,
-                         margin: float = DEFAULT_MARGIN) -> tuple[np.ndarray, np.ndarray, int]:
+                         margin: float = DEFAULT_MARGIN) -> tuple[np.ndarray, np.ndarray]:
     """Noise floor and threshold (:func:`estimate_noise_var`, :func:`variance_threshold`) of one run whose
-    blocks ``blocks()`` yields (called once per pass); returns ``(noise_var, threshold, passes)``."""
+    blocks ``blocks()`` yields (called once per pass); returns ``(noise_var, threshold)``."""
     dof = window - 1
     med = ExactMedian(3)
-    passes = 0
     while not med.done:
         for _blk, _psi, var, _ in signal_blocks(blocks(), window, with_reference=False):
             med.add(var)
         med.end_pass()
-        passes += 1
     nv = med.result / (chi2.median(dof) / dof)
-    return nv, variance_threshold(nv, window, false_alarm, margin), passes
+    return nv, variance_threshold(nv, window, false_alarm, margin)
