@@ -841,8 +841,10 @@ def read_file(path: str | Path, namespace: str | None = None, topic: str | None 
     samples are put in stamp order, so a file whose stamps go backwards is read too."""
     stream = McapSampleStream(path, namespace, topic)
     stamps, rows = stream.all_rows()
-    order = np.argsort(stamps, kind="stable")
-    rec = stream.block(stamps[order], rows[order], with_poses=True)
+    if np.any(stamps[1:] < stamps[:-1]):  # only then reorder (a stable sort of sorted stamps changes nothing)
+        order = np.argsort(stamps, kind="stable")
+        stamps, rows = stamps[order], rows[order]
+    rec = stream.block(stamps, rows, with_poses=True)
     rec.metadata = stream.metadata()
     return rec, stream.report
 
@@ -1139,10 +1141,8 @@ class McapSampleStream:
         also collects the events (for a reader that holds the whole recording; stamps may go backwards)."""
         collect = self._start_pass()
         batches = [(s, v) for s, v in self._batches(collect) if len(s)]
-        self._end_pass(collect, sum(len(s) for s, _ in batches))
-        widths = {v.shape[1] for _, v in batches}
-        if len(widths) != 1:
-            raise McapRecordingError(f"{self.path}: {TOPIC_RAW} changes its name list")
+        self._end_pass(collect, sum(len(s) for s, _ in batches))  # no samples: raises
+        # one width: a message whose name list differs from the first one's already raised in _file_batches
         return np.concatenate([s for s, _ in batches]), np.concatenate([v for _, v in batches])
 
     def _start_pass(self) -> bool:
