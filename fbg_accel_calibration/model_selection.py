@@ -56,13 +56,11 @@ from .thermal_fit import (
     CellStats,
     FitData,
     NotIdentifiedError,
-    accumulate_cells,
     check_pose_excitation,
     design_matrix,
     level_excitation,
     prepare,
     solve_normal_equations,
-    temperature_scaling,
 )
 
 
@@ -254,9 +252,8 @@ def held_out_predictions(data: FitData, degree: int, by: str = "pose", chunk: in
     cannot be fitted."""
     if by not in ("pose", "level"):
         raise ValueError(f"by must be 'pose' or 'level', got {by!r}")
-    center, scale = temperature_scaling(data.temp_c)
-    tau = (data.temp_c - center) / scale
-    stats = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, degree, chunk)
+    tau = (data.temp_c - data.t_center_c) / data.t_scale_c
+    stats = data.cell_stats(degree, chunk)
     cell_group = stats.pose if by == "pose" else stats.level
     sample_group = data.pose if by == "pose" else data.level
     out = np.full((len(data), 3), np.nan)
