@@ -65,6 +65,7 @@ from mcap_ros2.decoder import DecoderFactory
 from fbg_accel_driver.command_line import first_line
 from fbg_accel_driver.driver_core import RAW_AUX_NAME, RAW_NAMES
 
+from .input_files import MCAP_MAGIC
 from .recording import Recording
 from .rosbag2_input import BagInputError, bag_files, offered_qos_yaml
 
@@ -672,7 +673,6 @@ _RECORD_HEAD = struct.Struct("<BQ")
 _MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 
 
-_MAGIC = b"\x89MCAP0\r\n"
 _CHUNK_HEAD = struct.Struct("<QQQI")  # message start/end time, uncompressed size, uncompressed CRC
 _SKIPPED = {Opcode.MESSAGE_INDEX, Opcode.CHUNK_INDEX, Opcode.ATTACHMENT, Opcode.ATTACHMENT_INDEX, Opcode.STATISTICS,
             Opcode.METADATA_INDEX, Opcode.SUMMARY_OFFSET, Opcode.DATA_END, Opcode.HEADER}
@@ -712,8 +712,8 @@ def _file_records(fh: Any, report: FileReadReport):
     """
     pos = fh.tell()
     file_size = fh.seek(0, io.SEEK_END)
-    fh.seek(max(0, file_size - len(_MAGIC)))
-    ends_with_magic = file_size >= 2 * len(_MAGIC) and fh.read(len(_MAGIC)) == _MAGIC
+    fh.seek(max(0, file_size - len(MCAP_MAGIC)))
+    ends_with_magic = file_size >= 2 * len(MCAP_MAGIC) and fh.read(len(MCAP_MAGIC)) == MCAP_MAGIC
     fh.seek(pos)
     last_skip: SkippedRange | None = None
     while True:
@@ -1057,7 +1057,7 @@ class McapSampleStream:
         joined: list[bytes] = []
         joined_bytes = 0
         with open(path, "rb", buffering=1 << 20) as fh:
-            if fh.read(len(_MAGIC)) != _MAGIC:
+            if fh.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
                 raise McapRecordingError(f"{path}: not an MCAP file (bad magic)")
             records = _file_records(fh, report)
             while True:
