@@ -19,7 +19,7 @@ from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .model_selection import SelectionResult, select_degree
 from .static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW
-from .thermal_fit import DEFAULT_LEVEL_GAP_C, NotIdentifiedError, fit_thermal, prepare
+from .thermal_fit import DEFAULT_LEVEL_GAP_C, NotIdentifiedError, fit_thermal, prepare, sensor_id_of
 
 
 @dataclass
@@ -83,14 +83,6 @@ def _first_block(path: Path, opt: FitOptions):
         return next(iter(blocks))
     finally:
         blocks.close()
-
-
-def sensor_id_of(md: dict) -> str | None:
-    """The sensor id a recording's metadata names (its run, or the first part's), if any."""
-    for cand in (md.get("run"), *(p.get("run") for p in md.get("parts", []) if isinstance(p, dict))):
-        if isinstance(cand, dict) and cand.get("sensor_id"):
-            return str(cand["sensor_id"])
-    return None
 
 
 def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int = 4, sensor_id: str | None = None,

@@ -531,17 +531,18 @@ def fit_thermal(rec: Recording | FitData | StreamedFitData, degree: int, *, sens
         fit_info["sources"] = src
     return ThermalCalibration(
         M=M, b=b, temperature_range_c=data.temperature_range_c,
-        sensor_id=sensor_id or _sensor_id(rec), t_center_c=center, t_scale_c=scale, noise_sigma_mps2=noise,
+        sensor_id=sensor_id or (sensor_id_of(rec.metadata) if isinstance(rec, Recording) else None) or "unknown",
+        t_center_c=center, t_scale_c=scale, noise_sigma_mps2=noise,
         created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), fit=fit_info)
 
 
-def _sensor_id(rec: Recording | FitData) -> str:
-    if isinstance(rec, Recording):
-        md = rec.metadata
-        for candidate in (md.get("run", {}), md, *(p.get("run", {}) for p in md.get("parts", []) if isinstance(p, dict))):
-            if isinstance(candidate, dict) and candidate.get("sensor_id"):
-                return str(candidate["sensor_id"])
-    return "unknown"
+def sensor_id_of(md: dict) -> str | None:
+    """The sensor id a recording's metadata names (its run, the metadata itself, or the first part's run
+    that names one), if any."""
+    for candidate in (md.get("run"), md, *(p.get("run") for p in md.get("parts", []) if isinstance(p, dict))):
+        if isinstance(candidate, dict) and candidate.get("sensor_id"):
+            return str(candidate["sensor_id"])
+    return None
 
 
 def residuals(cal: ThermalCalibration, rec: Recording, mask: np.ndarray | None = None) -> np.ndarray:
