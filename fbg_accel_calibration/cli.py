@@ -99,7 +99,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("inputs", nargs="+", type=Path)
     p.add_argument("-o", "--output", type=Path, required=True, help="calibration YAML to write")
     p.add_argument("--degree", type=iv.degree, default=None, help="force the degree n (default: held-out cross-validation)")
-    p.add_argument("--max-degree", type=iv.degree, default=6, help="largest degree scored (default 6, as paper Table 4)")
+    p.add_argument("--max-degree", type=iv.degree, default=iv.DEFAULT_MAX_DEGREE,
+                   help=f"largest degree scored (default {iv.DEFAULT_MAX_DEGREE}, as paper Table 4)")
     p.add_argument("--sensor-id", default=None)
     add_topic_options(p)
     p.add_argument("--in-memory", action="store_true",
@@ -125,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("inputs", nargs="+", type=Path)
     p.add_argument("--calibration", type=Path, required=True)
     p.add_argument("-o", "--output-dir", type=Path, required=True, help="directory for report.md and PNGs")
-    p.add_argument("--max-degree", type=iv.degree, default=6)
+    p.add_argument("--max-degree", type=iv.degree, default=iv.DEFAULT_MAX_DEGREE)
     add_topic_options(p)
     _add_force(p)
     _add_detector_options(p)

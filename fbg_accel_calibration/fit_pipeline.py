@@ -17,6 +17,7 @@ from pathlib import Path
 from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
+from .input_validation import DEFAULT_MAX_DEGREE
 from .model_selection import SelectionResult, select_degree
 from .static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW
 from .thermal_fit import DEFAULT_LEVEL_GAP_C, NotIdentifiedError, fit_thermal, prepare, sensor_id_of
@@ -85,8 +86,8 @@ def _first_block(path: Path, opt: FitOptions):
         blocks.close()
 
 
-def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int = 4, sensor_id: str | None = None,
-              options: FitOptions | None = None) -> FitOutcome:
+def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int = DEFAULT_MAX_DEGREE,
+              sensor_id: str | None = None, options: FitOptions | None = None) -> FitOutcome:
     """Fit eq. 28 to the recordings ``paths`` (one run each). ``degree`` None: the cross-validated choice.
 
     Raises ``ValueError`` (``NotIdentifiedError`` included) with the reason when the data cannot give a

@@ -17,11 +17,9 @@ import numpy as np
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .atomic_output import atomic_path
-from .fit_pipeline import fit_files
+from .fit_pipeline import DEFAULT_MAX_DEGREE, fit_files
 from .model_selection import SelectionResult
 from .thermal_fit import FULL_SCALE_MPS2
-
-MAX_AUTO_DEGREE = 6  # paper Table 4 goes up to n = 6
 
 
 class RefitError(ValueError):
@@ -77,7 +75,7 @@ def refit(sources: list[str], output: str | Path, degree: int | None = None, sen
     """Fit ``sources`` (MCAP files) at ``degree`` (None: chosen by cross-validation) and save to ``output``:
     the same fit as ``fbg-accel-calib fit`` with its default options (``fit_pipeline.fit_files``)."""
     try:
-        out = fit_files([Path(s) for s in sources], degree=degree, max_degree=MAX_AUTO_DEGREE, sensor_id=sensor_id)
+        out = fit_files([Path(s) for s in sources], degree=degree, max_degree=DEFAULT_MAX_DEGREE, sensor_id=sensor_id)
     except ValueError as exc:  # NotIdentifiedError included
         raise RefitError(str(exc)) from None
     cal = out.calibration
