@@ -33,6 +33,7 @@ from __future__ import annotations
 import datetime as _dt
 import itertools
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -420,21 +421,26 @@ class FitData:
     def __len__(self) -> int:
         return len(self.temp_c)
 
-    @property
+    # computed on first use and kept (the arrays are not changed after prepare)
+    @cached_property
     def n_poses(self) -> int:
         return len(np.unique(self.pose))
 
-    @property
+    @cached_property
     def temperature_range_c(self) -> tuple[float, float]:
         return float(np.min(self.temp_c)), float(np.max(self.temp_c))
 
+    @cached_property
+    def _scaling(self) -> tuple[float, float]:
+        return temperature_scaling(self.temp_c)
+
     @property
     def t_center_c(self) -> float:
-        return temperature_scaling(self.temp_c)[0]
+        return self._scaling[0]
 
     @property
     def t_scale_c(self) -> float:
-        return temperature_scaling(self.temp_c)[1]
+        return self._scaling[1]
 
     def cell_stats(self, degree: int, chunk: int = DEFAULT_CHUNK) -> CellStats:
         """Per-cell sums of eq. 28 at ``degree`` (the same interface as ``fit_stream.StreamedFitData``)."""
