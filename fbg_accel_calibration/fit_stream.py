@@ -32,7 +32,6 @@ from .thermal_fit import (
     DEFAULT_LEVEL_WIDTH_C,
     CellAccumulator,
     CellStats,
-    sub_columns,
     temperature_scaling,
 )
 
@@ -121,16 +120,13 @@ class StreamedFitData:
         return self.n_used
 
     def cell_stats(self, degree: int, chunk: int = DEFAULT_CHUNK) -> CellStats:
-        """The sums restricted to the regressors of ``degree`` (<= ``stats.degree``; ``chunk`` is not used: the
-        sums are already accumulated)."""
-        s = self.stats
-        if degree > s.degree:
-            raise ValueError(f"degree {degree} > the degree {s.degree} the streamed sums were accumulated for")
-        if degree == s.degree:
-            return s
-        cols = sub_columns(degree, s.degree)
-        return CellStats(degree, s.pose, s.level, s.xtx[:, cols][:, :, cols], s.xtg[:, cols], s.gtg, s.xsum[:, cols],
-                         s.gsum, s.count)
+        """The sums for a fit of ``degree`` (<= ``stats.degree``): ``stats`` itself, no copy -- every
+        ``CellStats`` method takes the degree and picks its columns (``sub_columns``), and the excitation
+        checks read only columns that do not depend on the degree. ``chunk`` is not used: the sums are
+        already accumulated."""
+        if degree > self.stats.degree:
+            raise ValueError(f"degree {degree} > the degree {self.stats.degree} the streamed sums were accumulated for")
+        return self.stats
 
 
 def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = DEFAULT_WINDOW,
