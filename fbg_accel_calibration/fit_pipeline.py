@@ -125,7 +125,7 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
     if degree is None:
         if selection.chosen_degree is None:
             raise NotIdentifiedError("no degree could be validated on held-out data: " + "; ".join(selection.notes)
-                                     + " (give a degree)")
+                                     + " (give the degree: --degree, or the node's fit_degree parameter)")
         degree = selection.chosen_degree
     elif not selection.scores[degree].identified:
         raise NotIdentifiedError(f"degree {degree}: {selection.scores[degree].note}")

@@ -198,7 +198,7 @@ class CellStats:
 class CellAccumulator:
     """Per-cell normal-equation sums built chunk by chunk (cells appear as they come).
 
-    :func:`accumulate_cells` (in memory) and the streaming fit (:func:`prepare_stream`) both feed
+    :func:`accumulate_cells` (in memory) and the streaming fit (``fit_stream.prepare_stream``) both feed
     it the same chunks of rows, so their sums are identical. Memory: one chunk's design matrix plus
     O(cells).
     """
