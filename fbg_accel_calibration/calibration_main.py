@@ -41,7 +41,10 @@ PARAMETERS: ParameterTable = {
     "progress": ("bool", True, "print the progress line (pose k of N, stillness, samples, temperature) on stdout"),
 }
 
-USAGE = f"""usage: calibration [-h] [--version] --ros-args -p plan_file:=PLAN.yaml [-p NAME:=VALUE ...]
+
+def _usage() -> str:
+    """The --help text (built only when asked for)."""
+    return f"""usage: calibration [-h] [--version] --ros-args -p plan_file:=PLAN.yaml [-p NAME:=VALUE ...]
 
 Calibration recorder of the FBG triaxial accelerometer (package {PACKAGE}). Follows a pose plan,
 waits per pose until the sensor is still (static-interval detector on Psi = counts/ref), records
@@ -62,7 +65,7 @@ exit status: 0 run complete (and fitted), 1 run complete but the fit failed (MCA
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if print_help_or_version("calibration", argv, lambda: USAGE):
+    if print_help_or_version("calibration", argv, _usage):
         return EXIT_OK
     try:
         from .calibration_node import run  # rclpy: only once neither --help nor --version answered
