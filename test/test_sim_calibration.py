@@ -15,8 +15,12 @@ def test_shipped_calibration_is_reproduced_by_the_command(tmp_path) -> None:
     shipped = ThermalCalibration.load(config_dir() / "calibration_sim.yaml")
     assert main(["--output", str(tmp_path / "cal.yaml")]) == 0
     fresh = ThermalCalibration.load(tmp_path / "cal.yaml")
-    np.testing.assert_allclose(fresh.M, shipped.M, rtol=1e-9, atol=1e-9)
-    np.testing.assert_allclose(fresh.b, shipped.b, rtol=1e-9, atol=1e-9)
+    # Same command, same seed: only floating-point rounding may differ. It does between CPUs: numpy's
+    # SIMD exp/sin and the BLAS sums behind X^T X change kernels with the instruction set (AVX2 vs
+    # AVX-512 give 1.3e-9 apart on M[2][2][2] here), and the normal equations amplify that by their
+    # condition number. 1e-6 relative is far below any change of the physics or the fit.
+    np.testing.assert_allclose(fresh.M, shipped.M, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(fresh.b, shipped.b, rtol=1e-6, atol=1e-7)
     assert fresh.degree == 2 and fresh.t_scale_c > 1.0
     lo, hi = fresh.temperature_range_c
     assert lo <= 16.3 and hi >= 45.0  # the paper's 16 / 24 / 45 degC levels (AHT10 offset +0.17 degC)
