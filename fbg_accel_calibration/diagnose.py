@@ -511,10 +511,6 @@ class SettlingTransient:
                 f"first sample of a visit, above the noise), {tau}, {self.n_visits} visits; {drop}")
 
 
-def _fmt3(v: np.ndarray) -> str:
-    return " / ".join(f"{x:.3g}" for x in v)
-
-
 def settling_transient(res: np.ndarray, t_s: np.ndarray, groups: np.ndarray, rows: np.ndarray,
                        max_window_s: float = MAX_SETTLE_S) -> SettlingTransient:
     """Measure the settling transient (see ``SettlingTransient``) from a residual (N, 3) m/s^2.
