@@ -247,13 +247,18 @@ def test_cached_designs_equal_designs_built_afresh() -> None:
     base = ModelSpec(1, 23.4, 1.0, [(lib["reference_dark_offset"], 20.0)])
     cache = DesignCache(size=2)
     specs = [base.plus(lib["time_drift"], h) for h in (50.0, 200.0)] + [base.plus(lib["tia_lowpass"], h) for h in (0.5, 2.0)]
+    # a search over a correction after the model's own starts from the inputs those left (cached prefix)
+    tia = ModelSpec(1, 23.4, 1.0, [(lib["tia_lowpass"], 0.5)])
+    specs += [tia.plus(lib["reference_dark_offset"], h) for h in (10.0, 30.0)]
+    specs += [tia.plus(lib["reference_dark_offset"], 10.0).plus(lib["thermal_lag"], h) for h in (60.0, -60.0)]
     for spec in specs * 2:  # the second round hits the cache
         got, fresh = build_design(data, spec, cache), build_design(data, spec)
         np.testing.assert_array_equal(got.valid, fresh.valid)
         np.testing.assert_array_equal(got.X[got.valid], fresh.X[fresh.valid])
         np.testing.assert_array_equal(got.G, fresh.G)
         assert got.blocks == fresh.blocks
-        assert len(cache._entries) <= 2
+        assert len(cache._entries) <= 2 and len(cache._prefix) <= cache.prefixes
+    assert cache._prefix  # the searches over dark offset and thermal lag started from a cached prefix
 
 
 def test_a_candidate_the_data_cannot_identify_is_reported_not_regularised() -> None:
