@@ -740,7 +740,7 @@ class CandidateResult:
     corr_with_residual: np.ndarray | None = None  # (3,)
     significant: bool = False
     detail: str = ""
-    delta: np.ndarray | None = None  # (N, 3) change of the in-sample prediction vs the current model (float32 after the step)
+    delta: np.ndarray | None = None  # (N, 3) change of the in-sample prediction vs the current model (float32)
     heldout: np.ndarray | None = None  # (N, 3)
     cross_correlation_delay_s: float | None = None
     implausible: str = ""  # why the fitted values are not physical (then never significant, never added)
@@ -986,7 +986,7 @@ class Evaluator:
         out.implausible = self.implausible(eff, h, des, cvr)
         if out.implausible:
             out.detail += f"; REFUSED: {out.implausible}"
-        out.delta, out.heldout = delta, heldout
+        out.delta, out.heldout = delta.astype(np.float32), heldout  # delta: for the plots and a correlation only
         if eff.name == "channel_delay":
             out.cross_correlation_delay_s = cross_correlation_delay(self.data, base_fitted)
         return out
@@ -1170,9 +1170,10 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         sig = [r for r in results if r.significant]
         conf = _confounding(ev, spec, sig, alpha_each, min_rel_gain, library) if len(sig) >= 2 else []
         chosen = sig[0].name if sig else None
-        for r in results:  # per-sample arrays (N, 3) are kept only where the report plots them: first step's deltas,
-            r.heldout = None  # in single precision (a scatter plot needs no more; half the memory of ten candidates)
-            r.delta = None if steps or r.delta is None else r.delta.astype(np.float32)
+        for r in results:  # per-sample arrays (N, 3) are kept only where the report plots them: first step's deltas
+            r.heldout = None
+            if steps:
+                r.delta = None
         steps.append(StepResult(len(steps) + 1, spec.names, results, chosen, alpha_each, conf))
         if chosen is None:
             break

@@ -476,7 +476,7 @@ class TiaLowpassEffect(Effect):
         for idx in data.runs():
             for j in range(3):
                 psi_f[idx, j] = first_order_lowpass(psi_hat[idx, j], inp.t_s[idx], tau[j + 1], {})
-        inp.gref = g + np.linalg.solve(P, (psi_f - psi_hat).T).T
+        inp.gref = g + (psi_f - psi_hat) @ np.linalg.inv(P).T  # P is 3 x 3: one product, not a solve with N sides
         inp.valid &= np.all(np.isfinite(inp.gref), axis=1)
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
