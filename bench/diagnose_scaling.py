@@ -1,0 +1,65 @@
+#!/usr/bin/env python3
+"""Diagnose time and peak memory at 10^4, 10^5 and 10^6 samples (issue 8 §7), and the growth exponent.
+
+Not a test. Runs ``bench_calibration.py --samples N --mcap-samples 0 --repeats 1`` once per
+size, each in its own process (so each peak RSS is that run's own), and collects the diagnose step of each
+into bench/results/diagnose_scaling.json. Below 10^6 samples the timed fit uses degree 0: the short runs see
+fewer than the three temperature levels a degree-2 fit needs (the diagnosis selects its own degree).
+Run on an idle machine:
+
+    .venv/bin/python bench/diagnose_scaling.py [--sizes 10000 100000 1000000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import itertools
+import json
+import math
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))
+
+from machine_info import machine  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000])
+    ap.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "diagnose_scaling.json")
+    args = ap.parse_args(argv)
+    runs: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory(prefix="diagnose_scaling_") as tmp:
+        for n in args.sizes:
+            out = Path(tmp) / f"{n}.json"
+            cmd = [sys.executable, str(ROOT / "bench" / "bench_calibration.py"), "--samples", str(n),
+                   "--mcap-samples", "0", "--repeats", "1", "--output", str(out)]
+            if n < 1_000_000:
+                cmd += ["--degree", "0"]
+            subprocess.run(cmd, check=True)
+            step = json.loads(out.read_text())["steps"]["diagnose"]
+            runs[str(n)] = {"diagnose_seconds": round(step["seconds"], 2), "peak_rss_mib": round(step["peak_rss_mib"]),
+                            "added": step["added"]}
+            print(f"{n}: {runs[str(n)]}", flush=True)
+    sizes = sorted(int(k) for k in runs)
+    pairs = [*itertools.pairwise(sizes), *([(sizes[0], sizes[-1])] if len(sizes) > 2 else [])]
+    growth = {f"{a:.0e}_to_{b:.0e}".replace("+0", ""): round(
+        math.log(runs[str(b)]["diagnose_seconds"] / runs[str(a)]["diagnose_seconds"]) / math.log(b / a), 2)
+        for a, b in pairs}
+    doc = {"command": ".venv/bin/python bench/diagnose_scaling.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+           "what": "bench_calibration.py --samples N --mcap-samples 0 --repeats 1 (--degree 0 below 10^6), one process "
+                   "per size; diagnose step only (simulation and fit not counted in the time, counted in the peak RSS)",
+           "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "runs": runs, "growth_exponent": growth,
+           "machine": machine()}
+    args.output.write_text(json.dumps(doc, indent=1) + "\n")
+    print(f"results written to {args.output}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
