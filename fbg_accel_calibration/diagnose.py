@@ -162,16 +162,16 @@ class DesignCache:
 
     def __init__(self, size: int = 1, prefixes: int = 2) -> None:
         self.size, self.prefixes = size, prefixes
-        self._entries: OrderedDict[tuple, tuple[Inputs, np.ndarray, np.ndarray]] = OrderedDict()
+        self._entries: OrderedDict[tuple, tuple[Inputs, Inputs, np.ndarray, np.ndarray]] = OrderedDict()
         self._prefix: OrderedDict[tuple, Inputs] = OrderedDict()
 
-    def get(self, key: tuple) -> tuple[Inputs, np.ndarray, np.ndarray] | None:
+    def get(self, key: tuple) -> tuple[Inputs, Inputs, np.ndarray, np.ndarray] | None:
         hit = self._entries.get(key)
         if hit is not None:
             self._entries.move_to_end(key)
         return hit
 
-    def put(self, key: tuple, value: tuple[Inputs, np.ndarray, np.ndarray]) -> None:
+    def put(self, key: tuple, value: tuple[Inputs, Inputs, np.ndarray, np.ndarray]) -> None:
         self._entries[key] = value
         while len(self._entries) > self.size:
             self._entries.popitem(last=False)
@@ -217,18 +217,16 @@ def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None
 
     The input corrections (``Effect.transform``) run first in stage order, on the whole time series; every
     effect's columns are then computed from the fully corrected inputs. ``sub`` (sample indices): the design
-    of those rows only (the corrections still see every sample). ``cache`` keeps the corrected inputs and
-    eq. 28 columns of a set of corrections for the next design that has the same ones (the arrays it holds
-    are never written).
+    of those rows only (the corrections still see every sample; eq. 28's columns and the columns of a
+    ``pointwise`` effect are computed on those rows alone). ``cache`` keeps the corrected inputs and eq. 28
+    columns of a set of corrections for the next design that has the same ones (the arrays it holds are
+    never written).
     """
     ordered = sorted(spec.effects, key=lambda eh: eh[0].stage)
     corrections = [(eff, h) for eff, h in ordered if _transforms_inputs(eff)]
     names = tuple((eff.name, h) for eff, h in corrections)
     key = (spec.degree, spec.t_center_c, spec.t_scale_c, names)
     hit = cache.get(key) if cache is not None else None
-
-    def rows(a: np.ndarray) -> np.ndarray:
-        return a if sub is None else a[sub]
 
     if hit is None:
         done, inp = cache.prefix(names) if cache is not None else (0, None)
@@ -239,19 +237,20 @@ def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None
                 cache.put_prefix(names[:i], inp)  # all but the last: what a search over the last one repeats
             eff, h = corrections[i]
             eff.transform(data, inp, h)
-        base = design_matrix(rows(inp.psi), rows((inp.temp_c - spec.t_center_c) / spec.t_scale_c), spec.degree)
-        base_ok = rows(inp.valid) & _finite_rows(base) & _finite_rows(rows(inp.gref))
+        part = inp if sub is None else inp.at(sub)  # the design's rows, for what is computed row by row
+        base = design_matrix(part.psi, (part.temp_c - spec.t_center_c) / spec.t_scale_c, spec.degree)
+        base_ok = part.valid & _finite_rows(base) & _finite_rows(part.gref)
         if cache is not None:
-            cache.put(key, (inp, base, base_ok))
+            cache.put(key, (inp, part, base, base_ok))
     else:
-        inp, base, base_ok = hit
-    gref = rows(inp.gref)
+        inp, part, base, base_ok = hit
+    gref = part.gref
     n_base = n_params(spec.degree)
     extra, blocks, p = [], {}, n_base
     for eff, h in ordered:
-        c = eff.columns(data, inp, h)
+        c = eff.columns(data, part if eff.pointwise else inp, h)
         if c is not None:
-            c = rows(c)
+            c = c if eff.pointwise or sub is None else c[sub]
             blocks[eff.name] = slice(p, p + c.shape[1])
             extra.append(c)
             p += c.shape[1]

@@ -190,6 +190,11 @@ class Inputs:
         with np.errstate(divide="ignore", invalid="ignore"):
             return self.xyz / np.where(self.ref > 0, self.ref, np.nan)[:, None]
 
+    def at(self, idx: np.ndarray) -> Inputs:
+        """These inputs at the samples ``idx`` only (for what is computed sample by sample)."""
+        return Inputs(self.ref[idx], self.xyz[idx], self.temp_c[idx], self.t_s[idx], self.gref[idx], self.valid[idx],
+                      self.gref_moved, self.counts_changed)
+
 
 class Effect:
     """Base class of a candidate effect. Subclasses set the class attributes and override hooks."""
@@ -202,6 +207,7 @@ class Effect:
     title: str = ""
     noise_remedy: bool = False  # a filter against noise (not a model effect): reported apart from the added effects
     per_run: bool = False  # a property of each recording (run_offset, run_drift): fitted, reported, not in the YAML
+    pointwise: bool = False  # columns() computes each row from that row's inputs alone (may be given some rows only)
 
     def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
         """Whether the data can show this effect at all (e.g. temperature must vary)."""
@@ -274,6 +280,7 @@ class ReferenceReadNoiseEffect(Effect):
 
 class ReferenceDarkOffsetEffect(Effect):
     name = "reference_dark_offset"
+    pointwise = True
     stage = 10
     hyper_name = "d_ref"
     hyper_unit = "counts"
@@ -350,6 +357,7 @@ class ThermalLagEffect(Effect):
 
 class SpectralNonlinearityEffect(Effect):
     name = "spectral_nonlinearity"
+    pointwise = True
     stage = 50
     title = "acceleration non-linearity of the spectral overlap"
 
@@ -371,6 +379,7 @@ class SpectralNonlinearityEffect(Effect):
 
 class TimeDriftEffect(Effect):
     name = "time_drift"
+    pointwise = True
     stage = 70
     hyper_name = "tau_warmup"
     hyper_unit = "s"

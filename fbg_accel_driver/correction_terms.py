@@ -133,16 +133,18 @@ def first_order_lowpass(x: np.ndarray, t_s: np.ndarray, tau_s: float, state: dic
     x = np.asarray(x, dtype=float).reshape(-1)
     t_s = np.asarray(t_s, dtype=float).reshape(-1)
     st = state if state is not None else {}
-    out = np.full_like(x, np.nan)
-    good = np.flatnonzero(np.isfinite(x))
-    if good.size == 0:
-        return out
-    xs, ts = x[good], t_s[good]
+    finite = np.isfinite(x)
+    good = None if finite.all() else np.flatnonzero(finite)  # None: every sample (no gather, no scatter)
+    if x.size == 0 or (good is not None and good.size == 0):
+        return np.full_like(x, np.nan)
+    xs, ts = (x, t_s) if good is None else (x[good], t_s[good])
     y_prev, t_prev = st.get("y"), st.get("t")
     if y_prev is None:
         y_prev, t_prev = float(xs[0]), float(ts[0])
-    t_all = np.concatenate([[t_prev], ts])
-    dt = np.maximum(np.diff(t_all), 0.0)
+    dt = np.empty_like(ts)
+    dt[0] = ts[0] - t_prev
+    np.subtract(ts[1:], ts[:-1], out=dt[1:])
+    np.maximum(dt, 0.0, out=dt)
     a = 1.0 - np.exp(-dt / tau_s)
     ys = np.empty_like(xs)
     # split into runs of (nearly) constant coefficient a (uniform sampling) and filter each run at once
@@ -153,8 +155,11 @@ def first_order_lowpass(x: np.ndarray, t_s: np.ndarray, tau_s: float, state: dic
         seg, _ = lfilter([ai], [1.0, ai - 1.0], xs[i:j], zi=[(1.0 - ai) * y_prev])
         ys[i:j] = seg
         y_prev = float(seg[-1])
-    out[good] = ys
     st["y"], st["t"] = y_prev, float(ts[-1])
+    if good is None:
+        return ys
+    out = np.full_like(x, np.nan)
+    out[good] = ys
     return out
 
 

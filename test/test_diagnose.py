@@ -261,6 +261,29 @@ def test_cached_designs_equal_designs_built_afresh() -> None:
     assert cache._prefix  # the searches over dark offset and thermal lag started from a cached prefix
 
 
+def test_a_design_of_some_rows_is_those_rows_of_the_whole_design() -> None:
+    """The thinned search builds designs of every k-th sample (``sub``): the corrections still run on the whole
+    series, eq. 28's columns and pointwise effects' columns are computed on those rows alone, the others on
+    every sample and then selected. Either way the rows equal the whole design's, bit for bit."""
+    from fbg_accel_calibration.diagnose import DesignCache, ModelSpec, build_design, prepare_data
+    from fbg_accel_calibration.effects import LIBRARY, library_by_name
+
+    data = prepare_data(synthetic(4, dark=30.0))
+    lib = library_by_name()
+    sub = np.flatnonzero(data.use)[::3]
+    base = ModelSpec(1, 23.4, 1.0, [(lib["tia_lowpass"], 1.0)])
+    specs = [base.plus(e, h) for e in LIBRARY
+             for h in [e.hyper_grid(data)[len(e.hyper_grid(data)) // 2] if e.hyper_grid(data) is not None else None]]
+    assert {e.name for e in LIBRARY if e.pointwise} and {e.name for e in LIBRARY if not e.pointwise and e.per_run}
+    cache = DesignCache()
+    for spec in specs:
+        whole, part = build_design(data, spec), build_design(data, spec, cache, sub=sub)
+        np.testing.assert_array_equal(part.valid, whole.valid[sub])
+        np.testing.assert_array_equal(part.X[part.valid], whole.X[sub][part.valid])
+        np.testing.assert_array_equal(part.G, whole.G[sub])
+        assert part.blocks == whole.blocks
+
+
 def test_a_candidate_the_data_cannot_identify_is_reported_not_regularised() -> None:
     """A candidate whose columns repeat the model's own (here a constant, which is b's) makes the normal
     equations singular. The fit's solver refuses that (NotIdentifiedError); the diagnosis records the
