@@ -27,6 +27,7 @@ driver evaluates identically. The rationale of every candidate is in ``docs/effe
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -82,13 +83,24 @@ class DiagnosisData:
     group: np.ndarray = field(default=None)  # type: ignore[assignment]  # visit label (``visit_ids``)
 
     _psi_map: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
-    _runs: list[np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
+    _runs: list[slice | np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
+    _memo: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
-    def runs(self) -> list[np.ndarray]:
-        """Sample indices of each run (computed once; every filter restarts at a run's first sample)."""
+    def runs(self) -> list[slice | np.ndarray]:
+        """The samples of each run, together every sample (computed once; every filter restarts at a run's first
+        sample): a slice where the run is contiguous, as runs are (indexing gives views, not copies), else indices."""
         if self._runs is None:
-            self._runs = [np.flatnonzero(self.run_id == r) for r in np.unique(self.run_id)]
+            self._runs = []
+            for r in np.unique(self.run_id):
+                idx = np.flatnonzero(self.run_id == r)
+                self._runs.append(slice(int(idx[0]), int(idx[-1]) + 1) if idx[-1] - idx[0] + 1 == len(idx) else idx)
         return self._runs
+
+    def once(self, key: str, compute: Callable[[], Any]) -> Any:
+        """``compute()`` the first time ``key`` is asked for, the kept value after (a constant of the recording)."""
+        if key not in self._memo:
+            self._memo[key] = compute()
+        return self._memo[key]
 
     def static_psi_map(self) -> tuple[np.ndarray, np.ndarray]:
         """``expected_psi_map`` of the recorded counts (computed once)."""
@@ -313,7 +325,7 @@ class ReferenceDarkOffsetEffect(Effect):
         if coeff is None:
             return ""
         c0 = -np.linalg.solve(M0, np.asarray(coeff)[:, 0])
-        mean_counts = np.nanmean(np.abs(data.xyz[data.use]), axis=0)
+        mean_counts = data.once("mean_abs_counts", lambda: np.nanmean(np.abs(data.xyz[data.use]), axis=0))
         frac = np.abs(c0) / np.maximum(mean_counts, 1e-9)
         if np.any(frac > MAX_CHANNEL_OFFSET_FRACTION):
             return (f"implied axis-channel offsets {', '.join(f'{v:.0f}' for v in c0)} counts are "
@@ -362,9 +374,12 @@ class SpectralNonlinearityEffect(Effect):
     title = "acceleration non-linearity of the spectral overlap"
 
     def _psi0(self, data: DiagnosisData) -> np.ndarray:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            psi = data.xyz[data.use] / data.ref[data.use, None]
-        return np.nanmean(psi, axis=0)
+        def mean_psi() -> np.ndarray:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                psi = data.xyz[data.use] / data.ref[data.use, None]
+            return np.nanmean(psi, axis=0)
+
+        return data.once("mean_static_psi", mean_psi)
 
     def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
         return quadratic_features(inp.psi, self._psi0(data))
@@ -480,7 +495,7 @@ class TiaLowpassEffect(Effect):
         g = fill_reference_gaps(inp.t_s, inp.gref, data.run_id) if inp.gref_moved else data.gref_filled
         P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
         psi_hat = g @ P.T + q
-        psi_f = np.array(psi_hat, copy=True)
+        psi_f = np.empty_like(psi_hat)  # the runs cover every sample
         tau = self.taus(float(h))
         for idx in data.runs():
             for j in range(3):
