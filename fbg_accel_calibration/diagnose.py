@@ -715,6 +715,7 @@ def reselect_degree(ev: Evaluator, spec: ModelSpec, max_degree: int) -> tuple[Mo
                 pass
         scores.append(DegreeScores(n, True, ins, ho, level_ho))
         group_mse[n] = _group_mse(cv.heldout, ev.groups, r, np.full(3, 1.0 / 3))[1]
+        del des, cv  # not held while the next degree's design is built (each N x p)
     chosen, criterion, notes = choose_degree(scores, group_mse, by_level, unit="visit")
     table = _degree_rows(scores, lambda sc: sc.held_out_pose, criterion)
     if chosen is None:
@@ -1135,6 +1136,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     weights = 1.0 / np.maximum(noise, 1e-12) ** 2
     ev = Evaluator(data, fold, weights, groups, search_rows=search_rows)
     base_heldout, base_fitted, base_G = cv0.heldout, cv0.fitted_full, des0.G
+    del des0  # its design matrix (N x p) is not needed again
     residual_before = base_heldout.copy()
 
     steps: list[StepResult] = []
@@ -1214,7 +1216,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     r_eval = rows_f & np.all(np.isfinite(residual_before), axis=1) & np.all(np.isfinite(cv_f.heldout), axis=1)
     before_ho = np.sqrt(np.mean(residual_before[r_eval] ** 2, axis=0))
     after_ho = np.sqrt(np.mean(cv_f.heldout[r_eval] ** 2, axis=0))
-    before_in = np.sqrt(np.mean((des0.G - cv0.fitted_full)[r_eval] ** 2, axis=0))
+    before_in = np.sqrt(np.mean(res0[r_eval] ** 2, axis=0))
     after_in = np.sqrt(np.mean((des_f.G - cv_f.fitted_full)[r_eval] ** 2, axis=0))
     structure = residual_structure(data, cv_f.heldout, r_eval, groups, noise_after, alpha)
     moving = _moving_residual(data, cal)
