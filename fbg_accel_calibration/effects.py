@@ -518,7 +518,7 @@ def expected_psi_map(data: DiagnosisData, inp: Inputs) -> tuple[np.ndarray, np.n
     rows = data.use & np.all(np.isfinite(psi), axis=1) & np.all(np.isfinite(data.gref), axis=1)
     X = np.column_stack([data.gref[rows], np.ones(int(rows.sum()))])
     Y = psi[rows]
-    try:  # 4 x 4 normal equations (well conditioned: |g| ~ 9.8 m/s^2 against 1); an SVD of X costs 10x more
+    try:  # 4 x 4 normal equations (well conditioned: |g| ~ 9.8 m/s^2 against 1), not an SVD of the N x 4 matrix
         coef = np.linalg.solve(X.T @ X, X.T @ Y)
     except np.linalg.LinAlgError:  # the reference never changes direction: the minimum-norm solution
         coef = np.linalg.lstsq(X, Y, rcond=None)[0]
