@@ -59,11 +59,6 @@ def int_argument(args: dict[str, str], name: str) -> int:
         raise ValueError(f"launch argument {name}:={args[name]!r} is not an integer") from None
 
 
-def defaults(arguments: dict[str, tuple[str, str]]) -> dict[str, str]:
-    """The argument values of a ``ros2 launch`` without any ``name:=value``."""
-    return {name: default for name, (default, _) in arguments.items()}
-
-
 def generate(launch_arguments: Any, node_descriptions: Any) -> Any:
     """The ``LaunchDescription`` of a launch file given its two pure functions (imports launch lazily)."""
     from ament_index_python.packages import get_package_share_directory
