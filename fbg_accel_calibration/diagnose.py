@@ -194,21 +194,8 @@ class DesignCache:
 
 def _private(inp: Inputs) -> Inputs:
     """A copy of ``inp`` that the corrections can work on without changing ``inp``: they replace its arrays
-    and change only ``valid`` in place, so the other arrays are shared (read-only, ``_inputs_of``)."""
+    and change only ``valid`` in place, so the other arrays are shared (read-only, ``Inputs.of``)."""
     return replace(inp, valid=inp.valid.copy())
-
-
-def _read_only(a: np.ndarray) -> np.ndarray:
-    v = np.asarray(a, dtype=float).view()
-    v.flags.writeable = False
-    return v
-
-
-def _inputs_of(data: DiagnosisData) -> Inputs:
-    """Uncorrected inputs of ``data``: read-only views of its arrays (a correction that wrote into one instead
-    of replacing it would raise), only ``valid`` is new."""
-    return Inputs(_read_only(data.ref), _read_only(data.xyz), _read_only(data.temp_c), _read_only(data.t_s),
-                  _read_only(data.gref), np.ones(len(data.t_s), bool))
 
 
 def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None = None,
@@ -231,7 +218,7 @@ def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None
     if hit is None:
         done, inp = cache.prefix(names) if cache is not None else (0, None)
         if inp is None:
-            inp = _inputs_of(data)
+            inp = Inputs.of(data)
         for i in range(done, len(corrections)):
             if cache is not None and i == len(corrections) - 1 and i > done:
                 cache.put_prefix(names[:i], inp)  # all but the last: what a search over the last one repeats

@@ -105,9 +105,7 @@ class DiagnosisData:
     def static_psi_map(self) -> tuple[np.ndarray, np.ndarray]:
         """``expected_psi_map`` of the recorded counts (computed once)."""
         if self._psi_map is None:
-            inp = Inputs(np.array(self.ref, float), np.array(self.xyz, float), np.array(self.temp_c, float),
-                         np.array(self.t_s, float), np.array(self.gref, float), np.ones(len(self.t_s), bool))
-            self._psi_map = expected_psi_map(self, inp)
+            self._psi_map = expected_psi_map(self, Inputs.of(self))
         return self._psi_map
 
     def __post_init__(self) -> None:
@@ -201,6 +199,18 @@ class Inputs:
     def psi(self) -> np.ndarray:
         with np.errstate(divide="ignore", invalid="ignore"):
             return self.xyz / np.where(self.ref > 0, self.ref, np.nan)[:, None]
+
+    @classmethod
+    def of(cls, data: DiagnosisData) -> Inputs:
+        """Uncorrected inputs of ``data``: read-only views of its arrays (a correction that wrote into one instead
+        of replacing it would raise), only ``valid`` is new."""
+        def read_only(a: np.ndarray) -> np.ndarray:
+            v = np.asarray(a, dtype=float).view()
+            v.flags.writeable = False
+            return v
+
+        return cls(read_only(data.ref), read_only(data.xyz), read_only(data.temp_c), read_only(data.t_s),
+                   read_only(data.gref), np.ones(len(data.t_s), bool))
 
     def at(self, idx: np.ndarray) -> Inputs:
         """These inputs at the samples ``idx`` only (for what is computed sample by sample)."""
