@@ -272,8 +272,12 @@ def test_a_design_of_some_rows_is_those_rows_of_the_whole_design() -> None:
     lib = library_by_name()
     sub = np.flatnonzero(data.use)[::3]
     base = ModelSpec(1, 23.4, 1.0, [(lib["tia_lowpass"], 1.0)])
-    specs = [base.plus(e, h) for e in LIBRARY
-             for h in [e.hyper_grid(data)[len(e.hyper_grid(data)) // 2] if e.hyper_grid(data) is not None else None]]
+
+    def mid_grid(e):  # a hyper-parameter inside the effect's search range (None: it has none)
+        grid = e.hyper_grid(data)
+        return None if grid is None else grid[len(grid) // 2]
+
+    specs = [base.plus(e, mid_grid(e)) for e in LIBRARY]
     assert {e.name for e in LIBRARY if e.pointwise} and {e.name for e in LIBRARY if not e.pointwise and e.per_run}
     cache = DesignCache()
     for spec in specs:

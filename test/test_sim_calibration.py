@@ -16,8 +16,8 @@ def test_shipped_calibration_is_reproduced_by_the_command(tmp_path) -> None:
     assert main(["--output", str(tmp_path / "cal.yaml")]) == 0
     fresh = ThermalCalibration.load(tmp_path / "cal.yaml")
     # Same command, same seed: only floating-point rounding may differ. It does between CPUs: numpy's
-    # SIMD exp/sin and the BLAS sums behind X^T X change kernels with the instruction set (AVX2 vs
-    # AVX-512 give 1.3e-9 apart on M[2][2][2] here), and the normal equations amplify that by their
+    # SIMD exp/sin and the BLAS sums behind X^T X change kernels with the CPU's instruction set (M[2][2][2]
+    # came out 1.3e-9 apart on a fresh machine), and the normal equations amplify that by their
     # condition number. 1e-6 relative is far below any change of the physics or the fit.
     np.testing.assert_allclose(fresh.M, shipped.M, rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(fresh.b, shipped.b, rtol=1e-6, atol=1e-7)
