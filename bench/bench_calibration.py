@@ -20,6 +20,8 @@ Not a test. Steps (wall clock, one process, numpy may use both cores for its BLA
 
 Peak resident memory (ru_maxrss) after each step is reported. ``--profile-diagnose`` runs the
 diagnosis under cProfile and stores its top functions (where the diagnosis spends its time).
+``--memory-diagnose`` runs it under tracemalloc and stores, for the moment its traced memory peaked,
+the allocation sites holding the most (what the diagnosis holds at its peak; slower, time not comparable).
 Writes bench/results/calibration.json.
 
     .venv/bin/python bench/bench_calibration.py [--samples 1000000] [--mcap-samples 1000000]
@@ -35,8 +37,12 @@ import pstats
 import resource
 import sys
 import tempfile
+import threading
 import time
+import tracemalloc
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -91,6 +97,35 @@ def profile_top(profiler: cProfile.Profile, n: int = 15) -> dict[str, list[dict]
             "by_own": sorted(rows, key=lambda r: -r["own_s"])[:n]}
 
 
+def memory_at_peak(run: Callable[[], Any], n: int = 12) -> tuple[Any, dict[str, Any]]:
+    """``run()`` under tracemalloc; (its result, {peak MiB, the ``n`` allocation sites holding the most at the
+    peak, each with the innermost project frames}). The peak is caught by a snapshot whenever the traced total
+    has grown by 2 % (sampled every 0.2 s), so it is the peak to within that."""
+    best: list[Any] = [0, None]
+    done = threading.Event()
+
+    def watch() -> None:
+        while not done.wait(0.2):
+            cur, _ = tracemalloc.get_traced_memory()
+            if cur > best[0] * 1.02:
+                best[0], best[1] = cur, tracemalloc.take_snapshot()
+
+    tracemalloc.start(10)
+    th = threading.Thread(target=watch, daemon=True)
+    th.start()
+    try:
+        out = run()
+    finally:
+        done.set()
+        th.join()
+        tracemalloc.stop()
+    sites = []
+    for st in (best[1].statistics("traceback") if best[1] is not None else [])[:n]:
+        frames = [f"{Path(f.filename).name}:{f.lineno}" for f in st.traceback if "fbg_accel" in f.filename]
+        sites.append({"mib": round(st.size / 2**20, 1), "blocks": st.count, "frames": frames[-4:]})
+    return out, {"traced_peak_mib": round(best[0] / 2**20, 1), "top_sites": sites}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--samples", type=int, default=1_000_000, help="samples of the fit/diagnose recording (default 10^6)")
@@ -101,6 +136,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--profile-diagnose", action="store_true",
                     help="run the diagnosis under cProfile; its top functions (cumulative and own time) go into the JSON")
+    ap.add_argument("--memory-diagnose", action="store_true",
+                    help="run the diagnosis under tracemalloc; what it holds at its peak goes into the JSON")
     ap.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "calibration.json")
     args = ap.parse_args(argv)
 
@@ -129,7 +166,11 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         if profiler is not None:
             profiler.enable()
-        res = diagnose(rec)
+        memory = None
+        if args.memory_diagnose:
+            res, memory = memory_at_peak(lambda: diagnose(rec))
+        else:
+            res = diagnose(rec)
         if profiler is not None:
             profiler.disable()
         sec = time.perf_counter() - t0
@@ -138,6 +179,8 @@ def main(argv: list[str] | None = None) -> int:
                              "noise_floor_mps2": [float(v) for v in res.noise_floor], "peak_rss_mib": peak_rss_mib()}
         if profiler is not None:
             steps["diagnose"]["profile_top"] = profile_top(profiler)
+        if memory is not None:
+            steps["diagnose"]["memory_at_peak"] = memory
         print(f"diagnose: {sec:.1f} s, added {steps['diagnose']['added']}", flush=True)
 
     link_msgs = link_frame_rate_limit(921600)
