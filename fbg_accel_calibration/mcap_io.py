@@ -59,14 +59,15 @@ from mcap.stream_reader import get_chunk_data_stream
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
-from mcap_ros2._dynamic import serialize_dynamic
 from mcap_ros2.decoder import DecoderFactory
 
 from fbg_accel_driver.command_line import first_line
 from fbg_accel_driver.driver_core import RAW_AUX_NAME, RAW_NAMES
 
+from . import ros2_cdr
 from .input_files import MCAP_MAGIC
 from .recording import Recording
+from .ros2_cdr import FixedJointStateCodec
 from .rosbag2_input import BagInputError, bag_files, offered_qos_yaml
 
 LOG = logging.getLogger(__name__)
@@ -355,69 +356,6 @@ class _UnbufferedSink:
         self._raw.close()
 
 
-class FixedJointStateCodec:
-    """Fast CDR (XCDR1, little endian) encoder/decoder of ``sensor_msgs/msg/JointState`` messages whose
-    frame_id and name list are fixed and whose velocity/effort are empty -- the ``imu/raw`` layout.
-
-    Byte-identical to the ``mcap_ros2`` encoder (checked on a probe message when the writer starts;
-    the writer falls back to the generic encoder otherwise, and the reader decodes every message that
-    does not match the layout with the ``mcap_ros2`` decoder).
-    """
-
-    ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR_LE
-
-    def __init__(self, frame_id: str, names: tuple[str, ...]) -> None:
-        body = bytearray(8)  # stamp sec, nanosec
-        self._put_string(body, frame_id)
-        self._align(body, 4)
-        body += struct.pack("<I", len(names))
-        for name in names:
-            self._align(body, 4)
-            self._put_string(body, name)
-        self._align(body, 4)
-        body += struct.pack("<I", len(names))
-        self._align(body, 8)
-        self.middle = bytes(body[8:])
-        self.n_values = len(names)
-        tail = bytearray(body)
-        tail += b"\x00" * (8 * len(names))
-        start = len(tail)
-        self._align(tail, 4)
-        tail += struct.pack("<II", 0, 0)  # velocity[], effort[] empty
-        self.tail = bytes(tail[start:])
-        self.size = 4 + len(tail)
-        self._values = struct.Struct(f"<{self.n_values}d")
-        self.dtype = np.dtype([("enc", "V4"), ("sec", "<i4"), ("nanosec", "<u4"), ("mid", f"V{len(self.middle)}"),
-                               ("values", "<f8", (self.n_values,)), ("tail", f"V{len(self.tail)}")])
-
-    @staticmethod
-    def _align(buf: bytearray, n: int) -> None:
-        buf += b"\x00" * (-len(buf) % n)
-
-    @staticmethod
-    def _put_string(buf: bytearray, text: str) -> None:
-        raw = text.encode() + b"\x00"
-        buf += struct.pack("<I", len(raw)) + raw
-
-    def encode(self, stamp_ns: int, values: list[float]) -> bytes:
-        sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-        return b"".join((self.ENCAPSULATION, struct.pack("<iI", sec, nsec), self.middle, self._values.pack(*values), self.tail))
-
-    def matches(self, data: bytes) -> bool:
-        return len(data) == self.size and data[:4] == self.ENCAPSULATION and data[12:12 + len(self.middle)] == self.middle
-
-    def decode_many(self, datas: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
-        """Stamps (N,) int ns and values (N, n_values) of messages that all :meth:`match`."""
-        arr = np.frombuffer(b"".join(datas), dtype=self.dtype)
-        stamps = arr["sec"].astype(np.int64) * 1_000_000_000 + arr["nanosec"].astype(np.int64)
-        return stamps, arr["values"].astype(float)
-
-
-def _stamp(ns: int) -> dict[str, int]:
-    ns = int(ns)
-    return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
-
-
 class RecordingWriter:
     """Incremental MCAP writer of one calibration run (ROS 2 profile, CDR, zstd chunks).
 
@@ -441,18 +379,12 @@ class RecordingWriter:
         self._writer = McapWriter(self._sink, chunk_size=chunk_bytes, compression=comp[compression])
         self._writer.start(profile="ros2", library="fbg_accel_calibration.mcap_io")
         self._channels: dict[str, int] = {}
-        self._encoders: dict[str, Any] = {}
         self._closed = False
         self.message_count = 0
         for topic, datatype in ((TOPIC_RAW, TYPE_RAW), (TOPIC_TEMPERATURE, TYPE_TEMPERATURE),
                                 (TOPIC_REFERENCE_GRAVITY, TYPE_REFERENCE_GRAVITY), (TOPIC_POSE, TYPE_POSE)):
             self._register(topic, datatype)
-        self._raw_codec: FixedJointStateCodec | None = FixedJointStateCodec(frame_id, RAW_NAMES)
-        probe_values = [float(i) + 0.5 for i in range(len(RAW_NAMES))]
-        probe = self._encoders[TOPIC_RAW]({"header": {"stamp": _stamp(1_500_000_123), "frame_id": frame_id},
-                                           "name": list(RAW_NAMES), "position": probe_values, "velocity": [], "effort": []})
-        if self._raw_codec.encode(1_500_000_123, probe_values) != probe:
-            self._raw_codec = None  # layout differs from the generic encoder: use the generic one
+        self._raw_codec = FixedJointStateCodec(frame_id, RAW_NAMES)
         self._aux_codec: FixedJointStateCodec | None = None  # imu/raw with aux_counts (created when first needed)
         if metadata:
             self.add_metadata("run", metadata)
@@ -460,17 +392,15 @@ class RecordingWriter:
     def _register(self, topic: str, datatype: str) -> None:
         """Channel of the relative ``topic`` under the full name ``/<namespace>/<topic>``, with the
         ``offered_qos_profiles`` metadata of the ROS 2 profile (reliable, volatile, keep_last 10)."""
-        text = message_definition(datatype)
-        schema_id = self._writer.register_schema(datatype, SchemaEncoding.ROS2, text.encode())
+        schema_id = self._writer.register_schema(datatype, SchemaEncoding.ROS2, message_definition(datatype).encode())
         qos = offered_qos_yaml(reliable=True, depth=10)
         self._channels[topic] = self._writer.register_channel(self.topics[topic], MessageEncoding.CDR, schema_id,
                                                               metadata={"offered_qos_profiles": qos})
-        self._encoders[topic] = serialize_dynamic(datatype, text)[datatype]
 
-    def _write(self, topic: str, stamp_ns: int, msg: dict[str, Any] | bytes) -> None:
+    def _write(self, topic: str, stamp_ns: int, data: bytes) -> None:
+        """One CDR-encoded message (:mod:`ros2_cdr`) whose log and publish time are its stamp."""
         if self._closed:
             raise McapRecordingError(f"{self.path}: writer is closed")
-        data = msg if isinstance(msg, bytes) else self._encoders[topic](msg)
         self._writer.add_message(self._channels[topic], log_time=int(stamp_ns), data=data,
                                  publish_time=int(stamp_ns), sequence=self.message_count)
         self.message_count += 1
@@ -489,12 +419,7 @@ class RecordingWriter:
                 self._aux_codec = FixedJointStateCodec(self.frame_id, (*RAW_NAMES, RAW_AUX_NAME))
             self._write(TOPIC_RAW, stamp_ns, self._aux_codec.encode(stamp_ns, [*values, float(aux_counts)]))
             return
-        if self._raw_codec is not None:
-            self._write(TOPIC_RAW, stamp_ns, self._raw_codec.encode(stamp_ns, values))
-            return
-        self._write(TOPIC_RAW, stamp_ns, {
-            "header": {"stamp": _stamp(stamp_ns), "frame_id": self.frame_id},
-            "name": list(RAW_NAMES), "position": values, "velocity": [], "effort": []})
+        self._write(TOPIC_RAW, stamp_ns, self._raw_codec.encode(stamp_ns, values))
 
     def write_reference_motion(self, stamp_ns: int, kind: str, vector: Any) -> None:
         """The reference transducer of a dynamic run on its own topic, ``calibration/reference_velocity``
@@ -507,22 +432,16 @@ class RecordingWriter:
         if topic not in self._channels:
             self.topics[topic] = full_topic_name(self.namespace, topic)
             self._register(topic, TYPE_REFERENCE_GRAVITY)
-        vx, vy, vz = (float(v) for v in vector)
-        self._write(topic, stamp_ns, {"header": {"stamp": _stamp(stamp_ns), "frame_id": self.frame_id},
-                                      "vector": {"x": vx, "y": vy, "z": vz}})
+        self._write(topic, stamp_ns, ros2_cdr.vector3_stamped(stamp_ns, self.frame_id, vector))
 
     def write_temperature(self, stamp_ns: int, temperature_c: float, variance_c2: float = 0.0) -> None:
         """One ``imu/temperature`` message (degC, variance degC^2)."""
-        self._write(TOPIC_TEMPERATURE, stamp_ns, {
-            "header": {"stamp": _stamp(stamp_ns), "frame_id": self.frame_id},
-            "temperature": float(temperature_c), "variance": float(variance_c2)})
+        self._write(TOPIC_TEMPERATURE, stamp_ns,
+                    ros2_cdr.temperature(stamp_ns, self.frame_id, float(temperature_c), float(variance_c2)))
 
     def write_reference_gravity(self, stamp_ns: int, gref_mps2: Any) -> None:
         """Reference specific force (3,) of the current pose in the table frame, m/s^2."""
-        gx, gy, gz = (float(v) for v in gref_mps2)
-        self._write(TOPIC_REFERENCE_GRAVITY, stamp_ns, {
-            "header": {"stamp": _stamp(stamp_ns), "frame_id": TABLE_FRAME},
-            "vector": {"x": gx, "y": gy, "z": gz}})
+        self._write(TOPIC_REFERENCE_GRAVITY, stamp_ns, ros2_cdr.vector3_stamped(stamp_ns, TABLE_FRAME, gref_mps2))
 
     def write_pose(self, stamp_ns: int, pose_id: int, state: str, index: int = -1, count: int = -1,
                    extra: dict[str, Any] | None = None, sensor_id: str = "") -> None:
@@ -531,10 +450,9 @@ class RecordingWriter:
             raise McapRecordingError(f"pose state must be one of {POSE_STATES}, got {state!r}")
         values = {"pose_id": int(pose_id), "state": state, "index": int(index), "count": int(count)}
         values.update(extra or {})
-        self._write(TOPIC_POSE, stamp_ns, {
-            "level": 0 if state == "recording" else 1, "name": TOPIC_POSE, "message": state,
-            "hardware_id": sensor_id,
-            "values": [{"key": str(k), "value": _to_text(v)} for k, v in values.items()]})
+        self._write(TOPIC_POSE, stamp_ns, ros2_cdr.diagnostic_status(
+            0 if state == "recording" else 1, TOPIC_POSE, state, sensor_id,
+            [(str(k), _to_text(v)) for k, v in values.items()]))
 
     def add_metadata(self, name: str, metadata: dict[str, Any]) -> None:
         """An MCAP metadata record (values that are not strings are stored as JSON)."""
@@ -1248,7 +1166,7 @@ def _set_fast(fast: dict[str, Any], channel_id: int, codec: FixedJointStateCodec
     fast["dtype"] = np.dtype([("op", "u1"), ("len", "<u8"), ("ch", "<u2"), ("seq", "<u4"), ("log", "<u8"),
                               ("pub", "<u8"), ("msg", msg)])
     fast["size"] = 9 + 22 + codec.size
-    fast["enc"] = np.frombuffer(codec.ENCAPSULATION, dtype="<u4")[0]
+    fast["enc"] = np.frombuffer(ros2_cdr.ENCAPSULATION, dtype="<u4")[0]
     fast["mid"] = np.frombuffer(codec.middle, dtype="<u8")
 
 
