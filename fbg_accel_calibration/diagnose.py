@@ -171,10 +171,15 @@ class DesignCache:
             self._entries.move_to_end(key)
         return hit
 
-    def put(self, key: tuple, value: tuple[Inputs, Inputs, np.ndarray, np.ndarray]) -> None:
-        self._entries[key] = value
-        while len(self._entries) > self.size:
+    def make_room(self) -> None:
+        """Drop the oldest entries so that one more fits: called before a new entry is computed, so that
+        the arrays of the entry it replaces are not held beside the new ones while they are built."""
+        while len(self._entries) >= self.size:
             self._entries.popitem(last=False)
+
+    def put(self, key: tuple, value: tuple[Inputs, Inputs, np.ndarray, np.ndarray]) -> None:
+        self.make_room()
+        self._entries[key] = value
 
     def prefix(self, names: tuple) -> tuple[int, Inputs | None]:
         """(number of corrections done, a private copy of the inputs after them) for the longest cached prefix
@@ -216,6 +221,8 @@ def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None
     hit = cache.get(key) if cache is not None else None
 
     if hit is None:
+        if cache is not None:
+            cache.make_room()
         done, inp = cache.prefix(names) if cache is not None else (0, None)
         if inp is None:
             inp = Inputs.of(data)
