@@ -110,7 +110,7 @@ class DiagnosisData:
 
     def __post_init__(self) -> None:
         if self.gref_filled is None:
-            self.gref_filled = fill_reference_gaps(self.t_s, self.gref, self.run_id)
+            self.gref_filled = fill_reference_gaps(self.t_s, self.gref, self.runs())
         if self.group is None:
             self.group = visit_ids(self.pose_id, self.run_id)
 
@@ -169,16 +169,18 @@ def visit_ids(pose_id: np.ndarray, run_id: np.ndarray) -> np.ndarray:
     return motion_groups(label, run_id)
 
 
-def fill_reference_gaps(t_s: np.ndarray, gref: np.ndarray, run_id: np.ndarray) -> np.ndarray:
-    """Reference (N, 3) with NaN gaps linearly interpolated in time within each run."""
+def fill_reference_gaps(t_s: np.ndarray, gref: np.ndarray, runs: list[slice | np.ndarray]) -> np.ndarray:
+    """Reference (N, 3) with NaN gaps linearly interpolated in time within each run (``runs``: the samples of
+    each run, ``DiagnosisData.runs``); a run without gaps is copied as it is."""
     out = np.array(gref, dtype=float, copy=True)
-    for r in np.unique(run_id):
-        idx = np.flatnonzero(run_id == r)
-        ok = np.all(np.isfinite(out[idx]), axis=1)
-        if ok.sum() < 2:
+    for idx in runs:
+        g = out[idx]
+        ok = np.all(np.isfinite(g), axis=1)
+        if ok.all() or ok.sum() < 2:
             continue
+        t = t_s[idx]
         for j in range(3):
-            out[idx, j] = np.interp(t_s[idx], t_s[idx][ok], out[idx][ok, j])
+            out[idx, j] = np.interp(t, t[ok], g[ok, j])
     return out
 
 
@@ -502,7 +504,7 @@ class TiaLowpassEffect(Effect):
         # the filter on the counts instead would amplify the (already filtered) noise by ~1/a.
         # Neither depends on the time constant: reuse the data's own when no earlier stage changed the inputs
         # (the hyper-parameter search calls this for every trial value).
-        g = fill_reference_gaps(inp.t_s, inp.gref, data.run_id) if inp.gref_moved else data.gref_filled
+        g = fill_reference_gaps(inp.t_s, inp.gref, data.runs()) if inp.gref_moved else data.gref_filled
         P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
         psi_hat = g @ P.T + q
         psi_f = np.empty_like(psi_hat)  # the runs cover every sample

@@ -171,7 +171,7 @@ def test_cli_writes_report_yaml_and_plots(tmp_path: Path) -> None:
     rows = ["t_s,ref_counts,x_counts,y_counts,z_counts,gref_x_mps2,gref_y_mps2,gref_z_mps2,temperature_c,pose"]
     from fbg_accel_calibration.effects import fill_reference_gaps
 
-    g = fill_reference_gaps(rec.t_s, rec.gref_mps2, rec.run_id)  # moving rows: interpolated angles
+    g = fill_reference_gaps(rec.t_s, rec.gref_mps2, [slice(None)])  # one run; moving rows: interpolated angles
     for i in range(len(rec)):
         rows.append(f"{rec.t_s[i]:.3f},{rec.ref[i]:.3f},{rec.xyz[i, 0]:.3f},{rec.xyz[i, 1]:.3f},{rec.xyz[i, 2]:.3f},"
                     f"{g[i, 0]:.6f},{g[i, 1]:.6f},{g[i, 2]:.6f},{rec.temp_c[i]:.3f},{rec.pose_id[i]}")
