@@ -866,15 +866,21 @@ class Evaluator:
             self._hyper_memo[key] = out
         return out
 
-    def _fit_hyper(self, spec: ModelSpec, eff: Effect) -> tuple[float | None, np.ndarray, list[tuple[float, float]]]:
+    def nested_heldout(self, spec: ModelSpec, eff: Effect) -> np.ndarray:
+        """The held-out residual (N, 3) of :meth:`fit_hyper` alone: the final value is not worked out (its
+        refinement on all rows, which the held-out residual does not depend on, is skipped)."""
+        return self._fit_hyper(spec, eff, final=False)[1]
+
+    def _fit_hyper(self, spec: ModelSpec, eff: Effect,
+                   final: bool = True) -> tuple[float | None, np.ndarray, list[tuple[float, float]]]:
         if eff.hyper_grid(self.data) is None:
             _, cvr = self.cv(spec.plus(eff, None))
             return None, cvr.heldout, []
         if self.thin is None:
-            return self._search(spec, eff)[:3]
+            return self._search(spec, eff, final)[:3]
         # searched on the thinned samples; each fold's held-out residual on all samples, at the value the
         # search chose for that fold (nested as before: the choice never saw the fold)
-        h_best, _, profile, choice = self.thin._search(spec, eff)
+        h_best, _, profile, choice = self.thin._search(spec, eff, final)
         heldout = np.full((len(self.folds), 3), np.nan)
         for h in dict.fromkeys(float(v) for v in choice if np.isfinite(v)):
             cvr = self.cv(spec.plus(eff, h))[1]
@@ -883,8 +889,10 @@ class Evaluator:
                 heldout[fold] = cvr.heldout[fold]
         return h_best, heldout, profile
 
-    def _search(self, spec: ModelSpec, eff: Effect) -> tuple[float, np.ndarray, list[tuple[float, float]], np.ndarray]:
-        """:meth:`fit_hyper` on this evaluator's samples, plus the value chosen for each fold (K,)."""
+    def _search(self, spec: ModelSpec, eff: Effect,
+                final: bool = True) -> tuple[float, np.ndarray, list[tuple[float, float]], np.ndarray]:
+        """:meth:`fit_hyper` on this evaluator's samples, plus the value chosen for each fold (K,). ``final``
+        False: the value returned is the best grid value, not refined (see :meth:`nested_heldout`)."""
         grid = eff.hyper_grid(self.data)
         K = int(self.folds[self.rows].max()) + 1
         fold_rows = [self.rows & (self.folds == f) for f in range(K)]
@@ -920,6 +928,8 @@ class Evaluator:
         lo = grid[max(j - 1, 0)]
         hi = grid[min(j + 1, len(grid) - 1)]
         h_best = float(grid[j])
+        if not final:
+            return h_best, heldout[use_ok], profile, choice[use_ok]
 
         def obj(h: float) -> float:
             try:
@@ -1263,7 +1273,7 @@ def _confounding(ev: Evaluator, spec: ModelSpec, sig: list[CandidateResult], alp
         # with the other alone at its final hyper-parameter, as the forward selection does
         b_ho = ev.cv(spec.plus(eb, b.hyper))[1].heldout
         _, ho_b_on_a, _ = ev.fit_hyper(spec.plus(ea, a.hyper), eb, remember=True)  # evaluated again next step
-        _, ho_a_on_b, _ = ev.fit_hyper(spec.plus(eb, b.hyper), ea)
+        ho_a_on_b = ev.nested_heldout(spec.plus(eb, b.hyper), ea)
         rows = ev.rows.copy()
         for arr in (a_ho, b_ho, ho_b_on_a, ho_a_on_b):
             rows &= np.all(np.isfinite(arr), axis=1)
