@@ -53,6 +53,7 @@ from .effects import (
     DiagnosisData,
     Effect,
     Inputs,
+    finite_rows,
     motion_groups,
     separating_measurement,
 )
@@ -88,8 +89,8 @@ def prepare_data(rec: Recording, static: str = "table") -> DiagnosisData:
     """
     if static not in SAMPLE_SELECTIONS:
         raise ValueError(f"static must be one of {SAMPLE_SELECTIONS}, got {static!r}")
-    finite = np.all(np.isfinite(rec.gref_mps2), axis=1) & np.isfinite(rec.ref) & (rec.ref > 0)
-    finite &= np.all(np.isfinite(rec.xyz), axis=1) & np.isfinite(rec.temp_c)
+    finite = finite_rows(rec.gref_mps2) & np.isfinite(rec.ref) & (rec.ref > 0)
+    finite &= finite_rows(rec.xyz) & np.isfinite(rec.temp_c)
     if static == "all":
         use = finite & (motion_groups(rec.pose_id, rec.run_id) >= 0)
     elif static == "detector":
@@ -140,13 +141,6 @@ class Design:
 
 def _transforms_inputs(eff: Effect) -> bool:
     return type(eff).transform is not Effect.transform
-
-
-def _finite_rows(a: np.ndarray) -> np.ndarray:
-    """Rows of ``a`` (N, k) with every value finite (a row sum is finite exactly then, for values far below
-    the float range, as here: counts, m/s^2, powers of a scaled temperature)."""
-    with np.errstate(invalid="ignore", over="ignore"):
-        return np.isfinite(a.sum(axis=1))
 
 
 class DesignCache:
@@ -233,7 +227,7 @@ def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None
             eff.transform(data, inp, h)
         part = inp if sub is None else inp.at(sub)  # the design's rows, for what is computed row by row
         base = design_matrix(part.psi, (part.temp_c - spec.t_center_c) / spec.t_scale_c, spec.degree)
-        base_ok = part.valid & _finite_rows(base) & _finite_rows(part.gref)
+        base_ok = part.valid & finite_rows(base) & finite_rows(part.gref)
         if cache is not None:
             cache.put(key, (inp, part, base, base_ok))
     else:
@@ -255,7 +249,7 @@ def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None
     valid = base_ok.copy()
     for c, sl in zip(extra, blocks.values(), strict=True):
         X[:, sl] = c
-        valid &= _finite_rows(c)
+        valid &= finite_rows(c)
     return Design(X, gref, valid, blocks, n_base)
 
 
@@ -311,7 +305,7 @@ def check_folds(data: DiagnosisData, groups: np.ndarray, folds: np.ndarray) -> t
     index becomes -2 (kept in every training set and the final fit, excluded from the held-out
     figures), with a note.
     """
-    rows = data.use & (folds >= 0) & np.all(np.isfinite(data.gref), axis=1)
+    rows = data.use & (folds >= 0) & finite_rows(data.gref)
     ug, inv = np.unique(groups[rows], return_inverse=True)
     if len(ug) == 0:
         return folds, []
@@ -508,7 +502,7 @@ def within_visit_sigma(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
     (dof n - 2 per visit, n - 1 if its samples share one time, 0 for a single sample), so that slow
     changes within a visit (temperature ramps, drift) do not count as noise.
     """
-    r = rows & np.all(np.isfinite(res), axis=1)
+    r = rows & finite_rows(res)
     if not r.any():
         return np.full(3, np.nan)
     ug, _, means, slope, tmean, dof, _ = _visit_line(res, groups, r, t_s)
@@ -564,7 +558,7 @@ def settling_transient(res: np.ndarray, t_s: np.ndarray, groups: np.ndarray, row
     visits shorter than 3 K samples are not used. ``settle_s`` and ``n_dropped`` are left at 0 (set by
     the caller once the window is chosen).
     """
-    r = rows & np.all(np.isfinite(res), axis=1)
+    r = rows & finite_rows(res)
     idx = np.flatnonzero(r)
     empty = SettlingTransient(0.0, 0, 0, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(3), np.nan,
                               False, False, np.zeros(3))
@@ -696,14 +690,14 @@ def reselect_degree(ev: Evaluator, spec: ModelSpec, max_degree: int) -> tuple[Mo
         except NotIdentifiedError as exc:
             scores.append(DegreeScores(n, False, nan3, nan3, nan3, f"not identified: {exc}"))
             continue
-        r = ev.rows & des.valid & np.all(np.isfinite(cv.heldout), axis=1)
+        r = ev.rows & des.valid & finite_rows(cv.heldout)
         ho = np.sqrt(np.mean(cv.heldout[r] ** 2, axis=0))
         ins = np.sqrt(np.mean((des.G - cv.fitted_full)[r] ** 2, axis=0))
         level_ho = nan3
         if by_level:
             try:
                 lv = cross_validate(des, level_rows, labels, ev.weights).heldout
-                rl = level_rows & des.valid & np.all(np.isfinite(lv), axis=1)
+                rl = level_rows & des.valid & finite_rows(lv)
                 level_ho = np.sqrt(np.mean(lv[rl] ** 2, axis=0))
             except NotIdentifiedError:  # a fold without one level cannot fit this degree
                 pass
@@ -742,7 +736,7 @@ class CandidateResult:
 
 
 def _group_mse(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    r = rows & np.all(np.isfinite(res), axis=1)
+    r = rows & finite_rows(res)
     ug, inv = np.unique(groups[r], return_inverse=True)
     e = np.sum(res[r] ** 2 * weights, axis=1)
     return ug, np.bincount(inv, weights=e) / np.bincount(inv)
@@ -758,7 +752,7 @@ def paired_gain_test(res0: np.ndarray, res1: np.ndarray, groups: np.ndarray, row
     t-test over the groups instead (df n - 1; it has power on small designs but assumes normally distributed
     per-group differences), and the detectable gain is the relative gain it finds with 80 % power at ``alpha``
     given the scatter of these differences (NaN where the signed-rank test is used)."""
-    r = rows & np.all(np.isfinite(res0), axis=1) & np.all(np.isfinite(res1), axis=1)
+    r = rows & finite_rows(res0) & finite_rows(res1)
     _, m0 = _group_mse(res0, groups, r, weights)
     _, m1 = _group_mse(res1, groups, r, weights)
     d = m0 - m1
@@ -975,7 +969,7 @@ class Evaluator:
         except NotIdentifiedError as exc:  # the data cannot tell its columns from the model's: say so
             out.applicable, out.reason = False, f"not identified on this data: {exc}"
             return out
-        r = self.rows & des.valid & np.all(np.isfinite(heldout), axis=1) & np.all(np.isfinite(base_heldout), axis=1)
+        r = self.rows & des.valid & finite_rows(heldout) & finite_rows(base_heldout)
         gain, p, ng, out.detectable_gain = paired_gain_test(base_heldout, heldout, self.groups, r, self.weights, alpha)
         # what the candidate explains of the current residual (reference changes count too: delay, TIA)
         delta = (self.base_G - des.G) + (cvr.fitted_full - base_fitted)
@@ -1217,7 +1211,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         sl = des_f.blocks[name]
         fitted_sensor -= des_f.X[:, sl] @ cv_f.A_full[sl]
     consistency = _consistency(cal, data, fitted_sensor, rows_f)
-    r_eval = rows_f & np.all(np.isfinite(residual_before), axis=1) & np.all(np.isfinite(cv_f.heldout), axis=1)
+    r_eval = rows_f & finite_rows(residual_before) & finite_rows(cv_f.heldout)
     before_ho = np.sqrt(np.mean(residual_before[r_eval] ** 2, axis=0))
     after_ho = np.sqrt(np.mean(cv_f.heldout[r_eval] ** 2, axis=0))
     before_in = np.sqrt(np.mean(res0[r_eval] ** 2, axis=0))
@@ -1276,10 +1270,10 @@ def _confounding(ev: Evaluator, spec: ModelSpec, sig: list[CandidateResult], alp
         ho_a_on_b = ev.nested_heldout(spec.plus(eb, b.hyper), ea)
         rows = ev.rows.copy()
         for arr in (a_ho, b_ho, ho_b_on_a, ho_a_on_b):
-            rows &= np.all(np.isfinite(arr), axis=1)
+            rows &= finite_rows(arr)
         g_b, p_b = paired_gain_test(a_ho, ho_b_on_a, ev.groups, rows, ev.weights, alpha_each)[:2]
         g_a, p_a = paired_gain_test(b_ho, ho_a_on_b, ev.groups, rows, ev.weights, alpha_each)[:2]
-        r = rows & np.all(np.isfinite(a.delta), axis=1) & np.all(np.isfinite(b.delta), axis=1)
+        r = rows & finite_rows(a.delta) & finite_rows(b.delta)
         cc = _corr((a.delta[r] * np.sqrt(ev.weights)).ravel(), (b.delta[r] * np.sqrt(ev.weights)).ravel())
         b_adds = p_b < alpha_each and g_b >= min_rel_gain
         a_adds = p_a < alpha_each and g_a >= min_rel_gain
@@ -1392,14 +1386,14 @@ def _consistency(cal: ThermalCalibration, data: DiagnosisData, fitted: np.ndarra
 
 def _moving_residual(data: DiagnosisData, cal: ThermalCalibration) -> np.ndarray | None:
     """RMS (3,) of calibrated output minus the gap-filled reference on samples not used (moving, settling)."""
-    m = ~data.use & np.all(np.isfinite(data.gref_filled), axis=1)
+    m = ~data.use & finite_rows(data.gref_filled)
     if m.sum() < 3:
         return None
     out = np.full((len(data.t_s), 3), np.nan)
     for idx in data.runs():
         out[idx] = cal.apply_counts(data.ref[idx], data.xyz[idx], data.temp_c[idx], data.t_s[idx], cal.new_state())
     d = out[m] - data.gref_filled[m]
-    d = d[np.all(np.isfinite(d), axis=1)]
+    d = d[finite_rows(d)]
     return np.sqrt(np.mean(d**2, axis=0)) if len(d) else None
 
 
@@ -1428,7 +1422,7 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
     effective sample count of each pose (lag-1 autocorrelation of the within-pose residual).
     Significant = p < ``alpha`` on some axis AND the held-out RMSE exceeds ``ratio_limit`` x floor.
     """
-    r = rows & np.all(np.isfinite(res), axis=1)
+    r = rows & finite_rows(res)
     rho = _lag1(res, groups, r)
     ug, inv = np.unique(groups[r], return_inverse=True)
     cnt = np.bincount(inv)

@@ -169,13 +169,27 @@ def visit_ids(pose_id: np.ndarray, run_id: np.ndarray) -> np.ndarray:
     return motion_groups(label, run_id)
 
 
+def finite_rows(a: np.ndarray) -> np.ndarray:
+    """Rows (N,) of ``a`` (N, k) whose values are all finite (``np.all(np.isfinite(a), axis=1)``, exactly). Column by
+    column where the columns are few or contiguous: numpy reduces along a short row axis ~8x slower (15 ms
+    against 2 ms for 10^6 x 3 values), and the diagnosis asks this of every design and residual."""
+    if a.ndim == 1:
+        return np.isfinite(a)
+    if a.shape[1] == 0 or (a.shape[1] > 4 and not a.flags.f_contiguous):
+        return np.all(np.isfinite(a), axis=1)
+    out = np.isfinite(a[:, 0])
+    for j in range(1, a.shape[1]):
+        out &= np.isfinite(a[:, j])
+    return out
+
+
 def fill_reference_gaps(t_s: np.ndarray, gref: np.ndarray, runs: list[slice | np.ndarray]) -> np.ndarray:
     """Reference (N, 3) with NaN gaps linearly interpolated in time within each run (``runs``: the samples of
     each run, ``DiagnosisData.runs``); a run without gaps is copied as it is."""
     out = np.array(gref, dtype=float, copy=True)
     for idx in runs:
         g = out[idx]
-        ok = np.all(np.isfinite(g), axis=1)
+        ok = finite_rows(g)
         if ok.all() or ok.sum() < 2:
             continue
         t = t_s[idx]
@@ -199,8 +213,13 @@ class Inputs:
 
     @property
     def psi(self) -> np.ndarray:
+        return self.normalised(self.xyz, self.ref)
+
+    @staticmethod
+    def normalised(xyz: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        """Psi (N, 3) of eq. 24: the axis counts over the reference counts (NaN where the reference is not > 0)."""
         with np.errstate(divide="ignore", invalid="ignore"):
-            return self.xyz / np.where(self.ref > 0, self.ref, np.nan)[:, None]
+            return xyz / np.where(ref > 0, ref, np.nan)[:, None]
 
     @classmethod
     def of(cls, data: DiagnosisData) -> Inputs:
@@ -513,7 +532,7 @@ class TiaLowpassEffect(Effect):
             for j in range(3):
                 psi_f[idx, j] = first_order_lowpass(psi_hat[idx, j], inp.t_s[idx], tau[j + 1], {})
         inp.gref = g + (psi_f - psi_hat) @ np.linalg.inv(P).T  # P is 3 x 3: one product, not a solve with N sides
-        inp.valid &= np.all(np.isfinite(inp.gref), axis=1)
+        inp.valid &= finite_rows(inp.gref)
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
         return [ChainDynamics(self.taus(float(h)), 0.0)]
@@ -526,10 +545,12 @@ class TiaLowpassEffect(Effect):
 def expected_psi_map(data: DiagnosisData, inp: Inputs) -> tuple[np.ndarray, np.ndarray]:
     """Linear map Psi ~ P g + q (P (3, 3), q (3,)) fitted on the static samples (eq. 25 inverted):
     the noise-free Psi the sensor shows for a reference g."""
-    psi = inp.psi
-    rows = data.use & np.all(np.isfinite(psi), axis=1) & np.all(np.isfinite(data.gref), axis=1)
-    X = np.column_stack([data.gref[rows], np.ones(int(rows.sum()))])
-    Y = psi[rows]
+    # the static samples with a reference (a constant of the recording), then those with a finite Psi
+    static = data.once("static_with_reference", lambda: np.flatnonzero(data.use & finite_rows(data.gref)))
+    psi = Inputs.normalised(inp.xyz[static], inp.ref[static])
+    ok = finite_rows(psi)
+    X = np.column_stack([data.gref[static[ok]], np.ones(int(ok.sum()))])
+    Y = psi[ok]
     try:  # 4 x 4 normal equations (well conditioned: |g| ~ 9.8 m/s^2 against 1), not an SVD of the N x 4 matrix
         coef = np.linalg.solve(X.T @ X, X.T @ Y)
     except np.linalg.LinAlgError:  # the reference never changes direction: the minimum-norm solution
