@@ -171,8 +171,8 @@ def visit_ids(pose_id: np.ndarray, run_id: np.ndarray) -> np.ndarray:
 
 def finite_rows(a: np.ndarray) -> np.ndarray:
     """Rows (N,) of ``a`` (N, k) whose values are all finite (``np.all(np.isfinite(a), axis=1)``, exactly). Column by
-    column where the columns are few or contiguous: numpy reduces along a short row axis ~8x slower (15 ms
-    against 2 ms for 10^6 x 3 values), and the diagnosis asks this of every design and residual."""
+    column where the columns are few or contiguous: numpy's reduction along a short row axis is several times
+    slower, and the diagnosis asks this of every design and residual."""
     if a.ndim == 1:
         return np.isfinite(a)
     if a.shape[1] == 0 or (a.shape[1] > 4 and not a.flags.f_contiguous):
