@@ -729,7 +729,6 @@ class CandidateResult:
     significant: bool = False
     detail: str = ""
     delta: np.ndarray | None = None  # (N, 3) change of the in-sample prediction vs the current model (float32)
-    heldout: np.ndarray | None = None  # (N, 3)
     cross_correlation_delay_s: float | None = None
     implausible: str = ""  # why the fitted values are not physical (then never significant, never added)
     detectable_gain: float = math.nan  # small campaigns: gain the paired t-test finds with 80 % power
@@ -984,7 +983,7 @@ class Evaluator:
         out.implausible = self.implausible(eff, h, des, cvr)
         if out.implausible:
             out.detail += f"; REFUSED: {out.implausible}"
-        out.delta, out.heldout = delta.astype(np.float32), heldout  # delta: for the plots and a correlation only
+        out.delta = delta.astype(np.float32)  # for the plots and a correlation only
         if eff.name == "channel_delay":
             out.cross_correlation_delay_s = cross_correlation_delay(self.data, base_fitted)
         return out
@@ -1169,9 +1168,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         sig = [r for r in results if r.significant]
         conf = _confounding(ev, spec, sig, alpha_each, min_rel_gain, library) if len(sig) >= 2 else []
         chosen = sig[0].name if sig else None
-        for r in results:  # per-sample arrays (N, 3) are kept only where the report plots them: first step's deltas
-            r.heldout = None
-            if steps:
+        if steps:  # per-sample arrays (N, 3) are kept only where the report plots them: first step's deltas
+            for r in results:
                 r.delta = None
         steps.append(StepResult(len(steps) + 1, spec.names, results, chosen, alpha_each, conf))
         if chosen is None:
