@@ -721,7 +721,6 @@ class CandidateResult:
     hyper: float | None = None
     hyper_profile: list[tuple[float, float]] = field(default_factory=list)  # (h, weighted RSS)
     heldout_rmse: np.ndarray | None = None  # (3,)
-    base_heldout_rmse: np.ndarray | None = None  # (3,)
     rel_gain: float = 0.0  # fraction of the weighted held-out MSE removed
     p_value: float = 1.0
     n_groups: int = 0
@@ -975,7 +974,6 @@ class Evaluator:
         corr = np.array([_corr(base_heldout[r, j], delta[r, j]) for j in range(3)])
         out.hyper, out.hyper_profile = h, profile
         out.heldout_rmse = np.sqrt(np.mean(heldout[r] ** 2, axis=0))
-        out.base_heldout_rmse = np.sqrt(np.mean(base_heldout[r] ** 2, axis=0))
         out.rel_gain, out.p_value, out.n_groups = gain, p, ng
         out.corr_with_residual = corr
         coeff = cvr.A_full[des.blocks[eff.name]].T if eff.name in des.blocks else None
