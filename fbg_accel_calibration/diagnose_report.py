@@ -250,6 +250,25 @@ def text(res: DiagnosisResult) -> str:
 
 
 # ----------------------------------------------------------------------------- plots
+# Samples drawn per scatter series at most; beyond it evenly spaced ones. At 90 dpi a panel is a few hundred
+# pixels wide, so more points show nothing more, and each 10^6-point series costs seconds to draw.
+PLOT_POINTS = 20_000
+
+
+def plotted(mask: np.ndarray) -> np.ndarray:
+    """Indices of the samples of ``mask`` (N,) that a scatter draws: all of them, or ``PLOT_POINTS`` evenly
+    spaced ones (the first and the last included) when there are more."""
+    idx = np.flatnonzero(mask)
+    if len(idx) > PLOT_POINTS:
+        idx = idx[np.linspace(0, len(idx) - 1, PLOT_POINTS).round().astype(int)]
+    return idx
+
+
+def _shown(n_drawn: int, mask: np.ndarray) -> str:
+    n = int(np.count_nonzero(mask))
+    return f" ({n_drawn} of {n} samples drawn, evenly spaced)" if n_drawn < n else ""
+
+
 def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
     import matplotlib
 
@@ -260,6 +279,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     d = res.data
     r = d.use & np.all(np.isfinite(res.residual_before), axis=1)
+    rp = plotted(r)
     written = []
 
     # candidates: residual of the current model (held out) against the candidate's contribution
@@ -268,7 +288,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
             continue
         fig, axs = plt.subplots(1, 4, figsize=(15, 3.6))
         for j in range(3):
-            axs[j].plot(c.delta[r, j], res.residual_before[r, j], ".", ms=2, alpha=0.4)
+            axs[j].plot(c.delta[rp, j], res.residual_before[rp, j], ".", ms=2, alpha=0.4)
             lim = np.nanmax(np.abs(c.delta[r, j])) if np.any(r) else 1
             axs[j].plot([-lim, lim], [-lim, lim], "k--", lw=0.8)
             axs[j].set_xlabel(f"candidate contribution {AXES[j]} [m/s^2]")
@@ -284,7 +304,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
             axs[3].set_ylabel("weighted training RSS")
         else:
             axs[3].axis("off")
-        fig.suptitle(f"{c.name}: held-out gain {100 * c.rel_gain:+.1f} %, p = {_p(c.p_value)}")
+        fig.suptitle(f"{c.name}: held-out gain {100 * c.rel_gain:+.1f} %, p = {_p(c.p_value)}{_shown(len(rp), r)}")
         fig.tight_layout()
         p = out_dir / f"candidate_{c.name}.png"
         fig.savefig(p, dpi=90)
@@ -293,10 +313,10 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
 
     # before / after
     fig, axs = plt.subplots(2, 3, figsize=(15, 6.5))
+    ra = plotted(r & np.all(np.isfinite(res.residual_after), axis=1))
     for j in range(3):
         ax = axs[0, j]
-        ax.plot(d.t_s[r], res.residual_before[r, j], ".", ms=2, alpha=0.5, label="declared model (held out)")
-        ra = r & np.all(np.isfinite(res.residual_after), axis=1)
+        ax.plot(d.t_s[rp], res.residual_before[rp, j], ".", ms=2, alpha=0.5, label="declared model (held out)")
         ax.plot(d.t_s[ra], res.residual_after[ra, j], ".", ms=2, alpha=0.5, label="with added effects (held out)")
         ax.axhline(res.noise_floor[j], color="k", lw=0.6, ls=":")
         ax.axhline(-res.noise_floor[j], color="k", lw=0.6, ls=":")
@@ -304,12 +324,12 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
         ax.set_ylabel(f"residual {AXES[j]} [m/s^2]")
         ax.legend(fontsize=7)
         ax = axs[1, j]
-        ax.plot(d.ref[r], res.residual_before[r, j], ".", ms=2, alpha=0.5, label="declared model")
+        ax.plot(d.ref[rp], res.residual_before[rp, j], ".", ms=2, alpha=0.5, label="declared model")
         ax.plot(d.ref[ra], res.residual_after[ra, j], ".", ms=2, alpha=0.5, label="with added effects")
         ax.set_xlabel("reference counts")
         ax.set_ylabel(f"residual {AXES[j]} [m/s^2]")
     fig.suptitle("held-out residual before/after; dotted: ± noise floor. RMSE x/y/z before "
-                 f"{_v(res.before_heldout_rmse)} -> after {_v(res.after_heldout_rmse)} m/s^2")
+                 f"{_v(res.before_heldout_rmse)} -> after {_v(res.after_heldout_rmse)} m/s^2{_shown(len(rp), r)}")
     fig.tight_layout()
     p = out_dir / "before_after.png"
     fig.savefig(p, dpi=90)

@@ -464,3 +464,20 @@ def test_finite_rows_is_exactly_every_value_of_the_row_finite(k: int, order: str
     a = np.asarray(a, order=order)
     np.testing.assert_array_equal(finite_rows(a), np.all(np.isfinite(a), axis=1))
     np.testing.assert_array_equal(finite_rows(a[:, 0] if k else np.zeros(0)), np.isfinite(a[:, 0]) if k else np.zeros(0, bool))
+
+
+def test_scatters_draw_at_most_plot_points_evenly_spaced() -> None:
+    """A report on 10^6 samples draws each scatter series from PLOT_POINTS evenly spaced samples (first and last
+    included); a smaller selection is drawn whole."""
+    from fbg_accel_calibration.diagnose_report import PLOT_POINTS, plotted
+
+    mask = np.zeros(10 * PLOT_POINTS, bool)
+    mask[::3] = True
+    idx = plotted(mask)
+    chosen = np.flatnonzero(mask)
+    assert len(idx) == PLOT_POINTS and idx[0] == chosen[0] and idx[-1] == chosen[-1]
+    assert mask[idx].all() and np.all(np.diff(idx) > 0)
+    assert np.ptp(np.diff(idx)) <= 3  # every 1.67th selected sample: gaps of 3 or 6
+    small = np.zeros(100, bool)
+    small[5:50] = True
+    np.testing.assert_array_equal(plotted(small), np.arange(5, 50))
