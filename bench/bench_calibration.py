@@ -11,7 +11,8 @@ Not a test. Steps (wall clock, one process, numpy may use both cores for its BLA
 * ``fit``: ``fit_thermal(rec, degree)`` (static detector, temperature levels, streamed least
   squares, RMSE, noise floor): what ``fbg-accel-calib fit`` does after reading; best of ``--repeats``;
 * ``diagnose``: ``diagnose(rec)`` (degree selection, cross-validated effect library, residual
-  structure): what the diagnosis command does after reading; once;
+  structure): what the diagnosis command does after reading; once; then, timed apart
+  (``report_seconds``), the Markdown report with its plots that the command writes;
 * ``mcap_write``: the recorder's ``RecordingWriter`` (via ``write_recording``: one ``write_raw`` per
   sample plus pose and reference-gravity events at pose changes, zstd chunks, as the calibration node
   writes them) for ``--mcap-samples`` samples (default 10^6); messages/s and MB/s of file written,
@@ -52,6 +53,7 @@ sys.path.insert(0, str(ROOT))
 from machine_info import machine  # noqa: E402
 
 from fbg_accel_calibration.diagnose import diagnose  # noqa: E402
+from fbg_accel_calibration.diagnose_report import write_report  # noqa: E402
 from fbg_accel_calibration.mcap_io import read_recording, write_recording  # noqa: E402
 from fbg_accel_calibration.thermal_fit import fit_thermal  # noqa: E402
 from fbg_accel_driver.frame_codec import link_frame_rate_limit  # noqa: E402
@@ -181,7 +183,12 @@ def main(argv: list[str] | None = None) -> int:
             steps["diagnose"]["profile_top"] = profile_top(profiler)
         if memory is not None:
             steps["diagnose"]["memory_at_peak"] = memory
-        print(f"diagnose: {sec:.1f} s, added {steps['diagnose']['added']}", flush=True)
+        with tempfile.TemporaryDirectory(prefix="bench_report_") as tmp:
+            t0 = time.perf_counter()
+            write_report(res, Path(tmp) / "diagnosis.md")  # what the command writes after the diagnosis
+            steps["diagnose"]["report_seconds"] = time.perf_counter() - t0
+        print(f"diagnose: {sec:.1f} s, added {steps['diagnose']['added']}; report and plots "
+              f"{steps['diagnose']['report_seconds']:.1f} s", flush=True)
 
     link_msgs = link_frame_rate_limit(921600)
     if args.mcap_samples:

@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
             subprocess.run(cmd, check=True)
             step = json.loads(out.read_text())["steps"]["diagnose"]
             runs[str(n)] = {"diagnose_seconds": round(step["seconds"], 2), "peak_rss_mib": round(step["peak_rss_mib"]),
-                            "added": step["added"]}
+                            "added": step["added"], "report_seconds": round(step["report_seconds"], 2)}
             print(f"{n}: {runs[str(n)]}", flush=True)
     sizes = sorted(int(k) for k in runs)
     pairs = [*itertools.pairwise(sizes), *([(sizes[0], sizes[-1])] if len(sizes) > 2 else [])]
@@ -53,7 +53,8 @@ def main(argv: list[str] | None = None) -> int:
         for a, b in pairs}
     doc = {"command": ".venv/bin/python bench/diagnose_scaling.py " + " ".join(argv if argv is not None else sys.argv[1:]),
            "what": "bench_calibration.py --samples N --mcap-samples 0 --repeats 1 (--degree 0 below 10^6), one process "
-                   "per size; diagnose step only (simulation and fit not counted in the time, counted in the peak RSS)",
+                   "per size; diagnose step only (simulation and fit not counted in the time, counted in the peak RSS); "
+                   "report_seconds: the Markdown report and its plots written after it",
            "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "runs": runs, "growth_exponent": growth,
            "machine": machine()}
     args.output.write_text(json.dumps(doc, indent=1) + "\n")
