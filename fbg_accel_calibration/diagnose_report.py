@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .diagnose import FULL_SCALE_MPS2, CandidateResult, DiagnosisResult
-from .effects import library_by_name
+from .effects import finite_rows, library_by_name
 
 AXES = "xyz"
 
@@ -278,7 +278,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     d = res.data
-    r = d.use & np.all(np.isfinite(res.residual_before), axis=1)
+    r = d.use & finite_rows(res.residual_before)
     rp = plotted(r)
     written = []
 
@@ -313,7 +313,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
 
     # before / after
     fig, axs = plt.subplots(2, 3, figsize=(15, 6.5))
-    ra = plotted(r & np.all(np.isfinite(res.residual_after), axis=1))
+    ra = plotted(r & finite_rows(res.residual_after))
     for j in range(3):
         ax = axs[0, j]
         ax.plot(d.t_s[rp], res.residual_before[rp, j], ".", ms=2, alpha=0.5, label="declared model (held out)")

@@ -82,19 +82,19 @@ class DiagnosisData:
     gref_filled: np.ndarray = field(default=None)  # type: ignore[assignment]
     group: np.ndarray = field(default=None)  # type: ignore[assignment]  # visit label (``visit_ids``)
 
-    _psi_map: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
-    _runs: list[slice | np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
     _memo: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def runs(self) -> list[slice | np.ndarray]:
         """The samples of each run, together every sample (computed once; every filter restarts at a run's first
         sample): a slice where the run is contiguous, as runs are (indexing gives views, not copies), else indices."""
-        if self._runs is None:
-            self._runs = []
+        def find() -> list[slice | np.ndarray]:
+            out: list[slice | np.ndarray] = []
             for r in np.unique(self.run_id):
                 idx = np.flatnonzero(self.run_id == r)
-                self._runs.append(slice(int(idx[0]), int(idx[-1]) + 1) if idx[-1] - idx[0] + 1 == len(idx) else idx)
-        return self._runs
+                out.append(slice(int(idx[0]), int(idx[-1]) + 1) if idx[-1] - idx[0] + 1 == len(idx) else idx)
+            return out
+
+        return self.once("runs", find)
 
     def once(self, key: str, compute: Callable[[], Any]) -> Any:
         """``compute()`` the first time ``key`` is asked for, the kept value after (a constant of the recording)."""
@@ -104,9 +104,7 @@ class DiagnosisData:
 
     def static_psi_map(self) -> tuple[np.ndarray, np.ndarray]:
         """``expected_psi_map`` of the recorded counts (computed once)."""
-        if self._psi_map is None:
-            self._psi_map = expected_psi_map(self, Inputs.of(self))
-        return self._psi_map
+        return self.once("static_psi_map", lambda: expected_psi_map(self, Inputs.of(self)))
 
     def __post_init__(self) -> None:
         if self.gref_filled is None:
@@ -405,12 +403,8 @@ class SpectralNonlinearityEffect(Effect):
     title = "acceleration non-linearity of the spectral overlap"
 
     def _psi0(self, data: DiagnosisData) -> np.ndarray:
-        def mean_psi() -> np.ndarray:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                psi = data.xyz[data.use] / data.ref[data.use, None]
-            return np.nanmean(psi, axis=0)
-
-        return data.once("mean_static_psi", mean_psi)
+        return data.once("mean_static_psi",
+                         lambda: np.nanmean(Inputs.normalised(data.xyz[data.use], data.ref[data.use]), axis=0))
 
     def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
         return quadratic_features(inp.psi, self._psi0(data))

@@ -67,7 +67,6 @@ from fbg_accel_driver.driver_core import RAW_AUX_NAME, RAW_NAMES
 from . import ros2_cdr
 from .input_files import MCAP_MAGIC
 from .recording import Recording
-from .ros2_cdr import FixedJointStateCodec
 from .rosbag2_input import BagInputError, bag_files, offered_qos_yaml
 
 LOG = logging.getLogger(__name__)
@@ -384,8 +383,8 @@ class RecordingWriter:
         for topic, datatype in ((TOPIC_RAW, TYPE_RAW), (TOPIC_TEMPERATURE, TYPE_TEMPERATURE),
                                 (TOPIC_REFERENCE_GRAVITY, TYPE_REFERENCE_GRAVITY), (TOPIC_POSE, TYPE_POSE)):
             self._register(topic, datatype)
-        self._raw_codec = FixedJointStateCodec(frame_id, RAW_NAMES)
-        self._aux_codec: FixedJointStateCodec | None = None  # imu/raw with aux_counts (created when first needed)
+        self._raw_codec = ros2_cdr.FixedJointStateCodec(frame_id, RAW_NAMES)
+        self._aux_codec: ros2_cdr.FixedJointStateCodec | None = None  # imu/raw with aux_counts (created when first needed)
         if metadata:
             self.add_metadata("run", metadata)
 
@@ -416,7 +415,7 @@ class RecordingWriter:
                   float(status), float(seq), float(stamp_ns) * 1e-9 if board_time_s is None else float(board_time_s)]
         if aux_counts is not None:
             if self._aux_codec is None:
-                self._aux_codec = FixedJointStateCodec(self.frame_id, (*RAW_NAMES, RAW_AUX_NAME))
+                self._aux_codec = ros2_cdr.FixedJointStateCodec(self.frame_id, (*RAW_NAMES, RAW_AUX_NAME))
             self._write(TOPIC_RAW, stamp_ns, self._aux_codec.encode(stamp_ns, [*values, float(aux_counts)]))
             return
         self._write(TOPIC_RAW, stamp_ns, self._raw_codec.encode(stamp_ns, values))
@@ -867,7 +866,7 @@ class McapSampleStream:
     (``with_poses=True``) assign them per block. State between passes: the pose, reference and
     (only for raw messages without a temperature field) temperature events, O(poses) values.
 
-    ``imu/raw`` messages in the fixed layout of :class:`FixedJointStateCodec` are split out of each
+    ``imu/raw`` messages in the fixed layout of :class:`ros2_cdr.FixedJointStateCodec` are split out of each
     decompressed chunk with one numpy view per run of equal records (no Python object per message);
     other messages go through the ``mcap_ros2`` decoder. A truncated file is read up to its last
     complete chunk; ``report`` tells what the last pass read.
@@ -943,7 +942,7 @@ class McapSampleStream:
                     raise McapRecordingError(f"{path}: {channel.topic} message has {len(msg.position)} values "
                                              f"for {len(names)} names")
                 if codec is None:
-                    _set_fast(fast, channel_id, FixedJointStateCodec(msg.header.frame_id, names))
+                    _set_fast(fast, channel_id, ros2_cdr.FixedJointStateCodec(msg.header.frame_id, names))
                 return (np.asarray([_stamp_ns(msg.header)], dtype=np.int64),
                         np.asarray(msg.position, dtype=float).reshape(1, -1))
             if collect_events and role is not None:
@@ -1154,7 +1153,7 @@ def _note_record(rec: Any, schemas: dict[int, Schema], channels: dict[int, Chann
         report.metadata[rec.name] = dict(rec.metadata)
 
 
-def _set_fast(fast: dict[str, Any], channel_id: int, codec: FixedJointStateCodec) -> None:
+def _set_fast(fast: dict[str, Any], channel_id: int, codec: ros2_cdr.FixedJointStateCodec) -> None:
     """Record layout of one fixed-layout raw message inside a chunk (opcode, length, message header, CDR)."""
     words = len(codec.middle) // 8  # the middle (frame_id, names) ends 8-aligned: compare it as uint64 words
     msg = np.dtype([("enc", "<u4"), ("sec", "<i4"), ("nanosec", "<u4"), ("mid", "<u8", (words,)),
