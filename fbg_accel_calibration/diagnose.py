@@ -158,6 +158,7 @@ class DesignCache:
         self.size, self.prefixes = size, prefixes
         self._entries: OrderedDict[tuple, tuple[Inputs, Inputs, np.ndarray, np.ndarray]] = OrderedDict()
         self._prefix: OrderedDict[tuple, Inputs] = OrderedDict()
+        self._taken: OrderedDict[tuple, tuple[np.ndarray, np.ndarray]] = OrderedDict()
 
     def get(self, key: tuple) -> tuple[Inputs, Inputs, np.ndarray, np.ndarray] | None:
         hit = self._entries.get(key)
@@ -184,6 +185,21 @@ class DesignCache:
                 self._prefix.move_to_end(names[:n])
                 return n, _private(hit)
         return 0, None
+
+    def take(self, a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """``a[idx]`` (``idx``: the rows of the cache's designs, the same on every call), kept for a read-only ``a``
+        (the recorded inputs, a correction a search repeats unchanged, ``DiagnosisData.recent``) while it is among
+        the last few such arrays asked for: most trials of a search change one input array and share the rest."""
+        if a.flags.writeable:
+            return a[idx]
+        key = (a.__array_interface__["data"][0], a.shape, a.strides, a.dtype.str)  # the same memory, read-only
+        hit = self._taken.get(key)
+        if hit is None:
+            hit = self._taken[key] = (a, a[idx])  # a is kept: its memory cannot be reused for another array
+            while len(self._taken) > 8:
+                self._taken.popitem(last=False)
+        self._taken.move_to_end(key)
+        return hit[1]
 
     def put_prefix(self, names: tuple, inp: Inputs) -> None:
         self._prefix[names] = _private(inp)
@@ -225,7 +241,7 @@ def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None
                 cache.put_prefix(names[:i], inp)  # all but the last: what a search over the last one repeats
             eff, h = corrections[i]
             eff.transform(data, inp, h)
-        part = inp if sub is None else inp.at(sub)  # the design's rows, for what is computed row by row
+        part = inp if sub is None else inp.at(sub, None if cache is None else lambda a: cache.take(a, sub))  # the design's rows
         base = design_matrix(part.psi, (part.temp_c - spec.t_center_c) / spec.t_scale_c, spec.degree)
         base_ok = part.valid & finite_rows(base) & finite_rows(part.gref)
         if cache is not None:
@@ -676,7 +692,8 @@ def reselect_degree(ev: Evaluator, spec: ModelSpec, max_degree: int) -> tuple[Mo
     labels[data.use], means = temperature_levels(data.temp_c[data.use])
     n_levels = max(len(means), 1)
     by_level = n_levels >= 2
-    level_rows = data.use & (labels >= 0)
+    labels = ev.at(labels)
+    level_rows = ev.at(data.use) & (labels >= 0)
     nan3 = np.full(3, np.nan)
     scores: list[DegreeScores] = []
     group_mse: dict[int, np.ndarray] = {}
@@ -787,29 +804,27 @@ def cross_correlation_delay(data: DiagnosisData, fitted: np.ndarray, max_lag: in
     return (best_lag + frac) * data.dt_s
 
 
-SEARCH_ROWS = 100_000  # fitted samples above which hyper-parameters are searched on every k-th one
+SEARCH_ROWS = 100_000  # fitted samples above which the candidates are evaluated on every k-th one
 
 
 class Evaluator:
     """Evaluates specs on one recording with fixed folds, rows and noise weights (cached designs).
 
     ``sub`` (sample indices): evaluate on those samples only (designs, folds, groups and held-out arrays are
-    then of that length). ``search_rows``: with more fitted samples than this, hyper-parameters are searched
-    on every k-th fitted sample (``self.thin``, about ``search_rows`` of them) and only the values the
-    search chose are cross-validated on all samples (``fit_hyper``): consecutive samples of a visit are
-    strongly correlated (TIA-filtered noise), so the thinned set carries nearly all the information
-    that decides a hyper-parameter, at a fraction of the cost.
+    then of that length; the input corrections still run on the whole time series). ``search_rows``: with
+    more fitted samples than this, ``self.thin`` is an evaluator of every k-th fitted sample (about
+    ``search_rows`` of them), on which ``diagnose`` evaluates the candidates and chooses the model (hyper-
+    parameters, held-out gains, tests over the same visits); the chosen model is then fitted and reported on
+    all samples. Consecutive samples of a visit are strongly correlated (TIA-filtered noise), so the thinned
+    set carries nearly all the information that decides a choice, at a fraction of the cost.
     """
 
     def __init__(self, data: DiagnosisData, folds: np.ndarray, weights: np.ndarray, groups: np.ndarray,
                  sub: np.ndarray | None = None, search_rows: int | None = None) -> None:
-        def rows(a: np.ndarray) -> np.ndarray:
-            return a if sub is None else a[sub]
-
         self.data, self.weights, self.sub = data, weights, sub
-        self.folds, self.groups = rows(folds), rows(groups)
-        self.rows = rows(data.use) & (self.folds >= 0)  # held out and judged
-        self.fit_rows = rows(data.use) & (self.folds != -1)  # fitted (also the visits never held out, fold -2)
+        self.folds, self.groups = self.at(folds), self.at(groups)
+        self.rows = self.at(data.use) & (self.folds >= 0)  # held out and judged
+        self.fit_rows = self.at(data.use) & (self.folds != -1)  # fitted (also the visits never held out, fold -2)
         self.designs = DesignCache()
         # results worked out by the confounding check that the next step needs again (see ``forget``)
         self._cv_memo: dict[tuple, tuple[Design, CvResult]] = {}
@@ -819,6 +834,19 @@ class Evaluator:
         if sub is None and search_rows is not None and n_fit > search_rows:
             every = np.flatnonzero(self.fit_rows)[:: math.ceil(n_fit / search_rows)]
             self.thin = Evaluator(data, folds, weights, groups, sub=every)
+
+    def at(self, a: np.ndarray) -> np.ndarray:
+        """``a`` (per sample of the recording) at this evaluator's samples."""
+        return a if self.sub is None else a[self.sub]
+
+    def on_all(self, a: np.ndarray) -> np.ndarray:
+        """``a`` (per sample of this evaluator, (n, 3)) spread to every sample of the recording as float32, NaN
+        where this evaluator has no sample (for the report's plots)."""
+        if self.sub is None:
+            return a.astype(np.float32, copy=False)
+        out = np.full((len(self.data.t_s), *a.shape[1:]), np.nan, np.float32)
+        out[self.sub] = a
+        return out
 
     @property
     def model_matrix(self) -> np.ndarray:
@@ -865,26 +893,11 @@ class Evaluator:
 
     def _fit_hyper(self, spec: ModelSpec, eff: Effect,
                    final: bool = True) -> tuple[float | None, np.ndarray, list[tuple[float, float]]]:
+        """:meth:`fit_hyper`; ``final`` False: the value returned is the best grid value, not refined (see
+        :meth:`nested_heldout`)."""
         if eff.hyper_grid(self.data) is None:
             _, cvr = self.cv(spec.plus(eff, None))
             return None, cvr.heldout, []
-        if self.thin is None:
-            return self._search(spec, eff, final)[:3]
-        # searched on the thinned samples; each fold's held-out residual on all samples, at the value the
-        # search chose for that fold (nested as before: the choice never saw the fold)
-        h_best, _, profile, choice = self.thin._search(spec, eff, final)
-        heldout = np.full((len(self.folds), 3), np.nan)
-        for h in dict.fromkeys(float(v) for v in choice if np.isfinite(v)):
-            cvr = self.cv(spec.plus(eff, h))[1]
-            for f in np.flatnonzero(choice == h):
-                fold = self.rows & (self.folds == f)
-                heldout[fold] = cvr.heldout[fold]
-        return h_best, heldout, profile
-
-    def _search(self, spec: ModelSpec, eff: Effect,
-                final: bool = True) -> tuple[float, np.ndarray, list[tuple[float, float]], np.ndarray]:
-        """:meth:`fit_hyper` on this evaluator's samples, plus the value chosen for each fold (K,). ``final``
-        False: the value returned is the best grid value, not refined (see :meth:`nested_heldout`)."""
         grid = eff.hyper_grid(self.data)
         K = int(self.folds[self.rows].max()) + 1
         fold_rows = [self.rows & (self.folds == f) for f in range(K)]
@@ -895,7 +908,6 @@ class Evaluator:
         # physical effect, and the best implausible value must not hide a plausible one.
         heldout = {ok: np.full((len(self.folds), 3), np.nan) for ok in (True, False)}
         best_train = {ok: np.full(K, np.inf) for ok in (True, False)}
-        choice = {ok: np.full(K, np.nan) for ok in (True, False)}
         profile, kept, plausible, unidentified = [], [], [], []
         for h in grid:
             try:
@@ -905,7 +917,7 @@ class Evaluator:
                 continue
             ok = not self.implausible(eff, float(h), des, cvr)
             for f in np.flatnonzero(cvr.train_rss < best_train[ok]):
-                best_train[ok][f], choice[ok][f] = cvr.train_rss[f], float(h)
+                best_train[ok][f] = cvr.train_rss[f]
                 heldout[ok][fold_rows[f]] = cvr.heldout[fold_rows[f]]
             profile.append((float(h), float(np.sum(cvr.train_rss) / max(K - 1, 1))))
             kept.append(float(h))
@@ -921,7 +933,7 @@ class Evaluator:
         hi = grid[min(j + 1, len(grid) - 1)]
         h_best = float(grid[j])
         if not final:
-            return h_best, heldout[use_ok], profile, choice[use_ok]
+            return h_best, heldout[use_ok], profile
 
         def obj(h: float) -> float:
             try:
@@ -943,7 +955,7 @@ class Evaluator:
             n_groups = len(np.unique(self.groups[self.rows]))
             if (rss_null - rss_best) / max(rss_best / n_groups, 1e-300) < stats.chi2.ppf(0.99, 1):
                 h_best = float(eff.hyper_null)
-        return h_best, heldout[use_ok], profile, choice[use_ok]
+        return h_best, heldout[use_ok], profile
 
     def implausible(self, eff: Effect, h: float | None, des: Design, cvr: CvResult) -> str:
         """Why the fit of ``eff`` at ``h`` (design ``des``, fit ``cvr`` on all rows) is not physical, or "": the
@@ -953,12 +965,12 @@ class Evaluator:
                 or cancelling_terms(des, cvr, eff.name))
 
     def evaluate(self, spec: ModelSpec, eff: Effect, base_heldout: np.ndarray, base_fitted: np.ndarray,
-                 base_G: np.ndarray | None = None, alpha: float | None = None) -> CandidateResult:
-        """Held-out gain and significance of ``eff`` on top of ``spec`` (``alpha``: the candidate's level, which
-        decides the test on small campaigns, ``paired_gain_test``)."""
+                 base_G: np.ndarray, alpha: float | None = None) -> CandidateResult:
+        """Held-out gain and significance of ``eff`` on top of ``spec``, whose held-out residual, in-sample fit and
+        reference (each (n, 3), this evaluator's samples) are the ``base_*`` (``alpha``: the candidate's level,
+        which decides the test on small campaigns, ``paired_gain_test``)."""
         ok, why = eff.applicable(self.data)
         out = CandidateResult(eff.name, eff.title, ok, why)
-        self.base_G = self.data.gref if base_G is None else base_G
         if not ok:
             return out
         try:
@@ -970,7 +982,7 @@ class Evaluator:
         r = self.rows & des.valid & finite_rows(heldout) & finite_rows(base_heldout)
         gain, p, ng, out.detectable_gain = paired_gain_test(base_heldout, heldout, self.groups, r, self.weights, alpha)
         # what the candidate explains of the current residual (reference changes count too: delay, TIA)
-        delta = (self.base_G - des.G) + (cvr.fitted_full - base_fitted)
+        delta = (base_G - des.G) + (cvr.fitted_full - base_fitted)
         corr = np.array([_corr(base_heldout[r, j], delta[r, j]) for j in range(3)])
         out.hyper, out.hyper_profile = h, profile
         out.heldout_rmse = np.sqrt(np.mean(heldout[r] ** 2, axis=0))
@@ -982,8 +994,6 @@ class Evaluator:
         if out.implausible:
             out.detail += f"; REFUSED: {out.implausible}"
         out.delta = delta.astype(np.float32)  # for the plots and a correlation only
-        if eff.name == "channel_delay":
-            out.cross_correlation_delay_s = cross_correlation_delay(self.data, base_fitted)
         return out
 
 
@@ -1092,8 +1102,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     with the candidate's name after each candidate evaluation (the CLI's progress bar). ``settle_s`` (s):
     samples this close to the start of a visit are left out of the noise floor (``settled_mask``); None: the
     window where the measured settling transient falls below a tenth of the noise (``settle_window``).
-    ``search_rows``: above this many fitted samples, hyper-parameters are searched on a thinned set
-    (``Evaluator``); None: always on every sample."""
+    ``search_rows``: above this many fitted samples, the candidates are evaluated and the model chosen on a
+    thinned set, and the chosen model fitted on every sample (``Evaluator``); None: always on every sample."""
     data = rec if isinstance(rec, DiagnosisData) else prepare_data(rec, static)
     groups = visit_groups(data)
     fold, fold_notes = check_folds(data, groups, make_folds(groups, data.use, folds, seed))
@@ -1130,9 +1140,16 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         settling.residual_after_settle_mps2 = settling.amplitude_mps2 * np.exp(-max(settle_s, 1e-12) / settling.tau_s)
     weights = 1.0 / np.maximum(noise, 1e-12) ** 2
     ev = Evaluator(data, fold, weights, groups, search_rows=search_rows)
-    base_heldout, base_fitted, base_G = cv0.heldout, cv0.fitted_full, des0.G
+    sel = ev.thin or ev  # where the candidates are evaluated and the model chosen; ev: the chosen model, all samples
+    residual_before = cv0.heldout
+    fitted_all = cv0.fitted_full  # the current model's in-sample fit on all samples (the cross-correlation delay)
+    base_coefficients: np.ndarray | None = None  # the current model's coefficients when fitted_all is not worked out
+    if sel is ev:
+        base_heldout, base_fitted, base_G = cv0.heldout, cv0.fitted_full, des0.G
+    else:
+        des_s, cv_s = sel.cv(spec)
+        base_heldout, base_fitted, base_G = cv_s.heldout, cv_s.fitted_full, des_s.G
     del des0  # its design matrix (N x p) is not needed again
-    residual_before = base_heldout.copy()
 
     steps: list[StepResult] = []
     detection_limit = ""
@@ -1142,7 +1159,11 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         # Bonferroni over the candidates the data can show at all (known before any is evaluated)
         alpha_each = alpha / max(sum(e.applicable(data)[0] for e in remaining), 1)
         for e in remaining:
-            results.append(ev.evaluate(spec, e, base_heldout, base_fitted, base_G, alpha_each))
+            results.append(sel.evaluate(spec, e, base_heldout, base_fitted, base_G, alpha_each))
+            if results[-1].name == "channel_delay" and results[-1].applicable:
+                if fitted_all is None:
+                    fitted_all = ev.design(spec).X @ base_coefficients
+                results[-1].cross_correlation_delay_s = cross_correlation_delay(data, fitted_all)
             if progress is not None:
                 progress(e.name)
         tested = [r for r in results if r.applicable]
@@ -1164,11 +1185,10 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
             r.significant = r.p_value < alpha_each and r.rel_gain >= min_rel_gain and not r.implausible
         results.sort(key=lambda r: (not r.applicable, -r.rel_gain))
         sig = [r for r in results if r.significant]
-        conf = _confounding(ev, spec, sig, alpha_each, min_rel_gain, library) if len(sig) >= 2 else []
+        conf = _confounding(sel, spec, sig, alpha_each, min_rel_gain, library) if len(sig) >= 2 else []
         chosen = sig[0].name if sig else None
-        if steps:  # per-sample arrays (N, 3) are kept only where the report plots them: first step's deltas
-            for r in results:
-                r.delta = None
+        for r in results:  # per-sample arrays (N, 3) are kept only where the report plots them: first step's deltas
+            r.delta = None if steps or r.delta is None else sel.on_all(r.delta)
         steps.append(StepResult(len(steps) + 1, spec.names, results, chosen, alpha_each, conf))
         if chosen is None:
             break
@@ -1177,14 +1197,15 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         remaining = [e for e in remaining if e.name != chosen]
         if degree is None and n_levels >= 2:  # with one level only degree 0 is identified: nothing to re-select
             was = spec.degree
-            spec, steps[-1].degree_table, notes = reselect_degree(ev, spec, max_degree)
+            spec, steps[-1].degree_table, notes = reselect_degree(sel, spec, max_degree)
             steps[-1].degree_after = spec.degree
             steps[-1].degree_note = (f"degree of eq. 28 re-selected with {chosen} in the model: "
                                      + (f"{was} -> {spec.degree}" if spec.degree != was else f"{was}, unchanged")
                                      + "".join(f"; {n}" for n in notes))
-        des_c, cv_c = ev.cv(spec)
-        ev.forget(spec)
+        des_c, cv_c = sel.cv(spec)
+        sel.forget(spec)
         base_heldout, base_fitted, base_G = cv_c.heldout, cv_c.fitted_full, des_c.G
+        fitted_all, base_coefficients = (base_fitted, None) if sel is ev else (None, cv_c.A_full)
 
     # final model
     des_f, cv_f = ev.cv(spec)

@@ -128,7 +128,8 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
     lines += [f"Static samples used: {res.n_static} in {res.n_groups} visits (a visit: one contiguous static interval of "
               f"one pose within one run; {len(np.unique(d.pose_id[d.use & (d.pose_id >= 0)]))} distinct pose ids) "
               f"(selection: {res.settings['static']}), {res.settings['folds']}-fold cross-validation over visits"
-              + (f" (hyper-parameters searched on {res.settings['search_rows']} evenly spread fitted samples)"
+              + (f" (candidates evaluated and the model chosen on {res.settings['search_rows']} evenly spread fitted "
+                 "samples, the chosen model fitted on all)"
                  if res.settings.get("search_rows") else "") + ", "
               f"temperature levels: {res.n_levels} ({np.nanmin(d.temp_c[d.use]):.2f}-{np.nanmax(d.temp_c[d.use]):.2f} degC), "
               f"time span {d.duration_s:.4g} s.", ""]

@@ -27,6 +27,7 @@ driver evaluates identically. The rationale of every candidate is in ``docs/effe
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -83,6 +84,7 @@ class DiagnosisData:
     group: np.ndarray = field(default=None)  # type: ignore[assignment]  # visit label (``visit_ids``)
 
     _memo: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
+    _recent: OrderedDict[tuple, np.ndarray] = field(default_factory=OrderedDict, init=False, repr=False, compare=False)
 
     def runs(self) -> list[slice | np.ndarray]:
         """The samples of each run, together every sample (computed once; every filter restarts at a run's first
@@ -101,6 +103,20 @@ class DiagnosisData:
         if key not in self._memo:
             self._memo[key] = compute()
         return self._memo[key]
+
+    def recent(self, key: tuple, compute: Callable[[], np.ndarray], keep: int = 4) -> np.ndarray:
+        """``compute()`` (an array that depends on the recording and ``key`` alone, made read-only), kept for the
+        next ``keep`` distinct keys: a correction that a search repeats unchanged on every trial (the thermal lag
+        of the model while another effect is searched) is worked out once."""
+        hit = self._recent.get(key)
+        if hit is None:
+            hit = compute()
+            hit.flags.writeable = False
+            self._recent[key] = hit
+            while len(self._recent) > keep:
+                self._recent.popitem(last=False)
+        self._recent.move_to_end(key)
+        return hit
 
     def static_psi_map(self) -> tuple[np.ndarray, np.ndarray]:
         """``expected_psi_map`` of the recorded counts (computed once)."""
@@ -208,6 +224,7 @@ class Inputs:
     valid: np.ndarray
     gref_moved: bool = False  # an earlier transform changed the reference (else it is data.gref)
     counts_changed: bool = False  # an earlier transform changed ref or xyz (else psi is the data's)
+    temp_changed: bool = False  # an earlier transform changed the temperature (else it is data.temp_c)
 
     @property
     def psi(self) -> np.ndarray:
@@ -231,10 +248,12 @@ class Inputs:
         return cls(read_only(data.ref), read_only(data.xyz), read_only(data.temp_c), read_only(data.t_s),
                    read_only(data.gref), np.ones(len(data.t_s), bool))
 
-    def at(self, idx: np.ndarray) -> Inputs:
-        """These inputs at the samples ``idx`` only (for what is computed sample by sample)."""
-        return Inputs(self.ref[idx], self.xyz[idx], self.temp_c[idx], self.t_s[idx], self.gref[idx], self.valid[idx],
-                      self.gref_moved, self.counts_changed)
+    def at(self, idx: np.ndarray, take: Callable[[np.ndarray], np.ndarray] | None = None) -> Inputs:
+        """These inputs at the samples ``idx`` only (for what is computed sample by sample); ``take(a)``, if
+        given, returns ``a[idx]`` for the arrays other than ``valid`` (which the corrections change in place)."""
+        pick = take if take is not None else (lambda a: a[idx])
+        return Inputs(pick(self.ref), pick(self.xyz), pick(self.temp_c), pick(self.t_s), pick(self.gref),
+                      self.valid[idx], self.gref_moved, self.counts_changed, self.temp_changed)
 
 
 class Effect:
@@ -382,11 +401,17 @@ class ThermalLagEffect(Effect):
         return np.concatenate([-pos[::-1], pos])
 
     def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
-        term = ThermalLag(float(h))
-        out = np.array(inp.temp_c, copy=True)
-        for idx in data.runs():
-            out[idx] = term.effective_temperature(inp.temp_c[idx], inp.t_s[idx], {})
-        inp.temp_c = out
+        def lagged() -> np.ndarray:
+            term = ThermalLag(float(h))
+            out = np.array(inp.temp_c, copy=True)
+            for idx in data.runs():
+                out[idx] = term.effective_temperature(inp.temp_c[idx], inp.t_s[idx], {})
+            return out
+
+        # of the recorded temperature, the lag depends on tau alone: once per tau (a search over another effect
+        # repeats the model's lag on every trial)
+        inp.temp_c = lagged() if inp.temp_changed else data.recent((self.name, float(h)), lagged)
+        inp.temp_changed = True
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
         return [ThermalLag(float(h))]

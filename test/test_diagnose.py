@@ -288,6 +288,35 @@ def test_a_design_of_some_rows_is_those_rows_of_the_whole_design() -> None:
         assert part.blocks == whole.blocks
 
 
+def test_corrections_and_rows_kept_across_trials_equal_those_worked_out_afresh() -> None:
+    """A search over one effect repeats the rest of the model on every trial: the model's thermal lag is kept per
+    time constant (``DiagnosisData.recent``) and the rows of the arrays a trial did not change are kept
+    (``DesignCache.take``). Every design equals the one built on a fresh copy of the data with nothing kept,
+    and what is kept stays bounded and read-only (issue 8 §7)."""
+    from fbg_accel_calibration.diagnose import DesignCache, ModelSpec, build_design, prepare_data
+    from fbg_accel_calibration.effects import library_by_name
+
+    rec = synthetic(4, dark=30.0)
+    data = prepare_data(rec)
+    lib = library_by_name()
+    sub = np.flatnonzero(data.use)[::3]
+    cache = DesignCache()
+    specs = []
+    for tau in (60.0, -60.0):
+        model = ModelSpec(1, 23.4, 1.0, [(lib["thermal_lag"], tau)])
+        specs += [model.plus(e, h) for e, h in [(lib["reference_dark_offset"], 10.0), (lib["reference_dark_offset"], 30.0),
+                                                 (lib["tia_lowpass"], 0.5), (lib["tia_lowpass"], 2.0),
+                                                 (lib["channel_delay"], data.dt_s), (lib["time_drift"], 100.0)]]
+    for spec in specs * 2:
+        got = build_design(data, spec, cache, sub=sub)
+        fresh = build_design(prepare_data(rec), spec)  # its own DiagnosisData: nothing remembered
+        np.testing.assert_array_equal(got.valid, fresh.valid[sub])
+        np.testing.assert_array_equal(got.X[got.valid], fresh.X[sub][got.valid])
+        np.testing.assert_array_equal(got.G, fresh.G[sub])
+        assert 0 < len(data._recent) <= 4 and not any(a.flags.writeable for a in data._recent.values())
+        assert 0 < len(cache._taken) <= 8
+
+
 def test_a_candidate_the_data_cannot_identify_is_reported_not_regularised() -> None:
     """A candidate whose columns repeat the model's own (here a constant, which is b's) makes the normal
     equations singular. The fit's solver refuses that (NotIdentifiedError); the diagnosis records the
