@@ -829,6 +829,7 @@ class Evaluator:
         # results worked out by the confounding check that the next step needs again (see ``forget``)
         self._cv_memo: dict[tuple, tuple[Design, CvResult]] = {}
         self._hyper_memo: dict[tuple, tuple[float | None, np.ndarray, list[tuple[float, float]]]] = {}
+        self._last_cv: tuple[tuple, tuple[Design, CvResult]] | None = None
         n_fit = int(self.fit_rows.sum())
         self.thin: Evaluator | None = None
         if sub is None and search_rows is not None and n_fit > search_rows:
@@ -857,14 +858,19 @@ class Evaluator:
         return build_design(self.data, spec, self.designs, self.sub)
 
     def cv(self, spec: ModelSpec, remember: bool = False) -> tuple[Design, CvResult]:
-        """Design and cross-validation of ``spec``; ``remember``: keep them for a later call (``forget``)."""
+        """Design and cross-validation of ``spec``; ``remember``: keep them for a later call (``forget``). The
+        last one is kept too: a search's final value is checked for plausibility, then evaluated."""
         hit = self._cv_memo.get(spec.key)
+        if hit is None and self._last_cv is not None and self._last_cv[0] == spec.key:
+            hit = self._last_cv[1]
         if hit is not None:
             return hit
+        self._last_cv = None  # not held while the next design is built
         des = self.design(spec)
         out = des, cross_validate(des, self.fit_rows, self.folds, self.weights)
         if remember:
             self._cv_memo[spec.key] = out
+        self._last_cv = (spec.key, out)
         return out
 
     def forget(self, spec: ModelSpec) -> None:
@@ -935,11 +941,15 @@ class Evaluator:
         if not final:
             return h_best, heldout[use_ok], profile
 
+        rss_at: dict[float, float] = {}  # the refinement and the parsimony check ask for some values again
+
         def obj(h: float) -> float:
-            try:
-                return weighted_rss(self.design(spec.plus(eff, float(h))), self.fit_rows, self.weights)
-            except NotIdentifiedError:
-                return math.inf
+            if float(h) not in rss_at:
+                try:
+                    rss_at[float(h)] = weighted_rss(self.design(spec.plus(eff, float(h))), self.fit_rows, self.weights)
+                except NotIdentifiedError:
+                    rss_at[float(h)] = math.inf
+            return rss_at[float(h)]
 
         if hi > lo:
             res = optimize.minimize_scalar(obj, bounds=(float(lo), float(hi)), method="bounded",

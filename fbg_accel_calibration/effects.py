@@ -564,17 +564,34 @@ class TiaLowpassEffect(Effect):
 def expected_psi_map(data: DiagnosisData, inp: Inputs) -> tuple[np.ndarray, np.ndarray]:
     """Linear map Psi ~ P g + q (P (3, 3), q (3,)) fitted on the static samples (eq. 25 inverted):
     the noise-free Psi the sensor shows for a reference g."""
-    # the static samples with a reference (a constant of the recording), then those with a finite Psi
+    # the static samples with a reference, their [g, 1] and its Gram matrix (constants of the recording), then
+    # those with a finite Psi (a correction that changed the counts asks again on every trial of a search)
     static = data.once("static_with_reference", lambda: np.flatnonzero(data.use & finite_rows(data.gref)))
-    psi = Inputs.normalised(inp.xyz[static], inp.ref[static])
+    xyz = data.once("static_xyz", lambda: np.asarray(data.xyz, dtype=float)[static]) if _same_memory(inp.xyz, data.xyz) \
+        else inp.xyz[static]
+    psi = Inputs.normalised(xyz, inp.ref[static])
     ok = finite_rows(psi)
-    X = np.column_stack([data.gref[static[ok]], np.ones(int(ok.sum()))])
-    Y = psi[ok]
+    if ok.all():
+        X, XtX = data.once("static_design", lambda: _with_gram(np.column_stack([data.gref[static], np.ones(len(static))])))
+        Y = psi
+    else:
+        X = np.column_stack([data.gref[static[ok]], np.ones(int(ok.sum()))])
+        XtX, Y = X.T @ X, psi[ok]
     try:  # 4 x 4 normal equations (well conditioned: |g| ~ 9.8 m/s^2 against 1), not an SVD of the N x 4 matrix
-        coef = np.linalg.solve(X.T @ X, X.T @ Y)
+        coef = np.linalg.solve(XtX, X.T @ Y)
     except np.linalg.LinAlgError:  # the reference never changes direction: the minimum-norm solution
         coef = np.linalg.lstsq(X, Y, rcond=None)[0]
     return coef[:3].T, coef[3]
+
+
+def _with_gram(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return X, X.T @ X
+
+
+def _same_memory(a: np.ndarray, b: np.ndarray) -> bool:
+    """``a`` is ``b`` or a float64 view of all of it (``Inputs.of``): the recorded array, not a corrected one."""
+    return (a.__array_interface__["data"][0] == b.__array_interface__["data"][0] and a.shape == b.shape
+            and a.strides == b.strides and a.dtype == np.float64 and b.dtype == np.float64)
 
 
 class ThermalHysteresisEffect(Effect):
