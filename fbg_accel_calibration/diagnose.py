@@ -242,9 +242,11 @@ def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None
             eff, h = corrections[i]
             eff.transform(data, inp, h)
         part = inp if sub is None else inp.at(sub, None if cache is None else lambda a: cache.take(a, sub))  # the design's rows
-        base = design_matrix(part.psi, (part.temp_c - spec.t_center_c) / spec.t_scale_c, spec.degree)
-        base_ok = part.valid & finite_rows(base) & finite_rows(part.gref)
+        tau = (part.temp_c - spec.t_center_c) / spec.t_scale_c
+        base = None  # without a cache eq. 28's columns are written straight into the design below
         if cache is not None:
+            base = design_matrix(part.psi, tau, spec.degree)
+            base_ok = part.valid & finite_rows(base) & finite_rows(part.gref)
             cache.put(key, (inp, part, base, base_ok))
     else:
         inp, part, base, base_ok = hit
@@ -258,10 +260,14 @@ def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None
             blocks[eff.name] = slice(p, p + c.shape[1])
             extra.append(c)
             p += c.shape[1]
-    if not extra:
+    if base is not None and not extra:
         return Design(base, gref, base_ok, blocks, n_base)
-    X = np.empty((p, base.shape[0])).T  # column-major, filled in place: no per-trial concatenation copy
-    X[:, :n_base] = base
+    X = np.empty((p, len(part.valid))).T  # column-major, filled in place: no per-trial concatenation copy
+    if base is None:
+        design_matrix(part.psi, tau, spec.degree, out=X[:, :n_base])
+        base_ok = part.valid & finite_rows(X[:, :n_base]) & finite_rows(gref)
+    else:
+        X[:, :n_base] = base
     valid = base_ok.copy()
     for c, sl in zip(extra, blocks.values(), strict=True):
         X[:, sl] = c
@@ -744,10 +750,21 @@ class CandidateResult:
     corr_with_residual: np.ndarray | None = None  # (3,)
     significant: bool = False
     detail: str = ""
-    delta: np.ndarray | None = None  # (N, 3) change of the in-sample prediction vs the current model (float32)
+    delta: np.ndarray | None = None  # (n, 3) change of the in-sample prediction vs the current model (float32)
+    delta_rows: np.ndarray | None = None  # the samples of delta's rows (None: every sample, n = N)
     cross_correlation_delay_s: float | None = None
     implausible: str = ""  # why the fitted values are not physical (then never significant, never added)
     detectable_gain: float = math.nan  # small campaigns: gain the paired t-test finds with 80 % power
+
+
+    def delta_of_every_sample(self, n: int) -> np.ndarray | None:
+        """``delta`` (N, 3) on every one of the recording's ``n`` samples, NaN where it was not evaluated (for the
+        report's plots), or None."""
+        if self.delta is None or self.delta_rows is None:
+            return self.delta
+        out = np.full((n, 3), np.nan, np.float32)
+        out[self.delta_rows] = self.delta
+        return out
 
 
 def _group_mse(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -825,7 +842,7 @@ class Evaluator:
         self.folds, self.groups = self.at(folds), self.at(groups)
         self.rows = self.at(data.use) & (self.folds >= 0)  # held out and judged
         self.fit_rows = self.at(data.use) & (self.folds != -1)  # fitted (also the visits never held out, fold -2)
-        self.designs = DesignCache()
+        self.designs: DesignCache | None = DesignCache()
         # results worked out by the confounding check that the next step needs again (see ``forget``)
         self._cv_memo: dict[tuple, tuple[Design, CvResult]] = {}
         self._hyper_memo: dict[tuple, tuple[float | None, np.ndarray, list[tuple[float, float]]]] = {}
@@ -835,19 +852,11 @@ class Evaluator:
         if sub is None and search_rows is not None and n_fit > search_rows:
             every = np.flatnonzero(self.fit_rows)[:: math.ceil(n_fit / search_rows)]
             self.thin = Evaluator(data, folds, weights, groups, sub=every)
+            self.designs = None  # only the chosen model is built on every sample: nothing to reuse
 
     def at(self, a: np.ndarray) -> np.ndarray:
         """``a`` (per sample of the recording) at this evaluator's samples."""
         return a if self.sub is None else a[self.sub]
-
-    def on_all(self, a: np.ndarray) -> np.ndarray:
-        """``a`` (per sample of this evaluator, (n, 3)) spread to every sample of the recording as float32, NaN
-        where this evaluator has no sample (for the report's plots)."""
-        if self.sub is None:
-            return a.astype(np.float32, copy=False)
-        out = np.full((len(self.data.t_s), *a.shape[1:]), np.nan, np.float32)
-        out[self.sub] = a
-        return out
 
     @property
     def model_matrix(self) -> np.ndarray:
@@ -1159,6 +1168,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     else:
         des_s, cv_s = sel.cv(spec)
         base_heldout, base_fitted, base_G = cv_s.heldout, cv_s.fitted_full, des_s.G
+        del des_s, cv_s
     del des0  # its design matrix (N x p) is not needed again
 
     steps: list[StepResult] = []
@@ -1198,7 +1208,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         conf = _confounding(sel, spec, sig, alpha_each, min_rel_gain, library) if len(sig) >= 2 else []
         chosen = sig[0].name if sig else None
         for r in results:  # per-sample arrays (N, 3) are kept only where the report plots them: first step's deltas
-            r.delta = None if steps or r.delta is None else sel.on_all(r.delta)
+            r.delta, r.delta_rows = (None, None) if steps else (r.delta, sel.sub)
         steps.append(StepResult(len(steps) + 1, spec.names, results, chosen, alpha_each, conf))
         if chosen is None:
             break
@@ -1216,9 +1226,15 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         sel.forget(spec)
         base_heldout, base_fitted, base_G = cv_c.heldout, cv_c.fitted_full, des_c.G
         fitted_all, base_coefficients = (base_fitted, None) if sel is ev else (None, cv_c.A_full)
+        del des_c, cv_c  # the design (n x p) is not held beyond the evaluator's own caches
 
-    # final model
+    # final model, built once the caches of the search are let go
+    n_search = None if sel is ev else len(sel.folds)
+    ev.thin = None
+    del sel
+    data.drop_recent()
     des_f, cv_f = ev.cv(spec)
+    del ev
     rows_f = data.use & des_f.valid & (fold >= 0)
     confounded = {st.chosen: [c.b if c.a == st.chosen else c.a for c in st.confounding
                               if c.verdict == "confounded" and st.chosen in (c.a, c.b)] for st in steps if st.chosen}
@@ -1237,16 +1253,21 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     for name in per_run_names:
         sl = des_f.blocks[name]
         fitted_sensor -= des_f.X[:, sl] @ cv_f.A_full[sl]
-    consistency = _consistency(cal, data, fitted_sensor, rows_f)
+    G_f, blocks_f = des_f.G, des_f.blocks
+    del des_f  # its design matrix (N x p) is not needed again
+    calibrated = _calibrated(cal, data)
+    consistency = _consistency(calibrated, fitted_sensor, rows_f)
+    del fitted_sensor
     r_eval = rows_f & finite_rows(residual_before) & finite_rows(cv_f.heldout)
     before_ho = np.sqrt(np.mean(residual_before[r_eval] ** 2, axis=0))
     after_ho = np.sqrt(np.mean(cv_f.heldout[r_eval] ** 2, axis=0))
     before_in = np.sqrt(np.mean(res0[r_eval] ** 2, axis=0))
-    after_in = np.sqrt(np.mean((des_f.G - cv_f.fitted_full)[r_eval] ** 2, axis=0))
+    after_in = np.sqrt(np.mean((G_f - cv_f.fitted_full)[r_eval] ** 2, axis=0))
     structure = residual_structure(data, cv_f.heldout, r_eval, groups, noise_after, alpha)
-    moving = _moving_residual(data, cal)
+    moving = _moving_residual(data, calibrated)
+    del calibrated
     warnings = [detection_limit] if detection_limit else []
-    cond, column_corr = gram_conditioning(cv_f.xtx, cv_f.xsum, cv_f.n_fit, des_f.blocks)
+    cond, column_corr = gram_conditioning(cv_f.xtx, cv_f.xsum, cv_f.n_fit, blocks_f)
     for name, c in column_corr.items():
         if c > COLLINEAR_CORR:
             warnings.append(f"a column of {name} correlates at |r| = {c:.4f} with another column of the model: their "
@@ -1269,7 +1290,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         condition_number=cond, column_correlation=column_corr, final_degree=spec.degree, run_terms=run_terms,
         settings={"static": static if not isinstance(rec, DiagnosisData) else "given", "folds": int(fold.max()) + 1,
                   "alpha": alpha, "min_rel_gain": min_rel_gain, "max_effects": max_effects, "seed": seed,
-                  "search_rows": None if ev.thin is None else len(ev.thin.folds),
+                  "search_rows": n_search,
                   "settle_s": settle_s,
                   "time_label": time_axis_label(rec.metadata) if isinstance(rec, Recording) else "time [s]"})
 
@@ -1400,26 +1421,34 @@ def gram_conditioning(xtx: np.ndarray, xsum: np.ndarray, n: int, blocks: dict[st
     return cond, out
 
 
-def _consistency(cal: ThermalCalibration, data: DiagnosisData, fitted: np.ndarray, rows: np.ndarray) -> float:
-    """Max |apply_counts - fit prediction ``fitted`` (N, 3)| over the static rows, per run streamed with one state."""
-    worst = 0.0
+APPLY_BLOCK = 1 << 17  # samples per call of apply_counts in _calibrated (bounds its temporaries)
+
+
+def _calibrated(cal: ThermalCalibration, data: DiagnosisData) -> np.ndarray:
+    """The calibration file's output (N, 3) m/s^2, table frame, on every sample: ``apply_counts`` streamed per run
+    in blocks of ``APPLY_BLOCK`` samples with one state, as the driver runs it."""
+    out = np.full((len(data.t_s), 3), np.nan)
     for idx in data.runs():
-        out = cal.apply_counts(data.ref[idx], data.xyz[idx], data.temp_c[idx], data.t_s[idx], cal.new_state())
-        m = rows[idx]
-        if m.any():
-            worst = max(worst, float(np.nanmax(np.abs(out[m] - fitted[idx][m]))))
-    return worst
+        run = np.arange(len(data.t_s))[idx]
+        state = cal.new_state()
+        for lo in range(0, len(run), APPLY_BLOCK):
+            b = run[lo:lo + APPLY_BLOCK]
+            out[b] = cal.apply_counts(data.ref[b], data.xyz[b], data.temp_c[b], data.t_s[b], state)
+    return out
 
 
-def _moving_residual(data: DiagnosisData, cal: ThermalCalibration) -> np.ndarray | None:
-    """RMS (3,) of calibrated output minus the gap-filled reference on samples not used (moving, settling)."""
+def _consistency(calibrated: np.ndarray, fitted: np.ndarray, rows: np.ndarray) -> float:
+    """Max |calibration file's output - fit prediction| (both (N, 3)) over the static ``rows``."""
+    return float(np.nanmax(np.abs(calibrated[rows] - fitted[rows]))) if rows.any() else 0.0
+
+
+def _moving_residual(data: DiagnosisData, calibrated: np.ndarray) -> np.ndarray | None:
+    """RMS (3,) of the calibration file's output ``calibrated`` (N, 3) minus the gap-filled reference on samples not
+    used (moving, settling)."""
     m = ~data.use & finite_rows(data.gref_filled)
     if m.sum() < 3:
         return None
-    out = np.full((len(data.t_s), 3), np.nan)
-    for idx in data.runs():
-        out[idx] = cal.apply_counts(data.ref[idx], data.xyz[idx], data.temp_c[idx], data.t_s[idx], cal.new_state())
-    d = out[m] - data.gref_filled[m]
+    d = calibrated[m] - data.gref_filled[m]
     d = d[finite_rows(d)]
     return np.sqrt(np.mean(d**2, axis=0)) if len(d) else None
 

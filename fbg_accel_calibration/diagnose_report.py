@@ -285,12 +285,15 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
 
     # candidates: residual of the current model (held out) against the candidate's contribution
     for c in res.ranked:
-        if not c.applicable or c.delta is None:
+        delta = c.delta_of_every_sample(len(d.t_s)) if c.applicable else None
+        if delta is None:
             continue
+        # evaluated on the thinned samples (Evaluator.thin): those of them that are plotted
+        rc = rp if c.delta_rows is None else plotted(r & np.isfinite(delta[:, 0]))
         fig, axs = plt.subplots(1, 4, figsize=(15, 3.6))
         for j in range(3):
-            axs[j].plot(c.delta[rp, j], res.residual_before[rp, j], ".", ms=2, alpha=0.4)
-            lim = np.nanmax(np.abs(c.delta[r, j])) if np.any(r) else 1
+            axs[j].plot(delta[rc, j], res.residual_before[rc, j], ".", ms=2, alpha=0.4)
+            lim = np.nanmax(np.abs(delta[r, j])) if np.any(r) else 1
             axs[j].plot([-lim, lim], [-lim, lim], "k--", lw=0.8)
             axs[j].set_xlabel(f"candidate contribution {AXES[j]} [m/s^2]")
             axs[j].set_ylabel(f"held-out residual {AXES[j]} [m/s^2]")

@@ -118,6 +118,10 @@ class DiagnosisData:
         self._recent.move_to_end(key)
         return hit
 
+    def drop_recent(self) -> None:
+        """Forget what :meth:`recent` keeps (when no search follows)."""
+        self._recent.clear()
+
     def static_psi_map(self) -> tuple[np.ndarray, np.ndarray]:
         """``expected_psi_map`` of the recorded counts (computed once)."""
         return self.once("static_psi_map", lambda: expected_psi_map(self, Inputs.of(self)))

@@ -15,10 +15,13 @@ keep the test short; nominal sizes need hours of data.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from fbg_accel_calibration.diagnose import diagnose
+from fbg_accel_calibration.diagnose_report import write_plots
 from fbg_accel_sim.board_physics import simulate_recording
 from fbg_accel_sim.sim_config import SimConfig
 
@@ -103,11 +106,11 @@ def test_an_implausible_best_hyper_value_does_not_hide_a_plausible_one() -> None
 
 
 @pytest.mark.parametrize("effect", ["thermal_lag", "tia_lowpass"])
-def test_a_search_on_thinned_samples_chooses_what_the_full_search_chooses(effect: str) -> None:
+def test_a_search_on_thinned_samples_chooses_what_the_full_search_chooses(effect: str, tmp_path: Path) -> None:
     """Issue 8 §7: above ``search_rows`` fitted samples the candidates are evaluated and the model chosen on every
     k-th one, and only the chosen model is fitted on all samples. Forced here at 1/8 of the samples: the same
     effect is added, its hyper-parameter agrees within 5 %, the held-out error within 1 %; the contributions the
-    report plots are of every sample, NaN where none was evaluated."""
+    report plots are of every sample, NaN where none was evaluated, and the plots are drawn."""
     scale, extra, static = SCENARIOS[effect]
     rec = simulate_recording(_config({**extra, f"effects.{effect}.scale": scale}), seed=1)
     full = diagnose(rec, static=static, search_rows=None)
@@ -116,6 +119,8 @@ def test_a_search_on_thinned_samples_chooses_what_the_full_search_chooses(effect
     assert [a[0] for a in thin.added] == [a[0] for a in full.added] == [effect]
     assert thin.added[0][1] == pytest.approx(full.added[0][1], rel=0.05)
     np.testing.assert_allclose(thin.after_heldout_rmse, full.after_heldout_rmse, rtol=0.01)
-    plotted = [c.delta for c in thin.steps[0].candidates if c.delta is not None]
+    plotted = [c.delta_of_every_sample(len(rec)) for c in thin.steps[0].candidates if c.delta is not None]
     assert plotted and all(d.shape == (len(rec), 3) for d in plotted)
     assert all(0 < np.isfinite(d[:, 0]).sum() <= thin.settings["search_rows"] for d in plotted)
+    drawn = {p.name for p in write_plots(thin, tmp_path)}
+    assert {f"candidate_{c.name}.png" for c in thin.steps[0].candidates if c.delta is not None} <= drawn, drawn
