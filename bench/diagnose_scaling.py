@@ -5,6 +5,9 @@ Not a test. Runs ``bench_calibration.py --samples N --mcap-samples 0 --repeats 1
 size, each in its own process (so each peak RSS is that run's own), and collects the diagnose step of each
 into bench/results/diagnose_scaling.json. Below 10^6 samples the timed fit uses degree 0: the short runs see
 fewer than the three temperature levels a degree-2 fit needs (the diagnosis selects its own degree).
+Then the command a user runs, ``fbg-accel-calib diagnose`` on the same simulated run written as a calibration
+MCAP, in its own process: its wall time (reading, diagnosis, report, YAML and plots) and its peak RSS
+(``os.wait4``), which the in-process figure overstates by the simulation's own peak.
 Run on an idle machine:
 
     .venv/bin/python bench/diagnose_scaling.py [--sizes 10000 100000 1000000]
@@ -17,15 +20,40 @@ import datetime as dt
 import itertools
 import json
 import math
+import os
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 
+from bench_calibration import scenario  # noqa: E402
 from machine_info import machine  # noqa: E402
+
+
+def run_command(n: int, tmp: Path) -> dict:
+    """``fbg-accel-calib diagnose`` on the benchmark's simulated run of ``n`` samples written as MCAP:
+    {wall seconds, peak RSS MiB} of that one process."""
+    from fbg_accel_calibration.mcap_io import write_recording
+    from fbg_accel_sim.board_physics import simulate_recording
+
+    cfg, duration = scenario(n)
+    path = tmp / f"{n}.mcap"
+    write_recording(path, simulate_recording(cfg, seed=0, duration_s=duration), metadata={"sensor_id": "bench"})
+    cmd = [sys.executable, "-m", "fbg_accel_calibration.cli", "diagnose", str(path), "--out", str(tmp / f"{n}.md"),
+           "--yaml", str(tmp / f"{n}.yaml"), "--force", "--no-progress"]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} exited with {proc.returncode}")
+    path.unlink()
+    return {"command_seconds": round(wall, 1), "command_peak_rss_mib": round(usage.ru_maxrss / 1024)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,7 +72,8 @@ def main(argv: list[str] | None = None) -> int:
             subprocess.run(cmd, check=True)
             step = json.loads(out.read_text())["steps"]["diagnose"]
             runs[str(n)] = {"diagnose_seconds": round(step["seconds"], 2), "peak_rss_mib": round(step["peak_rss_mib"]),
-                            "added": step["added"], "report_seconds": round(step["report_seconds"], 2)}
+                            "added": step["added"], "report_seconds": round(step["report_seconds"], 2),
+                            **run_command(n, Path(tmp))}
             print(f"{n}: {runs[str(n)]}", flush=True)
     sizes = sorted(int(k) for k in runs)
     pairs = [*itertools.pairwise(sizes), *([(sizes[0], sizes[-1])] if len(sizes) > 2 else [])]
@@ -54,7 +83,9 @@ def main(argv: list[str] | None = None) -> int:
     doc = {"command": ".venv/bin/python bench/diagnose_scaling.py " + " ".join(argv if argv is not None else sys.argv[1:]),
            "what": "bench_calibration.py --samples N --mcap-samples 0 --repeats 1 (--degree 0 below 10^6), one process "
                    "per size; diagnose step only (simulation and fit not counted in the time, counted in the peak RSS); "
-                   "report_seconds: the Markdown report and its plots written after it",
+                   "report_seconds: the Markdown report and its plots written after it; command_seconds, command_peak_rss_mib: "
+                   "fbg-accel-calib diagnose on the same run written as MCAP, in its own process (read, diagnose, "
+                   "report, YAML, plots)",
            "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "runs": runs, "growth_exponent": growth,
            "machine": machine()}
     args.output.write_text(json.dumps(doc, indent=1) + "\n")
