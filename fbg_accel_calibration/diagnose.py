@@ -417,7 +417,10 @@ def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np
     start = np.searchsorted(f_idx, np.arange(-2, K + 1))  # [-2, -1, 0, .., K]: fold f is start[f+2]:start[f+3]
 
     def part(lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
-        return X[idx[lo:hi]], G[idx[lo:hi]]
+        rows = idx[lo:hi]
+        if hi > lo and rows[-1] - rows[0] == hi - lo - 1:  # consecutive rows (a design in fold order): views
+            return X[rows[0]:rows[-1] + 1], G[rows[0]:rows[-1] + 1]
+        return X[rows], G[rows]
 
     p = X.shape[1]
     xtx = np.zeros((K, p, p))
@@ -851,6 +854,7 @@ class Evaluator:
         self.thin: Evaluator | None = None
         if sub is None and search_rows is not None and n_fit > search_rows:
             every = np.flatnonzero(self.fit_rows)[:: math.ceil(n_fit / search_rows)]
+            every = every[np.argsort(folds[every], kind="stable")]  # in fold order: its folds are consecutive rows
             self.thin = Evaluator(data, folds, weights, groups, sub=every)
             self.designs = None  # only the chosen model is built on every sample: nothing to reuse
 
