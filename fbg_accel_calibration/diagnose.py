@@ -21,7 +21,8 @@ Pure numpy/scipy engine behind ``fbg-accel-calib diagnose`` (issue 4). Steps:
    added on top of the other: does it still gain?).
 4. Forward selection: add the best significant candidate, repeat; stop when no candidate is
    significant or gains less than ``min_rel_gain`` of the held-out MSE (so nothing is added when
-   nothing is significant).
+   nothing is significant). Above ``SEARCH_ROWS`` fitted samples, steps 3-4 run on every k-th fitted
+   sample (the same visits and folds; ``Evaluator.thin``) and only the chosen model is fitted on all.
 5. Refit with the winners as declared ``corrections`` of a ``ThermalCalibration``; check that the
    driver's ``apply_counts`` reproduces the fit's prediction; before/after held-out RMSE per axis
    next to the noise floor; test and describe what residual remains (per pose, axis, temperature,
