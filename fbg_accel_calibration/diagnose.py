@@ -760,7 +760,6 @@ class CandidateResult:
     implausible: str = ""  # why the fitted values are not physical (then never significant, never added)
     detectable_gain: float = math.nan  # small campaigns: gain the paired t-test finds with 80 % power
 
-
     def delta_of_every_sample(self, n: int) -> np.ndarray | None:
         """``delta`` (N, 3) on every one of the recording's ``n`` samples, NaN where it was not evaluated (for the
         report's plots), or None."""
