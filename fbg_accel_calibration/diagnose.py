@@ -55,6 +55,7 @@ from .effects import (
     Effect,
     Inputs,
     finite_rows,
+    memory_key,
     motion_groups,
     separating_measurement,
 )
@@ -193,7 +194,7 @@ class DesignCache:
         the last few such arrays asked for: most trials of a search change one input array and share the rest."""
         if a.flags.writeable:
             return a[idx]
-        key = (a.__array_interface__["data"][0], a.shape, a.strides, a.dtype.str)  # the same memory, read-only
+        key = memory_key(a)  # the same memory, read-only
         hit = self._taken.get(key)
         if hit is None:
             hit = self._taken[key] = (a, a[idx])  # a is kept: its memory cannot be reused for another array

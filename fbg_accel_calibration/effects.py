@@ -592,10 +592,15 @@ def _with_gram(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return X, X.T @ X
 
 
+def memory_key(a: np.ndarray) -> tuple:
+    """What identifies the values of a read-only array: its memory, shape, strides and type. Views of the same
+    memory (``Inputs.of`` makes one of each recorded array per design) have the same key."""
+    return a.__array_interface__["data"][0], a.shape, a.strides, a.dtype.str
+
+
 def _same_memory(a: np.ndarray, b: np.ndarray) -> bool:
     """``a`` is ``b`` or a float64 view of all of it (``Inputs.of``): the recorded array, not a corrected one."""
-    return (a.__array_interface__["data"][0] == b.__array_interface__["data"][0] and a.shape == b.shape
-            and a.strides == b.strides and a.dtype == np.float64 and b.dtype == np.float64)
+    return a.dtype == np.float64 and memory_key(a) == memory_key(b)
 
 
 class ThermalHysteresisEffect(Effect):
