@@ -39,12 +39,14 @@ from fbg_accel_driver.correction_terms import (
     ChannelOffset,
     ReferenceDarkOffset,
     ReferenceLowpass,
+    SampleSteps,
     SpectralNonlinearity,
     ThermalHysteresis,
     ThermalLag,
     TimeDrift,
     first_order_lowpass,
     quadratic_features,
+    sample_steps,
 )
 
 # Table 1 of the paper: TIA cut-off frequencies (Hz) of ref, x, y, z (static-test build).
@@ -121,6 +123,11 @@ class DiagnosisData:
     def drop_recent(self) -> None:
         """Forget what :meth:`recent` keeps (when no search follows)."""
         self._recent.clear()
+
+    def run_steps(self) -> list[SampleSteps]:
+        """``sample_steps`` of each run's board times (``runs``), computed once: the low-pass filters of the input
+        corrections start afresh at each run, once per trial value of a search."""
+        return self.once("run_steps", lambda: [sample_steps(self.t_s[idx]) for idx in self.runs()])
 
     def static_psi_map(self) -> tuple[np.ndarray, np.ndarray]:
         """``expected_psi_map`` of the recorded counts (computed once)."""
@@ -329,8 +336,8 @@ class ReferenceReadNoiseEffect(Effect):
         if not h:
             return
         ref = np.array(inp.ref, dtype=float, copy=True)
-        for idx in data.runs():
-            ref[idx] = first_order_lowpass(inp.ref[idx], inp.t_s[idx], float(h), {})
+        for idx, steps in zip(data.runs(), _run_steps(data, inp), strict=True):
+            ref[idx] = first_order_lowpass(inp.ref[idx], inp.t_s[idx], float(h), {}, steps)
         inp.ref = ref
         inp.counts_changed = True
         inp.valid &= np.isfinite(ref) & (ref > 0)
@@ -548,12 +555,15 @@ class TiaLowpassEffect(Effect):
         # (the hyper-parameter search calls this for every trial value).
         g = fill_reference_gaps(inp.t_s, inp.gref, data.runs()) if inp.gref_moved else data.gref_filled
         P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
-        psi_hat = g @ P.T + q
+        if inp.gref_moved or inp.counts_changed:
+            psi_hat = g @ P.T + q
+        else:
+            psi_hat = data.once("static_psi_hat", lambda: g @ P.T + q)
         psi_f = np.empty_like(psi_hat)  # the runs cover every sample
         tau = self.taus(float(h))
-        for idx in data.runs():
+        for idx, steps in zip(data.runs(), _run_steps(data, inp), strict=True):
             for j in range(3):
-                psi_f[idx, j] = first_order_lowpass(psi_hat[idx, j], inp.t_s[idx], tau[j + 1], {})
+                psi_f[idx, j] = first_order_lowpass(psi_hat[idx, j], inp.t_s[idx], tau[j + 1], {}, steps)
         inp.gref = g + (psi_f - psi_hat) @ np.linalg.inv(P).T  # P is 3 x 3: one product, not a solve with N sides
         inp.valid &= finite_rows(inp.gref)
 
@@ -586,6 +596,12 @@ def expected_psi_map(data: DiagnosisData, inp: Inputs) -> tuple[np.ndarray, np.n
     except np.linalg.LinAlgError:  # the reference never changes direction: the minimum-norm solution
         coef = np.linalg.lstsq(X, Y, rcond=None)[0]
     return coef[:3].T, coef[3]
+
+
+def _run_steps(data: DiagnosisData, inp: Inputs) -> list[SampleSteps | None]:
+    """The sampling steps of each run for ``first_order_lowpass`` (``DiagnosisData.run_steps``) when the inputs'
+    times are the recording's (None per run otherwise)."""
+    return data.run_steps() if _same_memory(inp.t_s, data.t_s) else [None] * len(data.runs())
 
 
 def _with_gram(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -26,6 +26,7 @@ regressors for the fit, from these very classes, so the driver and the offline m
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 from typing import Any, ClassVar, Protocol
 
@@ -120,13 +121,66 @@ def _check_kind(d: dict, kind: str) -> None:
 
 
 # ----------------------------------------------------------------------------- streaming filters
-def first_order_lowpass(x: np.ndarray, t_s: np.ndarray, tau_s: float, state: dict | None) -> np.ndarray:
+# relative change of the sampling step below which the filter coefficient a = 1 - exp(-dt/tau) cannot change by the
+# 1e-9 that ``first_order_lowpass`` treats as a new coefficient: |da|/a <= |d dt|/dt (x e^-x <= 1 - e^-x)
+_STEP_CHANGE = 1e-10
+_SMALLEST_STEP_OVER_TAU = 1e-4  # below, a's rounding error (~1e-16 tau/dt) is no longer far below 1e-9
+
+
+@dataclass(frozen=True)
+class SampleSteps:
+    """The sampling steps of a time series that ``first_order_lowpass`` filters many times from a fresh state
+    (the diagnosis tries many time constants on one recording): worked out once by :func:`sample_steps`."""
+
+    dt: np.ndarray  # (N,) s, step before each sample (0 before the first; negative steps as 0)
+    changes: np.ndarray  # indices i >= 1 where dt[i] differs from dt[i-1] by more than _STEP_CHANGE, or either is 0
+    smallest_s: float  # the smallest step at the other samples (inf if there are none)
+
+
+def sample_steps(t_s: np.ndarray) -> SampleSteps:
+    """:class:`SampleSteps` of the board times ``t_s`` (N,) s, for a filter that starts at the first sample."""
+    t_s = np.asarray(t_s, dtype=float).reshape(-1)
+    dt = np.zeros_like(t_s)
+    np.subtract(t_s[1:], t_s[:-1], out=dt[1:])
+    np.maximum(dt, 0.0, out=dt)
+    same = np.abs(np.diff(dt)) <= _STEP_CHANGE * dt[1:]
+    same &= dt[1:] > 0
+    same &= dt[:-1] > 0
+    changes = np.flatnonzero(~same) + 1
+    rest = dt[1:][same]
+    dt.flags.writeable = False
+    return SampleSteps(dt, changes, float(rest.min()) if rest.size else math.inf)
+
+
+def _coefficient_cuts(dt: np.ndarray, tau_s: float, steps: SampleSteps | None) -> tuple[np.ndarray, np.ndarray]:
+    """(a at the first sample of each run of constant coefficient, the runs' bounds) for a = 1 - exp(-dt/tau):
+    a new run starts where a differs from the previous sample's by more than 1e-9 relative. With ``steps`` (of
+    these very ``dt``), a is worked out only where the step changes: elsewhere it cannot change by that much, so
+    the runs are the same as from a worked out at every sample."""
+    if steps is not None and steps.smallest_s / tau_s > _SMALLEST_STEP_OVER_TAU:
+        at = np.concatenate([[0], steps.changes])
+        a_at = 1.0 - np.exp(-dt[at] / tau_s)
+        a_prev = 1.0 - np.exp(-dt[steps.changes - 1] / tau_s)
+        new = np.abs(a_at[1:] - a_prev) > 1e-9 * np.maximum(a_at[1:], 1e-300)
+        cut = steps.changes[new]
+        a_start = np.concatenate([a_at[:1], a_at[1:][new]])
+    else:
+        a = 1.0 - np.exp(-dt / tau_s)
+        cut = np.flatnonzero(np.abs(np.diff(a)) > 1e-9 * np.maximum(a[1:], 1e-300)) + 1
+        a_start = a[np.concatenate([[0], cut])]
+    return a_start, np.concatenate([[0], cut, [dt.size]])
+
+
+def first_order_lowpass(x: np.ndarray, t_s: np.ndarray, tau_s: float, state: dict | None,
+                        steps: SampleSteps | None = None) -> np.ndarray:
     """Exact first-order low-pass y' = (x - y)/tau for a piecewise-constant input sampled at ``t_s``.
 
     ``x`` (N,); ``state`` (dict with ``y`` and ``t``, updated in place) continues a previous
     batch; ``None`` or an empty state starts the filter at the first finite sample. NaN input
     samples hold the filter and give NaN output. Vectorised (scipy ``lfilter``) on runs of
-    uniform sampling, so 10^6 samples take milliseconds.
+    uniform sampling, so 10^6 samples take milliseconds. ``steps`` (``sample_steps(t_s)``, optional):
+    the steps of ``t_s`` worked out once for many calls; used when the filter starts afresh on finite
+    ``x`` (the result is the same with or without it).
     """
     from scipy.signal import lfilter
 
@@ -139,19 +193,20 @@ def first_order_lowpass(x: np.ndarray, t_s: np.ndarray, tau_s: float, state: dic
         return np.full_like(x, np.nan)
     xs, ts = (x, t_s) if good is None else (x[good], t_s[good])
     y_prev, t_prev = st.get("y"), st.get("t")
-    if y_prev is None:
-        y_prev, t_prev = float(xs[0]), float(ts[0])
-    dt = np.empty_like(ts)
-    dt[0] = ts[0] - t_prev
-    np.subtract(ts[1:], ts[:-1], out=dt[1:])
-    np.maximum(dt, 0.0, out=dt)
-    a = 1.0 - np.exp(-dt / tau_s)
-    ys = np.empty_like(xs)
+    if y_prev is None and good is None and steps is not None and steps.dt.size == xs.size:
+        y_prev, dt = float(xs[0]), steps.dt
+    else:
+        steps = None
+        if y_prev is None:
+            y_prev, t_prev = float(xs[0]), float(ts[0])
+        dt = np.empty_like(ts)
+        dt[0] = ts[0] - t_prev
+        np.subtract(ts[1:], ts[:-1], out=dt[1:])
+        np.maximum(dt, 0.0, out=dt)
     # split into runs of (nearly) constant coefficient a (uniform sampling) and filter each run at once
-    cut = np.flatnonzero(np.abs(np.diff(a)) > 1e-9 * np.maximum(a[1:], 1e-300)) + 1
-    bounds = np.concatenate([[0], cut, [xs.size]])
-    for i, j in itertools.pairwise(bounds):
-        ai = a[i]
+    a_start, bounds = _coefficient_cuts(dt, tau_s, steps)
+    ys = np.empty_like(xs)
+    for ai, (i, j) in zip(a_start, itertools.pairwise(bounds), strict=True):
         seg, _ = lfilter([ai], [1.0, ai - 1.0], xs[i:j], zi=[(1.0 - ai) * y_prev])
         ys[i:j] = seg
         y_prev = float(seg[-1])

@@ -21,6 +21,7 @@ from fbg_accel_driver.correction_terms import (
     TimeDrift,
     correction_from_dict,
     first_order_lowpass,
+    sample_steps,
 )
 from fbg_accel_driver.thermal_model import CalibrationFileError, ThermalCalibration
 
@@ -173,3 +174,27 @@ def test_hysteresis_branch_remembers_direction_at_constant_temperature() -> None
     s = ThermalHysteresis.branch(temp, t, 20.0, 1e-3, ThermalHysteresis(np.zeros(3), 20.0, 1e-3).new_state())
     assert s[500] == 1.0 and s[1400] == 1.0  # heating, then held on the plateau
     assert s[2000] == -1.0 and s[2900] == -1.0  # cooling, then held
+
+
+# A step of 1e-7 tau (tau 1 s) at which a step 5e-11 longer gives a = 1 - exp(-dt/tau) one rounding step (1e-9 of
+# it) apart: a filter coefficient that changes although the step hardly does (found by trying steps 1e-9 apart).
+_D1 = next(d for d in 1e-7 * (1 + np.arange(1000) * 1e-9)
+           if abs(np.exp(-np.array([d * (1 + 5e-11)]))[0] - np.exp(-np.array([d]))[0]) > 1e-9 * d)
+
+
+@pytest.mark.parametrize("case", ["uniform", "jittered", "gaps", "irregular", "tiny_steps", "tiny_jittered_steps",
+                                  "one_sample"])
+def test_lowpass_with_steps_worked_out_once_equals_it_without(case: str) -> None:
+    # the diagnosis filters one recording with many time constants, giving the steps of its times worked out once
+    # (sample_steps): the coefficient's runs, and so every output bit, must be those of the filter on its own
+    rng = np.random.default_rng(7)
+    n = 1 if case == "one_sample" else 3000
+    t = {"uniform": np.arange(n) * 0.01, "jittered": np.arange(n) / 97.0 + 1e6, "one_sample": np.zeros(1),
+         "gaps": np.cumsum(np.where(rng.random(n) < 0.01, 0.5, 0.01)),
+         "irregular": np.cumsum(rng.choice([0.01, 0.01 * (1 + 3e-9), 0.02, 0.0], n)),
+         "tiny_steps": np.arange(n) * 1e-9,
+         "tiny_jittered_steps": np.cumsum(np.where(rng.random(n) < 0.5, _D1, _D1 * (1 + 5e-11)))}[case]
+    x = np.cumsum(rng.normal(0, 1, n))
+    steps = sample_steps(t)
+    for tau in (1e-6, 0.003, 0.05, 0.12, 1.0, 40.0):
+        np.testing.assert_array_equal(first_order_lowpass(x, t, tau, {}, steps), first_order_lowpass(x, t, tau, {}))
