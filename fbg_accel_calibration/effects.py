@@ -564,7 +564,11 @@ class TiaLowpassEffect(Effect):
         for idx, steps in zip(data.runs(), _run_steps(data, inp), strict=True):
             for j in range(3):
                 psi_f[idx, j] = first_order_lowpass(psi_hat[idx, j], inp.t_s[idx], tau[j + 1], {}, steps)
-        inp.gref = g + (psi_f - psi_hat) @ np.linalg.inv(P).T  # P is 3 x 3: one product, not a solve with N sides
+        psi_f -= psi_hat
+        # P is 3 x 3: one product, not a solve with N sides (a contiguous right side: numpy's fast product)
+        gref = psi_f @ np.ascontiguousarray(np.linalg.inv(P).T)
+        gref += g
+        inp.gref = gref
         inp.valid &= finite_rows(inp.gref)
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:

@@ -123,7 +123,7 @@ def _check_kind(d: dict, kind: str) -> None:
 # ----------------------------------------------------------------------------- streaming filters
 # relative change of the sampling step below which the filter coefficient a = 1 - exp(-dt/tau) cannot change by the
 # 1e-9 that ``first_order_lowpass`` treats as a new coefficient: |da|/a <= |d dt|/dt (x e^-x <= 1 - e^-x)
-_STEP_CHANGE = 1e-10
+_STEP_CHANGE = 5e-10
 _SMALLEST_STEP_OVER_TAU = 1e-4  # below, a's rounding error (~1e-16 tau/dt) is no longer far below 1e-9
 
 
