@@ -36,6 +36,7 @@ correlated and a sample-level F-test would be far too optimistic.
 from __future__ import annotations
 
 import math
+import weakref
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -146,37 +147,63 @@ def _transforms_inputs(eff: Effect) -> bool:
 
 
 class DesignCache:
-    """The corrected inputs and eq. 28 columns of the last few sets of input corrections (bounded), and the
-    inputs part-way through the corrections (``prefix``).
+    """The corrected inputs of the last few sets of input corrections, the inputs part-way through the
+    corrections (``prefix``) and the last few design matrices (bounded).
 
     A hyper-parameter search over an additive effect, and every candidate tried on top of the same model,
-    feed eq. 28 the same corrected inputs: they are corrected and expanded once. A search over an input
-    correction that runs after the model's own (a later stage) starts from the inputs the model's corrections
-    left, instead of re-running them (the TIA inversion costs ~0.2 s per trial at 10^6 samples). Only for one
-    recording.
+    feed eq. 28 the same corrected inputs: they are corrected once. A search over an input correction that
+    runs after the model's own (a later stage) starts from the inputs the model's corrections left, instead
+    of re-running them (the TIA inversion costs ~0.2 s per trial at 10^6 samples). A correction of the
+    reference alone (``Effect.reference_only``: the channel delay, the TIA low-pass) leaves the design matrix
+    as it was: a search over one reuses the matrix, and ``cross_validate`` its sums. Only for one recording.
     """
 
-    def __init__(self, size: int = 1, prefixes: int = 2) -> None:
-        self.size, self.prefixes = size, prefixes
-        self._entries: OrderedDict[tuple, tuple[Inputs, Inputs, np.ndarray, np.ndarray]] = OrderedDict()
+    def __init__(self, size: int = 1, prefixes: int = 2, matrices: int = 2, references: int = 4) -> None:
+        self.size, self.prefixes, self.matrices, self.references = size, prefixes, matrices, references
+        self._references: OrderedDict[tuple, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._entries: OrderedDict[tuple, tuple[Inputs, Inputs]] = OrderedDict()
         self._prefix: OrderedDict[tuple, Inputs] = OrderedDict()
         self._taken: OrderedDict[tuple, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._matrices: OrderedDict[tuple, tuple[np.ndarray, np.ndarray, dict[str, slice]]] = OrderedDict()
 
-    def get(self, key: tuple) -> tuple[Inputs, Inputs, np.ndarray, np.ndarray] | None:
-        hit = self._entries.get(key)
+    @staticmethod
+    def _get(store: OrderedDict, key: tuple) -> Any:
+        hit = store.get(key)
         if hit is not None:
-            self._entries.move_to_end(key)
+            store.move_to_end(key)
         return hit
 
-    def make_room(self) -> None:
-        """Drop the oldest entries so that one more fits: called before a new entry is computed, so that
-        the arrays of the entry it replaces are not held beside the new ones while they are built."""
-        while len(self._entries) >= self.size:
-            self._entries.popitem(last=False)
+    def get(self, key: tuple) -> tuple[Inputs, Inputs] | None:
+        return self._get(self._entries, key)
 
-    def put(self, key: tuple, value: tuple[Inputs, Inputs, np.ndarray, np.ndarray]) -> None:
-        self.make_room()
+    def reference(self, key: tuple) -> tuple[np.ndarray, np.ndarray] | None:
+        """(reference (n, 3), valid rows (n,)) kept under ``key`` (``build_design``), or None."""
+        return self._get(self._references, key)
+
+    def put_reference(self, key: tuple, gref: np.ndarray, valid: np.ndarray) -> None:
+        for a in (gref, valid):
+            a.flags.writeable = False
+        self._references[key] = (gref, valid)
+        while len(self._references) > self.references:
+            self._references.popitem(last=False)
+
+    def matrix(self, key: tuple) -> tuple[np.ndarray, np.ndarray, dict[str, slice]] | None:
+        """(X (n, p) read-only, its finite rows (n,), effect blocks) kept under ``key`` (``build_design``), or None."""
+        return self._get(self._matrices, key)
+
+    def make_room(self, matrix: bool = False) -> None:
+        """Drop the oldest entries (corrected inputs, or design matrices) so that one more fits: called before a
+        new one is computed, so that the arrays it replaces are not held beside the new ones while they are built."""
+        store, size = (self._matrices, self.matrices) if matrix else (self._entries, self.size)
+        while len(store) >= size:
+            store.popitem(last=False)
+
+    def put(self, key: tuple, value: tuple[Inputs, Inputs]) -> None:
         self._entries[key] = value
+
+    def put_matrix(self, key: tuple, X: np.ndarray, ok: np.ndarray, blocks: dict[str, slice]) -> None:
+        X.flags.writeable = False  # shared by the designs of every trial value of a search over the reference
+        self._matrices[key] = (X, ok, blocks)
 
     def prefix(self, names: tuple) -> tuple[int, Inputs | None]:
         """(number of corrections done, a private copy of the inputs after them) for the longest cached prefix
@@ -222,37 +249,81 @@ def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None
     The input corrections (``Effect.transform``) run first in stage order, on the whole time series; every
     effect's columns are then computed from the fully corrected inputs. ``sub`` (sample indices): the design
     of those rows only (the corrections still see every sample; eq. 28's columns and the columns of a
-    ``pointwise`` effect are computed on those rows alone). ``cache`` keeps the corrected inputs and eq. 28
-    columns of a set of corrections for the next design that has the same ones (the arrays it holds are
-    never written).
+    ``pointwise`` effect are computed on those rows alone). ``cache`` keeps the corrected inputs of a set of
+    corrections, and the design matrix of a model but for its corrections of the reference alone, for the
+    next design that has the same (the arrays it holds are never written).
     """
     ordered = sorted(spec.effects, key=lambda eh: eh[0].stage)
     corrections = [(eff, h) for eff, h in ordered if _transforms_inputs(eff)]
-    names = tuple((eff.name, h) for eff, h in corrections)
-    key = (spec.degree, spec.t_center_c, spec.t_scale_c, names)
-    hit = cache.get(key) if cache is not None else None
-
-    if hit is None:
-        if cache is not None:
-            cache.make_room()
-        done, inp = cache.prefix(names) if cache is not None else (0, None)
-        if inp is None:
-            inp = Inputs.of(data)
-        for i in range(done, len(corrections)):
-            if cache is not None and i == len(corrections) - 1 and i > done:
-                cache.put_prefix(names[:i], inp)  # all but the last: what a search over the last one repeats
-            eff, h = corrections[i]
+    if cache is None:
+        inp = Inputs.of(data)
+        for eff, h in corrections:
             eff.transform(data, inp, h)
-        part = inp if sub is None else inp.at(sub, None if cache is None else lambda a: cache.take(a, sub))  # the design's rows
-        tau = (part.temp_c - spec.t_center_c) / spec.t_scale_c
-        base = None  # without a cache eq. 28's columns are written straight into the design below
-        if cache is not None:
-            base = design_matrix(part.psi, tau, spec.degree)
-            base_ok = part.valid & finite_rows(base) & finite_rows(part.gref)
-            cache.put(key, (inp, part, base, base_ok))
+        part = inp if sub is None else inp.at(sub)
+        gref, valid = part.gref, part.valid
     else:
-        inp, part, base, base_ok = hit
-    gref = part.gref
+        # The corrections of the reference alone (Effect.reference_only) are worked out apart, with the corrections
+        # before them: no other correction reads the reference, and they read only what comes before them.
+        inp, part = _corrected(data, [c for c in corrections if not c[0].reference_only], cache, sub)
+        gref, valid = part.gref, part.valid
+        last = max((i + 1 for i, (e, _) in enumerate(corrections) if e.reference_only), default=0)
+        if last:
+            gref, ref_valid = _corrected_reference(data, corrections[:last], cache, sub)
+            valid = valid & ref_valid
+    # eq. 28's columns and the extra ones depend on every effect but the corrections of the reference alone
+    x_key = (spec.degree, spec.t_center_c, spec.t_scale_c, tuple((e.name, h) for e, h in ordered if not e.reference_only))
+    x_hit = cache.matrix(x_key) if cache is not None else None
+    if x_hit is None:
+        if cache is not None:
+            cache.make_room(matrix=True)
+        x_hit = _design_matrix(data, spec, ordered, inp, part, sub)
+        if cache is not None:
+            cache.put_matrix(x_key, *x_hit)
+    X, x_ok, blocks = x_hit
+    return Design(X, gref, valid & x_ok & finite_rows(gref), blocks, n_params(spec.degree))
+
+
+def _corrected(data: DiagnosisData, corrections: list[tuple[Effect, float | None]], cache: DesignCache,
+               sub: np.ndarray | None) -> tuple[Inputs, Inputs]:
+    """(the inputs after ``corrections``, those at the design's rows ``sub``), from ``cache`` when it has them."""
+    names = tuple((eff.name, h) for eff, h in corrections)
+    hit = cache.get(names)
+    if hit is not None:
+        return hit
+    cache.make_room()
+    done, inp = cache.prefix(names)
+    if inp is None:
+        inp = Inputs.of(data)
+    for i in range(done, len(corrections)):
+        if i == len(corrections) - 1 and i > done:
+            cache.put_prefix(names[:i], inp)  # all but the last: what a search over the last one repeats
+        eff, h = corrections[i]
+        eff.transform(data, inp, h)
+    part = inp if sub is None else inp.at(sub, lambda a: cache.take(a, sub))  # the design's rows
+    cache.put(names, (inp, part))
+    return inp, part
+
+
+def _corrected_reference(data: DiagnosisData, corrections: list[tuple[Effect, float | None]], cache: DesignCache,
+                         sub: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(the reference (n, 3) m/s^2 after ``corrections``, the rows (n,) they leave valid) at the design's rows
+    ``sub``, from ``cache`` when it has them: a search over a correction of the reference tries the same grid
+    for every model it is tried on top of."""
+    names = tuple((eff.name, h) for eff, h in corrections)
+    hit = cache.reference(names)
+    if hit is None:
+        inp = Inputs.of(data)
+        for eff, h in corrections:
+            eff.transform(data, inp, h)
+        hit = (inp.gref, inp.valid) if sub is None else (inp.gref[sub], inp.valid[sub])
+        cache.put_reference(names, *hit)
+    return hit
+
+
+def _design_matrix(data: DiagnosisData, spec: ModelSpec, ordered: list[tuple[Effect, float | None]], inp: Inputs,
+                   part: Inputs, sub: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, dict[str, slice]]:
+    """(X (n, p): eq. 28's columns then each effect's, its finite rows (n,), each effect's block of columns) of
+    ``build_design``: ``inp`` the corrected inputs, ``part`` those at the design's rows."""
     n_base = n_params(spec.degree)
     extra, blocks, p = [], {}, n_base
     for eff, h in ordered:
@@ -262,19 +333,14 @@ def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None
             blocks[eff.name] = slice(p, p + c.shape[1])
             extra.append(c)
             p += c.shape[1]
-    if base is not None and not extra:
-        return Design(base, gref, base_ok, blocks, n_base)
-    X = np.empty((p, len(part.valid))).T  # column-major, filled in place: no per-trial concatenation copy
-    if base is None:
-        design_matrix(part.psi, tau, spec.degree, out=X[:, :n_base])
-        base_ok = part.valid & finite_rows(X[:, :n_base]) & finite_rows(gref)
-    else:
-        X[:, :n_base] = base
-    valid = base_ok.copy()
+    X = np.empty((p, len(part.valid))).T  # column-major, filled in place: no concatenation copy
+    tau = (part.temp_c - spec.t_center_c) / spec.t_scale_c
+    design_matrix(part.psi, tau, spec.degree, out=X[:, :n_base])
+    ok = finite_rows(X[:, :n_base])
     for c, sl in zip(extra, blocks.values(), strict=True):
         X[:, sl] = c
-        valid &= finite_rows(c)
-    return Design(X, gref, valid, blocks, n_base)
+        ok &= finite_rows(c)
+    return X, ok, blocks
 
 
 # ============================================================================ cross-validation
@@ -391,20 +457,51 @@ def check_folds(data: DiagnosisData, groups: np.ndarray, folds: np.ndarray) -> t
 
 
 @dataclass
+class FoldSums:
+    """The sums of one design matrix that ``cross_validate`` works out per fold (they do not depend on the
+    reference): kept while a search changes the reference alone (``DesignCache``: the same matrix)."""
+
+    X: weakref.ref  # the design matrix (N, p) they are of, and the fold index (N,): compared by identity, not
+    folds: weakref.ref  # kept alive by the sums (the final model's matrix is let go once it is fitted)
+    idx: np.ndarray  # the fitted rows, in fold order
+    xtx: np.ndarray  # (K, p, p) X^T X per fold
+    XtX: np.ndarray  # (p, p) over every fitted row
+    xsum: np.ndarray  # (p,) column sums over every fitted row
+
+    def of(self, X: np.ndarray, folds: np.ndarray, idx: np.ndarray) -> bool:
+        return self.X() is X and self.folds() is folds and np.array_equal(self.idx, idx)
+
+
+@dataclass
 class CvResult:
     heldout: np.ndarray  # (N, 3) held-out residual (NaN outside the evaluated rows)
     train_rss: np.ndarray  # (K,) weighted training RSS per fold
     A_full: np.ndarray  # (p, 3) coefficients on all rows
     fitted_full: np.ndarray  # (N, 3) in-sample prediction with A_full
-    xtx: np.ndarray  # (p, p) X^T X over the fitted rows (all folds), for the conditioning checks
-    xsum: np.ndarray  # (p,) column sums over the fitted rows
-    n_fit: int  # fitted rows
+    sums: FoldSums  # X^T X per fold and over the fitted rows (all folds), column sums: the conditioning checks
+
+    @property
+    def xtx(self) -> np.ndarray:
+        """(p, p) X^T X over the fitted rows (all folds)."""
+        return self.sums.XtX
+
+    @property
+    def xsum(self) -> np.ndarray:
+        """(p,) column sums over the fitted rows."""
+        return self.sums.xsum
+
+    @property
+    def n_fit(self) -> int:
+        """Fitted rows."""
+        return len(self.sums.idx)
 
 
-def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np.ndarray) -> CvResult:
+def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np.ndarray,
+                   sums: FoldSums | None = None) -> CvResult:
     """K-fold CV by normal equations (per-fold sums subtracted from the total). Rows of ``rows`` with a
     negative fold index (``check_folds``: -2, a visit that cannot be held out) are in every training
-    set and in the full fit, never held out (their held-out residual stays NaN).
+    set and in the full fit, never held out (their held-out residual stays NaN). ``sums``: those of an
+    earlier call, used again when they are of the same matrix, folds and fitted rows.
 
     The fitted rows are put in fold order (a stable counting sort of the small fold numbers) and gathered
     one fold at a time, twice (for the sums, then for the held-out residual): a fold's rows, not a copy of
@@ -418,46 +515,72 @@ def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np
     K = int(f_idx[-1]) + 1
     start = np.searchsorted(f_idx, np.arange(-2, K + 1))  # [-2, -1, 0, .., K]: fold f is start[f+2]:start[f+3]
 
-    def part(lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+    def part(lo: int, hi: int, of: np.ndarray) -> np.ndarray:
         rows = idx[lo:hi]
         if hi > lo and rows[-1] - rows[0] == hi - lo - 1:  # consecutive rows (a design in fold order): views
-            return X[rows[0]:rows[-1] + 1], G[rows[0]:rows[-1] + 1]
-        return X[rows], G[rows]
+            return of[rows[0]:rows[-1] + 1]
+        return of[rows]
 
     p = X.shape[1]
-    xtx = np.zeros((K, p, p))
+    Xa, Ga = part(0, start[2], X), part(0, start[2], G)  # fold < 0: always trained on
+    if sums is None or not sums.of(X, folds, idx):
+        xtx = np.zeros((K, p, p))
+        xsum = np.zeros(p)
+        for f in range(K):
+            Xf = part(start[f + 2], start[f + 3], X)
+            xtx[f] = Xf.T @ Xf
+            xsum += Xf.sum(axis=0)
+        XtX = xtx.sum(0)
+        if len(Xa):
+            XtX = XtX + Xa.T @ Xa
+            xsum += Xa.sum(axis=0)
+        sums = FoldSums(weakref.ref(X), weakref.ref(folds), idx, xtx, XtX, xsum)
+    xtx, XtX = sums.xtx, sums.XtX
     xtg = np.zeros((K, p, 3))
     gtg = np.zeros((K, 3))
-    xsum = np.zeros(p)
     for f in range(K):
-        Xf, Gf = part(start[f + 2], start[f + 3])
-        xtx[f], xtg[f], gtg[f] = Xf.T @ Xf, Xf.T @ Gf, np.einsum("ij,ij->j", Gf, Gf)
-        xsum += Xf.sum(axis=0)
-    XtX, XtG, GtG = xtx.sum(0), xtg.sum(0), gtg.sum(0)
-    Xa, Ga = part(0, start[2])  # fold < 0: always trained on
+        Xf, Gf = part(start[f + 2], start[f + 3], X), part(start[f + 2], start[f + 3], G)
+        xtg[f], gtg[f] = Xf.T @ Gf, np.einsum("ij,ij->j", Gf, Gf)
+    XtG, GtG = xtg.sum(0), gtg.sum(0)
     if len(Xa):
-        XtX, XtG, GtG = XtX + Xa.T @ Xa, XtG + Xa.T @ Ga, GtG + np.einsum("ij,ij->j", Ga, Ga)
-        xsum += Xa.sum(axis=0)
+        XtG, GtG = XtG + Xa.T @ Ga, GtG + np.einsum("ij,ij->j", Ga, Ga)
     heldout = np.full(G.shape, np.nan)
     train_rss = np.zeros(K)
     for f in range(K):
         Xt, Gt = XtX - xtx[f], XtG - xtg[f]
         A = solve_normal_equations(Xt, Gt)[0]
-        Xf, Gf = part(start[f + 2], start[f + 3])
+        Xf, Gf = part(start[f + 2], start[f + 3], X), part(start[f + 2], start[f + 3], G)
         heldout[idx[start[f + 2]:start[f + 3]]] = Gf - Xf @ A
         rss = GtG - gtg[f] - 2 * np.einsum("pi,pi->i", A, Gt) + np.einsum("pi,pq,qi->i", A, Xt, A)
         train_rss[f] = float(np.sum(rss * weights))
     A_full = solve_normal_equations(XtX, XtG)[0]
     fitted = X @ A_full
-    return CvResult(heldout, train_rss, A_full, fitted, XtX, xsum, len(idx))
+    return CvResult(heldout, train_rss, A_full, fitted, sums)
 
 
-def weighted_rss(des: Design, rows: np.ndarray, weights: np.ndarray) -> float:
+@dataclass
+class RssSums:
+    """The fitted rows of one design matrix and their X^T X (``weighted_rss``), kept while a search changes the
+    reference alone (the same matrix, ``DesignCache``)."""
+
+    X: weakref.ref  # the design matrix (N, p), compared by identity (not kept alive)
+    rows: np.ndarray  # (N,) the fitted rows
+    Xr: np.ndarray  # (n, p) the matrix at those rows
+    XtX: np.ndarray  # (p, p)
+
+
+def weighted_rss(des: Design, rows: np.ndarray, weights: np.ndarray,
+                 sums: RssSums | None = None) -> tuple[float, RssSums]:
+    """Weighted in-sample RSS of the least-squares fit of ``des`` on ``rows`` (noise ``weights`` (3,) per axis),
+    and the sums it used (``sums``: an earlier call's, used again when they are of the same matrix and rows)."""
     r = rows & des.valid
-    X, G = des.X[r], des.G[r]  # one copy each, not three
-    A = solve_normal_equations(X.T @ X, X.T @ G)[0]
+    if sums is None or sums.X() is not des.X or not np.array_equal(sums.rows, r):
+        Xr = des.X[r]  # one copy, not three
+        sums = RssSums(weakref.ref(des.X), r, Xr, Xr.T @ Xr)
+    X, G = sums.Xr, des.G[r]
+    A = solve_normal_equations(sums.XtX, X.T @ G)[0]
     res = G - X @ A
-    return float(np.sum(res**2 * weights))
+    return float(np.sum(res**2 * weights)), sums
 
 
 # ============================================================================ noise floor, settling, degree
@@ -846,11 +969,15 @@ class Evaluator:
         self.folds, self.groups = self.at(folds), self.at(groups)
         self.rows = self.at(data.use) & (self.folds >= 0)  # held out and judged
         self.fit_rows = self.at(data.use) & (self.folds != -1)  # fitted (also the visits never held out, fold -2)
-        self.designs: DesignCache | None = DesignCache()
+        # a thinned evaluator's corrected reference is small beside the correction of the whole series it saves:
+        # keep a search's grid of them for the next model it is tried on top of
+        self.designs: DesignCache | None = DesignCache(references=32 if sub is not None else 4)
         # results worked out by the confounding check that the next step needs again (see ``forget``)
         self._cv_memo: dict[tuple, tuple[Design, CvResult]] = {}
         self._hyper_memo: dict[tuple, tuple[float | None, np.ndarray, list[tuple[float, float]]]] = {}
         self._last_cv: tuple[tuple, tuple[Design, CvResult]] | None = None
+        self._sums: FoldSums | None = None
+        self._rss_sums: RssSums | None = None
         n_fit = int(self.fit_rows.sum())
         self.thin: Evaluator | None = None
         if sub is None and search_rows is not None and n_fit > search_rows:
@@ -881,7 +1008,8 @@ class Evaluator:
             return hit
         self._last_cv = None  # not held while the next design is built
         des = self.design(spec)
-        out = des, cross_validate(des, self.fit_rows, self.folds, self.weights)
+        out = des, cross_validate(des, self.fit_rows, self.folds, self.weights, self._sums)
+        self._sums = out[1].sums  # a search over the reference alone asks again with the same matrix
         if remember:
             self._cv_memo[spec.key] = out
         self._last_cv = (spec.key, out)
@@ -892,6 +1020,7 @@ class Evaluator:
         confounding check has already worked out each candidate on top of the one that is then added."""
         self._cv_memo = {k: v for k, v in self._cv_memo.items() if k == spec.key}
         self._hyper_memo = {k: v for k, v in self._hyper_memo.items() if k[0] == spec.key}
+        self._rss_sums = None  # its copy of the matrix's fitted rows (n x p)
 
     def fit_hyper(self, spec: ModelSpec, eff: Effect,
                   remember: bool = False) -> tuple[float | None, np.ndarray, list[tuple[float, float]]]:
@@ -960,7 +1089,8 @@ class Evaluator:
         def obj(h: float) -> float:
             if float(h) not in rss_at:
                 try:
-                    rss_at[float(h)] = weighted_rss(self.design(spec.plus(eff, float(h))), self.fit_rows, self.weights)
+                    rss_at[float(h)], self._rss_sums = weighted_rss(self.design(spec.plus(eff, float(h))), self.fit_rows,
+                                                                    self.weights, self._rss_sums)
                 except NotIdentifiedError:
                     rss_at[float(h)] = math.inf
             return rss_at[float(h)]

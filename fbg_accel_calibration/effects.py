@@ -279,6 +279,7 @@ class Effect:
     noise_remedy: bool = False  # a filter against noise (not a model effect): reported apart from the added effects
     per_run: bool = False  # a property of each recording (run_offset, run_drift): fitted, reported, not in the YAML
     pointwise: bool = False  # columns() computes each row from that row's inputs alone (may be given some rows only)
+    reference_only: bool = False  # transform() changes only the reference (and valid): eq. 28's columns stay the same
 
     def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
         """Whether the data can show this effect at all (e.g. temperature must vary)."""
@@ -498,6 +499,7 @@ class TimeDriftEffect(Effect):
 
 class ChannelDelayEffect(Effect):
     name = "channel_delay"
+    reference_only = True
     stage = 1
     hyper_name = "D"
     hyper_unit = "s"
@@ -533,6 +535,7 @@ class ChannelDelayEffect(Effect):
 
 class TiaLowpassEffect(Effect):
     name = "tia_lowpass"
+    reference_only = True
     stage = 2
     hyper_name = "tau_scale"
     hyper_unit = "x Table 1"

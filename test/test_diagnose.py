@@ -307,6 +307,9 @@ def test_corrections_and_rows_kept_across_trials_equal_those_worked_out_afresh()
         specs += [model.plus(e, h) for e, h in [(lib["reference_dark_offset"], 10.0), (lib["reference_dark_offset"], 30.0),
                                                  (lib["tia_lowpass"], 0.5), (lib["tia_lowpass"], 2.0),
                                                  (lib["channel_delay"], data.dt_s), (lib["time_drift"], 100.0)]]
+        # corrections of the reference (worked out apart from the others) after one of the counts, or of each other
+        specs += [model.plus(lib["reference_read_noise"], 2 * data.dt_s).plus(lib["tia_lowpass"], 1.0),
+                  model.plus(lib["channel_delay"], 2 * data.dt_s).plus(lib["tia_lowpass"], 0.5)]
     for spec in specs * 2:
         got = build_design(data, spec, cache, sub=sub)
         fresh = build_design(prepare_data(rec), spec)  # its own DiagnosisData: nothing remembered
@@ -314,7 +317,9 @@ def test_corrections_and_rows_kept_across_trials_equal_those_worked_out_afresh()
         np.testing.assert_array_equal(got.X[got.valid], fresh.X[sub][got.valid])
         np.testing.assert_array_equal(got.G, fresh.G[sub])
         assert 0 < len(data._recent) <= 4 and not any(a.flags.writeable for a in data._recent.values())
-        assert 0 < len(cache._taken) <= 8
+        assert 0 < len(cache._taken) <= 8 and len(cache._references) <= cache.references
+        assert not any(a.flags.writeable for entry in cache._references.values() for a in entry)
+    assert cache._references  # the corrections of the reference were kept
 
 
 def test_cross_validation_of_a_design_in_fold_order_equals_that_of_the_time_order() -> None:
@@ -345,6 +350,50 @@ def test_cross_validation_of_a_design_in_fold_order_equals_that_of_the_time_orde
     np.testing.assert_allclose(b.heldout[back], a.heldout, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(b.A_full, a.A_full, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(b.train_rss, a.train_rss, rtol=1e-7)  # from the normal equations: some cancellation
+
+
+def test_sums_kept_while_only_the_reference_changes_give_the_cross_validation_worked_out_afresh() -> None:
+    """Trials of a search over a correction of the reference alone share one design matrix (``DesignCache``):
+    ``cross_validate`` and ``weighted_rss`` reuse its sums, and give, bit for bit, what they give without;
+    sums of another matrix or other rows are not used."""
+    from fbg_accel_calibration.diagnose import (
+        DesignCache,
+        ModelSpec,
+        build_design,
+        check_folds,
+        cross_validate,
+        make_folds,
+        prepare_data,
+        visit_groups,
+        weighted_rss,
+    )
+    from fbg_accel_calibration.effects import library_by_name
+
+    data = prepare_data(synthetic(4, dark=30.0))
+    lib = library_by_name()
+    groups = visit_groups(data)
+    folds = check_folds(data, groups, make_folds(groups, data.use, 5))[0]
+    w = np.array([1.0, 2.0, 3.0])
+    model = ModelSpec(1, 23.4, 1.0, [(lib["time_drift"], 300.0)])
+    cache = DesignCache()
+    specs = [model.plus(lib["tia_lowpass"], h) for h in (0.5, 2.0)] + [model.plus(lib["channel_delay"], data.dt_s),
+                                                                       model, ModelSpec(2, 23.4, 1.0)]
+    designs = [build_design(data, s, cache) for s in specs]
+    assert designs[0].X is designs[1].X is designs[2].X and designs[3].X is not designs[4].X
+    assert not np.array_equal(designs[0].G, designs[1].G)
+    cv_sums = rss_sums = None
+    for des in designs + designs[:1]:
+        fresh, kept = cross_validate(des, data.use, folds, w), cross_validate(des, data.use, folds, w, cv_sums)
+        for a, b in [(fresh.heldout, kept.heldout), (fresh.train_rss, kept.train_rss), (fresh.A_full, kept.A_full),
+                     (fresh.xtx, kept.xtx), (fresh.xsum, kept.xsum)]:
+            np.testing.assert_array_equal(a, b)
+        rss, rss_sums = weighted_rss(des, data.use, w, rss_sums)
+        assert rss == weighted_rss(des, data.use, w)[0]
+        cv_sums = kept.sums
+    fewer = data.use & (np.arange(len(data.use)) % 7 > 0)  # the same matrix, other rows
+    np.testing.assert_array_equal(cross_validate(designs[0], fewer, folds, w, cv_sums).heldout,
+                                  cross_validate(designs[0], fewer, folds, w).heldout)
+    assert weighted_rss(designs[0], fewer, w, rss_sums)[0] == weighted_rss(designs[0], fewer, w)[0]
 
 
 def test_a_candidate_the_data_cannot_identify_is_reported_not_regularised() -> None:
