@@ -522,28 +522,28 @@ def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np
         return of[rows]
 
     p = X.shape[1]
-    Xa, Ga = part(0, start[2], X), part(0, start[2], G)  # fold < 0: always trained on
-    if sums is None or not sums.of(X, folds, idx):
-        xtx = np.zeros((K, p, p))
-        xsum = np.zeros(p)
-        for f in range(K):
-            Xf = part(start[f + 2], start[f + 3], X)
+    fresh = sums is None or not sums.of(X, folds, idx)
+    xtx = np.zeros((K, p, p)) if fresh else sums.xtx
+    xsum = np.zeros(p)
+    xtg = np.zeros((K, p, 3))
+    gtg = np.zeros((K, 3))
+    for f in range(K):
+        Xf, Gf = part(start[f + 2], start[f + 3], X), part(start[f + 2], start[f + 3], G)
+        if fresh:
             xtx[f] = Xf.T @ Xf
             xsum += Xf.sum(axis=0)
+        xtg[f], gtg[f] = Xf.T @ Gf, np.einsum("ij,ij->j", Gf, Gf)
+    XtG, GtG = xtg.sum(0), gtg.sum(0)
+    Xa, Ga = part(0, start[2], X), part(0, start[2], G)  # fold < 0: always trained on
+    if len(Xa):
+        XtG, GtG = XtG + Xa.T @ Ga, GtG + np.einsum("ij,ij->j", Ga, Ga)
+    if fresh:
         XtX = xtx.sum(0)
         if len(Xa):
             XtX = XtX + Xa.T @ Xa
             xsum += Xa.sum(axis=0)
         sums = FoldSums(weakref.ref(X), weakref.ref(folds), idx, xtx, XtX, xsum)
-    xtx, XtX = sums.xtx, sums.XtX
-    xtg = np.zeros((K, p, 3))
-    gtg = np.zeros((K, 3))
-    for f in range(K):
-        Xf, Gf = part(start[f + 2], start[f + 3], X), part(start[f + 2], start[f + 3], G)
-        xtg[f], gtg[f] = Xf.T @ Gf, np.einsum("ij,ij->j", Gf, Gf)
-    XtG, GtG = xtg.sum(0), gtg.sum(0)
-    if len(Xa):
-        XtG, GtG = XtG + Xa.T @ Ga, GtG + np.einsum("ij,ij->j", Ga, Ga)
+    XtX = sums.XtX
     heldout = np.full(G.shape, np.nan)
     train_rss = np.zeros(K)
     for f in range(K):
@@ -1049,7 +1049,7 @@ class Evaluator:
             return None, cvr.heldout, []
         grid = eff.hyper_grid(self.data)
         K = int(self.folds[self.rows].max()) + 1
-        fold_rows = [self.rows & (self.folds == f) for f in range(K)]
+        fold_rows = [np.flatnonzero(self.rows & (self.folds == f)) for f in range(K)]  # indices: a fold is taken often
         # nested choice: each fold's held-out residual is the one of the grid value that fits the other folds
         # best (the first such value on a tie), kept as the grid is walked: one (N, 3) array, not one per value.
         # Values whose fit on all rows is not physical (Effect.implausible: e.g. a warm-up of 13 m/s^2 cancelled
