@@ -22,7 +22,7 @@ Pure numpy/scipy engine behind ``fbg-accel-calib diagnose`` (issue 4). Steps:
 4. Forward selection: add the best significant candidate, repeat; stop when no candidate is
    significant or gains less than ``min_rel_gain`` of the held-out MSE (so nothing is added when
    nothing is significant). Above ``SEARCH_ROWS`` fitted samples, steps 3-4 run on every k-th fitted
-   sample (the same visits and folds; ``Evaluator.thin``) and only the chosen model is fitted on all.
+   sample (the same visits and folds; ``Evaluator.search``) and only the chosen model is fitted on all.
 5. Refit with the winners as declared ``corrections`` of a ``ThermalCalibration``; check that the
    driver's ``apply_counts`` reproduces the fit's prediction; before/after held-out RMSE per axis
    next to the noise floor; test and describe what residual remains (per pose, axis, temperature,
@@ -955,35 +955,40 @@ class Evaluator:
     """Evaluates specs on one recording with fixed folds, rows and noise weights (cached designs).
 
     ``sub`` (sample indices): evaluate on those samples only (designs, folds, groups and held-out arrays are
-    then of that length; the input corrections still run on the whole time series). ``search_rows``: with
-    more fitted samples than this, ``self.thin`` is an evaluator of every k-th fitted sample (about
-    ``search_rows`` of them), on which ``diagnose`` evaluates the candidates and chooses the model (hyper-
-    parameters, held-out gains, tests over the same visits); the chosen model is then fitted and reported on
-    all samples. Consecutive samples of a visit are strongly correlated (TIA-filtered noise), so the thinned
-    set carries nearly all the information that decides a choice, at a fraction of the cost.
+    then of that length; the input corrections still run on the whole time series). An evaluator of every
+    sample (``sub`` None) has a ``search`` evaluator, on which ``diagnose`` evaluates the candidates and
+    chooses the model (hyper-parameters, held-out gains, tests over the same visits); the chosen model is then
+    fitted and reported on every sample. The search's samples are the fitted ones in fold order (each fold a
+    slice of its designs, no gathers); with more than ``search_rows`` of them, every k-th one (about
+    ``search_rows``). Consecutive samples of a visit are strongly correlated (TIA-filtered noise), so the
+    thinned set carries nearly all the information that decides a choice, at a fraction of the cost.
+    ``references``: the corrected references a search keeps (``DesignCache``).
     """
 
     def __init__(self, data: DiagnosisData, folds: np.ndarray, weights: np.ndarray, groups: np.ndarray,
-                 sub: np.ndarray | None = None, search_rows: int | None = None) -> None:
+                 sub: np.ndarray | None = None, search_rows: int | None = None, references: int = 4) -> None:
         self.data, self.weights, self.sub = data, weights, sub
         self.folds, self.groups = self.at(folds), self.at(groups)
         self.rows = self.at(data.use) & (self.folds >= 0)  # held out and judged
         self.fit_rows = self.at(data.use) & (self.folds != -1)  # fitted (also the visits never held out, fold -2)
-        # a thinned evaluator's corrected reference is small beside the correction of the whole series it saves:
-        # keep a search's grid of them for the next model it is tried on top of
-        self.designs: DesignCache | None = DesignCache(references=32 if sub is not None else 4)
+        self.designs: DesignCache | None = DesignCache(references=references)
         # results worked out by the confounding check that the next step needs again (see ``forget``)
         self._cv_memo: dict[tuple, tuple[Design, CvResult]] = {}
         self._hyper_memo: dict[tuple, tuple[float | None, np.ndarray, list[tuple[float, float]]]] = {}
         self._last_cv: tuple[tuple, tuple[Design, CvResult]] | None = None
         self._sums: FoldSums | None = None
         self._rss_sums: RssSums | None = None
-        n_fit = int(self.fit_rows.sum())
-        self.thin: Evaluator | None = None
-        if sub is None and search_rows is not None and n_fit > search_rows:
-            every = np.flatnonzero(self.fit_rows)[:: math.ceil(n_fit / search_rows)]
+        self.search: Evaluator | None = None
+        self.thinned = False  # the search evaluates every k-th fitted sample (k > 1)
+        if sub is None:
+            n_fit = int(self.fit_rows.sum())
+            k = math.ceil(n_fit / search_rows) if search_rows is not None and n_fit > search_rows else 1
+            every = np.flatnonzero(self.fit_rows)[::k]
             every = every[np.argsort(folds[every], kind="stable")]  # in fold order: its folds are consecutive rows
-            self.thin = Evaluator(data, folds, weights, groups, sub=every)
+            # a thinned search's corrected reference is small beside the correction of the whole series it saves:
+            # it keeps a search's grid of them for the next model it is tried on top of
+            self.search = Evaluator(data, folds, weights, groups, sub=every, references=32 if k > 1 else 4)
+            self.thinned = k > 1
             self.designs = None  # only the chosen model is built on every sample: nothing to reuse
 
     def at(self, a: np.ndarray) -> np.ndarray:
@@ -1294,17 +1299,13 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         settling.residual_after_settle_mps2 = settling.amplitude_mps2 * np.exp(-max(settle_s, 1e-12) / settling.tau_s)
     weights = 1.0 / np.maximum(noise, 1e-12) ** 2
     ev = Evaluator(data, fold, weights, groups, search_rows=search_rows)
-    sel = ev.thin or ev  # where the candidates are evaluated and the model chosen; ev: the chosen model, all samples
+    sel = ev.search  # where the candidates are evaluated and the model chosen; ev: the chosen model, all samples
     residual_before = cv0.heldout
     fitted_all = cv0.fitted_full  # the current model's in-sample fit on all samples (the cross-correlation delay)
     base_coefficients: np.ndarray | None = None  # the current model's coefficients when fitted_all is not worked out
-    if sel is ev:
-        base_heldout, base_fitted, base_G = cv0.heldout, cv0.fitted_full, des0.G
-    else:
-        des_s, cv_s = sel.cv(spec)
-        base_heldout, base_fitted, base_G = cv_s.heldout, cv_s.fitted_full, des_s.G
-        del des_s, cv_s
-    del des0  # its design matrix (N x p) is not needed again
+    des_s, cv_s = sel.cv(spec)
+    base_heldout, base_fitted, base_G = cv_s.heldout, cv_s.fitted_full, des_s.G
+    del des_s, cv_s, des0  # the declared model's design matrix (N x p) is not needed again
 
     steps: list[StepResult] = []
     detection_limit = ""
@@ -1360,12 +1361,12 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         des_c, cv_c = sel.cv(spec)
         sel.forget(spec)
         base_heldout, base_fitted, base_G = cv_c.heldout, cv_c.fitted_full, des_c.G
-        fitted_all, base_coefficients = (base_fitted, None) if sel is ev else (None, cv_c.A_full)
+        fitted_all, base_coefficients = None, cv_c.A_full
         del des_c, cv_c  # the design (n x p) is not held beyond the evaluator's own caches
 
     # final model, built once the caches of the search are let go
-    n_search = None if sel is ev else len(sel.folds)
-    ev.thin = None
+    n_search = len(sel.folds) if ev.thinned else None
+    ev.search = None
     del sel
     data.drop_recent()
     des_f, cv_f = ev.cv(spec)
