@@ -153,7 +153,7 @@ class DesignCache:
     A hyper-parameter search over an additive effect, and every candidate tried on top of the same model,
     feed eq. 28 the same corrected inputs: they are corrected once. A search over an input correction that
     runs after the model's own (a later stage) starts from the inputs the model's corrections left, instead
-    of re-running them (the TIA inversion costs ~0.2 s per trial at 10^6 samples). A correction of the
+    of re-running them (the TIA correction filters the whole series on every trial). A correction of the
     reference alone (``Effect.reference_only``: the channel delay, the TIA low-pass) leaves the design matrix
     as it was: a search over one reuses the matrix, and ``cross_validate`` its sums. Only for one recording.
     """
