@@ -394,8 +394,9 @@ def _pose(fields: list[str], col: dict[str, int]) -> float:
 def write_mcap(src: CsvBlocks, path: str | Path, metadata: dict[str, Any], sensor_id: str = "",
                drop_bad_rows: bool = False, start_ns: int | None = None) -> tuple[int, int, float | None]:
     """Stream a CSV into a calibration MCAP at ``path`` (as :func:`mcap_io.write_recording` writes a
-    Recording: a pose event at every change of pose or reference). Stamps are the file's own ``t_s * 1e9``
-    ns, or with ``start_ns`` (``import --start-time``) ``start_ns`` plus the time since the first row;
+    Recording: a pose event at every change of pose or of a recorded pose's reference, ``pose_events``).
+    Stamps are the file's own ``t_s * 1e9`` ns, or with ``start_ns`` (``import --start-time``) ``start_ns``
+    plus the time since the first row;
     ``board_time_s`` in ``imu/raw`` keeps the file's ``t_s`` either way.
 
     Two passes over the CSV: the first checks every row and counts the poses (nothing is written when
@@ -403,37 +404,38 @@ def write_mcap(src: CsvBlocks, path: str | Path, metadata: dict[str, Any], senso
     record (``metadata`` plus the import report) is written at the end. Returns (messages written, poses,
     the first row's ``t_s`` in s or None for an empty file).
     """
-    from .mcap_io import McapRecordingError, RecordingWriter
+    from .mcap_io import McapRecordingError, RecordingWriter, pose_events
 
     n_poses = 0
     for blk in src.blocks():
         if len(blk):
             n_poses = max(n_poses, int(blk.pose_id.max()) + 1)
     src.check(drop_bad_rows)
-    prev_pose, prev_g, prev_stamp = None, None, -1
+    before: tuple[int, np.ndarray] | None = None  # the last sample's pose and reference
+    prev_stamp = -1
     seq = 0
     shift: int | None = None if start_ns is not None else 0
     first_t_s: float | None = None
     with RecordingWriter(path, None) as w:
         for blk in src.blocks():
             stamps = np.round(blk.t_s * 1e9).astype(np.int64)
-            if first_t_s is None and len(stamps):
+            if not len(stamps):
+                continue
+            if first_t_s is None:
                 first_t_s = float(blk.t_s[0])
-            if shift is None and len(stamps):
+            if shift is None:
                 shift = int(start_ns) - int(stamps[0])
             stamps = stamps + (shift or 0)
-            known = np.all(np.isfinite(blk.gref_mps2), axis=1)
-            pose = np.where((blk.pose_id >= 0) & known, blk.pose_id, -1).tolist()
+            pose_arr, change = pose_events(blk.pose_id, blk.gref_mps2, before)
+            before = int(pose_arr[-1]), blk.gref_mps2[-1].copy()
+            pose = pose_arr.tolist()
             for i, stamp in enumerate(stamps.tolist()):
                 if stamp <= prev_stamp:
                     raise McapRecordingError(f"{src.path}: times {prev_stamp} ns and {stamp} ns are not strictly "
                                              "increasing at nanosecond resolution")
-                g = blk.gref_mps2[i]
-                change = (prev_pose is None or pose[i] != prev_pose
-                          or (bool(known[i]) and prev_g is not None and bool(np.any(g != prev_g))))
-                if change:
+                if change[i]:
                     if pose[i] >= 0:
-                        w.write_reference_gravity(stamp, g)
+                        w.write_reference_gravity(stamp, blk.gref_mps2[i])
                         w.write_pose(stamp, pose[i], "recording", index=pose[i], count=n_poses, sensor_id=sensor_id)
                     else:
                         w.write_pose(stamp, -1, "moving", sensor_id=sensor_id)
@@ -441,7 +443,7 @@ def write_mcap(src: CsvBlocks, path: str | Path, metadata: dict[str, Any], senso
                 w.write_raw(stamp, float(blk.ref[i]), blk.xyz[i].tolist(), temperature_c=temp,
                             temperature_valid=math.isfinite(temp), seq=seq, board_time_s=float(blk.t_s[i]))
                 seq += 1
-                prev_pose, prev_g, prev_stamp = pose[i], g, stamp
+                prev_stamp = stamp
         w.add_metadata("run", {**metadata, "import": src.report.as_dict(), "g_mps2": src.g_mps2,
                                "stamp_offset_ns": shift or 0})
         return w.message_count, n_poses, first_t_s

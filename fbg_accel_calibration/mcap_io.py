@@ -815,22 +815,35 @@ def read_recording(paths: str | Path | list[str | Path], namespace: str | None =
     return Recording.concatenate(parts)
 
 
+def pose_events(pose_id: np.ndarray, gref_mps2: np.ndarray,
+                before: tuple[int, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(pose (n,): the pose id, -1 where moving or the reference (n, 3) m/s^2 is unknown; the samples (n,) at
+    which a writer puts a pose event): where the pose changes, or the reference of a recorded pose does. A
+    moving sample's reference is not written, so its changes are no event (a table that reports its angles
+    while it moves would otherwise give an event per sample). ``before``: (pose, reference) of the sample
+    before these (a writer that goes block by block); None: the first sample is an event."""
+    known = np.all(np.isfinite(gref_mps2), axis=1)
+    pose = np.where((pose_id >= 0) & known, pose_id, -1)
+    prev_pose = np.empty_like(pose)
+    prev_g = np.empty_like(gref_mps2, dtype=float)
+    prev_pose[:1], prev_g[:1] = (before[0], before[1]) if before is not None else (-2, np.nan)
+    prev_pose[1:], prev_g[1:] = pose[:-1], gref_mps2[:-1]
+    return pose, (pose != prev_pose) | ((pose >= 0) & np.any(gref_mps2 != prev_g, axis=1))
+
+
 def write_recording(path: str | Path, rec: Recording, metadata: dict[str, Any] | None = None,
                     t0_ns: int = 0, sensor_id: str = "") -> int:
     """Write a :class:`Recording` (e.g. from the CSV importer) as a calibration MCAP; returns messages written.
 
     Stamps are ``t0_ns + t_s * 1e9``. A pose event (``recording`` with its reference gravity, or
     ``moving`` for pose id -1 or an unknown reference) is written whenever the pose id or the
-    reference changes; a sample with a pose id but no reference reads back as pose -1.
+    reference of a recorded pose changes (``pose_events``); a sample with a pose id but no reference
+    reads back as pose -1.
     """
     stamps = t0_ns + np.round(rec.t_s * 1e9).astype(np.int64)
     if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
         raise McapRecordingError("sample times must be strictly increasing")
-    known = np.all(np.isfinite(rec.gref_mps2), axis=1)
-    pose = np.where((rec.pose_id >= 0) & known, rec.pose_id, -1)
-    change = np.ones(len(rec), dtype=bool)
-    if len(rec) > 1:
-        change[1:] = (pose[1:] != pose[:-1]) | (known[1:] & np.any(rec.gref_mps2[1:] != rec.gref_mps2[:-1], axis=1))
+    pose, change = pose_events(rec.pose_id, rec.gref_mps2)
     n_poses = int(rec.pose_id.max()) + 1 if len(rec) else 0
     stamp_list, ref_list, xyz_list = stamps.tolist(), rec.ref.tolist(), rec.xyz.tolist()
     temp_list, t_list, pose_list = rec.temp_c.tolist(), rec.t_s.tolist(), pose.tolist()

@@ -220,6 +220,35 @@ def test_write_recording_round_trip(tmp_path: Path) -> None:
     np.testing.assert_allclose(back.t_s, rec.t_s)
 
 
+def test_a_moving_reference_is_no_pose_event_and_reads_back_as_moving(tmp_path: Path) -> None:
+    """A table that reports its angles while it moves (the simulator's does) must not give a pose event per moving
+    sample: the moving samples' reference is not written. A recorded pose whose reference changes is an event.
+    Written in one go or block by block (the CSV importer), the events are the same."""
+    from mcap.reader import make_reader
+
+    from fbg_accel_calibration.mcap_io import pose_events
+
+    n = 60
+    rng = np.random.default_rng(4)
+    pose = np.repeat([0, -1, 1, -1, 2], [15, 10, 15, 5, 15])
+    gref = np.where(pose[:, None] >= 0, rng.normal(size=(4, 3))[pose + 1], rng.normal(size=(n, 3)))  # moving: known
+    gref[52:] += 0.5  # the reference of pose 2 changes while it is recorded
+    rec = Recording(np.arange(n) * 0.1, rng.integers(800, 900, n), rng.integers(0, 4096, (n, 3)), np.full(n, 23.4),
+                    gref, pose)
+    write_recording(tmp_path / "m.mcap", rec, {"sensor_id": "sim"})
+    with open(tmp_path / "m.mcap", "rb") as f:
+        events = sum(1 for _, ch, _ in make_reader(f).iter_messages() if ch.topic.endswith("calibration/pose"))
+    assert events == 6  # 0, moving, 1, moving, 2, 2 with its new reference
+    back = read_recording(tmp_path / "m.mcap")
+    np.testing.assert_array_equal(back.pose_id, pose)
+    np.testing.assert_array_equal(back.gref_mps2, np.where(pose[:, None] >= 0, gref, np.nan))
+    whole = pose_events(rec.pose_id, rec.gref_mps2)[1]
+    for cut in range(1, n):
+        first = pose_events(rec.pose_id[:cut], rec.gref_mps2[:cut])
+        rest = pose_events(rec.pose_id[cut:], rec.gref_mps2[cut:], (int(first[0][-1]), rec.gref_mps2[cut - 1]))
+        np.testing.assert_array_equal(np.concatenate([first[1], rest[1]]), whole)
+
+
 def test_several_files_become_runs(tmp_path: Path) -> None:
     _write_run(tmp_path / "a.mcap", n_per_pose=5)
     _write_run(tmp_path / "b.mcap", n_per_pose=7)
