@@ -9,10 +9,29 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbg_accel_calibration.diagnose import diagnose, paired_gain_test
+from fbg_accel_calibration.csv_import import import_csv
+from fbg_accel_calibration.diagnose import (
+    CANCEL_RATIO,
+    COLLINEAR_CORR,
+    DesignCache,
+    Evaluator,
+    ModelSpec,
+    build_design,
+    check_folds,
+    cross_validate,
+    diagnose,
+    gram_conditioning,
+    make_folds,
+    paired_gain_test,
+    prepare_data,
+    visit_groups,
+    weighted_rss,
+)
 from fbg_accel_calibration.diagnose_cli import main as diagnose_main
-from fbg_accel_calibration.diagnose_report import markdown, write_report
-from fbg_accel_calibration.recording import Recording
+from fbg_accel_calibration.diagnose_report import CAND_HEAD, PLOT_POINTS, markdown, plotted, write_report
+from fbg_accel_calibration.diagnose_report import text as report_text
+from fbg_accel_calibration.effects import LIBRARY, Effect, fill_reference_gaps, finite_rows, library_by_name
+from fbg_accel_calibration.recording import Recording, time_axis_label
 from fbg_accel_calibration.table_geometry import table_specific_force
 from fbg_accel_driver.correction_terms import ThermalLag, TiaInverseFilter
 from fbg_accel_driver.driver_core import DriverCore
@@ -169,7 +188,6 @@ def test_cli_writes_report_yaml_and_plots(tmp_path: Path) -> None:
     rec = synthetic(8, dark=-150.0)
     csv = tmp_path / "run.csv"
     rows = ["t_s,ref_counts,x_counts,y_counts,z_counts,gref_x_mps2,gref_y_mps2,gref_z_mps2,temperature_c,pose"]
-    from fbg_accel_calibration.effects import fill_reference_gaps
 
     g = fill_reference_gaps(rec.t_s, rec.gref_mps2, [slice(None)])  # one run; moving rows: interpolated angles
     for i in range(len(rec)):
@@ -193,7 +211,6 @@ def test_measured_series_read_noise_is_separated_from_the_offset(tmp_path: Path)
     refused; the reference's read noise is a candidate of its own and its low-pass is taken as a noise
     remedy; the held-out error falls on every axis."""
     assert MEASURED.is_file(), f"measured data not found: {MEASURED} (../shared/data/measured/ is needed for this test)"
-    from fbg_accel_calibration.csv_import import import_csv
 
     rec, _ = import_csv(MEASURED, rate_hz=1.0, temperature_c=23.4, g_mps2=9.81)
     res = diagnose(rec)
@@ -211,10 +228,6 @@ def test_measured_series_read_noise_is_separated_from_the_offset(tmp_path: Path)
 def test_console_table_has_a_header_and_reports_say_sample_index_without_a_time_base(tmp_path: Path) -> None:
     """issue 10, operator polish: the console candidate table names its columns; a CSV timed by --rate 1
     (no t_s) is labelled 'sample index', never 'time [s]'."""
-    from fbg_accel_calibration.csv_import import import_csv
-    from fbg_accel_calibration.diagnose_report import CAND_HEAD, text
-    from fbg_accel_calibration.recording import time_axis_label
-
     rec = synthetic(7)
     rows = ["sample,ref_counts,x_counts,y_counts,z_counts,gref_x_mps2,gref_y_mps2,gref_z_mps2,temperature_c,pose"]
     for i in range(len(rec)):
@@ -229,7 +242,7 @@ def test_console_table_has_a_header_and_reports_say_sample_index_without_a_time_
     assert time_axis_label(import_csv(csv, rate_hz=100.0)[0].metadata) == "sample index / 100.0 Hz [s]"
     assert time_axis_label(rec.metadata) == "time [s]"
     res = diagnose(by_index, static="table", max_effects=1)
-    out = text(res)
+    out = report_text(res)
     assert "  " + " | ".join(CAND_HEAD) in out.splitlines()
     md = markdown(res, "cmd")
     assert "| sample index |" in md and "time [s]" not in md
@@ -239,9 +252,6 @@ def test_cached_designs_equal_designs_built_afresh() -> None:
     """The Evaluator's design cache (corrected inputs and eq. 28 columns reused across hyper-parameter trials)
     gives the same design as building it from scratch, for input corrections and additive effects alike,
     and holds a bounded number of entries."""
-    from fbg_accel_calibration.diagnose import DesignCache, ModelSpec, build_design, prepare_data
-    from fbg_accel_calibration.effects import library_by_name
-
     data = prepare_data(synthetic(4, dark=30.0))
     lib = library_by_name()
     base = ModelSpec(1, 23.4, 1.0, [(lib["reference_dark_offset"], 20.0)])
@@ -265,9 +275,6 @@ def test_a_design_of_some_rows_is_those_rows_of_the_whole_design() -> None:
     """The thinned search builds designs of every k-th sample (``sub``): the corrections still run on the whole
     series, eq. 28's columns and pointwise effects' columns are computed on those rows alone, the others on
     every sample and then selected. Either way the rows equal the whole design's, bit for bit."""
-    from fbg_accel_calibration.diagnose import DesignCache, ModelSpec, build_design, prepare_data
-    from fbg_accel_calibration.effects import LIBRARY, library_by_name
-
     data = prepare_data(synthetic(4, dark=30.0))
     lib = library_by_name()
     sub = np.flatnonzero(data.use)[::3]
@@ -293,9 +300,6 @@ def test_corrections_and_rows_kept_across_trials_equal_those_worked_out_afresh()
     time constant (``DiagnosisData.recent``) and the rows of the arrays a trial did not change are kept
     (``DesignCache.take``). Every design equals the one built on a fresh copy of the data with nothing kept,
     and what is kept stays bounded and read-only (issue 8 §7)."""
-    from fbg_accel_calibration.diagnose import DesignCache, ModelSpec, build_design, prepare_data
-    from fbg_accel_calibration.effects import library_by_name
-
     rec = synthetic(4, dark=30.0)
     data = prepare_data(rec)
     lib = library_by_name()
@@ -323,19 +327,8 @@ def test_corrections_and_rows_kept_across_trials_equal_those_worked_out_afresh()
 
 
 def test_cross_validation_of_a_design_in_fold_order_equals_that_of_the_time_order() -> None:
-    """The thinned evaluator puts its rows in fold order so that each fold is a slice of the design (views, no
+    """The search evaluator puts its rows in fold order so that each fold is a slice of the design (views, no
     gathers); the cross-validation is the same, row for row, as on the rows in time order."""
-    from fbg_accel_calibration.diagnose import (
-        ModelSpec,
-        build_design,
-        check_folds,
-        cross_validate,
-        make_folds,
-        prepare_data,
-        visit_groups,
-    )
-    from fbg_accel_calibration.effects import library_by_name
-
     data = prepare_data(synthetic(4, dark=30.0))
     groups = visit_groups(data)
     folds = check_folds(data, groups, make_folds(groups, data.use, 5))[0]
@@ -356,19 +349,6 @@ def test_sums_kept_while_only_the_reference_changes_give_the_cross_validation_wo
     """Trials of a search over a correction of the reference alone share one design matrix (``DesignCache``):
     ``cross_validate`` and ``weighted_rss`` reuse its sums, and give, bit for bit, what they give without;
     sums of another matrix or other rows are not used."""
-    from fbg_accel_calibration.diagnose import (
-        DesignCache,
-        ModelSpec,
-        build_design,
-        check_folds,
-        cross_validate,
-        make_folds,
-        prepare_data,
-        visit_groups,
-        weighted_rss,
-    )
-    from fbg_accel_calibration.effects import library_by_name
-
     data = prepare_data(synthetic(4, dark=30.0))
     lib = library_by_name()
     groups = visit_groups(data)
@@ -400,8 +380,6 @@ def test_a_candidate_the_data_cannot_identify_is_reported_not_regularised() -> N
     """A candidate whose columns repeat the model's own (here a constant, which is b's) makes the normal
     equations singular. The fit's solver refuses that (NotIdentifiedError); the diagnosis records the
     candidate as not identified, with the reason, instead of fitting a silently regularised system."""
-    from fbg_accel_calibration.effects import Effect
-
     class ConstantBias(Effect):
         name, title, stage = "constant_bias", "a second constant bias", 90
 
@@ -419,9 +397,6 @@ def test_conditioning_flags_a_drift_whose_two_columns_cancel() -> None:
     """A warm-up time constant far beyond the run makes exp(-t/tau) a straight line in t: the warm-up and
     creep columns then correlate at |r| -> 1 and can only fit as two large terms that cancel. The report's
     conditioning says so; a time constant within the run does not trip it."""
-    from fbg_accel_calibration.diagnose import COLLINEAR_CORR, ModelSpec, build_design, gram_conditioning, prepare_data
-    from fbg_accel_calibration.effects import library_by_name
-
     def column_conditioning(des, rows):
         X = des.X[rows & des.valid]
         return gram_conditioning(X.T @ X, X.sum(axis=0), len(X), des.blocks)
@@ -442,9 +417,6 @@ def test_a_candidate_whose_columns_cancel_is_refused_not_added() -> None:
     """Issue 8 §3: a real drift, offered as two nearly equal ramps (|r| > 0.99) whose small difference the data
     also contain. It gains on held-out data, but only as two large coefficients that cancel: refused, never
     written to the YAML. The same pair with nothing to cancel (a plain ramp) is kept."""
-    from fbg_accel_calibration.diagnose import CANCEL_RATIO, COLLINEAR_CORR
-    from fbg_accel_calibration.effects import Effect
-
     class TwinRamps(Effect):
         name, title, stage = "twin_ramps", "two nearly equal ramps in time", 90
 
@@ -539,8 +511,6 @@ def test_an_offset_of_each_run_is_a_per_run_term() -> None:
 def test_no_hyper_parameter_search_is_done_twice_for_the_same_model(monkeypatch: pytest.MonkeyPatch) -> None:
     """The confounding check works out each candidate on top of the one about to be added; the next step needs
     exactly those again. They are remembered, so no (model, effect) search runs twice (issue 8 §7)."""
-    from fbg_accel_calibration.diagnose import Evaluator
-
     seen: list[tuple] = []
     real = Evaluator._fit_hyper
 
@@ -559,8 +529,6 @@ def test_no_hyper_parameter_search_is_done_twice_for_the_same_model(monkeypatch:
 def test_finite_rows_is_exactly_every_value_of_the_row_finite(k: int, order: str) -> None:
     """The column-by-column shortcut gives numpy's own answer for every layout, width and kind of non-finite
     value (NaN, +inf, -inf, huge values whose row sum would overflow)."""
-    from fbg_accel_calibration.effects import finite_rows
-
     rng = np.random.default_rng(k)
     a = rng.normal(size=(500, k))
     cells = rng.integers(0, 500 * max(k, 1), size=40)
@@ -577,8 +545,6 @@ def test_finite_rows_is_exactly_every_value_of_the_row_finite(k: int, order: str
 def test_scatters_draw_at_most_plot_points_evenly_spaced() -> None:
     """A report on 10^6 samples draws each scatter series from PLOT_POINTS evenly spaced samples (first and last
     included); a smaller selection is drawn whole."""
-    from fbg_accel_calibration.diagnose_report import PLOT_POINTS, plotted
-
     mask = np.zeros(10 * PLOT_POINTS, bool)
     mask[::3] = True
     idx = plotted(mask)
