@@ -22,7 +22,7 @@ Pure numpy/scipy engine behind ``fbg-accel-calib diagnose`` (issue 4). Steps:
 4. Forward selection: add the best significant candidate, repeat; stop when no candidate is
    significant or gains less than ``min_rel_gain`` of the held-out MSE (so nothing is added when
    nothing is significant). Above ``SEARCH_ROWS`` fitted samples, steps 3-4 run on every k-th fitted
-   sample (the same visits and folds; ``Evaluator.search``) and only the chosen model is fitted on all.
+   sample (the same visits and folds; ``search_samples``) and only the chosen model is fitted on all.
 5. Refit with the winners as declared ``corrections`` of a ``ThermalCalibration``; check that the
    driver's ``apply_counts`` reproduces the fit's prediction; before/after held-out RMSE per axis
    next to the noise floor; test and describe what residual remains (per pose, axis, temperature,
@@ -951,49 +951,43 @@ def cross_correlation_delay(data: DiagnosisData, fitted: np.ndarray, max_lag: in
 SEARCH_ROWS = 100_000  # fitted samples above which the candidates are evaluated on every k-th one
 
 
-class Evaluator:
-    """Evaluates specs on one recording with fixed folds, rows and noise weights (cached designs).
+def search_samples(fit_rows: np.ndarray, folds: np.ndarray, search_rows: int | None) -> tuple[np.ndarray, bool]:
+    """(the samples the candidates are searched on, in fold order: each fold a slice of the search's designs, no
+    gathers; whether they are thinned). Those are the fitted samples ``fit_rows`` (N,); with more than
+    ``search_rows`` of them, every k-th one (about ``search_rows``). Consecutive samples of a visit are strongly
+    correlated (TIA-filtered noise), so the thinned set carries nearly all the information that decides a
+    choice, at a fraction of the cost."""
+    n_fit = int(fit_rows.sum())
+    k = math.ceil(n_fit / search_rows) if search_rows is not None and n_fit > search_rows else 1
+    every = np.flatnonzero(fit_rows)[::k]
+    return every[np.argsort(folds[every], kind="stable")], k > 1
 
-    ``sub`` (sample indices): evaluate on those samples only (designs, folds, groups and held-out arrays are
-    then of that length; the input corrections still run on the whole time series). An evaluator of every
-    sample (``sub`` None) has a ``search`` evaluator, on which ``diagnose`` evaluates the candidates and
-    chooses the model (hyper-parameters, held-out gains, tests over the same visits); the chosen model is then
-    fitted and reported on every sample. The search's samples are the fitted ones in fold order (each fold a
-    slice of its designs, no gathers); with more than ``search_rows`` of them, every k-th one (about
-    ``search_rows``). Consecutive samples of a visit are strongly correlated (TIA-filtered noise), so the
-    thinned set carries nearly all the information that decides a choice, at a fraction of the cost.
-    ``references``: the corrected references a search keeps (``DesignCache``).
+
+class Evaluator:
+    """Evaluates specs on the samples ``sub`` (indices, ``search_samples``) of one recording with fixed folds,
+    rows and noise weights (cached designs): ``diagnose`` evaluates the candidates and chooses the model on it
+    (hyper-parameters, held-out gains, tests over the visits), then fits the chosen model on every sample.
+    Designs, folds, groups and held-out arrays are of ``sub``'s length; the input corrections still run on the
+    whole time series. ``references``: the corrected references a search keeps (``DesignCache``).
     """
 
     def __init__(self, data: DiagnosisData, folds: np.ndarray, weights: np.ndarray, groups: np.ndarray,
-                 sub: np.ndarray | None = None, search_rows: int | None = None, references: int = 4) -> None:
+                 sub: np.ndarray, references: int = 4) -> None:
         self.data, self.weights, self.sub = data, weights, sub
         self.folds, self.groups = self.at(folds), self.at(groups)
         self.rows = self.at(data.use) & (self.folds >= 0)  # held out and judged
         self.fit_rows = self.at(data.use) & (self.folds != -1)  # fitted (also the visits never held out, fold -2)
-        self.designs: DesignCache | None = DesignCache(references=references)
+        self.designs = DesignCache(references=references)
         # results worked out by the confounding check that the next step needs again (see ``forget``)
         self._cv_memo: dict[tuple, tuple[Design, CvResult]] = {}
         self._hyper_memo: dict[tuple, tuple[float | None, np.ndarray, list[tuple[float, float]]]] = {}
         self._last_cv: tuple[tuple, tuple[Design, CvResult]] | None = None
         self._sums: FoldSums | None = None
         self._rss_sums: RssSums | None = None
-        self.search: Evaluator | None = None
-        self.thinned = False  # the search evaluates every k-th fitted sample (k > 1)
-        if sub is None:
-            n_fit = int(self.fit_rows.sum())
-            k = math.ceil(n_fit / search_rows) if search_rows is not None and n_fit > search_rows else 1
-            every = np.flatnonzero(self.fit_rows)[::k]
-            every = every[np.argsort(folds[every], kind="stable")]  # in fold order: its folds are consecutive rows
-            # a thinned search's corrected reference is small beside the correction of the whole series it saves:
-            # it keeps a search's grid of them for the next model it is tried on top of
-            self.search = Evaluator(data, folds, weights, groups, sub=every, references=32 if k > 1 else 4)
-            self.thinned = k > 1
-            self.designs = None  # only the chosen model is built on every sample: nothing to reuse
 
     def at(self, a: np.ndarray) -> np.ndarray:
         """``a`` (per sample of the recording) at this evaluator's samples."""
-        return a if self.sub is None else a[self.sub]
+        return a[self.sub]
 
     @property
     def model_matrix(self) -> np.ndarray:
@@ -1262,7 +1256,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     samples this close to the start of a visit are left out of the noise floor (``settled_mask``); None: the
     window where the measured settling transient falls below a tenth of the noise (``settle_window``).
     ``search_rows``: above this many fitted samples, the candidates are evaluated and the model chosen on a
-    thinned set, and the chosen model fitted on every sample (``Evaluator``); None: always on every sample."""
+    thinned set, and the chosen model fitted on every sample (``search_samples``); None: always on every sample."""
     data = rec if isinstance(rec, DiagnosisData) else prepare_data(rec, static)
     groups = visit_groups(data)
     fold, fold_notes = check_folds(data, groups, make_folds(groups, data.use, folds, seed))
@@ -1298,8 +1292,11 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     if settling.detected and np.isfinite(settling.tau_s) and settling.tau_s > 0:
         settling.residual_after_settle_mps2 = settling.amplitude_mps2 * np.exp(-max(settle_s, 1e-12) / settling.tau_s)
     weights = 1.0 / np.maximum(noise, 1e-12) ** 2
-    ev = Evaluator(data, fold, weights, groups, search_rows=search_rows)
-    sel = ev.search  # where the candidates are evaluated and the model chosen; ev: the chosen model, all samples
+    fit_rows = data.use & (fold != -1)  # fitted (also the visits never held out, fold -2)
+    every, thinned = search_samples(fit_rows, fold, search_rows)
+    # where the candidates are evaluated and the model chosen; a thinned search's corrected reference is small
+    # beside the correction of the whole series it saves: it keeps a search's grid of them for the next model
+    sel = Evaluator(data, fold, weights, groups, every, references=32 if thinned else 4)
     residual_before = cv0.heldout
     fitted_all = cv0.fitted_full  # the current model's in-sample fit on all samples (the cross-correlation delay)
     base_coefficients: np.ndarray | None = None  # the current model's coefficients when fitted_all is not worked out
@@ -1318,7 +1315,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
             results.append(sel.evaluate(spec, e, base_heldout, base_fitted, base_G, alpha_each))
             if results[-1].name == "channel_delay" and results[-1].applicable:
                 if fitted_all is None:
-                    fitted_all = ev.design(spec).X @ base_coefficients
+                    fitted_all = build_design(data, spec).X @ base_coefficients
                 results[-1].cross_correlation_delay_s = cross_correlation_delay(data, fitted_all)
             if progress is not None:
                 progress(e.name)
@@ -1365,12 +1362,11 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         del des_c, cv_c  # the design (n x p) is not held beyond the evaluator's own caches
 
     # final model, built once the caches of the search are let go
-    n_search = len(sel.folds) if ev.thinned else None
-    ev.search = None
+    n_search = len(sel.folds) if thinned else None
     del sel
     data.drop_recent()
-    des_f, cv_f = ev.cv(spec)
-    del ev
+    des_f = build_design(data, spec)  # no cache: written straight into its design
+    cv_f = cross_validate(des_f, fit_rows, fold, weights)
     rows_f = data.use & des_f.valid & (fold >= 0)
     confounded = {st.chosen: [c.b if c.a == st.chosen else c.a for c in st.confounding
                               if c.verdict == "confounded" and st.chosen in (c.a, c.b)] for st in steps if st.chosen}

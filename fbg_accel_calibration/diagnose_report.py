@@ -288,8 +288,8 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
         delta = c.delta_of_every_sample(len(d.t_s)) if c.applicable else None
         if delta is None:
             continue
-        # evaluated on the search's samples (Evaluator.search: the fitted ones, or every k-th): those plotted
-        rc = rp if c.delta_rows is None else plotted(r & np.isfinite(delta[:, 0]))
+        # evaluated on the search's samples (search_samples: the fitted ones, or every k-th): those plotted
+        rc = plotted(r & np.isfinite(delta[:, 0]))
         fig, axs = plt.subplots(1, 4, figsize=(15, 3.6))
         for j in range(3):
             axs[j].plot(delta[rc, j], res.residual_before[rc, j], ".", ms=2, alpha=0.4)
