@@ -29,9 +29,9 @@ from .static_detector import (
 from .thermal_fit import (
     DEFAULT_CHUNK,
     DEFAULT_LEVEL_GAP_C,
-    DEFAULT_LEVEL_WIDTH_C,
     CellAccumulator,
     CellStats,
+    TemperatureClusters,
     temperature_scaling,
 )
 
@@ -43,57 +43,6 @@ class SampleBlockSource(Protocol):
         """Consecutive blocks of ``block_rows`` samples (the last one shorter) of the run, in time order.
         With ``with_poses=False`` pose id and reference may be missing (the first pass)."""
         ...
-
-
-class _TemperatureClusters:
-    """Exact streaming form of the gap clustering of ``thermal_fit.temperature_levels``.
-
-    Sorted temperatures further apart than ``gap_c`` separate clusters, so a cluster is fully
-    described by its lowest and highest temperature: the clusters of a union of samples are the
-    clusters of the parts merged wherever the gap between neighbours is <= ``gap_c``. State: two
-    floats per cluster. :meth:`labels` then applies the bin split of wide clusters as
-    ``temperature_levels`` does (provisional labels; empty bins are dropped at the end).
-    """
-
-    def __init__(self, gap_c: float, max_width_c: float = DEFAULT_LEVEL_WIDTH_C) -> None:
-        self.gap_c, self.max_width_c = gap_c, max_width_c
-        self.lo = np.zeros(0)
-        self.hi = np.zeros(0)
-
-    def add(self, temp_c: np.ndarray) -> None:
-        t = np.sort(np.asarray(temp_c, dtype=float))
-        if len(t) == 0:
-            return
-        brk = np.flatnonzero(np.diff(t) > self.gap_c)
-        lo = np.r_[self.lo, t[np.r_[0, brk + 1]]]
-        hi = np.r_[self.hi, t[np.r_[brk, len(t) - 1]]]
-        order = np.argsort(lo, kind="stable")
-        out_lo, out_hi = [lo[order[0]]], [hi[order[0]]]
-        for a, b in zip(lo[order[1:]], hi[order[1:]], strict=True):
-            if a - out_hi[-1] > self.gap_c:
-                out_lo.append(a)
-                out_hi.append(b)
-            else:
-                out_hi[-1] = max(out_hi[-1], b)
-        self.lo, self.hi = np.asarray(out_lo), np.asarray(out_hi)
-
-    def finish(self) -> None:
-        """Fix the bins of each cluster (after all samples were added)."""
-        self.bins = np.array([max(1, int(np.ceil((h - lo) / self.max_width_c - 1e-9))) for lo, h in zip(self.lo, self.hi,
-                                                                                                    strict=True)], int)
-        self.offset = np.r_[0, np.cumsum(self.bins)[:-1]].astype(np.int64)
-        self.n_labels = int(self.bins.sum())
-
-    def labels(self, temp_c: np.ndarray) -> np.ndarray:
-        """Provisional level labels (N,) of temperatures that were added."""
-        t = np.asarray(temp_c, dtype=float)
-        c = np.searchsorted(self.lo, t, side="right") - 1
-        out = self.offset[c].copy()
-        for ci in np.flatnonzero(self.bins > 1):
-            sel = c == ci
-            lo, hi, bins = self.lo[ci], self.hi[ci], int(self.bins[ci])
-            out[sel] += np.minimum(((t[sel] - lo) / max((hi - lo) / bins, 1e-12)).astype(int), bins - 1)
-        return out
 
 
 @dataclass
@@ -143,7 +92,7 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
        median's bin; this is the robust noise-floor estimate of :func:`detect_static`;
     2. temperatures: the static detector and the interval rules (:func:`static_detector.usable_blocks`, context of
        ``2 min_interval`` samples carried between blocks) select the fit samples; their temperatures
-       go into the exact gap clustering (:class:`_TemperatureClusters`) and the min/max that give the
+       go into the exact gap clustering (``thermal_fit.TemperatureClusters``) and the min/max that give the
        temperature levels and the scaling tau = (T - centre)/scale;
     3. sums: the same selection again, now with tau and the level of each sample, into
        :class:`CellAccumulator`, in chunks of ``chunk`` selected rows exactly as the in-memory path.
@@ -167,7 +116,7 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
                 valid &= np.all(np.isfinite(psi), axis=1)
                 yield blk, psi, usable, valid, usable & valid
 
-    clusters = _TemperatureClusters(level_gap_c)
+    clusters = TemperatureClusters(level_gap_c)
     n_total = n_motion = n_other = 0
     t_min, t_max = np.inf, -np.inf
     for blk, _psi, usable, valid, keep in kept_blocks():

@@ -114,42 +114,80 @@ def model_to_coefficients(M: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.vstack([np.transpose(M, (0, 2, 1)).reshape(3 * (degree + 1), 3), b])
 
 
+class TemperatureClusters:
+    """The temperature levels (chamber set-points) of samples added in any number of parts.
+
+    Sorted temperatures further apart than ``gap_c`` separate clusters, so a cluster is fully
+    described by its lowest and highest temperature: the clusters of a union of samples are the
+    clusters of the parts merged wherever the gap between neighbours is <= ``gap_c``. State: two
+    floats per cluster, so the streamed fit (``fit_stream.prepare_stream``) adds a file block by
+    block and :func:`temperature_levels` adds an array at once, with the same result. A cluster wider
+    than ``max_width_c`` (a slow sweep rather than a set-point) is split into equal-width bins no
+    wider than ``max_width_c``, so a continuous sweep counts as several levels for identifiability
+    and for hold-out by temperature (:meth:`labels`; empty bins are dropped by the caller).
+    """
+
+    def __init__(self, gap_c: float, max_width_c: float = DEFAULT_LEVEL_WIDTH_C) -> None:
+        self.gap_c, self.max_width_c = gap_c, max_width_c
+        self.lo = np.zeros(0)
+        self.hi = np.zeros(0)
+
+    def add(self, temp_c: np.ndarray) -> None:
+        """Add finite temperatures (degC)."""
+        t = np.sort(np.asarray(temp_c, dtype=float))
+        if len(t) == 0:
+            return
+        brk = np.flatnonzero(np.diff(t) > self.gap_c)
+        lo = np.r_[self.lo, t[np.r_[0, brk + 1]]]
+        hi = np.r_[self.hi, t[np.r_[brk, len(t) - 1]]]
+        order = np.argsort(lo, kind="stable")
+        out_lo, out_hi = [lo[order[0]]], [hi[order[0]]]
+        for a, b in zip(lo[order[1:]], hi[order[1:]], strict=True):
+            if a - out_hi[-1] > self.gap_c:
+                out_lo.append(a)
+                out_hi.append(b)
+            else:
+                out_hi[-1] = max(out_hi[-1], b)
+        self.lo, self.hi = np.asarray(out_lo), np.asarray(out_hi)
+
+    def finish(self) -> None:
+        """Fix the bins of each cluster (after all samples were added)."""
+        self.bins = np.array([max(1, int(np.ceil((h - lo) / self.max_width_c - 1e-9))) for lo, h in zip(self.lo, self.hi,
+                                                                                                    strict=True)], int)
+        self.offset = np.r_[0, np.cumsum(self.bins)[:-1]].astype(np.int64)
+        self.n_labels = int(self.bins.sum())
+
+    def labels(self, temp_c: np.ndarray) -> np.ndarray:
+        """Provisional level labels (N,), ordered by temperature, of temperatures that were added."""
+        t = np.asarray(temp_c, dtype=float)
+        c = np.searchsorted(self.lo, t, side="right") - 1
+        out = self.offset[c].copy()
+        for ci in np.flatnonzero(self.bins > 1):
+            sel = c == ci
+            lo, hi, bins = self.lo[ci], self.hi[ci], int(self.bins[ci])
+            out[sel] += np.minimum(((t[sel] - lo) / max((hi - lo) / bins, 1e-12)).astype(int), bins - 1)
+        return out
+
+
 def temperature_levels(temp_c: np.ndarray, gap_c: float = DEFAULT_LEVEL_GAP_C,
                        max_width_c: float = DEFAULT_LEVEL_WIDTH_C) -> tuple[np.ndarray, np.ndarray]:
-    """Cluster temperatures into levels (chamber set-points).
-
-    Sorted temperatures further apart than ``gap_c`` start a new level; a cluster wider than
-    ``max_width_c`` (a slow sweep rather than a set-point) is split into equal-width bins no wider
-    than ``max_width_c``, so a continuous sweep counts as several levels for identifiability and
-    for hold-out by temperature. Returns ``(labels (N,), level_means_c (L,))`` with levels ordered
-    by temperature; NaN temperatures get label -1.
-    """
+    """Cluster temperatures into levels (:class:`TemperatureClusters`). Returns ``(labels (N,), level_means_c
+    (L,))`` with levels ordered by temperature and numbered without gaps; NaN temperatures get label -1."""
     t = np.asarray(temp_c, dtype=float)
     labels = np.full(t.shape, -1, dtype=int)
     ok = np.isfinite(t)
     if not ok.any():
         return labels, np.zeros(0)
-    order = np.argsort(t[ok], kind="stable")
-    ts = t[ok][order]
-    cluster = np.concatenate([[0], np.cumsum(np.diff(ts) > gap_c)])
-    lab_sorted = np.empty_like(cluster)
-    next_label = 0
-    for c in range(int(cluster[-1]) + 1):
-        sel = cluster == c
-        lo, hi = ts[sel][0], ts[sel][-1]
-        bins = max(1, int(np.ceil((hi - lo) / max_width_c - 1e-9)))
-        sub = np.minimum(((ts[sel] - lo) / max((hi - lo) / bins, 1e-12)).astype(int), bins - 1) if bins > 1 else 0
-        lab_sorted[sel] = next_label + sub
-        next_label += bins
-    present = np.flatnonzero(np.bincount(lab_sorted))  # drop empty bins
-    relabel = np.zeros(next_label, dtype=np.int64)
+    clusters = TemperatureClusters(gap_c, max_width_c)
+    clusters.add(t[ok])
+    clusters.finish()
+    provisional = clusters.labels(t[ok])
+    present = np.flatnonzero(np.bincount(provisional))  # drop empty bins
+    relabel = np.zeros(clusters.n_labels, dtype=np.int64)
     relabel[present] = np.arange(len(present))
-    lab_sorted = relabel[lab_sorted]
-    lab = np.empty_like(lab_sorted)
-    lab[order] = lab_sorted
+    lab = relabel[provisional]
     labels[ok] = lab
-    means = np.bincount(lab, weights=t[ok]) / np.bincount(lab)
-    return labels, means
+    return labels, np.bincount(lab, weights=t[ok]) / np.bincount(lab)
 
 
 @dataclass

@@ -14,11 +14,12 @@ import pytest
 
 from fbg_accel_calibration import fit_stream, mcap_io, static_detector
 from fbg_accel_calibration.cli import main as cli_main
-from fbg_accel_calibration.fit_stream import _TemperatureClusters, prepare_stream
+from fbg_accel_calibration.fit_stream import prepare_stream
 from fbg_accel_calibration.mcap_io import McapSampleStream, RecordingWriter, StreamOrderError, read_recording, write_recording
 from fbg_accel_calibration.model_selection import select_degree
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_calibration.thermal_fit import (
+    TemperatureClusters,
     accumulate_cells,
     fit_thermal,
     prepare,
@@ -203,13 +204,14 @@ def test_exact_streaming_median_equals_nanmedian() -> None:
     assert 1 in passes_seen and max(passes_seen) >= 3  # speculation hit; radix refinement with a small cap
 
 
-def test_streaming_temperature_clusters_equal_temperature_levels() -> None:
+def test_temperature_levels_added_in_parts_equal_those_added_at_once() -> None:
+    """The streamed fit adds a file's temperatures block by block; in memory they are added at once."""
     rng = np.random.default_rng(5)
     temps = np.concatenate([rng.normal(16, 0.1, 500), rng.normal(24, 0.3, 700), np.linspace(30, 41, 900),
                             rng.normal(45, 0.05, 300), [17.05, 17.9]])
     rng.shuffle(temps)
     labels, means = temperature_levels(temps)
-    clusters = _TemperatureClusters(1.0)
+    clusters = TemperatureClusters(1.0)
     for part in np.array_split(temps, 13):
         clusters.add(part)
     clusters.finish()
