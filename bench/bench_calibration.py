@@ -32,8 +32,6 @@ from __future__ import annotations
 
 import argparse
 import cProfile
-import datetime as dt
-import json
 import pstats
 import resource
 import sys
@@ -50,7 +48,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from machine_info import machine  # noqa: E402
+from machine_info import results_doc, write_results  # noqa: E402
 
 from fbg_accel_calibration.diagnose import diagnose  # noqa: E402
 from fbg_accel_calibration.diagnose_report import write_report  # noqa: E402
@@ -211,19 +209,11 @@ def main(argv: list[str] | None = None) -> int:
                                "read_back_seconds": read_s, "read_back_samples": len(back), "peak_rss_mib": peak_rss_mib()}
         print(f"mcap write: {n_msgs} messages in {sec:.1f} s = {n_msgs / sec:.0f} msg/s, {size / 1e6 / sec:.2f} MB/s", flush=True)
 
-    doc = {
-        "benchmark": "calibration: fit and diagnose on simulated samples, MCAP write rate of RecordingWriter",
-        "command": "python bench/bench_calibration.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "machine": machine(),
-        "scenario": {"rate_hz": RATE_HZ, "levels_c": list(LEVELS_C), "poses": "grid 60 deg, dwell 3 s, move 1 s, looped",
-                     "seed": args.seed},
-        "imu_raw_messages_per_s_at_link_limit": link_msgs,
-        "steps": steps,
-    }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(doc, indent=2) + "\n")
-    print(f"results written to {args.output}")
+    write_results(args.output, results_doc(
+        "bench_calibration.py", argv, "calibration: fit and diagnose on simulated samples, MCAP write rate of RecordingWriter",
+        scenario={"rate_hz": RATE_HZ, "levels_c": list(LEVELS_C), "poses": "grid 60 deg, dwell 3 s, move 1 s, looped",
+                  "seed": args.seed},
+        imu_raw_messages_per_s_at_link_limit=link_msgs, steps=steps))
     return 0
 
 

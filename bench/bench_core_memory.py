@@ -15,9 +15,7 @@ bench_driver_ingest.py reports (which also contains DDS, the allocator and the i
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import gc
-import json
 import sys
 import tracemalloc
 from pathlib import Path
@@ -25,7 +23,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from machine_info import machine  # noqa: E402
+from machine_info import results_doc, write_results  # noqa: E402
 
 from fbg_accel_driver.driver_core import DriverCore  # noqa: E402
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1  # noqa: E402
@@ -37,10 +35,9 @@ RATE_HZ = 100.0
 
 
 def driver_heap_bytes(snapshot: tracemalloc.Snapshot) -> int:
-    """Bytes allocated from the driver's own modules (not the simulator's) still alive."""
+    """Bytes allocated from the driver's own modules still alive (the simulator is the package fbg_accel_sim)."""
     keep = tracemalloc.Filter(True, str(ROOT / "fbg_accel_driver" / "*"))
-    drop = tracemalloc.Filter(False, str(ROOT / "fbg_accel_driver" / "sim" / "*"))
-    return sum(s.size for s in snapshot.filter_traces([keep, drop]).statistics("filename"))
+    return sum(s.size for s in snapshot.filter_traces([keep]).statistics("filename"))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -81,11 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     after = driver_heap_bytes(tracemalloc.take_snapshot())
     tracemalloc.stop()
     hours = args.frames / RATE_HZ / 3600
-    res = {
-        "benchmark": "driver data path Python heap over a long stream (tracemalloc)",
-        "command": "python bench/bench_core_memory.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "machine": machine(),
+    res = results_doc("bench_core_memory.py", argv, "driver data path Python heap over a long stream (tracemalloc)") | {
         "rate_hz": RATE_HZ,
         "warmup_frames": args.warmup,
         "measured_frames": args.frames,
@@ -96,10 +89,9 @@ def main(argv: list[str] | None = None) -> int:
         "growth_kib": (after - before) / 1024,
         "growth_kib_per_board_hour": (after - before) / 1024 / hours,
     }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(res, indent=1) + "\n")
+    write_results(args.output, res, indent=1)
     print(f"{args.frames} frames ({hours:.2f} h at {RATE_HZ:g} Hz): driver heap {before / 1024:.1f} -> {after / 1024:.1f} KiB "
-          f"({(after - before) / 1024:+.1f} KiB); written to {args.output}")
+          f"({(after - before) / 1024:+.1f} KiB)")
     return 0
 
 

@@ -18,8 +18,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import datetime as dt
-import json
 import statistics
 import sys
 import time
@@ -30,7 +28,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from machine_info import machine  # noqa: E402
+from machine_info import results_doc, write_results  # noqa: E402
 
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, Frame, Status, encode_frame, link_frame_rate_limit  # noqa: E402
 from fbg_accel_driver.stream_decoder import StreamDecoder  # noqa: E402
@@ -127,19 +125,15 @@ def main(argv: list[str] | None = None) -> int:
             results.append(row)
             print(f"{name:8} {chunk:8d} {row['frames_per_s_best']:16.0f} {row['us_per_frame_best']:16.2f} "
                   f"{row['us_per_frame_median']:18.2f} {row['headroom_vs_link_limit']:13.1f}")
-    doc = {
-        "benchmark": "stream decoder throughput (StreamDecoder.feed, pure Python, one core, wall clock)",
-        "command": "python bench/bench_decoder.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "machine": machine(),
+    doc = results_doc("bench_decoder.py", argv, "stream decoder throughput (StreamDecoder.feed, pure Python, one core, "
+                      "wall clock)") | {
         "link": {"baud": BAUD, "frame_bytes": FRAME_SIZE_V1, "bits_per_byte": 10, "frames_per_s_limit": link_rate},
         "frames_per_run": args.frames,
         "repeats": args.repeats,
         "results": results,
     }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(doc, indent=2) + "\n")
-    print(f"link limit at {BAUD} baud: {link_rate:.1f} frames/s; results written to {args.output}")
+    write_results(args.output, doc)
+    print(f"link limit at {BAUD} baud: {link_rate:.1f} frames/s")
     return 0
 
 

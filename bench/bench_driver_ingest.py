@@ -40,7 +40,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import itertools
 import json
 import os
@@ -57,7 +56,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from machine_info import machine  # noqa: E402
+from machine_info import results_doc, write_results  # noqa: E402
 
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, link_frame_rate_limit  # noqa: E402
 
@@ -583,21 +582,16 @@ def main(argv: list[str] | None = None) -> int:
         goals["p99_latency_under_5ms_at_1khz"] = by["1khz"]["latency_imu_raw_ms"]["p99"] < GOALS["p99_latency_ms_at_1khz"]
     if "100hz" in by:
         goals["cpu_under_10pct_at_100hz"] = by["100hz"]["driver_cpu_percent_of_core"] < GOALS["cpu_percent_of_core_at_100hz"]
-    doc = {
-        "benchmark": "driver ingest: pty -> driver process -> rclpy subscriber process",
-        "command": "python bench/bench_driver_ingest.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+    doc = results_doc("bench_driver_ingest.py", argv, "driver ingest: pty -> driver process -> rclpy subscriber process") | {
         "quick": bool(args.quick),
-        "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "machine": machine(),
         "ros_domain_id": os.environ.get("ROS_DOMAIN_ID"),
         "link": {"baud": BAUD, "frame_bytes": FRAME_SIZE_V1, "bits_per_byte": 10, "frames_per_s_limit": LINK_RATE},
         "warmup_s_min": WARMUP_S,
         "goals": goals,
         "results": results,
     }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(doc, indent=2) + "\n")
-    print(f"goals: {goals}; results written to {args.output}")
+    write_results(args.output, doc)
+    print(f"goals: {goals}")
     return 0
 
 

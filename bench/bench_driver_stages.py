@@ -25,7 +25,6 @@ Writes bench/results/driver_stages.json. Needs ROS_DOMAIN_ID for the rclpy steps
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import queue
 import sys
@@ -36,7 +35,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from machine_info import machine  # noqa: E402
+from machine_info import results_doc, write_results  # noqa: E402
 
 from fbg_accel_driver.driver_core import DriverCore  # noqa: E402
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, link_frame_rate_limit  # noqa: E402
@@ -234,16 +233,8 @@ def main(argv: list[str] | None = None) -> int:
         print("wake-ups:", results["wakeup_us_cpu"], flush=True)
     finally:
         rclpy.try_shutdown()
-    doc = {
-        "benchmark": "driver stage costs per frame (thread CPU time, us)",
-        "command": "python bench/bench_driver_stages.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "machine": machine(),
-        "results": results,
-    }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(doc, indent=2) + "\n")
-    print(f"results written to {args.output}")
+    write_results(args.output, results_doc("bench_driver_stages.py", argv, "driver stage costs per frame (thread CPU time, us)",
+                                           results=results))
     return 0
 
 

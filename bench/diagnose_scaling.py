@@ -16,7 +16,6 @@ Run on an idle machine:
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import itertools
 import json
 import math
@@ -31,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 
 from bench_calibration import scenario  # noqa: E402
-from machine_info import machine  # noqa: E402
+from machine_info import results_doc, write_results  # noqa: E402
 
 
 def run_command(n: int, tmp: Path) -> dict:
@@ -80,16 +79,14 @@ def main(argv: list[str] | None = None) -> int:
     growth = {f"{a:.0e}_to_{b:.0e}".replace("+0", ""): round(
         math.log(runs[str(b)]["diagnose_seconds"] / runs[str(a)]["diagnose_seconds"]) / math.log(b / a), 2)
         for a, b in pairs}
-    doc = {"command": ".venv/bin/python bench/diagnose_scaling.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-           "what": "bench_calibration.py --samples N --mcap-samples 0 --repeats 1 (--degree 0 below 10^6), one process "
-                   "per size; diagnose step only (simulation and fit not counted in the time, counted in the peak RSS); "
-                   "report_seconds: the Markdown report and its plots written after it; command_seconds, command_peak_rss_mib: "
-                   "fbg-accel-calib diagnose on the same run written as MCAP, in its own process (read, diagnose, "
-                   "report, YAML, plots)",
-           "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "runs": runs, "growth_exponent": growth,
-           "machine": machine()}
-    args.output.write_text(json.dumps(doc, indent=1) + "\n")
-    print(f"results written to {args.output}")
+    write_results(args.output, results_doc(
+        "diagnose_scaling.py", argv,
+        what="bench_calibration.py --samples N --mcap-samples 0 --repeats 1 (--degree 0 below 10^6), one process per "
+             "size; diagnose step only (simulation and fit not counted in the time, counted in the peak RSS); "
+             "report_seconds: the Markdown report and its plots written after it; command_seconds, command_peak_rss_mib: "
+             "fbg-accel-calib diagnose on the same run written as MCAP, in its own process (read, diagnose, report, "
+             "YAML, plots)",
+        runs=runs, growth_exponent=growth), indent=1)
     return 0
 
 

@@ -19,8 +19,6 @@ Results: bench/results/dynamic_calibration.json, docs/results_dynamic.md, docs/i
 from __future__ import annotations
 
 import argparse
-import datetime as dt
-import json
 import sys
 from pathlib import Path
 
@@ -29,7 +27,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from machine_info import machine  # noqa: E402
+from machine_info import results_doc, write_results  # noqa: E402
 
 from fbg_accel_calibration.bode_plot import plot_bode  # noqa: E402
 from fbg_accel_calibration.dynamic_analysis import budget_table_markdown  # noqa: E402
@@ -87,15 +85,12 @@ def main(argv: list[str] | None = None) -> int:
 
     cut = {ax: [r[ax]["cutoff_error_pct"] for r in recoveries] for ax in "xyz"}
     dly = {ax: [r[ax]["delay_error_ms"] for r in recoveries] for ax in "xyz"}
-    doc = {"benchmark": "dynamic calibration on the simulated board", "command":
-           "python bench/dynamic_calibration_check.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-           "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "machine": machine(),
+    doc = results_doc("dynamic_calibration_check.py", argv, "dynamic calibration on the simulated board") | {
            "truth": {"cutoff_hz": fc_true, "delay_s": delay_true}, "rate_hz": args.rate, "recoveries": recoveries,
            "max_abs_cutoff_error_pct": {ax: float(np.max(np.abs(v))) for ax, v in cut.items()},
            "max_abs_delay_error_ms": {ax: float(np.max(np.abs(v))) for ax, v in dly.items()},
            "first_seed": first.as_dict(), "tone_check": tone.as_dict(), "step_check": steps}
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(doc, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+    write_results(args.output, doc, indent=1)
     x2 = next(p for p in first.points if p.axis == "x" and p.f_hz == 2.0)
     args.md.write_text(markdown(doc, first.report(), budget_table_markdown(x2)))
     print(f"wrote {args.output}, {args.md}, {args.png}")
