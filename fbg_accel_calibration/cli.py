@@ -331,16 +331,16 @@ def cmd_report(args: argparse.Namespace) -> int:
     from fbg_accel_driver.thermal_model import ThermalCalibration
 
     from .fit_report import fit_report_markdown, plot_calibrated_vs_reference, plot_residuals_per_degree, pose_statistics
+    from .fit_stream import prepare
     from .model_selection import select_degree
     from .static_detector import calibration_samples
-    from .thermal_fit import prepare
 
     out = args.output_dir
     check_output_dir(out, REPORT_FILES, [*args.inputs, args.calibration], args.force)
     cal = ThermalCalibration.load(args.calibration)
     rec = _load(args.inputs, args)
     usable, _ = calibration_samples(rec, window=args.window, min_interval=args.min_interval)
-    data = prepare(rec, usable=usable, level_gap_c=args.level_gap)
+    data = prepare(rec, args.max_degree, usable=usable, level_gap_c=args.level_gap)
     selection = select_degree(data, max_degree=args.max_degree)
     out.mkdir(parents=True, exist_ok=True)
     stats = pose_statistics(cal, rec, usable & np.isfinite(rec.temp_c))

@@ -3,9 +3,10 @@
 MCAP inputs (and rosbag2 bags) are streamed block by block into the fit's cell sums
 (``fit_stream.prepare_stream``; CSV files are re-read on every pass), so memory is a few blocks
 whatever the file sizes; an MCAP whose raw stamps go backwards, or ``in_memory=True``, loads every
-sample first. Then: degree by held-out cross-validation (``model_selection.select_degree``) unless
-given, eq. 28 (``thermal_fit.fit_thermal``), and the noise model of the calibrated output
-(``noise_correlation``) on the first samples of the first input. Pure: no argparse, no ROS.
+sample first, then goes through the same preparation run by run (``fit_stream.prepare``). Then: degree
+by held-out cross-validation (``model_selection.select_degree``) unless given, eq. 28
+(``thermal_fit.fit_thermal``), and the noise model of the calibrated output (``noise_correlation``) on
+the first samples of the first input. Pure: no argparse, no ROS.
 """
 
 from __future__ import annotations
@@ -17,10 +18,11 @@ from pathlib import Path
 from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
+from .fit_stream import prepare, prepare_stream
 from .input_validation import DEFAULT_MAX_DEGREE
 from .model_selection import SelectionResult, select_degree
 from .static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW
-from .thermal_fit import DEFAULT_LEVEL_GAP_C, NotIdentifiedError, fit_thermal, prepare, sensor_id_of
+from .thermal_fit import DEFAULT_LEVEL_GAP_C, NotIdentifiedError, fit_thermal, sensor_id_of
 
 
 @dataclass
@@ -60,7 +62,6 @@ def _warn(line: str) -> None:
 
 def _streamed(paths: list[Path], max_degree: int, opt: FitOptions):
     from .cli_progress import CountedSource
-    from .fit_stream import prepare_stream
     from .mcap_io import McapSampleStream, read_warnings
 
     sources = [CountedSource(_source(p, opt), f"fit {p.name}", opt.progress) for p in paths]
@@ -111,7 +112,7 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
         rec = load_recording(paths, rate=opt.rate_hz, temperature=opt.temperature_c, g=opt.g_mps2,
                              namespace=opt.namespace, topic=opt.topic)
         metadata = rec.metadata
-        data = prepare(rec, opt.window, opt.min_interval, opt.level_gap_c)
+        data = prepare(rec, max_degree, opt.window, opt.min_interval, opt.level_gap_c)
     names = ", ".join(map(str, paths))
     if len(data) == 0:
         raise ValueError(f"{names}: none of the {data.n_total} samples can be fitted "

@@ -1,10 +1,10 @@
-"""The fit's sums streamed from files: runs read block by block, never held whole (pure numpy).
+"""The fit's preparation: runs read block by block into the sums of eq. 28, never held whole (pure numpy).
 
-:func:`prepare_stream` gives what :func:`thermal_fit.prepare` + :func:`thermal_fit.accumulate_cells` give on a
-recording in memory -- the per-cell sums of eq. 28, the temperature levels and scaling, the sample counts --
-for runs served by a :class:`SampleBlockSource` (``mcap_io.McapSampleStream``, ``csv_import.CsvSampleSource``),
-in a few passes with memory independent of their length. ``thermal_fit.fit_thermal`` and
-``model_selection.select_degree`` take the result (:class:`StreamedFitData`) like prepared data.
+:func:`prepare_stream` selects the fit's samples (static detector), finds the temperature levels and scaling and
+accumulates the per-cell sums of eq. 28 and the sample counts, for runs served by a :class:`SampleBlockSource`
+(``mcap_io.McapSampleStream``, ``csv_import.CsvSampleSource``, or a ``Recording`` in memory: :func:`prepare`), in
+a few passes with memory independent of their length. ``thermal_fit.fit_thermal`` and
+``model_selection.select_degree`` take the result (:class:`FitData`).
 """
 
 from __future__ import annotations
@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
+
+from fbg_accel_driver.thermal_model import normalise
 
 from .recording import Recording
 from .static_detector import (
@@ -46,11 +48,14 @@ class SampleBlockSource(Protocol):
 
 
 @dataclass
-class StreamedFitData:
+class FitData:
     """Everything the fit and the degree selection need, accumulated without holding the samples.
 
-    ``stats`` are the per-cell sums at degree ``stats.degree`` (lower degrees are sub-blocks);
-    the other fields are those of :class:`FitData` reduced to what the fit reports.
+    ``stats`` are the per-cell sums at degree ``stats.degree`` (lower degrees are sub-blocks); ``level_means_c``
+    the temperature levels (degC, ascending), ``t_center_c``/``t_scale_c`` the scaling tau = (T - centre)/scale;
+    the counts are of samples fitted, seen, excluded as moving and excluded as invalid; ``detector`` the static
+    detector's settings and noise floor (variances of Psi). ``levels`` and ``level_map`` label a fitted sample's
+    level (:meth:`level_of`).
     """
 
     stats: CellStats
@@ -63,10 +68,16 @@ class StreamedFitData:
     n_excluded_motion: int
     n_excluded_other: int
     n_poses: int
+    levels: TemperatureClusters
+    level_map: np.ndarray
     detector: dict[str, Any] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return self.n_used
+
+    def level_of(self, temp_c: np.ndarray) -> np.ndarray:
+        """Temperature level (N,) of fitted samples at ``temp_c`` degC: the ``level`` of their cells."""
+        return self.level_map[self.levels.labels(temp_c)]
 
     def cell_stats(self, degree: int, chunk: int = DEFAULT_CHUNK) -> CellStats:
         """The sums for a fit of ``degree`` (<= ``stats.degree``): ``stats`` itself, no copy -- every
@@ -78,11 +89,33 @@ class StreamedFitData:
         return self.stats
 
 
+def fit_valid(rec: Recording, psi: np.ndarray) -> np.ndarray:
+    """Samples (N,) the fit can use at all, static or not: in a pose with a finite reference, a valid temperature
+    and a finite Psi (``psi`` (N, 3), the normalised counts of ``rec``)."""
+    valid = (rec.pose_id >= 0) & np.all(np.isfinite(rec.gref_mps2), axis=1) & np.isfinite(rec.temp_c)
+    return valid & np.all(np.isfinite(psi), axis=1)
+
+
+def prepare(rec: Recording, degree: int, window: int = DEFAULT_WINDOW, min_interval: int = DEFAULT_MIN_INTERVAL,
+            level_gap_c: float = DEFAULT_LEVEL_GAP_C, usable: np.ndarray | None = None,
+            chunk: int = DEFAULT_CHUNK) -> FitData:
+    """:func:`prepare_stream` of a recording in memory, each run (``Recording.runs``) read block by block as a file
+    is. ``usable`` (N,) bool replaces the static detector (tests, the diagnosis, a report of given samples)."""
+    runs = rec.runs()
+    masks = None
+    if usable is not None:
+        usable = np.asarray(usable, dtype=bool)
+        ends = np.cumsum([len(r) for r in runs])
+        masks = [usable[e - len(r):e] for r, e in zip(runs, ends, strict=True)]
+    return prepare_stream(runs, degree, window, min_interval, level_gap_c, chunk, usable=masks)
+
+
 def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = DEFAULT_WINDOW,
                    min_interval: int = DEFAULT_MIN_INTERVAL, level_gap_c: float = DEFAULT_LEVEL_GAP_C,
                    chunk: int = DEFAULT_CHUNK, false_alarm: float = DEFAULT_FALSE_ALARM, margin: float = DEFAULT_MARGIN,
-                   tolerance_mps2: float = DEFAULT_REFERENCE_TOLERANCE_MPS2) -> StreamedFitData:
-    """``thermal_fit.prepare`` + ``thermal_fit.accumulate_cells`` (at ``degree``) for runs read block by block.
+                   tolerance_mps2: float = DEFAULT_REFERENCE_TOLERANCE_MPS2,
+                   usable: list[np.ndarray] | None = None) -> FitData:
+    """The fit's samples of runs read block by block and their sums of eq. 28 at ``degree`` (:class:`FitData`).
 
     Exact scheme, in passes over each run (``sources[i]`` is run i, as ``Recording.concatenate``):
 
@@ -97,31 +130,43 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
     3. sums: the same selection again, now with tau and the level of each sample, into
        :class:`CellAccumulator`, in chunks of ``chunk`` selected rows exactly as the in-memory path.
 
+    ``usable`` (one (N_i,) bool mask per source): the fit's samples given, no static detection (step 1 skipped).
+
     Memory: a few blocks of ``static_detector.BLOCK_ROWS`` samples, one chunk of the design matrix
-    and O(cells + levels) state, independent of the number of samples. The result equals
-    ``prepare`` + ``accumulate_cells`` on the concatenated recording to rounding (the
-    selection and levels are identical; only the summation order of level means differs).
+    and O(cells + levels) state, independent of the number of samples. The sums do not depend on the block size
+    (chunks of ``chunk`` selected rows across blocks and runs).
     """
     thresholds: list[np.ndarray] = []
     noise_out, thr_out = np.zeros(3), np.zeros(3)
-    for src in sources:
+    for src in sources if usable is None else []:
         nv, thr = streamed_noise_floor(lambda src=src: src.blocks(BLOCK_ROWS, False), window, false_alarm, margin)
         thresholds.append(thr)
         noise_out, thr_out = np.maximum(noise_out, nv), np.maximum(thr_out, thr)
 
+    def detected(src: SampleBlockSource, i: int):
+        """(block, psi, usable) of the run ``src`` (``i``-th source)."""
+        if usable is None:
+            for blk, psi, use, _static in usable_blocks(src.blocks(BLOCK_ROWS, True), window, min_interval,
+                                                        thresholds[i], tolerance_mps2):
+                yield blk, psi, use
+            return
+        start = 0
+        for blk in src.blocks(BLOCK_ROWS, True):
+            yield blk, normalise(blk.xyz, blk.ref), usable[i][start:start + len(blk)]
+            start += len(blk)
+
     def kept_blocks():
-        for src, thr in zip(sources, thresholds, strict=True):
-            for blk, psi, usable in usable_blocks(src.blocks(BLOCK_ROWS, True), window, min_interval, thr, tolerance_mps2):
-                valid = (blk.pose_id >= 0) & np.all(np.isfinite(blk.gref_mps2), axis=1) & np.isfinite(blk.temp_c)
-                valid &= np.all(np.isfinite(psi), axis=1)
-                yield blk, psi, usable, valid, usable & valid
+        for i, src in enumerate(sources):
+            for blk, psi, use in detected(src, i):
+                valid = fit_valid(blk, psi)
+                yield blk, psi, use, valid, use & valid
 
     clusters = TemperatureClusters(level_gap_c)
     n_total = n_motion = n_other = 0
     t_min, t_max = np.inf, -np.inf
-    for blk, _psi, usable, valid, keep in kept_blocks():
+    for blk, _psi, use, valid, keep in kept_blocks():
         n_total += len(blk)
-        n_motion += int((valid & ~usable).sum())
+        n_motion += int((valid & ~use).sum())
         n_other += int((~valid).sum())
         t = blk.temp_c[keep]
         clusters.add(t)
@@ -136,7 +181,7 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
     fill = 0
     level_sum = np.zeros(clusters.n_labels)
     level_count = np.zeros(clusters.n_labels, np.int64)
-    for blk, psi, _usable, _valid, keep in kept_blocks():
+    for blk, psi, _use, _valid, keep in kept_blocks():
         rows = np.flatnonzero(keep)
         t = blk.temp_c[rows]
         lab = clusters.labels(t)
@@ -160,8 +205,7 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
     level_map[present] = np.arange(len(present))
     stats = acc.finish(level_map)
     n_used = int(level_count.sum())
-    detector = {"window_samples": window, "min_interval_samples": min_interval, "noise_var_psi": noise_out.tolist(),
-                "threshold_var_psi": thr_out.tolist()}
-    return StreamedFitData(stats, level_sum[present] / level_count[present],
-                           (t_min, t_max), center, scale, n_used, n_total, n_motion, n_other,
-                           len(np.unique(stats.pose)), detector)
+    detector = ({"window_samples": window, "min_interval_samples": min_interval, "noise_var_psi": noise_out.tolist(),
+                 "threshold_var_psi": thr_out.tolist()} if usable is None else {"mask": "given by caller"})
+    return FitData(stats, level_sum[present] / level_count[present], (t_min, t_max), center, scale, n_used, n_total,
+                   n_motion, n_other, len(np.unique(stats.pose)), clusters, level_map, detector)

@@ -29,13 +29,16 @@ from pathlib import Path
 
 import numpy as np
 
+from fbg_accel_driver.thermal_model import normalise
+
 from .atomic_output import OutputError, atomic_path, check_outputs
 from .csv_import import import_csv
 from .fit_report import AXES, PoseStats, plot_calibrated_vs_reference, pose_statistics
+from .fit_stream import fit_valid, prepare
 from .model_selection import SelectionResult, held_out_predictions, select_degree
 from .recording import Recording
 from .static_detector import calibration_samples
-from .thermal_fit import FULL_SCALE_MPS2, fit_thermal, prepare
+from .thermal_fit import FULL_SCALE_MPS2, fit_thermal
 
 DEFAULT_CSV = Path("../shared/data/measured/fig13_multiposition_23C.csv")
 DEFAULT_MD = Path("docs/results_measured_fit.md")
@@ -98,17 +101,17 @@ def fit_measured(csv_path: Path = DEFAULT_CSV) -> MeasuredFit:
             "../shared/data/measured/; give another path with --csv)")
     rec, _ = import_csv(csv_path, rate_hz=1.0, temperature_c=TEMPERATURE_C, g_mps2=G_MPS2)
     rec.metadata["sensor_id"] = "paper-fig13"
-    usable, signal_det = calibration_samples(rec, window=WINDOW, min_interval=MIN_INTERVAL)
-    data = prepare(rec, usable=usable)
+    usable, signal_static = calibration_samples(rec, window=WINDOW, min_interval=MIN_INTERVAL)
+    data = prepare(rec, 2, usable=usable)
     selection = select_degree(data, max_degree=2)
     cal = fit_thermal(data, 0, sensor_id="paper-fig13")
     M, b = cal.M[0], cal.b[0]
-    held = held_out_predictions(data, 0, by="pose")
-    res_held = held - data.gref
+    fitted = np.flatnonzero(usable & fit_valid(rec, normalise(rec.xyz, rec.ref)))  # the samples data holds
+    res_held = held_out_predictions(data, rec, usable, 0, by="pose")[fitted] - rec.gref_mps2[fitted]
     rmse_held = np.sqrt(np.nanmean(res_held**2, axis=0))
     stats = pose_statistics(cal, rec, usable)
     # held-out residual per pose, in the order of pose_statistics (run 0 only here)
-    held_mean = np.stack([np.bincount(np.searchsorted(stats.pose, data.pose), weights=res_held[:, j],
+    held_mean = np.stack([np.bincount(np.searchsorted(stats.pose, rec.pose_id[fitted]), weights=res_held[:, j],
                                       minlength=len(stats.pose)) for j in range(3)], axis=1) / stats.count[:, None]
     held_stats = PoseStats(stats.pose, stats.run, stats.temp_c, stats.count, stats.gref, stats.mean_cal + 0.0,
                            held_mean, stats.residual_std)
@@ -124,7 +127,7 @@ def fit_measured(csv_path: Path = DEFAULT_CSV) -> MeasuredFit:
     inter = (np.zeros(len(rec), bool) if psi_deg is None
              else (np.mod(psi_deg[:, 0], 30.0) != 0) | (np.mod(psi_deg[:, 1], 30.0) != 0))
     kept = np.flatnonzero(inter & usable)
-    signal_only = int((inter & signal_det.mask).sum())
+    signal_only = int((inter & signal_static).sum())
     g = rec.gref_mps2
     same_ref = sum(1 for i in kept if 0 < i < len(rec) - 1
                    and np.array_equal(g[i - 1], g[i]) and np.array_equal(g[i + 1], g[i]))

@@ -40,26 +40,23 @@ In-sample RMSE never enters the choice (it can only fall with the degree).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from fbg_accel_driver.thermal_model import normalise
+
+from .fit_stream import FitData, fit_valid, prepare
 from .recording import Recording
 from .static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW
-
-if TYPE_CHECKING:
-    from .fit_stream import StreamedFitData
 from .thermal_fit import (
     DEFAULT_CHUNK,
     DEFAULT_LEVEL_GAP_C,
     FULL_SCALE_MPS2,
     CellStats,
-    FitData,
     NotIdentifiedError,
     check_pose_excitation,
     design_matrix,
     level_excitation,
-    prepare,
     solve_normal_equations,
 )
 
@@ -145,11 +142,11 @@ def _held_out(stats: CellStats, groups: np.ndarray, degree: int, min_levels: int
     return np.sqrt(rss / n), np.asarray(group_mse)
 
 
-def select_degree(rec: Recording | FitData | StreamedFitData, max_degree: int = 6, *, window: int = DEFAULT_WINDOW,
+def select_degree(rec: Recording | FitData, max_degree: int = 6, *, window: int = DEFAULT_WINDOW,
                   min_interval: int = DEFAULT_MIN_INTERVAL, level_gap_c: float = DEFAULT_LEVEL_GAP_C,
                   chunk: int = DEFAULT_CHUNK, usable: np.ndarray | None = None) -> SelectionResult:
     """Score degrees 0..``max_degree`` and choose one (see module docstring)."""
-    data = prepare(rec, window, min_interval, level_gap_c, usable) if isinstance(rec, Recording) else rec
+    data = prepare(rec, max_degree, window, min_interval, level_gap_c, usable, chunk) if isinstance(rec, Recording) else rec
     if len(data) == 0:
         raise NotIdentifiedError("no usable static samples")
     n_levels = len(data.level_means_c)
@@ -246,17 +243,19 @@ def choose_degree(scores: list[DegreeScores], group_mse: dict[int, np.ndarray], 
     return chosen, criterion, notes
 
 
-def held_out_predictions(data: FitData, degree: int, by: str = "pose", chunk: int = DEFAULT_CHUNK) -> np.ndarray:
-    """Calibrated output (N, 3) m/s^2 of every prepared sample predicted by the model fitted without
-    its pose (``by='pose'``) or without its temperature level (``by='level'``); NaN where that fold
-    cannot be fitted."""
+def held_out_predictions(data: FitData, rec: Recording, usable: np.ndarray, degree: int, by: str = "pose") -> np.ndarray:
+    """Calibrated output (N, 3) m/s^2 of the samples of ``rec`` that ``data`` fitted (``fit_stream.prepare`` of
+    ``rec`` with ``usable``), each predicted by the model fitted without its pose (``by='pose'``) or without its
+    temperature level (``by='level'``); NaN for the other samples and where that fold cannot be fitted."""
     if by not in ("pose", "level"):
         raise ValueError(f"by must be 'pose' or 'level', got {by!r}")
-    tau = (data.temp_c - data.t_center_c) / data.t_scale_c
-    stats = data.cell_stats(degree, chunk)
+    psi = normalise(rec.xyz, rec.ref)
+    fitted = np.flatnonzero(np.asarray(usable, dtype=bool) & fit_valid(rec, psi))
+    tau = (rec.temp_c[fitted] - data.t_center_c) / data.t_scale_c
+    stats = data.cell_stats(degree)
     cell_group = stats.pose if by == "pose" else stats.level
-    sample_group = data.pose if by == "pose" else data.level
-    out = np.full((len(data), 3), np.nan)
+    sample_group = rec.pose_id[fitted] if by == "pose" else data.level_of(rec.temp_c[fitted])
+    out = np.full((len(rec), 3), np.nan)
     for g in np.unique(cell_group):
         train = cell_group != g
         if len(np.unique(stats.level[train])) <= degree:
@@ -266,5 +265,5 @@ def held_out_predictions(data: FitData, degree: int, by: str = "pose", chunk: in
         except NotIdentifiedError:
             continue
         rows = np.flatnonzero(sample_group == g)
-        out[rows] = design_matrix(data.psi[rows], tau[rows], degree) @ A
+        out[fitted[rows]] = design_matrix(psi[fitted[rows]], tau[rows], degree) @ A
     return out

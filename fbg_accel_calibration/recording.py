@@ -6,6 +6,7 @@ batch API, so the fit and the diagnosis never care where the data came from.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -55,12 +56,26 @@ class Recording:
         return int(self.t_s.shape[0])
 
     def select(self, mask: np.ndarray) -> Recording:
-        """A new recording with the samples where ``mask`` is true (order kept)."""
+        """A new recording with the samples ``mask`` selects (a boolean mask, indices or a slice; order kept)."""
         return Recording(
             self.t_s[mask], self.ref[mask], self.xyz[mask], self.temp_c[mask],
             self.gref_mps2[mask], self.pose_id[mask], self.run_id[mask], dict(self.metadata),
             None if self.aux is None else self.aux[mask],
         )
+
+    def runs(self) -> list[Recording]:
+        """Each run (``run_id``) as its own recording (views of these arrays), in order. Raises ``ValueError`` when
+        the samples of one run are not contiguous (every reader and ``concatenate`` keeps them together)."""
+        starts = np.flatnonzero(np.r_[True, self.run_id[1:] != self.run_id[:-1]]) if len(self) else np.zeros(0, int)
+        if len(np.unique(self.run_id[starts])) != len(starts):
+            raise ValueError("the samples of one run must be contiguous")
+        return [self.select(slice(a, b)) for a, b in zip(starts, [*starts[1:], len(self)], strict=True)]
+
+    def blocks(self, block_rows: int, with_poses: bool = True) -> Iterator[Recording]:
+        """Consecutive blocks of ``block_rows`` samples (views), as a file source serves a run block by block
+        (``fit_stream.SampleBlockSource``): a run in memory goes through the same streamed steps as a file."""
+        for start in range(0, len(self), block_rows):
+            yield self.select(slice(start, start + block_rows))
 
     @staticmethod
     def concatenate(parts: list[Recording]) -> Recording:

@@ -190,56 +190,36 @@ def detect_static(signal: np.ndarray, window: int = DEFAULT_WINDOW, min_interval
     return StaticDetection(mask, intervals, stat, noise_out, thr_out)
 
 
-DEFAULT_REFERENCE_TOLERANCE_MPS2 = 1e-3
-
-
-def reference_still(gref_mps2: np.ndarray, window: int = DEFAULT_WINDOW,
-                    tolerance_mps2: float = DEFAULT_REFERENCE_TOLERANCE_MPS2,
-                    groups: np.ndarray | None = None) -> np.ndarray:
-    """True where the table reference (N, 3) m/s^2 is constant over the same centred window.
-
-    The reference of a pose comes from the table's angle readings or the pose plan, so it is
-    constant (to ``tolerance_mps2``, standard deviation) while the table stands still. A sample
-    whose window includes a reference change (the table moved, or an intermediate angle reading)
-    or a NaN reference (no pose) is not usable for the fit even when the sensor signal looks still,
-    e.g. right after a move, when the TIA low-pass (Table 1, ~1 Hz) has not yet settled.
-    """
-    g = np.asarray(gref_mps2, dtype=float)
-    n = g.shape[0]
-    groups = np.zeros(n, dtype=int) if groups is None else np.asarray(groups)
-    out = np.zeros(n, dtype=bool)
-    for gid in np.unique(groups):
-        idx = np.flatnonzero(groups == gid)
-        v = moving_variance(g[idx], window)
-        out[idx] = np.all(v <= tolerance_mps2**2, axis=1)
-    return out
+DEFAULT_REFERENCE_TOLERANCE_MPS2 = 1e-3  # m/s^2, standard deviation of the reference over the window when still
 
 
 def calibration_samples(rec: Recording, window: int = DEFAULT_WINDOW, min_interval: int = DEFAULT_MIN_INTERVAL,
                         false_alarm: float = DEFAULT_FALSE_ALARM, margin: float = DEFAULT_MARGIN,
-                        tolerance_mps2: float = DEFAULT_REFERENCE_TOLERANCE_MPS2) -> tuple[np.ndarray, StaticDetection]:
-    """Samples of a :class:`Recording` usable for a static calibration fit, and the signal detection.
+                        tolerance_mps2: float = DEFAULT_REFERENCE_TOLERANCE_MPS2) -> tuple[np.ndarray, np.ndarray]:
+    """Samples of a :class:`Recording` usable for a static calibration fit (N,) bool, and those whose sensor signal
+    alone is static (N,) bool (the detector's kept runs, whatever the reference).
 
-    Usable = belongs to a pose (``pose_id >= 0``, finite reference) AND the sensor signal Psi is
-    still (:func:`detect_static`, noise floor estimated per run) AND the reference is constant over
-    the window (:func:`reference_still`) AND, after those, the sample lies in a run of at least
-    ``min_interval`` usable samples of one pose.
+    Usable = belongs to a pose (``pose_id >= 0``, finite reference) AND the sensor signal Psi is still (the
+    detector of the module docstring, noise floor estimated per run) AND the reference is constant over the
+    window (to ``tolerance_mps2``, standard deviation: the table stands still; a window that includes a reference
+    change or a NaN reference is not, e.g. right after a move, when the TIA low-pass (Table 1, ~1 Hz) has not
+    settled) AND, after those, the sample lies in a run of at least ``min_interval`` usable samples of one pose.
+    Each run goes through the streamed detector block by block, as a file does (:func:`usable_blocks`).
     """
-    psi = normalise(rec.xyz, rec.ref)
-    det = detect_static(psi, window, min_interval, false_alarm, margin, groups=rec.run_id)
-    ref_ok = reference_still(rec.gref_mps2, window, tolerance_mps2, groups=rec.run_id)
-    gref_ok = np.all(np.isfinite(rec.gref_mps2), axis=1)
-    out = np.zeros(len(rec), dtype=bool)
-    for run in np.unique(rec.run_id):
-        idx = np.flatnonzero(rec.run_id == run)  # contiguous (detect_static checked)
-        out[idx] = usable_samples(det.mask[idx], ref_ok[idx], rec.pose_id[idx], gref_ok[idx], min_interval)
-    return out, det
+    usable, static = [np.zeros(0, bool)], [np.zeros(0, bool)]
+    for run in rec.runs():
+        threshold = streamed_noise_floor(lambda run=run: run.blocks(BLOCK_ROWS, False), window, false_alarm, margin)[1]
+        for _blk, _psi, run_usable, run_static in usable_blocks(run.blocks(BLOCK_ROWS), window, min_interval, threshold,
+                                                                tolerance_mps2):
+            usable.append(run_usable)
+            static.append(run_static)
+    return np.concatenate(usable), np.concatenate(static)
 
 
-# ----------------------------------------------------------------------------- the same, streamed
-# A recording read block by block (``fbg-accel-calib fit`` on files larger than memory) goes through the
-# same kernels: moving variances on the ``BLOCK_ROWS`` grid of :func:`moving_variance`, the rules above
-# with the context they need carried between blocks, and an exact streaming median for the noise floor.
+# ----------------------------------------------------------------------------- streamed
+# A run is read block by block (a file larger than memory, or a recording in memory: ``Recording.blocks``) and
+# goes through the kernels above: moving variances on the ``BLOCK_ROWS`` grid of :func:`moving_variance`, the
+# rules with the context they need carried between blocks, and an exact streaming median for the noise floor.
 class ExactMedian:
     """Exact ``np.nanmedian`` per column of a stream of (k)-column non-negative values, in passes.
 
@@ -378,7 +358,8 @@ def signal_blocks(blocks: Iterator[Recording], window: int, with_reference: bool
 
 def usable_blocks(blocks: Iterator[Recording], window: int, min_interval: int, threshold: np.ndarray,
                    tolerance_mps2: float):
-    """Yield ``(block, psi, usable)`` with ``usable`` equal to :func:`calibration_samples` on the whole run.
+    """Yield ``(block, psi, usable, static)`` of each block of one run: ``usable`` the fit's samples and ``static``
+    those whose signal is static (:func:`calibration_samples`), as if decided on the whole run at once.
 
     The run-length rules (static runs and pose segments of >= ``min_interval`` samples) only look
     ``2 * min_interval`` samples either way, so each block is decided with that much context carried
@@ -407,8 +388,9 @@ def usable_blocks(blocks: Iterator[Recording], window: int, min_interval: int, t
         blk, psi, f, p = cur
         ff, pp = np.vstack([tail_f, f, head_f]), np.r_[tail_p, p, head_p]
         off = len(tail_f)
-        usable = usable_samples(long_runs(ff[:, 0], min_interval), ff[:, 1], pp, ff[:, 2], min_interval)[off:off + len(p)]
-        yield blk, psi, usable
+        static = long_runs(ff[:, 0], min_interval)
+        usable = usable_samples(static, ff[:, 1], pp, ff[:, 2], min_interval)[off:off + len(p)]
+        yield blk, psi, usable, static[off:off + len(p)]
         tail_f, tail_p = np.vstack([tail_f, f[-ctx:]])[-ctx:], np.r_[tail_p, p[-ctx:]][-ctx:]
         cur = nxt
 

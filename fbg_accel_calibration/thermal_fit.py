@@ -16,8 +16,9 @@ Sums: X^T X, X^T G, G^T G and sum(X) are accumulated chunk by chunk and per *cel
 at one temperature level), so memory is bounded by one chunk of the design matrix whatever the
 number of samples, and cross-validation (``model_selection``) can remove whole poses or whole
 temperature levels from the sums without touching the samples again. Residual sums of squares
-follow from the same sums: RSS = G^T G - 2 diag(A^T X^T G) + diag(A^T X^T X A). The same sums read
-from files block by block, without holding the samples, are :mod:`fit_stream`'s job.
+follow from the same sums: RSS = G^T G - 2 diag(A^T X^T G) + diag(A^T X^T X A). Choosing the samples
+(static detector, temperature levels) and reading runs into these sums block by block, from files or from
+memory, is :mod:`fit_stream`'s job.
 
 Temperature is centred and scaled (tau in [-1, 1] over the data) so that high degrees stay well
 conditioned; ``ThermalCalibration`` stores centre and scale, and with centre 0 and scale 1 the
@@ -32,9 +33,8 @@ from __future__ import annotations
 
 import datetime as _dt
 import itertools
-from dataclasses import dataclass, field
-from functools import cached_property
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -42,10 +42,10 @@ from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2, STANDARD_GRAVITY
 from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
 
 from .recording import Recording
-from .static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW, calibration_samples
+from .static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW
 
 if TYPE_CHECKING:
-    from .fit_stream import StreamedFitData
+    from .fit_stream import FitData
 
 # Table 4 RMSE is normalised by the full scale (re-exported for the reports)
 DEFAULT_LEVEL_GAP_C = 1.0  # degC: sorted temperatures further apart than this belong to different levels
@@ -236,9 +236,9 @@ class CellStats:
 class CellAccumulator:
     """Per-cell normal-equation sums built chunk by chunk (cells appear as they come).
 
-    :func:`accumulate_cells` (in memory) and the streaming fit (``fit_stream.prepare_stream``) both feed
-    it the same chunks of rows, so their sums are identical. Memory: one chunk's design matrix plus
-    O(cells).
+    The fit's preparation (``fit_stream.prepare_stream``) feeds it chunks of ``chunk`` selected rows across
+    blocks and runs, so the sums do not depend on how the runs were read. Memory: one chunk's design matrix
+    plus O(cells).
     """
 
     def __init__(self, degree: int, chunk: int = DEFAULT_CHUNK) -> None:
@@ -440,74 +440,6 @@ def solve_normal_equations(xtx: np.ndarray, xtg: np.ndarray, rcond: float = 1e-1
     return A, cond
 
 
-@dataclass
-class FitData:
-    """Samples prepared for fitting: Psi, temperature, reference, pose, level and run of the usable samples."""
-
-    psi: np.ndarray
-    temp_c: np.ndarray
-    gref: np.ndarray
-    pose: np.ndarray
-    level: np.ndarray
-    run: np.ndarray
-    level_means_c: np.ndarray
-    n_total: int
-    n_excluded_motion: int
-    n_excluded_other: int
-    detector: dict[str, Any] = field(default_factory=dict)
-
-    def __len__(self) -> int:
-        return len(self.temp_c)
-
-    # computed on first use and kept (the arrays are not changed after prepare)
-    @cached_property
-    def n_poses(self) -> int:
-        return len(np.unique(self.pose))
-
-    @cached_property
-    def temperature_range_c(self) -> tuple[float, float]:
-        return float(np.min(self.temp_c)), float(np.max(self.temp_c))
-
-    @cached_property
-    def _scaling(self) -> tuple[float, float]:
-        return temperature_scaling(self.temp_c)
-
-    @property
-    def t_center_c(self) -> float:
-        return self._scaling[0]
-
-    @property
-    def t_scale_c(self) -> float:
-        return self._scaling[1]
-
-    def cell_stats(self, degree: int, chunk: int = DEFAULT_CHUNK) -> CellStats:
-        """Per-cell sums of eq. 28 at ``degree`` (the same interface as ``fit_stream.StreamedFitData``)."""
-        tau = (self.temp_c - self.t_center_c) / self.t_scale_c
-        return accumulate_cells(self.psi, tau, self.gref, self.pose, self.level, degree, chunk)
-
-
-def prepare(rec: Recording, window: int = DEFAULT_WINDOW, min_interval: int = DEFAULT_MIN_INTERVAL,
-            level_gap_c: float = DEFAULT_LEVEL_GAP_C, usable: np.ndarray | None = None) -> FitData:
-    """Select the fit samples of a recording: static (signal and reference), in a pose, valid temperature
-    and reference. ``usable`` overrides the static detector (tests, diagnosis)."""
-    if usable is None:
-        usable, det = calibration_samples(rec, window=window, min_interval=min_interval)
-        det_info = {"window_samples": window, "min_interval_samples": min_interval,
-                    "noise_var_psi": det.noise_var.tolist(), "threshold_var_psi": det.threshold.tolist()}
-    else:
-        usable = np.asarray(usable, dtype=bool)
-        det_info = {"mask": "given by caller"}
-    psi = normalise(rec.xyz, rec.ref)
-    valid = (rec.pose_id >= 0) & np.all(np.isfinite(rec.gref_mps2), axis=1) & np.isfinite(rec.temp_c)
-    valid &= np.all(np.isfinite(psi), axis=1)
-    keep = usable & valid
-    level, means = temperature_levels(rec.temp_c[keep], level_gap_c)
-    # a pose is identified by (run, pose id) only through the pose id: the same id in another run is
-    # the same commanded orientation of the plan (held out together)
-    return FitData(psi[keep], rec.temp_c[keep], rec.gref_mps2[keep], rec.pose_id[keep], level, rec.run_id[keep],
-                   means, len(rec), int((valid & ~usable).sum()), int((~valid).sum()), det_info)
-
-
 def temperature_scaling(temp_c: np.ndarray) -> tuple[float, float]:
     """Centre and half-range (degC) mapping the data's temperatures onto [-1, 1] (scale 1 for one level)."""
     lo, hi = float(np.min(temp_c)), float(np.max(temp_c))
@@ -526,18 +458,23 @@ def check_identified(degree: int, n_levels: int) -> None:
             "or record more temperature levels")
 
 
-def fit_thermal(rec: Recording | FitData | StreamedFitData, degree: int, *, sensor_id: str | None = None,
+def fit_thermal(rec: Recording | FitData, degree: int, *, sensor_id: str | None = None,
                 window: int = DEFAULT_WINDOW, min_interval: int = DEFAULT_MIN_INTERVAL,
                 level_gap_c: float = DEFAULT_LEVEL_GAP_C, chunk: int = DEFAULT_CHUNK,
                 usable: np.ndarray | None = None) -> ThermalCalibration:
-    """Fit eq. 28 of degree ``degree`` to a recording (or prepared :class:`FitData`, or the streamed sums
-    of ``fit_stream.StreamedFitData`` from ``fit_stream.prepare_stream``, accumulated at a degree >= ``degree``).
+    """Fit eq. 28 of degree ``degree`` to a recording, or to the data ``fit_stream.prepare`` or
+    ``fit_stream.prepare_stream`` prepared (:class:`fit_stream.FitData`, accumulated at a degree >= ``degree``).
 
     The result's ``fit`` dict holds sample counts, temperature levels, the in-sample RMSE per axis
     (m/s^2 and normalised by the 20 g full scale), the within-pose noise floor of the calibrated
     output and the condition number. ``noise_sigma_mps2`` is that within-pose noise floor.
     """
-    data = prepare(rec, window, min_interval, level_gap_c, usable) if isinstance(rec, Recording) else rec
+    if isinstance(rec, Recording):
+        from .fit_stream import prepare  # the preparation builds on this module's sums
+
+        data = prepare(rec, degree, window, min_interval, level_gap_c, usable, chunk)
+    else:
+        data = rec
     if len(data) == 0:
         raise NotIdentifiedError("no usable static samples (check pose ids, reference and the static detector)")
     check_identified(degree, len(data.level_means_c))

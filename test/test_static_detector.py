@@ -12,7 +12,6 @@ from fbg_accel_calibration.static_detector import (
     estimate_noise_var,
     intervals_from_mask,
     moving_variance,
-    reference_still,
     variance_threshold,
 )
 
@@ -100,21 +99,28 @@ def test_intervals_from_mask() -> None:
     assert intervals_from_mask(np.zeros(3, bool)) == []
 
 
-def test_reference_still_and_calibration_samples() -> None:
+def test_calibration_samples_need_a_still_signal_and_a_still_reference() -> None:
     rng = np.random.default_rng(5)
     n = 60
     g = np.repeat(np.array([[0.0, 0.0, 9.8], [0.0, 4.9, 8.5], [0.0, 9.8, 0.0]]), 20, axis=0)
     g[20] = [0.0, 2.5, 9.5]  # intermediate table reading while moving
-    still = reference_still(g, window=3)
-    assert not still[[19, 20, 21, 39, 40]].any() and still[[5, 25, 45]].all()
     psi = np.hstack([g / 80.0, np.ones((n, 1))])[:, :3] + rng.normal(0, 1e-4, (n, 3))
+    g[50] += 0.01  # a reading the signal does not show: the reference alone is not still around it
     ref = np.full(n, 900.0)
     pose = np.repeat([0, 1, 2], 20)
     pose[20] = 3
     rec = Recording(np.arange(n) * 0.01, ref, psi * ref[:, None], 23.0, g, pose)
-    usable, _ = calibration_samples(rec, window=3, min_interval=3)
-    assert not usable[[19, 20, 21, 39, 40]].any()
-    assert usable[[1, 10, 25, 50]].all()
+    usable, static = calibration_samples(rec, window=3, min_interval=3)
+    assert not usable[[19, 20, 21, 39, 40, 49, 50, 51]].any()
+    assert usable[[1, 10, 25, 45, 55]].all()
+    assert static[[49, 50, 51]].all() and not static[[20, 40]].any()
+    # runs are decided apart (one noise floor each); a run's samples must be together
+    two = Recording(np.r_[rec.t_s, rec.t_s + 1.0], np.r_[ref, ref], np.r_[rec.xyz, rec.xyz], 23.0, np.r_[g, g],
+                    np.r_[pose, pose], np.repeat([0, 1], n))
+    np.testing.assert_array_equal(calibration_samples(two, window=3, min_interval=3)[0], np.r_[usable, usable])
+    two.run_id = np.tile(np.repeat([0, 1], n // 2), 2)
+    with pytest.raises(ValueError, match="contiguous"):
+        calibration_samples(two)
 
 
 def test_bad_parameters() -> None:
@@ -140,7 +146,7 @@ def test_blocked_moving_variance_equals_one_block(monkeypatch: pytest.MonkeyPatc
 
 
 def test_interval_rules_keep_only_long_enough_runs_of_one_pose() -> None:
-    """The one rule both the in-memory and the streamed detector apply (static_detector.usable_samples)."""
+    """The interval rule of the detector (static_detector.usable_samples), which it applies block by block."""
     from fbg_accel_calibration.static_detector import long_runs, usable_samples
 
     still = np.array([1, 1, 1, 0, 1, 1, 1, 1, 0, 1], bool)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fbg_accel_calibration.fit_stream import prepare
 from fbg_accel_calibration.model_selection import held_out_predictions, select_degree
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_calibration.thermal_fit import (
@@ -15,11 +16,10 @@ from fbg_accel_calibration.thermal_fit import (
     design_matrix,
     fit_thermal,
     model_to_coefficients,
-    prepare,
     residuals,
     temperature_levels,
 )
-from fbg_accel_driver.thermal_model import ThermalCalibration
+from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
 
 G = 9.80665
 
@@ -98,15 +98,14 @@ def test_streaming_equals_one_shot_least_squares() -> None:
     rng = np.random.default_rng(2)
     M, b = _truth(1, rng)
     rec = _simulate(M, b, (10.0, 30.0), center=20.0, scale=10.0, psi_noise=1e-3)
-    data = prepare(rec, usable=np.ones(len(rec), bool))
-    tau = (data.temp_c - 20.0) / 10.0
-    small = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, 1, chunk=7)
-    big = accumulate_cells(data.psi, tau, data.gref, data.pose, data.level, 1, chunk=10**6)
+    psi, tau, level = normalise(rec.xyz, rec.ref), (rec.temp_c - 20.0) / 10.0, temperature_levels(rec.temp_c)[0]
+    small = accumulate_cells(psi, tau, rec.gref_mps2, rec.pose_id, level, 1, chunk=7)
+    big = accumulate_cells(psi, tau, rec.gref_mps2, rec.pose_id, level, 1, chunk=10**6)
     np.testing.assert_allclose(small.xtx, big.xtx, rtol=1e-10)
     np.testing.assert_allclose(small.xtg, big.xtg, rtol=1e-10)
-    cal = fit_thermal(data, 1, chunk=7)
-    X = design_matrix(data.psi, tau, 1)
-    A_ref, *_ = np.linalg.lstsq(X, data.gref, rcond=None)
+    cal = fit_thermal(rec, 1, chunk=7, usable=np.ones(len(rec), bool))
+    X = design_matrix(psi, tau, 1)
+    A_ref, *_ = np.linalg.lstsq(X, rec.gref_mps2, rcond=None)
     np.testing.assert_allclose(model_to_coefficients(cal.M, cal.b), A_ref, rtol=1e-7, atol=1e-9)
 
 
@@ -171,9 +170,9 @@ def test_cross_validation_chooses_the_true_degree_and_matches_explicit_refits() 
     table = sel.table_markdown()
     assert "| 1 **(chosen)** |" in table and "NO" in table
     # per-sample held-out predictions agree with the scores
-    data = prepare(rec, usable=usable)
-    pred = held_out_predictions(data, 1, by="level")
-    np.testing.assert_allclose(np.sqrt(((pred - data.gref) ** 2).mean(axis=0)), by_degree[1].held_out_level, rtol=1e-6)
+    pred = held_out_predictions(prepare(rec, 1, usable=usable), rec, usable, 1, by="level")[usable]
+    np.testing.assert_allclose(np.sqrt(((pred - rec.gref_mps2[usable]) ** 2).mean(axis=0)), by_degree[1].held_out_level,
+                               rtol=1e-6)
 
 
 def test_three_levels_like_the_paper_never_pick_degree_three() -> None:
