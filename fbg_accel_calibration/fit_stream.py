@@ -122,7 +122,7 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
     1. noise floor: moving variance of Psi per block (window carried between blocks) into an exact
        streaming median (:class:`static_detector.ExactMedian`, radix selection on the float bits): one pass to
        histogram (it also collects the pose/reference events), usually one more to collect the
-       median's bin; this is the robust noise-floor estimate of :func:`detect_static`;
+       median's bin; the robust noise-floor estimate of the static detector (``static_detector``'s docstring);
     2. temperatures: the static detector and the interval rules (:func:`static_detector.usable_blocks`, context of
        ``2 min_interval`` samples carried between blocks) select the fit samples; their temperatures
        go into the exact gap clustering (``thermal_fit.TemperatureClusters``) and the min/max that give the

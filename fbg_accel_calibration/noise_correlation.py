@@ -113,7 +113,7 @@ def from_recording(rec: Recording, cal: ThermalCalibration, window: int = 5, min
     samples at both ends (settling), calibrated with eq. 28, the sample interval the median step of ``t_s``."""
     from fbg_accel_driver.thermal_model import normalise
 
-    from .static_detector import detect_static
+    from .static_detector import calibration_samples
 
     if len(rec) > SAMPLE_ROWS:
         rec = rec.select(np.arange(SAMPLE_ROWS))
@@ -122,8 +122,7 @@ def from_recording(rec: Recording, cal: ThermalCalibration, window: int = 5, min
     if ok.sum() < 2 * MIN_SEGMENT:
         return NoiseCorrelation(np.zeros(3), np.zeros(3), 0, 0)
     psi_f = np.where(ok[:, None], psi, 0.0)
-    det = detect_static(psi_f, window, min_interval, groups=rec.run_id)
-    still = det.mask & ok
+    still = calibration_samples(rec, window, min_interval)[1] & ok  # the signal alone: no pose or reference needed
     acc = cal.base_acceleration(psi_f, np.where(ok, rec.temp_c, 0.0))
     segments = [s[window:len(s) - window] for s in static_segments(acc, still, np.zeros(len(rec), int), rec.run_id)]
     steps = np.diff(rec.t_s)

@@ -1,8 +1,10 @@
 """Static-interval detection from the sensor signal itself (multi-position calibration practice).
 
-Pure numpy/scipy. Used by the fit to exclude samples taken while the table moves (offline, on a
-whole recording). The calibration node's live test, which must hold a false-alarm rate per run on
-correlated noise, is :mod:`fbg_accel_calibration.stillness_monitor`.
+Pure numpy/scipy. Used offline by the fit to exclude samples taken while the table moves
+(:func:`calibration_samples` on a recording in memory, ``fit_stream.prepare_stream`` on files: each run
+read block by block either way), and by the noise model of the calibrated output to find still
+intervals. The calibration node's live test, which must hold a false-alarm rate per run on correlated
+noise, is :mod:`fbg_accel_calibration.stillness_monitor`.
 
 Method (the static detector of multi-position IMU calibration, e.g. Tedaldi, Pretto & Menegatti,
 "A robust and easy to implement method for IMU calibration without external equipments", ICRA
@@ -15,16 +17,15 @@ Threshold. For white noise of variance s^2 the window variance v (``window`` sam
 follows s^2 * chi2(w-1)/(w-1). The threshold per component is therefore
 ``s^2 * chi2.ppf(1 - false_alarm, w-1) / (w-1) * margin``: a still sample is flagged as moving with
 probability ``false_alarm`` (for independent samples; low-pass-filtered noise has fewer degrees of
-freedom, which ``margin`` (default 2) absorbs). The noise floor s^2 is either given (a known still
-period, the node's configuration) or estimated robustly from the recording itself as
-``median(v) / (median(chi2(w-1))/(w-1))``, valid when most samples are static -- true for any
-calibration run, where dwell times are much longer than moves.
+freedom, which ``margin`` (default 2) absorbs). The noise floor s^2 is estimated robustly from each run
+itself as ``median(v) / (median(chi2(w-1))/(w-1))`` (:func:`estimate_noise_var`; the node's recorder
+learns it from a still period first), valid when most samples are static -- true for any calibration
+run, where dwell times are much longer than moves.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -38,23 +39,6 @@ DEFAULT_WINDOW = 5
 DEFAULT_FALSE_ALARM = 1e-3
 DEFAULT_MARGIN = 2.0
 DEFAULT_MIN_INTERVAL = 5
-
-
-@dataclass
-class StaticDetection:
-    """Result of :func:`detect_static`.
-
-    * ``mask`` (N,) bool: sample is in a kept static interval.
-    * ``intervals``: list of ``(start, stop)`` index pairs (stop exclusive) of the static intervals.
-    * ``statistic`` (N, k): moving-window variance of each component (signal units squared).
-    * ``noise_var`` (k,): noise floor variance used; ``threshold`` (k,): variance threshold used.
-    """
-
-    mask: np.ndarray
-    intervals: list[tuple[int, int]]
-    statistic: np.ndarray
-    noise_var: np.ndarray
-    threshold: np.ndarray
 
 
 BLOCK_ROWS = 65536  # moving variances are computed in blocks of this many rows (bounded memory)
@@ -121,13 +105,6 @@ def estimate_noise_var(statistic: np.ndarray, window: int) -> np.ndarray:
     return med / (chi2.median(dof) / dof)
 
 
-def intervals_from_mask(mask: np.ndarray) -> list[tuple[int, int]]:
-    """Runs of True in ``mask`` as ``(start, stop)`` pairs, stop exclusive."""
-    m = np.concatenate([[False], np.asarray(mask, dtype=bool), [False]])
-    edges = np.flatnonzero(np.diff(m.astype(np.int8)))
-    return [(int(a), int(b)) for a, b in zip(edges[0::2], edges[1::2], strict=True)]
-
-
 def _run_lengths(change: np.ndarray) -> np.ndarray:
     """Length of the run each sample belongs to; a run starts where ``change`` is True (``change[0]`` is)."""
     segment = np.cumsum(change) - 1
@@ -152,42 +129,6 @@ def usable_samples(static: np.ndarray, ref_still: np.ndarray, pose: np.ndarray, 
         return usable
     change = np.r_[True, (np.diff(pose) != 0) | (np.diff(usable.astype(np.int8)) != 0)]
     return usable & (_run_lengths(change) >= min_interval)
-
-
-def detect_static(signal: np.ndarray, window: int = DEFAULT_WINDOW, min_interval: int = DEFAULT_MIN_INTERVAL,
-                  false_alarm: float = DEFAULT_FALSE_ALARM, margin: float = DEFAULT_MARGIN,
-                  noise_var: np.ndarray | None = None, groups: np.ndarray | None = None) -> StaticDetection:
-    """Static samples of ``signal`` (N,) or (N, k) (normally Psi, dimensionless).
-
-    ``groups`` (N,) (e.g. run ids) keeps windows and intervals from spanning two runs; the noise
-    floor is then estimated per group unless ``noise_var`` is given. ``min_interval`` is in samples.
-    """
-    x = np.asarray(signal, dtype=float)
-    if x.ndim == 1:
-        x = x[:, None]
-    n, k = x.shape
-    if min_interval < 1:
-        raise ValueError(f"min_interval must be >= 1 sample, got {min_interval}")
-    groups = np.zeros(n, dtype=int) if groups is None else np.asarray(groups)
-    mask = np.zeros(n, dtype=bool)
-    stat = np.full((n, k), np.nan)
-    noise_out = np.zeros(k)
-    thr_out = np.zeros(k)
-    intervals: list[tuple[int, int]] = []
-    for g in np.unique(groups):
-        idx = np.flatnonzero(groups == g)
-        if np.any(np.diff(idx) != 1):
-            raise ValueError("samples of one group must be contiguous")
-        s = moving_variance(x[idx], window)
-        nv = estimate_noise_var(s, window) if noise_var is None else np.broadcast_to(np.asarray(noise_var, float), (k,))
-        thr = variance_threshold(nv, window, false_alarm, margin)
-        kept = long_runs(np.all(s <= thr, axis=1), min_interval)  # NaN compares False -> not static
-        mask[idx] = kept
-        intervals += [(int(idx[a]), int(idx[a] + (b - a))) for a, b in intervals_from_mask(kept)]
-        stat[idx] = s
-        noise_out = np.maximum(noise_out, nv)
-        thr_out = np.maximum(thr_out, thr)
-    return StaticDetection(mask, intervals, stat, noise_out, thr_out)
 
 
 DEFAULT_REFERENCE_TOLERANCE_MPS2 = 1e-3  # m/s^2, standard deviation of the reference over the window when still
@@ -365,6 +306,8 @@ def usable_blocks(blocks: Iterator[Recording], window: int, min_interval: int, t
     ``2 * min_interval`` samples either way, so each block is decided with that much context carried
     from the previous block and taken from the next one (one block of lookahead).
     """
+    if min_interval < 1:
+        raise ValueError(f"min_interval must be >= 1 sample, got {min_interval}")
     ctx = 2 * min_interval + 2
 
     def flags(item):

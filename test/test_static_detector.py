@@ -8,9 +8,7 @@ import pytest
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_calibration.static_detector import (
     calibration_samples,
-    detect_static,
     estimate_noise_var,
-    intervals_from_mask,
     moving_variance,
     variance_threshold,
 )
@@ -57,16 +55,30 @@ def test_noise_floor_estimate_and_false_alarm_rate() -> None:
     np.testing.assert_allclose(rate, 1e-2, rtol=0.2)
 
 
+def _signal_static(x: np.ndarray, window: int, min_interval: int, run_id: np.ndarray | None = None) -> np.ndarray:
+    """The detector's static samples of a signal ``x`` (N, 1 or 3) taken as Psi (counts over a reference of 1000)."""
+    psi = np.repeat(x, 3, axis=1) if x.shape[1] == 1 else x
+    n = len(psi)
+    rec = Recording(np.arange(n) * 0.01, np.full(n, 1000.0), psi * 1000.0, 23.0, np.full((n, 3), np.nan),
+                    np.full(n, -1), run_id)
+    return calibration_samples(rec, window=window, min_interval=min_interval)[1]
+
+
+def _intervals(mask: np.ndarray) -> list[tuple[int, int]]:
+    edges = np.flatnonzero(np.diff(np.r_[0, mask.astype(np.int8), 0]))
+    return list(zip(edges[0::2].tolist(), edges[1::2].tolist(), strict=True))
+
+
 def test_detects_plateaus_and_rejects_ramps() -> None:
     rng = np.random.default_rng(2)
     levels = rng.uniform(-1.0, 1.0, (12, 3))
     x, truth = _staircase(rng, levels, dwell=100, move=20, sigma=2e-3)
-    det = detect_static(x, window=5, min_interval=10)
-    assert not np.any(det.mask & ~truth), "a sample on a ramp was called static"
+    static = _signal_static(x, window=5, min_interval=10)
+    assert not np.any(static & ~truth), "a sample on a ramp was called static"
     # every plateau is found, losing at most a window's width at its ends
-    assert len(det.intervals) == len(levels)
-    assert det.mask.sum() >= truth.sum() - len(levels) * 2 * 5
-    for a, b in det.intervals:
+    assert len(_intervals(static)) == len(levels)
+    assert static.sum() >= truth.sum() - len(levels) * 2 * 5
+    for a, b in _intervals(static):
         assert b - a >= 10 and truth[a:b].all()
 
 
@@ -75,28 +87,22 @@ def test_min_interval_drops_short_still_runs() -> None:
     levels = np.array([[0.0], [1.0], [2.0]])
     x, _ = _staircase(rng, levels, dwell=8, move=1, sigma=1e-3)
     x = np.vstack([x, np.full((200, 1), 2.0) + rng.normal(0, 1e-3, (200, 1))])
-    long_only = detect_static(x, window=3, min_interval=20, noise_var=np.array([1e-6]))
-    assert all(b - a >= 20 for a, b in long_only.intervals)
-    assert not long_only.mask[:10].any()
-    short_ok = detect_static(x, window=3, min_interval=3, noise_var=np.array([1e-6]))
-    assert short_ok.mask[:10].any()
+    long_only = _signal_static(x, window=3, min_interval=20)
+    assert all(b - a >= 20 for a, b in _intervals(long_only))
+    assert not long_only[:10].any()
+    assert _signal_static(x, window=3, min_interval=3)[:10].any()
 
 
-def test_groups_keep_windows_within_a_run() -> None:
+def test_runs_keep_windows_within_a_run() -> None:
     rng = np.random.default_rng(4)
     a = rng.normal(0.0, 1e-3, (100, 1))
     b = 5.0 + rng.normal(0.0, 1e-3, (100, 1))
     x = np.vstack([a, b])
-    plain = detect_static(x, window=5, min_interval=5)
-    assert not plain.mask[98:102].any()  # the jump between files looks like motion
-    grouped = detect_static(x, window=5, min_interval=5, groups=np.repeat([0, 1], 100))
-    assert grouped.mask.sum() > plain.mask.sum()
-    assert (0, 100) in grouped.intervals and (100, 200) in grouped.intervals
-
-
-def test_intervals_from_mask() -> None:
-    assert intervals_from_mask(np.array([1, 1, 0, 0, 1, 0, 1, 1, 1], bool)) == [(0, 2), (4, 5), (6, 9)]
-    assert intervals_from_mask(np.zeros(3, bool)) == []
+    plain = _signal_static(x, window=5, min_interval=5)
+    assert not plain[98:102].any()  # the jump between files looks like motion
+    runs = _signal_static(x, window=5, min_interval=5, run_id=np.repeat([0, 1], 100))
+    assert runs.sum() > plain.sum()
+    assert (0, 100) in _intervals(runs[:100]) and (0, 100) in _intervals(runs[100:])
 
 
 def test_calibration_samples_need_a_still_signal_and_a_still_reference() -> None:
@@ -129,7 +135,7 @@ def test_bad_parameters() -> None:
     with pytest.raises(ValueError, match="false_alarm"):
         variance_threshold(np.ones(1), 5, false_alarm=0.0)
     with pytest.raises(ValueError, match="min_interval"):
-        detect_static(np.zeros((10, 1)), min_interval=0)
+        _signal_static(np.zeros((10, 1)), window=3, min_interval=0)
 
 
 def test_blocked_moving_variance_equals_one_block(monkeypatch: pytest.MonkeyPatch) -> None:
