@@ -105,6 +105,8 @@ def prepare(rec: Recording, degree: int, window: int = DEFAULT_WINDOW, min_inter
     masks = None
     if usable is not None:
         usable = np.asarray(usable, dtype=bool)
+        if usable.shape != (len(rec),):
+            raise ValueError(f"usable must be one flag per sample ({len(rec)}), got shape {usable.shape}")
         ends = np.cumsum([len(r) for r in runs])
         masks = [usable[e - len(r):e] for r, e in zip(runs, ends, strict=True)]
     return prepare_stream(runs, degree, window, min_interval, level_gap_c, chunk, usable=masks)
@@ -128,7 +130,7 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
        go into the exact gap clustering (``thermal_fit.TemperatureClusters``) and the min/max that give the
        temperature levels and the scaling tau = (T - centre)/scale;
     3. sums: the same selection again, now with tau and the level of each sample, into
-       :class:`CellAccumulator`, in chunks of ``chunk`` selected rows exactly as the in-memory path.
+       :class:`CellAccumulator`, in chunks of ``chunk`` selected rows across blocks and runs.
 
     ``usable`` (one (N_i,) bool mask per source): the fit's samples given, no static detection (step 1 skipped).
 
@@ -143,8 +145,8 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
         thresholds.append(thr)
         noise_out, thr_out = np.maximum(noise_out, nv), np.maximum(thr_out, thr)
 
-    def detected(src: SampleBlockSource, i: int):
-        """(block, psi, usable) of the run ``src`` (``i``-th source)."""
+    def detected(src: SampleBlockSource, i: int) -> Iterator[tuple[Recording, np.ndarray, np.ndarray]]:
+        """(block, its Psi, its usable samples) of the run ``src``, the ``i``-th source."""
         if usable is None:
             for blk, psi, use, _static in usable_blocks(src.blocks(BLOCK_ROWS, True), window, min_interval,
                                                         thresholds[i], tolerance_mps2):

@@ -109,6 +109,12 @@ def test_streaming_equals_one_shot_least_squares() -> None:
     np.testing.assert_allclose(model_to_coefficients(cal.M, cal.b), A_ref, rtol=1e-7, atol=1e-9)
 
 
+def test_a_usable_mask_of_another_length_is_refused() -> None:
+    rec = _simulate(*_truth(0, np.random.default_rng(8)), (20.0,), center=20.0, scale=1.0)
+    with pytest.raises(ValueError, match=rf"usable must be one flag per sample \({len(rec)}\), got shape \(3,\)"):
+        prepare(rec, 0, usable=np.ones(3, bool))
+
+
 def test_degree_not_identified_by_levels_is_refused() -> None:
     rng = np.random.default_rng(3)
     M, b = _truth(1, rng)
