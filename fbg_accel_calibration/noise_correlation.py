@@ -19,6 +19,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .stillness_monitor import cut_at_first_nonpositive
+
 if TYPE_CHECKING:
     from fbg_accel_driver.thermal_model import ThermalCalibration
 
@@ -64,11 +66,11 @@ def estimate(segments: list[np.ndarray], dt_s: float, max_lag: int = 100, min_co
     raw /= pairs
     gamma = raw.copy()
     for _ in range(8):  # E[raw_k] ~ gamma_k - var(mean); var(mean) from the current rho (fixed point)
-        rho = _cut(gamma / gamma[:, :1])
+        rho = cut_at_first_nonpositive(gamma / gamma[:, :1])
         mean_len = total / len(segs)
         var_of_mean = gamma[:, 0] / mean_len * (1.0 + 2.0 * (rho[:, 1:] * (1.0 - lags[1:] / mean_len)).sum(axis=1))
         gamma = raw + var_of_mean[:, None]
-    rho = _cut(gamma / gamma[:, :1])
+    rho = cut_at_first_nonpositive(gamma / gamma[:, :1])
     f, tau = np.zeros(3), np.zeros(3)
     for j in range(3):
         use = (lags > 0) & (rho[j] > min_correlation)
@@ -78,16 +80,6 @@ def estimate(segments: list[np.ndarray], dt_s: float, max_lag: int = 100, min_co
                 f[j] = float(min(np.exp(intercept), 1.0))
                 tau[j] = float(-1.0 / slope)
     return NoiseCorrelation(f, tau, len(segs), total)
-
-
-def _cut(rho: np.ndarray) -> np.ndarray:
-    """Each row set to zero from its first non-positive lag on (estimation noise beyond the correlation)."""
-    out = rho.copy()
-    for j in range(out.shape[0]):
-        nonpos = np.flatnonzero(out[j] <= 0.0)
-        if nonpos.size:
-            out[j, nonpos[0]:] = 0.0
-    return out
 
 
 def static_segments(acc_mps2: np.ndarray, usable: np.ndarray, pose_id: np.ndarray, run_id: np.ndarray

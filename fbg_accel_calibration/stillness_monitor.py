@@ -128,10 +128,10 @@ def learn_noise_floor(signal: np.ndarray, max_lag: int, min_correlation: float =
     taper = 1.0 - lags / n
     gamma = raw.copy()
     for _ in range(5):
-        rho = _cut_at_first_nonpositive(gamma / gamma[:, :1])
+        rho = cut_at_first_nonpositive(gamma / gamma[:, :1])
         var_of_mean = gamma[:, 0] / n * (1.0 + 2.0 * (rho[:, 1:] * taper[1:]).sum(axis=1))
         gamma = (raw + var_of_mean[:, None]) / taper
-    rho = _cut_at_first_nonpositive(gamma / gamma[:, :1])
+    rho = cut_at_first_nonpositive(gamma / gamma[:, :1])
     out_lags = np.arange(max(int(max_lag), 2))
     acf = np.zeros((k, out_lags.size))
     for j in range(k):
@@ -145,7 +145,7 @@ def learn_noise_floor(signal: np.ndarray, max_lag: int, min_correlation: float =
     return NoiseFloor(gamma[:, 0], acf, dof)
 
 
-def _cut_at_first_nonpositive(rho: np.ndarray) -> np.ndarray:
+def cut_at_first_nonpositive(rho: np.ndarray) -> np.ndarray:
     """``rho`` (k, L) with each row set to zero from its first non-positive lag on (estimation noise)."""
     out = rho.copy()
     for j in range(out.shape[0]):
