@@ -404,46 +404,15 @@ def write_mcap(src: CsvBlocks, path: str | Path, metadata: dict[str, Any], senso
     record (``metadata`` plus the import report) is written at the end. Returns (messages written, poses,
     the first row's ``t_s`` in s or None for an empty file).
     """
-    from .mcap_io import McapRecordingError, RecordingWriter, pose_events
+    from .mcap_io import RecordingWriter, write_samples
 
     n_poses = 0
     for blk in src.blocks():
         if len(blk):
             n_poses = max(n_poses, int(blk.pose_id.max()) + 1)
     src.check(drop_bad_rows)
-    before: tuple[int, np.ndarray] | None = None  # the last sample's pose and reference
-    prev_stamp = -1
-    seq = 0
-    shift: int | None = None if start_ns is not None else 0
-    first_t_s: float | None = None
     with RecordingWriter(path, None) as w:
-        for blk in src.blocks():
-            stamps = np.round(blk.t_s * 1e9).astype(np.int64)
-            if not len(stamps):
-                continue
-            if first_t_s is None:
-                first_t_s = float(blk.t_s[0])
-            if shift is None:
-                shift = int(start_ns) - int(stamps[0])
-            stamps = stamps + (shift or 0)
-            pose_arr, change = pose_events(blk.pose_id, blk.gref_mps2, before)
-            before = int(pose_arr[-1]), blk.gref_mps2[-1].copy()
-            pose = pose_arr.tolist()
-            for i, stamp in enumerate(stamps.tolist()):
-                if stamp <= prev_stamp:
-                    raise McapRecordingError(f"{src.path}: times {prev_stamp} ns and {stamp} ns are not strictly "
-                                             "increasing at nanosecond resolution")
-                if change[i]:
-                    if pose[i] >= 0:
-                        w.write_reference_gravity(stamp, blk.gref_mps2[i])
-                        w.write_pose(stamp, pose[i], "recording", index=pose[i], count=n_poses, sensor_id=sensor_id)
-                    else:
-                        w.write_pose(stamp, -1, "moving", sensor_id=sensor_id)
-                temp = float(blk.temp_c[i])
-                w.write_raw(stamp, float(blk.ref[i]), blk.xyz[i].tolist(), temperature_c=temp,
-                            temperature_valid=math.isfinite(temp), seq=seq, board_time_s=float(blk.t_s[i]))
-                seq += 1
-                prev_stamp = stamp
+        shift, first_t_s = write_samples(w, src.blocks(), n_poses, sensor_id, start_ns=start_ns, where=f"{src.path}: ")
         w.add_metadata("run", {**metadata, "import": src.report.as_dict(), "g_mps2": src.g_mps2,
-                               "stamp_offset_ns": shift or 0})
+                               "stamp_offset_ns": shift})
         return w.message_count, n_poses, first_t_s

@@ -46,6 +46,7 @@ import re
 import struct
 import sys
 import zlib
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -833,33 +834,59 @@ def pose_events(pose_id: np.ndarray, gref_mps2: np.ndarray,
 
 def write_recording(path: str | Path, rec: Recording, metadata: dict[str, Any] | None = None,
                     t0_ns: int = 0, sensor_id: str = "") -> int:
-    """Write a :class:`Recording` (e.g. from the CSV importer) as a calibration MCAP; returns messages written.
-
-    Stamps are ``t0_ns + t_s * 1e9``. A pose event (``recording`` with its reference gravity, or
-    ``moving`` for pose id -1 or an unknown reference) is written whenever the pose id or the
-    reference of a recorded pose changes (``pose_events``); a sample with a pose id but no reference
-    reads back as pose -1.
-    """
+    """Write a :class:`Recording` (e.g. from the CSV importer) as a calibration MCAP (:func:`write_samples`, stamps
+    ``t0_ns + t_s * 1e9``); returns messages written. Times that do not increase are refused before anything is
+    written."""
     stamps = t0_ns + np.round(rec.t_s * 1e9).astype(np.int64)
     if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
         raise McapRecordingError("sample times must be strictly increasing")
-    pose, change = pose_events(rec.pose_id, rec.gref_mps2)
-    n_poses = int(rec.pose_id.max()) + 1 if len(rec) else 0
-    stamp_list, ref_list, xyz_list = stamps.tolist(), rec.ref.tolist(), rec.xyz.tolist()
-    temp_list, t_list, pose_list = rec.temp_c.tolist(), rec.t_s.tolist(), pose.tolist()
     with RecordingWriter(path, metadata) as w:
-        for i in range(len(rec)):
-            stamp = stamp_list[i]
-            if change[i]:
-                if pose_list[i] >= 0:
-                    w.write_reference_gravity(stamp, rec.gref_mps2[i])
-                    w.write_pose(stamp, pose_list[i], "recording", index=pose_list[i], count=n_poses, sensor_id=sensor_id)
+        write_samples(w, [rec], int(rec.pose_id.max()) + 1 if len(rec) else 0, sensor_id, t0_ns)
+        return w.message_count
+
+
+def write_samples(w: RecordingWriter, blocks: Iterable[Recording], n_poses: int, sensor_id: str = "", t0_ns: int = 0,
+                  start_ns: int | None = None, where: str = "") -> tuple[int, float | None]:
+    """Write the samples of one run, served in ``blocks``, as ``imu/raw`` messages with their pose events: a pose
+    event (``recording`` with its reference gravity, or ``moving`` for pose id -1 or an unknown reference)
+    wherever the pose id or the reference of a recorded pose changes (``pose_events``), so a sample with a pose id
+    but no reference reads back as pose -1. Stamps are ``t0_ns + t_s * 1e9`` ns, or with ``start_ns``
+    ``start_ns`` plus the time since the first sample; ``board_time_s`` keeps ``t_s`` either way; ``seq`` counts
+    the samples. Stamps that do not increase raise :class:`McapRecordingError` (``where``: what to name).
+    Returns (the stamps' offset from ``t_s * 1e9`` in ns, the first sample's ``t_s`` or None if there is none)."""
+    before: tuple[int, np.ndarray] | None = None  # the last sample's pose and reference
+    prev_stamp, seq = -1, 0
+    shift: int | None = None if start_ns is not None else t0_ns
+    first_t_s: float | None = None
+    for blk in blocks:
+        stamps = np.round(blk.t_s * 1e9).astype(np.int64)
+        if not len(stamps):
+            continue
+        if shift is None:
+            shift = int(start_ns) - int(stamps[0])
+        first_t_s = float(blk.t_s[0]) if first_t_s is None else first_t_s
+        stamps += shift
+        step = np.diff(np.r_[prev_stamp, stamps])
+        if np.any(step <= 0):
+            i = int(np.argmax(step <= 0))
+            raise McapRecordingError(f"{where}times {int(stamps[i] - step[i])} ns and {int(stamps[i])} ns are not "
+                                     "strictly increasing at nanosecond resolution")
+        pose, change = pose_events(blk.pose_id, blk.gref_mps2, before)
+        before = int(pose[-1]), blk.gref_mps2[-1].copy()
+        rows = zip(stamps.tolist(), pose.tolist(), change.tolist(), blk.ref.tolist(), blk.xyz.tolist(),
+                   blk.temp_c.tolist(), blk.t_s.tolist(), strict=True)
+        for i, (stamp, p, event, ref, xyz, temp, t) in enumerate(rows):
+            if event:
+                if p >= 0:
+                    w.write_reference_gravity(stamp, blk.gref_mps2[i])
+                    w.write_pose(stamp, p, "recording", index=p, count=n_poses, sensor_id=sensor_id)
                 else:
                     w.write_pose(stamp, -1, "moving", sensor_id=sensor_id)
-            temp = temp_list[i]
-            w.write_raw(stamp, ref_list[i], xyz_list[i], temperature_c=temp, temperature_valid=math.isfinite(temp),
-                        seq=i, board_time_s=t_list[i])
-        return w.message_count
+            w.write_raw(stamp, ref, xyz, temperature_c=temp, temperature_valid=math.isfinite(temp), seq=seq,
+                        board_time_s=t)
+            seq += 1
+        prev_stamp = int(stamps[-1])
+    return shift or 0, first_t_s
 
 
 # ---------------------------------------------------------------------------- streaming reader

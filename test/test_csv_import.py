@@ -128,6 +128,15 @@ def test_cli_import_round_trip_to_mcap(tmp_path: Path, capsys: pytest.CaptureFix
     assert not (tmp_path / "bad.mcap").exists()
 
 
+def test_times_that_collide_at_nanosecond_resolution_are_refused(tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """Strictly increasing in the file, the same stamp once rounded to ns: the writer refuses, nothing is left."""
+    collide = _write(tmp_path, GOOD.replace("0.01,881", "0.0000000001,881"), "ns.csv")
+    assert cli_main(["import", str(collide), "-o", str(tmp_path / "ns.mcap")]) == 2
+    assert "ns.csv: times 0 ns and 0 ns are not strictly increasing at nanosecond resolution" in capsys.readouterr().err
+    assert not (tmp_path / "ns.mcap").exists()
+
+
 def _raw_log_times(path: Path) -> list[int]:
     from mcap.reader import make_reader
 
