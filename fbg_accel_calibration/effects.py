@@ -416,8 +416,8 @@ class ThermalLagEffect(Effect):
         def lagged() -> np.ndarray:
             term = ThermalLag(float(h))
             out = np.array(inp.temp_c, copy=True)
-            for idx in data.runs():
-                out[idx] = term.effective_temperature(inp.temp_c[idx], inp.t_s[idx], {})
+            for idx, steps in zip(data.runs(), _run_steps(data, inp), strict=True):
+                out[idx] = term.effective_temperature(inp.temp_c[idx], inp.t_s[idx], {}, steps)
             return out
 
         # of the recorded temperature, the lag depends on tau alone: once per tau (a search over another effect
@@ -647,9 +647,10 @@ class ThermalHysteresisEffect(Effect):
 
     def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
         out = np.zeros(len(inp.t_s))
-        for idx in data.runs():
+        for idx, steps in zip(data.runs(), _run_steps(data, inp), strict=True):
             st = ThermalHysteresis(np.zeros(3), float(h), self.deadband(float(h))).new_state()
-            out[idx] = ThermalHysteresis.branch(inp.temp_c[idx], inp.t_s[idx], float(h), self.deadband(float(h)), st)
+            out[idx] = ThermalHysteresis.branch(inp.temp_c[idx], inp.t_s[idx], float(h), self.deadband(float(h)), st,
+                                                steps)
         return out[:, None]
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:

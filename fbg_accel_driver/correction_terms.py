@@ -385,13 +385,15 @@ class ThermalLag(_Base):
     def new_state(self) -> dict:
         return {}
 
-    def effective_temperature(self, temp_c: np.ndarray, t_s: np.ndarray, state: dict | None) -> np.ndarray:
-        """Optics temperature (N,) degC from the AHT10 reading; updates ``state``."""
+    def effective_temperature(self, temp_c: np.ndarray, t_s: np.ndarray, state: dict | None,
+                              steps: SampleSteps | None = None) -> np.ndarray:
+        """Optics temperature (N,) degC from the AHT10 reading; updates ``state``. ``steps``: those of ``t_s``
+        (``first_order_lowpass``; the result is the same without them)."""
         temp_c = np.asarray(temp_c, float)
         if self.tau_s > 0:
-            return first_order_lowpass(temp_c, t_s, self.tau_s, state)
+            return first_order_lowpass(temp_c, t_s, self.tau_s, state, steps)
         s = self.rate_smoothing_s
-        lp = first_order_lowpass(temp_c, t_s, s, state)
+        lp = first_order_lowpass(temp_c, t_s, s, state, steps)
         return temp_c + (abs(self.tau_s) / s) * (temp_c - lp)
 
     def contribution(self, cal: BaseModel, inputs: TermInputs, state: dict | None) -> np.ndarray:
@@ -580,24 +582,29 @@ class ThermalHysteresis(_Base):
         return {"lp": {}, "branch": 0.0, "tprev": None, "lpprev": None}
 
     @staticmethod
-    def branch(temp_c: np.ndarray, t_s: np.ndarray, rate_tau_s: float, deadband: float, state: dict) -> np.ndarray:
-        """(N,) branch indicator +1/-1 (0 before the first decision); updates ``state``."""
+    def branch(temp_c: np.ndarray, t_s: np.ndarray, rate_tau_s: float, deadband: float, state: dict,
+               steps: SampleSteps | None = None) -> np.ndarray:
+        """(N,) branch indicator +1/-1 (0 before the first decision); updates ``state``. ``steps``: those of
+        ``t_s`` for the rate filter (``first_order_lowpass``; the result is the same without them)."""
         t_s = np.asarray(t_s, float).reshape(-1)
-        lp = first_order_lowpass(np.asarray(temp_c, float), t_s, rate_tau_s, state["lp"])
+        lp = first_order_lowpass(np.asarray(temp_c, float), t_s, rate_tau_s, state["lp"], steps)
         n = lp.shape[0]
-        good = np.flatnonzero(np.isfinite(lp))
+        finite = np.isfinite(lp)
+        good = None if finite.all() else np.flatnonzero(finite)  # None: every sample (no gather, no scatter)
         decision = np.full(n, np.nan)  # +1 / -1 where the rate decides, NaN where the branch is held
-        if good.size:
-            lp_prev = np.concatenate([[state["lpprev"] if state["lpprev"] is not None else np.nan], lp[good][:-1]])
-            t_prev = np.concatenate([[state["tprev"] if state["tprev"] is not None else np.nan], t_s[good][:-1]])
-            dt = t_s[good] - t_prev
+        if n and (good is None or good.size):
+            lp_g, t_g = (lp, t_s) if good is None else (lp[good], t_s[good])
+            lp_prev = np.concatenate([[state["lpprev"] if state["lpprev"] is not None else np.nan], lp_g[:-1]])
+            t_prev = np.concatenate([[state["tprev"] if state["tprev"] is not None else np.nan], t_g[:-1]])
+            dt = t_g - t_prev
             with np.errstate(invalid="ignore", divide="ignore"):
-                rate = np.where(dt > 0, (lp[good] - lp_prev) / dt, np.nan)
-            d = np.full(good.size, np.nan)
+                rate = np.where(dt > 0, (lp_g - lp_prev) / dt, np.nan)
+            d = decision if good is None else np.full(good.size, np.nan)
             d[rate > deadband] = 1.0
             d[rate < -deadband] = -1.0
-            decision[good] = d
-            state["tprev"], state["lpprev"] = float(t_s[good][-1]), float(lp[good][-1])
+            if good is not None:
+                decision[good] = d
+            state["tprev"], state["lpprev"] = float(t_g[-1]), float(lp_g[-1])
         # forward-fill the last decision (the hysteresis memory), starting from the stored branch
         idx = np.where(np.isfinite(decision), np.arange(n), -1)
         np.maximum.accumulate(idx, out=idx)

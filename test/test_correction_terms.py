@@ -176,6 +176,23 @@ def test_hysteresis_branch_remembers_direction_at_constant_temperature() -> None
     assert s[2000] == -1.0 and s[2900] == -1.0  # cooling, then held
 
 
+def test_hysteresis_branch_and_thermal_lag_are_the_same_with_steps_and_without_a_gather() -> None:
+    # the diagnosis passes the steps of its times and every sample is finite (no gather): the branch, bit for bit,
+    # of the general path (a NaN appended forces it; it cannot change the samples before it)
+    rng = np.random.default_rng(3)
+    t = np.cumsum(np.where(rng.random(5000) < 0.01, 2.0, 1.0))
+    temp = 25 + np.cumsum(rng.normal(0, 0.02, t.size))
+    for tau in (5.0, 60.0):
+        new = ThermalHysteresis(np.zeros(3), tau, 1e-3).new_state
+        plain = ThermalHysteresis.branch(temp, t, tau, 1e-3, new())
+        assert np.array_equal(ThermalHysteresis.branch(temp, t, tau, 1e-3, new(), sample_steps(t)), plain)
+        general = ThermalHysteresis.branch(np.r_[temp, np.nan], np.r_[t, t[-1] + 1], tau, 1e-3, new())
+        assert np.array_equal(general[:-1], plain) and {-1.0, 1.0} <= set(plain.tolist())
+        for lag in (ThermalLag(tau), ThermalLag(-tau)):  # the thermal lag's filter takes the same steps
+            assert np.array_equal(lag.effective_temperature(temp, t, {}, sample_steps(t)),
+                                  lag.effective_temperature(temp, t, {}))
+
+
 # A step of 1e-7 tau (tau 1 s) at which a step 5e-11 longer gives a = 1 - exp(-dt/tau) one rounding step (1e-9 of
 # it) apart: a filter coefficient that changes although the step hardly does (found by trying steps 1e-9 apart).
 _D1 = next(d for d in 1e-7 * (1 + np.arange(1000) * 1e-9)
