@@ -50,7 +50,7 @@ sys.path.insert(0, str(ROOT))
 
 from machine_info import results_doc, write_results  # noqa: E402
 
-from fbg_accel_calibration.diagnose import diagnose  # noqa: E402
+from fbg_accel_calibration.diagnose import SEARCH_ROWS, diagnose  # noqa: E402
 from fbg_accel_calibration.diagnose_report import write_report  # noqa: E402
 from fbg_accel_calibration.mcap_io import read_recording, write_recording  # noqa: E402
 from fbg_accel_calibration.thermal_fit import fit_thermal  # noqa: E402
@@ -134,6 +134,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=3, help="timed repeats of the fit (best is reported)")
     ap.add_argument("--skip-diagnose", action="store_true", help="do not run the diagnosis step")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--search-rows", type=int, default=SEARCH_ROWS,
+                    help=f"fitted samples above which diagnose searches on every k-th one (default {SEARCH_ROWS}, the "
+                         "library's): to measure what a smaller search set saves and what it changes")
     ap.add_argument("--profile-diagnose", action="store_true",
                     help="run the diagnosis under cProfile; its top functions (cumulative and own time) go into the JSON")
     ap.add_argument("--memory-diagnose", action="store_true",
@@ -168,13 +171,14 @@ def main(argv: list[str] | None = None) -> int:
             profiler.enable()
         memory = None
         if args.memory_diagnose:
-            res, memory = memory_at_peak(lambda: diagnose(rec))
+            res, memory = memory_at_peak(lambda: diagnose(rec, search_rows=args.search_rows))
         else:
-            res = diagnose(rec)
+            res = diagnose(rec, search_rows=args.search_rows)
         if profiler is not None:
             profiler.disable()
         sec = time.perf_counter() - t0
-        steps["diagnose"] = {"seconds": sec, "samples_per_s": len(rec) / sec, "degree": res.degree,
+        steps["diagnose"] = {"seconds": sec, "samples_per_s": len(rec) / sec, "search_rows": args.search_rows,
+                             "degree": res.degree,
                              "ranked": [c.name for c in res.ranked][:5], "added": [a[0] for a in res.added],
                              "noise_floor_mps2": [float(v) for v in res.noise_floor], "peak_rss_mib": peak_rss_mib()}
         if profiler is not None:
