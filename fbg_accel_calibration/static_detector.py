@@ -68,24 +68,42 @@ def moving_variance(signal: np.ndarray, window: int) -> np.ndarray:
 
 
 def _moving_variance_block(x: np.ndarray, window: int) -> np.ndarray:
-    n = x.shape[0]
+    n, k = x.shape
     half_lo = (window - 1) // 2
     half_hi = window - 1 - half_lo
     finite = np.isfinite(x)
-    centre = np.nanmean(x, axis=0) if finite.any() else np.zeros(x.shape[1])
-    z = np.where(finite, x - np.nan_to_num(centre), 0.0)
-    c1 = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(z, axis=0)])
-    c2 = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(z * z, axis=0)])
-    cn = np.concatenate([[0], np.cumsum(~np.all(finite, axis=1))])
-    idx = np.arange(n)
-    lo = np.clip(idx - half_lo, 0, n)
-    hi = np.clip(idx + half_hi + 1, 0, n)
-    m = (hi - lo).astype(float)[:, None]
-    s1 = c1[hi] - c1[lo]
-    var = (c2[hi] - c2[lo] - s1 * s1 / m) / np.maximum(m - 1.0, 1.0)
-    var = np.maximum(var, 0.0)
-    var[(cn[hi] - cn[lo]) > 0] = np.nan
-    var[m[:, 0] < 2] = np.nan  # a single sample has no variance
+    every = bool(finite.all())
+    if every:  # the usual block: no NaN to skip (x.mean is nanmean's value then)
+        z = x - x.mean(axis=0)
+    else:
+        centre = np.nanmean(x, axis=0) if finite.any() else np.zeros(k)
+        z = np.where(finite, x - np.nan_to_num(centre), 0.0)
+    c1, c2 = np.zeros((n + 1, k)), np.zeros((n + 1, k))
+    np.cumsum(z, axis=0, out=c1[1:])
+    np.cumsum(z * z, axis=0, out=c2[1:])
+    cn = None if every else np.concatenate([[0], np.cumsum(~np.all(finite, axis=1))])
+
+    def windows(rows: np.ndarray) -> np.ndarray:
+        """The variance at ``rows`` over their windows, truncated at the block's ends."""
+        lo = np.clip(rows - half_lo, 0, n)
+        hi = np.clip(rows + half_hi + 1, 0, n)
+        m = (hi - lo).astype(float)[:, None]
+        s1 = c1[hi] - c1[lo]
+        var = np.maximum((c2[hi] - c2[lo] - s1 * s1 / m) / np.maximum(m - 1.0, 1.0), 0.0)
+        if cn is not None:
+            var[(cn[hi] - cn[lo]) > 0] = np.nan
+        var[m[:, 0] < 2] = np.nan  # a single sample has no variance
+        return var
+
+    if not every or n < window:
+        return windows(np.arange(n))
+    # rows whose window is whole: the same sums by slices, not gathers (the same values, bit for bit)
+    var = np.empty((n, k))
+    s1 = c1[window:] - c1[: n + 1 - window]
+    var[half_lo: n - half_hi] = np.maximum((c2[window:] - c2[: n + 1 - window] - s1 * s1 / float(window))
+                                           / float(window - 1), 0.0)
+    edges = np.r_[np.arange(half_lo), np.arange(n - half_hi, n)]
+    var[edges] = windows(edges)
     return var
 
 
