@@ -313,9 +313,10 @@ def _corrected_reference(data: DiagnosisData, corrections: list[tuple[Effect, fl
     hit = cache.reference(names)
     if hit is None:
         inp = Inputs.of(data)
-        for eff, h in corrections:
+        for eff, h in corrections[:-1]:
             eff.transform(data, inp, h)
-        hit = (inp.gref, inp.valid) if sub is None else (inp.gref[sub], inp.valid[sub])
+        last, h = corrections[-1]  # a correction of the reference alone (build_design): at the rows only
+        hit = last.reference_at(data, inp, h, sub)
         cache.put_reference(names, *hit)
     return hit
 

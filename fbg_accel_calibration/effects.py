@@ -292,6 +292,14 @@ class Effect:
     def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
         """Input corrections: modify ``inp`` in place (counts, temperature, reference alignment)."""
 
+    def reference_at(self, data: DiagnosisData, inp: Inputs, h: float | None,
+                     rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """(reference (n, 3) m/s^2, valid (n,)) after :meth:`transform` at the samples ``rows`` (None: all) of a
+        correction of the reference alone (``reference_only``) that no correction follows: one may work out those
+        rows only (the same values); ``inp`` may be left changed."""
+        self.transform(data, inp, h)
+        return (inp.gref, inp.valid) if rows is None else (inp.gref[rows], inp.valid[rows])
+
     def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray | None:
         """Extra regressors (N, k) computed from the corrected inputs, each with 3 coefficients (one per axis);
         None if none."""
@@ -525,6 +533,21 @@ class ChannelDelayEffect(Effect):
         inp.gref_moved = True
         inp.valid = valid
 
+    def reference_at(self, data: DiagnosisData, inp: Inputs, h: float | None,
+                     rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        # the reference at t - D for the asked samples only: each is interpolated on its own
+        pieces = _rows_by_run(data, rows)
+        if pieces is None or float(h) == 0:
+            return super().reference_at(data, inp, h, rows)
+        g, valid = inp.gref[rows], inp.valid[rows]  # copies (rows are indices)
+        for run, sel, local in pieces:
+            t = data.t_s[run]
+            tq = t[local] - float(h)
+            for j in range(3):
+                g[sel, j] = np.interp(tq, t, data.gref_filled[run, j])
+            valid[sel] &= tq >= t[0]
+        return g, valid
+
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
         # a pure delay is a time-stamp correction, not an acceleration term (see docs/effects.md)
         return [ChainDynamics(np.zeros(4), float(h))]
@@ -550,7 +573,10 @@ class TiaLowpassEffect(Effect):
     def taus(self, h: float) -> np.ndarray:
         return TIA_TAU_S * float(h)
 
-    def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
+    @staticmethod
+    def _expected(data: DiagnosisData, inp: Inputs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(the reference g (N, 3) without gaps, the map P (3, 3) of eq. 25 inverted, the noise-free Psi (N, 3) of
+        g) of :meth:`transform`."""
         # Filter the noise-free reference, not the noisy signal: the sensor shows LPF(Psi_true), so the
         # reference it must match is the one whose expected Psi went through the same filters. Inverting
         # the filter on the counts instead would amplify the (already filtered) noise by ~1/a.
@@ -559,9 +585,11 @@ class TiaLowpassEffect(Effect):
         g = fill_reference_gaps(inp.t_s, inp.gref, data.runs()) if inp.gref_moved else data.gref_filled
         P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
         if inp.gref_moved or inp.counts_changed:
-            psi_hat = g @ P.T + q
-        else:
-            psi_hat = data.once("static_psi_hat", lambda: g @ P.T + q)
+            return g, P, g @ P.T + q
+        return g, P, data.once("static_psi_hat", lambda: g @ P.T + q)
+
+    def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
+        g, P, psi_hat = self._expected(data, inp)
         psi_f = np.empty_like(psi_hat)  # the runs cover every sample
         tau = self.taus(float(h))
         for idx, steps in zip(data.runs(), _run_steps(data, inp), strict=True):
@@ -573,6 +601,24 @@ class TiaLowpassEffect(Effect):
         gref += g
         inp.gref = gref
         inp.valid &= finite_rows(inp.gref)
+
+    def reference_at(self, data: DiagnosisData, inp: Inputs, h: float | None,
+                     rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        # the filters still run over every sample; the reference is then worked out at the asked samples only
+        # (a product row by row: the same values as the rows of the whole product)
+        pieces = _rows_by_run(data, rows)
+        if pieces is None:
+            return super().reference_at(data, inp, h, rows)
+        g, P, psi_hat = self._expected(data, inp)
+        tau = self.taus(float(h))
+        d = np.empty((len(rows), 3))
+        for (run, sel, local), steps in zip(pieces, _run_steps(data, inp), strict=True):
+            for j in range(3):
+                d[sel, j] = first_order_lowpass(psi_hat[run, j], inp.t_s[run], tau[j + 1], {}, steps)[local]
+        d -= psi_hat[rows]
+        gref = d @ np.ascontiguousarray(np.linalg.inv(P).T)
+        gref += g[rows]
+        return gref, inp.valid[rows] & finite_rows(gref)
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
         return [ChainDynamics(self.taus(float(h)), 0.0)]
@@ -603,6 +649,19 @@ def expected_psi_map(data: DiagnosisData, inp: Inputs) -> tuple[np.ndarray, np.n
     except np.linalg.LinAlgError:  # the reference never changes direction: the minimum-norm solution
         coef = np.linalg.lstsq(X, Y, rcond=None)[0]
     return coef[:3].T, coef[3]
+
+
+def _rows_by_run(data: DiagnosisData, rows: np.ndarray | None) -> list[tuple[slice, np.ndarray, np.ndarray]] | None:
+    """For each run (``DiagnosisData.runs``, all contiguous): (its slice, which of ``rows`` fall in it, their
+    positions in it); None when ``rows`` is None or a run is not contiguous (then every sample is worked out)."""
+    runs = data.runs()
+    if rows is None or not all(isinstance(r, slice) for r in runs):
+        return None
+    out = []
+    for run in runs:
+        sel = np.flatnonzero((rows >= run.start) & (rows < run.stop))
+        out.append((run, sel, rows[sel] - run.start))
+    return out
 
 
 def _run_steps(data: DiagnosisData, inp: Inputs) -> list[SampleSteps | None]:
