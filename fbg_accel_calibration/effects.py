@@ -517,32 +517,28 @@ class ChannelDelayEffect(Effect):
         return np.arange(0.0, 12.5, 0.5) * data.dt_s
 
     def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
-        # the sample taken at t shows the table at t - D: compare it with the reference at t - D
-        D = float(h)
-        if D == 0:
-            return
-        g = np.array(inp.gref, copy=True)
-        valid = np.array(inp.valid, copy=True)
-        for idx in data.runs():
-            t = data.t_s[idx]
-            tq = t - D
-            for j in range(3):
-                g[idx, j] = np.interp(tq, t, data.gref_filled[idx, j])
-            valid[idx] &= tq >= t[0]
-        inp.gref = g
-        inp.gref_moved = True
-        inp.valid = valid
+        if float(h) != 0:
+            inp.gref, inp.valid = self._delayed(data, inp, float(h), None, _rows_by_run(data, None))
+            inp.gref_moved = True
 
     def reference_at(self, data: DiagnosisData, inp: Inputs, h: float | None,
                      rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        # the reference at t - D for the asked samples only: each is interpolated on its own
         pieces = _rows_by_run(data, rows)
         if pieces is None or float(h) == 0:
             return super().reference_at(data, inp, h, rows)
-        g, valid = inp.gref[rows], inp.valid[rows]  # copies (rows are indices)
+        return self._delayed(data, inp, float(h), rows, pieces)
+
+    @staticmethod
+    def _delayed(data: DiagnosisData, inp: Inputs, D: float, rows: np.ndarray | None,
+                 pieces: list[tuple[slice | np.ndarray, Any, Any]]) -> tuple[np.ndarray, np.ndarray]:
+        """(reference (n, 3), valid (n,)) at ``rows`` (None: every sample; ``pieces``: ``_rows_by_run``): the
+        sample taken at t shows the table at t - D, so it is compared with the reference at t - D (each sample
+        interpolated on its own)."""
+        g, valid = ((np.array(inp.gref, copy=True), np.array(inp.valid, copy=True)) if rows is None
+                    else (inp.gref[rows], inp.valid[rows]))  # copies either way
         for run, sel, local in pieces:
             t = data.t_s[run]
-            tq = t[local] - float(h)
+            tq = t[local] - D
             for j in range(3):
                 g[sel, j] = np.interp(tq, t, data.gref_filled[run, j])
             valid[sel] &= tq >= t[0]
@@ -573,10 +569,20 @@ class TiaLowpassEffect(Effect):
     def taus(self, h: float) -> np.ndarray:
         return TIA_TAU_S * float(h)
 
-    @staticmethod
-    def _expected(data: DiagnosisData, inp: Inputs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(the reference g (N, 3) without gaps, the map P (3, 3) of eq. 25 inverted, the noise-free Psi (N, 3) of
-        g) of :meth:`transform`."""
+    def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
+        inp.gref, inp.valid = self._corrected(data, inp, float(h), None, _rows_by_run(data, None))
+
+    def reference_at(self, data: DiagnosisData, inp: Inputs, h: float | None,
+                     rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        pieces = _rows_by_run(data, rows)
+        if pieces is None:
+            return super().reference_at(data, inp, h, rows)
+        return self._corrected(data, inp, float(h), rows, pieces)
+
+    def _corrected(self, data: DiagnosisData, inp: Inputs, h: float, rows: np.ndarray | None,
+                   pieces: list[tuple[slice | np.ndarray, Any, Any]]) -> tuple[np.ndarray, np.ndarray]:
+        """(reference (n, 3), valid (n,)) at ``rows`` (None: every sample; ``pieces``: ``_rows_by_run``). The filters
+        run over every sample; the rest only at ``rows`` (a product row by row: the rows of the whole product)."""
         # Filter the noise-free reference, not the noisy signal: the sensor shows LPF(Psi_true), so the
         # reference it must match is the one whose expected Psi went through the same filters. Inverting
         # the filter on the counts instead would amplify the (already filtered) noise by ~1/a.
@@ -585,40 +591,19 @@ class TiaLowpassEffect(Effect):
         g = fill_reference_gaps(inp.t_s, inp.gref, data.runs()) if inp.gref_moved else data.gref_filled
         P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
         if inp.gref_moved or inp.counts_changed:
-            return g, P, g @ P.T + q
-        return g, P, data.once("static_psi_hat", lambda: g @ P.T + q)
-
-    def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
-        g, P, psi_hat = self._expected(data, inp)
-        psi_f = np.empty_like(psi_hat)  # the runs cover every sample
-        tau = self.taus(float(h))
-        for idx, steps in zip(data.runs(), _run_steps(data, inp), strict=True):
-            for j in range(3):
-                psi_f[idx, j] = first_order_lowpass(psi_hat[idx, j], inp.t_s[idx], tau[j + 1], {}, steps)
-        psi_f -= psi_hat
-        # P is 3 x 3: one product, not a solve with N sides (a contiguous right side: numpy's fast product)
-        gref = psi_f @ np.ascontiguousarray(np.linalg.inv(P).T)
-        gref += g
-        inp.gref = gref
-        inp.valid &= finite_rows(inp.gref)
-
-    def reference_at(self, data: DiagnosisData, inp: Inputs, h: float | None,
-                     rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        # the filters still run over every sample; the reference is then worked out at the asked samples only
-        # (a product row by row: the same values as the rows of the whole product)
-        pieces = _rows_by_run(data, rows)
-        if pieces is None:
-            return super().reference_at(data, inp, h, rows)
-        g, P, psi_hat = self._expected(data, inp)
-        tau = self.taus(float(h))
-        d = np.empty((len(rows), 3))
+            psi_hat = g @ P.T + q
+        else:
+            psi_hat = data.once("static_psi_hat", lambda: g @ P.T + q)
+        d = np.empty((len(g) if rows is None else len(rows), 3))
+        tau = self.taus(h)
         for (run, sel, local), steps in zip(pieces, _run_steps(data, inp), strict=True):
             for j in range(3):
                 d[sel, j] = first_order_lowpass(psi_hat[run, j], inp.t_s[run], tau[j + 1], {}, steps)[local]
-        d -= psi_hat[rows]
+        d -= psi_hat if rows is None else psi_hat[rows]
+        # P is 3 x 3: one product, not a solve with N sides (a contiguous right side: numpy's fast product)
         gref = d @ np.ascontiguousarray(np.linalg.inv(P).T)
-        gref += g[rows]
-        return gref, inp.valid[rows] & finite_rows(gref)
+        gref += g if rows is None else g[rows]
+        return gref, (inp.valid if rows is None else inp.valid[rows]) & finite_rows(gref)
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
         return [ChainDynamics(self.taus(float(h)), 0.0)]
@@ -651,11 +636,14 @@ def expected_psi_map(data: DiagnosisData, inp: Inputs) -> tuple[np.ndarray, np.n
     return coef[:3].T, coef[3]
 
 
-def _rows_by_run(data: DiagnosisData, rows: np.ndarray | None) -> list[tuple[slice, np.ndarray, np.ndarray]] | None:
-    """For each run (``DiagnosisData.runs``, all contiguous): (its slice, which of ``rows`` fall in it, their
-    positions in it); None when ``rows`` is None or a run is not contiguous (then every sample is worked out)."""
+def _rows_by_run(data: DiagnosisData, rows: np.ndarray | None) -> list[tuple[slice | np.ndarray, Any, Any]] | None:
+    """For each run (``DiagnosisData.runs``): (its samples, where its part of ``rows`` goes in an array of ``rows``,
+    the positions of that part in the run). ``rows`` None: every sample, (run, run, every position). None when ``rows``
+    are given and a run is not contiguous (then every sample is worked out and the rows taken)."""
     runs = data.runs()
-    if rows is None or not all(isinstance(r, slice) for r in runs):
+    if rows is None:
+        return [(run, run, slice(None)) for run in runs]
+    if not all(isinstance(r, slice) for r in runs):
         return None
     out = []
     for run in runs:
