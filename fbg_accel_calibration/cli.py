@@ -237,6 +237,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
           + " / ".join(f"{v:.4f}" for v in cal.noise_sigma_mps2) + " m/s^2")
     print(f"temperature range {cal.temperature_range_c[0]:.2f} .. {cal.temperature_range_c[1]:.2f} degC; "
           f"{cal.fit['samples_used']} of {cal.fit['samples_total']} samples used")
+    if cal.fit["visits_excluded_clipped"]:
+        print(f"warning: {cal.fit['samples_excluded_clipped']} samples of {cal.fit['visits_excluded_clipped']} visit(s) "
+              "left out: a channel at a rail of the ADC (an axis at 0 or 4095 counts, or the reference at 4095) in "
+              "each", file=sys.stderr)
     print(f"wrote {args.output}")
     return 0
 

@@ -36,6 +36,8 @@ from typing import Any
 
 import numpy as np
 
+from fbg_accel_driver.frame_codec import ADC_MAX
+
 from . import input_validation as iv
 from .recording import Recording
 from .table_geometry import STANDARD_GRAVITY, table_specific_force
@@ -356,8 +358,8 @@ def _parse_row(fields: list[str], header: list[str], col: dict[str, int], rate_h
     for name, value in zip(COUNT_COLUMNS, counts, strict=True):
         if value < 0:
             raise ValueError(f"{name} = {value:g} is negative")
-        if value > iv.ADC_MAX_COUNTS:
-            raise ValueError(f"{name} = {value:g} is beyond the 12-bit ADC range 0 .. {iv.ADC_MAX_COUNTS:g} counts")
+        if value > ADC_MAX:
+            raise ValueError(f"{name} = {value:g} is beyond the 12-bit ADC range 0 .. {ADC_MAX:g} counts")
     if "t_s" in col:
         t = _number(fields[col["t_s"]], "t_s")
     elif "sample" in col:

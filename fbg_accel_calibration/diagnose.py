@@ -94,6 +94,13 @@ def prepare_data(rec: Recording, static: str = "table") -> DiagnosisData:
         raise ValueError(f"static must be one of {SAMPLE_SELECTIONS}, got {static!r}")
     finite = finite_rows(rec.gref_mps2) & np.isfinite(rec.ref) & (rec.ref > 0)
     finite &= finite_rows(rec.xyz) & np.isfinite(rec.temp_c)
+    # visits (contiguous stays at one pose id within a run) with a channel at an ADC rail are left out whole, as
+    # the fit's detector leaves them out (static_detector.clipped_visits): in every selection
+    change = np.r_[True, (np.diff(rec.pose_id) != 0) | (np.diff(rec.run_id) != 0)]
+    seg = np.cumsum(change) - 1
+    clipped = np.bincount(seg, weights=rec.clipped() & (rec.pose_id >= 0)) > 0
+    left_out = clipped[seg] & (rec.pose_id >= 0)
+    finite &= ~left_out
     if static == "all":
         use = finite & (motion_groups(rec.pose_id, rec.run_id) >= 0)
     elif static == "detector":
@@ -101,13 +108,11 @@ def prepare_data(rec: Recording, static: str = "table") -> DiagnosisData:
         use = usable & finite & (rec.pose_id >= 0)
     else:
         finite &= rec.pose_id >= 0
-        # every sample of a pose the table held for at least 5 consecutive samples
-        change = np.r_[True, (np.diff(rec.pose_id) != 0) | (np.diff(rec.run_id) != 0)]
-        seg = np.cumsum(change) - 1
-        use = finite & (np.bincount(seg)[seg] >= 5)
+        use = finite & (np.bincount(seg)[seg] >= 5)  # every sample of a pose the table held for >= 5 samples
     if use.sum() < 20:
         raise ValueError(f"only {int(use.sum())} static samples with a reference: nothing to diagnose")
-    return DiagnosisData(rec.t_s, rec.ref, rec.xyz, rec.temp_c, rec.gref_mps2, rec.pose_id, rec.run_id, use)
+    return DiagnosisData(rec.t_s, rec.ref, rec.xyz, rec.temp_c, rec.gref_mps2, rec.pose_id, rec.run_id, use,
+                         n_clipped_samples=int(left_out.sum()), n_clipped_visits=int(clipped.sum()))
 
 
 # ============================================================================ model specification
@@ -1400,6 +1405,11 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     moving = _moving_residual(data, calibrated)
     del calibrated
     warnings = [detection_limit] if detection_limit else []
+    if data.n_clipped_visits:
+        warnings.append(f"{data.n_clipped_samples} samples of {data.n_clipped_visits} visit(s) left out: a channel "
+                        "clipped at a rail of the ADC (an axis at 0 or 4095 counts, or the reference at 4095) in each; a "
+                        "clipped reading bounds the signal instead of measuring it (lower the source power or the "
+                        "gain if the signal sits at the rail)")
     cond, column_corr = gram_conditioning(cv_f.xtx, cv_f.xsum, cv_f.n_fit, blocks_f)
     for name, c in column_corr.items():
         if c > COLLINEAR_CORR:

@@ -4,7 +4,8 @@ measuring chain's dynamics (the calibration file's ``dynamic`` section) with poi
 Pure numpy/scipy, no ROS (``fbg-accel-calib dynamic`` is the shell). Steps (docs/dynamic_calibration.md):
 
 1. the slide's start on the recording's time base (:func:`excitation_plan.find_slide_start`), the steady
-   part of every segment (:meth:`ExcitationPlan.steady_windows`);
+   part of every segment (:meth:`ExcitationPlan.steady_windows`); a segment with a channel clipped at a rail
+   of the ADC in its steady part is left out with a note;
 2. the reference acceleration from the aux channel (:func:`excitation_plan.reference_acceleration`) and
    the sensor's acceleration from its counts by the **static** calibration (eq. 24 and 28, no chain
    compensation), so what is measured is the whole chain after eq. 28;
@@ -24,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from fbg_accel_driver.chain_compensation import ChainDynamics, first_order_group_delay_s
+from fbg_accel_driver.frame_codec import ADC_MAX
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .chain_model import ChainModel, fit_chain_models
@@ -108,6 +110,14 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
     lost = len(plan.segments) - len(windows)
     if lost:
         notes.append(f"{lost} segment(s) of the plan are not (wholly) in the recording or too short once settled")
+    # a sine whose peaks hit a rail of the ADC reads a smaller amplitude and a shifted phase (Recording.clipped;
+    # the reference transducer on aux is read by the same 12-bit converters)
+    clipped = rec.clipped()[order][ok] | (aux == 0) | (aux >= ADC_MAX)
+    hit = [w for w in windows if clipped[(t >= w[1]) & (t <= w[2])].any()]
+    if hit:
+        windows = [w for w in windows if w not in hit]
+        notes.append(f"segment(s) at {', '.join(f'{w[0]:g} Hz' for w in hit)} left out: a channel clipped at a rail "
+                     "of the ADC during the steady part (lower the slide's amplitude there)")
     if len(windows) < 3:
         raise DynamicCalibrationError(f"only {len(windows)} steady segment(s) in the recording: the chain model needs "
                                       "at least 3 frequencies")

@@ -84,6 +84,8 @@ class DiagnosisData:
     use: np.ndarray
     gref_filled: np.ndarray = field(default=None)  # type: ignore[assignment]
     group: np.ndarray = field(default=None)  # type: ignore[assignment]  # visit label (``visit_ids``)
+    n_clipped_samples: int = 0  # samples at a pose left out with their visit for a clipped channel (``prepare_data``)
+    n_clipped_visits: int = 0  # those visits
 
     _memo: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
     _recent: OrderedDict[tuple, np.ndarray] = field(default_factory=OrderedDict, init=False, repr=False, compare=False)

@@ -25,6 +25,7 @@ from .static_detector import (
     DEFAULT_MIN_INTERVAL,
     DEFAULT_REFERENCE_TOLERANCE_MPS2,
     DEFAULT_WINDOW,
+    clipped_visits,
     streamed_noise_floor,
     usable_blocks,
 )
@@ -53,9 +54,9 @@ class FitData:
 
     ``stats`` are the per-cell sums at degree ``stats.degree`` (lower degrees are sub-blocks); ``level_means_c``
     the temperature levels (degC, ascending), ``t_center_c``/``t_scale_c`` the scaling tau = (T - centre)/scale;
-    the counts are of samples fitted, seen, excluded as moving and excluded as invalid; ``detector`` the static
-    detector's settings and noise floor (variances of Psi). ``levels`` and ``level_map`` label a fitted sample's
-    level (:meth:`level_of`).
+    the counts are of samples fitted, seen, excluded as moving, excluded as invalid and excluded with their visit
+    for a clipped sample (and of those visits); ``detector`` the static detector's settings and noise floor
+    (variances of Psi). ``levels`` and ``level_map`` label a fitted sample's level (:meth:`level_of`).
     """
 
     stats: CellStats
@@ -71,6 +72,8 @@ class FitData:
     levels: TemperatureClusters
     level_map: np.ndarray
     detector: dict[str, Any] = field(default_factory=dict)
+    n_excluded_clipped: int = 0  # samples at a pose of the visits left out for a clipped sample (clipped_visits)
+    n_clipped_visits: int = 0  # those visits
 
     def __len__(self) -> int:
         return self.n_used
@@ -125,6 +128,8 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
        streaming median (:class:`static_detector.ExactMedian`, radix selection on the float bits): one pass to
        histogram (it also collects the pose/reference events), usually one more to collect the
        median's bin; the robust noise-floor estimate of the static detector (``static_detector``'s docstring);
+       a run with a sample at an ADC rail (``Recording.clipped``) gets one pass more, with the poses, to find
+       the visits left out whole (:func:`static_detector.clipped_visits`);
     2. temperatures: the static detector and the interval rules (:func:`static_detector.usable_blocks`, context of
        ``2 min_interval`` samples carried between blocks) select the fit samples; their temperatures
        go into the exact gap clustering (``thermal_fit.TemperatureClusters``) and the min/max that give the
@@ -139,37 +144,49 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
     (chunks of ``chunk`` selected rows across blocks and runs).
     """
     thresholds: list[np.ndarray] = []
+    left_out: list[np.ndarray | None] = []  # per source: the visits with a clipped sample (clipped_visits), or None
     noise_out, thr_out = np.zeros(3), np.zeros(3)
     for src in sources if usable is None else []:
-        nv, thr = streamed_noise_floor(lambda src=src: src.blocks(BLOCK_ROWS, False), window, false_alarm, margin)
+        clipped = [False]
+
+        def first_pass(src: SampleBlockSource = src, clipped: list[bool] = clipped) -> Iterator[Recording]:
+            for blk in src.blocks(BLOCK_ROWS, False):
+                clipped[0] = clipped[0] or bool(blk.clipped().any())
+                yield blk
+
+        nv, thr = streamed_noise_floor(first_pass, window, false_alarm, margin)
         thresholds.append(thr)
         noise_out, thr_out = np.maximum(noise_out, nv), np.maximum(thr_out, thr)
+        # a pass more, with the poses, only for a file that has a clipped sample at all
+        left_out.append(clipped_visits(src.blocks(BLOCK_ROWS, True)) if clipped[0] else None)
 
-    def detected(src: SampleBlockSource, i: int) -> Iterator[tuple[Recording, np.ndarray, np.ndarray]]:
-        """(block, its Psi, its usable samples) of the run ``src``, the ``i``-th source."""
+    def detected(src: SampleBlockSource, i: int) -> Iterator[tuple[Recording, np.ndarray, np.ndarray, np.ndarray]]:
+        """(block, its Psi, its usable samples, its samples left out as clipped) of the run ``src``, the ``i``-th
+        source."""
         if usable is None:
-            for blk, psi, use, _static in usable_blocks(src.blocks(BLOCK_ROWS, True), window, min_interval,
-                                                        thresholds[i], tolerance_mps2):
-                yield blk, psi, use
+            for blk, psi, use, _static, clipped in usable_blocks(src.blocks(BLOCK_ROWS, True), window, min_interval,
+                                                                 thresholds[i], tolerance_mps2, left_out[i]):
+                yield blk, psi, use, clipped
             return
         start = 0
         for blk in src.blocks(BLOCK_ROWS, True):
-            yield blk, normalise(blk.xyz, blk.ref), usable[i][start:start + len(blk)]
+            yield blk, normalise(blk.xyz, blk.ref), usable[i][start:start + len(blk)], np.zeros(len(blk), bool)
             start += len(blk)
 
     def kept_blocks():
         for i, src in enumerate(sources):
-            for blk, psi, use in detected(src, i):
+            for blk, psi, use, clipped in detected(src, i):
                 valid = fit_valid(blk, psi)
-                yield blk, psi, use, valid, use & valid
+                yield blk, psi, use, valid, use & valid, clipped
 
     clusters = TemperatureClusters(level_gap_c)
-    n_total = n_motion = n_other = 0
+    n_total = n_motion = n_other = n_clipped = 0
     t_min, t_max = np.inf, -np.inf
-    for blk, _psi, use, valid, keep in kept_blocks():
+    for blk, _psi, use, valid, keep, clipped in kept_blocks():
         n_total += len(blk)
-        n_motion += int((valid & ~use).sum())
-        n_other += int((~valid).sum())
+        n_clipped += int(clipped.sum())
+        n_motion += int((valid & ~use & ~clipped).sum())
+        n_other += int((~valid & ~clipped).sum())
         t = blk.temp_c[keep]
         clusters.add(t)
         if len(t):
@@ -183,7 +200,7 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
     fill = 0
     level_sum = np.zeros(clusters.n_labels)
     level_count = np.zeros(clusters.n_labels, np.int64)
-    for blk, psi, _use, _valid, keep in kept_blocks():
+    for blk, psi, _use, _valid, keep, _clipped in kept_blocks():
         rows = np.flatnonzero(keep)
         t = blk.temp_c[rows]
         lab = clusters.labels(t)
@@ -210,4 +227,5 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
     detector = ({"window_samples": window, "min_interval_samples": min_interval, "noise_var_psi": noise_out.tolist(),
                  "threshold_var_psi": thr_out.tolist()} if usable is None else {"mask": "given by caller"})
     return FitData(stats, level_sum[present] / level_count[present], (t_min, t_max), center, scale, n_used, n_total,
-                   n_motion, n_other, len(np.unique(stats.pose)), clusters, level_map, detector)
+                   n_motion, n_other, len(np.unique(stats.pose)), clusters, level_map, detector, n_clipped,
+                   sum(len(v) for v in left_out if v is not None))

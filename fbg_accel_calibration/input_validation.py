@@ -19,7 +19,6 @@ from collections.abc import Callable
 
 from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2  # noqa: F401  (iv.FULL_SCALE_MPS2 for the CSV bounds)
 
-ADC_MAX_COUNTS = 4095.0  # ESP32 12-bit ADC (../shared/docs/sensor_facts.md): counts 0..4095
 # Local gravity on the Earth's surface: WGS-84 normal gravity 9.780 m/s^2 (equator) .. 9.832 m/s^2
 # (poles), minus 3.1e-6 m/s^2 per metre of altitude; 9.7 .. 9.9 leaves room for local anomalies.
 GRAVITY_RANGE_MPS2 = (9.7, 9.9)

@@ -152,6 +152,39 @@ def usable_samples(static: np.ndarray, ref_still: np.ndarray, pose: np.ndarray, 
 DEFAULT_REFERENCE_TOLERANCE_MPS2 = 1e-3  # m/s^2, standard deviation of the reference over the window when still
 
 
+class VisitNumbers:
+    """The number (within one run, from 0) of the visit each sample belongs to, block after block: a visit is one
+    contiguous stay at one pose id, and a new one starts where the pose id changes (the stretches between poses,
+    id -1, are numbered too)."""
+
+    def __init__(self) -> None:
+        self.last: int | None = None
+        self.count = 0  # visits numbered so far
+
+    def of(self, pose_id: np.ndarray) -> np.ndarray:
+        """Visit numbers (n,) of the next ``pose_id`` (n,) of the run."""
+        pose = np.asarray(pose_id)
+        if len(pose) == 0:
+            return np.zeros(0, np.int64)
+        change = np.empty(len(pose), bool)
+        change[0] = self.last is None or pose[0] != self.last
+        np.not_equal(pose[1:], pose[:-1], out=change[1:])
+        out = self.count - 1 + np.cumsum(change)
+        self.count, self.last = int(out[-1]) + 1, int(pose[-1])
+        return out
+
+
+def clipped_visits(blocks: Iterator[Recording]) -> np.ndarray:
+    """Numbers (``VisitNumbers``) of the visits at a pose of one run, served block by block, that hold a sample with a
+    channel at a rail of the ADC (``Recording.clipped``). Such a visit is left out whole by the detector: where the
+    signal sits at the rail, the samples of the visit that are not clipped are a censored, biased subset."""
+    numbers, hit = VisitNumbers(), []
+    for blk in blocks:
+        visit = numbers.of(blk.pose_id)
+        hit.append(visit[blk.clipped() & (blk.pose_id >= 0)])
+    return np.unique(np.concatenate(hit)) if hit else np.zeros(0, np.int64)
+
+
 def calibration_samples(rec: Recording, window: int = DEFAULT_WINDOW, min_interval: int = DEFAULT_MIN_INTERVAL,
                         false_alarm: float = DEFAULT_FALSE_ALARM, margin: float = DEFAULT_MARGIN,
                         tolerance_mps2: float = DEFAULT_REFERENCE_TOLERANCE_MPS2) -> tuple[np.ndarray, np.ndarray]:
@@ -162,14 +195,16 @@ def calibration_samples(rec: Recording, window: int = DEFAULT_WINDOW, min_interv
     detector of the module docstring, noise floor estimated per run) AND the reference is constant over the
     window (to ``tolerance_mps2``, standard deviation: the table stands still; a window that includes a reference
     change or a NaN reference is not, e.g. right after a move, when the TIA low-pass (Table 1, ~1 Hz) has not
-    settled) AND, after those, the sample lies in a run of at least ``min_interval`` usable samples of one pose.
-    Each run goes through the streamed detector block by block, as a file does (:func:`usable_blocks`).
+    settled) AND, after those, the sample lies in a run of at least ``min_interval`` usable samples of one pose,
+    in a visit without a clipped sample (:func:`clipped_visits`). Each run goes through the streamed detector
+    block by block, as a file does (:func:`usable_blocks`).
     """
     usable, static = [np.zeros(0, bool)], [np.zeros(0, bool)]
     for run in rec.runs():
         threshold = streamed_noise_floor(lambda run=run: run.blocks(BLOCK_ROWS, False), window, false_alarm, margin)[1]
-        for _blk, _psi, run_usable, run_static in usable_blocks(run.blocks(BLOCK_ROWS), window, min_interval, threshold,
-                                                                tolerance_mps2):
+        left_out = clipped_visits(run.blocks(BLOCK_ROWS)) if run.clipped().any() else None
+        for _blk, _psi, run_usable, run_static, _ in usable_blocks(run.blocks(BLOCK_ROWS), window, min_interval, threshold,
+                                                                   tolerance_mps2, left_out):
             usable.append(run_usable)
             static.append(run_static)
     return np.concatenate(usable), np.concatenate(static)
@@ -316,9 +351,11 @@ def signal_blocks(blocks: Iterator[Recording], window: int, with_reference: bool
 
 
 def usable_blocks(blocks: Iterator[Recording], window: int, min_interval: int, threshold: np.ndarray,
-                   tolerance_mps2: float):
-    """Yield ``(block, psi, usable, static)`` of each block of one run: ``usable`` the fit's samples and ``static``
-    those whose signal is static (:func:`calibration_samples`), as if decided on the whole run at once.
+                   tolerance_mps2: float, left_out: np.ndarray | None = None):
+    """Yield ``(block, psi, usable, static, clipped)`` of each block of one run: ``usable`` the fit's samples and
+    ``static`` those whose signal is static (:func:`calibration_samples`), as if decided on the whole run at once;
+    ``clipped`` the samples at a pose of the visits ``left_out`` (numbers of :class:`VisitNumbers`, from
+    :func:`clipped_visits`; None: none), which are not usable.
 
     The run-length rules (static runs and pose segments of >= ``min_interval`` samples) only look
     ``2 * min_interval`` samples either way, so each block is decided with that much context carried
@@ -341,6 +378,7 @@ def usable_blocks(blocks: Iterator[Recording], window: int, min_interval: int, t
         return
     cur = flags(first)
     tail_f, tail_p = np.zeros((0, 3), bool), np.zeros(0, int)
+    visits = VisitNumbers()
     while cur is not None:
         nxt_item = next(it, None)
         nxt = flags(nxt_item) if nxt_item is not None else None
@@ -351,7 +389,11 @@ def usable_blocks(blocks: Iterator[Recording], window: int, min_interval: int, t
         off = len(tail_f)
         static = long_runs(ff[:, 0], min_interval)
         usable = usable_samples(static, ff[:, 1], pp, ff[:, 2], min_interval)[off:off + len(p)]
-        yield blk, psi, usable, static[off:off + len(p)]
+        clipped = np.zeros(len(p), bool)
+        if left_out is not None and len(left_out):
+            clipped = np.isin(visits.of(p), left_out) & (p >= 0)
+            usable &= ~clipped
+        yield blk, psi, usable, static[off:off + len(p)], clipped
         tail_f, tail_p = np.vstack([tail_f, f[-ctx:]])[-ctx:], np.r_[tail_p, p[-ctx:]][-ctx:]
         cur = nxt
 

@@ -499,6 +499,8 @@ def fit_thermal(rec: Recording | FitData, degree: int, *, sensor_id: str | None 
         "samples_total": data.n_total,
         "samples_excluded_in_motion": data.n_excluded_motion,
         "samples_excluded_invalid": data.n_excluded_other,
+        "samples_excluded_clipped": data.n_excluded_clipped,  # their visit has a channel at an ADC rail
+        "visits_excluded_clipped": data.n_clipped_visits,
         "poses": data.n_poses,
         "temperature_levels_c": [round(float(v), 3) for v in data.level_means_c],
         "rmse_mps2": rmse.tolist(),

@@ -19,6 +19,7 @@ from fbg_accel_calibration.dynamic_csv import DynamicCsvError, read_dynamic_csv,
 from fbg_accel_calibration.excitation_plan import ExcitationPlan
 from fbg_accel_driver.driver_core import RAW_AUX_NAME, RAW_NAMES
 from fbg_accel_driver.driver_main import default_calibration_path
+from fbg_accel_driver.frame_codec import ADC_MAX
 from fbg_accel_driver.thermal_model import ThermalCalibration
 from fbg_accel_sim.dynamic_run import simulate_dynamic_run, simulated_tone_check
 from fbg_accel_sim.sim_config import SimConfig
@@ -114,6 +115,25 @@ def test_runs_it_cannot_use_are_refused_with_the_reason(static_cal, tmp_path):
     bad.write_text("t_s,ref,x,y,z\n0,1,2,3,4\n")
     with pytest.raises(DynamicCsvError, match="missing column"):
         read_dynamic_csv(bad)
+
+
+def test_a_segment_with_a_clipped_reading_is_left_out_with_a_note(static_cal):
+    """A sine whose peaks hit a rail of the ADC reads a smaller amplitude and a shifted phase: the segment
+    that holds a clipped sample (x here, moved up until its peaks clip at 4095) is left out, the rest of the
+    run gives the same points as without it."""
+    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=1)
+    clean = run_dynamic(rec, PLAN, static_cal)
+    f_hit, a, b = clean.windows[3]
+    inside = (rec.t_s >= a) & (rec.t_s <= b)
+    x = rec.xyz[:, 0].copy()
+    x[inside] = np.minimum(x[inside] + (ADC_MAX - x[inside].max()) + 20.0, ADC_MAX)
+    clipped = rec.select(np.ones(len(rec), bool))
+    clipped.xyz[:, 0] = x
+    res = run_dynamic(clipped, PLAN, static_cal)
+    assert f_hit in clean.dynamics.fit["frequencies_hz"] and f_hit not in res.dynamics.fit["frequencies_hz"]
+    assert [n for n in res.notes if "clipped" in n and f"{f_hit:g} Hz" in n]
+    kept = [p.to_dict() for p in clean.points if p.f_hz != f_hit]
+    assert [p.to_dict() for p in res.points] == kept
 
 
 def test_a_ros2_bag_of_imu_raw_with_aux_counts_is_read(tmp_path, static_cal):
