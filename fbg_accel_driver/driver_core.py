@@ -12,9 +12,10 @@ Sample policies (documented in docs/topics.md; each has a counter and a diagnost
   meaningless (eq. 24 divides by the source power), so no acceleration is published for that
   sample (counted in ``reference_low``). The raw record is still published: nothing is lost for
   calibration, and no division by zero ever happens.
-* **ADC saturation** (any of ref/x/y/z at 4095): the sample is published but the variance of the
-  affected axes (all axes if the reference saturated) is raised to ``full_scale_mps2**2``: the
-  value is clipped and only bounded by the full scale (counted in ``adc_saturated``).
+* **ADC saturation** (any of ref/x/y/z at 4095, or an axis at 0): the sample is published but the variance
+  of the affected axes (all axes if the reference saturated) is raised to ``full_scale_mps2**2``: the
+  value is clipped and only bounded by the full scale (counted in ``adc_saturated``). (A reference at 0 is
+  no light: *reference too low* above.)
 * **Temperature invalid** (TEMP_VALID clear, or a reading outside the AHT10's -40..85 degC): the
   last good temperature is used for at most ``temperature_hold_s`` seconds of stamped time
   (diagnostic WARN). After that, or when no good temperature was ever seen, the thermal model
@@ -405,13 +406,15 @@ class DriverCore:
                 for a in range(3):
                     d = base[a] - edge[a]
                     var[a] = var[a] * cfg.out_of_range_variance_factor + d * d
-            if f.ref >= ADC_MAX or f.x >= ADC_MAX or f.y >= ADC_MAX or f.z >= ADC_MAX:
-                # Clipped: the value is only bounded by the full scale (all axes if the reference clipped).
+            if (f.ref >= ADC_MAX or f.x >= ADC_MAX or f.y >= ADC_MAX or f.z >= ADC_MAX
+                    or f.x == 0 or f.y == 0 or f.z == 0):
+                # Clipped (an axis at either rail): the value is only bounded by the full scale (all axes if the
+                # reference clipped).
                 counters.adc_saturated += 1
                 flags.append("adc_saturated")
                 ref_sat = f.ref >= ADC_MAX
                 for a, c in enumerate((f.x, f.y, f.z)):
-                    if ref_sat or c >= ADC_MAX:
+                    if ref_sat or c >= ADC_MAX or c == 0:
                         var[a] = max(var[a], full_var)
             if not all(math.isfinite(v) for v in (*accel, *var)):
                 counters.non_finite_dropped += 1

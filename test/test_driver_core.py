@@ -121,15 +121,17 @@ def test_zero_and_low_reference_are_dropped_never_nan() -> None:
 def test_adc_saturation_inflates_covariance_of_affected_axes() -> None:
     cfg = CoreConfig()
     core = DriverCore(make_cal(), cfg)
-    frames = [frame(0), frame(1, xyz=(ADC_MAX, 1600, 1100)), frame(2, ref=ADC_MAX)]
+    # an axis at either rail (4095 or 0 counts) is clipped; the reference at full scale clips every axis
+    frames = [frame(0), frame(1, xyz=(ADC_MAX, 1600, 1100)), frame(2, ref=ADC_MAX), frame(3, xyz=(1500, 1600, 0))]
     _, imu, _ = feed_frames(core, frames)
-    assert len(imu) == 3 and all_finite(imu)
-    c0, c1, c2 = (np.diag(np.reshape(r.covariance, (3, 3))) for r in imu)
+    assert len(imu) == 4 and all_finite(imu)
+    c0, c1, c2, c3 = (np.diag(np.reshape(r.covariance, (3, 3))) for r in imu)
     fs2 = cfg.full_scale_mps2**2
     assert c1[0] == fs2 and c1[1] == c0[1] and c1[2] == c0[2]
     np.testing.assert_array_equal(c2, [fs2] * 3)
-    assert "adc_saturated" in imu[1].flags and not imu[0].flags
-    assert core.counters.adc_saturated == 2
+    assert c3[2] == fs2 and c3[0] == c0[0] and c3[1] == c0[1]
+    assert "adc_saturated" in imu[1].flags and "adc_saturated" in imu[3].flags and not imu[0].flags
+    assert core.counters.adc_saturated == 3
 
 
 def test_temperature_invalid_is_held_then_dropped() -> None:
