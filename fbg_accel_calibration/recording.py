@@ -60,9 +60,11 @@ class Recording:
     def clipped(self) -> np.ndarray:
         """Samples (N,) with a channel at a rail of the 12-bit ADC (paper 3.5: the ESP32's converters): an axis at 0
         or ``ADC_MAX`` counts, or the reference at ``ADC_MAX``. The reading bounds the signal instead of measuring
-        it. (A reference at 0 is no light, a source dropout: Psi is undefined there, sample by sample. Counts below
-        0 are no reading of the ADC at all: the importers refuse them.)"""
-        return (self.ref >= ADC_MAX) | np.any((self.xyz == 0) | (self.xyz >= ADC_MAX), axis=1)
+        it. A sample without light (the reference at 0: a source dropout, every channel at its dark level) is not
+        one: Psi is undefined there, sample by sample. Counts below 0 are no reading of the ADC at all (the
+        importers refuse them)."""
+        rails = (self.ref >= ADC_MAX) | np.any((self.xyz == 0) | (self.xyz >= ADC_MAX), axis=1)
+        return rails & (self.ref > 0)
 
     def select(self, mask: np.ndarray) -> Recording:
         """A new recording with the samples ``mask`` selects (a boolean mask, indices or a slice; order kept)."""

@@ -111,6 +111,23 @@ def test_a_file_streamed_leaves_out_the_same_visits(saturated: Recording, tmp_pa
     assert streamed.n_clipped_visits == fit_thermal(back, 0).fit["visits_excluded_clipped"] >= 2
 
 
+def test_a_source_dropout_is_not_a_clipped_reading(clean: Recording) -> None:
+    """No light reads 0 on every channel: those samples are invalid one by one (Psi undefined), and the
+    rest of their visit is kept."""
+    visits, posed = _visits(clean), np.flatnonzero(clean.pose_id >= 0)
+    t0 = float(clean.t_s[visits == visits[posed[len(posed) // 2]]][0]) + 1.0  # 1 s into a 3 s visit
+    rec = simulate_recording(_config({"faults.source_dropout.windows": [
+        {"start_s": t0, "duration_s": 0.5, "level": 0.0}]}), seed=SEED)
+    dark = (rec.t_s >= t0) & (rec.t_s < t0 + 0.5) & (rec.ref == 0)
+    assert dark.sum() > 20 and (rec.xyz[dark] == 0).any()
+    assert not rec.clipped().any()
+    cal = fit_thermal(rec, 0)
+    assert cal.fit["visits_excluded_clipped"] == 0
+    visit = _visits(rec) == _visits(rec)[np.flatnonzero(dark)[0]]
+    usable, _ = calibration_samples(rec)
+    assert usable[visit & ~dark].any()  # the visit's samples with light are kept
+
+
 def test_fit_command_warns_of_the_visits_it_left_out(saturated: Recording, tmp_path: Path,
                                                      capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "saturated.mcap"
