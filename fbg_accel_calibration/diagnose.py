@@ -59,6 +59,7 @@ from .effects import (
     memory_key,
     motion_groups,
     separating_measurement,
+    visit_ids,
 )
 from .model_selection import DegreeScores, choose_degree
 from .model_selection import select_degree as calibration_select_degree
@@ -94,12 +95,11 @@ def prepare_data(rec: Recording, static: str = "table") -> DiagnosisData:
         raise ValueError(f"static must be one of {SAMPLE_SELECTIONS}, got {static!r}")
     finite = finite_rows(rec.gref_mps2) & np.isfinite(rec.ref) & (rec.ref > 0)
     finite &= finite_rows(rec.xyz) & np.isfinite(rec.temp_c)
-    # visits (contiguous stays at one pose id within a run) with a channel at an ADC rail are left out whole, as
-    # the fit's detector leaves them out (static_detector.clipped_visits): in every selection
-    change = np.r_[True, (np.diff(rec.pose_id) != 0) | (np.diff(rec.run_id) != 0)]
-    seg = np.cumsum(change) - 1
-    clipped = np.bincount(seg, weights=rec.clipped() & (rec.pose_id >= 0)) > 0
-    left_out = clipped[seg] & (rec.pose_id >= 0)
+    # the visits with a channel at an ADC rail are left out whole, as the fit's detector leaves them out
+    # (static_detector.clipped_visits), whichever the selection
+    visit, posed = visit_ids(rec.pose_id, rec.run_id), rec.pose_id >= 0
+    clipped = np.unique(visit[rec.clipped() & posed])
+    left_out = np.isin(visit, clipped) & posed
     finite &= ~left_out
     if static == "all":
         use = finite & (motion_groups(rec.pose_id, rec.run_id) >= 0)
@@ -108,11 +108,14 @@ def prepare_data(rec: Recording, static: str = "table") -> DiagnosisData:
         use = usable & finite & (rec.pose_id >= 0)
     else:
         finite &= rec.pose_id >= 0
-        use = finite & (np.bincount(seg)[seg] >= 5)  # every sample of a pose the table held for >= 5 samples
+        # every sample of a pose the table held for at least 5 consecutive samples
+        change = np.r_[True, (np.diff(rec.pose_id) != 0) | (np.diff(rec.run_id) != 0)]
+        seg = np.cumsum(change) - 1
+        use = finite & (np.bincount(seg)[seg] >= 5)
     if use.sum() < 20:
         raise ValueError(f"only {int(use.sum())} static samples with a reference: nothing to diagnose")
     return DiagnosisData(rec.t_s, rec.ref, rec.xyz, rec.temp_c, rec.gref_mps2, rec.pose_id, rec.run_id, use,
-                         n_clipped_samples=int(left_out.sum()), n_clipped_visits=int(clipped.sum()))
+                         n_clipped_samples=int(left_out.sum()), n_clipped_visits=len(clipped))
 
 
 # ============================================================================ model specification
