@@ -81,6 +81,17 @@ def test_a_visit_with_a_clipped_sample_is_left_out_whole(clean: Recording, rail:
         assert use[~visit].sum() >= 0.98 * use_clean[~visit].sum(), static
 
 
+def test_visits_across_blocks_are_left_out_as_in_one_block(saturated: Recording, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The visits are numbered block after block (a file is read so): blocks that cut the clipped visits
+    leave out the same samples as one block."""
+    import fbg_accel_calibration.static_detector as sd
+
+    whole = calibration_samples(saturated)[0]
+    monkeypatch.setattr(sd, "BLOCK_ROWS", 97)  # cuts most visits (a visit is 300 samples)
+    assert np.array_equal(calibration_samples(saturated)[0], whole)
+    assert not whole[saturated.clipped()].any()
+
+
 def test_a_saturation_window_leaves_the_fit_as_without_it(clean: Recording, saturated: Recording) -> None:
     assert saturated.clipped().sum() > 0 and not clean.clipped().any()
     base, cal = fit_thermal(clean, 0), fit_thermal(saturated, 0)
