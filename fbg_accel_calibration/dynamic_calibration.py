@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from fbg_accel_driver.chain_compensation import ChainDynamics, first_order_group_delay_s
-from fbg_accel_driver.frame_codec import ADC_MAX
+from fbg_accel_driver.frame_codec import at_adc_rail
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .chain_model import ChainModel, fit_chain_models
@@ -112,7 +112,7 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
         notes.append(f"{lost} segment(s) of the plan are not (wholly) in the recording or too short once settled")
     # a sine whose peaks hit a rail of the ADC reads a smaller amplitude and a shifted phase (Recording.clipped;
     # the reference transducer on aux is read by the same 12-bit converters)
-    clipped = rec.clipped()[order][ok] | (aux == 0) | (aux >= ADC_MAX)
+    clipped = rec.clipped()[order][ok] | at_adc_rail(aux)
     hit = [w for w in windows if clipped[(t >= w[1]) & (t <= w[2])].any()]
     if hit:
         windows = [w for w in windows if w not in hit]

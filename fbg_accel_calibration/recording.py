@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from fbg_accel_driver.frame_codec import ADC_MAX
+from fbg_accel_driver.frame_codec import ADC_MAX, at_adc_rail
 
 
 @dataclass
@@ -63,7 +63,7 @@ class Recording:
         it. A sample without light (the reference at 0: a source dropout, every channel at its dark level) is not
         one: Psi is undefined there, sample by sample. Counts below 0 are no reading of the ADC at all (the
         importers refuse them)."""
-        rails = (self.ref >= ADC_MAX) | np.any((self.xyz == 0) | (self.xyz >= ADC_MAX), axis=1)
+        rails = (self.ref >= ADC_MAX) | np.any(at_adc_rail(self.xyz), axis=1)
         return rails & (self.ref > 0)
 
     def select(self, mask: np.ndarray) -> Recording:

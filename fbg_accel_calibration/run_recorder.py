@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from fbg_accel_driver.frame_codec import SEQ_MODULO
+from fbg_accel_driver.frame_codec import ADC_MAX, SEQ_MODULO, at_adc_rail
 
 from .mcap_io import RecordingWriter
 from .pose_plan import PosePlan
@@ -131,6 +131,7 @@ class RunCounters:
     repeated: int = 0  # seq equal to or just behind the previous one
     invalid_reference: int = 0  # ref < 1 count: Psi undefined, the sample is written but not judged still
     stamps_not_increasing: int = 0
+    clipped: int = 0  # samples of a pose with a channel at a rail of the ADC: the fit leaves their visit out
 
 
 @dataclass
@@ -170,6 +171,7 @@ class RunRecorder:
         self._pose_sum = np.zeros(3)
         self._pose_n = 0
         self._depart_run = 0
+        self._clipped_pose = -1  # the last pose warned of a clipped reading
 
     # ------------------------------------------------------------------ inputs
     def on_raw(self, s: RawSample) -> int:
@@ -206,6 +208,13 @@ class RunRecorder:
             still = self.monitor.update(psi)
             pose_id = self.sequencer.step(t_s, still, self._departed(psi))
             self._track_pose_level(pose_id, psi)
+        if pose_id >= 0 and s.ref >= 1 and (s.ref >= ADC_MAX or at_adc_rail(s.x) or at_adc_rail(s.y) or at_adc_rail(s.z)):
+            c.clipped += 1
+            if self._clipped_pose != pose_id:  # said at once, while the pose can still be repeated
+                self._clipped_pose = pose_id
+                self._say("warn", f"pose {pose_id}: a channel clipped at a rail of the ADC (an axis at 0 or {ADC_MAX} "
+                                  f"counts, or the reference at {ADC_MAX}): the fit leaves this visit out; lower the "
+                                  "source power or the gain and repeat the pose")
         self._write_pose_event(s.stamp_ns, pose_id)
         self.writer.write_raw(s.stamp_ns, s.ref, (s.x, s.y, s.z), temperature_c=temp,
                               temperature_valid=bool(s.temperature_valid), status=int(s.status), seq=int(s.seq),
@@ -267,6 +276,7 @@ class RunRecorder:
             "repeated_messages": c.repeated,
             "invalid_reference": c.invalid_reference,
             "stamps_not_increasing": c.stamps_not_increasing,
+            "clipped_samples": c.clipped,
             "board_rate_hz": self.rate_hz,
             "detector_noise_std_psi": [float(v) for v in self.noise_std],
             "temperature_range_c": [lo, hi] if math.isfinite(lo) else [],

@@ -56,7 +56,7 @@ from .chain_compensation import MODES as CHAIN_MODES
 from .chain_compensation import ChannelEqualiser
 from .clock_sync import ClockSync, ClockSyncConfig
 from .correction_terms import TiaInverseFilter
-from .frame_codec import ADC_MAX, Frame
+from .frame_codec import ADC_MAX, Frame, at_adc_rail
 from .noise_model import mean_variance_factor
 from .sensor_constants import STANDARD_GRAVITY
 from .stream_decoder import StreamDecoder
@@ -406,15 +406,13 @@ class DriverCore:
                 for a in range(3):
                     d = base[a] - edge[a]
                     var[a] = var[a] * cfg.out_of_range_variance_factor + d * d
-            if (f.ref >= ADC_MAX or f.x >= ADC_MAX or f.y >= ADC_MAX or f.z >= ADC_MAX
-                    or f.x == 0 or f.y == 0 or f.z == 0):
-                # Clipped (an axis at either rail): the value is only bounded by the full scale (all axes if the
-                # reference clipped).
+            if f.ref >= ADC_MAX or at_adc_rail(f.x) or at_adc_rail(f.y) or at_adc_rail(f.z):
+                # Clipped: the value is only bounded by the full scale (all axes if the reference clipped).
                 counters.adc_saturated += 1
                 flags.append("adc_saturated")
                 ref_sat = f.ref >= ADC_MAX
                 for a, c in enumerate((f.x, f.y, f.z)):
-                    if ref_sat or c >= ADC_MAX or c == 0:
+                    if ref_sat or at_adc_rail(c):
                         var[a] = max(var[a], full_var)
             if not all(math.isfinite(v) for v in (*accel, *var)):
                 counters.non_finite_dropped += 1

@@ -36,6 +36,7 @@ import math
 import struct
 from dataclasses import dataclass
 from enum import IntFlag
+from typing import Any
 
 SYNC = b"\xa5\x5a"
 PROTOCOL_VERSION = 1  # version of the boards in the field, and what ``encode_frame`` writes for a frame without aux
@@ -54,6 +55,13 @@ FRAME_SIZE_V2 = HEADER_SIZE + BODY_LEN_V2 + CRC_SIZE  # 29
 BODY_LEN_BY_VERSION = {PROTOCOL_VERSION: BODY_LEN_V1, PROTOCOL_VERSION_V2: BODY_LEN_V2}
 ADC_MAX = 4095  # 12-bit full scale
 SEQ_MODULO = 1 << 16
+
+
+def at_adc_rail(counts: Any) -> Any:
+    """True where a channel reads a rail of the 12-bit ADC, 0 or ``ADC_MAX`` counts (a number or an array): the
+    reading is clipped, a bound of the signal and not a measurement of it. (The reference at 0 is no light, not a
+    clipped signal: for it only ``>= ADC_MAX`` counts.)"""
+    return (counts == 0) | (counts >= ADC_MAX)
 
 
 class Status(IntFlag):

@@ -12,6 +12,7 @@ from fbg_accel_calibration.pose_plan import PosePlan
 from fbg_accel_calibration.pose_sequencer import Mode, Phase
 from fbg_accel_calibration.run_recorder import DetectorSettings, RawSample, RunRecorder, learning_shift
 from fbg_accel_calibration.table_geometry import table_specific_force
+from fbg_accel_driver.frame_codec import ADC_MAX
 
 RATE = 100.0
 M = np.diag([81.6, 77.7, 107.7])
@@ -154,6 +155,24 @@ def test_invalid_reference_is_recorded_but_never_labelled(tmp_path):
     rec.close("test")
     r, _ = read_file(tmp_path / "run.mcap")
     assert len(r) == len(out) and np.all(r.ref[250:260] == 0)
+
+
+def test_a_clipped_reading_in_a_pose_is_said_at_once_and_counted(tmp_path):
+    """The fit leaves out a visit with a clipped reading: the operator hears of it while the pose can be
+    repeated, once per pose."""
+    plan = _plan()
+    rec = _recorder(tmp_path, plan)
+    labels, said = [], []
+    for s, true_pose in _samples(plan):
+        if true_pose == 1:  # at the second pose x sits at full scale
+            s = RawSample(**{**s.__dict__, "x": float(ADC_MAX)})
+        labels.append(rec.on_raw(s))
+        said += rec.pop_messages()
+    clipped = [m for m in said if "clipped" in m[1]]
+    assert len(clipped) == 1 and clipped[0][0] == "warn" and clipped[0][1].startswith("pose 1:")
+    n = rec.counters.clipped
+    assert n == labels.count(1) > 0  # every labelled sample of pose 1, none of the others
+    assert rec.close("test")["clipped_samples"] == n
 
 
 def test_detector_settings_are_validated():
