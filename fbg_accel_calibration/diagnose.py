@@ -96,11 +96,11 @@ def prepare_data(rec: Recording, static: str = "table") -> DiagnosisData:
     finite = finite_rows(rec.gref_mps2) & np.isfinite(rec.ref) & (rec.ref > 0)
     finite &= finite_rows(rec.xyz) & np.isfinite(rec.temp_c)
     # the visits with a channel at an ADC rail are left out whole, as the fit's detector leaves them out
-    # (static_detector.clipped_visits), whichever the selection
-    visit, posed = visit_ids(rec.pose_id, rec.run_id), rec.pose_id >= 0
-    clipped = np.unique(visit[rec.clipped() & posed])
+    # (static_detector.clipped_visits), whichever the selection; and so is a clipped sample taken in motion
+    visit, posed, at_rail = visit_ids(rec.pose_id, rec.run_id), rec.pose_id >= 0, rec.clipped()
+    clipped = np.unique(visit[at_rail & posed])
     left_out = np.isin(visit, clipped) & posed
-    finite &= ~left_out
+    finite &= ~(left_out | at_rail)
     if static == "all":
         use = finite & (motion_groups(rec.pose_id, rec.run_id) >= 0)
     elif static == "detector":

@@ -149,6 +149,13 @@ def test_fit_command_warns_of_the_visits_it_left_out(saturated: Recording, tmp_p
             "left out") in capsys.readouterr().err
 
 
+def test_no_clipped_sample_is_judged_whichever_the_selection(saturated: Recording) -> None:
+    clipped = saturated.clipped()
+    assert (clipped & (saturated.pose_id < 0)).any()  # the window reaches into a move
+    for static in SAMPLE_SELECTIONS:  # "all" judges samples taken while the table moves too
+        assert not prepare_data(saturated, static).use[clipped].any(), static
+
+
 def test_diagnose_adds_nothing_for_a_saturation_window_and_says_what_it_left_out(saturated: Recording) -> None:
     res = diagnose(saturated)
     assert res.added == [], [(c.name, round(c.rel_gain, 3), c.p_value) for c in res.ranked]
