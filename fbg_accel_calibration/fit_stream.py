@@ -177,12 +177,12 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
         for i, src in enumerate(sources):
             for blk, psi, use, clipped in detected(src, i):
                 valid = fit_valid(blk, psi)
-                yield blk, psi, use, valid, use & valid, clipped
+                yield i, blk, psi, use, valid, use & valid, clipped
 
     clusters = TemperatureClusters(level_gap_c)
     n_total = n_motion = n_other = n_clipped = 0
     t_min, t_max = np.inf, -np.inf
-    for blk, _psi, use, valid, keep, clipped in kept_blocks():
+    for _i, blk, _psi, use, valid, keep, clipped in kept_blocks():
         n_total += len(blk)
         n_clipped += int(clipped.sum())
         n_motion += int((valid & ~use & ~clipped).sum())
@@ -196,11 +196,11 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
 
     acc = CellAccumulator(degree, chunk)
     buf_psi, buf_tau, buf_g = np.empty((chunk, 3)), np.empty(chunk), np.empty((chunk, 3))
-    buf_pose, buf_level = np.empty(chunk, np.int64), np.empty(chunk, np.int64)
+    buf_pose, buf_level, buf_run = np.empty(chunk, np.int64), np.empty(chunk, np.int64), np.empty(chunk, np.int64)
     fill = 0
     level_sum = np.zeros(clusters.n_labels)
     level_count = np.zeros(clusters.n_labels, np.int64)
-    for blk, psi, _use, _valid, keep, _clipped in kept_blocks():
+    for i, blk, psi, _use, _valid, keep, _clipped in kept_blocks():
         rows = np.flatnonzero(keep)
         t = blk.temp_c[rows]
         lab = clusters.labels(t)
@@ -212,13 +212,14 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
             take = min(chunk - fill, len(rows) - start)
             sl, dst = slice(start, start + take), slice(fill, fill + take)
             buf_psi[dst], buf_tau[dst], buf_g[dst], buf_pose[dst], buf_level[dst] = ps[sl], tau[sl], g[sl], pz[sl], lab[sl]
+            buf_run[dst] = i  # a cell is one run's (CellStats)
             fill += take
             start += take
             if fill == chunk:
-                acc.add(buf_psi, buf_tau, buf_g, buf_pose, buf_level)
+                acc.add(buf_psi, buf_tau, buf_g, buf_pose, buf_level, buf_run)
                 fill = 0
     if fill:
-        acc.add(buf_psi[:fill], buf_tau[:fill], buf_g[:fill], buf_pose[:fill], buf_level[:fill])
+        acc.add(buf_psi[:fill], buf_tau[:fill], buf_g[:fill], buf_pose[:fill], buf_level[:fill], buf_run[:fill])
     present = np.flatnonzero(level_count)
     level_map = np.full(max(clusters.n_labels, 1), -1, np.int64)
     level_map[present] = np.arange(len(present))

@@ -192,10 +192,13 @@ def temperature_levels(temp_c: np.ndarray, gap_c: float = DEFAULT_LEVEL_GAP_C,
 
 @dataclass
 class CellStats:
-    """Normal-equation sums per cell (pose x temperature level) for the maximum degree.
+    """Normal-equation sums per cell (pose x temperature level x run) for the maximum degree.
 
     ``xtx`` (C, p, p), ``xtg`` (C, p, 3), ``gtg`` (C, 3), ``xsum`` (C, p), ``gsum`` (C, 3),
-    ``count`` (C,), with ``p = 4(degree+1)``; ``pose`` (C,) and ``level`` (C,) label the cells.
+    ``count`` (C,), with ``p = 4(degree+1)``; ``pose`` (C,), ``level`` (C,) and ``run`` (C,) label the cells.
+    A pose id names an orientation within its run only (two runs of other plans may give one id to two
+    orientations), so a cell is one run's: the scatter within a cell is the noise, not the difference
+    between orientations or between runs.
     """
 
     degree: int
@@ -207,6 +210,7 @@ class CellStats:
     xsum: np.ndarray
     gsum: np.ndarray
     count: np.ndarray
+    run: np.ndarray
 
     def select(self, cells: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """Summed (XtX, XtG, GtG, n) over boolean ``cells`` for a degree <= self.degree."""
@@ -245,8 +249,8 @@ class CellAccumulator:
         self.degree = degree
         self.p = n_params(degree)
         self._buffer = np.empty((chunk, self.p))
-        self._index: dict[tuple[int, int], int] = {}
-        self._keys: list[tuple[int, int]] = []
+        self._index: dict[tuple[int, int], int] = {}  # (run, pose and level key) -> cell
+        self._keys: list[tuple[int, int, int]] = []  # (pose, level, run) of each cell
         self._xtx: list[np.ndarray] = []
         self._xtg: list[np.ndarray] = []
         self._gtg: list[np.ndarray] = []
@@ -254,11 +258,11 @@ class CellAccumulator:
         self._gsum: list[np.ndarray] = []
         self._count: list[float] = []
 
-    def _cell(self, key: int) -> int:
-        c = self._index.get(key)
+    def _cell(self, run: int, key: int) -> int:
+        c = self._index.get((run, key))
         if c is None:
-            c = self._index[key] = len(self._keys)
-            self._keys.append((key >> 32, (key & 0xFFFFFFFF) - _LEVEL_OFFSET))
+            c = self._index[(run, key)] = len(self._keys)
+            self._keys.append((key >> 32, (key & 0xFFFFFFFF) - _LEVEL_OFFSET, run))
             self._xtx.append(np.zeros((self.p, self.p)))
             self._xtg.append(np.zeros((self.p, 3)))
             self._gtg.append(np.zeros(3))
@@ -267,8 +271,10 @@ class CellAccumulator:
             self._count.append(0.0)
         return c
 
-    def add(self, psi: np.ndarray, tau: np.ndarray, gref: np.ndarray, pose: np.ndarray, level: np.ndarray) -> None:
-        """Add one chunk (at most ``chunk`` rows): Psi (n, 3), tau (n,), reference (n, 3) m/s^2, pose, level."""
+    def add(self, psi: np.ndarray, tau: np.ndarray, gref: np.ndarray, pose: np.ndarray, level: np.ndarray,
+            run: np.ndarray | None = None) -> None:
+        """Add one chunk (at most ``chunk`` rows): Psi (n, 3), tau (n,), reference (n, 3) m/s^2, pose, level and
+        run (None: one run) of each row; a run's rows are together."""
         if len(tau) == 0:
             return
         X = design_matrix(psi, tau, self.degree, out=self._buffer)
@@ -278,15 +284,19 @@ class CellAccumulator:
         if level.min() < -_LEVEL_OFFSET or level.max() >= _LEVEL_OFFSET:
             raise ValueError(f"temperature level labels must lie in [-{_LEVEL_OFFSET}, {_LEVEL_OFFSET})")
         key = (pose << 32) + (level + _LEVEL_OFFSET)
-        change = np.flatnonzero(key[1:] != key[:-1]) + 1
-        if len(change) < len(key) // 64:  # samples come pose by pose: contiguous slices, no copy
-            bounds = np.r_[0, change, len(key)]
-            segments = [(self._cell(int(key[a])), slice(a, b)) for a, b in itertools.pairwise(bounds)]
-        else:  # interleaved cells: group by sorting
-            order = np.argsort(key, kind="stable")
-            ks = key[order]
-            bounds = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1], True])
-            segments = [(self._cell(int(ks[a])), order[a:b]) for a, b in itertools.pairwise(bounds)]
+        runs = [(0, 0, len(key))] if run is None else _runs_of(np.asarray(run, np.int64))
+        segments: list[tuple[int, slice | np.ndarray]] = []
+        for r, lo, hi in runs:
+            k = key[lo:hi]
+            change = np.flatnonzero(k[1:] != k[:-1]) + 1
+            if len(change) < len(k) // 64:  # samples come pose by pose: contiguous slices, no copy
+                bounds = np.r_[0, change, len(k)] + lo
+                segments += [(self._cell(r, int(key[a])), slice(a, b)) for a, b in itertools.pairwise(bounds)]
+            else:  # interleaved cells: group by sorting
+                order = np.argsort(k, kind="stable") + lo
+                ks = key[order]
+                bounds = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1], True])
+                segments += [(self._cell(r, int(ks[a])), order[a:b]) for a, b in itertools.pairwise(bounds)]
         for c, rows in segments:
             Xc, Gc = X[rows], G[rows]
             self._xtx[c] += Xc.T @ Xc
@@ -297,19 +307,25 @@ class CellAccumulator:
             self._count[c] += len(Gc)
 
     def finish(self, level_map: np.ndarray | None = None) -> CellStats:
-        """The sums as :class:`CellStats`, cells ordered by (pose, level); ``level_map`` relabels levels."""
+        """The sums as :class:`CellStats`, cells ordered by (pose, level, run); ``level_map`` relabels levels."""
         p = self.p
         if not self._keys:
             z = np.zeros(0, np.int64)
             return CellStats(self.degree, z, z.copy(), np.zeros((0, p, p)), np.zeros((0, p, 3)), np.zeros((0, 3)),
-                             np.zeros((0, p)), np.zeros((0, 3)), np.zeros(0))
+                             np.zeros((0, p)), np.zeros((0, 3)), np.zeros(0), z.copy())
         keys = np.asarray(self._keys, dtype=np.int64)
         if level_map is not None:
             keys[:, 1] = level_map[keys[:, 1]]
-        order = np.lexsort((keys[:, 1], keys[:, 0]))
+        order = np.lexsort((keys[:, 2], keys[:, 1], keys[:, 0]))
         return CellStats(self.degree, keys[order, 0], keys[order, 1], np.asarray(self._xtx)[order],
                          np.asarray(self._xtg)[order], np.asarray(self._gtg)[order], np.asarray(self._xsum)[order],
-                         np.asarray(self._gsum)[order], np.asarray(self._count)[order])
+                         np.asarray(self._gsum)[order], np.asarray(self._count)[order], keys[order, 2])
+
+
+def _runs_of(run: np.ndarray) -> list[tuple[int, int, int]]:
+    """(run, first row, end row) of each stretch of one run in ``run`` (n,)."""
+    cuts = np.r_[0, np.flatnonzero(run[1:] != run[:-1]) + 1, len(run)]
+    return [(int(run[a]), int(a), int(b)) for a, b in itertools.pairwise(cuts)]
 
 
 def accumulate_cells(psi: np.ndarray, tau: np.ndarray, gref: np.ndarray, pose: np.ndarray, level: np.ndarray,

@@ -235,3 +235,29 @@ def test_static_detector_keeps_motion_out_of_the_fit() -> None:
     assert good.fit["samples_excluded_in_motion"] >= 6 * 11
     assert np.abs(good.M - M).max() < 0.05 and np.abs(good.b - b).max() < 0.05
     assert np.max(good.fit["rmse_mps2"]) < 0.3 * np.min(naive.fit["rmse_mps2"])
+
+
+def test_runs_whose_pose_ids_name_other_orientations_keep_the_noise_floor(tmp_path) -> None:
+    """A pose id names an orientation within its run (its plan) only: two runs of different plans at one
+    temperature share ids for other orientations. A cell is one pose at one level *of one run*, so the
+    within-pose floor that the driver publishes as the noise covariance stays that of each run (pooling
+    the two orientations behind one id inflated it about 25-fold); fit and model agree with each run's."""
+    from test_diagnose_sim import _config
+
+    from fbg_accel_calibration.fit_stream import prepare_stream
+    from fbg_accel_calibration.mcap_io import McapSampleStream, write_recording
+    from fbg_accel_sim.board_physics import simulate_recording
+
+    a = simulate_recording(_config({}), seed=11)  # 60-degree grid
+    b = simulate_recording(_config({"scenario.poses.grid.theta_step_deg": 45.0,
+                                    "scenario.poses.grid.psi_step_deg": 45.0}), seed=12)
+    assert not np.allclose(a.gref_mps2[a.pose_id == 10][0], b.gref_mps2[b.pose_id == 10][0])  # id 10: two orientations
+    floor_a, floor_b = fit_thermal(a, 0).noise_sigma_mps2, fit_thermal(b, 0).noise_sigma_mps2
+    both = fit_thermal(Recording.concatenate([a, b]), 0)
+    assert np.all(both.noise_sigma_mps2 <= 1.05 * np.maximum(floor_a, floor_b)), both.noise_sigma_mps2
+    assert np.all(both.noise_sigma_mps2 >= 0.95 * np.minimum(floor_a, floor_b)), both.noise_sigma_mps2
+    # the same cells when the runs are two files, streamed
+    write_recording(tmp_path / "a.mcap", a)
+    write_recording(tmp_path / "b.mcap", b)
+    streamed = prepare_stream([McapSampleStream(tmp_path / "a.mcap"), McapSampleStream(tmp_path / "b.mcap")], 0)
+    assert len(streamed.stats.count) == len(np.unique(a.pose_id[a.pose_id >= 0])) + len(np.unique(b.pose_id[b.pose_id >= 0]))
