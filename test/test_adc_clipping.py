@@ -3,11 +3,11 @@
 A clipped reading bounds the signal instead of measuring it: a calibration fit that takes it as a
 value is pulled by the difference (a 6 s saturation window on x took the x residual of the fit far above
 the noise floor, and ``diagnose`` added a spectral non-linearity to absorb it). Where the signal sits
-near the rail, the samples of the visit that are not clipped are a
-censored, biased subset. So a visit (one contiguous stay at one pose) with any clipped sample is left
-out whole, by the static detector (``fit``, degree selection, reports) and by ``diagnose``, and both
-say how many samples and visits went. The simulator's ``faults.adc_saturation`` windows force a
-channel to full scale (paper 3.5: the ESP32's 12-bit converters).
+near the rail, the samples of the visit that are not clipped are a censored, biased subset. So a visit
+(one contiguous stay at one pose) with any clipped sample is left out whole, by the static detector
+(``fit``, degree selection, reports) and by ``diagnose``, and both say how many samples and visits went.
+The simulator's ``faults.adc_saturation`` windows force a channel to full scale (paper 3.5: the ESP32's
+12-bit converters).
 """
 
 from __future__ import annotations
