@@ -197,8 +197,9 @@ class CellStats:
     ``xtx`` (C, p, p), ``xtg`` (C, p, 3), ``gtg`` (C, 3), ``xsum`` (C, p), ``gsum`` (C, 3),
     ``count`` (C,), with ``p = 4(degree+1)``; ``pose`` (C,), ``level`` (C,) and ``run`` (C,) label the cells.
     A pose id names an orientation within its run only (two runs of other plans may give one id to two
-    orientations), so a cell is one run's: the scatter within a cell is the noise, not the difference
-    between orientations or between runs.
+    orientations), so a cell is one run's. ``visit_outer`` (p, p) is the sum over the visits (contiguous
+    stays at one pose) of xsum_v xsum_v^T / n_v and ``n_visits`` their number: the noise floor is the scatter
+    within a visit (:meth:`visit_scatter`), not the difference between two visits of one cell.
     """
 
     degree: int
@@ -211,6 +212,8 @@ class CellStats:
     gsum: np.ndarray
     count: np.ndarray
     run: np.ndarray
+    visit_outer: np.ndarray
+    n_visits: int
 
     def select(self, cells: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """Summed (XtX, XtG, GtG, n) over boolean ``cells`` for a degree <= self.degree."""
@@ -228,13 +231,12 @@ class CellStats:
         lin = np.einsum("pi,cpi->ci", A, xtg)
         return np.maximum(self.gtg - 2.0 * lin + quad, 0.0)
 
-    def cell_output_scatter(self, A: np.ndarray, degree: int) -> np.ndarray:
-        """Sum over each cell of squared deviations of the calibrated output from its cell mean (C, 3)."""
+    def visit_scatter(self, A: np.ndarray, degree: int) -> np.ndarray:
+        """Sum of squared deviations (3,) of the calibrated output x A from the mean of its visit:
+        sum_v [A^T X_v^T X_v A - (xsum_v A)^2 / n_v] = A^T (X^T X - visit_outer) A."""
         cols = sub_columns(degree, self.degree)
-        xtx = self.xtx[:, cols][:, :, cols]
-        quad = np.einsum("pi,cpq,qi->ci", A, xtx, A)
-        mean = self.xsum[:, cols] @ A / self.count[:, None]
-        return np.maximum(quad - self.count[:, None] * mean**2, 0.0)
+        within = self.xtx.sum(axis=0)[np.ix_(cols, cols)] - self.visit_outer[np.ix_(cols, cols)]
+        return np.maximum(np.einsum("pi,pq,qi->i", A, within, A), 0.0)
 
 
 class CellAccumulator:
@@ -257,6 +259,12 @@ class CellAccumulator:
         self._xsum: list[np.ndarray] = []
         self._gsum: list[np.ndarray] = []
         self._count: list[float] = []
+        # visits (contiguous rows of one cell): sum of xsum xsum^T / n over the closed ones, and the open one
+        self._visit_outer = np.zeros((self.p, self.p))
+        self._n_visits = 0
+        self._open: tuple[int, int] | None = None  # (run, cell key) of the visit the last chunk ended in
+        self._open_sum = np.zeros(self.p)
+        self._open_n = 0
 
     def _cell(self, run: int, key: int) -> int:
         c = self._index.get((run, key))
@@ -297,6 +305,7 @@ class CellAccumulator:
                 ks = key[order]
                 bounds = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1], True])
                 segments += [(self._cell(r, int(ks[a])), order[a:b]) for a, b in itertools.pairwise(bounds)]
+        self._add_visits(X, key, runs)
         for c, rows in segments:
             Xc, Gc = X[rows], G[rows]
             self._xtx[c] += Xc.T @ Xc
@@ -306,20 +315,47 @@ class CellAccumulator:
             self._gsum[c] += Gc.sum(axis=0)
             self._count[c] += len(Gc)
 
+    def _add_visits(self, X: np.ndarray, key: np.ndarray, runs: list[tuple[int, int, int]]) -> None:
+        """Column sums of each visit in the chunk (rows in time order): a visit ends where the cell or the run
+        changes; the chunk's last one stays open, for the next chunk to continue."""
+        for r, lo, hi in runs:
+            k = key[lo:hi]
+            starts = np.r_[0, np.flatnonzero(k[1:] != k[:-1]) + 1]
+            sums = np.add.reduceat(X[lo:hi], starts, axis=0)
+            counts = np.diff(np.r_[starts, hi - lo])
+            if self._open == (r, int(k[0])):  # the visit the previous chunk ended in goes on
+                sums[0] += self._open_sum
+                counts[0] += self._open_n
+            else:
+                self._close_visit()
+            if len(starts) > 1:
+                closed = sums[:-1] / np.sqrt(counts[:-1, None])
+                self._visit_outer += closed.T @ closed
+                self._n_visits += len(starts) - 1
+            self._open, self._open_sum, self._open_n = (r, int(k[-1])), sums[-1].copy(), int(counts[-1])
+
+    def _close_visit(self) -> None:
+        if self._open is not None:
+            self._visit_outer += np.outer(self._open_sum, self._open_sum) / self._open_n
+            self._n_visits += 1
+            self._open = None
+
     def finish(self, level_map: np.ndarray | None = None) -> CellStats:
         """The sums as :class:`CellStats`, cells ordered by (pose, level, run); ``level_map`` relabels levels."""
         p = self.p
+        self._close_visit()
         if not self._keys:
             z = np.zeros(0, np.int64)
             return CellStats(self.degree, z, z.copy(), np.zeros((0, p, p)), np.zeros((0, p, 3)), np.zeros((0, 3)),
-                             np.zeros((0, p)), np.zeros((0, 3)), np.zeros(0), z.copy())
+                             np.zeros((0, p)), np.zeros((0, 3)), np.zeros(0), z.copy(), np.zeros((p, p)), 0)
         keys = np.asarray(self._keys, dtype=np.int64)
         if level_map is not None:
             keys[:, 1] = level_map[keys[:, 1]]
         order = np.lexsort((keys[:, 2], keys[:, 1], keys[:, 0]))
         return CellStats(self.degree, keys[order, 0], keys[order, 1], np.asarray(self._xtx)[order],
                          np.asarray(self._xtg)[order], np.asarray(self._gtg)[order], np.asarray(self._xsum)[order],
-                         np.asarray(self._gsum)[order], np.asarray(self._count)[order], keys[order, 2])
+                         np.asarray(self._gsum)[order], np.asarray(self._count)[order], keys[order, 2],
+                         self._visit_outer.copy(), self._n_visits)
 
 
 def _runs_of(run: np.ndarray) -> list[tuple[int, int, int]]:
@@ -504,8 +540,7 @@ def fit_thermal(rec: Recording | FitData, degree: int, *, sensor_id: str | None 
     A, cond = solve_normal_equations(xtx, xtg)
     rss = stats.cell_rss(A, degree).sum(axis=0)
     rmse = np.sqrt(rss / n)
-    scatter = stats.cell_output_scatter(A, degree).sum(axis=0)
-    noise = np.sqrt(scatter / max(n - len(stats.count), 1.0))
+    noise = np.sqrt(stats.visit_scatter(A, degree) / max(n - stats.n_visits, 1.0))
     M, b = coefficients_to_model(A, degree)
     src = rec.metadata.get("sources", rec.metadata.get("source")) if isinstance(rec, Recording) else None
     fit_info = {
