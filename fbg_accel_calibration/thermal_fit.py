@@ -297,6 +297,7 @@ class CellAccumulator:
         for r, lo, hi in runs:
             k = key[lo:hi]
             change = np.flatnonzero(k[1:] != k[:-1]) + 1
+            self._add_visits(X[lo:hi], r, k, change)
             if len(change) < len(k) // 64:  # samples come pose by pose: contiguous slices, no copy
                 bounds = np.r_[0, change, len(k)] + lo
                 segments += [(self._cell(r, int(key[a])), slice(a, b)) for a, b in itertools.pairwise(bounds)]
@@ -305,7 +306,6 @@ class CellAccumulator:
                 ks = key[order]
                 bounds = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1], True])
                 segments += [(self._cell(r, int(ks[a])), order[a:b]) for a, b in itertools.pairwise(bounds)]
-        self._add_visits(X, key, runs)
         for c, rows in segments:
             Xc, Gc = X[rows], G[rows]
             self._xtx[c] += Xc.T @ Xc
@@ -315,24 +315,23 @@ class CellAccumulator:
             self._gsum[c] += Gc.sum(axis=0)
             self._count[c] += len(Gc)
 
-    def _add_visits(self, X: np.ndarray, key: np.ndarray, runs: list[tuple[int, int, int]]) -> None:
-        """Column sums of each visit in the chunk (rows in time order): a visit ends where the cell or the run
-        changes; the chunk's last one stays open, for the next chunk to continue."""
-        for r, lo, hi in runs:
-            k = key[lo:hi]
-            starts = np.r_[0, np.flatnonzero(k[1:] != k[:-1]) + 1]
-            sums = np.add.reduceat(X[lo:hi], starts, axis=0)
-            counts = np.diff(np.r_[starts, hi - lo])
-            if self._open == (r, int(k[0])):  # the visit the previous chunk ended in goes on
-                sums[0] += self._open_sum
-                counts[0] += self._open_n
-            else:
-                self._close_visit()
-            if len(starts) > 1:
-                closed = sums[:-1] / np.sqrt(counts[:-1, None])
-                self._visit_outer += closed.T @ closed
-                self._n_visits += len(starts) - 1
-            self._open, self._open_sum, self._open_n = (r, int(k[-1])), sums[-1].copy(), int(counts[-1])
+    def _add_visits(self, X: np.ndarray, run: int, key: np.ndarray, change: np.ndarray) -> None:
+        """Column sums of each visit in rows ``X`` of one run (time order; ``key`` their cells, ``change`` where
+        it changes): a visit ends where the cell or the run changes; the last one stays open, for the next chunk
+        to continue."""
+        starts = np.r_[0, change]
+        sums = np.add.reduceat(X, starts, axis=0)
+        counts = np.diff(np.r_[starts, len(key)])
+        if self._open == (run, int(key[0])):  # the visit the previous chunk ended in goes on
+            sums[0] += self._open_sum
+            counts[0] += self._open_n
+        else:
+            self._close_visit()
+        if len(starts) > 1:
+            closed = sums[:-1] / np.sqrt(counts[:-1, None])
+            self._visit_outer += closed.T @ closed
+            self._n_visits += len(starts) - 1
+        self._open, self._open_sum, self._open_n = (run, int(key[-1])), sums[-1].copy(), int(counts[-1])
 
     def _close_visit(self) -> None:
         if self._open is not None:
