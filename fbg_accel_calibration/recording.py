@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from fbg_accel_driver.frame_codec import ADC_MAX, at_adc_rail
+from fbg_accel_driver.frame_codec import clipped_reading
 
 
 @dataclass
@@ -58,13 +58,10 @@ class Recording:
         return int(self.t_s.shape[0])
 
     def clipped(self) -> np.ndarray:
-        """Samples (N,) with a channel at a rail of the 12-bit ADC (paper 3.5: the ESP32's converters): an axis at 0
-        or ``ADC_MAX`` counts, or the reference at ``ADC_MAX``. The reading bounds the signal instead of measuring
-        it. A sample without light (the reference at 0: a source dropout, every channel at its dark level) is not
-        one: Psi is undefined there, sample by sample. Counts below 0 are no reading of the ADC at all (the
-        importers refuse them)."""
-        rails = (self.ref >= ADC_MAX) | np.any(at_adc_rail(self.xyz), axis=1)
-        return rails & (self.ref > 0)
+        """Samples (N,) with a channel at a rail of the 12-bit ADC (paper 3.5: the ESP32's converters;
+        ``frame_codec.clipped_reading``): the reading bounds the signal instead of measuring it. Counts below 0 are
+        no reading of the ADC at all (the importers refuse them)."""
+        return clipped_reading(self.ref, self.xyz[:, 0], self.xyz[:, 1], self.xyz[:, 2])
 
     def select(self, mask: np.ndarray) -> Recording:
         """A new recording with the samples ``mask`` selects (a boolean mask, indices or a slice; order kept)."""
@@ -75,7 +72,8 @@ class Recording:
         )
 
     def runs(self) -> list[Recording]:
-        """Each run (``run_id``) as its own recording (views of these arrays), in order. Raises ``ValueError`` when
+        """Each run (``run_id``) as its own recording (views of these arrays but the temperature, which a
+        ``Recording`` copies), in order. Raises ``ValueError`` when
         the samples of one run are not contiguous (every reader and ``concatenate`` keeps them together)."""
         starts = np.flatnonzero(np.r_[True, self.run_id[1:] != self.run_id[:-1]]) if len(self) else np.zeros(0, int)
         if len(np.unique(self.run_id[starts])) != len(starts):

@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from fbg_accel_driver.frame_codec import ADC_MAX, SEQ_MODULO, at_adc_rail
+from fbg_accel_driver.frame_codec import ADC_MAX, SEQ_MODULO, clipped_reading
 
 from .mcap_io import RecordingWriter
 from .pose_plan import PosePlan
@@ -208,7 +208,7 @@ class RunRecorder:
             still = self.monitor.update(psi)
             pose_id = self.sequencer.step(t_s, still, self._departed(psi))
             self._track_pose_level(pose_id, psi)
-        if pose_id >= 0 and s.ref >= 1 and (s.ref >= ADC_MAX or at_adc_rail(s.x) or at_adc_rail(s.y) or at_adc_rail(s.z)):
+        if pose_id >= 0 and clipped_reading(s.ref, s.x, s.y, s.z):
             c.clipped += 1
             if self._clipped_pose != pose_id:  # said at once, while the pose can still be repeated
                 self._clipped_pose = pose_id

@@ -202,7 +202,7 @@ def calibration_samples(rec: Recording, window: int = DEFAULT_WINDOW, min_interv
     usable, static = [np.zeros(0, bool)], [np.zeros(0, bool)]
     for run in rec.runs():
         threshold = streamed_noise_floor(lambda run=run: run.blocks(BLOCK_ROWS, False), window, false_alarm, margin)[1]
-        left_out = clipped_visits(run.blocks(BLOCK_ROWS)) if run.clipped().any() else None
+        left_out = clipped_visits(run.blocks(BLOCK_ROWS))  # in memory: as cheap as finding whether any is clipped
         for _blk, _psi, run_usable, run_static, _ in usable_blocks(run.blocks(BLOCK_ROWS), window, min_interval, threshold,
                                                                    tolerance_mps2, left_out):
             usable.append(run_usable)

@@ -195,11 +195,12 @@ class CellStats:
     """Normal-equation sums per cell (pose x temperature level x run) for the maximum degree.
 
     ``xtx`` (C, p, p), ``xtg`` (C, p, 3), ``gtg`` (C, 3), ``xsum`` (C, p), ``gsum`` (C, 3),
-    ``count`` (C,), with ``p = 4(degree+1)``; ``pose`` (C,), ``level`` (C,) and ``run`` (C,) label the cells.
-    A pose id names an orientation within its run only (two runs of other plans may give one id to two
-    orientations), so a cell is one run's. ``visit_outer`` (p, p) is the sum over the visits (contiguous
-    stays at one pose) of xsum_v xsum_v^T / n_v and ``n_visits`` their number: the noise floor is the scatter
-    within a visit (:meth:`visit_scatter`), not the difference between two visits of one cell.
+    ``count`` (C,), with ``p = 4(degree+1)``; ``pose`` (C,) and ``level`` (C,) label the cells. A pose id
+    names an orientation within its run only (two runs of other plans may give one id to two orientations),
+    so a cell is one run's (cells of one pose and level in two runs are ordered by run). ``visit_outer``
+    (p, p) is the sum over the visits (contiguous stays at one pose) of xsum_v xsum_v^T / n_v and
+    ``n_visits`` their number: the noise floor is the scatter within a visit (:meth:`visit_scatter`), not
+    the difference between two visits of one cell.
     """
 
     degree: int
@@ -211,7 +212,6 @@ class CellStats:
     xsum: np.ndarray
     gsum: np.ndarray
     count: np.ndarray
-    run: np.ndarray
     visit_outer: np.ndarray
     n_visits: int
 
@@ -346,15 +346,15 @@ class CellAccumulator:
         if not self._keys:
             z = np.zeros(0, np.int64)
             return CellStats(self.degree, z, z.copy(), np.zeros((0, p, p)), np.zeros((0, p, 3)), np.zeros((0, 3)),
-                             np.zeros((0, p)), np.zeros((0, 3)), np.zeros(0), z.copy(), np.zeros((p, p)), 0)
+                             np.zeros((0, p)), np.zeros((0, 3)), np.zeros(0), np.zeros((p, p)), 0)
         keys = np.asarray(self._keys, dtype=np.int64)
         if level_map is not None:
             keys[:, 1] = level_map[keys[:, 1]]
         order = np.lexsort((keys[:, 2], keys[:, 1], keys[:, 0]))
         return CellStats(self.degree, keys[order, 0], keys[order, 1], np.asarray(self._xtx)[order],
                          np.asarray(self._xtg)[order], np.asarray(self._gtg)[order], np.asarray(self._xsum)[order],
-                         np.asarray(self._gsum)[order], np.asarray(self._count)[order], keys[order, 2],
-                         self._visit_outer.copy(), self._n_visits)
+                         np.asarray(self._gsum)[order], np.asarray(self._count)[order], self._visit_outer.copy(),
+                         self._n_visits)
 
 
 def _runs_of(run: np.ndarray) -> list[tuple[int, int, int]]:

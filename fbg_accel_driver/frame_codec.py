@@ -64,6 +64,13 @@ def at_adc_rail(counts: Any) -> Any:
     return (counts == 0) | (counts >= ADC_MAX)
 
 
+def clipped_reading(ref: Any, x: Any, y: Any, z: Any) -> Any:
+    """True where a sample (counts: numbers or arrays) has a clipped channel: an axis at a rail
+    (:func:`at_adc_rail`) or the reference at ``ADC_MAX``, with light on the reference. A sample without light
+    (reference at 0: a source dropout, every channel at its dark level) is not one: Psi is undefined there."""
+    return (ref > 0) & ((ref >= ADC_MAX) | at_adc_rail(x) | at_adc_rail(y) | at_adc_rail(z))
+
+
 class Status(IntFlag):
     """Status bits set by the board firmware."""
 
