@@ -45,7 +45,7 @@ from fbg_accel_driver.frame_codec import ADC_MAX, SEQ_MODULO, clipped_reading
 from .mcap_io import RecordingWriter
 from .pose_plan import PosePlan
 from .pose_sequencer import Mode, Phase, PoseSequencer, SequencerEvent
-from .static_detector import estimate_noise_var, moving_variance
+from .static_detector import estimate_noise_var, moving_variance, quantisation_var
 from .stillness_monitor import (
     DEFAULT_FALSE_ALARM_PER_RUN,
     DEFAULT_NOISE_CORR_S,
@@ -335,10 +335,10 @@ class RunRecorder:
         self.rate_hz = float(1.0 / np.median(dt))
         window = max(3, round(self.detector.window_s * self.rate_hz))
         hold = max(1, round(self.detector.hold_s * self.rate_hz))
-        quant_var = (1.0 / np.median(self._startup_ref)) ** 2 / 12.0  # ADC quantisation of 1 count, in Psi^2
+        psi_arr = np.asarray(self._startup_psi)
+        quant_var = quantisation_var(np.asarray(self._startup_ref), psi_arr)  # rounding to whole counts, in Psi^2
         floor: NoiseFloor
         if self.detector.noise_std is None:
-            psi_arr = np.asarray(self._startup_psi)
             # was the table still? Block means against the robust (median window variance) noise scale, which a
             # move inside the period does not inflate as it does the floor's plain variance
             stat = moving_variance(psi_arr, window)[window // 2: len(psi_arr) - window // 2]

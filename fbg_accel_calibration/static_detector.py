@@ -123,6 +123,17 @@ def estimate_noise_var(statistic: np.ndarray, window: int) -> np.ndarray:
     return med / (chi2.median(dof) / dof)
 
 
+def quantisation_var(ref_counts: np.ndarray, psi: np.ndarray) -> np.ndarray:
+    """Mean variance (Psi^2, per axis) of the rounding of the readings to whole ADC counts, over samples with
+    references ``ref_counts`` (n,) and Psi ``psi`` (n, 3): the axis count and the reference count each carry a
+    uniform error of one count, so Psi = x / ref varies by (1 + Psi^2) / (12 ref^2). No still signal reads
+    quieter than its quantisation, so a noise floor is never taken below it: a signal that sits on one code for
+    most windows (an oversampled, low-pass-filtered channel, e.g. at 400 Hz) would otherwise give a floor near
+    zero and call every window in which a code changes moving."""
+    ref = np.asarray(ref_counts, dtype=float)[:, None]
+    return np.mean((1.0 + np.asarray(psi, dtype=float) ** 2) / (12.0 * ref**2), axis=0)
+
+
 def _run_lengths(change: np.ndarray) -> np.ndarray:
     """Length of the run each sample belongs to; a run starts where ``change`` is True (``change[0]`` is)."""
     segment = np.cumsum(change) - 1
@@ -405,9 +416,17 @@ def streamed_noise_floor(blocks: Callable[[], Iterator[Recording]], window: int,
     blocks ``blocks()`` yields (called once per pass); returns ``(noise_var, threshold)``."""
     dof = window - 1
     med = ExactMedian(3)
+    quant, n_ok = np.zeros(3), 0  # the run's quantisation floor (quantisation_var), summed over its samples
     while not med.done:
-        for _blk, _psi, var, _ in signal_blocks(blocks(), window, with_reference=False):
+        for blk, psi, var, _ in signal_blocks(blocks(), window, with_reference=False):
             med.add(var)
+            if med.targets is None:  # first pass
+                ok = np.isfinite(blk.ref) & (blk.ref > 0) & np.all(np.isfinite(psi), axis=1)
+                if ok.any():
+                    quant += quantisation_var(blk.ref[ok], psi[ok]) * ok.sum()
+                    n_ok += int(ok.sum())
         med.end_pass()
     nv = med.result / (chi2.median(dof) / dof)
+    if n_ok:
+        nv = np.maximum(nv, quant / n_ok)
     return nv, variance_threshold(nv, window, false_alarm, margin)
