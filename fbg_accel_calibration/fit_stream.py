@@ -35,6 +35,7 @@ from .thermal_fit import (
     CellAccumulator,
     CellStats,
     TemperatureClusters,
+    count_orientations,
     temperature_scaling,
 )
 
@@ -68,7 +69,7 @@ class FitData:
     n_total: int
     n_excluded_motion: int
     n_excluded_other: int
-    n_poses: int
+    n_poses: int  # distinct orientations (thermal_fit.count_orientations), not pose ids
     levels: TemperatureClusters
     level_map: np.ndarray
     detector: dict[str, Any] = field(default_factory=dict)
@@ -228,5 +229,5 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
     detector = ({"window_samples": window, "min_interval_samples": min_interval, "noise_var_psi": noise_out.tolist(),
                  "threshold_var_psi": thr_out.tolist()} if usable is None else {"mask": "given by caller"})
     return FitData(stats, level_sum[present] / level_count[present], (t_min, t_max), center, scale, n_used, n_total,
-                   n_motion, n_other, len(np.unique(stats.pose)), clusters, level_map, detector, n_clipped,
+                   n_motion, n_other, count_orientations(stats), clusters, level_map, detector, n_clipped,
                    sum(len(v) for v in left_out if v is not None))

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import itertools
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -382,6 +383,25 @@ def _reference_spread(gsum: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, 
     return np.sqrt(np.maximum(eig, 0.0)), vec
 
 
+ORIENTATION_TOLERANCE_DEG = 1.0  # cells whose mean reference directions are closer are one orientation
+
+
+def count_orientations(stats: CellStats, tolerance_deg: float = ORIENTATION_TOLERANCE_DEG) -> int:
+    """Distinct table orientations among the cells: directions of their mean reference specific force that
+    differ by more than ``tolerance_deg``. Not the distinct pose ids: an id names an orientation within its
+    run only (two runs of other plans may give one id to two orientations, and one plan's runs repeat them)."""
+    count = np.asarray(stats.count, dtype=float)
+    g = stats.gsum[count > 0] / count[count > 0, None]
+    norm = np.linalg.norm(g, axis=1)
+    u = g[norm > 0] / norm[norm > 0, None]
+    cos_tol = math.cos(math.radians(tolerance_deg))
+    seen: list[np.ndarray] = []
+    for v in u:
+        if not any(float(v @ w) > cos_tol for w in seen):
+            seen.append(v)
+    return len(seen)
+
+
 def level_excitation(stats: CellStats, min_spread_mps2: float = MIN_POSE_SPREAD_MPS2) -> tuple[int, list[str]]:
     """Temperature levels whose own poses span the table frame: ``(count, notes on the others)``.
 
@@ -432,7 +452,7 @@ def check_pose_excitation(stats: CellStats, min_spread_mps2: float = MIN_POSE_SP
         u = vec[:, 0] * np.sign(vec[np.argmax(np.abs(vec[:, 0])), 0])
         u = np.where(np.abs(u) < 5e-3, 0.0, u)  # print 0.00, not -0.00
         axis = "xyz"[int(np.argmax(np.abs(u)))]
-        n_poses = len(np.unique(stats.pose))
+        n_poses = count_orientations(stats)
         shape = "coincide" if spread[2] < min_spread_mps2 else ("are collinear" if spread[1] < min_spread_mps2
                                                                else "are coplanar")
         raise NotIdentifiedError(
@@ -530,7 +550,7 @@ def fit_thermal(rec: Recording | FitData, degree: int, *, sensor_id: str | None 
         raise NotIdentifiedError("no usable static samples (check pose ids, reference and the static detector)")
     check_identified(degree, len(data.level_means_c))
     if data.n_poses < 4:
-        raise NotIdentifiedError(f"{data.n_poses} pose(s): at least 4 non-coplanar poses are needed for M and b")
+        raise NotIdentifiedError(f"{data.n_poses} orientation(s): at least 4 non-coplanar poses are needed for M and b")
     center, scale = data.t_center_c, data.t_scale_c
     stats = data.cell_stats(degree, chunk)
     spread = check_pose_excitation(stats)

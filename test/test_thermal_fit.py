@@ -266,6 +266,24 @@ def test_runs_whose_pose_ids_name_other_orientations_keep_the_noise_floor(tmp_pa
     assert len(streamed.stats.count) == len(np.unique(a.pose_id[a.pose_id >= 0])) + len(np.unique(b.pose_id[b.pose_id >= 0]))
 
 
+def test_poses_are_counted_as_orientations_not_as_pose_ids() -> None:
+    """Two runs whose ids 0-2 name six orientations between them are fitted (before: refused as "3 pose(s)"),
+    and two runs of one plan count its orientations once: the YAML's ``poses`` is the number of orientations."""
+    rng = np.random.default_rng(7)
+    M, b = _truth(0, rng)
+    rec = _simulate(M, b, (24.0,), center=24.0, scale=1.0, n_poses=6, n=50)
+    first, second = rec.select(rec.pose_id < 3), rec.select(rec.pose_id >= 3)
+    second.pose_id, second.run_id = second.pose_id - 3, np.ones(len(second), rec.run_id.dtype)
+    both = Recording.concatenate([first, second])
+    assert len(np.unique(both.pose_id)) == 3
+    cal = fit_thermal(both, 0)
+    assert cal.fit["poses"] == 6
+    np.testing.assert_allclose(cal.M, fit_thermal(rec, 0).M, rtol=1e-4, atol=1e-3)  # as one run of six ids (its own detector floor)
+    again = rec.select(np.ones(len(rec), bool))
+    again.run_id = np.ones(len(again), rec.run_id.dtype)
+    assert fit_thermal(Recording.concatenate([rec, again]), 0).fit["poses"] == 6
+
+
 def test_repeated_visits_of_a_pose_keep_the_noise_floor_of_one_visit() -> None:
     """The floor is the scatter within a visit (one contiguous stay at one pose), as diagnose's is: a pose
     visited again in the same run and at the same level (a looped plan) may read a little differently each
