@@ -199,7 +199,7 @@ def bench_serial_chunks(n: int, data: bytes) -> dict:
     chunks, nbytes = 0, 0
     while nbytes < n * FRAME_SIZE_V1 and time.monotonic() < deadline:
         try:
-            _, c = link.queue.get(timeout=0.1)
+            _, c, _ = link.queue.get(timeout=0.1)
         except queue.Empty:
             continue
         chunks += 1

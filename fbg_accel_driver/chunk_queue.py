@@ -18,7 +18,7 @@ import queue
 import threading
 from dataclasses import dataclass
 
-Chunk = tuple[int, bytes]  # (host time in ns when the read returned, bytes)
+Chunk = tuple[int, bytes, int]  # (host time in ns when the read returned, bytes, steady time in ns then)
 
 
 @dataclass(frozen=True)
@@ -33,7 +33,7 @@ class QueueStats:
 
 
 class ChunkQueue:
-    """FIFO of ``(host_ns, bytes)`` chunks holding at most ``max_bytes`` bytes (the newest ones).
+    """FIFO of ``(host_ns, bytes, steady_ns)`` chunks holding at most ``max_bytes`` bytes (the newest ones).
 
     One producer (``put``, ``wake``) and one consumer (``get``, ``get_nowait``); both may run in
     different threads. A single chunk larger than ``max_bytes`` is kept alone (the bound is then
@@ -52,12 +52,13 @@ class ChunkQueue:
         self._dropped_bytes = 0
         self._high = 0
 
-    def put(self, host_ns: int, data: bytes) -> None:
-        """Append a chunk; never blocks. Drops the oldest chunks while the bound is exceeded."""
+    def put(self, host_ns: int, data: bytes, steady_ns: int | None = None) -> None:
+        """Append a chunk read at host time ``host_ns`` and steady time ``steady_ns`` (None: the host clock is
+        steady, ``clock_sync``); never blocks. Drops the oldest chunks while the bound is exceeded."""
         with self._lock:
             self._bytes += len(data)
             self._chunks += 1
-            self._q.put((host_ns, data))
+            self._q.put((host_ns, data, host_ns if steady_ns is None else steady_ns))
             while self._bytes > self.max_bytes and self._chunks > 1:
                 try:
                     old = self._q.get_nowait()

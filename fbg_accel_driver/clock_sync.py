@@ -2,25 +2,33 @@
 
 The board stamps every sample with its own microsecond clock (``t_us``). The host only learns
 when the bytes *arrived*, which is the true sampling time plus a transport delay that is always
-positive and jittery (UART, USB/pty buffering, scheduler). Mapping model, per sample::
+positive and jittery (UART, USB/pty buffering, scheduler). Mapping model, per sample, on the
+host's steady clock (host time minus a host-minus-steady offset measured at each read, see below)::
 
-    host_s = board_s + offset(board_s) + delay,        delay >= 0
+    steady_s = board_s + offset(board_s) + delay,      delay >= 0
     offset(board_s) = a + d * (board_s - board_ref_s)  (a: offset in s, d: relative drift)
 
 Estimator (a minimum-delay / lower-envelope estimator, as used by NTP/PTP-style clock filters):
 
-* observations ``host_s - board_s`` are grouped into bins of ``bin_s`` board seconds and only the
+* observations ``steady_s - board_s`` are grouped into bins of ``bin_s`` board seconds and only the
   minimum of each bin is kept: the minimum is the sample that travelled with the least delay;
-* a line is fitted by least squares through the last ``window_bins`` bin minima (drift ``d``
-  limited to +-``max_drift``) and then lowered until it touches the lowest minimum, so it is a
-  lower envelope of the observations;
+* the line is the lower envelope of the last ``window_bins`` bin minima: below all of them and
+  highest at their mean board time (the edge of their lower convex hull there,
+  ``lower_envelope_slope``; drift ``d`` limited to +-``max_drift``), so observations delayed by a
+  stall or a backlog, which lie above it, do not tilt it;
 * the *applied* offset follows that target by slewing at most ``max_slew`` seconds per board
   second (``warmup_slew`` during the first ``warmup_s`` after a (re)start, while the estimate is
   still coarse), so consecutive stamps keep the board's sample spacing to within the slew rate
   (plus the drift estimate), i.e. 0.55 % at worst and 0.1 % once settled; an error larger
-  than ``step_threshold_s`` (first sample, host clock jump) is stepped at once;
-* an observation far below the envelope, or observations far above it for ``jump_confirm_s``,
-  mean the host clock jumped: the estimate restarts from the new data;
+  than ``step_threshold_s`` (first sample, a restart) is stepped at once;
+* host clock jumps are measured, not guessed: the caller reads a steady clock (``time.monotonic_ns``)
+  next to the host clock at each read, the estimate runs on the steady clock and each stamp adds the
+  host-minus-steady offset of the latest read, so an NTP step moves the stamps at once and exactly.
+  Observations far *above* the envelope are therefore always a delay (a stall, a backlog, a congested
+  link) and never restart the estimate (they did when they lasted 2 s, and a 0.3 s congestion of the
+  link then stamped samples 0.3 s late for 20 s); an observation far *below* it cannot be a delay (the
+  board clock jumped ahead without a reboot, or a caller without a steady clock saw its host clock
+  step back): the estimate restarts from the new data;
 * stamps are strictly increasing: a stamp never goes below the previous stamp + 1 ns;
 * ``reset()`` (board reboot: sequence and clock restart) forgets the estimate but keeps the
   monotonic guard, so stamps keep increasing across a reboot.
@@ -30,6 +38,7 @@ Units: seconds (float) for board time and offsets, integer nanoseconds for host/
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 
@@ -45,29 +54,48 @@ class ClockSyncConfig:
     warmup_slew: float = 5e-3  # ... so it may be slewed 10x faster (stamp spacing still within 0.55 %)
     step_threshold_s: float = 0.05  # larger errors are stepped, not slewed
     prime_s: float = 0.2  # board seconds observed before the first stamp is worth giving (see ``primed``)
-    jump_confirm_s: float = 2.0  # all observations this long above the estimate + threshold: host clock jumped
+
+
+def lower_envelope_slope(xs: list[float], ys: list[float]) -> float:
+    """Slope of the line below every point (``xs`` increasing) that lies highest at their mean x: the edge of the
+    points' lower convex hull above the mean x (the linear-programming estimate of clock skew, Moon, Skelly &
+    Towsley, IEEE INFOCOM 1999). A delay only adds to an observation, so points above the hull -- a stall, a
+    backlog read at once, a congested link -- cannot tilt it, where a least-squares line through the bin minima
+    followed them (a 1 s stall swung the drift to the 500 ppm limit and stamped samples 9 ms early)."""
+    hull: list[tuple[float, float]] = []
+    for p in zip(xs, ys, strict=True):
+        while len(hull) >= 2 and ((hull[-1][0] - hull[-2][0]) * (p[1] - hull[-2][1])
+                                  - (hull[-1][1] - hull[-2][1]) * (p[0] - hull[-2][0])) <= 0.0:
+            hull.pop()  # hull[-1] is not below the chord from hull[-2] to p
+        hull.append(p)
+    mean_x = sum(xs) / len(xs)
+    for (x0, y0), (x1, y1) in itertools.pairwise(hull):
+        if x1 >= mean_x and x1 > x0:
+            return (y1 - y0) / (x1 - x0)
+    return 0.0
 
 
 @dataclass
 class _Bin:
     index: int
     board_s: float  # board time of the minimum
-    offset_s: float  # minimum of host_s - board_s in this bin
+    offset_s: float  # minimum of steady_s - board_s in this bin
 
 
 class ClockSync:
     """Map board timestamps (microseconds) onto host/ROS time (nanoseconds).
 
-    Usage per received chunk: call ``observe(t_us, host_ns)`` for every frame of the chunk (with
-    the host time the chunk arrived), then ``stamp(t_us)`` for each frame in order.
+    Usage per received chunk: call ``observe(t_us, host_ns, steady_ns)`` for every frame of the chunk
+    (with the host and steady clock times the chunk arrived), then ``stamp(t_us)`` for each frame in order.
     """
 
     def __init__(self, config: ClockSyncConfig | None = None) -> None:
         self.config = config or ClockSyncConfig()
         self._last_stamp_ns: int | None = None
-        # Offsets are kept relative to an integer-ns base (host - board at the first observation)
+        # Offsets are kept relative to an integer-ns base (steady - board at the first observation)
         # so float arithmetic stays at sub-ns precision even with epoch-sized host times.
         self._base_ns: int | None = None
+        self._host_minus_steady_ns = 0  # of the latest observation
         self.resets = 0
         self.steps = 0
         self._clear()
@@ -79,7 +107,6 @@ class ClockSync:
         self._d = 0.0  # target drift, s/s
         self._applied: float | None = None  # applied offset, s
         self._applied_at_s: float | None = None  # board time the applied offset refers to
-        self._high_since_s: float | None = None  # board time since when every observation was far above the estimate
         self._started_s: float | None = None  # board time of the first observation since the (re)start
         self._last_obs_s: float | None = None
 
@@ -89,26 +116,18 @@ class ClockSync:
         self.resets += 1
         self._clear()
 
-    def observe(self, t_us: int, host_ns: int) -> None:
-        """One observation: a frame stamped ``t_us`` on the board had arrived by ``host_ns``."""
+    def observe(self, t_us: int, host_ns: int, steady_ns: int | None = None) -> None:
+        """One observation: a frame stamped ``t_us`` on the board had arrived by host time ``host_ns`` (ns),
+        which a steady clock read at the same moment gave as ``steady_ns`` (ns; ``time.monotonic_ns``). Without
+        ``steady_ns`` the host clock is taken as steady: a forward step of it then counts as a delay."""
         board_s = t_us * 1e-6
+        steady = host_ns if steady_ns is None else steady_ns
+        self._host_minus_steady_ns = host_ns - steady
         if self._base_ns is None:
-            self._base_ns = host_ns - t_us * 1000
-        offset = (host_ns - t_us * 1000 - self._base_ns) * 1e-9
-        if self._bins:
-            # Host clock jumps: far below the lower envelope at once (impossible with a positive
-            # delay), or far above it for jump_confirm_s (a delay that large cannot last that long).
-            err = offset - self.target_offset_s(board_s)
-            cfg = self.config
-            if err < -cfg.step_threshold_s:
-                self._restart()
-            elif err > cfg.step_threshold_s:
-                if self._high_since_s is None:
-                    self._high_since_s = board_s
-                elif board_s - self._high_since_s >= cfg.jump_confirm_s:
-                    self._restart()
-            else:
-                self._high_since_s = None
+            self._base_ns = steady - t_us * 1000
+        offset = (steady - t_us * 1000 - self._base_ns) * 1e-9
+        if self._bins and offset - self.target_offset_s(board_s) < -self.config.step_threshold_s:
+            self._restart()  # far below the lower envelope: no delay does that (module docstring)
         if self._board_ref_s is None:
             self._board_ref_s = board_s
             self._started_s = board_s
@@ -131,36 +150,26 @@ class ClockSync:
     def _refit(self) -> None:
         bins = self._bins
         ref = self._board_ref_s or 0.0
+        d = 0.0
         if len(bins) >= 3:
-            xs = [b.board_s - ref for b in bins]
-            ys = [b.offset_s for b in bins]
-            n = len(xs)
-            mx, my = sum(xs) / n, sum(ys) / n
-            sxx = sum((x - mx) ** 2 for x in xs)
-            d = sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True)) / sxx if sxx > 0 else 0.0
+            d = lower_envelope_slope([b.board_s - ref for b in bins], [b.offset_s for b in bins])
             d = max(-self.config.max_drift, min(self.config.max_drift, d))
-            a = my - d * mx
-            # Lower envelope: lower the line until it touches the lowest point.
-            a += min(y - (a + d * x) for x, y in zip(xs, ys, strict=True))
-        else:
-            d = 0.0
-            a = min(b.offset_s for b in bins)
-        self._a, self._d = a, d
+        # the line of slope d through the lowest point: below every observation
+        self._a, self._d = min(b.offset_s - d * (b.board_s - ref) for b in bins), d
 
     def _restart(self) -> None:
-        """Forget the bins after a host clock jump; the next stamp() steps to the new estimate."""
+        """Forget the bins after a clock jump; the next stamp() steps to the new estimate."""
         self._bins.clear()
         self._board_ref_s = None
-        self._high_since_s = None
 
     # ------------------------------------------------------------------ outputs
     def target_offset_s(self, board_s: float) -> float:
-        """Current estimate of host - board offset at ``board_s`` (s, relative to the internal base)."""
+        """Current estimate of steady - board offset at ``board_s`` (s, relative to the internal base)."""
         return self._a + self._d * (board_s - (self._board_ref_s or 0.0))
 
     @property
     def drift(self) -> float:
-        """Estimated relative drift of the host clock against the board clock (s/s)."""
+        """Estimated relative drift of the host's steady clock against the board clock (s/s)."""
         return self._d
 
     @property
@@ -196,7 +205,7 @@ class ClockSync:
                 limit = (cfg.warmup_slew if warm else cfg.max_slew) * max(dt, 0.0)
                 applied += max(-limit, min(limit, err))
         self._applied, self._applied_at_s = applied, board_s
-        stamp_ns = t_us * 1000 + (self._base_ns or 0) + round(applied * 1e9)
+        stamp_ns = t_us * 1000 + (self._base_ns or 0) + round(applied * 1e9) + self._host_minus_steady_ns
         if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
             stamp_ns = self._last_stamp_ns + 1
         self._last_stamp_ns = stamp_ns

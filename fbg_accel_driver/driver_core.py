@@ -254,8 +254,9 @@ class DriverCore:
         return self._last_raw_temp_valid
 
     # ------------------------------------------------------------------ pipeline
-    def feed(self, chunk: bytes, host_ns: int) -> CoreOutput:
-        """Consume bytes that had arrived by ``host_ns`` (ROS time, ns); return the records."""
+    def feed(self, chunk: bytes, host_ns: int, steady_ns: int | None = None) -> CoreOutput:
+        """Consume bytes that had arrived by ``host_ns`` (ROS time, ns), read when a steady clock showed ``steady_ns``
+        (ns; None: ROS time does not step, ``ClockSync.observe``); return the records."""
         out = CoreOutput()
         frames = self.decoder.feed(chunk)
         if not frames:
@@ -263,16 +264,16 @@ class DriverCore:
         # Split at board resets (found by the decoder) so each part is stamped with its own clock estimate.
         start = 0
         for i in self.decoder.resets_at:
-            self._process(frames[start:i], host_ns, out, flush=True)
+            self._process(frames[start:i], host_ns, steady_ns, out, flush=True)
             self._on_reset()
             start = i
-        self._process(frames[start:], host_ns, out)
+        self._process(frames[start:], host_ns, steady_ns, out)
         return out
 
     def flush(self) -> CoreOutput:
         """End of stream: stamp and release frames still held for clock priming (partial decimation blocks stay)."""
         out = CoreOutput()
-        self._process([], 0, out, flush=True)
+        self._process([], 0, None, out, flush=True)
         return out
 
     def _on_reset(self) -> None:
@@ -324,10 +325,11 @@ class DriverCore:
         self._delay_ns = cached[0]
         return counts, cached[0], cached[1]
 
-    def _process(self, frames: list[Frame], host_ns: int, out: CoreOutput, flush: bool = False) -> None:
+    def _process(self, frames: list[Frame], host_ns: int, steady_ns: int | None, out: CoreOutput,
+                 flush: bool = False) -> None:
         clock = self.clock
         for f in frames:
-            clock.observe(f.t_us, host_ns)
+            clock.observe(f.t_us, host_ns, steady_ns)
         if self._unstamped or not clock.primed:
             # Hold the first frames after a (re)start until the clock estimate is primed (ClockSync.primed).
             self._unstamped.extend(frames)

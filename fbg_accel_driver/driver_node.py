@@ -264,9 +264,9 @@ class DriverNode(Node):
             if self._stopping.is_set():
                 break
             if item is not None:  # None: a wake-up (link state change or close)
-                host_ns, chunk = item
+                host_ns, chunk, steady_ns = item
                 try:
-                    self._publish(self.core.feed(chunk, host_ns))
+                    self._publish(self.core.feed(chunk, host_ns, steady_ns))
                 except Exception as exc:  # a shut-down context while exiting, or a bug: never kill the data path
                     if self._stopping.is_set():
                         break

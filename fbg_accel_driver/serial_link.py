@@ -182,11 +182,11 @@ class SerialLink:
                     rest = ser.in_waiting  # read(1) woke on a frame's first byte: take the rest of it too
                     if rest and len(data) < self._max_chunk:
                         data += ser.read(min(rest, self._max_chunk - len(data)))
-                    host_ns = self._clock_ns()
+                    host_ns, steady_ns = self._clock_ns(), time.monotonic_ns()  # the host clock may step
                     last_data = time.monotonic()
                     with self._lock:
                         self._bytes += len(data)
-                    self.queue.put(host_ns, data)
+                    self.queue.put(host_ns, data, steady_ns)
                     self._wake()
                     if not got_data:
                         got_data = True

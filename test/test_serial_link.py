@@ -155,3 +155,27 @@ def test_a_frame_written_at_once_arrives_as_one_chunk(tmp_path: Path) -> None:
         link.stop()
         os.close(master)
         os.close(slave)
+
+
+def test_each_chunk_carries_the_host_and_the_steady_time_of_its_read(tmp_path: Path) -> None:
+    """The reader reads the host (ROS) clock and the steady clock together, so the clock estimate can run on the
+    steady one and host clock steps move the stamps exactly (``clock_sync``)."""
+    path = tmp_path / "board"
+    notified = Notified()
+    master, slave = open_pty(path)
+    host_ahead_ns = 7 * 10**9  # a host clock 7 s ahead of the steady clock
+    link = SerialLink(str(path), 115200, notify=notified, clock_ns=lambda: time.monotonic_ns() + host_ahead_ns)
+    link.start()
+    try:
+        notified.wait_for(lambda: link.status().state is LinkState.CONNECTED, 10, "connected")
+        before = time.monotonic_ns()
+        os.write(master, b"stamped")
+        notified.wait_for(lambda: link.status().bytes_read >= 7, 10, "bytes read")
+        after = time.monotonic_ns()
+        host_ns, data, steady_ns = link.queue.get_nowait()
+        assert data == b"stamped" and before <= steady_ns <= after
+        assert abs(host_ns - steady_ns - host_ahead_ns) < 10**8  # read one right after the other
+    finally:
+        link.stop()
+        os.close(master)
+        os.close(slave)
