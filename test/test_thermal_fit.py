@@ -278,7 +278,8 @@ def test_poses_are_counted_as_orientations_not_as_pose_ids() -> None:
     assert len(np.unique(both.pose_id)) == 3
     cal = fit_thermal(both, 0)
     assert cal.fit["poses"] == 6
-    np.testing.assert_allclose(cal.M, fit_thermal(rec, 0).M, rtol=1e-4, atol=1e-3)  # as one run of six ids (its own detector floor)
+    # as one run of six ids (each run has its own detector floor)
+    np.testing.assert_allclose(cal.M, fit_thermal(rec, 0).M, rtol=1e-4, atol=1e-3)
     again = rec.select(np.ones(len(rec), bool))
     again.run_id = np.ones(len(again), rec.run_id.dtype)
     assert fit_thermal(Recording.concatenate([rec, again]), 0).fit["poses"] == 6
