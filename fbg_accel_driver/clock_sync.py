@@ -61,7 +61,7 @@ def lower_envelope_slope(xs: list[float], ys: list[float]) -> float:
     points' lower convex hull above the mean x (the linear-programming estimate of clock skew, Moon, Skelly &
     Towsley, IEEE INFOCOM 1999). A delay only adds to an observation, so points above the hull -- a stall, a
     backlog read at once, a congested link -- cannot tilt it, where a least-squares line through the bin minima
-    followed them (a 1 s stall swung the drift to the 500 ppm limit and stamped samples 9 ms early)."""
+    followed them (a 1.5 s stall stamped samples up to 9.6 ms early, ``test_a_stalled_read_does_not_tilt_the_drift``)."""
     hull: list[tuple[float, float]] = []
     for p in zip(xs, ys, strict=True):
         while len(hull) >= 2 and ((hull[-1][0] - hull[-2][0]) * (p[1] - hull[-2][1])
