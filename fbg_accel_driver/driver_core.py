@@ -39,10 +39,12 @@ while recording its first calibration run).
 
 Decimation: ``decimation`` consecutive published samples are averaged (boxcar); the stamp is
 their mean stamp (the group-delay centre). The variance is the mean of the samples' variances times
-``noise_model.mean_variance_factor``: the noise is low-passed by the transimpedance stages, so N
-correlated samples carry the information of fewer than N independent ones (white noise: 1/N; with
-the calibration's ``noise_correlation``, from the block's own sample interval). Raw records are always
-produced for every board sample.
+the variance factor of a mean of N samples of the noise *as published* (``_mean_variance_factors``):
+without equalisation the noise is low-passed by the transimpedance stages, so N correlated samples
+carry the information of fewer than N independent ones (``noise_model.mean_variance_factor``: white
+noise 1/N; with the calibration's ``noise_correlation``, from the block's own sample interval); with
+``equalise`` the TIA poles are cancelled and the factor is that of the model through the equaliser.
+Raw records are always produced for every board sample.
 """
 
 from __future__ import annotations
@@ -208,6 +210,7 @@ class DriverCore:
         self._eq_prev_t_us: int | None = None
         self._delay_ns = round(self._dyn.stamp_delay_s(mode) * 1e9) if mode == "delay" else 0
         self._eq_cache: dict[int, tuple[int, tuple[float, float, float]]] = {}  # dt_us -> (delay ns, var factors)
+        self._eq_mean_cache: dict[tuple[int, int], tuple[float, float, float]] = {}  # (dt_us, n) -> mean factors
 
     def _base_sigma(self) -> np.ndarray:
         src = self.config.covariance_source
@@ -424,6 +427,30 @@ class DriverCore:
             if len(self._pending) >= cfg.decimation:
                 out.imu.append(self._emit())
 
+    def _mean_variance_factors(self, n: int, dt_s: float) -> tuple[float, float, float]:
+        """var(mean of ``n`` consecutive published samples) / var(one published sample) per axis (x, y, z of
+        the sensor frame), for samples ``dt_s`` (s) apart, from the correlation of the noise *as published*:
+        the calibration's white + first-order model (``noise_model.mean_variance_factor``), or, with
+        ``equalise``, that model through the axis channel's equaliser (``ChannelEqualiser.variance_factor``:
+        the TIA pole the model's correlation comes from is cancelled, the noise is left nearly white and
+        low-passed at the equaliser's bandwidth; Priestley 1981 eq. 5.3.6 with the filtered autocovariance)."""
+        eq = self._equaliser
+        if eq is None:
+            return tuple(mean_variance_factor(n, *self._noise_corr[a], dt_s) for a in range(3))  # type: ignore[return-value]
+        dt_us = round(dt_s * 1e6) if math.isfinite(dt_s) else 0
+        if dt_us <= 0:
+            return (1.0 / n,) * 3
+        key = (dt_us, n)
+        factors = self._eq_mean_cache.get(key)
+        if factors is None:
+            if len(self._eq_mean_cache) >= 64:
+                self._eq_mean_cache.clear()
+            dt = dt_us * 1e-6
+            factors = self._eq_mean_cache[key] = tuple(  # type: ignore[assignment]
+                eq.variance_factor(a, dt, *self._noise_corr[a], n) / eq.variance_factor(a, dt, *self._noise_corr[a])
+                for a in range(3))
+        return factors
+
     def _emit(self) -> ImuRecord:
         block = self._pending
         n = len(block)
@@ -433,8 +460,8 @@ class DriverCore:
             stamp = sum(b[0] for b in block) // n
             acc = tuple(math.fsum(b[1][a] for b in block) / n for a in range(3))
             dt_s = (block[-1][0] - block[0][0]) * 1e-9 / (n - 1)  # the board's sample interval (stamps)
-            var = [math.fsum(b[2][a] for b in block) / n * mean_variance_factor(n, *self._noise_corr[a], dt_s)
-                   for a in range(3)]
+            mean_factor = self._mean_variance_factors(n, dt_s)
+            var = [math.fsum(b[2][a] for b in block) / n * mean_factor[a] for a in range(3)]
             temp = math.fsum(b[3] for b in block) / n
             flags = frozenset().union(*(b[4] for b in block))
         self._pending = []
