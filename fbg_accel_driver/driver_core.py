@@ -153,7 +153,8 @@ class CoreCounters:
 
     samples: int = 0  # frames accepted by the decoder
     imu_published: int = 0  # ImuRecords emitted (after decimation)
-    samples_calibrated: int = 0  # board samples that went into an ImuRecord
+    samples_calibrated: int = 0  # board samples that went into an ImuRecord (counted when it is emitted)
+    decimation_discarded: int = 0  # calibrated samples of a partial decimation block a board reset ended: unpublished
     reference_low: int = 0
     adc_saturated: int = 0
     temperature_invalid: int = 0  # frames without a valid temperature reading
@@ -282,10 +283,16 @@ class DriverCore:
     def _on_reset(self) -> None:
         self.counters.board_resets += 1
         self.clock.reset()
-        self._pending.clear()  # never average across a reboot
+        self._discard_pending()  # never average across a reboot
         if self._equaliser is not None:  # nor filter across one
             self._equaliser.reset()
             self._eq_prev_t_us = None
+
+    def _discard_pending(self) -> None:
+        """Drop a partial decimation block that may not be completed (board reset): its samples go into no
+        record, so they are counted in ``decimation_discarded``, not in ``samples_calibrated``."""
+        self.counters.decimation_discarded += len(self._pending)
+        self._pending = []
 
     def chain_status(self) -> dict[str, float | str]:
         """Chain compensation for diagnostics: mode, bandwidth of the published acceleration (Hz; the
@@ -423,7 +430,6 @@ class DriverCore:
                 counters.non_finite_dropped += 1
                 continue
             self._pending.append((stamp_ns, accel, var, temp, frozenset(flags)))
-            counters.samples_calibrated += 1
             if len(self._pending) >= cfg.decimation:
                 out.imu.append(self._emit())
 
@@ -467,4 +473,5 @@ class DriverCore:
         self._pending = []
         cov = (float(var[0]), 0.0, 0.0, 0.0, float(var[1]), 0.0, 0.0, 0.0, float(var[2]))
         self.counters.imu_published += 1
+        self.counters.samples_calibrated += n
         return ImuRecord(stamp, (float(acc[0]), float(acc[1]), float(acc[2])), cov, float(temp), flags)

@@ -193,7 +193,9 @@ class DriverDiagnostics:
 
         # calibrated output: the last guard of DriverCore (a validated calibration should never trip it)
         nf = delta(core, pcore, "non_finite_dropped")
-        nf_vals = {"non_finite_dropped": core.get("non_finite_dropped", 0), "imu_published": core.get("imu_published", 0)}
+        nf_vals = {"non_finite_dropped": core.get("non_finite_dropped", 0), "imu_published": core.get("imu_published", 0),
+                   "samples_calibrated": core.get("samples_calibrated", 0),
+                   "decimation_discarded": core.get("decimation_discarded", 0)}
         if nf > 0:
             msg = f"{nf} sample(s) dropped since last report: the calibration gave a non-finite acceleration"
             entries.append(self._entry(ERROR, "calibrated output", msg, nf_vals))

@@ -356,3 +356,23 @@ def test_non_finite_drops_and_reader_queue_drops_are_reported() -> None:
     assert levels(e)["reader queue"] == WARN and "5000 byte(s) dropped" in next(
         x.message for x in e if x.name.endswith("reader queue"))
     assert values(e, "reader queue")["queue_dropped_bytes"] == "5000"
+
+
+def test_samples_calibrated_counts_exactly_the_samples_in_published_records() -> None:
+    """``samples_calibrated`` is "board samples that went into an ImuRecord": a partial decimation block ended
+    by a board reset is not published, so its samples go to ``decimation_discarded`` instead (shown in the
+    ``calibrated output`` diagnostic). Before the fix they were counted as calibrated (28 + 20 samples with
+    decimation 3: samples_calibrated 48 for 15 records of 3)."""
+    first = [frame(i) for i in range(28)]
+    second = [frame(i, status=GOOD | int(Status.BOOT) if i == 0 else GOOD, t0_us=5_000) for i in range(20)]
+    core = DriverCore(make_cal(), CoreConfig(decimation=3))
+    _, imu, _ = feed_frames(core, first + second, chunk=4)
+    c = core.counters
+    assert c.board_resets == 1 and len(imu) == c.imu_published == 28 // 3 + 20 // 3
+    assert c.samples_calibrated == 3 * c.imu_published  # every record holds 3 samples
+    assert c.decimation_discarded == 28 % 3  # the block pending at the reset
+    assert c.samples_calibrated + c.decimation_discarded + 20 % 3 == 48  # the rest still waits for its block
+    d = DriverDiagnostics()
+    e = d.report(snapshot(1.0, frames=48, core=c.as_dict()))
+    shown = values(e, "calibrated output")
+    assert shown["samples_calibrated"] == str(c.samples_calibrated) and shown["decimation_discarded"] == "1"
