@@ -44,6 +44,10 @@ without equalisation the noise is low-passed by the transimpedance stages, so N 
 carry the information of fewer than N independent ones (``noise_model.mean_variance_factor``: white
 noise 1/N; with the calibration's ``noise_correlation``, from the block's own sample interval); with
 ``equalise`` the TIA poles are cancelled and the factor is that of the model through the equaliser.
+A block never spans a board reset nor a gap in board time: a sample more than
+``MAX_BLOCK_SPAN_WINDOWS`` x N board sample intervals after the block's first sample (lost frames, a link
+outage, a run of samples the policies dropped) ends the block; the partial block is discarded in both
+cases and its samples counted in ``decimation_discarded`` (``decimation_gaps`` counts the gaps).
 Raw records are always produced for every board sample.
 """
 
@@ -58,7 +62,7 @@ from .chain_compensation import MODES as CHAIN_MODES
 from .chain_compensation import ChannelEqualiser
 from .clock_sync import ClockSync, ClockSyncConfig
 from .correction_terms import TiaInverseFilter
-from .frame_codec import ADC_MAX, Frame, at_adc_rail
+from .frame_codec import ADC_MAX, SEQ_MODULO, Frame, at_adc_rail
 from .noise_model import mean_variance_factor
 from .sensor_constants import STANDARD_GRAVITY
 from .stream_decoder import StreamDecoder
@@ -68,6 +72,10 @@ AHT10_MIN_C = -40.0  # AHT10 datasheet operating range
 AHT10_MAX_C = 85.0
 AHT10_SIGMA_C = 0.3  # AHT10 datasheet typical accuracy +-0.3 degC, used as 1 sigma
 COVARIANCE_SOURCES = ("calibration", "parameter", "unknown")
+# A decimation block of N samples (N = decimation, or the block's own size if ``reconfigure`` lowered it) must lie
+# within this many times N board sample intervals (at least half of its window received); a larger hole in
+# board time (lost frames, an outage) ends it like a board reset.
+MAX_BLOCK_SPAN_WINDOWS = 2.0
 # ``imu/raw`` (sensor_msgs/JointState): ``name`` of each ``position`` entry of a RawRecord, in order.
 RAW_NAMES = ("ref_counts", "x_counts", "y_counts", "z_counts", "temperature_c", "temperature_valid",
              "status", "seq", "board_time_s")
@@ -154,7 +162,8 @@ class CoreCounters:
     samples: int = 0  # frames accepted by the decoder
     imu_published: int = 0  # ImuRecords emitted (after decimation)
     samples_calibrated: int = 0  # board samples that went into an ImuRecord (counted when it is emitted)
-    decimation_discarded: int = 0  # calibrated samples of a partial decimation block a board reset ended: unpublished
+    decimation_discarded: int = 0  # calibrated samples of a partial decimation block a reset or gap ended: unpublished
+    decimation_gaps: int = 0  # pending decimation blocks ended by a gap in board time (lost frames, link outage)
     reference_low: int = 0
     adc_saturated: int = 0
     temperature_invalid: int = 0  # frames without a valid temperature reading
@@ -189,7 +198,10 @@ class DriverCore:
         self._last_good_stamp_ns: int | None = None
         self._last_stamp_ns: int | None = None
         self._last_raw_temp_valid: bool | None = None
-        self._pending: list[tuple[int, tuple[float, float, float], list[float], float, frozenset[str]]] = []
+        # decimation block: (stamp ns, accel m/s^2, variance (m/s^2)^2, temperature degC, flags, board time us)
+        self._pending: list[tuple[int, tuple[float, float, float], list[float], float, frozenset[str], int]] = []
+        self._prev_frame: tuple[int, int] | None = None  # (seq, t_us) of the previous frame of this board run
+        self._board_dt_us = 0  # the board's sample interval (us): t_us step between frames of consecutive seq
         self._unstamped: list[Frame] = []  # frames waiting for the clock estimate to be primed
         self._base_var = tuple(float(v) ** 2 for v in self._base_sigma())
         if calibration is not None and self.config.covariance_source != "unknown":
@@ -284,12 +296,14 @@ class DriverCore:
         self.counters.board_resets += 1
         self.clock.reset()
         self._discard_pending()  # never average across a reboot
+        self._prev_frame = None
+        self._board_dt_us = 0
         if self._equaliser is not None:  # nor filter across one
             self._equaliser.reset()
             self._eq_prev_t_us = None
 
     def _discard_pending(self) -> None:
-        """Drop a partial decimation block that may not be completed (board reset): its samples go into no
+        """Drop a partial decimation block that may not be completed (board reset, gap): its samples go into no
         record, so they are counted in ``decimation_discarded``, not in ``samples_calibrated``."""
         self.counters.decimation_discarded += len(self._pending)
         self._pending = []
@@ -364,6 +378,10 @@ class DriverCore:
         for f in frames:
             stamp_ns = clock.stamp(f.t_us)
             counters.samples += 1
+            prev = self._prev_frame
+            if prev is not None and (f.seq - prev[0]) % SEQ_MODULO == 1 and f.t_us > prev[1]:
+                self._board_dt_us = f.t_us - prev[1]
+            self._prev_frame = (f.seq, f.t_us)
             t_c = f.temp_cc / 100.0
             valid = f.temp_valid and AHT10_MIN_C <= t_c <= AHT10_MAX_C
             if valid:
@@ -429,7 +447,15 @@ class DriverCore:
             if not all(math.isfinite(v) for v in (*accel, *var)):
                 counters.non_finite_dropped += 1
                 continue
-            self._pending.append((stamp_ns, accel, var, temp, frozenset(flags)))
+            pending = self._pending
+            if pending and self._board_dt_us > 0 and (
+                    f.t_us - pending[0][5]
+                    > (MAX_BLOCK_SPAN_WINDOWS * max(cfg.decimation, len(pending) + 1) - 0.5) * self._board_dt_us):
+                # a gap in board time (lost frames, a link outage, samples the policies dropped): never average
+                # across it, as across a reboot; the partial block is discarded (counted)
+                counters.decimation_gaps += 1
+                self._discard_pending()
+            self._pending.append((stamp_ns, accel, var, temp, frozenset(flags), f.t_us))
             if len(self._pending) >= cfg.decimation:
                 out.imu.append(self._emit())
 
@@ -461,11 +487,12 @@ class DriverCore:
         block = self._pending
         n = len(block)
         if n == 1:
-            stamp, acc, var, temp, flags = block[0]
+            stamp, acc, var, temp, flags, _ = block[0]
         else:
             stamp = sum(b[0] for b in block) // n
             acc = tuple(math.fsum(b[1][a] for b in block) / n for a in range(3))
-            dt_s = (block[-1][0] - block[0][0]) * 1e-9 / (n - 1)  # the board's sample interval (stamps)
+            # the board's sample interval: the board clock's (the span would be stretched by missing samples)
+            dt_s = self._board_dt_us * 1e-6 if self._board_dt_us > 0 else (block[-1][0] - block[0][0]) * 1e-9 / (n - 1)
             mean_factor = self._mean_variance_factors(n, dt_s)
             var = [math.fsum(b[2][a] for b in block) / n * mean_factor[a] for a in range(3)]
             temp = math.fsum(b[3] for b in block) / n

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -17,6 +18,7 @@ from fbg_accel_driver.driver_diagnostics import ERROR, OK, STALE, WARN, Diagnost
 from fbg_accel_driver.frame_codec import ADC_MAX, Frame, Status, encode_frame
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
+REPO = Path(__file__).resolve().parents[1]
 T0_NS = 1_700_000_000_000_000_000
 GOOD = int(Status.TEMP_VALID | Status.TEMP_PRESENT)
 
@@ -376,3 +378,50 @@ def test_samples_calibrated_counts_exactly_the_samples_in_published_records() ->
     e = d.report(snapshot(1.0, frames=48, core=c.as_dict()))
     shown = values(e, "calibrated output")
     assert shown["samples_calibrated"] == str(c.samples_calibrated) and shown["decimation_discarded"] == "1"
+
+
+def _feed_blocks(core: DriverCore, blocks: list) -> list:
+    """Feed simulator blocks frame by frame, each arriving 0.2 ms after its true time; return the ImuRecords."""
+    imu = []
+    for b in blocks:
+        for piece, t in zip(b.wire_pieces(), b.t_s, strict=True):
+            imu += core.feed(piece, T0_NS + round((t + 0.0002) * 1e9)).imu
+    return imu
+
+
+def test_a_decimation_block_never_spans_a_link_outage() -> None:
+    """A 30 s outage (the board keeps sampling, no frame arrives: seq and board clock jump) ends the pending
+    block like a board reset: its partial samples are discarded (``decimation_discarded``), never averaged
+    with the samples after the outage. Before the fix one record averaged 5 samples from before 30 s and 5
+    from after 60 s and was stamped at 45 s, inside the outage."""
+    from fbg_accel_sim.board_physics import BoardSimulator, SimConfig
+
+    sim = BoardSimulator(SimConfig.default(), seed=4)
+    before = sim.step(3005)
+    sim.step(3000, deliver=False)  # 30 s: the board samples, the link carries nothing
+    after = sim.step(1000)
+    core = DriverCore(ThermalCalibration.load(REPO / "config" / "calibration_sim.yaml"), CoreConfig(decimation=10))
+    imu = _feed_blocks(core, [before, after])
+    stamps = (np.array([r.stamp_ns for r in imu]) - T0_NS) * 1e-9
+    assert not np.any((stamps > before.t_s[-1]) & (stamps < after.t_s[0])), stamps[(stamps > 30) & (stamps < 61)]
+    c = core.counters
+    assert c.decimation_discarded == 3005 % 10 and c.decimation_gaps == 1 and c.board_resets == 0
+    assert c.samples_calibrated == 10 * c.imu_published == 10 * (3005 // 10 + 1000 // 10)
+    # every record's window lies on one side of the outage: stamps 0.1 s apart there, one jump across it
+    assert np.count_nonzero(np.diff(stamps) > 0.2) == 1
+
+
+def test_a_few_lost_frames_inside_a_block_do_not_end_it() -> None:
+    """Tolerance: a block may miss samples as long as its samples lie within 2 N board sample intervals (half
+    its window or more received): one lost frame (a CRC error) costs that sample only."""
+    kept = [frame(i) for i in range(40) if i != 13]
+    core = DriverCore(make_cal(), CoreConfig(decimation=10))
+    _, imu, _ = feed_frames(core, kept)
+    assert len(imu) == 3 and core.counters.decimation_discarded == 0 == core.counters.decimation_gaps
+    assert core.counters.samples_calibrated == 30
+    # lowering the decimation while streaming: the longer block in progress is no gap, it is emitted whole
+    core = DriverCore(make_cal(), CoreConfig(decimation=20))
+    feed_frames(core, [frame(i) for i in range(12)])
+    core.reconfigure(decimation=5)
+    _, imu, _ = feed_frames(core, [frame(i) for i in range(12, 20)])
+    assert len(imu) == 2 and core.counters.samples_calibrated == 13 + 5 and core.counters.decimation_gaps == 0
