@@ -167,10 +167,12 @@ def whole_period_length(n_samples: int, fs_hz: float, f_hz: float) -> tuple[int,
     ``n_used = round(n_periods fs / f)``. Among the period counts from half the maximum up to the maximum,
     the one whose span is closest to a whole number of samples wins (ties: the longest), so that e.g. 9
     periods of 1.5 Hz at 100 Hz (600 samples, exact) are preferred to 10 (666.7 samples); the span then
-    differs from whole periods by at most half a sample. Raises ``ValueError`` when not one period fits.
+    differs from whole periods by at most half a sample. A record of exactly ``round(k fs / f)`` samples
+    holds k periods by the same rule (also when that rounds below ``k fs / f``), so a span this function
+    returns is accepted back. Raises ``ValueError`` when not one period fits.
     """
     per = fs_hz / f_hz
-    k_max = int(np.floor(n_samples / per + 1e-9))
+    k_max = int(np.floor((n_samples + 0.5) / per + 1e-9))
     while k_max >= 1 and round(k_max * per) > n_samples:
         k_max -= 1
     if k_max < 1:
@@ -503,16 +505,22 @@ def _estimate_block(t: np.ndarray, ref: np.ndarray, sens: np.ndarray, d_i: float
     return _Estimate(H, dx, dc, abs(zr), abs(zs), resid, u_rel, u_ph)
 
 
-def _sub_blocks(n: int, fs_hz: float, f_hz: float, max_blocks: int) -> list[slice]:
-    """Up to ``max_blocks`` consecutive sub-blocks of whole periods (each at least one period)."""
-    k, _ = whole_period_length(n, fs_hz, f_hz)
+def _sub_blocks(n: int, k: int, fs_hz: float, f_hz: float, max_blocks: int) -> list[slice]:
+    """Up to ``max_blocks`` consecutive sub-blocks of whole periods of a block of ``n`` samples that spans
+    ``k`` whole periods (as cut by :func:`whole_period_length`; not cut again, which could keep fewer).
+
+    Every sub-block has the same length ``round(p fs / f)`` samples (``p`` periods, ``fs`` and ``f`` in Hz),
+    the whole-period span of :func:`whole_period_length`, and starts at ``round(j p fs / f)``: a span cut
+    between two rounded boundaries can be a sample short of one period when fs / f is not an integer.
+    Neighbours may share one sample; the last sub-block ends at or before ``n``.
+    """
     m = min(k, max_blocks)
     per_block = k // m
+    length = min(round(per_block * fs_hz / f_hz), n)  # f refined by a 4-parameter fit may move it
     out = []
     for j in range(m):
-        a = round(j * per_block * fs_hz / f_hz)
-        b = round((j + 1) * per_block * fs_hz / f_hz)
-        out.append(slice(a, min(b, n)))
+        a = min(round(j * per_block * fs_hz / f_hz), n - length)
+        out.append(slice(a, a + length))
     return out
 
 
@@ -561,13 +569,15 @@ def analyse_run(t_s: np.ndarray, reference_accel: np.ndarray, sensor_accel: np.n
     points: list[DynamicPoint] = []
     for f_nom in sorted(groups):
         blocks: list[np.ndarray] = []
+        periods: list[int] = []
         f_use = f_nom
         for a, b in groups[f_nom]:
             idx = np.flatnonzero((t >= a) & (t < b))
             if idx.size < 5:
                 raise ValueError(f"segment {f_nom} Hz [{a}, {b}) s has fewer than 5 samples")
-            _, n = whole_period_length(idx.size, fs, f_nom)
+            k, n = whole_period_length(idx.size, fs, f_nom)
             blocks.append(idx[:n])
+            periods.append(k)
         if refine_frequency:
             f_use = float(np.mean([sine_approximation(t[i], ref[i], f_nom, fit_frequency=True).f_hz for i in blocks]))
         for ax in range(3):
@@ -585,7 +595,7 @@ def analyse_run(t_s: np.ndarray, reference_accel: np.ndarray, sensor_accel: np.n
             else:
                 i0 = blocks[0]
                 reps = [_estimate_block(t[i0[s]], ref[i0[s]], sens[i0[s], ax], d[ax], f_use, fs, method)
-                        for s in _sub_blocks(i0.size, fs, f_use, max_sub_blocks)]
+                        for s in _sub_blocks(i0.size, periods[0], fs, f_use, max_sub_blocks)]
             _fill_point(p, whole, reps, fs, ru)
             points.append(p)
     _fill_sensitivity_differences(points)

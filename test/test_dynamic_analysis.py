@@ -30,6 +30,7 @@ from fbg_accel_calibration.dynamic_analysis import (
     points_table_markdown,
     resolution_components,
     sine_approximation,
+    whole_period_length,
 )
 
 FS = 1000.0
@@ -352,3 +353,34 @@ def test_bode_plot_is_written(chain_run, tmp_path: Path) -> None:
     out = plot_bode(pts, models, tmp_path / "bode.png", title="synthetic chain")
     assert out.exists() and out.stat().st_size > 10_000
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+# --- periods that are not a whole number of samples ---------------------------------------------------
+
+@pytest.mark.parametrize(("fs", "f", "dur"), [(500.0, 0.7, 20.0), (100.002, 0.5, 20.0), (500.0, 3.3, 4.0),
+                                              (333.0, 0.7, 20.0), (500.0, 2.2, 6.0)])
+def test_segment_of_few_non_integer_periods_is_analysed(fs: float, f: float, dur: float) -> None:
+    """Fewer than 16 periods of a tone whose period is not a whole number of samples: the one-period
+    sub-blocks for the repeatability must still hold one whole period (they rounded down below it)."""
+    rng = np.random.default_rng(11)
+    t = np.arange(int(dur * fs)) / fs
+    d = np.array(SEED_DIRECTION)
+    ref = 2.0 * np.sin(2 * np.pi * f * t) + 0.002 * rng.standard_normal(t.size)
+    sens = np.outer(0.9 * np.sin(2 * np.pi * f * (t - 0.01)), d) + 0.002 * rng.standard_normal((t.size, 3))
+    pts = analyse_run(t, ref, sens, d, [(f, 0.0, dur)])
+    for p in pts:
+        assert p.n_repeats >= 4
+        assert p.sensitivity == pytest.approx(0.45, rel=1e-3)  # 0.9 d_i / (2 d_i)
+        assert p.delay_cross_spectrum_s == pytest.approx(0.01, abs=2e-4)
+        assert p.delay_xcorr_s == pytest.approx(0.01, abs=2e-4)
+
+
+def test_whole_period_span_is_accepted_back_as_whole_periods() -> None:
+    """``whole_period_length`` returns ``round(k fs / f)`` samples for k periods; a block of exactly that
+    many samples must count as k periods again (it counted as k - 1, or none for k = 1)."""
+    for per in (714.2857142857143, 151.51515151515153, 200.004, 227.27272727272728, 100.5, 476.0):
+        for k in range(1, 5):
+            n = round(k * per)
+            k_back, n_back = whole_period_length(n, per, 1.0)
+            assert n_back <= n and abs(k_back * per - n_back) <= 0.5 + 1e-9
+            assert k_back >= (k + 1) // 2 and (k > 1 or k_back == 1)
