@@ -42,6 +42,7 @@ AXES = ("x", "y", "z")
 SENSITIVITY_REFERENCE_F_HZ = 2.0  # seed 3.2 eq. 5: differences from the value at 2 Hz
 MIN_DIRECTION_COMPONENT = 0.1  # |direction[i]| below this: the axis sees < 10 % of the slide's acceleration
 PEAK_TIE = 0.01  # correlation peaks within 1 % of the largest count as equal (periodic records)
+STEP_TOL = 0.05  # a time step more than 5 % from the median one is a gap (a lost frame is 100 %)
 MAX_SUB_BLOCKS = 8  # repeatability from at most this many whole-period sub-blocks of one segment
 
 
@@ -469,15 +470,25 @@ class _Estimate:
     u_phase_rad: float
 
 
-def _sampling_rate(t: np.ndarray, tol: float = 0.05) -> float:
-    dt = np.diff(t)
-    if dt.size == 0 or not np.all(np.isfinite(dt)):
+def sampling_rate(t: np.ndarray) -> float:
+    """Sampling rate (Hz) of the time base ``t`` (s) from its median step, so a lost frame (a step of two)
+    or a repeated stamp somewhere does not move it; :func:`uniformly_sampled` checks a span."""
+    dt = np.diff(np.asarray(t, dtype=float))
+    dt = dt[np.isfinite(dt)]
+    if dt.size == 0:
         raise ValueError("time base needs at least 2 finite samples")
     med = float(np.median(dt))
-    if med <= 0 or np.max(np.abs(dt - med)) > tol * med:
-        raise ValueError("time base is not uniformly sampled (steps differ by more than "
-                         f"{tol:.0%} from the median); resample before the dynamic analysis")
+    if not med > 0:
+        raise ValueError("time base does not increase (median step <= 0)")
     return 1.0 / med
+
+
+def uniformly_sampled(t: np.ndarray, fs_hz: float, tol: float = STEP_TOL) -> bool:
+    """True when every step of ``t`` (s) is within ``tol`` (relative) of ``1 / fs_hz``: no lost frame, no
+    repeated or out-of-order stamp. The whole-period cuts, the DFT and the circular cross-correlation
+    count samples, so a span they use must pass."""
+    dt = np.diff(np.asarray(t, dtype=float))
+    return bool(np.all(np.abs(dt * fs_hz - 1.0) <= tol))
 
 
 def _estimate_block(t: np.ndarray, ref: np.ndarray, sens: np.ndarray, d_i: float, f_hz: float, fs_hz: float,
@@ -531,7 +542,9 @@ def analyse_run(t_s: np.ndarray, reference_accel: np.ndarray, sensor_accel: np.n
                 ) -> list[DynamicPoint]:
     """Amplitude/phase points per (frequency, axis) of one slide run (seed 2, 2.1-2.4, 3.2-3.3).
 
-    ``t_s`` (N,) uniformly sampled time (s); ``reference_accel`` (N,) slide acceleration along ``direction``
+    ``t_s`` (N,) time (s), sampled at the rate of its median step; each segment's samples must be
+    uniformly sampled (:func:`uniformly_sampled`, else ``ValueError``), a gap outside them does not matter;
+    ``reference_accel`` (N,) slide acceleration along ``direction``
     (m/s^2, e.g. the differentiated LDV velocity); ``sensor_accel`` (N, 3) sensor output (m/s^2, sensor
     frame); ``direction`` (3,) unit vector of the slide motion in the sensor frame (normalised here);
     ``segments``: ``(f_hz, t_start_s, t_end_s)`` of steady sinusoidal excitation (settling excluded by the
@@ -556,7 +569,7 @@ def analyse_run(t_s: np.ndarray, reference_accel: np.ndarray, sensor_accel: np.n
     if d.shape != (3,) or not np.all(np.isfinite(d)) or np.linalg.norm(d) == 0:
         raise ValueError("direction must be a finite non-zero 3-vector")
     d = d / np.linalg.norm(d)
-    fs = _sampling_rate(t)
+    fs = sampling_rate(t)
     ru = reference_uncertainty or ReferenceUncertainty()
 
     groups: dict[float, list[tuple[float, float]]] = {}
@@ -575,6 +588,9 @@ def analyse_run(t_s: np.ndarray, reference_accel: np.ndarray, sensor_accel: np.n
             idx = np.flatnonzero((t >= a) & (t < b))
             if idx.size < 5:
                 raise ValueError(f"segment {f_nom} Hz [{a}, {b}) s has fewer than 5 samples")
+            if not uniformly_sampled(t[idx], fs):
+                raise ValueError(f"segment {f_nom:g} Hz [{a}, {b}) s is not uniformly sampled (a lost frame or a "
+                                 f"step more than {STEP_TOL:.0%} from 1/{fs:g} Hz): leave it out or resample it")
             k, n = whole_period_length(idx.size, fs, f_nom)
             blocks.append(idx[:n])
             periods.append(k)

@@ -5,7 +5,7 @@ Pure numpy/scipy, no ROS (``fbg-accel-calib dynamic`` is the shell). Steps (docs
 
 1. the slide's start on the recording's time base (:func:`excitation_plan.find_slide_start`), the steady
    part of every segment (:meth:`ExcitationPlan.steady_windows`); a segment with a channel clipped at a rail
-   of the ADC in its steady part is left out with a note;
+   of the ADC or a lost frame in its steady part is left out with a note;
 2. the reference acceleration from the aux channel (:func:`excitation_plan.reference_acceleration`) and
    the sensor's acceleration from its counts by the **static** calibration (eq. 24 and 28, no chain
    compensation), so what is measured is the whole chain after eq. 28;
@@ -29,7 +29,14 @@ from fbg_accel_driver.frame_codec import at_adc_rail
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .chain_model import ChainModel, fit_chain_models
-from .dynamic_analysis import DynamicPoint, ReferenceUncertainty, analyse_run, points_table_markdown
+from .dynamic_analysis import (
+    DynamicPoint,
+    ReferenceUncertainty,
+    analyse_run,
+    points_table_markdown,
+    sampling_rate,
+    uniformly_sampled,
+)
 from .excitation_plan import ExcitationPlan, find_slide_start, reference_acceleration
 from .recording import Recording
 
@@ -99,8 +106,7 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
     t, aux = t[ok], aux[ok]
     ref_c, xyz = rec.ref[order][ok], rec.xyz[order][ok]
     temp = _filled_temperature(rec.temp_c[order][ok])
-    dt = np.diff(t)
-    fs = 1.0 / float(np.median(dt))
+    fs = sampling_rate(t)  # the median step: a lost frame outside the steady parts does not matter
     notes: list[str] = []
     try:
         start = find_slide_start(t, aux, plan) if slide_start_s is None else float(slide_start_s)
@@ -118,6 +124,13 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
         windows = [w for w in windows if w not in hit]
         notes.append(f"segment(s) at {', '.join(f'{w[0]:g} Hz' for w in hit)} left out: a channel clipped at a rail "
                      "of the ADC during the steady part (lower the slide's amplitude there)")
+    # the whole-period cuts, the DFT and the circular cross-correlation count samples: a lost frame (or a
+    # sample dropped above for a non-finite value) inside a steady part would shift every later sample
+    gappy = [w for w in windows if not uniformly_sampled(t[(t >= w[1]) & (t < w[2])], fs)]
+    if gappy:
+        windows = [w for w in windows if w not in gappy]
+        notes.append(f"segment(s) at {', '.join(f'{w[0]:g} Hz' for w in gappy)} left out: a lost frame (a time step "
+                     f"other than the nominal {1e3 / fs:.4g} ms) during the steady part")
     if len(windows) < 3:
         raise DynamicCalibrationError(f"only {len(windows)} steady segment(s) in the recording: the chain model needs "
                                       "at least 3 frequencies")

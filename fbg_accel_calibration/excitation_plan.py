@@ -296,4 +296,4 @@ def find_slide_start(t_s: np.ndarray, aux_counts: np.ndarray, plan: ExcitationPl
     # a recording cut short (a killed run) still aligns: the plan may run past its end
     padded = np.concatenate([env - env.mean(), np.zeros(n_plan)])
     score = np.correlate(padded, plan_env - plan_env.mean(), mode="valid")[: len(env)]
-    return float(t[0] + int(np.argmax(score)) * dt)
+    return float(t[int(np.argmax(score))])  # the sample's own stamp: a lost frame before it does not shift it

@@ -384,3 +384,20 @@ def test_whole_period_span_is_accepted_back_as_whole_periods() -> None:
             k_back, n_back = whole_period_length(n, per, 1.0)
             assert n_back <= n and abs(k_back * per - n_back) <= 0.5 + 1e-9
             assert k_back >= (k + 1) // 2 and (k > 1 or k_back == 1)
+
+
+# --- lost frames ---------------------------------------------------------------------------------------
+
+def test_a_lost_frame_outside_the_segments_does_not_matter() -> None:
+    """The rate is the median step: one sample missing between two segments changes nothing (the whole run
+    was refused as 'not uniformly sampled'); a sample missing inside a segment is refused naming it."""
+    t, ref, sens, segs = _synthetic_run(4)
+    clean = analyse_run(t, ref, sens, SEED_DIRECTION, segs)
+    gap = int(np.searchsorted(t, 0.5 * (segs[1][2] + segs[2][1])))  # between the 2nd and 3rd segment
+    keep = np.arange(t.size) != gap
+    lost = analyse_run(t[keep], ref[keep], sens[keep], SEED_DIRECTION, segs)
+    assert [p.to_dict() for p in lost] == [p.to_dict() for p in clean]
+    f, a, b = segs[2]
+    keep = np.arange(t.size) != int(np.searchsorted(t, 0.5 * (a + b)))
+    with pytest.raises(ValueError, match=rf"segment {f:g} Hz .* not uniformly sampled"):
+        analyse_run(t[keep], ref[keep], sens[keep], SEED_DIRECTION, segs)

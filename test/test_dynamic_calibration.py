@@ -187,3 +187,20 @@ def test_board_sim_runs_the_plan_file_with_the_reference_on_aux(tmp_path):
     bad = subprocess.run([str(Path(sys.executable).parent / "board_sim"), "--dynamic-plan", "/nonexistent.yaml",
                           "--output", str(tmp_path / "x.bin")], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "excitation plan not found" in bad.stderr
+
+
+def test_a_lost_frame_is_harmless_at_rest_and_leaves_its_segment_out(static_cal):
+    """One lost frame (a 2-sample step) at rest before the slide changes nothing; one inside a segment's
+    steady part leaves that segment out with a note naming its frequency, as a clipped reading does. Both
+    made the whole run fail ('time base is not uniformly sampled')."""
+    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=1)
+    clean = run_dynamic(rec, PLAN, static_cal)
+    at_rest = run_dynamic(rec.select(np.arange(len(rec)) != 1000), PLAN, static_cal)  # t = 2 s
+    assert at_rest.slide_start_s == pytest.approx(clean.slide_start_s, abs=1e-9)
+    assert [p.to_dict() for p in at_rest.points] == [p.to_dict() for p in clean.points]
+    f_hit, a, b = clean.windows[3]
+    lost = run_dynamic(rec.select(np.arange(len(rec)) != int(np.searchsorted(rec.t_s, 0.5 * (a + b)))),
+                       PLAN, static_cal)
+    assert f_hit not in lost.dynamics.fit["frequencies_hz"] and len(lost.windows) == len(clean.windows) - 1
+    assert [n for n in lost.notes if "lost" in n and f"{f_hit:g} Hz" in n]
+    assert [p.to_dict() for p in lost.points] == [p.to_dict() for p in clean.points if p.f_hz != f_hit]
