@@ -36,6 +36,7 @@ from typing import Any, Literal
 
 import numpy as np
 from scipy import signal
+from scipy.optimize import minimize_scalar
 
 LOG = logging.getLogger(__name__)
 AXES = ("x", "y", "z")
@@ -217,15 +218,22 @@ def delay_by_cross_correlation(ref: np.ndarray, sig: np.ndarray, fs_hz: float, m
     uniformly sampled at ``fs_hz`` on the same time base; means are removed. The correlation at lag k is
     ``sum sig[n] ref[n - k]`` divided by the number of overlapping samples (unbiased), over the lags with at
     least half the record overlapping and ``|k| <= max_lag_s fs`` (default: no further limit). The integer
-    peak is the local maximum nearest zero lag among those within ``PEAK_TIE`` (relative) of the largest --
-    the equal peaks of a periodic record resolve to the one nearest zero, as MATLAB ``finddelay`` does;
-    a tone fixes a delay only modulo its period. Refinement around the integer peak:
+    peak is the largest value of its lobe (a run of lags above half the largest value); lobes whose peaks
+    are within ``PEAK_TIE`` (relative) of the largest -- the equal peaks a whole period apart of a periodic
+    record -- resolve to the one nearest zero, as MATLAB ``finddelay`` does; a tone fixes a delay only
+    modulo its period. Noise ripples on one flat peak do not tie (:func:`_tied_peak`). Refinement around
+    the integer peak, when it is narrow (fewer than 2 lags on a side above 3/4 of its value):
 
     * ``"cosine"`` (default): fit ``A cos(w (k - d))`` through the three points around the peak; exact for a
       sinusoid, close to parabolic for broadband signals; falls back to parabolic when the three points
       are not cosine-shaped;
     * ``"parabolic"``: vertex of the parabola through the three points (bias grows with f/fs);
     * ``"none"``: integer samples (the resolution 1/fs of seed Table 3).
+
+    A wide peak (a slow tone: its curvature between neighbouring lags is below the noise) is refined by a
+    least-squares parabola over its lags above 3/4 of its value, on a window re-centred on the vertex
+    (:func:`_refined_offset`; up to 0.008 sample off on a noiseless tone), and with ``"cosine"`` then by a
+    least-squares cosine over the same window (exact for a tone).
 
     ``circular``: correlate circularly (via the FFT, records cut to the shorter length). Use it for a
     periodic excitation cut to whole periods (as :func:`analyse_run` does): the circular correlation of
@@ -246,35 +254,134 @@ def delay_by_cross_correlation(ref: np.ndarray, sig: np.ndarray, fs_hz: float, m
         cc = np.fft.irfft(np.conj(np.fft.rfft(r)) * np.fft.rfft(s), n) / n  # cc[k] = mean s[m] r[m - k mod n]
         lags = np.arange(n)
         lags[lags > n // 2] -= n
-        ok = np.ones(n, dtype=bool)
+        valid = np.ones(n, dtype=bool)
     else:
         r = ref - ref.mean()
         s = sig - sig.mean()
         raw = signal.correlate(s, r, mode="full", method="fft")
         lags = signal.correlation_lags(s.size, r.size, mode="full")
         overlap = np.minimum(s.size, r.size + lags) - np.maximum(0, lags)
-        ok = overlap >= max(2, min(s.size, r.size) // 2)
+        valid = overlap >= max(2, min(s.size, r.size) // 2)
         cc = raw / np.maximum(overlap, 1)
+    ok = valid.copy()
     if max_lag_s is not None:
         ok &= np.abs(lags) <= max_lag_s * fs_hz
     if not np.any(ok):
         raise ValueError("no lag within max_lag_s")
-    m = cc.size
-    prev = np.roll(cc, 1) if circular else np.concatenate([[-np.inf], cc[:-1]])
-    nxt = np.roll(cc, -1) if circular else np.concatenate([cc[1:], [-np.inf]])
-    top = float(np.max(cc[ok]))
-    cand = ok & (cc >= prev) & (cc >= nxt) & (cc >= top - PEAK_TIE * abs(top))
-    if not np.any(cand):  # the maximum sits on the edge of the allowed lags
-        cand = ok & (cc == top)
-    idx = np.flatnonzero(cand)
-    i = int(idx[np.argmin(np.abs(lags[idx]))])
+    i = _tied_peak(cc, lags, valid, ok, circular)
     d = float(lags[i])
     if refine != "none":
-        if circular:
-            d += peak_offset(cc[(i - 1) % m], cc[i], cc[(i + 1) % m], refine)
-        elif 0 < i < m - 1:
-            d += peak_offset(cc[i - 1], cc[i], cc[i + 1], refine)
+        d += _refined_offset(cc, i, valid, circular, refine)
     return d / fs_hz
+
+
+def _lobes(mask: np.ndarray, circular: bool) -> list[np.ndarray]:
+    """Index runs where ``mask`` holds; with ``circular`` the last index neighbours the first."""
+    n = mask.size
+    if not mask.any():
+        return []
+    if circular and mask.all():
+        return [np.arange(n)]
+    shift = int(np.flatnonzero(~mask)[0]) if circular else 0  # start the scan on a gap
+    mm = np.roll(mask, -shift)
+    edges = np.diff(np.concatenate([[0], mm.astype(np.int8), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    return [(np.arange(a, e) + shift) % n for a, e in zip(starts, ends, strict=True)]
+
+
+def _tied_peak(cc: np.ndarray, lags: np.ndarray, valid: np.ndarray, ok: np.ndarray, circular: bool) -> int:
+    """Index of the integer correlation peak within the allowed lags ``ok`` (``valid``: the lags where the
+    correlation means something, every lag of a circular one; ``ok``: those within the lag limit too).
+
+    The correlation splits into lobes: runs of lags above half the largest allowed value. Each lobe's peak is
+    its largest allowed value; lobes whose peaks are within ``PEAK_TIE`` (relative) of the largest tie -- the
+    equal peaks a whole period apart of a periodic record -- and the one nearest zero lag wins (MATLAB
+    ``finddelay``). Within a lobe only its true maximum counts: a slow tone's peak is so flat that noise
+    ripples on it lie within 1 % of the top over a wide span of lags (about +-0.02 periods), and letting
+    those tie pulled the delay towards zero (100 ms read as about 0 at 0.1 Hz).
+    """
+    top = float(np.max(cc[ok]))
+    if not top > 0:  # no positive correlation: nothing to split, the largest allowed value
+        idx = np.flatnonzero(ok & (cc == top))
+        return int(idx[np.argmin(np.abs(lags[idx]))])
+    best: tuple[float, int] | None = None
+    peaks: list[tuple[float, int]] = []
+    for lobe in _lobes(valid & (cc > 0.5 * top), circular):
+        allowed = lobe[ok[lobe]]
+        if allowed.size:
+            j = int(allowed[np.argmax(cc[allowed])])
+            peaks.append((float(cc[j]), j))
+    tied = [j for v, j in peaks if v >= top - PEAK_TIE * abs(top)]
+    for j in tied:
+        if best is None or abs(lags[j]) < best[0]:
+            best = (float(abs(lags[j])), j)
+    assert best is not None  # the largest allowed value lies in a lobe
+    return best[1]
+
+
+def _refined_offset(cc: np.ndarray, i: int, valid: np.ndarray, circular: bool, refine: str) -> float:
+    """Sub-sample offset (samples) of the peak at index ``i`` of the correlation ``cc`` (``valid`` lags only).
+
+    A narrow peak (fewer than 2 lags on either side above three quarters of its value) is refined from the
+    three points around it (:func:`peak_offset`: cosine or parabolic; exact for a tone). A wide one -- a
+    slow tone, whose top carries noise ripples larger than the curvature between neighbouring lags -- by a
+    least-squares parabola over the lags above three quarters of the peak (+-41 degrees of a tone), on a
+    window symmetric about the integer lag nearest the vertex (re-centred until it stays), so that neither
+    the noise on three points nor the cosine's quartic term moves it much; ``refine="cosine"`` then fits a
+    cosine over the same window (:func:`_cosine_vertex`), exact for a tone.
+    """
+    m = cc.size
+    y0 = float(cc[i])
+    inside = valid & (cc > 0.75 * y0) if y0 > 0 else np.zeros(m, bool)
+    inside[i] = True
+
+    def reach(c: int, step: int) -> int:  # lags from c, in direction step, still inside the top quarter
+        r = 0
+        while r < m // 2 and (circular or 0 <= c + step * (r + 1) < m) and inside[(c + step * (r + 1)) % m]:
+            r += 1
+        return r
+
+    h = min(reach(i, -1), reach(i, +1))
+    if h < 2:
+        if circular:
+            return peak_offset(cc[(i - 1) % m], y0, cc[(i + 1) % m], refine)
+        return peak_offset(cc[i - 1], y0, cc[i + 1], refine) if 0 < i < m - 1 else 0.0
+    c = i
+    off = 0.0
+    for _ in range(4):
+        k = np.arange(-h, h + 1).astype(float)
+        y = cc[(c + np.arange(-h, h + 1)) % m] if circular else cc[np.clip(c + np.arange(-h, h + 1), 0, m - 1)]
+        c2, c1, c0 = np.polyfit(k, y, 2)
+        v = float(np.clip(-c1 / (2 * c2), -h, h)) if c2 < 0 else 0.0
+        off = (c - i) + v
+        nc = i + round(off)
+        if nc == c:
+            break
+        c = nc
+        h = max(2, min(h, reach(c, -1), reach(c, +1)))
+    if refine == "cosine" and c2 < 0 and c0 > 0:  # the parabola's vertex, refined to the cosine it approximates
+        off = (c - i) + _cosine_vertex(k, y, math.sqrt(-2.0 * c2 / c0), v)
+    return off
+
+
+def _cosine_vertex(k: np.ndarray, y: np.ndarray, w0: float, v0: float) -> float:
+    """Peak position (samples) of ``b cos(w k) + c sin(w k)`` fitted to ``y`` at lags ``k`` by least squares,
+    ``w`` (rad/sample) searched within a factor 2 of ``w0``; ``v0`` (the parabola's vertex) when the fit fails.
+    Exact for the correlation of a tone, which a parabola over +-41 degrees misses by up to 0.008 sample."""
+    def fit(w: float) -> tuple[float, np.ndarray]:
+        a = np.column_stack([np.cos(w * k), np.sin(w * k)])
+        coef, *_ = np.linalg.lstsq(a, y, rcond=None)
+        r = y - a @ coef
+        return float(r @ r), coef
+
+    res = minimize_scalar(lambda w: fit(w)[0], bounds=(0.5 * w0, 2.0 * w0),
+                          method="bounded", options={"xatol": 1e-6 * w0})
+    w = float(res.x)
+    b, c = fit(w)[1]
+    if not (res.success and b > 0):
+        return v0
+    vertex = math.atan2(c, b) / w
+    return vertex if abs(vertex - v0) <= 1.0 else v0
 
 
 def peak_offset(ym: float, y0: float, yp: float, refine: str = "parabolic") -> float:

@@ -401,3 +401,43 @@ def test_a_lost_frame_outside_the_segments_does_not_matter() -> None:
     keep = np.arange(t.size) != int(np.searchsorted(t, 0.5 * (a + b)))
     with pytest.raises(ValueError, match=rf"segment {f:g} Hz .* not uniformly sampled"):
         analyse_run(t[keep], ref[keep], sens[keep], SEED_DIRECTION, segs)
+
+
+# --- cross-correlation peak of a slow tone -------------------------------------------------------------
+
+@pytest.mark.parametrize("f", [0.1, 0.5])
+def test_slow_tone_delay_is_read_at_the_true_correlation_peak(f: float) -> None:
+    """At low f/fs the tone's correlation peak is so flat that noise ripples on it lay within 1 % of the top
+    over +-0.02 periods; taking the ripple nearest zero lag read a 100 ms delay as about 0 (0.1 Hz, 500 Hz).
+    The xcorr delay must agree with the cross-spectrum's on the same noisy data, and be exact without noise."""
+    fs, true_d = 500.0, 0.100
+    n = round(5 * fs / f)  # 5 whole periods
+    t = np.arange(n) / fs
+    errs = []
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        ref = np.cos(2 * np.pi * f * t) + 0.2 * rng.standard_normal(n)
+        sig = 0.8 * np.cos(2 * np.pi * f * (t - true_d)) + 0.2 * rng.standard_normal(n)
+        d_xc = delay_by_cross_correlation(ref, sig, fs, max_lag_s=0.5 / f, circular=True)
+        d_cs = delay_by_cross_spectrum(ref, sig, fs, f)
+        assert abs(d_xc - d_cs) < 1e-3, (seed, d_xc, d_cs)
+        errs.append(d_xc - true_d)
+    assert abs(np.mean(errs)) < 3e-3 and np.max(np.abs(errs)) < 10e-3, errs
+    for d in (true_d, -0.037):
+        clean = delay_by_cross_correlation(np.cos(2 * np.pi * f * t), np.cos(2 * np.pi * f * (t - d)), fs,
+                                           max_lag_s=0.5 / f, circular=True)
+        assert clean == pytest.approx(d, abs=1e-6)
+
+
+def test_equal_peaks_a_period_apart_resolve_to_the_one_nearest_zero_lag() -> None:
+    """The tie rule's purpose (kept): the circular correlation of whole periods, with no lag limit, has equal
+    peaks a whole period apart; the delay is the one nearest zero (MATLAB finddelay), here 0.3 periods, not
+    -0.7 or 1.3, whichever of them noise makes a little higher."""
+    f, d = 2.0, 0.15  # 0.3 periods
+    t = np.arange(0, 5.0, 1 / FS)  # 10 whole periods
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        ref = np.sin(2 * np.pi * f * t) + 0.05 * rng.standard_normal(t.size)
+        sig = np.sin(2 * np.pi * f * (t - d)) + 0.05 * rng.standard_normal(t.size)
+        assert delay_by_cross_correlation(ref, sig, FS, circular=True) == pytest.approx(d, abs=1e-3)
+        assert delay_by_cross_correlation(sig, ref, FS, circular=True) == pytest.approx(-d, abs=1e-3)
