@@ -69,7 +69,7 @@ class ChainModel:
             "gain": float(self.gain),
             "cutoff_hz": float(self.cutoff_hz),
             "delay_s": float(self.delay_s),
-            "group_delay_dc_s": float(group_delay_s(self, 0.0)),
+            "group_delay_dc_s": self.sensor_group_delay_dc_s(),
             "u_gain": _plain(self.u_gain),
             "u_cutoff_hz": _plain(self.u_cutoff_hz),
             "u_delay_s": _plain(self.u_delay_s),
@@ -81,6 +81,13 @@ class ChainModel:
         if self.fit:
             out["fit"] = {k: _plain(v) for k, v in self.fit.items()}
         return out
+
+    def sensor_group_delay_dc_s(self) -> float:
+        """Group delay at DC (s) of the axis's own chain, ``delay + 1 / (2 pi fc)``: what the driver's stamp
+        correction removes (``ChainDynamics.group_delay_s``), the ``group_delay_dc_s`` of :meth:`to_dict` and
+        of the report. A fitted high-pass is not in it: in the reference (an AC-coupled LDV) it is not the
+        sensor's; in the sensor path its gain at DC is 0 (quote :func:`group_delay_s` at a stated frequency)."""
+        return float(first_order_group_delay_s(self.cutoff_hz)) + float(self.delay_s)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ChainModel:

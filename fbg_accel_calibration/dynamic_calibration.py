@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from fbg_accel_driver.chain_compensation import ChainDynamics, first_order_group_delay_s
+from fbg_accel_driver.chain_compensation import ChainDynamics
 from fbg_accel_driver.frame_codec import at_adc_rail
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
@@ -70,7 +70,7 @@ class DynamicCalibrationResult:
             hp = (f"{m.highpass_cutoff_hz:.3f} +- {m.u_highpass_cutoff_hz:.3f}" if m.highpass_cutoff_hz is not None
                   else "-")
             lines.append(f"| {ax} | {m.gain:.4f} +- {m.u_gain:.4f} | {m.cutoff_hz:.4f} +- {m.u_cutoff_hz:.4f} | "
-                         f"{m.delay_s * 1e3:.2f} +- {m.u_delay_s * 1e3:.2f} | {_sensor_group_delay_s(m) * 1e3:.2f} | {hp} |")
+                         f"{m.delay_s * 1e3:.2f} +- {m.u_delay_s * 1e3:.2f} | {m.sensor_group_delay_dc_s() * 1e3:.2f} | {hp} |")
         ref = self.dynamics.cutoff_hz[0]
         lines.append("")
         lines.append("reference channel cut-off: " + ("not measured (constant source); chain_compensation 'delay' only"
@@ -163,12 +163,6 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
              "models": {ax: m.to_dict() for ax, m in models.items()},
              "reference_cutoff": "given" if reference_cutoff_hz is not None else "not measured"})
     return DynamicCalibrationResult(plan, start, windows, points, models, dyn, fs, notes)
-
-
-def _sensor_group_delay_s(m: ChainModel) -> float:
-    """Group delay at DC (s) of the sensor's chain alone: ``1/(2 pi fc) + delay`` (a fitted reference
-    high-pass belongs to the reference, not to what the driver compensates)."""
-    return float(first_order_group_delay_s(m.cutoff_hz)) + m.delay_s
 
 
 def _filled_temperature(temp: np.ndarray) -> np.ndarray:

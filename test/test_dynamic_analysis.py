@@ -441,3 +441,18 @@ def test_equal_peaks_a_period_apart_resolve_to_the_one_nearest_zero_lag() -> Non
         sig = np.sin(2 * np.pi * f * (t - d)) + 0.05 * rng.standard_normal(t.size)
         assert delay_by_cross_correlation(ref, sig, FS, circular=True) == pytest.approx(d, abs=1e-3)
         assert delay_by_cross_correlation(sig, ref, FS, circular=True) == pytest.approx(-d, abs=1e-3)
+
+
+@pytest.mark.parametrize("where", ["reference", "sensor"])
+def test_group_delay_at_dc_is_the_sensor_chain_s_whatever_the_highpass(where: str) -> None:
+    """``group_delay_dc_s`` is what the driver's stamp correction removes, ``delay + 1/(2 pi fc)`` of the
+    axis (ChainDynamics.group_delay_s); a fitted high-pass (the LDV's, or one with no gain at DC) is not in
+    it. With a reference high-pass of 0.47 Hz it read -223 ms instead of +114 ms."""
+    from fbg_accel_driver.chain_compensation import ChainDynamics
+
+    m = ChainModel(cutoff_hz=1.6954, delay_s=0.020064, highpass_cutoff_hz=0.4717, highpass_in=where)
+    expected = 0.020064 + 1 / (2 * np.pi * 1.6954)
+    assert m.to_dict()["group_delay_dc_s"] == pytest.approx(expected, rel=1e-12)
+    assert m.sensor_group_delay_dc_s() == pytest.approx(expected, rel=1e-12)
+    dyn = ChainDynamics(cutoff_hz=(math.nan, 1.6954, 1.3, 1.3), delay_s=(0.020064, 0.0, 0.0))
+    assert dyn.group_delay_s(0) == pytest.approx(m.to_dict()["group_delay_dc_s"], rel=1e-12)

@@ -204,3 +204,16 @@ def test_a_lost_frame_is_harmless_at_rest_and_leaves_its_segment_out(static_cal)
     assert f_hit not in lost.dynamics.fit["frequencies_hz"] and len(lost.windows) == len(clean.windows) - 1
     assert [n for n in lost.notes if "lost" in n and f"{f_hit:g} Hz" in n]
     assert [p.to_dict() for p in lost.points] == [p.to_dict() for p in clean.points if p.f_hz != f_hit]
+
+
+def test_fitted_highpass_leaves_the_yaml_and_report_group_delay_equal(static_cal):
+    """--fit-highpass: the YAML's dynamic.fit.models.<axis>.group_delay_dc_s, the report's 'group delay at
+    DC' and the driver's per-axis group delay are one number (the YAML's had the reference high-pass's
+    group delay subtracted: -223 ms against the report's +114 ms for x)."""
+    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=0)
+    res = run_dynamic(rec, PLAN, static_cal, fit_highpass=True)
+    report = res.report()
+    for a, ax in enumerate("xyz"):
+        gd = res.dynamics.fit["models"][ax]["group_delay_dc_s"]
+        assert gd == pytest.approx(res.dynamics.group_delay_s(a), rel=1e-12) and gd > 0
+        assert [line for line in report.splitlines() if line.startswith(f"| {ax} |") and f"| {gd * 1e3:.2f} |" in line]
