@@ -258,7 +258,14 @@ def fit_chain_model(points: Sequence[DynamicPoint], highpass: bool = False,
 def _initial_guess(f: np.ndarray, S: np.ndarray, ph: np.ndarray, fit_gain: bool, highpass: bool, where: str,
                    resid: Any) -> np.ndarray:
     """Grid over cut-offs; at each node the delay from a line fit to the remaining phase, the gain from the
-    amplitude; the node with the smallest weighted residual wins."""
+    amplitude; the node with the smallest weighted residual wins.
+
+    The remaining phase (``ph`` in rad less the low-pass' and high-pass' phase), unwrapped along the
+    frequencies ``f`` (Hz), is ``-2 pi f tau + 2 pi n`` with one unknown integer ``n`` for all points. ``n`` is
+    where the straight line through it meets f = 0 (the delay's phase is 0 there); the neighbouring branches
+    are tried too. (Choosing ``n`` by the median remaining phase put the start on a wrong branch, and the fit
+    ran away, whenever the lowest frequency's phase was already past -180 degrees.)
+    """
     fcs = np.geomspace(max(f.min() / 20, 1e-3), f.max() * 50, 40)
     fhps = np.geomspace(max(f.min() / 20, 1e-3), f.max(), 25) if highpass else [None]
     best: tuple[float, np.ndarray] | None = None
@@ -266,15 +273,19 @@ def _initial_guess(f: np.ndarray, S: np.ndarray, ph: np.ndarray, fit_gain: bool,
         for fhp in fhps:
             h0 = _response(f, 1.0, fc, 0.0, fhp, where)
             rest = np.unwrap(ph - np.angle(h0))
-            # rest ~ -2 pi f tau + 2 pi n: least squares through the origin after removing a 2 pi multiple
-            rest -= 2 * np.pi * np.round(np.median(rest) / (2 * np.pi)) if np.median(np.abs(rest)) > np.pi else 0.0
-            tau = float(-(f @ rest) / (2 * np.pi * (f @ f)))
+            if f.size >= 2 and np.ptp(f) > 0:
+                n0 = round(float(np.polyfit(f, rest, 1)[1]) / (2 * np.pi))
+            else:
+                n0 = round(float(rest[0]) / (2 * np.pi))
             k = float(np.exp(np.mean(np.log(S / np.abs(h0))))) if fit_gain else 1.0
-            x = ([math.log(k)] if fit_gain else []) + [math.log(fc), tau] + ([math.log(fhp)] if highpass else [])
-            x = np.array(x)
-            c = float(np.sum(resid(x) ** 2))
-            if best is None or c < best[0]:
-                best = (c, x)
+            for n in (n0 - 1, n0, n0 + 1):
+                r = rest - 2 * np.pi * n  # ~ -2 pi f tau: least squares through the origin
+                tau = float(-(f @ r) / (2 * np.pi * (f @ f)))
+                x = ([math.log(k)] if fit_gain else []) + [math.log(fc), tau] + ([math.log(fhp)] if highpass else [])
+                x = np.array(x)
+                c = float(np.sum(resid(x) ** 2))
+                if best is None or c < best[0]:
+                    best = (c, x)
     assert best is not None
     return best[1]
 

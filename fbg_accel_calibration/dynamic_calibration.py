@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from fbg_accel_driver.chain_compensation import ChainDynamics
+from fbg_accel_driver.chain_compensation import CUTOFF_LIMITS_HZ, MAX_ABS_DELAY_S, ChainDynamics
 from fbg_accel_driver.frame_codec import at_adc_rail
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
@@ -41,6 +41,9 @@ from .excitation_plan import ExcitationPlan, find_slide_start, reference_acceler
 from .recording import Recording
 
 AXES = ("x", "y", "z")
+
+
+MAX_CHI2_PER_DOF = 100.0  # a chain fit missing its points by > 10 standard uncertainties (rms) is refused
 
 
 class DynamicCalibrationError(ValueError):
@@ -151,6 +154,7 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
     models = fit_chain_models(points, highpass=fit_highpass, highpass_in="reference", uncertainty_scaling="points")
     for ax in AXES:
         models[ax].axis = ax
+        _check_plausible(ax, models[ax])
         if abs(models[ax].gain - 1.0) > 3 * max(models[ax].u_gain, 1e-3):
             notes.append(f"{ax}: dynamic gain {models[ax].gain:.4f} differs from 1: the static calibration's "
                          "sensitivity and the slide reference disagree (check the reference's sensitivity)")
@@ -163,6 +167,32 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
              "models": {ax: m.to_dict() for ax, m in models.items()},
              "reference_cutoff": "given" if reference_cutoff_hz is not None else "not measured"})
     return DynamicCalibrationResult(plan, start, windows, points, models, dyn, fs, notes)
+
+
+def _check_plausible(ax: str, m: ChainModel) -> None:
+    """Refuse a chain fit that cannot be a calibration, naming the axis and the figures: not converged,
+    a parameter not finite or outside what the driver accepts (cut-off CUTOFF_LIMITS_HZ in Hz, |delay| up to
+    MAX_ABS_DELAY_S in s, gain > 0), or the model missing its points by more than MAX_CHI2_PER_DOF (chi2
+    per degree of freedom with the points' own uncertainties: about 1 for a chain the model describes)."""
+    chi2, dof = float(m.fit.get("chi2", math.nan)), int(m.fit.get("dof", 0))
+    per_dof = chi2 / dof if dof > 0 else math.nan
+    why = []
+    if not m.fit.get("converged", True):
+        why.append("the least-squares fit did not converge")
+    if not (math.isfinite(m.cutoff_hz) and CUTOFF_LIMITS_HZ[0] <= m.cutoff_hz <= CUTOFF_LIMITS_HZ[1]):
+        why.append(f"the cut-off is outside {CUTOFF_LIMITS_HZ[0]:g}..{CUTOFF_LIMITS_HZ[1]:g} Hz")
+    if not (math.isfinite(m.delay_s) and abs(m.delay_s) <= MAX_ABS_DELAY_S):
+        why.append(f"the delay is beyond +-{MAX_ABS_DELAY_S:g} s")
+    if not (math.isfinite(m.gain) and m.gain > 0):
+        why.append("the gain is not a positive number")
+    if per_dof > MAX_CHI2_PER_DOF:
+        why.append(f"the model misses its points by {math.sqrt(per_dof):.0f} standard uncertainties (rms)")
+    if why:
+        raise DynamicCalibrationError(
+            f"{ax}: the chain fit is not plausible (gain {m.gain:.3g}, cut-off {m.cutoff_hz:.3g} Hz, delay "
+            f"{m.delay_s * 1e3:.4g} ms, chi2/dof {per_dof:.0f}): {'; '.join(why)}. The points do not pin down a "
+            "first-order low-pass + delay: check that the plan's band reaches the cut-off, the points' phases "
+            "(--json) and the reference")
 
 
 def _filled_temperature(temp: np.ndarray) -> np.ndarray:

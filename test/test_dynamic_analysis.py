@@ -4,7 +4,7 @@ a synthetic TIA chain recovered by the chain-model fit, sign conventions and the
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +21,7 @@ from fbg_accel_calibration.chain_model import (
     response,
 )
 from fbg_accel_calibration.dynamic_analysis import (
+    DynamicPoint,
     ReferenceUncertainty,
     analyse_run,
     budget_table_markdown,
@@ -456,3 +457,26 @@ def test_group_delay_at_dc_is_the_sensor_chain_s_whatever_the_highpass(where: st
     assert m.sensor_group_delay_dc_s() == pytest.approx(expected, rel=1e-12)
     dyn = ChainDynamics(cutoff_hz=(math.nan, 1.6954, 1.3, 1.3), delay_s=(0.020064, 0.0, 0.0))
     assert dyn.group_delay_s(0) == pytest.approx(m.to_dict()["group_delay_dc_s"], rel=1e-12)
+
+
+def _model_points(model: ChainModel, freqs: Sequence[float], u_rel: float = 0.01, u_deg: float = 0.5
+                  ) -> list[DynamicPoint]:
+    """Noise-free points of ``model`` (axis x) with the given standard uncertainties."""
+    pts = []
+    for f in freqs:
+        h = complex(response(model, f))
+        pts.append(DynamicPoint(f_hz=f, axis="x", axis_index=0, direction_component=1.0, sensitivity=abs(h),
+                                phase_deg=math.degrees(np.angle(h)), u_sensitivity=u_rel * abs(h), u_phase_deg=u_deg))
+    return pts
+
+
+@pytest.mark.parametrize("freqs", [(20.0, 30.0, 40.0, 60.0, 80.0), (15.0, 20.0, 25.0, 30.0), (0.5, 1.0, 2.0, 5.0, 10.0, 20.0)])
+def test_chain_fit_starts_on_the_right_phase_branch(freqs: tuple[float, ...]) -> None:
+    """The start's delay comes from the phase left after the low-pass, which is -2 pi f tau only up to a
+    common multiple of 2 pi: with the lowest frequency already past -180 deg (20 ms at 20-80 Hz) the start sat
+    on the wrong branch and the fit ran away (fc 2e-17 Hz, gain 8e16). The branch is where the line through
+    the unwrapped phase meets f = 0."""
+    truth = ChainModel(cutoff_hz=1.7, delay_s=0.020)
+    m = fit_chain_model(_model_points(truth, freqs), uncertainty_scaling="points")
+    assert m.cutoff_hz == pytest.approx(1.7, rel=1e-4) and m.delay_s == pytest.approx(0.020, abs=1e-7)
+    assert m.gain == pytest.approx(1.0, rel=1e-4) and m.fit["chi2"] < 1e-6

@@ -217,3 +217,33 @@ def test_fitted_highpass_leaves_the_yaml_and_report_group_delay_equal(static_cal
         gd = res.dynamics.fit["models"][ax]["group_delay_dc_s"]
         assert gd == pytest.approx(res.dynamics.group_delay_s(a), rel=1e-12) and gd > 0
         assert [line for line in report.splitlines() if line.startswith(f"| {ax} |") and f"| {gd * 1e3:.2f} |" in line]
+
+
+def test_an_implausible_chain_fit_is_refused_with_the_reason(static_cal, monkeypatch):
+    """A fit that ran away (fc 2e-17 Hz, gain 8e16: what the wrong phase branch gave for a 20-80 Hz plan)
+    or that does not describe its points is refused by name instead of failing in ChainDynamics' range
+    check ('cutoff_hz of x must be in 0.001..100000 Hz')."""
+    import fbg_accel_calibration.dynamic_calibration as dc
+    from fbg_accel_calibration.chain_model import ChainModel
+
+    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=1)
+    fit = dc.fit_chain_models
+
+    def runaway(points, **kw):
+        models = fit(points, **kw)
+        models["x"] = ChainModel(gain=8.0e16, cutoff_hz=2.1e-17, delay_s=-4.9e-4, u_gain=1.0, axis="x",
+                                 fit={"chi2": 6923.0, "dof": 9, "converged": True})
+        return models
+
+    monkeypatch.setattr(dc, "fit_chain_models", runaway)
+    with pytest.raises(DynamicCalibrationError, match=r"x: the chain fit is not plausible .*cut-off 2\.1e-17 Hz"):
+        run_dynamic(rec, PLAN, static_cal)
+
+    def misfit(points, **kw):
+        models = fit(points, **kw)
+        models["y"].fit["chi2"] = 2000.0
+        return models
+
+    monkeypatch.setattr(dc, "fit_chain_models", misfit)
+    with pytest.raises(DynamicCalibrationError, match=r"y: the chain fit is not plausible .*chi2/dof 222"):
+        run_dynamic(rec, PLAN, static_cal)
