@@ -166,7 +166,8 @@ class FftTone:
 def whole_period_length(n_samples: int, fs_hz: float, f_hz: float) -> tuple[int, int]:
     """``(n_periods, n_used)``: ``n_used <= n_samples`` samples spanning ``n_periods`` whole periods.
 
-    ``n_used = round(n_periods fs / f)``. Among the period counts from half the maximum up to the maximum,
+    ``n_used = round(n_periods fs / f)``. Among the period counts from half the maximum (at least 2 when 2
+    fit: one period has no measured repeatability) up to the maximum,
     the one whose span is closest to a whole number of samples wins (ties: the longest), so that e.g. 9
     periods of 1.5 Hz at 100 Hz (600 samples, exact) are preferred to 10 (666.7 samples); the span then
     differs from whole periods by at most half a sample. A record of exactly ``round(k fs / f)`` samples
@@ -179,7 +180,7 @@ def whole_period_length(n_samples: int, fs_hz: float, f_hz: float) -> tuple[int,
         k_max -= 1
     if k_max < 1:
         raise ValueError(f"less than one period of {f_hz} Hz in {n_samples} samples at {fs_hz} Hz")
-    ks = np.arange(max(1, (k_max + 1) // 2), k_max + 1)
+    ks = np.arange(max(min(2, k_max), (k_max + 1) // 2), k_max + 1)  # 2 periods if they fit: a repeatability
     # misfit in samples, quantised to 0.01 sample so that a rate read from time stamps (1000.0000001 Hz)
     # does not prefer a short span for a difference nobody can see
     frac = np.round(np.abs(ks * per - np.round(ks * per)), 2)
@@ -658,7 +659,8 @@ def analyse_run(t_s: np.ndarray, reference_accel: np.ndarray, sensor_accel: np.n
     caller). Segments sharing a frequency (within 1e-6 relative) are repeats: the point is their mean and
     the repeatability their standard deviation of the mean; a frequency with one segment is split into up
     to ``max_sub_blocks`` whole-period sub-blocks for the repeatability (seed 2.4). Each segment is cut to
-    whole periods.
+    whole periods; a frequency with one segment of one whole period is refused (``ValueError``): it has no
+    measured repeatability.
 
     ``method``: amplitudes/phases by the sine approximation (default) or a whole-period DFT.
     ``refine_frequency``: fit the frequency on the reference (4-parameter) and use it for the sensor.
@@ -701,6 +703,11 @@ def analyse_run(t_s: np.ndarray, reference_accel: np.ndarray, sensor_accel: np.n
             k, n = whole_period_length(idx.size, fs, f_nom)
             blocks.append(idx[:n])
             periods.append(k)
+        if len(blocks) == 1 and periods[0] < 2:
+            a, b = groups[f_nom][0]
+            raise ValueError(f"segment {f_nom:g} Hz [{a}, {b}) s holds one whole period only: no measured "
+                             "repeatability (the sine fits' white-noise covariance understates the scatter of "
+                             "coloured noise several times); record at least 2 periods or repeat the segment")
         if refine_frequency:
             f_use = float(np.mean([sine_approximation(t[i], ref[i], f_nom, fit_frequency=True).f_hz for i in blocks]))
         for ax in range(3):
@@ -746,12 +753,12 @@ def _fill_point(p: DynamicPoint, whole: list[_Estimate], reps: list[_Estimate], 
         s_ph = float(np.std(ph, ddof=1)) / math.sqrt(k)
         s_d = float(np.std([e.delay_xcorr_s for e in reps], ddof=1)) / math.sqrt(k)
         note = f"std of the mean over {k} repeats"
-    else:  # one period only: fall back to the sine fits' statistical uncertainty
+    else:  # analyse_run refuses a single period; kept for a caller passing one estimate
         e = whole[0]
         s_rel = e.u_h_rel
         s_ph = math.degrees(e.u_phase_rad)
         s_d = e.u_phase_rad / (2 * np.pi * f)
-        note = "single period: sine-fit covariance"
+        note = "single period: sine-fit covariance (white noise assumed: an underestimate for coloured noise)"
     rep_s = BudgetComponent("repeatability", s_rel * p.sensitivity, "1", 1.0, s_rel * p.sensitivity, "A", note)
     rep_p = BudgetComponent("repeatability", s_ph, "deg", 1.0, s_ph, "A", note)
     rep_d = BudgetComponent("repeatability", s_d, "s", 1.0, s_d, "A", note)

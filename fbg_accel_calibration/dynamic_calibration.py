@@ -36,6 +36,7 @@ from .dynamic_analysis import (
     points_table_markdown,
     sampling_rate,
     uniformly_sampled,
+    whole_period_length,
 )
 from .excitation_plan import ExcitationPlan, find_slide_start, reference_acceleration
 from .recording import Recording
@@ -134,6 +135,13 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
         windows = [w for w in windows if w not in gappy]
         notes.append(f"segment(s) at {', '.join(f'{w[0]:g} Hz' for w in gappy)} left out: a lost frame (a time step "
                      f"other than the nominal {1e3 / fs:.4g} ms) during the steady part")
+    # a point's repeatability is measured over whole-period sub-blocks: one period has none (the sine fit's
+    # white-noise covariance understates coloured noise 5-13x and would dominate the chain fit)
+    few = sorted({w[0] for w in windows if _whole_periods(t, fs, [v for v in windows if v[0] == w[0]]) < 2})
+    if few:
+        windows = [w for w in windows if w[0] not in few]
+        notes.append(f"segment(s) at {', '.join(f'{f:g} Hz' for f in few)} left out: fewer than 2 whole periods in "
+                     "the steady part (one whole period gives no measured repeatability; lengthen the segment)")
     if len(windows) < 3:
         raise DynamicCalibrationError(f"only {len(windows)} steady segment(s) in the recording: the chain model needs "
                                       "at least 3 frequencies")
@@ -167,6 +175,18 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
              "models": {ax: m.to_dict() for ax, m in models.items()},
              "reference_cutoff": "given" if reference_cutoff_hz is not None else "not measured"})
     return DynamicCalibrationResult(plan, start, windows, points, models, dyn, fs, notes)
+
+
+def _whole_periods(t: np.ndarray, fs: float, windows: list[tuple[float, float, float]]) -> int:
+    """Whole periods (at ``fs`` Hz, :func:`whole_period_length`) in the steady windows ``(f_hz, t0_s, t1_s)``
+    of one frequency, summed; a window with less than one period counts 0."""
+    total = 0
+    for f, a, b in windows:
+        try:
+            total += whole_period_length(int(np.count_nonzero((t >= a) & (t < b))), fs, f)[0]
+        except ValueError:
+            pass
+    return total
 
 
 def _check_plausible(ax: str, m: ChainModel) -> None:

@@ -480,3 +480,24 @@ def test_chain_fit_starts_on_the_right_phase_branch(freqs: tuple[float, ...]) ->
     m = fit_chain_model(_model_points(truth, freqs), uncertainty_scaling="points")
     assert m.cutoff_hz == pytest.approx(1.7, rel=1e-4) and m.delay_s == pytest.approx(0.020, abs=1e-7)
     assert m.gain == pytest.approx(1.0, rel=1e-4) and m.fit["chi2"] < 1e-6
+
+
+def test_a_single_period_point_is_refused() -> None:
+    """One whole period gives no measured repeatability; the sine fits' white-noise covariance it fell back to
+    understated the scatter 5-13x on the simulator's coloured noise (p14: rms z 9.6 / 13 / 9.5 in S), so such
+    a point would dominate the chain fit. Two periods (two sub-blocks) or two one-period repeats are enough."""
+    t, ref, sens, segs = _synthetic_run(5)
+    f, a, _ = segs[3]  # 5 Hz
+    with pytest.raises(ValueError, match=r"segment 5 Hz .* one whole period"):
+        analyse_run(t, ref, sens, SEED_DIRECTION, [(f, a, a + 1.5 / f)])
+    two = analyse_run(t, ref, sens, SEED_DIRECTION, [(f, a, a + 2.0 / f + 1e-9)])
+    assert all(p.n_repeats == 2 for p in two)
+    rep = analyse_run(t, ref, sens, SEED_DIRECTION, [(f, a, a + 1.0 / f + 1e-9), (f, a + 1.0 / f, a + 2.0 / f + 1e-9)])
+    assert all(p.n_repeats == 2 for p in rep)
+    # two periods of 0.7 Hz at 500 Hz (1428.57 samples): the cut must keep both, not the one period whose span
+    # is nearer a whole number of samples (714.29)
+    t7 = np.arange(1430) / 500.0
+    d = np.array(SEED_DIRECTION)
+    two7 = analyse_run(t7, np.sin(2 * np.pi * 0.7 * t7), np.outer(0.5 * np.sin(2 * np.pi * 0.7 * t7), d), d,
+                       [(0.7, 0.0, 3.0)])
+    assert all(p.n_repeats == 2 for p in two7)

@@ -247,3 +247,16 @@ def test_an_implausible_chain_fit_is_refused_with_the_reason(static_cal, monkeyp
     monkeypatch.setattr(dc, "fit_chain_models", misfit)
     with pytest.raises(DynamicCalibrationError, match=r"y: the chain fit is not plausible .*chi2/dof 222"):
         run_dynamic(rec, PLAN, static_cal)
+
+
+def test_a_segment_of_one_period_is_left_out_with_a_note(static_cal):
+    """A steady part holding one whole period (1 Hz, 6.2 s with its ramps and settling: 1.2 s) has no measured
+    repeatability: it is left out with a note naming it, the other segments are used as before."""
+    d = PLAN.to_dict()
+    d["segments"][1]["duration_s"] = 6.2  # 1 Hz
+    plan = ExcitationPlan.from_dict(d)
+    rec, _, _ = simulate_dynamic_run(plan, rate_hz=RATE_HZ, seed=2)
+    res = run_dynamic(rec, plan, static_cal)
+    assert 1.0 not in res.dynamics.fit["frequencies_hz"] and len(res.windows) == len(PLAN.segments) - 1
+    assert [n for n in res.notes if "1 Hz" in n and "one whole period" in n]
+    assert all(p.n_repeats >= 2 for p in res.points)
