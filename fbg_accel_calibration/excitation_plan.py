@@ -273,13 +273,17 @@ def reference_acceleration(t_s: np.ndarray, aux_counts: np.ndarray, plan: Excita
     return out
 
 
+START_MOTION_FRACTION = 0.02  # an aux envelope above this share of its largest value at the start: the slide moves
+
+
 def find_slide_start(t_s: np.ndarray, aux_counts: np.ndarray, plan: ExcitationPlan) -> float:
     """Time (s, recording time base) the slide's first segment starts: the lag that best aligns the
     aux channel's 0.5 s moving-RMS envelope with the plan's amplitude envelope (both normalised), so a
-    run can be processed whatever the recording started before the slide, and a recording cut short
-    (a killed run) still aligns with the segments it holds. Accurate to a fraction of the
-    0.5 s envelope window (0.03 s in the tests), ample since the steady windows leave out the ramps and
-    ``settle_s``."""
+    run can be processed whatever the recording started before the slide, a recording cut short
+    (a killed run) still aligns with the segments it holds, and so does one started late, inside the plan
+    (the start then lies before the recording's first sample; the segments it missed are left out). Accurate
+    to a fraction of the 0.5 s envelope window (0.03 s in the tests), ample since the steady windows leave
+    out the ramps and ``settle_s``."""
     t = np.asarray(t_s, dtype=float)
     x = np.asarray(aux_counts, dtype=float)
     dt = float(np.median(np.diff(t)))
@@ -293,7 +297,15 @@ def find_slide_start(t_s: np.ndarray, aux_counts: np.ndarray, plan: ExcitationPl
         raise ValueError(f"the recording ({len(t) * dt:.1f} s) is too short to align with the plan "
                          f"(its first segment alone lasts {plan.segments[0].duration_s:g} s)")
     plan_env = (plan.envelope(np.arange(n_plan) * dt) > 0).astype(float)
-    # a recording cut short (a killed run) still aligns: the plan may run past its end
-    padded = np.concatenate([env - env.mean(), np.zeros(n_plan)])
-    score = np.correlate(padded, plan_env - plan_env.mean(), mode="valid")[: len(env)]
-    return float(t[int(np.argmax(score))])  # the sample's own stamp: a lost frame before it does not shift it
+    # the plan may run past the recording's end (a killed run) and, when the recording starts while the slide
+    # moves, start before the recording's first sample (a late start: only such lags are searched then, so a
+    # short recording of one segment is not matched to a later part of the plan)
+    rest = float(np.percentile(env, 5))
+    late = float(np.mean(env[:n_win])) > max(START_MOTION_FRACTION, 3.0 * rest)
+    padded = np.concatenate([np.zeros(n_plan - 1), env - env.mean(), np.zeros(n_plan)])
+    score = np.correlate(padded, plan_env - plan_env.mean(), mode="valid")[: len(env) + n_plan - 1]
+    lags = np.arange(len(score)) - (n_plan - 1)  # samples from the recording's first sample to the slide's start
+    score[(lags > 0) if late else (lags < 0)] = -np.inf
+    k = int(lags[np.argmax(score)])
+    # inside the recording the sample's own stamp (a lost frame before it does not shift it); before it, counted back
+    return float(t[k]) if k >= 0 else float(t[0] + k * dt)

@@ -107,6 +107,10 @@ def test_runs_it_cannot_use_are_refused_with_the_reason(static_cal, tmp_path):
         run_dynamic(rec.select(rec.t_s < 20.0), PLAN, static_cal)
     cut = run_dynamic(rec.select(rec.t_s < 90.0), PLAN, static_cal)  # killed in the 5 Hz segment
     assert cut.slide_start_s == pytest.approx(PLAN.start_s, abs=0.1) and len(cut.windows) == 3
+    # started late, 1 s into the first segment's steady part: aligned backwards, the segment it cut left out with
+    # a note (before: the start was put 24 s late, and the chain fit failed in the driver's range check)
+    late = run_dynamic(rec.select(rec.t_s >= PLAN.steady_windows(PLAN.start_s)[0][1] + 1.0), PLAN, static_cal)
+    assert late.slide_start_s == pytest.approx(PLAN.start_s, abs=0.1) and len(late.windows) == len(PLAN.segments) - 1
     d = PLAN.to_dict()
     d["direction"] = [1.0, 0.0, 0.05]
     with pytest.raises(DynamicCalibrationError, match="not excited"):

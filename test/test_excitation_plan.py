@@ -87,11 +87,15 @@ def test_ldv_velocity_becomes_the_exact_acceleration_of_each_tone(fs, ac_coupled
     assert np.all(np.isnan(a[t < windows[0][1]]))
 
 
-def test_slide_start_is_found_from_the_aux_envelope():
+@pytest.mark.parametrize("lead_s", [7.3, -1.0, -15.0])
+def test_slide_start_is_found_from_the_aux_envelope(lead_s: float):
+    """``lead_s``: the slide starts this long after the recording (negative: the recording started late, inside
+    the first segment, whose start then lies before the recording's; before, the search only looked forward and
+    put the start 24 s late)."""
     plan = ExcitationPlan.load(PLAN_FILE)
     fs = 200.0
     t = np.arange(0.0, 130.0, 1.0 / fs) + 12.345  # the recording's clock starts anywhere
-    true_start = 12.345 + 7.3
+    true_start = 12.345 + lead_s
     rel = t - true_start
     env = plan.envelope(rel)
     rng = np.random.default_rng(1)
