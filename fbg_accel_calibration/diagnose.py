@@ -791,14 +791,10 @@ def settle_window(st: SettlingTransient, sigma: np.ndarray) -> float:
     return float(min(st.tau_s * np.log(ratio / SETTLE_NOISE_FRACTION), MAX_SETTLE_S))
 
 
-def temperature_level_count(data: DiagnosisData) -> int:
-    _, means = temperature_levels(data.temp_c[data.use])
-    return max(len(means), 1)
-
-
 def _degree_rows(scores: list[DegreeScores], held_out: Callable[[DegreeScores], np.ndarray],
-                 note: str) -> list[dict[str, Any]]:
-    """The report's degree table (one dict per degree) from the selection's scores."""
+                 note: str, chosen: int | None) -> list[dict[str, Any]]:
+    """The report's degree table (one dict per degree) from the selection's scores; the rule's ``note`` stands
+    on the degree it chose (``chosen``), not on every row."""
     table: list[dict[str, Any]] = []
     for sc in scores:
         if not sc.identified:
@@ -807,7 +803,7 @@ def _degree_rows(scores: list[DegreeScores], held_out: Callable[[DegreeScores], 
         ho = held_out(sc)
         table.append({"degree": sc.degree, "identified": True, "heldout_rmse_mps2": ho, "insample_rmse_mps2": sc.in_sample,
                       "heldout_rmse_fs": ho / FULL_SCALE_MPS2, "insample_rmse_fs": sc.in_sample / FULL_SCALE_MPS2,
-                      "note": sc.note or note})
+                      "note": sc.note or (note if sc.degree == chosen else ""), "rule_choice": sc.degree == chosen})
     return table
 
 
@@ -817,7 +813,8 @@ def select_degree(data: DiagnosisData, max_degree: int) -> tuple[int, list[dict[
     rec = Recording(data.t_s, data.ref, data.xyz, data.temp_c, data.gref, data.pose_id, data.run_id)
     sel = calibration_select_degree(rec, max_degree, usable=data.use & (data.pose_id >= 0))
     by_level = sel.n_levels >= 2
-    table = _degree_rows(sel.scores, lambda sc: sc.held_out_level if by_level else sc.held_out_pose, sel.criterion)
+    table = _degree_rows(sel.scores, lambda sc: sc.held_out_level if by_level else sc.held_out_pose, sel.criterion,
+                         sel.chosen_degree)
     if sel.chosen_degree is None:
         raise NotIdentifiedError("no degree of eq. 28 could be validated on held-out data: " + "; ".join(sel.notes))
     return sel.chosen_degree, table
@@ -865,7 +862,7 @@ def reselect_degree(ev: Evaluator, spec: ModelSpec, max_degree: int) -> tuple[Mo
         group_mse[n] = _group_mse(cv.heldout, ev.groups, r, np.full(3, 1.0 / 3))[1]
         del des, cv  # not held while the next degree's design is built (each N x p)
     chosen, criterion, notes = choose_degree(scores, group_mse, by_level, unit="visit")
-    table = _degree_rows(scores, lambda sc: sc.held_out_pose, criterion)
+    table = _degree_rows(scores, lambda sc: sc.held_out_pose, criterion, chosen)
     if chosen is None:
         return spec, table, ["no degree could be validated with the added effects: degree kept", *notes]
     return ModelSpec(chosen, spec.t_center_c, spec.t_scale_c, spec.effects), table, notes
@@ -1269,7 +1266,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     data = rec if isinstance(rec, DiagnosisData) else prepare_data(rec, static)
     groups = visit_groups(data)
     fold, fold_notes = check_folds(data, groups, make_folds(groups, data.use, folds, seed))
-    n_levels = temperature_level_count(data)
+    n_levels = data.temperature_level_count()
     sel_degree, degree_table = select_degree(data, max_degree)
     if degree is not None:
         if degree >= n_levels:
@@ -1436,7 +1433,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         condition_number=cond, column_correlation=column_corr, final_degree=spec.degree, run_terms=run_terms,
         settings={"static": static if not isinstance(rec, DiagnosisData) else "given", "folds": int(fold.max()) + 1,
                   "alpha": alpha, "min_rel_gain": min_rel_gain, "max_effects": max_effects, "seed": seed,
-                  "search_rows": n_search,
+                  "search_rows": n_search, "degree_forced": degree is not None,
                   "settle_s": settle_s,
                   "time_label": time_axis_label(rec.metadata) if isinstance(rec, Recording) else "time [s]"})
 

@@ -107,15 +107,18 @@ def summary(res: DiagnosisResult, img_prefix: str = "img/") -> list[str]:
     return out
 
 
-def degree_table(table: list[dict], chosen: int | None) -> str:
-    """Markdown table of a degree selection (eq. 28): RMSE / full scale per axis, in sample and held out."""
+def degree_table(table: list[dict], chosen: int | None, forced: bool = False) -> str:
+    """Markdown table of a degree selection (eq. 28): RMSE / full scale per axis, in sample and held out. ``forced``:
+    the degree ``chosen`` was given (``--degree``), not the rule's, whose note stands on the degree it chose."""
     rows = []
     for t in table:
         if not t["identified"]:
             rows.append([str(t["degree"]), "-", "-", t["note"]])
         else:
+            words = [("chosen (given by --degree)" if forced else "chosen") if t["degree"] == chosen else "",
+                     "the rule's choice" if forced and t.get("rule_choice") else "", str(t.get("note", ""))]
             rows.append([str(t["degree"]), _v(t["insample_rmse_fs"], "{:.2e}"), _v(t["heldout_rmse_fs"], "{:.2e}"),
-                         ("chosen; " if t["degree"] == chosen else "") + str(t.get("note", ""))])
+                         "; ".join(w for w in words if w)])
     return _md_table(["degree n", "in-sample RMSE / 20 g (x/y/z)", "held-out RMSE / 20 g (x/y/z)", ""], rows)
 
 
@@ -135,7 +138,7 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
               f"time span {d.duration_s:.4g} s.", ""]
     lines += ["## Summary", "", *summary(res, img_prefix), ""]
     lines += ["## Declared model and degree (eq. 28)", ""]
-    lines += [degree_table(res.degree_table, res.degree), ""]
+    lines += [degree_table(res.degree_table, res.degree, bool(res.settings.get("degree_forced"))), ""]
     lines += ["Noise floor (pooled within-visit standard deviation of the declared model's residual over the settled "
               "samples, a straight line in time removed in every visit): "
               f"**{_v(res.noise_floor)} m/s^2** (x/y/z), from {res.n_floor_samples} settled samples.", ""]

@@ -53,6 +53,10 @@ from fbg_accel_driver.correction_terms import (
 TIA_CUTOFF_HZ = np.array([1.0, 1.7, 1.3, 1.3])
 TIA_TAU_S = 1.0 / (2.0 * np.pi * TIA_CUTOFF_HZ)
 AHT10_RESOLUTION_C = 0.01  # paper §3.6
+# The searches over the chain's times reach at least these, whatever the sample rate (at 100 Hz and below their
+# grids in samples reach further): a channel delay of 100 ms, TIA time constants 3 x Table 1.
+MIN_DELAY_SEARCH_S = 0.1
+MIN_TIA_SCALE_SEARCH = 3.0
 # Plausibility bounds of fitted effects (issue 8): a fit beyond them is refused, never written to the YAML.
 MAX_CHANNEL_OFFSET_FRACTION = 0.25  # axis-channel offset / the channel's mean counts: dark current + ADC zero
 # offset are tens of counts (sim_default.yaml, reference_dark_offset); a quarter of the signal undoes eq. 24
@@ -150,6 +154,13 @@ class DiagnosisData:
     @property
     def duration_s(self) -> float:
         return float(np.ptp(self.t_s)) if self.t_s.size else 0.0
+
+    def temperature_level_count(self) -> int:
+        """Temperature levels among the fitted samples (``thermal_fit.temperature_levels``), at least 1: eq. 28's
+        degree is below it, so with one level the model has no temperature term."""
+        from .thermal_fit import temperature_levels
+
+        return max(len(temperature_levels(self.temp_c[self.use])[1]), 1)
 
     def temperature_span_c(self) -> float:
         t = self.temp_c[self.use]
@@ -391,6 +402,11 @@ class ReferenceDarkOffsetEffect(Effect):
                 "m/s^2·counts (regressor 1/(ref - d_ref))")
 
     def implausible(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData, M0: np.ndarray) -> str:
+        # the reference's own offset: the same bound as the axis channels' (a dark offset is tens of counts)
+        ref_counts = data.once("mean_abs_ref", lambda: float(np.nanmean(np.abs(data.ref[data.use]))))
+        if h is not None and abs(float(h)) > MAX_CHANNEL_OFFSET_FRACTION * ref_counts:
+            return (f"the reference offset d_ref = {float(h):.0f} counts is {100 * abs(float(h)) / ref_counts:.0f} % of "
+                    f"the reference's counts (limit {100 * MAX_CHANNEL_OFFSET_FRACTION:.0f} %): not a dark offset")
         # the regressor k/ref is the model's M0 applied to axis-channel offsets c0: k = -M0 c0
         if coeff is None:
             return ""
@@ -415,6 +431,8 @@ class ThermalLagEffect(Effect):
     def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
         if data.temperature_span_c() < 20 * AHT10_RESOLUTION_C:
             return False, "temperature does not change in this recording"
+        if data.temperature_level_count() < 2:  # the lag delays a temperature that eq. 28 of degree 0 does not read
+            return False, "one temperature level: eq. 28 has no temperature term for a lag to act on"
         return True, ""
 
     def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
@@ -516,7 +534,9 @@ class ChannelDelayEffect(Effect):
     title = "delay of the sensor channels against the reference angles"
 
     def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
-        return np.arange(0.0, 12.5, 0.5) * data.dt_s
+        # 0 to 12 steps of the grid's unit, a sample or, above 120 Hz, 1/12 of MIN_DELAY_SEARCH_S: a delay of the chain
+        # is a time (tens of ms, sim_default.yaml), and 12 samples at 500 Hz (24 ms) stopped short of a 40 ms one
+        return np.arange(0.0, 12.5, 0.5) * max(data.dt_s, MIN_DELAY_SEARCH_S / 12)
 
     def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
         if float(h) != 0:
@@ -563,9 +583,10 @@ class TiaLowpassEffect(Effect):
     title = "TIA first-order low-pass of the axis channels"
 
     def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
-        # axis time constants from 0.05 sample to ~30 samples (Table 1 ratios between channels)
+        # axis time constants from 0.05 sample to ~30 samples (Table 1 ratios between channels), and at least to
+        # MIN_TIA_SCALE_SEARCH x Table 1: the stages are a time, and 30 samples at 500 Hz stopped at 0.64 x Table 1
         lo = 0.05 * data.dt_s / TIA_TAU_S[1:].min()
-        hi = 30 * data.dt_s / TIA_TAU_S[1:].min()
+        hi = max(30 * data.dt_s, MIN_TIA_SCALE_SEARCH * TIA_TAU_S[1:].min()) / TIA_TAU_S[1:].min()
         return np.geomspace(lo, hi, 22)
 
     def taus(self, h: float) -> np.ndarray:

@@ -561,3 +561,35 @@ def test_scatters_draw_at_most_plot_points_evenly_spaced() -> None:
     small = np.zeros(100, bool)
     small[5:50] = True
     np.testing.assert_array_equal(plotted(small), np.arange(5, 50))
+
+
+def test_the_degree_table_puts_the_rule_on_the_degree_it_chose_and_says_when_the_degree_was_given() -> None:
+    """The rule's criterion stood on every row (so on row 0 while row 1 was chosen), and with ``--degree`` the
+    given degree was marked "chosen; lowest degree within one standard error ..." though the rule chose another."""
+    from fbg_accel_calibration.diagnose import _degree_rows
+    from fbg_accel_calibration.diagnose_report import degree_table
+    from fbg_accel_calibration.model_selection import DegreeScores
+
+    one = np.ones(3)
+    scores = [DegreeScores(0, True, 2 * one, 2 * one, 2 * one), DegreeScores(1, True, one, one, one),
+              DegreeScores(2, False, one, one, one, note="not identified by 2 temperature level(s)")]
+    rows = _degree_rows(scores, lambda sc: sc.held_out_level, "lowest degree within one standard error", 1)
+    auto = degree_table(rows, 1).splitlines()
+    assert auto[2].endswith("|  |") and "chosen; lowest degree" in auto[3]
+    given = degree_table(rows, 0, forced=True).splitlines()
+    assert "chosen (given by --degree) |" in given[2]
+    assert "the rule's choice; lowest degree" in given[3] and "chosen" not in given[3].split("|")[4]
+
+
+def test_a_reference_offset_beyond_the_bound_is_not_a_dark_offset() -> None:
+    """Issue 8 §1, every fitted parameter bounded: the axis channels' implied offsets were bounded (25 % of their
+    counts), the reference's own offset d_ref was not, so a search could settle on d_ref = -300 counts (a third
+    of the reference) and call it a dark offset."""
+    from fbg_accel_calibration.effects import MAX_CHANNEL_OFFSET_FRACTION, ReferenceDarkOffsetEffect
+
+    data = prepare_data(synthetic(4, dark=30.0))
+    ref = float(np.mean(np.abs(data.ref[data.use])))
+    eff, M0 = ReferenceDarkOffsetEffect(), np.eye(3)
+    assert eff.implausible(0.5 * MAX_CHANNEL_OFFSET_FRACTION * ref, None, data, M0) == ""
+    why = eff.implausible(-1.2 * MAX_CHANNEL_OFFSET_FRACTION * ref, None, data, M0)
+    assert "not a dark offset" in why and "limit 25 %" in why

@@ -105,6 +105,29 @@ def test_an_implausible_best_hyper_value_does_not_hide_a_plausible_one() -> None
     assert res.added[0][0] == "time_drift"
 
 
+def test_the_chain_s_searches_reach_its_times_at_a_high_sample_rate() -> None:
+    """At 500 Hz the TIA grid, bounded at 30 samples, stopped at 0.64 x Table 1 and the channel delay's, at 12
+    samples, at 24 ms: the TIA stages were fitted at the edge and a delay that was not injected was added at
+    its edge to make up for them. Both searches now reach the chain's times whatever the rate."""
+    rec = simulate_recording(_config({"effects.tia_lowpass.scale": 1.0, "scenario.rate_hz": 500.0,
+                                      "scenario.poses.grid.theta_step_deg": 90.0,
+                                      "scenario.poses.grid.psi_step_deg": 90.0}), seed=5)
+    res = diagnose(rec)
+    added = dict((name, h) for name, h, _ in res.added)
+    assert set(added) == {"tia_lowpass"} and abs(added["tia_lowpass"] - 1.0) < 0.1, res.added
+
+
+def test_a_thermal_lag_is_not_tried_on_one_temperature_level() -> None:
+    """One temperature level: eq. 28 is of degree 0 and has no temperature term, so a lag of the temperature
+    cannot act: the candidate is not applicable (it was listed as tested, gain 0, p 1)."""
+    thermal = {**THERMAL, "scenario.temperature.profile": [{"ramp_to_c": 22.0, "duration_s": 240.0},
+                                                           {"ramp_to_c": 20.0, "duration_s": 240.0}]}
+    res = diagnose(simulate_recording(_config({**thermal, "effects.thermal_lag.scale": 0.75}), seed=7))
+    assert res.n_levels == 1
+    lag = next(c for c in res.ranked if c.name == "thermal_lag")
+    assert not lag.applicable and "one temperature level" in lag.reason, (lag.applicable, lag.reason)
+
+
 @pytest.mark.parametrize("effect", ["thermal_lag", "tia_lowpass"])
 def test_a_search_on_thinned_samples_chooses_what_the_full_search_chooses(effect: str, tmp_path: Path) -> None:
     """Issue 8 §7: above ``search_rows`` fitted samples the candidates are evaluated and the model chosen on every
