@@ -15,6 +15,10 @@ Per pose k (``Phase``)::
         service mode: back to WAIT_STILL(k), the count is kept (the samples were static at pose k)
         auto mode:    the table has left: pose k is closed short (warning), on to pose k+1
 
+A "still" verdict counts only if its run of still verdicts began after the table was last seen leaving
+a pose (``stillness_stale``): a slow move departs from the pose's level before the detector's variance
+notices it, and the stillness it still holds is the previous pose's (the caller restarts its detector).
+
 Advancing from RECORDED:
 
 * service mode (operator): on ``request_next()``. If the plan says the gravity vector changes
@@ -110,6 +114,9 @@ class PoseSequencer:
         self._t_now = float("nan")  # board time of the last sample (for event stamps)
         self._still = False
         self._motion_since_recorded = False
+        self._steps = 0  # samples fed so far
+        self._still_since: int | None = None  # sample number where the detector's current still run began
+        self._motion_mark: int | None = None  # sample number where motion away from the last pose was seen
         self._phase_since = 0.0  # elapsed time when the current phase began
         self._warned: set[tuple[int, str]] = set()
         self._total = 0
@@ -122,6 +129,16 @@ class PoseSequencer:
     @property
     def pose(self) -> Pose:
         return self.plan.poses[self.index]
+
+    @property
+    def stillness_stale(self) -> bool:
+        """True while the detector's current "still" began before the table was last seen leaving a pose
+        (a slow move departs from the pose's level long before the window variance notices it): that
+        verdict belongs to the previous pose and is not accepted as stillness at the next one. The
+        caller restarts its detector (``StillnessMonitor.reset``) so stillness is re-established from
+        samples after the motion; any "not still" verdict does the same."""
+        return (not self.finished and self._still_since is not None and self._motion_mark is not None
+                and self._still_since <= self._motion_mark)
 
     def samples_recorded(self, index: int) -> int:
         return self._logs[index].samples
@@ -162,19 +179,25 @@ class PoseSequencer:
         stillness at the pose (a detector false alarm, a knock) only pauses the recording.
         """
         self._advance_clock(float(t_s))
+        self._steps += 1
         self._still = bool(still)
+        if not still:
+            self._still_since = None
+        elif self._still_since is None:
+            self._still_since = self._steps
         moved = (not still) if departed is None else bool(departed)
         if self.finished:
             return -1
         if self.phase is Phase.WAIT_MOTION:
             if moved:
+                self._mark_motion()
                 self._emit("moving", f"table moving to pose {self.index} ({self.pose.name})")
                 self._set_phase(Phase.WAIT_STILL)
             return -1
         if self.phase is Phase.WAIT_STILL:
             if self._logs[self.index].samples > 0 and departed:  # paused pose: the table left it
                 return self._left_during_recording()
-            if not still:
+            if not still or self.stillness_stale:
                 self._check_still_bound()
                 return -1
             log = self._logs[self.index]
@@ -195,7 +218,8 @@ class PoseSequencer:
             self._set_phase(Phase.WAIT_STILL)
             return -1
         # RECORDED
-        if moved:
+        if moved and not self._motion_since_recorded:
+            self._mark_motion()
             self._motion_since_recorded = True
         if self.mode is Mode.AUTO:
             if self._motion_since_recorded:
@@ -252,6 +276,10 @@ class PoseSequencer:
             self._warned.add(key)
             self._emit(kind, message, warning=True)
 
+    def _mark_motion(self) -> None:
+        """The table was seen leaving a pose on this sample: stillness must be re-established after it."""
+        self._motion_mark = self._steps
+
     def _set_phase(self, phase: Phase) -> None:
         self.phase = phase
         self._phase_since = self._elapsed
@@ -282,6 +310,7 @@ class PoseSequencer:
         self._emit("short", f"pose {self.index} ({self.pose.name}) left after {log.samples}/{self.pose.samples} samples; "
                    + ("dwell too short for the stillness hold plus the samples?" if self.mode is Mode.AUTO
                       else "the table was moved before the pose was recorded"), warning=True)
+        self._mark_motion()
         if self.index + 1 >= len(self.plan.poses):
             self._finish()
             return -1

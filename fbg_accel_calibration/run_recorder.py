@@ -207,6 +207,10 @@ class RunRecorder:
         if self.monitor is not None and not self.sequencer.finished:
             still = self.monitor.update(psi)
             pose_id = self.sequencer.step(t_s, still, self._departed(psi))
+            if self.sequencer.stillness_stale:
+                # the table left the pose while the detector still holds the pose's stillness: restart it,
+                # so stillness at the next pose comes from a fresh window and hold after the motion
+                self.monitor.reset()
             self._track_pose_level(pose_id, psi)
         if pose_id >= 0 and clipped_reading(s.ref, s.x, s.y, s.z):
             c.clipped += 1

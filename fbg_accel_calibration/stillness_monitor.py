@@ -32,7 +32,13 @@ Hysteresis (a Schmitt trigger with a hold):
   starts the hold; a still window exceeds it with probability ``enter_exceedance`` (5 %), so a
   settled sensor enters at once while a settling one does not;
 * *hold*: the sensor is still after ``hold`` consecutive samples without a leave-threshold crossing
-  (the hold covers the TIA settling after a move: 1 s is about six time constants at 1 Hz);
+  (the hold covers the TIA settling after a move: 1 s is about six time constants at 1 Hz) and with the
+  window *mean* within ``level_threshold`` of the window mean at the start of the hold (else the hold
+  starts again from the current window). The window variance alone is blind to a slow move: the start
+  and end of a 10 s raised-cosine turn change Psi by a few noise sigmas per window, well inside the
+  variance thresholds, and the hold completed during the move. The level threshold is the two-sided
+  quantile, at the leave threshold's per-window exceedance, of the difference of two window means under
+  the floor (variance 2 s^2 1'R1 / w^2, Student t with the floor's degrees of freedom);
 * *leave*: only a window above the leave threshold ends stillness. Its per-window exceedance is
   ``false_alarm_per_run / (run_samples * components)`` (Bonferroni over every sample of the run and
   every component), so a still sensor is declared moving at most ``false_alarm_per_run`` times per run
@@ -46,6 +52,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import norm
+from scipy.stats import t as student_t
 
 DEFAULT_FALSE_ALARM_PER_RUN = 1e-3
 DEFAULT_ENTER_EXCEEDANCE = 0.05
@@ -282,6 +290,17 @@ class StillnessMonitor:
             [ratio_quantile(self.per_window_false_alarm, weights[j], floor.dof[j]) for j in range(k)])
         self.enter_threshold = self.expected_variance * np.array(
             [ratio_quantile(enter_exceedance, weights[j], floor.dof[j]) for j in range(k)])
+        rows = [np.zeros(self.window) for _ in range(k)]
+        for j in range(k):
+            m = min(self.window, floor.acf.shape[1])
+            rows[j][:m] = floor.acf[j, :m]
+        lags = np.abs(np.subtract.outer(np.arange(self.window), np.arange(self.window)))
+        mean_var = floor.variance * np.array([rows[j][lags].sum() for j in range(k)]) / self.window**2
+        quantile = np.array([float(student_t.isf(self.per_window_false_alarm / 2.0, d)) if math.isfinite(d)
+                             else float(norm.isf(self.per_window_false_alarm / 2.0)) for d in floor.dof])
+        # Psi units: a window mean this far from the one at the start of the hold restarts the hold
+        self.level_threshold = quantile * np.sqrt(2.0 * mean_var)
+        self._hold_mean = np.full(k, np.nan)  # window mean (Psi) when the current hold started
         self._buf = np.zeros((self.window, k))  # ring buffer of the trailing window
         self._filled = 0
         self._armed = False  # below the enter threshold once since the last leave
@@ -305,13 +324,19 @@ class StillnessMonitor:
         if self._filled < self.window:
             return False
         self.last_variance = np.var(self._buf, axis=0, ddof=1)
+        mean = self._buf.mean(axis=0)
         if np.any(self.last_variance > self.leave_threshold):
             self._armed = False
             self.still_count = 0
         elif self._armed:
-            self.still_count += 1
+            if not self.is_still and np.any(np.abs(mean - self._hold_mean) > self.level_threshold):
+                self._hold_mean = mean  # the level drifts: a slow move, or still settling; hold again
+                self.still_count = 1
+            else:
+                self.still_count += 1
         elif np.all(self.last_variance <= self.enter_threshold):
             self._armed = True
+            self._hold_mean = mean
             self.still_count = 1
         return self.is_still
 

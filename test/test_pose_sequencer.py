@@ -124,6 +124,24 @@ def test_auto_mode_advances_on_motion_and_records_the_next_still_pose():
     assert np.all(labels[40:70] == -1), "moving samples carry no pose"
 
 
+@pytest.mark.parametrize("mode", [Mode.AUTO, Mode.SERVICE])
+def test_stillness_held_since_the_previous_pose_is_not_taken_for_stillness_at_the_next(mode):
+    """The table leaves pose 0 slowly: the signal departs from the pose's level while the detector still
+    reports the stillness it has held since pose 0. That verdict must not record pose 1 (it did, at once:
+    the run fell out of step); only a still run that starts after the motion was seen counts."""
+    seq = PoseSequencer(_plan(), mode)
+    f = Feeder(seq)
+    f.feed(20, True, departed=False)
+    assert seq.phase is Phase.RECORDED
+    if mode is Mode.SERVICE:
+        assert seq.request_next()[0] and seq.phase is Phase.WAIT_MOTION
+    assert f.feed(60, True, departed=True) == [-1] * 60, "recorded during the move on the old pose's stillness"
+    assert seq.index == 1 and seq.phase is Phase.WAIT_STILL and seq.stillness_stale
+    f.feed(3, False, departed=True)  # the detector restarts (the recorder resets it) or sees the move
+    assert not seq.stillness_stale
+    assert f.feed(10, True, departed=True) == [1] * 10
+
+
 def test_auto_mode_advances_on_the_dwell_time_when_the_plan_expects_no_visible_change():
     # a turn about the vertical (psi at theta = 0) does not change gravity in the sensor frame
     plan = _plan([{"psi_deg": 0, "theta_deg": 0}, {"psi_deg": 90, "theta_deg": 0}], dwell=1.0, move=0.5)

@@ -27,8 +27,10 @@ def _plan(first_dwell: float = 4.0) -> PosePlan:
                   {"name": "x_up", "psi_deg": 90, "theta_deg": 90}]})
 
 
-def _samples(plan: PosePlan, seed: int = 0, temp_c: float = 24.0, skip: int = 0):
-    """Yield (RawSample, true pose or -1) for a table following ``plan`` at RATE."""
+def _samples(plan: PosePlan, seed: int = 0, temp_c: float = 24.0, skip: int = 0, smooth: bool = False):
+    """Yield (RawSample, true pose or -1) for a table following ``plan`` at RATE; ``smooth``: the table
+    moves with a raised-cosine profile (slow start and end, as the simulator's and a real turntable's)
+    instead of at constant rate."""
     rng = np.random.default_rng(seed)
     gs, truth = [], []
     for k, p in enumerate(plan.poses):
@@ -38,6 +40,8 @@ def _samples(plan: PosePlan, seed: int = 0, temp_c: float = 24.0, skip: int = 0)
         if k + 1 < len(plan):
             m = round(plan.move_s * RATE)
             s = np.linspace(0, 1, m + 2)[1:-1]
+            if smooth:
+                s = 0.5 - 0.5 * np.cos(np.pi * s)
             a, b = plan.poses[k], plan.poses[k + 1]
             gs.append(table_specific_force(a.psi_deg + s * (b.psi_deg - a.psi_deg),
                                            a.theta_deg + s * (b.theta_deg - a.theta_deg)))
@@ -75,6 +79,34 @@ def test_samples_are_labelled_in_the_file_exactly_as_the_sequencer_labelled_them
         assert np.all(np.asarray(truth)[idx] == k)
         np.testing.assert_allclose(r.gref_mps2[idx], np.repeat(p.gref_mps2[None], p.samples, 0))
     assert r.metadata["run_end"]["result"] == "done"
+
+
+@pytest.mark.parametrize("mode", [Mode.AUTO, Mode.SERVICE])
+def test_a_slow_move_is_never_recorded_on_the_stillness_of_the_previous_pose(tmp_path, mode):
+    """10 s raised-cosine moves, as the shipped six-position plan and the simulator: the start of a move is
+    slow, the signal leaves the pose's level long before the window variance crosses the leave threshold.
+    The sequencer then advanced on that departure and took the detector's "still" (held since pose 0) for
+    stillness at the next pose: poses 1 and 2 were recorded during the first move (40/40 samples of each
+    in motion). Stillness at a new pose must come from samples after the motion was seen."""
+    plan = PosePlan.from_dict({
+        "dwell_s": 3.0, "move_s": 10.0, "samples_per_pose": 40,
+        "poses": [{"name": "z_up", "psi_deg": 0, "theta_deg": 0, "dwell_s": 6.0},
+                  {"name": "x_up", "psi_deg": 90, "theta_deg": 90},
+                  {"name": "z_down", "psi_deg": 0, "theta_deg": 180}]})
+    rec = _recorder(tmp_path, plan, mode)
+    labels, truth = [], []
+    for s, t in _samples(plan, smooth=True):
+        labels.append(rec.on_raw(s))
+        truth.append(t)
+        if mode is Mode.SERVICE and rec.sequencer.phase is Phase.RECORDED:
+            rec.request_next()  # the operator presses at once; the table then turns
+    labels, truth = np.array(labels), np.array(truth)
+    assert rec.done
+    for k in range(3):
+        idx = labels == k
+        assert idx.sum() == 40
+        assert np.all(truth[idx] == k), f"pose {k}: {int(np.sum(truth[idx] != k))}/40 samples taken off the pose"
+    rec.close("complete")
 
 
 def test_a_pose_is_on_disk_when_its_recorded_event_is_reported(tmp_path):

@@ -163,3 +163,18 @@ def test_false_alarms_per_run_on_long_simulated_static_recordings() -> None:
     assert transitions <= budget, f"{transitions} false still->moving transitions in {runs} runs (budget {budget:g})"
     # and the detector is not trivially silent: the sensor is judged still almost all the time
     assert still_samples > 0.95 * runs * (run_len - LEARN - WINDOW - 100)
+
+
+def test_a_slow_drift_of_the_level_never_completes_the_hold():
+    """A slow move (the start or end of a raised-cosine turn) shifts Psi by a few sigma per window: the
+    window variance stays under the enter threshold, and the hold used to complete during the move. The
+    hold must also see a steady level: a drift of 5 sigma per second (100 samples) keeps restarting it."""
+    rng = np.random.default_rng(3)
+    floor = first_order_noise_floor(np.ones(3), 0.0, WINDOW)
+    mon = StillnessMonitor(floor, window=WINDOW, hold=100, run_samples=30_000)
+    ramp = 0.05 * np.arange(600)[:, None] * np.array([1.0, 0.0, 0.0])  # 5 sigma per second on x, 6 s
+    verdicts = [mon.update(row) for row in ramp + rng.standard_normal((600, 3))]
+    assert max(mon.last_variance) < mon.enter_threshold.max() * 2, "the ramp must be slow (variance-blind)"
+    assert not any(verdicts), "still during a steady drift of the level"
+    after = [mon.update(row) for row in ramp[-1] + rng.standard_normal((300, 3))]
+    assert any(after) and after.index(True) < WINDOW + 100 + 50, "still again soon after the drift stops"
