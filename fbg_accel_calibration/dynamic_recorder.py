@@ -19,8 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from fbg_accel_driver.frame_codec import SEQ_MODULO
-
+from .board_stream import BoardStream
 from .excitation_plan import ExcitationPlan
 from .mcap_io import RecordingWriter
 from .pose_sequencer import SequencerEvent
@@ -50,7 +49,7 @@ class DynamicRunRecorder:
         self._last_chunk_t = -math.inf
         self._next_progress = PROGRESS_EVERY_S
         self._elapsed = 0.0
-        self._last_seq: int | None = None
+        self._stream = BoardStream()
         self._aux_missing_warned = False
         self._aborted = False
         self._direction = np.asarray(plan.direction, dtype=float)
@@ -65,13 +64,8 @@ class DynamicRunRecorder:
             return -1
         c = self.counters
         c.messages_raw += 1
-        if self._last_seq is not None:
-            gap = (int(s.seq) - self._last_seq) % SEQ_MODULO
-            if gap == 0 or gap > SEQ_MODULO // 2:
-                c.repeated += 1
-            elif gap > 1:
-                c.lost += gap - 1
-        self._last_seq = int(s.seq)
+        self._stream.update(s.seq, s.board_time_s, s.status)  # no loss counted across a board reset
+        c.lost, c.repeated, c.board_resets = self._stream.lost, self._stream.repeated, self._stream.resets
         t = float(s.board_time_s) if s.board_time_s is not None and math.isfinite(s.board_time_s) else s.stamp_ns * 1e-9
         if self._t0 is None:
             self._t0 = t
@@ -142,7 +136,7 @@ class DynamicRunRecorder:
                 "incomplete", "reason": self.finished_reason, "poses": [], "kind": "dynamic",
                 "recorded_s": self._elapsed, "planned_s": self.length_s, "messages_raw": c.messages_raw,
                 "messages_temperature": c.messages_temperature, "lost_messages": c.lost,
-                "repeated_messages": c.repeated, "aux_samples": self.aux_samples}
+                "repeated_messages": c.repeated, "board_resets": c.board_resets, "aux_samples": self.aux_samples}
 
     def close(self, reason: str) -> dict[str, Any]:
         """Write the ``run_end`` record and finish the MCAP; returns the summary."""

@@ -13,8 +13,9 @@ The node hands every ``imu/raw`` message to :meth:`RunRecorder.on_raw` and every
    pose pauses the recording instead of being taken for the table's move to the next pose;
 4. writes a ``calibration/pose`` event whenever the sequencer's state changes and the pose's
    reference gravity when its recording starts, so the file carries the pose of every sample;
-5. counts lost and repeated messages from the driver's ``seq`` field and checks the sensor
-   temperature against the chamber set-point of the run.
+5. counts lost and repeated messages from the driver's ``seq`` field, never across a board reset
+   (:class:`~fbg_accel_calibration.board_stream.BoardStream`, the driver decoder's reset rule), and checks
+   the sensor temperature against the chamber set-point of the run.
 
 Detector settings (:class:`DetectorSettings`). The window and the hold time are given in seconds
 and turned into samples with the board rate measured at the start of the run. The noise floor of
@@ -40,8 +41,9 @@ from typing import Any
 
 import numpy as np
 
-from fbg_accel_driver.frame_codec import ADC_MAX, SEQ_MODULO, clipped_reading
+from fbg_accel_driver.frame_codec import ADC_MAX, clipped_reading
 
+from .board_stream import BoardStream, StreamStep
 from .mcap_io import RecordingWriter
 from .pose_plan import PosePlan
 from .pose_sequencer import Mode, Phase, PoseSequencer, SequencerEvent
@@ -127,8 +129,9 @@ class RawSample:
 class RunCounters:
     messages_raw: int = 0
     messages_temperature: int = 0
-    lost: int = 0  # gaps in the driver's seq (frames the driver did not publish or DDS dropped)
-    repeated: int = 0  # seq equal to or just behind the previous one
+    lost: int = 0  # gaps in the driver's seq (frames the driver did not publish or DDS dropped), not across a reset
+    repeated: int = 0  # seq equal to or just behind the previous one, within one board run
+    board_resets: int = 0  # board time went back or a BOOT status after the first message
     invalid_reference: int = 0  # ref < 1 count: Psi undefined, the sample is written but not judged still
     stamps_not_increasing: int = 0
     clipped: int = 0  # samples of a pose with a channel at a rail of the ADC: the fit leaves their visit out
@@ -157,7 +160,7 @@ class RunRecorder:
         self._startup_t: list[float] = []
         self._startup_psi: list[np.ndarray] = []
         self._startup_ref: list[float] = []
-        self._last_seq: int | None = None
+        self._stream = BoardStream()
         self._last_stamp: int | None = None
         self._event_key: tuple[str, int] | None = None
         self._frame_id: str | None = None
@@ -178,7 +181,7 @@ class RunRecorder:
         """Record one raw sample; returns its pose id (-1 when not one of a pose's recorded samples)."""
         c = self.counters
         c.messages_raw += 1
-        self._check_seq(int(s.seq))
+        self._check_seq(s)
         if self._last_stamp is not None and s.stamp_ns <= self._last_stamp:
             c.stamps_not_increasing += 1
         self._last_stamp = s.stamp_ns
@@ -278,6 +281,7 @@ class RunRecorder:
             "messages_temperature": c.messages_temperature,
             "lost_messages": c.lost,
             "repeated_messages": c.repeated,
+            "board_resets": c.board_resets,
             "invalid_reference": c.invalid_reference,
             "stamps_not_increasing": c.stamps_not_increasing,
             "clipped_samples": c.clipped,
@@ -302,14 +306,15 @@ class RunRecorder:
     def _say(self, level: str, text: str) -> None:
         self.messages.append((level, text))
 
-    def _check_seq(self, seq: int) -> None:
-        if self._last_seq is not None:
-            gap = (seq - self._last_seq) % SEQ_MODULO
-            if gap == 0 or gap > SEQ_MODULO // 2:
-                self.counters.repeated += 1
-            elif gap > 1:
-                self.counters.lost += gap - 1
-        self._last_seq = seq
+    def _check_seq(self, s: RawSample) -> StreamStep:
+        """Lost / repeated messages and board resets from the sample's ``seq``, board time and status."""
+        step = self._stream.update(s.seq, s.board_time_s, s.status)
+        c = self.counters
+        c.lost, c.repeated, c.board_resets = self._stream.lost, self._stream.repeated, self._stream.resets
+        if step.reset:
+            self._say("warn", f"board reset (board time went back or BOOT status) after {c.messages_raw - 1} messages: "
+                      "no message counted lost across it")
+        return step
 
     def _check_setpoint(self, temp: float) -> None:
         if self.setpoint_c is None or self._temp_warned or self.plan.chamber is None:

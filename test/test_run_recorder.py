@@ -174,6 +174,35 @@ def test_lost_and_repeated_messages_and_setpoint_are_reported(tmp_path):
     assert summary["lost_messages"] == 3 and summary["temperature_range_c"] == [24.0, 24.0]
 
 
+@pytest.mark.parametrize("board_time", [True, False])
+def test_a_board_reset_is_neither_lost_nor_repeated_messages(tmp_path, board_time):
+    """The board reboots: its seq restarts at 0 and its clock at 0, the first frame carries BOOT. run_end
+    counted the jump of seq as lost messages (29535 where the driver's decoder counts 0; here 40000 -> 0
+    gave 25338) or, when seq fell just behind the last one, as a repeated message (1 here). A reset is known from
+    the board time going back or the BOOT status (the driver decoder's rule); without a board time the
+    BOOT status alone tells it. Real losses around it are still counted."""
+    from dataclasses import replace
+
+    from fbg_accel_driver.frame_codec import Status
+
+    plan = _plan()
+    rec = _recorder(tmp_path, plan)
+    samples = [s for s, _ in _samples(plan)][:400]
+    run1 = [replace(s, seq=(40_000 + i) % 65536) for i, s in enumerate(samples[:200])]
+    del run1[50:52]  # two lost before the reset
+    run2 = [replace(s, seq=i, board_time_s=i / RATE, status=s.status | (Status.BOOT if i == 0 else 0))
+            for i, s in enumerate(samples[200:300])]
+    run3 = [replace(s, seq=i, board_time_s=i / RATE, status=s.status | (Status.BOOT if i == 0 else 0))
+            for i, s in enumerate(samples[300:400])]  # seq falls just behind the last one: a second reset
+    stream = run1 + run2 + run3
+    if not board_time:
+        stream = [replace(s, board_time_s=None) for s in stream]
+    for s in stream:
+        rec.on_raw(s)
+    summary = rec.close("test")
+    assert (summary["lost_messages"], summary["repeated_messages"], summary["board_resets"]) == (2, 0, 2)
+
+
 def test_invalid_reference_is_recorded_but_never_labelled(tmp_path):
     plan = _plan()
     rec = _recorder(tmp_path, plan)
