@@ -181,7 +181,12 @@ class RunRecorder:
         """Record one raw sample; returns its pose id (-1 when not one of a pose's recorded samples)."""
         c = self.counters
         c.messages_raw += 1
-        self._check_seq(s)
+        step = self._check_seq(s)
+        if step.reset and self.monitor is None and self._startup_t:
+            # the board restarted during start-up: its clock restarts, so a span measured across the reset
+            # means nothing (the detector waited for the board's whole previous uptime); learn from its new run
+            self._clear_startup()
+            self._say("info", "board reset during start-up: measuring the board rate / learning the noise floor again")
         if self._last_stamp is not None and s.stamp_ns <= self._last_stamp:
             c.stamps_not_increasing += 1
         self._last_stamp = s.stamp_ns
@@ -375,6 +380,10 @@ class RunRecorder:
         if needed > shortest:
             self._say("warn", f"the shortest dwell ({shortest:g} s) is shorter than window + hold + samples/rate "
                       f"({needed:.2f} s) at {self.rate_hz:.0f} Hz: poses may be closed short")
+        self._clear_startup()
+
+    def _clear_startup(self) -> None:
+        """Forget the start-up samples (board rate / noise learning starts again)."""
         self._startup_t.clear()
         self._startup_psi.clear()
         self._startup_ref.clear()
@@ -408,9 +417,7 @@ class RunRecorder:
 
     def _motion_while_learning(self, shift: float) -> None:
         """The table moved while the noise floor was being learnt (the sensor must be still then)."""
-        self._startup_t.clear()
-        self._startup_psi.clear()
-        self._startup_ref.clear()
+        self._clear_startup()
         if self.sequencer.mode is Mode.AUTO:
             # the table is following the plan without us: which pose it is at is unknown now
             self._say("warn", f"the table moved while the noise floor was being learnt (mean shift {shift:.0f} sigma): "

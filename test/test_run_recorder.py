@@ -203,6 +203,36 @@ def test_a_board_reset_is_neither_lost_nor_repeated_messages(tmp_path, board_tim
     assert (summary["lost_messages"], summary["repeated_messages"], summary["board_resets"]) == (2, 0, 2)
 
 
+def test_a_board_reset_during_noise_learning_restarts_learning_instead_of_waiting_for_the_old_uptime(tmp_path):
+    """The board had been up 60 s when the node started and reset 0.5 s later, during the learning. The
+    span of the start-up samples was measured across the reset (new board time - old board time < 0), so
+    the detector waited for the board's whole previous uptime: 60 s here (67 s after the start in the
+    simulator probe). It must learn again from the board's new run: ready learn_s after the reset."""
+    from dataclasses import replace
+
+    from fbg_accel_driver.frame_codec import Status
+
+    plan = _plan(first_dwell=30.0)
+    rec = _recorder(tmp_path, plan, Mode.SERVICE)  # learn_s = 1 s
+    samples = [s for s, _ in _samples(plan)][:2500]
+    reset_at = 50
+    ready_after = None
+    for i, s in enumerate(samples):
+        if i < reset_at:
+            s = replace(s, board_time_s=60.0 + i / RATE)
+        else:
+            j = i - reset_at
+            s = replace(s, seq=j, board_time_s=j / RATE, status=s.status | (Status.BOOT if j == 0 else 0))
+        rec.on_raw(s)
+        if rec.monitor is not None:
+            ready_after = (i - reset_at) / RATE
+            break
+    assert ready_after is not None, "detector never ready"
+    assert ready_after <= 1.0 + 0.05, f"detector ready {ready_after:.2f} s after the reset"
+    assert any("board reset during start-up" in t for _, t in rec.pop_messages())
+    rec.close("test")
+
+
 def test_invalid_reference_is_recorded_but_never_labelled(tmp_path):
     plan = _plan()
     rec = _recorder(tmp_path, plan)
