@@ -10,7 +10,8 @@ message after the first, starts a new board run.
 :class:`BoardStream` counts lost messages (gaps in ``seq`` within one board run), repeated ones (a
 ``seq`` equal to or just behind the previous one, within one board run) and resets, and keeps the
 board time elapsed since the first message, continuous across resets (a reset adds no time: the
-length of the outage is unknown; a forward jump within a board run, an outage of the link, counts).
+length of the outage is unknown; a forward jump within a board run, an outage of the link, counts;
+without a board time, the host stamps measure it).
 Pure, no ROS.
 """
 
@@ -46,9 +47,12 @@ class BoardStream:
     def __post_init__(self) -> None:
         self._last_seq: int | None = None
         self._last_t: float | None = None
+        self._last_host: float | None = None
 
-    def update(self, seq: int, board_time_s: float | None, status: int) -> StreamStep:
-        """Account for one message: frame ``seq``, board time (s; None or NaN when unknown) and ``status``."""
+    def update(self, seq: int, board_time_s: float | None, status: int,
+               host_time_s: float | None = None) -> StreamStep:
+        """Account for one message: frame ``seq``, board time (s; None or NaN when unknown), ``status`` and
+        the host stamp (s; only for the elapsed time of a message without a board time, never for resets)."""
         seq = int(seq)
         t = float(board_time_s) if board_time_s is not None and math.isfinite(board_time_s) else None
         reset = False
@@ -69,7 +73,10 @@ class BoardStream:
                     self.lost += lost
                 if t is not None and self._last_t is not None:
                     self.elapsed_s += t - self._last_t
+                elif t is None and host_time_s is not None and self._last_host is not None:
+                    self.elapsed_s += max(0.0, host_time_s - self._last_host)
         self._last_seq = seq
+        self._last_host = host_time_s
         if t is not None:
             self._last_t = t
         return StreamStep(reset, lost, repeated, self.elapsed_s)

@@ -7,7 +7,8 @@ transducer's reading on its own topic (``calibration/reference_velocity`` for an
 ``calibration/reference_acceleration`` for a reference accelerometer: the value along the slide
 direction as a vector in the sensor frame, converted with the plan's sensitivity and offset), ends
 the MCAP chunk every ``chunk_period_s`` of board time so a killed run keeps all but the last second,
-and is done ``start_s + duration + tail_s`` of board time after its first sample. The plan is in the
+and is done ``start_s + duration + tail_s`` of board time after its first sample. Board time is counted
+continuously across a board reset (its clock restarts at 0; ``board_stream.BoardStream``). The plan is in the
 file's metadata; ``fbg-accel-calib dynamic`` finds the slide's start in the aux channel itself.
 """
 
@@ -45,8 +46,7 @@ class DynamicRunRecorder:
         self.messages: list[tuple[str, str]] = []
         self.events: list[SequencerEvent] = []
         self.finished_reason = ""
-        self._t0: float | None = None
-        self._last_chunk_t = -math.inf
+        self._last_chunk_s = 0.0  # elapsed board time (s) of the last chunk end
         self._next_progress = PROGRESS_EVERY_S
         self._elapsed = 0.0
         self._stream = BoardStream()
@@ -64,12 +64,13 @@ class DynamicRunRecorder:
             return -1
         c = self.counters
         c.messages_raw += 1
-        self._stream.update(s.seq, s.board_time_s, s.status)  # no loss counted across a board reset
+        # no loss counted across a board reset; elapsed board time continuous across it (the clock restarts at 0)
+        step = self._stream.update(s.seq, s.board_time_s, s.status, host_time_s=s.stamp_ns * 1e-9)
         c.lost, c.repeated, c.board_resets = self._stream.lost, self._stream.repeated, self._stream.resets
+        if step.reset:
+            self.messages.append(("warn", f"board reset after {c.messages_raw - 1} messages: the board clock "
+                                          "restarted; recording goes on (the slide keeps following the plan)"))
         t = float(s.board_time_s) if s.board_time_s is not None and math.isfinite(s.board_time_s) else s.stamp_ns * 1e-9
-        if self._t0 is None:
-            self._t0 = t
-            self._last_chunk_t = t
         if s.temperature_valid and math.isfinite(s.temperature_c):
             self._temperature_c = float(s.temperature_c)
         aux = s.aux if math.isfinite(s.aux) else None
@@ -85,10 +86,10 @@ class DynamicRunRecorder:
             self._aux_missing_warned = True
             self.messages.append(("warn", "imu/raw has no aux_counts: the board sends protocol version 1, so the "
                                           "reference transducer is not recorded (docs/protocol.md, version 2)"))
-        self._elapsed = t - self._t0
-        if t - self._last_chunk_t >= self.chunk_period_s:
+        self._elapsed = step.elapsed_s
+        if self._elapsed - self._last_chunk_s >= self.chunk_period_s:
             self.writer.flush()  # a killed run keeps everything up to here
-            self._last_chunk_t = t
+            self._last_chunk_s = self._elapsed
         if self._elapsed >= self._next_progress:
             self._next_progress += PROGRESS_EVERY_S
             self._event("progress", f"dynamic run: {self._elapsed:.0f} of {self.length_s:.0f} s recorded")

@@ -1,0 +1,49 @@
+"""DynamicRunRecorder (pure core of a dynamic calibration run): board time, chunks and counters, no ROS."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fbg_accel_calibration.dynamic_recorder import DynamicRunRecorder
+from fbg_accel_calibration.excitation_plan import ExcitationPlan
+from fbg_accel_calibration.mcap_io import RecordingWriter
+from fbg_accel_calibration.run_recorder import RawSample
+from fbg_accel_driver.frame_codec import Status
+
+RATE = 100.0
+PLAN = Path(__file__).resolve().parents[1] / "config" / "excitation_plan_stepped_sine.yaml"
+
+
+def test_a_board_reset_neither_stalls_the_run_nor_its_chunks_nor_counts_as_lost(tmp_path):
+    """A v2 board that had been up 60 s when the run started reboots 20 s into it: its clock restarts at 0
+    and seq at 0 (BOOT on the first frame). The recorder measured the run as board time minus the first
+    sample's, which went negative: the run ran 188 s instead of 108 (80 s of the slide's rest recorded as
+    part of the run, the node exits that much late), no chunk was ended for 81 s (a SIGKILL then loses
+    them), and the seq jump counted as lost messages. Board time must run on across the reset."""
+    plan = ExcitationPlan.load(PLAN)
+    writer = RecordingWriter(tmp_path / "dyn.mcap", {"kind": "dynamic"})
+    flushed: list[int] = []
+    flush = writer.flush
+
+    def counting_flush() -> None:
+        flushed.append(n)
+        flush()
+
+    writer.flush = counting_flush  # type: ignore[method-assign]
+    rec = DynamicRunRecorder(plan, writer, sensor_id="t")
+    reset_at = round(20 * RATE)
+    n = 0
+    while not rec.finished and n < round(3 * rec.length_s * RATE):
+        j = n - reset_at
+        board_t, seq = (60.0 + n / RATE, (6000 + n) % 65536) if j < 0 else (j / RATE, j)
+        status = Status.TEMP_VALID | (Status.BOOT if j == 0 else 0)
+        rec.on_raw(RawSample(stamp_ns=10**18 + n * 10_000_000, ref=2000.0, x=1000.0, y=1000.0, z=1500.0,
+                             temperature_c=24.0, status=int(status), seq=seq, board_time_s=board_t, aux=2048.0))
+        n += 1
+    summary = rec.close("complete" if rec.done else "aborted")
+    assert rec.done
+    recorded_s = n / RATE
+    assert abs(recorded_s - rec.length_s) <= 5 / RATE, f"run lasted {recorded_s:.1f} s for {rec.length_s:.1f} s planned"
+    gaps = [b - a for a, b in zip([0, *flushed], flushed, strict=False)]
+    assert max(gaps) <= RATE * 1.0 + 3, f"longest stretch without a chunk end: {max(gaps) / RATE:.1f} s"
+    assert (summary["lost_messages"], summary["repeated_messages"], summary["board_resets"]) == (0, 0, 1)
