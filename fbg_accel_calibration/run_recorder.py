@@ -10,7 +10,10 @@ The node hands every ``imu/raw`` message to :meth:`RunRecorder.on_raw` and every
    :class:`~fbg_accel_calibration.pose_sequencer.PoseSequencer`;
 3. tells the sequencer whether the signal has *left the pose* (``DEPART_SIGMAS`` noise sigmas from
    the pose's mean Psi for ``DEPART_CONFIRM`` samples), so a detector false alarm or a knock at the
-   pose pauses the recording instead of being taken for the table's move to the next pose;
+   pose pauses the recording instead of being taken for the table's move to the next pose; a fast change
+   of the source power (the reference ``SOURCE_SIGMAS`` noise sigmas off its slow baseline: no table move
+   changes the reference channel, but Psi is distorted while the differently low-passed channels follow
+   the change) is neither stillness nor motion: the pose pauses, the detector restarts after it;
 4. writes a ``calibration/pose`` event whenever the sequencer's state changes and the pose's
    reference gravity when its recording starts, so the file carries the pose of every sample;
 5. counts lost and repeated messages from the driver's ``seq`` field, never across a board reset
@@ -61,6 +64,9 @@ LEARN_BLOCKS = 4  # the learning period is cut into this many blocks whose means
 LEARN_SHIFT_LIMIT = 8.0  # largest block-mean difference (in noise sigmas) accepted as "still" while learning
 DEPART_SIGMAS = 10.0  # a sample this many noise sigmas from the pose's mean Psi is off the pose
 DEPART_CONFIRM = 5  # consecutive such samples: the table has left the pose (not a glitch or a knock)
+SOURCE_SIGMAS = 10.0  # a reference this many reference-noise sigmas off its baseline is a source-power event
+SOURCE_BASELINE_S = 2.0  # s; time constant of the reference baseline (follows the slow wander of the source)
+SOURCE_REBASE_S = 5.0  # s; a reference off its baseline this long is the source's new level (warned)
 RECENT_SAMPLES = 20  # still samples before a pose's first recorded one that seed its mean Psi
 MIN_RATE_SAMPLES = 20  # samples needed to measure the board rate
 
@@ -175,6 +181,10 @@ class RunRecorder:
         self._pose_n = 0
         self._depart_run = 0
         self._clipped_pose = -1  # the last pose warned of a clipped reading
+        self._ref_base = math.nan  # counts; slow baseline of the reference (source power)
+        self._ref_std = math.nan  # counts; noise of the reference, learnt at start-up
+        self._source_off_s = 0.0  # s of board time the reference has been off its baseline
+        self._ref_last_s: float | None = None  # elapsed board time (s) of the last reference judged
 
     # ------------------------------------------------------------------ inputs
     def on_raw(self, s: RawSample) -> int:
@@ -213,8 +223,16 @@ class RunRecorder:
         if self.monitor is None:
             self._startup(t_s, psi, s.ref)
         if self.monitor is not None and not self.sequencer.finished:
-            still = self.monitor.update(psi)
-            pose_id = self.sequencer.step(t_s, still, self._departed(psi))
+            if self._source_event(float(s.ref), step.elapsed_s):
+                # Psi is distorted while the source power changes: not still (the detector restarts, a fresh
+                # hold covers the channels' settling) and not a departure (the table did not move)
+                self.monitor.update(np.full(3, np.nan))
+                self._depart_run = 0
+                still, departed = False, False
+            else:
+                still = self.monitor.update(psi)
+                departed = self._departed(psi)
+            pose_id = self.sequencer.step(t_s, still, departed)
             if self.sequencer.stillness_stale:
                 # the table left the pose while the detector still holds the pose's stillness: restart it,
                 # so stillness at the next pose comes from a fresh window and hold after the motion
@@ -368,6 +386,9 @@ class RunRecorder:
                                             ).with_minimum_variance(quant_var)
             source = "configured"
         self.noise_std = floor.std
+        refs = np.asarray(self._startup_ref)
+        self._ref_base = float(np.mean(refs))
+        self._ref_std = max(float(np.std(refs)), 0.5)  # counts; not below the rounding to whole counts
         run_samples = max(1, round(self.plan.nominal_duration_s() * self.rate_hz))
         self.monitor = StillnessMonitor(floor, window=window, hold=hold, run_samples=run_samples,
                                         false_alarm_per_run=self.detector.false_alarm_per_run)
@@ -387,6 +408,32 @@ class RunRecorder:
         self._startup_t.clear()
         self._startup_psi.clear()
         self._startup_ref.clear()
+
+    def _source_event(self, ref: float, elapsed_s: float) -> bool:
+        """Is the reference (source power) off its slow baseline by more than ``SOURCE_SIGMAS`` noise sigmas?
+
+        The baseline follows the reference with time constant ``SOURCE_BASELINE_S`` outside such events; a
+        reference off it for ``SOURCE_REBASE_S`` of board time is taken as the source's new level (warned).
+        """
+        dt = 0.0 if self._ref_last_s is None else max(0.0, elapsed_s - self._ref_last_s)
+        self._ref_last_s = elapsed_s
+        if not math.isfinite(ref):
+            return True
+        if abs(ref - self._ref_base) <= SOURCE_SIGMAS * self._ref_std:
+            self._source_off_s = 0.0
+            self._ref_base += (ref - self._ref_base) * min(1.0, dt / SOURCE_BASELINE_S)
+            return False
+        if self._source_off_s == 0.0:
+            self._say("warn", f"source power changed: reference {ref:.0f} counts against {self._ref_base:.0f}; "
+                      "not taken for table motion, the pose pauses until it is steady again")
+        self._source_off_s += max(dt, 1e-9)
+        if self._source_off_s >= SOURCE_REBASE_S:
+            self._say("warn", f"reference has stayed at {ref:.0f} counts for {SOURCE_REBASE_S:g} s: taken as the "
+                      "source's new level")
+            self._ref_base = ref
+            self._source_off_s = 0.0
+            return False
+        return True
 
     def _departed(self, psi: np.ndarray) -> bool | None:
         """Has the signal left the level of the current / last recorded pose (the table really moved)?

@@ -233,6 +233,42 @@ def test_a_board_reset_during_noise_learning_restarts_learning_instead_of_waitin
     rec.close("test")
 
 
+def test_a_source_power_drop_at_a_pose_pauses_the_pose_instead_of_taking_it_for_motion(tmp_path):
+    """The source power falls to 30 % for 0.3 s while pose 1 records. Psi = counts / reference cancels the
+    power only in the steady state (the channels are low-passed at different cut-offs), so Psi jumps during
+    the drop; the recorder took that for the table leaving: pose 1 was closed short and the sequence
+    advanced to pose 2 while the table was still at pose 1 (simulator: 26/200 samples, closed short). No
+    table move changes the reference channel: a jump of the reference is a source event, not motion."""
+    from dataclasses import replace
+
+    plan = PosePlan.from_dict({
+        "dwell_s": 4.0, "move_s": 0.6, "samples_per_pose": 40,
+        "poses": [{"name": "z_up", "psi_deg": 0, "theta_deg": 0},
+                  {"name": "z_down", "psi_deg": 0, "theta_deg": 180},
+                  {"name": "x_up", "psi_deg": 90, "theta_deg": 90}]})
+    rec = _recorder(tmp_path, plan)
+    labels, truth, dropped = [], [], []
+    start = None
+    for i, (s, t) in enumerate(_samples(plan)):
+        if start is None and rec.sequencer.index == 1 and rec.sequencer.samples_recorded(1) == 10:
+            start = i
+        if start is not None and start <= i < start + 30:
+            ref = s.ref * 0.3  # the power drop; Psi off by 0.05 (about 50 noise sigmas) while it lasts
+            s = replace(s, ref=ref, x=round((s.x / s.ref + 0.05) * ref), y=round((s.y / s.ref + 0.05) * ref),
+                        z=round((s.z / s.ref + 0.05) * ref))
+            dropped.append(i)
+        labels.append(rec.on_raw(s))
+        truth.append(t)
+    labels, truth = np.array(labels), np.array(truth)
+    summary = rec.close("complete")
+    assert start is not None and rec.done
+    assert not any(p["closed_short"] for p in summary["poses"]), summary["poses"]
+    assert np.all(labels[dropped] == -1), "samples of the power drop recorded"
+    for k in range(3):
+        idx = labels == k
+        assert idx.sum() == 40 and np.all(truth[idx] == k), f"pose {k} recorded off the pose"
+
+
 def test_invalid_reference_is_recorded_but_never_labelled(tmp_path):
     plan = _plan()
     rec = _recorder(tmp_path, plan)
