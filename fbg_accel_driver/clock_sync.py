@@ -96,6 +96,7 @@ class ClockSync:
         # so float arithmetic stays at sub-ns precision even with epoch-sized host times.
         self._base_ns: int | None = None
         self._host_minus_steady_ns = 0  # of the latest observation
+        self._applied_host_ns: int | None = None  # the host-minus-steady offset the stamps carry (ns, see ``stamp``)
         self.resets = 0
         self.steps = 0
         self._clear()
@@ -204,8 +205,18 @@ class ClockSync:
                 warm = self._started_s is not None and board_s - self._started_s < cfg.warmup_s
                 limit = (cfg.warmup_slew if warm else cfg.max_slew) * max(dt, 0.0)
                 applied += max(-limit, min(limit, err))
+        prev_at = self._applied_at_s
         self._applied, self._applied_at_s = applied, board_s
-        stamp_ns = t_us * 1000 + (self._base_ns or 0) + round(applied * 1e9) + self._host_minus_steady_ns
+        # the host-minus-steady offset: a step of the host clock (NTP) beyond step_threshold_s is taken at once;
+        # smaller changes (the two clocks' read jitter, a slewing NTP) at most at max_slew, so read jitter never
+        # reaches the stamps' spacing
+        target_ns = self._host_minus_steady_ns
+        if self._applied_host_ns is None or abs(target_ns - self._applied_host_ns) > cfg.step_threshold_s * 1e9:
+            self._applied_host_ns = target_ns
+        else:
+            limit = cfg.max_slew * max(board_s - (prev_at if prev_at is not None else board_s), 0.0) * 1e9
+            self._applied_host_ns += round(max(-limit, min(limit, target_ns - self._applied_host_ns)))
+        stamp_ns = t_us * 1000 + (self._base_ns or 0) + round(applied * 1e9) + self._applied_host_ns
         if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
             stamp_ns = self._last_stamp_ns + 1
         self._last_stamp_ns = stamp_ns

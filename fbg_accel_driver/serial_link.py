@@ -134,6 +134,21 @@ class SerialLink:
         return self._state_changes
 
     # ------------------------------------------------------------------ thread
+    def _read_clocks(self) -> tuple[int, int]:
+        """(host ns, steady ns) of one instant: the host clock (ROS time, which may step) read between two reads
+        of the steady clock, the steady time their midpoint; of three tries the tightest bracket, so a thread
+        switch between two reads does not put its delay into the host-minus-steady offset of the stamps."""
+        best: tuple[int, int, int] | None = None
+        for _ in range(3):
+            before = time.monotonic_ns()
+            host = self._clock_ns()
+            after = time.monotonic_ns()
+            if best is None or after - before < best[0]:
+                best = (after - before, host, (before + after) // 2)
+            if after - before < 20_000:  # 20 us: tight enough
+                break
+        return best[1], best[2]
+
     def _set_state(self, state: LinkState, message: str) -> None:
         with self._lock:
             if state is not self._state:
@@ -182,7 +197,7 @@ class SerialLink:
                     rest = ser.in_waiting  # read(1) woke on a frame's first byte: take the rest of it too
                     if rest and len(data) < self._max_chunk:
                         data += ser.read(min(rest, self._max_chunk - len(data)))
-                    host_ns, steady_ns = self._clock_ns(), time.monotonic_ns()  # the host clock may step
+                    host_ns, steady_ns = self._read_clocks()
                     last_data = time.monotonic()
                     with self._lock:
                         self._bytes += len(data)

@@ -193,3 +193,24 @@ def test_host_clock_step_back_restarts_at_once() -> None:
 def test_config_limits_drift() -> None:
     sync, _, _ = run(3000, drift=5e-3, sync=ClockSync(ClockSyncConfig(max_drift=1e-4)))
     assert abs(sync.drift) <= 1e-4 + 1e-12
+
+
+def test_jitter_between_the_host_and_the_steady_read_stays_out_of_the_stamp_spacing() -> None:
+    """The host and steady clocks are read one after the other; a thread switch between the reads makes their
+    difference jitter by up to a millisecond. Passed straight into the stamps that broke the board spacing by
+    1.5 % (a process test under load); the offset now moves at most at the slew rate below a clock step."""
+    rng = np.random.default_rng(9)
+    sync = ClockSync()
+    n = 3000
+    board = np.arange(n) / RATE_HZ
+    true_host = OFFSET_S + board
+    arrive = true_host + 150e-6 + rng.exponential(2e-3, n)
+    stamps = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        host_ns = round(arrive[i] * 1e9)
+        steady_ns = host_ns - 10**12 - int(rng.uniform(0.0, 1e6))  # 1000 s apart, read up to 1 ms apart
+        sync.observe(round(board[i] * 1e6), host_ns, steady_ns)
+        stamps[i] = sync.stamp(round(board[i] * 1e6))
+    spacing = np.diff(stamps[500:]) * 1e-9
+    assert np.all(np.abs(spacing - 1 / RATE_HZ) < 0.002 / RATE_HZ), (spacing.min(), spacing.max())
+    assert np.all(np.abs(errors_s(stamps[500:], true_host[500:])) < 1.5e-3)
