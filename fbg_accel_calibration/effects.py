@@ -160,7 +160,8 @@ class DiagnosisData:
         degree is below it, so with one level the model has no temperature term."""
         from .thermal_fit import temperature_levels
 
-        return max(len(temperature_levels(self.temp_c[self.use])[1]), 1)
+        # asked by every candidate's ``applicable`` at every step: clustered once per recording
+        return self.once("temperature_level_count", lambda: max(len(temperature_levels(self.temp_c[self.use])[1]), 1))
 
     def temperature_span_c(self) -> float:
         t = self.temp_c[self.use]

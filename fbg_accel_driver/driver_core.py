@@ -478,9 +478,10 @@ class DriverCore:
             if len(self._eq_mean_cache) >= 64:
                 self._eq_mean_cache.clear()
             dt = dt_us * 1e-6
+            one = self._eq_cache[dt_us][1] if dt_us in self._eq_cache else tuple(  # the per-sample factors
+                eq.variance_factor(a, dt, *self._noise_corr[a]) for a in range(3))
             factors = self._eq_mean_cache[key] = tuple(  # type: ignore[assignment]
-                eq.variance_factor(a, dt, *self._noise_corr[a], n) / eq.variance_factor(a, dt, *self._noise_corr[a])
-                for a in range(3))
+                eq.variance_factor(a, dt, *self._noise_corr[a], n) / one[a] for a in range(3))
         return factors
 
     def _emit(self) -> ImuRecord:
