@@ -25,13 +25,10 @@ from fbg_accel_driver.frame_codec import SEQ_MODULO, Status
 
 @dataclass(frozen=True)
 class StreamStep:
-    """What one message meant: ``reset`` it starts a new board run; ``lost`` messages missing before it
-    (0 across a reset); ``repeated`` it repeats the previous one; ``elapsed_s`` board time (s) since the
-    first message, continuous across resets."""
+    """What one message meant: ``reset`` it starts a new board run; ``elapsed_s`` board time (s) since the
+    first message, continuous across resets (the lost and repeated messages are the tracker's running counts)."""
 
     reset: bool
-    lost: int
-    repeated: bool
     elapsed_s: float
 
 
@@ -56,8 +53,6 @@ class BoardStream:
         seq = int(seq)
         t = float(board_time_s) if board_time_s is not None and math.isfinite(board_time_s) else None
         reset = False
-        lost = 0
-        repeated = False
         if self._last_seq is not None:
             back = t is not None and self._last_t is not None and t < self._last_t
             reset = back or bool(int(status) & Status.BOOT)
@@ -66,11 +61,9 @@ class BoardStream:
             else:
                 gap = (seq - self._last_seq) % SEQ_MODULO
                 if gap == 0 or gap > SEQ_MODULO // 2:
-                    repeated = True
                     self.repeated += 1
                 elif gap > 1:
-                    lost = gap - 1
-                    self.lost += lost
+                    self.lost += gap - 1
                 if t is not None and self._last_t is not None:
                     self.elapsed_s += t - self._last_t
                 elif t is None and host_time_s is not None and self._last_host is not None:
@@ -79,4 +72,4 @@ class BoardStream:
         self._last_host = host_time_s
         if t is not None:
             self._last_t = t
-        return StreamStep(reset, lost, repeated, self.elapsed_s)
+        return StreamStep(reset, self.elapsed_s)

@@ -305,19 +305,14 @@ def _tied_peak(cc: np.ndarray, lags: np.ndarray, valid: np.ndarray, ok: np.ndarr
     if not top > 0:  # no positive correlation: nothing to split, the largest allowed value
         idx = np.flatnonzero(ok & (cc == top))
         return int(idx[np.argmin(np.abs(lags[idx]))])
-    best: tuple[float, int] | None = None
     peaks: list[tuple[float, int]] = []
     for lobe in _lobes(valid & (cc > 0.5 * top), circular):
         allowed = lobe[ok[lobe]]
         if allowed.size:
             j = int(allowed[np.argmax(cc[allowed])])
             peaks.append((float(cc[j]), j))
-    tied = [j for v, j in peaks if v >= top - PEAK_TIE * abs(top)]
-    for j in tied:
-        if best is None or abs(lags[j]) < best[0]:
-            best = (float(abs(lags[j])), j)
-    assert best is not None  # the largest allowed value lies in a lobe
-    return best[1]
+    tied = [j for v, j in peaks if v >= top - PEAK_TIE * abs(top)]  # the largest allowed value lies in a lobe
+    return min(tied, key=lambda j: abs(int(lags[j])))  # the first of equal distances, as before
 
 
 def _refined_offset(cc: np.ndarray, i: int, valid: np.ndarray, circular: bool, refine: str) -> float:

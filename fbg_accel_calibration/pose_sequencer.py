@@ -114,9 +114,7 @@ class PoseSequencer:
         self._t_now = float("nan")  # board time of the last sample (for event stamps)
         self._still = False
         self._motion_since_recorded = False
-        self._steps = 0  # samples fed so far
-        self._still_since: int | None = None  # sample number where the detector's current still run began
-        self._motion_mark: int | None = None  # sample number where motion away from the last pose was seen
+        self._stale = False  # the detector's current still run began before motion away from a pose was seen
         self._phase_since = 0.0  # elapsed time when the current phase began
         self._warned: set[tuple[int, str]] = set()
         self._total = 0
@@ -137,8 +135,7 @@ class PoseSequencer:
         verdict belongs to the previous pose and is not accepted as stillness at the next one. The
         caller restarts its detector (``StillnessMonitor.reset``) so stillness is re-established from
         samples after the motion; any "not still" verdict does the same."""
-        return (not self.finished and self._still_since is not None and self._motion_mark is not None
-                and self._still_since <= self._motion_mark)
+        return not self.finished and self._stale
 
     def samples_recorded(self, index: int) -> int:
         return self._logs[index].samples
@@ -179,12 +176,9 @@ class PoseSequencer:
         stillness at the pose (a detector false alarm, a knock) only pauses the recording.
         """
         self._advance_clock(float(t_s))
-        self._steps += 1
         self._still = bool(still)
         if not still:
-            self._still_since = None
-        elif self._still_since is None:
-            self._still_since = self._steps
+            self._stale = False  # a new still run starts after this sample
         moved = (not still) if departed is None else bool(departed)
         if self.finished:
             return -1
@@ -278,7 +272,7 @@ class PoseSequencer:
 
     def _mark_motion(self) -> None:
         """The table was seen leaving a pose on this sample: stillness must be re-established after it."""
-        self._motion_mark = self._steps
+        self._stale = self._still  # a still run that began before this sample is the previous pose's
 
     def _set_phase(self, phase: Phase) -> None:
         self.phase = phase

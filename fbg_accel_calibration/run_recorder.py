@@ -226,7 +226,7 @@ class RunRecorder:
             if self._source_event(float(s.ref), step.elapsed_s):
                 # Psi is distorted while the source power changes: not still (the detector restarts, a fresh
                 # hold covers the channels' settling) and not a departure (the table did not move)
-                self.monitor.update(np.full(3, np.nan))
+                self.monitor.reset()
                 self._depart_run = 0
                 still, departed = False, False
             else:
@@ -367,8 +367,8 @@ class RunRecorder:
         self.rate_hz = float(1.0 / np.median(dt))
         window = max(3, round(self.detector.window_s * self.rate_hz))
         hold = max(1, round(self.detector.hold_s * self.rate_hz))
-        psi_arr = np.asarray(self._startup_psi)
-        quant_var = quantisation_var(np.asarray(self._startup_ref), psi_arr)  # rounding to whole counts, in Psi^2
+        psi_arr, refs = np.asarray(self._startup_psi), np.asarray(self._startup_ref)
+        quant_var = quantisation_var(refs, psi_arr)  # rounding to whole counts, in Psi^2
         floor: NoiseFloor
         if self.detector.noise_std is None:
             # was the table still? Block means against the robust (median window variance) noise scale, which a
@@ -386,7 +386,6 @@ class RunRecorder:
                                             ).with_minimum_variance(quant_var)
             source = "configured"
         self.noise_std = floor.std
-        refs = np.asarray(self._startup_ref)
         self._ref_base = float(np.mean(refs))
         self._ref_std = max(float(np.std(refs)), 0.5)  # counts; not below the rounding to whole counts
         run_samples = max(1, round(self.plan.nominal_duration_s() * self.rate_hz))

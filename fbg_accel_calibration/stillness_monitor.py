@@ -174,18 +174,23 @@ def first_order_noise_floor(std: np.ndarray, corr_samples: float, max_lag: int) 
     return NoiseFloor(s**2, np.tile(row, (s.size, 1)), np.full(s.size, np.inf))
 
 
+def acf_matrix(acf_row: np.ndarray, window: int) -> np.ndarray:
+    """Correlation matrix (window, window) of ``window`` consecutive samples with normalised autocorrelation
+    ``acf_row`` (lags 0, 1, ...; zero beyond its length)."""
+    r = np.zeros(window)
+    m = min(window, len(acf_row))
+    r[:m] = np.asarray(acf_row, dtype=float)[:m]
+    return r[np.abs(np.subtract.outer(np.arange(window), np.arange(window)))]
+
+
 def window_variance_weights(acf_row: np.ndarray, window: int) -> np.ndarray:
     """Weights lambda of the window variance (ddof=1) of ``window`` consecutive samples of a stationary
     Gaussian process with normalised autocorrelation ``acf_row``, in units of the per-sample variance:
     the window variance is distributed as sum_i lambda_i chi2_1 (white noise: w-1 weights 1/(w-1))."""
     if window < 2:
         raise ValueError(f"window must be >= 2 samples, got {window}")
-    r = np.zeros(window)
-    m = min(window, len(acf_row))
-    r[:m] = np.asarray(acf_row, dtype=float)[:m]
     centring = np.eye(window) - 1.0 / window
-    lags = np.abs(np.subtract.outer(np.arange(window), np.arange(window)))
-    lam = np.linalg.eigvalsh(centring @ r[lags] @ centring) / (window - 1)
+    lam = np.linalg.eigvalsh(centring @ acf_matrix(acf_row, window) @ centring) / (window - 1)
     lam = lam[lam > 1e-12 * max(float(lam.max()), 1e-300)]  # a truncated estimated acf may be slightly indefinite
     if lam.size == 0:
         raise ValueError("degenerate autocorrelation: the window variance has no spread")
@@ -290,12 +295,7 @@ class StillnessMonitor:
             [ratio_quantile(self.per_window_false_alarm, weights[j], floor.dof[j]) for j in range(k)])
         self.enter_threshold = self.expected_variance * np.array(
             [ratio_quantile(enter_exceedance, weights[j], floor.dof[j]) for j in range(k)])
-        rows = [np.zeros(self.window) for _ in range(k)]
-        for j in range(k):
-            m = min(self.window, floor.acf.shape[1])
-            rows[j][:m] = floor.acf[j, :m]
-        lags = np.abs(np.subtract.outer(np.arange(self.window), np.arange(self.window)))
-        mean_var = floor.variance * np.array([rows[j][lags].sum() for j in range(k)]) / self.window**2
+        mean_var = floor.variance * np.array([acf_matrix(floor.acf[j], self.window).sum() for j in range(k)]) / self.window**2
         quantile = np.array([float(student_t.isf(self.per_window_false_alarm / 2.0, d)) if math.isfinite(d)
                              else float(norm.isf(self.per_window_false_alarm / 2.0)) for d in floor.dof])
         # Psi units: a window mean this far from the one at the start of the hold restarts the hold
@@ -324,19 +324,19 @@ class StillnessMonitor:
         if self._filled < self.window:
             return False
         self.last_variance = np.var(self._buf, axis=0, ddof=1)
-        mean = self._buf.mean(axis=0)
         if np.any(self.last_variance > self.leave_threshold):
             self._armed = False
             self.still_count = 0
         elif self._armed:
-            if not self.is_still and np.any(np.abs(mean - self._hold_mean) > self.level_threshold):
+            mean = None if self.is_still else self._buf.mean(axis=0)  # the level matters only while holding
+            if mean is not None and np.any(np.abs(mean - self._hold_mean) > self.level_threshold):
                 self._hold_mean = mean  # the level drifts: a slow move, or still settling; hold again
                 self.still_count = 1
             else:
                 self.still_count += 1
         elif np.all(self.last_variance <= self.enter_threshold):
             self._armed = True
-            self._hold_mean = mean
+            self._hold_mean = self._buf.mean(axis=0)
             self.still_count = 1
         return self.is_still
 
