@@ -462,6 +462,9 @@ class ThermalLagEffect(Effect):
         return f"tau = {h:.4g} s ({who})"
 
 
+PSI_SPAN_MARGIN = 0.05  # fraction of the fitted Psi range added on each side of a spectral_nonlinearity's psi_span
+
+
 class SpectralNonlinearityEffect(Effect):
     name = "spectral_nonlinearity"
     pointwise = True
@@ -476,7 +479,12 @@ class SpectralNonlinearityEffect(Effect):
         return quadratic_features(inp.psi, self._psi0(data))
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
-        return [SpectralNonlinearity(self._psi0(data), np.asarray(coeff))]
+        # The Psi it was fitted on (the static samples), widened by PSI_SPAN_MARGIN of the width on each side: the
+        # noise of the edge poses' samples (well under 1 % of the width) does not flag a sensor at rest there.
+        psi = Inputs.normalised(data.xyz[data.use], data.ref[data.use])
+        lo, hi = np.nanmin(psi, axis=0), np.nanmax(psi, axis=0)
+        pad = PSI_SPAN_MARGIN * (hi - lo)
+        return [SpectralNonlinearity(self._psi0(data), np.asarray(coeff), np.column_stack([lo - pad, hi + pad]))]
 
     def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
         c = np.asarray(coeff) if coeff is not None else np.zeros((3, 6))
@@ -508,7 +516,8 @@ class TimeDriftEffect(Effect):
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
         c = np.asarray(coeff)
-        return [TimeDrift(c[:, 0], c[:, 1], float(h), self._t0(data))]
+        t = data.t_s[data.use]  # the board times it was fitted on: the driver holds it outside them
+        return [TimeDrift(c[:, 0], c[:, 1], float(h), self._t0(data), (float(t.min()), float(t.max())))]
 
     def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
         c = np.asarray(coeff) if coeff is not None else np.zeros((3, 2))

@@ -17,6 +17,13 @@ Terms are evaluated in list order. Two families exist:
 * *additive terms* (``spectral_nonlinearity``, ``time_drift``, ``thermal_hysteresis``,
   ``channel_offset``) add their own regressors times fitted coefficients (m/s^2).
 
+The empirical additive terms (``spectral_nonlinearity``, ``time_drift``) may carry the span of inputs they were
+fitted on (``psi_span``, ``span_s``; ``diagnose`` writes them). Outside it such a term is held at the span's nearest
+edge, not extrapolated (a creep fitted on a 10-minute table run is not extended to hours after power-on, nor a
+quadratic fitted at +-1 g to a rocket's 10 g), and ``extrapolation(inputs)`` gives, per sample, what the formula
+would have added beyond the edge: the driver flags the sample and inflates its covariance by it. A term without
+a span (files written before spans existed) is evaluated as written and reports nothing.
+
 Stateful terms (filters) keep everything they need from the previous batch in their state, so a
 stream processed in one batch or in many consecutive batches with the same state gives the same
 result (``test/test_correction_terms.py``). ``fbg_accel_calibration.effects`` builds the same
@@ -63,6 +70,11 @@ class CorrectionTerm(Protocol):
 
     def to_dict(self) -> dict[str, Any]: ...
 
+    def extrapolation(self, inputs: TermInputs) -> np.ndarray | None:
+        """(N, 3) m/s^2: the formula's value minus the value held at its fitted span's edge (0 inside the span);
+        ``None`` for a term without a span."""
+        ...
+
 
 CORRECTION_TYPES: dict[str, type] = {}
 
@@ -108,6 +120,16 @@ def _array(d: dict, key: str, kind: str, shape: tuple[int, ...], *, nonneg: bool
         raise ValueError(f"{kind}: parameter '{key}' contains NaN or infinite values")
     if nonneg and np.any(a < 0):
         raise ValueError(f"{kind}: parameter '{key}' must be >= 0")
+    return a
+
+
+def _span(d: dict, key: str, kind: str, shape: tuple[int, ...]) -> np.ndarray | None:
+    """An optional fitted span: ``shape`` (..., 2) of finite [low, high] with low <= high; None when absent."""
+    if key not in d:
+        return None
+    a = _array(d, key, kind, shape)
+    if np.any(a[..., 0] > a[..., 1]):
+        raise ValueError(f"{kind}: parameter '{key}' has a low end above its high end")
     return a
 
 
@@ -223,6 +245,9 @@ class _Base:
 
     def new_state(self) -> Any:
         return None
+
+    def extrapolation(self, inputs: TermInputs) -> np.ndarray | None:
+        return None  # no fitted span (every term but the empirical additive ones)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.to_dict()})"
@@ -463,26 +488,45 @@ class SpectralNonlinearity(_Base):
     """Second-order terms of the spectral-overlap response (paper §3.4, §4.2, Figs. 9 and 12).
 
     a += Q · [u_x², u_y², u_z², u_x u_y, u_x u_z, u_y u_z], u = Psi - psi0; Q (3, 6) in m/s^2,
-    ``psi0`` (3,) the centre of the calibration data (conditioning only). Stateless.
+    ``psi0`` (3,) the centre of the calibration data (conditioning only). ``psi_span`` (3, 2), optional:
+    [low, high] Psi of each channel the coefficients were fitted on; outside it Psi is held at the edge
+    (module docstring). Stateless.
     """
 
     kind = "spectral_nonlinearity"
 
-    def __init__(self, psi0: np.ndarray, coeff_mps2: np.ndarray) -> None:
+    def __init__(self, psi0: np.ndarray, coeff_mps2: np.ndarray, psi_span: np.ndarray | None = None) -> None:
         self.psi0 = np.asarray(psi0, float).reshape(3)
         self.coeff_mps2 = np.asarray(coeff_mps2, float).reshape(3, 6)
+        self.psi_span = None if psi_span is None else np.asarray(psi_span, float).reshape(3, 2)
 
     @classmethod
     def from_dict(cls, d: dict) -> SpectralNonlinearity:
         _check_kind(d, cls.kind)
-        return cls(_array(d, "psi0", cls.kind, (3,)), _array(d, "coeff_mps2", cls.kind, (3, 6)))
+        return cls(_array(d, "psi0", cls.kind, (3,)), _array(d, "coeff_mps2", cls.kind, (3, 6)),
+                   _span(d, "psi_span", cls.kind, (3, 2)))
 
     def to_dict(self) -> dict[str, Any]:
-        return {"kind": self.kind, "psi0": _lst(self.psi0), "coeff_mps2": _lst(self.coeff_mps2),
-                "features": ["xx", "yy", "zz", "xy", "xz", "yz"]}
+        out = {"kind": self.kind, "psi0": _lst(self.psi0), "coeff_mps2": _lst(self.coeff_mps2),
+               "features": ["xx", "yy", "zz", "xy", "xz", "yz"]}
+        if self.psi_span is not None:
+            out["psi_span"] = _lst(self.psi_span)
+        return out
+
+    def _value(self, psi: np.ndarray) -> np.ndarray:
+        return quadratic_features(psi, self.psi0) @ self.coeff_mps2.T
+
+    def _held(self, psi: np.ndarray) -> np.ndarray:
+        return psi if self.psi_span is None else np.clip(psi, self.psi_span[:, 0], self.psi_span[:, 1])
 
     def contribution(self, cal: BaseModel, inputs: TermInputs, state: Any) -> np.ndarray:
-        return quadratic_features(inputs.psi, self.psi0) @ self.coeff_mps2.T
+        return self._value(self._held(np.asarray(inputs.psi, float)))
+
+    def extrapolation(self, inputs: TermInputs) -> np.ndarray | None:
+        if self.psi_span is None:
+            return None
+        psi = np.asarray(inputs.psi, float)
+        return self._value(psi) - self._value(self._held(psi))
 
 
 @_register
@@ -519,26 +563,33 @@ class TimeDrift(_Base):
 
     a += creep (t - t0) + warmup exp(-(t - t0)/tau); ``creep_mps2_per_s`` (3,), ``warmup_mps2``
     (3,), ``warmup_tau_s`` > 0 (s), ``t0_s`` board time origin. Only meaningful if the board
-    clock restarts at power-on. Stateless.
+    clock restarts at power-on. ``span_s`` (low, high), optional: the board times (s) it was fitted on;
+    outside them t is held at the edge (module docstring). Stateless.
     """
 
     kind = "time_drift"
 
-    def __init__(self, creep_mps2_per_s: np.ndarray, warmup_mps2: np.ndarray, warmup_tau_s: float, t0_s: float = 0.0) -> None:
+    def __init__(self, creep_mps2_per_s: np.ndarray, warmup_mps2: np.ndarray, warmup_tau_s: float, t0_s: float = 0.0,
+                 span_s: tuple[float, float] | np.ndarray | None = None) -> None:
         self.creep_mps2_per_s = np.asarray(creep_mps2_per_s, float).reshape(3)
         self.warmup_mps2 = np.asarray(warmup_mps2, float).reshape(3)
         self.warmup_tau_s = float(warmup_tau_s)
         self.t0_s = float(t0_s)
+        self.span_s = None if span_s is None else (float(span_s[0]), float(span_s[1]))
 
     @classmethod
     def from_dict(cls, d: dict) -> TimeDrift:
         _check_kind(d, cls.kind)
         return cls(_array(d, "creep_mps2_per_s", cls.kind, (3,)), _array(d, "warmup_mps2", cls.kind, (3,)),
-                   _scalar(d, "warmup_tau_s", cls.kind, positive=True), _scalar(d, "t0_s", cls.kind, default=0.0))
+                   _scalar(d, "warmup_tau_s", cls.kind, positive=True), _scalar(d, "t0_s", cls.kind, default=0.0),
+                   _span(d, "span_s", cls.kind, (2,)))
 
     def to_dict(self) -> dict[str, Any]:
-        return {"kind": self.kind, "creep_mps2_per_s": _lst(self.creep_mps2_per_s), "warmup_mps2": _lst(self.warmup_mps2),
-                "warmup_tau_s": self.warmup_tau_s, "t0_s": self.t0_s}
+        out = {"kind": self.kind, "creep_mps2_per_s": _lst(self.creep_mps2_per_s), "warmup_mps2": _lst(self.warmup_mps2),
+               "warmup_tau_s": self.warmup_tau_s, "t0_s": self.t0_s}
+        if self.span_s is not None:
+            out["span_s"] = list(self.span_s)
+        return out
 
     @staticmethod
     def features(t_s: np.ndarray, tau_s: float, t0_s: float) -> np.ndarray:
@@ -546,9 +597,23 @@ class TimeDrift(_Base):
         dt = np.asarray(t_s, float) - t0_s
         return np.column_stack([dt, np.exp(-dt / tau_s)])
 
-    def contribution(self, cal: BaseModel, inputs: TermInputs, state: Any) -> np.ndarray:
-        f = self.features(inputs.t_s, self.warmup_tau_s, self.t0_s)
+    def _value(self, t_s: np.ndarray) -> np.ndarray:
+        f = self.features(t_s, self.warmup_tau_s, self.t0_s)
         return f[:, [0]] * self.creep_mps2_per_s + f[:, [1]] * self.warmup_mps2
+
+    def _held(self, t_s: np.ndarray) -> np.ndarray:
+        return t_s if self.span_s is None else np.clip(t_s, *self.span_s)
+
+    def contribution(self, cal: BaseModel, inputs: TermInputs, state: Any) -> np.ndarray:
+        return self._value(self._held(np.asarray(inputs.t_s, float)))
+
+    def extrapolation(self, inputs: TermInputs) -> np.ndarray | None:
+        if self.span_s is None:
+            return None
+        t = np.asarray(inputs.t_s, float)
+        with np.errstate(over="ignore", invalid="ignore"):  # a warm-up far before its span overflows: inf, capped by the driver
+            d = self._value(t) - self._value(self._held(t))
+        return np.where(np.isnan(d), np.inf, d)
 
 
 @_register

@@ -25,6 +25,12 @@ Sample policies (documented in docs/topics.md; each has a counter and a diagnost
   published with each axis variance raised to ``out_of_range_variance_factor * sigma**2`` plus
   the square of the difference between the extrapolated output and the output at the nearest
   edge of the range (a measure of how far the polynomial has wandered); diagnostics WARN.
+* **A correction term outside its fitted span** (a ``time_drift`` after the board times of the calibration run,
+  a ``spectral_nonlinearity`` beyond the Psi it was fitted on; ``correction_terms``): the term is held at the
+  span's edge, not extrapolated; the sample is published with each axis variance raised to
+  ``out_of_range_variance_factor * sigma**2`` plus the square of what the term's formula would have added
+  beyond the edge (at most the full scale squared); flagged, counted (``correction_out_of_span``),
+  diagnostics WARN.
 * **Non-finite output** (cannot happen with a validated calibration, kept as a last guard): the
   sample is dropped (``non_finite_dropped``). Nothing non-finite ever reaches a topic, except the
   documented NaN temperature in the raw record before the first valid reading.
@@ -136,7 +142,8 @@ class ImuRecord:
     accel_mps2: tuple[float, float, float]
     covariance: tuple[float, ...]  # 9 entries, row-major 3x3, (m/s^2)^2; all 0 = unknown (REP 145)
     temperature_c: float  # temperature used by the thermal model
-    flags: frozenset[str]  # subset of {"adc_saturated", "temperature_held", "temperature_out_of_range"}
+    flags: frozenset[str]  # subset of {"adc_saturated", "temperature_held", "temperature_out_of_range",
+    #                        "correction_out_of_span"}
 
 
 @dataclass(frozen=True, slots=True)
@@ -170,6 +177,7 @@ class CoreCounters:
     temperature_held: int = 0  # of those, calibrated with a held temperature
     temperature_stale_dropped: int = 0
     temperature_out_of_range: int = 0
+    correction_out_of_span: int = 0  # samples a correction term was held at the edge of its fitted span for
     non_finite_dropped: int = 0
     board_resets: int = 0
     chain_priming: int = 0  # first sample after a (re)start with chain_compensation 'equalise': not published
@@ -415,19 +423,28 @@ class DriverCore:
             used.append((stamp_ns - delay_ns, f, temp, base, not valid, vfac, (ref, cx, cy, cz)))  # equalised counts
         if not used:
             return
-        extra = None
+        extra = beyond = None
         if cal.corrections:  # declared correction terms (diagnose): vectorised, with their stream state, fed the
             counts = np.array([u[6] for u in used], dtype=float)  # same counts as eq. 28 (equalised or not)
             temp_a = np.fromiter((u[2] for u in used), dtype=float, count=len(used))
             t_a = np.fromiter((u[1].t_us * 1e-6 for u in used), dtype=float, count=len(used))
+            span = np.zeros((len(used), 3))
             extra = cal.correction_sum(counts[:, 0], counts[:, 1:], counts[:, 1:] / counts[:, :1], temp_a, t_a,
-                                       self._cal_state).tolist()
+                                       self._cal_state, span).tolist()
+            beyond = span.tolist() if span.any() else None
         for i, (stamp_ns, f, temp, base, held, vfac, (ref, cx, cy, cz)) in enumerate(used):
             accel = base if extra is None else (base[0] + extra[i][0], base[1] + extra[i][1], base[2] + extra[i][2])
             var = [base_var[0] * vfac[0], base_var[1] * vfac[1], base_var[2] * vfac[2]]
             flags = []
             if held:
                 flags.append("temperature_held")
+            if beyond is not None and any(beyond[i]):
+                # A correction term outside the span it was fitted on, held at the edge: inflate as outside the
+                # temperature range, with what its formula would have added beyond the edge (capped at full scale).
+                counters.correction_out_of_span += 1
+                flags.append("correction_out_of_span")
+                for a in range(3):
+                    var[a] = var[a] * cfg.out_of_range_variance_factor + min(beyond[i][a] ** 2, full_var)
             if not lo <= temp <= hi:
                 # Extrapolating: inflate, and add how far the polynomial has moved from the range edge.
                 counters.temperature_out_of_range += 1

@@ -23,6 +23,8 @@ reference power            OK; ERROR if reference-too-low samples appeared since
 temperature sensor         OK valid; WARN invalid but holding the last good value; ERROR when
                            the hold time ran out or no valid reading was ever received
 temperature range          OK inside the calibrated range; WARN outside (extrapolation)
+correction span            OK; WARN if a correction term was held at the edge of the span it was fitted on
+                           since the previous report (``correction_out_of_span``)
 calibrated output          OK; ERROR if samples were dropped since the previous report because the
                            calibration gave a non-finite acceleration (``non_finite_dropped``)
 =========================  =====================================================================
@@ -190,6 +192,16 @@ class DriverDiagnostics:
             entries.append(self._entry(WARN, "temperature range", msg, r_vals))
         else:
             entries.append(self._entry(OK, "temperature range", "inside calibrated range", r_vals))
+
+        # correction terms held at the edge of the span they were fitted on (time drift, spectral non-linearity)
+        span = delta(core, pcore, "correction_out_of_span")
+        s_vals = {"correction_out_of_span": core.get("correction_out_of_span", 0)}
+        if span > 0:
+            msg = (f"{span} sample(s) since last report outside the span a correction term was fitted on: the term is "
+                   "held at the span's edge, covariance inflated")
+            entries.append(self._entry(WARN, "correction span", msg, s_vals))
+        else:
+            entries.append(self._entry(OK, "correction span", "every correction term inside its fitted span", s_vals))
 
         # calibrated output: the last guard of DriverCore (a validated calibration should never trip it)
         nf = delta(core, pcore, "non_finite_dropped")

@@ -154,11 +154,18 @@ class ThermalCalibration:
                 m[6] * px + m[7] * py + m[8] * pz + b[2])
 
     def correction_sum(self, ref: np.ndarray, xyz: np.ndarray, psi: np.ndarray, temp_c: np.ndarray, t_s: np.ndarray,
-                       state: list[Any]) -> np.ndarray:
-        """Sum of the correction terms' contributions (N, 3) in m/s^2 (zeros without terms); ``state`` as in apply_counts."""
+                       state: list[Any], extrapolation: np.ndarray | None = None) -> np.ndarray:
+        """Sum of the correction terms' contributions (N, 3) in m/s^2 (zeros without terms); ``state`` as in apply_counts.
+
+        ``extrapolation`` (N, 3), optional: gets added, per sample and axis, the size of what the terms evaluated outside
+        their fitted span would have added beyond its edge (``CorrectionTerm.extrapolation``; m/s^2, 0 inside every span)."""
         out = np.zeros_like(psi)
         inputs = TermInputs(ref, xyz, psi, temp_c, np.asarray(t_s, float))
         for term, term_state in zip(self.corrections, state, strict=True):
+            if extrapolation is not None:  # on the inputs this term sees (earlier input corrections replace them)
+                beyond = term.extrapolation(inputs)
+                if beyond is not None:
+                    extrapolation += np.abs(beyond)
             out = out + term.contribution(self, inputs, term_state)
         return out
 

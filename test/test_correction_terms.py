@@ -4,6 +4,7 @@ same result whether a stream is processed in one batch or in consecutive batches
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from fbg_accel_driver.correction_terms import (
     ReferenceDarkOffset,
     ReferenceLowpass,
     SpectralNonlinearity,
+    TermInputs,
     ThermalHysteresis,
     ThermalLag,
     TiaInverseFilter,
@@ -215,3 +217,47 @@ def test_lowpass_with_steps_worked_out_once_equals_it_without(case: str) -> None
     steps = sample_steps(t)
     for tau in (1e-6, 0.003, 0.05, 0.12, 1.0, 40.0):
         np.testing.assert_array_equal(first_order_lowpass(x, t, tau, {}, steps), first_order_lowpass(x, t, tau, {}))
+
+
+# ----------------------------------------------------------------------------- fitted spans
+def _span_terms() -> list:
+    """The empirical additive terms with the span of inputs they were fitted on."""
+    return [TimeDrift(np.array([1e-3, -2e-3, 5e-4]), np.array([0.3, -0.1, 0.05]), 600.0, 0.0, span_s=(5.0, 10.0)),
+            SpectralNonlinearity(np.array([1.2, 1.8, 1.3]), np.arange(18.0).reshape(3, 6) * 0.5 - 4.0,
+                                 psi_span=np.array([[1.1, 1.4], [1.7, 2.0], [1.2, 1.5]]))]
+
+
+def test_a_term_outside_its_fitted_span_is_held_at_the_edge_and_says_by_how_much() -> None:
+    """A creep or a quadratic fitted on a 10-minute table run at +-1 g is not extrapolated to hours or to 10 g:
+    outside its span the term gives its value at the nearest edge, and ``extrapolation`` the difference from what
+    the formula would have given (the driver's covariance inflation); inside, no difference."""
+    drift, quad = _span_terms()
+    t = np.array([5.0, 7.5, 10.0, 3600.0, 0.0])
+    inside = TermInputs(np.full(5, 870.0), np.ones((5, 3)), np.tile([1.2, 1.8, 1.3], (5, 1)), np.full(5, 20.0), t)
+    c = drift.contribution(_cal([]), inside, None)
+    np.testing.assert_array_equal(c[3], c[2])  # an hour after power-on: the creep held at the end of the span
+    np.testing.assert_array_equal(c[4], c[0])  # before the span: the warm-up held at its start
+    free = TimeDrift(drift.creep_mps2_per_s, drift.warmup_mps2, 600.0, 0.0)
+    np.testing.assert_allclose(drift.extrapolation(inside), free.contribution(_cal([]), inside, None) - c, rtol=0, atol=1e-12)
+    assert np.all(drift.extrapolation(inside)[:3] == 0) and np.all(np.abs(drift.extrapolation(inside)[3]) > 1)
+    psi = np.array([[1.2, 1.8, 1.3], [1.4, 2.0, 1.5], [2.5, 1.8, 1.3], [1.2, 0.5, 1.3]])  # in, edge, 10 g-ish, below
+    at = TermInputs(np.full(4, 870.0), np.ones((4, 3)), psi, np.full(4, 20.0), np.full(4, 6.0))
+    held = quad.contribution(_cal([]), at, None)
+    np.testing.assert_array_equal(held[2], quad.contribution(_cal([]), replace(at, psi=np.array([[1.4, 1.8, 1.3]] * 4)), None)[0])
+    d = quad.extrapolation(at)
+    assert np.all(d[:2] == 0) and np.all(np.abs(d[2:]).max(axis=1) > 0.1)
+    # without a declared span (files written before spans existed) nothing is held and nothing reported
+    assert free.extrapolation(inside) is None
+    assert SpectralNonlinearity(quad.psi0, quad.coeff_mps2).extrapolation(at) is None
+
+
+def test_spans_round_trip_and_a_bad_span_is_refused() -> None:
+    for term in _span_terms():
+        assert correction_from_dict(term.to_dict()) == term
+    base = _span_terms()[0].to_dict()
+    for bad in ([10.0, 5.0], [5.0], [5.0, float("inf")], "long"):
+        with pytest.raises(ValueError, match="span_s"):
+            correction_from_dict({**base, "span_s": bad})
+    quad = _span_terms()[1].to_dict()
+    with pytest.raises(ValueError, match="psi_span"):
+        correction_from_dict({**quad, "psi_span": [[1.4, 1.1], [1.7, 2.0], [1.2, 1.5]]})

@@ -105,6 +105,29 @@ def test_an_implausible_best_hyper_value_does_not_hide_a_plausible_one() -> None
     assert res.added[0][0] == "time_drift"
 
 
+def test_the_empirical_terms_carry_the_span_they_were_fitted_on() -> None:
+    """A time drift and a spectral non-linearity found by the diagnosis are written with the board times and the
+    Psi of the samples they were fitted on, so the driver holds them at the edge instead of extrapolating a creep
+    to hours after power-on or a quadratic to many g; on the calibration data itself nothing is held."""
+    for eff in ("time_drift", "spectral_nonlinearity"):
+        scale, extra, static = SCENARIOS[eff]
+        rec = simulate_recording(_config({**extra, f"effects.{eff}.scale": scale}), seed=3)
+        res = diagnose(rec, static=static)
+        term = next(t for t in res.calibration.corrections if t.kind == eff)
+        used = res.data.use
+        if eff == "time_drift":
+            assert term.span_s == (float(res.data.t_s[used].min()), float(res.data.t_s[used].max()))
+        else:
+            psi = res.data.xyz[used] / res.data.ref[used, None]
+            lo, hi = term.psi_span[:, 0], term.psi_span[:, 1]
+            assert np.all(lo < psi.min(axis=0)) and np.all(hi > psi.max(axis=0))
+            assert np.all(hi - lo < 1.2 * np.ptp(psi, axis=0))
+        span = np.zeros((int(used.sum()), 3))
+        res.calibration.correction_sum(res.data.ref[used], res.data.xyz[used], res.data.xyz[used] / res.data.ref[used, None],
+                                       res.data.temp_c[used], res.data.t_s[used], res.calibration.new_state(), span)
+        assert not span.any()
+
+
 def test_the_chain_s_searches_reach_its_times_at_a_high_sample_rate() -> None:
     """At 500 Hz the TIA grid, bounded at 30 samples, stopped at 0.64 x Table 1 and the channel delay's, at 12
     samples, at 24 ms: the TIA stages were fitted at the edge and a delay that was not injected was added at

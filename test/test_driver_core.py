@@ -99,6 +99,9 @@ def test_stateful_correction_state_persists_across_chunks(monkeypatch: pytest.Mo
         def to_dict(self) -> dict:
             return {"kind": self.kind}
 
+        def extrapolation(self, inputs: correction_terms.TermInputs) -> None:
+            return None  # no fitted span
+
     monkeypatch.setitem(correction_terms.CORRECTION_TYPES, "unit_counter", CountingTerm)
     cal = make_cal(corrections=[CountingTerm()])
     frames = [frame(i) for i in range(40)]
@@ -182,6 +185,37 @@ def test_out_of_range_temperature_inflates_covariance() -> None:
     var1 = np.diag(np.reshape(imu[1].covariance, (3, 3)))
     np.testing.assert_allclose(var1, 10.0 * base + extrap**2, rtol=1e-9)
     assert np.all(extrap**2 > 1e-6)
+
+
+def test_a_correction_term_outside_its_fitted_span_is_held_flagged_and_inflates_covariance() -> None:
+    """A time drift fitted on board time 0..0.5 s (a short calibration run): after the span the creep is held at
+    its last value, not extrapolated; the sample is flagged and counted, and each axis variance is inflated as
+    outside the temperature range: factor x sigma^2 + (what the formula would have added beyond the edge)^2."""
+    drift = correction_terms.TimeDrift(np.array([2.0, -1.0, 0.5]), np.zeros(3), 100.0, 0.0, span_s=(0.0, 0.5))
+    cfg = CoreConfig(out_of_range_variance_factor=10.0)
+    core = DriverCore(make_cal(corrections=[drift]), cfg)
+    frames = [frame(i) for i in range(100)]  # board time 0 .. 0.99 s
+    _, imu, _ = feed_frames(core, frames)
+    plain = feed_frames(DriverCore(make_cal()), frames)[1]
+    assert len(imu) == len(plain) == 100 and all_finite(imu)
+    sigma2 = np.diag(np.reshape(plain[0].covariance, (3, 3)))
+    for i, (r, p) in enumerate(zip(imu, plain, strict=True)):
+        t = i * 0.01
+        shift = np.subtract(r.accel_mps2, p.accel_mps2)
+        np.testing.assert_allclose(shift, drift.creep_mps2_per_s * min(t, 0.5), rtol=0, atol=1e-9)
+        var = np.diag(np.reshape(r.covariance, (3, 3)))
+        if t <= 0.5:
+            assert "correction_out_of_span" not in r.flags
+            np.testing.assert_allclose(var, sigma2, rtol=1e-12)
+        else:
+            assert "correction_out_of_span" in r.flags
+            np.testing.assert_allclose(var, 10.0 * sigma2 + (drift.creep_mps2_per_s * (t - 0.5)) ** 2, rtol=1e-9)
+    assert core.counters.correction_out_of_span == 49
+    d = DriverDiagnostics()
+    d.report(snapshot(0.0, frames=0))
+    e = d.report(snapshot(1.0, frames=100, core=core.counters.as_dict()))
+    assert levels(e)["correction span"] == WARN and values(e, "correction span")["correction_out_of_span"] == "49"
+    assert levels(d.report(snapshot(2.0, frames=200, core=core.counters.as_dict())))["correction span"] == OK
 
 
 def test_decimation_averages_and_scales_variance() -> None:
