@@ -123,14 +123,14 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
     # a sine whose peaks hit a rail of the ADC reads a smaller amplitude and a shifted phase (Recording.clipped;
     # the reference transducer on aux is read by the same 12-bit converters)
     clipped = rec.clipped()[order][ok] | at_adc_rail(aux)
-    hit = [w for w in windows if clipped[(t >= w[1]) & (t <= w[2])].any()]
+    hit = [w for w in windows if clipped[_steady(t, w)].any()]
     if hit:
         windows = [w for w in windows if w not in hit]
         notes.append(f"segment(s) at {', '.join(f'{w[0]:g} Hz' for w in hit)} left out: a channel clipped at a rail "
                      "of the ADC during the steady part (lower the slide's amplitude there)")
     # the whole-period cuts, the DFT and the circular cross-correlation count samples: a lost frame (or a
     # sample dropped above for a non-finite value) inside a steady part would shift every later sample
-    gappy = [w for w in windows if not uniformly_sampled(t[(t >= w[1]) & (t < w[2])], fs)]
+    gappy = [w for w in windows if not uniformly_sampled(t[_steady(t, w)], fs)]
     if gappy:
         windows = [w for w in windows if w not in gappy]
         notes.append(f"segment(s) at {', '.join(f'{w[0]:g} Hz' for w in gappy)} left out: a lost frame (a time step "
@@ -177,13 +177,18 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
     return DynamicCalibrationResult(plan, start, windows, points, models, dyn, fs, notes)
 
 
+def _steady(t: np.ndarray, window: tuple[float, float, float]) -> np.ndarray:
+    """The samples (mask over ``t``) of the steady window ``(f_hz, t0_s, t1_s)``: [t0, t1), as ``analyse_run`` cuts them."""
+    return (t >= window[1]) & (t < window[2])
+
+
 def _whole_periods(t: np.ndarray, fs: float, windows: list[tuple[float, float, float]]) -> int:
     """Whole periods (at ``fs`` Hz, :func:`whole_period_length`) in the steady windows ``(f_hz, t0_s, t1_s)``
     of one frequency, summed; a window with less than one period counts 0."""
     total = 0
     for f, a, b in windows:
         try:
-            total += whole_period_length(int(np.count_nonzero((t >= a) & (t < b))), fs, f)[0]
+            total += whole_period_length(int(np.count_nonzero(_steady(t, (f, a, b)))), fs, f)[0]
         except ValueError:
             pass
     return total
