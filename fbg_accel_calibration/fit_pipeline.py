@@ -14,6 +14,7 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
 from fbg_accel_driver.thermal_model import ThermalCalibration
@@ -66,6 +67,7 @@ def _streamed(paths: list[Path], max_degree: int, opt: FitOptions):
 
     sources = [CountedSource(_source(p, opt), f"fit {p.name}", opt.progress) for p in paths]
     data = prepare_stream(sources, max_degree, opt.window, opt.min_interval, opt.level_gap_c)
+    first = _first_block(sources[0].source)
     parts = []
     for path, counted in zip(paths, sources, strict=True):
         md = counted.source.metadata()
@@ -73,14 +75,15 @@ def _streamed(paths: list[Path], max_degree: int, opt: FitOptions):
             for line in read_warnings(path, md["read_report"], md["pose_events"]):
                 _warn(line)
         parts.append(md)
-    return data, {"parts": parts, **(parts[0] if len(parts) == 1 else {})}
+    return data, {"parts": parts, **(parts[0] if len(parts) == 1 else {})}, first
 
 
-def _first_block(path: Path, opt: FitOptions):
-    """The first samples of one input (up to ``noise_correlation.SAMPLE_ROWS``), without pose events."""
+def _first_block(source: Any) -> Any:
+    """The first samples (up to ``noise_correlation.SAMPLE_ROWS``) of a source the fit has read in full, with
+    their poses (its pose events are known after those passes)."""
     from .noise_correlation import SAMPLE_ROWS
 
-    blocks = _source(path, opt).blocks(SAMPLE_ROWS, False)
+    blocks = source.blocks(SAMPLE_ROWS, True)
     try:
         return next(iter(blocks))
     finally:
@@ -104,7 +107,7 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
     data = None
     if not opt.in_memory:
         try:
-            data, metadata = _streamed(paths, max_degree, opt)
+            data, metadata, first = _streamed(paths, max_degree, opt)
         except StreamOrderError as exc:
             _warn(f"note: {exc}; reading all samples into memory instead")
     rec = None
@@ -132,7 +135,8 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
         raise NotIdentifiedError(f"degree {degree}: {selection.scores[degree].note}")
     cal = fit_thermal(data, degree, sensor_id=sensor_id or sensor_id_of(metadata))
     # the noise model from the first input's first samples, the same whether streamed or not
-    first = rec.select(rec.run_id == rec.run_id[0]) if rec is not None else _first_block(paths[0], opt)
+    if rec is not None:
+        first = rec.select(rec.run_id == rec.run_id[0])
     corr = from_recording(first, cal, opt.window, opt.min_interval)
     cal.noise_correlated_fraction, cal.noise_time_constant_s = corr.correlated_fraction, corr.time_constant_s
     cal.fit["noise_correlation"] = {**corr.as_dict(), "static_intervals": corr.segments, "samples": corr.samples}

@@ -101,8 +101,12 @@ SAMPLE_ROWS = 65536  # samples of a recording the fit looks at (the first ones):
 
 def from_recording(rec: Recording, cal: ThermalCalibration, window: int = 5, min_interval: int = 5) -> NoiseCorrelation:
     """The noise correlation of ``cal``'s output on the first :data:`SAMPLE_ROWS` samples of ``rec``: static
-    intervals found on Psi by the static detector (no pose or reference needed), each trimmed by ``window``
-    samples at both ends (settling), calibrated with eq. 28, the sample interval the median step of ``t_s``."""
+    intervals, each trimmed by ``window`` samples at both ends (settling), calibrated with eq. 28, the sample
+    interval the median step of ``t_s``. The intervals are the samples the fit uses (a pose, a constant reference,
+    a still signal: ``calibration_samples``) split by pose; a recording without poses (or without such an interval
+    long enough) falls back to the samples whose signal alone is still. The signal alone cannot see a table move
+    slower than its noise over the detector's window (a 2 s move at 100 Hz), so with poses it is not used: fitted
+    across the moves, the noise model came out f = 1, tau tens of seconds."""
     from fbg_accel_driver.thermal_model import normalise
 
     from .static_detector import calibration_samples
@@ -114,9 +118,14 @@ def from_recording(rec: Recording, cal: ThermalCalibration, window: int = 5, min
     if ok.sum() < 2 * MIN_SEGMENT:
         return NoiseCorrelation(np.zeros(3), np.zeros(3), 0, 0)
     psi_f = np.where(ok[:, None], psi, 0.0)
-    still = calibration_samples(rec, window, min_interval)[1] & ok  # the signal alone: no pose or reference needed
+    usable, still = calibration_samples(rec, window, min_interval)
     acc = cal.base_acceleration(psi_f, np.where(ok, rec.temp_c, 0.0))
-    segments = [s[window:len(s) - window] for s in static_segments(acc, still, np.zeros(len(rec), int), rec.run_id)]
     steps = np.diff(rec.t_s)
     steps = steps[steps > 0]
-    return estimate(segments, float(np.median(steps)) if steps.size else 0.0)
+    dt = float(np.median(steps)) if steps.size else 0.0
+    out = NoiseCorrelation(np.zeros(3), np.zeros(3), 0, 0)
+    for mask, pose in ((usable & ok, rec.pose_id), (still & ok, np.zeros(len(rec), int))):  # poses first
+        out = estimate([s[window:len(s) - window] for s in static_segments(acc, mask, pose, rec.run_id)], dt)
+        if out.segments:
+            break
+    return out
