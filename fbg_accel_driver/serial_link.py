@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import enum
 import os
+import termios
 import threading
 import time
 from collections.abc import Callable
@@ -27,6 +28,11 @@ from dataclasses import dataclass
 import serial
 
 from .chunk_queue import ChunkQueue
+
+# What a port that fails or vanishes raises through pyserial: SerialException and OSError mostly, but also
+# termios.error (not an OSError) from the tcsetattr/tcflush of open() when the tty hangs up meanwhile, and
+# TypeError/ValueError on a closed fd. Each of them is a lost port to retry, never the end of the reader thread.
+PORT_ERRORS = (serial.SerialException, OSError, termios.error, TypeError, ValueError)
 
 
 class LinkState(enum.Enum):
@@ -168,7 +174,7 @@ class SerialLink:
         while not self._stop.is_set():
             try:
                 ser = serial.Serial(self.port, self.baud, timeout=self._read_timeout)
-            except (serial.SerialException, OSError, ValueError) as exc:
+            except PORT_ERRORS as exc:
                 with self._lock:
                     self._failed += 1
                     self._backoff = backoff
@@ -206,8 +212,7 @@ class SerialLink:
                     if not got_data:
                         got_data = True
                         backoff = self._backoff_initial
-            except (serial.SerialException, OSError, TypeError, ValueError, _StaleLinkError) as exc:
-                # TypeError/ValueError: pyserial on a closed fd can raise these instead of SerialException.
+            except (*PORT_ERRORS, _StaleLinkError) as exc:
                 if not self._stop.is_set():
                     with self._lock:
                         self._disconnects += 1
@@ -216,7 +221,7 @@ class SerialLink:
             finally:
                 try:
                     ser.close()
-                except (serial.SerialException, OSError):
+                except PORT_ERRORS:
                     pass
             if self._stop.wait(backoff if not self._stop.is_set() else 0):
                 break

@@ -9,6 +9,9 @@ import tty
 from collections.abc import Callable
 from pathlib import Path
 
+import pytest
+import serial
+
 from fbg_accel_driver.serial_link import LinkState, SerialLink
 
 
@@ -179,3 +182,44 @@ def test_each_chunk_carries_the_host_and_the_steady_time_of_its_read(tmp_path: P
         link.stop()
         os.close(master)
         os.close(slave)
+
+
+def test_a_port_that_hangs_up_while_it_is_being_opened_is_retried(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The port vanishes between pyserial's open() and its input flush (a pty closed and re-created in quick
+    succession, a USB adapter pulled while the driver reconnects): the kernel answers the flush with EIO, which
+    pyserial lets through as ``termios.error``, not as a SerialException or OSError. It is a failed open like any
+    other: the reader retries and takes the port that appears next. Before, that exception ended the reader
+    thread: the link stayed DISCONNECTED for good and the driver never read again (a quick flapping pty did this
+    within seconds). The hang-up is real (the pty is closed); the hook only places it inside that window."""
+    path = tmp_path / "board"
+    first = open_pty(path)
+    flush = serial.Serial._reset_input_buffer
+    hung_up: list[int] = []
+
+    def hang_up_then_flush(ser: serial.Serial) -> None:
+        if not hung_up:  # the first open only: the pty goes away under it
+            for fd in first:
+                os.close(fd)
+            hung_up.append(1)
+        flush(ser)
+
+    monkeypatch.setattr(serial.Serial, "_reset_input_buffer", hang_up_then_flush)
+    notified = Notified()
+    link = SerialLink(str(path), 115200, notify=notified, backoff_initial_s=0.05, backoff_max_s=0.1)
+    link.start()
+    master = slave = -1
+    try:
+        notified.wait_for(lambda: link.status().failed_attempts >= 1 or not link.status().thread_alive, 10,
+                          "the open that hung up reported")
+        assert hung_up and link.status().thread_alive, link.status()
+        assert "cannot open" in link.status().message
+        master, slave = open_pty(path)  # the port comes back under the same name
+        notified.wait_for(lambda: link.status().state is LinkState.CONNECTED, 10, "connected to the new pty")
+        os.write(master, b"back")
+        notified.wait_for(lambda: link.status().bytes_read >= 4, 10, "bytes from the new pty")
+        assert drain(link) == b"back"
+    finally:
+        link.stop()
+        for fd in (master, slave):
+            if fd >= 0:
+                os.close(fd)
