@@ -172,8 +172,10 @@ class SerialLink:
     def _run(self) -> None:
         backoff = self._backoff_initial
         while not self._stop.is_set():
+            # the device the name designates now is the one opened, so a later re-pointing is always seen
+            opened_target = os.path.realpath(self.port)
             try:
-                ser = serial.Serial(self.port, self.baud, timeout=self._read_timeout)
+                ser = serial.Serial(opened_target, self.baud, timeout=self._read_timeout)
             except PORT_ERRORS as exc:
                 with self._lock:
                     self._failed += 1
@@ -187,18 +189,20 @@ class SerialLink:
                 self._connects += 1
             self._set_state(LinkState.CONNECTED, "open")
             got_data = False
-            opened_target = os.path.realpath(self.port)
-            last_data = time.monotonic()
+            last_data = last_target_check = time.monotonic()
             try:
                 while not self._stop.is_set():
                     waiting = ser.in_waiting
                     data = ser.read(min(max(waiting, 1), self._max_chunk))
+                    now = time.monotonic()
+                    if now - last_target_check >= self._read_timeout:  # also while data flows: the old device may
+                        last_target_check = now                          # stream on after the name moved
+                        if (target := os.path.realpath(self.port)) != opened_target:
+                            raise _StaleLinkError(f"{self.port} now points to {target}")
                     if not data:
-                        silent = time.monotonic() - last_data
+                        silent = now - last_data
                         if self._silence_timeout > 0 and silent >= self._silence_timeout:
                             raise _StaleLinkError(f"no data for {silent:.1f} s")
-                        if os.path.realpath(self.port) != opened_target:
-                            raise _StaleLinkError(f"{self.port} now points to {os.path.realpath(self.port)}")
                         continue
                     rest = ser.in_waiting  # read(1) woke on a frame's first byte: take the rest of it too
                     if rest and len(data) < self._max_chunk:

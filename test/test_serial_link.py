@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import select
 import threading
 import time
 import tty
@@ -223,3 +224,57 @@ def test_a_port_that_hangs_up_while_it_is_being_opened_is_retried(tmp_path: Path
         for fd in (master, slave):
             if fd >= 0:
                 os.close(fd)
+
+
+def test_a_name_re_pointed_to_another_live_device_is_followed_while_data_flows(tmp_path: Path) -> None:
+    """docs/topics.md: when the port name is a symlink that now points to another device, the driver reopens it
+    and never stays attached to a stale device. Here the old device keeps streaming (a link a user or a udev rule
+    moved to a second board while the first stays plugged in). Before, the target was compared only after a read
+    that timed out empty, so a device that never paused kept the driver on it for good: it went on publishing
+    the first board's data under the name of the second."""
+    path = tmp_path / "board"
+    old_master, old_slave = open_pty(path)
+    new_master, new_slave = os.openpty()
+    tty.setraw(new_slave)
+    notified = Notified()
+    link = SerialLink(str(path), 115200, notify=notified)
+    stop = threading.Event()
+
+    def stream_old() -> None:
+        """Keep the old device's input queue full: every read of it returns data at once, none times out."""
+        while not stop.is_set():
+            _, writable, _ = select.select([], [old_master], [], 0.05)
+            if writable:
+                try:
+                    os.write(old_master, b"A" * 256)
+                except BlockingIOError:
+                    pass
+
+    writer = threading.Thread(target=stream_old, daemon=True)
+    got = bytearray()
+
+    def received(what: bytes) -> bool:
+        while not link.queue.empty():
+            item = link.queue.get_nowait()
+            if item is not None:
+                got.extend(item[1])
+        return what in got
+
+    link.start()
+    writer.start()
+    try:
+        notified.wait_for(lambda: received(b"A" * 512), 10, "the old device's stream")
+        tmp = path.with_suffix(".tmp")
+        os.symlink(os.ttyname(new_slave), tmp)
+        os.replace(tmp, path)
+        # the new device's bytes are written once it is open (pyserial flushes the input queue when it opens)
+        notified.wait_for(lambda: link.status().connects == 2, 10, "reopened on the new target")
+        os.write(new_master, b"from the new board")
+        notified.wait_for(lambda: received(b"from the new board"), 10, "bytes of the new device")
+        assert link.status().disconnects == 1 and link.status().state is LinkState.CONNECTED
+    finally:
+        stop.set()
+        writer.join(5)
+        link.stop()
+        for fd in (old_master, old_slave, new_master, new_slave):
+            os.close(fd)
