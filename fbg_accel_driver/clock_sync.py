@@ -53,7 +53,7 @@ class ClockSyncConfig:
     warmup_s: float = 5.0  # after a (re)start the estimate is still coarse ...
     warmup_slew: float = 5e-3  # ... so it may be slewed 10x faster (stamp spacing still within 0.55 %)
     step_threshold_s: float = 0.05  # larger errors are stepped, not slewed
-    prime_s: float = 0.2  # board seconds observed before the first stamp is worth giving (see ``primed``)
+    prime_s: float = 0.2  # board (or arrival) seconds observed before the first stamp is worth giving (``primed``)
 
 
 def lower_envelope_slope(xs: list[float], ys: list[float]) -> float:
@@ -110,6 +110,8 @@ class ClockSync:
         self._applied_at_s: float | None = None  # board time the applied offset refers to
         self._started_s: float | None = None  # board time of the first observation since the (re)start
         self._last_obs_s: float | None = None
+        self._started_steady_ns = 0  # steady time of that first observation
+        self._last_steady_ns = 0
 
     # ------------------------------------------------------------------ inputs
     def reset(self) -> None:
@@ -132,7 +134,9 @@ class ClockSync:
         if self._board_ref_s is None:
             self._board_ref_s = board_s
             self._started_s = board_s
+            self._started_steady_ns = steady
         self._last_obs_s = board_s
+        self._last_steady_ns = steady
         index = int((board_s - self._board_ref_s) // self.config.bin_s)
         bins = self._bins
         if bins and bins[-1].index == index:
@@ -175,7 +179,9 @@ class ClockSync:
 
     @property
     def primed(self) -> bool:
-        """True once ``prime_s`` of board time was observed since the (re)start.
+        """True once ``prime_s`` of board time was observed since the (re)start, or observations kept arriving
+        for ``prime_s`` (steady clock) without that: a board clock that crawls (a sample counter sent as microseconds)
+        would otherwise prime only after thousands of frames, all held by a caller waiting for it.
 
         A caller that can wait (the driver core does) holds the first frames until then, so the
         first stamps already come from a minimum over many delays instead of from one delay that
@@ -184,7 +190,9 @@ class ClockSync:
         """
         if self._started_s is None or self._last_obs_s is None:
             return False
-        return self._last_obs_s - self._started_s >= self.config.prime_s
+        prime_s = self.config.prime_s
+        return (self._last_obs_s - self._started_s >= prime_s
+                or (self._last_steady_ns - self._started_steady_ns) * 1e-9 >= prime_s)
 
     def stamp(self, t_us: int) -> int:
         """Host/ROS time in ns for board time ``t_us``; call ``observe`` for it first."""

@@ -37,7 +37,8 @@ Sample policies (documented in docs/topics.md; each has a counter and a diagnost
 
 Start-up: the frames of the first ``ClockSyncConfig.prime_s`` (0.2 s) after a start or board
 reset are held until the clock estimate has seen that much data, then released together (a
-one-off latency, so that no stamp has to be stepped back later).
+one-off latency, so that no stamp has to be stepped back later); a board clock that crawls ends the
+hold after 0.2 s of arrivals instead (``ClockSync.primed``), so it never holds the stream.
 
 Raw only: with ``calibration=None`` (the node's ``calibration_file: none``) every board sample gives
 its raw and temperature records and no acceleration is computed (a sensor not calibrated yet, e.g.

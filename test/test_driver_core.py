@@ -459,3 +459,20 @@ def test_a_few_lost_frames_inside_a_block_do_not_end_it() -> None:
     core.reconfigure(decimation=5)
     _, imu, _ = feed_frames(core, [frame(i) for i in range(12, 20)])
     assert len(imu) == 2 and core.counters.samples_calibrated == 13 + 5 and core.counters.decimation_gaps == 0
+
+
+@pytest.mark.parametrize("step_us", [1, 100])
+def test_a_board_clock_that_does_not_advance_does_not_hold_the_stream(step_us: int) -> None:
+    """The first frames are held until the clock estimate is primed, "a one-off latency of at most 0.2 s"
+    (docs/topics.md). A board whose ``t_us`` crawls (a sample counter sent as microseconds, a timer in the wrong
+    unit) shows 0.2 s of board time only after 2000 to 200 000 frames: before, every frame was held until then
+    (1000 frames fed over 10 s, none published, memory growing by about 330 bytes a frame, no diagnostic).
+    The hold now also ends after ``prime_s`` of arrival time."""
+    core = DriverCore(make_cal())
+    n = 1000
+    released = 0
+    for i in range(n):
+        f = Frame(seq=i, t_us=5_000_000 + i * step_us, ref=870, x=1100, y=1600, z=1100, temp_cc=2340, status=GOOD)
+        released += len(core.feed(encode_frame(f), T0_NS + i * 10_000_000).raw)  # 100 frames/s of arrivals
+    assert core.decoder.stats.frames == n
+    assert released >= n - 21, released  # held for 0.2 s of arrivals (21 frames), then every frame at once
