@@ -11,6 +11,8 @@ Rules (see docs/protocol.md):
   CRC fails, the candidate is counted in ``crc_errors`` and the search resumes one byte after
   the sync, so a frame hidden behind a truncated one or behind garbage is still recovered.
 * Bytes that are not part of an accepted frame are counted in ``bytes_discarded``.
+* A CRC-valid frame with an ADC count above 12 bits, or with another ``seq`` but the same ``t_us`` as the
+  last accepted frame (a board clock that did not advance), is ``invalid_frames``: dropped, and lost.
 * A CRC-valid frame with the sync of a version this decoder does not know is skipped whole
   (``unsupported_version``) using its ``body_len``.
 * Sequence tracking, for frames whose board clock moves forward: a gap of ``g`` sequence
@@ -52,7 +54,7 @@ class DecoderStats:
     bytes_received: int = 0
     bytes_discarded: int = 0
     crc_errors: int = 0
-    invalid_frames: int = 0  # CRC fine but a field out of range (ADC counts, aux included, above 12 bits)
+    invalid_frames: int = 0  # CRC fine but absurd: an ADC count (aux included) above 12 bits, or a stuck board clock
     unsupported_version: int = 0  # CRC-valid frames of a version other than 1 and 2
     lost_frames: int = 0
     duplicates: int = 0
@@ -137,7 +139,7 @@ class StreamDecoder:
                 frame = decode_body_v2(buf, pos + HEADER_SIZE)
                 top = max(frame.ref, frame.x, frame.y, frame.z, frame.aux)
             pos += total
-            if top > ADC_MAX:
+            if top > ADC_MAX or self._clock_stuck(frame):
                 self.stats.invalid_frames += 1
                 self.stats.bytes_discarded += total
                 continue
@@ -150,6 +152,12 @@ class StreamDecoder:
         if pos:
             del buf[:pos]
         return out
+
+    def _clock_stuck(self, frame: Frame) -> bool:
+        """Another sample at the last accepted frame's board time (not a duplicate, not a reboot): the board clock did
+        not advance, so the frame has no time of its own to be stamped with."""
+        return (frame.t_us == self._last_t_us and frame.seq != self._last_seq
+                and not frame.status & Status.BOOT)
 
     def _accept(self, frame: Frame) -> bool | None:
         """Sequence and clock bookkeeping: None for a duplicate, else whether the frame follows a reset."""

@@ -379,6 +379,25 @@ def test_adc_counts_above_12_bits_are_invalid_and_lost() -> None:
     assert (dec.stats.invalid_frames, dec.stats.crc_errors, dec.stats.lost_frames) == (1, 0, 1)
 
 
+def test_a_frame_whose_board_clock_did_not_advance_is_invalid() -> None:
+    """``t_us`` increases strictly from one sample to the next within a boot (docs/protocol.md section 4); a frame
+    with another ``seq`` but the previous frame's ``t_us`` (a board whose clock is stuck: a firmware that never
+    fills it in) has no time of its own: invalid, dropped and counted, and lost to the sequence count like any
+    rejected frame. Before, every such frame was accepted and the driver stamped them all at one instant (the
+    monotonic guard adding 1 ns per frame), with no diagnostic."""
+    a, _, _, c = make_frames(4)
+    stuck = [Frame(seq, a.t_us, 870, 1100, 1600, 1100, 2340, OK_STATUS) for seq in (a.seq + 1, a.seq + 2)]
+    dec, out = run([wire([a, *stuck, c])])
+    assert out == [a, c]
+    s = dec.stats
+    assert (s.frames, s.invalid_frames, s.lost_frames, s.duplicates, s.resets) == (2, 2, 2, 0, 0)
+    assert s.bytes_discarded == 2 * FRAME_SIZE_V1 and dec.frame_bytes == 2 * FRAME_SIZE_V1
+    # a BOOT frame at the same board time is a reboot, not a stuck clock; the same seq is a duplicate
+    boot = Frame(0, c.t_us, 870, 1100, 1600, 1100, 2340, OK_STATUS | int(Status.BOOT))
+    dec, out = run([wire([c, c, boot])])
+    assert out == [c, boot] and (dec.stats.duplicates, dec.stats.resets, dec.stats.invalid_frames) == (1, 1, 0)
+
+
 def test_immediate_duplicate_is_dropped() -> None:
     a, b = make_frames(2)
     dec, out = run([wire([a, a, b, b, b])])
