@@ -787,8 +787,39 @@ class RunOffsetEffect(_PerRunEffect):
     unit_text = "correction added to the output, against run 1, x/y/z"
     skip_first = True
 
+    def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
+        ok, why = super().applicable(data)
+        if ok and not data.once("runs_linked_by_a_level", lambda: runs_linked_by_levels(data)):
+            return False, ("not identified on this data: no temperature level is shared by the runs, so an offset of "
+                           "each run cannot be told from the temperature dependence of eq. 28's b (record a "
+                           "temperature level twice, in two runs)")
+        return ok, why
+
     def _shape(self, t_s: np.ndarray) -> np.ndarray:
         return np.ones(len(t_s))
+
+
+def runs_linked_by_levels(data: DiagnosisData) -> bool:
+    """Whether the runs with fitted samples are connected through shared temperature levels (two runs are linked
+    when both have samples at one level; ``thermal_fit.temperature_levels`` of the fitted samples). Only then is
+    an offset of each run separable from a bias that depends on the level: with one level per run (one file per
+    chamber temperature) the offsets would take over eq. 28's b(T), and leave the calibration file without it."""
+    from .thermal_fit import temperature_levels
+
+    use = data.use & np.isfinite(data.temp_c)
+    labels = temperature_levels(data.temp_c[use])[0]
+    pairs = np.unique(np.stack([data.run_id[use], labels], axis=1), axis=0)
+    runs = np.unique(pairs[:, 0])
+    if len(runs) < 2:
+        return True
+    linked = {int(runs[0])}
+    grew = True
+    while grew:  # grow the set of runs reachable from the first one through levels they share
+        levels = pairs[np.isin(pairs[:, 0], list(linked)), 1]
+        reach = {int(r) for r in pairs[np.isin(pairs[:, 1], levels), 0]}
+        grew = not reach <= linked
+        linked |= reach
+    return len(linked) == len(runs)
 
 
 class RunDriftEffect(_PerRunEffect):
