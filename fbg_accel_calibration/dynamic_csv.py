@@ -34,9 +34,11 @@ def read_dynamic_csv(path: str | Path, temperature_c: float | None = None) -> Re
     rows: list[list[float]] = []
     errors: list[str] = []
     with p.open(newline="", encoding="utf-8-sig", errors="strict") as fh:
-        reader = csv.reader(line for line in fh if line.strip() and not line.lstrip().startswith("#"))
+        # (line number in the file, fields): comment and blank lines are skipped but keep their numbers
+        reader = ((n, next(csv.reader([line]))) for n, line in enumerate(fh, start=1)
+                  if line.strip() and not line.lstrip().startswith("#"))
         try:
-            header = [h.strip() for h in next(reader)]
+            header = [h.strip() for h in next(reader)[1]]
         except StopIteration:
             raise DynamicCsvError(f"{p}: empty file") from None
         except UnicodeDecodeError as exc:
@@ -51,17 +53,20 @@ def read_dynamic_csv(path: str | Path, temperature_c: float | None = None) -> Re
         cols = [header.index(c) for c in (*REQUIRED, *(("temperature_c",) if has_temp else ()))]
         last_t = -math.inf
         try:
-            for line_no, row in enumerate(reader, start=2):
+            for line_no, row in reader:
+                if len(row) != len(header):
+                    errors.append(f"line {line_no}: {len(row)} fields, header has {len(header)}")
+                    continue
                 try:
-                    vals = [float(row[i]) if row[i].strip() else math.nan for i in cols]
-                except (IndexError, ValueError) as exc:
-                    errors.append(f"row {line_no}: {exc}")
+                    vals = [_cell(row[i], header[i]) for i in cols]
+                except ValueError as exc:
+                    errors.append(f"line {line_no}: {exc}")
                     continue
                 if not all(math.isfinite(v) for v in vals[:6]):
-                    errors.append(f"row {line_no}: t_s, ref, x, y, z and aux must be finite numbers")
+                    errors.append(f"line {line_no}: t_s, ref, x, y, z and aux must be finite numbers")
                     continue
                 if vals[0] <= last_t:
-                    errors.append(f"row {line_no}: t_s {vals[0]:g} does not increase (previous {last_t:g})")
+                    errors.append(f"line {line_no}: t_s {vals[0]:g} does not increase (previous {last_t:g})")
                     continue
                 last_t = vals[0]
                 rows.append(vals if has_temp else [*vals, float(temperature_c)])  # type: ignore[arg-type]
@@ -77,6 +82,16 @@ def read_dynamic_csv(path: str | Path, temperature_c: float | None = None) -> Re
     n = len(a)
     return Recording(t_s=a[:, 0], ref=a[:, 1], xyz=a[:, 2:5], temp_c=a[:, 6], gref_mps2=np.full((n, 3), np.nan),
                      pose_id=np.full(n, -1), aux=a[:, 5], metadata={"source": str(p)})
+
+
+def _cell(text: str, name: str) -> float:
+    """A cell's value (NaN for an empty cell); ValueError naming the column and the text."""
+    if not text.strip():
+        return math.nan
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"{name} = {text.strip()!r} is not a number") from None
 
 
 def write_dynamic_csv(path: str | Path, rec: Recording) -> None:

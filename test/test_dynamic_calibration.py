@@ -264,3 +264,23 @@ def test_a_segment_of_one_period_is_left_out_with_a_note(static_cal):
     assert 1.0 not in res.dynamics.fit["frequencies_hz"] and len(res.windows) == len(PLAN.segments) - 1
     assert [n for n in res.notes if "1 Hz" in n and "one whole period" in n]
     assert all(p.n_repeats >= 2 for p in res.points)
+
+
+def test_a_malformed_row_of_a_dynamic_csv_is_named_by_its_line_in_the_file(tmp_path):
+    """docs/csv_interchange.md: a bad row is reported with its line number. Comment and blank lines were
+    filtered out before the rows were counted, so the message named a line 5 lines early (and a short row
+    said "list index out of range")."""
+    rows = [f"{i * 0.002:.3f},2000,1500,1600,1700,2048,24.0" for i in range(40)]
+    rows[20] = "0.040,2000,abc,1600,1700,2048,24.0"
+    rows[30] = "0.060,2000,1500"
+    text = "# slide run\n# operator notes\nt_s,ref,x,y,z,aux,temperature_c\n\n" + "\n".join(rows[:10]) + "\n\n# pause\n" \
+        + "\n".join(rows[10:]) + "\n"
+    path = tmp_path / "dyn.csv"
+    path.write_text(text)
+    lines = text.splitlines()
+    bad = [n for n, line in enumerate(lines, start=1) if "abc" in line or line == rows[30]]
+    with pytest.raises(DynamicCsvError) as err:
+        read_dynamic_csv(path)
+    msg = str(err.value)
+    assert f"line {bad[0]}: x = 'abc' is not a number" in msg, (bad, msg)
+    assert f"line {bad[1]}: 3 fields, header has 7" in msg, (bad, msg)
