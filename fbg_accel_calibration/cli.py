@@ -34,7 +34,7 @@ from . import diagnose_cli
 from . import input_validation as iv
 from .atomic_output import atomic_path, check_output_dir, check_outputs
 from .cli_progress import add_progress_option
-from .input_files import check_input, load_recording
+from .input_files import check_input, check_inputs, load_recording
 from .table_geometry import STANDARD_GRAVITY
 
 
@@ -176,8 +176,7 @@ def _load(paths: list[Path], args: argparse.Namespace):
 
 
 def _check_inputs(paths: list[Path]) -> None:
-    for path in paths:
-        check_input(path)
+    check_inputs(paths)
 
 
 def cmd_import(args: argparse.Namespace) -> int:

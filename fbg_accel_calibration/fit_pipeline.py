@@ -97,12 +97,13 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
     Raises ``ValueError`` (``NotIdentifiedError`` included) with the reason when the data cannot give a
     calibration. The damaged-file warnings and notes go to stderr.
     """
-    from .input_files import load_recording
+    from .input_files import check_inputs, load_recording
     from .mcap_io import StreamOrderError
     from .noise_correlation import from_recording
 
     opt = options or FitOptions()
     paths = [Path(p) for p in paths]
+    check_inputs(paths)  # each a recording, none given twice
     max_degree = max(max_degree, degree or 0)
     data = None
     if not opt.in_memory:

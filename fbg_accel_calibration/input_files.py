@@ -2,11 +2,14 @@
 
 A recording is a ``.csv`` in the interchange format (docs/csv_interchange.md), an MCAP file written by
 the calibration node or ``fbg-accel-calib import``, or a rosbag2 bag directory (metadata.yaml + .mcap
-files); anything else is refused in one line before any work is done.
+files); anything else is refused in one line before any work is done, and so is a recording given twice
+(the same path, a link to it, or a copy of the file).
 """
 
 from __future__ import annotations
 
+import filecmp
+import os
 import sys
 from pathlib import Path
 
@@ -40,6 +43,29 @@ def check_input(path: Path) -> None:
         check_mcap(path)
 
 
+def _same_recording(a: Path, b: Path) -> bool:
+    """Whether two inputs are one recording: the same file or directory (a path, a link to it), or two files
+    with the same bytes (a copy; compared only when their sizes are equal)."""
+    try:
+        if os.path.samefile(a, b):
+            return True
+        return a.is_file() and b.is_file() and a.stat().st_size == b.stat().st_size and filecmp.cmp(a, b, shallow=False)
+    except OSError:
+        return False
+
+
+def check_inputs(paths: list[Path] | list[str]) -> None:
+    """:func:`check_input` for each, and refuse a recording given twice (or with a copy of it): it would be read as
+    two runs, its samples counted twice and its visits taken for repeats."""
+    paths = [Path(p) for p in paths]
+    for i, path in enumerate(paths):
+        check_input(path)
+        for earlier in paths[:i]:
+            if _same_recording(earlier, path):
+                raise ValueError(f"{path}: the same recording as {earlier} (given twice, or a copy of it); give each "
+                                 "run once")
+
+
 def load_recording(paths: list[Path] | list[str], *, rate: float | None = None, temperature: float | None = None,
                    g: float | None = None, namespace: str | None = None, topic: str | None = None):
     """Recording from CSV and/or MCAP files and/or rosbag2 bag directories (one run per input); ``rate``,
@@ -49,9 +75,9 @@ def load_recording(paths: list[Path] | list[str], *, rate: float | None = None, 
     from .mcap_io import read_recording, read_warnings
     from .recording import Recording
 
+    check_inputs(paths)
     parts = []
     for path in map(Path, paths):
-        check_input(path)
         if path.suffix.lower() == ".csv" and path.is_file():
             parts.append(import_csv(path, rate_hz=rate, temperature_c=temperature,
                                     g_mps2=STANDARD_GRAVITY if g is None else g)[0])

@@ -270,3 +270,33 @@ def test_streamed_fit_of_a_csv_equals_the_in_memory_fit(tmp_path: Path, capsys: 
     bad = six_pose_csv(tmp_path / "bad.csv", "0.07,880,abc,1500,1200,0,0,9.8,23.4,0")
     rc, err = run(["fit", bad, "-o", tmp_path / "b.yaml"], capsys)
     assert rc == 2 and "line 9: x_counts = 'abc' is not a number" in err and not (tmp_path / "b.yaml").exists()
+
+
+def test_a_recording_given_twice_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A run given twice (the same path, a link to it, or a copy of the file: ``runs/*.mcap runs/run16.mcap``)
+    was read as two runs: its samples counted twice in the YAML (14319 of 18400 used, from 13800), its level
+    weighted double, and in ``diagnose`` its visits were repeats of themselves, pseudo-replicates for the
+    significance tests. Every subcommand that reads several recordings refuses it before any work."""
+    rows = [f"{i * 0.01:.2f},880,{1000 + i % 7},{1100 + i % 5},{1200 + i % 3},{SIX[i // 50]},23,{i // 50}\n"
+            for i in range(300)]
+    csv = tmp_path / "run.csv"
+    csv.write_text(HEADER + "".join(rows))
+    mcap = tmp_path / "run.mcap"
+    assert main(["import", str(csv), "-o", str(mcap)]) == 0
+    capsys.readouterr()
+    copy = tmp_path / "copy.mcap"
+    copy.write_bytes(mcap.read_bytes())
+    link = tmp_path / "link.mcap"
+    link.symlink_to(mcap)
+    other = tmp_path / "other.csv"
+    other.write_text(HEADER + "".join(rows[:299]))  # not the same file: accepted
+    cal = tmp_path / "cal.yaml"
+    rc, err = run(["fit", csv, other, "-o", cal], capsys)
+    assert rc == 0 and cal.is_file(), err
+    for second in (mcap, link, copy):
+        for argv in (["fit", mcap, second, "-o", tmp_path / "twice.yaml"], ["diagnose", mcap, second],
+                     ["report", mcap, second, "--calibration", cal, "-o", tmp_path / "rep"]):
+            rc, err = run(argv, capsys)
+            line = one_line(err)
+            assert rc == 2 and "the same recording as" in line and str(second) in line, line
+            assert not (tmp_path / "twice.yaml").exists() and not (tmp_path / "rep").exists()
