@@ -139,20 +139,29 @@ def test_estimator_recovers_a_known_white_plus_first_order_noise() -> None:
     assert np.all(white.correlated_fraction == 0.0) and np.all(white.time_constant_s == 0.0)
 
 
+SLOW_MOVES = {  # a table plan whose moves the signal alone does not show at the rate
+    "grid_100hz": {"scenario.poses.mode": "grid", "scenario.poses.dwell_s": 3.0, "scenario.poses.move_s": 2.0,
+                   "scenario.poses.grid.theta_step_deg": 60.0, "scenario.poses.grid.psi_step_deg": 60.0},
+    "six_position_1khz": {"scenario.rate_hz": 1000.0, "scenario.poses.mode": "six_position", "scenario.poses.dwell_s": 3.0,
+                          "scenario.poses.move_s": 1.5},
+}
+
+
+@pytest.mark.parametrize("plan", list(SLOW_MOVES))
 @pytest.mark.parametrize("in_memory", [False, True])
-def test_the_fit_finds_the_chain_s_noise_correlation_on_a_table_run_with_slow_moves(tmp_path: Path, in_memory: bool) -> None:
+def test_the_fit_finds_the_chain_s_noise_correlation_on_a_table_run_with_slow_moves(tmp_path: Path, in_memory: bool,
+                                                                                     plan: str) -> None:
     """A table plan with 2 s moves between 3 s dwells, at 100 Hz: the moves change the signal by less than the
     noise within the static detector's 5-sample window, so the signal alone called 96 % of the run still and the
-    noise model was fitted across the moves (x and y: f = 1, tau 18 and 28 s against the chain's 0.09 and 0.12 s).
+    noise model was fitted across the moves (x and y: f = 1, tau 18 and 28 s against the chain's 0.09 and 0.12 s; at
+    1 kHz the whole six-position run was one interval, f = 1 and tau 18-51 s).
     The poses of the recording say where the table stood: the fit's noise model now comes from those samples,
     streamed or in memory alike, and is the chain's (the TIA low-passes, SIM_DYNAMICS)."""
     from fbg_accel_calibration.cli import main as cli_main
     from fbg_accel_calibration.mcap_io import write_recording
     from fbg_accel_sim.board_physics import simulate_recording
 
-    cfg = SimConfig.default().with_overrides({"scenario.poses.mode": "grid", "scenario.poses.dwell_s": 3.0,
-                                              "scenario.poses.move_s": 2.0, "scenario.poses.grid.theta_step_deg": 60.0,
-                                              "scenario.poses.grid.psi_step_deg": 60.0})
+    cfg = SimConfig.default().with_overrides(SLOW_MOVES[plan])
     write_recording(tmp_path / "run.mcap", simulate_recording(cfg, seed=4))
     out = tmp_path / "cal.yaml"
     assert cli_main(["fit", str(tmp_path / "run.mcap"), "--degree", "0", "-o", str(out)]
