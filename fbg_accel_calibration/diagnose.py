@@ -6,9 +6,10 @@ Pure numpy/scipy engine behind ``fbg-accel-calib diagnose`` (issue 4). Steps:
    signal still AND table reference constant AND in a pose) or, with ``static="table"``, every
    sample the table reports in a pose.
 2. Declared model: eq. 28 at the degree chosen by cross-validation over visits (degree
-   < number of temperature levels, as in ``thermal_fit``). Noise floor = pooled within-visit
-   standard deviation of its residual per axis over settled samples (what no static model can
-   remove); the settling transient after a table move is measured and reported on its own.
+   < number of temperature levels, as in ``thermal_fit``). Noise floor = per-sample standard deviation
+   of its residual per axis within visits over settled samples (what no static model can remove),
+   corrected for what removing each visit's mean and line takes of correlated noise
+   (``within_visit_noise``); the settling transient after a table move is measured and reported on its own.
    A visit is one contiguous static interval of one pose id in one run (``effects.visit_ids``); the
    pose id is the orientation. Folds that would lose a direction of the table frame are split or
    their visit kept in training (``check_folds``).
@@ -43,6 +44,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from scipy import fft as scipy_fft
 from scipy import optimize, stats
 
 from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
@@ -653,9 +655,9 @@ def settled_mask(t_s: np.ndarray, groups: np.ndarray, rows: np.ndarray, settle_s
 
 
 def _visit_line(res: np.ndarray, groups: np.ndarray, fit_rows: np.ndarray, t_s: np.ndarray | None,
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per visit (over ``fit_rows``): (labels, count, mean (V, 3), slope (V, 3) per s, mean time (V,) s,
-    dof (V,), sum of squared centred times (V,) s^2, 0 where no slope is fitted).
+    sum of squared centred times (V,) s^2, 0 where no slope is fitted).
 
     The slope is zero for a visit whose ``fit_rows`` samples share one time (or with ``t_s`` None)."""
     g = groups[fit_rows]
@@ -665,7 +667,6 @@ def _visit_line(res: np.ndarray, groups: np.ndarray, fit_rows: np.ndarray, t_s: 
     means = np.stack([np.bincount(inv, weights=x[:, j]) / cnt for j in range(3)], axis=1)
     slope = np.zeros_like(means)
     tmean = np.zeros(len(ug))
-    dof = cnt - 1
     stt_used = np.zeros(len(ug))
     if t_s is not None:
         t = t_s[fit_rows]
@@ -676,28 +677,246 @@ def _visit_line(res: np.ndarray, groups: np.ndarray, fit_rows: np.ndarray, t_s: 
         for j in range(3):
             sxy = np.bincount(inv, weights=tc * (x[:, j] - means[inv, j]))
             slope[ok, j] = sxy[ok] / stt[ok]
-        dof = dof - ok
         stt_used = np.where(ok, stt, 0.0)
-    return ug, cnt, means, slope, tmean, np.maximum(dof, 0), stt_used
+    return ug, cnt, means, slope, tmean, stt_used
 
 
-def within_visit_sigma(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_s: np.ndarray | None = None) -> np.ndarray:
-    """Pooled within-visit standard deviation (3,) of a residual (m/s^2, table frame): the noise floor.
+# Noise floor of correlated noise (issue 8). The noise of this sensor is white noise through the first-order TIA
+# low-passes (time constants up to 0.16 s: 16 samples at 100 Hz, 64 at 400 Hz) plus the ADC's white rounding. Removing
+# a visit's mean and line removes about two integrated correlation times' worth of it, not two samples' worth: the
+# expected sum of squares is sigma^2 tr((I - H) R) (H the hat matrix of the mean and line over the visit, R the noise's
+# correlation matrix), about sigma^2 (n - 2 kappa) with kappa = 1 + 2 sum_l rho_l samples (~70 at 400 Hz). Divided by
+# n - 2, the floor of 1 s visits came out 13-19 % low (clean simulated recordings, 100 and 400 Hz), and the held-out
+# error stood 1.15-1.26x above it: a clean recording was judged to hold an unexplained residual. So the pooled lag
+# products of the detrended residual, lags 0..K, are fitted with their exact expectation (``detrended_lag_matrix``:
+# E[sum_i d_i d_{i+k}] = sum_m A_km gamma_m) under white noise plus a first-order process, gamma_l = a delta_l +
+# b exp(-l / tau), which is the chain (as ``stillness_monitor`` models it, plus the white part). The floor is
+# sqrt(a + b); the variance of a visit mean that the chi^2 of ``residual_structure`` needs follows from the same fit
+# (``VisitNoise``), so floor and test agree on what the noise is. A free gamma_0..gamma_K solved from the same equations
+# is unbiased but, from 1 s visits at 400 Hz, so uncertain at long lags (they make the variance of a visit mean) that it
+# came out negative on some seeds (integrated correlation < 0, floor 0.82x the truth); it is used only where the model
+# has too few lags (``MODEL_MIN_LAGS``). K covers NOISE_CORR_S, five of the slowest TIA time constants (a first-order
+# correlation is e^-5 = 0.7 % there), and at most half the median visit. Slower noise (bias instability, drift) is
+# removed with the line within a visit, as before, and is not in the floor.
+NOISE_CORR_S = 5.0 * float(np.max(TIA_TAU_S))
 
-    ``groups`` are visits (``visit_groups``), ``rows`` the samples that count (settled ones: see
-    ``settled_mask``). With ``t_s`` (s) a straight line in time is removed inside every visit first
-    (dof n - 2 per visit, n - 1 if its samples share one time, 0 for a single sample), so that slow
-    changes within a visit (temperature ramps, drift) do not count as noise.
+
+@dataclass
+class VisitNoise:
+    """Noise floor of a residual (``within_visit_noise``): what no static model can remove, and how it correlates."""
+
+    sigma: np.ndarray  # (3,) per-sample standard deviation, m/s^2 (table frame)
+    acf: np.ndarray  # (3, L + 1) normalised autocorrelation at lags 0..L samples (acf[:, 0] = 1), zero beyond L
+    # (3,) degrees of freedom of the variance of a visit mean as an estimate (inf: known exactly)
+    mean_dof: np.ndarray = field(default_factory=lambda: np.full(3, np.inf))
+
+    def mean_variance(self, n: np.ndarray) -> np.ndarray:
+        """Variance (len(n), 3) in (m/s^2)^2 of the mean of ``n`` (V,) consecutive samples of the noise:
+        sigma^2 (n + 2 sum_l (n - l) rho_l) / n^2, kept within [sigma^2 / n^2, sigma^2] (estimated rho may be noisy)."""
+        cnt = np.asarray(n, dtype=float)[:, None]
+        lag = np.arange(1, self.acf.shape[1], dtype=float)
+        pairs = np.clip(cnt - lag[None, :], 0.0, None)  # (V, L) pairs of samples at each lag
+        var = self.sigma**2 * (cnt + 2.0 * pairs @ self.acf[:, 1:].T) / cnt**2
+        return np.clip(var, self.sigma**2 / cnt**2, self.sigma**2)
+
+    @property
+    def correlation_samples(self) -> np.ndarray:
+        """(3,) integrated correlation time 1 + 2 sum_l rho_l, samples (1 for white noise): a visit of n samples
+        holds about n / this many independent ones."""
+        return 1.0 + 2.0 * self.acf[:, 1:].sum(axis=1)
+
+
+def _range_products(qa: tuple[float, float], qb: tuple[float, float], n: int, lo: np.ndarray, hi: np.ndarray,
+                    alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
+    """sum_{i=lo}^{hi} q_a[i + alpha] q_b[i + beta] (0 for an empty range) for q(i) = A + B (i - (n - 1) / 2), ``qa``
+    and ``qb`` their (A, B); arrays broadcast. Centred on the range's mean, so that nothing large cancels."""
+    (aa, ba), (ab, bb) = qa, qb
+    cnt = np.maximum(hi - lo + 1.0, 0.0)
+    mu = (lo + hi) / 2.0 - (n - 1) / 2.0  # mean of i - (n - 1) / 2 over the range
+    spread = (cnt**2 - 1.0) / 12.0  # variance of consecutive integers
+    a0, b0 = aa + ba * alpha, ab + bb * beta
+    return cnt * (a0 * b0 + (a0 * bb + b0 * ba) * mu + ba * bb * (mu * mu + spread))
+
+
+def detrended_lag_matrix(n: int, lags: int, model_lags: int, line: bool = True) -> np.ndarray:
+    """A (lags + 1, model_lags + 1): E[sum_i d_i d_{i+k}] = sum_m A[k, m] gamma_m for d the residual of
+    ``n`` consecutive samples of a stationary process (autocovariance gamma_m at lag m samples, zero beyond
+    ``model_lags``) after removing their least-squares mean and, with ``line`` (and n >= 2), a straight line in the
+    sample index.
+
+    d = (I - P) x with P = sum_a q_a q_a' (q_a orthonormal: the constant, the centred index), so
+    E[d d'] = (I - P) S (I - P) with S = sum_m gamma_m T_m (T_0 = I, T_m ones where |i - j| = m). Expanded, every
+    entry is a sum over an index range of products of two linear functions of the index (``_range_products``), so A
+    is exact and costs O(lags model_lags), not O(n lags model_lags)."""
+    k = np.arange(lags + 1, dtype=float)[:, None]
+    m = np.arange(model_lags + 1, dtype=float)[None, :]
+    basis = [(1.0 / math.sqrt(n), 0.0)]
+    if line and n >= 2:
+        basis.append((0.0, 1.0 / math.sqrt(n * (n * n - 1.0) / 12.0)))
+    zero = np.zeros(1)
+
+    def cross(a: tuple[float, float], b: tuple[float, float], lag: np.ndarray) -> np.ndarray:
+        """sum_{i=0}^{n-1-lag} q_a[i] q_b[i + lag]."""
+        return _range_products(a, b, n, zero, n - 1.0 - lag, zero, lag)
+
+    out = np.where((k == m) & (k <= n - 1), n - k, 0.0)  # sum_i (S)_{i, i+k}
+    for q in basis:  # - sum_i (P S + S P)_{i, i+k}: (T_m q)[j] = q[j - m] (j >= m) + q[j + m] (j + m <= n - 1)
+        ps = (_range_products(q, q, n, np.maximum(0.0, m - k), n - 1.0 - k, zero, k - m)
+              + _range_products(q, q, n, zero, n - 1.0 - k - m, zero, k + m))
+        sp = (_range_products(q, q, n, m, n - 1.0 - k, -m, k)
+              + _range_products(q, q, n, zero, np.minimum(n - 1.0 - k, n - 1.0 - m), m, k))
+        out = out - np.where(m == 0, 2.0 * cross(q, q, k), ps + sp)
+    for ia, qa in enumerate(basis):  # + sum_i (P S P)_{i, i+k} = sum_ab (q_a' S q_b) sum_i q_a[i] q_b[i + k]
+        for ib, qb in enumerate(basis):
+            g = np.where(m == 0, float(ia == ib), cross(qa, qb, m) + cross(qb, qa, m))
+            out = out + g * cross(qa, qb, k)
+    return out
+
+
+def _noise_lags(t_s: np.ndarray | None, groups: np.ndarray, r: np.ndarray, cnt: np.ndarray) -> int:
+    """Lags (samples) of the lag products the floor is fitted to: NOISE_CORR_S at the median sample interval within
+    visits (s), at most half the median visit; 0 (white noise) without times."""
+    if t_s is None or cnt.size == 0:
+        return 0
+    t, g = t_s[r], groups[r]
+    step = np.diff(t)[(g[1:] == g[:-1]) & (np.diff(t) > 0)]
+    if step.size == 0:
+        return 0
+    return int(max(min(math.ceil(NOISE_CORR_S / float(np.median(step))), int(np.median(cnt)) // 2), 0))
+
+
+MODEL_MIN_LAGS = 3  # with fewer lag products than the white + first-order model's 3 parameters: a free autocovariance
+JACKKNIFE_GROUPS = 20  # groups of visits left out in turn to measure how well the variance of a visit mean is known
+TAU_GRID = 48  # correlation times tried by the fit (log-spaced)
+
+
+@dataclass
+class _LagMoments:
+    """The lag products of the detrended visits and the expectations they are fitted to (``within_visit_noise``)."""
+
+    prods: np.ndarray  # (V, K + 1, 3) lag-k products of every visit
+    kind: np.ndarray  # (V,) index of the visit's (length, line) among ``expect``'s
+    expect: np.ndarray  # (kinds, T, K + 1, 2) expected lag products per unit white / first-order variance
+    tau: np.ndarray  # (T,) correlation times, samples
+    model_lags: int  # M: lags of the model autocovariance
+
+    def fit(self, visits: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(a, b, tau) per axis (3,) of the autocovariance a delta_l + b exp(-l / tau) (a, b >= 0, tau in samples)
+        that fits the lag products of ``visits`` best (least squares over the lags, for each tau of the grid)."""
+        w = np.bincount(self.kind[visits], minlength=self.expect.shape[0]).astype(float)
+        D = np.tensordot(w, self.expect, axes=1)  # (T, K + 1, 2)
+        c = self.prods[visits].sum(axis=0)  # (K + 1, 3)
+        G = np.einsum("tki,tkj->tij", D, D)
+        h = np.einsum("tki,kj->tij", D, c)  # (T, 2, 3)
+        det = G[:, 0, 0] * G[:, 1, 1] - G[:, 0, 1] ** 2
+        both = np.stack([G[:, 1, 1, None] * h[:, 0] - G[:, 0, 1, None] * h[:, 1],
+                         G[:, 0, 0, None] * h[:, 1] - G[:, 0, 1, None] * h[:, 0]], axis=1)
+        both /= np.where(np.abs(det) > 1e-300, det, np.inf)[:, None, None]
+        # with a negative part, the better of the white part alone and the first-order part alone
+        alone = np.clip(h / np.maximum(np.diagonal(G, axis1=1, axis2=2), 1e-300)[:, :, None], 0.0, None)
+        cands = np.zeros((3, *both.shape))  # (white alone, first-order alone, both; T, 2, 3)
+        cands[0, :, 0], cands[1, :, 1], cands[2] = alone[:, 0], alone[:, 1], both
+        # residual sum of squares less the constant c'c: coef' G coef - 2 coef' h
+        score = np.einsum("ctik,tij,ctjk->ctk", cands, G, cands) - 2.0 * np.einsum("ctik,tik->ctk", cands, h)
+        score[2][np.any(both < 0.0, axis=1)] = np.inf
+        ci, ti = np.unravel_index(np.argmin(score.reshape(-1, 3), axis=0), score.shape[:2])
+        axis = np.arange(3)
+        return cands[ci, ti, 0, axis], cands[ci, ti, 1, axis], self.tau[ti]
+
+    def noise(self, visits: np.ndarray) -> VisitNoise | None:
+        a, b, tau = self.fit(visits)
+        var = a + b
+        if not np.all(var > 0):
+            return None
+        lag = np.arange(self.model_lags + 1)
+        acf = (a[:, None] * (lag == 0) + b[:, None] * np.exp(-lag[None, :] / tau[:, None])) / var[:, None]
+        return VisitNoise(np.sqrt(var), acf)
+
+
+def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_s: np.ndarray | None = None) -> VisitNoise:
+    """The noise floor (3,) m/s^2 of a residual (N, 3) m/s^2, table frame, and its autocorrelation (see above).
+
+    ``groups`` are visits (``visit_groups``), ``rows`` the samples that count (settled ones: see ``settled_mask``).
+    The mean of every visit is removed and, with ``t_s`` (s), a straight line in time (so that slow changes within
+    a visit, temperature ramps, drift, do not count as noise). What is left is the noise seen through I - H; its
+    pooled lag products over 0..K lags (``_noise_lags``) are fitted with their exact expectation
+    (``detrended_lag_matrix``) under white noise plus a first-order process, a delta_l + b exp(-l / tau): the chain's
+    white noise through the TIA low-pass plus the ADC's white rounding and read noise (as ``stillness_monitor``). The
+    floor is sqrt(a + b). A free autocovariance fitted the same way is unbiased but, from short visits, far too
+    uncertain at long lags (they matter for the variance of a visit mean and the floor); with fewer than
+    ``MODEL_MIN_LAGS`` lags it is what is used (white noise with none: the pooled standard deviation over the
+    degrees of freedom left). Lags count the samples of a visit in ``rows`` in order (evenly spaced; a lost sample
+    shifts the lags across it by one).
+
+    How well the variance of a visit mean is known (``VisitNoise.mean_dof``) is measured by a grouped jackknife over
+    the visits (``JACKKNIFE_GROUPS``): short visits tell little about the correlation at long lags, on which it rests.
     """
     r = rows & finite_rows(res)
     if not r.any():
-        return np.full(3, np.nan)
-    ug, _, means, slope, tmean, dof, _ = _visit_line(res, groups, r, t_s)
-    inv = np.searchsorted(ug, groups[r])
-    dev = res[r] - means[inv]
+        return VisitNoise(np.full(3, np.nan), np.ones((3, 1)))
+    ug, cnt, means, slope, tmean, stt = _visit_line(res, groups, r, t_s)
+    idx = np.flatnonzero(r)
+    inv = np.searchsorted(ug, groups[idx])
+    dev = res[idx] - means[inv]
     if t_s is not None:
-        dev -= slope[inv] * (t_s[r] - tmean[inv])[:, None]
-    return np.sqrt(np.sum(dev**2, axis=0) / max(float(dof.sum()), 1.0))
+        dev -= slope[inv] * (t_s[idx] - tmean[inv])[:, None]
+    lags = _noise_lags(t_s, groups, r, cnt)
+    n_v = cnt.astype(int)
+    dev = dev[np.argsort(inv, kind="stable")]  # by visit, in time order within a visit
+    bounds = np.r_[0, np.cumsum(n_v)]
+    prods = np.zeros((len(n_v), lags + 1, 3))  # lag-k products of every visit, k = 0..K
+    for v in range(len(n_v)):
+        x = dev[bounds[v]:bounds[v + 1]]
+        size = scipy_fft.next_fast_len(len(x) + lags + 1, real=True)  # no wrap-around up to lag K
+        spec = scipy_fft.rfft(x, size, axis=0)
+        ac = scipy_fft.irfft(spec.real**2 + spec.imag**2, size, axis=0)[: min(lags + 1, len(x))]
+        prods[v, : len(ac)] = ac
+    kinds, kind = np.unique(np.column_stack([n_v, stt > 0]), axis=0, return_inverse=True)
+    kind = kind.ravel()
+    if lags >= MODEL_MIN_LAGS:
+        tau = np.geomspace(0.25, lags / 2.0, TAU_GRID)
+        model_lags = int(min(math.ceil(10.0 * tau[-1]), n_v.max() - 1))
+        lag = np.arange(model_lags + 1)
+        basis = np.stack([np.broadcast_to((lag == 0).astype(float)[:, None], (len(lag), len(tau))),
+                          np.exp(-lag[:, None] / tau[None, :])], axis=-1)  # (M + 1, T, 2)
+        expect = np.stack([np.einsum("km,mtj->tkj", detrended_lag_matrix(int(n), lags, model_lags, bool(h)), basis)
+                           for n, h in kinds])
+        moments = _LagMoments(prods, kind, expect, tau, model_lags)
+        estimate: Callable[[np.ndarray], VisitNoise | None] = moments.noise
+    else:
+        A_k = np.array([detrended_lag_matrix(int(n), lags, lags, bool(h)) for n, h in kinds])
+
+        def estimate(visits: np.ndarray) -> VisitNoise | None:
+            A = np.tensordot(np.bincount(kind[visits], minlength=len(kinds)).astype(float), A_k, axes=1)
+            try:
+                gamma = np.linalg.solve(A, prods[visits].sum(axis=0))
+            except np.linalg.LinAlgError:
+                return None
+            if not (np.all(np.isfinite(gamma)) and np.all(gamma[0] > 0)):
+                return None
+            return VisitNoise(np.sqrt(gamma[0]), (gamma / gamma[0]).T)
+
+    every = np.arange(len(n_v))
+    noise = estimate(every)
+    if noise is None:
+        return VisitNoise(np.full(3, np.nan), np.ones((3, 1)))
+    # grouped jackknife of log(variance of the mean of a median-length visit): its spread gives the degrees of freedom
+    # of that variance as an estimate, nu = 2 / var(log), as for a scaled chi^2(nu) / nu
+    n_groups = min(JACKKNIFE_GROUPS, len(n_v))
+    if n_groups >= 3:
+        ref = np.array([np.median(cnt)])
+        member = every % n_groups
+        parts = [estimate(every[member != gi]) for gi in range(n_groups)]
+        logs = np.array([np.log(part.mean_variance(ref)[0]) for part in parts if part is not None])
+        if len(logs) >= 3:  # a group without a fit of its own (too few visits left) does not count
+            spread = (len(logs) - 1) / len(logs) * np.sum((logs - logs.mean(axis=0)) ** 2, axis=0)
+            noise.mean_dof = 2.0 / np.maximum(spread, 1e-12)
+    return noise
+
+
+def within_visit_sigma(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_s: np.ndarray | None = None) -> np.ndarray:
+    """The noise floor (3,) m/s^2 of a residual: ``within_visit_noise(...).sigma``."""
+    return within_visit_noise(res, groups, rows, t_s).sigma
 
 
 @dataclass
@@ -1231,8 +1450,10 @@ class ResidualStructure:
     corr_time: np.ndarray
     corr_temperature: np.ndarray
     orientation_r2: np.ndarray  # (3,) pose-mean residual explained by quadratic in the reference direction
-    lag1_autocorr: np.ndarray
+    lag1_autocorr: np.ndarray  # (3,) lag-1 autocorrelation of the noise (the floor's estimate)
     serial_corr_pose_means: np.ndarray  # (3,) correlation of consecutive pose means in time order (slow wander -> ~1)
+    noise_corr_samples: np.ndarray  # (3,) integrated correlation time of the noise, samples (VisitNoise)
+    noise_mean_dof: np.ndarray  # (3,) degrees of freedom of the variance of a visit mean (VisitNoise.mean_dof)
 
 
 @dataclass
@@ -1318,7 +1539,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                 break
             settle_s = nxt
     settled = settled_mask(data.t_s, groups, rows, settle_s)
-    noise = within_visit_sigma(res0, groups, settled, data.t_s)
+    noise_model = within_visit_noise(res0, groups, settled, data.t_s)
+    noise = noise_model.sigma
     if not np.all(np.isfinite(noise)) or np.any(noise <= 0):
         raise ValueError(f"no noise floor: {int(settled.sum())} settled samples (every visit shorter than "
                          f"{settle_s:.3g} s plus one sample?); lower settle_s")
@@ -1411,9 +1633,10 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     remedies = [a for a in added if a[0] in remedy_names]
     run_terms = [a for a in added if a[0] in per_run_names]
     added = [a for a in added if a[0] not in remedy_names | per_run_names]
-    noise_after = noise
+    noise_after, noise_model_after = noise, noise_model
     if remedies:  # the filtered output is less noisy: its own floor, on the same settled samples
-        noise_after = within_visit_sigma(des_f.G - cv_f.fitted_full, groups, settled & rows_f, data.t_s)
+        noise_model_after = within_visit_noise(des_f.G - cv_f.fitted_full, groups, settled & rows_f, data.t_s)
+        noise_after = noise_model_after.sigma
         cal.noise_sigma_mps2 = noise_after
     fitted_sensor = cv_f.fitted_full.copy()  # what the calibration file reproduces: without the per-run terms
     for name in per_run_names:
@@ -1429,7 +1652,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     after_ho = np.sqrt(np.mean(cv_f.heldout[r_eval] ** 2, axis=0))
     before_in = np.sqrt(np.mean(res0[r_eval] ** 2, axis=0))
     after_in = np.sqrt(np.mean((G_f - cv_f.fitted_full)[r_eval] ** 2, axis=0))
-    structure = residual_structure(data, cv_f.heldout, r_eval, groups, noise_after, alpha)
+    structure = residual_structure(data, cv_f.heldout, r_eval, groups, noise_model_after, alpha)
     moving = _moving_residual(data, calibrated)
     del calibrated
     warnings = [detection_limit] if detection_limit else []
@@ -1624,41 +1847,29 @@ def _moving_residual(data: DiagnosisData, calibrated: np.ndarray) -> np.ndarray 
     return np.sqrt(np.mean(d**2, axis=0)) if len(d) else None
 
 
-def _lag1(res: np.ndarray, groups: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """Pooled lag-1 autocorrelation (3,) of within-pose deviations (consecutive samples of one pose)."""
-    idx = np.flatnonzero(rows)
-    g = groups[idx]
-    x = res[idx]
-    _, inv = np.unique(g, return_inverse=True)
-    cnt = np.bincount(inv)
-    means = np.stack([np.bincount(inv, weights=x[:, j]) / cnt for j in range(3)], axis=1)
-    dev = x - means[inv]
-    same = (g[1:] == g[:-1]) & (np.diff(idx) == 1)
-    if same.sum() < 3:
-        return np.zeros(3)
-    num = np.sum(dev[1:][same] * dev[:-1][same], axis=0)
-    den = np.sum(dev**2, axis=0)
-    return np.clip(num / np.maximum(den, 1e-300), -0.99, 0.99)
-
-
-def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, groups: np.ndarray, noise: np.ndarray,
-                       alpha: float = 0.01, ratio_limit: float = 1.1) -> ResidualStructure:
+def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, groups: np.ndarray,
+                       noise_model: VisitNoise, alpha: float = 0.01, ratio_limit: float = 1.1) -> ResidualStructure:
     """Is there a significant residual left, and what does it depend on?
 
-    Test: pose means of the held-out residual against what the noise alone gives, chi^2 with the
-    effective sample count of each pose (lag-1 autocorrelation of the within-pose residual).
+    Test: visit means of the held-out residual against what the noise alone gives, chi^2 with the variance of
+    each visit's mean from the floor's own autocorrelation (``VisitNoise.mean_variance``: the same estimate as
+    the floor, so that floor and test agree on what the noise is; a first-order count of effective samples from
+    the lag-1 correlation counted 2-4 times too many for this noise and flagged clean data).
     Significant = p < ``alpha`` on some axis AND the held-out RMSE exceeds ``ratio_limit`` x floor.
     """
+    noise = noise_model.sigma
     r = rows & finite_rows(res)
-    rho = _lag1(res, groups, r)
     ug, inv = np.unique(groups[r], return_inverse=True)
     cnt = np.bincount(inv)
     x = res[r]
     means = np.stack([np.bincount(inv, weights=x[:, j]) / cnt for j in range(3)], axis=1)
-    neff = np.clip(cnt[:, None] * (1 - rho[None, :]) / (1 + rho[None, :]), 1.0, cnt[:, None])
-    z = means * np.sqrt(neff) / np.maximum(noise, 1e-12)
+    z = means / np.sqrt(np.maximum(noise_model.mean_variance(cnt), 1e-300))
     chi = np.sum(z**2, axis=0)
-    p = stats.chi2.sf(chi, df=len(ug))
+    # the variance of a visit mean is itself estimated (nu = noise_model.mean_dof degrees of freedom, a common factor
+    # for every visit): chi / df is then F(df, nu) under the noise alone, the chi^2 law when it is known (nu = inf)
+    dof = noise_model.mean_dof
+    p = np.where(np.isfinite(dof), stats.f.sf(chi / len(ug), len(ug), np.where(np.isfinite(dof), dof, 1.0)),
+                 stats.chi2.sf(chi, df=len(ug)))
     ho = np.sqrt(np.mean(x**2, axis=0))
     ratio = ho / np.maximum(noise, 1e-12)
     excess = np.sqrt(np.maximum(ho**2 - noise**2, 0.0))
@@ -1695,8 +1906,10 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
     else:
         verdict = ("no significant unexplained residual: held-out RMSE within "
                    + ", ".join(f"{ratio[j]:.2f}x" for j in range(3)) + " of the noise floor")
+    lag1 = noise_model.acf[:, 1] if noise_model.acf.shape[1] > 1 else np.zeros(3)
     return ResidualStructure(significant, verdict, ho, noise, ratio, p, excess, per_pose,
-                             np.sqrt(np.mean(means**2, axis=0)), corr_t, corr_T, r2, rho, serial)
+                             np.sqrt(np.mean(means**2, axis=0)), corr_t, corr_T, r2, lag1, serial,
+                             noise_model.correlation_samples, dof)
 
 
 def _spearman(a: np.ndarray, b: np.ndarray) -> float:

@@ -139,9 +139,10 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
     lines += ["## Summary", "", *summary(res, img_prefix), ""]
     lines += ["## Declared model and degree (eq. 28)", ""]
     lines += [degree_table(res.degree_table, res.degree, bool(res.settings.get("degree_forced"))), ""]
-    lines += ["Noise floor (pooled within-visit standard deviation of the declared model's residual over the settled "
-              "samples, a straight line in time removed in every visit): "
-              f"**{_v(res.noise_floor)} m/s^2** (x/y/z), from {res.n_floor_samples} settled samples.", ""]
+    lines += ["Noise floor (per-sample standard deviation of the declared model's residual within visits over the "
+              "settled samples, a straight line in time removed in every visit, corrected for what that removes of "
+              f"correlated noise): **{_v(res.noise_floor)} m/s^2** (x/y/z), from {res.n_floor_samples} settled samples.",
+              ""]
     if res.settling is not None:
         lines += ["Settling after a table move (an effect of its own, not in the floor): " + res.settling.summary() + ".", ""]
     if res.fold_notes:
@@ -193,7 +194,9 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
               f"- pose-mean RMS of the held-out residual: {_v(s.pose_mean_rms)} m/s^2 (x/y/z)",
               f"- excess over the floor sqrt(RMSE^2 - floor^2): {_v(s.excess_rms)} m/s^2",
               f"- chi^2 p-value of the pose means against noise: {' / '.join(_p(p) for p in s.pose_chi2_p)} "
-              f"(effective samples per pose from lag-1 autocorrelation {_v(s.lag1_autocorr, '{:.2f}')})",
+              f"(variance of a visit mean from the floor's autocorrelation: lag-1 {_v(s.lag1_autocorr, '{:.2f}')}, "
+              f"integrated correlation time {_v(s.noise_corr_samples, '{:.1f}')} samples, known to "
+              f"{_v(s.noise_mean_dof, '{:.0f}')} degrees of freedom: chi^2/df against F(df, dof))",
               f"- Spearman correlation of pose means with time: {_v(s.corr_time, '{:+.2f}')}, "
               f"with temperature: {_v(s.corr_temperature, '{:+.2f}')}",
               f"- correlation of consecutive pose means in time order (slow wander gives values near 1, a pose- or "

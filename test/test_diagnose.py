@@ -19,6 +19,7 @@ from fbg_accel_calibration.diagnose import (
     build_design,
     check_folds,
     cross_validate,
+    detrended_lag_matrix,
     diagnose,
     gram_conditioning,
     make_folds,
@@ -593,3 +594,22 @@ def test_a_reference_offset_beyond_the_bound_is_not_a_dark_offset() -> None:
     assert eff.implausible(0.5 * MAX_CHANNEL_OFFSET_FRACTION * ref, None, data, M0) == ""
     why = eff.implausible(-1.2 * MAX_CHANNEL_OFFSET_FRACTION * ref, None, data, M0)
     assert "not a dark offset" in why and "limit 25 %" in why
+
+
+@pytest.mark.parametrize(("n", "lags", "model_lags", "line"),
+                         [(12, 4, 4, True), (12, 5, 15, True), (7, 3, 3, False), (3, 5, 2, True), (2, 2, 2, True),
+                          (1, 1, 1, False), (40, 20, 39, True)])
+def test_detrended_lag_matrix_is_the_expectation_of_the_detrended_lag_products(n: int, lags: int, model_lags: int,
+                                                                               line: bool) -> None:
+    """Issue 8: the noise floor rests on E[sum_i d_i d_{i+k}] = sum_m A[k, m] gamma_m for the residual d = M x of a
+    visit after its mean (and line) are removed. The closed form must equal tr(U_k M T_m M) worked out with explicit
+    n x n matrices (U_k the lag-k pairs, T_m the symmetric lag-m indicator)."""
+    i = np.arange(n)
+    X = np.column_stack([np.ones(n), i - i.mean()]) if line and n >= 2 else np.ones((n, 1))
+    M = np.eye(n) - X @ np.linalg.pinv(X)
+    want = np.zeros((lags + 1, model_lags + 1))
+    for m in range(model_lags + 1):
+        C = M @ (np.abs(np.subtract.outer(i, i)) == m) @ M
+        for k in range(min(lags, n - 1) + 1):
+            want[k, m] = np.trace(C, offset=k)
+    np.testing.assert_allclose(detrended_lag_matrix(n, lags, model_lags, line), want, atol=1e-10)
