@@ -961,8 +961,11 @@ def settling_transient(res: np.ndarray, t_s: np.ndarray, groups: np.ndarray, row
 
     ``rows``: static samples of the visits (time-ordered, visits contiguous). Sample positions
     k = 0 .. K-1 with K covering ``max_window_s`` (s) plus one sample, at most a third of the median visit;
-    visits shorter than 3 K samples are not used. ``settle_s`` and ``n_dropped`` are left at 0 (set by
-    the caller once the window is chosen).
+    visits shorter than 2 K + 1 samples (no middle sample left to refer to) are not used. The k-th sample from
+    the start and the k-th from the end lie at the same distance from the middle whatever its length, so a
+    visit one sample shorter than 3 K counts as well (it was left out: with jittered visit lengths, every
+    visit shorter than the median). ``settle_s`` and ``n_dropped`` are left at 0 (set by the caller once the
+    window is chosen).
     """
     r = rows & finite_rows(res)
     idx = np.flatnonzero(r)
@@ -982,7 +985,7 @@ def settling_transient(res: np.ndarray, t_s: np.ndarray, groups: np.ndarray, row
     K = int(min(np.ceil(max_window_s / max(dt, 1e-12)) + 1, np.median(length) // 3))
     if K < 1:
         return empty
-    ok_v = length >= 3 * K
+    ok_v = length >= 2 * K + 1
     if ok_v.sum() < 3:
         return empty
     mid = ok_v[vid] & (pos >= K) & (rpos >= K)

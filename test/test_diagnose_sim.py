@@ -19,12 +19,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from fbg_accel_calibration.diagnose import diagnose
 from fbg_accel_calibration.diagnose_report import write_plots
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_driver.thermal_model import ThermalCalibration
 from fbg_accel_sim.board_physics import simulate_recording
+from fbg_accel_sim.scenario import grid_poses
 from fbg_accel_sim.sim_config import SimConfig
 
 NAMED = ("reference_dark_offset", "thermal_lag", "spectral_nonlinearity", "time_drift", "channel_delay", "tia_lowpass",
@@ -251,3 +253,22 @@ def test_the_floor_of_short_visits_is_the_per_sample_noise_and_clean_data_stays_
         ratios.append(res.noise_floor / np.sqrt(np.mean(noise[used] ** 2, axis=0)))
     assert np.all(np.abs(np.mean(ratios, axis=0) - 1.0) < 0.08), np.round(ratios, 3)
 
+
+def test_the_settling_measurement_keeps_visits_one_sample_shorter_than_the_median(tmp_path: Path) -> None:
+    """Issue 8: the settling transient is measured at K sample positions from each end of a visit, K at most a third
+    of the median visit, and visits needed 3 K samples: with the grid's dwell one sample (10 ms) shorter at every third
+    pose, the 14 visits shorter than the median were all left out (28 of 42 used). A visit needs 2 K + 1 samples (a
+    middle to refer to), so every visit counts."""
+    poses = [{"name": f"p{i}", "psi_deg": psi, "theta_deg": theta, "dwell_s": 2.99 if i % 3 == 2 else 3.0}
+             for i, (psi, theta) in enumerate(grid_poses(60.0, 60.0))]
+    plan = tmp_path / "jittered.yaml"
+    plan.write_text(yaml.safe_dump({"format": "fbg_accel_pose_plan", "format_version": 1, "move_s": 1.0,
+                                    "poses": poses}))
+    rec = simulate_recording(_config({"scenario.poses.mode": "plan_file", "scenario.poses.plan_file": str(plan)}),
+                             seed=1)
+    res = diagnose(rec)
+    lengths = np.bincount(res.data.group[res.data.use & (rec.pose_id >= 0)])
+    lengths = lengths[lengths > 0]
+    assert len(lengths) == 42 and np.sum(lengths < np.median(lengths)) >= 10, np.unique(lengths, return_counts=True)
+    assert len(res.settling.age_s) == int(np.median(lengths)) // 3  # K at its bound: a third of the median visit
+    assert res.settling.n_visits == 42
