@@ -1595,6 +1595,9 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                                   "Too few visits for a paired t-test as well: no effect can be added whatever its size"))
         for r in tested:
             r.significant = r.p_value < alpha_each and r.rel_gain >= min_rel_gain and not r.implausible
+            if r.significant and next(e for e in remaining if e.name == r.name).void(r.hyper):
+                r.significant = False  # its value on all samples changes nothing: there is nothing to add
+                r.detail += "; not added: its value on all samples changes nothing"
         results.sort(key=lambda r: (not r.applicable, -r.rel_gain))
         sig = [r for r in results if r.significant]
         conf = _confounding(sel, spec, sig, alpha_each, min_rel_gain, library) if len(sig) >= 2 else []

@@ -86,3 +86,31 @@ def test_a_held_out_error_below_the_floor_is_called_out():
     assert [a[0] for a in res.added] == ["reference_dark_offset"]
     assert any("below the noise floor" in w for w in res.warnings), res.warnings
     assert effects.MAX_CHANNEL_OFFSET_FRACTION == 0.25  # the documented bound (docs/effects.md)
+
+
+def test_a_faint_read_noise_that_wins_is_filtered_not_added_at_tau_zero():
+    """0.1 count of reference read noise: the held-out test finds the low-pass worth +11 % (p 2e-13, each fold's
+    own time constant), but the final value on all samples went back to its null, tau = 0, by a stricter rule
+    (visits as the only units): the read noise was 'added' as a remedy that filters nothing, and the degree was
+    re-selected for it. The remedy that wins is the filter with its best time constant."""
+    res = diagnose(simulate_recording(_config({"noise.reference_noise_counts": 0.1}), seed=1))
+    first = res.ranked[0]
+    assert first.name == "reference_read_noise" and first.significant
+    assert [r[0] for r in res.noise_remedies] == ["reference_read_noise"] and res.noise_remedies[0][1] > 0
+    terms = res.calibration.corrections
+    assert len(terms) == 1 and isinstance(terms[0], ReferenceLowpass) and terms[0].time_constant_s > 0
+
+
+def test_a_significant_candidate_whose_value_changes_nothing_is_not_added():
+    """The guard behind it: a candidate that wins its held-out test but whose value on all samples is void (here
+    declared void at every value) is reported, not added."""
+    from fbg_accel_calibration.effects import ReferenceReadNoiseEffect
+
+    class VoidReadNoise(ReferenceReadNoiseEffect):
+        def void(self, h: float | None) -> bool:
+            return True
+
+    res = diagnose(simulate_recording(_config({"noise.reference_noise_counts": 0.5}), seed=1), library=(VoidReadNoise(),))
+    first = res.ranked[0]
+    assert first.name == "reference_read_noise" and first.p_value < 1e-6 and not first.significant
+    assert "changes nothing" in first.detail and res.noise_remedies == [] and res.calibration.corrections == []

@@ -24,6 +24,7 @@ import yaml
 from fbg_accel_calibration.diagnose import diagnose
 from fbg_accel_calibration.diagnose_report import write_plots
 from fbg_accel_calibration.recording import Recording
+from fbg_accel_driver.correction_terms import ReferenceLowpass
 from fbg_accel_driver.thermal_model import ThermalCalibration
 from fbg_accel_sim.board_physics import simulate_recording
 from fbg_accel_sim.scenario import grid_poses
@@ -75,9 +76,11 @@ def test_injected_effect_is_ranked_first_added_and_brings_error_to_the_floor(eff
 
 @pytest.mark.parametrize("seed", [11, 12, 13])
 def test_nothing_injected_nothing_added(seed: int) -> None:
+    """No model effect is added. The reference's own ADC rounding (0.29 count rms on ~870 counts, about 0.05 m/s^2
+    through eq. 24) is noise in every recording: its remedy, the reference low-pass, may be (+5-6 % held out)."""
     res = diagnose(simulate_recording(_config({}), seed=seed))
     assert res.added == [], [(c.name, round(c.rel_gain, 3), c.p_value) for c in res.ranked]
-    assert res.calibration.corrections == []
+    assert all(isinstance(t, ReferenceLowpass) for t in res.calibration.corrections), res.calibration.corrections
     assert not res.structure.significant, res.structure.verdict
     assert np.all(res.after_heldout_rmse <= 1.1 * res.noise_floor)
     assert not any("cannot go below" in w for w in res.warnings)  # 42 visits: a campaign that can add effects
@@ -202,10 +205,11 @@ def test_a_run_offset_is_not_fitted_when_each_run_is_its_own_chamber_level(chamb
     offset = next(c for c in res.ranked if c.name == "run_offset")
     assert not offset.applicable and "not identified on this data" in offset.reason, offset.reason
     assert res.run_terms == []
+    # the file as the driver runs it: each run (file) streamed from its start (its terms may be filters)
+    output = np.concatenate([_output(res.calibration, rec.select(rec.run_id == r)) for r in np.unique(rec.run_id)])
     u = res.data.use
-    error = res.calibration.apply_counts(rec.ref[u], rec.xyz[u], rec.temp_c[u], rec.t_s[u]) - rec.gref_mps2[u]
-    rmse = np.sqrt(np.mean(error**2, axis=0))
-    assert np.all(rmse <= 1.2 * res.noise_floor), (rmse, res.noise_floor)
+    rmse = np.sqrt(np.mean((output[u] - rec.gref_mps2[u]) ** 2, axis=0))
+    assert np.all(rmse <= 1.2 * res.final_floor), (rmse, res.final_floor)
 
 
 def test_the_cross_validation_of_a_chamber_campaign_trains_only_models_it_identifies(chamber_levels) -> None:
@@ -250,7 +254,7 @@ def test_the_floor_of_short_visits_is_the_per_sample_noise_and_clean_data_stays_
         assert res.added == [], res.added
         noise = _output(res.calibration, rec) - _output(res.calibration, quiet)
         used = res.data.use & (rec.pose_id >= 0)
-        ratios.append(res.noise_floor / np.sqrt(np.mean(noise[used] ** 2, axis=0)))
+        ratios.append(res.final_floor / np.sqrt(np.mean(noise[used] ** 2, axis=0)))  # the floor of what the file outputs
     assert np.all(np.abs(np.mean(ratios, axis=0) - 1.0) < 0.08), np.round(ratios, 3)
 
 
