@@ -49,6 +49,12 @@ class PoseStats:
     residual_mean: np.ndarray
     residual_std: np.ndarray
 
+    def rmse(self) -> np.ndarray:
+        """Root-mean-square residual (3,) of every sample of the poses, m/s^2."""
+        dof = np.maximum(self.count - 1, 0)
+        sq = self.count[:, None] * self.residual_mean**2 + dof[:, None] * self.residual_std**2
+        return np.sqrt(sq.sum(axis=0) / max(float(self.count.sum()), 1.0))
+
     def pooled_within_pose_std(self) -> np.ndarray:
         """Pooled within-pose standard deviation (3,) of the calibrated output: the noise floor, m/s^2."""
         dof = np.maximum(self.count - 1, 0)
@@ -56,8 +62,15 @@ class PoseStats:
 
 
 def calibrated(cal: ThermalCalibration, rec: Recording) -> np.ndarray:
-    """Eq. 28 (without corrections) applied to every sample, (N, 3) m/s^2."""
-    return cal.base_acceleration(normalise(rec.xyz, rec.ref), rec.temp_c)
+    """The calibration file's output (N, 3) m/s^2 for every sample, as the driver computes it: eq. 28 and the
+    file's correction terms, each run streamed from its start (the terms may be filters with state)."""
+    if not cal.corrections:
+        return cal.base_acceleration(normalise(rec.xyz, rec.ref), rec.temp_c)
+    out = np.empty((len(rec), 3))
+    for run in np.unique(rec.run_id):
+        idx = np.flatnonzero(rec.run_id == run)
+        out[idx] = cal.apply_counts(rec.ref[idx], rec.xyz[idx], rec.temp_c[idx], rec.t_s[idx], cal.new_state())
+    return out
 
 
 def pose_statistics(cal: ThermalCalibration, rec: Recording, mask: np.ndarray) -> PoseStats:
@@ -176,7 +189,8 @@ def fit_report_markdown(cal: ThermalCalibration, selection: SelectionResult | No
                         images: dict[str, str], command: str = "") -> str:
     """Markdown report of a fit: degree table, RMSE vs noise floor, per-pose table, images."""
     fit = cal.fit
-    rmse = np.asarray(fit.get("rmse_mps2", [np.nan] * 3))
+    rmse = stats.rmse()  # the file on these inputs; the YAML's own figure is that of the data it was fitted on
+    fit_rmse = np.asarray(fit.get("rmse_mps2", [np.nan] * 3), dtype=float)
     noise = stats.pooled_within_pose_std()
     lines = ["# Calibration fit report", ""]
     if command:
@@ -184,11 +198,14 @@ def fit_report_markdown(cal: ThermalCalibration, selection: SelectionResult | No
     lines += [f"- sensor: `{cal.sensor_id}`, degree n = {cal.degree}, temperature range "
               f"{cal.temperature_range_c[0]:.2f} .. {cal.temperature_range_c[1]:.2f} °C, levels "
               f"{fit.get('temperature_levels_c')}",
-              f"- samples used {fit.get('samples_used')} of {fit.get('samples_total')} "
+              f"- at fit time (the YAML): samples used {fit.get('samples_used')} of {fit.get('samples_total')} "
               f"({fit.get('samples_excluded_in_motion')} excluded by the static detector, "
               f"{fit.get('samples_excluded_invalid')} outside poses or without valid reference/temperature), "
-              f"poses {fit.get('poses')}",
-              "", "| axis | in-sample RMSE [m/s²] | RMSE / FS | within-pose noise floor [m/s²] |", "|---|---|---|---|"]
+              f"poses {fit.get('poses')}, in-sample RMSE x/y/z "
+              + " / ".join(f"{v:.4f}" for v in fit_rmse) + " m/s²",
+              f"- on these inputs: {int(stats.count.sum())} static samples in {len(stats.count)} poses, the file's "
+              "output (eq. 28 and its correction terms) against the reference",
+              "", "| axis | RMSE on these inputs [m/s²] | RMSE / FS | within-pose noise floor [m/s²] |", "|---|---|---|---|"]
     for j in range(3):
         lines.append(f"| {AXES[j]} | {rmse[j]:.4f} | {rmse[j] / FULL_SCALE_MPS2:.2e} | {noise[j]:.4f} |")
     if selection is not None:
