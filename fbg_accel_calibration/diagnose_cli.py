@@ -85,7 +85,10 @@ def check_diagnose_outputs(args: argparse.Namespace) -> None:
         check_outputs([args.out, args.yaml], [], True, create_dirs=True)  # not the same file twice
     img = _img_dir(args)
     if img is not None:
-        check_output_dir(img, PLOT_FILES, args.inputs, args.force)
+        from .effects import LIBRARY
+
+        candidates = tuple(f"candidate_{e.name}.png" for e in LIBRARY)  # whichever the run plots: any library effect
+        check_output_dir(img, (*PLOT_FILES, *candidates), args.inputs, args.force)
 
 
 def write_outputs(res, args: argparse.Namespace, command: str) -> list[Path]:

@@ -184,3 +184,16 @@ def test_exclusive_create_refuses_a_dangling_symlink(tmp_path: Path) -> None:
         w.write_raw(1_000_000, 880.0, [1.0, 2.0, 3.0], temperature_c=23.0, seq=0)
     assert len(read_recording(out_dir / "new.mcap")) == 1
     assert os.stat(out_dir / "new.mcap").st_size > 0
+
+
+def test_an_existing_candidate_plot_of_diagnose_needs_force(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """diagnose writes a plot per candidate effect (candidate_<effect>.png) beside the two fixed ones; only the
+    fixed ones were checked, so an earlier run's candidate plots were replaced without --force."""
+    csv = good_csv(tmp_path / "s.csv")
+    img = tmp_path / "img"
+    img.mkdir()
+    plot = img / "candidate_time_drift.png"
+    plot.write_bytes(b"precious")
+    rc, err = run(["diagnose", csv, "--out", tmp_path / "d.md", "--img-dir", img], capsys)
+    assert rc == 2 and "candidate_time_drift.png: exists; give --force" in err and plot.read_bytes() == b"precious"
+    assert not (tmp_path / "d.md").exists()
