@@ -6,6 +6,7 @@ run (../shared/data/measured/README.md); each test states which.
 
 from __future__ import annotations
 
+import ast
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,7 @@ from fbg_accel_sim import optics
 from fbg_accel_sim.board_physics import CHUNK, BoardSimulator, SimConfig, simulate_recording
 from fbg_accel_sim.make_default_calibration import fit_eq28
 from fbg_accel_sim.noise import GaussMarkovBank, NoiseModel, first_order_filter, gm_avar
-from fbg_accel_sim.sim_config import SimConfigError
+from fbg_accel_sim.sim_config import _FREE_FORM, SimConfigError
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
 
@@ -220,3 +221,27 @@ def test_unknown_config_key_is_refused(cfg: SimConfig) -> None:
         cfg.with_overrides({"effects.thermal_lagg.scale": 1.0})
     base = SimConfig.load(FIXTURES / "sim_diagnosis_baseline.yaml")
     assert base.scale("thermal_lag") == 0.0 and base.get("scenario.poses.mode") == "grid"
+
+
+def _config_key_paths(node: dict, prefix: str = "") -> list[str]:
+    """Dotted paths of every mapping key of a config tree (free-form sub-trees are one key)."""
+    out = []
+    for key, value in node.items():
+        dotted = f"{prefix}{key}"
+        out.append(dotted)
+        if isinstance(value, dict) and dotted not in _FREE_FORM:
+            out += _config_key_paths(value, dotted + ".")
+    return out
+
+
+def test_every_default_config_key_is_read_by_the_simulator(cfg: SimConfig) -> None:
+    # DEVELOPERS.md: every parameter lives in config/sim_default.yaml and the code reads it. A key nothing reads
+    # is a setting that silently does nothing (the loader refuses typos so that this cannot happen), so each key
+    # name must occur in a string literal of fbg_accel_sim (alone or as a part of a dotted path).
+    names: set[str] = set()
+    for src in (Path(optics.__file__).parent).glob("*.py"):
+        for node in ast.walk(ast.parse(src.read_text())):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str):
+                names.update(node.value.split("."))
+    unread = [p for p in _config_key_paths(cfg.data) if p.rsplit(".", 1)[-1] not in names]
+    assert unread == [], f"config/sim_default.yaml keys no simulator code reads: {unread}"
