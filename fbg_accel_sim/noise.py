@@ -14,7 +14,7 @@ Two parts, each a sum of discrete first-order Gauss-Markov (GM) processes
   (``noise.bias_instability_time_constants_s``) and variances growing as sqrt(T), so that the
   Allan deviation has a shallow floor that rises slowly up to the longest T. A common scale is
   solved so that the minimum of the total ADEV over tau in [1 s, max T] equals 0.664 * BI
-  (paper eq. 27: BI = min ADEV / 0.664).
+  (paper eq. 27: BI = min ADEV / 0.66 in mg_E, g_E = 9.81 m/s^2; see ``BI_ADEV_FACTOR``).
 
 The expected Allan variance of a discrete GM process at cluster size m (tau = m dt) is exact::
 
@@ -32,8 +32,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# mg -> m/s^2 with standard gravity. Paper eq. 27 converts with g_E = 9.81 m/s^2 (its section 1): 0.03 % apart.
 MG_TO_MPS2 = 9.80665e-3
-BI_ADEV_FACTOR = 0.664  # paper eq. 27
+# min ADEV / BI of a bias-instability (flicker) floor, sqrt(2 ln 2 / pi) = 0.6643 (IEEE Std 952, PSD B^2/(2 pi f)).
+# Paper eq. 27 prints it rounded to 0.66: 0.6 % apart, inside Table 2's own rounding (0.54 mg is +-0.9 %). The
+# Allan tool (fbg_accel_calibration.allan) uses 0.664 and 9.80665 too, so it reads Table 2 back from the simulator.
+BI_ADEV_FACTOR = 0.664
 VRW_TAU_S = 1.0  # paper eq. 26: VRW = 60 * ADEV(1 s)
 BI_VARIANCE_EXPONENT = 0.5  # q_j ~ T_j ** 0.5: slowly rising floor, so min ADEV is a true minimum
 

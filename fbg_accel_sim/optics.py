@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 
 FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
-STANDARD_G = 9.80665  # m/s^2 per g (the paper's sensitivity is per g_E)
+STANDARD_G = 9.80665  # m/s^2 per g: the paper's 112 pm/g is per g_E, taken there as 9.81 (section 1; 0.03 % apart)
 PAPER_NONLINEARITY_PERCENT = {"x": 6.6, "y": 6.3}  # paper 4.2 at 180 m/s^2; z "the lowest" (no number given)
 PAPER_RANGE_MPS2 = 180.0  # paper 4.2: "within the range up to 180 m/s^2"
 _TABLE_STEP_NM = 0.001  # lag step of the tabulated overlap (nm)
