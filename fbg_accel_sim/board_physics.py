@@ -562,7 +562,7 @@ class BoardSimulator:
     def _table_motion(self, t: np.ndarray, delay: float) -> _TableMotion:
         """Table angle readings at ``t`` (s, deg) and the specific force (m/s^2, sensor frame) the seismic mass feels
         ``delay`` s later (channel_delay effect, ASSUMPTION): gravity through the table geometry and the mount rotation
-        plus the vibration sines, whose dynamic part goes through the mechanical resonance (facts; paper 2, 3.1)."""
+        plus the vibration sines, whose dynamic part goes through the mechanical resonance (paper 3.4, facts)."""
         # --- table (reading at t; what the sensor feels at t - delay: channel_delay effect)
         psi, theta, pose_id, moving, visit = self.trajectory.evaluate(t)
         arrival = self.trajectory.arrival_time(t)
@@ -610,9 +610,9 @@ class BoardSimulator:
 
     def _axis_biases(self, t: np.ndarray, T_opt: np.ndarray, psi_felt_deg: np.ndarray) -> np.ndarray:
         """Equivalent acceleration biases (N, 3) on the axis inputs, m/s^2: time drift (warm-up and creep of the pair
-        separation, paper 3.4/4.4), thermal hysteresis (bond/mount stress; play operator on the optics temperature
-        ``T_opt``, degC) and the unmodelled cable torque ~ sin(harmonic psi) (fibre pigtail drag at the felt inner angle
-        ``psi_felt_deg``); amplitudes ASSUMPTION (config/sim_default.yaml)."""
+        separation: bond relaxation, not characterised in the paper), thermal hysteresis (bond/mount stress; play
+        operator on the optics temperature ``T_opt``, degC) and the unmodelled cable torque ~ sin(harmonic psi) (fibre
+        pigtail drag at the felt inner angle ``psi_felt_deg``); amplitudes ASSUMPTION (config/sim_default.yaml)."""
         # --- equivalent acceleration biases on the axis inputs (m/s^2)
         eff = self.cfg.get("effects")
         bias = np.zeros((t.shape[0], 3))

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-SIX_POSITION = [  # paper 4.5: z down, z up, x down, x up, y down, y up (config/pose_plan_six_position.yaml)
+SIX_POSITION = [  # paper 3.6.2 and Fig. 11: z down, z up, x down, x up, y down, y up (config/pose_plan_six_position.yaml)
     (0.0, 180.0), (0.0, 0.0), (270.0, 90.0), (90.0, 90.0), (180.0, 90.0), (0.0, 90.0),
 ]
 
