@@ -2,7 +2,8 @@
 
 Pure numpy. The noise is defined on the calibrated output (m/s^2, per axis) and injected
 into the axis channels through the small-signal slope, so the calibrated output of the simulator
-carries exactly this noise (see ``board_physics``).
+carries exactly this noise (see ``board_physics``), plus what other effects add (the default source-power
+wander does: docs/simulator.md "Noise", bench/sim_noise_vs_table2.py).
 
 Two parts, each a sum of discrete first-order Gauss-Markov (GM) processes
 ``x[k] = rho x[k-1] + sqrt(q (1 - rho^2)) e[k]`` (stationary variance q, rho = exp(-dt/T)):
