@@ -187,7 +187,7 @@ def test_simulated_noise_has_the_configured_adev_at_1s(cfg: SimConfig) -> None:
 
 
 def test_tia_lowpass_time_constant_on_a_step(cfg: SimConfig) -> None:
-    # paper Table 1: x channel cut-off 1.7 Hz -> tau = 93.6 ms; a 180 degree table step seen on z
+    # paper Table 1: z channel cut-off 1.3 Hz -> tau = 122 ms; a 180 degree table step seen on z
     base = {"scenario.poses.mode": "list", "scenario.poses.list": [[0.0, 0.0], [0.0, 180.0]], "scenario.poses.dwell_s": 3.0,
             "scenario.poses.move_s": 0.0, "scenario.rate_hz": 1000.0, "effects.white_noise.scale": 0.0,
             "effects.bias_instability.scale": 0.0, "effects.adc_quantisation.scale": 0.0, "effects.channel_delay.scale": 0.0,
