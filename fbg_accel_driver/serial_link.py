@@ -8,6 +8,11 @@ time right after the read returned (the clock is injectable so the ROS node can 
 It never blocks on its consumer: the consumer blocks on ``queue`` (the driver node's publisher
 thread), or drains it when ``notify`` fires.
 
+The port is opened exclusively (pyserial ``exclusive=True``: an advisory ``flock``, taken before pyserial
+configures the port or flushes its input): a second reader of the same port, such as a second driver, is refused
+("in use") and retries with the back-off below, taking the port over once the first closes it. Two readers would
+otherwise split the stream between them, each losing frames.
+
 When the port vanishes or fails (unplugged USB adapter, closed pty, I/O error, the path does not
 exist yet) the thread closes it, reports the link as DISCONNECTED with the reason, and tries
 again after an exponential back-off (``backoff_initial_s`` doubling up to ``backoff_max_s``),
@@ -18,6 +23,7 @@ the whole life of the link: reconnecting never starts another thread.
 from __future__ import annotations
 
 import enum
+import errno
 import os
 import termios
 import threading
@@ -175,12 +181,15 @@ class SerialLink:
             # the device the name designates now is the one opened, so a later re-pointing is always seen
             opened_target = os.path.realpath(self.port)
             try:
-                ser = serial.Serial(opened_target, self.baud, timeout=self._read_timeout)
+                ser = serial.Serial(opened_target, self.baud, timeout=self._read_timeout, exclusive=True)
             except PORT_ERRORS as exc:
                 with self._lock:
                     self._failed += 1
                     self._backoff = backoff
-                self._set_state(LinkState.DISCONNECTED, f"cannot open {self.port}: {_reason(exc)}")
+                why = _reason(exc)
+                if getattr(exc, "errno", None) in (errno.EAGAIN, errno.EWOULDBLOCK):  # the flock of exclusive=True
+                    why = f"in use by another process (a second driver on this port?): {why}"
+                self._set_state(LinkState.DISCONNECTED, f"cannot open {self.port}: {why}")
                 if self._stop.wait(backoff):
                     break
                 backoff = min(backoff * 2.0, self._backoff_max)

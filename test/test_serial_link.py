@@ -278,3 +278,41 @@ def test_a_name_re_pointed_to_another_live_device_is_followed_while_data_flows(t
         link.stop()
         for fd in (old_master, old_slave, new_master, new_slave):
             os.close(fd)
+
+
+def test_a_second_reader_of_the_same_port_is_refused_and_takes_over_when_the_first_closes(tmp_path: Path) -> None:
+    """Two drivers on one port (a launch file started twice, two namespaces given the same port): the port is
+    opened exclusively, so the second is refused with a reason that says the port is in use, retries with back-off,
+    and the first keeps every byte. Before, both opened it and split the stream between them: with two real drivers
+    on the simulated board each lost about two thirds of the frames (CRC errors, lost frames) while their `serial
+    link` diagnostics said OK, and the second's open flushed the first's input queue."""
+    path = tmp_path / "board"
+    master, slave = open_pty(path)
+    first_notified, second_notified = Notified(), Notified()
+    first = SerialLink(str(path), 115200, notify=first_notified)
+    second = SerialLink(str(path), 115200, notify=second_notified, backoff_initial_s=0.05, backoff_max_s=0.1)
+    first.start()
+    try:
+        first_notified.wait_for(lambda: first.status().state is LinkState.CONNECTED, 10, "the first reader connected")
+        second.start()
+        second_notified.wait_for(lambda: second.status().failed_attempts >= 2 or second.status().connects > 0, 10,
+                                 "the second reader's open attempts")
+        st = second.status()
+        assert st.connects == 0 and st.state is LinkState.DISCONNECTED, st
+        assert "in use" in st.message and str(path) in st.message, st.message
+        payload = bytes(range(256)) * 40
+        for k in range(0, len(payload), 512):
+            os.write(master, payload[k:k + 512])
+            first_notified.wait_for(lambda k=k: first.status().bytes_read >= k + 512, 10, f"bytes up to {k + 512}")
+        assert drain(first) == payload  # nothing went to the second reader
+        assert second.status().bytes_read == 0
+        first.stop()  # the first driver exits: the second gets the port at its next attempt
+        second_notified.wait_for(lambda: second.status().state is LinkState.CONNECTED, 10, "the second reader took over")
+        os.write(master, b"now yours")
+        second_notified.wait_for(lambda: second.status().bytes_read >= 9, 10, "bytes to the second reader")
+        assert drain(second) == b"now yours"
+    finally:
+        first.stop()
+        second.stop()
+        os.close(master)
+        os.close(slave)
