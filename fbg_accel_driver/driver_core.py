@@ -31,6 +31,9 @@ Sample policies (documented in docs/topics.md; each has a counter and a diagnost
   ``out_of_range_variance_factor * sigma**2`` plus the square of what the term's formula would have added
   beyond the edge (at most the full scale squared); flagged, counted (``correction_out_of_span``),
   diagnostics WARN.
+* With ``covariance_source`` ``unknown`` the covariance is all zeros (REP 145 "unknown") for every sample: the
+  policies above still flag and count, but there is no variance to inflate, and a single inflated entry would state
+  the other axes exactly known.
 * **Non-finite output** (cannot happen with a validated calibration, kept as a last guard): the
   sample is dropped (``non_finite_dropped``). Nothing non-finite ever reaches a topic, except the
   documented NaN temperature in the raw record before the first valid reading.
@@ -384,6 +387,7 @@ class DriverCore:
                          tuple[float, float, float, float]]] = []
         equaliser = self._equaliser
         unit = (1.0, 1.0, 1.0)
+        unknown = cfg.covariance_source == "unknown"
         for f in frames:
             stamp_ns = clock.stamp(f.t_us)
             counters.samples += 1
@@ -462,6 +466,8 @@ class DriverCore:
                 for a, c in enumerate((f.x, f.y, f.z)):
                     if ref_sat or at_adc_rail(c):
                         var[a] = max(var[a], full_var)
+            if unknown:  # REP 145 "covariance unknown" is the all-zero matrix: nothing to inflate, and one inflated
+                var = [0.0, 0.0, 0.0]  # entry would state the other axes exactly known (the flags still count)
             if not all(math.isfinite(v) for v in (*accel, *var)):
                 counters.non_finite_dropped += 1
                 continue

@@ -301,6 +301,26 @@ def test_core_config_validation() -> None:
     assert imu[0].covariance == (0.0,) * 9
 
 
+def test_unknown_covariance_stays_unknown_under_every_policy() -> None:
+    """``covariance_source: unknown`` publishes the all-zero matrix, REP 145's "covariance unknown", also for the
+    samples a policy would inflate: there is no variance to inflate. Before, a saturated x gave diag((20 g)^2, 0, 0),
+    which states y and z exactly known, and a temperature outside the calibrated range gave diag(d^2), d the
+    polynomial's move from the range edge: for the simulated sensor at 46 degC (0.7 degC above its range) 0.002
+    and 0.001 (m/s^2)^2 on y and z, below its in-range noise variance (0.009, 0.017). A consumer trusted most
+    exactly the samples the policies flag."""
+    drift = correction_terms.TimeDrift(np.array([2.0, -1.0, 0.5]), np.zeros(3), 100.0, 0.0, span_s=(0.0, 0.05))
+    core = DriverCore(make_cal(corrections=[drift]), CoreConfig(covariance_source="unknown"))
+    frames = [frame(0), frame(1), frame(2), frame(3), frame(4), frame(5, xyz=(ADC_MAX, 1600, 1100)),
+              frame(6, ref=ADC_MAX), frame(7, xyz=(1500, 1600, 0)), frame(8, temp_cc=5000), frame(9, temp_cc=500),
+              frame(10, temp_cc=-27315, status=int(Status.TEMP_PRESENT))]
+    _, imu, _ = feed_frames(core, frames)
+    assert len(imu) == len(frames) and all_finite(imu)
+    assert [r.covariance for r in imu] == [(0.0,) * 9] * len(frames)
+    c = core.counters  # the policies still flag and count the samples (diagnostics)
+    assert (c.adc_saturated, c.temperature_out_of_range, c.temperature_held, c.correction_out_of_span) == (3, 3, 1, 5)
+    assert "adc_saturated" in imu[5].flags and "temperature_out_of_range" in imu[8].flags
+
+
 # ----------------------------------------------------------------------------- diagnostics
 def snapshot(now: float, *, connected: bool = True, frames: int = 0, crc: int = 0, lost: int = 0,
              core: dict | None = None, temp_valid: bool | None = True, age: float | None = 0.0,
