@@ -68,9 +68,12 @@ FLOAT_RANGES = {"temperature_hold_s": (0.0, 3600.0), "out_of_range_variance_fact
 CONSTRAINTS = {"covariance_source": "one of " + ", ".join(COVARIANCE_SOURCES),
                "chain_compensation": "one of auto, " + ", ".join(CHAIN_MODES)}
 
-# REP 2003: sensor drivers publish with the system-default QoS (reliable, volatile); keep-last 100
-# holds 0.1 s at 1 kHz for a reliable subscriber that is briefly slow
-DATA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+
+def data_qos() -> QoSProfile:
+    """REP 2003: sensor drivers publish with the system-default QoS (reliable, volatile); keep-last 100 holds 0.1 s
+    at 1 kHz for a reliable subscriber that is briefly slow. A new object per publisher: rclpy writes a topic's
+    ``qos_overrides`` into the profile it is given, so a shared one would carry one topic's override to the others."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
 
 
@@ -121,7 +124,7 @@ class DriverNode(Node):
             self._activate()
 
     def _data_publisher(self, msg_type: Any, topic: str) -> Publisher:
-        return self.create_publisher(msg_type, topic, DATA_QOS, qos_overriding_options=_overridable())
+        return self.create_publisher(msg_type, topic, data_qos(), qos_overriding_options=_overridable())
 
     def _destroy_data_publisher(self, pub: Publisher) -> None:
         self.destroy_publisher(pub)
@@ -346,7 +349,7 @@ class ManagedDriverNode(DriverNode, LifecycleNode):
     managed = True
 
     def _data_publisher(self, msg_type: Any, topic: str) -> Publisher:
-        return self.create_lifecycle_publisher(msg_type, topic, DATA_QOS, qos_overriding_options=_overridable())
+        return self.create_lifecycle_publisher(msg_type, topic, data_qos(), qos_overriding_options=_overridable())
 
     def _destroy_data_publisher(self, pub: Publisher) -> None:
         self.destroy_lifecycle_publisher(pub)

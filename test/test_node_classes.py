@@ -100,6 +100,35 @@ def test_driver_publishes_the_data_topics_with_the_system_default_reliable_qos(m
     assert not any(n.startswith("qos_overrides./diagnostics.") for n in names)
 
 
+@pytest.mark.parametrize("cls", [DriverNode, ManagedDriverNode])
+def test_a_qos_override_applies_to_its_own_topic_only(make_driver: Any, cls: type[DriverNode]) -> None:
+    """docs/topics.md's own example: ``qos_overrides./imu/data_raw.publisher: {reliability: best_effort, depth: 5}``
+    changes imu/data_raw, not imu/temperature nor imu/raw (what a loss-free calibration recorder needs reliable), nor
+    the next driver built in the process, nor the same node's next configure. Before, rclpy applied the override to
+    the one profile object every data publisher was given: imu/temperature and imu/raw, created after imu/data_raw,
+    were best effort with depth 5 too, and so was every driver created later in the process."""
+    given = {"qos_overrides./imu/data_raw.publisher.reliability": "best_effort",
+             "qos_overrides./imu/data_raw.publisher.depth": 5}
+    node = make_driver(cls, calibration_file="sim", **given)
+    if cls is ManagedDriverNode:
+        assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    for _ in range(2):  # managed: also after cleanup and a new configure
+        pubs = publishers(node)
+        assert (pubs["/imu/data_raw"].qos_profile.reliability, pubs["/imu/data_raw"].qos_profile.depth) == (
+            ReliabilityPolicy.BEST_EFFORT, 5)
+        for topic in ("/imu/temperature", "/imu/raw"):
+            qos = pubs[topic].qos_profile
+            assert (qos.reliability, qos.depth) == (ReliabilityPolicy.RELIABLE, 100), topic
+        if cls is DriverNode:
+            break
+        assert node.trigger_cleanup() == TransitionCallbackReturn.SUCCESS
+        assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    later = make_driver(calibration_file="sim")  # another driver in the same process, without overrides
+    for topic in DATA_TOPICS:
+        qos = publishers(later)[topic].qos_profile
+        assert (qos.reliability, qos.depth) == (ReliabilityPolicy.RELIABLE, 100), topic
+
+
 def test_driver_without_calibration_publishes_raw_and_temperature_only(make_driver: Any) -> None:
     node = make_driver(calibration_file="none")
     assert DATA_TOPICS - set(publishers(node)) == {"/imu/data_raw"}
