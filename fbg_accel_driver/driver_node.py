@@ -41,7 +41,7 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Imu, JointState, Temperature
 
 from .chain_compensation import MODES as CHAIN_MODES
-from .command_line import StartupError, one_line
+from .command_line import StartupError, first_line, one_line
 from .driver_core import COVARIANCE_SOURCES, CoreConfig, CoreOutput, DriverCore
 from .driver_diagnostics import DiagnosticsSnapshot, DriverDiagnostics
 from .driver_main import (
@@ -117,6 +117,11 @@ class DriverNode(Node):
                            float_ranges=FLOAT_RANGES, constraints=CONSTRAINTS)
         self.core: DriverCore | None = None
         self.link: SerialLink | None = None
+        self.pub_imu: Publisher | None = None
+        self.pub_temp: Publisher | None = None
+        self.pub_raw: Publisher | None = None
+        self.pub_diag: Publisher | None = None
+        self.timer: Any = None
         self._publishing = False
         self.add_on_set_parameters_callback(self._on_set_parameters)
         if not self.managed:
@@ -125,6 +130,16 @@ class DriverNode(Node):
 
     def _data_publisher(self, msg_type: Any, topic: str) -> Publisher:
         return self.create_publisher(msg_type, topic, data_qos(), qos_overriding_options=_overridable())
+
+    def _create_data_publisher(self, msg_type: Any, topic: str) -> Publisher:
+        """A data topic's publisher; a ``qos_overrides`` value rclpy cannot apply (a policy name it does not know, a
+        negative depth, a wrong type) is a StartupError naming the topic, not a traceback."""
+        try:
+            return self._data_publisher(msg_type, topic)
+        except Exception as exc:  # RuntimeError, RCLError (not exported), ParameterException: all a bad override
+            name = self.resolve_topic_name(topic)
+            raise StartupError(f"invalid QoS override for {name} (parameters qos_overrides.{name}.publisher.*): "
+                               f"{first_line(exc)}") from None
 
     def _destroy_data_publisher(self, pub: Publisher) -> None:
         self.destroy_publisher(pub)
@@ -168,9 +183,9 @@ class DriverNode(Node):
         self.temperature_range_c = cal.temperature_range_c if cal else (-math.inf, math.inf)
         self.diag = DriverDiagnostics(prefix="fbg_accel_driver")
         self.msgs = DriverMessages(self.frame_id)  # used by the publisher thread only
-        self.pub_imu = self._data_publisher(Imu, "imu/data_raw") if cal is not None else None
-        self.pub_temp = self._data_publisher(Temperature, "imu/temperature")
-        self.pub_raw = self._data_publisher(JointState, "imu/raw")
+        self.pub_imu = self._create_data_publisher(Imu, "imu/data_raw") if cal is not None else None
+        self.pub_temp = self._create_data_publisher(Temperature, "imu/temperature")
+        self.pub_raw = self._create_data_publisher(JointState, "imu/raw")
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)  # also while inactive
         refuse_unknown_parameters(self, "driver")  # after the publishers: they declare the qos_overrides parameters
         clock = self.get_clock()
@@ -203,17 +218,22 @@ class DriverNode(Node):
         self._publishing = False
 
     def _cleanup(self) -> None:
-        """Stop the reader (the port is closed) and the publisher thread; drop publishers and timer."""
+        """Stop the reader (the port is closed) and the publisher thread; drop publishers and timer. Also after a
+        configure that failed half-way (a parameter refused after the first publishers were created): whatever it
+        created goes, so the node is as unconfigured as before."""
         self._publishing = False
-        if self.link is None:
-            return
-        self.close()
-        self.destroy_timer(self.timer)
+        if self.link is not None:
+            self.close()
+            self.link = None
+        if self.timer is not None:
+            self.destroy_timer(self.timer)
+            self.timer = None
         for pub in (self.pub_imu, self.pub_temp, self.pub_raw):
             if pub is not None:
                 self._destroy_data_publisher(pub)
-        self.destroy_publisher(self.pub_diag)
-        self.link = None
+        if self.pub_diag is not None:
+            self.destroy_publisher(self.pub_diag)
+        self.pub_imu = self.pub_temp = self.pub_raw = self.pub_diag = None
         self.core = None
 
     # ------------------------------------------------------------ parameters
@@ -379,3 +399,7 @@ class ManagedDriverNode(DriverNode, LifecycleNode):
         self._cleanup()
         return super().on_shutdown(state)
 
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """A transition raised something unexpected: leave nothing running before rclpy returns to unconfigured."""
+        self._cleanup()
+        return super().on_error(state)

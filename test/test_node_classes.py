@@ -193,6 +193,38 @@ def test_managed_driver_configure_fails_cleanly_on_a_bad_parameter(make_driver: 
     assert node.trigger_configure() == TransitionCallbackReturn.FAILURE
 
 
+@pytest.mark.parametrize(("name", "value"), [
+    ("qos_overrides./imu/raw.publisher.reliability", "bogus"),
+    ("qos_overrides./imu/data_raw.publisher.depth", -1),
+    ("qos_overrides./imu/temperature.publisher.history", "keep_everything"),
+])
+def test_driver_refuses_a_bad_qos_override_with_one_clear_message(make_driver: Any, name: str, value: Any) -> None:
+    """docs/topics.md: the data topics' QoS is overridden by the ``qos_overrides`` parameters, and an invalid
+    parameter stops start-up with one line naming it (exit status 2). Before, a value rclpy cannot apply ended the
+    plain driver with a traceback and exit status 1 (``RuntimeError: Unexpected QoS override ...``; for a negative
+    depth ``RCLError: ... failed setting topic QoS``, naming neither the parameter nor the topic)."""
+    with pytest.raises(StartupError) as err:
+        make_driver(calibration_file="sim", **{name: value})
+    topic = name.split(".")[1]
+    assert f"invalid QoS override for {topic}" in str(err.value) and "qos_overrides" in str(err.value), err.value
+
+
+@pytest.mark.parametrize("values", [
+    {"calibraton_file": "x"},  # refused after the publishers are created (they declare the qos_overrides parameters)
+    {"qos_overrides./imu/raw.publisher.reliability": "bogus"},  # refused while creating them
+])
+def test_managed_driver_configure_that_fails_late_leaves_nothing_behind(make_driver: Any, values: dict[str, Any]) -> None:
+    """A configure refused after the first publishers exist returns FAILURE and leaves the node as unconfigured as
+    before: no publisher, no reader. Before, a misspelt parameter left the four publishers in place (unactivated, but
+    advertised: subscribers matched a node that would never publish) and each retry added four more; a bad QoS
+    override returned ERROR with the publishers created before it left in place."""
+    node = make_driver(ManagedDriverNode, calibration_file="sim", **values)
+    for _ in range(2):  # configure may be retried from unconfigured: it fails again, leaving nothing either
+        assert node.trigger_configure() == TransitionCallbackReturn.FAILURE
+        assert node.link is None and node.core is None
+        assert not (DATA_TOPICS | {"/diagnostics"}) & set(publishers(node)), set(publishers(node))
+
+
 # ----------------------------------------------------------------------------- calibration
 @pytest.fixture
 def make_calibration(ctx: Context, tmp_path: Path) -> Iterator[Any]:
