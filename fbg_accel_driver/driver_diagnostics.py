@@ -208,7 +208,8 @@ class DriverDiagnostics:
         nf_vals = {"non_finite_dropped": core.get("non_finite_dropped", 0), "imu_published": core.get("imu_published", 0),
                    "samples_calibrated": core.get("samples_calibrated", 0),
                    "decimation_discarded": core.get("decimation_discarded", 0),
-                   "decimation_gaps": core.get("decimation_gaps", 0)}
+                   "decimation_gaps": core.get("decimation_gaps", 0),
+                   "chain_priming": core.get("chain_priming", 0)}  # first samples after a (re)start with 'equalise
         if nf > 0:
             msg = f"{nf} sample(s) dropped since last report: the calibration gave a non-finite acceleration"
             entries.append(self._entry(ERROR, "calibrated output", msg, nf_vals))

@@ -496,3 +496,11 @@ def test_a_board_clock_that_does_not_advance_does_not_hold_the_stream(step_us: i
         released += len(core.feed(encode_frame(f), T0_NS + i * 10_000_000).raw)  # 100 frames/s of arrivals
     assert core.decoder.stats.frames == n
     assert released >= n - 21, released  # held for 0.2 s of arrivals (21 frames), then every frame at once
+
+
+def test_the_chain_priming_count_is_in_the_diagnostics() -> None:
+    """docs/topics.md documents chain_priming (the equaliser's first sample after a start, not published); it was
+    counted by the core but shown by no diagnostic entry."""
+    d = DriverDiagnostics()
+    e = d.report(snapshot(1.0, frames=100, core={"chain_priming": 2}))
+    assert values(e, "calibrated output")["chain_priming"] == "2"
