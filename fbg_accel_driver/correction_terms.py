@@ -261,6 +261,36 @@ class _Base:
     __hash__ = None  # type: ignore[assignment]
 
 
+class _HeldInSpan(_Base):
+    """An additive term of one input that, outside the span of that input it was fitted on, is held at the span's
+    nearest edge (module docstring). Subclasses give ``_input`` (the input from ``TermInputs``), ``_value`` (the
+    term's formula, (N, 3) m/s^2) and ``_bounds`` ((low, high) broadcasting against the input, or None)."""
+
+    def _input(self, inputs: TermInputs) -> np.ndarray:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def _value(self, x: np.ndarray) -> np.ndarray:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def _bounds(self) -> tuple[Any, Any] | None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def _held(self, x: np.ndarray) -> np.ndarray:
+        bounds = self._bounds()
+        return x if bounds is None else np.clip(x, *bounds)
+
+    def contribution(self, cal: BaseModel, inputs: TermInputs, state: Any) -> np.ndarray:
+        return self._value(self._held(self._input(inputs)))
+
+    def extrapolation(self, inputs: TermInputs) -> np.ndarray | None:
+        if self._bounds() is None:
+            return None
+        x = self._input(inputs)
+        with np.errstate(over="ignore", invalid="ignore"):  # a warm-up far before its span overflows: inf, capped by the driver
+            d = self._value(x) - self._value(self._held(x))
+        return np.where(np.isnan(d), np.inf, d)
+
+
 # ----------------------------------------------------------------------------- input corrections
 @_register
 class TiaInverseFilter(_Base):
@@ -484,7 +514,7 @@ def quadratic_features(psi: np.ndarray, psi0: np.ndarray) -> np.ndarray:
 
 
 @_register
-class SpectralNonlinearity(_Base):
+class SpectralNonlinearity(_HeldInSpan):
     """Second-order terms of the spectral-overlap response (paper §3.4, §4.2, Figs. 9 and 12).
 
     a += Q · [u_x², u_y², u_z², u_x u_y, u_x u_z, u_y u_z], u = Psi - psi0; Q (3, 6) in m/s^2,
@@ -513,20 +543,14 @@ class SpectralNonlinearity(_Base):
             out["psi_span"] = _lst(self.psi_span)
         return out
 
+    def _input(self, inputs: TermInputs) -> np.ndarray:
+        return np.asarray(inputs.psi, float)
+
     def _value(self, psi: np.ndarray) -> np.ndarray:
         return quadratic_features(psi, self.psi0) @ self.coeff_mps2.T
 
-    def _held(self, psi: np.ndarray) -> np.ndarray:
-        return psi if self.psi_span is None else np.clip(psi, self.psi_span[:, 0], self.psi_span[:, 1])
-
-    def contribution(self, cal: BaseModel, inputs: TermInputs, state: Any) -> np.ndarray:
-        return self._value(self._held(np.asarray(inputs.psi, float)))
-
-    def extrapolation(self, inputs: TermInputs) -> np.ndarray | None:
-        if self.psi_span is None:
-            return None
-        psi = np.asarray(inputs.psi, float)
-        return self._value(psi) - self._value(self._held(psi))
+    def _bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
+        return None if self.psi_span is None else (self.psi_span[:, 0], self.psi_span[:, 1])
 
 
 @_register
@@ -558,7 +582,7 @@ class ChannelOffset(_Base):
 
 
 @_register
-class TimeDrift(_Base):
+class TimeDrift(_HeldInSpan):
     """Bias drift with board time since power-on: warm-up exponential and linear creep (§4.4).
 
     a += creep (t - t0) + warmup exp(-(t - t0)/tau); ``creep_mps2_per_s`` (3,), ``warmup_mps2``
@@ -601,19 +625,11 @@ class TimeDrift(_Base):
         f = self.features(t_s, self.warmup_tau_s, self.t0_s)
         return f[:, [0]] * self.creep_mps2_per_s + f[:, [1]] * self.warmup_mps2
 
-    def _held(self, t_s: np.ndarray) -> np.ndarray:
-        return t_s if self.span_s is None else np.clip(t_s, *self.span_s)
+    def _input(self, inputs: TermInputs) -> np.ndarray:
+        return np.asarray(inputs.t_s, float)
 
-    def contribution(self, cal: BaseModel, inputs: TermInputs, state: Any) -> np.ndarray:
-        return self._value(self._held(np.asarray(inputs.t_s, float)))
-
-    def extrapolation(self, inputs: TermInputs) -> np.ndarray | None:
-        if self.span_s is None:
-            return None
-        t = np.asarray(inputs.t_s, float)
-        with np.errstate(over="ignore", invalid="ignore"):  # a warm-up far before its span overflows: inf, capped by the driver
-            d = self._value(t) - self._value(self._held(t))
-        return np.where(np.isnan(d), np.inf, d)
+    def _bounds(self) -> tuple[float, float] | None:
+        return self.span_s
 
 
 @_register

@@ -56,6 +56,15 @@ def drain(link: SerialLink) -> bytes:
     return out
 
 
+def send_through(link: SerialLink, notified: Notified, master: int, data: bytes, what: str) -> bytes:
+    """Write ``data`` to the pty ``master``, wait (on the link's ``notified``) until ``link`` has read that many more
+    bytes, and return what it queued (``drain``)."""
+    start = link.status().bytes_read
+    os.write(master, data)
+    notified.wait_for(lambda: link.status().bytes_read >= start + len(data), 10, what)
+    return drain(link)
+
+
 def test_reads_survives_vanish_backs_off_and_reconnects_in_one_thread(tmp_path: Path) -> None:
     path = tmp_path / "board"
     notified = Notified()
@@ -79,9 +88,7 @@ def test_reads_survives_vanish_backs_off_and_reconnects_in_one_thread(tmp_path: 
 
         master, slave = open_pty(path)
         wait_for(lambda: link.status().state is LinkState.CONNECTED, 10, "connected")
-        os.write(master, b"hello board")
-        wait_for(lambda: link.status().bytes_read >= 11, 10, "bytes read")
-        assert drain(link) == b"hello board" and notified.calls > 0
+        assert send_through(link, notified, master, b"hello board", "bytes read") == b"hello board" and notified.calls > 0
         assert threading.active_count() == threads_before + 1
 
         # The port vanishes (pty closed, as when the simulator disconnects or a USB adapter is pulled).
@@ -93,9 +100,7 @@ def test_reads_survives_vanish_backs_off_and_reconnects_in_one_thread(tmp_path: 
 
         master, slave = open_pty(path)
         wait_for(lambda: link.status().state is LinkState.CONNECTED, 10, "reconnected")
-        os.write(master, b"again")
-        wait_for(lambda: link.status().bytes_read >= 16, 10, "bytes after reconnect")
-        assert drain(link) == b"again"
+        assert send_through(link, notified, master, b"again", "bytes after reconnect") == b"again"
         st = link.status()
         assert st.connects == 2 and st.thread_alive
         assert threading.active_count() == threads_before + 1  # no thread per reconnect
@@ -103,9 +108,7 @@ def test_reads_survives_vanish_backs_off_and_reconnects_in_one_thread(tmp_path: 
         # The name is re-pointed to another device while the old one stays open (udev by-id after a replug).
         master2, slave2 = open_pty(path)
         wait_for(lambda: link.status().connects == 3, 10, "reopened after the link was re-pointed")
-        os.write(master2, b"third")
-        wait_for(lambda: link.status().bytes_read >= 21, 10, "bytes from the new device")
-        assert drain(link) == b"third"
+        assert send_through(link, notified, master2, b"third", "bytes from the new device") == b"third"
         assert link.status().disconnects == 2
         for fd in (master, slave, master2, slave2):
             os.close(fd)
@@ -216,9 +219,7 @@ def test_a_port_that_hangs_up_while_it_is_being_opened_is_retried(tmp_path: Path
         assert "cannot open" in link.status().message
         master, slave = open_pty(path)  # the port comes back under the same name
         notified.wait_for(lambda: link.status().state is LinkState.CONNECTED, 10, "connected to the new pty")
-        os.write(master, b"back")
-        notified.wait_for(lambda: link.status().bytes_read >= 4, 10, "bytes from the new pty")
-        assert drain(link) == b"back"
+        assert send_through(link, notified, master, b"back", "bytes from the new pty") == b"back"
     finally:
         link.stop()
         for fd in (master, slave):
@@ -308,9 +309,7 @@ def test_a_second_reader_of_the_same_port_is_refused_and_takes_over_when_the_fir
         assert second.status().bytes_read == 0
         first.stop()  # the first driver exits: the second gets the port at its next attempt
         second_notified.wait_for(lambda: second.status().state is LinkState.CONNECTED, 10, "the second reader took over")
-        os.write(master, b"now yours")
-        second_notified.wait_for(lambda: second.status().bytes_read >= 9, 10, "bytes to the second reader")
-        assert drain(second) == b"now yours"
+        assert send_through(second, second_notified, master, b"now yours", "bytes to the second reader") == b"now yours"
     finally:
         first.stop()
         second.stop()
