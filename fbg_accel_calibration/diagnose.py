@@ -833,7 +833,8 @@ class _LagMoments:
         return VisitNoise(np.sqrt(var), acf)
 
 
-def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_s: np.ndarray | None = None) -> VisitNoise:
+def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_s: np.ndarray | None = None,
+                       jackknife: bool = True) -> VisitNoise:
     """The noise floor (3,) m/s^2 of a residual (N, 3) m/s^2, table frame, and its autocorrelation (see above).
 
     ``groups`` are visits (``visit_groups``), ``rows`` the samples that count (settled ones: see ``settled_mask``).
@@ -850,6 +851,7 @@ def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
 
     How well the variance of a visit mean is known (``VisitNoise.mean_dof``) is measured by a grouped jackknife over
     the visits (``JACKKNIFE_GROUPS``): short visits tell little about the correlation at long lags, on which it rests.
+    ``jackknife`` False: not measured (``mean_dof`` stays inf), for a caller that needs the floor alone.
     """
     r = rows & finite_rows(res)
     if not r.any():
@@ -903,7 +905,7 @@ def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
     # grouped jackknife of log(variance of the mean of a median-length visit): its spread gives the degrees of freedom
     # of that variance as an estimate, nu = 2 / var(log), as for a scaled chi^2(nu) / nu
     n_groups = min(JACKKNIFE_GROUPS, len(n_v))
-    if n_groups >= 3:
+    if jackknife and n_groups >= 3:
         ref = np.array([np.median(cnt)])
         member = every % n_groups
         parts = [estimate(every[member != gi]) for gi in range(n_groups)]
@@ -915,8 +917,8 @@ def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
 
 
 def within_visit_sigma(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_s: np.ndarray | None = None) -> np.ndarray:
-    """The noise floor (3,) m/s^2 of a residual: ``within_visit_noise(...).sigma``."""
-    return within_visit_noise(res, groups, rows, t_s).sigma
+    """The noise floor (3,) m/s^2 of a residual: ``within_visit_noise(...).sigma`` (without the jackknife it does not need)."""
+    return within_visit_noise(res, groups, rows, t_s, jackknife=False).sigma
 
 
 @dataclass
