@@ -34,7 +34,7 @@ from . import diagnose_cli
 from . import input_validation as iv
 from .atomic_output import atomic_path, check_output_dir, check_outputs
 from .cli_progress import add_progress_option
-from .input_files import check_input, check_inputs, load_recording
+from .input_files import check_input, load_recording
 from .table_geometry import STANDARD_GRAVITY
 
 
@@ -175,10 +175,6 @@ def _load(paths: list[Path], args: argparse.Namespace):
                           namespace=getattr(args, "namespace", None), topic=getattr(args, "topic", None))
 
 
-def _check_inputs(paths: list[Path]) -> None:
-    check_inputs(paths)
-
-
 def cmd_import(args: argparse.Namespace) -> int:
     """CSV -> MCAP, streamed block by block (memory: one block), written to a temporary file that replaces
     the output only when the whole import succeeded."""
@@ -209,8 +205,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from .fit_pipeline import FitOptions, fit_files
     from .thermal_fit import FULL_SCALE_MPS2
 
-    check_outputs([args.output], args.inputs, args.force)
-    _check_inputs(args.inputs)
+    check_outputs([args.output], args.inputs, args.force)  # the inputs are checked first thing by fit_files
     from .cli_progress import enabled
 
     options = FitOptions(args.window, args.min_interval, args.level_gap, args.rate, args.temperature, args.g,
