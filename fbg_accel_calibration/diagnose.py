@@ -355,14 +355,6 @@ def _design_matrix(data: DiagnosisData, spec: ModelSpec, ordered: list[tuple[Eff
 
 
 # ============================================================================ cross-validation
-def visit_groups(data: DiagnosisData) -> np.ndarray:
-    """Group label (N,) of each sample: its visit (``effects.visit_ids``: one contiguous static
-    interval of one pose id within one run; samples in motion go with the visit the table moves to).
-    The orientation is ``data.pose_id``; a repeated orientation is a new visit, so the changes between
-    visits (repeat, temperature level, run) are neither noise nor hidden from the folds."""
-    return data.group
-
-
 def make_folds(groups: np.ndarray, rows: np.ndarray, k: int = 10, seed: int = 0) -> np.ndarray:
     """Fold index (N,) per sample (-1 outside ``rows``): whole visits are assigned to folds."""
     ug = np.unique(groups[rows])
@@ -837,7 +829,7 @@ def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
                        jackknife: bool = True) -> VisitNoise:
     """The noise floor (3,) m/s^2 of a residual (N, 3) m/s^2, table frame, and its autocorrelation (see above).
 
-    ``groups`` are visits (``visit_groups``), ``rows`` the samples that count (settled ones: see ``settled_mask``).
+    ``groups`` are visits (``DiagnosisData.group``), ``rows`` the samples that count (settled ones: see ``settled_mask``).
     The mean of every visit is removed and, with ``t_s`` (s), a straight line in time (so that slow changes within
     a visit, temperature ramps, drift, do not count as noise). What is left is the noise seen through I - H; its
     pooled lag products over 0..K lags (``_noise_lags``) are fitted with their exact expectation
@@ -1518,7 +1510,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     ``search_rows``: above this many fitted samples, the candidates are evaluated and the model chosen on a
     thinned set, and the chosen model fitted on every sample (``search_samples``); None: always on every sample."""
     data = rec if isinstance(rec, DiagnosisData) else prepare_data(rec, static)
-    groups = visit_groups(data)
+    groups = data.group
     fold, fold_notes = check_folds(data, groups, make_folds(groups, data.use, folds, seed))
     n_levels = data.temperature_level_count()
     sel_degree, degree_table = select_degree(data, max_degree)

@@ -25,7 +25,6 @@ from fbg_accel_calibration.diagnose import (
     make_folds,
     paired_gain_test,
     prepare_data,
-    visit_groups,
     weighted_rss,
 )
 from fbg_accel_calibration.diagnose_cli import main as diagnose_main
@@ -337,7 +336,7 @@ def test_cross_validation_of_a_design_in_fold_order_equals_that_of_the_time_orde
     """The search evaluator puts its rows in fold order so that each fold is a slice of the design (views, no
     gathers); the cross-validation is the same, row for row, as on the rows in time order."""
     data = prepare_data(synthetic(4, dark=30.0))
-    groups = visit_groups(data)
+    groups = data.group
     folds = check_folds(data, groups, make_folds(groups, data.use, 5))[0]
     time_order = np.flatnonzero(data.use)
     fold_order = time_order[np.argsort(folds[time_order], kind="stable")]
@@ -358,7 +357,7 @@ def test_sums_kept_while_only_the_reference_changes_give_the_cross_validation_wo
     sums of another matrix or other rows are not used."""
     data = prepare_data(synthetic(4, dark=30.0))
     lib = library_by_name()
-    groups = visit_groups(data)
+    groups = data.group
     folds = check_folds(data, groups, make_folds(groups, data.use, 5))[0]
     w = np.array([1.0, 2.0, 3.0])
     model = ModelSpec(1, 23.4, 1.0, [(lib["time_drift"], 300.0)])

@@ -17,7 +17,6 @@ from fbg_accel_calibration.diagnose import (
     make_folds,
     prepare_data,
     settled_mask,
-    visit_groups,
 )
 from fbg_accel_calibration.diagnose_report import markdown
 from fbg_accel_calibration.effects import visit_ids
@@ -133,7 +132,7 @@ def test_floor_of_repeated_visits_is_the_per_sample_noise(seed: int) -> None:
 def test_folds_follow_visits_not_orientations() -> None:
     rec, _, _ = campaign(3, rounds=2)
     data = prepare_data(rec, "table")
-    groups = visit_groups(data)
+    groups = data.group
     folds = make_folds(groups, data.use, 10, 0)
     # two visits of one orientation can fall into different folds (they are separate units)
     split = 0
@@ -159,7 +158,7 @@ def test_fold_that_loses_an_axis_is_split_and_noted() -> None:
     which predicts 0 on z (residuals of +-9.81 m/s^2). It must be split, noted, and nothing garbage returned."""
     rec = six_position(0)
     data = prepare_data(rec, "table")
-    groups = visit_groups(data)
+    groups = data.group
     seed = next(s for s in range(200)
                 if len(np.unique(make_folds(groups, data.use, 3, s)[data.use & (np.abs(data.gref[:, 2]) > 1)])) == 1)
     folds, notes = check_folds(data, groups, make_folds(groups, data.use, 3, seed))
