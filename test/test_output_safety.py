@@ -6,38 +6,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import numpy as np
 import pytest
+from test_input_validation import run, six_pose_csv
 
 from fbg_accel_calibration import atomic_output
-from fbg_accel_calibration.cli import main
 from fbg_accel_calibration.mcap_io import RecordingWriter, read_recording
-
-HEADER = "t_s,ref_counts,x_counts,y_counts,z_counts,gref_x_mps2,gref_y_mps2,gref_z_mps2,temperature_c,pose\n"
-SIX = ["0,0,9.8", "0,0,-9.8", "9.8,0,0", "-9.8,0,0", "0,9.8,0", "0,-9.8,0"]
-
-
-def good_csv(path: Path, bad_last_row: bool = False) -> Path:
-    rng = np.random.default_rng(1)
-    rows, i = [], 0
-    for p, g in enumerate(SIX):
-        gx, gy, gz = (float(v) for v in g.split(","))
-        for _ in range(40):
-            c = np.array([1000 + 80 * gx, 1500 + 80 * gy, 1200 + 80 * gz]) + rng.normal(0, 0.5, 3)
-            rows.append(f"{i * 0.01:.2f},880,{c[0]:.2f},{c[1]:.2f},{c[2]:.2f},{g},23.4,{p}\n")
-            i += 1
-    if bad_last_row:
-        rows.append("9.99,880,abc,1,1,0,0,9.8,23.4,5\n")
-    path.write_text(HEADER + "".join(rows))
-    return path
-
-
-def run(argv: list, capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
-    try:
-        rc = main([str(a) for a in argv])
-    except SystemExit as exc:
-        rc = exc.code
-    return rc, capsys.readouterr().err
 
 
 def leftovers(d: Path) -> list[str]:
@@ -46,7 +19,7 @@ def leftovers(d: Path) -> list[str]:
 
 def test_output_that_is_an_input_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """`import s.csv -o s.csv` replaced the CSV with MCAP; `fit good.mcap -o good.mcap` the recording with YAML."""
-    csv = good_csv(tmp_path / "s.csv")
+    csv = six_pose_csv(tmp_path / "s.csv")
     before = csv.read_bytes()
     for out in (csv, tmp_path / "." / "s.csv"):
         rc, err = run(["import", csv, "-o", out, "--force"], capsys)
@@ -67,20 +40,20 @@ def test_output_that_is_an_input_is_refused(tmp_path: Path, capsys: pytest.Captu
 
 
 def test_existing_output_needs_force(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    csv = good_csv(tmp_path / "s.csv")
+    csv = six_pose_csv(tmp_path / "s.csv")
     out = tmp_path / "out.mcap"
     out.write_bytes(b"precious")
     rc, err = run(["import", csv, "-o", out], capsys)
     assert rc == 2 and "exists; give --force" in err and out.read_bytes() == b"precious"
     assert run(["import", csv, "-o", out, "--force"], capsys)[0] == 0
-    assert len(read_recording(out)) == 240
+    assert len(read_recording(out)) == 300
     assert (out.stat().st_mode & 0o777) == 0o644
 
 
 def test_failed_import_over_an_existing_file_leaves_it_untouched(tmp_path: Path,
                                                                  capsys: pytest.CaptureFixture[str]) -> None:
     """A failed import over an existing file left a 486-byte stub."""
-    csv = good_csv(tmp_path / "s.csv", bad_last_row=True)
+    csv = six_pose_csv(tmp_path / "s.csv", "9.99,880,abc,1,1,0,0,9.8,23.4,5", at=-1)
     out = tmp_path / "out.mcap"
     out.write_bytes(b"precious")
     rc, err = run(["import", csv, "-o", out, "--force"], capsys)
@@ -93,7 +66,7 @@ def test_failed_import_over_an_existing_file_leaves_it_untouched(tmp_path: Path,
 def test_ctrl_c_during_import_leaves_no_stub(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                               monkeypatch: pytest.MonkeyPatch) -> None:
     """KeyboardInterrupt after 100 samples were written (as Ctrl-C during a long import)."""
-    csv = good_csv(tmp_path / "s.csv")
+    csv = six_pose_csv(tmp_path / "s.csv")
     out = tmp_path / "out.mcap"
     out.write_bytes(b"precious")
     real = RecordingWriter.write_raw
@@ -113,7 +86,7 @@ def test_ctrl_c_during_import_leaves_no_stub(tmp_path: Path, capsys: pytest.Capt
 
 def test_missing_output_directory_is_found_before_the_computation(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
-    csv = good_csv(tmp_path / "s.csv")
+    csv = six_pose_csv(tmp_path / "s.csv")
     from fbg_accel_calibration import csv_import, diagnose
 
     def never(*a, **k):
@@ -135,7 +108,7 @@ def test_fit_writes_through_a_temporary_file(tmp_path: Path, capsys: pytest.Capt
     """The YAML appears only complete: a failure while saving leaves the old file and no temporary."""
     from fbg_accel_driver.thermal_model import ThermalCalibration
 
-    csv = good_csv(tmp_path / "s.csv")
+    csv = six_pose_csv(tmp_path / "s.csv")
     out = tmp_path / "c.yaml"
     assert run(["fit", csv, "-o", out], capsys)[0] == 0
     good = out.read_bytes()
@@ -189,7 +162,7 @@ def test_exclusive_create_refuses_a_dangling_symlink(tmp_path: Path) -> None:
 def test_an_existing_candidate_plot_of_diagnose_needs_force(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """diagnose writes a plot per candidate effect (candidate_<effect>.png) beside the two fixed ones; only the
     fixed ones were checked, so an earlier run's candidate plots were replaced without --force."""
-    csv = good_csv(tmp_path / "s.csv")
+    csv = six_pose_csv(tmp_path / "s.csv")
     img = tmp_path / "img"
     img.mkdir()
     plot = img / "candidate_time_drift.png"
