@@ -110,12 +110,10 @@ class DriverDiagnostics:
         q_drop = int(snap.link_values.get("queue_dropped_bytes", 0)) - int(plink.get("queue_dropped_bytes", 0))
         q_vals = {k: snap.link_values[k] for k in ("queued_bytes", "queue_max_bytes", "queue_dropped_chunks",
                                                     "queue_dropped_bytes") if k in snap.link_values}
-        if q_drop > 0:
-            msg = (f"{q_drop} byte(s) dropped since last report: the decoder fell "
-                   f"{snap.link_values.get('queue_max_bytes', '?')} bytes behind the port (oldest dropped, newest kept)")
-            entries.append(self._entry(WARN, "reader queue", msg, q_vals))
-        else:
-            entries.append(self._entry(OK, "reader queue", "keeping up, nothing dropped since last report", q_vals))
+        entries.append(self._counted(q_drop, WARN, "reader queue", q_vals, "keeping up, nothing dropped since last report",
+                                     f"{q_drop} byte(s) dropped since last report: the decoder fell "
+                                     f"{snap.link_values.get('queue_max_bytes', '?')} bytes behind the port (oldest dropped, "
+                                     "newest kept)"))
 
         # frames
         frame_vals = {"frame_rate_hz": round(rate, 3), **dec, "samples": core.get("samples", 0),
@@ -131,28 +129,22 @@ class DriverDiagnostics:
         # board resets
         resets = delta(dec, pdec, "resets")
         reset_vals = {"resets": dec.get("resets", 0), "duplicates": dec.get("duplicates", 0)}
-        if resets > 0:
-            entries.append(self._entry(WARN, "board resets", f"board reset {resets} time(s) since last report", reset_vals))
-        else:
-            entries.append(self._entry(OK, "board resets", "no reset since last report", reset_vals))
+        entries.append(self._counted(resets, WARN, "board resets", reset_vals, "no reset since last report",
+                                     f"board reset {resets} time(s) since last report"))
 
         # ADC saturation
         sat = delta(core, pcore, "adc_saturated")
         sat_vals = {"adc_saturated": core.get("adc_saturated", 0)}
-        if sat > 0:
-            msg = f"{sat} sample(s) with an ADC channel at full scale (4095) since last report; variance inflated"
-            entries.append(self._entry(WARN, "ADC saturation", msg, sat_vals))
-        else:
-            entries.append(self._entry(OK, "ADC saturation", "no saturated sample since last report", sat_vals))
+        entries.append(self._counted(sat, WARN, "ADC saturation", sat_vals, "no saturated sample since last report",
+                                     f"{sat} sample(s) with an ADC channel at full scale (4095) since last report; "
+                                     "variance inflated"))
 
         # reference power
         low = delta(core, pcore, "reference_low")
         ref_vals = {"reference_low": core.get("reference_low", 0)}
-        if low > 0:
-            msg = f"reference power too low in {low} sample(s) since last report; acceleration not published for them"
-            entries.append(self._entry(ERROR, "reference power", msg, ref_vals))
-        else:
-            entries.append(self._entry(OK, "reference power", "reference power sufficient", ref_vals))
+        entries.append(self._counted(low, ERROR, "reference power", ref_vals, "reference power sufficient",
+                                     f"reference power too low in {low} sample(s) since last report; acceleration not "
+                                     "published for them"))
 
         # temperature sensor
         t_vals = {
@@ -196,12 +188,9 @@ class DriverDiagnostics:
         # correction terms held at the edge of the span they were fitted on (time drift, spectral non-linearity)
         span = delta(core, pcore, "correction_out_of_span")
         s_vals = {"correction_out_of_span": core.get("correction_out_of_span", 0)}
-        if span > 0:
-            msg = (f"{span} sample(s) since last report outside the span a correction term was fitted on: the term is "
-                   "held at the span's edge, covariance inflated")
-            entries.append(self._entry(WARN, "correction span", msg, s_vals))
-        else:
-            entries.append(self._entry(OK, "correction span", "every correction term inside its fitted span", s_vals))
+        entries.append(self._counted(span, WARN, "correction span", s_vals, "every correction term inside its fitted span",
+                                     f"{span} sample(s) since last report outside the span a correction term was fitted "
+                                     "on: the term is held at the span's edge, covariance inflated"))
 
         # calibrated output: the last guard of DriverCore (a validated calibration should never trip it)
         nf = delta(core, pcore, "non_finite_dropped")
@@ -210,11 +199,9 @@ class DriverDiagnostics:
                    "decimation_discarded": core.get("decimation_discarded", 0),
                    "decimation_gaps": core.get("decimation_gaps", 0),
                    "chain_priming": core.get("chain_priming", 0)}  # first samples after a (re)start with 'equalise
-        if nf > 0:
-            msg = f"{nf} sample(s) dropped since last report: the calibration gave a non-finite acceleration"
-            entries.append(self._entry(ERROR, "calibrated output", msg, nf_vals))
-        else:
-            entries.append(self._entry(OK, "calibrated output", "no non-finite output since last report", nf_vals))
+        entries.append(self._counted(nf, ERROR, "calibrated output", nf_vals, "no non-finite output since last report",
+                                     f"{nf} sample(s) dropped since last report: the calibration gave a non-finite "
+                                     "acceleration"))
 
         # measuring-chain compensation (calibration's dynamic section)
         if snap.chain:
@@ -232,6 +219,10 @@ class DriverDiagnostics:
 
     def _entry(self, level: int, what: str, message: str, values: dict[str, Any]) -> DiagnosticEntry:
         return DiagnosticEntry(level, self._name(what), message, tuple((str(k), str(v)) for k, v in values.items()))
+
+    def _counted(self, n: int, level: int, what: str, values: dict[str, Any], ok: str, bad: str) -> DiagnosticEntry:
+        """``level`` with ``bad`` when ``n`` (a count since the last report) > 0, else OK with ``ok``."""
+        return self._entry(level, what, bad, values) if n > 0 else self._entry(OK, what, ok, values)
 
 
 def _fmt(v: float | None) -> str:
