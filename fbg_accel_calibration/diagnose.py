@@ -355,6 +355,23 @@ def _design_matrix(data: DiagnosisData, spec: ModelSpec, ordered: list[tuple[Eff
 
 
 # ============================================================================ cross-validation
+def time_block_folds(groups: np.ndarray, rows: np.ndarray, k: int = 10) -> np.ndarray:
+    """Fold index (N,) per sample (-1 outside ``rows``): the visits in recording order (the order of their first
+    samples) cut into ``k`` contiguous blocks, so a held-out visit has no training neighbour in time on one side at
+    least (``time_block_check``)."""
+    ug, inv = np.unique(groups[rows], return_inverse=True)
+    k = int(min(k, len(ug)))
+    if k < 2:
+        raise ValueError("need at least two visits for cross-validation")
+    first = np.full(len(ug), len(groups))
+    np.minimum.at(first, inv, np.flatnonzero(rows))
+    fold_of_group = np.empty(len(ug), int)
+    fold_of_group[np.argsort(first)] = np.arange(len(ug)) * k // len(ug)
+    out = np.full(len(groups), -1)
+    out[rows] = fold_of_group[inv]
+    return out
+
+
 def make_folds(groups: np.ndarray, rows: np.ndarray, k: int = 10, seed: int = 0) -> np.ndarray:
     """Fold index (N,) per sample (-1 outside ``rows``): whole visits are assigned to folds."""
     ug = np.unique(groups[rows])
@@ -1133,6 +1150,7 @@ class CandidateResult:
     cross_correlation_delay_s: float | None = None
     implausible: str = ""  # why the fitted values are not physical (then never significant, never added)
     detectable_gain: float = math.nan  # small campaigns: gain the paired t-test finds with 80 % power
+    time_block: tuple[float, float] | None = None  # a time function's (gain, p) over contiguous blocks of time held out
 
     def delta_of_every_sample(self, n: int) -> np.ndarray | None:
         """``delta`` (N, 3) on every one of the recording's ``n`` samples, NaN where it was not evaluated (for the
@@ -1400,6 +1418,24 @@ class Evaluator:
         return out
 
 
+def time_block_check(data: DiagnosisData, spec: ModelSpec, eff: Effect, h: float | None, sub: np.ndarray,
+                     folds: np.ndarray, weights: np.ndarray, alpha: float) -> tuple[float, float]:
+    """(held-out gain, one-sided p over visits: ``paired_gain_test``) of ``eff`` at ``h`` on top of ``spec`` when the
+    folds are contiguous blocks of time (``folds``: ``time_block_folds`` made identifiable by ``check_folds``), on
+    the samples ``sub`` (indices; the search's). A function of time (``Effect.time_function``) that only gains
+    between visits interleaved in time follows a slow wander of the residual, which it cannot extrapolate: the
+    driver would apply it after every power-on. A model not identified on these folds has gain -inf, p 1."""
+    f = folds[sub]
+    fit, judged = data.use[sub] & (f != -1), data.use[sub] & (f >= 0)
+    try:
+        ho = [cross_validate(build_design(data, s, sub=sub), fit, f, weights).heldout for s in (spec, spec.plus(eff, h))]
+    except NotIdentifiedError:
+        return -math.inf, 1.0
+    r = judged & finite_rows(ho[0]) & finite_rows(ho[1])
+    gain, p = paired_gain_test(ho[0], ho[1], data.group[sub], r, weights, alpha)[:2]
+    return gain, p
+
+
 def _corr(a: np.ndarray, b: np.ndarray) -> float:
     if a.size < 3 or np.std(a) == 0 or np.std(b) == 0:
         return 0.0
@@ -1559,6 +1595,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
 
     steps: list[StepResult] = []
     detection_limit = ""
+    time_folds: np.ndarray | None = None  # contiguous blocks of time (time_block_check), made when first needed
     remaining = [e for e in library]
     while remaining and len(spec.effects) < max_effects:
         results = []
@@ -1589,9 +1626,21 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                                   "Too few visits for a paired t-test as well: no effect can be added whatever its size"))
         for r in tested:
             r.significant = r.p_value < alpha_each and r.rel_gain >= min_rel_gain and not r.implausible
-            if r.significant and next(e for e in remaining if e.name == r.name).void(r.hyper):
+            eff_r = next(e for e in remaining if e.name == r.name)
+            if r.significant and eff_r.void(r.hyper):
                 r.significant = False  # its value on all samples changes nothing: there is nothing to add
                 r.detail += "; not added: its value on all samples changes nothing"
+            if r.significant and eff_r.time_function:
+                if time_folds is None:
+                    time_folds = check_folds(data, groups, time_block_folds(groups, data.use, folds))[0]
+                g, p = r.time_block = time_block_check(data, spec, eff_r, r.hyper, every, time_folds, weights, alpha_each)
+                if p < alpha_each and g >= min_rel_gain:
+                    r.detail += f"; it also predicts contiguous blocks of time held out (gain {100 * g:+.1f} %, p = {p:.2g})"
+                else:
+                    r.significant = False
+                    r.detail += (f"; not added: it does not predict contiguous blocks of time held out (gain "
+                                 f"{100 * g:+.1f} %, p = {p:.2g}): it follows a slow wander of the residual between "
+                                 "visits, not a drift it can extrapolate")
         results.sort(key=lambda r: (not r.applicable, -r.rel_gain))
         sig = [r for r in results if r.significant]
         conf = _confounding(sel, spec, sig, alpha_each, min_rel_gain, library) if len(sig) >= 2 else []

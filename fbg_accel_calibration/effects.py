@@ -296,6 +296,9 @@ class Effect:
     per_run: bool = False  # a property of each recording (run_offset, run_drift): fitted, reported, not in the YAML
     pointwise: bool = False  # columns() computes each row from that row's inputs alone (may be given some rows only)
     reference_only: bool = False  # transform() changes only the reference (and valid): eq. 28's columns stay the same
+    # a function of time alone (time_drift): it must also predict contiguous blocks of time held out to be added
+    # (diagnose.time_block_check): between visits interleaved in time any smooth function of time interpolates
+    time_function: bool = False
 
     def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
         """Whether the data can show this effect at all (e.g. temperature must vary)."""
@@ -505,6 +508,7 @@ class SpectralNonlinearityEffect(Effect):
 class TimeDriftEffect(Effect):
     name = "time_drift"
     pointwise = True
+    time_function = True
     stage = 70
     hyper_name = "tau_warmup"
     hyper_unit = "s"
