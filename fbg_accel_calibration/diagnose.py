@@ -718,6 +718,10 @@ class VisitNoise:
     acf: np.ndarray  # (3, L + 1) normalised autocorrelation at lags 0..L samples (acf[:, 0] = 1), zero beyond L
     # (3,) degrees of freedom of the variance of a visit mean as an estimate (inf: known exactly)
     mean_dof: np.ndarray = field(default_factory=lambda: np.full(3, np.inf))
+    # visits left out of the floor, their scatter far beyond the others' (``noisy_visits``): label, (3,) scatter /
+    # floor, (3,) p-value of the check
+    flagged: list[tuple[int, np.ndarray, np.ndarray]] = field(default_factory=list)
+    n_checked: int = 0  # visits the check ran over (its Bonferroni count)
 
     def mean_variance(self, n: np.ndarray) -> np.ndarray:
         """Variance (len(n), 3) in (m/s^2)^2 of the mean of ``n`` (V,) consecutive samples of the noise:
@@ -794,6 +798,9 @@ def _noise_lags(t_s: np.ndarray | None, groups: np.ndarray, r: np.ndarray, cnt: 
     return int(max(min(math.ceil(NOISE_CORR_S / float(np.median(step))), int(np.median(cnt)) // 2), 0))
 
 
+MIN_MEAN_DOF = 2.0  # least degrees of freedom of the floor's mean variance in the F test (F(df, nu) tails ~ x^(-nu/2))
+FLOOR_VISIT_ALPHA = 0.01  # level of the check for a visit noisier than the others (Bonferroni over visits and axes)
+FLOOR_VISIT_RATIO = 2.0  # and its variance at least this many times the others' (scatter 1.41x): one that matters
 MODEL_MIN_LAGS = 3  # with fewer lag products than the white + first-order model's 3 parameters: a free autocovariance
 JACKKNIFE_GROUPS = 20  # groups of visits left out in turn to measure how well the variance of a visit mean is known
 TAU_GRID = 48  # correlation times tried by the fit (log-spaced)
@@ -911,18 +918,54 @@ def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
     noise = estimate(every)
     if noise is None:
         return VisitNoise(np.full(3, np.nan), np.ones((3, 1)))
+    flagged = np.zeros(len(n_v), bool)
+    for _ in range(3):  # the autocorrelation the check uses is refitted without the visits it flags
+        ratio, p = noisy_visits(prods[:, 0], n_v, stt > 0, noise.acf)
+        now = np.any((p < FLOOR_VISIT_ALPHA / (3 * len(n_v))) & (ratio > FLOOR_VISIT_RATIO), axis=1)
+        if np.array_equal(now, flagged) or now.all():
+            break
+        flagged = now
+        refit = estimate(every[~flagged])
+        if refit is None:
+            flagged[:] = False
+            break
+        noise = refit
+    every = every[~flagged]
     # grouped jackknife of log(variance of the mean of a median-length visit): its spread gives the degrees of freedom
     # of that variance as an estimate, nu = 2 / var(log), as for a scaled chi^2(nu) / nu
-    n_groups = min(JACKKNIFE_GROUPS, len(n_v))
+    n_groups = min(JACKKNIFE_GROUPS, len(every))
     if jackknife and n_groups >= 3:
         ref = np.array([np.median(cnt)])
-        member = every % n_groups
+        member = np.arange(len(every)) % n_groups
         parts = [estimate(every[member != gi]) for gi in range(n_groups)]
         logs = np.array([np.log(part.mean_variance(ref)[0]) for part in parts if part is not None])
         if len(logs) >= 3:  # a group without a fit of its own (too few visits left) does not count
             spread = (len(logs) - 1) / len(logs) * np.sum((logs - logs.mean(axis=0)) ** 2, axis=0)
             noise.mean_dof = 2.0 / np.maximum(spread, 1e-12)
+    noise.flagged = [(int(ug[v]), np.sqrt(ratio[v]), p[v]) for v in np.flatnonzero(flagged)]
+    noise.n_checked = len(n_v)
     return noise
+
+
+def noisy_visits(lag0: np.ndarray, n: np.ndarray, line: np.ndarray, acf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Is a visit's scatter far beyond the others'? For every visit (``lag0`` (V, 3) its sum of squared detrended
+    residuals, ``n`` (V,) samples, ``line`` (V,) a line in time removed too) and axis: the ratio (V, 3) of its
+    variance to the robust centre of the visits' variances, and the p-value (V, 3) of that ratio under the noise.
+
+    A visit's variance is its sum of squares over E = the sum expected per unit variance after the detrending under
+    the floor's autocorrelation ``acf`` (3, L + 1) (``detrended_lag_matrix``); the centre is their median (over the
+    median of chi^2(nu) / nu, so that it is unbiased for a visit of median length). Under the noise the sum is
+    about sigma^2 chi^2(nu) / nu E with the effective degrees of freedom of a variance from correlated samples,
+    nu = E / (1 + 2 sum_l rho_l^2) (Bartlett); one-sided: a quieter visit does not dominate the pooled floor."""
+    lag = acf.shape[1] - 1
+    kinds, kind = np.unique(np.column_stack([n, line]), axis=0, return_inverse=True)
+    expect = np.array([detrended_lag_matrix(int(k), 0, lag, bool(h))[0] @ acf.T for k, h in kinds])  # (kinds, 3)
+    E = np.maximum(expect[kind.ravel()], 1e-12)
+    nu = np.maximum(E / (1.0 + 2.0 * np.sum(acf[:, 1:] ** 2, axis=1)), 1.0)
+    var = lag0 / E
+    centre = np.median(var, axis=0) / (stats.chi2.median(np.median(nu, axis=0)) / np.median(nu, axis=0))
+    ratio = var / np.maximum(centre, 1e-300)
+    return ratio, stats.chi2.sf(nu * ratio, nu)
 
 
 def within_visit_sigma(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_s: np.ndarray | None = None) -> np.ndarray:
@@ -1691,6 +1734,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     for name in per_run_names:
         sl = des_f.blocks[name]
         fitted_sensor -= des_f.X[:, sl] @ cv_f.A_full[sl]
+    floor_note = _flagged_visits_note(data, groups, [noise_model] + ([noise_model_after] if remedies else []),
+                                      des_f, cv_f, fit_rows, rows_f, fold, weights)
     G_f, blocks_f = des_f.G, des_f.blocks
     del des_f  # its design matrix (N x p) is not needed again
     calibrated = _calibrated(cal, data)
@@ -1705,6 +1750,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     moving = _moving_residual(data, calibrated)
     del calibrated
     warnings = [detection_limit] if detection_limit else []
+    if floor_note:
+        warnings.append(floor_note)
     if data.n_clipped_visits:
         warnings.append(f"{data.n_clipped_samples} samples of {data.n_clipped_visits} visit(s) left out: a channel "
                         "clipped at a rail of the ADC (an axis at 0 or 4095 counts, or the reference at 4095) in each; a "
@@ -1736,6 +1783,44 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                   "search_rows": n_search, "degree_forced": degree is not None,
                   "settle_s": settle_s,
                   "time_label": time_axis_label(rec.metadata) if isinstance(rec, Recording) else "time [s]"})
+
+
+def _flagged_visits_note(data: DiagnosisData, groups: np.ndarray, models: list[VisitNoise], des: Design, cv: CvResult,
+                         fit_rows: np.ndarray, rows: np.ndarray, fold: np.ndarray, weights: np.ndarray) -> str:
+    """The warning for the visits left out of the noise floor (``VisitNoise.flagged``), "" without any.
+
+    They stay in the fit (no data is dropped behind the user's back); the warning says by how much they move it:
+    the final model refitted once without them, the largest change of its fitted output on the other visits'
+    samples per axis."""
+    seen: dict[int, np.ndarray] = {}
+    for m in models:
+        for g, scatter, _ in m.flagged:
+            seen[g] = np.maximum(seen.get(g, scatter), scatter)
+    if not seen:
+        return ""
+    labels = np.array(sorted(seen))
+    bad = np.isin(groups, labels)
+    names = []
+    for g in labels:
+        at = np.flatnonzero((groups == g) & (data.pose_id >= 0))
+        if not at.size:
+            at = np.flatnonzero(groups == g)
+        names.append(f"pose {int(data.pose_id[at[0]])} (run {int(data.run_id[at[0]])}, t {data.t_s[at[0]]:.1f}-"
+                     f"{data.t_s[at[-1]]:.1f} s) {_fmt3(seen[g])} x floor")
+    try:
+        with np.errstate(all="ignore"):
+            moved = des.X @ (cross_validate(des, fit_rows & ~bad, fold, weights).A_full - cv.A_full)
+        other = rows & ~bad & finite_rows(moved)
+        shift = (f"leaving them out of the fit as well moves the fitted output on the other visits by up to "
+                 f"{_fmt3(np.max(np.abs(moved[other]), axis=0))} m/s^2 (x/y/z)" if other.any() else
+                 "no other visit to compare the fit without them on")
+    except (np.linalg.LinAlgError, ValueError, IndexError):
+        shift = "the model cannot be fitted without them"
+    n_v = max(m.n_checked for m in models)
+    return (f"{len(labels)} visit(s) left out of the noise floor, their scatter far beyond the other visits' (variance "
+            f"over {FLOOR_VISIT_RATIO:g}x the visits' median and p < {FLOOR_VISIT_ALPHA:g} / (3 x {n_v} visits) each): "
+            + "; ".join(names) + f". They stay in the fit: {shift}; a burst of outliers or a dead channel there? "
+            "Cut that stretch and run again if the change matters")
 
 
 def _fmt3(v: np.ndarray) -> str:
@@ -1904,7 +1989,9 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
     each visit's mean from the floor's own autocorrelation (``VisitNoise.mean_variance``: the same estimate as
     the floor, so that floor and test agree on what the noise is; a first-order count of effective samples from
     the lag-1 correlation counted 2-4 times too many for this noise and flagged clean data).
-    Significant = p < ``alpha`` on some axis AND the held-out RMSE exceeds ``ratio_limit`` x floor.
+    Significant = p < ``alpha`` on some axis AND the held-out RMSE exceeds ``ratio_limit`` x floor. The degrees of
+    freedom nu of the floor's mean variance are taken as at least ``MIN_MEAN_DOF``: below it the F test could
+    reject nothing at any size.
     """
     noise = noise_model.sigma
     r = rows & finite_rows(res)
@@ -1916,7 +2003,7 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
     chi = np.sum(z**2, axis=0)
     # the variance of a visit mean is itself estimated (nu = noise_model.mean_dof degrees of freedom, a common factor
     # for every visit): chi / df is then F(df, nu) under the noise alone, the chi^2 law when it is known (nu = inf)
-    dof = noise_model.mean_dof
+    dof = np.maximum(noise_model.mean_dof, MIN_MEAN_DOF)
     p = np.where(np.isfinite(dof), stats.f.sf(chi / len(ug), len(ug), np.where(np.isfinite(dof), dof, 1.0)),
                  stats.chi2.sf(chi, df=len(ug)))
     ho = np.sqrt(np.mean(x**2, axis=0))
