@@ -1514,7 +1514,7 @@ class StepResult:
 
 @dataclass
 class ResidualStructure:
-    significant: bool
+    significant: bool  # the test's: chi^2 / F p < alpha on some axis, whatever the size
     verdict: str
     heldout_rmse: np.ndarray
     noise_floor: np.ndarray
@@ -1530,6 +1530,7 @@ class ResidualStructure:
     serial_corr_pose_means: np.ndarray  # (3,) correlation of consecutive pose means in time order (slow wander -> ~1)
     noise_corr_samples: np.ndarray  # (3,) integrated correlation time of the noise, samples (VisitNoise)
     noise_mean_dof: np.ndarray  # (3,) degrees of freedom of the variance of a visit mean (VisitNoise.mean_dof)
+    small: bool = False  # significant, but on no significant axis is the held-out RMSE above ratio_limit x floor
 
 
 @dataclass
@@ -1989,7 +1990,10 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
     each visit's mean from the floor's own autocorrelation (``VisitNoise.mean_variance``: the same estimate as
     the floor, so that floor and test agree on what the noise is; a first-order count of effective samples from
     the lag-1 correlation counted 2-4 times too many for this noise and flagged clean data).
-    Significant = p < ``alpha`` on some axis AND the held-out RMSE exceeds ``ratio_limit`` x floor. The degrees of
+    Significant = p < ``alpha`` / 3 on some axis (Bonferroni over the axes): the test's answer, whatever the size.
+    The size is reported beside it: a systematic residual does not average out as the per-sample noise does, so
+    one well below the per-sample floor (held-out RMSE within ``ratio_limit`` x floor: "small") is still a residual
+    the model lacks; the verdict then gives its pose-mean RMS and the visit that shows it most. The degrees of
     freedom nu of the floor's mean variance are taken as at least ``MIN_MEAN_DOF``: below it the F test could
     reject nothing at any size.
     """
@@ -2009,7 +2013,9 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
     ho = np.sqrt(np.mean(x**2, axis=0))
     ratio = ho / np.maximum(noise, 1e-12)
     excess = np.sqrt(np.maximum(ho**2 - noise**2, 0.0))
-    significant = bool(np.any((p < alpha) & (ratio > ratio_limit)))
+    sig_axis = p < alpha / 3.0  # Bonferroni over the axes: a recording of noise alone is called significant at alpha
+    significant = bool(np.any(sig_axis))
+    small = significant and not np.any(sig_axis & (ratio > ratio_limit))
     t_mean = np.bincount(inv, weights=data.t_s[r]) / cnt
     temp_mean = np.bincount(inv, weights=data.temp_c[r]) / cnt
     g_mean = np.stack([np.bincount(inv, weights=data.gref[r][:, j]) / cnt for j in range(3)], axis=1)
@@ -2034,18 +2040,24 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
     per_pose = [{"visit": int(ug[i]), "pose": int(pose_of[i]), "n": int(cnt[i]), "mean_mps2": means[i], "z": z[i],
                  "gref_mps2": g_mean[i], "t_s": float(t_mean[i]), "temp_c": float(temp_mean[i])} for i in range(len(ug))]
     per_pose.sort(key=lambda d: -float(np.max(np.abs(d["z"]))))
+    pose_rms = np.sqrt(np.mean(means**2, axis=0))
     if significant:
-        axes = [a for j, a in enumerate("xyz") if p[j] < alpha and ratio[j] > ratio_limit]
+        axes = [a for j, a in enumerate("xyz") if sig_axis[j]]
         verdict = (f"significant unexplained residual on axis {', '.join(axes)}: held-out RMSE "
                    + ", ".join(f"{a} {ho[j]:.3g} m/s^2 = {ratio[j]:.2f}x floor" for j, a in enumerate("xyz"))
                    + f"; pose means differ beyond noise (chi^2 p = {', '.join(f'{v:.1e}' for v in p)})")
+        for j in np.flatnonzero(sig_axis & (ratio <= ratio_limit)):  # significant but small: its size, its place
+            top = max(per_pose, key=lambda d, j=j: abs(float(d["z"][j])))
+            verdict += (f"; small on {'xyz'[j]}: held-out RMSE within {ratio_limit:g}x the per-sample floor, but "
+                        f"systematic (pose-mean RMS {pose_rms[j]:.3g} m/s^2 = {pose_rms[j] / max(noise[j], 1e-12):.2f}x "
+                        f"floor, does not average out; largest at visit {top['visit']} (pose {top['pose']}, "
+                        f"t {top['t_s']:.0f} s): {top['mean_mps2'][j]:+.3g} m/s^2, z = {top['z'][j]:+.1f})")
     else:
         verdict = ("no significant unexplained residual: held-out RMSE within "
                    + ", ".join(f"{ratio[j]:.2f}x" for j in range(3)) + " of the noise floor")
     lag1 = noise_model.acf[:, 1] if noise_model.acf.shape[1] > 1 else np.zeros(3)
-    return ResidualStructure(significant, verdict, ho, noise, ratio, p, excess, per_pose,
-                             np.sqrt(np.mean(means**2, axis=0)), corr_t, corr_T, r2, lag1, serial,
-                             noise_model.correlation_samples, dof)
+    return ResidualStructure(significant, verdict, ho, noise, ratio, p, excess, per_pose, pose_rms, corr_t, corr_T, r2,
+                             lag1, serial, noise_model.correlation_samples, dof, small)
 
 
 def _spearman(a: np.ndarray, b: np.ndarray) -> float:
