@@ -3,7 +3,7 @@
 A recording is a ``.csv`` in the interchange format (docs/csv_interchange.md), an MCAP file written by
 the calibration node or ``fbg-accel-calib import``, or a rosbag2 bag directory (metadata.yaml + .mcap
 files); anything else is refused in one line before any work is done, and so is a recording given twice
-(the same path, a link to it, or a copy of the file).
+(the same path, a link to it, or a copy of the file; a bag directory and one of its own files or a copy of one).
 """
 
 from __future__ import annotations
@@ -28,42 +28,57 @@ def check_mcap(path: Path) -> None:
                          "interchange format (docs/csv_interchange.md)")
 
 
-def check_input(path: Path) -> None:
+def check_input(path: Path) -> list[Path]:
     """An input is a .csv file, an MCAP file or a rosbag2 bag directory (metadata.yaml + .mcap files);
-    anything else is refused in one line."""
+    anything else is refused in one line. Returns the files the input reads (a bag's members, in order)."""
     if path.is_dir():
         from .rosbag2_input import bag_files
 
-        for part in bag_files(path).files:
+        files = bag_files(path).files
+        for part in files:
             check_mcap(part)
-        return
+        return files
     if not path.is_file():
         raise ValueError(f"{path}: file not found")
     if path.suffix.lower() != ".csv":
         check_mcap(path)
+    return [path]
 
 
-def _same_recording(a: Path, b: Path) -> bool:
-    """Whether two inputs are one recording: the same file or directory (a path, a link to it), or two files
-    with the same bytes (a copy; compared only when their sizes are equal)."""
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether two files are one: the same file (a path, a link to it), or the same bytes (a copy; compared only
+    when their sizes are equal)."""
     try:
         if os.path.samefile(a, b):
             return True
-        return a.is_file() and b.is_file() and a.stat().st_size == b.stat().st_size and filecmp.cmp(a, b, shallow=False)
+        return a.stat().st_size == b.stat().st_size and filecmp.cmp(a, b, shallow=False)
     except OSError:
         return False
 
 
+def _shared_file(a: list[Path], b: list[Path]) -> tuple[Path, Path] | None:
+    """The first pair of files of two inputs that are one file (:func:`_same_file`), or None."""
+    return next(((x, y) for x in a for y in b if _same_file(x, y)), None)
+
+
 def check_inputs(paths: list[Path] | list[str]) -> None:
     """:func:`check_input` for each, and refuse a recording given twice (or with a copy of it): it would be read as
-    two runs, its samples counted twice and its visits taken for repeats."""
+    two runs, its samples counted twice and its visits taken for repeats. Inputs are compared by the files they
+    read, so a bag directory and one of its own .mcap files (or a copy of one, or a copy of the bag) are one
+    recording given twice."""
     paths = [Path(p) for p in paths]
+    files: list[list[Path]] = []
     for i, path in enumerate(paths):
-        check_input(path)
-        for earlier in paths[:i]:
-            if _same_recording(earlier, path):
-                raise ValueError(f"{path}: the same recording as {earlier} (given twice, or a copy of it); give each "
-                                 "run once")
+        mine = check_input(path)
+        for earlier, theirs in zip(paths[:i], files, strict=True):
+            shared = _shared_file(mine, theirs)
+            if shared is None:
+                continue
+            inner = "" if (shared[0], shared[1]) == (path, earlier) else \
+                f"; {shared[0]} is {'' if os.path.samefile(*shared) else 'a copy of '}{shared[1]}"
+            raise ValueError(f"{path}: the same recording as {earlier} (given twice, or a copy of it{inner}); give "
+                             "each run once")
+        files.append(mine)
 
 
 def load_recording(paths: list[Path] | list[str], *, rate: float | None = None, temperature: float | None = None,

@@ -300,3 +300,38 @@ def test_a_recording_given_twice_is_refused(tmp_path: Path, capsys: pytest.Captu
             line = one_line(err)
             assert rc == 2 and "the same recording as" in line and str(second) in line, line
             assert not (tmp_path / "twice.yaml").exists() and not (tmp_path / "rep").exists()
+
+
+def test_a_bag_directory_and_its_own_file_are_one_recording_given_twice(tmp_path: Path,
+                                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """A rosbag2 directory given with one of its own .mcap files (or a copy of it) was accepted: the files were
+    compared, not what the directory holds, and that file's samples were counted twice. Every input is now
+    expanded to its files; two inputs sharing one (the same file or the same bytes) are refused, both named."""
+    import shutil
+
+    import yaml
+
+    from fbg_accel_calibration.input_files import check_inputs
+
+    rows = [f"{i * 0.01:.2f},880,{1000 + i % 7},{1100 + i % 5},{1200 + i % 3},{SIX[i // 50]},23,{i // 50}\n"
+            for i in range(300)]
+    csv = tmp_path / "run.csv"
+    csv.write_text(HEADER + "".join(rows))
+    bag = tmp_path / "run_24C"
+    bag.mkdir()
+    member = bag / "run_24C_0.mcap"
+    assert main(["import", str(csv), "-o", str(member)]) == 0
+    (bag / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": {
+        "version": 9, "storage_identifier": "mcap", "relative_file_paths": [member.name]}}))
+    copy = tmp_path / "copy.mcap"
+    shutil.copy(member, copy)
+    other_bag = tmp_path / "other_bag"
+    shutil.copytree(bag, other_bag)
+    capsys.readouterr()
+    for first, second in ((bag, member), (bag, copy), (copy, bag), (bag, other_bag)):
+        with pytest.raises(ValueError, match="same recording as"):
+            check_inputs([first, second])
+        rc, err = run(["fit", first, second, "-o", tmp_path / "twice.yaml"], capsys)
+        line = one_line(err)
+        assert rc == 2 and str(first) in line and str(second) in line, line
+        assert not (tmp_path / "twice.yaml").exists()
