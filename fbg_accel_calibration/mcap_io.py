@@ -145,6 +145,7 @@ class TopicSelection:
         if self.namespace is None and self.raw_topic is not None:
             self.namespace = _namespace_of(self.raw_topic)
         self._cache: dict[str, str | None] = {}
+        self.mismatched: dict[str, str | None] = {}  # topic with a role's name but another type -> its type
 
     @property
     def fixed(self) -> bool:
@@ -164,7 +165,9 @@ class TopicSelection:
         return names
 
     def role(self, topic: str, type_name: str | None, where: str | Path = "") -> str | None:
-        """The relative role name (:data:`ROLES`) of a channel, or None for a topic this reader ignores."""
+        """The relative role name (:data:`ROLES`) of a channel, or None for a topic this reader ignores: another
+        name, or a sibling's name with a type other than :data:`ROLE_TYPES` (noted in :attr:`mismatched`; the raw
+        topic of another type keeps its role, so that reading it gives its one-line error)."""
         if topic in self._cache and self.fixed:
             return self._cache[topic]
         full = _absolute(topic)
@@ -174,12 +177,16 @@ class TopicSelection:
                 return None
             self.namespace = _namespace_of(full, rel)
             self._cache.clear()
+            self.mismatched.clear()
         elif (full.endswith("/" + TOPIC_RAW) and type_name == TYPE_RAW and self.raw_topic is None
               and self._auto and _namespace_of(full) != self.namespace):
             raise McapRecordingError(f"{where}: several namespaces have a {TYPE_RAW} {TOPIC_RAW} topic "
                                      f"({full_topic_name(self.namespace, TOPIC_RAW)}, {full}); choose one with "
                                      "--namespace")
         role = self._names().get(full)
+        if role is not None and role != TOPIC_RAW and type_name != ROLE_TYPES[role]:
+            self.mismatched[topic] = type_name  # another node's topic of that name: ignored, never decoded
+            role = None
         self._cache[topic] = role
         return role
 
@@ -536,6 +543,12 @@ class FileReadReport:
     channel_topics: dict[int, str] = field(default_factory=dict)  # channel id -> topic, as read
     channel_types: dict[str, str] = field(default_factory=dict)  # topic -> type, as read
     raw_topic: str = TOPIC_RAW  # full name of the raw topic read (for messages)
+    notes: list[str] = field(default_factory=list)  # one line each: what was read differently from the file's word
+
+    def note(self, line: str) -> None:
+        """Add a warning line once (a pass over a bag meets the same topic in every file)."""
+        if line not in self.notes:
+            self.notes.append(line)
 
     def finish(self) -> None:
         """Resolve the skipped chunks' per-channel counts to topics (call when reading ended)."""
@@ -555,7 +568,7 @@ class FileReadReport:
         self.finish()
         return {"messages": self.messages, "complete": self.complete, "stopped_at": self.stopped_at,
                 "per_topic": dict(self.messages_per_topic), "skipped": [r.as_dict() for r in self.skipped],
-                "raw_topic": self.raw_topic}
+                "raw_topic": self.raw_topic, "notes": list(self.notes)}
 
     def no_raw_error(self, where: str | Path, selection: TopicSelection) -> McapRecordingError:
         """The error of a recording without readable raw messages, listing the topics found with types."""
@@ -568,7 +581,8 @@ def read_warnings(path: str | Path, report: dict[str, Any], pose_events: list[tu
                   ) -> list[str]:
     """Lines for stderr about a recording that was not read whole (``report`` = ``FileReadReport.as_dict()``):
     truncation, and every skipped damaged stretch with the poses whose recording it overlapped. Lines that
-    mean data of the fit are missing start with ``WARNING:``."""
+    mean data of the fit are missing start with ``WARNING:``; then the reader's notes (a sibling topic of another
+    type ignored, stamps going backwards, a bag file metadata.yaml does not list), ``warning:`` each."""
     out = []
     if report and not report.get("complete", True):
         out.append(f"warning: {path} is truncated ({report.get('stopped_at')}); recovered {report.get('messages')} "
@@ -584,6 +598,7 @@ def read_warnings(path: str | Path, report: dict[str, Any], pose_events: list[tu
         n_raw = f"{raw} {raw_topic} samples" if raw is not None else f"an unknown number of {TOPIC_RAW} samples"
         out.append(f"WARNING: {path}: damaged data skipped, {n_raw} lost: {rng.describe()}{lost}; the fit uses the "
                    "rest of the file (check that every pose and temperature level it needs is still there)")
+    out.extend(f"warning: {line}" for line in (report or {}).get("notes", []))
     return out
 
 
@@ -743,9 +758,14 @@ def _role_of(path: str | Path, selection: TopicSelection, channel: Channel, sche
              report: FileReadReport) -> str | None:
     """Role (relative topic name) of a channel under ``selection``; notes the raw topic's full name."""
     schema = schemas.get(channel.schema_id)
-    role = selection.role(channel.topic, schema.name if schema is not None else None, path)
+    type_name = schema.name if schema is not None else None
+    role = selection.role(channel.topic, type_name, path)
     if role == TOPIC_RAW:
         report.raw_topic = channel.topic
+    elif role is None and channel.topic in selection.mismatched:
+        named = next(r for r in ROLES if _absolute(channel.topic).endswith("/" + r))
+        report.note(f"{path}: topic {channel.topic} has type {type_name or 'no schema'}, not {ROLE_TYPES[named]}; "
+                    "ignored (never decoded), as the other topics")
     return role
 
 
@@ -954,7 +974,9 @@ class McapSampleStream:
         def decoder_of(channel: Channel, role: str) -> Any:
             dec = decoders.get(channel.id)
             if dec is None:
-                dec = decoders[channel.id] = _decoder_for(path, factory, channel, schemas, role == TOPIC_RAW)
+                dec = _decoder_for(path, factory, channel, schemas, role == TOPIC_RAW)
+                _check_fields(path, channel, schemas.get(channel.schema_id), role)
+                decoders[channel.id] = dec
             return dec
 
         def message(channel_id: int, log_time: int, data: bytes):
@@ -987,14 +1009,20 @@ class McapSampleStream:
                         np.asarray(msg.position, dtype=float).reshape(1, -1))
             if collect_events and role is not None:
                 msg = _decode(path, decoder_of(channel, role), channel, data)
-                if role == TOPIC_TEMPERATURE:
-                    self._temp_t.append(_stamp_ns(msg.header))
-                    self._temp_v.append(float(msg.temperature))
-                elif role == TOPIC_REFERENCE_GRAVITY:
-                    self._gref_events.append((_stamp_ns(msg.header), (msg.vector.x, msg.vector.y, msg.vector.z)))
-                elif role == TOPIC_POSE:
-                    values = {kv.key: kv.value for kv in msg.values}
-                    self._pose_events.append((log_time, int(values.get("pose_id", "-1")), values.get("state", msg.message)))
+                try:
+                    if role == TOPIC_TEMPERATURE:
+                        self._temp_t.append(_stamp_ns(msg.header))
+                        self._temp_v.append(float(msg.temperature))
+                    elif role == TOPIC_REFERENCE_GRAVITY:
+                        self._gref_events.append((_stamp_ns(msg.header), (msg.vector.x, msg.vector.y, msg.vector.z)))
+                    elif role == TOPIC_POSE:
+                        values = {kv.key: kv.value for kv in msg.values}
+                        self._pose_events.append((log_time, int(values.get("pose_id", "-1")),
+                                                  values.get("state", msg.message)))
+                except (AttributeError, TypeError, ValueError) as exc:  # e.g. a pose_id that is not a number
+                    raise McapRecordingError(f"{path}: a '{channel.topic}' message cannot be read as "
+                                             f"{ROLE_TYPES[role]} ({type(exc).__name__}: {first_line(exc)[:200]})"
+                                             ) from None
             return None
 
         def emit(data: bytes):
@@ -1170,6 +1198,56 @@ def _decoder_for(path: Path | str, factory: DecoderFactory, channel: Channel, sc
         raise McapRecordingError(f"{path}: no ROS 2 decoder for topic {channel.topic} "
                                  f"(encoding '{channel.message_encoding}')")
     return decoder
+
+
+_HEADER = ("std_msgs/Header", "stamp"), ("std_msgs/Header", "frame_id")
+_ROLE_FIELDS = {  # (type, field) that the reader uses of each role; "" = the channel's own type
+    TOPIC_RAW: (("", "header"), ("", "name"), ("", "position"), *_HEADER),
+    TOPIC_TEMPERATURE: (("", "header"), ("", "temperature"), *_HEADER),
+    TOPIC_REFERENCE_GRAVITY: (("", "header"), ("", "vector"), *_HEADER, *(("geometry_msgs/Vector3", c) for c in "xyz")),
+    TOPIC_POSE: (("", "message"), ("", "values"), ("diagnostic_msgs/KeyValue", "key"),
+                 ("diagnostic_msgs/KeyValue", "value")),
+}
+
+
+def _short_type(name: str) -> str:
+    """``pkg/msg/Name`` -> ``pkg/Name`` (the spelling of a schema's ``MSG:`` lines)."""
+    parts = name.strip().split("/")
+    return f"{parts[0]}/{parts[-1]}" if len(parts) > 1 else name.strip()
+
+
+def _schema_fields(name: str, text: str) -> dict[str, set[str]]:
+    """Field names of each type in a ros2msg schema text (its own type under ``name``, then every ``MSG:``
+    section), constants left out."""
+    out: dict[str, set[str]] = {}
+    current = _short_type(name)
+    for section in re.split(r"^={3,}\s*$", text, flags=re.MULTILINE):
+        lines = section.strip().splitlines()
+        if lines and lines[0].startswith("MSG:"):
+            current = _short_type(lines[0][4:])
+            lines = lines[1:]
+        fields = out.setdefault(current, set())
+        for raw_line in lines:
+            line = raw_line.split("#", 1)[0].strip()
+            parts = line.split()
+            if len(parts) >= 2 and not _CONSTANT.match(line):
+                fields.add(parts[1])
+    return out
+
+
+def _check_fields(path: Path | str, channel: Channel, schema: Schema | None, role: str) -> None:
+    """One line when a role's schema has the type name this reader expects but not the fields it reads (another
+    definition under that name, e.g. a renamed field): the messages would decode into objects without them."""
+    if schema is None:
+        return
+    fields = _schema_fields(schema.name, schema.data.decode("utf-8", "replace"))
+    own = _short_type(schema.name)
+    for type_name, name in _ROLE_FIELDS[role]:
+        have = fields.get(type_name or own)
+        if have is not None and name not in have:
+            where = name if not type_name else f"{type_name}.{name}"
+            raise McapRecordingError(f"{path}: topic {channel.topic}'s schema {schema.name} lacks field {where} "
+                                     "(a different definition)")
 
 
 def _decode(path: Path | str, decoder: Any, channel: Channel, data: bytes) -> Any:

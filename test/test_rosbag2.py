@@ -5,6 +5,7 @@ profile, and the offline tools read what ``ros2 bag record -s mcap`` writes -- a
 
 from __future__ import annotations
 
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -13,10 +14,11 @@ import numpy as np
 import pytest
 import yaml
 from mcap.reader import make_reader
+from mcap.writer import Writer as McapWriter
 from test_fit_streaming import make_run
 
 from fbg_accel_calibration import mcap_io
-from fbg_accel_calibration.mcap_io import McapSampleStream, RecordingWriter, read_recording, write_recording
+from fbg_accel_calibration.mcap_io import McapRecordingError, McapSampleStream, RecordingWriter, read_recording, write_recording
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_driver.driver_core import RAW_NAMES
 
@@ -377,3 +379,186 @@ def test_a_bag_whose_metadata_lists_no_topics_is_read_choosing_while_reading(fit
     _same_samples(read_recording(copy, namespace="/veh1"), ref)
     with pytest.raises(mcap_io.McapRecordingError, match=r"expected topic /veh2/imu/raw.*/veh1/imu/data \(sensor_msgs/msg/Imu\)"):
         read_recording(copy, namespace="/veh2")
+
+
+# ---------------------------------------------------------------------------- what other recorders write
+# Recordings written as rosbag2 writes them (plain mcap writer, ros2msg schemas, log time = the recorder's
+# receive clock), with what a user's setup may put on the topic names this reader looks for.
+T0 = 1_700_000_000_000_000_000
+DT = 10_000_000
+TYPES = dict(zip(TOPICS, (mcap_io.TYPE_RAW, mcap_io.TYPE_TEMPERATURE, mcap_io.TYPE_REFERENCE_GRAVITY,
+                          mcap_io.TYPE_POSE), strict=True))
+
+
+def driver_events(n: int, pose_len: int = 500, move_len: int = 100, t0: int = T0) -> list[tuple[str, int, bytes]]:
+    """``(relative topic, stamp, CDR)`` of a driver + table run: a ``moving`` event, then after ``move_len``
+    samples a reference and a ``recording`` event of the next pose; raw sample i has ref_counts 1e6 + i."""
+    from fbg_accel_calibration import ros2_cdr
+
+    codec = ros2_cdr.FixedJointStateCodec("fbg_accel_link", RAW_NAMES)
+    out = []
+    for i in range(n):
+        st, ph = t0 + i * DT, i % (pose_len + move_len)
+        if ph == 0:
+            out.append(("calibration/pose", st, ros2_cdr.diagnostic_status(
+                1, "calibration/pose", "moving", "s", [("pose_id", "-1"), ("state", "moving")])))
+        if ph == move_len:
+            pid = i // (pose_len + move_len)
+            g = [0.0, 0.0, 9.81] if pid % 2 == 0 else [9.81, 0.0, 0.0]
+            out.append(("calibration/reference_gravity", st, ros2_cdr.vector3_stamped(st, "calibration_table", g)))
+            out.append(("calibration/pose", st, ros2_cdr.diagnostic_status(
+                0, "calibration/pose", "recording", "s", [("pose_id", str(pid)), ("state", "recording")])))
+        if i % 10 == 0:
+            out.append(("imu/temperature", st, ros2_cdr.temperature(st, "fbg_accel_link", 20.0, 0.01)))
+        out.append(("imu/raw", st, codec.encode(st, [1e6 + i, 1.0, 2.0, 3.0, 20.0, 1.0, 0.0, float(i), i * 0.01])))
+    return out
+
+
+def write_foreign(path: Path, evs: list[tuple[str, int, bytes]], types: dict[str, str] | None = None,
+                  defs: dict[str, str] | None = None, log_offset_ns: int = 0) -> Path:
+    """An MCAP as ``ros2 bag record`` writes it: topics ``/fbg/<relative>`` of ``types`` (default the project's),
+    schemas ``defs`` (default the installed definitions), log time = stamp + ``log_offset_ns``."""
+    from mcap.writer import CompressionType
+
+    from fbg_accel_calibration.rosbag2_input import offered_qos_yaml
+
+    types = {**TYPES, **(types or {})}
+    with open(path, "wb") as fh:
+        w = McapWriter(fh, chunk_size=32 * 1024, compression=CompressionType.ZSTD)
+        w.start(profile="ros2", library="rosbag2-like")
+        chans = {}
+        for rel, ty in types.items():
+            sid = w.register_schema(ty, "ros2msg", (defs or {}).get(rel, mcap_io.message_definition(ty)).encode())
+            chans[rel] = w.register_channel(f"/fbg/{rel}", "cdr", sid, metadata={"offered_qos_profiles": offered_qos_yaml()})
+        for rel, st, data in evs:
+            w.add_message(chans[rel], log_time=st + log_offset_ns, publish_time=st + log_offset_ns, data=data)
+        w.finish()
+    return path
+
+
+def _cdr_string(text: str) -> bytes:
+    b = text.encode() + b"\0"
+    return b"\x00\x01\x00\x00" + struct.pack("<I", len(b)) + b
+
+
+@pytest.mark.parametrize(("rel", "other_type", "payload"), [
+    ("imu/temperature", "std_msgs/msg/Float64", b"\x00\x01\x00\x00" + struct.pack("<d", 21.5)),
+    ("calibration/pose", "std_msgs/msg/String", _cdr_string('{"pose_id": 1}')),
+])
+def test_a_sibling_topic_of_another_type_is_ignored_with_a_warning(tmp_path: Path, rel: str, other_type: str,
+                                                                   payload: bytes) -> None:
+    """A user's own node publishes std_msgs on /fbg/imu/temperature or /fbg/calibration/pose: it was decoded as
+    the project's type (AttributeError: 'Float64' object has no attribute 'header'); now it is one of the
+    other topics, never decoded, with one warning line naming the file, the topic and its type."""
+    evs = [(r, st, payload if r == rel else d) for r, st, d in driver_events(1000)]
+    path = write_foreign(tmp_path / "other_type.mcap", evs, types={rel: other_type})
+    for rec in (read_recording(path), mcap_io.read_file(path)[0]):
+        assert np.array_equal(rec.ref, 1e6 + np.arange(1000))
+        lines = mcap_io.read_warnings(path, rec.metadata["read_report"], rec.metadata["pose_events"])
+        hits = [ln for ln in lines if f"/fbg/{rel}" in ln]
+        assert len(hits) == 1 and str(path) in hits[0] and other_type in hits[0] and "ignored" in hits[0], lines
+    stream = McapSampleStream(path)
+    assert sum(len(b) for b in stream.blocks(256, False)) == 1000
+    assert len(list(stream.blocks(256, True))) == 4
+
+
+@pytest.mark.parametrize(("rel", "old", "new"), [
+    ("imu/raw", "string[] name", "string[] joint_names"),
+    ("imu/temperature", "float64 temperature", "float64 temp"),
+    ("calibration/reference_gravity", "Vector3 vector", "Vector3 direction"),
+    ("calibration/pose", "KeyValue[] values", "KeyValue[] items"),
+    ("calibration/pose", "string key", "string name_of_key"),
+])
+def test_a_type_of_the_same_name_with_another_definition_is_one_line(tmp_path: Path, rel: str, old: str, new: str,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """Same type name, another definition (a renamed field, same CDR layout): was an AttributeError, and a
+    traceback from ``fbg-accel-calib``; now one line naming the file, the topic, the type and the field."""
+    from fbg_accel_calibration.cli import main
+
+    definition = mcap_io.message_definition(TYPES[rel])
+    assert old in definition
+    path = write_foreign(tmp_path / "other_definition.mcap", driver_events(1000), defs={rel: definition.replace(old, new)})
+    field = old.split()[1]
+    pattern = rf"other_definition\.mcap: topic /fbg/{rel}'s schema {TYPES[rel]} lacks field \S*{field} \(a different definition\)"
+    with pytest.raises(McapRecordingError, match=pattern):
+        mcap_io.read_file(path)
+    with pytest.raises(McapRecordingError, match=pattern):
+        list(McapSampleStream(path).blocks(256, False))
+    assert main(["fit", str(path), "-o", str(tmp_path / "cal.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1 and "lacks field" in err, err
+
+
+@pytest.mark.parametrize("offset_s", [0.003, 0.5, 2.0])
+def test_pose_events_follow_the_samples_when_the_recorder_clock_is_offset(tmp_path: Path, offset_s: float) -> None:
+    """``ros2 bag record`` on another machine logs every message at its own receive clock: pose events (no
+    header) were placed at that log time, the samples at the driver's stamps, and with a 0.5 s offset 450 of
+    3000 samples got another pose. Pose events now go on the samples' clock; a file whose log time is the stamp
+    (the calibration node's) reads as before."""
+    evs = driver_events(3000)
+    same, _ = mcap_io.read_file(write_foreign(tmp_path / "same_clock.mcap", evs))
+    assert sorted(set(same.pose_id.tolist())) == [-1, 0, 1, 2, 3, 4] and np.sum(same.pose_id == -1) == 500
+    offset = write_foreign(tmp_path / "recorder_ahead.mcap", evs, log_offset_ns=int(offset_s * 1e9))
+    rec, _ = mcap_io.read_file(offset)
+    assert np.array_equal(rec.pose_id, same.pose_id)
+    assert np.array_equal(rec.gref_mps2, same.gref_mps2, equal_nan=True)
+    stream = McapSampleStream(offset)
+    for _ in stream.blocks(700, False):
+        pass
+    streamed = Recording.concatenate(list(stream.blocks(700, True)))
+    assert np.array_equal(streamed.pose_id, same.pose_id)
+
+
+def _bag(path: Path, names: list[str], **info) -> Path:
+    path.joinpath("metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": {
+        "version": 9, "storage_identifier": "mcap", "relative_file_paths": names, **info,
+        "topics_with_message_count": [{"topic_metadata": {"name": f"/fbg/{rel}", "type": ty}, "message_count": 1}
+                                      for rel, ty in TYPES.items()]}}))
+    return path
+
+
+def test_stamps_going_backwards_are_named_in_a_warning(tmp_path: Path) -> None:
+    """The driver restarted with a clock 5 s behind: the in-memory reader sorted the samples and merged the two
+    stretches without a word. It still sorts, and now says where the stamps went back."""
+    evs = driver_events(1000) + driver_events(1000, t0=T0 + 5_000_000_000)
+    path = write_foreign(tmp_path / "restarted.mcap", evs)
+    rec, _ = mcap_io.read_file(path)
+    assert len(rec) == 2000
+    lines = mcap_io.read_warnings(path, rec.metadata["read_report"], rec.metadata["pose_events"])
+    hits = [ln for ln in lines if "go back" in ln]
+    assert len(hits) == 1 and str(path) in hits[0] and "sample 1000" in hits[0] and "5.000 s" in hits[0], lines
+    jitter = [(r, st - (2_000_000 if r == "imu/raw" and (st - T0) // DT == 501 else 0), d) for r, st, d in driver_events(1000)]
+    rec, _ = mcap_io.read_file(write_foreign(tmp_path / "jitter.mcap", jitter))
+    assert not [ln for ln in mcap_io.read_warnings(path, rec.metadata["read_report"]) if "go back" in ln]
+
+
+def test_an_mcap_file_the_bag_metadata_does_not_list_is_named(tmp_path: Path) -> None:
+    """A bag whose recorder was killed lists only the files it had finished: the others were passed over
+    silently. They are still not read (metadata.yaml says what the bag is), with a warning naming them."""
+    bag = tmp_path / "killed"
+    bag.mkdir()
+    write_foreign(bag / "killed_0.mcap", driver_events(1000))
+    write_foreign(bag / "killed_1.mcap", driver_events(1000, t0=T0 + 20_000_000_000))
+    _bag(bag, ["killed_0.mcap"])
+    rec = read_recording(bag)
+    assert len(rec) == 1000
+    lines = mcap_io.read_warnings(bag, rec.metadata["read_report"])
+    hits = [ln for ln in lines if "killed_1.mcap" in ln]
+    assert len(hits) == 1 and "ros2 bag reindex" in hits[0] and "not listed" in hits[0], lines
+
+
+def test_a_file_compressed_bag_is_refused_for_its_compression(tmp_path: Path) -> None:
+    """``ros2 bag record --compression-mode file`` writes ``*.mcap.zstd``: it was refused as 'not an MCAP
+    recording (magic bytes)', which sends the user looking for a damaged file."""
+    import zstandard
+
+    from fbg_accel_calibration.input_files import check_inputs
+
+    bag = tmp_path / "compressed"
+    bag.mkdir()
+    plain = write_foreign(tmp_path / "plain.mcap", driver_events(100))
+    (bag / "compressed_0.mcap.zstd").write_bytes(zstandard.ZstdCompressor().compress(plain.read_bytes()))
+    _bag(bag, ["compressed_0.mcap.zstd"], compression_mode="FILE", compression_format="zstd")
+    for call in (lambda: check_inputs([bag]), lambda: read_recording(bag)):
+        with pytest.raises(ValueError, match=r"compression_mode 'FILE' \(zstd\).*not read.*ros2 bag"):
+            call()
