@@ -24,7 +24,10 @@ Topics (stamps are ROS time in ns; the MCAP log time of every message equals its
 Pose states (:data:`POSE_STATES`): ``moving`` (table moving, no reference), ``settling`` (table at the
 pose, waiting for the static detector), ``recording`` (static, samples belong to the pose), ``done``.
 :func:`read_recording` gives a sample the pose id and reference gravity of the latest pose event at
-or before its stamp when that event's state is ``recording``; otherwise pose_id -1 and NaN reference.
+or before its stamp when that event's state is ``recording``; otherwise pose_id -1 and NaN reference. A pose
+event has no header stamp: it is put on the samples' clock with the (log time - stamp) offset of the raw
+message before it in the file, so a recorder whose clock is not the driver's (``ros2 bag record`` on another
+machine) places it where it was published; in the files written here that offset is 0.
 
 Run metadata (sensor id, plan, operator notes, ...) are MCAP Metadata records named ``run``
 (string -> string; non-string values are stored as JSON).
@@ -943,6 +946,17 @@ class McapSampleStream:
         self._gref_events: list[tuple[int, tuple[float, float, float]]] = []
         self._temp_t: list[int] = []
         self._temp_v: list[float] = []
+        self._pose_log: list[tuple[int, int, str]] = []  # the pose events at their log time (read_warnings)
+        self._log_offset: int | None = None  # log time - stamp of the last raw message read (first pass)
+
+    def _raw_clock(self, log_time: int, stamp: int) -> None:
+        """Note the raw messages' log-time-minus-stamp offset (the recorder's clock against the driver's): a
+        pose event, which has no header stamp, is put on the samples' clock with the offset of the raw message
+        before it in the file (events before the first sample: the first sample's offset)."""
+        offset = int(log_time) - int(stamp)
+        if self._log_offset is None and offset:
+            self._pose_events = [(t - offset, p, st) for t, p, st in self._pose_events]
+        self._log_offset = offset
 
     # -- record level
     def _batches(self, collect_events: bool):
@@ -990,6 +1004,8 @@ class McapSampleStream:
                 codec = fast.get("codec")
                 if codec is not None and codec.matches(data):
                     s, v = codec.decode_many([data])
+                    if collect_events:
+                        self._raw_clock(log_time, s[-1])
                     return s, v
                 msg = _decode(path, decoder_of(channel, role), channel, data)
                 names = tuple(msg.name)
@@ -1005,8 +1021,10 @@ class McapSampleStream:
                                              f"for {len(names)} names")
                 if codec is None:
                     _set_fast(fast, channel_id, ros2_cdr.FixedJointStateCodec(msg.header.frame_id, names))
-                return (np.asarray([_stamp_ns(msg.header)], dtype=np.int64),
-                        np.asarray(msg.position, dtype=float).reshape(1, -1))
+                stamp = _stamp_ns(msg.header)
+                if collect_events:
+                    self._raw_clock(log_time, stamp)
+                return np.asarray([stamp], dtype=np.int64), np.asarray(msg.position, dtype=float).reshape(1, -1)
             if collect_events and role is not None:
                 msg = _decode(path, decoder_of(channel, role), channel, data)
                 try:
@@ -1017,8 +1035,9 @@ class McapSampleStream:
                         self._gref_events.append((_stamp_ns(msg.header), (msg.vector.x, msg.vector.y, msg.vector.z)))
                     elif role == TOPIC_POSE:
                         values = {kv.key: kv.value for kv in msg.values}
-                        self._pose_events.append((log_time, int(values.get("pose_id", "-1")),
-                                                  values.get("state", msg.message)))
+                        event = (int(values.get("pose_id", "-1")), values.get("state", msg.message))
+                        self._pose_events.append((log_time - (self._log_offset or 0), *event))
+                        self._pose_log.append((log_time, *event))
                 except (AttributeError, TypeError, ValueError) as exc:  # e.g. a pose_id that is not a number
                     raise McapRecordingError(f"{path}: a '{channel.topic}' message cannot be read as "
                                              f"{ROLE_TYPES[role]} ({type(exc).__name__}: {first_line(exc)[:200]})"
@@ -1029,6 +1048,8 @@ class McapSampleStream:
             for item in _split_chunk(data, fast):
                 if isinstance(item, tuple) and len(item) == 2:  # a run of fixed-layout raw records
                     count(report.raw_topic, len(item[0]))
+                    if collect_events:
+                        self._raw_clock(fast["last_log"], item[0][-1])
                     yield item
                 elif isinstance(item, tuple):
                     out = message(*item)
@@ -1135,6 +1156,7 @@ class McapSampleStream:
         collect = not self._events_complete
         if collect:
             self._pose_events, self._gref_events, self._temp_t, self._temp_v = [], [], [], []
+            self._pose_log, self._log_offset = [], None
         return collect
 
     def _end_pass(self, collect: bool, total: int) -> None:
@@ -1175,7 +1197,7 @@ class McapSampleStream:
         md: dict[str, Any] = {name: dict(m) for name, m in self.report.metadata.items()}
         md["source"] = str(self.path)
         md["read_report"] = self.report.as_dict()
-        md["pose_events"] = list(self._pose_events)
+        md["pose_events"] = list(self._pose_log)  # at log time, as the chunk ranges read_warnings compares them to
         return md
 
 
@@ -1331,6 +1353,7 @@ def _split_chunk(data: bytes, fast: dict[str, Any]):
             n_ok = kk if ok.all() else int(np.argmin(ok))
             if n_ok:
                 msg = arr["msg"][:n_ok]
+                fast["last_log"] = int(arr["log"][n_ok - 1])  # the run's last log time (the recorder's clock)
                 yield msg["sec"].astype(np.int64) * 1_000_000_000 + msg["nanosec"].astype(np.int64), msg["values"].astype(float)
                 pos += n_ok * rec_size
             if n_ok < kk:
