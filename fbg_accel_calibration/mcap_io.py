@@ -90,6 +90,7 @@ ROLE_TYPES = dict(zip(ROLES, (TYPE_RAW, TYPE_TEMPERATURE, TYPE_REFERENCE_GRAVITY
 POSE_STATES = ("moving", "settling", "recording", "done")
 TABLE_FRAME = "calibration_table"
 DEFAULT_CHUNK_BYTES = 32 * 1024
+BACKWARDS_TOLERANCE_NS = 1_000_000  # raw stamps going back less than this are jitter, read without a note
 
 _PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32",
                "uint32", "int64", "uint64", "string", "wstring"}
@@ -779,10 +780,19 @@ def read_file(path: str | Path, namespace: str | None = None, topic: str | None 
     raw topic and its siblings (:class:`TopicSelection`; default: the single ``.../imu/raw``).
 
     The same reader as the streaming fit (:class:`McapSampleStream`), in one pass holding every sample;
-    samples are put in stamp order, so a file whose stamps go backwards is read too."""
+    samples are put in stamp order, so a file whose stamps go backwards is read too (a note in the report when
+    they go back by more than :data:`BACKWARDS_TOLERANCE_NS`, naming the first sample where they do)."""
     stream = McapSampleStream(path, namespace, topic)
     stamps, rows = stream.all_rows()
     if np.any(stamps[1:] < stamps[:-1]):  # only then reorder (a stable sort of sorted stamps changes nothing)
+        step = np.diff(stamps)
+        back = np.flatnonzero(step < -BACKWARDS_TOLERANCE_NS)
+        if len(back):  # more than jitter: a driver restart or a clock step, whose stretches the sort interleaves
+            i = int(back[0])
+            stream.report.note(f"{path}: {stream.report.raw_topic} stamps go back {-step[i] * 1e-9:.3f} s at sample "
+                               f"{i + 1} (in file order; {len(back)} such place(s)); the samples are read in stamp "
+                               "order, so the stretches before and after are interleaved (a driver restart or a "
+                               "clock step?)")
         order = np.argsort(stamps, kind="stable")
         stamps, rows = stamps[order], rows[order]
     rec = stream.block(stamps, rows, with_poses=True)

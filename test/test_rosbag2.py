@@ -390,9 +390,11 @@ TYPES = dict(zip(TOPICS, (mcap_io.TYPE_RAW, mcap_io.TYPE_TEMPERATURE, mcap_io.TY
                           mcap_io.TYPE_POSE), strict=True))
 
 
-def driver_events(n: int, pose_len: int = 500, move_len: int = 100, t0: int = T0) -> list[tuple[str, int, bytes]]:
+def driver_events(n: int, pose_len: int = 500, move_len: int = 100, t0: int = T0,
+                  shift: dict[int, int] | None = None) -> list[tuple[str, int, bytes]]:
     """``(relative topic, stamp, CDR)`` of a driver + table run: a ``moving`` event, then after ``move_len``
-    samples a reference and a ``recording`` event of the next pose; raw sample i has ref_counts 1e6 + i."""
+    samples a reference and a ``recording`` event of the next pose; raw sample i has ref_counts 1e6 + i (and its
+    stamp moved by ``shift[i]`` ns)."""
     from fbg_accel_calibration import ros2_cdr
 
     codec = ros2_cdr.FixedJointStateCodec("fbg_accel_link", RAW_NAMES)
@@ -410,6 +412,7 @@ def driver_events(n: int, pose_len: int = 500, move_len: int = 100, t0: int = T0
                 0, "calibration/pose", "recording", "s", [("pose_id", str(pid)), ("state", "recording")])))
         if i % 10 == 0:
             out.append(("imu/temperature", st, ros2_cdr.temperature(st, "fbg_accel_link", 20.0, 0.01)))
+        st += (shift or {}).get(i, 0)
         out.append(("imu/raw", st, codec.encode(st, [1e6 + i, 1.0, 2.0, 3.0, 20.0, 1.0, 0.0, float(i), i * 0.01])))
     return out
 
@@ -526,10 +529,10 @@ def test_stamps_going_backwards_are_named_in_a_warning(tmp_path: Path) -> None:
     assert len(rec) == 2000
     lines = mcap_io.read_warnings(path, rec.metadata["read_report"], rec.metadata["pose_events"])
     hits = [ln for ln in lines if "go back" in ln]
-    assert len(hits) == 1 and str(path) in hits[0] and "sample 1000" in hits[0] and "5.000 s" in hits[0], lines
-    jitter = [(r, st - (2_000_000 if r == "imu/raw" and (st - T0) // DT == 501 else 0), d) for r, st, d in driver_events(1000)]
-    rec, _ = mcap_io.read_file(write_foreign(tmp_path / "jitter.mcap", jitter))
-    assert not [ln for ln in mcap_io.read_warnings(path, rec.metadata["read_report"]) if "go back" in ln]
+    assert len(hits) == 1 and str(path) in hits[0] and "sample 1000" in hits[0] and "go back 4.990 s" in hits[0], lines
+    jitter = write_foreign(tmp_path / "jitter.mcap", driver_events(1000, shift={501: -10_500_000}))  # 0.5 ms back
+    rec, _ = mcap_io.read_file(jitter)
+    assert len(rec) == 1000 and not [ln for ln in mcap_io.read_warnings(jitter, rec.metadata["read_report"]) if "go back" in ln]
 
 
 def test_an_mcap_file_the_bag_metadata_does_not_list_is_named(tmp_path: Path) -> None:
