@@ -244,10 +244,10 @@ def _summary_topics(path: Path) -> dict[str, str] | None:
 
 
 def recording_files(path: str | Path, namespace: str | None = None, raw_topic: str | None = None
-                    ) -> tuple[list[Path], TopicSelection]:
-    """The MCAP files of one recording and its topic selection: a rosbag2 bag directory (its
-    ``metadata.yaml`` files in order, topics chosen from its topic list) or one MCAP file (topics chosen
-    from its summary, or while reading when it has none)."""
+                    ) -> tuple[list[Path], TopicSelection, list[str]]:
+    """The MCAP files of one recording, its topic selection and warning lines about it: a rosbag2 bag directory
+    (its ``metadata.yaml`` files in order, topics chosen from its topic list; a note names the .mcap files it does
+    not list) or one MCAP file (topics chosen from its summary, or while reading when it has none)."""
     path = Path(path)
     if path.is_dir():
         try:
@@ -257,16 +257,16 @@ def recording_files(path: str | Path, namespace: str | None = None, raw_topic: s
         if not info.topics:  # a metadata.yaml without its topic list: choose while reading, as a cut file
             sel = TopicSelection(namespace, raw_topic)
             sel._auto = not sel.fixed
-            return info.files, sel
-        return info.files, TopicSelection.resolve(info.topics, namespace, raw_topic, path)
+            return info.files, sel, info.notes()
+        return info.files, TopicSelection.resolve(info.topics, namespace, raw_topic, path), info.notes()
     if not path.is_file():
         raise McapRecordingError(f"{path}: file not found")
     topics = _summary_topics(path)
     if topics is None:
         sel = TopicSelection(namespace, raw_topic)
         sel._auto = not sel.fixed
-        return [path], sel
-    return [path], TopicSelection.resolve(topics, namespace, raw_topic, path)
+        return [path], sel, []
+    return [path], TopicSelection.resolve(topics, namespace, raw_topic, path), []
 
 
 # ---------------------------------------------------------------------------- message definitions
@@ -947,7 +947,7 @@ class McapSampleStream:
 
     def __init__(self, path: str | Path, namespace: str | None = None, topic: str | None = None) -> None:
         self.path = Path(path)
-        self.files, self.selection = recording_files(self.path, namespace, topic)
+        self.files, self.selection, self._notes = recording_files(self.path, namespace, topic)
         self.report = FileReadReport(str(self.path))
         self.names: tuple[str, ...] | None = None
         self.samples: int | None = None  # raw samples of the file, known after the first pass
@@ -972,7 +972,7 @@ class McapSampleStream:
     def _batches(self, collect_events: bool):
         """Yield ``(stamps (k,) int64 ns, values (k, n))`` batches of ``imu/raw`` in file order, the files of
         a bag one after the other (``report.complete`` only when every file was read to its footer)."""
-        report = FileReadReport(str(self.path))
+        report = FileReadReport(str(self.path), notes=list(self._notes))
         self.report = report
         complete = True
         for path in self.files:

@@ -13,7 +13,7 @@ spelling: policy names in lower case, durations as ``sec``/``nsec``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
@@ -33,6 +33,15 @@ class BagInfo:
     path: Path
     files: list[Path]
     topics: dict[str, str]
+    unlisted: list[Path] = field(default_factory=list)  # .mcap files in the directory that metadata.yaml omits
+
+    def notes(self) -> list[str]:
+        """Warning lines about the bag (its unlisted .mcap files, which are not read)."""
+        if not self.unlisted:
+            return []
+        names = ", ".join(p.name for p in self.unlisted)
+        return [f"{self.path}: {names} not listed in {METADATA_FILE}'s relative_file_paths, not read (a recorder "
+                f"stopped before updating {METADATA_FILE}? `ros2 bag reindex {self.path}` rebuilds it from the files)"]
 
 
 def bag_files(path: str | Path) -> BagInfo:
@@ -56,6 +65,13 @@ def bag_files(path: str | Path) -> BagInfo:
     if storage != "mcap":
         raise BagInputError(f"{meta}: storage_identifier is {storage!r}; only 'mcap' bags are read "
                             "(record with ros2 bag record -s mcap, or convert with ros2 bag convert)")
+    mode = str(info.get("compression_mode") or "").strip()
+    if mode and mode.lower() != "none":
+        what = "each .mcap file is compressed whole" if mode.lower() == "file" else "each message is compressed"
+        raise BagInputError(f"{meta}: compression_mode {mode!r} ({info.get('compression_format') or '?'}): {what}, "
+                            "which is not read; convert it to an uncompressed MCAP bag with ros2 bag convert "
+                            "(output options without compression_mode), or record with the MCAP storage's own chunk "
+                            "compression (ros2 bag record -s mcap --storage-preset-profile zstd_fast)")
     rel = info.get("relative_file_paths")
     if not isinstance(rel, list) or not rel or not all(isinstance(r, str) and r for r in rel):
         raise BagInputError(f"{meta}: relative_file_paths must be a non-empty list of file names")
@@ -74,7 +90,9 @@ def bag_files(path: str | Path) -> BagInfo:
         tm = item.get("topic_metadata") if isinstance(item, dict) else None
         if isinstance(tm, dict) and isinstance(tm.get("name"), str):
             topics[tm["name"]] = str(tm.get("type", "?"))
-    return BagInfo(path, files, topics)
+    listed = {f.resolve() for f in files}
+    unlisted = sorted(p for p in path.iterdir() if p.suffix == ".mcap" and p.is_file() and p.resolve() not in listed)
+    return BagInfo(path, files, topics, unlisted)
 
 
 def offered_qos_yaml(reliable: bool = True, depth: int = 10, transient_local: bool = False) -> str:
