@@ -275,7 +275,7 @@ def cmd_dynamic(args: argparse.Namespace) -> int:
         print(f"wrote {args.bode}")
     if args.json is not None:
         with atomic_path(args.json) as tmp:
-            tmp.write_text(json.dumps(result.as_dict(), indent=1, default=_json_default))
+            tmp.write_text(json.dumps(result.as_dict(), indent=1, default=_json_default), encoding="utf-8")
         print(f"wrote {args.json}")
     print(f"wrote {args.output}")
     return 0
@@ -320,7 +320,7 @@ def cmd_allan(args: argparse.Namespace) -> int:
     print(f"wrote {args.output}")
     if args.json:
         with atomic_path(args.json) as tmp:
-            tmp.write_text(json.dumps(res.as_dict(), indent=2))
+            tmp.write_text(json.dumps(res.as_dict(), indent=2), encoding="utf-8")
         print(f"wrote {args.json}")
     return 0
 
@@ -350,7 +350,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     text = fit_report_markdown(cal, selection, stats, {"calibrated vs reference": "calibrated_vs_reference.png",
                                                        "residuals per degree": "residuals_per_degree.png"}, command)
     with atomic_path(out / "report.md") as tmp:
-        tmp.write_text(text)
+        tmp.write_text(text, encoding="utf-8")
     print(selection.table_markdown())
     print(f"wrote {out / 'report.md'}, {out / 'calibrated_vs_reference.png'}, {out / 'residuals_per_degree.png'}")
     return 0

@@ -110,7 +110,7 @@ def write_outputs(res, args: argparse.Namespace, command: str) -> list[Path]:
                 written.append(img / p.name)
         rel = os.path.relpath(img, args.out.parent).replace(os.sep, "/")
         with atomic_path(args.out) as tmp:
-            tmp.write_text(markdown(res, command, img_prefix=f"{rel}/"))
+            tmp.write_text(markdown(res, command, img_prefix=f"{rel}/"), encoding="utf-8")
         written.insert(0, args.out)
     if args.yaml is not None:
         res.calibration.fit.setdefault("source", [str(p) for p in args.inputs])

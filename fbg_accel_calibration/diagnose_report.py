@@ -383,5 +383,5 @@ def write_report(res: DiagnosisResult, md_path: str | Path, img_dir: str | Path 
 
     rel = os.path.relpath(img_dir, md_path.parent).replace(os.sep, "/")
     md_path.parent.mkdir(parents=True, exist_ok=True)
-    md_path.write_text(markdown(res, command, img_prefix=f"{rel}/"))
+    md_path.write_text(markdown(res, command, img_prefix=f"{rel}/"), encoding="utf-8")
     return [md_path, *written]

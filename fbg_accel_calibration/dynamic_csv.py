@@ -99,5 +99,5 @@ def write_dynamic_csv(path: str | Path, rec: Recording) -> None:
     if rec.aux is None:
         raise ValueError("the recording has no aux channel")
     data = np.column_stack([rec.t_s, rec.ref, rec.xyz, rec.aux, rec.temp_c])
-    np.savetxt(path, data, delimiter=",", header="t_s,ref,x,y,z,aux,temperature_c", comments="",
+    np.savetxt(path, data, delimiter=",", header="t_s,ref,x,y,z,aux,temperature_c", comments="", encoding="utf-8",
                fmt=["%.6f", "%.0f", "%.0f", "%.0f", "%.0f", "%.0f", "%.2f"])

@@ -316,7 +316,7 @@ def message_definition(datatype: str) -> str:
     """Full ros2msg schema text of ``datatype`` (``pkg/msg/Name``): its .msg text followed by every
     dependency as ``====...`` / ``MSG: pkg/Name`` / text, the format rosbag2 writes into MCAP."""
     package, _, name = datatype.split("/")
-    main_text = _find_msg_file(package, name).read_text()
+    main_text = _find_msg_file(package, name).read_text(encoding="utf-8")
     out = [main_text.rstrip("\n")]
     seen = {(package, name)}
     queue = _dependencies(package, main_text)
@@ -325,7 +325,7 @@ def message_definition(datatype: str) -> str:
         if dep in seen:
             continue
         seen.add(dep)
-        text = _find_msg_file(*dep).read_text()
+        text = _find_msg_file(*dep).read_text(encoding="utf-8")
         out.append(f"{_SEPARATOR}\nMSG: {dep[0]}/{dep[1]}\n{text.rstrip(chr(10))}")
         queue.extend(d for d in _dependencies(dep[0], text) if d not in seen)
     return "\n".join(out) + "\n"

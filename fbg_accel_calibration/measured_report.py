@@ -119,7 +119,7 @@ def fit_measured(csv_path: Path = DEFAULT_CSV) -> MeasuredFit:
     try:
         import csv as _csv
 
-        with open(csv_path, newline="") as fh:
+        with open(csv_path, newline="", encoding="utf-8") as fh:
             rows = list(_csv.DictReader(fh))
         psi_deg = np.array([[float(r["psi_deg"]), float(r["theta_deg"])] for r in rows])
     except (OSError, KeyError, ValueError):
@@ -239,7 +239,7 @@ def run_report(csv_path: Path = DEFAULT_CSV, md_path: Path = DEFAULT_MD, png_pat
     with atomic_path(png_path) as tmp:
         plot_calibrated_vs_reference(cal, fit.rec, fit.usable, tmp, title=cal_title, held_out_residual=fit.held_out_stats)
     with atomic_path(md_path) as tmp:
-        tmp.write_text(report_markdown(fit, png_rel, command or ".venv/bin/fbg-accel-calib report-measured"))
+        tmp.write_text(report_markdown(fit, png_rel, command or ".venv/bin/fbg-accel-calib report-measured"), encoding="utf-8")
     return fit
 
 
