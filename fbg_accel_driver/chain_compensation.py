@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from .mapping_fields import number, refuse_unknown
+from .mapping_fields import format_version, number, refuse_unknown, same_values
 from .noise_model import filtered_mean_variance_factor, geometric_length
 
 DYNAMIC_FORMAT_VERSION = 1
@@ -70,6 +70,12 @@ class ChainDynamics:
         for name, d in zip(AXES, self.delay_s, strict=True):
             if not (isinstance(d, float | int) and math.isfinite(d) and abs(d) <= MAX_ABS_DELAY_S):
                 raise ValueError(f"delay_s of {name} must be within +-{MAX_ABS_DELAY_S:g} s, got {d!r}")
+
+    def __eq__(self, other: object) -> bool:
+        """Equal by the file form (``to_dict``): an unmeasured reference cut-off (NaN) equals itself."""
+        if type(other) is not type(self):
+            return NotImplemented
+        return same_values(self.to_dict(), other.to_dict())  # type: ignore[attr-defined]
 
     def group_delay_s(self, axis: int, f_hz: float = 0.0) -> float:
         """Group delay (s) of axis ``axis`` (0..2) at ``f_hz``: ``tau / (1 + (f/fc)^2) + delay``."""
@@ -106,9 +112,9 @@ class ChainDynamics:
         if not isinstance(d, dict):
             raise fail(f"'dynamic' must be a mapping, got {type(d).__name__}")
         refuse_unknown(d, DYNAMIC_KEYS, "dynamic.", fail)
-        version = d.get("format_version")
-        if version != DYNAMIC_FORMAT_VERSION:
-            raise fail(f"dynamic.format_version {version!r} is not supported (this driver reads {DYNAMIC_FORMAT_VERSION})")
+        if "format_version" not in d:
+            raise fail("missing key 'dynamic.format_version'")
+        format_version(d["format_version"], "dynamic.format_version", fail, reads=DYNAMIC_FORMAT_VERSION)
 
         def mapping(key: str, names: tuple[str, ...], default: float | None) -> tuple[float, ...]:
             m = d.get(key, {} if default is not None else None)
@@ -126,12 +132,15 @@ class ChainDynamics:
                 out.append(number(v, f"dynamic.{key}.{n}", fail, finite=False))  # __post_init__ checks the range
             return tuple(out)
 
-        fit = d.get("fit") or {}
+        fit = d.get("fit", {})
+        if fit is None:
+            fit = {}
         if not isinstance(fit, dict):
-            raise fail("dynamic.fit must be a mapping of figures")
+            raise fail(f"dynamic.fit must be a mapping of figures, got {type(fit).__name__}")
+        # read outside the try: their errors are fail()'s already (a ValueError too), not to be wrapped again
+        cutoff_hz, delay_s = mapping("cutoff_hz", CHANNELS, None), mapping("delay_s", AXES, 0.0)
         try:
-            return cls(cutoff_hz=mapping("cutoff_hz", CHANNELS, None),  # type: ignore[arg-type]
-                       delay_s=mapping("delay_s", AXES, 0.0), fit=dict(fit))  # type: ignore[arg-type]
+            return cls(cutoff_hz=cutoff_hz, delay_s=delay_s, fit=dict(fit))  # type: ignore[arg-type]
         except ValueError as exc:
             raise fail(f"dynamic: {exc}") from None
 

@@ -39,7 +39,7 @@ from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
-from .mapping_fields import number
+from .mapping_fields import number, number_array
 
 
 @dataclass
@@ -110,10 +110,7 @@ def _scalar(d: dict, key: str, kind: str, *, positive: bool = False, nonneg: boo
 def _array(d: dict, key: str, kind: str, shape: tuple[int, ...], *, nonneg: bool = False) -> np.ndarray:
     if key not in d:
         raise ValueError(f"{kind}: missing parameter '{key}'")
-    try:
-        a = np.asarray(d[key], dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{kind}: parameter '{key}' is not numeric") from None
+    a = number_array(d[key], f"{kind}: parameter '{key}'", ValueError, finite=False)  # a bool is not a number
     if a.shape != shape:
         raise ValueError(f"{kind}: parameter '{key}' has shape {a.shape}, expected {shape}")
     if not np.all(np.isfinite(a)):

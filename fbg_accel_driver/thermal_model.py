@@ -33,8 +33,9 @@ import yaml
 
 from .chain_compensation import ChainDynamics
 from .correction_terms import CorrectionTerm, TermInputs, correction_from_dict
-from .mapping_fields import number, refuse_unknown
+from .mapping_fields import format_version, number, number_array, refuse_unknown, same_values
 from .sensor_constants import FULL_SCALE_MPS2
+from .yaml_input import StrictSafeLoader, load_yaml
 
 FORMAT_NAME = "fbg_accel_calibration"
 FORMAT_VERSION = 1
@@ -105,6 +106,20 @@ class ThermalCalibration:
         lo, hi = self.temperature_range_c
         self.temperature_range_c = (float(lo), float(hi))
         _validate(self)
+
+    def __eq__(self, other: object) -> bool:
+        """Same coefficients and metadata (arrays equal with NaN equal to NaN), same terms (by their file form)."""
+        if type(other) is not type(self):
+            return NotImplemented
+        return (all(np.array_equal(getattr(self, name), getattr(other, name), equal_nan=True)
+                    for name in ("M", "b", "noise_sigma_mps2", "noise_correlated_fraction", "noise_time_constant_s"))
+                and same_values((self.temperature_range_c, self.sensor_id, self.t_center_c, self.t_scale_c, self.created,
+                           self.notes, self.fit, [t.to_dict() for t in self.corrections]),
+                          (other.temperature_range_c, other.sensor_id, other.t_center_c, other.t_scale_c, other.created,
+                           other.notes, other.fit, [t.to_dict() for t in other.corrections]))
+                and self.dynamic == other.dynamic)
+
+    __hash__ = None  # type: ignore[assignment]  # mutable, as the dataclass-generated __eq__ made it
 
     # ------------------------------------------------------------------ evaluation
     @property
@@ -229,7 +244,7 @@ class ThermalCalibration:
     def save(self, path: str | Path) -> None:
         text = "# FBG triaxial accelerometer calibration (paper eq. 28); see docs/calibration_file.md\n"
         text += yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=None, width=100)
-        Path(path).write_text(text)
+        Path(path).write_text(text, encoding="utf-8")
 
     @classmethod
     def from_dict(cls, d: Any, source: str = "<dict>") -> ThermalCalibration:
@@ -242,8 +257,8 @@ class ThermalCalibration:
         def fail_key(msg: str) -> CalibrationFileError:  # an unknown key is often a note put in the wrong place
             return fail(f"{msg}; free text goes under 'notes'")
 
-        def num(v: Any, key: str) -> float:  # numeric text too (YAML 1.1); _validate names a non-finite one better
-            return number(v, f"'{key}'", fail, finite=False, text=True)
+        def num(v: Any, key: str) -> float:  # _validate names a non-finite one better
+            return number(v, f"'{key}'", fail, finite=False)
 
         def need(key: str) -> Any:
             if key not in d:
@@ -271,12 +286,13 @@ class ThermalCalibration:
             raise fail(f"degree must be a non-negative integer, got {degree!r}")
         if degree > MAX_DEGREE:
             raise fail(f"degree {degree} is above {MAX_DEGREE} (docs/calibration_file.md, section 5)")
-        try:
-            M = np.asarray(M_raw, dtype=float)
-            b = np.asarray(b_raw, dtype=float)
-            noise = np.asarray(noise_raw, dtype=float)
-        except (TypeError, ValueError, OverflowError) as exc:
-            raise fail(f"coefficients are not numeric arrays ({exc})") from None
+
+        def coefficients_fail(msg: str) -> CalibrationFileError:
+            return fail(f"coefficients are not numeric arrays ({msg})")
+
+        M = number_array(M_raw, "M", coefficients_fail, finite=False)  # _validate names a non-finite one
+        b = number_array(b_raw, "b", coefficients_fail, finite=False)
+        noise = number_array(noise_raw, "noise_sigma_mps2", coefficients_fail, finite=False)
         if M.shape != (degree + 1, 3, 3):
             raise fail(f"M has shape {M.shape}, expected {(degree + 1, 3, 3)} for degree {degree}")
         if b.shape != (degree + 1, 3):
@@ -285,21 +301,25 @@ class ThermalCalibration:
             raise fail("temperature_range_c must be [min, max]")
         texts = {key: _text(d, key, MAX_NOTES_CHARS if key == "notes" else MAX_TEXT_CHARS, fail)
                  for key in ("sensor_id", "created", "notes")}
-        corr = d.get("noise_correlation") or {}
+        corr = _optional(d, "noise_correlation", {})
         if not isinstance(corr, dict):
             raise fail(f"'noise_correlation' must be a mapping, got {type(corr).__name__}")
         refuse_unknown(corr, NOISE_CORRELATION_KEYS, "noise_correlation.", fail_key)
-        try:
-            corr_f = np.asarray(corr.get("correlated_fraction", [0.0, 0.0, 0.0]), dtype=float)
-            corr_tau = np.asarray(corr.get("time_constant_s", [0.0, 0.0, 0.0]), dtype=float)
-        except (TypeError, ValueError, OverflowError) as exc:
-            raise fail(f"noise_correlation is not numeric ({exc})") from None
-        fit = d.get("fit") or {}
+        corr_f, corr_tau = np.zeros(3), np.zeros(3)
+        if corr:  # an optional section is given whole: a missing list is not read as zeros
+            for key in NOISE_CORRELATION_KEYS:
+                if key not in corr:
+                    raise fail(f"missing key 'noise_correlation.{key}' (the section needs both of "
+                               f"{', '.join(NOISE_CORRELATION_KEYS)}, or none for white noise)")
+            corr_f = number_array(corr["correlated_fraction"], "noise_correlation.correlated_fraction", fail,
+                                  finite=False)
+            corr_tau = number_array(corr["time_constant_s"], "noise_correlation.time_constant_s", fail, finite=False)
+        fit = _optional(d, "fit", {})
         if not isinstance(fit, dict):
             raise fail(f"'fit' must be a mapping of figures, got {type(fit).__name__}")
         dynamic = ChainDynamics.from_dict(d["dynamic"], fail) if "dynamic" in d else None
 
-        corrections_raw = d.get("corrections") or []
+        corrections_raw = _optional(d, "corrections", [])
         if not isinstance(corrections_raw, list):
             raise fail("'corrections' must be a list")
         if len(corrections_raw) > MAX_CORRECTIONS:
@@ -315,7 +335,12 @@ class ThermalCalibration:
                 term = correction_from_dict(c)
             except (KeyError, TypeError, ValueError, OverflowError) as exc:
                 raise fail(f"bad correction term: {where}: {exc}") from None
-            refuse_unknown(c, (*term.to_dict(), "notes"), f"{where}.", fail_key)
+            written = term.to_dict()
+            refuse_unknown(c, (*written, "notes"), f"{where}.", fail_key)
+            for key, value in c.items():  # the descriptive keys (channels, features, ...) too: they must agree
+                if key != "notes" and not _agrees(value, written[key]):
+                    raise fail(f"{where}.{key} is {value!r:.80}, but this {term.kind} term is "
+                               f"{written[key]!r:.80}: give the value it writes, or leave the key out")
             corrections.append(term)
         try:
             cal = cls(
@@ -353,13 +378,13 @@ class ThermalCalibration:
             if size > MAX_FILE_BYTES:  # before parsing: 100 000 terms took 21.7 s and 658 MB
                 raise CalibrationFileError(f"{p}: file of {size} bytes is above the {MAX_FILE_BYTES}-byte bound of a "
                                            "calibration file (docs/calibration_file.md, section 5)")
-            text = p.read_text()
+            text = p.read_text(encoding="utf-8")
         except OSError as exc:
             raise CalibrationFileError(f"{p}: calibration file cannot be read ({exc.strerror or exc})") from None
         except UnicodeDecodeError as exc:
             raise CalibrationFileError(f"{p}: not valid YAML ({exc})") from None
         try:
-            data = yaml.load(text, Loader=_NoAliasSafeLoader)  # a SafeLoader subclass: no arbitrary objects
+            data = load_yaml(text, _CalibrationLoader)  # a SafeLoader subclass: no arbitrary objects
         except (yaml.YAMLError, ValueError, TypeError) as exc:  # ValueError: e.g. a date like 2024-13-45
             raise CalibrationFileError(f"{p}: not valid YAML ({exc})") from None
         except RecursionError:
@@ -367,20 +392,13 @@ class ThermalCalibration:
         return cls.from_dict(data, source=str(p))
 
 
-class _NoAliasSafeLoader(yaml.SafeLoader):
-    """``yaml.SafeLoader`` that refuses aliases (``*name``).
+class _CalibrationLoader(StrictSafeLoader):
+    """The project's YAML loader (``fbg_accel_driver.yaml_input``: no arbitrary objects, no aliases, no duplicate
+    keys, YAML 1.2 floats). A few aliased lines can expand into a structure that refers to itself or holds billions
+    of elements, which numpy would then try to convert (memory exhaustion); a calibration file never needs aliases
+    (``save`` does not write any)."""
 
-    A few aliased lines can expand into a structure that refers to itself or holds billions of
-    elements, which numpy would then try to convert (memory exhaustion); a calibration file never
-    needs aliases (``save`` does not write any).
-    """
-
-    def compose_node(self, parent: Any, index: Any) -> Any:
-        if self.check_event(yaml.AliasEvent):
-            raise yaml.composer.ComposerError(
-                None, None, "aliases (*name) are not allowed in a calibration file", self.peek_event().start_mark
-            )
-        return super().compose_node(parent, index)
+    document_kind = "a calibration file"
 
 
 def normalise(xyz: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -410,6 +428,9 @@ def _validate(cal: ThermalCalibration) -> None:
     if not (np.all(np.isfinite(tau)) and np.all((tau >= 0) & (tau <= MAX_NOISE_TIME_CONSTANT_S))):
         raise ValueError(f"noise_correlation.time_constant_s must be in 0..{MAX_NOISE_TIME_CONSTANT_S:g} s, "
                          f"got {tau.tolist()}")
+    if np.any((f > 0) & (tau == 0)):
+        raise ValueError(f"noise_correlation: a correlated_fraction above 0 needs a time_constant_s above 0 "
+                         f"(correlated_fraction {f.tolist()}, time_constant_s {tau.tolist()})")
     lo, hi = cal.temperature_range_c
     if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
         raise ValueError(f"temperature_range_c must be finite [min, max], got {[lo, hi]}")
@@ -430,9 +451,12 @@ def migrate(d: dict[str, Any], source: str = "<dict>") -> dict[str, Any]:
     version = d.get("format_version")
     if "format_version" not in d:
         raise CalibrationFileError(f"{source}: missing key 'format_version'")
-    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
-        raise CalibrationFileError(
-            f"{source}: format_version {version!r} is not supported (this driver reads {FORMAT_VERSION})")
+    def fail(msg: str) -> CalibrationFileError:
+        return CalibrationFileError(f"{source}: {msg}")
+
+    version = format_version(version, "format_version", fail, reads=FORMAT_VERSION, exact=False)
+    if version < 1:
+        raise fail(f"format_version {version!r} is not supported (this driver reads {FORMAT_VERSION})")
     if version > FORMAT_VERSION:
         raise CalibrationFileError(
             f"{source}: format_version {version} is not supported (this driver reads {FORMAT_VERSION}); the file is "
@@ -459,7 +483,8 @@ def check_plausible(cal: ThermalCalibration) -> str:
       across the calibrated range and across the AHT10 range :data:`AHT10_RANGE_C`. The output must be
       finite everywhere the driver can evaluate it (AHT10 range), and at most :data:`OUTPUT_MAX_MPS2` in
       magnitude inside the calibrated range. Each grid point is held for 0.5 s of samples at 100 Hz so
-      that stateful terms (filters) are judged on their settled output, not on the steps between points.
+      that stateful terms (filters) are judged on their settled output, not on the steps between points;
+    * ``M(T)`` at the middle of the calibrated range of rank 3 (a zero row or column ignores part of the acceleration).
     """
     lo_lim, hi_lim = TEMPERATURE_LIMITS_C
     lo, hi = cal.temperature_range_c
@@ -487,6 +512,13 @@ def check_plausible(cal: ThermalCalibration) -> str:
             if bounded and np.max(np.abs(out)) > OUTPUT_MAX_MPS2:
                 return (f"the model gives |a| up to {np.max(np.abs(out)):.3g} m/s^2 inside its calibrated range, above "
                         f"{OUTPUT_MAX_MPS2:.3g} (100x the +-20 g full scale): coefficients are absurd")
+    centre = (lo + hi) / 2.0
+    m_centre = cal.coefficients(centre)[0][0]
+    with np.errstate(all="ignore"):
+        rank = int(np.linalg.matrix_rank(m_centre)) if np.all(np.isfinite(m_centre)) else 0
+    if rank < 3:
+        return (f"M at {centre:g} degC (the middle of temperature_range_c) has rank {rank}, not 3: the model ignores part "
+                f"of the acceleration (a zero row or column, or dependent rows; M(T) = {np.round(m_centre, 6).tolist()})")
     return ""
 
 
@@ -499,6 +531,24 @@ def _evaluate_grid(cal: ThermalCalibration, ref: np.ndarray, xyz: np.ndarray, te
     t_s = np.repeat(np.repeat(temps, len(ref)), hold)
     time_s = np.arange(n * hold) * 0.01
     return cal.apply_counts(ref_s, xyz_s, t_s, time_s)[hold - 1::hold]
+
+
+def _optional(d: dict[str, Any], key: str, default: Any) -> Any:
+    """``d[key]``, or ``default`` when it is absent or null (an empty ``key:`` line); any other value, also an empty
+    container of the wrong type, is returned for the caller's type check."""
+    v = d.get(key)
+    return default if v is None else v
+
+
+def _agrees(value: Any, written: Any) -> bool:
+    """Whether a correction term's key as the file gives it is what the term writes: numbers (nested lists too) equal
+    to 1e-9 relative (a hand-computed ``group_delay_s``), anything else (text, lists of names) exactly."""
+    try:
+        a = number_array(value, "", ValueError)
+        w = np.asarray(written, dtype=float)
+    except (TypeError, ValueError):
+        return bool(value == written)
+    return a.shape == w.shape and bool(np.allclose(a, w, rtol=1e-9, atol=1e-15))
 
 
 def _text(d: dict[str, Any], key: str, max_chars: int, fail: Callable[[str], CalibrationFileError]) -> str:

@@ -8,6 +8,10 @@ versions migrate through one table of steps.
 
 from __future__ import annotations
 
+import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +20,8 @@ import pytest
 import yaml
 
 from fbg_accel_driver import thermal_model
+from fbg_accel_driver.chain_compensation import ChainDynamics
+from fbg_accel_driver.correction_terms import TimeDrift
 from fbg_accel_driver.thermal_model import (
     MAX_FILE_BYTES,
     CalibrationFileError,
@@ -163,3 +169,147 @@ def test_format_versions_migrate_through_one_table(monkeypatch: pytest.MonkeyPat
     monkeypatch.setattr(thermal_model, "MIGRATIONS", {})
     with pytest.raises(CalibrationFileError, match=r"format_version 1 is not supported \(this driver reads 2\)"):
         migrate(dict(good), "old.yaml")
+
+
+# ---------------------------------------------------------------------------- hand-edited files (calibration file loading)
+DYNAMIC = {"format_version": 1, "cutoff_hz": {"reference": None, "x": 1.7, "y": 1.3, "z": 1.3},
+           "delay_s": {"x": 0.002, "y": 0.0, "z": 0.0}}
+TERMS = {"reference_lowpass": {"kind": "reference_lowpass", "time_constant_s": 5.0},
+         "thermal_lag": {"kind": "thermal_lag", "tau_s": 30.0},
+         "time_drift": {"kind": "time_drift", "creep_mps2_per_s": [0, 0, 0], "warmup_mps2": [0, 0, 0], "warmup_tau_s": 100}}
+
+
+@pytest.mark.parametrize("missing", ["time_constant_s", "correlated_fraction"])
+def test_noise_correlation_needs_both_lists(tmp_path: Path, good: dict[str, Any], missing: str) -> None:
+    """A fraction of 0.97 without its time constant was read as white noise: the driver's covariance of a decimated
+    mean came out 17 times too small."""
+    del good["noise_correlation"][missing]
+    assert refused(tmp_path, good).endswith(f"missing key 'noise_correlation.{missing}' (the section needs both of "
+                                            "correlated_fraction, time_constant_s, or none for white noise)")
+    good["noise_correlation"] = {"correlated_fraction": [0.9, 0.0, 0.0], "time_constant_s": [0.0, 0.0, 0.0]}
+    assert "a correlated_fraction above 0 needs a time_constant_s above 0" in refused(tmp_path, good)
+
+
+@pytest.mark.parametrize("extra, key", [("degree: 2\n", "degree"), ("corrections:\n- {kind: thermal_lag, tau_s: 30}\n",
+                                                                    "corrections")])
+def test_a_duplicated_key_is_refused_with_its_lines(tmp_path: Path, extra: str, key: str) -> None:
+    text = (REPO / "config" / "calibration_sim.yaml").read_text(encoding="utf-8")
+    msg = refused(tmp_path, None, text.replace("model: thermal_polynomial\n", "model: thermal_polynomial\n" + extra))
+    assert f"found duplicate key '{key}' (first given on line 6)" in msg and ", column 1:" in msg
+    nested = text.replace("corrections: []", "corrections:\n- {kind: thermal_lag, tau_s: 30.0, tau_s: -30.0}")
+    assert "found duplicate key 'tau_s'" in refused(tmp_path, None, nested)
+
+
+@pytest.mark.parametrize("term, key, value", [
+    ({"kind": "tia_inverse_filter", "tau_s": [0.09, 0.12, 0.12, 0.16]}, "channels", ["x", "y", "z", "ref"]),
+    ({"kind": "spectral_nonlinearity", "psi0": [0.1, 0.1, 0.9], "coeff_mps2": [[0.1] * 6 for _ in range(3)]},
+     "features",
+     ["xy", "xz", "yz", "xx", "yy", "zz"]),
+    ({"kind": "chain_dynamics", "tia_tau_s": [0.1] * 4, "delay_s": 0.0}, "group_delay_s", [5.0, 5.0, 5.0]),
+    ({"kind": "chain_dynamics", "tia_tau_s": [0.1] * 4, "delay_s": 0.0}, "runtime", "inverse"),
+])
+def test_a_descriptive_key_that_disagrees_with_the_term_is_refused(tmp_path: Path, good: dict[str, Any], term: dict,
+                                                                  key: str, value: Any) -> None:
+    good["corrections"] = [term]
+    written = ThermalCalibration.from_dict(good).corrections[0].to_dict()[key]
+    good["corrections"] = [{**term, key: written}]  # what the term writes (a hand-computed sum within 1e-9 too)
+    ThermalCalibration.from_dict(good)
+    good["corrections"] = [{**term, key: value}]
+    assert f"corrections[0].{key} is {value!r}, but this {term['kind']} term is {written!r}" in refused(tmp_path, good)
+
+
+@pytest.mark.parametrize("line, where", [("delay_s: {x: 2e-3, y: 0.0, z: 0.0}", "delay"),
+                                         ("cutoff_hz: {reference: null, x: 17e-1, y: 1.3, z: 1.3}", "cutoff"),
+                                         *((kind, kind) for kind in TERMS)])
+def test_scientific_notation_without_a_dot_is_a_number_everywhere(tmp_path: Path, good: dict[str, Any], line: str,
+                                                                   where: str) -> None:
+    """docs/calibration_file.md promises it; YAML 1.1 made '3e1' a string, refused in the dynamic section and terms."""
+    if where in TERMS:
+        key = next(k for k, v in TERMS[where].items() if isinstance(v, float | int) and k != "kind")
+        good["corrections"] = [{**TERMS[where], key: "@"}]
+    else:
+        good["dynamic"] = DYNAMIC
+    text = yaml.safe_dump(good, sort_keys=False, default_flow_style=None)
+    text = text.replace("'@'", "3e1") if where in TERMS else text.replace(line.replace("2e-3", "0.002").replace(
+        "17e-1", "1.7"), line)
+    p = tmp_path / "cal.yaml"
+    p.write_text(text, encoding="utf-8")
+    cal = ThermalCalibration.load(p)
+    got = {"delay": lambda: cal.dynamic.delay_s[0], "cutoff": lambda: cal.dynamic.cutoff_hz[1]}.get(
+        where, lambda: cal.corrections[0].to_dict()[key])()
+    assert got == {"delay": 2e-3, "cutoff": 1.7}.get(where, 30.0)
+
+
+def test_a_dynamic_section_error_names_the_file_once(tmp_path: Path, good: dict[str, Any]) -> None:
+    good["dynamic"] = {**DYNAMIC, "delay_s": {"x": "soon", "y": 0.0, "z": 0.0}}
+    msg = refused(tmp_path, good)
+    assert msg.count("cal.yaml") == 1 and msg.endswith("dynamic.delay_s.x must be a number, got str 'soon'"), msg
+
+
+@pytest.mark.parametrize("version", [True, 1.0, "1"])
+def test_every_format_version_is_an_integer(tmp_path: Path, good: dict[str, Any], version: Any) -> None:
+    good["dynamic"] = {**DYNAMIC, "format_version": version}
+    assert refused(tmp_path, good).endswith(f"dynamic.format_version {version!r} is not supported (this driver reads 1)")
+    good.pop("dynamic")
+    good["format_version"] = version
+    assert refused(tmp_path, good).endswith(f"format_version {version!r} is not supported (this driver reads 1)")
+
+
+@pytest.mark.parametrize("key, index, where", [("M", (0, 0, 0), "M[0][0][0]"), ("b", (0, 1), "b[0][1]"),
+                                               ("noise_sigma_mps2", (2,), "noise_sigma_mps2[2]")])
+def test_a_boolean_in_a_numeric_array_is_refused(tmp_path: Path, good: dict[str, Any], key: str, index: tuple,
+                                                 where: str) -> None:
+    """YAML 1.1 reads yes / on / true as a bool, which numpy took for 1.0."""
+    node = good[key]
+    for i in index[:-1]:
+        node = node[i]
+    node[index[-1]] = True
+    assert refused(tmp_path, good).endswith(f"coefficients are not numeric arrays ({where} must be a number, got bool True)")
+    good[key] = ThermalCalibration.from_dict(yaml.safe_load((REPO / "config" / "calibration_sim.yaml").read_text()
+                                                            )).to_dict()[key]
+    good["corrections"] = [{"kind": "channel_offset", "coeff_mps2_counts": [True, 0.0, 0.0]}]
+    assert "channel_offset: parameter 'coeff_mps2_counts'[0] must be a number, got bool True" in refused(tmp_path, good)
+
+
+@pytest.mark.parametrize("key, value, message", [("corrections", {}, "'corrections' must be a list"),
+                                                 ("fit", [], "'fit' must be a mapping of figures, got list"),
+                                                 ("noise_correlation", [], "'noise_correlation' must be a mapping, got list")])
+def test_an_empty_container_of_the_wrong_type_is_refused(tmp_path: Path, good: dict[str, Any], key: str, value: Any,
+                                                         message: str) -> None:
+    good[key] = value
+    assert refused(tmp_path, good).endswith(message)
+
+
+def test_a_utf8_file_loads_whatever_the_locale(tmp_path: Path) -> None:
+    """The file is UTF-8 (section 5); under LC_ALL=C without UTF-8 mode the loader decoded it with the locale."""
+    p = tmp_path / "cal.yaml"
+    p.write_text((REPO / "config" / "calibration_sim.yaml").read_text(encoding="utf-8") + "notes: 25 \u00b0C\n",
+                 encoding="utf-8")
+    code = ("import sys; from fbg_accel_driver.thermal_model import ThermalCalibration as T; "
+            "print(ascii(T.load(sys.argv[1]).notes))")
+    env = {**os.environ, "LC_ALL": "C", "PYTHONUTF8": "0", "PYTHONCOERCECLOCALE": "0",
+           "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    run = subprocess.run([sys.executable, "-c", code, str(p)], env=env, capture_output=True, text=True, check=False)
+    assert run.stdout.strip() == ascii("25 \u00b0C"), run.stderr[-400:]
+
+
+def test_a_saved_calibration_loads_equal_to_itself(tmp_path: Path) -> None:
+    cal = ThermalCalibration.load(REPO / "config" / "calibration_sim.yaml")
+    cal.dynamic = ChainDynamics((math.nan, 1.7, 1.3, 1.3), (0.002, 0.0, 0.0), {"sigma": math.nan})
+    cal.corrections = [TimeDrift(np.zeros(3), np.ones(3) * 1e-3, 100.0, span_s=(0.0, 600.0))]
+    cal.save(tmp_path / "c.yaml")
+    back = ThermalCalibration.load(tmp_path / "c.yaml")
+    assert back.dynamic == cal.dynamic and back == cal  # NaN was unequal to itself; arrays raised ValueError
+    back.corrections[0].t0_s = 1.0
+    back.M[0, 0, 0] += 1e-12
+    assert back != cal and ThermalCalibration.load(tmp_path / "c.yaml") != back
+
+
+@pytest.mark.parametrize("row", [0, 2])
+def test_a_singular_m_is_refused(tmp_path: Path, good: dict[str, Any], row: int) -> None:
+    """A zero row of M(T) at the middle of the range: that axis read the bias only, whatever the acceleration."""
+    cal = ThermalCalibration.from_dict(good)
+    centre = sum(cal.temperature_range_c) / 2
+    m_centre = cal.coefficients(centre)[0][0]
+    good["M"][0][row] = [float(v) for v in np.asarray(good["M"][0][row]) - m_centre[row]]  # M_0 cancels the others
+    assert f"M at {centre:g} degC (the middle of temperature_range_c) has rank 2, not 3" in refused(tmp_path, good)

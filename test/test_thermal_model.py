@@ -8,6 +8,7 @@ trip, and every refusal of the loader with its message (docs/calibration_file.md
 from __future__ import annotations
 
 import math
+import re
 import warnings
 from dataclasses import replace
 from pathlib import Path
@@ -397,12 +398,15 @@ def test_non_numeric_coefficient(tmp_path: Path, good_doc: dict[str, Any], value
     assert "coefficients are not numeric arrays" in refused(write(tmp_path, good_doc))
 
 
-def test_numeric_strings_are_read_as_numbers(tmp_path: Path, good_doc: dict[str, Any]) -> None:
-    """PyYAML (YAML 1.1) reads a hand-written 1e-3 as a string; the loader converts it (documented)."""
-    path = write(tmp_path, good_doc)
-    new = "noise_sigma_mps2: [1e-3, 2e-3, 3e-3]\nnotes: the old noise was\nfit:"
-    path.write_text(path.read_text().replace("noise_sigma_mps2:", new, 1))
-    np.testing.assert_array_equal(ThermalCalibration.load(path).noise_sigma_mps2, [1e-3, 2e-3, 3e-3])
+def test_scientific_notation_without_a_dot_is_a_number(tmp_path: Path, good_doc: dict[str, Any]) -> None:
+    """PyYAML (YAML 1.1) reads a hand-written 1e-3 as a string; the loader resolves it as YAML 1.2 does (documented)."""
+    path = tmp_path / "cal.yaml"
+    path.write_text(yaml.safe_dump(good_doc, sort_keys=False, default_flow_style=None))
+    text = re.sub(r"^noise_sigma_mps2:.*$", "noise_sigma_mps2: [1e-3, 2E-3, 3e-3]", path.read_text(), flags=re.M)
+    path.write_text(re.sub(r"^temperature_scale_c:.*$", "temperature_scale_c: 1e1", text, flags=re.M))
+    cal = ThermalCalibration.load(path)
+    np.testing.assert_array_equal(cal.noise_sigma_mps2, [1e-3, 2e-3, 3e-3])
+    assert cal.t_scale_c == 10.0
 
 
 @pytest.mark.parametrize(
