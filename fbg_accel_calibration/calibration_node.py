@@ -35,6 +35,7 @@ from std_srvs.srv import Trigger
 from fbg_accel_driver.command_line import StartupError
 from fbg_accel_driver.driver_core import RAW_AUX_NAME
 from fbg_accel_driver.node_support import declare_parameters, init_ros, refuse_unknown_parameters, signals_to
+from fbg_accel_driver.yaml_input import load_yaml
 
 from .calibration_main import EXIT_FIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, PARAMETERS
 from .dynamic_recorder import DynamicRunRecorder
@@ -62,7 +63,7 @@ def plan_format(path: str) -> str | None:
         p = Path(path)
         if not p.is_file() or p.stat().st_size > 1 << 20:
             return None
-        data = yaml.safe_load(p.read_text())
+        data = load_yaml(p.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, yaml.YAMLError):
         return None
     return data.get("format") if isinstance(data, dict) else None

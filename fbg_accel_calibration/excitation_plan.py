@@ -20,7 +20,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from fbg_accel_driver.mapping_fields import number, refuse_unknown
+from fbg_accel_driver.mapping_fields import format_version, number, refuse_unknown
+from fbg_accel_driver.yaml_input import load_yaml
 
 FORMAT_NAME = "fbg_accel_excitation_plan"
 FORMAT_VERSION = 1
@@ -161,7 +162,7 @@ class ExcitationPlan:
         if p.stat().st_size > 1 << 20:
             raise ExcitationPlanError(f"{p}: larger than 1 MiB, not an excitation plan")
         try:
-            data = yaml.safe_load(p.read_text())
+            data = load_yaml(p.read_text(encoding="utf-8"))
         except (yaml.YAMLError, UnicodeDecodeError) as exc:
             raise ExcitationPlanError(f"{p}: not valid YAML ({exc})") from None
         return cls.from_dict(data, str(p))
@@ -175,8 +176,7 @@ class ExcitationPlan:
             raise fail("top level is not a mapping")
         if d.get("format") != FORMAT_NAME:
             raise fail(f"format is {d.get('format')!r}, expected '{FORMAT_NAME}'")
-        if d.get("format_version") != FORMAT_VERSION:
-            raise fail(f"format_version {d.get('format_version')!r} is not supported (this tool reads {FORMAT_VERSION})")
+        format_version(d.get("format_version"), "format_version", fail, reads=FORMAT_VERSION, reader="this tool")
         refuse_unknown(d, TOP_KEYS, "", fail)
         direction = d.get("direction")
         if not (isinstance(direction, list) and len(direction) == 3):

@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from fbg_accel_driver.mapping_fields import number
+from fbg_accel_driver.mapping_fields import format_version, number
+from fbg_accel_driver.yaml_input import load_yaml
 
 from .table_geometry import STANDARD_GRAVITY, table_specific_force
 
@@ -151,7 +152,7 @@ class PosePlan:
         if not p.is_file():
             raise PosePlanError(f"{p}: pose plan file not found")
         try:
-            data = yaml.safe_load(p.read_text())
+            data = load_yaml(p.read_text(encoding="utf-8"))
         except (yaml.YAMLError, UnicodeDecodeError) as exc:
             raise PosePlanError(f"{p}: not valid YAML ({exc})") from None
         return cls.from_dict(data, source=str(p))
@@ -180,9 +181,8 @@ def _parse(d: Any, source: str) -> PosePlan:
     _unknown(set(map(str, d)), _TOP_KEYS, source)
     if d.get("format", FORMAT_NAME) != FORMAT_NAME:
         raise PosePlanError(f"{source}: format is {d['format']!r}, expected '{FORMAT_NAME}'")
-    if d.get("format_version", FORMAT_VERSION) != FORMAT_VERSION:
-        raise PosePlanError(f"{source}: format_version {d['format_version']!r} is not supported "
-                            f"(this tool reads {FORMAT_VERSION})")
+    format_version(d.get("format_version", FORMAT_VERSION), "format_version", lambda m: PosePlanError(f"{source}: {m}"),
+                   reads=FORMAT_VERSION, reader="this tool")
     name = str(d.get("name", Path(source).stem))
     g = number(d.get("local_g_mps2", STANDARD_GRAVITY), f"{source}: local_g_mps2", PosePlanError)
     if not LOCAL_G_RANGE_MPS2[0] <= g <= LOCAL_G_RANGE_MPS2[1]:

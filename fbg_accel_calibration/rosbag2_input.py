@@ -18,6 +18,8 @@ from pathlib import Path
 
 import yaml
 
+from fbg_accel_driver.yaml_input import load_yaml
+
 METADATA_FILE = "metadata.yaml"
 _MAX_METADATA_BYTES = 16 << 20
 
@@ -55,7 +57,7 @@ def bag_files(path: str | Path) -> BagInfo:
     if meta.stat().st_size > _MAX_METADATA_BYTES:
         raise BagInputError(f"{meta}: larger than {_MAX_METADATA_BYTES >> 20} MiB; not a rosbag2 metadata file")
     try:
-        doc = yaml.safe_load(meta.read_text(encoding="utf-8"))
+        doc = load_yaml(meta.read_text(encoding="utf-8"))
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise BagInputError(f"{meta}: not valid YAML ({str(exc).splitlines()[0]})") from None
     info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None

@@ -16,6 +16,8 @@ from typing import Any
 
 import yaml
 
+from fbg_accel_driver.yaml_input import load_yaml
+
 DEFAULT_FILE_NAME = "sim_default.yaml"
 CONFIG_DIR_ENV = "FBG_ACCEL_CONFIG_DIR"
 # Sub-trees whose content is free-form (lists of events, segments, poses): merged by replacement.
@@ -47,8 +49,8 @@ def _read_yaml(path: Path) -> dict[str, Any]:
     if not path.is_file():
         raise SimConfigError(f"{path}: simulator config not found")
     try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
+        data = load_yaml(path.read_text(encoding="utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise SimConfigError(f"{path}: not valid YAML ({exc})") from None
     if data is None:
         return {}
@@ -139,7 +141,7 @@ def parse_set_argument(text: str) -> tuple[str, Any]:
         raise SimConfigError(f"--set expects key=value, got '{text}'")
     key, raw = text.split("=", 1)
     try:
-        value = yaml.safe_load(raw)
+        value = load_yaml(raw)
     except yaml.YAMLError as exc:
         raise SimConfigError(f"--set {key}: value '{raw}' is not valid YAML ({exc})") from None
     return key.strip(), value

@@ -132,3 +132,27 @@ def test_temperature_level_out_of_range():
         plan.level_setpoint_c(2)
     with pytest.raises(PosePlanError, match="no 'chamber' section"):
         PosePlan.from_dict(_plan()).level_setpoint_c(0)
+
+
+def test_plans_and_the_simulator_config_share_the_calibration_files_yaml_loader(tmp_path):
+    """Duplicate keys were last-wins, 2e-3 a string and format_version: true version 1 in every file people write."""
+    from fbg_accel_calibration.excitation_plan import ExcitationPlan, ExcitationPlanError
+    from fbg_accel_sim.sim_config import SimConfig, SimConfigError, parse_set_argument
+
+    plan = tmp_path / "plan.yaml"
+    plan.write_text("name: t\ndwell_s: 2.0\nsamples_per_pose: 10\nmove_s: 1e0\nposes:\n"
+                    "- {name: a, psi_deg: 0, theta_deg: 0}\n- {name: b, psi_deg: 90, theta_deg: 90}\n", encoding="utf-8")
+    assert PosePlan.load(plan).move_s == 1.0
+    plan.write_text(plan.read_text(encoding="utf-8") + "dwell_s: 20.0\n", encoding="utf-8")
+    with pytest.raises(PosePlanError, match=r"found duplicate key 'dwell_s' \(first given on line 2\)"):
+        PosePlan.load(plan)
+    with pytest.raises(PosePlanError, match=r"format_version True is not supported \(this tool reads 1\)"):
+        PosePlan.from_dict(_plan(format_version=True), source="plan.yaml")
+    excitation = yaml.safe_load((CONFIG / "excitation_plan_stepped_sine.yaml").read_text(encoding="utf-8"))
+    with pytest.raises(ExcitationPlanError, match=r"format_version 1.0 is not supported \(this tool reads 1\)"):
+        ExcitationPlan.from_dict({**excitation, "format_version": 1.0})
+    assert parse_set_argument("noise.x=2e-3") == ("noise.x", 2e-3)
+    sim = tmp_path / "sim.yaml"
+    sim.write_text("seed: 1\nseed: 2\n", encoding="utf-8")
+    with pytest.raises(SimConfigError, match="found duplicate key 'seed'"):
+        SimConfig.load(sim)
