@@ -29,7 +29,9 @@ Advancing from RECORDED:
   (e.g. a turn about the vertical), on time: at ``t_still_k + dwell_k + move_s``, i.e. once the
   table, following the same plan, must already be at pose k+1. The plan's dwell is also the bound
   for the warnings "pose not still within its dwell" and "table late" (the sequencer then keeps
-  waiting; ``request_next()`` in auto mode skips the pose).
+  waiting; ``request_next()`` in auto mode skips the pose). A skip while the sensor is still and the
+  plan expects motion to the next pose waits for motion too (``WAIT_MOTION``): the operator skips
+  because the table is late, i.e. still at the old pose, which must not be recorded as the next one.
 
 Time is the board clock; a backwards or > ``MAX_TIME_STEP_S`` jump (board reset) adds no time,
 so deadlines survive a reset of the board clock.
@@ -236,7 +238,11 @@ class PoseSequencer:
                 return False, f"already waiting for the table to move to pose {self.index} ({self.pose.name})"
             self._advance("operator trigger")
             return True, self._next_message()
-        # auto mode: the trigger skips ahead (auto mode never waits in WAIT_MOTION)
+        # auto mode: the trigger skips ahead. The operator presses it when the table is late, i.e. still at
+        # pose k: if the table is still now and the plan expects motion to pose k+1, pose k+1 is recorded only
+        # after the table has been seen moving (WAIT_MOTION), as in service mode; else the old orientation
+        # would be recorded as pose k+1 and every later pose shifted by one
+        hold = self._still and self.expects_motion(self.index) and not self._motion_since_recorded
         if self.phase in (Phase.WAIT_STILL, Phase.RECORDING):
             log.closed_short = log.samples < target
             self._emit("skipped", f"pose {self.index} ({self.pose.name}) skipped by operator with {log.samples}/{target} "
@@ -244,7 +250,7 @@ class PoseSequencer:
             if self.index + 1 >= len(self.plan.poses):
                 self._finish()
                 return True, "last pose skipped; run complete"
-        self._advance("operator trigger")
+        self._advance("operator trigger", wait_motion=hold)
         return True, self._next_message()
 
     def abort(self, reason: str = "operator abort") -> None:
@@ -317,13 +323,13 @@ class PoseSequencer:
             self._emit("prompt", f"call calibration/next_pose for pose {self.index + 1} ({nxt.name})")
         return -1
 
-    def _advance(self, why: str) -> None:
-        """Go from pose k (recorded or closed) to pose k+1."""
+    def _advance(self, why: str, wait_motion: bool = False) -> None:
+        """Go from pose k (recorded or closed) to pose k+1 (``wait_motion``: wait to see the table move first)."""
         expect = self.expects_motion(self.index)
         seen = self._motion_since_recorded
         self.index += 1
         self._motion_since_recorded = False
-        if self.mode is Mode.SERVICE and expect and not seen:
+        if wait_motion or (self.mode is Mode.SERVICE and expect and not seen):
             self._set_phase(Phase.WAIT_MOTION)
             self._emit("advanced", f"{why}: waiting for the table to move to pose {self.index} ({self.pose.name})")
         else:

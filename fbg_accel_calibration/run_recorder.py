@@ -266,7 +266,12 @@ class RunRecorder:
     def request_next(self) -> tuple[bool, str]:
         if self.monitor is None:
             return False, "still measuring the board rate / learning the noise floor; try again in a moment"
-        return self.sequencer.request_next()
+        ok, message = self.sequencer.request_next()
+        if ok and self.sequencer.phase is Phase.WAIT_MOTION and self._recent:
+            # an auto-mode skip with the table still: the motion awaited is away from where the table is now
+            # (the skipped pose may never have been recorded, so its level is not known otherwise)
+            self._seed_level(-1, list(self._recent))
+        return ok, message
 
     def abort(self, reason: str) -> None:
         self.sequencer.abort(reason)
@@ -451,15 +456,18 @@ class RunRecorder:
         """Mean Psi of the pose being recorded, seeded with the still window that preceded its first sample."""
         if pose_id >= 0 and np.all(np.isfinite(psi)):
             if pose_id != self._pose_level_index:
-                self._pose_level_index = pose_id
-                prior = list(self._recent)
-                self._pose_sum = np.sum(prior, axis=0) if prior else np.zeros(3)
-                self._pose_n = len(prior)
-                self._depart_run = 0
+                self._seed_level(pose_id, list(self._recent))
             self._pose_sum = self._pose_sum + psi
             self._pose_n += 1
         if np.all(np.isfinite(psi)):
             self._recent.append(psi)
+
+    def _seed_level(self, index: int, prior: list[np.ndarray]) -> None:
+        """Start the level of pose ``index`` (-1: where the table is now) from the still samples ``prior``."""
+        self._pose_level_index = index
+        self._pose_sum = np.sum(prior, axis=0) if prior else np.zeros(3)
+        self._pose_n = len(prior)
+        self._depart_run = 0
 
     def _motion_while_learning(self, shift: float) -> None:
         """The table moved while the noise floor was being learnt (the sensor must be still then)."""

@@ -199,6 +199,31 @@ def test_auto_mode_trigger_skips_the_current_pose():
     assert seq.samples_recorded(0) == 0 and seq.samples_recorded(1) == 10
 
 
+@pytest.mark.parametrize("skip_in", [Phase.RECORDED, Phase.RECORDING])
+def test_auto_mode_skip_with_the_table_still_at_the_old_pose_waits_for_motion(skip_in):
+    """The documented reaction to "table late" is next_pose, pressed while the table is still at pose k. The
+    skip used to take the stillness held at pose k for pose k+1 (2 g away here): pose k+1 recorded at once at
+    pose k's orientation, every later pose shifted by one. After a skip with the sensor still, pose k+1 is
+    recorded only after the table has been seen moving, as service mode's wait_motion."""
+    seq = PoseSequencer(_plan([{"name": "z_up", "psi_deg": 0, "theta_deg": 0, "dwell_s": 4.0},
+                               {"name": "z_down", "psi_deg": 0, "theta_deg": 180},
+                               {"name": "x_up", "psi_deg": 90, "theta_deg": 90}], dwell=3.0, move=2.0), Mode.AUTO)
+    f = Feeder(seq)
+    if skip_in is Phase.RECORDED:
+        f.feed(700, True)  # recorded, then late: dwell 4 s + move 2 s passed, the table never left
+        assert seq.phase is Phase.RECORDED and "late" in f.kinds()
+    else:
+        f.feed(4, True)
+        assert seq.phase is Phase.RECORDING
+    ok, _ = seq.request_next()
+    assert ok and seq.index == 1 and seq.phase is Phase.WAIT_MOTION
+    labels = f.feed(50, True)  # the table is still where it was: at pose 0
+    assert seq.samples_recorded(1) == 0, f"{labels.count(1)} samples at pose 0's orientation recorded as pose 1"
+    f.feed(30, False)  # now the table turns
+    f.feed(20, True)
+    assert seq.samples_recorded(1) == 10
+
+
 def test_abort_stops_labelling():
     seq = PoseSequencer(_plan(), Mode.SERVICE)
     f = Feeder(seq)

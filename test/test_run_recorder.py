@@ -109,6 +109,56 @@ def test_a_slow_move_is_never_recorded_on_the_stillness_of_the_previous_pose(tmp
     rec.close("complete")
 
 
+def _stream(segs, seed=0):
+    """(RawSample, true pose or -1, true specific force) of a table holding ('hold', n, (psi, theta, pose)) or
+    turning with a raised-cosine profile ('move', n, (psi_a, theta_a, psi_b, theta_b)), angles in degrees."""
+    rng = np.random.default_rng(seed)
+    gs, truth = [], []
+    for kind, n, p in segs:
+        if kind == "hold":
+            gs.append(np.repeat(table_specific_force([p[0]], [p[1]]), n, 0))
+            truth += [p[2]] * n
+        else:
+            s = np.linspace(0, 1, n + 2)[1:-1]
+            s = 0.5 - 0.5 * np.cos(np.pi * s)
+            gs.append(table_specific_force(p[0] + s * (p[2] - p[0]), p[1] + s * (p[3] - p[1])))
+            truth += [-1] * n
+    g = np.vstack(gs)
+    counts = np.round((np.linalg.solve(M, (g - B).T).T + rng.normal(0, 1e-3, g.shape)) * 870.0)
+    return [(RawSample(stamp_ns=10**18 + i * 10_000_000, ref=870.0, x=counts[i, 0], y=counts[i, 1], z=counts[i, 2],
+                       temperature_c=24.0, status=3, seq=i % 65536, board_time_s=i / RATE), truth[i], g[i])
+            for i in range(len(g))]
+
+
+def _plan3(samples=40, dwell=3.0, move=2.0) -> PosePlan:
+    return PosePlan.from_dict({"dwell_s": dwell, "move_s": move, "samples_per_pose": samples,
+                               "poses": [{"name": "z_up", "psi_deg": 0, "theta_deg": 0, "dwell_s": 4.0},
+                                         {"name": "z_down", "psi_deg": 0, "theta_deg": 180},
+                                         {"name": "x_up", "psi_deg": 90, "theta_deg": 90}]})
+
+
+def test_an_auto_mode_skip_on_table_late_does_not_shift_every_later_pose(tmp_path):
+    """20 s at pose 0, the operator presses next_pose on the "table late" warning (docs/calibration_node.md):
+    pose 1 used to be recorded at once at pose 0's orientation, pose 2 at pose 1's, the run ended "done" with
+    2 g reference errors. Pose 1 must be recorded only after the table has moved."""
+    plan = _plan3()
+    stream = _stream([("hold", 2000, (0, 0, 0)), ("move", 200, (0, 0, 0, 180)), ("hold", 400, (0, 180, 1)),
+                      ("move", 200, (0, 180, 90, 90)), ("hold", 400, (90, 90, 2))])
+    rec = _recorder(tmp_path, plan)
+    labels, truth, pressed = [], [], False
+    for s, t, _ in stream:
+        labels.append(rec.on_raw(s))
+        truth.append(t)
+        if not pressed and any(e.kind == "late" for e in rec.pop_events()):
+            pressed = rec.request_next()[0]
+    rec.close("test")
+    labels, truth = np.array(labels), np.array(truth)
+    assert pressed and rec.done
+    for k in (1, 2):
+        wrong = int(np.sum(truth[labels == k] != k))
+        assert int(np.sum(labels == k)) == 40 and wrong == 0, f"pose {k}: {wrong} samples taken at another pose"
+
+
 def test_a_pose_is_on_disk_when_its_recorded_event_is_reported(tmp_path):
     """The operator (and a test) sees "pose k recorded" on the pose's last sample; a SIGKILL right then
     must not lose the pose. The chunk used to end only on the next sample, which may never come."""
