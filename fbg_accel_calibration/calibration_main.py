@@ -12,7 +12,7 @@ from fbg_accel_driver.command_line import ParameterTable, StartupError, paramete
 from .stillness_monitor import DEFAULT_FALSE_ALARM_PER_RUN, DEFAULT_NOISE_CORR_S
 
 PACKAGE = "fbg_accel_driver"
-EXIT_OK, EXIT_FIT_FAILED, EXIT_STARTUP, EXIT_INTERRUPTED = 0, 1, 2, 3
+EXIT_OK, EXIT_FIT_FAILED, EXIT_STARTUP, EXIT_INTERRUPTED, EXIT_RECORDING_FAILED = 0, 1, 2, 3, 4
 
 # name: (type, default, description), ROS-free so that --help needs no ROS (command_line.ParameterTable;
 # a default of None declares the parameter by type only, unset unless given)
@@ -59,7 +59,8 @@ example:
       -p output_dir:=runs -p sensor_id:=acc4 -p temperature_level:=0 -p mode:=service
   ros2 service call /calibration/next_pose std_srvs/srv/Trigger
 exit status: 0 run complete (and fitted), 1 run complete but the fit failed (MCAP kept),
-             2 invalid parameters or plan, 3 interrupted (SIGINT/SIGTERM/abort; MCAP closed cleanly).
+             2 invalid parameters or plan, 3 interrupted (SIGINT/SIGTERM/abort; MCAP closed cleanly),
+             4 recording failed (disk full, MCAP or output_dir removed): run aborted, no fit.
 """
 
 

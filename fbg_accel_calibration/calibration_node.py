@@ -10,7 +10,8 @@ Subscribes (best-effort, deep queue, matching the driver's sensor-data QoS):
 Services (std_srvs/Trigger): ``calibration/next_pose`` (operator: advance after a pose is recorded;
 auto mode: skip the current pose), ``calibration/abort`` (end the run now, file closed, no fit).
 
-SIGINT/SIGTERM end the run: the MCAP gets its summary and footer and the node exits with status 3.
+SIGINT/SIGTERM end the run: the MCAP gets its summary and footer and the node exits with status 3. A failed
+write of the recording (disk full, the file or output_dir removed) aborts the run: status 4.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from fbg_accel_driver.driver_core import RAW_AUX_NAME
 from fbg_accel_driver.node_support import declare_parameters, init_ros, refuse_unknown_parameters, signals_to
 from fbg_accel_driver.yaml_input import load_yaml
 
-from .calibration_main import EXIT_FIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, PARAMETERS
+from .calibration_main import EXIT_FIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_RECORDING_FAILED, PARAMETERS
 from .dynamic_recorder import DynamicRunRecorder
 from .excitation_plan import FORMAT_NAME as EXCITATION_FORMAT
 from .excitation_plan import ExcitationPlan, ExcitationPlanError
@@ -326,6 +327,11 @@ class CalibrationNode(Node):
         summary = rec.close(reason)
         self._end_progress_line()
         log = self.get_logger()
+        if summary.get("write_error"):
+            where = (f"{self.mcap_path} reads up to its last complete chunk" if self.mcap_path.exists() else
+                     f"{self.mcap_path} no longer exists: nothing of this run is on disk")
+            log.error(f"run aborted, recording failed: {summary['write_error']}; {where}; no fit")
+            return EXIT_RECORDING_FAILED
         if self.dynamic:
             log.info(f"dynamic run {reason}: {self.mcap_path} closed ({summary['messages_raw']} raw messages, "
                      f"{summary['aux_samples']} with the reference, {summary['lost_messages']} lost, "
@@ -347,7 +353,9 @@ class CalibrationNode(Node):
             sources = expand_sources(self.mcap_path, self.fit_with)
             result = refit(sources, self.yaml_path, self.degree, sensor_id=self.p["sensor_id"])
         except (RefitError, ValueError, OSError) as exc:
-            log.error(f"fit failed: {exc}; the recording {self.mcap_path} is kept")
+            kept = (f"the recording {self.mcap_path} is kept" if self.mcap_path.exists() else
+                    f"the recording {self.mcap_path} no longer exists")
+            log.error(f"fit failed: {exc}; {kept}")
             return EXIT_FIT_FAILED
         print(result.report(), flush=True)
         log.info(f"calibration written to {self.yaml_path}")

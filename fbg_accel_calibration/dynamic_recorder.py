@@ -22,9 +22,9 @@ import numpy as np
 
 from .board_stream import BoardStream
 from .excitation_plan import ExcitationPlan
-from .mcap_io import RecordingWriter
+from .mcap_io import RecordingLostError, RecordingWriter
 from .pose_sequencer import SequencerEvent
-from .run_recorder import RawSample, RunCounters
+from .run_recorder import RawSample, RunCounters, describe_write_error
 
 PROGRESS_EVERY_S = 10.0
 
@@ -56,12 +56,22 @@ class DynamicRunRecorder:
         self._kind = "velocity" if plan.reference.type == "ldv" else "acceleration"
         self._temperature_c = math.nan
         self.aux_samples = 0
+        self.write_error = ""  # why writing the recording failed (the run was aborted then), "" if it did not
+        self._on_disk_s = 0.0  # elapsed board time (s) up to which the recording is in ended chunks
 
     # ------------------------------------------------------------------ inputs
     def on_raw(self, s: RawSample) -> int:
-        """Record one raw sample (always -1: a dynamic run has no poses)."""
+        """Record one raw sample (always -1: a dynamic run has no poses). An ``OSError`` of the recording (disk
+        full, file removed) aborts the run with a warning instead of propagating."""
         if self.finished:
             return -1
+        try:
+            return self._on_raw(s)
+        except OSError as exc:
+            self._write_failed(exc)
+            return -1
+
+    def _on_raw(self, s: RawSample) -> int:
         c = self.counters
         c.messages_raw += 1
         # no loss counted across a board reset; elapsed board time continuous across it (the clock restarts at 0)
@@ -90,6 +100,7 @@ class DynamicRunRecorder:
         if self._elapsed - self._last_chunk_s >= self.chunk_period_s:
             self.writer.flush()  # a killed run keeps everything up to here
             self._last_chunk_s = self._elapsed
+            self._on_disk_s = self._elapsed
         if self._elapsed >= self._next_progress:
             self._next_progress += PROGRESS_EVERY_S
             self._event("progress", f"dynamic run: {self._elapsed:.0f} of {self.length_s:.0f} s recorded")
@@ -99,8 +110,13 @@ class DynamicRunRecorder:
         return -1
 
     def on_temperature(self, stamp_ns: int, temperature_c: float, variance_c2: float) -> None:
+        if self.finished:
+            return
         self.counters.messages_temperature += 1
-        self.writer.write_temperature(stamp_ns, temperature_c, variance_c2)
+        try:
+            self.writer.write_temperature(stamp_ns, temperature_c, variance_c2)
+        except OSError as exc:
+            self._write_failed(exc)
 
     def request_next(self) -> tuple[bool, str]:
         return False, "a dynamic run has no poses: the slide follows the plan by itself"
@@ -137,15 +153,36 @@ class DynamicRunRecorder:
                 "incomplete", "reason": self.finished_reason, "poses": [], "kind": "dynamic",
                 "recorded_s": self._elapsed, "planned_s": self.length_s, "messages_raw": c.messages_raw,
                 "messages_temperature": c.messages_temperature, "lost_messages": c.lost,
-                "repeated_messages": c.repeated, "board_resets": c.board_resets, "aux_samples": self.aux_samples}
+                "repeated_messages": c.repeated, "board_resets": c.board_resets, "aux_samples": self.aux_samples,
+                "write_error": self.write_error}
 
     def close(self, reason: str) -> dict[str, Any]:
-        """Write the ``run_end`` record and finish the MCAP; returns the summary."""
+        """Write the ``run_end`` record and finish the MCAP; returns the summary. Never raises an ``OSError`` of
+        the recording (reported in the summary's ``write_error``; the file then reads up to its last chunk)."""
         self.finished_reason = self.finished_reason or reason
-        summary = self.summary()
-        self.writer.add_metadata("run_end", summary)
-        self.writer.close()
-        return summary
+        if self.write_error:
+            self.writer.abandon()
+            return self.summary()
+        try:
+            self.writer.add_metadata("run_end", self.summary())
+            self.writer.close()
+        except OSError as exc:
+            self._write_failed(exc, closing=True)
+            self.writer.abandon()
+        return self.summary()
+
+    def _write_failed(self, exc: OSError, closing: bool = False) -> None:
+        """Writing the recording failed: abort the run and say at once what is safely on disk."""
+        self.write_error = describe_write_error(exc)
+        path = self.writer.path
+        kept = ("the recording is lost (nothing of this run remains on disk)" if isinstance(exc, RecordingLostError)
+                else f"{path} reads up to its last complete chunk (about {self._on_disk_s:.0f} s of the run)")
+        self.messages.append(("warn", f"writing {path} failed: {self.write_error}; "
+                              f"{'while closing the recording' if closing else 'run aborted'}; {kept}"))
+        if not closing:
+            self._aborted = True
+            self.finished_reason = f"recording failed: {self.write_error}"
+            self._event("aborted", f"dynamic run aborted: recording failed ({self.write_error})", warning=True)
 
     def _event(self, kind: str, message: str, warning: bool = False) -> None:
         self.events.append(SequencerEvent(self._elapsed, kind, -1, message, warning))

@@ -40,6 +40,7 @@ record and reports how many messages it recovered).
 
 from __future__ import annotations
 
+import errno
 import io
 import json
 import logging
@@ -100,6 +101,11 @@ _CONSTANT = re.compile(r"^\S+\s+[A-Z][A-Z0-9_]*\s*=")
 
 class McapRecordingError(ValueError):
     """An MCAP file cannot be written or read as a calibration recording."""
+
+
+class RecordingLostError(OSError):
+    """The path of a :class:`RecordingWriter` no longer names the file it writes (the file or its directory
+    was deleted, or replaced, while recording): Linux keeps writing into the unlinked file, which is lost."""
 
 
 # ---------------------------------------------------------------------------- topic names
@@ -343,6 +349,8 @@ class _UnbufferedSink:
         else:
             self._raw = io.FileIO(str(path), "wb")
         self._pos = 0
+        st = os.fstat(self._raw.fileno())
+        self.identity = (st.st_dev, st.st_ino)  # the file written, to check that its path still names it
 
     def write(self, data: bytes) -> int:
         view = memoryview(data)
@@ -470,18 +478,50 @@ class RecordingWriter:
         self._writer.add_metadata(name, {str(k): _to_text(v) for k, v in metadata.items()})
 
     def flush(self) -> None:
-        """End the chunk in progress now (e.g. at the end of a pose) so it survives a crash."""
+        """End the chunk in progress now (e.g. at the end of a pose) so it survives a crash.
+
+        Raises :class:`RecordingLostError` if the path no longer names the file written (:meth:`check_path`);
+        an ``OSError`` of the write itself (e.g. ``ENOSPC``) propagates."""
         if not self._closed:
             self._writer.flush()
+            self.check_path()
+
+    def check_path(self) -> None:
+        """Raise :class:`RecordingLostError` unless ``path`` still names the file being written (same device
+        and inode as the open file): a deleted file or output directory is otherwise noticed only when the
+        run is over, since writes into an unlinked file succeed."""
+        try:
+            st = os.stat(self.path)
+        except OSError as exc:
+            raise RecordingLostError(errno.ENOENT, f"{self.path} no longer exists ({exc.strerror}): deleted while "
+                                     "recording, the data written goes to an unlinked file", str(self.path)) from None
+        if (st.st_dev, st.st_ino) != self._sink.identity:
+            raise RecordingLostError(errno.ENOENT, f"{self.path} was replaced by another file while recording: the "
+                                     "data written goes to the unlinked original", str(self.path))
 
     def close(self) -> None:
-        """Finish the file (summary, index, footer) and close it. Idempotent."""
+        """Finish the file (summary, index, footer) and close it. Idempotent. Raises
+        :class:`RecordingLostError` (after closing) if the path no longer names the file written."""
         if self._closed:
             return
-        self._writer.finish()
-        self._sink.sync()
-        self._sink.close()
+        try:
+            self._writer.finish()
+            self._sink.sync()
+        finally:
+            self._sink.close()
+            self._closed = True
+        self.check_path()
+
+    def abandon(self) -> None:
+        """Close the file as it is, without summary or footer (after a failed write: the file then reads up to
+        its last complete chunk, as after a crash). Idempotent; never raises."""
+        if self._closed:
+            return
         self._closed = True
+        try:
+            self._sink.close()
+        except OSError:
+            pass
 
     def __enter__(self) -> RecordingWriter:
         return self

@@ -253,8 +253,24 @@ class PoseSequencer:
         self._advance("operator trigger", wait_motion=hold)
         return True, self._next_message()
 
-    def abort(self, reason: str = "operator abort") -> None:
-        if not self.finished:
+    def retract(self, index: int, n: int, why: str) -> None:
+        """Take back the last ``n`` samples counted for pose ``index`` (they turn out not to belong to it: taken
+        after the table began to leave, or never written); a pose left below its target is closed short."""
+        log = self._logs[index]
+        n = min(int(n), log.samples)
+        if n <= 0:
+            return
+        log.samples -= n
+        self._total -= n
+        if log.samples < self.plan.poses[index].samples:
+            log.closed_short = True
+        pose = self.plan.poses[index]
+        self.events.append(SequencerEvent(self._t_now, "retracted", index, f"pose {index} ({pose.name}): {n} sample(s) "
+                                          f"taken back ({why}); {log.samples}/{pose.samples} kept", warning=True))
+
+    def abort(self, reason: str = "operator abort", even_if_done: bool = False) -> None:
+        """End the run now; ``even_if_done``: also a run whose last pose was just counted (its recording failed)."""
+        if not self.finished or (even_if_done and self.phase is Phase.DONE):
             self.phase = Phase.ABORTED
             self._emit("aborted", f"run aborted at pose {self.index} ({self.pose.name}): {reason}", warning=True)
 

@@ -37,6 +37,7 @@ at most that many times per run in expectation.
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -47,7 +48,7 @@ import numpy as np
 from fbg_accel_driver.frame_codec import ADC_MAX, clipped_reading
 
 from .board_stream import BoardStream, StreamStep
-from .mcap_io import RecordingWriter
+from .mcap_io import RecordingLostError, RecordingWriter
 from .pose_plan import PosePlan
 from .pose_sequencer import Mode, Phase, PoseSequencer, SequencerEvent
 from .static_detector import estimate_noise_var, moving_variance, quantisation_var
@@ -100,6 +101,13 @@ class DetectorSettings:
         if self.noise_std is not None and (len(self.noise_std) != 3 or not all(math.isfinite(s) and s > 0
                                                                               for s in self.noise_std)):
             raise ValueError(f"detector noise_std must be 3 positive numbers (Psi units), got {self.noise_std}")
+
+
+def describe_write_error(exc: OSError) -> str:
+    """An OSError of the recording in words, with its errno name (``ENOSPC``, ...)."""
+    name = errno.errorcode.get(exc.errno, "") if exc.errno is not None else ""
+    text = exc.strerror or str(exc)
+    return f"{name} ({text})" if name else text
 
 
 def learning_shift(psi: np.ndarray, noise_var: np.ndarray, blocks: int = LEARN_BLOCKS) -> float:
@@ -175,6 +183,9 @@ class RunRecorder:
         self.temperature_seen_c = [math.inf, -math.inf]
         self.last_pose_id = -1
         self.finished_reason = ""
+        self.write_error = ""  # why writing the recording failed (the run was aborted then), "" if it did not
+        self.poses_on_disk: list[int] = []  # poses completed and ended in a chunk (safe after a crash)
+        self._pending_label = -1
         self._recent: deque[np.ndarray] = deque(maxlen=RECENT_SAMPLES)
         self._pose_level_index = -1
         self._pose_sum = np.zeros(3)
@@ -188,7 +199,19 @@ class RunRecorder:
 
     # ------------------------------------------------------------------ inputs
     def on_raw(self, s: RawSample) -> int:
-        """Record one raw sample; returns its pose id (-1 when not one of a pose's recorded samples)."""
+        """Record one raw sample; returns its pose id (-1 when not one of a pose's recorded samples).
+
+        Never raises an ``OSError`` of the recording (disk full, file removed): the run is aborted with a
+        warning instead (:attr:`write_error`) and later samples are ignored."""
+        if self.write_error:
+            return -1
+        try:
+            return self._on_raw(s)
+        except OSError as exc:
+            self._write_failed(exc)
+            return -1
+
+    def _on_raw(self, s: RawSample) -> int:
         c = self.counters
         c.messages_raw += 1
         step = self._check_seq(s)
@@ -245,10 +268,12 @@ class RunRecorder:
                 self._say("warn", f"pose {pose_id}: a channel clipped at a rail of the ADC (an axis at 0 or {ADC_MAX} "
                                   f"counts, or the reference at {ADC_MAX}): the fit leaves this visit out; lower the "
                                   "source power or the gain and repeat the pose")
+        self._pending_label = pose_id  # counted by the sequencer, not yet written
         self._write_pose_event(s.stamp_ns, pose_id)
         self.writer.write_raw(s.stamp_ns, s.ref, (s.x, s.y, s.z), temperature_c=temp,
                               temperature_valid=bool(s.temperature_valid), status=int(s.status), seq=int(s.seq),
                               board_time_s=t_s)
+        self._pending_label = -1
         seq = self.sequencer
         completed = pose_id >= 0 and (seq.phase is not Phase.RECORDING or seq.index != pose_id)
         interrupted = self.last_pose_id >= 0 and pose_id != self.last_pose_id
@@ -256,12 +281,19 @@ class RunRecorder:
             # end the chunk so a crash keeps the pose's samples: on its last sample (the one that
             # reports "recorded") when it is complete, on the first unlabelled one when it pauses
             self.writer.flush()
+            if completed:
+                self.poses_on_disk.append(pose_id)
         self.last_pose_id = -1 if completed else pose_id
         return pose_id
 
     def on_temperature(self, stamp_ns: int, temperature_c: float, variance_c2: float) -> None:
+        if self.write_error:
+            return
         self.counters.messages_temperature += 1
-        self.writer.write_temperature(stamp_ns, temperature_c, variance_c2)
+        try:
+            self.writer.write_temperature(stamp_ns, temperature_c, variance_c2)
+        except OSError as exc:
+            self._write_failed(exc)
 
     def request_next(self) -> tuple[bool, str]:
         if self.monitor is None:
@@ -316,19 +348,48 @@ class RunRecorder:
             "board_rate_hz": self.rate_hz,
             "detector_noise_std_psi": [float(v) for v in self.noise_std],
             "temperature_range_c": [lo, hi] if math.isfinite(lo) else [],
+            "write_error": self.write_error,
         }
 
     def close(self, reason: str) -> dict[str, Any]:
-        """Write the closing pose event and the ``run_end`` record, finish the MCAP; returns the summary."""
+        """Write the closing pose event and the ``run_end`` record, finish the MCAP; returns the summary.
+
+        Never raises an ``OSError`` of the recording: after a failed write the file is closed as it is (it
+        reads up to its last complete chunk); a failure here is reported in the summary's ``write_error``."""
         self.finished_reason = reason
-        if self._last_stamp is not None and self._event_key != ("done", self.sequencer.index):
-            # 1 ns after the last sample: an event applies to samples at or after its stamp
-            self.writer.write_pose(self._last_stamp + 1, -1, "done", index=self.sequencer.index, count=len(self.plan),
-                                   extra={"phase": self.sequencer.phase.value}, sensor_id=self.sensor_id)
-        summary = self.summary()
-        self.writer.add_metadata("run_end", summary)
-        self.writer.close()
-        return summary
+        if self.write_error:
+            self.writer.abandon()
+            return self.summary()
+        try:
+            if self._last_stamp is not None and self._event_key != ("done", self.sequencer.index):
+                # 1 ns after the last sample: an event applies to samples at or after its stamp
+                self.writer.write_pose(self._last_stamp + 1, -1, "done", index=self.sequencer.index,
+                                       count=len(self.plan), extra={"phase": self.sequencer.phase.value},
+                                       sensor_id=self.sensor_id)
+            self.writer.add_metadata("run_end", self.summary())
+            self.writer.close()
+        except OSError as exc:
+            self._write_failed(exc, closing=True)
+            self.writer.abandon()
+        return self.summary()
+
+    def _write_failed(self, exc: OSError, closing: bool = False) -> None:
+        """Writing the recording failed: abort the run (what follows cannot be recorded) and say at once what
+        is safely on disk."""
+        if self._pending_label >= 0:  # the sequencer counted a sample that was not written
+            self.sequencer.retract(self._pending_label, 1, "not written")
+            self._pending_label = -1
+        self.write_error = describe_write_error(exc)
+        path = self.writer.path
+        if isinstance(exc, RecordingLostError):
+            kept = "the recording is lost (nothing of this run remains on disk)"
+        else:
+            kept = (f"{path} reads up to its last complete chunk: " + (
+                f"pose(s) {', '.join(str(k) for k in self.poses_on_disk)} complete on disk"
+                if self.poses_on_disk else "no complete pose"))
+        when = "while closing the recording" if closing else "run aborted"
+        self._say("warn", f"writing {path} failed: {self.write_error}; {when}; {kept}")
+        self.sequencer.abort(f"recording failed: {self.write_error}", even_if_done=not closing)
 
     # ------------------------------------------------------------------ internals
     def _say(self, level: str, text: str) -> None:

@@ -47,3 +47,30 @@ def test_a_board_reset_neither_stalls_the_run_nor_its_chunks_nor_counts_as_lost(
     gaps = [b - a for a, b in zip([0, *flushed], flushed, strict=False)]
     assert max(gaps) <= RATE * 1.0 + 3, f"longest stretch without a chunk end: {max(gaps) / RATE:.1f} s"
     assert (summary["lost_messages"], summary["repeated_messages"], summary["board_resets"]) == (0, 0, 1)
+
+
+def test_disk_full_aborts_a_dynamic_run_without_raising(tmp_path, monkeypatch):
+    """ENOSPC at a chunk end: the OSError escaped on_raw (the node died with a traceback) and close() raised
+    again. The run ends aborted with a warning naming the error; close() returns the summary."""
+    import errno
+
+    from fbg_accel_calibration import mcap_io
+
+    orig = mcap_io._UnbufferedSink.write
+
+    def full(self, data):
+        if self._pos + len(data) > 20_000:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return orig(self, data)
+
+    monkeypatch.setattr(mcap_io._UnbufferedSink, "write", full)
+    rec = DynamicRunRecorder(ExcitationPlan.load(PLAN), RecordingWriter(tmp_path / "dyn.mcap", {}), sensor_id="t")
+    n = 0
+    while not rec.finished and n < 20_000:
+        rec.on_raw(RawSample(stamp_ns=10**18 + n * 10_000_000, ref=2000.0, x=1000.0, y=1000.0, z=1500.0, seq=n,
+                             board_time_s=n / RATE, aux=2048.0 + n % 7))  # must not raise
+        n += 1
+    assert rec.finished and not rec.done
+    assert any(level == "warn" and "ENOSPC" in text for level, text in rec.pop_messages())
+    summary = rec.close("test")  # must not raise
+    assert summary["result"] == "incomplete" and "ENOSPC" in summary["write_error"]

@@ -338,3 +338,21 @@ def test_reads_raw_messages_written_by_another_ros2_writer(tmp_path: Path) -> No
     np.testing.assert_array_equal(rec.xyz[:, 0], np.arange(50.0))
     np.testing.assert_allclose(rec.t_s, np.arange(50) * 0.01)
     assert (rec.pose_id == -1).all() and np.isnan(rec.gref_mps2).all()
+
+
+def test_writer_notices_that_its_path_no_longer_names_the_file_it_writes(tmp_path: Path) -> None:
+    """Writes into a deleted (unlinked) file succeed on Linux: a removed output directory went unnoticed
+    until the run was over. flush() and close() check the path against the open file (device, inode)."""
+    from fbg_accel_calibration.mcap_io import RecordingLostError
+
+    w = RecordingWriter(tmp_path / "a.mcap", {"sensor_id": "t"})
+    w.write_temperature(1, 24.0)
+    w.flush()  # the path names the file: no error
+    (tmp_path / "a.mcap").unlink()
+    (tmp_path / "a.mcap").write_bytes(b"someone else's file")
+    with pytest.raises(RecordingLostError, match="replaced"):
+        w.flush()
+    (tmp_path / "a.mcap").unlink()
+    with pytest.raises(RecordingLostError, match="no longer exists"):
+        w.close()
+    w.close()  # closed: idempotent

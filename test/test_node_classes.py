@@ -6,6 +6,7 @@ The process tests (test_driver_process, test_calibration_node_process, ...) cove
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -133,6 +134,17 @@ def test_driver_without_calibration_publishes_raw_and_temperature_only(make_driv
     node = make_driver(calibration_file="none")
     assert DATA_TOPICS - set(publishers(node)) == {"/imu/data_raw"}
     assert node.calibration is None and node.cal_info["sensor_id"] == "uncalibrated"
+
+
+def test_calibration_node_recording_failure_ends_with_status_recording_failed(make_calibration: Any,
+                                                                             tmp_path: Path) -> None:
+    """The output directory removed during the run: the node said "fit failed ...; the recording is kept"
+    (status 1) or "done"; a failed recording is status 4, whatever the sequencer reached."""
+    node = make_calibration(output_dir=str(tmp_path / "out"))
+    assert node.mcap_path.is_file()
+    shutil.rmtree(tmp_path / "out")
+    assert node.finish() == calibration_main.EXIT_RECORDING_FAILED
+    assert "ENOENT" in node.recorder.write_error and not node.yaml_path.exists()
 
 
 @pytest.mark.parametrize(("values", "message"), [

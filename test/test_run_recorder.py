@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import errno
 import math
+import shutil
 
 import numpy as np
 import pytest
 
+from fbg_accel_calibration import mcap_io
 from fbg_accel_calibration.mcap_io import RecordingWriter, read_file
 from fbg_accel_calibration.pose_plan import PosePlan
 from fbg_accel_calibration.pose_sequencer import Mode, Phase
@@ -157,6 +160,64 @@ def test_an_auto_mode_skip_on_table_late_does_not_shift_every_later_pose(tmp_pat
     for k in (1, 2):
         wrong = int(np.sum(truth[labels == k] != k))
         assert int(np.sum(labels == k)) == 40 and wrong == 0, f"pose {k}: {wrong} samples taken at another pose"
+
+
+def test_output_directory_removed_mid_run_is_said_at_once_and_the_run_aborted(tmp_path):
+    """rm -rf of the output directory while recording: Linux keeps writing into the unlinked file, the run
+    ended "done" and the node said the recording "is kept". The recorder notices at the next chunk end (the
+    path no longer names the file it writes), warns naming the file and aborts the run."""
+    out = tmp_path / "runs"
+    out.mkdir()
+    plan = _plan3()
+    rec = RunRecorder(plan, RecordingWriter(out / "run.mcap", {"sensor_id": "t"}), Mode.AUTO,
+                      DetectorSettings(learn_s=1.0, hold_s=0.5), sensor_id="t")
+    stream = _stream([("hold", 400, (0, 0, 0)), ("move", 200, (0, 0, 0, 180)), ("hold", 300, (0, 180, 1)),
+                      ("move", 200, (0, 180, 90, 90)), ("hold", 300, (90, 90, 2))])
+    warned: list[str] = []
+    for i, (s, _, _) in enumerate(stream):
+        rec.on_raw(s)
+        warned += [text for level, text in rec.pop_messages() if level == "warn" and "run.mcap" in text]
+        if i == 500:
+            shutil.rmtree(out)
+        if warned:
+            break
+    assert warned and "no longer exists" in warned[0] and "lost" in warned[0]
+    assert i < 1000 and rec.finished and not rec.done  # at the end of pose 1, not at the end of the run
+    summary = rec.close("complete")  # must not raise
+    assert summary["result"] == "aborted" and "ENOENT" in summary["write_error"]
+
+
+def test_disk_full_mid_run_aborts_with_a_warning_and_closes_without_raising(tmp_path, monkeypatch):
+    """ENOSPC while recording: on_raw raised OSError out of the recorder (the node died with a traceback and
+    status 1, "fit failed") after the sequencer had counted the unwritten sample, and close() raised again.
+    The run must end aborted with a warning naming the error and what is on disk; the completed pose reads."""
+    limit = 20_000
+    orig = mcap_io._UnbufferedSink.write
+
+    def full(self, data):
+        if self._pos + len(data) > limit:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return orig(self, data)
+
+    monkeypatch.setattr(mcap_io._UnbufferedSink, "write", full)
+    plan = _plan3()
+    rec = _recorder(tmp_path, plan)
+    stream = _stream([("hold", 400, (0, 0, 0)), ("move", 200, (0, 0, 0, 180)), ("hold", 300, (0, 180, 1)),
+                      ("move", 200, (0, 180, 90, 90)), ("hold", 300, (90, 90, 2))])
+    for s, _, _ in stream:
+        rec.on_raw(s)  # must not raise
+        if rec.finished:
+            break
+    assert rec.finished and not rec.done
+    warns = [text for level, text in rec.pop_messages() if level == "warn"]
+    assert any("ENOSPC" in text and "pose(s) 0 complete on disk" in text for text in warns), warns
+    summary = rec.close("disk full")  # must not raise
+    assert summary["result"] == "aborted" and "ENOSPC" in summary["write_error"]
+    on_disk = {p["index"]: p["samples"] for p in summary["poses"]}
+    r, report = read_file(tmp_path / "run.mcap")
+    assert not report.complete
+    assert int(np.sum(r.pose_id == 0)) == plan.poses[0].samples == on_disk[0]
+    assert int(np.sum(r.pose_id >= 0)) <= sum(on_disk.values())  # nothing counted that is not written
 
 
 def test_a_pose_is_on_disk_when_its_recorded_event_is_reported(tmp_path):
