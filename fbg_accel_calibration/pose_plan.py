@@ -12,7 +12,9 @@ Each pose gives its reference either as table angles ``psi_deg``/``theta_deg`` (
 convention of ``table_geometry``: f = Rz(psi)^T Rx(theta)^T (0, 0, g)) or directly as the
 reference specific force ``gref_mps2`` (3 values, m/s^2, table frame). At rest on a table the
 specific force has magnitude g, so a ``gref_mps2`` whose norm is off the plan's local g by more
-than ``GREF_NORM_TOLERANCE`` is refused (it is almost always a unit slip, g instead of m/s^2).
+than ``GREF_NORM_TOLERANCE`` is refused (it is almost always a unit slip, g instead of m/s^2). Likewise
+table angles in radians: a plan whose angles are all within 2 pi, some near a non-zero multiple of pi/2,
+and whose references all lie within ``RADIAN_SPREAD_DEG`` of each other is refused.
 
 Every problem raises ``PosePlanError`` with one message naming the file and the offending key.
 """
@@ -37,6 +39,8 @@ GREF_NORM_TOLERANCE = 0.01  # relative; |gref| must be within 1 % of the plan's 
 LOCAL_G_RANGE_MPS2 = (9.76, 9.84)  # gravity on the Earth's surface spans about 9.764 (equator, high) to 9.834 (poles)
 CHAMBER_RANGE_C = (-70.0, 180.0)  # widest range of common climatic chambers; outside is a typo
 DEFAULT_SAMPLES_PER_POSE = 100  # paper section 4.5: 100 samples per pose
+RADIAN_ANGLE_TOLERANCE = 0.01  # rad; an angle this close to a multiple of pi/2 looks like radians
+RADIAN_SPREAD_DEG = 15.0  # deg; a plan whose references all lie this close to each other is no calibration
 DEFAULT_MOVE_S = 5.0  # s, time the table takes between two poses (only the simulator's scenario uses it)
 
 _TOP_KEYS = {"format", "format_version", "name", "description", "local_g_mps2", "samples_per_pose", "dwell_s", "move_s",
@@ -235,11 +239,34 @@ def _parse(d: Any, source: str) -> PosePlan:
         samples = _count(rp.get("samples", default_samples), f"{where}.samples")
         poses.append(Pose(i, pname, gref, dwell, samples, psi, theta))
 
+    _refuse_radians(poses, source)
     chamber = None
     if d.get("chamber") is not None:
         chamber = _parse_chamber(d["chamber"], f"{source}: chamber")
     return PosePlan(name=name, poses=tuple(poses), local_g_mps2=g, move_s=move_s, chamber=chamber,
                     description=str(d.get("description", "")), source=source, raw=dict(d))
+
+
+def _refuse_radians(poses: list[Pose], source: str) -> None:
+    """Refuse table angles that look like radians written into the ``*_deg`` keys (pi, pi/2, ...): the
+    references then all lie within a few degrees of each other and the run calibrates against wrong
+    references, as a ``gref_mps2`` in g would (which is refused by its norm)."""
+    angled = [p for p in poses if p.psi_deg is not None]
+    if len(angled) < 2:
+        return
+    angles = np.array([a for p in angled for a in (p.psi_deg, p.theta_deg)], dtype=float)
+    if np.any(np.abs(angles) > 2 * np.pi + RADIAN_ANGLE_TOLERANCE):
+        return
+    quarter = angles / (np.pi / 2)
+    near = (np.abs(quarter - np.round(quarter)) * (np.pi / 2) < RADIAN_ANGLE_TOLERANCE) & (np.round(quarter) != 0)
+    if not np.any(near):
+        return
+    unit = np.array([p.gref_mps2 / np.linalg.norm(p.gref_mps2) for p in angled])
+    spread = float(np.degrees(np.arccos(np.clip(unit @ unit.T, -1.0, 1.0))).max())
+    if spread < RADIAN_SPREAD_DEG:
+        shown = ", ".join(f"{a:g}" for a in angles[near][:4])
+        raise PosePlanError(f"{source}: the table angles look like radians ({shown} are near multiples of pi/2) and "
+                            f"all poses lie within {spread:.1f} deg of each other; psi_deg/theta_deg are in degrees")
 
 
 def _parse_chamber(c: Any, where: str) -> ChamberPlan:

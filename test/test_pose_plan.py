@@ -156,3 +156,17 @@ def test_plans_and_the_simulator_config_share_the_calibration_files_yaml_loader(
     sim.write_text("seed: 1\nseed: 2\n", encoding="utf-8")
     with pytest.raises(SimConfigError, match="found duplicate key 'seed'"):
         SimConfig.load(sim)
+
+
+def test_table_angles_in_radians_are_refused_like_a_gref_in_g():
+    """A gref_mps2 in g is refused as a unit slip; angles in radians (pi, pi/2 written into *_deg) were taken as
+    degrees: every pose within 0.06 g of z_up, and the run "calibrated" against wrong references."""
+    with pytest.raises(PosePlanError, match="radian"):
+        PosePlan.from_dict({"dwell_s": 5.0, "poses": [
+            {"name": "z_up", "psi_deg": 0, "theta_deg": 0},
+            {"name": "z_down", "psi_deg": 0, "theta_deg": 3.14159},
+            {"name": "x_up", "psi_deg": 1.5708, "theta_deg": 1.5708},
+            {"name": "y_down", "psi_deg": 0, "theta_deg": 4.71239}]})
+    # small tilts in degrees that are no multiple of pi/2 stay accepted (e.g. a plan of near-level poses)
+    PosePlan.from_dict({"dwell_s": 5.0, "poses": [{"psi_deg": 0, "theta_deg": 0}, {"psi_deg": 0, "theta_deg": 2.5},
+                                                  {"psi_deg": 90, "theta_deg": 2.5}]})
