@@ -27,6 +27,8 @@ from .pose_sequencer import SequencerEvent
 from .run_recorder import RawSample, RunCounters, describe_write_error
 
 PROGRESS_EVERY_S = 10.0
+RATE_SAMPLES = 20  # samples to measure the board rate
+NYQUIST_FRACTION = 0.45  # a segment at this fraction of the board rate or above is refused by the offline fit
 
 
 class DynamicRunRecorder:
@@ -56,6 +58,8 @@ class DynamicRunRecorder:
         self._kind = "velocity" if plan.reference.type == "ldv" else "acceleration"
         self._temperature_c = math.nan
         self.aux_samples = 0
+        self.rate_hz = math.nan  # board rate, measured from the first RATE_SAMPLES samples
+        self._rate_t: list[float] = []
         self.write_error = ""  # why writing the recording failed (the run was aborted then), "" if it did not
         self._on_disk_s = 0.0  # elapsed board time (s) up to which the recording is in ended chunks
 
@@ -97,6 +101,8 @@ class DynamicRunRecorder:
             self.messages.append(("warn", "imu/raw has no aux_counts: the board sends protocol version 1, so the "
                                           "reference transducer is not recorded (docs/protocol.md, version 2)"))
         self._elapsed = step.elapsed_s
+        if not math.isfinite(self.rate_hz):
+            self._measure_rate(step.elapsed_s)
         if self._elapsed - self._last_chunk_s >= self.chunk_period_s:
             self.writer.flush()  # a killed run keeps everything up to here
             self._last_chunk_s = self._elapsed
@@ -170,6 +176,25 @@ class DynamicRunRecorder:
             self._write_failed(exc, closing=True)
             self.writer.abandon()
         return self.summary()
+
+    def _measure_rate(self, elapsed_s: float) -> None:
+        """Board rate from the first samples; warns at once of segments the offline fit will refuse
+        (``fbg-accel-calib dynamic``: a segment at >= ``NYQUIST_FRACTION`` x the board rate)."""
+        self._rate_t.append(elapsed_s)
+        if len(self._rate_t) < RATE_SAMPLES:
+            return
+        dt = np.diff(np.asarray(self._rate_t))
+        dt = dt[dt > 0]
+        if dt.size == 0:
+            return
+        self.rate_hz = float(1.0 / np.median(dt))
+        self._rate_t.clear()
+        near = [seg.freq_hz for seg in self.plan.segments if seg.freq_hz >= NYQUIST_FRACTION * self.rate_hz]
+        if near:
+            self.messages.append(("warn", f"segment(s) at {', '.join(f'{f:g}' for f in near)} Hz are at or above "
+                                  f"{NYQUIST_FRACTION:g} x the board rate of {self.rate_hz:.1f} Hz (Nyquist "
+                                  f"{self.rate_hz / 2:.1f} Hz): fbg-accel-calib dynamic will refuse them; record at a "
+                                  "higher board rate or drop them from the plan"))
 
     def _write_failed(self, exc: OSError, closing: bool = False) -> None:
         """Writing the recording failed: abort the run and say at once what is safely on disk."""

@@ -74,3 +74,22 @@ def test_disk_full_aborts_a_dynamic_run_without_raising(tmp_path, monkeypatch):
     assert any(level == "warn" and "ENOSPC" in text for level, text in rec.pop_messages())
     summary = rec.close("test")  # must not raise
     assert summary["result"] == "incomplete" and "ENOSPC" in summary["write_error"]
+
+
+def test_segments_near_the_nyquist_frequency_of_the_board_are_warned_at_once(tmp_path):
+    """A 60 Hz segment on a 100 Hz board: fbg-accel-calib dynamic refuses it after the run (>= 0.45 fs), but the
+    recorder, which knows the board rate after a few samples, recorded the whole plan without a word."""
+    plan = ExcitationPlan.from_dict({
+        "format": "fbg_accel_excitation_plan", "format_version": 1, "direction": [0.5, -0.5, 0.70710678],
+        "reference": {"type": "ldv", "sensitivity_counts_per_mps": 2500.0},
+        "segments": [{"freq_hz": 2.0, "amplitude_mps2": 2.0, "duration_s": 6.0},
+                     {"freq_hz": 60.0, "amplitude_mps2": 2.0, "duration_s": 6.0}]})
+    rec = DynamicRunRecorder(plan, RecordingWriter(tmp_path / "dyn.mcap", {}))
+    msgs = []
+    for i in range(50):  # 0.5 s
+        rec.on_raw(RawSample(stamp_ns=10**18 + i * 10**7, ref=870, x=2000, y=2000, z=2000, seq=i, board_time_s=i / RATE,
+                             aux=2048.0))
+        msgs += rec.pop_messages()
+    rec.close("test")
+    warned = [text for level, text in msgs if level == "warn" and "Nyquist" in text]
+    assert len(warned) == 1 and "segment(s) at 60 Hz are" in warned[0], warned
