@@ -8,9 +8,12 @@ The node hands every ``imu/raw`` message to :meth:`RunRecorder.on_raw` and every
 2. computes Psi = counts / reference (paper eq. 24) and feeds it to the static-interval detector
    (:class:`~fbg_accel_calibration.stillness_monitor.StillnessMonitor`), whose verdict drives the
    :class:`~fbg_accel_calibration.pose_sequencer.PoseSequencer`;
-3. tells the sequencer whether the signal has *left the pose* (``DEPART_SIGMAS`` noise sigmas from
-   the pose's mean Psi for ``DEPART_CONFIRM`` samples), so a detector false alarm or a knock at the
-   pose pauses the recording instead of being taken for the table's move to the next pose; a fast change
+3. tells the sequencer whether the signal has *left the pose*: the mean Psi of the detector's trailing
+   window further from the pose's mean Psi than the detector's level threshold, on ``DEPART_CONFIRM_WINDOWS``
+   windows of consecutive samples, so a detector false alarm or a knock at the pose pauses the recording
+   instead of being taken for the table's move to the next pose. The departure is dated to the first sample
+   of the first window off the level; the pose's samples from then on are taken back (a ``moving`` pose
+   event at that stamp, written after them, and the sequencer's count): they were taken in motion; a fast change
    of the source power (the reference ``SOURCE_SIGMAS`` noise sigmas off its slow baseline: no table move
    changes the reference channel, but Psi is distorted while the differently low-passed channels follow
    the change) is neither stillness nor motion: the pose pauses, the detector restarts after it;
@@ -63,8 +66,8 @@ from .stillness_monitor import (
 
 LEARN_BLOCKS = 4  # the learning period is cut into this many blocks whose means must agree
 LEARN_SHIFT_LIMIT = 8.0  # largest block-mean difference (in noise sigmas) accepted as "still" while learning
-DEPART_SIGMAS = 10.0  # a sample this many noise sigmas from the pose's mean Psi is off the pose
-DEPART_CONFIRM = 5  # consecutive such samples: the table has left the pose (not a glitch or a knock)
+DEPART_CONFIRM_WINDOWS = 2  # windows of consecutive samples whose window mean is off the pose's level: the table
+# has left the pose (a knock shorter than a window shifts the window mean for less than two windows)
 SOURCE_SIGMAS = 10.0  # a reference this many reference-noise sigmas off its baseline is a source-power event
 SOURCE_BASELINE_S = 2.0  # s; time constant of the reference baseline (follows the slow wander of the source)
 SOURCE_REBASE_S = 5.0  # s; a reference off its baseline this long is the source's new level (warned)
@@ -191,6 +194,11 @@ class RunRecorder:
         self._pose_sum = np.zeros(3)
         self._pose_n = 0
         self._depart_run = 0
+        self._depart_window: deque[np.ndarray] = deque()  # Psi of the trailing window (departure test)
+        self._depart_start_ns = 0  # stamp of the first sample of the first window off the pose's level
+        self._pending: deque[np.ndarray] = deque()  # labelled Psi not yet in the pose's level (still in the window)
+        self._trail: deque[tuple[int, int]] = deque()  # (stamp, label) of the last samples, to take labels back
+        self._recording_events: deque[tuple[int, int]] = deque(maxlen=8)  # (stamp, pose) of recording events
         self._clipped_pose = -1  # the last pose warned of a clipped reading
         self._ref_base = math.nan  # counts; slow baseline of the reference (source power)
         self._ref_std = math.nan  # counts; noise of the reference, learnt at start-up
@@ -251,11 +259,20 @@ class RunRecorder:
                 # hold covers the channels' settling) and not a departure (the table did not move)
                 self.monitor.reset()
                 self._depart_run = 0
+                self._depart_window.clear()
                 still, departed = False, False
             else:
                 still = self.monitor.update(psi)
-                departed = self._departed(psi)
+                departed = self._departed(psi, s.stamp_ns)
+                seq = self.sequencer
+                if departed and seq.phase is Phase.RECORDING and seq.index == self._pose_level_index:
+                    still = False  # the signal has left the pose being recorded, whatever the window variance says
             pose_id = self.sequencer.step(t_s, still, departed)
+            self._trail.append((s.stamp_ns, pose_id))
+            while len(self._trail) > (DEPART_CONFIRM_WINDOWS + 1) * self.monitor.window + 1:
+                self._trail.popleft()
+            if departed and self._depart_run == DEPART_CONFIRM_WINDOWS * self.monitor.window:
+                self._retract_departure()
             if self.sequencer.stillness_stale:
                 # the table left the pose while the detector still holds the pose's stillness: restart it,
                 # so stillness at the next pose comes from a fresh window and hold after the motion
@@ -500,26 +517,68 @@ class RunRecorder:
             return False
         return True
 
-    def _departed(self, psi: np.ndarray) -> bool | None:
+    def _departed(self, psi: np.ndarray, stamp_ns: int) -> bool | None:
         """Has the signal left the level of the current / last recorded pose (the table really moved)?
 
-        True after ``DEPART_CONFIRM`` consecutive samples further than ``DEPART_SIGMAS`` noise sigmas
-        from the pose's mean Psi on some axis; None while no pose level is known yet.
+        The mean of the trailing window (the detector's) against the pose's mean Psi, with the detector's
+        level threshold (``StillnessMonitor.level_threshold``: the difference of two window means of the still
+        signal exceeds it with the leave threshold's per-window probability): True after
+        ``DEPART_CONFIRM_WINDOWS`` windows of consecutive samples off the level on some axis; None while no
+        pose level is known yet. A per-sample test (10 sigmas on 5 samples) noticed a slow departure only
+        when it was nearly over: a third of a pose's samples were taken in motion.
         """
+        assert self.monitor is not None
+        w = self.monitor.window
+        if np.all(np.isfinite(psi)):
+            self._depart_window.append((stamp_ns, psi))
+            while len(self._depart_window) > w:
+                self._depart_window.popleft()
         if self._pose_n < 1:
             return None
-        mean = self._pose_sum / self._pose_n
-        far = bool(np.any(np.abs(psi - mean) > DEPART_SIGMAS * self.noise_std))
-        self._depart_run = self._depart_run + 1 if far else 0
-        return self._depart_run >= DEPART_CONFIRM
+        if len(self._depart_window) < w:
+            return self._depart_run >= DEPART_CONFIRM_WINDOWS * w
+        level = self._pose_sum / self._pose_n
+        mean = np.mean([p for _, p in self._depart_window], axis=0)
+        if np.any(np.abs(mean - level) > self.monitor.level_threshold):
+            if self._depart_run == 0:
+                self._depart_start_ns = self._depart_window[0][0]
+            self._depart_run += 1
+        else:
+            self._depart_run = 0
+        return self._depart_run >= DEPART_CONFIRM_WINDOWS * w
+
+    def _retract_departure(self) -> None:
+        """The table has left pose k: its samples from the first window off the level on were taken in
+        motion. They are taken back from the sequencer's count, and a ``moving`` pose event at the departure
+        start (written after them: an event applies to the samples at or after its stamp) takes them out of
+        the pose in the file; a pose resumed after that stamp gets the same at its ``recording`` event."""
+        k = self._pose_level_index
+        if k < 0:
+            return
+        start = self._depart_start_ns
+        n = sum(1 for stamp, label in self._trail if label == k and stamp >= start)
+        if n == 0:
+            return
+        self.sequencer.retract(k, n, "taken after the table began to leave the pose")
+        pose = self.plan.poses[k]
+        extra = {"phase": self.sequencer.phase.value, "name": pose.name, "retracted": n}
+        for stamp in [start] + [t for t, j in self._recording_events if j == k and t > start]:
+            self.writer.write_pose(stamp, -1, "moving", index=k, count=len(self.plan), extra=extra,
+                                   sensor_id=self.sensor_id)
+        self._event_key = None  # the next sample's state is written again
+        self.writer.flush()
 
     def _track_pose_level(self, pose_id: int, psi: np.ndarray) -> None:
         """Mean Psi of the pose being recorded, seeded with the still window that preceded its first sample."""
         if pose_id >= 0 and np.all(np.isfinite(psi)):
             if pose_id != self._pose_level_index:
                 self._seed_level(pose_id, list(self._recent))
-            self._pose_sum = self._pose_sum + psi
-            self._pose_n += 1
+            # a sample joins the level once it has left the trailing window: the window is compared with
+            # samples before it, so the level does not follow a departure as it begins
+            self._pending.append(psi)
+            if self.monitor is not None and len(self._pending) > self.monitor.window:
+                self._pose_sum = self._pose_sum + self._pending.popleft()
+                self._pose_n += 1
         if np.all(np.isfinite(psi)):
             self._recent.append(psi)
 
@@ -528,6 +587,7 @@ class RunRecorder:
         self._pose_level_index = index
         self._pose_sum = np.sum(prior, axis=0) if prior else np.zeros(3)
         self._pose_n = len(prior)
+        self._pending.clear()
         self._depart_run = 0
 
     def _motion_while_learning(self, shift: float) -> None:
@@ -570,6 +630,7 @@ class RunRecorder:
                 extra["theta_deg"] = pose.theta_deg
             if state == "recording":
                 self.writer.write_reference_gravity(stamp_ns, pose.gref_mps2)
+                self._recording_events.append((stamp_ns, index))
         if self.setpoint_c is not None:
             extra["setpoint_c"] = self.setpoint_c
         self.writer.write_pose(stamp_ns, pose_id, state, index=index, count=len(self.plan), extra=extra,

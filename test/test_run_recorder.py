@@ -162,6 +162,35 @@ def test_an_auto_mode_skip_on_table_late_does_not_shift_every_later_pose(tmp_pat
         assert int(np.sum(labels == k)) == 40 and wrong == 0, f"pose {k}: {wrong} samples taken at another pose"
 
 
+def test_samples_taken_after_the_table_started_to_leave_are_not_kept_as_the_pose(tmp_path):
+    """A 3 s raised-cosine move starts while pose 1 records. The departure test (10 per-sample sigmas on 5
+    samples, against a pose mean that followed the drift) noticed it when it was nearly over: 33/100 of pose 1's
+    samples were taken in motion, up to 0.64 m/s^2 off its gravity (per-sample noise about 0.09 m/s^2 per
+    axis), and the pose was reported complete. Samples from the start of the departure on are taken back,
+    in the file and in the count, and the pose is closed short."""
+    plan = PosePlan.from_dict({"dwell_s": 3.0, "move_s": 3.0, "samples_per_pose": 100,
+                               "poses": [{"name": "z_up", "psi_deg": 0, "theta_deg": 0, "dwell_s": 4.0},
+                                         {"name": "x_up", "psi_deg": 90, "theta_deg": 90},
+                                         {"name": "z_down", "psi_deg": 0, "theta_deg": 180}]})
+    stream = _stream([("hold", 400, (0, 0, 0)), ("move", 300, (0, 0, 90, 90)), ("hold", 120, (90, 90, 1)),
+                      ("move", 300, (90, 90, 0, 180)), ("hold", 400, (0, 180, 2))])
+    rec = _recorder(tmp_path, plan)
+    for s, _, _ in stream:
+        rec.on_raw(s)
+    assert rec.done
+    summary = rec.close("test")
+    r, _ = read_file(tmp_path / "run.mcap")
+    g = np.array([g for _, _, g in stream])
+    truth = np.array([t for _, t, _ in stream])
+    for k in range(3):
+        err = np.linalg.norm(g[r.pose_id == k] - plan.poses[k].gref_mps2, axis=1)
+        assert err.max() < 0.3, f"pose {k}: {int(np.sum(truth[r.pose_id == k] != k))} samples taken in motion, " \
+            f"up to {err.max():.2f} m/s^2 off"
+    pose1 = summary["poses"][1]
+    assert pose1["closed_short"] and pose1["samples"] == int(np.sum(r.pose_id == 1)) < 100
+    assert [p["samples"] for p in summary["poses"]][::2] == [100, 100]
+
+
 def test_output_directory_removed_mid_run_is_said_at_once_and_the_run_aborted(tmp_path):
     """rm -rf of the output directory while recording: Linux keeps writing into the unlinked file, the run
     ended "done" and the node said the recording "is kept". The recorder notices at the next chunk end (the
