@@ -643,10 +643,13 @@ SETTLE_NOISE_FRACTION = 0.1
 MAX_SETTLE_S = float(10.0 * np.max(TIA_TAU_S))
 
 
-def settled_mask(t_s: np.ndarray, groups: np.ndarray, rows: np.ndarray, settle_s: float = 0.0) -> np.ndarray:
+def settled_mask(t_s: np.ndarray, groups: np.ndarray, rows: np.ndarray, settle_s: float = 0.0,
+                 end_s: float | None = None) -> np.ndarray:
     """Settled samples (N,) among ``rows``: the first sample of every visit and every sample less than
     ``settle_s`` (s, board time) after it are dropped (the settling transient after a table move).
-    At least the first sample of a visit is always dropped, whatever the sample rate."""
+    At least the first sample of a visit is always dropped, whatever the sample rate. ``end_s`` (s): the same at
+    the other end, for a visit whose end is disturbed (``SettlingTransient.end_detected``): the last sample and
+    every sample less than ``end_s`` before it are dropped; None (the default): the end is kept."""
     idx = np.flatnonzero(rows)
     out = np.zeros(len(t_s), bool)
     if idx.size == 0:
@@ -659,7 +662,14 @@ def settled_mask(t_s: np.ndarray, groups: np.ndarray, rows: np.ndarray, settle_s
     age = t - t0[inv]
     first = np.zeros(len(idx), bool)
     first[np.unique(inv, return_index=True)[1]] = True  # idx is time-ordered within a run
-    out[idx] = (age >= settle_s) & ~first
+    keep = (age >= settle_s) & ~first
+    if end_s is not None:
+        t1 = np.full(len(ug), -np.inf)
+        np.maximum.at(t1, inv, t)
+        last = np.zeros(len(idx), bool)
+        last[len(idx) - 1 - np.unique(inv[::-1], return_index=True)[1]] = True
+        keep &= (t1[inv] - t >= end_s) & ~last
+    out[idx] = keep
     return out
 
 
@@ -975,51 +985,127 @@ def within_visit_sigma(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
 
 @dataclass
 class SettlingTransient:
-    """Settling transient after the table stops, measured on the declared model's residual (m/s^2).
+    """Settling transient after the table stops, and disturbance before it moves on, measured on the declared
+    model's residual (m/s^2).
 
-    Every visit's residual is referred to the mean of its middle samples; the excess power at the k-th
-    sample after the start of a visit over the k-th sample before its end (the same distance from the
-    middle, so noise of any colour and a linear drift cancel) is averaged over visits and modelled as
-    A^2 exp(-2 age/tau) (first-order chain), one tau for all axes.
+    The k-th sample after the start of a visit is compared with its mirror about a window of the visit's samples:
+    the window [K, n - 2K) for the start (mirror: the (K + k)-th sample before the end), [2K, n - K) for the end
+    (mirror: the (K + k)-th after the start), each sample referred to the window's mean. A sample and its mirror lie
+    at the same distance from the window, so noise of any colour and a linear drift cancel, and the mirror is clear
+    of both ends, so a start and an end disturbed alike do not cancel. The excess power, averaged over visits, is
+    modelled as A^2 exp(-2 age/tau) (first-order chain), one tau for all axes, at the start (the transient after a
+    table move) and, with the time counted back from the last sample, at the end (samples taken while the table
+    already moves to the next pose: its reading changes late, or the chain is delayed against the reference). Each
+    is detected at 3 standard errors on some axis (a disturbance of either sign adds power).
     """
 
     settle_s: float  # samples within this time (s) of a visit's first sample are not in the floor
     n_visits: int  # visits long enough to measure it
-    n_dropped: int  # static samples left out of the floor
+    n_dropped: int  # static samples left out of the floor (both ends)
     age_s: np.ndarray  # (K,) median time since the visit's first sample, s
-    excess_rms: np.ndarray  # (K, 3) signed sqrt of the excess power, m/s^2
+    excess_rms: np.ndarray  # (K, 3) signed sqrt of the excess power (start over its mirror), m/s^2
     excess_se: np.ndarray  # (K, 3) standard error of the excess power, (m/s^2)^2
     amplitude_mps2: np.ndarray  # (3,) A per axis at the first sample, m/s^2 (0 where none)
     tau_s: float  # time constant, s (an upper bound if not resolved; NaN if not detected)
     tau_resolved: bool  # the decay shows in at least two sample positions
     detected: bool  # the excess at the first sample is > 3 standard errors on some axis
     residual_after_settle_mps2: np.ndarray  # (3,) A exp(-settle_s/tau): what may still reach the floor
+    # the end of a visit, as above with the sign of the excess reversed and the time counted back from the last sample
+    end_age_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (K,) median time before the last sample, s
+    end_excess_rms: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (K, 3) m/s^2
+    end_excess_se: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (K, 3) (m/s^2)^2
+    end_amplitude_mps2: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) at the last sample, m/s^2
+    end_tau_s: float = np.nan
+    end_tau_resolved: bool = False
+    end_detected: bool = False  # the excess of the last sample over the first is > 3 standard errors on some axis
+    end_settle_s: float | None = None  # samples within this time (s) of a visit's last sample are not in the floor
+    end_n_dropped: int = 0  # of n_dropped, those left out at the end of a visit
+    end_residual_after_settle_mps2: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def _end_first(self) -> np.ndarray:
+        return self.end_excess_rms[0] if len(self.end_excess_rms) else np.zeros(3)
+
+    @staticmethod
+    def _decay(tau_s: float, resolved: bool, when: str) -> str:
+        return (f"time constant {tau_s:.3g} s" if resolved else
+                f"gone by the {when} sample (time constant <= {tau_s:.3g} s, not resolved by the sample rate)")
+
+    def end_summary(self) -> str:
+        """The end-of-visit disturbance in one sentence (empty without one)."""
+        if not self.end_detected:
+            return ""
+        return f"{self._end_sentence()}; {self.end_n_dropped} samples at the ends of visits are left out of the noise floor"
+
+    def _end_sentence(self) -> str:
+        return (f"ends of visits disturbed: the table moves before its reading changes, or the chain is delayed against "
+                f"the reference: amplitude {_fmt3(self.end_amplitude_mps2)} m/s^2 (x/y/z, at the last sample of a visit, "
+                f"above the noise), {self._decay(self.end_tau_s, self.end_tau_resolved, 'previous')} before the end")
 
     def summary(self) -> str:
-        drop = (f"{self.n_dropped} samples (the first of each visit"
-                + (f" and those within {self.settle_s:.3g} s of it" if self.settle_s > 0 else "")
-                + ") are left out of the noise floor")
+        cut = ["the first of each visit" + (f" and those within {self.settle_s:.3g} s of it" if self.settle_s > 0 else "")]
+        if self.end_settle_s is not None:
+            cut.append("the last of each visit" + (f" and those within {self.end_settle_s:.3g} s of it"
+                                                   if self.end_settle_s > 0 else ""))
+        drop = f"{self.n_dropped} samples ({', '.join(cut)}) are left out of the noise floor"
         if not self.detected:
             first = self.excess_rms[0] if len(self.excess_rms) else np.zeros(3)
-            return (f"no settling transient above the noise at the first sample of a visit (excess "
-                    f"{_fmt3(first)} m/s^2, {self.n_visits} visits); {drop}")
-        tau = (f"time constant {self.tau_s:.3g} s" if self.tau_resolved else
-               f"gone by the next sample (time constant <= {self.tau_s:.3g} s, not resolved by the sample rate)")
-        return (f"settling transient after a table move: amplitude {_fmt3(self.amplitude_mps2)} m/s^2 (x/y/z, at the "
-                f"first sample of a visit, above the noise), {tau}, {self.n_visits} visits; {drop}")
+            where = "first sample" if self.end_detected else "first or the last sample"
+            out = (f"no settling transient above the noise at the {where} of a visit (excess "
+                   f"{_fmt3(first)} m/s^2" + ("" if self.end_detected else
+                                             f" at the first, {_fmt3(self._end_first())} m/s^2 at the last")
+                   + f", {self.n_visits} visits)")
+        else:
+            out = (f"settling transient after a table move: amplitude {_fmt3(self.amplitude_mps2)} m/s^2 (x/y/z, at the "
+                   f"first sample of a visit, above the noise), {self._decay(self.tau_s, self.tau_resolved, 'next')}, "
+                   f"{self.n_visits} visits")
+        if self.end_detected:
+            out += "; " + self._end_sentence()
+        return f"{out}; {drop}"
+
+
+def _decay_fit(P: np.ndarray, SE: np.ndarray, age: np.ndarray, dt: float) -> tuple[np.ndarray, float, bool, bool]:
+    """A first-order decay A^2 exp(-2 age/tau) fitted to an excess power ``P`` (K, 3) (m/s^2)^2 with standard errors
+    ``SE`` at ages ``age`` (K,) s: (A (3,) m/s^2, tau s, tau resolved, detected). Detected: P > 3 SE at age 0 on
+    some axis; resolved: also at the next position (else tau is bounded by the detection limit there)."""
+    signif = P > 3 * SE
+    detected = bool(np.any(signif[0]))
+    amp, tau, resolved = np.zeros(3), np.nan, False
+    if not detected:
+        return amp, tau, resolved, detected
+    resolved = bool(len(P) > 1 and np.any(signif[1]))
+    if resolved:
+        best = (np.inf, np.nan, np.zeros(3))
+        for tau_try in np.geomspace(dt / 20, max(age[-1], dt) * 5, 300):
+            f = np.exp(-2 * age / tau_try)
+            w = 1.0 / SE**2
+            a2 = np.clip(np.sum(w * f[:, None] * P, axis=0) / np.sum(w * f[:, None] ** 2, axis=0), 0, None)
+            sse = float(np.sum(w * (P - f[:, None] * a2[None, :]) ** 2))
+            if sse < best[0]:
+                best = (sse, tau_try, a2)
+        tau, amp = float(best[1]), np.sqrt(best[2])
+    else:
+        amp = np.sqrt(np.clip(P[0], 0, None))
+        if len(P) > 1:  # below the detection limit one sample later: bound tau
+            ratio = float(np.max(np.clip(P[0], 0, None) / (3 * SE[1])))
+            tau = float((age[1] - age[0]) / max(0.5 * np.log(max(ratio, 1.0 + 1e-9)), 1e-9))
+        else:
+            tau = dt
+    return amp, tau, resolved, detected
 
 
 def settling_transient(res: np.ndarray, t_s: np.ndarray, groups: np.ndarray, rows: np.ndarray,
                        max_window_s: float = MAX_SETTLE_S) -> SettlingTransient:
-    """Measure the settling transient (see ``SettlingTransient``) from a residual (N, 3) m/s^2.
+    """Measure the settling transient and the end-of-visit disturbance (see ``SettlingTransient``) from a residual
+    (N, 3) m/s^2.
 
     ``rows``: static samples of the visits (time-ordered, visits contiguous). Sample positions
     k = 0 .. K-1 with K covering ``max_window_s`` (s) plus one sample, at most a third of the median visit;
     visits shorter than 2 K + 1 samples (no middle sample left to refer to) are not used. The k-th sample from
     the start and the k-th from the end lie at the same distance from the middle whatever its length, so a
     visit one sample shorter than 3 K counts as well (it was left out: with jittered visit lengths, every
-    visit shorter than the median). ``settle_s`` and ``n_dropped`` are left at 0 (set by the caller once the
-    window is chosen).
+    visit shorter than the median). The start is fitted to the positive excess, the end to the negative one
+    (``_decay_fit``). ``settle_s``, ``end_settle_s`` and the counts dropped are left unset (set by the caller once
+    the windows are chosen).
     """
     r = rows & finite_rows(res)
     idx = np.flatnonzero(r)
@@ -1042,57 +1128,62 @@ def settling_transient(res: np.ndarray, t_s: np.ndarray, groups: np.ndarray, row
     ok_v = length >= 2 * K + 1
     if ok_v.sum() < 3:
         return empty
-    mid = ok_v[vid] & (pos >= K) & (rpos >= K)
-    cnt = np.bincount(vid[mid], minlength=len(length)).astype(float)
+    Kv = np.minimum(K, (length - 1) // 3)  # positions used at each end of a visit: a middle is left between mirrors
     x = res[idx]
-    mean = np.stack([np.bincount(vid[mid], weights=x[mid, j], minlength=len(length)) for j in range(3)], axis=1)
-    mean /= np.maximum(cnt, 1.0)[:, None]
-    d = x - mean[vid]
-    ages, P, SE = [], [], []
+    t = t_s[idx]
+    last = start + length - 1
+    nv = len(length)
+
+    def window_mean(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:  # per visit, positions lo <= pos < length - hi
+        w = ok_v[vid] & (pos >= lo[vid]) & (rpos >= hi[vid])
+        c = np.maximum(np.bincount(vid[w], minlength=nv), 1).astype(float)
+        return np.stack([np.bincount(vid[w], weights=x[w, j], minlength=nv) for j in range(3)], axis=1) / c[:, None]
+
+    # each end is compared with the samples mirrored about a window that ends K_v samples before the other end: the
+    # same distance from the window (noise of any colour and a linear drift cancel), away from both ends' disturbances
+    d_s = x - window_mean(Kv, 2 * Kv)[vid]  # the start against [K_v, n - 2 K_v)
+    d_e = x - window_mean(2 * Kv, Kv)[vid]  # the end against [2 K_v, n - K_v)
+    ages, end_ages, P, Pe, SE, SEe = [], [], [], [], [], []
+
+    def excess(near: np.ndarray, far: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        diff = d[near] ** 2 - d[far] ** 2  # visits in the same order in both
+        if len(diff) == 0:
+            return np.zeros(3), np.full(3, np.inf)
+        return diff.mean(axis=0), (diff.std(axis=0, ddof=1) / np.sqrt(len(diff)) if len(diff) > 1 else np.full(3, np.inf))
+
     for k in range(K):
-        a = ok_v[vid] & (pos == k)
-        e = ok_v[vid] & (rpos == k)
-        diff = d[a] ** 2 - d[e] ** 2  # visits in the same order in both
-        P.append(diff.mean(axis=0))
-        SE.append(diff.std(axis=0, ddof=1) / np.sqrt(len(diff)) if len(diff) > 1 else np.full(3, np.inf))
-        ages.append(float(np.median(t_s[idx][a] - t_s[idx][start[vid[a]]])))
+        use = ok_v[vid] & (Kv[vid] > k)
+        p, se = excess(use & (pos == k), use & (rpos == Kv[vid] + k), d_s)
+        pe, see = excess(use & (rpos == k), use & (pos == Kv[vid] + k), d_e)
+        P.append(p)
+        SE.append(se)
+        Pe.append(pe)
+        SEe.append(see)
+        a = use & (pos == k)
+        e = use & (rpos == k)
+        ages.append(float(np.median(t[a] - t[start[vid[a]]])) if a.any() else np.nan)
+        end_ages.append(float(np.median(t[last[vid[e]]] - t[e])) if e.any() else np.nan)
     P, SE, age = np.array(P), np.maximum(np.array(SE), 1e-300), np.array(ages)
-    excess = np.sign(P) * np.sqrt(np.abs(P))
-    signif = P > 3 * SE
-    detected = bool(np.any(signif[0]))
-    amp, tau, resolved = np.zeros(3), np.nan, False
-    if detected:
-        resolved = bool(len(P) > 1 and np.any(signif[1]))
-        if resolved:
-            best = (np.inf, np.nan, np.zeros(3))
-            for tau_try in np.geomspace(dt / 20, max(age[-1], dt) * 5, 300):
-                f = np.exp(-2 * age / tau_try)
-                w = 1.0 / SE**2
-                a2 = np.clip(np.sum(w * f[:, None] * P, axis=0) / np.sum(w * f[:, None] ** 2, axis=0), 0, None)
-                sse = float(np.sum(w * (P - f[:, None] * a2[None, :]) ** 2))
-                if sse < best[0]:
-                    best = (sse, tau_try, a2)
-            tau, amp = float(best[1]), np.sqrt(best[2])
-        else:
-            amp = np.sqrt(np.clip(P[0], 0, None))
-            if len(P) > 1:  # below the detection limit one sample later: bound tau
-                ratio = float(np.max(np.clip(P[0], 0, None) / (3 * SE[1])))
-                tau = float((age[1] - age[0]) / max(0.5 * np.log(max(ratio, 1.0 + 1e-9)), 1e-9))
-            else:
-                tau = dt
-    return SettlingTransient(0.0, int(ok_v.sum()), 0, age, excess, SE, amp, tau, resolved, detected, np.zeros(3))
+    Pe, SEe, end_age = np.array(Pe), np.maximum(np.array(SEe), 1e-300), np.array(end_ages)
+    excess_start = np.sign(P) * np.sqrt(np.abs(P))
+    amp, tau, resolved, detected = _decay_fit(P, SE, age, dt)
+    e_amp, e_tau, e_resolved, e_detected = _decay_fit(Pe, SEe, end_age, dt)
+    return SettlingTransient(0.0, int(ok_v.sum()), 0, age, excess_start, SE, amp, tau, resolved, detected, np.zeros(3),
+                             end_age, np.sign(Pe) * np.sqrt(np.abs(Pe)), SEe, e_amp, e_tau, e_resolved, e_detected)
 
 
-def settle_window(st: SettlingTransient, sigma: np.ndarray) -> float:
-    """Time (s) after a visit's first sample that the floor leaves out: where the measured transient
-    A exp(-t/tau) falls below ``SETTLE_NOISE_FRACTION`` x the noise ``sigma`` (3,) m/s^2, capped at
-    ``MAX_SETTLE_S``; 0 (only the first sample) without a detected transient."""
-    if not st.detected or not np.isfinite(st.tau_s) or st.tau_s <= 0:
+def settle_window(st: SettlingTransient, sigma: np.ndarray, end: bool = False) -> float:
+    """Time (s) after a visit's first sample (``end``: before its last) that the floor leaves out: where the
+    measured transient A exp(-t/tau) falls below ``SETTLE_NOISE_FRACTION`` x the noise ``sigma`` (3,) m/s^2, capped
+    at ``MAX_SETTLE_S``; 0 (only the first, or last, sample) without a detected transient."""
+    detected, tau, amp = ((st.end_detected, st.end_tau_s, st.end_amplitude_mps2) if end
+                          else (st.detected, st.tau_s, st.amplitude_mps2))
+    if not detected or not np.isfinite(tau) or tau <= 0:
         return 0.0
-    ratio = float(np.max(st.amplitude_mps2 / np.maximum(sigma, 1e-12)))
+    ratio = float(np.max(amp / np.maximum(sigma, 1e-12)))
     if ratio <= SETTLE_NOISE_FRACTION:
         return 0.0
-    return float(min(st.tau_s * np.log(ratio / SETTLE_NOISE_FRACTION), MAX_SETTLE_S))
+    return float(min(tau * np.log(ratio / SETTLE_NOISE_FRACTION), MAX_SETTLE_S))
 
 
 def _degree_rows(scores: list[DegreeScores], held_out: Callable[[DegreeScores], np.ndarray],
@@ -1607,23 +1698,36 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     rows = data.use & des0.valid & (data.pose_id >= 0)  # the floor: scatter within visits, not during moves
     res0 = des0.G - cv0.fitted_full
     settling = settling_transient(res0, data.t_s, groups, rows)
-    if settle_s is None:  # the rule of SETTLE_NOISE_FRACTION; the floor it compares with is itself settled
-        settle_s = 0.0
-        for _ in range(4):
-            sigma = within_visit_sigma(res0, groups, settled_mask(data.t_s, groups, rows, settle_s), data.t_s)
-            nxt = settle_window(settling, sigma)
-            if nxt <= settle_s * (1 + 1e-3):
-                break
-            settle_s = nxt
-    settled = settled_mask(data.t_s, groups, rows, settle_s)
+    # the rule of SETTLE_NOISE_FRACTION at either end; the floor it compares with is itself settled. A forced
+    # settle_s fixes the start; the end is trimmed only where it is measured disturbed
+    auto_start = settle_s is None
+    settle_s = 0.0 if settle_s is None else float(settle_s)
+    end_s = 0.0 if settling.end_detected else None
+    for _ in range(4):
+        if not auto_start and end_s is None:
+            break
+        sigma = within_visit_sigma(res0, groups, settled_mask(data.t_s, groups, rows, settle_s, end_s), data.t_s)
+        grew = False
+        if auto_start and (nxt := settle_window(settling, sigma)) > settle_s * (1 + 1e-3):
+            settle_s, grew = nxt, True
+        if end_s is not None and (nxt := settle_window(settling, sigma, end=True)) > end_s * (1 + 1e-3):
+            end_s, grew = nxt, True
+        if not grew:
+            break
+    settled = settled_mask(data.t_s, groups, rows, settle_s, end_s)
     noise_model = within_visit_noise(res0, groups, settled, data.t_s)
     noise = noise_model.sigma
     if not np.all(np.isfinite(noise)) or np.any(noise <= 0):
         raise ValueError(f"no noise floor: {int(settled.sum())} settled samples (every visit shorter than "
                          f"{settle_s:.3g} s plus one sample?); lower settle_s")
     settling.settle_s, settling.n_dropped = float(settle_s), int((rows & ~settled).sum())
+    settling.end_settle_s = end_s
+    settling.end_n_dropped = int((settled_mask(data.t_s, groups, rows, settle_s) & ~settled).sum())
     if settling.detected and np.isfinite(settling.tau_s) and settling.tau_s > 0:
         settling.residual_after_settle_mps2 = settling.amplitude_mps2 * np.exp(-max(settle_s, 1e-12) / settling.tau_s)
+    if end_s is not None and np.isfinite(settling.end_tau_s) and settling.end_tau_s > 0:
+        settling.end_residual_after_settle_mps2 = (settling.end_amplitude_mps2
+                                                   * np.exp(-max(end_s, 1e-12) / settling.end_tau_s))
     weights = 1.0 / np.maximum(noise, 1e-12) ** 2
     fit_rows = data.use & (fold != -1)  # fitted (also the visits never held out, fold -2)
     every, thinned = search_samples(fit_rows, fold, search_rows)
@@ -1753,6 +1857,9 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     warnings = [detection_limit] if detection_limit else []
     if floor_note:
         warnings.append(floor_note)
+    if settling.end_detected:
+        warnings.append(settling.end_summary() + "; the model is fitted on them too: align the table's readings "
+                        "(pose labels, reference) with the signal")
     if data.n_clipped_visits:
         warnings.append(f"{data.n_clipped_samples} samples of {data.n_clipped_visits} visit(s) left out: a channel "
                         "clipped at a rail of the ADC (an axis at 0 or 4095 counts, or the reference at 4095) in each; a "
