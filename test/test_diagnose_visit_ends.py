@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from test_diagnose_visits import M_TRUE, campaign
 
-from fbg_accel_calibration.diagnose import diagnose, settled_mask
+from fbg_accel_calibration.diagnose import diagnose, settle_window, settled_mask, settling_transient
 from fbg_accel_calibration.diagnose_report import markdown, text
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_sim.board_physics import simulate_recording
@@ -138,3 +138,37 @@ def test_simulated_table_readings_late_do_not_raise_the_floor(seed: int, lag: in
     if lag == 30:
         assert res.settling.end_detected, res.settling.summary()
         assert any(END_WORDS in w for w in res.warnings), res.warnings
+
+
+@pytest.mark.parametrize("end", [False, True])
+def test_a_marginal_unresolved_transient_trims_only_the_sample_where_it_is_significant(end: bool) -> None:
+    """A synthetic residual: white noise (sigma 0.1 m/s^2, 60 visits of 100 samples at 100 Hz) and, on y, the first
+    (or the last) sample of every visit raised by the smallest step that makes it significant; the next position is
+    pure noise. The transient is detected but not resolved, and the upper bound of its time constant from the
+    detection limit at the next position grows without limit as the excess nears that limit (0.49 s at the start,
+    1e7 s at the end here): extrapolated, it trimmed 1.2 s (the start) and 1.6 s (the end, MAX_SETTLE_S), more than
+    whole visits of 1 s (the simulator's clean 1 s visits at 100 Hz lost all but one sample). It must trim only the
+    position where it is significant: the first (or last) sample of each visit."""
+    rng = np.random.default_rng(0)
+    n_visits, n, dt, sigma = 60, 100, 0.01, 0.1
+    groups = np.repeat(np.arange(n_visits), n)
+    t = np.arange(n_visits * n) * dt + groups * 1.0  # a second's move between visits
+    rows = np.ones(len(t), bool)
+    noise = rng.normal(0.0, sigma, (len(t), 3))
+    at = np.arange(n_visits) * n + (n - 1 if end else 0)
+    for step in np.arange(0.0, 0.3, 0.002):  # the smallest step detected: barely significant
+        res = noise.copy()
+        res[at, 1] += step
+        st = settling_transient(res, t, groups, rows)
+        if st.end_detected if end else st.detected:
+            break
+    detected, resolved, tau = ((st.end_detected, st.end_tau_resolved, st.end_tau_s) if end
+                               else (st.detected, st.tau_resolved, st.tau_s))
+    assert detected and not resolved, st.summary()
+    amp = st.end_amplitude_mps2 if end else st.amplitude_mps2
+    assert tau * np.log(np.max(amp) / (0.1 * sigma)) > 20 * dt, (tau, amp)  # what the loose bound would trim
+    assert not (st.detected if end else st.end_detected), st.summary()  # the other end: noise only
+    window = settle_window(st, np.full(3, sigma), end=end)
+    assert window == 0.0, window
+    kept = settled_mask(t, groups, rows, 0.0 if end else window, window if end else None)
+    assert np.sum(~kept) == (2 if end else 1) * n_visits  # the first sample (and, the end disturbed, the last) of each visit
