@@ -1175,15 +1175,31 @@ def settling_transient(res: np.ndarray, t_s: np.ndarray, groups: np.ndarray, row
 def settle_window(st: SettlingTransient, sigma: np.ndarray, end: bool = False) -> float:
     """Time (s) after a visit's first sample (``end``: before its last) that the floor leaves out: where the
     measured transient A exp(-t/tau) falls below ``SETTLE_NOISE_FRACTION`` x the noise ``sigma`` (3,) m/s^2, capped
-    at ``MAX_SETTLE_S``; 0 (only the first, or last, sample) without a detected transient."""
-    detected, tau, amp = ((st.end_detected, st.end_tau_s, st.end_amplitude_mps2) if end
-                          else (st.detected, st.tau_s, st.amplitude_mps2))
-    if not detected or not np.isfinite(tau) or tau <= 0:
+    at ``MAX_SETTLE_S``; 0 (only the first, or last, sample) without a detected transient.
+
+    Only a resolved decay (significant at two positions or more) is extrapolated with its fitted tau: the fit is then
+    what says how far below the detection limit the transient still reaches (with tau 0.12 s at 50 Hz it is
+    significant for 0.42 s but above a tenth of the noise for 0.72 s). An unresolved one (significant at the first
+    position only) has just an upper bound on tau, which grows without limit as the excess at the first position
+    nears its detection limit (a chance 3-standard-error excess on a clean recording trimmed ~1 s, nearly whole 1 s
+    visits): its window is the positions where it is significant, the first (or last) sample, always dropped."""
+    detected, tau, amp, resolved = ((st.end_detected, st.end_tau_s, st.end_amplitude_mps2, st.end_tau_resolved) if end
+                                    else (st.detected, st.tau_s, st.amplitude_mps2, st.tau_resolved))
+    if not detected or not resolved or not np.isfinite(tau) or tau <= 0:
         return 0.0
     ratio = float(np.max(amp / np.maximum(sigma, 1e-12)))
     if ratio <= SETTLE_NOISE_FRACTION:
         return 0.0
     return float(min(tau * np.log(ratio / SETTLE_NOISE_FRACTION), MAX_SETTLE_S))
+
+
+def _first_kept_age(window_s: float, resolved: bool, age_s: np.ndarray) -> float:
+    """Age (s, from the visit's first or last sample) of the first sample a settle window keeps, as far as the
+    transient's measurement says: the window itself, or for an unresolved transient (window 0: the first, or last,
+    sample dropped) the next position, where its time constant was bounded."""
+    if resolved or len(age_s) < 2 or not np.isfinite(age_s[1] - age_s[0]):
+        return float(window_s)
+    return float(max(window_s, age_s[1] - age_s[0]))
 
 
 def _degree_rows(scores: list[DegreeScores], held_out: Callable[[DegreeScores], np.ndarray],
@@ -1723,11 +1739,15 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     settling.settle_s, settling.n_dropped = float(settle_s), int((rows & ~settled).sum())
     settling.end_settle_s = end_s
     settling.end_n_dropped = int((settled_mask(data.t_s, groups, rows, settle_s) & ~settled).sum())
+    # what may still reach the floor: the decay at the window's edge, for an unresolved one (window: the first, or
+    # last, sample) its bound at the next position, the first kept
     if settling.detected and np.isfinite(settling.tau_s) and settling.tau_s > 0:
-        settling.residual_after_settle_mps2 = settling.amplitude_mps2 * np.exp(-max(settle_s, 1e-12) / settling.tau_s)
+        kept = _first_kept_age(settle_s, settling.tau_resolved, settling.age_s)
+        settling.residual_after_settle_mps2 = settling.amplitude_mps2 * np.exp(-max(kept, 1e-12) / settling.tau_s)
     if end_s is not None and np.isfinite(settling.end_tau_s) and settling.end_tau_s > 0:
+        kept = _first_kept_age(end_s, settling.end_tau_resolved, settling.end_age_s)
         settling.end_residual_after_settle_mps2 = (settling.end_amplitude_mps2
-                                                   * np.exp(-max(end_s, 1e-12) / settling.end_tau_s))
+                                                   * np.exp(-max(kept, 1e-12) / settling.end_tau_s))
     weights = 1.0 / np.maximum(noise, 1e-12) ** 2
     fit_rows = data.use & (fold != -1)  # fitted (also the visits never held out, fold -2)
     every, thinned = search_samples(fit_rows, fold, search_rows)
