@@ -107,6 +107,60 @@ def summary(res: DiagnosisResult, img_prefix: str = "img/") -> list[str]:
     return out
 
 
+SIGNATURE_SE = 3.0  # a correlation of pose means this many standard errors (1/sqrt(visits - 1)) from 0 is a signature
+ORIENTATION_SHARE = 0.5  # the orientation explains more than this share of the pose-mean variance
+CONCENTRATED = 3.0  # one visit's |z| this many times the next one's (and above 5): the residual sits in that visit
+
+
+def settling_measurements(res: DiagnosisResult) -> list[str]:
+    """What would settle a significant unexplained residual: for each signature its pose means show (``ResidualStructure``:
+    a slow change along the run, the temperature, the orientation, one visit) the measurement that tells its
+    candidate causes apart, on the axes whose test is significant; [] when nothing significant remains."""
+    s = res.structure
+    if not s.significant:
+        return []
+    alpha = float(res.settings.get("alpha", 0.01))
+    axes = [j for j in range(3) if s.pose_chi2_p[j] < alpha / 3]
+
+    def on(mask: np.ndarray) -> list[int]:
+        return [j for j in axes if bool(mask[j])]
+
+    lim = SIGNATURE_SE / np.sqrt(max(len(s.per_pose) - 1, 1))  # a correlation's standard error under noise alone
+    out, explained = [], set()
+    slow = on((s.serial_corr_pose_means > lim) | (np.abs(s.corr_time) > lim))
+    if slow:
+        out.append(f"a slow change along the run on {'/'.join(AXES[j] for j in slow)} (consecutive visit means "
+                   "correlated, or a trend in time): log the chamber temperature and the source power (the reference "
+                   "counts) with the series, and visit one pose again at the start, the middle and the end of the run: "
+                   "a drift makes that pose read differently each time, an orientation effect does not")
+    warm = on(np.abs(np.nan_to_num(s.corr_temperature)) > lim)
+    if warm:
+        out.append(f"it follows the temperature on {'/'.join(AXES[j] for j in warm)}: add chamber levels and hold each "
+                   "longer (a lag shrinks with a slower ramp, a missing temperature term does not)")
+    turned = on((s.orientation_r2 > ORIENTATION_SHARE) | (s.serial_corr_pose_means < -lim))
+    if turned:
+        out.append(f"it depends on the orientation on {'/'.join(AXES[j] for j in turned)} (explained by the reference "
+                   "direction, or alternating from one visit to the next in the plan's order): visit the orientations "
+                   "again in another order (an orientation effect repeats, a drift does not) and turn the sensor by 90 "
+                   "degrees on the table (a table error stays with the table, a sensor error turns with the sensor)")
+    explained.update(slow + warm + turned)
+    for j in axes:
+        z = sorted((abs(float(p["z"][j])), i) for i, p in enumerate(s.per_pose))[::-1]
+        if len(z) >= 2 and z[0][0] > 5 and z[0][0] > CONCENTRATED * z[1][0]:
+            p = s.per_pose[z[0][1]]
+            label = str(res.settings.get("time_label", "time [s]"))
+            when = f"t = {p['t_s']:.4g} s" if label.startswith("time") else f"{label} {p['t_s']:.4g}"
+            out.append(f"on {AXES[j]} it sits in one visit (visit {p['visit']}, pose {p['pose']}, {when}, "
+                       f"z = {float(p['z'][j]):+.1f}): visit that pose again, and look for what "
+                       "happened then (a knock, the chamber door, a cable pulled, the start of the run)")
+            explained.add(j)
+    rest = [j for j in axes if j not in explained]
+    if rest:
+        out.append(f"no signature of time, temperature, orientation or one visit on {'/'.join(AXES[j] for j in rest)}: "
+                   "run the whole plan again in a random pose order and see whether the visit means repeat")
+    return out
+
+
 def degree_table(table: list[dict], chosen: int | None, forced: bool = False) -> str:
     """Markdown table of a degree selection (eq. 28): RMSE / full scale per axis, in sample and held out. ``forced``:
     the degree ``chosen`` was given (``--degree``), not the rule's, whose note stands on the degree it chose."""
@@ -203,6 +257,11 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
               f"angle-dependent effect values near 0 or below): {_v(s.serial_corr_pose_means, '{:+.2f}')}",
               f"- share of pose-mean variance explained by orientation (quadratic in the reference direction): "
               f"{_v(s.orientation_r2, '{:.2f}')}", ""]
+    settle = settling_measurements(res)
+    if settle:
+        lines += [f"Measurements that would settle it (from the signatures above: a correlation beyond {SIGNATURE_SE:g} "
+                  f"standard errors of noise alone, an orientation share above {ORIENTATION_SHARE:g}, one visit above "
+                  f"{CONCENTRATED:g}x the next):", "", *[f"- {m}" for m in settle], ""]
     rows = [[f"{p.get('visit', p['pose'])} / {p['pose']}", str(p["n"]),
              _v(p["mean_mps2"]), _v(p["z"], "{:+.1f}"), _v(p["gref_mps2"], "{:.2f}"),
              f"{p['t_s']:.4g}", f"{p['temp_c']:.2f}"] for p in s.per_pose[:10]]
@@ -253,6 +312,7 @@ def text(res: DiagnosisResult) -> str:
     out.append(f"condition number of the final model {res.condition_number:.3g}"
                + "".join(f"; {n}: max |corr| with the model {c:.3f}" for n, c in res.column_correlation.items()))
     out.append(res.structure.verdict)
+    out += [f"to settle it: {m}" for m in settling_measurements(res)]
     return "\n".join(out) + "\n"
 
 

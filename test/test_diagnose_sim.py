@@ -22,7 +22,7 @@ import pytest
 import yaml
 
 from fbg_accel_calibration.diagnose import diagnose
-from fbg_accel_calibration.diagnose_report import write_plots
+from fbg_accel_calibration.diagnose_report import markdown, settling_measurements, write_plots
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_driver.correction_terms import ReferenceLowpass
 from fbg_accel_driver.thermal_model import ThermalCalibration
@@ -98,6 +98,11 @@ def test_effect_outside_the_library_is_reported_as_unexplained() -> None:
     assert s.pose_mean_rms[0] > 2 * s.pose_mean_rms[2]
     assert len(s.per_pose) == res.n_groups and abs(s.per_pose[0]["mean_mps2"][0]) > 0.05
     assert np.all(np.isfinite(s.corr_time)) and np.all(np.isfinite(s.orientation_r2))
+    # the report says what would settle it, for the axes that carry it (x and y), not for z
+    settle = settling_measurements(res)
+    on_axes = [m.split(":")[0].split(" on ")[-1].split(" (")[0] for m in settle]
+    assert settle and all("z" not in a and "x" in a for a in on_axes), settle
+    assert "Measurements that would settle it" in markdown(res)
 
 
 def test_an_implausible_best_hyper_value_does_not_hide_a_plausible_one() -> None:
@@ -306,4 +311,7 @@ def test_a_slow_wander_that_is_no_drift_is_not_written_as_time_drift(seed: int) 
     drift = next(c for c in res.ranked if c.name == "time_drift")
     assert drift.time_block is not None and "contiguous blocks of time" in drift.detail, drift.detail
     assert res.structure.significant  # the oscillation stays unexplained, and is reported so
+    # and the report names its signature and the measurement that tells a drift from an orientation effect
+    assert any(m.startswith("a slow change along the run on x/y") for m in settling_measurements(res)), \
+        settling_measurements(res)
 
