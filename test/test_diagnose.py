@@ -199,6 +199,7 @@ def test_cli_writes_report_yaml_and_plots(tmp_path: Path) -> None:
     assert diagnose_main(["diagnose", str(csv), "--static", "table", "--out", str(out), "--yaml", str(yml)]) == 0
     text = out.read_text()
     assert "reference_dark_offset" in text and "Before and after" in text
+    assert f"fbg-accel-calib diagnose {csv} --static table" in text  # the argv given to main, not sys.argv
     assert (out.parent / "img" / "before_after.png").stat().st_size > 1000
     cal = ThermalCalibration.load(yml)
     assert [t.kind for t in cal.corrections] == ["reference_dark_offset", "channel_offset"]

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from fbg_accel_calibration.cli import main as cli_main
 from fbg_accel_calibration.fit_report import pose_statistics
@@ -42,3 +43,78 @@ def test_the_report_shows_the_file_applied_to_the_given_inputs_corrections_inclu
     for j in range(3):
         assert f"{rmse[j]:.4f}" in text
     assert "at fit time" in text and f"{cal.fit['rmse_mps2'][0]:.4f}" in text
+
+
+G = 9.80665
+
+
+def _multipos(temp: float):
+    from fbg_accel_calibration.recording import Recording
+
+    rng = np.random.default_rng(0)
+    grefs = np.array([[0, 0, G], [0, 0, -G], [G, 0, 0], [-G, 0, 0], [0, G, 0], [0, -G, 0]])
+    acc, gr, pid = [], [], []
+    for p, gv in enumerate(grefs):
+        acc += [gv + rng.standard_normal(3) * 0.5 for _ in range(50)]
+        gr += [[np.nan] * 3] * 50
+        pid += [-1] * 50
+        acc += [gv + rng.standard_normal(3) * 0.01 for _ in range(300)]
+        gr += [gv] * 300
+        pid += [p] * 300
+    acc = np.array(acc)
+    n = len(acc)
+    return Recording(np.arange(n) / 100.0, np.full(n, 1000.0), acc / 80.0 * 1000.0, temp, np.array(gr), np.array(pid))
+
+
+def _files(tmp_path: Path, rec_sensor: str, temp: float) -> tuple[Path, Path]:
+    from fbg_accel_driver.thermal_model import ThermalCalibration
+
+    write_recording(tmp_path / "r.mcap", _multipos(temp), {"sensor_id": rec_sensor}, sensor_id=rec_sensor)
+    ThermalCalibration(M=80.0 * np.eye(3)[None], b=np.zeros((1, 3)), temperature_range_c=(20.0, 25.0),
+                       sensor_id="acc-A").save(tmp_path / "c.yaml")
+    return tmp_path / "r.mcap", tmp_path / "c.yaml"
+
+
+def _argv(cmd: str, rec: Path, cal: Path, tmp_path: Path) -> list[str]:
+    out = ["-o", str(tmp_path / "out"), "--max-degree", "0"] if cmd == "report" else ["-o", str(tmp_path / "a.png")]
+    return [cmd, str(rec), "--calibration", str(cal), *out]
+
+
+@pytest.mark.parametrize("cmd", ["report", "allan"])
+def test_calibration_of_another_sensor_is_warned(tmp_path: Path, capsys, cmd: str) -> None:
+    """The YAML names acc-A, the recording acc-B: both ids on stderr (and the recording's id in report.md)."""
+    rec, cal = _files(tmp_path, "acc-B", 23.0)
+    assert cli_main(_argv(cmd, rec, cal, tmp_path)) == 0
+    err = capsys.readouterr().err
+    assert "acc-B" in err and "acc-A" in err and "another sensor" in err, err
+    if cmd == "report":
+        md = (tmp_path / "out" / "report.md").read_text()
+        assert "`acc-B`" in md and "another sensor" in md
+
+
+def test_matching_sensor_is_not_warned(tmp_path: Path, capsys) -> None:
+    rec, cal = _files(tmp_path, "acc-A", 23.0)
+    assert cli_main(_argv("report", rec, cal, tmp_path)) == 0
+    assert "sensor" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("cmd", ["report", "allan"])
+def test_temperature_outside_the_calibrated_range_is_warned(tmp_path: Path, capsys, cmd: str) -> None:
+    """Recorded at 45 degC, calibrated over 20..25 degC: count, fraction and range on stderr (and in report.md)."""
+    rec, cal = _files(tmp_path, "acc-A", 45.0)
+    assert cli_main(_argv(cmd, rec, cal, tmp_path)) == 0
+    err = capsys.readouterr().err
+    assert "outside the calibrated temperature range 20.00 .. 25.00" in err and "100.0 %" in err, err
+    if cmd == "report":
+        assert "outside the calibrated temperature range" in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_report_quotes_its_own_command_and_survives_a_yaml_without_fit(tmp_path: Path) -> None:
+    """'Produced by' quotes the argv given to cli.main (not the host process's sys.argv, here pytest's); a YAML
+    without a fit section shows 'not recorded', not None/nan."""
+    rec, cal = _files(tmp_path, "acc-A", 23.0)
+    argv = _argv("report", rec, cal, tmp_path)
+    assert cli_main(argv) == 0
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert f"fbg-accel-calib report {rec} --calibration {cal}" in md, md[:300]
+    assert "None" not in md and "nan" not in md, md[:1500]
