@@ -179,14 +179,16 @@ def test_white_noise_vrw_behind_the_amplifier_low_pass() -> None:
 
 
 def _static_mcap(path: Path, accel: np.ndarray, board_t: np.ndarray, sensor: str = "acc-A",
-                 temp: float | np.ndarray = 23.0) -> None:
+                 temp: float | np.ndarray = 23.0, ref: np.ndarray | None = None) -> None:
     from fbg_accel_calibration.mcap_io import RecordingWriter
 
     temps = np.broadcast_to(np.asarray(temp, float), (len(accel),))
     with RecordingWriter(path, {"sensor_id": sensor}) as w:
         for i in range(len(accel)):
-            w.write_raw(int(round(i / RATE_HZ * 1e9)) + 1, 1000.0, accel[i] / 80.0 * 1000.0,
-                        temperature_c=float(temps[i]), temperature_valid=bool(np.isfinite(temps[i])), seq=i, board_time_s=float(board_t[i]))
+            r = 1000.0 if ref is None else float(ref[i])
+            w.write_raw(round(i / RATE_HZ * 1e9) + 1, r, accel[i] / 80.0 * 1000.0,
+                        temperature_c=float(temps[i]), temperature_valid=bool(np.isfinite(temps[i])), seq=i,
+                        board_time_s=float(board_t[i]))
 
 
 def _cal(path: Path, sensor: str = "acc-A") -> Path:
@@ -231,12 +233,12 @@ def test_segments_pool_clusters_like_one_series() -> None:
 
     x = np.random.default_rng(5).standard_normal(5_000)
     res = allan_deviation(x, RATE_HZ)
-    t, ad, _, _ = allantools.oadev(x - x.mean(), rate=RATE_HZ, data_type="freq", taus=res.taus_s)
+    _t, ad, _, _ = allantools.oadev(x - x.mean(), rate=RATE_HZ, data_type="freq", taus=res.taus_s)
     np.testing.assert_allclose(res.adev_mps2[:, 0], ad, rtol=1e-9)
 
 
 def test_invalid_samples_are_a_break_not_joined(tmp_path: Path, capsys) -> None:
-    """Samples without a valid calibrated output (temperature invalid) are dropped; their neighbours are not joined:
+    """Samples without a valid calibrated output (reference dark) are dropped; their neighbours are not joined:
     the ADEV is taken over the two segments and the break is named."""
     import json
 
@@ -244,9 +246,9 @@ def test_invalid_samples_are_a_break_not_joined(tmp_path: Path, capsys) -> None:
 
     n = 10_000
     accel = np.random.default_rng(2).standard_normal((n, 3)) * 0.05 + [0.0, 0.0, 9.80665]
-    temp = np.full(n, 23.0)
-    temp[4_000:4_500] = np.nan
-    _static_mcap(tmp_path / "r.mcap", accel, np.arange(n) / RATE_HZ, temp=temp)
+    ref = np.full(n, 1000.0)
+    ref[4_000:4_500] = 0.0
+    _static_mcap(tmp_path / "r.mcap", accel, np.arange(n) / RATE_HZ, ref=ref)
     rc = cli_main(["allan", str(tmp_path / "r.mcap"), "--calibration", str(_cal(tmp_path / "c.yaml")),
                    "-o", str(tmp_path / "a.png"), "--json", str(tmp_path / "a.json")])
     err = capsys.readouterr().err
