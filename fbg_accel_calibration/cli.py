@@ -21,6 +21,7 @@ Exit codes: 0 success, 2 bad input (message on stderr).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import shlex
 import sys
@@ -289,38 +290,110 @@ def _json_default(o: object) -> object:
     return str(o)
 
 
+def _command_line(args: argparse.Namespace) -> str:
+    """The command as given to :func:`main` (its argv; sys.argv only for the console script)."""
+    argv = getattr(args, "argv", None)
+    argv = sys.argv[1:] if argv is None else argv
+    return "fbg-accel-calib " + " ".join(shlex.quote(str(a)) for a in argv)
+
+
+def calibration_match_warnings(cal, rec) -> list[str]:
+    """Warnings when a calibration is applied to a recording it may not describe: another sensor id (both known),
+    samples outside the calibrated temperature range (count, fraction, range)."""
+    from .thermal_fit import sensor_id_of
+
+    out = []
+    rec_id = sensor_id_of(rec.metadata)
+    cal_id = cal.sensor_id
+    known = {None, "", "unknown"}
+    if rec_id not in known and cal_id not in known and rec_id != cal_id:
+        out.append(f"calibration of another sensor: the calibration is for sensor '{cal_id}', the recording is of "
+                   f"sensor '{rec_id}'")
+    lo, hi = cal.temperature_range_c
+    temp = np.asarray(rec.temp_c, dtype=float)
+    fin = np.isfinite(temp)
+    outside = int(np.sum(fin & ((temp < lo) | (temp > hi))))
+    if outside:
+        out.append(f"{outside} of {int(fin.sum())} samples ({100.0 * outside / max(int(fin.sum()), 1):.1f} %) are "
+                   f"outside the calibrated temperature range {lo:.2f} .. {hi:.2f} degC (recorded "
+                   f"{np.nanmin(temp):.2f} .. {np.nanmax(temp):.2f} degC): the model is extrapolated there")
+    return out
+
+
+def time_base_segments(t_s: np.ndarray, kept: np.ndarray) -> tuple[float, list[np.ndarray], list[str]]:
+    """Sample rate, continuous segments (index arrays into ``t_s``) and one line per break.
+
+    ``kept`` marks the samples used (after --skip and without invalid ones). A break is a step of the time stamps
+    <= 0 (board time restarting: a reboot), a step longer than 1.5 sample periods (a gap), or dropped samples
+    between two kept ones. No ADEV cluster spans a break (``allan_deviation`` pools the segments)."""
+    idx = np.flatnonzero(kept)
+    t = t_s[idx]
+    dt = np.diff(t)
+    pos = dt[dt > 0]
+    if len(pos) == 0:
+        raise ValueError("cannot determine the sample rate from the time stamps")
+    rate = 1.0 / float(np.median(pos))
+    cut = (dt <= 0) | (dt > 1.5 / rate) | (np.diff(idx) > 1)
+    lines = []
+    elapsed = np.r_[0.0, np.cumsum(np.where(cut, 1.0 / rate, dt))]  # time of data before each sample
+    for b in np.flatnonzero(cut):
+        where = f"after {elapsed[b + 1]:.1f} s of data (sample {idx[b + 1]}, t = {t[b + 1]:.3f} s)"
+        if dt[b] <= 0:
+            what = f"time stamps go backward by {-dt[b]:.3f} s (board time reset: a reboot?)"
+        elif np.diff(idx)[b] > 1:
+            what = f"{int(np.diff(idx)[b] - 1)} samples without a valid calibrated output dropped"
+        else:
+            what = f"gap of {dt[b]:.3f} s ({dt[b] * rate - 1:.0f} missing samples)"
+        lines.append(f"break {where}: {what}")
+    edges = np.r_[0, np.flatnonzero(cut) + 1, len(idx)]
+    return rate, [idx[a:b] for a, b in itertools.pairwise(edges) if b > a], lines
+
+
 def cmd_allan(args: argparse.Namespace) -> int:
+    """ADEV of a static recording. Breaks in the time base (board time restarting, gaps, dropped invalid samples)
+    split it into continuous segments whose clusters are pooled; none spans a break (each break is named)."""
     from fbg_accel_driver.thermal_model import ThermalCalibration
 
-    from .allan import allan_deviation, plot_allan
+    from .allan import AXES, allan_deviation, plot_allan
 
     check_outputs([args.output, args.json], [*args.inputs, args.calibration], args.force)
     cal = ThermalCalibration.load(args.calibration)
     rec = _load(args.inputs, args)
     if len(np.unique(rec.run_id)) > 1:
         raise ValueError("allan needs one continuous static recording")
-    dt = np.diff(rec.t_s)
-    if len(dt) == 0 or np.median(dt) <= 0:
+    if len(rec.t_s) < 2:
         raise ValueError("cannot determine the sample rate from the time stamps")
-    rate = 1.0 / float(np.median(dt))
-    gaps = int(np.sum(dt > 1.5 / rate))
-    keep = rec.t_s >= rec.t_s[0] + args.skip
-    sel = rec.select(keep)
-    accel = cal.apply_counts(sel.ref, sel.xyz, sel.temp_c, sel.t_s)
+    # --skip: the first seconds of data (time stamps may restart, so elapsed along the recording, not t - t0)
+    steps = np.diff(rec.t_s)
+    elapsed = np.r_[0.0, np.cumsum(np.where(steps > 0, steps, 0.0))]
+    keep = elapsed >= args.skip
+    for line in calibration_match_warnings(cal, rec.select(keep)):
+        print(f"warning: {line}", file=sys.stderr)
+    accel = cal.apply_counts(rec.ref, rec.xyz, rec.temp_c, rec.t_s)
     ok = np.all(np.isfinite(accel), axis=1)
-    if not ok.all():
-        print(f"warning: {int((~ok).sum())} samples without a valid calibrated output dropped", file=sys.stderr)
-    if gaps:
-        print(f"warning: {gaps} gaps longer than 1.5 sample periods in the time stamps (ADEV assumes uniform sampling)",
+    if not ok[keep].all():
+        print(f"warning: {int((~ok[keep]).sum())} samples without a valid calibrated output dropped", file=sys.stderr)
+    rate, segments, breaks = time_base_segments(rec.t_s, keep & ok)
+    if breaks:
+        print(f"warning: {len(breaks)} break(s) in the time base; the ADEV pools the clusters of {len(segments)} "
+              "continuous segments, none spans a break:", file=sys.stderr)
+        for line in breaks:
+            print(f"warning:   {line}", file=sys.stderr)
+    res = allan_deviation([accel[s] for s in segments], rate)
+    for j in np.flatnonzero(res.bi_is_upper_bound):
+        print(f"warning: {AXES[j]}: no minimum of the ADEV within 1 s .. length/20 ({res.duration_s / 20:.3g} s): "
+              f"bias instability < {res.bias_instability_mg[j]:.3g} mg is an upper bound, not a floor", file=sys.stderr)
+    for j in np.flatnonzero(res.vrw_differs):
+        print(f"note: {AXES[j]}: VRW 60*ADEV(1 s) {res.vrw_mps_per_sqrt_h[j]:.3g} vs white-noise VRW "
+              f"{res.white_noise_vrw_mps_per_sqrt_h[j]:.3g} m/s/sqrt(h) (-1/2 line): the noise is not white at 1 s",
               file=sys.stderr)
-    res = allan_deviation(accel[ok], rate)
     with atomic_path(args.output) as tmp:
         plot_allan(res, tmp, title=f"Allan deviation of {', '.join(p.name for p in args.inputs)}")
     print(res.table_markdown())
     print(f"wrote {args.output}")
     if args.json:
         with atomic_path(args.json) as tmp:
-            tmp.write_text(json.dumps(res.as_dict(), indent=2), encoding="utf-8")
+            tmp.write_text(json.dumps({**res.as_dict(), "breaks": breaks}, indent=2), encoding="utf-8")
         print(f"wrote {args.json}")
     return 0
 
@@ -346,9 +419,14 @@ def cmd_report(args: argparse.Namespace) -> int:
         plot_calibrated_vs_reference(cal, rec, usable, tmp)
     with atomic_path(out / "residuals_per_degree.png") as tmp:
         plot_residuals_per_degree(selection, tmp)
-    command = "fbg-accel-calib " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    from .thermal_fit import sensor_id_of
+
+    warnings = calibration_match_warnings(cal, rec)
+    for line in warnings:
+        print(f"warning: {line}", file=sys.stderr)
     text = fit_report_markdown(cal, selection, stats, {"calibrated vs reference": "calibrated_vs_reference.png",
-                                                       "residuals per degree": "residuals_per_degree.png"}, command)
+                                                       "residuals per degree": "residuals_per_degree.png"},
+                               _command_line(args), recording_sensor_id=sensor_id_of(rec.metadata), warnings=warnings)
     with atomic_path(out / "report.md") as tmp:
         tmp.write_text(text, encoding="utf-8")
     print(selection.table_markdown())
@@ -362,12 +440,13 @@ REPORT_FILES = ("report.md", "calibrated_vs_reference.png", "residuals_per_degre
 def cmd_report_measured(args: argparse.Namespace) -> int:
     from .measured_report import main_args
 
-    return main_args(args.csv, args.md, args.png)
+    return main_args(args.csv, args.md, args.png, argv=getattr(args, "argv", None))
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = None if argv is None else list(argv)  # quoted by the reports' "Produced by"
     try:
         return int(args.func(args) or 0)
     except (OSError, ValueError) as exc:

@@ -153,7 +153,9 @@ def run(args: argparse.Namespace) -> int:
               "check that the poses differ and every channel responds", file=sys.stderr)
         return 2
     print(text(res), end="")
-    command = "fbg-accel-calib diagnose " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 2 else ""
+    argv = getattr(args, "argv", None)  # what main() was given; sys.argv for the console script
+    argv = sys.argv[1:] if argv is None else argv
+    command = "fbg-accel-calib " + " ".join(shlex.quote(str(a)) for a in argv) if len(argv) > 1 else ""
     try:
         written = write_outputs(res, args, command)
     except (OSError, ValueError) as exc:
@@ -170,6 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     register(sub)
     args = parser.parse_args(argv)
+    args.argv = None if argv is None else list(argv)
     return int(args.func(args))
 
 

@@ -185,24 +185,36 @@ def pose_table_markdown(stats: PoseStats, max_rows: int = 40) -> str:
     return "\n".join(lines)
 
 
+def _or_not_recorded(v: object) -> str:
+    return "not recorded" if v is None else str(v)
+
+
 def fit_report_markdown(cal: ThermalCalibration, selection: SelectionResult | None, stats: PoseStats,
-                        images: dict[str, str], command: str = "") -> str:
-    """Markdown report of a fit: degree table, RMSE vs noise floor, per-pose table, images."""
-    fit = cal.fit
+                        images: dict[str, str], command: str = "", recording_sensor_id: str | None = None,
+                        warnings: list[str] | None = None) -> str:
+    """Markdown report of a fit: degree table, RMSE vs noise floor, per-pose table, images. ``warnings`` (another
+    sensor, temperatures outside the calibrated range) are listed under the header."""
+    fit = cal.fit or {}
     rmse = stats.rmse()  # the file on these inputs; the YAML's own figure is that of the data it was fitted on
-    fit_rmse = np.asarray(fit.get("rmse_mps2", [np.nan] * 3), dtype=float)
     noise = stats.pooled_within_pose_std()
     lines = ["# Calibration fit report", ""]
     if command:
         lines += ["Produced by:", "", "```", command, "```", ""]
-    lines += [f"- sensor: `{cal.sensor_id}`, degree n = {cal.degree}, temperature range "
+    lines += [f"- **warning:** {w}" for w in warnings or []]
+    if fit.get("rmse_mps2") is not None:
+        fit_line = (f"- at fit time (the YAML): samples used {_or_not_recorded(fit.get('samples_used'))} of "
+                    f"{_or_not_recorded(fit.get('samples_total'))} "
+                    f"({_or_not_recorded(fit.get('samples_excluded_in_motion'))} excluded by the static detector, "
+                    f"{_or_not_recorded(fit.get('samples_excluded_invalid'))} outside poses or without valid "
+                    f"reference/temperature), poses {_or_not_recorded(fit.get('poses'))}, in-sample RMSE x/y/z "
+                    + " / ".join(f"{v:.4f}" for v in np.asarray(fit["rmse_mps2"], dtype=float)) + " m/s²")
+    else:
+        fit_line = "- at fit time (the YAML): not recorded (the file has no fit section)"
+    lines += [f"- sensor: `{cal.sensor_id}` (calibration), `{recording_sensor_id or 'not recorded'}` (recording), "
+              f"degree n = {cal.degree}, temperature range "
               f"{cal.temperature_range_c[0]:.2f} .. {cal.temperature_range_c[1]:.2f} °C, levels "
-              f"{fit.get('temperature_levels_c')}",
-              f"- at fit time (the YAML): samples used {fit.get('samples_used')} of {fit.get('samples_total')} "
-              f"({fit.get('samples_excluded_in_motion')} excluded by the static detector, "
-              f"{fit.get('samples_excluded_invalid')} outside poses or without valid reference/temperature), "
-              f"poses {fit.get('poses')}, in-sample RMSE x/y/z "
-              + " / ".join(f"{v:.4f}" for v in fit_rmse) + " m/s²",
+              f"{_or_not_recorded(fit.get('temperature_levels_c'))}",
+              fit_line,
               f"- on these inputs: {int(stats.count.sum())} static samples in {len(stats.count)} poses, the file's "
               "output (eq. 28 and its correction terms) against the reference",
               "", "| axis | RMSE on these inputs [m/s²] | RMSE / FS | within-pose noise floor [m/s²] |", "|---|---|---|---|"]

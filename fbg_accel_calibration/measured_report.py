@@ -243,9 +243,11 @@ def run_report(csv_path: Path = DEFAULT_CSV, md_path: Path = DEFAULT_MD, png_pat
     return fit
 
 
-def main_args(csv_path: Path, md_path: Path, png_path: Path) -> int:
-    """CLI body of ``report-measured``; exit code 2 with a clear message when the data is absent."""
-    command = "fbg-accel-calib report-measured" + ("".join(" " + shlex.quote(a) for a in sys.argv[2:]))
+def main_args(csv_path: Path, md_path: Path, png_path: Path, argv: list[str] | None = None) -> int:
+    """CLI body of ``report-measured``; exit code 2 with a clear message when the data is absent. ``argv``: the
+    command line given to ``cli.main`` (default: sys.argv, the console script's)."""
+    argv = sys.argv[1:] if argv is None else argv
+    command = "fbg-accel-calib report-measured" + ("".join(" " + shlex.quote(str(a)) for a in argv[1:]))
     try:  # the report is regenerated in place (force), but never over its own input
         check_outputs([md_path, png_path], [csv_path], force=True, create_dirs=True)
     except OutputError as exc:
