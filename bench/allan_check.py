@@ -52,10 +52,13 @@ def simulated_hour(vrw: list[float]) -> dict:
     res = allan_deviation(cal.apply_counts(static.ref, static.xyz, static.temp_c, static.t_s), 100.0)
     return {"configured_vrw": np.round(cn["vrw_mps_per_sqrt_h"], 3).tolist(),
             "read_vrw": res.vrw_mps_per_sqrt_h.round(3).tolist(),
+            "read_white_noise_vrw": [None if np.isnan(v) else round(float(v), 3) for v in res.white_noise_vrw_mps_per_sqrt_h],
+            "white_tau_range_s": [None if np.isnan(r[0]) else np.round(r, 2).tolist() for r in res.white_tau_range_s],
             "configured_bi_mg": np.round(cn["bias_instability_mg"], 3).tolist(),
             "read_bi_mg": res.bias_instability_mg.round(3).tolist(),
             "configured_min_adev_tau_s": np.round(cn["min_adev_tau_s"], 1).tolist(),
-            "read_min_tau_s": res.bi_tau_s.round(1).tolist()}
+            "read_min_tau_s": res.bi_tau_s.round(1).tolist(),
+            "bi_is_upper_bound": res.bi_is_upper_bound.tolist()}
 
 
 def main() -> None:

@@ -65,6 +65,9 @@ def case(overrides: dict, hours: float) -> dict:
              for i, t in enumerate(TAUS_S)}
     return {"overrides": overrides, "configured_vrw": np.round(noise["vrw_mps_per_sqrt_h"], 2).tolist(),
             "read_vrw": res.vrw_mps_per_sqrt_h.round(2).tolist(),
+            "read_white_noise_vrw": [None if np.isnan(v) else round(float(v), 2) for v in res.white_noise_vrw_mps_per_sqrt_h],
+            "white_tau_range_s": [None if np.isnan(r[0]) else np.round(r, 1).tolist() for r in res.white_tau_range_s],
+            "bi_is_upper_bound": res.bi_is_upper_bound.tolist(),
             "configured_bi_mg": np.round(noise["bias_instability_mg"], 2).tolist(),
             "read_bi_mg": res.bias_instability_mg.round(2).tolist(), "read_bi_tau_s": res.bi_tau_s.round(0).tolist(),
             "adev_read_over_expected": ratio}
