@@ -15,25 +15,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.signal import lfilter
+from test_diagnose_sim import THERMAL, _config
 
 from fbg_accel_calibration.diagnose import diagnose, within_visit_noise
 from fbg_accel_sim.board_physics import simulate_recording
-from fbg_accel_sim.sim_config import SimConfig
 
-NAMED = ("reference_dark_offset", "thermal_lag", "spectral_nonlinearity", "time_drift", "channel_delay", "tia_lowpass",
-         "thermal_hysteresis", "unmodelled_cable_torque")
-BASELINE = {f"effects.{k}.scale": 0.0 for k in NAMED}
-GRID = {"scenario.poses.mode": "grid", "scenario.poses.dwell_s": 3.0, "scenario.poses.move_s": 1.0,
-        "scenario.poses.grid.theta_step_deg": 60.0, "scenario.poses.grid.psi_step_deg": 60.0}
-THERMAL = {"scenario.rate_hz": 25.0, "scenario.poses.repeat": 3, "thermal.optics_time_constant_s": 60.0,
-           "scenario.temperature.profile": [{"ramp_to_c": 30.0, "duration_s": 120.0}, {"ramp_to_c": 20.0, "duration_s": 120.0},
-                                            {"ramp_to_c": 30.0, "duration_s": 120.0}, {"ramp_to_c": 20.0, "duration_s": 120.0}]}
 DEAD_REF = {"scenario.rate_hz": 25.0, "scenario.poses.dwell_s": 10.0, "scenario.poses.move_s": 2.0,
             "effects.source_power_wander.relative_sigma": 0.02}
 
 
 def _sim(extra: dict | None = None, seed: int = 1):
-    return simulate_recording(SimConfig.default().with_overrides({**BASELINE, **GRID, **(extra or {})}), seed=seed)
+    return simulate_recording(_config(extra or {}), seed=seed)
 
 
 def _floor_warnings(res) -> list[str]:
