@@ -223,6 +223,76 @@ def test_late_read_is_flagged_and_a_long_stall_skips_reads_counted_as_lost(fw: F
     assert dec.stats.lost_frames == 5 and dec.stats.resets == 0 and dec.stats.frames == 20
 
 
+# ----------------------------------------------------------------------------- link: BOOT on the first DELIVERED frame
+# The SPP writer discards every frame while no client is connected (firmware/esp32/fbg_board/fbg_board.ino,
+# writer_task), so BOOT must mark the first frame the writer actually sends after power-up (fbg_link_on_send in
+# firmware/core/fbg_board.c), not the first sample produced: otherwise it is discarded with the others and a reboot
+# after a short uptime is invisible to the host. fbg_board_host models the link with --link-connect-us US (frames
+# produced before board time US are discarded) and --link-down-us A:B (discarded while A <= t_us < B).
+@pytest.mark.parametrize("connect_us, aux", [(0, False), (5_000_000, False), (5_004_321, False), (2_500_000, True)],
+                         ids=["at_power_up", "after_5s", "between_reads", "v2_aux"])
+def test_first_frame_delivered_after_power_up_carries_boot_whatever_was_discarded(
+        fw: FirmwareHostPrograms, connect_us: int, aux: bool) -> None:
+    n = 1000  # 10 s at 100 Hz
+    out = run_board(fw, "--samples", str(n), "--link-connect-us", str(connect_us), *(["--aux"] if aux else [])).stdout
+    dec = StreamDecoder()
+    frames = dec.feed(out)
+    first = -(-connect_us // 10_000)  # the first read at or after the connection (reads at 10 ms * k)
+    assert [f.seq for f in frames] == list(range(first, n)) and frames[0].t_us == 10_000 * first
+    assert [k for k, f in enumerate(frames) if f.status & Status.BOOT] == [0]  # CRC recomputed: the decoder took it
+    assert dec.stats.frames == n - first and dec.stats.crc_errors == 0 and dec.stats.bytes_discarded == 0
+    assert dec.stats.lost_frames == 0 and dec.stats.resets == 0
+    assert [(f.ref, f.x, f.y, f.z) for f in frames] == [synthetic_adc(k) for k in range(first, n)]
+    lines, end = board_times(fw, "--samples", str(n), "--link-connect-us", str(connect_us))
+    assert end == f"END samples={n} skipped=0"  # the sampler ran from power-up, whatever the link did
+    assert [ln.seq for ln in lines] == list(range(first, n))  # times: the delivered samples, with the status sent
+    assert [ln.seq for ln in lines if ln.status & Status.BOOT] == [first]
+
+
+def test_reconnect_within_one_boot_carries_no_boot_and_its_gap_is_lost(fw: FirmwareHostPrograms) -> None:
+    # client from 1 s, link down 3 s..4.5 s and 6 s..6.005 s (one read), the frames in between discarded
+    out = run_board(fw, "--samples", "800", "--link-connect-us", "1000000", "--link-down-us", "3000000:4500000",
+                    "--link-down-us", "6000000:6000005").stdout
+    dec = StreamDecoder()
+    frames = dec.feed(out)
+    seqs = [*range(100, 300), *range(450, 600), *range(601, 800)]
+    assert [f.seq for f in frames] == seqs
+    assert [f.seq for f in frames if f.status & Status.BOOT] == [100]
+    assert (dec.stats.resets, dec.stats.lost_frames, dec.stats.frames) == (0, 151, len(seqs))
+
+
+def test_link_that_never_connects_sends_nothing(fw: FirmwareHostPrograms) -> None:
+    assert run_board(fw, "--samples", "50", "--link-connect-us", "500000").stdout == b""
+
+
+def test_reboot_after_a_short_uptime_over_spp_is_a_reset_and_stamps_stay_true(fw: FirmwareHostPrograms) -> None:
+    """Brown-out with the host connected, the new boot's first frames discarded until the client is back: the host
+    must count one reset and no loss, and stamp the new boot's samples at their true time (not 8.3 s early, the
+    reboot's time shift read as transport delay, as when the BOOT frame was discarded)."""
+    from test_driver_core import make_cal
+
+    from fbg_accel_driver.driver_core import DriverCore
+
+    h0 = 1_700_000_000_000_000_000
+    # boot A: client from board 5 s, brown-out at 8 s; boot B starts 0.3 s later, client back at its board 10 s
+    a = run_board(fw, "--duration-us", "8000000", "--link-connect-us", "5000000").stdout
+    b = run_board(fw, "--duration-us", "40000000", "--link-connect-us", "10000000").stdout
+    fa, fb = StreamDecoder().feed(a), StreamDecoder().feed(b)
+    assert (fa[0].seq, fb[0].seq) == (500, 1000) and fa[0].status & Status.BOOT and fb[0].status & Status.BOOT
+    pieces = [(a[i * FRAME_SIZE_V1:(i + 1) * FRAME_SIZE_V1], h0 + f.t_us * 1000) for i, f in enumerate(fa)]
+    pieces += [(b[i * FRAME_SIZE_V1:(i + 1) * FRAME_SIZE_V1], h0 + 8_300_000_000 + f.t_us * 1000)
+               for i, f in enumerate(fb)]
+    core = DriverCore(make_cal())
+    stamps = []
+    for data, true_ns in pieces:
+        stamps += [r.stamp_ns for r in core.feed(data, true_ns + 2_000_000).raw]  # 2 ms transport delay
+    stamps += [r.stamp_ns for r in core.flush().raw]
+    assert (core.decoder.stats.resets, core.decoder.stats.lost_frames, core.counters.board_resets) == (1, 0, 1)
+    assert len(stamps) == len(pieces)
+    worst = max(abs(s - t) for s, (_, t) in zip(stamps, pieces, strict=True))
+    assert worst < 50_000_000, worst / 1e9
+
+
 # ----------------------------------------------------------------------------- AHT10 state machine
 @dataclass(frozen=True)
 class AhtEvent:
@@ -336,7 +406,9 @@ def test_aht20_crc8_is_checked_and_a_bad_crc_invalidates_the_reading(fw: Firmwar
 
 def test_board_host_rejects_bad_options(fw: FirmwareHostPrograms) -> None:
     for args, what in ((["--samples", "10", "--rate-mhz", "0"], "--rate-mhz"), (["--bogus", "1"], "unknown option"),
-                       (["--samples", "1", "--aht-fault", "heat:0:1"], "KIND"), ([], "exactly one of")):
+                       (["--samples", "1", "--aht-fault", "heat:0:1"], "KIND"), ([], "exactly one of"),
+                       (["--samples", "1", "--link-down-us", "5:1"], "--link-down-us"),
+                       (["--samples", "1", "--link-connect-us", "-1"], "--link-connect-us")):
         res = subprocess.run([str(fw.fbg_board_host), *args], capture_output=True, text=True, timeout=60)
         assert res.returncode == 2 and res.stderr.count("\n") == 1 and what in res.stderr, (args, res.stderr)
 

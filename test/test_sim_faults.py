@@ -80,6 +80,25 @@ def test_board_reset_restarts_sequence_and_clock_with_boot_flag() -> None:
     assert blk.t_us[k] == pytest.approx(0.3e6, abs=2e4)
 
 
+def test_boot_flag_is_on_the_first_frame_sent_after_a_reboot_the_link_was_down_for() -> None:
+    """The board's writer discards frames while the link is down (SPP: no client, fbg_board.ino writer_task), and BOOT
+    marks the first frame it delivers after power-up (docs/protocol.md section 4). A reboot after a short uptime, its
+    first frames discarded, must still be a reset: its clock (2.2 s at the reconnection) is past the last frame of the
+    previous boot (0.49 s), so only BOOT can tell."""
+    c = SimConfig.default().with_overrides({"scenario.duration_s": 6.0, "faults.resets.at_s": [1.0],
+                                            "faults.disconnects.at_s": [0.5, 4.0], "faults.disconnects.down_s": 3.0})
+    sim = BoardSimulator(c, seed=0)
+    blk = sim.run(6.0)
+    boot = np.flatnonzero((blk.status & int(Status.BOOT)) != 0)
+    assert boot.tolist() == [0, 350]  # boot B starts at 1.3 s (seq 0), first sent at 3.5 s (seq 220)
+    assert blk.sent[boot].all() and blk.seq[350] == 220 and blk.t_us[350] == pytest.approx(2.2e6, abs=2e4)
+    dec = StreamDecoder()
+    frames = dec.feed(blk.wire_bytes())
+    assert dec.stats.resets == sim.expected_decoder_stats()["resets"] == blk.injected_resets == 1
+    assert dec.stats.lost_frames == sim.expected_decoder_stats()["lost_frames"] == 0
+    assert [f.seq for f in frames if f.status & Status.BOOT] == [0, 220]
+
+
 def test_adc_saturation_source_dropout_and_temperature_faults() -> None:
     c = SimConfig.default().with_overrides({
         "scenario.duration_s": 12.0, "effects.reference_dark_offset.scale": 0.0,
