@@ -1,10 +1,9 @@
-/* Sample assembly: sequence counter, BOOT bit, status byte (docs/protocol.md sections 2 and 4). */
+/* Sample assembly: sequence counter, status byte; BOOT on the first frame delivered (docs/protocol.md s. 2, 4). */
 #include "fbg_board.h"
 
 void fbg_board_init(fbg_board *b)
 {
     b->next_seq = 0;
-    b->boot_sent = 0;
     b->adc_clamps = 0;
 }
 
@@ -24,10 +23,6 @@ void fbg_board_next_sample(fbg_board *b, uint64_t t_us, const uint16_t adc[4], i
     if (overrun) {
         status |= FBG_STATUS_ADC_OVERRUN;
     }
-    if (!b->boot_sent) {
-        status |= FBG_STATUS_BOOT;
-        b->boot_sent = 1;
-    }
     out->seq = b->next_seq;
     b->next_seq = (uint16_t)(b->next_seq + 1u); /* unsigned 16-bit: 65535 + 1 -> 0 */
     out->t_us = t_us;
@@ -42,4 +37,21 @@ void fbg_board_next_sample(fbg_board *b, uint64_t t_us, const uint16_t adc[4], i
 void fbg_board_skip(fbg_board *b, uint32_t n)
 {
     b->next_seq = (uint16_t)(b->next_seq + (uint16_t)(n & 0xFFFFu));
+}
+
+void fbg_link_init(fbg_link *l)
+{
+    l->boot_delivered = 0;
+}
+
+int fbg_link_on_send(fbg_link *l, uint8_t *frame, size_t size)
+{
+    if (l->boot_delivered) {
+        return 0;
+    }
+    if (fbg_frame_set_status_bits(frame, size, FBG_STATUS_BOOT) != 0) {
+        return -1;
+    }
+    l->boot_delivered = 1;
+    return 1;
 }

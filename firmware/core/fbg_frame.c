@@ -63,3 +63,20 @@ size_t fbg_frame_encode_v2(const fbg_sample *s, uint16_t aux, uint8_t out[FBG_FR
     p = put_u16(p, aux > FBG_ADC_MAX ? (uint16_t)FBG_ADC_MAX : aux); /* 12-bit: the decoder refuses more */
     return put_crc(out, p);
 }
+
+int fbg_frame_set_status_bits(uint8_t *frame, size_t size, uint8_t bits)
+{
+    size_t body_len;
+    if (frame == NULL || size < FBG_FRAME_SIZE_V1 || frame[0] != FBG_SYNC0 || frame[1] != FBG_SYNC1) {
+        return -1;
+    }
+    body_len = frame[3];
+    if (!((frame[2] == FBG_PROTOCOL_VERSION && body_len == FBG_BODY_LEN_V1) ||
+          (frame[2] == FBG_PROTOCOL_VERSION_V2 && body_len == FBG_BODY_LEN_V2)) ||
+        size != FBG_HEADER_SIZE + body_len + FBG_CRC_SIZE) {
+        return -1;
+    }
+    frame[FBG_STATUS_OFFSET] |= bits;
+    (void)put_crc(frame, frame + FBG_HEADER_SIZE + body_len);
+    return 0;
+}

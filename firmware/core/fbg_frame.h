@@ -33,7 +33,7 @@ extern "C" {
 #define FBG_STATUS_TEMP_VALID 0x01u   /* temp_cc holds the latest AHT10 reading and it was good */
 #define FBG_STATUS_TEMP_PRESENT 0x02u /* the AHT10 answered on I2C at boot */
 #define FBG_STATUS_ADC_OVERRUN 0x04u  /* this sample was taken late (t_us is still its true time) */
-#define FBG_STATUS_BOOT 0x08u         /* first frame after a (re)boot */
+#define FBG_STATUS_BOOT 0x08u         /* first frame DELIVERED after a (re)boot (fbg_link_on_send) */
 
 /** One board sample, the body of a version-1 frame. */
 typedef struct {
@@ -56,6 +56,16 @@ size_t fbg_frame_encode_v1(const fbg_sample *s, uint8_t out[FBG_FRAME_SIZE_V1]);
 /** Write the 29-byte version-2 frame of ``s`` with the auxiliary channel's ``aux`` counts (0..4095)
  * into ``out``; the CRC covers version..aux. Returns FBG_FRAME_SIZE_V2. */
 size_t fbg_frame_encode_v2(const fbg_sample *s, uint16_t aux, uint8_t out[FBG_FRAME_SIZE_V2]);
+
+/** Offset of the status byte in a frame of either version (header, then seq..temp_cc of the v1 body). */
+#define FBG_STATUS_OFFSET (FBG_HEADER_SIZE + 20u)
+
+/**
+ * Set ``bits`` in the status byte of an encoded frame and recompute its CRC, in place. ``frame`` must
+ * be one whole version-1 or version-2 frame of ``size`` bytes (sync, version and body_len consistent
+ * with ``size``); returns 0, or -1 for anything else (the buffer is then left unchanged).
+ */
+int fbg_frame_set_status_bits(uint8_t *frame, size_t size, uint8_t bits);
 
 #ifdef __cplusplus
 }

@@ -12,10 +12,18 @@
  * --duration-us US, --output frames|times, --every N, --late K:US (repeatable), --adc-read-us US, --aux
  * (a fifth synthetic channel, (29 k + 7) mod 4096 for read k, sent in protocol-version-2 frames),
  * --aht aht10|aht20|absent, --aht-fault nack|busy|badcrc|range|uncal|ones:START_US:END_US
- * (repeatable), --temp-start-cc CC, --temp-slope-cc-per-s CC, --aht-period-us US, --aht-log.
+ * (repeatable), --temp-start-cc CC, --temp-slope-cc-per-s CC, --aht-period-us US, --aht-log,
+ * --link-connect-us US, --link-down-us START_US:END_US (repeatable).
  *
- * Output (stdout): --output frames (default) writes the protocol-v1 frames; --output times writes
- * "k seq t_us status" for every --every-th sample and for the last one. --aht-log writes one line per
+ * Link model (the ESP32 writer task, firmware/esp32/fbg_board/fbg_board.ino): a frame whose sample was
+ * taken before --link-connect-us, or at START_US <= t_us < END_US of a --link-down-us window, is
+ * discarded as the SPP writer discards frames while no client is connected (sampling and seq go on);
+ * every other frame is sent through fbg_link_on_send, which puts BOOT on the first one sent after
+ * power-up. Without these options every frame is sent (USB serial).
+ *
+ * Output (stdout): --output frames (default) writes the frames sent (protocol v1, or v2 with --aux);
+ * --output times writes "k seq t_us status" (status as sent) for every --every-th sample and for the
+ * last one, if the link sent it; the END line counts every sample taken, sent or not. --aht-log writes one line per
  * completed AHT10 measurement, or change of the temperature state the frames carry, on stderr:
  * "AHT <t_us> <reason|state> <raw_t> <temp_cc> <status_bits>".
  * Usage errors: one line on stderr, exit code 2.
@@ -33,6 +41,7 @@
 #include "fbg_scheduler.h"
 
 #define MAX_LATE 64
+#define MAX_LINK_DOWN 64
 
 static const char *const REASON_NAMES[FBG_AHT10_REASONS] = {"ok", "none_yet", "absent", "nack", "stuck",
                                                             "bad_crc", "uncalibrated", "bus_stuck", "out_of_range"};
@@ -77,6 +86,23 @@ static int parse_i64(const char *s, int64_t *out)
     return 0;
 }
 
+/* "A:B" -> two non-negative integers; -1 if malformed. */
+static int parse_u64_pair(const char *v, uint64_t *a, uint64_t *b)
+{
+    char buf[64];
+    char *colon;
+    if (strlen(v) >= sizeof buf) {
+        return -1;
+    }
+    strcpy(buf, v);
+    colon = strchr(buf, ':');
+    if (colon == NULL) {
+        return -1;
+    }
+    *colon = '\0';
+    return parse_u64(buf, a) != 0 || parse_u64(colon + 1, b) != 0 ? -1 : 0;
+}
+
 /* Synthetic ADC counts for sample k: deterministic, covering 0..4095. */
 /* The aux channel of read k (--aux): a ramp the test can predict (docs/protocol.md, version 2). */
 static uint16_t synthetic_aux(uint64_t k)
@@ -98,6 +124,9 @@ int main(int argc, char **argv)
     int output_times = 0, aht_log = 0, with_aux = 0, i;
     uint64_t late_k[MAX_LATE], late_us[MAX_LATE];
     int n_late = 0;
+    uint64_t link_connect_us = 0, down_from[MAX_LINK_DOWN], down_to[MAX_LINK_DOWN];
+    int n_down = 0;
+    fbg_link link;
     int absent_logged = 0;
     uint8_t bits, last_bits = 0;
     int16_t cc, last_cc = 0;
@@ -172,6 +201,16 @@ int main(int argc, char **argv)
                 return usage("--late needs K:US with non-negative integers", v);
             }
             n_late++;
+        } else if (strcmp(a, "--link-connect-us") == 0) { /* no client before this board time */
+            if (parse_u64(v, &link_connect_us) != 0) {
+                return usage("--link-connect-us must be a non-negative integer (board time, us)", v);
+            }
+        } else if (strcmp(a, "--link-down-us") == 0) { /* START_US:END_US: no client while START <= t_us < END */
+            if (n_down >= MAX_LINK_DOWN || parse_u64_pair(v, &down_from[n_down], &down_to[n_down]) != 0 ||
+                down_to[n_down] < down_from[n_down]) {
+                return usage("--link-down-us needs START_US:END_US with START_US <= END_US (at most 64)", v);
+            }
+            n_down++;
         } else if (strcmp(a, "--aht") == 0) {
             if (strcmp(v, "aht10") == 0) {
                 dev.send_crc = 0;
@@ -238,6 +277,7 @@ int main(int argc, char **argv)
     bus.read = aht10_sim_read;
     bus.ctx = &dev;
     fbg_board_init(&board);
+    fbg_link_init(&link);
     fbg_aht10_init(&aht, &acfg, 0);
     (void)fbg_sched_init(&sched, (uint32_t)rate_mhz, 0);
     aht_wake = aht.wake_us;
@@ -286,7 +326,9 @@ int main(int argc, char **argv)
             uint16_t aux;
             fbg_sample s;
             uint32_t skipped = 0;
-            int late;
+            int late, sent = 1;
+            uint8_t frame[FBG_FRAME_SIZE_V2];
+            size_t size;
             now_us = read_at;
             adc_free_us = now_us + adc_read_us;
             synthetic_adc(sched.index, adc);
@@ -294,20 +336,35 @@ int main(int argc, char **argv)
             late = fbg_sched_take(&sched, now_us, &skipped);
             fbg_board_next_sample(&board, now_us, adc, fbg_aht10_temp_cc(&aht), fbg_aht10_status_bits(&aht), late, &s);
             fbg_board_skip(&board, skipped);
-            if (output_times) {
+            size = with_aux ? fbg_frame_encode_v2(&s, aux, frame) : fbg_frame_encode_v1(&s, frame);
+            /* the writer task: discard with no client, else send through the BOOT marker */
+            if (now_us < link_connect_us) {
+                sent = 0;
+            }
+            for (j = 0; j < n_down; j++) {
+                if (down_from[j] <= now_us && now_us < down_to[j]) {
+                    sent = 0;
+                }
+            }
+            if (sent && fbg_link_on_send(&link, frame, size) < 0) {
+                fprintf(stderr, "fbg_board_host: error: fbg_link_on_send refused an encoded frame\n");
+                return 1;
+            }
+            s.status = frame[FBG_STATUS_OFFSET]; /* as sent */
+            if (!sent) {
+                /* discarded by the writer: nothing on the link */
+            } else if (output_times) {
                 if (k % every == 0) {
                     printf("%" PRIu64 " %u %" PRIu64 " %u\n", k, (unsigned)s.seq, s.t_us, (unsigned)s.status);
                 }
             } else {
-                uint8_t frame[FBG_FRAME_SIZE_V2];
-                size_t size = with_aux ? fbg_frame_encode_v2(&s, aux, frame) : fbg_frame_encode_v1(&s, frame);
                 if (fwrite(frame, 1, size, stdout) != size) {
                     fprintf(stderr, "fbg_board_host: error: cannot write to stdout\n");
                     return 1;
                 }
             }
             k++;
-            if (output_times && ((samples != 0 && k == samples) ||
+            if (output_times && sent && ((samples != 0 && k == samples) ||
                                  (duration_us != 0 && fbg_sched_next_us(&sched) >= duration_us)) &&
                 (k - 1) % every != 0) {
                 printf("%" PRIu64 " %u %" PRIu64 " %u\n", k - 1, (unsigned)s.seq, s.t_us, (unsigned)s.status);

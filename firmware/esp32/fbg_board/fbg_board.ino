@@ -7,8 +7,10 @@
  *     at the next read time of the drift-free scheduler; takes t_us = esp_timer_get_time() at the
  *     wake-up, reads the four ADC1 inputs back to back, builds the frame and queues it without
  *     blocking (queue full: the frame is dropped, its seq is spent, so the host counts the loss);
- *   - writer task: sends whole 27-byte frames on USB serial or Bluetooth SPP; with no SPP client
- *     connected it discards them (sampling and seq go on);
+ *   - writer task: sends whole frames on USB serial or Bluetooth SPP; with no SPP client
+ *     connected it discards them (sampling and seq go on). BOOT is put on the first frame it actually
+ *     sends after power-up (fbg_link_on_send, firmware/core/fbg_board.c), not on the first sample, so
+ *     the host sees a reboot even when the frames before its SPP client (re)connected were discarded;
  *   - AHT10 task (low priority): runs the non-blocking AHT10 state machine over Wire and publishes
  *     temp_cc + status bits in one 32-bit word the sampler reads atomically.
  * Configuration: fbg_board_config.h. Build: docs/firmware.md (arduino-cli with --library firmware/core).
@@ -31,6 +33,7 @@ static BluetoothSerial SerialBT;
 #include "fbg_scheduler.h"
 
 static fbg_board g_board;
+static fbg_link g_link; /* writer task only: BOOT on the first frame delivered after power-up */
 static fbg_scheduler g_sched;
 static fbg_aht10 g_aht;
 static esp_timer_handle_t g_sample_timer;
@@ -148,10 +151,14 @@ static void writer_task(void *arg)
 #if FBG_LINK == FBG_LINK_BLUETOOTH_SPP
         if (!SerialBT.hasClient()) {
             g_frames_unsent++; /* link lost: discard, keep sampling; the host sees a seq gap */
-            continue;
+            continue;          /* (a discarded frame never takes the BOOT bit: see below) */
         }
-        SerialBT.write(frame, sizeof frame);
+        int boot = fbg_link_on_send(&g_link, frame, sizeof frame); /* BOOT + CRC on the first frame sent */
+        if (SerialBT.write(frame, sizeof frame) != sizeof frame && boot == 1) {
+            fbg_link_init(&g_link); /* the BOOT frame did not go out whole: the next frame sent carries BOOT */
+        }
 #else
+        fbg_link_on_send(&g_link, frame, sizeof frame); /* same contract on USB (there the first sample) */
         Serial.write(frame, sizeof frame);
 #endif
     }
@@ -170,6 +177,7 @@ void setup()
     Wire.begin(FBG_PIN_SDA, FBG_PIN_SCL, FBG_I2C_HZ);
 
     fbg_board_init(&g_board);
+    fbg_link_init(&g_link); /* before the writer task starts */
     fbg_aht10_config acfg = fbg_aht10_default_config();
     acfg.period_us = FBG_AHT_PERIOD_US;
     acfg.check_crc = FBG_AHT_CHECK_CRC;
