@@ -363,6 +363,14 @@ class BoardSimulator:
         self.disconnect_removes_link = bool(dspec.get("remove_link", False))
         self._disc_k = [(math.ceil(t * self.rate_true_hz - 1e-9), math.ceil((t + d) * self.rate_true_hz - 1e-9))
                         for t, d in self.disconnects]
+        # BOOT marks the first frame the board's writer SENDS after a (re)boot, not the first sample: the writer
+        # discards frames while its link is down (Bluetooth SPP with no client, writer_task in
+        # firmware/esp32/fbg_board/fbg_board.ino) and puts BOOT on the first frame it sends (fbg_link_on_send,
+        # firmware/core/fbg_board.c). A disconnect window over an epoch's start moves BOOT to the first sample after
+        # it (seq no longer 0); an epoch with no sent sample has none (-1).
+        ends = np.concatenate([self.reset_k, [np.iinfo(np.int64).max]])
+        self.boot_k = np.array([self._first_sent_k(int(s0), int(e0)) for s0, e0 in zip(self.epoch_start, ends)],
+                               dtype=np.int64)
         end = f.get("end_s")
         end_s = float(end) if end is not None else self.duration_s
         rng = np.random.default_rng([self.seed, 0, _STREAM_WIRE])
@@ -372,6 +380,16 @@ class BoardSimulator:
         self.windows = {name: list(f[name].get("windows") or []) for name in
                         ("adc_saturation", "source_dropout", "temperature_invalid", "temperature_absent", "adc_overrun")}
         self.temp_absent_from_boot = bool(f["temperature_absent"].get("from_boot", False))
+
+    def _first_sent_k(self, start: int, end: int) -> int:
+        """First sample index in [start, end) outside every disconnect window, or -1."""
+        k, moved = start, True
+        while moved:
+            moved = False
+            for a0, b0 in self._disc_k:
+                if a0 <= k < b0:
+                    k, moved = b0, True
+        return k if k < end else -1
 
     def _unsent_k(self, k: int) -> bool:
         for r in self.reset_k:
@@ -792,7 +810,8 @@ class BoardSimulator:
     def _board_framing(self, k: np.ndarray, t: np.ndarray, present: np.ndarray, valid: np.ndarray) -> _Framing:
         """Board side of each sample ``k`` (true time ``t``, s): epoch between resets (faults.resets), sequence number,
         board clock t_us (crystal error board.clock_ppm; restarts at each reset), status bits (docs/protocol.md) and
-        whether it is sent at all (not during a boot gap, board.boot_gap_s, nor a disconnect)."""
+        whether it is sent at all (not during a boot gap, board.boot_gap_s, nor a disconnect); BOOT on the first sample
+        of each epoch that is sent (``boot_k``)."""
         # --- board: epochs (resets), sequence, clock, status, sent
         epoch = np.searchsorted(self.epoch_start, k, side="right") - 1
         start = self.epoch_start[epoch]
@@ -807,7 +826,7 @@ class BoardSimulator:
         for a0, b0 in self._disc_k:
             sent &= ~((k >= a0) & (k < b0))
         status = np.where(present, int(Status.TEMP_PRESENT), 0) | np.where(valid, int(Status.TEMP_VALID), 0)
-        status = status | np.where(k == start, int(Status.BOOT), 0)
+        status = status | np.where(k == self.boot_k[epoch], int(Status.BOOT), 0)  # first SENT frame of the epoch
         for wdw in self.windows["adc_overrun"]:
             status = status | np.where(self._inside(t, wdw), int(Status.ADC_OVERRUN), 0)
         return _Framing(board_t, t_us, seq, status.astype(np.int64), sent, (k == start) & (epoch > 0))

@@ -83,15 +83,17 @@ def test_board_reset_restarts_sequence_and_clock_with_boot_flag() -> None:
 def test_boot_flag_is_on_the_first_frame_sent_after_a_reboot_the_link_was_down_for() -> None:
     """The board's writer discards frames while the link is down (SPP: no client, fbg_board.ino writer_task), and BOOT
     marks the first frame it delivers after power-up (docs/protocol.md section 4). A reboot after a short uptime, its
-    first frames discarded, must still be a reset: its clock (2.2 s at the reconnection) is past the last frame of the
+    first frames discarded, must still be a reset: its clock (2.5 s at the reconnection) is past the last frame of the
     previous boot (0.49 s), so only BOOT can tell."""
     c = SimConfig.default().with_overrides({"scenario.duration_s": 6.0, "faults.resets.at_s": [1.0],
                                             "faults.disconnects.at_s": [0.5, 4.0], "faults.disconnects.down_s": 3.0})
     sim = BoardSimulator(c, seed=0)
     blk = sim.run(6.0)
     boot = np.flatnonzero((blk.status & int(Status.BOOT)) != 0)
-    assert boot.tolist() == [0, 350]  # boot B starts at 1.3 s (seq 0), first sent at 3.5 s (seq 220)
-    assert blk.sent[boot].all() and blk.seq[350] == 220 and blk.t_us[350] == pytest.approx(2.2e6, abs=2e4)
+    # boot B: reset at 1.0 s, seq 0 at 1.3 s (after the boot gap), first sent at 3.5 s (seq 220, board clock 2.5 s);
+    # sample indices one more than at exactly 100 Hz: the default board crystal runs 20 ppm fast (board.clock_ppm)
+    assert boot.tolist() == [0, 351]
+    assert blk.sent[boot].all() and blk.seq[351] == 220 and blk.t_us[351] == pytest.approx(2.5e6, abs=2e4)
     dec = StreamDecoder()
     frames = dec.feed(blk.wire_bytes())
     assert dec.stats.resets == sim.expected_decoder_stats()["resets"] == blk.injected_resets == 1
