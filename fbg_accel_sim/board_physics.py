@@ -369,7 +369,7 @@ class BoardSimulator:
         # firmware/core/fbg_board.c). A disconnect window over an epoch's start moves BOOT to the first sample after
         # it (seq no longer 0); an epoch with no sent sample has none (-1).
         ends = np.concatenate([self.reset_k, [np.iinfo(np.int64).max]])
-        self.boot_k = np.array([self._first_sent_k(int(s0), int(e0)) for s0, e0 in zip(self.epoch_start, ends)],
+        self.boot_k = np.array([self._first_sent_k(int(s0), int(e0)) for s0, e0 in zip(self.epoch_start, ends, strict=True)],
                                dtype=np.int64)
         end = f.get("end_s")
         end_s = float(end) if end is not None else self.duration_s
