@@ -504,3 +504,81 @@ def test_the_chain_priming_count_is_in_the_diagnostics() -> None:
     d = DriverDiagnostics()
     e = d.report(snapshot(1.0, frames=100, core={"chain_priming": 2}))
     assert values(e, "calibrated output")["chain_priming"] == "2"
+
+
+def catch_up(frames: list[Frame], late_k: int, late_us: int, dt: int = 10_000, read_us: int = 40) -> list[Frame]:
+    """``frames`` (consecutive, ``dt`` us apart) as the firmware takes them when read ``late_k`` is ``late_us`` late:
+    the reads already due follow back to back, ``read_us`` apart, ADC_OVERRUN on each read taken at or after the next
+    read's time (firmware/core/fbg_scheduler.c fbg_sched_take, firmware/host/fbg_board_host.c --late)."""
+    out, read = [], -read_us
+    for k, f in enumerate(frames):
+        due = f.t_us + (late_us if k == late_k else 0)
+        read = max(due, read + read_us)
+        late = read >= f.t_us + dt
+        out.append(Frame(f.seq, read, f.ref, f.x, f.y, f.z, f.temp_cc, f.status | (int(Status.ADC_OVERRUN) if late else 0)))
+    return out
+
+
+@pytest.mark.parametrize("late_us", [15_000, 35_000])  # 100 Hz: 1 or 3 reads caught up back to back, none skipped
+def test_a_late_read_and_its_catch_up_are_not_a_decimation_gap(late_us: int) -> None:
+    """A late read (ADC_OVERRUN) and the reads the firmware then takes back to back (40 us apart) lose nothing: no
+    decimation gap, no discarded block. Before, the one 40 us step became the board's sample interval, and the next
+    block's span (more than 2 N x 40 us) was taken for a gap: decimation_gaps 1, decimation_discarded 3. A real gap (30
+    missing sequence numbers) after it is still one."""
+    frames = catch_up([frame(i) for i in range(400)], 205, late_us)
+    assert [f.t_us - frames[204].t_us for f in frames[205:210]][:2] == [late_us + 10_000, late_us + 10_040]
+    core = DriverCore(make_cal(), CoreConfig(decimation=10))
+    feed_frames(core, frames, chunk=1)
+    c = core.counters
+    assert core.decoder.stats.lost_frames == 0
+    assert (c.decimation_gaps, c.decimation_discarded, c.imu_published) == (0, 0, 40)
+    core = DriverCore(make_cal(), CoreConfig(decimation=10))
+    feed_frames(core, frames[:305] + frames[335:], chunk=1)
+    c = core.counters
+    assert (core.decoder.stats.lost_frames, c.decimation_gaps, c.decimation_discarded) == (30, 1, 5)
+
+
+@pytest.mark.parametrize("late_us", [15_000, 35_000])
+def test_equalised_stamps_keep_the_board_spacing_through_a_catch_up(late_us: int) -> None:
+    """With chain_compensation 'equalise' the stamps move back by the delay the equaliser leaves at the board's
+    sample interval. It was recomputed from each sample's own step: around a catch-up read (40 us after the late one)
+    the published stamps were off the board spacing by -2.2 and +2.7 ms. The filters still step by each sample's
+    own interval; the stamp delay is that of the nominal interval."""
+    from fbg_accel_driver.chain_compensation import ChainDynamics
+
+    dyn = ChainDynamics(cutoff_hz=(1.0, 1.7, 1.3, 1.3), delay_s=(0.0, 0.0, 0.0))
+    frames = catch_up([frame(i) for i in range(400)], 205, late_us)
+    core = DriverCore(make_cal(dynamic=dyn), CoreConfig(chain_compensation="equalise", equalise_bandwidth_hz=10.0))
+    _, imu, _ = feed_frames(core, frames, chunk=1)
+    assert len(imu) == 399  # all but the equaliser's first sample
+    steps = [(b.stamp_ns - a.stamp_ns) - (fb.t_us - fa.t_us) * 1000
+             for (a, b), (fa, fb) in zip(itertools.pairwise(imu), itertools.pairwise(frames[1:]), strict=True)]
+    assert max(abs(s) for s in steps) < 100_000, max(steps, key=abs)  # 0.1 ms: the board clock's spacing
+
+
+@pytest.mark.parametrize("late_s", [0.015, 0.035])
+def test_the_simulator_s_late_read_passes_the_driver_without_a_gap(late_s: float) -> None:
+    """End to end through the board simulator (faults.late_reads: the firmware's catch-up after a late read): the
+    board spacing is kept and no decimation block is lost, with and without chain compensation 'equalise'."""
+    from dataclasses import replace
+
+    from fbg_accel_driver.chain_compensation import ChainDynamics
+    from fbg_accel_sim.board_physics import BoardSimulator, SimConfig
+
+    cfg = SimConfig.default().with_overrides({"faults.late_reads.at_s": [2.05, 3.0], "faults.late_reads.late_s": late_s})
+    blk = BoardSimulator(cfg, seed=3).run(5.0)
+    over = np.flatnonzero(blk.status & int(Status.ADC_OVERRUN))
+    steps = np.diff(blk.t_us)
+    assert len(over) == 2 * round(late_s * 100 - 0.5) and np.count_nonzero(steps < 100) == len(over)
+    assert np.all(np.abs(steps[steps >= 100] - 10_000) <= 10_000 * late_s * 100)  # one long step, then short ones
+    cal = ThermalCalibration.load(REPO / "config" / "calibration_sim.yaml")
+    core = DriverCore(cal, CoreConfig(decimation=10))
+    _feed_blocks(core, [blk])
+    c = core.counters
+    assert (core.decoder.stats.lost_frames, c.decimation_gaps, c.decimation_discarded, c.imu_published) == (0, 0, 0, 50)
+    dyn = ChainDynamics(cutoff_hz=tuple(cfg.get("electronics.tia_cutoff_hz")))
+    core = DriverCore(replace(cal, dynamic=dyn), CoreConfig(chain_compensation="equalise", equalise_bandwidth_hz=10.0))
+    imu = _feed_blocks(core, [blk])
+    assert len(imu) == 499
+    spacing = np.diff([r.stamp_ns for r in imu]) - np.diff(blk.t_us[1:]) * 1000
+    assert np.max(np.abs(spacing)) < 100_000  # ns: the board clock's spacing (20 ppm crystal: < 0.3 us a step)

@@ -552,3 +552,35 @@ def test_property_random_bytes_never_raise(data: bytes, sizes: list[int]) -> Non
     assert len(out) == dec.stats.frames
     for f in out:
         assert max(f.ref, f.x, f.y, f.z) <= ADC_MAX
+
+
+def catch_up_frames(n: int, late_k: int, late_us: int, dt: int = 1_000, read_us: int = 40, t0: int = 1_000_000,
+                    seq0: int = 0) -> list[Frame]:
+    """``n`` frames of a board whose read ``late_k`` is taken ``late_us`` late, then the reads already due back to back,
+    ``read_us`` apart, with ADC_OVERRUN on each read taken at or after the next read's time: the firmware's catch-up
+    (firmware/core/fbg_scheduler.c fbg_sched_take, firmware/host/fbg_board_host.c). Nothing is skipped or lost."""
+    frames = make_frames(n, seq0=seq0, t0=t0, dt=dt)
+    read = -read_us
+    for k, f in enumerate(frames):
+        due = t0 + k * dt + (late_us if k == late_k else 0)
+        read = max(due, read + read_us)
+        late = read >= t0 + (k + 1) * dt
+        frames[k] = replace(f, t_us=read, status=f.status | (int(Status.ADC_OVERRUN) if late else 0))
+    return frames
+
+
+@pytest.mark.parametrize("catch_up_before", [False, True])
+@pytest.mark.parametrize("gap", [1_000, 65_535, 65_536, 70_000, 200_000])
+def test_an_outage_of_a_sequence_period_or_more_is_counted_in_full(gap: int, catch_up_before: bool) -> None:
+    """A link outage of ``gap`` samples at 1 kHz (the board keeps sampling and counting seq; docs/firmware.md: the
+    missing samples are counted as lost_frames after a reconnect). The u16 seq alone counted 65536 lost samples as 0 and
+    70000 as 4464; the 64-bit t_us step over the nominal sample interval tells how many times seq wrapped. Also right
+    after a late read's catch-up (4 reads 40 us apart just before the outage): the nominal interval must not be the
+    40 us catch-up step, or a 1000-sample outage would count 65536 x 4 + 999."""
+    frames = catch_up_frames(50 + gap + 5, late_k=45 if catch_up_before else -1, late_us=3_500)
+    if catch_up_before:
+        assert [f.t_us - 1_000_000 for f in frames[44:50]] == [44_000, 48_500, 48_540, 48_580, 48_620, 49_000]
+    kept = frames[:50] + frames[50 + gap:]
+    dec, out = run([wire(kept)])
+    assert out == kept
+    assert (dec.stats.lost_frames, dec.stats.resets, dec.stats.duplicates) == (gap, 0, 0)
