@@ -16,8 +16,12 @@ Rules (see docs/protocol.md):
 * A CRC-valid frame with the sync of a version this decoder does not know is skipped whole
   (``unsupported_version``) using its ``body_len``.
 * Sequence tracking, for frames whose board clock moves forward: a gap of ``g`` sequence
-  numbers (modulo 2**16) adds ``g - 1`` to ``lost_frames``. Frames rejected for CRC are
+  numbers adds ``g - 1`` to ``lost_frames``. Frames rejected for CRC are
   therefore also counted as lost: ``lost_frames`` is what the host did not receive intact.
+  ``g`` is the step of the 16-bit ``seq`` (1..65536), plus the whole number of 65536 wraps the
+  64-bit ``t_us`` step shows: ``g + 65536 round((dt_step / dt - g) / 65536)`` (never fewer), with
+  ``dt`` the nominal sample interval (:class:`SampleInterval`); so a link outage of 65536 samples
+  or more is counted in full. Until a first interval is known, the modulo-2**16 step alone.
 * A frame identical in ``seq`` and ``t_us`` to the previous one is a ``duplicate`` and dropped.
 * A board clock that goes backwards, or a frame with the BOOT status bit after the first
   frame, is a board ``reset``: tracking restarts and no loss is counted across it.
@@ -25,6 +29,7 @@ Rules (see docs/protocol.md):
 
 from __future__ import annotations
 
+from bisect import bisect_left, insort
 from dataclasses import asdict, dataclass
 
 from .frame_codec import (
@@ -44,6 +49,56 @@ from .frame_codec import (
 
 # Longest body any future version may declare; a larger body_len means "not a frame".
 MAX_BODY_LEN = 200
+# Steps (between frames of consecutive seq) the nominal sample interval is the median of: a late read's catch-up
+# leaves one irregular step the ADC_OVERRUN rule does not exclude (``SampleInterval``), a median of 7 outvotes 3.
+INTERVAL_WINDOW = 7
+_OVERRUN = int(Status.ADC_OVERRUN)
+HALF_WRAP = SEQ_MODULO // 2
+
+
+class SampleInterval:
+    """The board's nominal sample interval (us), robust to a late read and its catch-up.
+
+    When the sampler misses a deadline the firmware takes that read late (ADC_OVERRUN) and then the reads
+    already due back to back, an ADC conversion (~40 us) apart (firmware/core/fbg_scheduler.c,
+    ``fbg_sched_take``): one step between consecutive ``seq`` is long, the next ones are ~40 us, and the
+    step into the next on-time read is short. None of them is the sample interval. :meth:`add` takes the
+    ``t_us`` step between two frames of consecutive ``seq``; a step that starts or ends at an ADC_OVERRUN
+    frame is ignored, and :attr:`us` is the median of the last :data:`INTERVAL_WINDOW` others (0 until
+    the first). O(1) a frame: a fixed ring, and a sorted copy of it updated by one removal and one
+    insertion, skipped when the step equals the one it replaces (a steady board).
+    """
+
+    __slots__ = ("_next", "_ring", "_sorted", "us")
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget every step (board reset)."""
+        self._ring: list[int] = []
+        self._sorted: list[int] = []
+        self._next = 0
+        self.us = 0
+
+    def add(self, step_us: int, overrun: int) -> None:
+        """A ``t_us`` step (> 0) between frames of consecutive ``seq``; ``overrun``: either frame has ADC_OVERRUN."""
+        if overrun:
+            return
+        ring, srt = self._ring, self._sorted
+        if len(ring) < INTERVAL_WINDOW:
+            ring.append(step_us)
+            insort(srt, step_us)
+        else:
+            i = self._next
+            self._next = (i + 1) % INTERVAL_WINDOW
+            old = ring[i]
+            if old == step_us:
+                return
+            ring[i] = step_us
+            del srt[bisect_left(srt, old)]
+            insort(srt, step_us)
+        self.us = srt[len(srt) // 2]
 
 
 @dataclass
@@ -76,6 +131,8 @@ class StreamDecoder:
         self.stats = DecoderStats()
         self._last_seq: int | None = None
         self._last_t_us: int | None = None
+        self._last_overrun = 0
+        self.interval = SampleInterval()  # nominal sample interval of the current board run (unwraps long outages)
         # Bytes of accepted and duplicate frames (27 per version-1 frame, 29 per version-2 frame):
         # bytes_received = bytes_discarded + frame_bytes + buffered, whatever the mix of versions.
         self.frame_bytes = 0
@@ -168,10 +225,23 @@ class StreamDecoder:
                 self.stats.duplicates += 1
                 return None
             reset = frame.t_us < last_t or bool(frame.status & Status.BOOT)
+            overrun = frame.status & _OVERRUN
             if reset:
                 self.stats.resets += 1
+                self.interval.reset()
             else:
-                self.stats.lost_frames += (frame.seq - last_seq - 1) % SEQ_MODULO
+                step = (frame.seq - last_seq - 1) % SEQ_MODULO + 1  # 1..65536 (the same seq: a whole wrap)
+                dt_step = frame.t_us - last_t
+                dt = self.interval.us
+                if dt > 0 and dt_step > (step + HALF_WRAP) * dt:  # the board clock shows whole wraps of seq
+                    step += max(0, round((dt_step / dt - step) / SEQ_MODULO)) * SEQ_MODULO
+                if step == 1:
+                    self.interval.add(dt_step, overrun | self._last_overrun)
+                else:
+                    self.stats.lost_frames += step - 1
+            self._last_overrun = overrun
+        else:
+            self._last_overrun = frame.status & _OVERRUN
         self._last_seq, self._last_t_us = frame.seq, frame.t_us
         self.stats.frames += 1
         return reset

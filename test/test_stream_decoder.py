@@ -136,6 +136,10 @@ def sessions(draw: st.DrawFn, max_frames: int = 40, boot_first: bool = False) ->
     n = draw(st.integers(1, max_frames))
     seq0 = draw(st.one_of(st.integers(SEQ_MODULO - max_frames, SEQ_MODULO - 1), st.integers(0, SEQ_MODULO - 1)))
     t = draw(st.integers(0, 2**40)) if not boot_first else draw(st.integers(0, 5_000))
+    # The board's clock advances by about one sample interval per sequence number (the firmware's scheduler): the
+    # decoder reads whole wraps of seq in a t_us step far longer than that (a long outage), so the clock steps vary
+    # around a nominal interval, not arbitrarily.
+    dt0 = draw(st.integers(1, 100_000))
     out = []
     for i in range(n):
         status = draw(status_no_boot)
@@ -153,7 +157,7 @@ def sessions(draw: st.DrawFn, max_frames: int = 40, boot_first: bool = False) ->
                 status=status,
             )
         )
-        t += draw(st.integers(1, 100_000))
+        t += dt0 + draw(st.integers(0, dt0 // 2))
     return out
 
 
