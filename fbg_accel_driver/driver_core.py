@@ -55,7 +55,8 @@ carry the information of fewer than N independent ones (``noise_model.mean_varia
 noise 1/N; with the calibration's ``noise_correlation``, from the block's own sample interval); with
 ``equalise`` the TIA poles are cancelled and the factor is that of the model through the equaliser.
 A block never spans a board reset nor a gap in board time: a sample more than
-``MAX_BLOCK_SPAN_WINDOWS`` x N board sample intervals after the block's first sample (lost frames, a link
+``MAX_BLOCK_SPAN_WINDOWS`` x N board sample intervals (the median of recent steps between frames of consecutive seq,
+``SampleInterval``: a late read's catch-up, reads ~40 us apart, is no gap) after the block's first sample (lost frames, a link
 outage, a run of samples the policies dropped) ends the block; the partial block is discarded in both
 cases and its samples counted in ``decimation_discarded`` (``decimation_gaps`` counts the gaps).
 Raw records are always produced for every board sample.
@@ -72,10 +73,10 @@ from .chain_compensation import MODES as CHAIN_MODES
 from .chain_compensation import ChannelEqualiser
 from .clock_sync import ClockSync, ClockSyncConfig
 from .correction_terms import TiaInverseFilter
-from .frame_codec import ADC_MAX, SEQ_MODULO, Frame, at_adc_rail
+from .frame_codec import ADC_MAX, SEQ_MODULO, Frame, Status, at_adc_rail
 from .noise_model import mean_variance_factor
 from .sensor_constants import STANDARD_GRAVITY
-from .stream_decoder import StreamDecoder
+from .stream_decoder import SampleInterval, StreamDecoder
 from .thermal_model import MIN_REFERENCE_COUNTS, ThermalCalibration
 
 AHT10_MIN_C = -40.0  # AHT10 datasheet operating range
@@ -86,6 +87,7 @@ COVARIANCE_SOURCES = ("calibration", "parameter", "unknown")
 # within this many times N board sample intervals (at least half of its window received); a larger hole in
 # board time (lost frames, an outage) ends it like a board reset.
 MAX_BLOCK_SPAN_WINDOWS = 2.0
+_OVERRUN = int(Status.ADC_OVERRUN)
 # ``imu/raw`` (sensor_msgs/JointState): ``name`` of each ``position`` entry of a RawRecord, in order.
 RAW_NAMES = ("ref_counts", "x_counts", "y_counts", "z_counts", "temperature_c", "temperature_valid",
              "status", "seq", "board_time_s")
@@ -212,8 +214,10 @@ class DriverCore:
         self._last_raw_temp_valid: bool | None = None
         # decimation block: (stamp ns, accel m/s^2, variance (m/s^2)^2, temperature degC, flags, board time us)
         self._pending: list[tuple[int, tuple[float, float, float], list[float], float, frozenset[str], int]] = []
-        self._prev_frame: tuple[int, int] | None = None  # (seq, t_us) of the previous frame of this board run
-        self._board_dt_us = 0  # the board's sample interval (us): t_us step between frames of consecutive seq
+        self._prev_frame: tuple[int, int, int] | None = None  # (seq, t_us, ADC_OVERRUN) of the previous frame of this run
+        # the board's nominal sample interval (us): median of recent t_us steps between frames of consecutive seq, a late
+        # read's catch-up left out (SampleInterval); one step is no estimate (catch-up reads are ~40 us apart)
+        self._interval = SampleInterval()
         self._unstamped: list[Frame] = []  # frames waiting for the clock estimate to be primed
         self._base_var = tuple(float(v) ** 2 for v in self._base_sigma())
         if calibration is not None and self.config.covariance_source != "unknown":
@@ -309,7 +313,7 @@ class DriverCore:
         self.clock.reset()
         self._discard_pending()  # never average across a reboot
         self._prev_frame = None
-        self._board_dt_us = 0
+        self._interval.reset()
         if self._equaliser is not None:  # nor filter across one
             self._equaliser.reset()
             self._eq_prev_t_us = None
@@ -349,13 +353,16 @@ class DriverCore:
             eq.step(0.0, (float(f.ref), float(f.x), float(f.y), float(f.z)))
             self.counters.chain_priming += 1
             return None
-        counts = eq.step(dt_us * 1e-6, (float(f.ref), float(f.x), float(f.y), float(f.z)))
-        cached = self._eq_cache.get(dt_us)
+        counts = eq.step(dt_us * 1e-6, (float(f.ref), float(f.x), float(f.y), float(f.z)))  # this sample's own step
+        # the stamp delay (and the noise factors) at the board's nominal interval, not at this one step: a late read's
+        # catch-up (reads ~40 us apart) would move its stamps by ms off the board spacing; one step until it is known
+        nominal_us = self._interval.us or dt_us
+        cached = self._eq_cache.get(nominal_us)
         if cached is None:
             if len(self._eq_cache) >= 64:
                 self._eq_cache.clear()
-            dt_s = dt_us * 1e-6
-            cached = self._eq_cache[dt_us] = (
+            dt_s = nominal_us * 1e-6
+            cached = self._eq_cache[nominal_us] = (
                 round(self._dyn.stamp_delay_s("equalise", eq.bandwidth_hz, dt_s) * 1e9),
                 tuple(eq.variance_factor(a, dt_s, *self._noise_corr[a]) for a in range(3)))
         self._delay_ns = cached[0]
@@ -392,9 +399,10 @@ class DriverCore:
             stamp_ns = clock.stamp(f.t_us)
             counters.samples += 1
             prev = self._prev_frame
+            overrun = f.status & _OVERRUN
             if prev is not None and (f.seq - prev[0]) % SEQ_MODULO == 1 and f.t_us > prev[1]:
-                self._board_dt_us = f.t_us - prev[1]
-            self._prev_frame = (f.seq, f.t_us)
+                self._interval.add(f.t_us - prev[1], overrun | prev[2])
+            self._prev_frame = (f.seq, f.t_us, overrun)
             t_c = f.temp_cc / 100.0
             valid = f.temp_valid and AHT10_MIN_C <= t_c <= AHT10_MAX_C
             if valid:
@@ -472,9 +480,10 @@ class DriverCore:
                 counters.non_finite_dropped += 1
                 continue
             pending = self._pending
-            if pending and self._board_dt_us > 0 and (
+            board_dt_us = self._interval.us
+            if pending and board_dt_us > 0 and (
                     f.t_us - pending[0][5]
-                    > (MAX_BLOCK_SPAN_WINDOWS * max(cfg.decimation, len(pending) + 1) - 0.5) * self._board_dt_us):
+                    > (MAX_BLOCK_SPAN_WINDOWS * max(cfg.decimation, len(pending) + 1) - 0.5) * board_dt_us):
                 # a gap in board time (lost frames, a link outage, samples the policies dropped): never average
                 # across it, as across a reboot; the partial block is discarded (counted)
                 counters.decimation_gaps += 1
@@ -517,7 +526,8 @@ class DriverCore:
             stamp = sum(b[0] for b in block) // n
             acc = tuple(math.fsum(b[1][a] for b in block) / n for a in range(3))
             # the board's sample interval: the board clock's (the span would be stretched by missing samples)
-            dt_s = self._board_dt_us * 1e-6 if self._board_dt_us > 0 else (block[-1][0] - block[0][0]) * 1e-9 / (n - 1)
+            board_dt_us = self._interval.us
+            dt_s = board_dt_us * 1e-6 if board_dt_us > 0 else (block[-1][0] - block[0][0]) * 1e-9 / (n - 1)
             mean_factor = self._mean_variance_factors(n, dt_s)
             var = [math.fsum(b[2][a] for b in block) / n * mean_factor[a] for a in range(3)]
             temp = math.fsum(b[3] for b in block) / n

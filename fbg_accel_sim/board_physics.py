@@ -41,6 +41,8 @@ from .scenario import TemperatureProfile, build_slide, build_trajectory, second_
 from .sim_config import SimConfig
 
 CHUNK = 2048  # samples per generation chunk (fixed: determinism does not depend on step sizes)
+# firmware/core/fbg_scheduler.h FBG_SCHED_MAX_CATCH_UP: more reads due than this are skipped, not caught up
+FIRMWARE_MAX_CATCH_UP = 4
 CHANNELS = ("ref", "x", "y", "z")
 _STREAM_NOISE, _STREAM_SOURCE, _STREAM_AHT, _STREAM_WIRE, _STREAM_REFNOISE, _STREAM_AUX = 1, 2, 3, 4, 5, 6
 
@@ -380,6 +382,42 @@ class BoardSimulator:
         self.windows = {name: list(f[name].get("windows") or []) for name in
                         ("adc_saturation", "source_dropout", "temperature_invalid", "temperature_absent", "adc_overrun")}
         self.temp_absent_from_boot = bool(f["temperature_absent"].get("from_boot", False))
+        self._setup_late_reads(f["late_reads"])
+
+    def _setup_late_reads(self, spec: dict[str, Any]) -> None:
+        """``faults.late_reads``: the sampler misses a deadline and the firmware catches up, as
+        firmware/core/fbg_scheduler.c ``fbg_sched_take`` with firmware/host/fbg_board_host.c ``--late``: the read at
+        each ``at_s`` is taken ``late_s`` late; each following read starts when it is due or when the previous read is
+        done (``read_s`` later), whichever is later, until one is on time again. A read taken at or after the next
+        read's due time carries ADC_OVERRUN. Nothing is lost (``late_s`` must stay below FBG_SCHED_MAX_CATCH_UP
+        periods: the firmware's skip-ahead is not modelled). Stored per sample index: how late (board s) it is read."""
+        period = 1.0 / self.rate_hz
+        late_s, read_s = float(spec.get("late_s", 0.0)), float(spec.get("read_s", 4e-5))
+        at = sorted(float(t) for t in (spec.get("at_s") or []))
+        offsets: dict[int, float] = {}
+        overrun: set[int] = set()
+        if at and not (0.0 < late_s < FIRMWARE_MAX_CATCH_UP * period and 0.0 < read_s < period):
+            raise ValueError(f"faults.late_reads: late_s must be in (0, {FIRMWARE_MAX_CATCH_UP} periods) and read_s in "
+                             f"(0, 1 period), got {late_s!r}, {read_s!r}")
+        for t in at:
+            k, off = math.ceil(t * self.rate_true_hz - 1e-9), late_s
+            while off > 0.0:  # late by off: read at k P + off; the next read starts read_s after it, if it is due
+                offsets[k] = max(off, offsets.get(k, 0.0))  # two events on one read: the later one
+                if off >= period:
+                    overrun.add(k)
+                off += read_s - period
+                k += 1
+        self._late_k = np.array(sorted(offsets), dtype=np.int64)
+        self._late_off_s = np.array([offsets[k] for k in self._late_k.tolist()], dtype=float)
+        self._overrun_k = np.array(sorted(overrun), dtype=np.int64)
+
+    def _late_offsets(self, k: np.ndarray) -> np.ndarray:
+        """How late (board s) each sample ``k`` (consecutive indices) is read (faults.late_reads; 0 on time)."""
+        off = np.zeros(k.shape[0])
+        if self._late_k.size:
+            sel = (self._late_k >= k[0]) & (self._late_k <= k[-1])
+            off[self._late_k[sel] - k[0]] = self._late_off_s[sel]
+        return off
 
     def _first_sent_k(self, start: int, end: int) -> int:
         """First sample index in [start, end) outside every disconnect window, or -1."""
@@ -542,7 +580,9 @@ class BoardSimulator:
             raise RuntimeError("chunks must be generated in order")
         self._generated_upto = ci
         k = np.arange(ci * CHUNK, (ci + 1) * CHUNK, dtype=np.int64)
-        t = k * self.dt_true
+        # a late read (faults.late_reads) samples the inputs when it is taken; the discrete filters still step one period
+        late = self._late_offsets(k)
+        t = k * self.dt_true + late * (self.rate_hz * self.dt_true)  # board s -> true s
         delay = self.cfg.scale("channel_delay") * float(self.cfg.get("effects.channel_delay.delay_s"))
         table = self._table_motion(t, delay)
         slide, table = self._linear_slide(t, delay, table)
@@ -557,7 +597,7 @@ class BoardSimulator:
         aux_f = self._aux_counts(t, self.cfg.get("effects"), self._rng(ci, _STREAM_AUX))
         reading = self._aht10_reading(t, temps.sensor_c, self._rng(ci, _STREAM_AHT))
         word = self._temperature_word(t, reading)
-        board = self._board_framing(k, t, word.present, word.valid)
+        board = self._board_framing(k, t, word.present, word.valid, late)
         wire = self._wire_faults(ci, self._rng(ci, _STREAM_WIRE))
         arrays = {
             "t_s": t, "board_t_s": board.board_t_s, "pose_id": table.pose_id.astype(np.int64), "in_motion": table.in_motion,
@@ -807,7 +847,8 @@ class BoardSimulator:
             self._last_valid_cc = int(temp_cc[np.flatnonzero(valid)[-1]])
         return _TemperatureWord(np.where(valid, temp_cc, np.where(present, held_cc, 0)), present, valid)
 
-    def _board_framing(self, k: np.ndarray, t: np.ndarray, present: np.ndarray, valid: np.ndarray) -> _Framing:
+    def _board_framing(self, k: np.ndarray, t: np.ndarray, present: np.ndarray, valid: np.ndarray,
+                       late: np.ndarray) -> _Framing:
         """Board side of each sample ``k`` (true time ``t``, s): epoch between resets (faults.resets), sequence number,
         board clock t_us (crystal error board.clock_ppm; restarts at each reset), status bits (docs/protocol.md) and
         whether it is sent at all (not during a boot gap, board.boot_gap_s, nor a disconnect); BOOT on the first sample
@@ -818,7 +859,7 @@ class BoardSimulator:
         seq = (k - start) % SEQ_MODULO
         reset_t = np.concatenate([[0.0], self.reset_k * self.dt_true])
         t_epoch0 = reset_t[epoch]
-        board_t = np.where(epoch > 0, (t - t_epoch0) * (1.0 + self.clock_ppm * 1e-6), k / self.rate_hz)
+        board_t = np.where(epoch > 0, (t - t_epoch0) * (1.0 + self.clock_ppm * 1e-6), k / self.rate_hz + late)
         t_us = np.round(board_t * 1e6).astype(np.int64)
         sent = np.ones(k.shape[0], bool)
         for r in self.reset_k:
@@ -829,6 +870,7 @@ class BoardSimulator:
         status = status | np.where(k == self.boot_k[epoch], int(Status.BOOT), 0)  # first SENT frame of the epoch
         for wdw in self.windows["adc_overrun"]:
             status = status | np.where(self._inside(t, wdw), int(Status.ADC_OVERRUN), 0)
+        status = status | np.where(np.isin(k, self._overrun_k), int(Status.ADC_OVERRUN), 0)  # faults.late_reads
         return _Framing(board_t, t_us, seq, status.astype(np.int64), sent, (k == start) & (epoch > 0))
 
     def _wire_faults(self, ci: int, rng: np.random.Generator) -> _WireFaults:
