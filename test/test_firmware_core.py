@@ -97,10 +97,13 @@ def test_version2_encoder_is_byte_equal_to_python_in_mixed_streams(fw: FirmwareH
 @st.composite
 def board_streams(draw: st.DrawFn) -> list[Frame]:
     """Consecutive samples of one boot: seq from anywhere (often just before the wrap), t_us strictly
-    increasing from anywhere in the u64 range, temperature bits and ADC counts arbitrary."""
+    increasing from anywhere in the u64 range, temperature bits and ADC counts arbitrary. The clock advances by
+    about one sample interval per seq (a nominal interval up to 2^31 us, each step up to half of it longer), as
+    the firmware's scheduler does: the decoder counts whole wraps of seq in a t_us step far longer than that."""
     n = draw(st.integers(2, 60))
     seq0 = draw(st.one_of(st.integers(SEQ_MODULO - n, SEQ_MODULO - 1), st.integers(0, SEQ_MODULO - 1)))
-    steps = draw(st.lists(st.integers(1, 2**32), min_size=n - 1, max_size=n - 1))
+    dt0 = draw(st.integers(1, 2**31))
+    steps = [dt0 + draw(st.integers(0, dt0 // 2)) for _ in range(n - 1)]
     t0 = draw(st.integers(0, 2**64 - 1 - sum(steps)))
     adc = st.integers(0, 4095)
     out, t = [], t0
