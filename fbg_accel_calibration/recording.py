@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from fbg_accel_driver.frame_codec import clipped_reading
+from fbg_accel_driver.sensor_constants import LOW_REFERENCE_COUNTS
 
 
 @dataclass
@@ -63,6 +64,13 @@ class Recording:
         no reading of the ADC at all (the importers refuse them)."""
         return clipped_reading(self.ref, self.xyz[:, 0], self.xyz[:, 1], self.xyz[:, 2])
 
+    def low_reference(self) -> np.ndarray:
+        """Samples (N,) whose reference is below ``sensor_constants.LOW_REFERENCE_COUNTS`` (0 included): no source light
+        (SLD off, fiber unplugged), so Psi = counts / ref (eq. 24) is no measurement, tens of times its normal size.
+        The driver publishes no acceleration for them (``min_reference_counts``); every fit and diagnosis leaves
+        them out (:func:`without_low_reference`). A NaN reference is no reading, not a dark one."""
+        return self.ref < LOW_REFERENCE_COUNTS
+
     def select(self, mask: np.ndarray) -> Recording:
         """A new recording with the samples ``mask`` selects (a boolean mask, indices or a slice; order kept)."""
         return Recording(
@@ -106,6 +114,120 @@ class Recording:
             {"parts": [p.metadata for p in parts]},
             np.concatenate([p.aux for p in parts]) if all(p.aux is not None for p in parts) else None,
         )
+
+
+def join_blocks(parts: list[Recording]) -> Recording:
+    """Consecutive blocks of one run joined into one (``run_id`` and metadata kept as they are, unlike
+    :meth:`Recording.concatenate`)."""
+    if len(parts) == 1:
+        return parts[0]
+    return Recording(
+        np.concatenate([p.t_s for p in parts]), np.concatenate([p.ref for p in parts]),
+        np.concatenate([p.xyz for p in parts]), np.concatenate([p.temp_c for p in parts]),
+        np.concatenate([p.gref_mps2 for p in parts]), np.concatenate([p.pose_id for p in parts]),
+        np.concatenate([p.run_id for p in parts]), dict(parts[0].metadata),
+        np.concatenate([p.aux for p in parts]) if all(p.aux is not None for p in parts) else None,
+    )
+
+
+class LowReference:
+    """The samples of a reference too low to be data (:meth:`Recording.low_reference`) that were left out, counted block
+    after block in time order: how many, in how many stretches, and the first few stretches (run, first and last
+    time, samples). Memory bounded whatever a reference that flickers around the limit does."""
+
+    SHOWN = 3  # stretches described in full
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.stretches = 0
+        self.shown: list[list[float]] = []  # [run, t_first_s, t_last_s, samples]
+        self.runs: set[int] = set()  # the runs that have such samples
+        self._last: tuple[int, bool, bool] | None = None  # (run, last sample low, its stretch shown)
+
+    def add(self, run: int, t_s: np.ndarray, low: np.ndarray) -> None:
+        """The next block (``t_s`` (n,), ``low`` (n,) bool) of run ``run`` (the i-th run or file)."""
+        low = np.asarray(low, dtype=bool)
+        if not len(low):
+            return
+        go_on = self._last is not None and self._last[:2] == (run, True)  # the previous block ended in a stretch
+        shown_open = go_on and self._last[2]  # type: ignore[index]
+        last_shown = False
+        if low.any():
+            self.count += int(low.sum())
+            self.runs.add(int(run))
+            starts = np.flatnonzero(low & ~np.r_[False, low[:-1]])
+            ends = np.flatnonzero(low & ~np.r_[low[1:], False])
+            for a, b in zip(starts, ends, strict=True):
+                if a == 0 and go_on:  # the stretch of the previous block goes on
+                    if shown_open:
+                        self.shown[-1][2] = float(t_s[b])
+                        self.shown[-1][3] += int(b - a + 1)
+                    last_shown = shown_open
+                    continue
+                self.stretches += 1
+                last_shown = len(self.shown) < self.SHOWN
+                if last_shown:
+                    self.shown.append([int(run), float(t_s[a]), float(t_s[b]), int(b - a + 1)])
+        self._last = (int(run), bool(low[-1]), bool(low[-1]) and last_shown)
+
+    def add_recording(self, rec: Recording) -> None:
+        """Every run of ``rec`` at once (an in-memory recording)."""
+        low = rec.low_reference()
+        if low.any():
+            for i, run in enumerate(rec.runs()):
+                self.add(i, run.t_s, run.low_reference())
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"samples": self.count, "stretches": self.stretches, "runs": sorted(self.runs),
+                "first_stretches": [list(s) for s in self.shown]}
+
+    def warning(self) -> str:
+        """One line: how many samples, where, why (without a ``warning:`` prefix); empty when none."""
+        return low_reference_warning(self.as_dict())
+
+
+def low_reference_warning(summary: dict[str, Any] | None) -> str:
+    """The one line that says which samples of a reference too low were left out (``LowReference.as_dict``, as a
+    calibration's ``fit["low_reference"]`` keeps it); empty when none."""
+    if not summary or not summary.get("samples"):
+        return ""
+    shown = summary["first_stretches"]
+    runs = summary.get("runs") != [0]  # name the run unless every stretch is in the first (or only) one
+    where = ", ".join(f"t = {s[1]:.2f}-{s[2]:.2f} s" + (f" of run {int(s[0])}" if runs else "") for s in shown)
+    more = summary["stretches"] - len(shown)
+    return (f"{summary['samples']} samples with the reference below {LOW_REFERENCE_COUNTS} counts left out (no source "
+            f"light: SLD off or fiber unplugged; Psi = counts/ref is no measurement there), in {summary['stretches']} "
+            f"stretch(es) at {where}" + (f" and {more} more" if more > 0 else "")
+            + "; the driver does not publish them either (min_reference_counts)")
+
+
+def without_low_reference(blocks: Iterator[Recording], block_rows: int, tally: LowReference | None = None,
+                          run: int = 0) -> Iterator[Recording]:
+    """The blocks of one run with the samples of a reference too low (:meth:`Recording.low_reference`) taken out, each
+    counted in ``tally`` (as run ``run``). Blocks without such a sample pass unchanged (a run without any: the same
+    blocks, the same results bit for bit); after one, the samples left are cut again into blocks of ``block_rows``,
+    so the run gives the blocks the run without those samples would give (the fit's moving windows and interval rules
+    then see the samples before and after a dark stretch as neighbours, as in a recording without the stretch)."""
+    held: list[Recording] = []
+    n_held = 0
+    for blk in blocks:
+        low = blk.low_reference()
+        if tally is not None:
+            tally.add(run, blk.t_s, low)
+        if not held and not low.any():
+            yield blk
+            continue
+        part = blk.select(~low) if low.any() else blk
+        if len(part):
+            held.append(part)
+            n_held += len(part)
+        while n_held >= block_rows:
+            joined = join_blocks(held)
+            yield joined.select(slice(0, block_rows))
+            rest = joined.select(slice(block_rows, None))
+            held, n_held = ([rest] if len(rest) else []), len(rest)
+    if held:
+        yield join_blocks(held)
 
 
 def time_axis_label(metadata: dict[str, Any]) -> str:

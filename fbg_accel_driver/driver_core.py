@@ -75,7 +75,7 @@ from .clock_sync import ClockSync, ClockSyncConfig
 from .correction_terms import TiaInverseFilter
 from .frame_codec import ADC_MAX, SEQ_MODULO, Frame, Status, at_adc_rail
 from .noise_model import mean_variance_factor
-from .sensor_constants import STANDARD_GRAVITY
+from .sensor_constants import LOW_REFERENCE_COUNTS, STANDARD_GRAVITY
 from .stream_decoder import SampleInterval, StreamDecoder
 from .thermal_model import MIN_REFERENCE_COUNTS, ThermalCalibration
 
@@ -99,7 +99,7 @@ class CoreConfig:
     """Policy settings of the driver core (SI units)."""
 
     decimation: int = 1
-    min_reference_counts: int = 50  # ADC counts; ~6 % of the ~870 counts the measured board shows at rest
+    min_reference_counts: int = LOW_REFERENCE_COUNTS  # ADC counts (sensor_constants: the offline tools' limit too)
     temperature_hold_s: float = 5.0  # board seconds a stale temperature may be used
     covariance_source: str = "calibration"  # "calibration" | "parameter" | "unknown"
     accel_stddev_mps2: float = 0.0  # per-axis sigma when covariance_source == "parameter"

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from .command_line import ParameterTable, StartupError, one_line, parameter_help, print_help_or_version
+from .sensor_constants import LOW_REFERENCE_COUNTS
 
 PACKAGE = "fbg_accel_driver"
 DEFAULT_CALIBRATION = "calibration_sim.yaml"
@@ -45,7 +46,7 @@ PARAMETERS: ParameterTable = {
     ),
     "equalise_bandwidth_hz": ("double", 10.0,
                               "common low-pass (Hz) left in place of the TIA stages by chain_compensation 'equalise'"),
-    "min_reference_counts": ("integer", 50,
+    "min_reference_counts": ("integer", LOW_REFERENCE_COUNTS,
                              "reference counts below this: reference power too low, sample not published (settable)"),
     "temperature_hold_s": ("double", 5.0,
                            "seconds the last good temperature may be used while the sensor is invalid (settable)"),

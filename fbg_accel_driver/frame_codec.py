@@ -38,6 +38,8 @@ from dataclasses import dataclass
 from enum import IntFlag
 from typing import Any
 
+from .sensor_constants import LOW_REFERENCE_COUNTS
+
 SYNC = b"\xa5\x5a"
 PROTOCOL_VERSION = 1  # version of the boards in the field, and what ``encode_frame`` writes for a frame without aux
 PROTOCOL_VERSION_V2 = 2  # version 1 + ``aux`` (auxiliary ADC channel: reference transducer)
@@ -67,8 +69,9 @@ def at_adc_rail(counts: Any) -> Any:
 def clipped_reading(ref: Any, x: Any, y: Any, z: Any) -> Any:
     """True where a sample (counts: numbers or arrays) has a clipped channel: an axis at a rail
     (:func:`at_adc_rail`) or the reference at ``ADC_MAX``, with light on the reference. A sample without light
-    (reference at 0: a source dropout, every channel at its dark level) is not one: Psi is undefined there."""
-    return (ref > 0) & ((ref >= ADC_MAX) | at_adc_rail(x) | at_adc_rail(y) | at_adc_rail(z))
+    (reference below ``LOW_REFERENCE_COUNTS``: a source dropout, every channel at its dark level, an axis maybe at 0)
+    is not one: it is no data at all (the driver publishes nothing for it, the offline tools leave it out)."""
+    return (ref >= LOW_REFERENCE_COUNTS) & ((ref >= ADC_MAX) | at_adc_rail(x) | at_adc_rail(y) | at_adc_rail(z))
 
 
 class Status(IntFlag):

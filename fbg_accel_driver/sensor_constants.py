@@ -2,3 +2,8 @@
 
 STANDARD_GRAVITY = 9.80665  # m/s^2 (CGPM 1901); the local g of a calibration site goes in the pose plan
 FULL_SCALE_MPS2 = 20.0 * STANDARD_GRAVITY  # the sensor's range, +-20 g (paper section 3.4)
+# Reference photodetector counts below this: no source light (SLD off, fiber unplugged), not data. Eq. 24 divides by
+# the reference, so Psi = counts / ref of such a sample is tens of times its normal size. ~6 % of the ~870 counts the
+# measured board shows at rest. The driver publishes no acceleration for it (its ``min_reference_counts`` default),
+# and the offline tools leave it out of every fit and diagnosis (``Recording.low_reference``).
+LOW_REFERENCE_COUNTS = 50
