@@ -204,6 +204,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     """Fit from the files (``fit_pipeline.fit_files``: MCAP streamed, memory bounded by one block,
     docs/calibration_fit.md; ``--in-memory`` loads every sample first)."""
     from .fit_pipeline import FitOptions, fit_files
+    from .recording import low_reference_warning
     from .thermal_fit import FULL_SCALE_MPS2
 
     check_outputs([args.output], args.inputs, args.force)  # the inputs are checked first thing by fit_files
@@ -236,6 +237,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         print(f"warning: {cal.fit['samples_excluded_clipped']} samples of {cal.fit['visits_excluded_clipped']} visit(s) "
               "left out: a channel at a rail of the ADC (an axis at 0 or 4095 counts, or the reference at 4095) in "
               "each", file=sys.stderr)
+    if cal.fit.get("low_reference"):
+        print("warning: " + low_reference_warning(cal.fit["low_reference"]), file=sys.stderr)
     print(f"wrote {args.output}")
     return 0
 
@@ -412,6 +415,8 @@ def cmd_report(args: argparse.Namespace) -> int:
     rec = _load(args.inputs, args)
     usable, _ = calibration_samples(rec, window=args.window, min_interval=args.min_interval)
     data = prepare(rec, args.max_degree, usable=usable, level_gap_c=args.level_gap)
+    if data.low_reference.count:  # left out of the selection and the statistics, as by the fit
+        print("warning: " + data.low_reference.warning(), file=sys.stderr)
     selection = select_degree(data, max_degree=args.max_degree)
     out.mkdir(parents=True, exist_ok=True)
     stats = pose_statistics(cal, rec, usable & np.isfinite(rec.temp_c))

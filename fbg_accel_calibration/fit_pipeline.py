@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
+from fbg_accel_driver.sensor_constants import LOW_REFERENCE_COUNTS, STANDARD_GRAVITY
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .fit_stream import prepare, prepare_stream
@@ -121,7 +121,9 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
     if len(data) == 0:
         raise ValueError(f"{names}: none of the {data.n_total} samples can be fitted "
                          f"({data.n_excluded_motion} not static, {data.n_excluded_other} without a pose, reference, "
-                         "valid temperature or finite counts); check the temperature column (or --temperature), "
+                         "valid temperature or finite counts"
+                         + (f", {data.n_excluded_low_reference} with the reference below {LOW_REFERENCE_COUNTS} counts"
+                            if data.n_excluded_low_reference else "") + "); check the temperature column (or --temperature), "
                          "the pose/reference columns and --window/--min-interval")
     try:
         selection = select_degree(data, max_degree=max_degree)

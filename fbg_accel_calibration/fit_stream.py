@@ -17,7 +17,7 @@ import numpy as np
 
 from fbg_accel_driver.thermal_model import normalise
 
-from .recording import Recording
+from .recording import LowReference, Recording, without_low_reference
 from .static_detector import (
     BLOCK_ROWS,
     DEFAULT_FALSE_ALARM,
@@ -56,7 +56,8 @@ class FitData:
     ``stats`` are the per-cell sums at degree ``stats.degree`` (lower degrees are sub-blocks); ``level_means_c``
     the temperature levels (degC, ascending), ``t_center_c``/``t_scale_c`` the scaling tau = (T - centre)/scale;
     the counts are of samples fitted, seen, excluded as moving, excluded as invalid and excluded with their visit
-    for a clipped sample (and of those visits); ``detector`` the static detector's settings and noise floor
+    for a clipped sample (and of those visits), and of those left out for a reference too low (``low_reference``:
+    how many and where, ``Recording.low_reference``); ``detector`` the static detector's settings and noise floor
     (variances of Psi). ``levels`` and ``level_map`` label a fitted sample's level (:meth:`level_of`).
     """
 
@@ -75,6 +76,12 @@ class FitData:
     detector: dict[str, Any] = field(default_factory=dict)
     n_excluded_clipped: int = 0  # samples at a pose of the visits left out for a clipped sample (clipped_visits)
     n_clipped_visits: int = 0  # those visits
+    low_reference: LowReference = field(default_factory=LowReference)  # samples left out: no source light
+
+    @property
+    def n_excluded_low_reference(self) -> int:
+        """Samples left out for a reference too low (``Recording.low_reference``), whatever else they were."""
+        return self.low_reference.count
 
     def __len__(self) -> int:
         return self.n_used
@@ -140,10 +147,27 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
 
     ``usable`` (one (N_i,) bool mask per source): the fit's samples given, no static detection (step 1 skipped).
 
+    Before every step, the samples of a reference too low (``Recording.low_reference``: no source light, Psi = counts
+    / ref no measurement) are taken out of each run (``recording.without_low_reference``, also out of a given
+    ``usable``): the result is that of the runs without them, and they are counted (``FitData.low_reference``).
+
     Memory: a few blocks of ``static_detector.BLOCK_ROWS`` samples, one chunk of the design matrix
     and O(cells + levels) state, independent of the number of samples. The sums do not depend on the block size
     (chunks of ``chunk`` selected rows across blocks and runs).
     """
+    raw_sources, low_tally = sources, LowReference()
+
+    class Lit:
+        """A source without its samples of a reference too low, counted in ``low_tally`` when ``count`` is set."""
+
+        def __init__(self, src: SampleBlockSource, i: int) -> None:
+            self.src, self.i, self.count = src, i, False
+
+        def blocks(self, block_rows: int, with_poses: bool) -> Iterator[Recording]:
+            return without_low_reference(self.src.blocks(block_rows, with_poses), block_rows,
+                                         low_tally if self.count else None, self.i)
+
+    sources = [Lit(src, i) for i, src in enumerate(raw_sources)]
     thresholds: list[np.ndarray] = []
     left_out: list[np.ndarray | None] = []  # per source: the visits with a clipped sample (clipped_visits), or None
     noise_out, thr_out = np.zeros(3), np.zeros(3)
@@ -170,12 +194,18 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
                 yield blk, psi, use, clipped
             return
         start = 0
-        for blk in src.blocks(BLOCK_ROWS, True):
-            yield blk, normalise(blk.xyz, blk.ref), usable[i][start:start + len(blk)], np.zeros(len(blk), bool)
+        for blk in raw_sources[i].blocks(BLOCK_ROWS, True):  # the given mask is of every sample
+            use, low = usable[i][start:start + len(blk)], blk.low_reference()
             start += len(blk)
+            if src.count:
+                low_tally.add(i, blk.t_s, low)
+            if low.any():
+                blk, use = blk.select(~low), use[~low]
+            yield blk, normalise(blk.xyz, blk.ref), use, np.zeros(len(blk), bool)
 
-    def kept_blocks():
+    def kept_blocks(count: bool = False):
         for i, src in enumerate(sources):
+            src.count = count
             for blk, psi, use, clipped in detected(src, i):
                 valid = fit_valid(blk, psi)
                 yield i, blk, psi, use, valid, use & valid, clipped
@@ -183,7 +213,7 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
     clusters = TemperatureClusters(level_gap_c)
     n_total = n_motion = n_other = n_clipped = 0
     t_min, t_max = np.inf, -np.inf
-    for _i, blk, _psi, use, valid, keep, clipped in kept_blocks():
+    for _i, blk, _psi, use, valid, keep, clipped in kept_blocks(count=True):  # the pass that counts the dark samples
         n_total += len(blk)
         n_clipped += int(clipped.sum())
         n_motion += int((valid & ~use & ~clipped).sum())
@@ -193,6 +223,7 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
         if len(t):
             t_min, t_max = min(t_min, float(t.min())), max(t_max, float(t.max()))
     clusters.finish()
+    n_total += low_tally.count
     center, scale = temperature_scaling(np.array([t_min, t_max])) if np.isfinite(t_min) else (0.0, 1.0)
 
     acc = CellAccumulator(degree, chunk)
@@ -230,4 +261,4 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
                  "threshold_var_psi": thr_out.tolist()} if usable is None else {"mask": "given by caller"})
     return FitData(stats, level_sum[present] / level_count[present], (t_min, t_max), center, scale, n_used, n_total,
                    n_motion, n_other, count_orientations(stats), clusters, level_map, detector, n_clipped,
-                   sum(len(v) for v in left_out if v is not None))
+                   sum(len(v) for v in left_out if v is not None), low_tally)

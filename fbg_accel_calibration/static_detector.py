@@ -208,16 +208,25 @@ def calibration_samples(rec: Recording, window: int = DEFAULT_WINDOW, min_interv
     change or a NaN reference is not, e.g. right after a move, when the TIA low-pass (Table 1, ~1 Hz) has not
     settled) AND, after those, the sample lies in a run of at least ``min_interval`` usable samples of one pose,
     in a visit without a clipped sample (:func:`clipped_visits`). Each run goes through the streamed detector
-    block by block, as a file does (:func:`usable_blocks`).
+    block by block, as a file does (:func:`usable_blocks`). The samples of a reference too low
+    (``Recording.low_reference``: no source light) are neither: they are taken out before the detector, which decides
+    on the run without them, as ``fit_stream.prepare_stream`` does (``recording.without_low_reference``).
     """
     usable, static = [np.zeros(0, bool)], [np.zeros(0, bool)]
     for run in rec.runs():
-        threshold = streamed_noise_floor(lambda run=run: run.blocks(BLOCK_ROWS, False), window, false_alarm, margin)[1]
-        left_out = clipped_visits(run.blocks(BLOCK_ROWS))  # in memory: as cheap as finding whether any is clipped
-        for _blk, _psi, run_usable, run_static, _ in usable_blocks(run.blocks(BLOCK_ROWS), window, min_interval, threshold,
-                                                                   tolerance_mps2, left_out):
-            usable.append(run_usable)
-            static.append(run_static)
+        low = run.low_reference()
+        lit = run.select(~low) if low.any() else run  # the blocks of without_low_reference, in memory
+        threshold = streamed_noise_floor(lambda lit=lit: lit.blocks(BLOCK_ROWS, False), window, false_alarm, margin)[1]
+        left_out = clipped_visits(lit.blocks(BLOCK_ROWS))  # in memory: as cheap as finding whether any is clipped
+        run_usable, run_static = [np.zeros(0, bool)], [np.zeros(0, bool)]
+        for _blk, _psi, blk_usable, blk_static, _ in usable_blocks(lit.blocks(BLOCK_ROWS), window, min_interval,
+                                                                   threshold, tolerance_mps2, left_out):
+            run_usable.append(blk_usable)
+            run_static.append(blk_static)
+        for out, kept in ((usable, run_usable), (static, run_static)):
+            flags = np.zeros(len(run), bool)
+            flags[~low] = np.concatenate(kept)
+            out.append(flags)
     return np.concatenate(usable), np.concatenate(static)
 
 

@@ -478,10 +478,11 @@ def check_pose_excitation(stats: CellStats, min_spread_mps2: float = MIN_POSE_SP
 
 def check_recording_excitation(rec: Recording) -> np.ndarray:
     """:func:`check_pose_excitation` on every sample of a recording that has a pose, a finite reference,
-    a valid temperature and finite Psi (no static detection: a cheap check before a long computation)."""
+    a valid temperature, finite Psi and source light (``Recording.low_reference``) (no static detection: a cheap
+    check before a long computation)."""
     psi = normalise(rec.xyz, rec.ref)
     ok = (rec.pose_id >= 0) & np.all(np.isfinite(rec.gref_mps2), axis=1) & np.isfinite(rec.temp_c)
-    ok &= np.all(np.isfinite(psi), axis=1)
+    ok &= np.all(np.isfinite(psi), axis=1) & ~rec.low_reference()
     if not ok.any():
         raise NotIdentifiedError("no sample has a pose, a finite reference, a valid temperature and finite counts")
     stats = accumulate_cells(psi[ok], np.zeros(int(ok.sum())), rec.gref_mps2[ok], rec.pose_id[ok],
@@ -571,6 +572,7 @@ def fit_thermal(rec: Recording | FitData, degree: int, *, sensor_id: str | None 
         "samples_excluded_invalid": data.n_excluded_other,
         "samples_excluded_clipped": data.n_excluded_clipped,  # their visit has a channel at an ADC rail
         "visits_excluded_clipped": data.n_clipped_visits,
+        "samples_excluded_low_reference": data.n_excluded_low_reference,  # no source light (Recording.low_reference)
         "poses": data.n_poses,
         "temperature_levels_c": [round(float(v), 3) for v in data.level_means_c],
         "rmse_mps2": rmse.tolist(),
@@ -580,6 +582,8 @@ def fit_thermal(rec: Recording | FitData, degree: int, *, sensor_id: str | None 
         "pose_spread_mps2": spread.tolist(),
         "static_detector": data.detector,
     }
+    if data.n_excluded_low_reference:
+        fit_info["low_reference"] = data.low_reference.as_dict()  # how many, where (recording.low_reference_warning)
     if src is not None:
         fit_info["sources"] = src
     return ThermalCalibration(

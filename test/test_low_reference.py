@@ -98,6 +98,9 @@ def test_a_dark_stretch_across_blocks_is_left_out_as_in_one_block(dark: tuple[Re
     assert (a.n_used, a.n_excluded_motion, a.n_excluded_other) == (b.n_used, b.n_excluded_motion, b.n_excluded_other)
     assert a.detector == b.detector
     assert (a.n_total, a.n_excluded_low_reference) == (len(rec), int(low.sum()))
+    t = rec.t_s[low]
+    assert a.low_reference.as_dict() == {"samples": int(low.sum()), "stretches": 1, "runs": [0],
+                                         "first_stretches": [[0, float(t[0]), float(t[-1]), int(low.sum())]]}
     assert np.array_equal(calibration_samples(rec)[0][~low], calibration_samples(rec.select(~low))[0])
     # a given selection that names dark samples does not fit them either
     given = prepare(rec, 1, usable=np.ones(len(rec), bool), chunk=700)
@@ -153,3 +156,20 @@ def test_diagnose_gives_the_diagnosis_without_the_stretch_and_says_so(dark: tupl
     assert len(note) == 1 and note[0].startswith(f"{int(low.sum())} samples with the reference below")
     assert "driver" in note[0]
     assert [w for w in res.warnings if w not in note] == ref.warnings
+
+
+def test_report_statistics_leave_out_the_stretch_and_warn(dark: tuple[Recording, np.ndarray], tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    rec, low = dark
+    cal = tmp_path / "cal.yaml"
+    fit_thermal(rec.select(~low), 0).save(cal)
+    texts = {}
+    for name, part in (("dark", rec), ("lit", rec.select(~low))):
+        write_recording(tmp_path / f"{name}.mcap", part, {"sensor_id": "sim"})
+        capsys.readouterr()
+        assert cli_main(["report", str(tmp_path / f"{name}.mcap"), "--calibration", str(cal), "--max-degree", "0",
+                         "-o", str(tmp_path / name)]) == 0
+        lines = [w for w in capsys.readouterr().err.splitlines() if "reference below" in w]
+        assert len(lines) == (name == "dark"), lines
+        texts[name] = [t for t in (tmp_path / name / "report.md").read_text().splitlines() if "mcap" not in t]
+    assert texts["dark"] == texts["lit"]
