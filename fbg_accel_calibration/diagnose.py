@@ -4,7 +4,8 @@ Pure numpy/scipy engine behind ``fbg-accel-calib diagnose`` (issue 4). Steps:
 
 1. Static samples: the static-interval detector of the fit (``static_detector.calibration_samples``,
    signal still AND table reference constant AND in a pose) or, with ``static="table"``, every
-   sample the table reports in a pose.
+   sample the table reports in a pose; never a sample of a reference too low (``Recording.low_reference``: no
+   source light), which is taken out of the recording first, as the fit takes it out.
 2. Declared model: eq. 28 at the degree chosen by cross-validation over visits (degree
    < number of temperature levels, as in ``thermal_fit``). Noise floor = per-sample standard deviation
    of its residual per axis within visits over settled samples (what no static model can remove),
@@ -65,7 +66,7 @@ from .effects import (
 )
 from .model_selection import DegreeScores, choose_degree
 from .model_selection import select_degree as calibration_select_degree
-from .recording import Recording, time_axis_label
+from .recording import LowReference, Recording, time_axis_label
 from .static_detector import calibration_samples
 from .thermal_fit import (
     NotIdentifiedError,
@@ -92,9 +93,20 @@ def prepare_data(rec: Recording, static: str = "table") -> DiagnosisData:
     * ``"all"``: every sample with a finite reference, including those taken while the table moves
       (only for recordings whose reference is the table's angle reading during motion, e.g. the
       simulator; samples in motion are cross-validated with the pose the table moves to).
+
+    Whichever the selection, the samples of a reference too low (``Recording.low_reference``: no source light) are
+    not in the result at all (counted in ``n_low_reference``, named in ``low_reference_note``), and a visit with a
+    clipped channel is left out whole.
     """
     if static not in SAMPLE_SELECTIONS:
         raise ValueError(f"static must be one of {SAMPLE_SELECTIONS}, got {static!r}")
+    # the samples of a reference too low (no source light: Psi = counts/ref is no measurement) are taken out of the
+    # recording first, as the fit takes them out (fit_stream.prepare_stream): the diagnosis of the recording without
+    # them, whichever the selection, with a visit partly dark keeping its other samples
+    dark = LowReference()
+    dark.add_recording(rec)
+    if dark.count:
+        rec = rec.select(~rec.low_reference())
     finite = finite_rows(rec.gref_mps2) & np.isfinite(rec.ref) & (rec.ref > 0)
     finite &= finite_rows(rec.xyz) & np.isfinite(rec.temp_c)
     # the visits with a channel at an ADC rail are left out whole, as the fit's detector leaves them out
@@ -117,7 +129,8 @@ def prepare_data(rec: Recording, static: str = "table") -> DiagnosisData:
     if use.sum() < 20:
         raise ValueError(f"only {int(use.sum())} static samples with a reference: nothing to diagnose")
     return DiagnosisData(rec.t_s, rec.ref, rec.xyz, rec.temp_c, rec.gref_mps2, rec.pose_id, rec.run_id, use,
-                         n_clipped_samples=int(left_out.sum()), n_clipped_visits=len(clipped))
+                         n_clipped_samples=int(left_out.sum()), n_clipped_visits=len(clipped),
+                         n_low_reference=dark.count, low_reference_note=dark.warning())
 
 
 # ============================================================================ model specification
@@ -1880,6 +1893,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     if settling.end_detected:
         warnings.append(settling.end_summary() + "; the model is fitted on them too: align the table's readings "
                         "(pose labels, reference) with the signal")
+    if data.low_reference_note:
+        warnings.append(data.low_reference_note)
     if data.n_clipped_visits:
         warnings.append(f"{data.n_clipped_samples} samples of {data.n_clipped_visits} visit(s) left out: a channel "
                         "clipped at a rail of the ADC (an axis at 0 or 4095 counts, or the reference at 4095) in each; a "

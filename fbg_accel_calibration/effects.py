@@ -90,6 +90,8 @@ class DiagnosisData:
     group: np.ndarray = field(default=None)  # type: ignore[assignment]  # visit label (``visit_ids``)
     n_clipped_samples: int = 0  # samples at a pose left out with their visit for a clipped channel (``prepare_data``)
     n_clipped_visits: int = 0  # those visits
+    n_low_reference: int = 0  # samples taken out for a reference too low (``Recording.low_reference``, ``prepare_data``)
+    low_reference_note: str = ""  # how many, where (``recording.low_reference_warning``); empty when none
 
     _memo: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
     _recent: OrderedDict[tuple, np.ndarray] = field(default_factory=OrderedDict, init=False, repr=False, compare=False)

@@ -60,14 +60,17 @@ def test_an_outlier_burst_in_one_visit_is_left_out_of_the_floor_and_named(seed, 
     assert "xyz"[axis] in _significant_axes(res.structure.verdict), res.structure.verdict
 
 
-def test_a_dead_reference_for_a_minute_is_named_and_significant_on_every_axis_it_ruins() -> None:
-    """The reference reads ~3 counts (source tap dark) for 60 s: x ended 67x its floor, yet not significant (chi^2 p
-    0.23: the floor's jackknife degrees of freedom collapsed to 0.24 on the one ruined visit)."""
+def test_a_dim_reference_for_a_minute_is_named_and_significant_on_every_axis_it_ruins() -> None:
+    """The reference reads ~60 counts (a dim source tap, just above ``LOW_REFERENCE_COUNTS``: the driver publishes
+    it) for 60 s while the axes keep their counts: x ended hundreds of times its floor. At ~3 counts (the first version
+    of this test) x ended 67x its floor, yet not significant (chi^2 p 0.23: the floor's jackknife degrees of freedom
+    collapsed to 0.24 on the one ruined visit); such a dark reference is no data now (next test)."""
     rec = _sim(DEAD_REF, seed=1)
     out = rec.select(slice(None))
     out.ref = rec.ref.copy()
     m = (rec.t_s >= 200) & (rec.t_s < 260)
-    out.ref[m] = np.maximum(3.0 + np.round(np.random.default_rng(0).normal(0, 1, int(m.sum()))), 1.0)
+    out.ref[m] = 60.0 + np.round(np.random.default_rng(0).normal(0, 1, int(m.sum())))
+    assert not out.low_reference().any()
     res = diagnose(out)
     s = res.structure
     assert _floor_warnings(res), res.warnings
@@ -75,6 +78,21 @@ def test_a_dead_reference_for_a_minute_is_named_and_significant_on_every_axis_it
     assert bad_axes, s.ratio
     for a in bad_axes:  # an axis 10x above its floor is an unexplained residual, whatever the floor's dof
         assert a in _significant_axes(s.verdict), (s.verdict, s.ratio, s.pose_chi2_p, s.noise_mean_dof)
+
+
+def test_a_dead_reference_for_a_minute_is_left_out_and_named() -> None:
+    """The reference reads ~3 counts (source tap dark) for 60 s: no source light, no data (the driver publishes none
+    of it). The diagnosis is that of the recording without the minute, and one warning says what was left out."""
+    rec = _sim(DEAD_REF, seed=1)
+    out = rec.select(slice(None))
+    out.ref = rec.ref.copy()
+    m = (rec.t_s >= 200) & (rec.t_s < 260)
+    out.ref[m] = np.maximum(3.0 + np.round(np.random.default_rng(0).normal(0, 1, int(m.sum()))), 1.0)
+    res, without = diagnose(out), diagnose(rec.select(~m))
+    assert not _floor_warnings(res), res.warnings
+    np.testing.assert_allclose(res.noise_floor, without.noise_floor, rtol=1e-12)
+    np.testing.assert_allclose(res.structure.ratio, without.structure.ratio, rtol=1e-12)
+    assert [w for w in res.warnings if w.startswith(f"{int(m.sum())} samples with the reference below")]
 
 
 def test_clean_recordings_flag_no_visit() -> None:
