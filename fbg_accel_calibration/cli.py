@@ -302,7 +302,8 @@ def _command_line(args: argparse.Namespace) -> str:
 
 def calibration_match_warnings(cal, rec) -> list[str]:
     """Warnings when a calibration is applied to a recording it may not describe: another sensor id (both known),
-    samples outside the calibrated temperature range (count, fraction, range)."""
+    samples outside the calibrated temperature range (count, fraction, range; of the samples that are data: those with
+    a reference too low to be data, ``Recording.low_reference``, are not counted)."""
     from .thermal_fit import sensor_id_of
 
     out = []
@@ -313,7 +314,7 @@ def calibration_match_warnings(cal, rec) -> list[str]:
         out.append(f"calibration of another sensor: the calibration is for sensor '{cal_id}', the recording is of "
                    f"sensor '{rec_id}'")
     lo, hi = cal.temperature_range_c
-    temp = np.asarray(rec.temp_c, dtype=float)
+    temp = np.asarray(rec.temp_c, dtype=float)[~rec.low_reference()]
     fin = np.isfinite(temp)
     outside = int(np.sum(fin & ((temp < lo) | (temp > hi))))
     if outside:
