@@ -359,6 +359,7 @@ def cmd_allan(args: argparse.Namespace) -> int:
     from fbg_accel_driver.thermal_model import ThermalCalibration
 
     from .allan import AXES, allan_deviation, plot_allan
+    from .recording import LowReference
 
     check_outputs([args.output, args.json], [*args.inputs, args.calibration], args.force)
     cal = ThermalCalibration.load(args.calibration)
@@ -374,7 +375,11 @@ def cmd_allan(args: argparse.Namespace) -> int:
     for line in calibration_match_warnings(cal, rec.select(keep)):
         print(f"warning: {line}", file=sys.stderr)
     accel = cal.apply_counts(rec.ref, rec.xyz, rec.temp_c, rec.t_s)
-    ok = np.all(np.isfinite(accel), axis=1)
+    dark = LowReference()
+    dark.add_recording(rec.select(keep))
+    if dark.count:  # not data, whatever the calibration makes of them (the driver publishes none, the fit uses none)
+        print("warning: " + dark.warning(), file=sys.stderr)
+    ok = np.all(np.isfinite(accel), axis=1) & ~rec.low_reference()
     if not ok[keep].all():
         print(f"warning: {int((~ok[keep]).sum())} samples without a valid calibrated output dropped", file=sys.stderr)
     rate, segments, breaks = time_base_segments(rec.t_s, keep & ok)

@@ -237,9 +237,11 @@ def test_segments_pool_clusters_like_one_series() -> None:
     np.testing.assert_allclose(res.adev_mps2[:, 0], ad, rtol=1e-9)
 
 
-def test_invalid_samples_are_a_break_not_joined(tmp_path: Path, capsys) -> None:
-    """Samples without a valid calibrated output (reference dark) are dropped; their neighbours are not joined:
-    the ADEV is taken over the two segments and the break is named."""
+@pytest.mark.parametrize("dark", [0.0, 3.0])
+def test_invalid_samples_are_a_break_not_joined(tmp_path: Path, capsys, dark: float) -> None:
+    """Samples with the reference dark (0, or a few counts: below LOW_REFERENCE_COUNTS, which the driver does not
+    publish and the fit leaves out) are dropped, named as such; their neighbours are not joined: the ADEV is taken
+    over the two segments and the break is named."""
     import json
 
     from fbg_accel_calibration.cli import main as cli_main
@@ -247,7 +249,7 @@ def test_invalid_samples_are_a_break_not_joined(tmp_path: Path, capsys) -> None:
     n = 10_000
     accel = np.random.default_rng(2).standard_normal((n, 3)) * 0.05 + [0.0, 0.0, 9.80665]
     ref = np.full(n, 1000.0)
-    ref[4_000:4_500] = 0.0
+    ref[4_000:4_500] = dark
     _static_mcap(tmp_path / "r.mcap", accel, np.arange(n) / RATE_HZ, ref=ref)
     rc = cli_main(["allan", str(tmp_path / "r.mcap"), "--calibration", str(_cal(tmp_path / "c.yaml")),
                    "-o", str(tmp_path / "a.png"), "--json", str(tmp_path / "a.json")])
@@ -256,3 +258,4 @@ def test_invalid_samples_are_a_break_not_joined(tmp_path: Path, capsys) -> None:
     if json.loads((tmp_path / "a.json").read_text())["segments"] != 2:
         raise AssertionError(err)
     assert "40.0 s" in err, err
+    assert "500 samples with the reference below" in err, err
