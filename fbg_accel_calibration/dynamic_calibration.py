@@ -26,6 +26,7 @@ import numpy as np
 
 from fbg_accel_driver.chain_compensation import CUTOFF_LIMITS_HZ, MAX_ABS_DELAY_S, ChainDynamics
 from fbg_accel_driver.frame_codec import at_adc_rail
+from fbg_accel_driver.sensor_constants import LOW_REFERENCE_COUNTS
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .chain_model import ChainModel, fit_chain_models
@@ -128,6 +129,14 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
         windows = [w for w in windows if w not in hit]
         notes.append(f"segment(s) at {', '.join(f'{w[0]:g} Hz' for w in hit)} left out: a channel clipped at a rail "
                      "of the ADC during the steady part (lower the slide's amplitude there)")
+    # no source light (Recording.low_reference: the driver publishes nothing then, the static fit leaves such samples
+    # out): Psi = counts / ref is no measurement, so a segment with such a moment in its steady part is left out
+    dark = rec.low_reference()[order][ok]
+    hit = [w for w in windows if dark[_steady(t, w)].any()]
+    if hit:
+        windows = [w for w in windows if w not in hit]
+        notes.append(f"segment(s) at {', '.join(f'{w[0]:g} Hz' for w in hit)} left out: the reference dark (below "
+                     f"{LOW_REFERENCE_COUNTS} counts, no source light) during the steady part")
     # the whole-period cuts, the DFT and the circular cross-correlation count samples: a lost frame (or a
     # sample dropped above for a non-finite value) inside a steady part would shift every later sample
     gappy = [w for w in windows if not uniformly_sampled(t[_steady(t, w)], fs)]

@@ -140,6 +140,22 @@ def test_a_segment_with_a_clipped_reading_is_left_out_with_a_note(static_cal):
     assert [p.to_dict() for p in res.points] == kept
 
 
+def test_a_segment_with_the_reference_dark_is_left_out_with_a_note(static_cal):
+    """A moment without source light (reference below LOW_REFERENCE_COUNTS: the driver publishes nothing then, the
+    static fit leaves such samples out) inside a segment's steady part: Psi = counts / ref is no measurement, so that
+    segment is left out, with a note, and the rest of the run gives the same points as without it."""
+    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=1)
+    clean = run_dynamic(rec, PLAN, static_cal)
+    f_hit, a, b = clean.windows[3]  # not the sensitivity's reference frequency, which every point is compared with
+    dark = rec.select(np.ones(len(rec), bool))
+    dark.ref[np.flatnonzero((rec.t_s >= a) & (rec.t_s <= b))[:5]] = 3.0
+    res = run_dynamic(dark, PLAN, static_cal)
+    assert f_hit in clean.dynamics.fit["frequencies_hz"] and f_hit not in res.dynamics.fit["frequencies_hz"]
+    assert [n for n in res.notes if "reference" in n and "dark" in n and f"{f_hit:g} Hz" in n], res.notes
+    kept = [p.to_dict() for p in clean.points if p.f_hz != f_hit]
+    assert [p.to_dict() for p in res.points] == kept
+
+
 def test_a_ros2_bag_of_imu_raw_with_aux_counts_is_read(tmp_path, static_cal):
     """What `ros2 bag record /imu/raw` writes from the driver on a version-2 board (written here by
     rosbags, an independent writer)."""
