@@ -22,16 +22,16 @@ import numpy as np
 
 from .board_stream import BoardStream
 from .excitation_plan import ExcitationPlan
-from .mcap_io import RecordingLostError, RecordingWriter
+from .mcap_io import RecordingWriter
 from .pose_sequencer import SequencerEvent
-from .run_recorder import RawSample, RunCounters, describe_write_error
+from .run_recorder import GuardedRecording, RawSample, RunCounters
 
 PROGRESS_EVERY_S = 10.0
 RATE_SAMPLES = 20  # samples to measure the board rate
 NYQUIST_FRACTION = 0.45  # a segment at this fraction of the board rate or above is refused by the offline fit
 
 
-class DynamicRunRecorder:
+class DynamicRunRecorder(GuardedRecording):
     """Recorder of a dynamic run with the interface the node drives (``on_raw``, ``on_temperature``,
     ``done``, ``finished``, ``pop_events``, ``pop_messages``, ``request_next``, ``abort``, ``close``)."""
 
@@ -64,16 +64,9 @@ class DynamicRunRecorder:
         self._on_disk_s = 0.0  # elapsed board time (s) up to which the recording is in ended chunks
 
     # ------------------------------------------------------------------ inputs
-    def on_raw(self, s: RawSample) -> int:
-        """Record one raw sample (always -1: a dynamic run has no poses). An ``OSError`` of the recording (disk
-        full, file removed) aborts the run with a warning instead of propagating."""
-        if self.finished:
-            return -1
-        try:
-            return self._on_raw(s)
-        except OSError as exc:
-            self._write_failed(exc)
-            return -1
+    @property
+    def _stopped(self) -> bool:
+        return self.finished
 
     def _on_raw(self, s: RawSample) -> int:
         c = self.counters
@@ -114,15 +107,6 @@ class DynamicRunRecorder:
             self.finished_reason = "complete"
             self._event("done", f"dynamic run complete: {self.length_s:.0f} s, {c.messages_raw} samples")
         return -1
-
-    def on_temperature(self, stamp_ns: int, temperature_c: float, variance_c2: float) -> None:
-        if self.finished:
-            return
-        self.counters.messages_temperature += 1
-        try:
-            self.writer.write_temperature(stamp_ns, temperature_c, variance_c2)
-        except OSError as exc:
-            self._write_failed(exc)
 
     def request_next(self) -> tuple[bool, str]:
         return False, "a dynamic run has no poses: the slide follows the plan by itself"
@@ -166,16 +150,7 @@ class DynamicRunRecorder:
         """Write the ``run_end`` record and finish the MCAP; returns the summary. Never raises an ``OSError`` of
         the recording (reported in the summary's ``write_error``; the file then reads up to its last chunk)."""
         self.finished_reason = self.finished_reason or reason
-        if self.write_error:
-            self.writer.abandon()
-            return self.summary()
-        try:
-            self.writer.add_metadata("run_end", self.summary())
-            self.writer.close()
-        except OSError as exc:
-            self._write_failed(exc, closing=True)
-            self.writer.abandon()
-        return self.summary()
+        return self._close_recording()
 
     def _measure_rate(self, elapsed_s: float) -> None:
         """Board rate from the first samples; warns at once of segments the offline fit will refuse
@@ -198,12 +173,7 @@ class DynamicRunRecorder:
 
     def _write_failed(self, exc: OSError, closing: bool = False) -> None:
         """Writing the recording failed: abort the run and say at once what is safely on disk."""
-        self.write_error = describe_write_error(exc)
-        path = self.writer.path
-        kept = ("the recording is lost (nothing of this run remains on disk)" if isinstance(exc, RecordingLostError)
-                else f"{path} reads up to its last complete chunk (about {self._on_disk_s:.0f} s of the run)")
-        self.messages.append(("warn", f"writing {path} failed: {self.write_error}; "
-                              f"{'while closing the recording' if closing else 'run aborted'}; {kept}"))
+        self._say_write_failed(exc, closing, f"about {self._on_disk_s:.0f} s of the run")
         if not closing:
             self._aborted = True
             self.finished_reason = f"recording failed: {self.write_error}"

@@ -43,6 +43,7 @@ import datetime as _dt
 import errno
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -154,8 +155,79 @@ class RunCounters:
     clipped: int = 0  # samples of a pose with a channel at a rail of the ADC: the fit leaves their visit out
 
 
+class GuardedRecording:
+    """What a run recorder (:class:`RunRecorder`, ``DynamicRunRecorder``) does with its recording's ``OSError`` (disk
+    full, the file removed): never raised to the node. The sample or reading that failed aborts the run with a
+    warning (``_write_failed``, which sets ``write_error``), later inputs are ignored (``_stopped``), and ``close``
+    finishes the file as it is (it reads up to its last complete chunk)."""
+
+    writer: RecordingWriter
+    counters: RunCounters
+    messages: list[tuple[str, str]]
+    write_error: str
+
+    @property
+    def _stopped(self) -> bool:
+        """Inputs are no longer taken."""
+        raise NotImplementedError
+
+    def _on_raw(self, s: RawSample) -> int:
+        raise NotImplementedError
+
+    def _write_failed(self, exc: OSError, closing: bool = False) -> None:
+        raise NotImplementedError
+
+    def summary(self) -> dict[str, Any]:
+        raise NotImplementedError
+
+    def on_raw(self, s: RawSample) -> int:
+        """Record one raw sample; returns its pose id (-1 when not one of a pose's recorded samples)."""
+        if self._stopped:
+            return -1
+        try:
+            return self._on_raw(s)
+        except OSError as exc:
+            self._write_failed(exc)
+            return -1
+
+    def on_temperature(self, stamp_ns: int, temperature_c: float, variance_c2: float) -> None:
+        if self._stopped:
+            return
+        self.counters.messages_temperature += 1
+        try:
+            self.writer.write_temperature(stamp_ns, temperature_c, variance_c2)
+        except OSError as exc:
+            self._write_failed(exc)
+
+    def _close_recording(self, last_records: Callable[[], None] | None = None) -> dict[str, Any]:
+        """``last_records()`` (the records before ``run_end``), the ``run_end`` record, the file finished; returns
+        the summary. After a failed write, or on one here, the file is closed as it is."""
+        if self.write_error:
+            self.writer.abandon()
+            return self.summary()
+        try:
+            if last_records is not None:
+                last_records()
+            self.writer.add_metadata("run_end", self.summary())
+            self.writer.close()
+        except OSError as exc:
+            self._write_failed(exc, closing=True)
+            self.writer.abandon()
+        return self.summary()
+
+    def _say_write_failed(self, exc: OSError, closing: bool, on_disk: str) -> None:
+        """Set ``write_error`` and warn at once: what failed and what is safely on disk (``on_disk``: what the file
+        reads up to its last complete chunk)."""
+        self.write_error = describe_write_error(exc)
+        path = self.writer.path
+        kept = ("the recording is lost (nothing of this run remains on disk)" if isinstance(exc, RecordingLostError)
+                else f"{path} reads up to its last complete chunk: {on_disk}")
+        self.messages.append(("warn", f"writing {path} failed: {self.write_error}; "
+                                      f"{'while closing the recording' if closing else 'run aborted'}; {kept}"))
+
+
 @dataclass
-class RunRecorder:
+class RunRecorder(GuardedRecording):
     """See the module docstring. ``metadata`` goes into the MCAP ``run`` record."""
 
     plan: PosePlan
@@ -206,18 +278,9 @@ class RunRecorder:
         self._ref_last_s: float | None = None  # elapsed board time (s) of the last reference judged
 
     # ------------------------------------------------------------------ inputs
-    def on_raw(self, s: RawSample) -> int:
-        """Record one raw sample; returns its pose id (-1 when not one of a pose's recorded samples).
-
-        Never raises an ``OSError`` of the recording (disk full, file removed): the run is aborted with a
-        warning instead (:attr:`write_error`) and later samples are ignored."""
-        if self.write_error:
-            return -1
-        try:
-            return self._on_raw(s)
-        except OSError as exc:
-            self._write_failed(exc)
-            return -1
+    @property
+    def _stopped(self) -> bool:
+        return bool(self.write_error)
 
     def _on_raw(self, s: RawSample) -> int:
         c = self.counters
@@ -303,15 +366,6 @@ class RunRecorder:
         self.last_pose_id = -1 if completed else pose_id
         return pose_id
 
-    def on_temperature(self, stamp_ns: int, temperature_c: float, variance_c2: float) -> None:
-        if self.write_error:
-            return
-        self.counters.messages_temperature += 1
-        try:
-            self.writer.write_temperature(stamp_ns, temperature_c, variance_c2)
-        except OSError as exc:
-            self._write_failed(exc)
-
     def request_next(self) -> tuple[bool, str]:
         if self.monitor is None:
             return False, "still measuring the board rate / learning the noise floor; try again in a moment"
@@ -374,21 +428,15 @@ class RunRecorder:
         Never raises an ``OSError`` of the recording: after a failed write the file is closed as it is (it
         reads up to its last complete chunk); a failure here is reported in the summary's ``write_error``."""
         self.finished_reason = reason
-        if self.write_error:
-            self.writer.abandon()
-            return self.summary()
-        try:
+
+        def closing_pose_event() -> None:
             if self._last_stamp is not None and self._event_key != ("done", self.sequencer.index):
                 # 1 ns after the last sample: an event applies to samples at or after its stamp
                 self.writer.write_pose(self._last_stamp + 1, -1, "done", index=self.sequencer.index,
                                        count=len(self.plan), extra={"phase": self.sequencer.phase.value},
                                        sensor_id=self.sensor_id)
-            self.writer.add_metadata("run_end", self.summary())
-            self.writer.close()
-        except OSError as exc:
-            self._write_failed(exc, closing=True)
-            self.writer.abandon()
-        return self.summary()
+
+        return self._close_recording(closing_pose_event)
 
     def _write_failed(self, exc: OSError, closing: bool = False) -> None:
         """Writing the recording failed: abort the run (what follows cannot be recorded) and say at once what
@@ -396,16 +444,8 @@ class RunRecorder:
         if self._pending_label >= 0:  # the sequencer counted a sample that was not written
             self.sequencer.retract(self._pending_label, 1, "not written")
             self._pending_label = -1
-        self.write_error = describe_write_error(exc)
-        path = self.writer.path
-        if isinstance(exc, RecordingLostError):
-            kept = "the recording is lost (nothing of this run remains on disk)"
-        else:
-            kept = (f"{path} reads up to its last complete chunk: " + (
-                f"pose(s) {', '.join(str(k) for k in self.poses_on_disk)} complete on disk"
-                if self.poses_on_disk else "no complete pose"))
-        when = "while closing the recording" if closing else "run aborted"
-        self._say("warn", f"writing {path} failed: {self.write_error}; {when}; {kept}")
+        self._say_write_failed(exc, closing, f"pose(s) {', '.join(str(k) for k in self.poses_on_disk)} complete on "
+                                             "disk" if self.poses_on_disk else "no complete pose")
         self.sequencer.abort(f"recording failed: {self.write_error}", even_if_done=not closing)
 
     # ------------------------------------------------------------------ internals
