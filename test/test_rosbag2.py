@@ -1,6 +1,7 @@
 """rosbag2 round trip (issue 10): recordings carry full topic names and the QoS metadata of the MCAP ROS 2
 profile, and the offline tools read what ``ros2 bag record -s mcap`` writes -- a bag directory of one or more
-.mcap files with namespaced topics -- checked against an independent writer and reader, ``rosbags``.
+.mcap files with namespaced topics -- checked against an independent writer and reader, ``rosbags`` (a test
+dependency, requirements-dev.txt: imported, so without it these tests fail instead of being skipped).
 """
 
 from __future__ import annotations
@@ -15,18 +16,16 @@ import pytest
 import yaml
 from mcap.reader import make_reader
 from mcap.writer import Writer as McapWriter
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2.storage_mcap import McapReader
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from test_fit_streaming import make_run
 
 from fbg_accel_calibration import mcap_io
 from fbg_accel_calibration.mcap_io import McapRecordingError, McapSampleStream, RecordingWriter, read_recording, write_recording
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_driver.driver_core import RAW_NAMES
-
-rosbags = pytest.importorskip("rosbags", reason="rosbags is a test dependency (requirements-dev.txt)")
-from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime  # noqa: E402
-from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: E402
-from rosbags.rosbag2.storage_mcap import McapReader  # noqa: E402
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E402
 
 BIN = Path(sys.executable).parent
 TOPICS = ("imu/raw", "imu/temperature", "calibration/reference_gravity", "calibration/pose")
