@@ -84,9 +84,12 @@ def test_published_decimated_variance_matches_the_output(stream: tuple[bytes, np
     empirical = np.var(acc[w // 2: w // 2 + len(trend)] - trend, axis=0)
     published = np.median(var, axis=0)
     ratio = empirical / published
+    white = cal.noise_sigma_mps2**2 / decimation
+    # the figures of README.md and docs/topics.md (pytest -s): the published variance against the output's
+    print(f"N={decimation}: published / output variance {np.round(published / empirical, 2)}, "
+          f"output / (sigma^2 / N) {np.round(empirical / white, 2)}")
     assert np.all((ratio > 0.75) & (ratio < 1.35)), (ratio, empirical, published)
     # the white-noise rule (variance / N) would be far too small: the defect of issue 10
-    white = cal.noise_sigma_mps2**2 / decimation
     assert np.all(empirical / white > (3.0 if decimation == 10 else 10.0)), empirical / white
 
 
