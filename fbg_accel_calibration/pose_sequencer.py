@@ -88,6 +88,7 @@ class SequencerStatus:
     still: bool
     poses_recorded: int
     total_samples: int
+    auto: bool = False  # auto mode: the run advances on table motion / dwell times, the operator is not asked
 
 
 @dataclass
@@ -156,7 +157,7 @@ class PoseSequencer:
             pose_index=self.index, pose_count=len(self.plan.poses), pose_name=p.name, phase=self.phase,
             samples=self._logs[self.index].samples, samples_target=p.samples, still=self._still,
             poses_recorded=sum(1 for i, log in enumerate(self._logs) if log.samples >= self.plan.poses[i].samples),
-            total_samples=self._total,
+            total_samples=self._total, auto=self.mode is Mode.AUTO,
         )
 
     def pop_events(self) -> list[SequencerEvent]:

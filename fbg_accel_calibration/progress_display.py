@@ -26,6 +26,9 @@ _PHASE_TEXT = {
     "done": "done",
     "aborted": "aborted",
 }
+# Auto mode: after a pose is recorded the run advances by itself when the table moves (or its dwell ends);
+# "next pose?" there read as a prompt to call calibration/next_pose, which auto mode does not need.
+_PHASE_TEXT_AUTO = {**_PHASE_TEXT, "recorded": "recorded, advancing when the table moves"}
 
 
 def format_progress(status: SequencerStatus, temperature_c: float, setpoint_c: float | None = None,
@@ -38,7 +41,7 @@ def format_progress(status: SequencerStatus, temperature_c: float, setpoint_c: f
     if setpoint_c is not None:
         temp += f" (set {setpoint_c:g})"
     still = "STILL" if status.still else "moving"
-    phase = _PHASE_TEXT.get(str(status.phase), str(status.phase))
+    phase = (_PHASE_TEXT_AUTO if status.auto else _PHASE_TEXT).get(str(status.phase), str(status.phase))
     return (f"pose {status.pose_index + 1}/{status.pose_count} {status.pose_name} | {phase} | {still} | "
             f"{status.samples}/{status.samples_target} [{bar}] | {temp} | total {status.total_samples}")
 

@@ -300,6 +300,22 @@ def test_progress_line_shows_pose_stillness_samples_and_temperature():
     assert "--.-- degC" in format_progress(seq.status(), float("nan"))
 
 
+def test_progress_line_after_a_recorded_pose_asks_the_operator_only_in_service_mode():
+    """In auto mode nobody is asked anything after a pose is recorded: the run advances when the table moves.
+
+    Found in a simulated six-position campaign (auto mode, 2026-11-26): every pose's progress line read
+    ``recorded, next pose?`` for the rest of its 30 s dwell, as if the operator had to press ``next_pose``.
+    """
+    from fbg_accel_calibration.progress_display import format_progress
+
+    for mode, phrase in ((Mode.SERVICE, "| recorded, next pose? |"),
+                         (Mode.AUTO, "| recorded, advancing when the table moves |")):
+        seq = PoseSequencer(_plan(samples=10), mode)
+        Feeder(seq).feed(12, True)
+        assert str(seq.status().phase) == "recorded"
+        assert phrase in format_progress(seq.status(), 24.0), (mode, format_progress(seq.status(), 24.0))
+
+
 def test_progress_display_plain_text_when_not_a_tty_only_on_change():
     import io
 
