@@ -51,6 +51,7 @@ from scipy import optimize, stats
 from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
+from .adc_codes import HeldCode, held_codes
 from .dynamic_analysis import peak_offset
 from .effects import (
     LIBRARY,
@@ -1687,6 +1688,7 @@ class DiagnosisResult:
     column_correlation: dict[str, float] = field(default_factory=dict)  # added effect -> max |corr| with the others
     final_degree: int = -1  # degree of eq. 28 in the final model (re-selected after each added effect)
     run_terms: list[tuple[str, float | None, str]] = field(default_factory=list)  # per-run terms (not in the YAML)
+    held_codes: list[HeldCode] = field(default_factory=list)  # ADC codes that held whole visits (adc_codes)
 
     @property
     def final_floor(self) -> np.ndarray:
@@ -1890,6 +1892,14 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     warnings = [detection_limit] if detection_limit else []
     if floor_note:
         warnings.append(floor_note)
+    held = held_codes(np.column_stack([data.ref, data.xyz]), groups, settled & r_eval,
+                      _visit_offset(cv_f.heldout, groups, r_eval, noise_after), alpha)
+    for h in held:
+        means = np.array([cv_f.heldout[r_eval & (groups == v)].mean(axis=0) for v in h.visits])
+        h.worst_offset = means[np.argmax(np.abs(means), axis=0), np.arange(3)]
+        rest = r_eval & ~np.isin(groups, h.visits)
+        h.rmse_without = np.sqrt(np.mean(cv_f.heldout[rest] ** 2, axis=0))
+        warnings.append(h.sentence())
     if settling.end_detected:
         warnings.append(settling.end_summary() + "; the model is fitted on them too: align the table's readings "
                         "(pose labels, reference) with the signal")
@@ -1921,6 +1931,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         moving_residual_rms=moving, settling=settling, fold_notes=fold_notes, n_floor_samples=int(settled.sum()),
         noise_remedies=remedies, noise_floor_after=noise_after if remedies else None, warnings=warnings,
         condition_number=cond, column_correlation=column_corr, final_degree=spec.degree, run_terms=run_terms,
+        held_codes=held,
         settings={"static": static if not isinstance(rec, DiagnosisData) else "given", "folds": int(fold.max()) + 1,
                   "alpha": alpha, "min_rel_gain": min_rel_gain, "max_effects": max_effects, "seed": seed,
                   "search_rows": n_search, "degree_forced": degree is not None,
@@ -1964,6 +1975,18 @@ def _flagged_visits_note(data: DiagnosisData, groups: np.ndarray, models: list[V
             f"over {FLOOR_VISIT_RATIO:g}x the visits' median and p < {FLOOR_VISIT_ALPHA:g} / (3 x {n_v} visits) each): "
             + "; ".join(names) + f". They stay in the fit: {shift}; a burst of outliers or a dead channel there? "
             "Cut that stretch and run again if the change matters")
+
+
+def _visit_offset(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    """(N,) for every sample of ``rows``: how far its visit's output is off, the squared norm of the visit's mean
+    residual ``res`` (N, 3) over the noise ``floor`` (3,) m/s^2; NaN elsewhere."""
+    out = np.full(len(groups), np.nan)
+    idx = np.flatnonzero(rows)
+    labels, inv = np.unique(groups[idx], return_inverse=True)
+    n = np.bincount(inv, minlength=len(labels))
+    mean = np.stack([np.bincount(inv, res[idx, j], minlength=len(labels)) for j in range(3)], axis=1) / n[:, None]
+    out[idx] = np.sum((mean / np.maximum(floor, 1e-12)) ** 2, axis=1)[inv]
+    return out
 
 
 def _fmt3(v: np.ndarray) -> str:

@@ -803,7 +803,22 @@ class BoardSimulator:
         counts_f = np.clip(counts_f, 0.0, float(self.adc_max))
         if self.cfg.scale("adc_quantisation") != 0.0:
             counts_f = np.round(counts_f)
+        counts_f = self._wide_codes(counts_f)
         return counts_f, self._codes(counts_f)
+
+    def _wide_codes(self, counts_f: np.ndarray) -> np.ndarray:
+        """Wide codes of the ESP32's SAR ADC (differential non-linearity; one value read over a range of input voltages:
+        esp32.com forum, "Strange ADC Measurements", viewtopic.php?t=18674; the measured series reads y = 1535 through
+        five whole visits while the codes 1536-1543 never occur). Each ``[code, width]`` of ``effects.adc_wide_codes``
+        reads every input from code - 0.5 to code + width - 0.5 counts as ``code`` (the next width - 1 codes are
+        missing), on every channel: one converter is multiplexed over them. Off unless the scale is non-zero."""
+        wide = self.cfg.get("effects.adc_wide_codes")
+        if float(wide["scale"]) == 0.0 or not wide["codes"]:
+            return counts_f
+        out = counts_f.copy()
+        for code, width in wide["codes"]:
+            out[(counts_f >= code - 0.5) & (counts_f < code + width - 0.5)] = float(code)
+        return out
 
     def _aht10_reading(self, t: np.ndarray, T_sen: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """AHT10 reading (degC) of the die temperature ``T_sen``: sample-and-hold at aht10.read_rate_hz (ASSUMPTION),

@@ -222,6 +222,11 @@ def test_measured_series_read_noise_is_separated_from_the_offset(tmp_path: Path)
     assert res.after_heldout_rmse[0] < 0.75 * res.before_heldout_rmse[0]
     assert np.all(res.after_heldout_rmse < res.before_heldout_rmse)
     assert np.all(res.final_floor < res.noise_floor)  # part of the floor was the reference's read noise
+    # the five visits the model fits worst all read y = 1535 while 1536-1543 never occur: a wide ADC code
+    held = [(h.channel, h.code) for h in res.held_codes]
+    assert held == [("y", 1535)]
+    h = res.held_codes[0]
+    assert len(h.visits) == 5 and h.missing_above == (1536, 1543) and h.rmse_without[0] < 0.85 * res.after_heldout_rmse[0]
     paths = write_report(res, tmp_path / "m.md")
     assert all(p.exists() for p in paths)
 

@@ -60,6 +60,21 @@ def test_dark_offset_adds_its_counts_at_the_adc() -> None:
     np.testing.assert_allclose(b.counts_float[:, 1:], a.counts_float[:, 1:])
 
 
+def test_a_wide_adc_code_reads_one_value_over_its_width_on_every_channel() -> None:
+    """``adc_wide_codes``: every input from code - 0.5 to code + width - 0.5 counts reads as the code (the next width - 1
+    codes are never read), on the four channels alike (one converter); every other reading is unchanged."""
+    off = _run(_baseline())
+    c = int(np.median(off.counts[:, 2]))  # a code the y channel reads often
+    width = 6
+    on = _run(_baseline(**{"effects.adc_wide_codes.scale": 1.0, "effects.adc_wide_codes.codes": [[c, width]]}))
+    inside = (off.counts >= c) & (off.counts < c + width)
+    assert inside[:, 2].sum() > 10 and inside[:, 0].sum() == 0  # the reference reads ~850 counts: never there
+    assert np.all(on.counts[inside] == c)
+    np.testing.assert_array_equal(on.counts[~inside], off.counts[~inside])
+    assert not np.isin(on.counts, np.arange(c + 1, c + width)).any()
+    np.testing.assert_array_equal(on.counts_float, on.counts)  # the recorded floats are the codes (quantised)
+
+
 def test_thermal_lag_is_a_first_order_lag_of_the_aht10_behind_the_optics() -> None:
     tau = 30.0
     blk = _run(_baseline(**QUIET, **{"effects.thermal_lag.scale": 1.0, "effects.thermal_lag.time_constant_s": tau}))
