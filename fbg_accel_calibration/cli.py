@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from fbg_accel_driver.command_line import version_line
+from fbg_accel_driver.sensor_constants import AHT10_SIGMA_C
 
 from . import diagnose_cli
 from . import input_validation as iv
@@ -302,7 +303,8 @@ def _command_line(args: argparse.Namespace) -> str:
 
 def calibration_match_warnings(cal, rec) -> list[str]:
     """Warnings when a calibration is applied to a recording it may not describe: another sensor id (both known),
-    samples outside the calibrated temperature range (count, fraction, range; of the samples that are data: those with
+    samples outside the calibrated temperature range by more than the driver's margin (``AHT10_SIGMA_C``; count, fraction,
+    range; of the samples that are data: those with
     a reference too low to be data, ``Recording.low_reference``, are not counted)."""
     from .thermal_fit import sensor_id_of
 
@@ -316,11 +318,12 @@ def calibration_match_warnings(cal, rec) -> list[str]:
     lo, hi = cal.temperature_range_c
     temp = np.asarray(rec.temp_c, dtype=float)[~rec.low_reference()]
     fin = np.isfinite(temp)
-    outside = int(np.sum(fin & ((temp < lo) | (temp > hi))))
+    margin = AHT10_SIGMA_C  # the driver's temperature_range_margin_c default: this close to the range is inside it
+    outside = int(np.sum(fin & ((temp < lo - margin) | (temp > hi + margin))))
     if outside:
         out.append(f"{outside} of {int(fin.sum())} samples ({100.0 * outside / max(int(fin.sum()), 1):.1f} %) are "
-                   f"outside the calibrated temperature range {lo:.2f} .. {hi:.2f} degC (recorded "
-                   f"{np.nanmin(temp):.2f} .. {np.nanmax(temp):.2f} degC): the model is extrapolated there")
+                   f"outside the calibrated temperature range {lo:.2f} .. {hi:.2f} degC by more than {margin:g} degC "
+                   f"(recorded {np.nanmin(temp):.2f} .. {np.nanmax(temp):.2f} degC): the model is extrapolated there")
     return out
 
 

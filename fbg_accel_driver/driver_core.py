@@ -21,7 +21,8 @@ Sample policies (documented in docs/topics.md; each has a counter and a diagnost
   (diagnostic WARN). After that, or when no good temperature was ever seen, the thermal model
   cannot be evaluated honestly: acceleration samples are dropped (``temperature_stale_dropped``)
   and diagnostics report ERROR until a valid reading returns.
-* **Outside the calibrated temperature range**: the model is extrapolating. The sample is
+* **Outside the calibrated temperature range** (by more than ``temperature_range_margin_c``, default the AHT10's
+  stated uncertainty: the range is the span of the calibration's own readings): the model is extrapolating. The sample is
   published with each axis variance raised to ``out_of_range_variance_factor * sigma**2`` plus
   the square of the difference between the extrapolated output and the output at the nearest
   edge of the range (a measure of how far the polynomial has wandered); diagnostics WARN.
@@ -75,13 +76,12 @@ from .clock_sync import ClockSync, ClockSyncConfig
 from .correction_terms import TiaInverseFilter
 from .frame_codec import ADC_MAX, SEQ_MODULO, Frame, Status, at_adc_rail
 from .noise_model import mean_variance_factor
-from .sensor_constants import LOW_REFERENCE_COUNTS, STANDARD_GRAVITY
+from .sensor_constants import AHT10_SIGMA_C, LOW_REFERENCE_COUNTS, STANDARD_GRAVITY
 from .stream_decoder import SampleInterval, StreamDecoder
 from .thermal_model import MIN_REFERENCE_COUNTS, ThermalCalibration
 
 AHT10_MIN_C = -40.0  # AHT10 datasheet operating range
 AHT10_MAX_C = 85.0
-AHT10_SIGMA_C = 0.3  # AHT10 datasheet typical accuracy +-0.3 degC, used as 1 sigma
 COVARIANCE_SOURCES = ("calibration", "parameter", "unknown")
 # A decimation block of N samples (N = decimation, or the block's own size if ``reconfigure`` lowered it) must lie
 # within this many times N board sample intervals (at least half of its window received); a larger hole in
@@ -104,6 +104,9 @@ class CoreConfig:
     covariance_source: str = "calibration"  # "calibration" | "parameter" | "unknown"
     accel_stddev_mps2: float = 0.0  # per-axis sigma when covariance_source == "parameter"
     out_of_range_variance_factor: float = 10.0
+    # a reading this close to the calibrated range (degC) is inside it: the range is the span of the calibration's own
+    # readings, and a reading is uncertain by the AHT10's stated accuracy (the temperature variance published)
+    temperature_range_margin_c: float = AHT10_SIGMA_C
     full_scale_mps2: float = 20.0 * STANDARD_GRAVITY  # paper: +-20 g full scale
     chain_compensation: str = "none"  # "none" | "delay" | "equalise" (chain_compensation module)
     equalise_bandwidth_hz: float = 10.0  # common low-pass the equaliser leaves in place of the TIA stages
@@ -124,6 +127,8 @@ class CoreConfig:
             raise ValueError("covariance_source 'parameter' needs accel_stddev_mps2 > 0")
         if not (math.isfinite(self.out_of_range_variance_factor) and self.out_of_range_variance_factor >= 1):
             raise ValueError(f"out_of_range_variance_factor must be >= 1, got {self.out_of_range_variance_factor}")
+        if not (math.isfinite(self.temperature_range_margin_c) and self.temperature_range_margin_c >= 0):
+            raise ValueError(f"temperature_range_margin_c must be a finite value >= 0, got {self.temperature_range_margin_c}")
         if self.chain_compensation not in CHAIN_MODES:
             raise ValueError(f"chain_compensation must be one of {CHAIN_MODES}, got '{self.chain_compensation}'")
         if not (math.isfinite(self.equalise_bandwidth_hz) and self.equalise_bandwidth_hz > 0):
@@ -458,7 +463,7 @@ class DriverCore:
                 flags.append("correction_out_of_span")
                 for a in range(3):
                     var[a] = var[a] * cfg.out_of_range_variance_factor + min(beyond[i][a] ** 2, full_var)
-            if not lo <= temp <= hi:
+            if not lo - cfg.temperature_range_margin_c <= temp <= hi + cfg.temperature_range_margin_c:
                 # Extrapolating: inflate, and add how far the polynomial has moved from the range edge.
                 counters.temperature_out_of_range += 1
                 flags.append("temperature_out_of_range")

@@ -62,6 +62,7 @@ class DiagnosticsSnapshot:
     last_temperature_c: float | None
     temperature_hold_s: float
     temperature_range_c: tuple[float, float]
+    temperature_range_margin_c: float = 0.0  # a temperature this close to the range is inside it (CoreConfig)
     calibration: dict[str, Any] = field(default_factory=dict)  # sensor id, file, degree
     chain: dict[str, Any] = field(default_factory=dict)  # DriverCore.chain_status(); empty: no dynamic section
 
@@ -172,11 +173,12 @@ class DriverDiagnostics:
 
         # temperature range
         lo, hi = snap.temperature_range_c
-        r_vals = {"calibrated_min_c": lo, "calibrated_max_c": hi,
+        margin = snap.temperature_range_margin_c
+        r_vals = {"calibrated_min_c": lo, "calibrated_max_c": hi, "margin_c": margin,
                   "temperature_out_of_range": core.get("temperature_out_of_range", 0), **snap.calibration}
         t = snap.last_temperature_c
         oor = delta(core, pcore, "temperature_out_of_range")
-        if t is not None and not (lo <= t <= hi):
+        if t is not None and not (lo - margin <= t <= hi + margin):
             msg = f"temperature {t:.2f} degC outside calibrated range [{lo:g}, {hi:g}] degC: extrapolating, covariance inflated"
             entries.append(self._entry(WARN, "temperature range", msg, r_vals))
         elif oor > 0:

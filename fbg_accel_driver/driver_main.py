@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from .command_line import ParameterTable, StartupError, one_line, parameter_help, print_help_or_version
-from .sensor_constants import LOW_REFERENCE_COUNTS
+from .sensor_constants import AHT10_SIGMA_C, LOW_REFERENCE_COUNTS
 
 PACKAGE = "fbg_accel_driver"
 DEFAULT_CALIBRATION = "calibration_sim.yaml"
@@ -52,6 +52,9 @@ PARAMETERS: ParameterTable = {
                            "seconds the last good temperature may be used while the sensor is invalid (settable)"),
     "out_of_range_variance_factor": ("double", 10.0,
                                      "variance factor outside the calibrated temperature range (>= 1) (settable)"),
+    "temperature_range_margin_c": ("double", AHT10_SIGMA_C,
+                                   "a temperature this close (degC) to the calibration's temperature_range_c is inside it "
+                                   "(default: the AHT10's stated uncertainty; 0 = the range exactly)"),
     "reconnect_backoff_max_s": ("double", 2.0, "longest wait between reconnection attempts (back-off doubles from 0.1 s)"),
     "silence_timeout_s": ("double", 2.0, "reopen the port after this many seconds without any byte (0 = never)"),
     "reader_queue_max_bytes": (

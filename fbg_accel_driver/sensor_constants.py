@@ -7,3 +7,4 @@ FULL_SCALE_MPS2 = 20.0 * STANDARD_GRAVITY  # the sensor's range, +-20 g (paper s
 # measured board shows at rest. The driver publishes no acceleration for it (its ``min_reference_counts`` default),
 # and the offline tools leave it out of every fit and diagnosis (``Recording.low_reference``).
 LOW_REFERENCE_COUNTS = 50
+AHT10_SIGMA_C = 0.3  # degC: the AHT10's stated accuracy +-0.3 degC (paper 3.5, datasheet), taken as one standard deviation

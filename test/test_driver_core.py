@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -185,6 +186,40 @@ def test_out_of_range_temperature_inflates_covariance() -> None:
     var1 = np.diag(np.reshape(imu[1].covariance, (3, 3)))
     np.testing.assert_allclose(var1, 10.0 * base + extrap**2, rtol=1e-9)
     assert np.all(extrap**2 > 1e-6)
+
+
+def test_a_reading_within_the_temperature_margin_of_the_calibrated_range_is_inside() -> None:
+    """The calibrated range is the span of the few AHT10 readings the fit used (about 12 independent readings per level
+    in a six-position campaign), so the same chamber level read later goes a little beyond it: in a simulated campaign
+    the driver flagged a few percent of the samples it read at the lowest calibrated level as out of range, with 10x
+    the variance, the WARN coming and going. A reading within ``temperature_range_margin_c`` (default: the AHT10's
+    stated uncertainty, the standard deviation the driver publishes with each temperature) of the range is inside;
+    beyond it the policy is as before, its extrapolation measured from the range edge itself. On the code before, all
+    four readings beyond the range here were flagged."""
+    cal = make_cal()  # range 10..40 degC
+    frames = [frame(0, temp_cc=2500), frame(1, temp_cc=995), frame(2, temp_cc=4025), frame(3, temp_cc=960),
+              frame(4, temp_cc=4045)]
+    core = DriverCore(cal, CoreConfig(out_of_range_variance_factor=10.0))
+    assert core.config.temperature_range_margin_c == AHT10_SIGMA_C
+    _, imu, _ = feed_frames(core, frames)
+    base = np.diag(np.reshape(imu[0].covariance, (3, 3)))
+    for r in imu[1:3]:  # 0.05 and 0.25 degC beyond the range: within the margin
+        assert "temperature_out_of_range" not in r.flags
+        np.testing.assert_allclose(np.diag(np.reshape(r.covariance, (3, 3))), base, rtol=1e-12)
+    for r in imu[3:]:  # 0.4 and 0.45 degC beyond: outside
+        assert "temperature_out_of_range" in r.flags
+        assert np.all(np.diag(np.reshape(r.covariance, (3, 3))) >= 10.0 * base)
+    assert core.counters.temperature_out_of_range == 2
+    # the diagnostics judge the latest reading by the same margin (the node passes the core's)
+    d = DriverDiagnostics()
+    near = replace(snapshot(0.0, last_t=40.25), temperature_range_margin_c=AHT10_SIGMA_C)
+    assert levels(d.report(near))["temperature range"] == OK
+    assert levels(d.report(replace(near, now_s=0.1, last_temperature_c=40.45)))["temperature range"] == WARN
+    strict = DriverCore(cal, CoreConfig(temperature_range_margin_c=0.0))
+    feed_frames(strict, frames)
+    assert strict.counters.temperature_out_of_range == 4
+    with pytest.raises(ValueError, match="temperature_range_margin_c"):
+        CoreConfig(temperature_range_margin_c=-0.1).validate()
 
 
 def test_a_correction_term_outside_its_fitted_span_is_held_flagged_and_inflates_covariance() -> None:

@@ -109,6 +109,14 @@ def test_temperature_outside_the_calibrated_range_is_warned(tmp_path: Path, caps
         assert "outside the calibrated temperature range" in (tmp_path / "out" / "report.md").read_text()
 
 
+def test_temperature_within_the_driver_margin_of_the_calibrated_range_is_not_warned(tmp_path: Path, capsys) -> None:
+    """Recorded at 25.2 degC, calibrated over 20..25 degC: within the driver's ``temperature_range_margin_c`` default
+    (the AHT10's stated uncertainty), which the driver takes as inside the range, so not warned either (it was)."""
+    rec, cal = _files(tmp_path, "acc-A", 25.2)
+    assert cli_main(_argv("report", rec, cal, tmp_path)) == 0
+    assert "outside the calibrated temperature range" not in capsys.readouterr().err
+
+
 def test_report_quotes_its_own_command_and_survives_a_yaml_without_fit(tmp_path: Path) -> None:
     """'Produced by' quotes the argv given to cli.main (not the host process's sys.argv, here pytest's); a YAML
     without a fit section shows 'not recorded', not None/nan."""
