@@ -16,6 +16,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from fbg_accel_driver.sensor_constants import LOW_REFERENCE_COUNTS, STANDARD_GRAVITY
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
@@ -99,7 +101,7 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
     """
     from .input_files import check_inputs, load_recording
     from .mcap_io import StreamOrderError
-    from .noise_correlation import from_recording
+    from .noise_correlation import from_recording, within_visit_factor
 
     opt = options or FitOptions()
     paths = [Path(p) for p in paths]
@@ -143,6 +145,13 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
     corr = from_recording(first, cal, opt.window, opt.min_interval)
     cal.noise_correlated_fraction, cal.noise_time_constant_s = corr.correlated_fraction, corr.time_constant_s
     cal.fit["noise_correlation"] = {**corr.as_dict(), "static_intervals": corr.segments, "samples": corr.samples}
+    # the within-visit scatter of correlated noise reads its variance low (a visit's mean takes more than 1/n of it):
+    # the published sigma is corrected by what that scatter expects under the fitted correlation
+    steps = np.diff(first.t_s)
+    steps = steps[steps > 0]
+    factor = within_visit_factor(corr, float(np.median(steps)) if steps.size else 0.0, data.stats.visit_lengths)
+    cal.noise_sigma_mps2 = np.asarray(cal.noise_sigma_mps2) / np.sqrt(factor)
+    cal.fit["noise_sigma_correction"] = [round(float(v), 4) for v in 1.0 / np.sqrt(factor)]
     cal.fit["sources"] = [str(p) for p in paths]
     cal.fit["degree_selection"] = selection.as_dict()
     return FitOutcome(cal, selection)

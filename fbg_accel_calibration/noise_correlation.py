@@ -82,6 +82,27 @@ def estimate(segments: list[np.ndarray], dt_s: float, max_lag: int = 100, min_co
     return NoiseCorrelation(f, tau, len(segs), total)
 
 
+def within_visit_factor(corr: NoiseCorrelation, dt_s: float, lengths: np.ndarray) -> np.ndarray:
+    """(3,) what the pooled within-visit variance (each visit's scatter about its mean, n_v - 1 degrees of freedom
+    each) expects of the noise variance under ``corr`` (rho_k = f exp(-k dt / tau) for k >= 1): sum_v (n_v - c_v) /
+    sum_v (n_v - 1), c_v = 1 + 2 sum_{k=1}^{n_v - 1} (1 - k / n_v) rho_k the variance of a visit's mean in units of
+    sigma^2 / n_v. Below 1 for correlated noise: a visit's mean takes more of it than 1/n_v (short visits, slow
+    noise). ``lengths`` (V,) samples of each visit (visits of one sample carry nothing); 1 for white noise."""
+    lengths = np.asarray(lengths, dtype=np.int64)
+    lengths = lengths[lengths >= 2]
+    if lengths.size == 0 or not (dt_s > 0 and np.isfinite(dt_s)):
+        return np.ones(3)
+    sizes, count = np.unique(lengths, return_counts=True)
+    expect = np.zeros(3)
+    for j in range(3):
+        f, tau = float(corr.correlated_fraction[j]), float(corr.time_constant_s[j])
+        for n, m in zip(sizes, count, strict=True):
+            k = np.arange(1, n)
+            c = 1.0 + (2.0 * float(np.sum((1.0 - k / n) * f * np.exp(-k * dt_s / tau))) if f > 0 and tau > 0 else 0.0)
+            expect[j] += m * (n - c)
+    return np.clip(expect / float(np.sum(count * (sizes - 1))), 1e-3, 1.0)
+
+
 def static_segments(acc_mps2: np.ndarray, usable: np.ndarray, pose_id: np.ndarray, run_id: np.ndarray
                     ) -> list[np.ndarray]:
     """Runs of consecutive usable samples of one pose and run, as (n_i, 3) arrays of ``acc_mps2``."""

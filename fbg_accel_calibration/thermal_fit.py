@@ -34,7 +34,7 @@ from __future__ import annotations
 import datetime as _dt
 import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -215,6 +215,7 @@ class CellStats:
     count: np.ndarray
     visit_outer: np.ndarray
     n_visits: int
+    visit_lengths: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (n_visits,) samples of each
 
     def select(self, cells: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """Summed (XtX, XtG, GtG, n) over boolean ``cells`` for a degree <= self.degree."""
@@ -263,6 +264,7 @@ class CellAccumulator:
         # visits (contiguous rows of one cell): sum of xsum xsum^T / n over the closed ones, and the open one
         self._visit_outer = np.zeros((self.p, self.p))
         self._n_visits = 0
+        self._visit_n: list[int] = []
         self._open: tuple[int, int] | None = None  # (run, cell key) of the visit the last chunk ended in
         self._open_sum = np.zeros(self.p)
         self._open_n = 0
@@ -332,12 +334,14 @@ class CellAccumulator:
             closed = sums[:-1] / np.sqrt(counts[:-1, None])
             self._visit_outer += closed.T @ closed
             self._n_visits += len(starts) - 1
+            self._visit_n.extend(counts[:-1].tolist())
         self._open, self._open_sum, self._open_n = (run, int(key[-1])), sums[-1].copy(), int(counts[-1])
 
     def _close_visit(self) -> None:
         if self._open is not None:
             self._visit_outer += np.outer(self._open_sum, self._open_sum) / self._open_n
             self._n_visits += 1
+            self._visit_n.append(self._open_n)
             self._open = None
 
     def finish(self, level_map: np.ndarray | None = None) -> CellStats:
@@ -355,7 +359,7 @@ class CellAccumulator:
         return CellStats(self.degree, keys[order, 0], keys[order, 1], np.asarray(self._xtx)[order],
                          np.asarray(self._xtg)[order], np.asarray(self._gtg)[order], np.asarray(self._xsum)[order],
                          np.asarray(self._gsum)[order], np.asarray(self._count)[order], self._visit_outer.copy(),
-                         self._n_visits)
+                         self._n_visits, np.asarray(self._visit_n, dtype=np.int64))
 
 
 def _runs_of(run: np.ndarray) -> list[tuple[int, int, int]]:

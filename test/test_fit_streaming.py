@@ -234,3 +234,26 @@ def test_backward_stamps_are_refused_by_the_stream_and_the_cli_reads_in_memory(t
         list(McapSampleStream(path).blocks(1000, with_poses=False))
     assert cli_main(["fit", str(path), "--degree", "0", "-o", str(tmp_path / "cal.yaml")]) == 0
     assert "reading all samples into memory instead" in capsys.readouterr().err
+
+
+def test_the_within_visit_factor_is_what_the_pooled_scatter_of_correlated_noise_expects() -> None:
+    """``noise_correlation.within_visit_factor``: short visits of first-order noise (f = 0.9, tau = 8 samples, the TIA
+    low-pass at 100 Hz) scatter about their own means by less than the noise variance, because each mean takes more
+    than 1/n of it. The pooled within-visit variance (n_v - 1 degrees of freedom each, as the fit divides) over
+    sigma^2 matches the factor; the fit's published sigma is divided by its square root (``fit_pipeline``). White
+    noise: 1. The fit had published that scatter as the noise variance."""
+    from fbg_accel_calibration.noise_correlation import NoiseCorrelation, within_visit_factor
+
+    rng = np.random.default_rng(7)
+    f, tau, dt, n, visits = 0.9, 0.08, 0.01, 60, 4000
+    a = np.exp(-dt / tau)
+    gm = np.empty((visits, n))
+    gm[:, 0] = rng.standard_normal(visits)
+    for k in range(1, n):
+        gm[:, k] = a * gm[:, k - 1] + np.sqrt(1 - a * a) * rng.standard_normal(visits)
+    x = np.sqrt(f) * gm + np.sqrt(1 - f) * rng.standard_normal((visits, n))  # variance 1, rho_k = f a^k
+    pooled = float(np.sum((x - x.mean(axis=1, keepdims=True)) ** 2) / (visits * (n - 1)))
+    corr = NoiseCorrelation(np.full(3, f), np.full(3, tau), visits, visits * n)
+    factor = within_visit_factor(corr, dt, np.full(visits, n))
+    assert pooled < 0.85 and np.allclose(factor, pooled, rtol=0.02)  # factor 0.803 (docs/calibration_fit.md)
+    assert np.allclose(within_visit_factor(NoiseCorrelation(np.zeros(3), np.zeros(3), 1, n), dt, [n]), 1.0)
