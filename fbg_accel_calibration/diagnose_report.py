@@ -262,12 +262,15 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
         lines += [f"Measurements that would settle it (from the signatures above: a correlation beyond {SIGNATURE_SE:g} "
                   f"standard errors of noise alone, an orientation share above {ORIENTATION_SHARE:g}, one visit above "
                   f"{CONCENTRATED:g}x the next):", "", *[f"- {m}" for m in settle], ""]
+    held = {int(v): f"{h.channel} {h.code}" for h in res.held_codes for v in h.visits}  # the visits' ADC code (warning)
     rows = [[f"{p.get('visit', p['pose'])} / {p['pose']}", str(p["n"]),
              _v(p["mean_mps2"]), _v(p["z"], "{:+.1f}"), _v(p["gref_mps2"], "{:.2f}"),
-             f"{p['t_s']:.4g}", f"{p['temp_c']:.2f}"] for p in s.per_pose[:10]]
+             f"{p['t_s']:.4g}", f"{p['temp_c']:.2f}"] + ([held.get(int(p.get("visit", -1)), "-")] if held else [])
+            for p in s.per_pose[:10]]
     lines += ["Visits with the largest residual (held out):", "",
               _md_table(["visit / pose", "n", "mean residual x/y/z [m/s^2]", "z-score x/y/z", "reference x/y/z [m/s^2]",
-                         res.settings.get("time_label", "time [s]"), "temp [degC]"], rows), ""]
+                         res.settings.get("time_label", "time [s]"), "temp [degC]"]
+                        + (["held on ADC code"] if held else []), rows), ""]
     lines += [f"![residual structure]({img_prefix}residual_structure.png)", ""]
     if res.moving_residual_rms is not None:
         lines += [f"Samples not used (moving or settling), final model against the time-interpolated reference: "

@@ -229,6 +229,7 @@ def test_measured_series_read_noise_is_separated_from_the_offset(tmp_path: Path)
     assert len(h.visits) == 5 and h.missing_above == (1536, 1543) and h.rmse_without[0] < 0.85 * res.after_heldout_rmse[0]
     paths = write_report(res, tmp_path / "m.md")
     assert all(p.exists() for p in paths)
+    assert (tmp_path / "m.md").read_text().count("| y 1535 |") == 5  # marked in the table of the worst visits
 
 
 def test_console_table_has_a_header_and_reports_say_sample_index_without_a_time_base(tmp_path: Path) -> None:
