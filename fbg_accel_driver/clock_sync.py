@@ -47,7 +47,12 @@ class ClockSyncConfig:
     """Tuning of the estimator (see module docstring)."""
 
     bin_s: float = 0.5  # board seconds per minimum-delay bin
-    window_bins: int = 40  # bins used for the line fit (20 s at the default bin length)
+    # bins used for the line fit (200 s at the default bin length). The slope is the lower-hull edge at the window's
+    # middle; over 20 s (40 bins) that edge was often two bins 0.5-1 s apart, its slope their minima's ms of jitter over
+    # that second: +-150..500 ppm through a USB-serial latency timer or a bursty Bluetooth link, stamps wandering
+    # ms before and after the delay floor (test_bursty_usb_and_bluetooth_delivery_keep_the_drift_and_the_stamps).
+    # A crystal's drift changes by far less than a ppm over 200 s, so the longer baseline costs no tracking.
+    window_bins: int = 400
     max_drift: float = 500e-6  # |d| limit: +-500 ppm, far beyond a crystal's +-50 ppm
     max_slew: float = 500e-6  # applied offset changes by at most 0.5 ms per board second
     warmup_s: float = 5.0  # after a (re)start the estimate is still coarse ...
@@ -142,8 +147,11 @@ class ClockSync:
         if bins and bins[-1].index == index:
             if offset < bins[-1].offset_s:
                 bins[-1].board_s, bins[-1].offset_s = board_s, offset
-            else:
-                return
+                # a lower minimum in the open bin: the line (slope kept until the bin closes) goes below it. O(1): a
+                # burst's frames lower the minimum one after another, and a hull of window_bins points per frame
+                # would cost tens of % of a core at 1 kHz
+                self._a = min(self._a, offset - self._d * (board_s - (self._board_ref_s or 0.0)))
+            return
         elif bins and index < bins[-1].index:
             return  # out of order (cannot happen after a reset; ignore defensively)
         else:
