@@ -30,7 +30,7 @@ from typing import Any, Literal
 import numpy as np
 from scipy.optimize import least_squares
 
-from fbg_accel_driver.chain_compensation import first_order_group_delay_s
+from fbg_accel_driver.chain_compensation import MAX_ABS_DELAY_S, first_order_group_delay_s
 from fbg_accel_driver.mapping_fields import number
 
 from .dynamic_analysis import DynamicPoint
@@ -216,7 +216,7 @@ def fit_chain_model(points: Sequence[DynamicPoint], highpass: bool = False,
         dphi = np.angle(h * np.exp(-1j * ph))  # wrapped phase difference
         return np.concatenate([(np.abs(h) - S) / uS, dphi / uph])
 
-    x0 = _initial_guess(f, S, ph, fit_gain, highpass, highpass_in, resid)
+    x0 = _initial_guess(f, S, ph, 1.0 / uph ** 2, fit_gain, highpass, highpass_in, resid)
     sol = least_squares(resid, x0, method="lm" if len(f) * 2 > len(x0) else "trf", x_scale="jac")
     k, fc, tau, fhp = unpack(sol.x)
     J = sol.jac
@@ -255,39 +255,76 @@ def fit_chain_model(points: Sequence[DynamicPoint], highpass: bool = False,
     return model
 
 
-def _initial_guess(f: np.ndarray, S: np.ndarray, ph: np.ndarray, fit_gain: bool, highpass: bool, where: str,
-                   resid: Any) -> np.ndarray:
-    """Grid over cut-offs; at each node the delay from a line fit to the remaining phase, the gain from the
-    amplitude; the node with the smallest weighted residual wins.
+def _initial_guess(f: np.ndarray, S: np.ndarray, ph: np.ndarray, w_ph: np.ndarray, fit_gain: bool, highpass: bool,
+                   where: str, resid: Any) -> np.ndarray:
+    """Grid over cut-offs; at each node the candidate delays for the phase left after the low-pass (and
+    high-pass), the gain from the amplitude; the candidate with the smallest weighted residual wins, and among
+    equal ones (a plan whose frequencies share a common divisor F fixes a delay only modulo 1/F) the one of the
+    smallest |delay|.
 
-    The remaining phase (``ph`` in rad less the low-pass' and high-pass' phase), unwrapped along the
-    frequencies ``f`` (Hz), is ``-2 pi f tau + 2 pi n`` with one unknown integer ``n`` for all points. ``n`` is
-    where the straight line through it meets f = 0 (the delay's phase is 0 there); the neighbouring branches
-    are tried too. (Choosing ``n`` by the median remaining phase put the start on a wrong branch, and the fit
-    ran away, whenever the lowest frequency's phase was already past -180 degrees.)
+    The remaining phase (``ph`` in rad less the low-pass' and high-pass' phase) is ``-2 pi f tau + 2 pi k_i``
+    with an unknown integer ``k_i`` per point. Candidates: the local minima of its weighted wrapped misfit
+    over delays within +-``MAX_ABS_DELAY_S`` (:func:`_delay_candidates`; ``w_ph`` = 1/u(phase)^2 in rad^-2),
+    and the line through the phase unwrapped along ``f`` (Hz), with the branch where that line meets f = 0 and
+    its neighbours. (Unwrapping alone fails when the phase turns by more than 180 degrees between neighbouring
+    frequencies: 80 ms or more on the shipped 0.5-20 Hz plan gave fc 24.7 Hz and 128 ms for 1.7 Hz and 80 ms;
+    choosing the branch by the median remaining phase failed whenever the lowest frequency's phase was already
+    past -180 degrees.)
     """
     fcs = np.geomspace(max(f.min() / 20, 1e-3), f.max() * 50, 40)
     fhps = np.geomspace(max(f.min() / 20, 1e-3), f.max(), 25) if highpass else [None]
-    best: tuple[float, np.ndarray] | None = None
+    found: list[tuple[float, float, np.ndarray]] = []  # (cost, |delay|, x)
     for fc in fcs:
         for fhp in fhps:
             h0 = _response(f, 1.0, fc, 0.0, fhp, where)
-            rest = np.unwrap(ph - np.angle(h0))
+            left = ph - np.angle(h0)
+            rest = np.unwrap(left)
             if f.size >= 2 and np.ptp(f) > 0:
                 n0 = round(float(np.polyfit(f, rest, 1)[1]) / (2 * np.pi))
             else:
                 n0 = round(float(rest[0]) / (2 * np.pi))
+            taus = [float(-(f @ (rest - 2 * np.pi * n)) / (2 * np.pi * (f @ f))) for n in (n0 - 1, n0, n0 + 1)]
+            taus += _delay_candidates(f, left, w_ph, MAX_ABS_DELAY_S)
             k = float(np.exp(np.mean(np.log(S / np.abs(h0))))) if fit_gain else 1.0
-            for n in (n0 - 1, n0, n0 + 1):
-                r = rest - 2 * np.pi * n  # ~ -2 pi f tau: least squares through the origin
-                tau = float(-(f @ r) / (2 * np.pi * (f @ f)))
+            for tau in taus:
                 x = ([math.log(k)] if fit_gain else []) + [math.log(fc), tau] + ([math.log(fhp)] if highpass else [])
                 x = np.array(x)
-                c = float(np.sum(resid(x) ** 2))
-                if best is None or c < best[0]:
-                    best = (c, x)
-    assert best is not None
-    return best[1]
+                found.append((float(np.sum(resid(x) ** 2)), abs(tau), x))
+    best = min(c for c, _, _ in found)
+    tie = best + 1e-9 + 1e-6 * best  # equal up to rounding: the same phases modulo 2 pi
+    return min((a for a in found if a[0] <= tie), key=lambda a: a[1])[2]
+
+
+def _delay_candidates(f: np.ndarray, left: np.ndarray, w: np.ndarray, max_abs_s: float, keep: int = 2) -> list[float]:
+    """Delays (s) within +-``max_abs_s`` at the local minima of ``sum w (1 - cos(left + 2 pi f tau))``, the
+    weighted misfit of the phases ``left`` (rad, any branch) at ``f`` (Hz) to a pure delay, each refined by
+    Gauss-Newton on the wrapped residual; the ``keep`` lowest and every one tied with the lowest.
+
+    The scan's step is 1/(8 f_max), so every minimum has a grid point within 1/16 of the highest frequency's
+    period (22.5 degrees) of it; the refinement needs no unwrapping.
+    """
+    step = 1.0 / (8.0 * float(f.max()))
+    grid = np.arange(-max_abs_s, max_abs_s + step / 2, step)
+    cost = (w * (1.0 - np.cos(left[None, :] + 2 * np.pi * f[None, :] * grid[:, None]))).sum(axis=1)
+    inner = (cost[1:-1] <= cost[:-2]) & (cost[1:-1] <= cost[2:])
+    idx = np.flatnonzero(inner) + 1
+    if idx.size == 0:
+        return []
+    # a grid point lies within step/2 of each minimum, so its cost exceeds the minimum's by at most `slack`:
+    # refine the `keep` lowest and every one that may tie with the lowest
+    slack = float((w * (1.0 - np.cos(np.pi * f * step))).sum())
+    order = idx[np.argsort(cost[idx], kind="stable")]
+    lowest_grid = float(cost[order[0]])
+    chosen = [i for n, i in enumerate(order) if n < keep or cost[i] <= lowest_grid + slack]
+    out = []
+    for tau in grid[chosen]:
+        for _ in range(4):
+            r = np.angle(np.exp(1j * (left + 2 * np.pi * f * tau)))
+            tau -= float((w * f) @ r) / (2 * np.pi * float((w * f) @ f))
+        out.append((float((w * (1.0 - np.cos(left + 2 * np.pi * f * tau))).sum()), float(tau)))
+    out.sort()
+    lowest = out[0][0]
+    return [tau for n, (c, tau) in enumerate(out) if n < keep or c <= lowest + 1e-9 + 1e-6 * lowest]
 
 
 def fit_chain_models(points: Sequence[DynamicPoint], **kwargs: Any) -> dict[str, ChainModel]:

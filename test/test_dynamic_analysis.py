@@ -482,6 +482,22 @@ def test_chain_fit_starts_on_the_right_phase_branch(freqs: tuple[float, ...]) ->
     assert m.gain == pytest.approx(1.0, rel=1e-4) and m.fit["chi2"] < 1e-6
 
 
+@pytest.mark.parametrize("fc_hz", [1.7, 50.0])
+@pytest.mark.parametrize("delay_s", [0.08, 0.15, 0.3, 0.5, -0.2])
+def test_chain_fit_finds_a_long_delay_on_the_shipped_plan(fc_hz: float, delay_s: float) -> None:
+    """On the shipped plan's frequencies (0.5, 1, 2, 5, 10, 20 Hz) the phase of a pure delay of 80 ms or more
+    turns by more than 180 deg between neighbouring points (2 -> 5 Hz: 3 Hz x 80 ms = 86 deg of delay plus the
+    low-pass' change; 5 -> 10 Hz: 144 deg), so unwrapping along the frequencies started the fit on a wrong
+    branch. On noise-free points, before: 80 ms with fc 1.7 Hz came back as fc 24.7 Hz, 128 ms, gain 0.17
+    (chi2 9.5e4), 300 ms as fc 0.49 Hz, 138 ms; 500 ms with fc 50 Hz as fc 3e-9 Hz, gain 2.4e8 (fbg-accel-calib
+    dynamic then refused the run on a simulated 300 ms channel_delay). These frequencies fix a delay modulo
+    2 s, so every delay the driver accepts (|delay| <= 1 s) is identified."""
+    truth = ChainModel(cutoff_hz=fc_hz, delay_s=delay_s)
+    m = fit_chain_model(_model_points(truth, (0.5, 1.0, 2.0, 5.0, 10.0, 20.0)), uncertainty_scaling="points")
+    assert m.cutoff_hz == pytest.approx(fc_hz, rel=1e-4) and m.delay_s == pytest.approx(delay_s, abs=1e-7)
+    assert m.gain == pytest.approx(1.0, rel=1e-4) and m.fit["chi2"] < 1e-6
+
+
 def test_a_single_period_point_is_refused() -> None:
     """One whole period gives no measured repeatability; the sine fits' white-noise covariance it fell back to
     understated the scatter 5-13x on the simulator's coloured noise (p14: rms z 9.6 / 13 / 9.5 in S), so such
