@@ -37,6 +37,8 @@ PARAMETERS: ParameterTable = {
     "still_false_alarm_per_run": ("double", DEFAULT_FALSE_ALARM_PER_RUN,
                                   "expected false still->moving transitions per run of a still sensor, (0, 1)"),
     "motion_expect_g": ("double", 0.1, "pose changes above this (g) must show motion before the next pose is recorded"),
+    "stream_timeout_s": ("double", 0.0, "end the run (file closed, status 3) after this many seconds without an imu/raw "
+                         "sample once samples have come; 0: wait for them to come back (a stall is reported after 5 s)"),
     "exit_when_done": ("bool", True, "exit once the run is complete (and fitted)"),
     "progress": ("bool", True, "print the progress line (pose k of N, stillness, samples, temperature) on stdout"),
 }

@@ -21,6 +21,7 @@ import math
 import re
 import signal
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +49,7 @@ from .pose_sequencer import Mode
 from .progress_display import ProgressDisplay
 from .run_recorder import DetectorSettings, RawSample, RunRecorder
 from .run_refit import RefitError, expand_sources, refit
+from .stream_watch import StreamWatch
 
 __all__ = ["CalibrationNode", "run"]
 
@@ -104,6 +106,11 @@ class CalibrationNode(Node):
         super().__init__(NODE_NAME, **node_options)
         p = self._read_parameters()
         self.p = p
+        self.end_reason = ""  # why the node itself ended the run (the stream stopped), for the run_end record
+        try:
+            self.watch = StreamWatch(p["stream_timeout_s"])
+        except ValueError as exc:
+            raise StartupError(f"invalid parameter: {exc}") from None
         self.exit_when_done = bool(p["exit_when_done"])
         self.dynamic = plan_format(p["plan_file"]) == EXCITATION_FORMAT
         if self.dynamic:
@@ -206,6 +213,7 @@ class CalibrationNode(Node):
             event_callbacks=SubscriptionEventCallbacks(matched=lambda info: self._on_matched("imu/temperature", info)))
         self.srv_next = self.create_service(Trigger, "calibration/next_pose", self._on_next)
         self.srv_abort = self.create_service(Trigger, "calibration/abort", self._on_abort)
+        self.watch_timer = self.create_timer(1.0, self._check_stream)
 
     # ------------------------------------------------------------ parameters
     def _read_parameters(self) -> dict[str, Any]:
@@ -261,7 +269,26 @@ class CalibrationNode(Node):
             seq=int(val(7, 0.0)), board_time_s=val(8, math.nan), frame_id=msg.header.frame_id,
             aux=val(9, math.nan))
         self.recorder.on_raw(sample)
+        back = self.watch.sample(time.monotonic())
+        if back:
+            self._end_progress_line()
+            self.get_logger().info(back)
         self._report()
+
+    def _check_stream(self) -> None:
+        """Once a second: report a stopped stream, and end the run after ``stream_timeout_s`` (``StreamWatch``)."""
+        if self.recorder.finished:
+            return
+        warning, reason = self.watch.check(time.monotonic())
+        if warning:
+            self._end_progress_line()
+            self.get_logger().warning(warning)
+        if reason:
+            self._end_progress_line()
+            self.get_logger().error(f"{reason}; the run is ended, {self.mcap_path} closed as it is")
+            self.end_reason = reason
+            self.recorder.abort(reason)
+            self._report()
 
     def _on_matched(self, topic: str, info: QoSSubscriptionMatchedInfo) -> None:
         """Publisher (dis)connected: say so, the operator sees whether the driver is there."""
@@ -323,7 +350,7 @@ class CalibrationNode(Node):
         rec = self.recorder
         self._report()
         complete = rec.done
-        reason = interrupted_by or ("complete" if complete else "aborted")
+        reason = interrupted_by or self.end_reason or ("complete" if complete else "aborted")
         summary = rec.close(reason)
         self._end_progress_line()
         log = self.get_logger()

@@ -418,6 +418,23 @@ def test_abort_service_ends_the_run(ros, plan_dir, procs):
     assert report.complete and rec.metadata["run_end"]["result"] == "aborted"
 
 
+def test_a_stream_that_stops_is_reported_and_ends_the_run_after_stream_timeout_s(ros, plan_dir, procs):
+    """The stream stops 3 s into the run (the board or the driver stopped for good): with ``stream_timeout_s`` the node
+    says so, closes the file as it is and exits 3, as an aborted run does. Before, it waited with the file open until
+    it was killed, and said nothing."""
+    _, stream = _stream_and_plan(plan_dir, seed=3)
+    node = NodeProcess(plan_dir, "mode:=auto", "stream_timeout_s:=2.0", label="stalled", notifier=ros.notifier)
+    procs.append(node)
+    ros.wait_subscribed(node)
+    ros.publish(stream, stop_at=int(3.0 * RATE_HZ))
+    node.wait_line(r"no imu/raw sample for .* \(stream_timeout_s 2\)", timeout=60)
+    assert node.wait_exit(timeout=20) == 3
+    rec, report = read_file(node.mcap)
+    assert report.complete and rec.metadata["run_end"]["result"] == "aborted"
+    assert "stream_timeout_s" in rec.metadata["run_end"]["reason"]
+    assert not node.yaml.exists()
+
+
 # runs after the other DDS tests of this module: a SIGKILLed participant stays announced until its lease expires
 def test_sigkill_mid_recording_leaves_a_file_read_up_to_its_last_chunk_that_the_fit_uses(ros, plan_dir, procs):
     plan, stream = _stream_and_plan(plan_dir, seed=1)
