@@ -185,6 +185,13 @@ class ClockSync:
         """Estimated relative drift of the host's steady clock against the board clock (s/s)."""
         return self._d
 
+    def status(self) -> dict[str, float | int | bool]:
+        """For the diagnostics: the drift estimate (ppm, host's steady clock against the board's), whether it sits at
+        the ``max_drift`` clamp (the link or the board clock is not what the estimator assumes), the restarts (board
+        resets, clock jumps) and the steps of ROS time the stamps followed."""
+        return {"drift_ppm": round(self._d * 1e6, 2), "drift_at_limit": abs(self._d) >= self.config.max_drift,
+                "restarts": self.resets, "ros_time_steps": self.steps}
+
     @property
     def primed(self) -> bool:
         """True once ``prime_s`` of board time was observed since the (re)start, or observations kept arriving

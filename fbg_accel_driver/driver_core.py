@@ -329,6 +329,10 @@ class DriverCore:
         self.counters.decimation_discarded += len(self._pending)
         self._pending = []
 
+    def clock_status(self) -> dict[str, float | int | bool]:
+        """The board clock's mapping onto host time (``ClockSync.status``), for the diagnostics."""
+        return self.clock.status()
+
     def chain_status(self) -> dict[str, float | str]:
         """Chain compensation for diagnostics: mode, bandwidth of the published acceleration (Hz; the
         slowest axis's -3 dB point unless equalised) and the delay taken off the stamps (ms)."""

@@ -27,6 +27,8 @@ correction span            OK; WARN if a correction term was held at the edge of
                            since the previous report (``correction_out_of_span``)
 calibrated output          OK; ERROR if samples were dropped since the previous report because the
                            calibration gave a non-finite acceleration (``non_finite_dropped``)
+clock mapping              OK (drift estimate, restarts, steps of ROS time); WARN when the drift estimate sits at
+                           its clamp (``ClockSyncConfig.max_drift``): the mapping is not tracking
 =========================  =====================================================================
 """
 
@@ -65,6 +67,7 @@ class DiagnosticsSnapshot:
     temperature_range_margin_c: float = 0.0  # a temperature this close to the range is inside it (CoreConfig)
     calibration: dict[str, Any] = field(default_factory=dict)  # sensor id, file, degree
     chain: dict[str, Any] = field(default_factory=dict)  # DriverCore.chain_status(); empty: no dynamic section
+    clock: dict[str, Any] = field(default_factory=dict)  # DriverCore.clock_status(); empty: no entry
 
 
 class DriverDiagnostics:
@@ -215,6 +218,18 @@ class DriverDiagnostics:
             else:
                 msg = f"{c['mode']}: stamps moved back by {c['applied_delay_ms']:g} ms, bandwidth {c['bandwidth_hz']:g} Hz"
                 entries.append(self._entry(OK, "chain compensation", msg, c))
+
+        # the board clock's mapping onto ROS time (clock_sync): a drift estimate at its clamp means it is not tracking
+        if snap.clock:
+            c = snap.clock
+            if c["drift_at_limit"]:
+                entries.append(self._entry(WARN, "clock mapping", f"drift estimate {c['drift_ppm']:+g} ppm, at its limit: "
+                                           "the board clock or the link is not what the estimator assumes, the stamps "
+                                           "may drift from the sampling times", c))
+            else:
+                entries.append(self._entry(OK, "clock mapping", f"board clock {c['drift_ppm']:+g} ppm against the host's "
+                                           f"steady clock; {c['restarts']} restart(s), {c['ros_time_steps']} step(s) of "
+                                           "ROS time followed", c))
 
         self._prev = snap
         return entries

@@ -344,6 +344,7 @@ class DriverNode(Node):
             temperature_range_margin_c=core.config.temperature_range_margin_c,
             calibration=self.cal_info,
             chain=core.chain_status(),
+            clock=core.clock_status(),
         )
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()

@@ -376,6 +376,16 @@ def values(entries: list, what: str) -> dict[str, str]:
     return dict(next(e for e in entries if e.name.endswith(what)).values)
 
 
+def test_the_clock_mapping_is_stated_and_warned_when_its_drift_sits_at_the_clamp() -> None:
+    d = DriverDiagnostics()
+    assert "clock mapping" not in levels(d.report(snapshot(0.0)))  # no clock status given: no entry
+    ok = {"drift_ppm": 23.5, "drift_at_limit": False, "restarts": 1, "ros_time_steps": 0}
+    e = d.report(replace(snapshot(1.0, frames=100), clock=ok))
+    assert levels(e)["clock mapping"] == OK and values(e, "clock mapping")["drift_ppm"] == "23.5"
+    stuck = {**ok, "drift_ppm": -500.0, "drift_at_limit": True}
+    assert levels(d.report(replace(snapshot(2.0, frames=200), clock=stuck)))["clock mapping"] == WARN
+
+
 def test_diagnostics_levels_follow_deltas_and_states() -> None:
     d = DriverDiagnostics()
     e = d.report(snapshot(0.0, frames=0, temp_valid=None, age=None, last_t=None))
