@@ -186,10 +186,11 @@ class ClockSync:
         return self._d
 
     def status(self) -> dict[str, float | int | bool]:
-        """For the diagnostics: the drift estimate (ppm, host's steady clock against the board's), whether it sits at
-        the ``max_drift`` clamp (the link or the board clock is not what the estimator assumes), the restarts (board
-        resets, clock jumps) and the steps of ROS time the stamps followed."""
-        return {"drift_ppm": round(self._d * 1e6, 2), "drift_at_limit": abs(self._d) >= self.config.max_drift,
+        """For the diagnostics: the board clock's rate against the host's steady clock from the drift estimate (ppm,
+        + when the board's runs fast: ``-drift``), whether the estimate sits at the ``max_drift`` clamp (the link or the
+        board clock is not what the estimator assumes), the restarts (board resets, clock jumps) and the steps of ROS
+        time the stamps followed."""
+        return {"board_clock_ppm": round(-self._d * 1e6, 2), "drift_at_limit": abs(self._d) >= self.config.max_drift,
                 "restarts": self.resets, "ros_time_steps": self.steps}
 
     @property

@@ -222,14 +222,14 @@ class DriverDiagnostics:
         # the board clock's mapping onto ROS time (clock_sync): a drift estimate at its clamp means it is not tracking
         if snap.clock:
             c = snap.clock
+            rate = f"board clock {c['board_clock_ppm']:+g} ppm against the host's steady clock"
             if c["drift_at_limit"]:
-                entries.append(self._entry(WARN, "clock mapping", f"drift estimate {c['drift_ppm']:+g} ppm, at its limit: "
-                                           "the board clock or the link is not what the estimator assumes, the stamps "
-                                           "may drift from the sampling times", c))
+                entries.append(self._entry(WARN, "clock mapping", f"{rate}, at the limit of the drift estimate: the board "
+                                           "clock or the link is not what the estimator assumes, the stamps may drift "
+                                           "from the sampling times", c))
             else:
-                entries.append(self._entry(OK, "clock mapping", f"board clock {c['drift_ppm']:+g} ppm against the host's "
-                                           f"steady clock; {c['restarts']} restart(s), {c['ros_time_steps']} step(s) of "
-                                           "ROS time followed", c))
+                entries.append(self._entry(OK, "clock mapping", f"{rate}; {c['restarts']} restart(s), "
+                                           f"{c['ros_time_steps']} step(s) of ROS time followed", c))
 
         self._prev = snap
         return entries

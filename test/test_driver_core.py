@@ -379,10 +379,10 @@ def values(entries: list, what: str) -> dict[str, str]:
 def test_the_clock_mapping_is_stated_and_warned_when_its_drift_sits_at_the_clamp() -> None:
     d = DriverDiagnostics()
     assert "clock mapping" not in levels(d.report(snapshot(0.0)))  # no clock status given: no entry
-    ok = {"drift_ppm": 23.5, "drift_at_limit": False, "restarts": 1, "ros_time_steps": 0}
+    ok = {"board_clock_ppm": 23.5, "drift_at_limit": False, "restarts": 1, "ros_time_steps": 0}
     e = d.report(replace(snapshot(1.0, frames=100), clock=ok))
-    assert levels(e)["clock mapping"] == OK and values(e, "clock mapping")["drift_ppm"] == "23.5"
-    stuck = {**ok, "drift_ppm": -500.0, "drift_at_limit": True}
+    assert levels(e)["clock mapping"] == OK and values(e, "clock mapping")["board_clock_ppm"] == "23.5"
+    stuck = {**ok, "board_clock_ppm": 500.0, "drift_at_limit": True}
     assert levels(d.report(replace(snapshot(2.0, frames=200), clock=stuck)))["clock mapping"] == WARN
 
 
