@@ -34,7 +34,7 @@ from __future__ import annotations
 import datetime as _dt
 import itertools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -200,8 +200,8 @@ class CellStats:
     names an orientation within its run only (two runs of other plans may give one id to two orientations),
     so a cell is one run's (cells of one pose and level in two runs are ordered by run). ``visit_outer``
     (p, p) is the sum over the visits (contiguous stays at one pose) of xsum_v xsum_v^T / n_v and
-    ``n_visits`` their number: the noise floor is the scatter within a visit (:meth:`visit_scatter`), not
-    the difference between two visits of one cell.
+    ``visit_lengths`` their n_v (``n_visits`` their number): the noise floor is the scatter within a visit
+    (:meth:`visit_scatter`), not the difference between two visits of one cell.
     """
 
     degree: int
@@ -214,8 +214,11 @@ class CellStats:
     gsum: np.ndarray
     count: np.ndarray
     visit_outer: np.ndarray
-    n_visits: int
-    visit_lengths: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (n_visits,) samples of each
+    visit_lengths: np.ndarray  # (n_visits,) samples of each visit
+
+    @property
+    def n_visits(self) -> int:
+        return len(self.visit_lengths)
 
     def select(self, cells: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """Summed (XtX, XtG, GtG, n) over boolean ``cells`` for a degree <= self.degree."""
@@ -263,7 +266,6 @@ class CellAccumulator:
         self._count: list[float] = []
         # visits (contiguous rows of one cell): sum of xsum xsum^T / n over the closed ones, and the open one
         self._visit_outer = np.zeros((self.p, self.p))
-        self._n_visits = 0
         self._visit_n: list[int] = []
         self._open: tuple[int, int] | None = None  # (run, cell key) of the visit the last chunk ended in
         self._open_sum = np.zeros(self.p)
@@ -333,14 +335,12 @@ class CellAccumulator:
         if len(starts) > 1:
             closed = sums[:-1] / np.sqrt(counts[:-1, None])
             self._visit_outer += closed.T @ closed
-            self._n_visits += len(starts) - 1
             self._visit_n.extend(counts[:-1].tolist())
         self._open, self._open_sum, self._open_n = (run, int(key[-1])), sums[-1].copy(), int(counts[-1])
 
     def _close_visit(self) -> None:
         if self._open is not None:
             self._visit_outer += np.outer(self._open_sum, self._open_sum) / self._open_n
-            self._n_visits += 1
             self._visit_n.append(self._open_n)
             self._open = None
 
@@ -351,7 +351,7 @@ class CellAccumulator:
         if not self._keys:
             z = np.zeros(0, np.int64)
             return CellStats(self.degree, z, z.copy(), np.zeros((0, p, p)), np.zeros((0, p, 3)), np.zeros((0, 3)),
-                             np.zeros((0, p)), np.zeros((0, 3)), np.zeros(0), np.zeros((p, p)), 0)
+                             np.zeros((0, p)), np.zeros((0, 3)), np.zeros(0), np.zeros((p, p)), z.copy())
         keys = np.asarray(self._keys, dtype=np.int64)
         if level_map is not None:
             keys[:, 1] = level_map[keys[:, 1]]
@@ -359,7 +359,7 @@ class CellAccumulator:
         return CellStats(self.degree, keys[order, 0], keys[order, 1], np.asarray(self._xtx)[order],
                          np.asarray(self._xtg)[order], np.asarray(self._gtg)[order], np.asarray(self._xsum)[order],
                          np.asarray(self._gsum)[order], np.asarray(self._count)[order], self._visit_outer.copy(),
-                         self._n_visits, np.asarray(self._visit_n, dtype=np.int64))
+                         np.asarray(self._visit_n, dtype=np.int64))
 
 
 def _runs_of(run: np.ndarray) -> list[tuple[int, int, int]]:
