@@ -147,9 +147,7 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
     cal.fit["noise_correlation"] = {**corr.as_dict(), "static_intervals": corr.segments, "samples": corr.samples}
     # the within-visit scatter of correlated noise reads its variance low (a visit's mean takes more than 1/n of it):
     # the published sigma is corrected by what that scatter expects under the fitted correlation
-    steps = np.diff(first.t_s)
-    steps = steps[steps > 0]
-    factor = within_visit_factor(corr, float(np.median(steps)) if steps.size else 0.0, data.stats.visit_lengths)
+    factor = within_visit_factor(corr, corr.dt_s, data.stats.visit_lengths)
     cal.noise_sigma_mps2 = np.asarray(cal.noise_sigma_mps2) / np.sqrt(factor)
     cal.fit["noise_sigma_correction"] = [round(float(v), 4) for v in 1.0 / np.sqrt(factor)]
     cal.fit["sources"] = [str(p) for p in paths]

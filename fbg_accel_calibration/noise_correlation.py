@@ -37,6 +37,7 @@ class NoiseCorrelation:
     time_constant_s: np.ndarray
     segments: int  # static intervals used
     samples: int
+    dt_s: float = 0.0  # the sample interval the fit took (s; 0: nothing fitted)
 
     def as_dict(self) -> dict[str, list[float]]:
         return {"correlated_fraction": [round(float(v), 4) for v in self.correlated_fraction],
@@ -79,7 +80,7 @@ def estimate(segments: list[np.ndarray], dt_s: float, max_lag: int = 100, min_co
             if slope < 0:
                 f[j] = float(min(np.exp(intercept), 1.0))
                 tau[j] = float(-1.0 / slope)
-    return NoiseCorrelation(f, tau, len(segs), total)
+    return NoiseCorrelation(f, tau, len(segs), total, dt_s)
 
 
 def within_visit_factor(corr: NoiseCorrelation, dt_s: float, lengths: np.ndarray) -> np.ndarray:
