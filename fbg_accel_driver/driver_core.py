@@ -396,6 +396,7 @@ class DriverCore:
         counters = self.counters
         cal = self.cal
         lo, hi = cal.temperature_range_c if cal is not None else (-math.inf, math.inf)
+        inside_lo, inside_hi = lo - cfg.temperature_range_margin_c, hi + cfg.temperature_range_margin_c  # as inside
         base_var = self._base_var
         full_var = cfg.full_scale_mps2**2
         # (stamp, frame, temperature, eq. 28 value, temperature held, variance factors, counts used: ref, x, y, z)
@@ -467,7 +468,7 @@ class DriverCore:
                 flags.append("correction_out_of_span")
                 for a in range(3):
                     var[a] = var[a] * cfg.out_of_range_variance_factor + min(beyond[i][a] ** 2, full_var)
-            if not lo - cfg.temperature_range_margin_c <= temp <= hi + cfg.temperature_range_margin_c:
+            if not inside_lo <= temp <= inside_hi:
                 # Extrapolating: inflate, and add how far the polynomial has moved from the range edge.
                 counters.temperature_out_of_range += 1
                 flags.append("temperature_out_of_range")
