@@ -10,7 +10,7 @@ or driver has stopped for good would otherwise wait forever, its file open).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 STALL_WARN_S = 5.0  # s without a sample after which a stall is reported (a few hundred samples of any plan)
 
@@ -22,8 +22,8 @@ class StreamWatch:
 
     timeout_s: float = 0.0
     warn_s: float = STALL_WARN_S
-    _last: float | None = None
-    _warned: bool = False
+    _last: float | None = field(default=None, init=False)  # time of the latest sample
+    _warned: bool = field(default=False, init=False)  # the current stall is reported
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.timeout_s) and self.timeout_s >= 0):
