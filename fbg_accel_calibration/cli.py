@@ -319,7 +319,7 @@ def calibration_match_warnings(cal, rec) -> list[str]:
     temp = np.asarray(rec.temp_c, dtype=float)[~rec.low_reference()]
     fin = np.isfinite(temp)
     margin = AHT10_SIGMA_C  # the driver's temperature_range_margin_c default: this close to the range is inside it
-    outside = int(np.sum(fin & ((temp < lo - margin) | (temp > hi + margin))))
+    outside = int(np.sum(fin & ~cal.in_range(temp, margin)))
     if outside:
         out.append(f"{outside} of {int(fin.sum())} samples ({100.0 * outside / max(int(fin.sum()), 1):.1f} %) are "
                    f"outside the calibrated temperature range {lo:.2f} .. {hi:.2f} degC by more than {margin:g} degC "

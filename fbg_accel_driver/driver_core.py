@@ -78,7 +78,7 @@ from .frame_codec import ADC_MAX, SEQ_MODULO, Frame, Status, at_adc_rail
 from .noise_model import mean_variance_factor
 from .sensor_constants import AHT10_SIGMA_C, LOW_REFERENCE_COUNTS, STANDARD_GRAVITY
 from .stream_decoder import SampleInterval, StreamDecoder
-from .thermal_model import MIN_REFERENCE_COUNTS, ThermalCalibration
+from .thermal_model import MIN_REFERENCE_COUNTS, ThermalCalibration, widened_range
 
 AHT10_MIN_C = -40.0  # AHT10 datasheet operating range
 AHT10_MAX_C = 85.0
@@ -396,7 +396,7 @@ class DriverCore:
         counters = self.counters
         cal = self.cal
         lo, hi = cal.temperature_range_c if cal is not None else (-math.inf, math.inf)
-        inside_lo, inside_hi = lo - cfg.temperature_range_margin_c, hi + cfg.temperature_range_margin_c  # as inside
+        inside_lo, inside_hi = widened_range((lo, hi), cfg.temperature_range_margin_c)
         base_var = self._base_var
         full_var = cfg.full_scale_mps2**2
         # (stamp, frame, temperature, eq. 28 value, temperature held, variance factors, counts used: ref, x, y, z)

@@ -38,6 +38,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from .thermal_model import widened_range
+
 OK, WARN, ERROR, STALE = 0, 1, 2, 3  # diagnostic_msgs/DiagnosticStatus levels
 
 
@@ -181,7 +183,8 @@ class DriverDiagnostics:
                   "temperature_out_of_range": core.get("temperature_out_of_range", 0), **snap.calibration}
         t = snap.last_temperature_c
         oor = delta(core, pcore, "temperature_out_of_range")
-        if t is not None and not (lo - margin <= t <= hi + margin):
+        inside_lo, inside_hi = widened_range((lo, hi), margin)
+        if t is not None and not inside_lo <= t <= inside_hi:
             msg = f"temperature {t:.2f} degC outside calibrated range [{lo:g}, {hi:g}] degC: extrapolating, covariance inflated"
             entries.append(self._entry(WARN, "temperature range", msg, r_vals))
         elif oor > 0:

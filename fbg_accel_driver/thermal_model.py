@@ -34,7 +34,7 @@ import yaml
 from .chain_compensation import ChainDynamics
 from .correction_terms import CorrectionTerm, TermInputs, correction_from_dict
 from .mapping_fields import format_version, number, number_array, refuse_unknown, same_values
-from .sensor_constants import FULL_SCALE_MPS2
+from .sensor_constants import AHT10_SIGMA_C, FULL_SCALE_MPS2
 from .yaml_input import StrictSafeLoader, load_yaml
 
 FORMAT_NAME = "fbg_accel_calibration"
@@ -63,6 +63,13 @@ PLAUSIBILITY_REF_COUNTS = (256.0, 1024.0, 2048.0, 4095.0)  # reference counts of
 
 class CalibrationFileError(ValueError):
     """A calibration file is missing, malformed or not understood."""
+
+
+def widened_range(range_c: tuple[float, float], margin_c: float) -> tuple[float, float]:
+    """The calibrated temperature range (lo, hi) degC widened by ``margin_c`` degC on each side: what the driver, its
+    diagnostics and the offline reports count as inside. The range is the span of the calibration run's own
+    readings, each uncertain by the sensor's accuracy, so the same chamber level read later may fall just beyond it."""
+    return range_c[0] - margin_c, range_c[1] + margin_c
 
 
 @dataclass
@@ -184,9 +191,11 @@ class ThermalCalibration:
             out = out + term.contribution(self, inputs, term_state)
         return out
 
-    def in_range(self, temp_c: float) -> bool:
-        lo, hi = self.temperature_range_c
-        return lo <= temp_c <= hi
+    def in_range(self, temp_c: float | np.ndarray, margin_c: float = AHT10_SIGMA_C) -> bool | np.ndarray:
+        """Whether ``temp_c`` (degC; a value or an array, NaN is outside) lies in the calibrated range widened by
+        ``margin_c`` (degC, the driver's ``temperature_range_margin_c``; default the AHT10's uncertainty)."""
+        lo, hi = widened_range(self.temperature_range_c, margin_c)
+        return (temp_c >= lo) & (temp_c <= hi)
 
     def new_state(self) -> list[Any]:
         """Fresh streaming state for the stateful correction terms (one entry per term)."""

@@ -164,8 +164,11 @@ def test_zero_or_negative_reference_gives_nan_row_not_an_exception() -> None:
 def test_in_range_and_degree() -> None:
     cal = make_cal(degree=3)
     assert cal.degree == 3
-    assert cal.in_range(14.5) and cal.in_range(46.0) and cal.in_range(30.0)
-    assert not cal.in_range(14.49) and not cal.in_range(46.01)
+    assert cal.in_range(14.5, 0.0) and cal.in_range(46.0, 0.0) and cal.in_range(30.0, 0.0)
+    assert not cal.in_range(14.49, 0.0) and not cal.in_range(46.01, 0.0)
+    # by default the AHT10's uncertainty (the driver's temperature_range_margin_c default) counts as inside
+    np.testing.assert_array_equal(cal.in_range(np.array([14.2, 14.19, 46.3, 46.31, np.nan])),
+                                  [True, False, True, False, False])
     assert cal.new_state() == []
 
 
