@@ -2061,10 +2061,15 @@ def _calibration_from(spec: ModelSpec, des: Design, cv: CvResult, data: Diagnosi
     delay = [h for e, h in spec.effects if e.name == "channel_delay"]
     if delay:
         fit["channel_delay_s"] = float(delay[0])  # applied to time stamps, not to accelerations
+    # the reference counts the model holds at, per temperature level (the driver flags a reference far off them)
+    labels, level_t = temperature_levels(t)
+    ref_used = np.asarray(data.ref, dtype=float)[data.use]
+    level_ref = np.array([ref_used[labels == k].mean() for k in range(len(level_t))])
+    levels = {"reference_level_temperature_c": level_t, "reference_level_counts": level_ref}
     cal = ThermalCalibration(M=M, b=b, temperature_range_c=rng, sensor_id=sensor_id, t_center_c=spec.t_center_c,
-                             t_scale_c=spec.t_scale_c, noise_sigma_mps2=noise, fit=fit, corrections=terms)
+                             t_scale_c=spec.t_scale_c, noise_sigma_mps2=noise, fit=fit, corrections=terms, **levels)
     base = ThermalCalibration(M=M, b=b, temperature_range_c=rng, sensor_id=sensor_id, t_center_c=spec.t_center_c,
-                              t_scale_c=spec.t_scale_c, noise_sigma_mps2=noise)
+                              t_scale_c=spec.t_scale_c, noise_sigma_mps2=noise, **levels)
     return cal, base, added
 
 

@@ -77,6 +77,9 @@ class FitData:
     n_excluded_clipped: int = 0  # samples at a pose of the visits left out for a clipped sample (clipped_visits)
     n_clipped_visits: int = 0  # those visits
     low_reference: LowReference = field(default_factory=LowReference)  # samples left out: no source light
+    # mean reference counts of the fitted samples per level (ADC counts, as level_means_c): the source power the
+    # model holds at (ThermalCalibration.reference_level_counts)
+    level_reference_counts: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def n_excluded_low_reference(self) -> int:
@@ -232,12 +235,14 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
     fill = 0
     level_sum = np.zeros(clusters.n_labels)
     level_count = np.zeros(clusters.n_labels, np.int64)
+    level_ref_sum = np.zeros(clusters.n_labels)
     for i, blk, psi, _use, _valid, keep, _clipped in kept_blocks():
         rows = np.flatnonzero(keep)
         t = blk.temp_c[rows]
         lab = clusters.labels(t)
         level_sum += np.bincount(lab, weights=t, minlength=clusters.n_labels)
         level_count += np.bincount(lab, minlength=clusters.n_labels)
+        level_ref_sum += np.bincount(lab, weights=blk.ref[rows].astype(float), minlength=clusters.n_labels)
         tau, ps, g, pz = (t - center) / scale, psi[rows], blk.gref_mps2[rows], blk.pose_id[rows]
         start = 0
         while start < len(rows):
@@ -261,4 +266,5 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
                  "threshold_var_psi": thr_out.tolist()} if usable is None else {"mask": "given by caller"})
     return FitData(stats, level_sum[present] / level_count[present], (t_min, t_max), center, scale, n_used, n_total,
                    n_motion, n_other, count_orientations(stats), clusters, level_map, detector, n_clipped,
-                   sum(len(v) for v in left_out if v is not None), low_tally)
+                   sum(len(v) for v in left_out if v is not None), low_tally,
+                   level_ref_sum[present] / level_count[present])

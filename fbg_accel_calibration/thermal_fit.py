@@ -594,7 +594,8 @@ def fit_thermal(rec: Recording | FitData, degree: int, *, sensor_id: str | None 
         M=M, b=b, temperature_range_c=data.temperature_range_c,
         sensor_id=sensor_id or (sensor_id_of(rec.metadata) if isinstance(rec, Recording) else None) or "unknown",
         t_center_c=center, t_scale_c=scale, noise_sigma_mps2=noise,
-        created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), fit=fit_info)
+        created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), fit=fit_info,
+        reference_level_temperature_c=data.level_means_c, reference_level_counts=data.level_reference_counts)
 
 
 def sensor_id_of(md: dict) -> str | None:

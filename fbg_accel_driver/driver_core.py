@@ -26,6 +26,14 @@ Sample policies (documented in docs/topics.md; each has a counter and a diagnost
   published with each axis variance raised to ``out_of_range_variance_factor * sigma**2`` plus
   the square of the difference between the extrapolated output and the output at the nearest
   edge of the range (a measure of how far the polynomial has wandered); diagnostics WARN.
+* **Reference power off its calibrated level** (the reference counts more than ``reference_level_tolerance``,
+  relative, from the level the calibration's fit saw at this temperature, ``ThermalCalibration.expected_reference_counts``;
+  only with a calibration that records it): eq. 24 cancels the source power only if the counts carry no offset
+  (detector dark current, ADC zero), and the detector noise, in counts, does not scale with the power, so the
+  output is biased and noisier than ``noise_sigma_mps2`` says. The sample is published with each axis variance
+  raised to ``out_of_range_variance_factor * (expected / reference)**2 * sigma**2`` (the noise growth, with the
+  extrapolation margin; the bias an unknown offset causes is not bounded by it); flagged, counted
+  (``reference_level_changed``), diagnostics WARN.
 * **A correction term outside its fitted span** (a ``time_drift`` after the board times of the calibration run,
   a ``spectral_nonlinearity`` beyond the Psi it was fitted on; ``correction_terms``): the term is held at the
   span's edge, not extrapolated; the sample is published with each axis variance raised to
@@ -108,6 +116,9 @@ class CoreConfig:
     # readings, and a reading is uncertain by the AHT10's stated accuracy (the temperature variance published)
     temperature_range_margin_c: float = AHT10_SIGMA_C
     full_scale_mps2: float = 20.0 * STANDARD_GRAVITY  # paper: +-20 g full scale
+    # relative departure of the reference counts from the calibration's level at this temperature beyond which a
+    # sample is flagged and its variance inflated (the source's own wander is well inside: 0.3-0.5 % within a level)
+    reference_level_tolerance: float = 0.03
     chain_compensation: str = "none"  # "none" | "delay" | "equalise" (chain_compensation module)
     equalise_bandwidth_hz: float = 10.0  # common low-pass the equaliser leaves in place of the TIA stages
 
@@ -129,6 +140,8 @@ class CoreConfig:
             raise ValueError(f"out_of_range_variance_factor must be >= 1, got {self.out_of_range_variance_factor}")
         if not (math.isfinite(self.temperature_range_margin_c) and self.temperature_range_margin_c >= 0):
             raise ValueError(f"temperature_range_margin_c must be a finite value >= 0, got {self.temperature_range_margin_c}")
+        if not (math.isfinite(self.reference_level_tolerance) and 0 < self.reference_level_tolerance <= 1):
+            raise ValueError(f"reference_level_tolerance must be in (0, 1], got {self.reference_level_tolerance}")
         if self.chain_compensation not in CHAIN_MODES:
             raise ValueError(f"chain_compensation must be one of {CHAIN_MODES}, got '{self.chain_compensation}'")
         if not (math.isfinite(self.equalise_bandwidth_hz) and self.equalise_bandwidth_hz > 0):
@@ -154,7 +167,7 @@ class ImuRecord:
     covariance: tuple[float, ...]  # 9 entries, row-major 3x3, (m/s^2)^2; all 0 = unknown (REP 145)
     temperature_c: float  # temperature used by the thermal model
     flags: frozenset[str]  # subset of {"adc_saturated", "temperature_held", "temperature_out_of_range",
-    #                        "correction_out_of_span"}
+    #                        "correction_out_of_span", "reference_level_changed"}
 
 
 @dataclass(frozen=True, slots=True)
@@ -188,6 +201,7 @@ class CoreCounters:
     temperature_held: int = 0  # of those, calibrated with a held temperature
     temperature_stale_dropped: int = 0
     temperature_out_of_range: int = 0
+    reference_level_changed: int = 0  # reference counts off the calibration's level by more than the tolerance
     correction_out_of_span: int = 0  # samples a correction term was held at the edge of its fitted span for
     non_finite_dropped: int = 0
     board_resets: int = 0
@@ -245,6 +259,9 @@ class DriverCore:
         self._delay_ns = round(self._dyn.stamp_delay_s(mode) * 1e9) if mode == "delay" else 0
         self._eq_cache: dict[int, tuple[int, tuple[float, float, float]]] = {}  # dt_us -> (delay ns, var factors)
         self._eq_mean_cache: dict[tuple[int, int], tuple[float, float, float]] = {}  # (dt_us, n) -> mean factors
+        # the reference level the calibration expects at a temperature reading (counts; NaN: none recorded)
+        self._ref_level_cache: dict[float, float] = {}
+        self._has_ref_level = calibration is not None and len(calibration.reference_level_counts) > 0
 
     def _base_sigma(self) -> np.ndarray:
         src = self.config.covariance_source
@@ -399,9 +416,13 @@ class DriverCore:
         inside_lo, inside_hi = widened_range((lo, hi), cfg.temperature_range_margin_c)
         base_var = self._base_var
         full_var = cfg.full_scale_mps2**2
-        # (stamp, frame, temperature, eq. 28 value, temperature held, variance factors, counts used: ref, x, y, z)
+        check_ref = self._has_ref_level
+        ref_tol = cfg.reference_level_tolerance
+        ref_cache = self._ref_level_cache
+        # (stamp, frame, temperature, eq. 28 value, temperature held, variance factors, counts used: ref, x, y, z,
+        #  reference off its calibrated level)
         used: list[tuple[int, Frame, float, tuple[float, float, float], bool, tuple[float, float, float],
-                         tuple[float, float, float, float]]] = []
+                         tuple[float, float, float, float], bool]] = []
         equaliser = self._equaliser
         unit = (1.0, 1.0, 1.0)
         unknown = cfg.covariance_source == "unknown"
@@ -443,7 +464,17 @@ class DriverCore:
                     continue
                 counters.temperature_held += 1
             base = cal.acceleration_at(cx / ref, cy / ref, cz / ref, temp)
-            used.append((stamp_ns - delay_ns, f, temp, base, not valid, vfac, (ref, cx, cy, cz)))  # equalised counts
+            ref_off = False
+            if check_ref:  # the measured reference against the level the fit saw at this temperature (raw counts)
+                expected = ref_cache.get(temp)
+                if expected is None:
+                    if len(ref_cache) >= 4096:
+                        ref_cache.clear()
+                    expected = ref_cache[temp] = cal.expected_reference_counts(temp)
+                if abs(f.ref - expected) > ref_tol * expected:
+                    vfac = tuple(v * (expected / f.ref) ** 2 for v in vfac)  # noise in counts over a smaller reference
+                    ref_off = True
+            used.append((stamp_ns - delay_ns, f, temp, base, not valid, vfac, (ref, cx, cy, cz), ref_off))  # equalised
         if not used:
             return
         extra = beyond = None
@@ -455,12 +486,18 @@ class DriverCore:
             extra = cal.correction_sum(counts[:, 0], counts[:, 1:], counts[:, 1:] / counts[:, :1], temp_a, t_a,
                                        self._cal_state, span).tolist()
             beyond = span.tolist() if span.any() else None
-        for i, (stamp_ns, f, temp, base, held, vfac, (ref, cx, cy, cz)) in enumerate(used):
+        for i, (stamp_ns, f, temp, base, held, vfac, (ref, cx, cy, cz), ref_off) in enumerate(used):
             accel = base if extra is None else (base[0] + extra[i][0], base[1] + extra[i][1], base[2] + extra[i][2])
             var = [base_var[0] * vfac[0], base_var[1] * vfac[1], base_var[2] * vfac[2]]
             flags = []
             if held:
                 flags.append("temperature_held")
+            if ref_off:
+                # The source power away from the calibration's level: eq. 24 is extrapolating (vfac carries the noise
+                # growth); inflate as outside the temperature range.
+                counters.reference_level_changed += 1
+                flags.append("reference_level_changed")
+                var = [v * cfg.out_of_range_variance_factor for v in var]
             if beyond is not None and any(beyond[i]):
                 # A correction term outside the span it was fitted on, held at the edge: inflate as outside the
                 # temperature range, with what its formula would have added beyond the edge (capped at full scale).

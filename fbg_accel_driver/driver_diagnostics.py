@@ -67,6 +67,7 @@ class DiagnosticsSnapshot:
     temperature_hold_s: float
     temperature_range_c: tuple[float, float]
     temperature_range_margin_c: float = 0.0  # a temperature this close to the range is inside it (CoreConfig)
+    reference_level_tolerance: float | None = None  # relative (CoreConfig); None: not given
     calibration: dict[str, Any] = field(default_factory=dict)  # sensor id, file, degree
     chain: dict[str, Any] = field(default_factory=dict)  # DriverCore.chain_status(); empty: no dynamic section
     clock: dict[str, Any] = field(default_factory=dict)  # DriverCore.clock_status(); empty: no entry
@@ -151,6 +152,15 @@ class DriverDiagnostics:
         entries.append(self._counted(low, ERROR, "reference power", ref_vals, "reference power sufficient",
                                      f"reference power too low in {low} sample(s) since last report; acceleration not "
                                      "published for them"))
+
+        # reference power off the level the calibration's fit saw at this temperature (eq. 24 extrapolating)
+        rl = delta(core, pcore, "reference_level_changed")
+        rl_vals = {"reference_level_changed": core.get("reference_level_changed", 0),
+                   "tolerance": _fmt(snap.reference_level_tolerance)}
+        entries.append(self._counted(rl, WARN, "reference level", rl_vals, "reference counts at the calibrated level",
+                                     f"{rl} sample(s) since last report with the reference counts off the calibration's "
+                                     "level at their temperature (source power, connector or fibre loss): the output "
+                                     "may be biased, covariance inflated"))
 
         # temperature sensor
         t_vals = {

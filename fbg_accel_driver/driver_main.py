@@ -55,6 +55,9 @@ PARAMETERS: ParameterTable = {
     "temperature_range_margin_c": ("double", AHT10_SIGMA_C,
                                    "a temperature this close (degC) to the calibration's temperature_range_c is inside it "
                                    "(default: the AHT10's stated uncertainty; 0 = the range exactly)"),
+    "reference_level_tolerance": ("double", 0.03,
+                                  "relative departure of the reference counts from the calibration's reference_level at "
+                                  "this temperature beyond which a sample is flagged and its variance inflated (0..1]"),
     "reconnect_backoff_max_s": ("double", 2.0, "longest wait between reconnection attempts (back-off doubles from 0.1 s)"),
     "silence_timeout_s": ("double", 2.0, "reopen the port after this many seconds without any byte (0 = never)"),
     "reader_queue_max_bytes": (

@@ -63,7 +63,7 @@ NODE_NAME = "fbg_accel_driver"
 INTEGER_RANGES = {"baud": (1200, 4_000_000), "decimation": (1, 10000), "min_reference_counts": (0, 4095),
                   "reader_queue_max_bytes": (4096, 1 << 30)}
 FLOAT_RANGES = {"temperature_hold_s": (0.0, 3600.0), "out_of_range_variance_factor": (1.0, 1e6),
-                "temperature_range_margin_c": (0.0, 50.0),
+                "temperature_range_margin_c": (0.0, 50.0), "reference_level_tolerance": (1e-6, 1.0),
                 "reconnect_backoff_max_s": (0.1, 60.0), "accel_stddev_mps2": (0.0, 1000.0),
                 "silence_timeout_s": (0.0, 3600.0), "equalise_bandwidth_hz": (0.01, 1e5)}
 CONSTRAINTS = {"covariance_source": "one of " + ", ".join(COVARIANCE_SOURCES),
@@ -171,6 +171,7 @@ class DriverNode(Node):
             accel_stddev_mps2=p["accel_stddev_mps2"],
             out_of_range_variance_factor=p["out_of_range_variance_factor"],
             temperature_range_margin_c=p["temperature_range_margin_c"],
+            reference_level_tolerance=p["reference_level_tolerance"],
             chain_compensation=self._chain_mode(p["chain_compensation"]),
             equalise_bandwidth_hz=p["equalise_bandwidth_hz"],
         )
@@ -248,7 +249,8 @@ class DriverNode(Node):
         fid = values["frame_id"]
         if not fid or fid.startswith("/") or any(c.isspace() for c in fid):
             raise StartupError(f"invalid parameter 'frame_id': {fid!r} (non-empty, no leading '/', no spaces)")
-        for name in ("temperature_hold_s", "out_of_range_variance_factor", "temperature_range_margin_c", "accel_stddev_mps2"):
+        for name in ("temperature_hold_s", "out_of_range_variance_factor", "temperature_range_margin_c",
+                     "reference_level_tolerance", "accel_stddev_mps2"):
             if not math.isfinite(values[name]):
                 raise StartupError(f"invalid parameter '{name}': {values[name]} is not finite")
         return values
@@ -342,6 +344,7 @@ class DriverNode(Node):
             temperature_hold_s=core.config.temperature_hold_s,
             temperature_range_c=self.temperature_range_c,
             temperature_range_margin_c=core.config.temperature_range_margin_c,
+            reference_level_tolerance=core.config.reference_level_tolerance,
             calibration=self.cal_info,
             chain=core.chain_status(),
             clock=core.clock_status(),

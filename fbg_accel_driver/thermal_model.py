@@ -45,8 +45,10 @@ MIN_REFERENCE_COUNTS = 1  # a reference of 0 counts would divide by zero; see no
 # The file contract (docs/calibration_file.md, sections 2 and 5): bounds a real calibration is far inside.
 TOP_LEVEL_KEYS = ("format", "format_version", "units", "model", "sensor_id", "created", "degree",
                   "temperature_center_c", "temperature_scale_c", "temperature_range_c", "M", "b",
-                  "noise_sigma_mps2", "noise_correlation", "dynamic", "fit", "corrections", "notes")
+                  "noise_sigma_mps2", "noise_correlation", "reference_level", "dynamic", "fit", "corrections", "notes")
 NOISE_CORRELATION_KEYS = ("correlated_fraction", "time_constant_s")
+REFERENCE_LEVEL_KEYS = ("temperature_c", "counts")
+MAX_REFERENCE_LEVELS = 64  # one entry per temperature level of the fit (the paper's campaign has three)
 MAX_NOISE_TIME_CONSTANT_S = 100.0  # the TIA low-passes are ~0.1-0.16 s (paper Table 1)
 MAX_FILE_BYTES = 1 << 20  # a real file is a few kB; refused before parsing
 MAX_DEGREE = 6  # the fit tools choose <= 3; beyond 6 the polynomial is noise
@@ -80,6 +82,10 @@ class ThermalCalibration:
     extrapolating. ``noise_sigma_mps2`` is the per-axis white-noise standard deviation of the
     calibrated output at the board's sample rate (m/s^2), used for the IMU covariance.
     ``fit`` holds fit figures (RMSE, held-out RMSE, sample counts, sources) for people to read.
+    ``reference_level_temperature_c`` (L,) ascending, degC, and ``reference_level_counts`` (L,) ADC counts: the mean
+    reference counts of the fit's samples at each of its temperature levels (optional ``reference_level``; empty
+    when absent): eq. 24 cancels the source power only without offsets in the counts, and the detector noise does
+    not scale with the power, so the model holds near this level (:meth:`expected_reference_counts`).
     """
 
     M: np.ndarray
@@ -99,6 +105,9 @@ class ThermalCalibration:
     noise_time_constant_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
     # dynamics of the measuring chain (optional ``dynamic`` section; fbg_accel_driver.chain_compensation)
     dynamic: ChainDynamics | None = None
+    # reference counts of the fit's samples per temperature level (optional ``reference_level`` section)
+    reference_level_temperature_c: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    reference_level_counts: np.ndarray = field(default_factory=lambda: np.zeros(0))
     # M(T), b(T) as plain floats per temperature reading (coefficients_at); the coefficients are not
     # changed after construction (a new calibration is a new object, with an empty cache)
     _coef_cache: dict[float, tuple[tuple[float, ...], tuple[float, float, float]]] = field(
@@ -110,6 +119,8 @@ class ThermalCalibration:
         self.noise_sigma_mps2 = np.asarray(self.noise_sigma_mps2, dtype=float)
         self.noise_correlated_fraction = np.asarray(self.noise_correlated_fraction, dtype=float)
         self.noise_time_constant_s = np.asarray(self.noise_time_constant_s, dtype=float)
+        self.reference_level_temperature_c = np.asarray(self.reference_level_temperature_c, dtype=float)
+        self.reference_level_counts = np.asarray(self.reference_level_counts, dtype=float)
         lo, hi = self.temperature_range_c
         self.temperature_range_c = (float(lo), float(hi))
         _validate(self)
@@ -119,7 +130,8 @@ class ThermalCalibration:
         if type(other) is not type(self):
             return NotImplemented
         return (all(np.array_equal(getattr(self, name), getattr(other, name), equal_nan=True)
-                    for name in ("M", "b", "noise_sigma_mps2", "noise_correlated_fraction", "noise_time_constant_s"))
+                    for name in ("M", "b", "noise_sigma_mps2", "noise_correlated_fraction", "noise_time_constant_s",
+                                 "reference_level_temperature_c", "reference_level_counts"))
                 and same_values((self.temperature_range_c, self.sensor_id, self.t_center_c, self.t_scale_c, self.created,
                            self.notes, self.fit, [t.to_dict() for t in self.corrections]),
                           (other.temperature_range_c, other.sensor_id, other.t_center_c, other.t_scale_c, other.created,
@@ -191,6 +203,14 @@ class ThermalCalibration:
             out = out + term.contribution(self, inputs, term_state)
         return out
 
+    def expected_reference_counts(self, temp_c: float) -> float:
+        """Reference counts (ADC counts) the fit saw at ``temp_c`` (degC): its per-level means, linear in
+        temperature between levels, the outer level's beyond them; NaN if the file has none."""
+        t, c = self.reference_level_temperature_c, self.reference_level_counts
+        if len(t) == 0 or not math.isfinite(temp_c):
+            return math.nan
+        return float(np.interp(temp_c, t, c))
+
     def in_range(self, temp_c: float | np.ndarray, margin_c: float = AHT10_SIGMA_C) -> bool | np.ndarray:
         """Whether ``temp_c`` (degC; a value or an array, NaN is outside) lies in the calibrated range widened by
         ``margin_c`` (degC, the driver's ``temperature_range_margin_c``; default the AHT10's uncertainty)."""
@@ -244,6 +264,9 @@ class ThermalCalibration:
             **({"noise_correlation": {"correlated_fraction": [float(v) for v in self.noise_correlated_fraction],
                                       "time_constant_s": [float(v) for v in self.noise_time_constant_s]}}
                if np.any(self.noise_correlated_fraction > 0) else {}),
+            **({"reference_level": {"temperature_c": [float(v) for v in self.reference_level_temperature_c],
+                                    "counts": [float(v) for v in self.reference_level_counts]}}
+               if len(self.reference_level_counts) else {}),
             **({"dynamic": _plain(self.dynamic.to_dict())} if self.dynamic is not None else {}),
             "fit": _plain(self.fit),
             "corrections": [term.to_dict() for term in self.corrections],
@@ -323,6 +346,18 @@ class ThermalCalibration:
             corr_f = number_array(corr["correlated_fraction"], "noise_correlation.correlated_fraction", fail,
                                   finite=False)
             corr_tau = number_array(corr["time_constant_s"], "noise_correlation.time_constant_s", fail, finite=False)
+        ref_level = _optional(d, "reference_level", {})
+        if not isinstance(ref_level, dict):
+            raise fail(f"'reference_level' must be a mapping, got {type(ref_level).__name__}")
+        refuse_unknown(ref_level, REFERENCE_LEVEL_KEYS, "reference_level.", fail_key)
+        ref_t, ref_c = np.zeros(0), np.zeros(0)
+        if ref_level:
+            for key in REFERENCE_LEVEL_KEYS:
+                if key not in ref_level:
+                    raise fail(f"missing key 'reference_level.{key}' (the section needs both of "
+                               f"{', '.join(REFERENCE_LEVEL_KEYS)}, or none)")
+            ref_t = number_array(ref_level["temperature_c"], "reference_level.temperature_c", fail, finite=False)
+            ref_c = number_array(ref_level["counts"], "reference_level.counts", fail, finite=False)
         fit = _optional(d, "fit", {})
         if not isinstance(fit, dict):
             raise fail(f"'fit' must be a mapping of figures, got {type(fit).__name__}")
@@ -367,6 +402,8 @@ class ThermalCalibration:
                 noise_correlated_fraction=corr_f,
                 noise_time_constant_s=corr_tau,
                 dynamic=dynamic,
+                reference_level_temperature_c=ref_t,
+                reference_level_counts=ref_c,
             )
         except (TypeError, ValueError, OverflowError) as exc:
             if isinstance(exc, CalibrationFileError):
@@ -440,6 +477,14 @@ def _validate(cal: ThermalCalibration) -> None:
     if np.any((f > 0) & (tau == 0)):
         raise ValueError(f"noise_correlation: a correlated_fraction above 0 needs a time_constant_s above 0 "
                          f"(correlated_fraction {f.tolist()}, time_constant_s {tau.tolist()})")
+    rt, rc = cal.reference_level_temperature_c, cal.reference_level_counts
+    if rt.ndim != 1 or rc.shape != rt.shape or len(rt) > MAX_REFERENCE_LEVELS:
+        raise ValueError(f"reference_level.temperature_c and .counts must be lists of equal length (at most "
+                         f"{MAX_REFERENCE_LEVELS}), got shapes {rt.shape} and {rc.shape}")
+    if not (np.all(np.isfinite(rt)) and np.all(np.diff(rt) > 0)):
+        raise ValueError(f"reference_level.temperature_c must be finite and strictly ascending, got {rt.tolist()}")
+    if not (np.all(np.isfinite(rc)) and np.all((rc >= MIN_REFERENCE_COUNTS) & (rc <= 4095))):
+        raise ValueError(f"reference_level.counts must be ADC counts in {MIN_REFERENCE_COUNTS}..4095, got {rc.tolist()}")
     lo, hi = cal.temperature_range_c
     if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
         raise ValueError(f"temperature_range_c must be finite [min, max], got {[lo, hi]}")

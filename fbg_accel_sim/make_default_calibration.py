@@ -10,7 +10,8 @@ low-pass has settled), with the AHT10 reading as temperature, centred and scaled
 (tau = (T - t_center_c) / t_scale_c) for conditioning. ``noise_sigma_mps2`` is the within-pose
 standard deviation of the calibrated output (white noise at the board rate) and
 ``temperature_range_c`` the span of the temperatures the fit saw; ``noise_correlation`` the white +
-first-order model of that noise fitted to the same visits (``fbg_accel_calibration.noise_correlation``).
+first-order model of that noise fitted to the same visits (``fbg_accel_calibration.noise_correlation``);
+``reference_level`` the mean reference counts and temperature of those samples per chamber level (as ``fit``).
 """
 
 from __future__ import annotations
@@ -85,6 +86,9 @@ def make_calibration(cfg: SimConfig | None = None, seed: int = 0, degree: int = 
     segments = [within[visit == v] for v in np.unique(visit)]
     corr = estimate(segments, float(np.median(np.diff(rec.t_s))))
     cal.noise_correlated_fraction, cal.noise_time_constant_s = corr.correlated_fraction, corr.time_constant_s
+    runs = rec.run_id[m]
+    cal.reference_level_temperature_c = np.array([temp[runs == r].mean() for r in np.unique(runs)])
+    cal.reference_level_counts = np.array([rec.ref[m][runs == r].mean() for r in np.unique(runs)])
     cal.created = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     cal.fit = {
         "method": "plain least squares of paper eq. 28 on simulated six-pose data "
