@@ -352,10 +352,13 @@ class DriverCore:
 
     def chain_status(self) -> dict[str, float | str]:
         """Chain compensation for diagnostics: mode, bandwidth of the published acceleration (Hz; the
-        slowest axis's -3 dB point unless equalised) and the delay taken off the stamps (ms)."""
+        slowest axis's -3 dB point unless equalised) and the delay taken off the stamps (ms). A calibration
+        without a ``dynamic`` section gives mode ``none`` with ``dynamic_section`` ``absent``: the stamps are
+        not moved and the chain's lag is unknown (about 0.1 s on the static-test build's 1-1.7 Hz TIA stages).
+        Raw only (no calibration): empty."""
         dyn = self._dyn
         if dyn is None:
-            return {}
+            return {} if self.cal is None else {"mode": "none", "dynamic_section": "absent"}
         mode = self.config.chain_compensation
         if self._equaliser is not None:  # the delay depends on the sample interval: the latest sample's
             bandwidth = self._equaliser.bandwidth_hz
