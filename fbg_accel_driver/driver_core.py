@@ -117,7 +117,7 @@ class CoreConfig:
     temperature_range_margin_c: float = AHT10_SIGMA_C
     full_scale_mps2: float = 20.0 * STANDARD_GRAVITY  # paper: +-20 g full scale
     # relative departure of the reference counts from the calibration's level at this temperature beyond which a
-    # sample is flagged and its variance inflated (the source's own wander is well inside: 0.3-0.5 % within a level)
+    # sample is flagged and its variance inflated (none flagged on the simulator at 16-45 degC: bench/nees_probe.py)
     reference_level_tolerance: float = 0.03
     chain_compensation: str = "none"  # "none" | "delay" | "equalise" (chain_compensation module)
     equalise_bandwidth_hz: float = 10.0  # common low-pass the equaliser leaves in place of the TIA stages

@@ -1,0 +1,176 @@
+"""Is the published ``linear_acceleration_covariance`` consistent with the actual error? (NEES per axis)
+
+Not a test. Drives the pure ``DriverCore`` with the simulator's byte stream (host receive time = true sample
+time + 2 ms for the last frame of each 0.1 s chunk) and compares each published ``imu/data_raw`` sample with
+the simulator's truth, ``accel_true_mps2`` (specific force, sensor frame) at the sample's stamp (true time =
+stamp - 2 ms, linearly interpolated). Per axis and case it reports
+
+* mean NEES = mean(e^2 / sigma^2), sigma^2 the published variance (consistent: about 1; >> 1 overconfident);
+* for the static samples (table at rest >= ``--settle`` s): the bias part (the error's mean per visit, squared,
+  over sigma^2) and the noise part (the within-visit variance over sigma^2), which add up to the static NEES;
+* the fraction of samples flagged (``temperature_out_of_range`` etc.): a large NEES without a flag is silent.
+
+    .venv/bin/python bench/nees_probe.py --json bench/results/nees_probe.json      # all cases, about 1.5 min
+    .venv/bin/python bench/nees_probe.py --case static_temps                     # one case; --list names them
+
+``bench/results/nees_probe_before.json`` is the same command run on the code before the reference-level check
+(commit 2b70689 with this script and its calibration file, which has no ``reference_level``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fbg_accel_driver.chain_compensation import ChainDynamics
+from fbg_accel_driver.driver_core import CoreConfig, DriverCore
+from fbg_accel_driver.thermal_model import ThermalCalibration
+from fbg_accel_sim.board_physics import BoardSimulator, SimConfig
+
+REPO = Path(__file__).resolve().parents[1]
+HOST_DELAY_S = 0.002
+CHUNK_S = 0.1
+# the simulated chain's truth (config/sim_default.yaml: electronics.tia_cutoff_hz, effects.channel_delay)
+SIM_DYNAMICS = ChainDynamics(cutoff_hz=(1.0, 1.7, 1.3, 1.3), delay_s=(0.02, 0.02, 0.02))
+# six calibration poses and six oblique ones (psi, theta) in degrees
+POSES = [[0.0, 180.0], [0.0, 0.0], [270.0, 90.0], [90.0, 90.0], [180.0, 90.0], [0.0, 90.0],
+         [30.0, 45.0], [120.0, 135.0], [210.0, 60.0], [300.0, 120.0], [45.0, 30.0], [160.0, 250.0]]
+
+
+def pose_plan(temp_c: float, dwell_s: float = 20.0, move_s: float = 5.0, poses: list | None = None) -> dict[str, Any]:
+    """Simulator overrides: ``poses`` (default POSES) once at a constant chamber temperature ``temp_c`` (degC)."""
+    return {"scenario.poses.mode": "list", "scenario.poses.list": poses or POSES, "scenario.poses.dwell_s": dwell_s,
+            "scenario.poses.move_s": move_s, "scenario.poses.repeat": 1, "scenario.temperature.initial_c": temp_c}
+
+
+def run_case(overrides: dict[str, Any], cal: ThermalCalibration, core_cfg: CoreConfig, seed: int = 5,
+             duration_s: float | None = None) -> dict[str, np.ndarray]:
+    """Simulate, feed the driver core, return published samples with their truth (arrays over samples)."""
+    cfg = SimConfig.default().with_overrides(overrides)
+    sim = BoardSimulator(cfg, seed=seed)
+    n = sim.samples_for(duration_s if duration_s is not None else sim.duration_s)
+    blk = sim.step(n)
+    pieces = blk.wire_pieces()
+    t_true = blk.t_s
+    core = DriverCore(cal, core_cfg)
+    step = max(1, round(CHUNK_S * sim.rate_hz))
+    recs = []
+    for k in range(0, n, step):
+        last = min(k + step, n) - 1
+        out = core.feed(b"".join(pieces[k:last + 1]), round(float(t_true[last] + HOST_DELAY_S) * 1e9))
+        recs += out.imu
+    recs += core.flush().imu
+    stamp_s = np.array([r.stamp_ns for r in recs]) * 1e-9 - HOST_DELAY_S
+    acc = np.array([r.accel_mps2 for r in recs])
+    var = np.array([(r.covariance[0], r.covariance[4], r.covariance[8]) for r in recs])
+    truth = np.stack([np.interp(stamp_s, t_true, blk.accel_true_mps2[:, j]) for j in range(3)], axis=1)
+    idx = np.clip(np.searchsorted(t_true, stamp_s), 0, n - 1)
+    # static: the table has been at rest for `settle` s at the stamp (and the whole decimation window)
+    return {"t": stamp_s, "acc": acc, "var": var, "truth": truth, "err": acc - truth,
+            "time_at_pose": blk.time_at_pose_s[idx], "visit": np.where(blk.pose_id[idx] >= 0, blk.visit[idx], -1),
+            "moving": blk.in_motion[idx], "temp": np.array([r.temperature_c for r in recs]),
+            "flagged": np.array([bool(r.flags) for r in recs]),
+            "flags": [sorted(r.flags) for r in recs]}
+
+
+def summarise(res: dict[str, np.ndarray], settle_s: float, window_s: float = 0.0) -> dict[str, Any]:
+    """NEES per axis: all samples, static ones (bias and noise parts), moving ones; flags."""
+    e, v = res["err"], res["var"]
+    ok = np.all(v > 0, axis=1)
+    nees = np.where(ok[:, None], e**2 / np.where(v > 0, v, 1.0), np.nan)
+    static = ok & (res["time_at_pose"] >= settle_s + window_s) & (res["visit"] >= 0)
+    moving = ok & ~static
+    out: dict[str, Any] = {"samples": len(e), "flagged_fraction": round(float(res["flagged"].mean()), 4)
+                           if len(e) else math.nan,
+                           "sigma_published_mps2": np.round(np.sqrt(np.median(v, axis=0)), 4).tolist(),
+                           "mean_nees_all": np.round(np.nanmean(nees, axis=0), 2).tolist()}
+    if static.any():
+        bias2 = np.zeros(3)
+        within = np.zeros(3)
+        vis = res["visit"][static]
+        es, vs = e[static], v[static]
+        biases = []
+        for u in np.unique(vis):
+            sel = vis == u
+            m = es[sel].mean(axis=0)
+            biases.append(m)
+            bias2 += (m**2 / vs[sel].mean(axis=0)) * sel.sum()
+            within += (((es[sel] - m) ** 2) / vs[sel]).sum(axis=0)
+        ns = static.sum()
+        out.update({"static_samples": int(ns), "static_flagged_fraction": round(float(res["flagged"][static].mean()), 4),
+                    "mean_nees_static": np.round(np.nanmean(nees[static], axis=0), 2).tolist(),
+                    "static_bias_part": np.round(bias2 / ns, 2).tolist(),
+                    "static_noise_part": np.round(within / ns, 2).tolist(),
+                    "rms_bias_mps2": np.round(np.sqrt(np.mean(np.square(biases), axis=0)), 4).tolist(),
+                    "max_abs_bias_mps2": np.round(np.max(np.abs(biases), axis=0), 4).tolist()})
+    if moving.any():
+        nm = nees[moving]
+        out.update({"moving_samples": int(moving.sum()),
+                    "moving_flagged_fraction": round(float(res["flagged"][moving].mean()), 4),
+                    "mean_nees_moving": np.round(np.nanmean(nm, axis=0), 2).tolist(),
+                    "p99_nees_moving": np.round(np.nanpercentile(nm, 99, axis=0), 1).tolist(),
+                    "max_abs_err_moving_mps2": np.round(np.nanmax(np.abs(e[moving]), axis=0), 3).tolist()})
+    return out
+
+
+def shipped_calibration(dynamic: bool = False) -> ThermalCalibration:
+    cal = ThermalCalibration.load(REPO / "config" / "calibration_sim.yaml")
+    return dataclasses.replace(cal, dynamic=SIM_DYNAMICS) if dynamic else cal
+
+
+def cases() -> dict[str, list[tuple[str, dict[str, Any], dict[str, Any], float | None]]]:
+    """name -> [(label, sim overrides, CoreConfig fields, duration)]."""
+    temps = [10.0, 13.0, 15.0, 16.0, 20.0, 24.0, 30.0, 38.0, 45.0, 45.3, 47.0, 50.0]
+    return {
+        "static_temps": [(f"T={t}", pose_plan(t), {}, None) for t in temps],
+        "chain": [(f"{m} N={n}", pose_plan(24.0), {"chain_compensation": m, "decimation": n}, None)
+                  for m in ("none", "delay", "equalise") for n in (1, 10)],
+        "decimation": [(f"T={t} N={n}", pose_plan(t, dwell_s=60.0), {"decimation": n}, None)
+                       for t in (24.0, 45.0) for n in (1, 10, 100)],
+        "rates": [(f"{r} Hz", {**pose_plan(24.0), "scenario.rate_hz": r}, {}, None) for r in (10.0, 100.0, 1000.0)],
+        "source_power": [(f"source x{lv}", {**pose_plan(24.0), "faults.source_dropout.windows": [
+            {"start_s": 0.0, "duration_s": 1e6, "level": lv}]}, {}, None) for lv in (1.0, 0.97, 0.9, 0.8, 0.7, 0.5, 0.3)],
+        "ramp": [("16->45 degC in 30 min", {**pose_plan(16.0, dwell_s=60.0, poses=POSES * 3),
+                                           "scenario.temperature.profile": [{"ramp_to_c": 45.0, "duration_s": 1800.0}]},
+                  {}, None)],
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--case", action="append", help="case name (repeatable); default all")
+    p.add_argument("--settle", type=float, default=2.0, help="s at rest before a sample counts as static")
+    p.add_argument("--seed", type=int, default=5)
+    p.add_argument("--json", help="write the results here")
+    p.add_argument("--list", action="store_true")
+    args = p.parse_args(argv)
+    all_cases = cases()
+    if args.list:
+        print("\n".join(all_cases))
+        return 0
+    results: dict[str, Any] = {}
+    for name in args.case or list(all_cases):
+        results[name] = {}
+        for label, over, core_fields, dur in all_cases[name]:
+            mode = core_fields.get("chain_compensation", "none")
+            cal = shipped_calibration(dynamic=mode != "none")
+            res = run_case(over, cal, CoreConfig(**core_fields), seed=args.seed, duration_s=dur)
+            rate = float(over.get("scenario.rate_hz", 100.0))
+            window = core_fields.get("decimation", 1) / rate
+            s = summarise(res, args.settle, window)
+            results[name][label] = s
+            print(f"{name:13s} {label:24s} {json.dumps(s)}", flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
