@@ -692,7 +692,9 @@ def _visit_line(res: np.ndarray, groups: np.ndarray, fit_rows: np.ndarray, t_s: 
     """Per visit (over ``fit_rows``): (labels, count, mean (V, 3), slope (V, 3) per s, mean time (V,) s,
     sum of squared centred times (V,) s^2, 0 where no slope is fitted).
 
-    The slope is zero for a visit whose ``fit_rows`` samples share one time (or with ``t_s`` None)."""
+    The slope is zero for a visit whose ``fit_rows`` samples share one time (or with ``t_s`` None).
+    Times are taken from each visit's first sample, so the result does not depend on the time origin (a CSV with
+    seconds since 1970, ~1.7e9 s, gives what the same run from 0 s gives)."""
     g = groups[fit_rows]
     x = res[fit_rows]
     ug, inv = np.unique(g, return_inverse=True)
@@ -703,10 +705,14 @@ def _visit_line(res: np.ndarray, groups: np.ndarray, fit_rows: np.ndarray, t_s: 
     stt_used = np.zeros(len(ug))
     if t_s is not None:
         t = t_s[fit_rows]
-        tmean = np.bincount(inv, weights=t) / cnt
-        tc = t - tmean[inv]
+        t_first = np.full(len(ug), np.inf)
+        np.minimum.at(t_first, inv, t)
+        t_rel = t - t_first[inv]  # s since the visit's first sample
+        tmean_rel = np.bincount(inv, weights=t_rel) / cnt
+        tmean = t_first + tmean_rel
+        tc = t_rel - tmean_rel[inv]
         stt = np.bincount(inv, weights=tc * tc)
-        ok = stt > 1e-12 * np.maximum(tmean**2, 1.0)
+        ok = stt > 1e-12 * np.maximum(tmean_rel**2, 1.0)
         for j in range(3):
             sxy = np.bincount(inv, weights=tc * (x[:, j] - means[inv, j]))
             slope[ok, j] = sxy[ok] / stt[ok]

@@ -619,3 +619,20 @@ def test_detrended_lag_matrix_is_the_expectation_of_the_detrended_lag_products(n
         for k in range(min(lags, n - 1) + 1):
             want[k, m] = np.trace(C, offset=k)
     np.testing.assert_allclose(detrended_lag_matrix(n, lags, model_lags, line), want, atol=1e-10)
+
+
+def test_the_diagnosis_does_not_depend_on_the_time_origin() -> None:
+    """A CSV with absolute times (seconds since 1970, ~1.7e9 s, which docs/csv_interchange.md accepts) must diagnose
+    like the same run with times from 0: only time differences are physics. On the unchanged code the within-visit
+    line was not removed from any visit of the shifted run (its "no time spread" threshold scaled with the square of
+    the absolute mean time), so the noise floor and the chi^2 of the pose means moved: on the simulated
+    three-level CSV the pose-mean p-values went from 4.6e-44 / 1.6e-09 / 5.9e-47 to 1.1e-25 / 4.2e-08 / 5.3e-47
+    (fbg-accel-calib diagnose), and here the floor moved by -0.07 / -0.22 / -0.22 % and the p-values from
+    0.579 / 0.996 / 0.488 to 0.576 / 0.994 / 0.478."""
+    rec = synthetic(2, power_ramp=0.002)
+    shifted = Recording(rec.t_s + 1.7e9, rec.ref, rec.xyz, rec.temp_c, rec.gref_mps2, rec.pose_id)
+    a, b = diagnose(rec, static="table"), diagnose(shifted, static="table")
+    np.testing.assert_allclose(b.noise_floor, a.noise_floor, rtol=1e-6)
+    np.testing.assert_allclose(b.before_heldout_rmse, a.before_heldout_rmse, rtol=1e-6)
+    np.testing.assert_allclose(np.log(b.structure.pose_chi2_p), np.log(a.structure.pose_chi2_p), rtol=1e-4)
+    assert [x[0] for x in b.added] == [x[0] for x in a.added]
