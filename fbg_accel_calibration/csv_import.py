@@ -2,8 +2,10 @@
 
 Format (documented in docs/csv_interchange.md):
 
-* UTF-8 text, comma separated, one header line naming the columns (any order). Lines starting
-  with ``#`` and empty lines are skipped (and counted).
+* UTF-8 text, comma separated, one header line naming the columns (any order; names matched without
+  surrounding spaces and case; empty names are unnamed columns, ignored). Lines starting with ``#``, empty
+  lines and lines of only commas are skipped (and counted). Semicolon- or tab-separated files and bare-CR
+  line ends are refused with what to do.
 * Required: ``ref_counts, x_counts, y_counts, z_counts`` -- ADC counts (reference detector and the
   three axis channels); ``ref_counts`` must be > 0 (Psi = counts / ref, eq. 24), counts >= 0.
 * Reference, exactly one of:
@@ -11,9 +13,10 @@ Format (documented in docs/csv_interchange.md):
   ``psi_deg, theta_deg`` -- two-axis table angles, degrees, converted with
   :func:`table_specific_force` (convention of ../shared/data/measured/README.md,
   f = Rz(psi)^T Rx(theta)^T (0, 0, g)); ``g`` from ``--g`` (default 9.80665 m/s^2).
-* Optional: ``t_s`` (board time, s, strictly increasing); otherwise the time is the sample index
+* Optional: ``t_s`` (board time, s, strictly increasing; or ``t_ms`` / ``t_us`` in ms / us; a median step
+  above ``MAX_MEDIAN_STEP_S`` is refused as not seconds); otherwise the time is the sample index
   (column ``sample`` if present, else the row order) divided by ``--rate`` (Hz).
-  ``temperature_c`` (degC; an empty cell means "no valid reading" and gives NaN); otherwise every
+  ``temperature_c`` (degC; an empty cell or NaN means "no valid reading" and gives NaN); otherwise every
   sample gets ``--temperature``. ``pose`` (integer >= 0, or -1 for "moving"); otherwise a new pose
   id starts at every change of the reference (so a sample with an intermediate table angle is a
   pose of its own, which the static detector then excludes).
@@ -45,8 +48,17 @@ from .table_geometry import STANDARD_GRAVITY, table_specific_force
 COUNT_COLUMNS = ("ref_counts", "x_counts", "y_counts", "z_counts")
 GREF_COLUMNS = ("gref_x_mps2", "gref_y_mps2", "gref_z_mps2")
 ANGLE_COLUMNS = ("psi_deg", "theta_deg")
-OPTIONAL_COLUMNS = ("t_s", "temperature_c", "pose", "sample")
+# time columns and their unit in s: the board's own clock counts us since boot, other software writes ms
+TIME_COLUMNS = {"t_s": 1.0, "t_ms": 1e-3, "t_us": 1e-6}
+OPTIONAL_COLUMNS = (*TIME_COLUMNS, "temperature_c", "pose", "sample")
 MAX_LISTED_ERRORS = 50
+# A time column whose median step between the first TIME_CHECK_ROWS rows exceeds this is not in seconds (s). The board
+# samples at 100 Hz (paper 3.5); ms or us read as s give steps of 10 s or 10^4 s at that rate. 1 s steps are accepted
+# (time counted in samples, as --rate 1 does), so ms from a board at 1 kHz or faster are not caught.
+MAX_MEDIAN_STEP_S = 1.0
+TIME_CHECK_ROWS = 1000
+CR_LINE_ENDS = ("a carriage return (CR) inside the line: the file's lines end in a bare CR (classic Mac OS); "
+                "save it with LF or CRLF line ends")
 
 
 class CsvImportError(ValueError):
@@ -94,7 +106,7 @@ class ImportReport:
 
 def _number(text: str, name: str, allow_empty: bool = False) -> float:
     text = text.strip()
-    if text == "":
+    if text == "" or (allow_empty and text.lower() == "nan"):  # pandas writes no reading as '', MATLAB as NaN
         if allow_empty:
             return math.nan
         raise ValueError(f"{name} is empty")
@@ -137,28 +149,42 @@ class CsvBlocks:
         self.rejected_total = 0
         self.valid_temperatures = 0
         with open(self.path, "rb") as fh:
-            header = None
+            raw_header = None
             for line_no, text in self._lines(fh):
                 if text is None:
-                    raise CsvImportError(f"{self.path}: line {line_no}: header line is not UTF-8 text or too long; "
-                                         "save the file as UTF-8 CSV")
-                if not text.strip() or text.lstrip().startswith("#"):
+                    problem = self._line_problem
+                    raise CsvImportError(f"{self.path}: line {line_no}: header line"
+                                         f"{' is ' if problem.startswith('not UTF-8') else ': '}{problem}")
+                if _blank_or_comment(text):
                     self.report.comment_or_blank_lines += 1
                     continue
-                header = [h.strip() for h in next(csv.reader([text]))]
+                if "\r" in text.rstrip("\r\n"):
+                    raise CsvImportError(f"{self.path}: line {line_no}: {CR_LINE_ENDS}")
+                try:
+                    raw_header = next(csv.reader([text], skipinitialspace=True))
+                except csv.Error as exc:
+                    raise CsvImportError(f"{self.path}: line {line_no}: the header is not a line of comma-separated "
+                                         f"names ({exc})") from None
                 self.header_line = line_no
                 break
             self._data_offset = fh.tell()
-        if header is None:
+        if raw_header is None:
             raise CsvImportError(f"{self.path}: no header line (expected column names such as "
                                  f"{', '.join(COUNT_COLUMNS)})")
+        # names are matched without surrounding spaces and case (" X_Counts" is x_counts); an empty name (trailing
+        # commas, a pandas index) is an unnamed column, ignored like any unknown one
+        header = [h.strip().lower() for h in raw_header]
+        _check_delimiter(self.path, header, text, self.header_line)
         self.header = header
         self.col = _check_header(self.path, header, self.header_line, rate_hz, temperature_c)
         col = self.col
-        self.report.ignored_columns = [h for h in header if h not in col]
+        used = set(col.values())
+        self.report.ignored_columns = [h.strip() or f"(unnamed column {i + 1})" for i, h in enumerate(raw_header)
+                                       if i not in used]
         self.use_angles = "psi_deg" in col
+        self.time_column = next((c for c in TIME_COLUMNS if c in col), None)
         self.report.reference = "table angles psi_deg/theta_deg" if self.use_angles else "gref_*_mps2 columns"
-        self.report.time_base = ("t_s column" if "t_s" in col else
+        self.report.time_base = (f"{self.time_column} column" if self.time_column else
                                  f"{'sample column' if 'sample' in col else 'row index'} / {rate_hz} Hz")
         self.report.temperature = "temperature_c column" if "temperature_c" in col else f"constant {temperature_c} degC"
         self.report.pose_source = "pose column" if "pose" in col else "a new pose at every change of the reference"
@@ -178,11 +204,13 @@ class CsvBlocks:
                 if raw.startswith(_BOM):
                     raw = raw[len(_BOM):]
             if len(raw) > MAX_LINE_BYTES and not raw.endswith(b"\n"):
+                bare_cr = b"\r" in raw[:-1]
                 n = len(raw)
                 while raw and not raw.endswith(b"\n"):  # skip the rest of the line in bounded pieces
                     raw = fh.readline(MAX_LINE_BYTES)
                     n += len(raw)
-                self._line_problem = f"line longer than {MAX_LINE_BYTES} bytes ({n} bytes); not a data row"
+                self._line_problem = (CR_LINE_ENDS if bare_cr else
+                                      f"line longer than {MAX_LINE_BYTES} bytes ({n} bytes); not a data row")
                 yield line_no, None
                 continue
             try:
@@ -210,18 +238,23 @@ class CsvBlocks:
         last_t = -math.inf
         last_g: tuple[float, float, float] | None = None
         pose_counter = -1
+        first_times: list[float] = []  # s, of the first kept rows (the time-unit check)
+        first_lines: list[int] = []
         with open(self.path, "rb") as fh:
             fh.seek(self._data_offset)
             for line_no, text in self._lines(fh, self.header_line + 1):
-                if text is not None and (not text.strip() or text.lstrip().startswith("#")):
+                if text is not None and _blank_or_comment(text):
                     comments += 1
                     continue
                 report.rows_read += 1
                 if text is None:
                     self._reject(line_no, self._line_problem)
                     continue
+                if "\r" in text.rstrip("\r\n"):
+                    self._reject(line_no, CR_LINE_ENDS)
+                    continue
                 try:
-                    fields = next(csv.reader([text]))
+                    fields = next(csv.reader([text], skipinitialspace=True))
                     row = _parse_row(fields, self.header, self.col, self.rate_hz, self.temperature_c,
                                      report.rows_read - 1)
                 except (ValueError, csv.Error) as exc:
@@ -231,6 +264,11 @@ class CsvBlocks:
                     self._reject(line_no, f"time {row[0]:g} s does not increase (previous {last_t:g} s)")
                     continue
                 last_t = row[0]
+                if len(first_times) <= TIME_CHECK_ROWS:
+                    first_times.append(row[0])
+                    first_lines.append(line_no)
+                    if len(first_times) == TIME_CHECK_ROWS + 1:
+                        self._check_time_steps(first_times, first_lines)
                 if self.use_angles:
                     g = tuple(float(v) for v in table_specific_force(np.array([row[6]]), np.array([row[7]]),
                                                                        self.g_mps2)[0])
@@ -250,10 +288,25 @@ class CsvBlocks:
                 if fill == self.block_rows:
                     yield self._block(buf)
                     fill = 0
+        if len(first_times) <= TIME_CHECK_ROWS:
+            self._check_time_steps(first_times, first_lines)
         if fill:
             yield self._block(buf[:fill])
         report.comment_or_blank_lines = comments
         report.rejected.sort()
+
+    def _check_time_steps(self, times: list[float], lines: list[int]) -> None:
+        """Refuse a time column that is not in the unit its name says: the median step (s) of the first kept rows
+        above ``MAX_MEDIAN_STEP_S`` (ms or us read as s). No check for ``sample`` / ``--rate`` (the user's rate)."""
+        if self.time_column is None or len(times) < 2:
+            return
+        step = float(np.median(np.diff(times)))
+        if step > MAX_MEDIAN_STEP_S:
+            raise CsvImportError(
+                f"{self.path}: {self.time_column}: the median step between the rows of lines {lines[0]}..{lines[-1]} "
+                f"is {step:g} s ({1.0 / step:.3g} samples/s), but the board samples at 100 Hz: the times are probably "
+                "not in seconds. Milliseconds: name the column t_ms; microseconds (the board's clock): name it t_us; "
+                "a recording really slower than 1 sample/s: give a sample column and --rate")
 
     def _block(self, data: np.ndarray) -> Recording:
         return Recording(data[:, 0].copy(), data[:, 1].copy(), data[:, 2:5].copy(), data[:, 5].copy(),
@@ -321,7 +374,7 @@ def import_csv(path: str | Path, *, rate_hz: float | None = None, temperature_c:
 
 def _check_header(path: Path, header: list[str], line_no: int, rate_hz: float | None,
                   temperature_c: float | None) -> dict[str, int]:
-    dupes = sorted({h for h in header if header.count(h) > 1})
+    dupes = sorted({h for h in header if h and header.count(h) > 1})
     if dupes:
         raise CsvImportError(f"{path}: line {line_no}: duplicate column(s) {dupes}")
     col = {h: i for i, h in enumerate(header)
@@ -340,7 +393,10 @@ def _check_header(path: Path, header: list[str], line_no: int, rate_hz: float | 
         raise CsvImportError(f"{path}: line {line_no}: incomplete reference, need both {list(ANGLE_COLUMNS)}")
     if not any(has_g) and not any(has_a):
         raise CsvImportError(f"{path}: line {line_no}: no reference: need {list(GREF_COLUMNS)} or {list(ANGLE_COLUMNS)}")
-    if "t_s" not in col and not (rate_hz and rate_hz > 0):
+    times = [c for c in TIME_COLUMNS if c in col]
+    if len(times) > 1:
+        raise CsvImportError(f"{path}: line {line_no}: {times}: give one time column (t_s in s, t_ms in ms or t_us in us)")
+    if not times and not (rate_hz and rate_hz > 0):
         raise CsvImportError(f"{path}: no t_s column: give the sample rate (--rate, Hz; --rate 1 counts time in samples)")
     if "temperature_c" not in col and (temperature_c is None or not math.isfinite(temperature_c)):
         raise CsvImportError(f"{path}: no temperature_c column: give the temperature (--temperature, degC)")
@@ -360,19 +416,25 @@ def _parse_row(fields: list[str], header: list[str], col: dict[str, int], rate_h
             raise ValueError(f"{name} = {value:g} is negative")
         if value > ADC_MAX:
             raise ValueError(f"{name} = {value:g} is beyond the 12-bit ADC range 0 .. {ADC_MAX:g} counts")
-    if "t_s" in col:
-        t = _number(fields[col["t_s"]], "t_s")
+    time_column = next((c for c in TIME_COLUMNS if c in col), None)
+    if time_column is not None:
+        t = _number(fields[col[time_column]], time_column) * TIME_COLUMNS[time_column]
     elif "sample" in col:
         t = _number(fields[col["sample"]], "sample") / float(rate_hz)
     else:
         t = index / float(rate_hz)
     lo, hi = iv.TIME_RANGE_S
     if not lo <= t <= hi:
-        raise ValueError(f"time {t:g} s is outside {lo:g} .. {hi:g} s (the recordings' stamp range)")
+        hint = ("; if the times are ms or us (since 1970?), name the column t_ms or t_us"
+                if t > hi and time_column == "t_s" else "")
+        raise ValueError(f"time {t:g} s is outside {lo:g} .. {hi:g} s (the recordings' stamp range){hint}")
     if "temperature_c" in col:
         temp = _number(fields[col["temperature_c"]], "temperature_c", allow_empty=True)
         if math.isfinite(temp):
-            iv.check_range("temperature_c", temp, *iv.TEMPERATURE_RANGE_C, "degC (AHT10 range)")
+            try:
+                iv.check_range("temperature_c", temp, *iv.TEMPERATURE_RANGE_C, "degC (AHT10 range)")
+            except ValueError as exc:
+                raise ValueError(f"{exc}{_temperature_unit_hint(temp)}") from None
     else:
         temp = float(temperature_c)
     if "psi_deg" in col:
@@ -418,3 +480,33 @@ def write_mcap(src: CsvBlocks, path: str | Path, metadata: dict[str, Any], senso
         w.add_metadata("run", {**metadata, "import": src.report.as_dict(), "g_mps2": src.g_mps2,
                                "stamp_offset_ns": shift})
         return w.message_count, n_poses, first_t_s
+
+
+def _blank_or_comment(text: str) -> bool:
+    """A line that holds no data: empty, only commas and spaces (an empty spreadsheet row), or a ``#`` comment."""
+    return not text.replace(",", "").strip() or text.lstrip().startswith("#")
+
+
+def _temperature_unit_hint(value: float) -> str:
+    """What a temperature outside the AHT10 range (degC) looks like: the range in kelvin or in Fahrenheit."""
+    lo, hi = iv.TEMPERATURE_RANGE_C
+    if lo + 273.15 <= value <= hi + 273.15:
+        return f"; it looks like kelvin: give degC ({value:g} K = {value - 273.15:.2f} degC)"
+    if hi < value <= hi * 1.8 + 32.0:
+        return f"; it looks like Fahrenheit: give degC ({value:g} F = {(value - 32.0) / 1.8:.2f} degC)"
+    return ""
+
+
+def _check_delimiter(path: Path, header: list[str], text: str, line_no: int) -> None:
+    """Refuse a header separated by semicolons or tabs (a spreadsheet set to a decimal comma writes ';' and
+    '1,5'), naming the separator, instead of reporting every column as missing."""
+    if any(c in header for c in COUNT_COLUMNS):
+        return
+    for sep, name in ((";", "semicolons"), ("\t", "tabs")):
+        names = [h.strip().strip('"').strip().lower() for h in text.split(sep)]
+        if any(c in names for c in COUNT_COLUMNS):
+            decimal = ", decimal=','" if sep == ";" else ""
+            raise CsvImportError(
+                f"{path}: line {line_no}: the columns are separated by {name}, not commas (a spreadsheet set to a "
+                "decimal comma saves CSV this way); save the file as comma-separated values with a decimal point "
+                f"(e.g. pandas: pd.read_csv(f, sep={sep!r}{decimal}).to_csv(out, index=False))")

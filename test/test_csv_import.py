@@ -179,3 +179,154 @@ def test_import_and_diagnose_have_the_same_rate_rule(tmp_path: Path, capsys: pyt
     assert "give the sample rate (--rate" in capsys.readouterr().err
     assert diagnose_main(["diagnose", str(no_time)]) == 2
     assert "give the sample rate (--rate" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------- files from other software
+
+
+def _data_lines(text: str) -> list[str]:
+    return [ln for ln in text.splitlines() if ln.strip() and not ln.startswith("#")]
+
+
+def _requote(text: str, cell) -> str:
+    """Every non-comment line of ``text`` with each field (header included) rewritten by ``cell(i_line, field)``."""
+    out = []
+    for ln in text.splitlines():
+        out.append(ln if not ln.strip() or ln.startswith("#") else
+                   ",".join(cell(i, f) for i, f in enumerate(ln.split(","))))
+    return "\n".join(out) + "\n"
+
+
+def _with_index(text: str) -> str:
+    """pandas ``to_csv()``: the index as a first column with an empty name."""
+    out, k = [], -1
+    for ln in text.splitlines():
+        if ln.strip() and not ln.startswith("#"):
+            out.append(("" if k < 0 else str(k)) + "," + ln)
+            k += 1
+        else:
+            out.append(ln)
+    return "\n".join(out) + "\n"
+
+
+def _sci(field: str) -> str:
+    try:
+        v = float(field)
+    except ValueError:
+        return field
+    return f"{v:.6e}" if "." in field else f"{v:.1f}"  # 1.380000e+03 and integers written as 1138.0
+
+
+SPREADSHEET_EXPORTS = {
+    # Excel "CSV UTF-8" on Windows: a byte-order mark and CRLF line ends
+    "bom_crlf": lambda t: "\ufeff" + t.replace("\n", "\r\n"),
+    # Excel with formatted but empty columns to the right: every line, header included, ends in commas,
+    # and an empty row of the sheet is a line of commas
+    "trailing_empty_columns": lambda t: "\n".join(ln + ",," if ln.strip() else ",,,,,,,,,,,," for ln in t.splitlines())
+    + "\n",
+    # pandas to_csv() with its index: a first column with an empty name
+    "pandas_index": lambda t: _with_index(t),
+    # every field quoted, header included (MATLAB writetable with QuoteStrings, LibreOffice "quote all")
+    "quoted": lambda t: _requote(t, lambda i, f: f'"{f}"'),
+    # a hand-edited header: spaces after the commas, upper-case names
+    "padded_upper_header": lambda t: t.replace(_data_lines(t)[0], ", ".join(
+        f" {h.upper()} " for h in _data_lines(t)[0].split(","))),
+    # numbers written by other tools: scientific notation, integers as 1138.0
+    "scientific_and_float_integers": lambda t: _requote(t, lambda i, f: _sci(f)),
+}
+
+
+@pytest.mark.parametrize("variant", sorted(SPREADSHEET_EXPORTS))
+def test_spreadsheet_and_dataframe_exports_import_like_the_plain_file(tmp_path: Path, variant: str) -> None:
+    """The same data as written by Excel, pandas, MATLAB or by hand gives the same recording.
+
+    On the unchanged code two of these were refused: two or more empty trailing columns gave "duplicate column(s)
+    ['']" (an empty header cell is no column name), and an upper-case header gave "missing required column(s)
+    ['ref_counts', 'x_counts', 'y_counts', 'z_counts']" with those columns in the file."""
+    want, _ = import_csv(_write(tmp_path, GOOD, "plain.csv"))
+    text = SPREADSHEET_EXPORTS[variant](GOOD)
+    path = tmp_path / "v.csv"
+    path.write_bytes(text.encode("utf-8"))
+    got, report = import_csv(path)
+    for k in ("t_s", "ref", "xyz", "temp_c", "gref_mps2", "pose_id"):
+        np.testing.assert_allclose(getattr(got, k), getattr(want, k), rtol=1e-12, err_msg=k)
+    assert report.rows_kept == 3 and not report.rejected
+    assert "" not in report.ignored_columns  # an unnamed column is shown by its position
+    if variant in ("trailing_empty_columns", "pandas_index"):
+        assert any("unnamed column" in c for c in report.ignored_columns), report.ignored_columns
+
+
+@pytest.mark.parametrize(("sep", "decimal"), [(";", "."), (";", ","), ("\t", ".")])
+def test_semicolon_or_tab_separated_files_are_refused_with_what_to_do(tmp_path: Path, sep: str, decimal: str) -> None:
+    """European Excel writes 'a;b' with decimal commas. On the unchanged code the header read as one column and the
+    message was "missing required column(s) ['ref_counts', 'x_counts', 'y_counts', 'z_counts']"."""
+    text = "\n".join(ln.replace(".", decimal).replace(",", sep) if decimal == "," else ln.replace(",", sep)
+                     for ln in GOOD.splitlines()) + "\n"
+    with pytest.raises(CsvImportError, match=r"line 2: the columns are separated by (semicolons|tabs), not commas") as err:
+        import_csv(_write(tmp_path, text))
+    assert "decimal point" in str(err.value)
+
+
+@pytest.mark.parametrize("size", ["small", "large"])
+def test_bare_carriage_return_line_ends_are_named(tmp_path: Path, size: str) -> None:
+    """Old Mac OS line ends (CR only). On the unchanged code a small file raised _csv.Error with a traceback
+    ("new-line character seen in unquoted field") and a file over 64 KiB said "header line is not UTF-8 text or too
+    long"."""
+    lines = _data_lines(GOOD)
+    if size == "large":
+        lines += [f"{0.03 + 0.01 * k:.2f},880,1138,1649,1216,0,0,9.8,23.4,0,a" for k in range(3000)]
+    path = tmp_path / "cr.csv"
+    path.write_bytes("\r".join(lines).encode() + b"\r")
+    with pytest.raises(CsvImportError, match=r"line 1: .*carriage return"):
+        import_csv(path)
+    # one CR inside an otherwise LF file: that line is a malformed row with the same reason, not a csv module message
+    text = GOOD.replace("0.02,879", "0.015,879,1200,1600,1100,9.8,0,0,23.5,1,c\r0.02,879")
+    with pytest.raises(CsvImportError, match=r"line 6: .*carriage return"):
+        import_csv(_write(tmp_path, text))
+
+
+def _timed(times: list[str], column: str = "t_s") -> str:
+    rows = "".join(f"{t},880,1138,1649,1216,0,0,9.8,23.4,0\n" for t in times)
+    return f"{column},ref_counts,x_counts,y_counts,z_counts,gref_x_mps2,gref_y_mps2,gref_z_mps2,temperature_c,pose\n" + rows
+
+
+def test_times_that_are_not_seconds_are_refused_or_read_by_their_column_name(tmp_path: Path) -> None:
+    """A 100 Hz run with t_s in ms or us (the board's own clock is us since boot). On the unchanged code it was read
+    as seconds without a word: steps of 10 s (10000 s), and `fit` wrote a noise correlation time constant of
+    107.27 / 127.02 / 191.49 s instead of 0.107 / 0.127 / 0.191 s into the calibration (the three-level simulated
+    campaign), `allan` gave its ADEV at 0.1 Hz. Named t_ms / t_us the column is converted."""
+    k = np.arange(300)
+    want, _ = import_csv(_write(tmp_path, _timed([f"{0.01 * i:.2f}" for i in k]), "s.csv"))
+    for scale, unit in ((1e3, "t_ms"), (1e6, "t_us")):
+        values = [f"{0.01 * i * scale:.0f}" for i in k]
+        with pytest.raises(CsvImportError, match=rf"t_s: the median step .* is {0.01 * scale:g} s.*name the column "
+                                                 r"t_ms.*t_us"):
+            import_csv(_write(tmp_path, _timed(values), f"{unit}_as_s.csv"))
+        got, report = import_csv(_write(tmp_path, _timed(values, unit), f"{unit}.csv"))
+        np.testing.assert_allclose(got.t_s, want.t_s, rtol=0, atol=1e-12)
+        assert unit in report.time_base and unit not in report.ignored_columns
+    # seconds since 1970 stay what they are; so do 1 s steps (time counted in samples, as --rate 1)
+    epoch, _ = import_csv(_write(tmp_path, _timed([f"{1.7e9 + 0.01 * i:.2f}" for i in k]), "epoch.csv"))
+    np.testing.assert_allclose(epoch.t_s - 1.7e9, want.t_s, atol=1e-6)
+    ones, _ = import_csv(_write(tmp_path, _timed([str(i) for i in k]), "ones.csv"))
+    np.testing.assert_array_equal(ones.t_s, k)
+    # milliseconds since 1970 are beyond any time in seconds: the message says which column to use
+    with pytest.raises(CsvImportError, match=r"line 2: time 1\.7e\+12 s is outside .* t_ms"):
+        import_csv(_write(tmp_path, _timed([f"{1.7e12 + 10 * i:.0f}" for i in k]), "epoch_ms.csv"))
+    with pytest.raises(CsvImportError, match="one time column"):
+        import_csv(_write(tmp_path, _timed(["0"]).replace("t_s,", "t_s,t_ms,").replace("0,880", "0,0,880"), "two.csv"))
+
+
+def test_temperature_no_reading_and_other_units(tmp_path: Path) -> None:
+    """MATLAB and numpy write a missing reading as NaN, pandas as an empty cell: both mean "no valid reading". A
+    temperature in kelvin or Fahrenheit above the AHT10 range is refused with the unit it looks like. On the unchanged
+    code 'NaN' was a malformed row ("temperature_c = 'NaN' is not finite") and 297.34 K was "outside -40 .. 85 degC
+    (AHT10 range)" with no hint. (Fahrenheit readings within -40 .. 85, i.e. below 29.4 degC, cannot be told apart
+    from Celsius: docs/csv_interchange.md.)"""
+    rec, report = import_csv(_write(tmp_path, GOOD.replace("0.01,881,1137,1650,1215,0,0,9.8,,0",
+                                                           "0.01,881,1137,1650,1215,0,0,9.8,NaN,0")))
+    assert np.isnan(rec.temp_c[1]) and not report.rejected
+    with pytest.raises(CsvImportError, match=r"line 3: temperature_c = 296\.55 is outside .*kelvin"):
+        import_csv(_write(tmp_path, GOOD.replace(",23.4,", ",296.55,"), "k.csv"))
+    with pytest.raises(CsvImportError, match=r"line 6: temperature_c = 113 is outside .*Fahrenheit"):
+        import_csv(_write(tmp_path, GOOD.replace(",23.5,", ",113,"), "f.csv"))
