@@ -312,16 +312,20 @@ class CsvBlocks:
         return Recording(data[:, 0].copy(), data[:, 1].copy(), data[:, 2:5].copy(), data[:, 5].copy(),
                          data[:, 6:9].copy(), data[:, 9].astype(int), metadata={"source": str(self.path)})
 
-    def check(self, drop_bad_rows: bool) -> None:
+    def check(self, drop_bad_rows: bool, *, drop_option: bool = False) -> None:
         """After a full pass: fail like :func:`import_csv` on rejected rows (unless ``drop_bad_rows``),
-        on a file without data rows and on a temperature column without a single valid reading."""
+        on a file without data rows and on a temperature column without a single valid reading.
+        ``drop_option``: the caller has a ``--drop-bad-rows`` option (``import``); the others are told to import
+        the good rows with ``fbg-accel-calib import --drop-bad-rows`` and give the MCAP."""
         report = self.report
         if self.rejected_total and not drop_bad_rows:
             shown = report.rejected[:MAX_LISTED_ERRORS]
             more = self.rejected_total - len(shown)
             msg = "\n".join(f"  line {ln}: {why}" for ln, why in shown)
+            remedy = ("use --drop-bad-rows to import the others" if drop_option else
+                      "fbg-accel-calib import --drop-bad-rows imports the others into an MCAP to give here instead")
             raise CsvImportError(f"{self.path}: {self.rejected_total} malformed row(s) (nothing imported; "
-                                 f"use --drop-bad-rows to import the others):\n{msg}"
+                                 f"{remedy}):\n{msg}"
                                  + (f"\n  ... and {more} more" if more else ""))
         if report.rows_kept == 0:
             raise CsvImportError(f"{self.path}: no valid data rows")
@@ -474,7 +478,7 @@ def write_mcap(src: CsvBlocks, path: str | Path, metadata: dict[str, Any], senso
     for blk in src.blocks():
         if len(blk):
             n_poses = max(n_poses, int(blk.pose_id.max()) + 1)
-    src.check(drop_bad_rows)
+    src.check(drop_bad_rows, drop_option=True)
     with RecordingWriter(path, None) as w:
         shift, first_t_s = write_samples(w, src.blocks(), n_poses, sensor_id, start_ns=start_ns, where=f"{src.path}: ")
         w.add_metadata("run", {**metadata, "import": src.report.as_dict(), "g_mps2": src.g_mps2,

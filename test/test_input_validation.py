@@ -184,6 +184,37 @@ def test_implausible_csv_cells_are_named_with_their_line(tmp_path: Path, capsys:
     assert rc == 0 and out.is_file()
 
 
+@pytest.mark.parametrize("command", ["import", "fit", "allan", "report", "diagnose"])
+def test_the_remedy_a_malformed_row_message_gives_works_in_that_subcommand(tmp_path: Path, command: str,
+                                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """The message of a CSV with a malformed row names a remedy, and following it works. On the unchanged code every
+    subcommand said "use --drop-bad-rows to import the others", an option only `import` has: `fit ... --drop-bad-rows`
+    stopped with "unrecognized arguments"."""
+    csv = six_pose_csv(tmp_path / "in.csv", "0.07,880,abc,1500,1200,0,0,9.8,23.4,0", at=7)
+    cal = tmp_path / "cal.yaml"
+    assert main(["fit", str(six_pose_csv(tmp_path / "good.csv")), "-o", str(cal)]) == 0
+    capsys.readouterr()
+    extra = {"import": ["-o", tmp_path / "o.mcap"], "fit": ["-o", tmp_path / "c.yaml"],
+             "allan": ["--calibration", cal, "-o", tmp_path / "a.png"],
+             "report": ["--calibration", cal, "-o", tmp_path / "rep"], "diagnose": []}[command]
+    rc, err = run([command, csv, *extra], capsys)
+    assert rc == 2 and "line 9: x_counts = 'abc' is not a number" in err, err
+    if command == "import":
+        assert "use --drop-bad-rows" in err
+        rc, _ = run([command, csv, *extra, "--drop-bad-rows"], capsys)
+        assert rc == 0
+        return
+    assert "fbg-accel-calib import --drop-bad-rows" in err, err  # the remedy: import the good rows, give the MCAP
+    mcap = tmp_path / "good_rows.mcap"
+    rc, _ = run(["import", csv, "-o", mcap, "--drop-bad-rows"], capsys)
+    assert rc == 0
+    if command == "allan":  # allan wants one static pose: the remedy is shown to work on fit instead
+        rc, err = run(["fit", mcap, "-o", tmp_path / "c2.yaml"], capsys)
+    else:
+        rc, err = run([command, mcap, *extra], capsys)
+    assert rc == 0, err
+
+
 def test_negative_and_huge_times_were_accepted_before(tmp_path: Path) -> None:
     """t_s = 1e10 gave a wrong 'not increasing' (ns overflow), a negative t_s a struct.error at write time."""
     for t in ("-1", "1e10"):
