@@ -1,7 +1,8 @@
 """Property-based test of every ``fbg-accel-calib`` subcommand with generated hostile inputs (issue 11).
 
 Inputs: a valid six-pose CSV mutated cell by cell (numbers out of range, NaN, text, huge fields, empty
-cells), line by line (deleted, duplicated, truncated) and byte by byte (flips, invalid UTF-8, a BOM);
+cells), line by line (deleted, duplicated, truncated) and byte by byte (flips, invalid UTF-8, a BOM, a bare CR,
+CR or CRLF line ends);
 a valid MCAP and calibration YAML truncated or with bytes overwritten; hostile option values.
 Every subcommand is called in process (``cli.main``). Asserted for every example:
 
@@ -100,7 +101,7 @@ def hostile_csv(draw: st.DrawFn, per_pose: int = 25) -> bytes:
     text = ",".join(header) + "\n" + "".join(",".join(r) + "\n" for r in rows)
     data = bytearray(text.encode("utf-8", "surrogatepass"))
     for _ in range(draw(st.sampled_from(FEW))):  # byte mutations
-        op = draw(st.sampled_from(["flip", "bad_utf8", "truncate", "bom", "nul"]))
+        op = draw(st.sampled_from(["flip", "bad_utf8", "truncate", "bom", "nul", "cr", "line_ends"]))
         at = draw(st.integers(0, max(len(data) - 1, 0)))
         if op == "flip" and data:
             data[at] ^= 1 << draw(st.integers(0, 7))
@@ -110,6 +111,10 @@ def hostile_csv(draw: st.DrawFn, per_pose: int = 25) -> bytes:
             del data[at:]
         elif op == "bom":
             data[0:0] = b"\xef\xbb\xbf"
+        elif op == "cr":  # a bare carriage return inside a line
+            data[at:at] = b"\r"
+        elif op == "line_ends":  # the whole file with other line ends: bare CR (classic Mac OS) or CRLF
+            data[:] = data.replace(b"\n", draw(st.sampled_from([b"\r", b"\r\n"])))
         else:
             data[at:at] = b"\x00"
     return bytes(data)
