@@ -69,14 +69,14 @@ def _streamed(paths: list[Path], max_degree: int, opt: FitOptions):
 
     sources = [CountedSource(_source(p, opt), f"fit {p.name}", opt.progress) for p in paths]
     data = prepare_stream(sources, max_degree, opt.window, opt.min_interval, opt.level_gap_c)
-    first = _first_block(sources[0].source)
-    parts = []
+    parts = []  # what the full passes read: taken before the partial read of the first run below
     for path, counted in zip(paths, sources, strict=True):
         md = counted.source.metadata()
         if isinstance(counted.source, McapSampleStream):
             for line in read_warnings(path, md["read_report"], md["pose_events"]):
                 _warn(line)
         parts.append(md)
+    first = _first_block(sources[0].source)
     return data, {"parts": parts, **(parts[0] if len(parts) == 1 else {})}, first
 
 

@@ -982,7 +982,7 @@ class McapSampleStream:
     ``imu/raw`` messages in the fixed layout of :class:`ros2_cdr.FixedJointStateCodec` are split out of each
     decompressed chunk with one numpy view per run of equal records (no Python object per message);
     other messages go through the ``mcap_ros2`` decoder. A truncated file is read up to its last
-    complete chunk; ``report`` tells what the last pass read.
+    complete chunk; ``report`` tells what the last pass that read to its end read.
     """
 
     def __init__(self, path: str | Path, namespace: str | None = None, topic: str | None = None) -> None:
@@ -1011,15 +1011,17 @@ class McapSampleStream:
     # -- record level
     def _batches(self, collect_events: bool):
         """Yield ``(stamps (k,) int64 ns, values (k, n))`` batches of ``imu/raw`` in file order, the files of
-        a bag one after the other (``report.complete`` only when every file was read to its footer)."""
+        a bag one after the other (``report.complete`` only when every file was read to its footer). The pass's
+        report becomes ``self.report`` when the pass ends: a pass its consumer closes early (the fit's second look at
+        a run's first samples) read only part of the file and must not stand for it."""
         report = FileReadReport(str(self.path), notes=list(self._notes))
-        self.report = report
         complete = True
         for path in self.files:
             report.complete = False
             yield from self._file_batches(path, report, collect_events)
             complete &= report.complete
         report.complete = complete
+        self.report = report
 
     def _file_batches(self, path: Path, report: FileReadReport, collect_events: bool):
         """:meth:`_batches` of one MCAP file (channel and schema ids are per file)."""

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbg_accel_calibration import fit_stream, mcap_io, static_detector
+from fbg_accel_calibration import fit_stream, mcap_io, noise_correlation, static_detector
 from fbg_accel_calibration.cli import main as cli_main
 from fbg_accel_calibration.fit_stream import prepare, prepare_stream
 from fbg_accel_calibration.mcap_io import McapSampleStream, RecordingWriter, StreamOrderError, read_recording, write_recording
@@ -141,6 +141,35 @@ def test_cli_fit_streams_the_files_and_writes_the_in_memory_result(runs: list[Pa
     assert streamed.sensor_id == mem.sensor_id == "fbg-test"
     assert streamed.fit["degree"] == mem.fit["degree"]
     _assert_same_fit(mem, streamed)
+
+
+def test_a_run_longer_than_the_noise_sample_is_not_reported_truncated(runs: list[Path], tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """The streamed fit reads the first samples of the first run once more for the noise model
+    (``noise_correlation.SAMPLE_ROWS``, 65 536) and stops there. That partial pass must not stand for the file: before,
+    the reader's report was the one of its last pass, so every first file longer than the sample (11 min at 100 Hz,
+    66 s at 1 kHz) was called truncated on stderr: a simulated 1 kHz six-position run of 230 004 samples, read whole
+    (all 539 949 static samples of the three runs fitted), gave ``warning: run0_16C.mcap is truncated (); recovered
+    66860 messages up to the last complete chunk``. Here the sample is shrunk to 301 rows so that the small files
+    exceed it; the unchanged code printed that warning for ``run0.mcap`` (recovered 348 of its messages)."""
+    monkeypatch.setattr(noise_correlation, "SAMPLE_ROWS", 301)
+    files = [str(p) for p in runs]
+    capsys.readouterr()
+    assert cli_main(["fit", *files, "-o", str(tmp_path / "cal.yaml")]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: {runs[0]} is truncated" not in err, err
+    assert f"warning: {runs[-1]} is truncated" in err  # the file that is cut is still named
+    # the reader itself: a pass its consumer closes early leaves the report of the last pass that read the file
+    stream = McapSampleStream(runs[0])
+    n = sum(len(b) for b in stream.blocks(301, False))
+    full = stream.report.as_dict()
+    assert full["complete"] and full["per_topic"]["/imu/raw"] == n > 301
+    blocks = stream.blocks(301, True)
+    next(iter(blocks))
+    blocks.close()
+    assert stream.report.as_dict() == full
+    assert stream.metadata()["read_report"] == full
 
 
 def test_streaming_memory_does_not_grow_with_the_samples(tmp_path: Path, small_blocks: int) -> None:
