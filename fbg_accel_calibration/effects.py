@@ -27,6 +27,7 @@ driver evaluates identically. The rationale of every candidate is in ``docs/effe
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -61,6 +62,10 @@ MIN_TIA_SCALE_SEARCH = 3.0
 MAX_CHANNEL_OFFSET_FRACTION = 0.25  # axis-channel offset / the channel's mean counts: dark current + ADC zero
 # offset are tens of counts (sim_default.yaml, reference_dark_offset); a quarter of the signal undoes eq. 24
 MAX_DRIFT_MPS2 = 0.05 * 20.0 * 9.80665  # warm-up amplitude or creep over the run: 5 % of full scale (1 g)
+# A function of board time shared by the runs (time_drift) is told from an effect of the orientation only by visits of
+# one orientation at different board times: above this share of the visits' board-time variance explained by their
+# orientation it is not testable (``orientation_share_of_visit_times``)
+MAX_TIME_ORIENTATION_SHARE = 0.99
 
 
 @dataclass
@@ -507,6 +512,40 @@ class SpectralNonlinearityEffect(Effect):
         return "largest quadratic coefficient per axis = " + ", ".join(f"{v:.3g}" for v in np.max(np.abs(c), axis=1)) + " m/s^2"
 
 
+def orientation_share_of_visit_times(data: DiagnosisData) -> float:
+    """Share (0..1) of the variance of the visits' mean board times (s) that their orientations explain (1 - within /
+    total sum of squares; 1 when the times do not vary). An orientation is a direction of the visit-mean reference,
+    closer than ``thermal_fit.ORIENTATION_TOLERANCE_DEG`` counting as one (pose ids name orientations within their
+    run only). Near 1, every orientation is visited at one board time only (each pose once, or every run from
+    power-on through one plan in one order): a function of board time then fits whatever depends on the
+    orientation, and no held-out test tells them apart. Computed once per recording."""
+    from .thermal_fit import ORIENTATION_TOLERANCE_DEG
+
+    def compute() -> float:
+        sel = data.use & (data.group >= 0) & np.all(np.isfinite(data.gref), axis=1)
+        _, inv = np.unique(data.group[sel], return_inverse=True)
+        n = np.bincount(inv).astype(float)
+        if len(n) < 2:
+            return 1.0
+        t = np.bincount(inv, weights=data.t_s[sel]) / n
+        g = np.column_stack([np.bincount(inv, weights=data.gref[sel, k]) for k in range(3)]) / n[:, None]
+        u = g / np.maximum(np.linalg.norm(g, axis=1), 1e-300)[:, None]
+        cos_tol = math.cos(math.radians(ORIENTATION_TOLERANCE_DEG))
+        label, seen = np.empty(len(u), int), []
+        for i, v in enumerate(u):
+            j = next((k for k, w in enumerate(seen) if float(v @ w) > cos_tol), len(seen))
+            if j == len(seen):
+                seen.append(v)
+            label[i] = j
+        total = float(np.sum((t - t.mean()) ** 2))
+        if not total > 0:
+            return 1.0
+        means = np.bincount(label, weights=t) / np.bincount(label)
+        return 1.0 - float(np.sum((t - means[label]) ** 2)) / total
+
+    return float(data.once("orientation_share_of_visit_times", compute))
+
+
 class TimeDriftEffect(Effect):
     name = "time_drift"
     pointwise = True
@@ -519,6 +558,13 @@ class TimeDriftEffect(Effect):
     def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
         if data.duration_s <= 0:
             return False, "no time base"
+        share = orientation_share_of_visit_times(data)
+        if share > MAX_TIME_ORIENTATION_SHARE:
+            return False, (f"each orientation is visited at the same board time only (the orientation explains "
+                           f"{100 * share:.2f} % of the variance of the visits' board times: each pose once per run, "
+                           "every run from power-on in the same order), so a drift with time cannot be told from an "
+                           "effect of the orientation; visit a pose again later in the run, or change the pose order "
+                           "between runs")
         return True, ""
 
     def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
