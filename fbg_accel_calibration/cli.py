@@ -206,7 +206,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     docs/calibration_fit.md; ``--in-memory`` loads every sample first)."""
     from .fit_pipeline import FitOptions, fit_files
     from .recording import low_reference_warning
-    from .thermal_fit import FULL_SCALE_MPS2
+    from .thermal_fit import FULL_SCALE_MPS2, reference_reach_warnings
 
     check_outputs([args.output], args.inputs, args.force)  # the inputs are checked first thing by fit_files
     from .cli_progress import enabled
@@ -240,6 +240,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
               "each", file=sys.stderr)
     if cal.fit.get("low_reference"):
         print("warning: " + low_reference_warning(cal.fit["low_reference"]), file=sys.stderr)
+    for line in reference_reach_warnings(cal.fit["reference_range_mps2"]):
+        print(f"warning: {line}", file=sys.stderr)
     print(f"wrote {args.output}")
     return 0
 
@@ -436,6 +438,10 @@ def cmd_report(args: argparse.Namespace) -> int:
     from .thermal_fit import sensor_id_of
 
     warnings = calibration_match_warnings(cal, rec)
+    if (cal.fit or {}).get("reference_range_mps2") is not None:  # files written before it was recorded lack it
+        from .thermal_fit import reference_reach_warnings
+
+        warnings += reference_reach_warnings(cal.fit["reference_range_mps2"])
     for line in warnings:
         print(f"warning: {line}", file=sys.stderr)
     text = fit_report_markdown(cal, selection, stats, {"calibrated vs reference": "calibrated_vs_reference.png",

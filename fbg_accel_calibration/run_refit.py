@@ -19,7 +19,7 @@ from fbg_accel_driver.thermal_model import ThermalCalibration
 from .atomic_output import atomic_path
 from .fit_pipeline import DEFAULT_MAX_DEGREE, fit_files
 from .model_selection import SelectionResult
-from .thermal_fit import FULL_SCALE_MPS2
+from .thermal_fit import FULL_SCALE_MPS2, reference_reach_warnings
 
 
 class RefitError(ValueError):
@@ -51,6 +51,7 @@ class RefitResult:
             f"temperature range covered: {cal.temperature_range_c[0]:.2f} .. {cal.temperature_range_c[1]:.2f} degC",
             f"calibration written to {self.output}",
         ]
+        lines += [f"warning: {w}" for w in reference_reach_warnings(fit.get("reference_range_mps2", [[-np.inf, np.inf]] * 3))]
         return "\n".join(lines)
 
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from fbg_accel_calibration.cli import main
 from fbg_accel_calibration.csv_import import CsvImportError, import_csv
@@ -75,6 +76,35 @@ def test_coplanar_measured_poses_are_refused(tmp_path: Path, capsys: pytest.Capt
     # the whole series spans the frame and still fits
     rc, _ = run(["fit", MEASURED, "-o", out, *MEASURED_OPTS], capsys)
     assert rc == 0 and out.is_file()
+
+
+def test_a_plan_that_never_points_an_axis_down_is_fitted_with_a_warning(tmp_path: Path,
+                                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """Poses that tilt x by 8 degrees at most (z and y up and down, x at +-1.36 m/s^2): enough spread to identify the
+    x row (0.96 m/s^2 RMS > 0.49), so the fit is accepted, and its pose hold-out is at the noise floor (x 0.18 m/s^2),
+    but the calibration extrapolates eq. 28 to x = +-g over a response it never saw. Measured against the simulator's
+    truth (three levels 16 / 24 / 45 degC, probe of 2026-11-26) its error at x down was 0.42 m/s^2 (0.12 with the
+    six-position plan); a plan that never points x down (a 30-degree grid with f_x >= 0) gave 0.36. The unchanged
+    code said nothing (no warning, no field). The YAML now records each table axis' range of reference and the fit
+    warns, naming the axis and the direction, when the poses do not reach half of g both ways."""
+    poses = [[0.0, 0.0], [0.0, 180.0], [0.0, 90.0], [180.0, 90.0], [90.0, 8.0], [270.0, 8.0], [90.0, 172.0],
+             [270.0, 172.0]]
+    cfg = SimConfig.default().with_overrides({
+        "scenario.rate_hz": 25.0, "scenario.poses.mode": "list", "scenario.poses.list": poses,
+        "scenario.poses.dwell_s": 10.0, "scenario.poses.move_s": 3.0, "scenario.poses.repeat": 1})
+    mcap = tmp_path / "x_flat.mcap"
+    write_recording(mcap, simulate_recording(cfg, seed=1), {"sensor_id": "sim"})
+    out = tmp_path / "cal.yaml"
+    rc, err = run(["fit", mcap, "-o", out], capsys)
+    assert rc == 0 and out.is_file()
+    warned = [ln for ln in err.splitlines() if "never reach" in ln]
+    assert len(warned) == 1 and "table x axis" in warned[0] and "-1.36 .. +1.36 m/s^2" in warned[0], err
+    fit = yaml.safe_load(out.read_text())["fit"]
+    np.testing.assert_allclose(fit["reference_range_mps2"][0], [-1.365, 1.365], atol=0.01)
+    np.testing.assert_allclose(fit["reference_range_mps2"][1:], [[-9.807, 9.807]] * 2, atol=0.01)
+    # the six positions reach +-g on every axis: no such warning
+    rc, err = run(["fit", six_pose_csv(tmp_path / "six.csv"), "-o", tmp_path / "six.yaml"], capsys)
+    assert rc == 0 and "never reach" not in err, err
 
 
 def test_six_position_run_cut_after_its_fourth_pose_is_refused(tmp_path: Path,
