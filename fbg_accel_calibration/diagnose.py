@@ -74,6 +74,7 @@ from .thermal_fit import (
     coefficients_to_model,
     design_matrix,
     n_params,
+    reference_reach_warnings,
     scaled_condition,
     solve_normal_equations,
     temperature_levels,
@@ -1909,6 +1910,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     if settling.end_detected:
         warnings.append(settling.end_summary() + "; the model is fitted on them too: align the table's readings "
                         "(pose labels, reference) with the signal")
+    warnings += reference_reach_warnings(_visit_reference_range(data, groups, r_eval))
     if data.low_reference_note:
         warnings.append(data.low_reference_note)
     if data.n_clipped_visits:
@@ -2077,6 +2079,18 @@ def _calibration_from(spec: ModelSpec, des: Design, cv: CvResult, data: Diagnosi
     base = ThermalCalibration(M=M, b=b, temperature_range_c=rng, sensor_id=sensor_id, t_center_c=spec.t_center_c,
                               t_scale_c=spec.t_scale_c, noise_sigma_mps2=noise, **levels)
     return cal, base, added
+
+
+def _visit_reference_range(data: DiagnosisData, groups: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(3, 2): lowest and highest visit-mean reference specific force (m/s^2) along each table axis over the visits of
+    ``rows`` (the poses the calibration was fitted on; ``thermal_fit.reference_range`` takes cell means)."""
+    sel = rows & (groups >= 0) & np.all(np.isfinite(data.gref), axis=1)
+    if not sel.any():
+        return np.full((3, 2), np.nan)
+    _, inv = np.unique(groups[sel], return_inverse=True)
+    n = np.bincount(inv).astype(float)
+    g = np.column_stack([np.bincount(inv, weights=data.gref[sel, k]) for k in range(3)]) / n[:, None]
+    return np.column_stack([g.min(axis=0), g.max(axis=0)])
 
 
 COLLINEAR_CORR = 0.99  # |correlation| of an added column with the model's others above which it is not separable
