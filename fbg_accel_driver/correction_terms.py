@@ -152,40 +152,55 @@ class SampleSteps:
     (the diagnosis tries many time constants on one recording): worked out once by :func:`sample_steps`."""
 
     dt: np.ndarray  # (N,) s, step before each sample (0 before the first; negative steps as 0)
-    changes: np.ndarray  # indices i >= 1 where dt[i] differs from dt[i-1] by more than _STEP_CHANGE, or either is 0
+    # indices i >= 1 where dt[i] differs from dt[i-1] by more than _STEP_CHANGE relative and resolution_s, or either is 0
+    changes: np.ndarray
     smallest_s: float  # the smallest step at the other samples (inf if there are none)
+    resolution_s: float  # time_resolution of the times
+
+
+def time_resolution(*t_s: float) -> float:
+    """The smallest difference of two steps (s) that times as large as ``t_s`` (s) can show: a step is the difference
+    of two float64 times, each rounded by up to half a unit in the last place (~2.4e-7 s at 1.7e9 s since 1970, ~1e-12 s
+    at an hour of board time), so two steps that differ by less are the same step as far as the times can tell."""
+    return 4.0 * np.finfo(float).eps * max(abs(v) for v in t_s)
 
 
 def sample_steps(t_s: np.ndarray) -> SampleSteps:
     """:class:`SampleSteps` of the board times ``t_s`` (N,) s, for a filter that starts at the first sample."""
     t_s = np.asarray(t_s, dtype=float).reshape(-1)
+    resolution = time_resolution(t_s[0], t_s[-1]) if t_s.size else 0.0
     dt = np.zeros_like(t_s)
     np.subtract(t_s[1:], t_s[:-1], out=dt[1:])
     np.maximum(dt, 0.0, out=dt)
-    same = np.abs(np.diff(dt)) <= _STEP_CHANGE * dt[1:]
+    same = np.abs(np.diff(dt)) <= np.maximum(_STEP_CHANGE * dt[1:], resolution)
     same &= dt[1:] > 0
     same &= dt[:-1] > 0
     changes = np.flatnonzero(~same) + 1
     rest = dt[1:][same]
     dt.flags.writeable = False
-    return SampleSteps(dt, changes, float(rest.min()) if rest.size else math.inf)
+    return SampleSteps(dt, changes, float(rest.min()) if rest.size else math.inf, resolution)
 
 
-def _coefficient_cuts(dt: np.ndarray, tau_s: float, steps: SampleSteps | None) -> tuple[np.ndarray, np.ndarray]:
+def _coefficient_cuts(dt: np.ndarray, tau_s: float, steps: SampleSteps | None,
+                      resolution_s: float) -> tuple[np.ndarray, np.ndarray]:
     """(a at the first sample of each run of constant coefficient, the runs' bounds) for a = 1 - exp(-dt/tau):
-    a new run starts where a differs from the previous sample's by more than 1e-9 relative. With ``steps`` (of
+    a new run starts where a differs from the previous sample's by more than 1e-9 relative and by more than a
+    step change of ``resolution_s`` (``time_resolution``) moves it (da/d dt = (1 - a) / tau). With ``steps`` (of
     these very ``dt``), a is worked out only where the step changes: elsewhere it cannot change by that much, so
     the runs are the same as from a worked out at every sample."""
+    def changed(a: np.ndarray, a_prev: np.ndarray) -> np.ndarray:
+        return np.abs(a - a_prev) > np.maximum(1e-9 * np.maximum(a, 1e-300), (1.0 - a) / tau_s * resolution_s)
+
     if steps is not None and steps.smallest_s / tau_s > _SMALLEST_STEP_OVER_TAU:
         at = np.concatenate([[0], steps.changes])
         a_at = 1.0 - np.exp(-dt[at] / tau_s)
         a_prev = 1.0 - np.exp(-dt[steps.changes - 1] / tau_s)
-        new = np.abs(a_at[1:] - a_prev) > 1e-9 * np.maximum(a_at[1:], 1e-300)
+        new = changed(a_at[1:], a_prev)
         cut = steps.changes[new]
         a_start = np.concatenate([a_at[:1], a_at[1:][new]])
     else:
         a = 1.0 - np.exp(-dt / tau_s)
-        cut = np.flatnonzero(np.abs(np.diff(a)) > 1e-9 * np.maximum(a[1:], 1e-300)) + 1
+        cut = np.flatnonzero(changed(a[1:], a[:-1])) + 1
         a_start = a[np.concatenate([[0], cut])]
     return a_start, np.concatenate([[0], cut, [dt.size]])
 
@@ -223,7 +238,8 @@ def first_order_lowpass(x: np.ndarray, t_s: np.ndarray, tau_s: float, state: dic
         np.subtract(ts[1:], ts[:-1], out=dt[1:])
         np.maximum(dt, 0.0, out=dt)
     # split into runs of (nearly) constant coefficient a (uniform sampling) and filter each run at once
-    a_start, bounds = _coefficient_cuts(dt, tau_s, steps)
+    resolution = steps.resolution_s if steps is not None else time_resolution(ts[0], ts[-1], t_prev)
+    a_start, bounds = _coefficient_cuts(dt, tau_s, steps, resolution)
     ys = np.empty_like(xs)
     for ai, (i, j) in zip(a_start, itertools.pairwise(bounds), strict=True):
         seg, _ = lfilter([ai], [1.0, ai - 1.0], xs[i:j], zi=[(1.0 - ai) * y_prev])

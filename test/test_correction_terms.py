@@ -21,6 +21,7 @@ from fbg_accel_driver.correction_terms import (
     ThermalLag,
     TiaInverseFilter,
     TimeDrift,
+    _coefficient_cuts,
     correction_from_dict,
     first_order_lowpass,
     sample_steps,
@@ -261,3 +262,24 @@ def test_spans_round_trip_and_a_bad_span_is_refused() -> None:
     quad = _span_terms()[1].to_dict()
     with pytest.raises(ValueError, match="psi_span"):
         correction_from_dict({**quad, "psi_span": [[1.4, 1.1], [1.7, 2.0], [1.2, 1.5]]})
+
+
+@pytest.mark.parametrize("with_steps", [False, True])
+def test_lowpass_on_epoch_times_filters_uniform_sampling_in_one_run(with_steps: bool) -> None:
+    """Times in seconds since 1970 (a CSV exported with epoch times, a bag without board time) are rounded to about
+    2.4e-7 s, so the steps of a uniform 100 Hz series differ by that much from sample to sample. They cannot tell
+    steps apart more finely than that, so the filter must treat them as one uniform run, and give what the same series
+    from 0 s gives. On the code before, the 3000 samples were cut into 242 runs (one lfilter call each, for
+    every time constant a diagnosis tries)."""
+    n = 3000
+    rng = np.random.default_rng(3)
+    x = np.cumsum(rng.normal(0, 1, n))
+    t_rel = np.arange(n) * 0.01
+    t_epoch = 1.7e9 + t_rel
+    for tau in (0.003, 0.12, 40.0):
+        dt = np.maximum(np.diff(t_epoch, prepend=t_epoch[0]), 0.0)
+        steps = sample_steps(t_epoch)
+        _, bounds = _coefficient_cuts(dt, tau, steps if with_steps else None, steps.resolution_s)
+        assert len(bounds) - 1 <= 2, f"tau {tau}: {len(bounds) - 1} runs"
+        y = first_order_lowpass(x, t_epoch, tau, {}, steps if with_steps else None)
+        np.testing.assert_allclose(y, first_order_lowpass(x, t_rel, tau, {}), rtol=0, atol=1e-4 * np.ptp(x))
