@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from scipy import signal
 
 from fbg_accel_driver.mapping_fields import format_version, number, refuse_unknown
 from fbg_accel_driver.yaml_input import load_yaml
@@ -303,7 +304,11 @@ def find_slide_start(t_s: np.ndarray, aux_counts: np.ndarray, plan: ExcitationPl
     rest = float(np.percentile(env, 5))
     late = float(np.mean(env[:n_win])) > max(START_MOTION_FRACTION, 3.0 * rest)
     padded = np.concatenate([np.zeros(n_plan - 1), env - env.mean(), np.zeros(n_plan)])
-    score = np.correlate(padded, plan_env - plan_env.mean(), mode="valid")[: len(env) + n_plan - 1]
+    # by FFT, O(N log N): a direct correlation takes (N + n_plan) x n_plan products (5e9 for the shipped 101 s plan at
+    # 500 Hz) as one BLAS dot per lag, whose threads then wait for a loaded CPU on every call: the `dynamic` command of
+    # test_a_ros2_bag_of_imu_raw_with_aux_counts_is_read, 6 s on its own, ran past its 120 s limit 1 time in 7 beside a
+    # busy loop
+    score = signal.correlate(padded, plan_env - plan_env.mean(), mode="valid", method="fft")[: len(env) + n_plan - 1]
     lags = np.arange(len(score)) - (n_plan - 1)  # samples from the recording's first sample to the slide's start
     score[(lags > 0) if late else (lags < 0)] = -np.inf
     k = int(lags[np.argmax(score)])
