@@ -155,11 +155,12 @@ class CsvBlocks:
                     problem = self._line_problem
                     raise CsvImportError(f"{self.path}: line {line_no}: header line"
                                          f"{' is ' if problem.startswith('not UTF-8') else ': '}{problem}")
+                # a CR first: with bare-CR line ends a file that opens with a comment is one long comment line
+                if "\r" in text.rstrip("\r\n"):
+                    raise CsvImportError(f"{self.path}: line {line_no}: {CR_LINE_ENDS}")
                 if _blank_or_comment(text):
                     self.report.comment_or_blank_lines += 1
                     continue
-                if "\r" in text.rstrip("\r\n"):
-                    raise CsvImportError(f"{self.path}: line {line_no}: {CR_LINE_ENDS}")
                 try:
                     raw_header = next(csv.reader([text], skipinitialspace=True))
                 except csv.Error as exc:

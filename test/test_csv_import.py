@@ -271,7 +271,10 @@ def test_semicolon_or_tab_separated_files_are_refused_with_what_to_do(tmp_path: 
 def test_bare_carriage_return_line_ends_are_named(tmp_path: Path, size: str) -> None:
     """Old Mac OS line ends (CR only). On the unchanged code a small file raised _csv.Error with a traceback
     ("new-line character seen in unquoted field") and a file over 64 KiB said "header line is not UTF-8 text or too
-    long"."""
+    long". A file that starts with a comment line was one long comment line to the header search: "no header line
+    (expected column names such as ref_counts, x_counts, y_counts, z_counts)", with the columns in the file."""
+    with pytest.raises(CsvImportError, match=r"line 1: .*carriage return"):
+        import_csv(_write(tmp_path, GOOD.replace("\n", "\r"), "commented_cr.csv"))
     lines = _data_lines(GOOD)
     if size == "large":
         lines += [f"{0.03 + 0.01 * k:.2f},880,1138,1649,1216,0,0,9.8,23.4,0,a" for k in range(3000)]
