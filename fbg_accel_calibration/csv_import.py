@@ -42,7 +42,7 @@ import numpy as np
 from fbg_accel_driver.frame_codec import ADC_MAX
 
 from . import input_validation as iv
-from .recording import Recording
+from .recording import Recording, join_blocks
 from .table_geometry import STANDARD_GRAVITY, table_specific_force
 
 COUNT_COLUMNS = ("ref_counts", "x_counts", "y_counts", "z_counts")
@@ -133,7 +133,14 @@ class CsvBlocks:
     rejected rows are recorded in :attr:`report` as they are met (the caller decides after the last
     block whether a rejected row fails the import). The time-order check and the pose numbering from
     reference changes carry over block boundaries, so the blocks concatenated equal a whole-file read.
+
+    Lines, header names, separators, cells, time units and temperatures are read alike for every CSV: another format
+    (``dynamic_csv``) overrides :meth:`_columns`, :meth:`_parse_row`, :meth:`_complete`, :meth:`_block`, the constants.
     """
+
+    REQUIRED = COUNT_COLUMNS  # column names the header of this format holds (the delimiter check looks for them)
+    WIDTH = 10  # values of a parsed row: t_s (s), ref, x, y, z (counts), temperature (degC), then the format's own
+    REMEDY = "fbg-accel-calib import --drop-bad-rows imports the others into an MCAP to give here instead"
 
     def __init__(self, path: str | Path, *, rate_hz: float | None = None, temperature_c: float | None = None,
                  g_mps2: float = STANDARD_GRAVITY, block_rows: int = DEFAULT_BLOCK_ROWS) -> None:
@@ -171,24 +178,56 @@ class CsvBlocks:
             self._data_offset = fh.tell()
         if raw_header is None:
             raise CsvImportError(f"{self.path}: no header line (expected column names such as "
-                                 f"{', '.join(COUNT_COLUMNS)})")
+                                 f"{', '.join(self.REQUIRED)})")
         # names are matched without surrounding spaces and case (" X_Counts" is x_counts); an empty name (trailing
         # commas, a pandas index) is an unnamed column, ignored like any unknown one
         header = [h.strip().lower() for h in raw_header]
-        _check_delimiter(self.path, header, text, self.header_line)
+        _check_delimiter(self.path, header, text, self.header_line, self.REQUIRED)
+        where = f"{self.path}: line {self.header_line}:"
+        dupes = sorted({h for h in header if h and header.count(h) > 1})
+        if dupes:
+            raise CsvImportError(f"{where} duplicate column(s) {dupes}")
         self.header = header
-        self.col = _check_header(self.path, header, self.header_line, rate_hz, temperature_c)
-        col = self.col
+        self.col = col = self._columns(header, where)
+        times = [c for c in TIME_COLUMNS if c in col]
+        if len(times) > 1:
+            raise CsvImportError(f"{where} {times}: give one time column (t_s in s, t_ms in ms or t_us in us)")
+        if not times and not rate_hz:
+            raise CsvImportError(f"{self.path}: no t_s column: give the sample rate (--rate, Hz; --rate 1 counts time "
+                                 "in samples)")
+        if "temperature_c" not in col and (temperature_c is None or not math.isfinite(temperature_c)):
+            raise CsvImportError(f"{self.path}: no temperature_c column: give the temperature (--temperature, degC)")
         used = set(col.values())
         self.report.ignored_columns = [h.strip() or f"(unnamed column {i + 1})" for i, h in enumerate(raw_header)
                                        if i not in used]
-        self.use_angles = "psi_deg" in col
-        self.time_column = next((c for c in TIME_COLUMNS if c in col), None)
-        self.report.reference = "table angles psi_deg/theta_deg" if self.use_angles else "gref_*_mps2 columns"
+        self.time_column = next(iter(times), None)
         self.report.time_base = (f"{self.time_column} column" if self.time_column else
                                  f"{'sample column' if 'sample' in col else 'row index'} / {rate_hz} Hz")
         self.report.temperature = "temperature_c column" if "temperature_c" in col else f"constant {temperature_c} degC"
+
+    def _columns(self, header: list[str], where: str) -> dict[str, int]:
+        """The format's columns {name: index} in the normalised ``header``; CsvImportError (prefixed ``where``) when
+        one is missing. The time columns and the temperature are checked by the caller, alike for every format."""
+        col = {h: i for i, h in enumerate(header)
+               if h in COUNT_COLUMNS + GREF_COLUMNS + ANGLE_COLUMNS + OPTIONAL_COLUMNS}
+        missing = [c for c in COUNT_COLUMNS if c not in col]
+        if missing:
+            raise CsvImportError(f"{where} missing required column(s) {missing}")
+        has_g = [c in col for c in GREF_COLUMNS]
+        has_a = [c in col for c in ANGLE_COLUMNS]
+        if any(has_g) and any(has_a):
+            raise CsvImportError(f"{where} give the reference either as {list(GREF_COLUMNS)} "
+                                 f"or as {list(ANGLE_COLUMNS)}, not both")
+        if any(has_g) and not all(has_g):
+            raise CsvImportError(f"{where} incomplete reference, need all of {list(GREF_COLUMNS)}")
+        if any(has_a) and not all(has_a):
+            raise CsvImportError(f"{where} incomplete reference, need both {list(ANGLE_COLUMNS)}")
+        if not any(has_g) and not any(has_a):
+            raise CsvImportError(f"{where} no reference: need {list(GREF_COLUMNS)} or {list(ANGLE_COLUMNS)}")
+        self.use_angles = "psi_deg" in col
+        self.report.reference = "table angles psi_deg/theta_deg" if self.use_angles else "gref_*_mps2 columns"
         self.report.pose_source = "pose column" if "pose" in col else "a new pose at every change of the reference"
+        return col
 
     def _lines(self, fh, first_line: int = 1):
         """``(line number, text)`` of each line; text None for a line that is not UTF-8 or longer than
@@ -234,11 +273,11 @@ class CsvBlocks:
         report.rows_read = report.rows_kept = self.rejected_total = self.valid_temperatures = 0
         report.rejected, report.rejected_unlisted = [], 0
         comments = report.comment_or_blank_lines
-        buf = np.empty((self.block_rows, 10))
+        buf = np.empty((self.block_rows, self.WIDTH))
         fill = 0
         last_t = -math.inf
-        last_g: tuple[float, float, float] | None = None
-        pose_counter = -1
+        self._last_g: tuple[float, float, float] | None = None
+        self._pose_counter = -1
         first_times: list[float] = []  # s, of the first kept rows (the time-unit check)
         first_lines: list[int] = []
         with open(self.path, "rb") as fh:
@@ -256,8 +295,9 @@ class CsvBlocks:
                     continue
                 try:
                     fields = next(csv.reader([text], skipinitialspace=True))
-                    row = _parse_row(fields, self.header, self.col, self.rate_hz, self.temperature_c,
-                                     report.rows_read - 1)
+                    if len(fields) != len(self.header):
+                        raise ValueError(f"{len(fields)} fields, header has {len(self.header)}")
+                    row = self._parse_row(fields, report.rows_read - 1)
                 except (ValueError, csv.Error) as exc:
                     self._reject(line_no, str(exc))
                     continue
@@ -270,17 +310,7 @@ class CsvBlocks:
                     first_lines.append(line_no)
                     if len(first_times) == TIME_CHECK_ROWS + 1:
                         self._check_time_steps(first_times, first_lines)
-                if self.use_angles:
-                    g = tuple(float(v) for v in table_specific_force(np.array([row[6]]), np.array([row[7]]),
-                                                                       self.g_mps2)[0])
-                    row[6:9] = g
-                else:
-                    g = (row[6], row[7], row[8])
-                if "pose" not in self.col:
-                    if g != last_g:
-                        pose_counter += 1
-                    row[9] = pose_counter
-                last_g = g
+                self._complete(row)
                 if math.isfinite(row[5]):
                     self.valid_temperatures += 1
                 buf[fill] = row
@@ -295,6 +325,74 @@ class CsvBlocks:
             yield self._block(buf[:fill])
         report.comment_or_blank_lines = comments
         report.rejected.sort()
+
+    def _parse_row(self, fields: list[str], index: int) -> list[float]:
+        """One data row (``index``: 0 first) -> [t_s, ref, x, y, z, temp, gx|psi, gy|theta, gz|nan, pose]; ValueError
+        with the reason."""
+        col = self.col
+        counts = [self._value(fields, c) for c in COUNT_COLUMNS]
+        if counts[0] <= 0:
+            raise ValueError(f"ref_counts = {fields[col['ref_counts']].strip()} must be > 0")
+        for name, value in zip(COUNT_COLUMNS, counts, strict=True):
+            if value < 0:
+                raise ValueError(f"{name} = {value:g} is negative")
+            if value > ADC_MAX:
+                raise ValueError(f"{name} = {value:g} is beyond the 12-bit ADC range 0 .. {ADC_MAX:g} counts")
+        t, temp = self._time(fields, index), self._temperature(fields)
+        if "psi_deg" in col:
+            r = [iv.check_range(c, self._value(fields, c), -iv.ANGLE_LIMIT_DEG, iv.ANGLE_LIMIT_DEG, "deg")
+                 for c in ANGLE_COLUMNS] + [math.nan]
+        else:
+            r = [iv.check_range(c, self._value(fields, c), -iv.FULL_SCALE_MPS2, iv.FULL_SCALE_MPS2, "m/s^2 (+-20 g)")
+                 for c in GREF_COLUMNS]
+        return [t, *counts, temp, *r, _pose(fields, col)]
+
+    def _value(self, fields: list[str], name: str, allow_empty: bool = False) -> float:
+        """The number in column ``name`` (NaN for an empty or NaN cell if ``allow_empty``); ValueError naming it."""
+        return _number(fields[self.col[name]], name, allow_empty)
+
+    def _time(self, fields: list[str], index: int) -> float:
+        """The row's time (s): its time column converted to s, else ``sample`` (or ``index``) / rate; ValueError
+        outside the recordings' stamp range (with the ms / us hint for a t_s column)."""
+        if self.time_column is not None:
+            t = self._value(fields, self.time_column) * TIME_COLUMNS[self.time_column]
+        elif "sample" in self.col:
+            t = self._value(fields, "sample") / float(self.rate_hz)  # type: ignore[arg-type]
+        else:
+            t = index / float(self.rate_hz)  # type: ignore[arg-type]
+        lo, hi = iv.TIME_RANGE_S
+        if not lo <= t <= hi:
+            hint = ("; if the times are ms or us (since 1970?), name the column t_ms or t_us"
+                    if t > hi and self.time_column == "t_s" else "")
+            raise ValueError(f"time {t:g} s is outside {lo:g} .. {hi:g} s (the recordings' stamp range){hint}")
+        return t
+
+    def _temperature(self, fields: list[str]) -> float:
+        """The row's temperature (degC): its ``temperature_c`` cell (NaN for no reading; ValueError outside the
+        AHT10 range, naming kelvin or Fahrenheit when it looks like them), else the constant given."""
+        if "temperature_c" not in self.col:
+            return float(self.temperature_c)  # type: ignore[arg-type]
+        temp = self._value(fields, "temperature_c", allow_empty=True)
+        if math.isfinite(temp):
+            try:
+                iv.check_range("temperature_c", temp, *iv.TEMPERATURE_RANGE_C, "degC (AHT10 range)")
+            except ValueError as exc:
+                raise ValueError(f"{exc}{_temperature_unit_hint(temp)}") from None
+        return temp
+
+    def _complete(self, row: list[float]) -> None:
+        """Fill in (in place) what follows from the rows before: the reference from table angles, the pose id
+        from changes of the reference."""
+        if self.use_angles:
+            g = tuple(float(v) for v in table_specific_force(np.array([row[6]]), np.array([row[7]]), self.g_mps2)[0])
+            row[6:9] = g
+        else:
+            g = (row[6], row[7], row[8])
+        if "pose" not in self.col:
+            if g != self._last_g:
+                self._pose_counter += 1
+            row[9] = self._pose_counter
+        self._last_g = g
 
     def _check_time_steps(self, times: list[float], lines: list[int]) -> None:
         """Refuse a time column that is not in the unit its name says: the median step (s) of the first kept rows
@@ -323,8 +421,7 @@ class CsvBlocks:
             shown = report.rejected[:MAX_LISTED_ERRORS]
             more = self.rejected_total - len(shown)
             msg = "\n".join(f"  line {ln}: {why}" for ln, why in shown)
-            remedy = ("use --drop-bad-rows to import the others" if drop_option else
-                      "fbg-accel-calib import --drop-bad-rows imports the others into an MCAP to give here instead")
+            remedy = "use --drop-bad-rows to import the others" if drop_option else self.REMEDY
             raise CsvImportError(f"{self.path}: {self.rejected_total} malformed row(s) (nothing imported; "
                                  f"{remedy}):\n{msg}"
                                  + (f"\n  ... and {more} more" if more else ""))
@@ -368,87 +465,9 @@ def import_csv(path: str | Path, *, rate_hz: float | None = None, temperature_c:
     src = CsvBlocks(path, rate_hz=rate_hz, temperature_c=temperature_c, g_mps2=g_mps2)
     parts = list(src.blocks())
     src.check(drop_bad_rows)
-    if len(parts) == 1:
-        rec = parts[0]
-    else:
-        rec = Recording(*(np.concatenate([getattr(p, k) for p in parts]) for k in
-                          ("t_s", "ref", "xyz", "temp_c", "gref_mps2", "pose_id")))
+    rec = join_blocks(parts)
     rec.metadata = src.metadata()
     return rec, src.report
-
-
-def _check_header(path: Path, header: list[str], line_no: int, rate_hz: float | None,
-                  temperature_c: float | None) -> dict[str, int]:
-    dupes = sorted({h for h in header if h and header.count(h) > 1})
-    if dupes:
-        raise CsvImportError(f"{path}: line {line_no}: duplicate column(s) {dupes}")
-    col = {h: i for i, h in enumerate(header)
-           if h in COUNT_COLUMNS + GREF_COLUMNS + ANGLE_COLUMNS + OPTIONAL_COLUMNS}
-    missing = [c for c in COUNT_COLUMNS if c not in col]
-    if missing:
-        raise CsvImportError(f"{path}: line {line_no}: missing required column(s) {missing}")
-    has_g = [c in col for c in GREF_COLUMNS]
-    has_a = [c in col for c in ANGLE_COLUMNS]
-    if any(has_g) and any(has_a):
-        raise CsvImportError(f"{path}: line {line_no}: give the reference either as {list(GREF_COLUMNS)} "
-                             f"or as {list(ANGLE_COLUMNS)}, not both")
-    if any(has_g) and not all(has_g):
-        raise CsvImportError(f"{path}: line {line_no}: incomplete reference, need all of {list(GREF_COLUMNS)}")
-    if any(has_a) and not all(has_a):
-        raise CsvImportError(f"{path}: line {line_no}: incomplete reference, need both {list(ANGLE_COLUMNS)}")
-    if not any(has_g) and not any(has_a):
-        raise CsvImportError(f"{path}: line {line_no}: no reference: need {list(GREF_COLUMNS)} or {list(ANGLE_COLUMNS)}")
-    times = [c for c in TIME_COLUMNS if c in col]
-    if len(times) > 1:
-        raise CsvImportError(f"{path}: line {line_no}: {times}: give one time column (t_s in s, t_ms in ms or t_us in us)")
-    if not times and not (rate_hz and rate_hz > 0):
-        raise CsvImportError(f"{path}: no t_s column: give the sample rate (--rate, Hz; --rate 1 counts time in samples)")
-    if "temperature_c" not in col and (temperature_c is None or not math.isfinite(temperature_c)):
-        raise CsvImportError(f"{path}: no temperature_c column: give the temperature (--temperature, degC)")
-    return col
-
-
-def _parse_row(fields: list[str], header: list[str], col: dict[str, int], rate_hz: float | None,
-               temperature_c: float | None, index: int) -> list[float]:
-    """One data row -> [t_s, ref, x, y, z, temp, gx|psi, gy|theta, gz|nan, pose]; ValueError with the reason."""
-    if len(fields) != len(header):
-        raise ValueError(f"{len(fields)} fields, header has {len(header)}")
-    counts = [_number(fields[col[c]], c) for c in COUNT_COLUMNS]
-    if counts[0] <= 0:
-        raise ValueError(f"ref_counts = {fields[col['ref_counts']].strip()} must be > 0")
-    for name, value in zip(COUNT_COLUMNS, counts, strict=True):
-        if value < 0:
-            raise ValueError(f"{name} = {value:g} is negative")
-        if value > ADC_MAX:
-            raise ValueError(f"{name} = {value:g} is beyond the 12-bit ADC range 0 .. {ADC_MAX:g} counts")
-    time_column = next((c for c in TIME_COLUMNS if c in col), None)
-    if time_column is not None:
-        t = _number(fields[col[time_column]], time_column) * TIME_COLUMNS[time_column]
-    elif "sample" in col:
-        t = _number(fields[col["sample"]], "sample") / float(rate_hz)
-    else:
-        t = index / float(rate_hz)
-    lo, hi = iv.TIME_RANGE_S
-    if not lo <= t <= hi:
-        hint = ("; if the times are ms or us (since 1970?), name the column t_ms or t_us"
-                if t > hi and time_column == "t_s" else "")
-        raise ValueError(f"time {t:g} s is outside {lo:g} .. {hi:g} s (the recordings' stamp range){hint}")
-    if "temperature_c" in col:
-        temp = _number(fields[col["temperature_c"]], "temperature_c", allow_empty=True)
-        if math.isfinite(temp):
-            try:
-                iv.check_range("temperature_c", temp, *iv.TEMPERATURE_RANGE_C, "degC (AHT10 range)")
-            except ValueError as exc:
-                raise ValueError(f"{exc}{_temperature_unit_hint(temp)}") from None
-    else:
-        temp = float(temperature_c)
-    if "psi_deg" in col:
-        r = [iv.check_range(c, _number(fields[col[c]], c), -iv.ANGLE_LIMIT_DEG, iv.ANGLE_LIMIT_DEG, "deg")
-             for c in ANGLE_COLUMNS] + [math.nan]
-    else:
-        r = [iv.check_range(c, _number(fields[col[c]], c), -iv.FULL_SCALE_MPS2, iv.FULL_SCALE_MPS2, "m/s^2 (+-20 g)")
-             for c in GREF_COLUMNS]
-    return [t, *counts, temp, *r, _pose(fields, col)]
 
 
 def _pose(fields: list[str], col: dict[str, int]) -> float:
@@ -502,14 +521,14 @@ def _temperature_unit_hint(value: float) -> str:
     return ""
 
 
-def _check_delimiter(path: Path, header: list[str], text: str, line_no: int) -> None:
+def _check_delimiter(path: Path, header: list[str], text: str, line_no: int, required: tuple[str, ...]) -> None:
     """Refuse a header separated by semicolons or tabs (a spreadsheet set to a decimal comma writes ';' and
-    '1,5'), naming the separator, instead of reporting every column as missing."""
-    if any(c in header for c in COUNT_COLUMNS):
+    '1,5'), naming the separator, instead of reporting every ``required`` column as missing."""
+    if any(c in header for c in required):
         return
     for sep, name in ((";", "semicolons"), ("\t", "tabs")):
         names = [h.strip().strip('"').strip().lower() for h in text.split(sep)]
-        if any(c in names for c in COUNT_COLUMNS):
+        if any(c in names for c in required):
             decimal = ", decimal=','" if sep == ";" else ""
             raise CsvImportError(
                 f"{path}: line {line_no}: the columns are separated by {name}, not commas (a spreadsheet set to a "

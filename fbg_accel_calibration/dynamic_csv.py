@@ -1,97 +1,65 @@
 """CSV interchange of a dynamic run (docs/csv_interchange.md, "Dynamic runs"): the sensor's counts and
 the reference transducer's aux counts on one shared time base.
 
-Columns (header row, any order, extra columns ignored): ``t_s`` (s, strictly increasing), ``ref``,
-``x``, ``y``, ``z`` (ADC counts), ``aux`` (ADC counts of the reference transducer), and optionally
-``temperature_c`` (degC; else give one temperature for the run).
+Columns (header row, any order, extra columns ignored): ``t_s`` (s, strictly increasing; or ``t_ms`` / ``t_us``),
+``ref``, ``x``, ``y``, ``z`` (ADC counts), ``aux`` (ADC counts of the reference transducer), and optionally
+``temperature_c`` (degC; else give one temperature for the run). Read by :class:`csv_import.CsvBlocks`, so lines,
+header, separators, cells, time units and temperatures follow the calibration CSV's rules.
 """
 
 from __future__ import annotations
 
-import csv
-import math
 from pathlib import Path
 
 import numpy as np
 
-from .recording import Recording
+from .csv_import import TIME_COLUMNS, CsvBlocks, CsvImportError
+from .recording import Recording, join_blocks
 
-REQUIRED = ("t_s", "ref", "x", "y", "z", "aux")
-MAX_BYTES = 2 << 30
+COUNTS = ("ref", "x", "y", "z", "aux")
+MIN_ROWS = 10
+DynamicCsvError = CsvImportError  # one reader, one error
 
 
-class DynamicCsvError(ValueError):
-    """The CSV is not a dynamic run in the interchange format."""
+class DynamicCsvBlocks(CsvBlocks):
+    """A dynamic-run CSV read block by block; rows are [t_s, ref, x, y, z, temperature_c, aux]."""
+
+    REQUIRED = COUNTS
+    WIDTH = 7
+    REMEDY = "a dynamic run uses every row: correct or delete those lines"
+
+    def _columns(self, header: list[str], where: str) -> dict[str, int]:
+        col = {h: i for i, h in enumerate(header) if h in (*TIME_COLUMNS, *COUNTS, "temperature_c")}
+        missing = ([] if TIME_COLUMNS.keys() & col.keys() else ["t_s"]) + [c for c in COUNTS if c not in col]
+        if missing:
+            raise CsvImportError(f"{where} missing column(s) {missing} (a dynamic run needs t_s (or t_ms, t_us), "
+                                 f"{', '.join(COUNTS)}; found {header})")
+        return col
+
+    def _parse_row(self, fields: list[str], index: int) -> list[float]:
+        ref, x, y, z, aux = (self._value(fields, c) for c in COUNTS)
+        return [self._time(fields, index), ref, x, y, z, self._temperature(fields), aux]
+
+    def _complete(self, row: list[float]) -> None:
+        pass
+
+    def _block(self, data: np.ndarray) -> Recording:
+        n = len(data)
+        return Recording(data[:, 0].copy(), data[:, 1].copy(), data[:, 2:5].copy(), data[:, 5].copy(),
+                         np.full((n, 3), np.nan), np.full(n, -1), aux=data[:, 6].copy(),
+                         metadata={"source": str(self.path)})
 
 
 def read_dynamic_csv(path: str | Path, temperature_c: float | None = None) -> Recording:
-    """A ``Recording`` with ``aux`` from a dynamic-run CSV; one line per malformed row in the error."""
-    p = Path(path)
-    if not p.is_file():
-        raise DynamicCsvError(f"{p}: file not found")
-    if p.stat().st_size > MAX_BYTES:
-        raise DynamicCsvError(f"{p}: larger than 2 GiB")
-    rows: list[list[float]] = []
-    errors: list[str] = []
-    with p.open(newline="", encoding="utf-8-sig", errors="strict") as fh:
-        # (line number in the file, fields): comment and blank lines are skipped but keep their numbers
-        reader = ((n, next(csv.reader([line]))) for n, line in enumerate(fh, start=1)
-                  if line.strip() and not line.lstrip().startswith("#"))
-        try:
-            header = [h.strip() for h in next(reader)[1]]
-        except StopIteration:
-            raise DynamicCsvError(f"{p}: empty file") from None
-        except UnicodeDecodeError as exc:
-            raise DynamicCsvError(f"{p}: not UTF-8 text ({exc})") from None
-        missing = [c for c in REQUIRED if c not in header]
-        if missing:
-            raise DynamicCsvError(f"{p}: missing column(s) {missing} (a dynamic run needs {list(REQUIRED)}; "
-                                  f"found {header})")
-        has_temp = "temperature_c" in header
-        if not has_temp and temperature_c is None:
-            raise DynamicCsvError(f"{p}: no temperature_c column: give the run's temperature (--temperature)")
-        cols = [header.index(c) for c in (*REQUIRED, *(("temperature_c",) if has_temp else ()))]
-        last_t = -math.inf
-        try:
-            for line_no, row in reader:
-                if len(row) != len(header):
-                    errors.append(f"line {line_no}: {len(row)} fields, header has {len(header)}")
-                    continue
-                try:
-                    vals = [_cell(row[i], header[i]) for i in cols]
-                except ValueError as exc:
-                    errors.append(f"line {line_no}: {exc}")
-                    continue
-                if not all(math.isfinite(v) for v in vals[:6]):
-                    errors.append(f"line {line_no}: t_s, ref, x, y, z and aux must be finite numbers")
-                    continue
-                if vals[0] <= last_t:
-                    errors.append(f"line {line_no}: t_s {vals[0]:g} does not increase (previous {last_t:g})")
-                    continue
-                last_t = vals[0]
-                rows.append(vals if has_temp else [*vals, float(temperature_c)])  # type: ignore[arg-type]
-        except UnicodeDecodeError as exc:
-            raise DynamicCsvError(f"{p}: not UTF-8 text ({exc})") from None
-    if errors:
-        shown = "\n".join(f"  {e}" for e in errors[:10])
-        more = f"\n  ... and {len(errors) - 10} more" if len(errors) > 10 else ""
-        raise DynamicCsvError(f"{p}: {len(errors)} malformed row(s), nothing used:\n{shown}{more}")
-    if len(rows) < 10:
-        raise DynamicCsvError(f"{p}: {len(rows)} data row(s), a dynamic run needs many periods of every segment")
-    a = np.asarray(rows, dtype=float)
-    n = len(a)
-    return Recording(t_s=a[:, 0], ref=a[:, 1], xyz=a[:, 2:5], temp_c=a[:, 6], gref_mps2=np.full((n, 3), np.nan),
-                     pose_id=np.full(n, -1), aux=a[:, 5], metadata={"source": str(p)})
-
-
-def _cell(text: str, name: str) -> float:
-    """A cell's value (NaN for an empty cell); ValueError naming the column and the text."""
-    if not text.strip():
-        return math.nan
-    try:
-        return float(text)
-    except ValueError:
-        raise ValueError(f"{name} = {text.strip()!r} is not a number") from None
+    """A ``Recording`` with ``aux`` from a dynamic-run CSV (``temperature_c``: degC of a file without the column);
+    :class:`DynamicCsvError` lists the malformed rows by their line in the file, and nothing is used."""
+    src = DynamicCsvBlocks(path, temperature_c=temperature_c)
+    parts = list(src.blocks())
+    src.check(drop_bad_rows=False)
+    if src.report.rows_kept < MIN_ROWS:
+        raise DynamicCsvError(f"{src.path}: {src.report.rows_kept} data row(s), a dynamic run needs many periods "
+                              "of every segment")
+    return join_blocks(parts)
 
 
 def write_dynamic_csv(path: str | Path, rec: Recording) -> None:
