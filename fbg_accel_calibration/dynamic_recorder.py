@@ -83,7 +83,7 @@ class DynamicRunRecorder(GuardedRecording):
         aux = s.aux if math.isfinite(s.aux) else None
         self.writer.write_raw(s.stamp_ns, s.ref, (s.x, s.y, s.z), temperature_c=float(s.temperature_c),
                               temperature_valid=bool(s.temperature_valid), status=int(s.status), seq=int(s.seq),
-                              board_time_s=t, aux_counts=aux)
+                              board_time_s=t, aux_counts=aux, frame_id=s.frame_id)
         if aux is not None:
             self.aux_samples += 1
             ref = self.plan.reference

@@ -393,7 +393,6 @@ class RecordingWriter:
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
         if compression not in comp:
             raise McapRecordingError(f"compression must be one of {sorted(comp)}, got {compression!r}")
-        self.frame_id = frame_id
         self._sink = _UnbufferedSink(self.path, exclusive)
         self._writer = McapWriter(self._sink, chunk_size=chunk_bytes, compression=comp[compression])
         self._writer.start(profile="ros2", library="fbg_accel_calibration.mcap_io")
@@ -403,10 +402,24 @@ class RecordingWriter:
         for topic, datatype in ((TOPIC_RAW, TYPE_RAW), (TOPIC_TEMPERATURE, TYPE_TEMPERATURE),
                                 (TOPIC_REFERENCE_GRAVITY, TYPE_REFERENCE_GRAVITY), (TOPIC_POSE, TYPE_POSE)):
             self._register(topic, datatype)
-        self._raw_codec = ros2_cdr.FixedJointStateCodec(frame_id, RAW_NAMES)
+        self._raw_codec: ros2_cdr.FixedJointStateCodec
         self._aux_codec: ros2_cdr.FixedJointStateCodec | None = None  # imu/raw with aux_counts (created when first needed)
+        self.frame_id = frame_id  # builds the raw encoder
         if metadata:
             self.add_metadata("run", metadata)
+
+    @property
+    def frame_id(self) -> str:
+        """The sensor frame written into ``imu/raw``, ``imu/temperature`` and a dynamic run's reference: the
+        frame of the latest raw message (``write_raw(frame_id=...)``), else the constructor's."""
+        return self._frame_id
+
+    @frame_id.setter
+    def frame_id(self, value: str) -> None:
+        # the raw encoders hold the frame in their precomputed bytes: a new frame needs new encoders
+        self._frame_id = value
+        self._raw_codec = ros2_cdr.FixedJointStateCodec(value, RAW_NAMES)
+        self._aux_codec = None
 
     def _register(self, topic: str, datatype: str) -> None:
         """Channel of the relative ``topic`` under the full name ``/<namespace>/<topic>``, with the
@@ -427,9 +440,15 @@ class RecordingWriter:
     # -- message kinds
     def write_raw(self, stamp_ns: int, ref_counts: float, xyz_counts: Any, temperature_c: float = math.nan,
                   temperature_valid: bool = True, status: int = 0, seq: int = 0,
-                  board_time_s: float | None = None, aux_counts: float | None = None) -> None:
+                  board_time_s: float | None = None, aux_counts: float | None = None,
+                  frame_id: str | None = None) -> None:
         """One ``imu/raw`` JointState: counts, AHT10 temperature (degC), status flags, sequence, board time (s),
-        and the aux channel's counts of a version-2 board (``aux_counts``, appended as the driver does)."""
+        and the aux channel's counts of a version-2 board (``aux_counts``, appended as the driver does).
+        ``frame_id``: the frame the message was received in (a driver's ``frame_id`` parameter); it becomes
+        :attr:`frame_id`, so later temperature and reference messages say the same sensor frame. None or empty:
+        :attr:`frame_id` as it is."""
+        if frame_id and frame_id != self._frame_id:
+            self.frame_id = frame_id
         x, y, z = (float(v) for v in xyz_counts)
         values = [float(ref_counts), x, y, z, float(temperature_c), 1.0 if temperature_valid else 0.0,
                   float(status), float(seq), float(stamp_ns) * 1e-9 if board_time_s is None else float(board_time_s)]

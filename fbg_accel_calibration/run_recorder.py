@@ -296,11 +296,9 @@ class RunRecorder(GuardedRecording):
         self._last_stamp = s.stamp_ns
         if self._frame_id is None:
             self._frame_id = s.frame_id or self.writer.frame_id
-            self.writer.frame_id = self._frame_id
-        elif s.frame_id and s.frame_id != self._frame_id:
+        elif s.frame_id and s.frame_id != self._frame_id:  # recorded as received (write_raw below), and said
             self._say("warn", f"imu/raw frame_id changed from {self._frame_id!r} to {s.frame_id!r}")
             self._frame_id = s.frame_id
-            self.writer.frame_id = s.frame_id
         temp = float(s.temperature_c)
         if s.temperature_valid and math.isfinite(temp):
             self._temperature_c = temp
@@ -352,7 +350,7 @@ class RunRecorder(GuardedRecording):
         self._write_pose_event(s.stamp_ns, pose_id)
         self.writer.write_raw(s.stamp_ns, s.ref, (s.x, s.y, s.z), temperature_c=temp,
                               temperature_valid=bool(s.temperature_valid), status=int(s.status), seq=int(s.seq),
-                              board_time_s=t_s)
+                              board_time_s=t_s, frame_id=s.frame_id)
         self._pending_label = -1
         seq = self.sequencer
         completed = pose_id >= 0 and (seq.phase is not Phase.RECORDING or seq.index != pose_id)

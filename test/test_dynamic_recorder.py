@@ -93,3 +93,27 @@ def test_segments_near_the_nyquist_frequency_of_the_board_are_warned_at_once(tmp
     rec.close("test")
     warned = [text for level, text in msgs if level == "warn" and "Nyquist" in text]
     assert len(warned) == 1 and "segment(s) at 60 Hz are" in warned[0], warned
+
+
+def test_a_dynamic_run_is_recorded_in_the_frame_the_driver_published_it_in(tmp_path):
+    """``imu/raw`` of a driver with ``frame_id: acc_b_link``: the raw messages and the reference (a vector in the
+    sensor frame) must say ``acc_b_link``. On the unchanged code the dynamic recorder never looked at the
+    messages' frame: everything was written in the writer's default 'fbg_accel_link'."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    plan = ExcitationPlan.load(PLAN)
+    writer = RecordingWriter(tmp_path / "dyn.mcap", {"kind": "dynamic"})
+    rec = DynamicRunRecorder(plan, writer, sensor_id="t")
+    for n in range(200):
+        rec.on_raw(RawSample(stamp_ns=10**18 + n * 10_000_000, ref=2000.0, x=1000.0, y=1000.0, z=1500.0,
+                             temperature_c=24.0, status=int(Status.TEMP_VALID), seq=n, board_time_s=n / RATE,
+                             aux=2048.0, frame_id="acc_b_link"))
+    rec.close("aborted")
+    frames: dict[str, set[str]] = {}
+    with open(tmp_path / "dyn.mcap", "rb") as fh:
+        for _s, channel, _m, decoded in make_reader(fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
+            if hasattr(decoded, "header"):
+                frames.setdefault(channel.topic, set()).add(decoded.header.frame_id)
+    assert frames["/imu/raw"] == {"acc_b_link"}, frames
+    assert frames["/calibration/reference_velocity"] == {"acc_b_link"}, frames
