@@ -185,6 +185,24 @@ def test_sim_launch_board_sim_arguments_parse_and_point_the_driver_at_its_link(t
     assert {"port": link}.items() <= driver["parameters"][-1].items()
 
 
+def test_two_sim_launches_under_two_namespaces_get_a_board_each() -> None:
+    """Two simulated sensors on one vehicle: ``sim.launch.py namespace:=acc_a`` and ``namespace:=acc_b`` with
+    their other arguments left at the defaults. Each driver must read its own board. On the unchanged code
+    both board_sims were given the one default link (/tmp/fbg_accel_sim_board_<uid>): the second re-pointed
+    it, the acc_a driver read board B, the acc_b driver was refused the port for ever and board A had no
+    reader (seen with both launches' command lines as processes)."""
+    (sim_a, drv_a), (sim_b, drv_b) = (descriptions("sim.launch.py", namespace=ns) for ns in ("acc_a", "acc_b"))
+    link_a = sim_a["arguments"][sim_a["arguments"].index("--link") + 1]
+    link_b = sim_b["arguments"][sim_b["arguments"].index("--link") + 1]
+    assert link_a != link_b, link_a
+    assert drv_a["parameters"][-1]["port"] == link_a and drv_b["parameters"][-1]["port"] == link_b
+    (sim_root, _), (sim_root2, _) = descriptions("sim.launch.py"), descriptions("sim.launch.py", namespace="/")
+    root_link = sim_root["arguments"][sim_root["arguments"].index("--link") + 1]
+    assert root_link not in (link_a, link_b)
+    assert sim_root2["arguments"] == sim_root["arguments"]  # "/" is the root namespace, as ""
+    assert "acc_a" in link_a and "/" not in Path(link_a).name  # says whose board it is, one file name
+
+
 def test_launch_arguments_refuse_bad_values_with_their_name() -> None:
     with pytest.raises(ValueError, match="start_driver"):
         descriptions("calibration.launch.py", start_driver="maybe")
