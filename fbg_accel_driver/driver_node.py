@@ -83,6 +83,14 @@ def _overridable() -> QoSOverridingOptions:
     return QoSOverridingOptions.with_default_policies()
 
 
+def diagnostic_prefix(fully_qualified_name: str) -> str:
+    """The node's status names' prefix on the shared ``/diagnostics``: its fully qualified name without the
+    leading ``/`` (``fbg_accel_driver`` at the root, ``acc_a/fbg_accel_driver`` under ``/acc_a``, the remapped name
+    after ``-r __node:=...``). Two drivers of one graph never share a status name: a diagnostic aggregator keys
+    statuses by name, so a shared name let one sensor's OK overwrite the other's ERROR."""
+    return fully_qualified_name.lstrip("/")
+
+
 def run(argv: list[str], managed: bool = False) -> int:
     """Run the node until SIGINT/SIGTERM (``argv``: the ROS arguments); StartupError on a refused start-up."""
     init_ros("driver", argv)
@@ -184,7 +192,7 @@ class DriverNode(Node):
                          "sensor_id": cal.sensor_id if cal else "uncalibrated",
                          "degree": cal.degree if cal else "none"}
         self.temperature_range_c = cal.temperature_range_c if cal else (-math.inf, math.inf)
-        self.diag = DriverDiagnostics(prefix="fbg_accel_driver")
+        self.diag = DriverDiagnostics(prefix=diagnostic_prefix(self.get_fully_qualified_name()))
         self.msgs = DriverMessages(self.frame_id)  # used by the publisher thread only
         self.pub_imu = self._create_data_publisher(Imu, "imu/data_raw") if cal is not None else None
         self.pub_temp = self._create_data_publisher(Temperature, "imu/temperature")

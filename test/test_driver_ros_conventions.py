@@ -60,7 +60,8 @@ def test_qos_parameters_hardware_id_and_clean_shutdown(ros: Context, tmp_path: P
 
         node.create_subscription(DiagnosticArray, "/diagnostics",
                                  lambda m: hw.update(s.hardware_id for s in m.status
-                                                     if s.name.startswith("fbg_accel_driver: ")), 10)
+                                                     if s.name.split(": ")[0] in ("fbg_accel_driver",
+                                                                                  "veh2/fbg_accel_driver")), 10)
         listener.wait_until(lambda: sensor_id in hw and "uncalibrated" in hw, 10,
                             "hardware_id = the calibration's sensor id (driver A) and 'uncalibrated' (driver B)")
         assert not any("/" in h for h in hw), hw  # not the port

@@ -1,0 +1,236 @@
+"""Two accelerometers on one vehicle computer (redundancy), as real processes over real DDS.
+
+One launch: two simulated boards (A at 100 Hz lying z up, B at 200 Hz z down, so every message says whose it
+is), two drivers under ``/acc_a`` and ``/acc_b`` with their own ``frame_id`` and calibration file (their own
+``sensor_id``), a third driver given A's port, and a calibration node recording ``/acc_a``. Board A reboots
+and board B is unplugged for 1 s while the others stream. Checked:
+
+* no cross-talk: topics, parameters and diagnostics of each driver are its own (status names say the
+  namespace, ``hardware_id`` the sensor), frames and data come from its own board;
+* the driver given A's port is refused with the reason and A's stream goes on without a gap;
+* a parameter set on A changes A only; a read-only one is refused with a reason;
+* A's reboot does not interrupt B's stream, B's unplugging does not interrupt A's;
+* SIGTERM/SIGINT end every process with its documented status and no traceback; the calibration MCAP is
+  complete, reads with the mcap reader + ROS 2 decoder and holds A's messages only, in A's frame;
+* a driver restarted on A's port resumes.
+
+No sleeps: every wait is a condition with a deadline (the executor spins meanwhile).
+"""
+
+from __future__ import annotations
+
+import itertools
+import signal
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray
+from process_harness import ChildProcess
+from rclpy.context import Context
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Imu, JointState
+from test_driver_process import REPO, ros  # noqa: F401  (ros: module fixture)
+
+BIN = Path(sys.executable).parent
+NAMESPACES = ("acc_a", "acc_b")
+RESET_AT_S, UNPLUG_AT_S, UNPLUG_S = 10.0, 12.0, 1.0  # board times (s) of A's reboot and B's disconnect
+BOOT_GAP_S = 0.3  # board.boot_gap_s of config/sim_default.yaml: no frame while a board reboots
+
+
+def _driver(name: str, ns: str, port: Path, cal: Path) -> ChildProcess:
+    return ChildProcess(name, [BIN / "driver", "--ros-args", "-r", f"__ns:=/{ns}", "-p", f"port:={port}",
+                               "-p", f"frame_id:={ns}_link", "-p", f"calibration_file:={cal}"])
+
+
+def test_two_sensors_on_one_vehicle_do_not_cross_talk(ros: Context, tmp_path: Path) -> None:  # noqa: F811
+    """On the unchanged code the calibration MCAP held A's imu/raw in 'fbg_accel_link' (the writer's default),
+    not the driver's 'acc_a_link' (2393 of 2393 messages in the probe), and both drivers published the same
+    status names on /diagnostics ('fbg_accel_driver: serial link', ...): only hardware_id told them apart, and a
+    diagnostic aggregator, which keys statuses by name, shows one sensor's ERROR overwritten by the other's OK."""
+    import time
+
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    sim_cal = yaml.safe_load((REPO / "config" / "calibration_sim.yaml").read_text())
+    cals = {}
+    for ns in NAMESPACES:
+        cals[ns] = tmp_path / f"cal_{ns}.yaml"
+        cals[ns].write_text(yaml.safe_dump({**sim_cal, "sensor_id": f"{ns}_sensor"}))
+    link = {ns: tmp_path / f"board_{ns}" for ns in NAMESPACES}
+    procs: dict[str, ChildProcess] = {}
+    node = rclpy.create_node("two_sensors_probe", context=ros)
+    executor = SingleThreadedExecutor(context=ros)
+    executor.add_node(node)
+
+    def spin_until(cond, timeout_s: float, what: str) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not cond():
+            if time.monotonic() > deadline:
+                raise AssertionError(f"timed out after {timeout_s:g} s waiting for {what}; output:\n" +
+                                     "\n".join(f"--- {n}\n{p.output()[-1500:]}" for n, p in procs.items()))
+            executor.spin_once(timeout_sec=0.05)
+
+    imu: dict[str, list[tuple[float, Imu]]] = {ns: [] for ns in NAMESPACES}
+    raw: dict[str, list[JointState]] = {ns: [] for ns in NAMESPACES}
+    qos = QoSProfile(depth=20000, reliability=ReliabilityPolicy.RELIABLE)
+    for ns in NAMESPACES:
+        node.create_subscription(Imu, f"/{ns}/imu/data_raw", lambda m, ns=ns: imu[ns].append((time.monotonic(), m)), qos)
+        node.create_subscription(JointState, f"/{ns}/imu/raw", raw[ns].append, qos)
+    statuses: list[tuple[float, str, str, int, str]] = []  # arrival, name, hardware_id, level, message
+
+    def on_diag(msg: DiagnosticArray) -> None:
+        now = time.monotonic()
+        statuses.extend((now, s.name, s.hardware_id, s.level[0] if isinstance(s.level, bytes) else int(s.level), s.message)
+                        for s in msg.status)
+
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 100)
+    try:
+        procs["sim_a"] = ChildProcess("sim_a", [BIN / "board_sim", "--link", link["acc_a"], "--seed", "1", "--rate", "100",
+                                                "--set", f"faults.resets.at_s=[{RESET_AT_S}]"])
+        procs["sim_b"] = ChildProcess("sim_b", [BIN / "board_sim", "--link", link["acc_b"], "--seed", "2", "--rate", "200",
+                                                "--set", "scenario.poses.static.theta_deg=180",
+                                                "--set", f"faults.disconnects.at_s=[{UNPLUG_AT_S}]",
+                                                "--set", f"faults.disconnects.down_s={UNPLUG_S}"])
+        for name in ("sim_a", "sim_b"):
+            procs[name].wait_line("^PTY ")
+        for ns in NAMESPACES:
+            procs[ns] = _driver(ns, ns, link[ns], cals[ns])
+        procs["acc_a"].wait_line("serial link up", 60)
+        procs["calibration"] = ChildProcess("calibration", [
+            BIN / "calibration", "--ros-args", "-r", "__ns:=/acc_a",
+            "-p", f"plan_file:={REPO / 'config' / 'pose_plan_six_position.yaml'}", "-p", f"output_dir:={tmp_path}",
+            "-p", "run_label:=run_a", "-p", "sensor_id:=acc_a_sensor", "-p", "progress:=false",
+            "-p", "noise_learn_s:=2.0"])
+        spin_until(lambda: all(len(imu[ns]) >= 50 for ns in NAMESPACES), 40, "both drivers' imu/data_raw")
+
+        # a third driver given A's port: refused with the reason, A streams on
+        t_c = time.monotonic()
+        procs["acc_c"] = _driver("acc_c", "acc_c", link["acc_a"], cals["acc_a"])
+        refusal = procs["acc_c"].wait_line("serial link down", 30)
+        assert f"cannot open {link['acc_a']}: in use by another process" in refusal, refusal
+
+        # topics and parameter services: each driver's under its own namespace, nothing at the root
+        topics = {t for t, _ in node.get_topic_names_and_types()}
+        for ns in NAMESPACES:
+            assert {f"/{ns}/imu/data_raw", f"/{ns}/imu/raw", f"/{ns}/imu/temperature"} <= topics, topics
+        assert not {"/imu/data_raw", "/imu/raw", "/imu/temperature"} & topics, topics
+
+        # parameters: decimation on A changes A's rate only; read-only refused with its reason
+        clients = {ns: AsyncParameterClient(node, f"/{ns}/fbg_accel_driver") for ns in NAMESPACES}
+        for c in clients.values():
+            assert c.wait_for_services(timeout_sec=20.0)
+
+        def call(future):
+            spin_until(future.done, 20, "a parameter service")
+            return future.result()
+
+        res = call(clients["acc_a"].set_parameters([Parameter("decimation", Parameter.Type.INTEGER, 5)]))
+        assert res.results[0].successful, res.results[0].reason
+        res = call(clients["acc_a"].set_parameters([Parameter("frame_id", Parameter.Type.STRING, "acc_b_link")]))
+        assert not res.results[0].successful and "read-only" in res.results[0].reason, res.results[0].reason
+        res = call(clients["acc_a"].set_parameters([Parameter("decimation", Parameter.Type.INTEGER, 0)]))
+        assert not res.results[0].successful and "decimation" in res.results[0].reason, res.results[0].reason
+        got = call(clients["acc_b"].get_parameters(["decimation", "frame_id"]))
+        assert (got.values[0].integer_value, got.values[1].string_value) == (1, "acc_b_link")
+        n_raw_a = len(raw["acc_a"])  # messages of decimation 1 still on their way: count from 100 samples on
+        spin_until(lambda: len(raw["acc_a"]) - n_raw_a >= 100, 20, "100 more of A's raw samples")
+        n_imu = {ns: len(imu[ns]) for ns in NAMESPACES}
+        n_raw_a = len(raw["acc_a"])
+        spin_until(lambda: len(raw["acc_a"]) - n_raw_a >= 300, 20, "300 more of A's raw samples")
+        ratio_a = (len(raw["acc_a"]) - n_raw_a) / max(1, len(imu["acc_a"]) - n_imu["acc_a"])
+        assert 4.0 <= ratio_a <= 6.5, ratio_a  # decimation 5 on A
+        assert len(imu["acc_b"]) - n_imu["acc_b"] >= 1.6 * (len(raw["acc_a"]) - n_raw_a), "B's rate changed"
+
+        # A reboots, B is unplugged: wait until both came back (A publishes after its reboot, B reconnected)
+        spin_until(lambda: procs["acc_b"].find("serial link down") is not None
+                   and sum("serial link up" in ln for ln in procs["acc_b"].lines) >= 2
+                   and procs["calibration"].find("board reset") is not None, 40,
+                   "A's reboot (the calibration node says it) and B's reconnection")
+        t_back = time.monotonic()
+        spin_until(lambda: any(t > t_back + 0.5 for t, _ in imu["acc_b"]), 20, "B streaming again")
+        spin_until(lambda: procs["calibration"].find(r"pose 0 \(z_down\) recorded") is not None, 30,
+                   "the calibration node records pose 0")
+        spin_until(lambda: sum(1 for s in statuses if s[0] > time.monotonic() - 1.5) >= 26, 10, "a fresh diagnostics round")
+
+        # streams: own frame, own board (A lies z up at 100 Hz, B z down at 200 Hz), stamps increasing
+        for ns, sign in (("acc_a", 1.0), ("acc_b", -1.0)):
+            msgs = [m for _, m in imu[ns]]
+            assert {m.header.frame_id for m in msgs} == {f"{ns}_link"}
+            assert {m.header.frame_id for m in raw[ns]} == {f"{ns}_link"}
+            assert all(8.5 < sign * m.linear_acceleration.z < 11.0 for m in msgs), ns
+            stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in msgs]
+            assert all(b > a for a, b in itertools.pairwise(stamps)), ns
+        # diagnostics: each status says its driver by name (namespace) and its sensor by hardware_id
+        # (acc_c was given A's calibration: the same hardware_id, so only the name can tell it from acc_a)
+        recent = [s for s in statuses if s[0] > time.monotonic() - 1.5]
+        by_hw = {ns: {name for _, name, hw, _, _ in recent if hw == f"{ns}_sensor"} for ns in NAMESPACES}
+        assert "acc_b/fbg_accel_driver: serial link" in by_hw["acc_b"], sorted(by_hw["acc_b"])
+        assert all(n.startswith("acc_b/fbg_accel_driver: ") for n in by_hw["acc_b"]), sorted(by_hw["acc_b"])
+        assert {n.split(": ")[0] for n in by_hw["acc_a"]} == {"acc_a/fbg_accel_driver", "acc_c/fbg_accel_driver"}, \
+            sorted(by_hw["acc_a"])
+
+        # A's reboot and B's unplugging are their own: each stream's one silence after acc_c started is its own
+        # fault, which the other stream does not see. A publishes at 20 Hz (decimation 5), B at 200 Hz: 0.25 s
+        # is well above their periods and below either fault's silence (0.3 s boot gap, 1 s unplugged)
+        gaps = {ns: sorted(((b - a, a) for a, b in itertools.pairwise(t for t, _ in imu[ns]) if a > t_c), reverse=True)
+                for ns in NAMESPACES}
+        (a_len, a_at), (b_len, b_at) = gaps["acc_a"][0], gaps["acc_b"][0]
+        assert a_len >= BOOT_GAP_S and b_len >= UNPLUG_S, (a_len, b_len)
+        assert abs((b_at - a_at) - (UNPLUG_AT_S - RESET_AT_S)) < 1.5, (a_at, b_at)  # the faults, not a stall
+        assert gaps["acc_a"][1][0] < 0.25 and gaps["acc_b"][1][0] < 0.25, (gaps["acc_a"][:3], gaps["acc_b"][:3])
+        link_errors = {ns: [t for t, name, _, level, _ in statuses if name == f"{ns}/fbg_accel_driver: serial link"
+                            and level == 2] for ns in ("acc_a", "acc_b", "acc_c")}
+        assert [t for t in link_errors["acc_b"] if t > b_at], "B's serial link ERROR while unplugged"
+        assert not link_errors["acc_a"], "A's serial link said ERROR"
+        assert link_errors["acc_c"], "the refused driver's serial link is ERROR"
+
+        # life cycle: the third driver SIGINT, A SIGTERM, A restarted on its port resumes; the recorder SIGTERM
+        assert procs["acc_c"].stop() == 0
+        procs["acc_a"].proc.send_signal(signal.SIGTERM)
+        assert procs["acc_a"].wait_exit(15) == 0
+        n_a = len(imu["acc_a"])
+        procs["acc_a2"] = _driver("acc_a2", "acc_a", link["acc_a"], cals["acc_a"])
+        spin_until(lambda: len(imu["acc_a"]) >= n_a + 50, 40, "A resumes after a restart on its port")
+        procs["calibration"].proc.send_signal(signal.SIGTERM)
+        assert procs["calibration"].wait_exit(30) == 3  # interrupted: MCAP closed, no fit
+        for name in ("acc_a2", "acc_b"):
+            assert procs[name].stop() == 0, procs[name].output()
+        for name in ("sim_a", "sim_b"):
+            assert procs[name].stop() == 0, procs[name].output()
+        for name, p in procs.items():
+            assert "Traceback" not in p.output(), (name, p.output())
+
+        # the recording: complete (summary), A's topics only, A's frame, A's data (z up: z counts of A's board)
+        from mcap.reader import make_reader
+        from mcap_ros2.decoder import DecoderFactory
+
+        recorded: dict[str, set[str]] = {}
+        with open(tmp_path / "run_a.mcap", "rb") as fh:
+            reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+            assert reader.get_summary() is not None, "no summary: the MCAP was not closed"
+            stamps_a = {m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in raw["acc_a"]}
+            n_raw_rec = 0
+            for _schema, channel, message, decoded in reader.iter_decoded_messages():
+                assert channel.topic.startswith("/acc_a/"), channel.topic
+                if hasattr(decoded, "header"):
+                    recorded.setdefault(channel.topic, set()).add(decoded.header.frame_id)
+                if channel.topic == "/acc_a/imu/raw":
+                    n_raw_rec += 1
+                    assert message.log_time in stamps_a, "a recorded imu/raw stamp that driver A never published"
+        assert n_raw_rec >= 300, n_raw_rec
+        assert recorded["/acc_a/imu/raw"] == {"acc_a_link"}, recorded
+        assert recorded["/acc_a/imu/temperature"] == {"acc_a_link"}, recorded
+    finally:
+        for p in procs.values():
+            p.kill()
+        executor.shutdown()
+        node.destroy_node()
+
+
+if __name__ == "__main__":
+    sys.exit(pytest.main([__file__, "-q"]))
