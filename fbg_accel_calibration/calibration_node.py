@@ -43,7 +43,7 @@ from .calibration_main import EXIT_FIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_R
 from .dynamic_recorder import DynamicRunRecorder
 from .excitation_plan import FORMAT_NAME as EXCITATION_FORMAT
 from .excitation_plan import ExcitationPlan, ExcitationPlanError
-from .mcap_io import RAW_NAMES, RecordingWriter
+from .mcap_io import RAW_NAMES, TOPIC_RAW, TOPIC_TEMPERATURE, RecordingWriter, full_topic_name
 from .pose_plan import PosePlan, PosePlanError
 from .pose_sequencer import Mode
 from .progress_display import ProgressDisplay
@@ -180,6 +180,7 @@ class CalibrationNode(Node):
 
     def _open_recording(self, p: dict[str, Any], metadata: dict[str, Any]) -> RecordingWriter:
         """The run's MCAP, created exclusively (never over a file, never through a link)."""
+        namespace = self._recorded_namespace()  # before anything is created
         out_dir = Path(p["output_dir"])
         label = p["run_label"] or self._default_label(p["sensor_id"], p["temperature_level"])
         if not re.fullmatch(r"[A-Za-z0-9_.+-]+", label):
@@ -194,12 +195,32 @@ class CalibrationNode(Node):
             raise StartupError(f"cannot create output_dir {out_dir}: {exc}") from None
         try:
             return RecordingWriter(self.mcap_path, {"run_label": label, **metadata}, exclusive=True,
-                                   namespace=self.get_namespace())
+                                   namespace=namespace)
         except FileExistsError:
             raise StartupError(f"{self.mcap_path} exists (a file or a symbolic link); choose another run_label "
                                "(a recording is never overwritten nor written through a link)") from None
         except OSError as exc:
             raise StartupError(f"cannot create {self.mcap_path}: {exc}") from None
+
+    def _recorded_namespace(self) -> str:
+        """The namespace the recording names its topics under: that of the topics the node subscribes to, after
+        remapping (``-r __ns:=/acc_a``, or ``-r imu/raw:=/acc_a/imu/raw -r imu/temperature:=/acc_a/imu/temperature``
+        for a node left elsewhere), so the file says which sensor it recorded. The file and the fit name a run's
+        topics ``<namespace>/imu/raw``, ``<namespace>/imu/temperature``, ...: remaps that cannot be written so
+        are a StartupError."""
+        raw = self.resolve_topic_name(TOPIC_RAW)
+        temperature = self.resolve_topic_name(TOPIC_TEMPERATURE)
+        if not raw.endswith("/" + TOPIC_RAW):
+            raise StartupError(f"{TOPIC_RAW} resolves to {raw}: a recording names the raw topic <namespace>/{TOPIC_RAW}; "
+                               f"remap it to a name ending in /{TOPIC_RAW}, or run the node in the sensor's namespace "
+                               "(-r __ns:=/<namespace>)")
+        namespace = raw[: -len(TOPIC_RAW) - 1] or "/"
+        if temperature != full_topic_name(namespace, TOPIC_TEMPERATURE):
+            raise StartupError(f"{TOPIC_TEMPERATURE} resolves to {temperature} and {TOPIC_RAW} to {raw}: a recording "
+                               f"names both under one namespace; remap {TOPIC_TEMPERATURE} to "
+                               f"{full_topic_name(namespace, TOPIC_TEMPERATURE)} too, or run the node in the sensor's "
+                               "namespace (-r __ns:=/<namespace>)")
+        return namespace
 
     def _subscribe(self) -> None:
         self.display = ProgressDisplay(sys.stdout) if self.p["progress"] else None
@@ -207,10 +228,10 @@ class CalibrationNode(Node):
         self._bad_names_warned = False
         self.sub_raw = self.create_subscription(
             JointState, "imu/raw", self._on_raw, RAW_QOS,
-            event_callbacks=SubscriptionEventCallbacks(matched=lambda info: self._on_matched("imu/raw", info)))
+            event_callbacks=SubscriptionEventCallbacks(matched=lambda info: self._on_matched(self.sub_raw.topic_name, info)))
         self.sub_temp = self.create_subscription(
             Temperature, "imu/temperature", self._on_temperature, RAW_QOS,
-            event_callbacks=SubscriptionEventCallbacks(matched=lambda info: self._on_matched("imu/temperature", info)))
+            event_callbacks=SubscriptionEventCallbacks(matched=lambda info: self._on_matched(self.sub_temp.topic_name, info)))
         self.srv_next = self.create_service(Trigger, "calibration/next_pose", self._on_next)
         self.srv_abort = self.create_service(Trigger, "calibration/abort", self._on_abort)
         self.watch_timer = self.create_timer(1.0, self._check_stream)
@@ -300,7 +321,7 @@ class CalibrationNode(Node):
     def _on_temperature(self, msg: Temperature) -> None:
         if not self.recorder.finished:
             stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-            self.recorder.on_temperature(stamp_ns, msg.temperature, msg.variance)
+            self.recorder.on_temperature(stamp_ns, msg.temperature, msg.variance, frame_id=msg.header.frame_id)
 
     def _on_next(self, _req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
         resp.success, resp.message = self.recorder.request_next()

@@ -472,10 +472,12 @@ class RecordingWriter:
             self._register(topic, TYPE_REFERENCE_GRAVITY)
         self._write(topic, stamp_ns, ros2_cdr.vector3_stamped(stamp_ns, self.frame_id, vector))
 
-    def write_temperature(self, stamp_ns: int, temperature_c: float, variance_c2: float = 0.0) -> None:
-        """One ``imu/temperature`` message (degC, variance degC^2)."""
+    def write_temperature(self, stamp_ns: int, temperature_c: float, variance_c2: float = 0.0,
+                          frame_id: str | None = None) -> None:
+        """One ``imu/temperature`` message (degC, variance degC^2) in ``frame_id``, the frame it was received in
+        (None: :attr:`frame_id`, that of the raw messages)."""
         self._write(TOPIC_TEMPERATURE, stamp_ns,
-                    ros2_cdr.temperature(stamp_ns, self.frame_id, float(temperature_c), float(variance_c2)))
+                    ros2_cdr.temperature(stamp_ns, frame_id or self.frame_id, float(temperature_c), float(variance_c2)))
 
     def write_reference_gravity(self, stamp_ns: int, gref_mps2: Any) -> None:
         """Reference specific force (3,) of the current pose in the table frame, m/s^2."""

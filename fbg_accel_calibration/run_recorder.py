@@ -190,12 +190,14 @@ class GuardedRecording:
             self._write_failed(exc)
             return -1
 
-    def on_temperature(self, stamp_ns: int, temperature_c: float, variance_c2: float) -> None:
+    def on_temperature(self, stamp_ns: int, temperature_c: float, variance_c2: float, frame_id: str = "") -> None:
+        """One ``imu/temperature`` message (degC, variance degC^2, ROS time in ns), recorded in its own ``frame_id``
+        (empty: the frame of the raw messages)."""
         if self._stopped:
             return
         self.counters.messages_temperature += 1
         try:
-            self.writer.write_temperature(stamp_ns, temperature_c, variance_c2)
+            self.writer.write_temperature(stamp_ns, temperature_c, variance_c2, frame_id=frame_id or None)
         except OSError as exc:
             self._write_failed(exc)
 

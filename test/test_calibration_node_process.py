@@ -497,6 +497,27 @@ def test_bad_start_up_input_gives_one_clear_error(plan_dir, params, message):
     assert not list(plan_dir.glob("*.mcap")), "no recording may be started on bad input"
 
 
+@pytest.mark.parametrize(
+    ("remaps", "message"),
+    [
+        (["imu/raw:=/acc_b/imu/raw"], "imu/temperature resolves to /imu/temperature"),
+        (["imu/raw:=/acc_b/raw_counts", "imu/temperature:=/acc_b/temperature"], "imu/raw resolves to /acc_b/raw_counts"),
+    ],
+)
+def test_remaps_the_recording_cannot_name_are_refused_with_the_reason(plan_dir, remaps, message):
+    """A recording names its topics ``<namespace>/imu/raw``, ``<namespace>/imu/temperature``, ... (the fit finds a
+    run's topics by that namespace). A node whose two subscriptions resolve into different namespaces, or to a
+    raw topic not named ``imu/raw``, cannot write what it records under the names it recorded: on the unchanged
+    code it started (no exit within the 20 s timeout, both cases) and wrote /acc_b's messages as /imu/raw (the
+    names of its own namespace: test_two_sensors_process.py)."""
+    args = [str(CALIBRATION_EXE), "--ros-args", *[a for r in remaps for a in ("-r", r)],
+            "-p", f"output_dir:={plan_dir}", "-p", f"plan_file:={plan_dir / 'plan.yaml'}"]
+    res = subprocess.run(args, capture_output=True, text=True, timeout=20)  # a refusal takes ~1 s
+    assert res.returncode == 2, res.stdout + res.stderr
+    assert message in res.stderr, res.stderr
+    assert not list(plan_dir.glob("*.mcap")), "no recording may be started on bad input"
+
+
 def test_an_existing_recording_is_never_overwritten(plan_dir):
     (plan_dir / "keep.mcap").write_bytes(b"precious")
     args = [str(CALIBRATION_EXE), "--ros-args", "-p", f"plan_file:={plan_dir / 'plan.yaml'}", "-p", f"output_dir:={plan_dir}",

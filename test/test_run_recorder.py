@@ -554,14 +554,16 @@ def test_raw_messages_are_recorded_in_the_frame_the_driver_published_them_in(tmp
     ...)"). The writer built its raw encoder with its default frame at construction and the recorder only changed
     the attribute: on the unchanged code the file held imu/raw in 'fbg_accel_link' (all 40+ messages) while
     imu/temperature, written from the attribute, said 'acc_a_link' (two sensors' recordings then claimed the
-    same frame)."""
+    same frame). A temperature that arrived before the first imu/raw was still written in 'fbg_accel_link' after
+    that first fix (one message in 1 of 3 runs of test_two_sensors_process.py): each message keeps its own frame."""
     import dataclasses
 
     plan = _plan()
     rec = _recorder(tmp_path, plan)
+    rec.on_temperature(10**18 - 5_000_000, 24.0, 0.09, frame_id="acc_a_link")  # before the first imu/raw
     for s, _ in _samples(plan):
         rec.on_raw(dataclasses.replace(s, frame_id="acc_a_link"))
-        rec.on_temperature(s.stamp_ns, 24.0, 0.09)
+        rec.on_temperature(s.stamp_ns, 24.0, 0.09, frame_id="acc_a_link")
     rec.close("complete")
     frames = _frames_in_file(tmp_path / "run.mcap")
     assert frames["/imu/raw"] == {"acc_a_link"}, frames
