@@ -259,8 +259,6 @@ class DriverCore:
         self._delay_ns = round(self._dyn.stamp_delay_s(mode) * 1e9) if mode == "delay" else 0
         self._eq_cache: dict[int, tuple[int, tuple[float, float, float]]] = {}  # dt_us -> (delay ns, var factors)
         self._eq_mean_cache: dict[tuple[int, int], tuple[float, float, float]] = {}  # (dt_us, n) -> mean factors
-        # the reference level the calibration expects at a temperature reading (counts; NaN: none recorded)
-        self._ref_level_cache: dict[float, float] = {}
         self._has_ref_level = calibration is not None and len(calibration.reference_level_counts) > 0
 
     def _base_sigma(self) -> np.ndarray:
@@ -421,7 +419,6 @@ class DriverCore:
         full_var = cfg.full_scale_mps2**2
         check_ref = self._has_ref_level
         ref_tol = cfg.reference_level_tolerance
-        ref_cache = self._ref_level_cache
         # (stamp, frame, temperature, eq. 28 value, temperature held, variance factors, counts used: ref, x, y, z,
         #  reference off its calibrated level)
         used: list[tuple[int, Frame, float, tuple[float, float, float], bool, tuple[float, float, float],
@@ -469,11 +466,7 @@ class DriverCore:
             base = cal.acceleration_at(cx / ref, cy / ref, cz / ref, temp)
             ref_off = False
             if check_ref:  # the measured reference against the level the fit saw at this temperature (raw counts)
-                expected = ref_cache.get(temp)
-                if expected is None:
-                    if len(ref_cache) >= 4096:
-                        ref_cache.clear()
-                    expected = ref_cache[temp] = cal.expected_reference_counts(temp)
+                expected = cal.expected_reference_counts(temp)
                 if abs(f.ref - expected) > ref_tol * expected:
                     vfac = tuple(v * (expected / f.ref) ** 2 for v in vfac)  # noise in counts over a smaller reference
                     ref_off = True

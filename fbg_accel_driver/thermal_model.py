@@ -112,6 +112,8 @@ class ThermalCalibration:
     # changed after construction (a new calibration is a new object, with an empty cache)
     _coef_cache: dict[float, tuple[tuple[float, ...], tuple[float, float, float]]] = field(
         default_factory=dict, init=False, repr=False, compare=False)
+    # expected_reference_counts per temperature reading, as _coef_cache
+    _ref_level_cache: dict[float, float] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.M = np.asarray(self.M, dtype=float)
@@ -205,11 +207,16 @@ class ThermalCalibration:
 
     def expected_reference_counts(self, temp_c: float) -> float:
         """Reference counts (ADC counts) the fit saw at ``temp_c`` (degC): its per-level means, linear in
-        temperature between levels, the outer level's beyond them; NaN if the file has none."""
-        t, c = self.reference_level_temperature_c, self.reference_level_counts
-        if len(t) == 0 or not math.isfinite(temp_c):
-            return math.nan
-        return float(np.interp(temp_c, t, c))
+        temperature between levels, the outer level's beyond them; NaN if the file has none. Cached per temperature
+        (the driver asks for every sample, :meth:`coefficients_at`)."""
+        level = self._ref_level_cache.get(temp_c)
+        if level is None:
+            t, c = self.reference_level_temperature_c, self.reference_level_counts
+            level = float(np.interp(temp_c, t, c)) if len(t) and math.isfinite(temp_c) else math.nan
+            if len(self._ref_level_cache) >= 256:
+                self._ref_level_cache.clear()
+            self._ref_level_cache[temp_c] = level
+        return level
 
     def in_range(self, temp_c: float | np.ndarray, margin_c: float = AHT10_SIGMA_C) -> bool | np.ndarray:
         """Whether ``temp_c`` (degC; a value or an array, NaN is outside) lies in the calibrated range widened by
