@@ -64,6 +64,7 @@ from .effects import (
     motion_groups,
     separating_measurement,
     visit_ids,
+    visit_means,
 )
 from .model_selection import DegreeScores, choose_degree
 from .model_selection import select_degree as calibration_select_degree
@@ -2084,12 +2085,9 @@ def _calibration_from(spec: ModelSpec, des: Design, cv: CvResult, data: Diagnosi
 def _visit_reference_range(data: DiagnosisData, groups: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """(3, 2): lowest and highest visit-mean reference specific force (m/s^2) along each table axis over the visits of
     ``rows`` (the poses the calibration was fitted on; ``thermal_fit.reference_range`` takes cell means)."""
-    sel = rows & (groups >= 0) & np.all(np.isfinite(data.gref), axis=1)
-    if not sel.any():
+    g = visit_means(groups, rows & np.all(np.isfinite(data.gref), axis=1), data.gref)
+    if not len(g):
         return np.full((3, 2), np.nan)
-    _, inv = np.unique(groups[sel], return_inverse=True)
-    n = np.bincount(inv).astype(float)
-    g = np.column_stack([np.bincount(inv, weights=data.gref[sel, k]) for k in range(3)]) / n[:, None]
     return np.column_stack([g.min(axis=0), g.max(axis=0)])
 
 

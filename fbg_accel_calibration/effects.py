@@ -512,6 +512,15 @@ class SpectralNonlinearityEffect(Effect):
         return "largest quadratic coefficient per axis = " + ", ".join(f"{v:.3g}" for v in np.max(np.abs(c), axis=1)) + " m/s^2"
 
 
+def visit_means(groups: np.ndarray, rows: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Mean of ``values`` (N, k) over each visit (``groups`` id >= 0) of the samples ``rows`` (N,) bool: (V, k), in
+    ascending visit id."""
+    sel = rows & (groups >= 0)
+    _, inv = np.unique(groups[sel], return_inverse=True)
+    n = np.bincount(inv).astype(float)
+    return np.column_stack([np.bincount(inv, weights=v, minlength=len(n)) for v in values[sel].T]) / n[:, None]
+
+
 def orientation_share_of_visit_times(data: DiagnosisData) -> float:
     """Share (0..1) of the variance of the visits' mean board times (s) that their orientations explain (1 - within /
     total sum of squares; 1 when the times do not vary). An orientation is a direction of the visit-mean reference,
@@ -522,13 +531,11 @@ def orientation_share_of_visit_times(data: DiagnosisData) -> float:
     from .thermal_fit import ORIENTATION_TOLERANCE_DEG
 
     def compute() -> float:
-        sel = data.use & (data.group >= 0) & np.all(np.isfinite(data.gref), axis=1)
-        _, inv = np.unique(data.group[sel], return_inverse=True)
-        n = np.bincount(inv).astype(float)
-        if len(n) < 2:
+        means = visit_means(data.group, data.use & np.all(np.isfinite(data.gref), axis=1),
+                            np.column_stack([data.t_s, data.gref]))
+        if len(means) < 2:
             return 1.0
-        t = np.bincount(inv, weights=data.t_s[sel]) / n
-        g = np.column_stack([np.bincount(inv, weights=data.gref[sel, k]) for k in range(3)]) / n[:, None]
+        t, g = means[:, 0], means[:, 1:]
         u = g / np.maximum(np.linalg.norm(g, axis=1), 1e-300)[:, None]
         cos_tol = math.cos(math.radians(ORIENTATION_TOLERANCE_DEG))
         label, seen = np.empty(len(u), int), []
