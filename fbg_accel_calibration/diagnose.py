@@ -1650,7 +1650,7 @@ class ResidualStructure:
     ratio: np.ndarray
     pose_chi2_p: np.ndarray  # (3,)
     excess_rms: np.ndarray  # (3,) sqrt(heldout^2 - floor^2)
-    per_pose: list[dict[str, Any]]  # pose id, n, mean residual (3,), z (3,)
+    per_pose: list[dict[str, Any]]  # pose id, n, mean residual (3,), z (3,), mean time (s from the first sample)
     pose_mean_rms: np.ndarray  # (3,)
     corr_time: np.ndarray
     corr_temperature: np.ndarray
@@ -1931,6 +1931,9 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                         if b) + f" ({_fmt3(after_ho)} against {_fmt3(noise_after)} m/s^2): a model cannot predict "
                         "held-out data better than the data repeat themselves, so the floor or the model is wrong "
                         "(an added term that removes noise instead of an effect?)")
+    time_label = time_axis_label(rec.metadata) if isinstance(rec, Recording) else "time [s]"
+    if time_label == "time [s]":  # the report's times start at the first sample (residual_structure)
+        time_label = "time from the first sample [s]"
     return DiagnosisResult(
         data=data, degree=sel_degree, degree_table=degree_table, n_levels=n_levels, noise_floor=noise,
         before_heldout_rmse=before_ho, before_insample_rmse=before_in, after_heldout_rmse=after_ho,
@@ -1945,7 +1948,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                   "alpha": alpha, "min_rel_gain": min_rel_gain, "max_effects": max_effects, "seed": seed,
                   "search_rows": n_search, "degree_forced": degree is not None,
                   "settle_s": settle_s,
-                  "time_label": time_axis_label(rec.metadata) if isinstance(rec, Recording) else "time [s]"})
+                  "time_label": time_label})
 
 
 def _flagged_visits_note(data: DiagnosisData, groups: np.ndarray, models: list[VisitNoise], des: Design, cv: CvResult,
@@ -2225,8 +2228,10 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
     pose_of[inv] = data.pose_id[r]  # orientation of each visit (samples in motion: -1 may overwrite; fixed below)
     static_r = r & (data.pose_id >= 0)
     pose_of[np.searchsorted(ug, groups[static_r])] = data.pose_id[static_r]
+    t0 = float(np.min(data.t_s))  # visits are placed from the first sample: a CSV may be timed in epoch seconds
     per_pose = [{"visit": int(ug[i]), "pose": int(pose_of[i]), "n": int(cnt[i]), "mean_mps2": means[i], "z": z[i],
-                 "gref_mps2": g_mean[i], "t_s": float(t_mean[i]), "temp_c": float(temp_mean[i])} for i in range(len(ug))]
+                 "gref_mps2": g_mean[i], "t_s": float(t_mean[i] - t0), "temp_c": float(temp_mean[i])}
+                for i in range(len(ug))]
     per_pose.sort(key=lambda d: -float(np.max(np.abs(d["z"]))))
     pose_rms = np.sqrt(np.mean(means**2, axis=0))
     if significant:
@@ -2239,7 +2244,7 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
             verdict += (f"; small on {'xyz'[j]}: held-out RMSE within {ratio_limit:g}x the per-sample floor, but "
                         f"systematic (pose-mean RMS {pose_rms[j]:.3g} m/s^2 = {pose_rms[j] / max(noise[j], 1e-12):.2f}x "
                         f"floor, does not average out; largest at visit {top['visit']} (pose {top['pose']}, "
-                        f"t {top['t_s']:.0f} s): {top['mean_mps2'][j]:+.3g} m/s^2, z = {top['z'][j]:+.1f})")
+                        f"{top['t_s']:.0f} s from the first sample): {top['mean_mps2'][j]:+.3g} m/s^2, z = {top['z'][j]:+.1f})")
     else:
         verdict = ("no significant unexplained residual: held-out RMSE within "
                    + ", ".join(f"{ratio[j]:.2f}x" for j in range(3)) + " of the noise floor")

@@ -149,7 +149,7 @@ def settling_measurements(res: DiagnosisResult) -> list[str]:
         if len(z) >= 2 and z[0][0] > 5 and z[0][0] > CONCENTRATED * z[1][0]:
             p = s.per_pose[z[0][1]]
             label = str(res.settings.get("time_label", "time [s]"))
-            when = f"t = {p['t_s']:.4g} s" if label.startswith("time") else f"{label} {p['t_s']:.4g}"
+            when = f"{p['t_s']:.4g} s from the first sample" if label.startswith("time") else f"{label} {p['t_s']:.4g}"
             out.append(f"on {AXES[j]} it sits in one visit (visit {p['visit']}, pose {p['pose']}, {when}, "
                        f"z = {float(p['z'][j]):+.1f}): visit that pose again, and look for what "
                        "happened then (a knock, the chamber door, a cable pulled, the start of the run)")
@@ -385,12 +385,13 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
         written.append(p)
 
     # before / after
+    t0 = float(np.min(d.t_s))  # the time axis starts at the first sample, as the tables (a CSV may be in epoch seconds)
     fig, axs = plt.subplots(2, 3, figsize=(15, 6.5))
     ra = plotted(r & finite_rows(res.residual_after))
     for j in range(3):
         ax = axs[0, j]
-        ax.plot(d.t_s[rp], res.residual_before[rp, j], ".", ms=2, alpha=0.5, label="declared model (held out)")
-        ax.plot(d.t_s[ra], res.residual_after[ra, j], ".", ms=2, alpha=0.5, label="with added effects (held out)")
+        ax.plot(d.t_s[rp] - t0, res.residual_before[rp, j], ".", ms=2, alpha=0.5, label="declared model (held out)")
+        ax.plot(d.t_s[ra] - t0, res.residual_after[ra, j], ".", ms=2, alpha=0.5, label="with added effects (held out)")
         ax.axhline(res.noise_floor[j], color="k", lw=0.6, ls=":")
         ax.axhline(-res.noise_floor[j], color="k", lw=0.6, ls=":")
         ax.set_xlabel(res.settings.get("time_label", "time [s]"))

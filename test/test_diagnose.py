@@ -636,3 +636,15 @@ def test_the_diagnosis_does_not_depend_on_the_time_origin() -> None:
     np.testing.assert_allclose(b.before_heldout_rmse, a.before_heldout_rmse, rtol=1e-6)
     np.testing.assert_allclose(np.log(b.structure.pose_chi2_p), np.log(a.structure.pose_chi2_p), rtol=1e-4)
     assert [x[0] for x in b.added] == [x[0] for x in a.added]
+    # the report places each visit by its time from the first sample: on the code before, the shifted run's table of
+    # the worst visits read "1.7e+09" in every row, so no visit could be found in the file
+    times = [_worst_visit_times(markdown(r)) for r in (a, b)]
+    assert len(set(times[1])) == len(times[1]) >= 5
+    np.testing.assert_allclose(times[1], times[0], atol=0.5)
+
+
+def _worst_visit_times(md: str) -> list[float]:
+    """The time column (s) of the report's table of the visits with the largest residual."""
+    table = md.split("Visits with the largest residual")[1].split("\n\n")[1].splitlines()
+    col = [c.strip() for c in table[0].strip("|").split("|")].index("time from the first sample [s]")
+    return [float(row.strip("|").split("|")[col]) for row in table[2:]]
