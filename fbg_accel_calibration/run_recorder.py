@@ -61,6 +61,7 @@ from .stillness_monitor import (
     DEFAULT_NOISE_CORR_S,
     NoiseFloor,
     StillnessMonitor,
+    TooFewDegreesOfFreedomError,
     first_order_noise_floor,
     learn_noise_floor,
 )
@@ -74,6 +75,7 @@ SOURCE_BASELINE_S = 2.0  # s; time constant of the reference baseline (follows t
 SOURCE_REBASE_S = 5.0  # s; a reference off its baseline this long is the source's new level (warned)
 RECENT_SAMPLES = 20  # still samples before a pose's first recorded one that seed its mean Psi
 MIN_RATE_SAMPLES = 20  # samples needed to measure the board rate
+MAX_LEARN_FACTOR = 8  # a floor with too few degrees of freedom is learnt over 2, 4, then 8 x learn_s, then anew
 
 
 @dataclass(frozen=True)
@@ -249,6 +251,7 @@ class RunRecorder(GuardedRecording):
         self.rate_hz = math.nan
         self.noise_std = np.full(3, math.nan)
         self._startup_t: list[float] = []
+        self._learn_factor = 1  # the noise is learnt over this many learn_s (raised while its floor is too uncertain)
         self._startup_psi: list[np.ndarray] = []
         self._startup_ref: list[float] = []
         self._stream = BoardStream()
@@ -480,7 +483,7 @@ class RunRecorder(GuardedRecording):
         if n < MIN_RATE_SAMPLES:
             return
         span = self._startup_t[-1] - self._startup_t[0]
-        need = self.detector.learn_s if self.detector.noise_std is None else 0.0
+        need = self.detector.learn_s * self._learn_factor if self.detector.noise_std is None else 0.0
         if span < need:
             return
         dt = np.diff(np.asarray(self._startup_t))
@@ -512,8 +515,12 @@ class RunRecorder(GuardedRecording):
         self._ref_base = float(np.mean(refs))
         self._ref_std = max(float(np.std(refs)), 0.5)  # counts; not below the rounding to whole counts
         run_samples = max(1, round(self.plan.nominal_duration_s() * self.rate_hz))
-        self.monitor = StillnessMonitor(floor, window=window, hold=hold, run_samples=run_samples,
-                                        false_alarm_per_run=self.detector.false_alarm_per_run)
+        try:
+            self.monitor = StillnessMonitor(floor, window=window, hold=hold, run_samples=run_samples,
+                                            false_alarm_per_run=self.detector.false_alarm_per_run)
+        except TooFewDegreesOfFreedomError:
+            self._too_few_degrees_of_freedom(floor, span)
+            return
         self._say("info", f"board rate {self.rate_hz:.1f} Hz; static detector: window {window} samples, hold {hold} samples, "
                   f"Psi noise floor {', '.join(f'{v:.2e}' for v in self.noise_std)} ({source}), "
                   f"leave threshold (std) {', '.join(f'{v:.2e}' for v in np.sqrt(self.monitor.leave_threshold))} "
@@ -526,7 +533,8 @@ class RunRecorder(GuardedRecording):
         self._clear_startup()
 
     def _clear_startup(self) -> None:
-        """Forget the start-up samples (board rate / noise learning starts again)."""
+        """Forget the start-up samples (board rate / noise learning starts again, over learn_s)."""
+        self._learn_factor = 1
         self._startup_t.clear()
         self._startup_psi.clear()
         self._startup_ref.clear()
@@ -629,6 +637,21 @@ class RunRecorder(GuardedRecording):
         self._pose_n = len(prior)
         self._pending.clear()
         self._depart_run = 0
+
+    def _too_few_degrees_of_freedom(self, floor: NoiseFloor, span: float) -> None:
+        """The floor learnt over ``span`` s is too uncertain for the false-alarm rate (a slow wander of the still
+        signal leaves few independent samples): keep the samples and learn over twice the stretch, up to
+        MAX_LEARN_FACTOR x learn_s; beyond, start again (as after a board reset)."""
+        dof = ", ".join(f"{v:.1f}" for v in floor.dof)
+        if self._learn_factor < MAX_LEARN_FACTOR:
+            self._learn_factor *= 2
+            self._say("warn", f"the noise floor learnt from the first {span:.2f} s has too few degrees of freedom "
+                      f"({dof}) for a threshold at {self.detector.false_alarm_per_run:g} false alarms per run (a slow "
+                      f"wander of the still signal?): learning over {self._learn_factor * self.detector.learn_s:g} s")
+            return
+        self._clear_startup()
+        self._say("warn", f"no usable noise floor in {MAX_LEARN_FACTOR * self.detector.learn_s:g} s (degrees of freedom "
+                  f"{dof}): keep the sensor still or set still_noise_std; learning again")
 
     def _motion_while_learning(self, shift: float) -> None:
         """The table moved while the noise floor was being learnt (the sensor must be still then)."""

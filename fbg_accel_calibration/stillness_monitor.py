@@ -246,9 +246,15 @@ def ratio_exceedance(c: float, weights: np.ndarray, nu_floor: float) -> float:
     return float(min(max(tail + density * (1.0 / u - 1.0 / w), 0.0), 1.0))
 
 
+class TooFewDegreesOfFreedomError(ValueError):
+    """The learnt floor is too uncertain (too few degrees of freedom) for any finite threshold to reach the
+    asked false-alarm rate: learn from a longer still stretch."""
+
+
 def ratio_quantile(exceedance: float, weights: np.ndarray, nu_floor: float) -> float:
     """The ratio c (window variance / its expected value under the learnt floor) that a still window
-    exceeds with probability ``exceedance`` (:func:`ratio_exceedance` solved for c)."""
+    exceeds with probability ``exceedance`` (:func:`ratio_exceedance` solved for c). Raises
+    :class:`TooFewDegreesOfFreedomError` when no c below 1e9 does."""
     if not 0.0 < exceedance < 0.5:
         raise ValueError(f"exceedance must be in (0, 0.5), got {exceedance}")
     target = math.log(exceedance)
@@ -256,7 +262,7 @@ def ratio_quantile(exceedance: float, weights: np.ndarray, nu_floor: float) -> f
     while math.log(max(ratio_exceedance(hi, weights, nu_floor), 1e-300)) > target:
         lo, hi = hi, hi * 2.0
         if hi > 1e9:
-            raise ValueError("no finite threshold reaches that exceedance (too few degrees of freedom)")
+            raise TooFewDegreesOfFreedomError("no finite threshold reaches that exceedance (too few degrees of freedom)")
     for _ in range(60):
         mid = math.sqrt(lo * hi)
         if math.log(max(ratio_exceedance(mid, weights, nu_floor), 1e-300)) > target:
