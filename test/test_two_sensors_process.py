@@ -39,7 +39,19 @@ BIN = Path(sys.executable).parent
 NAMESPACES = ("acc_a", "acc_b")
 RESET_AT_S, UNPLUG_AT_S, UNPLUG_S = 10.0, 13.0, 2.0  # board times (s) of A's reboot and B's disconnect
 BOOT_GAP_S = 1.5  # board.boot_gap_s given to A: no frame while it reboots
-STALL_S = 0.75  # a silence of a stream longer than this is a fault's (the probe itself may stall for 0.3 s)
+STALL_S = 0.75  # a gap in a stream's stamps longer than this is a fault's
+
+
+def stamp_s(m) -> float:
+    """A message's header stamp (s)."""
+    return m.header.stamp.sec + m.header.stamp.nanosec * 1e-9
+
+
+def median_step(msgs: list) -> float:
+    """Median step (s) between consecutive messages' header stamps."""
+    steps = sorted(stamp_s(b) - stamp_s(a) for a, b in itertools.pairwise(msgs))
+    assert steps, "fewer than two messages"
+    return steps[len(steps) // 2]
 
 
 def _driver(name: str, ns: str, port: Path, cal: Path) -> ChildProcess:
@@ -153,9 +165,12 @@ def test_two_sensors_on_one_vehicle_do_not_cross_talk(ros: Context, tmp_path: Pa
         n_imu = {ns: len(imu[ns]) for ns in NAMESPACES}
         n_raw_a = len(raw["acc_a"])
         spin_until(lambda: len(raw["acc_a"]) - n_raw_a >= 300, 20, "300 more of A's raw samples")
-        ratio_a = (len(raw["acc_a"]) - n_raw_a) / max(1, len(imu["acc_a"]) - n_imu["acc_a"])
+        # rates from the stamps (board clocks), not from counts of arrivals, which a loaded machine bunches
+        raw_step_a = median_step([m for m in raw["acc_a"][n_raw_a:]])
+        ratio_a = median_step([m for _, m in imu["acc_a"][n_imu["acc_a"]:]]) / raw_step_a
         assert 4.0 <= ratio_a <= 6.5, ratio_a  # decimation 5 on A
-        assert len(imu["acc_b"]) - n_imu["acc_b"] >= 1.6 * (len(raw["acc_a"]) - n_raw_a), "B's rate changed"
+        ratio_b = median_step([m for _, m in imu["acc_b"][n_imu["acc_b"]:]]) / raw_step_a
+        assert 0.4 <= ratio_b <= 0.6, f"B's rate changed: imu every {ratio_b:.2f} of A's raw samples"
 
         # A reboots, B is unplugged: wait until both came back (A publishes after its reboot, B reconnected)
         spin_until(lambda: procs["acc_b"].find("serial link down") is not None
@@ -173,7 +188,9 @@ def test_two_sensors_on_one_vehicle_do_not_cross_talk(ros: Context, tmp_path: Pa
             msgs = [m for _, m in imu[ns]]
             assert {m.header.frame_id for m in msgs} == {f"{ns}_link"}
             assert {m.header.frame_id for m in raw[ns]} == {f"{ns}_link"}
-            assert all(8.5 < sign * m.linear_acceleration.z < 11.0 for m in msgs), ns
+            off = [(i, round(sign * m.linear_acceleration.z, 3), m.header.stamp.sec, m.header.stamp.nanosec)
+                   for i, m in enumerate(msgs) if not 8.5 < sign * m.linear_acceleration.z < 11.0]
+            assert not off, (ns, len(msgs), off[:10])
             stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in msgs]
             assert all(b > a for a, b in itertools.pairwise(stamps)), ns
         # diagnostics: each status says its driver by name (namespace) and its sensor by hardware_id
@@ -185,20 +202,21 @@ def test_two_sensors_on_one_vehicle_do_not_cross_talk(ros: Context, tmp_path: Pa
         assert {n.split(": ")[0] for n in by_hw["acc_a"]} == {"acc_a/fbg_accel_driver", "acc_c/fbg_accel_driver"}, \
             sorted(by_hw["acc_a"])
 
-        # A's reboot and B's unplugging are their own: each stream's one silence after acc_c started is its own
-        # fault, which the other stream does not see. A publishes at 20 Hz (decimation 5), B at 200 Hz: STALL_S
-        # is well above their periods and the probe's own stalls on a loaded machine (both streams at once, up to
-        # 0.3 s seen) and below either fault's silence (1.5 s reboot, 2 s unplugged)
-        gaps = {ns: sorted(((b - a, a) for a, b in itertools.pairwise(t for t, _ in imu[ns]) if a > t_c), reverse=True)
-                for ns in NAMESPACES}
-        (a_len, a_at), (b_len, b_at) = gaps["acc_a"][0], gaps["acc_b"][0]
-        assert a_len >= BOOT_GAP_S and b_len >= UNPLUG_S, (a_len, b_len)
+        # A's reboot and B's unplugging are their own: each stream's one break after acc_c started is its own
+        # fault, which the other stream does not see. Breaks are gaps in the stamps (board time), which a loaded
+        # machine does not open (it only delays delivery: a gap of arrivals up to 1.3 s was seen with no sample
+        # lost). A publishes at 20 Hz (decimation 5), B at 200 Hz: STALL_S is well above their periods and below
+        # either fault's silence (1.5 s reboot, 2 s unplugged)
+        gaps = {ns: sorted(((stamp_s(b) - stamp_s(a), stamp_s(a), t) for (t, a), (_, b) in itertools.pairwise(imu[ns])
+                            if t > t_c), reverse=True) for ns in NAMESPACES}
+        (a_len, a_at, a_heard), (b_len, b_at, b_heard) = gaps["acc_a"][0], gaps["acc_b"][0]
+        assert a_len >= 0.9 * BOOT_GAP_S and b_len >= 0.9 * UNPLUG_S, (a_len, b_len)
         assert abs((b_at - a_at) - (UNPLUG_AT_S - RESET_AT_S)) < 1.5, (a_at, b_at)  # the faults, not a stall
         assert gaps["acc_a"][1][0] < STALL_S and gaps["acc_b"][1][0] < STALL_S, (gaps["acc_a"][:3], gaps["acc_b"][:3])
         link_errors = {ns: [t for t, name, _, level, _ in statuses if name == f"{ns}/fbg_accel_driver: serial link"
                             and level == 2 and t > t_c] for ns in ("acc_a", "acc_b", "acc_c")}  # once streaming
-        assert [t for t in link_errors["acc_b"] if t > b_at], "B's serial link ERROR while unplugged"
-        assert not link_errors["acc_a"], ("A's serial link said ERROR", [(t - a_at, m) for t, n, _, lv, m in statuses
+        assert [t for t in link_errors["acc_b"] if t > b_heard], "B's serial link ERROR while unplugged"
+        assert not link_errors["acc_a"], ("A's serial link said ERROR", [(t - a_heard, m) for t, n, _, lv, m in statuses
                                                                           if n == "acc_a/fbg_accel_driver: serial link"
                                                                           and lv == 2])
         assert link_errors["acc_c"], "the refused driver's serial link is ERROR"
