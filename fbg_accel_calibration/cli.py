@@ -266,6 +266,9 @@ def cmd_dynamic(args: argparse.Namespace) -> int:
         rec = read_recording(args.recording, args.namespace, args.topic)
         for line in read_warnings(args.recording, rec.metadata.get("read_report", {}), rec.metadata.get("pose_events")):
             print(line, file=sys.stderr)
+    other = another_sensor(static_cal, rec.metadata)  # the output would join two sensors' models in one file
+    if other:
+        raise ValueError(f"{other}: give the static calibration of the sensor that made this run ({args.calibration})")
     result = run_dynamic(rec, plan, static_cal, reference_cutoff_hz=args.reference_cutoff_hz,
                          fit_highpass=args.fit_highpass, slide_start_s=args.slide_start, method=args.method)
     print(result.report())
@@ -303,20 +306,27 @@ def _command_line(args: argparse.Namespace) -> str:
     return "fbg-accel-calib " + " ".join(shlex.quote(str(a)) for a in argv)
 
 
+def another_sensor(cal, metadata: dict) -> str | None:
+    """"calibration of another sensor: ..." when the calibration and the recording (its metadata) both name a sensor
+    and not the same one, else None. Raises ``ValueError`` for recordings of two sensors (``sensor_id_of``)."""
+    from .thermal_fit import UNNAMED_SENSOR_IDS, sensor_id_of
+
+    rec_id, cal_id = sensor_id_of(metadata), cal.sensor_id
+    if rec_id is None or cal_id is None or rec_id in UNNAMED_SENSOR_IDS or cal_id in UNNAMED_SENSOR_IDS \
+            or rec_id == cal_id:
+        return None
+    return f"calibration of another sensor: the calibration is for sensor '{cal_id}', the recording is of sensor '{rec_id}'"
+
+
 def calibration_match_warnings(cal, rec) -> list[str]:
     """Warnings when a calibration is applied to a recording it may not describe: another sensor id (both known),
     samples outside the calibrated temperature range by more than the driver's margin (``AHT10_SIGMA_C``; count, fraction,
     range; of the samples that are data: those with
     a reference too low to be data, ``Recording.low_reference``, are not counted)."""
-    from .thermal_fit import sensor_id_of
-
     out = []
-    rec_id = sensor_id_of(rec.metadata)
-    cal_id = cal.sensor_id
-    known = {None, "", "unknown"}
-    if rec_id not in known and cal_id not in known and rec_id != cal_id:
-        out.append(f"calibration of another sensor: the calibration is for sensor '{cal_id}', the recording is of "
-                   f"sensor '{rec_id}'")
+    other = another_sensor(cal, rec.metadata)
+    if other:
+        out.append(other)
     lo, hi = cal.temperature_range_c
     temp = np.asarray(rec.temp_c, dtype=float)[~rec.low_reference()]
     fin = np.isfinite(temp)

@@ -130,13 +130,15 @@ def run(args: argparse.Namespace) -> int:
     try:
         check_diagnose_outputs(args)
         from .input_files import load_recording
+        from .thermal_fit import sensor_id_of
 
         rec = load_recording(args.inputs, rate=args.rate, temperature=args.temperature, g=args.g,
                              namespace=args.namespace, topic=args.topic)
     except (OSError, ValueError) as exc:
         print(f"fbg-accel-calib diagnose: {exc}", file=sys.stderr)
         return 2
-    sensor_id = args.sensor_id or str(rec.metadata.get("sensor_id", "unknown"))
+    # the recordings' own id (their run records; before: a top-level key MCAP recordings do not have, so 'unknown')
+    sensor_id = args.sensor_id or sensor_id_of(rec.metadata) or "unknown"
     from .cli_progress import bar, enabled
 
     try:

@@ -119,6 +119,7 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
                              namespace=opt.namespace, topic=opt.topic)
         metadata = rec.metadata
         data = prepare(rec, max_degree, opt.window, opt.min_interval, opt.level_gap_c)
+    recorded_sensor = sensor_id_of(metadata)  # refuses recordings of two sensors before the fit's work
     names = ", ".join(map(str, paths))
     if len(data) == 0:
         raise ValueError(f"{names}: none of the {data.n_total} samples can be fitted "
@@ -138,7 +139,7 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
         degree = selection.chosen_degree
     elif not selection.scores[degree].identified:
         raise NotIdentifiedError(f"degree {degree}: {selection.scores[degree].note}")
-    cal = fit_thermal(data, degree, sensor_id=sensor_id or sensor_id_of(metadata))
+    cal = fit_thermal(data, degree, sensor_id=sensor_id or recorded_sensor)
     # the noise model from the first input's first samples, the same whether streamed or not
     if rec is not None:
         first = rec.select(rec.run_id == rec.run_id[0])

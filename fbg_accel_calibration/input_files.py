@@ -89,6 +89,7 @@ def load_recording(paths: list[Path] | list[str], *, rate: float | None = None, 
     from .csv_import import import_csv
     from .mcap_io import read_recording, read_warnings
     from .recording import Recording
+    from .thermal_fit import sensor_id_of
 
     check_inputs(paths)
     parts = []
@@ -101,4 +102,6 @@ def load_recording(paths: list[Path] | list[str], *, rate: float | None = None, 
             for line in read_warnings(path, rec.metadata.get("read_report", {}), rec.metadata.get("pose_events")):
                 print(line, file=sys.stderr)
             parts.append(rec)
-    return parts[0] if len(parts) == 1 else Recording.concatenate(parts)
+    rec = parts[0] if len(parts) == 1 else Recording.concatenate(parts)
+    sensor_id_of(rec.metadata)  # recordings of two sensors are refused (ValueError naming them)
+    return rec

@@ -627,13 +627,43 @@ def fit_thermal(rec: Recording | FitData, degree: int, *, sensor_id: str | None 
         reference_level_temperature_c=data.level_means_c, reference_level_counts=data.level_reference_counts)
 
 
-def sensor_id_of(md: dict) -> str | None:
-    """The sensor id a recording's metadata names (its run, the metadata itself, or the first part's run
-    that names one), if any."""
-    for candidate in (md.get("run"), md, *(p.get("run") for p in md.get("parts", []) if isinstance(p, dict))):
+UNNAMED_SENSOR_IDS = frozenset({"", "unknown"})  # the calibration node's and import's default: names no sensor
+
+
+def _recorded_sensor_id(md: object) -> str | None:
+    """The sensor id one recording's metadata holds (its ``run`` record, else a top-level ``sensor_id``), if any."""
+    if not isinstance(md, dict):
+        return None
+    for candidate in (md.get("run"), md):
         if isinstance(candidate, dict) and candidate.get("sensor_id"):
             return str(candidate["sensor_id"])
     return None
+
+
+def sensor_id_of(md: dict) -> str | None:
+    """The sensor id a recording's metadata names (one recording's, or every part's of several), if any.
+
+    Raises ``ValueError`` when the parts name different sensors: a calibration describes one sensor, and the
+    recordings of two cannot be fitted, diagnosed or reported as one (``fit runs/*.mcap`` over a directory that
+    holds two sensors' runs used to write a calibration named after the first file's sensor, silently).
+    Parts that name no sensor (``unknown``) do not count."""
+    parts = md.get("parts")
+    parts = parts if isinstance(parts, list) and parts else [md]
+    named: dict[str, list[str]] = {}
+    recorded = None
+    for i, part in enumerate(parts):
+        sid = _recorded_sensor_id(part)
+        recorded = recorded or sid
+        if sid is not None and sid not in UNNAMED_SENSOR_IDS:
+            source = part.get("source") if isinstance(part, dict) else None
+            named.setdefault(sid, []).append(str(source) if source else f"input {i + 1}")
+    if len(named) > 1:
+        listing = "; ".join(f"sensor '{sid}': {', '.join(srcs)}" for sid, srcs in named.items())
+        raise ValueError(f"the recordings are of {len(named)} different sensors ({listing}); a calibration describes "
+                         "one sensor: give the recordings of one sensor only")
+    if named:
+        return next(iter(named))
+    return recorded or _recorded_sensor_id(md)  # 'unknown' as recorded, or None
 
 
 def residuals(cal: ThermalCalibration, rec: Recording, mask: np.ndarray | None = None) -> np.ndarray:
