@@ -155,6 +155,7 @@ class DriverNode(Node):
 
     # ------------------------------------------------------------ life cycle
     def _configure(self) -> None:
+        refuse_unknown_parameters(self, "driver", before_publishers=True)  # a misspelt name first, not what it causes
         p = self._read_parameters()
         self.frame_id: str = p["frame_id"]
         choice = p["calibration_file"].strip()

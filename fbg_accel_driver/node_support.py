@@ -85,10 +85,15 @@ def declare_parameters(
     return values
 
 
-def refuse_unknown_parameters(node: Node, prog: str) -> None:
+def refuse_unknown_parameters(node: Node, prog: str, *, before_publishers: bool = False) -> None:
     """A misspelt ``-p``/params-file name would be ignored by rclpy: refuse it, naming the nearest. Call it
-    after every declaration (publishers declare their ``qos_overrides`` parameters)."""
+    after every declaration (publishers declare their ``qos_overrides`` parameters), and with
+    ``before_publishers`` (``qos_overrides.*`` names left for that later call) before anything that reads the
+    parameters' values, so that the errors a misspelling causes (the parameter it meant is missing) never
+    come first."""
     given = getattr(node, "_parameter_overrides", {})  # what --ros-args, params files and the constructor set
+    if before_publishers:
+        given = [name for name in given if not name.startswith("qos_overrides.")]
     unknown = unknown_parameters(given, node._parameters)
     if unknown:
         raise StartupError("; ".join(unknown) + f" ({prog} --help lists the parameters)")

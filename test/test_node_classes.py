@@ -165,6 +165,21 @@ def test_driver_refuses_a_bad_parameter_with_one_clear_message(make_driver: Any,
     assert message in str(err.value)
 
 
+@pytest.mark.parametrize("values", [
+    {"calibraton_file": "sim"},  # docs/topics.md's own example: the required parameter given under a misspelt name
+    {"calibraton_file": "sim", "calibration_file": "nowhere.yaml"},
+])
+def test_driver_names_a_misspelt_parameter_before_the_errors_it_causes(make_driver: Any, values: dict[str, Any]) -> None:
+    """A misspelt name is what the user must fix; the errors it causes (the parameter it was meant to set is then
+    missing or keeps its default) must not hide it. Before: ``-p calibraton_file:=sim`` alone was refused with
+    "parameter 'calibration_file' is required", which the user had just given (docs/topics.md promises the nearest
+    valid name); given beside a calibration_file that does not load, the load's error came instead. The unknown-name
+    check ran only after the calibration was loaded and the publishers created."""
+    with pytest.raises(StartupError) as err:
+        make_driver(**values)
+    assert str(err.value).startswith("unknown parameter 'calibraton_file' (did you mean 'calibration_file'?)"), err.value
+
+
 def test_driver_refuses_a_missing_calibration_file(make_driver: Any, tmp_path: Path) -> None:
     missing = tmp_path / "nowhere.yaml"
     with pytest.raises(StartupError, match="calibration file rejected: ") as err:
@@ -222,7 +237,9 @@ def test_driver_refuses_a_bad_qos_override_with_one_clear_message(make_driver: A
 
 
 @pytest.mark.parametrize("values", [
-    {"calibraton_file": "x"},  # refused after the publishers are created (they declare the qos_overrides parameters)
+    # a misspelt qos_overrides name is refused after the publishers are created (they declare those parameters;
+    # a misspelt plain name, the case here before, is now refused before anything is created)
+    {"qos_overrides./imu/raw.publisher.reliablity": "best_effort"},
     {"qos_overrides./imu/raw.publisher.reliability": "bogus"},  # refused while creating them
 ])
 def test_managed_driver_configure_that_fails_late_leaves_nothing_behind(make_driver: Any, values: dict[str, Any]) -> None:
