@@ -51,6 +51,7 @@ REFERENCE_LEVEL_KEYS = ("temperature_c", "counts")
 MAX_REFERENCE_LEVELS = 64  # one entry per temperature level of the fit (the paper's campaign has three)
 MAX_NOISE_TIME_CONSTANT_S = 100.0  # the TIA low-passes are ~0.1-0.16 s (paper Table 1)
 MAX_FILE_BYTES = 1 << 20  # a real file is a few kB; refused before parsing
+MCAP_MAGIC = b"\x89MCAP0\r\n"  # first bytes of an MCAP file (mcap.dev spec): a recording, not a calibration
 MAX_DEGREE = 6  # the fit tools choose <= 3; beyond 6 the polynomial is noise
 MAX_CORRECTIONS = 32
 MAX_TEXT_CHARS = 256  # sensor_id, created
@@ -435,6 +436,10 @@ class ThermalCalibration:
         except OSError as exc:
             raise CalibrationFileError(f"{p}: calibration file cannot be read ({exc.strerror or exc})") from None
         except UnicodeDecodeError as exc:
+            if exc.object[:len(MCAP_MAGIC)] == MCAP_MAGIC:  # the node writes the run's MCAP beside its YAML: a likely slip
+                raise CalibrationFileError(f"{p}: an MCAP recording, not a calibration YAML; a calibration is made from "
+                                           f"recordings by `fbg-accel-calib fit {p} ... -o cal.yaml` (or the calibration "
+                                           "node's end-of-run fit)") from None
             raise CalibrationFileError(f"{p}: not valid YAML ({exc})") from None
         try:
             data = load_yaml(text, _CalibrationLoader)  # a SafeLoader subclass: no arbitrary objects

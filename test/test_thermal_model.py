@@ -306,6 +306,16 @@ def test_not_yaml(tmp_path: Path, content: bytes) -> None:
     assert "not valid YAML" in refused(path)
 
 
+def test_a_recording_given_for_the_calibration_says_so(tmp_path: Path) -> None:
+    """The calibration node writes the run's MCAP beside its calibration YAML, so giving the recording where the YAML
+    belongs is a likely slip. Before: "not valid YAML ('utf-8' codec can't decode byte 0x89 in position 0: invalid
+    start byte)". After: what the file is and how to make a calibration from it."""
+    path = tmp_path / "acc4_L0.mcap"
+    path.write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)) * 4)  # the MCAP magic, then binary records
+    msg = refused(path)
+    assert "an MCAP recording, not a calibration YAML" in msg and "fbg-accel-calib fit" in msg, msg
+
+
 @pytest.mark.parametrize("content", ["", "just a string\n", "- 1\n- 2\n", "42\n"], ids=["empty", "string", "list", "number"])
 def test_top_level_not_a_mapping(tmp_path: Path, content: str) -> None:
     path = tmp_path / "cal.yaml"
