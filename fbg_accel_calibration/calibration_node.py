@@ -5,7 +5,7 @@ import, so ``--help`` needs none). The thin rclpy shell around
 :class:`~fbg_accel_calibration.run_recorder.RunRecorder` (stillness, pose sequence, MCAP writing) and
 :func:`~fbg_accel_calibration.run_refit.refit` (the fit). See docs/calibration_node.md.
 
-Subscribes (best-effort, deep queue, matching the driver's sensor-data QoS):
+Subscribes (best effort, keep last 2000: compatible with the driver's reliable REP 2003 publishers):
   ``imu/raw`` sensor_msgs/JointState (raw counts, see docs/topics.md), ``imu/temperature`` sensor_msgs/Temperature.
 Services (std_srvs/Trigger): ``calibration/next_pose`` (operator: advance after a pose is recorded;
 auto mode: skip the current pose), ``calibration/abort`` (end the run now, file closed, no fit).
