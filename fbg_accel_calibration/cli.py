@@ -88,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_csv_options(p)
     p.add_argument("--drop-bad-rows", action="store_true",
                    help="import the good rows and list every rejected line (default: reject the file)")
-    p.add_argument("--sensor-id", default="unknown")
+    p.add_argument("--sensor-id", default="unknown", help="sensor id stored in the MCAP metadata (default unknown)")
     p.add_argument("--notes", default="", help="operator notes stored in the MCAP metadata")
     p.add_argument("--start-time", type=iv.start_time_ns, default=None,
                    help="ROS time of the first row: ISO 8601 with zone (2026-11-20T09:30:00Z) or seconds since 1970; "
@@ -103,7 +103,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--degree", type=iv.degree, default=None, help="force the degree n (default: held-out cross-validation)")
     p.add_argument("--max-degree", type=iv.degree, default=iv.DEFAULT_MAX_DEGREE,
                    help=f"largest degree scored (default {iv.DEFAULT_MAX_DEGREE}, as paper Table 4)")
-    p.add_argument("--sensor-id", default=None)
+    p.add_argument("--sensor-id", default=None,
+                   help="sensor id written into the calibration (default: the recordings' own, else unknown)")
     add_topic_options(p)
     p.add_argument("--in-memory", action="store_true",
                    help="load every sample before fitting (default: stream MCAP files block by block, same result)")
@@ -126,9 +127,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("report", help="tables and plots of a fit")
     p.add_argument("inputs", nargs="+", type=Path)
-    p.add_argument("--calibration", type=Path, required=True)
+    p.add_argument("--calibration", type=Path, required=True, help="calibration YAML applied to the recordings")
     p.add_argument("-o", "--output-dir", type=Path, required=True, help="directory for report.md and PNGs")
-    p.add_argument("--max-degree", type=iv.degree, default=iv.DEFAULT_MAX_DEGREE)
+    p.add_argument("--max-degree", type=iv.degree, default=iv.DEFAULT_MAX_DEGREE,
+                   help="largest degree scored in the report's degree table (default %(default)s)")
     add_topic_options(p)
     _add_force(p)
     _add_detector_options(p)

@@ -49,14 +49,17 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "'all' also the samples taken while the table moves (needs the table's angle readings during "
                         "motion, e.g. simulator recordings)")
     p.add_argument("--degree", type=iv.degree, default=None, help="force the degree of eq. 28 (default: held-out CV)")
-    p.add_argument("--max-degree", type=iv.degree, default=4)
-    p.add_argument("--folds", type=iv.folds, default=10, help="cross-validation folds over visits")
-    p.add_argument("--alpha", type=iv.probability, default=0.01, help="family-wise significance level per selection step")
+    p.add_argument("--max-degree", type=iv.degree, default=4, help="largest degree of eq. 28 scored (default %(default)s)")
+    p.add_argument("--folds", type=iv.folds, default=10, help="cross-validation folds over visits (default %(default)s)")
+    p.add_argument("--alpha", type=iv.probability, default=0.01,
+                   help="family-wise significance level per selection step (default %(default)s)")
     p.add_argument("--min-gain", type=iv.fraction, default=0.02,
-                   help="minimum held-out gain (fraction of the noise-weighted MSE) for an effect to be added")
-    p.add_argument("--max-effects", type=iv.max_effects, default=3)
-    p.add_argument("--seed", type=iv.seed, default=0, help="seed of the fold assignment")
-    p.add_argument("--sensor-id", default=None)
+                   help="minimum held-out gain (fraction of the noise-weighted MSE) for an effect to be added "
+                        "(default %(default)s)")
+    p.add_argument("--max-effects", type=iv.max_effects, default=3, help="most effects added (default %(default)s)")
+    p.add_argument("--seed", type=iv.seed, default=0, help="seed of the fold assignment (default %(default)s)")
+    p.add_argument("--sensor-id", default=None,
+                   help="sensor id written into --yaml (default: the recordings' own, else unknown)")
     p.add_argument("--out", type=Path, default=None, help="markdown report (PNG plots go to --img-dir)")
     p.add_argument("--img-dir", type=Path, default=None, help="directory for the PNG plots (default: <out dir>/img)")
     p.add_argument("--yaml", type=Path, default=None, help="write the refitted calibration (with the added terms) here")
