@@ -41,7 +41,10 @@ ParameterTable = dict[str, tuple[str, Any, str]]
 
 
 def parameter_help(table: ParameterTable, name_width: int, type_width: int) -> str:
-    """The ``parameters:`` section of a node's usage text."""
+    """The ``parameters:`` section of a node's usage text; the widths are minimums (a longer name or type widens its
+    column for every row)."""
+    name_width = max(name_width, *(len(n) for n in table))
+    type_width = max(type_width, *(len(t) for t, _, _ in table.values()))
     return "".join(f"  {n:<{name_width}} {t:<{type_width}} default {d!r}\n      {desc}\n" for n, (t, d, desc) in table.items())
 
 

@@ -90,3 +90,20 @@ def test_the_params_file_sets_every_scalar_parameter_to_its_default(params_file:
     expected = {n: declared[n][1] for n in scalar} | PARAMS_FILE_CHOICES.get(params_file, {})
     for name in sorted(scalar):
         assert values[name] == expected[name], f"config/{params_file}: {name}: {values[name]!r}, default {expected[name]!r}"
+
+
+@pytest.mark.parametrize("node", sorted(CASES))
+def test_help_lists_every_parameter_in_aligned_columns(node: str) -> None:
+    """``driver --help`` and ``calibration --help`` list each parameter as ``name type default ...``, the types in
+    one column. Before: ``still_false_alarm_per_run``'s 25 characters overran the calibration node's 20-character
+    name column, so its type and default stood 6 columns right of every other row's."""
+    from fbg_accel_calibration.calibration_main import _usage as calibration_usage
+    from fbg_accel_driver.driver_main import USAGE
+
+    text = USAGE if node == "driver" else calibration_usage()
+    declared = CASES[node][1]
+    type_columns = set()
+    for name, (typ, _, _) in declared.items():
+        line = next(line for line in text.splitlines() if line.startswith(f"  {name} "))
+        type_columns.add(line.index(f" {typ} ", len(name) + 2) + 1)
+    assert len(type_columns) == 1, f"{node} --help: the type column starts at {sorted(type_columns)}"
