@@ -37,7 +37,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run an excitation plan (fbg_accel_excitation_plan YAML: slide + reference transducer on the "
                         "aux channel, protocol version 2), e.g. config/excitation_plan_stepped_sine.yaml")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--duration", type=float, default=None, help="seconds to run (default: scenario end, or until killed)")
+    p.add_argument("--duration", type=float, default=None,
+                   help="seconds to run (default: the scenario's end, or until killed; with --dynamic-plan until killed "
+                        "on a pty, the plan + 2 s to --output)")
     p.add_argument("--rate", type=float, default=None, help="board sample rate in Hz (scenario.rate_hz)")
     p.add_argument("--output", help="write the byte stream to this file instead of a pty (not paced)")
     p.add_argument("--truth", help="write truth arrays and fault counters to this .npz at exit")
@@ -61,7 +63,10 @@ def load_config(args: argparse.Namespace) -> SimConfig:
             raise SimConfigError(str(exc)) from None
         overrides.update(plan.sim_overrides())
         if args.duration is None:
-            overrides["scenario.duration_s"] = plan.start_s + plan.duration_s + 2.0
+            # A file ends 2 s after the plan. On a pty the board streams on at rest until killed, as a real board does
+            # when the slide stops: a recorder started after the board (the README's order) counts the plan from its
+            # own first sample, and a board that stopped at its own plan end left it waiting for the stream forever.
+            overrides["scenario.duration_s"] = plan.start_s + plan.duration_s + 2.0 if args.output else math.inf
     overrides.update(parse_set_argument(s) for s in args.set)
     if args.rate is not None:
         overrides["scenario.rate_hz"] = float(args.rate)

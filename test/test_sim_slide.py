@@ -191,3 +191,34 @@ def test_static_scenarios_bytes_unchanged(name: str) -> None:
                                   "scenario.duration_s": 60.0})
     blk = BoardSimulator(cfg, seed=3).run(45.0)
     assert hashlib.sha256(blk.wire_bytes()).hexdigest()[:16] == STATIC_GOLDEN[name]
+
+
+def test_board_sim_on_a_pty_keeps_streaming_after_the_dynamic_plan(tmp_path) -> None:
+    """README's dynamic workflow starts ``board_sim --dynamic-plan PLAN --link L`` (no ``--duration``), then the driver,
+    then the calibration node, which records ``start_s + duration + 2 s`` from *its* first sample. Before: the board
+    stopped at ``start_s + duration + 2 s`` of its own time, i.e. before the node, started later, was done; the node
+    then waited for the stream forever (stepped-sine plan: board ended at 108 s, the node had 105.4 of its 108 s, exit 3
+    only on Ctrl-C). A real board does not stop when the slide does: on a pty the simulated board now streams on at
+    rest until killed; a file (``--output``) still ends 2 s after the plan."""
+    from pathlib import Path
+
+    from fbg_accel_calibration.excitation_plan import ExcitationPlan
+    from fbg_accel_sim.board_sim import build_parser, load_config
+
+    plan_file = str(Path(__file__).resolve().parents[1] / "config" / "excitation_plan_stepped_sine.yaml")
+    plan = ExcitationPlan.load(plan_file)
+    end_s = plan.start_s + plan.duration_s
+    pty = BoardSimulator(load_config(build_parser().parse_args(["--dynamic-plan", plan_file, "--link", str(tmp_path / "L")])),
+                         seed=0)
+    assert math.isinf(pty.duration_s)
+    to_file = BoardSimulator(load_config(build_parser().parse_args(["--dynamic-plan", plan_file, "--output",
+                                                                    str(tmp_path / "run.bin")])), seed=0)
+    assert to_file.duration_s == pytest.approx(end_s + 2.0)
+    given = BoardSimulator(load_config(build_parser().parse_args(["--dynamic-plan", plan_file, "--duration", "30"])),
+                           seed=0)
+    assert given.duration_s == 30.0
+    # past the plan the slide is at rest and the board goes on sampling
+    pty.step(pty.samples_for(end_s + 1.0))
+    after = pty.step(pty.samples_for(5.0))
+    assert len(after.t_s) == pty.samples_for(5.0) and after.t_s[0] > end_s
+    assert np.all(after.slide_accel_mps2 == 0.0) and np.all(after.slide_velocity_mps == 0.0)
