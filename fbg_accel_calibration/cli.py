@@ -270,7 +270,9 @@ def cmd_dynamic(args: argparse.Namespace) -> int:
             print(line, file=sys.stderr)
     other = another_sensor(static_cal, rec.metadata)  # the output would join two sensors' models in one file
     if other:
-        raise ValueError(f"{other}: give the static calibration of the sensor that made this run ({args.calibration})")
+        raise ValueError(f"{other}: give the static calibration of the sensor that made this run, not {args.calibration} "
+                         "(if they are one sensor under two names, make them agree: the calibration's sensor_id is one "
+                         "line of its YAML)")
     result = run_dynamic(rec, plan, static_cal, reference_cutoff_hz=args.reference_cutoff_hz,
                          fit_highpass=args.fit_highpass, slide_start_s=args.slide_start, method=args.method)
     print(result.report())

@@ -38,7 +38,8 @@ LENGTH_S = 3.0 + 6.0 + 4.0 + 3.0 + 2 * 0.5 + 2.0  # start + segments + gaps + th
 
 def _node(tmp: Path, label: str) -> ChildProcess:
     return ChildProcess(label, [BIN / "calibration", "--ros-args", "-p", f"plan_file:={tmp / 'plan.yaml'}",
-                                "-p", f"output_dir:={tmp}", "-p", f"run_label:={label}", "-p", "sensor_id:=sim",
+                                "-p", f"output_dir:={tmp}", "-p", f"run_label:={label}",
+                                "-p", "sensor_id:=sim-fbg-accel-001",  # the simulated sensor: its calibration is applied below
                                 "-p", "progress:=false"])
 
 
