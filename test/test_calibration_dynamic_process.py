@@ -15,7 +15,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import rclpy
 import yaml
 from process_harness import ChildProcess
 from rclpy.context import Context
@@ -43,11 +42,9 @@ def _node(tmp: Path, label: str) -> ChildProcess:
                                 "-p", "progress:=false"])
 
 
-def test_dynamic_plan_recorded_to_the_end_and_killed_half_way(tmp_path: Path) -> None:
+def test_dynamic_plan_recorded_to_the_end_and_killed_half_way(ros: Context, tmp_path: Path) -> None:
     (tmp_path / "plan.yaml").write_text(yaml.safe_dump(PLAN, sort_keys=False))
-    ctx = Context()
-    rclpy.init(context=ctx)
-    listener = Listener("test_calibration_dynamic", ctx)
+    listener = Listener("test_calibration_dynamic", ros)
     link = tmp_path / "board"
     driver = start_driver({"port": str(link), "calibration_file": "none"}, tmp_path / "driver.log")
     full, killed = _node(tmp_path, "full"), _node(tmp_path, "killed")
@@ -70,7 +67,6 @@ def test_dynamic_plan_recorded_to_the_end_and_killed_half_way(tmp_path: Path) ->
             stop(sim)
         stop(driver)
         listener.close()
-        rclpy.try_shutdown(context=ctx)
 
     rec, report = read_file(tmp_path / "full.mcap")
     assert report.complete and rec.aux is not None and np.all(np.isfinite(rec.aux))

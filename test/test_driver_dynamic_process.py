@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from rclpy.context import Context
-from test_driver_process import REPO, Listener, ros, stamp_ns, start_driver, start_sim, stop  # noqa: F401  (ros: module fixture)
+from test_driver_process import REPO, Listener, stamp_ns, start_driver, start_sim, stop
 
 from fbg_accel_driver.chain_compensation import ChainDynamics
 from fbg_accel_driver.driver_core import RAW_AUX_NAME
@@ -20,7 +20,7 @@ from fbg_accel_driver.driver_main import default_calibration_path
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 
-def test_version2_board_aux_on_imu_raw_and_equalised_stamps(ros: Context, tmp_path: Path) -> None:  # noqa: F811
+def test_version2_board_aux_on_imu_raw_and_equalised_stamps(ros: Context, tmp_path: Path) -> None:
     cal = ThermalCalibration.load(default_calibration_path())
     cal.dynamic = ChainDynamics(cutoff_hz=(1.0, 1.7, 1.3, 1.3), delay_s=(0.02, 0.02, 0.02))
     cal_file = tmp_path / "cal_dynamic.yaml"

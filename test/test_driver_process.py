@@ -23,7 +23,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -44,15 +44,6 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 # ----------------------------------------------------------------------------- helpers
-@pytest.fixture(scope="module")
-def ros() -> Iterator[Context]:
-    """A private rclpy context (independent of any other test module's rclpy.init)."""
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
 class Listener:
     """Subscribes to the driver's topics and keeps every message: reliable, deep queues (the driver publishes
     reliable per REP 2003, so a loss-free consumer can ask for retransmission; a best-effort reader could

@@ -24,7 +24,7 @@ from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import ReliabilityPolicy
 from sensor_msgs.msg import Imu
-from test_driver_process import REPO, Listener, ros, start_driver, start_sim, stop  # noqa: F401  (ros: module fixture)
+from test_driver_process import REPO, Listener, start_driver, start_sim, stop
 
 
 def _call(listener: Listener, future, what: str):
@@ -32,7 +32,7 @@ def _call(listener: Listener, future, what: str):
     return future.result()
 
 
-def test_qos_parameters_hardware_id_and_clean_shutdown(ros: Context, tmp_path: Path) -> None:  # noqa: F811
+def test_qos_parameters_hardware_id_and_clean_shutdown(ros: Context, tmp_path: Path) -> None:
     link = tmp_path / "board"
     listener = Listener("test_ros_conventions", ros)
     default_imu: list[Imu] = []
@@ -115,7 +115,7 @@ def _has_open(pid: int, path: Path) -> bool:
     return False
 
 
-def test_managed_driver_follows_its_lifecycle(ros: Context, tmp_path: Path) -> None:  # noqa: F811
+def test_managed_driver_follows_its_lifecycle(ros: Context, tmp_path: Path) -> None:
     """``driver --managed``: unconfigured = port closed, nothing published; configure opens the port and
     decodes (diagnostics count frames) without publishing; activate publishes; deactivate stops
     publishing; cleanup closes the port; SIGINT exits 0."""

@@ -21,20 +21,18 @@ import os
 from pathlib import Path
 
 import numpy as np
-import rclpy  # noqa: F401  (a missing rclpy must fail, never skip)
 from test_driver_process import (
     Listener,
     delivered_mask,
     python_threads,
     raw_field,
-    ros,  # noqa: F401  (module fixture: a private rclpy context)
     start_driver,
     start_sim,
     stop,
 )
 
 
-def test_rfcomm_like_device_removed_and_recreated(ros, tmp_path: Path) -> None:  # noqa: F811
+def test_rfcomm_like_device_removed_and_recreated(ros, tmp_path: Path) -> None:
     link = tmp_path / "rfcomm0"
     truth_file = tmp_path / "truth.npz"
     listener = Listener("test_rfcomm_reconnect", ros)

@@ -33,7 +33,7 @@ from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, JointState
-from test_driver_process import REPO, ros  # noqa: F401  (ros: module fixture)
+from test_driver_process import REPO
 
 BIN = Path(sys.executable).parent
 NAMESPACES = ("acc_a", "acc_b")
@@ -59,7 +59,7 @@ def _driver(name: str, ns: str, port: Path, cal: Path) -> ChildProcess:
                                "-p", f"frame_id:={ns}_link", "-p", f"calibration_file:={cal}"])
 
 
-def test_two_sensors_on_one_vehicle_do_not_cross_talk(ros: Context, tmp_path: Path) -> None:  # noqa: F811
+def test_two_sensors_on_one_vehicle_do_not_cross_talk(ros: Context, tmp_path: Path) -> None:
     """On the unchanged code a calibration node pointed at B by topic remaps wrote B's messages as /imu/raw,
     /imu/temperature (its own namespace's names, not the topics it recorded), the calibration MCAP held A's
     imu/raw in 'fbg_accel_link' (the writer's default),
