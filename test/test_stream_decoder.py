@@ -402,82 +402,46 @@ def test_a_frame_whose_board_clock_did_not_advance_is_invalid() -> None:
     assert out == [c, boot] and (dec.stats.duplicates, dec.stats.resets, dec.stats.invalid_frames) == (1, 1, 0)
 
 
-def test_immediate_duplicate_is_dropped() -> None:
+def _sequence_cases() -> dict[str, tuple[list[Frame], list[Frame] | None, tuple[int, int, int]]]:
+    """Frames sent, frames out (None: those sent) and (lost_frames, duplicates, resets), per sequence or reset rule."""
     a, b = make_frames(2)
-    dec, out = run([wire([a, a, b, b, b])])
-    assert out == [a, b]
-    assert (dec.stats.duplicates, dec.stats.lost_frames, dec.stats.resets) == (3, 0, 0)
+    wrap = make_frames(6, seq0=65533)
+    assert [f.seq for f in wrap] == [65533, 65534, 65535, 0, 1, 2]
+    before, after = make_frames(5, seq0=1000, t0=50_000_000), make_frames(5, seq0=0, t0=60_000_000)
+    after[0] = replace(after[0], status=OK_STATUS | int(Status.BOOT))  # the clock even moves forward: BOOT alone decides
+    late, early = make_frames(5, seq0=40_000, t0=900_000_000), make_frames(5, seq0=0, t0=200_000)
+    first_boot = [Frame(0, 0, 1, 1, 1, 1, 0, OK_STATUS | Status.BOOT), *make_frames(3, seq0=0, t0=0)[1:]]
+    boot, two = Frame(0, 100, 1, 1, 1, 1, 0, OK_STATUS | Status.BOOT), make_frames(2, seq0=7, t0=10_000_000)
+
+    def at(seq: int, t0: int) -> Frame:
+        return make_frames(1, seq0=seq, t0=t0)[0]
+
+    return {
+        "immediate_duplicate_is_dropped": ([a, a, b, b, b], [a, b], (0, 3, 0)),
+        "sequence_wrap_is_not_a_loss": (wrap, None, (0, 0, 0)),
+        "loss_across_wrap": (wrap[:2] + wrap[4:], None, (2, 0, 0)),  # 65535 and 0 missing
+        # seq 9 after seq 10, clock forward: 65534 frames missed
+        "large_gap_counts_all_missing_frames": ([at(10, 1_000_000), at(9, 5_000_000)], None, (SEQ_MODULO - 2, 0, 0)),
+        "boot_flag_is_a_reset_and_no_loss_is_counted_across_it": (before + after, None, (0, 0, 1)),
+        # the BOOT frame and the next one lost
+        "clock_going_backwards_is_a_reset_even_without_boot_frame": (late + early[2:], None, (0, 0, 1)),
+        "clock_one_microsecond_backwards_is_a_reset": ([at(5, 10_000), at(6, 9_999)], None, (0, 0, 1)),
+        # 65536 frames later (or a re-sent number): a new sample
+        "same_sequence_number_with_another_clock_is_not_a_duplicate": ([at(5, 10_000), at(5, 20_000)], None,
+                                                                       (SEQ_MODULO - 1, 0, 0)),
+        "first_frame_with_boot_flag_is_not_a_reset": (first_boot, None, (0, 0, 0)),
+        "duplicate_of_boot_frame_is_a_duplicate_not_a_second_reset": ([*two, boot, boot], [*two, boot], (0, 1, 1)),
+    }
 
 
-def test_sequence_wrap_is_not_a_loss() -> None:
-    frames = make_frames(6, seq0=65533)
-    assert [f.seq for f in frames] == [65533, 65534, 65535, 0, 1, 2]
-    dec, out = run([wire(frames)])
-    assert out == frames
-    assert (dec.stats.lost_frames, dec.stats.resets) == (0, 0)
-
-
-def test_loss_across_wrap() -> None:
-    frames = make_frames(6, seq0=65533)
-    dec, out = run([wire(frames[:2] + frames[4:])])  # 65535 and 0 missing
-    assert out == frames[:2] + frames[4:]
-    assert (dec.stats.lost_frames, dec.stats.resets) == (2, 0)
-
-
-def test_large_gap_counts_all_missing_frames() -> None:
-    a = make_frames(1, seq0=10)[0]
-    b = make_frames(1, seq0=9, t0=5_000_000)[0]  # seq 9 after seq 10, clock forward: 65534 frames missed
-    dec, _ = run([wire([a, b])])
-    assert dec.stats.lost_frames == SEQ_MODULO - 2
-
-
-def test_boot_flag_is_a_reset_and_no_loss_is_counted_across_it() -> None:
-    before = make_frames(5, seq0=1000, t0=50_000_000)
-    after = make_frames(5, seq0=0, t0=60_000_000)  # clock even moves forward: the BOOT flag alone decides
-    after[0] = replace(after[0], status=OK_STATUS | int(Status.BOOT))
-    dec, out = run([wire(before + after)])
-    assert out == before + after
-    assert (dec.stats.resets, dec.stats.lost_frames) == (1, 0)
-
-
-def test_clock_going_backwards_is_a_reset_even_without_boot_frame() -> None:
-    before = make_frames(5, seq0=40_000, t0=900_000_000)
-    after = make_frames(5, seq0=0, t0=200_000)
-    dec, out = run([wire(before + after[2:])])  # BOOT frame and the next one lost
-    assert out == before + after[2:]
-    assert (dec.stats.resets, dec.stats.lost_frames) == (1, 0)
-
-
-def test_clock_one_microsecond_backwards_is_a_reset() -> None:
-    a = make_frames(1, seq0=5, t0=10_000)[0]
-    b = make_frames(1, seq0=6, t0=9_999)[0]
-    dec, out = run([wire([a, b])])
-    assert out == [a, b]
-    assert dec.stats.resets == 1
-
-
-def test_same_sequence_number_with_another_clock_is_not_a_duplicate() -> None:
-    a = make_frames(1, seq0=5, t0=10_000)[0]
-    b = make_frames(1, seq0=5, t0=20_000)[0]  # 65536 frames later (or a re-sent number): a new sample
-    dec, out = run([wire([a, b])])
-    assert out == [a, b]
-    assert (dec.stats.duplicates, dec.stats.lost_frames) == (0, SEQ_MODULO - 1)
-
-
-def test_first_frame_with_boot_flag_is_not_a_reset() -> None:
-    frames = make_frames(3, seq0=0, t0=0)
-    frames[0] = Frame(0, 0, 1, 1, 1, 1, 0, OK_STATUS | Status.BOOT)
-    dec, out = run([wire(frames)])
-    assert out == frames
-    assert dec.stats.resets == 0
-
-
-def test_duplicate_of_boot_frame_is_a_duplicate_not_a_second_reset() -> None:
-    before = make_frames(2, seq0=7, t0=10_000_000)
-    boot = Frame(0, 100, 1, 1, 1, 1, 0, OK_STATUS | Status.BOOT)
-    dec, out = run([wire([*before, boot, boot])])
-    assert out == [*before, boot]
-    assert (dec.stats.resets, dec.stats.duplicates) == (1, 1)
+@pytest.mark.parametrize("case", list(_sequence_cases()))
+def test_sequence_and_reset_rules(case: str) -> None:
+    """seq + 1 (mod 65536) within a boot session, a reset on a BOOT flag or a board clock going back, a repeat of
+    the previous frame a duplicate: the frames out and the counts of each case."""
+    sent, expected, counts = _sequence_cases()[case]
+    dec, out = run([wire(sent)])
+    assert out == (sent if expected is None else expected)
+    assert (dec.stats.lost_frames, dec.stats.duplicates, dec.stats.resets) == counts
 
 
 def test_endless_garbage_keeps_memory_bounded() -> None:
