@@ -27,6 +27,7 @@ import numpy as np
 import pytest
 import yaml
 from process_harness import ChildProcess, Notifier
+from ros2_mcap import ros2_messages
 
 from fbg_accel_calibration.mcap_io import read_file, read_recording
 from fbg_accel_calibration.pose_plan import PosePlan
@@ -267,48 +268,11 @@ def procs():
 
 
 # ---------------------------------------------------------------------------- checks
-def read_raw_with_mcap_ros2(path: Path, ns: str) -> tuple[list, list]:
-    """imu/raw and imu/temperature of a *complete* file through the mcap reader + ROS 2 decoder; the file
-    names them with the node's namespace ``/<ns>/...``."""
-    from mcap.reader import make_reader
-    from mcap_ros2.decoder import DecoderFactory
-
-    raw, temp = [], []
-    with open(path, "rb") as fh:
-        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
-        summary = reader.get_summary()
-        assert summary is not None, "file has no summary section"
-        for schema, channel, message, decoded in reader.iter_decoded_messages():
-            if channel.topic == f"/{ns}/imu/raw":
-                assert schema.name == "sensor_msgs/msg/JointState" and channel.message_encoding == "cdr"
-                raw.append((message.log_time, decoded))
-            elif channel.topic == f"/{ns}/imu/temperature":
-                temp.append((message.log_time, decoded))
-    return raw, temp
-
-
-def read_raw_prefix_with_mcap_ros2(path: Path, ns: str) -> list:
-    """imu/raw of a file cut short (no footer, no summary): the mcap stream reader record by record up to the
-    cut, each message decoded with the ROS 2 decoder -- a reader independent of the project's."""
-    from mcap.exceptions import McapError
-    from mcap.records import Channel, Message, Schema
-    from mcap.stream_reader import StreamReader
-    from mcap_ros2.decoder import DecoderFactory
-
-    schemas, channels, raw, factory = {}, {}, [], DecoderFactory()
-    with open(path, "rb") as fh:
-        try:
-            for rec in StreamReader(fh).records:
-                if isinstance(rec, Schema):
-                    schemas[rec.id] = rec
-                elif isinstance(rec, Channel):
-                    channels[rec.id] = rec
-                elif isinstance(rec, Message) and channels[rec.channel_id].topic == f"/{ns}/imu/raw":
-                    ch = channels[rec.channel_id]
-                    raw.append((rec.log_time, factory.decoder_for(ch.message_encoding, schemas[ch.schema_id])(rec.data)))
-        except McapError:  # the cut: the chunk the writer was filling when it was killed
-            pass
-    return raw
+def raw_with_mcap_ros2(path: Path, ns: str, complete: bool = True) -> list:
+    """(log time, message) of the node's ``/<ns>/imu/raw`` through the mcap library and the ROS 2 decoder."""
+    raw = [(t, schema, m) for topic, t, schema, m in ros2_messages(path, complete) if topic == f"/{ns}/imu/raw"]
+    assert {schema for _, schema, _ in raw} == {"sensor_msgs/msg/JointState"}
+    return [(t, m) for t, _, m in raw]
 
 
 def assert_raw_matches_published(decoded: list, stream: Stream) -> None:
@@ -340,7 +304,8 @@ def test_mcap_round_trips_message_for_message_and_the_run_is_fitted(ros, plan_di
     assert "calibration written to" in out and "lost" in out
 
     # (1) the mcap reader + ROS 2 decoder give back exactly what was published, in order
-    raw, temp = read_raw_with_mcap_ros2(node.mcap, node.ns)
+    raw = raw_with_mcap_ros2(node.mcap, node.ns)
+    temp = [(t, m) for topic, t, _, m in ros2_messages(node.mcap) if topic == f"/{node.ns}/imu/temperature"]
     n = len(raw)
     assert n <= ros.published and n > 0.8 * len(stream.stamps_ns)
     assert_raw_matches_published(raw, stream)
@@ -394,7 +359,7 @@ def test_signal_closes_the_file_cleanly_in_operator_mode(ros, plan_dir, procs, s
     rc = node.wait_exit(timeout=20)
     assert rc == 3, node.output()
 
-    raw, _ = read_raw_with_mcap_ros2(node.mcap, node.ns)  # needs the summary: proves the clean close
+    raw = raw_with_mcap_ros2(node.mcap, node.ns)  # needs the summary: proves the clean close
     assert_raw_matches_published(raw, stream)
     rec, report = read_file(node.mcap)
     assert report.complete
@@ -454,7 +419,7 @@ def test_sigkill_mid_recording_leaves_a_file_read_up_to_its_last_chunk_that_the_
     assert not report.complete, "a SIGKILLed writer cannot have written the footer"
     assert report.messages > 0
     # everything recovered is exactly the published prefix, by the mcap library's own stream reader too
-    raw = read_raw_prefix_with_mcap_ros2(node.mcap, node.ns)
+    raw = raw_with_mcap_ros2(node.mcap, node.ns, complete=False)
     assert_raw_matches_published(raw, stream)
     assert len(raw) == len(rec)
     for k in range(4):  # each finished pose ended a chunk, so all four are on disk

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ros2_mcap import frames_by_topic
+
 from fbg_accel_calibration.dynamic_recorder import DynamicRunRecorder
 from fbg_accel_calibration.excitation_plan import ExcitationPlan
 from fbg_accel_calibration.mcap_io import RecordingWriter
@@ -99,9 +101,6 @@ def test_a_dynamic_run_is_recorded_in_the_frame_the_driver_published_it_in(tmp_p
     """``imu/raw`` of a driver with ``frame_id: acc_b_link``: the raw messages and the reference (a vector in the
     sensor frame) must say ``acc_b_link``. On the unchanged code the dynamic recorder never looked at the
     messages' frame: everything was written in the writer's default 'fbg_accel_link'."""
-    from mcap.reader import make_reader
-    from mcap_ros2.decoder import DecoderFactory
-
     plan = ExcitationPlan.load(PLAN)
     writer = RecordingWriter(tmp_path / "dyn.mcap", {"kind": "dynamic"})
     rec = DynamicRunRecorder(plan, writer, sensor_id="t")
@@ -110,10 +109,6 @@ def test_a_dynamic_run_is_recorded_in_the_frame_the_driver_published_it_in(tmp_p
                              temperature_c=24.0, status=int(Status.TEMP_VALID), seq=n, board_time_s=n / RATE,
                              aux=2048.0, frame_id="acc_b_link"))
     rec.close("aborted")
-    frames: dict[str, set[str]] = {}
-    with open(tmp_path / "dyn.mcap", "rb") as fh:
-        for _s, channel, _m, decoded in make_reader(fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
-            if hasattr(decoded, "header"):
-                frames.setdefault(channel.topic, set()).add(decoded.header.frame_id)
+    frames = frames_by_topic(tmp_path / "dyn.mcap")
     assert frames["/imu/raw"] == {"acc_b_link"}, frames
     assert frames["/calibration/reference_velocity"] == {"acc_b_link"}, frames

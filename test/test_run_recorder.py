@@ -8,6 +8,7 @@ import shutil
 
 import numpy as np
 import pytest
+from ros2_mcap import frames_by_topic
 
 from fbg_accel_calibration import mcap_io
 from fbg_accel_calibration.mcap_io import RecordingWriter, read_file
@@ -589,20 +590,6 @@ def test_refit_writes_the_calibration_atomically(tmp_path, monkeypatch):
     assert ThermalCalibration.load(out).degree == 0
 
 
-def _frames_in_file(path) -> dict[str, set[str]]:
-    """The header frame_id of every message with a header, per topic, read with the mcap reader and the ROS 2
-    decoder (independent of the project's reader)."""
-    from mcap.reader import make_reader
-    from mcap_ros2.decoder import DecoderFactory
-
-    frames: dict[str, set[str]] = {}
-    with open(path, "rb") as fh:
-        for _schema, channel, _msg, decoded in make_reader(fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
-            if hasattr(decoded, "header"):
-                frames.setdefault(channel.topic, set()).add(decoded.header.frame_id)
-    return frames
-
-
 def test_raw_messages_are_recorded_in_the_frame_the_driver_published_them_in(tmp_path):
     """A driver run with ``-p frame_id:=acc_a_link`` (one of two sensors on a vehicle): every recorded ``imu/raw``
     must carry ``acc_a_link``, as the node's docs say ("every imu/raw message as received (same stamp, frame_id,
@@ -620,6 +607,6 @@ def test_raw_messages_are_recorded_in_the_frame_the_driver_published_them_in(tmp
         rec.on_raw(dataclasses.replace(s, frame_id="acc_a_link"))
         rec.on_temperature(s.stamp_ns, 24.0, 0.09, frame_id="acc_a_link")
     rec.close("complete")
-    frames = _frames_in_file(tmp_path / "run.mcap")
+    frames = frames_by_topic(tmp_path / "run.mcap")
     assert frames["/imu/raw"] == {"acc_a_link"}, frames
     assert frames["/imu/temperature"] == {"acc_a_link"}, frames

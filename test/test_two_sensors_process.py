@@ -32,6 +32,7 @@ from rclpy.context import Context
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from ros2_mcap import frames_by_topic, ros2_messages
 from sensor_msgs.msg import Imu, JointState
 from test_driver_process import REPO
 
@@ -240,9 +241,6 @@ def test_two_sensors_on_one_vehicle_do_not_cross_talk(ros: Context, tmp_path: Pa
             assert "Traceback" not in p.output(), (name, p.output())
 
         # the recording: complete (summary), A's topics only, A's frame, A's data (z up: z counts of A's board)
-        from mcap.reader import make_reader
-        from mcap_ros2.decoder import DecoderFactory
-
         # (B's recorder, at the root with remaps, names B's topics as it received them: /acc_b/...)
         def z_counts(m: JointState) -> float:
             return m.position[list(m.name).index("z_counts")]
@@ -250,20 +248,14 @@ def test_two_sensors_on_one_vehicle_do_not_cross_talk(ros: Context, tmp_path: Pa
         z_range = {ns: (min(map(z_counts, raw[ns])), max(map(z_counts, raw[ns]))) for ns in NAMESPACES}
         assert z_range["acc_a"][0] > z_range["acc_b"][1] or z_range["acc_b"][0] > z_range["acc_a"][1], z_range
         for ns, label in (("acc_a", "run_a"), ("acc_b", "run_b")):
-            recorded: dict[str, set[str]] = {}
-            with open(tmp_path / f"{label}.mcap", "rb") as fh:
-                reader = make_reader(fh, decoder_factories=[DecoderFactory()])
-                assert reader.get_summary() is not None, f"no summary: {label}.mcap was not closed"
-                stamps = {m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in raw[ns]}
-                rec_stamps: list[int] = []
-                for _schema, channel, message, decoded in reader.iter_decoded_messages():
-                    assert channel.topic.startswith(f"/{ns}/"), (label, channel.topic)
-                    if hasattr(decoded, "header"):
-                        recorded.setdefault(channel.topic, set()).add(decoded.header.frame_id)
-                    if channel.topic == f"/{ns}/imu/raw":
-                        rec_stamps.append(message.log_time)
-                        lo, hi = z_range[ns]
-                        assert lo - 50 <= z_counts(decoded) <= hi + 50, (label, z_counts(decoded), z_range)
+            messages = ros2_messages(tmp_path / f"{label}.mcap")  # needs the summary: the file was closed
+            assert all(topic.startswith(f"/{ns}/") for topic, _, _, _ in messages), label
+            stamps = {m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in raw[ns]}
+            rec_stamps = [t for topic, t, _, _ in messages if topic == f"/{ns}/imu/raw"]
+            lo, hi = z_range[ns]
+            assert all(lo - 50 <= z_counts(m) <= hi + 50 for topic, _, _, m in messages if topic == f"/{ns}/imu/raw"), \
+                (label, z_range)
+            recorded = frames_by_topic(tmp_path / f"{label}.mcap")
             # the same messages as the probe's subscription to that driver, while the probe listened (it stopped
             # before the recorders) to the first driver on the port (a restarted one may be matched by either side
             # a second or two before the other)
