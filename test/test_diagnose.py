@@ -33,9 +33,6 @@ from fbg_accel_calibration.diagnose_report import text as report_text
 from fbg_accel_calibration.effects import LIBRARY, Effect, fill_reference_gaps, finite_rows, library_by_name
 from fbg_accel_calibration.recording import Recording, time_axis_label
 from fbg_accel_calibration.table_geometry import table_specific_force
-from fbg_accel_driver.correction_terms import ThermalLag, TiaInverseFilter
-from fbg_accel_driver.driver_core import DriverCore
-from fbg_accel_driver.frame_codec import Frame, Status, encode_frame
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 MEASURED = Path(__file__).resolve().parents[2] / "shared" / "data" / "measured" / "fig13_multiposition_23C.csv"
@@ -143,45 +140,6 @@ def test_paired_gain_test_detects_and_refuses() -> None:
     assert ng == 30 and p < 1e-6 and gain == pytest.approx(0.51, abs=1e-9)
     gain, p, _, _ = paired_gain_test(r0, r0 + rng.normal(0, 0.1, (600, 3)), groups, rows, np.ones(3))
     assert p > 0.01 and gain < 0
-
-
-def _frames_from(ref, xyz, temp_c, t_s) -> bytes:
-    out = b""
-    for i in range(len(ref)):
-        f = Frame(seq=i % 65536, t_us=round(t_s[i] * 1e6), ref=int(ref[i]), x=int(xyz[i, 0]), y=int(xyz[i, 1]),
-                  z=int(xyz[i, 2]), temp_cc=round(temp_c[i] * 100), status=int(Status.TEMP_VALID | Status.TEMP_PRESENT))
-        out += encode_frame(f)
-    return out
-
-
-def test_driver_core_output_equals_offline_model_with_stateful_terms() -> None:
-    """Frames through the driver's DriverCore (chunked bytes, persistent state) equal apply_counts in one batch."""
-    rec = synthetic(7, dark=-40.0)
-    res = diagnose(rec, static="table")
-    cal = res.calibration
-    assert any(t.kind == "reference_dark_offset" for t in cal.corrections)
-    # add the stateful terms too, so the streaming state is exercised
-    cal = ThermalCalibration(M=cal.M, b=cal.b, temperature_range_c=(0.0, 60.0), t_center_c=cal.t_center_c,
-                             t_scale_c=cal.t_scale_c, corrections=[TiaInverseFilter(np.array([0.0, 0.09, 0.12, 0.12])),
-                                                                   *cal.corrections, ThermalLag(30.0)])
-    n = 900
-    ref = np.round(rec.ref[:n])
-    xyz = np.round(rec.xyz[:n])
-    temp = np.round((22.0 + 0.002 * np.arange(n)) * 100) / 100
-    t_s = np.arange(n) * 0.01
-    offline = cal.apply_counts(ref, xyz, temp, t_s, cal.new_state())
-    core = DriverCore(cal)
-    data = _frames_from(ref, xyz, temp, t_s)
-    got = []
-    for i, k in enumerate(range(0, len(data), 101)):  # odd chunk size: frames split across reads
-        got += [r.accel_mps2 for r in core.feed(data[k:k + 101], 1_000_000_000 + i * 10_000_000).imu]
-    got = np.array(got)
-    assert got.shape == offline.shape
-    np.testing.assert_allclose(got, offline, rtol=0, atol=1e-9)
-    # and the terms matter (the test can fail)
-    plain = ThermalCalibration(M=cal.M, b=cal.b, temperature_range_c=(0.0, 60.0), t_center_c=cal.t_center_c,
-                               t_scale_c=cal.t_scale_c)
-    assert np.max(np.abs(plain.apply_counts(ref, xyz, temp, t_s) - offline)) > 0.01
 
 
 def test_cli_writes_report_yaml_and_plots(tmp_path: Path) -> None:

@@ -14,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fbg_accel_driver import correction_terms
+from fbg_accel_driver.correction_terms import ReferenceDarkOffset, ThermalLag, TiaInverseFilter
 from fbg_accel_driver.driver_core import AHT10_SIGMA_C, CoreConfig, DriverCore
 from fbg_accel_driver.driver_diagnostics import ERROR, OK, STALE, WARN, DiagnosticsSnapshot, DriverDiagnostics
 from fbg_accel_driver.frame_codec import ADC_MAX, Frame, Status, encode_frame
@@ -82,36 +83,27 @@ def test_calibrated_values_match_eq24_eq28() -> None:
     assert stamps == [r.stamp_ns for r in imu] and all(np.diff(stamps) > 0)
 
 
-def test_stateful_correction_state_persists_across_chunks(monkeypatch: pytest.MonkeyPatch) -> None:
-    class CountingTerm:
-        """Test term: adds 1e-3 m/s^2 times the running sample index (needs streaming state)."""
-
-        kind = "unit_counter"
-
-        def new_state(self) -> dict:
-            return {"n": 0}
-
-        def contribution(self, cal: Any, inputs: correction_terms.TermInputs, state: dict) -> np.ndarray:
-            n = inputs.ref.shape[0]
-            idx = state["n"] + np.arange(n)
-            state["n"] += n
-            return np.repeat(idx[:, None] * 1e-3, 3, axis=1)
-
-        def to_dict(self) -> dict:
-            return {"kind": self.kind}
-
-        def extrapolation(self, inputs: correction_terms.TermInputs) -> None:
-            return None  # no fitted span
-
-    monkeypatch.setitem(correction_terms.CORRECTION_TYPES, "unit_counter", CountingTerm)
-    cal = make_cal(corrections=[CountingTerm()])
-    frames = [frame(i) for i in range(40)]
-    _, one_by_one, _ = feed_frames(DriverCore(cal), frames, chunk=1)
-    _, batched, _ = feed_frames(DriverCore(cal), frames, chunk=40)
-    a1 = np.array([r.accel_mps2 for r in one_by_one])
-    a2 = np.array([r.accel_mps2 for r in batched])
-    np.testing.assert_allclose(a1, a2, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(a1[39] - a1[0], 39e-3, atol=1e-9)
+def test_driver_output_with_stateful_terms_equals_the_offline_model() -> None:
+    """Frames through DriverCore in reads of 101 bytes (frames cut across reads; the terms' state carried from read
+    to read) equal ``apply_counts`` of the whole stream in one batch (what fit and diagnose evaluate), with stateful
+    terms (TIA inverse filter, thermal lag) around a reference dark offset. The terms move the output by more than
+    0.01 m/s^2, so a term left out or a state reset at a read shows."""
+    terms = [TiaInverseFilter(np.array([0.0, 0.09, 0.12, 0.12])), ReferenceDarkOffset(-40.0), ThermalLag(30.0)]
+    cal = make_cal(corrections=terms, temperature_range_c=(0.0, 60.0))
+    rng = np.random.default_rng(7)
+    n = 900
+    frames = [frame(i, ref=int(rng.integers(860, 880)), xyz=tuple(int(v) for v in rng.integers(1090, 1110, 3)),
+                    temp_cc=round(2200 + 0.2 * i)) for i in range(n)]
+    ref = np.array([f.ref for f in frames], float)
+    xyz = np.array([(f.x, f.y, f.z) for f in frames], float)
+    temp, t_s = np.array([f.temp_cc / 100 for f in frames]), np.arange(n) * 0.01
+    offline = cal.apply_counts(ref, xyz, temp, t_s)
+    core, data = DriverCore(cal), b"".join(encode_frame(f) for f in frames)
+    got = np.array([r.accel_mps2 for k in range(0, len(data), 101)
+                    for r in core.feed(data[k:k + 101], T0_NS + k // 27 * 10_000_000 + 2_000_000).imu])
+    assert got.shape == offline.shape
+    np.testing.assert_allclose(got, offline, rtol=0, atol=1e-9)
+    assert np.max(np.abs(make_cal(temperature_range_c=(0.0, 60.0)).apply_counts(ref, xyz, temp, t_s) - offline)) > 0.01
 
 
 def test_zero_and_low_reference_are_dropped_never_nan() -> None:
