@@ -4,17 +4,17 @@ when they hold a dynamic run (docs/csv_interchange.md, "Dynamic runs")."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
+from test_csv_import import SPREADSHEET_EXPORTS
 
 from fbg_accel_calibration.dynamic_csv import DynamicCsvError, read_dynamic_csv, write_dynamic_csv
 
-# a slide run at 500 Hz: 40 rows, one comment line, the temperature column last
+# a slide run at 500 Hz: 40 rows, one comment line, one blank line, the temperature column last
 ROWS = [f"{0.002 * i:.3f},2000,{1500 + i},{1600 - i},1700,{2048 + 3 * i},{24.0 + 0.01 * i:.2f}" for i in range(40)]
-GOOD = "# slide run\nt_s,ref,x,y,z,aux,temperature_c\n" + "\n".join(ROWS) + "\n"
+GOOD = "# slide run\nt_s,ref,x,y,z,aux,temperature_c\n" + "\n".join(ROWS[:20]) + "\n\n" + "\n".join(ROWS[20:]) + "\n"
 
 
 def _write(tmp_path: Path, text: str, name: str = "dyn.csv") -> Path:
@@ -23,37 +23,14 @@ def _write(tmp_path: Path, text: str, name: str = "dyn.csv") -> Path:
     return path
 
 
-def _header_upper(text: str) -> str:
-    return text.replace("t_s,ref,x,y,z,aux,temperature_c", " T_S, Ref, X, Y, Z, AUX, Temperature_C")
-
-
-def _trailing_commas(text: str) -> str:
-    """Excel with formatted empty columns to the right: every line ends in commas, an empty row is only commas."""
-    lines = text.splitlines()
-    return "\n".join([*(ln + ",," for ln in lines[:12]), ",,,,,,,,", *(ln + ",," for ln in lines[12:])]) + "\n"
-
-
-def _pandas_index(text: str) -> str:
-    lines = text.splitlines()
-    return "\n".join([lines[0], "," + lines[1], *(f"{k},{ln}" for k, ln in enumerate(lines[2:]))]) + "\n"
-
-
-EXPORTS: dict[str, Callable[[str], str]] = {
-    "bom_crlf": lambda t: "\ufeff" + t.replace("\n", "\r\n"),
-    "upper_case_padded_header": _header_upper,
-    "trailing_commas_and_comma_rows": _trailing_commas,
-    "pandas_index": _pandas_index,
-    "quoted_header": lambda t: t.replace("t_s,ref,x,y,z,aux,temperature_c", '"t_s","ref","x","y","z","aux","temperature_c"'),
-}
-
-
-@pytest.mark.parametrize("variant", sorted(EXPORTS))
+@pytest.mark.parametrize("variant", sorted(SPREADSHEET_EXPORTS))
 def test_spreadsheet_exports_of_a_dynamic_run_read_like_the_plain_file(tmp_path: Path, variant: str) -> None:
     """On the unchanged reader (its own csv.reader per line, case-sensitive names): the upper-case header was
     "missing column(s) ['t_s', 'ref', 'x', 'y', 'z', 'aux']", a line of commas was "line 13: t_s, ref, x, y, z and
-    aux must be finite numbers"; BOM + CRLF, the pandas index and the quoted header were read."""
+    aux must be finite numbers"; BOM + CRLF, the pandas index and the quoted header were read. The exports are
+    test_csv_import's, which the calibration CSV reads alike."""
     want = read_dynamic_csv(_write(tmp_path, GOOD, "plain.csv"))
-    got = read_dynamic_csv(_write(tmp_path, EXPORTS[variant](GOOD)))
+    got = read_dynamic_csv(_write(tmp_path, SPREADSHEET_EXPORTS[variant](GOOD)))
     for k in ("t_s", "ref", "xyz", "aux", "temp_c"):
         np.testing.assert_array_equal(getattr(got, k), getattr(want, k), err_msg=k)
     assert len(got) == len(ROWS)
