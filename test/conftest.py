@@ -15,6 +15,6 @@ def ros() -> Iterator[Any]:
     from rclpy.context import Context
 
     ctx = Context()
-    rclpy.init(context=ctx)
+    rclpy.init(args=[], context=ctx)
     yield ctx
     rclpy.try_shutdown(context=ctx)

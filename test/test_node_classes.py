@@ -12,7 +12,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import rclpy
 from rcl_interfaces.msg import ParameterType
 from rclpy.context import Context
 from rclpy.lifecycle import LifecyclePublisher, TransitionCallbackReturn
@@ -34,14 +33,6 @@ TYPE_CODES = {"string": ParameterType.PARAMETER_STRING, "integer": ParameterType
               "string_array": ParameterType.PARAMETER_STRING_ARRAY, "double_array": ParameterType.PARAMETER_DOUBLE_ARRAY}
 
 
-@pytest.fixture(scope="module")
-def ctx() -> Iterator[Context]:
-    context = Context()
-    rclpy.init(args=[], context=context)
-    yield context
-    rclpy.try_shutdown(context=context)
-
-
 def overrides(**values: Any) -> list[Parameter]:
     return [Parameter(name, value=value) for name, value in values.items()]
 
@@ -52,12 +43,12 @@ def port(tmp_path: Path) -> str:
 
 
 @pytest.fixture
-def make_driver(ctx: Context, port: str) -> Iterator[Any]:
+def make_driver(ros: Context, port: str) -> Iterator[Any]:
     """Build a driver node class with overrides (port: nowhere); every node built is closed and destroyed."""
     built: list[DriverNode] = []
 
     def make(cls: type[DriverNode] = DriverNode, **values: Any) -> DriverNode:
-        node = cls(context=ctx, parameter_overrides=overrides(**({"port": port} | values)))
+        node = cls(context=ros, parameter_overrides=overrides(**({"port": port} | values)))
         built.append(node)
         return node
 
@@ -256,12 +247,12 @@ def test_managed_driver_configure_that_fails_late_leaves_nothing_behind(make_dri
 
 # ----------------------------------------------------------------------------- calibration
 @pytest.fixture
-def make_calibration(ctx: Context, tmp_path: Path) -> Iterator[Any]:
+def make_calibration(ros: Context, tmp_path: Path) -> Iterator[Any]:
     built: list[CalibrationNode] = []
 
     def make(**values: Any) -> CalibrationNode:
         base = {"plan_file": str(PLAN), "output_dir": str(tmp_path), "run_label": "inproc", "progress": False}
-        node = CalibrationNode(context=ctx, parameter_overrides=overrides(**(base | values)))
+        node = CalibrationNode(context=ros, parameter_overrides=overrides(**(base | values)))
         built.append(node)
         return node
 
