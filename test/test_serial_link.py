@@ -7,37 +7,24 @@ import select
 import threading
 import time
 import tty
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 import serial
+from process_harness import Notifier
 
 from fbg_accel_driver.serial_link import LinkState, SerialLink
 
 
-class Notified:
-    """The link's ``notify`` callback (called on every queued chunk and every state change): a test waits
-    for a condition by re-checking it each time the link reports something, never on a timer."""
+class Notified(Notifier):
+    """The link's ``notify`` callback (called on every queued chunk and every state change), counting its calls: a
+    test waits for a condition by re-checking it each time the link reports something, never on a timer."""
 
-    def __init__(self) -> None:
-        self._event = threading.Event()
-        self.calls = 0
+    calls = 0
 
     def __call__(self) -> None:
         self.calls += 1
-        self._event.set()
-
-    def wait_for(self, cond: Callable[[], bool], timeout_s: float, what: str) -> None:
-        deadline = time.monotonic() + timeout_s
-        while True:
-            self._event.clear()  # before the check: a notification after it wakes the wait below
-            if cond():
-                return
-            remaining = deadline - time.monotonic()
-            woke = remaining > 0 and self._event.wait(remaining)
-            if not woke and not cond():
-                raise AssertionError(f"timed out after {timeout_s:g} s waiting for: {what}")
+        self.notify()
 
 
 def open_pty(link: Path) -> tuple[int, int]:
@@ -61,14 +48,14 @@ def send_through(link: SerialLink, notified: Notified, master: int, data: bytes,
     bytes, and return what it queued (``drain``)."""
     start = link.status().bytes_read
     os.write(master, data)
-    notified.wait_for(lambda: link.status().bytes_read >= start + len(data), 10, what)
+    notified.wait_until(lambda: link.status().bytes_read >= start + len(data), 10, what)
     return drain(link)
 
 
 def test_reads_survives_vanish_backs_off_and_reconnects_in_one_thread(tmp_path: Path) -> None:
     path = tmp_path / "board"
     notified = Notified()
-    wait_for = notified.wait_for
+    wait_for = notified.wait_until
     link = SerialLink(str(path), 115200, notify=notified, backoff_initial_s=0.05, backoff_max_s=0.2)
     threads_before = threading.active_count()
     link.start()
@@ -122,7 +109,7 @@ def test_silent_port_is_reopened(tmp_path: Path) -> None:
     path = tmp_path / "board"
     master, slave = open_pty(path)
     notified = Notified()
-    wait_for = notified.wait_for
+    wait_for = notified.wait_until
     link = SerialLink(str(path), 115200, notify=notified, backoff_initial_s=0.05, backoff_max_s=0.1,
                       silence_timeout_s=0.3)
     link.start()
@@ -140,7 +127,7 @@ def test_a_frame_written_at_once_arrives_as_one_chunk(tmp_path: Path) -> None:
     path = tmp_path / "board"
     master, slave = open_pty(path)
     notified = Notified()
-    wait_for = notified.wait_for
+    wait_for = notified.wait_until
     link = SerialLink(str(path), 921600, notify=notified)
     link.start()
     try:
@@ -174,10 +161,10 @@ def test_each_chunk_carries_the_host_and_the_steady_time_of_its_read(tmp_path: P
     link = SerialLink(str(path), 115200, notify=notified, clock_ns=lambda: time.monotonic_ns() + host_ahead_ns)
     link.start()
     try:
-        notified.wait_for(lambda: link.status().state is LinkState.CONNECTED, 10, "connected")
+        notified.wait_until(lambda: link.status().state is LinkState.CONNECTED, 10, "connected")
         before = time.monotonic_ns()
         os.write(master, b"stamped")
-        notified.wait_for(lambda: link.status().bytes_read >= 7, 10, "bytes read")
+        notified.wait_until(lambda: link.status().bytes_read >= 7, 10, "bytes read")
         after = time.monotonic_ns()
         host_ns, data, steady_ns = link.queue.get_nowait()
         assert data == b"stamped" and before <= steady_ns <= after
@@ -213,12 +200,12 @@ def test_a_port_that_hangs_up_while_it_is_being_opened_is_retried(tmp_path: Path
     link.start()
     master = slave = -1
     try:
-        notified.wait_for(lambda: link.status().failed_attempts >= 1 or not link.status().thread_alive, 10,
+        notified.wait_until(lambda: link.status().failed_attempts >= 1 or not link.status().thread_alive, 10,
                           "the open that hung up reported")
         assert hung_up and link.status().thread_alive, link.status()
         assert "cannot open" in link.status().message
         master, slave = open_pty(path)  # the port comes back under the same name
-        notified.wait_for(lambda: link.status().state is LinkState.CONNECTED, 10, "connected to the new pty")
+        notified.wait_until(lambda: link.status().state is LinkState.CONNECTED, 10, "connected to the new pty")
         assert send_through(link, notified, master, b"back", "bytes from the new pty") == b"back"
     finally:
         link.stop()
@@ -264,14 +251,14 @@ def test_a_name_re_pointed_to_another_live_device_is_followed_while_data_flows(t
     link.start()
     writer.start()
     try:
-        notified.wait_for(lambda: received(b"A" * 512), 10, "the old device's stream")
+        notified.wait_until(lambda: received(b"A" * 512), 10, "the old device's stream")
         tmp = path.with_suffix(".tmp")
         os.symlink(os.ttyname(new_slave), tmp)
         os.replace(tmp, path)
         # the new device's bytes are written once it is open (pyserial flushes the input queue when it opens)
-        notified.wait_for(lambda: link.status().connects == 2, 10, "reopened on the new target")
+        notified.wait_until(lambda: link.status().connects == 2, 10, "reopened on the new target")
         os.write(new_master, b"from the new board")
-        notified.wait_for(lambda: received(b"from the new board"), 10, "bytes of the new device")
+        notified.wait_until(lambda: received(b"from the new board"), 10, "bytes of the new device")
         assert link.status().disconnects == 1 and link.status().state is LinkState.CONNECTED
     finally:
         stop.set()
@@ -294,9 +281,9 @@ def test_a_second_reader_of_the_same_port_is_refused_and_takes_over_when_the_fir
     second = SerialLink(str(path), 115200, notify=second_notified, backoff_initial_s=0.05, backoff_max_s=0.1)
     first.start()
     try:
-        first_notified.wait_for(lambda: first.status().state is LinkState.CONNECTED, 10, "the first reader connected")
+        first_notified.wait_until(lambda: first.status().state is LinkState.CONNECTED, 10, "the first reader connected")
         second.start()
-        second_notified.wait_for(lambda: second.status().failed_attempts >= 2 or second.status().connects > 0, 10,
+        second_notified.wait_until(lambda: second.status().failed_attempts >= 2 or second.status().connects > 0, 10,
                                  "the second reader's open attempts")
         st = second.status()
         assert st.connects == 0 and st.state is LinkState.DISCONNECTED, st
@@ -304,11 +291,11 @@ def test_a_second_reader_of_the_same_port_is_refused_and_takes_over_when_the_fir
         payload = bytes(range(256)) * 40
         for k in range(0, len(payload), 512):
             os.write(master, payload[k:k + 512])
-            first_notified.wait_for(lambda k=k: first.status().bytes_read >= k + 512, 10, f"bytes up to {k + 512}")
+            first_notified.wait_until(lambda k=k: first.status().bytes_read >= k + 512, 10, f"bytes up to {k + 512}")
         assert drain(first) == payload  # nothing went to the second reader
         assert second.status().bytes_read == 0
         first.stop()  # the first driver exits: the second gets the port at its next attempt
-        second_notified.wait_for(lambda: second.status().state is LinkState.CONNECTED, 10, "the second reader took over")
+        second_notified.wait_until(lambda: second.status().state is LinkState.CONNECTED, 10, "the second reader took over")
         assert send_through(second, second_notified, master, b"now yours", "bytes to the second reader") == b"now yours"
     finally:
         first.stop()
