@@ -16,24 +16,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_diagnose_sim import _config
 from test_diagnose_visits import M_TRUE, campaign
 
 from fbg_accel_calibration.diagnose import diagnose, settle_window, settled_mask, settling_transient
 from fbg_accel_calibration.diagnose_report import markdown, text
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_sim.board_physics import simulate_recording
-from fbg_accel_sim.sim_config import SimConfig
 
-NAMED = ("reference_dark_offset", "thermal_lag", "spectral_nonlinearity", "time_drift", "channel_delay", "tia_lowpass",
-         "thermal_hysteresis", "unmodelled_cable_torque")
-BASELINE = {f"effects.{k}.scale": 0.0 for k in NAMED}
-GRID = {"scenario.poses.mode": "grid", "scenario.poses.dwell_s": 3.0, "scenario.poses.move_s": 1.0,
-        "scenario.poses.grid.theta_step_deg": 60.0, "scenario.poses.grid.psi_step_deg": 60.0}
 END_WORDS = "ends of visits disturbed"
 
 
 def _sim(seed: int) -> Recording:
-    return simulate_recording(SimConfig.default().with_overrides({**BASELINE, **GRID}), seed=seed)
+    return simulate_recording(_config({}), seed=seed)
 
 
 def _readings_late(rec: Recording, k: int) -> Recording:

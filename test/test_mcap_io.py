@@ -203,27 +203,11 @@ def test_sigkilled_writer_leaves_a_readable_file(tmp_path: Path) -> None:
     assert (rec.pose_id == 0).all()
 
 
-def test_write_recording_round_trip(tmp_path: Path) -> None:
-    n = 50
-    rng = np.random.default_rng(3)
-    pose = np.repeat([0, -1, 1, 2], [15, 5, 15, 15])
-    gref = np.where(pose[:, None] >= 0, rng.normal(size=(4, 3))[pose + 1], np.nan)
-    temp = np.full(n, 23.4)
-    temp[7] = np.nan
-    rec = Recording(np.arange(n) * 0.1, rng.integers(800, 900, n), rng.integers(0, 4096, (n, 3)), temp, gref, pose)
-    write_recording(tmp_path / "w.mcap", rec, {"sensor_id": "csv"})
-    back = read_recording(tmp_path / "w.mcap")
-    np.testing.assert_array_equal(back.pose_id, rec.pose_id)
-    np.testing.assert_array_equal(back.gref_mps2, rec.gref_mps2)
-    np.testing.assert_array_equal(back.xyz, rec.xyz)
-    np.testing.assert_array_equal(np.isnan(back.temp_c), np.isnan(rec.temp_c))
-    np.testing.assert_allclose(back.t_s, rec.t_s)
-
-
 def test_a_moving_reference_is_no_pose_event_and_reads_back_as_moving(tmp_path: Path) -> None:
     """A table that reports its angles while it moves (the simulator's does) must not give a pose event per moving
     sample: the moving samples' reference is not written. A recorded pose whose reference changes is an event.
-    Written in one go or block by block (the CSV importer), the events are the same."""
+    Written in one go or block by block (the CSV importer), the events are the same. write_recording's round trip:
+    counts, temperatures (a NaN among them) and times read back as written."""
     from mcap.reader import make_reader
 
     from fbg_accel_calibration.mcap_io import pose_events
@@ -233,15 +217,20 @@ def test_a_moving_reference_is_no_pose_event_and_reads_back_as_moving(tmp_path: 
     pose = np.repeat([0, -1, 1, -1, 2], [15, 10, 15, 5, 15])
     gref = np.where(pose[:, None] >= 0, rng.normal(size=(4, 3))[pose + 1], rng.normal(size=(n, 3)))  # moving: known
     gref[52:] += 0.5  # the reference of pose 2 changes while it is recorded
-    rec = Recording(np.arange(n) * 0.1, rng.integers(800, 900, n), rng.integers(0, 4096, (n, 3)), np.full(n, 23.4),
-                    gref, pose)
+    temp = np.full(n, 23.4)
+    temp[7] = np.nan
+    rec = Recording(np.arange(n) * 0.1, rng.integers(800, 900, n), rng.integers(0, 4096, (n, 3)), temp, gref, pose)
     write_recording(tmp_path / "m.mcap", rec, {"sensor_id": "sim"})
     with open(tmp_path / "m.mcap", "rb") as f:
         events = sum(1 for _, ch, _ in make_reader(f).iter_messages() if ch.topic.endswith("calibration/pose"))
     assert events == 6  # 0, moving, 1, moving, 2, 2 with its new reference
-    back = read_recording(tmp_path / "m.mcap")
+    back = read_recording(tmp_path / "m.mcap")  # and the samples read back as written
     np.testing.assert_array_equal(back.pose_id, pose)
     np.testing.assert_array_equal(back.gref_mps2, np.where(pose[:, None] >= 0, gref, np.nan))
+    np.testing.assert_array_equal(back.xyz, rec.xyz)
+    np.testing.assert_array_equal(back.ref, rec.ref)
+    np.testing.assert_array_equal(back.temp_c, rec.temp_c)  # NaN (no valid reading) included
+    np.testing.assert_allclose(back.t_s, rec.t_s)
     whole = pose_events(rec.pose_id, rec.gref_mps2)[1]
     for cut in range(1, n):
         first = pose_events(rec.pose_id[:cut], rec.gref_mps2[:cut])
