@@ -4,7 +4,7 @@ Properties (docs/protocol.md, "Decoder rules"):
 
 * every intact frame fed in is returned, once, in order, whatever garbage, truncated or bit-flipped
   frames surround it and however the bytes are cut into chunks;
-* nothing raises; the decoder's memory stays bounded;
+* nothing raises; the decoder's memory stays bounded (arbitrary bytes: test_fuzz_inputs);
 * counters are exact: ``crc_errors`` when only body/CRC bytes were corrupted, ``lost_frames`` from
   the sequence gaps (with wrap-around at 65535), ``duplicates``, ``resets`` (BOOT flag or clock going
   backwards), and a byte balance ``received = discarded + 27 * (frames + duplicates) + buffered``.
@@ -289,7 +289,8 @@ def test_accepts_bytes_like_inputs() -> None:
     assert out == frames
 
 
-@pytest.mark.parametrize("bad", [None, "a5 5a", 5, 10**12, -3, 3.5, object(), [0xA5, 0x5A]])
+@pytest.mark.parametrize("bad", [None, "a5 5a", 5, 10**12, -(2**70), 3.5, float("nan"), object(), [0xA5, 0x5A],
+                                 {"a": 1}])
 def test_non_bytes_input_is_ignored_without_raising(bad: object) -> None:
     dec = StreamDecoder()
     assert dec.feed(bad) == []  # type: ignore[arg-type]
@@ -510,16 +511,6 @@ def test_property_chunking_does_not_change_anything(b: Built, sizes: list[int]) 
     assert out_chunked == out_whole
     assert chunked.stats == whole.stats
     assert chunked.buffered == whole.buffered
-
-
-@PROPERTY
-@given(data=st.binary(max_size=2000), sizes=chunk_sizes)
-def test_property_random_bytes_never_raise(data: bytes, sizes: list[int]) -> None:
-    dec, out = run(split(data, sizes))
-    assert dec.stats.bytes_received == len(data)
-    assert len(out) == dec.stats.frames
-    for f in out:
-        assert max(f.ref, f.x, f.y, f.z) <= ADC_MAX
 
 
 def catch_up_frames(n: int, late_k: int, late_us: int, dt: int = 1_000, read_us: int = 40, t0: int = 1_000_000,
