@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -24,10 +25,11 @@ def _lowpass(u: np.ndarray, fc: float, fs: float) -> np.ndarray:
     return y
 
 
-def _amp_phase(t: np.ndarray, y: np.ndarray, f: float) -> tuple[float, float]:
+def _amp_phase(t: np.ndarray, y: np.ndarray, f: float) -> tuple[Any, Any]:
+    """Amplitude and phase (rad) of the ``f`` Hz sine in ``y`` (N,) or in each column of ``y`` (N, k), with an offset."""
     X = np.column_stack([np.sin(2 * np.pi * f * t), np.cos(2 * np.pi * f * t), np.ones_like(t)])
     s, c, _ = np.linalg.lstsq(X, y, rcond=None)[0]
-    return float(np.hypot(s, c)), float(np.arctan2(c, s))
+    return np.hypot(s, c), np.arctan2(c, s)
 
 
 @pytest.mark.parametrize("f_hz", [0.5, 2.0, 5.0])

@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from test_chain_compensation import _amp_phase, _lowpass
 from test_driver_core import feed_frames, make_cal
 
 from fbg_accel_driver.chain_compensation import ChainDynamics
@@ -21,20 +22,9 @@ GOOD = 3
 DYN = ChainDynamics(cutoff_hz=(1.0, 1.7, 1.3, 1.3), delay_s=(0.0, 0.0, 0.0))
 
 
-def _lowpass(u: np.ndarray, fc: float) -> np.ndarray:
-    """The sampled first-order TIA stage (the simulator's model, board_physics)."""
-    r = math.exp(-2 * math.pi * fc / FS)
-    y = np.empty_like(u)
-    s = u[0]
-    for i, v in enumerate(u):
-        s = r * s + (1 - r) * v
-        y[i] = s
-    return y
-
-
 def _frames(true_counts: np.ndarray) -> list[Frame]:
     """Frames of (N, 4) true channel counts (ref, x, y, z) after each channel's own TIA low-pass."""
-    seen = np.column_stack([_lowpass(true_counts[:, j], DYN.cutoff_hz[j]) for j in range(4)])
+    seen = np.column_stack([_lowpass(true_counts[:, j], DYN.cutoff_hz[j], FS) for j in range(4)])
     c = np.round(seen).astype(int)
     return [Frame(seq=i % 65536, t_us=i * 10_000, ref=int(c[i, 0]), x=int(c[i, 1]), y=int(c[i, 2]), z=int(c[i, 3]),
                   temp_cc=2340, status=GOOD) for i in range(len(c))]
@@ -74,10 +64,7 @@ def test_equalise_undoes_the_ratio_distortion_when_the_source_power_moves():
     for mode in ("none", "equalise"):
         _, imu, _ = feed_frames(_core(mode), frames)
         a = np.array([r.accel_mps2 for r in imu])[keep]
-        tk = t[keep][: len(a)]
-        X = np.column_stack([np.sin(2 * np.pi * 0.5 * tk), np.cos(2 * np.pi * 0.5 * tk), np.ones_like(tk)])
-        coef = np.linalg.lstsq(X, a, rcond=None)[0]
-        ripple[mode] = np.hypot(coef[0], coef[1])
+        ripple[mode] = _amp_phase(t[keep][: len(a)], a, 0.5)[0]
     assert np.all(ripple["none"] > 0.5)  # m/s^2: the distortion the issue describes
     assert np.all(ripple["equalise"] < 0.05 * ripple["none"]), ripple
 
@@ -191,10 +178,8 @@ def test_equalised_counts_also_feed_the_declared_correction_terms():
                       CoreConfig(chain_compensation="equalise", equalise_bandwidth_hz=10.0))
     _, imu, _ = feed_frames(core, _frames(counts))
     a = np.array([r.accel_mps2 for r in imu])[int(5 * FS):]
-    tk = t[int(5 * FS):][: len(a)]
-    X = np.column_stack([np.sin(2 * np.pi * 0.5 * tk), np.cos(2 * np.pi * 0.5 * tk), np.ones_like(tk)])
-    coef = np.linalg.lstsq(X, a, rcond=None)[0]
-    assert np.all(np.hypot(coef[0], coef[1]) < 0.03), np.hypot(coef[0], coef[1])  # m/s^2 (raw counts: 0.26-0.30)
+    ripple = _amp_phase(t[int(5 * FS):][: len(a)], a, 0.5)[0]
+    assert np.all(ripple < 0.03), ripple  # m/s^2 (raw counts: 0.26-0.30)
 
 
 def test_a_calibration_without_a_dynamic_section_states_that_the_lag_is_unknown():
