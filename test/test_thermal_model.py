@@ -277,12 +277,9 @@ def test_good_doc_loads(tmp_path: Path, good_doc: dict[str, Any]) -> None:
     assert ThermalCalibration.load(write(tmp_path, good_doc)).degree == 2
 
 
-def test_missing_file(tmp_path: Path) -> None:
-    assert refused(tmp_path / "nope.yaml").endswith("calibration file not found")
-
-
-def test_directory_is_not_a_file(tmp_path: Path) -> None:
-    assert refused(tmp_path).endswith("calibration file not found")
+@pytest.mark.parametrize("name", ["nope.yaml", "."], ids=["missing", "a_directory"])
+def test_a_path_that_is_no_file_is_refused(tmp_path: Path, name: str) -> None:
+    assert refused(tmp_path / name).endswith("calibration file not found")
 
 
 def test_unreadable_file(tmp_path: Path, good_doc: dict[str, Any], monkeypatch: pytest.MonkeyPatch) -> None:
@@ -296,14 +293,16 @@ def test_unreadable_file(tmp_path: Path, good_doc: dict[str, Any], monkeypatch: 
 
 
 @pytest.mark.parametrize(
-    "content",
-    [b"M: [1, 2\nb: {", b"\xff\xfe\x00binary\x00", b"key: value\n  bad indent: [", b"a: " + b"[" * 3000 + b"]" * 3000],
-    ids=["unclosed", "binary", "indent", "nested_too_deeply"],
+    "content,message",
+    [(b"M: [1, 2\nb: {", "not valid YAML"), (b"\xff\xfe\x00binary\x00", "not valid YAML"),
+     (b"key: value\n  bad indent: [", "not valid YAML"), (b"a: " + b"[" * 3000 + b"]" * 3000, "not valid YAML"),
+     *((text, "top level is not a mapping") for text in (b"", b"just a string\n", b"- 1\n- 2\n", b"42\n"))],
+    ids=["unclosed", "binary", "indent", "nested_too_deeply", "empty", "string", "list", "number"],
 )
-def test_not_yaml(tmp_path: Path, content: bytes) -> None:
+def test_a_file_that_is_no_yaml_mapping_is_refused(tmp_path: Path, content: bytes, message: str) -> None:
     path = tmp_path / "cal.yaml"
     path.write_bytes(content)
-    assert "not valid YAML" in refused(path)
+    assert message in refused(path)
 
 
 def test_a_recording_given_for_the_calibration_says_so(tmp_path: Path) -> None:
@@ -314,13 +313,6 @@ def test_a_recording_given_for_the_calibration_says_so(tmp_path: Path) -> None:
     path.write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)) * 4)  # the MCAP magic, then binary records
     msg = refused(path)
     assert "an MCAP recording, not a calibration YAML" in msg and "fbg-accel-calib fit" in msg, msg
-
-
-@pytest.mark.parametrize("content", ["", "just a string\n", "- 1\n- 2\n", "42\n"], ids=["empty", "string", "list", "number"])
-def test_top_level_not_a_mapping(tmp_path: Path, content: str) -> None:
-    path = tmp_path / "cal.yaml"
-    path.write_text(content)
-    assert refused(path).endswith("top level is not a mapping")
 
 
 _DELETE = object()  # the field is left out
