@@ -78,10 +78,7 @@ def test_published_decimated_variance_matches_the_output(stream: tuple[bytes, np
     data, t_us = stream
     acc, var = run_core(cal, data, t_us, decimation)
     assert len(acc) >= N_FRAMES // decimation - 30
-    w = max(3, round(30.0 * 100 / decimation))  # 30 s of outputs
-    kernel = np.ones(w) / w
-    trend = np.stack([np.convolve(acc[:, j], kernel, mode="valid") for j in range(3)], axis=1)
-    empirical = np.var(acc[w // 2: w // 2 + len(trend)] - trend, axis=0)
+    empirical = output_variance(acc, decimation)
     published = np.median(var, axis=0)
     ratio = empirical / published
     white = cal.noise_sigma_mps2**2 / decimation
