@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+from test_thermal_model import refused, write
 
 from fbg_accel_driver import thermal_model
 from fbg_accel_driver.chain_compensation import ChainDynamics
@@ -38,16 +39,6 @@ def good() -> dict[str, Any]:
     return yaml.safe_load((REPO / "config" / "calibration_sim.yaml").read_text())
 
 
-def refused(tmp_path: Path, doc: Any, raw: str | None = None) -> str:
-    p = tmp_path / "cal.yaml"
-    p.write_text(raw if raw is not None else yaml.safe_dump(doc))
-    with pytest.raises(CalibrationFileError) as info:
-        ThermalCalibration.load(p)
-    msg = str(info.value)
-    assert msg.startswith(f"{p}: "), msg
-    return msg
-
-
 def test_the_shipped_calibration_passes_every_check(good: dict[str, Any]) -> None:
     cal = ThermalCalibration.from_dict(good)
     assert check_plausible(cal) == ""
@@ -57,20 +48,19 @@ def test_the_shipped_calibration_passes_every_check(good: dict[str, Any]) -> Non
                                       ("temperature_centre_c", "temperature_center_c")])
 def test_unknown_top_level_key_names_the_nearest(tmp_path: Path, good: dict[str, Any], key: str, near: str) -> None:
     good[key] = [] if key == "correction" else yaml.safe_load(yaml.safe_dump(good[near]))  # a copy: no YAML anchor
-    assert f"unknown key '{key}' (did you mean '{near}'?)" in refused(tmp_path, good)
+    assert f"unknown key '{key}' (did you mean '{near}'?)" in refused(write(tmp_path, good))
 
 
 def test_unknown_key_inside_a_correction_term(tmp_path: Path, good: dict[str, Any]) -> None:
     good["corrections"] = [{"kind": "reference_dark_offset", "ref_offset_counts": 5.0, "ref_ofset": 1.0}]
     assert "unknown key 'corrections[0].ref_ofset' (did you mean 'corrections[0].ref_offset_counts'?)" in \
-        refused(tmp_path, good)
+        refused(write(tmp_path, good))
 
 
 def test_notes_are_the_place_for_free_text_and_round_trip(tmp_path: Path, good: dict[str, Any]) -> None:
     good["notes"] = "re-fitted after the fibre was re-spliced; see log 2026-11-20"
     good["corrections"] = [{"kind": "reference_dark_offset", "ref_offset_counts": 5.0, "notes": "measured dark"}]
-    p = tmp_path / "cal.yaml"
-    p.write_text(yaml.safe_dump(good))
+    p = write(tmp_path, good)
     cal = ThermalCalibration.load(p)
     assert cal.notes == good["notes"]
     cal.save(tmp_path / "again.yaml")
@@ -80,7 +70,7 @@ def test_notes_are_the_place_for_free_text_and_round_trip(tmp_path: Path, good: 
 def test_sizes_are_bounded_before_parsing(tmp_path: Path, good: dict[str, Any]) -> None:
     term = {"kind": "reference_dark_offset", "ref_offset_counts": 1.0}
     good["corrections"] = [dict(term) for _ in range(33)]
-    assert "33 correction terms, at most 32 are accepted" in refused(tmp_path, good)
+    assert "33 correction terms, at most 32 are accepted" in refused(write(tmp_path, good))
     # 100 000 terms (21.7 s and 658 MB before): refused on its size, the YAML is never parsed
     big = yaml.safe_dump(dict(good, corrections=[dict(term) for _ in range(100_000)]))
     assert len(big) > MAX_FILE_BYTES
@@ -93,7 +83,7 @@ def test_sizes_are_bounded_before_parsing(tmp_path: Path, good: dict[str, Any]) 
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(thermal_model.yaml, "load", counting_load)
-        assert f"above the {MAX_FILE_BYTES}-byte bound" in refused(tmp_path, None, raw=big)
+        assert f"above the {MAX_FILE_BYTES}-byte bound" in refused(write(tmp_path, None, raw=big))
     assert parsed == []
 
 
@@ -113,7 +103,7 @@ def test_finite_but_absurd_files_are_refused(tmp_path: Path, good: dict[str, Any
     elif change.get("M") == "overflow":  # finite entries whose products overflow to inf
         change = {"M": np.full_like(np.asarray(good["M"], dtype=float), 1e308).tolist()}
     good.update(change)
-    assert message in refused(tmp_path, good)
+    assert message in refused(write(tmp_path, good))
 
 
 def test_every_refused_absurd_file_did_poison_the_driver_before(good: dict[str, Any]) -> None:
@@ -166,20 +156,20 @@ def test_noise_correlation_needs_both_lists(tmp_path: Path, good: dict[str, Any]
     """A fraction of 0.97 without its time constant was read as white noise: the driver's covariance of a decimated
     mean came out 17 times too small."""
     del good["noise_correlation"][missing]
-    assert refused(tmp_path, good).endswith(f"missing key 'noise_correlation.{missing}' (the section needs both of "
+    assert refused(write(tmp_path, good)).endswith(f"missing key 'noise_correlation.{missing}' (the section needs both of "
                                             "correlated_fraction, time_constant_s, or none for white noise)")
     good["noise_correlation"] = {"correlated_fraction": [0.9, 0.0, 0.0], "time_constant_s": [0.0, 0.0, 0.0]}
-    assert "a correlated_fraction above 0 needs a time_constant_s above 0" in refused(tmp_path, good)
+    assert "a correlated_fraction above 0 needs a time_constant_s above 0" in refused(write(tmp_path, good))
 
 
 @pytest.mark.parametrize("extra, key", [("degree: 2\n", "degree"), ("corrections:\n- {kind: thermal_lag, tau_s: 30}\n",
                                                                     "corrections")])
 def test_a_duplicated_key_is_refused_with_its_lines(tmp_path: Path, extra: str, key: str) -> None:
     text = (REPO / "config" / "calibration_sim.yaml").read_text(encoding="utf-8")
-    msg = refused(tmp_path, None, text.replace("model: thermal_polynomial\n", "model: thermal_polynomial\n" + extra))
+    msg = refused(write(tmp_path, None, text.replace("model: thermal_polynomial\n", "model: thermal_polynomial\n" + extra)))
     assert f"found duplicate key '{key}' (first given on line 6)" in msg and ", column 1:" in msg
     nested = text.replace("corrections: []", "corrections:\n- {kind: thermal_lag, tau_s: 30.0, tau_s: -30.0}")
-    assert "found duplicate key 'tau_s'" in refused(tmp_path, None, nested)
+    assert "found duplicate key 'tau_s'" in refused(write(tmp_path, None, nested))
 
 
 @pytest.mark.parametrize("term, key, value", [
@@ -197,7 +187,7 @@ def test_a_descriptive_key_that_disagrees_with_the_term_is_refused(tmp_path: Pat
     good["corrections"] = [{**term, key: written}]  # what the term writes (a hand-computed sum within 1e-9 too)
     ThermalCalibration.from_dict(good)
     good["corrections"] = [{**term, key: value}]
-    assert f"corrections[0].{key} is {value!r}, but this {term['kind']} term is {written!r}" in refused(tmp_path, good)
+    assert f"corrections[0].{key} is {value!r}, but this {term['kind']} term is {written!r}" in refused(write(tmp_path, good))
 
 
 @pytest.mark.parametrize("line, where", [("delay_s: {x: 2e-3, y: 0.0, z: 0.0}", "delay"),
@@ -224,7 +214,7 @@ def test_scientific_notation_without_a_dot_is_a_number_everywhere(tmp_path: Path
 
 def test_a_dynamic_section_error_names_the_file_once(tmp_path: Path, good: dict[str, Any]) -> None:
     good["dynamic"] = {**DYNAMIC, "delay_s": {"x": "soon", "y": 0.0, "z": 0.0}}
-    msg = refused(tmp_path, good)
+    msg = refused(write(tmp_path, good))
     assert msg.count("cal.yaml") == 1 and msg.endswith("dynamic.delay_s.x must be a number, got str 'soon'"), msg
 
 
@@ -232,7 +222,7 @@ def test_a_dynamic_section_error_names_the_file_once(tmp_path: Path, good: dict[
 def test_every_format_version_is_an_integer(tmp_path: Path, good: dict[str, Any], version: Any) -> None:
     good["dynamic"] = {**DYNAMIC, "format_version": version}
     """The dynamic section's version as the file's (test_thermal_model's table of bad fields)."""
-    assert refused(tmp_path, good).endswith(f"dynamic.format_version {version!r} is not supported (this driver reads 1)")
+    assert refused(write(tmp_path, good)).endswith(f"dynamic.format_version {version!r} is not supported (this driver reads 1)")
 
 
 def test_a_utf8_file_loads_whatever_the_locale(tmp_path: Path) -> None:
@@ -267,4 +257,4 @@ def test_a_singular_m_is_refused(tmp_path: Path, good: dict[str, Any], row: int)
     centre = sum(cal.temperature_range_c) / 2
     m_centre = cal.coefficients(centre)[0][0]
     good["M"][0][row] = [float(v) for v in np.asarray(good["M"][0][row]) - m_centre[row]]  # M_0 cancels the others
-    assert f"M at {centre:g} degC (the middle of temperature_range_c) has rank 2, not 3" in refused(tmp_path, good)
+    assert f"M at {centre:g} degC (the middle of temperature_range_c) has rank 2, not 3" in refused(write(tmp_path, good))

@@ -259,9 +259,10 @@ def good_doc() -> dict[str, Any]:
     return make_cal(degree=2).to_dict()
 
 
-def write(tmp_path: Path, doc: Any) -> Path:
+def write(tmp_path: Path, doc: Any, raw: str | None = None) -> Path:
+    """``tmp_path``/cal.yaml holding ``doc`` as YAML, or the text ``raw``."""
     path = tmp_path / "cal.yaml"
-    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    path.write_text(yaml.safe_dump(doc, sort_keys=False) if raw is None else raw)
     return path
 
 
