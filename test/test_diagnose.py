@@ -1,5 +1,5 @@
-"""Diagnosis engine on synthetic recordings built here with numpy (known truth), the driver/offline
-equality of the added terms, the CLI, and the measured series of the paper."""
+"""Diagnosis engine on synthetic recordings built here with numpy (known truth), the CLI, and the measured
+series of the paper (the driver's output with the terms diagnose adds: test_driver_core)."""
 
 from __future__ import annotations
 
