@@ -52,6 +52,7 @@ from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .adc_codes import HeldCode, held_codes
+from .blas_threads import single_blas_thread
 from .dynamic_analysis import peak_offset
 from .effects import (
     LIBRARY,
@@ -1708,6 +1709,7 @@ class DiagnosisResult:
         return self.steps[0].candidates if self.steps else []
 
 
+@single_blas_thread
 def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degree: int = 4, folds: int = 10,
              alpha: float = 0.01, min_rel_gain: float = 0.02, max_effects: int = 3, library: tuple[Effect, ...] = LIBRARY,
              degree: int | None = None, sensor_id: str = "unknown", seed: int = 0,
@@ -1718,7 +1720,10 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     samples this close to the start of a visit are left out of the noise floor (``settled_mask``); None: the
     window where the measured settling transient falls below a tenth of the noise (``settle_window``).
     ``search_rows``: above this many fitted samples, the candidates are evaluated and the model chosen on a
-    thinned set, and the chosen model fitted on every sample (``search_samples``); None: always on every sample."""
+    thinned set, and the chosen model fitted on every sample (``search_samples``); None: always on every sample.
+
+    It runs with one BLAS thread (``blas_threads``): its products of tall, narrow matrices gain nothing from more,
+    and lose much when another process holds a core."""
     data = rec if isinstance(rec, DiagnosisData) else prepare_data(rec, static)
     groups = data.group
     fold, fold_notes = check_folds(data, groups, make_folds(groups, data.use, folds, seed))
