@@ -310,6 +310,23 @@ def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None
     return Design(X, gref, valid & x_ok & finite_rows(gref), blocks, n_params(spec.degree))
 
 
+def fitted_output(data: DiagnosisData, spec: ModelSpec, coeff: np.ndarray, block: int = 100_000) -> np.ndarray:
+    """``build_design(data, spec).X @ coeff`` (N, k): the model's output on every sample, its design made ``block``
+    rows at a time (the same rows' values) after the input corrections of the whole series: the design of every
+    sample (N x p, 92 MiB at 10^6 samples) was the diagnosis's peak of memory, held beside the search's caches."""
+    ordered = sorted(spec.effects, key=lambda eh: eh[0].stage)
+    inp = Inputs.of(data)
+    for eff, h in ordered:
+        if _transforms_inputs(eff):
+            eff.transform(data, inp, h)
+    n = len(data.t_s)
+    out = np.empty((n, coeff.shape[1]))
+    for lo in range(0, n, block):
+        rows = np.arange(lo, min(lo + block, n))
+        out[rows[0]:rows[-1] + 1] = _design_matrix(data, spec, ordered, inp, inp.at(rows), rows)[0] @ coeff
+    return out
+
+
 def _corrected(data: DiagnosisData, corrections: list[tuple[Effect, float | None]], cache: DesignCache,
                sub: np.ndarray | None) -> tuple[Inputs, Inputs]:
     """(the inputs after ``corrections``, those at the design's rows ``sub``), from ``cache`` when it has them."""
@@ -1801,7 +1818,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
             results.append(sel.evaluate(spec, e, base_heldout, base_fitted, base_G, alpha_each))
             if results[-1].name == "channel_delay" and results[-1].applicable:
                 if fitted_all is None:
-                    fitted_all = build_design(data, spec).X @ base_coefficients
+                    fitted_all = fitted_output(data, spec, base_coefficients)
                 results[-1].cross_correlation_delay_s = cross_correlation_delay(data, fitted_all)
             if progress is not None:
                 progress(e.name)

@@ -21,6 +21,7 @@ from fbg_accel_calibration.diagnose import (
     cross_validate,
     detrended_lag_matrix,
     diagnose,
+    fitted_output,
     gram_conditioning,
     make_folds,
     paired_gain_test,
@@ -264,6 +265,24 @@ def test_a_design_of_some_rows_is_those_rows_of_the_whole_design() -> None:
             np.testing.assert_array_equal(part.X[part.valid], whole.X[rows][part.valid])
             np.testing.assert_array_equal(part.G, whole.G[rows])
             assert part.blocks == whole.blocks
+
+
+def test_output_made_a_block_of_rows_at_a_time_is_that_of_the_whole_design() -> None:
+    """``fitted_output`` (the model's output on every sample for the cross-correlation delay, its design made a block
+    of rows at a time to keep the whole N x p design out of memory) equals the whole design times the coefficients,
+    bit for bit: with every effect of the library on top of the TIA correction, blocks that do not divide the
+    samples, a run boundary inside a block."""
+    lib = library_by_name()
+    two_runs = prepare_data(Recording.concatenate([synthetic(4, dark=30.0), synthetic(5, dark=30.0)]))
+    base = ModelSpec(1, 23.4, 1.0, [(lib["tia_lowpass"], 1.0)])
+    rng = np.random.default_rng(3)
+    for e in LIBRARY:
+        grid = e.hyper_grid(two_runs)
+        spec = base.plus(e, None if grid is None else grid[len(grid) // 2]) if e.name != "tia_lowpass" else base
+        X = build_design(two_runs, spec).X
+        coeff = rng.normal(size=(X.shape[1], 3))
+        for block in (len(two_runs.t_s), 1000, 777):
+            np.testing.assert_array_equal(fitted_output(two_runs, spec, coeff, block), X @ coeff)
 
 
 def test_corrections_and_rows_kept_across_trials_equal_those_worked_out_afresh() -> None:
