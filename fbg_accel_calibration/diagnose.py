@@ -283,9 +283,7 @@ def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None
     ordered = sorted(spec.effects, key=lambda eh: eh[0].stage)
     corrections = [(eff, h) for eff, h in ordered if _transforms_inputs(eff)]
     if cache is None:
-        inp = Inputs.of(data)
-        for eff, h in corrections:
-            eff.transform(data, inp, h)
+        inp = _corrected_inputs(data, corrections)
         part = inp if sub is None else inp.at(sub)
         gref, valid = part.gref, part.valid
     else:
@@ -315,16 +313,21 @@ def fitted_output(data: DiagnosisData, spec: ModelSpec, coeff: np.ndarray, block
     rows at a time (the same rows' values) after the input corrections of the whole series: the design of every
     sample (N x p, 92 MiB at 10^6 samples) was the diagnosis's peak of memory, held beside the search's caches."""
     ordered = sorted(spec.effects, key=lambda eh: eh[0].stage)
-    inp = Inputs.of(data)
-    for eff, h in ordered:
-        if _transforms_inputs(eff):
-            eff.transform(data, inp, h)
+    inp = _corrected_inputs(data, [(eff, h) for eff, h in ordered if _transforms_inputs(eff)])
     n = len(data.t_s)
     out = np.empty((n, coeff.shape[1]))
     for lo in range(0, n, block):
         rows = np.arange(lo, min(lo + block, n))
         out[rows[0]:rows[-1] + 1] = _design_matrix(data, spec, ordered, inp, inp.at(rows), rows)[0] @ coeff
     return out
+
+
+def _corrected_inputs(data: DiagnosisData, corrections: list[tuple[Effect, float | None]]) -> Inputs:
+    """The recording's inputs after ``corrections`` (input corrections in stage order), on every sample, uncached."""
+    inp = Inputs.of(data)
+    for eff, h in corrections:
+        eff.transform(data, inp, h)
+    return inp
 
 
 def _corrected(data: DiagnosisData, corrections: list[tuple[Effect, float | None]], cache: DesignCache,
@@ -356,9 +359,7 @@ def _corrected_reference(data: DiagnosisData, corrections: list[tuple[Effect, fl
     names = tuple((eff.name, h) for eff, h in corrections)
     hit = cache.reference(names)
     if hit is None:
-        inp = Inputs.of(data)
-        for eff, h in corrections[:-1]:
-            eff.transform(data, inp, h)
+        inp = _corrected_inputs(data, corrections[:-1])
         last, h = corrections[-1]  # a correction of the reference alone (build_design): at the rows only
         hit = last.reference_at(data, inp, h, sub)
         cache.put_reference(names, *hit)
