@@ -40,7 +40,7 @@ from __future__ import annotations
 import math
 import weakref
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -577,6 +577,43 @@ class CvResult:
     def n_fit(self) -> int:
         """Fitted rows."""
         return len(self.sums.idx)
+
+
+SEARCH_STRIDE = 4  # a hyper-parameter search visits every 4th grid value first, then walks from the best (search_walk)
+
+
+def search_walk(n: int, seen: dict[int, tuple[bool | None, float]], best_at: np.ndarray) -> Iterator[int]:
+    """Indices of a grid of ``n`` hyper-parameter values for a search to visit, chosen from what it has found so far.
+
+    The caller updates, after each index, ``seen`` (index -> (plausible, mean training RSS over the folds); plausible
+    is None for a value that does not identify the model) and ``best_at`` ((K,) the index of the plausible value each
+    training fold fits best, ``n`` while none). First every ``SEARCH_STRIDE``-th value and the last one; then, batch
+    by batch, the nearest plausible value not yet visited on each side of each fold's best and of the best mean
+    (values not plausible or not identified are stepped over), until those are all visited. With no plausible value
+    among the first ones, every value is visited (the search then falls back on the implausible ones, which need the
+    whole grid). Each fold's best value, the best mean and its plausible neighbours are then those of a visit of
+    every value whenever each training RSS, over the plausible values in grid order, falls and then rises (one
+    minimum; ``test_the_search_walk_finds_what_visiting_every_value_finds``) with about half the visits on the
+    diagnosis's grids (a trial is a design and its cross-validation)."""
+    first = list(range(0, n, SEARCH_STRIDE)) + ([n - 1] if (n - 1) % SEARCH_STRIDE else [])
+    yield from first
+    if not any(ok for ok, _ in seen.values()):
+        yield from (i for i in range(n) if i not in seen)
+        return
+    while True:
+        plausible = [i for i, (ok, _) in seen.items() if ok]
+        starts = {int(b) for b in best_at if b < n} | {min(plausible, key=lambda i: (seen[i][1], i))}
+        todo = set()
+        for b in starts:
+            for step in (-1, 1):
+                i = b + step
+                while 0 <= i < n and i in seen and not seen[i][0]:
+                    i += step
+                if 0 <= i < n and i not in seen:
+                    todo.add(i)
+        if not todo:
+            return
+        yield from sorted(todo)
 
 
 def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np.ndarray,
@@ -1515,22 +1552,34 @@ class Evaluator:
         # physical effect, and the best implausible value must not hide a plausible one.
         heldout = {ok: np.full((len(self.folds), 3), np.nan) for ok in (True, False)}
         best_train = {ok: np.full(K, np.inf) for ok in (True, False)}
-        profile, kept, plausible, unidentified = [], [], [], []
-        for h in grid:
+        best_at = {ok: np.full(K, len(grid)) for ok in (True, False)}  # grid index of each fold's best value
+        seen: dict[int, tuple[bool | None, float]] = {}  # grid index -> (plausible, mean training RSS); None: not identified
+        unidentified: list[str] = []
+
+        def visit(i: int) -> None:
+            h = float(grid[i])
             try:
-                des, cvr = self.cv(spec.plus(eff, float(h)))
+                des, cvr = self.cv(spec.plus(eff, h))
             except NotIdentifiedError as exc:  # this value makes the design singular: not a candidate
                 unidentified.append(f"{eff.hyper_name} = {h:.4g}: {exc}")
-                continue
-            ok = not self.implausible(eff, float(h), des, cvr)
-            for f in np.flatnonzero(cvr.train_rss < best_train[ok]):
-                best_train[ok][f] = cvr.train_rss[f]
+                seen[i] = (None, math.inf)
+                return
+            ok = not self.implausible(eff, h, des, cvr)
+            # the first value in grid order wins a tie, whatever the order the values are visited in
+            better = (cvr.train_rss < best_train[ok]) | ((cvr.train_rss == best_train[ok]) & (i < best_at[ok]))
+            for f in np.flatnonzero(better):
+                best_train[ok][f], best_at[ok][f] = cvr.train_rss[f], i
                 heldout[ok][fold_rows[f]] = cvr.heldout[fold_rows[f]]
-            profile.append((float(h), float(np.sum(cvr.train_rss) / max(K - 1, 1))))
-            kept.append(float(h))
-            plausible.append(ok)
-        if not kept:
+            seen[i] = (ok, float(np.sum(cvr.train_rss) / max(K - 1, 1)))
+
+        for i in search_walk(len(grid), seen, best_at[True]):
+            visit(i)
+        order = sorted(i for i in seen if seen[i][0] is not None)
+        if not order:
             raise NotIdentifiedError("no value of the grid is identified (" + unidentified[0] + ")")
+        kept = [float(grid[i]) for i in order]
+        plausible = [bool(seen[i][0]) for i in order]
+        profile = [(float(grid[i]), seen[i][1]) for i in order]
         use_ok = any(plausible)
         grid = np.asarray([h for h, ok in zip(kept, plausible, strict=True) if ok == use_ok])
         rss_grid = [p[1] for p, ok in zip(profile, plausible, strict=True) if ok == use_ok]

@@ -26,6 +26,7 @@ from fbg_accel_calibration.diagnose import (
     make_folds,
     paired_gain_test,
     prepare_data,
+    search_walk,
     weighted_rss,
 )
 from fbg_accel_calibration.diagnose_cli import main as diagnose_main
@@ -625,3 +626,103 @@ def _worst_visit_times(md: str) -> list[float]:
     table = md.split("Visits with the largest residual")[1].split("\n\n")[1].splitlines()
     col = [c.strip() for c in table[0].strip("|").split("|")].index("time from the first sample [s]")
     return [float(row.strip("|").split("|")[col]) for row in table[2:]]
+
+
+def _walk(n: int, train: np.ndarray, plausible: np.ndarray, walk) -> tuple[dict, np.ndarray, int, list[int]]:
+    """Run a search walk over the grid of ``n`` values whose training RSS per fold is ``train`` (n, K), NaN where
+    a value is not identified, plausibility ``plausible`` (n,): as ``Evaluator._fit_hyper`` keeps its results
+    (the first value in grid order wins a tie). Returns (seen, each fold's best, best mean, visit order)."""
+    K = train.shape[1]
+    seen: dict[int, tuple[bool | None, float]] = {}
+    best_train, best_at = np.full(K, np.inf), np.full(K, n)
+    visits = []
+    for i in walk(n, seen, best_at):
+        assert i not in seen, "a value is visited twice"
+        visits.append(i)
+        if np.isnan(train[i, 0]):
+            seen[i] = (None, np.inf)
+            continue
+        seen[i] = (bool(plausible[i]), float(train[i].mean()))
+        if plausible[i]:
+            better = (train[i] < best_train) | ((train[i] == best_train) & (i < best_at))
+            best_train[better], best_at[better] = train[i, better], i
+    ok = [i for i in sorted(seen) if seen[i][0]]
+    return seen, best_at, min(ok, key=lambda i: (seen[i][1], i)) if ok else -1, visits
+
+
+def _neighbours(seen: dict, b: int) -> tuple[int | None, int | None]:
+    ok = [i for i in sorted(seen) if seen[i][0]]
+    j = ok.index(b)
+    return (ok[j - 1] if j else None), (ok[j + 1] if j + 1 < len(ok) else None)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_the_search_walk_finds_what_visiting_every_value_finds(seed: int) -> None:
+    """Issue 8 §7: a hyper-parameter search visits every 4th grid value, then walks from the best ones
+    (``search_walk``). On the grids the diagnosis uses (10 to 37 values, 10 folds), with each fold's training RSS
+    falling then rising over the plausible values (their minima spread over the grid, ties, values that are not
+    plausible or not identified inside and at the ends), each fold's best value, the best mean and its plausible
+    neighbours (the refinement's bracket) are those of a visit of every value, in fewer visits."""
+    rng = np.random.default_rng(seed)
+    n, K = int(rng.choice([10, 16, 22, 25, 28, 37])), 10
+    plausible = rng.random(n) > (0.3 if seed % 3 == 0 else 0.0)
+    if seed % 4 == 1:
+        plausible[: rng.integers(1, n // 2)] = False  # a run of implausible values at one end
+    if not plausible.any():
+        plausible[rng.integers(n)] = True
+    ok = np.flatnonzero(plausible)
+    centre = rng.uniform(-2, len(ok) + 1)  # the minimum may lie beyond either end
+    x = np.empty(n)
+    x[ok] = np.arange(len(ok))  # one minimum over the plausible values in grid order
+    shift = rng.normal(0.0, 1.5, K)
+    train = (x[:, None] - centre - shift) ** 2 + 5.0
+    if seed % 5 == 2:
+        train = np.round(train)  # ties between neighbours
+    not_plausible = np.flatnonzero(~plausible)
+    train[not_plausible] = rng.uniform(0.0, 50.0, (len(not_plausible), K))  # no order among the implausible
+    if seed % 6 == 3:
+        train[rng.choice(not_plausible, min(2, len(not_plausible)), replace=False) if len(not_plausible) else []] = np.nan
+    every = _walk(n, train, plausible, lambda n, seen, best: iter(range(n)))
+    walked = _walk(n, train, plausible, search_walk)
+    np.testing.assert_array_equal(walked[1], every[1])
+    assert walked[2] == every[2]
+    assert _neighbours(walked[0], walked[2]) == _neighbours(every[0], every[2])
+
+
+@pytest.mark.parametrize("n", [16, 22, 25, 28, 37])
+def test_the_search_walk_visits_about_half_the_grid_when_the_folds_agree(n: int) -> None:
+    """Training sets that share all but two of ten folds have their best values close together: the walk then
+    visits every 4th value and the last, and at most 6 more, wherever the minimum lies: 15 of 37 at most."""
+    rng = np.random.default_rng(n)
+    for centre in np.linspace(-1.0, n, 23):
+        train = (np.arange(n)[:, None] - centre - rng.normal(0.0, 0.3, 10)) ** 2
+        visits = _walk(n, train, np.ones(n, bool), search_walk)[3]
+        assert len(visits) <= len(range(0, n, 4)) + 1 + 6, (centre, visits)
+
+
+def test_a_search_walk_without_a_plausible_first_value_visits_every_value() -> None:
+    """With no plausible value among the first visited, the search visits them all: it falls back on the
+    implausible values only when the whole grid has none, and a narrow plausible range may lie between."""
+    n = 25
+    plausible = np.zeros(n, bool)
+    plausible[13] = True  # between two of every 4th value
+    train = np.ones((n, 10))
+    _, best, _, visits = _walk(n, train, plausible, search_walk)
+    assert sorted(visits) == list(range(n)) and set(best) == {13}
+
+
+def test_the_diagnosis_with_the_search_walk_is_the_diagnosis_visiting_every_grid_value(monkeypatch) -> None:
+    """The walk changes no result of a diagnosis (issue 8 §7): the same effects, hyper-parameters, gains, p-values
+    and calibration to the last bit as with every grid value visited, on a case with two steps of searches."""
+    import fbg_accel_calibration.diagnose as engine
+
+    rec = synthetic(9, channel_dark=300.0, power_ramp=-0.05)
+    walked = diagnose(rec, static="table")
+    monkeypatch.setattr(engine, "search_walk", lambda n, seen, best: iter(range(n)))
+    every = diagnose(rec, static="table")
+    assert walked.added and walked.added == every.added and len(walked.steps) >= 2
+    for a, b in zip(walked.steps, every.steps, strict=True):
+        assert [(c.name, c.hyper, c.rel_gain, c.p_value) for c in a.candidates] == \
+            [(c.name, c.hyper, c.rel_gain, c.p_value) for c in b.candidates]
+    np.testing.assert_array_equal(walked.calibration.M, every.calibration.M)
+    np.testing.assert_array_equal(walked.calibration.b, every.calibration.b)
