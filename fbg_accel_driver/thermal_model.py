@@ -425,6 +425,10 @@ class ThermalCalibration:
     @classmethod
     def load(cls, path: str | Path) -> ThermalCalibration:
         p = Path(path)
+        if p.is_dir():  # e.g. the run directory the calibration node writes its YAML into
+            found = sorted(str(f) for f in p.glob("*.yaml"))[:3]
+            raise CalibrationFileError(f"{p}: a directory, not a calibration file"
+                                       + (f"; the YAML in it: {', '.join(found)}" if found else " (no .yaml in it)"))
         if not p.is_file():
             raise CalibrationFileError(f"{p}: calibration file not found")
         try:

@@ -278,9 +278,20 @@ def test_good_doc_loads(tmp_path: Path, good_doc: dict[str, Any]) -> None:
     assert ThermalCalibration.load(write(tmp_path, good_doc)).degree == 2
 
 
-@pytest.mark.parametrize("name", ["nope.yaml", "."], ids=["missing", "a_directory"])
-def test_a_path_that_is_no_file_is_refused(tmp_path: Path, name: str) -> None:
-    assert refused(tmp_path / name).endswith("calibration file not found")
+def test_a_missing_file_is_refused(tmp_path: Path) -> None:
+    assert refused(tmp_path / "nope.yaml").endswith("calibration file not found")
+
+
+def test_a_directory_is_refused_naming_the_calibrations_in_it(tmp_path: Path, good_doc: dict[str, Any]) -> None:
+    """A run directory given for the calibration file (the calibration node writes its YAML inside one) was
+    answered "calibration file not found", which sends the user looking for a missing file; it is said to be a
+    directory, and the YAML files in it are named."""
+    run = tmp_path / "run1"
+    run.mkdir()
+    assert refused(run).endswith("a directory, not a calibration file (no .yaml in it)")
+    write(run, good_doc)
+    (run / "notes.txt").write_text("x")
+    assert refused(run).endswith(f"a directory, not a calibration file; the YAML in it: {run / 'cal.yaml'}")
 
 
 def test_unreadable_file(tmp_path: Path, good_doc: dict[str, Any], monkeypatch: pytest.MonkeyPatch) -> None:
