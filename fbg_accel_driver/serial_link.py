@@ -2,9 +2,10 @@
 
 The reader thread owns the port. It opens it, reads whatever bytes are available (a read that
 woke on one byte also takes what arrived with it, so a frame is one chunk, not 1 + 26 bytes) and
-puts ``(host_ns, bytes)`` chunks on a bounded queue (``chunk_queue.ChunkQueue``: the oldest chunks
+puts ``(host_ns, bytes, steady_ns)`` chunks on a bounded queue (``chunk_queue.ChunkQueue``: the oldest chunks
 are dropped and counted when a consumer falls ``max_queued_bytes`` behind), stamped with the host
-time right after the read returned (the clock is injectable so the ROS node can pass its ROS clock).
+time right after the read returned (the clock is injectable so the ROS node can pass its ROS clock) and the steady
+time of that instant (``steady_clock_ns``).
 It never blocks on its consumer: the consumer blocks on ``queue`` (the driver node's publisher
 thread), or drains it when ``notify`` fires.
 
@@ -39,6 +40,19 @@ from .chunk_queue import ChunkQueue
 # termios.error (not an OSError) from the tcsetattr/tcflush of open() when the tty hangs up meanwhile, and
 # TypeError/ValueError on a closed fd. Each of them is a lost port to retry, never the end of the reader thread.
 PORT_ERRORS = (serial.SerialException, OSError, termios.error, TypeError, ValueError)
+
+# The steady clock each read is stamped with next to the host (ROS) clock (``clock_sync`` fits the board clock
+# against it with a straight line over 200 s). CLOCK_MONOTONIC does not step, but NTP (ntpd, chrony) slews it
+# together with the host clock (clock_gettime(2)): a slew bent that line and the stamps lagged ROS time by the
+# slewed amount for minutes (a 20 ms ntpd slew: up to 20 ms for 100 s). CLOCK_MONOTONIC_RAW is the oscillator NTP
+# does not adjust, so the slew shows in the host-minus-steady offset, which the stamps follow. Elsewhere (no
+# CLOCK_MONOTONIC_RAW) the monotonic clock.
+if hasattr(time, "CLOCK_MONOTONIC_RAW"):
+    def steady_clock_ns() -> int:
+        """NTP-unadjusted monotonic time, ns (CLOCK_MONOTONIC_RAW)."""
+        return time.clock_gettime_ns(time.CLOCK_MONOTONIC_RAW)
+else:  # pragma: no cover - not Linux
+    steady_clock_ns = time.monotonic_ns
 
 
 class LinkState(enum.Enum):
@@ -78,6 +92,7 @@ class SerialLink:
         baud: int,
         notify: Callable[[], None] | None = None,
         clock_ns: Callable[[], int] = time.time_ns,
+        steady_ns: Callable[[], int] = steady_clock_ns,
         backoff_initial_s: float = 0.1,
         backoff_max_s: float = 2.0,
         read_timeout_s: float = 0.1,
@@ -90,6 +105,7 @@ class SerialLink:
         self.queue = ChunkQueue(max_queued_bytes)
         self._notify = notify or (lambda: None)
         self._clock_ns = clock_ns
+        self._steady_ns = steady_ns
         self._backoff_initial = backoff_initial_s
         self._backoff_max = backoff_max_s
         self._read_timeout = read_timeout_s
@@ -148,13 +164,15 @@ class SerialLink:
     # ------------------------------------------------------------------ thread
     def _read_clocks(self) -> tuple[int, int]:
         """(host ns, steady ns) of one instant: the host clock (ROS time, which may step) read between two reads
-        of the steady clock, the steady time their midpoint; of three tries the tightest bracket, so a thread
-        switch between two reads does not put its delay into the host-minus-steady offset of the stamps."""
+        of the steady clock (``steady_clock_ns``: not slewed by NTP), the steady time their midpoint; of three tries
+        the tightest bracket, so a thread switch between two reads does not put its delay into the host-minus-steady
+        offset of the stamps."""
         best: tuple[int, int, int] | None = None
+        steady = self._steady_ns
         for _ in range(3):
-            before = time.monotonic_ns()
+            before = steady()
             host = self._clock_ns()
-            after = time.monotonic_ns()
+            after = steady()
             if best is None or after - before < best[0]:
                 best = (after - before, host, (before + after) // 2)
             if after - before < 20_000:  # 20 us: tight enough

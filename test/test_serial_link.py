@@ -13,7 +13,7 @@ import pytest
 import serial
 from process_harness import Notifier
 
-from fbg_accel_driver.serial_link import LinkState, SerialLink
+from fbg_accel_driver.serial_link import LinkState, SerialLink, steady_clock_ns
 
 
 class Notified(Notifier):
@@ -158,17 +158,45 @@ def test_each_chunk_carries_the_host_and_the_steady_time_of_its_read(tmp_path: P
     notified = Notified()
     master, slave = open_pty(path)
     host_ahead_ns = 7 * 10**9  # a host clock 7 s ahead of the steady clock
-    link = SerialLink(str(path), 115200, notify=notified, clock_ns=lambda: time.monotonic_ns() + host_ahead_ns)
+    link = SerialLink(str(path), 115200, notify=notified, clock_ns=lambda: steady_clock_ns() + host_ahead_ns)
     link.start()
     try:
         notified.wait_until(lambda: link.status().state is LinkState.CONNECTED, 10, "connected")
-        before = time.monotonic_ns()
+        before = steady_clock_ns()
         os.write(master, b"stamped")
         notified.wait_until(lambda: link.status().bytes_read >= 7, 10, "bytes read")
-        after = time.monotonic_ns()
+        after = steady_clock_ns()
         host_ns, data, steady_ns = link.queue.get_nowait()
         assert data == b"stamped" and before <= steady_ns <= after
         assert abs(host_ns - steady_ns - host_ahead_ns) < 10**8  # read one right after the other
+    finally:
+        link.stop()
+        os.close(master)
+        os.close(slave)
+
+
+@pytest.mark.skipif(not hasattr(time, "CLOCK_MONOTONIC_RAW"), reason="no NTP-unadjusted clock on this platform")
+def test_the_steady_time_of_a_read_is_the_clock_ntp_does_not_slew(tmp_path: Path) -> None:
+    """The clock estimate (``clock_sync``) fits a straight line between the board clock and the steady clock over
+    200 s; NTP (ntpd, chrony) slews CLOCK_MONOTONIC together with the host clock, so a slew bent that line and the
+    stamps lagged ROS time (``test_stamp_accuracy.py``: a 20 ms slew at ntpd's 500 ppm stamped samples up to 20 ms
+    early for 100 s). The steady time must be CLOCK_MONOTONIC_RAW, which NTP leaves alone: the slew then shows in the
+    host-minus-steady offset, which the stamps follow. Before: ``time.monotonic_ns``, 264 ms outside the
+    CLOCK_MONOTONIC_RAW bracket of the read on the host this was written on (the NTP corrections since boot)."""
+    path = tmp_path / "board"
+    notified = Notified()
+    master, slave = open_pty(path)
+    link = SerialLink(str(path), 115200, notify=notified)
+    link.start()
+    try:
+        notified.wait_until(lambda: link.status().state is LinkState.CONNECTED, 10, "connected")
+        before = time.clock_gettime_ns(time.CLOCK_MONOTONIC_RAW)
+        os.write(master, b"stamped")
+        notified.wait_until(lambda: link.status().bytes_read >= 7, 10, "bytes read")
+        after = time.clock_gettime_ns(time.CLOCK_MONOTONIC_RAW)
+        _, data, steady_ns = link.queue.get_nowait()
+        assert data == b"stamped"
+        assert before <= steady_ns <= after, (steady_ns - before, after - steady_ns)
     finally:
         link.stop()
         os.close(master)
