@@ -21,9 +21,11 @@ Estimator (a minimum-delay / lower-envelope estimator, as used by NTP/PTP-style 
   still coarse), so consecutive stamps keep the board's sample spacing to within the slew rate
   (plus the drift estimate), i.e. 0.55 % at worst and 0.1 % once settled; an error larger
   than ``step_threshold_s`` (first sample, a restart) is stepped at once;
-* host clock jumps are measured, not guessed: the caller reads a steady clock (``time.monotonic_ns``)
-  next to the host clock at each read, the estimate runs on the steady clock and each stamp adds the
-  host-minus-steady offset of the latest read, so an NTP step moves the stamps at once and exactly.
+* host clock jumps are measured, not guessed: the caller reads a steady clock that NTP neither steps nor slews
+  (CLOCK_MONOTONIC_RAW, ``serial_link.steady_clock_ns``) next to the host clock at each read, the estimate runs on
+  the steady clock and each stamp adds the host-minus-steady offset: a step beyond ``step_threshold_s`` at once and
+  exactly, a smaller change (an NTP slew, a small step) at once to within ``host_offset_band_s`` once two of the last
+  three reads agree on it, and inside that band at ``max_slew`` (the read jitter of the two clocks).
   Observations far *above* the envelope are therefore always a delay (a stall, a backlog, a congested
   link) and never restart the estimate (they did when they lasted 2 s, and a 0.3 s congestion of the
   link then stamped samples 0.3 s late for 20 s); an observation far *below* it cannot be a delay (the
@@ -39,6 +41,7 @@ Units: seconds (float) for board time and offsets, integer nanoseconds for host/
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 
 
@@ -59,6 +62,12 @@ class ClockSyncConfig:
     warmup_slew: float = 5e-3  # ... so it may be slewed 10x faster (stamp spacing still within 0.55 %)
     step_threshold_s: float = 0.05  # larger errors are stepped, not slewed
     prime_s: float = 0.2  # board (or arrival) seconds observed before the first stamp is worth giving (``primed``)
+    # The host-minus-steady offset (ROS time minus the steady clock, ``stamp``) is followed at once to within this band
+    # once two of the last three reads agree on it (their median), and inside the band at ``max_slew``: the read
+    # jitter of the two clocks (up to ~1 ms, a thread switch between the reads) stays out of the stamp spacing, while a
+    # fast NTP slew (chrony: up to 83333 ppm) or a step below ``step_threshold_s`` reaches the stamps at once. Before,
+    # everything below the step threshold was slewed at max_slew: up to 50 ms off ROS time for 80 s.
+    host_offset_band_s: float = 2e-3
 
 
 def lower_envelope_slope(xs: list[float], ys: list[float]) -> float:
@@ -101,9 +110,11 @@ class ClockSync:
         # so float arithmetic stays at sub-ns precision even with epoch-sized host times.
         self._base_ns: int | None = None
         self._host_minus_steady_ns = 0  # of the latest observation
+        self._host_reads: list[tuple[int, int]] = []  # (steady ns, host-minus-steady ns) of the last three reads
         self._applied_host_ns: int | None = None  # the host-minus-steady offset the stamps carry (ns, see ``stamp``)
         self.resets = 0
-        self.steps = 0
+        self.steps = 0  # steps of the applied board-to-steady offset (errors above step_threshold_s: a clock jump)
+        self.host_steps = 0  # steps of ROS time against the steady clock (above step_threshold_s) the stamps followed
         self._clear()
 
     def _clear(self) -> None:
@@ -131,6 +142,11 @@ class ClockSync:
         board_s = t_us * 1e-6
         steady = host_ns if steady_ns is None else steady_ns
         self._host_minus_steady_ns = host_ns - steady
+        reads = self._host_reads
+        if not reads or reads[-1][0] != steady:  # a new read (the frames of one chunk share theirs)
+            reads.append((steady, host_ns - steady))
+            if len(reads) > 3:
+                del reads[0]
         if self._base_ns is None:
             self._base_ns = steady - t_us * 1000
         offset = (steady - t_us * 1000 - self._base_ns) * 1e-9
@@ -231,13 +247,22 @@ class ClockSync:
                 applied += max(-limit, min(limit, err))
         prev_at = self._applied_at_s
         self._applied, self._applied_at_s = applied, board_s
-        # the host-minus-steady offset: a step of the host clock (NTP) beyond step_threshold_s is taken at once;
-        # smaller changes (the two clocks' read jitter, a slewing NTP) at most at max_slew, so read jitter never
-        # reaches the stamps' spacing
+        # the host-minus-steady offset: a step of the host clock (NTP) beyond step_threshold_s is taken at once; a
+        # change that two of the last three reads agree on (a fast NTP slew, a smaller step) at once to within
+        # host_offset_band_s; within the band (the two clocks' read jitter) at most at max_slew, so read jitter
+        # never reaches the stamps' spacing
         target_ns = self._host_minus_steady_ns
         if self._applied_host_ns is None or abs(target_ns - self._applied_host_ns) > cfg.step_threshold_s * 1e9:
+            if self._applied_host_ns is not None:
+                self.host_steps += 1  # a step of ROS time, followed
             self._applied_host_ns = target_ns
         else:
+            reads = self._host_reads
+            agreed = sorted(r[1] for r in reads)[1] if len(reads) == 3 else target_ns  # their median
+            band = cfg.host_offset_band_s * 1e9
+            beyond = agreed - self._applied_host_ns
+            if abs(beyond) > band:
+                self._applied_host_ns += round(beyond - math.copysign(band, beyond))
             limit = cfg.max_slew * max(board_s - (prev_at if prev_at is not None else board_s), 0.0) * 1e9
             self._applied_host_ns += round(max(-limit, min(limit, target_ns - self._applied_host_ns)))
         stamp_ns = t_us * 1000 + (self._base_ns or 0) + round(applied * 1e9) + self._applied_host_ns

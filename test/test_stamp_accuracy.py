@@ -75,3 +75,35 @@ def test_an_ntp_slew_of_ros_time_reaches_the_stamps() -> None:
         assert np.abs(err[settled]).max() < 1e-3, np.abs(err[settled]).max()
         assert np.all(np.diff(stamps) > 0)
         assert not core.clock_status()["drift_at_limit"]
+
+
+def step(at_s: float, size_s: float) -> Callable[[np.ndarray], np.ndarray]:
+    """ROS-minus-steady offset (s) of a host clock stepped by ``size_s`` at ``at_s``."""
+    return lambda x: np.where(np.asarray(x, dtype=float) >= at_s, size_s, 0.0)
+
+
+def test_a_fast_slew_or_a_small_step_of_ros_time_reaches_the_stamps_at_once() -> None:
+    """chrony slews ROS time at up to 83333 ppm (its default ``maxslewrate``): 0.5 s in 6 s, 40 ms in 0.5 s; a step
+    below the 50 ms step threshold (``date``, a ``makestep`` with a small threshold) moves it at once. The stamps
+    must follow ROS time: error below 3 ms (the 2 ms band kept for the read jitter of the two clocks, one read of lag
+    and the transport jitter), except, for a step, in the first 50 ms after it (one read of lag, and a step back
+    holds the stamps 1 ns apart until ROS time passes the last one: stamps never go back). Before, every change of
+    the host-minus-steady offset below 50 ms was slewed at 500 ppm: stamps off by up to 49.6 / 49.6 / 39.8 / 39.8 /
+    30.0 / 30.0 ms (slew +0.5 / -0.5 / +0.04 / -0.04 s, step +0.03 / -0.03 s), more than 3 ms off for 85 / 85 /
+    74 / 74 / 54 / 54 s, and 45 stamps 1 ns apart in the -0.5 s slew (ROS time never went back)."""
+    t_s, pieces = board(600.0)
+    rng = np.random.default_rng(3)
+    arrive = t_s + FLOOR_S + rng.exponential(JITTER_S, t_s.size)
+    cases = {"slew +0.5 s": slew(300.0, 0.5, 83333e-6), "slew -0.5 s": slew(300.0, -0.5, 83333e-6),
+             "slew +40 ms": slew(300.0, 0.04, 83333e-6), "slew -40 ms": slew(300.0, -0.04, 83333e-6),
+             "step +30 ms": step(300.0, 0.03), "step -30 ms": step(300.0, -0.03)}
+    worst = {}
+    for name, hms in cases.items():
+        err, stamps, _ = stamp_errors(t_s, pieces, arrive, hms)
+        after_step = (t_s >= 300.0) & (t_s < 300.05) if name.startswith("step") else np.zeros(t_s.size, bool)
+        checked = (t_s > 60.0) & ~after_step
+        held = int(np.sum(np.diff(stamps) <= 1)) if name.startswith("slew") else 0
+        worst[name] = (round(float(np.abs(err[checked]).max()) * 1e3, 2), round(float(np.sum(np.abs(err) > 3e-3)) * 0.01, 2),
+                       held)
+        assert np.all(np.diff(stamps) > 0)
+    assert all(ms < 3.0 and held == 0 for ms, _, held in worst.values()), worst
