@@ -115,6 +115,7 @@ class ClockSync:
         self.resets = 0
         self.steps = 0  # steps of the applied board-to-steady offset (errors above step_threshold_s: a clock jump)
         self.host_steps = 0  # steps of ROS time against the steady clock (above step_threshold_s) the stamps followed
+        self.held_stamps = 0  # stamps the monotonic guard moved forward (ROS time went back, or a mapping step back)
         self._clear()
 
     def _clear(self) -> None:
@@ -204,10 +205,13 @@ class ClockSync:
     def status(self) -> dict[str, float | int | bool]:
         """For the diagnostics: the board clock's rate against the host's steady clock from the drift estimate (ppm,
         + when the board's runs fast: ``-drift``), whether the estimate sits at the ``max_drift`` clamp (the link or the
-        board clock is not what the estimator assumes), the restarts (board resets, clock jumps) and the steps of ROS
-        time the stamps followed."""
+        board clock is not what the estimator assumes), the restarts (board resets, clock jumps), the steps of ROS
+        time against the steady clock the stamps followed, the steps of the board-to-steady mapping (errors above
+        ``step_threshold_s``: a board clock that jumped, a host clock without a steady one that stepped back) and the
+        stamps held 1 ns after the previous one because they would have gone back (cumulative counts)."""
         return {"board_clock_ppm": round(-self._d * 1e6, 2), "drift_at_limit": abs(self._d) >= self.config.max_drift,
-                "restarts": self.resets, "ros_time_steps": self.steps}
+                "restarts": self.resets, "ros_time_steps": self.host_steps, "mapping_steps": self.steps,
+                "held_stamps": self.held_stamps}
 
     @property
     def primed(self) -> bool:
@@ -268,5 +272,6 @@ class ClockSync:
         stamp_ns = t_us * 1000 + (self._base_ns or 0) + round(applied * 1e9) + self._applied_host_ns
         if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
             stamp_ns = self._last_stamp_ns + 1
+            self.held_stamps += 1
         self._last_stamp_ns = stamp_ns
         return stamp_ns

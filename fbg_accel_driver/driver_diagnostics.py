@@ -28,7 +28,9 @@ correction span            OK; WARN if a correction term was held at the edge of
 calibrated output          OK; ERROR if samples were dropped since the previous report because the
                            calibration gave a non-finite acceleration (``non_finite_dropped``)
 clock mapping              OK (drift estimate, restarts, steps of ROS time); WARN when the drift estimate sits at
-                           its clamp (``ClockSyncConfig.max_drift``): the mapping is not tracking
+                           its clamp (``ClockSyncConfig.max_drift``): the mapping is not tracking; WARN when the
+                           stamps stepped since the previous report (a step of ROS time, of the mapping, or
+                           stamps held 1 ns apart because they would have gone back)
 =========================  =====================================================================
 """
 
@@ -241,11 +243,19 @@ class DriverDiagnostics:
         # the board clock's mapping onto ROS time (clock_sync): a drift estimate at its clamp means it is not tracking
         if snap.clock:
             c = snap.clock
+            pclock = prev.clock if prev else {}
             rate = f"board clock {c['board_clock_ppm']:+g} ppm against the host's steady clock"
+            jumps = {k: int(c.get(k, 0)) - int(pclock.get(k, 0)) for k in ("ros_time_steps", "mapping_steps",
+                                                                              "held_stamps")}
             if c["drift_at_limit"]:
                 entries.append(self._entry(WARN, "clock mapping", f"{rate}, at the limit of the drift estimate: the board "
                                            "clock or the link is not what the estimator assumes, the stamps may drift "
                                            "from the sampling times", c))
+            elif any(v > 0 for v in jumps.values()):
+                entries.append(self._entry(WARN, "clock mapping", f"{rate}; since the last report the stamps stepped: "
+                                           f"{jumps['ros_time_steps']} step(s) of ROS time, {jumps['mapping_steps']} "
+                                           f"step(s) of the board clock mapping, {jumps['held_stamps']} stamp(s) held "
+                                           "1 ns after the previous one because they would have gone back", c))
             else:
                 entries.append(self._entry(OK, "clock mapping", f"{rate}; {c['restarts']} restart(s), "
                                            f"{c['ros_time_steps']} step(s) of ROS time followed", c))

@@ -15,6 +15,7 @@ from collections.abc import Callable
 import numpy as np
 
 from fbg_accel_driver.driver_core import DriverCore
+from fbg_accel_driver.driver_diagnostics import OK, WARN, DiagnosticsSnapshot, DriverDiagnostics
 from fbg_accel_sim.board_physics import BoardSimulator
 from fbg_accel_sim.sim_config import SimConfig
 
@@ -107,3 +108,40 @@ def test_a_fast_slew_or_a_small_step_of_ros_time_reaches_the_stamps_at_once() ->
                        held)
         assert np.all(np.diff(stamps) > 0)
     assert all(ms < 3.0 and held == 0 for ms, _, held in worst.values()), worst
+
+
+def clock_entry(diag: DriverDiagnostics, now_s: float, frames: int, core: DriverCore) -> tuple[int, dict[str, str]]:
+    """Level and values of the ``clock mapping`` diagnostic for ``core``'s clock status at report time ``now_s``."""
+    snap = DiagnosticsSnapshot(now_s=now_s, link_connected=True, link_message="open", link_values={},
+                               decoder={"frames": frames}, core={}, temperature_valid=True, temperature_age_s=0.0,
+                               last_temperature_c=24.0, temperature_hold_s=5.0, temperature_range_c=(10.0, 40.0),
+                               clock=core.clock_status())
+    e = next(e for e in diag.report(snap) if e.name.endswith("clock mapping"))
+    return e.level, dict(e.values)
+
+
+def test_a_step_of_ros_time_is_counted_and_stamps_held_back_are_warned() -> None:
+    """ROS time steps by +0.5 s or -0.5 s (an NTP/chrony step) after 100 s. The stamps follow it (the forward step
+    exactly; the step back holds the stamps 1 ns apart until ROS time passes the last one published, 0.5 s of
+    samples), and ``clock mapping`` must say so: the step counted in ``ros_time_steps``, the held stamps in
+    ``held_stamps``, WARN in the report that covers them, OK again in the next. Before: ``ros_time_steps`` counted
+    only steps of the board-to-steady mapping and stayed 0 for both, the 50 stamps held 1 ns apart (up to 490 ms
+    after ROS time) were not counted, and ``clock mapping`` stayed OK."""
+    t_s, pieces = board(200.0)
+    rng = np.random.default_rng(5)
+    arrive = t_s + FLOOR_S + rng.exponential(JITTER_S, t_s.size)
+    for size in (0.5, -0.5):
+        diag = DriverDiagnostics()
+        before = t_s < 100.0
+        _, st0, core = stamp_errors(t_s[before], pieces[: int(before.sum())], arrive[before], step(100.0, size))
+        assert clock_entry(diag, 1.0, st0.size, core)[0] == OK
+        err, st1, core = stamp_errors(t_s[~before], pieces[int(before.sum()):], arrive[~before], step(100.0, size),
+                                      core=core)
+        stamps = np.concatenate([st0, st1])
+        held = int(np.sum(np.diff(stamps) <= 1))
+        assert held == (0 if size > 0 else round(-size * 100.0))  # the samples of the 0.5 s ROS time went back
+        level, vals = clock_entry(diag, 2.0, stamps.size, core)
+        assert (vals["ros_time_steps"], vals["held_stamps"]) == ("1", str(held))
+        assert level == WARN
+        assert clock_entry(diag, 3.0, stamps.size + 1, core)[0] == OK  # nothing new since the previous report
+        assert np.abs(err[t_s[~before] > 100.6]).max() < 1e-3
