@@ -100,6 +100,57 @@ class ChainDynamics:
                     + _dc_delay_samples(bandwidth_hz, dt_s) * dt_s)
         raise ValueError(f"chain_compensation must be one of {MODES}, got {mode!r}")
 
+    def delay_helps_below_hz(self, f_max_hz: float = CUTOFF_LIMITS_HZ[1]) -> tuple[float, float, float]:
+        """Per axis (x, y, z), the lowest frequency (Hz) at which the ``delay`` mode's stamp shift stops reducing
+        the error of a tone; ``inf`` when it helps up to ``f_max_hz``.
+
+        The axis's model is ``H(f) = exp(-j 2 pi f delay) / (1 + j f/fc)`` (this section), the shift ``D`` =
+        :meth:`stamp_delay_s` ``('delay')``; the RMS error of a unit tone read through the chain against the truth is
+        ``|H - 1|`` unshifted and ``|H exp(j 2 pi f D) - 1|`` shifted, and the second is the smaller exactly while
+        ``|wrap(arg H + 2 pi f D)| < |wrap(arg H)|``, whatever ``|H|``. A first-order low-pass delays a tone at f by
+        less than at DC (its phase delay falls from ``1/(2 pi fc)`` towards 0), so past about 2.3 fc (no pure delay)
+        the DC shift over-corrects by more than the lag it removes; 0 when the common shift is more than twice
+        the axis's own DC group delay (it never helps that axis)."""
+        shift = self.stamp_delay_s("delay")
+
+        def helps(axis: int, f: np.ndarray) -> np.ndarray:
+            ph = -np.arctan(f / self.cutoff_hz[axis + 1]) - 2.0 * math.pi * f * self.delay_s[axis]
+            return np.abs(np.angle(np.exp(1j * (ph + 2.0 * math.pi * f * shift)))) < np.abs(np.angle(np.exp(1j * ph)))
+
+        out = []
+        for a in range(3):
+            # log grid from far below the slowest stage to f_max (steps of 0.05 %, fine against both the cut-offs
+            # and the period 1/shift of the wrapped phase), then bisection between the last good and first bad node
+            lo = min(min(self.cutoff_hz[1:]), 1.0 / (2.0 * math.pi * max(abs(shift), 1e-9))) * 1e-4
+            f = np.geomspace(lo, f_max_hz, max(2, int(math.log(f_max_hz / lo) / 5e-4)))
+            bad = np.flatnonzero(~helps(a, f))
+            if bad.size == 0:
+                out.append(math.inf)
+                continue
+            if bad[0] == 0:
+                out.append(0.0)
+                continue
+            good_f, bad_f = float(f[bad[0] - 1]), float(f[bad[0]])
+            for _ in range(50):
+                mid = 0.5 * (good_f + bad_f)
+                if helps(a, np.array([mid]))[0]:
+                    good_f = mid
+                else:
+                    bad_f = mid
+            out.append(bad_f)
+        return out[0], out[1], out[2]
+
+    def calibrated_band_hz(self) -> tuple[float, float] | None:
+        """(lowest, highest) frequency (Hz) the dynamic calibration measured (``fit.frequencies_hz``, written by
+        ``fbg-accel-calib dynamic``); None for a section without them (e.g. design values written by hand)."""
+        f = self.fit.get("frequencies_hz")
+        try:
+            vals = [float(v) for v in f] if isinstance(f, list | tuple) else []
+        except (TypeError, ValueError):
+            return None
+        vals = [v for v in vals if math.isfinite(v) and v > 0]
+        return (min(vals), max(vals)) if vals else None
+
     def to_dict(self) -> dict[str, Any]:
         return {"format_version": DYNAMIC_FORMAT_VERSION,
                 "cutoff_hz": dict(zip(CHANNELS, (None if math.isnan(v) else float(v) for v in self.cutoff_hz), strict=True)),

@@ -257,6 +257,8 @@ class DriverCore:
         self._equaliser = ChannelEqualiser(self._dyn, self.config.equalise_bandwidth_hz) if mode == "equalise" else None
         self._eq_prev_t_us: int | None = None
         self._delay_ns = round(self._dyn.stamp_delay_s(mode) * 1e9) if mode == "delay" else 0
+        # where the shift stops being a correction (ChainDynamics.delay_helps_below_hz), for the diagnostics
+        self._delay_helps_hz = self._dyn.delay_helps_below_hz() if mode == "delay" else None
         self._eq_cache: dict[int, tuple[int, tuple[float, float, float]]] = {}  # dt_us -> (delay ns, var factors)
         self._eq_mean_cache: dict[tuple[int, int], tuple[float, float, float]] = {}  # (dt_us, n) -> mean factors
         self._has_ref_level = calibration is not None and len(calibration.reference_level_counts) > 0
@@ -350,7 +352,10 @@ class DriverCore:
 
     def chain_status(self) -> dict[str, float | str]:
         """Chain compensation for diagnostics: mode, bandwidth of the published acceleration (Hz; the
-        slowest axis's -3 dB point unless equalised) and the delay taken off the stamps (ms). A calibration
+        slowest axis's -3 dB point unless equalised) and the delay taken off the stamps (ms); in ``delay`` mode also,
+        per axis, the frequency (Hz) below which the shift is a correction (``delay_helps_below_hz_x/y/z``,
+        :meth:`ChainDynamics.delay_helps_below_hz`) and the top of the calibrated band (``calibrated_band_max_hz``,
+        NaN when the section does not say). A calibration
         without a ``dynamic`` section gives mode ``none`` with ``dynamic_section`` ``absent``: the stamps are
         not moved and the chain's lag is unknown (about 0.1 s on the static-test build's 1-1.7 Hz TIA stages).
         Raw only (no calibration): empty."""
@@ -364,8 +369,14 @@ class DriverCore:
         else:
             bandwidth = min(dyn.cutoff_hz[1:])
             delay_ms = self._delay_ns * 1e-6
-        return {"mode": mode, "bandwidth_hz": round(bandwidth, 4), "applied_delay_ms": round(delay_ms, 3),
-                **{f"group_delay_dc_ms_{n}": round(dyn.group_delay_s(a) * 1e3, 3) for a, n in enumerate("xyz")}}
+        out: dict[str, float | str] = {
+            "mode": mode, "bandwidth_hz": round(bandwidth, 4), "applied_delay_ms": round(delay_ms, 3),
+            **{f"group_delay_dc_ms_{n}": round(dyn.group_delay_s(a) * 1e3, 3) for a, n in enumerate("xyz")}}
+        if self._delay_helps_hz is not None:
+            out.update({f"delay_helps_below_hz_{n}": round(v, 3) for n, v in zip("xyz", self._delay_helps_hz, strict=True)})
+            band = dyn.calibrated_band_hz()
+            out["calibrated_band_max_hz"] = band[1] if band is not None else math.nan
+        return out
 
     def _equalised(self, f: Frame) -> tuple[tuple[float, float, float, float], int, tuple[float, float, float]] | None:
         """Equalised (ref, x, y, z) counts of ``f``, the stamp delay (ns) and the variance factors; None for

@@ -31,6 +31,8 @@ clock mapping              OK (drift estimate, restarts, steps of ROS time); WAR
                            its clamp (``ClockSyncConfig.max_drift``): the mapping is not tracking; WARN when the
                            stamps stepped since the previous report (a step of ROS time, of the mapping, or
                            stamps held 1 ns apart because they would have gone back)
+chain compensation         OK, stating the mode and its cost; WARN in ``delay`` mode when the frequency above which
+                           the stamp shift makes a tone's error larger than none lies inside the calibrated band
 =========================  =====================================================================
 """
 
@@ -238,7 +240,18 @@ class DriverDiagnostics:
                 entries.append(self._entry(OK, "chain compensation", msg, c))  # a choice, stated with its cost
             else:
                 msg = f"{c['mode']}: stamps moved back by {c['applied_delay_ms']:g} ms, bandwidth {c['bandwidth_hz']:g} Hz"
-                entries.append(self._entry(OK, "chain compensation", msg, c))
+                level = OK
+                helps = {ax: float(c[f"delay_helps_below_hz_{ax}"]) for ax in "xyz" if f"delay_helps_below_hz_{ax}" in c}
+                if helps:  # delay mode: the DC shift over-corrects tones above a limit (ChainDynamics.delay_helps_below_hz)
+                    ax, lim = min(helps.items(), key=lambda kv: kv[1])
+                    msg += (f"; a correction below {lim:g} Hz only ({ax}; above it a tone's error is larger than "
+                            "uncompensated)")
+                    top = float(c.get("calibrated_band_max_hz", math.nan))
+                    if math.isfinite(top) and lim < top:
+                        level = WARN
+                        msg += (f", inside the calibrated band (up to {top:g} Hz): for content above {lim:g} Hz use "
+                                "chain_compensation equalise")
+                entries.append(self._entry(level, "chain compensation", msg, c))
 
         # the board clock's mapping onto ROS time (clock_sync): a drift estimate at its clamp means it is not tracking
         if snap.clock:

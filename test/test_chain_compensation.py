@@ -135,3 +135,18 @@ def test_dynamic_section_round_trips_and_refuses_what_it_does_not_know():
     ]:
         with pytest.raises(ValueError, match=message):
             ChainDynamics.from_dict(bad, fail)
+
+
+def test_the_delay_shift_limit_is_where_the_dc_shift_starts_to_over_correct():
+    """Equal axes without a pure delay: the shift is ``1/(2 pi fc)``, the residual phase ``x - atan x`` against
+    ``atan x`` (x = f/fc), so the limit is the root of ``x = 2 atan x``; a pure delay on one axis moves the common shift
+    past twice another axis's own DC group delay, and the shift never helps that axis (0)."""
+    from scipy.optimize import brentq
+
+    root = brentq(lambda x: x - 2.0 * math.atan(x), 1.0, 5.0)  # 2.3311
+    for fc in (1.3, 50.0):
+        lim = ChainDynamics(cutoff_hz=(fc, fc, fc, fc)).delay_helps_below_hz()
+        assert lim == pytest.approx((root * fc,) * 3, rel=1e-6)
+    lim = ChainDynamics(cutoff_hz=(1.0, 1.7, 1.3, 1.3), delay_s=(0.9, 0.0, 0.0)).delay_helps_below_hz()
+    assert lim[1] == lim[2] == 0.0 and 0.0 < lim[0] < math.inf
+    assert ChainDynamics(cutoff_hz=(50.0,) * 4).delay_helps_below_hz(f_max_hz=20.0) == (math.inf,) * 3

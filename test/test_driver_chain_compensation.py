@@ -6,6 +6,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -203,3 +204,68 @@ def test_a_calibration_without_a_dynamic_section_states_that_the_lag_is_unknown(
     assert "unknown" in entry.message and "dynamic section" in entry.message, entry.message
     assert values(e, "chain compensation")["mode"] == "none"
     assert DriverCore(None).chain_status() == {}  # raw only: no acceleration, nothing to state
+
+
+def test_a_delay_shift_that_makes_tones_in_the_calibrated_band_worse_is_warned_about():
+    """``delay`` (what ``auto`` picks with a ``dynamic`` section) moves the stamps back by the group delay at DC,
+    ``tau + 1/(2 pi fc)``; a tone at f lags by less (its phase delay), so above some frequency the shift leaves a
+    larger timing error than no shift at all, and a larger RMS error. With the TIA time constants twice paper Table 1
+    (cut-offs 0.85 / 0.65 / 0.65 Hz, 20 ms channel delay: the simulator's ``tia_lowpass`` scale 2) and a calibration
+    made over 0.5-20 Hz, the limit lies at 1.7-2.0 Hz, inside that band. Before, the ``chain compensation`` entry was
+    OK ("delay: stamps moved back by 245.65 ms, bandwidth 0.65 Hz"), said nothing of it, and at 3 Hz (seed 7, 100 Hz,
+    through ``DriverCore``) ``delay`` left an RMS error of 1.81 / 1.70 / 2.41 m/s^2 (x / y / z) against 1.51 / 1.50 /
+    2.12 uncompensated (x lag 87 -> -159 ms; at 1 Hz it helps: 0.81 / 0.78 / 1.10 against 1.23 / 1.30 / 1.82).
+    Now the entry states, per axis, the frequency below which the shift is a correction and WARNs when that lies
+    inside the calibrated band; the limit is checked here against tones through the simulator and the driver, below
+    it (better than none) and above it (worse)."""
+    from test_driver_core import levels, snapshot, values
+
+    from fbg_accel_calibration.dynamic_check import tone_check
+    from fbg_accel_calibration.excitation_plan import ExcitationPlan
+    from fbg_accel_driver.driver_diagnostics import WARN, DriverDiagnostics
+    from fbg_accel_driver.driver_main import default_calibration_path
+    from fbg_accel_sim.dynamic_run import simulate_dynamic_run
+    from fbg_accel_sim.sim_config import SimConfig
+
+    over = {"effects.tia_lowpass.scale": 2.0}
+    sim_cfg = SimConfig.default().with_overrides(over)
+    fc = tuple(float(v) / 2.0 for v in sim_cfg.get("electronics.tia_cutoff_hz"))  # Hz: time constants x 2
+    tau = float(sim_cfg.get("effects.channel_delay.delay_s"))
+    cal = ThermalCalibration.load(default_calibration_path())
+    cal.dynamic = ChainDynamics(cutoff_hz=fc, delay_s=(tau, tau, tau),  # type: ignore[arg-type]
+                                fit={"frequencies_hz": [0.5, 1.0, 2.0, 5.0, 10.0, 20.0]})
+    status = DriverCore(cal, CoreConfig(chain_compensation="delay")).chain_status()
+    e = DriverDiagnostics().report(replace(snapshot(0.0), chain=status))
+    entry = next(x for x in e if x.name.endswith("chain compensation"))
+    assert levels(e)["chain compensation"] == WARN, entry.message
+    v = values(e, "chain compensation")
+    limits = [float(v[f"delay_helps_below_hz_{ax}"]) for ax in "xyz"]
+    assert all(0.5 < lim < 20.0 for lim in limits), limits
+    assert f"{min(limits):g} Hz" in entry.message and "equalise" in entry.message, entry.message
+
+    plan = ExcitationPlan.load(Path(__file__).resolve().parents[1] / "config" / "excitation_plan_stepped_sine.yaml")
+    for f_hz, worse in ((0.6 * min(limits), False), (1.5 * max(limits), True)):
+        tone = plan.with_tone(round(f_hz, 3), 4.0, 14.0)
+        _, block, _ = simulate_dynamic_run(tone, rate_hz=100.0, seed=7, overrides=over)
+        _, a, b = tone.steady_windows(tone.start_s)[0]
+        check = tone_check(block.wire_bytes(), block.arrays["t_s"], block.arrays["slide_accel_mps2"],
+                           np.array(tone.direction), tone.segments[0].freq_hz, (a, b), cal, modes=("none", "delay"))
+        none, delay = check.rms_mps2["none"], check.rms_mps2["delay"]
+        assert all((d > n) == worse for d, n in zip(delay, none, strict=True)), (f_hz, none, delay)
+
+
+def test_a_delay_shift_right_over_the_calibrated_band_is_ok_and_states_its_limit():
+    """The flight build (paper 3.5: TIA cut-offs about 50 Hz) calibrated over 0.5-20 Hz: the DC shift is a correction
+    up to 117 Hz, beyond the band, so the entry stays OK and states that limit."""
+    from scipy.optimize import brentq
+    from test_driver_core import levels, snapshot
+
+    from fbg_accel_driver.driver_diagnostics import OK, DriverDiagnostics
+
+    dyn = ChainDynamics(cutoff_hz=(50.0,) * 4, fit={"frequencies_hz": [0.5, 20.0]})  # type: ignore[arg-type]
+    status = DriverCore(make_cal(dynamic=dyn), CoreConfig(chain_compensation="delay")).chain_status()
+    e = DriverDiagnostics().report(replace(snapshot(0.0), chain=status))
+    entry = next(x for x in e if x.name.endswith("chain compensation"))
+    assert levels(e)["chain compensation"] == OK, entry.message
+    root = brentq(lambda x: x - 2.0 * math.atan(x), 1.0, 5.0)  # the limit of a first-order stage: x = 2 atan x
+    assert f"below {round(root * 50.0, 3):g} Hz" in entry.message, entry.message
