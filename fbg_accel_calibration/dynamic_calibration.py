@@ -5,7 +5,8 @@ Pure numpy/scipy, no ROS (``fbg-accel-calib dynamic`` is the shell). Steps (docs
 
 1. the slide's start on the recording's time base (:func:`excitation_plan.find_slide_start`), the steady
    part of every segment (:meth:`ExcitationPlan.steady_windows`); a segment with a channel clipped at a rail
-   of the ADC or a lost frame in its steady part is left out with a note;
+   of the ADC in its steady part is left out with a note, one with a lost frame keeps its longest stretch without
+   one (a note says so); a refusal for too few segments carries the notes;
 2. the reference acceleration from the aux channel (:func:`excitation_plan.reference_acceleration`) and
    the sensor's acceleration from its counts by the **static** calibration (eq. 24 and 28, no chain
    compensation), so what is measured is the whole chain after eq. 28;
@@ -31,6 +32,7 @@ from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .chain_model import ChainModel, fit_chain_models
 from .dynamic_analysis import (
+    STEP_TOL,
     DynamicPoint,
     ReferenceUncertainty,
     analyse_run,
@@ -138,12 +140,17 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
         notes.append(f"segment(s) at {', '.join(f'{w[0]:g} Hz' for w in hit)} left out: the reference dark (below "
                      f"{LOW_REFERENCE_COUNTS} counts, no source light) during the steady part")
     # the whole-period cuts, the DFT and the circular cross-correlation count samples: a lost frame (or a
-    # sample dropped above for a non-finite value) inside a steady part would shift every later sample
+    # sample dropped above for a non-finite value, or a late read) inside a steady part would shift every later
+    # sample, so such a part keeps its longest uniformly sampled stretch (left out below if it holds < 2 periods)
     gappy = [w for w in windows if not uniformly_sampled(t[_steady(t, w)], fs)]
     if gappy:
-        windows = [w for w in windows if w not in gappy]
-        notes.append(f"segment(s) at {', '.join(f'{w[0]:g} Hz' for w in gappy)} left out: a lost frame (a time step "
-                     f"other than the nominal {1e3 / fs:.4g} ms) during the steady part")
+        kept = {w: _longest_uniform_stretch(t, w, fs) for w in gappy}
+        windows = [kept.get(w, w) for w in windows]
+        windows = [w for w in windows if w is not None]
+        notes.append("steady part(s) at " + ", ".join(
+            f"{w[0]:g} Hz ({(k[2] - k[1]) if k else 0.0:.3g} of {w[2] - w[1]:.3g} s kept)" for w, k in kept.items())
+            + f": a lost frame or an irregular time step (other than the nominal {1e3 / fs:.4g} ms); the longest "
+            "stretch without one is used")
     # a point's repeatability is measured over whole-period sub-blocks: one period has none (the sine fit's
     # white-noise covariance understates coloured noise 5-13x and would dominate the chain fit)
     few = sorted({w[0] for w in windows if _whole_periods(t, fs, [v for v in windows if v[0] == w[0]]) < 2})
@@ -153,7 +160,7 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
                      "the steady part (one whole period gives no measured repeatability; lengthen the segment)")
     if len(windows) < 3:
         raise DynamicCalibrationError(f"only {len(windows)} steady segment(s) in the recording: the chain model needs "
-                                      "at least 3 frequencies")
+                                      "at least 3 frequencies" + "".join(f"; {n}" for n in notes))
     nyq = [w for w in windows if w[0] >= 0.45 * fs]
     if nyq:
         raise DynamicCalibrationError(f"segments at {', '.join(f'{w[0]:g}' for w in nyq)} Hz are too close to the "
@@ -189,6 +196,28 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
 def _steady(t: np.ndarray, window: tuple[float, float, float]) -> np.ndarray:
     """The samples (mask over ``t``) of the steady window ``(f_hz, t0_s, t1_s)``: [t0, t1), as ``analyse_run`` cuts them."""
     return (t >= window[1]) & (t < window[2])
+
+
+def _longest_uniform_stretch(t: np.ndarray, window: tuple[float, float, float], fs: float
+                             ) -> tuple[float, float, float] | None:
+    """The longest stretch of the steady window ``(f_hz, t0_s, t1_s)`` whose every time step is the nominal
+    ``1 / fs`` (``uniformly_sampled``): ``(f_hz, first sample's t, last sample's t + half a step)``, so that
+    :func:`_steady` selects exactly its samples; None when no two consecutive samples qualify."""
+    idx = np.flatnonzero(_steady(t, window))
+    if idx.size < 2:
+        return None
+    ok = np.abs(np.diff(t[idx]) * fs - 1.0) <= STEP_TOL  # step k joins samples k and k + 1
+    best, best_len, start = (0, 0), 0, None
+    for k, good in enumerate(np.append(ok, False)):
+        if good and start is None:
+            start = k
+        elif not good and start is not None:
+            if k - start > best_len:
+                best, best_len = (start, k), k - start
+            start = None
+    if best_len == 0:
+        return None
+    return (window[0], float(t[idx[best[0]]]), float(t[idx[best[1]]]) + 0.5 / fs)
 
 
 def _whole_periods(t: np.ndarray, fs: float, windows: list[tuple[float, float, float]]) -> int:
