@@ -190,6 +190,16 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
              "frequencies_hz": sorted({w[0] for w in windows}),
              "models": {ax: m.to_dict() for ax, m in models.items()},
              "reference_cutoff": "given" if reference_cutoff_hz is not None else "not measured"})
+    # what the driver's `delay` mode (chain_compensation auto) does with this section: the DC shift over-corrects tones
+    # above a limit; said here as the driver's diagnostic says it (ChainDynamics.delay_helps_below_hz)
+    helps = dyn.delay_helps_below_hz()
+    f_top = max(w[0] for w in windows)
+    if min(helps) < f_top:
+        ax = AXES[int(np.argmin(helps))]
+        notes.append(f"chain_compensation 'delay' (what 'auto' picks) moves the stamps back by "
+                     f"{dyn.stamp_delay_s('delay') * 1e3:.4g} ms, a correction below {min(helps):.3g} Hz only ({ax}): "
+                     f"above it, inside the measured band (up to {f_top:g} Hz), a tone's error is larger than "
+                     "uncompensated; for such content use 'equalise' (it needs the reference channel's cut-off)")
     return DynamicCalibrationResult(plan, start, windows, points, models, dyn, fs, notes)
 
 

@@ -346,3 +346,18 @@ def test_a_run_refused_for_too_few_segments_says_what_cost_them(static_cal):
     msg = str(info.value)
     assert "only 2 steady segment(s)" in msg and "lost frame" in msg, msg
     assert all(f"{f:g} Hz" in msg for f in (0.5, 1.0, 2.0, 5.0)), msg
+
+
+def test_the_report_says_where_the_delay_mode_stops_being_a_correction(static_cal):
+    """The driver's ``delay`` mode (what ``auto`` picks with a ``dynamic`` section) shifts the stamps by the DC group
+    delay, a correction only below about 2.3 fc. On the static-test build (fc 1.3-1.7 Hz) that limit, 4.0 Hz, lies
+    inside the measured 0.5-20 Hz, and before the report said nothing of it (the driver's diagnostic was OK too);
+    now a note states it, as the driver's diagnostic does. The flight build (fc 50 Hz) gets no such note."""
+    res = run_dynamic(simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=1)[0], PLAN, static_cal)
+    lim = min(res.dynamics.delay_helps_below_hz())
+    assert 0.5 < lim < 20.0
+    assert [n for n in res.notes if "'delay'" in n and f"below {lim:.3g} Hz" in n], res.notes
+    flight = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=1,
+                                  overrides={"electronics.tia_cutoff_hz": [50.0, 50.0, 50.0, 50.0]})[0]
+    res = run_dynamic(flight, PLAN, static_cal)
+    assert min(res.dynamics.delay_helps_below_hz()) > 20.0 and not [n for n in res.notes if "'delay'" in n], res.notes
