@@ -3,7 +3,8 @@ measuring chain's dynamics (the calibration file's ``dynamic`` section) with poi
 
 Pure numpy/scipy, no ROS (``fbg-accel-calib dynamic`` is the shell). Steps (docs/dynamic_calibration.md):
 
-1. the slide's start on the recording's time base (:func:`excitation_plan.find_slide_start`), the steady
+1. the slide's start on the recording's time base (:func:`excitation_plan.find_slide_start`; after a board
+   reset, on the board run that holds the most of the plan), the steady
    part of every segment (:meth:`ExcitationPlan.steady_windows`); a segment with a channel clipped at a rail
    of the ADC in its steady part is left out with a note, one with a lost frame keeps its longest stretch without
    one (a note says so); a refusal for too few segments carries the notes;
@@ -19,6 +20,7 @@ Pure numpy/scipy, no ROS (``fbg-accel-calib dynamic`` is the shell). Steps (docs
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -107,6 +109,11 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
     if rec.aux is None or not np.any(np.isfinite(rec.aux)):
         raise DynamicCalibrationError("the recording has no aux channel (protocol version 2 frames, imu/raw "
                                       "'aux_counts', CSV column 'aux'): the reference transducer is missing")
+    notes: list[str] = []
+    # a board reset restarts the board clock: sorting both board runs into one time base would interleave them
+    rec, reset_note = _one_board_run(rec, plan, slide_start_s)
+    if reset_note:
+        notes.append(reset_note)
     order = np.argsort(rec.t_s, kind="stable")
     t, aux = rec.t_s[order], rec.aux[order]
     ok = np.isfinite(t) & np.isfinite(aux) & np.isfinite(rec.ref[order]) & np.all(np.isfinite(rec.xyz[order]), axis=1)
@@ -114,7 +121,6 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
     ref_c, xyz = rec.ref[order][ok], rec.xyz[order][ok]
     temp = _filled_temperature(rec.temp_c[order][ok])
     fs = sampling_rate(t)  # the median step: a lost frame outside the steady parts does not matter
-    notes: list[str] = []
     try:
         start = find_slide_start(t, aux, plan) if slide_start_s is None else float(slide_start_s)
     except ValueError as exc:
@@ -201,6 +207,41 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
                      f"above it, inside the measured band (up to {f_top:g} Hz), a tone's error is larger than "
                      "uncompensated; for such content use 'equalise' (it needs the reference channel's cut-off)")
     return DynamicCalibrationResult(plan, start, windows, points, models, dyn, fs, notes)
+
+
+def _one_board_run(rec: Recording, plan: ExcitationPlan, slide_start_s: float | None) -> tuple[Recording, str | None]:
+    """``rec`` as it is when its board time (s) never goes back; else (a board reset: the board clock restarts at 0,
+    ``stream_decoder``'s rule) the board run, in recorded order, whose alignment with the plan
+    (:func:`find_slide_start`, or the given ``slide_start_s``) holds the most steady segments (then the most
+    samples), and a note naming the reset(s). The plan's timing does not carry across a reset: the outage's length
+    is unknown, so the slide's start must be found in each board run on its own clock."""
+    t = rec.t_s
+    back = np.flatnonzero(np.diff(t) < 0) + 1  # the first sample of each new board run
+    if back.size == 0:
+        return rec, None
+    bounds = [0, *back.tolist(), len(t)]
+    idx = np.arange(len(t))
+    best: tuple[tuple[int, int], int, int] | None = None
+    for a, b in itertools.pairwise(bounds):
+        part = rec.select((idx >= a) & (idx < b))
+        ok = np.isfinite(part.t_s) & np.isfinite(part.aux)  # type: ignore[arg-type]
+        n_win = 0
+        if ok.sum() >= 3:
+            try:
+                start = find_slide_start(part.t_s[ok], part.aux[ok], plan) if slide_start_s is None else slide_start_s  # type: ignore[index]
+                n_win = sum(1 for w in plan.steady_windows(start) if w[1] >= part.t_s[ok][0] and w[2] <= part.t_s[ok][-1])
+            except ValueError:
+                pass
+        key = (n_win, b - a)
+        if best is None or key > best[0]:
+            best = (key, a, b)
+    assert best is not None
+    (n_win, _), a, b = best
+    where = ", ".join(f"{t[i - 1]:.3f} -> {t[i]:.3f} s" for i in back)
+    note = (f"{back.size} board reset(s) (board time going back at {where}): the plan's timing does not carry across "
+            f"one, so only the board run of samples {a}..{b - 1} ({t[a]:.3f}..{t[b - 1]:.3f} s, {n_win} steady "
+            f"segment(s) aligned) is used; the other {len(t) - (b - a)} samples are ignored")
+    return rec.select((idx >= a) & (idx < b)), note
 
 
 def _steady(t: np.ndarray, window: tuple[float, float, float]) -> np.ndarray:
