@@ -729,7 +729,8 @@ class BoardSimulator:
     def _source_and_gains(self, t: np.ndarray, dT: np.ndarray, resp: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Optical signal (N, 4) in ADC counts before the TIA: rest counts x SLD power (tempco, paper 3.3, 3.6.2;
         slow wander drawn from ``rng``, the chunk's source stream; source_dropout windows) x chain gains (coupler and
-        photodetector tempcos, SLD wavelength drift relative to the gratings: paper 3.6.2, 4.5) x the axes' ``resp``."""
+        photodetector tempcos, SLD wavelength drift relative to the gratings: paper 3.6.2, 4.5; a connector's loss step,
+        ASSUMPTION) x the axes' ``resp``."""
         # --- source power and chain gains (paper 3.3, 3.6.2)
         eff = self.cfg.get("effects")
         n = t.shape[0]
@@ -743,6 +744,11 @@ class BoardSimulator:
         for name in ("coupler_thermal", "photodetector_thermal"):
             e = eff[name]
             gain *= 1.0 + float(e["scale"]) * dT[:, None] * np.asarray(e["tempco_per_c"], float)[None, :]
+        cs = eff["connector_loss_step"]
+        if float(cs["scale"]) != 0.0:  # a channel's loss steps once (connector knocked or re-mated; ASSUMPTION)
+            after = (t >= float(cs["at_s"]))[:, None]
+            loss = 10.0 ** (-0.1 * float(cs["scale"]) * np.asarray(cs["loss_db"], float))[None, :]
+            gain *= np.where(after, loss, 1.0)
         sw = eff["source_wavelength_drift"]
         shift = float(sw["scale"]) * float(sw["drift_nm_per_c"]) * dT - self.fbg_thermal_nm * dT  # source minus gratings
         off = (self.pair_center - self.source_center)[None, :] - shift[:, None]

@@ -133,3 +133,17 @@ def test_baseline_declared_model_is_exact_up_to_noise() -> None:
     noise = BoardSimulator(SimConfig.default(), seed=0).configured_noise()["sample_sigma_mps2"]
     assert np.all(worst[2] < noise / 20), worst[2]
     assert np.all(worst[1] > noise / 2)  # the chain's thermal curvature needs degree 2
+
+
+def test_a_connector_loss_step_scales_its_channel_from_its_time_on() -> None:
+    """``connector_loss_step`` (a connector knocked mid-run, off by default): from ``at_s`` on the x channel's optical
+    signal is 10^(-0.013) = 0.9705 of what it was (0.13 dB), before it nothing changes and no other channel moves. The
+    TIA low-pass is off so that the step is the signal's own, sample for sample."""
+    quiet = {**QUIET, "effects.tia_lowpass.scale": 0.0}
+    off = _run(_baseline(**quiet))
+    on = _run(_baseline(**quiet, **{"effects.connector_loss_step.scale": 1.0, "effects.connector_loss_step.at_s": 150.0}))
+    after = off.t_s >= 150.0
+    ratio = on.counts_float / off.counts_float
+    np.testing.assert_allclose(ratio[~after], 1.0, rtol=1e-12)
+    np.testing.assert_allclose(ratio[after][:, [0, 2, 3]], 1.0, rtol=1e-12)
+    np.testing.assert_allclose(ratio[after][:, 1], 10.0 ** -0.013, rtol=1e-12)
