@@ -60,6 +60,7 @@ from .effects import (
     DiagnosisData,
     Effect,
     Inputs,
+    ResponseStepEffect,
     finite_rows,
     memory_key,
     motion_groups,
@@ -1379,6 +1380,7 @@ class CandidateResult:
     implausible: str = ""  # why the fitted values are not physical (then never significant, never added)
     detectable_gain: float = math.nan  # small campaigns: gain the paired t-test finds with 80 % power
     time_block: tuple[float, float] | None = None  # a time function's (gain, p) over contiguous blocks of time held out
+    step_check: StepCheck | None = None  # a time function against a step of the response at one time (``step_check``)
 
     def delta_of_every_sample(self, n: int) -> np.ndarray | None:
         """``delta`` (N, 3) on every one of the recording's ``n`` samples, NaN where it was not evaluated (for the
@@ -1676,6 +1678,54 @@ def time_block_check(data: DiagnosisData, spec: ModelSpec, eff: Effect, h: float
     return gain, p
 
 
+@dataclass
+class StepCheck:
+    """A function of time (``Effect.time_function``) against the best step of the response at one time
+    (``effects.ResponseStepEffect``), each added on top of the other (held-out gain, one-sided p over visits)."""
+
+    t_s: float  # board time of the first sample after the step (s)
+    run: int  # the run it is in
+    gain_step_beyond: float  # the step on top of the time function
+    p_step_beyond: float
+    gain_time_beyond: float  # the time function on top of the step
+    p_time_beyond: float
+    explained: bool  # the step gains beyond the time function, the time function not beyond the step
+
+
+def step_check(ev: Evaluator, spec: ModelSpec, eff: Effect, h: float | None, alpha: float,
+               min_rel_gain: float) -> StepCheck | None:
+    """Does a step of the response at one time explain what the function of time ``eff`` (at ``h``) fits on top of
+    ``spec``? A warm-up with creep follows a step (a connector knocked mid-run) across contiguous blocks of time too,
+    so ``time_block_check`` passes it; written to the calibration, it is applied after every power-on. The step (its
+    time found like any hyper-parameter, nested in the folds) and the function are each added on top of the other,
+    as in the confounding check: if the step gains beyond the function (``alpha``, ``min_rel_gain``) and the function
+    not beyond the step, the function is a stand-in. None when the recording has too few visits for a step."""
+    step = ResponseStepEffect()
+    if not step.applicable(ev.data)[0]:
+        return None
+
+    def on_top(base: ModelSpec, e: Effect) -> CandidateResult:
+        des, cvr = ev.cv(base)
+        return ev.evaluate(base, e, cvr.heldout, cvr.fitted_full, des.G, alpha)
+
+    def gains(r: CandidateResult) -> bool:
+        return r.applicable and r.p_value < alpha and r.rel_gain >= min_rel_gain and not r.implausible
+
+    try:
+        h_step = ev.fit_hyper(spec, step)[0]  # the step that fits best in place of the function, not beside it
+    except NotIdentifiedError:
+        return None
+    beyond_time = on_top(spec.plus(eff, h), step)
+    beyond_step = on_top(spec.plus(step, h_step), eff)
+    if not beyond_time.applicable:
+        return None
+    i = min(math.ceil(float(h_step)), len(ev.data.t_s) - 1)
+    return StepCheck(float(ev.data.t_s[i]), int(ev.data.run_id[i]), beyond_time.rel_gain, beyond_time.p_value,
+                     beyond_step.rel_gain if beyond_step.applicable else -math.inf,
+                     beyond_step.p_value if beyond_step.applicable else 1.0,
+                     gains(beyond_time) and not gains(beyond_step))
+
+
 def _corr(a: np.ndarray, b: np.ndarray) -> float:
     if a.size < 3 or np.std(a) == 0 or np.std(b) == 0:
         return 0.0
@@ -1859,6 +1909,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     steps: list[StepResult] = []
     detection_limit = ""
     time_folds: np.ndarray | None = None  # contiguous blocks of time (time_block_check), made when first needed
+    step_confounded: dict[str, str] = {}  # a time function that a step of the response fits as well: the warning
     remaining = [e for e in library]
     while remaining and len(spec.effects) < max_effects:
         results = []
@@ -1904,6 +1955,27 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                     r.detail += (f"; not added: it does not predict contiguous blocks of time held out (gain "
                                  f"{100 * g:+.1f} %, p = {p:.2g}): it follows a slow wander of the residual between "
                                  "visits, not a drift it can extrapolate")
+            step_confounded.pop(r.name, None)  # the last step's word on it
+            if r.significant and eff_r.time_function:
+                sc = r.step_check = step_check(sel, spec, eff_r, r.hyper, alpha_each, min_rel_gain)
+                if sc is not None and sc.explained:
+                    r.significant = False
+                    r.detail += (f"; not added: a step of the response at t = {sc.t_s:.4g} s (run {sc.run}) explains "
+                                 f"it: the step gains {100 * sc.gain_step_beyond:+.1f} % beyond it (p = "
+                                 f"{sc.p_step_beyond:.2g}), it gains {100 * sc.gain_time_beyond:+.1f} % beyond the step "
+                                 f"(p = {sc.p_time_beyond:.2g}): the response changed once (a connector knocked or "
+                                 "re-mated, a fibre bent, a knock), not a warm-up or creep the driver could apply")
+                elif sc is not None and sc.p_time_beyond < alpha_each and sc.gain_time_beyond >= min_rel_gain:
+                    r.detail += (f"; it gains {100 * sc.gain_time_beyond:+.1f} % beyond the best step of the response "
+                                 f"at one time (t = {sc.t_s:.4g} s, p = {sc.p_time_beyond:.2g})")
+                elif sc is not None:  # neither beyond the other: the data do not tell a step from this function
+                    r.detail += (f"; a step of the response at t = {sc.t_s:.4g} s (run {sc.run}) fits as well: it "
+                                 f"gains {100 * sc.gain_time_beyond:+.1f} % beyond the step (p = {sc.p_time_beyond:.2g}), "
+                                 f"the step {100 * sc.gain_step_beyond:+.1f} % beyond it (p = {sc.p_step_beyond:.2g})")
+                    step_confounded[r.name] = (f"{r.name} is in the calibration, but a step of the response at t = "
+                                               f"{sc.t_s:.4g} s (run {sc.run}; a connector, a fibre, a knock) fits this "
+                                               "data as well, and a step is no property of the sensor: visit the "
+                                               "poses again after a power-on to tell a warm-up from a step")
         results.sort(key=lambda r: (not r.applicable, -r.rel_gain))
         sig = [r for r in results if r.significant]
         conf = _confounding(sel, spec, sig, alpha_each, min_rel_gain, library) if len(sig) >= 2 else []
@@ -1970,6 +2042,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     moving = _moving_residual(data, calibrated)
     del calibrated
     warnings = [detection_limit] if detection_limit else []
+    warnings += [w for name, w in step_confounded.items() if name in spec.names]
     if floor_note:
         warnings.append(floor_note)
     held = held_codes(np.column_stack([data.ref, data.xyz]), groups, settled & r_eval,

@@ -902,6 +902,48 @@ class RunDriftEffect(_PerRunEffect):
         return (t_s - 0.5 * (t_s.min() + t_s.max())) / span if span > 0 else np.zeros(len(t_s))
 
 
+class ResponseStepEffect(Effect):
+    """Not a candidate (not in ``LIBRARY``): the alternative a function of time must beat (``diagnose.step_check``).
+    The linear response changes once, for good: from the first sample of one visit on, every axis gets an offset and
+    a slope on each Psi (about its mean) of its own (eq. 25 refitted after the step). A connector knocked or re-mated,
+    a fibre bent or a knock on the mount does this to the response (a channel's loss changes the counts it reads by a
+    factor), and a warm-up with creep follows such a step across contiguous blocks of time as well: it passes
+    ``diagnose.time_block_check``. A property of the recording, never a term of the calibration.
+    Hyper-parameter: the index of the first sample after the step (the first sample of a visit in recording order,
+    at least ``MIN_VISITS_EACH_SIDE`` visits on either side, so that both sides span the orientations)."""
+
+    name = "response_step"
+    stage = 90
+    hyper_name = "first sample after the step"
+    title = "a step of the response at one time (connector, fibre, knock)"
+    MIN_VISITS_EACH_SIDE = 4
+
+    def _starts(self, data: DiagnosisData) -> np.ndarray:
+        """Index of the first fitted sample of every visit, in recording order."""
+        def compute() -> np.ndarray:
+            idx = np.flatnonzero(data.use & (data.group >= 0))
+            _, first = np.unique(data.group[idx], return_index=True)
+            return np.sort(idx[first])
+
+        return data.once("visit_start_samples", compute)
+
+    def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
+        if len(self._starts(data)) < 2 * self.MIN_VISITS_EACH_SIDE:
+            return False, f"fewer than {2 * self.MIN_VISITS_EACH_SIDE} visits"
+        return True, ""
+
+    def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
+        m = self.MIN_VISITS_EACH_SIDE
+        starts = self._starts(data)
+        return starts[m:len(starts) - m + 1].astype(float)
+
+    def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
+        # Psi about its mean static value: uncentred, a slope column is nearly the offset column times the rest Psi
+        after = (np.arange(len(inp.t_s)) >= float(h)).astype(float)
+        psi0 = SpectralNonlinearityEffect()._psi0(data)
+        return after[:, None] * np.column_stack([np.ones(len(inp.t_s)), inp.psi - psi0[None, :]])
+
+
 LIBRARY: tuple[Effect, ...] = (
     ReferenceReadNoiseEffect(),
     ReferenceDarkOffsetEffect(),

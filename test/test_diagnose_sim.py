@@ -340,3 +340,40 @@ def test_a_slow_wander_that_is_no_drift_is_not_written_as_time_drift(seed: int) 
     assert any(m.startswith("a slow change along the run on x/y") for m in settling_measurements(res)), \
         settling_measurements(res)
 
+
+
+def test_a_step_of_a_channel_s_loss_is_not_written_as_a_warm_up_and_creep() -> None:
+    """A connector of the x channel knocked mid-run (its loss up 0.13 dB, 3 % of the power, at 83 s of a 167 s grid
+    run; ``effects.connector_loss_step``, not in the library). On the unchanged code time_drift was added at +71 %,
+    p 7.3e-10, passing the check over contiguous blocks of time too (+44 %, p 2.2e-6): a warm-up of 3.47 m/s^2 on x with
+    tau 25 s and a creep of 0.041 m/s^2/s (6.8 m/s^2 over the run), written to the YAML the driver applies after every
+    power-on, while x stayed 5.55x the floor. A warm-up with creep follows a step across time blocks as well; a step
+    of the response at one time explains what it fits and gains beyond it, so the drift is not added, the candidate
+    says where the step is, and the residual is reported as what the model lacks."""
+    rec = simulate_recording(_config({"effects.connector_loss_step.scale": 1.0,
+                                      "effects.connector_loss_step.at_s": 83.0}), seed=1)
+    res = diagnose(rec)
+    assert "time_drift" not in [a[0] for a in res.added], res.added
+    assert not any(t.kind == "time_drift" for t in res.calibration.corrections)
+    drift = next(c for c in res.ranked if c.name == "time_drift")
+    assert drift.step_check is not None and not drift.significant, drift.detail
+    assert abs(drift.step_check.t_s - 83.0) < 4.0, drift.step_check  # the visit boundary the step falls in
+    assert "step" in drift.detail and "not added" in drift.detail, drift.detail
+    assert res.structure.significant and res.structure.ratio[0] > 3.0, res.structure.verdict
+
+
+def test_a_drift_that_a_step_fits_as_well_is_written_with_a_warning() -> None:
+    """The same knocked connector on another seed: the step gains beyond the warm-up and creep over most visits (p
+    7.8e-6) but not in mean square (-3 %: the visit next to the step, held out, leaves its side of the step to chance),
+    and the drift gains nothing beyond the step (-0.6 %, p 0.94): the data do not tell them apart, so the drift is
+    added as before (+71 %, a warm-up of 3.5 m/s^2 on x) -- and on the unchanged code without a word that a step fits
+    as well. The report now warns, naming where the step is."""
+    rec = simulate_recording(_config({"effects.connector_loss_step.scale": 1.0,
+                                      "effects.connector_loss_step.at_s": 83.0}), seed=4)
+    res = diagnose(rec)
+    drift = next(c for c in res.ranked if c.name == "time_drift")
+    assert drift.step_check is not None and abs(drift.step_check.t_s - 83.0) < 4.0, drift.step_check
+    assert not drift.step_check.explained and "time_drift" in [a[0] for a in res.added], drift.detail
+    assert any(w.startswith("time_drift is in the calibration, but a step of the response at t = 83")
+               for w in res.warnings), res.warnings
+    assert res.structure.significant and res.structure.ratio[0] > 3.0, res.structure.verdict
