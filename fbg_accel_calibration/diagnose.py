@@ -61,6 +61,7 @@ from .effects import (
     Effect,
     Inputs,
     ResponseStepEffect,
+    direction_labels,
     finite_rows,
     memory_key,
     motion_groups,
@@ -1778,6 +1779,13 @@ class ResidualStructure:
     noise_corr_samples: np.ndarray  # (3,) integrated correlation time of the noise, samples (VisitNoise)
     noise_mean_dof: np.ndarray  # (3,) degrees of freedom of the variance of a visit mean (VisitNoise.mean_dof)
     small: bool = False  # significant, but on no significant axis is the held-out RMSE above ratio_limit x floor
+    # visits of one direction of gravity (``effects.direction_labels``) against their direction's mean: p (3,) of the
+    # chi^2 / F test as above; the visits in directions visited more than once; the median time span of those
+    # directions' visits (s). Small p: the residual depends on something other than the direction of gravity in the
+    # sensor (the table's angles: its geometry, a cable it drags; or time, over that span)
+    direction_chi2_p: np.ndarray = field(default_factory=lambda: np.ones(3))
+    direction_repeat_visits: int = 0
+    direction_span_s: float = 0.0
 
 
 @dataclass
@@ -2394,8 +2402,35 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
         verdict = ("no significant unexplained residual: held-out RMSE within "
                    + ", ".join(f"{ratio[j]:.2f}x" for j in range(3)) + " of the noise floor")
     lag1 = noise_model.acf[:, 1] if noise_model.acf.shape[1] > 1 else np.zeros(3)
+    dir_p, dir_n, dir_span = _direction_disagreement(means, noise_model.mean_variance(cnt), g_mean, t_mean, dof)
     return ResidualStructure(significant, verdict, ho, noise, ratio, p, excess, per_pose, pose_rms, corr_t, corr_T, r2,
-                             lag1, serial, noise_model.correlation_samples, dof, small)
+                             lag1, serial, noise_model.correlation_samples, dof, small, dir_p, dir_n, dir_span)
+
+
+def _direction_disagreement(means: np.ndarray, var: np.ndarray, g_mean: np.ndarray, t_mean: np.ndarray,
+                            dof: np.ndarray) -> tuple[np.ndarray, int, float]:
+    """Do visits of one direction of gravity disagree beyond the noise? ``means`` (V, 3) visit means of the residual
+    (m/s^2) with variances ``var`` (V, 3) under the noise alone, ``g_mean`` (V, 3) their mean reference, ``t_mean``
+    (V,) their mean time (s), ``dof`` (3,) degrees of freedom of ``var``. Each direction's visits about their weighted
+    mean: chi^2 over the directions visited more than once, df = visits - directions, referred to F(df, dof) like the
+    test of the visit means. A model of the sensor maps one direction of gravity to one output, so whatever these
+    visits disagree by is not a function of the orientation (a table angle error, a cable the table drags, a drift over
+    their time span). Returns (p (3,), visits in repeated directions, median time span of those directions (s))."""
+    label = direction_labels(g_mean)
+    counts = np.bincount(label)
+    rep = counts[label] >= 2
+    df = int(rep.sum() - np.sum(counts >= 2))
+    if df < 1:
+        return np.ones(3), 0, 0.0
+    w = 1.0 / np.maximum(var[rep], 1e-300)
+    lab = np.unique(label[rep], return_inverse=True)[1]
+    centre = np.stack([np.bincount(lab, weights=w[:, j] * means[rep, j]) / np.bincount(lab, weights=w[:, j])
+                       for j in range(3)], axis=1)
+    chi = np.sum(w * (means[rep] - centre[lab]) ** 2, axis=0)
+    p = np.where(np.isfinite(dof), stats.f.sf(chi / df, df, np.where(np.isfinite(dof), dof, 1.0)),
+                 stats.chi2.sf(chi, df=df))
+    spans = [float(np.ptp(t_mean[label == c])) for c in np.flatnonzero(counts >= 2)]
+    return p, int(rep.sum()), float(np.median(spans))
 
 
 def _spearman(a: np.ndarray, b: np.ndarray) -> float:

@@ -143,7 +143,14 @@ def settling_measurements(res: DiagnosisResult) -> list[str]:
                    "direction, or alternating from one visit to the next in the plan's order): visit the orientations "
                    "again in another order (an orientation effect repeats, a drift does not) and turn the sensor by 90 "
                    "degrees on the table (a table error stays with the table, a sensor error turns with the sensor)")
-    explained.update(slow + warm + turned)
+    table = on(s.direction_chi2_p < alpha / 3)
+    if table:
+        out.append(f"at one direction of gravity the visits disagree on {'/'.join(AXES[j] for j in table)} (visits of "
+                   f"one direction, {s.direction_span_s:.3g} s apart (median), differ beyond the noise, which no model "
+                   "of the sensor does): turn the sensor by 90 degrees on the table and visit each direction at several "
+                   "table angles in a random order; an error of the table's angles (an encoder offset, axes not "
+                   "orthogonal, a tilted base) or a cable the table drags follows the table's angles, a drift the clock")
+    explained.update(slow + warm + turned + table)
     for j in axes:
         z = sorted((abs(float(p["z"][j])), i) for i, p in enumerate(s.per_pose))[::-1]
         if len(z) >= 2 and z[0][0] > 5 and z[0][0] > CONCENTRATED * z[1][0]:
@@ -256,12 +263,16 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
               f"- correlation of consecutive pose means in time order (slow wander gives values near 1, a pose- or "
               f"angle-dependent effect values near 0 or below): {_v(s.serial_corr_pose_means, '{:+.2f}')}",
               f"- share of pose-mean variance explained by orientation (quadratic in the reference direction): "
-              f"{_v(s.orientation_r2, '{:.2f}')}", ""]
+              f"{_v(s.orientation_r2, '{:.2f}')}",
+              f"- visits of one direction of gravity against each other (they disagree by what is not a function of "
+              f"the orientation: table angles, a cable, time): chi^2 p {' / '.join(_p(p) for p in s.direction_chi2_p)} "
+              f"over {s.direction_repeat_visits} visits in directions visited more than once "
+              f"({s.direction_span_s:.3g} s apart, median)", ""]
     settle = settling_measurements(res)
     if settle:
         lines += [f"Measurements that would settle it (from the signatures above: a correlation beyond {SIGNATURE_SE:g} "
-                  f"standard errors of noise alone, an orientation share above {ORIENTATION_SHARE:g}, one visit above "
-                  f"{CONCENTRATED:g}x the next):", "", *[f"- {m}" for m in settle], ""]
+                  f"standard errors of noise alone, an orientation share above {ORIENTATION_SHARE:g}, visits of one "
+                  f"direction that disagree, one visit above {CONCENTRATED:g}x the next):", "", *[f"- {m}" for m in settle], ""]
     held = {int(v): f"{h.channel} {h.code}" for h in res.held_codes for v in h.visits}  # the visits' ADC code (warning)
     rows = [[f"{p.get('visit', p['pose'])} / {p['pose']}", str(p["n"]),
              _v(p["mean_mps2"]), _v(p["z"], "{:+.1f}"), _v(p["gref_mps2"], "{:.2f}"),

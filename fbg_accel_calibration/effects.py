@@ -521,6 +521,22 @@ def visit_means(groups: np.ndarray, rows: np.ndarray, values: np.ndarray) -> np.
     return np.column_stack([np.bincount(inv, weights=v, minlength=len(n)) for v in values[sel].T]) / n[:, None]
 
 
+def direction_labels(g: np.ndarray) -> np.ndarray:
+    """Label (V,) of the direction of each reference ``g`` (V, 3) m/s^2: directions closer than
+    ``thermal_fit.ORIENTATION_TOLERANCE_DEG`` to the first of a label share it (greedy, in the order given)."""
+    from .thermal_fit import ORIENTATION_TOLERANCE_DEG
+
+    u = g / np.maximum(np.linalg.norm(g, axis=1), 1e-300)[:, None]
+    cos_tol = math.cos(math.radians(ORIENTATION_TOLERANCE_DEG))
+    label, seen = np.empty(len(u), int), []
+    for i, v in enumerate(u):
+        j = next((k for k, w in enumerate(seen) if float(v @ w) > cos_tol), len(seen))
+        if j == len(seen):
+            seen.append(v)
+        label[i] = j
+    return label
+
+
 def orientation_share_of_visit_times(data: DiagnosisData) -> float:
     """Share (0..1) of the variance of the visits' mean board times (s) that their orientations explain (1 - within /
     total sum of squares; 1 when the times do not vary). An orientation is a direction of the visit-mean reference,
@@ -528,22 +544,14 @@ def orientation_share_of_visit_times(data: DiagnosisData) -> float:
     run only). Near 1, every orientation is visited at one board time only (each pose once, or every run from
     power-on through one plan in one order): a function of board time then fits whatever depends on the
     orientation, and no held-out test tells them apart. Computed once per recording."""
-    from .thermal_fit import ORIENTATION_TOLERANCE_DEG
 
     def compute() -> float:
         means = visit_means(data.group, data.use & np.all(np.isfinite(data.gref), axis=1),
                             np.column_stack([data.t_s, data.gref]))
         if len(means) < 2:
             return 1.0
-        t, g = means[:, 0], means[:, 1:]
-        u = g / np.maximum(np.linalg.norm(g, axis=1), 1e-300)[:, None]
-        cos_tol = math.cos(math.radians(ORIENTATION_TOLERANCE_DEG))
-        label, seen = np.empty(len(u), int), []
-        for i, v in enumerate(u):
-            j = next((k for k, w in enumerate(seen) if float(v @ w) > cos_tol), len(seen))
-            if j == len(seen):
-                seen.append(v)
-            label[i] = j
+        t = means[:, 0]
+        label = direction_labels(means[:, 1:])
         total = float(np.sum((t - t.mean()) ** 2))
         if not total > 0:
             return 1.0
