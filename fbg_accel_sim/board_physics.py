@@ -592,6 +592,7 @@ class BoardSimulator:
         resp = self._optical_response(u, temps.delta_ref_c)
         signal = self._source_and_gains(t, temps.delta_ref_c, resp, self._rng(ci, _STREAM_SOURCE))
         filtered = self._tia_lowpass(signal)
+        filtered[:, 1:] += self._tia_vibration_correction(t, delay, u, temps.delta_ref_c, signal[:, 1:] / resp)
         filtered = self._output_noise(filtered, self._rng(ci, _STREAM_NOISE), self._rng(ci, _STREAM_REFNOISE))
         counts_f, counts = self._adc(filtered, t)
         aux_f = self._aux_counts(t, self.cfg.get("effects"), self._rng(ci, _STREAM_AUX))
@@ -756,6 +757,47 @@ class BoardSimulator:
         signal = self.rest_counts[None, :] * p_src[:, None] * gain
         signal[:, 1:] *= resp
         return signal
+
+    def _tia_vibration_correction(self, t: np.ndarray, delay: float, u: np.ndarray, dT: np.ndarray,
+                                  base: np.ndarray) -> np.ndarray:
+        """What the analogue TIA does to the vibration sines beyond what its discrete form on the samples does (N, 3),
+        axis-channel counts. The TIA (paper 3.5, Table 1) low-passes the photocurrent before the ADC samples it, so a
+        sine above the Nyquist frequency reaches the counts at |H(f)| = 1/|1 + i 2 pi f tau| of its amplitude; filtering
+        the samples instead aliases it first and passes it at the alias's gain (a 100.3 Hz vibration at 100 Hz came
+        through like a 0.3 Hz one, 59x too strong on x). Per sine and axis channel j, in the small-signal response
+        (``base`` (N, 3) x d resp / d u_j: counts per m/s^2 of axis input, the optics linearised at the sample's
+        operating point ``u`` (N, 3), ``dT``): slope x Im((H_c - H_d) P e^(i w t)), H_c the analogue response, H_d the
+        discrete filter's (``electronics.filter_discretisation``) to the sampled sine, P the sine's axis-input phasor
+        (sensor frame, resonance, cross-axis coupling A, felt at t - delay like ``_axis_inputs``). Exact for the linear part;
+        the optics' rectification (its mean) and harmonics stay as evaluated at the samples."""
+        out = np.zeros((t.shape[0], 3))
+        if not self.sines:
+            return out
+        eps = 1e-3  # m/s^2: the response is smooth on this scale (pair separation changes by 1e-5 nm)
+        slope = base * (self._optical_response(u + eps, dT) - self._optical_response(u - eps, dT)) / (2.0 * eps)
+        tia_scale = self.cfg.scale("tia_lowpass")
+        dt = self.dt_true
+        for sine in self.sines:
+            f = float(sine["freq_hz"])
+            w = 2.0 * math.pi * f
+            h_res = complex(self.resonance(f)) if self.resonance else 1.0
+            amp = np.asarray(sine.get("amplitude_mps2", [0.0, 0.0, 0.0]), float).reshape(3)
+            phasor = self.A @ (amp * h_res * np.exp(1j * math.radians(float(sine.get("phase_deg", 0.0)))))  # sensor frame
+            zinv = np.exp(-1j * w * dt)
+            for j in range(3):
+                tau = tia_scale * self.tia_tau[j + 1]
+                if tau <= 0.0:
+                    continue
+                a = math.exp(-dt / tau)
+                if self.linear_filters:
+                    r = tau / dt * -math.expm1(-dt / tau)
+                    h_d = ((1.0 - r) + (r - a) * zinv) / (1.0 - a * zinv)
+                else:
+                    h_d = (1.0 - a) / (1.0 - a * zinv)
+                h_c = 1.0 / (1.0 + 1j * w * tau)
+                t_j = t - delay + (j + 1) * self.skew_s
+                out[:, j] = slope[:, j] * np.imag((h_c - h_d) * phasor[j] * np.exp(1j * w * t_j))
+        return out
 
     def _tia_lowpass(self, signal: np.ndarray) -> np.ndarray:
         """TIA first-order low-pass (N, 4) per channel, counts in and out (paper 3.5, Table 1; cut-offs in
