@@ -1760,6 +1760,9 @@ class StepResult:
     degree_after: int | None = None  # the re-selected degree
 
 
+SMALL_RATIO = 1.1  # a significant residual whose held-out RMSE is within this x the per-sample floor is "small"
+
+
 @dataclass
 class ResidualStructure:
     significant: bool  # the test's: chi^2 / F p < alpha on some axis, whatever the size
@@ -2051,6 +2054,18 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     del calibrated
     warnings = [detection_limit] if detection_limit else []
     warnings += [w for name, w in step_confounded.items() if name in spec.names]
+    # an added function of the orientation with a residual left that is not one (visits of one direction disagree), and
+    # not small (the slow part of the noise, bias instability between visits minutes apart, makes a small one common)
+    table_axes = [a for j, a in enumerate("xyz") if structure.pose_chi2_p[j] < alpha / 3
+                  and structure.direction_chi2_p[j] < alpha / 3 and structure.ratio[j] > SMALL_RATIO]
+    for e, _ in spec.effects:
+        if e.orientation_function and table_axes:
+            warnings.append(f"{e.name} is a function of the orientation, but what remains on {'/'.join(table_axes)} "
+                            "differs between visits of one direction of gravity (p "
+                            + ", ".join(f"{structure.direction_chi2_p['xyz'.index(a)]:.1e}" for a in table_axes)
+                            + "): on a plan whose directions and table angles go together it may stand in for an "
+                            "effect of the table's angles (a cable the table drags, the table's geometry) that is "
+                            "no property of the sensor; turn the sensor by 90 degrees on the table and compare")
     if floor_note:
         warnings.append(floor_note)
     held = held_codes(np.column_stack([data.ref, data.xyz]), groups, settled & r_eval,
@@ -2327,7 +2342,7 @@ def _moving_residual(data: DiagnosisData, calibrated: np.ndarray) -> np.ndarray 
 
 
 def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, groups: np.ndarray,
-                       noise_model: VisitNoise, alpha: float = 0.01, ratio_limit: float = 1.1) -> ResidualStructure:
+                       noise_model: VisitNoise, alpha: float = 0.01, ratio_limit: float = SMALL_RATIO) -> ResidualStructure:
     """Is there a significant residual left, and what does it depend on?
 
     Test: visit means of the held-out residual against what the noise alone gives, chi^2 with the variance of

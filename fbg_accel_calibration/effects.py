@@ -306,6 +306,10 @@ class Effect:
     # a function of time alone (time_drift): it must also predict contiguous blocks of time held out to be added
     # (diagnose.time_block_check): between visits interleaved in time any smooth function of time interpolates
     time_function: bool = False
+    # a function of the direction of gravity in the sensor alone (spectral_nonlinearity): it can stand in for an effect
+    # of the table's angles on a plan whose directions and angles go together (diagnose warns when what remains differs
+    # between visits of one direction)
+    orientation_function: bool = False
 
     def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
         """Whether the data can show this effect at all (e.g. temperature must vary)."""
@@ -489,6 +493,7 @@ PSI_SPAN_MARGIN = 0.05  # fraction of the fitted Psi range added on each side of
 class SpectralNonlinearityEffect(Effect):
     name = "spectral_nonlinearity"
     pointwise = True
+    orientation_function = True
     stage = 50
     title = "acceleration non-linearity of the spectral overlap"
 
