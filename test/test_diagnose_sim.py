@@ -361,6 +361,8 @@ def test_a_step_of_a_channel_s_loss_is_not_written_as_a_warm_up_and_creep() -> N
     assert abs(drift.step_check.t_s - 83.0) < 4.0, drift.step_check  # the visit boundary the step falls in
     assert "step" in drift.detail and "not added" in drift.detail, drift.detail
     assert res.structure.significant and res.structure.ratio[0] > 3.0, res.structure.verdict
+    assert any(m.startswith("a step of the response at t = 83") for m in settling_measurements(res)), \
+        settling_measurements(res)
 
 
 def test_a_drift_that_a_step_fits_as_well_is_written_with_a_warning() -> None:
