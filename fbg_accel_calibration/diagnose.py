@@ -1789,6 +1789,12 @@ class ResidualStructure:
     direction_chi2_p: np.ndarray = field(default_factory=lambda: np.ones(3))
     direction_repeat_visits: int = 0
     direction_span_s: float = 0.0
+    # the same split in two: visits of one pose id (the same table angles) against each other, which only time can
+    # set apart, and the poses of one direction (other table angles) against each other; p (3,) each, and the median
+    # time span (s) of the poses visited more than once
+    same_pose_chi2_p: np.ndarray = field(default_factory=lambda: np.ones(3))
+    other_pose_chi2_p: np.ndarray = field(default_factory=lambda: np.ones(3))
+    same_pose_span_s: float = 0.0
 
 
 @dataclass
@@ -2057,12 +2063,12 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     # an added function of the orientation with a residual left that is not one (visits of one direction disagree), and
     # not small (the slow part of the noise, bias instability between visits minutes apart, makes a small one common)
     table_axes = [a for j, a in enumerate("xyz") if structure.pose_chi2_p[j] < alpha / 3
-                  and structure.direction_chi2_p[j] < alpha / 3 and structure.ratio[j] > SMALL_RATIO]
+                  and structure.other_pose_chi2_p[j] < alpha / 3 and structure.ratio[j] > SMALL_RATIO]
     for e, _ in spec.effects:
         if e.orientation_function and table_axes:
             warnings.append(f"{e.name} is a function of the orientation, but what remains on {'/'.join(table_axes)} "
-                            "differs between visits of one direction of gravity (p "
-                            + ", ".join(f"{structure.direction_chi2_p['xyz'.index(a)]:.1e}" for a in table_axes)
+                            "differs between the poses of one direction of gravity (p "
+                            + ", ".join(f"{structure.other_pose_chi2_p['xyz'.index(a)]:.1e}" for a in table_axes)
                             + "): on a plan whose directions and table angles go together it may stand in for an "
                             "effect of the table's angles (a cable the table drags, the table's geometry) that is "
                             "no property of the sensor; turn the sensor by 90 degrees on the table and compare")
@@ -2417,35 +2423,57 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
         verdict = ("no significant unexplained residual: held-out RMSE within "
                    + ", ".join(f"{ratio[j]:.2f}x" for j in range(3)) + " of the noise floor")
     lag1 = noise_model.acf[:, 1] if noise_model.acf.shape[1] > 1 else np.zeros(3)
-    dir_p, dir_n, dir_span = _direction_disagreement(means, noise_model.mean_variance(cnt), g_mean, t_mean, dof)
+    split = _direction_disagreement(means, noise_model.mean_variance(cnt), g_mean, t_mean, pose_of, dof)
     return ResidualStructure(significant, verdict, ho, noise, ratio, p, excess, per_pose, pose_rms, corr_t, corr_T, r2,
-                             lag1, serial, noise_model.correlation_samples, dof, small, dir_p, dir_n, dir_span)
+                             lag1, serial, noise_model.correlation_samples, dof, small, *split)
 
 
 def _direction_disagreement(means: np.ndarray, var: np.ndarray, g_mean: np.ndarray, t_mean: np.ndarray,
-                            dof: np.ndarray) -> tuple[np.ndarray, int, float]:
+                            pose: np.ndarray, dof: np.ndarray) -> tuple[np.ndarray, int, float, np.ndarray, np.ndarray,
+                                                                     float]:
     """Do visits of one direction of gravity disagree beyond the noise? ``means`` (V, 3) visit means of the residual
     (m/s^2) with variances ``var`` (V, 3) under the noise alone, ``g_mean`` (V, 3) their mean reference, ``t_mean``
-    (V,) their mean time (s), ``dof`` (3,) degrees of freedom of ``var``. Each direction's visits about their weighted
-    mean: chi^2 over the directions visited more than once, df = visits - directions, referred to F(df, dof) like the
-    test of the visit means. A model of the sensor maps one direction of gravity to one output, so whatever these
-    visits disagree by is not a function of the orientation (a table angle error, a cable the table drags, a drift over
-    their time span). Returns (p (3,), visits in repeated directions, median time span of those directions (s))."""
+    (V,) their mean time (s), ``pose`` (V,) their pose ids, ``dof`` (3,) degrees of freedom of ``var``. Each
+    direction's visits about their weighted mean: chi^2 over the directions visited more than once, df = visits -
+    directions, referred to F(df, dof) like the test of the visit means. A model of the sensor maps one direction of
+    gravity to one output, so whatever these visits disagree by is not a function of the orientation. The chi^2 splits
+    exactly (weighted means) into the visits of one pose id about their pose's mean (the same table angles: only time
+    sets them apart) and the poses' means about their direction's (other table angles, or time). Returns (p (3,),
+    visits in repeated directions, median time span of those directions (s), p (3,) within poses, p (3,) between the
+    poses of a direction, median time span of the poses visited more than once (s))."""
+    ones = np.ones(3)
+
+    def f_test(chi: np.ndarray, df: int) -> np.ndarray:
+        if df < 1:
+            return ones.copy()
+        return np.where(np.isfinite(dof), stats.f.sf(chi / df, df, np.where(np.isfinite(dof), dof, 1.0)),
+                        stats.chi2.sf(chi, df=df))
+
     label = direction_labels(g_mean)
     counts = np.bincount(label)
     rep = counts[label] >= 2
-    df = int(rep.sum() - np.sum(counts >= 2))
-    if df < 1:
-        return np.ones(3), 0, 0.0
+    if int(rep.sum() - np.sum(counts >= 2)) < 1:
+        return ones.copy(), 0, 0.0, ones.copy(), ones.copy(), 0.0
     w = 1.0 / np.maximum(var[rep], 1e-300)
-    lab = np.unique(label[rep], return_inverse=True)[1]
-    centre = np.stack([np.bincount(lab, weights=w[:, j] * means[rep, j]) / np.bincount(lab, weights=w[:, j])
-                       for j in range(3)], axis=1)
-    chi = np.sum(w * (means[rep] - centre[lab]) ** 2, axis=0)
-    p = np.where(np.isfinite(dof), stats.f.sf(chi / df, df, np.where(np.isfinite(dof), dof, 1.0)),
-                 stats.chi2.sf(chi, df=df))
-    spans = [float(np.ptp(t_mean[label == c])) for c in np.flatnonzero(counts >= 2)]
-    return p, int(rep.sum()), float(np.median(spans))
+    m, t = means[rep], t_mean[rep]
+    d = np.unique(label[rep], return_inverse=True)[1]
+    dp = np.unique(np.column_stack([d, pose[rep]]), axis=0, return_inverse=True)[1].reshape(-1)
+
+    def centre(lab: np.ndarray) -> np.ndarray:
+        return np.stack([np.bincount(lab, weights=w[:, j] * m[:, j]) / np.bincount(lab, weights=w[:, j])
+                         for j in range(3)], axis=1)
+
+    c_d, c_dp = centre(d), centre(dp)
+    total = np.sum(w * (m - c_d[d]) ** 2, axis=0)
+    within = np.sum(w * (m - c_dp[dp]) ** 2, axis=0)
+    n_d, n_dp = np.bincount(d), np.bincount(dp)
+    df_total = int(len(m) - len(n_d))
+    df_within = int(len(m) - len(n_dp))
+    spans = [float(np.ptp(t[d == c])) for c in range(len(n_d))]
+    pose_spans = [float(np.ptp(t[dp == c])) for c in np.flatnonzero(n_dp >= 2)]
+    return (f_test(total, df_total), int(rep.sum()), float(np.median(spans)), f_test(within, df_within),
+            f_test(np.maximum(total - within, 0.0), df_total - df_within),
+            float(np.median(pose_spans)) if pose_spans else 0.0)
 
 
 def _spearman(a: np.ndarray, b: np.ndarray) -> float:

@@ -150,14 +150,22 @@ def settling_measurements(res: DiagnosisResult) -> list[str]:
                    "direction, or alternating from one visit to the next in the plan's order): visit the orientations "
                    "again in another order (an orientation effect repeats, a drift does not) and turn the sensor by 90 "
                    "degrees on the table (a table error stays with the table, a sensor error turns with the sensor)")
-    table = on(s.direction_chi2_p < alpha / 3)
+    again = on(s.same_pose_chi2_p < alpha / 3)
+    if again:
+        out.append(f"the same pose visited again reads differently on {'/'.join(AXES[j] for j in again)} (visits of one "
+                   f"pose, the same table angles, {s.same_pose_span_s:.3g} s apart (median), differ beyond the noise): "
+                   "only time sets them apart, neither the orientation nor the table's angles: a drift, a step (a "
+                   "connector, a knock), the chamber or the source; log the chamber temperature and the source power "
+                   "(the reference counts) with the series, and visit that pose again more often")
+    table = on(s.other_pose_chi2_p < alpha / 3)
     if table:
-        out.append(f"at one direction of gravity the visits disagree on {'/'.join(AXES[j] for j in table)} (visits of "
-                   f"one direction, {s.direction_span_s:.3g} s apart (median), differ beyond the noise, which no model "
-                   "of the sensor does): turn the sensor by 90 degrees on the table and visit each direction at several "
-                   "table angles in a random order; an error of the table's angles (an encoder offset, axes not "
-                   "orthogonal, a tilted base) or a cable the table drags follows the table's angles, a drift the clock")
-    explained.update(slow + warm + turned + table)
+        out.append(f"at one direction of gravity the visits disagree on {'/'.join(AXES[j] for j in table)} (poses of "
+                   f"one direction at other table angles, {s.direction_span_s:.3g} s apart (median), differ beyond the "
+                   "noise, which no model of the sensor does): turn the sensor by 90 degrees on the table and visit "
+                   "each direction at several table angles in a random order; an error of the table's angles (an "
+                   "encoder offset, axes not orthogonal, a tilted base) or a cable the table drags follows the table's "
+                   "angles, a drift the clock")
+    explained.update(slow + warm + turned + again + table)
     for j in axes:
         z = sorted((abs(float(p["z"][j])), i) for i, p in enumerate(s.per_pose))[::-1]
         if len(z) >= 2 and z[0][0] > 5 and z[0][0] > CONCENTRATED * z[1][0]:
@@ -274,7 +282,9 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
               f"- visits of one direction of gravity against each other (they disagree by what is not a function of "
               f"the orientation: table angles, a cable, time): chi^2 p {' / '.join(_p(p) for p in s.direction_chi2_p)} "
               f"over {s.direction_repeat_visits} visits in directions visited more than once "
-              f"({s.direction_span_s:.3g} s apart, median)", ""]
+              f"({s.direction_span_s:.3g} s apart, median); of it, visits of one pose (the same table angles, only "
+              f"time between them): p {' / '.join(_p(p) for p in s.same_pose_chi2_p)}, poses of one direction at "
+              f"other table angles: p {' / '.join(_p(p) for p in s.other_pose_chi2_p)}", ""]
     settle = settling_measurements(res)
     if settle:
         lines += [f"Measurements that would settle it (from the signatures above: a correlation beyond {SIGNATURE_SE:g} "

@@ -402,6 +402,7 @@ def test_a_residual_that_differs_at_one_direction_of_gravity_is_named_a_table_an
     # at z up and z down the error rotates with psi in the x-y plane; on z it changes sign between theta and -theta,
     # directions that the wrong reference no longer puts together
     assert np.all(s.direction_chi2_p[:2] < 1e-5), s.direction_chi2_p
+    assert np.all(s.other_pose_chi2_p[:2] < 1e-5) and np.all(s.same_pose_chi2_p == 1.0)  # each pose visited once
     settle = settling_measurements(res)
     assert any(m.startswith("at one direction of gravity the visits disagree on x/y (") for m in settle), settle
     assert "disagree" in markdown(res)
@@ -436,3 +437,19 @@ def test_an_orientation_term_that_stands_in_for_a_table_angle_effect_is_said_to_
                    static=static)
     assert res.added[0][0] == "spectral_nonlinearity" and np.all(res.structure.ratio < 1.1), res.structure.ratio
     assert not any("function of the orientation" in w for w in res.warnings), res.warnings
+
+
+def test_a_pose_visited_again_that_reads_differently_is_named_a_change_with_time() -> None:
+    """A six-position plan run three times (18 visits, each pose at three times) with the x connector knocked at 60 s.
+    Each direction is one pose, so what its visits disagree by is time alone, not the table's angles. The first form
+    of the direction signature named the table's angles first for it; now the report says the same pose reads
+    differently when visited again, and names no table-angle effect."""
+    cfg = SimConfig.default().with_overrides({
+        **BASELINE, "scenario.poses.mode": "six_position", "scenario.poses.dwell_s": 6.0, "scenario.poses.move_s": 2.0,
+        "scenario.poses.repeat": 3, "effects.connector_loss_step.scale": 1.0, "effects.connector_loss_step.at_s": 60.0})
+    res = diagnose(simulate_recording(cfg, seed=3))
+    s = res.structure
+    assert s.significant and s.same_pose_chi2_p[0] < 1e-6 and np.all(s.other_pose_chi2_p == 1.0), s.same_pose_chi2_p
+    settle = settling_measurements(res)
+    assert any(m.startswith("the same pose visited again reads differently on x") for m in settle), settle
+    assert not any(m.startswith("at one direction of gravity") for m in settle), settle
