@@ -2373,8 +2373,7 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
     # the variance of a visit mean is itself estimated (nu = noise_model.mean_dof degrees of freedom, a common factor
     # for every visit): chi / df is then F(df, nu) under the noise alone, the chi^2 law when it is known (nu = inf)
     dof = np.maximum(noise_model.mean_dof, MIN_MEAN_DOF)
-    p = np.where(np.isfinite(dof), stats.f.sf(chi / len(ug), len(ug), np.where(np.isfinite(dof), dof, 1.0)),
-                 stats.chi2.sf(chi, df=len(ug)))
+    p = _visit_chi2_p(chi, len(ug), dof)
     ho = np.sqrt(np.mean(x**2, axis=0))
     ratio = ho / np.maximum(noise, 1e-12)
     excess = np.sqrt(np.maximum(ho**2 - noise**2, 0.0))
@@ -2428,6 +2427,13 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
                              lag1, serial, noise_model.correlation_samples, dof, small, *split)
 
 
+def _visit_chi2_p(chi: np.ndarray, df: int, dof: np.ndarray) -> np.ndarray:
+    """p (3,) of ``chi`` (3,), a sum of ``df`` squared visit means over their variance under the noise alone: chi / df
+    is F(df, ``dof``) when that variance is estimated with ``dof`` (3,) degrees of freedom, chi^2(df) when known (inf)."""
+    return np.where(np.isfinite(dof), stats.f.sf(chi / df, df, np.where(np.isfinite(dof), dof, 1.0)),
+                    stats.chi2.sf(chi, df=df))
+
+
 def _direction_disagreement(means: np.ndarray, var: np.ndarray, g_mean: np.ndarray, t_mean: np.ndarray,
                             pose: np.ndarray, dof: np.ndarray) -> tuple[np.ndarray, int, float, np.ndarray, np.ndarray,
                                                                      float]:
@@ -2444,10 +2450,7 @@ def _direction_disagreement(means: np.ndarray, var: np.ndarray, g_mean: np.ndarr
     ones = np.ones(3)
 
     def f_test(chi: np.ndarray, df: int) -> np.ndarray:
-        if df < 1:
-            return ones.copy()
-        return np.where(np.isfinite(dof), stats.f.sf(chi / df, df, np.where(np.isfinite(dof), dof, 1.0)),
-                        stats.chi2.sf(chi, df=df))
+        return _visit_chi2_p(chi, df, dof) if df >= 1 else ones.copy()
 
     label = direction_labels(g_mean)
     counts = np.bincount(label)
