@@ -111,6 +111,7 @@ class ClockSync:
         self._base_ns: int | None = None
         self._host_minus_steady_ns = 0  # of the latest observation
         self._host_reads: list[tuple[int, int]] = []  # (steady ns, host-minus-steady ns) of the last three reads
+        self._agreed_host_ns = 0  # their median (the latest alone until there are three), worked out once a read
         self._applied_host_ns: int | None = None  # the host-minus-steady offset the stamps carry (ns, see ``stamp``)
         self.resets = 0
         self.steps = 0  # steps of the applied board-to-steady offset (errors above step_threshold_s: a clock jump)
@@ -148,6 +149,7 @@ class ClockSync:
             reads.append((steady, host_ns - steady))
             if len(reads) > 3:
                 del reads[0]
+            self._agreed_host_ns = sorted(r[1] for r in reads)[1] if len(reads) == 3 else reads[-1][1]
         if self._base_ns is None:
             self._base_ns = steady - t_us * 1000
         offset = (steady - t_us * 1000 - self._base_ns) * 1e-9
@@ -261,10 +263,8 @@ class ClockSync:
                 self.host_steps += 1  # a step of ROS time, followed
             self._applied_host_ns = target_ns
         else:
-            reads = self._host_reads
-            agreed = sorted(r[1] for r in reads)[1] if len(reads) == 3 else target_ns  # their median
             band = cfg.host_offset_band_s * 1e9
-            beyond = agreed - self._applied_host_ns
+            beyond = self._agreed_host_ns - self._applied_host_ns
             if abs(beyond) > band:
                 self._applied_host_ns += round(beyond - math.copysign(band, beyond))
             limit = cfg.max_slew * max(board_s - (prev_at if prev_at is not None else board_s), 0.0) * 1e9
