@@ -71,6 +71,7 @@ from .effects import (
 )
 from .model_selection import DegreeScores, choose_degree
 from .model_selection import select_degree as calibration_select_degree
+from .periodic_disturbance import PeriodicDisturbance, find_periodic_disturbance
 from .recording import LowReference, Recording, time_axis_label
 from .static_detector import calibration_samples
 from .thermal_fit import (
@@ -1832,6 +1833,9 @@ class DiagnosisResult:
     final_degree: int = -1  # degree of eq. 28 in the final model (re-selected after each added effect)
     run_terms: list[tuple[str, float | None, str]] = field(default_factory=list)  # per-run terms (not in the YAML)
     held_codes: list[HeldCode] = field(default_factory=list)  # ADC codes that held whole visits (adc_codes)
+    # a periodic disturbance found in the visits (periodic_disturbance): when found, the floors above are without it
+    disturbance: PeriodicDisturbance = field(default_factory=lambda: PeriodicDisturbance([], (math.nan, math.nan), 0,
+                                                                                          0.0, math.inf))
 
     @property
     def final_floor(self) -> np.ndarray:
@@ -1898,6 +1902,13 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     if not np.all(np.isfinite(noise)) or np.any(noise <= 0):
         raise ValueError(f"no noise floor: {int(settled.sum())} settled samples (every visit shorter than "
                          f"{settle_s:.3g} s plus one sample?); lower settle_s")
+    # a periodic disturbance during the visits (a table that sways, a fan) is no noise of the sensor: named, and the
+    # floor is the scatter without it (its floor with it reported beside: PeriodicDisturbance.floor_with_lines)
+    disturbance = find_periodic_disturbance(res0, data.t_s, groups, data.run_id, settled)
+    if disturbance.found:
+        disturbance.floor_with_lines = noise
+        noise_model = within_visit_noise(res0 - disturbance.model(data.t_s, data.run_id), groups, settled, data.t_s)
+        noise = noise_model.sigma
     settling.settle_s, settling.n_dropped = float(settle_s), int((rows & ~settled).sum())
     settling.end_settle_s = end_s
     settling.end_n_dropped = int((settled_mask(data.t_s, groups, rows, settle_s) & ~settled).sum())
@@ -2036,7 +2047,11 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     added = [a for a in added if a[0] not in remedy_names | per_run_names]
     noise_after, noise_model_after = noise, noise_model
     if remedies:  # the filtered output is less noisy: its own floor, on the same settled samples
-        noise_model_after = within_visit_noise(des_f.G - cv_f.fitted_full, groups, settled & rows_f, data.t_s)
+        res_f = des_f.G - cv_f.fitted_full
+        if disturbance.found:  # the filtered output carries the lines too (refitted on it)
+            res_f -= disturbance.refit(res_f, data.t_s, groups, data.run_id, settled & rows_f)
+        noise_model_after = within_visit_noise(res_f, groups, settled & rows_f, data.t_s)
+        del res_f
         noise_after = noise_model_after.sigma
         cal.noise_sigma_mps2 = noise_after
     fitted_sensor = cv_f.fitted_full.copy()  # what the calibration file reproduces: without the per-run terms
@@ -2074,6 +2089,11 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                             "no property of the sensor; turn the sensor by 90 degrees on the table and compare")
     if floor_note:
         warnings.append(floor_note)
+    if disturbance.found:
+        lines_ho = disturbance.refit(cv_f.heldout, data.t_s, groups, data.run_id, settled & r_eval)
+        disturbance.heldout_without_lines = np.sqrt(np.mean((cv_f.heldout - lines_ho)[r_eval] ** 2, axis=0))
+        del lines_ho
+        warnings.append(disturbance_warning(disturbance, noise, after_ho))
     held = held_codes(np.column_stack([data.ref, data.xyz]), groups, settled & r_eval,
                       _visit_offset(cv_f.heldout, groups, r_eval, noise_after), alpha)
     for h in held:
@@ -2117,12 +2137,21 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         moving_residual_rms=moving, settling=settling, fold_notes=fold_notes, n_floor_samples=int(settled.sum()),
         noise_remedies=remedies, noise_floor_after=noise_after if remedies else None, warnings=warnings,
         condition_number=cond, column_correlation=column_corr, final_degree=spec.degree, run_terms=run_terms,
-        held_codes=held,
+        held_codes=held, disturbance=disturbance,
         settings={"static": static if not isinstance(rec, DiagnosisData) else "given", "folds": int(fold.max()) + 1,
                   "alpha": alpha, "min_rel_gain": min_rel_gain, "max_effects": max_effects, "seed": seed,
                   "search_rows": n_search, "degree_forced": degree is not None,
                   "settle_s": settle_s,
                   "time_label": time_label})
+
+
+def disturbance_warning(d: PeriodicDisturbance, floor: np.ndarray, heldout: np.ndarray) -> str:
+    """The warning for a periodic disturbance found in the visits: what, the floor with and without it (m/s^2), what
+    the held-out error ``heldout`` (3,) m/s^2 is with and without it, and the basis of the ratios."""
+    return (f"{d.summary()}. The noise floor {_fmt3(floor)} m/s^2 is the scatter within visits without the disturbance "
+            f"(with it {_fmt3(d.floor_with_lines)}); the held-out error {_fmt3(heldout)} m/s^2 holds it "
+            f"({_fmt3(d.heldout_without_lines)} without it), so the ratios to the floor count it as a residual of this "
+            "recording, not of the sensor: find what shook the table or chamber, and record again")
 
 
 def _flagged_visits_note(data: DiagnosisData, groups: np.ndarray, models: list[VisitNoise], des: Design, cv: CvResult,

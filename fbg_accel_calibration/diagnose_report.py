@@ -198,6 +198,29 @@ def degree_table(table: list[dict], chosen: int | None, forced: bool = False) ->
     return _md_table(["degree n", "in-sample RMSE / 20 g (x/y/z)", "held-out RMSE / 20 g (x/y/z)", ""], rows)
 
 
+def periodic_section(res: DiagnosisResult) -> list[str]:
+    """Markdown lines on a periodic disturbance found in the visits (``periodic_disturbance``); none without one."""
+    d = res.disturbance
+    if not d.found:
+        return []
+    rows = [[f"{ln.freq_hz:.4g} Hz", *(f"{a:.4f}" for a in ln.amplitude_mps2), f"{ln.p_value:.2g}",
+             f"visit-locked ({ln.visit_harmonic} / visit period)" if ln.visit_harmonic else ""] for ln in d.lines]
+    out = ["## Periodic disturbance", "",
+           "A sinusoidal line common to the visits, found in the within-visit residual of the settled samples "
+           f"(periodogram against its local spectral level, {d.band_hz[0]:.3g}-{d.band_hz[1]:.3g} Hz searched, "
+           f"Bonferroni over {d.n_tests} tests at alpha {d.alpha:g}; docs/effects.md). A table or chamber that sways, "
+           "a fan or a pump moves the sensor: it is no noise of the sensor.", "",
+           _md_table(["frequency", "amplitude x [m/s^2]", "amplitude y [m/s^2]", "amplitude z [m/s^2]", "p (corrected)",
+                      "note"], rows), "",
+           f"- noise floor without the disturbance (the floor every ratio of this report is to): {_v(res.noise_floor)} "
+           "m/s^2",
+           f"- within-visit scatter with it (the floor it would have been): {_v(d.floor_with_lines)} m/s^2"]
+    if d.heldout_without_lines is not None:
+        out.append(f"- held-out RMSE {_v(res.after_heldout_rmse)} m/s^2 holds it; with the fitted lines taken out "
+                   f"{_v(d.heldout_without_lines)} m/s^2")
+    return [*out, ""]
+
+
 def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") -> str:
     s = res.structure
     lines = ["# Residual diagnosis", ""]
@@ -221,6 +244,7 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
               ""]
     if res.settling is not None:
         lines += ["Settling after a table move (an effect of its own, not in the floor): " + res.settling.summary() + ".", ""]
+    lines += periodic_section(res)
     if res.fold_notes:
         lines += ["Cross-validation folds that could not be used as drawn:", "", *[f"- {n}" for n in res.fold_notes], ""]
     for st in res.steps:
