@@ -10,7 +10,9 @@ Pure numpy/scipy engine behind ``fbg-accel-calib diagnose`` (issue 4). Steps:
    < number of temperature levels, as in ``thermal_fit``). Noise floor = per-sample standard deviation
    of its residual per axis within visits over settled samples (what no static model can remove),
    corrected for what removing each visit's mean and line takes of correlated noise
-   (``within_visit_noise``); the settling transient after a table move is measured and reported on its own.
+   (``within_visit_noise``); the settling transient after a table move is measured and reported on its own. A
+   periodic disturbance common to the visits (a table that sways, a fan: ``periodic_disturbance``) is named, and
+   the floor is the scatter without it (with it reported beside).
    A visit is one contiguous static interval of one pose id in one run (``effects.visit_ids``); the
    pose id is the orientation. Folds that would lose a direction of the table frame are split or
    their visit kept in training (``check_folds``).
