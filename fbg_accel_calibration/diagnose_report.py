@@ -212,8 +212,9 @@ def periodic_section(res: DiagnosisResult) -> list[str]:
            "a fan or a pump moves the sensor: it is no noise of the sensor.", "",
            _md_table(["frequency", "amplitude x [m/s^2]", "amplitude y [m/s^2]", "amplitude z [m/s^2]", "p (corrected)",
                       "note"], rows), "",
-           f"- noise floor without the disturbance (the floor every ratio of this report is to): {_v(res.noise_floor)} "
-           "m/s^2",
+           f"- noise floor without the disturbance: {_v(res.noise_floor)} m/s^2"
+           + (f" (of the filtered output {_v(res.final_floor)} m/s^2)" if res.noise_floor_after is not None else "")
+           + "; every ratio to the floor in this report is to a floor without it",
            f"- within-visit scatter with it (the floor it would have been): {_v(d.floor_with_lines)} m/s^2"]
     if d.heldout_without_lines is not None:
         out.append(f"- held-out RMSE {_v(res.after_heldout_rmse)} m/s^2 holds it; with the fitted lines taken out "
