@@ -1384,7 +1384,7 @@ class CandidateResult:
     implausible: str = ""  # why the fitted values are not physical (then never significant, never added)
     detectable_gain: float = math.nan  # small campaigns: gain the paired t-test finds with 80 % power
     time_block: tuple[float, float] | None = None  # a time function's (gain, p) over contiguous blocks of time held out
-    step_check: StepCheck | None = None  # a time function against a step of the response at one time (``step_check``)
+    step_check: StepCheck | None = None  # a candidate that can follow a step, against the best step (``step_check``)
 
     def delta_of_every_sample(self, n: int) -> np.ndarray | None:
         """``delta`` (N, 3) on every one of the recording's ``n`` samples, NaN where it was not evaluated (for the
@@ -1684,26 +1684,33 @@ def time_block_check(data: DiagnosisData, spec: ModelSpec, eff: Effect, h: float
 
 @dataclass
 class StepCheck:
-    """A function of time (``Effect.time_function``) against the best step of the response at one time
-    (``effects.ResponseStepEffect``), each added on top of the other (held-out gain, one-sided p over visits)."""
+    """A candidate that can follow a step (``Effect.follows_a_step``: a function of time or of the temperature's history)
+    against the best step of the response at one time (``effects.ResponseStepEffect``), each added on top of the other
+    (held-out gain, one-sided p over visits) with eq. 28 at ``degree``."""
 
     t_s: float  # board time of the first sample after the step (s)
     run: int  # the run it is in
-    gain_step_beyond: float  # the step on top of the time function
+    gain_step_beyond: float  # the step on top of the candidate
     p_step_beyond: float
-    gain_time_beyond: float  # the time function on top of the step
+    gain_time_beyond: float  # the candidate on top of the step
     p_time_beyond: float
-    explained: bool  # the step gains beyond the time function, the time function not beyond the step
+    explained: bool  # the step gains beyond the candidate, the candidate not beyond the step
+    degree: int = 0  # degree of eq. 28 in both models (chosen again with the candidate and the step in it)
 
 
 def step_check(ev: Evaluator, spec: ModelSpec, eff: Effect, h: float | None, alpha: float,
-               min_rel_gain: float) -> StepCheck | None:
-    """Does a step of the response at one time explain what the function of time ``eff`` (at ``h``) fits on top of
-    ``spec``? A warm-up with creep follows a step (a connector knocked mid-run) across contiguous blocks of time too,
-    so ``time_block_check`` passes it; written to the calibration, it is applied after every power-on. The step (its
-    time found like any hyper-parameter, nested in the folds) and the function are each added on top of the other,
-    as in the confounding check: if the step gains beyond the function (``alpha``, ``min_rel_gain``) and the function
-    not beyond the step, the function is a stand-in. None when the recording has too few visits for a step."""
+               min_rel_gain: float, max_degree: int | None = None) -> StepCheck | None:
+    """Does a step of the response at one time explain what ``eff`` (at ``h``; ``Effect.follows_a_step``) fits on top
+    of ``spec``? A warm-up with creep follows a step (a connector knocked mid-run) across contiguous blocks of time too,
+    so ``time_block_check`` passes it; on a temperature-cycled run a hysteresis branch or a thermal lag follows it as
+    well, since the temperature's history is tied to time; written to the calibration, the driver applies it for good.
+    The step (its time found like any hyper-parameter, nested in the folds) and ``eff`` are each added on top of the
+    other, as in the confounding check: if the step gains beyond ``eff`` (``alpha``, ``min_rel_gain``) and ``eff`` not
+    beyond the step, ``eff`` is a stand-in. ``max_degree`` (None: the degree is forced, or one temperature level): eq.
+    28's degree is first chosen again with both in the model (``reselect_degree``), as it is after any effect is added,
+    and both are compared at it: a degree chosen with the step in the residual can be too low for the step's model, and
+    the temperature dependence it leaves then passes for a drift or a hysteresis. None when the recording has too few
+    visits for a step."""
     step = ResponseStepEffect()
     if not step.applicable(ev.data)[0]:
         return None
@@ -1716,7 +1723,12 @@ def step_check(ev: Evaluator, spec: ModelSpec, eff: Effect, h: float | None, alp
         return r.applicable and r.p_value < alpha and r.rel_gain >= min_rel_gain and not r.implausible
 
     try:
-        h_step = ev.fit_hyper(spec, step)[0]  # the step that fits best in place of the function, not beside it
+        h_step = ev.fit_hyper(spec, step)[0]  # the step that fits best in place of the candidate, not beside it
+        if max_degree is not None:
+            degree = reselect_degree(ev, spec.plus(eff, h).plus(step, h_step), max_degree)[0].degree
+            # the step's time, set by the jump rather than by the temperature terms, is kept (a search of it is
+            # most of the check's cost)
+            spec = ModelSpec(degree, spec.t_center_c, spec.t_scale_c, spec.effects)
     except NotIdentifiedError:
         return None
     beyond_time = on_top(spec.plus(eff, h), step)
@@ -1727,7 +1739,37 @@ def step_check(ev: Evaluator, spec: ModelSpec, eff: Effect, h: float | None, alp
     return StepCheck(float(ev.data.t_s[i]), int(ev.data.run_id[i]), beyond_time.rel_gain, beyond_time.p_value,
                      beyond_step.rel_gain if beyond_step.applicable else -math.inf,
                      beyond_step.p_value if beyond_step.applicable else 1.0,
-                     gains(beyond_time) and not gains(beyond_step))
+                     gains(beyond_time) and not gains(beyond_step), spec.degree)
+
+
+def judge_step(ev: Evaluator, spec: ModelSpec, r: CandidateResult, eff_r: Effect, alpha_each: float,
+               min_rel_gain: float, max_degree: int | None, step_confounded: dict[str, str]) -> None:
+    """Set the significant candidate ``r`` (of ``eff_r``, ``Effect.follows_a_step``) on top of ``spec`` against the best
+    step of the response (``step_check``; ``max_degree`` None: eq. 28's degree is not chosen again): refused (``r``
+    no longer significant, why in its detail) if the step explains it; if the step fits as well, the warning for the
+    report is put in ``step_confounded`` under its name."""
+    sc = r.step_check = step_check(ev, spec, eff_r, r.hyper, alpha_each, min_rel_gain, max_degree)
+    at_degree = f", eq. 28 of degree {sc.degree}" if sc is not None and sc.degree != spec.degree else ""
+    if sc is not None and sc.explained:
+        r.significant = False
+        r.detail += (f"; not added: a step of the response at t = {sc.t_s:.4g} s (run {sc.run}) explains "
+                     f"it: the step gains {100 * sc.gain_step_beyond:+.1f} % beyond it (p = "
+                     f"{sc.p_step_beyond:.2g}), it gains {100 * sc.gain_time_beyond:+.1f} % beyond the step "
+                     f"(p = {sc.p_time_beyond:.2g}{at_degree}): the response changed once (a connector "
+                     f"knocked or re-mated, a fibre bent, a knock), not {eff_r.sensor_property} the driver "
+                     "could apply")
+    elif sc is not None and sc.p_time_beyond < alpha_each and sc.gain_time_beyond >= min_rel_gain:
+        r.detail += (f"; it gains {100 * sc.gain_time_beyond:+.1f} % beyond the best step of the response "
+                     f"at one time (t = {sc.t_s:.4g} s, p = {sc.p_time_beyond:.2g}{at_degree})")
+    elif sc is not None:  # neither beyond the other: the data do not tell a step from this candidate
+        r.detail += (f"; a step of the response at t = {sc.t_s:.4g} s (run {sc.run}) fits as well: it "
+                     f"gains {100 * sc.gain_time_beyond:+.1f} % beyond the step (p = {sc.p_time_beyond:.2g}), "
+                     f"the step {100 * sc.gain_step_beyond:+.1f} % beyond it (p = {sc.p_step_beyond:.2g}"
+                     f"{at_degree})")
+        step_confounded[r.name] = (f"{r.name} is in the calibration, but a step of the response at t = "
+                                   f"{sc.t_s:.4g} s (run {sc.run}; a connector, a fibre, a knock) fits this "
+                                   "data as well, and a step is no property of the sensor: "
+                                   f"{eff_r.tells_it_from_a_step}")
 
 
 def _corr(a: np.ndarray, b: np.ndarray) -> float:
@@ -1939,7 +1981,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     steps: list[StepResult] = []
     detection_limit = ""
     time_folds: np.ndarray | None = None  # contiguous blocks of time (time_block_check), made when first needed
-    step_confounded: dict[str, str] = {}  # a time function that a step of the response fits as well: the warning
+    step_confounded: dict[str, str] = {}  # a candidate that a step of the response fits as well: the warning
+    reselect_up_to = max_degree if degree is None and n_levels >= 2 else None  # eq. 28's degree is chosen again
     remaining = [e for e in library]
     while remaining and len(spec.effects) < max_effects:
         results = []
@@ -1986,27 +2029,18 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                                  f"{100 * g:+.1f} %, p = {p:.2g}): it follows a slow wander of the residual between "
                                  "visits, not a drift it can extrapolate")
             step_confounded.pop(r.name, None)  # the last step's word on it
-            if r.significant and eff_r.time_function:
-                sc = r.step_check = step_check(sel, spec, eff_r, r.hyper, alpha_each, min_rel_gain)
-                if sc is not None and sc.explained:
-                    r.significant = False
-                    r.detail += (f"; not added: a step of the response at t = {sc.t_s:.4g} s (run {sc.run}) explains "
-                                 f"it: the step gains {100 * sc.gain_step_beyond:+.1f} % beyond it (p = "
-                                 f"{sc.p_step_beyond:.2g}), it gains {100 * sc.gain_time_beyond:+.1f} % beyond the step "
-                                 f"(p = {sc.p_time_beyond:.2g}): the response changed once (a connector knocked or "
-                                 "re-mated, a fibre bent, a knock), not a warm-up or creep the driver could apply")
-                elif sc is not None and sc.p_time_beyond < alpha_each and sc.gain_time_beyond >= min_rel_gain:
-                    r.detail += (f"; it gains {100 * sc.gain_time_beyond:+.1f} % beyond the best step of the response "
-                                 f"at one time (t = {sc.t_s:.4g} s, p = {sc.p_time_beyond:.2g})")
-                elif sc is not None:  # neither beyond the other: the data do not tell a step from this function
-                    r.detail += (f"; a step of the response at t = {sc.t_s:.4g} s (run {sc.run}) fits as well: it "
-                                 f"gains {100 * sc.gain_time_beyond:+.1f} % beyond the step (p = {sc.p_time_beyond:.2g}), "
-                                 f"the step {100 * sc.gain_step_beyond:+.1f} % beyond it (p = {sc.p_step_beyond:.2g})")
-                    step_confounded[r.name] = (f"{r.name} is in the calibration, but a step of the response at t = "
-                                               f"{sc.t_s:.4g} s (run {sc.run}; a connector, a fibre, a knock) fits this "
-                                               "data as well, and a step is no property of the sensor: visit the "
-                                               "poses again after a power-on to tell a warm-up from a step")
+            if r.significant and eff_r.follows_a_step and eff_r.time_function:
+                judge_step(sel, spec, r, eff_r, alpha_each, min_rel_gain, reselect_up_to, step_confounded)
         results.sort(key=lambda r: (not r.applicable, -r.rel_gain))
+        # a function of the temperature's history is set against the step when it is about to be added (the best
+        # significant candidate left), not at every step it is significant at: on a cycled run it is significant at
+        # most steps, and each check searches the step's time twice. Whatever is added has passed it.
+        checked: set[str] = set()
+        while (best := next((r for r in results if r.significant), None)) is not None and best.name not in checked:
+            checked.add(best.name)
+            eff_b = next(e for e in remaining if e.name == best.name)
+            if eff_b.follows_a_step and not eff_b.time_function:
+                judge_step(sel, spec, best, eff_b, alpha_each, min_rel_gain, reselect_up_to, step_confounded)
         sig = [r for r in results if r.significant]
         conf = _confounding(sel, spec, sig, alpha_each, min_rel_gain, library) if len(sig) >= 2 else []
         chosen = sig[0].name if sig else None

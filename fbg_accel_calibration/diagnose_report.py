@@ -127,13 +127,22 @@ def settling_measurements(res: DiagnosisResult) -> list[str]:
 
     lim = SIGNATURE_SE / np.sqrt(max(len(s.per_pose) - 1, 1))  # a correlation's standard error under noise alone
     out, explained = [], set()
-    # a function of time refused because a step of the response explains it (diagnose.step_check): where it is
-    steps = {round(c.step_check.t_s, 3): c.step_check for st in res.steps for c in st.candidates
-             if c.step_check is not None and c.step_check.explained}
-    for sc in steps.values():
+    # a function of time or of the temperature's history refused because a step of the response explains it
+    # (diagnose.step_check): where it is, and what it was not
+    steps: dict[float, tuple[CandidateResult, list[str]]] = {}
+    for st in res.steps:
+        for c in st.candidates:
+            if c.step_check is not None and c.step_check.explained:
+                known = library_by_name().get(c.name)
+                what = known.sensor_property if known is not None and known.sensor_property else c.name
+                seen = steps.setdefault(round(c.step_check.t_s, 3), (c, []))[1]
+                if what not in seen:
+                    seen.append(what)
+    for c, what in steps.values():
+        sc = c.step_check
         out.append(f"a step of the response at t = {sc.t_s:.4g} s (run {sc.run}) explains the change along the run better "
-                   "than a warm-up or creep: look for what happened then (a connector knocked or re-mated, a fibre moved, "
-                   "a knock), and visit the same poses before and after such a time")
+                   f"than {' or '.join(what)}: look for what happened then (a connector knocked or re-mated, a fibre "
+                   "moved, a knock), and visit the same poses before and after such a time")
     slow = on((s.serial_corr_pose_means > lim) | (np.abs(s.corr_time) > lim))
     if slow:
         out.append(f"a slow change along the run on {'/'.join(AXES[j] for j in slow)} (consecutive visit means "

@@ -306,6 +306,16 @@ class Effect:
     # a function of time alone (time_drift): it must also predict contiguous blocks of time held out to be added
     # (diagnose.time_block_check): between visits interleaved in time any smooth function of time interpolates
     time_function: bool = False
+    # its contribution can follow a one-time step of the response (a connector knocked mid-run): a function of time
+    # (time_drift), or of the temperature's history, which a cycled run ties to time (thermal_lag: eq. 28 read at a
+    # delayed temperature, a correction that changes sign with the rate; thermal_hysteresis: a branch held between
+    # the turns). A significant one is set against the best step before it is added (diagnose.step_check). Not the
+    # per-run terms: properties of the recording like the step, never in the calibration file (a step at a run's start
+    # is a run offset)
+    follows_a_step: bool = False
+    # for follows_a_step: what it would be as a property of the sensor, and the measurement that tells it from a step
+    sensor_property: str = ""
+    tells_it_from_a_step: str = ""
     # a function of the direction of gravity in the sensor alone (spectral_nonlinearity): it can stand in for an effect
     # of the table's angles on a plan whose directions and angles go together (diagnose warns when what remains differs
     # between visits of one direction)
@@ -450,6 +460,10 @@ class ReferenceDarkOffsetEffect(Effect):
 class ThermalLagEffect(Effect):
     name = "thermal_lag"
     stage = 30
+    follows_a_step = True
+    sensor_property = "a thermal lag"
+    tells_it_from_a_step = ("hold each temperature until the housing has settled and change it again: a lag comes back "
+                            "with every change of the temperature, a step happens once")
     hyper_name = "tau"
     hyper_unit = "s"
     title = "thermal lag between optics and AHT10"
@@ -570,6 +584,9 @@ class TimeDriftEffect(Effect):
     name = "time_drift"
     pointwise = True
     time_function = True
+    follows_a_step = True
+    sensor_property = "a warm-up or creep"
+    tells_it_from_a_step = "visit the poses again after a power-on to tell a warm-up from a step"
     stage = 70
     hyper_name = "tau_warmup"
     hyper_unit = "s"
@@ -792,6 +809,10 @@ def _same_memory(a: np.ndarray, b: np.ndarray) -> bool:
 class ThermalHysteresisEffect(Effect):
     name = "thermal_hysteresis"
     stage = 80
+    follows_a_step = True
+    sensor_property = "a hysteresis between heating and cooling"
+    tells_it_from_a_step = ("cycle the temperature up and down twice: a hysteresis comes back at every turn, a step "
+                            "happens once")
     hyper_name = "rate_tau"
     hyper_unit = "s"
     title = "hysteresis: heating versus cooling branch"
@@ -916,12 +937,18 @@ class RunDriftEffect(_PerRunEffect):
 
 
 class ResponseStepEffect(Effect):
-    """Not a candidate (not in ``LIBRARY``): the alternative a function of time must beat (``diagnose.step_check``).
+    """Not a candidate (not in ``LIBRARY``): the alternative a function of time or of the temperature's history
+    (``Effect.follows_a_step``) must beat (``diagnose.step_check``).
     The linear response changes once, for good: from the first sample of one visit on, every axis gets an offset and
     a slope on each Psi (about its mean) of its own (eq. 25 refitted after the step). A connector knocked or re-mated,
     a fibre bent or a knock on the mount does this to the response (a channel's loss changes the counts it reads by a
     factor), and a warm-up with creep follows such a step across contiguous blocks of time as well: it passes
-    ``diagnose.time_block_check``. A property of the recording, never a term of the calibration.
+    ``diagnose.time_block_check``. A property of the recording, never a term of the calibration. Its columns carry no
+    temperature: a loss step g of channel j changes the output by (g - 1) M(T) e_j Psi_j, whose part that depends on
+    the temperature is (g - 1) times eq. 28's (small) temperature coefficient of M; what the step needs of the
+    temperature is eq. 28's own degree, chosen again with the step in the model (``diagnose.step_check``). (On a run
+    cycled twice, x knocked at 250 s, at degree 1: x held out 0.239 m/s^2 with these columns, 0.241 with them times
+    each power of the temperature as well; at degree 0, 0.355, the rest following the temperature.)
     Hyper-parameter: the index of the first sample after the step (the first sample of a visit in recording order,
     at least ``MIN_VISITS_EACH_SIDE`` visits on either side, so that both sides span the orientations)."""
 
