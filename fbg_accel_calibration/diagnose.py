@@ -708,6 +708,68 @@ def weighted_rss(des: Design, rows: np.ndarray, weights: np.ndarray,
     return float(np.sum(res**2 * weights)), sums
 
 
+
+def switch_profile(X: np.ndarray, G: np.ndarray, Z: np.ndarray, index: np.ndarray, folds: np.ndarray,
+                   rows: np.ndarray, weights: np.ndarray, grid: np.ndarray, chunk: int = 16_384) -> np.ndarray:
+    """Weighted training RSS (K, m) of each fold's least-squares fit of ``G`` (n, 3) by ``[X, 1{index >= h} Z]``
+    for every value h of ``grid`` (m,): ``cross_validate``'s ``train_rss`` of the design with switched columns
+    (``Effect.switched``) at each value, from one pass over the rows instead of a cross-validation per value.
+
+    ``X`` (n, p) the model's design, ``Z`` (n, q) the switched columns, ``index`` (n,) each row's sample index,
+    ``grid`` ascending sample indices, ``folds``/``rows`` as ``cross_validate`` (fold -2: always trained on).
+    The sums of Z^T [X, Z, G] of the rows between two grid values are taken per fold and added up from the end
+    (the rows a value switches on); the fit with the switched columns is the fit of X alone updated by them
+    (Frisch-Waugh: the RSS falls by v^T M^-1 v per axis, M = S_ZZ - S_ZX (X^T X)^-1 S_XZ, v = S_ZG - S_ZX A).
+    Equal to the cross-validation up to rounding (``test_the_switch_profile_is_the_cross_validation_of_each_value``);
+    inf where the switched columns are not identified on a fold's training rows (scaled M singular to 1e-12)."""
+    idx = np.flatnonzero(rows)
+    f = folds[idx].astype(np.int64)
+    K = int(f.max()) + 1
+    slot = np.where(f >= 0, f + 1, 0)  # 0: the rows always trained on
+    m, p, q = len(grid), X.shape[1], Z.shape[1]
+    seg = np.searchsorted(grid, index[idx], side="right")  # a row is switched on at grid[j] when seg > j
+    key = slot * (m + 1) + seg
+    order = np.argsort(key, kind="stable")
+    idx, key, slot = idx[order], key[order], slot[order]
+    width = p + q + 3
+    T = np.zeros(((K + 1) * (m + 1), q, width))
+    xtx, xtg, gtg = np.zeros((K + 1, p, p)), np.zeros((K + 1, p, 3)), np.zeros((K + 1, 3))
+    for lo in range(0, len(idx), chunk):
+        r = idx[lo:lo + chunk]
+        W = np.concatenate([X[r], Z[r], G[r]], axis=1)
+        k = key[lo:lo + chunk]
+        starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+        T[k[starts]] += np.add.reduceat(Z[r][:, :, None] * W[:, None, :], starts, axis=0)
+        sl = slot[lo:lo + chunk]
+        for s_ in np.unique(sl):
+            w = W[sl == s_]
+            xtx[s_] += w[:, :p].T @ w[:, :p]
+            xtg[s_] += w[:, :p].T @ w[:, p + q:]
+            gtg[s_] += np.einsum("ij,ij->j", w[:, p + q:], w[:, p + q:])
+    T = T.reshape(K + 1, m + 1, q, width)
+    S = np.cumsum(T[:, ::-1], axis=1)[:, ::-1][:, 1:]  # (K + 1, m, q, width): the rows after each grid value
+    S_tot, XtX, XtG, GtG = S.sum(0), xtx.sum(0), xtg.sum(0), gtg.sum(0)
+    out = np.full((K, m), np.inf)
+    for fo in range(K):
+        St = S_tot - S[fo + 1]
+        Xt, Gt = XtX - xtx[fo + 1], XtG - xtg[fo + 1]
+        A = solve_normal_equations(Xt, Gt)[0]
+        base = GtG - gtg[fo + 1] - 2 * np.einsum("pi,pi->i", A, Gt) + np.einsum("pi,pq,qi->i", A, Xt, A)
+        S_zx, S_zz, S_zg = St[:, :, :p], St[:, :, p:p + q], St[:, :, p + q:]
+        C = np.linalg.solve(Xt, S_zx.reshape(m * q, p).T).T.reshape(m, q, p)  # S_ZX (X^T X)^-1
+        M = S_zz - np.einsum("jap,jbp->jab", C, S_zx)
+        v = S_zg - S_zx @ A
+        d = np.sqrt(np.maximum(np.einsum("jaa->ja", M), 0.0))
+        ok = np.all(d > 0, axis=1)
+        Ms = np.where(ok[:, None, None], M / np.where(ok[:, None], d, 1.0)[:, :, None]
+                      / np.where(ok[:, None], d, 1.0)[:, None, :], np.eye(q))
+        eig = np.linalg.eigvalsh(Ms)
+        ok &= eig[:, 0] > 1e-12 * eig[:, -1]
+        red = np.zeros((m, 3))
+        red[ok] = np.einsum("jai,jai->ji", v[ok], np.linalg.solve(M[ok], v[ok]))
+        out[fo, ok] = (base[None, :] - red[ok]) @ weights
+    return out
+
 # ============================================================================ noise floor, settling, degree
 # Settling window after a table move, from the measuring chain's physics: every TIA is a first-order
 # low-pass (paper Table 1: 1 / 1.7 / 1.3 / 1.3 Hz for ref / x / y / z, time constants 0.09-0.16 s), so a
@@ -1578,8 +1640,13 @@ class Evaluator:
                 heldout[ok][fold_rows[f]] = cvr.heldout[fold_rows[f]]
             seen[i] = (ok, float(np.sum(cvr.train_rss) / max(K - 1, 1)))
 
-        for i in search_walk(len(grid), seen, best_at[True]):
+        picks = self._switch_picks(spec, eff, grid) if eff.switched else None
+        for i in picks or []:
             visit(i)
+        if picks is None or not all(ok for ok, _ in seen.values()):  # an implausible or unidentified pick: the walk
+            for i in search_walk(len(grid), seen, best_at[True]):
+                if i not in seen:
+                    visit(i)
         order = sorted(i for i in seen if seen[i][0] is not None)
         if not order:
             raise NotIdentifiedError("no value of the grid is identified (" + unidentified[0] + ")")
@@ -1608,7 +1675,7 @@ class Evaluator:
                     rss_at[float(h)] = math.inf
             return rss_at[float(h)]
 
-        if hi > lo:
+        if hi > lo and not eff.switched:  # a switched effect's values are sample indices: none between them
             res = optimize.minimize_scalar(obj, bounds=(float(lo), float(hi)), method="bounded",
                                            options={"xatol": 1e-3 * (hi - lo), "maxiter": 25})
             if res.success and res.fun <= obj(h_best):
@@ -1623,6 +1690,19 @@ class Evaluator:
             if (rss_null - rss_best) / max(rss_best / n_groups, 1e-300) < stats.chi2.ppf(0.99, 1):
                 h_best = float(eff.hyper_null)
         return h_best, heldout[use_ok], profile
+
+    def _switch_picks(self, spec: ModelSpec, eff: Effect, grid: np.ndarray) -> list[int] | None:
+        """The grid indices a search of a switched effect (``Effect.switched``) visits: each fold's best and the best
+        mean training RSS from ``switch_profile``; None when the model alone is not identified (the walk says why)."""
+        des = self.design(spec.plus(eff, -math.inf))  # switched on everywhere: its block is the switched columns
+        blk = des.blocks[eff.name]
+        X = des.X[:, :blk.start] if blk.stop == des.X.shape[1] else np.delete(des.X, np.r_[blk], axis=1)
+        try:
+            prof = switch_profile(X, des.G, des.X[:, blk], self.sub, self.folds,
+                                  self.fit_rows & des.valid, self.weights, grid)
+        except NotIdentifiedError:
+            return None
+        return sorted({int(i) for i in np.argmin(prof, axis=1)} | {int(np.argmin(prof.sum(axis=0)))})
 
     def implausible(self, eff: Effect, h: float | None, des: Design, cvr: CvResult) -> str:
         """Why the fit of ``eff`` at ``h`` (design ``des``, fit ``cvr`` on all rows) is not physical, or "": the
@@ -1688,7 +1768,8 @@ class StepCheck:
     against the best step of the response at one time (``effects.ResponseStepEffect``), each added on top of the other
     (held-out gain, one-sided p over visits) with eq. 28 at ``degree``."""
 
-    t_s: float  # board time of the first sample after the step (s)
+    t_s: float  # board time of the first fitted sample after the step (s)
+    t_before_s: float  # board time of the last fitted sample before it (s): the step happened in between
     run: int  # the run it is in
     gain_step_beyond: float  # the step on top of the candidate
     p_step_beyond: float
@@ -1696,6 +1777,11 @@ class StepCheck:
     p_time_beyond: float
     explained: bool  # the step gains beyond the candidate, the candidate not beyond the step
     degree: int = 0  # degree of eq. 28 in both models (chosen again with the candidate and the step in it)
+
+    @property
+    def when(self) -> str:
+        """Where the step is, for the report: between two fitted samples (a table move, a settling or a gap in between)."""
+        return f"between t = {self.t_before_s:.4g} and {self.t_s:.4g} s (run {self.run})"
 
 
 def step_check(ev: Evaluator, spec: ModelSpec, eff: Effect, h: float | None, alpha: float,
@@ -1736,7 +1822,9 @@ def step_check(ev: Evaluator, spec: ModelSpec, eff: Effect, h: float | None, alp
     if not beyond_time.applicable:
         return None
     i = min(math.ceil(float(h_step)), len(ev.data.t_s) - 1)
-    return StepCheck(float(ev.data.t_s[i]), int(ev.data.run_id[i]), beyond_time.rel_gain, beyond_time.p_value,
+    fitted = np.flatnonzero(ev.data.use[:i] & (ev.data.group[:i] >= 0))
+    t_before = float(ev.data.t_s[fitted[-1]]) if fitted.size else math.nan
+    return StepCheck(float(ev.data.t_s[i]), t_before, int(ev.data.run_id[i]), beyond_time.rel_gain, beyond_time.p_value,
                      beyond_step.rel_gain if beyond_step.applicable else -math.inf,
                      beyond_step.p_value if beyond_step.applicable else 1.0,
                      gains(beyond_time) and not gains(beyond_step), spec.degree)
@@ -1752,7 +1840,7 @@ def judge_step(ev: Evaluator, spec: ModelSpec, r: CandidateResult, eff_r: Effect
     at_degree = f", eq. 28 of degree {sc.degree}" if sc is not None and sc.degree != spec.degree else ""
     if sc is not None and sc.explained:
         r.significant = False
-        r.detail += (f"; not added: a step of the response at t = {sc.t_s:.4g} s (run {sc.run}) explains "
+        r.detail += (f"; not added: a step of the response {sc.when} explains "
                      f"it: the step gains {100 * sc.gain_step_beyond:+.1f} % beyond it (p = "
                      f"{sc.p_step_beyond:.2g}), it gains {100 * sc.gain_time_beyond:+.1f} % beyond the step "
                      f"(p = {sc.p_time_beyond:.2g}{at_degree}): the response changed once (a connector "
@@ -1760,14 +1848,14 @@ def judge_step(ev: Evaluator, spec: ModelSpec, r: CandidateResult, eff_r: Effect
                      "could apply")
     elif sc is not None and sc.p_time_beyond < alpha_each and sc.gain_time_beyond >= min_rel_gain:
         r.detail += (f"; it gains {100 * sc.gain_time_beyond:+.1f} % beyond the best step of the response "
-                     f"at one time (t = {sc.t_s:.4g} s, p = {sc.p_time_beyond:.2g}{at_degree})")
+                     f"at one time ({sc.when}, p = {sc.p_time_beyond:.2g}{at_degree})")
     elif sc is not None:  # neither beyond the other: the data do not tell a step from this candidate
-        r.detail += (f"; a step of the response at t = {sc.t_s:.4g} s (run {sc.run}) fits as well: it "
+        r.detail += (f"; a step of the response {sc.when} fits as well: it "
                      f"gains {100 * sc.gain_time_beyond:+.1f} % beyond the step (p = {sc.p_time_beyond:.2g}), "
                      f"the step {100 * sc.gain_step_beyond:+.1f} % beyond it (p = {sc.p_step_beyond:.2g}"
                      f"{at_degree})")
-        step_confounded[r.name] = (f"{r.name} is in the calibration, but a step of the response at t = "
-                                   f"{sc.t_s:.4g} s (run {sc.run}; a connector, a fibre, a knock) fits this "
+        step_confounded[r.name] = (f"{r.name} is in the calibration, but a step of the response {sc.when} (a "
+                                   "connector, a fibre, a knock) fits this "
                                    "data as well, and a step is no property of the sensor: "
                                    f"{eff_r.tells_it_from_a_step}")
 

@@ -140,7 +140,7 @@ def settling_measurements(res: DiagnosisResult) -> list[str]:
                     seen.append(what)
     for c, what in steps.values():
         sc = c.step_check
-        out.append(f"a step of the response at t = {sc.t_s:.4g} s (run {sc.run}) explains the change along the run better "
+        out.append(f"a step of the response {sc.when} explains the change along the run better "
                    f"than {' or '.join(what)}: look for what happened then (a connector knocked or re-mated, a fibre "
                    "moved, a knock), and visit the same poses before and after such a time")
     slow = on((s.serial_corr_pose_means > lim) | (np.abs(s.corr_time) > lim))

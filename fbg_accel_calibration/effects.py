@@ -320,6 +320,9 @@ class Effect:
     # of the table's angles on a plan whose directions and angles go together (diagnose warns when what remains differs
     # between visits of one direction)
     orientation_function: bool = False
+    # its columns are switched_columns() from the sample index h on and zero before (h: a grid of sample indices, no
+    # values between them): diagnose searches h from sums over the samples (switch_profile), without refinement
+    switched: bool = False
 
     def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
         """Whether the data can show this effect at all (e.g. temperature must vary)."""
@@ -972,16 +975,24 @@ class ResponseStepEffect(Effect):
             return False, f"fewer than {2 * self.MIN_VISITS_EACH_SIDE} visits"
         return True, ""
 
+    # the columns are ``switched_columns`` from the first sample ``h`` on, zero before: a search of ``h`` is one pass
+    # over the samples (diagnose.switch_profile), not a cross-validation of every value
+    switched = True
+
     def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
         m = self.MIN_VISITS_EACH_SIDE
         starts = self._starts(data)
         return starts[m:len(starts) - m + 1].astype(float)
 
-    def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
-        # Psi about its mean static value: uncentred, a slope column is nearly the offset column times the rest Psi
-        after = (np.arange(len(inp.t_s)) >= float(h)).astype(float)
+    def switched_columns(self, data: DiagnosisData, inp: Inputs) -> np.ndarray:
+        """(n, 4) the columns once switched on: 1 and Psi about its mean static value (uncentred, a slope column is
+        nearly the offset column times the rest Psi)."""
         psi0 = SpectralNonlinearityEffect()._psi0(data)
-        return after[:, None] * np.column_stack([np.ones(len(inp.t_s)), inp.psi - psi0[None, :]])
+        return np.column_stack([np.ones(len(inp.t_s)), inp.psi - psi0[None, :]])
+
+    def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
+        after = (np.arange(len(inp.t_s)) >= float(h)).astype(float)
+        return after[:, None] * self.switched_columns(data, inp)
 
 
 LIBRARY: tuple[Effect, ...] = (
