@@ -257,6 +257,7 @@ class Inputs:
     gref_moved: bool = False  # an earlier transform changed the reference (else it is data.gref)
     counts_changed: bool = False  # an earlier transform changed ref or xyz (else psi is the data's)
     temp_changed: bool = False  # an earlier transform changed the temperature (else it is data.temp_c)
+    index: np.ndarray | None = None  # (n,) the sample index of each row in the recording (None: row i is sample i)
 
     @property
     def psi(self) -> np.ndarray:
@@ -285,7 +286,13 @@ class Inputs:
         given, returns ``a[idx]`` for the arrays other than ``valid`` (which the corrections change in place)."""
         pick = take if take is not None else (lambda a: a[idx])
         return Inputs(pick(self.ref), pick(self.xyz), pick(self.temp_c), pick(self.t_s), pick(self.gref),
-                      self.valid[idx], self.gref_moved, self.counts_changed, self.temp_changed)
+                      self.valid[idx], self.gref_moved, self.counts_changed, self.temp_changed,
+                      np.asarray(idx) if self.index is None else self.index[idx])
+
+    @property
+    def sample_index(self) -> np.ndarray:
+        """(n,) the sample index of each row in the recording."""
+        return np.arange(len(self.t_s)) if self.index is None else self.index
 
 
 class Effect:
@@ -978,6 +985,7 @@ class ResponseStepEffect(Effect):
     # the columns are ``switched_columns`` from the first sample ``h`` on, zero before: a search of ``h`` is one pass
     # over the samples (diagnose.switch_profile), not a cross-validation of every value
     switched = True
+    pointwise = True
 
     def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
         m = self.MIN_VISITS_EACH_SIDE
@@ -991,7 +999,7 @@ class ResponseStepEffect(Effect):
         return np.column_stack([np.ones(len(inp.t_s)), inp.psi - psi0[None, :]])
 
     def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
-        after = (np.arange(len(inp.t_s)) >= float(h)).astype(float)
+        after = (inp.sample_index >= float(h)).astype(float)
         return after[:, None] * self.switched_columns(data, inp)
 
 

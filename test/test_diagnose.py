@@ -32,7 +32,14 @@ from fbg_accel_calibration.diagnose import (
 from fbg_accel_calibration.diagnose_cli import main as diagnose_main
 from fbg_accel_calibration.diagnose_report import CAND_HEAD, PLOT_POINTS, markdown, plotted, write_report
 from fbg_accel_calibration.diagnose_report import text as report_text
-from fbg_accel_calibration.effects import LIBRARY, Effect, fill_reference_gaps, finite_rows, library_by_name
+from fbg_accel_calibration.effects import (
+    LIBRARY,
+    Effect,
+    ResponseStepEffect,
+    fill_reference_gaps,
+    finite_rows,
+    library_by_name,
+)
 from fbg_accel_calibration.recording import Recording, time_axis_label
 from fbg_accel_calibration.table_geometry import table_specific_force
 from fbg_accel_driver.thermal_model import ThermalCalibration
@@ -254,6 +261,8 @@ def test_a_design_of_some_rows_is_those_rows_of_the_whole_design() -> None:
     specs = [base.plus(e, mid_grid(e)) for e in LIBRARY]
     # a correction of the reference that no other follows works out the asked rows only (Effect.reference_at)
     specs += [ModelSpec(1, 23.4, 1.0, [(lib["channel_delay"], mid_grid(lib["channel_delay"]))])]
+    # the step of the response (pointwise: each row knows its sample index, Inputs.index), not in the library
+    specs += [base.plus(ResponseStepEffect(), mid_grid(ResponseStepEffect()))]
     assert {e.name for e in LIBRARY if e.pointwise} and {e.name for e in LIBRARY if not e.pointwise and e.per_run}
     # the search's rows come in fold order, not in time order; this recording as two runs
     two_runs = prepare_data(Recording.concatenate([synthetic(4, dark=30.0), synthetic(5, dark=30.0)]))
