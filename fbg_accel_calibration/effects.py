@@ -418,8 +418,28 @@ class ReferenceReadNoiseEffect(Effect):
 
 
 class ReferenceDarkOffsetEffect(Effect):
+    """Offsets of the detectors (dark current, TIA output offset, ADC zero): Psi' = c / (ref - d) and the regressor
+    1 / (ref - d) with coefficients k = -M0 c0 (c0 the axis channels' offsets, counts; k in m/s^2 counts).
+
+    It can follow a step (``Effect.follows_a_step``): its column is a function of the reference counts, and a one-time
+    change of the reference arm's loss (its connector knocked or re-mated, the fibre to its photodetector bent; the
+    paper's reference FBG path, §3.5) is a step of those counts by a factor g, so of 1 / ref by 1 / g. The same step
+    multiplies every Psi = axis / ref by 1 / g: the output moves by (1/g - 1) M Psi, mostly the offset (1/g - 1) M Psi_rest,
+    and k / ref moves by (1/g - 1) k / ref: with k = -M c0 it follows the offset step exactly for c0 = -c_rest. A
+    step of 3 % needs implied axis offsets of 66-132 % of the counts and the plausibility bound refuses it, but a
+    step of 0.2-0.5 % fits within the bound, in part, and was added as a dark offset
+    (``test_a_small_step_of_the_reference_is_not_written_as_a_dark_offset``). A step of the source's power (all
+    four channels) leaves every Psi as it was (eq. 24): nothing for the column to follow, and nothing is added
+    (``test_a_step_of_the_source_s_power_adds_nothing``). A real dark offset follows every change of the reference
+    counts (the source's wander, its temperature), which no single step does, and passes the check."""
+
     name = "reference_dark_offset"
     pointwise = True
+    follows_a_step = True
+    sensor_property = "a dark offset of the detectors"
+    tells_it_from_a_step = ("record the detectors dark (source off) to measure the offsets, or change the source power "
+                            "at fixed poses: a dark offset follows every change of the reference counts, a step of "
+                            "the reference's connector happens once")
     stage = 10
     hyper_name = "d_ref"
     hyper_unit = "counts"
