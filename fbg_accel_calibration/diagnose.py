@@ -1809,7 +1809,9 @@ def step_check(ev: Evaluator, spec: ModelSpec, eff: Effect, h: float | None, alp
         return r.applicable and r.p_value < alpha and r.rel_gain >= min_rel_gain and not r.implausible
 
     try:
-        h_step = ev.fit_hyper(spec, step)[0]  # the step that fits best in place of the candidate, not beside it
+        # the step that fits best in place of the candidate, not beside it; kept: every candidate checked at this
+        # step (a drift, a dark offset, a temperature history) is set against the same best step
+        h_step = ev.fit_hyper(spec, step, remember=True)[0]
         if max_degree is not None:
             degree = reselect_degree(ev, spec.plus(eff, h).plus(step, h_step), max_degree)[0].degree
             # the step's time, set by the jump rather than by the temperature terms, is kept (a search of it is
