@@ -58,6 +58,7 @@ from .blas_threads import single_blas_thread
 from .dynamic_analysis import peak_offset
 from .effects import (
     LIBRARY,
+    MIN_SPAN_FRACTION,
     TIA_TAU_S,
     DiagnosisData,
     Effect,
@@ -428,8 +429,8 @@ def make_folds(groups: np.ndarray, rows: np.ndarray, k: int = 10, seed: int = 0)
 
 
 # The reference of a training set must span the table frame: its weakest direction (smallest
-# standard deviation of the visit-mean reference) must keep this fraction of the whole data's.
-MIN_SPAN_FRACTION = 0.1
+# standard deviation of the visit-mean reference) must keep this fraction of the whole data's
+# (effects.MIN_SPAN_FRACTION: each side of a step is held to it too).
 
 
 def _reference_spread(gmean: np.ndarray) -> tuple[float, np.ndarray]:
@@ -1623,6 +1624,8 @@ class Evaluator:
         best_at = {ok: np.full(K, len(grid)) for ok in (True, False)}  # grid index of each fold's best value
         seen: dict[int, tuple[bool | None, float]] = {}  # grid index -> (plausible, mean training RSS); None: not identified
         unidentified: list[str] = []
+        # a step's time is a fold's choice only where that fold's training visits on each side span the frame
+        fold_ok = self._step_sides(eff, grid, K) if eff.switched else None
 
         def visit(i: int) -> None:
             h = float(grid[i])
@@ -1635,12 +1638,14 @@ class Evaluator:
             ok = not self.implausible(eff, h, des, cvr)
             # the first value in grid order wins a tie, whatever the order the values are visited in
             better = (cvr.train_rss < best_train[ok]) | ((cvr.train_rss == best_train[ok]) & (i < best_at[ok]))
+            if fold_ok is not None:
+                better &= fold_ok[:, i]
             for f in np.flatnonzero(better):
                 best_train[ok][f], best_at[ok][f] = cvr.train_rss[f], i
                 heldout[ok][fold_rows[f]] = cvr.heldout[fold_rows[f]]
             seen[i] = (ok, float(np.sum(cvr.train_rss) / max(K - 1, 1)))
 
-        picks = self._switch_picks(spec, eff, grid) if eff.switched else None
+        picks = self._switch_picks(spec, eff, grid, fold_ok) if eff.switched else None
         for i in picks or []:
             visit(i)
         if picks is None or not all(ok for ok, _ in seen.values()):  # an implausible or unidentified pick: the walk
@@ -1691,9 +1696,24 @@ class Evaluator:
                 h_best = float(eff.hyper_null)
         return h_best, heldout[use_ok], profile
 
-    def _switch_picks(self, spec: ModelSpec, eff: Effect, grid: np.ndarray) -> list[int] | None:
-        """The grid indices a search of a switched effect (``Effect.switched``) visits: each fold's best and the best
-        mean training RSS from ``switch_profile``; None when the model alone is not identified (the walk says why)."""
+    def _step_sides(self, eff: Effect, grid: np.ndarray, K: int) -> np.ndarray:
+        """(K, m) bool: whether fold f's training visits before and after the step at each value of ``grid`` each
+        span the table frame (``ResponseStepEffect.sides_span``; the visits a fold holds out are those of its
+        judged rows)."""
+        _, _, ids = eff.visit_table(self.data)
+        order = np.argsort(ids)
+        r = np.flatnonzero(self.rows)
+        pos = np.minimum(np.searchsorted(ids[order], self.groups[r]), len(ids) - 1)
+        known = ids[order][pos] == self.groups[r]
+        held = np.zeros((K, len(ids)), bool)
+        held[self.folds[r][known], order[pos[known]]] = True
+        return eff.sides_span(self.data, grid, ~held)
+
+    def _switch_picks(self, spec: ModelSpec, eff: Effect, grid: np.ndarray,
+                      fold_ok: np.ndarray | None = None) -> list[int] | None:
+        """The grid indices a search of a switched effect (``Effect.switched``) visits: each fold's best (among the
+        values ``fold_ok`` (K, m) allows it) and the best mean training RSS from ``switch_profile``; None when the
+        model alone is not identified (the walk says why)."""
         des = self.design(spec.plus(eff, -math.inf))  # switched on everywhere: its block is the switched columns
         blk = des.blocks[eff.name]
         X = des.X[:, :blk.start] if blk.stop == des.X.shape[1] else np.delete(des.X, np.r_[blk], axis=1)
@@ -1702,7 +1722,10 @@ class Evaluator:
                                   self.fit_rows & des.valid, self.weights, grid)
         except NotIdentifiedError:
             return None
-        return sorted({int(i) for i in np.argmin(prof, axis=1)} | {int(np.argmin(prof.sum(axis=0)))})
+        best_mean = int(np.argmin(prof.sum(axis=0)))
+        if fold_ok is not None:
+            prof = np.where(fold_ok, prof, np.inf)
+        return sorted({int(np.argmin(p)) for p in prof if np.isfinite(p).any()} | {best_mean})
 
     def implausible(self, eff: Effect, h: float | None, des: Design, cvr: CvResult) -> str:
         """Why the fit of ``eff`` at ``h`` (design ``des``, fit ``cvr`` on all rows) is not physical, or "": the

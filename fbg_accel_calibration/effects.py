@@ -59,6 +59,10 @@ AHT10_RESOLUTION_C = 0.01  # paper §3.6
 MIN_DELAY_SEARCH_S = 0.1
 MIN_TIA_SCALE_SEARCH = 3.0
 # Plausibility bounds of fitted effects (issue 8): a fit beyond them is refused, never written to the YAML.
+# The reference of a training set must span the table frame: the weakest direction of its visit-mean reference
+# (smallest standard deviation, m/s^2) must keep this fraction of the whole data's (diagnose.check_folds; each side of
+# a step, ResponseStepEffect.sides_span)
+MIN_SPAN_FRACTION = 0.1
 MAX_CHANNEL_OFFSET_FRACTION = 0.25  # axis-channel offset / the channel's mean counts: dark current + ADC zero
 # offset are tens of counts (sim_default.yaml, reference_dark_offset); a quarter of the signal undoes eq. 24
 MAX_DRIFT_MPS2 = 0.05 * 20.0 * 9.80665  # warm-up amplitude or creep over the run: 5 % of full scale (1 g)
@@ -1000,7 +1004,54 @@ class ResponseStepEffect(Effect):
     def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
         if len(self._starts(data)) < 2 * self.MIN_VISITS_EACH_SIDE:
             return False, f"fewer than {2 * self.MIN_VISITS_EACH_SIDE} visits"
+        if not len(self.hyper_grid(data)):
+            return False, "no time at which the visits before and after each span the table frame"
         return True, ""
+
+    def visit_table(self, data: DiagnosisData) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(first fitted sample (V,), visit-mean reference (V, 3) m/s^2 in the table frame, visit id (V,)) of the
+        fitted visits with a finite reference, in recording order."""
+        def compute() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            idx = np.flatnonzero(data.use & (data.group >= 0) & finite_rows(data.gref))
+            ids, first, inv = np.unique(data.group[idx], return_index=True, return_inverse=True)
+            cnt = np.bincount(inv, minlength=len(ids)).astype(float)
+            g = np.stack([np.bincount(inv, weights=data.gref[idx, j], minlength=len(ids)) / cnt for j in range(3)], axis=1)
+            order = np.argsort(idx[first], kind="stable")
+            return idx[first][order], g[order], ids[order]
+
+        return data.once("step_visit_table", compute)
+
+    def sides_span(self, data: DiagnosisData, grid: np.ndarray, trained: np.ndarray) -> np.ndarray:
+        """(k, m) bool: for each of k training sets (``trained`` (k, V), the visits of :meth:`visit_table` trained on)
+        and each step time of ``grid`` (m,) sample indices, whether the visits trained on before the step and those
+        after it each span the table frame: the weakest direction of their visit-mean reference keeps
+        ``MIN_SPAN_FRACTION`` of the whole data's spread (the identifiability ``diagnose.check_folds`` asks of every
+        fold). The step gives the side after it a linear response of its own, so each side alone must identify one:
+        on a grid run whose first visits all sit at z up (the inner angle turns, gravity does not), a step after them
+        left the side before it one direction, fitted by coefficients that cancel across the step, and a visit held
+        out there was predicted wildly (``test_a_step_s_side_that_does_not_span_the_frame_is_not_tried``)."""
+        start, g, _ = self.visit_table(data)
+        trained = np.atleast_2d(np.asarray(trained, bool))
+        before = np.searchsorted(start, np.asarray(grid, float), side="left")  # visits that start before the step
+
+        def weakest_var(n: np.ndarray, s1: np.ndarray, s2: np.ndarray) -> np.ndarray:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                m = s1 / n[..., None]
+                cov = s2 / n[..., None, None] - m[..., :, None] * m[..., None, :]
+            cov = np.where((n >= 2)[..., None, None], np.nan_to_num(cov), 0.0)
+            return np.where(n >= 2, np.linalg.eigvalsh(cov)[..., 0], 0.0)
+
+        w = trained.astype(float)  # (k, V)
+        outer = g[:, :, None] * g[:, None, :]
+        pad = [(0, 0), (1, 0)]
+        c0 = np.pad(np.cumsum(w, axis=1), pad)  # (k, V + 1) prefix sums over the visits in recording order
+        c1 = np.pad(np.cumsum(w[:, :, None] * g[None], axis=1), [*pad, (0, 0)])
+        c2 = np.pad(np.cumsum(w[:, :, None, None] * outer[None], axis=1), [*pad, (0, 0), (0, 0)])
+        full = weakest_var(np.array(len(g), float), g.sum(axis=0), outer.sum(axis=0))
+        limit = (MIN_SPAN_FRACTION ** 2) * max(float(full), 0.0)
+        n_b, s1_b, s2_b = c0[:, before], c1[:, before], c2[:, before]
+        n_a, s1_a, s2_a = c0[:, -1:] - n_b, c1[:, -1:] - s1_b, c2[:, -1:] - s2_b
+        return (weakest_var(n_b, s1_b, s2_b) >= limit) & (weakest_var(n_a, s1_a, s2_a) >= limit) & (limit > 0)
 
     # the columns are ``switched_columns`` from the first sample ``h`` on, zero before: a search of ``h`` is one pass
     # over the samples (diagnose.switch_profile), not a cross-validation of every value
@@ -1008,9 +1059,15 @@ class ResponseStepEffect(Effect):
     pointwise = True
 
     def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
-        m = self.MIN_VISITS_EACH_SIDE
-        starts = self._starts(data)
-        return starts[m:len(starts) - m + 1].astype(float)
+        """The visit starts with ``MIN_VISITS_EACH_SIDE`` visits on either side, each side's visits spanning the
+        table frame (:meth:`sides_span`; every fold is held to it too, ``diagnose.Evaluator``)."""
+        def compute() -> np.ndarray:
+            m = self.MIN_VISITS_EACH_SIDE
+            starts = self._starts(data)
+            grid = starts[m:len(starts) - m + 1].astype(float)
+            return grid[self.sides_span(data, grid, np.ones(len(self.visit_table(data)[0]), bool))[0]]
+
+        return data.once("step_grid", compute)
 
     def switched_columns(self, data: DiagnosisData, inp: Inputs) -> np.ndarray:
         """(n, 4) the columns once switched on: 1 and Psi about its mean static value (uncentred, a slope column is
