@@ -318,9 +318,10 @@ class Effect:
     # (diagnose.time_block_check): between visits interleaved in time any smooth function of time interpolates
     time_function: bool = False
     # its contribution can follow a one-time step of the response (a connector knocked mid-run): a function of time
-    # (time_drift), or of the temperature's history, which a cycled run ties to time (thermal_lag: eq. 28 read at a
+    # (time_drift), of the temperature's history, which a cycled run ties to time (thermal_lag: eq. 28 read at a
     # delayed temperature, a correction that changes sign with the rate; thermal_hysteresis: a branch held between
-    # the turns). A significant one is set against the best step before it is added (diagnose.step_check). Not the
+    # the turns), or of the reference counts, which a step of the reference arm's loss moves once
+    # (reference_dark_offset). A significant one is set against the best step before it is added (diagnose.step_check). Not the
     # per-run terms: properties of the recording like the step, never in the calibration file (a step at a run's start
     # is a run offset)
     follows_a_step: bool = False
