@@ -488,7 +488,8 @@ class ReferenceDarkOffsetEffect(Effect):
             return (f"implied axis-channel offsets {', '.join(f'{v:.0f}' for v in c0)} counts are "
                     f"{', '.join(f'{100 * v:.0f}' for v in frac)} % of the channels' counts (limit "
                     f"{100 * MAX_CHANNEL_OFFSET_FRACTION:.0f} %): the term would undo the normalisation by the reference "
-                    "(eq. 24) rather than describe an offset; reference read noise does this")
+                    "(eq. 24) rather than describe an offset; reference read noise does this, and so does a step of the "
+                    "reference arm's loss (a connector knocked, its fibre bent)")
         return ""
 
 
