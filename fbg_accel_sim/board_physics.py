@@ -382,6 +382,7 @@ class BoardSimulator:
         self.windows = {name: list(f[name].get("windows") or []) for name in
                         ("adc_saturation", "source_dropout", "temperature_invalid", "temperature_absent", "adc_overrun")}
         self.temp_absent_from_boot = bool(f["temperature_absent"].get("from_boot", False))
+        self.reading_faults = f["temperature_reading"]
         self._setup_late_reads(f["late_reads"])
 
     def _setup_late_reads(self, spec: dict[str, Any]) -> None:
@@ -457,6 +458,7 @@ class BoardSimulator:
                                             [math.exp(-self.dt_true / float(w["time_constant_s"]))], rng)
         self._aht_last = (-1, 0.0)  # (read index, value degC)
         self._last_valid_cc = 0
+        self._delivered_last: float | None = None  # last AHT10 reading the firmware delivered (faults.temperature_reading)
 
     # ------------------------------------------------------------------ public API
     @property
@@ -596,7 +598,7 @@ class BoardSimulator:
         filtered = self._output_noise(filtered, self._rng(ci, _STREAM_NOISE), self._rng(ci, _STREAM_REFNOISE))
         counts_f, counts = self._adc(filtered, t)
         aux_f = self._aux_counts(t, self.cfg.get("effects"), self._rng(ci, _STREAM_AUX))
-        reading = self._aht10_reading(t, temps.sensor_c, self._rng(ci, _STREAM_AHT))
+        reading = self._reading_faults(t, self._aht10_reading(t, temps.sensor_c, self._rng(ci, _STREAM_AHT)))
         word = self._temperature_word(t, reading)
         board = self._board_framing(k, t, word.present, word.valid, late)
         wire = self._wire_faults(ci, self._rng(ci, _STREAM_WIRE))
@@ -889,6 +891,30 @@ class BoardSimulator:
             res = float(aht["resolution_c"])
             reading = np.round(reading / res) * res
         return reading
+
+    def _reading_faults(self, t: np.ndarray, reading: np.ndarray) -> np.ndarray:
+        """The AHT10 reading (degC) as the firmware delivers it, with the unflagged faults of
+        ``faults.temperature_reading`` (config/sim_default.yaml cites each): a step from ``at_s`` on (sensor re-seated),
+        one read off by ``size_c`` (a bit of the 20-bit word flipped; AHT10 datasheet T = S_T / 2^20 x 200 - 50 degC) and
+        a frozen stretch repeating the last delivered value (a conversion that never completes read again). No random
+        draw: without a fault the reading is returned unchanged."""
+        spec = self.reading_faults
+        out = reading.copy()
+        for st in spec.get("steps") or []:
+            out[t >= float(st["at_s"])] += float(st["step_c"])
+        sp = spec.get("spikes") or {}
+        rate = float(self.cfg.get("aht10")["read_rate_hz"])
+        for at in sp.get("at_s") or []:
+            out[np.floor(t * rate) == math.floor(float(at) * rate)] += float(sp["size_c"])
+        frozen = np.zeros(len(t), bool)
+        for wdw in spec.get("frozen") or []:
+            frozen |= self._inside(t, wdw)
+        if frozen.any():
+            last = np.maximum.accumulate(np.where(~frozen, np.arange(len(t)), -1))
+            held = self._delivered_last if self._delivered_last is not None else float(out[0])
+            out = np.where(frozen, np.where(last >= 0, out[np.maximum(last, 0)], held), out)
+        self._delivered_last = float(out[-1])
+        return out
 
     def _temperature_word(self, t: np.ndarray, reading: np.ndarray) -> _TemperatureWord:
         """Temperature field of the frames (docs/protocol.md): ``reading`` (degC) in 0.01 degC, TEMP_PRESENT and

@@ -133,3 +133,27 @@ def test_adc_saturation_source_dropout_and_temperature_faults() -> None:
 def test_random_faults_need_a_finite_window() -> None:
     with pytest.raises(ValueError, match="finite window"):
         BoardSimulator(SimConfig.default().with_overrides({"faults.bit_flips.count": 3}), seed=0)
+
+
+def test_unflagged_faults_of_the_temperature_reading_change_the_reading_only() -> None:
+    """``faults.temperature_reading`` (issue 8): a step from at_s on, a frozen stretch repeating the last delivered value
+    across a chunk boundary (block 3001), one read (0.5 s at 2 Hz) off by size_c; TEMP_VALID stays set and every count is
+    the same as without the faults."""
+    base = {"scenario.temperature.profile": [{"ramp_to_c": 33.4, "duration_s": 30.0}], "thermal.optics_time_constant_s": 2.0,
+            "effects.thermal_lag.scale": 0.0}
+    fault = {"steps": [{"at_s": 20.0, "step_c": 0.5}], "frozen": [{"start_s": 5.0, "duration_s": 8.0}],
+             "spikes": {"at_s": [16.2], "size_c": 50.0}}
+    clean = BoardSimulator(SimConfig.default().with_overrides(base), seed=0).run(30.0, block=3001)
+    blk = BoardSimulator(SimConfig.default().with_overrides({**base, "faults.temperature_reading": fault}),
+                         seed=0).run(30.0, block=3001)
+    t = blk.t_s
+    assert np.array_equal(blk.counts, clean.counts) and np.all(blk.status & int(Status.TEMP_VALID))
+    frozen = (t >= 5.0) & (t < 13.0)
+    assert np.all(blk.temp_cc[frozen] == clean.temp_cc[np.flatnonzero(frozen)[0] - 1])
+    assert np.ptp(clean.temp_cc[frozen]) > 100  # the temperature did change meanwhile (>1 degC)
+    spike = (t >= 16.0) & (t < 16.5)
+    step = t >= 20.0
+    rest = ~(frozen | spike | step)
+    assert np.array_equal(blk.temp_cc[rest], clean.temp_cc[rest])
+    assert np.all(blk.temp_cc[spike] - clean.temp_cc[spike] == 5000)
+    assert np.all(blk.temp_cc[step] - clean.temp_cc[step] == 50)
