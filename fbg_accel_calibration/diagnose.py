@@ -77,6 +77,7 @@ from .model_selection import select_degree as calibration_select_degree
 from .periodic_disturbance import PeriodicDisturbance, find_periodic_disturbance
 from .recording import LowReference, Recording, time_axis_label
 from .static_detector import calibration_samples
+from .temperature_reading import jump_warning, reading_jumps
 from .thermal_fit import (
     NotIdentifiedError,
     coefficients_to_model,
@@ -140,7 +141,8 @@ def prepare_data(rec: Recording, static: str = "table") -> DiagnosisData:
         raise ValueError(f"only {int(use.sum())} static samples with a reference: nothing to diagnose")
     return DiagnosisData(rec.t_s, rec.ref, rec.xyz, rec.temp_c, rec.gref_mps2, rec.pose_id, rec.run_id, use,
                          n_clipped_samples=int(left_out.sum()), n_clipped_visits=len(clipped),
-                         n_low_reference=dark.count, low_reference_note=dark.warning())
+                         n_low_reference=dark.count, low_reference_note=dark.warning(),
+                         temperature_jumps=reading_jumps(rec.t_s, rec.temp_c, rec.run_id))
 
 
 # ============================================================================ model specification
@@ -2097,6 +2099,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     step_confounded: dict[str, str] = {}  # a candidate that a step of the response fits as well: the warning
     reselect_up_to = max_degree if degree is None and n_levels >= 2 else None  # eq. 28's degree is chosen again
     remaining = [e for e in library]
+    reading_jumped = bool(data.temperature_jumps) and n_levels >= 2  # eq. 28 reads a reading that jumps
     while remaining and len(spec.effects) < max_effects:
         results = []
         # Bonferroni over the candidates the data can show at all (known before any is evaluated)
@@ -2130,6 +2133,12 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
             if r.significant and eff_r.void(r.hyper):
                 r.significant = False  # its value on all samples changes nothing: there is nothing to add
                 r.detail += "; not added: its value on all samples changes nothing"
+            if r.significant and eff_r.follows_a_step and reading_jumped:
+                # a jump of the temperature reading moves eq. 28's output once, which this candidate can follow: what it
+                # would write is the reading's fault, not the sensor's (test_a_fault_of_the_temperature_reading_...)
+                r.significant = False
+                r.detail += ("; not added: the AHT10 reading jumps (a sensor re-seated, a spike, a frozen reading), "
+                             "and eq. 28 evaluated at it moves the output once, which this candidate can follow")
             if r.significant and eff_r.time_function:
                 if time_folds is None:
                     time_folds = check_folds(data, groups, time_block_folds(groups, data.use, folds))[0]
@@ -2257,6 +2266,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     warnings += reference_reach_warnings(_visit_reference_range(data, groups, r_eval))
     if data.low_reference_note:
         warnings.append(data.low_reference_note)
+    if data.temperature_jumps:
+        warnings.append(jump_warning(data.temperature_jumps, n_levels >= 2))
     if data.n_clipped_visits:
         warnings.append(f"{data.n_clipped_samples} samples of {data.n_clipped_visits} visit(s) left out: a channel "
                         "clipped at a rail of the ADC (an axis at 0 or 4095 counts, or the reference at 4095) in each; a "

@@ -101,6 +101,8 @@ class DiagnosisData:
     n_clipped_visits: int = 0  # those visits
     n_low_reference: int = 0  # samples taken out for a reference too low (``Recording.low_reference``, ``prepare_data``)
     low_reference_note: str = ""  # how many, where (``recording.low_reference_warning``); empty when none
+    # jumps of the temperature reading no temperature makes (``temperature_reading.reading_jumps``, ``prepare_data``)
+    temperature_jumps: list = field(default_factory=list)
 
     _memo: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
     _recent: OrderedDict[tuple, np.ndarray] = field(default_factory=OrderedDict, init=False, repr=False, compare=False)

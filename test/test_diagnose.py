@@ -443,12 +443,15 @@ def test_a_candidate_whose_columns_cancel_is_refused_not_added() -> None:
 def test_degree_is_re_selected_once_an_effect_is_in_the_model() -> None:
     """Issue 8 §3: a warm-up drift across four temperature levels recorded one after the other makes a quadratic
     temperature term look useful (it absorbs part of the drift). Once the drift is in the model the degree is
-    chosen again, with the drift in every candidate model, and falls back to the truth (linear)."""
+    chosen again, with the drift in every candidate model, and falls back to the truth (linear). Each level is its own
+    run: within one run a reading cannot jump 15 degC between two samples 0.1 s apart (``temperature_reading``: such a
+    jump is a fault of the reading, and nothing that follows time is added beside it)."""
     rng = np.random.default_rng(1)
     poses = [(p, t) for t in range(0, 360, 60) for p in range(0, 360, 90)]
     levels, dwell, move = (20.0, 35.0, 25.0, 30.0), 30, 3
     pose_seq = [(T, k, p, t) for T in levels for k, (p, t) in enumerate(poses)]
     T = np.concatenate([np.full(move + dwell, T0) for T0, *_ in pose_seq])
+    run = np.concatenate([np.full(move + dwell, levels.index(T0)) for T0, *_ in pose_seq])
     pid = np.concatenate([np.r_[np.full(move, -1), np.full(dwell, k)] for _, k, _, _ in pose_seq])
     psi = np.concatenate([np.full(move + dwell, float(p)) for *_, p, _ in pose_seq])
     th = np.concatenate([np.full(move + dwell, float(t)) for *_, t in pose_seq])
@@ -460,7 +463,7 @@ def test_degree_is_re_selected_once_an_effect_is_in_the_model() -> None:
     ref = 870.0 * (1 + 0.01 * np.sin(np.arange(n) / n * 9))
     xyz = np.linalg.solve(M_TRUE, (g + drift - b).T).T * ref[:, None]
     xyz += rng.normal(0, 1, (n, 3)) * 0.05 / np.diag(M_TRUE) * 870
-    rec = Recording(t_s, ref, xyz, T + rng.normal(0, 0.01, n), np.where(pid[:, None] >= 0, g, np.nan), pid)
+    rec = Recording(t_s, ref, xyz, T + rng.normal(0, 0.01, n), np.where(pid[:, None] >= 0, g, np.nan), pid, run_id=run)
     res = diagnose(rec)
     assert res.degree == 2  # the drift made the quadratic look useful on the declared model
     assert [a[0] for a in res.added] == ["time_drift"]
