@@ -1789,9 +1789,9 @@ def time_block_check(data: DiagnosisData, spec: ModelSpec, eff: Effect, h: float
 
 @dataclass
 class StepCheck:
-    """A candidate that can follow a step (``Effect.follows_a_step``: a function of time or of the temperature's history)
-    against the best step of the response at one time (``effects.ResponseStepEffect``), each added on top of the other
-    (held-out gain, one-sided p over visits) with eq. 28 at ``degree``."""
+    """A candidate that can follow a step (``Effect.follows_a_step``: a function of time, of the temperature's history
+    or of the reference counts) against the best step of the response at one time (``effects.ResponseStepEffect``),
+    each added on top of the other (held-out gain, one-sided p over visits) with eq. 28 at ``degree``."""
 
     t_s: float  # board time of the first fitted sample after the step (s)
     t_before_s: float  # board time of the last fitted sample before it (s): the step happened in between
