@@ -38,7 +38,7 @@ would be more than ``MAX_GRID_FILL`` x its samples (hours of gaps) is not search
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import fft as scipy_fft
@@ -102,10 +102,7 @@ class PeriodicDisturbance:
 
     def model(self, t_s: np.ndarray, run_id: np.ndarray) -> np.ndarray:
         """Every fitted line (N, 3) m/s^2 at times ``t_s`` (s) of runs ``run_id``."""
-        out = np.zeros((len(t_s), 3))
-        for line in self.lines:
-            out += line.model(t_s, run_id)
-        return out
+        return sum((line.model(t_s, run_id) for line in self.lines), np.zeros((len(t_s), 3)))
 
     def refit(self, res: np.ndarray, t_s: np.ndarray, groups: np.ndarray, run_id: np.ndarray,
               rows: np.ndarray) -> np.ndarray:
@@ -125,8 +122,7 @@ class PeriodicDisturbance:
         for ln in self.lines:
             _, coeffs, fitted = _fit(dev, t, runs, detrend, ln.freq_hz)
             dev = dev - fitted
-            out += PeriodicLine(ln.freq_hz, ln.amplitude_mps2, ln.axis_p, ln.p_value, ln.power_ratio, coeffs,
-                                {r.run: r.t0 for r in runs}).model(t_s, run_id)
+            out += replace(ln, coeffs=coeffs, t0_s={r.run: r.t0 for r in runs}).model(t_s, run_id)
         return out
 
     def summary(self) -> str:
@@ -232,15 +228,13 @@ def find_periodic_disturbance(res: np.ndarray, t_s: np.ndarray, groups: np.ndarr
     empty = PeriodicDisturbance([], (math.nan, math.nan), 0, alpha, math.inf)
     idx = np.flatnonzero(rows & np.all(np.isfinite(res), axis=1))
     if idx.size < 4 * LEVEL_HALF_WIDTH:
-        empty.note = f"not searched: {idx.size} settled samples"
-        return empty
+        return replace(empty, note=f"not searched: {idx.size} settled samples")
     t, g, rid = t_s[idx], groups[idx], run_id[idx]
     inv, starts = _segments(g, rid)
     step = np.diff(t)
     same = (inv[1:] == inv[:-1]) & (step > 0)
     if not same.any():
-        empty.note = "not searched: no two consecutive samples in a visit"
-        return empty
+        return replace(empty, note="not searched: no two consecutive samples in a visit")
     dt = float(np.median(step[same]))
     t_first, t_last = t[starts], t[np.r_[starts[1:], len(t)] - 1]
     visit_s = float(np.median(t_last - t_first)) + dt
@@ -250,8 +244,7 @@ def find_periodic_disturbance(res: np.ndarray, t_s: np.ndarray, groups: np.ndarr
     band = (MIN_CYCLES_PER_VISIT / visit_s, min(FMAX_HZ, 0.45 / (block * dt)))
     empty.band_hz = band
     if band[0] >= band[1]:
-        empty.note = "not searched: visits too short for a cycle"
-        return empty
+        return replace(empty, note="not searched: visits too short for a cycle")
     runs: list[_Run] = []
     for run in np.unique(rid):
         r = np.flatnonzero(rid == run)
@@ -261,14 +254,12 @@ def find_periodic_disturbance(res: np.ndarray, t_s: np.ndarray, groups: np.ndarr
             continue
         runs.append(_Run(int(run), r, k, t0))
     if not runs:
-        empty.note = "not searched: the runs' samples are too sparse in time (long gaps)"
-        return empty
+        return replace(empty, note="not searched: the runs' samples are too sparse in time (long gaps)")
     n_fft = scipy_fft.next_fast_len(PAD * int(max(r.k.max() + 1 for r in runs)), real=True)
     freqs = np.arange(n_fft // 2 + 1) / (n_fft * block * dt)
     in_band = np.flatnonzero((freqs >= band[0]) & (freqs <= band[1]))
     if in_band.size < 2 * LEVEL_HALF_WIDTH:
-        empty.note = "not searched: too few frequencies in the band"
-        return empty
+        return replace(empty, note="not searched: too few frequencies in the band")
     K = len(runs)
     dfd = 2.0 * K * 2.0 * (LEVEL_HALF_WIDTH - GUARD) / PAD
     n_tests = int(in_band.size) * 3 * max_lines
