@@ -412,7 +412,13 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
     d = res.data
     r = d.use & finite_rows(res.residual_before)
     rp = plotted(r)
-    written = []
+    written: list[Path] = []
+
+    def save(fig: plt.Figure, name: str) -> None:
+        fig.tight_layout()
+        written.append(out_dir / name)
+        fig.savefig(written[-1], dpi=90)
+        plt.close(fig)
 
     # candidates: residual of the current model (held out) against the candidate's contribution
     for c in res.ranked:
@@ -440,11 +446,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
         else:
             axs[3].axis("off")
         fig.suptitle(f"{c.name}: held-out gain {100 * c.rel_gain:+.1f} %, p = {_p(c.p_value)}{_shown(len(rp), r)}")
-        fig.tight_layout()
-        p = out_dir / f"candidate_{c.name}.png"
-        fig.savefig(p, dpi=90)
-        plt.close(fig)
-        written.append(p)
+        save(fig, f"candidate_{c.name}.png")
 
     # before / after
     t0 = float(np.min(d.t_s))  # the time axis starts at the first sample, as the tables (a CSV may be in epoch seconds)
@@ -466,11 +468,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
         ax.set_ylabel(f"residual {AXES[j]} [m/s^2]")
     fig.suptitle("held-out residual before/after; dotted: ± noise floor. RMSE x/y/z before "
                  f"{_v(res.before_heldout_rmse)} -> after {_v(res.after_heldout_rmse)} m/s^2{_shown(len(rp), r)}")
-    fig.tight_layout()
-    p = out_dir / "before_after.png"
-    fig.savefig(p, dpi=90)
-    plt.close(fig)
-    written.append(p)
+    save(fig, "before_after.png")
 
     # structure of what remains: pose means vs time, temperature and orientation
     s = res.structure
@@ -492,11 +490,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
             axs[i, j].set_ylabel(f"pose-mean residual {AXES[j]} [m/s^2]")
             axs[i, j].axhline(0, color="k", lw=0.5)
     fig.suptitle(s.verdict[:150])
-    fig.tight_layout()
-    p = out_dir / "residual_structure.png"
-    fig.savefig(p, dpi=90)
-    plt.close(fig)
-    written.append(p)
+    save(fig, "residual_structure.png")
     return written
 
 
