@@ -181,6 +181,27 @@ def _transforms_inputs(eff: Effect) -> bool:
     return type(eff).transform is not Effect.transform
 
 
+class _Recent(OrderedDict):
+    """At most ``size`` entries once trimmed, the least recently used dropped first."""
+
+    def __init__(self, size: int) -> None:
+        super().__init__()
+        self.size = size
+
+    def hit(self, key: tuple) -> Any:
+        """The entry under ``key`` (made the most recent), or None."""
+        value = self.get(key)
+        if value is not None:
+            self.move_to_end(key)
+        return value
+
+    def trim(self, room: int = 0) -> None:
+        """Drop the oldest entries until ``room`` more fit: called with 1 before a new entry is computed, so that the
+        arrays it replaces are not held beside the new ones while they are built."""
+        while len(self) > self.size - room:
+            self.popitem(last=False)
+
+
 class DesignCache:
     """The corrected inputs of the last few sets of input corrections, the inputs part-way through the
     corrections (``prefix``) and the last few design matrices (bounded).
@@ -194,59 +215,18 @@ class DesignCache:
     """
 
     def __init__(self, size: int = 1, prefixes: int = 2, matrices: int = 2, references: int = 4) -> None:
-        self.size, self.prefixes, self.matrices, self.references = size, prefixes, matrices, references
-        self._references: OrderedDict[tuple, tuple[np.ndarray, np.ndarray]] = OrderedDict()
-        self._entries: OrderedDict[tuple, tuple[Inputs, Inputs]] = OrderedDict()
-        self._prefix: OrderedDict[tuple, Inputs] = OrderedDict()
-        self._taken: OrderedDict[tuple, tuple[np.ndarray, np.ndarray]] = OrderedDict()
-        self._matrices: OrderedDict[tuple, tuple[np.ndarray, np.ndarray, dict[str, slice]]] = OrderedDict()
-
-    @staticmethod
-    def _get(store: OrderedDict, key: tuple) -> Any:
-        hit = store.get(key)
-        if hit is not None:
-            store.move_to_end(key)
-        return hit
-
-    def get(self, key: tuple) -> tuple[Inputs, Inputs] | None:
-        return self._get(self._entries, key)
-
-    def reference(self, key: tuple) -> tuple[np.ndarray, np.ndarray] | None:
-        """(reference (n, 3), valid rows (n,)) kept under ``key`` (``build_design``), or None."""
-        return self._get(self._references, key)
-
-    def put_reference(self, key: tuple, gref: np.ndarray, valid: np.ndarray) -> None:
-        for a in (gref, valid):
-            a.flags.writeable = False
-        self._references[key] = (gref, valid)
-        while len(self._references) > self.references:
-            self._references.popitem(last=False)
-
-    def matrix(self, key: tuple) -> tuple[np.ndarray, np.ndarray, dict[str, slice]] | None:
-        """(X (n, p) read-only, its finite rows (n,), effect blocks) kept under ``key`` (``build_design``), or None."""
-        return self._get(self._matrices, key)
-
-    def make_room(self, matrix: bool = False) -> None:
-        """Drop the oldest entries (corrected inputs, or design matrices) so that one more fits: called before a
-        new one is computed, so that the arrays it replaces are not held beside the new ones while they are built."""
-        store, size = (self._matrices, self.matrices) if matrix else (self._entries, self.size)
-        while len(store) >= size:
-            store.popitem(last=False)
-
-    def put(self, key: tuple, value: tuple[Inputs, Inputs]) -> None:
-        self._entries[key] = value
-
-    def put_matrix(self, key: tuple, X: np.ndarray, ok: np.ndarray, blocks: dict[str, slice]) -> None:
-        X.flags.writeable = False  # shared by the designs of every trial value of a search over the reference
-        self._matrices[key] = (X, ok, blocks)
+        self.inputs = _Recent(size)  # (the inputs after a set of corrections, those at the design's rows)
+        self.prefixes = _Recent(prefixes)  # the inputs after the first corrections of a set (``prefix``)
+        self.matrices = _Recent(matrices)  # (X (n, p) read-only, its finite rows (n,), effect blocks) (``build_design``)
+        self.references = _Recent(references)  # (reference (n, 3), valid rows (n,)) (``_corrected_reference``)
+        self._taken = _Recent(8)
 
     def prefix(self, names: tuple) -> tuple[int, Inputs | None]:
         """(number of corrections done, a private copy of the inputs after them) for the longest cached prefix
         of ``names`` (the (name, hyper-parameter) of each correction in stage order); (0, None) if none."""
         for n in range(len(names) - 1, 0, -1):
-            hit = self._prefix.get(names[:n])
+            hit = self.prefixes.hit(names[:n])
             if hit is not None:
-                self._prefix.move_to_end(names[:n])
                 return n, _private(hit)
         return 0, None
 
@@ -257,18 +237,11 @@ class DesignCache:
         if a.flags.writeable:
             return a[idx]
         key = memory_key(a)  # the same memory, read-only
-        hit = self._taken.get(key)
+        hit = self._taken.hit(key)
         if hit is None:
             hit = self._taken[key] = (a, a[idx])  # a is kept: its memory cannot be reused for another array
-            while len(self._taken) > 8:
-                self._taken.popitem(last=False)
-        self._taken.move_to_end(key)
+            self._taken.trim()
         return hit[1]
-
-    def put_prefix(self, names: tuple, inp: Inputs) -> None:
-        self._prefix[names] = _private(inp)
-        while len(self._prefix) > self.prefixes:
-            self._prefix.popitem(last=False)
 
 
 def _private(inp: Inputs) -> Inputs:
@@ -305,13 +278,14 @@ def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None
             valid = valid & ref_valid
     # eq. 28's columns and the extra ones depend on every effect but the corrections of the reference alone
     x_key = (spec.degree, spec.t_center_c, spec.t_scale_c, tuple((e.name, h) for e, h in ordered if not e.reference_only))
-    x_hit = cache.matrix(x_key) if cache is not None else None
+    x_hit = cache.matrices.hit(x_key) if cache is not None else None
     if x_hit is None:
         if cache is not None:
-            cache.make_room(matrix=True)
+            cache.matrices.trim(room=1)
         x_hit = _design_matrix(data, spec, ordered, inp, part, sub)
         if cache is not None:
-            cache.put_matrix(x_key, *x_hit)
+            x_hit[0].flags.writeable = False  # shared by the designs of every trial value of a search over the reference
+            cache.matrices[x_key] = x_hit
     X, x_ok, blocks = x_hit
     return Design(X, gref, valid & x_ok & finite_rows(gref), blocks, n_params(spec.degree))
 
@@ -342,20 +316,21 @@ def _corrected(data: DiagnosisData, corrections: list[tuple[Effect, float | None
                sub: np.ndarray | None) -> tuple[Inputs, Inputs]:
     """(the inputs after ``corrections``, those at the design's rows ``sub``), from ``cache`` when it has them."""
     names = tuple((eff.name, h) for eff, h in corrections)
-    hit = cache.get(names)
+    hit = cache.inputs.hit(names)
     if hit is not None:
         return hit
-    cache.make_room()
+    cache.inputs.trim(room=1)
     done, inp = cache.prefix(names)
     if inp is None:
         inp = Inputs.of(data)
     for i in range(done, len(corrections)):
         if i == len(corrections) - 1 and i > done:
-            cache.put_prefix(names[:i], inp)  # all but the last: what a search over the last one repeats
+            cache.prefixes[names[:i]] = _private(inp)  # all but the last: what a search over the last one repeats
+            cache.prefixes.trim()
         eff, h = corrections[i]
         eff.transform(data, inp, h)
     part = inp if sub is None else inp.at(sub, lambda a: cache.take(a, sub))  # the design's rows
-    cache.put(names, (inp, part))
+    cache.inputs[names] = (inp, part)
     return inp, part
 
 
@@ -365,12 +340,15 @@ def _corrected_reference(data: DiagnosisData, corrections: list[tuple[Effect, fl
     ``sub``, from ``cache`` when it has them: a search over a correction of the reference tries the same grid
     for every model it is tried on top of."""
     names = tuple((eff.name, h) for eff, h in corrections)
-    hit = cache.reference(names)
+    hit = cache.references.hit(names)
     if hit is None:
         inp = _corrected_inputs(data, corrections[:-1])
         last, h = corrections[-1]  # a correction of the reference alone (build_design): at the rows only
         hit = last.reference_at(data, inp, h, sub)
-        cache.put_reference(names, *hit)
+        for a in hit:
+            a.flags.writeable = False
+        cache.references[names] = hit
+        cache.references.trim()
     return hit
 
 

@@ -241,8 +241,8 @@ def test_cached_designs_equal_designs_built_afresh() -> None:
         np.testing.assert_array_equal(got.X[got.valid], fresh.X[fresh.valid])
         np.testing.assert_array_equal(got.G, fresh.G)
         assert got.blocks == fresh.blocks
-        assert len(cache._entries) <= 2 and len(cache._prefix) <= cache.prefixes
-    assert cache._prefix  # the searches over dark offset and thermal lag started from a cached prefix
+        assert len(cache.inputs) <= 2 and len(cache.prefixes) <= cache.prefixes.size
+    assert cache.prefixes  # the searches over dark offset and thermal lag started from a cached prefix
 
 
 def test_a_design_of_some_rows_is_those_rows_of_the_whole_design() -> None:
@@ -321,9 +321,9 @@ def test_corrections_and_rows_kept_across_trials_equal_those_worked_out_afresh()
         np.testing.assert_array_equal(got.X[got.valid], fresh.X[sub][got.valid])
         np.testing.assert_array_equal(got.G, fresh.G[sub])
         assert 0 < len(data._recent) <= 4 and not any(a.flags.writeable for a in data._recent.values())
-        assert 0 < len(cache._taken) <= 8 and len(cache._references) <= cache.references
-        assert not any(a.flags.writeable for entry in cache._references.values() for a in entry)
-    assert cache._references  # the corrections of the reference were kept
+        assert 0 < len(cache._taken) <= 8 and len(cache.references) <= cache.references.size
+        assert not any(a.flags.writeable for entry in cache.references.values() for a in entry)
+    assert cache.references  # the corrections of the reference were kept
 
 
 def test_cross_validation_of_a_design_in_fold_order_equals_that_of_the_time_order() -> None:
