@@ -376,35 +376,23 @@ def _design_matrix(data: DiagnosisData, spec: ModelSpec, ordered: list[tuple[Eff
 
 
 # ============================================================================ cross-validation
-def time_block_folds(groups: np.ndarray, rows: np.ndarray, k: int = 10) -> np.ndarray:
-    """Fold index (N,) per sample (-1 outside ``rows``): the visits in recording order (the order of their first
-    samples) cut into ``k`` contiguous blocks, so a held-out visit has no training neighbour in time on one side at
-    least (``time_block_check``)."""
+def make_folds(groups: np.ndarray, rows: np.ndarray, k: int = 10, seed: int = 0, time_blocks: bool = False) -> np.ndarray:
+    """Fold index (N,) per sample (-1 outside ``rows``): whole visits are assigned to folds at random (``seed``) or, with
+    ``time_blocks``, the visits in recording order (the order of their first samples) cut into ``k`` contiguous blocks,
+    so a held-out visit has no training neighbour in time on one side at least (``time_block_check``)."""
     ug, inv = np.unique(groups[rows], return_inverse=True)
     k = int(min(k, len(ug)))
     if k < 2:
         raise ValueError("need at least two visits for cross-validation")
-    first = np.full(len(ug), len(groups))
-    np.minimum.at(first, inv, np.flatnonzero(rows))
     fold_of_group = np.empty(len(ug), int)
-    fold_of_group[np.argsort(first)] = np.arange(len(ug)) * k // len(ug)
+    if time_blocks:
+        first = np.full(len(ug), len(groups))
+        np.minimum.at(first, inv, np.flatnonzero(rows))
+        fold_of_group[np.argsort(first)] = np.arange(len(ug)) * k // len(ug)
+    else:
+        fold_of_group[np.random.default_rng(seed).permutation(len(ug))] = np.arange(len(ug)) % k
     out = np.full(len(groups), -1)
     out[rows] = fold_of_group[inv]
-    return out
-
-
-def make_folds(groups: np.ndarray, rows: np.ndarray, k: int = 10, seed: int = 0) -> np.ndarray:
-    """Fold index (N,) per sample (-1 outside ``rows``): whole visits are assigned to folds."""
-    ug = np.unique(groups[rows])
-    k = int(min(k, len(ug)))
-    if k < 2:
-        raise ValueError("need at least two visits for cross-validation")
-    perm = np.random.default_rng(seed).permutation(len(ug))
-    fold_of_group = np.empty(len(ug), int)
-    fold_of_group[perm] = np.arange(len(ug)) % k
-    out = np.full(len(groups), -1)
-    idx = np.searchsorted(ug, groups[rows])
-    out[rows] = fold_of_group[idx]
     return out
 
 
@@ -1750,7 +1738,7 @@ class Evaluator:
 def time_block_check(data: DiagnosisData, spec: ModelSpec, eff: Effect, h: float | None, sub: np.ndarray,
                      folds: np.ndarray, weights: np.ndarray, alpha: float) -> tuple[float, float]:
     """(held-out gain, one-sided p over visits: ``paired_gain_test``) of ``eff`` at ``h`` on top of ``spec`` when the
-    folds are contiguous blocks of time (``folds``: ``time_block_folds`` made identifiable by ``check_folds``), on
+    folds are contiguous blocks of time (``folds``: ``make_folds``' time blocks made identifiable by ``check_folds``), on
     the samples ``sub`` (indices; the search's). A function of time (``Effect.time_function``) that only gains
     between visits interleaved in time follows a slow wander of the residual, which it cannot extrapolate: the
     driver would apply it after every power-on. A model not identified on these folds has gain -inf, p 1."""
@@ -2119,7 +2107,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                              "and eq. 28 evaluated at it moves the output once, which this candidate can follow")
             if r.significant and eff_r.time_function:
                 if time_folds is None:
-                    time_folds = check_folds(data, groups, time_block_folds(groups, data.use, folds))[0]
+                    time_folds = check_folds(data, groups, make_folds(groups, data.use, folds, time_blocks=True))[0]
                 g, p = r.time_block = time_block_check(data, spec, eff_r, r.hyper, every, time_folds, weights, alpha_each)
                 if p < alpha_each and g >= min_rel_gain:
                     r.detail += f"; it also predicts contiguous blocks of time held out (gain {100 * g:+.1f} %, p = {p:.2g})"
