@@ -537,21 +537,6 @@ class CvResult:
     fitted_full: np.ndarray  # (N, 3) in-sample prediction with A_full
     sums: FoldSums  # X^T X per fold and over the fitted rows (all folds), column sums: the conditioning checks
 
-    @property
-    def xtx(self) -> np.ndarray:
-        """(p, p) X^T X over the fitted rows (all folds)."""
-        return self.sums.XtX
-
-    @property
-    def xsum(self) -> np.ndarray:
-        """(p,) column sums over the fitted rows."""
-        return self.sums.xsum
-
-    @property
-    def n_fit(self) -> int:
-        """Fitted rows."""
-        return len(self.sums.idx)
-
 
 SEARCH_STRIDE = 4  # a hyper-parameter search visits every 4th grid value first, then walks from the best (search_walk)
 
@@ -2239,7 +2224,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                         "clipped at a rail of the ADC (an axis at 0 or 4095 counts, or the reference at 4095) in each; a "
                         "clipped reading bounds the signal instead of measuring it (lower the source power or the "
                         "gain if the signal sits at the rail)")
-    cond, column_corr = gram_conditioning(cv_f.xtx, cv_f.xsum, cv_f.n_fit, blocks_f)
+    cond, column_corr = gram_conditioning(cv_f.sums.XtX, cv_f.sums.xsum, len(cv_f.sums.idx), blocks_f)
     for name, c in column_corr.items():
         if c > COLLINEAR_CORR:
             warnings.append(f"a column of {name} correlates at |r| = {c:.4f} with another column of the model: their "
@@ -2436,12 +2421,13 @@ def cancelling_terms(des: Design, cv: CvResult, name: str) -> str:
     sl = des.blocks.get(name)
     if sl is None:
         return ""
-    corr = gram_conditioning(cv.xtx, cv.xsum, cv.n_fit, des.blocks)[1].get(name, 0.0)
+    xtx, n = cv.sums.XtX, len(cv.sums.idx)
+    corr = gram_conditioning(xtx, cv.sums.xsum, n, des.blocks)[1].get(name, 0.0)
     if corr <= COLLINEAR_CORR:
         return ""
     A = cv.A_full[sl]
-    net = np.sqrt(np.maximum(np.einsum("kj,kl,lj->j", A, cv.xtx[sl, sl], A), 0.0) / cv.n_fit)
-    own = np.abs(A) * np.sqrt(np.diag(cv.xtx)[sl] / cv.n_fit)[:, None]  # (k, 3) RMS of each column's contribution
+    net = np.sqrt(np.maximum(np.einsum("kj,kl,lj->j", A, xtx[sl, sl], A), 0.0) / n)
+    own = np.abs(A) * np.sqrt(np.diag(xtx)[sl] / n)[:, None]  # (k, 3) RMS of each column's contribution
     ratio = float(np.max(own / np.maximum(net, 1e-300)))
     if ratio <= CANCEL_RATIO:
         return ""

@@ -365,7 +365,7 @@ def test_sums_kept_while_only_the_reference_changes_give_the_cross_validation_wo
     for des in designs + designs[:1]:
         fresh, kept = cross_validate(des, data.use, folds, w), cross_validate(des, data.use, folds, w, cv_sums)
         for a, b in [(fresh.heldout, kept.heldout), (fresh.train_rss, kept.train_rss), (fresh.A_full, kept.A_full),
-                     (fresh.xtx, kept.xtx), (fresh.xsum, kept.xsum)]:
+                     (fresh.sums.XtX, kept.sums.XtX), (fresh.sums.xsum, kept.sums.xsum)]:
             np.testing.assert_array_equal(a, b)
         rss, rss_sums = weighted_rss(des, data.use, w, rss_sums)
         assert rss == weighted_rss(des, data.use, w)[0]
