@@ -766,39 +766,6 @@ def settled_mask(t_s: np.ndarray, groups: np.ndarray, rows: np.ndarray, settle_s
     return out
 
 
-def _visit_line(res: np.ndarray, groups: np.ndarray, fit_rows: np.ndarray, t_s: np.ndarray | None,
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per visit (over ``fit_rows``): (labels, count, mean (V, 3), slope (V, 3) per s, mean time (V,) s,
-    sum of squared centred times (V,) s^2, 0 where no slope is fitted).
-
-    The slope is zero for a visit whose ``fit_rows`` samples share one time (or with ``t_s`` None).
-    Times are taken from each visit's first sample, so the result does not depend on the time origin (a CSV with
-    seconds since 1970, ~1.7e9 s, gives what the same run from 0 s gives)."""
-    g = groups[fit_rows]
-    x = res[fit_rows]
-    ug, inv = np.unique(g, return_inverse=True)
-    cnt = np.bincount(inv).astype(float)
-    means = np.stack([np.bincount(inv, weights=x[:, j]) / cnt for j in range(3)], axis=1)
-    slope = np.zeros_like(means)
-    tmean = np.zeros(len(ug))
-    stt_used = np.zeros(len(ug))
-    if t_s is not None:
-        t = t_s[fit_rows]
-        t_first = np.full(len(ug), np.inf)
-        np.minimum.at(t_first, inv, t)
-        t_rel = t - t_first[inv]  # s since the visit's first sample
-        tmean_rel = np.bincount(inv, weights=t_rel) / cnt
-        tmean = t_first + tmean_rel
-        tc = t_rel - tmean_rel[inv]
-        stt = np.bincount(inv, weights=tc * tc)
-        ok = stt > 1e-12 * np.maximum(tmean_rel**2, 1.0)
-        for j in range(3):
-            sxy = np.bincount(inv, weights=tc * (x[:, j] - means[inv, j]))
-            slope[ok, j] = sxy[ok] / stt[ok]
-        stt_used = np.where(ok, stt, 0.0)
-    return ug, cnt, means, slope, tmean, stt_used
-
-
 # Noise floor of correlated noise (issue 8). The noise of this sensor is white noise through the first-order TIA
 # low-passes (time constants up to 0.16 s: 16 samples at 100 Hz, 64 at 400 Hz) plus the ADC's white rounding. Removing
 # a visit's mean and line removes about two integrated correlation times' worth of it, not two samples' worth: the
@@ -981,12 +948,27 @@ def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
     r = rows & finite_rows(res)
     if not r.any():
         return VisitNoise(np.full(3, np.nan), np.ones((3, 1)))
-    ug, cnt, means, slope, tmean, stt = _visit_line(res, groups, r, t_s)
     idx = np.flatnonzero(r)
-    inv = np.searchsorted(ug, groups[idx])
-    dev = res[idx] - means[inv]
+    ug, inv = np.unique(groups[idx], return_inverse=True)
+    cnt = np.bincount(inv).astype(float)
+    dev = res[idx] - np.stack([np.bincount(inv, weights=res[idx, j]) / cnt for j in range(3)], axis=1)[inv]
+    stt = np.zeros(len(ug))  # sum of squared centred times of each visit (s^2), 0 where no line is fitted
     if t_s is not None:
-        dev -= slope[inv] * (t_s[idx] - tmean[inv])[:, None]
+        # times from each visit's first sample: the line does not depend on the time origin (a CSV with seconds since
+        # 1970, ~1.7e9 s, gives what the same run from 0 s gives); no line where a visit's samples share one time
+        t = t_s[idx]
+        t_first = np.full(len(ug), np.inf)
+        np.minimum.at(t_first, inv, t)
+        t_rel = t - t_first[inv]
+        tmean_rel = np.bincount(inv, weights=t_rel) / cnt
+        tc = t_rel - tmean_rel[inv]
+        stt = np.bincount(inv, weights=tc * tc)
+        ok = stt > 1e-12 * np.maximum(tmean_rel**2, 1.0)
+        slope = np.zeros((len(ug), 3))
+        for j in range(3):
+            slope[ok, j] = np.bincount(inv, weights=tc * dev[:, j])[ok] / stt[ok]
+        stt = np.where(ok, stt, 0.0)
+        dev -= slope[inv] * (t - (t_first + tmean_rel)[inv])[:, None]
     lags = _noise_lags(t_s, groups, r, cnt)
     n_v = cnt.astype(int)
     dev = dev[np.argsort(inv, kind="stable")]  # by visit, in time order within a visit
