@@ -1085,7 +1085,6 @@ class SettlingTransient:
     n_dropped: int  # static samples left out of the floor (both ends)
     age_s: np.ndarray  # (K,) median time since the visit's first sample, s
     excess_rms: np.ndarray  # (K, 3) signed sqrt of the excess power (start over its mirror), m/s^2
-    excess_se: np.ndarray  # (K, 3) standard error of the excess power, (m/s^2)^2
     amplitude_mps2: np.ndarray  # (3,) A per axis at the first sample, m/s^2 (0 where none)
     tau_s: float  # time constant, s (an upper bound if not resolved; NaN if not detected)
     tau_resolved: bool  # the decay shows in at least two sample positions
@@ -1094,7 +1093,6 @@ class SettlingTransient:
     # the end of a visit, as above with the sign of the excess reversed and the time counted back from the last sample
     end_age_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (K,) median time before the last sample, s
     end_excess_rms: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (K, 3) m/s^2
-    end_excess_se: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (K, 3) (m/s^2)^2
     end_amplitude_mps2: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) at the last sample, m/s^2
     end_tau_s: float = np.nan
     end_tau_resolved: bool = False
@@ -1190,8 +1188,7 @@ def settling_transient(res: np.ndarray, t_s: np.ndarray, groups: np.ndarray, row
     """
     r = rows & finite_rows(res)
     idx = np.flatnonzero(r)
-    empty = SettlingTransient(0.0, 0, 0, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(3), np.nan,
-                              False, False, np.zeros(3))
+    empty = SettlingTransient(0.0, 0, 0, np.zeros(0), np.zeros((0, 3)), np.zeros(3), np.nan, False, False, np.zeros(3))
     if idx.size < 9:
         return empty
     g = groups[idx]
@@ -1224,7 +1221,7 @@ def settling_transient(res: np.ndarray, t_s: np.ndarray, groups: np.ndarray, row
     # same distance from the window (noise of any colour and a linear drift cancel), away from both ends' disturbances
     d_s = x - window_mean(Kv, 2 * Kv)[vid]  # the start against [K_v, n - 2 K_v)
     d_e = x - window_mean(2 * Kv, Kv)[vid]  # the end against [2 K_v, n - K_v)
-    ages, end_ages, P, Pe, SE, SEe = [], [], [], [], [], []
+    ages, end_ages, start_excess, end_excess = [], [], [], []
 
     def excess(near: np.ndarray, far: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         diff = d[near] ** 2 - d[far] ** 2  # visits in the same order in both
@@ -1234,23 +1231,18 @@ def settling_transient(res: np.ndarray, t_s: np.ndarray, groups: np.ndarray, row
 
     for k in range(K):
         use = ok_v[vid] & (Kv[vid] > k)
-        p, se = excess(use & (pos == k), use & (rpos == Kv[vid] + k), d_s)
-        pe, see = excess(use & (rpos == k), use & (pos == Kv[vid] + k), d_e)
-        P.append(p)
-        SE.append(se)
-        Pe.append(pe)
-        SEe.append(see)
+        start_excess.append(excess(use & (pos == k), use & (rpos == Kv[vid] + k), d_s))
+        end_excess.append(excess(use & (rpos == k), use & (pos == Kv[vid] + k), d_e))
         a = use & (pos == k)
         e = use & (rpos == k)
         ages.append(float(np.median(t[a] - t[start[vid[a]]])) if a.any() else np.nan)
         end_ages.append(float(np.median(t[last[vid[e]]] - t[e])) if e.any() else np.nan)
-    P, SE, age = np.array(P), np.maximum(np.array(SE), 1e-300), np.array(ages)
-    Pe, SEe, end_age = np.array(Pe), np.maximum(np.array(SEe), 1e-300), np.array(end_ages)
-    excess_start = np.sign(P) * np.sqrt(np.abs(P))
-    amp, tau, resolved, detected = _decay_fit(P, SE, age, dt)
-    e_amp, e_tau, e_resolved, e_detected = _decay_fit(Pe, SEe, end_age, dt)
-    return SettlingTransient(0.0, int(ok_v.sum()), 0, age, excess_start, SE, amp, tau, resolved, detected, np.zeros(3),
-                             end_age, np.sign(Pe) * np.sqrt(np.abs(Pe)), SEe, e_amp, e_tau, e_resolved, e_detected)
+    (P, SE), (Pe, SEe) = (np.array(e).transpose(1, 0, 2) for e in (start_excess, end_excess))
+    age, end_age = np.array(ages), np.array(end_ages)
+    amp, tau, resolved, detected = _decay_fit(P, np.maximum(SE, 1e-300), age, dt)
+    e_amp, e_tau, e_resolved, e_detected = _decay_fit(Pe, np.maximum(SEe, 1e-300), end_age, dt)
+    return SettlingTransient(0.0, int(ok_v.sum()), 0, age, np.sign(P) * np.sqrt(np.abs(P)), amp, tau, resolved, detected,
+                             np.zeros(3), end_age, np.sign(Pe) * np.sqrt(np.abs(Pe)), e_amp, e_tau, e_resolved, e_detected)
 
 
 def settle_window(st: SettlingTransient, sigma: np.ndarray, end: bool = False) -> float:
