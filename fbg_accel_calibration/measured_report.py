@@ -21,6 +21,7 @@ samples and the minimum interval 3 samples (the node's defaults, 5 and 5, are fo
 
 from __future__ import annotations
 
+import csv
 import itertools
 import shlex
 import sys
@@ -115,12 +116,9 @@ def fit_measured(csv_path: Path = DEFAULT_CSV) -> MeasuredFit:
                                       minlength=len(stats.pose)) for j in range(3)], axis=1) / stats.count[:, None]
     held_stats = PoseStats(stats.pose, stats.run, stats.temp_c, stats.count, stats.gref, stats.mean_cal + 0.0,
                            held_mean, stats.residual_std)
-    psi_deg = None
     try:
-        import csv as _csv
-
         with open(csv_path, newline="", encoding="utf-8") as fh:
-            rows = list(_csv.DictReader(fh))
+            rows = list(csv.DictReader(fh))
         psi_deg = np.array([[float(r["psi_deg"]), float(r["theta_deg"])] for r in rows])
     except (OSError, KeyError, ValueError):
         psi_deg = None
@@ -250,12 +248,8 @@ def main_args(csv_path: Path, md_path: Path, png_path: Path, argv: list[str] | N
     command = "fbg-accel-calib report-measured" + ("".join(" " + shlex.quote(str(a)) for a in argv[1:]))
     try:  # the report is regenerated in place (force), but never over its own input
         check_outputs([md_path, png_path], [csv_path], force=True, create_dirs=True)
-    except OutputError as exc:
-        print(f"fbg-accel-calib report-measured: {exc}", file=sys.stderr)
-        return 2
-    try:
         fit = run_report(csv_path, md_path, png_path, command=".venv/bin/" + command)
-    except MeasuredDataMissingError as exc:
+    except (OutputError, MeasuredDataMissingError) as exc:
         print(f"fbg-accel-calib report-measured: {exc}", file=sys.stderr)
         return 2
     print(f"static samples kept: {int(fit.usable.sum())} of {len(fit.rec)}")
