@@ -15,14 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from test_diagnose import MEASURED
-from test_diagnose_sim import _config
+from test_diagnose_sim import _config, _output
 
 from fbg_accel_calibration.csv_import import import_csv
 from fbg_accel_calibration.diagnose import diagnose
 from fbg_accel_calibration.diagnose_report import markdown
 from fbg_accel_calibration.periodic_disturbance import PERIODIC_ALPHA, find_periodic_disturbance
-from fbg_accel_calibration.recording import Recording
-from fbg_accel_driver.thermal_model import ThermalCalibration
 from fbg_accel_sim.board_physics import simulate_recording
 
 QUIET = {"effects.white_noise.scale": 0.0, "effects.adc_quantisation.scale": 0.0}
@@ -30,11 +28,6 @@ SWAY = [  # (sine, extra config): a slow table sway on x / y; a faster one on y 
     ({"freq_hz": 0.37, "amplitude_mps2": [0.1, 0.06, 0.0], "phase_deg": 20.0}, {}),
     ({"freq_hz": 1.3, "amplitude_mps2": [0.0, 0.08, 0.12], "phase_deg": -70.0}, {"effects.tia_lowpass.scale": 1.0}),
 ]
-
-
-def _output(cal: ThermalCalibration, rec: Recording) -> np.ndarray:
-    """The calibration file's output (N, 3) m/s^2 of a one-run recording, streamed with state as the driver runs it."""
-    return cal.apply_counts(rec.ref, rec.xyz, rec.temp_c, rec.t_s, cal.new_state())
 
 
 def _sine_amplitude(x: np.ndarray, t: np.ndarray, freq: float) -> np.ndarray:
