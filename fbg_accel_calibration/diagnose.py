@@ -1059,11 +1059,6 @@ def noisy_visits(lag0: np.ndarray, n: np.ndarray, line: np.ndarray, acf: np.ndar
     return ratio, stats.chi2.sf(nu * ratio, nu)
 
 
-def within_visit_sigma(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_s: np.ndarray | None = None) -> np.ndarray:
-    """The noise floor (3,) m/s^2 of a residual: ``within_visit_noise(...).sigma`` (without the jackknife it does not need)."""
-    return within_visit_noise(res, groups, rows, t_s, jackknife=False).sigma
-
-
 @dataclass
 class SettlingTransient:
     """Settling transient after the table stops, and disturbance before it moves on, measured on the declared
@@ -1972,7 +1967,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     for _ in range(4):
         if not auto_start and end_s is None:
             break
-        sigma = within_visit_sigma(res0, groups, settled_mask(data.t_s, groups, rows, settle_s, end_s), data.t_s)
+        sigma = within_visit_noise(res0, groups, settled_mask(data.t_s, groups, rows, settle_s, end_s), data.t_s,
+                                   jackknife=False).sigma
         grew = False
         if auto_start and (nxt := settle_window(settling, sigma)) > settle_s * (1 + 1e-3):
             settle_s, grew = nxt, True
@@ -2365,12 +2361,10 @@ def _calibration_from(spec: ModelSpec, des: Design, cv: CvResult, data: Diagnosi
     labels, level_t = temperature_levels(t)
     ref_used = np.asarray(data.ref, dtype=float)[data.use]
     level_ref = np.array([ref_used[labels == k].mean() for k in range(len(level_t))])
-    levels = {"reference_level_temperature_c": level_t, "reference_level_counts": level_ref}
-    cal = ThermalCalibration(M=M, b=b, temperature_range_c=rng, sensor_id=sensor_id, t_center_c=spec.t_center_c,
-                             t_scale_c=spec.t_scale_c, noise_sigma_mps2=noise, fit=fit, corrections=terms, **levels)
-    base = ThermalCalibration(M=M, b=b, temperature_range_c=rng, sensor_id=sensor_id, t_center_c=spec.t_center_c,
-                              t_scale_c=spec.t_scale_c, noise_sigma_mps2=noise, **levels)
-    return cal, base, added
+    model = {"M": M, "b": b, "temperature_range_c": rng, "sensor_id": sensor_id, "t_center_c": spec.t_center_c,
+             "t_scale_c": spec.t_scale_c, "noise_sigma_mps2": noise, "reference_level_temperature_c": level_t,
+             "reference_level_counts": level_ref}
+    return ThermalCalibration(**model, fit=fit, corrections=terms), ThermalCalibration(**model), added
 
 
 def _visit_reference_range(data: DiagnosisData, groups: np.ndarray, rows: np.ndarray) -> np.ndarray:
