@@ -262,12 +262,10 @@ class CellAccumulator:
         self._buffer = np.empty((chunk, self.p))
         self._index: dict[tuple[int, int], int] = {}  # (run, pose and level key) -> cell
         self._keys: list[tuple[int, int, int]] = []  # (pose, level, run) of each cell
-        self._xtx: list[np.ndarray] = []
-        self._xtg: list[np.ndarray] = []
-        self._gtg: list[np.ndarray] = []
-        self._xsum: list[np.ndarray] = []
-        self._gsum: list[np.ndarray] = []
-        self._count: list[float] = []
+        # per-cell sums, in CellStats' field order, with the shape of one cell's
+        self._shapes = {"xtx": (self.p, self.p), "xtg": (self.p, 3), "gtg": (3,), "xsum": (self.p,), "gsum": (3,),
+                        "count": ()}
+        self._sums: dict[str, list[np.ndarray]] = {name: [] for name in self._shapes}
         # visits (contiguous rows of one cell): sum of xsum xsum^T / n over the closed ones, and the open one
         self._visit_outer = np.zeros((self.p, self.p))
         self._visit_n: list[int] = []
@@ -280,12 +278,8 @@ class CellAccumulator:
         if c is None:
             c = self._index[(run, key)] = len(self._keys)
             self._keys.append((key >> 32, (key & 0xFFFFFFFF) - _LEVEL_OFFSET, run))
-            self._xtx.append(np.zeros((self.p, self.p)))
-            self._xtg.append(np.zeros((self.p, 3)))
-            self._gtg.append(np.zeros(3))
-            self._xsum.append(np.zeros(self.p))
-            self._gsum.append(np.zeros(3))
-            self._count.append(0.0)
+            for name, shape in self._shapes.items():
+                self._sums[name].append(np.zeros(shape))
         return c
 
     def add(self, psi: np.ndarray, tau: np.ndarray, gref: np.ndarray, pose: np.ndarray, level: np.ndarray,
@@ -317,12 +311,13 @@ class CellAccumulator:
                 segments += [(self._cell(r, int(ks[a])), order[a:b]) for a, b in itertools.pairwise(bounds)]
         for c, rows in segments:
             Xc, Gc = X[rows], G[rows]
-            self._xtx[c] += Xc.T @ Xc
-            self._xtg[c] += Xc.T @ Gc
-            self._gtg[c] += np.einsum("ni,ni->i", Gc, Gc)
-            self._xsum[c] += Xc.sum(axis=0)
-            self._gsum[c] += Gc.sum(axis=0)
-            self._count[c] += len(Gc)
+            sums = self._sums
+            sums["xtx"][c] += Xc.T @ Xc
+            sums["xtg"][c] += Xc.T @ Gc
+            sums["gtg"][c] += np.einsum("ni,ni->i", Gc, Gc)
+            sums["xsum"][c] += Xc.sum(axis=0)
+            sums["gsum"][c] += Gc.sum(axis=0)
+            sums["count"][c] += len(Gc)
 
     def _add_visits(self, X: np.ndarray, run: int, key: np.ndarray, change: np.ndarray) -> None:
         """Column sums of each visit in rows ``X`` of one run (time order; ``key`` their cells, ``change`` where
@@ -350,19 +345,14 @@ class CellAccumulator:
 
     def finish(self, level_map: np.ndarray | None = None) -> CellStats:
         """The sums as :class:`CellStats`, cells ordered by (pose, level, run); ``level_map`` relabels levels."""
-        p = self.p
         self._close_visit()
-        if not self._keys:
-            z = np.zeros(0, np.int64)
-            return CellStats(self.degree, z, z.copy(), np.zeros((0, p, p)), np.zeros((0, p, 3)), np.zeros((0, 3)),
-                             np.zeros((0, p)), np.zeros((0, 3)), np.zeros(0), np.zeros((p, p)), z.copy())
-        keys = np.asarray(self._keys, dtype=np.int64)
+        keys = np.asarray(self._keys, dtype=np.int64).reshape(-1, 3)
         if level_map is not None:
             keys[:, 1] = level_map[keys[:, 1]]
         order = np.lexsort((keys[:, 2], keys[:, 1], keys[:, 0]))
-        return CellStats(self.degree, keys[order, 0], keys[order, 1], np.asarray(self._xtx)[order],
-                         np.asarray(self._xtg)[order], np.asarray(self._gtg)[order], np.asarray(self._xsum)[order],
-                         np.asarray(self._gsum)[order], np.asarray(self._count)[order], self._visit_outer.copy(),
+        sums = [np.asarray(self._sums[name], dtype=float).reshape(-1, *shape)[order]
+                for name, shape in self._shapes.items()]
+        return CellStats(self.degree, keys[order, 0], keys[order, 1], *sums, self._visit_outer.copy(),
                          np.asarray(self._visit_n, dtype=np.int64))
 
 
@@ -389,6 +379,13 @@ def _reference_spread(gsum: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, 
     d = means - (count[:, None] * means).sum(axis=0) / count.sum()
     eig, vec = np.linalg.eigh((count[:, None, None] * d[:, :, None] * d[:, None, :]).sum(axis=0) / count.sum())
     return np.sqrt(np.maximum(eig, 0.0)), vec
+
+
+def _direction_text(v: np.ndarray) -> str:
+    """"(x, y, z)" of the unit vector ``v`` signed so that its largest component is positive (0.00, not -0.00)."""
+    u = v * np.sign(v[np.argmax(np.abs(v))])
+    u = np.where(np.abs(u) < 5e-3, 0.0, u)
+    return f"({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f})"
 
 
 ORIENTATION_TOLERANCE_DEG = 1.0  # cells whose mean reference directions are closer are one orientation
@@ -425,9 +422,8 @@ def level_excitation(stats: CellStats, min_spread_mps2: float = MIN_POSE_SPREAD_
         if spread[0] >= min_spread_mps2:
             ok += 1
         else:
-            u = np.where(np.abs(vec[:, 0]) < 5e-3, 0.0, vec[:, 0] * np.sign(vec[np.argmax(np.abs(vec[:, 0])), 0]))
             notes.append(f"temperature level {int(lev)}: its {len(np.unique(stats.pose[sel]))} poses do not tilt "
-                         f"the table direction ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}) (spread {spread[0]:.3g} m/s^2)")
+                         f"the table direction {_direction_text(vec[:, 0])} (spread {spread[0]:.3g} m/s^2)")
     return ok, notes
 
 
@@ -457,27 +453,21 @@ def check_pose_excitation(stats: CellStats, min_spread_mps2: float = MIN_POSE_SP
         raise NotIdentifiedError("no usable static samples")
     spread, vec = _reference_spread(stats.gsum, count)
     if not spread[0] >= min_spread_mps2:
-        u = vec[:, 0] * np.sign(vec[np.argmax(np.abs(vec[:, 0])), 0])
-        u = np.where(np.abs(u) < 5e-3, 0.0, u)  # print 0.00, not -0.00
-        axis = "xyz"[int(np.argmax(np.abs(u)))]
+        axis = "xyz"[int(np.argmax(np.abs(vec[:, 0])))]
         n_poses = count_orientations(stats)
         shape = "coincide" if spread[2] < min_spread_mps2 else ("are collinear" if spread[1] < min_spread_mps2
                                                                else "are coplanar")
         raise NotIdentifiedError(
             f"the {n_poses} poses' reference specific forces {shape}: their RMS spread along the table direction "
-            f"({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}) is {spread[0]:.3g} m/s^2 (< {min_spread_mps2:.3g}), so the {axis} row "
+            f"{_direction_text(vec[:, 0])} is {spread[0]:.3g} m/s^2 (< {min_spread_mps2:.3g}), so the {axis} row "
             "of M and b would be fitted to a constant (a dead axis); record poses that tilt that axis too "
             "(at least 4 non-coplanar poses, e.g. the six-position plan)")
-    psi_means = stats.xsum[:, 0:3] / count[:, None]  # columns 0..2 of eq. 29: Psi at k = 0
-    d = psi_means - (count[:, None] * psi_means).sum(axis=0) / count.sum()
-    eig_p, vec_p = np.linalg.eigh((count[:, None, None] * d[:, :, None] * d[:, None, :]).sum(axis=0) / count.sum())
-    psi_spread = np.sqrt(np.maximum(eig_p, 0.0))
+    psi_spread, vec_p = _reference_spread(stats.xsum[:, 0:3], count)  # columns 0..2 of eq. 29: Psi at k = 0
     if not psi_spread[0] > MIN_SIGNAL_SPREAD_RATIO * psi_spread[2]:
-        u = np.where(np.abs(vec_p[:, 0]) < 5e-3, 0.0, vec_p[:, 0] * np.sign(vec_p[np.argmax(np.abs(vec_p[:, 0])), 0]))
         if not psi_spread[2] > 1e-9:
             why = "the counts give the same Psi = counts / ref in every pose (identical samples?)"
         else:
-            why = (f"the sensor's Psi = counts / ref barely changes along ({u[0]:.2f}, {u[1]:.2f}, {u[2]:.2f}) "
+            why = (f"the sensor's Psi = counts / ref barely changes along {_direction_text(vec_p[:, 0])} "
                    f"between poses ({psi_spread[0]:.3g}, vs {psi_spread[2]:.3g} along the strongest direction)")
         raise NotIdentifiedError(f"{why}: a channel is dead, saturated or copied, so M cannot be determined; "
                                  "check the x/y/z_counts columns and the fibre connections")
