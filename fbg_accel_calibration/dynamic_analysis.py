@@ -31,7 +31,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
 import numpy as np
@@ -99,44 +99,31 @@ def sine_approximation(t_s: np.ndarray, y: np.ndarray, f_hz: float, fit_frequenc
     tc = float(np.mean(t))
     tau = t - tc
     w = 2.0 * np.pi * float(f_hz)
-    n_par = 3
-    for _ in range(max_iterations if fit_frequency else 1):
+    for _ in range(max_iterations if fit_frequency else 0):
         c, s = np.cos(w * tau), np.sin(w * tau)
         X = np.column_stack([c, s, np.ones_like(tau)])
         coef, *_ = np.linalg.lstsq(X, y, rcond=None)
-        if not fit_frequency:
-            break
         a, b, _ = coef
         # d/dw [a cos(w tau) + b sin(w tau)] = tau (-a sin + b cos)
-        Xf = np.column_stack([c, s, np.ones_like(tau), tau * (-a * s + b * c)])
-        step, *_ = np.linalg.lstsq(Xf, y - X @ coef, rcond=None)
+        step, *_ = np.linalg.lstsq(np.column_stack([X, tau * (-a * s + b * c)]), y - X @ coef, rcond=None)
         w += step[3]
-        n_par = 4
         if abs(step[3]) < 1e-12 * w:
             break
     c, s = np.cos(w * tau), np.sin(w * tau)
-    if fit_frequency:
-        X0 = np.column_stack([c, s, np.ones_like(tau)])
-        coef, *_ = np.linalg.lstsq(X0, y, rcond=None)
-        a, b, _ = coef
-        X = np.column_stack([c, s, np.ones_like(tau), tau * (-a * s + b * c)])
-    else:
-        X = np.column_stack([c, s, np.ones_like(tau)])
-    resid = y - X[:, :3] @ coef[:3]
-    dof = max(t.size - n_par, 1)
-    var = float(resid @ resid) / dof
+    X = np.column_stack([c, s, np.ones_like(tau)])
+    coef, *_ = np.linalg.lstsq(X, y, rcond=None)
+    a, b, off = (float(v) for v in coef)
+    resid = y - X @ coef
+    if fit_frequency:  # the covariance of the 4-parameter model
+        X = np.column_stack([X, tau * (-a * s + b * c)])
+    var = float(resid @ resid) / max(t.size - X.shape[1], 1)
     cov = var * np.linalg.pinv(X.T @ X)
-    a, b, off = (float(v) for v in coef[:3])
     amp = math.hypot(a, b)
     # a cos + b sin = amp cos(w tau + phi) with amp cos phi = a, amp sin phi = -b
     phi_c = math.atan2(-b, a)
     # gradients of amp and phi with respect to (a, b)
-    if amp > 0:
-        g_amp = np.array([a / amp, b / amp])
-        g_phi = np.array([b / amp**2, -a / amp**2])
-    else:
-        g_amp = np.zeros(2)
-        g_phi = np.zeros(2)
+    g_amp = np.array([a, b]) / amp if amp > 0 else np.zeros(2)
+    g_phi = np.array([b, -a]) / amp**2 if amp > 0 else np.zeros(2)
     cab = cov[:2, :2]
     u_amp = math.sqrt(max(float(g_amp @ cab @ g_amp), 0.0))
     u_phi = math.sqrt(max(float(g_phi @ cab @ g_phi), 0.0))
@@ -450,9 +437,13 @@ class BudgetComponent:
     kind: str
     note: str = ""
 
+    @classmethod
+    def standard(cls, name: str, value: float, unit: str, kind: str, note: str) -> BudgetComponent:
+        """A component whose value is already a standard uncertainty (divisor 1)."""
+        return cls(name, value, unit, 1.0, value, kind, note)
+
     def to_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "value": self.value, "unit": self.unit, "divisor": self.divisor,
-                "standard_uncertainty": self.standard_uncertainty, "kind": self.kind, "note": self.note}
+        return asdict(self)
 
 
 def combined_standard_uncertainty(components: Sequence[BudgetComponent]) -> float:
@@ -550,13 +541,7 @@ class DynamicPoint:
         return complex(self.sensitivity * np.exp(1j * np.deg2rad(self.phase_deg)))
 
     def to_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        for k, v in self.__dict__.items():
-            if k.startswith("budget_"):
-                out[k] = [c.to_dict() for c in v]
-            else:
-                out[k] = v
-        return out
+        return asdict(self)  # the budgets as lists of dicts
 
 
 @dataclass
@@ -754,29 +739,22 @@ def _fill_point(p: DynamicPoint, whole: list[_Estimate], reps: list[_Estimate], 
         s_ph = math.degrees(e.u_phase_rad)
         s_d = e.u_phase_rad / (2 * np.pi * f)
         note = "single period: sine-fit covariance (white noise assumed: an underestimate for coloured noise)"
-    rep_s = BudgetComponent("repeatability", s_rel * p.sensitivity, "1", 1.0, s_rel * p.sensitivity, "A", note)
-    rep_p = BudgetComponent("repeatability", s_ph, "deg", 1.0, s_ph, "A", note)
-    rep_d = BudgetComponent("repeatability", s_d, "s", 1.0, s_d, "A", note)
-
     res_d, res_p = resolution_components(fs, f)
 
     d_abs = abs(p.direction_component)
     ang_rel = math.sqrt(max(1.0 - d_abs**2, 0.0)) / d_abs * ru.direction_rad
     S = p.sensitivity
+    std = BudgetComponent.standard
     p.budget_sensitivity = [
-        rep_s,
-        BudgetComponent("reference", ru.sensitivity_rel * S, "1", 1.0, ru.sensitivity_rel * S, "B",
-                        f"{ru.sensitivity_rel:.3g} relative"),
-        BudgetComponent("positioning angle", ang_rel * S, "1", 1.0, ang_rel * S, "B",
-                        f"{ru.direction_rad:.3g} rad on the projection"),
-        BudgetComponent("transverse sensitivity", ru.transverse_rel * S, "1", 1.0, ru.transverse_rel * S, "B",
-                        f"{ru.transverse_rel:.3g} relative"),
+        std("repeatability", s_rel * S, "1", "A", note),
+        std("reference", ru.sensitivity_rel * S, "1", "B", f"{ru.sensitivity_rel:.3g} relative"),
+        std("positioning angle", ang_rel * S, "1", "B", f"{ru.direction_rad:.3g} rad on the projection"),
+        std("transverse sensitivity", ru.transverse_rel * S, "1", "B", f"{ru.transverse_rel:.3g} relative"),
     ]
-    ref_d = ru.phase_deg / (360.0 * f)
-    p.budget_phase = [rep_p, res_p, BudgetComponent("reference", ru.phase_deg, "deg", 1.0, ru.phase_deg, "B",
-                                                    "reference phase")]
-    p.budget_delay = [rep_d, res_d, BudgetComponent("reference", ref_d, "s", 1.0, ref_d, "B",
-                                                    "reference phase / (360 f)")]
+    p.budget_phase = [std("repeatability", s_ph, "deg", "A", note), res_p,
+                      std("reference", ru.phase_deg, "deg", "B", "reference phase")]
+    p.budget_delay = [std("repeatability", s_d, "s", "A", note), res_d,
+                      std("reference", ru.phase_deg / (360.0 * f), "s", "B", "reference phase / (360 f)")]
     p.u_sensitivity = combined_standard_uncertainty(p.budget_sensitivity)
     p.u_phase_deg = combined_standard_uncertainty(p.budget_phase)
     p.u_delay_s = combined_standard_uncertainty(p.budget_delay)
