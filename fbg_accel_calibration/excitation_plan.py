@@ -13,7 +13,7 @@ Units: s, Hz, m/s^2, m/s; ``direction`` is a unit vector in the sensor frame (RE
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +28,8 @@ FORMAT_NAME = "fbg_accel_excitation_plan"
 FORMAT_VERSION = 1
 TOP_KEYS = ("format", "format_version", "name", "description", "direction", "start_s", "gap_s", "ramp_cycles",
             "settle_s", "reference", "segments")
-REFERENCE_TYPES = ("ldv", "accelerometer")
+SENSITIVITY_KEYS = {"ldv": "sensitivity_counts_per_mps", "accelerometer": "sensitivity_counts_per_mps2"}
+REFERENCE_TYPES = tuple(SENSITIVITY_KEYS)
 REFERENCE_KEYS = ("type", "sensitivity_counts_per_mps", "sensitivity_counts_per_mps2", "offset_counts",
                   "ac_coupling_hz", "relative_uncertainty", "phase_uncertainty_deg")
 SEGMENT_KEYS = ("freq_hz", "amplitude_mps2", "duration_s")
@@ -115,6 +116,7 @@ class ExcitationPlan:
     def sim_overrides(self) -> dict[str, Any]:
         """Dotted simulator-config keys that make ``board_sim`` run this plan (protocol version 2)."""
         ref = self.reference
+        transducer = f"reference_transducer.{ref.type}."
         out: dict[str, Any] = {
             "board.protocol_version": 2,
             "scenario.slide.enabled": True,
@@ -122,17 +124,13 @@ class ExcitationPlan:
             "scenario.slide.start_s": self.start_s,
             "scenario.slide.gap_s": self.gap_s,
             "scenario.slide.ramp_cycles": self.ramp_cycles,
-            "scenario.slide.segments": [{"freq_hz": s.freq_hz, "amplitude_mps2": s.amplitude_mps2,
-                                         "duration_s": s.duration_s} for s in self.segments],
+            "scenario.slide.segments": [asdict(s) for s in self.segments],
             "reference_transducer.type": ref.type,
+            transducer + SENSITIVITY_KEYS[ref.type]: ref.sensitivity,
+            transducer + "offset_counts": ref.offset_counts,
         }
         if ref.type == "ldv":
-            out["reference_transducer.ldv.sensitivity_counts_per_mps"] = ref.sensitivity
-            out["reference_transducer.ldv.offset_counts"] = ref.offset_counts
-            out["reference_transducer.ldv.ac_coupling_hz"] = ref.ac_coupling_hz
-        else:
-            out["reference_transducer.accelerometer.sensitivity_counts_per_mps2"] = ref.sensitivity
-            out["reference_transducer.accelerometer.offset_counts"] = ref.offset_counts
+            out[transducer + "ac_coupling_hz"] = ref.ac_coupling_hz
         return out
 
     def with_tone(self, freq_hz: float, amplitude_mps2: float, duration_s: float) -> ExcitationPlan:
@@ -145,15 +143,13 @@ class ExcitationPlan:
     # ------------------------------------------------------------------ file I/O
     def to_dict(self) -> dict[str, Any]:
         ref = self.reference
-        sens_key = "sensitivity_counts_per_mps" if ref.type == "ldv" else "sensitivity_counts_per_mps2"
         return {"format": FORMAT_NAME, "format_version": FORMAT_VERSION, "name": self.name,
                 "description": self.description, "direction": list(self.direction), "start_s": self.start_s,
                 "gap_s": self.gap_s, "ramp_cycles": self.ramp_cycles, "settle_s": self.settle_s,
-                "reference": {"type": ref.type, sens_key: ref.sensitivity, "offset_counts": ref.offset_counts,
+                "reference": {"type": ref.type, SENSITIVITY_KEYS[ref.type]: ref.sensitivity, "offset_counts": ref.offset_counts,
                               "ac_coupling_hz": ref.ac_coupling_hz, "relative_uncertainty": ref.relative_uncertainty,
                               "phase_uncertainty_deg": ref.phase_uncertainty_deg},
-                "segments": [{"freq_hz": s.freq_hz, "amplitude_mps2": s.amplitude_mps2, "duration_s": s.duration_s}
-                             for s in self.segments]}
+                "segments": [asdict(s) for s in self.segments]}
 
     @classmethod
     def load(cls, path: str | Path) -> ExcitationPlan:
@@ -194,7 +190,7 @@ class ExcitationPlan:
         rtype = ref_d.get("type")
         if rtype not in REFERENCE_TYPES:
             raise fail(f"reference.type must be one of {REFERENCE_TYPES}, got {rtype!r}")
-        sens_key = "sensitivity_counts_per_mps" if rtype == "ldv" else "sensitivity_counts_per_mps2"
+        sens_key = SENSITIVITY_KEYS[rtype]
         if sens_key not in ref_d:
             raise fail(f"reference.{sens_key} is required for a reference of type {rtype}")
         sens = number(ref_d[sens_key], f"reference.{sens_key}", fail)
