@@ -199,16 +199,10 @@ def fit_chain_model(points: Sequence[DynamicPoint], highpass: bool = False,
         uS = 0.01 * S
         uph = np.full_like(f, np.deg2rad(1.0))
 
-    def unpack(x: np.ndarray) -> tuple[float, float, float, float | None]:
-        i = 0
-        k = 1.0
-        if fit_gain:
-            k = float(np.exp(x[0]))
-            i = 1
-        fc = float(np.exp(x[i]))
-        tau = float(x[i + 1])
-        fhp = float(np.exp(x[i + 2])) if highpass else None
-        return k, fc, tau, fhp
+    def unpack(x: np.ndarray) -> tuple[float, float, float, float | None]:  # x: ([log K,] log fc, tau[, log fhp])
+        i = int(fit_gain)
+        return (float(np.exp(x[0])) if fit_gain else 1.0, float(np.exp(x[i])), float(x[i + 1]),
+                float(np.exp(x[i + 2])) if highpass else None)
 
     def resid(x: np.ndarray) -> np.ndarray:
         k, fc, tau, fhp = unpack(x)
@@ -219,17 +213,9 @@ def fit_chain_model(points: Sequence[DynamicPoint], highpass: bool = False,
     x0 = _initial_guess(f, S, ph, 1.0 / uph ** 2, fit_gain, highpass, highpass_in, resid)
     sol = least_squares(resid, x0, method="lm" if len(f) * 2 > len(x0) else "trf", x_scale="jac")
     k, fc, tau, fhp = unpack(sol.x)
-    J = sol.jac
     # Jacobian is in (log K, log fc, tau, log fhp): chain rule to (K, fc, tau, fhp)
-    scale = []
-    if fit_gain:
-        scale.append(k)
-    scale += [fc, 1.0]
-    if highpass:
-        scale.append(fhp)
-    Jp = J / np.array(scale)
-    m, p = J.shape
-    dof = m - p
+    Jp = sol.jac / np.array(([k] if fit_gain else []) + [fc, 1.0] + ([fhp] if highpass else []))
+    dof = sol.jac.shape[0] - sol.jac.shape[1]
     chi2 = float(sol.fun @ sol.fun)
     cov = np.linalg.pinv(Jp.T @ Jp)
     if uncertainty_scaling == "residual":
@@ -237,13 +223,10 @@ def fit_chain_model(points: Sequence[DynamicPoint], highpass: bool = False,
     elif uncertainty_scaling != "points":
         raise ValueError("uncertainty_scaling must be 'residual' or 'points'")
     u = np.sqrt(np.clip(np.diag(cov), 0, None))
-    j = 0
-    u_k = math.nan
-    if fit_gain:
-        u_k = float(u[0])
-        j = 1
+    j = int(fit_gain)
     h = _response(f, k, fc, tau, fhp, highpass_in)
-    model = ChainModel(gain=k, cutoff_hz=fc, delay_s=tau, highpass_cutoff_hz=fhp, highpass_in=highpass_in, u_gain=u_k,
+    model = ChainModel(gain=k, cutoff_hz=fc, delay_s=tau, highpass_cutoff_hz=fhp, highpass_in=highpass_in,
+                       u_gain=float(u[0]) if fit_gain else math.nan,
                        u_cutoff_hz=float(u[j]), u_delay_s=float(u[j + 1]),
                        u_highpass_cutoff_hz=float(u[j + 2]) if highpass else math.nan,
                        axis=pts[0].axis if pts else "")
@@ -287,8 +270,7 @@ def _initial_guess(f: np.ndarray, S: np.ndarray, ph: np.ndarray, w_ph: np.ndarra
             taus += _delay_candidates(f, left, w_ph, MAX_ABS_DELAY_S)
             k = float(np.exp(np.mean(np.log(S / np.abs(h0))))) if fit_gain else 1.0
             for tau in taus:
-                x = ([math.log(k)] if fit_gain else []) + [math.log(fc), tau] + ([math.log(fhp)] if highpass else [])
-                x = np.array(x)
+                x = np.array(([math.log(k)] if fit_gain else []) + [math.log(fc), tau] + ([math.log(fhp)] if highpass else []))
                 found.append((float(np.sum(resid(x) ** 2)), abs(tau), x))
     best = min(c for c, _, _ in found)
     tie = best + 1e-9 + 1e-6 * best  # equal up to rounding: the same phases modulo 2 pi
