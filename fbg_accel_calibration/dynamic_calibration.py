@@ -34,6 +34,7 @@ from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .chain_model import ChainModel, fit_chain_models
 from .dynamic_analysis import (
+    AXES,
     STEP_TOL,
     DynamicPoint,
     ReferenceUncertainty,
@@ -45,9 +46,6 @@ from .dynamic_analysis import (
 )
 from .excitation_plan import ExcitationPlan, find_slide_start, reference_acceleration
 from .recording import Recording
-
-AXES = ("x", "y", "z")
-
 
 MAX_CHI2_PER_DOF = 100.0  # a chain fit missing its points by > 10 standard uncertainties (rms) is refused
 
@@ -130,21 +128,17 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
     if lost:
         notes.append(f"{lost} segment(s) of the plan are not (wholly) in the recording or too short once settled")
     # a sine whose peaks hit a rail of the ADC reads a smaller amplitude and a shifted phase (Recording.clipped;
-    # the reference transducer on aux is read by the same 12-bit converters)
-    clipped = rec.clipped()[order][ok] | at_adc_rail(aux)
-    hit = [w for w in windows if clipped[_steady(t, w)].any()]
-    if hit:
-        windows = [w for w in windows if w not in hit]
-        notes.append(f"segment(s) at {', '.join(f'{w[0]:g} Hz' for w in hit)} left out: a channel clipped at a rail "
-                     "of the ADC during the steady part (lower the slide's amplitude there)")
-    # no source light (Recording.low_reference: the driver publishes nothing then, the static fit leaves such samples
-    # out): Psi = counts / ref is no measurement, so a segment with such a moment in its steady part is left out
-    dark = rec.low_reference()[order][ok]
-    hit = [w for w in windows if dark[_steady(t, w)].any()]
-    if hit:
-        windows = [w for w in windows if w not in hit]
-        notes.append(f"segment(s) at {', '.join(f'{w[0]:g} Hz' for w in hit)} left out: the reference dark (below "
-                     f"{LOW_REFERENCE_COUNTS} counts, no source light) during the steady part")
+    # the reference transducer on aux is read by the same 12-bit converters); with no source light
+    # (Recording.low_reference: the driver publishes nothing then, the static fit leaves such samples out)
+    # Psi = counts / ref is no measurement: a segment with such a sample in its steady part is left out
+    for bad, why in ((rec.clipped()[order][ok] | at_adc_rail(aux),
+                      "a channel clipped at a rail of the ADC during the steady part (lower the slide's amplitude there)"),
+                     (rec.low_reference()[order][ok], f"the reference dark (below {LOW_REFERENCE_COUNTS} counts, no "
+                                                      "source light) during the steady part")):
+        hit = [w for w in windows if bad[_steady(t, w)].any()]
+        if hit:
+            windows = [w for w in windows if w not in hit]
+            notes.append(f"segment(s) at {', '.join(f'{w[0]:g} Hz' for w in hit)} left out: {why}")
     # the whole-period cuts, the DFT and the circular cross-correlation count samples: a lost frame (or a
     # sample dropped above for a non-finite value, or a late read) inside a steady part would shift every later
     # sample, so such a part keeps its longest uniformly sampled stretch (left out below if it holds < 2 periods)
