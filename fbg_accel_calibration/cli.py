@@ -182,11 +182,10 @@ def _load(paths: list[Path], args: argparse.Namespace):
 def cmd_import(args: argparse.Namespace) -> int:
     """CSV -> MCAP, streamed block by block (memory: one block), written to a temporary file that replaces
     the output only when the whole import succeeded."""
+    from .cli_progress import CountedSource, enabled
     from .csv_import import CsvBlocks, write_mcap
 
     check_outputs([args.output], [args.csv], args.force)
-    from .cli_progress import CountedSource, enabled
-
     src = CountedSource(CsvBlocks(args.csv, rate_hz=args.rate, temperature_c=args.temperature, g_mps2=args.g),
                         f"import {args.csv.name} (1: check, 2: write)", enabled(args))
     metadata = {"sensor_id": args.sensor_id, "operator_notes": args.notes, "source": str(args.csv),
@@ -206,13 +205,12 @@ def cmd_import(args: argparse.Namespace) -> int:
 def cmd_fit(args: argparse.Namespace) -> int:
     """Fit from the files (``fit_pipeline.fit_files``: MCAP streamed, memory bounded by one block,
     docs/calibration_fit.md; ``--in-memory`` loads every sample first)."""
+    from .cli_progress import enabled
     from .fit_pipeline import FitOptions, fit_files
     from .recording import low_reference_warning
     from .thermal_fit import FULL_SCALE_MPS2, reference_reach_warnings
 
     check_outputs([args.output], args.inputs, args.force)  # the inputs are checked first thing by fit_files
-    from .cli_progress import enabled
-
     options = FitOptions(args.window, args.min_interval, args.level_gap, args.rate, args.temperature, args.g,
                          getattr(args, "namespace", None), getattr(args, "topic", None), args.in_memory, enabled(args))
     out = fit_files(args.inputs, degree=args.degree, max_degree=args.max_degree, sensor_id=args.sensor_id,
@@ -433,6 +431,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     from .fit_stream import prepare
     from .model_selection import select_degree
     from .static_detector import calibration_samples
+    from .thermal_fit import reference_reach_warnings, sensor_id_of
 
     out = args.output_dir
     check_output_dir(out, REPORT_FILES, [*args.inputs, args.calibration], args.force)
@@ -445,26 +444,23 @@ def cmd_report(args: argparse.Namespace) -> int:
     selection = select_degree(data, max_degree=args.max_degree)
     out.mkdir(parents=True, exist_ok=True)
     stats = pose_statistics(cal, rec, usable & np.isfinite(rec.temp_c))
-    with atomic_path(out / "calibrated_vs_reference.png") as tmp:
+    report_md, vs_reference_png, per_degree_png = REPORT_FILES
+    with atomic_path(out / vs_reference_png) as tmp:
         plot_calibrated_vs_reference(cal, rec, usable, tmp)
-    with atomic_path(out / "residuals_per_degree.png") as tmp:
+    with atomic_path(out / per_degree_png) as tmp:
         plot_residuals_per_degree(selection, tmp)
-    from .thermal_fit import sensor_id_of
-
     warnings = calibration_match_warnings(cal, rec)
     if (cal.fit or {}).get("reference_range_mps2") is not None:  # files written before it was recorded lack it
-        from .thermal_fit import reference_reach_warnings
-
         warnings += reference_reach_warnings(cal.fit["reference_range_mps2"])
     for line in warnings:
         print(f"warning: {line}", file=sys.stderr)
-    text = fit_report_markdown(cal, selection, stats, {"calibrated vs reference": "calibrated_vs_reference.png",
-                                                       "residuals per degree": "residuals_per_degree.png"},
+    text = fit_report_markdown(cal, selection, stats, {"calibrated vs reference": vs_reference_png,
+                                                       "residuals per degree": per_degree_png},
                                _command_line(args), recording_sensor_id=sensor_id_of(rec.metadata), warnings=warnings)
-    with atomic_path(out / "report.md") as tmp:
+    with atomic_path(out / report_md) as tmp:
         tmp.write_text(text, encoding="utf-8")
     print(selection.table_markdown())
-    print(f"wrote {out / 'report.md'}, {out / 'calibrated_vs_reference.png'}, {out / 'residuals_per_degree.png'}")
+    print("wrote " + ", ".join(str(out / name) for name in REPORT_FILES))
     return 0
 
 
