@@ -111,11 +111,7 @@ def static_segments(acc_mps2: np.ndarray, usable: np.ndarray, pose_id: np.ndarra
         return []
     change = np.r_[True, (np.diff(pose_id) != 0) | (np.diff(run_id) != 0) | (np.diff(usable.astype(np.int8)) != 0)]
     seg = np.cumsum(change) - 1
-    out = []
-    for k in np.unique(seg[usable]):
-        idx = np.flatnonzero(seg == k)
-        out.append(acc_mps2[idx])
-    return out
+    return [acc_mps2[seg == k] for k in np.unique(seg[usable])]
 
 
 SAMPLE_ROWS = 65536  # samples of a recording the fit looks at (the first ones): ample for lags of ~20 samples

@@ -68,11 +68,8 @@ class ProgressDisplay:
         """Draw the status if due; returns True when something was written."""
         now = self.clock()
         key = (status.pose_index, str(status.phase), status.still)
-        if self.is_tty:
-            due = force or now - self._last_time >= self.tty_interval_s or key != self._last_key
-        else:
-            due = force or key != self._last_key or now - self._last_time >= self.plain_interval_s
-        if not due:
+        interval = self.tty_interval_s if self.is_tty else self.plain_interval_s
+        if not (force or key != self._last_key or now - self._last_time >= interval):
             return False
         line = format_progress(status, temperature_c, setpoint_c)
         if self.is_tty:
