@@ -36,9 +36,13 @@ class Feeder:
         return [e.kind for e in self.seq.pop_events()]
 
 
+def _started(mode: Mode, plan: PosePlan | None = None) -> tuple[PoseSequencer, Feeder]:
+    seq = PoseSequencer(plan or _plan(), mode)
+    return seq, Feeder(seq)
+
+
 def test_service_mode_records_exactly_n_samples_per_pose_and_waits_for_motion_after_an_early_trigger():
-    seq = PoseSequencer(_plan(), Mode.SERVICE)
-    f = Feeder(seq)
+    seq, f = _started(Mode.SERVICE)
     assert f.feed(5, False) == [-1] * 5 and seq.phase is Phase.WAIT_STILL
     labels = f.feed(30, True)
     assert labels[:10] == [0] * 10 and labels[10:] == [-1] * 20
@@ -61,8 +65,7 @@ def test_service_mode_records_exactly_n_samples_per_pose_and_waits_for_motion_af
 
 
 def test_service_mode_refuses_a_trigger_before_the_pose_is_recorded():
-    seq = PoseSequencer(_plan(), Mode.SERVICE)
-    f = Feeder(seq)
+    seq, f = _started(Mode.SERVICE)
     f.feed(4, True)
     ok, msg = seq.request_next()
     assert not ok and "not recorded yet: 4/10 samples" in msg
@@ -70,8 +73,7 @@ def test_service_mode_refuses_a_trigger_before_the_pose_is_recorded():
 
 
 def test_service_mode_loss_of_stillness_at_the_pose_pauses_and_resumes_the_count():
-    seq = PoseSequencer(_plan(), Mode.SERVICE)
-    f = Feeder(seq)
+    seq, f = _started(Mode.SERVICE)
     f.feed(6, True, departed=False)
     f.feed(3, False, departed=False)  # a knock: the signal stays at the pose's level
     events = seq.pop_events()
@@ -82,8 +84,7 @@ def test_service_mode_loss_of_stillness_at_the_pose_pauses_and_resumes_the_count
 
 
 def test_service_mode_table_moved_before_the_pose_was_recorded_closes_it_short():
-    seq = PoseSequencer(_plan(), Mode.SERVICE)
-    f = Feeder(seq)
+    seq, f = _started(Mode.SERVICE)
     f.feed(6, True, departed=False)
     f.feed(3, False, departed=False)
     f.feed(5, False, departed=True)  # paused, then the signal leaves the pose: the operator turned the table
@@ -96,8 +97,7 @@ def test_service_mode_table_moved_before_the_pose_was_recorded_closes_it_short()
 
 
 def test_auto_mode_detector_false_alarm_at_a_pose_neither_advances_nor_mislabels():
-    seq = PoseSequencer(_plan(), Mode.AUTO)
-    f = Feeder(seq)
+    seq, f = _started(Mode.AUTO)
     f.feed(5, True, departed=False)
     f.feed(2, False, departed=False)  # false alarm during recording
     f.feed(20, True, departed=False)
@@ -109,8 +109,7 @@ def test_auto_mode_detector_false_alarm_at_a_pose_neither_advances_nor_mislabels
 
 
 def test_auto_mode_advances_on_motion_and_records_the_next_still_pose():
-    seq = PoseSequencer(_plan(), Mode.AUTO)
-    f = Feeder(seq)
+    seq, f = _started(Mode.AUTO)
     f.feed(40, True)
     assert seq.phase is Phase.RECORDED and seq.index == 0
     f.feed(30, False)  # table turning
@@ -129,8 +128,7 @@ def test_stillness_held_since_the_previous_pose_is_not_taken_for_stillness_at_th
     """The table leaves pose 0 slowly: the signal departs from the pose's level while the detector still
     reports the stillness it has held since pose 0. That verdict must not record pose 1 (it did, at once:
     the run fell out of step); only a still run that starts after the motion was seen counts."""
-    seq = PoseSequencer(_plan(), mode)
-    f = Feeder(seq)
+    seq, f = _started(mode)
     f.feed(20, True, departed=False)
     assert seq.phase is Phase.RECORDED
     if mode is Mode.SERVICE:
@@ -158,8 +156,7 @@ def test_auto_mode_advances_on_the_dwell_time_when_the_plan_expects_no_visible_c
 
 
 def test_auto_mode_warns_once_when_the_table_is_late_and_keeps_waiting():
-    seq = PoseSequencer(_plan(dwell=1.0, move=0.5), Mode.AUTO)
-    f = Feeder(seq)
+    seq, f = _started(Mode.AUTO, _plan(dwell=1.0, move=0.5))
     f.feed(400, True)
     late = [e for e in seq.pop_events() if e.kind == "late"]
     assert len(late) == 1 and late[0].warning and seq.index == 0
@@ -169,8 +166,7 @@ def test_auto_mode_warns_once_when_the_table_is_late_and_keeps_waiting():
 
 
 def test_auto_mode_closes_a_pose_short_when_the_table_leaves_during_recording():
-    seq = PoseSequencer(_plan(), Mode.AUTO)
-    f = Feeder(seq)
+    seq, f = _started(Mode.AUTO)
     f.feed(4, True)
     f.feed(5, False)
     short = [e for e in seq.pop_events() if e.kind == "short"]
@@ -182,15 +178,13 @@ def test_auto_mode_closes_a_pose_short_when_the_table_leaves_during_recording():
 
 
 def test_auto_mode_not_still_within_dwell_warns():
-    seq = PoseSequencer(_plan(dwell=1.0, move=0.5), Mode.AUTO)
-    f = Feeder(seq)
+    seq, f = _started(Mode.AUTO, _plan(dwell=1.0, move=0.5))
     f.feed(200, False)
     assert [e.kind for e in seq.pop_events() if e.warning] == ["not_still"]
 
 
 def test_auto_mode_trigger_skips_the_current_pose():
-    seq = PoseSequencer(_plan(), Mode.AUTO)
-    f = Feeder(seq)
+    seq, f = _started(Mode.AUTO)
     f.feed(3, False)
     ok, _ = seq.request_next()
     assert ok and seq.index == 1
@@ -225,8 +219,7 @@ def test_auto_mode_skip_with_the_table_still_at_the_old_pose_waits_for_motion(sk
 
 
 def test_abort_stops_labelling():
-    seq = PoseSequencer(_plan(), Mode.SERVICE)
-    f = Feeder(seq)
+    seq, f = _started(Mode.SERVICE)
     f.feed(3, True)
     seq.abort("test")
     assert seq.phase is Phase.ABORTED and f.feed(20, True) == [-1] * 20
@@ -325,8 +318,7 @@ def test_progress_display_plain_text_when_not_a_tty_only_on_change():
     out = io.StringIO()
     disp = ProgressDisplay(out, clock=lambda: now[0], plain_interval_s=10.0)
     assert not disp.is_tty
-    seq = PoseSequencer(_plan(samples=10), Mode.SERVICE)
-    f = Feeder(seq)
+    seq, f = _started(Mode.SERVICE, _plan(samples=10))
     written = []
     for _ in range(8):  # phase changes once (wait_still -> recording), then 7 quiet samples
         f.feed(1, True)
