@@ -70,15 +70,10 @@ class Pose:
     theta_deg: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        d: dict[str, Any] = {"name": self.name}
-        if self.psi_deg is not None and self.theta_deg is not None:
-            d["psi_deg"] = self.psi_deg
-            d["theta_deg"] = self.theta_deg
-        else:
-            d["gref_mps2"] = [float(v) for v in self.gref_mps2]
-        d["dwell_s"] = self.dwell_s
-        d["samples"] = self.samples
-        return d
+        """As given: table angles, else the reference."""
+        given = ({"psi_deg": self.psi_deg, "theta_deg": self.theta_deg} if self.psi_deg is not None
+                 and self.theta_deg is not None else {"gref_mps2": [float(v) for v in self.gref_mps2]})
+        return {"name": self.name, **given, "dwell_s": self.dwell_s, "samples": self.samples}
 
 
 @dataclass(frozen=True)
@@ -133,15 +128,9 @@ class PosePlan:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain, normalised form (every pose explicit) for run metadata."""
-        d: dict[str, Any] = {
-            "format": FORMAT_NAME,
-            "format_version": FORMAT_VERSION,
-            "name": self.name,
-            "description": self.description,
-            "local_g_mps2": self.local_g_mps2,
-            "move_s": self.move_s,
-            "poses": [p.to_dict() for p in self.poses],
-        }
+        d: dict[str, Any] = {"format": FORMAT_NAME, "format_version": FORMAT_VERSION, "name": self.name,
+                             "description": self.description, "local_g_mps2": self.local_g_mps2, "move_s": self.move_s,
+                             "poses": [p.to_dict() for p in self.poses]}
         if self.chamber is not None:
             d["chamber"] = {"levels_c": list(self.chamber.levels_c), "soak_s": self.chamber.soak_s,
                             "tolerance_c": self.chamber.tolerance_c}
