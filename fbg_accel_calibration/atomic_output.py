@@ -31,11 +31,9 @@ class OutputError(ValueError):
 
 
 def _same(a: Path, b: Path) -> bool:
-    try:
+    with contextlib.suppress(OSError):
         if a.exists() and b.exists() and os.path.samefile(a, b):
             return True
-    except OSError:
-        pass
     return os.path.realpath(a) == os.path.realpath(b)
 
 
