@@ -230,8 +230,8 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
     center, scale = temperature_scaling(np.array([t_min, t_max])) if np.isfinite(t_min) else (0.0, 1.0)
 
     acc = CellAccumulator(degree, chunk)
-    buf_psi, buf_tau, buf_g = np.empty((chunk, 3)), np.empty(chunk), np.empty((chunk, 3))
-    buf_pose, buf_level, buf_run = np.empty(chunk, np.int64), np.empty(chunk, np.int64), np.empty(chunk, np.int64)
+    # the rows of CellAccumulator.add: Psi, tau, reference, pose, level, run
+    buffers = [np.empty((chunk, 3)), np.empty(chunk), np.empty((chunk, 3)), *(np.empty(chunk, np.int64) for _ in range(3))]
     fill = 0
     level_sum = np.zeros(clusters.n_labels)
     level_count = np.zeros(clusters.n_labels, np.int64)
@@ -243,20 +243,20 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
         level_sum += np.bincount(lab, weights=t, minlength=clusters.n_labels)
         level_count += np.bincount(lab, minlength=clusters.n_labels)
         level_ref_sum += np.bincount(lab, weights=blk.ref[rows].astype(float), minlength=clusters.n_labels)
-        tau, ps, g, pz = (t - center) / scale, psi[rows], blk.gref_mps2[rows], blk.pose_id[rows]
+        columns = (psi[rows], (t - center) / scale, blk.gref_mps2[rows], blk.pose_id[rows], lab,
+                   np.full(len(rows), i))  # a cell is one run's (CellStats)
         start = 0
         while start < len(rows):
             take = min(chunk - fill, len(rows) - start)
-            sl, dst = slice(start, start + take), slice(fill, fill + take)
-            buf_psi[dst], buf_tau[dst], buf_g[dst], buf_pose[dst], buf_level[dst] = ps[sl], tau[sl], g[sl], pz[sl], lab[sl]
-            buf_run[dst] = i  # a cell is one run's (CellStats)
+            for buf, col in zip(buffers, columns, strict=True):
+                buf[fill:fill + take] = col[start:start + take]
             fill += take
             start += take
             if fill == chunk:
-                acc.add(buf_psi, buf_tau, buf_g, buf_pose, buf_level, buf_run)
+                acc.add(*buffers)
                 fill = 0
     if fill:
-        acc.add(buf_psi[:fill], buf_tau[:fill], buf_g[:fill], buf_pose[:fill], buf_level[:fill], buf_run[:fill])
+        acc.add(*(buf[:fill] for buf in buffers))
     present = np.flatnonzero(level_count)
     level_map = np.full(max(clusters.n_labels, 1), -1, np.int64)
     level_map[present] = np.arange(len(present))
