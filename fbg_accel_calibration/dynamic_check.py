@@ -38,18 +38,15 @@ def replay(data: bytes, cal: ThermalCalibration, mode: str, bandwidth_hz: float 
     stamps: list[int] = []
     acc: list[tuple[float, float, float]] = []
     offsets: list[tuple[int, int]] = []  # (raw stamp ns, board time ns)
-    last_t_us = 0
-    for k in range(0, len(data), chunk_bytes):
-        out = core.feed(data[k:k + chunk_bytes], T0_NS + last_t_us * 1000 + TRANSPORT_NS)
-        for r in out.raw:
-            offsets.append((r.stamp_ns, r.frame.t_us * 1000))
-            last_t_us = r.frame.t_us
-        stamps += [s.stamp_ns for s in out.imu]
-        acc += [s.accel_mps2 for s in out.imu]
-    out = core.flush()
-    offsets += [(r.stamp_ns, r.frame.t_us * 1000) for r in out.raw]
-    stamps += [s.stamp_ns for s in out.imu]
-    acc += [s.accel_mps2 for s in out.imu]
+
+    def collect(out: Any) -> None:
+        offsets.extend((r.stamp_ns, r.frame.t_us * 1000) for r in out.raw)
+        stamps.extend(s.stamp_ns for s in out.imu)
+        acc.extend(s.accel_mps2 for s in out.imu)
+
+    for k in range(0, len(data), chunk_bytes):  # arriving TRANSPORT_NS after the last frame fed was sampled
+        collect(core.feed(data[k:k + chunk_bytes], T0_NS + (offsets[-1][1] if offsets else 0) + TRANSPORT_NS))
+    collect(core.flush())
     if not stamps:
         raise ValueError("the driver published no acceleration")
     raw_stamp = np.array([o[0] for o in offsets], dtype=np.int64)
