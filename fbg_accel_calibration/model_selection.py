@@ -196,8 +196,7 @@ def select_degree(rec: Recording | FitData, max_degree: int = 6, *, window: int 
         notes.append(f"degrees >= {n_levels} are not identified by {n_levels} temperature level(s) and are never chosen")
     if chosen is None:
         notes.append("no degree could be validated on held-out data")
-    n_poses = data.n_poses
-    return SelectionResult(scores, n_levels, [float(v) for v in data.level_means_c], n_poses,
+    return SelectionResult(scores, n_levels, [float(v) for v in data.level_means_c], data.n_poses,
                            int(n_total), chosen, criterion, notes)
 
 

@@ -100,17 +100,13 @@ def sub_columns(degree: int, of_degree: int) -> np.ndarray:
     """Column indices of the degree-``degree`` regressors inside a degree-``of_degree`` design matrix."""
     if degree > of_degree:
         raise ValueError(f"degree {degree} > {of_degree}")
-    psi_cols = np.arange(3 * (degree + 1))
-    const_cols = 3 * (of_degree + 1) + np.arange(degree + 1)
-    return np.concatenate([psi_cols, const_cols])
+    return np.concatenate([np.arange(3 * (degree + 1)), 3 * (of_degree + 1) + np.arange(degree + 1)])  # Psi, constant
 
 
 def coefficients_to_model(A: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray]:
     """Split A (4(n+1), 3) into M (n+1, 3, 3) and b (n+1, 3)."""
     m_part = A[: 3 * (degree + 1)].reshape(degree + 1, 3, 3)  # [k, j, i]
-    M = np.transpose(m_part, (0, 2, 1))
-    b = A[3 * (degree + 1):]
-    return M, b
+    return np.transpose(m_part, (0, 2, 1)), A[3 * (degree + 1):]
 
 
 def model_to_coefficients(M: np.ndarray, b: np.ndarray) -> np.ndarray:
