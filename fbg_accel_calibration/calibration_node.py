@@ -104,8 +104,7 @@ class CalibrationNode(Node):
 
     def __init__(self, **node_options: Any) -> None:
         super().__init__(NODE_NAME, **node_options)
-        p = self._read_parameters()
-        self.p = p
+        self.p = p = self._read_parameters()
         self.end_reason = ""  # why the node itself ended the run (the stream stopped), for the run_end record
         try:
             self.watch = StreamWatch(p["stream_timeout_s"])

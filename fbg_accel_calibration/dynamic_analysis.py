@@ -723,8 +723,7 @@ def _fill_point(p: DynamicPoint, whole: list[_Estimate], reps: list[_Estimate], 
     p.reference_amplitude_mps2 = float(np.mean([e.ref_amp for e in whole]))
     p.sensor_amplitude_mps2 = float(np.mean([e.sens_amp for e in whole]))
     p.residual_rms_mps2 = float(np.mean([e.resid_rms for e in whole]))
-    k = len(reps)
-    p.n_repeats = k
+    p.n_repeats = k = len(reps)
 
     # Repeatability (type A): standard deviation of the mean over k repeats (seed 2.4).
     if k >= 2:
