@@ -26,6 +26,7 @@ output depends only on the seed and the config, never on how ``step`` calls are 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -44,6 +45,7 @@ CHUNK = 2048  # samples per generation chunk (fixed: determinism does not depend
 # firmware/core/fbg_scheduler.h FBG_SCHED_MAX_CATCH_UP: more reads due than this are skipped, not caught up
 FIRMWARE_MAX_CATCH_UP = 4
 CHANNELS = ("ref", "x", "y", "z")
+_COUNT_COLUMNS: dict[str, int | slice] = {**{c: j for j, c in enumerate(CHANNELS)}, "xyz": slice(1, None)}
 _STREAM_NOISE, _STREAM_SOURCE, _STREAM_AHT, _STREAM_WIRE, _STREAM_REFNOISE, _STREAM_AUX = 1, 2, 3, 4, 5, 6
 
 __all__ = ["CHUNK", "BoardSimulator", "SimBlock", "SimConfig", "simulate_recording"]
@@ -175,6 +177,8 @@ class SimBlock:
         arrays = self.__dict__.get("arrays", {})
         if name in arrays:
             return arrays[name]
+        if name in _COUNT_COLUMNS:  # ref, x, y, z, xyz: columns of the counts (N, 4)
+            return arrays["counts"][:, _COUNT_COLUMNS[name]]
         counters = self.__dict__.get("counters", {})
         if name in counters:
             return counters[name]
@@ -183,31 +187,9 @@ class SimBlock:
     def __len__(self) -> int:
         return int(self.arrays["t_s"].shape[0])
 
-    @property
-    def ref(self) -> np.ndarray:
-        return self.arrays["counts"][:, 0]
-
-    @property
-    def x(self) -> np.ndarray:
-        return self.arrays["counts"][:, 1]
-
-    @property
-    def y(self) -> np.ndarray:
-        return self.arrays["counts"][:, 2]
-
-    @property
-    def z(self) -> np.ndarray:
-        return self.arrays["counts"][:, 3]
-
-    @property
-    def xyz(self) -> np.ndarray:
-        return self.arrays["counts"][:, 1:]
-
     def wire_bytes(self) -> bytes:
         """The byte stream the board puts on the link for these samples, faults included."""
-        if self._pieces is None:
-            raise RuntimeError("this simulator was created with wire=False: no byte stream")
-        return b"".join(self._pieces)
+        return b"".join(self.wire_pieces())
 
     def wire_pieces(self) -> list[bytes]:
         """Bytes on the wire per sample (garbage burst before it + its frame as sent; b"" if unsent)."""
@@ -474,45 +456,35 @@ class BoardSimulator:
         samples count as ``unsent_frames`` and the expected decoder counts them as lost)."""
         if n < 0:
             raise ValueError("n must be >= 0")
-        k0, k1 = self.sample_index, self.sample_index + n
         parts: dict[str, list[np.ndarray]] = {}
-        pieces: list[bytes] = []
-        want_wire = self.wire
-        last_chunk = (k1 - 1) // CHUNK if n else k0 // CHUNK - 1
-        for ci in range(k0 // CHUNK, last_chunk + 1):
-            ch = self._get_chunk(ci)
-            a = max(k0, ci * CHUNK) - ci * CHUNK
-            b = min(k1, (ci + 1) * CHUNK) - ci * CHUNK
+        pieces: list[bytes] | None = [] if self.wire else None
+        for ci, ch, a, b in self._spans(n):
             for key, arr in ch.arrays.items():
                 parts.setdefault(key, []).append(arr[a:b])
-            if want_wire:
+            if pieces is not None:
                 pieces.extend(self._wire_pieces(ch, ci)[a:b])
-            if b == CHUNK:
-                self._chunks.pop(ci, None)
         arrays = {k: np.concatenate(v) for k, v in parts.items()} if n else self._empty_arrays()
         if not deliver:
             arrays["sent"] = np.zeros(n, bool)
-            pieces = [b""] * n
-        if not want_wire:
-            pieces = None
-        self.sample_index = k1
-        counters = self._count(arrays)
-        return SimBlock(arrays, counters, pieces, self.protocol_version)
+            pieces = [b""] * n if pieces is not None else None
+        return SimBlock(arrays, self._count(arrays), pieces, self.protocol_version)
 
     def step_bytes(self, n: int) -> bytes:
         """Wire bytes of the next ``n`` samples only (fast path of the pty server; the truth counters
         ``totals`` and ``expected_decoder_stats`` are not updated by this call)."""
+        return b"".join(p for ci, ch, a, b in self._spans(n) for p in self._wire_pieces(ch, ci)[a:b])
+
+    def _spans(self, n: int) -> Iterator[tuple[int, _Chunk, int, int]]:
+        """The chunks of the next ``n`` samples as (chunk index, chunk, first, end) within the chunk; afterwards the
+        samples are consumed and chunks used up are dropped."""
         k0, k1 = self.sample_index, self.sample_index + n
-        out: list[bytes] = []
         for ci in range(k0 // CHUNK, (k1 - 1) // CHUNK + 1 if n else k0 // CHUNK):
             ch = self._get_chunk(ci)
-            a = max(k0, ci * CHUNK) - ci * CHUNK
             b = min(k1, (ci + 1) * CHUNK) - ci * CHUNK
-            out.extend(self._wire_pieces(ch, ci)[a:b])
+            yield ci, ch, max(k0, ci * CHUNK) - ci * CHUNK, b
             if b == CHUNK:
                 self._chunks.pop(ci, None)
         self.sample_index = k1
-        return b"".join(out)
 
     def run(self, duration_s: float, block: int = 65536) -> SimBlock:
         """Concatenated blocks for ``duration_s`` of true time from the current sample (truth only;
@@ -598,7 +570,7 @@ class BoardSimulator:
             filtered[:, 1:] += self._tia_vibration_correction(t, delay, u, temps.delta_ref_c, signal[:, 1:] / resp)
         filtered = self._output_noise(filtered, self._rng(ci, _STREAM_NOISE), self._rng(ci, _STREAM_REFNOISE))
         counts_f, counts = self._adc(filtered, t)
-        aux_f = self._aux_counts(t, self.cfg.get("effects"), self._rng(ci, _STREAM_AUX))
+        aux_f = self._aux_counts(t, self._rng(ci, _STREAM_AUX))
         reading = self._reading_faults(t, self._aht10_reading(t, temps.sensor_c, self._rng(ci, _STREAM_AHT)))
         word = self._temperature_word(t, reading)
         board = self._board_framing(k, t, word.present, word.valid, late)
@@ -625,7 +597,6 @@ class BoardSimulator:
         """Table angle readings at ``t`` (s, deg) and the specific force (m/s^2, sensor frame) the seismic mass feels
         ``delay`` s later (channel_delay effect, ASSUMPTION): gravity through the table geometry and the mount rotation
         plus the vibration sines, whose dynamic part goes through the mechanical resonance (paper 3.4, facts)."""
-        # --- table (reading at t; what the sensor feels at t - delay: channel_delay effect)
         psi, theta, pose_id, moving, visit = self.trajectory.evaluate(t)
         arrival = self.trajectory.arrival_time(t)
         gref = table_specific_force(psi, theta, self.gravity)
@@ -635,7 +606,6 @@ class BoardSimulator:
             f_phys_table = table_specific_force(psi_d, theta_d, self.gravity)
         else:
             psi_d, f_phys_table = psi, gref
-        # What the mass feels: vibration (and slide) at t - delay through the mechanical resonance.
         vib_phys = vibration(t - delay, self.sines, self.resonance) if delay != 0.0 or self.resonance else vib_true
         accel_true = gref @ self.R_mount.T + vib_true
         f_phys = f_phys_table @ self.R_mount.T + vib_phys
@@ -645,7 +615,6 @@ class BoardSimulator:
         """Linear slide of a dynamic calibration (seed 2, section 2): its true motion at ``t`` along the slide direction
         (m, m/s, m/s^2; truth and reference transducer) and ``table`` with the slide's acceleration added, true at ``t``
         and felt at ``t - delay`` through the resonance (m/s^2). Without a slide: zeros, segment -1, ``table`` as is."""
-        # --- linear slide (seed 2, section 2): true motion at t (truth, reference transducer), felt at t - delay
         if self.slide is None:
             zero = np.zeros(t.shape[0])
             return _Slide(zero, zero, zero, np.full(t.shape[0], -1, dtype=np.int64)), table
@@ -659,7 +628,6 @@ class BoardSimulator:
         """Chamber profile -> optics (first-order thermal inertia, paper 4.4: tau ~ 5000 s) -> AHT10 die (thermal_lag
         effect, paper 3.5; tau ASSUMPTION), degC at ``t`` (s); ``delta_ref_c`` = optics - reference temperature (paper 4.3).
         The optics and die filter states carry from chunk to chunk on the object."""
-        # --- temperatures: chamber -> optics (thermal inertia, paper 4.4) -> AHT10 die (thermal_lag)
         c = self.cfg
         T_ch = self.chamber(t)
         a_opt = math.exp(-self.dt_true / float(c.get("thermal.optics_time_constant_s")))
@@ -675,7 +643,6 @@ class BoardSimulator:
         separation: bond relaxation, not characterised in the paper), thermal hysteresis (bond/mount stress; play
         operator on the optics temperature ``T_opt``, degC) and the unmodelled cable torque ~ sin(harmonic psi) (fibre
         pigtail drag at the felt inner angle ``psi_felt_deg``); amplitudes ASSUMPTION (config/sim_default.yaml)."""
-        # --- equivalent acceleration biases on the axis inputs (m/s^2)
         eff = self.cfg.get("effects")
         bias = np.zeros((t.shape[0], 3))
         td = eff["time_drift"]
@@ -723,7 +690,6 @@ class BoardSimulator:
         """Relative optical response (N, 3) of the axis pairs to the inputs ``u`` (m/s^2): pair separation
         d = d0 - S u (nm; S = 112 pm/g, paper eq. 21) + thermal mismatch (fbg_pair_thermal_mismatch, paper 4.4; ``dT``
         degC) through the super-Gaussian spectral overlap (paper eq. 13, 22; spectral_nonlinearity 0 = linearised)."""
-        # --- optics: pair separation and spectral overlap (paper eq. 13, 22)
         eff = self.cfg.get("effects")
         mm = eff["fbg_pair_thermal_mismatch"]
         d_extra = float(mm["scale"]) * dT[:, None] * np.asarray(mm["pm_per_c"], float)[None, :] * 1e-3
@@ -735,7 +701,6 @@ class BoardSimulator:
         slow wander drawn from ``rng``, the chunk's source stream; source_dropout windows) x chain gains (coupler and
         photodetector tempcos, SLD wavelength drift relative to the gratings: paper 3.6.2, 4.5; a connector's loss step,
         ASSUMPTION) x the axes' ``resp``."""
-        # --- source power and chain gains (paper 3.3, 3.6.2)
         eff = self.cfg.get("effects")
         n = t.shape[0]
         sp = eff["source_power_thermal"]
@@ -774,8 +739,6 @@ class BoardSimulator:
         (sensor frame, resonance, cross-axis coupling A, felt at t - delay like ``_axis_inputs``). Exact for the linear part;
         the optics' rectification (its mean) and harmonics stay as evaluated at the samples."""
         out = np.zeros((t.shape[0], 3))
-        if not self.sines:
-            return out
         eps = 1e-3  # m/s^2: the response is smooth on this scale (pair separation changes by 1e-5 nm)
         slope = base * (self._optical_response(u + eps, dT) - self._optical_response(u - eps, dT)) / (2.0 * eps)
         tia_scale = self.cfg.scale("tia_lowpass")
@@ -805,7 +768,6 @@ class BoardSimulator:
     def _tia_lowpass(self, signal: np.ndarray) -> np.ndarray:
         """TIA first-order low-pass (N, 4) per channel, counts in and out (paper 3.5, Table 1; cut-offs in
         electronics.tia_cutoff_hz, time constants scaled by the tia_lowpass effect). Filter states stay on the object."""
-        # --- TIA first-order low-pass per channel (paper 3.5, Table 1), scaled by the tia_lowpass effect
         tia_scale = self.cfg.scale("tia_lowpass")
         if self._tia_state is None:
             self._tia_state = signal[0].copy()
@@ -830,7 +792,6 @@ class BoardSimulator:
         """``filtered`` (N, 4 counts) with noise added in place: the axes' white (VRW) and bias-instability noise of paper
         Table 2, defined on the calibrated output (m/s^2) and injected through the small-signal slope (``rng_noise``:
         white, then bias instability), and the reference channel's ADC read noise (counts rms; ``rng_ref``)."""
-        # --- noise (paper Table 2), defined on the calibrated output, injected through the small-signal slope
         n = filtered.shape[0]
         n_a = self.white_scale * self._white_bank.step(rng_noise, n)
         bi = self._bi_bank.step(rng_noise, n).reshape(n, 3, -1).sum(axis=2)
@@ -844,18 +805,19 @@ class BoardSimulator:
         """Dark offsets (detector dark current + ESP32 ADC zero offset, counts; ASSUMPTION) and the ESP32 12-bit ADC
         (paper 3.5): adc_saturation windows force full scale, clip to 0..adc_max, round when adc_quantisation is on.
         Returns (counts before the integer conversion, codes), both (N, 4)."""
-        # --- dark offsets + ADC
         do = self.cfg.get("effects.reference_dark_offset")
         counts_f = filtered + float(do["scale"]) * np.asarray(do["counts"], float)[None, :]
         for wdw in self.windows["adc_saturation"]:
             inside = self._inside(t, wdw)
             for chn in wdw.get("channels", ["x"]):
                 counts_f[inside, CHANNELS.index(chn)] = float(self.adc_max)
-        counts_f = np.clip(counts_f, 0.0, float(self.adc_max))
-        if self.cfg.scale("adc_quantisation") != 0.0:
-            counts_f = np.round(counts_f)
-        counts_f = self._wide_codes(counts_f)
+        counts_f = self._wide_codes(self._adc_input(counts_f))
         return counts_f, self._codes(counts_f)
+
+    def _adc_input(self, x: np.ndarray) -> np.ndarray:
+        """Counts ``x`` clipped to the ADC range 0..adc_max and rounded when adc_quantisation is on."""
+        x = np.clip(x, 0.0, float(self.adc_max))
+        return np.round(x) if self.cfg.scale("adc_quantisation") != 0.0 else x
 
     def _wide_codes(self, counts_f: np.ndarray) -> np.ndarray:
         """Wide codes of the ESP32's SAR ADC (differential non-linearity; one value read over a range of input voltages:
@@ -875,7 +837,6 @@ class BoardSimulator:
         """AHT10 reading (degC) of the die temperature ``T_sen``: sample-and-hold at aht10.read_rate_hz (ASSUMPTION),
         per-device offset (accuracy +-0.3 degC, paper 3.5) + noise (AHT10 datasheet repeatability; drawn from ``rng``)
         and 0.01 degC resolution (paper 3.5, AHT10 datasheet) when aht10_error is on. The hold stays on the object."""
-        # --- AHT10 reading: sample-and-hold at read_rate_hz, offset (accuracy) + noise, 0.01 degC resolution
         aht = self.cfg.get("aht10")
         ae = self.cfg.scale("aht10_error")
         n = t.shape[0]
@@ -930,7 +891,6 @@ class BoardSimulator:
         valid &= present
         for wdw in self.windows["temperature_invalid"]:
             valid &= ~self._inside(t, wdw)
-        # invalid: the firmware keeps sending the last good value; absent: 0
         vpos = np.maximum.accumulate(np.where(valid, np.arange(n), -1))
         held_cc = np.where(vpos >= 0, temp_cc[np.maximum(vpos, 0)], self._last_valid_cc)
         if valid.any():
@@ -943,7 +903,6 @@ class BoardSimulator:
         board clock t_us (crystal error board.clock_ppm; restarts at each reset), status bits (docs/protocol.md) and
         whether it is sent at all (not during a boot gap, board.boot_gap_s, nor a disconnect); BOOT on the first sample
         of each epoch that is sent (``boot_k``)."""
-        # --- board: epochs (resets), sequence, clock, status, sent
         epoch = np.searchsorted(self.epoch_start, k, side="right") - 1
         start = self.epoch_start[epoch]
         seq = (k - start) % SEQ_MODULO
@@ -967,7 +926,6 @@ class BoardSimulator:
         """Wire faults scheduled (faults.schedule_faults) in chunk ``ci``, per sample: fault code, garbage burst length
         (bytes) before it and nominal truncation length (bytes); the bit to flip, truncation lengths and garbage bytes
         are drawn from ``rng`` (the chunk's wire stream): frame faults in sample order, then garbage in sample order."""
-        # --- wire faults of this chunk
         n = CHUNK
         wire_fault = np.zeros(n, np.int8)
         garbage_len = np.zeros(n, np.int64)
@@ -992,7 +950,7 @@ class BoardSimulator:
             trunc_arr[i] = v
         return _WireFaults(wire_fault, garbage_len, trunc_arr, flip_bit, trunc_len, garbage)
 
-    def _aux_counts(self, t: np.ndarray, eff: dict[str, Any], rng: np.random.Generator) -> np.ndarray:
+    def _aux_counts(self, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Aux channel (N,) counts before rounding: the reference transducer measuring the true slide motion,
         converted 4 skews after t_us (after ref, x, y, z), clipped to the ADC range (rounded if quantised)."""
         n = t.shape[0]
@@ -1018,10 +976,7 @@ class BoardSimulator:
         noise = float(rc["noise_counts"])
         if noise > 0:
             out = out + rng.standard_normal(n) * noise
-        out = np.clip(out, 0.0, float(self.adc_max))
-        if float(eff["adc_quantisation"]["scale"]) != 0.0:
-            out = np.round(out)
-        return out
+        return self._adc_input(out)
 
     # ------------------------------------------------------------------ wire
     def _wire_pieces(self, ch: _Chunk, ci: int) -> list[bytes]:
