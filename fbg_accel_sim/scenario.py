@@ -67,14 +67,7 @@ class PoseTrajectory:
         if self.static:
             z = np.zeros(t.shape)
             return z + self.psi[0], z + self.theta[0], np.zeros(t.shape, int), np.zeros(t.shape, bool), np.zeros(t.shape, int)
-        tc = np.maximum(t, 0.0)
-        if self.repeat > 0:
-            tc = np.minimum(tc, self.duration_s)
-        cycle = np.floor(tc / self.cycle_s)
-        if self.repeat > 0:
-            cycle = np.minimum(cycle, self.repeat - 1)
-        tin = tc - cycle * self.cycle_s
-        seg = np.clip(np.searchsorted(self._seg_start, tin, side="right") - 1, 0, 2 * n - 1)
+        cycle, tin, seg = self._locate(t, hold_at_end=True)
         pose = seg // 2
         moving = (seg % 2) == 1
         nxt = (pose + 1) % n
@@ -91,14 +84,20 @@ class PoseTrajectory:
         t = np.asarray(t_s, dtype=float)
         if self.static:
             return t.copy()
-        n = len(self.psi)
+        _, tin, seg = self._locate(t, hold_at_end=False)
+        return np.where(seg % 2 == 0, tin - self._seg_start[seg], 0.0)
+
+    def _locate(self, t: np.ndarray, hold_at_end: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(cycle, time in the cycle (s), segment: 2 i = dwell at pose i, 2 i + 1 = move after it) at ``t`` (s).
+        ``hold_at_end``: a finite plan's times past its end count as its end."""
         tc = np.maximum(t, 0.0)
+        if hold_at_end and self.repeat > 0:
+            tc = np.minimum(tc, self.duration_s)
         cycle = np.floor(tc / self.cycle_s)
         if self.repeat > 0:
             cycle = np.minimum(cycle, self.repeat - 1)
         tin = tc - cycle * self.cycle_s
-        seg = np.clip(np.searchsorted(self._seg_start, tin, side="right") - 1, 0, 2 * n - 1)
-        return np.where(seg % 2 == 0, tin - self._seg_start[seg], 0.0)
+        return cycle, tin, np.clip(np.searchsorted(self._seg_start, tin, side="right") - 1, 0, 2 * len(self.psi) - 1)
 
 
 def build_trajectory(poses_cfg: dict[str, Any]) -> PoseTrajectory:
@@ -271,15 +270,12 @@ class SlidePlan:
             e, de, dde = np.ones(tau.shape), np.zeros(tau.shape), np.zeros(tau.shape)
             if ramp > 0:
                 k = math.pi / ramp
-                up = tau < ramp
-                e[up] = 0.5 - 0.5 * np.cos(k * tau[up])
-                de[up] = 0.5 * k * np.sin(k * tau[up])
-                dde[up] = 0.5 * k * k * np.cos(k * tau[up])
-                rem = s.duration_s - tau
-                down = rem < ramp
-                e[down] = 0.5 - 0.5 * np.cos(k * rem[down])
-                de[down] = -0.5 * k * np.sin(k * rem[down])
-                dde[down] = 0.5 * k * k * np.cos(k * rem[down])
+                # fade in over the first ramp s (time since the start), out over the last (time to the end)
+                for since, sign in ((tau, 1.0), (s.duration_s - tau, -1.0)):
+                    r = since < ramp
+                    e[r] = 0.5 - 0.5 * np.cos(k * since[r])
+                    de[r] = sign * 0.5 * k * np.sin(k * since[r])
+                    dde[r] = 0.5 * k * k * np.cos(k * since[r])
             amp = gain * s.amplitude_mps2 / (w * w)
             sn, cs = np.sin(w * tau + ph), np.cos(w * tau + ph)
             sig, dsig, ddsig = -amp * sn, -amp * w * cs, amp * w * w * sn
