@@ -39,22 +39,16 @@ from fbg_accel_driver.frame_codec import (
     crc16,
 )
 
-NONE, DROP, DUPLICATE, BIT_FLIP, TRUNCATE = 0, 1, 2, 3, 4
+DROP, DUPLICATE, BIT_FLIP, TRUNCATE = 1, 2, 3, 4  # wire fault codes (0 = none)
 FLIP_FIRST_BYTE = 4  # first byte a bit flip may touch (after sync, version, body_len)
-TRUNC_MIN, TRUNC_MAX = 4, FRAME_SIZE_V1 - 1  # bytes kept of a truncated frame (version 2: up to FRAME_SIZE_V2 - 1)
+TRUNC_MIN = 4  # fewest bytes kept of a truncated frame (at most its size - 1)
 _GARBAGE_ALPHABET = np.array([b for b in range(256) if b not in (SYNC[0], SYNC[1])], dtype=np.uint8)
 
-FRAME_DTYPE = np.dtype([
-    ("sync", "u1", (2,)), ("version", "u1"), ("body_len", "u1"), ("seq", "<u2"), ("t_us", "<u8"),
-    ("ref", "<u2"), ("x", "<u2"), ("y", "<u2"), ("z", "<u2"), ("temp_cc", "<i2"), ("status", "u1"), ("crc", "<u2"),
-])
-assert FRAME_DTYPE.itemsize == FRAME_SIZE_V1
-FRAME_DTYPE_V2 = np.dtype([
-    ("sync", "u1", (2,)), ("version", "u1"), ("body_len", "u1"), ("seq", "<u2"), ("t_us", "<u8"),
-    ("ref", "<u2"), ("x", "<u2"), ("y", "<u2"), ("z", "<u2"), ("temp_cc", "<i2"), ("status", "u1"), ("aux", "<u2"),
-    ("crc", "<u2"),
-])
-assert FRAME_DTYPE_V2.itemsize == FRAME_SIZE_V2
+_FIELDS = [("sync", "u1", (2,)), ("version", "u1"), ("body_len", "u1"), ("seq", "<u2"), ("t_us", "<u8"),
+           ("ref", "<u2"), ("x", "<u2"), ("y", "<u2"), ("z", "<u2"), ("temp_cc", "<i2"), ("status", "u1")]
+FRAME_DTYPE = np.dtype([*_FIELDS, ("crc", "<u2")])
+FRAME_DTYPE_V2 = np.dtype([*_FIELDS, ("aux", "<u2"), ("crc", "<u2")])
+assert (FRAME_DTYPE.itemsize, FRAME_DTYPE_V2.itemsize) == (FRAME_SIZE_V1, FRAME_SIZE_V2)
 
 
 def encode_frames(seq: np.ndarray, t_us: np.ndarray, counts: np.ndarray, temp_cc: np.ndarray, status: np.ndarray,
@@ -76,8 +70,7 @@ def encode_frames(seq: np.ndarray, t_us: np.ndarray, counts: np.ndarray, temp_cc
     rec["temp_cc"] = temp_cc
     rec["status"] = status
     raw = memoryview(rec.tobytes())
-    crc = np.fromiter((crc16(raw[i * size + 2: (i + 1) * size - 2]) for i in range(n)), dtype=np.uint16, count=n)
-    rec["crc"] = crc
+    rec["crc"] = np.fromiter((crc16(raw[i * size + 2: (i + 1) * size - 2]) for i in range(n)), dtype=np.uint16, count=n)
     return rec
 
 
