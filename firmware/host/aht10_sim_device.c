@@ -1,22 +1,16 @@
 /* Simulated AHT10 (see aht10_sim_device.h). */
 #include "aht10_sim_device.h"
 
+#include <string.h>
+
 #include "fbg_aht10.h"
 
 void aht10_sim_init(aht10_sim_device *d, const uint64_t *now_us)
 {
+    memset(d, 0, sizeof *d); /* present, AHT10 (no CRC byte), uncalibrated, idle, no fault windows */
     d->now_us = now_us;
-    d->absent = 0;
-    d->send_crc = 0;
     d->temp_start_cc = 2345;
-    d->temp_slope_cc_per_s = 0;
     d->conversion_us = 75000u;
-    d->calibrated = 0;
-    d->conv_start_us = d->conv_end_us = 0;
-    d->converting = 0;
-    d->raw_t = 0;
-    d->n_windows = 0;
-    d->writes = d->reads = d->nacks = 0;
 }
 
 static int fault_active(const aht10_sim_device *d, int kind, uint64_t t)

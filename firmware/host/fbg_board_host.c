@@ -103,13 +103,13 @@ static int parse_u64_pair(const char *v, uint64_t *a, uint64_t *b)
     return parse_u64(buf, a) != 0 || parse_u64(colon + 1, b) != 0 ? -1 : 0;
 }
 
-/* Synthetic ADC counts for sample k: deterministic, covering 0..4095. */
 /* The aux channel of read k (--aux): a ramp the test can predict (docs/protocol.md, version 2). */
 static uint16_t synthetic_aux(uint64_t k)
 {
     return (uint16_t)((k * 29u + 7u) % 4096u);
 }
 
+/* Synthetic ADC counts for sample k: deterministic, covering 0..4095. */
 static void synthetic_adc(uint64_t k, uint16_t adc[4])
 {
     adc[0] = (uint16_t)(800u + (k % 100u));
@@ -186,19 +186,8 @@ int main(int argc, char **argv)
                 return usage("--adc-read-us must be an integer in 1..1000000", v);
             }
         } else if (strcmp(a, "--late") == 0) { /* K:US: read k is taken US microseconds after its time */
-            char buf[64];
-            char *colon;
-            if (n_late >= MAX_LATE || strlen(v) >= sizeof buf) {
-                return usage("too many --late options or value too long", v);
-            }
-            strcpy(buf, v);
-            colon = strchr(buf, ':');
-            if (colon == NULL) {
-                return usage("--late needs K:US", v);
-            }
-            *colon = '\0';
-            if (parse_u64(buf, &late_k[n_late]) != 0 || parse_u64(colon + 1, &late_us[n_late]) != 0) {
-                return usage("--late needs K:US with non-negative integers", v);
+            if (n_late >= MAX_LATE || parse_u64_pair(v, &late_k[n_late], &late_us[n_late]) != 0) {
+                return usage("--late needs K:US with non-negative integers (at most 64)", v);
             }
             n_late++;
         } else if (strcmp(a, "--link-connect-us") == 0) { /* no client before this board time */
