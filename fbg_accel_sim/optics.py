@@ -65,12 +65,6 @@ def super_gaussian(x_nm: np.ndarray, fwhm_nm: float, order: float) -> np.ndarray
     return np.exp(-math.log(2.0) * z ** (2.0 * float(order)))
 
 
-def gaussian_overlap(d_nm: np.ndarray, sigma_g_nm: np.ndarray) -> np.ndarray:
-    """Closed form of the overlap of two Gaussian gratings, exp(-d^2/(4 sigma_g^2)) (peak 1); order-1 check."""
-    d = np.asarray(d_nm, dtype=float)
-    return np.exp(-(d * d) / (4.0 * np.asarray(sigma_g_nm) ** 2))
-
-
 class PairOverlap:
     """Overlap O(d) of the FBG pairs of k axes, super-Gaussian gratings of given FWHM and order.
 
