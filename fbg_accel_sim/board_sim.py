@@ -113,9 +113,8 @@ def main(argv: list[str] | None = None) -> int:
         else:
             stats = serve_pty(sim, duration, args.link, truth, lambda: stop["flag"],
                               announce=lambda line: print(line, flush=True), wait_client=not args.no_wait_client)
-            extra.update({"reconnects": stats["reconnects"], "overflow_bytes": stats["overflow_bytes"],
-                          "written_bytes": stats["written_bytes"], "frames_lost_no_client": stats["frames_lost_no_client"],
-                          "unplug_unread_bytes": stats["unplug_unread_bytes"]})
+            extra.update({k: stats[k] for k in ("reconnects", "overflow_bytes", "written_bytes", "frames_lost_no_client",
+                                                "unplug_unread_bytes")})
     except OSError as exc:
         print(f"board_sim: error: {exc}", file=sys.stderr)
         return 1

@@ -184,23 +184,15 @@ class TruthRecorder:
             self.blocks.append(block)
 
     def save(self, path: str | Path, sim: BoardSimulator, extra: dict) -> None:
-        out: dict[str, np.ndarray] = {}
-        if self.blocks:
-            for key in self.blocks[0].arrays:
-                out[key] = np.concatenate([b.arrays[key] for b in self.blocks])
-        for key, value in sim.totals.items():
-            out[key] = np.array(value)
-        for key, value in sim.expected_decoder_stats().items():
-            out[f"expected_{key}"] = np.array(value)
-        noise = sim.configured_noise()
-        for key in ("vrw_mps_per_sqrt_h", "bias_instability_mg", "adev_1s_mps2", "min_adev_mps2", "min_adev_tau_s",
-                    "sample_sigma_mps2"):
-            out[f"noise_{key}"] = np.asarray(noise[key])
+        blocks = self.blocks
+        out = {key: np.concatenate([b.arrays[key] for b in blocks]) for key in (blocks[0].arrays if blocks else ())}
+        out.update({key: np.array(value) for key, value in sim.totals.items()})
+        out.update({f"expected_{key}": np.array(value) for key, value in sim.expected_decoder_stats().items()})
+        out.update({f"noise_{key}": np.asarray(v) for key, v in sim.configured_noise().items() if key != "model"})
         out["aht10_offset_c"] = np.array(sim.aht_offset)
         out["config_yaml"] = np.array(sim.cfg.to_yaml())
         out["seed"] = np.array(sim.seed)
-        for key, value in extra.items():
-            out[key] = np.asarray(value)
+        out.update({key: np.asarray(value) for key, value in extra.items()})
         tmp = Path(str(path) + ".partial.npz")
         np.savez_compressed(tmp, **out)
         os.replace(tmp, path)
