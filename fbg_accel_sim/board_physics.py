@@ -158,9 +158,7 @@ class _Chunk:
     """Everything generated for one chunk of CHUNK samples (arrays of length CHUNK)."""
 
     arrays: dict[str, np.ndarray]
-    flip_bit: dict[int, int]
-    trunc_len: dict[int, int]
-    garbage: dict[int, bytes]
+    faults: _WireFaults  # the random details of its wire faults, by index in the chunk
     pieces: list[bytes] | None = None  # wire bytes per sample (lazy)
 
 
@@ -358,7 +356,7 @@ class BoardSimulator:
         end = f.get("end_s")
         end_s = float(end) if end is not None else self.duration_s
         rng = np.random.default_rng([self.seed, 0, _STREAM_WIRE])
-        self.schedule = fz.schedule_faults(f, self.rate_true_hz, end_s, rng, self._unsent_k, CHUNK)
+        self.schedule = fz.schedule_faults(f, self.rate_true_hz, end_s, rng, lambda k: bool(self._unsent(k)), CHUNK)
         self._wire_k = np.array(sorted(self.schedule.wire), dtype=np.int64)
         self._garbage_k = np.array(sorted(self.schedule.garbage), dtype=np.int64)
         self.windows = {name: list(f[name].get("windows") or []) for name in
@@ -412,11 +410,14 @@ class BoardSimulator:
                     k, moved = b0, True
         return k if k < end else -1
 
-    def _unsent_k(self, k: int) -> bool:
+    def _unsent(self, k: np.ndarray | int) -> np.ndarray:
+        """Whether the board never sends sample(s) ``k``: in the boot gap after a reset, or in a disconnect window."""
+        out = np.zeros(np.shape(k), bool)
         for r in self.reset_k:
-            if r <= k < r + self.gap_n:
-                return True
-        return any(a <= k < b for a, b in self._disc_k)
+            out |= (k >= r) & (k < r + self.gap_n)
+        for a0, b0 in self._disc_k:
+            out |= (k >= a0) & (k < b0)
+        return out
 
     def _setup_state(self) -> None:
         c = self.cfg
@@ -590,7 +591,7 @@ class BoardSimulator:
             "slide_displacement_m": slide.displacement_m, "slide_velocity_mps": slide.velocity_mps,
             "slide_accel_mps2": slide.accel_mps2, "slide_segment": slide.segment, "aux": self._codes(aux_f), "aux_float": aux_f,
         }
-        return _Chunk(arrays, wire.flip_bit, wire.trunc_len, wire.garbage)
+        return _Chunk(arrays, wire)
 
     # ------------------------------------------------------------------ stages of the signal chain
     def _table_motion(self, t: np.ndarray, delay: float) -> _TableMotion:
@@ -910,11 +911,7 @@ class BoardSimulator:
         t_epoch0 = reset_t[epoch]
         board_t = np.where(epoch > 0, (t - t_epoch0) * (1.0 + self.clock_ppm * 1e-6), k / self.rate_hz + late)
         t_us = np.round(board_t * 1e6).astype(np.int64)
-        sent = np.ones(k.shape[0], bool)
-        for r in self.reset_k:
-            sent &= ~((k >= r) & (k < r + self.gap_n))
-        for a0, b0 in self._disc_k:
-            sent &= ~((k >= a0) & (k < b0))
+        sent = ~self._unsent(k)
         status = np.where(present, int(Status.TEMP_PRESENT), 0) | np.where(valid, int(Status.TEMP_VALID), 0)
         status = status | np.where(k == self.boot_k[epoch], int(Status.BOOT), 0)  # first SENT frame of the epoch
         for wdw in self.windows["adc_overrun"]:
@@ -946,8 +943,7 @@ class BoardSimulator:
             garbage_len[kk - k0] = g
             garbage[kk - k0] = fz.garbage_bytes(rng, g)
         trunc_arr = np.zeros(n, np.int64)
-        for i, v in trunc_len.items():
-            trunc_arr[i] = v
+        trunc_arr[list(trunc_len)] = list(trunc_len.values())
         return _WireFaults(wire_fault, garbage_len, trunc_arr, flip_bit, trunc_len, garbage)
 
     def _aux_counts(self, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -990,7 +986,7 @@ class BoardSimulator:
         frames = [raw[i * size:(i + 1) * size] for i in range(CHUNK)]
         pieces: list[bytes] = []
         for i in range(CHUNK):
-            g = ch.garbage.get(i, b"")
+            g = ch.faults.garbage.get(i, b"")
             if not a["sent"][i]:
                 pieces.append(b"")
                 continue
@@ -1001,7 +997,7 @@ class BoardSimulator:
             elif code == fz.DUPLICATE:
                 body = fr + fr
             elif code == fz.BIT_FLIP:
-                bit = ch.flip_bit[i]
+                bit = ch.faults.flip_bit[i]
                 nbits = 8 * (size - fz.FLIP_FIRST_BYTE)
                 for j in range(nbits):
                     cand = fz.corrupt_flip(fr, (bit + j) % nbits)
@@ -1011,7 +1007,7 @@ class BoardSimulator:
                 else:  # pragma: no cover - impossible: flipping a bit inside an internal sync removes it
                     raise RuntimeError("no safe bit to flip")
             elif code == fz.TRUNCATE:
-                body = self._safe_truncation(fr, ch.trunc_len[i], frames, ch, i, size)
+                body = self._safe_truncation(fr, ch.faults.trunc_len[i], frames, ch, i, size)
                 ch.arrays["trunc_len"][i] = len(body)
             else:
                 body = fr
@@ -1024,7 +1020,7 @@ class BoardSimulator:
         """A prefix of ``fr`` (>= 4 bytes) with no inner sync and whose ``size``-byte candidate window fails the CRC."""
         # Bytes that follow on the wire: garbage before the next sample + the next frame (guaranteed sent
         # and in the same chunk by the scheduler; a duplicate or fault on it only matters after the window).
-        follow = ch.garbage.get(i + 1, b"") + frames[i + 1] if i + 1 < CHUNK else b""
+        follow = ch.faults.garbage.get(i + 1, b"") + frames[i + 1] if i + 1 < CHUNK else b""
         for L in [length, *range(size - 1, fz.TRUNC_MIN - 1, -1)]:
             cand = fr[:L]
             if fz.hides_sync(cand):
@@ -1068,13 +1064,6 @@ class BoardSimulator:
         return c
 
 
-def _recording_duration(sim: BoardSimulator, duration_s: float | None) -> float:
-    d = duration_s if duration_s is not None else sim.duration_s
-    if d is None or not math.isfinite(d):
-        raise ValueError("the scenario never ends (static pose or looping plan): pass duration_s")
-    return float(d)
-
-
 def simulate_recording(cfg: SimConfig | None = None, seed: int = 0, duration_s: float | None = None, run_id: int = 0):
     """Simulate a run and return what the calibration recorder would store (a ``Recording``).
 
@@ -1086,9 +1075,11 @@ def simulate_recording(cfg: SimConfig | None = None, seed: int = 0, duration_s: 
     """
     from fbg_accel_calibration.recording import Recording
 
-    sim = BoardSimulator(cfg, seed=seed)
-    sim.wire = False
-    blk = sim.run(_recording_duration(sim, duration_s))
+    sim = BoardSimulator(cfg, seed=seed, wire=False)
+    duration_s = duration_s if duration_s is not None else sim.duration_s
+    if not math.isfinite(duration_s):
+        raise ValueError("the scenario never ends (static pose or looping plan): pass duration_s")
+    blk = sim.run(float(duration_s))
     a = blk.arrays
     keep = a["sent"] & ~np.isin(a["wire_fault"], (fz.DROP, fz.BIT_FLIP, fz.TRUNCATE))
     t_board = a["t_s"] * (1.0 + sim.clock_ppm * 1e-6)
