@@ -771,21 +771,17 @@ class BoardSimulator:
         electronics.tia_cutoff_hz, time constants scaled by the tia_lowpass effect). Filter states stay on the object."""
         tia_scale = self.cfg.scale("tia_lowpass")
         if self._tia_state is None:
-            self._tia_state = signal[0].copy()
-            self._tia_xprev = signal[0].copy()
+            self._tia_state, self._tia_xprev = signal[0].copy(), signal[0].copy()
         filtered = np.empty_like(signal)
         for j in range(4):
             tau = tia_scale * self.tia_tau[j]
             if self.linear_filters:  # exact for an input linear between samples (dynamic runs)
-                y, ylast, xlast = _lowpass(signal[:, j], tau, self.dt_true, float(self._tia_state[j]),
-                                           float(self._tia_xprev[j]), linear=True)
-                filtered[:, j] = y
-                self._tia_state[j], self._tia_xprev[j] = ylast, xlast
-                continue
-            alpha = math.exp(-self.dt_true / tau) if tau > 0 else 0.0
-            y, st = _first_order(signal[:, j], alpha, self._tia_state[j:j + 1])
-            filtered[:, j] = y
-            self._tia_state[j] = st[0]
+                filtered[:, j], self._tia_state[j], self._tia_xprev[j] = _lowpass(
+                    signal[:, j], tau, self.dt_true, float(self._tia_state[j]), float(self._tia_xprev[j]), linear=True)
+            else:
+                alpha = math.exp(-self.dt_true / tau) if tau > 0 else 0.0
+                filtered[:, j], st = _first_order(signal[:, j], alpha, self._tia_state[j:j + 1])
+                self._tia_state[j] = st[0]
         return filtered
 
     def _output_noise(self, filtered: np.ndarray, rng_noise: np.random.Generator,
