@@ -66,16 +66,13 @@ def _merge(base: dict[str, Any], over: dict[str, Any], prefix: str, source: str)
             close = difflib.get_close_matches(str(key), [str(k) for k in base], n=1)
             hint = f" (did you mean '{prefix}{close[0]}'?)" if close else ""
             raise SimConfigError(f"{source}: unknown simulator key '{dotted}'{hint}")
-        if isinstance(base[key], dict) and dotted not in _FREE_FORM and not _is_free_form_child(dotted):
+        free_form = any(dotted == f or dotted.startswith(f + ".") for f in _FREE_FORM)
+        if isinstance(base[key], dict) and not free_form:
             if not isinstance(value, dict):
                 raise SimConfigError(f"{source}: '{dotted}' must be a mapping")
             _merge(base[key], value, dotted + ".", source)
         else:
             base[key] = copy.deepcopy(value)
-
-
-def _is_free_form_child(dotted: str) -> bool:
-    return any(dotted.startswith(f + ".") for f in _FREE_FORM)
 
 
 class SimConfig:
@@ -109,13 +106,9 @@ class SimConfig:
         """A copy with dotted keys replaced, e.g. ``{"effects.tia_lowpass.scale": 0.0}``."""
         data = copy.deepcopy(self.data)
         for dotted, value in overrides.items():
-            nested: dict[str, Any] = {}
-            cur = nested
-            parts = str(dotted).split(".")
-            for p in parts[:-1]:
-                cur[p] = {}
-                cur = cur[p]
-            cur[parts[-1]] = value
+            nested = value
+            for p in reversed(str(dotted).split(".")):
+                nested = {p: nested}
             _merge(data, nested, "", f"override '{dotted}'")
         return SimConfig(data, self.source + " + overrides")
 
