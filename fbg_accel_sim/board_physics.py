@@ -491,13 +491,7 @@ class BoardSimulator:
         """Concatenated blocks for ``duration_s`` of true time from the current sample (truth only;
         ``wire_bytes``/``frames`` of the result cover the whole span)."""
         n_total = self.samples_for(duration_s)
-        blocks = []
-        while n_total > 0:
-            m = min(block, n_total)
-            blocks.append(self.step(m))
-            n_total -= m
-        if not blocks:
-            return self.step(0)
+        blocks = [self.step(min(block, n_total - k)) for k in range(0, n_total, block)] or [self.step(0)]
         arrays = {k: np.concatenate([b.arrays[k] for b in blocks]) for k in blocks[0].arrays}
         counters = {k: sum(b.counters[k] for b in blocks) if not k.startswith("total_") else blocks[-1].counters[k]
                     for k in blocks[0].counters}
