@@ -95,8 +95,15 @@ class DriverDiagnostics:
         pdec = prev.decoder if prev else {k: 0 for k in dec}
         pcore = prev.core if prev else {k: 0 for k in core}
 
-        def delta(cur: dict[str, int], old: dict[str, int], key: str) -> int:
+        def delta(cur: dict[str, Any], old: dict[str, Any], key: str) -> int:
             return int(cur.get(key, 0)) - int(old.get(key, 0))
+
+        def counted(n: int, level: int, what: str, values: dict[str, Any], ok: str, bad: str) -> None:
+            """``level`` with ``bad`` (``{n}``: the count since the last report) when ``n`` > 0, else OK with ``ok``."""
+            entries.append(self._entry(level, what, bad.format(n=n), values) if n > 0 else self._entry(OK, what, ok, values))
+
+        def core_counted(key: str, level: int, what: str, ok: str, bad: str, **more: Any) -> None:
+            counted(delta(core, pcore, key), level, what, {key: core.get(key, 0), **more}, ok, bad)
 
         frames_new = delta(dec, pdec, "frames")
         if frames_new > 0 or self._last_frame_change_s is None:
@@ -109,22 +116,21 @@ class DriverDiagnostics:
         link_vals = {**snap.link_values, "state": "connected" if snap.link_connected else "disconnected"}
         silent_s = snap.now_s - self._last_frame_change_s
         if not snap.link_connected:
-            entries.append(self._entry(ERROR, "serial link", f"disconnected: {snap.link_message}", link_vals))
+            level, msg = ERROR, f"disconnected: {snap.link_message}"
         elif dec.get("frames", 0) == 0 or (frames_new == 0 and silent_s >= self.no_data_timeout_s):
             link_vals["seconds_without_frames"] = round(silent_s, 3)
-            entries.append(self._entry(ERROR, "serial link", "connected but no frames received", link_vals))
+            level, msg = ERROR, "connected but no frames received"
         else:
-            entries.append(self._entry(OK, "serial link", "connected, receiving frames", link_vals))
+            level, msg = OK, "connected, receiving frames"
+        entries.append(self._entry(level, "serial link", msg, link_vals))
 
         # reader queue (the serial reader thread -> decoder hand-off, bounded)
-        plink = prev.link_values if prev else {}
-        q_drop = int(snap.link_values.get("queue_dropped_bytes", 0)) - int(plink.get("queue_dropped_bytes", 0))
         q_vals = {k: snap.link_values[k] for k in ("queued_bytes", "queue_max_bytes", "queue_dropped_chunks",
                                                     "queue_dropped_bytes") if k in snap.link_values}
-        entries.append(self._counted(q_drop, WARN, "reader queue", q_vals, "keeping up, nothing dropped since last report",
-                                     f"{q_drop} byte(s) dropped since last report: the decoder fell "
-                                     f"{snap.link_values.get('queue_max_bytes', '?')} bytes behind the port (oldest dropped, "
-                                     "newest kept)"))
+        counted(delta(snap.link_values, prev.link_values if prev else {}, "queue_dropped_bytes"), WARN, "reader queue",
+                q_vals, "keeping up, nothing dropped since last report",
+                "{n} byte(s) dropped since last report: the decoder fell "
+                f"{snap.link_values.get('queue_max_bytes', '?')} bytes behind the port (oldest dropped, newest kept)")
 
         # frames
         frame_vals = {"frame_rate_hz": round(rate, 3), **dec, "samples": core.get("samples", 0),
@@ -132,39 +138,23 @@ class DriverDiagnostics:
         problems = {k: delta(dec, pdec, k) for k in ("crc_errors", "lost_frames", "invalid_frames", "unsupported_version")}
         bad = {k: v for k, v in problems.items() if v > 0}
         if bad:
-            msg = "since last report: " + ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in bad.items())
-            entries.append(self._entry(WARN, "frames", msg, frame_vals))
+            level, msg = WARN, "since last report: " + ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in bad.items())
         else:
-            entries.append(self._entry(OK, "frames", f"{rate:.1f} frames/s, no errors since last report", frame_vals))
+            level, msg = OK, f"{rate:.1f} frames/s, no errors since last report"
+        entries.append(self._entry(level, "frames", msg, frame_vals))
 
-        # board resets
-        resets = delta(dec, pdec, "resets")
-        reset_vals = {"resets": dec.get("resets", 0), "duplicates": dec.get("duplicates", 0)}
-        entries.append(self._counted(resets, WARN, "board resets", reset_vals, "no reset since last report",
-                                     f"board reset {resets} time(s) since last report"))
-
-        # ADC saturation
-        sat = delta(core, pcore, "adc_saturated")
-        sat_vals = {"adc_saturated": core.get("adc_saturated", 0)}
-        entries.append(self._counted(sat, WARN, "ADC saturation", sat_vals, "no saturated sample since last report",
-                                     f"{sat} sample(s) with an ADC channel at full scale (4095) since last report; "
-                                     "variance inflated"))
-
-        # reference power
-        low = delta(core, pcore, "reference_low")
-        ref_vals = {"reference_low": core.get("reference_low", 0)}
-        entries.append(self._counted(low, ERROR, "reference power", ref_vals, "reference power sufficient",
-                                     f"reference power too low in {low} sample(s) since last report; acceleration not "
-                                     "published for them"))
-
+        counted(delta(dec, pdec, "resets"), WARN, "board resets",
+                {"resets": dec.get("resets", 0), "duplicates": dec.get("duplicates", 0)},
+                "no reset since last report", "board reset {n} time(s) since last report")
+        core_counted("adc_saturated", WARN, "ADC saturation", "no saturated sample since last report",
+                     "{n} sample(s) with an ADC channel at full scale (4095) since last report; variance inflated")
+        core_counted("reference_low", ERROR, "reference power", "reference power sufficient",
+                     "reference power too low in {n} sample(s) since last report; acceleration not published for them")
         # reference power off the level the calibration's fit saw at this temperature (eq. 24 extrapolating)
-        rl = delta(core, pcore, "reference_level_changed")
-        rl_vals = {"reference_level_changed": core.get("reference_level_changed", 0),
-                   "tolerance": _fmt(snap.reference_level_tolerance)}
-        entries.append(self._counted(rl, WARN, "reference level", rl_vals, "reference counts at the calibrated level",
-                                     f"{rl} sample(s) since last report with the reference counts off the calibration's "
-                                     "level at their temperature (source power, connector or fibre loss): the output "
-                                     "may be biased, covariance inflated"))
+        core_counted("reference_level_changed", WARN, "reference level", "reference counts at the calibrated level",
+                     "{n} sample(s) since last report with the reference counts off the calibration's level at their "
+                     "temperature (source power, connector or fibre loss): the output may be biased, covariance inflated",
+                     tolerance=_fmt(snap.reference_level_tolerance))
 
         # temperature sensor
         t_vals = {
@@ -177,18 +167,18 @@ class DriverDiagnostics:
         }
         age = snap.temperature_age_s
         if snap.temperature_valid is None:
-            entries.append(self._entry(STALE, "temperature sensor", "no frame received yet", t_vals))
+            level, msg = STALE, "no frame received yet"
         elif snap.temperature_valid:
-            entries.append(self._entry(OK, "temperature sensor", "valid", t_vals))
+            level, msg = OK, "valid"
         elif age is None:
-            msg = "temperature sensor invalid, no valid reading yet: acceleration not published"
-            entries.append(self._entry(ERROR, "temperature sensor", msg, t_vals))
+            level, msg = ERROR, "temperature sensor invalid, no valid reading yet: acceleration not published"
         elif age > snap.temperature_hold_s:
+            level = ERROR
             msg = f"temperature sensor invalid for {age:.1f} s (> hold {snap.temperature_hold_s:g} s): acceleration not published"
-            entries.append(self._entry(ERROR, "temperature sensor", msg, t_vals))
         else:
+            level = WARN
             msg = f"temperature sensor invalid, holding last good value for {age:.1f} s (max {snap.temperature_hold_s:g} s)"
-            entries.append(self._entry(WARN, "temperature sensor", msg, t_vals))
+        entries.append(self._entry(level, "temperature sensor", msg, t_vals))
 
         # temperature range
         lo, hi = snap.temperature_range_c
@@ -199,48 +189,39 @@ class DriverDiagnostics:
         oor = delta(core, pcore, "temperature_out_of_range")
         inside_lo, inside_hi = widened_range((lo, hi), margin)
         if t is not None and not inside_lo <= t <= inside_hi:
+            level = WARN
             msg = f"temperature {t:.2f} degC outside calibrated range [{lo:g}, {hi:g}] degC: extrapolating, covariance inflated"
-            entries.append(self._entry(WARN, "temperature range", msg, r_vals))
         elif oor > 0:
-            msg = f"{oor} sample(s) outside calibrated range [{lo:g}, {hi:g}] degC since last report"
-            entries.append(self._entry(WARN, "temperature range", msg, r_vals))
+            level, msg = WARN, f"{oor} sample(s) outside calibrated range [{lo:g}, {hi:g}] degC since last report"
         else:
-            entries.append(self._entry(OK, "temperature range", "inside calibrated range", r_vals))
+            level, msg = OK, "inside calibrated range"
+        entries.append(self._entry(level, "temperature range", msg, r_vals))
 
         # correction terms held at the edge of the span they were fitted on (time drift, spectral non-linearity)
-        span = delta(core, pcore, "correction_out_of_span")
-        s_vals = {"correction_out_of_span": core.get("correction_out_of_span", 0)}
-        entries.append(self._counted(span, WARN, "correction span", s_vals, "every correction term inside its fitted span",
-                                     f"{span} sample(s) since last report outside the span a correction term was fitted "
-                                     "on: the term is held at the span's edge, covariance inflated"))
-
-        # calibrated output: the last guard of DriverCore (a validated calibration should never trip it)
-        nf = delta(core, pcore, "non_finite_dropped")
-        nf_vals = {"non_finite_dropped": core.get("non_finite_dropped", 0), "imu_published": core.get("imu_published", 0),
-                   "samples_calibrated": core.get("samples_calibrated", 0),
-                   "decimation_discarded": core.get("decimation_discarded", 0),
-                   "decimation_gaps": core.get("decimation_gaps", 0),
-                   "chain_priming": core.get("chain_priming", 0)}  # first samples after a (re)start with 'equalise
-        entries.append(self._counted(nf, ERROR, "calibrated output", nf_vals, "no non-finite output since last report",
-                                     f"{nf} sample(s) dropped since last report: the calibration gave a non-finite "
-                                     "acceleration"))
+        core_counted("correction_out_of_span", WARN, "correction span", "every correction term inside its fitted span",
+                     "{n} sample(s) since last report outside the span a correction term was fitted on: the term is held "
+                     "at the span's edge, covariance inflated")
+        # calibrated output: the last guard of DriverCore (a validated calibration should never trip it);
+        # chain_priming: first samples after a (re)start with 'equalise'
+        core_counted("non_finite_dropped", ERROR, "calibrated output", "no non-finite output since last report",
+                     "{n} sample(s) dropped since last report: the calibration gave a non-finite acceleration",
+                     **{k: core.get(k, 0) for k in ("imu_published", "samples_calibrated", "decimation_discarded",
+                                                    "decimation_gaps", "chain_priming")})
 
         # measuring-chain compensation (calibration's dynamic section)
         if snap.chain:
             c = snap.chain
+            level = OK
             if c.get("dynamic_section") == "absent":
                 msg = ("not compensated, lag unknown: the calibration has no dynamic section, so the published "
                        "acceleration lags its stamps by the measuring chain's delay, which the driver does not know "
                        "(about 0.1 s on the static-test build's 1-1.7 Hz TIA stages); while the input changes the "
                        "error exceeds the covariance (docs/topics.md)")
-                entries.append(self._entry(OK, "chain compensation", msg, c))
-            elif c["mode"] == "none":
+            elif c["mode"] == "none":  # a choice, stated with its cost
                 msg = (f"not compensated: the published acceleration lags by about {c['group_delay_dc_ms_x']:g}/"
                        f"{c['group_delay_dc_ms_y']:g}/{c['group_delay_dc_ms_z']:g} ms (x/y/z, at DC)")
-                entries.append(self._entry(OK, "chain compensation", msg, c))  # a choice, stated with its cost
             else:
                 msg = f"{c['mode']}: stamps moved back by {c['applied_delay_ms']:g} ms, bandwidth {c['bandwidth_hz']:g} Hz"
-                level = OK
                 helps = {ax: float(c[f"delay_helps_below_hz_{ax}"]) for ax in "xyz" if f"delay_helps_below_hz_{ax}" in c}
                 if helps:  # delay mode: the DC shift over-corrects tones above a limit (ChainDynamics.delay_helps_below_hz)
                     ax, lim = min(helps.items(), key=lambda kv: kv[1])
@@ -251,37 +232,30 @@ class DriverDiagnostics:
                         level = WARN
                         msg += (f", inside the calibrated band (up to {top:g} Hz): for content above {lim:g} Hz use "
                                 "chain_compensation equalise")
-                entries.append(self._entry(level, "chain compensation", msg, c))
+            entries.append(self._entry(level, "chain compensation", msg, c))
 
         # the board clock's mapping onto ROS time (clock_sync): a drift estimate at its clamp means it is not tracking
         if snap.clock:
             c = snap.clock
-            pclock = prev.clock if prev else {}
-            rate = f"board clock {c['board_clock_ppm']:+g} ppm against the host's steady clock"
-            jumps = {k: int(c.get(k, 0)) - int(pclock.get(k, 0)) for k in ("ros_time_steps", "mapping_steps",
-                                                                              "held_stamps")}
+            clock = f"board clock {c['board_clock_ppm']:+g} ppm against the host's steady clock"
+            jumps = {k: delta(c, prev.clock if prev else {}, k) for k in ("ros_time_steps", "mapping_steps", "held_stamps")}
             if c["drift_at_limit"]:
-                entries.append(self._entry(WARN, "clock mapping", f"{rate}, at the limit of the drift estimate: the board "
-                                           "clock or the link is not what the estimator assumes, the stamps may drift "
-                                           "from the sampling times", c))
+                level, msg = WARN, (f"{clock}, at the limit of the drift estimate: the board clock or the link is not "
+                                    "what the estimator assumes, the stamps may drift from the sampling times")
             elif any(v > 0 for v in jumps.values()):
-                entries.append(self._entry(WARN, "clock mapping", f"{rate}; since the last report the stamps stepped: "
-                                           f"{jumps['ros_time_steps']} step(s) of ROS time, {jumps['mapping_steps']} "
-                                           f"step(s) of the board clock mapping, {jumps['held_stamps']} stamp(s) held "
-                                           "1 ns after the previous one because they would have gone back", c))
+                level, msg = WARN, (f"{clock}; since the last report the stamps stepped: {jumps['ros_time_steps']} "
+                                    f"step(s) of ROS time, {jumps['mapping_steps']} step(s) of the board clock mapping, "
+                                    f"{jumps['held_stamps']} stamp(s) held 1 ns after the previous one because they "
+                                    "would have gone back")
             else:
-                entries.append(self._entry(OK, "clock mapping", f"{rate}; {c['restarts']} restart(s), "
-                                           f"{c['ros_time_steps']} step(s) of ROS time followed", c))
+                level, msg = OK, f"{clock}; {c['restarts']} restart(s), {c['ros_time_steps']} step(s) of ROS time followed"
+            entries.append(self._entry(level, "clock mapping", msg, c))
 
         self._prev = snap
         return entries
 
     def _entry(self, level: int, what: str, message: str, values: dict[str, Any]) -> DiagnosticEntry:
         return DiagnosticEntry(level, self._name(what), message, tuple((str(k), str(v)) for k, v in values.items()))
-
-    def _counted(self, n: int, level: int, what: str, values: dict[str, Any], ok: str, bad: str) -> DiagnosticEntry:
-        """``level`` with ``bad`` when ``n`` (a count since the last report) > 0, else OK with ``ok``."""
-        return self._entry(level, what, bad, values) if n > 0 else self._entry(OK, what, ok, values)
 
 
 def _fmt(v: float | None) -> str:
