@@ -5,8 +5,13 @@ command lines run) without ``launch``/``launch_ros``, which are not on PyPI:
 
 * ``launch_arguments(share_dir) -> {name: (default, description)}``: its launch arguments, defaults
   resolved against the package's share directory (``share/fbg_accel_driver``, or the source tree);
-* ``node_descriptions(share_dir, args) -> [NodeDescription, ...]``: the processes for the argument
-  values ``args`` (plain strings, exactly as given on the ``ros2 launch`` command line).
+* ``node_descriptions(share_dir, args) -> [dict, ...]``: the processes for the argument values ``args``
+  (plain strings, exactly as given on the ``ros2 launch`` command line). Each dict has ``executable``
+  (a console script of this package, setup.py ``entry_points``) and optionally ``arguments`` (list of
+  str), ``name``, ``namespace`` ("" or absent: none) and ``parameters``: applied in order, later ones
+  win (as ``--params-file`` does); a ``str`` is a params YAML path, a ``dict`` holds overrides with
+  their Python types (str, int, float, bool). ``ros_node`` False: a plain program without
+  ``--ros-args`` (``board_sim``); then only ``executable`` and ``arguments`` apply.
 
 :func:`generate` turns the two into a ``LaunchDescription``: one ``DeclareLaunchArgument`` each, and
 an ``OpaqueFunction`` that calls ``node_descriptions`` with the resolved values at launch time and
@@ -15,30 +20,9 @@ starts a ``launch_ros`` ``Node`` per ROS node and an ``ExecuteProcess`` per plai
 
 from __future__ import annotations
 
-from typing import Any, TypedDict
+from typing import Any
 
 PACKAGE = "fbg_accel_driver"
-
-
-class _Executable(TypedDict):
-    executable: str
-
-
-class NodeDescription(_Executable, total=False):
-    """One process of a launch file.
-
-    ``executable`` is a console script of this package (setup.py ``entry_points``). ``parameters``
-    are applied in order, later ones win (as ``--params-file`` does): a ``str`` is a params YAML
-    path, a ``dict`` holds overrides with their Python types (str, int, float, bool).
-    ``ros_node`` False: a plain program without ``--ros-args`` (``board_sim``); then only
-    ``executable`` and ``arguments`` apply.
-    """
-
-    arguments: list[str]
-    ros_node: bool
-    name: str
-    namespace: str  # "" or absent: none (a relative name is made absolute by launch_ros)
-    parameters: list[str | dict[str, Any]]
 
 
 def bool_argument(args: dict[str, str], name: str) -> bool:
