@@ -62,6 +62,8 @@ NOISE_MAX_MPS2 = 0.1 * FULL_SCALE_MPS2  # a white noise of a tenth of the full s
 OUTPUT_MAX_MPS2 = 100.0 * FULL_SCALE_MPS2  # |a| bound of the plausibility evaluation (section 5)
 AHT10_RANGE_C = (-40.0, 85.0)  # the temperatures the driver can ever evaluate the model at
 PLAUSIBILITY_REF_COUNTS = (256.0, 1024.0, 2048.0, 4095.0)  # reference counts of the evaluation grid
+_ARRAY_FIELDS = ("M", "b", "noise_sigma_mps2", "noise_correlated_fraction", "noise_time_constant_s",
+                 "reference_level_temperature_c", "reference_level_counts")  # ThermalCalibration's float arrays
 
 
 class CalibrationFileError(ValueError):
@@ -117,13 +119,8 @@ class ThermalCalibration:
     _ref_level_cache: dict[float, float] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        self.M = np.asarray(self.M, dtype=float)
-        self.b = np.asarray(self.b, dtype=float)
-        self.noise_sigma_mps2 = np.asarray(self.noise_sigma_mps2, dtype=float)
-        self.noise_correlated_fraction = np.asarray(self.noise_correlated_fraction, dtype=float)
-        self.noise_time_constant_s = np.asarray(self.noise_time_constant_s, dtype=float)
-        self.reference_level_temperature_c = np.asarray(self.reference_level_temperature_c, dtype=float)
-        self.reference_level_counts = np.asarray(self.reference_level_counts, dtype=float)
+        for name in _ARRAY_FIELDS:
+            setattr(self, name, np.asarray(getattr(self, name), dtype=float))
         lo, hi = self.temperature_range_c
         self.temperature_range_c = (float(lo), float(hi))
         _validate(self)
@@ -133,8 +130,7 @@ class ThermalCalibration:
         if type(other) is not type(self):
             return NotImplemented
         return (all(np.array_equal(getattr(self, name), getattr(other, name), equal_nan=True)
-                    for name in ("M", "b", "noise_sigma_mps2", "noise_correlated_fraction", "noise_time_constant_s",
-                                 "reference_level_temperature_c", "reference_level_counts"))
+                    for name in _ARRAY_FIELDS)
                 and same_values((self.temperature_range_c, self.sensor_id, self.t_center_c, self.t_scale_c, self.created,
                            self.notes, self.fit, [t.to_dict() for t in self.corrections]),
                           (other.temperature_range_c, other.sensor_id, other.t_center_c, other.t_scale_c, other.created,
@@ -341,31 +337,8 @@ class ThermalCalibration:
             raise fail("temperature_range_c must be [min, max]")
         texts = {key: _text(d, key, MAX_NOTES_CHARS if key == "notes" else MAX_TEXT_CHARS, fail)
                  for key in ("sensor_id", "created", "notes")}
-        corr = _optional(d, "noise_correlation", {})
-        if not isinstance(corr, dict):
-            raise fail(f"'noise_correlation' must be a mapping, got {type(corr).__name__}")
-        refuse_unknown(corr, NOISE_CORRELATION_KEYS, "noise_correlation.", fail_key)
-        corr_f, corr_tau = np.zeros(3), np.zeros(3)
-        if corr:  # an optional section is given whole: a missing list is not read as zeros
-            for key in NOISE_CORRELATION_KEYS:
-                if key not in corr:
-                    raise fail(f"missing key 'noise_correlation.{key}' (the section needs both of "
-                               f"{', '.join(NOISE_CORRELATION_KEYS)}, or none for white noise)")
-            corr_f = number_array(corr["correlated_fraction"], "noise_correlation.correlated_fraction", fail,
-                                  finite=False)
-            corr_tau = number_array(corr["time_constant_s"], "noise_correlation.time_constant_s", fail, finite=False)
-        ref_level = _optional(d, "reference_level", {})
-        if not isinstance(ref_level, dict):
-            raise fail(f"'reference_level' must be a mapping, got {type(ref_level).__name__}")
-        refuse_unknown(ref_level, REFERENCE_LEVEL_KEYS, "reference_level.", fail_key)
-        ref_t, ref_c = np.zeros(0), np.zeros(0)
-        if ref_level:
-            for key in REFERENCE_LEVEL_KEYS:
-                if key not in ref_level:
-                    raise fail(f"missing key 'reference_level.{key}' (the section needs both of "
-                               f"{', '.join(REFERENCE_LEVEL_KEYS)}, or none)")
-            ref_t = number_array(ref_level["temperature_c"], "reference_level.temperature_c", fail, finite=False)
-            ref_c = number_array(ref_level["counts"], "reference_level.counts", fail, finite=False)
+        corr_f, corr_tau = _section(d, "noise_correlation", NOISE_CORRELATION_KEYS, 3, " for white noise", fail, fail_key)
+        ref_t, ref_c = _section(d, "reference_level", REFERENCE_LEVEL_KEYS, 0, "", fail, fail_key)
         fit = _optional(d, "fit", {})
         if not isinstance(fit, dict):
             raise fail(f"'fit' must be a mapping of figures, got {type(fit).__name__}")
@@ -395,24 +368,13 @@ class ThermalCalibration:
                                f"{written[key]!r:.80}: give the value it writes, or leave the key out")
             corrections.append(term)
         try:
-            cal = cls(
-                M=M,
-                b=b,
-                temperature_range_c=(num(rng[0], "temperature_range_c"), num(rng[1], "temperature_range_c")),
-                sensor_id=texts["sensor_id"] if "sensor_id" in d else "unknown",
-                t_center_c=num(d.get("temperature_center_c", 0.0), "temperature_center_c"),
-                t_scale_c=num(d.get("temperature_scale_c", 1.0), "temperature_scale_c"),
-                noise_sigma_mps2=noise,
-                created=texts["created"],
-                fit=dict(fit),
-                corrections=corrections,
-                notes=texts["notes"],
-                noise_correlated_fraction=corr_f,
-                noise_time_constant_s=corr_tau,
-                dynamic=dynamic,
-                reference_level_temperature_c=ref_t,
-                reference_level_counts=ref_c,
-            )
+            cal = cls(M=M, b=b, temperature_range_c=(num(rng[0], "temperature_range_c"), num(rng[1], "temperature_range_c")),
+                      sensor_id=texts["sensor_id"] if "sensor_id" in d else "unknown",
+                      t_center_c=num(d.get("temperature_center_c", 0.0), "temperature_center_c"),
+                      t_scale_c=num(d.get("temperature_scale_c", 1.0), "temperature_scale_c"),
+                      noise_sigma_mps2=noise, created=texts["created"], fit=dict(fit), corrections=corrections,
+                      notes=texts["notes"], noise_correlated_fraction=corr_f, noise_time_constant_s=corr_tau,
+                      dynamic=dynamic, reference_level_temperature_c=ref_t, reference_level_counts=ref_c)
         except (TypeError, ValueError, OverflowError) as exc:
             if isinstance(exc, CalibrationFileError):
                 raise
@@ -518,28 +480,27 @@ MIGRATIONS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {}
 def migrate(d: dict[str, Any], source: str = "<dict>") -> dict[str, Any]:
     """A parsed calibration file brought to :data:`FORMAT_VERSION` through :data:`MIGRATIONS`, one version
     at a time. Refuses a version that is not an integer, newer than this reader, or older without a path."""
-    version = d.get("format_version")
-    if "format_version" not in d:
-        raise CalibrationFileError(f"{source}: missing key 'format_version'")
     def fail(msg: str) -> CalibrationFileError:
         return CalibrationFileError(f"{source}: {msg}")
 
-    version = format_version(version, "format_version", fail, reads=FORMAT_VERSION, exact=False)
+    def unsupported(version: int) -> str:
+        return f"format_version {version} is not supported (this driver reads {FORMAT_VERSION})"
+
+    if "format_version" not in d:
+        raise fail("missing key 'format_version'")
+    version = format_version(d["format_version"], "format_version", fail, reads=FORMAT_VERSION, exact=False)
     if version < 1:
-        raise fail(f"format_version {version!r} is not supported (this driver reads {FORMAT_VERSION})")
+        raise fail(unsupported(version))
     if version > FORMAT_VERSION:
-        raise CalibrationFileError(
-            f"{source}: format_version {version} is not supported (this driver reads {FORMAT_VERSION}); the file is "
-            "newer than this driver: update fbg_accel_driver")
+        raise fail(f"{unsupported(version)}; the file is newer than this driver: update fbg_accel_driver")
     while version < FORMAT_VERSION:
         step = MIGRATIONS.get(version)
         if step is None:
-            raise CalibrationFileError(
-                f"{source}: format_version {version} is not supported (this driver reads {FORMAT_VERSION})")
+            raise fail(unsupported(version))
         d = step(dict(d))
         version += 1
         if d.get("format_version") != version:
-            raise CalibrationFileError(f"{source}: migration to format_version {version} failed")
+            raise fail(f"migration to format_version {version} failed")
     return d
 
 
@@ -608,6 +569,24 @@ def _optional(d: dict[str, Any], key: str, default: Any) -> Any:
     container of the wrong type, is returned for the caller's type check."""
     v = d.get(key)
     return default if v is None else v
+
+
+def _section(d: dict[str, Any], name: str, keys: tuple[str, str], absent_len: int, none_means: str,
+             fail: Callable[[str], CalibrationFileError], fail_key: Callable[[str], CalibrationFileError],
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """The two number lists of an optional section (``noise_correlation``, ``reference_level``); zeros of
+    ``absent_len`` when it is absent. A section is given whole: a missing list is not read as zeros."""
+    section = _optional(d, name, {})
+    if not isinstance(section, dict):
+        raise fail(f"'{name}' must be a mapping, got {type(section).__name__}")
+    refuse_unknown(section, keys, f"{name}.", fail_key)
+    if not section:
+        return np.zeros(absent_len), np.zeros(absent_len)
+    for key in keys:
+        if key not in section:
+            raise fail(f"missing key '{name}.{key}' (the section needs both of {', '.join(keys)}, or none{none_means})")
+    first, second = (number_array(section[key], f"{name}.{key}", fail, finite=False) for key in keys)
+    return first, second
 
 
 def _agrees(value: Any, written: Any) -> bool:
