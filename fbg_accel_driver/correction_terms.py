@@ -80,7 +80,8 @@ CORRECTION_TYPES: dict[str, type] = {}
 
 
 def correction_from_dict(d: Any) -> CorrectionTerm:
-    """Build a correction term from its YAML mapping; unknown kinds are refused."""
+    """Build a correction term from its YAML mapping; unknown kinds are refused. The only caller of the terms'
+    ``from_dict``, which therefore get a mapping of their own kind."""
     if not isinstance(d, dict) or "kind" not in d:
         raise ValueError("a correction term must be a mapping with a 'kind'")
     kind = d["kind"]
@@ -132,11 +133,6 @@ def _span(d: dict, key: str, kind: str, shape: tuple[int, ...]) -> np.ndarray | 
 
 def _lst(a: np.ndarray) -> list:
     return np.asarray(a, dtype=float).tolist()
-
-
-def _check_kind(d: dict, kind: str) -> None:
-    if d.get("kind") != kind:
-        raise ValueError(f"expected kind '{kind}', got {d.get('kind')!r}")
 
 
 # ----------------------------------------------------------------------------- streaming filters
@@ -322,7 +318,6 @@ class TiaInverseFilter(_Base):
 
     @classmethod
     def from_dict(cls, d: dict) -> TiaInverseFilter:
-        _check_kind(d, cls.kind)
         return cls(_array(d, "tau_s", cls.kind, (4,), nonneg=True))
 
     def to_dict(self) -> dict[str, Any]:
@@ -379,7 +374,6 @@ class ReferenceLowpass(_Base):
 
     @classmethod
     def from_dict(cls, d: dict) -> ReferenceLowpass:
-        _check_kind(d, cls.kind)
         tau = _scalar(d, "time_constant_s", cls.kind, positive=True)
         if tau > cls.MAX_TIME_CONSTANT_S:
             raise ValueError(f"{cls.kind}: time_constant_s {tau} s is above {cls.MAX_TIME_CONSTANT_S:g} s")
@@ -412,7 +406,6 @@ class ReferenceDarkOffset(_Base):
 
     @classmethod
     def from_dict(cls, d: dict) -> ReferenceDarkOffset:
-        _check_kind(d, cls.kind)
         v = _scalar(d, "ref_offset_counts", cls.kind)
         if abs(v) >= 4096:
             raise ValueError(f"{cls.kind}: ref_offset_counts {v} is outside the 12-bit ADC range")
@@ -443,7 +436,6 @@ class ThermalLag(_Base):
 
     @classmethod
     def from_dict(cls, d: dict) -> ThermalLag:
-        _check_kind(d, cls.kind)
         tau = _scalar(d, "tau_s", cls.kind, nonzero=True)
         return cls(tau, _scalar(d, "rate_smoothing_s", cls.kind, positive=True, default=abs(tau) / 4.0))
 
@@ -503,7 +495,6 @@ class ChainDynamics(_Base):
 
     @classmethod
     def from_dict(cls, d: dict) -> ChainDynamics:
-        _check_kind(d, cls.kind)
         return cls(_array(d, "tia_tau_s", cls.kind, (4,), nonneg=True), _scalar(d, "delay_s", cls.kind, nonneg=True))
 
     def to_dict(self) -> dict[str, Any]:
@@ -545,7 +536,6 @@ class SpectralNonlinearity(_HeldInSpan):
 
     @classmethod
     def from_dict(cls, d: dict) -> SpectralNonlinearity:
-        _check_kind(d, cls.kind)
         return cls(_array(d, "psi0", cls.kind, (3,)), _array(d, "coeff_mps2", cls.kind, (3, 6)),
                    _span(d, "psi_span", cls.kind, (3, 2)))
 
@@ -581,7 +571,6 @@ class ChannelOffset(_Base):
 
     @classmethod
     def from_dict(cls, d: dict) -> ChannelOffset:
-        _check_kind(d, cls.kind)
         return cls(_array(d, "coeff_mps2_counts", cls.kind, (3,)))
 
     def to_dict(self) -> dict[str, Any]:
@@ -616,7 +605,6 @@ class TimeDrift(_HeldInSpan):
 
     @classmethod
     def from_dict(cls, d: dict) -> TimeDrift:
-        _check_kind(d, cls.kind)
         return cls(_array(d, "creep_mps2_per_s", cls.kind, (3,)), _array(d, "warmup_mps2", cls.kind, (3,)),
                    _scalar(d, "warmup_tau_s", cls.kind, positive=True), _scalar(d, "t0_s", cls.kind, default=0.0),
                    _span(d, "span_s", cls.kind, (2,)))
@@ -664,7 +652,6 @@ class ThermalHysteresis(_Base):
 
     @classmethod
     def from_dict(cls, d: dict) -> ThermalHysteresis:
-        _check_kind(d, cls.kind)
         return cls(_array(d, "half_gap_mps2", cls.kind, (3,)), _scalar(d, "rate_tau_s", cls.kind, positive=True),
                    _scalar(d, "deadband_c_per_s", cls.kind, nonneg=True))
 
