@@ -135,7 +135,7 @@ class DriverNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         if not self.managed:
             self._configure()
-            self._activate()
+            self._publishing = True
 
     def _data_publisher(self, msg_type: Any, topic: str) -> Publisher:
         return self.create_publisher(msg_type, topic, data_qos(), qos_overriding_options=_overridable())
@@ -172,18 +172,11 @@ class DriverNode(Node):
                 self.calibration = ThermalCalibration.load(cal_path)
             except CalibrationFileError as exc:
                 raise StartupError(f"calibration file rejected: {exc}") from None
-        core_cfg = CoreConfig(
-            decimation=p["decimation"],
-            min_reference_counts=p["min_reference_counts"],
-            temperature_hold_s=p["temperature_hold_s"],
-            covariance_source=p["covariance_source"],
-            accel_stddev_mps2=p["accel_stddev_mps2"],
-            out_of_range_variance_factor=p["out_of_range_variance_factor"],
-            temperature_range_margin_c=p["temperature_range_margin_c"],
-            reference_level_tolerance=p["reference_level_tolerance"],
+        core_cfg = CoreConfig(  # the parameters of these names set the CoreConfig fields of the same names
             chain_compensation=self._chain_mode(p["chain_compensation"]),
-            equalise_bandwidth_hz=p["equalise_bandwidth_hz"],
-        )
+            **{name: p[name] for name in ("decimation", "min_reference_counts", "temperature_hold_s", "covariance_source",
+                                          "accel_stddev_mps2", "out_of_range_variance_factor", "temperature_range_margin_c",
+                                          "reference_level_tolerance", "equalise_bandwidth_hz")})
         try:
             core = DriverCore(self.calibration, core_cfg)
         except ValueError as exc:
@@ -222,12 +215,6 @@ class DriverNode(Node):
             what = (f"calibration {cal_path} (sensor {cal.sensor_id}, degree {cal.degree}, "
                     f"{cal.temperature_range_c[0]:g}..{cal.temperature_range_c[1]:g} degC)")
         self.get_logger().info(f"reading {p['port']} at {p['baud']} baud, {what}, decimation {p['decimation']}")
-
-    def _activate(self) -> None:
-        self._publishing = True
-
-    def _deactivate(self) -> None:
-        self._publishing = False
 
     def _cleanup(self) -> None:
         """Stop the reader (the port is closed) and the publisher thread; drop publishers and timer. Also after a
@@ -345,19 +332,12 @@ class DriverNode(Node):
                          "python_threads": threading.active_count(), "queued_bytes": st.queued_bytes,
                          "queue_max_bytes": self.link.queue.max_bytes, "queue_dropped_chunks": st.queue_dropped_chunks,
                          "queue_dropped_bytes": st.queue_dropped_bytes},
-            decoder=core.decoder.stats.as_dict(),
-            core=core.counters.as_dict(),
-            temperature_valid=core.last_temperature_valid,
-            temperature_age_s=core.temperature_age_s,
-            last_temperature_c=core.last_good_temperature_c,
-            temperature_hold_s=core.config.temperature_hold_s,
-            temperature_range_c=self.temperature_range_c,
-            temperature_range_margin_c=core.config.temperature_range_margin_c,
-            reference_level_tolerance=core.config.reference_level_tolerance,
-            calibration=self.cal_info,
-            chain=core.chain_status(),
-            clock=core.clock_status(),
-        )
+            decoder=core.decoder.stats.as_dict(), core=core.counters.as_dict(),
+            temperature_valid=core.last_temperature_valid, temperature_age_s=core.temperature_age_s,
+            last_temperature_c=core.last_good_temperature_c, temperature_hold_s=core.config.temperature_hold_s,
+            temperature_range_c=self.temperature_range_c, temperature_range_margin_c=core.config.temperature_range_margin_c,
+            reference_level_tolerance=core.config.reference_level_tolerance, calibration=self.cal_info,
+            chain=core.chain_status(), clock=core.clock_status())
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
         for e in self.diag.report(snap):
@@ -400,11 +380,11 @@ class ManagedDriverNode(DriverNode, LifecycleNode):
         return super().on_configure(state)
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._activate()
+        self._publishing = True
         return super().on_activate(state)
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._deactivate()
+        self._publishing = False
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
