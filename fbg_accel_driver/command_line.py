@@ -8,27 +8,14 @@ from typing import Any
 DISTRIBUTION = "fbg_accel_driver"  # the setup.py ``name`` whose metadata carries the version
 
 
-def _user_args(argv: list[str]) -> list[str]:
-    """The user's own arguments: those before ``--ros-args`` (the rest belongs to rcl)."""
-    return argv[: argv.index("--ros-args")] if "--ros-args" in argv else argv
-
-
-def wants_help(argv: list[str]) -> bool:
-    """True if ``-h``/``--help`` appears among the user's arguments (those before ``--ros-args``)."""
-    return any(a in ("-h", "--help") for a in _user_args(argv))
-
-
-def wants_version(argv: list[str]) -> bool:
-    """True if ``--version`` appears among the user's arguments (those before ``--ros-args``)."""
-    return "--version" in _user_args(argv)
-
-
 def print_help_or_version(prog: str, argv: list[str], usage: Callable[[], str]) -> bool:
-    """Answer ``--version`` or ``-h``/``--help`` (before any ROS start-up); True if one was answered."""
-    if wants_version(argv):
+    """Answer ``--version`` or ``-h``/``--help`` among the user's arguments (those before ``--ros-args``: the rest
+    belongs to rcl), before any ROS start-up; True if one was answered."""
+    user_args = argv[: argv.index("--ros-args")] if "--ros-args" in argv else argv
+    if "--version" in user_args:
         print(version_line(prog))
         return True
-    if wants_help(argv):
+    if "-h" in user_args or "--help" in user_args:
         print(usage(), end="")
         return True
     return False
@@ -48,19 +35,15 @@ def parameter_help(table: ParameterTable, name_width: int, type_width: int) -> s
     return "".join(f"  {n:<{name_width}} {t:<{type_width}} default {d!r}\n      {desc}\n" for n, (t, d, desc) in table.items())
 
 
-def package_version() -> str:
-    """Version of the installed distribution (setup.py ``version``), read from its metadata."""
+def version_line(prog: str) -> str:
+    """What ``PROG --version`` prints, e.g. ``fbg-accel-calib 0.1.0``: the installed distribution's version (setup.py
+    ``version``), read from its metadata."""
     from importlib.metadata import PackageNotFoundError, version
 
     try:
-        return version(DISTRIBUTION)
+        return f"{prog} {version(DISTRIBUTION)}"
     except PackageNotFoundError:
-        return "unknown (package metadata not found: install with pip or colcon build)"
-
-
-def version_line(prog: str) -> str:
-    """What ``PROG --version`` prints, e.g. ``fbg-accel-calib 0.1.0``."""
-    return f"{prog} {package_version()}"
+        return f"{prog} unknown (package metadata not found: install with pip or colcon build)"
 
 
 # Parameters every rclpy node has, besides its own (rclpy declares them itself).
