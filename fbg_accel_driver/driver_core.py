@@ -265,9 +265,7 @@ class DriverCore:
 
     def _base_sigma(self) -> np.ndarray:
         src = self.config.covariance_source
-        if src == "calibration" and self.cal is None:
-            return np.zeros(3)
-        if src == "calibration":
+        if src == "calibration" and self.cal is not None:
             return np.asarray(self.cal.noise_sigma_mps2, dtype=float)
         if src == "parameter":
             return np.full(3, self.config.accel_stddev_mps2)
