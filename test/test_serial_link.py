@@ -7,7 +7,10 @@ import select
 import threading
 import time
 import tty
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import pytest
 import serial
@@ -34,6 +37,22 @@ def open_pty(link: Path) -> tuple[int, int]:
     os.symlink(os.ttyname(slave), tmp)
     os.replace(tmp, link)
     return master, slave
+
+
+@contextmanager
+def pty_link(path: Path, baud: int = 115200, **options: Any) -> Iterator[tuple[SerialLink, Notified, int]]:
+    """A started SerialLink on a fresh pty at ``path``: (the link, its ``notify`` callback, the pty's master fd); the
+    link is stopped and the pty closed after the block."""
+    master, slave = open_pty(path)
+    notified = Notified()
+    link = SerialLink(str(path), baud, notify=notified, **options)
+    link.start()
+    try:
+        yield link, notified, master
+    finally:
+        link.stop()
+        os.close(master)
+        os.close(slave)
 
 
 def drain(link: SerialLink) -> bytes:
@@ -106,31 +125,15 @@ def test_reads_survives_vanish_backs_off_and_reconnects_in_one_thread(tmp_path: 
 
 
 def test_silent_port_is_reopened(tmp_path: Path) -> None:
-    path = tmp_path / "board"
-    master, slave = open_pty(path)
-    notified = Notified()
-    wait_for = notified.wait_until
-    link = SerialLink(str(path), 115200, notify=notified, backoff_initial_s=0.05, backoff_max_s=0.1,
-                      silence_timeout_s=0.3)
-    link.start()
-    try:
-        wait_for(lambda: link.status().connects >= 2, 10, "reopen after 0.3 s of silence")
+    with pty_link(tmp_path / "board", backoff_initial_s=0.05, backoff_max_s=0.1, silence_timeout_s=0.3) as (link, notified, _):
+        notified.wait_until(lambda: link.status().connects >= 2, 10, "reopen after 0.3 s of silence")
         assert link.status().disconnects >= 1
-    finally:
-        link.stop()
-        os.close(master)
-        os.close(slave)
 
 
 def test_a_frame_written_at_once_arrives_as_one_chunk(tmp_path: Path) -> None:
     """A read that wakes on a frame's first byte takes the rest with it: one chunk (one consumer wake-up) per frame."""
-    path = tmp_path / "board"
-    master, slave = open_pty(path)
-    notified = Notified()
-    wait_for = notified.wait_until
-    link = SerialLink(str(path), 921600, notify=notified)
-    link.start()
-    try:
+    with pty_link(tmp_path / "board", 921600) as (link, notified, master):
+        wait_for = notified.wait_until
         wait_for(lambda: link.status().state is LinkState.CONNECTED, 10, "connected")
         frames = [bytes([0xA5, k]) + bytes(range(25)) for k in range(20)]  # 27 bytes each, like a v1 frame
         chunks: list[bytes] = []
@@ -145,22 +148,13 @@ def test_a_frame_written_at_once_arrives_as_one_chunk(tmp_path: Path) -> None:
             wait_for(lambda k=k: take(27 * (k + 1)), 10, f"frame {k} queued")
         assert b"".join(chunks) == b"".join(frames)
         assert len(chunks) == len(frames), [len(c) for c in chunks]  # with read(1) alone: 1 + 26 bytes, 40 chunks
-    finally:
-        link.stop()
-        os.close(master)
-        os.close(slave)
 
 
 def test_each_chunk_carries_the_host_and_the_steady_time_of_its_read(tmp_path: Path) -> None:
     """The reader reads the host (ROS) clock and the steady clock together, so the clock estimate can run on the
     steady one and host clock steps move the stamps exactly (``clock_sync``)."""
-    path = tmp_path / "board"
-    notified = Notified()
-    master, slave = open_pty(path)
     host_ahead_ns = 7 * 10**9  # a host clock 7 s ahead of the steady clock
-    link = SerialLink(str(path), 115200, notify=notified, clock_ns=lambda: steady_clock_ns() + host_ahead_ns)
-    link.start()
-    try:
+    with pty_link(tmp_path / "board", clock_ns=lambda: steady_clock_ns() + host_ahead_ns) as (link, notified, master):
         notified.wait_until(lambda: link.status().state is LinkState.CONNECTED, 10, "connected")
         before = steady_clock_ns()
         os.write(master, b"stamped")
@@ -169,10 +163,6 @@ def test_each_chunk_carries_the_host_and_the_steady_time_of_its_read(tmp_path: P
         host_ns, data, steady_ns = link.queue.get_nowait()
         assert data == b"stamped" and before <= steady_ns <= after
         assert abs(host_ns - steady_ns - host_ahead_ns) < 10**8  # read one right after the other
-    finally:
-        link.stop()
-        os.close(master)
-        os.close(slave)
 
 
 @pytest.mark.skipif(not hasattr(time, "CLOCK_MONOTONIC_RAW"), reason="no NTP-unadjusted clock on this platform")
@@ -183,12 +173,7 @@ def test_the_steady_time_of_a_read_is_the_clock_ntp_does_not_slew(tmp_path: Path
     early for 100 s). The steady time must be CLOCK_MONOTONIC_RAW, which NTP leaves alone: the slew then shows in the
     host-minus-steady offset, which the stamps follow. Before: ``time.monotonic_ns``, 264 ms outside the
     CLOCK_MONOTONIC_RAW bracket of the read on the host this was written on (the NTP corrections since boot)."""
-    path = tmp_path / "board"
-    notified = Notified()
-    master, slave = open_pty(path)
-    link = SerialLink(str(path), 115200, notify=notified)
-    link.start()
-    try:
+    with pty_link(tmp_path / "board") as (link, notified, master):
         notified.wait_until(lambda: link.status().state is LinkState.CONNECTED, 10, "connected")
         before = time.clock_gettime_ns(time.CLOCK_MONOTONIC_RAW)
         os.write(master, b"stamped")
@@ -197,10 +182,6 @@ def test_the_steady_time_of_a_read_is_the_clock_ntp_does_not_slew(tmp_path: Path
         _, data, steady_ns = link.queue.get_nowait()
         assert data == b"stamped"
         assert before <= steady_ns <= after, (steady_ns - before, after - steady_ns)
-    finally:
-        link.stop()
-        os.close(master)
-        os.close(slave)
 
 
 def test_a_port_that_hangs_up_while_it_is_being_opened_is_retried(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
