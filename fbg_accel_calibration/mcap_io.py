@@ -70,6 +70,7 @@ from fbg_accel_driver.command_line import first_line
 from fbg_accel_driver.driver_core import RAW_AUX_NAME, RAW_NAMES
 
 from . import ros2_cdr
+from .atomic_output import create_exclusive
 from .input_files import MCAP_MAGIC
 from .recording import Recording
 from .rosbag2_input import BagInputError, bag_files, offered_qos_yaml
@@ -111,8 +112,7 @@ class RecordingLostError(OSError):
 # ---------------------------------------------------------------------------- topic names
 def normalize_namespace(namespace: str | None) -> str:
     """ROS namespace with one leading slash and none trailing: ``""``/``"/"`` -> ``"/"``, ``"ns/"`` -> ``"/ns"``."""
-    ns = "/" + (namespace or "").strip().strip("/")
-    return ns
+    return "/" + (namespace or "").strip().strip("/")
 
 
 def full_topic_name(namespace: str, relative: str) -> str:
@@ -260,31 +260,23 @@ def recording_files(path: str | Path, namespace: str | None = None, raw_topic: s
             info = bag_files(path)
         except BagInputError as exc:
             raise McapRecordingError(str(exc)) from None
-        if not info.topics:  # a metadata.yaml without its topic list: choose while reading, as a cut file
-            sel = TopicSelection(namespace, raw_topic)
-            sel._auto = not sel.fixed
-            return info.files, sel, info.notes()
-        return info.files, TopicSelection.resolve(info.topics, namespace, raw_topic, path), info.notes()
-    if not path.is_file():
+        files, topics, notes = info.files, info.topics, info.notes()
+    elif path.is_file():
+        files, topics, notes = [path], _summary_topics(path), []
+    else:
         raise McapRecordingError(f"{path}: file not found")
-    topics = _summary_topics(path)
-    if topics is None:
+    if not topics:  # a metadata.yaml without its topic list, a file cut before its summary: choose while reading
         sel = TopicSelection(namespace, raw_topic)
         sel._auto = not sel.fixed
-        return [path], sel, []
-    return [path], TopicSelection.resolve(topics, namespace, raw_topic, path), []
+        return files, sel, notes
+    return files, TopicSelection.resolve(topics, namespace, raw_topic, path), notes
 
 
 # ---------------------------------------------------------------------------- message definitions
-def _msg_search_prefixes() -> list[Path]:
-    prefixes = [Path(p) for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
-    prefixes.append(Path(sys.prefix))
-    return prefixes
-
-
 def _find_msg_file(package: str, name: str) -> Path:
     tried = []
-    for prefix in _msg_search_prefixes():
+    prefixes = [Path(p) for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+    for prefix in [*prefixes, Path(sys.prefix)]:
         candidate = prefix / "share" / package / "msg" / f"{name}.msg"
         tried.append(str(candidate))
         if candidate.is_file():
@@ -297,22 +289,15 @@ def _dependencies(package: str, text: str) -> list[tuple[str, str]]:
     deps: list[tuple[str, str]] = []
     for raw_line in text.splitlines():
         line = raw_line.split("#", 1)[0].strip()
-        if not line:
+        if not line or _CONSTANT.match(line):  # a constant definition: "type NAME=value"
             continue
-        if _CONSTANT.match(line):
-            continue  # constant definition "type NAME=value"
         field_type = line.split()[0]
         base = re.sub(r"\[.*?\]$", "", field_type)
         base = re.sub(r"<=\d+$", "", base)
         if base in _PRIMITIVES:
             continue
         parts = base.split("/")
-        if len(parts) == 1:
-            dep = (package, parts[0])
-        elif len(parts) == 2:
-            dep = (parts[0], parts[1])
-        else:
-            dep = (parts[0], parts[-1])
+        dep = (package, parts[0]) if len(parts) == 1 else (parts[0], parts[-1])
         if dep not in deps:
             deps.append(dep)
     return deps
@@ -342,12 +327,7 @@ class _UnbufferedSink:
     """Write-through file wrapper: every ``write`` reaches the OS before returning (SIGKILL-safe)."""
 
     def __init__(self, path: Path, exclusive: bool = False) -> None:
-        if exclusive:  # never overwrite, never follow a link (atomic_output.create_exclusive)
-            from .atomic_output import create_exclusive
-
-            self._raw = io.FileIO(create_exclusive(path), "wb")
-        else:
-            self._raw = io.FileIO(str(path), "wb")
+        self._raw = io.FileIO(create_exclusive(path) if exclusive else str(path), "wb")  # exclusive: no overwrite, no link
         self._pos = 0
         st = os.fstat(self._raw.fileno())
         self.identity = (st.st_dev, st.st_ino)  # the file written, to check that its path still names it
@@ -399,8 +379,7 @@ class RecordingWriter:
         self._channels: dict[str, int] = {}
         self._closed = False
         self.message_count = 0
-        for topic, datatype in ((TOPIC_RAW, TYPE_RAW), (TOPIC_TEMPERATURE, TYPE_TEMPERATURE),
-                                (TOPIC_REFERENCE_GRAVITY, TYPE_REFERENCE_GRAVITY), (TOPIC_POSE, TYPE_POSE)):
+        for topic, datatype in ROLE_TYPES.items():
             self._register(topic, datatype)
         self._raw_codec: ros2_cdr.FixedJointStateCodec
         self._aux_codec: ros2_cdr.FixedJointStateCodec | None = None  # imu/raw with aux_counts (created when first needed)
@@ -792,27 +771,28 @@ PARTIAL_RECORD = SkippedRange(-1, -1, "a record cut short at the end of a chunk 
                                       "the records after it in that chunk are lost")
 
 
-def _partial_noted(report: FileReadReport) -> None:
-    report.skipped.append(SkippedRange(PARTIAL_RECORD.offset, PARTIAL_RECORD.end_offset, PARTIAL_RECORD.reason))
-
-
 def _record_at(data: bytes, pos: int, size: int) -> tuple[Any, int]:
-    """The record at ``pos`` of decompressed chunk data and the next position; the record is a message
-    ``(channel_id, log_time, data)``, a parsed Schema/Channel/Metadata, or None for other opcodes."""
+    """The record at ``pos`` of decompressed chunk data (:func:`_parse_record`) and the next position."""
     if pos + 9 > size:
         raise _PartialRecordError("record header overruns its chunk")
     opcode, length = _RECORD_HEAD.unpack_from(data, pos)
-    start, end = pos + 9, pos + 9 + length
+    end = pos + 9 + length
     if end > size:
         raise _PartialRecordError("record overruns its chunk")
+    return _parse_record(opcode, data[pos + 9:end]), end
+
+
+def _parse_record(opcode: int, body: bytes) -> Any:
+    """A record, in a chunk or not: a message ``(channel_id, log_time, data)``, a parsed Schema/Channel/Metadata,
+    or None for other opcodes."""
     if opcode == Opcode.MESSAGE:
-        if length < _MESSAGE_HEAD.size:
+        if len(body) < _MESSAGE_HEAD.size:
             raise _PartialRecordError("message record shorter than its header")
-        channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(data, start)
-        return (channel_id, log_time, data[start + 22:end]), end
+        channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(body, 0)
+        return channel_id, log_time, body[_MESSAGE_HEAD.size:]
     if opcode in _PARSED:
-        return _PARSED[opcode].read(ReadDataStream(io.BytesIO(data[start:end]))), end
-    return None, end
+        return _PARSED[opcode].read(ReadDataStream(io.BytesIO(body)))
+    return None
 
 
 def _stamp_ns(header: Any) -> int:
@@ -1051,7 +1031,6 @@ class McapSampleStream:
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
         decoders: dict[int, Any] = {}
-        raw_channel: set[int] = set()
         fast: dict[str, Any] = {}
 
         def count(topic: str, n: int) -> None:
@@ -1073,13 +1052,6 @@ class McapSampleStream:
             count(channel.topic, 1)
             role = _role_of(path, sel, channel, schemas, report)
             if role == TOPIC_RAW:
-                raw_channel.add(channel_id)
-                codec = fast.get("codec")
-                if codec is not None and codec.matches(data):
-                    s, v = codec.decode_many([data])
-                    if collect_events:
-                        self._raw_clock(log_time, s[-1])
-                    return s, v
                 msg = _decode(path, decoder_of(channel, role), channel, data)
                 names = tuple(msg.name)
                 if self.names is None:
@@ -1092,7 +1064,7 @@ class McapSampleStream:
                 if len(msg.position) != len(names):
                     raise McapRecordingError(f"{path}: {channel.topic} message has {len(msg.position)} values "
                                              f"for {len(names)} names")
-                if codec is None:
+                if "codec" not in fast:
                     _set_fast(fast, channel_id, ros2_cdr.FixedJointStateCodec(msg.header.frame_id, names))
                 stamp = _stamp_ns(msg.header)
                 if collect_events:
@@ -1117,8 +1089,8 @@ class McapSampleStream:
                                              ) from None
             return None
 
-        def emit(data: bytes):
-            for item in _split_chunk(data, fast):
+        def emit(items: Iterable[Any]):
+            for item in items:
                 if isinstance(item, tuple) and len(item) == 2:  # a run of fixed-layout raw records
                     count(report.raw_topic, len(item[0]))
                     if collect_events:
@@ -1129,7 +1101,7 @@ class McapSampleStream:
                     if out is not None:
                         yield out
                 elif item is PARTIAL_RECORD:
-                    _partial_noted(report)
+                    report.skipped.append(SkippedRange(item.offset, item.end_offset, item.reason))
                 else:
                     _note_record(item, schemas, channels, report)
 
@@ -1142,38 +1114,29 @@ class McapSampleStream:
             while True:
                 try:
                     opcode, body = next(records)
-                    chunk_data = body if opcode == Opcode.CHUNK else None
                 except StopIteration:  # the footer
-                    if joined:
-                        yield from emit(b"".join(joined))
                     report.complete = True
-                    return
+                    break
                 except Exception as exc:  # truncated or corrupt tail: keep what was read
                     report.stopped_at = f"{type(exc).__name__} {exc}".strip()
-                    if joined:
-                        yield from emit(b"".join(joined))
-                    return
-                if chunk_data is not None:  # records never span chunks: split several chunks at once
-                    joined.append(chunk_data)
-                    joined_bytes += len(chunk_data)
-                    if joined_bytes >= _JOIN_BYTES:
-                        yield from emit(b"".join(joined))
-                        joined, joined_bytes = [], 0
-                    continue
+                    break
+                if opcode == Opcode.CHUNK:  # records never span chunks: split several chunks at once
+                    joined.append(body)
+                    joined_bytes += len(body)
+                    if joined_bytes < _JOIN_BYTES:
+                        continue
                 if joined:
-                    yield from emit(b"".join(joined))
+                    yield from emit(_split_chunk(b"".join(joined), fast))
                     joined, joined_bytes = [], 0
-                if opcode in _PARSED:
-                    rec = _PARSED[opcode].read(ReadDataStream(io.BytesIO(body)))
-                    _note_record(rec, schemas, channels, report)
-                elif opcode == Opcode.MESSAGE:
-                    if len(body) < _MESSAGE_HEAD.size:
-                        report.stopped_at = "message record shorter than its header"
-                        return
-                    channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(body, 0)
-                    out = message(channel_id, log_time, body[22:])
-                    if out is not None:
-                        yield out
+                if opcode != Opcode.CHUNK:
+                    try:
+                        item = _parse_record(opcode, body)
+                    except _PartialRecordError as exc:
+                        report.stopped_at = str(exc)
+                        break
+                    yield from emit([item])
+        if joined:
+            yield from emit(_split_chunk(b"".join(joined), fast))
 
     def blocks(self, block_rows: int, with_poses: bool) -> Any:
         """Yield :class:`Recording` blocks of ``block_rows`` samples (run_id 0) in file order.
@@ -1275,11 +1238,10 @@ class McapSampleStream:
 
 
 def _decoder_for(path: Path | str, factory: DecoderFactory, channel: Channel, schemas: dict[int, Schema],
-                 is_raw: bool | None = None) -> Any:
+                 is_raw: bool) -> Any:
     """The ``mcap_ros2`` decoder of a channel, or one line saying why there is none: the raw topic of another
     type, a schema that does not parse (instead of an AttributeError or InvalidResourceName traceback)."""
     schema = schemas.get(channel.schema_id)
-    is_raw = channel.topic == TOPIC_RAW if is_raw is None else is_raw
     if is_raw and (schema is None or schema.name != TYPE_RAW):
         found = schema.name if schema is not None else "no schema"
         raise McapRecordingError(f"{path}: topic '{channel.topic}' has type '{found}', expected '{TYPE_RAW}'")

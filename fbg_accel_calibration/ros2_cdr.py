@@ -1,7 +1,7 @@
 """CDR encoding (XCDR1, little endian: the ROS 2 default) of the four message types a calibration
 recording holds, written by :class:`mcap_io.RecordingWriter`.
 
-Pure Python + numpy. The layouts are those of the ROS 2 middleware (and of the ``mcap_ros2`` encoder,
+Pure Python. The layouts are those of the ROS 2 middleware (and of the ``mcap_ros2`` encoder,
 byte for byte: ``test_mcap_io`` compares each with messages written through ``mcap_ros2``'s public
 writer): a 4-byte encapsulation header, then the fields in order, each primitive aligned to its own
 size counted from the end of that header; a string is a uint32 length (with its NUL) and the bytes
@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Iterable
-
-import numpy as np
 
 ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR_LE
 
@@ -46,20 +44,22 @@ class CdrWriter:
         return ENCAPSULATION + bytes(self.body)
 
 
-def temperature(stamp_ns: int, frame_id: str, temperature_c: float, variance_c2: float) -> bytes:
-    """``sensor_msgs/msg/Temperature`` (degC, degC^2)."""
+def _stamped(stamp_ns: int, frame_id: str, *values: float) -> bytes:
+    """A ``std_msgs/Header`` followed by float64 fields."""
     w = CdrWriter()
     w.header(stamp_ns, frame_id)
-    w.put("dd", temperature_c, variance_c2)
+    w.put("d" * len(values), *values)
     return w.message()
+
+
+def temperature(stamp_ns: int, frame_id: str, temperature_c: float, variance_c2: float) -> bytes:
+    """``sensor_msgs/msg/Temperature`` (degC, degC^2)."""
+    return _stamped(stamp_ns, frame_id, temperature_c, variance_c2)
 
 
 def vector3_stamped(stamp_ns: int, frame_id: str, vector: Iterable[float]) -> bytes:
     """``geometry_msgs/msg/Vector3Stamped``."""
-    w = CdrWriter()
-    w.header(stamp_ns, frame_id)
-    w.put("ddd", *(float(v) for v in vector))
-    return w.message()
+    return _stamped(stamp_ns, frame_id, *(float(v) for v in vector))
 
 
 def diagnostic_status(level: int, name: str, message: str, hardware_id: str,
@@ -80,7 +80,7 @@ def diagnostic_status(level: int, name: str, message: str, hardware_id: str,
 class FixedJointStateCodec:
     """``sensor_msgs/msg/JointState`` messages whose frame_id and name list are fixed and whose
     velocity/effort are empty -- the ``imu/raw`` layout: encoded by filling the stamp and positions into
-    precomputed bytes, and decoded many at a time as one numpy record array."""
+    precomputed bytes (``mcap_io`` reads runs of them as one numpy record array)."""
 
     def __init__(self, frame_id: str, names: tuple[str, ...]) -> None:
         w = CdrWriter()
@@ -98,8 +98,6 @@ class FixedJointStateCodec:
         self.size = len(ENCAPSULATION) + len(w.body)
         self.n_values = len(names)
         self._values = struct.Struct(f"<{self.n_values}d")
-        self.dtype = np.dtype([("enc", "V4"), ("sec", "<i4"), ("nanosec", "<u4"), ("mid", f"V{len(self.middle)}"),
-                               ("values", "<f8", (self.n_values,)), ("tail", f"V{len(self.tail)}")])
 
     def encode(self, stamp_ns: int, values: list[float]) -> bytes:
         sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
@@ -107,9 +105,3 @@ class FixedJointStateCodec:
 
     def matches(self, data: bytes) -> bool:
         return len(data) == self.size and data[:4] == ENCAPSULATION and data[12:12 + len(self.middle)] == self.middle
-
-    def decode_many(self, datas: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
-        """Stamps (N,) int ns and values (N, n_values) of messages that all :meth:`match`."""
-        arr = np.frombuffer(b"".join(datas), dtype=self.dtype)
-        stamps = arr["sec"].astype(np.int64) * 1_000_000_000 + arr["nanosec"].astype(np.int64)
-        return stamps, arr["values"].astype(float)
