@@ -56,7 +56,7 @@ class DynamicRunRecorder(GuardedRecording):
         self._aborted = False
         self._direction = np.asarray(plan.direction, dtype=float)
         self._kind = "velocity" if plan.reference.type == "ldv" else "acceleration"
-        self._temperature_c = math.nan
+        self.temperature_c = math.nan  # degC, the latest valid AHT10 reading
         self.aux_samples = 0
         self.rate_hz = math.nan  # board rate, measured from the first RATE_SAMPLES samples
         self._rate_t: list[float] = []
@@ -79,7 +79,7 @@ class DynamicRunRecorder(GuardedRecording):
                                           "restarted; recording goes on (the slide keeps following the plan)"))
         t = float(s.board_time_s) if s.board_time_s is not None and math.isfinite(s.board_time_s) else s.stamp_ns * 1e-9
         if s.temperature_valid and math.isfinite(s.temperature_c):
-            self._temperature_c = float(s.temperature_c)
+            self.temperature_c = float(s.temperature_c)
         aux = s.aux if math.isfinite(s.aux) else None
         self.writer.write_raw(s.stamp_ns, s.ref, (s.x, s.y, s.z), temperature_c=float(s.temperature_c),
                               temperature_valid=bool(s.temperature_valid), status=int(s.status), seq=int(s.seq),
@@ -125,16 +125,8 @@ class DynamicRunRecorder(GuardedRecording):
     def finished(self) -> bool:
         return self._aborted or self._elapsed >= self.length_s
 
-    @property
-    def temperature_c(self) -> float:
-        return self._temperature_c
-
     def pop_events(self) -> list[SequencerEvent]:
         out, self.events = self.events, []
-        return out
-
-    def pop_messages(self) -> list[tuple[str, str]]:
-        out, self.messages = self.messages, []
         return out
 
     def summary(self) -> dict[str, Any]:

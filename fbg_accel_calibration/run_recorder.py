@@ -160,27 +160,18 @@ class RunCounters:
 class GuardedRecording:
     """What a run recorder (:class:`RunRecorder`, ``DynamicRunRecorder``) does with its recording's ``OSError`` (disk
     full, the file removed): never raised to the node. The sample or reading that failed aborts the run with a
-    warning (``_write_failed``, which sets ``write_error``), later inputs are ignored (``_stopped``), and ``close``
-    finishes the file as it is (it reads up to its last complete chunk)."""
+    warning (``_write_failed``, which sets ``write_error``), later inputs are ignored (``_stopped``, True when inputs
+    are no longer taken), and ``close`` finishes the file as it is (it reads up to its last complete chunk). A
+    subclass gives ``_stopped``, ``_on_raw`` (one sample -> its pose id), ``_write_failed`` and ``summary``."""
 
     writer: RecordingWriter
     counters: RunCounters
-    messages: list[tuple[str, str]]
+    messages: list[tuple[str, str]]  # (level, text) for the node's log
     write_error: str
 
-    @property
-    def _stopped(self) -> bool:
-        """Inputs are no longer taken."""
-        raise NotImplementedError
-
-    def _on_raw(self, s: RawSample) -> int:
-        raise NotImplementedError
-
-    def _write_failed(self, exc: OSError, closing: bool = False) -> None:
-        raise NotImplementedError
-
-    def summary(self) -> dict[str, Any]:
-        raise NotImplementedError
+    def pop_messages(self) -> list[tuple[str, str]]:
+        out, self.messages = self.messages, []
+        return out
 
     def on_raw(self, s: RawSample) -> int:
         """Record one raw sample; returns its pose id (-1 when not one of a pose's recorded samples)."""
@@ -246,7 +237,7 @@ class RunRecorder(GuardedRecording):
         self.detector.validate()
         self.sequencer = PoseSequencer(self.plan, Mode(self.mode), self.motion_expect_g)
         self.counters = RunCounters()
-        self.messages: list[tuple[str, str]] = []  # (level, text) for the node's log
+        self.messages: list[tuple[str, str]] = []
         self.monitor: StillnessMonitor | None = None
         self.rate_hz = math.nan
         self.noise_std = np.full(3, math.nan)
@@ -258,7 +249,7 @@ class RunRecorder(GuardedRecording):
         self._last_stamp: int | None = None
         self._event_key: tuple[str, int] | None = None
         self._frame_id: str | None = None
-        self._temperature_c = math.nan
+        self.temperature_c = math.nan  # degC, the latest valid AHT10 reading
         self._temp_warned = False
         self.temperature_seen_c = [math.inf, -math.inf]
         self.last_pose_id = -1
@@ -306,7 +297,7 @@ class RunRecorder(GuardedRecording):
             self._frame_id = s.frame_id
         temp = float(s.temperature_c)
         if s.temperature_valid and math.isfinite(temp):
-            self._temperature_c = temp
+            self.temperature_c = temp
             self.temperature_seen_c = [min(self.temperature_seen_c[0], temp), max(self.temperature_seen_c[1], temp)]
             self._check_setpoint(temp)
         t_s = float(s.board_time_s) if s.board_time_s is not None and math.isfinite(s.board_time_s) else s.stamp_ns * 1e-9
@@ -391,16 +382,8 @@ class RunRecorder(GuardedRecording):
     def finished(self) -> bool:
         return self.sequencer.finished
 
-    @property
-    def temperature_c(self) -> float:
-        return self._temperature_c
-
     def pop_events(self) -> list[SequencerEvent]:
         return self.sequencer.pop_events()
-
-    def pop_messages(self) -> list[tuple[str, str]]:
-        out, self.messages = self.messages, []
-        return out
 
     def summary(self) -> dict[str, Any]:
         """Run summary for the ``run_end`` metadata record and the final log."""
