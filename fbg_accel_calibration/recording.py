@@ -15,6 +15,7 @@ import numpy as np
 from fbg_accel_driver.frame_codec import clipped_reading
 from fbg_accel_driver.sensor_constants import LOW_REFERENCE_COUNTS
 
+_SAMPLE_FIELDS = ("t_s", "ref", "xyz", "temp_c", "gref_mps2", "pose_id")  # the (N, ...) arrays before run_id
 
 @dataclass
 class Recording:
@@ -73,11 +74,8 @@ class Recording:
 
     def select(self, mask: np.ndarray) -> Recording:
         """A new recording with the samples ``mask`` selects (a boolean mask, indices or a slice; order kept)."""
-        return Recording(
-            self.t_s[mask], self.ref[mask], self.xyz[mask], self.temp_c[mask],
-            self.gref_mps2[mask], self.pose_id[mask], self.run_id[mask], dict(self.metadata),
-            None if self.aux is None else self.aux[mask],
-        )
+        return Recording(*(getattr(self, name)[mask] for name in _SAMPLE_FIELDS), self.run_id[mask], dict(self.metadata),
+                         None if self.aux is None else self.aux[mask])
 
     def runs(self) -> list[Recording]:
         """Each run (``run_id``) as its own recording (views of these arrays but the temperature, which a
@@ -103,17 +101,13 @@ class Recording:
         for p in parts:
             run_ids.append(p.run_id + offset)
             offset += int(p.run_id.max()) + 1 if len(p) else 1
-        return Recording(
-            np.concatenate([p.t_s for p in parts]),
-            np.concatenate([p.ref for p in parts]),
-            np.concatenate([p.xyz for p in parts]),
-            np.concatenate([p.temp_c for p in parts]),
-            np.concatenate([p.gref_mps2 for p in parts]),
-            np.concatenate([p.pose_id for p in parts]),
-            np.concatenate(run_ids),
-            {"parts": [p.metadata for p in parts]},
-            np.concatenate([p.aux for p in parts]) if all(p.aux is not None for p in parts) else None,
-        )
+        return _joined(parts, np.concatenate(run_ids), {"parts": [p.metadata for p in parts]})
+
+
+def _joined(parts: list[Recording], run_id: np.ndarray, metadata: dict[str, Any]) -> Recording:
+    """The samples of ``parts`` one after the other, under ``run_id`` and ``metadata``."""
+    aux = np.concatenate([p.aux for p in parts]) if all(p.aux is not None for p in parts) else None
+    return Recording(*(np.concatenate([getattr(p, name) for p in parts]) for name in _SAMPLE_FIELDS), run_id, metadata, aux)
 
 
 def join_blocks(parts: list[Recording]) -> Recording:
@@ -121,13 +115,7 @@ def join_blocks(parts: list[Recording]) -> Recording:
     :meth:`Recording.concatenate`)."""
     if len(parts) == 1:
         return parts[0]
-    return Recording(
-        np.concatenate([p.t_s for p in parts]), np.concatenate([p.ref for p in parts]),
-        np.concatenate([p.xyz for p in parts]), np.concatenate([p.temp_c for p in parts]),
-        np.concatenate([p.gref_mps2 for p in parts]), np.concatenate([p.pose_id for p in parts]),
-        np.concatenate([p.run_id for p in parts]), dict(parts[0].metadata),
-        np.concatenate([p.aux for p in parts]) if all(p.aux is not None for p in parts) else None,
-    )
+    return _joined(parts, np.concatenate([p.run_id for p in parts]), dict(parts[0].metadata))
 
 
 class LowReference:
