@@ -33,7 +33,7 @@ from __future__ import annotations
 import csv
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -96,12 +96,7 @@ class ImportReport:
         return "\n".join(lines)
 
     def as_dict(self) -> dict[str, Any]:
-        return {"path": self.path, "rows_read": self.rows_read, "rows_kept": self.rows_kept,
-                "rejected": [f"line {ln}: {why}" for ln, why in self.rejected],
-                "rejected_unlisted": self.rejected_unlisted,
-                "comment_or_blank_lines": self.comment_or_blank_lines, "ignored_columns": self.ignored_columns,
-                "reference": self.reference, "time_base": self.time_base, "temperature": self.temperature,
-                "pose_source": self.pose_source}
+        return {**asdict(self), "rejected": [f"line {ln}: {why}" for ln, why in self.rejected]}
 
 
 def _number(text: str, name: str, allow_empty: bool = False) -> float:
@@ -494,10 +489,7 @@ def write_mcap(src: CsvBlocks, path: str | Path, metadata: dict[str, Any], senso
     """
     from .mcap_io import RecordingWriter, write_samples
 
-    n_poses = 0
-    for blk in src.blocks():
-        if len(blk):
-            n_poses = max(n_poses, int(blk.pose_id.max()) + 1)
+    n_poses = max((int(blk.pose_id.max()) + 1 for blk in src.blocks() if len(blk)), default=0)
     src.check(drop_bad_rows, drop_option=True)
     with RecordingWriter(path, None) as w:
         shift, first_t_s = write_samples(w, src.blocks(), n_poses, sensor_id, start_ns=start_ns, where=f"{src.path}: ")
