@@ -208,8 +208,6 @@ def test_a_moving_reference_is_no_pose_event_and_reads_back_as_moving(tmp_path: 
     sample: the moving samples' reference is not written. A recorded pose whose reference changes is an event.
     Written in one go or block by block (the CSV importer), the events are the same. write_recording's round trip:
     counts, temperatures (a NaN among them) and times read back as written."""
-    from mcap.reader import make_reader
-
     from fbg_accel_calibration.mcap_io import pose_events
 
     n = 60
