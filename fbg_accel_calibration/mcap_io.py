@@ -648,8 +648,6 @@ def read_warnings(path: str | Path, report: dict[str, Any], pose_events: list[tu
 
 _RECORD_HEAD = struct.Struct("<BQ")
 _MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
-
-
 _CHUNK_HEAD = struct.Struct("<QQQI")  # message start/end time, uncompressed size, uncompressed CRC
 _SKIPPED = {Opcode.MESSAGE_INDEX, Opcode.CHUNK_INDEX, Opcode.ATTACHMENT, Opcode.ATTACHMENT_INDEX, Opcode.STATISTICS,
             Opcode.METADATA_INDEX, Opcode.SUMMARY_OFFSET, Opcode.DATA_END, Opcode.HEADER}
@@ -717,8 +715,7 @@ def _file_records(fh: Any, report: FileReadReport):
         if opcode == Opcode.MESSAGE_INDEX and last_skip is not None:  # the lost chunk's index: count its messages
             body = _read_exact(fh, length)
             if len(body) >= 6:
-                (channel_id,) = struct.unpack_from("<H", body, 0)
-                (nbytes,) = struct.unpack_from("<I", body, 2)
+                channel_id, nbytes = struct.unpack_from("<HI", body, 0)  # the index's records: 16 bytes a message
                 last_skip.by_channel[channel_id] = last_skip.by_channel.get(channel_id, 0) + nbytes // 16
             continue
         last_skip = None
