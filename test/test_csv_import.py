@@ -15,7 +15,7 @@ from fbg_accel_calibration.table_geometry import table_specific_force
 
 def _write(tmp_path: Path, text: str, name: str = "in.csv") -> Path:
     p = tmp_path / name
-    p.write_text(text)
+    p.write_text(text, encoding="utf-8")
     return p
 
 

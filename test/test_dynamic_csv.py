@@ -8,19 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_csv_import import SPREADSHEET_EXPORTS
+from test_csv_import import SPREADSHEET_EXPORTS, _write
 
 from fbg_accel_calibration.dynamic_csv import DynamicCsvError, read_dynamic_csv, write_dynamic_csv
 
 # a slide run at 500 Hz: 40 rows, one comment line, one blank line, the temperature column last
 ROWS = [f"{0.002 * i:.3f},2000,{1500 + i},{1600 - i},1700,{2048 + 3 * i},{24.0 + 0.01 * i:.2f}" for i in range(40)]
 GOOD = "# slide run\nt_s,ref,x,y,z,aux,temperature_c\n" + "\n".join(ROWS[:20]) + "\n\n" + "\n".join(ROWS[20:]) + "\n"
-
-
-def _write(tmp_path: Path, text: str, name: str = "dyn.csv") -> Path:
-    path = tmp_path / name
-    path.write_bytes(text.encode("utf-8"))
-    return path
 
 
 @pytest.mark.parametrize("variant", sorted(SPREADSHEET_EXPORTS))
