@@ -245,9 +245,7 @@ class NodeProcess(ChildProcess):
                 "-p", "operator_notes:=process test",
                 # 2 s of learning fits the short synthetic first pose; the learning statistics themselves are
                 # tested in test_stillness_monitor.py
-                "-p", "noise_learn_s:=2.0"]
-        for p in params:
-            args += ["-p", p]
+                "-p", "noise_learn_s:=2.0", *[a for p in params for a in ("-p", p)]]
         self.mcap = tmp / f"{label}.mcap"
         self.yaml = tmp / f"{label}_calibration.yaml"
         super().__init__("node", args, notifier)
@@ -260,9 +258,16 @@ def plan_dir(tmp_path: Path) -> Path:
 
 
 @pytest.fixture()
-def procs():
+def start_node(ros, plan_dir):
+    """Starts a NodeProcess on ``plan_dir`` and waits until it subscribed to the test's publishers; kills it at the end."""
     started: list[NodeProcess] = []
-    yield started
+
+    def start(*params: str, label: str = "run") -> NodeProcess:
+        started.append(NodeProcess(plan_dir, *params, label=label, notifier=ros.notifier))
+        ros.wait_subscribed(started[-1])
+        return started[-1]
+
+    yield start
     for p in started:
         p.kill()
 
@@ -286,17 +291,24 @@ def assert_raw_matches_published(decoded: list, stream: Stream) -> None:
         np.testing.assert_array_equal(np.asarray(msg.position), stream.positions[i], err_msg=f"message {i}")
 
 
+def run_refused(*params: str, remaps: tuple[str, ...] = (), timeout: float = 60) -> subprocess.CompletedProcess:
+    """The node started with ``remaps`` (-r) and ``params`` (-p): it must refuse to start, exit 2."""
+    args = [str(CALIBRATION_EXE), "--ros-args", *[a for r in remaps for a in ("-r", r)],
+            *[a for p in params for a in ("-p", p)]]
+    res = subprocess.run(args, capture_output=True, text=True, timeout=timeout)
+    assert res.returncode == 2, res.stdout + res.stderr
+    return res
+
+
 def _stream_and_plan(plan_dir: Path, seed: int = 0) -> tuple[PosePlan, Stream]:
     plan = PosePlan.load(plan_dir / "plan.yaml")
     return plan, make_stream(plan, seed=seed)
 
 
 # ---------------------------------------------------------------------------- tests
-def test_mcap_round_trips_message_for_message_and_the_run_is_fitted(ros, plan_dir, procs):
+def test_mcap_round_trips_message_for_message_and_the_run_is_fitted(ros, plan_dir, start_node):
     plan, stream = _stream_and_plan(plan_dir)
-    node = NodeProcess(plan_dir, "mode:=auto", "fit_degree:=0", notifier=ros.notifier)
-    procs.append(node)
-    ros.wait_subscribed(node)
+    node = start_node("mode:=auto", "fit_degree:=0")
     ros.publish(stream)
     rc = node.wait_exit(timeout=60)
     out = node.output()
@@ -338,11 +350,9 @@ def test_mcap_round_trips_message_for_message_and_the_run_is_fitted(ros, plan_di
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
-def test_signal_closes_the_file_cleanly_in_operator_mode(ros, plan_dir, procs, sig):
+def test_signal_closes_the_file_cleanly_in_operator_mode(ros, plan_dir, start_node, sig):
     plan, stream = _stream_and_plan(plan_dir, seed=2)
-    node = NodeProcess(plan_dir, "mode:=service", label=f"closed_{sig.name}", notifier=ros.notifier)
-    procs.append(node)
-    ros.wait_subscribed(node)
+    node = start_node("mode:=service", label=f"closed_{sig.name}")
     # publish pose 0 only (the table waits for the operator); the move to pose 1 is held back
     end_pose0 = int(np.flatnonzero(stream.pose_of_sample == 0)[-1]) + 1
     ros.publish(stream, stop_at=end_pose0)
@@ -369,11 +379,9 @@ def test_signal_closes_the_file_cleanly_in_operator_mode(ros, plan_dir, procs, s
     assert not node.yaml.exists(), "an interrupted run must not write a calibration"
 
 
-def test_abort_service_ends_the_run(ros, plan_dir, procs):
+def test_abort_service_ends_the_run(ros, plan_dir, start_node):
     _, stream = _stream_and_plan(plan_dir, seed=3)
-    node = NodeProcess(plan_dir, "mode:=service", label="aborted", notifier=ros.notifier)
-    procs.append(node)
-    ros.wait_subscribed(node)
+    node = start_node("mode:=service", label="aborted")
     ros.publish(stream, stop_at=int(3.0 * RATE_HZ))
     node.wait_line(r"static detector", timeout=60)
     resp = ros.call(ros.abort_client, node)
@@ -383,14 +391,12 @@ def test_abort_service_ends_the_run(ros, plan_dir, procs):
     assert report.complete and rec.metadata["run_end"]["result"] == "aborted"
 
 
-def test_a_stream_that_stops_is_reported_and_ends_the_run_after_stream_timeout_s(ros, plan_dir, procs):
+def test_a_stream_that_stops_is_reported_and_ends_the_run_after_stream_timeout_s(ros, plan_dir, start_node):
     """The stream stops 3 s into the run (the board or the driver stopped for good): with ``stream_timeout_s`` the node
     says so, closes the file as it is and exits 3, as an aborted run does. Before, it waited with the file open until
     it was killed, and said nothing."""
     _, stream = _stream_and_plan(plan_dir, seed=3)
-    node = NodeProcess(plan_dir, "mode:=auto", "stream_timeout_s:=2.0", label="stalled", notifier=ros.notifier)
-    procs.append(node)
-    ros.wait_subscribed(node)
+    node = start_node("mode:=auto", "stream_timeout_s:=2.0", label="stalled")
     ros.publish(stream, stop_at=int(3.0 * RATE_HZ))
     node.wait_line(r"no imu/raw sample for .* \(stream_timeout_s 2\)", timeout=60)
     assert node.wait_exit(timeout=20) == 3
@@ -401,11 +407,9 @@ def test_a_stream_that_stops_is_reported_and_ends_the_run_after_stream_timeout_s
 
 
 # runs after the other DDS tests of this module: a SIGKILLed participant stays announced until its lease expires
-def test_sigkill_mid_recording_leaves_a_file_read_up_to_its_last_chunk_that_the_fit_uses(ros, plan_dir, procs):
+def test_sigkill_mid_recording_leaves_a_file_read_up_to_its_last_chunk_that_the_fit_uses(ros, plan_dir, start_node):
     plan, stream = _stream_and_plan(plan_dir, seed=1)
-    node = NodeProcess(plan_dir, "mode:=auto", label="killed", notifier=ros.notifier)
-    procs.append(node)
-    ros.wait_subscribed(node)
+    node = start_node("mode:=auto", label="killed")
     ros.publish(stream)
     node.wait_line(r"pose 3 \(y_up\) recorded", timeout=60)  # 4 of 5 poses recorded: enough for M and b
     # stop the stream first: Fast DDS's shared-memory transport can stall a writer that keeps pushing into
@@ -451,13 +455,8 @@ def test_sigkill_mid_recording_leaves_a_file_read_up_to_its_last_chunk_that_the_
     ],
 )
 def test_bad_start_up_input_gives_one_clear_error(plan_dir, params, message):
-    args = [str(CALIBRATION_EXE), "--ros-args", "-p", f"output_dir:={plan_dir}"]
-    if params and not any(p.startswith("plan_file:=") for p in params):
-        args += ["-p", f"plan_file:={plan_dir / 'plan.yaml'}"]
-    for p in params:
-        args += ["-p", p]
-    res = subprocess.run(args, capture_output=True, text=True, timeout=60)
-    assert res.returncode == 2, res.stdout + res.stderr
+    plan = [f"plan_file:={plan_dir / 'plan.yaml'}"] if params and not any(p.startswith("plan_file:=") for p in params) else []
+    res = run_refused(f"output_dir:={plan_dir}", *plan, *params)
     assert message in res.stderr, res.stderr
     assert not list(plan_dir.glob("*.mcap")), "no recording may be started on bad input"
 
@@ -475,20 +474,16 @@ def test_remaps_the_recording_cannot_name_are_refused_with_the_reason(plan_dir, 
     raw topic not named ``imu/raw``, cannot write what it records under the names it recorded: on the unchanged
     code it started (no exit within the 20 s timeout, both cases) and wrote /acc_b's messages as /imu/raw (the
     names of its own namespace: test_two_sensors_process.py)."""
-    args = [str(CALIBRATION_EXE), "--ros-args", *[a for r in remaps for a in ("-r", r)],
-            "-p", f"output_dir:={plan_dir}", "-p", f"plan_file:={plan_dir / 'plan.yaml'}"]
-    res = subprocess.run(args, capture_output=True, text=True, timeout=20)  # a refusal takes ~1 s
-    assert res.returncode == 2, res.stdout + res.stderr
+    res = run_refused(f"output_dir:={plan_dir}", f"plan_file:={plan_dir / 'plan.yaml'}", remaps=tuple(remaps),
+                      timeout=20)  # a refusal takes ~1 s
     assert message in res.stderr, res.stderr
     assert not list(plan_dir.glob("*.mcap")), "no recording may be started on bad input"
 
 
 def test_an_existing_recording_is_never_overwritten(plan_dir):
     (plan_dir / "keep.mcap").write_bytes(b"precious")
-    args = [str(CALIBRATION_EXE), "--ros-args", "-p", f"plan_file:={plan_dir / 'plan.yaml'}", "-p", f"output_dir:={plan_dir}",
-            "-p", "run_label:=keep"]
-    res = subprocess.run(args, capture_output=True, text=True, timeout=60)
-    assert res.returncode == 2 and "never overwritten" in res.stderr
+    res = run_refused(f"plan_file:={plan_dir / 'plan.yaml'}", f"output_dir:={plan_dir}", "run_label:=keep")
+    assert "never overwritten" in res.stderr
     assert (plan_dir / "keep.mcap").read_bytes() == b"precious"
 
 
@@ -497,10 +492,8 @@ def test_a_dangling_symlink_in_output_dir_is_not_followed(plan_dir, tmp_path):
     outside = tmp_path / "outside"
     outside.mkdir()
     (plan_dir / "keep.mcap").symlink_to(outside / "victim.mcap")
-    args = [str(CALIBRATION_EXE), "--ros-args", "-p", f"plan_file:={plan_dir / 'plan.yaml'}", "-p", f"output_dir:={plan_dir}",
-            "-p", "run_label:=keep"]
-    res = subprocess.run(args, capture_output=True, text=True, timeout=60)
-    assert res.returncode == 2 and "never overwritten" in res.stderr, res.stderr
+    res = run_refused(f"plan_file:={plan_dir / 'plan.yaml'}", f"output_dir:={plan_dir}", "run_label:=keep")
+    assert "never overwritten" in res.stderr, res.stderr
     assert not (outside / "victim.mcap").exists() and (plan_dir / "keep.mcap").is_symlink()
 
 
