@@ -86,6 +86,14 @@ def _f(v, fmt: str = ".2f", none: str = "n/a") -> str:
     return none if v is None else format(v, fmt)
 
 
+def _section(lines: list[str], title: str, doc: dict | None) -> bool:
+    """Appends a section's title, and "not run" if its results file is missing; whether there are results to show."""
+    lines += [title, ""]
+    if doc is None:
+        lines += ["not run", ""]
+    return doc is not None
+
+
 def render(results: Path, run: dict) -> str:
     """The markdown report of the JSON files in ``results``."""
     m = run.get("machine") or machine()
@@ -96,16 +104,10 @@ def render(results: Path, run: dict) -> str:
     lines += ["| machine | |", "|---|---|",
               f"| CPU | {m['cpu']} |", f"| logical CPUs | {m['logical_cpus']} |", f"| RAM | {m['ram_gib']} GiB |",
               f"| Python | {m['python']} |", f"| OS | {m['platform']} |", ""]
-    ing = _load(results, "ingest")
-    dec = _load(results, "decoder")
-    cal = _load(results, "calibration")
-    fit = _load(results, "fit")
+    ing, dec, cal, fit, fs = (_load(results, name) for name in ("ingest", "decoder", "calibration", "fit", "fit_stream"))
     link = (ing or dec or {}).get("link", {}).get("frames_per_s_limit")
 
-    lines += ["## Driver ingest (pty -> `driver` process -> rclpy subscriber process)", ""]
-    if ing is None:
-        lines += ["not run", ""]
-    else:
+    if _section(lines, "## Driver ingest (pty -> `driver` process -> rclpy subscriber process)", ing):
         lines += [f"Date {ing['date_utc']}, command `{ing['command']}`{' (QUICK)' if ing.get('quick') else ''}. "
                   f"Link limit at {ing['link']['baud']} baud, 8N1, {ing['link']['frame_bytes']}-byte frames: "
                   f"{ing['link']['frames_per_s_limit']:.1f} frames/s. Latency = simulator write -> subscriber callback "
@@ -145,10 +147,7 @@ def render(results: Path, run: dict) -> str:
         g = ing.get("goals", {})
         lines += ["", "Goals (issue 5): " + "; ".join(f"{k}: {'met' if v else 'NOT met'}" for k, v in g.items()), ""]
 
-    lines += ["## Stream decoder alone (bench/bench_decoder.py)", ""]
-    if dec is None:
-        lines += ["not run", ""]
-    else:
+    if _section(lines, "## Stream decoder alone (bench/bench_decoder.py)", dec):
         lines += [f"Date {dec['date_utc']}, command `{dec['command']}`, {dec['frames_per_run']} frames, "
                   f"median of {dec['repeats']}.", "",
                   "| stream | chunk | frames/s | us/frame | x link limit | share of a core at the link limit |",
@@ -162,10 +161,7 @@ def render(results: Path, run: dict) -> str:
     if run.get("partial_reruns"):
         reruns = "; ".join(f"`{p['command']}` on {p['date_utc']}" for p in run["partial_reruns"])
         lines[3:3] = [f"Partial re-runs since: {reruns}.", ""]
-    lines += ["## Calibration (bench/bench_calibration.py)", ""]
-    if cal is None:
-        lines += ["not run", ""]
-    else:
+    if _section(lines, "## Calibration (bench/bench_calibration.py)", cal):
         st = cal["steps"]
         lines += [f"Date {cal['date_utc']}, command `{cal['command']}`; simulated run: {st['simulate']['samples']} samples "
                   f"({st['simulate']['board_hours']:.2f} h at {cal['scenario']['rate_hz']:.0f} Hz, chamber levels "
@@ -187,10 +183,7 @@ def render(results: Path, run: dict) -> str:
                          f"{w['peak_rss_mib']:.0f} MiB |")
         lines.append("")
 
-    lines += ["## Fit, degree selection, MCAP read (bench/bench_fit.py)", ""]
-    if fit is None:
-        lines += ["not run", ""]
-    else:
+    if _section(lines, "## Fit, degree selection, MCAP read (bench/bench_fit.py)", fit):
         lines += ["| step | samples | best of 3 | peak traced memory |", "|---|---|---|---|"]
         for k, v in fit["steps"].items():
             lines.append(f"| {k} | {fit['samples']} | {v['seconds_best_of_3']:.2f} s | {v['peak_traced_mb']:.0f} MB |")
@@ -199,11 +192,7 @@ def render(results: Path, run: dict) -> str:
             lines.append(f"| mcap_read | {mr['samples']} | {mr['read_s']:.2f} s ({mr['read_us_per_sample']:.1f} us/sample) | |")
         lines.append("")
 
-    fs = _load(results, "fit_stream")
-    lines += ["## Fit streamed from MCAP files (bench/bench_fit_stream.py)", ""]
-    if fs is None:
-        lines += ["not run", ""]
-    else:
+    if _section(lines, "## Fit streamed from MCAP files (bench/bench_fit_stream.py)", fs):
         lines += [f"{fs['samples']} samples in {fs['files']} MCAP files ({fs['file_mb']} MB).", "",
                   "| mode | command | time | peak RSS increase |", "|---|---|---|---|"]
         for k, v in fs["modes"].items():
