@@ -18,7 +18,7 @@ import numpy as np
 import yaml
 from process_harness import ChildProcess
 from rclpy.context import Context
-from test_driver_process import Listener, start_driver, start_sim, stop
+from test_driver_process import Listener, start_driver, start_sim, stop_all
 
 from fbg_accel_calibration.mcap_io import read_file
 from fbg_accel_driver.driver_main import default_calibration_path
@@ -63,10 +63,7 @@ def test_dynamic_plan_recorded_to_the_end_and_killed_half_way(ros: Context, tmp_
     finally:
         for p in (full, killed):
             p.kill()
-        if sim is not None:
-            stop(sim)
-        stop(driver)
-        listener.close()
+        stop_all(sim, driver, listener)
 
     rec, report = read_file(tmp_path / "full.mcap")
     assert report.complete and rec.aux is not None and np.all(np.isfinite(rec.aux))

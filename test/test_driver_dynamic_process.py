@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from rclpy.context import Context
-from test_driver_process import REPO, Listener, stamp_ns, start_driver, start_sim, stop
+from test_driver_process import REPO, Listener, stamp_ns, start_driver, start_sim, stop, stop_all
 
 from fbg_accel_driver.chain_compensation import ChainDynamics
 from fbg_accel_driver.driver_core import RAW_AUX_NAME
@@ -53,6 +53,4 @@ def test_version2_board_aux_on_imu_raw_and_equalised_stamps(ros: Context, tmp_pa
         assert len(shifted) >= 250 and np.all(nearest <= 2000), (len(shifted), int(nearest.max()))
         assert stop(driver) == 0, (tmp_path / "driver.log").read_text()
     finally:
-        stop(sim)
-        stop(driver)
-        listener.close()
+        stop_all(sim, driver, listener)

@@ -124,6 +124,14 @@ def stop(proc: subprocess.Popen, timeout_s: float = 10.0) -> int:
     return proc.returncode
 
 
+def stop_all(sim: subprocess.Popen | None, driver: subprocess.Popen, listener: Listener) -> None:
+    """A test's clean-up: board_sim (if it was started), the driver, the listener."""
+    if sim is not None:
+        stop(sim)
+    stop(driver)
+    listener.close()
+
+
 def stamp_ns(msg: Any) -> int:
     return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
 
@@ -137,6 +145,26 @@ def delivered_mask(truth: Any) -> np.ndarray:
     from fbg_accel_sim import faults as fz
 
     return truth["sent"] & ~np.isin(truth["wire_fault"], (fz.DROP, fz.BIT_FLIP, fz.TRUNCATE))
+
+
+def expected_counters(truth: Any) -> dict[str, int]:
+    """The counters of the driver's ``frames`` diagnostic that the simulator's truth file predicts."""
+    return {k: int(truth[f"expected_{k}"]) for k in
+            ("frames", "crc_errors", "lost_frames", "duplicates", "resets", "bytes_discarded")}
+
+
+def assert_counters(listener: Listener, expected: dict[str, int]) -> None:
+    frames_vals = listener.last("frames")[2]
+    for key, value in expected.items():
+        assert int(frames_vals[key]) == value, (key, frames_vals)
+
+
+def assert_published_once_in_order(listener: Listener, truth: Any) -> list[tuple[int, int]]:
+    """Every frame that reached the host intact is on imu/raw exactly once, in order; returns its (seq, t_us)."""
+    mask = delivered_mask(truth)
+    raw_keys = [(int(raw_field(m, "seq")), round(raw_field(m, "board_time_s") * 1e6)) for m in listener.raw]
+    assert raw_keys == list(zip(truth["seq"][mask].tolist(), truth["t_us"][mask].tolist(), strict=True))
+    return raw_keys
 
 
 def python_threads(listener: Listener) -> int:
@@ -173,8 +201,7 @@ def test_wire_faults_gravity_temperature_stamps(ros: Context, tmp_path: Path) ->
         listener.wait_until(lambda: sim.poll() is not None, 40, "board_sim finished its 9 s run")
         assert sim.returncode == 0, sim.stderr.read() if sim.stderr else ""
         truth = np.load(truth_file)
-        expected = {k: int(truth[f"expected_{k}"]) for k in
-                    ("frames", "crc_errors", "lost_frames", "duplicates", "resets", "bytes_discarded")}
+        expected = expected_counters(truth)
         assert expected["crc_errors"] == 7 and expected["resets"] == 1 and expected["duplicates"] == 3
 
         def counted() -> bool:
@@ -182,25 +209,15 @@ def test_wire_faults_gravity_temperature_stamps(ros: Context, tmp_path: Path) ->
                 and len(listener.raw) >= expected["frames"]
 
         listener.wait_until(counted, 15, f"{expected['frames']} frames counted and published")
-        # Diagnostics count exactly what was injected.
-        frames_vals = listener.last("frames")[2]
-        for key, value in expected.items():
-            assert int(frames_vals[key]) == value, (key, frames_vals)
+        assert_counters(listener, expected)  # diagnostics count exactly what was injected
         assert int(listener.last("board resets")[2]["resets"]) == 1
         assert any(d["frames"][0] == 1 for d in listener.diag), "no WARN for the injected CRC errors"
         rc = stop(driver)
         assert rc == 0, (tmp_path / "driver.log").read_text()
     finally:
-        if sim is not None:
-            stop(sim)
-        stop(driver)
-        listener.close()
-
-    # Every intact frame published exactly once, in order.
+        stop_all(sim, driver, listener)
+    raw_keys = assert_published_once_in_order(listener, truth)
     mask = delivered_mask(truth)
-    raw_keys = [(int(raw_field(m, "seq")), round(raw_field(m, "board_time_s") * 1e6)) for m in listener.raw]
-    truth_keys = list(zip(truth["seq"][mask].tolist(), truth["t_us"][mask].tolist(), strict=True))
-    assert raw_keys == truth_keys
     assert len(listener.imu) == len(raw_keys)  # no sample policy triggered in this run
     assert [stamp_ns(m) for m in listener.imu] == [stamp_ns(m) for m in listener.raw]
     assert all(m.header.frame_id == "fbg_accel_link" for m in listener.imu)
@@ -294,10 +311,7 @@ def test_disconnect_saturation_dropout_temperature_invalid(ros: Context, tmp_pat
         assert driver.poll() is None, "driver died"
         assert stop(driver) == 0
     finally:
-        if sim is not None:
-            stop(sim)
-        stop(driver)
-        listener.close()
+        stop_all(sim, driver, listener)
     # Never inf/NaN on the topic; saturated samples flagged by an inflated covariance.
     assert all_finite_imu(listener.imu)
     saturated = [m for m in listener.imu if m.linear_acceleration_covariance[0] == FULL_SCALE_VAR]

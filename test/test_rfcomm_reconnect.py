@@ -23,12 +23,14 @@ from pathlib import Path
 import numpy as np
 from test_driver_process import (
     Listener,
-    delivered_mask,
+    assert_counters,
+    assert_published_once_in_order,
+    expected_counters,
     python_threads,
-    raw_field,
     start_driver,
     start_sim,
     stop,
+    stop_all,
 )
 
 
@@ -63,17 +65,14 @@ def test_rfcomm_like_device_removed_and_recreated(ros, tmp_path: Path) -> None:
         listener.wait_until(lambda: sim.poll() is not None, 30, "board_sim finished its 7 s run")
         assert sim.returncode == 0, sim.stderr.read() if sim.stderr else ""
         truth = np.load(truth_file)
-        expected = {k: int(truth[f"expected_{k}"]) for k in
-                    ("frames", "crc_errors", "lost_frames", "duplicates", "resets", "bytes_discarded")}
+        expected = expected_counters(truth)
         assert expected["lost_frames"] >= 250 and expected["resets"] == 0  # >= 2.5 s at 100 Hz unsent, no reboot
         listener.wait_until(lambda: int(listener.last("frames")[2]["frames"]) >= expected["frames"]
                             and len(listener.raw) >= expected["frames"], 15,
                             lambda: f"{expected['frames']} frames published: driver counters {listener.last('frames')[2]}, "
                                     f"{len(listener.raw)} imu/raw received, truth {expected}, "
                                     f"unread at the unplug {int(truth['unplug_unread_bytes'])} B")
-        frames_vals = listener.last("frames")[2]
-        for key, value in expected.items():
-            assert int(frames_vals[key]) == value, (key, frames_vals)
+        assert_counters(listener, expected)
         assert int(up_again["connects"]) == 2 and int(up_again["disconnects"]) == 1, up_again
         assert int(up_again["failed_attempts"]) >= 2, up_again  # retried while the name did not exist
         down_messages = [d["serial link"][1] for d in listener.diag[n_diag_up:] if d["serial link"][0] == 2]
@@ -81,10 +80,5 @@ def test_rfcomm_like_device_removed_and_recreated(ros, tmp_path: Path) -> None:
         assert python_threads(listener) == threads_before  # the reconnect reused the reader thread
         assert stop(driver) == 0, (tmp_path / "driver.log").read_text()
     finally:
-        if sim is not None:
-            stop(sim)
-        stop(driver)
-        listener.close()
-    mask = delivered_mask(truth)
-    raw_keys = [(int(raw_field(m, "seq")), round(raw_field(m, "board_time_s") * 1e6)) for m in listener.raw]
-    assert raw_keys == list(zip(truth["seq"][mask].tolist(), truth["t_us"][mask].tolist(), strict=True))
+        stop_all(sim, driver, listener)
+    assert_published_once_in_order(listener, truth)
