@@ -16,7 +16,6 @@ import importlib
 import importlib.metadata
 import importlib.util
 import json
-import os
 import re
 import subprocess
 import sys
@@ -191,14 +190,15 @@ def test_two_sim_launches_under_two_namespaces_get_a_board_each() -> None:
     both board_sims were given the one default link (/tmp/fbg_accel_sim_board_<uid>): the second re-pointed
     it, the acc_a driver read board B, the acc_b driver was refused the port for ever and board A had no
     reader (seen with both launches' command lines as processes)."""
+    def link_of(sim: dict[str, Any]) -> str:
+        return sim["arguments"][sim["arguments"].index("--link") + 1]
+
     (sim_a, drv_a), (sim_b, drv_b) = (descriptions("sim.launch.py", namespace=ns) for ns in ("acc_a", "acc_b"))
-    link_a = sim_a["arguments"][sim_a["arguments"].index("--link") + 1]
-    link_b = sim_b["arguments"][sim_b["arguments"].index("--link") + 1]
+    link_a, link_b = link_of(sim_a), link_of(sim_b)
     assert link_a != link_b, link_a
     assert drv_a["parameters"][-1]["port"] == link_a and drv_b["parameters"][-1]["port"] == link_b
     (sim_root, _), (sim_root2, _) = descriptions("sim.launch.py"), descriptions("sim.launch.py", namespace="/")
-    root_link = sim_root["arguments"][sim_root["arguments"].index("--link") + 1]
-    assert root_link not in (link_a, link_b)
+    assert link_of(sim_root) not in (link_a, link_b)
     assert sim_root2["arguments"] == sim_root["arguments"]  # "/" is the root namespace, as ""
     assert "acc_a" in link_a and "/" not in Path(link_a).name  # says whose board it is, one file name
 
@@ -374,15 +374,9 @@ def driver_launch_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tupl
     tmp = tmp_path_factory.mktemp("driver_launch")
     port = str(tmp / "no_board_here")
     (desc,) = descriptions("driver.launch.py", port=port, calibration_file="sim")
-    before = os.environ.get("PYTHONPROFILEIMPORTTIME")
-    os.environ["PYTHONPROFILEIMPORTTIME"] = "1"  # the child logs every import to stderr
-    try:
+    with pytest.MonkeyPatch.context() as env:
+        env.setenv("PYTHONPROFILEIMPORTTIME", "1")  # the child logs every import to stderr
         proc = ChildProcess("driver", command_line(desc, tmp))
-    finally:
-        if before is None:
-            del os.environ["PYTHONPROFILEIMPORTTIME"]
-        else:
-            os.environ["PYTHONPROFILEIMPORTTIME"] = before
     try:
         proc.wait_line(r"reading \S*no_board_here at", timeout=60)
     finally:

@@ -60,6 +60,14 @@ def _driver(name: str, ns: str, port: Path, cal: Path) -> ChildProcess:
                                "-p", f"frame_id:={ns}_link", "-p", f"calibration_file:={cal}"])
 
 
+def _recorder(name: str, ns: str, out: Path, ros_args: list[str]) -> ChildProcess:
+    """A calibration node recording sensor ``ns`` to ``out``/run_<a|b>.mcap, the topics chosen by ``ros_args``."""
+    return ChildProcess(name, [BIN / "calibration", "--ros-args", *ros_args,
+                               "-p", f"plan_file:={REPO / 'config' / 'pose_plan_six_position.yaml'}", "-p", f"output_dir:={out}",
+                               "-p", f"run_label:=run_{ns[-1]}", "-p", f"sensor_id:={ns}_sensor", "-p", "progress:=false",
+                               "-p", "noise_learn_s:=2.0"])
+
+
 def test_two_sensors_on_one_vehicle_do_not_cross_talk(ros: Context, tmp_path: Path) -> None:
     """On the unchanged code a calibration node pointed at B by topic remaps wrote B's messages as /imu/raw,
     /imu/temperature (its own namespace's names, not the topics it recorded), the calibration MCAP held A's
@@ -118,18 +126,10 @@ def test_two_sensors_on_one_vehicle_do_not_cross_talk(ros: Context, tmp_path: Pa
         for ns in NAMESPACES:
             procs[ns] = _driver(ns, ns, link[ns], cals[ns])
         procs["acc_a"].wait_line("serial link up", 60)
-        procs["calibration"] = ChildProcess("calibration", [
-            BIN / "calibration", "--ros-args", "-r", "__ns:=/acc_a",
-            "-p", f"plan_file:={REPO / 'config' / 'pose_plan_six_position.yaml'}", "-p", f"output_dir:={tmp_path}",
-            "-p", "run_label:=run_a", "-p", "sensor_id:=acc_a_sensor", "-p", "progress:=false",
-            "-p", "noise_learn_s:=2.0"])
+        procs["calibration"] = _recorder("calibration", "acc_a", tmp_path, ["-r", "__ns:=/acc_a"])
         # B recorded by a node left at the root, pointed at B by topic remaps (not by a namespace)
-        procs["calibration_b"] = ChildProcess("calibration_b", [
-            BIN / "calibration", "--ros-args", "-r", "imu/raw:=/acc_b/imu/raw",
-            "-r", "imu/temperature:=/acc_b/imu/temperature",
-            "-p", f"plan_file:={REPO / 'config' / 'pose_plan_six_position.yaml'}", "-p", f"output_dir:={tmp_path}",
-            "-p", "run_label:=run_b", "-p", "sensor_id:=acc_b_sensor", "-p", "progress:=false",
-            "-p", "noise_learn_s:=2.0"])
+        procs["calibration_b"] = _recorder("calibration_b", "acc_b", tmp_path, [
+            "-r", "imu/raw:=/acc_b/imu/raw", "-r", "imu/temperature:=/acc_b/imu/temperature"])
         spin_until(lambda: all(len(imu[ns]) >= 50 for ns in NAMESPACES), 40, "both drivers' imu/data_raw")
 
         # a third driver given A's port: refused with the reason, A streams on
@@ -240,9 +240,7 @@ def test_two_sensors_on_one_vehicle_do_not_cross_talk(ros: Context, tmp_path: Pa
         procs["calibration"].proc.send_signal(signal.SIGTERM)
         assert procs["calibration"].wait_exit(30) == 3  # interrupted: MCAP closed, no fit
         assert procs["calibration_b"].stop() == 3  # SIGINT
-        for name in ("acc_a2", "acc_b"):
-            assert procs[name].stop() == 0, procs[name].output()
-        for name in ("sim_a", "sim_b"):
+        for name in ("acc_a2", "acc_b", "sim_a", "sim_b"):
             assert procs[name].stop() == 0, procs[name].output()
         for name, p in procs.items():
             assert "Traceback" not in p.output(), (name, p.output())
