@@ -33,11 +33,8 @@ from fbg_accel_driver.frame_codec import ADC_MAX, CRC_SIZE, HEADER_SIZE, Frame, 
 from fbg_accel_driver.stream_decoder import MAX_BODY_LEN, StreamDecoder
 from fbg_accel_driver.thermal_model import CalibrationFileError, ThermalCalibration
 
-FUZZ = settings(
-    max_examples=300,
-    deadline=timedelta(seconds=5),
-    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
-)
+FUZZ = settings(max_examples=300, deadline=timedelta(seconds=5),
+               suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 FUZZ_FILES = settings(FUZZ, max_examples=200)  # loader cases write and read files: fewer, still bounded
 MAX_CANDIDATE = HEADER_SIZE + MAX_BODY_LEN + CRC_SIZE
 
@@ -98,12 +95,8 @@ def test_fuzz_decoder_mutated_streams(data: bytes, sizes: list[int]) -> None:
 
 # ============================================================================ calibration YAML loader
 yaml_scalars = st.one_of(
-    st.none(),
-    st.booleans(),
-    st.integers(-(2**80), 2**80),
-    st.integers(-(10**400), 10**400),
-    st.floats(allow_nan=True, allow_infinity=True),
-    st.text(max_size=12),
+    st.none(), st.booleans(), st.integers(-(2**80), 2**80), st.integers(-(10**400), 10**400),
+    st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=12),
     st.sampled_from(["1", "m/s^2", "degC", "thermal_polynomial", "fbg_accel_calibration", "1e-3", "nan", ".inf", "kind"]),
 )
 yaml_values = st.recursive(
@@ -111,37 +104,15 @@ yaml_values = st.recursive(
     lambda children: st.one_of(st.lists(children, max_size=4), st.dictionaries(st.text(max_size=8), children, max_size=4)),
     max_leaves=20,
 )
-KEYS = [
-    "format",
-    "format_version",
-    "units",
-    "model",
-    "sensor_id",
-    "created",
-    "degree",
-    "temperature_center_c",
-    "temperature_scale_c",
-    "temperature_range_c",
-    "M",
-    "b",
-    "noise_sigma_mps2",
-    "fit",
-    "corrections",
-]
+KEYS = ["format", "format_version", "units", "model", "sensor_id", "created", "degree", "temperature_center_c",
+        "temperature_scale_c", "temperature_range_c", "M", "b", "noise_sigma_mps2", "fit", "corrections"]
 
 
 def valid_doc() -> dict[str, Any]:
     rng = np.random.default_rng(0)
-    cal = ThermalCalibration(
-        M=rng.normal(0, 1, (3, 3, 3)),
-        b=rng.normal(0, 1, (3, 3)),
-        temperature_range_c=(15.0, 45.0),
-        sensor_id="fuzz",
-        t_center_c=30.0,
-        t_scale_c=15.0,
-        created="2026-11-21T00:00:00+00:00",
-    )
-    return cal.to_dict()
+    return ThermalCalibration(M=rng.normal(0, 1, (3, 3, 3)), b=rng.normal(0, 1, (3, 3)), temperature_range_c=(15.0, 45.0),
+                              sensor_id="fuzz", t_center_c=30.0, t_scale_c=15.0,
+                              created="2026-11-21T00:00:00+00:00").to_dict()
 
 
 CORRECTION_PARAMS = [
@@ -153,11 +124,8 @@ CORRECTION_PARAMS = [
 def correction_docs() -> st.SearchStrategy[dict[str, Any]]:
     """Correction-term mappings: a registered or unknown kind with arbitrary parameters."""
     kinds = [*sorted(correction_terms.CORRECTION_TYPES), "no_such_term"]
-    return st.builds(
-        lambda kind, params: {"kind": kind, **params},
-        st.sampled_from(kinds),
-        st.dictionaries(st.sampled_from(CORRECTION_PARAMS), yaml_values, max_size=4),
-    )
+    return st.builds(lambda kind, params: {"kind": kind, **params}, st.sampled_from(kinds),
+                     st.dictionaries(st.sampled_from(CORRECTION_PARAMS), yaml_values, max_size=4))
 
 
 @st.composite
