@@ -103,17 +103,14 @@ def test_a_plan_that_never_points_an_axis_down_is_fitted_with_a_warning(tmp_path
     np.testing.assert_allclose(fit["reference_range_mps2"][1:], [[-9.807, 9.807]] * 2, atol=0.01)
     # diagnose writes a calibration from the same poses and says so too (before: nothing; on a 30-degree grid without
     # x down it added a spectral non-linearity fitted on x >= 0 only, 6.9 m/s^2 off the truth at x down and 45 degC)
-    rc, err = run(["diagnose", mcap, "--out", tmp_path / "diag.md", "--yaml", tmp_path / "diag.yaml"], capsys)
+    report = tmp_path / "diag.md"
+    rc, err = run(["diagnose", mcap, "--out", report, "--yaml", tmp_path / "diag.yaml"], capsys)
     assert rc == 0
-    assert any("never reach" in ln and "table x axis" in ln for ln in capsys_out_and(err, tmp_path / "diag.md")), err
+    said = err.splitlines() + (report.read_text().splitlines() if report.is_file() else [])
+    assert any("never reach" in ln and "table x axis" in ln for ln in said), err
     # the six positions reach +-g on every axis: no such warning
     rc, err = run(["fit", six_pose_csv(tmp_path / "six.csv"), "-o", tmp_path / "six.yaml"], capsys)
     assert rc == 0 and "never reach" not in err, err
-
-
-def capsys_out_and(err: str, report: Path) -> list[str]:
-    """The lines of stderr and of a written report."""
-    return err.splitlines() + (report.read_text().splitlines() if report.is_file() else [])
 
 
 def test_six_position_run_cut_after_its_fourth_pose_is_refused(tmp_path: Path,
