@@ -25,7 +25,16 @@ from fbg_accel_sim.board_physics import simulate_recording  # noqa: E402
 
 
 def main() -> int:
-    rows, n_ok, n_all = [], 0, 0
+    rows, n_ok = [], 0
+
+    def add(injected: str, seed: int, ok: bool, cells: str, res, ratio) -> None:
+        """One row: ``cells`` (first, second), then the effects added and a ratio per axis."""
+        nonlocal n_ok
+        rows.append(f"| {injected} | {seed} | {'OK' if ok else 'FAIL'} | {cells} | "
+                    f"{', '.join(a[0] for a in res.added) or '-'} | {' / '.join(f'{r:.2f}' for r in ratio)} |")
+        n_ok += ok
+        print(rows[-1], flush=True)
+
     for eff, (scale, extra, static) in SCENARIOS.items():
         for seed in range(2, 7):
             res = diagnose(simulate_recording(_config({**extra, f"effects.{eff}.scale": scale}), seed=seed), static=static)
@@ -33,31 +42,19 @@ def main() -> int:
             ok = (res.ranked[0].name == eff and res.ranked[0].significant and bool(res.added)
                   and res.added[0][0] == eff and bool(np.all(ratio <= 1.5)))
             runner = res.ranked[1]
-            rows.append(f"| {eff} x{scale:g} | {seed} | {'OK' if ok else 'FAIL'} | {res.ranked[0].name} "
-                        f"{100 * res.ranked[0].rel_gain:+.1f} % | {runner.name} {100 * runner.rel_gain:+.1f} % | "
-                        f"{', '.join(a[0] for a in res.added) or '-'} | {' / '.join(f'{r:.2f}' for r in ratio)} |")
-            n_ok += ok
-            n_all += 1
-            print(rows[-1], flush=True)
+            add(f"{eff} x{scale:g}", seed, ok, f"{res.ranked[0].name} {100 * res.ranked[0].rel_gain:+.1f} % | "
+                f"{runner.name} {100 * runner.rel_gain:+.1f} %", res, ratio)
     for seed in range(20, 30):
         res = diagnose(simulate_recording(_config({}), seed=seed))
         ok = not res.added and not res.structure.significant
-        ratio = res.after_heldout_rmse / res.noise_floor
-        rows.append(f"| none | {seed} | {'OK' if ok else 'FAIL'} | - | - | {', '.join(a[0] for a in res.added) or '-'} | "
-                    f"{' / '.join(f'{r:.2f}' for r in ratio)} |")
-        n_ok += ok
-        n_all += 1
-        print(rows[-1], flush=True)
+        add("none", seed, ok, "- | -", res, res.after_heldout_rmse / res.noise_floor)
     for seed in range(3, 8):
         res = diagnose(simulate_recording(_config({"effects.unmodelled_cable_torque.scale": 3.0}), seed=seed))
         s = res.structure
         ok = s.significant and s.ratio[0] > 1.1 and s.ratio[1] > 1.1
-        rows.append(f"| unmodelled_cable_torque x3 | {seed} | {'OK' if ok else 'FAIL'} | unexplained: {s.significant} | "
-                    f"serial corr. of pose means {' / '.join(f'{v:+.2f}' for v in s.serial_corr_pose_means)} | "
-                    f"{', '.join(a[0] for a in res.added) or '-'} | {' / '.join(f'{r:.2f}' for r in s.ratio)} |")
-        n_ok += ok
-        n_all += 1
-        print(rows[-1], flush=True)
+        add("unmodelled_cable_torque x3", seed, ok, f"unexplained: {s.significant} | serial corr. of pose means "
+            f"{' / '.join(f'{v:+.2f}' for v in s.serial_corr_pose_means)}", res, s.ratio)
+    n_all = len(rows)
     out = ROOT / "bench" / "results" / "diagnose_robustness.md"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("# Diagnosis robustness over seeds (simulator)\n\nProduced by `.venv/bin/python bench/diagnose_robustness.py`."
