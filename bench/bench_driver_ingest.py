@@ -56,7 +56,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from machine_info import results_doc, write_results  # noqa: E402
+from machine_info import proc_field, results_doc, write_results  # noqa: E402
 
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, link_frame_rate_limit  # noqa: E402
 
@@ -111,19 +111,11 @@ def system_busy_s() -> float:
 
 def proc_rss_kib(pid: int) -> int:
     """Resident set size of ``pid`` in KiB (VmRSS of /proc/<pid>/status)."""
-    with open(f"/proc/{pid}/status") as fh:
-        for line in fh:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1])
-    return 0
+    return int((proc_field(f"/proc/{pid}/status", "VmRSS:") or "0").split()[0])
 
 
 def proc_threads(pid: int) -> int:
-    with open(f"/proc/{pid}/status") as fh:
-        for line in fh:
-            if line.startswith("Threads:"):
-                return int(line.split()[1])
-    return 0
+    return int(proc_field(f"/proc/{pid}/status", "Threads:") or 0)
 
 
 # ----------------------------------------------------------------------------- subscriber role
@@ -138,51 +130,44 @@ def run_subscriber(out_path: Path, with_imu: bool) -> int:
     rclpy.init()
     node = rclpy.create_node("bench_ingest_subscriber")
     qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100000, reliability=ReliabilityPolicy.BEST_EFFORT)
-    raw_recv: list[int] = []
-    raw_tus: list[int] = []
-    raw_stamp: list[int] = []
-    raw_src: list[int] = []  # DDS source timestamp (CLOCK_REALTIME ns at the driver's publish)
-    raw_pubseq: list[int] = []  # DDS publication sequence number (gaps = lost in delivery)
-    imu_recv: list[int] = []
-    imu_stamp: list[int] = []
-    imu_src: list[int] = []
+    # *_src: DDS source timestamp (CLOCK_REALTIME ns at the driver's publish); raw_pubseq: DDS publication
+    # sequence number (gaps = lost in delivery)
+    cols: dict[str, list[int]] = {k: [] for k in ("raw_recv", "raw_tus", "raw_stamp", "raw_src", "raw_pubseq",
+                                                  "imu_recv", "imu_stamp", "imu_src")}
     diag: dict[str, dict[str, str]] = {}
 
     def on_raw_one(msg: JointState, info: dict) -> None:
-        raw_recv.append(time.clock_gettime_ns(MONO))
-        raw_tus.append(round(msg.position[8] * 1e6))
-        raw_stamp.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
-        raw_src.append(info["source_timestamp"])
-        raw_pubseq.append(info["publication_sequence_number"])
+        cols["raw_recv"].append(time.clock_gettime_ns(MONO))
+        cols["raw_tus"].append(round(msg.position[8] * 1e6))
+        cols["raw_stamp"].append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+        cols["raw_src"].append(info["source_timestamp"])
+        cols["raw_pubseq"].append(info["publication_sequence_number"])
 
     def on_imu_one(msg: Imu, info: dict) -> None:
-        imu_recv.append(time.clock_gettime_ns(MONO))
-        imu_stamp.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
-        imu_src.append(info["source_timestamp"])
+        cols["imu_recv"].append(time.clock_gettime_ns(MONO))
+        cols["imu_stamp"].append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+        cols["imu_src"].append(info["source_timestamp"])
 
-    def draining(sub_ref: list, one):
-        """Callback that handles its message, then takes every further message already queued for the
-        subscription (one executor wake-up per burst instead of per message: the stock rclpy executor
-        costs ~100 us per wake-up, which would make this subscriber, not the driver, the bottleneck)."""
+    def subscribe_draining(msg_type: type, topic: str, one) -> None:
+        """A subscription whose callback handles its message, then takes every further message already queued
+        (one executor wake-up per burst instead of per message: the stock rclpy executor costs ~100 us per
+        wake-up, which would make this subscriber, not the driver, the bottleneck)."""
 
         def cb(msg, info) -> None:
             one(msg, info)
-            sub = sub_ref[0]
             with sub.handle:
                 while (taken := sub.handle.take_message(sub.msg_type, False)) is not None:
                     one(*taken)
 
-        return cb
+        sub = node.create_subscription(msg_type, topic, cb, qos)
 
     def on_diag(msg: DiagnosticArray) -> None:
         for st in msg.status:
             diag[st.name] = {kv.key: kv.value for kv in st.values} | {"_level": str(st.level[0]), "_message": st.message}
 
-    raw_ref: list = []
-    raw_ref.append(node.create_subscription(JointState, "imu/raw", draining(raw_ref, on_raw_one), qos))
+    subscribe_draining(JointState, "imu/raw", on_raw_one)
     if with_imu:
-        imu_ref: list = []
-        imu_ref.append(node.create_subscription(Imu, "imu/data_raw", draining(imu_ref, on_imu_one), qos))
+        subscribe_draining(Imu, "imu/data_raw", on_imu_one)
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
     stop = threading.Event()
 
@@ -201,12 +186,9 @@ def run_subscriber(out_path: Path, with_imu: bool) -> int:
         ex.spin_once(timeout_sec=0.05)
         now = time.monotonic()
         if now >= next_report:
-            print(f"COUNT {len(raw_recv)} {len(imu_recv)} {node.count_publishers('imu/raw')}", flush=True)
+            print(f"COUNT {len(cols['raw_recv'])} {len(cols['imu_recv'])} {node.count_publishers('imu/raw')}", flush=True)
             next_report = now + 0.25
-    i64 = np.int64
-    np.savez(out_path, raw_recv=np.array(raw_recv, i64), raw_tus=np.array(raw_tus, i64), raw_stamp=np.array(raw_stamp, i64),
-             raw_src=np.array(raw_src, i64), raw_pubseq=np.array(raw_pubseq, i64), imu_recv=np.array(imu_recv, i64),
-             imu_stamp=np.array(imu_stamp, i64), imu_src=np.array(imu_src, i64), diag=np.array(json.dumps(diag)))
+    np.savez(out_path, **{k: np.array(v, np.int64) for k, v in cols.items()}, diag=np.array(json.dumps(diag)))
     node.destroy_node()
     rclpy.try_shutdown()
     print("DONE", flush=True)

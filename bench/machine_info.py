@@ -12,27 +12,27 @@ from pathlib import Path
 from typing import Any
 
 
+def proc_field(path: str, key: str) -> str | None:
+    """What follows the colon on the first line of a /proc file that starts with ``key`` (None: no such line)."""
+    with open(path) as fh:
+        return next((line.split(":", 1)[1].strip() for line in fh if line.startswith(key)), None)
+
+
 def cpu_model() -> str:
     """CPU model name from /proc/cpuinfo (else what platform knows)."""
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
+        return proc_field("/proc/cpuinfo", "model name") or platform.processor() or "unknown"
     except OSError:
-        pass
-    return platform.processor() or "unknown"
+        return platform.processor() or "unknown"
 
 
 def machine() -> dict:
     """CPU model, logical CPUs, RAM in GiB, Python, numpy, OS and the load average right now."""
-    mem_gib = None
     try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemTotal:"):
-                mem_gib = int(line.split()[1]) / 1024**2
-                break
+        mem_kib = proc_field("/proc/meminfo", "MemTotal:")
     except OSError:
-        pass
+        mem_kib = None
+    mem_gib = int(mem_kib.split()[0]) / 1024**2 if mem_kib else None
     import numpy as np
 
     return {"cpu": cpu_model(), "logical_cpus": os.cpu_count(), "ram_gib": round(mem_gib, 1) if mem_gib else None,
