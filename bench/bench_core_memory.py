@@ -79,16 +79,10 @@ def main(argv: list[str] | None = None) -> int:
     tracemalloc.stop()
     hours = args.frames / RATE_HZ / 3600
     res = results_doc("bench_core_memory.py", argv, "driver data path Python heap over a long stream (tracemalloc)") | {
-        "rate_hz": RATE_HZ,
-        "warmup_frames": args.warmup,
-        "measured_frames": args.frames,
-        "board_hours": hours,
-        "imu_published": core.counters.imu_published,
-        "driver_heap_kib_after_warmup": before / 1024,
-        "driver_heap_kib_at_end": after / 1024,
-        "growth_kib": (after - before) / 1024,
-        "growth_kib_per_board_hour": (after - before) / 1024 / hours,
-    }
+        "rate_hz": RATE_HZ, "warmup_frames": args.warmup, "measured_frames": args.frames, "board_hours": hours,
+        "imu_published": core.counters.imu_published, "driver_heap_kib_after_warmup": before / 1024,
+        "driver_heap_kib_at_end": after / 1024, "growth_kib": (after - before) / 1024,
+        "growth_kib_per_board_hour": (after - before) / 1024 / hours}
     write_results(args.output, res, indent=1)
     print(f"{args.frames} frames ({hours:.2f} h at {RATE_HZ:g} Hz): driver heap {before / 1024:.1f} -> {after / 1024:.1f} KiB "
           f"({(after - before) / 1024:+.1f} KiB)")

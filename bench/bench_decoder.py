@@ -107,31 +107,18 @@ def main(argv: list[str] | None = None) -> int:
             times, stats = time_decode(stream, chunk, args.repeats)
             n = stats["frames"]
             best, med = min(times), statistics.median(times)
-            row = {
-                "stream": name,
-                "chunk_bytes": chunk,
-                "frames_decoded": n,
-                "bytes": len(stream),
-                "seconds_best": best,
-                "seconds_median": med,
-                "frames_per_s_best": n / best,
-                "frames_per_s_median": n / med,
-                "us_per_frame_best": 1e6 * best / n,
-                "us_per_frame_median": 1e6 * med / n,
-                "headroom_vs_link_limit": (n / med) / link_rate,
-                "cpu_fraction_at_link_rate": link_rate / (n / med),
-                "decoder_stats": stats,
-            }
+            row = {"stream": name, "chunk_bytes": chunk, "frames_decoded": n, "bytes": len(stream),
+                   "seconds_best": best, "seconds_median": med, "frames_per_s_best": n / best, "frames_per_s_median": n / med,
+                   "us_per_frame_best": 1e6 * best / n, "us_per_frame_median": 1e6 * med / n,
+                   "headroom_vs_link_limit": (n / med) / link_rate, "cpu_fraction_at_link_rate": link_rate / (n / med),
+                   "decoder_stats": stats}
             results.append(row)
             print(f"{name:8} {chunk:8d} {row['frames_per_s_best']:16.0f} {row['us_per_frame_best']:16.2f} "
                   f"{row['us_per_frame_median']:18.2f} {row['headroom_vs_link_limit']:13.1f}")
     doc = results_doc("bench_decoder.py", argv, "stream decoder throughput (StreamDecoder.feed, pure Python, one core, "
                       "wall clock)") | {
         "link": {"baud": BAUD, "frame_bytes": FRAME_SIZE_V1, "bits_per_byte": 10, "frames_per_s_limit": link_rate},
-        "frames_per_run": args.frames,
-        "repeats": args.repeats,
-        "results": results,
-    }
+        "frames_per_run": args.frames, "repeats": args.repeats, "results": results}
     write_results(args.output, doc)
     print(f"link limit at {BAUD} baud: {link_rate:.1f} frames/s")
     return 0
