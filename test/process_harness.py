@@ -45,7 +45,7 @@ class ChildProcess:
 
     def __init__(self, name: str, args: list, notifier: Notifier | None = None) -> None:
         self.name = name
-        self._notifier = notifier  # also woken by each line and at the end of the output
+        self._notifier = notifier or Notifier()  # also woken by each line and at the end of the output
         self.proc = subprocess.Popen([str(a) for a in args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                      text=True, bufsize=1)
         self.lines: list[str] = []
@@ -61,13 +61,11 @@ class ChildProcess:
             with self._new_output:
                 self.lines.append(line.rstrip("\n"))
                 self._new_output.notify_all()
-            if self._notifier is not None:
-                self._notifier.notify()
+            self._notifier.notify()
         with self._new_output:
             self._ended = True
             self._new_output.notify_all()
-        if self._notifier is not None:
-            self._notifier.notify()
+        self._notifier.notify()
 
     @property
     def output_ended(self) -> bool:
