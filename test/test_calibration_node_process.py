@@ -160,10 +160,11 @@ class RosHarness:
             self._stop_at = len(stream.stamps_ns) if stop_at is None else stop_at
             self.published_temperature = []
 
-    def resume(self, stop_at: int | None = None) -> None:
+    def resume(self) -> None:
+        """Publish the rest of the stream."""
         with self._lock:
             assert self._stream is not None
-            self._stop_at = len(self._stream.stamps_ns) if stop_at is None else stop_at
+            self._stop_at = len(self._stream.stamps_ns)
 
     def pause(self) -> None:
         with self._lock:
