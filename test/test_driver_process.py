@@ -203,17 +203,13 @@ def test_wire_faults_gravity_temperature_stamps(ros: Context, tmp_path: Path) ->
         truth = np.load(truth_file)
         expected = expected_counters(truth)
         assert expected["crc_errors"] == 7 and expected["resets"] == 1 and expected["duplicates"] == 3
-
-        def counted() -> bool:
-            return bool(listener.diag) and int(listener.last("frames")[2]["frames"]) >= expected["frames"] \
-                and len(listener.raw) >= expected["frames"]
-
-        listener.wait_until(counted, 15, f"{expected['frames']} frames counted and published")
+        listener.wait_until(lambda: bool(listener.diag) and int(listener.last("frames")[2]["frames"]) >= expected["frames"]
+                            and len(listener.raw) >= expected["frames"], 15,
+                            f"{expected['frames']} frames counted and published")
         assert_counters(listener, expected)  # diagnostics count exactly what was injected
         assert int(listener.last("board resets")[2]["resets"]) == 1
         assert any(d["frames"][0] == 1 for d in listener.diag), "no WARN for the injected CRC errors"
-        rc = stop(driver)
-        assert rc == 0, (tmp_path / "driver.log").read_text()
+        assert stop(driver) == 0, (tmp_path / "driver.log").read_text()
     finally:
         stop_all(sim, driver, listener)
     raw_keys = assert_published_once_in_order(listener, truth)

@@ -26,7 +26,7 @@ def _start(args: list[str]) -> tuple[subprocess.Popen, str]:
     return proc, line.split(" ", 1)[1]
 
 
-def _read_until_exit(port: serial.Serial, proc: subprocess.Popen, dec: StreamDecoder, deadline_s: float) -> list:
+def _read_until_exit(port: serial.Serial, dec: StreamDecoder, deadline_s: float) -> list:
     frames = []
     deadline = time.monotonic() + deadline_s
     while time.monotonic() < deadline:
@@ -49,7 +49,7 @@ def test_pty_frames_through_pyserial_match_the_truth_exactly(tmp_path: Path) -> 
     assert os.readlink(link) == path
     port = serial.serial_for_url(str(link), baudrate=921600, timeout=0.05)
     dec = StreamDecoder()
-    frames = _read_until_exit(port, proc, dec, 30.0)
+    frames = _read_until_exit(port, dec, 30.0)
     port.close()
     assert proc.wait(timeout=10) == 0
     t = np.load(truth)
@@ -74,7 +74,7 @@ def test_disconnect_repoints_the_link_and_serving_continues(tmp_path: Path) -> N
     for _ in range(2):
         opened.append(os.path.realpath(link))
         port = serial.Serial(str(link), 115200, timeout=0.05)
-        _read_until_exit(port, proc, dec, 30.0)  # ends when the port vanishes (unplug, then end of run)
+        _read_until_exit(port, dec, 30.0)  # ends when the port vanishes (unplug, then end of run)
         port.close()
         if len(opened) == 1:  # wait for the board to announce the new port (stderr), then reopen by the link
             line = proc.stderr.readline()
