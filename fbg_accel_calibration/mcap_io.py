@@ -761,7 +761,7 @@ def _resync(fh: Any, start: int, file_size: int) -> int | None:
 
 class _PartialRecordError(McapRecordingError):
     """A record inside a chunk is cut short: an interrupted writer still wrote (and checksummed) its last
-    chunk. The records before it are good; the split stops there and yields :data:`PARTIAL_RECORD`."""
+    chunk. The records before it are good; the split yields :data:`PARTIAL_RECORD` and goes on at the next chunk."""
 
 
 PARTIAL_RECORD = SkippedRange(-1, -1, "a record cut short at the end of a chunk (interrupted writer); "
@@ -1123,7 +1123,7 @@ class McapSampleStream:
                     if joined_bytes < _JOIN_BYTES:
                         continue
                 if joined:
-                    yield from emit(_split_chunk(b"".join(joined), fast))
+                    yield from emit(_split_chunks(joined, fast))
                     joined, joined_bytes = [], 0
                 if opcode != Opcode.CHUNK:
                     try:
@@ -1133,7 +1133,7 @@ class McapSampleStream:
                         break
                     yield from emit([item])
         if joined:
-            yield from emit(_split_chunk(b"".join(joined), fast))
+            yield from emit(_split_chunks(joined, fast))
 
     def blocks(self, block_rows: int, with_poses: bool) -> Any:
         """Yield :class:`Recording` blocks of ``block_rows`` samples (run_id 0) in file order.
@@ -1366,17 +1366,26 @@ _FAST_RUN_MIN = 64
 _FAST_RUN_MAX = 16384  # records checked at once for a run of fixed-layout raw messages
 
 
-def _split_chunk(data: bytes, fast: dict[str, Any]):
-    """Records of decompressed chunk data: ``(stamps, values)`` for each run of consecutive fixed-layout
-    raw messages (one numpy view), ``(channel_id, log_time, data)`` for other messages, and parsed
-    Schema/Channel/Metadata records."""
+def _split_chunks(bodies: list[bytes], fast: dict[str, Any]):
+    """Records of decompressed chunks ``bodies``, split together: ``(stamps, values)`` for each run of consecutive
+    fixed-layout raw messages (one numpy view), ``(channel_id, log_time, data)`` for other messages, and parsed
+    Schema/Channel/Metadata records. No record is read across the end of its chunk (records never span chunks): a
+    run goes on into the next chunk only where its chunk ends between two of its records, and a chunk that ends
+    inside a record (an interrupted writer that still checksummed it) yields :data:`PARTIAL_RECORD` there and the
+    split goes on at the next chunk's start."""
+    data = b"".join(bodies)
+    ends = np.cumsum([len(b) for b in bodies])
     size = len(data)
     pos = 0
     while pos < size:
         rec_size = fast.get("size")
+        if rec_size is not None:  # a run stops at the first chunk end that does not fall between two of its records
+            later = ends[ends > pos]
+            misaligned = np.flatnonzero((later - pos) % rec_size)
+            limit = int(later[misaligned[0]]) if misaligned.size else size
         k = _FAST_RUN_MIN
         while rec_size is not None:  # windows growing x4 while every record matches the raw layout
-            kk = min((size - pos) // rec_size, k)
+            kk = min((limit - pos) // rec_size, k)
             if kk == 0:
                 break
             arr = np.frombuffer(data, dtype=fast["dtype"], count=kk, offset=pos)
@@ -1393,10 +1402,12 @@ def _split_chunk(data: bytes, fast: dict[str, Any]):
             k = min(4 * k, _FAST_RUN_MAX)
         if pos >= size:
             break
+        chunk_end = int(ends[np.searchsorted(ends, pos, side="right")])
         try:
-            item, pos = _record_at(data, pos, size)
+            item, pos = _record_at(data, pos, chunk_end)
         except _PartialRecordError:
             yield PARTIAL_RECORD
-            return
+            pos = chunk_end
+            continue
         if item is not None:
             yield item

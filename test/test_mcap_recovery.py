@@ -183,20 +183,19 @@ def test_wrong_raw_type_or_malformed_schema_is_one_line(tmp_path: Path, schema: 
     assert not (tmp_path / "cal.yaml").exists()
 
 
-def test_a_checksummed_chunk_ending_in_a_half_record_keeps_the_records_before_it(tmp_path: Path) -> None:
-    """An interrupted writer that still finished its file: its last chunk holds a record cut short, with a
-    valid CRC over it, then the footer. Both readers keep every message before that record; ``fit`` says
-    what happened instead of dying with ``struct.error``."""
-    import zlib
-
-    src = tmp_path / "plain.mcap"
-    rec = make_run(4, 25.0)
-    with mcap_io.RecordingWriter(src, {"sensor_id": "x"}, compression="none") as w:
+def _plain_run(path: Path, rec: Recording, chunk_bytes: int = mcap_io.DEFAULT_CHUNK_BYTES) -> None:
+    """``rec`` written as raw messages, uncompressed (a chunk's records can be cut in the bytes)."""
+    with mcap_io.RecordingWriter(path, {"sensor_id": "x"}, compression="none", chunk_bytes=chunk_bytes) as w:
         for i in range(len(rec)):
             w.write_raw(int(rec.t_s[i] * 1e9) + 1, rec.ref[i], rec.xyz[i].tolist(), temperature_c=rec.temp_c[i],
                         temperature_valid=True, seq=i, board_time_s=rec.t_s[i])
-    data = src.read_bytes()
-    off, _, length = [r for r in records(data) if r[1] == 0x06][-1]
+
+
+def _chunk_with_its_last_record_cut(data: bytes, off: int, length: int) -> bytes:
+    """The uncompressed chunk record at ``off`` (body ``length`` bytes) with 37 bytes of its last record lost and
+    its CRC written again over what is left: what an interrupted writer that still checksums leaves."""
+    import zlib
+
     body = data[off + 9: off + 9 + length]
     clen = struct.unpack_from("<I", body, 28)[0]
     head, recs = body[:40 + clen], body[40 + clen:]
@@ -204,9 +203,20 @@ def test_a_checksummed_chunk_ending_in_a_half_record_keeps_the_records_before_it
     cut = recs[:len(recs) - 37]  # the last raw message record loses its tail
     new_body = (head[:16] + struct.pack("<QI", len(cut), zlib.crc32(cut)) + head[28:32 + clen]
                 + struct.pack("<Q", len(cut)) + cut)
+    return struct.pack("<BQ", 0x06, len(new_body)) + new_body
+
+
+def test_a_checksummed_chunk_ending_in_a_half_record_keeps_the_records_before_it(tmp_path: Path) -> None:
+    """An interrupted writer that still finished its file: its last chunk holds a record cut short, with a
+    valid CRC over it, then the footer. Both readers keep every message before that record; ``fit`` says
+    what happened instead of dying with ``struct.error``."""
+    src = tmp_path / "plain.mcap"
+    _plain_run(src, make_run(4, 25.0))
+    data = src.read_bytes()
+    off, _, length = [r for r in records(data) if r[1] == 0x06][-1]
     footer = struct.pack("<BQ", 0x02, 20) + struct.pack("<QQI", 0, 0, 0) + b"\x89MCAP0\r\n"
     bad = tmp_path / "half_record.mcap"
-    bad.write_bytes(data[:off] + struct.pack("<BQ", 0x06, len(new_body)) + new_body + footer)
+    bad.write_bytes(data[:off] + _chunk_with_its_last_record_cut(data, off, length) + footer)
     expected = len(raw_stamps(src)) - 1
     got = read_recording(bad)
     assert len(got) == expected
@@ -215,3 +225,30 @@ def test_a_checksummed_chunk_ending_in_a_half_record_keeps_the_records_before_it
     res = run_cli("fit", str(bad), "-o", str(tmp_path / "cal.yaml"))
     assert res.returncode in (0, 2) and "Traceback" not in res.stderr and "struct" not in res.stderr, res.stderr
     assert "cut short" in res.stderr
+
+
+def test_a_half_record_in_a_chunk_mid_file_loses_only_that_record(tmp_path: Path) -> None:
+    """The same cut record in a chunk with intact chunks after it. The readers split several chunks at once; on
+    the code before, the cut record was read on into the next chunk's bytes (one message kept with another chunk's
+    bytes in its values) and the split stopped there, losing the messages of the chunks joined after it: both
+    readers kept 883 of the 1742. Now no record is read across its chunk's end: only the cut message is lost, and
+    every other one keeps its values."""
+    src = tmp_path / "plain.mcap"
+    rec = make_run(4, 25.0)
+    _plain_run(src, rec, chunk_bytes=4096)
+    data = src.read_bytes()
+    chunks = [r for r in records(data) if r[1] == 0x06]
+    assert len(chunks) > 10
+    off, _, length = chunks[len(chunks) // 2]
+    bad = tmp_path / "half_record_mid.mcap"
+    bad.write_bytes(data[:off] + _chunk_with_its_last_record_cut(data, off, length) + data[off + 9 + length:])
+    truth = raw_stamps(src)
+    got = read_recording(bad)
+    assert len(got) == len(truth) - 1
+    assert any(s["offset"] == -1 for s in got.metadata["read_report"]["skipped"])
+    assert stream_count(bad)[0] == len(truth) - 1
+    lost = np.flatnonzero(~np.isin(np.round(rec.t_s * 1e9).astype(np.int64) + 1, np.round(got.t_s * 1e9).astype(np.int64) + 1))
+    assert len(lost) == 1
+    keep = np.delete(np.arange(len(rec)), lost)
+    np.testing.assert_array_equal(got.xyz, rec.xyz[keep])
+    np.testing.assert_array_equal(got.ref, rec.ref[keep])
