@@ -852,6 +852,8 @@ class BoardSimulator:
         a frozen stretch repeating the last delivered value (a conversion that never completes read again). No random
         draw: without a fault the reading is returned unchanged."""
         spec = self.reading_faults
+        if not (spec.get("steps") or spec.get("frozen") or (spec.get("spikes") or {}).get("at_s")):
+            return reading  # none configured (the default): no copy and no masks on every chunk
         out = reading.copy()
         for st in spec.get("steps") or []:
             out[t >= float(st["at_s"])] += float(st["step_c"])
