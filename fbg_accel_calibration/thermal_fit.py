@@ -305,9 +305,9 @@ class CellAccumulator:
                 ks = key[order]
                 bounds = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1], True])
                 segments += [(self._cell(r, int(ks[a])), order[a:b]) for a, b in itertools.pairwise(bounds)]
+        sums = self._sums
         for c, rows in segments:
             Xc, Gc = X[rows], G[rows]
-            sums = self._sums
             sums["xtx"][c] += Xc.T @ Xc
             sums["xtg"][c] += Xc.T @ Gc
             sums["gtg"][c] += np.einsum("ni,ni->i", Gc, Gc)
@@ -368,9 +368,9 @@ def accumulate_cells(psi: np.ndarray, tau: np.ndarray, gref: np.ndarray, pose: n
     return acc.finish()
 
 
-def _reference_spread(gsum: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """RMS spreads (3,), ascending, m/s^2, and principal directions (3, 3 columns) of the cells' mean
-    reference specific force, weighted by sample count."""
+def _cell_mean_spread(gsum: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """RMS spreads (3,), ascending, and principal directions (3, 3 columns) of the cells' means ``gsum / count``
+    (the reference specific force, m/s^2, or Psi), weighted by sample count."""
     means = gsum / count[:, None]
     d = means - (count[:, None] * means).sum(axis=0) / count.sum()
     eig, vec = np.linalg.eigh((count[:, None, None] * d[:, :, None] * d[:, None, :]).sum(axis=0) / count.sum())
@@ -414,7 +414,7 @@ def level_excitation(stats: CellStats, min_spread_mps2: float = MIN_POSE_SPREAD_
     ok, notes = 0, []
     for lev in np.unique(stats.level):
         sel = stats.level == lev
-        spread, vec = _reference_spread(stats.gsum[sel], np.asarray(stats.count[sel], dtype=float))
+        spread, vec = _cell_mean_spread(stats.gsum[sel], np.asarray(stats.count[sel], dtype=float))
         if spread[0] >= min_spread_mps2:
             ok += 1
         else:
@@ -447,7 +447,7 @@ def check_pose_excitation(stats: CellStats, min_spread_mps2: float = MIN_POSE_SP
     count = np.asarray(stats.count, dtype=float)
     if len(count) == 0 or count.sum() <= 0:
         raise NotIdentifiedError("no usable static samples")
-    spread, vec = _reference_spread(stats.gsum, count)
+    spread, vec = _cell_mean_spread(stats.gsum, count)
     if not spread[0] >= min_spread_mps2:
         axis = "xyz"[int(np.argmax(np.abs(vec[:, 0])))]
         n_poses = count_orientations(stats)
@@ -458,7 +458,7 @@ def check_pose_excitation(stats: CellStats, min_spread_mps2: float = MIN_POSE_SP
             f"{_direction_text(vec[:, 0])} is {spread[0]:.3g} m/s^2 (< {min_spread_mps2:.3g}), so the {axis} row "
             "of M and b would be fitted to a constant (a dead axis); record poses that tilt that axis too "
             "(at least 4 non-coplanar poses, e.g. the six-position plan)")
-    psi_spread, vec_p = _reference_spread(stats.xsum[:, 0:3], count)  # columns 0..2 of eq. 29: Psi at k = 0
+    psi_spread, vec_p = _cell_mean_spread(stats.xsum[:, 0:3], count)  # columns 0..2 of eq. 29: Psi at k = 0
     if not psi_spread[0] > MIN_SIGNAL_SPREAD_RATIO * psi_spread[2]:
         if not psi_spread[2] > 1e-9:
             why = "the counts give the same Psi = counts / ref in every pose (identical samples?)"
