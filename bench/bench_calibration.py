@@ -137,6 +137,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--search-rows", type=int, default=SEARCH_ROWS,
                     help=f"fitted samples above which diagnose searches on every k-th one (default {SEARCH_ROWS}, the "
                          "library's): to measure what a smaller search set saves and what it changes")
+    ap.add_argument("--lanes", type=int, default=None,
+                    help="searches of the diagnosis side by side (default: diagnose's own choice, one per core up to two)")
     ap.add_argument("--profile-diagnose", action="store_true",
                     help="run the diagnosis under cProfile; its top functions (cumulative and own time) go into the JSON")
     ap.add_argument("--memory-diagnose", action="store_true",
@@ -171,13 +173,14 @@ def main(argv: list[str] | None = None) -> int:
             profiler.enable()
         memory = None
         if args.memory_diagnose:
-            res, memory = memory_at_peak(lambda: diagnose(rec, search_rows=args.search_rows))
+            res, memory = memory_at_peak(lambda: diagnose(rec, search_rows=args.search_rows, lanes=args.lanes))
         else:
-            res = diagnose(rec, search_rows=args.search_rows)
+            res = diagnose(rec, search_rows=args.search_rows, lanes=args.lanes)
         if profiler is not None:
             profiler.disable()
         sec = time.perf_counter() - t0
         steps["diagnose"] = {"seconds": sec, "samples_per_s": len(rec) / sec, "search_rows": args.search_rows,
+                             "lanes": args.lanes,
                              "degree": res.degree,
                              "ranked": [c.name for c in res.ranked][:5], "added": [a[0] for a in res.added],
                              "noise_floor_mps2": [float(v) for v in res.noise_floor], "peak_rss_mib": peak_rss_mib()}

@@ -5,7 +5,8 @@ Not a test. Diagnoses the calibration benchmark's simulated run (``bench_calibra
 ``--samples`` samples and writes, as JSON with every float at full precision (``repr``): the effects added
 with their hyper-parameters, each step's candidates (held-out gain, p-value, hyper-parameter, plausibility
 verdict) and confounding verdicts (gains and p-values both ways, correlation), the held-out error and the
-calibration (M, b). Run it before and after a change and compare the two files byte for byte (``cmp``):
+calibration (M, b). Run it before and after a change and compare the two files byte for byte (``cmp``); with
+``--lanes 1`` and ``--lanes 2``, the diagnosis with its searches one after the other and side by side:
 
     .venv/bin/python bench/diagnose_fingerprint.py --samples 100000 --output before.json
 """
@@ -47,9 +48,10 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--samples", type=int, default=100_000)
     ap.add_argument("--output", type=Path, required=True)
+    ap.add_argument("--lanes", type=int, default=None, help="searches side by side (default: diagnose's own choice)")
     args = ap.parse_args(argv)
     cfg, duration = scenario(args.samples)
-    res = diagnose(simulate_recording(cfg, seed=0, duration_s=duration))
+    res = diagnose(simulate_recording(cfg, seed=0, duration_s=duration), lanes=args.lanes)
     doc = {
         "samples": args.samples,
         "added": exact(res.added),

@@ -39,11 +39,14 @@ correlated and a sample-level F-test would be far too optimistic.
 
 from __future__ import annotations
 
+import copy
 import math
+import threading
 import weakref
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -72,10 +75,12 @@ from .effects import (
     visit_ids,
     visit_means,
 )
+from .heap_trim import return_free_memory
 from .model_selection import DegreeScores, choose_degree
 from .model_selection import select_degree as calibration_select_degree
 from .periodic_disturbance import PeriodicDisturbance, find_periodic_disturbance
 from .recording import LowReference, Recording, time_axis_label
+from .search_lanes import Lanes, beside, default_lane_count
 from .static_detector import calibration_samples
 from .temperature_reading import jump_warning, reading_jumps
 from .thermal_fit import (
@@ -182,24 +187,32 @@ def _transforms_inputs(eff: Effect) -> bool:
 
 
 class _Recent(OrderedDict):
-    """At most ``size`` entries once trimmed, the least recently used dropped first."""
+    """At most ``size`` entries once trimmed, the least recently used dropped first. Its methods hold a lock: the
+    corrected references are shared by the lanes of a search (``DesignCache.for_another_lane``)."""
 
     def __init__(self, size: int) -> None:
         super().__init__()
         self.size = size
+        self._lock = threading.Lock()
 
     def hit(self, key: tuple) -> Any:
         """The entry under ``key`` (made the most recent), or None."""
-        value = self.get(key)
-        if value is not None:
-            self.move_to_end(key)
+        with self._lock:
+            value = self.get(key)
+            if value is not None:
+                self.move_to_end(key)
         return value
+
+    def put(self, key: tuple, value: Any) -> None:
+        with self._lock:
+            self[key] = value
 
     def trim(self, room: int = 0) -> None:
         """Drop the oldest entries until ``room`` more fit: called with 1 before a new entry is computed, so that the
         arrays it replaces are not held beside the new ones while they are built."""
-        while len(self) > self.size - room:
-            self.popitem(last=False)
+        with self._lock:
+            while len(self) > self.size - room:
+                self.popitem(last=False)
 
 
 class DesignCache:
@@ -220,6 +233,14 @@ class DesignCache:
         self.matrices = _Recent(matrices)  # (X (n, p) read-only, its finite rows (n,), effect blocks) (``build_design``)
         self.references = _Recent(references)  # (reference (n, 3), valid rows (n,)) (``_corrected_reference``)
         self._taken = _Recent(8)
+
+    def for_another_lane(self) -> DesignCache:
+        """An empty cache of the same sizes for another lane (``search_lanes``) that shares this one's corrected
+        references: each depends on its corrections and the design's rows alone, and a search over a correction of
+        the reference tries the same grid whatever lane it runs on."""
+        other = DesignCache(self.inputs.size, self.prefixes.size, self.matrices.size, 0)
+        other.references = self.references
+        return other
 
     def prefix(self, names: tuple) -> tuple[int, Inputs | None]:
         """(number of corrections done, a private copy of the inputs after them) for the longest cached prefix
@@ -347,7 +368,7 @@ def _corrected_reference(data: DiagnosisData, corrections: list[tuple[Effect, fl
         hit = last.reference_at(data, inp, h, sub)
         for a in hit:
             a.flags.writeable = False
-        cache.references[names] = hit
+        cache.references.put(names, hit)
         cache.references.trim()
     return hit
 
@@ -1299,13 +1320,16 @@ def select_degree(data: DiagnosisData, max_degree: int) -> tuple[int, list[dict[
     return sel.chosen_degree, table
 
 
-def reselect_degree(ev: Evaluator, spec: ModelSpec, max_degree: int) -> tuple[ModelSpec, list[dict[str, Any]], list[str]]:
+def reselect_degree(lanes: Lanes[Evaluator], spec: ModelSpec,
+                    max_degree: int) -> tuple[ModelSpec, list[dict[str, Any]], list[str]]:
     """Degree and effects chosen jointly (issue 8): once an effect is in the model, choose the degree of eq. 28
     again with the effect in every candidate model, by the calibration's rule (``model_selection.choose_degree``:
     temperature-level hold-out guard with two or more levels, then the lowest degree within one standard error
     of the best held-out error), the held-out unit being the visit. A term that stood in for a missing effect
     (a higher degree absorbing a drift) is dropped again; a degree an effect hid is taken up.
-    Returns (the spec at the chosen degree, the degree table, notes)."""
+    Returns (the spec at the chosen degree, the degree table, notes). The degrees are cross-validated side by side
+    on ``lanes``."""
+    ev = lanes.lanes[0]
     data = ev.data
     labels = np.full(len(data.t_s), -1)
     labels[data.use], means = temperature_levels(data.temp_c[data.use])
@@ -1314,32 +1338,30 @@ def reselect_degree(ev: Evaluator, spec: ModelSpec, max_degree: int) -> tuple[Mo
     labels = ev.at(labels)
     level_rows = ev.at(data.use) & (labels >= 0)
     nan3 = np.full(3, np.nan)
-    scores: list[DegreeScores] = []
-    group_mse: dict[int, np.ndarray] = {}
-    for n in range(max_degree + 1):
+
+    def score(lane: Evaluator, n: int) -> tuple[DegreeScores, np.ndarray | None]:
         if n >= n_levels:
-            scores.append(DegreeScores(n, False, nan3, nan3, nan3, f"not identified by {n_levels} temperature level(s)"))
-            continue
-        cand = ModelSpec(n, spec.t_center_c, spec.t_scale_c, spec.effects)
+            return DegreeScores(n, False, nan3, nan3, nan3, f"not identified by {n_levels} temperature level(s)"), None
         try:
-            des, cv = ev.cv(cand)
+            des, cv = lane.cv(ModelSpec(n, spec.t_center_c, spec.t_scale_c, spec.effects))
         except NotIdentifiedError as exc:
-            scores.append(DegreeScores(n, False, nan3, nan3, nan3, f"not identified: {exc}"))
-            continue
-        r = ev.rows & des.valid & finite_rows(cv.heldout)
+            return DegreeScores(n, False, nan3, nan3, nan3, f"not identified: {exc}"), None
+        r = lane.rows & des.valid & finite_rows(cv.heldout)
         ho = np.sqrt(np.mean(cv.heldout[r] ** 2, axis=0))
         ins = np.sqrt(np.mean((des.G - cv.fitted_full)[r] ** 2, axis=0))
         level_ho = nan3
         if by_level and n < n_levels - 1:  # a fold trains on the other levels: degree n needs n + 1 of them
             try:
-                lv = cross_validate(des, level_rows, labels, ev.weights).heldout
+                lv = cross_validate(des, level_rows, labels, lane.weights).heldout
                 rl = level_rows & des.valid & finite_rows(lv)
                 level_ho = np.sqrt(np.mean(lv[rl] ** 2, axis=0))
             except NotIdentifiedError:  # a fold without one level cannot fit this degree
                 pass
-        scores.append(DegreeScores(n, True, ins, ho, level_ho))
-        group_mse[n] = _group_mse(cv.heldout, ev.groups, r, np.full(3, 1.0 / 3))[1]
-        del des, cv  # not held while the next degree's design is built (each N x p)
+        return DegreeScores(n, True, ins, ho, level_ho), _group_mse(cv.heldout, lane.groups, r, np.full(3, 1.0 / 3))[1]
+
+    done = lanes.map(score, range(max_degree + 1))
+    scores = [sc for sc, _ in done]
+    group_mse = {sc.degree: m for sc, m in done if m is not None}
     chosen, criterion, notes = choose_degree(scores, group_mse, by_level, unit="visit")
     table = _degree_rows(scores, lambda sc: sc.held_out_pose, criterion, chosen)
     if chosen is None:
@@ -1504,9 +1526,20 @@ class Evaluator:
     def forget(self, spec: ModelSpec) -> None:
         """Drop remembered results except those on top of ``spec``, the model the next step starts from: the
         confounding check has already worked out each candidate on top of the one that is then added."""
-        self._cv_memo = {k: v for k, v in self._cv_memo.items() if k == spec.key}
-        self._hyper_memo = {k: v for k, v in self._hyper_memo.items() if k[0] == spec.key}
+        for k in [k for k in self._cv_memo if k != spec.key]:  # in place: the lanes share them (``lane``)
+            del self._cv_memo[k]
+        for k in [k for k in self._hyper_memo if k[0] != spec.key]:
+            del self._hyper_memo[k]
         self._rss_sums = None  # its copy of the matrix's fitted rows (n x p)
+
+    def lane(self) -> Evaluator:
+        """Another evaluator of the same samples, folds and weights, for searches run beside this one's
+        (``search_lanes``): its own caches of inputs and designs, this one's remembered results and corrected
+        references (values that depend on their key alone, whichever lane works them out)."""
+        other = copy.copy(self)
+        other.designs = self.designs.for_another_lane()
+        other._last_cv = other._sums = other._rss_sums = None
+        return other
 
     def fit_hyper(self, spec: ModelSpec, eff: Effect,
                   remember: bool = False) -> tuple[float | None, np.ndarray, list[tuple[float, float]]]:
@@ -1689,6 +1722,12 @@ class Evaluator:
         return out
 
 
+def _evaluate_on(spec: ModelSpec, base_heldout: np.ndarray, base_fitted: np.ndarray, base_G: np.ndarray, alpha: float,
+                 ev: Evaluator, eff: Effect) -> CandidateResult:
+    """``ev.evaluate(spec, eff, ...)``: a task of ``Lanes.map`` (lane, item) once the step's arguments are bound."""
+    return ev.evaluate(spec, eff, base_heldout, base_fitted, base_G, alpha)
+
+
 def time_block_check(data: DiagnosisData, spec: ModelSpec, eff: Effect, h: float | None, sub: np.ndarray,
                      folds: np.ndarray, weights: np.ndarray, alpha: float) -> tuple[float, float]:
     """(held-out gain, one-sided p over visits: ``paired_gain_test``) of ``eff`` at ``h`` on top of ``spec`` when the
@@ -1729,7 +1768,7 @@ class StepCheck:
         return f"between t = {self.t_before_s:.4g} and {self.t_s:.4g} s (run {self.run})"
 
 
-def step_check(ev: Evaluator, spec: ModelSpec, eff: Effect, h: float | None, alpha: float,
+def step_check(lanes: Lanes[Evaluator], spec: ModelSpec, eff: Effect, h: float | None, alpha: float,
                min_rel_gain: float, max_degree: int | None = None) -> StepCheck | None:
     """Does a step of the response at one time explain what ``eff`` (at ``h``; ``Effect.follows_a_step``) fits on top
     of ``spec``? A warm-up with creep follows a step (a connector knocked mid-run) across contiguous blocks of time too,
@@ -1741,14 +1780,16 @@ def step_check(ev: Evaluator, spec: ModelSpec, eff: Effect, h: float | None, alp
     28's degree is first chosen again with both in the model (``reselect_degree``), as it is after any effect is added,
     and both are compared at it: a degree chosen with the step in the residual can be too low for the step's model, and
     the temperature dependence it leaves then passes for a drift or a hysteresis. None when the recording has too few
-    visits for a step."""
+    visits for a step. The two candidates on top of each other run side by side on ``lanes``."""
     step = ResponseStepEffect()
+    ev = lanes.lanes[0]
     if not step.applicable(ev.data)[0]:
         return None
 
-    def on_top(base: ModelSpec, e: Effect) -> CandidateResult:
-        des, cvr = ev.cv(base)
-        return ev.evaluate(base, e, cvr.heldout, cvr.fitted_full, des.G, alpha)
+    def on_top(lane: Evaluator, base_eff: tuple[ModelSpec, Effect]) -> CandidateResult:
+        base, e = base_eff
+        des, cvr = lane.cv(base)
+        return lane.evaluate(base, e, cvr.heldout, cvr.fitted_full, des.G, alpha)
 
     def gains(r: CandidateResult) -> bool:
         return r.applicable and r.p_value < alpha and r.rel_gain >= min_rel_gain and not r.implausible
@@ -1758,14 +1799,13 @@ def step_check(ev: Evaluator, spec: ModelSpec, eff: Effect, h: float | None, alp
         # step (a drift, a dark offset, a temperature history) is set against the same best step
         h_step = ev.fit_hyper(spec, step, remember=True)[0]
         if max_degree is not None:
-            degree = reselect_degree(ev, spec.plus(eff, h).plus(step, h_step), max_degree)[0].degree
+            degree = reselect_degree(lanes, spec.plus(eff, h).plus(step, h_step), max_degree)[0].degree
             # the step's time, set by the jump rather than by the temperature terms, is kept (a search of it is
             # most of the check's cost)
             spec = ModelSpec(degree, spec.t_center_c, spec.t_scale_c, spec.effects)
     except NotIdentifiedError:
         return None
-    beyond_time = on_top(spec.plus(eff, h), step)
-    beyond_step = on_top(spec.plus(step, h_step), eff)
+    beyond_time, beyond_step = lanes.map(on_top, [(spec.plus(eff, h), step), (spec.plus(step, h_step), eff)])
     if not beyond_time.applicable:
         return None
     i = min(math.ceil(float(h_step)), len(ev.data.t_s) - 1)
@@ -1777,13 +1817,13 @@ def step_check(ev: Evaluator, spec: ModelSpec, eff: Effect, h: float | None, alp
                      gains(beyond_time) and not gains(beyond_step), spec.degree)
 
 
-def judge_step(ev: Evaluator, spec: ModelSpec, r: CandidateResult, eff_r: Effect, alpha_each: float,
+def judge_step(lanes: Lanes[Evaluator], spec: ModelSpec, r: CandidateResult, eff_r: Effect, alpha_each: float,
                min_rel_gain: float, max_degree: int | None, step_confounded: dict[str, str]) -> None:
     """Set the significant candidate ``r`` (of ``eff_r``, ``Effect.follows_a_step``) on top of ``spec`` against the best
     step of the response (``step_check``; ``max_degree`` None: eq. 28's degree is not chosen again): refused (``r``
     no longer significant, why in its detail) if the step explains it; if the step fits as well, the warning for the
     report is put in ``step_confounded`` under its name."""
-    sc = r.step_check = step_check(ev, spec, eff_r, r.hyper, alpha_each, min_rel_gain, max_degree)
+    sc = r.step_check = step_check(lanes, spec, eff_r, r.hyper, alpha_each, min_rel_gain, max_degree)
     at_degree = f", eq. 28 of degree {sc.degree}" if sc is not None and sc.degree != spec.degree else ""
     if sc is not None and sc.explained:
         r.significant = False
@@ -1931,16 +1971,19 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
              alpha: float = 0.01, min_rel_gain: float = 0.02, max_effects: int = 3, library: tuple[Effect, ...] = LIBRARY,
              degree: int | None = None, sensor_id: str = "unknown", seed: int = 0,
              progress: Callable[[str], None] | None = None, settle_s: float | None = None,
-             search_rows: int | None = SEARCH_ROWS) -> DiagnosisResult:
+             search_rows: int | None = SEARCH_ROWS, lanes: int | None = None) -> DiagnosisResult:
     """Run the whole diagnosis on a recording (see the module docstring). ``progress`` (optional) is called
     with the candidate's name after each candidate evaluation (the CLI's progress bar). ``settle_s`` (s):
     samples this close to the start of a visit are left out of the noise floor (``settled_mask``); None: the
     window where the measured settling transient falls below a tenth of the noise (``settle_window``).
     ``search_rows``: above this many fitted samples, the candidates are evaluated and the model chosen on a
     thinned set, and the chosen model fitted on every sample (``search_samples``); None: always on every sample.
+    ``lanes``: how many searches run side by side (``search_lanes``; the results are the same with any number);
+    None: ``default_lane_count()`` on a thinned search, one otherwise.
 
     It runs with one BLAS thread (``blas_threads``): its products of tall, narrow matrices gain nothing from more,
     and lose much when another process holds a core."""
+    return_free_memory()  # what the caller dropped (a simulation, an MCAP read), before the diagnosis's arrays are made
     data = rec if isinstance(rec, DiagnosisData) else prepare_data(rec, static)
     groups = data.group
     fold, fold_notes = check_folds(data, groups, make_folds(groups, data.use, folds, seed))
@@ -2007,9 +2050,12 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     # where the candidates are evaluated and the model chosen; a thinned search's corrected reference is small
     # beside the correction of the whole series it saves: it keeps a search's grid of them for the next model
     sel = Evaluator(data, fold, weights, groups, every, references=32 if thinned else 4)
+    n_lanes = (default_lane_count() if thinned else 1) if lanes is None else int(lanes)
+    searchers = Lanes([sel] + [sel.lane() for _ in range(n_lanes - 1)])
     residual_before = cv0.heldout
     fitted_all = cv0.fitted_full  # the current model's in-sample fit on all samples (the cross-correlation delay)
     base_coefficients: np.ndarray | None = None  # the current model's coefficients when fitted_all is not worked out
+    del cv0
     des_s, cv_s = sel.cv(spec)
     base_heldout, base_fitted, base_G = cv_s.heldout, cv_s.fitted_full, des_s.G
     del des_s, cv_s, des0  # the declared model's design matrix (N x p) is not needed again
@@ -2022,17 +2068,21 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     remaining = [e for e in library]
     reading_jumped = bool(data.temperature_jumps) and n_levels >= 2  # eq. 28 reads a reading that jumps
     while remaining and len(spec.effects) < max_effects:
-        results = []
         # Bonferroni over the candidates the data can show at all (known before any is evaluated)
         alpha_each = alpha / max(sum(e.applicable(data)[0] for e in remaining), 1)
-        for e in remaining:
-            results.append(sel.evaluate(spec, e, base_heldout, base_fitted, base_G, alpha_each))
-            if results[-1].name == "channel_delay" and results[-1].applicable:
-                if fitted_all is None:
-                    fitted_all = fitted_output(data, spec, base_coefficients)
-                results[-1].cross_correlation_delay_s = cross_correlation_delay(data, fitted_all)
-            if progress is not None:
-                progress(e.name)
+        # the channel delay's cross-check, of the current model alone: worked out first, its fit (N, 3) not held beside
+        # the searches
+        xcorr_delay = None
+        if any(e.name == "channel_delay" and e.applicable(data)[0] for e in remaining):
+            xcorr_delay = cross_correlation_delay(data, fitted_output(data, spec, base_coefficients)
+                                                  if fitted_all is None else fitted_all)
+        fitted_all = None
+        # the candidates side by side, each on a free lane (their results do not depend on which, or in what order)
+        results = searchers.map(partial(_evaluate_on, spec, base_heldout, base_fitted, base_G, alpha_each), remaining,
+                                None if progress is None else lambda r: progress(r.name))
+        for r in results:
+            if r.name == "channel_delay" and r.applicable:
+                r.cross_correlation_delay_s = xcorr_delay
         tested = [r for r in results if r.applicable]
         n_vis = max((r.n_groups for r in tested), default=0)
         if not steps and tested and 0.5 ** n_vis >= alpha_each:
@@ -2073,7 +2123,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                                  "visits, not a drift it can extrapolate")
             step_confounded.pop(r.name, None)  # the last step's word on it
             if r.significant and eff_r.follows_a_step and eff_r.time_function:
-                judge_step(sel, spec, r, eff_r, alpha_each, min_rel_gain, reselect_up_to, step_confounded)
+                judge_step(searchers, spec, r, eff_r, alpha_each, min_rel_gain, reselect_up_to, step_confounded)
         results.sort(key=lambda r: (not r.applicable, -r.rel_gain))
         # a function of the temperature's history is set against the step when it is about to be added (the best
         # significant candidate left), not at every step it is significant at: on a cycled run it is significant at
@@ -2083,9 +2133,9 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
             checked.add(best.name)
             eff_b = next(e for e in remaining if e.name == best.name)
             if eff_b.follows_a_step and not eff_b.time_function:
-                judge_step(sel, spec, best, eff_b, alpha_each, min_rel_gain, reselect_up_to, step_confounded)
+                judge_step(searchers, spec, best, eff_b, alpha_each, min_rel_gain, reselect_up_to, step_confounded)
         sig = [r for r in results if r.significant]
-        conf = _confounding(sel, spec, sig, alpha_each, min_rel_gain, library) if len(sig) >= 2 else []
+        conf = _confounding(searchers, spec, sig, alpha_each, min_rel_gain, library) if len(sig) >= 2 else []
         chosen = sig[0].name if sig else None
         for r in results:  # per-sample arrays (N, 3) are kept only where the report plots them: first step's deltas
             r.delta, r.delta_rows = (None, None) if steps else (r.delta, sel.sub)
@@ -2097,21 +2147,23 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         remaining = [e for e in remaining if e.name != chosen]
         if degree is None and n_levels >= 2:  # with one level only degree 0 is identified: nothing to re-select
             was = spec.degree
-            spec, steps[-1].degree_table, notes = reselect_degree(sel, spec, max_degree)
+            spec, steps[-1].degree_table, notes = reselect_degree(searchers, spec, max_degree)
             steps[-1].degree_after = spec.degree
             steps[-1].degree_note = (f"degree of eq. 28 re-selected with {chosen} in the model: "
                                      + (f"{was} -> {spec.degree}" if spec.degree != was else f"{was}, unchanged")
                                      + "".join(f"; {n}" for n in notes))
         des_c, cv_c = sel.cv(spec)
-        sel.forget(spec)
+        searchers.each(lambda ev, model=spec: ev.forget(model))
+        return_free_memory()  # what the step's searches dropped, before the next step's are made
         base_heldout, base_fitted, base_G = cv_c.heldout, cv_c.fitted_full, des_c.G
-        fitted_all, base_coefficients = None, cv_c.A_full
+        base_coefficients = cv_c.A_full
         del des_c, cv_c  # the design (n x p) is not held beyond the evaluator's own caches
 
     # final model, built once the caches of the search are let go
     n_search = len(sel.folds) if thinned else None
-    del sel
+    del sel, searchers
     data.drop_recent()
+    return_free_memory()  # the search's corrected series and designs, before the final design (N x p) is built
     des_f = build_design(data, spec)  # no cache: written straight into its design
     cv_f = cross_validate(des_f, fit_rows, fold, weights)
     rows_f = data.use & des_f.valid & (fold >= 0)
@@ -2133,6 +2185,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         del res_f
         noise_after = noise_model_after.sigma
         cal.noise_sigma_mps2 = noise_after
+    # the driver's path over every sample, worked out meanwhile the rest
+    calibrated_later = beside(_calibrated, cal, data, thread=n_lanes > 1)
     fitted_sensor = cv_f.fitted_full.copy()  # what the calibration file reproduces: without the per-run terms
     for name in per_run_names:
         sl = des_f.blocks[name]
@@ -2141,7 +2195,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                                       des_f, cv_f, fit_rows, rows_f, fold, weights)
     G_f, blocks_f = des_f.G, des_f.blocks
     del des_f  # its design matrix (N x p) is not needed again
-    calibrated = _calibrated(cal, data)
+    calibrated = calibrated_later.result()
     consistency = _consistency(calibrated, fitted_sensor, rows_f)
     del fitted_sensor
     r_eval = rows_f & finite_rows(residual_before) & finite_rows(cv_f.heldout)
@@ -2289,23 +2343,32 @@ def _fmt3(v: np.ndarray) -> str:
     return " / ".join(f"{x:.3f}" for x in v)
 
 
-def _confounding(ev: Evaluator, spec: ModelSpec, sig: list[CandidateResult], alpha_each: float,
+def _confounding(lanes: Lanes[Evaluator], spec: ModelSpec, sig: list[CandidateResult], alpha_each: float,
                  min_rel_gain: float, library: tuple[Effect, ...]) -> list[Confounding]:
     """The candidate about to be added (``sig[0]``, the largest gain) against each of the next three significant
     ones: does each still gain on top of the other? (Pairs among the others are judged at the next step, on top
-    of the one added, so they are not worked out here.)"""
+    of the one added, so they are not worked out here.) The searches of each on top of the other run side by side
+    on ``lanes``."""
     lib = {e.name: e for e in library}
     out = []
     a = sig[0]
     ea = lib[a.name]
+    ev = lanes.lanes[0]
     a_ho = ev.cv(spec.plus(ea, a.hyper), remember=True)[1].heldout  # the next step's starting model
-    for b in sig[1:4]:
+
+    # each on top of the other (the added one's hyper-parameter searched again, nested), compared with the other
+    # alone at its final hyper-parameter, as the forward selection does
+    def on_top(lane: Evaluator, task: tuple[CandidateResult, bool]) -> tuple[np.ndarray, ...]:
+        b, b_on_a = task
         eb = lib[b.name]
-        # each on top of the other (the added one's hyper-parameter searched again, nested), compared
-        # with the other alone at its final hyper-parameter, as the forward selection does
-        b_ho = ev.cv(spec.plus(eb, b.hyper))[1].heldout
-        _, ho_b_on_a, _ = ev.fit_hyper(spec.plus(ea, a.hyper), eb, remember=True)  # evaluated again next step
-        ho_a_on_b = ev.nested_heldout(spec.plus(eb, b.hyper), ea)
+        if b_on_a:
+            b_ho = lane.cv(spec.plus(eb, b.hyper))[1].heldout
+            return b_ho, lane.fit_hyper(spec.plus(ea, a.hyper), eb, remember=True)[1]  # evaluated again next step
+        return (lane.nested_heldout(spec.plus(eb, b.hyper), ea),)
+
+    done = lanes.map(on_top, [(b, b_on_a) for b in sig[1:4] for b_on_a in (True, False)])
+    for i, b in enumerate(sig[1:4]):
+        (b_ho, ho_b_on_a), (ho_a_on_b,) = done[2 * i], done[2 * i + 1]
         rows = ev.rows.copy()
         for arr in (a_ho, b_ho, ho_b_on_a, ho_a_on_b):
             rows &= finite_rows(arr)

@@ -28,6 +28,7 @@ driver evaluates identically. The rationale of every candidate is in ``docs/effe
 from __future__ import annotations
 
 import math
+import threading
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -106,6 +107,7 @@ class DiagnosisData:
 
     _memo: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
     _recent: OrderedDict[tuple, np.ndarray] = field(default_factory=OrderedDict, init=False, repr=False, compare=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
 
     def runs(self) -> list[slice | np.ndarray]:
         """The samples of each run, together every sample (computed once; every filter restarts at a run's first
@@ -120,23 +122,29 @@ class DiagnosisData:
         return self.once("runs", find)
 
     def once(self, key: str, compute: Callable[[], Any]) -> Any:
-        """``compute()`` the first time ``key`` is asked for, the kept value after (a constant of the recording)."""
+        """``compute()`` the first time ``key`` is asked for, the kept value after (a constant of the recording). Two
+        searches that run side by side (``search_lanes``) and ask at once may both compute it; the first kept is the
+        one both get."""
         if key not in self._memo:
-            self._memo[key] = compute()
+            return self._memo.setdefault(key, compute())
         return self._memo[key]
 
     def recent(self, key: tuple, compute: Callable[[], np.ndarray], keep: int = 4) -> np.ndarray:
         """``compute()`` (an array that depends on the recording and ``key`` alone, made read-only), kept for the
         next ``keep`` distinct keys: a correction that a search repeats unchanged on every trial (the thermal lag
-        of the model while another effect is searched) is worked out once."""
-        hit = self._recent.get(key)
-        if hit is None:
-            hit = compute()
-            hit.flags.writeable = False
-            self._recent[key] = hit
+        of the model while another effect is searched) is worked out once (by lanes side by side: as ``once``)."""
+        with self._lock:
+            hit = self._recent.get(key)
+            if hit is not None:
+                self._recent.move_to_end(key)
+                return hit
+        value = compute()
+        value.flags.writeable = False
+        with self._lock:
+            hit = self._recent.setdefault(key, value)
+            self._recent.move_to_end(key)
             while len(self._recent) > keep:
                 self._recent.popitem(last=False)
-        self._recent.move_to_end(key)
         return hit
 
     def drop_recent(self) -> None:
@@ -759,10 +767,13 @@ class TiaLowpassEffect(Effect):
         # the filter on the counts instead would amplify the (already filtered) noise by ~1/a.
         # Neither depends on the time constant: reuse the data's own when no earlier stage changed the inputs
         # (the hyper-parameter search calls this for every trial value).
-        g = fill_reference_gaps(inp.t_s, inp.gref, data.runs()) if inp.gref_moved else data.gref_filled
+        # (a reference the channel delay moved is interpolated already: nothing to fill, no copy of it to make)
+        g = data.gref_filled if not inp.gref_moved else \
+            inp.gref if np.isfinite(inp.gref).all() else fill_reference_gaps(inp.t_s, inp.gref, data.runs())
         P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
         if inp.gref_moved or inp.counts_changed:
-            psi_hat = g @ P.T + q
+            psi_hat = g @ P.T
+            psi_hat += q  # in place: one array of N x 3, not two
         else:
             psi_hat = data.once("static_psi_hat", lambda: g @ P.T + q)
         d = np.empty((len(g) if rows is None else len(rows), 3))

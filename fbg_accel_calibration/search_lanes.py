@@ -1,0 +1,103 @@
+"""Independent searches of a diagnosis run side by side, one thread per lane (no ROS, no rclpy).
+
+A lane is an object a task needs to itself while it runs (an ``Evaluator`` with its own caches of designs): ``map``
+hands each task a free lane, runs the tasks on a pool of as many threads as there are lanes, and returns their
+results in the order of the tasks, whatever order they finish in. The diagnosis's searches spend their time in
+numpy, scipy and BLAS calls that let go of the interpreter lock (products, filters, reductions over 10^5 to 10^6
+samples), so two lanes on two cores run two searches in little more than the time of one.
+
+What the tasks share must not depend on which lane or in which order they run (caches of values that depend on
+their key alone); then the results are those of one lane, bit for bit.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+from collections.abc import Callable, Iterable
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Generic, TypeVar
+
+L = TypeVar("L")
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def default_lane_count() -> int:
+    """Lanes for a large diagnosis: one per core this process may run on, at most two (what the benchmark machine
+    has; a third lane would add memory for the designs it caches and compete with the BLAS calls)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(2, cores))
+
+
+class Lanes(Generic[L]):
+    """Lanes (``lanes``, each used by one task at a time) that tasks run on side by side. One lane: the tasks run in
+    the caller's thread, one after the other; more: each ``map`` starts as many threads as there are lanes and ends
+    them before it returns (no thread outlives a map, none is left behind by an exception)."""
+
+    def __init__(self, lanes: list[L]) -> None:
+        if not lanes:
+            raise ValueError("at least one lane")
+        self.lanes = list(lanes)
+
+    def map(self, task: Callable[[L, T], R], items: Iterable[T], done: Callable[[R], None] | None = None) -> list[R]:
+        """``[task(lane, item) for item in items]``, each task on a free lane; ``done(result)`` is called in the
+        caller's thread for each result in the items' order as soon as it and those before it are there. An exception
+        of a task is raised once every task has ended (the first in the items' order)."""
+        items = list(items)
+        if len(self.lanes) == 1 or len(items) <= 1:
+            out = []
+            for it in items:
+                out.append(task(self.lanes[0], it))
+                if done is not None:
+                    done(out[-1])
+            return out
+        free: queue.SimpleQueue[L] = queue.SimpleQueue()
+        for lane in self.lanes:
+            free.put(lane)
+
+        def run(item: T) -> R:
+            lane = free.get()
+            try:
+                return task(lane, item)
+            finally:
+                free.put(lane)
+
+        out: list[R] = []
+        failed: BaseException | None = None
+        with ThreadPoolExecutor(min(len(self.lanes), len(items)), thread_name_prefix="search-lane") as pool:
+            for f in [pool.submit(run, it) for it in items]:
+                exc = f.exception()  # waits for it
+                failed = failed or exc
+                if failed is None:
+                    out.append(f.result())
+                    if done is not None:
+                        done(out[-1])
+        if failed is not None:
+            raise failed
+        return out
+
+    def each(self, task: Callable[[L], None]) -> None:
+        """``task(lane)`` on every lane, in the caller's thread (between maps: while no task runs)."""
+        for lane in self.lanes:
+            task(lane)
+
+
+def beside(fn: Callable[..., R], *args: object, thread: bool = True) -> Future[R]:
+    """``fn(*args)`` started on a thread of its own while the caller goes on (its result: ``.result()``, an exception
+    raised there); ``thread`` False: worked out now, in the caller's thread (a diagnosis of one lane)."""
+    if not thread:
+        done: Future[R] = Future()
+        try:
+            done.set_result(fn(*args))
+        except Exception as exc:  # raised by .result(), where a thread's would be
+            done.set_exception(exc)
+        return done
+    pool = ThreadPoolExecutor(1, thread_name_prefix="search-lane-beside")
+    try:
+        return pool.submit(fn, *args)
+    finally:
+        pool.shutdown(wait=False)  # the thread ends once fn has returned

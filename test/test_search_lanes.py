@@ -1,0 +1,117 @@
+"""Searches side by side (``search_lanes``) and the diagnosis run on two lanes (issue 8 §7).
+
+The lanes must change when the diagnosis is done, never what it finds: the same report, the same numbers to the last
+bit, with one lane or two. The unit tests use events, not sleeps, to make the tasks finish out of order.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from fbg_accel_calibration.diagnose import diagnose
+from fbg_accel_calibration.diagnose_report import markdown
+from fbg_accel_calibration.search_lanes import Lanes, beside
+from fbg_accel_sim.board_physics import simulate_recording
+from fbg_accel_sim.sim_config import SimConfig
+
+
+class Lane:
+    """A lane that notes whether two tasks ever hold it at once."""
+
+    def __init__(self) -> None:
+        self.busy = False
+        self.shared = False
+
+    def __enter__(self) -> Lane:
+        self.shared |= self.busy
+        self.busy = True
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.busy = False
+
+
+def test_the_results_come_in_the_order_of_the_tasks_whatever_order_they_finish_in() -> None:
+    lanes = [Lane(), Lane()]
+    second_done = threading.Event()
+    finished: list[int] = []
+
+    def task(lane: Lane, i: int) -> tuple[int, int]:
+        with lane:
+            if i == 0:  # the first task ends only once the second has: they run side by side
+                assert second_done.wait(30.0), "the second task never ran beside the first"
+            finished.append(i)
+            if i == 1:
+                second_done.set()
+            return i, threading.get_ident()
+
+    seen: list[int] = []
+    out = Lanes(lanes).map(task, range(6), done=lambda r: seen.append(r[0]))
+    assert [i for i, _ in out] == list(range(6)) and seen == list(range(6))
+    assert finished.index(1) < finished.index(0)
+    assert threading.get_ident() not in {t for _, t in out}
+    assert not any(lane.shared for lane in lanes)
+
+
+def test_one_lane_runs_the_tasks_in_the_callers_thread_in_order() -> None:
+    order: list[int] = []
+    out = Lanes([Lane()]).map(lambda lane, i: (order.append(i), threading.get_ident())[1], range(4))
+    assert order == [0, 1, 2, 3] and set(out) == {threading.get_ident()}
+
+
+def test_a_failed_task_is_raised_once_every_task_has_ended() -> None:
+    ended: list[int] = []
+    seen: list[int] = []
+
+    def task(lane: Lane, i: int) -> int:
+        if i == 1:
+            raise ValueError("task 1")
+        ended.append(i)
+        return i
+
+    with pytest.raises(ValueError, match="task 1"):
+        Lanes([Lane(), Lane()]).map(task, range(5), done=seen.append)
+    assert sorted(ended) == [0, 2, 3, 4] and seen == [0]  # no result after the failed one is handed on
+
+
+def test_work_beside_runs_on_its_own_thread_and_hands_back_its_result_or_error() -> None:
+    here = threading.get_ident()
+    assert beside(threading.get_ident).result() != here
+    assert beside(threading.get_ident, thread=False).result() == here
+    for thread in (True, False):
+        with pytest.raises(ZeroDivisionError):
+            beside(lambda: 1 / 0, thread=thread).result()
+
+
+# A temperature-cycled run (test_diagnose_sim's THERMAL case, 503 s at 25 Hz) with the TIA low-pass, a thermal lag and a
+# hysteresis: the diagnosis goes through every part that runs on lanes (the candidates, the confounding checks, the step
+# check of the hysteresis, the degree chosen again)
+THERMAL_EFFECTS = {
+    **{f"effects.{k}.scale": 0.0 for k in ("reference_dark_offset", "thermal_lag", "spectral_nonlinearity", "time_drift",
+                                            "channel_delay", "tia_lowpass", "thermal_hysteresis",
+                                            "unmodelled_cable_torque")},
+    "scenario.poses.mode": "grid", "scenario.poses.dwell_s": 3.0, "scenario.poses.move_s": 1.0,
+    "scenario.poses.grid.theta_step_deg": 60.0, "scenario.poses.grid.psi_step_deg": 60.0,
+    "scenario.rate_hz": 25.0, "scenario.poses.repeat": 3, "thermal.optics_time_constant_s": 60.0,
+    "scenario.temperature.profile": [{"ramp_to_c": 30.0, "duration_s": 120.0}, {"ramp_to_c": 20.0, "duration_s": 120.0},
+                                     {"ramp_to_c": 30.0, "duration_s": 120.0}, {"ramp_to_c": 20.0, "duration_s": 120.0}],
+    "effects.tia_lowpass.scale": 1.0, "effects.thermal_lag.scale": 0.25, "effects.thermal_hysteresis.scale": 10.0,
+}
+
+
+@pytest.mark.parametrize("search_rows", [None, 4000], ids=["every-sample", "thinned"])
+def test_the_diagnosis_on_two_lanes_is_the_diagnosis_on_one(search_rows: int | None) -> None:
+    rec = simulate_recording(SimConfig.default().with_overrides(THERMAL_EFFECTS), seed=1)
+    one, two = (diagnose(rec, lanes=n, search_rows=search_rows) for n in (1, 2))
+    assert sum(len(st.confounding) for st in one.steps) > 0 and any(
+        c.step_check is not None for st in one.steps for c in st.candidates), "the case no longer reaches every part"
+    assert markdown(two) == markdown(one)
+    for a, b in zip(one.steps, two.steps, strict=True):
+        assert [(c.name, c.rel_gain, c.p_value, c.hyper, c.detail) for c in a.candidates] == \
+            [(c.name, c.rel_gain, c.p_value, c.hyper, c.detail) for c in b.candidates]
+    for field in ("M", "b"):
+        assert np.array_equal(getattr(one.calibration, field), getattr(two.calibration, field))
+    assert np.array_equal(one.residual_after, two.residual_after, equal_nan=True)
