@@ -75,7 +75,7 @@ from .effects import (
     visit_ids,
     visit_means,
 )
-from .heap_trim import return_free_memory
+from .heap_trim import return_free_memory, share_one_heap
 from .model_selection import DegreeScores, choose_degree
 from .model_selection import select_degree as calibration_select_degree
 from .periodic_disturbance import PeriodicDisturbance, find_periodic_disturbance
@@ -559,6 +559,9 @@ class CvResult:
     sums: FoldSums  # X^T X per fold and over the fitted rows (all folds), column sums: the conditioning checks
 
 
+# searched samples from which the searches run side by side by default (``search_lanes``): bench_calibration --lanes 1/2
+# at 3e4 samples (2.2e4 searched): 2.5 / 2.3 s, at 1e4: 0.6 / 0.7 s (threads cost more than they save on small designs)
+LANE_SEARCH_ROWS = 20_000
 SEARCH_STRIDE = 4  # a hyper-parameter search visits every 4th grid value first, then walks from the best (search_walk)
 
 
@@ -1245,14 +1248,15 @@ def settling_transient(res: np.ndarray, t_s: np.ndarray, groups: np.ndarray, row
             return np.zeros(3), np.full(3, np.inf)
         return diff.mean(axis=0), (diff.std(axis=0, ddof=1) / np.sqrt(len(diff)) if len(diff) > 1 else np.full(3, np.inf))
 
+    vs = np.flatnonzero(ok_v)  # the visits used, in order: one sample of each at every position k
     for k in range(K):
-        use = ok_v[vid] & (Kv[vid] > k)
-        start_excess.append(excess(use & (pos == k), use & (rpos == Kv[vid] + k), d_s))
-        end_excess.append(excess(use & (rpos == k), use & (pos == Kv[vid] + k), d_e))
-        a = use & (pos == k)
-        e = use & (rpos == k)
-        ages.append(float(np.median(t[a] - t[start[vid[a]]])) if a.any() else np.nan)
-        end_ages.append(float(np.median(t[last[vid[e]]] - t[e])) if e.any() else np.nan)
+        v = vs[Kv[vs] > k]
+        near_s, far_s = start[v] + k, last[v] - (Kv[v] + k)  # pos == k and rpos == K_v + k
+        near_e, far_e = last[v] - k, start[v] + (Kv[v] + k)  # rpos == k and pos == K_v + k
+        start_excess.append(excess(near_s, far_s, d_s))
+        end_excess.append(excess(near_e, far_e, d_e))
+        ages.append(float(np.median(t[near_s] - t[start[v]])) if v.size else np.nan)
+        end_ages.append(float(np.median(t[last[v]] - t[near_e])) if v.size else np.nan)
     (P, SE), (Pe, SEe) = (np.array(e).transpose(1, 0, 2) for e in (start_excess, end_excess))
     age, end_age = np.array(ages), np.array(end_ages)
     amp, tau, resolved, detected = _decay_fit(P, np.maximum(SE, 1e-300), age, dt)
@@ -1979,7 +1983,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     ``search_rows``: above this many fitted samples, the candidates are evaluated and the model chosen on a
     thinned set, and the chosen model fitted on every sample (``search_samples``); None: always on every sample.
     ``lanes``: how many searches run side by side (``search_lanes``; the results are the same with any number);
-    None: ``default_lane_count()`` on a thinned search, one otherwise.
+    None: ``default_lane_count()`` when at least ``LANE_SEARCH_ROWS`` samples are searched, one otherwise. With more
+    than one, the process's threads allocate from one heap from then on (``heap_trim.share_one_heap``).
 
     It runs with one BLAS thread (``blas_threads``): its products of tall, narrow matrices gain nothing from more,
     and lose much when another process holds a core."""
@@ -2049,9 +2054,12 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     every, thinned = search_samples(fit_rows, fold, search_rows)
     # where the candidates are evaluated and the model chosen; a thinned search's corrected reference is small
     # beside the correction of the whole series it saves: it keeps a search's grid of them for the next model
-    sel = Evaluator(data, fold, weights, groups, every, references=32 if thinned else 4)
-    n_lanes = (default_lane_count() if thinned else 1) if lanes is None else int(lanes)
-    searchers = Lanes([sel] + [sel.lane() for _ in range(n_lanes - 1)])
+    sel = Evaluator(data, fold, weights, groups, every, references=24 if thinned else 4)
+    n_lanes = (default_lane_count() if len(every) >= LANE_SEARCH_ROWS else 1) if lanes is None else int(lanes)
+    if n_lanes > 1:
+        share_one_heap()  # the lanes' threads allocate from the one heap (heap_trim)
+    # the heap's free pages given back after each batch of searches side by side: what each search made and dropped
+    searchers = Lanes([sel] + [sel.lane() for _ in range(n_lanes - 1)], after_map=return_free_memory)
     residual_before = cv0.heldout
     fitted_all = cv0.fitted_full  # the current model's in-sample fit on all samples (the cross-correlation delay)
     base_coefficients: np.ndarray | None = None  # the current model's coefficients when fitted_all is not worked out
