@@ -58,6 +58,9 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "(default %(default)s)")
     p.add_argument("--max-effects", type=iv.max_effects, default=3, help="most effects added (default %(default)s)")
     p.add_argument("--seed", type=iv.seed, default=0, help="seed of the fold assignment (default %(default)s)")
+    p.add_argument("--lanes", type=iv.lanes, default=None,
+                   help="searches run side by side on threads; the results are the same with any number (default: one "
+                        "per core up to two from 20000 searched samples on, else one; 1 holds the least memory)")
     p.add_argument("--sensor-id", default=None,
                    help="sensor id written into --yaml (default: the recordings' own, else unknown)")
     p.add_argument("--out", type=Path, default=None, help="markdown report (PNG plots go to --img-dir)")
@@ -149,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
         with bar(enabled(args), "diagnose: candidate effects evaluated", unit="fits") as b:
             res = diagnose(rec, static=args.static, max_degree=args.max_degree, folds=args.folds, alpha=args.alpha,
                            min_rel_gain=args.min_gain, max_effects=args.max_effects, degree=args.degree,
-                           sensor_id=sensor_id, seed=args.seed, progress=lambda name: b.update(1))
+                           sensor_id=sensor_id, seed=args.seed, progress=lambda name: b.update(1), lanes=args.lanes)
     except ValueError as exc:
         print(f"fbg-accel-calib diagnose: {', '.join(args.inputs)}: {exc}", file=sys.stderr)
         return 2

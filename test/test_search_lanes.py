@@ -7,12 +7,16 @@ bit, with one lane or two. The unit tests use events, not sleeps, to make the ta
 from __future__ import annotations
 
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
+from fbg_accel_calibration.cli import main
 from fbg_accel_calibration.diagnose import diagnose
 from fbg_accel_calibration.diagnose_report import markdown
+from fbg_accel_calibration.mcap_io import write_recording
 from fbg_accel_calibration.search_lanes import Lanes, beside
 from fbg_accel_sim.board_physics import simulate_recording
 from fbg_accel_sim.sim_config import SimConfig
@@ -115,3 +119,19 @@ def test_the_diagnosis_on_two_lanes_is_the_diagnosis_on_one(search_rows: int | N
     for field in ("M", "b"):
         assert np.array_equal(getattr(one.calibration, field), getattr(two.calibration, field))
     assert np.array_equal(one.residual_after, two.residual_after, equal_nan=True)
+
+
+def test_the_command_s_lanes_option_changes_nothing_it_writes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    mcap = tmp_path / "run.mcap"
+    write_recording(mcap, simulate_recording(SimConfig.default().with_overrides(THERMAL_EFFECTS), seed=2))
+    outputs = []
+    for n in ("1", "2"):
+        (tmp_path / n).mkdir()
+        rc = main(["diagnose", str(mcap), "--lanes", n, "--out", str(tmp_path / n / "r.md"),
+                   "--yaml", str(tmp_path / n / "c.yaml")])
+        assert rc == 0
+        report = (tmp_path / n / "r.md").read_text().replace(f"--lanes {n}", "")
+        cal = yaml.safe_load((tmp_path / n / "c.yaml").read_text())
+        cal.pop("created")  # the time it was written
+        outputs.append([text.replace(str(tmp_path / n), "") for text in (capsys.readouterr().out, report)] + [cal])
+    assert outputs[0] == outputs[1]
