@@ -2078,19 +2078,19 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     while remaining and len(spec.effects) < max_effects:
         # Bonferroni over the candidates the data can show at all (known before any is evaluated)
         alpha_each = alpha / max(sum(e.applicable(data)[0] for e in remaining), 1)
-        # the channel delay's cross-check, of the current model alone: worked out first, its fit (N, 3) not held beside
-        # the searches
-        xcorr_delay = None
+        # the channel delay's cross-check, of the current model alone, worked out beside the searches (its fit (N, 3) is
+        # let go once it is done)
+        xcorr_later = None
         if any(e.name == "channel_delay" and e.applicable(data)[0] for e in remaining):
-            xcorr_delay = cross_correlation_delay(data, fitted_output(data, spec, base_coefficients)
-                                                  if fitted_all is None else fitted_all)
+            xcorr_later = beside(cross_correlation_delay, data, fitted_output(data, spec, base_coefficients)
+                                 if fitted_all is None else fitted_all, thread=n_lanes > 1)
         fitted_all = None
         # the candidates side by side, each on a free lane (their results do not depend on which, or in what order)
         results = searchers.map(partial(_evaluate_on, spec, base_heldout, base_fitted, base_G, alpha_each), remaining,
                                 None if progress is None else lambda r: progress(r.name))
         for r in results:
-            if r.name == "channel_delay" and r.applicable:
-                r.cross_correlation_delay_s = xcorr_delay
+            if r.name == "channel_delay" and r.applicable and xcorr_later is not None:
+                r.cross_correlation_delay_s = xcorr_later.result()
         tested = [r for r in results if r.applicable]
         n_vis = max((r.n_groups for r in tested), default=0)
         if not steps and tested and 0.5 ** n_vis >= alpha_each:
@@ -2194,7 +2194,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         noise_after = noise_model_after.sigma
         cal.noise_sigma_mps2 = noise_after
     # the driver's path over every sample, worked out meanwhile the rest
-    calibrated_later = beside(_calibrated, cal, data, thread=n_lanes > 1)
+    calibrated_later = beside(_calibrated, cal, data, thread=n_lanes > 1)  # its result: after the held codes
     fitted_sensor = cv_f.fitted_full.copy()  # what the calibration file reproduces: without the per-run terms
     for name in per_run_names:
         sl = des_f.blocks[name]
@@ -2203,17 +2203,12 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                                       des_f, cv_f, fit_rows, rows_f, fold, weights)
     G_f, blocks_f = des_f.G, des_f.blocks
     del des_f  # its design matrix (N x p) is not needed again
-    calibrated = calibrated_later.result()
-    consistency = _consistency(calibrated, fitted_sensor, rows_f)
-    del fitted_sensor
     r_eval = rows_f & finite_rows(residual_before) & finite_rows(cv_f.heldout)
     before_ho = np.sqrt(np.mean(residual_before[r_eval] ** 2, axis=0))
     after_ho = np.sqrt(np.mean(cv_f.heldout[r_eval] ** 2, axis=0))
     before_in = np.sqrt(np.mean(res0[r_eval] ** 2, axis=0))
     after_in = np.sqrt(np.mean((G_f - cv_f.fitted_full)[r_eval] ** 2, axis=0))
     structure = residual_structure(data, cv_f.heldout, r_eval, groups, noise_model_after, alpha)
-    moving = _moving_residual(data, calibrated)
-    del calibrated
     warnings = [detection_limit] if detection_limit else []
     warnings += [w for name, w in step_confounded.items() if name in spec.names]
     # an added function of the orientation with a residual left that is not one (visits of one direction disagree), and
@@ -2243,6 +2238,10 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         rest = r_eval & ~np.isin(groups, h.visits)
         h.rmse_without = np.sqrt(np.mean(cv_f.heldout[rest] ** 2, axis=0))
         warnings.append(h.sentence())
+    calibrated = calibrated_later.result()  # what needs the calibration file's output, once the rest is done
+    consistency = _consistency(calibrated, fitted_sensor, rows_f)
+    moving = _moving_residual(data, calibrated)
+    del calibrated, fitted_sensor
     if settling.end_detected:
         warnings.append(settling.end_summary() + "; the model is fitted on them too: align the table's readings "
                         "(pose labels, reference) with the signal")

@@ -161,8 +161,9 @@ class DiagnosisData:
         return self.once("static_psi_map", lambda: expected_psi_map(self, Inputs.of(self)))
 
     def __post_init__(self) -> None:
-        if self.gref_filled is None:
-            self.gref_filled = fill_reference_gaps(self.t_s, self.gref, self.runs())
+        if self.gref_filled is None:  # a reference known in motion too (the simulator's) has nothing to fill: no copy
+            self.gref_filled = self.gref if finite_rows(self.gref).all() else fill_reference_gaps(self.t_s, self.gref,
+                                                                                                   self.runs())
         if self.group is None:
             self.group = visit_ids(self.pose_id, self.run_id)
 
