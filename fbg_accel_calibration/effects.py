@@ -161,9 +161,8 @@ class DiagnosisData:
         return self.once("static_psi_map", lambda: expected_psi_map(self, Inputs.of(self)))
 
     def __post_init__(self) -> None:
-        if self.gref_filled is None:  # a reference known in motion too (the simulator's) has nothing to fill: no copy
-            self.gref_filled = self.gref if finite_rows(self.gref).all() else fill_reference_gaps(self.t_s, self.gref,
-                                                                                                   self.runs())
+        if self.gref_filled is None:
+            self.gref_filled = fill_reference_gaps(self.t_s, self.gref, self.runs())
         if self.group is None:
             self.group = visit_ids(self.pose_id, self.run_id)
 
@@ -246,7 +245,11 @@ def finite_rows(a: np.ndarray) -> np.ndarray:
 
 def fill_reference_gaps(t_s: np.ndarray, gref: np.ndarray, runs: list[slice | np.ndarray]) -> np.ndarray:
     """Reference (N, 3) with NaN gaps linearly interpolated in time within each run (``runs``: the samples of
-    each run, ``DiagnosisData.runs``); a run without gaps is copied as it is."""
+    each run, ``DiagnosisData.runs``); a run without gaps is copied as it is. A reference without any gap (the
+    simulator's, known in motion too; one the channel delay has interpolated) is returned itself, not a copy
+    (24 MB at 10^6 samples): its callers only read it."""
+    if finite_rows(gref).all():
+        return np.asarray(gref, dtype=float)
     out = np.array(gref, dtype=float, copy=True)
     for idx in runs:
         g = out[idx]
@@ -768,9 +771,7 @@ class TiaLowpassEffect(Effect):
         # the filter on the counts instead would amplify the (already filtered) noise by ~1/a.
         # Neither depends on the time constant: reuse the data's own when no earlier stage changed the inputs
         # (the hyper-parameter search calls this for every trial value).
-        # (a reference the channel delay moved is interpolated already: nothing to fill, no copy of it to make)
-        g = data.gref_filled if not inp.gref_moved else \
-            inp.gref if np.isfinite(inp.gref).all() else fill_reference_gaps(inp.t_s, inp.gref, data.runs())
+        g = fill_reference_gaps(inp.t_s, inp.gref, data.runs()) if inp.gref_moved else data.gref_filled
         P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
         if inp.gref_moved or inp.counts_changed:
             psi_hat = g @ P.T
