@@ -20,7 +20,9 @@ Not a test. Steps (wall clock, one process, numpy may use both cores for its BLA
   limit; the file is read back with ``read_recording`` and the sample count checked.
 
 Peak resident memory (ru_maxrss) after each step is reported. ``--profile-diagnose`` runs the
-diagnosis under cProfile and stores its top functions (where the diagnosis spends its time).
+diagnosis under cProfile and stores its top functions (where the diagnosis spends its time). cProfile sees the
+calling thread only: with the searches side by side (two lanes, the default at 10^6 samples) their own time is not
+in it, only the wait for them (``Lanes.map``); ``--lanes 1`` profiles them too.
 ``--memory-diagnose`` runs it under tracemalloc and stores, for the moment its traced memory peaked,
 the allocation sites holding the most (what the diagnosis holds at its peak; slower, time not comparable).
 Writes bench/results/calibration.json.
