@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from test_diagnose_sim import THERMAL, _config
 
 from fbg_accel_calibration.cli import main
 from fbg_accel_calibration.diagnose import diagnose
@@ -19,7 +20,6 @@ from fbg_accel_calibration.diagnose_report import markdown
 from fbg_accel_calibration.mcap_io import write_recording
 from fbg_accel_calibration.search_lanes import Lanes, beside
 from fbg_accel_sim.board_physics import simulate_recording
-from fbg_accel_sim.sim_config import SimConfig
 
 
 class Lane:
@@ -93,22 +93,13 @@ def test_work_beside_runs_on_its_own_thread_and_hands_back_its_result_or_error()
 # A temperature-cycled run (test_diagnose_sim's THERMAL case, 503 s at 25 Hz) with the TIA low-pass, a thermal lag and a
 # hysteresis: the diagnosis goes through every part that runs on lanes (the candidates, the confounding checks, the step
 # check of the hysteresis, the degree chosen again)
-THERMAL_EFFECTS = {
-    **{f"effects.{k}.scale": 0.0 for k in ("reference_dark_offset", "thermal_lag", "spectral_nonlinearity", "time_drift",
-                                            "channel_delay", "tia_lowpass", "thermal_hysteresis",
-                                            "unmodelled_cable_torque")},
-    "scenario.poses.mode": "grid", "scenario.poses.dwell_s": 3.0, "scenario.poses.move_s": 1.0,
-    "scenario.poses.grid.theta_step_deg": 60.0, "scenario.poses.grid.psi_step_deg": 60.0,
-    "scenario.rate_hz": 25.0, "scenario.poses.repeat": 3, "thermal.optics_time_constant_s": 60.0,
-    "scenario.temperature.profile": [{"ramp_to_c": 30.0, "duration_s": 120.0}, {"ramp_to_c": 20.0, "duration_s": 120.0},
-                                     {"ramp_to_c": 30.0, "duration_s": 120.0}, {"ramp_to_c": 20.0, "duration_s": 120.0}],
-    "effects.tia_lowpass.scale": 1.0, "effects.thermal_lag.scale": 0.25, "effects.thermal_hysteresis.scale": 10.0,
-}
+THERMAL_EFFECTS = _config({**THERMAL, "effects.tia_lowpass.scale": 1.0, "effects.thermal_lag.scale": 0.25,
+                           "effects.thermal_hysteresis.scale": 10.0})
 
 
 @pytest.mark.parametrize("search_rows", [None, 4000], ids=["every-sample", "thinned"])
 def test_the_diagnosis_on_two_lanes_is_the_diagnosis_on_one(search_rows: int | None) -> None:
-    rec = simulate_recording(SimConfig.default().with_overrides(THERMAL_EFFECTS), seed=1)
+    rec = simulate_recording(THERMAL_EFFECTS, seed=1)
     one, two = (diagnose(rec, lanes=n, search_rows=search_rows) for n in (1, 2))
     assert sum(len(st.confounding) for st in one.steps) > 0 and any(
         c.step_check is not None for st in one.steps for c in st.candidates), "the case no longer reaches every part"
@@ -123,7 +114,7 @@ def test_the_diagnosis_on_two_lanes_is_the_diagnosis_on_one(search_rows: int | N
 
 def test_the_command_s_lanes_option_changes_nothing_it_writes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     mcap = tmp_path / "run.mcap"
-    write_recording(mcap, simulate_recording(SimConfig.default().with_overrides(THERMAL_EFFECTS), seed=2))
+    write_recording(mcap, simulate_recording(THERMAL_EFFECTS, seed=2))
     outputs = []
     for n in ("1", "2"):
         (tmp_path / n).mkdir()
