@@ -1378,11 +1378,15 @@ def _split_chunks(bodies: list[bytes], fast: dict[str, Any]):
     size = len(data)
     pos = 0
     while pos < size:
+        chunk_end = int(ends[np.searchsorted(ends, pos, side="right")])  # the end of the chunk pos is in
         rec_size = fast.get("size")
         if rec_size is not None:  # a run stops at the first chunk end that does not fall between two of its records
-            later = ends[ends > pos]
-            misaligned = np.flatnonzero((later - pos) % rec_size)
-            limit = int(later[misaligned[0]]) if misaligned.size else size
+            limit = chunk_end
+            if (chunk_end - pos) % rec_size == 0:  # its chunk ends between two records: look at the later ends
+                later = ends[ends > pos]
+                misaligned = np.flatnonzero((later - pos) % rec_size)
+                limit = int(later[misaligned[0]]) if misaligned.size else size
+        start = pos
         k = _FAST_RUN_MIN
         while rec_size is not None:  # windows growing x4 while every record matches the raw layout
             kk = min((limit - pos) // rec_size, k)
@@ -1402,7 +1406,8 @@ def _split_chunks(bodies: list[bytes], fast: dict[str, Any]):
             k = min(4 * k, _FAST_RUN_MAX)
         if pos >= size:
             break
-        chunk_end = int(ends[np.searchsorted(ends, pos, side="right")])
+        if pos != start:  # a run moved it
+            chunk_end = int(ends[np.searchsorted(ends, pos, side="right")])
         try:
             item, pos = _record_at(data, pos, chunk_end)
         except _PartialRecordError:
