@@ -244,7 +244,7 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
         level_count += np.bincount(lab, minlength=clusters.n_labels)
         level_ref_sum += np.bincount(lab, weights=blk.ref[rows].astype(float), minlength=clusters.n_labels)
         columns = (psi[rows], (t - center) / scale, blk.gref_mps2[rows], blk.pose_id[rows], lab,
-                   np.full(len(rows), i))  # a cell is one run's (CellStats)
+                   np.broadcast_to(i, len(rows)))  # a cell is one run's (CellStats)
         start = 0
         while start < len(rows):
             take = min(chunk - fill, len(rows) - start)
