@@ -187,13 +187,16 @@ class SimBlock:
 
     def wire_bytes(self) -> bytes:
         """The byte stream the board puts on the link for these samples, faults included."""
-        return b"".join(self.wire_pieces())
+        return b"".join(self._wire())
 
     def wire_pieces(self) -> list[bytes]:
         """Bytes on the wire per sample (garbage burst before it + its frame as sent; b"" if unsent)."""
+        return list(self._wire())
+
+    def _wire(self) -> list[bytes]:
         if self._pieces is None:
             raise RuntimeError("this simulator was created with wire=False: no byte stream")
-        return list(self._pieces)
+        return self._pieces
 
     def frames(self) -> list[Frame]:
         """Frames that arrive intact, in wire order (a duplicated frame appears twice; dropped,
