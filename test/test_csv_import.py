@@ -15,7 +15,7 @@ from fbg_accel_calibration.table_geometry import table_specific_force
 
 def _write(tmp_path: Path, text: str, name: str = "in.csv") -> Path:
     p = tmp_path / name
-    p.write_text(text, encoding="utf-8")
+    p.write_bytes(text.encode("utf-8"))  # the bytes as given: line ends are what some tests are about
     return p
 
 
@@ -245,9 +245,7 @@ def test_spreadsheet_and_dataframe_exports_import_like_the_plain_file(tmp_path: 
     ['ref_counts', 'x_counts', 'y_counts', 'z_counts']" with those columns in the file."""
     want, _ = import_csv(_write(tmp_path, GOOD, "plain.csv"))
     text = SPREADSHEET_EXPORTS[variant](GOOD)
-    path = tmp_path / "v.csv"
-    path.write_bytes(text.encode("utf-8"))
-    got, report = import_csv(path)
+    got, report = import_csv(_write(tmp_path, text, "v.csv"))
     for k in ("t_s", "ref", "xyz", "temp_c", "gref_mps2", "pose_id"):
         np.testing.assert_allclose(getattr(got, k), getattr(want, k), rtol=1e-12, err_msg=k)
     assert report.rows_kept == 3 and not report.rejected

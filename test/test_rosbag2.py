@@ -28,9 +28,7 @@ from fbg_accel_calibration.recording import Recording
 from fbg_accel_driver.driver_core import RAW_NAMES
 
 BIN = Path(sys.executable).parent
-TYPES = {"imu/raw": "sensor_msgs/msg/JointState", "imu/temperature": "sensor_msgs/msg/Temperature",
-         "calibration/reference_gravity": "geometry_msgs/msg/Vector3Stamped",
-         "calibration/pose": "diagnostic_msgs/msg/DiagnosticStatus"}  # relative topic -> type (docs/topics.md)
+TYPES = mcap_io.ROLE_TYPES  # relative topic -> type (docs/topics.md)
 TOPICS = tuple(TYPES)
 TS = get_typestore(Stores.ROS2_JAZZY)
 RELIABLE = Qos(QosHistory.KEEP_LAST, 10, QosReliability.RELIABLE, QosDurability.VOLATILE, QosTime(0, 0),
