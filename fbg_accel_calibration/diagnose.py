@@ -550,13 +550,64 @@ class FoldSums:
         return self.X() is X and self.folds() is folds and np.array_equal(self.idx, idx)
 
 
-@dataclass
 class CvResult:
-    heldout: np.ndarray  # (N, 3) held-out residual (NaN outside the evaluated rows)
-    train_rss: np.ndarray  # (K,) weighted training RSS per fold
-    A_full: np.ndarray  # (p, 3) coefficients on all rows
-    fitted_full: np.ndarray  # (N, 3) in-sample prediction with A_full
-    sums: FoldSums  # X^T X per fold and over the fitted rows (all folds), column sums: the conditioning checks
+    """What ``cross_validate`` found. The held-out residual and the in-sample fit (each (N, 3), a pass over the design
+    matrix) are worked out when first asked for, by the same products as at once: a search reads its trials' training
+    RSS and, of the held-out residual, only the folds a trial fits best (``fold_heldout``). The design's X and G are
+    held until both are worked out."""
+
+    def __init__(self, train_rss: np.ndarray, A_full: np.ndarray, sums: FoldSums, X: np.ndarray, G: np.ndarray,
+                 start: np.ndarray, A_folds: np.ndarray) -> None:
+        self.train_rss = train_rss  # (K,) weighted training RSS per fold
+        self.A_full = A_full  # (p, 3) coefficients on all rows
+        self.sums = sums  # X^T X per fold and over the fitted rows (all folds), column sums: the conditioning checks
+        self._X: np.ndarray | None = X
+        self._G: np.ndarray | None = G
+        self._start = start  # fold f's rows are sums.idx[start[f + 2]:start[f + 3]]
+        self._A_folds = A_folds  # (K, p, 3) each fold's training coefficients
+        self._heldout: np.ndarray | None = None
+        self._fitted: np.ndarray | None = None
+
+    def fold_heldout(self, f: int) -> tuple[np.ndarray, np.ndarray]:
+        """(the rows of fold ``f`` that were fitted, their held-out residual (n_f, 3) m/s^2)."""
+        lo, hi = self._start[f + 2], self._start[f + 3]
+        rows = self.sums.idx[lo:hi]
+        if self._heldout is not None:
+            return rows, self._heldout[rows]
+        return rows, _fold_part(self.sums.idx, lo, hi, self._G) - _fold_part(self.sums.idx, lo, hi, self._X) @ self._A_folds[f]
+
+    @property
+    def heldout(self) -> np.ndarray:
+        """(N, 3) held-out residual (NaN outside the evaluated rows)."""
+        if self._heldout is None:
+            out = np.full(self._G.shape, np.nan)
+            for f in range(len(self._A_folds)):
+                rows, res = self.fold_heldout(f)
+                out[rows] = res
+            self._heldout = out  # assigned once whole: lanes that share the result read it whole or work it out too
+            self._release()
+        return self._heldout
+
+    @property
+    def fitted_full(self) -> np.ndarray:
+        """(N, 3) in-sample prediction with ``A_full``."""
+        if self._fitted is None:
+            self._fitted = self._X @ self.A_full
+            self._release()
+        return self._fitted
+
+    def _release(self) -> None:
+        if self._heldout is not None and self._fitted is not None:
+            self._X = self._G = None
+
+
+def _fold_part(idx: np.ndarray, lo: int, hi: int, of: np.ndarray) -> np.ndarray:
+    """``of`` at the rows ``idx[lo:hi]`` (``cross_validate``'s rows in fold order): a view when they are consecutive
+    (a design in fold order), else a copy."""
+    rows = idx[lo:hi]
+    if hi > lo and rows[-1] - rows[0] == hi - lo - 1:
+        return of[rows[0]:rows[-1] + 1]
+    return of[rows]
 
 
 # searched samples from which the searches run side by side by default (``search_lanes``): bench_calibration --lanes 1/2
@@ -619,10 +670,7 @@ def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np
     start = np.searchsorted(f_idx, np.arange(-2, K + 1))  # [-2, -1, 0, .., K]: fold f is start[f+2]:start[f+3]
 
     def part(lo: int, hi: int, of: np.ndarray) -> np.ndarray:
-        rows = idx[lo:hi]
-        if hi > lo and rows[-1] - rows[0] == hi - lo - 1:  # consecutive rows (a design in fold order): views
-            return of[rows[0]:rows[-1] + 1]
-        return of[rows]
+        return _fold_part(idx, lo, hi, of)
 
     p = X.shape[1]
     fresh = sums is None or not sums.of(X, folds, idx)
@@ -647,18 +695,15 @@ def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np
             xsum += Xa.sum(axis=0)
         sums = FoldSums(weakref.ref(X), weakref.ref(folds), idx, xtx, XtX, xsum)
     XtX = sums.XtX
-    heldout = np.full(G.shape, np.nan)
     train_rss = np.zeros(K)
+    A_folds = np.empty((K, p, 3))
     for f in range(K):
         Xt, Gt = XtX - xtx[f], XtG - xtg[f]
-        A = solve_normal_equations(Xt, Gt)[0]
-        Xf, Gf = part(start[f + 2], start[f + 3], X), part(start[f + 2], start[f + 3], G)
-        heldout[idx[start[f + 2]:start[f + 3]]] = Gf - Xf @ A
+        A = A_folds[f] = solve_normal_equations(Xt, Gt)[0]
         rss = GtG - gtg[f] - 2 * np.einsum("pi,pi->i", A, Gt) + np.einsum("pi,pq,qi->i", A, Xt, A)
         train_rss[f] = float(np.sum(rss * weights))
     A_full = solve_normal_equations(XtX, XtG)[0]
-    fitted = X @ A_full
-    return CvResult(heldout, train_rss, A_full, fitted, sums)
+    return CvResult(train_rss, A_full, sums, X, G, start, A_folds)
 
 
 @dataclass
@@ -1601,7 +1646,9 @@ class Evaluator:
                 better &= fold_ok[:, i]
             for f in np.flatnonzero(better):
                 best_train[ok][f], best_at[ok][f] = cvr.train_rss[f], i
-                heldout[ok][fold_rows[f]] = cvr.heldout[fold_rows[f]]
+                heldout[ok][fold_rows[f]] = np.nan  # those of the fold not fitted at this value
+                at, res = cvr.fold_heldout(f)
+                heldout[ok][at] = res
             seen[i] = (ok, float(np.sum(cvr.train_rss) / max(K - 1, 1)))
 
         picks = self._switch_picks(spec, eff, grid, fold_ok) if eff.switched else None
