@@ -170,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
 
     if not args.skip_diagnose:
         profiler = cProfile.Profile() if args.profile_diagnose else None
-        t0 = time.perf_counter()
+        t0, use0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF)
         if profiler is not None:
             profiler.enable()
         memory = None
@@ -180,9 +180,11 @@ def main(argv: list[str] | None = None) -> int:
             res = diagnose(rec, search_rows=args.search_rows, lanes=args.lanes)
         if profiler is not None:
             profiler.disable()
-        sec = time.perf_counter() - t0
+        sec, use1 = time.perf_counter() - t0, resource.getrusage(resource.RUSAGE_SELF)
         steps["diagnose"] = {"seconds": sec, "samples_per_s": len(rec) / sec, "search_rows": args.search_rows,
-                             "lanes": args.lanes,
+                             "lanes": args.lanes, "user_seconds": use1.ru_utime - use0.ru_utime,
+                             "system_seconds": use1.ru_stime - use0.ru_stime,  # mostly page faults (heap_trim)
+                             "page_faults": use1.ru_minflt - use0.ru_minflt,
                              "degree": res.degree,
                              "ranked": [c.name for c in res.ranked][:5], "added": [a[0] for a in res.added],
                              "noise_floor_mps2": [float(v) for v in res.noise_floor], "peak_rss_mib": peak_rss_mib()}

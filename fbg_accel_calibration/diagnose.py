@@ -75,7 +75,7 @@ from .effects import (
     visit_ids,
     visit_means,
 )
-from .heap_trim import return_free_memory, share_one_heap
+from .heap_trim import keep_freed_pages, return_free_memory, share_one_heap
 from .model_selection import DegreeScores, choose_degree
 from .model_selection import select_degree as calibration_select_degree
 from .periodic_disturbance import PeriodicDisturbance, find_periodic_disturbance
@@ -2031,11 +2031,13 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     thinned set, and the chosen model fitted on every sample (``search_samples``); None: always on every sample.
     ``lanes``: how many searches run side by side (``search_lanes``; the results are the same with any number);
     None: ``default_lane_count()`` when at least ``LANE_SEARCH_ROWS`` samples are searched, one otherwise. With more
-    than one, the process's threads allocate from one heap from then on (``heap_trim.share_one_heap``).
+    than one, the process's threads allocate from one heap from then on (``heap_trim.share_one_heap``); with any, the heap
+takes arrays of up to 64 MiB and keeps their pages when they are freed (``heap_trim.keep_freed_pages``)
 
     It runs with one BLAS thread (``blas_threads``): its products of tall, narrow matrices gain nothing from more,
     and lose much when another process holds a core."""
     return_free_memory()  # what the caller dropped (a simulation, an MCAP read), before the diagnosis's arrays are made
+    keep_freed_pages()  # the searches' arrays reuse the pages of those they dropped (heap_trim)
     data = rec if isinstance(rec, DiagnosisData) else prepare_data(rec, static)
     groups = data.group
     fold, fold_notes = check_folds(data, groups, make_folds(groups, data.use, folds, seed))
