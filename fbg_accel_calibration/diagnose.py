@@ -72,6 +72,7 @@ from .effects import (
     memory_key,
     motion_groups,
     separating_measurement,
+    take_rows,
     visit_ids,
     visit_means,
 )
@@ -805,6 +806,19 @@ SETTLE_NOISE_FRACTION = 0.1
 MAX_SETTLE_S = float(10.0 * np.max(TIA_TAU_S))
 
 
+def visit_index(g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``np.unique(g, return_inverse=True)`` and, when ``g`` never decreases (visits numbered in time order,
+    ``visit_ids``, at rows in time order), where each value's samples start (else None): then found from where ``g``
+    changes instead of by sorting it, the same arrays in a tenth of the time at 10^6 samples."""
+    if g.size and bool(np.all(g[1:] >= g[:-1])):
+        change = np.empty(g.size, bool)
+        change[0] = True
+        np.not_equal(g[1:], g[:-1], out=change[1:])
+        return g[change], np.cumsum(change) - 1, np.flatnonzero(change)
+    ug, inv = np.unique(g, return_inverse=True)
+    return ug, inv, None
+
+
 def settled_mask(t_s: np.ndarray, groups: np.ndarray, rows: np.ndarray, settle_s: float = 0.0,
                  end_s: float | None = None) -> np.ndarray:
     """Settled samples (N,) among ``rows``: the first sample of every visit and every sample less than
@@ -818,12 +832,16 @@ def settled_mask(t_s: np.ndarray, groups: np.ndarray, rows: np.ndarray, settle_s
         return out
     g = groups[idx]
     t = t_s[idx]
-    ug, inv = np.unique(g, return_inverse=True)
-    t0 = np.full(len(ug), np.inf)
-    np.minimum.at(t0, inv, t)
+    ug, inv, starts = visit_index(g)
+    if starts is None:
+        t0 = np.full(len(ug), np.inf)
+        np.minimum.at(t0, inv, t)
+        starts = np.unique(inv, return_index=True)[1]
+    else:  # each visit's samples side by side
+        t0 = np.minimum.reduceat(t, starts)
     age = t - t0[inv]
     first = np.zeros(len(idx), bool)
-    first[np.unique(inv, return_index=True)[1]] = True  # idx is time-ordered within a run
+    first[starts] = True  # idx is time-ordered within a run
     keep = (age >= settle_s) & ~first
     if end_s is not None:
         t1 = np.full(len(ug), -np.inf)
@@ -1018,16 +1036,20 @@ def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
     if not r.any():
         return VisitNoise(np.full(3, np.nan), np.ones((3, 1)))
     idx = np.flatnonzero(r)
-    ug, inv = np.unique(groups[idx], return_inverse=True)
+    ug, inv, starts = visit_index(groups[idx])
     cnt = np.bincount(inv).astype(float)
-    dev = res[idx] - np.stack([np.bincount(inv, weights=res[idx, j]) / cnt for j in range(3)], axis=1)[inv]
+    dev = take_rows(res, idx)
+    dev -= take_rows(np.stack([np.bincount(inv, weights=dev[:, j]) / cnt for j in range(3)], axis=1), inv)
     stt = np.zeros(len(ug))  # sum of squared centred times of each visit (s^2), 0 where no line is fitted
     if t_s is not None:
         # times from each visit's first sample: the line does not depend on the time origin (a CSV with seconds since
         # 1970, ~1.7e9 s, gives what the same run from 0 s gives); no line where a visit's samples share one time
         t = t_s[idx]
-        t_first = np.full(len(ug), np.inf)
-        np.minimum.at(t_first, inv, t)
+        if starts is None:
+            t_first = np.full(len(ug), np.inf)
+            np.minimum.at(t_first, inv, t)
+        else:  # each visit's samples side by side
+            t_first = np.minimum.reduceat(t, starts)
         t_rel = t - t_first[inv]
         tmean_rel = np.bincount(inv, weights=t_rel) / cnt
         tc = t_rel - tmean_rel[inv]
@@ -1037,10 +1059,11 @@ def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
         for j in range(3):
             slope[ok, j] = np.bincount(inv, weights=tc * dev[:, j])[ok] / stt[ok]
         stt = np.where(ok, stt, 0.0)
-        dev -= slope[inv] * (t - (t_first + tmean_rel)[inv])[:, None]
+        dev -= take_rows(slope, inv) * (t - (t_first + tmean_rel)[inv])[:, None]
     lags = _noise_lags(t_s, groups, r, cnt)
     n_v = cnt.astype(int)
-    dev = dev[np.argsort(inv, kind="stable")]  # by visit, in time order within a visit
+    if starts is None:
+        dev = dev[np.argsort(inv, kind="stable")]  # by visit, in time order within a visit
     bounds = np.r_[0, np.cumsum(n_v)]
     prods = np.zeros((len(n_v), lags + 1, 3))  # lag-k products of every visit, k = 0..K
     for v in range(len(n_v)):
@@ -2061,11 +2084,13 @@ takes arrays of up to 64 MiB and keeps their pages when they are freed (``heap_t
     auto_start = settle_s is None
     settle_s = 0.0 if settle_s is None else float(settle_s)
     end_s = 0.0 if settling.end_detected else None
+    floor_at: tuple[float, float | None, VisitNoise] | None = None  # the last floor worked out, at (settle_s, end_s)
     for _ in range(4):
         if not auto_start and end_s is None:
             break
-        sigma = within_visit_noise(res0, groups, settled_mask(data.t_s, groups, rows, settle_s, end_s), data.t_s,
-                                   jackknife=False).sigma
+        floor_at = (settle_s, end_s, within_visit_noise(res0, groups, settled_mask(data.t_s, groups, rows, settle_s,
+                                                                                   end_s), data.t_s))
+        sigma = floor_at[2].sigma
         grew = False
         if auto_start and (nxt := settle_window(settling, sigma)) > settle_s * (1 + 1e-3):
             settle_s, grew = nxt, True
@@ -2074,7 +2099,9 @@ takes arrays of up to 64 MiB and keeps their pages when they are freed (``heap_t
         if not grew:
             break
     settled = settled_mask(data.t_s, groups, rows, settle_s, end_s)
-    noise_model = within_visit_noise(res0, groups, settled, data.t_s)
+    # the windows that did not grow are those of the last floor worked out: that floor, not the same one again
+    noise_model = (floor_at[2] if floor_at is not None and floor_at[:2] == (settle_s, end_s)
+                   else within_visit_noise(res0, groups, settled, data.t_s))
     noise = noise_model.sigma
     if not np.all(np.isfinite(noise)) or np.any(noise <= 0):
         raise ValueError(f"no noise floor: {int(settled.sum())} settled samples (every visit shorter than "

@@ -17,7 +17,7 @@ import pytest
 from scipy.signal import lfilter
 from test_diagnose_sim import THERMAL, _config
 
-from fbg_accel_calibration.diagnose import diagnose, within_visit_noise
+from fbg_accel_calibration.diagnose import diagnose, visit_index, within_visit_noise
 from fbg_accel_sim.board_physics import simulate_recording
 
 DEAD_REF = {"scenario.rate_hz": 25.0, "scenario.poses.dwell_s": 10.0, "scenario.poses.move_s": 2.0,
@@ -138,3 +138,20 @@ def test_a_small_but_highly_significant_residual_is_called_significant_with_its_
     assert s.significant and "x" in _significant_axes(s.verdict), (s.verdict, s.pose_chi2_p)
     if s.ratio[0] < 1.1:
         assert "small" in s.verdict and "pose-mean RMS" in s.verdict, s.verdict
+
+
+def test_visits_in_time_order_are_indexed_as_np_unique_indexes_them() -> None:
+    """``visit_index``'s pass over visit ids that never decrease gives np.unique's values and inverse, and where each
+    visit starts; ids out of order go to np.unique (no starts)."""
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        g = np.sort(rng.integers(-3, 40, rng.integers(1, 300)))
+        ug, inv, starts = visit_index(g)
+        want_u, want_inv = np.unique(g, return_inverse=True)
+        np.testing.assert_array_equal(ug, want_u)
+        np.testing.assert_array_equal(inv, want_inv)
+        np.testing.assert_array_equal(starts, np.unique(want_inv, return_index=True)[1])
+    g = np.array([2, 2, 0, 1, 1])
+    ug, inv, starts = visit_index(g)
+    assert starts is None
+    np.testing.assert_array_equal(ug[inv], g)
