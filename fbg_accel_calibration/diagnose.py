@@ -42,6 +42,7 @@ from __future__ import annotations
 import copy
 import math
 import threading
+import time
 import weakref
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
@@ -1626,6 +1627,10 @@ class Evaluator:
             self._hyper_memo[key] = out
         return out
 
+    def remembers(self, spec: ModelSpec, eff: Effect) -> bool:
+        """Whether :meth:`fit_hyper` of ``eff`` on top of ``spec`` is remembered (costs nothing)."""
+        return (spec.key, eff.name) in self._hyper_memo
+
     def nested_heldout(self, spec: ModelSpec, eff: Effect) -> np.ndarray:
         """The held-out residual (N, 3) of :meth:`fit_hyper` alone: the final value is not worked out (its
         refinement on all rows, which the held-out residual does not depend on, is skipped)."""
@@ -1797,9 +1802,13 @@ class Evaluator:
 
 
 def _evaluate_on(spec: ModelSpec, base_heldout: np.ndarray, base_fitted: np.ndarray, base_G: np.ndarray, alpha: float,
-                 ev: Evaluator, eff: Effect) -> CandidateResult:
-    """``ev.evaluate(spec, eff, ...)``: a task of ``Lanes.map`` (lane, item) once the step's arguments are bound."""
-    return ev.evaluate(spec, eff, base_heldout, base_fitted, base_G, alpha)
+                 seconds: dict[str, float], ev: Evaluator, eff: Effect) -> CandidateResult:
+    """``ev.evaluate(spec, eff, ...)``: a task of ``Lanes.map`` (lane, item) once the step's arguments are bound; the
+    time it took goes into ``seconds`` (by the candidate's name: the order the next step's candidates start in)."""
+    t0 = time.perf_counter()
+    out = ev.evaluate(spec, eff, base_heldout, base_fitted, base_G, alpha)
+    seconds[eff.name] = time.perf_counter() - t0
+    return out
 
 
 def time_block_check(data: DiagnosisData, spec: ModelSpec, eff: Effect, h: float | None, sub: np.ndarray,
@@ -2151,6 +2160,7 @@ takes arrays of up to 64 MiB and keeps their pages when they are freed (``heap_t
     reselect_up_to = max_degree if degree is None and n_levels >= 2 else None  # eq. 28's degree is chosen again
     remaining = [e for e in library]
     reading_jumped = bool(data.temperature_jumps) and n_levels >= 2  # eq. 28 reads a reading that jumps
+    seconds: dict[str, float] = {}  # what each candidate's evaluation took (the order they start in: Lanes.map)
     while remaining and len(spec.effects) < max_effects:
         # Bonferroni over the candidates the data can show at all (known before any is evaluated)
         alpha_each = alpha / max(sum(e.applicable(data)[0] for e in remaining), 1)
@@ -2162,8 +2172,10 @@ takes arrays of up to 64 MiB and keeps their pages when they are freed (``heap_t
                                  if fitted_all is None else fitted_all, thread=n_lanes > 1)
         fitted_all = None
         # the candidates side by side, each on a free lane (their results do not depend on which, or in what order)
-        results = searchers.map(partial(_evaluate_on, spec, base_heldout, base_fitted, base_G, alpha_each), remaining,
-                                None if progress is None else lambda r: progress(r.name))
+        # the longest first (what each took at the step before; one worked out by the confounding check is remembered)
+        results = searchers.map(partial(_evaluate_on, spec, base_heldout, base_fitted, base_G, alpha_each, seconds),
+                                remaining, None if progress is None else lambda r: progress(r.name),
+                                cost=lambda e, model=spec, ev=sel: 0.0 if ev.remembers(model, e) else seconds.get(e.name, 0.0))
         for r in results:
             if r.name == "channel_delay" and r.applicable and xcorr_later is not None:
                 r.cross_correlation_delay_s = xcorr_later.result()

@@ -44,10 +44,13 @@ class Lanes(Generic[L]):
         self.lanes = list(lanes)
         self._after_map = after_map  # called once the tasks of a map of more than one lane have ended
 
-    def map(self, task: Callable[[L, T], R], items: Iterable[T], done: Callable[[R], None] | None = None) -> list[R]:
+    def map(self, task: Callable[[L, T], R], items: Iterable[T], done: Callable[[R], None] | None = None,
+            cost: Callable[[T], float] | None = None) -> list[R]:
         """``[task(lane, item) for item in items]``, each task on a free lane; ``done(result)`` is called in the
         caller's thread for each result in the items' order as soon as it and those before it are there. An exception
-        of a task is raised once every task has ended (the first in the items' order)."""
+        of a task is raised once every task has ended (the first in the items' order). ``cost(item)``: what the task is
+        expected to take (any unit); the tasks start in order of falling cost (equal costs in the items' order), so
+        that a long one does not start last while the other lanes have nothing left to do."""
         items = list(items)
         if len(self.lanes) == 1 or len(items) <= 1:
             out = []
@@ -70,7 +73,11 @@ class Lanes(Generic[L]):
         out: list[R] = []
         failed: BaseException | None = None
         with ThreadPoolExecutor(min(len(self.lanes), len(items)), thread_name_prefix="search-lane") as pool:
-            for f in [pool.submit(run, it) for it in items]:
+            order = range(len(items)) if cost is None else sorted(range(len(items)), key=lambda i: -cost(items[i]))
+            futures: list[Future[R]] = [None] * len(items)  # type: ignore[list-item]
+            for i in order:
+                futures[i] = pool.submit(run, items[i])
+            for f in futures:
                 exc = f.exception()  # waits for it
                 failed = failed or exc
                 if failed is None:
