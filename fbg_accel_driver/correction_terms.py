@@ -672,22 +672,26 @@ class ThermalHysteresis(_Base):
         n = lp.shape[0]
         finite = np.isfinite(lp)
         good = None if finite.all() else np.flatnonzero(finite)  # None: every sample (no gather, no scatter)
-        decision = np.full(n, np.nan)  # +1 / -1 where the rate decides, NaN where the branch is held
+        decision = np.zeros(n, np.int8)  # +1 / -1 where the rate decides, 0 where the branch is held
         if n and (good is None or good.size):
             lp_g, t_g = (lp, t_s) if good is None else (lp[good], t_s[good])
-            lp_prev = np.concatenate([[state["lpprev"] if state["lpprev"] is not None else np.nan], lp_g[:-1]])
-            t_prev = np.concatenate([[state["tprev"] if state["tprev"] is not None else np.nan], t_g[:-1]])
-            dt = t_g - t_prev
+            # the rate from the previous finite sample (the state's across batches), where time moves on
+            dt, dlp = np.empty_like(t_g), np.empty_like(lp_g)
+            dt[0] = t_g[0] - (state["tprev"] if state["tprev"] is not None else np.nan)
+            dlp[0] = lp_g[0] - (state["lpprev"] if state["lpprev"] is not None else np.nan)
+            np.subtract(t_g[1:], t_g[:-1], out=dt[1:])
+            np.subtract(lp_g[1:], lp_g[:-1], out=dlp[1:])
             with np.errstate(invalid="ignore", divide="ignore"):
-                rate = np.where(dt > 0, (lp_g - lp_prev) / dt, np.nan)
-            d = decision if good is None else np.full(good.size, np.nan)
-            d[rate > deadband] = 1.0
-            d[rate < -deadband] = -1.0
+                rate = np.divide(dlp, dt, out=dlp)
+            moving = dt > 0
+            d = decision if good is None else np.zeros(good.size, np.int8)
+            d[(rate > deadband) & moving] = 1
+            d[(rate < -deadband) & moving] = -1
             if good is not None:
                 decision[good] = d
             state["tprev"], state["lpprev"] = float(t_g[-1]), float(lp_g[-1])
         # forward-fill the last decision (the hysteresis memory), starting from the stored branch
-        idx = np.where(np.isfinite(decision), np.arange(n), -1)
+        idx = np.where(decision != 0, np.arange(n), -1)
         np.maximum.accumulate(idx, out=idx)
         out = np.where(idx >= 0, decision[np.maximum(idx, 0)], state["branch"])
         if n:
