@@ -46,6 +46,7 @@ import time
 import weakref
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Any
@@ -82,7 +83,7 @@ from .model_selection import DegreeScores, choose_degree
 from .model_selection import select_degree as calibration_select_degree
 from .periodic_disturbance import PeriodicDisturbance, find_periodic_disturbance
 from .recording import LowReference, Recording, time_axis_label
-from .search_lanes import Lanes, beside, default_lane_count
+from .search_lanes import Lanes, beside, default_lane_count, idle_lanes
 from .static_detector import calibration_samples
 from .temperature_reading import jump_warning, reading_jumps
 from .thermal_fit import (
@@ -619,9 +620,16 @@ SEARCH_STRIDE = 4  # a hyper-parameter search visits every 4th grid value first,
 
 
 def search_walk(n: int, seen: dict[int, tuple[bool | None, float]], best_at: np.ndarray) -> Iterator[int]:
-    """Indices of a grid of ``n`` hyper-parameter values for a search to visit, chosen from what it has found so far.
+    """The indices of ``search_batches``, one by one (the caller updates ``seen`` and ``best_at`` after each)."""
+    for batch in search_batches(n, seen, best_at):
+        yield from batch
 
-    The caller updates, after each index, ``seen`` (index -> (plausible, mean training RSS over the folds); plausible
+
+def search_batches(n: int, seen: dict[int, tuple[bool | None, float]], best_at: np.ndarray) -> Iterator[list[int]]:
+    """Indices of a grid of ``n`` hyper-parameter values for a search to visit, chosen from what it has found so far,
+    a batch at a time (the values of a batch do not depend on each other's results: ``Evaluator.cv_each``).
+
+    The caller updates, after each index of a batch, ``seen`` (index -> (plausible, mean training RSS over the folds); plausible
     is None for a value that does not identify the model) and ``best_at`` ((K,) the index of the plausible value each
     training fold fits best, ``n`` while none). First every ``SEARCH_STRIDE``-th value and the last one; then, batch
     by batch, the nearest plausible value not yet visited on each side of each fold's best and of the best mean
@@ -631,10 +639,9 @@ def search_walk(n: int, seen: dict[int, tuple[bool | None, float]], best_at: np.
     every value whenever each training RSS, over the plausible values in grid order, falls and then rises (one
     minimum; ``test_the_search_walk_finds_what_visiting_every_value_finds``) with about half the visits on the
     diagnosis's grids (a trial is a design and its cross-validation)."""
-    first = list(range(0, n, SEARCH_STRIDE)) + ([n - 1] if (n - 1) % SEARCH_STRIDE else [])
-    yield from first
+    yield list(range(0, n, SEARCH_STRIDE)) + ([n - 1] if (n - 1) % SEARCH_STRIDE else [])
     if not any(ok for ok, _ in seen.values()):
-        yield from (i for i in range(n) if i not in seen)
+        yield [i for i in range(n) if i not in seen]
         return
     while True:
         plausible = [i for i, (ok, _) in seen.items() if ok]
@@ -649,7 +656,7 @@ def search_walk(n: int, seen: dict[int, tuple[bool | None, float]], best_at: np.
                     todo.add(i)
         if not todo:
             return
-        yield from sorted(todo)
+        yield sorted(todo)
 
 
 def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np.ndarray,
@@ -1596,6 +1603,33 @@ class Evaluator:
         self._last_cv = (spec.key, out)
         return out
 
+    def cv_each(self, specs: list[ModelSpec],
+                use: Callable[[int, tuple[Design, CvResult] | NotIdentifiedError], None]) -> None:
+        """``use(k, self.cv(specs[k]))`` (or the NotIdentifiedError it raised) for each spec in order, the designs and
+        cross-validations worked out on this lane and on the lanes of the map left idle meanwhile
+        (``search_lanes.idle_lanes``): one spec a lane at a time, each result used and let go before the next
+        round (the lanes' results are the same, bit for bit)."""
+        def one(lane: Evaluator, spec: ModelSpec) -> tuple[Design, CvResult] | NotIdentifiedError:
+            try:
+                return lane.cv(spec)
+            except NotIdentifiedError as exc:
+                return exc
+
+        with idle_lanes(len(specs) - 1) as extra:
+            if not extra:
+                for k, spec in enumerate(specs):
+                    use(k, one(self, spec))
+                return
+            lanes = [self, *extra]
+            with ThreadPoolExecutor(len(extra), thread_name_prefix="search-lane-lent") as pool:
+                for lo in range(0, len(specs), len(lanes)):
+                    part = specs[lo:lo + len(lanes)]
+                    later = [pool.submit(one, lane, spec) for lane, spec in zip(lanes[1:], part[1:], strict=False)]
+                    use(lo, one(self, part[0]))
+                    for k, f in enumerate(later, start=lo + 1):
+                        use(k, f.result())
+                    del later
+
     def forget(self, spec: ModelSpec) -> None:
         """Drop remembered results except those on top of ``spec``, the model the next step starts from: the
         confounding check has already worked out each candidate on top of the one that is then added."""
@@ -1659,14 +1693,13 @@ class Evaluator:
         # a step's time is a fold's choice only where that fold's training visits on each side span the frame
         fold_ok = self._step_sides(eff, grid, K) if eff.switched else None
 
-        def visit(i: int) -> None:
+        def visit(i: int, done: tuple[Design, CvResult] | NotIdentifiedError) -> None:
             h = float(grid[i])
-            try:
-                des, cvr = self.cv(spec.plus(eff, h))
-            except NotIdentifiedError as exc:  # this value makes the design singular: not a candidate
-                unidentified.append(f"{eff.hyper_name} = {h:.4g}: {exc}")
+            if isinstance(done, NotIdentifiedError):  # this value makes the design singular: not a candidate
+                unidentified.append(f"{eff.hyper_name} = {h:.4g}: {done}")
                 seen[i] = (None, math.inf)
                 return
+            des, cvr = done
             ok = not self.implausible(eff, h, des, cvr)
             # the first value in grid order wins a tie, whatever the order the values are visited in
             better = (cvr.train_rss < best_train[ok]) | ((cvr.train_rss == best_train[ok]) & (i < best_at[ok]))
@@ -1679,13 +1712,15 @@ class Evaluator:
                 heldout[ok][at] = res
             seen[i] = (ok, float(np.sum(cvr.train_rss) / max(K - 1, 1)))
 
+        def visit_all(batch: list[int]) -> None:
+            todo = [i for i in batch if i not in seen]
+            self.cv_each([spec.plus(eff, float(grid[i])) for i in todo], lambda k, done: visit(todo[k], done))
+
         picks = self._switch_picks(spec, eff, grid, fold_ok) if eff.switched else None
-        for i in picks or []:
-            visit(i)
+        visit_all(picks or [])
         if picks is None or not all(ok for ok, _ in seen.values()):  # an implausible or unidentified pick: the walk
-            for i in search_walk(len(grid), seen, best_at[True]):
-                if i not in seen:
-                    visit(i)
+            for batch in search_batches(len(grid), seen, best_at[True]):
+                visit_all(batch)
         order = sorted(i for i in seen if seen[i][0] is not None)
         if not order:
             raise NotIdentifiedError("no value of the grid is identified (" + unidentified[0] + ")")

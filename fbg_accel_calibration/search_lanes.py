@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import os
 import queue
-from collections.abc import Callable, Iterable
+import threading
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
 from typing import Generic, TypeVar
 
 L = TypeVar("L")
@@ -62,12 +64,17 @@ class Lanes(Generic[L]):
         free: queue.SimpleQueue[L] = queue.SimpleQueue()
         for lane in self.lanes:
             free.put(lane)
+        state = _MapState(free, len(items))
 
         def run(item: T) -> R:
             lane = free.get()
+            with state.lock:
+                state.to_start -= 1
+            _in_task.state = state
             try:
                 return task(lane, item)
             finally:
+                _in_task.state = None
                 free.put(lane)
 
         out: list[R] = []
@@ -94,6 +101,40 @@ class Lanes(Generic[L]):
         """``task(lane)`` on every lane, in the caller's thread (between maps: while no task runs)."""
         for lane in self.lanes:
             task(lane)
+
+
+class _MapState:
+    """The free lanes of a map and how many of its tasks have not started (``idle_lanes``)."""
+
+    def __init__(self, free: queue.SimpleQueue, to_start: int) -> None:
+        self.free = free
+        self.to_start = to_start
+        self.lock = threading.Lock()
+
+
+_in_task = threading.local()  # .state: the _MapState of the map whose task this thread runs
+
+
+@contextmanager
+def idle_lanes(most: int) -> Iterator[list]:
+    """Up to ``most`` lanes of the map whose task the calling thread runs that are free now while every task of the
+    map has started (no task waits for them), lent until the ``with`` block ends; none outside a task of a map of
+    more than one lane. A search uses them for the trials of a batch that do not depend on each other, when the
+    other tasks of its map are done."""
+    state = getattr(_in_task, "state", None)
+    lent: list = []
+    if state is not None and most > 0:
+        with state.lock:
+            while state.to_start == 0 and len(lent) < most:
+                try:
+                    lent.append(state.free.get_nowait())
+                except queue.Empty:
+                    break
+    try:
+        yield lent
+    finally:
+        for lane in lent:
+            state.free.put(lane)
 
 
 def beside(fn: Callable[..., R], *args: object, thread: bool = True) -> Future[R]:

@@ -730,7 +730,7 @@ def test_the_diagnosis_with_the_search_walk_is_the_diagnosis_visiting_every_grid
 
     rec = synthetic(9, channel_dark=300.0, power_ramp=-0.05)
     walked = diagnose(rec, static="table")
-    monkeypatch.setattr(engine, "search_walk", lambda n, seen, best: iter(range(n)))
+    monkeypatch.setattr(engine, "search_batches", lambda n, seen, best: iter([list(range(n))]))
     every = diagnose(rec, static="table")
     assert walked.added and walked.added == every.added and len(walked.steps) >= 2
     for a, b in zip(walked.steps, every.steps, strict=True):
