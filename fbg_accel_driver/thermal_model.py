@@ -117,6 +117,9 @@ class ThermalCalibration:
         default_factory=dict, init=False, repr=False, compare=False)
     # expected_reference_counts per temperature reading, as _coef_cache
     _ref_level_cache: dict[float, float] = field(default_factory=dict, init=False, repr=False, compare=False)
+    # (temperatures, M(T), b(T)) of the last array base_acceleration evaluated (_coefficients_of)
+    _last_coefficients: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False,
+                                                                                  compare=False)
 
     def __post_init__(self) -> None:
         for name in _ARRAY_FIELDS:
@@ -157,8 +160,19 @@ class ThermalCalibration:
     def base_acceleration(self, psi: np.ndarray, temp_c: np.ndarray | float) -> np.ndarray:
         """Eq. 28 without corrections: ``psi`` (N, 3), ``temp_c`` (N,) or scalar -> (N, 3) m/s^2."""
         psi = np.atleast_2d(np.asarray(psi, dtype=float))
-        m_t, b_t = self.coefficients(np.broadcast_to(np.asarray(temp_c, dtype=float), (psi.shape[0],)))
+        m_t, b_t = self._coefficients_of(np.broadcast_to(np.asarray(temp_c, dtype=float), (psi.shape[0],)))
         return np.einsum("nij,nj->ni", m_t, psi) + b_t
+
+    def _coefficients_of(self, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``coefficients(temp_c)``, those of the last array again when it holds the same temperatures: the correction
+        terms evaluate the model at one batch's temperatures two or three times (a thermal lag before and after, a
+        change of Psi at the lagged temperature)."""
+        last = self._last_coefficients
+        if last is not None and last[0].shape == temp_c.shape and np.array_equal(last[0], temp_c, equal_nan=True):
+            return last[1], last[2]
+        m_t, b_t = self.coefficients(temp_c)
+        self._last_coefficients = (np.array(temp_c, copy=True), m_t, b_t)  # a copy: the caller may change its array
+        return m_t, b_t
 
     def coefficients_at(self, temp_c: float) -> tuple[tuple[float, ...], tuple[float, float, float]]:
         """M(T) row-major (9 floats) and b(T) (3 floats, m/s^2) of eq. 28 at one temperature (degC).

@@ -119,6 +119,23 @@ def test_per_temperature_cache_is_the_objects_own() -> None:
     assert len(cal._coef_cache) <= 256
 
 
+def test_the_model_at_a_batchs_temperatures_is_worked_out_once_and_again_when_they_change(monkeypatch) -> None:
+    """base_acceleration asked twice at the same temperatures (a correction term's before and after) evaluates M(T),
+    b(T) once; temperatures changed in place in the caller's array are new temperatures, not the remembered ones."""
+    cal, fresh = make_cal(), make_cal()
+    rng = np.random.default_rng(0)
+    psi, temp = rng.normal(0.0, 0.1, (50, 3)), rng.uniform(10.0, 40.0, 50)
+    calls = []
+    real = ThermalCalibration.coefficients
+    monkeypatch.setattr(ThermalCalibration, "coefficients", lambda self, t: calls.append(1) or real(self, t))
+    first = cal.base_acceleration(psi, temp)
+    np.testing.assert_array_equal(cal.base_acceleration(2.0 * psi, temp.copy()), fresh.base_acceleration(2.0 * psi, temp))
+    assert len(calls) == 2  # cal once, fresh once
+    temp += 5.0  # the caller's array changed in place
+    np.testing.assert_array_equal(cal.base_acceleration(psi, temp), fresh.base_acceleration(psi, temp))
+    assert not np.array_equal(cal.base_acceleration(psi, temp), first)
+
+
 def test_base_acceleration_broadcasts_scalar_temperature() -> None:
     cal = make_cal()
     psi = np.array([[0.3, 0.4, 0.5], [0.1, 0.2, 0.9]])
