@@ -1915,7 +1915,8 @@ def step_check(lanes: Lanes[Evaluator], spec: ModelSpec, eff: Effect, h: float |
     try:
         # the step that fits best in place of the candidate, not beside it; kept: every candidate checked at this
         # step (a drift, a dark offset, a temperature history) is set against the same best step
-        h_step = ev.fit_hyper(spec, step, remember=True)[0]
+        with lanes.lending() as ev:  # the other lanes work its trials out beside it
+            h_step = ev.fit_hyper(spec, step, remember=True)[0]
         if max_degree is not None:
             degree = reselect_degree(lanes, spec.plus(eff, h).plus(step, h_step), max_degree)[0].degree
             # the step's time, set by the jump rather than by the temperature terms, is kept (a search of it is

@@ -97,6 +97,20 @@ class Lanes(Generic[L]):
             raise failed
         return out
 
+    @contextmanager
+    def lending(self) -> Iterator[L]:
+        """The first lane, for work of the caller's own between maps, with the other lanes lent to it meanwhile
+        (``idle_lanes`` in the ``with`` block, on the caller's thread): a search the caller runs itself uses them."""
+        free: queue.SimpleQueue[L] = queue.SimpleQueue()
+        for lane in self.lanes[1:]:
+            free.put(lane)
+        before = getattr(_in_task, "state", None)
+        _in_task.state = _MapState(free, 0)
+        try:
+            yield self.lanes[0]
+        finally:
+            _in_task.state = before
+
     def each(self, task: Callable[[L], None]) -> None:
         """``task(lane)`` on every lane, in the caller's thread (between maps: while no task runs)."""
         for lane in self.lanes:

@@ -18,7 +18,7 @@ from fbg_accel_calibration.cli import main
 from fbg_accel_calibration.diagnose import diagnose
 from fbg_accel_calibration.diagnose_report import markdown
 from fbg_accel_calibration.mcap_io import write_recording
-from fbg_accel_calibration.search_lanes import Lanes, beside
+from fbg_accel_calibration.search_lanes import Lanes, beside, idle_lanes
 from fbg_accel_sim.board_physics import simulate_recording
 
 
@@ -98,6 +98,35 @@ def test_a_failed_task_is_raised_once_every_task_has_ended() -> None:
     with pytest.raises(ValueError, match="task 1"):
         Lanes([Lane(), Lane()]).map(task, range(5), done=seen.append)
     assert sorted(ended) == [0, 2, 3, 4] and seen == [0]  # no result after the failed one is handed on
+
+
+def test_idle_lanes_are_lent_between_maps_and_never_while_a_task_waits_for_one() -> None:
+    """Outside a map nothing is lent; in ``lending`` the caller works on the first lane and is lent the others until
+    its block ends; in a map, a task is lent no lane while a task of the map has not started."""
+    with idle_lanes(5) as lent:
+        assert lent == []
+    lanes = Lanes([Lane(), Lane(), Lane()])
+    with lanes.lending() as first:
+        assert first is lanes.lanes[0]
+        with idle_lanes(5) as lent:
+            assert lent == lanes.lanes[1:]
+        with idle_lanes(1) as lent:  # given back at the end of the block before
+            assert lent == [lanes.lanes[1]]
+    with idle_lanes(5) as lent:
+        assert lent == []
+    second_done = threading.Event()
+
+    def task(lane: Lane, item: int) -> int:
+        if item == 0:  # item 2 waits for a lane until item 0 or 1 ends; item 1 ends only after this check
+            with idle_lanes(2) as lent:
+                got = len(lent)
+            second_done.set()
+            return got
+        if item == 1:
+            second_done.wait()
+        return 0
+
+    assert Lanes([Lane(), Lane()]).map(task, range(3))[0] == 0
 
 
 def test_work_beside_runs_on_its_own_thread_and_hands_back_its_result_or_error() -> None:
