@@ -15,7 +15,7 @@ A search makes and drops arrays of 10^5 to 10^6 samples by the thousand (designs
 24 MiB). An array glibc maps on its own (above its mmap threshold, which it raises to 32 MiB at most) and every page
 a trim gave back are new pages the next array faults in, zeroed by the kernel (``bench_calibration.py`` reports the
 diagnosis's page faults and system time). ``keep_freed_pages`` sets the threshold to 64 MiB and lets the heap keep up
-to 256 MiB free at its top: the pages of what a search drops serve its next trial, and the trims after each batch of
+to 64 MiB free at its top: the pages of what a search drops serve its next trial, and the trims after each batch of
 searches keep what the heap holds between batches from adding to the peak. Elsewhere than on glibc these do nothing.
 """
 
@@ -30,7 +30,7 @@ _M_ARENA_MAX = -8  # glibc's mallopt parameters (malloc.h)
 _M_MMAP_THRESHOLD = -3
 _M_TRIM_THRESHOLD = -1
 HEAP_ARRAY_BYTES = 64 << 20  # arrays up to this size come from the heap (keep_freed_pages)
-HEAP_TOP_BYTES = 256 << 20  # free memory the heap keeps at its top
+HEAP_TOP_BYTES = 64 << 20  # free memory the heap keeps at its top (more faults less and holds more at the peak)
 
 
 @functools.cache
