@@ -564,8 +564,9 @@ class CvResult:
         self.train_rss = train_rss  # (K,) weighted training RSS per fold
         self.A_full = A_full  # (p, 3) coefficients on all rows
         self.sums = sums  # X^T X per fold and over the fitted rows (all folds), column sums: the conditioning checks
-        self._X: np.ndarray | None = X
-        self._G: np.ndarray | None = G
+        # (X, G) until both arrays below are worked out: one attribute, read once by each caller, so that a lane that
+        # shares the result sees the pair or None (then both arrays are there), never half of it
+        self._design: tuple[np.ndarray, np.ndarray] | None = (X, G)
         self._start = start  # fold f's rows are sums.idx[start[f + 2]:start[f + 3]]
         self._A_folds = A_folds  # (K, p, 3) each fold's training coefficients
         self._heldout: np.ndarray | None = None
@@ -575,15 +576,18 @@ class CvResult:
         """(the rows of fold ``f`` that were fitted, their held-out residual (n_f, 3) m/s^2)."""
         lo, hi = self._start[f + 2], self._start[f + 3]
         rows = self.sums.idx[lo:hi]
-        if self._heldout is not None:
-            return rows, self._heldout[rows]
-        return rows, _fold_part(self.sums.idx, lo, hi, self._G) - _fold_part(self.sums.idx, lo, hi, self._X) @ self._A_folds[f]
+        design = self._design
+        if design is None:
+            return rows, self.heldout[rows]
+        X, G = design
+        return rows, _fold_part(self.sums.idx, lo, hi, G) - _fold_part(self.sums.idx, lo, hi, X) @ self._A_folds[f]
 
     @property
     def heldout(self) -> np.ndarray:
         """(N, 3) held-out residual (NaN outside the evaluated rows)."""
-        if self._heldout is None:
-            out = np.full(self._G.shape, np.nan)
+        design = self._design
+        if self._heldout is None and design is not None:
+            out = np.full(design[1].shape, np.nan)
             for f in range(len(self._A_folds)):
                 rows, res = self.fold_heldout(f)
                 out[rows] = res
@@ -594,14 +598,15 @@ class CvResult:
     @property
     def fitted_full(self) -> np.ndarray:
         """(N, 3) in-sample prediction with ``A_full``."""
-        if self._fitted is None:
-            self._fitted = self._X @ self.A_full
+        design = self._design
+        if self._fitted is None and design is not None:
+            self._fitted = design[0] @ self.A_full
             self._release()
         return self._fitted
 
     def _release(self) -> None:
         if self._heldout is not None and self._fitted is not None:
-            self._X = self._G = None
+            self._design = None
 
 
 def _fold_part(idx: np.ndarray, lo: int, hi: int, of: np.ndarray) -> np.ndarray:
@@ -616,13 +621,7 @@ def _fold_part(idx: np.ndarray, lo: int, hi: int, of: np.ndarray) -> np.ndarray:
 # searched samples from which the searches run side by side by default (``search_lanes``): bench_calibration --lanes 1/2
 # at 3e4 samples (2.2e4 searched): 2.5 / 2.3 s, at 1e4: 0.6 / 0.7 s (threads cost more than they save on small designs)
 LANE_SEARCH_ROWS = 20_000
-SEARCH_STRIDE = 4  # a hyper-parameter search visits every 4th grid value first, then walks from the best (search_walk)
-
-
-def search_walk(n: int, seen: dict[int, tuple[bool | None, float]], best_at: np.ndarray) -> Iterator[int]:
-    """The indices of ``search_batches``, one by one (the caller updates ``seen`` and ``best_at`` after each)."""
-    for batch in search_batches(n, seen, best_at):
-        yield from batch
+SEARCH_STRIDE = 4  # a hyper-parameter search visits every 4th grid value first, then walks from the best (search_batches)
 
 
 def search_batches(n: int, seen: dict[int, tuple[bool | None, float]], best_at: np.ndarray) -> Iterator[list[int]]:
@@ -667,8 +666,9 @@ def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np
     earlier call, used again when they are of the same matrix, folds and fitted rows.
 
     The fitted rows are put in fold order (a stable counting sort of the small fold numbers) and gathered
-    one fold at a time, twice (for the sums, then for the held-out residual): a fold's rows, not a copy of
-    every fitted row (N x p), are what the cross-validation holds beside the design.
+    one fold at a time for the sums, and again by the result when it is asked for a fold's held-out residual
+    (``CvResult``): a fold's rows, not a copy of every fitted row (N x p), are what the cross-validation holds
+    beside the design.
     """
     X, G = des.X, des.G
     idx = np.flatnonzero(rows & des.valid)
@@ -678,9 +678,6 @@ def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np
     K = int(f_idx[-1]) + 1
     start = np.searchsorted(f_idx, np.arange(-2, K + 1))  # [-2, -1, 0, .., K]: fold f is start[f+2]:start[f+3]
 
-    def part(lo: int, hi: int, of: np.ndarray) -> np.ndarray:
-        return _fold_part(idx, lo, hi, of)
-
     p = X.shape[1]
     fresh = sums is None or not sums.of(X, folds, idx)
     xtx = np.zeros((K, p, p)) if fresh else sums.xtx
@@ -688,13 +685,13 @@ def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np
     xtg = np.zeros((K, p, 3))
     gtg = np.zeros((K, 3))
     for f in range(K):
-        Xf, Gf = part(start[f + 2], start[f + 3], X), part(start[f + 2], start[f + 3], G)
+        Xf, Gf = _fold_part(idx, start[f + 2], start[f + 3], X), _fold_part(idx, start[f + 2], start[f + 3], G)
         if fresh:
             xtx[f] = Xf.T @ Xf
             xsum += Xf.sum(axis=0)
         xtg[f], gtg[f] = Xf.T @ Gf, np.einsum("ij,ij->j", Gf, Gf)
     XtG, GtG = xtg.sum(0), gtg.sum(0)
-    Xa, Ga = part(0, start[2], X), part(0, start[2], G)  # fold < 0: always trained on
+    Xa, Ga = _fold_part(idx, 0, start[2], X), _fold_part(idx, 0, start[2], G)  # fold < 0: always trained on
     if len(Xa):
         XtG, GtG = XtG + Xa.T @ Ga, GtG + np.einsum("ij,ij->j", Ga, Ga)
     if fresh:
@@ -1607,8 +1604,8 @@ class Evaluator:
                 use: Callable[[int, tuple[Design, CvResult] | NotIdentifiedError], None]) -> None:
         """``use(k, self.cv(specs[k]))`` (or the NotIdentifiedError it raised) for each spec in order, the designs and
         cross-validations worked out on this lane and on the lanes of the map left idle meanwhile
-        (``search_lanes.idle_lanes``): one spec a lane at a time, each result used and let go before the next
-        round (the lanes' results are the same, bit for bit)."""
+        (``search_lanes.idle_lanes``): one spec a lane at a time, each result used before the next round (the lanes'
+        results are the same, bit for bit; a lent lane keeps its last design until its next trial, as any lane)."""
         def one(lane: Evaluator, spec: ModelSpec) -> tuple[Design, CvResult] | NotIdentifiedError:
             try:
                 return lane.cv(spec)
@@ -2099,8 +2096,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     thinned set, and the chosen model fitted on every sample (``search_samples``); None: always on every sample.
     ``lanes``: how many searches run side by side (``search_lanes``; the results are the same with any number);
     None: ``default_lane_count()`` when at least ``LANE_SEARCH_ROWS`` samples are searched, one otherwise. With more
-    than one, the process's threads allocate from one heap from then on (``heap_trim.share_one_heap``); with any, the heap
-takes arrays of up to 64 MiB and keeps their pages when they are freed (``heap_trim.keep_freed_pages``)
+        than one, the process's threads allocate from one heap from then on (``heap_trim.share_one_heap``); with any, the
+    heap takes arrays of up to 64 MiB and keeps their pages when they are freed (``heap_trim.keep_freed_pages``).
 
     It runs with one BLAS thread (``blas_threads``): its products of tall, narrow matrices gain nothing from more,
     and lose much when another process holds a core."""
@@ -2326,7 +2323,7 @@ takes arrays of up to 64 MiB and keeps their pages when they are freed (``heap_t
     floor_note = _flagged_visits_note(data, groups, [noise_model] + ([noise_model_after] if remedies else []),
                                       des_f, cv_f, fit_rows, rows_f, fold, weights)
     G_f, blocks_f = des_f.G, des_f.blocks
-    del des_f  # its design matrix (N x p) is not needed again
+    del des_f  # its design matrix (N x p) is let go once cv_f's held-out residual is worked out (r_eval below)
     r_eval = rows_f & finite_rows(residual_before) & finite_rows(cv_f.heldout)
     before_ho = np.sqrt(np.mean(residual_before[r_eval] ** 2, axis=0))
     after_ho = np.sqrt(np.mean(cv_f.heldout[r_eval] ** 2, axis=0))

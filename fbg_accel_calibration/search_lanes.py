@@ -18,7 +18,7 @@ import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 L = TypeVar("L")
 T = TypeVar("T")
@@ -70,11 +70,11 @@ class Lanes(Generic[L]):
             lane = free.get()
             with state.lock:
                 state.to_start -= 1
-            _in_task.state = state
+            before, _in_task.state = getattr(_in_task, "state", None), state
             try:
                 return task(lane, item)
             finally:
-                _in_task.state = None
+                _in_task.state = before
                 free.put(lane)
 
         out: list[R] = []
@@ -100,7 +100,10 @@ class Lanes(Generic[L]):
     @contextmanager
     def lending(self) -> Iterator[L]:
         """The first lane, for work of the caller's own between maps, with the other lanes lent to it meanwhile
-        (``idle_lanes`` in the ``with`` block, on the caller's thread): a search the caller runs itself uses them."""
+        (``idle_lanes`` in the ``with`` block, on the caller's thread): a search the caller runs itself uses them.
+        Not within a task of a map (its lanes are the map's to lend)."""
+        if getattr(_in_task, "state", None) is not None:
+            raise RuntimeError("Lanes.lending within a task of a map or another lending")
         free: queue.SimpleQueue[L] = queue.SimpleQueue()
         for lane in self.lanes[1:]:
             free.put(lane)
@@ -120,7 +123,7 @@ class Lanes(Generic[L]):
 class _MapState:
     """The free lanes of a map and how many of its tasks have not started (``idle_lanes``)."""
 
-    def __init__(self, free: queue.SimpleQueue, to_start: int) -> None:
+    def __init__(self, free: queue.SimpleQueue[Any], to_start: int) -> None:
         self.free = free
         self.to_start = to_start
         self.lock = threading.Lock()
@@ -130,13 +133,13 @@ _in_task = threading.local()  # .state: the _MapState of the map whose task this
 
 
 @contextmanager
-def idle_lanes(most: int) -> Iterator[list]:
+def idle_lanes(most: int) -> Iterator[list[Any]]:
     """Up to ``most`` lanes of the map whose task the calling thread runs that are free now while every task of the
     map has started (no task waits for them), lent until the ``with`` block ends; none outside a task of a map of
     more than one lane. A search uses them for the trials of a batch that do not depend on each other, when the
     other tasks of its map are done."""
     state = getattr(_in_task, "state", None)
-    lent: list = []
+    lent: list[Any] = []
     if state is not None and most > 0:
         with state.lock:
             while state.to_start == 0 and len(lent) < most:

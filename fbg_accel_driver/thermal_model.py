@@ -117,9 +117,10 @@ class ThermalCalibration:
         default_factory=dict, init=False, repr=False, compare=False)
     # expected_reference_counts per temperature reading, as _coef_cache
     _ref_level_cache: dict[float, float] = field(default_factory=dict, init=False, repr=False, compare=False)
-    # (temperatures, M(T), b(T)) of the last array base_acceleration evaluated (_coefficients_of)
-    _last_coefficients: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False,
-                                                                                  compare=False)
+    # within apply_counts: (temperatures, M(T), b(T)) of the last batch base_acceleration evaluated, () before the
+    # first (_coefficients_of); None outside it: nothing is kept between calls
+    _last_coefficients: tuple[np.ndarray, np.ndarray, np.ndarray] | tuple[()] | None = field(
+        default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         for name in _ARRAY_FIELDS:
@@ -164,12 +165,16 @@ class ThermalCalibration:
         return np.einsum("nij,nj->ni", m_t, psi) + b_t
 
     def _coefficients_of(self, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``coefficients(temp_c)``, those of the last array again when it holds the same temperatures: the correction
-        terms evaluate the model at one batch's temperatures two or three times (a thermal lag before and after, a
-        change of Psi at the lagged temperature)."""
+        """``coefficients(temp_c)``; within ``apply_counts``, those of the last array again when it holds the same
+        temperatures: the correction terms evaluate the model at one batch's temperatures two or three times (a thermal
+        lag before and after, a change of Psi at the lagged temperature). Nothing is kept after ``apply_counts``
+        returns (one stream at a time per calibration object, as the driver runs it)."""
         last = self._last_coefficients
-        if last is not None and last[0].shape == temp_c.shape and np.array_equal(last[0], temp_c, equal_nan=True):
+        if last is None:  # not within apply_counts
+            return self.coefficients(temp_c)
+        if last and last[0].shape == temp_c.shape and np.array_equal(last[0], temp_c, equal_nan=True):
             return last[1], last[2]
+        self._last_coefficients = ()  # the last batch's let go before this one's are made
         m_t, b_t = self.coefficients(temp_c)
         self._last_coefficients = (np.array(temp_c, copy=True), m_t, b_t)  # a copy: the caller may change its array
         return m_t, b_t
@@ -258,10 +263,14 @@ class ThermalCalibration:
         xyz = np.atleast_2d(np.asarray(xyz, dtype=float))
         temp_c = np.asarray(temp_c, dtype=float)
         psi = normalise(xyz, ref)
-        out = self.base_acceleration(psi, temp_c)
-        if self.corrections:
-            out = out + self.correction_sum(ref, xyz, psi, temp_c, t_s, self.new_state() if state is None else state)
-        return out
+        if not self.corrections:
+            return self.base_acceleration(psi, temp_c)
+        self._last_coefficients = ()  # the terms evaluate the model at these temperatures again (_coefficients_of)
+        try:
+            out = self.base_acceleration(psi, temp_c)
+            return out + self.correction_sum(ref, xyz, psi, temp_c, t_s, self.new_state() if state is None else state)
+        finally:
+            self._last_coefficients = None
 
     # ------------------------------------------------------------------ file I/O
     def to_dict(self) -> dict[str, Any]:

@@ -26,7 +26,7 @@ from fbg_accel_calibration.diagnose import (
     make_folds,
     paired_gain_test,
     prepare_data,
-    search_walk,
+    search_batches,
     weighted_rss,
 )
 from fbg_accel_calibration.diagnose_cli import main as diagnose_main
@@ -640,6 +640,12 @@ def _worst_visit_times(md: str) -> list[float]:
     return [float(row.strip("|").split("|")[col]) for row in table[2:]]
 
 
+def search_walk(n: int, seen: dict, best_at: np.ndarray):
+    """The indices of ``search_batches`` one by one (each batch is made once the one before is visited)."""
+    for batch in search_batches(n, seen, best_at):
+        yield from batch
+
+
 def _walk(n: int, train: np.ndarray, plausible: np.ndarray, walk) -> tuple[dict, np.ndarray, int, list[int]]:
     """Run a search walk over the grid of ``n`` values whose training RSS per fold is ``train`` (n, K), NaN where
     a value is not identified, plausibility ``plausible`` (n,): as ``Evaluator._fit_hyper`` keeps its results
@@ -671,7 +677,7 @@ def _neighbours(seen: dict, b: int) -> tuple[int | None, int | None]:
 @pytest.mark.parametrize("seed", range(40))
 def test_the_search_walk_finds_what_visiting_every_value_finds(seed: int) -> None:
     """Issue 8 §7: a hyper-parameter search visits every 4th grid value, then walks from the best ones
-    (``search_walk``). On the grids the diagnosis uses (10 to 37 values, 10 folds), with each fold's training RSS
+    (``search_batches``). On the grids the diagnosis uses (10 to 37 values, 10 folds), with each fold's training RSS
     falling then rising over the plausible values (their minima spread over the grid, ties, values that are not
     plausible or not identified inside and at the ends), each fold's best value, the best mean and its plausible
     neighbours (the refinement's bracket) are those of a visit of every value, in fewer visits."""

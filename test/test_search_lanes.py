@@ -15,10 +15,11 @@ import yaml
 from test_diagnose_sim import THERMAL, _config
 
 from fbg_accel_calibration.cli import main
-from fbg_accel_calibration.diagnose import diagnose
+from fbg_accel_calibration.diagnose import Evaluator, diagnose
 from fbg_accel_calibration.diagnose_report import markdown
 from fbg_accel_calibration.mcap_io import write_recording
 from fbg_accel_calibration.search_lanes import Lanes, beside, idle_lanes
+from fbg_accel_calibration.thermal_fit import NotIdentifiedError
 from fbg_accel_sim.board_physics import simulate_recording
 
 
@@ -127,6 +128,49 @@ def test_idle_lanes_are_lent_between_maps_and_never_while_a_task_waits_for_one()
         return 0
 
     assert Lanes([Lane(), Lane()]).map(task, range(3))[0] == 0
+
+
+class CvLane:
+    """A lane whose ``cv`` of a spec (a string) returns (the spec, the thread it ran on); "singular" is not identified,
+    "boom" fails."""
+
+    def __init__(self) -> None:
+        self.done: list[str] = []
+
+    def cv(self, spec: str) -> tuple[str, int]:
+        self.done.append(spec)
+        if spec == "singular":
+            raise NotIdentifiedError("singular design")
+        if spec == "boom":
+            raise ValueError("boom")
+        return spec, threading.get_ident()
+
+
+def test_a_batch_of_trials_runs_on_the_lent_lanes_and_is_used_in_order() -> None:
+    """``Evaluator.cv_each`` with two lanes lent: every spec worked out once, some on the lent lanes' threads, the results
+    (a NotIdentifiedError as a value) used in the specs' order; a failure on a lent lane is raised and the lanes are
+    given back."""
+    lanes = Lanes([CvLane(), CvLane(), CvLane()])
+    specs = [f"s{k}" for k in range(7)] + ["singular", "s8"]
+    used: list[tuple[int, object]] = []
+    with lanes.lending() as first:
+        Evaluator.cv_each(first, specs, lambda k, r: used.append((k, r)))
+        with idle_lanes(5) as lent:
+            assert lent == lanes.lanes[1:]  # given back
+    assert [k for k, _ in used] == list(range(len(specs)))
+    assert [r[0] for _, r in used if not isinstance(r, NotIdentifiedError)] == [s for s in specs if s != "singular"]
+    assert isinstance(used[7][1], NotIdentifiedError)
+    assert sorted(spec for lane in lanes.lanes for spec in lane.done) == sorted(specs)
+    assert all(lane.done for lane in lanes.lanes[1:])
+    threads = {r[1] for _, r in used if not isinstance(r, NotIdentifiedError)}
+    assert threading.get_ident() in threads and len(threads) >= 2  # the caller's and the lent lanes' own
+    with lanes.lending() as first:
+        with pytest.raises(ValueError, match="boom"):
+            Evaluator.cv_each(first, ["s0", "boom", "s2"], lambda k, r: None)
+        with idle_lanes(5) as lent:
+            assert lent == lanes.lanes[1:]
+    with idle_lanes(5) as lent:  # without lending nothing is lent: the specs run in the caller's thread
+        assert lent == []
 
 
 def test_work_beside_runs_on_its_own_thread_and_hands_back_its_result_or_error() -> None:

@@ -119,21 +119,32 @@ def test_per_temperature_cache_is_the_objects_own() -> None:
     assert len(cal._coef_cache) <= 256
 
 
-def test_the_model_at_a_batchs_temperatures_is_worked_out_once_and_again_when_they_change(monkeypatch) -> None:
-    """base_acceleration asked twice at the same temperatures (a correction term's before and after) evaluates M(T),
-    b(T) once; temperatures changed in place in the caller's array are new temperatures, not the remembered ones."""
-    cal, fresh = make_cal(), make_cal()
+def test_the_model_at_a_batchs_temperatures_is_worked_out_once_per_call_and_not_kept(monkeypatch) -> None:
+    """Within apply_counts a thermal lag asks for the model at the batch's temperatures before and after: M(T), b(T)
+    are worked out once for each set of temperatures, nothing is kept after the call, and temperatures changed in the
+    caller's array are new ones (the same output as a fresh calibration)."""
+    def with_lag() -> ThermalCalibration:
+        cal = make_cal()
+        cal.corrections = [correction_terms.ThermalLag(30.0)]
+        return cal
+
+    cal, fresh = with_lag(), with_lag()
     rng = np.random.default_rng(0)
-    psi, temp = rng.normal(0.0, 0.1, (50, 3)), rng.uniform(10.0, 40.0, 50)
+    ref, xyz = rng.uniform(2000.0, 3000.0, 50), rng.uniform(500.0, 1500.0, (50, 3))
+    temp, t = rng.uniform(10.0, 40.0, 50), np.arange(50) * 0.01
     calls = []
     real = ThermalCalibration.coefficients
-    monkeypatch.setattr(ThermalCalibration, "coefficients", lambda self, t: calls.append(1) or real(self, t))
-    first = cal.base_acceleration(psi, temp)
-    np.testing.assert_array_equal(cal.base_acceleration(2.0 * psi, temp.copy()), fresh.base_acceleration(2.0 * psi, temp))
-    assert len(calls) == 2  # cal once, fresh once
+    monkeypatch.setattr(ThermalCalibration, "coefficients", lambda self, tc: calls.append(1) or real(self, tc))
+    first = cal.apply_counts(ref, xyz, temp, t)
+    assert len(calls) == 2  # the recorded temperatures (eq. 28 and the lag's before), the lagged ones
+    assert cal._last_coefficients is None
+    cal.base_acceleration(xyz / ref[:, None], temp)
+    cal.base_acceleration(xyz / ref[:, None], temp)
+    assert len(calls) == 4  # outside apply_counts every call works it out
     temp += 5.0  # the caller's array changed in place
-    np.testing.assert_array_equal(cal.base_acceleration(psi, temp), fresh.base_acceleration(psi, temp))
-    assert not np.array_equal(cal.base_acceleration(psi, temp), first)
+    again = cal.apply_counts(ref, xyz, temp, t)
+    np.testing.assert_array_equal(again, fresh.apply_counts(ref, xyz, temp, t))
+    assert not np.array_equal(again, first)
 
 
 def test_base_acceleration_broadcasts_scalar_temperature() -> None:
