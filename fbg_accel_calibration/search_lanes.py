@@ -7,7 +7,9 @@ numpy, scipy and BLAS calls that let go of the interpreter lock (products, filte
 samples), so two lanes on two cores run two searches in little more than the time of one.
 
 What the tasks share must not depend on which lane or in which order they run (caches of values that depend on
-their key alone); then the results are those of one lane, bit for bit.
+their key alone); then the results are those of one lane, bit for bit. Once every task of a map has started, a task
+may borrow the lanes the others have left idle for work of its own that can be split (``idle_lanes``); between maps,
+the caller lends itself the other lanes the same way (``Lanes.lending``).
 """
 
 from __future__ import annotations
@@ -107,12 +109,11 @@ class Lanes(Generic[L]):
         free: queue.SimpleQueue[L] = queue.SimpleQueue()
         for lane in self.lanes[1:]:
             free.put(lane)
-        before = getattr(_in_task, "state", None)
         _in_task.state = _MapState(free, 0)
         try:
             yield self.lanes[0]
         finally:
-            _in_task.state = before
+            _in_task.state = None
 
     def each(self, task: Callable[[L], None]) -> None:
         """``task(lane)`` on every lane, in the caller's thread (between maps: while no task runs)."""
