@@ -824,6 +824,16 @@ def visit_index(g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | Non
     return ug, inv, None
 
 
+def per_visit(extreme: np.ufunc, t: np.ndarray, inv: np.ndarray, starts: np.ndarray | None, n: int) -> np.ndarray:
+    """``extreme`` (``np.minimum`` or ``np.maximum``) of ``t`` over each of the ``n`` visits (``visit_index``'s
+    ``inv`` and ``starts``): over each visit's side-by-side samples when ``starts`` is known, else gathered by index."""
+    if starts is not None:
+        return extreme.reduceat(t, starts)
+    out = np.full(n, np.inf if extreme is np.minimum else -np.inf)
+    extreme.at(out, inv, t)
+    return out
+
+
 def settled_mask(t_s: np.ndarray, groups: np.ndarray, rows: np.ndarray, settle_s: float = 0.0,
                  end_s: float | None = None) -> np.ndarray:
     """Settled samples (N,) among ``rows``: the first sample of every visit and every sample less than
@@ -838,22 +848,15 @@ def settled_mask(t_s: np.ndarray, groups: np.ndarray, rows: np.ndarray, settle_s
     g = groups[idx]
     t = t_s[idx]
     ug, inv, starts = visit_index(g)
-    if starts is None:
-        t0 = np.full(len(ug), np.inf)
-        np.minimum.at(t0, inv, t)
-        starts = np.unique(inv, return_index=True)[1]
-    else:  # each visit's samples side by side
-        t0 = np.minimum.reduceat(t, starts)
-    age = t - t0[inv]
-    first = np.zeros(len(idx), bool)
-    first[starts] = True  # idx is time-ordered within a run
+    age = t - per_visit(np.minimum, t, inv, starts, len(ug))[inv]
+    first = np.zeros(len(idx), bool)  # idx is time-ordered within a run
+    first[np.unique(inv, return_index=True)[1] if starts is None else starts] = True
     keep = (age >= settle_s) & ~first
     if end_s is not None:
-        t1 = np.full(len(ug), -np.inf)
-        np.maximum.at(t1, inv, t)
         last = np.zeros(len(idx), bool)
-        last[len(idx) - 1 - np.unique(inv[::-1], return_index=True)[1]] = True
-        keep &= (t1[inv] - t >= end_s) & ~last
+        last[len(idx) - 1 - np.unique(inv[::-1], return_index=True)[1] if starts is None
+             else np.r_[starts[1:], len(idx)] - 1] = True
+        keep &= (per_visit(np.maximum, t, inv, starts, len(ug))[inv] - t >= end_s) & ~last
     out[idx] = keep
     return out
 
@@ -1050,11 +1053,7 @@ def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
         # times from each visit's first sample: the line does not depend on the time origin (a CSV with seconds since
         # 1970, ~1.7e9 s, gives what the same run from 0 s gives); no line where a visit's samples share one time
         t = t_s[idx]
-        if starts is None:
-            t_first = np.full(len(ug), np.inf)
-            np.minimum.at(t_first, inv, t)
-        else:  # each visit's samples side by side
-            t_first = np.minimum.reduceat(t, starts)
+        t_first = per_visit(np.minimum, t, inv, starts, len(ug))
         t_rel = t - t_first[inv]
         tmean_rel = np.bincount(inv, weights=t_rel) / cnt
         tc = t_rel - tmean_rel[inv]
@@ -1625,7 +1624,6 @@ class Evaluator:
                     use(lo, one(self, part[0]))
                     for k, f in enumerate(later, start=lo + 1):
                         use(k, f.result())
-                    del later
 
     def forget(self, spec: ModelSpec) -> None:
         """Drop remembered results except those on top of ``spec``, the model the next step starts from: the
@@ -1912,7 +1910,7 @@ def step_check(lanes: Lanes[Evaluator], spec: ModelSpec, eff: Effect, h: float |
     try:
         # the step that fits best in place of the candidate, not beside it; kept: every candidate checked at this
         # step (a drift, a dark offset, a temperature history) is set against the same best step
-        with lanes.lending() as ev:  # the other lanes work its trials out beside it
+        with lanes.lending():  # ev (the first lane) searches it, the other lanes work its trials out beside it
             h_step = ev.fit_hyper(spec, step, remember=True)[0]
         if max_degree is not None:
             degree = reselect_degree(lanes, spec.plus(eff, h).plus(step, h_step), max_degree)[0].degree
@@ -2096,7 +2094,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     thinned set, and the chosen model fitted on every sample (``search_samples``); None: always on every sample.
     ``lanes``: how many searches run side by side (``search_lanes``; the results are the same with any number);
     None: ``default_lane_count()`` when at least ``LANE_SEARCH_ROWS`` samples are searched, one otherwise. With more
-        than one, the process's threads allocate from one heap from then on (``heap_trim.share_one_heap``); with any, the
+    than one, the process's threads allocate from one heap from then on (``heap_trim.share_one_heap``); with any, the
     heap takes arrays of up to 64 MiB and keeps their pages when they are freed (``heap_trim.keep_freed_pages``).
 
     It runs with one BLAS thread (``blas_threads``): its products of tall, narrow matrices gain nothing from more,

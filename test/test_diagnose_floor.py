@@ -17,7 +17,7 @@ import pytest
 from scipy.signal import lfilter
 from test_diagnose_sim import THERMAL, _config
 
-from fbg_accel_calibration.diagnose import diagnose, visit_index, within_visit_noise
+from fbg_accel_calibration.diagnose import diagnose, settled_mask, visit_index, within_visit_noise
 from fbg_accel_sim.board_physics import simulate_recording
 
 DEAD_REF = {"scenario.rate_hz": 25.0, "scenario.poses.dwell_s": 10.0, "scenario.poses.move_s": 2.0,
@@ -155,3 +155,18 @@ def test_visits_in_time_order_are_indexed_as_np_unique_indexes_them() -> None:
     ug, inv, starts = visit_index(g)
     assert starts is None
     np.testing.assert_array_equal(ug[inv], g)
+
+
+def test_the_settled_mask_of_visits_in_time_order_is_that_of_the_same_visits_labelled_out_of_order() -> None:
+    """settled_mask's pass over visit ids in time order (``visit_index``'s starts) against the same visits under ids
+    that are not (np.unique and ufunc.at): the same samples at both ends, with and without a window."""
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        sizes = rng.integers(1, 40, rng.integers(1, 30))
+        ids = np.repeat(np.arange(len(sizes)), sizes)
+        t = np.cumsum(rng.uniform(0.005, 0.02, ids.size))
+        rows = rng.random(ids.size) > 0.1
+        relabelled = rng.permutation(len(sizes))[ids] * 7 + 3  # the same visits, ids out of time order
+        for settle_s, end_s in ((0.0, None), (0.05, None), (0.0, 0.0), (0.03, 0.04)):
+            np.testing.assert_array_equal(settled_mask(t, ids, rows, settle_s, end_s),
+                                          settled_mask(t, relabelled, rows, settle_s, end_s))
