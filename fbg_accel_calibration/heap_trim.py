@@ -30,7 +30,7 @@ _M_ARENA_MAX = -8  # glibc's mallopt parameters (malloc.h)
 _M_MMAP_THRESHOLD = -3
 _M_TRIM_THRESHOLD = -1
 HEAP_ARRAY_BYTES = 64 << 20  # arrays up to this size come from the heap (keep_freed_pages)
-HEAP_TOP_BYTES = 64 << 20  # free memory the heap keeps at its top (more faults less and holds more at the peak)
+HEAP_TOP_BYTES = 64 << 20  # free memory the heap keeps at its top (more would fault less but hold more at the peak)
 
 
 @functools.cache

@@ -83,10 +83,8 @@ class Lanes(Generic[L]):
         failed: BaseException | None = None
         with ThreadPoolExecutor(min(len(self.lanes), len(items)), thread_name_prefix="search-lane") as pool:
             order = range(len(items)) if cost is None else sorted(range(len(items)), key=lambda i: -cost(items[i]))
-            futures: list[Future[R]] = [None] * len(items)  # type: ignore[list-item]
-            for i in order:
-                futures[i] = pool.submit(run, items[i])
-            for f in futures:
+            started = {i: pool.submit(run, items[i]) for i in order}
+            for f in (started[i] for i in range(len(items))):
                 exc = f.exception()  # waits for it
                 failed = failed or exc
                 if failed is None:
