@@ -61,7 +61,6 @@ def test_the_results_come_in_the_order_of_the_tasks_whatever_order_they_finish_i
     assert not any(lane.shared for lane in lanes)
 
 
-
 def test_the_costliest_tasks_start_first_and_the_results_keep_the_items_order() -> None:
     """With ``cost``, the two lanes start the two costliest tasks first (without it, the first two items); the results
     and the ``done`` calls stay in the items' order."""
@@ -79,6 +78,7 @@ def test_the_costliest_tasks_start_first_and_the_results_keep_the_items_order() 
         out = Lanes([Lane(), Lane()]).map(task, range(4), seen.append, cost=cost)
         assert out == seen == [0, 10, 20, 30]
         assert set(started[:2]) == first_two, started
+
 
 def test_one_lane_runs_the_tasks_in_the_callers_thread_in_order() -> None:
     order: list[int] = []
