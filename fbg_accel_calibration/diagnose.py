@@ -26,7 +26,8 @@ Pure numpy/scipy engine behind ``fbg-accel-calib diagnose`` (issue 4). Steps:
 4. Forward selection: add the best significant candidate, repeat; stop when no candidate is
    significant or gains less than ``min_rel_gain`` of the held-out MSE (so nothing is added when
    nothing is significant). Above ``SEARCH_ROWS`` fitted samples, steps 3-4 run on every k-th fitted
-   sample (the same visits and folds; ``search_samples``) and only the chosen model is fitted on all.
+   sample (the same visits and folds; ``search_samples``: k no larger than keeps ``MIN_SEARCH_INFORMATION``
+   of what a visit's samples tell of its mean) and only the chosen model is fitted on all.
 5. Refit with the winners as declared ``corrections`` of a ``ThermalCalibration``; check that the
    driver's ``apply_counts`` reproduces the fit's prediction; before/after held-out RMSE per axis
    next to the noise floor; test and describe what residual remains (per pose, axis, temperature,
@@ -1533,19 +1534,40 @@ def cross_correlation_delay(data: DiagnosisData, fitted: np.ndarray, max_lag: in
     return (best_lag + frac) * data.dt_s
 
 
-SEARCH_ROWS = 100_000  # fitted samples above which the candidates are evaluated on every k-th one
+SEARCH_ROWS = 50_000  # fitted samples above which the candidates are evaluated on every k-th one
+MIN_SEARCH_INFORMATION = 0.8  # but a thinned search keeps at least this much of what a visit's samples tell of its mean
 
 
-def search_samples(fit_rows: np.ndarray, folds: np.ndarray, search_rows: int | None) -> tuple[np.ndarray, bool]:
+def thinned_information(noise: VisitNoise, k: int, visit_samples: float) -> float:
+    """What every ``k``-th sample of a visit of ``visit_samples`` consecutive samples tells of the visit's mean, as a
+    fraction of what all of them tell: var(mean of all) / var(mean of every k-th) under the noise's autocorrelation
+    (``VisitNoise.mean_variance``), on the axis that loses most. 1 / k for white noise; near 1 while k is well
+    within the noise's correlation time (the TIA's filtered noise: about 20 samples at 100 Hz)."""
+    if k <= 1:
+        return 1.0
+    every = noise.mean_variance(np.array([float(visit_samples)]))[0]
+    thinned = VisitNoise(noise.sigma, noise.acf[:, ::k]).mean_variance(np.array([float(visit_samples) / k]))[0]
+    return float(np.min(every / thinned))
+
+
+def search_samples(fit_rows: np.ndarray, folds: np.ndarray, search_rows: int | None, noise: VisitNoise | None = None,
+                   visit_samples: float = math.inf) -> tuple[np.ndarray, int, float]:
     """(the samples the candidates are searched on, in fold order: each fold a slice of the search's designs, no
-    gathers; whether they are thinned). Those are the fitted samples ``fit_rows`` (N,); with more than
-    ``search_rows`` of them, every k-th one (about ``search_rows``). Consecutive samples of a visit are strongly
-    correlated (TIA-filtered noise), so the thinned set carries nearly all the information that decides a
-    choice, at a fraction of the cost."""
+    gathers; the step k of the thinning (1: not thinned); ``thinned_information`` at k). Those are the fitted
+    samples ``fit_rows`` (N,); with more than ``search_rows`` of them, every k-th one (about ``search_rows``), k
+    lowered until the thinned samples keep ``MIN_SEARCH_INFORMATION`` of what the visits' samples tell of their means
+    (``noise``: the floor's model of the noise; ``visit_samples``: a visit's typical number of fitted samples).
+    Consecutive samples of a visit are strongly correlated (TIA-filtered noise): the thinned set carries most of
+    the information that decides a choice, at a fraction of the cost; a recording sampled so slowly that its noise
+    is nearly white is thinned less."""
     n_fit = int(fit_rows.sum())
     k = math.ceil(n_fit / search_rows) if search_rows is not None and n_fit > search_rows else 1
+    kept = 1.0 if noise is None or not math.isfinite(visit_samples) else thinned_information(noise, k, visit_samples)
+    while k > 1 and kept < MIN_SEARCH_INFORMATION:
+        k -= 1
+        kept = thinned_information(noise, k, visit_samples)
     every = np.flatnonzero(fit_rows)[::k]
-    return every[np.argsort(folds[every], kind="stable")], k > 1
+    return every[np.argsort(folds[every], kind="stable")], k, kept
 
 
 class Evaluator:
@@ -2167,7 +2189,12 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                                                    * np.exp(-max(kept, 1e-12) / settling.end_tau_s))
     weights = 1.0 / np.maximum(noise, 1e-12) ** 2
     fit_rows = data.use & (fold != -1)  # fitted (also the visits never held out, fold -2)
-    every, thinned = search_samples(fit_rows, fold, search_rows)
+    # a search thinned to fewer rows keeps most of what a visit's samples tell of its mean (the noise is correlated)
+    fitted_per_visit = np.bincount(groups[fit_rows & (groups >= 0)], minlength=1)
+    fitted_per_visit = fitted_per_visit[fitted_per_visit > 0]
+    every, step, kept = search_samples(fit_rows, fold, search_rows, noise_model,
+                                       float(np.median(fitted_per_visit)) if fitted_per_visit.size else math.inf)
+    thinned = step > 1
     # where the candidates are evaluated and the model chosen; a thinned search's corrected reference is small
     # beside the correction of the whole series it saves: it keeps a search's grid of them for the next model
     sel = Evaluator(data, fold, weights, groups, every, references=24 if thinned else 4)
@@ -2401,7 +2428,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         held_codes=held, disturbance=disturbance,
         settings={"static": static if not isinstance(rec, DiagnosisData) else "given", "folds": int(fold.max()) + 1,
                   "alpha": alpha, "min_rel_gain": min_rel_gain, "max_effects": max_effects, "seed": seed,
-                  "search_rows": n_search, "degree_forced": degree is not None,
+                  "search_rows": n_search, "search_step": step, "search_information": kept,
+                  "degree_forced": degree is not None,
                   "settle_s": settle_s,
                   "time_label": time_label})
 

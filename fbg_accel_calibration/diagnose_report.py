@@ -241,7 +241,9 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
               f"one pose within one run; {len(np.unique(d.pose_id[d.use & (d.pose_id >= 0)]))} distinct pose ids) "
               f"(selection: {res.settings['static']}), {res.settings['folds']}-fold cross-validation over visits"
               + (f" (candidates evaluated and the model chosen on {res.settings['search_rows']} evenly spread fitted "
-                 "samples, the chosen model fitted on all)"
+                 f"samples, every {res.settings['search_step']}th: they keep "
+                 f"{100 * res.settings['search_information']:.0f} % of what a visit's samples tell of its mean, the "
+                 "noise being correlated; the chosen model fitted on all)"
                  if res.settings.get("search_rows") else "") + ", "
               f"temperature levels: {res.n_levels} ({np.nanmin(d.temp_c[d.use]):.2f}-{np.nanmax(d.temp_c[d.use]):.2f} degC), "
               f"time span {d.duration_s:.4g} s.", ""]
