@@ -103,7 +103,7 @@ from .thermal_fit import (
 SAMPLE_SELECTIONS = ("table", "detector", "all")
 
 
-def prepare_data(rec: Recording, static: str = "table") -> DiagnosisData:
+def prepare_data(rec: Recording, static: str = "table", beside_thread: bool = False) -> DiagnosisData:
     """Diagnosis arrays from a recording. ``static`` selects the samples that are fitted and judged:
 
     * ``"table"`` (default): every sample of a pose the table held for at least 5 samples (the
@@ -116,7 +116,8 @@ def prepare_data(rec: Recording, static: str = "table") -> DiagnosisData:
 
     Whichever the selection, the samples of a reference too low (``Recording.low_reference``: no source light) are
     not in the result at all (counted in ``n_low_reference``, named in ``low_reference_note``), and a visit with a
-    clipped channel is left out whole.
+    clipped channel is left out whole. ``beside_thread``: the temperature reading's jumps (a scan of every reading) are
+    looked for on a thread of their own meanwhile the rest (``search_lanes.beside``).
     """
     if static not in SAMPLE_SELECTIONS:
         raise ValueError(f"static must be one of {SAMPLE_SELECTIONS}, got {static!r}")
@@ -127,6 +128,7 @@ def prepare_data(rec: Recording, static: str = "table") -> DiagnosisData:
     dark.add_recording(rec)
     if dark.count:
         rec = rec.select(~rec.low_reference())
+    jumps = beside(reading_jumps, rec.t_s, rec.temp_c, rec.run_id, thread=beside_thread)
     finite = finite_rows(rec.gref_mps2) & np.isfinite(rec.ref) & (rec.ref > 0)
     finite &= finite_rows(rec.xyz) & np.isfinite(rec.temp_c)
     # the visits with a channel at an ADC rail are left out whole, as the fit's detector leaves them out
@@ -151,7 +153,7 @@ def prepare_data(rec: Recording, static: str = "table") -> DiagnosisData:
     return DiagnosisData(rec.t_s, rec.ref, rec.xyz, rec.temp_c, rec.gref_mps2, rec.pose_id, rec.run_id, use,
                          n_clipped_samples=int(left_out.sum()), n_clipped_visits=len(clipped),
                          n_low_reference=dark.count, low_reference_note=dark.warning(),
-                         temperature_jumps=reading_jumps(rec.t_s, rec.temp_c, rec.run_id))
+                         temperature_jumps=jumps.result())
 
 
 # ============================================================================ model specification
@@ -2123,7 +2125,11 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     and lose much when another process holds a core."""
     return_free_memory()  # what the caller dropped (a simulation, an MCAP read), before the diagnosis's arrays are made
     keep_freed_pages()  # the searches' arrays reuse the pages of those they dropped (heap_trim)
-    data = rec if isinstance(rec, DiagnosisData) else prepare_data(rec, static)
+    # a large recording's searches run side by side: until they start, the other core takes what it can
+    side_by_side = (default_lane_count() > 1 and len(rec.t_s) >= LANE_SEARCH_ROWS) if lanes is None else int(lanes) > 1
+    if side_by_side:
+        share_one_heap()  # the threads allocate from the one heap (heap_trim)
+    data = rec if isinstance(rec, DiagnosisData) else prepare_data(rec, static, beside_thread=side_by_side)
     groups = data.group
     fold, fold_notes = check_folds(data, groups, make_folds(groups, data.use, folds, seed))
     n_levels = data.temperature_level_count()
@@ -2199,8 +2205,6 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     # beside the correction of the whole series it saves: it keeps a search's grid of them for the next model
     sel = Evaluator(data, fold, weights, groups, every, references=24 if thinned else 4)
     n_lanes = (default_lane_count() if len(every) >= LANE_SEARCH_ROWS else 1) if lanes is None else int(lanes)
-    if n_lanes > 1:
-        share_one_heap()  # the lanes' threads allocate from the one heap (heap_trim)
     # the heap's free pages given back after each batch of searches side by side: what each search made and dropped
     searchers = Lanes([sel] + [sel.lane() for _ in range(n_lanes - 1)], after_map=return_free_memory)
     residual_before = cv0.heldout
