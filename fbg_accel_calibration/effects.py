@@ -235,6 +235,42 @@ def take_rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return np.take(a, idx, axis=0)
 
 
+def interp_columns(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, block: int = 1 << 16) -> np.ndarray:
+    """``np.interp(x, xp, fp[:, j])`` (len(x), k) for every column j of ``fp`` (len(xp), k) at once, the same values
+    bit for bit: ``x`` is looked up in ``xp`` (increasing) once for the k columns, where ``np.interp`` looks it up
+    again for each (the channel delay's search interpolates the three reference axes at the same times on every
+    trial). As ``np.interp``: below ``xp[0]`` the first row, from ``xp[-1]`` on the last, at a point of ``xp`` its
+    row, else the slope of the interval times the distance from its left end plus its left value (from the right
+    end where that is NaN); NaN where ``x`` is (but for a single point). Worked out ``block`` values at a time
+    (bounded temporaries)."""
+    x = np.asarray(x, dtype=float)
+    out = np.empty((len(x), fp.shape[1]))
+    n = len(xp)
+    for lo in range(0, len(x), block):
+        xs = x[lo:lo + block]
+        j = np.searchsorted(xp, xs, side="right") - 1
+        jj = np.clip(j, 0, max(n - 2, 0))
+        x0, f0 = xp[jj], take_rows(fp, jj)
+        if n >= 2:
+            x1, f1 = xp[jj + 1], take_rows(fp, jj + 1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                slope = (f1 - f0) / (x1 - x0)[:, None]
+                part = slope * (xs - x0)[:, None] + f0
+                nan = np.isnan(part)
+                if nan.any():  # np.interp's fallbacks: from the right end, then the common value of a flat interval
+                    part = np.where(nan, slope * (xs - x1)[:, None] + f1, part)
+                    part = np.where(nan & np.isnan(part) & (f0 == f1), f0, part)
+        else:
+            part = f0.copy()
+        at = (j >= n - 1) | (xs == x0)  # from the last point on, or at a point of xp: its row
+        part[at] = take_rows(fp, np.minimum(j[at], n - 1))
+        part[j < 0] = fp[0]
+        if n >= 2:  # (np.interp gives a single point's row even at NaN)
+            part[np.isnan(xs)] = np.nan
+        out[lo:lo + block] = part
+    return out
+
+
 def finite_rows(a: np.ndarray) -> np.ndarray:
     """Rows (N,) of ``a`` (N, k) whose values are all finite (``np.all(np.isfinite(a), axis=1)``, exactly). Column by
     column where the columns are few or contiguous: numpy's reduction along a short row axis is several times
@@ -727,8 +763,7 @@ class ChannelDelayEffect(Effect):
         for run, sel, local in pieces:
             t = data.t_s[run]
             tq = t[local] - D
-            for j in range(3):
-                g[sel, j] = np.interp(tq, t, data.gref_filled[run, j])
+            g[sel] = interp_columns(tq, t, data.gref_filled[run])
             valid[sel] &= tq >= t[0]
         return g, valid
 

@@ -38,6 +38,7 @@ from fbg_accel_calibration.effects import (
     ResponseStepEffect,
     fill_reference_gaps,
     finite_rows,
+    interp_columns,
     library_by_name,
 )
 from fbg_accel_calibration.recording import Recording, time_axis_label
@@ -243,6 +244,27 @@ def test_cached_designs_equal_designs_built_afresh() -> None:
         assert got.blocks == fresh.blocks
         assert len(cache.inputs) <= 2 and len(cache.prefixes) <= cache.prefixes.size
     assert cache.prefixes  # the searches over dark offset and thermal lag started from a cached prefix
+
+
+def test_interp_columns_is_np_interp_of_each_column_bit_for_bit() -> None:
+    """The channel delay's search interpolates the three reference axes at once (``interp_columns``: one lookup of the
+    times for all three): the same bits as ``np.interp`` of each axis, at points of the grid, outside it, at repeated
+    grid times, on infinite and NaN values, signed zeros, and across the blocks it works in."""
+    rng = np.random.default_rng(3)
+    for trial in range(600):
+        n = int(rng.integers(1, 40))
+        xp = np.sort(rng.normal(size=n)) if trial % 3 else np.cumsum(rng.integers(0, 3, n)).astype(float)
+        fp = rng.normal(size=(n, 3)) * 10
+        fp[rng.random((n, 3)) < 0.1] = 0.0
+        fp[rng.random((n, 3)) < 0.05] = -0.0
+        fp[rng.random((n, 3)) < 0.03] = np.inf
+        fp[rng.random((n, 3)) < 0.03] = np.nan
+        x = np.r_[rng.normal(size=30) * 2, xp[rng.integers(0, n, 8)], xp[0] - 1, xp[-1] + 1, -0.0, np.nan]
+        got = interp_columns(x, xp, fp, block=7)
+        want = np.column_stack([np.interp(x, xp, fp[:, j]) for j in range(3)])
+        nan = np.isnan(want)
+        assert np.array_equal(np.isnan(got), nan), trial
+        assert np.array_equal(got[~nan].view(np.int64), want[~nan].view(np.int64)), trial
 
 
 def test_a_design_of_some_rows_is_those_rows_of_the_whole_design() -> None:
