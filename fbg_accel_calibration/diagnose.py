@@ -151,7 +151,7 @@ def prepare_data(rec: Recording, static: str = "table", beside_thread: bool = Fa
     if use.sum() < 20:
         raise ValueError(f"only {int(use.sum())} static samples with a reference: nothing to diagnose")
     return DiagnosisData(rec.t_s, rec.ref, rec.xyz, rec.temp_c, rec.gref_mps2, rec.pose_id, rec.run_id, use,
-                         n_clipped_samples=int(left_out.sum()), n_clipped_visits=len(clipped),
+                         group=visit, n_clipped_samples=int(left_out.sum()), n_clipped_visits=len(clipped),
                          n_low_reference=dark.count, low_reference_note=dark.warning(),
                          temperature_jumps=jumps.result())
 
@@ -1023,6 +1023,24 @@ class _LagMoments:
         return VisitNoise(np.sqrt(var), acf)
 
 
+def _lag_products(dev: np.ndarray, n_v: np.ndarray, lags: int, batch: int = 256) -> np.ndarray:
+    """(V, K + 1, 3): sum_i d_i d_{i+k} of every visit for k = 0..K (``lags``), ``dev`` (N, 3) the visits one after the
+    other (``n_v`` (V,) samples each). By FFT, zero-padded against wrap-around up to lag K; the visits of one length
+    are transformed together, ``batch`` at a time (the same transform of each: its values are those of one at a time)."""
+    bounds = np.r_[0, np.cumsum(n_v)]
+    prods = np.zeros((len(n_v), lags + 1, 3))
+    for n in np.unique(n_v):
+        size = scipy_fft.next_fast_len(int(n) + lags + 1, real=True)
+        keep = min(lags + 1, int(n))
+        same = np.flatnonzero(n_v == n)
+        for lo in range(0, len(same), batch):
+            vs = same[lo:lo + batch]
+            x = take_rows(dev, (bounds[vs][:, None] + np.arange(n)[None, :]).ravel()).reshape(len(vs), int(n), 3)
+            spec = scipy_fft.rfft(x, size, axis=1)
+            prods[vs, :keep] = scipy_fft.irfft(spec.real**2 + spec.imag**2, size, axis=1)[:, :keep]
+    return prods
+
+
 def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_s: np.ndarray | None = None,
                        jackknife: bool = True) -> VisitNoise:
     """The noise floor (3,) m/s^2 of a residual (N, 3) m/s^2, table frame, and its autocorrelation (see above).
@@ -1071,14 +1089,7 @@ def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
     n_v = cnt.astype(int)
     if starts is None:
         dev = dev[np.argsort(inv, kind="stable")]  # by visit, in time order within a visit
-    bounds = np.r_[0, np.cumsum(n_v)]
-    prods = np.zeros((len(n_v), lags + 1, 3))  # lag-k products of every visit, k = 0..K
-    for v in range(len(n_v)):
-        x = dev[bounds[v]:bounds[v + 1]]
-        size = scipy_fft.next_fast_len(len(x) + lags + 1, real=True)  # no wrap-around up to lag K
-        spec = scipy_fft.rfft(x, size, axis=0)
-        ac = scipy_fft.irfft(spec.real**2 + spec.imag**2, size, axis=0)[: min(lags + 1, len(x))]
-        prods[v, : len(ac)] = ac
+    prods = _lag_products(dev, n_v, lags)
     kinds, kind = np.unique(np.column_stack([n_v, stt > 0]), axis=0, return_inverse=True)
     kind = kind.ravel()
     if lags >= MODEL_MIN_LAGS:
