@@ -2142,9 +2142,25 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         share_one_heap()  # the threads allocate from the one heap (heap_trim)
     data = rec if isinstance(rec, DiagnosisData) else prepare_data(rec, static, beside_thread=side_by_side)
     groups = data.group
-    fold, fold_notes = check_folds(data, groups, make_folds(groups, data.use, folds, seed))
+
+    def folds_and_constants() -> tuple[np.ndarray, list[str]]:
+        """The folds, and the constants of the recording the first searches ask for (``DiagnosisData.once``)."""
+        out = check_folds(data, groups, make_folds(groups, data.use, folds, seed))
+        for e in library:
+            e.applicable(data)
+        data.static_psi_map()
+        data.run_steps()
+        return out
+
+    # beside the degree selection (when the searches will run side by side: the other core idles until then)
+    folds_later = beside(folds_and_constants, thread=side_by_side)
     n_levels = data.temperature_level_count()
-    sel_degree, degree_table = select_degree(data, max_degree)
+    try:
+        sel_degree, degree_table = select_degree(data, max_degree)
+    except Exception:
+        folds_later.result()  # a recording the folds cannot be drawn on says so first, as before
+        raise
+    fold, fold_notes = folds_later.result()
     if degree is not None:
         if degree >= n_levels:
             raise NotIdentifiedError(f"degree {degree} is not identified by {n_levels} temperature level(s)")
