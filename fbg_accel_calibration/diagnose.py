@@ -2173,18 +2173,26 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     cv0 = cross_validate(des0, data.use, fold, np.ones(3))
     rows = data.use & des0.valid & (data.pose_id >= 0)  # the floor: scatter within visits, not during moves
     res0 = des0.G - cv0.fitted_full
-    settling = settling_transient(res0, data.t_s, groups, rows)
+    settling_later = beside(settling_transient, res0, data.t_s, groups, rows, thread=side_by_side)
     # the rule of SETTLE_NOISE_FRACTION at either end; the floor it compares with is itself settled. A forced
     # settle_s fixes the start; the end is trimmed only where it is measured disturbed
     auto_start = settle_s is None
     settle_s = 0.0 if settle_s is None else float(settle_s)
+
+    def floor(start_s: float, stop_s: float | None) -> tuple[float, float | None, VisitNoise]:
+        return start_s, stop_s, within_visit_noise(res0, groups, settled_mask(data.t_s, groups, rows, start_s, stop_s),
+                                                   data.t_s)
+
+    # the last floor worked out, at (settle_s, end_s): meanwhile the transient is measured, the first one with the end
+    # kept (as it is unless the end is disturbed)
+    floor_at: tuple[float, float | None, VisitNoise] | None = floor(settle_s, None) if side_by_side else None
+    settling = settling_later.result()
     end_s = 0.0 if settling.end_detected else None
-    floor_at: tuple[float, float | None, VisitNoise] | None = None  # the last floor worked out, at (settle_s, end_s)
     for _ in range(4):
         if not auto_start and end_s is None:
             break
-        floor_at = (settle_s, end_s, within_visit_noise(res0, groups, settled_mask(data.t_s, groups, rows, settle_s,
-                                                                                   end_s), data.t_s))
+        if floor_at is None or floor_at[:2] != (settle_s, end_s):
+            floor_at = floor(settle_s, end_s)
         sigma = floor_at[2].sigma
         grew = False
         if auto_start and (nxt := settle_window(settling, sigma)) > settle_s * (1 + 1e-3):
