@@ -61,6 +61,11 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--lanes", type=iv.lanes, default=None,
                    help="searches run side by side on threads; the results are the same with any number (default: one "
                         "per core up to two from 20000 searched samples on, else one; 1 holds the least memory)")
+    p.add_argument("--search-rows", type=iv.search_rows, default=None,
+                   help="above this many fitted samples the candidates are searched on every k-th one (default "
+                        "50000, diagnose.SEARCH_ROWS; k no larger than keeps 80 %% of what a visit's samples tell of "
+                        "its mean); 0: on every sample (slower; an effect seen only in the first tenths of a second "
+                        "of each visit, as the TIA's, keeps all its samples)")
     p.add_argument("--sensor-id", default=None,
                    help="sensor id written into --yaml (default: the recordings' own, else unknown)")
     p.add_argument("--out", type=Path, default=None, help="markdown report (PNG plots go to --img-dir)")
@@ -129,7 +134,7 @@ def write_outputs(res, args: argparse.Namespace, command: str) -> list[Path]:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .diagnose import diagnose
+    from .diagnose import SEARCH_ROWS, diagnose
     from .diagnose_report import text
     from .thermal_fit import check_recording_excitation
 
@@ -152,7 +157,8 @@ def run(args: argparse.Namespace) -> int:
         with bar(enabled(args), "diagnose: candidate effects evaluated", unit="fits") as b:
             res = diagnose(rec, static=args.static, max_degree=args.max_degree, folds=args.folds, alpha=args.alpha,
                            min_rel_gain=args.min_gain, max_effects=args.max_effects, degree=args.degree,
-                           sensor_id=sensor_id, seed=args.seed, progress=lambda name: b.update(1), lanes=args.lanes)
+                           sensor_id=sensor_id, seed=args.seed, progress=lambda name: b.update(1), lanes=args.lanes,
+                           search_rows=SEARCH_ROWS if args.search_rows is None else (args.search_rows or None))
     except ValueError as exc:
         print(f"fbg-accel-calib diagnose: {', '.join(args.inputs)}: {exc}", file=sys.stderr)
         return 2

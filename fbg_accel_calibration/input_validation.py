@@ -94,6 +94,7 @@ folds = int_in(2, 10_000)
 max_effects = int_in(0, 100)
 seed = int_in(0, 2**32 - 1)
 lanes = int_in(1, 64, " (searches of the diagnosis side by side)")
+search_rows = int_in(0, 10**9, " (0: the diagnosis searches on every fitted sample)")
 cutoff_hz = float_in(1e-3, 1e5, "Hz", what=" (a TIA stage's first-order cut-off)")
 
 

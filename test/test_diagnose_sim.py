@@ -230,6 +230,31 @@ def test_a_slowly_sampled_recording_is_thinned_less_and_the_report_says_how_much
     assert res.added and res.added[0][0] == "thermal_lag"
 
 
+def test_the_command_s_search_rows_option_thins_the_search_or_searches_every_sample(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--search-rows N`` thins the search above N fitted samples, ``--search-rows 0`` searches on every one (an
+    effect seen only in the first tenths of a second of each visit keeps all its samples), and the help names the
+    default and the guard the diagnosis uses."""
+    from fbg_accel_calibration.cli import main
+    from fbg_accel_calibration.diagnose import SEARCH_ROWS
+    from fbg_accel_calibration.mcap_io import write_recording
+
+    mcap = tmp_path / "run.mcap"
+    scale, extra, _ = SCENARIOS["tia_lowpass"]
+    write_recording(mcap, simulate_recording(_config({**extra, "effects.tia_lowpass.scale": scale}), seed=1))
+    reports = {}
+    for n in ("0", "3000"):
+        assert main(["diagnose", str(mcap), "--search-rows", n, "--out", str(tmp_path / n / "r.md")]) == 0
+        reports[n] = (tmp_path / n / "r.md").read_text()
+    assert "evenly spread fitted samples" not in reports["0"]
+    step = re.search(r"evenly spread fitted samples, every (\d+)th: they keep (\d+) %", reports["3000"])
+    assert step and int(step.group(1)) >= 2 and int(step.group(2)) >= 100 * MIN_SEARCH_INFORMATION
+    with pytest.raises(SystemExit):
+        main(["diagnose", "--help"])
+    usage = " ".join(capsys.readouterr().out.split())
+    assert f"default {SEARCH_ROWS}" in usage and f"keeps {100 * MIN_SEARCH_INFORMATION:.0f} %" in usage
+
+
 @pytest.fixture(scope="module")
 def chamber_levels():
     """The usual campaign: one six-position run (one file) per chamber level, 16, 24 and 45 degC, nothing injected."""

@@ -186,6 +186,7 @@ def test_identical_samples_are_refused_by_fit_and_diagnose(tmp_path: Path, capsy
     (["diagnose", "{csv}", "--seed", "-1"], "argument --seed"),
     (["diagnose", "{csv}", "--lanes", "0"], "argument --lanes: 0 is outside [1, 64]"),
     (["diagnose", "{csv}", "--lanes", "two"], "argument --lanes: 'two' is not an integer"),
+    (["diagnose", "{csv}", "--search-rows", "-1"], "argument --search-rows: -1 is outside [0, 1000000000]"),
     (["diagnose", "{csv}", "--max-effects", "-2"], "argument --max-effects"),
     (["diagnose", "{csv}", "--g", "0"], "argument --g"),
 ])
