@@ -1573,6 +1573,8 @@ def search_samples(fit_rows: np.ndarray, folds: np.ndarray, search_rows: int | N
     Consecutive samples of a visit are strongly correlated (TIA-filtered noise): the thinned set carries most of
     the information that decides a choice, at a fraction of the cost; a recording sampled so slowly that its noise
     is nearly white is thinned less."""
+    if search_rows is not None and search_rows < 1:
+        raise ValueError(f"search_rows must be at least 1 (None: every sample), got {search_rows}")
     n_fit = int(fit_rows.sum())
     k = math.ceil(n_fit / search_rows) if search_rows is not None and n_fit > search_rows else 1
     kept = 1.0 if noise is None or not math.isfinite(visit_samples) else thinned_information(noise, k, visit_samples)

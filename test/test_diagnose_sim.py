@@ -214,6 +214,8 @@ def test_a_search_is_thinned_only_as_far_as_the_visit_means_keep_their_informati
     assert k == cap or brute(k + 1) < MIN_SEARCH_INFORMATION + 0.02, (k, brute(k + 1))
     assert (k == 1) == (tau == 0.0) and (k == cap) == (tau == 400.0)
     assert len(every) == len(range(0, n_visits * n, k)) and np.all(np.diff(folds[every]) >= 0)
+    with pytest.raises(ValueError, match="search_rows must be at least 1"):
+        search_samples(fit_rows, folds, 0)
 
 
 def test_a_slowly_sampled_recording_is_thinned_less_and_the_report_says_how_much_it_keeps() -> None:
