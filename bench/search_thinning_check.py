@@ -7,9 +7,10 @@ full search (``search_rows=None``):
 
 * the benchmark run (``bench_calibration.scenario``: every nominal effect, four chamber levels, 100 Hz, 3 s visits) at
   each of ``--samples``, seeds ``--seeds``, thinned with ``SEARCH_ROWS`` = 10^5 and with the default;
-* a stress test the default never makes: each one-effect scenario of ``test/test_diagnose_sim.py`` (42 or 72 visits
-  at 25 or 100 Hz, 12 575 to 16 700 samples: never thinned by default), seeds 2..4, with k = 8 and k = 15 forced
-  (through ``search_rows``; the guard lowers k at 25 Hz): the same steps on ~20 times fewer visits.
+* a stress test the default never makes: each one-effect scenario of ``test/test_diagnose_sim.py`` (42 visits at
+  100 Hz, 126 at 25 Hz; 12 575 to 16 700 samples: never thinned by default), seeds 2..4, with k = 8 and k = 15 forced
+  (through ``search_rows``; the guard lowers k where the noise is nearly white from sample to sample): the same steps
+  on 20 to 60 times fewer visits than the benchmark run's 2500 at 10^6 samples.
 
 A row: the effects added by the full search, whether each thinned search adds the same in the same order, the largest
 relative difference of their hyper-parameters and of the held-out RMSE after, the step and information each thinned
