@@ -1555,7 +1555,7 @@ def thinned_information(noise: VisitNoise, k: int, visit_samples: float) -> floa
     """What every ``k``-th sample of a visit of ``visit_samples`` consecutive samples tells of the visit's mean, as a
     fraction of what all of them tell: var(mean of all) / var(mean of every k-th) under the noise's autocorrelation
     (``VisitNoise.mean_variance``), on the axis that loses most. 1 / k for white noise; near 1 while k is well
-    within the noise's correlation time (the TIA's filtered noise: about 20 samples at 100 Hz)."""
+    within the noise's correlation time (the TIA's filtered noise at 100 Hz: ``VisitNoise.correlation_samples``)."""
     if k <= 1:
         return 1.0
     every = noise.mean_variance(np.array([float(visit_samples)]))[0]

@@ -42,6 +42,11 @@ CAND_HEAD = ["rank", "candidate", "held-out gain", "p (Wilcoxon, visits)", "sign
              "held-out RMSE x/y/z [m/s^2]", "corr. with residual x/y/z", "fitted"]
 
 
+def ordinal(k: int) -> str:
+    """``k`` as an ordinal: 2nd, 3rd, 11th, 15th, 21st."""
+    return f"{k}{'th' if 10 <= k % 100 <= 20 else {1: 'st', 2: 'nd', 3: 'rd'}.get(k % 10, 'th')}"
+
+
 def _md_table(head: list[str], rows: list[list[str]]) -> str:
     out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     out += ["| " + " | ".join(r) + " |" for r in rows]
@@ -241,7 +246,7 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
               f"one pose within one run; {len(np.unique(d.pose_id[d.use & (d.pose_id >= 0)]))} distinct pose ids) "
               f"(selection: {res.settings['static']}), {res.settings['folds']}-fold cross-validation over visits"
               + (f" (candidates evaluated and the model chosen on {res.settings['search_rows']} evenly spread fitted "
-                 f"samples, every {res.settings['search_step']}th: they keep "
+                 f"samples, every {ordinal(res.settings['search_step'])}: they keep "
                  f"{100 * res.settings['search_information']:.0f} % of what a visit's samples tell of its mean, the "
                  "noise being correlated; the chosen model fitted on all)"
                  if res.settings.get("search_rows") else "") + ", "

@@ -24,7 +24,7 @@ import pytest
 import yaml
 
 from fbg_accel_calibration.diagnose import MIN_SEARCH_INFORMATION, VisitNoise, diagnose, search_samples
-from fbg_accel_calibration.diagnose_report import markdown, settling_measurements, write_plots
+from fbg_accel_calibration.diagnose_report import markdown, ordinal, settling_measurements, write_plots
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_calibration.table_geometry import table_specific_force
 from fbg_accel_driver.correction_terms import ReferenceLowpass
@@ -227,8 +227,10 @@ def test_a_slowly_sampled_recording_is_thinned_less_and_the_report_says_how_much
     n_fit = len(res.steps[0].candidates[0].delta_rows) * res.settings["search_step"]
     assert 1 < res.settings["search_step"] < math.ceil(n_fit / 1500) - 1, res.settings
     assert res.settings["search_information"] >= MIN_SEARCH_INFORMATION
-    assert f"every {res.settings['search_step']}th: they keep {100 * res.settings['search_information']:.0f} %" \
+    assert f"every {ordinal(res.settings['search_step'])}: they keep {100 * res.settings['search_information']:.0f} %" \
         in markdown(res)
+    assert [ordinal(k) for k in (1, 2, 3, 4, 11, 12, 13, 15, 21, 22, 101, 111)] == \
+        ["1st", "2nd", "3rd", "4th", "11th", "12th", "13th", "15th", "21st", "22nd", "101st", "111th"]
     assert res.added and res.added[0][0] == "thermal_lag"
 
 
@@ -249,7 +251,7 @@ def test_the_command_s_search_rows_option_thins_the_search_or_searches_every_sam
         assert main(["diagnose", str(mcap), "--search-rows", n, "--out", str(tmp_path / n / "r.md")]) == 0
         reports[n] = (tmp_path / n / "r.md").read_text()
     assert "evenly spread fitted samples" not in reports["0"]
-    step = re.search(r"evenly spread fitted samples, every (\d+)th: they keep (\d+) %", reports["3000"])
+    step = re.search(r"evenly spread fitted samples, every (\d+)(?:st|nd|rd|th): they keep (\d+) %", reports["3000"])
     assert step and int(step.group(1)) >= 2 and int(step.group(2)) >= 100 * MIN_SEARCH_INFORMATION
     with pytest.raises(SystemExit):
         main(["diagnose", "--help"])
