@@ -2,7 +2,7 @@
 
 Above ``SEARCH_ROWS`` fitted samples the diagnosis evaluates its candidates on every k-th one (``search_samples``; k
 lowered until the thinned samples keep ``MIN_SEARCH_INFORMATION`` of what a visit's samples tell of its mean). With
-``SEARCH_ROWS`` = 5 * 10^4 (10^5 before) k is 15 at 10^6 samples of the benchmark run (8 before). Compared with the
+``SEARCH_ROWS`` = 5 * 10^4 (10^5 before) k is 15 or 16 at 10^6 samples of the benchmark run (8 before). Compared with the
 full search (``search_rows=None``):
 
 * the benchmark run (``bench_calibration.scenario``: every nominal effect, four chamber levels, 100 Hz, 3 s visits) at

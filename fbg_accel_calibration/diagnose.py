@@ -1554,13 +1554,21 @@ MIN_SEARCH_INFORMATION = 0.8  # but a thinned search keeps at least this much of
 def thinned_information(noise: VisitNoise, k: int, visit_samples: float) -> float:
     """What every ``k``-th sample of a visit of ``visit_samples`` consecutive samples tells of the visit's mean, as a
     fraction of what all of them tell: var(mean of all) / var(mean of every k-th) under the noise's autocorrelation
-    (``VisitNoise.mean_variance``), on the axis that loses most. 1 / k for white noise; near 1 while k is well
-    within the noise's correlation time (the TIA's filtered noise at 100 Hz: ``VisitNoise.correlation_samples``)."""
+    (``VisitNoise.mean_variance``; ``visit_samples`` / k of them, as many as the thinning leaves on average over the
+    visits' phases: a little less than the ceiling, so on the safe side), on the axis that loses most. 1 / k for white
+    noise; near 1 while k is well within the noise's correlation time (the TIA's filtered noise at 100 Hz:
+    ``VisitNoise.correlation_samples``)."""
     if k <= 1:
         return 1.0
     every = noise.mean_variance(np.array([float(visit_samples)]))[0]
     thinned = VisitNoise(noise.sigma, noise.acf[:, ::k]).mean_variance(np.array([float(visit_samples) / k]))[0]
     return float(np.min(every / thinned))
+
+
+def check_search_rows(search_rows: int | None) -> None:
+    """Refuse a ``search_rows`` below 1 (None: every sample) with a clear error."""
+    if search_rows is not None and search_rows < 1:
+        raise ValueError(f"search_rows must be at least 1 (None: every sample), got {search_rows}")
 
 
 def search_samples(fit_rows: np.ndarray, folds: np.ndarray, search_rows: int | None, noise: VisitNoise | None = None,
@@ -1573,14 +1581,17 @@ def search_samples(fit_rows: np.ndarray, folds: np.ndarray, search_rows: int | N
     Consecutive samples of a visit are strongly correlated (TIA-filtered noise): the thinned set carries most of
     the information that decides a choice, at a fraction of the cost; a recording sampled so slowly that its noise
     is nearly white is thinned less."""
-    if search_rows is not None and search_rows < 1:
-        raise ValueError(f"search_rows must be at least 1 (None: every sample), got {search_rows}")
+    check_search_rows(search_rows)
     n_fit = int(fit_rows.sum())
     k = math.ceil(n_fit / search_rows) if search_rows is not None and n_fit > search_rows else 1
+    if noise is not None and math.isfinite(visit_samples) and thinned_information(noise, k, visit_samples) < \
+            MIN_SEARCH_INFORMATION:  # the largest k below that keeps it (bisection: the information falls with k)
+        lo, hi = 1, k
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            lo, hi = (mid, hi) if thinned_information(noise, mid, visit_samples) >= MIN_SEARCH_INFORMATION else (lo, mid)
+        k = lo
     kept = 1.0 if noise is None or not math.isfinite(visit_samples) else thinned_information(noise, k, visit_samples)
-    while k > 1 and kept < MIN_SEARCH_INFORMATION:
-        k -= 1
-        kept = thinned_information(noise, k, visit_samples)
     every = np.flatnonzero(fit_rows)[::k]
     return every[np.argsort(folds[every], kind="stable")], k, kept
 
@@ -2131,11 +2142,14 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     thinned set, and the chosen model fitted on every sample (``search_samples``); None: always on every sample.
     ``lanes``: how many searches run side by side (``search_lanes``; the results are the same with any number);
     None: ``default_lane_count()`` when at least ``LANE_SEARCH_ROWS`` samples are searched, one otherwise. With more
-    than one, the process's threads allocate from one heap from then on (``heap_trim.share_one_heap``); with any, the
-    heap takes arrays of up to 64 MiB and keeps their pages when they are freed (``heap_trim.keep_freed_pages``).
+    than one (or, with None, from ``LANE_SEARCH_ROWS`` samples of the recording on, on a machine of two cores or more),
+    the work before the first search uses a second thread too, and the process's threads allocate from one heap from
+    then on (``heap_trim.share_one_heap``); with any, the heap takes arrays of up to 64 MiB and keeps their pages when
+    they are freed (``heap_trim.keep_freed_pages``).
 
     It runs with one BLAS thread (``blas_threads``): its products of tall, narrow matrices gain nothing from more,
     and lose much when another process holds a core."""
+    check_search_rows(search_rows)  # before seconds of work at 10^6 samples, not after
     return_free_memory()  # what the caller dropped (a simulation, an MCAP read), before the diagnosis's arrays are made
     keep_freed_pages()  # the searches' arrays reuse the pages of those they dropped (heap_trim)
     # a large recording's searches run side by side: until they start, the other core takes what it can
@@ -2146,12 +2160,14 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     groups = data.group
 
     def folds_and_constants() -> tuple[np.ndarray, list[str]]:
-        """The folds, and the constants of the recording the first searches ask for (``DiagnosisData.once``)."""
+        """The folds and, on a thread of their own, the constants of the recording the first searches ask for
+        (``DiagnosisData.once``)."""
         out = check_folds(data, groups, make_folds(groups, data.use, folds, seed))
-        for e in library:
-            e.applicable(data)
-        data.static_psi_map()
-        data.run_steps()
+        if side_by_side:
+            for e in library:
+                e.applicable(data)
+            data.static_psi_map()
+            data.run_steps()
         return out
 
     # beside the degree selection (when the searches will run side by side: the other core idles until then)
