@@ -167,3 +167,20 @@ def test_a_marginal_unresolved_transient_trims_only_the_sample_where_it_is_signi
     assert window == 0.0, window
     kept = settled_mask(t, groups, rows, 0.0 if end else window, window if end else None)
     assert np.sum(~kept) == (2 if end else 1) * n_visits  # the first sample (and, the end disturbed, the last) of each visit
+
+
+@pytest.mark.parametrize("disturbed", [False, True], ids=["ends-kept", "ends-disturbed"])
+def test_the_floor_worked_out_beside_the_settling_measurement_is_the_one_worked_out_after_it(disturbed: bool) -> None:
+    """With a second thread (two lanes) the first noise floor is worked out, with the visits' ends kept, while the
+    settling transient is measured, and used only when the ends prove undisturbed; otherwise it is worked out again
+    with them trimmed. Either way the floor, the windows and the result are those of one thread, bit for bit."""
+    rec, _, _ = campaign(2)
+    if disturbed:
+        rec = _end_disturbed(rec, 1, 0.8, 10)
+    one, two = (diagnose(rec, static="table", max_effects=1, lanes=n) for n in (1, 2))
+    assert two.settling.end_detected == disturbed
+    assert np.array_equal(one.noise_floor, two.noise_floor)
+    assert (one.settling.settle_s, one.settling.end_settle_s, one.n_floor_samples) == \
+        (two.settling.settle_s, two.settling.end_settle_s, two.n_floor_samples)
+    assert [a[:2] for a in one.added] == [a[:2] for a in two.added]
+    assert np.array_equal(one.residual_after, two.residual_after, equal_nan=True)
