@@ -17,7 +17,7 @@ import pytest
 from scipy.signal import lfilter
 from test_diagnose_sim import THERMAL, _config
 
-from fbg_accel_calibration.diagnose import diagnose, settled_mask, visit_index, within_visit_noise
+from fbg_accel_calibration.diagnose import _lag_products, diagnose, settled_mask, visit_index, within_visit_noise
 from fbg_accel_sim.board_physics import simulate_recording
 
 DEAD_REF = {"scenario.rate_hz": 25.0, "scenario.poses.dwell_s": 10.0, "scenario.poses.move_s": 2.0,
@@ -170,3 +170,24 @@ def test_the_settled_mask_of_visits_in_time_order_is_that_of_the_same_visits_lab
         for settle_s, end_s in ((0.0, None), (0.05, None), (0.0, 0.0), (0.03, 0.04)):
             np.testing.assert_array_equal(settled_mask(t, ids, rows, settle_s, end_s),
                                           settled_mask(t, relabelled, rows, settle_s, end_s))
+
+
+def test_the_lag_products_of_visits_transformed_together_are_those_of_one_visit_at_a_time() -> None:
+    """The floor's lag products go through one FFT call per visit length: the same bits as one visit at a time, and
+    the lag products of their definition (sum_i d_i d_(i+k)), for visits shorter than the lags and of one sample."""
+    from scipy import fft
+
+    rng = np.random.default_rng(5)
+    n_v = rng.choice([300, 301, 40, 5, 2, 1], size=400)
+    dev = rng.normal(size=(int(n_v.sum()), 3))
+    lags = 60
+    got = _lag_products(dev, n_v, lags, batch=37)
+    bounds = np.r_[0, np.cumsum(n_v)]
+    for v in range(len(n_v)):
+        x = dev[bounds[v]:bounds[v + 1]]
+        size = fft.next_fast_len(len(x) + lags + 1, real=True)
+        spec = fft.rfft(x, size, axis=0)
+        one = fft.irfft(spec.real**2 + spec.imag**2, size, axis=0)[: min(lags + 1, len(x))]
+        assert np.array_equal(got[v, : len(one)], one) and not got[v, len(one):].any(), v
+        direct = [np.sum(x[: len(x) - k] * x[k:], axis=0) for k in range(len(one))]
+        np.testing.assert_allclose(one, direct, atol=1e-9)
