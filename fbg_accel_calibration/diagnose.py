@@ -1584,14 +1584,14 @@ def search_samples(fit_rows: np.ndarray, folds: np.ndarray, search_rows: int | N
     check_search_rows(search_rows)
     n_fit = int(fit_rows.sum())
     k = math.ceil(n_fit / search_rows) if search_rows is not None and n_fit > search_rows else 1
-    if noise is not None and math.isfinite(visit_samples) and thinned_information(noise, k, visit_samples) < \
-            MIN_SEARCH_INFORMATION:  # the largest k below that keeps it (bisection: the information falls with k)
-        lo, hi = 1, k
+    kept = 1.0 if noise is None or not math.isfinite(visit_samples) else thinned_information(noise, k, visit_samples)
+    if kept < MIN_SEARCH_INFORMATION:  # the largest k below that keeps it (bisection: the information falls with k)
+        lo, hi, kept = 1, k, 1.0
         while hi - lo > 1:
             mid = (lo + hi) // 2
-            lo, hi = (mid, hi) if thinned_information(noise, mid, visit_samples) >= MIN_SEARCH_INFORMATION else (lo, mid)
+            info = thinned_information(noise, mid, visit_samples)
+            lo, hi, kept = (mid, hi, info) if info >= MIN_SEARCH_INFORMATION else (lo, mid, kept)
         k = lo
-    kept = 1.0 if noise is None or not math.isfinite(visit_samples) else thinned_information(noise, k, visit_samples)
     every = np.flatnonzero(fit_rows)[::k]
     return every[np.argsort(folds[every], kind="stable")], k, kept
 
