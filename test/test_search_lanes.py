@@ -66,14 +66,19 @@ def test_the_costliest_tasks_start_first_and_the_results_keep_the_items_order() 
     and the ``done`` calls stay in the items' order."""
     started: list[int] = []
     lock = threading.Lock()
+    both_started = threading.Barrier(2, timeout=30)
 
     def task(lane: Lane, item: int) -> int:
         with lock:
             started.append(item)
+            first = len(started) <= 2
+        if first:  # no lane takes a third task before the first two have both started
+            both_started.wait()
         return 10 * item
 
     for cost, first_two in ((None, {0, 1}), ({0: 1.0, 1: 3.0, 2: 2.0, 3: 0.0}.get, {1, 2})):
         started.clear()
+        both_started.reset()
         seen: list[int] = []
         out = Lanes([Lane(), Lane()]).map(task, range(4), seen.append, cost=cost)
         assert out == seen == [0, 10, 20, 30]
