@@ -627,6 +627,23 @@ LANE_SEARCH_ROWS = 20_000
 SEARCH_STRIDE = 4  # a hyper-parameter search visits every 4th grid value first, then walks from the best (search_batches)
 
 
+# training RSS that differ by less than this fraction are equal up to rounding: the same fit computed in another
+# order (another BLAS kernel, another sum of the same rows). Far above the rounding of a weighted RSS of normal
+# equations (~1e-12 relative at 10^6 rows), far below any difference a test over visits can see.
+RSS_TIE_RTOL = 1e-9
+
+
+def first_min(values: np.ndarray) -> int:
+    """Index of the first value within ``RSS_TIE_RTOL`` of the smallest (finite; 0 when none is): ``np.argmin``
+    with ties up to rounding broken by order, so that the machine's rounding does not choose among equal fits."""
+    v = np.asarray(values, float)
+    finite = np.isfinite(v)
+    if not finite.any():
+        return 0
+    lo = float(v[finite].min())
+    return int(np.flatnonzero(finite & (v <= lo + RSS_TIE_RTOL * abs(lo)))[0])
+
+
 def search_batches(n: int, seen: dict[int, tuple[bool | None, float]], best_at: np.ndarray) -> Iterator[list[int]]:
     """Indices of a grid of ``n`` hyper-parameter values for a search to visit, chosen from what it has found so far,
     a batch at a time (the values of a batch do not depend on each other's results: ``Evaluator.cv_each``).
@@ -779,6 +796,8 @@ def switch_profile(X: np.ndarray, G: np.ndarray, Z: np.ndarray, index: np.ndarra
             xtg[s_] += w[:, :p].T @ w[:, p + q:]
             gtg[s_] += np.einsum("ij,ij->j", w[:, p + q:], w[:, p + q:])
     T = T.reshape(K + 1, m + 1, q, width)
+    # rows per (slot, segment): values between which a fold trains on no row give that fold the same fit
+    counts = np.bincount(key, minlength=(K + 1) * (m + 1)).reshape(K + 1, m + 1)
     S = np.cumsum(T[:, ::-1], axis=1)[:, ::-1][:, 1:]  # (K + 1, m, q, width): the rows after each grid value
     S_tot, XtX, XtG, GtG = S.sum(0), xtx.sum(0), xtg.sum(0), gtg.sum(0)
     out = np.full((K, m), np.inf)
@@ -800,6 +819,19 @@ def switch_profile(X: np.ndarray, G: np.ndarray, Z: np.ndarray, index: np.ndarra
         red = np.zeros((m, 3))
         red[ok] = np.einsum("jai,jai->ji", v[ok], np.linalg.solve(M[ok], v[ok]))
         out[fo, ok] = (base[None, :] - red[ok]) @ weights
+        out[fo] = _share_equal_fits(out[fo], counts.sum(0)[1:m] - counts[fo + 1, 1:m])
+    return out
+
+
+def _share_equal_fits(rss: np.ndarray, trained_between: np.ndarray) -> np.ndarray:
+    """``rss`` (m,) of one fold over a grid of switch values, where values with no training row between them
+    (``trained_between`` (m - 1,): the fold's training rows between value j and j + 1) take the first one's RSS. Such
+    values fit the fold's training rows with the same design, so their RSS are equal but for rounding, and the
+    rounding (which the BLAS kernel decides) must not choose among them: each keeps the first value's RSS, so that
+    a search's choice falls on the first of them on every machine."""
+    out = rss.copy()
+    for j in np.flatnonzero(trained_between == 0):
+        out[j + 1] = out[j]
     return out
 
 # ============================================================================ noise floor, settling, degree
@@ -1744,8 +1776,10 @@ class Evaluator:
                 return
             des, cvr = done
             ok = not self.implausible(eff, h, des, cvr)
-            # the first value in grid order wins a tie, whatever the order the values are visited in
-            better = (cvr.train_rss < best_train[ok]) | ((cvr.train_rss == best_train[ok]) & (i < best_at[ok]))
+            # the first value in grid order wins a tie (equal up to rounding: ``RSS_TIE_RTOL``), whatever the order
+            # the values are visited in
+            tie = np.abs(cvr.train_rss - best_train[ok]) <= RSS_TIE_RTOL * np.minimum(cvr.train_rss, best_train[ok])
+            better = np.where(tie, i < best_at[ok], cvr.train_rss < best_train[ok])
             if fold_ok is not None:
                 better &= fold_ok[:, i]
             for f in np.flatnonzero(better):
@@ -1774,7 +1808,7 @@ class Evaluator:
         grid = np.asarray([h for h, ok in zip(kept, plausible, strict=True) if ok == use_ok])
         rss_grid = [p[1] for p, ok in zip(profile, plausible, strict=True) if ok == use_ok]
         # final value on all rows: best grid point then bounded scalar refinement between its neighbours
-        j = int(np.argmin(rss_grid))
+        j = first_min(np.asarray(rss_grid))
         lo = grid[max(j - 1, 0)]
         hi = grid[min(j + 1, len(grid) - 1)]
         h_best = float(grid[j])
@@ -1834,10 +1868,10 @@ class Evaluator:
                                   self.fit_rows & des.valid, self.weights, grid)
         except NotIdentifiedError:
             return None
-        best_mean = int(np.argmin(prof.sum(axis=0)))
+        best_mean = first_min(prof.sum(axis=0))
         if fold_ok is not None:
             prof = np.where(fold_ok, prof, np.inf)
-        return sorted({int(np.argmin(p)) for p in prof if np.isfinite(p).any()} | {best_mean})
+        return sorted({first_min(p) for p in prof if np.isfinite(p).any()} | {best_mean})
 
     def implausible(self, eff: Effect, h: float | None, des: Design, cvr: CvResult) -> str:
         """Why the fit of ``eff`` at ``h`` (design ``des``, fit ``cvr`` on all rows) is not physical, or "": the

@@ -433,16 +433,22 @@ def _said_at(text: str, at_s: float, start: str) -> bool:
     return m is not None and _near(float(m.group(1)), float(m.group(2)), at_s)
 
 
-def test_a_step_of_a_channel_s_loss_is_not_written_as_a_warm_up_and_creep() -> None:
+@pytest.mark.parametrize("seed", [1, 4])
+def test_a_step_of_a_channel_s_loss_is_not_written_as_a_warm_up_and_creep(seed: int) -> None:
     """A connector of the x channel knocked mid-run (its loss up 0.13 dB, 3 % of the power, at 83 s of a 167 s grid
     run; ``effects.connector_loss_step``, not in the library). On the unchanged code time_drift was added at +71 %,
     p 7.3e-10, passing the check over contiguous blocks of time too (+44 %, p 2.2e-6): a warm-up of 3.47 m/s^2 on x with
     tau 25 s and a creep of 0.041 m/s^2/s (6.8 m/s^2 over the run), written to the YAML the driver applies after every
     power-on, while x stayed 5.55x the floor. A warm-up with creep follows a step across time blocks as well; a step
     of the response at one time explains what it fits and gains beyond it, so the drift is not added, the candidate
-    says where the step is, and the residual is reported as what the model lacks."""
+    says where the step is, and the residual is reported as what the model lacks.
+
+    Seed 4 once wrote the drift with a warning that a step fits as well, on some machines only: the fold holding out
+    the visit next to the step trains on the same rows for every step time within that visit, and which of those
+    equal fits won was left to the BLAS kernel's rounding (step gain beyond the drift -3 % with Haswell's kernels,
+    +28 % with Prescott's, +59 % with SkylakeX's). Equal fits now go to the first step time on every machine."""
     rec = simulate_recording(_config({"effects.connector_loss_step.scale": 1.0,
-                                      "effects.connector_loss_step.at_s": 83.0}), seed=1)
+                                      "effects.connector_loss_step.at_s": 83.0}), seed=seed)
     res = diagnose(rec)
     assert "time_drift" not in [a[0] for a in res.added], res.added
     assert not any(t.kind == "time_drift" for t in res.calibration.corrections)
@@ -453,23 +459,6 @@ def test_a_step_of_a_channel_s_loss_is_not_written_as_a_warm_up_and_creep() -> N
     assert res.structure.significant and res.structure.ratio[0] > 3.0, res.structure.verdict
     assert any(_said_at(m, 83.0, "a step of the response") for m in settling_measurements(res)), \
         settling_measurements(res)
-
-
-def test_a_drift_that_a_step_fits_as_well_is_written_with_a_warning() -> None:
-    """The same knocked connector on another seed: the step gains beyond the warm-up and creep over most visits (p
-    7.8e-6) but not in mean square (-3 %: the visit next to the step, held out, leaves its side of the step to chance),
-    and the drift gains nothing beyond the step (-0.6 %, p 0.94): the data do not tell them apart, so the drift is
-    added as before (+71 %, a warm-up of 3.5 m/s^2 on x) -- and on the unchanged code without a word that a step fits
-    as well. The report now warns, naming where the step is."""
-    rec = simulate_recording(_config({"effects.connector_loss_step.scale": 1.0,
-                                      "effects.connector_loss_step.at_s": 83.0}), seed=4)
-    res = diagnose(rec)
-    drift = next(c for c in res.ranked if c.name == "time_drift")
-    assert drift.step_check is not None and _brackets(drift.step_check, 83.0), drift.step_check
-    assert not drift.step_check.explained and "time_drift" in [a[0] for a in res.added], drift.detail
-    assert any(_said_at(w, 83.0, "time_drift is in the calibration, but a step of the response") for w in res.warnings), \
-        res.warnings
-    assert res.structure.significant and res.structure.ratio[0] > 3.0, res.structure.verdict
 
 
 # The chamber ramped up and down once (20 -> 30 -> 20 degC over the run, the fast housing of THERMAL), and held at

@@ -56,3 +56,33 @@ def test_a_switch_value_that_leaves_a_fold_no_switched_rows_is_not_identified():
     Xa = np.column_stack([X, np.zeros_like(Z)])
     with pytest.raises(NotIdentifiedError):
         cross_validate(Design(Xa, G, np.ones(len(G), bool), {}, X.shape[1]), rows & (folds != -1), folds, weights)
+
+
+def test_switch_values_between_which_a_fold_trains_on_no_row_fit_it_the_same_to_the_bit():
+    """Visits held out by a fold leave gaps in its training rows; every step time within one gap gives that fold the
+    same design on its training rows, so the same RSS. Computed from different partial sums, the RSS of such values
+    differed in their last bits, and the BLAS kernel's rounding chose the fold's step time among them (a held-out
+    visit then fell on either side of the step by chance). They are now equal to the bit, and the first wins."""
+    X, G, Z, index, folds, rows, weights, _ = _case(4)
+    fit_rows = rows & (folds != -1)
+    held = np.flatnonzero(fit_rows & (folds == 0))
+    inside = index[held[len(held) // 2]:held[len(held) // 2] + 1]  # one held-out row of fold 0
+    # three step times in the gap of fold 0's training rows around that held-out row, and two well apart
+    trained0 = np.flatnonzero(fit_rows & (folds != 0))
+    before = index[trained0[trained0 < held[len(held) // 2]][-1]]
+    after = index[trained0[trained0 > held[len(held) // 2]][0]]
+    grid = np.array([index[200], before + 1, inside[0], after, index[-200]], float)
+    assert before + 1 < inside[0] < after  # a gap with a held-out row in it
+    prof = switch_profile(X, G, Z, index, folds, fit_rows, weights, grid)
+    assert prof[0, 1] == prof[0, 2] == prof[0, 3]  # fold 0: the same fit, the same bits
+    assert all(prof[f, 1] != prof[f, 3] for f in range(1, prof.shape[0]))  # the other folds train on that row
+
+
+def test_the_first_of_equal_fits_is_chosen_whatever_their_last_bits():
+    """``first_min``: values equal up to rounding (``RSS_TIE_RTOL``) go to the first; a real difference still wins."""
+    from fbg_accel_calibration.diagnose import RSS_TIE_RTOL, first_min
+
+    v = np.array([5.0, 2.0 * (1 + RSS_TIE_RTOL / 10), 2.0, np.inf, 2.0 * (1 - RSS_TIE_RTOL / 10)])
+    assert first_min(v) == 1
+    assert first_min(np.array([5.0, 2.0 * (1 + 10 * RSS_TIE_RTOL), 2.0])) == 2
+    assert first_min(np.array([np.inf, np.nan])) == 0
