@@ -28,8 +28,8 @@ _ENTRY_POINTS = (("openblas_get_num_threads", "openblas_set_num_threads"),
 F = TypeVar("F", bound=Callable[..., Any])
 
 
-def _loaded_openblas() -> list[tuple[Any, Any]]:
-    """(get, set) functions of every OpenBLAS library mapped into this process, once per file."""
+def _openblas_libraries() -> list[Any]:
+    """Every OpenBLAS library mapped into this process, once per file (``/proc/self/maps``; empty elsewhere)."""
     try:
         with open("/proc/self/maps", encoding="utf-8", errors="replace") as f:
             paths = {line.split(None, 5)[5].strip() for line in f if len(line.split(None, 5)) == 6}
@@ -38,9 +38,16 @@ def _loaded_openblas() -> list[tuple[Any, Any]]:
     out = []
     for path in sorted(p for p in paths if "openblas" in os.path.basename(p).lower() and os.path.isfile(p)):
         try:
-            lib = ctypes.CDLL(path, mode=getattr(os, "RTLD_NOLOAD", 0) | ctypes.RTLD_GLOBAL)
+            out.append(ctypes.CDLL(path, mode=getattr(os, "RTLD_NOLOAD", 0) | ctypes.RTLD_GLOBAL))
         except OSError:
             continue
+    return out
+
+
+def _loaded_openblas() -> list[tuple[Any, Any]]:
+    """(get, set) thread-count functions of every OpenBLAS library mapped into this process, once per file."""
+    out = []
+    for lib in _openblas_libraries():
         for get_name, set_name in _ENTRY_POINTS:
             get, set_ = getattr(lib, get_name, None), getattr(lib, set_name, None)
             if get is not None and set_ is not None:
@@ -48,6 +55,22 @@ def _loaded_openblas() -> list[tuple[Any, Any]]:
                 out.append((get, set_))
                 break
     return out
+
+
+def blas_core_names() -> list[str]:
+    """The kernel family each loaded OpenBLAS library runs (``openblas_get_corename``: e.g. "Haswell", "SkylakeX"; set
+    by the CPU, or by ``OPENBLAS_CORETYPE``). Their rounding differs, so a result that changes with it is at a
+    threshold."""
+    names = []
+    for lib in _openblas_libraries():
+        for entry in ("scipy_openblas_get_corename64_", "scipy_openblas_get_corename", "openblas_get_corename64_",
+                      "openblas_get_corename"):
+            get = getattr(lib, entry, None)
+            if get is not None:
+                get.restype = ctypes.c_char_p
+                names.append(get().decode("ascii", "replace"))
+                break
+    return names
 
 
 def blas_thread_counts() -> list[int]:

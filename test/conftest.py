@@ -18,3 +18,14 @@ def ros() -> Iterator[Any]:
     rclpy.init(args=[], context=ctx)
     yield ctx
     rclpy.try_shutdown(context=ctx)
+
+
+def pytest_report_header(config: pytest.Config) -> str:
+    """Which OpenBLAS kernel this run computes with (``scripts/test_blas_kernels.sh`` runs the numerical tests under
+    each one the CPU has): a failure that only one kernel shows is a result decided by rounding."""
+    import numpy as np
+
+    from fbg_accel_calibration.blas_threads import blas_core_names
+
+    np.ones((2, 2)) @ np.ones((2, 2))  # the library is loaded with numpy
+    return f"OpenBLAS kernel: {', '.join(blas_core_names()) or 'none found'}"

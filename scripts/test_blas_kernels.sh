@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# Run the numerical tests (diagnosis, fit, dynamic calibration, calibration model) once under each OpenBLAS kernel
+# family this CPU can run, forced with OPENBLAS_CORETYPE. The kernels round differently; a test that passes under one
+# and fails under another asserts a result decided by rounding, which a user on another machine would not get.
+# Usage: scripts/test_blas_kernels.sh [KERNEL ...]   (default: Prescott Haswell SkylakeX Zen; .ci/run calls it)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+scripts/bootstrap.sh
+kernels=("$@")
+[ ${#kernels[@]} -gt 0 ] || kernels=(Prescott Haswell SkylakeX Zen)
+if [ "$(uname -m)" != x86_64 ]; then
+  echo "test_blas_kernels: OpenBLAS core types are x86-64 kernels; this is $(uname -m): nothing to run"
+  exit 0
+fi
+flags=$(grep -m1 '^flags' /proc/cpuinfo || true)
+tests=$(ls test/test_diagnose*.py test/test_*fit*.py test/test_thermal_*.py test/test_dynamic_*.py \
+  test/test_switch_profile.py test/test_search_lanes.py test/test_correction_terms.py test/test_chain_compensation.py \
+  test/test_driver_chain_compensation.py test/test_adc_clipping.py test/test_low_reference.py \
+  test/test_reference_level.py test/test_static_detector.py 2>/dev/null | grep -v '_process\.py$')
+export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 101 ))}
+corename='from fbg_accel_calibration.blas_threads import blas_core_names; import numpy as np
+np.ones(2) @ np.ones(2); print(",".join(blas_core_names()))'
+seen=" "
+status=0
+for k in "${kernels[@]}"; do
+  case $k in
+    SkylakeX|Cooperlake|SapphireRapids) need=avx512f ;;
+    Haswell|Zen) need=avx2 ;;
+    *) need=sse3 ;;
+  esac
+  if ! grep -qw "$need" <<<"$flags"; then
+    echo "test_blas_kernels: $k skipped: this CPU has no $need"
+    continue
+  fi
+  core=$(OPENBLAS_CORETYPE=$k .venv/bin/python -c "$corename")
+  if [[ "$seen" == *" $core "* ]]; then
+    echo "test_blas_kernels: $k skipped: it runs the $core kernels, already tested"
+    continue
+  fi
+  seen="$seen$core "
+  echo "test_blas_kernels: OPENBLAS_CORETYPE=$k ($core kernels)"
+  # shellcheck disable=SC2086
+  OPENBLAS_CORETYPE=$k .venv/bin/python -m pytest -p no:cacheprovider $tests || status=1
+done
+exit $status
