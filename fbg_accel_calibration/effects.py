@@ -50,6 +50,7 @@ from fbg_accel_driver.correction_terms import (
     quadratic_features,
     sample_steps,
 )
+from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
 
 # Table 1 of the paper: TIA cut-off frequencies (Hz) of ref, x, y, z (static-test build).
 TIA_CUTOFF_HZ = np.array([1.0, 1.7, 1.3, 1.3])
@@ -565,7 +566,28 @@ class ThermalLagEffect(Effect):
             return False, "temperature does not change in this recording"
         if data.temperature_level_count() < 2:  # the lag delays a temperature that eq. 28 of degree 0 does not read
             return False, "one temperature level: eq. 28 has no temperature term for a lag to act on"
+        tau = float(np.max(self.hyper_grid(data)))
+        reach = float(data.once("thermal_lag_reach", lambda: self.reach_c(data, tau)))
+        if reach < 20 * AHT10_RESOLUTION_C:
+            return False, (f"the temperature was settled on every fitted sample: a lag of up to {tau:.4g} s would move "
+                           f"their temperature by {reach:.2g} degC at most, under what eq. 28 can resolve, so this "
+                           "campaign cannot reveal a lag (levels recorded after the chamber settled); record while the "
+                           "temperature ramps to test it")
         return True, ""
+
+    @staticmethod
+    def reach_c(data: DiagnosisData, tau_s: float) -> float:
+        """The largest shift (degC) a lag of ``tau_s`` (s) gives the temperature of a fitted sample: the detection
+        limit of the campaign's design (levels recorded once settled give none, whatever the lag)."""
+        reach = 0.0
+        for idx, steps in zip(data.runs(), data.run_steps(), strict=True):
+            temp = data.temp_c[idx]
+            use = data.use[idx] & np.isfinite(temp)
+            if use.any():
+                lagged = ThermalLag(tau_s).effective_temperature(np.where(np.isfinite(temp), temp, np.nanmean(temp)),
+                                                                 data.t_s[idx], {}, steps)
+                reach = max(reach, float(np.max(np.abs(lagged - temp)[use])))
+        return reach
 
     def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
         lo, hi = max(5 * data.dt_s, data.duration_s / 2000), max(data.duration_s / 3, 10 * data.dt_s)
@@ -594,6 +616,21 @@ class ThermalLagEffect(Effect):
 
 
 PSI_SPAN_MARGIN = 0.05  # fraction of the fitted Psi range added on each side of a spectral_nonlinearity's psi_span
+# How far the spectral overlap can bend the output: the paper's overlap model (eq. 13 and 22, the six gratings'
+# spectra of Fig. 7, fitted to the non-linearity of Fig. 12: up to 6.6 % of full scale at 180 m/s^2, section 4.2) is
+# curved at rest by at most 1.6 % of the output at 1 g (x; y 0.4 %, z 0.6 %: ``python -m fbg_accel_sim.optics``,
+# bench/results/optics_linearity.json, ``nonlinearity_1g_percent_of_1g``). A second-order deviation grows as the
+# square of the specific force: at |a| it is NONLINEARITY_AT_1G * |a|^2 / g. NONLINEARITY_MARGIN (2) covers the
+# spread between sensors' gratings; a quadratic term that bends the poses' output further is not the spectral overlap
+# (an effect of the orientation, of the table's angles or of the pose history stands in for it).
+NONLINEARITY_AT_1G = 0.016
+NONLINEARITY_MARGIN = 2.0
+
+
+def nonlinearity_bound_mps2(a_mps2: float) -> float:
+    """Largest non-linear deviation (m/s^2) the spectral overlap can give at specific force ``a_mps2`` (m/s^2), with
+    its margin (``NONLINEARITY_AT_1G``): 0.31 m/s^2 at 1 g."""
+    return NONLINEARITY_MARGIN * NONLINEARITY_AT_1G * a_mps2 ** 2 / STANDARD_GRAVITY
 
 
 class SpectralNonlinearityEffect(Effect):
@@ -621,6 +658,36 @@ class SpectralNonlinearityEffect(Effect):
     def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
         c = np.asarray(coeff) if coeff is not None else np.zeros((3, 6))
         return "largest quadratic coefficient per axis = " + ", ".join(f"{v:.3g}" for v in np.max(np.abs(c), axis=1)) + " m/s^2"
+
+    def nonlinear_part(self, coeff: np.ndarray, data: DiagnosisData) -> np.ndarray:
+        """(V, 3) m/s^2: what the quadratic terms ``coeff`` (3, 6) add to each static visit's mean output beyond the
+        best affine function of Psi over the visits (eq. 28 takes any affine part in Psi)."""
+        rows = data.use & (data.group >= 0)
+        psi = visit_means(data.group, rows, Inputs.normalised(data.xyz, data.ref))
+        ok = np.all(np.isfinite(psi), axis=1)
+        psi = psi[ok]
+        contrib = quadratic_features(psi, self._psi0(data)) @ np.asarray(coeff, float).T
+        A = np.column_stack([np.ones(len(psi)), psi])
+        if len(psi) <= A.shape[1]:
+            return np.zeros((0, 3))
+        return contrib - A @ np.linalg.lstsq(A, contrib, rcond=None)[0]
+
+    def implausible(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData, M0: np.ndarray) -> str:
+        if coeff is None:
+            return ""
+        part = self.nonlinear_part(np.asarray(coeff), data)
+        if not part.size:
+            return ""
+        g = visit_means(data.group, data.use & (data.group >= 0) & np.all(np.isfinite(data.gref), axis=1), data.gref)
+        bound = nonlinearity_bound_mps2(float(np.max(np.linalg.norm(g, axis=1)))) if len(g) else math.inf
+        worst = np.max(np.abs(part), axis=0)
+        if np.any(worst > bound):
+            return (f"its non-linear part reaches {', '.join(f'{v:.3g}' for v in worst)} m/s^2 (x/y/z) over the poses, "
+                    f"beyond the {bound:.3g} m/s^2 the spectral overlap can bend the output at these accelerations "
+                    f"(the paper's overlap model is curved by {100 * NONLINEARITY_AT_1G:.1f} % at 1 g, x"
+                    f"{NONLINEARITY_MARGIN:.0f}): an effect of the orientation, of the table's angles or of the pose "
+                    "history, not the spectral overlap")
+        return ""
 
 
 def visit_means(groups: np.ndarray, rows: np.ndarray, values: np.ndarray) -> np.ndarray:
