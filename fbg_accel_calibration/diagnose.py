@@ -103,6 +103,20 @@ from .thermal_fit import (
 SAMPLE_SELECTIONS = ("table", "detector", "all")
 
 
+def _too_few_static(rec: Recording, n_use: int, static: str) -> str:
+    """Why a recording has too few samples to diagnose (fewer than 20 fitted), in one line: above all, whether the
+    table held any pose at all."""
+    posed = int(np.count_nonzero(rec.pose_id >= 0))
+    why = f"only {n_use} static samples with a reference (20 needed): nothing to diagnose"
+    if posed == 0:
+        return (f"{why}: no pose was held: every one of the {len(rec.pose_id)} samples was taken while the table "
+                "moved; record with the table stopped at each pose")
+    if static == "table":
+        return (f"{why}: {posed} of the {len(rec.pose_id)} samples are at a held pose, but no pose was held for 5 "
+                "samples in a row with a finite reference and unclipped channels")
+    return f"{why} (sample selection {static!r}; {posed} of the {len(rec.pose_id)} samples at a held pose)"
+
+
 def prepare_data(rec: Recording, static: str = "table", beside_thread: bool = False) -> DiagnosisData:
     """Diagnosis arrays from a recording. ``static`` selects the samples that are fitted and judged:
 
@@ -149,7 +163,7 @@ def prepare_data(rec: Recording, static: str = "table", beside_thread: bool = Fa
         seg = np.cumsum(change) - 1
         use = finite & (np.bincount(seg)[seg] >= 5)
     if use.sum() < 20:
-        raise ValueError(f"only {int(use.sum())} static samples with a reference: nothing to diagnose")
+        raise ValueError(_too_few_static(rec, int(use.sum()), static))
     return DiagnosisData(rec.t_s, rec.ref, rec.xyz, rec.temp_c, rec.gref_mps2, rec.pose_id, rec.run_id, use,
                          group=visit, n_clipped_samples=int(left_out.sum()), n_clipped_visits=len(clipped),
                          n_low_reference=dark.count, low_reference_note=dark.warning(),

@@ -501,6 +501,9 @@ def check_recording_excitation(rec: Recording) -> np.ndarray:
     psi = normalise(rec.xyz, rec.ref)
     ok = (rec.pose_id >= 0) & np.all(np.isfinite(rec.gref_mps2), axis=1) & np.isfinite(rec.temp_c)
     ok &= np.all(np.isfinite(psi), axis=1) & ~rec.low_reference()
+    if not np.any(rec.pose_id >= 0):
+        raise NotIdentifiedError(f"no pose was held: every one of the {len(rec.pose_id)} samples was taken while the "
+                                 "table moved, so nothing static can be fitted; record with the table stopped at each pose")
     if not ok.any():
         raise NotIdentifiedError("no sample has a pose, a finite reference, a valid temperature and finite counts")
     stats = accumulate_cells(psi[ok], np.zeros(int(ok.sum())), rec.gref_mps2[ok], rec.pose_id[ok],

@@ -768,3 +768,22 @@ def test_the_diagnosis_with_the_search_walk_is_the_diagnosis_visiting_every_grid
             [(c.name, c.hyper, c.rel_gain, c.p_value) for c in b.candidates]
     np.testing.assert_array_equal(walked.calibration.M, every.calibration.M)
     np.testing.assert_array_equal(walked.calibration.b, every.calibration.b)
+
+
+def test_a_campaign_with_no_pose_held_is_refused_saying_every_sample_moved(tmp_path: Path, capsys) -> None:
+    """A recording whose every sample was taken while the table moved (no pose id) has nothing static to fit: the
+    refusal says so in one line, instead of only counting zero static samples."""
+    rec = synthetic(8)
+    moving = rec.select(slice(None))
+    moving.pose_id = np.full_like(rec.pose_id, -1)
+    with pytest.raises(ValueError, match=r"every one of the \d+ samples was taken while the table moved"):
+        prepare_data(moving)
+    csv = tmp_path / "moving.csv"
+    rows = ["t_s,ref_counts,x_counts,y_counts,z_counts,gref_x_mps2,gref_y_mps2,gref_z_mps2,temperature_c,pose"]
+    rows += [f"{moving.t_s[i]:.3f},{moving.ref[i]:.3f},{moving.xyz[i, 0]:.3f},{moving.xyz[i, 1]:.3f},"
+             f"{moving.xyz[i, 2]:.3f},0,0,9.81,{moving.temp_c[i]:.3f},-1" for i in range(len(moving))]
+    csv.write_text("\n".join(rows) + "\n")
+    assert diagnose_main(["diagnose", str(csv), "--out", str(tmp_path / "d.md")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "taken while the table moved" in err[0], err
+    assert not (tmp_path / "d.md").exists()
