@@ -26,7 +26,7 @@ for k in "${kernels[@]}"; do
   case $k in
     SkylakeX|Cooperlake|SapphireRapids) need=avx512f ;;
     Haswell|Zen) need=avx2 ;;
-    *) need=sse3 ;;
+    *) need=pni ;;  # SSE3, as /proc/cpuinfo names it
   esac
   if ! grep -qw "$need" <<<"$flags"; then
     echo "test_blas_kernels: $k skipped: this CPU has no $need"
