@@ -44,12 +44,14 @@ def simulate_dynamic_run(plan: Any, rate_hz: float = 500.0, seed: int = 0, overr
     return rec, block, sim
 
 
-def simulated_tone_check(plan: Any, cal: Any, rate_hz: float = 100.0, seed: int = 0) -> Any:
+def simulated_tone_check(plan: Any, cal: Any, rate_hz: float = 100.0, seed: int = 0,
+                         overrides: dict[str, Any] | None = None) -> Any:
     """``dynamic_check.tone_check`` of ``cal`` on a simulated run of the one-tone ``plan``
-    (``ExcitationPlan.with_tone``), over the tone's steady window."""
+    (``ExcitationPlan.with_tone``), over the tone's steady window; ``overrides`` as for :func:`simulate_dynamic_run`
+    (the chain the run goes through)."""
     from fbg_accel_calibration.dynamic_check import tone_check
 
-    _, block, _ = simulate_dynamic_run(plan, rate_hz=rate_hz, seed=seed)
+    _, block, _ = simulate_dynamic_run(plan, rate_hz=rate_hz, seed=seed, overrides=overrides)
     _, a, b = plan.steady_windows(plan.start_s)[0]
     return tone_check(block.wire_bytes(), block.arrays["t_s"], block.arrays["slide_accel_mps2"],
                       np.array(plan.direction), plan.segments[0].freq_hz, (a, b), cal)
