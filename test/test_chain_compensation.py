@@ -163,3 +163,17 @@ def test_the_delay_shift_limit_is_where_the_dc_shift_starts_to_over_correct():
     lim = ChainDynamics(cutoff_hz=(1.0, 1.7, 1.3, 1.3), delay_s=(0.9, 0.0, 0.0)).delay_helps_below_hz()
     assert lim[1] == lim[2] == 0.0 and 0.0 < lim[0] < math.inf
     assert ChainDynamics(cutoff_hz=(50.0,) * 4).delay_helps_below_hz(f_max_hz=20.0) == (math.inf,) * 3
+
+
+def test_a_format_1_section_fitted_per_axis_still_loads_and_says_so():
+    """Format 1 (one first-order stage fitted per output axis, written as the channels' values) loads as before and
+    writes back as format 1; :attr:`identified_per_axis` tells it from a hand-written format-1 section."""
+    def fail(msg: str) -> ValueError:
+        return ValueError(msg)
+
+    d = {**STATIC_BUILD.to_dict(), "format_version": 1}
+    hand = ChainDynamics.from_dict(d, fail)
+    assert hand.cutoff_hz == STATIC_BUILD.cutoff_hz and hand.format_version == 1 and not hand.identified_per_axis
+    fitted = ChainDynamics.from_dict({**d, "fit": {"models": {"x": {"cutoff_hz": 1.7}}}}, fail)
+    assert fitted.identified_per_axis and fitted.to_dict()["format_version"] == 1
+    assert not STATIC_BUILD.identified_per_axis and STATIC_BUILD.to_dict()["format_version"] == 2
