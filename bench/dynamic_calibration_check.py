@@ -249,7 +249,8 @@ def markdown(doc: dict, report: str, png: str) -> str:
             + " / ".join(f"{v:.2f}" for v in t["tone_rms_mps2"]["equalise"]) + " |")
     lines += ["", "The `delay` mode (stamps only) on the same tones: cut "
               + ", ".join(f"{min(r['tone_check']['reduction_pct']['delay']):.0f}" for r in doc["sweep"])
-              + " % (the smallest axis of each chain): one stamp shift cannot undo channels of different delays.",
+              + " % (the smallest axis of each chain): one stamp shift cannot undo channels of different dynamics, "
+              "and over-corrects tones above its limit (`ChainDynamics.delay_helps_below_hz`).",
               "", "## A stage the model cannot represent", "",
               "A second-order low-pass added to the y channel's counts of the paper's chain (seed 3):", "",
               "| f0 [Hz] | Q | outcome | axis check max \\|z\\| or reason |", "|---:|---:|---|---|"]
