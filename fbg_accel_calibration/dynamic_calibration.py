@@ -394,7 +394,7 @@ def _whole_periods(t: np.ndarray, fs: float, windows: list[tuple[float, float, f
 
 
 def _check_plausible(ax: str, m: ChainModel) -> None:
-    """Refuse a chain fit that cannot be a calibration, naming the axis and the figures: not converged,
+    """Refuse a chain fit that cannot be a calibration, naming the channel and the figures: not converged,
     a parameter not finite or outside what the driver accepts (cut-off CUTOFF_LIMITS_HZ in Hz, |delay| up to
     MAX_ABS_DELAY_S in s, gain > 0), or the model missing its points by more than MAX_CHI2_PER_DOF (chi2
     per degree of freedom with the points' own uncertainties: about 1 for a chain the model describes)."""
@@ -413,7 +413,7 @@ def _check_plausible(ax: str, m: ChainModel) -> None:
         why.append(f"the model misses its points by {math.sqrt(per_dof):.0f} standard uncertainties (rms)")
     if why:
         raise DynamicCalibrationError(
-            f"{ax}: the chain fit is not plausible (gain {m.gain:.3g}, cut-off {m.cutoff_hz:.3g} Hz, delay "
+            f"channel {ax}: the chain fit is not plausible (gain {m.gain:.3g}, cut-off {m.cutoff_hz:.3g} Hz, delay "
             f"{m.delay_s * 1e3:.4g} ms, chi2/dof {per_dof:.0f}): {'; '.join(why)}. The points do not pin down a "
             "first-order low-pass + delay: check that the plan's band reaches the cut-off, the points' phases "
             "(--json) and the reference")
