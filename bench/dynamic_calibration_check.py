@@ -193,7 +193,7 @@ def markdown(doc: dict, report: str, png: str) -> str:
     s = doc["summary"]
     lines = ["# Dynamic calibration per channel on the simulated board",
              "",
-             f"Written by `{doc['command'].strip()} --update-results` on {doc['date_utc']} "
+             f"Written by `{doc['command'].strip()}` on {doc['date_utc']} "
              f"({doc['machine'].get('cpu', '?')}, {doc['machine'].get('logical_cpus', '?')} cores). Data: the simulator "
              "(`config/sim_default.yaml`) running `config/excitation_plan_stepped_sine.yaml` at "
              f"{doc['rate_hz']:g} Hz, decoded by the driver's stream decoder, with the chain set per channel "
