@@ -317,3 +317,28 @@ def fit_chain_models(points: Sequence[DynamicPoint], **kwargs: Any) -> dict[str,
         if pts:
             out[ax] = fit_chain_model(pts, **kwargs)
     return out
+
+
+def axis_response_matrices(m_static: np.ndarray, models: Sequence[ChainModel], f_hz: float | np.ndarray) -> np.ndarray:
+    """The output axes' responses ``M diag(H_channel(f)) M^-1`` (..., 3, 3), complex, unitless.
+
+    ``m_static`` (3, 3): eq. 28's ``M`` at the run's temperature; ``models``: the x, y, z channels' chains (each
+    the response of a channel to the component of the acceleration it sees, ``(M^-1 a)_j``); ``f_hz`` in Hz. Row i,
+    column k: what output axis i reads of an acceleration along sensor axis k (the diagonal: an axis's own
+    response; off the diagonal: the mix of the channels' different dynamics through ``M``, 0 when they are equal).
+    """
+    m = np.asarray(m_static, dtype=float)
+    if m.shape != (3, 3) or len(models) != 3:
+        raise ValueError("axis responses need M (3, 3) and the three axis channels' models")
+    f = np.asarray(f_hz, dtype=float)
+    h = np.stack([response(mod, f) for mod in models], axis=-1)  # (..., 3)
+    return np.einsum("ij,...j,jk->...ik", m, h, np.linalg.inv(m))
+
+
+def axis_response_along(m_static: np.ndarray, models: Sequence[ChainModel], direction: Sequence[float],
+                        f_hz: float | np.ndarray) -> np.ndarray:
+    """Each output axis's response (..., 3) to an acceleration along ``direction`` (unit vector, sensor frame), as
+    :func:`dynamic_analysis.analyse_run` measures it: ``(M diag(H) M^-1 d)_i / d_i`` (complex, unitless)."""
+    d = np.asarray(direction, dtype=float)
+    d = d / np.linalg.norm(d)
+    return np.einsum("...ik,k->...i", axis_response_matrices(m_static, models, f_hz), d) / d

@@ -165,6 +165,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", type=Path, default=None, help="write points, budgets and fits (JSON) here")
     p.add_argument("--temperature", type=iv.temperature_c, default=None,
                    help="CSV without temperature_c: the run's temperature, degC")
+    p.add_argument("--accept-misfit", action="store_true",
+                   help="write the calibration even when the per-channel model misses the measured axes beyond their "
+                        "uncertainty (the report's axis check; docs/dynamic_calibration.md)")
     add_topic_options(p)
     _add_force(p)
     p.set_defaults(func=cmd_dynamic)
@@ -274,21 +277,30 @@ def cmd_dynamic(args: argparse.Namespace) -> int:
     result = run_dynamic(rec, plan, static_cal, reference_cutoff_hz=args.reference_cutoff_hz,
                          fit_highpass=args.fit_highpass, slide_start_s=args.slide_start, method=args.method)
     print(result.report())
-    static_cal.dynamic = result.dynamics
-    static_cal.fit.setdefault("dynamic_sources", []).append(str(args.recording))
-    with atomic_path(args.output) as tmp:
-        static_cal.save(tmp)
-    ThermalCalibration.load(args.output)  # what was written loads (the driver's own check)
     if args.bode is not None:
         from .bode_plot import plot_bode
+        from .chain_model import axis_response_along
 
+        chain = [result.models[ax] for ax in "xyz"]
+        predicted = {ax: (lambda f, i=i: axis_response_along(result.m_static, chain, plan.direction, f)[..., i])
+                     for i, ax in enumerate("xyz")}
         with atomic_path(args.bode) as tmp:
-            plot_bode(result.points, result.models, tmp, title=f"Dynamic calibration: {plan.name}")
+            plot_bode(result.channel_points, result.models, tmp, title=f"Dynamic calibration: {plan.name}",
+                      axis_points=result.points, axis_responses=predicted)
         print(f"wrote {args.bode}")
     if args.json is not None:
         with atomic_path(args.json) as tmp:
             tmp.write_text(json.dumps(result.as_dict(), indent=1, default=_json_default), encoding="utf-8")
         print(f"wrote {args.json}")
+    if result.check.misfit and not args.accept_misfit:
+        raise ValueError(f"{args.output} not written: the per-channel chain model misses the measured axes by "
+                         f"{result.check.max_abs_z:.2g} standard uncertainties (beyond {result.check.threshold:g}; the "
+                         "report's axis check): find the cause, or give --accept-misfit to write it anyway")
+    static_cal.dynamic = result.dynamics
+    static_cal.fit.setdefault("dynamic_sources", []).append(str(args.recording))
+    with atomic_path(args.output) as tmp:
+        static_cal.save(tmp)
+    ThermalCalibration.load(args.output)  # what was written loads (the driver's own check)
     print(f"wrote {args.output}")
     return 0
 

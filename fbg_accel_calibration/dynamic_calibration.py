@@ -11,11 +11,20 @@ Pure numpy/scipy, no ROS (``fbg-accel-calib dynamic`` is the shell). Steps (docs
 2. the reference acceleration from the aux channel (:func:`excitation_plan.reference_acceleration`) and
    the sensor's acceleration from its counts by the **static** calibration (eq. 24 and 28, no chain
    compensation), so what is measured is the whole chain after eq. 28;
-3. amplitude and phase per frequency and axis with their budgets (:func:`dynamic_analysis.analyse_run`);
-4. per axis a first-order low-pass + pure delay (+ the LDV's AC-coupling high-pass on the reference
-   side when the plan declares one) fitted to the points (:func:`chain_model.fit_chain_models`);
-5. the ``dynamic`` section: the axes' cut-offs and delays; the reference channel's cut-off only when
-   given (a constant source hides it from a slide run).
+3. per **channel** (x, y, z: the counts normalised by eq. 24, where the TIA stages and delays are), the
+   channel's signal ``M^-1 a`` (``M`` of eq. 28 at the run's temperature; exact: eq. 28 is ``M Psi + b``)
+   against the component ``(M^-1 d)_j`` of the slide's acceleration it sees: amplitude and phase per
+   frequency with their budgets (:func:`dynamic_analysis.analyse_run`), and the same per output axis (the
+   measured axes' responses);
+4. per channel a first-order low-pass + pure delay (+ the LDV's AC-coupling high-pass on the reference
+   side when the plan declares one) fitted to the channel's points (:func:`chain_model.fit_chain_models`);
+5. the check (:func:`check_axes`): the output axes' responses the channel models predict,
+   ``M diag(H_channel) M^-1`` (:func:`chain_model.axis_response_along`), against the measured per-axis points,
+   at every tone, in units of the points' standard uncertainties; beyond ``MISFIT_Z`` the chain is not what the
+   model describes (a warning in the report; ``fbg-accel-calib dynamic`` then writes the file only with
+   ``--accept-misfit``);
+6. the ``dynamic`` section (format 2): the channels' cut-offs and delays; the reference channel's cut-off only
+   when given (a constant source hides it from a slide run).
 """
 
 from __future__ import annotations
@@ -32,7 +41,7 @@ from fbg_accel_driver.frame_codec import at_adc_rail
 from fbg_accel_driver.sensor_constants import LOW_REFERENCE_COUNTS
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
-from .chain_model import ChainModel, fit_chain_models
+from .chain_model import ChainModel, axis_response_along, fit_chain_models
 from .dynamic_analysis import (
     AXES,
     STEP_TOL,
@@ -48,6 +57,75 @@ from .excitation_plan import ExcitationPlan, find_slide_start, reference_acceler
 from .recording import Recording
 
 MAX_CHI2_PER_DOF = 100.0  # a chain fit missing its points by > 10 standard uncertainties (rms) is refused
+MISFIT_Z = 3.0  # an axis point the channel models miss by more than this many standard uncertainties: a misfit
+
+
+@dataclass
+class AxisCheck:
+    """The per-channel model against the measured per-axis responses (module docstring, step 5).
+
+    ``rows``: per tone and output axis, the measured sensitivity and phase (deg) with their combined standard
+    uncertainties, the model's prediction ``(M diag(H) M^-1 d)_i / d_i`` and the differences in units of the
+    uncertainties (``z_sensitivity``, ``z_phase``; the phase difference wrapped to +-180 deg). ``threshold``:
+    the largest |z| that is not a misfit."""
+
+    rows: list[dict[str, float | str]]
+    threshold: float = MISFIT_Z
+
+    @property
+    def max_abs_z(self) -> float:
+        return max((max(abs(float(r["z_sensitivity"])), abs(float(r["z_phase"]))) for r in self.rows), default=0.0)
+
+    @property
+    def misfit(self) -> bool:
+        return self.max_abs_z > self.threshold
+
+    def worst(self) -> dict[str, float | str] | None:
+        return max(self.rows, key=lambda r: max(abs(float(r["z_sensitivity"])), abs(float(r["z_phase"]))), default=None)
+
+    def verdict(self) -> str:
+        """One line: the largest difference, and whether it is a misfit."""
+        w = self.worst()
+        if w is None:
+            return "axis check: no measurable axis point"
+        what = "sensitivity" if abs(float(w["z_sensitivity"])) >= abs(float(w["z_phase"])) else "phase"
+        line = (f"axis check: the per-channel model misses the measured axes by at most {self.max_abs_z:.2g} standard "
+                f"uncertainties ({w['axis']} {what} at {float(w['f_hz']):g} Hz; misfit beyond {self.threshold:g})")
+        if self.misfit:
+            line += (": WARNING the chain is not a first-order low-pass + delay per channel (another stage, a resonance, "
+                     "a non-linearity?); the compensation built on it would be wrong")
+        return line
+
+    def markdown(self) -> str:
+        lines = ["| f [Hz] | axis | S measured | S model | z | phase measured [deg] | phase model [deg] | z |",
+                 "|---:|---|---:|---:|---:|---:|---:|---:|"]
+        for r in self.rows:
+            lines.append(f"| {float(r['f_hz']):.4g} | {r['axis']} | {float(r['sensitivity']):.4f} +- "
+                         f"{float(r['u_sensitivity']):.2g} | {float(r['model_sensitivity']):.4f} | "
+                         f"{float(r['z_sensitivity']):+.2f} | {float(r['phase_deg']):.2f} +- {float(r['u_phase_deg']):.2g} | "
+                         f"{float(r['model_phase_deg']):.2f} | {float(r['z_phase']):+.2f} |")
+        return "\n".join(lines)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"threshold": self.threshold, "max_abs_z": self.max_abs_z, "misfit": self.misfit, "rows": self.rows}
+
+
+def check_axes(points: list[DynamicPoint], m_static: np.ndarray, models: dict[str, ChainModel],
+               direction: tuple[float, float, float] | list[float] | np.ndarray, threshold: float = MISFIT_Z) -> AxisCheck:
+    """:class:`AxisCheck` of the channel ``models`` (keys x, y, z) against the measured per-axis ``points`` of a
+    slide along ``direction`` (sensor frame), ``m_static`` (3, 3) eq. 28's M at the run's temperature."""
+    chain = [models[ax] for ax in AXES]
+    rows: list[dict[str, float | str]] = []
+    for p in points:
+        if not p.measurable:
+            continue
+        h = complex(axis_response_along(m_static, chain, direction, p.f_hz)[p.axis_index])
+        dphi = math.degrees(math.remainder(math.atan2(h.imag, h.real) - math.radians(p.phase_deg), 2 * math.pi))
+        rows.append({"f_hz": p.f_hz, "axis": p.axis, "sensitivity": p.sensitivity, "u_sensitivity": p.u_sensitivity,
+                     "model_sensitivity": abs(h), "z_sensitivity": (abs(h) - p.sensitivity) / p.u_sensitivity,
+                     "phase_deg": p.phase_deg, "u_phase_deg": p.u_phase_deg,
+                     "model_phase_deg": p.phase_deg + dphi, "z_phase": dphi / p.u_phase_deg})
+    return AxisCheck(rows, threshold)
 
 
 class DynamicCalibrationError(ValueError):
@@ -59,19 +137,28 @@ class DynamicCalibrationResult:
     plan: ExcitationPlan
     slide_start_s: float
     windows: list[tuple[float, float, float]]
-    points: list[DynamicPoint]
-    models: dict[str, ChainModel]
+    points: list[DynamicPoint]  # measured per output axis
+    models: dict[str, ChainModel]  # per channel x, y, z
     dynamics: ChainDynamics
     fs_hz: float
     notes: list[str] = field(default_factory=list)
+    channel_points: list[DynamicPoint] = field(default_factory=list)  # measured per channel x, y, z
+    m_static: np.ndarray = field(default_factory=lambda: np.eye(3))  # eq. 28's M at the run's temperature
+    run_temperature_c: float = math.nan
+    check: AxisCheck = field(default_factory=lambda: AxisCheck([]))
 
     def report(self) -> str:
-        """Plain-text tables: points per frequency and axis, then the fitted chain per axis."""
+        """Plain-text tables: points per frequency and channel, the fitted chain per channel, then the output
+        axes' measured points against the per-channel model (the check)."""
         lines = [f"dynamic calibration: plan '{self.plan.name}', slide starts at t = {self.slide_start_s:.3f} s, "
-                 f"{len(self.windows)} steady windows, sampling {self.fs_hz:.1f} Hz",
+                 f"{len(self.windows)} steady windows, sampling {self.fs_hz:.1f} Hz; static calibration's M at the "
+                 f"run's {self.run_temperature_c:.2f} degC",
                  "",
-                 points_table_markdown(self.points)]
-        lines += ["", "| axis | gain | cut-off [Hz] | delay [ms] | group delay at DC [ms] | reference high-pass [Hz] |",
+                 "Per channel (x, y, z: the counts after eq. 24 against the component M^-1 d of the slide's "
+                 "acceleration the channel sees):",
+                 "",
+                 points_table_markdown(self.channel_points)]
+        lines += ["", "| channel | gain | cut-off [Hz] | delay [ms] | group delay at DC [ms] | reference high-pass [Hz] |",
                   "|---|---:|---:|---:|---:|---:|"]
         for ax, m in self.models.items():
             hp = (f"{m.highpass_cutoff_hz:.3f} +- {m.u_highpass_cutoff_hz:.3f}" if m.highpass_cutoff_hz is not None
@@ -82,14 +169,19 @@ class DynamicCalibrationResult:
         lines.append("")
         lines.append("reference channel cut-off: " + ("not measured (constant source); chain_compensation 'delay' only"
                                                        if math.isnan(ref) else f"{ref:g} Hz (given)"))
+        lines += ["", "Per output axis (eq. 28's output against the slide's acceleration along the axis), measured and "
+                  "as the channel models predict it, M diag(H_channel) M^-1:", "", points_table_markdown(self.points),
+                  "", self.check.markdown(), "", self.check.verdict()]
         lines += [f"note: {n}" for n in self.notes]
         return "\n".join(lines)
 
     def as_dict(self) -> dict[str, Any]:
         return {"plan": self.plan.name, "slide_start_s": self.slide_start_s, "fs_hz": self.fs_hz,
                 "windows": [list(w) for w in self.windows], "points": [p.to_dict() for p in self.points],
+                "channel_points": [p.to_dict() for p in self.channel_points],
                 "models": {ax: m.to_dict() for ax, m in self.models.items()}, "dynamic": self.dynamics.to_dict(),
-                "notes": list(self.notes)}
+                "run_temperature_c": self.run_temperature_c, "m_static": self.m_static.tolist(),
+                "axis_check": self.check.as_dict(), "notes": list(self.notes)}
 
 
 def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibration, *,
@@ -175,20 +267,43 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
     if not_measurable:
         raise DynamicCalibrationError(f"axes {not_measurable} are not excited by the slide direction {plan.direction}: "
                                       "tilt the sensor so the direction has a component on every axis (seed 2, eqs. 1-3)")
-    models = fit_chain_models(points, highpass=fit_highpass, highpass_in="reference", uncertainty_scaling="points")
+    # per channel: eq. 28 is a = M Psi + b, so M^-1 a is the channels' Psi (offsets aside, which the sine fits remove),
+    # and the component of the slide's acceleration channel j sees is (M^-1 d)_j times the reference
+    steady = np.zeros(len(t), dtype=bool)
+    for w in windows:
+        steady |= _steady(t, w)
+    run_temp = float(np.median(temp[steady]))
+    m_run = static_cal.coefficients(run_temp)[0][0]
+    d_unit = np.asarray(plan.direction, dtype=float) / np.linalg.norm(plan.direction)
+    seen = np.linalg.solve(m_run, d_unit)
+    scale = float(np.linalg.norm(seen))  # analyse_run normalises the direction: the signal scaled alike
+    psi = np.linalg.solve(m_run, a_sensor.T).T / scale
+    channel_points = analyse_run(t, np.nan_to_num(a_ref), psi, seen, windows, reference_uncertainty=ru,
+                                 method=method)  # type: ignore[arg-type]
+    faint = sorted({p.axis for p in channel_points if not p.measurable})
+    if faint:
+        raise DynamicCalibrationError(f"channels {faint} see too little of the slide direction {plan.direction} through "
+                                      "the static calibration's M^-1: tilt the sensor so every channel is excited")
+    models = fit_chain_models(channel_points, highpass=fit_highpass, highpass_in="reference",
+                              uncertainty_scaling="points")
     for ax in AXES:
         models[ax].axis = ax
         _check_plausible(ax, models[ax])
         if abs(models[ax].gain - 1.0) > 3 * max(models[ax].u_gain, 1e-3):
-            notes.append(f"{ax}: dynamic gain {models[ax].gain:.4f} differs from 1: the static calibration's "
+            notes.append(f"channel {ax}: dynamic gain {models[ax].gain:.4f} differs from 1: the static calibration's "
                          "sensitivity and the slide reference disagree (check the reference's sensitivity)")
+    check = check_axes(points, m_run, models, d_unit)
+    if check.misfit:
+        notes.append(check.verdict())
     dyn = ChainDynamics(
         cutoff_hz=(math.nan if reference_cutoff_hz is None else float(reference_cutoff_hz),
                    *(float(models[ax].cutoff_hz) for ax in AXES)),
         delay_s=tuple(float(models[ax].delay_s) for ax in AXES),  # type: ignore[arg-type]
         fit={"plan": plan.name, "slide_start_s": start, "fs_hz": fs,
              "frequencies_hz": sorted({w[0] for w in windows}),
+             "identified_per": "channel", "run_temperature_c": run_temp,
              "models": {ax: m.to_dict() for ax, m in models.items()},
+             "axis_check": {"max_abs_z": check.max_abs_z, "threshold": check.threshold, "misfit": check.misfit},
              "reference_cutoff": "given" if reference_cutoff_hz is not None else "not measured"})
     # what the driver's `delay` mode (chain_compensation auto) does with this section: the DC shift over-corrects tones
     # above a limit; said here as the driver's diagnostic says it (ChainDynamics.delay_helps_below_hz)
@@ -200,7 +315,8 @@ def run_dynamic(rec: Recording, plan: ExcitationPlan, static_cal: ThermalCalibra
                      f"{dyn.stamp_delay_s('delay') * 1e3:.4g} ms, a correction below {min(helps):.3g} Hz only ({ax}): "
                      f"above it, inside the measured band (up to {f_top:g} Hz), a tone's error is larger than "
                      "uncompensated; for such content use 'equalise' (it needs the reference channel's cut-off)")
-    return DynamicCalibrationResult(plan, start, windows, points, models, dyn, fs, notes)
+    return DynamicCalibrationResult(plan, start, windows, points, models, dyn, fs, notes, channel_points, m_run,
+                                    run_temp, check)
 
 
 def _one_board_run(rec: Recording, plan: ExcitationPlan, slide_start_s: float | None) -> tuple[Recording, str | None]:
@@ -278,7 +394,7 @@ def _whole_periods(t: np.ndarray, fs: float, windows: list[tuple[float, float, f
 
 
 def _check_plausible(ax: str, m: ChainModel) -> None:
-    """Refuse a chain fit that cannot be a calibration, naming the axis and the figures: not converged,
+    """Refuse a chain fit that cannot be a calibration, naming the channel and the figures: not converged,
     a parameter not finite or outside what the driver accepts (cut-off CUTOFF_LIMITS_HZ in Hz, |delay| up to
     MAX_ABS_DELAY_S in s, gain > 0), or the model missing its points by more than MAX_CHI2_PER_DOF (chi2
     per degree of freedom with the points' own uncertainties: about 1 for a chain the model describes)."""
@@ -297,7 +413,7 @@ def _check_plausible(ax: str, m: ChainModel) -> None:
         why.append(f"the model misses its points by {math.sqrt(per_dof):.0f} standard uncertainties (rms)")
     if why:
         raise DynamicCalibrationError(
-            f"{ax}: the chain fit is not plausible (gain {m.gain:.3g}, cut-off {m.cutoff_hz:.3g} Hz, delay "
+            f"channel {ax}: the chain fit is not plausible (gain {m.gain:.3g}, cut-off {m.cutoff_hz:.3g} Hz, delay "
             f"{m.delay_s * 1e3:.4g} ms, chi2/dof {per_dof:.0f}): {'; '.join(why)}. The points do not pin down a "
             "first-order low-pass + delay: check that the plan's band reaches the cut-off, the points' phases "
             "(--json) and the reference")

@@ -14,7 +14,7 @@ Pure numpy, no ROS.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -62,10 +62,12 @@ class ToneCheck:
     rms_mps2: dict[str, list[float]]  # mode -> per axis RMS difference to the reference (m/s^2)
     reduction_pct: dict[str, list[float]]  # mode -> per axis reduction against "none" (%)
     periods: int
+    # mode -> per axis RMS of the difference's part at f_hz (m/s^2): the chain's error on the tone; the rest is noise
+    tone_rms_mps2: dict[str, list[float]] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
         return {"f_hz": self.f_hz, "periods": self.periods, "rms_mps2": self.rms_mps2,
-                "reduction_pct": self.reduction_pct}
+                "reduction_pct": self.reduction_pct, "tone_rms_mps2": self.tone_rms_mps2}
 
 
 def tone_check(data: bytes, truth_t_s: np.ndarray, truth_slide_mps2: np.ndarray, direction: np.ndarray,
@@ -73,10 +75,13 @@ def tone_check(data: bytes, truth_t_s: np.ndarray, truth_slide_mps2: np.ndarray,
                modes: tuple[str, ...] = ("none", "delay", "equalise"), bandwidth_hz: float = 10.0) -> ToneCheck:
     """RMS difference (per axis) between the published acceleration and the reference ``slide *
     direction`` at the published stamps, over the whole periods of ``window`` (board time, s), the
-    mean difference (gravity, bias) removed: what is left is the chain's dynamic error."""
+    mean difference (gravity, bias) removed: what is left is the chain's dynamic error, and the noise (the
+    equaliser's gain ``bandwidth / fc`` amplifies it); ``tone_rms_mps2`` keeps the part at ``f_hz`` alone (a
+    least-squares sine at f over the same whole periods), the chain's error without the noise."""
     periods = int((window[1] - window[0]) * f_hz)
     t_end = window[0] + periods / f_hz
     rms: dict[str, list[float]] = {}
+    tone: dict[str, list[float]] = {}
     for mode in modes:
         t, a = replay(data, cal, mode, bandwidth_hz)
         m = (t >= window[0]) & (t < t_end)
@@ -84,10 +89,13 @@ def tone_check(data: bytes, truth_t_s: np.ndarray, truth_slide_mps2: np.ndarray,
         err = a[m] - ref
         err -= err.mean(axis=0)
         rms[mode] = [float(v) for v in np.sqrt(np.mean(err**2, axis=0))]
+        w = 2.0 * math.pi * f_hz * t[m]
+        basis = np.column_stack([np.cos(w), np.sin(w)])
+        tone[mode] = [float(v) for v in np.sqrt(np.mean((basis @ np.linalg.lstsq(basis, err, rcond=None)[0]) ** 2, axis=0))]
     base = rms.get("none")
     red = {mode: [100.0 * (1.0 - v / b) for v, b in zip(vals, base, strict=True)] for mode, vals in rms.items()
            if base is not None and mode != "none"}
-    return ToneCheck(f_hz, rms, red, periods)
+    return ToneCheck(f_hz, rms, red, periods, tone)
 
 
 def step_check(cal: ThermalCalibration, mode: str, rate_hz: float = 100.0, bandwidth_hz: float = 10.0,

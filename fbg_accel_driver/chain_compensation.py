@@ -1,28 +1,38 @@
-"""Dynamics of the measuring chain and its live compensation (issue 9; docs/dynamic_calibration.md).
+"""Dynamics of the measuring chain and its live compensation (issues 9, 37; docs/dynamic_calibration.md).
 
 Pure Python + numpy, no ROS. The calibration file's optional ``dynamic`` section (:class:`ChainDynamics`)
-holds what a dynamic calibration measured:
+holds what a dynamic calibration measured, **per channel** (the counts before eq. 24, where the stages are):
 
 * ``cutoff_hz``: the first-order low-pass of each photodetector's transimpedance stage, for the
   reference and the x, y, z channels (paper section 3.5 and Table 1: about 1, 1.7, 1.3, 1.3 Hz in the
   static-test build, about 50 Hz in the flight build). A slide run with a constant source cannot see
   the reference channel's stage (eq. 24 divides by a constant), so its value may be absent (NaN, ``null``
   in the file): ``delay`` works without it, ``equalise`` needs it;
-* ``delay_s``: a pure delay of each axis channel (ESP32 sequential sampling skew, anything after the
+* ``delay_s``: a pure delay of each axis channel x, y, z (ESP32 sequential sampling skew, anything after the
   analogue stage), s, positive when the channel lags the board time stamp.
+
+An output axis is eq. 28's ``M`` applied to the three channels, so its response is ``M diag(H_channel) M^-1``
+(a mix of the three channels' poles, not one first-order stage when their cut-offs differ). Section format 2
+(``fbg-accel-calib dynamic`` since issue 37) identifies the values per channel; format 1 fitted one first-order
+stage per output axis and wrote those as the channels' values (right only when the channels' cut-offs are
+equal): it still loads, as before, and :attr:`ChainDynamics.identified_per_axis` says so.
 
 Two live compensations (driver parameter ``chain_compensation``):
 
 * ``delay``: the published stamp is moved back by the acceleration path's **group delay at DC**, the
-  mean over the axes of ``1 / (2 pi fc_axis) + delay_axis`` (a first-order low-pass delays slow
-  signals by its time constant; at a frequency f the delay is ``tau / (1 + (f/fc)^2)``, less: the
-  seed's point that a low-pass stage shifts phase well inside its band). The samples are unchanged.
+  mean over the channels of ``1 / (2 pi fc) + delay`` (a first-order low-pass delays slow signals by its
+  time constant; at a frequency f the delay is ``tau / (1 + (f/fc)^2)``, less: the seed's point that a
+  low-pass stage shifts phase well inside its band). That is also the mean over the output axes: the axes'
+  DC group delays are the diagonal of ``M diag(tau_channel) M^-1``, whose trace is the channels' sum. The
+  samples are unchanged.
 * ``equalise``: each channel's counts pass, **before** eq. 24, through a causal and stable filter
   that cancels its own low-pass and puts a common one at ``bandwidth_hz`` in its place (the
-  discrete form of ``(1 + s/wc) / (1 + s/wp)``, :class:`ChannelEqualiser`). The reference and the
+  discrete form of ``(1 + s/wc) / (1 + s/wp)``, :class:`ChannelEqualiser`), and the axis channels that lag
+  less than the latest one are delayed to it (linear interpolation in time), so that every axis channel
+  reaches eq. 28 with the same dynamics. The reference and the
   axes are filtered differently, so only a correction of each channel before the ratio restores
   Psi = c_axis/c_ref when the source power or the acceleration moves. The stamp then moves back by
-  what remains: about ``1/(2 pi bandwidth_hz)`` plus the mean pure delay (exactly:
+  what remains: about ``1/(2 pi bandwidth_hz)`` plus the largest pure delay (exactly:
   :meth:`ChainDynamics.stamp_delay_s`). The price is noise: the high-frequency gain is about
   ``bandwidth_hz / fc`` (:meth:`ChannelEqualiser.variance_factor` gives the published variance
   factor, and that of a decimated mean: the equalised noise is nearly white, so averaging N samples
@@ -31,7 +41,9 @@ Two live compensations (driver parameter ``chain_compensation``):
 
 from __future__ import annotations
 
+import bisect
 import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -41,7 +53,8 @@ import numpy as np
 from .mapping_fields import format_version, number, refuse_unknown, same_values
 from .noise_model import filtered_mean_variance_factor, geometric_length
 
-DYNAMIC_FORMAT_VERSION = 1
+DYNAMIC_FORMAT_VERSION = 2  # 2: identified per channel (issue 37); 1: one stage fitted per output axis
+READS_DYNAMIC_FORMAT_VERSIONS = (1, 2)
 CHANNELS = ("reference", "x", "y", "z")
 AXES = ("x", "y", "z")
 MODES = ("none", "delay", "equalise")
@@ -52,11 +65,15 @@ MAX_ABS_DELAY_S = 1.0  # a pure delay of a second is not a sampling skew
 
 @dataclass(frozen=True)
 class ChainDynamics:
-    """First-order low-pass per channel (reference, x, y, z; Hz) and pure delay per axis (s)."""
+    """First-order low-pass per channel (reference, x, y, z; Hz) and pure delay per axis channel x, y, z (s).
+
+    ``format_version``: that of the section read (written back unchanged); 1 = the values were fitted per output
+    axis (:attr:`identified_per_axis`)."""
 
     cutoff_hz: tuple[float, float, float, float]
     delay_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
     fit: dict[str, Any] = field(default_factory=dict)  # figures for people (points, uncertainties)
+    format_version: int = DYNAMIC_FORMAT_VERSION
 
     def __post_init__(self) -> None:
         if len(self.cutoff_hz) != 4 or len(self.delay_s) != 3:
@@ -70,6 +87,15 @@ class ChainDynamics:
         for name, d in zip(AXES, self.delay_s, strict=True):
             if not (isinstance(d, float | int) and math.isfinite(d) and abs(d) <= MAX_ABS_DELAY_S):
                 raise ValueError(f"delay_s of {name} must be within +-{MAX_ABS_DELAY_S:g} s, got {d!r}")
+        if self.format_version not in READS_DYNAMIC_FORMAT_VERSIONS:
+            raise ValueError(f"format_version {self.format_version!r} is not one of {READS_DYNAMIC_FORMAT_VERSIONS}")
+
+    @property
+    def identified_per_axis(self) -> bool:
+        """True for a format-1 section written by a dynamic calibration (it holds per-axis ``fit.models``): its
+        cut-offs and delays are first-order fits per output axis, taken as the channels' (right when the channels'
+        cut-offs are equal; re-run ``fbg-accel-calib dynamic`` for per-channel values)."""
+        return self.format_version == 1 and "models" in self.fit
 
     def __eq__(self, other: object) -> bool:
         """Equal by the file form (``to_dict``): an unmeasured reference cut-off (NaN) equals itself."""
@@ -85,8 +111,9 @@ class ChainDynamics:
         """Delay (s) the published stamps are moved back by in ``mode`` (module docstring).
 
         ``equalise`` needs the sample interval ``dt_s``: the DC group delay that remains is the chain's
-        own (``tau + delay`` per axis) minus what :class:`ChannelEqualiser` removes (its exact inverse of
-        the sampled low-pass, ``r_c/(1-r_c) dt``) plus what its own low-pass adds (``r_p/(1-r_p) dt``).
+        own (``tau`` per channel, and the largest pure delay, to which :class:`ChannelEqualiser` aligns the
+        channels) minus what it removes (its exact inverse of the sampled low-pass, ``r_c/(1-r_c) dt``) plus
+        what its own low-pass adds (``r_p/(1-r_p) dt``).
         """
         if mode == "none":
             return 0.0
@@ -96,8 +123,8 @@ class ChainDynamics:
             if not dt_s > 0.0:
                 raise ValueError("equalise needs the sample interval dt_s > 0")
             removed = sum(_dc_delay_samples(fc, dt_s) for fc in self.cutoff_hz[1:]) / 3.0 * dt_s
-            return (sum(self.group_delay_s(a) for a in range(3)) / 3.0 - removed
-                    + _dc_delay_samples(bandwidth_hz, dt_s) * dt_s)
+            lowpass = sum(float(first_order_group_delay_s(fc)) for fc in self.cutoff_hz[1:]) / 3.0
+            return lowpass + max(self.delay_s) - removed + _dc_delay_samples(bandwidth_hz, dt_s) * dt_s
         raise ValueError(f"chain_compensation must be one of {MODES}, got {mode!r}")
 
     def delay_helps_below_hz(self, f_max_hz: float = CUTOFF_LIMITS_HZ[1]) -> tuple[float, float, float]:
@@ -152,7 +179,7 @@ class ChainDynamics:
         return (min(vals), max(vals)) if vals else None
 
     def to_dict(self) -> dict[str, Any]:
-        return {"format_version": DYNAMIC_FORMAT_VERSION,
+        return {"format_version": self.format_version,
                 "cutoff_hz": dict(zip(CHANNELS, (None if math.isnan(v) else float(v) for v in self.cutoff_hz), strict=True)),
                 "delay_s": dict(zip(AXES, (float(v) for v in self.delay_s), strict=True)),
                 **({"fit": self.fit} if self.fit else {})}
@@ -165,7 +192,11 @@ class ChainDynamics:
         refuse_unknown(d, DYNAMIC_KEYS, "dynamic.", fail)
         if "format_version" not in d:
             raise fail("missing key 'dynamic.format_version'")
-        format_version(d["format_version"], "dynamic.format_version", fail, reads=DYNAMIC_FORMAT_VERSION)
+        version = format_version(d["format_version"], "dynamic.format_version", fail, reads=DYNAMIC_FORMAT_VERSION,
+                                 exact=False)
+        if version not in READS_DYNAMIC_FORMAT_VERSIONS:
+            raise fail(f"dynamic.format_version {version!r} is not supported (this driver reads "
+                       f"{', '.join(map(str, READS_DYNAMIC_FORMAT_VERSIONS))})")
 
         def mapping(key: str, names: tuple[str, ...], default: float | None) -> tuple[float, ...]:
             m = d.get(key, {} if default is not None else None)
@@ -191,7 +222,7 @@ class ChainDynamics:
         # read outside the try: their errors are fail()'s already (a ValueError too), not to be wrapped again
         cutoff_hz, delay_s = mapping("cutoff_hz", CHANNELS, None), mapping("delay_s", AXES, 0.0)
         try:
-            return cls(cutoff_hz=cutoff_hz, delay_s=delay_s, fit=dict(fit))  # type: ignore[arg-type]
+            return cls(cutoff_hz=cutoff_hz, delay_s=delay_s, fit=dict(fit), format_version=version)  # type: ignore[arg-type]
         except ValueError as exc:
             raise fail(f"dynamic: {exc}") from None
 
@@ -218,6 +249,12 @@ class ChannelEqualiser:
     pole ``r_p`` inside the unit circle for every ``dt > 0``, so causal and stable; the zero at ``r_c``
     is the TIA's pole, cancelled. ``dt`` is each sample's own interval (board clock). The state starts
     at the first sample (no start transient) and is cleared by :meth:`reset` (board reboot).
+
+    Then each axis channel that lags less than the latest (``dynamics.delay_s``) is delayed by the difference,
+    by linear interpolation in time between its equalised samples (DC group delay exactly the difference; at
+    f the interpolation's gain is at least ``cos(pi f dt)``), so the three axis channels reach eq. 28 with one
+    delay: channels of different delays would otherwise mix, through eq. 28's ``M``, tones of different phases.
+    Until the history covers the lag, the oldest sample is held.
     """
 
     def __init__(self, dynamics: ChainDynamics, bandwidth_hz: float) -> None:
@@ -235,9 +272,19 @@ class ChannelEqualiser:
         self._coef_dt = -1.0
         self._coef: tuple[tuple[float, float], ...] = ()
         self._ap = 0.0
+        latest = max(dynamics.delay_s)
+        self.alignment_s = (0.0, *(latest - d for d in dynamics.delay_s))  # extra delay per channel (s), ref first
+        self._align = [j for j in range(4) if self.alignment_s[j] > 0.0]
+        self._keep_s = max(self.alignment_s)
+        self._t = 0.0  # board time (s) since the first sample, summed from the steps
+        self._hist_t: deque[float] = deque()
+        self._hist: deque[tuple[float, float, float, float]] = deque()
 
     def reset(self) -> None:
         self._prev = None
+        self._t = 0.0
+        self._hist_t.clear()
+        self._hist.clear()
 
     def _coefficients(self, dt_s: float) -> None:
         dt = max(dt_s, 1e-9)
@@ -251,7 +298,7 @@ class ChannelEqualiser:
         if prev is None:
             self._prev = list(counts)
             self._out = list(counts)
-            return counts
+            return self._aligned(counts) if self._align else counts
         if dt_s != self._coef_dt:
             self._coefficients(dt_s)
         out = self._out
@@ -262,16 +309,50 @@ class ChannelEqualiser:
             v = (u - rc * prev[j]) * inv
             prev[j] = u
             out[j] += ap * (v - out[j])
+        self._t += dt_s
+        if self._align:
+            return self._aligned((out[0], out[1], out[2], out[3]))
+        return out[0], out[1], out[2], out[3]
+
+    def _aligned(self, now: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+        """``now`` (the equalised counts at the current time) with the channels in ``_align`` read
+        ``alignment_s`` earlier from the history (linear interpolation in time; the oldest sample held before it)."""
+        ht, h = self._hist_t, self._hist
+        ht.append(self._t)
+        h.append(now)
+        while len(ht) > 2 and ht[1] <= self._t - self._keep_s:  # keep one sample at or before the longest lag
+            ht.popleft()
+            h.popleft()
+        out = list(now)
+        for j in self._align:
+            t_j = self._t - self.alignment_s[j]
+            i = bisect.bisect_right(ht, t_j)  # ht[i - 1] <= t_j < ht[i]
+            if i == 0:
+                out[j] = h[0][j]
+            elif i >= len(ht):
+                out[j] = h[-1][j]
+            else:
+                t0, t1 = ht[i - 1], ht[i]
+                w = (t_j - t0) / (t1 - t0) if t1 > t0 else 1.0
+                out[j] = h[i - 1][j] + w * (h[i][j] - h[i - 1][j])
         return out[0], out[1], out[2], out[3]
 
     def impulse_response(self, channel: int, dt_s: float) -> np.ndarray:
         """Impulse response of channel ``channel`` (0 reference, 1..3 x, y, z) at the sample interval ``dt_s``
         (s): the exact inverse ``(1 - r_c z^-1) / (1 - r_c)`` followed by the low-pass ``(1 - r_p) / (1 - r_p
-        z^-1)``, cut where it has decayed (``noise_model.geometric_length``)."""
+        z^-1)``, cut where it has decayed (``noise_model.geometric_length``), and the channel's alignment delay
+        (linear interpolation between the samples around it: it averages two neighbours, which lowers the
+        variance of the nearly white equalised noise)."""
         rc = math.exp(-self._wc[channel] * dt_s)
         rp = math.exp(-self._wp * dt_s)
         lp = (1.0 - rp) * rp ** np.arange(geometric_length(rp), dtype=float)
-        return np.convolve(np.array([1.0, -rc]) / (1.0 - rc), lp)
+        h = np.convolve(np.array([1.0, -rc]) / (1.0 - rc), lp)
+        lag = self.alignment_s[channel] / dt_s
+        if lag > 0.0:
+            whole = math.floor(lag)
+            frac = lag - whole
+            h = np.convolve(np.concatenate([np.zeros(whole), [1.0 - frac, frac]]), h)
+        return h
 
     def variance_factor(self, axis: int, dt_s: float, correlated_fraction: float, time_constant_s: float,
                         n: int = 1) -> float:

@@ -353,7 +353,8 @@ class DriverCore:
         slowest axis's -3 dB point unless equalised) and the delay taken off the stamps (ms); in ``delay`` mode also,
         per axis, the frequency (Hz) below which the shift is a correction (``delay_helps_below_hz_x/y/z``,
         :meth:`ChainDynamics.delay_helps_below_hz`) and the top of the calibrated band (``calibrated_band_max_hz``,
-        NaN when the section does not say). A calibration
+        NaN when the section does not say); ``identified_per``: ``channel``, or ``axis`` for a format-1 section a
+        dynamic calibration fitted per output axis (:attr:`ChainDynamics.identified_per_axis`). A calibration
         without a ``dynamic`` section gives mode ``none`` with ``dynamic_section`` ``absent``: the stamps are
         not moved and the chain's lag is unknown (about 0.1 s on the static-test build's 1-1.7 Hz TIA stages).
         Raw only (no calibration): empty."""
@@ -369,7 +370,8 @@ class DriverCore:
             delay_ms = self._delay_ns * 1e-6
         out: dict[str, float | str] = {
             "mode": mode, "bandwidth_hz": round(bandwidth, 4), "applied_delay_ms": round(delay_ms, 3),
-            **{f"group_delay_dc_ms_{n}": round(dyn.group_delay_s(a) * 1e3, 3) for a, n in enumerate("xyz")}}
+            **{f"group_delay_dc_ms_{n}": round(dyn.group_delay_s(a) * 1e3, 3) for a, n in enumerate("xyz")},
+            "identified_per": "axis" if dyn.identified_per_axis else "channel"}
         if self._delay_helps_hz is not None:
             out.update({f"delay_helps_below_hz_{n}": round(v, 3) for n, v in zip("xyz", self._delay_helps_hz, strict=True)})
             band = dyn.calibrated_band_hz()

@@ -232,6 +232,9 @@ class DriverDiagnostics:
                         level = WARN
                         msg += (f", inside the calibrated band (up to {top:g} Hz): for content above {lim:g} Hz use "
                                 "chain_compensation equalise")
+            if c.get("identified_per") == "axis":
+                msg += ("; the dynamic section (format 1) was fitted per output axis, right only when the channels' "
+                        "cut-offs are equal: re-run fbg-accel-calib dynamic for per-channel values")
             entries.append(self._entry(level, "chain compensation", msg, c))
 
         # the board clock's mapping onto ROS time (clock_sync): a drift estimate at its clamp means it is not tracking

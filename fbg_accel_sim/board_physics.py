@@ -263,6 +263,11 @@ class BoardSimulator:
         self.skew_s = float(c.get("board.adc_channel_skew_us")) * 1e-6
         if not (self.skew_s >= 0 and self.skew_s * 4 < 1.0 / self.rate_hz):
             raise ValueError("board.adc_channel_skew_us must be >= 0 and 4 skews must fit in one sample period")
+        extra = np.asarray(c.get("effects.channel_delay.axis_channel_extra_s"), float).reshape(-1)
+        if extra.shape != (3,) or not np.all(np.isfinite(extra) & (extra >= 0)):
+            raise ValueError("effects.channel_delay.axis_channel_extra_s must be 3 delays >= 0 (s) for x, y, z")
+        # per axis channel: its own delay on top of the common one (both scaled by the effect's scale)
+        self.channel_extra_delay_s = c.scale("channel_delay") * extra
         disc = str(c.get("electronics.filter_discretisation"))
         if disc not in ("auto", "hold", "linear"):
             raise ValueError(f"electronics.filter_discretisation '{disc}' unknown (auto, hold, linear)")
@@ -677,12 +682,18 @@ class BoardSimulator:
         calibration matrix (paper eq. 31a). With a channel skew (board.adc_channel_skew_us), the ESP32 one-shot
         sequential conversion (ESP-IDF adc_oneshot_read) makes each axis see its own, later instant."""
         u = felt @ self.A.T + bias
-        if self.skew_s > 0.0:
+        if self.skew_s > 0.0 or np.any(self.channel_extra_delay_s):
             # ESP32 one-shot sequential conversion: axis channel j (x, y, z = 1, 2, 3 after ref) is converted
-            # j skews after t_us, so it sees the input of that later instant (an LTI chain commutes with the shift).
+            # j skews after t_us, so it sees the input of that later instant (an LTI chain commutes with the shift);
+            # an axis channel's own extra delay (axis_channel_extra_s) moves it the other way
             for j in range(3):
-                u[:, j] = self._sensed_force(t - delay + (j + 1) * self.skew_s) @ self.A[j] + bias[:, j]
+                u[:, j] = self._sensed_force(self._channel_time(t, delay, j)) @ self.A[j] + bias[:, j]
         return u
+
+    def _channel_time(self, t: np.ndarray, delay: float, j: int) -> np.ndarray:
+        """The instant (s) axis channel ``j`` (0..2: x, y, z) senses at sample time ``t``: the common channel delay,
+        the channel's own extra delay and its ADC conversion skew."""
+        return t - delay - float(self.channel_extra_delay_s[j]) + (j + 1) * self.skew_s
 
     def _optical_response(self, u: np.ndarray, dT: np.ndarray) -> np.ndarray:
         """Relative optical response (N, 3) of the axis pairs to the inputs ``u`` (m/s^2): pair separation
@@ -759,7 +770,7 @@ class BoardSimulator:
                 else:
                     h_d = (1.0 - a) / (1.0 - a * zinv)
                 h_c = 1.0 / (1.0 + 1j * w * tau)
-                t_j = t - delay + (j + 1) * self.skew_s
+                t_j = self._channel_time(t, delay, j)
                 out[:, j] = slope[:, j] * np.imag((h_c - h_d) * phasor[j] * np.exp(1j * w * t_j))
         return out
 

@@ -44,12 +44,31 @@ def simulate_dynamic_run(plan: Any, rate_hz: float = 500.0, seed: int = 0, overr
     return rec, block, sim
 
 
-def simulated_tone_check(plan: Any, cal: Any, rate_hz: float = 100.0, seed: int = 0) -> Any:
+def simulated_tone_check(plan: Any, cal: Any, rate_hz: float = 100.0, seed: int = 0,
+                         overrides: dict[str, Any] | None = None,
+                         modes: tuple[str, ...] = ("none", "delay", "equalise")) -> Any:
     """``dynamic_check.tone_check`` of ``cal`` on a simulated run of the one-tone ``plan``
-    (``ExcitationPlan.with_tone``), over the tone's steady window."""
+    (``ExcitationPlan.with_tone``), over the tone's steady window; ``overrides`` as for :func:`simulate_dynamic_run`
+    (the chain the run goes through)."""
     from fbg_accel_calibration.dynamic_check import tone_check
 
-    _, block, _ = simulate_dynamic_run(plan, rate_hz=rate_hz, seed=seed)
+    _, block, _ = simulate_dynamic_run(plan, rate_hz=rate_hz, seed=seed, overrides=overrides)
     _, a, b = plan.steady_windows(plan.start_s)[0]
     return tone_check(block.wire_bytes(), block.arrays["t_s"], block.arrays["slide_accel_mps2"],
-                      np.array(plan.direction), plan.segments[0].freq_hz, (a, b), cal)
+                      np.array(plan.direction), plan.segments[0].freq_hz, (a, b), cal, modes=modes)
+
+
+def random_channel_chain(seed: int, cutoff_range_hz: tuple[float, float] = (0.5, 5.0),
+                         delay_range_s: tuple[float, float] = (0.0, 0.05)) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """A chain whose axis channels differ, as hand-built TIA stages with loose parts do (issue 37): the x, y, z
+    channels' TIA cut-offs (Hz) and pure delays (s) drawn uniformly from the ranges by ``default_rng(seed)``, and the
+    simulator overrides that make it (reference channel at its configured cut-off; the common
+    ``channel_delay.delay_s`` 0, each channel's delay in ``axis_channel_extra_s``). Returns (cut-offs, delays,
+    overrides)."""
+    rng = np.random.default_rng(seed)
+    fc = rng.uniform(*cutoff_range_hz, 3)
+    delay = rng.uniform(*delay_range_s, 3)
+    ref_fc = float(SimConfig.default().get("electronics.tia_cutoff_hz")[0])
+    return fc, delay, {"electronics.tia_cutoff_hz": [ref_fc, *(float(v) for v in fc)],
+                       "effects.channel_delay.delay_s": 0.0,
+                       "effects.channel_delay.axis_channel_extra_s": [float(v) for v in delay]}

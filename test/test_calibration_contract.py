@@ -218,11 +218,14 @@ def test_a_dynamic_section_error_names_the_file_once(tmp_path: Path, good: dict[
     assert msg.count("cal.yaml") == 1 and msg.endswith("dynamic.delay_s.x must be a number, got str 'soon'"), msg
 
 
-@pytest.mark.parametrize("version", [True, 1.0, "1"])
+@pytest.mark.parametrize("version", [True, 1.0, "1", 3])
 def test_every_format_version_is_an_integer(tmp_path: Path, good: dict[str, Any], version: Any) -> None:
     good["dynamic"] = {**DYNAMIC, "format_version": version}
-    """The dynamic section's version as the file's (test_thermal_model's table of bad fields)."""
-    assert refused(write(tmp_path, good)).endswith(f"dynamic.format_version {version!r} is not supported (this driver reads 1)")
+    """The dynamic section's version as the file's (test_thermal_model's table of bad fields); formats 1 (fitted per
+    axis) and 2 (per channel) are read."""
+    reads = "1, 2" if version == 3 else "2"
+    msg = refused(write(tmp_path, good))
+    assert msg.endswith(f"dynamic.format_version {version!r} is not supported (this driver reads {reads})"), msg
 
 
 def test_a_utf8_file_loads_whatever_the_locale(tmp_path: Path) -> None:

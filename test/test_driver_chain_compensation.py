@@ -269,3 +269,23 @@ def test_a_delay_shift_right_over_the_calibrated_band_is_ok_and_states_its_limit
     assert levels(e)["chain compensation"] == OK, entry.message
     root = brentq(lambda x: x - 2.0 * math.atan(x), 1.0, 5.0)  # the limit of a first-order stage: x = 2 atan x
     assert f"below {round(root * 50.0, 3):g} Hz" in entry.message, entry.message
+
+
+def test_a_section_fitted_per_output_axis_says_to_re_run_the_dynamic_calibration():
+    """A format-1 section written by a dynamic calibration (one first-order stage fitted per output axis, wrong on an
+    axis whose channels' cut-offs differ) is still used, and the ``chain compensation`` entry says what it is and
+    what to do; a format-2 section (per channel) says nothing of it."""
+    from test_driver_core import snapshot, values
+
+    from fbg_accel_driver.driver_diagnostics import DriverDiagnostics
+
+    def fail(msg: str) -> ValueError:
+        return ValueError(msg)
+
+    old = ChainDynamics.from_dict({**DYN.to_dict(), "format_version": 1, "fit": {"models": {}}}, fail)
+    for dyn, per in ((old, "axis"), (DYN, "channel")):
+        status = DriverCore(make_cal(dynamic=dyn), CoreConfig(chain_compensation="delay")).chain_status()
+        e = DriverDiagnostics().report(replace(snapshot(0.0), chain=status))
+        entry = next(x for x in e if x.name.endswith("chain compensation"))
+        assert values(e, "chain compensation")["identified_per"] == per
+        assert ("re-run fbg-accel-calib dynamic" in entry.message) == (per == "axis"), entry.message
