@@ -1054,29 +1054,44 @@ class RunOffsetEffect(_PerRunEffect):
 
     def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
         ok, why = super().applicable(data)
-        if ok and not data.once("runs_linked_by_a_level", lambda: runs_linked_by_levels(data)):
-            return False, ("not identified on this data: no temperature level is shared by the runs, so an offset of "
-                           "each run cannot be told from the temperature dependence of eq. 28's b (record a "
-                           "temperature level twice, in two runs)")
+        apart = data.once("runs_apart_by_level", lambda: runs_apart_by_levels(data)) if ok else []
+        if apart:
+            first = int(np.min(data.run_id[data.use])) + 1
+            who = ("no temperature level is shared by any two runs" if not _any_level_shared(data) else
+                   f"run(s) {', '.join(str(r + 1) for r in apart)} share no temperature level with run {first} or "
+                   "the runs that share one with it")
+            return False, (f"not identified on this data: {who}, so an offset of each run cannot be told from the "
+                           "temperature dependence of eq. 28's b (record a temperature level twice, in two runs)")
         return ok, why
 
     def _shape(self, t_s: np.ndarray) -> np.ndarray:
         return np.ones(len(t_s))
 
 
-def runs_linked_by_levels(data: DiagnosisData) -> bool:
-    """Whether the runs with fitted samples are connected through shared temperature levels (two runs are linked
-    when both have samples at one level; ``thermal_fit.temperature_levels`` of the fitted samples). Only then is
-    an offset of each run separable from a bias that depends on the level: with one level per run (one file per
-    chamber temperature) the offsets would take over eq. 28's b(T), and leave the calibration file without it."""
+def _run_level_pairs(data: DiagnosisData) -> np.ndarray:
+    """(k, 2) the distinct (run id, temperature level label) of the fitted samples (``thermal_fit.temperature_levels``)."""
     from .thermal_fit import temperature_levels
 
     use = data.use & np.isfinite(data.temp_c)
     labels = temperature_levels(data.temp_c[use])[0]
-    pairs = np.unique(np.stack([data.run_id[use], labels], axis=1), axis=0)
+    return np.unique(np.stack([data.run_id[use], labels], axis=1), axis=0)
+
+
+def _any_level_shared(data: DiagnosisData) -> bool:
+    """Whether two runs have fitted samples at one temperature level."""
+    pairs = _run_level_pairs(data)
+    return bool(len(np.unique(pairs[:, 1])) < len(pairs))
+
+
+def runs_apart_by_levels(data: DiagnosisData) -> list[int]:
+    """The run ids (ascending) that shared temperature levels do not connect to the first run with fitted samples (two
+    runs are linked when both have samples at one level). Only runs all connected let an offset of each run be told
+    from a bias that depends on the level: with one level per run (one file per chamber temperature) the offsets
+    would take over eq. 28's b(T), and leave the calibration file without it. Empty: all connected."""
+    pairs = _run_level_pairs(data)
     runs = np.unique(pairs[:, 0])
     if len(runs) < 2:
-        return True
+        return []
     linked = {int(runs[0])}
     grew = True
     while grew:  # grow the set of runs reachable from the first one through levels they share
@@ -1084,7 +1099,7 @@ def runs_linked_by_levels(data: DiagnosisData) -> bool:
         reach = {int(r) for r in pairs[np.isin(pairs[:, 1], levels), 0]}
         grew = not reach <= linked
         linked |= reach
-    return len(linked) == len(runs)
+    return sorted(int(r) for r in runs if int(r) not in linked)
 
 
 class RunDriftEffect(_PerRunEffect):

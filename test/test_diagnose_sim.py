@@ -757,3 +757,14 @@ def test_a_campaign_of_settled_levels_is_said_to_be_unable_to_reveal_a_lag() -> 
     assert not lag.applicable and "cannot reveal a lag" in lag.reason and "ramps" in lag.reason, lag.reason
     ramped = next(c for c in diagnose(simulate_recording(_config(THERMAL), seed=1)).ranked if c.name == "thermal_lag")
     assert ramped.applicable, ramped.reason
+
+
+def test_run_offset_names_the_runs_no_shared_level_connects() -> None:
+    """Six-position runs at 20, 20 and 35 degC: runs 1 and 2 share a level, run 3 shares none. run_offset is not
+    identified (run 3's offset would take over eq. 28's b(T)); on the unchanged code it said "no temperature level
+    is shared by the runs", which two of them do. It now names the run that no shared level connects."""
+    from fbg_accel_sim.make_default_calibration import calibration_runs
+
+    rec = calibration_runs(SimConfig.default(), seed=2, levels_c=(20.0, 20.0, 35.0), dwell_s=10.0, move_s=3.0)
+    off = next(c for c in diagnose(rec).ranked if c.name == "run_offset")
+    assert not off.applicable and "run(s) 3 share no temperature level with run 1" in off.reason, off.reason
