@@ -147,6 +147,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="run the diagnosis under tracemalloc; what it holds at its peak goes into the JSON")
     ap.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "calibration.json")
     args = ap.parse_args(argv)
+    from fbg_accel_calibration.heap_trim import set_process_heap_policy
+
+    set_process_heap_policy()  # as the diagnose command sets it (its entry point's policy)
 
     steps: dict[str, dict] = {}
     cfg, duration = scenario(args.samples)

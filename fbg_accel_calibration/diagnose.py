@@ -79,7 +79,7 @@ from .effects import (
     visit_ids,
     visit_means,
 )
-from .heap_trim import keep_freed_pages, return_free_memory, share_one_heap
+from .heap_trim import return_free_memory
 from .model_selection import DegreeScores, choose_degree
 from .model_selection import select_degree as calibration_select_degree
 from .periodic_disturbance import PeriodicDisturbance, find_periodic_disturbance
@@ -2191,19 +2191,15 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     ``lanes``: how many searches run side by side (``search_lanes``; the results are the same with any number);
     None: ``default_lane_count()`` when at least ``LANE_SEARCH_ROWS`` samples are searched, one otherwise. With more
     than one (or, with None, from ``LANE_SEARCH_ROWS`` samples of the recording on, on a machine of two cores or more),
-    the work before the first search uses a second thread too, and the process's threads allocate from one heap from
-    then on (``heap_trim.share_one_heap``); with any, the heap takes arrays of up to 64 MiB and keeps their pages when
-    they are freed (``heap_trim.keep_freed_pages``).
+    the work before the first search uses a second thread too. The process's heap policy is its entry point's
+    (``heap_trim.set_process_heap_policy``: the command line sets it; the results do not depend on it).
 
     It runs with one BLAS thread (``blas_threads``): its products of tall, narrow matrices gain nothing from more,
     and lose much when another process holds a core."""
     check_search_rows(search_rows)  # before seconds of work at 10^6 samples, not after
     return_free_memory()  # what the caller dropped (a simulation, an MCAP read), before the diagnosis's arrays are made
-    keep_freed_pages()  # the searches' arrays reuse the pages of those they dropped (heap_trim)
     # a large recording's searches run side by side: until they start, the other core takes what it can
     side_by_side = (default_lane_count() > 1 and len(rec.t_s) >= LANE_SEARCH_ROWS) if lanes is None else int(lanes) > 1
-    if side_by_side:
-        share_one_heap()  # the threads allocate from the one heap (heap_trim)
     data = rec if isinstance(rec, DiagnosisData) else prepare_data(rec, static, beside_thread=side_by_side)
     groups = data.group
 

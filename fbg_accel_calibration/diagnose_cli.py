@@ -136,7 +136,10 @@ def run(args: argparse.Namespace) -> int:
 
     from .diagnose import SEARCH_ROWS, diagnose
     from .diagnose_report import text
+    from .heap_trim import set_process_heap_policy
     from .thermal_fit import check_recording_excitation
+
+    set_process_heap_policy()  # the command's process diagnoses: its searches' arrays reuse the pages of those dropped
 
     try:
         check_diagnose_outputs(args)

@@ -65,3 +65,9 @@ def keep_freed_pages() -> bool:
     mallopt = _glibc("mallopt")
     return mallopt is not None and bool(mallopt(_M_MMAP_THRESHOLD, HEAP_ARRAY_BYTES)) and bool(
         mallopt(_M_TRIM_THRESHOLD, HEAP_TOP_BYTES))
+
+
+def set_process_heap_policy() -> bool:
+    """The heap policy of a process that diagnoses (``share_one_heap`` and ``keep_freed_pages``), for its entry point
+    to set once: a library call does not change its caller's allocator. Whether it could (glibc)."""
+    return share_one_heap() and keep_freed_pages()
