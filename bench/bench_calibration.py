@@ -52,8 +52,9 @@ sys.path.insert(0, str(ROOT))
 
 from machine_info import results_doc, write_results  # noqa: E402
 
-from fbg_accel_calibration.diagnose import SEARCH_ROWS, diagnose  # noqa: E402
+from fbg_accel_calibration.diagnose import diagnose  # noqa: E402
 from fbg_accel_calibration.diagnose_report import write_report  # noqa: E402
+from fbg_accel_calibration.diagnosis.search import SEARCH_ROWS  # noqa: E402
 from fbg_accel_calibration.mcap_io import read_recording, write_recording  # noqa: E402
 from fbg_accel_calibration.thermal_fit import fit_thermal  # noqa: E402
 from fbg_accel_driver.frame_codec import link_frame_rate_limit  # noqa: E402

@@ -38,7 +38,8 @@ from bench_calibration import scenario  # noqa: E402
 from machine_info import machine  # noqa: E402
 from test_diagnose_sim import SCENARIOS, _config  # noqa: E402
 
-from fbg_accel_calibration.diagnose import SEARCH_ROWS, DiagnosisResult, diagnose  # noqa: E402
+from fbg_accel_calibration.diagnose import DiagnosisResult, diagnose  # noqa: E402
+from fbg_accel_calibration.diagnosis.search import SEARCH_ROWS  # noqa: E402
 from fbg_accel_calibration.recording import Recording  # noqa: E402
 from fbg_accel_sim.board_physics import simulate_recording  # noqa: E402
 

@@ -134,8 +134,9 @@ def write_outputs(res, args: argparse.Namespace, command: str) -> list[Path]:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .diagnose import SEARCH_ROWS, diagnose
+    from .diagnose import diagnose
     from .diagnose_report import text
+    from .diagnosis.search import SEARCH_ROWS
     from .heap_trim import set_process_heap_policy
     from .thermal_fit import check_recording_excitation
 

@@ -11,7 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .diagnose import FULL_SCALE_MPS2, CandidateResult, DiagnosisResult
+from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
+
+from .diagnose import DiagnosisResult
+from .diagnosis.search import CandidateResult
 from .effects import finite_rows, library_by_name
 
 AXES = "xyz"

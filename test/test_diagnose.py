@@ -10,28 +10,23 @@ import numpy as np
 import pytest
 
 from fbg_accel_calibration.csv_import import import_csv
-from fbg_accel_calibration.diagnose import (
-    CANCEL_RATIO,
-    COLLINEAR_CORR,
-    DesignCache,
-    Evaluator,
-    ModelSpec,
-    build_design,
-    check_folds,
-    cross_validate,
-    detrended_lag_matrix,
-    diagnose,
-    fitted_output,
-    gram_conditioning,
-    make_folds,
-    paired_gain_test,
-    prepare_data,
-    search_batches,
-    weighted_rss,
-)
+from fbg_accel_calibration.diagnose import diagnose
 from fbg_accel_calibration.diagnose_cli import main as diagnose_main
 from fbg_accel_calibration.diagnose_report import CAND_HEAD, PLOT_POINTS, markdown, plotted, write_report
 from fbg_accel_calibration.diagnose_report import text as report_text
+from fbg_accel_calibration.diagnosis.cv import (
+    CANCEL_RATIO,
+    COLLINEAR_CORR,
+    check_folds,
+    cross_validate,
+    gram_conditioning,
+    make_folds,
+    search_batches,
+    weighted_rss,
+)
+from fbg_accel_calibration.diagnosis.design import DesignCache, ModelSpec, build_design, fitted_output, prepare_data
+from fbg_accel_calibration.diagnosis.floor import detrended_lag_matrix
+from fbg_accel_calibration.diagnosis.search import Evaluator, paired_gain_test
 from fbg_accel_calibration.effects import (
     LIBRARY,
     Effect,
@@ -587,8 +582,8 @@ def test_scatters_draw_at_most_plot_points_evenly_spaced() -> None:
 def test_the_degree_table_puts_the_rule_on_the_degree_it_chose_and_says_when_the_degree_was_given() -> None:
     """The rule's criterion stood on every row (so on row 0 while row 1 was chosen), and with ``--degree`` the
     given degree was marked "chosen; lowest degree within one standard error ..." though the rule chose another."""
-    from fbg_accel_calibration.diagnose import _degree_rows
     from fbg_accel_calibration.diagnose_report import degree_table
+    from fbg_accel_calibration.diagnosis.search import _degree_rows
     from fbg_accel_calibration.model_selection import DegreeScores
 
     one = np.ones(3)
@@ -756,7 +751,7 @@ def test_a_search_walk_without_a_plausible_first_value_visits_every_value() -> N
 def test_the_diagnosis_with_the_search_walk_is_the_diagnosis_visiting_every_grid_value(monkeypatch) -> None:
     """The walk changes no result of a diagnosis (issue 8 §7): the same effects, hyper-parameters, gains, p-values
     and calibration to the last bit as with every grid value visited, on a case with two steps of searches."""
-    import fbg_accel_calibration.diagnose as engine
+    import fbg_accel_calibration.diagnosis.search as engine
 
     rec = synthetic(9, channel_dark=300.0, power_ramp=-0.05)
     walked = diagnose(rec, static="table")

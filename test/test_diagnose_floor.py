@@ -17,7 +17,8 @@ import pytest
 from scipy.signal import lfilter
 from test_diagnose_sim import THERMAL, _config
 
-from fbg_accel_calibration.diagnose import _lag_products, diagnose, settled_mask, visit_index, within_visit_noise
+from fbg_accel_calibration.diagnose import diagnose
+from fbg_accel_calibration.diagnosis.floor import _lag_products, settled_mask, visit_index, within_visit_noise
 from fbg_accel_sim.board_physics import simulate_recording
 
 DEAD_REF = {"scenario.rate_hz": 25.0, "scenario.poses.dwell_s": 10.0, "scenario.poses.move_s": 2.0,
@@ -198,7 +199,8 @@ def test_the_coefficients_error_in_a_held_out_visit_mean_is_what_refits_show() -
     refits on fresh noise (white noise, a design that varies within visits, 40 visits of 20-60 samples, 9 columns):
     the residual test adds it to the noise's own, which alone flagged a fifth of clean campaigns at a nominal 1 %
     (bench/residual_false_alarm.py)."""
-    from fbg_accel_calibration.diagnose import VisitNoise, coefficient_mean_variance
+    from fbg_accel_calibration.diagnosis.floor import VisitNoise
+    from fbg_accel_calibration.diagnosis.structure import coefficient_mean_variance
 
     rng = np.random.default_rng(5)
     n_v = rng.integers(20, 61, size=40)

@@ -23,8 +23,10 @@ import numpy as np
 import pytest
 import yaml
 
-from fbg_accel_calibration.diagnose import MIN_SEARCH_INFORMATION, VisitNoise, diagnose, search_samples
+from fbg_accel_calibration.diagnose import diagnose
 from fbg_accel_calibration.diagnose_report import markdown, ordinal, settling_measurements, write_plots
+from fbg_accel_calibration.diagnosis.floor import VisitNoise
+from fbg_accel_calibration.diagnosis.search import MIN_SEARCH_INFORMATION, search_samples
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_calibration.table_geometry import table_specific_force
 from fbg_accel_driver.correction_terms import ReferenceLowpass
@@ -240,7 +242,7 @@ def test_the_command_s_search_rows_option_thins_the_search_or_searches_every_sam
     effect seen only in the first tenths of a second of each visit keeps all its samples), and the help names the
     default and the guard the diagnosis uses."""
     from fbg_accel_calibration.cli import main
-    from fbg_accel_calibration.diagnose import SEARCH_ROWS
+    from fbg_accel_calibration.diagnosis.search import SEARCH_ROWS
     from fbg_accel_calibration.mcap_io import write_recording
 
     mcap = tmp_path / "run.mcap"

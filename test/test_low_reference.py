@@ -19,7 +19,8 @@ from test_diagnose_sim import _config
 
 from fbg_accel_calibration import fit_stream, static_detector
 from fbg_accel_calibration.cli import main as cli_main
-from fbg_accel_calibration.diagnose import SAMPLE_SELECTIONS, diagnose, prepare_data
+from fbg_accel_calibration.diagnose import diagnose
+from fbg_accel_calibration.diagnosis.design import SAMPLE_SELECTIONS, prepare_data
 from fbg_accel_calibration.fit_stream import prepare, prepare_stream
 from fbg_accel_calibration.mcap_io import McapSampleStream, read_recording, write_recording
 from fbg_accel_calibration.recording import Recording

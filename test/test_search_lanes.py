@@ -15,8 +15,9 @@ import yaml
 from test_diagnose_sim import THERMAL, _config
 
 from fbg_accel_calibration.cli import main
-from fbg_accel_calibration.diagnose import Evaluator, diagnose
+from fbg_accel_calibration.diagnose import diagnose
 from fbg_accel_calibration.diagnose_report import markdown
+from fbg_accel_calibration.diagnosis.search import Evaluator
 from fbg_accel_calibration.mcap_io import write_recording
 from fbg_accel_calibration.search_lanes import Lanes, beside, idle_lanes
 from fbg_accel_calibration.thermal_fit import NotIdentifiedError

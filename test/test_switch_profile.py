@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fbg_accel_calibration.diagnose import Design, cross_validate, switch_profile
+from fbg_accel_calibration.diagnosis.cv import cross_validate, switch_profile
+from fbg_accel_calibration.diagnosis.design import Design
 from fbg_accel_calibration.thermal_fit import NotIdentifiedError
 
 
@@ -80,7 +81,7 @@ def test_switch_values_between_which_a_fold_trains_on_no_row_fit_it_the_same_to_
 
 def test_the_first_of_equal_fits_is_chosen_whatever_their_last_bits():
     """``first_min``: values equal up to rounding (``RSS_TIE_RTOL``) go to the first; a real difference still wins."""
-    from fbg_accel_calibration.diagnose import RSS_TIE_RTOL, first_min
+    from fbg_accel_calibration.diagnosis.cv import RSS_TIE_RTOL, first_min
 
     v = np.array([5.0, 2.0 * (1 + RSS_TIE_RTOL / 10), 2.0, np.inf, 2.0 * (1 - RSS_TIE_RTOL / 10)])
     assert first_min(v) == 1

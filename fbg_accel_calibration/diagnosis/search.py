@@ -1,0 +1,699 @@
+"""Evaluating a candidate effect on top of a model: eq. 28's degree (``select_degree``), the hyper-parameter search
+nested in the folds and the held-out gain over visits (``Evaluator``, ``paired_gain_test``), and the checks a
+candidate must pass beyond its gain: contiguous blocks of time (``time_block_check``) and the best step of the
+response (``step_check``).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import optimize, stats
+
+from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
+
+from ..dynamic_analysis import peak_offset
+from ..effects import (
+    DiagnosisData,
+    Effect,
+    ResponseStepEffect,
+    finite_rows,
+)
+from ..model_selection import DegreeScores, choose_degree
+from ..model_selection import select_degree as calibration_select_degree
+from ..recording import Recording
+from ..search_lanes import Lanes, idle_lanes
+from ..thermal_fit import (
+    NotIdentifiedError,
+    temperature_levels,
+)
+from .cv import (
+    RSS_TIE_RTOL,
+    CvResult,
+    FoldSums,
+    RssSums,
+    cancelling_terms,
+    cross_validate,
+    first_min,
+    search_batches,
+    switch_profile,
+    weighted_rss,
+)
+
+# ============================================================================ data preparation
+from .design import (
+    Design,
+    DesignCache,
+    ModelSpec,
+    build_design,
+)
+from .floor import (
+    VisitNoise,
+)
+
+# searched samples from which the searches run side by side by default (``search_lanes``): bench_calibration --lanes 1/2
+# at 3e4 samples (2.2e4 searched): 2.5 / 2.3 s, at 1e4: 0.6 / 0.7 s (threads cost more than they save on small designs)
+LANE_SEARCH_ROWS = 20_000
+
+
+def _degree_rows(scores: list[DegreeScores], held_out: Callable[[DegreeScores], np.ndarray],
+                 note: str, chosen: int | None) -> list[dict[str, Any]]:
+    """The report's degree table (one dict per degree) from the selection's scores; the rule's ``note`` stands
+    on the degree it chose (``chosen``), not on every row."""
+    table: list[dict[str, Any]] = []
+    for sc in scores:
+        if not sc.identified:
+            table.append({"degree": sc.degree, "identified": False, "note": sc.note})
+            continue
+        ho = held_out(sc)
+        table.append({"degree": sc.degree, "identified": True, "heldout_rmse_mps2": ho, "insample_rmse_mps2": sc.in_sample,
+                      "heldout_rmse_fs": ho / FULL_SCALE_MPS2, "insample_rmse_fs": sc.in_sample / FULL_SCALE_MPS2,
+                      "note": sc.note or (note if sc.degree == chosen else ""), "rule_choice": sc.degree == chosen})
+    return table
+
+
+def select_degree(data: DiagnosisData, max_degree: int) -> tuple[int, list[dict[str, Any]]]:
+    """Degree of the declared model, chosen exactly as the calibration does (``model_selection.select_degree``:
+    held out by temperature level with several levels, by pose with one) on the diagnosis samples."""
+    rec = Recording(data.t_s, data.ref, data.xyz, data.temp_c, data.gref, data.pose_id, data.run_id)
+    sel = calibration_select_degree(rec, max_degree, usable=data.use & (data.pose_id >= 0))
+    by_level = sel.n_levels >= 2
+    table = _degree_rows(sel.scores, lambda sc: sc.held_out_level if by_level else sc.held_out_pose, sel.criterion,
+                         sel.chosen_degree)
+    if sel.chosen_degree is None:
+        raise NotIdentifiedError("no degree of eq. 28 could be validated on held-out data: " + "; ".join(sel.notes))
+    return sel.chosen_degree, table
+
+
+def reselect_degree(lanes: Lanes[Evaluator], spec: ModelSpec,
+                    max_degree: int) -> tuple[ModelSpec, list[dict[str, Any]], list[str]]:
+    """Degree and effects chosen jointly (issue 8): once an effect is in the model, choose the degree of eq. 28
+    again with the effect in every candidate model, by the calibration's rule (``model_selection.choose_degree``:
+    temperature-level hold-out guard with two or more levels, then the lowest degree within one standard error
+    of the best held-out error), the held-out unit being the visit. A term that stood in for a missing effect
+    (a higher degree absorbing a drift) is dropped again; a degree an effect hid is taken up.
+    Returns (the spec at the chosen degree, the degree table, notes). The degrees are cross-validated side by side
+    on ``lanes``."""
+    ev = lanes.lanes[0]
+    data = ev.data
+    labels = np.full(len(data.t_s), -1)
+    labels[data.use], means = temperature_levels(data.temp_c[data.use])
+    n_levels = max(len(means), 1)
+    by_level = n_levels >= 2
+    labels = ev.at(labels)
+    level_rows = ev.at(data.use) & (labels >= 0)
+    nan3 = np.full(3, np.nan)
+
+    def score(lane: Evaluator, n: int) -> tuple[DegreeScores, np.ndarray | None]:
+        if n >= n_levels:
+            return DegreeScores(n, False, nan3, nan3, nan3, f"not identified by {n_levels} temperature level(s)"), None
+        try:
+            des, cv = lane.cv(ModelSpec(n, spec.t_center_c, spec.t_scale_c, spec.effects))
+        except NotIdentifiedError as exc:
+            return DegreeScores(n, False, nan3, nan3, nan3, f"not identified: {exc}"), None
+        r = lane.rows & des.valid & finite_rows(cv.heldout)
+        ho = np.sqrt(np.mean(cv.heldout[r] ** 2, axis=0))
+        ins = np.sqrt(np.mean((des.G - cv.fitted_full)[r] ** 2, axis=0))
+        level_ho = nan3
+        if by_level and n < n_levels - 1:  # a fold trains on the other levels: degree n needs n + 1 of them
+            try:
+                lv = cross_validate(des, level_rows, labels, lane.weights).heldout
+                rl = level_rows & des.valid & finite_rows(lv)
+                level_ho = np.sqrt(np.mean(lv[rl] ** 2, axis=0))
+            except NotIdentifiedError:  # a fold without one level cannot fit this degree
+                pass
+        return DegreeScores(n, True, ins, ho, level_ho), _group_mse(cv.heldout, lane.groups, r, np.full(3, 1.0 / 3))[1]
+
+    done = lanes.map(score, range(max_degree + 1))
+    scores = [sc for sc, _ in done]
+    group_mse = {sc.degree: m for sc, m in done if m is not None}
+    chosen, criterion, notes = choose_degree(scores, group_mse, by_level, unit="visit")
+    table = _degree_rows(scores, lambda sc: sc.held_out_pose, criterion, chosen)
+    if chosen is None:
+        return spec, table, ["no degree could be validated with the added effects: degree kept", *notes]
+    return ModelSpec(chosen, spec.t_center_c, spec.t_scale_c, spec.effects), table, notes
+
+
+# ============================================================================ candidate evaluation
+@dataclass
+class CandidateResult:
+    name: str
+    title: str
+    applicable: bool
+    reason: str = ""
+    hyper: float | None = None
+    hyper_profile: list[tuple[float, float]] = field(default_factory=list)  # (h, weighted RSS)
+    heldout_rmse: np.ndarray | None = None  # (3,)
+    rel_gain: float = 0.0  # fraction of the weighted held-out MSE removed
+    p_value: float = 1.0
+    n_groups: int = 0
+    corr_with_residual: np.ndarray | None = None  # (3,)
+    significant: bool = False
+    detail: str = ""
+    delta: np.ndarray | None = None  # (n, 3) change of the in-sample prediction vs the current model (float32)
+    delta_rows: np.ndarray | None = None  # the samples of delta's rows (None: every sample, n = N)
+    cross_correlation_delay_s: float | None = None
+    implausible: str = ""  # why the fitted values are not physical (then never significant, never added)
+    detectable_gain: float = math.nan  # small campaigns: gain the paired t-test finds with 80 % power
+    time_block: tuple[float, float] | None = None  # a time function's (gain, p) over contiguous blocks of time held out
+    step_check: StepCheck | None = None  # a candidate that can follow a step, against the best step (``step_check``)
+
+    def delta_of_every_sample(self, n: int) -> np.ndarray | None:
+        """``delta`` (N, 3) on every one of the recording's ``n`` samples, NaN where it was not evaluated (for the
+        report's plots), or None."""
+        if self.delta is None or self.delta_rows is None:
+            return self.delta
+        out = np.full((n, 3), np.nan, np.float32)
+        out[self.delta_rows] = self.delta
+        return out
+
+
+def _group_mse(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    r = rows & finite_rows(res)
+    ug, inv = np.unique(groups[r], return_inverse=True)
+    e = np.sum(res[r] ** 2 * weights, axis=1)
+    return ug, np.bincount(inv, weights=e) / np.bincount(inv)
+
+
+def paired_gain_test(res0: np.ndarray, res1: np.ndarray, groups: np.ndarray, rows: np.ndarray,
+                     weights: np.ndarray, alpha: float | None = None) -> tuple[float, float, int, float]:
+    """(relative gain, one-sided p-value, groups, detectable gain) of held-out residual res1 over res0, paired by
+    visit group.
+
+    The test is the one-sided Wilcoxon signed-rank test of the per-group MSE differences. With so few groups
+    that it cannot reach ``alpha`` at all (2^-n >= alpha: six visits against 0.01 / 8) it is a one-sided paired
+    t-test over the groups instead (df n - 1; it has power on small designs but assumes normally distributed
+    per-group differences), and the detectable gain is the relative gain it finds with 80 % power at ``alpha``
+    given the scatter of these differences (NaN where the signed-rank test is used)."""
+    r = rows & finite_rows(res0) & finite_rows(res1)
+    _, m0 = _group_mse(res0, groups, r, weights)
+    _, m1 = _group_mse(res1, groups, r, weights)
+    d = m0 - m1
+    n = len(d)
+    tot0 = float(np.sum(res0[r] ** 2 * weights))
+    gain = (tot0 - float(np.sum(res1[r] ** 2 * weights))) / tot0 if tot0 > 0 else 0.0
+    if alpha is not None and 0.5**n >= alpha:  # small campaign: the rank test cannot reach alpha
+        sd = float(np.std(d, ddof=1)) if n >= 3 else 0.0
+        if sd <= 0:
+            return gain, 1.0, n, math.inf
+        p = float(stats.ttest_1samp(d, 0.0, alternative="greater").pvalue)
+        detectable = (stats.t.ppf(1 - alpha, n - 1) + stats.t.ppf(0.8, n - 1)) * sd / math.sqrt(n) / float(np.mean(m0))
+        return gain, p, n, float(detectable)
+    if n < 5 or np.all(d == 0):
+        return gain, 1.0, n, math.nan
+    p = float(stats.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue)
+    return gain, p, n, math.nan
+
+
+def cross_correlation_delay(data: DiagnosisData, fitted: np.ndarray, max_lag: int = 12) -> float:
+    """Delay (s) of the model output against the (gap-filled) reference by cross-correlation of their
+    first differences (finddelay of D'Emilia et al. 2019), with parabolic sub-sample interpolation."""
+    best_lag, best_val, vals = 0, -np.inf, {}
+    a = np.diff(np.nan_to_num(fitted), axis=0)
+    g = np.diff(np.nan_to_num(data.gref_filled), axis=0)
+    same_run = data.run_id[1:] == data.run_id[:-1]
+    a[~same_run], g[~same_run] = 0.0, 0.0
+    for lag in range(0, max_lag + 1):
+        v = float(np.sum(a[lag:] * g[: len(g) - lag]))
+        vals[lag] = v
+        if v > best_val:
+            best_lag, best_val = lag, v
+    frac = peak_offset(vals[best_lag - 1], vals[best_lag], vals[best_lag + 1]) if 0 < best_lag < max_lag else 0.0
+    return (best_lag + frac) * data.dt_s
+
+
+SEARCH_ROWS = 50_000  # fitted samples above which the candidates are evaluated on every k-th one
+MIN_SEARCH_INFORMATION = 0.8  # but a thinned search keeps at least this much of what a visit's samples tell of its mean
+
+
+def thinned_information(noise: VisitNoise, k: int, visit_samples: float) -> float:
+    """What every ``k``-th sample of a visit of ``visit_samples`` consecutive samples tells of the visit's mean, as a
+    fraction of what all of them tell: var(mean of all) / var(mean of every k-th) under the noise's autocorrelation
+    (``VisitNoise.mean_variance``; ``visit_samples`` / k of them, as many as the thinning leaves on average over the
+    visits' phases: a little less than the ceiling, so on the safe side), on the axis that loses most. 1 / k for white
+    noise; near 1 while k is well within the noise's correlation time (the TIA's filtered noise at 100 Hz:
+    ``VisitNoise.correlation_samples``)."""
+    if k <= 1:
+        return 1.0
+    every = noise.mean_variance(np.array([float(visit_samples)]))[0]
+    thinned = VisitNoise(noise.sigma, noise.acf[:, ::k]).mean_variance(np.array([float(visit_samples) / k]))[0]
+    return float(np.min(every / thinned))
+
+
+def check_search_rows(search_rows: int | None) -> None:
+    """Refuse a ``search_rows`` below 1 (None: every sample) with a clear error."""
+    if search_rows is not None and search_rows < 1:
+        raise ValueError(f"search_rows must be at least 1 (None: every sample), got {search_rows}")
+
+
+def search_samples(fit_rows: np.ndarray, folds: np.ndarray, search_rows: int | None, noise: VisitNoise | None = None,
+                   visit_samples: float = math.inf) -> tuple[np.ndarray, int, float]:
+    """(the samples the candidates are searched on, in fold order: each fold a slice of the search's designs, no
+    gathers; the step k of the thinning (1: not thinned); ``thinned_information`` at k). Those are the fitted
+    samples ``fit_rows`` (N,); with more than ``search_rows`` of them, every k-th one (about ``search_rows``), k
+    lowered until the thinned samples keep ``MIN_SEARCH_INFORMATION`` of what the visits' samples tell of their means
+    (``noise``: the floor's model of the noise; ``visit_samples``: a visit's typical number of fitted samples).
+    Consecutive samples of a visit are strongly correlated (TIA-filtered noise): the thinned set carries most of
+    the information that decides a choice, at a fraction of the cost; a recording sampled so slowly that its noise
+    is nearly white is thinned less."""
+    check_search_rows(search_rows)
+    n_fit = int(fit_rows.sum())
+    k = math.ceil(n_fit / search_rows) if search_rows is not None and n_fit > search_rows else 1
+    kept = 1.0 if noise is None or not math.isfinite(visit_samples) else thinned_information(noise, k, visit_samples)
+    if kept < MIN_SEARCH_INFORMATION:  # the largest k below that keeps it (bisection: the information falls with k)
+        lo, hi, kept = 1, k, 1.0
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            info = thinned_information(noise, mid, visit_samples)
+            lo, hi, kept = (mid, hi, info) if info >= MIN_SEARCH_INFORMATION else (lo, mid, kept)
+        k = lo
+    every = np.flatnonzero(fit_rows)[::k]
+    return every[np.argsort(folds[every], kind="stable")], k, kept
+
+
+class Evaluator:
+    """Evaluates specs on the samples ``sub`` (indices, ``search_samples``) of one recording with fixed folds,
+    rows and noise weights (cached designs): ``diagnose`` evaluates the candidates and chooses the model on it
+    (hyper-parameters, held-out gains, tests over the visits), then fits the chosen model on every sample.
+    Designs, folds, groups and held-out arrays are of ``sub``'s length; the input corrections still run on the
+    whole time series. ``references``: the corrected references a search keeps (``DesignCache``).
+    """
+
+    def __init__(self, data: DiagnosisData, folds: np.ndarray, weights: np.ndarray, groups: np.ndarray,
+                 sub: np.ndarray, references: int = 4) -> None:
+        self.data, self.weights, self.sub = data, weights, sub
+        self.folds, self.groups = self.at(folds), self.at(groups)
+        self.rows = self.at(data.use) & (self.folds >= 0)  # held out and judged
+        self.fit_rows = self.at(data.use) & (self.folds != -1)  # fitted (also the visits never held out, fold -2)
+        self.designs = DesignCache(references=references)
+        # results worked out by the confounding check that the next step needs again (see ``forget``)
+        self._cv_memo: dict[tuple, tuple[Design, CvResult]] = {}
+        self._hyper_memo: dict[tuple, tuple[float | None, np.ndarray, list[tuple[float, float]]]] = {}
+        self._last_cv: tuple[tuple, tuple[Design, CvResult]] | None = None
+        self._sums: FoldSums | None = None
+        self._rss_sums: RssSums | None = None
+
+    def at(self, a: np.ndarray) -> np.ndarray:
+        """``a`` (per sample of the recording) at this evaluator's samples."""
+        return a[self.sub]
+
+    @property
+    def model_matrix(self) -> np.ndarray:
+        """(3, 3) model matrix at the mean temperature (m/s^2 per unit Psi), for the plausibility bounds."""
+        return np.linalg.inv(self.data.static_psi_map()[0])
+
+    def design(self, spec: ModelSpec) -> Design:
+        return build_design(self.data, spec, self.designs, self.sub)
+
+    def cv(self, spec: ModelSpec, remember: bool = False) -> tuple[Design, CvResult]:
+        """Design and cross-validation of ``spec``; ``remember``: keep them for a later call (``forget``). The
+        last one is kept too: a search's final value is checked for plausibility, then evaluated."""
+        hit = self._cv_memo.get(spec.key)
+        if hit is None and self._last_cv is not None and self._last_cv[0] == spec.key:
+            hit = self._last_cv[1]
+        if hit is not None:
+            return hit
+        self._last_cv = None  # not held while the next design is built
+        des = self.design(spec)
+        out = des, cross_validate(des, self.fit_rows, self.folds, self.weights, self._sums)
+        self._sums = out[1].sums  # a search over the reference alone asks again with the same matrix
+        if remember:
+            self._cv_memo[spec.key] = out
+        self._last_cv = (spec.key, out)
+        return out
+
+    def cv_each(self, specs: list[ModelSpec],
+                use: Callable[[int, tuple[Design, CvResult] | NotIdentifiedError], None]) -> None:
+        """``use(k, self.cv(specs[k]))`` (or the NotIdentifiedError it raised) for each spec in order, the designs and
+        cross-validations worked out on this lane and on the lanes of the map left idle meanwhile
+        (``search_lanes.idle_lanes``): one spec a lane at a time, each result used before the next round (the lanes'
+        results are the same, bit for bit; a lent lane keeps its last design until its next trial, as any lane)."""
+        def one(lane: Evaluator, spec: ModelSpec) -> tuple[Design, CvResult] | NotIdentifiedError:
+            try:
+                return lane.cv(spec)
+            except NotIdentifiedError as exc:
+                return exc
+
+        with idle_lanes(len(specs) - 1) as extra:
+            if not extra:
+                for k, spec in enumerate(specs):
+                    use(k, one(self, spec))
+                return
+            lanes = [self, *extra]
+            with ThreadPoolExecutor(len(extra), thread_name_prefix="search-lane-lent") as pool:
+                for lo in range(0, len(specs), len(lanes)):
+                    part = specs[lo:lo + len(lanes)]
+                    later = [pool.submit(one, lane, spec) for lane, spec in zip(lanes[1:], part[1:], strict=False)]
+                    use(lo, one(self, part[0]))
+                    for k, f in enumerate(later, start=lo + 1):
+                        use(k, f.result())
+
+    def forget(self, spec: ModelSpec) -> None:
+        """Drop remembered results except those on top of ``spec``, the model the next step starts from: the
+        confounding check has already worked out each candidate on top of the one that is then added."""
+        for k in [k for k in self._cv_memo if k != spec.key]:  # in place: the lanes share them (``lane``)
+            del self._cv_memo[k]
+        for k in [k for k in self._hyper_memo if k[0] != spec.key]:
+            del self._hyper_memo[k]
+        self._rss_sums = None  # its copy of the matrix's fitted rows (n x p)
+
+    def lane(self) -> Evaluator:
+        """Another evaluator of the same samples, folds and weights, for searches run beside this one's
+        (``search_lanes``): its own caches of inputs and designs, this one's remembered results and corrected
+        references (values that depend on their key alone, whichever lane works them out)."""
+        other = copy.copy(self)
+        other.designs = self.designs.for_another_lane()
+        other._last_cv = other._sums = other._rss_sums = None
+        return other
+
+    def fit_hyper(self, spec: ModelSpec, eff: Effect,
+                  remember: bool = False) -> tuple[float | None, np.ndarray, list[tuple[float, float]]]:
+        """Hyper-parameter of ``eff`` added to ``spec``: nested grid choice per fold for the held-out
+        residual, and grid + bounded refinement on all rows for the final value. Returns (value, held-out
+        residual (N, 3), profile of (value, mean training RSS)). ``remember``: keep the result (``forget``)."""
+        key = (spec.key, eff.name)
+        if key in self._hyper_memo:
+            return self._hyper_memo[key]
+        out = self._fit_hyper(spec, eff)
+        if remember:
+            self._hyper_memo[key] = out
+        return out
+
+    def remembers(self, spec: ModelSpec, eff: Effect) -> bool:
+        """Whether :meth:`fit_hyper` of ``eff`` on top of ``spec`` is remembered (costs nothing)."""
+        return (spec.key, eff.name) in self._hyper_memo
+
+    def nested_heldout(self, spec: ModelSpec, eff: Effect) -> np.ndarray:
+        """The held-out residual (N, 3) of :meth:`fit_hyper` alone: the final value is not worked out (its
+        refinement on all rows, which the held-out residual does not depend on, is skipped)."""
+        return self._fit_hyper(spec, eff, final=False)[1]
+
+    def _fit_hyper(self, spec: ModelSpec, eff: Effect,
+                   final: bool = True) -> tuple[float | None, np.ndarray, list[tuple[float, float]]]:
+        """:meth:`fit_hyper`; ``final`` False: the value returned is the best grid value, not refined (see
+        :meth:`nested_heldout`)."""
+        if eff.hyper_grid(self.data) is None:
+            _, cvr = self.cv(spec.plus(eff, None))
+            return None, cvr.heldout, []
+        grid = eff.hyper_grid(self.data)
+        K = int(self.folds[self.rows].max()) + 1
+        fold_rows = [np.flatnonzero(self.rows & (self.folds == f)) for f in range(K)]  # indices: a fold is taken often
+        # nested choice: each fold's held-out residual is the one of the grid value that fits the other folds
+        # best (the first such value on a tie), kept as the grid is walked: one (N, 3) array, not one per value.
+        # Values whose fit on all rows is not physical (Effect.implausible: e.g. a warm-up of 13 m/s^2 cancelled
+        # by a creep) are searched apart and used only when no value is plausible: the hypothesis is a
+        # physical effect, and the best implausible value must not hide a plausible one.
+        heldout = {ok: np.full((len(self.folds), 3), np.nan) for ok in (True, False)}
+        best_train = {ok: np.full(K, np.inf) for ok in (True, False)}
+        best_at = {ok: np.full(K, len(grid)) for ok in (True, False)}  # grid index of each fold's best value
+        seen: dict[int, tuple[bool | None, float]] = {}  # grid index -> (plausible, mean training RSS); None: not identified
+        unidentified: list[str] = []
+        # a step's time is a fold's choice only where that fold's training visits on each side span the frame
+        fold_ok = self._step_sides(eff, grid, K) if eff.switched else None
+
+        def visit(i: int, done: tuple[Design, CvResult] | NotIdentifiedError) -> None:
+            h = float(grid[i])
+            if isinstance(done, NotIdentifiedError):  # this value makes the design singular: not a candidate
+                unidentified.append(f"{eff.hyper_name} = {h:.4g}: {done}")
+                seen[i] = (None, math.inf)
+                return
+            des, cvr = done
+            ok = not self.implausible(eff, h, des, cvr)
+            # the first value in grid order wins a tie (equal up to rounding: ``RSS_TIE_RTOL``), whatever the order
+            # the values are visited in
+            tie = np.abs(cvr.train_rss - best_train[ok]) <= RSS_TIE_RTOL * np.minimum(cvr.train_rss, best_train[ok])
+            better = np.where(tie, i < best_at[ok], cvr.train_rss < best_train[ok])
+            if fold_ok is not None:
+                better &= fold_ok[:, i]
+            for f in np.flatnonzero(better):
+                best_train[ok][f], best_at[ok][f] = cvr.train_rss[f], i
+                heldout[ok][fold_rows[f]] = np.nan  # those of the fold not fitted at this value
+                at, res = cvr.fold_heldout(f)
+                heldout[ok][at] = res
+            seen[i] = (ok, float(np.sum(cvr.train_rss) / max(K - 1, 1)))
+
+        def visit_all(batch: list[int]) -> None:
+            todo = [i for i in batch if i not in seen]
+            self.cv_each([spec.plus(eff, float(grid[i])) for i in todo], lambda k, done: visit(todo[k], done))
+
+        picks = self._switch_picks(spec, eff, grid, fold_ok) if eff.switched else None
+        visit_all(picks or [])
+        if picks is None or not all(ok for ok, _ in seen.values()):  # an implausible or unidentified pick: the walk
+            for batch in search_batches(len(grid), seen, best_at[True]):
+                visit_all(batch)
+        order = sorted(i for i in seen if seen[i][0] is not None)
+        if not order:
+            raise NotIdentifiedError("no value of the grid is identified (" + unidentified[0] + ")")
+        kept = [float(grid[i]) for i in order]
+        plausible = [bool(seen[i][0]) for i in order]
+        profile = [(float(grid[i]), seen[i][1]) for i in order]
+        use_ok = any(plausible)
+        grid = np.asarray([h for h, ok in zip(kept, plausible, strict=True) if ok == use_ok])
+        rss_grid = [p[1] for p, ok in zip(profile, plausible, strict=True) if ok == use_ok]
+        # final value on all rows: best grid point then bounded scalar refinement between its neighbours
+        j = first_min(np.asarray(rss_grid))
+        lo = grid[max(j - 1, 0)]
+        hi = grid[min(j + 1, len(grid) - 1)]
+        h_best = float(grid[j])
+        if not final:
+            return h_best, heldout[use_ok], profile
+
+        rss_at: dict[float, float] = {}  # the refinement and the parsimony check ask for some values again
+
+        def obj(h: float) -> float:
+            if float(h) not in rss_at:
+                try:
+                    rss_at[float(h)], self._rss_sums = weighted_rss(self.design(spec.plus(eff, float(h))), self.fit_rows,
+                                                                    self.weights, self._rss_sums)
+                except NotIdentifiedError:
+                    rss_at[float(h)] = math.inf
+            return rss_at[float(h)]
+
+        if hi > lo and not eff.switched:  # a switched effect's values are sample indices: none between them
+            res = optimize.minimize_scalar(obj, bounds=(float(lo), float(hi)), method="bounded",
+                                           options={"xatol": 1e-3 * (hi - lo), "maxiter": 25})
+            if res.success and res.fun <= obj(h_best):
+                h_ref = float(res.x)
+                if not (use_ok and self.implausible(eff, h_ref, *self.cv(spec.plus(eff, h_ref)))):
+                    h_best = h_ref
+        if eff.hyper_null is not None:
+            # parsimony: keep the null value unless moving away from it is a significant improvement,
+            # judged with visits as the independent units (likelihood ratio ~ chi^2(1), 1 %)
+            rss_best, rss_null = obj(h_best), obj(eff.hyper_null)  # a null value not identified is not kept
+            n_groups = len(np.unique(self.groups[self.rows]))
+            if (rss_null - rss_best) / max(rss_best / n_groups, 1e-300) < stats.chi2.ppf(0.99, 1):
+                h_best = float(eff.hyper_null)
+        return h_best, heldout[use_ok], profile
+
+    def _step_sides(self, eff: Effect, grid: np.ndarray, K: int) -> np.ndarray:
+        """(K, m) bool: whether fold f's training visits before and after the step at each value of ``grid`` each
+        span the table frame (``ResponseStepEffect.sides_span``; the visits a fold holds out are those of its
+        judged rows)."""
+        _, _, ids = eff.visit_table(self.data)
+        order = np.argsort(ids)
+        r = np.flatnonzero(self.rows)
+        pos = np.minimum(np.searchsorted(ids[order], self.groups[r]), len(ids) - 1)
+        known = ids[order][pos] == self.groups[r]
+        held = np.zeros((K, len(ids)), bool)
+        held[self.folds[r][known], order[pos[known]]] = True
+        return eff.sides_span(self.data, grid, ~held)
+
+    def _switch_picks(self, spec: ModelSpec, eff: Effect, grid: np.ndarray,
+                      fold_ok: np.ndarray | None = None) -> list[int] | None:
+        """The grid indices a search of a switched effect (``Effect.switched``) visits: each fold's best (among the
+        values ``fold_ok`` (K, m) allows it) and the best mean training RSS from ``switch_profile``; None when the
+        model alone is not identified (the walk says why)."""
+        des = self.design(spec.plus(eff, -math.inf))  # switched on everywhere: its block is the switched columns
+        blk = des.blocks[eff.name]
+        X = des.X[:, :blk.start] if blk.stop == des.X.shape[1] else np.delete(des.X, np.r_[blk], axis=1)
+        try:
+            prof = switch_profile(X, des.G, des.X[:, blk], self.sub, self.folds,
+                                  self.fit_rows & des.valid, self.weights, grid)
+        except NotIdentifiedError:
+            return None
+        best_mean = first_min(prof.sum(axis=0))
+        if fold_ok is not None:
+            prof = np.where(fold_ok, prof, np.inf)
+        return sorted({first_min(p) for p in prof if np.isfinite(p).any()} | {best_mean})
+
+    def implausible(self, eff: Effect, h: float | None, des: Design, cvr: CvResult) -> str:
+        """Why the fit of ``eff`` at ``h`` (design ``des``, fit ``cvr`` on all rows) is not physical, or "": the
+        effect's own bounds (``Effect.implausible``) or columns that cancel (``cancelling_terms``)."""
+        coeff = cvr.A_full[des.blocks[eff.name]].T if eff.name in des.blocks else None
+        return (eff.implausible(h, coeff, self.data, self.model_matrix)
+                or cancelling_terms(des, cvr, eff.name))
+
+    def evaluate(self, spec: ModelSpec, eff: Effect, base_heldout: np.ndarray, base_fitted: np.ndarray,
+                 base_G: np.ndarray, alpha: float | None = None) -> CandidateResult:
+        """Held-out gain and significance of ``eff`` on top of ``spec``, whose held-out residual, in-sample fit and
+        reference (each (n, 3), this evaluator's samples) are the ``base_*`` (``alpha``: the candidate's level,
+        which decides the test on small campaigns, ``paired_gain_test``)."""
+        ok, why = eff.applicable(self.data)
+        out = CandidateResult(eff.name, eff.title, ok, why)
+        if not ok:
+            return out
+        try:
+            h, heldout, profile = self.fit_hyper(spec, eff)
+            des, cvr = self.cv(spec.plus(eff, h))
+        except NotIdentifiedError as exc:  # the data cannot tell its columns from the model's: say so
+            out.applicable, out.reason = False, f"not identified on this data: {exc}"
+            return out
+        r = self.rows & des.valid & finite_rows(heldout) & finite_rows(base_heldout)
+        gain, p, ng, out.detectable_gain = paired_gain_test(base_heldout, heldout, self.groups, r, self.weights, alpha)
+        # what the candidate explains of the current residual (reference changes count too: delay, TIA)
+        delta = (base_G - des.G) + (cvr.fitted_full - base_fitted)
+        corr = np.array([_corr(base_heldout[r, j], delta[r, j]) for j in range(3)])
+        out.hyper, out.hyper_profile = h, profile
+        out.heldout_rmse = np.sqrt(np.mean(heldout[r] ** 2, axis=0))
+        out.rel_gain, out.p_value, out.n_groups = gain, p, ng
+        out.corr_with_residual = corr
+        coeff = cvr.A_full[des.blocks[eff.name]].T if eff.name in des.blocks else None
+        out.detail = eff.describe(h, coeff)
+        out.implausible = self.implausible(eff, h, des, cvr)
+        if out.implausible:
+            out.detail += f"; REFUSED: {out.implausible}"
+        out.delta = delta.astype(np.float32)  # for the plots and a correlation only
+        return out
+
+
+def _evaluate_on(spec: ModelSpec, base_heldout: np.ndarray, base_fitted: np.ndarray, base_G: np.ndarray, alpha: float,
+                 seconds: dict[str, float], ev: Evaluator, eff: Effect) -> CandidateResult:
+    """``ev.evaluate(spec, eff, ...)``: a task of ``Lanes.map`` (lane, item) once the step's arguments are bound; the
+    time it took goes into ``seconds`` (by the candidate's name: the order the next step's candidates start in)."""
+    t0 = time.perf_counter()
+    out = ev.evaluate(spec, eff, base_heldout, base_fitted, base_G, alpha)
+    seconds[eff.name] = time.perf_counter() - t0
+    return out
+
+
+def time_block_check(data: DiagnosisData, spec: ModelSpec, eff: Effect, h: float | None, sub: np.ndarray,
+                     folds: np.ndarray, weights: np.ndarray, alpha: float) -> tuple[float, float]:
+    """(held-out gain, one-sided p over visits: ``paired_gain_test``) of ``eff`` at ``h`` on top of ``spec`` when the
+    folds are contiguous blocks of time (``folds``: ``make_folds``' time blocks made identifiable by ``check_folds``), on
+    the samples ``sub`` (indices; the search's). A function of time (``Effect.time_function``) that only gains
+    between visits interleaved in time follows a slow wander of the residual, which it cannot extrapolate: the
+    driver would apply it after every power-on. A model not identified on these folds has gain -inf, p 1."""
+    f = folds[sub]
+    fit, judged = data.use[sub] & (f != -1), data.use[sub] & (f >= 0)
+    try:
+        ho = [cross_validate(build_design(data, s, sub=sub), fit, f, weights).heldout for s in (spec, spec.plus(eff, h))]
+    except NotIdentifiedError:
+        return -math.inf, 1.0
+    r = judged & finite_rows(ho[0]) & finite_rows(ho[1])
+    gain, p = paired_gain_test(ho[0], ho[1], data.group[sub], r, weights, alpha)[:2]
+    return gain, p
+
+
+@dataclass
+class StepCheck:
+    """A candidate that can follow a step (``Effect.follows_a_step``: a function of time, of the temperature's history
+    or of the reference counts) against the best step of the response at one time (``effects.ResponseStepEffect``),
+    each added on top of the other (held-out gain, one-sided p over visits) with eq. 28 at ``degree``."""
+
+    t_s: float  # board time of the first fitted sample after the step (s)
+    t_before_s: float  # board time of the last fitted sample before it (s): the step happened in between
+    run: int  # the run it is in
+    gain_step_beyond: float  # the step on top of the candidate
+    p_step_beyond: float
+    gain_time_beyond: float  # the candidate on top of the step
+    p_time_beyond: float
+    explained: bool  # the step gains beyond the candidate, the candidate not beyond the step
+    degree: int = 0  # degree of eq. 28 in both models (chosen again with the candidate and the step in it)
+
+    @property
+    def when(self) -> str:
+        """Where the step is, for the report: between two fitted samples (a table move, a settling or a gap in between)."""
+        return f"between t = {self.t_before_s:.4g} and {self.t_s:.4g} s (run {self.run})"
+
+
+def step_check(lanes: Lanes[Evaluator], spec: ModelSpec, eff: Effect, h: float | None, alpha: float,
+               min_rel_gain: float, max_degree: int | None = None) -> StepCheck | None:
+    """Does a step of the response at one time explain what ``eff`` (at ``h``; ``Effect.follows_a_step``) fits on top
+    of ``spec``? A warm-up with creep follows a step (a connector knocked mid-run) across contiguous blocks of time too,
+    so ``time_block_check`` passes it; on a temperature-cycled run a hysteresis branch or a thermal lag follows it as
+    well, since the temperature's history is tied to time; written to the calibration, the driver applies it for good.
+    The step (its time found like any hyper-parameter, nested in the folds) and ``eff`` are each added on top of the
+    other, as in the confounding check: if the step gains beyond ``eff`` (``alpha``, ``min_rel_gain``) and ``eff`` not
+    beyond the step, ``eff`` is a stand-in. ``max_degree`` (None: the degree is forced, or one temperature level): eq.
+    28's degree is first chosen again with both in the model (``reselect_degree``), as it is after any effect is added,
+    and both are compared at it: a degree chosen with the step in the residual can be too low for the step's model, and
+    the temperature dependence it leaves then passes for a drift or a hysteresis. None when the recording has too few
+    visits for a step. The two candidates on top of each other run side by side on ``lanes``."""
+    step = ResponseStepEffect()
+    ev = lanes.lanes[0]
+    if not step.applicable(ev.data)[0]:
+        return None
+
+    def on_top(lane: Evaluator, base_eff: tuple[ModelSpec, Effect]) -> CandidateResult:
+        base, e = base_eff
+        des, cvr = lane.cv(base)
+        return lane.evaluate(base, e, cvr.heldout, cvr.fitted_full, des.G, alpha)
+
+    def gains(r: CandidateResult) -> bool:
+        return r.applicable and r.p_value < alpha and r.rel_gain >= min_rel_gain and not r.implausible
+
+    try:
+        # the step that fits best in place of the candidate, not beside it; kept: every candidate checked at this
+        # step (a drift, a dark offset, a temperature history) is set against the same best step
+        with lanes.lending():  # ev (the first lane) searches it, the other lanes work its trials out beside it
+            h_step = ev.fit_hyper(spec, step, remember=True)[0]
+        if max_degree is not None:
+            degree = reselect_degree(lanes, spec.plus(eff, h).plus(step, h_step), max_degree)[0].degree
+            # the step's time, set by the jump rather than by the temperature terms, is kept (a search of it is
+            # most of the check's cost)
+            spec = ModelSpec(degree, spec.t_center_c, spec.t_scale_c, spec.effects)
+    except NotIdentifiedError:
+        return None
+    beyond_time, beyond_step = lanes.map(on_top, [(spec.plus(eff, h), step), (spec.plus(step, h_step), eff)])
+    if not beyond_time.applicable:
+        return None
+    i = min(math.ceil(float(h_step)), len(ev.data.t_s) - 1)
+    fitted = np.flatnonzero(ev.data.use[:i] & (ev.data.group[:i] >= 0))
+    t_before = float(ev.data.t_s[fitted[-1]]) if fitted.size else math.nan
+    return StepCheck(float(ev.data.t_s[i]), t_before, int(ev.data.run_id[i]), beyond_time.rel_gain, beyond_time.p_value,
+                     beyond_step.rel_gain if beyond_step.applicable else -math.inf,
+                     beyond_step.p_value if beyond_step.applicable else 1.0,
+                     gains(beyond_time) and not gains(beyond_step), spec.degree)
+
+
+def judge_step(lanes: Lanes[Evaluator], spec: ModelSpec, r: CandidateResult, eff_r: Effect, alpha_each: float,
+               min_rel_gain: float, max_degree: int | None, step_confounded: dict[str, str]) -> None:
+    """Set the significant candidate ``r`` (of ``eff_r``, ``Effect.follows_a_step``) on top of ``spec`` against the best
+    step of the response (``step_check``; ``max_degree`` None: eq. 28's degree is not chosen again): refused (``r``
+    no longer significant, why in its detail) if the step explains it; if the step fits as well, the warning for the
+    report is put in ``step_confounded`` under its name."""
+    sc = r.step_check = step_check(lanes, spec, eff_r, r.hyper, alpha_each, min_rel_gain, max_degree)
+    at_degree = f", eq. 28 of degree {sc.degree}" if sc is not None and sc.degree != spec.degree else ""
+    if sc is not None and sc.explained:
+        r.significant = False
+        r.detail += (f"; not added: a step of the response {sc.when} explains "
+                     f"it: the step gains {100 * sc.gain_step_beyond:+.1f} % beyond it (p = "
+                     f"{sc.p_step_beyond:.2g}), it gains {100 * sc.gain_time_beyond:+.1f} % beyond the step "
+                     f"(p = {sc.p_time_beyond:.2g}{at_degree}): the response changed once (a connector "
+                     f"knocked or re-mated, a fibre bent, a knock), not {eff_r.sensor_property} the driver "
+                     "could apply")
+    elif sc is not None and sc.p_time_beyond < alpha_each and sc.gain_time_beyond >= min_rel_gain:
+        r.detail += (f"; it gains {100 * sc.gain_time_beyond:+.1f} % beyond the best step of the response "
+                     f"at one time ({sc.when}, p = {sc.p_time_beyond:.2g}{at_degree})")
+    elif sc is not None:  # neither beyond the other: the data do not tell a step from this candidate
+        r.detail += (f"; a step of the response {sc.when} fits as well: it "
+                     f"gains {100 * sc.gain_time_beyond:+.1f} % beyond the step (p = {sc.p_time_beyond:.2g}), "
+                     f"the step {100 * sc.gain_step_beyond:+.1f} % beyond it (p = {sc.p_step_beyond:.2g}"
+                     f"{at_degree})")
+        step_confounded[r.name] = (f"{r.name} is in the calibration, but a step of the response {sc.when} (a "
+                                   "connector, a fibre, a knock) fits this "
+                                   "data as well, and a step is no property of the sensor: "
+                                   f"{eff_r.tells_it_from_a_step}")
+
+
+def _corr(a: np.ndarray, b: np.ndarray) -> float:
+    if a.size < 3 or np.std(a) == 0 or np.std(b) == 0:
+        return 0.0
+    return float(np.corrcoef(a, b)[0, 1])
