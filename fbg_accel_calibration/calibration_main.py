@@ -7,7 +7,13 @@ from __future__ import annotations
 
 import sys
 
-from fbg_accel_driver.command_line import ParameterTable, StartupError, parameter_help, print_help_or_version
+from fbg_accel_driver.command_line import (
+    ParameterTable,
+    StartupError,
+    missing_module_message,
+    parameter_help,
+    print_help_or_version,
+)
 
 from .stillness_monitor import DEFAULT_FALSE_ALARM_PER_RUN, DEFAULT_NOISE_CORR_S
 
@@ -71,8 +77,10 @@ def main(argv: list[str] | None = None) -> int:
     if print_help_or_version("calibration", argv, _usage):
         return EXIT_OK
     try:
-        from .calibration_node import run  # rclpy: only once neither --help nor --version answered
-
+        try:
+            from .calibration_node import run  # rclpy: only once neither --help nor --version answered
+        except ModuleNotFoundError as exc:
+            raise StartupError(missing_module_message(exc)) from None
         return run(argv)
     except StartupError as exc:
         print(f"calibration: error: {exc}", file=sys.stderr, flush=True)
