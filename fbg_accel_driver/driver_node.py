@@ -11,7 +11,9 @@ parameters (rclpy ``QoSOverridingOptions``); consumers subscribe with the sensor
 any reliable profile: ``ros2 topic echo`` without flags works).
 
 Shutdown: SIGINT/SIGTERM only set a flag; the main loop then stops the serial reader and the
-publisher thread *before* the ROS context is shut down, so no publish races a dead context.
+publisher thread *before* the ROS context is shut down, so no publish races a dead context. A link
+that ends within ``LINK_CLOSE_AT_SHUTDOWN_S`` of a signal (the simulator of a launch file stopped by
+the same Ctrl-C) is reported as closed at shutdown (INFO), a link lost otherwise as an ERROR.
 
 Threads: ``SerialLink``'s reader thread owns the port and queues byte chunks; a publisher thread
 blocks on that queue, runs ``DriverCore`` and publishes (rclpy publishers may be used from any
@@ -25,6 +27,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +63,8 @@ from .thermal_model import CalibrationFileError, ThermalCalibration
 __all__ = ["DriverNode", "ManagedDriverNode", "run"]
 
 NODE_NAME = "fbg_accel_driver"
+# A link that ends at most this long before a SIGINT/SIGTERM arrives ended because of the shutdown (s)
+LINK_CLOSE_AT_SHUTDOWN_S = 0.5
 INTEGER_RANGES = {"baud": (1200, 4_000_000), "decimation": (1, 10000), "min_reference_counts": (0, 4095),
                   "reader_queue_max_bytes": (4096, 1 << 30)}
 FLOAT_RANGES = {"temperature_hold_s": (0.0, 3600.0), "out_of_range_variance_factor": (1.0, 1e6),
@@ -96,9 +101,10 @@ def run(argv: list[str], managed: bool = False) -> int:
     init_ros("driver", argv)
     stop = threading.Event()
     node: DriverNode | None = None
-    with signals_to(lambda _signum: stop.set()):
+    with signals_to(lambda _signum: stop.set()) as shutdown:
         try:
             node = (ManagedDriverNode if managed else DriverNode)()
+            node.shutdown_signalled = shutdown.wait
             executor = SingleThreadedExecutor()
             executor.add_node(node)
             try:
@@ -119,6 +125,8 @@ class DriverNode(Node):
     calibration are refused). ``node_options`` go to rclpy's Node (context, parameter_overrides, ...)."""
 
     managed = False
+    # Whether SIGINT/SIGTERM arrives within the given seconds (run() hands in node_support.ShutdownSignal.wait)
+    shutdown_signalled: Callable[[float], bool] = staticmethod(lambda _timeout_s: False)
 
     def __init__(self, **node_options: Any) -> None:
         super().__init__(NODE_NAME, **node_options)
@@ -302,7 +310,10 @@ class DriverNode(Node):
         if status.state is LinkState.CONNECTED:
             self.get_logger().info(f"serial link up: {status.port}")
         elif status.state is LinkState.DISCONNECTED and self._link_state is not LinkState.DISCONNECTED:
-            self.get_logger().error(f"serial link down: {status.message}; retrying with back-off")
+            if self.shutdown_signalled(LINK_CLOSE_AT_SHUTDOWN_S):
+                self.get_logger().info(f"serial link closed at shutdown: {status.message}")
+            else:
+                self.get_logger().error(f"serial link down: {status.message}; retrying with back-off")
         self._link_state = status.state
         self._link_changes = self.link.state_changes
 
