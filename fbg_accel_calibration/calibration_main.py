@@ -26,7 +26,7 @@ PARAMETERS: ParameterTable = {
     "plan_file": ("string", "", "pose plan YAML (required), e.g. config/pose_plan_six_position.yaml, or an excitation "
                   "plan (dynamic run: records imu/raw with aux_counts and the reference for the plan's duration)"),
     "output_dir": ("string", ".", "directory of the run's MCAP file and calibration YAML (created if missing)"),
-    "run_label": ("string", "", "file stem of this run (empty: <sensor_id>[_L<level>]_<UTC time>)"),
+    "run_label": ("string", "", "file stem of this run (empty: <sensor_id>[_L<level>]_<YYYYmmddTHHMMSSZ>)"),
     "sensor_id": ("string", "unknown", "sensor identifier written into the MCAP metadata and the calibration"),
     "operator_notes": ("string", "", "free text stored in the MCAP metadata"),
     "mode": ("string", "service", "pose advance: service (operator calls calibration/next_pose) or auto (table motion/dwell)"),

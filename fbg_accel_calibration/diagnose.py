@@ -1,6 +1,6 @@
 """Residual diagnosis of the calibration model: find what eq. 28 lacks, add it, report before/after.
 
-Pure numpy/scipy engine behind ``fbg-accel-calib diagnose`` (issue 4). Steps:
+Pure numpy/scipy engine behind ``fbg-accel-calib diagnose``. Steps:
 
 1. Static samples: the static-interval detector of the fit (``static_detector.calibration_samples``,
    signal still AND table reference constant AND in a pose) or, with ``static="table"``, every
@@ -864,7 +864,7 @@ def settled_mask(t_s: np.ndarray, groups: np.ndarray, rows: np.ndarray, settle_s
     return out
 
 
-# Noise floor of correlated noise (issue 8). The noise of this sensor is white noise through the first-order TIA
+# Noise floor of correlated noise. The noise of this sensor is white noise through the first-order TIA
 # low-passes (time constants up to 0.16 s: 16 samples at 100 Hz, 64 at 400 Hz) plus the ADC's white rounding. Removing
 # a visit's mean and line removes about two integrated correlation times' worth of it, not two samples' worth: the
 # expected sum of squares is sigma^2 tr((I - H) R) (H the hat matrix of the mean and line over the visit, R the noise's
@@ -880,7 +880,7 @@ def settled_mask(t_s: np.ndarray, groups: np.ndarray, rows: np.ndarray, settle_s
 # came out negative on some seeds (integrated correlation < 0, floor 0.82x the truth); it is used only where the model
 # has too few lags (``MODEL_MIN_LAGS``). K covers NOISE_CORR_S, five of the slowest TIA time constants (a first-order
 # correlation is e^-5 = 0.7 % there), and at most half the median visit. Slower noise (bias instability, drift) is
-# removed with the line within a visit, as before, and is not in the floor.
+# removed with the line within a visit, and is not in the floor.
 NOISE_CORR_S = 5.0 * float(np.max(TIA_TAU_S))
 
 
@@ -1412,7 +1412,7 @@ def select_degree(data: DiagnosisData, max_degree: int) -> tuple[int, list[dict[
 
 def reselect_degree(lanes: Lanes[Evaluator], spec: ModelSpec,
                     max_degree: int) -> tuple[ModelSpec, list[dict[str, Any]], list[str]]:
-    """Degree and effects chosen jointly (issue 8): once an effect is in the model, choose the degree of eq. 28
+    """Degree and effects chosen jointly: once an effect is in the model, choose the degree of eq. 28
     again with the effect in every candidate model, by the calibration's rule (``model_selection.choose_degree``:
     temperature-level hold-out guard with two or more levels, then the lowest degree within one standard error
     of the best held-out error), the held-out unit being the visit. A term that stood in for a missing effect
@@ -2176,7 +2176,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     try:
         sel_degree, degree_table = select_degree(data, max_degree)
     except Exception:
-        folds_later.result()  # a recording the folds cannot be drawn on says so first, as before
+        folds_later.result()  # a recording the folds cannot be drawn on says so first
         raise
     fold, fold_notes = folds_later.result()
     if degree is not None:
@@ -2655,7 +2655,7 @@ CANCEL_RATIO = 10.0  # a collinear column whose own contribution exceeds the net
 
 
 def cancelling_terms(des: Design, cv: CvResult, name: str) -> str:
-    """Why the effect ``name`` fits as large terms that cancel (issue 8), or "" if it does not: one of its columns
+    """Why the effect ``name`` fits as large terms that cancel, or "" if it does not: one of its columns
     correlates above ``COLLINEAR_CORR`` with another column of the model (its own included) AND that column's
     contribution (coefficient x column, RMS over the fitted rows) is more than ``CANCEL_RATIO`` times the RMS of
     the effect's net contribution (all its columns), on some axis (e.g. a warm-up of 13 m/s^2 against a creep that

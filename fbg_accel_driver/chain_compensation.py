@@ -1,4 +1,4 @@
-"""Dynamics of the measuring chain and its live compensation (issue 9; docs/dynamic_calibration.md).
+"""Dynamics of the measuring chain and its live compensation (docs/dynamic_calibration.md).
 
 Pure Python + numpy, no ROS. The calibration file's optional ``dynamic`` section (:class:`ChainDynamics`)
 holds what a dynamic calibration measured:
