@@ -12,8 +12,9 @@ any reliable profile: ``ros2 topic echo`` without flags works).
 
 Shutdown: SIGINT/SIGTERM only set a flag; the main loop then stops the serial reader and the
 publisher thread *before* the ROS context is shut down, so no publish races a dead context. A link
-that ends within ``LINK_CLOSE_AT_SHUTDOWN_S`` of a signal (the simulator of a launch file stopped by
-the same Ctrl-C) is reported as closed at shutdown (INFO), a link lost otherwise as an ERROR.
+that ends at most ``LINK_CLOSE_AT_SHUTDOWN_S`` before a signal arrives (the simulator of a launch file
+stopped by the same Ctrl-C) is logged as closed at shutdown (INFO), a link lost otherwise as an ERROR
+once that time has passed (a thread of its own waits for it; ``/diagnostics`` reports the link at once).
 
 Threads: ``SerialLink``'s reader thread owns the port and queues byte chunks; a publisher thread
 blocks on that queue, runs ``DriverCore`` and publishes (rclpy publishers may be used from any
@@ -64,7 +65,7 @@ __all__ = ["DriverNode", "ManagedDriverNode", "run"]
 
 NODE_NAME = "fbg_accel_driver"
 # A link that ends at most this long before a SIGINT/SIGTERM arrives ended because of the shutdown (s)
-LINK_CLOSE_AT_SHUTDOWN_S = 0.5
+LINK_CLOSE_AT_SHUTDOWN_S = 2.0
 INTEGER_RANGES = {"baud": (1200, 4_000_000), "decimation": (1, 10000), "min_reference_counts": (0, 4095),
                   "reader_queue_max_bytes": (4096, 1 << 30)}
 FLOAT_RANGES = {"temperature_hold_s": (0.0, 3600.0), "out_of_range_variance_factor": (1.0, 1e6),
@@ -211,6 +212,7 @@ class DriverNode(Node):
         self.core = core
         self._link_state = LinkState.CONNECTING
         self._link_changes = 0
+        self._link_down_report: threading.Thread | None = None
         self._stopping = threading.Event()
         self._publisher_thread = threading.Thread(target=self._publisher_loop, name="fbg-accel publisher",
                                                   daemon=True)
@@ -310,12 +312,26 @@ class DriverNode(Node):
         if status.state is LinkState.CONNECTED:
             self.get_logger().info(f"serial link up: {status.port}")
         elif status.state is LinkState.DISCONNECTED and self._link_state is not LinkState.DISCONNECTED:
-            if self.shutdown_signalled(LINK_CLOSE_AT_SHUTDOWN_S):
-                self.get_logger().info(f"serial link closed at shutdown: {status.message}")
-            else:
-                self.get_logger().error(f"serial link down: {status.message}; retrying with back-off")
+            pending = self._link_down_report
+            if pending is None or not pending.is_alive():  # one report at a time: a flapping link starts no more
+                self._link_down_report = threading.Thread(target=self._report_link_down, args=(status.message,),
+                                                          name="fbg-accel link report", daemon=True)
+                self._link_down_report.start()
         self._link_state = status.state
         self._link_changes = self.link.state_changes
+
+    def _report_link_down(self, message: str) -> None:
+        """Log a link that ended: closed at shutdown if a signal arrives within LINK_CLOSE_AT_SHUTDOWN_S, else lost
+        (at once if the node is closed meanwhile without a signal: the loss came first)."""
+        deadline = time.monotonic() + LINK_CLOSE_AT_SHUTDOWN_S
+        while not self._stopping.is_set() and time.monotonic() < deadline:
+            if self.shutdown_signalled(0.1):
+                self.get_logger().info(f"serial link closed at shutdown: {message}")
+                return
+        if self.shutdown_signalled(0.0):
+            self.get_logger().info(f"serial link closed at shutdown: {message}")
+        else:
+            self.get_logger().error(f"serial link down: {message}; retrying with back-off")
 
     def _publish(self, out: CoreOutput) -> None:
         if not self._publishing:  # managed and inactive: frames are decoded and diagnosed, not published
@@ -366,6 +382,8 @@ class DriverNode(Node):
         self._stopping.set()
         self.link.queue.wake()
         self._publisher_thread.join(2.0)
+        if self._link_down_report is not None:  # it answers within 0.1 s once stopping
+            self._link_down_report.join(1.0)
 
 
 class ManagedDriverNode(DriverNode, LifecycleNode):

@@ -384,7 +384,8 @@ TEST_TOOLS = {"python3-pytest-timeout", "python3-colcon-common-extensions", "pyt
 def test_every_test_import_and_tool_is_a_test_depend() -> None:
     """``rosdep install`` of the package gives what its tests import and run (only pytest used to be declared)."""
     tests = [*(REPO / "test").glob("*.py")]
-    local_modules = {f.stem for f in tests} | {"fbg_accel_sim"}  # the tests' helpers and the package's own simulator
+    # the tests' helpers, the bench scripts' modules and the package's own simulator
+    local_modules = {f.stem for f in [*tests, *(REPO / "bench").glob("*.py")]} | {"fbg_accel_sim"}
     imports = {m: f for m, f in _third_party_imports(tests).items() if m not in local_modules}
     declared = {m for m in PYPI_MODULES} | ROS_MODULES | set(TEST_MODULES)
     unknown = {m: sorted(f) for m, f in imports.items() if m not in declared}
