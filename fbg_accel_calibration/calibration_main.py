@@ -52,7 +52,10 @@ PARAMETERS: ParameterTable = {
 
 def _usage() -> str:
     """The --help text (built only when asked for)."""
-    return f"""usage: calibration [-h] [--version] --ros-args -p plan_file:=PLAN.yaml [-p NAME:=VALUE ...]
+    return f"""usage: calibration [-h] [--version] [--stopped-ok] --ros-args -p plan_file:=PLAN.yaml [-p NAME:=VALUE ...]
+
+  --stopped-ok  exit status 0 (not 3) when SIGINT or SIGTERM stops the run (MCAP closed, no fit):
+                calibration.launch.py passes it, so that Ctrl-C, a normal end of a run, is no launch ERROR
 
 Calibration recorder of the FBG triaxial accelerometer (package {PACKAGE}). Follows a pose plan,
 waits per pose until the sensor is still (static-interval detector on Psi = counts/ref), records
@@ -76,12 +79,13 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if print_help_or_version("calibration", argv, _usage):
         return EXIT_OK
+    stopped_ok = "--stopped-ok" in (argv[: argv.index("--ros-args")] if "--ros-args" in argv else argv)
     try:
         try:
             from .calibration_node import run  # rclpy: only once neither --help nor --version answered
         except ModuleNotFoundError as exc:
             raise StartupError(missing_module_message(exc)) from None
-        return run(argv)
+        return run([a for a in argv if a != "--stopped-ok"], stopped_ok)
     except StartupError as exc:
         print(f"calibration: error: {exc}", file=sys.stderr, flush=True)
         return EXIT_STARTUP

@@ -7,8 +7,10 @@ The recorder's parameters come from ``params_file`` (default config/calibration.
 from ``driver_params_file`` (config/driver.yaml); ``plan_file`` and every non-empty argument below
 override the file. Advance poses with ``ros2 service call calibration/next_pose std_srvs/srv/Trigger``
 (in the namespace, if one is given). The launch ends when the recorder does (run complete and
-fitted, or aborted): the driver it started is stopped with it. ``managed:=true`` starts the driver as a
-lifecycle node, which publishes (and so feeds the recorder) only once configured and activated.
+fitted, or aborted): the driver it started is stopped with it. Ctrl-C ends the run with its file closed;
+the recorder then exits 0 (``--stopped-ok``), so launch reports no ERROR.
+``managed:=true`` starts the driver as a lifecycle node, which publishes (and so feeds the recorder)
+only once configured and activated.
 docs/calibration_node.md describes the run.
 """
 
@@ -65,6 +67,7 @@ def node_descriptions(share_dir: str, args: dict[str, str]) -> list[dict[str, An
         }))
     nodes.append(node_options(args, {
         "executable": "calibration",
+        "arguments": ["--stopped-ok"],  # Ctrl-C is a normal end here: exit 0, no launch ERROR
         "name": "calibration",
         "namespace": args["namespace"],
         "parameters": [args["params_file"], calib],
