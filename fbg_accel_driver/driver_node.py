@@ -126,8 +126,9 @@ class DriverNode(Node):
     calibration are refused). ``node_options`` go to rclpy's Node (context, parameter_overrides, ...)."""
 
     managed = False
-    # Whether SIGINT/SIGTERM arrives within the given seconds (run() hands in node_support.ShutdownSignal.wait)
-    shutdown_signalled: Callable[[float], bool] = staticmethod(lambda _timeout_s: False)
+    # Whether SIGINT/SIGTERM arrives within the given seconds: run() hands in node_support.ShutdownSignal.wait; None
+    # (a node built in-process, which handles no signal) reports a link that ends as lost at once
+    shutdown_signalled: Callable[[float], bool] | None = None
 
     def __init__(self, **node_options: Any) -> None:
         super().__init__(NODE_NAME, **node_options)
@@ -313,7 +314,9 @@ class DriverNode(Node):
             self.get_logger().info(f"serial link up: {status.port}")
         elif status.state is LinkState.DISCONNECTED and self._link_state is not LinkState.DISCONNECTED:
             pending = self._link_down_report
-            if pending is None or not pending.is_alive():  # one report at a time: a flapping link starts no more
+            if self.shutdown_signalled is None:
+                self.get_logger().error(f"serial link down: {status.message}; retrying with back-off")
+            elif pending is None or not pending.is_alive():  # one report at a time: a flapping link starts no more
                 self._link_down_report = threading.Thread(target=self._report_link_down, args=(status.message,),
                                                           name="fbg-accel link report", daemon=True)
                 self._link_down_report.start()
@@ -323,12 +326,14 @@ class DriverNode(Node):
     def _report_link_down(self, message: str) -> None:
         """Log a link that ended: closed at shutdown if a signal arrives within LINK_CLOSE_AT_SHUTDOWN_S, else lost
         (at once if the node is closed meanwhile without a signal: the loss came first)."""
+        signalled = self.shutdown_signalled
+        assert signalled is not None
         deadline = time.monotonic() + LINK_CLOSE_AT_SHUTDOWN_S
         while not self._stopping.is_set() and time.monotonic() < deadline:
-            if self.shutdown_signalled(0.1):
+            if signalled(0.1):
                 self.get_logger().info(f"serial link closed at shutdown: {message}")
                 return
-        if self.shutdown_signalled(0.0):
+        if signalled(0.0):
             self.get_logger().info(f"serial link closed at shutdown: {message}")
         else:
             self.get_logger().error(f"serial link down: {message}; retrying with back-off")
