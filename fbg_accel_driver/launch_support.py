@@ -13,7 +13,9 @@ command lines run) without ``launch``/``launch_ros``, which are not on PyPI:
   their Python types (str, int, float, bool); ``ros_arguments`` (list of str) go after ``--ros-args``
   (``--log-level``). ``ros_node`` False: a plain program without ``--ros-args`` (``board_sim``); then only
   ``executable`` and ``arguments`` apply. ``ends_launch`` True: the launch shuts down (stopping the other
-  processes) when this one exits.
+  processes) when this one exits. ``start_after_output`` ``(executable, text)``: the node starts once that plain
+  program of the same launch file prints a line containing ``text`` (the driver once ``board_sim`` has made
+  its link), not at once.
 
 Every launch file also takes the arguments of :data:`NODE_OPTIONS` (``managed``, ``use_sim_time``,
 ``log_level``); :func:`node_options` turns them into the driver's ``--managed``, a ``use_sim_time`` parameter
@@ -76,12 +78,25 @@ def node_options(args: dict[str, str], description: dict[str, Any]) -> dict[str,
     return d
 
 
+def _start_once_on(text: str, action: Any) -> Any:
+    """An ``OnProcessIO`` callback that returns ``[action]`` the first time an output chunk contains ``text``."""
+    started: list[bool] = []
+
+    def on_output(event: Any) -> list[Any] | None:
+        if started or text not in event.text.decode(errors="replace"):
+            return None
+        started.append(True)
+        return [action]
+
+    return on_output
+
+
 def generate(launch_arguments: Any, node_descriptions: Any) -> Any:
     """The ``LaunchDescription`` of a launch file given its two pure functions (imports launch lazily)."""
     from ament_index_python.packages import get_package_share_directory
     from launch import LaunchDescription
     from launch.actions import DeclareLaunchArgument, EmitEvent, ExecuteProcess, OpaqueFunction, RegisterEventHandler
-    from launch.event_handlers import OnProcessExit
+    from launch.event_handlers import OnProcessExit, OnProcessIO
     from launch.events import Shutdown
     from launch.substitutions import LaunchConfiguration
     from launch_ros.actions import Node
@@ -98,16 +113,24 @@ def generate(launch_arguments: Any, node_descriptions: Any) -> Any:
     def actions(context: Any) -> list[Any]:
         values = {name: LaunchConfiguration(name).perform(context) for name in arguments}
         out: list[Any] = []
+        programs: dict[str, Any] = {}
         for d in node_descriptions(share, values):
             if not d.get("ros_node", True):
-                out.append(ExecuteProcess(cmd=[ExecutableInPackage(d["executable"], PACKAGE), *d.get("arguments", [])],
-                                          name=d["executable"], output="screen"))
+                programs[d["executable"]] = ExecuteProcess(
+                    cmd=[ExecutableInPackage(d["executable"], PACKAGE), *d.get("arguments", [])],
+                    name=d["executable"], output="screen")
+                out.append(programs[d["executable"]])
                 continue
             params = [p if isinstance(p, str) else typed(p) for p in d.get("parameters", [])]
             node = Node(package=PACKAGE, executable=d["executable"], name=d.get("name"),
                         namespace=d.get("namespace") or None, parameters=params, arguments=d.get("arguments", []),
                         ros_arguments=d.get("ros_arguments", []), output="screen")
-            out.append(node)
+            if "start_after_output" in d:
+                program, text = d["start_after_output"]
+                out.append(RegisterEventHandler(OnProcessIO(target_action=programs[program],
+                                                            on_stdout=_start_once_on(text, node))))
+            else:
+                out.append(node)
             if d.get("ends_launch"):  # its end (run complete, fit written) ends the launch: the others get SIGINT
                 out.append(RegisterEventHandler(OnProcessExit(
                     target_action=node, on_exit=[EmitEvent(event=Shutdown(reason=f"{d['executable']} ended"))])))

@@ -3,8 +3,8 @@
     ros2 launch fbg_accel_driver sim.launch.py
     ros2 launch fbg_accel_driver sim.launch.py namespace:=veh1 sim_config:=/path/my_sim.yaml
 
-``board_sim`` keeps the symbolic link ``link`` pointing at its current pty; the driver opens that
-link (its reconnection back-off covers the moment before the link exists) and uses the simulated
+``board_sim`` keeps the symbolic link ``link`` pointing at its current pty; the driver starts once
+board_sim has announced it (``PTY <path>`` on its output), opens that link and uses the simulated
 sensor's calibration. Other driver parameters come from ``params_file`` (default config/driver.yaml).
 The default link is named after the namespace (``<tmp>/fbg_accel_sim_board_<uid>_acc_a`` for
 ``namespace:=acc_a``), so two launches under two namespaces simulate two boards, one per driver.
@@ -65,6 +65,7 @@ def node_descriptions(share_dir: str, args: dict[str, str]) -> list[dict[str, An
             "name": "fbg_accel_driver",
             "namespace": args["namespace"],
             "parameters": [args["params_file"], {"port": link, "calibration_file": args["calibration_file"]}],
+            "start_after_output": ("board_sim", "PTY "),  # the link exists: no "cannot open" ERROR at start-up
         }),
     ]
 

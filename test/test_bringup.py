@@ -21,6 +21,7 @@ import signal
 import subprocess
 import sys
 import tomllib
+import types
 import xml.etree.ElementTree as ET
 from collections.abc import Iterator
 from pathlib import Path
@@ -195,6 +196,9 @@ def test_sim_launch_board_sim_arguments_parse_and_point_the_driver_at_its_link(t
     args = build_parser().parse_args(sim["arguments"])
     assert Path(args.config).is_file() and args.link == link
     assert overrides_of(driver)["port"] == link
+    # the driver starts once board_sim has announced its pty (the link exists then): started together, the
+    # driver's first open could come first and log "cannot open ...: No such file" as an ERROR
+    assert driver["start_after_output"] == ("board_sim", "PTY ")
 
 
 def test_two_sim_launches_under_two_namespaces_get_a_board_each() -> None:
@@ -287,7 +291,9 @@ def _fake_launch(monkeypatch: pytest.MonkeyPatch) -> None:
            RegisterEventHandler=lambda event_handler, **kwargs: ("handler", event_handler),
            EmitEvent=lambda *, event, **kwargs: ("emit", event))
     module("launch.event_handlers",
-           OnProcessExit=lambda *, target_action=None, on_exit, **kwargs: ("on_exit", target_action, on_exit))
+           OnProcessExit=lambda *, target_action=None, on_exit, **kwargs: ("on_exit", target_action, on_exit),
+           OnProcessIO=lambda *, target_action=None, on_stdin=None, on_stdout=None, on_stderr=None, **kwargs:
+           ("on_io", target_action, on_stdout))
     module("launch.events", Shutdown=lambda *, reason="reason not given", due_to_sigint=False: ("shutdown", reason))
     module("launch.substitutions", LaunchConfiguration=LaunchConfiguration)
     module("launch_ros.actions", Node=node)
@@ -308,13 +314,26 @@ def test_generate_launch_description_starts_the_described_nodes(launch_file: str
     given = {"namespace": "veh1"} | ({"sensor_id": "007"} if "sensor_id" in declared else {})
     started = opaque(declared | given)
     descs = module.node_descriptions(str(REPO), declared | given)
-    handlers = [a for a in started if a[0] == "handler"]
+    handlers = [a[1] for a in started if a[0] == "handler"]
     started = [a for a in started if a[0] != "handler"]
+    # a node that waits for a program's output line starts from that program's output, once
+    programs = {a[2]: a for a in started if a[0] == "process"}  # name -> action
+    for d in descs:
+        if "start_after_output" in d:
+            program, text = d["start_after_output"]
+            (io,) = [h for h in handlers if h[0] == "on_io" and h[1] is programs[program]]
+            handlers.remove(io)
+            line = types.SimpleNamespace(text=f"{text}/dev/pts/7\n".encode())
+            assert io[2](types.SimpleNamespace(text=b"other output\n")) is None
+            (node,) = io[2](line)
+            assert io[2](line) is None  # once
+            started.append(node)
     assert len(started) == len(descs)
+    started.sort(key=lambda a: [d["executable"] for d in descs].index(a[1]["executable"] if a[0] == "node"
+                                                                        else a[2]))
     # the end of a process marked ends_launch (the calibration recorder) shuts the launch down
     ending = [a for a, d in zip(started, descs, strict=True) if d.get("ends_launch")]
-    assert [h[1] for h in handlers] == [("on_exit", a, [("emit", ("shutdown", f"{a[1]['executable']} ended"))])
-                                        for a in ending]
+    assert handlers == [("on_exit", a, [("emit", ("shutdown", f"{a[1]['executable']} ended"))]) for a in ending]
     for action, d in zip(started, descs, strict=True):
         if not d.get("ros_node", True):
             assert action == ("process", [("exe", d["executable"], "fbg_accel_driver"), *d["arguments"]],
@@ -439,7 +458,14 @@ def test_every_executable_prints_its_version_from_the_metadata() -> None:
 
 # ----------------------------------------------------------------------------- processes
 def _start_all(descs: list[dict[str, Any]], tmp_path: Path) -> list[ChildProcess]:
-    return [ChildProcess(d["executable"], command_line(d, tmp_path)) for d in descs]
+    """The processes of a launch file, each started as launch starts it (after the output it waits for)."""
+    procs: dict[str, ChildProcess] = {}
+    for d in descs:
+        if "start_after_output" in d:
+            program, text = d["start_after_output"]
+            procs[program].wait_line(re.escape(text), timeout=60)
+        procs[d["executable"]] = ChildProcess(d["executable"], command_line(d, tmp_path))
+    return list(procs.values())
 
 
 def _stop_all(procs: list[ChildProcess]) -> list[int]:
