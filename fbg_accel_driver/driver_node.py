@@ -14,7 +14,7 @@ Shutdown: SIGINT/SIGTERM only set a flag; the main loop then stops the serial re
 publisher thread *before* the ROS context is shut down, so no publish races a dead context. A link
 that ends at most ``LINK_CLOSE_AT_SHUTDOWN_S`` before a signal arrives (the simulator of a launch file
 stopped by the same Ctrl-C) is logged as closed at shutdown (INFO), a link lost otherwise as an ERROR
-once that time has passed (a thread of its own waits for it; ``/diagnostics`` reports the link at once).
+once that time has passed (checked by the diagnostics timer; ``/diagnostics`` reports the link at once).
 
 Threads: ``SerialLink``'s reader thread owns the port and queues byte chunks; a publisher thread
 blocks on that queue, runs ``DriverCore`` and publishes (rclpy publishers may be used from any
@@ -213,7 +213,8 @@ class DriverNode(Node):
         self.core = core
         self._link_state = LinkState.CONNECTING
         self._link_changes = 0
-        self._link_down_report: threading.Thread | None = None
+        self._link_down: tuple[str, float] | None = None  # a lost link not yet logged: (message, log-by time)
+        self._link_down_lock = threading.Lock()
         self._stopping = threading.Event()
         self._publisher_thread = threading.Thread(target=self._publisher_loop, name="fbg-accel publisher",
                                                   daemon=True)
@@ -311,32 +312,32 @@ class DriverNode(Node):
     def _log_link_change(self) -> None:
         status = self.link.status()
         if status.state is LinkState.CONNECTED:
+            self._report_link_down(now=True)  # a loss that came before this reconnection
             self.get_logger().info(f"serial link up: {status.port}")
         elif status.state is LinkState.DISCONNECTED and self._link_state is not LinkState.DISCONNECTED:
-            pending = self._link_down_report
             if self.shutdown_signalled is None:
                 self.get_logger().error(f"serial link down: {status.message}; retrying with back-off")
-            elif pending is None or not pending.is_alive():  # one report at a time: a flapping link starts no more
-                self._link_down_report = threading.Thread(target=self._report_link_down, args=(status.message,),
-                                                          name="fbg-accel link report", daemon=True)
-                self._link_down_report.start()
+            else:
+                with self._link_down_lock:
+                    self._link_down = (status.message, time.monotonic() + LINK_CLOSE_AT_SHUTDOWN_S)
         self._link_state = status.state
         self._link_changes = self.link.state_changes
 
-    def _report_link_down(self, message: str) -> None:
-        """Log a link that ended: closed at shutdown if a signal arrives within LINK_CLOSE_AT_SHUTDOWN_S, else lost
-        (at once if the node is closed meanwhile without a signal: the loss came first)."""
-        signalled = self.shutdown_signalled
-        assert signalled is not None
-        deadline = time.monotonic() + LINK_CLOSE_AT_SHUTDOWN_S
-        while not self._stopping.is_set() and time.monotonic() < deadline:
-            if signalled(0.1):
-                self.get_logger().info(f"serial link closed at shutdown: {message}")
+    def _report_link_down(self, now: bool) -> None:
+        """Log the link loss not yet logged: closed at shutdown (INFO) once a signal has arrived; lost (ERROR) once
+        LINK_CLOSE_AT_SHUTDOWN_S has passed without one, or at once with ``now``. Publisher thread, diagnostics timer
+        and close() call it."""
+        with self._link_down_lock:
+            if self._link_down is None or self.shutdown_signalled is None:
                 return
-        if signalled(0.0):
-            self.get_logger().info(f"serial link closed at shutdown: {message}")
-        else:
-            self.get_logger().error(f"serial link down: {message}; retrying with back-off")
+            message, log_by = self._link_down
+            if self.shutdown_signalled(0.0):
+                self.get_logger().info(f"serial link closed at shutdown: {message}")
+            elif now or time.monotonic() >= log_by:
+                self.get_logger().error(f"serial link down: {message}; retrying with back-off")
+            else:
+                return
+            self._link_down = None
 
     def _publish(self, out: CoreOutput) -> None:
         if not self._publishing:  # managed and inactive: frames are decoded and diagnosed, not published
@@ -352,6 +353,7 @@ class DriverNode(Node):
 
     # ------------------------------------------------------------ diagnostics
     def _publish_diagnostics(self) -> None:
+        self._report_link_down(now=False)
         st = self.link.status()
         core = self.core
         snap = DiagnosticsSnapshot(
@@ -387,8 +389,7 @@ class DriverNode(Node):
         self._stopping.set()
         self.link.queue.wake()
         self._publisher_thread.join(2.0)
-        if self._link_down_report is not None:  # it answers within 0.1 s once stopping
-            self._link_down_report.join(1.0)
+        self._report_link_down(now=True)
 
 
 class ManagedDriverNode(DriverNode, LifecycleNode):
