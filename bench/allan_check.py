@@ -14,9 +14,9 @@ Not a test (test/test_allan.py asserts tolerances). Writes bench/results/allan_c
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
+from output_paths import output_dir_from_command_line
 
 from fbg_accel_calibration.allan import BI_FACTOR, MG_TO_MPS2, allan_deviation
 from fbg_accel_calibration.thermal_fit import fit_thermal
@@ -62,10 +62,10 @@ def simulated_hour(vrw: list[float]) -> dict:
 
 
 def main() -> None:
+    out_dir = output_dir_from_command_line(__doc__.splitlines()[0])
     out = {"flicker_hours": flicker_hours(),
            "simulated_hour": {"x_vrw_1.2": simulated_hour([1.2, 1.94, 2.87]), "table2": simulated_hour([3.96, 1.94, 2.87])}}
-    path = Path(__file__).parent / "results" / "allan_check.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "allan_check.json"
     path.write_text(json.dumps(out, indent=2) + "\n")
     print(json.dumps(out, indent=2))
 

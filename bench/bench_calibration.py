@@ -51,6 +51,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from machine_info import results_doc, write_results  # noqa: E402
+from output_paths import add_update_results, results_dir  # noqa: E402
 
 from fbg_accel_calibration.diagnose import diagnose  # noqa: E402
 from fbg_accel_calibration.diagnose_report import write_report  # noqa: E402
@@ -146,8 +147,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="run the diagnosis under cProfile; its top functions (cumulative and own time) go into the JSON")
     ap.add_argument("--memory-diagnose", action="store_true",
                     help="run the diagnosis under tracemalloc; what it holds at its peak goes into the JSON")
-    ap.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "calibration.json")
+    ap.add_argument("--output", type=Path, help="output file (default: calibration.json in the scratch or results directory)")
+    add_update_results(ap)
     args = ap.parse_args(argv)
+    args.output = args.output or results_dir(args.update_results) / "calibration.json"
     from fbg_accel_calibration.heap_trim import set_process_heap_policy
 
     set_process_heap_policy()  # as the diagnose command sets it (its entry point's policy)

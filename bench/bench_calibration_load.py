@@ -21,6 +21,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine_info import machine  # noqa: E402
+from output_paths import output_dir_from_command_line  # noqa: E402
 
 CHILD = """
 import resource, sys, time
@@ -44,12 +45,13 @@ def run(path: Path, repeat: int) -> dict:
 
 
 def main() -> int:
+    out_dir = output_dir_from_command_line(__doc__.splitlines()[0])
     good = yaml.safe_load((ROOT / "config" / "calibration_sim.yaml").read_text())
     results = {"when": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "machine": machine(), "cases": {}}
     with tempfile.TemporaryDirectory() as tmp:
         cases = {
             "shipped calibration_sim.yaml (degree 2, no terms)": (ROOT / "config" / "calibration_sim.yaml", 20),
-            "measured diagnosis (degree 0, 2 terms)": (ROOT / "docs" / "results_measured_diagnosis.yaml", 20),
+            "measured diagnosis (degree 0, 2 terms)": (ROOT / "docs" / "results" / "measured_diagnosis.yaml", 20),
         }
         big = Path(tmp) / "big.yaml"
         term = {"kind": "reference_dark_offset", "ref_offset_counts": 1.0}
@@ -60,7 +62,7 @@ def main() -> int:
             r = results["cases"][name]
             print(f"{name}: {r['seconds_per_load'] * 1e3:.1f} ms, peak RSS +{r['peak_rss_growth_mib']:.1f} MiB, "
                   f"{r['outcome']}")
-    out = ROOT / "bench" / "results" / "calibration_load.json"
+    out = out_dir / "calibration_load.json"
     out.write_text(json.dumps(results, indent=2) + "\n")
     print(f"wrote {out}")
     return 0

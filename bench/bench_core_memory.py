@@ -24,6 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from machine_info import results_doc, write_results  # noqa: E402
+from output_paths import add_update_results, results_dir  # noqa: E402
 
 from fbg_accel_driver.driver_core import DriverCore  # noqa: E402
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1  # noqa: E402
@@ -44,8 +45,10 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=360_000, help="measured frames (default: 1 h at 100 Hz)")
     ap.add_argument("--warmup", type=int, default=20_000, help="frames before the first snapshot")
-    ap.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "core_memory.json")
+    ap.add_argument("--output", type=Path, help="output file (default: core_memory.json in the scratch or results directory)")
+    add_update_results(ap)
     args = ap.parse_args(argv)
+    args.output = args.output or results_dir(args.update_results) / "core_memory.json"
 
     cal = ThermalCalibration.load(ROOT / "config" / "calibration_sim.yaml")
     sim = BoardSimulator(SimConfig.default().with_overrides({"scenario.rate_hz": RATE_HZ}), seed=0)

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 from machine_info import machine
+from output_paths import add_update_results, results_dir
 
 HERE = Path(__file__).resolve().parent
 PY = sys.executable
@@ -91,6 +92,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--mb", type=float, default=200.0, help="CSV size, MB (default 200)")
     ap.add_argument("--dir", type=Path, default=None, help="work directory (default: a temporary one)")
+    add_update_results(ap)
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         d = Path(tmp)
@@ -110,7 +112,7 @@ def main() -> None:
             result[mode]["peak_minus_baseline_mb"] = round(result[mode]["peak_rss_mb"] - base, 1)
             result[mode]["over_file_size"] = round((result[mode]["peak_rss_mb"] - base) / size_mb, 3)
         result["mcap_mb"] = round((d / "out.mcap").stat().st_size / 1e6, 1)
-    out = HERE / "results" / "csv_import.json"
+    out = results_dir(args.update_results) / "csv_import.json"
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps({k: v for k, v in result.items() if k != "machine"}, indent=2))
     print(f"wrote {out}")

@@ -29,6 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from machine_info import results_doc, write_results  # noqa: E402
+from output_paths import add_update_results, results_dir  # noqa: E402
 
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, Frame, Status, encode_frame, link_frame_rate_limit  # noqa: E402
 from fbg_accel_driver.stream_decoder import StreamDecoder  # noqa: E402
@@ -93,8 +94,10 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=200_000, help="frames per run (default 200000)")
     ap.add_argument("--repeats", type=int, default=5, help="timed repeats per case (default 5)")
-    ap.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "decoder.json")
+    ap.add_argument("--output", type=Path, help="output file (default: decoder.json in the scratch or results directory)")
+    add_update_results(ap)
     args = ap.parse_args(argv)
+    args.output = args.output or results_dir(args.update_results) / "decoder.json"
 
     frames = make_frames(args.frames)
     streams = {"clean": b"".join(encode_frame(f) for f in frames), "faulty": faulty_stream(frames)}

@@ -57,6 +57,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from machine_info import proc_field, results_doc, write_results  # noqa: E402
+from output_paths import add_update_results, results_dir  # noqa: E402
 
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, link_frame_rate_limit  # noqa: E402
 
@@ -528,10 +529,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--profile", type=Path, help="sample the driver with py-spy during each measured window; "
                     "collapsed stacks into this directory, top functions into the JSON")
     ap.add_argument("--save-raw", type=Path, help="also save write/receive times per case as .npz in this directory")
-    ap.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "driver_ingest.json")
+    ap.add_argument("--output", type=Path, help="output file (default: driver_ingest.json in the scratch or results directory)")
+    add_update_results(ap)
     ap.add_argument("--role", choices=["bench", "subscriber"], default="bench", help=argparse.SUPPRESS)
     ap.add_argument("--sub-out", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    args.output = args.output or results_dir(args.update_results) / "driver_ingest.json"
     if args.role == "subscriber":
         return run_subscriber(args.sub_out, not args.raw_only)
     if "ROS_DOMAIN_ID" not in os.environ:

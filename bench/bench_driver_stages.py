@@ -36,6 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from machine_info import results_doc, write_results  # noqa: E402
+from output_paths import add_update_results, results_dir  # noqa: E402
 
 from fbg_accel_driver.driver_core import DriverCore  # noqa: E402
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, link_frame_rate_limit  # noqa: E402
@@ -214,8 +215,10 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=2000, help="frames per timed case (paced cases take at most 3 s)")
     ap.add_argument("--wake-seconds", type=float, default=3.0, help="seconds per wake-up case")
-    ap.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "driver_stages.json")
+    ap.add_argument("--output", type=Path, help="output file (default: driver_stages.json in the scratch or results directory)")
+    add_update_results(ap)
     args = ap.parse_args(argv)
+    args.output = args.output or results_dir(args.update_results) / "driver_stages.json"
     import rclpy
 
     data = frames_bytes(max(args.frames, 1000) * 2)

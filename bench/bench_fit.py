@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 from machine_info import machine
+from output_paths import add_update_results, results_dir
 
 from fbg_accel_calibration.mcap_io import read_recording, write_recording
 from fbg_accel_calibration.model_selection import select_degree
@@ -93,8 +94,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--samples", type=int, default=1_000_000)
     ap.add_argument("--mcap-samples", type=int, default=200_000, help="samples for the MCAP read step (0: skip)")
-    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "fit.json")
+    ap.add_argument("--out", type=Path, help="output file (default: fit.json in the scratch or results directory)")
+    add_update_results(ap)
     args = ap.parse_args()
+    args.out = args.out or results_dir(args.update_results) / "fit.json"
     rec, static = make_recording(args.samples)
     data_mb = sum(a.nbytes for a in (rec.t_s, rec.ref, rec.xyz, rec.temp_c, rec.gref_mps2, rec.pose_id, rec.run_id)) / 1e6
     full_design_mb = args.samples * n_params(3) * 8 / 1e6

@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 from machine_info import machine
+from output_paths import add_update_results, results_dir
 
 HERE = Path(__file__).resolve().parent
 MODES = {
@@ -104,11 +105,13 @@ def main() -> None:
     ap.add_argument("--check-samples", type=int, default=2_000_000,
                     help="second campaign (2x larger) fitted by streaming: its peak memory must be the same (0: skip)")
     ap.add_argument("--dir", type=Path, default=None, help="keep the MCAP files here (default: a temporary directory)")
-    ap.add_argument("--out", type=Path, default=HERE / "results" / "fit_stream.json")
+    ap.add_argument("--out", type=Path, help="output file (default: fit_stream.json in the scratch or results directory)")
+    add_update_results(ap)
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--trace", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("files", nargs="*", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    args.out = args.out or results_dir(args.update_results) / "fit_stream.json"
     if args.child:
         child(args.child, args.files, str(args.out), args.trace)
         return

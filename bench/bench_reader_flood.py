@@ -43,6 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_driver_ingest import proc_rss_kib  # noqa: E402
 from machine_info import machine  # noqa: E402
+from output_paths import add_update_results, results_dir  # noqa: E402
 
 from fbg_accel_driver.frame_codec import SEQ_MODULO, Frame, Status, encode_frame  # noqa: E402
 
@@ -110,8 +111,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=400_000, help="frames pre-encoded (the stream is cycled)")
     ap.add_argument("--driver-src", type=Path, default=ROOT,
                     help="source tree whose fbg_accel_driver is run (e.g. a worktree of an older commit)")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "reader_flood.json")
+    ap.add_argument("--out", type=Path, help="output file (default: reader_flood.json in the scratch or results directory)")
+    add_update_results(ap)
     args = ap.parse_args(argv)
+    args.out = args.out or results_dir(args.update_results) / "reader_flood.json"
 
     print(f"encoding {args.frames} frames ...", flush=True)
     stream = make_stream(args.frames)

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from output_paths import add_update_results, results_dir
 
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_calibration.static_detector import estimate_noise_var, moving_variance, variance_threshold
@@ -29,7 +30,6 @@ from fbg_accel_calibration.thermal_fit import fit_thermal
 from fbg_accel_sim.board_physics import BoardSimulator, SimConfig, simulate_recording
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "bench" / "results"
 LEVELS = [16.0, 24.0, 45.0]
 HELD_OUT = [[45.0, 45.0], [210.0, 120.0], [300.0, 60.0]]
 SIX = [("z_down", 0, 180), ("z_up", 0, 0), ("x_down", 270, 90), ("x_up", 90, 90), ("y_down", 180, 90), ("y_up", 0, 90)]
@@ -94,15 +94,16 @@ def held_out_ratios(extra: dict, seeds: int, rate: float = 100.0, rec_s: float =
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=3)
+    add_update_results(ap)
     args = ap.parse_args()
+    out_dir = results_dir(args.update_results)
     fa = {f"rate {rate:g} Hz, window {w:g} s, margin {m:g}": false_alarms(rate, w, m, 6)
           for rate in (100.0, 200.0) for w in (0.25,) for m in (3.0, 5.0)}
     ratios = {"simulator defaults": held_out_ratios({}, args.seeds),
               "reference_dark_offset off": held_out_ratios({"effects.reference_dark_offset.scale": 0.0}, args.seeds)}
     result = {"date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), "machine": platform.platform(),
               "false_alarm_fraction": fa, "held_out_rms_over_floor": ratios}
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "calibration_node_findings.json").write_text(json.dumps(result, indent=1))
+    (out_dir / "calibration_node_findings.json").write_text(json.dumps(result, indent=1))
     lines = [f"# Calibration node findings ({result['date']}, {result['machine']})", "",
              "Command: `.venv/bin/python bench/calibration_node_findings.py`", "",
              "## Static detector: fraction of still windows above the threshold (6 x 60 s, noise learnt from 2 s)", "",
@@ -115,7 +116,7 @@ def main() -> int:
             a = np.asarray(rows)
             lines.append(f"| {name} | {degree} | {' / '.join(f'{v:.2f}' for v in a.mean(0))} | "
                          f"{' / '.join(f'{v:.2f}' for v in a.max(0))} |")
-    (OUT / "calibration_node_findings.md").write_text("\n".join(lines) + "\n")
+    (out_dir / "calibration_node_findings.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

@@ -18,6 +18,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "test"))
 
+from output_paths import output_dir_from_command_line  # noqa: E402
 from test_diagnose_sim import SCENARIOS, _config  # noqa: E402
 
 from fbg_accel_calibration.diagnose import diagnose  # noqa: E402
@@ -25,6 +26,7 @@ from fbg_accel_sim.board_physics import simulate_recording  # noqa: E402
 
 
 def main() -> int:
+    out_dir = output_dir_from_command_line(__doc__.splitlines()[0])
     rows, n_ok = [], 0
 
     def add(injected: str, seed: int, ok: bool, cells: str, res, ratio) -> None:
@@ -55,7 +57,7 @@ def main() -> int:
         add("unmodelled_cable_torque x3", seed, ok, f"unexplained: {s.significant} | serial corr. of pose means "
             f"{' / '.join(f'{v:+.2f}' for v in s.serial_corr_pose_means)}", res, s.ratio)
     n_all = len(rows)
-    out = ROOT / "bench" / "results" / "diagnose_robustness.md"
+    out = out_dir / "diagnose_robustness.md"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("# Diagnosis robustness over seeds (simulator)\n\nProduced by `.venv/bin/python bench/diagnose_robustness.py`."
                    f"\n\n**{n_ok} of {n_all} runs as expected.**\n\n"

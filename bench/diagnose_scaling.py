@@ -31,6 +31,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from bench_calibration import scenario  # noqa: E402
 from machine_info import results_doc, write_results  # noqa: E402
+from output_paths import add_update_results, results_dir  # noqa: E402
 
 
 def run_command(n: int, tmp: Path) -> dict:
@@ -58,8 +59,10 @@ def run_command(n: int, tmp: Path) -> dict:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000])
-    ap.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "diagnose_scaling.json")
+    ap.add_argument("--output", type=Path, help="output file (default: diagnose_scaling.json in the scratch/results directory)")
+    add_update_results(ap)
     args = ap.parse_args(argv)
+    args.output = args.output or results_dir(args.update_results) / "diagnose_scaling.json"
     runs: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="diagnose_scaling_") as tmp:
         for n in args.sizes:

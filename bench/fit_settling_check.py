@@ -25,13 +25,13 @@ import platform
 from pathlib import Path
 
 import numpy as np
+from output_paths import output_dir_from_command_line
 
 from fbg_accel_calibration.thermal_fit import fit_thermal
 from fbg_accel_driver.thermal_model import normalise
 from fbg_accel_sim.board_physics import SimConfig, simulate_recording
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "bench" / "results"
 SIX = [[0, 0], [0, 180], [0, 90], [0, -90], [90, 90], [-90, 90]]
 CASES = [(2.0, 1.0), (4.0, 1.0), (4.0, 2.0), (10.0, 2.0), (30.0, 2.0)]  # (dwell s, move s)
 SETTLED_S = 2.0  # s at the pose after which the truth takes a sample as settled
@@ -58,13 +58,13 @@ def case(dwell_s: float, move_s: float) -> dict[str, object]:
 
 
 def main() -> int:
+    out_dir = output_dir_from_command_line(__doc__.splitlines()[0])
     rows = [case(d, m) for d, m in CASES]
     doc = {"benchmark": "fit_settling", "command": ".venv/bin/python bench/fit_settling_check.py",
            "date_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
            "machine": {"cpu": platform.processor() or platform.machine(), "python": platform.python_version()},
            "seed": SEED, "settled_s": SETTLED_S, "cases": rows}
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "fit_settling.json").write_text(json.dumps(doc, indent=1) + "\n")
+    (out_dir / "fit_settling.json").write_text(json.dumps(doc, indent=1) + "\n")
 
     def fmt(v: list[float], digits: int = 3) -> str:
         return " / ".join(f"{x:.{digits}f}" for x in v)
@@ -74,7 +74,7 @@ def main() -> int:
              "|---:|---:|---|---|---:|"]
     lines += [f"| {r['dwell_s']:g} | {r['move_s']:g} | {fmt(r['ratio'], 2)} | {fmt(r['visit_mean_error_rms_mps2'])} | "
               f"{r['samples_used']} / {r['samples_total']} |" for r in rows]
-    (OUT / "fit_settling.md").write_text("\n".join(lines) + "\n")
+    (out_dir / "fit_settling.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

@@ -25,6 +25,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from output_paths import output_dir_from_command_line
 
 from fbg_accel_calibration.table_geometry import table_specific_force
 from fbg_accel_driver.thermal_model import ThermalCalibration
@@ -110,6 +111,7 @@ def calibrated_static_error() -> dict:
 
 
 def main() -> int:
+    res = output_dir_from_command_line(__doc__.splitlines()[0])
     cfg = SimConfig.default()
     out = {
         "report": optics.linearity_report(cfg),
@@ -118,8 +120,6 @@ def main() -> int:
                          "simulated_gaussian": simulated_curvature(GAUSSIAN)},
         "calibrated_static_error": calibrated_static_error(),
     }
-    res = ROOT / "bench" / "results"
-    res.mkdir(parents=True, exist_ok=True)
     (res / "optics_linearity.json").write_text(json.dumps(out, indent=2))
     lines = ["# Spectral-overlap non-linearity (bench/optics_linearity.py)", "",
              f"Metric: {out['report']['metric']}.", "",

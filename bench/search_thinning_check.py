@@ -36,6 +36,7 @@ sys.path.insert(0, str(ROOT / "test"))
 
 from bench_calibration import scenario  # noqa: E402
 from machine_info import machine  # noqa: E402
+from output_paths import add_update_results, results_dir  # noqa: E402
 from test_diagnose_sim import SCENARIOS, _config  # noqa: E402
 
 from fbg_accel_calibration.diagnose import DiagnosisResult, diagnose  # noqa: E402
@@ -93,8 +94,10 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--samples", type=int, nargs="+", default=[200_000, 1_000_000], help="samples of the benchmark runs")
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2], help="seeds of the benchmark runs")
-    ap.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "search_thinning_check.md")
+    ap.add_argument("--output", type=Path, help="output (default: search_thinning_check.md in the scratch/results directory)")
+    add_update_results(ap)
     args = ap.parse_args()
+    args.output = args.output or results_dir(args.update_results) / "search_thinning_check.md"
     runs = []
     for n in args.samples:
         cfg, duration = scenario(n)

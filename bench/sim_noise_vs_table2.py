@@ -27,6 +27,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from output_paths import add_update_results, results_dir
 
 from fbg_accel_calibration.allan import allan_deviation
 from fbg_accel_calibration.thermal_fit import fit_thermal
@@ -76,8 +77,10 @@ def case(overrides: dict, hours: float) -> dict:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--hours", type=float, default=6.0, help="static run per case (h; the paper's Allan data: 6 h)")
-    p.add_argument("--output", default=str(Path(__file__).parent / "results" / "sim_noise_vs_table2.json"))
+    p.add_argument("--output", help="output file (default: sim_noise_vs_table2.json in the scratch or results directory)")
+    add_update_results(p)
     args = p.parse_args()
+    args.output = args.output or str(results_dir(args.update_results) / "sim_noise_vs_table2.json")
     out = {"hours": args.hours, "time_drift": "off in every case", "cases": {}}
     for name, over in CASES.items():
         out["cases"][name] = case(over, args.hours)

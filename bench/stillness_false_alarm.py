@@ -19,10 +19,10 @@ import argparse
 import datetime as _dt
 import json
 import platform
-from pathlib import Path
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
+from output_paths import add_update_results, results_dir
 
 from fbg_accel_calibration.stillness_monitor import (
     StillnessMonitor,
@@ -32,7 +32,6 @@ from fbg_accel_calibration.stillness_monitor import (
 )
 from fbg_accel_sim.board_physics import BoardSimulator, SimConfig
 
-OUT = Path(__file__).resolve().parents[1] / "bench" / "results"
 NOMINAL = [3e-2, 3e-3, 3e-4, 3e-5]
 PER_RUN = 0.1
 TEST_S = 60.0
@@ -72,15 +71,16 @@ def measure(rate: float, learn_s: float, seconds: float, overrides: dict, seed: 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--hours", type=float, default=1.0, help="simulated hours at 100 Hz (1 kHz: a sixth of it)")
+    add_update_results(ap)
     args = ap.parse_args()
+    out_dir = results_dir(args.update_results)
     sec = args.hours * 3600.0
     cases = [(100.0, 2.0, sec, {}), (100.0, 5.0, sec, {}), (1000.0, 5.0, sec / 6, {}),
              (100.0, 5.0, sec, {"noise.reference_noise_counts": 1.0})]
     rows = [measure(*c) for c in cases]
     result = {"date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), "machine": platform.platform(),
               "cases": rows}
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "stillness_false_alarm.json").write_text(json.dumps(result, indent=1))
+    (out_dir / "stillness_false_alarm.json").write_text(json.dumps(result, indent=1))
     lines = [f"# Stillness detector false alarms ({result['date']}, {result['machine']})", "",
              "Command: `.venv/bin/python bench/stillness_false_alarm.py`", "",
              "| rate | learn | simulator | windows | observed at nominal " + " / ".join(f"{a:.0e}" for a in NOMINAL)
@@ -90,7 +90,7 @@ def main() -> int:
         lines.append(f"| {r['rate_hz']:g} Hz | {r['learn_s']:g} s | {sim} | {r['windows']} | "
                      + " / ".join(f"{o:.1e}" for o in r["observed"])
                      + f" | {r['transitions']} in {r['runs']} runs ({r['transitions'] / r['runs']:.3f}) |")
-    (OUT / "stillness_false_alarm.md").write_text("\n".join(lines) + "\n")
+    (out_dir / "stillness_false_alarm.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

@@ -7,7 +7,13 @@ from __future__ import annotations
 
 import sys
 
-from fbg_accel_driver.command_line import ParameterTable, StartupError, parameter_help, print_help_or_version
+from fbg_accel_driver.command_line import (
+    ParameterTable,
+    StartupError,
+    missing_module_message,
+    parameter_help,
+    print_help_or_version,
+)
 
 from .stillness_monitor import DEFAULT_FALSE_ALARM_PER_RUN, DEFAULT_NOISE_CORR_S
 
@@ -20,7 +26,7 @@ PARAMETERS: ParameterTable = {
     "plan_file": ("string", "", "pose plan YAML (required), e.g. config/pose_plan_six_position.yaml, or an excitation "
                   "plan (dynamic run: records imu/raw with aux_counts and the reference for the plan's duration)"),
     "output_dir": ("string", ".", "directory of the run's MCAP file and calibration YAML (created if missing)"),
-    "run_label": ("string", "", "file stem of this run (empty: <sensor_id>[_L<level>]_<UTC time>)"),
+    "run_label": ("string", "", "file stem of this run (empty: <sensor_id>[_L<level>]_<YYYYmmddTHHMMSSZ>)"),
     "sensor_id": ("string", "unknown", "sensor identifier written into the MCAP metadata and the calibration"),
     "operator_notes": ("string", "", "free text stored in the MCAP metadata"),
     "mode": ("string", "service", "pose advance: service (operator calls calibration/next_pose) or auto (table motion/dwell)"),
@@ -46,7 +52,10 @@ PARAMETERS: ParameterTable = {
 
 def _usage() -> str:
     """The --help text (built only when asked for)."""
-    return f"""usage: calibration [-h] [--version] --ros-args -p plan_file:=PLAN.yaml [-p NAME:=VALUE ...]
+    return f"""usage: calibration [-h] [--version] [--stopped-ok] --ros-args -p plan_file:=PLAN.yaml [-p NAME:=VALUE ...]
+
+  --stopped-ok  exit status 0 (not 3) when SIGINT or SIGTERM stops the run (MCAP closed, no fit):
+                calibration.launch.py passes it, so that Ctrl-C, a normal end of a run, is no launch ERROR
 
 Calibration recorder of the FBG triaxial accelerometer (package {PACKAGE}). Follows a pose plan,
 waits per pose until the sensor is still (static-interval detector on Psi = counts/ref), records
@@ -70,10 +79,13 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if print_help_or_version("calibration", argv, _usage):
         return EXIT_OK
+    stopped_ok = "--stopped-ok" in (argv[: argv.index("--ros-args")] if "--ros-args" in argv else argv)
     try:
-        from .calibration_node import run  # rclpy: only once neither --help nor --version answered
-
-        return run(argv)
+        try:
+            from .calibration_node import run  # rclpy: only once neither --help nor --version answered
+        except ModuleNotFoundError as exc:
+            raise StartupError(missing_module_message(exc)) from None
+        return run([a for a in argv if a != "--stopped-ok"], stopped_ok)
     except StartupError as exc:
         print(f"calibration: error: {exc}", file=sys.stderr, flush=True)
         return EXIT_STARTUP

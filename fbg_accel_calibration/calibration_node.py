@@ -72,9 +72,10 @@ def plan_format(path: str) -> str | None:
     return data.get("format") if isinstance(data, dict) else None
 
 
-def run(argv: list[str]) -> int:
+def run(argv: list[str], stopped_ok: bool = False) -> int:
     """One run until it is complete (and ``exit_when_done``), aborted or interrupted; returns the exit status
-    (``argv``: the ROS arguments). StartupError on a refused start-up."""
+    (``argv``: the ROS arguments; ``stopped_ok``: a run stopped by SIGINT/SIGTERM exits 0, not 3). StartupError on
+    a refused start-up."""
     stop: list[str] = []
     # Own handlers: a signal only sets a flag, the loop below then closes the MCAP in order.
     init_ros("calibration", argv)
@@ -89,7 +90,8 @@ def run(argv: list[str]) -> int:
             executor.remove_node(node)
             if stop:
                 node.recorder.abort(f"{stop[0]} received")
-            return node.finish(interrupted_by=stop[0] if stop else "")
+            status = node.finish(interrupted_by=stop[0] if stop else "")
+            return EXIT_OK if stopped_ok and stop and status == EXIT_INTERRUPTED else status
         finally:
             if node is not None:
                 node.destroy_node()

@@ -9,7 +9,7 @@ Subcommands (``fbg-accel-calib SUBCOMMAND --help`` for the options):
 * ``allan``    a static recording + calibration -> Allan deviation PNG, VRW and bias instability per axis.
 * ``report``   a fit -> markdown report with tables and PNG plots (calibrated vs reference per pose,
                residuals per degree).
-* ``report-measured``  the paper's measured series (../shared) -> docs/results_measured_fit.md + PNG.
+* ``report-measured``  the paper's measured series (../shared) -> docs/results/measured_fit.md + PNG.
 * ``diagnose`` residual diagnosis (``fbg_accel_calibration.diagnose_cli``).
 * ``dynamic``  a slide run (MCAP / bag with imu/raw ``aux_counts``, or a dynamic CSV) + excitation plan +
                static calibration -> the calibration with its ``dynamic`` section (chain cut-offs and

@@ -1,6 +1,6 @@
 """Residual diagnosis of the calibration model: find what eq. 28 lacks, add it, report before/after.
 
-Pure numpy/scipy engine behind ``fbg-accel-calib diagnose`` (issue 4). Steps:
+Pure numpy/scipy engine behind ``fbg-accel-calib diagnose``. Steps:
 
 1. Static samples: the static-interval detector of the fit (``static_detector.calibration_samples``,
    signal still AND table reference constant AND in a pose) or, with ``static="table"``, every
@@ -246,7 +246,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     try:
         sel_degree, degree_table = select_degree(data, max_degree)
     except Exception:
-        folds_later.result()  # a recording the folds cannot be drawn on says so first, as before
+        folds_later.result()  # a recording the folds cannot be drawn on says so first
         raise
     fold, fold_notes = folds_later.result()
     if degree is not None:

@@ -7,8 +7,8 @@ loads the recording(s) and hands them to :func:`fbg_accel_calibration.diagnose.d
 Example (the measured series of the paper, no time base and no temperature column)::
 
     .venv/bin/fbg-accel-calib diagnose /work/shared/data/measured/fig13_multiposition_23C.csv \\
-        --rate 1 --temperature 23.4 --g 9.81 --out docs/results_measured_diagnosis.md \\
-        --yaml docs/results_measured_diagnosis.yaml
+        --rate 1 --temperature 23.4 --g 9.81 --out docs/results/measured_diagnosis.md \\
+        --yaml docs/results/measured_diagnosis.yaml
 """
 
 from __future__ import annotations

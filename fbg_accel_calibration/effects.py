@@ -17,7 +17,7 @@ non-linear in a parameter, one hyper-parameter found by a 1-D search (grid, then
 * ``thermal_hysteresis``: bias of opposite sign on heating and cooling branches. Hyper: the time
   constant of the rate filter that decides the branch (s).
 * ``run_offset`` / ``run_drift``: each run (file, temperature level) has its own bias offset / its own linear
-  drift in time (issue 8). Properties of the recordings, not of the sensor: fitted so that they do not bias
+  drift in time. Properties of the recordings, not of the sensor: fitted so that they do not bias
   eq. 28, reported, never written to the calibration (the driver cannot know runs). No hyper.
 
 The regressors are built with the same code as the run-time terms in
@@ -60,7 +60,7 @@ AHT10_RESOLUTION_C = 0.01  # paper §3.6
 # grids in samples reach further): a channel delay of 100 ms, TIA time constants 3 x Table 1.
 MIN_DELAY_SEARCH_S = 0.1
 MIN_TIA_SCALE_SEARCH = 3.0
-# Plausibility bounds of fitted effects (issue 8): a fit beyond them is refused, never written to the YAML.
+# Plausibility bounds of fitted effects: a fit beyond them is refused, never written to the YAML.
 # The reference of a training set must span the table frame: the weakest direction of its visit-mean reference
 # (smallest standard deviation, m/s^2) must keep this fraction of the whole data's (diagnose.check_folds; each side of
 # a step, ResponseStepEffect.sides_span)

@@ -5,7 +5,7 @@
 the CSV interchange importer (table angles -> reference, ``g = 9.81 m/s^2`` as in the data README,
 constant 23.4 degC, time = sample index because no time base was published), keeps the samples the
 static detector calls still, fits the paper's linear model (eq. 25 = eq. 28 with n = 0: one
-temperature level identifies nothing more), and writes ``docs/results_measured_fit.md`` and
+temperature level identifies nothing more), and writes ``docs/results/measured_fit.md`` and
 ``docs/img/measured_fit.png``:
 
 * in-sample and held-out (leave-one-pose-out) RMSE per axis against the within-pose noise floor
@@ -42,7 +42,7 @@ from .static_detector import calibration_samples
 from .thermal_fit import FULL_SCALE_MPS2, fit_thermal
 
 DEFAULT_CSV = Path("../shared/data/measured/fig13_multiposition_23C.csv")
-DEFAULT_MD = Path("docs/results_measured_fit.md")
+DEFAULT_MD = Path("docs/results/measured_fit.md")
 DEFAULT_PNG = Path("docs/img/measured_fit.png")
 TEMPERATURE_C = 23.4  # data README: held at about 23.4 degC, not in the series
 G_MPS2 = 9.81  # data README: g ~ 9.81 m/s^2

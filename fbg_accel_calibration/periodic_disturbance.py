@@ -1,4 +1,4 @@
-"""A periodic disturbance in the static visits: a line in the within-visit residual (issue 8 §2). Pure numpy/scipy.
+"""A periodic disturbance in the static visits: a line in the within-visit residual. Pure numpy/scipy.
 
 The noise floor of ``diagnose`` is the scatter of the residual within visits (settled samples, each visit's mean and
 line removed). A periodic motion during the visits, a table or chamber that sways, a fan, a pump (a few 0.01-0.1

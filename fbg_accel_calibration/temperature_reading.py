@@ -1,4 +1,4 @@
-"""Jumps of the temperature reading that no temperature change can make (pure numpy; issue 8).
+"""Jumps of the temperature reading that no temperature change can make (pure numpy).
 
 The AHT10 (paper §3.5) reads the temperature of the structure its PCB is anchored to, which changes over minutes
 (the housing took hours to settle, §4.4); two readings of one temperature differ by at most twice its repeatability

@@ -1,4 +1,4 @@
-"""Dynamics of the measuring chain and its live compensation (issues 9, 37; docs/dynamic_calibration.md).
+"""Dynamics of the measuring chain and its live compensation (docs/dynamic_calibration.md).
 
 Pure Python + numpy, no ROS. The calibration file's optional ``dynamic`` section (:class:`ChainDynamics`)
 holds what a dynamic calibration measured, **per channel** (the counts before eq. 24, where the stages are):

@@ -2,7 +2,7 @@
 
 The reader thread must never block on a slow consumer (it would stop reading the port and the
 kernel buffer would overflow), and the queue must not grow without bound when the source is
-faster than the decoder (issue 11: a flood piled up 322 MB). So ``put`` never blocks: when the
+faster than the decoder. So ``put`` never blocks: when the
 queued bytes exceed ``max_bytes`` it drops the *oldest* chunks and counts them, keeping the newest
 data (for a navigation consumer the newest sample is the valuable one; the decoder sees the gap as
 lost frames through the board's sequence counter).

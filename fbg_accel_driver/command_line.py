@@ -81,3 +81,17 @@ def one_line(text: str) -> str:
     """Fold a multi-line message (e.g. a YAML parser error with its caret lines) into one line."""
     parts = [ln.strip() for ln in text.splitlines()]
     return " ".join(p for p in parts if p and set(p) != {"^"})
+
+
+# Top-level modules that come with ROS 2 (a sourced Jazzy install or the ros-jazzy-* wheels), not with ``pip install .``
+ROS_MODULES = frozenset({"rclpy", "rcl_interfaces", "lifecycle_msgs", "sensor_msgs", "diagnostic_msgs", "geometry_msgs",
+                         "std_msgs", "std_srvs", "builtin_interfaces", "ament_index_python", "rosidl_runtime_py"})
+
+
+def missing_module_message(exc: ModuleNotFoundError) -> str:
+    """One line saying what to install when a node's import fails with ``exc`` (a ROS 2 module, or another)."""
+    name = (exc.name or "").split(".")[0] or "a module"
+    if name in ROS_MODULES:
+        return (f"ROS 2 Python module '{name}' not found: source a ROS 2 Jazzy install (source /opt/ros/jazzy/setup.bash) "
+                f"or install the ROS 2 wheels (pip install -r requirements.txt)")
+    return f"Python module '{name}' not found: install the package's dependencies (pip install -r requirements.txt)"

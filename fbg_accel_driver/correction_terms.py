@@ -361,8 +361,8 @@ class ReferenceLowpass(_Base):
     The ESP32's ADC reads the reference photodetector with its own noise (about 1 count rms on the
     measured series, uncorrelated with the axis channels); dividing by a noisy reference adds that
     noise to Psi. The source power changes slowly (the SLD's wander: minutes), so averaging the
-    reference over ``time_constant_s`` (s) removes the read noise and keeps the normalisation
-    (issue 8). Exact for a piecewise-constant input (:func:`first_order_lowpass`); state: the filter
+    reference over ``time_constant_s`` (s) removes the read noise and keeps the normalisation.
+    Exact for a piecewise-constant input (:func:`first_order_lowpass`); state: the filter
     output and the board time of the last sample, so the driver's stream gives the offline result.
     """
 

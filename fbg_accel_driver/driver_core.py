@@ -244,7 +244,7 @@ class DriverCore:
                                          calibration.noise_time_constant_s.tolist(), strict=True))
         else:
             self._noise_corr = ((0.0, 0.0),) * 3
-        # chain compensation (issue 9): stamps moved back by the chain's delay, optionally equalised counts
+        # chain compensation: stamps moved back by the chain's delay, optionally equalised counts
         mode = self.config.chain_compensation
         self._dyn = calibration.dynamic if calibration is not None else None
         if mode != "none" and self._dyn is None:

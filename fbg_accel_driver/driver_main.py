@@ -8,7 +8,14 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .command_line import ParameterTable, StartupError, one_line, parameter_help, print_help_or_version
+from .command_line import (
+    ParameterTable,
+    StartupError,
+    missing_module_message,
+    one_line,
+    parameter_help,
+    print_help_or_version,
+)
 from .sensor_constants import AHT10_SIGMA_C, LOW_REFERENCE_COUNTS
 
 PACKAGE = "fbg_accel_driver"
@@ -88,8 +95,11 @@ exit status: 0 on clean shutdown, 2 on invalid parameters or calibration file.
 """
 
 
-def default_calibration_path() -> Path:
-    """The shipped calibration: the installed share directory, else the source tree's config/."""
+def calibration_candidates() -> list[Path]:
+    """Where the shipped calibration (``calibration_file:=sim``) is looked for, in order: the ament index's share
+    directory, ``<prefix>/share/fbg_accel_driver/config`` of the install this module runs from (a colcon install or
+    ``pip install .``: ``<prefix>/lib/pythonX.Y/site-packages/fbg_accel_driver/driver_main.py``), that of the running
+    interpreter's prefix, and the source tree's config/ (editable install)."""
     candidates: list[Path] = []
     try:
         from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
@@ -101,20 +111,26 @@ def default_calibration_path() -> Path:
     except ImportError:
         pass
     here = Path(__file__).resolve()
-    # colcon install layout: <prefix>/lib/pythonX.Y/site-packages/fbg_accel_driver/driver_main.py
     for parent in here.parents:
-        candidates.append(parent / "share" / PACKAGE / "config" / DEFAULT_CALIBRATION)
-        if parent.name == "lib":
+        if parent.name == "lib":  # the install prefix is the parent of lib/
+            candidates.append(parent.parent / "share" / PACKAGE / "config" / DEFAULT_CALIBRATION)
             break
+    candidates.append(Path(sys.prefix) / "share" / PACKAGE / "config" / DEFAULT_CALIBRATION)
     candidates.append(here.parents[1] / "config" / DEFAULT_CALIBRATION)  # source tree / editable install
-    for c in candidates:
-        if c.is_file():
-            return c
-    return candidates[-1]
+    return candidates
+
+
+def default_calibration_path() -> Path:
+    """The shipped calibration of the simulated sensor: the first of :func:`calibration_candidates` that exists (the
+    last candidate if none does, so that the driver's refusal names a path)."""
+    candidates = calibration_candidates()
+    return next((c for c in candidates if c.is_file()), candidates[-1])
 
 
 def _usage() -> str:
-    return USAGE + f"calibration_file '{CALIBRATION_SIM}': {default_calibration_path()}\n"
+    path = default_calibration_path()
+    where = str(path) if path.is_file() else "not found in " + ", ".join(str(c.parent) for c in calibration_candidates())
+    return USAGE + f"calibration_file '{CALIBRATION_SIM}': {where}\n"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -127,8 +143,10 @@ def main(argv: list[str] | None = None) -> int:
         user = [a for a in user if a != "--managed"]
         if user:
             raise StartupError(f"unknown argument(s) {user}; parameters go after --ros-args (see driver --help)")
-        from .driver_node import run  # rclpy: only once neither --help nor --version answered
-
+        try:
+            from .driver_node import run  # rclpy: only once neither --help nor --version answered
+        except ModuleNotFoundError as exc:
+            raise StartupError(missing_module_message(exc)) from None
         return run([a for a in argv if a != "--managed"], managed)
     except StartupError as exc:
         print(f"driver: error: {one_line(str(exc))}", file=sys.stderr, flush=True)

@@ -11,7 +11,10 @@ parameters (rclpy ``QoSOverridingOptions``); consumers subscribe with the sensor
 any reliable profile: ``ros2 topic echo`` without flags works).
 
 Shutdown: SIGINT/SIGTERM only set a flag; the main loop then stops the serial reader and the
-publisher thread *before* the ROS context is shut down, so no publish races a dead context.
+publisher thread *before* the ROS context is shut down, so no publish races a dead context. A link
+that ends at most ``LINK_CLOSE_AT_SHUTDOWN_S`` before a signal arrives (the simulator of a launch file
+stopped by the same Ctrl-C) is logged as closed at shutdown (INFO), a link lost otherwise as an ERROR
+once that time has passed (checked by the diagnostics timer; ``/diagnostics`` reports the link at once).
 
 Threads: ``SerialLink``'s reader thread owns the port and queues byte chunks; a publisher thread
 blocks on that queue, runs ``DriverCore`` and publishes (rclpy publishers may be used from any
@@ -25,6 +28,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +64,8 @@ from .thermal_model import CalibrationFileError, ThermalCalibration
 __all__ = ["DriverNode", "ManagedDriverNode", "run"]
 
 NODE_NAME = "fbg_accel_driver"
+# A link that ends at most this long before a SIGINT/SIGTERM arrives ended because of the shutdown (s)
+LINK_CLOSE_AT_SHUTDOWN_S = 2.0
 INTEGER_RANGES = {"baud": (1200, 4_000_000), "decimation": (1, 10000), "min_reference_counts": (0, 4095),
                   "reader_queue_max_bytes": (4096, 1 << 30)}
 FLOAT_RANGES = {"temperature_hold_s": (0.0, 3600.0), "out_of_range_variance_factor": (1.0, 1e6),
@@ -96,9 +102,10 @@ def run(argv: list[str], managed: bool = False) -> int:
     init_ros("driver", argv)
     stop = threading.Event()
     node: DriverNode | None = None
-    with signals_to(lambda _signum: stop.set()):
+    with signals_to(lambda _signum: stop.set()) as shutdown:
         try:
             node = (ManagedDriverNode if managed else DriverNode)()
+            node.shutdown_signalled = shutdown.wait
             executor = SingleThreadedExecutor()
             executor.add_node(node)
             try:
@@ -119,6 +126,9 @@ class DriverNode(Node):
     calibration are refused). ``node_options`` go to rclpy's Node (context, parameter_overrides, ...)."""
 
     managed = False
+    # Whether SIGINT/SIGTERM arrives within the given seconds: run() hands in node_support.ShutdownSignal.wait; None
+    # (a node built in-process, which handles no signal) reports a link that ends as lost at once
+    shutdown_signalled: Callable[[float], bool] | None = None
 
     def __init__(self, **node_options: Any) -> None:
         super().__init__(NODE_NAME, **node_options)
@@ -203,6 +213,8 @@ class DriverNode(Node):
         self.core = core
         self._link_state = LinkState.CONNECTING
         self._link_changes = 0
+        self._link_down: tuple[str, float] | None = None  # a lost link not yet logged: (message, log-by time)
+        self._link_down_lock = threading.Lock()
         self._stopping = threading.Event()
         self._publisher_thread = threading.Thread(target=self._publisher_loop, name="fbg-accel publisher",
                                                   daemon=True)
@@ -300,11 +312,32 @@ class DriverNode(Node):
     def _log_link_change(self) -> None:
         status = self.link.status()
         if status.state is LinkState.CONNECTED:
+            self._report_link_down(now=True)  # a loss that came before this reconnection
             self.get_logger().info(f"serial link up: {status.port}")
         elif status.state is LinkState.DISCONNECTED and self._link_state is not LinkState.DISCONNECTED:
-            self.get_logger().error(f"serial link down: {status.message}; retrying with back-off")
+            if self.shutdown_signalled is None:
+                self.get_logger().error(f"serial link down: {status.message}; retrying with back-off")
+            else:
+                with self._link_down_lock:
+                    self._link_down = (status.message, time.monotonic() + LINK_CLOSE_AT_SHUTDOWN_S)
         self._link_state = status.state
         self._link_changes = self.link.state_changes
+
+    def _report_link_down(self, now: bool) -> None:
+        """Log the link loss not yet logged: closed at shutdown (INFO) once a signal has arrived; lost (ERROR) once
+        LINK_CLOSE_AT_SHUTDOWN_S has passed without one, or at once with ``now``. Publisher thread, diagnostics timer
+        and close() call it."""
+        with self._link_down_lock:
+            if self._link_down is None or self.shutdown_signalled is None:
+                return
+            message, log_by = self._link_down
+            if self.shutdown_signalled(0.0):
+                self.get_logger().info(f"serial link closed at shutdown: {message}")
+            elif now or time.monotonic() >= log_by:
+                self.get_logger().error(f"serial link down: {message}; retrying with back-off")
+            else:
+                return
+            self._link_down = None
 
     def _publish(self, out: CoreOutput) -> None:
         if not self._publishing:  # managed and inactive: frames are decoded and diagnosed, not published
@@ -320,6 +353,7 @@ class DriverNode(Node):
 
     # ------------------------------------------------------------ diagnostics
     def _publish_diagnostics(self) -> None:
+        self._report_link_down(now=False)
         st = self.link.status()
         core = self.core
         snap = DiagnosticsSnapshot(
@@ -355,6 +389,7 @@ class DriverNode(Node):
         self._stopping.set()
         self.link.queue.wake()
         self._publisher_thread.join(2.0)
+        self._report_link_down(now=True)
 
 
 class ManagedDriverNode(DriverNode, LifecycleNode):

@@ -1,4 +1,4 @@
-"""Checks of the fields of a parsed YAML mapping, shared by the file readers (issue 12). Pure Python, no ROS.
+"""Checks of the fields of a parsed YAML mapping, shared by the file readers. Pure Python, no ROS.
 
 ``fail(message)`` builds the caller's own exception (usually with the file name in front), so a bad number
 reads the same in a calibration file, a pose plan or an excitation plan. Unknown keys: the calibration file

@@ -7,6 +7,8 @@ Only the node modules import this (it imports rclpy); the ROS-free conventions (
 
 from __future__ import annotations
 
+import os
+import select
 import signal
 from collections.abc import Callable, Collection, Iterator, Mapping
 from contextlib import contextmanager
@@ -41,15 +43,46 @@ def init_ros(prog: str, argv: list[str]) -> None:
         raise StartupError(f"invalid ROS arguments {argv}: {first_line(exc)}") from None
 
 
+class ShutdownSignal:
+    """Whether SIGINT or SIGTERM has arrived, known from the moment the kernel delivers it, in any thread: the
+    interpreter writes a byte to a wakeup pipe at once (``signal.set_wakeup_fd``), while the Python-level handler
+    runs only when the main thread next executes bytecode (it may be waiting in the executor for up to its
+    timeout). A thread that sees the serial link end can so tell a shutdown (Ctrl-C of a launch file signals the
+    simulator and the driver together, and the simulator's pty closes first) from a lost link."""
+
+    def __init__(self) -> None:
+        self._read_fd, self.write_fd = os.pipe()
+        os.set_blocking(self._read_fd, False)
+        os.set_blocking(self.write_fd, False)
+
+    def wait(self, timeout_s: float) -> bool:
+        """True once a signal has arrived (at once if it already has), False if none came within ``timeout_s``."""
+        if self._read_fd < 0:
+            return False
+        readable, _, _ = select.select([self._read_fd], [], [], timeout_s)
+        return bool(readable)
+
+    def close(self) -> None:
+        for fd in (self._read_fd, self.write_fd):
+            if fd >= 0:
+                os.close(fd)
+        self._read_fd = self.write_fd = -1
+
+
 @contextmanager
-def signals_to(handler: Callable[[int], None]) -> Iterator[None]:
-    """SIGINT and SIGTERM call ``handler(signum)`` (which only sets a flag) inside the block; restored after."""
+def signals_to(handler: Callable[[int], None]) -> Iterator[ShutdownSignal]:
+    """SIGINT and SIGTERM call ``handler(signum)`` (which only sets a flag) inside the block; restored after. The
+    block gets a :class:`ShutdownSignal` that other threads may ask whether a signal has arrived."""
+    watch = ShutdownSignal()
+    previous_fd = signal.set_wakeup_fd(watch.write_fd, warn_on_full_buffer=False)
     previous = {sig: signal.signal(sig, lambda signum, _frame: handler(signum)) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        yield
+        yield watch
     finally:
         for sig, old in previous.items():
             signal.signal(sig, old)
+        signal.set_wakeup_fd(previous_fd)
+        watch.close()
 
 
 def declare_parameters(

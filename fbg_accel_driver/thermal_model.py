@@ -432,7 +432,7 @@ class ThermalCalibration:
             raise CalibrationFileError(f"{p}: not valid YAML ({exc})") from None
         try:
             data = load_yaml(text, _CalibrationLoader)  # a SafeLoader subclass: no arbitrary objects
-        except (yaml.YAMLError, ValueError, TypeError) as exc:  # ValueError: e.g. a date like 2024-13-45
+        except (yaml.YAMLError, ValueError, TypeError) as exc:  # ValueError: e.g. a date with month 13
             raise CalibrationFileError(f"{p}: not valid YAML ({exc})") from None
         except RecursionError:
             raise CalibrationFileError(f"{p}: not valid YAML (nested too deeply)") from None

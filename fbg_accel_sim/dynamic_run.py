@@ -1,7 +1,7 @@
 """A simulated dynamic-calibration run, through the wire: the board simulator runs an excitation plan
 (slide + reference transducer on the aux channel, protocol version 2), its byte stream is decoded by
 the driver's own ``StreamDecoder``, and the decoded frames become a ``Recording`` with ``aux`` -- what
-``fbg-accel-calib dynamic`` reads from a bag or CSV (issue 9; docs/dynamic_calibration.md).
+``fbg-accel-calib dynamic`` reads from a bag or CSV (docs/dynamic_calibration.md).
 """
 
 from __future__ import annotations

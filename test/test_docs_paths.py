@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-DOCS = ["README.md", *sorted(str(p.relative_to(REPO)) for p in (REPO / "docs").glob("*.md"))]
+DOCS = ["README.md", *(str(p.relative_to(REPO)) for p in sorted([*(REPO / "docs").glob("*.md"),
+                                                        *(REPO / "docs" / "results").glob("*.md")]))]
 # source, config, script and test files: names of outputs (report.md, *.png) are not repository files
 PATH = re.compile(r"`((?:[A-Za-z0-9_.-]+/)+[A-Za-z0-9_.-]+\.(?:py|yaml|sh|c|h|ino|toml|cfg|xml))`")
 
