@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +35,7 @@ from scipy import signal
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import output_paths  # noqa: E402
 from machine_info import results_doc, write_results  # noqa: E402
 
 from fbg_accel_calibration.bode_plot import plot_bode  # noqa: E402
@@ -52,8 +52,8 @@ PLAN_FILE = ROOT / "config" / "excitation_plan_stepped_sine.yaml"
 REFERENCE_CUTOFF_HZ = 1.0  # paper Table 1 (design value of the reference TIA; a slide run cannot see it)
 COVERAGE_K = 2.0  # the stated level: k = 2 standard uncertainties
 STAGES = ((25.0, 0.7), (30.0, 0.7), (40.0, 1.5), (50.0, 0.7), (8.0, 0.7))  # (f0 Hz, Q) added to the y channel
-COMMITTED = (ROOT / "bench" / "results" / "dynamic_calibration.json", ROOT / "docs" / "results" / "dynamic.md",
-             ROOT / "docs" / "img" / "dynamic_bode_per_channel.png")
+COMMITTED = (output_paths.COMMITTED / "dynamic_calibration.json", output_paths.RESULTS_PAGES / "dynamic.md",
+             output_paths.RESULTS_PAGES.parent / "img" / "dynamic_bode_per_channel.png")
 
 
 def identify(plan: ExcitationPlan, static: ThermalCalibration, seed: int, rate: float, fc: np.ndarray,
@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=12, help="random per-channel chains in the sweep (>= 10)")
     ap.add_argument("--default-seeds", type=int, default=3, help="runs of the paper's chain")
     ap.add_argument("--rate", type=float, default=500.0, help="board rate of the calibration runs (Hz)")
-    ap.add_argument("--output", type=Path, default=Path(tempfile.gettempdir()) / "fbg_bench_dynamic",
+    ap.add_argument("--output", type=Path, default=output_paths.scratch_dir() / "dynamic",
                     help="folder for the JSON, markdown and PNG (default: a scratch folder)")
     ap.add_argument("--update-results", action="store_true",
                     help="write the committed results (bench/results, docs/results/dynamic.md, docs/img) instead")

@@ -18,7 +18,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 BENCH = REPO / "bench"
 # Converted to the same convention separately (its own rework is under way); drop it from here once it is.
-PENDING = {"dynamic_calibration_check.py"}
+PENDING: set[str] = set()
 COMMITTED_PATH = re.compile(r'/\s*"results"|"bench"\s*/\s*"results"|"docs"\s*/\s*"results')
 
 
