@@ -10,6 +10,8 @@ Subcommands (``fbg-accel-calib SUBCOMMAND --help`` for the options):
 * ``report``   a fit -> markdown report with tables and PNG plots (calibrated vs reference per pose,
                residuals per degree).
 * ``report-measured``  the paper's measured series (../shared) -> docs/results_measured_fit.md + PNG.
+* ``uncertainty-measured``  the coefficient uncertainty of the paper's linear model on that series, next to the
+               published matrix -> docs/results/calibration_uncertainty.md.
 * ``diagnose`` residual diagnosis (``fbg_accel_calibration.diagnose_cli``).
 * ``dynamic``  a slide run (MCAP / bag with imu/raw ``aux_counts``, or a dynamic CSV) + excitation plan +
                static calibration -> the calibration with its ``dynamic`` section (chain cut-offs and
@@ -144,6 +146,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--md", type=Path, default=DEFAULT_MD, help=f"markdown output (default {DEFAULT_MD})")
     p.add_argument("--png", type=Path, default=DEFAULT_PNG, help=f"plot output (default {DEFAULT_PNG})")
     p.set_defaults(func=cmd_report_measured)
+
+    p = sub.add_parser("uncertainty-measured", help="coefficient uncertainty of the linear model on the measured series "
+                       "(../shared) next to the paper's matrix")
+    from .measured_uncertainty import DEFAULT_MD as UNCERTAINTY_MD
+
+    p.add_argument("--csv", type=Path, default=DEFAULT_CSV, help=f"measured CSV (default {DEFAULT_CSV}, relative to the cwd)")
+    p.add_argument("--md", type=Path, default=UNCERTAINTY_MD, help=f"markdown output (default {UNCERTAINTY_MD})")
+    p.set_defaults(func=cmd_uncertainty_measured)
 
     p = sub.add_parser("dynamic", help="slide run to the chain's dynamics (calibration 'dynamic' section, Bode plot)")
     p.add_argument("recording", type=Path, help="MCAP file or rosbag2 bag directory (imu/raw with aux_counts), or a "
@@ -471,6 +481,12 @@ def cmd_report_measured(args: argparse.Namespace) -> int:
     from .measured_report import main_args
 
     return main_args(args.csv, args.md, args.png, argv=getattr(args, "argv", None))
+
+
+def cmd_uncertainty_measured(args: argparse.Namespace) -> int:
+    from .measured_uncertainty import main_args
+
+    return main_args(args.csv, args.md, argv=getattr(args, "argv", None))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -61,10 +61,21 @@ def _inverse_sqrt(sym: np.ndarray) -> np.ndarray:
     return (v / np.sqrt(w)) @ v.T
 
 
-def cluster_covariance(stats: CellStats, A: np.ndarray, degree: int) -> tuple[np.ndarray, str, int]:
+def cluster_covariance(stats: CellStats, A: np.ndarray, degree: int,
+                       groups: np.ndarray | None = None) -> tuple[np.ndarray, str, int]:
     """CR2 cluster-robust covariance (3p, 3p) of the coefficients ``A`` (p, 3) fitted at ``degree`` on ``stats``;
-    returns ``(covariance, method, clusters)``. Units: those of A's entries squared (m/s^2 per unit regressor)."""
+    returns ``(covariance, method, clusters)``. Units: those of A's entries squared (m/s^2 per unit regressor).
+    ``groups`` (V,) int, optional: coarser clusters, a label per visit (e.g. runs of consecutive visits that share a
+    slow drift); visits of one label are one cluster."""
     cl = clusters_of(stats, degree)
+    method = METHOD if cl.by_visit else METHOD_BY_CELL
+    if groups is not None:
+        labels, inverse = np.unique(np.asarray(groups), return_inverse=True)
+        xtx, xtg = np.zeros((len(labels), *cl.xtx.shape[1:])), np.zeros((len(labels), *cl.xtg.shape[1:]))
+        np.add.at(xtx, inverse, cl.xtx)
+        np.add.at(xtg, inverse, cl.xtg)
+        cl = Clusters(xtx, xtg, np.zeros(len(labels), int), False)
+        method = METHOD.replace("visits as clusters", "groups of visits as clusters")
     B = cl.xtx.sum(axis=0)
     d = np.sqrt(np.diag(B))  # Jacobi scaling, as solve_normal_equations: the regressors differ by orders of magnitude
     W = _inverse_sqrt(B / np.outer(d, d))  # Bs^(-1/2)
@@ -75,7 +86,7 @@ def cluster_covariance(stats: CellStats, A: np.ndarray, degree: int) -> tuple[np
     u = (W @ factor @ W @ scores) / d[None, :, None]  # B^-1 s~_v, (V, p, 3)
     flat = u.reshape(len(u), -1)
     cov = flat.T @ flat
-    return 0.5 * (cov + cov.T), METHOD if cl.by_visit else METHOD_BY_CELL, len(u)
+    return 0.5 * (cov + cov.T), method, len(u)
 
 
 def naive_covariance(stats: CellStats, A: np.ndarray, degree: int) -> np.ndarray:
