@@ -11,7 +11,8 @@ scaled up by the Birge ratio chi2/dof when the residuals scatter more than that 
 
 Orientations identify only some parameters: all periods with z up see s_z g - d_z and nothing of x or y. A parameter
 is *identified* when its unit vector lies in the row space of the Jacobian (null-space component below
-:data:`NULL_TOLERANCE`, directions seen less than :data:`SEEN_RATIO` of the best counted as null); the others are held at 0, named, and never changed in an updated calibration.
+:data:`NULL_TOLERANCE`, directions seen less than :data:`SEEN_RATIO` of the best counted as null); the others
+are held at 0, named, and never changed in an updated calibration.
 
 Local gravity: given, or the normal gravity of the WGS-84 ellipsoid at a latitude (Somigliana's closed formula) with
 the second-order height correction, NIMA TR8350.2 (2000), "Department of Defense World Geodetic System 1984", 3rd
@@ -42,6 +43,10 @@ NULL_TOLERANCE = 0.1  # a parameter whose unit vector has more than this in the 
 # is not seen: orientations within ~0.5 deg of one axis see the other axes' bias only through that tilt
 SEEN_RATIO = 1e-2
 MIN_PERIOD_S = 2.0  # still periods shorter than this are not used (the TIA settling is ~1 s)
+BLOCK_S = 1.0  # a still period is cut into blocks this long; neighbours whose means differ are not one period
+BLOCK_SIGMAS = 6.0  # ... by more than this many standard deviations of a difference of two block means
+BLOCK_FLOOR_MPS2 = 0.03  # ... and by more than this (a slow turn the variance test cannot see moves |a| by ~g/10)
+GROSS_FRACTION = 0.2  # a period whose |a| is further than this from g is no still period (a move, a shock)
 
 
 def normal_gravity(latitude_deg: float, height_m: float = 0.0) -> float:
@@ -94,25 +99,48 @@ class FieldCheck:
 def still_periods(rec, cal: ThermalCalibration, still: np.ndarray, min_period_s: float = MIN_PERIOD_S) -> StillPeriods:
     """The still periods of a recording (runs of ``still`` samples at least ``min_period_s`` long, within one run),
     calibrated with ``cal``; the variance of each mean is the calibration's noise of one sample times the noise
-    model's factor for a mean of n samples (``noise_model.mean_variance_factor``)."""
+    model's factor for a mean of n samples (``noise_model.mean_variance_factor``).
+
+    The variance test behind ``still`` cannot see a slow turn (its window is a fraction of a second), so each run of
+    still samples is cut into :data:`BLOCK_S` blocks and split where the means of neighbouring blocks differ by more
+    than :data:`BLOCK_SIGMAS` standard deviations (and :data:`BLOCK_FLOOR_MPS2`); the first block of each period is
+    dropped (the TIA stages settle for about a second after a move)."""
     acc = cal.apply_counts(rec.ref, rec.xyz, rec.temp_c, rec.t_s)
     ok = np.asarray(still, bool) & np.all(np.isfinite(acc), axis=1) & np.isfinite(rec.temp_c)
     run = rec.run_id if rec.run_id is not None else np.zeros(len(rec), np.int64)
     edges = np.flatnonzero(np.diff(np.r_[0, ok.astype(np.int8), 0]) != 0)
     means, var, temps, counts, spans = [], [], [], [], []
+    sigma2 = np.asarray(cal.noise_sigma_mps2, float) ** 2
+    pieces = []
     for a, b in zip(edges[::2], edges[1::2], strict=True):
         for r in np.unique(run[a:b]):  # a period never spans two runs
             idx = a + np.flatnonzero(run[a:b] == r)
-            if len(idx) < 2 or rec.t_s[idx[-1]] - rec.t_s[idx[0]] < min_period_s:
+            if len(idx) < 4:
                 continue
             dt = float(np.median(np.diff(rec.t_s[idx])))
-            f = [mean_variance_factor(len(idx), float(cal.noise_correlated_fraction[i]),
-                                      float(cal.noise_time_constant_s[i]), dt) for i in range(3)]
-            means.append(acc[idx].mean(axis=0))
-            var.append(np.asarray(cal.noise_sigma_mps2) ** 2 * np.array(f))
-            temps.append(float(rec.temp_c[idx].mean()))
-            counts.append(len(idx))
-            spans.append((float(rec.t_s[idx[0]]), float(rec.t_s[idx[-1]])))
+            n_blk = max(round(BLOCK_S / dt), 2) if dt > 0 else len(idx)
+            blocks = [idx[i:i + n_blk] for i in range(0, len(idx) - n_blk + 1, n_blk)]
+            if not blocks:
+                continue
+            f = np.array([mean_variance_factor(n_blk, float(cal.noise_correlated_fraction[i]),
+                                               float(cal.noise_time_constant_s[i]), dt) for i in range(3)])
+            tol = np.maximum(BLOCK_SIGMAS * np.sqrt(2.0 * sigma2 * f), BLOCK_FLOOR_MPS2)
+            m = np.array([acc[blk].mean(axis=0) for blk in blocks])
+            cut = np.flatnonzero(np.any(np.abs(np.diff(m, axis=0)) > tol, axis=1)) + 1
+            for part in np.split(np.arange(len(blocks)), cut):
+                if len(part) > 1:  # the first block settles
+                    pieces.append(np.concatenate([blocks[j] for j in part[1:]]))
+    for idx in pieces:
+        if rec.t_s[idx[-1]] - rec.t_s[idx[0]] < min_period_s:
+            continue
+        dt = float(np.median(np.diff(rec.t_s[idx])))
+        f = [mean_variance_factor(len(idx), float(cal.noise_correlated_fraction[i]),
+                                  float(cal.noise_time_constant_s[i]), dt) for i in range(3)]
+        means.append(acc[idx].mean(axis=0))
+        var.append(sigma2 * np.array(f))
+        temps.append(float(rec.temp_c[idx].mean()))
+        counts.append(len(idx))
+        spans.append((float(rec.t_s[idx[0]]), float(rec.t_s[idx[-1]])))
     return StillPeriods(np.array(means).reshape(-1, 3), np.array(var).reshape(-1, 3), np.array(temps),
                         np.array(counts, int), np.array(spans).reshape(-1, 2))
 
@@ -128,13 +156,18 @@ def _residual_and_jacobian(p: np.ndarray, a: np.ndarray, g: float) -> tuple[np.n
 
 def estimate(periods: StillPeriods, g_mps2: float, iterations: int = 10) -> FieldCheck:
     """Bias and scale per axis from the still periods (module docstring); raises ``ValueError`` without any period."""
-    a = periods.mean
+    notes: list[str] = []
+    gross = np.abs(np.linalg.norm(periods.mean, axis=1) - g_mps2) > GROSS_FRACTION * g_mps2
+    if gross.any():
+        notes.append(f"{int(gross.sum())} period(s) left out: |a| further than {GROSS_FRACTION:.0%} from g (not still)")
+    a = periods.mean[~gross]
+    var_a = periods.var[~gross]
     if len(a) == 0:
         raise ValueError("no still period of at least "
                          f"{MIN_PERIOD_S:g} s: the sensor must stand still, at several orientations")
     r0, J0 = _residual_and_jacobian(np.zeros(6), a, g_mps2)
     u0 = a / np.linalg.norm(a, axis=1)[:, None]
-    w = 1.0 / np.maximum(np.einsum("ki,ki->k", u0**2, periods.var), 1e-30)  # variance of |a_k| from the noise
+    w = 1.0 / np.maximum(np.einsum("ki,ki->k", u0**2, var_a), 1e-30)  # variance of |a_k| from the noise
     # identifiability from the Jacobian at the start, columns scaled (a scale multiplies g, a bias m/s^2)
     scale = np.r_[np.ones(3), np.full(3, g_mps2)]
     Js = J0 * np.sqrt(w)[:, None] / scale
@@ -145,13 +178,18 @@ def estimate(periods: StillPeriods, g_mps2: float, iterations: int = 10) -> Fiel
     p = np.zeros(6)
     cols = np.flatnonzero(identified)
     cov = np.zeros((6, 6))
-    notes: list[str] = []
     if len(cols):
         for _ in range(iterations):
             r, J = _residual_and_jacobian(p, a, g_mps2)
             Jw = J[:, cols] * np.sqrt(w)[:, None]
             step = np.linalg.lstsq(Jw, -r * np.sqrt(w), rcond=None)[0]
-            p[cols] += step
+            for _halving in range(30):  # never a step that makes the fit worse
+                trial = p.copy()
+                trial[cols] += step
+                if np.sum(w * _residual_and_jacobian(trial, a, g_mps2)[0] ** 2) <= np.sum(w * r**2):
+                    break
+                step = step / 2.0
+            p = trial
             if np.all(np.abs(step) < 1e-12 * np.maximum(1.0, np.abs(p[cols]))):
                 break
         r, J = _residual_and_jacobian(p, a, g_mps2)
