@@ -307,33 +307,37 @@ class CellAccumulator:
             raise ValueError(f"temperature level labels must lie in [-{_LEVEL_OFFSET}, {_LEVEL_OFFSET})")
         key = (pose << 32) + (level + _LEVEL_OFFSET)
         runs = [(0, 0, len(key))] if run is None else _runs_of(np.asarray(run, np.int64))
-        segments: list[tuple[int, slice | np.ndarray]] = []
+        # (cell, rows, their X^T X and X^T G when the visit sums worked them out already, else None)
+        segments: list[tuple[int, slice | np.ndarray, tuple[np.ndarray, np.ndarray] | None]] = []
         for r, lo, hi in runs:
             k = key[lo:hi]
             change = np.flatnonzero(k[1:] != k[:-1]) + 1
-            self._add_visits(X[lo:hi], G[lo:hi], r, k, change)
+            pieces = self._add_visits(X[lo:hi], G[lo:hi], r, k, change)
             if len(change) < len(k) // 64:  # samples come pose by pose: contiguous slices, no copy
                 bounds = np.r_[0, change, len(k)] + lo
-                segments += [(self._cell(r, int(key[a])), slice(a, b)) for a, b in itertools.pairwise(bounds)]
+                segments += [(self._cell(r, int(key[a])), slice(a, b), pieces[j] if pieces else None)
+                             for j, (a, b) in enumerate(itertools.pairwise(bounds))]
             else:  # interleaved cells: group by sorting
                 order = np.argsort(k, kind="stable") + lo
                 ks = key[order]
                 bounds = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1], True])
-                segments += [(self._cell(r, int(ks[a])), order[a:b]) for a, b in itertools.pairwise(bounds)]
+                segments += [(self._cell(r, int(ks[a])), order[a:b], None) for a, b in itertools.pairwise(bounds)]
         sums = self._sums
-        for c, rows in segments:
+        for c, rows, done in segments:
             Xc, Gc = X[rows], G[rows]
-            sums["xtx"][c] += Xc.T @ Xc
-            sums["xtg"][c] += Xc.T @ Gc
+            xtx, xtg = done if done is not None else (Xc.T @ Xc, Xc.T @ Gc)
+            sums["xtx"][c] += xtx
+            sums["xtg"][c] += xtg
             sums["gtg"][c] += np.einsum("ni,ni->i", Gc, Gc)
             sums["xsum"][c] += Xc.sum(axis=0)
             sums["gsum"][c] += Gc.sum(axis=0)
             sums["count"][c] += len(Gc)
 
-    def _add_visits(self, X: np.ndarray, G: np.ndarray, run: int, key: np.ndarray, change: np.ndarray) -> None:
+    def _add_visits(self, X: np.ndarray, G: np.ndarray, run: int, key: np.ndarray,
+                    change: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]] | None:
         """Column sums of each visit in rows ``X`` of one run (time order; ``key`` their cells, ``change`` where
         it changes; ``G`` the rows' reference): a visit ends where the cell or the run changes; the last one stays
-        open, for the next chunk to continue."""
+        open, for the next chunk to continue. Returns each piece's X^T X and X^T G (:meth:`_add_visit_sums`)."""
         starts = np.r_[0, change]
         sums = np.add.reduceat(X, starts, axis=0)
         counts = np.diff(np.r_[starts, len(key)])
@@ -343,31 +347,36 @@ class CellAccumulator:
             counts[0] += self._open_n
         else:
             self._close_visit()
-        self._add_visit_sums(X, G, run, key, starts, goes_on)
+        pieces = self._add_visit_sums(X, G, run, key, starts, goes_on)
         if len(starts) > 1:
             closed = sums[:-1] / np.sqrt(counts[:-1, None])
             self._visit_outer += closed.T @ closed
             self._visit_n.extend(counts[:-1].tolist())
         self._open, self._open_sum, self._open_n = (run, int(key[-1])), sums[-1].copy(), int(counts[-1])
+        return pieces
 
     def _add_visit_sums(self, X: np.ndarray, G: np.ndarray, run: int, key: np.ndarray, starts: np.ndarray,
-                        goes_on: bool) -> None:
-        """Each visit's own X^T X and X^T G (the first continues the open visit when ``goes_on``)."""
+                        goes_on: bool) -> list[tuple[np.ndarray, np.ndarray]] | None:
+        """Each visit's own X^T X and X^T G (the first continues the open visit when ``goes_on``); returns those of
+        the pieces of this chunk (the cells' sums reuse them), None when the visits are not kept."""
         kept = self._visit_sums
         if kept is None:
-            return
+            return None
         if len(kept) + len(starts) > MAX_VISIT_SUMS:
             self._visit_sums, self._visit_keys = None, []
-            return
+            return None
         ends = np.r_[starts[1:], len(key)]
+        pieces = []
         for i, (a, b) in enumerate(zip(starts.tolist(), ends.tolist(), strict=True)):
             xtx, xtg = X[a:b].T @ X[a:b], X[a:b].T @ G[a:b]
+            pieces.append((xtx, xtg))
             if i == 0 and goes_on:
                 kept[-1][0][...] += xtx
                 kept[-1][1][...] += xtg
             else:
-                kept.append((xtx, xtg))
+                kept.append((xtx.copy(), xtg.copy()))  # its own: the open visit's grows in place
                 self._visit_keys.append((run, int(key[a])))
+        return pieces
 
     def _close_visit(self) -> None:
         if self._open is not None:

@@ -212,3 +212,18 @@ def test_the_driver_s_calibration_term_is_consistent_with_its_error_over_seeds()
     assert 0.5 < float(nees_a.mean()) < 2.0, nees_a.mean()
     assert 0.85 < float((nees_a < 1.96**2).mean()) < 0.99
     assert naive_a.mean() > 10.0 and float((naive_a < 1.96**2).mean()) < 0.75
+
+
+def test_too_many_visits_fall_back_to_the_cells_as_clusters(monkeypatch) -> None:
+    """Beyond MAX_VISIT_SUMS visits their sums are not kept (memory): the covariance is clustered by cell, and says so;
+    with one visit per cell it is then the same covariance."""
+    from fbg_accel_calibration import thermal_fit
+
+    rec, _ = campaign(8, repeats=1)
+    by_visit, _ = _fit(rec)
+    monkeypatch.setattr(thermal_fit, "MAX_VISIT_SUMS", 10)
+    by_cell, data = _fit(rec)
+    assert len(data.stats.visit_cell) == 0 and data.stats.n_visits == 24
+    assert "cells" in by_cell.coefficient_covariance.method and "visits as clusters" in by_visit.coefficient_covariance.method
+    np.testing.assert_allclose(by_cell.coefficient_covariance.matrix, by_visit.coefficient_covariance.matrix,
+                               rtol=1e-9, atol=1e-12 * np.abs(by_visit.coefficient_covariance.matrix).max())
