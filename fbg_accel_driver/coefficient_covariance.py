@@ -43,8 +43,8 @@ class CoefficientCovariance:
     matrix: np.ndarray
     method: str
     clusters: int
-    # per temperature reading: the ten monomial weights of each of the six C_ij (tuple of 6 x 10 floats)
-    _cache: dict[float, tuple[tuple[float, ...], ...]] = field(default_factory=dict, init=False, repr=False,
+    # per (temperature reading, centre, scale): the ten monomial weights of each of the six C_ij (6 x 10 floats)
+    _cache: dict[tuple[float, float, float], tuple[tuple[float, ...], ...]] = field(default_factory=dict, init=False, repr=False,
                                                                compare=False)
 
     def __post_init__(self) -> None:
@@ -85,14 +85,15 @@ class CoefficientCovariance:
             out.append(tuple(float(c[a, b]) for a in range(4) for b in range(a, 4)))
         return tuple(out)
 
-    def weights_at(self, temp_c: float, scaled: Callable[[float], float]) -> tuple[tuple[float, ...], ...]:
-        """:meth:`weights` at the temperature reading ``temp_c`` (degC; ``scaled`` maps it to tau), cached per reading
-        (emptied at 256 entries, as ``ThermalCalibration.coefficients_at``)."""
-        w = self._cache.get(temp_c)
+    def weights_at(self, temp_c: float, center_c: float, scale_c: float) -> tuple[tuple[float, ...], ...]:
+        """:meth:`weights` at the temperature reading ``temp_c`` (degC) of a model scaled tau = (T - ``center_c``) /
+        ``scale_c``, cached per reading (emptied at 256 entries, as ``ThermalCalibration.coefficients_at``)."""
+        key = (temp_c, center_c, scale_c)
+        w = self._cache.get(key)
         if w is None:
             if len(self._cache) >= 256:
                 self._cache.clear()
-            w = self._cache[temp_c] = self.weights(float(scaled(temp_c)))
+            w = self._cache[key] = self.weights((temp_c - center_c) / scale_c)
         return w
 
     def to_dict(self) -> dict[str, Any]:

@@ -213,7 +213,7 @@ class ThermalCalibration:
         """The weights of the calibration's output covariance at ``temp_c`` (degC; cached per reading), for
         ``coefficient_covariance.output_covariance``; None without a ``coefficient_covariance`` section."""
         cov = self.coefficient_covariance
-        return None if cov is None else cov.weights_at(temp_c, self.scaled_temperature)
+        return None if cov is None else cov.weights_at(temp_c, self.t_center_c, self.t_scale_c)
 
     def correction_sum(self, ref: np.ndarray, xyz: np.ndarray, psi: np.ndarray, temp_c: np.ndarray, t_s: np.ndarray,
                        state: list[Any], extrapolation: np.ndarray | None = None) -> np.ndarray:
