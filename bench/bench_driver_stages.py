@@ -17,9 +17,14 @@ whether the caches are warm:
   triggered from another thread (how the driver node first handed chunks to its publisher), against one
   wake-up of a plain Python thread blocked in ``queue.SimpleQueue.get`` (how it does now).
 
-Writes bench/results/driver_stages.json. Needs ROS_DOMAIN_ID for the rclpy steps.
+Writes bench/results/driver_stages.json (``--output``). Needs ROS_DOMAIN_ID for the rclpy steps.
+``--calibration-uncertainty`` times ``core_feed`` with a calibration that carries a ``coefficient_covariance`` (a
+positive definite one of the right size: the cost does not depend on its values), ``reported`` (only the last sample's
+point kept for the diagnostics) or ``included`` (``covariance_includes_calibration``: J Sigma J^T per published
+sample); ``--core-only`` times ``core_feed`` back to back only.
 
     ROS_DOMAIN_ID=31 .venv/bin/python bench/bench_driver_stages.py
+    .venv/bin/python bench/bench_driver_stages.py --core-only --calibration-uncertainty included --output /tmp/s.json
 """
 
 from __future__ import annotations
@@ -32,13 +37,16 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from machine_info import results_doc, write_results  # noqa: E402
 from output_paths import add_update_results, results_dir  # noqa: E402
 
-from fbg_accel_driver.driver_core import DriverCore  # noqa: E402
+from fbg_accel_driver.coefficient_covariance import CoefficientCovariance  # noqa: E402
+from fbg_accel_driver.driver_core import CoreConfig, DriverCore  # noqa: E402
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, link_frame_rate_limit  # noqa: E402
 from fbg_accel_driver.thermal_model import ThermalCalibration  # noqa: E402
 from fbg_accel_sim.board_physics import BoardSimulator, SimConfig  # noqa: E402
@@ -66,7 +74,8 @@ def paced(n: int, rate: float | None, work) -> float:
     return total / n / 1e3
 
 
-def bench_core(n: int, data: bytes, cal: ThermalCalibration) -> dict:
+def bench_core(n: int, data: bytes, cal: ThermalCalibration, config: CoreConfig | None = None,
+               rates: dict[str, float | None] = RATES) -> dict:
     out: dict[str, dict[str, float]] = {}
     splits = {"1+26 bytes": None, "1 frame": 1, "10 frames": 10, "100 frames": 100}
     for label, per in splits.items():
@@ -77,10 +86,10 @@ def bench_core(n: int, data: bytes, cal: ThermalCalibration) -> dict:
             pieces = [data[i:i + per * FRAME_SIZE_V1] for i in range(0, len(data), per * FRAME_SIZE_V1)]
             calls_per_frame = 1 / per
         out[label] = {}
-        for rname, rate in RATES.items():
+        for rname, rate in rates.items():
             if per is not None and per > 1 and rate:
                 continue  # batches only happen when the consumer is behind: back to back is the relevant case
-            core = DriverCore(cal)
+            core = DriverCore(cal, config)
             h = time.time_ns()
             m = min(len(pieces), int(n * calls_per_frame))
             def work(i: int, c: DriverCore = core, p: list[bytes] = pieces, h: int = h) -> None:
@@ -217,17 +226,32 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--wake-seconds", type=float, default=3.0, help="seconds per wake-up case")
     ap.add_argument("--output", type=Path, help="output file (default: driver_stages.json in the scratch or results directory)")
     add_update_results(ap)
+    ap.add_argument("--calibration-uncertainty", choices=["absent", "reported", "included"], default="absent",
+                    help="the calibration's coefficient_covariance: absent, reported in the diagnostics only, or "
+                    "included in the covariance (covariance_includes_calibration)")
+    ap.add_argument("--core-only", action="store_true", help="time core_feed only, back to back")
     args = ap.parse_args(argv)
     args.output = args.output or results_dir(args.update_results) / "driver_stages.json"
     import rclpy
 
     data = frames_bytes(max(args.frames, 1000) * 2)
     cal = ThermalCalibration.load(ROOT / "config" / "calibration_sim.yaml")
-    results: dict = {"serial_chunks_at_100hz": bench_serial_chunks(300, data)}
-    print("serial:", results["serial_chunks_at_100hz"], flush=True)
+    config = None
+    if args.calibration_uncertainty != "absent":
+        p = 12 * (cal.degree + 1)
+        cal.coefficient_covariance = CoefficientCovariance(np.eye(p) * 1e-4 + 1e-5, "bench", 18)
+        config = CoreConfig(covariance_includes_calibration=args.calibration_uncertainty == "included")
+    results: dict = {"calibration_uncertainty": args.calibration_uncertainty}
     n100 = min(args.frames, 300)
-    results["core_feed_us_cpu_per_frame"] = bench_core(args.frames, data, cal) | {"frames_at_100hz": n100}
+    rates = {"back_to_back": None} if args.core_only else RATES
+    results["core_feed_us_cpu_per_frame"] = bench_core(args.frames, data, cal, config, rates) | {"frames_at_100hz": n100}
     print("core:", json.dumps(results["core_feed_us_cpu_per_frame"]), flush=True)
+    if args.core_only:
+        write_results(args.output, results_doc("bench_driver_stages.py", argv, "driver stage costs per frame (thread "
+                                               "CPU time, us)", results=results))
+        return 0
+    results["serial_chunks_at_100hz"] = bench_serial_chunks(300, data)
+    print("serial:", results["serial_chunks_at_100hz"], flush=True)
     rclpy.init()
     try:
         results["messages_build_publish_us_cpu_per_frame"] = bench_messages(args.frames)

@@ -13,6 +13,15 @@ stamp - 2 ms, linearly interpolated). Per axis and case it reports
     .venv/bin/python bench/nees_probe.py --json bench/results/nees_probe.json      # all cases, about 1.5 min
     .venv/bin/python bench/nees_probe.py --case static_temps                     # one case; --list names them
 
+``--calibration-seeds N`` checks the calibration's own uncertainty instead (``calibration_consistency``): for each of
+N seeds a calibration campaign is simulated and fitted (six poses at 16 / 24 / 45 degC, ``fit_thermal`` with its
+coefficient covariance), the driver core runs it on the twelve poses above at ``--calibration-temps``, and the mean
+error of each static pose against the simulator's truth is normalised by the covariance of that mean, with and without
+the calibration's J Sigma J^T (NEES, 3 degrees of freedom; the mean of S seeds' NEES of one pose lies in
+[chi2_0.025(3S), chi2_0.975(3S)] / S when the covariance is right).
+
+    .venv/bin/python bench/nees_probe.py --calibration-seeds 20 --json /tmp/nees_calibration.json   # about 4 min
+
 ``bench/results/nees_probe_before.json`` is the same command run on the code before the reference-level check
 (commit 2b70689 with this script and its calibration file, which has no ``reference_level``).
 """
@@ -73,7 +82,8 @@ def run_case(overrides: dict[str, Any], cal: ThermalCalibration, core_cfg: CoreC
     truth = np.stack([np.interp(stamp_s, t_true, blk.accel_true_mps2[:, j]) for j in range(3)], axis=1)
     idx = np.clip(np.searchsorted(t_true, stamp_s), 0, n - 1)
     # static: the table has been at rest for `settle` s at the stamp (and the whole decimation window)
-    return {"t": stamp_s, "acc": acc, "var": var, "truth": truth, "err": acc - truth,
+    cov = np.array([r.covariance for r in recs]).reshape(-1, 3, 3)
+    return {"t": stamp_s, "acc": acc, "var": var, "cov": cov, "truth": truth, "err": acc - truth,
             "time_at_pose": blk.time_at_pose_s[idx], "visit": np.where(blk.pose_id[idx] >= 0, blk.visit[idx], -1),
             "moving": blk.in_motion[idx], "temp": np.array([r.temperature_c for r in recs]),
             "flagged": np.array([bool(r.flags) for r in recs]),
@@ -125,6 +135,95 @@ def shipped_calibration(dynamic: bool = False) -> ThermalCalibration:
     return dataclasses.replace(cal, dynamic=SIM_DYNAMICS) if dynamic else cal
 
 
+def fitted_calibration(seed: int, degree: int = 2, settle_s: float = 2.0, repeat: int = 3,
+                       overrides: dict[str, Any] | None = None) -> ThermalCalibration:
+    """A calibration fitted as ``fbg-accel-calib fit`` does (eq. 28 with its coefficient covariance, the noise model and
+    its within-visit correction) on the simulator's six-pose campaign at 16 / 24 / 45 degC of ``seed``, with the
+    static samples (at rest ``settle_s``) given by the simulator's truth; the six poses visited ``repeat`` times per
+    level, so that the covariance rests on 18 ``repeat`` visits (with one, 18 visits for 12 coefficients per axis leave
+    6 degrees of freedom: the estimate is then so uncertain itself that a normalised error's mean is 3 x 6 / (6 - 4) =
+    9, not 3, although unbiased, Hotelling's T^2)."""
+    from fbg_accel_calibration.fit_stream import prepare
+    from fbg_accel_calibration.noise_correlation import from_recording, within_visit_factor
+    from fbg_accel_calibration.thermal_fit import fit_thermal
+    from fbg_accel_sim.make_default_calibration import calibration_runs, static_mask
+
+    rec = calibration_runs(SimConfig.default().with_overrides(overrides or {}), seed, repeat=repeat)
+    data = prepare(rec, degree, usable=static_mask(rec, settle_s))
+    cal = fit_thermal(data, degree)
+    corr = from_recording(rec.select(rec.run_id == rec.run_id[0]), cal)
+    cal.noise_correlated_fraction, cal.noise_time_constant_s = corr.correlated_fraction, corr.time_constant_s
+    cal.noise_sigma_mps2 = cal.noise_sigma_mps2 / np.sqrt(within_visit_factor(corr, corr.dt_s, data.stats.visit_lengths))
+    return cal
+
+
+def pose_means(res: dict[str, np.ndarray], settle_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per static visit (at rest >= ``settle_s``): mean error (V, 3) m/s^2, the covariance of that mean from the noise
+    (V, 3, 3; the published variance times the noise model's factor for a mean of n samples) and the calibration's
+    part (V, 3, 3; the covariance published with it, ``cov_with``, less the one without, averaged over the visit: the
+    same bias for every sample)."""
+    from fbg_accel_driver.noise_model import mean_variance_factor
+
+    cal = res["cal"]
+    static = (res["time_at_pose"] >= settle_s) & (res["visit"] >= 0)
+    dt = float(np.median(np.diff(res["t"])))
+    errs, noise, calib = [], [], []
+    for v in np.unique(res["visit"][static]):
+        sel = static & (res["visit"] == v)
+        n = int(sel.sum())
+        errs.append(res["err"][sel].mean(axis=0))
+        f = [mean_variance_factor(n, float(cal.noise_correlated_fraction[a]), float(cal.noise_time_constant_s[a]), dt)
+             for a in range(3)]
+        noise.append(np.diag(res["var"][sel].mean(axis=0) * np.array(f)))
+        calib.append((res["cov_with"][sel] - res["cov"][sel]).mean(axis=0))
+    return np.array(errs), np.array(noise), np.array(calib)
+
+
+def calibration_consistency(seeds: int, temps: list[float], settle_s: float, first_seed: int = 100,
+                            effects_off: list[str] | None = None) -> dict[str, Any]:
+    """NEES of the static pose means with and without the calibration's uncertainty over ``seeds`` fitted
+    calibrations (module docstring); ``effects_off``: simulator effects switched off (``effects.<name>.scale`` 0) in the
+    campaign and in the check."""
+    from scipy.stats import chi2
+
+    over = {f"effects.{e}.scale": 0.0 for e in effects_off or []}
+    nees_with: dict[str, list[np.ndarray]] = {f"{t:g}": [] for t in temps}
+    nees_without: dict[str, list[np.ndarray]] = {f"{t:g}": [] for t in temps}
+    sigma_cal: dict[str, list[np.ndarray]] = {f"{t:g}": [] for t in temps}
+    for s in range(first_seed, first_seed + seeds):
+        cal = fitted_calibration(s, overrides=over)
+        for t in temps:
+            res = run_case({**pose_plan(t), **over}, cal, CoreConfig(), seed=s + 7919)
+            res["cov_with"] = run_case({**pose_plan(t), **over}, cal, CoreConfig(covariance_includes_calibration=True),
+                                       seed=s + 7919)["cov"]
+            res["cal"] = cal
+            e, cn, cc = pose_means(res, settle_s)
+            nees_with[f"{t:g}"].append(np.einsum("vi,vij,vj->v", e, np.linalg.inv(cn + cc), e))
+            nees_without[f"{t:g}"].append(np.einsum("vi,vij,vj->v", e, np.linalg.inv(cn), e))
+            sigma_cal[f"{t:g}"].append(np.sqrt(np.einsum("vii->vi", cc)))
+            print(f"seed {s} T={t:g}: mean NEES with {nees_with[f'{t:g}'][-1].mean():.2f}, without "
+                  f"{nees_without[f'{t:g}'][-1].mean():.1f}", flush=True)
+    lo, hi = chi2.ppf(0.025, 3 * seeds) / seeds, chi2.ppf(0.975, 3 * seeds) / seeds
+    out: dict[str, Any] = {"seeds": seeds, "first_seed": first_seed, "settle_s": settle_s, "dof": 3,
+                           "effects_off": effects_off or [],
+                           "band_95_of_mean_over_seeds": [round(lo, 3), round(hi, 3)],
+                           "poses": [f"psi={p[0]:g} theta={p[1]:g}" for p in POSES], "temperatures": {}}
+    for key in nees_with:
+        w, wo = np.array(nees_with[key]), np.array(nees_without[key])  # (seeds, poses)
+        mw, mwo = w.mean(axis=0), wo.mean(axis=0)
+        out["temperatures"][key] = {
+            "mean_nees_per_pose_with": np.round(mw, 2).tolist(),
+            "mean_nees_per_pose_without": np.round(mwo, 1).tolist(),
+            "poses_in_band_with": int(((mw >= lo) & (mw <= hi)).sum()),
+            "poses_in_band_without": int(((mwo >= lo) & (mwo <= hi)).sum()),
+            "poses_above_band_with": int((mw > hi).sum()),
+            "mean_nees_all_with": round(float(w.mean()), 3), "mean_nees_all_without": round(float(wo.mean()), 2),
+            "fraction_below_chi2_95_with": round(float((w < chi2.ppf(0.95, 3)).mean()), 3),
+            "fraction_below_chi2_95_without": round(float((wo < chi2.ppf(0.95, 3)).mean()), 3),
+            "median_sigma_calibration_mps2": np.round(np.median(np.concatenate(sigma_cal[key]), axis=0), 4).tolist()}
+    return out
+
+
 def cases() -> dict[str, list[tuple[str, dict[str, Any], dict[str, Any], float | None]]]:
     """name -> [(label, sim overrides, CoreConfig fields, duration)]."""
     temps = [10.0, 13.0, 15.0, 16.0, 20.0, 24.0, 30.0, 38.0, 45.0, 45.3, 47.0, 50.0]
@@ -150,7 +249,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=5)
     p.add_argument("--json", help="write the results here")
     p.add_argument("--list", action="store_true")
+    p.add_argument("--calibration-seeds", type=int, default=0,
+                   help="check the calibration's uncertainty on this many fitted calibrations instead (>= 20)")
+    p.add_argument("--calibration-effects-off", nargs="*", default=[],
+                   help="simulator effects switched off for the check (config/sim_default.yaml effects), e.g. bias_instability")
+    p.add_argument("--calibration-temps", type=float, nargs="+", default=[24.0, 45.0, 52.0],
+                   help="chamber temperatures (degC) of the check; the campaign's are 16, 24, 45")
     args = p.parse_args(argv)
+    if args.calibration_seeds:
+        out = calibration_consistency(args.calibration_seeds, args.calibration_temps, args.settle,
+                                      effects_off=args.calibration_effects_off)
+        print(json.dumps(out, indent=1))
+        if args.json:
+            Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
+        return 0
     all_cases = cases()
     if args.list:
         print("\n".join(all_cases))

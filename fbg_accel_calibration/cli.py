@@ -10,6 +10,11 @@ Subcommands (``fbg-accel-calib SUBCOMMAND --help`` for the options):
 * ``report``   a fit -> markdown report with tables and PNG plots (calibrated vs reference per pose,
                residuals per degree).
 * ``report-measured``  the paper's measured series (../shared) -> docs/results/measured_fit.md + PNG.
+* ``uncertainty-measured``  the coefficient uncertainty of the paper's linear model on that series, next to the
+               published matrix -> docs/results/calibration_uncertainty.md.
+* ``field-check`` an ordinary recording (MCAP, rosbag2 bag, CSV) + calibration -> bias and scale per axis from its
+               still periods against local gravity, what the orientations cannot identify; ``--output``: the
+               updated calibration.
 * ``diagnose`` residual diagnosis (``fbg_accel_calibration.diagnose_cli``).
 * ``dynamic``  a slide run (MCAP / bag with imu/raw ``aux_counts``, or a dynamic CSV) + excitation plan +
                static calibration -> the calibration with its ``dynamic`` section (chain cut-offs and
@@ -125,6 +130,23 @@ def build_parser() -> argparse.ArgumentParser:
     _add_csv_options(p)
     p.set_defaults(func=cmd_allan)
 
+    p = sub.add_parser("field-check", help="still periods of a recording against local gravity: bias and scale per axis")
+    p.add_argument("inputs", nargs="+", type=Path, help="recording(s): MCAP, rosbag2 bag directory or CSV")
+    p.add_argument("--calibration", type=Path, required=True, help="calibration YAML to check")
+    gravity = p.add_mutually_exclusive_group()
+    gravity.add_argument("--gravity", type=float, default=None, help="local gravity, m/s^2 (default: normal gravity "
+                         "at --latitude, else standard gravity 9.80665)")
+    gravity.add_argument("--latitude", type=float, default=None, help="geodetic latitude, deg (WGS-84 normal gravity)")
+    p.add_argument("--height", type=float, default=0.0, help="ellipsoidal height, m, with --latitude (default 0)")
+    p.add_argument("--min-period", type=float, default=2.0, help="shortest still period used, s (default 2)")
+    p.add_argument("-o", "--output", type=Path, default=None,
+                   help="write the calibration updated with the identified bias and scale here (never over an input)")
+    add_topic_options(p)
+    _add_force(p)
+    _add_detector_options(p)
+    _add_csv_options(p)
+    p.set_defaults(func=cmd_field_check)
+
     p = sub.add_parser("report", help="tables and plots of a fit")
     p.add_argument("inputs", nargs="+", type=Path)
     p.add_argument("--calibration", type=Path, required=True, help="calibration YAML applied to the recordings")
@@ -144,6 +166,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--md", type=Path, default=DEFAULT_MD, help=f"markdown output (default {DEFAULT_MD})")
     p.add_argument("--png", type=Path, default=DEFAULT_PNG, help=f"plot output (default {DEFAULT_PNG})")
     p.set_defaults(func=cmd_report_measured)
+
+    p = sub.add_parser("uncertainty-measured", help="coefficient uncertainty of the linear model on the measured series "
+                       "(../shared) next to the paper's matrix")
+    from .measured_uncertainty import DEFAULT_MD as UNCERTAINTY_MD
+
+    p.add_argument("--csv", type=Path, default=DEFAULT_CSV, help=f"measured CSV (default {DEFAULT_CSV}, relative to the cwd)")
+    p.add_argument("--md", type=Path, default=UNCERTAINTY_MD, help=f"markdown output (default {UNCERTAINTY_MD})")
+    p.set_defaults(func=cmd_uncertainty_measured)
 
     p = sub.add_parser("dynamic", help="slide run to the chain's dynamics (calibration 'dynamic' section, Bode plot)")
     p.add_argument("recording", type=Path, help="MCAP file or rosbag2 bag directory (imu/raw with aux_counts), or a "
@@ -483,6 +513,47 @@ def cmd_report_measured(args: argparse.Namespace) -> int:
     from .measured_report import main_args
 
     return main_args(args.csv, args.md, args.png, argv=getattr(args, "argv", None))
+
+
+def cmd_field_check(args: argparse.Namespace) -> int:
+    """Still periods at unknown orientations against local gravity (``field_check``); the updated calibration only
+    with ``--output``."""
+    from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
+    from fbg_accel_driver.thermal_model import ThermalCalibration
+
+    from .field_check import PARAMETERS, estimate, normal_gravity, still_periods, updated_calibration
+    from .static_detector import calibration_samples
+
+    check_outputs([args.output], [*args.inputs, args.calibration], args.force)
+    if args.gravity is not None and not 9.7 < args.gravity < 9.9:
+        raise ValueError(f"--gravity {args.gravity} m/s^2 is not a gravity on the Earth's surface (9.7..9.9)")
+    g = (args.gravity if args.gravity is not None else normal_gravity(args.latitude, args.height)
+         if args.latitude is not None else STANDARD_GRAVITY)
+    cal = ThermalCalibration.load(args.calibration)
+    rec = _load(args.inputs, args)
+    still = calibration_samples(rec, args.window, args.min_interval)[1]  # the signal alone is still
+    periods = still_periods(rec, cal, still, args.min_period)
+    fc = estimate(periods, g)
+    units = ("m/s^2",) * 3 + ("",) * 3
+    print(f"{len(periods.mean)} still period(s), {int(periods.samples.sum())} samples; g = {g:.6f} m/s^2; "
+          f"| |a| - g | before: rms {np.sqrt(np.mean(fc.residual_before_mps2**2)):.4f} m/s^2, after "
+          f"{np.sqrt(np.mean(fc.residual_mps2**2)):.4f} m/s^2")
+    values = np.r_[fc.bias, fc.scale]
+    for name, v, sd, ok, unit in zip(PARAMETERS, values, fc.sigma, fc.identified, units, strict=True):
+        print(f"  {name:8s} " + (f"{v:+.4f} +- {sd:.4f} {unit}" if ok else "not identified by these orientations"))
+    for note in fc.notes:
+        print(f"note: {note}")
+    if args.output is not None:
+        with atomic_path(args.output) as tmp:
+            updated_calibration(cal, fc).save(tmp)
+        print(f"wrote {args.output}")
+    return 0
+
+
+def cmd_uncertainty_measured(args: argparse.Namespace) -> int:
+    from .measured_uncertainty import main_args
+
+    return main_args(args.csv, args.md, argv=getattr(args, "argv", None))
 
 
 def main(argv: list[str] | None = None) -> int:

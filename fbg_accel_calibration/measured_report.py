@@ -27,6 +27,7 @@ import shlex
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -77,6 +78,8 @@ class MeasuredFit:
     n_intermediate_signal_still: int  # intermediate samples the signal criterion alone calls still
     trend_mps2: np.ndarray  # (3,) change of the per-pose residual over the run, linear fit
     csv_path: Path
+    coefficient_covariance: np.ndarray | None = None  # (12, 12) of (M, b), coefficient_uncertainty's order
+    visit_stats: Any = None  # the fit's CellStats (thermal_fit), for other clusterings and the bootstrap
 
 
 def signed_permutation(M: np.ndarray) -> np.ndarray:
@@ -137,7 +140,8 @@ def fit_measured(csv_path: Path = DEFAULT_CSV) -> MeasuredFit:
     trend = slope * (pose_pos.max() - pose_pos.min())
     return MeasuredFit(rec, usable, selection, M, b, signed_permutation(M), np.asarray(cal.fit["rmse_mps2"]),
                        rmse_held, stats.pooled_within_pose_std(), stats, held_stats, int(inter.sum()),
-                       len(kept), int(same_ref), signal_only, trend, csv_path)
+                       len(kept), int(same_ref), signal_only, trend, csv_path, cal.coefficient_covariance.matrix,
+                       data.stats)
 
 
 def _matrix_md(M: np.ndarray, fmt: str = "{:.2f}") -> str:

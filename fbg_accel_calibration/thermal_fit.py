@@ -34,11 +34,12 @@ from __future__ import annotations
 import datetime as _dt
 import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from fbg_accel_driver.coefficient_covariance import CoefficientCovariance
 from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2, STANDARD_GRAVITY
 from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
 
@@ -67,6 +68,10 @@ MIN_REFERENCE_REACH_MPS2 = 0.5 * STANDARD_GRAVITY
 # on the measured series); a dead or saturated channel, or copied samples, leave one direction flat.
 MIN_SIGNAL_SPREAD_RATIO = 1e-3
 _LEVEL_OFFSET = 1 << 16  # cell key = pose << 32 | (level + offset)
+# Visits whose own sums (X^T X, X^T G: p(p+3) floats each, 2.4 kB at degree 3) are kept for the coefficient covariance;
+# a campaign has tens to hundreds. Beyond this (rows of interleaved cells: every sample its own visit) they are dropped
+# and the covariance is clustered by cell instead (coefficient_uncertainty), which is coarser and still valid.
+MAX_VISIT_SUMS = 20000
 
 
 class NotIdentifiedError(ValueError):
@@ -202,6 +207,10 @@ class CellStats:
     (p, p) is the sum over the visits (contiguous stays at one pose) of xsum_v xsum_v^T / n_v and
     ``visit_lengths`` their n_v (``n_visits`` their number): the noise floor is the scatter within a visit
     (:meth:`visit_scatter`), not the difference between two visits of one cell.
+
+    ``visit_xtx`` (V, p, p), ``visit_xtg`` (V, p, 3) and ``visit_cell`` (V,) are each visit's own X^T X, X^T G and
+    cell (index into the cells above), in the order the visits ended: the clusters of the coefficient covariance
+    (``coefficient_uncertainty``). Empty (V = 0) when the visits were more than :data:`MAX_VISIT_SUMS`.
     """
 
     degree: int
@@ -215,6 +224,9 @@ class CellStats:
     count: np.ndarray
     visit_outer: np.ndarray
     visit_lengths: np.ndarray  # (n_visits,) samples of each visit
+    visit_xtx: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0)))
+    visit_xtg: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3)))
+    visit_cell: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def n_visits(self) -> int:
@@ -268,6 +280,9 @@ class CellAccumulator:
         self._open: tuple[int, int] | None = None  # (run, cell key) of the visit the last chunk ended in
         self._open_sum = np.zeros(self.p)
         self._open_n = 0
+        # each visit's own X^T X and X^T G (the open one last), and its (run, cell key); None once too many
+        self._visit_sums: list[tuple[np.ndarray, np.ndarray]] | None = []
+        self._visit_keys: list[tuple[int, int]] = []
 
     def _cell(self, run: int, key: int) -> int:
         c = self._index.get((run, key))
@@ -292,46 +307,76 @@ class CellAccumulator:
             raise ValueError(f"temperature level labels must lie in [-{_LEVEL_OFFSET}, {_LEVEL_OFFSET})")
         key = (pose << 32) + (level + _LEVEL_OFFSET)
         runs = [(0, 0, len(key))] if run is None else _runs_of(np.asarray(run, np.int64))
-        segments: list[tuple[int, slice | np.ndarray]] = []
+        # (cell, rows, their X^T X and X^T G when the visit sums worked them out already, else None)
+        segments: list[tuple[int, slice | np.ndarray, tuple[np.ndarray, np.ndarray] | None]] = []
         for r, lo, hi in runs:
             k = key[lo:hi]
             change = np.flatnonzero(k[1:] != k[:-1]) + 1
-            self._add_visits(X[lo:hi], r, k, change)
+            pieces = self._add_visits(X[lo:hi], G[lo:hi], r, k, change)
             if len(change) < len(k) // 64:  # samples come pose by pose: contiguous slices, no copy
                 bounds = np.r_[0, change, len(k)] + lo
-                segments += [(self._cell(r, int(key[a])), slice(a, b)) for a, b in itertools.pairwise(bounds)]
+                segments += [(self._cell(r, int(key[a])), slice(a, b), pieces[j] if pieces else None)
+                             for j, (a, b) in enumerate(itertools.pairwise(bounds))]
             else:  # interleaved cells: group by sorting
                 order = np.argsort(k, kind="stable") + lo
                 ks = key[order]
                 bounds = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1], True])
-                segments += [(self._cell(r, int(ks[a])), order[a:b]) for a, b in itertools.pairwise(bounds)]
+                segments += [(self._cell(r, int(ks[a])), order[a:b], None) for a, b in itertools.pairwise(bounds)]
         sums = self._sums
-        for c, rows in segments:
+        for c, rows, done in segments:
             Xc, Gc = X[rows], G[rows]
-            sums["xtx"][c] += Xc.T @ Xc
-            sums["xtg"][c] += Xc.T @ Gc
+            xtx, xtg = done if done is not None else (Xc.T @ Xc, Xc.T @ Gc)
+            sums["xtx"][c] += xtx
+            sums["xtg"][c] += xtg
             sums["gtg"][c] += np.einsum("ni,ni->i", Gc, Gc)
             sums["xsum"][c] += Xc.sum(axis=0)
             sums["gsum"][c] += Gc.sum(axis=0)
             sums["count"][c] += len(Gc)
 
-    def _add_visits(self, X: np.ndarray, run: int, key: np.ndarray, change: np.ndarray) -> None:
+    def _add_visits(self, X: np.ndarray, G: np.ndarray, run: int, key: np.ndarray,
+                    change: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]] | None:
         """Column sums of each visit in rows ``X`` of one run (time order; ``key`` their cells, ``change`` where
-        it changes): a visit ends where the cell or the run changes; the last one stays open, for the next chunk
-        to continue."""
+        it changes; ``G`` the rows' reference): a visit ends where the cell or the run changes; the last one stays
+        open, for the next chunk to continue. Returns each piece's X^T X and X^T G (:meth:`_add_visit_sums`)."""
         starts = np.r_[0, change]
         sums = np.add.reduceat(X, starts, axis=0)
         counts = np.diff(np.r_[starts, len(key)])
-        if self._open == (run, int(key[0])):  # the visit the previous chunk ended in goes on
+        goes_on = self._open == (run, int(key[0]))  # the visit the previous chunk ended in goes on
+        if goes_on:
             sums[0] += self._open_sum
             counts[0] += self._open_n
         else:
             self._close_visit()
+        pieces = self._add_visit_sums(X, G, run, key, starts, goes_on)
         if len(starts) > 1:
             closed = sums[:-1] / np.sqrt(counts[:-1, None])
             self._visit_outer += closed.T @ closed
             self._visit_n.extend(counts[:-1].tolist())
         self._open, self._open_sum, self._open_n = (run, int(key[-1])), sums[-1].copy(), int(counts[-1])
+        return pieces
+
+    def _add_visit_sums(self, X: np.ndarray, G: np.ndarray, run: int, key: np.ndarray, starts: np.ndarray,
+                        goes_on: bool) -> list[tuple[np.ndarray, np.ndarray]] | None:
+        """Each visit's own X^T X and X^T G (the first continues the open visit when ``goes_on``); returns those of
+        the pieces of this chunk (the cells' sums reuse them), None when the visits are not kept."""
+        kept = self._visit_sums
+        if kept is None:
+            return None
+        if len(kept) + len(starts) > MAX_VISIT_SUMS:
+            self._visit_sums, self._visit_keys = None, []
+            return None
+        ends = np.r_[starts[1:], len(key)]
+        pieces = []
+        for i, (a, b) in enumerate(zip(starts.tolist(), ends.tolist(), strict=True)):
+            xtx, xtg = X[a:b].T @ X[a:b], X[a:b].T @ G[a:b]
+            pieces.append((xtx, xtg))
+            if i == 0 and goes_on:
+                kept[-1][0][...] += xtx
+                kept[-1][1][...] += xtg
+            else:
+                kept.append((xtx.copy(), xtg.copy()))  # its own: the open visit's grows in place
+                self._visit_keys.append((run, int(key[a])))
+        return pieces
 
     def _close_visit(self) -> None:
         if self._open is not None:
@@ -348,8 +393,17 @@ class CellAccumulator:
         order = np.lexsort((keys[:, 2], keys[:, 1], keys[:, 0]))
         sums = [np.asarray(self._sums[name], dtype=float).reshape(-1, *shape)[order]
                 for name, shape in self._shapes.items()]
+        p = self.p
+        if self._visit_sums:  # visits in the order they ended, each with its cell's index in the ordered cells
+            rank = np.empty(len(order), np.int64)
+            rank[order] = np.arange(len(order))
+            visit_xtx = np.array([v[0] for v in self._visit_sums])
+            visit_xtg = np.array([v[1] for v in self._visit_sums])
+            visit_cell = rank[[self._index[k] for k in self._visit_keys]]
+        else:
+            visit_xtx, visit_xtg, visit_cell = np.zeros((0, p, p)), np.zeros((0, p, 3)), np.zeros(0, np.int64)
         return CellStats(self.degree, keys[order, 0], keys[order, 1], *sums, self._visit_outer.copy(),
-                         np.asarray(self._visit_n, dtype=np.int64))
+                         np.asarray(self._visit_n, dtype=np.int64), visit_xtx, visit_xtg, visit_cell)
 
 
 def _runs_of(run: np.ndarray) -> list[tuple[int, int, int]]:
@@ -583,6 +637,9 @@ def fit_thermal(rec: Recording | FitData, degree: int, *, sensor_id: str | None 
     rmse = np.sqrt(rss / n)
     noise = np.sqrt(stats.visit_scatter(A, degree) / max(n - stats.n_visits, 1.0))
     M, b = coefficients_to_model(A, degree)
+    from .coefficient_uncertainty import cluster_covariance  # builds on this module's sums
+
+    cov, cov_method, clusters = cluster_covariance(stats, A, degree)
     src = rec.metadata.get("sources", rec.metadata.get("source")) if isinstance(rec, Recording) else None
     fit_info = {
         "method": "least squares, eq. 28-30, streamed normal equations",
@@ -613,7 +670,8 @@ def fit_thermal(rec: Recording | FitData, degree: int, *, sensor_id: str | None 
         sensor_id=sensor_id or (sensor_id_of(rec.metadata) if isinstance(rec, Recording) else None) or "unknown",
         t_center_c=center, t_scale_c=scale, noise_sigma_mps2=noise,
         created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), fit=fit_info,
-        reference_level_temperature_c=data.level_means_c, reference_level_counts=data.level_reference_counts)
+        reference_level_temperature_c=data.level_means_c, reference_level_counts=data.level_reference_counts,
+        coefficient_covariance=CoefficientCovariance(cov, cov_method, clusters))
 
 
 UNNAMED_SENSOR_IDS = frozenset({"", "unknown"})  # the calibration node's and import's default: names no sensor

@@ -40,6 +40,12 @@ Sample policies (documented in docs/topics.md; each has a counter and a diagnost
   ``out_of_range_variance_factor * sigma**2`` plus the square of what the term's formula would have added
   beyond the edge (at most the full scale squared); flagged, counted (``correction_out_of_span``),
   diagnostics WARN.
+* **The calibration's own uncertainty** (a calibration with a ``coefficient_covariance`` section): J Sigma J^T, the
+  coefficients' covariance carried to the output at the sample's Psi and temperature
+  (``coefficient_covariance.output_covariance``; outside the calibrated range the powers of tau make it grow), is
+  added to the covariance, all nine entries, when ``covariance_includes_calibration`` is set. It is a bias, the same
+  error for every sample: a decimated sample gets it once, at the block's mean Psi and temperature, not divided by
+  the block's size. Always reported in the diagnostics (:meth:`DriverCore.calibration_uncertainty`).
 * With ``covariance_source`` ``unknown`` the covariance is all zeros (REP 145 "unknown") for every sample: the
   policies above still flag and count, but there is no variance to inflate, and a single inflated entry would state
   the other axes exactly known.
@@ -81,6 +87,7 @@ import numpy as np
 from .chain_compensation import MODES as CHAIN_MODES
 from .chain_compensation import ChannelEqualiser
 from .clock_sync import ClockSync, ClockSyncConfig
+from .coefficient_covariance import output_covariance
 from .correction_terms import TiaInverseFilter
 from .frame_codec import ADC_MAX, SEQ_MODULO, Frame, Status, at_adc_rail
 from .noise_model import mean_variance_factor
@@ -121,6 +128,8 @@ class CoreConfig:
     reference_level_tolerance: float = 0.03
     chain_compensation: str = "none"  # "none" | "delay" | "equalise" (chain_compensation module)
     equalise_bandwidth_hz: float = 10.0  # common low-pass the equaliser leaves in place of the TIA stages
+    # add the calibration's J Sigma J^T (a bias, correlated in time: docs/topics.md) to the published covariance
+    covariance_includes_calibration: bool = False
 
     def validate(self) -> None:
         """Raise ValueError with a message naming the bad setting."""
@@ -231,8 +240,16 @@ class DriverCore:
         self._last_good_stamp_ns: int | None = None
         self._last_stamp_ns: int | None = None
         self._last_raw_temp_valid: bool | None = None
-        # decimation block: (stamp ns, accel m/s^2, variance (m/s^2)^2, temperature degC, flags, board time us)
-        self._pending: list[tuple[int, tuple[float, float, float], list[float], float, frozenset[str], int]] = []
+        # decimation block: (stamp ns, accel m/s^2, variance (m/s^2)^2, temperature degC, flags, board time us, Psi or
+        # None when the calibration's uncertainty is not added)
+        self._pending: list[tuple[int, tuple[float, float, float], list[float], float, frozenset[str], int,
+                                  tuple[float, float, float] | None]] = []
+        # the calibration's uncertainty: at each emitted sample (covariance_includes_calibration), and at the last
+        # calibrated sample's (Psi, temperature) for the diagnostics
+        self._with_cal_cov = (calibration is not None and calibration.coefficient_covariance is not None
+                              and self.config.covariance_includes_calibration
+                              and self.config.covariance_source != "unknown")
+        self._last_cal_point: tuple[float, float, float, float] | None = None
         self._prev_frame: tuple[int, int, int] | None = None  # (seq, t_us, ADC_OVERRUN) of the previous frame of this run
         # the board's nominal sample interval (us): median of recent t_us steps between frames of consecutive seq, a late
         # read's catch-up left out (SampleInterval); one step is no estimate (catch-up reads are ~40 us apart)
@@ -347,6 +364,18 @@ class DriverCore:
     def clock_status(self) -> dict[str, float | int | bool]:
         """The board clock's mapping onto host time (``ClockSync.status``), for the diagnostics."""
         return self.clock.status()
+
+    def calibration_uncertainty(self) -> tuple[float, float, float, float] | None:
+        """Standard uncertainty (m/s^2, x, y, z) the calibration's coefficients give the output at the last calibrated
+        sample's Psi, and that sample's temperature (degC): the diagonal of J Sigma J^T
+        (``coefficient_covariance.output_covariance``). None without a ``coefficient_covariance`` section or before
+        the first calibrated sample."""
+        point = self._last_cal_point
+        if point is None or self.cal is None or self.cal.coefficient_covariance is None:
+            return None
+        px, py, pz, temp = point
+        c = output_covariance(self.cal.calibration_weights_at(round(temp, 2)), px, py, pz)
+        return math.sqrt(max(c[0], 0.0)), math.sqrt(max(c[3], 0.0)), math.sqrt(max(c[5], 0.0)), temp
 
     def chain_status(self) -> dict[str, float | str]:
         """Chain compensation for diagnostics: mode, bandwidth of the published acceleration (Hz; the
@@ -484,6 +513,9 @@ class DriverCore:
             used.append((stamp_ns - delay_ns, f, temp, base, not valid, vfac, (ref, cx, cy, cz), ref_off))  # equalised
         if not used:
             return
+        last = used[-1]
+        self._last_cal_point = (last[6][1] / last[6][0], last[6][2] / last[6][0], last[6][3] / last[6][0], last[2])
+        with_cal_cov = self._with_cal_cov
         extra = beyond = None
         if cal.corrections:  # declared correction terms (diagnose): vectorised, with their stream state, fed the
             counts = np.array([u[6] for u in used], dtype=float)  # same counts as eq. 28 (equalised or not)
@@ -542,7 +574,8 @@ class DriverCore:
                 # across it, as across a reboot; the partial block is discarded (counted)
                 counters.decimation_gaps += 1
                 self._discard_pending()
-            self._pending.append((stamp_ns, accel, var, temp, frozenset(flags), f.t_us))
+            self._pending.append((stamp_ns, accel, var, temp, frozenset(flags), f.t_us,
+                                  (cx / ref, cy / ref, cz / ref) if with_cal_cov else None))
             if len(self._pending) >= cfg.decimation:
                 out.imu.append(self._emit())
 
@@ -575,7 +608,7 @@ class DriverCore:
         block = self._pending
         n = len(block)
         if n == 1:
-            stamp, acc, var, temp, flags, _ = block[0]
+            stamp, acc, var, temp, flags, _, psi = block[0]
         else:
             stamp = sum(b[0] for b in block) // n
             acc = tuple(math.fsum(b[1][a] for b in block) / n for a in range(3))
@@ -586,8 +619,13 @@ class DriverCore:
             var = [math.fsum(b[2][a] for b in block) / n * mean_factor[a] for a in range(3)]
             temp = math.fsum(b[3] for b in block) / n
             flags = frozenset().union(*(b[4] for b in block))
+            psi = None if block[0][6] is None else tuple(math.fsum(b[6][a] for b in block) / n for a in range(3))
         self._pending = []
-        cov = (float(var[0]), 0.0, 0.0, 0.0, float(var[1]), 0.0, 0.0, 0.0, float(var[2]))
+        if psi is None:
+            cov = (float(var[0]), 0.0, 0.0, 0.0, float(var[1]), 0.0, 0.0, 0.0, float(var[2]))
+        else:  # the calibration's bias, once for the block: J at its mean Psi and temperature (AHT10 steps: 0.01 degC)
+            xx, xy, xz, yy, yz, zz = output_covariance(self.cal.calibration_weights_at(round(temp, 2)), *psi)
+            cov = (float(var[0] + xx), xy, xz, xy, float(var[1] + yy), yz, xz, yz, float(var[2] + zz))
         self.counters.imu_published += 1
         self.counters.samples_calibrated += n
         return ImuRecord(stamp, (float(acc[0]), float(acc[1]), float(acc[2])), cov, float(temp), flags)

@@ -75,6 +75,8 @@ class DiagnosticsSnapshot:
     calibration: dict[str, Any] = field(default_factory=dict)  # sensor id, file, degree
     chain: dict[str, Any] = field(default_factory=dict)  # DriverCore.chain_status(); empty: raw only, no entry
     clock: dict[str, Any] = field(default_factory=dict)  # DriverCore.clock_status(); empty: no entry
+    # calibration_uncertainty_values(); empty: raw only, no entry
+    calibration_uncertainty: dict[str, Any] = field(default_factory=dict)
 
 
 class DriverDiagnostics:
@@ -237,6 +239,21 @@ class DriverDiagnostics:
                         "cut-offs are equal: re-run fbg-accel-calib dynamic for per-channel values")
             entries.append(self._entry(level, "chain compensation", msg, c))
 
+        # the calibration's own uncertainty at the current Psi and temperature (J Sigma J^T)
+        if snap.calibration_uncertainty:
+            u = snap.calibration_uncertainty
+            if u.get("coefficient_covariance") == "absent":
+                msg = ("not known: the calibration file has no coefficient_covariance section (refit with this version "
+                       "of fbg-accel-calib fit); the covariance is the noise only")
+            elif "sigma_x_mps2" not in u:
+                msg = "no calibrated sample yet"
+            else:
+                msg = (f"{u['sigma_x_mps2']:.3g}/{u['sigma_y_mps2']:.3g}/{u['sigma_z_mps2']:.3g} m/s^2 (x/y/z, 1 sigma) "
+                       f"at {u['temperature_c']:.2f} degC, a bias common to all samples; "
+                       + ("included in" if u["included_in_covariance"] else "not included in")
+                       + " linear_acceleration_covariance")
+            entries.append(self._entry(OK, "calibration uncertainty", msg, u))
+
         # the board clock's mapping onto ROS time (clock_sync): a drift estimate at its clamp means it is not tracking
         if snap.clock:
             c = snap.clock
@@ -259,6 +276,19 @@ class DriverDiagnostics:
 
     def _entry(self, level: int, what: str, message: str, values: dict[str, Any]) -> DiagnosticEntry:
         return DiagnosticEntry(level, self._name(what), message, tuple((str(k), str(v)) for k, v in values.items()))
+
+
+def calibration_uncertainty_values(point: tuple[float, float, float, float] | None, has_section: bool,
+                                   included: bool) -> dict[str, Any]:
+    """The diagnostic's values from ``DriverCore.calibration_uncertainty()`` (``point``), whether the calibration has a
+    ``coefficient_covariance`` section and whether the term is in the published covariance."""
+    if not has_section:
+        return {"coefficient_covariance": "absent", "included_in_covariance": False}
+    out: dict[str, Any] = {"coefficient_covariance": "present", "included_in_covariance": included}
+    if point is not None:
+        out.update({"sigma_x_mps2": round(point[0], 6), "sigma_y_mps2": round(point[1], 6),
+                    "sigma_z_mps2": round(point[2], 6), "temperature_c": round(point[3], 2)})
+    return out
 
 
 def _fmt(v: float | None) -> str:

@@ -44,6 +44,12 @@ PARAMETERS: ParameterTable = {
         "(zeros); decimated variance uses the calibration's noise_correlation",
     ),
     "accel_stddev_mps2": ("double", 0.0, "per-axis sigma in m/s^2 when covariance_source is 'parameter'"),
+    "covariance_includes_calibration": (
+        "bool",
+        False,
+        "add the calibration's own uncertainty (J Sigma J^T from its coefficient_covariance) to "
+        "linear_acceleration_covariance; a bias, correlated in time (docs/topics.md)",
+    ),
     "chain_compensation": (
         "string",
         "auto",

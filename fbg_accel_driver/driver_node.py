@@ -47,7 +47,7 @@ from sensor_msgs.msg import Imu, JointState, Temperature
 from .chain_compensation import MODES as CHAIN_MODES
 from .command_line import StartupError, first_line, one_line
 from .driver_core import COVARIANCE_SOURCES, CoreConfig, CoreOutput, DriverCore
-from .driver_diagnostics import DiagnosticsSnapshot, DriverDiagnostics
+from .driver_diagnostics import DiagnosticsSnapshot, DriverDiagnostics, calibration_uncertainty_values
 from .driver_main import (
     CALIBRATION_NONE,
     CALIBRATION_SIM,
@@ -186,7 +186,8 @@ class DriverNode(Node):
             chain_compensation=self._chain_mode(p["chain_compensation"]),
             **{name: p[name] for name in ("decimation", "min_reference_counts", "temperature_hold_s", "covariance_source",
                                           "accel_stddev_mps2", "out_of_range_variance_factor", "temperature_range_margin_c",
-                                          "reference_level_tolerance", "equalise_bandwidth_hz")})
+                                          "reference_level_tolerance", "equalise_bandwidth_hz",
+                                          "covariance_includes_calibration")})
         try:
             core = DriverCore(self.calibration, core_cfg)
         except ValueError as exc:
@@ -371,7 +372,10 @@ class DriverNode(Node):
             last_temperature_c=core.last_good_temperature_c, temperature_hold_s=core.config.temperature_hold_s,
             temperature_range_c=self.temperature_range_c, temperature_range_margin_c=core.config.temperature_range_margin_c,
             reference_level_tolerance=core.config.reference_level_tolerance, calibration=self.cal_info,
-            chain=core.chain_status(), clock=core.clock_status())
+            chain=core.chain_status(), clock=core.clock_status(),
+            calibration_uncertainty={} if self.calibration is None else calibration_uncertainty_values(
+                core.calibration_uncertainty(), self.calibration.coefficient_covariance is not None,
+                core.config.covariance_includes_calibration))
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
         for e in self.diag.report(snap):

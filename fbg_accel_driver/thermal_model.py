@@ -32,6 +32,7 @@ import numpy as np
 import yaml
 
 from .chain_compensation import ChainDynamics
+from .coefficient_covariance import CoefficientCovariance
 from .correction_terms import CorrectionTerm, TermInputs, correction_from_dict
 from .mapping_fields import format_version, number, number_array, refuse_unknown, same_values
 from .sensor_constants import AHT10_SIGMA_C, FULL_SCALE_MPS2
@@ -45,7 +46,8 @@ MIN_REFERENCE_COUNTS = 1  # a reference of 0 counts would divide by zero; see no
 # The file contract (docs/calibration_file.md, sections 2 and 5): bounds a real calibration is far inside.
 TOP_LEVEL_KEYS = ("format", "format_version", "units", "model", "sensor_id", "created", "degree",
                   "temperature_center_c", "temperature_scale_c", "temperature_range_c", "M", "b",
-                  "noise_sigma_mps2", "noise_correlation", "reference_level", "dynamic", "fit", "corrections", "notes")
+                  "noise_sigma_mps2", "noise_correlation", "reference_level", "dynamic", "fit", "corrections", "notes",
+                  "coefficient_covariance")
 NOISE_CORRELATION_KEYS = ("correlated_fraction", "time_constant_s")
 REFERENCE_LEVEL_KEYS = ("temperature_c", "counts")
 MAX_REFERENCE_LEVELS = 64  # one entry per temperature level of the fit (the paper's campaign has three)
@@ -108,6 +110,8 @@ class ThermalCalibration:
     noise_time_constant_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
     # dynamics of the measuring chain (optional ``dynamic`` section; fbg_accel_driver.chain_compensation)
     dynamic: ChainDynamics | None = None
+    # covariance of eq. 28's coefficients (optional ``coefficient_covariance`` section; coefficient_covariance module)
+    coefficient_covariance: CoefficientCovariance | None = None
     # reference counts of the fit's samples per temperature level (optional ``reference_level`` section)
     reference_level_temperature_c: np.ndarray = field(default_factory=lambda: np.zeros(0))
     reference_level_counts: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -139,7 +143,7 @@ class ThermalCalibration:
                            self.notes, self.fit, [t.to_dict() for t in self.corrections]),
                           (other.temperature_range_c, other.sensor_id, other.t_center_c, other.t_scale_c, other.created,
                            other.notes, other.fit, [t.to_dict() for t in other.corrections]))
-                and self.dynamic == other.dynamic)
+                and self.dynamic == other.dynamic and self.coefficient_covariance == other.coefficient_covariance)
 
     __hash__ = None  # type: ignore[assignment]  # mutable, as the dataclass-generated __eq__ made it
 
@@ -204,6 +208,12 @@ class ThermalCalibration:
         return (m[0] * px + m[1] * py + m[2] * pz + b[0],
                 m[3] * px + m[4] * py + m[5] * pz + b[1],
                 m[6] * px + m[7] * py + m[8] * pz + b[2])
+
+    def calibration_weights_at(self, temp_c: float) -> tuple[tuple[float, ...], ...] | None:
+        """The weights of the calibration's output covariance at ``temp_c`` (degC; cached per reading), for
+        ``coefficient_covariance.output_covariance``; None without a ``coefficient_covariance`` section."""
+        cov = self.coefficient_covariance
+        return None if cov is None else cov.weights_at(temp_c, self.t_center_c, self.t_scale_c)
 
     def correction_sum(self, ref: np.ndarray, xyz: np.ndarray, psi: np.ndarray, temp_c: np.ndarray, t_s: np.ndarray,
                        state: list[Any], extrapolation: np.ndarray | None = None) -> np.ndarray:
@@ -295,6 +305,8 @@ class ThermalCalibration:
                                     "counts": [float(v) for v in self.reference_level_counts]}}
                if len(self.reference_level_counts) else {}),
             **({"dynamic": _plain(self.dynamic.to_dict())} if self.dynamic is not None else {}),
+            **({"coefficient_covariance": self.coefficient_covariance.to_dict()}
+               if self.coefficient_covariance is not None else {}),
             "fit": _plain(self.fit),
             "corrections": [term.to_dict() for term in self.corrections],
             **({"notes": self.notes} if self.notes else {}),
@@ -366,6 +378,8 @@ class ThermalCalibration:
         if not isinstance(fit, dict):
             raise fail(f"'fit' must be a mapping of figures, got {type(fit).__name__}")
         dynamic = ChainDynamics.from_dict(d["dynamic"], fail) if "dynamic" in d else None
+        coef_cov = (CoefficientCovariance.from_dict(d["coefficient_covariance"], degree, fail)
+                    if d.get("coefficient_covariance") is not None else None)
 
         corrections_raw = _optional(d, "corrections", [])
         if not isinstance(corrections_raw, list):
@@ -397,7 +411,8 @@ class ThermalCalibration:
                       t_scale_c=num(d.get("temperature_scale_c", 1.0), "temperature_scale_c"),
                       noise_sigma_mps2=noise, created=texts["created"], fit=dict(fit), corrections=corrections,
                       notes=texts["notes"], noise_correlated_fraction=corr_f, noise_time_constant_s=corr_tau,
-                      dynamic=dynamic, reference_level_temperature_c=ref_t, reference_level_counts=ref_c)
+                      dynamic=dynamic, reference_level_temperature_c=ref_t, reference_level_counts=ref_c,
+                      coefficient_covariance=coef_cov)
         except (TypeError, ValueError, OverflowError) as exc:
             if isinstance(exc, CalibrationFileError):
                 raise
@@ -486,6 +501,9 @@ def _validate(cal: ThermalCalibration) -> None:
         raise ValueError(f"reference_level.temperature_c must be finite and strictly ascending, got {rt.tolist()}")
     if not (np.all(np.isfinite(rc)) and np.all((rc >= MIN_REFERENCE_COUNTS) & (rc <= 4095))):
         raise ValueError(f"reference_level.counts must be ADC counts in {MIN_REFERENCE_COUNTS}..4095, got {rc.tolist()}")
+    if cal.coefficient_covariance is not None and cal.coefficient_covariance.degree != cal.degree:
+        raise ValueError(f"coefficient_covariance is of degree {cal.coefficient_covariance.degree}, the model of "
+                         f"degree {cal.degree}")
     lo, hi = cal.temperature_range_c
     if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
         raise ValueError(f"temperature_range_c must be finite [min, max], got {[lo, hi]}")

@@ -33,13 +33,15 @@ from .sim_config import SimConfig, config_dir
 LEVELS_C = (16.0, 24.0, 45.0)  # paper 3.6.2 / 4.5
 
 
-def calibration_runs(cfg: SimConfig, seed: int, levels_c=LEVELS_C, dwell_s: float = 30.0, move_s: float = 10.0) -> Recording:
-    """Six-pose runs at each chamber level (dwell and move as config/pose_plan_six_position.yaml), concatenated."""
+def calibration_runs(cfg: SimConfig, seed: int, levels_c=LEVELS_C, dwell_s: float = 30.0, move_s: float = 10.0,
+                     repeat: int = 1) -> Recording:
+    """Six-pose runs at each chamber level (dwell and move as config/pose_plan_six_position.yaml; the plan ``repeat``
+    times in a run), concatenated."""
     parts = []
     for i, level in enumerate(levels_c):
         run_cfg = cfg.with_overrides({
             "scenario.poses.mode": "six_position", "scenario.poses.dwell_s": dwell_s, "scenario.poses.move_s": move_s,
-            "scenario.poses.repeat": 1, "scenario.temperature.initial_c": float(level),
+            "scenario.poses.repeat": repeat, "scenario.temperature.initial_c": float(level),
             "scenario.temperature.profile": [], "scenario.duration_s": None, "thermal.initial_optics_c": None,
         })
         parts.append(simulate_recording(run_cfg, seed=seed + 1000 * i))

@@ -247,3 +247,28 @@ def test_report_measured_never_crashes(data: st.DataObject) -> None:
     with tmp:
         check(["report-measured", "--csv", str(work / "m.csv"), "--md", str(work / "r.md"), "--png",
                str(work / "r.png")], work, {"m.csv": blob})
+
+
+@settings(SETTINGS, max_examples=EXAMPLES or 8)
+@given(data=st.data())
+def test_field_check_never_crashes(data: st.DataObject, good_files: dict[str, bytes]) -> None:
+    rec = data.draw(st.sampled_from(["csv", "mcap"]))
+    blob = data.draw(hostile_csv(120)) if rec == "csv" else mutated(good_files["mcap"], data.draw)
+    cal = mutated(good_files["yaml"], data.draw) if data.draw(st.booleans()) else good_files["yaml"]
+    files = {f"in.{rec}": blob, "cal.yaml": cal}
+    tmp, work = in_dir(files)
+    with tmp:
+        where = data.draw(st.sampled_from([["--gravity", "9.81"], ["--gravity", "nan"], ["--latitude", "45"],
+                                           ["--latitude", "100"], ["--latitude", "45", "--height", "1e9"], []]))
+        check(["field-check", str(work / f"in.{rec}"), "--calibration", str(work / "cal.yaml"), "-o",
+               str(work / "new.yaml"), *where, *options(data.draw, HOSTILE_OPTIONS, ["--window", "--rate"])],
+              work, files)
+
+
+@settings(SETTINGS, max_examples=EXAMPLES or 8)
+@given(data=st.data())
+def test_uncertainty_measured_never_crashes(data: st.DataObject) -> None:
+    blob = data.draw(hostile_csv())
+    tmp, work = in_dir({"m.csv": blob})
+    with tmp:
+        check(["uncertainty-measured", "--csv", str(work / "m.csv"), "--md", str(work / "u.md")], work, {"m.csv": blob})

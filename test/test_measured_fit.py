@@ -97,3 +97,29 @@ def test_report_measured_is_atomic_and_never_writes_over_its_input(tmp_path: Pat
         mr.run_report(csv, md, png)
     assert md.read_text() == "previous report\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.csv", "r.md", "r.png"]  # no temporary left behind
+
+
+def test_coefficient_uncertainty_of_the_measured_fit(measured) -> None:
+    """The by-visit covariance (what a calibration file carries) agrees with the bootstrap over visits, and the
+    paper's published matrix lies within two combined standard uncertainties of this fit (measured: |z| <= 1.2)."""
+    from fbg_accel_calibration.measured_uncertainty import compare
+
+    c = compare(measured)
+    assert c["visits"] == len(measured.stats.pose) and c["bootstrap_draws"] >= 990
+    ratio = np.r_[(c["uM_bootstrap"] / c["uM_visit"]).ravel(), c["ub_bootstrap"] / c["ub_visit"]]
+    assert np.all((ratio > 0.7) & (ratio < 1.3)), ratio  # measured 0.84-1.0
+    assert np.all(np.abs(np.r_[c["zM_visit"].ravel(), c["zb_visit"]]) < 2.0)
+    assert np.all(c["u_output"] < 0.3) and np.all(c["ub_visit"] > 2 * c["u_output"])  # correlated entries
+
+
+def test_uncertainty_measured_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    if not CSV.is_file():
+        pytest.fail(f"measured data missing: {CSV}")
+    md = tmp_path / "results" / "u.md"
+    assert cli_main(["uncertainty-measured", "--csv", str(CSV), "--md", str(md)]) == 0
+    text = md.read_text()
+    assert "u by visit" in text and "81.60" in text and "12 of 12" in text
+    assert cli_main(["uncertainty-measured", "--csv", str(tmp_path / "nope.csv"), "--md", str(md)]) == 2
+    assert "measured data not found" in capsys.readouterr().err
+    assert cli_main(["uncertainty-measured", "--csv", str(CSV), "--md", str(CSV)]) == 2  # never over its input
+    assert CSV.is_file()
