@@ -87,7 +87,7 @@ def report_markdown(fit: MeasuredFit, c: dict, command: str) -> str:
         "# Calibration uncertainty on the measured series (paper Figure 13 data)", "",
         "Reproduce (from the repository root, with `../shared` present):", "", "```", command, "```", "",
         f"Data: `{fit.csv_path}` (1560 samples at 23.4 °C, no time base); the fit of `report-measured` "
-        f"(docs/results_measured_fit.md): {int(fit.usable.sum())} static samples, the paper's linear model (eq. 25 = "
+        f"(docs/results/measured_fit.md): {int(fit.usable.sum())} static samples, the paper's linear model (eq. 25 = "
         "eq. 28 with n = 0, 12 coefficients). Rows re-ordered and signed by the same P as there (the mounting was not "
         "published); the paper's values are magnitudes (it lost signs).", "",
         "## Method", "",
