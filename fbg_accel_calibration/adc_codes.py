@@ -30,6 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fbg_accel_driver.adc_code_table import ADC_CODES, AdcCodeTable, pattern_edges, pattern_offsets
+
 CHANNEL_NAMES = ("ref", "x", "y", "z")
 MIN_VISIT_SAMPLES = 3  # a visit shorter than this does not show a held code
 HELD_SHARE = 0.9  # a visit is held on a code when at least this share of its samples read it
@@ -147,29 +149,14 @@ def held_codes(counts: np.ndarray, groups: np.ndarray, rows: np.ndarray, score: 
 # 16k 1.5-2.4x and 16k + 8 3-6x less often than an even spread), pooled over every code, plus codes that differ on
 # their own (wide or missing), each tested against the pattern's expected count.
 PERIOD = 16  # codes: the period of the width pattern
-ADC_CODES = 4096  # codes of the 12-bit converter (paper 3.5)
 MIN_WIDTH_VISIT_SAMPLES = 4  # a visit with fewer samples tells nothing of a line through them and its noise
+PIECE_SAMPLES = 24  # a longer visit is cut into pieces of about this many samples, each with its own line: a local
+# smooth fit that follows a slow drift (bias instability, a slow ramp) where one line through minutes would not
 ODD_ALPHA = 0.01  # family-wise level of the individual-code test (Bonferroni over the codes tested)
 MAX_NEWTON_STEPS = 100  # the fit converges in ~10
+NEWTON_TOL = 1e-4  # log-likelihood: a step that gains less ends the fit
+SIGMA_FLOOR = 0.05  # counts: the least noise a piece is given
 Z95 = 1.959963984540054  # two-sided 95 % normal quantile: the stated uncertainty of a width is its 95 % interval
-
-
-def _pattern_edges(w: np.ndarray) -> tuple[np.ndarray, float]:
-    """Lower edges within one period (P,) of a width pattern ``w`` (P,) summing to P, and the shift that makes the
-    codes' centres sit on the codes on average over a period (no offset of the table as a whole)."""
-    low = np.concatenate([[0.0], np.cumsum(w)[:-1]])
-    shift = float(np.mean(low + w / 2.0)) - (len(w) - 1) / 2.0
-    return low, shift
-
-
-def pattern_edges(w: np.ndarray, codes: np.ndarray) -> np.ndarray:
-    """Lower edge (counts of input) of each code of ``codes`` under the periodic width pattern ``w`` (P,) summing to
-    P: code c = P q + r reads inputs from ``P q + low[r] - shift - 0.5`` to that plus ``w[r]`` (equal widths: c - 0.5)."""
-    w = np.asarray(w, float)
-    low, shift = _pattern_edges(w)
-    codes = np.asarray(codes, np.int64)
-    q, r = np.divmod(codes, len(w))
-    return len(w) * q + low[r] - shift - 0.5
 
 
 def _log_cell(z_lo: np.ndarray, z_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -192,12 +179,29 @@ class _Visits:
     code: np.ndarray  # (n,) int
     visit: np.ndarray  # (n,) int 0..V-1
     u: np.ndarray  # (n,) sample position minus the visit's mean position (samples)
-    mean0: np.ndarray  # (V,) the visit's mean code (the origin of its level)
-    n_visits: int
+    mean0: np.ndarray  # (V,) the piece's mean code (the origin of its level)
+    n_visits: int  # pieces
+    cluster: np.ndarray  # (n,) the visit label of each sample (pieces of one visit are not independent)
+
+
+def pieces(groups: np.ndarray, rows: np.ndarray, piece: int = PIECE_SAMPLES) -> np.ndarray:
+    """Labels (N,) of the pieces (-1: not used): each visit's samples among ``rows`` cut, in time order, into
+    consecutive pieces of ``piece`` samples or a few more (a visit of up to 2 ``piece`` - 1 samples is one piece)."""
+    out = np.full(len(groups), -1, np.int64)
+    idx = np.flatnonzero(rows)
+    idx = idx[np.argsort(groups[idx], kind="stable")]
+    _, starts, n = np.unique(groups[idx], return_index=True, return_counts=True)
+    pos = np.arange(len(idx)) - np.repeat(starts, n)  # position within the visit
+    k = np.maximum(n // piece, 1)  # pieces of the visit
+    within = np.minimum(pos // piece, np.repeat(k, n) - 1)
+    out[idx] = np.repeat(np.cumsum(k) - k, n) + within
+    return out
 
 
 def _visits_of(col: np.ndarray, groups: np.ndarray, rows: np.ndarray) -> _Visits:
-    idx = np.flatnonzero(rows & np.isfinite(col))
+    visits = groups
+    groups = pieces(groups, rows & np.isfinite(col))
+    idx = np.flatnonzero(groups >= 0)
     idx = idx[np.argsort(groups[idx], kind="stable")]
     _, inv, n = np.unique(groups[idx], return_inverse=True, return_counts=True)
     keep = n[inv] >= MIN_WIDTH_VISIT_SAMPLES
@@ -207,145 +211,175 @@ def _visits_of(col: np.ndarray, groups: np.ndarray, rows: np.ndarray) -> _Visits
     pos = np.arange(len(idx), dtype=float)  # positions in time order within a visit (idx is stably sorted)
     u = pos - (np.bincount(visit, pos) / v_n)[visit]
     code = col[idx].astype(np.int64)
-    return _Visits(code, visit, u, np.bincount(visit, code.astype(float)) / v_n, len(v_n))
+    return _Visits(code, visit, u, np.bincount(visit, code.astype(float)) / v_n, len(v_n), visits[idx])
 
 
-def _local_inverse(h_mm: np.ndarray, h_sm: np.ndarray, h_ss: np.ndarray) -> tuple[np.ndarray, ...]:
-    """The inverse of each visit's 2x2 block [[h_mm, h_sm], [h_sm, h_ss]] as (i_mm, i_sm, i_ss); a block that is
-    not positive definite (a visit whose line is not determined) gives zeros (it adds nothing)."""
-    det = h_mm * h_ss - h_sm ** 2
-    ok = (det > 1e-12) & (h_mm > 0)
-    inv_det = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-    return h_ss * inv_det, -h_sm * inv_det, h_mm * inv_det
+def _local_inverse(h_ll: np.ndarray) -> np.ndarray:
+    """The inverse of each piece's local block (V, L, L); a block that is not positive definite (a piece whose line
+    or noise is not determined) gives zeros: it adds nothing."""
+    ok = np.all(np.linalg.eigvalsh(h_ll) > 1e-10, axis=1)
+    out = np.zeros_like(h_ll)
+    if ok.any():
+        out[ok] = np.linalg.inv(h_ll[ok])
+    return out
 
 
-def _schur(h_gg: np.ndarray, b_m: np.ndarray, b_s: np.ndarray, h_mm: np.ndarray, h_sm: np.ndarray,
-           h_ss: np.ndarray) -> np.ndarray:
+def _schur(h_gg: np.ndarray, b: np.ndarray, h_ll: np.ndarray) -> np.ndarray:
     """H_gg - H_gl H_ll^-1 H_lg for the arrow-shaped Hessian (``_WidthModel._hessian_parts``)."""
-    i_mm, i_sm, i_ss = _local_inverse(h_mm, h_sm, h_ss)
-    return h_gg - ((b_m * i_mm) @ b_m.T + (b_m * i_sm) @ b_s.T + (b_s * i_sm) @ b_m.T + (b_s * i_ss) @ b_s.T)
+    return h_gg - np.einsum("gvk,vkl,hvl->gh", b, _local_inverse(h_ll), b)
 
 
-def _arrow_solve(h_gg: np.ndarray, b_m: np.ndarray, b_s: np.ndarray, h_mm: np.ndarray, h_sm: np.ndarray,
-                 h_ss: np.ndarray, g_g: np.ndarray, g_m: np.ndarray, g_s: np.ndarray) -> np.ndarray:
-    """The Newton step H^-1 g for the arrow-shaped Hessian, as one vector (global, levels, slopes)."""
-    i_mm, i_sm, i_ss = _local_inverse(h_mm, h_sm, h_ss)
-    l_m, l_s = i_mm * g_m + i_sm * g_s, i_sm * g_m + i_ss * g_s  # D^-1 g_l
-    d_g = np.linalg.solve(_schur(h_gg, b_m, b_s, h_mm, h_sm, h_ss), g_g - b_m @ l_m - b_s @ l_s)
-    r_m, r_s = g_m - b_m.T @ d_g, g_s - b_s.T @ d_g
-    return np.concatenate([d_g, i_mm * r_m + i_sm * r_s, i_sm * r_m + i_ss * r_s])
+def _arrow_solve(h_gg: np.ndarray, b: np.ndarray, h_ll: np.ndarray, g_g: np.ndarray, g_l: np.ndarray) -> np.ndarray:
+    """The Newton step H^-1 g for the arrow-shaped Hessian (global block, a local block per piece; ``g_l`` (V, L)),
+    as one vector (global, then the local parameters kind by kind)."""
+    inv = _local_inverse(h_ll)
+    schur = h_gg - np.einsum("gvk,vkl,hvl->gh", b, inv, b)
+    d_g = np.linalg.solve(schur, g_g - np.einsum("gvk,vk->g", b, np.einsum("vkl,vl->vk", inv, g_l)))
+    d_l = np.einsum("vkl,vl->vk", inv, g_l - np.einsum("gvk,g->vk", b, d_g))
+    return np.concatenate([d_g, d_l.T.ravel()])
 
 
 class _WidthModel:
-    """Negative log-likelihood of one channel's visits under a periodic width pattern (parameters: the pattern's
-    log-weights a (P; a[0] fixed at 0: the pattern is P softmax(a)), log sigma, each visit's level offset and slope)."""
+    """Negative log-likelihood of one channel's pieces under a periodic width pattern. Parameters: the pattern's
+    log-weights a[1:] (a[0] fixed at 0: the pattern is P softmax(a)); then, per piece, its level offset, slope and
+    log noise (sigma = SIGMA_FLOOR + exp: a piece that reads one code throughout has no noise to measure)."""
+
+    L = 3  # local parameters per piece
 
     def __init__(self, vis: _Visits, period: int) -> None:
         self.vis, self.P = vis, period
         q, self.r = np.divmod(vis.code, period)
         self.base = period * q.astype(float) - 0.5
         self.V = vis.n_visits
-        below = np.arange(period)[None, :] < self.r[:, None]  # (n, P): s < r
-        self.below = below.astype(float)
+        self.G = period - 1
         self.k = (period - np.arange(period) - 0.5) / period  # d shift / d w_s
 
-    def unpack(self, theta: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
-        P, V = self.P, self.V
-        a = np.concatenate([[0.0], theta[:P - 1]])
-        w = P * np.exp(a - a.max()) / np.exp(a - a.max()).sum()
-        return w, float(np.exp(theta[P - 1])), theta[P:P + V], theta[P + V:]
+    def unpack(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(pattern w (P,), per piece: sigma, level offset, slope)."""
+        G, V = self.G, self.V
+        a = np.concatenate([[0.0], theta[:G]])
+        e = np.exp(a - a.max())
+        loc = theta[G:].reshape(self.L, V)
+        return self.P * e / e.sum(), SIGMA_FLOOR + np.exp(np.clip(loc[2], -20.0, 5.0)), loc[0], loc[1]
+
+    def _terms(self, theta: np.ndarray) -> tuple[np.ndarray, ...]:
+        vis = self.vis
+        w, sigma, dm, slope = self.unpack(theta)
+        low, shift = pattern_offsets(w)
+        e_lo = self.base + low[self.r] - shift
+        m = vis.mean0[vis.visit] + dm[vis.visit] + slope[vis.visit] * vis.u
+        sg = sigma[vis.visit]
+        z_lo, z_hi = (e_lo - m) / sg, (e_lo + w[self.r] - m) / sg
+        logp, g_lo, g_hi = _log_cell(z_lo, z_hi)
+        return w, sigma, sg, logp, z_lo, z_hi, g_lo, g_hi
+
+    def _sample_scores_a(self, w: np.ndarray, sg: np.ndarray, g_lo: np.ndarray, g_hi: np.ndarray) -> np.ndarray:
+        """d logp / d a[1:] of each sample (n, G)."""
+        d_lo, d_hi = -g_lo / sg, g_hi / sg  # d logp / d edges
+        s = d_lo + d_hi
+        g_w = s[:, None] * ((np.arange(self.P)[None, :] < self.r[:, None]) - self.k[None, :])
+        g_w[np.arange(len(s)), self.r] += d_hi
+        return (w[None, :] * (g_w - (g_w @ w)[:, None] / self.P))[:, 1:]
 
     def nll(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
-        P, V, vis = self.P, self.V, self.vis
-        w, sigma, dm, slope = self.unpack(theta)
-        low, shift = _pattern_edges(w)
-        e_lo = self.base + low[self.r] - shift
-        e_hi = e_lo + w[self.r]
-        m = vis.mean0[vis.visit] + dm[vis.visit] + slope[vis.visit] * vis.u
-        z_lo, z_hi = (e_lo - m) / sigma, (e_hi - m) / sigma
-        logp, g_lo, g_hi = _log_cell(z_lo, z_hi)
-        d_m = (g_lo - g_hi) / sigma  # d logp / d m
-        d_ls = -(z_hi * g_hi - z_lo * g_lo)  # d logp / d log sigma
-        d_lo, d_hi = -g_lo / sigma, g_hi / sigma  # d logp / d edges
+        vis, V = self.vis, self.V
+        w, sigma, sg, logp, z_lo, z_hi, g_lo, g_hi = self._terms(theta)
+        d_m = (g_lo - g_hi) / sg  # d logp / d m
+        d_s = -(z_hi * g_hi - z_lo * g_lo) / sg  # d logp / d sigma
+        d_lo, d_hi = -g_lo / sg, g_hi / sg
         s = d_lo + d_hi
-        g_w = (s @ self.below) - s.sum() * self.k + np.bincount(self.r, d_hi, P)  # d logp / d w
-        g_a = w * (g_w - np.dot(g_w, w) / P)  # through w = P softmax(a)
-        grad = np.concatenate([g_a[1:], [d_ls.sum()], np.bincount(vis.visit, d_m, V),
-                               np.bincount(vis.visit, d_m * vis.u, V)])
+        by_r = np.bincount(self.r, s, self.P)
+        above = np.concatenate([np.cumsum(by_r[::-1])[::-1][1:], [0.0]])  # sum over the samples with r > s
+        g_w = above - s.sum() * self.k + np.bincount(self.r, d_hi, self.P)
+        g_a = w * (g_w - np.dot(g_w, w) / self.P)
+        grad = np.concatenate([g_a[1:], np.bincount(vis.visit, d_m, V), np.bincount(vis.visit, d_m * vis.u, V),
+                               np.bincount(vis.visit, d_s, V) * (sigma - SIGMA_FLOOR)])
         return -float(logp.sum()), -grad
 
+    def cluster_scores(self, theta: np.ndarray, cluster: np.ndarray) -> np.ndarray:
+        """The score in a[1:] summed over each cluster's samples (C, G): at the fit the pieces' own scores are zero, so
+        these are the efficient scores of the robust (sandwich) covariance."""
+        w, _, sg, _, _, _, g_lo, g_hi = self._terms(theta)
+        per = self._sample_scores_a(w, sg, g_lo, g_hi)
+        _, c = np.unique(cluster, return_inverse=True)
+        return np.stack([np.bincount(c, per[:, j]) for j in range(self.G)], axis=1)
+
     def start(self) -> np.ndarray:
-        vis = self.vis
-        su2 = np.bincount(vis.visit, vis.u ** 2, self.V)
-        slope = np.where(su2 > 0, np.bincount(vis.visit, vis.u * vis.code, self.V) / np.maximum(su2, 1e-12), 0.0)
+        vis, V = self.vis, self.V
+        su2 = np.bincount(vis.visit, vis.u ** 2, V)
+        slope = np.where(su2 > 0, np.bincount(vis.visit, vis.u * vis.code, V) / np.maximum(su2, 1e-12), 0.0)
         res = vis.code - vis.mean0[vis.visit] - slope[vis.visit] * vis.u
-        dof = max(len(res) - 2 * self.V, 1)
-        sigma = max(float(np.sqrt(np.sum(res ** 2) / dof)), 0.3)
-        return np.concatenate([np.zeros(self.P - 1), [np.log(sigma)], np.zeros(self.V), slope])
+        n = np.bincount(vis.visit, minlength=V)
+        sd = np.sqrt(np.bincount(vis.visit, res ** 2, V) / np.maximum(n - 2, 1))
+        return np.concatenate([np.zeros(self.G), np.zeros(V), slope, np.log(np.maximum(sd, 0.3))])
 
     def fit(self, theta: np.ndarray | None = None, fixed_global: bool = False) -> np.ndarray:
-        """Maximum-likelihood parameters: damped Newton steps on the arrow-shaped Hessian (global block, 2x2 per
-        visit; ``_hessian_parts``), from ``theta`` (default ``start()``); ``fixed_global``: the pattern and noise
-        held, only the visits' levels and slopes fitted."""
+        """Maximum-likelihood parameters: damped Newton steps on the arrow-shaped Hessian (global block, a 3x3 block
+        per piece; ``_hessian_parts``), from ``theta`` (default ``start()``); ``fixed_global``: the pattern held,
+        only the pieces' own parameters fitted."""
         theta = self.start() if theta is None else theta.copy()
         f, g = self.nll(theta)
         lam = 1e-3
-        G, V = self.P, self.V
+        G, V, L = self.G, self.V, self.L
         for _ in range(MAX_NEWTON_STEPS):
-            h_gg, b_m, b_s, h_mm, h_sm, h_ss = self._hessian_parts(theta)
-            g_g = g[:G]
-            if fixed_global:
-                b_m, b_s, h_gg, g_g = 0.0 * b_m, 0.0 * b_s, np.eye(G), 0.0 * g_g
+            h_gg, b, h_ll = self._hessian_parts(theta, fixed_global)
+            g_g = 0.0 * g[:G] if fixed_global else g[:G]
+            g_l = g[G:].reshape(L, V).T
             while True:
-                step = _arrow_solve(h_gg + lam * np.eye(G), b_m, b_s, h_mm + lam, h_sm, h_ss + lam,
-                                    g_g, g[G:G + V], g[G + V:])
+                step = _arrow_solve(h_gg + lam * np.eye(G), b, h_ll + lam * np.eye(L)[None], g_g, g_l)
                 f_new, g_new = self.nll(theta - step)
                 if np.isfinite(f_new) and f_new <= f:
                     break
                 lam *= 10.0
                 if lam > 1e12:
                     return theta
-            theta, done = theta - step, f - f_new < 1e-10 * max(abs(f), 1.0)
+            theta, done = theta - step, f - f_new < NEWTON_TOL
             f, g = f_new, g_new
             lam = max(lam / 10.0, 1e-9)
             if done:
                 break
         return theta
 
-    def _hessian_parts(self, theta: np.ndarray, h: float = 1e-5) -> tuple[np.ndarray, ...]:
+    def _hessian_parts(self, theta: np.ndarray, local_only: bool = False, h: float = 1e-5) -> tuple[np.ndarray, ...]:
         """The NLL's Hessian at ``theta`` from its gradient by central differences: the global block (G, G), its
-        cross terms with the visits' levels and slopes (G, V) each, and the 2x2 block of each visit ((V,) x 3). The
-        visits' own parameters meet only their own visit, so the local block is read off by moving every visit's
-        level (or slope) at once."""
-        G, V = self.P, self.V
+        cross terms with the pieces' parameters (G, V, L), and each piece's block (V, L, L). A piece's parameters meet
+        only its own samples, so the local blocks are read off by moving one kind of every piece's parameters at
+        once. ``local_only``: the global block is the identity and the cross terms zero (not worked out)."""
+        G, V, L = self.G, self.V, self.L
 
         def column(direction: np.ndarray) -> np.ndarray:
             return (self.nll(theta + h * direction)[1] - self.nll(theta - h * direction)[1]) / (2 * h)
 
-        eye = np.eye(len(theta))
-        cols_g = np.column_stack([column(eye[i]) for i in range(G)])  # (n_par, G)
-        e_m, e_s = np.zeros(len(theta)), np.zeros(len(theta))
-        e_m[G:G + V], e_s[G + V:] = 1.0, 1.0
-        c_m, c_s = column(e_m), column(e_s)
-        return (0.5 * (cols_g[:G] + cols_g[:G].T), cols_g[G:G + V].T, cols_g[G + V:].T,
-                c_m[G:G + V], 0.5 * (c_m[G + V:] + c_s[G:G + V]), c_s[G + V:])
+        n = len(theta)
+        h_ll = np.zeros((V, L, L))
+        for k in range(L):
+            d = np.zeros(n)
+            d[G + k * V:G + (k + 1) * V] = 1.0
+            c = column(d)[G:].reshape(L, V)  # (L, V): d grad_j / d kind k
+            h_ll[:, :, k] = c.T
+        h_ll = 0.5 * (h_ll + h_ll.transpose(0, 2, 1))
+        if local_only:
+            return np.eye(G), np.zeros((G, V, L)), h_ll
+        cols = np.column_stack([column(np.eye(1, n, i)[0]) for i in range(G)])  # (n, G)
+        b = cols[G:].reshape(L, V, G).transpose(2, 1, 0)  # (G, V, L)
+        return 0.5 * (cols[:G] + cols[:G].T), b, h_ll
 
     def profile_hessian(self, theta: np.ndarray) -> np.ndarray:
-        """Hessian (P, P) of the NLL in the global parameters (a[1:], log sigma) with the visits' levels and slopes
-        profiled out (the Schur complement of the visits' blocks)."""
+        """Hessian (G, G) of the NLL in a[1:] with the pieces' own parameters profiled out (the Schur complement)."""
         return _schur(*self._hessian_parts(theta))
 
     def expected(self, theta: np.ndarray, codes: np.ndarray) -> np.ndarray:
         """Expected samples at each code of ``codes`` (K,) under the fitted model: every sample's own density."""
+        from scipy.special import ndtr
+
         vis = self.vis
         w, sigma, dm, slope = self.unpack(theta)
         m = vis.mean0[vis.visit] + dm[vis.visit] + slope[vis.visit] * vis.u
+        sg = sigma[vis.visit]
         edges = pattern_edges(w, np.append(codes, codes[-1] + 1))
-        from scipy.special import ndtr
-
         out = np.zeros(len(codes))
         for lo in range(0, len(m), 4096):  # (block, K + 1) at a time
-            cdf = ndtr((edges[None, :] - m[lo:lo + 4096, None]) / sigma)
+            cdf = ndtr((edges[None, :] - m[lo:lo + 4096, None]) / sg[lo:lo + 4096, None])
             out += np.diff(cdf, axis=1).sum(axis=0)
         return out
 
@@ -373,11 +407,11 @@ class CodeWidths:
     channel: str
     period: int
     pattern: np.ndarray  # (P,) width of the codes k with k mod P = r; sums to P
-    pattern_sd: np.ndarray  # (P,) their standard deviations (observed information, visit parameters profiled out)
-    chi2: float  # Wald statistic of the pattern against equal widths
+    pattern_sd: np.ndarray  # (P,) their standard deviations (robust covariance clustered by visit)
+    chi2: float  # Wald statistic (Hotelling's T^2) of the pattern against equal widths
     dof: int  # P - 1
-    p_value: float  # of chi2
-    sigma_counts: float  # the noise of a sample about its visit's line (counts)
+    p_value: float  # of chi2 (F distribution: the covariance is estimated from the visits)
+    sigma_counts: float  # the median noise of a sample about its piece's line (counts)
     n_samples: int
     n_visits: int
     codes: np.ndarray  # (K,) every code from the lowest to the highest read in the visits judged
@@ -450,66 +484,131 @@ def _odd_codes(codes: np.ndarray, hits: np.ndarray, expected: np.ndarray, w: np.
 def code_widths(col: np.ndarray, groups: np.ndarray, rows: np.ndarray, channel: str = "",
                 period: int = PERIOD, alpha: float = 0.01) -> CodeWidths:
     """The code widths of one channel (section above): ``col`` (N,) integer ADC counts, ``groups`` (N,) visit labels
-    (a visit: a still input), ``rows`` (N,) the samples to use (still ones), in time order. Visits touching a code
+    (a visit: a still or slowly moving input), ``rows`` (N,) the samples to use, in time order. Pieces near a code
     found odd on a first pass are left out of the pattern's second pass (a wide code holding a visit would bend the
-    pattern). Raises ValueError when the channel's counts are not integers or too few visits remain."""
+    pattern). The pattern's covariance is the robust (sandwich) one, clustered by visit: the samples of a visit are
+    not independent (the TIA low-pass, bias instability), and a model that took them as independent would claim a
+    pattern from noise. Raises ValueError when the counts are not integers or too few pieces remain."""
     col = np.asarray(col, float)
     use = rows & np.isfinite(col)
     if np.any(col[use] != np.round(col[use])):
         raise ValueError(f"channel {channel or '?'}: the counts are not integers (averaged or converted data): no ADC "
                          "codes to count")
     vis = _visits_of(col, groups, use)
-    if vis.n_visits < 2 * period:
-        raise ValueError(f"channel {channel or '?'}: {vis.n_visits} visits of at least {MIN_WIDTH_VISIT_SAMPLES} "
-                         f"samples; the width pattern needs at least {2 * period}")
+    if vis.n_visits < 2 * period or len(np.unique(vis.cluster)) < 2 * period:
+        raise ValueError(f"channel {channel or '?'}: {len(np.unique(vis.cluster))} visits ({vis.n_visits} pieces) of at "
+                         f"least {MIN_WIDTH_VISIT_SAMPLES} samples; the width pattern needs at least {2 * period}")
     codes = np.arange(vis.code.min(), vis.code.max() + 1)
+    if len(np.unique(vis.code)) < 2 * period:
+        raise ValueError(f"channel {channel or '?'}: {len(np.unique(vis.code))} distinct codes read; the width pattern "
+                         f"needs at least {2 * period} (each of its {period} widths seen at two codes)")
     hits = np.bincount(vis.code - codes[0], minlength=len(codes)).astype(float)
-    model = _WidthModel(vis, period)
-    theta = model.fit()
+    full = _WidthModel(vis, period)
+    model, theta = full, full.fit()
     odd = _odd_codes(codes, hits, model.expected(theta, codes), model.unpack(theta)[0])
-    if odd:  # the pattern again without the visits near an odd code
-        sigma = model.unpack(theta)[1]
-        level = vis.mean0 + theta[period:period + vis.n_visits]
+    if odd:  # the pattern again without the pieces near an odd code
+        _, sigma, dm, _ = model.unpack(theta)
+        level = vis.mean0 + dm
         near = np.zeros(vis.n_visits, bool)
         for o in odd:
             near |= np.abs(level - o.code) < 3.0 * sigma + 1.0
-        if vis.n_visits - near.sum() >= 2 * period:
-            keep = ~near[vis.visit]
+        keep = ~near[vis.visit]
+        if len(np.unique(vis.cluster[keep])) >= 2 * period:
             _, visit = np.unique(vis.visit[keep], return_inverse=True)
-            sub = _Visits(vis.code[keep], visit, vis.u[keep], vis.mean0[~near], int((~near).sum()))
-            model2 = _WidthModel(sub, period)
-            theta2 = model2.fit()
-            w2 = model2.unpack(theta2)[0]
-            # the odd codes' expected counts with the pattern of the second pass, every visit's level of the first
-            theta_all = np.concatenate([theta2[:period], theta[period:]])
-            odd = _odd_codes(codes, hits, model.expected(theta_all, codes), w2)
-            model, theta = model2, theta2
+            sub = _Visits(vis.code[keep], visit, vis.u[keep], vis.mean0[~near], int((~near).sum()), vis.cluster[keep])
+            model = _WidthModel(sub, period)
+            theta = model.fit()
+            odd = _odd_codes(codes, hits, _expected_all(vis, theta, period, codes), model.unpack(theta)[0])
     w, sigma = model.unpack(theta)[:2]
-    H = model.profile_hessian(theta)
-    cov = np.linalg.pinv(H)
-    a_cov = cov[:period - 1, :period - 1]
-    a = theta[:period - 1]
+    G = period - 1
+    h_inv = np.linalg.pinv(model.profile_hessian(theta))
+    u = model.cluster_scores(theta, model.vis.cluster)
+    n_c = len(u)
+    a_cov = h_inv @ (u.T @ u) @ h_inv * (n_c / (n_c - 1.0))
+    a = theta[:G]
     chi2 = float(a @ np.linalg.solve(a_cov, a))
     J = w[:, None] * (np.eye(period) - w[None, :] / period)  # d w / d a
     w_cov = J[:, 1:] @ a_cov @ J[:, 1:].T
-    from scipy.stats import chi2 as chi2_dist
+    from scipy.stats import f as f_dist
 
-    return CodeWidths(channel, period, w, np.sqrt(np.maximum(np.diag(w_cov), 0.0)), chi2, period - 1,
-                      float(chi2_dist.sf(chi2, period - 1)), sigma, len(model.vis.code), model.vis.n_visits, codes,
-                      hits, model.expected(theta, codes) if model.vis is vis else _expected_all(vis, theta, period, codes),
-                      odd, alpha)
+    # Hotelling's T^2 with a covariance estimated from n_c clusters: F(G, n_c - G)
+    p = float(f_dist.sf(chi2 * (n_c - G) / (G * (n_c - 1.0)), G, n_c - G))
+    expected = model.expected(theta, codes) if model is full else _expected_all(vis, theta, period, codes)
+    return CodeWidths(channel, period, w, np.sqrt(np.maximum(np.diag(w_cov), 0.0)), chi2, G, p,
+                      float(np.median(sigma)), len(model.vis.code), n_c, codes, hits, expected, odd, alpha)
 
 
 def _expected_all(vis: _Visits, theta_sub: np.ndarray, period: int, codes: np.ndarray) -> np.ndarray:
-    """Expected counts of every visit under the pattern and noise of ``theta_sub`` (a fit on a subset of the
-    visits), the visits' own levels and slopes refitted with those held."""
+    """Expected counts of every piece under the pattern of ``theta_sub`` (a fit on a subset of the pieces), the
+    pieces' own parameters refitted with the pattern held."""
     model = _WidthModel(vis, period)
     start = model.start()
-    start[:period] = theta_sub[:period]
+    start[:period - 1] = theta_sub[:period - 1]
     return model.expected(model.fit(start, fixed_global=True), codes)
 
 
-def recording_code_widths(counts: np.ndarray, groups: np.ndarray, rows: np.ndarray,
-                          alpha: float = 0.01) -> list[CodeWidths]:
-    """``code_widths`` of each channel of ``counts`` (N, 4): ref, x, y, z (``CHANNEL_NAMES``)."""
-    return [code_widths(counts[:, j], groups, rows, CHANNEL_NAMES[j], alpha=alpha) for j in range(counts.shape[1])]
+@dataclass
+class RecordingWidths:
+    """The code widths of a recording: each channel's own estimate (None where the channel cannot support one, with
+    the reason) and the pattern pooled over every channel (one converter is multiplexed over them)."""
+
+    channels: dict[str, CodeWidths | None]
+    reasons: dict[str, str]  # why a channel has no estimate of its own
+    pooled: CodeWidths | None
+
+    def summary(self) -> list[str]:
+        out = [w.summary() if w is not None else f"channel {name}: no estimate of its own ({self.reasons[name]})"
+               for name, w in self.channels.items()]
+        if self.pooled is not None:
+            out.append(self.pooled.summary())
+        return out
+
+
+def recording_code_widths(counts: np.ndarray, groups: np.ndarray, rows: np.ndarray, alpha: float = 0.01,
+                          per_channel: bool = True) -> RecordingWidths:
+    """``code_widths`` of each channel of ``counts`` (N, 4): ref, x, y, z (``CHANNEL_NAMES``), and of all four
+    pooled (their pieces together, one pattern: the ESP32's channels share one converter). ``per_channel`` False:
+    the pooled estimate alone (the channels' entries None)."""
+    channels: dict[str, CodeWidths | None] = {}
+    reasons = {}
+    for j, name in enumerate(CHANNEL_NAMES[:counts.shape[1]]):
+        if not per_channel:
+            channels[name], reasons[name] = None, "not asked for"
+            continue
+        try:
+            channels[name] = code_widths(counts[:, j], groups, rows, name, alpha=alpha)
+        except ValueError as exc:
+            channels[name], reasons[name] = None, str(exc).split(": ", 1)[-1]
+    _, g = np.unique(groups, return_inverse=True)
+    n_g = int(g.max()) + 1 if len(g) else 0
+    stacked_groups = np.concatenate([g + j * n_g for j in range(counts.shape[1])])
+    try:
+        pooled = code_widths(counts.T.ravel(), stacked_groups, np.tile(rows, counts.shape[1]), "pooled", alpha=alpha)
+    except ValueError:
+        pooled = None
+    return RecordingWidths(channels, reasons, pooled)
+
+
+def code_table(widths: RecordingWidths, provenance: dict[str, str | int | float]) -> AdcCodeTable:
+    """The calibration's code-to-value table (ref, x, y, z): the pooled pattern on every channel when it was found
+    (nominal widths otherwise), each channel's own wide codes with their missing runs folded in
+    (``CodeWidths.edges``), with ``provenance`` and the tests behind it."""
+    prov = dict(provenance)
+    pooled = widths.pooled
+    prov["pattern"] = ("not measured" if pooled is None else
+                       ("found" if pooled.pattern_found else "not found, nominal widths") +
+                       f" (pooled over the channels: chi2 {pooled.chi2:.1f} on {pooled.dof} dof, p {pooled.p_value:.2g}; "
+                       f"{pooled.n_visits} visits)")
+    rows = []
+    for name in CHANNEL_NAMES:
+        own = widths.channels.get(name)
+        base = pooled if pooled is not None else own
+        odd = own.odd if own is not None else []
+        wide = [o.code for o in odd if o.kind == "wide"]
+        if wide:
+            prov[f"{name}_wide_codes"] = ", ".join(map(str, wide))
+        if base is None:
+            rows.append(np.arange(ADC_CODES + 1) - 0.5)
+            continue
+        rows.append(CodeWidths(**{**base.__dict__, "odd": odd}).edges())
+    return AdcCodeTable(np.array(rows), prov)
