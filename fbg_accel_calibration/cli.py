@@ -11,6 +11,7 @@ Subcommands (``fbg-accel-calib SUBCOMMAND --help`` for the options):
                residuals per degree).
 * ``report-measured``  the paper's measured series (../shared) -> docs/results_measured_fit.md + PNG.
 * ``diagnose`` residual diagnosis (``fbg_accel_calibration.diagnose_cli``).
+* ``adc-codes`` a recording -> the ADC's code widths, their plot and code table (``fbg_accel_calibration.adc_codes_cli``).
 * ``dynamic``  a slide run (MCAP / bag with imu/raw ``aux_counts``, or a dynamic CSV) + excitation plan +
                static calibration -> the calibration with its ``dynamic`` section (chain cut-offs and
                delays), points and budgets, Bode PNG (docs/dynamic_calibration.md).
@@ -32,7 +33,7 @@ import numpy as np
 from fbg_accel_driver.command_line import version_line
 from fbg_accel_driver.sensor_constants import AHT10_SIGMA_C
 
-from . import diagnose_cli
+from . import adc_codes_cli, diagnose_cli
 from . import input_validation as iv
 from .atomic_output import atomic_path, check_output_dir, check_outputs
 from .cli_progress import add_progress_option
@@ -170,6 +171,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_dynamic)
 
     diagnose_cli.register(sub)
+    adc_codes_cli.register(sub)
     return parser
 
 

@@ -16,9 +16,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 ADC_CODES = 4096  # codes of the 12-bit converter (paper 3.5)
 CHANNELS = ("ref", "x", "y", "z")
@@ -35,7 +37,7 @@ def pattern_offsets(w: np.ndarray) -> tuple[np.ndarray, float]:
     """The lower edges within one period (P,) of a width pattern ``w`` (P,) summing to P (the cumulative width), and
     the shift that puts the codes' centres on the codes on average over a period (``pattern_edges``)."""
     low = np.concatenate([[0.0], np.cumsum(w)[:-1]])
-    return low, float(np.mean(low + w / 2.0)) - (len(w) - 1) / 2.0
+    return low, float(np.mean(low + w / 2.0)) - len(w) / 2.0
 
 
 def pattern_edges(w: np.ndarray, codes: np.ndarray) -> np.ndarray:
@@ -155,3 +157,29 @@ def table_problem(edges: np.ndarray) -> str:
             return (f"'adc_codes.edges.{name}': the edge of code {c} sits {off[c]:.4g} counts from its nominal place, "
                     f"beyond the {MAX_EDGE_OFFSET:g} an ESP32 code table can hold")
     return ""
+
+
+def save_table(table: AdcCodeTable, path: str | Path) -> None:
+    """A table of its own (``fbg-accel-calib adc-codes -o``): the calibration file's ``adc_codes`` section alone."""
+    text = "# ESP32 ADC code table (fbg-accel-calib adc-codes); see docs/calibration_file.md\n"
+    text += yaml.safe_dump({"adc_codes": table.to_dict()}, sort_keys=False, default_flow_style=None, width=100)
+    Path(path).write_text(text, encoding="utf-8")
+
+
+def load_table(path: str | Path) -> AdcCodeTable:
+    """A table file (``save_table``) or a calibration file's ``adc_codes`` section; ValueError (one line) when it is
+    neither or the table is refused."""
+    from .yaml_input import load_yaml
+
+    p = Path(path)
+
+    def fail(msg: str) -> ValueError:
+        return ValueError(f"{p}: {msg}")
+
+    try:
+        d = load_yaml(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise fail(f"cannot be read as a code table ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+    if not isinstance(d, dict) or d.get("adc_codes") is None:
+        raise fail("no 'adc_codes' section (write one with fbg-accel-calib adc-codes RECORDING -o TABLE.yaml)")
+    return AdcCodeTable.from_dict(d["adc_codes"], fail)
