@@ -198,8 +198,8 @@ def pieces(groups: np.ndarray, rows: np.ndarray, piece: int = PIECE_SAMPLES) -> 
     return out
 
 
-def _visits_of(col: np.ndarray, groups: np.ndarray, rows: np.ndarray) -> _Visits:
-    visits = groups
+def _visits_of(col: np.ndarray, groups: np.ndarray, rows: np.ndarray, clusters: np.ndarray | None = None) -> _Visits:
+    visits = groups if clusters is None else clusters
     groups = pieces(groups, rows & np.isfinite(col))
     idx = np.flatnonzero(groups >= 0)
     idx = idx[np.argsort(groups[idx], kind="stable")]
@@ -482,19 +482,20 @@ def _odd_codes(codes: np.ndarray, hits: np.ndarray, expected: np.ndarray, w: np.
 
 
 def code_widths(col: np.ndarray, groups: np.ndarray, rows: np.ndarray, channel: str = "",
-                period: int = PERIOD, alpha: float = 0.01) -> CodeWidths:
+                period: int = PERIOD, alpha: float = 0.01, clusters: np.ndarray | None = None) -> CodeWidths:
     """The code widths of one channel (section above): ``col`` (N,) integer ADC counts, ``groups`` (N,) visit labels
     (a visit: a still or slowly moving input), ``rows`` (N,) the samples to use, in time order. Pieces near a code
     found odd on a first pass are left out of the pattern's second pass (a wide code holding a visit would bend the
-    pattern). The pattern's covariance is the robust (sandwich) one, clustered by visit: the samples of a visit are
-    not independent (the TIA low-pass, bias instability), and a model that took them as independent would claim a
-    pattern from noise. Raises ValueError when the counts are not integers or too few pieces remain."""
+    pattern). The pattern's covariance is the robust (sandwich) one, clustered by visit (``clusters`` (N,), default
+    ``groups``): the samples of a visit are not independent (the TIA low-pass, bias instability), and a model that
+    took them as independent would claim a pattern from noise. Raises ValueError when the counts are not integers
+    or too few pieces remain."""
     col = np.asarray(col, float)
     use = rows & np.isfinite(col)
     if np.any(col[use] != np.round(col[use])):
         raise ValueError(f"channel {channel or '?'}: the counts are not integers (averaged or converted data): no ADC "
                          "codes to count")
-    vis = _visits_of(col, groups, use)
+    vis = _visits_of(col, groups, use, clusters)
     if vis.n_visits < 2 * period or len(np.unique(vis.cluster)) < 2 * period:
         raise ValueError(f"channel {channel or '?'}: {len(np.unique(vis.cluster))} visits ({vis.n_visits} pieces) of at "
                          f"least {MIN_WIDTH_VISIT_SAMPLES} samples; the width pattern needs at least {2 * period}")
@@ -583,9 +584,11 @@ def recording_code_widths(counts: np.ndarray, groups: np.ndarray, rows: np.ndarr
     n_g = int(g.max()) + 1 if len(g) else 0
     stacked_groups = np.concatenate([g + j * n_g for j in range(counts.shape[1])])
     try:
-        pooled = code_widths(counts.T.ravel(), stacked_groups, np.tile(rows, counts.shape[1]), "pooled", alpha=alpha)
-    except ValueError:
-        pooled = None
+        # one cluster per visit over the channels: their readings of one visit are not taken as independent
+        pooled = code_widths(counts.T.ravel(), stacked_groups, np.tile(rows, counts.shape[1]), "pooled", alpha=alpha,
+                             clusters=np.tile(g, counts.shape[1]))
+    except ValueError as exc:
+        pooled, reasons["pooled"] = None, str(exc).split(": ", 1)[-1]
     return RecordingWidths(channels, reasons, pooled)
 
 

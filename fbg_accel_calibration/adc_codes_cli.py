@@ -133,6 +133,9 @@ def run(args: argparse.Namespace) -> int:
                              namespace=args.namespace, topic=args.topic)
         groups, rows = visits_of(rec)
         widths = recording_code_widths(np.column_stack([rec.ref, rec.xyz]), groups, rows, alpha=args.alpha)
+        if widths.pooled is None:
+            raise ValueError(f"{', '.join(map(str, args.inputs))}: no code widths can be measured: "
+                             f"{widths.reasons['pooled']}")
     except (OSError, ValueError) as exc:
         print(f"fbg-accel-calib adc-codes: {exc}", file=sys.stderr)
         return 2
