@@ -52,7 +52,7 @@ def test_an_injected_pattern_is_recovered_within_its_stated_uncertainty(seed: in
 def test_with_equal_widths_no_pattern_is_claimed_and_the_table_is_nominal(seed: int) -> None:
     codes, groups, rows = campaign(seed, np.ones(16))
     counts = np.column_stack([codes - 200.0, codes, codes + 300.0, codes + 40.0])
-    res = recording_code_widths(counts, groups, rows)
+    res = recording_code_widths(counts, groups, rows, per_channel=False)
     assert res.pooled is not None and res.pooled.p_value > 1e-3, res.summary()
     table = code_table(res, {"source": "test"})
     np.testing.assert_array_equal(table.edges, np.tile(CODES - 0.5, (4, 1)))
