@@ -17,9 +17,12 @@ whether the caches are warm:
   triggered from another thread (how the driver node first handed chunks to its publisher), against one
   wake-up of a plain Python thread blocked in ``queue.SimpleQueue.get`` (how it does now).
 
-Writes bench/results/driver_stages.json. Needs ROS_DOMAIN_ID for the rclpy steps.
+Writes /tmp/driver_stages.json (``--output``); ``--update-results``: bench/results/driver_stages.json. Needs
+ROS_DOMAIN_ID for the rclpy steps. ``--core-only``: the ``core_feed`` stage alone (no rclpy); ``--adc-codes TABLE``:
+the calibration carries that code table (``fbg-accel-calib adc-codes -o``), so its cost shows against a run without.
 
     ROS_DOMAIN_ID=31 .venv/bin/python bench/bench_driver_stages.py
+    .venv/bin/python bench/bench_driver_stages.py --core-only [--adc-codes TABLE.yaml]
 """
 
 from __future__ import annotations
@@ -214,17 +217,32 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=2000, help="frames per timed case (paced cases take at most 3 s)")
     ap.add_argument("--wake-seconds", type=float, default=3.0, help="seconds per wake-up case")
-    ap.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "driver_stages.json")
+    ap.add_argument("--output", type=Path, default=Path("/tmp/driver_stages.json"))
+    ap.add_argument("--update-results", action="store_true", help="write bench/results/driver_stages.json")
+    ap.add_argument("--core-only", action="store_true", help="time DriverCore.feed alone (no serial, no rclpy)")
+    ap.add_argument("--adc-codes", type=Path, default=None, help="code table YAML the calibration carries")
     args = ap.parse_args(argv)
-    import rclpy
+    output = ROOT / "bench" / "results" / "driver_stages.json" if args.update_results else args.output
 
     data = frames_bytes(max(args.frames, 1000) * 2)
     cal = ThermalCalibration.load(ROOT / "config" / "calibration_sim.yaml")
-    results: dict = {"serial_chunks_at_100hz": bench_serial_chunks(300, data)}
-    print("serial:", results["serial_chunks_at_100hz"], flush=True)
+    if args.adc_codes is not None:
+        from fbg_accel_driver.adc_code_table import load_table
+
+        cal.adc_codes = load_table(args.adc_codes)
+    results: dict = {"adc_codes": str(args.adc_codes) if args.adc_codes else None}
+    if not args.core_only:
+        results["serial_chunks_at_100hz"] = bench_serial_chunks(300, data)
+        print("serial:", results["serial_chunks_at_100hz"], flush=True)
     n100 = min(args.frames, 300)
     results["core_feed_us_cpu_per_frame"] = bench_core(args.frames, data, cal) | {"frames_at_100hz": n100}
     print("core:", json.dumps(results["core_feed_us_cpu_per_frame"]), flush=True)
+    if args.core_only:
+        write_results(output, results_doc("bench_driver_stages.py", argv, "driver stage costs per frame (thread CPU "
+                                          "time, us)", results=results))
+        return 0
+    import rclpy
+
     rclpy.init()
     try:
         results["messages_build_publish_us_cpu_per_frame"] = bench_messages(args.frames)
@@ -233,8 +251,8 @@ def main(argv: list[str] | None = None) -> int:
         print("wake-ups:", results["wakeup_us_cpu"], flush=True)
     finally:
         rclpy.try_shutdown()
-    write_results(args.output, results_doc("bench_driver_stages.py", argv, "driver stage costs per frame (thread CPU time, us)",
-                                           results=results))
+    write_results(output, results_doc("bench_driver_stages.py", argv, "driver stage costs per frame (thread CPU time, us)",
+                                      results=results))
     return 0
 
 
