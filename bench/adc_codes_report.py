@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fbg_accel_calibration.adc_codes import code_table, recording_code_widths
+from fbg_accel_calibration.adc_codes import code_table, mapped_recording, recording_code_widths
 from fbg_accel_calibration.adc_codes_cli import visits_of
 from fbg_accel_calibration.csv_import import import_csv
 from fbg_accel_calibration.diagnose import ModelSpec, build_design, diagnose, prepare_data
@@ -33,14 +33,11 @@ from fbg_accel_calibration.measured_report import G_MPS2, TEMPERATURE_C
 from fbg_accel_calibration.recording import Recording
 
 REPO = Path(__file__).resolve().parents[1]
-DEFAULT_CSV = REPO.parent.parent / "shared" / "data" / "measured" / "fig13_multiposition_23C.csv"
+# ../shared next to the repository (a worktree one level deeper finds it one level up)
+DEFAULT_CSV = next((p / "shared/data/measured/fig13_multiposition_23C.csv" for p in (REPO.parent, REPO.parent.parent)
+                    if (p / "shared/data/measured/fig13_multiposition_23C.csv").is_file()),
+                   REPO.parent / "shared/data/measured/fig13_multiposition_23C.csv")
 RESULTS = REPO / "docs" / "results" / "adc_codes.md"
-
-
-def with_counts(rec: Recording, ref: np.ndarray, xyz: np.ndarray) -> Recording:
-    out = rec.select(np.arange(len(rec)))
-    out.ref, out.xyz = np.asarray(ref, float), np.asarray(xyz, float)
-    return out
 
 
 def theta_levels(csv: Path, n: int) -> np.ndarray:
@@ -65,7 +62,7 @@ def heldout(rec: Recording, level: np.ndarray, spec_of, tables: dict | None) -> 
     judged = data_all.use & (level >= 0)
     G = np.full((len(rec), 3), np.nan)
     for lv in np.unique(level[judged]):
-        r = rec if tables is None else with_counts(rec, *tables[lv].map_counts(rec.ref, rec.xyz))
+        r = rec if tables is None else mapped_recording(rec, tables[lv])
         data = data_all if tables is None else prepare_data(r)
         des = build_design(data, spec_of(data))
         ok = des.valid & data.use

@@ -615,3 +615,11 @@ def code_table(widths: RecordingWidths, provenance: dict[str, str | int | float]
             continue
         rows.append(CodeWidths(**{**base.__dict__, "odd": odd}).edges())
     return AdcCodeTable(np.array(rows), prov)
+
+
+def mapped_recording(rec, table: AdcCodeTable):
+    """A copy of the recording ``rec`` whose counts are the centres of their codes' intervals (``table.map_counts``,
+    the mapping the driver applies per frame): what the fit and the diagnosis see when a code table is given."""
+    out = rec.select(np.arange(len(rec)))
+    out.ref, out.xyz = table.map_counts(rec.ref, rec.xyz)
+    return out

@@ -109,6 +109,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_topic_options(p)
     p.add_argument("--in-memory", action="store_true",
                    help="load every sample before fitting (default: stream MCAP files block by block, same result)")
+    p.add_argument("--adc-codes", type=Path, default=None,
+                   help="code table YAML (fbg-accel-calib adc-codes -o): counts mapped to their codes' centres before "
+                        "eq. 24, the table written into the calibration (reads every sample into memory)")
     _add_force(p)
     _add_detector_options(p)
     _add_csv_options(p)
@@ -213,8 +216,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from .thermal_fit import FULL_SCALE_MPS2, reference_reach_warnings
 
     check_outputs([args.output], args.inputs, args.force)  # the inputs are checked first thing by fit_files
+    from fbg_accel_driver.adc_code_table import load_table
+
+    table = load_table(args.adc_codes) if args.adc_codes is not None else None
     options = FitOptions(args.window, args.min_interval, args.level_gap, args.rate, args.temperature, args.g,
-                         getattr(args, "namespace", None), getattr(args, "topic", None), args.in_memory, enabled(args))
+                         getattr(args, "namespace", None), getattr(args, "topic", None), args.in_memory, enabled(args),
+                         table)
     out = fit_files(args.inputs, degree=args.degree, max_degree=args.max_degree, sensor_id=args.sensor_id,
                     options=options)
     selection, cal = out.selection, out.calibration

@@ -4,6 +4,8 @@ simulator's periodic width pattern, the calibration's code table (``fbg_accel_dr
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from test_driver_core import T0_NS, frame, make_cal
@@ -156,3 +158,31 @@ def test_adc_codes_command_writes_a_table_the_loader_reads_and_refuses_too_few_v
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "the width pattern needs at least 32" in err
     assert not (tmp_path / "no.yaml").exists()
+
+
+# ../shared next to the repository (a worktree one level deeper finds it one level up)
+MEASURED = next((p / "shared" / "data" / "measured" / "fig13_multiposition_23C.csv"
+                 for p in Path(__file__).resolve().parents[2:4]
+                 if (p / "shared" / "data" / "measured" / "fig13_multiposition_23C.csv").is_file()),
+                Path(__file__).resolve().parents[2] / "shared" / "data" / "measured" / "fig13_multiposition_23C.csv")
+
+
+def test_measured_series_pattern_is_found_and_fit_carries_the_table_it_was_fitted_with(tmp_path) -> None:
+    """The measured series (issue 38): the pooled pattern is found far beyond its level, codes 16k wider and 16k + 8
+    narrower than nominal; ``fit --adc-codes`` maps the counts before eq. 24 and writes the same table into the
+    calibration, whose ``apply_counts`` on the raw counts is the no-table model on the mapped ones."""
+    assert MEASURED.is_file(), f"measured data not found: {MEASURED} (../shared/data/measured/ is needed for this test)"
+    table_path, cal_path = tmp_path / "codes.yaml", tmp_path / "cal.yaml"
+    common = ["--rate", "1", "--temperature", "23.4", "--g", "9.81"]
+    assert calib_main(["adc-codes", str(MEASURED), *common, "-o", str(table_path)]) == 0
+    table = load_table(table_path)
+    assert table.provenance["pattern"].startswith("found")
+    widths = np.diff(table.edges[1, 1024:1041])  # x: codes 1024..1039, one period
+    assert widths[0] > 1.3 and widths[8] < 0.6, widths.round(2)
+    assert calib_main(["fit", str(MEASURED), *common, "--adc-codes", str(table_path), "-o", str(cal_path)]) == 0
+    cal = ThermalCalibration.load(cal_path)
+    assert cal.adc_codes == table
+    ref, xyz = np.array([870.0, 866.0]), np.array([[1100.0, 1600.0, 1100.0], [1024.0, 1536.0, 1048.0]])
+    t = np.full(2, 23.4)
+    bare = ThermalCalibration.from_dict({**cal.to_dict(), "adc_codes": None})
+    np.testing.assert_array_equal(cal.apply_counts(ref, xyz, t, t), bare.apply_counts(*table.map_counts(ref, xyz), t, t))
