@@ -199,6 +199,8 @@ def pieces(groups: np.ndarray, rows: np.ndarray, piece: int = PIECE_SAMPLES) -> 
 
 
 def _visits_of(col: np.ndarray, groups: np.ndarray, rows: np.ndarray, clusters: np.ndarray | None = None) -> _Visits:
+    """The pieces (``pieces``) of at least ``MIN_WIDTH_VISIT_SAMPLES`` samples of ``col`` among ``rows``, each sample
+    with its visit label for the clustered covariance (``clusters``, default ``groups``)."""
     visits = groups if clusters is None else clusters
     groups = pieces(groups, rows & np.isfinite(col))
     idx = np.flatnonzero(groups >= 0)
@@ -449,11 +451,6 @@ class CodeWidths:
                 lo -= 1
             e[lo + 2:o.code + 1] = e[lo + 1]  # missing codes below: zero width at the run's bottom
         return e
-
-    def centres(self) -> np.ndarray:
-        """(ADC_CODES,) the centre of each code's interval (counts): the value a reading at the code stands for."""
-        e = self.edges()
-        return 0.5 * (e[:-1] + e[1:])
 
     def summary(self) -> str:
         """One paragraph: the pattern, its test, and the odd codes."""
