@@ -1,7 +1,7 @@
 """Code widths of the simulated ESP32 ADC: is an injected width pattern recovered, and does the table remove its bias?
 
 Not a test (test/test_adc_code_widths.py asserts the same with fewer seeds and margin). For each seed, a campaign on
-the measured run's table grid (theta and psi in 30 degree steps, 156 poses, 2 s each) with the board's measured
+the measured run's table grid (theta and psi in 30 degree steps, 156 poses, 1 s each) with the board's measured
 noise (white noise x ``NOISE_SCALE``, 1 count on the reference), once with ``effects.adc_code_widths`` on (the
 measured pattern of config/sim_default.yaml) and once off, same seed (same noise draws):
 
@@ -32,7 +32,7 @@ from fbg_accel_sim.sim_config import SimConfig
 NAMED = ("reference_dark_offset", "thermal_lag", "spectral_nonlinearity", "time_drift", "channel_delay", "tia_lowpass",
          "thermal_hysteresis", "unmodelled_cable_torque")
 NOISE_SCALE = 3.0  # the measured series' axes read 1-3 counts rms within a visit; the simulator's Table 2 noise 0.4-0.9
-CAMPAIGN = {**{f"effects.{k}.scale": 0.0 for k in NAMED}, "scenario.poses.mode": "grid", "scenario.poses.dwell_s": 2.0,
+CAMPAIGN = {**{f"effects.{k}.scale": 0.0 for k in NAMED}, "scenario.poses.mode": "grid", "scenario.poses.dwell_s": 1.0,
             "scenario.poses.move_s": 1.0, "scenario.poses.grid.theta_step_deg": 30.0,
             "scenario.poses.grid.psi_step_deg": 30.0, "noise.reference_noise_counts": 1.0,
             "effects.white_noise.scale": NOISE_SCALE}
@@ -78,10 +78,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--output", type=Path, default=Path("/tmp/adc_code_widths_check.json"))
     ap.add_argument("--update-results", action="store_true", help=f"write {RESULTS}")
     args = ap.parse_args(argv)
-    runs = [check(seed) for seed in range(1, args.seeds + 1)]
-    for r in runs:
+    runs = []
+    for seed in range(1, args.seeds + 1):
+        runs.append(r := check(seed))
         print(f"seed {r['seed']}: covered {r['covered']:.3f}, bias {r['bias_before']:.3f} -> {r['bias_after']:.3f} "
-              f"counts, pattern p {r['p_value']:.2g}; without the pattern p {r['p_without']:.2g}")
+              f"counts, pattern p {r['p_value']:.2g}; without the pattern p {r['p_without']:.2g}", flush=True)
     out = {"noise_scale": NOISE_SCALE, "runs": runs,
            "covered_all": float(np.mean([r["covered"] for r in runs])),
            "claimed_without": sum(r["claimed_without"] for r in runs)}
