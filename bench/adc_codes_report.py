@@ -134,9 +134,9 @@ def main(argv: list[str] | None = None) -> int:
         "",
         "## The widths",
         "",
-        f"Pooled over the four channels ({pooled.n_visits} visits of a channel): width pattern of period 16 against "
-        f"equal widths chi2 = {pooled.chi2:.1f} on {pooled.dof} dof, p = {pooled.p_value:.2g}. Widths (counts of "
-        "input) of the codes k with k mod 16 = 0..15, with their 95 % intervals:",
+        f"Pooled over the axis channels (the reference reads too few codes; {pooled.n_visits} visits): width pattern "
+        f"of period 16 against equal widths chi2 = {pooled.chi2:.1f} on {pooled.dof} dof, p = {pooled.p_value:.2g}. "
+        "Widths (counts of input) of the codes k with k mod 16 = 0..15, with their 95 % intervals:",
         "",
         "| k mod 16 | " + " | ".join(str(r) for r in range(16)) + " |",
         "|---|" + "---|" * 16,

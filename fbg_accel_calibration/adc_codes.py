@@ -564,8 +564,9 @@ class RecordingWidths:
 
 def recording_code_widths(counts: np.ndarray, groups: np.ndarray, rows: np.ndarray, alpha: float = 0.01,
                           per_channel: bool = True) -> RecordingWidths:
-    """``code_widths`` of each channel of ``counts`` (N, 4): ref, x, y, z (``CHANNEL_NAMES``), and of all four
-    pooled (their pieces together, one pattern: the ESP32's channels share one converter). ``per_channel`` False:
+    """``code_widths`` of each channel of ``counts`` (N, 4): ref, x, y, z (``CHANNEL_NAMES``), and pooled over the
+    channels read over two periods of codes or more (their pieces together, one pattern: the ESP32's channels share
+    one converter, so the table applies it to every channel, the reference included). ``per_channel`` False:
     the pooled estimate alone (the channels' entries None)."""
     channels: dict[str, CodeWidths | None] = {}
     reasons = {}
@@ -579,11 +580,16 @@ def recording_code_widths(counts: np.ndarray, groups: np.ndarray, rows: np.ndarr
             channels[name], reasons[name] = None, str(exc).split(": ", 1)[-1]
     _, g = np.unique(groups, return_inverse=True)
     n_g = int(g.max()) + 1 if len(g) else 0
-    stacked_groups = np.concatenate([g + j * n_g for j in range(counts.shape[1])])
+    # the channels whose readings spread over two periods of codes or more: a channel read over fewer codes (the
+    # reference, ~20) cannot tell the widths from where its visits happen to sit, and would bend the pooled pattern
+    wide = [j for j in range(counts.shape[1])
+            if len(np.unique(counts[rows & np.isfinite(counts[:, j]), j])) >= 2 * PERIOD]
     try:
+        if not wide:
+            raise ValueError("no channel read two periods of codes or more")
         # one cluster per visit over the channels: their readings of one visit are not taken as independent
-        pooled = code_widths(counts.T.ravel(), stacked_groups, np.tile(rows, counts.shape[1]), "pooled", alpha=alpha,
-                             clusters=np.tile(g, counts.shape[1]))
+        pooled = code_widths(counts[:, wide].T.ravel(), np.concatenate([g + k * n_g for k in range(len(wide))]),
+                             np.tile(rows, len(wide)), "pooled", alpha=alpha, clusters=np.tile(g, len(wide)))
     except ValueError as exc:
         pooled, reasons["pooled"] = None, str(exc).split(": ", 1)[-1]
     return RecordingWidths(channels, reasons, pooled)

@@ -144,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
     command = "fbg-accel-calib " + " ".join(shlex.quote(str(a)) for a in argv)
     table = code_table(widths, {"source": ", ".join(str(p) for p in args.inputs), "command": command[:512],
                                 "method": "code density (IEEE Std 1241 histogram test) over the visits' own densities, "
-                                          "period-16 pattern pooled over the channels",
+                                          "period-16 pattern pooled over the channels read over 32 codes or more",
                                 "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")})
     for line in widths.summary():
         print(line)
