@@ -114,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     rows_md = []
     tilts: dict[tuple[str, str], float] = {}
     for name, spec_of in (("paper's linear model (eq. 25)", linear),
-                          ("diagnosed model (" + (", ".join(n for n, _, _ in res.added) or "no effect") + ")", diagnosed)):
+                          ("diagnosed model (" + (", ".join(n for n, _, _ in [*res.added, *res.noise_remedies, *res.run_terms])
+                                                   or "no effect") + ")", diagnosed)):
         for label, tab in (("as read", None), ("code table", tables)):
             pred, G, rows = heldout(rec, level, spec_of, tab)
             rmse = np.sqrt(np.mean((pred[rows] - G[rows]) ** 2, axis=0))
