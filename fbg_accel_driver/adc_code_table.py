@@ -87,19 +87,24 @@ class AdcCodeTable:
     __hash__ = None  # type: ignore[assignment]
 
     def values(self, ref: int, x: int, y: int, z: int) -> tuple[float, float, float, float]:
-        """The centres of the codes of one frame (ADC codes 0..ADC_CODES - 1), counts."""
-        c = self._lists
-        return c[0][ref], c[1][x], c[2][y], c[3][z]
+        """The centres of the codes of one frame, counts; a count outside the codes 0..ADC_CODES - 1 (no reading of
+        this ADC: the frame's fields are wider) as read."""
+        c, top = self._lists, ADC_CODES
+        return (c[0][ref] if 0 <= ref < top else ref, c[1][x] if 0 <= x < top else x,
+                c[2][y] if 0 <= y < top else y, c[3][z] if 0 <= z < top else z)
 
     def map_counts(self, ref: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(ref (N,), xyz (N, 3)) ADC codes to the centres of their intervals (counts); a non-integer count (averaged
-        data) is interpolated between the centres of the codes either side, NaN stays NaN."""
+        data) is interpolated between the centres of the codes either side; NaN, and a count outside the codes, stay
+        as they are (as :meth:`values`)."""
         ref = np.asarray(ref, float)
         xyz = np.atleast_2d(np.asarray(xyz, float))
         grid = np.arange(ADC_CODES, dtype=float)
-        out_ref = np.interp(ref, grid, self.centres[0])
-        out_xyz = np.column_stack([np.interp(xyz[:, j], grid, self.centres[j + 1]) for j in range(3)])
-        return np.where(np.isnan(ref), np.nan, out_ref), np.where(np.isnan(xyz), np.nan, out_xyz)
+
+        def mapped(v: np.ndarray, j: int) -> np.ndarray:
+            return np.where((v >= 0) & (v <= ADC_CODES - 1), np.interp(v, grid, self.centres[j]), v)
+
+        return mapped(ref, 0), np.column_stack([mapped(xyz[:, j], j + 1) for j in range(3)])
 
     def to_dict(self) -> dict[str, Any]:
         return {"edges": {name: [float(v) for v in e] for name, e in zip(CHANNELS, self.edges, strict=True)},

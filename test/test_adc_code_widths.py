@@ -136,6 +136,11 @@ def test_the_driver_maps_each_count_as_apply_counts_does() -> None:
     xyz = np.array([(f.x, f.y, f.z) for f in frames], float)
     offline = cal.apply_counts(ref, xyz, np.full(len(frames), 23.4), np.arange(len(frames)) * 0.01)
     np.testing.assert_allclose(got, offline[-len(got):], rtol=0, atol=1e-9)
+    # a field wider than the ADC's codes (no reading of this ADC) is used as read by both paths, never looked up
+    table = cal.adc_codes
+    assert table.values(870, 1100, 5000, 1100)[2] == 5000
+    assert table.map_counts(np.array([870.0]), np.array([[1100.0, 5000.0, -1.0]]))[1][0, 1:].tolist() == [5000.0, -1.0]
+    core.feed(encode_frame(frame(len(frames), ref=870, xyz=(1100, 5000, 1100))), T0_NS + 10 ** 10)
     assert np.max(np.abs(offline - make_cal().apply_counts(ref, xyz, np.full(len(frames), 23.4), np.zeros(len(frames))))) > 0.01
 
 
