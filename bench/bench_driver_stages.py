@@ -17,14 +17,17 @@ whether the caches are warm:
   triggered from another thread (how the driver node first handed chunks to its publisher), against one
   wake-up of a plain Python thread blocked in ``queue.SimpleQueue.get`` (how it does now).
 
-Writes bench/results/driver_stages.json (``--output``). Needs ROS_DOMAIN_ID for the rclpy steps.
-``--calibration-uncertainty`` times ``core_feed`` with a calibration that carries a ``coefficient_covariance`` (a
-positive definite one of the right size: the cost does not depend on its values), ``reported`` (only the last sample's
-point kept for the diagnostics) or ``included`` (``covariance_includes_calibration``: J Sigma J^T per published
-sample); ``--core-only`` times ``core_feed`` back to back only.
+Writes driver_stages.json to the scratch directory (``--output`` a file, ``--update-results`` the committed
+bench/results/). Needs ROS_DOMAIN_ID for the rclpy steps. ``--core-only`` times ``core_feed`` back to back only (no
+serial, no rclpy). ``--calibration-uncertainty`` times ``core_feed`` with a calibration that carries a
+``coefficient_covariance`` (a positive definite one of the right size: the cost does not depend on its values),
+``reported`` (only the last sample's point kept for the diagnostics) or ``included``
+(``covariance_includes_calibration``: J Sigma J^T per published sample). ``--adc-codes TABLE``: the calibration
+carries that code table (``fbg-accel-calib adc-codes -o``), so its cost shows against a run without.
 
     ROS_DOMAIN_ID=31 .venv/bin/python bench/bench_driver_stages.py
-    .venv/bin/python bench/bench_driver_stages.py --core-only --calibration-uncertainty included --output /tmp/s.json
+    .venv/bin/python bench/bench_driver_stages.py --core-only --calibration-uncertainty included
+    .venv/bin/python bench/bench_driver_stages.py --core-only [--adc-codes TABLE.yaml]
 """
 
 from __future__ import annotations
@@ -229,29 +232,36 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--calibration-uncertainty", choices=["absent", "reported", "included"], default="absent",
                     help="the calibration's coefficient_covariance: absent, reported in the diagnostics only, or "
                     "included in the covariance (covariance_includes_calibration)")
-    ap.add_argument("--core-only", action="store_true", help="time core_feed only, back to back")
+    ap.add_argument("--core-only", action="store_true", help="time core_feed only, back to back (no serial, no rclpy)")
+    ap.add_argument("--adc-codes", type=Path, default=None, help="code table YAML the calibration carries")
     args = ap.parse_args(argv)
-    args.output = args.output or results_dir(args.update_results) / "driver_stages.json"
-    import rclpy
+    output = args.output or results_dir(args.update_results) / "driver_stages.json"
 
     data = frames_bytes(max(args.frames, 1000) * 2)
     cal = ThermalCalibration.load(ROOT / "config" / "calibration_sim.yaml")
+    if args.adc_codes is not None:
+        from fbg_accel_driver.adc_code_table import load_table
+
+        cal.adc_codes = load_table(args.adc_codes)
     config = None
     if args.calibration_uncertainty != "absent":
         p = 12 * (cal.degree + 1)
         cal.coefficient_covariance = CoefficientCovariance(np.eye(p) * 1e-4 + 1e-5, "bench", 18)
         config = CoreConfig(covariance_includes_calibration=args.calibration_uncertainty == "included")
-    results: dict = {"calibration_uncertainty": args.calibration_uncertainty}
+    results: dict = {"calibration_uncertainty": args.calibration_uncertainty,
+                     "adc_codes": str(args.adc_codes) if args.adc_codes else None}
     n100 = min(args.frames, 300)
     rates = {"back_to_back": None} if args.core_only else RATES
     results["core_feed_us_cpu_per_frame"] = bench_core(args.frames, data, cal, config, rates) | {"frames_at_100hz": n100}
     print("core:", json.dumps(results["core_feed_us_cpu_per_frame"]), flush=True)
     if args.core_only:
-        write_results(args.output, results_doc("bench_driver_stages.py", argv, "driver stage costs per frame (thread "
-                                               "CPU time, us)", results=results))
+        write_results(output, results_doc("bench_driver_stages.py", argv, "driver stage costs per frame (thread CPU "
+                                          "time, us)", results=results))
         return 0
     results["serial_chunks_at_100hz"] = bench_serial_chunks(300, data)
     print("serial:", results["serial_chunks_at_100hz"], flush=True)
+    import rclpy
+
     rclpy.init()
     try:
         results["messages_build_publish_us_cpu_per_frame"] = bench_messages(args.frames)
@@ -260,8 +270,8 @@ def main(argv: list[str] | None = None) -> int:
         print("wake-ups:", results["wakeup_us_cpu"], flush=True)
     finally:
         rclpy.try_shutdown()
-    write_results(args.output, results_doc("bench_driver_stages.py", argv, "driver stage costs per frame (thread CPU time, us)",
-                                           results=results))
+    write_results(output, results_doc("bench_driver_stages.py", argv, "driver stage costs per frame (thread CPU time, us)",
+                                      results=results))
     return 0
 
 

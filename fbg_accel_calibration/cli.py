@@ -16,6 +16,7 @@ Subcommands (``fbg-accel-calib SUBCOMMAND --help`` for the options):
                still periods against local gravity, what the orientations cannot identify; ``--output``: the
                updated calibration.
 * ``diagnose`` residual diagnosis (``fbg_accel_calibration.diagnose_cli``).
+* ``adc-codes`` a recording -> the ADC's code widths, their plot and code table (``fbg_accel_calibration.adc_codes_cli``).
 * ``dynamic``  a slide run (MCAP / bag with imu/raw ``aux_counts``, or a dynamic CSV) + excitation plan +
                static calibration -> the calibration with its ``dynamic`` section (chain cut-offs and
                delays), points and budgets, Bode PNG (docs/dynamic_calibration.md).
@@ -37,7 +38,7 @@ import numpy as np
 from fbg_accel_driver.command_line import version_line
 from fbg_accel_driver.sensor_constants import AHT10_SIGMA_C
 
-from . import diagnose_cli
+from . import adc_codes_cli, diagnose_cli
 from . import input_validation as iv
 from .atomic_output import atomic_path, check_output_dir, check_outputs
 from .cli_progress import add_progress_option
@@ -113,6 +114,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_topic_options(p)
     p.add_argument("--in-memory", action="store_true",
                    help="load every sample before fitting (default: stream MCAP files block by block, same result)")
+    p.add_argument("--adc-codes", type=Path, default=None,
+                   help="code table YAML (fbg-accel-calib adc-codes -o): counts mapped to their codes' centres before "
+                        "eq. 24, the table written into the calibration (reads every sample into memory)")
     _add_force(p)
     _add_detector_options(p)
     _add_csv_options(p)
@@ -203,6 +207,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_dynamic)
 
     diagnose_cli.register(sub)
+    adc_codes_cli.register(sub)
     return parser
 
 
@@ -244,8 +249,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from .thermal_fit import FULL_SCALE_MPS2, reference_reach_warnings
 
     check_outputs([args.output], args.inputs, args.force)  # the inputs are checked first thing by fit_files
+    from fbg_accel_driver.adc_code_table import load_table
+
+    table = load_table(args.adc_codes) if args.adc_codes is not None else None
     options = FitOptions(args.window, args.min_interval, args.level_gap, args.rate, args.temperature, args.g,
-                         getattr(args, "namespace", None), getattr(args, "topic", None), args.in_memory, enabled(args))
+                         getattr(args, "namespace", None), getattr(args, "topic", None), args.in_memory, enabled(args),
+                         table)
     out = fit_files(args.inputs, degree=args.degree, max_degree=args.max_degree, sensor_id=args.sensor_id,
                     options=options)
     selection, cal = out.selection, out.calibration

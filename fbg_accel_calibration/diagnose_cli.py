@@ -73,6 +73,9 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--yaml", type=Path, default=None, help="write the refitted calibration (with the added terms) here")
     p.add_argument("--force", action="store_true", help="replace existing output files (default: refuse)")
     add_progress_option(p)
+    p.add_argument("--adc-codes", type=Path, default=None,
+                   help="code table YAML (fbg-accel-calib adc-codes -o): counts mapped to their codes' centres before "
+                        "eq. 24, the table written into the --yaml calibration")
     p.set_defaults(func=run)
     return p
 
@@ -149,6 +152,14 @@ def run(args: argparse.Namespace) -> int:
 
         rec = load_recording(args.inputs, rate=args.rate, temperature=args.temperature, g=args.g,
                              namespace=args.namespace, topic=args.topic)
+        table = None
+        if args.adc_codes is not None:  # the counts as the driver will map them (one implementation: map_counts)
+            from fbg_accel_driver.adc_code_table import load_table
+
+            from .adc_codes import mapped_recording
+
+            table = load_table(args.adc_codes)
+            rec = mapped_recording(rec, table)
     except (OSError, ValueError) as exc:
         print(f"fbg-accel-calib diagnose: {exc}", file=sys.stderr)
         return 2
@@ -170,6 +181,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"fbg-accel-calib diagnose: {', '.join(args.inputs)}: the data do not determine the model ({exc}); "
               "check that the poses differ and every channel responds", file=sys.stderr)
         return 2
+    res.calibration.adc_codes = table  # the file the driver reads maps the counts as the diagnosis did
     print(text(res), end="")
     argv = getattr(args, "argv", None)  # what main() was given; sys.argv for the console script
     argv = sys.argv[1:] if argv is None else argv

@@ -42,6 +42,9 @@ class FitOptions:
     topic: str | None = None
     in_memory: bool = False
     progress: bool = False  # progress bars on stderr
+    # the ADC's code table (fbg_accel_driver.adc_code_table): the counts mapped before eq. 24 and the table written
+    # into the calibration; the samples are then read into memory
+    adc_codes: Any = None
 
 
 @dataclass
@@ -108,7 +111,7 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
     check_inputs(paths)  # each a recording, none given twice
     max_degree = max(max_degree, degree or 0)
     data = None
-    if not opt.in_memory:
+    if not opt.in_memory and opt.adc_codes is None:
         try:
             data, metadata, first = _streamed(paths, max_degree, opt)
         except StreamOrderError as exc:
@@ -118,6 +121,10 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
         rec = load_recording(paths, rate=opt.rate_hz, temperature=opt.temperature_c, g=opt.g_mps2,
                              namespace=opt.namespace, topic=opt.topic)
         metadata = rec.metadata
+        if opt.adc_codes is not None:
+            from .adc_codes import mapped_recording
+
+            rec = mapped_recording(rec, opt.adc_codes)
         data = prepare(rec, max_degree, opt.window, opt.min_interval, opt.level_gap_c)
     recorded_sensor = sensor_id_of(metadata)  # refuses recordings of two sensors before the fit's work
     names = ", ".join(map(str, paths))
@@ -153,4 +160,5 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
     cal.fit["noise_sigma_correction"] = [round(float(v), 4) for v in 1.0 / np.sqrt(factor)]
     cal.fit["sources"] = [str(p) for p in paths]
     cal.fit["degree_selection"] = selection.as_dict()
+    cal.adc_codes = opt.adc_codes  # after everything above has evaluated the model on the mapped counts
     return FitOutcome(cal, selection)

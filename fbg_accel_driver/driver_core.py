@@ -407,8 +407,9 @@ class DriverCore:
             out["calibrated_band_max_hz"] = band[1] if band is not None else math.nan
         return out
 
-    def _equalised(self, f: Frame) -> tuple[tuple[float, float, float, float], int, tuple[float, float, float]] | None:
-        """Equalised (ref, x, y, z) counts of ``f``, the stamp delay (ns) and the variance factors; None for
+    def _equalised(self, f: Frame, read: tuple[float, float, float, float],
+                   ) -> tuple[tuple[float, float, float, float], int, tuple[float, float, float]] | None:
+        """Equalised (ref, x, y, z) counts ``read`` of ``f``, the stamp delay (ns) and the variance factors; None for
         the first sample after a (re)start: the inverse filter needs the previous sample and the stamp delay
         the sample interval, so that sample is not published (its stamp could not be moved consistently)."""
         eq = self._equaliser
@@ -417,10 +418,10 @@ class DriverCore:
         dt_us = f.t_us - prev if prev is not None else 0
         if dt_us <= 0:  # first sample (or a repeated time): start the filters from it
             eq.reset()
-            eq.step(0.0, (float(f.ref), float(f.x), float(f.y), float(f.z)))
+            eq.step(0.0, read)
             self.counters.chain_priming += 1
             return None
-        counts = eq.step(dt_us * 1e-6, (float(f.ref), float(f.x), float(f.y), float(f.z)))  # this sample's own step
+        counts = eq.step(dt_us * 1e-6, read)  # this sample's own step
         # the stamp delay (and the noise factors) at the board's nominal interval, not at this one step: a late read's
         # catch-up (reads ~40 us apart) would move its stamps by ms off the board spacing; one step until it is known
         nominal_us = self._interval.us or dt_us
@@ -466,6 +467,7 @@ class DriverCore:
         equaliser = self._equaliser
         unit = (1.0, 1.0, 1.0)
         unknown = cfg.covariance_source == "unknown"
+        table = cal.adc_codes if cal is not None else None
         for f in frames:
             stamp_ns = clock.stamp(f.t_us)
             counters.samples += 1
@@ -487,13 +489,15 @@ class DriverCore:
             out.raw.append(RawRecord(stamp_ns, f, math.nan if temp is None else temp, valid))
             if cal is None:  # raw only
                 continue
+            # the centres of the codes' intervals when the calibration has a code table (adc_code_table), else as read
+            read = (f.ref, f.x, f.y, f.z) if table is None else table.values(f.ref, f.x, f.y, f.z)
             if equaliser is not None:  # every sample passes the filters, in order, whatever happens next
-                eq_out = self._equalised(f)
+                eq_out = self._equalised(f, read)
                 if eq_out is None:
                     continue
                 (ref, cx, cy, cz), delay_ns, vfac = eq_out
             else:
-                ref, cx, cy, cz, delay_ns, vfac = f.ref, f.x, f.y, f.z, self._delay_ns, unit
+                (ref, cx, cy, cz), delay_ns, vfac = read, self._delay_ns, unit
             if f.ref < cfg.min_reference_counts or ref < MIN_REFERENCE_COUNTS:
                 counters.reference_low += 1
                 continue

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from .adc_code_table import AdcCodeTable
 from .chain_compensation import ChainDynamics
 from .coefficient_covariance import CoefficientCovariance
 from .correction_terms import CorrectionTerm, TermInputs, correction_from_dict
@@ -47,7 +48,7 @@ MIN_REFERENCE_COUNTS = 1  # a reference of 0 counts would divide by zero; see no
 TOP_LEVEL_KEYS = ("format", "format_version", "units", "model", "sensor_id", "created", "degree",
                   "temperature_center_c", "temperature_scale_c", "temperature_range_c", "M", "b",
                   "noise_sigma_mps2", "noise_correlation", "reference_level", "dynamic", "fit", "corrections", "notes",
-                  "coefficient_covariance")
+                  "coefficient_covariance", "adc_codes")
 NOISE_CORRELATION_KEYS = ("correlated_fraction", "time_constant_s")
 REFERENCE_LEVEL_KEYS = ("temperature_c", "counts")
 MAX_REFERENCE_LEVELS = 64  # one entry per temperature level of the fit (the paper's campaign has three)
@@ -115,6 +116,9 @@ class ThermalCalibration:
     # reference counts of the fit's samples per temperature level (optional ``reference_level`` section)
     reference_level_temperature_c: np.ndarray = field(default_factory=lambda: np.zeros(0))
     reference_level_counts: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # the ADC's code-to-value table (optional ``adc_codes`` section; fbg_accel_driver.adc_code_table): counts are
+    # mapped to the centres of their codes' intervals before eq. 24; None: counts are used as read
+    adc_codes: AdcCodeTable | None = None
     # M(T), b(T) as plain floats per temperature reading (coefficients_at); the coefficients are not
     # changed after construction (a new calibration is a new object, with an empty cache)
     _coef_cache: dict[float, tuple[tuple[float, ...], tuple[float, float, float]]] = field(
@@ -143,7 +147,8 @@ class ThermalCalibration:
                            self.notes, self.fit, [t.to_dict() for t in self.corrections]),
                           (other.temperature_range_c, other.sensor_id, other.t_center_c, other.t_scale_c, other.created,
                            other.notes, other.fit, [t.to_dict() for t in other.corrections]))
-                and self.dynamic == other.dynamic and self.coefficient_covariance == other.coefficient_covariance)
+                and self.dynamic == other.dynamic and self.coefficient_covariance == other.coefficient_covariance
+                and self.adc_codes == other.adc_codes)
 
     __hash__ = None  # type: ignore[assignment]  # mutable, as the dataclass-generated __eq__ made it
 
@@ -271,6 +276,8 @@ class ThermalCalibration:
         """
         ref = np.asarray(ref, dtype=float)
         xyz = np.atleast_2d(np.asarray(xyz, dtype=float))
+        if self.adc_codes is not None:
+            ref, xyz = self.adc_codes.map_counts(ref, xyz)
         temp_c = np.asarray(temp_c, dtype=float)
         psi = normalise(xyz, ref)
         if not self.corrections:
@@ -310,6 +317,7 @@ class ThermalCalibration:
             "fit": _plain(self.fit),
             "corrections": [term.to_dict() for term in self.corrections],
             **({"notes": self.notes} if self.notes else {}),
+            **({"adc_codes": self.adc_codes.to_dict()} if self.adc_codes is not None else {}),
         }
 
     def save(self, path: str | Path) -> None:
@@ -380,6 +388,7 @@ class ThermalCalibration:
         dynamic = ChainDynamics.from_dict(d["dynamic"], fail) if "dynamic" in d else None
         coef_cov = (CoefficientCovariance.from_dict(d["coefficient_covariance"], degree, fail)
                     if d.get("coefficient_covariance") is not None else None)
+        adc_codes = AdcCodeTable.from_dict(d["adc_codes"], fail) if d.get("adc_codes") is not None else None
 
         corrections_raw = _optional(d, "corrections", [])
         if not isinstance(corrections_raw, list):
@@ -412,7 +421,7 @@ class ThermalCalibration:
                       noise_sigma_mps2=noise, created=texts["created"], fit=dict(fit), corrections=corrections,
                       notes=texts["notes"], noise_correlated_fraction=corr_f, noise_time_constant_s=corr_tau,
                       dynamic=dynamic, reference_level_temperature_c=ref_t, reference_level_counts=ref_c,
-                      coefficient_covariance=coef_cov)
+                      coefficient_covariance=coef_cov, adc_codes=adc_codes)
         except (TypeError, ValueError, OverflowError) as exc:
             if isinstance(exc, CalibrationFileError):
                 raise

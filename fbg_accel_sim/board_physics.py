@@ -33,6 +33,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from fbg_accel_calibration.table_geometry import table_specific_force
+from fbg_accel_driver.adc_code_table import pattern_codes
 from fbg_accel_driver.frame_codec import BODY_LEN_BY_VERSION, SEQ_MODULO, Frame, Status, crc16, frame_size
 
 from . import faults as fz
@@ -816,8 +817,22 @@ class BoardSimulator:
             inside = self._inside(t, wdw)
             for chn in wdw.get("channels", ["x"]):
                 counts_f[inside, CHANNELS.index(chn)] = float(self.adc_max)
-        counts_f = self._wide_codes(self._adc_input(counts_f))
+        counts_f = self._wide_codes(self._code_widths(counts_f))
         return counts_f, self._codes(counts_f)
+
+    def _code_widths(self, x: np.ndarray) -> np.ndarray:
+        """``_adc_input`` of the four channels, with the codes' unequal widths when ``effects.adc_code_widths`` is on
+        (and adc_quantisation): the ESP32's SAR ADC has differential non-linearity (Espressif, ESP32 datasheet, "ADC
+        characteristics": DNL up to +-7 LSB, INL up to +-12 LSB); the measured series reads codes 16k 1.5-2.4x and
+        16k + 8 3-6x less often than an even spread on every axis channel (issue 38), a pattern periodic in the code
+        (``fbg_accel_driver.adc_code_table.pattern_codes``). The widths are 1 + scale (w - 1) for the configured
+        ``widths`` w (one period, summing to the period); one converter is multiplexed over the channels."""
+        cw = self.cfg.get("effects.adc_code_widths")
+        scale = float(cw["scale"])
+        if scale == 0.0 or self.cfg.scale("adc_quantisation") == 0.0:
+            return self._adc_input(x)
+        w = 1.0 + scale * (np.asarray(cw["widths"], float) - 1.0)
+        return pattern_codes(np.clip(x, 0.0, float(self.adc_max)), w, self.adc_max)
 
     def _adc_input(self, x: np.ndarray) -> np.ndarray:
         """Counts ``x`` clipped to the ADC range 0..adc_max and rounded when adc_quantisation is on."""
