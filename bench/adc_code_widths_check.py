@@ -12,7 +12,8 @@ measured pattern of config/sim_default.yaml) and once off, same seed (same noise
 
     .venv/bin/python bench/adc_code_widths_check.py [--seeds 10] [--output PATH] [--update-results]
 
-Writes /tmp/adc_code_widths_check.json by default; ``--update-results``: bench/results/adc_code_widths_check.json.
+Writes adc_code_widths_check.json to the scratch directory (bench/output_paths.py) by default;
+``--update-results``: bench/results/adc_code_widths_check.json.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import output_paths
 
 from fbg_accel_calibration.adc_codes import code_table, recording_code_widths
 from fbg_accel_calibration.effects import visit_ids
@@ -36,7 +38,7 @@ CAMPAIGN = {**{f"effects.{k}.scale": 0.0 for k in NAMED}, "scenario.poses.mode":
             "scenario.poses.move_s": 1.0, "scenario.poses.grid.theta_step_deg": 30.0,
             "scenario.poses.grid.psi_step_deg": 30.0, "noise.reference_noise_counts": 1.0,
             "effects.white_noise.scale": NOISE_SCALE}
-RESULTS = Path(__file__).parent / "results" / "adc_code_widths_check.json"
+RESULTS = output_paths.COMMITTED / "adc_code_widths_check.json"
 
 
 def campaign(seed: int, pattern: bool):
@@ -75,7 +77,7 @@ def check(seed: int) -> dict:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=10)
-    ap.add_argument("--output", type=Path, default=Path("/tmp/adc_code_widths_check.json"))
+    ap.add_argument("--output", type=Path, default=output_paths.scratch_dir() / "adc_code_widths_check.json")
     ap.add_argument("--update-results", action="store_true", help=f"write {RESULTS}")
     args = ap.parse_args(argv)
     runs = []

@@ -1,6 +1,7 @@
 """The ADC code-width correction on the paper's measured series: held-out RMSE and static tilt accuracy.
 
-Prints, and writes as docs/results/adc_codes.md with ``--update-results`` (default: /tmp/adc_codes_report.md), for
+Prints, and writes as docs/results/adc_codes.md with ``--update-results`` (default: the scratch directory of
+bench/output_paths.py), for
 three models each without and with the code table (``fbg-accel-calib adc-codes``: the counts mapped to the centres of
 their codes' intervals before eq. 24, ``AdcCodeTable.map_counts``):
 
@@ -23,11 +24,14 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import output_paths
 
 from fbg_accel_calibration.adc_codes import code_table, mapped_recording, recording_code_widths
 from fbg_accel_calibration.adc_codes_cli import visits_of
 from fbg_accel_calibration.csv_import import import_csv
-from fbg_accel_calibration.diagnose import ModelSpec, build_design, diagnose, paired_gain_test, prepare_data
+from fbg_accel_calibration.diagnose import diagnose
+from fbg_accel_calibration.diagnosis.design import ModelSpec, build_design, prepare_data
+from fbg_accel_calibration.diagnosis.search import paired_gain_test
 from fbg_accel_calibration.effects import LIBRARY
 from fbg_accel_calibration.measured_report import G_MPS2, TEMPERATURE_C
 from fbg_accel_calibration.recording import Recording
@@ -37,7 +41,7 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CSV = next((p / "shared/data/measured/fig13_multiposition_23C.csv" for p in (REPO.parent, REPO.parent.parent)
                     if (p / "shared/data/measured/fig13_multiposition_23C.csv").is_file()),
                    REPO.parent / "shared/data/measured/fig13_multiposition_23C.csv")
-RESULTS = REPO / "docs" / "results" / "adc_codes.md"
+RESULTS = output_paths.RESULTS_PAGES / "adc_codes.md"
 
 
 def theta_levels(csv: Path, n: int) -> np.ndarray:
@@ -87,7 +91,7 @@ def tilt(pred: np.ndarray, G: np.ndarray, rows: np.ndarray, pose: np.ndarray, le
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--csv", type=Path, default=DEFAULT_CSV)
-    ap.add_argument("--output", type=Path, default=Path("/tmp/adc_codes_report.md"))
+    ap.add_argument("--output", type=Path, default=output_paths.scratch_dir() / "adc_codes_report.md")
     ap.add_argument("--update-results", action="store_true", help=f"write {RESULTS.relative_to(REPO)}")
     args = ap.parse_args(argv)
     if not args.csv.is_file():
