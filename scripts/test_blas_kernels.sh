@@ -13,10 +13,11 @@ if [ "$(uname -m)" != x86_64 ]; then
   exit 0
 fi
 flags=$(grep -m1 '^flags' /proc/cpuinfo || true)
-tests=$(ls test/test_diagnose*.py test/test_*fit*.py test/test_thermal_*.py test/test_dynamic_*.py \
+tests=$(ls test/test_diagnose*.py test/test_*fit*.py test/test_thermal_*.py test/test_dynamic_*.py test/test_adc_*.py \
   test/test_switch_profile.py test/test_search_lanes.py test/test_correction_terms.py test/test_chain_compensation.py \
-  test/test_driver_chain_compensation.py test/test_adc_clipping.py test/test_low_reference.py \
-  test/test_reference_level.py test/test_static_detector.py 2>/dev/null | grep -v '_process\.py$')
+  test/test_driver_chain_compensation.py test/test_low_reference.py test/test_reference_level.py \
+  test/test_static_detector.py test/test_coefficient_uncertainty.py test/test_calibration_covariance_driver.py \
+  test/test_field_check.py 2>/dev/null | grep -v '_process\.py$')
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 101 ))}
 corename='from fbg_accel_calibration.blas_threads import blas_core_names; import numpy as np
 np.ones(2) @ np.ones(2); print(",".join(blas_core_names()))'
