@@ -26,7 +26,6 @@ from pathlib import Path
 from typing import Any
 
 import rclpy
-import yaml
 from rclpy.event_handler import QoSSubscriptionMatchedInfo, SubscriptionEventCallbacks
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -37,7 +36,7 @@ from std_srvs.srv import Trigger
 from fbg_accel_driver.command_line import StartupError
 from fbg_accel_driver.driver_core import RAW_AUX_NAME
 from fbg_accel_driver.node_support import declare_parameters, init_ros, refuse_unknown_parameters, signals_to
-from fbg_accel_driver.yaml_input import load_yaml
+from fbg_accel_driver.yaml_input import YamlFileError, read_yaml_file
 
 from .calibration_main import EXIT_FIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_RECORDING_FAILED, PARAMETERS
 from .dynamic_recorder import DynamicRunRecorder
@@ -63,11 +62,8 @@ def plan_format(path: str) -> str | None:
     """The ``format`` key of a plan file (pose plan or excitation plan), None if unreadable (the plan's
     own loader then says why)."""
     try:
-        p = Path(path)
-        if not p.is_file() or p.stat().st_size > 1 << 20:
-            return None
-        data = load_yaml(p.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        data = read_yaml_file(path, "plan file")
+    except YamlFileError:
         return None
     return data.get("format") if isinstance(data, dict) else None
 
