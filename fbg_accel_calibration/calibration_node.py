@@ -38,6 +38,7 @@ from fbg_accel_driver.driver_core import RAW_AUX_NAME
 from fbg_accel_driver.node_support import declare_parameters, init_ros, refuse_unknown_parameters, signals_to
 from fbg_accel_driver.yaml_input import YamlFileError, read_yaml_file
 
+from .atomic_output import OutputError, check_outputs
 from .calibration_main import EXIT_FIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_RECORDING_FAILED, PARAMETERS
 from .dynamic_recorder import DynamicRunRecorder
 from .excitation_plan import FORMAT_NAME as EXCITATION_FORMAT
@@ -184,6 +185,8 @@ class CalibrationNode(Node):
         self.yaml_path = Path(p["calibration_file"]) if p["calibration_file"] else out_dir / f"{label}_calibration.yaml"
         if self.mcap_path.exists() or self.mcap_path.is_symlink():
             raise StartupError(f"{self.mcap_path} exists; choose another run_label (a recording is never overwritten)")
+        if p["fit"] and not self.dynamic:
+            self._check_calibration_file(p)
         try:
             out_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -196,6 +199,18 @@ class CalibrationNode(Node):
                                "(a recording is never overwritten nor written through a link)") from None
         except OSError as exc:
             raise StartupError(f"cannot create {self.mcap_path}: {exc}") from None
+
+    def _check_calibration_file(self, p: dict[str, Any]) -> None:
+        """Before the run: the calibration YAML written at its end is neither one of the recordings it is fitted
+        from (``fit_with``, the run's own MCAP) nor an existing file without ``force`` (StartupError); the end of the
+        run checks again (``refit``)."""
+        try:
+            sources = expand_sources(self.mcap_path, self.fit_with)
+            own_dir = self.yaml_path.parent == Path(p["output_dir"])  # created next if missing
+            check_outputs([self.yaml_path], sources, bool(p["force"]), create_dirs=own_dir)
+        except (RefitError, OutputError) as exc:
+            msg = str(exc).replace("give --force", "set force:=true")
+            raise StartupError(f"invalid parameter 'calibration_file': {msg}") from None
 
     def _recorded_namespace(self) -> str:
         """The namespace the recording names its topics under: that of the topics the node subscribes to, after
@@ -394,7 +409,7 @@ class CalibrationNode(Node):
             return EXIT_OK
         try:
             sources = expand_sources(self.mcap_path, self.fit_with)
-            result = refit(sources, self.yaml_path, self.degree, sensor_id=self.p["sensor_id"])
+            result = refit(sources, self.yaml_path, self.degree, sensor_id=self.p["sensor_id"], force=self.p["force"])
         except (RefitError, ValueError, OSError) as exc:
             kept = (f"the recording {self.mcap_path} is kept" if self.mcap_path.exists() else
                     f"the recording {self.mcap_path} no longer exists")

@@ -29,12 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
-from fbg_accel_driver.command_line import version_line
+from fbg_accel_driver.command_line import Terminated, interrupted_status, version_line
 from fbg_accel_driver.sensor_constants import AHT10_SIGMA_C
 
 from . import diagnose_cli
 from . import input_validation as iv
-from .atomic_output import atomic_path, check_output_dir, check_outputs
+from .atomic_output import atomic_path, check_output_dir, check_outputs, committed_outputs
 from .cli_progress import add_progress_option
 from .input_files import check_input, load_recording
 from .table_geometry import STANDARD_GRAVITY
@@ -143,6 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--csv", type=Path, default=DEFAULT_CSV, help=f"measured CSV (default {DEFAULT_CSV}, relative to the cwd)")
     p.add_argument("--md", type=Path, default=DEFAULT_MD, help=f"markdown output (default {DEFAULT_MD})")
     p.add_argument("--png", type=Path, default=DEFAULT_PNG, help=f"plot output (default {DEFAULT_PNG})")
+    _add_force(p)
     p.set_defaults(func=cmd_report_measured)
 
     p = sub.add_parser("dynamic", help="slide run to the chain's dynamics (calibration 'dynamic' section, Bode plot)")
@@ -276,20 +277,19 @@ def cmd_dynamic(args: argparse.Namespace) -> int:
     print(result.report())
     static_cal.dynamic = result.dynamics
     static_cal.fit.setdefault("dynamic_sources", []).append(str(args.recording))
-    with atomic_path(args.output) as tmp:
-        static_cal.save(tmp)
-    ThermalCalibration.load(args.output)  # what was written loads (the driver's own check)
-    if args.bode is not None:
-        from .bode_plot import plot_bode
+    with committed_outputs() as outs:  # the calibration, Bode plot and JSON together or none of them
+        static_cal.save(outs.path(args.output))
+        ThermalCalibration.load(outs.path(args.output))  # what is written loads (the driver's own check)
+        if args.bode is not None:
+            from .bode_plot import plot_bode
 
-        with atomic_path(args.bode) as tmp:
-            plot_bode(result.points, result.models, tmp, title=f"Dynamic calibration: {plan.name}")
-        print(f"wrote {args.bode}")
-    if args.json is not None:
-        with atomic_path(args.json) as tmp:
-            tmp.write_text(json.dumps(result.as_dict(), indent=1, default=_json_default), encoding="utf-8")
-        print(f"wrote {args.json}")
-    print(f"wrote {args.output}")
+            plot_bode(result.points, result.models, outs.path(args.bode), title=f"Dynamic calibration: {plan.name}")
+        if args.json is not None:
+            outs.path(args.json).write_text(json.dumps(result.as_dict(), indent=1, default=_json_default),
+                                            encoding="utf-8")
+    for written in (args.bode, args.json, args.output):
+        if written is not None:
+            print(f"wrote {written}")
     return 0
 
 
@@ -413,13 +413,13 @@ def cmd_allan(args: argparse.Namespace) -> int:
         print(f"note: {AXES[j]}: VRW 60*ADEV(1 s) {res.vrw_mps_per_sqrt_h[j]:.3g} vs white-noise VRW "
               f"{res.white_noise_vrw_mps_per_sqrt_h[j]:.3g} m/s/sqrt(h) (-1/2 line): the noise is not white at 1 s",
               file=sys.stderr)
-    with atomic_path(args.output) as tmp:
-        plot_allan(res, tmp, title=f"Allan deviation of {', '.join(p.name for p in args.inputs)}")
+    with committed_outputs() as outs:  # the plot and the JSON together
+        plot_allan(res, outs.path(args.output), title=f"Allan deviation of {', '.join(p.name for p in args.inputs)}")
+        if args.json:
+            outs.path(args.json).write_text(json.dumps({**res.as_dict(), "breaks": breaks}, indent=2), encoding="utf-8")
     print(res.table_markdown())
     print(f"wrote {args.output}")
     if args.json:
-        with atomic_path(args.json) as tmp:
-            tmp.write_text(json.dumps({**res.as_dict(), "breaks": breaks}, indent=2), encoding="utf-8")
         print(f"wrote {args.json}")
     return 0
 
@@ -445,10 +445,6 @@ def cmd_report(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     stats = pose_statistics(cal, rec, usable & np.isfinite(rec.temp_c))
     report_md, vs_reference_png, per_degree_png = REPORT_FILES
-    with atomic_path(out / vs_reference_png) as tmp:
-        plot_calibrated_vs_reference(cal, rec, usable, tmp)
-    with atomic_path(out / per_degree_png) as tmp:
-        plot_residuals_per_degree(selection, tmp)
     warnings = calibration_match_warnings(cal, rec)
     if (cal.fit or {}).get("reference_range_mps2") is not None:  # files written before it was recorded lack it
         warnings += reference_reach_warnings(cal.fit["reference_range_mps2"])
@@ -457,8 +453,10 @@ def cmd_report(args: argparse.Namespace) -> int:
     text = fit_report_markdown(cal, selection, stats, {"calibrated vs reference": vs_reference_png,
                                                        "residuals per degree": per_degree_png},
                                _command_line(args), recording_sensor_id=sensor_id_of(rec.metadata), warnings=warnings)
-    with atomic_path(out / report_md) as tmp:
-        tmp.write_text(text, encoding="utf-8")
+    with committed_outputs() as outs:  # the report and its two plots are replaced together
+        plot_calibrated_vs_reference(cal, rec, usable, outs.path(out / vs_reference_png))
+        plot_residuals_per_degree(selection, outs.path(out / per_degree_png))
+        outs.path(out / report_md).write_text(text, encoding="utf-8")
     print(selection.table_markdown())
     print("wrote " + ", ".join(str(out / name) for name in REPORT_FILES))
     return 0
@@ -470,7 +468,7 @@ REPORT_FILES = ("report.md", "calibrated_vs_reference.png", "residuals_per_degre
 def cmd_report_measured(args: argparse.Namespace) -> int:
     from .measured_report import main_args
 
-    return main_args(args.csv, args.md, args.png, argv=getattr(args, "argv", None))
+    return main_args(args.csv, args.md, args.png, argv=getattr(args, "argv", None), force=args.force)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -482,9 +480,10 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError) as exc:
         print(f"fbg-accel-calib {args.command}: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"fbg-accel-calib {args.command}: interrupted; no output written", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM through cli_main (Terminated): outputs rolled back
+        print(f"fbg-accel-calib {args.command}: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}; "
+              "no output written", file=sys.stderr)
+        return interrupted_status(exc)
 
 
 if __name__ == "__main__":

@@ -81,3 +81,42 @@ def one_line(text: str) -> str:
     """Fold a multi-line message (e.g. a YAML parser error with its caret lines) into one line."""
     parts = [ln.strip() for ln in text.splitlines()]
     return " ".join(p for p in parts if p and set(p) != {"^"})
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM raised as an interruption (like Ctrl-C's ``KeyboardInterrupt``), so that every ``finally`` and every
+    temporary-file clean-up runs; the exit status is ``128 + SIGTERM`` (143)."""
+
+
+def interrupted_status(exc: KeyboardInterrupt) -> int:
+    """Exit status of a run ended by ``exc``: 143 for SIGTERM (:class:`Terminated`), 130 for Ctrl-C."""
+    import signal
+
+    return 128 + (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT)
+
+
+def exit_quietly_on_interrupt(prog: str) -> None:
+    """First thing in an entry point, before its heavy imports (numpy, matplotlib, rclpy: up to ~1 s): Ctrl-C or
+    SIGTERM then ends the process at once with one line and status 130 / 143 instead of a ``KeyboardInterrupt``
+    traceback out of some import. Nothing is written yet at that stage, so nothing needs cleaning up."""
+    import os
+    import signal
+
+    def leave(signum: int, frame: object) -> None:
+        os.write(2, f"{prog}: interrupted\n".encode())
+        os._exit(128 + signum)
+
+    signal.signal(signal.SIGINT, leave)
+    signal.signal(signal.SIGTERM, leave)
+
+
+def raise_on_interrupt() -> None:
+    """Once the entry point's own error handling is in place: Ctrl-C raises ``KeyboardInterrupt`` and SIGTERM
+    :class:`Terminated`, so that the outputs being written are cleaned up (``atomic_output``)."""
+    import signal
+
+    def terminated(signum: int, frame: object) -> None:
+        raise Terminated
+
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, terminated)

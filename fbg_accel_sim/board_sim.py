@@ -3,7 +3,14 @@
 Serves the board's binary frames on a pseudo-terminal in real time and prints exactly one line
 ``PTY <path>`` on stdout once the port is ready; or, with ``--output FILE``, writes the same byte
 stream to a file as fast as it can. ``--truth FILE.npz`` saves the truth arrays and the fault
-counters (what a decoder must report). SIGTERM/SIGINT end the run cleanly (truth is written).
+counters (what a decoder must report). On a pty, SIGTERM/SIGINT end the run cleanly (truth is written);
+with ``--output`` they abandon it (exit 130 / 143, neither file written: a shortened stream is not the
+run asked for).
+
+Outputs never destroy data (``fbg_accel_calibration.atomic_output``): ``--output`` and ``--truth`` are
+refused if they exist (unless ``--force``), name an input (``--config``, ``--dynamic-plan``) or each
+other, and are written to temporary files renamed together at the end; ``--link`` is refused if
+something other than a symbolic link is at its path (it is replaced by a link and removed at exit).
 
 Examples::
 
@@ -16,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import signal
 import sys
 from pathlib import Path
@@ -43,7 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=None, help="board sample rate in Hz (scenario.rate_hz)")
     p.add_argument("--output", help="write the byte stream to this file instead of a pty (not paced)")
     p.add_argument("--truth", help="write truth arrays and fault counters to this .npz at exit")
-    p.add_argument("--link", help="symlink kept pointing at the current pty slave (re-pointed after a disconnect)")
+    p.add_argument("--link", help="symlink kept pointing at the current pty slave (re-pointed after a disconnect); "
+                                  "refused if a file or directory is at that path")
+    p.add_argument("--force", action="store_true", help="replace existing --output / --truth files (default: refuse)")
     p.add_argument("--no-wait-client", action="store_true",
                    help="start streaming at once instead of when a client first opens the pty (board reset on open)")
     p.add_argument("--print-config", action="store_true", help="print the merged config as YAML and exit")
@@ -75,9 +85,25 @@ def load_config(args: argparse.Namespace) -> SimConfig:
     return cfg.with_overrides(overrides) if overrides else cfg
 
 
+def check_outputs(args: argparse.Namespace) -> None:
+    """Before any simulation: the outputs destroy nothing (module docstring). Raises ``OutputError``."""
+    from fbg_accel_calibration.atomic_output import OutputError
+    from fbg_accel_calibration.atomic_output import check_outputs as check
+
+    inputs = [p for p in (args.config, args.dynamic_plan) if p]
+    check([p and Path(p) for p in (args.output, args.truth)], inputs, args.force)
+    if args.link and os.path.lexists(args.link) and not os.path.islink(args.link):
+        raise OutputError(f"--link {args.link}: a {'directory' if os.path.isdir(args.link) else 'file'} is at that "
+                          "path; give a path that is free or a symbolic link (the link is replaced and removed at "
+                          "exit)")
+
+
 def main(argv: list[str] | None = None) -> int:
+    from fbg_accel_calibration.atomic_output import committed_outputs
+
     args = build_parser().parse_args(argv)
     try:
+        check_outputs(args)
         cfg = load_config(args)
         if args.print_config:
             print(cfg.to_yaml())
@@ -87,40 +113,45 @@ def main(argv: list[str] | None = None) -> int:
         print(f"board_sim: error: {exc}", file=sys.stderr)
         return 2
 
-    stop = {"flag": False}
+    stop = {"signal": 0}
 
     def on_signal(signum, frame):
-        stop["flag"] = True
+        stop["signal"] = signum
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     truth = TruthRecorder() if args.truth else None
     duration = sim.duration_s
     extra: dict = {"disconnect_windows_s": [[t, t + d] for t, d in sim.disconnects] or [[math.nan, math.nan]]}
+    if args.output and not math.isfinite(duration):
+        print("board_sim: error: --output needs a finite run: give --duration (the scenario never ends)",
+              file=sys.stderr)
+        return 2
     try:
-        if args.output:
-            if not math.isfinite(duration):
-                print("board_sim: error: --output needs a finite run: give --duration (the scenario never ends)",
-                      file=sys.stderr)
-                return 2
-            n_total = sim.samples_for(duration)
-            with open(args.output, "wb") as fh:
-                while sim.sample_index < n_total and not stop["flag"]:
-                    block = sim.step(min(65536, n_total - sim.sample_index))
-                    fh.write(block.wire_bytes())
-                    if truth is not None:
-                        truth.add(block)
-        else:
-            stats = serve_pty(sim, duration, args.link, truth, lambda: stop["flag"],
-                              announce=lambda line: print(line, flush=True), wait_client=not args.no_wait_client)
-            extra.update({k: stats[k] for k in ("reconnects", "overflow_bytes", "written_bytes", "frames_lost_no_client",
-                                                "unplug_unread_bytes")})
-    except OSError as exc:
+        with committed_outputs() as outs:
+            if args.output:
+                n_total = sim.samples_for(duration)
+                with open(outs.path(args.output), "wb") as fh:
+                    while sim.sample_index < n_total and not stop["signal"]:
+                        block = sim.step(min(65536, n_total - sim.sample_index))
+                        fh.write(block.wire_bytes())
+                        if truth is not None:
+                            truth.add(block)
+                if stop["signal"]:
+                    raise KeyboardInterrupt  # the outputs are discarded
+            else:
+                stats = serve_pty(sim, duration, args.link, truth, lambda: bool(stop["signal"]),
+                                  announce=lambda line: print(line, flush=True), wait_client=not args.no_wait_client)
+                extra.update({k: stats[k] for k in ("reconnects", "overflow_bytes", "written_bytes",
+                                                    "frames_lost_no_client", "unplug_unread_bytes")})
+            if truth is not None:
+                truth.save(outs.path(args.truth), sim, extra)
+    except KeyboardInterrupt:
+        print("board_sim: interrupted; no output written", file=sys.stderr)
+        return 128 + (stop["signal"] or signal.SIGINT)
+    except (OSError, ValueError) as exc:
         print(f"board_sim: error: {exc}", file=sys.stderr)
         return 1
-    finally:
-        if truth is not None:
-            truth.save(Path(args.truth), sim, extra)
     return 0
 
 

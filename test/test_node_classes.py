@@ -313,3 +313,46 @@ def test_calibration_node_never_overwrites_a_recording(make_calibration: Any, tm
     with pytest.raises(StartupError, match=r"taken\.mcap exists; choose another run_label"):
         make_calibration(run_label="taken")
     assert (tmp_path / "taken.mcap").read_bytes() == b"earlier run"
+
+
+def test_calibration_node_never_writes_its_calibration_over_a_recording_or_an_existing_file(
+        make_calibration: Any, tmp_path: Path) -> None:
+    """Issue 42, item 1: ``-p fit_with:=[prev.mcap] -p calibration_file:=prev.mcap`` ended with "calibration
+    written to prev.mcap" (a 1.5 MB recording became a 5 KB YAML); so did calibration_file naming the run's own
+    MCAP, and an existing file was replaced without asking. All three are refused before anything is recorded."""
+    prev = tmp_path / "prev.mcap"
+    prev.write_bytes(b"an earlier level's recording")
+    old = tmp_path / "old.yaml"
+    old.write_text("an earlier calibration")
+    cases = [({"fit_with": [str(prev)], "calibration_file": str(prev)}, "output is the input file"),
+             ({"fit_with": [str(tmp_path / "p*.mcap")], "calibration_file": str(tmp_path / "." / "prev.mcap")},
+              "output is the input file"),
+             ({"calibration_file": str(tmp_path / "inproc.mcap")}, "output is the input file"),
+             ({"calibration_file": str(old)}, "exists; set force:=true to replace it"),
+             ({"calibration_file": str(tmp_path / "nodir" / "c.yaml")}, "does not exist")]
+    for values, message in cases:
+        with pytest.raises(StartupError) as err:
+            make_calibration(**values)
+        assert "invalid parameter 'calibration_file'" in str(err.value) and message in str(err.value), str(err.value)
+        assert not (tmp_path / "inproc.mcap").exists()
+    assert prev.read_bytes() == b"an earlier level's recording" and old.read_text() == "an earlier calibration"
+    node = make_calibration(calibration_file=str(old), force=True)  # accepted with force
+    assert node.yaml_path == old
+    dynamic = make_calibration(plan_file=str(REPO / "config" / "excitation_plan_stepped_sine.yaml"), run_label="dyn",
+                               calibration_file=str(prev))  # a dynamic run writes no calibration: nothing to refuse
+    assert dynamic.dynamic
+
+
+def test_refit_refuses_an_input_or_an_existing_output_at_the_end_of_the_run(tmp_path: Path) -> None:
+    """The end-of-run fit checks again (a file may have appeared during the run)."""
+    from fbg_accel_calibration.atomic_output import OutputError
+    from fbg_accel_calibration.run_refit import refit
+
+    run = tmp_path / "run.mcap"
+    run.write_bytes(b"recording")
+    late = tmp_path / "late.yaml"
+    late.write_text("appeared during the run")
+    for out, message in ((run, "output is the input file"), (late, "exists")):
+        with pytest.raises(OutputError, match=message):
+            refit([str(run)], out)
+    assert run.read_bytes() == b"recording" and late.read_text() == "appeared during the run"
