@@ -33,7 +33,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState, Temperature
 from std_srvs.srv import Trigger
 
-from fbg_accel_driver.command_line import StartupError
+from fbg_accel_driver.command_line import StartupError, check_name_text
 from fbg_accel_driver.driver_core import RAW_AUX_NAME
 from fbg_accel_driver.node_support import declare_parameters, init_ros, refuse_unknown_parameters, signals_to
 from fbg_accel_driver.yaml_input import YamlFileError, read_yaml_file
@@ -253,6 +253,10 @@ class CalibrationNode(Node):
         refuse_unknown_parameters(self, "calibration")  # before any file is created
         if not values["plan_file"]:
             raise StartupError("parameter 'plan_file' is required (e.g. -p plan_file:=config/pose_plan_six_position.yaml)")
+        try:
+            check_name_text(values["sensor_id"], "sensor id")
+        except ValueError as exc:
+            raise StartupError(f"invalid parameter 'sensor_id': {exc}") from None
         for name in ("still_window_s", "still_hold_s", "noise_learn_s", "motion_expect_g"):
             if not (math.isfinite(values[name]) and values[name] > 0):
                 raise StartupError(f"invalid parameter '{name}': {values[name]} (must be > 0)")

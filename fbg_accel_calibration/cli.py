@@ -88,7 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_csv_options(p)
     p.add_argument("--drop-bad-rows", action="store_true",
                    help="import the good rows and list every rejected line (default: reject the file)")
-    p.add_argument("--sensor-id", default="unknown", help="sensor id stored in the MCAP metadata (default unknown)")
+    p.add_argument("--sensor-id", type=iv.sensor_id, default="unknown",
+                   help="sensor id stored in the MCAP metadata (default unknown)")
     p.add_argument("--notes", default="", help="operator notes stored in the MCAP metadata")
     p.add_argument("--start-time", type=iv.start_time_ns, default=None,
                    help="ROS time of the first row: ISO 8601 with zone (2026-11-20T09:30:00Z) or seconds since 1970; "
@@ -103,7 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--degree", type=iv.degree, default=None, help="force the degree n (default: held-out cross-validation)")
     p.add_argument("--max-degree", type=iv.degree, default=iv.DEFAULT_MAX_DEGREE,
                    help=f"largest degree scored (default {iv.DEFAULT_MAX_DEGREE}, as paper Table 4)")
-    p.add_argument("--sensor-id", default=None,
+    p.add_argument("--sensor-id", type=iv.sensor_id, default=None,
                    help="sensor id written into the calibration (default: the recordings' own, else unknown)")
     add_topic_options(p)
     p.add_argument("--in-memory", action="store_true",

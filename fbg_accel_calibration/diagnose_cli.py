@@ -66,7 +66,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "50000, diagnose.SEARCH_ROWS; k no larger than keeps 80 %% of what a visit's samples tell of "
                         "its mean); 0: on every sample (slower; an effect seen only in the first tenths of a second "
                         "of each visit, as the TIA's, keeps all its samples)")
-    p.add_argument("--sensor-id", default=None,
+    p.add_argument("--sensor-id", type=iv.sensor_id, default=None,
                    help="sensor id written into --yaml (default: the recordings' own, else unknown)")
     p.add_argument("--out", type=Path, default=None, help="markdown report (PNG plots go to --img-dir)")
     p.add_argument("--img-dir", type=Path, default=None, help="directory for the PNG plots (default: <out dir>/img)")

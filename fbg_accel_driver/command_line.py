@@ -120,3 +120,19 @@ def raise_on_interrupt() -> None:
 
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, terminated)
+
+
+def printable(text: str) -> str:
+    """``text`` as is when every character is printable, else with its control characters (ANSI escape sequences,
+    line breaks) written as escapes (``\\x1b``, ``\\n``): safe to echo in a one-line message or a log."""
+    return text if text.isprintable() else text.encode("unicode_escape").decode("ascii")
+
+
+def check_name_text(text: str, what: str) -> str:
+    """``text`` if it holds no control character; else ``ValueError`` naming ``what`` with the value escaped. For
+    names that are echoed and stored (a sensor_id: an ANSI escape sequence or a line break in it would recolour or
+    forge lines of a terminal, a log or a report)."""
+    if not text.isprintable():
+        raise ValueError(f"{what} '{printable(text)}' holds control characters (escape sequences, line breaks); "
+                         "use printable characters only")
+    return text

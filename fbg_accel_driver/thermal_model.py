@@ -32,6 +32,7 @@ import numpy as np
 import yaml
 
 from .chain_compensation import ChainDynamics
+from .command_line import check_name_text
 from .correction_terms import CorrectionTerm, TermInputs, correction_from_dict
 from .mapping_fields import format_version, number, number_array, refuse_unknown, same_values
 from .sensor_constants import AHT10_SIGMA_C, FULL_SCALE_MPS2
@@ -631,6 +632,11 @@ def _text(d: dict[str, Any], key: str, max_chars: int, fail: Callable[[str], Cal
         raise fail(f"'{key}' must be a string, got {type(v).__name__} {v!r:.40} (quote it in the YAML)")
     if len(v) > max_chars:
         raise fail(f"'{key}' has {len(v)} characters, at most {max_chars} are accepted")
+    if key != "notes":  # echoed by the driver and the tools: no escape sequence, no line break
+        try:
+            check_name_text(v, f"'{key}'")
+        except ValueError as exc:
+            raise fail(str(exc)) from None
     return v
 
 

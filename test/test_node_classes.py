@@ -298,6 +298,8 @@ def test_calibration_node_aborted_run_closes_its_recording_with_status_interrupt
     ({"fit": "yes"}, "invalid parameter 'fit': "),
     ({"run_label": "a/b"}, "invalid parameter 'run_label': 'a/b'"),
     ({"fit_degre": 2}, "unknown parameter 'fit_degre' (did you mean 'fit_degree'?)"),
+    ({"sensor_id": "acc\x1b[31m4\nforged"}, "invalid parameter 'sensor_id': sensor id 'acc\\x1b[31m4\\nforged' holds "
+                                              "control characters"),
 ])
 def test_calibration_node_refuses_a_bad_parameter_with_one_clear_message(make_calibration: Any, values: dict[str, Any],
                                                                         message: str, tmp_path: Path) -> None:

@@ -177,3 +177,15 @@ def test_tools_answer_a_hostile_yaml_with_one_line_and_exit_2(tmp_path: Path, ar
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
     assert str(deep if "{deep}" in " ".join(argv) else date) in lines[0] or "--set" in lines[0], lines[0]
+
+
+def test_a_recording_input_that_is_a_fifo_or_a_device_is_named_as_such(tmp_path: Path) -> None:
+    """``fit FIFO`` and ``fit /dev/zero`` said "file not found"."""
+    from fbg_accel_calibration.input_files import check_input
+
+    fifo = tmp_path / "run.mcap"
+    os.mkfifo(fifo)
+    for path, kind in ((fifo, "a FIFO (named pipe), not a recording"), (Path("/dev/zero"), "a character device")):
+        with pytest.raises(ValueError) as info:
+            check_input(path)
+        assert kind in check_one_line(info.value, path)
