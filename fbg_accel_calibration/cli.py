@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fbg_accel_driver.command_line import Terminated, interrupted_status, version_line
+from fbg_accel_driver.command_line import OneLineErrorParser, Terminated, interrupted_status, version_line
 from fbg_accel_driver.sensor_constants import AHT10_SIGMA_C
 
 from . import diagnose_cli
@@ -38,13 +38,6 @@ from .atomic_output import atomic_path, check_output_dir, check_outputs, committ
 from .cli_progress import add_progress_option
 from .input_files import check_input, load_recording
 from .table_geometry import STANDARD_GRAVITY
-
-
-class OneLineErrorParser(argparse.ArgumentParser):
-    """argparse parser whose usage errors are one line (option, value, accepted range) and exit 2."""
-
-    def error(self, message: str) -> None:  # type: ignore[override]
-        self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
 
 
 def _add_force(p: argparse.ArgumentParser) -> None:

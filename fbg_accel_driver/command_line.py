@@ -2,10 +2,18 @@
 
 from __future__ import annotations
 
+import argparse
 from collections.abc import Callable, Iterable
 from typing import Any
 
 DISTRIBUTION = "fbg_accel_driver"  # the setup.py ``name`` whose metadata carries the version
+
+
+class OneLineErrorParser(argparse.ArgumentParser):
+    """argparse parser whose usage errors are one line (option, value, accepted range) and exit 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
 
 
 def print_help_or_version(prog: str, argv: list[str], usage: Callable[[], str]) -> bool:

@@ -26,17 +26,24 @@ import math
 import os
 import signal
 import sys
+import warnings
 from pathlib import Path
 
-from fbg_accel_driver.command_line import version_line
+from fbg_accel_calibration import input_validation as iv
+from fbg_accel_driver.command_line import OneLineErrorParser, one_line, version_line
 
 from .board_physics import BoardSimulator
 from .pty_server import TruthRecorder, serve_pty
 from .sim_config import SimConfig, SimConfigError, parse_set_argument
 
+# Bounds of the options (a hostile value is refused in one line, never a traceback or a run without end): frames
+# of >= 14 bytes at the fastest baud rate the driver accepts (4 Mbaud) cannot exceed ~28 kHz; a year of samples.
+MAX_RATE_HZ = 1e5
+MAX_DURATION_S = 3.2e7
+
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="board_sim",
+    p = OneLineErrorParser(prog="board_sim",
                                 description="Simulated FBG accelerometer board (binary frames v1, or v2 with the aux channel).")
     p.add_argument("--config", help="simulator config YAML merged on config/sim_default.yaml")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -44,11 +51,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dynamic-plan", metavar="FILE",
                    help="run an excitation plan (fbg_accel_excitation_plan YAML: slide + reference transducer on the "
                         "aux channel, protocol version 2), e.g. config/excitation_plan_stepped_sine.yaml")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--duration", type=float, default=None,
+    p.add_argument("--seed", type=iv.seed, default=0, help="random seed (default 0)")
+    p.add_argument("--duration", type=iv.float_in(0.0, MAX_DURATION_S, "s", lo_open=True), default=None,
                    help="seconds to run (default: the scenario's end, or until killed; with --dynamic-plan until killed "
                         "on a pty, the plan + 2 s to --output)")
-    p.add_argument("--rate", type=float, default=None, help="board sample rate in Hz (scenario.rate_hz)")
+    p.add_argument("--rate", type=iv.float_in(0.0, MAX_RATE_HZ, "Hz", lo_open=True), default=None,
+                   help="board sample rate in Hz (scenario.rate_hz)")
     p.add_argument("--output", help="write the byte stream to this file instead of a pty (not paced)")
     p.add_argument("--truth", help="write truth arrays and fault counters to this .npz at exit")
     p.add_argument("--link", help="symlink kept pointing at the current pty slave (re-pointed after a disconnect); "
@@ -108,9 +116,18 @@ def main(argv: list[str] | None = None) -> int:
         if args.print_config:
             print(cfg.to_yaml())
             return 0
-        sim = BoardSimulator(cfg, seed=args.seed)
+        with warnings.catch_warnings(record=True) as held:  # numpy's warnings on an absurd value: shown if it runs
+            warnings.simplefilter("always")
+            sim = BoardSimulator(cfg, seed=args.seed)
+            if not 0 < sim.rate_hz <= MAX_RATE_HZ:
+                raise ValueError(f"scenario.rate_hz = {sim.rate_hz:g} is outside (0, {MAX_RATE_HZ:g}] Hz")
+        for w in held:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     except (SimConfigError, ValueError, OSError) as exc:
-        print(f"board_sim: error: {exc}", file=sys.stderr)
+        print(f"board_sim: error: {one_line(str(exc))}", file=sys.stderr)
+        return 2
+    except (TypeError, ArithmeticError) as exc:  # a --set / --config value of the wrong kind or size
+        print(f"board_sim: error: invalid simulator configuration: {one_line(str(exc))}", file=sys.stderr)
         return 2
 
     stop = {"signal": 0}
