@@ -97,12 +97,13 @@ def is_stream(path: Path | str) -> bool:
 def _check_writable(out: Path) -> None:
     """Refuse ``out`` when its directory takes no new file (read-only directory or file system, no permission),
     by trying: ``os.access`` says yes to root on a read-only mount."""
-    try:
-        fd, probe = tempfile.mkstemp(prefix=".write-check.", dir=out.parent)
-    except OSError as exc:
-        raise OutputError(f"{out}: cannot write in {out.parent} ({exc.strerror or exc})") from None
-    os.close(fd)
-    os.unlink(probe)
+    with _signals_held():  # the probe never stays behind
+        try:
+            fd, probe = tempfile.mkstemp(prefix=".write-check.", dir=out.parent)
+        except OSError as exc:
+            raise OutputError(f"{out}: cannot write in {out.parent} ({exc.strerror or exc})") from None
+        os.close(fd)
+        os.unlink(probe)
 
 
 def check_output_dir(out_dir: Path, files: Iterable[str], inputs: Iterable[Path | str], force: bool = False) -> None:
@@ -137,15 +138,15 @@ class OutputSet:
             return self._staged[output]
         if is_stream(output):
             return output  # /dev/null, a FIFO: written through (a rename would replace the device node)
-        try:
-            fd, tmp_name = tempfile.mkstemp(prefix=f".{output.stem}.", suffix=f".part{output.suffix}",
-                                            dir=output.parent)
-        except OSError as exc:  # named by the user's path, not the temporary one
-            raise OutputError(f"{output}: cannot write in {output.parent} ({exc.strerror or exc})") from None
-        os.close(fd)
-        tmp = Path(tmp_name)
+        with _signals_held():  # a Ctrl-C between creating the file and recording it here would leave it behind
+            try:
+                fd, tmp_name = tempfile.mkstemp(prefix=f".{output.stem}.", suffix=f".part{output.suffix}",
+                                                dir=output.parent)
+            except OSError as exc:  # named by the user's path, not the temporary one
+                raise OutputError(f"{output}: cannot write in {output.parent} ({exc.strerror or exc})") from None
+            tmp = self._staged[output] = Path(tmp_name)
+            os.close(fd)
         os.chmod(tmp, 0o644)  # mkstemp makes it 0600; the output gets the usual permissions
-        self._staged[output] = tmp
         return tmp
 
     def commit(self) -> None:
@@ -154,8 +155,9 @@ class OutputSet:
         backups: dict[Path, Path | None] = {}
         done: list[Path] = []
         try:
-            for output in self._staged:
-                backups[output] = _backup(output)
+            with _signals_held():  # no backup link left behind by a Ctrl-C between its creation and this record
+                for output in self._staged:
+                    backups[output] = _backup(output)
             for output, tmp in self._staged.items():
                 os.replace(tmp, output)
                 done.append(output)
