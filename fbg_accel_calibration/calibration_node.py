@@ -183,7 +183,11 @@ class CalibrationNode(Node):
             raise StartupError(f"invalid parameter 'run_label': {label!r} (letters, digits, _ . + - only)")
         self.mcap_path = out_dir / f"{label}.mcap"
         self.yaml_path = Path(p["calibration_file"]) if p["calibration_file"] else out_dir / f"{label}_calibration.yaml"
-        if self.mcap_path.exists() or self.mcap_path.is_symlink():
+        try:
+            taken = self.mcap_path.exists() or self.mcap_path.is_symlink()
+        except (OSError, ValueError) as exc:  # a name too long, a NUL character
+            raise StartupError(f"invalid parameter 'output_dir' or 'run_label': {self.mcap_path}: {exc}") from None
+        if taken:
             raise StartupError(f"{self.mcap_path} exists; choose another run_label (a recording is never overwritten)")
         if p["fit"] and not self.dynamic:
             self._check_calibration_file(p)
@@ -208,7 +212,7 @@ class CalibrationNode(Node):
             sources = expand_sources(self.mcap_path, self.fit_with)
             own_dir = self.yaml_path.parent == Path(p["output_dir"])  # created next if missing
             check_outputs([self.yaml_path], sources, bool(p["force"]), create_dirs=own_dir)
-        except (RefitError, OutputError) as exc:
+        except (RefitError, OutputError, OSError, ValueError) as exc:  # OSError, ValueError: a name too long, a NUL
             msg = str(exc).replace("give --force", "set force:=true")
             raise StartupError(f"invalid parameter 'calibration_file': {msg}") from None
 

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fbg_accel_driver.command_line import OneLineErrorParser, Terminated, interrupted_status, version_line
+from fbg_accel_driver.command_line import OneLineErrorParser, Terminated, interrupted_status, printable, version_line
 from fbg_accel_driver.sensor_constants import AHT10_SIGMA_C
 
 from . import diagnose_cli
@@ -472,7 +472,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except (OSError, ValueError) as exc:
-        print(f"fbg-accel-calib {args.command}: {exc}", file=sys.stderr)
+        print(f"fbg-accel-calib {args.command}: {printable(str(exc))}", file=sys.stderr)  # a path's ESC escaped
         return 2
     except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM through cli_main (Terminated): outputs rolled back
         print(f"fbg-accel-calib {args.command}: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}; "

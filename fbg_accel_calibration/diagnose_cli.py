@@ -18,6 +18,8 @@ import shlex
 import sys
 from pathlib import Path
 
+from fbg_accel_driver.command_line import printable
+
 from . import input_validation as iv
 from .cli_progress import add_progress_option
 
@@ -146,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
         rec = load_recording(args.inputs, rate=args.rate, temperature=args.temperature, g=args.g,
                              namespace=args.namespace, topic=args.topic)
     except (OSError, ValueError) as exc:
-        print(f"fbg-accel-calib diagnose: {exc}", file=sys.stderr)
+        print(f"fbg-accel-calib diagnose: {printable(str(exc))}", file=sys.stderr)
         return 2
     # the recordings' own id (their run records; before: a top-level key MCAP recordings do not have, so 'unknown')
     sensor_id = args.sensor_id or sensor_id_of(rec.metadata) or "unknown"
@@ -173,7 +175,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         written = write_outputs(res, args, command)
     except (OSError, ValueError) as exc:
-        print(f"fbg-accel-calib diagnose: {exc}", file=sys.stderr)
+        print(f"fbg-accel-calib diagnose: {printable(str(exc))}", file=sys.stderr)
         return 2
     for p in written:
         print(f"wrote {p}")

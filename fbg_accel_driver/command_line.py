@@ -77,7 +77,12 @@ def unknown_parameters(given: Iterable[str], declared: Iterable[str]) -> list[st
 
 
 class StartupError(Exception):
-    """A configuration problem that stops a node's start-up with one clear message (exit status 2)."""
+    """A configuration problem that stops a node's start-up with one clear message (exit status 2). Control
+    characters of the message (a parameter's escape sequence or line break echoed in it) are escaped
+    (:func:`printable`): it is printed and logged as it is."""
+
+    def __init__(self, message: str = "") -> None:
+        super().__init__(printable(str(message)))
 
 
 def first_line(exc: BaseException) -> str:

@@ -124,6 +124,8 @@ def file_kind(path: Path | str) -> str | None:
     reader say what it was given instead of "not found", and never block on a FIFO or read ``/dev/zero``."""
     try:
         mode = os.stat(path).st_mode
+    except ValueError:  # a NUL character in the name
+        return "not a valid path (it holds a NUL character)"
     except FileNotFoundError:
         return "not found" if not os.path.islink(path) else "a dangling symbolic link"
     except OSError as exc:

@@ -30,7 +30,7 @@ import warnings
 from pathlib import Path
 
 from fbg_accel_calibration import input_validation as iv
-from fbg_accel_driver.command_line import OneLineErrorParser, one_line, version_line
+from fbg_accel_driver.command_line import OneLineErrorParser, one_line, printable, version_line
 
 from .board_physics import BoardSimulator
 from .pty_server import TruthRecorder, serve_pty
@@ -124,10 +124,10 @@ def main(argv: list[str] | None = None) -> int:
         for w in held:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     except (SimConfigError, ValueError, OSError) as exc:
-        print(f"board_sim: error: {one_line(str(exc))}", file=sys.stderr)
+        print(f"board_sim: error: {printable(one_line(str(exc)))}", file=sys.stderr)
         return 2
     except (TypeError, ArithmeticError) as exc:  # a --set / --config value of the wrong kind or size
-        print(f"board_sim: error: invalid simulator configuration: {one_line(str(exc))}", file=sys.stderr)
+        print(f"board_sim: error: invalid simulator configuration: {printable(one_line(str(exc)))}", file=sys.stderr)
         return 2
 
     stop = {"signal": 0}
@@ -167,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         print("board_sim: interrupted; no output written", file=sys.stderr)
         return 128 + (stop["signal"] or signal.SIGINT)
     except (OSError, ValueError) as exc:
-        print(f"board_sim: error: {exc}", file=sys.stderr)
+        print(f"board_sim: error: {printable(str(exc))}", file=sys.stderr)
         return 1
     return 0
 

@@ -358,3 +358,37 @@ def test_refit_refuses_an_input_or_an_existing_output_at_the_end_of_the_run(tmp_
         with pytest.raises(OutputError, match=message):
             refit([str(run)], out)
     assert run.read_bytes() == b"recording" and late.read_text() == "appeared during the run"
+
+
+HOSTILE_BY_TYPE: dict[str, list[Any]] = {
+    "string": ["", "acc\x1b[31m4", "a\nb", "x" * 5000, "/dev/zero", "{dir}", "../../x", "\x00"],
+    "integer": [-1, -(2**62), 2**62, 7],
+    "double": [float("nan"), float("inf"), -1.0, 0.0, 1e300, 5e-324],
+    "bool": ["yes", 1],
+    "string_array": [["", "/dev/zero"], ["{dir}"], ["x" * 5000], ["*"]],
+    "double_array": [[float("nan")] * 3, [1.0], [-1.0, 0.0, 1e300], []],
+}
+
+
+def test_calibration_node_parameters_hostile_values_start_or_refuse_in_one_line(make_calibration: Any,
+                                                                               tmp_path: Path) -> None:
+    """Issue 42: the hostile-input property of the tools, for the node's parameters: every value of every parameter
+    either starts the node or is a StartupError of one line that shows no control character raw."""
+    n = 0
+    for name, (typ, _default, _desc) in calibration_main.PARAMETERS.items():
+        for value in HOSTILE_BY_TYPE[typ]:
+            n += 1
+            if isinstance(value, str):
+                value = value.replace("{dir}", str(tmp_path))
+            elif isinstance(value, list):
+                value = [v.replace("{dir}", str(tmp_path)) if isinstance(v, str) else v for v in value]
+            if typ == "double_array" and not value:
+                continue  # rclpy cannot type an empty list
+            values = {"run_label": f"h{n}", name: value} if name != "run_label" else {name: value}
+            try:
+                node = make_calibration(**values)
+            except StartupError as exc:
+                msg = str(exc)
+                assert "\n" not in msg and not any(c in msg for c in "\x1b\x00"), (name, value, msg)
+                continue
+            assert node.recorder is not None, (name, value)
