@@ -59,6 +59,7 @@ def check_outputs(outputs: Iterable[Path | None], inputs: Iterable[Path | str], 
     Raises :class:`OutputError`."""
     ins = [Path(p) for p in inputs]
     outs = [Path(p) for p in outputs if p is not None]
+    writable: set[Path] = set()  # directories already probed
     for i, out in enumerate(outs):
         for src in ins:
             if _same(out, src):
@@ -82,7 +83,9 @@ def check_outputs(outputs: Iterable[Path | None], inputs: Iterable[Path | str], 
                 raise OutputError(f"{out}: is not a regular file; give a file name")
             if not force:
                 raise OutputError(f"{out}: exists; give --force to replace it, or another name")
-        _check_writable(out)
+        if parent not in writable:
+            _check_writable(out)
+            writable.add(parent)
 
 
 def is_stream(path: Path | str) -> bool:
