@@ -371,9 +371,13 @@ HOSTILE_BY_TYPE: dict[str, list[Any]] = {
 
 
 def test_calibration_node_parameters_hostile_values_start_or_refuse_in_one_line(make_calibration: Any,
-                                                                               tmp_path: Path) -> None:
+                                                                               tmp_path: Path,
+                                                                               monkeypatch: pytest.MonkeyPatch) -> None:
     """Issue 42: the hostile-input property of the tools, for the node's parameters: every value of every parameter
     either starts the node or is a StartupError of one line that shows no control character raw."""
+    work = tmp_path / "w1" / "w2"  # relative names (output_dir "a\nb", "../../x") land under tmp_path
+    work.mkdir(parents=True)
+    monkeypatch.chdir(work)
     n = 0
     for name, (typ, _default, _desc) in calibration_main.PARAMETERS.items():
         for value in HOSTILE_BY_TYPE[typ]:
