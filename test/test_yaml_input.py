@@ -163,8 +163,6 @@ def test_read_yaml_file_bounds_the_size_before_parsing(tmp_path: Path) -> None:
 @pytest.mark.parametrize("argv", [
     ["board_sim", "--config", "{deep}"],
     ["board_sim", "--set", "scenario.rate_hz=" + DEEP],
-    ["board_sim", "--dynamic-plan", "{deep}"],
-    ["fbg-accel-calib", "dynamic", "rec.mcap", "--plan", "{deep}", "--calibration", "c.yaml", "-o", "out.yaml"],
     ["fbg-accel-calib", "dynamic", "rec.mcap", "--plan", "{date}", "--calibration", "c.yaml", "-o", "out.yaml"],
 ])
 def test_tools_answer_a_hostile_yaml_with_one_line_and_exit_2(tmp_path: Path, argv: list[str]) -> None:
