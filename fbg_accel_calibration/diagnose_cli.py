@@ -107,25 +107,13 @@ def check_diagnose_outputs(args: argparse.Namespace) -> None:
 def write_outputs(res, args: argparse.Namespace, command: str) -> list[Path]:
     """Markdown report, its PNGs and the YAML, each written to a temporary file; all renamed together when all
     are written (an interrupted run replaces none of them: no fresh plots beside a stale report)."""
-    import os
-    import tempfile
-
     from .atomic_output import committed_outputs
-    from .diagnose_report import markdown, write_plots
+    from .diagnose_report import write_report
 
     written: list[Path] = []
     with committed_outputs() as outs:
         if args.out is not None:
-            img = _img_dir(args)
-            args.out.parent.mkdir(parents=True, exist_ok=True)
-            img.mkdir(parents=True, exist_ok=True)
-            with tempfile.TemporaryDirectory(dir=img, prefix=".plots.") as tmp_dir:
-                for p in write_plots(res, tmp_dir):
-                    os.replace(p, outs.path(img / p.name))
-                    written.append(img / p.name)
-            rel = os.path.relpath(img, args.out.parent).replace(os.sep, "/")
-            outs.path(args.out).write_text(markdown(res, command, img_prefix=f"{rel}/"), encoding="utf-8")
-            written.insert(0, args.out)
+            written += write_report(res, args.out, _img_dir(args), command, outs)
         if args.yaml is not None:
             res.calibration.fit.setdefault("source", [str(p) for p in args.inputs])
             res.calibration.save(outs.path(args.yaml))
