@@ -210,9 +210,12 @@ class CalibrationNode(Node):
         run checks again (``refit``)."""
         try:
             sources = expand_sources(self.mcap_path, self.fit_with)
+        except (RefitError, OSError, ValueError) as exc:  # a fit_with file that does not exist: found now
+            raise StartupError(f"invalid parameter 'fit_with': {exc}") from None
+        try:
             own_dir = self.yaml_path.parent == Path(p["output_dir"])  # created next if missing
             check_outputs([self.yaml_path], sources, bool(p["force"]), create_dirs=own_dir)
-        except (RefitError, OutputError, OSError, ValueError) as exc:  # OSError, ValueError: a name too long, a NUL
+        except (OutputError, OSError, ValueError) as exc:  # OSError, ValueError: a name too long, a NUL
             msg = str(exc).replace("give --force", "set force:=true")
             raise StartupError(f"invalid parameter 'calibration_file': {msg}") from None
 
@@ -257,10 +260,14 @@ class CalibrationNode(Node):
         refuse_unknown_parameters(self, "calibration")  # before any file is created
         if not values["plan_file"]:
             raise StartupError("parameter 'plan_file' is required (e.g. -p plan_file:=config/pose_plan_six_position.yaml)")
-        try:
-            check_name_text(values["sensor_id"], "sensor id")
-        except ValueError as exc:
-            raise StartupError(f"invalid parameter 'sensor_id': {exc}") from None
+        for name, (typ, _, _) in PARAMETERS.items():  # names and paths are echoed in messages and logs
+            texts = values[name] if typ == "string_array" else [values[name]] if typ == "string" else []
+            for text in texts or []:
+                if name != "operator_notes":  # free text, stored only
+                    try:
+                        check_name_text(text, "sensor id" if name == "sensor_id" else "value")
+                    except ValueError as exc:
+                        raise StartupError(f"invalid parameter '{name}': {exc}") from None
         for name in ("still_window_s", "still_hold_s", "noise_learn_s", "motion_expect_g"):
             if not (math.isfinite(values[name]) and values[name] > 0):
                 raise StartupError(f"invalid parameter '{name}': {values[name]} (must be > 0)")

@@ -338,6 +338,8 @@ def test_calibration_node_never_writes_its_calibration_over_a_recording_or_an_ex
         assert "invalid parameter 'calibration_file'" in str(err.value) and message in str(err.value), str(err.value)
         assert not (tmp_path / "inproc.mcap").exists()
     assert prev.read_bytes() == b"an earlier level's recording" and old.read_text() == "an earlier calibration"
+    with pytest.raises(StartupError, match=r"invalid parameter 'fit_with': .*matches no file"):
+        make_calibration(fit_with=[str(tmp_path / "none*.mcap")])  # found at start-up, not after the run
     node = make_calibration(calibration_file=str(old), force=True)  # accepted with force
     assert node.yaml_path == old
     dynamic = make_calibration(plan_file=str(REPO / "config" / "excitation_plan_stepped_sine.yaml"), run_label="dyn",
@@ -370,9 +372,9 @@ HOSTILE_BY_TYPE: dict[str, list[Any]] = {
 }
 
 
-def test_calibration_node_parameters_hostile_values_start_or_refuse_in_one_line(make_calibration: Any,
-                                                                               tmp_path: Path,
-                                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+def test_calibration_node_parameters_hostile_values_start_or_refuse_in_one_line(monkeypatch: pytest.MonkeyPatch,
+                                                                               make_calibration: Any,
+                                                                               tmp_path: Path) -> None:
     """Issue 42: the hostile-input property of the tools, for the node's parameters: every value of every parameter
     either starts the node or is a StartupError of one line that shows no control character raw."""
     work = tmp_path / "w1" / "w2"  # relative names (output_dir "a\nb", "../../x") land under tmp_path
