@@ -1,17 +1,22 @@
-"""Outputs of the offline tools that never destroy data (issue 11, "Data destroyed").
+"""Outputs of the offline tools and nodes that never destroy data (issues 11 and 42, "Data destroyed").
 
 Rules, checked *before* any computation (:func:`check_outputs`):
 
 * an output may not be one of the inputs (same file by ``os.path.samefile`` or by resolved path),
   nor two outputs the same file;
-* an existing output is refused unless ``--force`` is given;
-* the output's directory must exist (a missing directory is found before minutes of fitting).
+* an existing output is refused unless ``--force`` (a node: its ``force`` parameter) is given;
+* the output's directory must exist (a missing directory is found before minutes of fitting) and take a new
+  file (a read-only directory is found then too, and named, not the temporary file that would have failed);
+* a character device (``/dev/null``) or a FIFO is written through, never replaced.
 
-Writing (:func:`atomic_path`): the writer gets a temporary file in the output's directory (same file
-system, so the final ``os.replace`` is atomic; same suffix, so writers that choose the format from the
-suffix, e.g. matplotlib, still do); on success it is renamed over the output, on any failure --
-exception, Ctrl-C (``KeyboardInterrupt``), ``SystemExit`` -- it is removed. An existing output is
-therefore either untouched or wholly replaced, and a failed run leaves no stub.
+Writing (:class:`OutputSet`, :func:`committed_outputs`; :func:`atomic_path` for one file): each writer gets a
+temporary file in its output's directory (same file system, so the final ``os.replace`` is atomic; same suffix,
+so writers that choose the format from the suffix, e.g. matplotlib, still do). When every output of the run is
+written they are renamed over their outputs together; on any failure -- exception, Ctrl-C
+(``KeyboardInterrupt``), SIGTERM (``command_line.Terminated``, a ``KeyboardInterrupt``), ``SystemExit`` -- before
+or during those renames, the temporaries are removed and the outputs already renamed are put back as they were.
+An existing output is therefore either untouched or replaced together with the run's other outputs, and a failed
+run leaves no stub.
 
 Also :func:`create_exclusive`: open a new file with ``O_CREAT | O_EXCL | O_NOFOLLOW`` so that an
 existing file *or a symbolic link* (dangling or not) at the path is refused instead of followed.
@@ -21,6 +26,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
+import stat
 import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -52,6 +59,7 @@ def check_outputs(outputs: Iterable[Path | None], inputs: Iterable[Path | str], 
     Raises :class:`OutputError`."""
     ins = [Path(p) for p in inputs]
     outs = [Path(p) for p in outputs if p is not None]
+    writable: set[Path] = set()  # directories already probed
     for i, out in enumerate(outs):
         for src in ins:
             if _same(out, src):
@@ -66,11 +74,39 @@ def check_outputs(outputs: Iterable[Path | None], inputs: Iterable[Path | str], 
             continue
         if not parent.is_dir():
             raise OutputError(f"{out}: output directory {parent} does not exist; create it first")
+        if is_stream(out):
+            continue  # /dev/null, a FIFO: written through, nothing is replaced
         if out.is_symlink() or out.exists():
             if out.is_dir():
                 raise OutputError(f"{out}: is a directory; give a file name")
+            if not (out.is_file() or out.is_symlink()):
+                raise OutputError(f"{out}: is not a regular file; give a file name")
             if not force:
                 raise OutputError(f"{out}: exists; give --force to replace it, or another name")
+        if parent not in writable:
+            _check_writable(out)
+            writable.add(parent)
+
+
+def is_stream(path: Path | str) -> bool:
+    """True for a character device (``/dev/null``) or a FIFO: an output written through, never renamed over."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return False
+    return stat.S_ISCHR(mode) or stat.S_ISFIFO(mode)
+
+
+def _check_writable(out: Path) -> None:
+    """Refuse ``out`` when its directory takes no new file (read-only directory or file system, no permission),
+    by trying: ``os.access`` says yes to root on a read-only mount."""
+    with _signals_held():  # the probe never stays behind
+        try:
+            fd, probe = tempfile.mkstemp(prefix=".write-check.", dir=out.parent)
+        except OSError as exc:
+            raise OutputError(f"{out}: cannot write in {out.parent} ({exc.strerror or exc})") from None
+        os.close(fd)
+        os.unlink(probe)
 
 
 def check_output_dir(out_dir: Path, files: Iterable[str], inputs: Iterable[Path | str], force: bool = False) -> None:
@@ -91,22 +127,127 @@ def check_output_dir(out_dir: Path, files: Iterable[str], inputs: Iterable[Path 
     check_outputs([out_dir / f for f in files], inputs, force)
 
 
+class OutputSet:
+    """The outputs of one run, each written to a temporary file (:meth:`path`) and renamed over its output by
+    :meth:`commit`, all of them or none. Use through :func:`committed_outputs`."""
+
+    def __init__(self) -> None:
+        self._staged: dict[Path, Path] = {}  # output -> its temporary file
+
+    def path(self, output: Path | str) -> Path:
+        """A new temporary file next to ``output`` (same suffix) that :meth:`commit` renames to ``output``."""
+        output = Path(output)
+        if output in self._staged:
+            return self._staged[output]
+        if is_stream(output):
+            return output  # /dev/null, a FIFO: written through (a rename would replace the device node)
+        with _signals_held():  # a Ctrl-C between creating the file and recording it here would leave it behind
+            try:
+                fd, tmp_name = tempfile.mkstemp(prefix=f".{output.stem}.", suffix=f".part{output.suffix}",
+                                                dir=output.parent)
+            except OSError as exc:  # named by the user's path, not the temporary one
+                raise OutputError(f"{output}: cannot write in {output.parent} ({exc.strerror or exc})") from None
+            tmp = self._staged[output] = Path(tmp_name)
+            os.close(fd)
+        os.chmod(tmp, 0o644)  # mkstemp makes it 0600; the output gets the usual permissions
+        return tmp
+
+    def commit(self) -> None:
+        """Rename every temporary file over its output. If a rename fails or is interrupted, the outputs already
+        replaced get their earlier content back (or are removed if they did not exist) and the error is raised."""
+        backups: dict[Path, Path | None] = {}
+        done: list[Path] = []
+        try:
+            with _signals_held():  # no backup link left behind by a Ctrl-C between its creation and this record
+                for output in self._staged:
+                    backups[output] = _backup(output)
+            for output, tmp in self._staged.items():
+                os.replace(tmp, output)
+                done.append(output)
+        except BaseException:
+            with _signals_held():
+                for output in done:
+                    with contextlib.suppress(OSError):
+                        if backups.get(output) is not None:
+                            os.replace(backups.pop(output), output)  # type: ignore[arg-type]
+                        else:
+                            output.unlink()
+            raise
+        finally:
+            with _signals_held():
+                for b in backups.values():
+                    if b is not None:
+                        with contextlib.suppress(OSError):
+                            b.unlink()
+                self.discard()
+
+    def discard(self) -> None:
+        """Remove the temporary files not renamed (all of them before :meth:`commit`)."""
+        for tmp in self._staged.values():
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+        self._staged.clear()
+
+    def temporary_to_output(self, exc: OSError) -> OSError:
+        """``exc`` naming the output instead of its temporary file (a writer's "No space left: '/d/.c.x.part.yaml'")."""
+        names = {str(t): str(o) for o, t in self._staged.items()}
+        if exc.filename in names:
+            return type(exc)(exc.errno, exc.strerror, names[exc.filename])
+        return exc
+
+
+def _backup(output: Path) -> Path | None:
+    """A hard link to ``output``'s current content under a hidden name (None if there is no output yet), so that
+    a commit can put it back; the output stays in place meanwhile."""
+    if not os.path.lexists(output):
+        return None
+    fd, name = tempfile.mkstemp(prefix=f".{output.name}.", suffix=".previous", dir=output.parent)
+    os.close(fd)
+    os.unlink(name)
+    os.link(output, name, follow_symlinks=False)
+    return Path(name)
+
+
+@contextlib.contextmanager
+def _signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM held (delivered after the block) while a roll-back or clean-up runs."""
+    sigs = {signal.SIGINT, signal.SIGTERM}
+    try:
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
+    except (ValueError, OSError):  # not available here: run unprotected
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+@contextlib.contextmanager
+def committed_outputs() -> Iterator[OutputSet]:
+    """An :class:`OutputSet` committed when the block succeeds and discarded on any failure (also Ctrl-C and
+    SIGTERM); an ``OSError`` of a writer names the output, not its temporary file."""
+    outs = OutputSet()
+    try:
+        yield outs
+    except OSError as exc:
+        renamed = outs.temporary_to_output(exc)
+        outs.discard()
+        if renamed is exc:
+            raise
+        raise renamed from None
+    except BaseException:
+        outs.discard()
+        raise
+    outs.commit()
+
+
 @contextlib.contextmanager
 def atomic_path(path: Path | str) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it to ``path`` when the block succeeds, remove it
-    on any failure (including ``KeyboardInterrupt``)."""
-    path = Path(path)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{path.suffix}", dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
-    os.chmod(tmp, 0o644)  # mkstemp makes it 0600; the output gets the usual permissions
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
+    on any failure (including ``KeyboardInterrupt``). One output of :func:`committed_outputs`."""
+    with committed_outputs() as outs:
+        yield outs.path(path)
 
 
 def create_exclusive(path: Path | str, mode: int = 0o644) -> int:

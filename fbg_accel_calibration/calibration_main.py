@@ -34,7 +34,9 @@ PARAMETERS: ParameterTable = {
     "fit": ("bool", True, "refit at the end of a complete run and write the calibration YAML"),
     "fit_degree": ("integer", -1, "temperature degree n of eq. 28, 0..6 (-1: chosen by held-out cross-validation)"),
     "fit_with": ("string_array", None, "earlier runs' MCAP files or glob patterns fitted together with this run"),
-    "calibration_file": ("string", "", "output calibration YAML (empty: <output_dir>/<run_label>_calibration.yaml)"),
+    "calibration_file": ("string", "", "output calibration YAML (empty: <output_dir>/<run_label>_calibration.yaml); "
+                         "never one of the fitted recordings"),
+    "force": ("bool", False, "replace an existing calibration_file (default: refuse it at start-up)"),
     "still_window_s": ("double", 0.25, "static detector moving window (s)"),
     "still_hold_s": ("double", 1.0, "continuous stillness (s) required before a pose is recorded (covers TIA settling)"),
     "still_noise_std": ("double_array", None, "Psi noise floor per axis x,y,z (unset: learnt at the start of the run)"),

@@ -26,7 +26,6 @@ from pathlib import Path
 from typing import Any
 
 import rclpy
-import yaml
 from rclpy.event_handler import QoSSubscriptionMatchedInfo, SubscriptionEventCallbacks
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -34,11 +33,12 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState, Temperature
 from std_srvs.srv import Trigger
 
-from fbg_accel_driver.command_line import StartupError
+from fbg_accel_driver.command_line import StartupError, check_name_text
 from fbg_accel_driver.driver_core import RAW_AUX_NAME
 from fbg_accel_driver.node_support import declare_parameters, init_ros, refuse_unknown_parameters, signals_to
-from fbg_accel_driver.yaml_input import load_yaml
+from fbg_accel_driver.yaml_input import YamlFileError, read_yaml_file
 
+from .atomic_output import OutputError, check_outputs
 from .calibration_main import EXIT_FIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_RECORDING_FAILED, PARAMETERS
 from .dynamic_recorder import DynamicRunRecorder
 from .excitation_plan import FORMAT_NAME as EXCITATION_FORMAT
@@ -63,11 +63,8 @@ def plan_format(path: str) -> str | None:
     """The ``format`` key of a plan file (pose plan or excitation plan), None if unreadable (the plan's
     own loader then says why)."""
     try:
-        p = Path(path)
-        if not p.is_file() or p.stat().st_size > 1 << 20:
-            return None
-        data = load_yaml(p.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        data = read_yaml_file(path, "plan file")
+    except YamlFileError:
         return None
     return data.get("format") if isinstance(data, dict) else None
 
@@ -188,8 +185,14 @@ class CalibrationNode(Node):
             raise StartupError(f"invalid parameter 'run_label': {label!r} (letters, digits, _ . + - only)")
         self.mcap_path = out_dir / f"{label}.mcap"
         self.yaml_path = Path(p["calibration_file"]) if p["calibration_file"] else out_dir / f"{label}_calibration.yaml"
-        if self.mcap_path.exists() or self.mcap_path.is_symlink():
+        try:
+            taken = self.mcap_path.exists() or self.mcap_path.is_symlink()
+        except (OSError, ValueError) as exc:  # a name too long, a NUL character
+            raise StartupError(f"invalid parameter 'output_dir' or 'run_label': {self.mcap_path}: {exc}") from None
+        if taken:
             raise StartupError(f"{self.mcap_path} exists; choose another run_label (a recording is never overwritten)")
+        if p["fit"] and not self.dynamic:
+            self._check_calibration_file(p)
         try:
             out_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -202,6 +205,21 @@ class CalibrationNode(Node):
                                "(a recording is never overwritten nor written through a link)") from None
         except OSError as exc:
             raise StartupError(f"cannot create {self.mcap_path}: {exc}") from None
+
+    def _check_calibration_file(self, p: dict[str, Any]) -> None:
+        """Before the run: the calibration YAML written at its end is neither one of the recordings it is fitted
+        from (``fit_with``, the run's own MCAP) nor an existing file without ``force`` (StartupError); the end of the
+        run checks again (``refit``)."""
+        try:
+            sources = expand_sources(self.mcap_path, self.fit_with)
+        except (RefitError, OSError, ValueError) as exc:  # a fit_with file that does not exist: found now
+            raise StartupError(f"invalid parameter 'fit_with': {exc}") from None
+        try:
+            own_dir = self.yaml_path.parent == Path(p["output_dir"])  # created next if missing
+            check_outputs([self.yaml_path], sources, bool(p["force"]), create_dirs=own_dir)
+        except (OutputError, OSError, ValueError) as exc:  # OSError, ValueError: a name too long, a NUL
+            msg = str(exc).replace("give --force", "set force:=true")
+            raise StartupError(f"invalid parameter 'calibration_file': {msg}") from None
 
     def _recorded_namespace(self) -> str:
         """The namespace the recording names its topics under: that of the topics the node subscribes to, after
@@ -244,6 +262,14 @@ class CalibrationNode(Node):
         refuse_unknown_parameters(self, "calibration")  # before any file is created
         if not values["plan_file"]:
             raise StartupError("parameter 'plan_file' is required (e.g. -p plan_file:=config/pose_plan_six_position.yaml)")
+        for name, (typ, _, _) in PARAMETERS.items():  # names and paths are echoed in messages and logs
+            texts = values[name] if typ == "string_array" else [values[name]] if typ == "string" else []
+            for text in texts or []:
+                if name != "operator_notes":  # free text, stored only
+                    try:
+                        check_name_text(text, "sensor id" if name == "sensor_id" else "value")
+                    except ValueError as exc:
+                        raise StartupError(f"invalid parameter '{name}': {exc}") from None
         for name in ("still_window_s", "still_hold_s", "noise_learn_s", "motion_expect_g"):
             if not (math.isfinite(values[name]) and values[name] > 0):
                 raise StartupError(f"invalid parameter '{name}': {values[name]} (must be > 0)")
@@ -400,7 +426,7 @@ class CalibrationNode(Node):
             return EXIT_OK
         try:
             sources = expand_sources(self.mcap_path, self.fit_with)
-            result = refit(sources, self.yaml_path, self.degree, sensor_id=self.p["sensor_id"])
+            result = refit(sources, self.yaml_path, self.degree, sensor_id=self.p["sensor_id"], force=self.p["force"])
         except (RefitError, ValueError, OSError) as exc:
             kept = (f"the recording {self.mcap_path} is kept" if self.mcap_path.exists() else
                     f"the recording {self.mcap_path} no longer exists")

@@ -35,22 +35,15 @@ from pathlib import Path
 
 import numpy as np
 
-from fbg_accel_driver.command_line import version_line
+from fbg_accel_driver.command_line import OneLineErrorParser, Terminated, interrupted_status, printable, version_line
 from fbg_accel_driver.sensor_constants import AHT10_SIGMA_C
 
 from . import adc_codes_cli, diagnose_cli
 from . import input_validation as iv
-from .atomic_output import atomic_path, check_output_dir, check_outputs
+from .atomic_output import atomic_path, check_output_dir, check_outputs, committed_outputs
 from .cli_progress import add_progress_option
 from .input_files import check_input, load_recording
 from .table_geometry import STANDARD_GRAVITY
-
-
-class OneLineErrorParser(argparse.ArgumentParser):
-    """argparse parser whose usage errors are one line (option, value, accepted range) and exit 2."""
-
-    def error(self, message: str) -> None:  # type: ignore[override]
-        self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
 
 
 def _add_force(p: argparse.ArgumentParser) -> None:
@@ -94,7 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_csv_options(p)
     p.add_argument("--drop-bad-rows", action="store_true",
                    help="import the good rows and list every rejected line (default: reject the file)")
-    p.add_argument("--sensor-id", default="unknown", help="sensor id stored in the MCAP metadata (default unknown)")
+    p.add_argument("--sensor-id", type=iv.sensor_id, default="unknown",
+                   help="sensor id stored in the MCAP metadata (default unknown)")
     p.add_argument("--notes", default="", help="operator notes stored in the MCAP metadata")
     p.add_argument("--start-time", type=iv.start_time_ns, default=None,
                    help="ROS time of the first row: ISO 8601 with zone (2026-11-20T09:30:00Z) or seconds since 1970; "
@@ -109,7 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--degree", type=iv.degree, default=None, help="force the degree n (default: held-out cross-validation)")
     p.add_argument("--max-degree", type=iv.degree, default=iv.DEFAULT_MAX_DEGREE,
                    help=f"largest degree scored (default {iv.DEFAULT_MAX_DEGREE}, as paper Table 4)")
-    p.add_argument("--sensor-id", default=None,
+    p.add_argument("--sensor-id", type=iv.sensor_id, default=None,
                    help="sensor id written into the calibration (default: the recordings' own, else unknown)")
     add_topic_options(p)
     p.add_argument("--in-memory", action="store_true",
@@ -169,6 +163,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--csv", type=Path, default=DEFAULT_CSV, help=f"measured CSV (default {DEFAULT_CSV}, relative to the cwd)")
     p.add_argument("--md", type=Path, default=DEFAULT_MD, help=f"markdown output (default {DEFAULT_MD})")
     p.add_argument("--png", type=Path, default=DEFAULT_PNG, help=f"plot output (default {DEFAULT_PNG})")
+    _add_force(p)
     p.set_defaults(func=cmd_report_measured)
 
     p = sub.add_parser("uncertainty-measured", help="coefficient uncertainty of the linear model on the measured series "
@@ -316,31 +311,34 @@ def cmd_dynamic(args: argparse.Namespace) -> int:
     result = run_dynamic(rec, plan, static_cal, reference_cutoff_hz=args.reference_cutoff_hz,
                          fit_highpass=args.fit_highpass, slide_start_s=args.slide_start, method=args.method)
     print(result.report())
-    if args.bode is not None:
-        from .bode_plot import plot_bode
-        from .chain_model import axis_response_along
+    misfit = result.check.misfit and not args.accept_misfit
+    if not misfit:
+        static_cal.dynamic = result.dynamics
+        static_cal.fit.setdefault("dynamic_sources", []).append(str(args.recording))
+    # the calibration, Bode plot and JSON together or none of them; on a misfit the plot and JSON alone (to find why)
+    written = [f for f in (args.bode, args.json, None if misfit else args.output) if f is not None]
+    with committed_outputs() as outs:
+        if not misfit:
+            static_cal.save(outs.path(args.output))
+            ThermalCalibration.load(outs.path(args.output))  # what is written loads (the driver's own check)
+        if args.bode is not None:
+            from .bode_plot import plot_bode
+            from .chain_model import axis_response_along
 
-        chain = [result.models[ax] for ax in "xyz"]
-        predicted = {ax: (lambda f, i=i: axis_response_along(result.m_static, chain, plan.direction, f)[..., i])
-                     for i, ax in enumerate("xyz")}
-        with atomic_path(args.bode) as tmp:
-            plot_bode(result.channel_points, result.models, tmp, title=f"Dynamic calibration: {plan.name}",
+            chain = [result.models[ax] for ax in "xyz"]
+            predicted = {ax: (lambda f, i=i: axis_response_along(result.m_static, chain, plan.direction, f)[..., i])
+                         for i, ax in enumerate("xyz")}
+            plot_bode(result.channel_points, result.models, outs.path(args.bode), title=f"Dynamic calibration: {plan.name}",
                       axis_points=result.points, axis_responses=predicted)
-        print(f"wrote {args.bode}")
-    if args.json is not None:
-        with atomic_path(args.json) as tmp:
-            tmp.write_text(json.dumps(result.as_dict(), indent=1, default=_json_default), encoding="utf-8")
-        print(f"wrote {args.json}")
-    if result.check.misfit and not args.accept_misfit:
+        if args.json is not None:
+            outs.path(args.json).write_text(json.dumps(result.as_dict(), indent=1, default=_json_default),
+                                            encoding="utf-8")
+    for path in written:
+        print(f"wrote {path}")
+    if misfit:
         raise ValueError(f"{args.output} not written: the per-channel chain model misses the measured axes by "
                          f"{result.check.max_abs_z:.2g} standard uncertainties (beyond {result.check.threshold:g}; the "
                          "report's axis check): find the cause, or give --accept-misfit to write it anyway")
-    static_cal.dynamic = result.dynamics
-    static_cal.fit.setdefault("dynamic_sources", []).append(str(args.recording))
-    with atomic_path(args.output) as tmp:
-        static_cal.save(tmp)
-    ThermalCalibration.load(args.output)  # what was written loads (the driver's own check)
-    print(f"wrote {args.output}")
     return 0
 
 
@@ -464,13 +462,13 @@ def cmd_allan(args: argparse.Namespace) -> int:
         print(f"note: {AXES[j]}: VRW 60*ADEV(1 s) {res.vrw_mps_per_sqrt_h[j]:.3g} vs white-noise VRW "
               f"{res.white_noise_vrw_mps_per_sqrt_h[j]:.3g} m/s/sqrt(h) (-1/2 line): the noise is not white at 1 s",
               file=sys.stderr)
-    with atomic_path(args.output) as tmp:
-        plot_allan(res, tmp, title=f"Allan deviation of {', '.join(p.name for p in args.inputs)}")
+    with committed_outputs() as outs:  # the plot and the JSON together
+        plot_allan(res, outs.path(args.output), title=f"Allan deviation of {', '.join(p.name for p in args.inputs)}")
+        if args.json:
+            outs.path(args.json).write_text(json.dumps({**res.as_dict(), "breaks": breaks}, indent=2), encoding="utf-8")
     print(res.table_markdown())
     print(f"wrote {args.output}")
     if args.json:
-        with atomic_path(args.json) as tmp:
-            tmp.write_text(json.dumps({**res.as_dict(), "breaks": breaks}, indent=2), encoding="utf-8")
         print(f"wrote {args.json}")
     return 0
 
@@ -496,10 +494,6 @@ def cmd_report(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     stats = pose_statistics(cal, rec, usable & np.isfinite(rec.temp_c))
     report_md, vs_reference_png, per_degree_png = REPORT_FILES
-    with atomic_path(out / vs_reference_png) as tmp:
-        plot_calibrated_vs_reference(cal, rec, usable, tmp)
-    with atomic_path(out / per_degree_png) as tmp:
-        plot_residuals_per_degree(selection, tmp)
     warnings = calibration_match_warnings(cal, rec)
     if (cal.fit or {}).get("reference_range_mps2") is not None:  # files written before it was recorded lack it
         warnings += reference_reach_warnings(cal.fit["reference_range_mps2"])
@@ -508,8 +502,10 @@ def cmd_report(args: argparse.Namespace) -> int:
     text = fit_report_markdown(cal, selection, stats, {"calibrated vs reference": vs_reference_png,
                                                        "residuals per degree": per_degree_png},
                                _command_line(args), recording_sensor_id=sensor_id_of(rec.metadata), warnings=warnings)
-    with atomic_path(out / report_md) as tmp:
-        tmp.write_text(text, encoding="utf-8")
+    with committed_outputs() as outs:  # the report and its two plots are replaced together
+        plot_calibrated_vs_reference(cal, rec, usable, outs.path(out / vs_reference_png))
+        plot_residuals_per_degree(selection, outs.path(out / per_degree_png))
+        outs.path(out / report_md).write_text(text, encoding="utf-8")
     print(selection.table_markdown())
     print("wrote " + ", ".join(str(out / name) for name in REPORT_FILES))
     return 0
@@ -521,7 +517,7 @@ REPORT_FILES = ("report.md", "calibrated_vs_reference.png", "residuals_per_degre
 def cmd_report_measured(args: argparse.Namespace) -> int:
     from .measured_report import main_args
 
-    return main_args(args.csv, args.md, args.png, argv=getattr(args, "argv", None))
+    return main_args(args.csv, args.md, args.png, argv=getattr(args, "argv", None), force=args.force)
 
 
 def cmd_field_check(args: argparse.Namespace) -> int:
@@ -572,11 +568,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except (OSError, ValueError) as exc:
-        print(f"fbg-accel-calib {args.command}: {exc}", file=sys.stderr)
+        print(f"fbg-accel-calib {args.command}: {printable(str(exc))}", file=sys.stderr)  # a path's ESC escaped
         return 2
-    except KeyboardInterrupt:
-        print(f"fbg-accel-calib {args.command}: interrupted; no output written", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM through cli_main (Terminated): outputs rolled back
+        print(f"fbg-accel-calib {args.command}: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}; "
+              "no output written", file=sys.stderr)
+        return interrupted_status(exc)
 
 
 if __name__ == "__main__":

@@ -18,6 +18,8 @@ import shlex
 import sys
 from pathlib import Path
 
+from fbg_accel_driver.command_line import printable
+
 from . import input_validation as iv
 from .cli_progress import add_progress_option
 
@@ -66,7 +68,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "50000, diagnose.SEARCH_ROWS; k no larger than keeps 80 %% of what a visit's samples tell of "
                         "its mean); 0: on every sample (slower; an effect seen only in the first tenths of a second "
                         "of each visit, as the TIA's, keeps all its samples)")
-    p.add_argument("--sensor-id", default=None,
+    p.add_argument("--sensor-id", type=iv.sensor_id, default=None,
                    help="sensor id written into --yaml (default: the recordings' own, else unknown)")
     p.add_argument("--out", type=Path, default=None, help="markdown report (PNG plots go to --img-dir)")
     p.add_argument("--img-dir", type=Path, default=None, help="directory for the PNG plots (default: <out dir>/img)")
@@ -106,31 +108,19 @@ def check_diagnose_outputs(args: argparse.Namespace) -> None:
 
 
 def write_outputs(res, args: argparse.Namespace, command: str) -> list[Path]:
-    """Markdown report, its PNGs and the YAML, each written to a temporary file and renamed on success."""
-    import os
-    import tempfile
-
-    from .atomic_output import atomic_path
-    from .diagnose_report import markdown, write_plots
+    """Markdown report, its PNGs and the YAML, each written to a temporary file; all renamed together when all
+    are written (an interrupted run replaces none of them: no fresh plots beside a stale report)."""
+    from .atomic_output import committed_outputs
+    from .diagnose_report import write_report
 
     written: list[Path] = []
-    if args.out is not None:
-        img = _img_dir(args)
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        img.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(dir=img, prefix=".plots.") as tmp_dir:
-            for p in write_plots(res, tmp_dir):
-                os.replace(p, img / p.name)
-                written.append(img / p.name)
-        rel = os.path.relpath(img, args.out.parent).replace(os.sep, "/")
-        with atomic_path(args.out) as tmp:
-            tmp.write_text(markdown(res, command, img_prefix=f"{rel}/"), encoding="utf-8")
-        written.insert(0, args.out)
-    if args.yaml is not None:
-        res.calibration.fit.setdefault("source", [str(p) for p in args.inputs])
-        with atomic_path(args.yaml) as tmp:
-            res.calibration.save(tmp)
-        written.append(args.yaml)
+    with committed_outputs() as outs:
+        if args.out is not None:
+            written += write_report(res, args.out, _img_dir(args), command, outs)
+        if args.yaml is not None:
+            res.calibration.fit.setdefault("source", [str(p) for p in args.inputs])
+            res.calibration.save(outs.path(args.yaml))
+            written.append(args.yaml)
     return written
 
 
@@ -161,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
             table = load_table(args.adc_codes)
             rec = mapped_recording(rec, table)
     except (OSError, ValueError) as exc:
-        print(f"fbg-accel-calib diagnose: {exc}", file=sys.stderr)
+        print(f"fbg-accel-calib diagnose: {printable(str(exc))}", file=sys.stderr)
         return 2
     # the recordings' own id (their run records; before: a top-level key MCAP recordings do not have, so 'unknown')
     sensor_id = args.sensor_id or sensor_id_of(rec.metadata) or "unknown"
@@ -189,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         written = write_outputs(res, args, command)
     except (OSError, ValueError) as exc:
-        print(f"fbg-accel-calib diagnose: {exc}", file=sys.stderr)
+        print(f"fbg-accel-calib diagnose: {printable(str(exc))}", file=sys.stderr)
         return 2
     for p in written:
         print(f"wrote {p}")

@@ -13,6 +13,7 @@ import numpy as np
 
 from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 
+from .atomic_output import OutputSet, committed_outputs
 from .diagnose import DiagnosisResult
 from .diagnosis.search import CandidateResult
 from .effects import finite_rows, library_by_name
@@ -505,14 +506,25 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
     return written
 
 
-def write_report(res: DiagnosisResult, md_path: str | Path, img_dir: str | Path | None = None, command: str = "") -> list[Path]:
-    """Markdown report at ``md_path`` with its PNGs in ``img_dir`` (default: ``<md dir>/img``)."""
+def write_report(res: DiagnosisResult, md_path: str | Path, img_dir: str | Path | None = None, command: str = "",
+                 outs: OutputSet | None = None) -> list[Path]:
+    """Markdown report at ``md_path`` with its PNGs in ``img_dir`` (default: ``<md dir>/img``), staged in ``outs``
+    (``atomic_output``: renamed with the run's other outputs when it commits), or committed here together."""
+    import os
+    import tempfile
+
+    if outs is None:
+        with committed_outputs() as own:
+            return write_report(res, md_path, img_dir, command, own)
     md_path = Path(md_path)
     img_dir = Path(img_dir) if img_dir is not None else md_path.parent / "img"
-    written = write_plots(res, img_dir)
-    import os
-
-    rel = os.path.relpath(img_dir, md_path.parent).replace(os.sep, "/")
     md_path.parent.mkdir(parents=True, exist_ok=True)
-    md_path.write_text(markdown(res, command, img_prefix=f"{rel}/"), encoding="utf-8")
+    img_dir.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    with tempfile.TemporaryDirectory(dir=img_dir, prefix=".plots.") as tmp_dir:
+        for p in write_plots(res, tmp_dir):
+            os.replace(p, outs.path(img_dir / p.name))
+            written.append(img_dir / p.name)
+    rel = os.path.relpath(img_dir, md_path.parent).replace(os.sep, "/")
+    outs.path(md_path).write_text(markdown(res, command, img_prefix=f"{rel}/"), encoding="utf-8")
     return [md_path, *written]

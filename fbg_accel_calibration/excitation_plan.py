@@ -18,11 +18,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from scipy import signal
 
 from fbg_accel_driver.mapping_fields import format_version, number, refuse_unknown
-from fbg_accel_driver.yaml_input import load_yaml
+from fbg_accel_driver.yaml_input import YamlFileError, read_yaml_file
 
 FORMAT_NAME = "fbg_accel_excitation_plan"
 FORMAT_VERSION = 1
@@ -154,14 +153,10 @@ class ExcitationPlan:
     @classmethod
     def load(cls, path: str | Path) -> ExcitationPlan:
         p = Path(path)
-        if not p.is_file():
-            raise ExcitationPlanError(f"{p}: excitation plan not found")
-        if p.stat().st_size > 1 << 20:
-            raise ExcitationPlanError(f"{p}: larger than 1 MiB, not an excitation plan")
         try:
-            data = load_yaml(p.read_text(encoding="utf-8"))
-        except (yaml.YAMLError, UnicodeDecodeError) as exc:
-            raise ExcitationPlanError(f"{p}: not valid YAML ({exc})") from None
+            data = read_yaml_file(p, "excitation plan")
+        except YamlFileError as exc:
+            raise ExcitationPlanError(str(exc)) from None
         return cls.from_dict(data, str(p))
 
     @classmethod

@@ -13,6 +13,8 @@ import os
 import sys
 from pathlib import Path
 
+from fbg_accel_driver.yaml_input import file_kind
+
 from .table_geometry import STANDARD_GRAVITY
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -38,8 +40,9 @@ def check_input(path: Path) -> list[Path]:
         for part in files:
             check_mcap(part)
         return files
-    if not path.is_file():
-        raise ValueError(f"{path}: file not found")
+    kind = file_kind(path)
+    if kind is not None:  # a FIFO or /dev/zero is said as what it is, and never read
+        raise ValueError(f"{path}: file not found" if kind == "not found" else f"{path}: {kind}, not a recording")
     if path.suffix.lower() != ".csv":
         check_mcap(path)
     return [path]

@@ -98,6 +98,20 @@ search_rows = int_in(0, 10**9, " (0: the diagnosis searches on every fitted samp
 cutoff_hz = float_in(1e-3, 1e5, "Hz", what=" (a TIA stage's first-order cut-off)")
 
 
+def sensor_id(text: str) -> str:
+    """``--sensor-id``: printable text of at most 256 characters (no ANSI escape sequence, no line break: the id is
+    echoed in messages and stored in the recording and the calibration)."""
+    from fbg_accel_driver.command_line import check_name_text
+
+    try:
+        check_name_text(text, "sensor id")
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    if len(text) > 256:
+        raise argparse.ArgumentTypeError(f"sensor id of {len(text)} characters; at most 256 are accepted")
+    return text
+
+
 def start_time_ns(text: str) -> int:
     """``--start-time``: an ISO 8601 time with its zone (``2026-11-20T09:30:00Z``, ``...+01:00``) or seconds
     since the Unix epoch; returned as ns since the epoch. Refused: no zone (ambiguous), before 1970, or past

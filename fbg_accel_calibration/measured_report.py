@@ -33,7 +33,7 @@ import numpy as np
 
 from fbg_accel_driver.thermal_model import normalise
 
-from .atomic_output import OutputError, atomic_path, check_outputs
+from .atomic_output import OutputError, check_outputs, committed_outputs
 from .csv_import import import_csv
 from .fit_report import AXES, PoseStats, plot_calibrated_vs_reference, pose_statistics
 from .fit_stream import fit_valid, prepare
@@ -237,21 +237,23 @@ def run_report(csv_path: Path = DEFAULT_CSV, md_path: Path = DEFAULT_MD, png_pat
         png_rel = str(png_path.resolve().relative_to(md_path.parent.resolve()))
     except ValueError:
         png_rel = str(png_path)
-    # each output is replaced whole or not at all (an interrupted run keeps the previous report)
-    with atomic_path(png_path) as tmp:
-        plot_calibrated_vs_reference(cal, fit.rec, fit.usable, tmp, title=cal_title, held_out_residual=fit.held_out_stats)
-    with atomic_path(md_path) as tmp:
-        tmp.write_text(report_markdown(fit, png_rel, command or ".venv/bin/fbg-accel-calib report-measured"), encoding="utf-8")
+    # the report and its plot are replaced together or not at all (an interrupted run keeps the previous pair)
+    with committed_outputs() as outs:
+        plot_calibrated_vs_reference(cal, fit.rec, fit.usable, outs.path(png_path), title=cal_title,
+                                     held_out_residual=fit.held_out_stats)
+        outs.path(md_path).write_text(report_markdown(fit, png_rel, command or ".venv/bin/fbg-accel-calib "
+                                                      "report-measured --force"), encoding="utf-8")
     return fit
 
 
-def main_args(csv_path: Path, md_path: Path, png_path: Path, argv: list[str] | None = None) -> int:
+def main_args(csv_path: Path, md_path: Path, png_path: Path, argv: list[str] | None = None,
+              force: bool = False) -> int:
     """CLI body of ``report-measured``; exit code 2 with a clear message when the data is absent. ``argv``: the
     command line given to ``cli.main`` (default: sys.argv, the console script's)."""
     argv = sys.argv[1:] if argv is None else argv
     command = "fbg-accel-calib report-measured" + ("".join(" " + shlex.quote(str(a)) for a in argv[1:]))
-    try:  # the report is regenerated in place (force), but never over its own input
-        check_outputs([md_path, png_path], [csv_path], force=True, create_dirs=True)
+    try:  # existing pages (the committed results included) are replaced only with --force
+        check_outputs([md_path, png_path], [csv_path], force=force, create_dirs=True)
         fit = run_report(csv_path, md_path, png_path, command=".venv/bin/" + command)
     except (OutputError, MeasuredDataMissingError) as exc:
         print(f"fbg-accel-calib report-measured: {exc}", file=sys.stderr)

@@ -29,7 +29,7 @@ import numpy as np
 import yaml
 
 from fbg_accel_driver.mapping_fields import format_version, number
-from fbg_accel_driver.yaml_input import load_yaml
+from fbg_accel_driver.yaml_input import YamlFileError, read_yaml_file
 
 from .table_geometry import STANDARD_GRAVITY, table_specific_force
 
@@ -142,12 +142,10 @@ class PosePlan:
     @classmethod
     def load(cls, path: str | Path) -> PosePlan:
         p = Path(path)
-        if not p.is_file():
-            raise PosePlanError(f"{p}: pose plan file not found")
         try:
-            data = load_yaml(p.read_text(encoding="utf-8"))
-        except (yaml.YAMLError, UnicodeDecodeError) as exc:
-            raise PosePlanError(f"{p}: not valid YAML ({exc})") from None
+            data = read_yaml_file(p, "pose plan file")
+        except YamlFileError as exc:
+            raise PosePlanError(str(exc)) from None
         return cls.from_dict(data, source=str(p))
 
     @classmethod

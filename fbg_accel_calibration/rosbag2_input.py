@@ -13,12 +13,13 @@ spelling: policy names in lower case, durations as ``sec``/``nsec``).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
 
-from fbg_accel_driver.yaml_input import load_yaml
+from fbg_accel_driver.yaml_input import YamlFileError, read_yaml_file
 
 METADATA_FILE = "metadata.yaml"
 _MAX_METADATA_BYTES = 16 << 20
@@ -51,15 +52,13 @@ def bag_files(path: str | Path) -> BagInfo:
     each must exist) and the topics of ``topics_with_message_count``. Raises :class:`BagInputError`."""
     path = Path(path)
     meta = path / METADATA_FILE
-    if not meta.is_file():
+    if not os.path.lexists(meta):  # anything else at that name is said as what it is by read_yaml_file
         raise BagInputError(f"{path}: a directory without {METADATA_FILE}; give a rosbag2 bag directory "
                             "(ros2 bag record -s mcap ...) or an .mcap/.csv file")
-    if meta.stat().st_size > _MAX_METADATA_BYTES:
-        raise BagInputError(f"{meta}: larger than {_MAX_METADATA_BYTES >> 20} MiB; not a rosbag2 metadata file")
     try:
-        doc = load_yaml(meta.read_text(encoding="utf-8"))
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise BagInputError(f"{meta}: not valid YAML ({str(exc).splitlines()[0]})") from None
+        doc = read_yaml_file(meta, "rosbag2 metadata file", _MAX_METADATA_BYTES)
+    except YamlFileError as exc:
+        raise BagInputError(str(exc)) from None
     info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
     if not isinstance(info, dict):
         raise BagInputError(f"{meta}: no 'rosbag2_bagfile_information' mapping; not a rosbag2 metadata file")
@@ -88,7 +87,10 @@ def bag_files(path: str | Path) -> BagInfo:
             raise BagInputError(f"{meta}: relative_file_paths names {name!r}, which is not in {path}")
         files.append(candidate)
     topics: dict[str, str] = {}
-    for item in info.get("topics_with_message_count") or []:
+    listed_topics = info.get("topics_with_message_count") or []
+    if not isinstance(listed_topics, list):
+        raise BagInputError(f"{meta}: topics_with_message_count must be a list, got {type(listed_topics).__name__}")
+    for item in listed_topics:
         tm = item.get("topic_metadata") if isinstance(item, dict) else None
         if isinstance(tm, dict) and isinstance(tm.get("name"), str):
             topics[tm["name"]] = str(tm.get("type", "?"))

@@ -16,7 +16,7 @@ import numpy as np
 
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
-from .atomic_output import atomic_path
+from .atomic_output import atomic_path, check_outputs
 from .fit_pipeline import DEFAULT_MAX_DEGREE, fit_files
 from .model_selection import SelectionResult
 from .thermal_fit import FULL_SCALE_MPS2, reference_reach_warnings
@@ -72,9 +72,12 @@ def expand_sources(run_file: str | Path, extra: list[str]) -> list[str]:
     return out
 
 
-def refit(sources: list[str], output: str | Path, degree: int | None = None, sensor_id: str | None = None) -> RefitResult:
+def refit(sources: list[str], output: str | Path, degree: int | None = None, sensor_id: str | None = None,
+          force: bool = False) -> RefitResult:
     """Fit ``sources`` (MCAP files) at ``degree`` (None: chosen by cross-validation) and save to ``output``:
-    the same fit as ``fbg-accel-calib fit`` with its default options (``fit_pipeline.fit_files``)."""
+    the same fit as ``fbg-accel-calib fit`` with its default options (``fit_pipeline.fit_files``). ``output``
+    is refused (``OutputError``, before the fit) if it is one of the sources, or exists and not ``force``."""
+    check_outputs([Path(output)], sources, force)
     try:
         out = fit_files([Path(s) for s in sources], degree=degree, max_degree=DEFAULT_MAX_DEGREE, sensor_id=sensor_id)
     except ValueError as exc:  # NotIdentifiedError included

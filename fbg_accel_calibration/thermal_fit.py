@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from fbg_accel_driver.coefficient_covariance import CoefficientCovariance
+from fbg_accel_driver.command_line import printable
 from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2, STANDARD_GRAVITY
 from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
 
@@ -683,7 +684,7 @@ def _recorded_sensor_id(md: object) -> str | None:
         return None
     for candidate in (md.get("run"), md):
         if isinstance(candidate, dict) and candidate.get("sensor_id"):
-            return str(candidate["sensor_id"])
+            return printable(str(candidate["sensor_id"]))  # escaped: echoed in messages, stored in the calibration
     return None
 
 

@@ -2,10 +2,18 @@
 
 from __future__ import annotations
 
+import argparse
 from collections.abc import Callable, Iterable
 from typing import Any
 
 DISTRIBUTION = "fbg_accel_driver"  # the setup.py ``name`` whose metadata carries the version
+
+
+class OneLineErrorParser(argparse.ArgumentParser):
+    """argparse parser whose usage errors are one line (option, value, accepted range) and exit 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
 
 
 def print_help_or_version(prog: str, argv: list[str], usage: Callable[[], str]) -> bool:
@@ -69,7 +77,12 @@ def unknown_parameters(given: Iterable[str], declared: Iterable[str]) -> list[st
 
 
 class StartupError(Exception):
-    """A configuration problem that stops a node's start-up with one clear message (exit status 2)."""
+    """A configuration problem that stops a node's start-up with one clear message (exit status 2). Control
+    characters of the message (a parameter's escape sequence or line break echoed in it) are escaped
+    (:func:`printable`): it is printed and logged as it is."""
+
+    def __init__(self, message: str = "") -> None:
+        super().__init__(printable(str(message)))
 
 
 def first_line(exc: BaseException) -> str:
@@ -95,3 +108,58 @@ def missing_module_message(exc: ModuleNotFoundError) -> str:
         return (f"ROS 2 Python module '{name}' not found: source a ROS 2 Jazzy install (source /opt/ros/jazzy/setup.bash) "
                 f"or install the ROS 2 wheels (pip install -r requirements.txt)")
     return f"Python module '{name}' not found: install the package's dependencies (pip install -r requirements.txt)"
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM raised as an interruption (like Ctrl-C's ``KeyboardInterrupt``), so that every ``finally`` and every
+    temporary-file clean-up runs; the exit status is ``128 + SIGTERM`` (143)."""
+
+
+def interrupted_status(exc: KeyboardInterrupt) -> int:
+    """Exit status of a run ended by ``exc``: 143 for SIGTERM (:class:`Terminated`), 130 for Ctrl-C."""
+    import signal
+
+    return 128 + (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT)
+
+
+def exit_quietly_on_interrupt(prog: str) -> None:
+    """First thing in an entry point, before its heavy imports (numpy, matplotlib, rclpy: up to ~1 s): Ctrl-C or
+    SIGTERM then ends the process at once with one line and status 130 / 143 instead of a ``KeyboardInterrupt``
+    traceback out of some import. Nothing is written yet at that stage, so nothing needs cleaning up."""
+    import os
+    import signal
+
+    def leave(signum: int, frame: object) -> None:
+        os.write(2, f"{prog}: interrupted\n".encode())
+        os._exit(128 + signum)
+
+    signal.signal(signal.SIGINT, leave)
+    signal.signal(signal.SIGTERM, leave)
+
+
+def raise_on_interrupt() -> None:
+    """Once the entry point's own error handling is in place: Ctrl-C raises ``KeyboardInterrupt`` and SIGTERM
+    :class:`Terminated`, so that the outputs being written are cleaned up (``atomic_output``)."""
+    import signal
+
+    def terminated(signum: int, frame: object) -> None:
+        raise Terminated
+
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, terminated)
+
+
+def printable(text: str) -> str:
+    """``text`` as is when every character is printable, else with its control characters (ANSI escape sequences,
+    line breaks) written as escapes (``\\x1b``, ``\\n``): safe to echo in a one-line message or a log."""
+    return text if text.isprintable() else text.encode("unicode_escape").decode("ascii")
+
+
+def check_name_text(text: str, what: str) -> str:
+    """``text`` if it holds no control character; else ``ValueError`` naming ``what`` with the value escaped. For
+    names that are echoed and stored (a sensor_id: an ANSI escape sequence or a line break in it would recolour or
+    forge lines of a terminal, a log or a report)."""
+    if not text.isprintable():
+        raise ValueError(f"{what} '{printable(text)}' holds control characters (escape sequences, line breaks); "
+                         "use printable characters only")
+    return text

@@ -56,7 +56,7 @@ from .driver_main import (
     RUNTIME_PARAMETERS,
     default_calibration_path,
 )
-from .node_support import declare_parameters, init_ros, refuse_unknown_parameters, signals_to
+from .node_support import c_stderr_held, declare_parameters, init_ros, refuse_unknown_parameters, signals_to
 from .ros_messages import DriverMessages
 from .serial_link import LinkState, SerialLink
 from .thermal_model import CalibrationFileError, ThermalCalibration
@@ -153,10 +153,16 @@ class DriverNode(Node):
     def _create_data_publisher(self, msg_type: Any, topic: str) -> Publisher:
         """A data topic's publisher; a ``qos_overrides`` value rclpy cannot apply (a policy name it does not know, a
         negative depth, a wrong type) is a StartupError naming the topic, not a traceback."""
+        name = self.resolve_topic_name(topic)
+        depth_key = f"qos_overrides.{name}.publisher.depth"
+        depth = getattr(self, "_parameter_overrides", {}).get(depth_key)
+        if depth is not None and isinstance(depth.value, int) and not 0 <= depth.value < 2**31:
+            raise StartupError(f"invalid QoS override for {name}: parameter {depth_key} is {depth.value} "
+                               f"(a queue depth, 0..{2**31 - 1})")
         try:
-            return self._data_publisher(msg_type, topic)
+            with c_stderr_held():  # rcutils' 10-line error-state block of a refused QoS: one line instead
+                return self._data_publisher(msg_type, topic)
         except Exception as exc:  # RuntimeError, RCLError (not exported), ParameterException: all a bad override
-            name = self.resolve_topic_name(topic)
             raise StartupError(f"invalid QoS override for {name} (parameters qos_overrides.{name}.publisher.*): "
                                f"{first_line(exc)}") from None
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 import os
 import select
 import signal
+import sys
+import tempfile
 from collections.abc import Callable, Collection, Iterator, Mapping
 from contextlib import contextmanager
 from typing import Any
@@ -38,7 +40,8 @@ def init_ros(prog: str, argv: list[str]) -> None:
     """``rclpy.init`` with the node's ROS arguments and without rclpy's signal handler (that would shut the
     context down at once, under a node that still writes); unparsable ``--ros-args`` become a StartupError."""
     try:
-        rclpy.init(args=[prog, *argv], signal_handler_options=SignalHandlerOptions.NO)
+        with c_stderr_held():  # rcl's own "[ERROR] ... Failed to parse global arguments" line: ours says it
+            rclpy.init(args=[prog, *argv], signal_handler_options=SignalHandlerOptions.NO)
     except Exception as exc:  # RCLError (not exported): its text is the only useful part
         raise StartupError(f"invalid ROS arguments {argv}: {first_line(exc)}") from None
 
@@ -67,6 +70,28 @@ class ShutdownSignal:
             if fd >= 0:
                 os.close(fd)
         self._read_fd = self.write_fd = -1
+
+
+@contextmanager
+def c_stderr_held() -> Iterator[None]:
+    """What is written to file descriptor 2 inside the block -- by rcl and rcutils too, which print their own
+    error lines and multi-line "error state is being overwritten" blocks -- is held back: written out when the
+    block succeeds, dropped when it raises (the caller then reports the error in one line)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    ok = False
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), 2)
+        try:
+            yield
+            ok = True
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            if ok and held.tell():
+                held.seek(0)
+                os.write(2, held.read())
 
 
 @contextmanager

@@ -34,10 +34,11 @@ import yaml
 from .adc_code_table import AdcCodeTable
 from .chain_compensation import ChainDynamics
 from .coefficient_covariance import CoefficientCovariance
+from .command_line import check_name_text
 from .correction_terms import CorrectionTerm, TermInputs, correction_from_dict
 from .mapping_fields import format_version, number, number_array, refuse_unknown, same_values
 from .sensor_constants import AHT10_SIGMA_C, FULL_SCALE_MPS2
-from .yaml_input import StrictSafeLoader, load_yaml
+from .yaml_input import StrictSafeLoader, YamlFileError, file_kind, load_yaml
 
 FORMAT_NAME = "fbg_accel_calibration"
 FORMAT_VERSION = 1
@@ -438,8 +439,10 @@ class ThermalCalibration:
             found = sorted(str(f) for f in p.glob("*.yaml"))[:3]
             raise CalibrationFileError(f"{p}: a directory, not a calibration file"
                                        + (f"; the YAML in it: {', '.join(found)}" if found else " (no .yaml in it)"))
-        if not p.is_file():
-            raise CalibrationFileError(f"{p}: calibration file not found")
+        kind = file_kind(p)
+        if kind is not None:  # also a FIFO or /dev/zero: said, never read
+            raise CalibrationFileError(f"{p}: calibration file not found" if kind == "not found"
+                                       else f"{p}: {kind}, not a calibration file")
         try:
             size = p.stat().st_size
             if size > MAX_FILE_BYTES:  # before parsing: 100 000 terms took 21.7 s and 658 MB
@@ -455,11 +458,9 @@ class ThermalCalibration:
                                            "node's end-of-run fit)") from None
             raise CalibrationFileError(f"{p}: not valid YAML ({exc})") from None
         try:
-            data = load_yaml(text, _CalibrationLoader)  # a SafeLoader subclass: no arbitrary objects
-        except (yaml.YAMLError, ValueError, TypeError) as exc:  # ValueError: e.g. a date with month 13
-            raise CalibrationFileError(f"{p}: not valid YAML ({exc})") from None
-        except RecursionError:
-            raise CalibrationFileError(f"{p}: not valid YAML (nested too deeply)") from None
+            data = load_yaml(text, _CalibrationLoader, source=str(p))  # a SafeLoader subclass: no arbitrary objects
+        except YamlFileError as exc:
+            raise CalibrationFileError(str(exc)) from None
         return cls.from_dict(data, source=str(p))
 
 
@@ -658,6 +659,11 @@ def _text(d: dict[str, Any], key: str, max_chars: int, fail: Callable[[str], Cal
         raise fail(f"'{key}' must be a string, got {type(v).__name__} {v!r:.40} (quote it in the YAML)")
     if len(v) > max_chars:
         raise fail(f"'{key}' has {len(v)} characters, at most {max_chars} are accepted")
+    if key != "notes":  # echoed by the driver and the tools: no escape sequence, no line break
+        try:
+            check_name_text(v, f"'{key}'")
+        except ValueError as exc:
+            raise fail(str(exc)) from None
     return v
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fbg_accel_calibration.atomic_output import OutputError, atomic_path, check_outputs
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_calibration.thermal_fit import coefficients_to_model, design_matrix, solve_normal_equations
 from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
@@ -110,10 +111,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--degree", type=int, default=2)
     p.add_argument("--settle", type=float, default=2.0, help="s at rest on a pose before samples are used")
+    p.add_argument("--force", action="store_true", help="replace an existing --output (the shipped file included)")
     args = p.parse_args(argv)
+    try:
+        check_outputs([Path(args.output)], [args.config] if args.config else [], args.force)
+    except OutputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     cfg = SimConfig.load(args.config) if args.config else SimConfig.default()
     cal = make_calibration(cfg, seed=args.seed, degree=args.degree, settle_s=args.settle)
-    cal.save(args.output)
+    with atomic_path(args.output) as tmp:
+        cal.save(tmp)
     print(f"wrote {args.output}: degree {cal.degree}, {cal.fit['samples']} samples, range {cal.temperature_range_c} degC, "
           f"rmse {np.round(cal.fit['rmse_mps2'], 4).tolist()} m/s^2, "
           f"noise sigma {np.round(cal.noise_sigma_mps2, 4).tolist()} m/s^2")

@@ -326,10 +326,14 @@ def main(argv: list[str] | None = None) -> int:
                    help="for super-Gaussian orders 1..4: the FWHM reproducing the published M, its non-linearity, "
                         "the chosen order")
     p.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    p.add_argument("--force", action="store_true", help="replace an existing --json file")
     args = p.parse_args(argv)
     if not (args.report or args.scan_orders):
         p.error("nothing to do: give --report and/or --scan-orders")
+    from fbg_accel_calibration.atomic_output import atomic_path, check_outputs
+
     try:
+        check_outputs([args.json], [args.config] if args.config else [], args.force)
         cfg = SimConfig.load(args.config) if args.config else SimConfig.default()
         if args.set:
             cfg = cfg.with_overrides(dict(parse_set_argument(s) for s in args.set))
@@ -357,8 +361,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as fh:
-            json.dump(out, fh, indent=2)
+        with atomic_path(args.json) as tmp:  # a file written whole or not at all
+            tmp.write_text(json.dumps(out, indent=2), encoding="utf-8")
     return 0
 
 

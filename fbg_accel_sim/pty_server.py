@@ -193,9 +193,8 @@ class TruthRecorder:
         out["config_yaml"] = np.array(sim.cfg.to_yaml())
         out["seed"] = np.array(sim.seed)
         out.update({key: np.asarray(value) for key, value in extra.items()})
-        tmp = Path(str(path) + ".partial.npz")
-        np.savez_compressed(tmp, **out)
-        os.replace(tmp, path)
+        with open(path, "wb") as fh:  # a file object: numpy adds no ".npz" to the caller's (temporary) name
+            np.savez_compressed(fh, **out)
 
 
 def serve_pty(sim: BoardSimulator, duration_s: float, link: str | None, truth: TruthRecorder | None,

@@ -16,7 +16,7 @@ from typing import Any
 
 import yaml
 
-from fbg_accel_driver.yaml_input import load_yaml
+from fbg_accel_driver.yaml_input import YamlFileError, load_yaml, read_yaml_file
 
 DEFAULT_FILE_NAME = "sim_default.yaml"
 CONFIG_DIR_ENV = "FBG_ACCEL_CONFIG_DIR"
@@ -46,12 +46,10 @@ def config_dir() -> Path:
 
 
 def _read_yaml(path: Path) -> dict[str, Any]:
-    if not path.is_file():
-        raise SimConfigError(f"{path}: simulator config not found")
     try:
-        data = load_yaml(path.read_text(encoding="utf-8"))
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise SimConfigError(f"{path}: not valid YAML ({exc})") from None
+        data = read_yaml_file(path, "simulator config")
+    except YamlFileError as exc:
+        raise SimConfigError(str(exc)) from None
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -134,7 +132,7 @@ def parse_set_argument(text: str) -> tuple[str, Any]:
         raise SimConfigError(f"--set expects key=value, got '{text}'")
     key, raw = text.split("=", 1)
     try:
-        value = load_yaml(raw)
-    except yaml.YAMLError as exc:
-        raise SimConfigError(f"--set {key}: value '{raw}' is not valid YAML ({exc})") from None
+        value = load_yaml(raw, source=f"--set {key}")
+    except YamlFileError as exc:
+        raise SimConfigError(str(exc)) from None
     return key.strip(), value

@@ -272,3 +272,91 @@ def test_uncertainty_measured_never_crashes(data: st.DataObject) -> None:
     tmp, work = in_dir({"m.csv": blob})
     with tmp:
         check(["uncertainty-measured", "--csv", str(work / "m.csv"), "--md", str(work / "u.md")], work, {"m.csv": blob})
+
+
+# ---------------------------------------------------------------------------- board_sim (issue 42)
+def _sim_keys() -> list[str]:
+    """Dotted keys of the simulator's numeric scalars (config/sim_default.yaml)."""
+    from fbg_accel_sim.sim_config import SimConfig
+
+    out: list[str] = []
+
+    def walk(d: dict, prefix: str) -> None:
+        for k, v in d.items():
+            if isinstance(v, dict):
+                walk(v, f"{prefix}{k}.")
+            elif isinstance(v, int | float) and not isinstance(v, bool):
+                out.append(f"{prefix}{k}")
+
+    walk(SimConfig.default().data, "")
+    return sorted(out)
+
+
+SIM_KEYS = ["scenario.rate_hz", "scenario.duration_s", "faults.garbage.count", "faults.bit_flips.count",
+            "effects.tia_lowpass.scale", "board.protocol_version", "scenario.no_such_key", ""]
+SIM_VALUES = ["nan", "-1", "1e300", "[1]", "{a: 1}", "abc", "null", "true", "0", "0x52", "1:22", "2026-13-45",
+              "[" * 3000 + "]" * 3000, "!!int x", "*a"]
+BOARD_SIM_OPTIONS = {
+    "--rate": ["0", "nan", "-1", "1e300", "inf", "abc", "100", "1000"],
+    "--duration": ["0", "nan", "-1", "1e300", "inf", "abc", "0.05", "0.2"],
+    "--seed": ["-1", "0", "99999999999", "1.5", "abc"],
+}
+CONFIG_TEXTS = ["scenario:\n  rate_hz: 100.0\n", "scenario: 5\n", "[" * 3000 + "]" * 3000, "a: &x 1\nb: *x\n",
+                "scenario:\n  rate_hz: 1:22\n", "\xff", "", "scenario:\n  rate_hz: 100\n  rate_hz: 200\n",
+                "no_such_section: {}\n"]
+
+
+def board_sim_check(argv: list[str], work: Path, inputs: dict[str, bytes]) -> int:
+    """``board_sim.main(argv)`` in process, as :func:`check`: exit 0 or 2 with one line, nothing destroyed."""
+    import signal
+
+    from fbg_accel_sim.board_sim import main as board_sim_main
+
+    before = {p.name for p in work.iterdir()}
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}  # main installs its own
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+            try:
+                rc = board_sim_main(argv)
+            except SystemExit as exc:
+                rc = exc.code
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
+    text = err.getvalue()
+    event(f"board_sim: exit {rc}")
+    assert rc in (0, 2), (argv, rc, text)
+    assert "Traceback" not in text and (rc == 0 or len(text.strip().splitlines()) == 1), (argv, text)
+    for name, data in inputs.items():
+        assert (work / name).read_bytes() == data, f"input {name} was modified"
+    after = {p.name for p in work.iterdir()}
+    assert not [n for n in after if ".part" in n], after
+    if rc != 0:
+        assert after == before, f"output left behind on failure: {sorted(after - before)} ({text})"
+    return rc
+
+
+@settings(SETTINGS, max_examples=EXAMPLES or 30)
+@given(data=st.data())
+def test_board_sim_never_crashes(data: st.DataObject) -> None:
+    """Issue 42: board_sim's options, --set values and --config files, hostile: one line and exit 2, or a run;
+    never a traceback (``--rate 1e300`` gave an OverflowError), an endless run or a destroyed file."""
+    config = data.draw(st.sampled_from(CONFIG_TEXTS)).encode("utf-8", "surrogateescape")
+    files = {"c.yaml": config, "notes.txt": b"precious"}
+    tmp, work = in_dir(files)
+    with tmp:
+        argv = options(data.draw, BOARD_SIM_OPTIONS, list(BOARD_SIM_OPTIONS))
+        for _ in range(data.draw(st.sampled_from(FEW))):
+            argv += ["--set", f"{data.draw(st.sampled_from(SIM_KEYS))}={data.draw(st.sampled_from(SIM_VALUES))}"]
+        if data.draw(st.booleans()):
+            argv += ["--config", str(work / "c.yaml")]
+        out = data.draw(st.sampled_from(["out.bin", "out.bin", "notes.txt", "c.yaml", "."]))
+        argv += ["--output", str(work / out), "--duration" if "--duration" not in argv else "--seed", "0.1"
+                 if "--duration" not in argv else "1"]
+        truth = data.draw(st.sampled_from([None, "t.npz", "out.bin", "notes.txt"]))
+        if truth:
+            argv += ["--truth", str(work / truth)]
+        if data.draw(st.booleans()):
+            argv += ["--link", str(work / data.draw(st.sampled_from(["l", "notes.txt", "."])))]
+        board_sim_check(argv, work, files)

@@ -373,3 +373,24 @@ def test_bad_configuration_stops_startup(tmp_path: Path) -> None:
     # --help prints usage without starting ROS.
     res = subprocess.run([str(BIN / "driver"), "--help"], capture_output=True, text=True, timeout=60)
     assert res.returncode == 0 and res.stdout.startswith("usage: driver")
+
+
+def test_bad_ros_arguments_and_qos_overrides_are_one_line_of_stderr() -> None:
+    """Issue 42, item 14: ``-p baud:=`` printed rcl's own "[ERROR] ... Failed to parse global arguments" line before
+    ours, and a negative QoS depth rcutils' 10-line "error state is being overwritten" block. Now the whole of
+    stderr is the one ``error:`` line, exit 2 (driver and calibration node)."""
+    sim = ["-p", "port:=/dev/null", "-p", "calibration_file:=sim"]
+    commands = {
+        "empty value": ([str(BIN / "driver"), "--ros-args", *sim, "-p", "baud:="], "baud:="),
+        "wrong type": ([str(BIN / "driver"), "--ros-args", *sim, "-p", "baud:=abc"], "'baud'"),
+        "negative depth": ([str(BIN / "driver"), "--ros-args", *sim, "-p", "qos_overrides./imu/raw.publisher.depth:=-5"],
+                           "qos_overrides./imu/raw.publisher.depth is -5"),
+        "calibration node": ([str(BIN / "calibration"), "--ros-args", "-p", "fit_degree:="], "fit_degree:="),
+    }
+    procs = {name: subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for name, (cmd, _) in commands.items()}
+    for name, proc in procs.items():
+        _, err = proc.communicate(timeout=60)
+        lines = err.strip().splitlines()
+        assert proc.returncode == 2 and len(lines) == 1, (name, err)
+        assert ": error: " in lines[0] and commands[name][1] in lines[0], (name, err)

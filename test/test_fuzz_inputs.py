@@ -222,3 +222,53 @@ def test_fuzz_from_dict_arbitrary_objects(obj: Any) -> None:
         ThermalCalibration.from_dict(obj, source="fuzz")
     except CalibrationFileError as exc:
         assert str(exc).startswith("fuzz: ")
+
+
+# ============================================================================ every YAML file the project reads
+REPO = Path(__file__).resolve().parents[1]
+BAG_METADATA = """rosbag2_bagfile_information:
+  version: 9
+  storage_identifier: mcap
+  relative_file_paths: [run_0.mcap]
+  topics_with_message_count:
+    - topic_metadata: {name: /imu/raw, type: sensor_msgs/msg/JointState}
+      message_count: 5
+  compression_mode: ''
+"""
+YAML_SEEDS = {  # reader name (test_yaml_input.READERS) -> a valid document it reads
+    "calibration file": (REPO / "config" / "calibration_sim.yaml").read_text(),
+    "pose plan": (REPO / "config" / "pose_plan_six_position.yaml").read_text(),
+    "excitation plan": (REPO / "config" / "excitation_plan_stepped_sine.yaml").read_text(),
+    "simulator config": "scenario:\n  rate_hz: 200.0\neffects:\n  tia_lowpass:\n    scale: 0.5\n",
+    "rosbag2 metadata": BAG_METADATA,
+}
+YAML_INSERTS = ["[" * 200, "{", "*a", "&a ", "!!int x", "!!python/name:os.system", "2026-13-45", "1:22", "0x52",
+                "\t", "\x00", "\ufeff", ": :", "- ", "\n  - ", "'", '"', "? ", "%YAML 1.1\n---\n", "...\n", "<<: *a"]
+
+
+@settings(FUZZ_FILES, max_examples=60, deadline=None)  # first example imports every reader
+@given(reader=st.sampled_from(sorted(YAML_SEEDS)),
+       edits=st.lists(st.tuples(st.integers(0, 5000), st.integers(0, 30),
+                                st.one_of(st.sampled_from(YAML_INSERTS), st.text(max_size=8))), min_size=1, max_size=4))
+def test_fuzz_every_yaml_reader_has_one_error_contract(tmp_path_factory: pytest.TempPathFactory, reader: str,
+                                                       edits: list[tuple[int, int, str]]) -> None:
+    """Issue 42, item 8: each YAML file the project reads, edited at random, is read or refused with a
+    ``ValueError`` whose message is one line starting with the file's path -- never another exception (a
+    TypeError out of the bag reader, a RecursionError, a date's bare ValueError)."""
+    from test_yaml_input import READERS, check_one_line
+
+    text = YAML_SEEDS[reader]
+    for at, n_del, insert in edits:
+        at = at % (len(text) + 1)
+        text = text[:at] + insert + text[at + n_del:]
+    d = tmp_path_factory.mktemp("yaml")
+    (d / "run_0.mcap").write_bytes(b"\x89MCAP0\r\n")
+    path = d / "metadata.yaml"
+    path.write_text(text, encoding="utf-8", errors="surrogateescape")
+    try:
+        READERS[reader](path)
+    except Exception as exc:  # the contract is checked, whatever the class
+        check_one_line(exc, path)
+        event(f"{reader}: refused")
+    else:
+        event(f"{reader}: read")

@@ -63,7 +63,8 @@ def test_report_measured_command(tmp_path: Path, capsys: pytest.CaptureFixture[s
     text = md.read_text()
     assert "held-out RMSE" in text and "81.60" in text and "![" in text
     assert png.read_bytes()[:4] == b"\x89PNG"
-    assert cli_main(["report-measured", "--csv", str(tmp_path / "nope.csv"), "--md", str(md), "--png", str(png)]) == 2
+    assert cli_main(["report-measured", "--csv", str(tmp_path / "nope.csv"), "--md", str(md), "--png", str(png),
+                     "--force"]) == 2
     err = capsys.readouterr().err
     assert "measured data not found" in err and "nope.csv" in err
 

@@ -298,6 +298,8 @@ def test_calibration_node_aborted_run_closes_its_recording_with_status_interrupt
     ({"fit": "yes"}, "invalid parameter 'fit': "),
     ({"run_label": "a/b"}, "invalid parameter 'run_label': 'a/b'"),
     ({"fit_degre": 2}, "unknown parameter 'fit_degre' (did you mean 'fit_degree'?)"),
+    ({"sensor_id": "acc\x1b[31m4\nforged"}, "invalid parameter 'sensor_id': sensor id 'acc\\x1b[31m4\\nforged' holds "
+                                              "control characters"),
 ])
 def test_calibration_node_refuses_a_bad_parameter_with_one_clear_message(make_calibration: Any, values: dict[str, Any],
                                                                         message: str, tmp_path: Path) -> None:
@@ -313,3 +315,86 @@ def test_calibration_node_never_overwrites_a_recording(make_calibration: Any, tm
     with pytest.raises(StartupError, match=r"taken\.mcap exists; choose another run_label"):
         make_calibration(run_label="taken")
     assert (tmp_path / "taken.mcap").read_bytes() == b"earlier run"
+
+
+def test_calibration_node_never_writes_its_calibration_over_a_recording_or_an_existing_file(
+        make_calibration: Any, tmp_path: Path) -> None:
+    """Issue 42, item 1: ``-p fit_with:=[prev.mcap] -p calibration_file:=prev.mcap`` ended with "calibration
+    written to prev.mcap" (a 1.5 MB recording became a 5 KB YAML); so did calibration_file naming the run's own
+    MCAP, and an existing file was replaced without asking. All three are refused before anything is recorded."""
+    prev = tmp_path / "prev.mcap"
+    prev.write_bytes(b"an earlier level's recording")
+    old = tmp_path / "old.yaml"
+    old.write_text("an earlier calibration")
+    cases = [({"fit_with": [str(prev)], "calibration_file": str(prev)}, "output is the input file"),
+             ({"fit_with": [str(tmp_path / "p*.mcap")], "calibration_file": str(tmp_path / "." / "prev.mcap")},
+              "output is the input file"),
+             ({"calibration_file": str(tmp_path / "inproc.mcap")}, "output is the input file"),
+             ({"calibration_file": str(old)}, "exists; set force:=true to replace it"),
+             ({"calibration_file": str(tmp_path / "nodir" / "c.yaml")}, "does not exist")]
+    for values, message in cases:
+        with pytest.raises(StartupError) as err:
+            make_calibration(**values)
+        assert "invalid parameter 'calibration_file'" in str(err.value) and message in str(err.value), str(err.value)
+        assert not (tmp_path / "inproc.mcap").exists()
+    assert prev.read_bytes() == b"an earlier level's recording" and old.read_text() == "an earlier calibration"
+    with pytest.raises(StartupError, match=r"invalid parameter 'fit_with': .*matches no file"):
+        make_calibration(fit_with=[str(tmp_path / "none*.mcap")])  # found at start-up, not after the run
+    node = make_calibration(calibration_file=str(old), force=True)  # accepted with force
+    assert node.yaml_path == old
+    dynamic = make_calibration(plan_file=str(REPO / "config" / "excitation_plan_stepped_sine.yaml"), run_label="dyn",
+                               calibration_file=str(prev))  # a dynamic run writes no calibration: nothing to refuse
+    assert dynamic.dynamic
+
+
+def test_refit_refuses_an_input_or_an_existing_output_at_the_end_of_the_run(tmp_path: Path) -> None:
+    """The end-of-run fit checks again (a file may have appeared during the run)."""
+    from fbg_accel_calibration.atomic_output import OutputError
+    from fbg_accel_calibration.run_refit import refit
+
+    run = tmp_path / "run.mcap"
+    run.write_bytes(b"recording")
+    late = tmp_path / "late.yaml"
+    late.write_text("appeared during the run")
+    for out, message in ((run, "output is the input file"), (late, "exists")):
+        with pytest.raises(OutputError, match=message):
+            refit([str(run)], out)
+    assert run.read_bytes() == b"recording" and late.read_text() == "appeared during the run"
+
+
+HOSTILE_BY_TYPE: dict[str, list[Any]] = {
+    "string": ["", "acc\x1b[31m4", "a\nb", "x" * 5000, "/dev/zero", "{dir}", "../../x", "\x00"],
+    "integer": [-1, -(2**62), 2**62, 7],
+    "double": [float("nan"), float("inf"), -1.0, 0.0, 1e300, 5e-324],
+    "bool": ["yes", 1],
+    "string_array": [["", "/dev/zero"], ["{dir}"], ["x" * 5000], ["*"]],
+    "double_array": [[float("nan")] * 3, [1.0], [-1.0, 0.0, 1e300], []],
+}
+
+
+def test_calibration_node_parameters_hostile_values_start_or_refuse_in_one_line(monkeypatch: pytest.MonkeyPatch,
+                                                                               make_calibration: Any,
+                                                                               tmp_path: Path) -> None:
+    """Issue 42: the hostile-input property of the tools, for the node's parameters: every value of every parameter
+    either starts the node or is a StartupError of one line that shows no control character raw."""
+    work = tmp_path / "w1" / "w2"  # relative names (output_dir "a\nb", "../../x") land under tmp_path
+    work.mkdir(parents=True)
+    monkeypatch.chdir(work)
+    n = 0
+    for name, (typ, _default, _desc) in calibration_main.PARAMETERS.items():
+        for value in HOSTILE_BY_TYPE[typ]:
+            n += 1
+            if isinstance(value, str):
+                value = value.replace("{dir}", str(tmp_path))
+            elif isinstance(value, list):
+                value = [v.replace("{dir}", str(tmp_path)) if isinstance(v, str) else v for v in value]
+            if typ == "double_array" and not value:
+                continue  # rclpy cannot type an empty list
+            values = {"run_label": f"h{n}", name: value} if name != "run_label" else {name: value}
+            try:
+                node = make_calibration(**values)
+            except StartupError as exc:
+                msg = str(exc)
+                assert "\n" not in msg and not any(c in msg for c in "\x1b\x00"), (name, value, msg)
+                continue
+            assert node.recorder is not None, (name, value)

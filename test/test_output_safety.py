@@ -167,3 +167,138 @@ def test_an_existing_candidate_plot_of_diagnose_needs_force(tmp_path: Path, caps
     rc, err = run(["diagnose", csv, "--out", tmp_path / "d.md", "--img-dir", img], capsys)
     assert rc == 2 and "candidate_time_drift.png: exists; give --force" in err and plot.read_bytes() == b"precious"
     assert not (tmp_path / "d.md").exists()
+
+
+# ---------------------------------------------------------------------------- issue 42: one commit for all writers
+def test_the_outputs_of_one_run_are_committed_together_or_not_at_all(tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """A failure or Ctrl-C between two renames puts back the output already replaced (diagnose replaced 10 PNGs
+    and then said "no output written" beside a stale report)."""
+    a, b = tmp_path / "a.png", tmp_path / "b.md"
+    a.write_bytes(b"old a")
+    real_replace = os.replace
+    for failure in (OSError(28, "No space left on device"), KeyboardInterrupt()):
+        calls = {"n": 0}
+
+        def second_fails(src, dst, _failure=failure, _calls=calls):
+            _calls["n"] += 1
+            if _calls["n"] == 2:
+                raise _failure
+            return real_replace(src, dst)
+
+        monkeypatch.setattr(atomic_output.os, "replace", second_fails)
+        with pytest.raises(type(failure)), atomic_output.committed_outputs() as outs:
+            outs.path(a).write_bytes(b"new a")
+            outs.path(b).write_bytes(b"new b")
+        monkeypatch.setattr(atomic_output.os, "replace", real_replace)
+        assert a.read_bytes() == b"old a" and not b.exists() and calls["n"] >= 2
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png"]  # no temporary, no backup left
+    with atomic_output.committed_outputs() as outs:
+        outs.path(a).write_bytes(b"new a")
+        outs.path(b).write_bytes(b"new b")
+    assert a.read_bytes() == b"new a" and b.read_bytes() == b"new b"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.md"]
+
+
+def test_diagnose_interrupted_while_writing_replaces_none_of_its_outputs(tmp_path: Path,
+                                                                       capsys: pytest.CaptureFixture[str],
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    from fbg_accel_calibration import diagnose_report
+
+    csv = six_pose_csv(tmp_path / "s.csv")
+    img = tmp_path / "img"
+    img.mkdir()
+    old = {img / "before_after.png": b"old plot", tmp_path / "d.md": b"old report", tmp_path / "d.yaml": b"old yaml"}
+    for p, data in old.items():
+        p.write_bytes(data)
+
+    def interrupted(*a, **k):  # Ctrl-C after the plots were drawn, while the report is written
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(diagnose_report, "markdown", interrupted)
+    rc, err = run(["diagnose", csv, "--out", tmp_path / "d.md", "--yaml", tmp_path / "d.yaml", "--force"], capsys)
+    assert rc == 130 and "interrupted; no output written" in err
+    assert {p: p.read_bytes() for p in old} == old
+    assert sorted(p.name for p in img.iterdir()) == ["before_after.png"] and not leftovers(tmp_path)
+
+
+def test_report_measured_needs_force_to_replace_its_pages(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """report-measured replaced any existing --md/--png without --force."""
+    csv = six_pose_csv(tmp_path / "m.csv")
+    md, png = tmp_path / "r.md", tmp_path / "r.png"
+    md.write_text("precious notes")
+    argv = ["report-measured", "--csv", csv, "--md", md, "--png", png]
+    rc, err = run(argv, capsys)
+    assert rc == 2 and "r.md: exists; give --force" in err and md.read_text() == "precious notes" and not png.exists()
+    assert run([*argv, "--force"], capsys)[0] == 0
+    assert "report-measured" in md.read_text() and png.stat().st_size > 0 and not leftovers(tmp_path)
+
+
+def test_a_read_only_directory_is_found_before_the_computation_and_named(tmp_path: Path,
+                                                                        capsys: pytest.CaptureFixture[str],
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Found only after the fit, naming the hidden temporary file. /sys takes no new file, even for root."""
+    if not Path("/sys").is_dir() or _creatable("/sys"):
+        pytest.skip("no read-only directory here")
+    from fbg_accel_calibration import csv_import
+
+    def never(*a, **k):
+        raise AssertionError("computation started before the output was checked")
+
+    monkeypatch.setattr(csv_import.CsvBlocks, "blocks", never)
+    csv = six_pose_csv(tmp_path / "s.csv")
+    rc, err = run(["fit", csv, "-o", "/sys/c.yaml"], capsys)
+    assert rc == 2 and "/sys/c.yaml: cannot write in /sys" in err and ".part" not in err
+
+
+def _creatable(d: str) -> bool:
+    import tempfile
+
+    try:
+        fd, name = tempfile.mkstemp(dir=d)
+    except OSError:
+        return False
+    os.close(fd)
+    os.unlink(name)
+    return True
+
+
+def test_a_writer_error_names_the_output_not_its_temporary_file(tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    out = tmp_path / "c.yaml"
+    with pytest.raises(OSError) as info, atomic_output.committed_outputs() as outs:
+        tmp = outs.path(out)
+        raise OSError(28, "No space left on device", str(tmp))
+    assert info.value.filename == str(out) and str(out) in str(info.value) and not leftovers(tmp_path)
+
+
+# ---------------------------------------------------------------------------- board_sim
+def board_sim(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    from fbg_accel_sim.board_sim import main as board_sim_main
+
+    rc = board_sim_main([str(a) for a in argv])
+    return rc, capsys.readouterr().err
+
+
+def test_board_sim_outputs_destroy_nothing(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--link onto a file replaced it by a symlink and deleted it at exit; --output, --truth and --config ==
+    --output overwrote without asking. Each is refused (exit 2, one line) before the simulation starts."""
+    precious = tmp_path / "notes.txt"
+    precious.write_text("precious")
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("scenario:\n  rate_hz: 100.0\n")
+    cases = [(["--link", precious], "--link"), (["--output", precious, "--duration", "0.1"], "exists; give --force"),
+             (["--config", cfg, "--output", cfg, "--duration", "0.1"], "output is the input file"),
+             (["--config", cfg, "--truth", cfg, "--link", tmp_path / "l"], "output is the input file"),
+             (["--output", tmp_path / "o.bin", "--truth", tmp_path / "o.bin", "--duration", "0.1"], "given twice"),
+             (["--link", tmp_path], "directory")]
+    for argv, message in cases:
+        rc, err = board_sim(argv, capsys)
+        assert rc == 2 and message in err and len(err.strip().splitlines()) == 1, (argv, err)
+    assert precious.read_text() == "precious" and cfg.read_text().startswith("scenario:")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.yaml", "notes.txt"]
+    out, truth = tmp_path / "run.bin", tmp_path / "t.npz"
+    out.write_bytes(b"old")
+    rc, err = board_sim(["--config", cfg, "--output", out, "--truth", truth, "--duration", "0.2", "--force"], capsys)
+    assert rc == 0, err
+    assert out.stat().st_size > 100 and truth.stat().st_size > 100 and not leftovers(tmp_path)

@@ -582,11 +582,11 @@ def test_refit_writes_the_calibration_atomically(tmp_path, monkeypatch):
 
     monkeypatch.setattr(ThermalCalibration, "save", cut_off)
     with pytest.raises(KeyboardInterrupt):
-        refit([str(a)], out, degree=0, sensor_id="t")
+        refit([str(a)], out, degree=0, sensor_id="t", force=True)
     assert out.read_text() == "previous calibration\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["L0.mcap", "cal.yaml"]
     monkeypatch.setattr(ThermalCalibration, "save", real_save)
-    refit([str(a)], out, degree=0, sensor_id="t")
+    refit([str(a)], out, degree=0, sensor_id="t", force=True)
     assert ThermalCalibration.load(out).degree == 0
 
 

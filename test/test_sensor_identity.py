@@ -106,3 +106,44 @@ def test_report_and_allan_refuse_recordings_of_two_sensors(runs: dict[str, Path]
     assert code == 2 and "different sensors" in err, err
     code, err = run(["allan", *two, "--calibration", str(cal), "-o", str(tmp_path / "allan.png")])
     assert code == 2 and "different sensors" in err, err
+
+
+HOSTILE_IDS = ["acc\x1b[31mRED\x1b[0m", "acc4\nwarning: forged line", "acc\r4", "a\x00b"]
+
+
+@pytest.mark.parametrize("sensor_id", HOSTILE_IDS)
+def test_a_sensor_id_with_control_characters_is_refused_never_echoed_raw(tmp_path: Path, sensor_id: str) -> None:
+    """Issue 42, item 14: ``--sensor-id`` with an ANSI escape sequence or a line break was stored and echoed raw
+    (recolouring the terminal, forging log lines). The tools, the calibration file and the node refuse it, and
+    every message shows it escaped."""
+    from fbg_accel_calibration.input_validation import sensor_id as parse_sensor_id
+    from fbg_accel_driver.thermal_model import CalibrationFileError, ThermalCalibration
+
+    csv = tmp_path / "s.csv"
+    csv.write_text("\n".join(",".join(r) for r in [HEADER, *base_rows()]) + "\n")
+    for argv in (["import", str(csv), "-o", str(tmp_path / "s.mcap")], ["fit", str(csv), "-o", str(tmp_path / "c.yaml")]):
+        with pytest.raises(SystemExit) as info, contextlib.redirect_stderr(io.StringIO()) as err:
+            main([*argv, "--sensor-id", sensor_id])
+        assert info.value.code == 2
+        assert "control characters" in err.getvalue() and not any(c in err.getvalue() for c in "\x1b\r\x00")
+        assert err.getvalue().count("\n") == 1
+    assert list(tmp_path.iterdir()) == [csv]
+    with pytest.raises(Exception, match="control characters"):
+        parse_sensor_id(sensor_id)
+    cal = yaml.safe_load(default_calibration_path().read_text())
+    cal["sensor_id"] = sensor_id
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump(cal))
+    with pytest.raises(CalibrationFileError) as refused:
+        ThermalCalibration.load(path)
+    assert "control characters" in str(refused.value) and "\n" not in str(refused.value)
+    assert not any(c in str(refused.value) for c in "\x1b\r\x00")
+
+
+def test_a_hostile_sensor_id_inside_a_recording_is_escaped(tmp_path: Path) -> None:
+    """A recording written before (or by another tool) that names its sensor with escape sequences: the fit's
+    messages and its calibration carry the id escaped, and the calibration loads."""
+    from fbg_accel_calibration.thermal_fit import sensor_id_of
+
+    assert sensor_id_of({"run": {"sensor_id": "acc\x1b[31m4\n"}}) == "acc\\x1b[31m4\\n"
+    assert sensor_id_of({"run": {"sensor_id": "acc4"}}) == "acc4"

@@ -462,7 +462,7 @@ CANCEL_RATIO = 10.0  # a collinear column whose own contribution exceeds the net
 
 
 def cancelling_terms(des: Design, cv: CvResult, name: str) -> str:
-    """Why the effect ``name`` fits as large terms that cancel (issue 8), or "" if it does not: one of its columns
+    """Why the effect ``name`` fits as large terms that cancel, or "" if it does not: one of its columns
     correlates above ``COLLINEAR_CORR`` with another column of the model (its own included) AND that column's
     contribution (coefficient x column, RMS over the fitted rows) is more than ``CANCEL_RATIO`` times the RMS of
     the effect's net contribution (all its columns), on some axis (e.g. a warm-up of 13 m/s^2 against a creep that

@@ -83,7 +83,7 @@ def settled_mask(t_s: np.ndarray, groups: np.ndarray, rows: np.ndarray, settle_s
     return out
 
 
-# Noise floor of correlated noise (issue 8). The noise of this sensor is white noise through the first-order TIA
+# Noise floor of correlated noise. The noise of this sensor is white noise through the first-order TIA
 # low-passes (time constants up to 0.16 s: 16 samples at 100 Hz, 64 at 400 Hz) plus the ADC's white rounding. Removing
 # a visit's mean and line removes about two integrated correlation times' worth of it, not two samples' worth: the
 # expected sum of squares is sigma^2 tr((I - H) R) (H the hat matrix of the mean and line over the visit, R the noise's
@@ -99,7 +99,7 @@ def settled_mask(t_s: np.ndarray, groups: np.ndarray, rows: np.ndarray, settle_s
 # came out negative on some seeds (integrated correlation < 0, floor 0.82x the truth); it is used only where the model
 # has too few lags (``MODEL_MIN_LAGS``). K covers NOISE_CORR_S, five of the slowest TIA time constants (a first-order
 # correlation is e^-5 = 0.7 % there), and at most half the median visit. Slower noise (bias instability, drift) is
-# removed with the line within a visit, as before, and is not in the floor.
+# removed with the line within a visit, and is not in the floor.
 NOISE_CORR_S = 5.0 * float(np.max(TIA_TAU_S))
 
 

@@ -94,7 +94,7 @@ def select_degree(data: DiagnosisData, max_degree: int) -> tuple[int, list[dict[
 
 def reselect_degree(lanes: Lanes[Evaluator], spec: ModelSpec,
                     max_degree: int) -> tuple[ModelSpec, list[dict[str, Any]], list[str]]:
-    """Degree and effects chosen jointly (issue 8): once an effect is in the model, choose the degree of eq. 28
+    """Degree and effects chosen jointly: once an effect is in the model, choose the degree of eq. 28
     again with the effect in every candidate model, by the calibration's rule (``model_selection.choose_degree``:
     temperature-level hold-out guard with two or more levels, then the lowest degree within one standard error
     of the best held-out error), the held-out unit being the visit. A term that stood in for a missing effect
