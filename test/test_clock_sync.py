@@ -308,3 +308,21 @@ def test_a_board_crystal_drifting_with_temperature_keeps_the_stamps(base_ppm: fl
         assert np.abs(err[settled]).max() < 0.4e-3, (err[settled].min(), err[settled].max())
         assert np.abs(rate_err[settled]).max() < 15.0, np.abs(rate_err[settled]).max()
         assert np.all(np.diff(stamps) > 0)
+
+
+def test_a_board_booted_an_hour_before_the_driver_with_a_drifting_crystal_and_after_its_reset() -> None:
+    """The mapping's line is anchored at the first board time it sees, not at board time 0: a board that booted
+    1 h before the driver (t_us starts at 3.6e9) with a 20 ppm crystal is stamped as well as one that booted with it,
+    and so is the same board after a reset restarts its clock at 0.5 s. Every other drift test starts the board at 0,
+    where an anchor mixed up with 0 (``board_s + ref`` for ``board_s - ref``) goes unnoticed; here it is 144 ms off."""
+    drift = 20e-6
+    sync, stamps, true_host = run(6000, drift=drift, board_start_s=3600.0)
+    err = errors_s(stamps, true_host)
+    assert abs(sync.drift - drift) < 15e-6
+    assert np.all(np.abs(err[3000:]) < 1.5e-3), np.abs(err[3000:]).max()  # a wrong anchor: > 0.1 s
+    sync.reset()
+    sync, stamps2, true2 = run(6000, drift=drift, sync=sync, seed=3, board_start_s=0.5,
+                               offset_s=OFFSET_S + 3700.0)
+    assert stamps2[0] > stamps[-1] and np.all(np.diff(stamps2) > 0)
+    err2 = errors_s(stamps2, true2)
+    assert np.all(np.abs(err2[3000:]) < 1.5e-3), np.abs(err2[3000:]).max()
