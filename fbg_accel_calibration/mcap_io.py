@@ -41,6 +41,7 @@ record and reports how many messages it recovered).
 from __future__ import annotations
 
 import errno
+import hashlib
 import io
 import json
 import logging
@@ -701,7 +702,7 @@ _OPCODES = frozenset(int(o) for o in Opcode)
 _RESYNC_WINDOW = 64 << 20  # bytes searched for the next intact chunk after the framing is lost
 
 
-def _file_records(fh: Any, report: FileReadReport):
+def _file_records(fh: Any, report: FileReadReport, seen: dict[bytes, str] | None = None, where: str | Path = ""):
     """``(opcode, payload)`` of each top-level record of an MCAP file (``fh`` just past its magic) up to its
     footer, the index and summary records passed over; for a chunk the payload is its decompressed,
     CRC-checked records. The one path of the reader (:class:`McapSampleStream`) through a file.
@@ -714,9 +715,27 @@ def _file_records(fh: Any, report: FileReadReport):
       still ends in the MCAP magic, i.e. is not truncated) starts a search for the next chunk that
       decompresses with a valid CRC; reading resumes there.
 
+    A chunk record equal byte for byte to one met before (``seen``: digest -> where, shared by the files of a
+    recording) is read once: one note counts the copies.
+
     Raises ``_TruncatedError`` when the file ends inside a record or without a footer (the caller keeps
     what was read), ``McapRecordingError`` when no intact chunk follows a framing error.
     """
+    seen = {} if seen is None else seen
+    copies: list[tuple[int, str]] = []  # (offset, where the original is) of the copies in this file
+    try:
+        yield from _file_records_walk(fh, report, seen, copies, str(where or report.path))
+    finally:
+        if copies:
+            report.note(f"{where or report.path}: {len(copies)} chunk{'s' if len(copies) > 1 else ''} (the first at byte "
+                        f"{copies[0][0]}) {'are exact copies' if len(copies) > 1 else 'is an exact copy'} of chunks "
+                        f"read before (the first: {copies[0][1]}), each read once; a copy tool or a writer that "
+                        "repeated a block, not a second measurement")
+
+
+def _file_records_walk(fh: Any, report: FileReadReport, seen: dict[bytes, str], copies: list[tuple[int, str]],
+                       where: str):
+    """:func:`_file_records` without the note of the copies."""
     pos = fh.tell()
     file_size = fh.seek(0, io.SEEK_END)
     fh.seek(max(0, file_size - len(MCAP_MAGIC)))
@@ -756,6 +775,11 @@ def _file_records(fh: Any, report: FileReadReport):
             continue
         body = _read_exact(fh, length)
         if opcode == Opcode.CHUNK:
+            digest = hashlib.blake2b(body, digest_size=16).digest()
+            if digest in seen:
+                copies.append((start, seen[digest]))
+                continue
+            seen[digest] = f"byte {start} of {where}"
             try:
                 data = _chunk_bytes(body)
             except Exception as exc:  # CRC mismatch, zstd error, bad header: skip this chunk only
@@ -1055,14 +1079,15 @@ class McapSampleStream:
         a run's first samples) read only part of the file and must not stand for it."""
         report = FileReadReport(str(self.path), notes=list(self._notes))
         complete = True
+        seen: dict[bytes, str] = {}  # chunk digests of the pass: a chunk repeated in a file or across files is read once
         for path in self.files:
             report.complete = False
-            yield from self._file_batches(path, report, collect_events)
+            yield from self._file_batches(path, report, collect_events, seen)
             complete &= report.complete
         report.complete = complete
         self.report = report
 
-    def _file_batches(self, path: Path, report: FileReadReport, collect_events: bool):
+    def _file_batches(self, path: Path, report: FileReadReport, collect_events: bool, seen: dict[bytes, str]):
         """:meth:`_batches` of one MCAP file (channel and schema ids are per file)."""
         sel = self.selection
         factory = DecoderFactory()
@@ -1148,7 +1173,7 @@ class McapSampleStream:
         with open(path, "rb", buffering=1 << 20) as fh:
             if fh.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
                 raise McapRecordingError(f"{path}: not an MCAP file (bad magic)")
-            records = _file_records(fh, report)
+            records = _file_records(fh, report, seen, path)
             while True:
                 try:
                     opcode, body = next(records)

@@ -274,14 +274,13 @@ def _zstd_zeros(n_mb: int) -> bytes:
 
 def _bombs(kind: str) -> bytes:
     """Chunk records that would make a reader do work out of all proportion to their size: ``ratio``, three zstd
-    chunks of 300 MiB of zeros (~29 kB in all: a 32 kB file with the run; the zeros are 35 million 9-byte records of
+    chunks of 298-300 MiB of zeros (~29 kB in all: a 32 kB file with the run; the zeros are 35 million 9-byte records of
     opcode 0, a Python loop of ~80 min); ``frame``, a chunk whose header claims 1 kB while its zstd frame declares
     300 MiB (decompression allocates what the frame declares); ``records``, an uncompressed chunk of 1 MiB of zeros
     (ratio 1, but records no chunk can hold); ``summary``, the same chunk where the footer says the summary
     section starts (the mcap library, which reads the summary, expanded it into 116 000 records in Python)."""
     if kind == "ratio":
-        z = _zstd_zeros(300)
-        return _chunk_record(z, "zstd", 300 << 20) * 3
+        return b"".join(_chunk_record(_zstd_zeros(n), "zstd", n << 20) for n in (300, 299, 298))
     if kind == "frame":
         return _chunk_record(_zstd_zeros(300), "zstd", 1024)
     return _chunk_record(bytes(1 << 20), "", 1 << 20)
@@ -316,3 +315,28 @@ def test_a_decompression_bomb_chunk_is_skipped_with_its_reason(kind: str, tmp_pa
     assert all(reason in s["reason"] for s in skipped), skipped
     n, report = stream_count(bad)
     assert n == len(truth) and len(report.skipped) == len(skipped)
+
+
+def test_an_exact_duplicate_chunk_is_read_once_with_a_note(tmp_path: Path) -> None:
+    """A chunk written twice (a copy tool that repeated a block, a writer that retried a flush): its samples were
+    fitted twice and the warning guessed "a driver restart or a clock step?". A chunk record equal byte for byte to
+    one read before (in the file, or in an earlier file of the bag) is read once, and a note counts the copies."""
+    src = tmp_path / "run.mcap"
+    _plain_run(src, make_run(4, 25.0), chunk_bytes=4096)
+    data = src.read_bytes()
+    chunks = [r for r in records(data) if r[1] == 0x06]
+    assert len(chunks) > 5
+    (o1, _, n1), (o2, _, n2) = chunks[1], chunks[3]
+    bad = tmp_path / "dup.mcap"
+    # chunk 1 again right after itself, chunk 3 again at the end of the data section
+    end = chunks[-1][0] + 9 + chunks[-1][2]
+    bad.write_bytes(data[:o1 + 9 + n1] + data[o1:o1 + 9 + n1] + data[o1 + 9 + n1:end] + data[o2:o2 + 9 + n2]
+                    + data[end:])
+    truth = read_recording(src)
+    got = read_recording(bad)
+    np.testing.assert_array_equal(got.xyz, truth.xyz)
+    np.testing.assert_array_equal(got.t_s, truth.t_s)
+    notes = got.metadata["read_report"]["notes"]
+    assert len(notes) == 1 and "2 chunks" in notes[0] and "exact copies" in notes[0] and "read once" in notes[0], notes
+    n, report = stream_count(bad)
+    assert n == len(truth) and report.notes == notes
