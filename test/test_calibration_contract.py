@@ -250,6 +250,9 @@ def test_a_saved_calibration_loads_equal_to_itself(tmp_path: Path) -> None:
     assert back != cal and ThermalCalibration.load(tmp_path / "c.yaml") != back
 
 
+INSENSITIVE = "the output changes by at most"
+
+
 @pytest.mark.parametrize("row", [0, 2])
 def test_a_singular_m_is_refused(tmp_path: Path, good: dict[str, Any], row: int) -> None:
     """A zero row of M(T) at the middle of the range: that axis read the bias only, whatever the acceleration."""
@@ -257,4 +260,35 @@ def test_a_singular_m_is_refused(tmp_path: Path, good: dict[str, Any], row: int)
     centre = sum(cal.temperature_range_c) / 2
     m_centre = cal.coefficients(centre)[0][0]
     good["M"][0][row] = [float(v) for v in np.asarray(good["M"][0][row]) - m_centre[row]]  # M_0 cancels the others
-    assert f"M at {centre:g} degC (the middle of temperature_range_c) has rank 2, not 3" in refused(write(tmp_path, good))
+    msg = refused(write(tmp_path, good))
+    assert INSENSITIVE in msg and "xyz"[row] in msg.split("direction")[1][:12], msg
+
+
+@pytest.mark.parametrize("case", ["zero row of M0", "1e-6 I", "1e-300 I", "dependent rows"])
+def test_a_model_that_cannot_read_the_sensor_s_range_is_refused(tmp_path: Path, good: dict[str, Any],
+                                                                 case: str) -> None:
+    """Judged by what the model does, not by a scale-free rank: the output's change over the whole 12-bit range of
+    the counts, along its least sensitive direction, at temperatures across the calibrated range, against the
+    sensor's +-20 g range. Before, all four loaded: a zero row of M_0 (x then read -113 m/s^2 whatever the counts;
+    the temperature terms keep M(T) of rank 3 but 1000x too weak), M = 1e-6 I (the output is the constant b) and
+    1e-300 I (rank 3 for a scale-free test; ``allan`` then printed LAPACK noise)."""
+    m = np.asarray(good["M"], dtype=float)
+    if case == "zero row of M0":
+        m[0][0] = 0.0
+    elif case == "dependent rows":
+        m[:, 2] = m[:, 0] + m[:, 1]
+    else:
+        m = np.zeros_like(m)
+        m[0] = float(case.split()[0]) * np.eye(3)
+    good["M"] = m.tolist()
+    msg = refused(write(tmp_path, good))
+    assert INSENSITIVE in msg and "m/s^2 over the whole 12-bit range" in msg and len(msg.splitlines()) == 1, msg
+
+
+def test_a_weak_but_physical_model_loads(good: dict[str, Any]) -> None:
+    """The bound is far from real calibrations: M scaled down 10x (a sensor whose axes see 10x more light than its
+    reference) still loads, 2.5x above the bound; the shipped one is 25x above it (smallest singular value 77 m/s^2
+    per unit Psi)."""
+    good["M"] = (np.asarray(good["M"], dtype=float) / 10.0).tolist()
+    cal = ThermalCalibration.from_dict(good)
+    assert check_plausible(cal) == ""
