@@ -292,3 +292,61 @@ def test_a_weak_but_physical_model_loads(good: dict[str, Any]) -> None:
     good["M"] = (np.asarray(good["M"], dtype=float) / 10.0).tolist()
     cal = ThermalCalibration.from_dict(good)
     assert check_plausible(cal) == ""
+
+
+def _loads(tmp_path: Path, doc: dict[str, Any]) -> str:
+    """"" when ``doc`` loads, else the loader's message."""
+    try:
+        ThermalCalibration.load(write(tmp_path, doc))
+    except CalibrationFileError as exc:
+        return str(exc)
+    return ""
+
+
+@pytest.mark.parametrize(("section", "key", "values", "accepted"), [
+    # reference-level temperatures strictly ascending: equal neighbours and a step back are refused
+    ("reference_level", "temperature_c", [16.0, 24.0, 45.0], True),
+    ("reference_level", "temperature_c", [16.0, 16.0 + 1e-9, 45.0], True),
+    ("reference_level", "temperature_c", [16.0, 16.0, 45.0], False),
+    ("reference_level", "temperature_c", [16.0, 45.0, 24.0], False),
+    # reference-level counts: ADC counts 1..4095
+    ("reference_level", "counts", [1.0, 860.0, 4095.0], True),
+    ("reference_level", "counts", [0.999, 860.0, 800.0], False),
+    ("reference_level", "counts", [880.0, 860.0, 4095.001], False),
+    # correlated fraction 0..1 (above 0 with a time constant above 0)
+    ("noise_correlation", "correlated_fraction", [0.0, 1.0, 0.5], True),
+    ("noise_correlation", "correlated_fraction", [-0.001, 0.5, 0.5], False),
+    ("noise_correlation", "correlated_fraction", [0.5, 1.001, 0.5], False),
+    # time constant 0..100 s
+    ("noise_correlation", "time_constant_s", [0.1, 100.0, 0.1], True),
+    ("noise_correlation", "time_constant_s", [0.1, 100.001, 0.1], False),
+    ("noise_correlation", "time_constant_s", [0.1, -0.001, 0.1], False),
+])
+def test_section_bounds_at_and_around_their_edges(tmp_path: Path, good: dict[str, Any], section: str, key: str,
+                                                  values: list[float], accepted: bool) -> None:
+    """Each bound of the optional sections at its edge (accepted) and just beyond it (refused, naming the key)."""
+    good[section][key] = values
+    msg = _loads(tmp_path, good)
+    assert (msg == "") == accepted, msg
+    if not accepted:
+        assert f"{section}.{key}" in msg and len(msg.splitlines()) == 1, msg
+
+
+@pytest.mark.parametrize(("sigma", "accepted"), [(thermal_model.NOISE_MAX_MPS2, True),
+                                                 (thermal_model.NOISE_MAX_MPS2 * (1 + 1e-9), False), (1e300, False)])
+def test_noise_sigma_at_and_above_its_maximum(tmp_path: Path, good: dict[str, Any], sigma: float,
+                                              accepted: bool) -> None:
+    """A white noise of a tenth of the full scale is the largest accepted: it goes into the published covariance."""
+    good["noise_sigma_mps2"] = [0.1, float(sigma), 0.1]
+    msg = _loads(tmp_path, good)
+    assert (msg == "") == accepted, msg
+    if not accepted:
+        assert "noise_sigma_mps2" in msg and "a tenth of full scale" in msg, msg
+
+
+def test_a_reference_of_exactly_the_minimum_counts_is_normalised() -> None:
+    """Eq. 24 at ``MIN_REFERENCE_COUNTS``: a reference of exactly that many counts is used, one below it is NaN."""
+    lo = thermal_model.MIN_REFERENCE_COUNTS
+    psi = thermal_model.normalise(np.full((3, 3), 100.0), np.array([lo, lo - 1e-9, lo + 1.0]))
+    assert np.all(np.isfinite(psi[0])) and np.all(np.isnan(psi[1])) and np.all(np.isfinite(psi[2]))
+    np.testing.assert_allclose(psi[0], 100.0 / lo)

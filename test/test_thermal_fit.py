@@ -305,3 +305,16 @@ def test_repeated_visits_of_a_pose_keep_the_noise_floor_of_one_visit() -> None:
     expected = 1e-4 * np.sqrt((M[0] ** 2).sum(axis=1))
     np.testing.assert_allclose(floor_once, expected, rtol=0.15)
     np.testing.assert_allclose(floor, floor_once, rtol=0.1)
+
+
+def test_four_orientations_are_enough_and_three_are_not() -> None:
+    """At the ``n_poses < 4`` boundary: each axis' row of M and its b are 4 unknowns, one equation per orientation, so 4
+    non-coplanar orientations determine a degree-0 model and 3 do not; a check that wanted 5 refused a valid campaign."""
+    M, b = _truth(0, np.random.default_rng(4))
+    rec = _simulate(M, b, (24.0,), center=24.0, scale=1.0, n_poses=4, n=80, psi_noise=1e-6, seed=5)
+    cal = fit_thermal(rec, 0, usable=np.ones(len(rec), bool))
+    assert cal.fit["poses"] == 4
+    np.testing.assert_allclose(cal.M[0], M[0], rtol=1e-3, atol=1e-2)
+    three = rec.select(rec.pose_id < 3)
+    with pytest.raises(NotIdentifiedError, match="3 orientation"):
+        fit_thermal(three, 0, usable=np.ones(len(three), bool))
