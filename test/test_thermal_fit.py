@@ -25,9 +25,10 @@ G = 9.80665
 
 
 def _truth(degree: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 28 coefficients near the paper's linear fit (section 3.6; b negative: Psi at rest is positive, as counts are)."""
     M = [np.diag([80.0, 78.0, 107.0]) + rng.normal(0.0, 2.0, (3, 3))]
     M += [rng.normal(0.0, 1.0, (3, 3)) / k for k in range(1, degree + 1)]
-    b = [np.array([-101.0, 153.0, -137.0])] + [rng.normal(0.0, 1.0, 3) / k for k in range(1, degree + 1)]
+    b = [np.array([-101.0, -153.0, -137.0])] + [rng.normal(0.0, 1.0, 3) / k for k in range(1, degree + 1)]
     return np.array(M), np.array(b)
 
 
@@ -318,3 +319,18 @@ def test_four_orientations_are_enough_and_three_are_not() -> None:
     three = rec.select(rec.pose_id < 3)
     with pytest.raises(NotIdentifiedError, match="3 orientation"):
         fit_thermal(three, 0, usable=np.ones(len(three), bool))
+
+
+@pytest.mark.parametrize("convention", ["sign flipped", "x and y swapped"])
+def test_a_level_whose_reference_follows_another_convention_is_refused(convention: str) -> None:
+    """One level of three with its reference gravity sign-flipped, or x and y swapped (a node of another convention
+    publishing ``calibration/reference_gravity``): a degree-2 polynomial passes through any 3 levels, so the fit gave a
+    small in-sample RMSE and exit 0 with 2.9 - 6.5 m/s^2 of error against the truth. That level's own M differs from
+    the others' by 100-200 %, where temperature moves it by a few %."""
+    M, b = _truth(2, np.random.default_rng(6))
+    rec = _simulate(M, b, (16.0, 24.0, 45.0), center=30.5, scale=14.5)
+    fit_thermal(rec, 2, usable=np.ones(len(rec), bool))  # as recorded: fitted
+    mid = rec.run_id == 1
+    rec.gref_mps2[mid] = -rec.gref_mps2[mid] if convention == "sign flipped" else rec.gref_mps2[mid][:, [1, 0, 2]]
+    with pytest.raises(NotIdentifiedError, match=r"level\(s\) at 24.0 degC .* gravity in g\? a sign or axis convention"):
+        fit_thermal(rec, 2, usable=np.ones(len(rec), bool))
