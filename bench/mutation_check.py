@@ -1,0 +1,137 @@
+#!/usr/bin/env python3
+"""Mutation testing of the pure core against its fast tests (mutmut 3, configured in pyproject.toml [tool.mutmut]).
+
+Not a test and not in CI: every mutant is a pytest run (about 0.3 mutants/s on the 2-core build machine; the five
+modules hold ~3400 mutants, hours for all). This script runs mutmut on the mutants of the modules asked for, all of
+them or a seeded random sample per module (``--sample N``), reads mutmut's results and writes a page: per module the
+mutants checked, killed and surviving (score = killed / checked; a mutant no test reaches counts as surviving), and
+each survivor with its diff and, when it is one, the reason it is equivalent (:data:`EQUIVALENT`: a mutant that
+cannot change what a user gets, so no test can kill it).
+
+Modules and the tests that judge them (``pytest_add_cli_args_test_selection``; mutmut runs, for each mutant, the
+tests of that selection that execute the mutated function):
+
+* ``fbg_accel_driver.frame_codec``  -- test_frame_codec.py
+* ``fbg_accel_driver.stream_decoder`` -- test_stream_decoder.py
+* ``fbg_accel_driver.clock_sync`` -- test_clock_sync.py
+* ``fbg_accel_driver.thermal_model`` (the calibration model and its loader) -- test_thermal_model.py,
+  test_calibration_contract.py
+* ``fbg_accel_calibration.thermal_fit`` (the eq. 28 fit) -- test_thermal_fit.py
+
+Usage::
+
+    .venv/bin/python bench/mutation_check.py --sample 40                  # writes /tmp/mutation.md
+    .venv/bin/python bench/mutation_check.py --modules frame_codec        # every mutant of one module
+    .venv/bin/python bench/mutation_check.py --report-only --update-results  # the page from the results so far
+
+The first run generates the mutants under ``mutants/`` (git-ignored) and collects which tests reach which function
+(minutes); later runs reuse both for the files that did not change.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import random
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+MUTMUT = [sys.executable, "-m", "mutmut"]
+MODULES = {
+    "frame_codec": "fbg_accel_driver/frame_codec.py",
+    "stream_decoder": "fbg_accel_driver/stream_decoder.py",
+    "clock_sync": "fbg_accel_driver/clock_sync.py",
+    "thermal_model": "fbg_accel_driver/thermal_model.py",
+    "thermal_fit": "fbg_accel_calibration/thermal_fit.py",
+}
+KILLED = {1, 3, 36, 37, -24, 24, 152, 255, -11, -9}  # test failure, pytest error, timeout, crash (mutmut/stats.py)
+# Survivors that cannot change what a user gets, with the reason (mutant name -> reason); names are mutmut's, valid
+# for the source as committed with this table.
+EQUIVALENT: dict[str, str] = {}
+
+
+def meta_results(path: str) -> dict[str, int | None]:
+    """mutmut's exit code per mutant of one source file (None: not checked yet)."""
+    meta = ROOT / "mutants" / (path + ".meta")
+    if not meta.is_file():
+        return {}
+    return json.loads(meta.read_text())["exit_code_by_key"]
+
+
+def run_mutmut(names: list[str]) -> None:
+    """``mutmut run`` on ``names`` (all mutants of the configured modules when empty), 200 names a call."""
+    batches = [names[i:i + 200] for i in range(0, len(names), 200)] or [[]]
+    for batch in batches:
+        subprocess.run([*MUTMUT, "run", *batch], cwd=ROOT, check=False, stdout=subprocess.DEVNULL)
+
+
+def diff_of(name: str) -> str:
+    """The mutated lines of mutant ``name`` (``mutmut show``)."""
+    out = subprocess.run([*MUTMUT, "show", name], cwd=ROOT, capture_output=True, text=True, check=False).stdout
+    return "\n".join(ln for ln in out.splitlines() if ln[:1] in "+-" and not ln.startswith(("+++", "---")))
+
+
+def page(rows: list[dict], survivors: list[tuple[str, str]], command: str) -> str:
+    lines = ["# Mutation testing of the pure core", "", f"Regenerate: `{command}`", "",
+             "Run with mutmut 3.8.1 (pyproject.toml `[tool.mutmut]`) on the 2-core build machine, against the fast tests "
+             "named in bench/mutation_check.py. Score = killed / checked; a mutant no test reaches counts as surviving; "
+             "`sample` is how many of the module's mutants were drawn (seeded) and checked.", "",
+             "| module | mutants | checked | killed | survived | score |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        score = f"{100 * r['killed'] / r['checked']:.1f} %" if r["checked"] else "-"
+        lines.append(f"| {r['module']} | {r['total']} | {r['checked']} | {r['killed']} | {r['survived']} | {score} |")
+    tot_c, tot_k = sum(r["checked"] for r in rows), sum(r["killed"] for r in rows)
+    if tot_c:
+        lines.append(f"| **all** | {sum(r['total'] for r in rows)} | {tot_c} | {tot_k} | {tot_c - tot_k} | "
+                     f"**{100 * tot_k / tot_c:.1f} %** |")
+    lines += ["", "## Survivors", "", "Equivalent ones carry the reason no test can kill them; the others are gaps of "
+              "the tests still open.", ""]
+    for name, diff in survivors:
+        reason = EQUIVALENT.get(name)
+        lines += [f"- `{name}`: " + (f"equivalent: {reason}" if reason else "**not killed yet**"), "", "  ```diff",
+                  *[f"  {ln}" for ln in diff.splitlines()], "  ```", ""]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--modules", nargs="+", choices=sorted(MODULES), default=sorted(MODULES))
+    ap.add_argument("--sample", type=int, default=0, help="mutants drawn per module (0: all)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--report-only", action="store_true", help="no mutmut run: the page from the results so far")
+    ap.add_argument("--output", type=Path, default=Path(tempfile.gettempdir()) / "mutation.md")
+    ap.add_argument("--update-results", action="store_true", help="write docs/results/mutation.md")
+    args = ap.parse_args()
+    if not args.report_only:
+        if not all(meta_results(MODULES[m]) for m in args.modules):
+            run_mutmut(["__generate_only__"])  # generates every mutant and the test map; no name matches
+        names: list[str] = []
+        for m in args.modules:
+            keys = sorted(meta_results(MODULES[m]))
+            if args.sample and len(keys) > args.sample:
+                keys = sorted(random.Random(f"{args.seed}:{m}").sample(keys, args.sample))
+            names += keys
+        run_mutmut(names)
+    rows, survivors = [], []
+    for m in args.modules:
+        results = meta_results(MODULES[m])
+        checked = {k: v for k, v in results.items() if v is not None}
+        killed = sum(v in KILLED for v in checked.values())
+        rows.append({"module": m, "total": len(results), "checked": len(checked), "killed": killed,
+                     "survived": len(checked) - killed})
+        survivors += [(k, diff_of(k)) for k, v in sorted(checked.items()) if v not in KILLED]
+    command = "python bench/mutation_check.py " + " ".join(a for a in sys.argv[1:] if a != "--update-results")
+    text = page(rows, survivors, command.strip())
+    out = ROOT / "docs/results/mutation.md" if args.update_results else args.output
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text)
+    print(text.split("## Survivors")[0])
+    print(f"written {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
