@@ -350,3 +350,10 @@ def test_a_reference_of_exactly_the_minimum_counts_is_normalised() -> None:
     psi = thermal_model.normalise(np.full((3, 3), 100.0), np.array([lo, lo - 1e-9, lo + 1.0]))
     assert np.all(np.isfinite(psi[0])) and np.all(np.isnan(psi[1])) and np.all(np.isfinite(psi[2]))
     np.testing.assert_allclose(psi[0], 100.0 / lo)
+
+
+@pytest.mark.parametrize("section,key", [("reference_level", "temperature"), ("noise_correlation", "fraction")])
+def test_an_unknown_key_in_a_section_is_named_with_its_section(tmp_path: Path, good: dict[str, Any], section: str,
+                                                               key: str) -> None:
+    good[section][key] = 1.0
+    assert f"unknown key '{section}.{key}'" in refused(write(tmp_path, good))

@@ -326,3 +326,9 @@ def test_a_board_booted_an_hour_before_the_driver_with_a_drifting_crystal_and_af
     assert stamps2[0] > stamps[-1] and np.all(np.diff(stamps2) > 0)
     err2 = errors_s(stamps2, true2)
     assert np.all(np.abs(err2[3000:]) < 1.5e-3), np.abs(err2[3000:]).max()
+
+
+def test_the_status_names_every_figure_the_diagnostics_publish() -> None:
+    sync, _, _ = run(300)
+    assert set(sync.status()) == {"board_clock_ppm", "drift_at_limit", "restarts", "ros_time_steps", "mapping_steps",
+                                  "held_stamps"}

@@ -594,3 +594,19 @@ def test_an_outage_of_a_sequence_period_or_more_is_counted_in_full(gap: int, cat
     dec, out = run([wire(kept)])
     assert out == kept
     assert (dec.stats.lost_frames, dec.stats.resets, dec.stats.duplicates) == (gap, 0, 0)
+
+
+def test_the_sample_interval_forgets_its_oldest_step_first() -> None:
+    """The ring of the last INTERVAL_WINDOW steps is first in, first out: after 7 steps (five of 1000 us, two of
+    3000 us) and three of 2000 us, the window holds 2000 x3, 1000 x2, 3000 x2 (median 2000); a ring that overwrote
+    its newest steps first would hold 1000 x4 and read 1000."""
+    from fbg_accel_driver.stream_decoder import INTERVAL_WINDOW, SampleInterval
+
+    assert INTERVAL_WINDOW == 7
+    interval = SampleInterval()
+    for step in (1000, 1000, 1000, 1000, 1000, 3000, 3000):
+        interval.add(step, 0)
+    assert interval.us == 1000
+    for _ in range(3):
+        interval.add(2000, 0)
+    assert interval.us == 2000

@@ -334,3 +334,59 @@ def test_a_level_whose_reference_follows_another_convention_is_refused(conventio
     rec.gref_mps2[mid] = -rec.gref_mps2[mid] if convention == "sign flipped" else rec.gref_mps2[mid][:, [1, 0, 2]]
     with pytest.raises(NotIdentifiedError, match=r"level\(s\) at 24.0 degC .* gravity in g\? a sign or axis convention"):
         fit_thermal(rec, 2, usable=np.ones(len(rec), bool))
+
+
+def _planar(rec: Recording) -> Recording:
+    """``rec`` with only the poses whose reference lies within 25 deg of the table's x-y plane, projected onto it: a
+    run whose poses never tilt z (coplanar), with the signal the simulation gave them."""
+    g = rec.gref_mps2
+    keep = (rec.pose_id >= 0) & (np.abs(g[:, 2]) < 0.42 * np.linalg.norm(g, axis=1))
+    out = rec.select(keep)
+    out.gref_mps2[:, 2] = 0.0
+    return out
+
+
+def test_a_level_whose_poses_are_coplanar_does_not_count_for_the_temperature_degree() -> None:
+    """Degree 1 needs two levels whose own poses span the frame: with the second level's poses all in the x-y plane,
+    the z rows of the temperature terms are not determined, and degree 1 is refused naming that level."""
+    from fbg_accel_calibration.thermal_fit import check_level_excitation, level_excitation
+
+    M, b = _truth(1, np.random.default_rng(9))
+    full = _simulate(M, b, (16.0, 45.0), center=30.5, scale=14.5, n_poses=40, seed=9)
+    flat = Recording.concatenate([full.select(full.run_id == 0), _planar(full.select(full.run_id == 1))])
+    stats = prepare(flat, 1, usable=np.ones(len(flat), bool)).stats
+    ok, notes = level_excitation(stats)
+    assert ok == 1 and len(notes) == 1 and notes[0].startswith("temperature level 1:"), notes
+    check_level_excitation(stats, 0)
+    with pytest.raises(NotIdentifiedError, match="degree 1 in temperature needs 2 temperature levels"):
+        check_level_excitation(stats, 1)
+    assert level_excitation(prepare(full, 1, usable=np.ones(len(full), bool)).stats)[0] == 2
+
+
+def test_reference_reach_names_each_axis_and_way_the_poses_never_reached() -> None:
+    from fbg_accel_calibration.thermal_fit import reference_reach_warnings
+
+    assert reference_reach_warnings([[-9.8, 9.8], [-9.8, 9.8], [-9.8, 9.8]]) == []
+    lines = reference_reach_warnings([[-1.36, 1.36], [-9.8, 9.8], [-9.8, 2.0]])
+    assert len(lines) == 2
+    assert "table x axis down or up (their reference along it spans -1.36 .. +1.36" in lines[0]
+    assert "table z axis up (" in lines[1] and lines[1].endswith("record poses with z up")
+
+
+def test_the_recording_excitation_check_takes_the_posed_samples_only() -> None:
+    """``diagnose``'s cheap check before its long computation: coplanar poses are refused, a recording whose
+    samples lack a pose, a reference or a temperature is refused as such, and moving samples (no reference, a
+    valid temperature) do not enter it."""
+    from fbg_accel_calibration.thermal_fit import check_recording_excitation
+
+    M, b = _truth(0, np.random.default_rng(10))
+    rec = _simulate(M, b, (24.0,), center=24.0, scale=1.0, n_poses=30, seed=10)
+    assert np.all(check_recording_excitation(rec) > 1.0)
+    with pytest.raises(NotIdentifiedError, match="coplanar"):
+        check_recording_excitation(_planar(rec))
+    moving = Recording(rec.t_s, rec.ref, rec.xyz, rec.temp_c, np.full_like(rec.gref_mps2, np.nan), np.full(len(rec), -1))
+    with pytest.raises(NotIdentifiedError, match="no sample has a pose"):
+        check_recording_excitation(moving)
+    flat_and_moving = Recording.concatenate([_planar(rec), moving])
+    with pytest.raises(NotIdentifiedError, match="coplanar"):
+        check_recording_excitation(flat_and_moving)
