@@ -299,6 +299,10 @@ def test_non_bytes_input_is_ignored_without_raising(bad: object) -> None:
     assert dec.feed(wire(make_frames(1))) == make_frames(1)
 
 
+def test_no_reset_is_marked_before_the_first_chunk() -> None:
+    assert StreamDecoder().resets_at == []
+
+
 def test_empty_chunk() -> None:
     dec = StreamDecoder()
     assert dec.feed(b"") == []
