@@ -332,3 +332,36 @@ def test_the_status_names_every_figure_the_diagnostics_publish() -> None:
     sync, _, _ = run(300)
     assert set(sync.status()) == {"board_clock_ppm", "drift_at_limit", "restarts", "ros_time_steps", "mapping_steps",
                                   "held_stamps"}
+
+
+def test_each_step_is_counted_once() -> None:
+    """``steps`` and ``host_steps`` count events (the diagnostics publish them): none on a steady run, one for one
+    forward step of the host clock (2 s), one for one board clock jump ahead (5 s, no reboot)."""
+    sync, _, _ = run(1000, steady=True)
+    assert (sync.steps, sync.host_steps) == (0, 0)
+    sync, _, _ = run(500, sync=sync, board_start_s=10.0, offset_s=OFFSET_S + 2.0, seed=3, steady=True)
+    assert (sync.steps, sync.host_steps) == (0, 1)
+    jumped, _, _ = run(1000)
+    jumped, _, _ = run(500, sync=jumped, board_start_s=15.0, offset_s=OFFSET_S - 5.0, seed=4)  # board 10 s -> 15 s
+    assert (jumped.steps, jumped.host_steps) == (1, 0)
+
+
+def test_one_read_s_host_offset_alone_does_not_move_the_stamps_whatever_the_chunk() -> None:
+    """The host-minus-steady offset follows a change two of the last three READS agree on; the frames of one chunk
+    share one read and count once. One read 10 ms off (a thread switch between the two clock reads, inside the step
+    threshold) in chunks of 5 frames: counted per frame, that read would make the three last "reads" and the stamps
+    would jump by 8 ms."""
+    sync = ClockSync()
+    rng = np.random.default_rng(7)
+    stamps, truth = [], []
+    for k in range(400):  # chunks of 5 frames at 100 Hz
+        board = np.arange(5 * k, 5 * k + 5) / RATE_HZ
+        steady_ns = round((100.0 + board[-1] + 150e-6 + rng.exponential(1e-3)) * 1e9)
+        host_ns = steady_ns + round(OFFSET_S * 1e9) + (10_000_000 if k == 300 else 0)
+        for b in board:
+            sync.observe(round(b * 1e6), host_ns, steady_ns)
+        for b in board:
+            stamps.append(sync.stamp(round(b * 1e6)))
+            truth.append(OFFSET_S + 100.0 + b)
+    err = errors_s(np.asarray(stamps), np.asarray(truth))
+    assert np.all(np.abs(err[1000:]) < 2.5e-3), np.abs(err[1000:]).max()
