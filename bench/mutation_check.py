@@ -50,7 +50,37 @@ MODULES = {
 KILLED = {1, 3, 36, 37, -24, 24, 152, 255, -11, -9}  # test failure, pytest error, timeout, crash (mutmut/stats.py)
 # Survivors that cannot change what a user gets, with the reason (mutant name -> reason); names are mutmut's, valid
 # for the source as committed with this table.
-EQUIVALENT: dict[str, str] = {}
+EQUIVALENT: dict[str, str] = {
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁcorrection_sum__mutmut_15": (
+        "np.asarray(t_s, None) for np.asarray(t_s, float): every caller passes board times as a float array already"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁfrom_dict__mutmut_117": (
+        "finite=None for finite=False: the flag is only tested for truth"),
+    "fbg_accel_calibration.thermal_fit.xǁTemperatureClustersǁfinish__mutmut_19": (
+        "zip(strict=None) for strict=True: the two sequences have one entry per cluster by construction"),
+    "fbg_accel_calibration.thermal_fit.x_accumulate_cells__mutmut_14": (
+        "a chunk of 2 rows for 1 when there are no rows: nothing is accumulated either way"),
+    "fbg_accel_calibration.thermal_fit.x_check_level_consistency__mutmut_74": (
+        "< for <= at the 30 % bound: a relative change exactly equal to the bound has no weight (a real-valued "
+        "decision), and no test may decide at a threshold (project rule)"),
+    "fbg_accel_calibration.thermal_fit.x_check_pose_excitation__mutmut_5": (
+        "the sample counts as integers instead of floats: every use divides by them, giving floats either way"),
+    "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ_accept__mutmut_15": (
+        "<= for < on the board clock: a frame at the last frame's t_us never gets there (a duplicate or a stuck "
+        "clock is handled before; with BOOT it is a reset either way)"),
+    "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ__init____mutmut_4": (
+        "\"\" for None as the last board time: it is read only once a last seq exists, and both are set together"),
+    "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_39": (
+        "< for <= when a hull point is collinear with its neighbours: keeping it splits one edge into two of the "
+        "same slope, so the slope at the mean board time is the same"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁobserve__mutmut_37": (
+        "another integer base for the offsets (steady - 1001 t_us for steady - 1000 t_us at the first frame): every "
+        "offset is taken relative to it and every stamp adds it back, so it cancels"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁobserve__mutmut_84": (
+        "<= for < between bin indices: an equal index took the branch before"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁ_clear__mutmut_12": (
+        "1 for 0 as the steady time of the first observation before there is one: it is set with that observation, "
+        "and read only after it"),
+}
 
 
 def meta_results(path: str) -> dict[str, int | None]:
