@@ -54,6 +54,8 @@ KILLED = {1, 3, 36, 37, -24, 24, 152, 255, -11, -9}  # test failure, pytest erro
 EQUIVALENT: dict[str, str] = {
     "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁcorrection_sum__mutmut_15": (
         "np.asarray(t_s, None) for np.asarray(t_s, float): every caller passes board times as a float array already"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁexpected_reference_counts__mutmut_1": (
+        "the cache not read: the same value is worked out again, only slower"),
     "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁfrom_dict__mutmut_117": (
         "finite=None for finite=False: the flag is only tested for truth"),
     "fbg_accel_calibration.thermal_fit.xǁTemperatureClustersǁfinish__mutmut_19": (

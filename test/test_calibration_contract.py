@@ -357,3 +357,23 @@ def test_an_unknown_key_in_a_section_is_named_with_its_section(tmp_path: Path, g
                                                                key: str) -> None:
     good[section][key] = 1.0
     assert f"unknown key '{section}.{key}'" in refused(write(tmp_path, good))
+
+
+def test_the_saved_file_keeps_the_documented_key_order_and_flow_lists(tmp_path: Path) -> None:
+    """What people read: the keys in the order of docs/calibration_file.md (format first), short lists on one line."""
+    cal = ThermalCalibration.load(REPO / "config" / "calibration_sim.yaml")
+    cal.save(tmp_path / "c.yaml")
+    text = (tmp_path / "c.yaml").read_text()
+    keys = [ln.split(":")[0] for ln in text.splitlines() if ln[:1].isalpha()]
+    assert keys == [k for k in thermal_model.TOP_LEVEL_KEYS if k in keys], keys
+    assert f"temperature_range_c: [{cal.temperature_range_c[0]}, {cal.temperature_range_c[1]}]" in text
+
+
+def test_the_expected_reference_counts_follow_the_levels_linearly_and_hold_beyond_them() -> None:
+    cal = ThermalCalibration(M=80.0 * np.eye(3)[None], b=np.zeros((1, 3)), temperature_range_c=(16.0, 45.0),
+                             reference_level_temperature_c=np.array([16.0, 46.0]),
+                             reference_level_counts=np.array([880.0, 820.0]))
+    assert cal.expected_reference_counts(31.0) == pytest.approx(850.0)
+    assert cal.expected_reference_counts(31.0) == pytest.approx(850.0)  # the cached value
+    assert (cal.expected_reference_counts(0.0), cal.expected_reference_counts(60.0)) == (880.0, 820.0)
+    assert math.isnan(cal.expected_reference_counts(math.nan))

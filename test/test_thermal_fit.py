@@ -375,8 +375,8 @@ def test_reference_reach_names_each_axis_and_way_the_poses_never_reached() -> No
 
 def test_the_recording_excitation_check_takes_the_posed_samples_only() -> None:
     """``diagnose``'s cheap check before its long computation: coplanar poses are refused, a recording whose
-    samples lack a pose, a reference or a temperature is refused as such, and moving samples (no reference, a
-    valid temperature) do not enter it."""
+    samples lack a pose is refused as such, and samples between poses (a reference and a temperature, no pose id) do
+    not enter it."""
     from fbg_accel_calibration.thermal_fit import check_recording_excitation
 
     M, b = _truth(0, np.random.default_rng(10))
@@ -384,7 +384,9 @@ def test_the_recording_excitation_check_takes_the_posed_samples_only() -> None:
     assert np.all(check_recording_excitation(rec) > 1.0)
     with pytest.raises(NotIdentifiedError, match="coplanar"):
         check_recording_excitation(_planar(rec))
-    moving = Recording(rec.t_s, rec.ref, rec.xyz, rec.temp_c, np.full_like(rec.gref_mps2, np.nan), np.full(len(rec), -1))
+    # between poses: no pose id, and a reference that is not one (a CSV row between poses carries any)
+    moving = Recording(rec.t_s, rec.ref, rec.xyz, rec.temp_c, np.tile([0.0, 0.0, 9.80665], (len(rec), 1)),
+                       np.full(len(rec), -1))
     with pytest.raises(NotIdentifiedError, match="no sample has a pose"):
         check_recording_excitation(moving)
     flat_and_moving = Recording.concatenate([_planar(rec), moving])
