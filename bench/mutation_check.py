@@ -56,6 +56,17 @@ EQUIVALENT: dict[str, str] = {
         "np.asarray(t_s, None) for np.asarray(t_s, float): every caller passes board times as a float array already"),
     "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁexpected_reference_counts__mutmut_1": (
         "the cache not read: the same value is worked out again, only slower"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁ_coefficients_of__mutmut_10": (
+        "equal_nan=None for True: temperatures with NaN then miss the cache and are worked out again, to the same "
+        "values"),
+    "fbg_accel_driver.thermal_model.x_normalise__mutmut_5": (
+        "the reference without dtype=float: np.where with NaN makes it float either way"),
+    "fbg_accel_calibration.thermal_fit.xǁCellAccumulatorǁadd__mutmut_91": (
+        "argsort kind 'STABLE' for 'stable': numpy reads the kind without regard to case"),
+    "fbg_accel_calibration.thermal_fit.xǁCellAccumulatorǁ_add_visits__mutmut_9": (
+        "reduceat without axis=0: 0 is its default"),
+    "fbg_accel_calibration.thermal_fit.xǁCellAccumulatorǁfinish__mutmut_9": (
+        "the cell keys without dtype=int64: Python ints become int64 on the 64-bit platforms the project runs on"),
     "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁfrom_dict__mutmut_117": (
         "finite=None for finite=False: the flag is only tested for truth"),
     "fbg_accel_calibration.thermal_fit.xǁTemperatureClustersǁfinish__mutmut_19": (

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -283,6 +284,11 @@ def test_a_model_that_cannot_read_the_sensor_s_range_is_refused(tmp_path: Path, 
     good["M"] = m.tolist()
     msg = refused(write(tmp_path, good))
     assert INSENSITIVE in msg and "m/s^2 over the whole 12-bit range" in msg and len(msg.splitlines()) == 1, msg
+    assert ("m/s^2 over the whole 12-bit range of the counts (reference 256 counts), below 49 m/s^2 (5 g, an eighth of "
+            "the sensor's +-20 g span): a zero row or column, dependent rows, or coefficients in the wrong unit (M(T) = "
+            "[[") in msg, msg
+    if case == "dependent rows":  # the weak direction is no axis: given as a unit vector
+        assert re.search(r"least sensitive direction \(-?0\.\d\d, -?0\.\d\d, -?0\.\d\d\) the output", msg), msg
 
 
 def test_a_weak_but_physical_model_loads(good: dict[str, Any]) -> None:
@@ -377,3 +383,15 @@ def test_the_expected_reference_counts_follow_the_levels_linearly_and_hold_beyon
     assert cal.expected_reference_counts(31.0) == pytest.approx(850.0)  # the cached value
     assert (cal.expected_reference_counts(0.0), cal.expected_reference_counts(60.0)) == (880.0, 820.0)
     assert math.isnan(cal.expected_reference_counts(math.nan))
+
+
+def test_file_and_field_messages_name_what_they_judge(tmp_path: Path, good: dict[str, Any]) -> None:
+    """Whole messages: a file over the size bound, the second bound of the range not a number; an empty sensor_id
+    (``sensor_id:`` with nothing after it) is the empty text."""
+    big = "notes: '" + "x" * (MAX_FILE_BYTES + 10) + "'\n"
+    assert refused(write(tmp_path, None, raw=big)).endswith(
+        f"above the {MAX_FILE_BYTES}-byte bound of a calibration file (docs/calibration_file.md, section 5)")
+    bad_range = dict(good, temperature_range_c=[16.0, "warm"])
+    assert "'temperature_range_c' must be a number, got str" in refused(write(tmp_path, bad_range))
+    good["sensor_id"] = None
+    assert ThermalCalibration.load(write(tmp_path, good)).sensor_id == ""
