@@ -365,3 +365,28 @@ def test_one_read_s_host_offset_alone_does_not_move_the_stamps_whatever_the_chun
             truth.append(OFFSET_S + 100.0 + b)
     err = errors_s(np.asarray(stamps), np.asarray(truth))
     assert np.all(np.abs(err[1000:]) < 2.5e-3), np.abs(err[1000:]).max()
+
+
+def test_the_lower_envelope_drops_a_point_above_the_chord_of_its_neighbours() -> None:
+    from fbg_accel_driver.clock_sync import lower_envelope_slope
+
+    assert lower_envelope_slope([0.0, 1.0, 2.0], [0.0, 5.0, 0.0]) == 0.0  # the middle point lies above: not the hull
+    assert lower_envelope_slope([0.0, 1.0, 2.0], [0.0, -1.0, 0.0]) == -1.0  # below: the edge that reaches the mean x
+
+
+def test_before_any_observation_the_estimate_is_no_drift() -> None:
+    sync = ClockSync()
+    assert sync.drift == 0.0 and sync.status()["board_clock_ppm"] == 0.0
+    run(300, sync=sync)
+    sync.reset()
+    assert sync.drift == 0.0 and sync.status()["board_clock_ppm"] == 0.0
+
+
+def test_a_small_host_offset_change_adds_to_the_offset_already_followed() -> None:
+    """ROS time 1 s ahead of the steady clock from the start (followed at once), then 10 ms more (an NTP step below
+    the step threshold): the stamps follow the 10 ms on top of the 1 s, to within the read band, without a step."""
+    sync, _, _ = run(1000, steady=True, offset_s=OFFSET_S + 1.0)
+    sync, stamps, truth = run(1000, sync=sync, board_start_s=10.0, offset_s=OFFSET_S + 1.01, seed=3, steady=True)
+    err = errors_s(stamps[1:], truth[1:])  # the first read of the new offset alone is not followed (no agreement yet)
+    assert np.all(np.abs(err) < 3e-3), np.abs(err).max()
+    assert sync.host_steps == 0  # followed within the band, not stepped
