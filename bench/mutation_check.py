@@ -132,7 +132,7 @@ def page(rows: list[dict], survivors: list[tuple[str, str]], command: str) -> st
     lines = ["# Mutation testing of the pure core", "", f"Regenerate: `{command}`", "",
              "Run with mutmut 3.8.1 (pyproject.toml `[tool.mutmut]`) on the 2-core build machine, against the fast tests "
              "named in bench/mutation_check.py. Score = killed / checked; a mutant no test reaches counts as surviving; "
-             "`sample` is how many of the module's mutants were drawn (seeded) and checked.", "",
+             "`checked` is how many of the module's mutants were drawn (seeded samples) and checked.", "",
              "| module | mutants | checked | killed | survived | of them equivalent | score | score without the "
              "equivalent |", "|---|---|---|---|---|---|---|---|"]
     for r in [*rows, {"module": "**all**", **{k: sum(r[k] for r in rows) for k in ("total", "checked", "killed",
@@ -162,6 +162,7 @@ def main() -> int:
     ap.add_argument("--update-results", action="store_true", help="write docs/results/mutation.md")
     args = ap.parse_args()
     if args.recheck_survivors:
+        (ROOT / "mutants" / "mutmut-stats.json").unlink(missing_ok=True)  # which tests reach what: the new ones too
         again = []
         for m in args.modules:
             names = {k for k, v in meta_results(MODULES[m]).items() if v is not None and v not in KILLED}
@@ -190,8 +191,9 @@ def main() -> int:
     command = "python bench/mutation_check.py " + " ".join(a for a in sys.argv[1:] if a != "--update-results")
     if args.report_only:
         command = ("python bench/mutation_check.py --modules frame_codec; python bench/mutation_check.py --modules "
-                   "stream_decoder clock_sync thermal_model thermal_fit --sample 40; python bench/mutation_check.py "
-                   "--recheck-survivors; python bench/mutation_check.py --report-only")
+                   "stream_decoder clock_sync thermal_model thermal_fit --sample 40; the same with --sample 30 --seed 1; "
+                   "python bench/mutation_check.py --recheck-survivors (after the tests that kill survivors were added); "
+                   "python bench/mutation_check.py --report-only")
     text = page(rows, survivors, command.strip())
     out = ROOT / "docs/results/mutation.md" if args.update_results else args.output
     out.parent.mkdir(parents=True, exist_ok=True)
