@@ -141,6 +141,11 @@ def page(rows: list[dict], survivors: list[tuple[str, str]], command: str) -> st
         score = f"{100 * k / c:.1f} %" if c else "-"
         clean = f"{100 * k / (c - e):.1f} %" if c > e else "-"
         lines.append(f"| {r['module']} | {r['total']} | {c} | {k} | {r['survived']} | {e} | {score} | {clean} |")
+    total = sum(r["total"] for r in rows)
+    checked = sum(r["checked"] for r in rows)
+    if checked < total:
+        lines += ["", f"{checked} of the {total} mutants ({100 * checked / total:.0f} %) were checked: the figures are "
+                  "those of seeded random samples, not of every mutant (a full run takes hours on this machine)."]
     lines += ["", "## Survivors", "", "Equivalent ones carry the reason no test can kill them; the others are gaps of "
               "the tests still open.", ""]
     for name, diff in survivors:
