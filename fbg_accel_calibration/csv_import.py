@@ -39,8 +39,6 @@ from typing import Any
 
 import numpy as np
 
-from fbg_accel_driver.frame_codec import ADC_MAX
-
 from . import input_validation as iv
 from .recording import Recording, join_blocks
 from .table_geometry import STANDARD_GRAVITY, table_specific_force
@@ -329,10 +327,9 @@ class CsvBlocks:
         if counts[0] <= 0:
             raise ValueError(f"ref_counts = {fields[col['ref_counts']].strip()} must be > 0")
         for name, value in zip(COUNT_COLUMNS, counts, strict=True):
-            if value < 0:
-                raise ValueError(f"{name} = {value:g} is negative")
-            if value > ADC_MAX:
-                raise ValueError(f"{name} = {value:g} is beyond the 12-bit ADC range 0 .. {ADC_MAX:g} counts")
+            problem = iv.count_problem(name, value)  # the words of every input route (iv.SampleCheck)
+            if problem:
+                raise ValueError(problem)
         t, temp = self._time(fields, index), self._temperature(fields)
         if "psi_deg" in col:
             r = [iv.check_range(c, self._value(fields, c), -iv.ANGLE_LIMIT_DEG, iv.ANGLE_LIMIT_DEG, "deg")
@@ -372,7 +369,7 @@ class CsvBlocks:
             try:
                 iv.check_range("temperature_c", temp, *iv.TEMPERATURE_RANGE_C, "degC (AHT10 range)")
             except ValueError as exc:
-                raise ValueError(f"{exc}{_temperature_unit_hint(temp)}") from None
+                raise ValueError(f"{exc}{iv.temperature_unit_hint(temp)}") from None
         return temp
 
     def _complete(self, row: list[float]) -> None:
@@ -501,16 +498,6 @@ def write_mcap(src: CsvBlocks, path: str | Path, metadata: dict[str, Any], senso
 def _blank_or_comment(text: str) -> bool:
     """A line that holds no data: empty, only commas and spaces (an empty spreadsheet row), or a ``#`` comment."""
     return not text.replace(",", "").strip() or text.lstrip().startswith("#")
-
-
-def _temperature_unit_hint(value: float) -> str:
-    """What a temperature outside the AHT10 range (degC) looks like: the range in kelvin or in Fahrenheit."""
-    lo, hi = iv.TEMPERATURE_RANGE_C
-    if lo + 273.15 <= value <= hi + 273.15:
-        return f"; it looks like kelvin: give degC ({value:g} K = {value - 273.15:.2f} degC)"
-    if hi < value <= hi * 1.8 + 32.0:
-        return f"; it looks like Fahrenheit: give degC ({value:g} F = {(value - 32.0) / 1.8:.2f} degC)"
-    return ""
 
 
 def _check_delimiter(path: Path, header: list[str], text: str, line_no: int, required: tuple[str, ...]) -> None:

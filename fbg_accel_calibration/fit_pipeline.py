@@ -128,6 +128,9 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
         data = prepare(rec, max_degree, opt.window, opt.min_interval, opt.level_gap_c)
     recorded_sensor = sensor_id_of(metadata)  # refuses recordings of two sensors before the fit's work
     names = ", ".join(map(str, paths))
+    for line in data.rejected_warnings([str(p) for p in paths] if len(data.checks) == len(paths)
+                                       else [f"{names} run {i}" for i in range(len(data.checks))]):
+        _warn(f"WARNING: {line}")
     if len(data) == 0:
         raise ValueError(f"{names}: none of the {data.n_total} samples can be fitted "
                          f"({data.n_excluded_motion} not static, {data.n_excluded_other} without a pose, reference, "

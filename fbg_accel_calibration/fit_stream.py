@@ -17,7 +17,8 @@ import numpy as np
 
 from fbg_accel_driver.thermal_model import normalise
 
-from .recording import LowReference, Recording, without_low_reference
+from .input_validation import SampleCheck
+from .recording import LowReference, Recording, without_low_reference, without_samples
 from .static_detector import (
     BLOCK_ROWS,
     DEFAULT_FALSE_ALARM,
@@ -80,6 +81,18 @@ class FitData:
     # mean reference counts of the fitted samples per level (ADC counts, as level_means_c): the source power the
     # model holds at (ThermalCalibration.reference_level_counts)
     level_reference_counts: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # per source: the samples dropped for values no sensor gives (input_validation.SampleCheck: counts, temperature,
+    # its junk readings, the reference's magnitude) and the samples without a temperature reading
+    checks: list[SampleCheck] = field(default_factory=list)
+
+    @property
+    def n_rejected(self) -> int:
+        """Samples the input check (:attr:`checks`) dropped or kept from the fit, all sources and reasons."""
+        return sum(c.flagged for c in self.checks)
+
+    def rejected_warnings(self, names: list[str]) -> list[str]:
+        """The input check's lines (``SampleCheck.warnings``), ``names[i]`` naming source i."""
+        return [line for c, name in zip(self.checks, names, strict=True) for line in c.warnings(name)]
 
     @property
     def n_excluded_low_reference(self) -> int:
@@ -150,7 +163,9 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
 
     ``usable`` (one (N_i,) bool mask per source): the fit's samples given, no static detection (step 1 skipped).
 
-    Before every step, the samples of a reference too low (``Recording.low_reference``: no source light, Psi = counts
+    Before every step, the samples whose values no sensor gives are dropped from each run and counted
+    (``input_validation.SampleCheck``, :attr:`FitData.checks`: every input route, CSV, MCAP or bag, gets this one
+    check); then the samples of a reference too low (``Recording.low_reference``: no source light, Psi = counts
     / ref no measurement) are taken out of each run (``recording.without_low_reference``, also out of a given
     ``usable``): the result is that of the runs without them, and they are counted (``FitData.low_reference``).
 
@@ -159,16 +174,25 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
     (chunks of ``chunk`` selected rows across blocks and runs).
     """
     raw_sources, low_tally = sources, LowReference()
+    checks = [SampleCheck() for _ in raw_sources]  # of the pass that counts (count=True)
+
+    def checked(blocks: Iterator[Recording], check: SampleCheck, block_rows: int) -> Iterator[Recording]:
+        """``blocks`` without the samples ``check`` drops (``input_validation.SampleCheck``)."""
+        return without_samples(blocks, block_rows, check.apply)
 
     class Lit:
-        """A source without its samples of a reference too low, counted in ``low_tally`` when ``count`` is set."""
+        """A source without the samples the input check drops, counted in ``checks`` when ``count`` is set, and
+        without its samples of a reference too low, counted in ``low_tally`` then."""
 
         def __init__(self, src: SampleBlockSource, i: int) -> None:
             self.src, self.i, self.count = src, i, False
 
         def blocks(self, block_rows: int, with_poses: bool) -> Iterator[Recording]:
-            return without_low_reference(self.src.blocks(block_rows, with_poses), block_rows,
-                                         low_tally if self.count else None, self.i)
+            check = SampleCheck()
+            if self.count:
+                checks[self.i] = check
+            return without_low_reference(checked(self.src.blocks(block_rows, with_poses), check, block_rows),
+                                         block_rows, low_tally if self.count else None, self.i)
 
     sources = [Lit(src, i) for i, src in enumerate(raw_sources)]
     thresholds: list[np.ndarray] = []
@@ -197,9 +221,16 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
                 yield blk, psi, use, clipped
             return
         start = 0
+        check = SampleCheck()
+        if src.count:
+            checks[i] = check
         for blk in raw_sources[i].blocks(BLOCK_ROWS, True):  # the given mask is of every sample
-            use, low = usable[i][start:start + len(blk)], blk.low_reference()
+            use = usable[i][start:start + len(blk)]
             start += len(blk)
+            blk, bad, _ = check.apply(blk, last=True)  # block by block: no reading is held back
+            if bad.any():
+                blk, use = blk.select(~bad), use[~bad]
+            low = blk.low_reference()
             if src.count:
                 low_tally.add(i, blk.t_s, low)
             if low.any():
@@ -226,7 +257,7 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
         if len(t):
             t_min, t_max = min(t_min, float(t.min())), max(t_max, float(t.max()))
     clusters.finish()
-    n_total += low_tally.count
+    n_total += low_tally.count + sum(c.count for c in checks)
     center, scale = temperature_scaling(np.array([t_min, t_max])) if np.isfinite(t_min) else (0.0, 1.0)
 
     acc = CellAccumulator(degree, chunk)
@@ -267,4 +298,4 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
     return FitData(stats, level_sum[present] / level_count[present], (t_min, t_max), center, scale, n_used, n_total,
                    n_motion, n_other, count_orientations(stats), clusters, level_map, detector, n_clipped,
                    sum(len(v) for v in left_out if v is not None), low_tally,
-                   level_ref_sum[present] / level_count[present])
+                   level_ref_sum[present] / level_count[present], checks)

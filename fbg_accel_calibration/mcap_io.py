@@ -41,6 +41,7 @@ record and reports how many messages it recovered).
 from __future__ import annotations
 
 import errno
+import hashlib
 import io
 import json
 import logging
@@ -240,6 +241,8 @@ def _summary_topics(path: Path) -> dict[str, str] | None:
 
     try:
         with open(path, "rb") as fh:
+            if not _summary_plausible(fh):
+                return None
             summary = make_reader(fh).get_summary()
     except Exception:  # no or damaged summary: the readers find the topics while reading
         return None
@@ -247,6 +250,36 @@ def _summary_topics(path: Path) -> dict[str, str] | None:
         return None
     return {c.topic: (summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "no schema")
             for c in summary.channels.values()}
+
+
+_SUMMARY_OPCODES = frozenset((Opcode.SCHEMA, Opcode.CHANNEL, Opcode.CHUNK_INDEX, Opcode.ATTACHMENT_INDEX,
+                              Opcode.METADATA_INDEX, Opcode.STATISTICS, Opcode.SUMMARY_OFFSET))
+
+
+def _summary_plausible(fh: Any) -> bool:
+    """Whether the records from the footer's ``summary_start`` to the footer are summary records (MCAP spec) that
+    tile that stretch exactly, walked by their framing alone. The mcap library reads what lies there, chunks
+    included, one record at a time in Python: a footer pointing at a chunk of zeros made it loop over millions of
+    9-byte records before the reader proper (with its bounds, :func:`_chunk_bytes`) saw the file."""
+    size = fh.seek(0, io.SEEK_END)
+    footer_at = size - len(MCAP_MAGIC) - 9 - 20
+    if footer_at < len(MCAP_MAGIC):
+        return False
+    fh.seek(footer_at)
+    head = fh.read(9 + 8)
+    if head[0] != Opcode.FOOTER:
+        return False
+    (pos,) = struct.unpack_from("<Q", head, 9)
+    if pos == 0:
+        return True  # no summary: the library says so without reading any
+    while pos < footer_at:
+        fh.seek(pos)
+        rec = fh.read(9)
+        if len(rec) < 9 or rec[0] not in _SUMMARY_OPCODES:
+            return False
+        pos += 9 + struct.unpack_from("<Q", rec, 1)[0]
+    fh.seek(0)
+    return pos == footer_at
 
 
 def recording_files(path: str | Path, namespace: str | None = None, raw_topic: str | None = None
@@ -669,7 +702,7 @@ _OPCODES = frozenset(int(o) for o in Opcode)
 _RESYNC_WINDOW = 64 << 20  # bytes searched for the next intact chunk after the framing is lost
 
 
-def _file_records(fh: Any, report: FileReadReport):
+def _file_records(fh: Any, report: FileReadReport, seen: dict[bytes, str] | None = None, where: str | Path = ""):
     """``(opcode, payload)`` of each top-level record of an MCAP file (``fh`` just past its magic) up to its
     footer, the index and summary records passed over; for a chunk the payload is its decompressed,
     CRC-checked records. The one path of the reader (:class:`McapSampleStream`) through a file.
@@ -682,9 +715,27 @@ def _file_records(fh: Any, report: FileReadReport):
       still ends in the MCAP magic, i.e. is not truncated) starts a search for the next chunk that
       decompresses with a valid CRC; reading resumes there.
 
+    A chunk record equal byte for byte to one met before (``seen``: digest -> where, shared by the files of a
+    recording) is read once: one note counts the copies.
+
     Raises ``_TruncatedError`` when the file ends inside a record or without a footer (the caller keeps
     what was read), ``McapRecordingError`` when no intact chunk follows a framing error.
     """
+    seen = {} if seen is None else seen
+    copies: list[tuple[int, str]] = []  # (offset, where the original is) of the copies in this file
+    try:
+        yield from _file_records_walk(fh, report, seen, copies, str(where or report.path))
+    finally:
+        if copies:
+            report.note(f"{where or report.path}: {len(copies)} chunk{'s' if len(copies) > 1 else ''} (the first at byte "
+                        f"{copies[0][0]}) {'are exact copies' if len(copies) > 1 else 'is an exact copy'} of chunks "
+                        f"read before (the first: {copies[0][1]}), each read once; a copy tool or a writer that "
+                        "repeated a block, not a second measurement")
+
+
+def _file_records_walk(fh: Any, report: FileReadReport, seen: dict[bytes, str], copies: list[tuple[int, str]],
+                       where: str):
+    """:func:`_file_records` without the note of the copies."""
     pos = fh.tell()
     file_size = fh.seek(0, io.SEEK_END)
     fh.seek(max(0, file_size - len(MCAP_MAGIC)))
@@ -724,6 +775,11 @@ def _file_records(fh: Any, report: FileReadReport):
             continue
         body = _read_exact(fh, length)
         if opcode == Opcode.CHUNK:
+            digest = hashlib.blake2b(body, digest_size=16).digest()
+            if digest in seen:
+                copies.append((start, seen[digest]))
+                continue
+            seen[digest] = f"byte {start} of {where}"
             try:
                 data = _chunk_bytes(body)
             except Exception as exc:  # CRC mismatch, zstd error, bad header: skip this chunk only
@@ -764,6 +820,12 @@ class _PartialRecordError(McapRecordingError):
     chunk. The records before it are good; the split yields :data:`PARTIAL_RECORD` and goes on at the next chunk."""
 
 
+class _ForeignRecordError(McapRecordingError):
+    """A record a chunk cannot hold (opcode 0 of a chunk of zeros, a footer...): the chunk's data are not records, the
+    split yields a :class:`SkippedRange` with the reason and goes on at the next chunk (one check per record, so a
+    chunk of 9-byte records of nothing costs no loop over them)."""
+
+
 PARTIAL_RECORD = SkippedRange(-1, -1, "a record cut short at the end of a chunk (interrupted writer); "
                                       "the records after it in that chunk are lost")
 
@@ -773,6 +835,9 @@ def _record_at(data: bytes, pos: int, size: int) -> tuple[Any, int]:
     if pos + 9 > size:
         raise _PartialRecordError("record header overruns its chunk")
     opcode, length = _RECORD_HEAD.unpack_from(data, pos)
+    if opcode not in _CHUNK_OPCODES:
+        raise _ForeignRecordError(f"a record of opcode {opcode} inside a chunk, which holds schema, channel and message "
+                                  "records only: the rest of that chunk is skipped")
     end = pos + 9 + length
     if end > size:
         raise _PartialRecordError("record overruns its chunk")
@@ -1014,14 +1079,15 @@ class McapSampleStream:
         a run's first samples) read only part of the file and must not stand for it."""
         report = FileReadReport(str(self.path), notes=list(self._notes))
         complete = True
+        seen: dict[bytes, str] = {}  # chunk digests of the pass: a chunk repeated in a file or across files is read once
         for path in self.files:
             report.complete = False
-            yield from self._file_batches(path, report, collect_events)
+            yield from self._file_batches(path, report, collect_events, seen)
             complete &= report.complete
         report.complete = complete
         self.report = report
 
-    def _file_batches(self, path: Path, report: FileReadReport, collect_events: bool):
+    def _file_batches(self, path: Path, report: FileReadReport, collect_events: bool, seen: dict[bytes, str]):
         """:meth:`_batches` of one MCAP file (channel and schema ids are per file)."""
         sel = self.selection
         factory = DecoderFactory()
@@ -1097,7 +1163,7 @@ class McapSampleStream:
                     out = message(*item)
                     if out is not None:
                         yield out
-                elif item is PARTIAL_RECORD:
+                elif isinstance(item, SkippedRange):  # PARTIAL_RECORD, or a chunk of records it cannot hold
                     report.skipped.append(SkippedRange(item.offset, item.end_offset, item.reason))
                 else:
                     _note_record(item, schemas, channels, report)
@@ -1107,7 +1173,7 @@ class McapSampleStream:
         with open(path, "rb", buffering=1 << 20) as fh:
             if fh.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
                 raise McapRecordingError(f"{path}: not an MCAP file (bad magic)")
-            records = _file_records(fh, report)
+            records = _file_records(fh, report, seen, path)
             while True:
                 try:
                     opcode, body = next(records)
@@ -1349,7 +1415,13 @@ def _chunk_bytes(body: bytes) -> bytes:
     (rlen,) = struct.unpack_from("<Q", body, 32 + clen)
     chunk = Chunk(compression=compression, data=body[40 + clen:40 + clen + rlen], message_start_time=start_t,
                   message_end_time=end_t, uncompressed_crc=crc, uncompressed_size=size)
+    if compression and size > MAX_CHUNK_RATIO * max(len(chunk.data), 1):
+        raise McapRecordingError(f"a chunk of {len(chunk.data)} compressed bytes claims {size}: a decompression ratio "
+                                 f"above {MAX_CHUNK_RATIO} (a recording's chunks: below 20), not recorded data")
     if compression == "zstd" and size:
+        declared = zstandard.frame_content_size(chunk.data) if len(chunk.data) >= 18 else -1
+        if declared not in (-1, size):  # decompress() allocates what the frame declares, whatever the bound
+            raise McapRecordingError(f"the chunk's zstd frame declares {declared} bytes, its header {size}")
         data = _ZSTD.decompress(chunk.data, max_output_size=size)
         if len(data) != size:
             raise McapRecordingError(f"chunk decompressed to {len(data)} bytes, expected {size}")
@@ -1361,6 +1433,11 @@ def _chunk_bytes(body: bytes) -> bytes:
 
 
 _ZSTD = zstandard.ZstdDecompressor()
+# Largest uncompressed / compressed size of a chunk that is read: a recording's chunks compress 4-15x (our writer's
+# chunks of a constant signal: 15x), 10 MB of zeros fits in 338 bytes (31000x). Above it the chunk is skipped as
+# damaged, before it is decompressed: the work and memory of a file stay within 200x its size.
+MAX_CHUNK_RATIO = 200
+_CHUNK_OPCODES = frozenset((Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE))  # what a chunk holds (MCAP spec)
 _JOIN_BYTES = 1 << 20  # decompressed chunks split together (records never span chunks)
 _FAST_RUN_MIN = 64
 _FAST_RUN_MAX = 16384  # records checked at once for a run of fixed-layout raw messages
@@ -1412,6 +1489,10 @@ def _split_chunks(bodies: list[bytes], fast: dict[str, Any]):
             item, pos = _record_at(data, pos, chunk_end)
         except _PartialRecordError:
             yield PARTIAL_RECORD
+            pos = chunk_end
+            continue
+        except _ForeignRecordError as exc:
+            yield SkippedRange(-1, -1, str(exc))
             pos = chunk_end
             continue
         if item is not None:

@@ -6,7 +6,7 @@ batch API, so the fit and the diagnosis never care where the data came from.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -192,20 +192,44 @@ def low_reference_warning(summary: dict[str, Any] | None) -> str:
 def without_low_reference(blocks: Iterator[Recording], block_rows: int, tally: LowReference | None = None,
                           run: int = 0) -> Iterator[Recording]:
     """The blocks of one run with the samples of a reference too low (:meth:`Recording.low_reference`) taken out, each
-    counted in ``tally`` (as run ``run``). Blocks without such a sample pass unchanged (a run without any: the same
-    blocks, the same results bit for bit); after one, the samples left are cut again into blocks of ``block_rows``,
-    so the run gives the blocks the run without those samples would give (the fit's moving windows and interval rules
-    then see the samples before and after a dark stretch as neighbours, as in a recording without the stretch)."""
-    held: list[Recording] = []
-    n_held = 0
-    for blk in blocks:
+    counted in ``tally`` (as run ``run``); :func:`without_samples`."""
+
+    def flags(blk: Recording, _last: bool) -> tuple[Recording, np.ndarray, np.ndarray]:
         low = blk.low_reference()
         if tally is not None:
             tally.add(run, blk.t_s, low)
-        if not held and not low.any():
+        return blk, low, np.zeros(len(blk), bool)
+
+    return without_samples(blocks, block_rows, flags)
+
+
+def without_samples(blocks: Iterator[Recording], block_rows: int,
+                    flags: Callable[[Recording, bool], tuple[Recording, np.ndarray, np.ndarray]]
+                    ) -> Iterator[Recording]:
+    """The blocks of one run, each as ``flags(block, last)`` gives it back, without the samples marked in its first
+    array (``last``: no block follows); the samples marked in its second array are held back and judged again at the
+    front of the next block (a check that needs the samples after them). Blocks without either pass unchanged (a run
+    without any: the same blocks, the same results bit for bit); after one, the samples left are cut again into
+    blocks of ``block_rows``, so the run gives the blocks the run without those samples would give (the fit's moving
+    windows and interval rules then see the samples before and after a dropped stretch as neighbours, as in a
+    recording without the stretch)."""
+    held: list[Recording] = []
+    n_held = 0
+    back: Recording | None = None  # held back by flags
+    it = iter(blocks)
+    blk = next(it, None)
+    while blk is not None:
+        following = next(it, None)
+        if back is not None:
+            blk, back = join_blocks([back, blk]), None
+        blk, drop, hold = flags(blk, following is None)
+        if hold.any():
+            back, blk, drop = blk.select(hold), blk.select(~hold), drop[~hold]
+        if not held and not drop.any() and back is None:
             yield blk
+            blk = following
             continue
-        part = blk.select(~low) if low.any() else blk
+        part = blk.select(~drop) if drop.any() else blk
         if len(part):
             held.append(part)
             n_held += len(part)
@@ -214,6 +238,7 @@ def without_low_reference(blocks: Iterator[Recording], block_rows: int, tally: L
             yield joined.select(slice(0, block_rows))
             rest = joined.select(slice(block_rows, None))
             held, n_held = ([rest] if len(rest) else []), len(rest)
+        blk = following
     if held:
         yield join_blocks(held)
 

@@ -37,14 +37,21 @@ class BagInfo:
     files: list[Path]
     topics: dict[str, str]
     unlisted: list[Path] = field(default_factory=list)  # .mcap files in the directory that metadata.yaml omits
+    repeated: list[str] = field(default_factory=list)  # relative_file_paths entries naming a file listed before
 
     def notes(self) -> list[str]:
-        """Warning lines about the bag (its unlisted .mcap files, which are not read)."""
-        if not self.unlisted:
-            return []
-        names = ", ".join(p.name for p in self.unlisted)
-        return [f"{self.path}: {names} not listed in {METADATA_FILE}'s relative_file_paths, not read (a recorder "
-                f"stopped before updating {METADATA_FILE}? `ros2 bag reindex {self.path}` rebuilds it from the files)"]
+        """Warning lines about the bag: its unlisted .mcap files, which are not read, and files listed twice, read
+        once."""
+        out = []
+        if self.unlisted:
+            names = ", ".join(p.name for p in self.unlisted)
+            out.append(f"{self.path}: {names} not listed in {METADATA_FILE}'s relative_file_paths, not read (a recorder "
+                       f"stopped before updating {METADATA_FILE}? `ros2 bag reindex {self.path}` rebuilds it from the "
+                       "files)")
+        if self.repeated:
+            out.append(f"{self.path}: {METADATA_FILE}'s relative_file_paths lists {', '.join(self.repeated)} twice or "
+                       "more; each file is read once")
+        return out
 
 
 def bag_files(path: str | Path) -> BagInfo:
@@ -76,7 +83,8 @@ def bag_files(path: str | Path) -> BagInfo:
     rel = info.get("relative_file_paths")
     if not isinstance(rel, list) or not rel or not all(isinstance(r, str) and r for r in rel):
         raise BagInputError(f"{meta}: relative_file_paths must be a non-empty list of file names")
-    files = []
+    files: list[Path] = []
+    repeated: list[str] = []
     for name in rel:
         if Path(name).is_absolute() or ".." in Path(name).parts:
             raise BagInputError(f"{meta}: relative_file_paths entry {name!r} leaves the bag directory")
@@ -85,6 +93,9 @@ def bag_files(path: str | Path) -> BagInfo:
             candidate = path / Path(name).name  # older rosbag2 wrote the bag directory's name in front
         if not candidate.is_file():
             raise BagInputError(f"{meta}: relative_file_paths names {name!r}, which is not in {path}")
+        if any(candidate.samefile(f) for f in files):
+            repeated.append(name)
+            continue
         files.append(candidate)
     topics: dict[str, str] = {}
     listed_topics = info.get("topics_with_message_count") or []
@@ -96,7 +107,7 @@ def bag_files(path: str | Path) -> BagInfo:
             topics[tm["name"]] = str(tm.get("type", "?"))
     listed = {f.resolve() for f in files}
     unlisted = sorted(p for p in path.iterdir() if p.suffix == ".mcap" and p.is_file() and p.resolve() not in listed)
-    return BagInfo(path, files, topics, unlisted)
+    return BagInfo(path, files, topics, unlisted, repeated)
 
 
 def offered_qos_yaml(reliable: bool = True, depth: int = 10, transient_local: bool = False) -> str:

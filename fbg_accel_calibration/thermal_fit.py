@@ -490,6 +490,51 @@ def check_level_excitation(stats: CellStats, degree: int) -> None:
             "at that level")
 
 
+# Largest change of M between two temperature levels, relative (Frobenius): the sensitivity of the optical pairs
+# moves by a few % over the calibrated range (the shipped simulated sensor's M: 5 % over 16-45 degC, the thermal
+# terms of the paper's eq. 28); a level whose M differs by more is a different convention, not a temperature effect.
+LEVEL_M_CHANGE_MAX = 0.3
+
+
+def check_level_consistency(stats: CellStats, level_means_c: np.ndarray) -> None:
+    """Refuse temperature levels whose own fit (eq. 25 at that level, M and b from its poses alone) disagrees with the
+    other levels' far beyond what temperature does (:data:`LEVEL_M_CHANGE_MAX`): one level's reference gravity with
+    its sign flipped, its x and y swapped, or in another unit gives a small in-sample RMSE (a polynomial of degree
+    L - 1 in temperature passes through any L levels) and a calibration metres per second squared off the truth. With
+    three levels or more, each is compared with the median of all; with two, with each other."""
+    fits: dict[int, np.ndarray] = {}
+    for lev in np.unique(stats.level):
+        sel = stats.level == lev
+        spread, _ = _cell_mean_spread(stats.gsum[sel], np.asarray(stats.count[sel], dtype=float))
+        if spread[0] < MIN_POSE_SPREAD_MPS2:
+            continue  # its poses do not determine M (level_excitation)
+        xtx, xtg, _, _ = stats.select(sel, 0)
+        try:
+            A, _ = solve_normal_equations(xtx, xtg)
+        except NotIdentifiedError:
+            continue
+        fits[int(lev)] = coefficients_to_model(A, 0)[0][0]
+    if len(fits) < 2:
+        return
+    levels = sorted(fits)
+    ms = np.array([fits[lev] for lev in levels])
+    centre = np.median(ms, axis=0) if len(ms) >= 3 else None
+    change = [float(np.linalg.norm(m - (centre if centre is not None else ms[1 - i])) /
+                    np.linalg.norm(centre if centre is not None else ms[1 - i])) for i, m in enumerate(ms)]
+    bad = [i for i, c in enumerate(change) if not c <= LEVEL_M_CHANGE_MAX]
+    if not bad or (centre is None and len(bad) < 2):
+        return
+    good = [c for i, c in enumerate(change) if i not in bad]
+    what = ", ".join(f"{level_means_c[levels[i]]:.1f} degC ({100 * change[i]:.0f} %)" for i in bad)
+    raise NotIdentifiedError(
+        f"the temperature level(s) at {what} give an M that differs from the "
+        + ("other levels'" if centre is not None else "other level's")
+        + f" by more than {100 * LEVEL_M_CHANGE_MAX:.0f} %"
+        + (f" (the others: within {100 * max(good):.0f} %)" if good else "")
+        + ", far beyond what temperature changes (a few %): gravity in g? a sign or axis convention of that "
+          "level's reference gravity?")
+
+
 def check_pose_excitation(stats: CellStats, min_spread_mps2: float = MIN_POSE_SPREAD_MPS2) -> np.ndarray:
     """Refuse a pose set that does not excite every direction of the table frame.
 
@@ -632,6 +677,7 @@ def fit_thermal(rec: Recording | FitData, degree: int, *, sensor_id: str | None 
     stats = data.cell_stats(degree, chunk)
     spread = check_pose_excitation(stats)
     check_level_excitation(stats, degree)
+    check_level_consistency(stats, data.level_means_c)
     xtx, xtg, _, n = stats.select(np.ones(len(stats.count), bool), degree)
     A, cond = solve_normal_equations(xtx, xtg)
     rss = stats.cell_rss(A, degree).sum(axis=0)
@@ -664,6 +710,8 @@ def fit_thermal(rec: Recording | FitData, degree: int, *, sensor_id: str | None 
     }
     if data.n_excluded_low_reference:
         fit_info["low_reference"] = data.low_reference.as_dict()  # how many, where (recording.low_reference_warning)
+    if data.n_rejected:  # per source: the samples the input check dropped, by reason (input_validation.SampleCheck)
+        fit_info["samples_rejected"] = [c.as_dict() for c in data.checks]
     if src is not None:
         fit_info["sources"] = src
     return ThermalCalibration(

@@ -13,8 +13,9 @@ Rules (see docs/protocol.md):
 * Bytes that are not part of an accepted frame are counted in ``bytes_discarded``.
 * A CRC-valid frame with an ADC count above 12 bits, or with another ``seq`` but the same ``t_us`` as the
   last accepted frame (a board clock that did not advance), is ``invalid_frames``: dropped, and lost.
-* A CRC-valid frame with the sync of a version this decoder does not know is skipped whole
-  (``unsupported_version``) using its ``body_len``.
+* A CRC-valid frame with the sync of a version this decoder does not know is counted in
+  ``unsupported_version`` and its bytes are searched for frames like those of a failed candidate, so intact
+  frames inside it (a CRC right by chance over a stretch of the stream) are still recovered.
 * Sequence tracking, for frames whose board clock moves forward: a gap of ``g`` sequence
   numbers adds ``g - 1`` to ``lost_frames``. Frames rejected for CRC are
   therefore also counted as lost: ``lost_frames`` is what the host did not receive intact.
@@ -184,10 +185,10 @@ class StreamDecoder:
                 self.stats.bytes_discarded += 1
                 pos += 1
                 continue
-            if known_len is None:
+            if known_len is None:  # looked into like a failed candidate: it may hold intact frames
                 self.stats.unsupported_version += 1
-                self.stats.bytes_discarded += total
-                pos += total
+                self.stats.bytes_discarded += 1
+                pos += 1
                 continue
             if version == PROTOCOL_VERSION:
                 frame = decode_body_v1(buf, pos + HEADER_SIZE)

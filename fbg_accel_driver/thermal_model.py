@@ -66,6 +66,10 @@ NOISE_MAX_MPS2 = 0.1 * FULL_SCALE_MPS2  # a white noise of a tenth of the full s
 OUTPUT_MAX_MPS2 = 100.0 * FULL_SCALE_MPS2  # |a| bound of the plausibility evaluation (section 5)
 AHT10_RANGE_C = (-40.0, 85.0)  # the temperatures the driver can ever evaluate the model at
 PLAUSIBILITY_REF_COUNTS = (256.0, 1024.0, 2048.0, 4095.0)  # reference counts of the evaluation grid
+# least change of the output along any direction over the whole count range (check_plausible): a quarter of the full
+# scale (5 g), with a reference of 256 counts (each Psi from 0 to 16, where the sensor's runs give ~4.7); a model
+# below it cannot read an eighth of the sensor's +-20 g span whatever the counts
+MIN_OUTPUT_SPAN_MPS2 = 0.25 * FULL_SCALE_MPS2
 _ARRAY_FIELDS = ("M", "b", "noise_sigma_mps2", "noise_correlated_fraction", "noise_time_constant_s",
                  "reference_level_temperature_c", "reference_level_counts")  # ThermalCalibration's float arrays
 
@@ -566,7 +570,11 @@ def check_plausible(cal: ThermalCalibration) -> str:
       finite everywhere the driver can evaluate it (AHT10 range), and at most :data:`OUTPUT_MAX_MPS2` in
       magnitude inside the calibrated range. Each grid point is held for 0.5 s of samples at 100 Hz so
       that stateful terms (filters) are judged on their settled output, not on the steps between points;
-    * ``M(T)`` at the middle of the calibrated range of rank 3 (a zero row or column ignores part of the acceleration).
+    * at 5 temperatures across the calibrated range, the output's change along ``M(T)``'s least sensitive direction
+      over the whole 12-bit range of the counts (each Psi from 0 to 4095 / 256, the lowest reference of the grid:
+      its smallest singular value times 16) at least :data:`MIN_OUTPUT_SPAN_MPS2`. A zero row or column, dependent
+      rows, or M = 1e-6 I cannot read the sensor's range; a real sensor's is 25x above the bound (``M`` of paper
+      section 3.6: smallest singular value 77 m/s^2 per unit Psi, 1230 m/s^2 over the range).
     """
     lo_lim, hi_lim = TEMPERATURE_LIMITS_C
     lo, hi = cal.temperature_range_c
@@ -594,13 +602,30 @@ def check_plausible(cal: ThermalCalibration) -> str:
             if bounded and np.max(np.abs(out)) > OUTPUT_MAX_MPS2:
                 return (f"the model gives |a| up to {np.max(np.abs(out)):.3g} m/s^2 inside its calibrated range, above "
                         f"{OUTPUT_MAX_MPS2:.3g} (100x the +-20 g full scale): coefficients are absurd")
-    centre = (lo + hi) / 2.0
-    m_centre = cal.coefficients(centre)[0][0]
+    return _insensitive(cal, inside)
+
+
+def _insensitive(cal: ThermalCalibration, temps: np.ndarray) -> str:
+    """Why M(T) cannot read the sensor's range at some temperature of ``temps`` (degC), or ``""``: the output's
+    change over the whole 12-bit count range, along its least sensitive direction, below :data:`MIN_OUTPUT_SPAN_MPS2`
+    (see :func:`check_plausible`). Judged by size, not by a scale-free rank: 1e-6 I has rank 3."""
+    psi_span = 4095.0 / PLAUSIBILITY_REF_COUNTS[0]  # each Psi over its whole range at the lowest reference of the grid
     with np.errstate(all="ignore"):
-        rank = int(np.linalg.matrix_rank(m_centre)) if np.all(np.isfinite(m_centre)) else 0
-    if rank < 3:
-        return (f"M at {centre:g} degC (the middle of temperature_range_c) has rank {rank}, not 3: the model ignores part "
-                f"of the acceleration (a zero row or column, or dependent rows; M(T) = {np.round(m_centre, 6).tolist()})")
+        m_t = cal.coefficients(temps)[0]
+        for t, m in zip(temps, m_t, strict=True):
+            if not np.all(np.isfinite(m)):
+                return f"M at {t:g} degC is not finite"
+            u, s, _ = np.linalg.svd(m)
+            span = float(s[-1]) * psi_span
+            if not span >= MIN_OUTPUT_SPAN_MPS2:
+                weak = u[:, -1] * np.sign(u[np.argmax(np.abs(u[:, -1])), -1])
+                axis = int(np.argmax(np.abs(weak)))
+                where = "xyz"[axis] if abs(weak[axis]) > 0.99 else "(" + ", ".join(f"{v:.2f}" for v in weak) + ")"
+                return (f"M at {t:g} degC: along its least sensitive direction {where} the output changes by at most "
+                        f"{span:.3g} m/s^2 over the whole 12-bit range of the counts (reference "
+                        f"{PLAUSIBILITY_REF_COUNTS[0]:g} counts), below {MIN_OUTPUT_SPAN_MPS2:.3g} m/s^2 (5 g, an eighth "
+                        "of the sensor's +-20 g span): a zero row or column, dependent rows, or coefficients in the wrong unit "
+                        f"(M(T) = {np.array2string(m, precision=4, max_line_width=1000).replace(chr(10), '')})")
     return ""
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -253,6 +254,9 @@ def test_a_saved_calibration_loads_equal_to_itself(tmp_path: Path) -> None:
     assert back != cal and ThermalCalibration.load(tmp_path / "c.yaml") != back
 
 
+INSENSITIVE = "the output changes by at most"
+
+
 @pytest.mark.parametrize("row", [0, 2])
 def test_a_singular_m_is_refused(tmp_path: Path, good: dict[str, Any], row: int) -> None:
     """A zero row of M(T) at the middle of the range: that axis read the bias only, whatever the acceleration."""
@@ -260,4 +264,137 @@ def test_a_singular_m_is_refused(tmp_path: Path, good: dict[str, Any], row: int)
     centre = sum(cal.temperature_range_c) / 2
     m_centre = cal.coefficients(centre)[0][0]
     good["M"][0][row] = [float(v) for v in np.asarray(good["M"][0][row]) - m_centre[row]]  # M_0 cancels the others
-    assert f"M at {centre:g} degC (the middle of temperature_range_c) has rank 2, not 3" in refused(write(tmp_path, good))
+    msg = refused(write(tmp_path, good))
+    assert INSENSITIVE in msg and "xyz"[row] in msg.split("direction")[1][:12], msg
+
+
+@pytest.mark.parametrize("case", ["zero row of M0", "1e-6 I", "1e-300 I", "dependent rows"])
+def test_a_model_that_cannot_read_the_sensor_s_range_is_refused(tmp_path: Path, good: dict[str, Any],
+                                                                 case: str) -> None:
+    """Judged by what the model does, not by a scale-free rank: the output's change over the whole 12-bit range of
+    the counts, along its least sensitive direction, at temperatures across the calibrated range, against the
+    sensor's +-20 g range. Before, all four loaded: a zero row of M_0 (x then read -113 m/s^2 whatever the counts;
+    the temperature terms keep M(T) of rank 3 but 1000x too weak), M = 1e-6 I (the output is the constant b) and
+    1e-300 I (rank 3 for a scale-free test; ``allan`` then printed LAPACK noise)."""
+    m = np.asarray(good["M"], dtype=float)
+    if case == "zero row of M0":
+        m[0][0] = 0.0
+    elif case == "dependent rows":
+        m[:, 2] = m[:, 0] + m[:, 1]
+    else:
+        m = np.zeros_like(m)
+        m[0] = float(case.split()[0]) * np.eye(3)
+    good["M"] = m.tolist()
+    msg = refused(write(tmp_path, good))
+    assert INSENSITIVE in msg and "m/s^2 over the whole 12-bit range" in msg and len(msg.splitlines()) == 1, msg
+    assert ("m/s^2 over the whole 12-bit range of the counts (reference 256 counts), below 49 m/s^2 (5 g, an eighth of "
+            "the sensor's +-20 g span): a zero row or column, dependent rows, or coefficients in the wrong unit (M(T) = "
+            "[[") in msg, msg
+    if case == "dependent rows":  # the weak direction is no axis: given as a unit vector
+        assert re.search(r"least sensitive direction \(-?0\.\d\d, -?0\.\d\d, -?0\.\d\d\) the output", msg), msg
+
+
+def test_a_weak_but_physical_model_loads(good: dict[str, Any]) -> None:
+    """The bound is far from real calibrations: M scaled down 10x (a sensor whose axes see 10x more light than its
+    reference) still loads, 2.5x above the bound; the shipped one is 25x above it (smallest singular value 77 m/s^2
+    per unit Psi)."""
+    good["M"] = (np.asarray(good["M"], dtype=float) / 10.0).tolist()
+    cal = ThermalCalibration.from_dict(good)
+    assert check_plausible(cal) == ""
+
+
+def _loads(tmp_path: Path, doc: dict[str, Any]) -> str:
+    """"" when ``doc`` loads, else the loader's message."""
+    try:
+        ThermalCalibration.load(write(tmp_path, doc))
+    except CalibrationFileError as exc:
+        return str(exc)
+    return ""
+
+
+@pytest.mark.parametrize(("section", "key", "values", "accepted"), [
+    # reference-level temperatures strictly ascending: equal neighbours and a step back are refused
+    ("reference_level", "temperature_c", [16.0, 24.0, 45.0], True),
+    ("reference_level", "temperature_c", [16.0, 16.0 + 1e-9, 45.0], True),
+    ("reference_level", "temperature_c", [16.0, 16.0, 45.0], False),
+    ("reference_level", "temperature_c", [16.0, 45.0, 24.0], False),
+    # reference-level counts: ADC counts 1..4095
+    ("reference_level", "counts", [1.0, 860.0, 4095.0], True),
+    ("reference_level", "counts", [0.999, 860.0, 800.0], False),
+    ("reference_level", "counts", [880.0, 860.0, 4095.001], False),
+    # correlated fraction 0..1 (above 0 with a time constant above 0)
+    ("noise_correlation", "correlated_fraction", [0.0, 1.0, 0.5], True),
+    ("noise_correlation", "correlated_fraction", [-0.001, 0.5, 0.5], False),
+    ("noise_correlation", "correlated_fraction", [0.5, 1.001, 0.5], False),
+    # time constant 0..100 s
+    ("noise_correlation", "time_constant_s", [0.1, 100.0, 0.1], True),
+    ("noise_correlation", "time_constant_s", [0.1, 100.001, 0.1], False),
+    ("noise_correlation", "time_constant_s", [0.1, -0.001, 0.1], False),
+])
+def test_section_bounds_at_and_around_their_edges(tmp_path: Path, good: dict[str, Any], section: str, key: str,
+                                                  values: list[float], accepted: bool) -> None:
+    """Each bound of the optional sections at its edge (accepted) and just beyond it (refused, naming the key)."""
+    good[section][key] = values
+    msg = _loads(tmp_path, good)
+    assert (msg == "") == accepted, msg
+    if not accepted:
+        assert f"{section}.{key}" in msg and len(msg.splitlines()) == 1, msg
+
+
+@pytest.mark.parametrize(("sigma", "accepted"), [(thermal_model.NOISE_MAX_MPS2, True),
+                                                 (thermal_model.NOISE_MAX_MPS2 * (1 + 1e-9), False), (1e300, False)])
+def test_noise_sigma_at_and_above_its_maximum(tmp_path: Path, good: dict[str, Any], sigma: float,
+                                              accepted: bool) -> None:
+    """A white noise of a tenth of the full scale is the largest accepted: it goes into the published covariance."""
+    good["noise_sigma_mps2"] = [0.1, float(sigma), 0.1]
+    msg = _loads(tmp_path, good)
+    assert (msg == "") == accepted, msg
+    if not accepted:
+        assert "noise_sigma_mps2" in msg and "a tenth of full scale" in msg, msg
+
+
+def test_a_reference_of_exactly_the_minimum_counts_is_normalised() -> None:
+    """Eq. 24 at ``MIN_REFERENCE_COUNTS``: a reference of exactly that many counts is used, one below it is NaN."""
+    lo = thermal_model.MIN_REFERENCE_COUNTS
+    psi = thermal_model.normalise(np.full((3, 3), 100.0), np.array([lo, lo - 1e-9, lo + 1.0]))
+    assert np.all(np.isfinite(psi[0])) and np.all(np.isnan(psi[1])) and np.all(np.isfinite(psi[2]))
+    np.testing.assert_allclose(psi[0], 100.0 / lo)
+
+
+@pytest.mark.parametrize("section,key", [("reference_level", "temperature"), ("noise_correlation", "fraction")])
+def test_an_unknown_key_in_a_section_is_named_with_its_section(tmp_path: Path, good: dict[str, Any], section: str,
+                                                               key: str) -> None:
+    good[section][key] = 1.0
+    assert f"unknown key '{section}.{key}'" in refused(write(tmp_path, good))
+
+
+def test_the_saved_file_keeps_the_documented_key_order_and_flow_lists(tmp_path: Path) -> None:
+    """What people read: the keys in the order of docs/calibration_file.md (format first), short lists on one line."""
+    cal = ThermalCalibration.load(REPO / "config" / "calibration_sim.yaml")
+    cal.save(tmp_path / "c.yaml")
+    text = (tmp_path / "c.yaml").read_text()
+    keys = [ln.split(":")[0] for ln in text.splitlines() if ln[:1].isalpha()]
+    assert keys == [k for k in thermal_model.TOP_LEVEL_KEYS if k in keys], keys
+    assert f"temperature_range_c: [{cal.temperature_range_c[0]}, {cal.temperature_range_c[1]}]" in text
+
+
+def test_the_expected_reference_counts_follow_the_levels_linearly_and_hold_beyond_them() -> None:
+    cal = ThermalCalibration(M=80.0 * np.eye(3)[None], b=np.zeros((1, 3)), temperature_range_c=(16.0, 45.0),
+                             reference_level_temperature_c=np.array([16.0, 46.0]),
+                             reference_level_counts=np.array([880.0, 820.0]))
+    assert cal.expected_reference_counts(31.0) == pytest.approx(850.0)
+    assert cal.expected_reference_counts(31.0) == pytest.approx(850.0)  # the cached value
+    assert (cal.expected_reference_counts(0.0), cal.expected_reference_counts(60.0)) == (880.0, 820.0)
+    assert math.isnan(cal.expected_reference_counts(math.nan))
+
+
+def test_file_and_field_messages_name_what_they_judge(tmp_path: Path, good: dict[str, Any]) -> None:
+    """Whole messages: a file over the size bound, the second bound of the range not a number; an empty sensor_id
+    (``sensor_id:`` with nothing after it) is the empty text."""
+    big = "notes: '" + "x" * (MAX_FILE_BYTES + 10) + "'\n"
+    assert refused(write(tmp_path, None, raw=big)).endswith(
+        f"above the {MAX_FILE_BYTES}-byte bound of a calibration file (docs/calibration_file.md, section 5)")
+    bad_range = dict(good, temperature_range_c=[16.0, "warm"])
+    assert "'temperature_range_c' must be a number, got str" in refused(write(tmp_path, bad_range))
+    good["sensor_id"] = None
+    assert ThermalCalibration.load(write(tmp_path, good)).sensor_id == ""

@@ -308,3 +308,85 @@ def test_a_board_crystal_drifting_with_temperature_keeps_the_stamps(base_ppm: fl
         assert np.abs(err[settled]).max() < 0.4e-3, (err[settled].min(), err[settled].max())
         assert np.abs(rate_err[settled]).max() < 15.0, np.abs(rate_err[settled]).max()
         assert np.all(np.diff(stamps) > 0)
+
+
+def test_a_board_booted_an_hour_before_the_driver_with_a_drifting_crystal_and_after_its_reset() -> None:
+    """The mapping's line is anchored at the first board time it sees, not at board time 0: a board that booted
+    1 h before the driver (t_us starts at 3.6e9) with a 20 ppm crystal is stamped as well as one that booted with it,
+    and so is the same board after a reset restarts its clock at 0.5 s. Every other drift test starts the board at 0,
+    where an anchor mixed up with 0 (``board_s + ref`` for ``board_s - ref``) goes unnoticed; here it is 144 ms off."""
+    drift = 20e-6
+    sync, stamps, true_host = run(6000, drift=drift, board_start_s=3600.0)
+    err = errors_s(stamps, true_host)
+    assert abs(sync.drift - drift) < 15e-6
+    assert np.all(np.abs(err[3000:]) < 1.5e-3), np.abs(err[3000:]).max()  # a wrong anchor: > 0.1 s
+    sync.reset()
+    sync, stamps2, true2 = run(6000, drift=drift, sync=sync, seed=3, board_start_s=0.5,
+                               offset_s=OFFSET_S + 3700.0)
+    assert stamps2[0] > stamps[-1] and np.all(np.diff(stamps2) > 0)
+    err2 = errors_s(stamps2, true2)
+    assert np.all(np.abs(err2[3000:]) < 1.5e-3), np.abs(err2[3000:]).max()
+
+
+def test_the_status_names_every_figure_the_diagnostics_publish() -> None:
+    sync, _, _ = run(300)
+    assert set(sync.status()) == {"board_clock_ppm", "drift_at_limit", "restarts", "ros_time_steps", "mapping_steps",
+                                  "held_stamps"}
+
+
+def test_each_step_is_counted_once() -> None:
+    """``steps`` and ``host_steps`` count events (the diagnostics publish them): none on a steady run, one for one
+    forward step of the host clock (2 s), one for one board clock jump ahead (5 s, no reboot)."""
+    sync, _, _ = run(1000, steady=True)
+    assert (sync.steps, sync.host_steps) == (0, 0)
+    sync, _, _ = run(500, sync=sync, board_start_s=10.0, offset_s=OFFSET_S + 2.0, seed=3, steady=True)
+    assert (sync.steps, sync.host_steps) == (0, 1)
+    jumped, _, _ = run(1000)
+    jumped, _, _ = run(500, sync=jumped, board_start_s=15.0, offset_s=OFFSET_S - 5.0, seed=4)  # board 10 s -> 15 s
+    assert (jumped.steps, jumped.host_steps) == (1, 0)
+
+
+def test_one_read_s_host_offset_alone_does_not_move_the_stamps_whatever_the_chunk() -> None:
+    """The host-minus-steady offset follows a change two of the last three READS agree on; the frames of one chunk
+    share one read and count once. One read 10 ms off (a thread switch between the two clock reads, inside the step
+    threshold) in chunks of 5 frames: counted per frame, that read would make the three last "reads" and the stamps
+    would jump by 8 ms."""
+    sync = ClockSync()
+    rng = np.random.default_rng(7)
+    stamps, truth = [], []
+    for k in range(400):  # chunks of 5 frames at 100 Hz
+        board = np.arange(5 * k, 5 * k + 5) / RATE_HZ
+        steady_ns = round((100.0 + board[-1] + 150e-6 + rng.exponential(1e-3)) * 1e9)
+        host_ns = steady_ns + round(OFFSET_S * 1e9) + (10_000_000 if k == 300 else 0)
+        for b in board:
+            sync.observe(round(b * 1e6), host_ns, steady_ns)
+        for b in board:
+            stamps.append(sync.stamp(round(b * 1e6)))
+            truth.append(OFFSET_S + 100.0 + b)
+    err = errors_s(np.asarray(stamps), np.asarray(truth))
+    assert np.all(np.abs(err[1000:]) < 2.5e-3), np.abs(err[1000:]).max()
+
+
+def test_the_lower_envelope_drops_a_point_above_the_chord_of_its_neighbours() -> None:
+    from fbg_accel_driver.clock_sync import lower_envelope_slope
+
+    assert lower_envelope_slope([0.0, 1.0, 2.0], [0.0, 5.0, 0.0]) == 0.0  # the middle point lies above: not the hull
+    assert lower_envelope_slope([0.0, 1.0, 2.0], [0.0, -1.0, 0.0]) == -1.0  # below: the edge that reaches the mean x
+
+
+def test_before_any_observation_the_estimate_is_no_drift() -> None:
+    sync = ClockSync()
+    assert sync.drift == 0.0 and sync.status()["board_clock_ppm"] == 0.0
+    run(300, sync=sync)
+    sync.reset()
+    assert sync.drift == 0.0 and sync.status()["board_clock_ppm"] == 0.0
+
+
+def test_a_small_host_offset_change_adds_to_the_offset_already_followed() -> None:
+    """ROS time 1 s ahead of the steady clock from the start (followed at once), then 10 ms more (an NTP step below
+    the step threshold): the stamps follow the 10 ms on top of the 1 s, to within the read band, without a step."""
+    sync, _, _ = run(1000, steady=True, offset_s=OFFSET_S + 1.0)
+    sync, stamps, truth = run(1000, sync=sync, board_start_s=10.0, offset_s=OFFSET_S + 1.01, seed=3, steady=True)
+    err = errors_s(stamps[1:], truth[1:])  # the first read of the new offset alone is not followed (no agreement yet)
+    assert np.all(np.abs(err) < 3e-3), np.abs(err).max()
+    assert sync.host_steps == 0  # followed within the band, not stepped

@@ -63,14 +63,16 @@ def _multipos(temp: float):
         pid += [p] * 300
     acc = np.array(acc)
     n = len(acc)
-    return Recording(np.arange(n) / 100.0, np.full(n, 1000.0), acc / 80.0 * 1000.0, temp, np.array(gr), np.array(pid))
+    # Psi = a / 80 + 1.5 (counts 1000 Psi: 1377 .. 1623, inside the ADC's range), calibrated by M = 80 I, b = -120
+    return Recording(np.arange(n) / 100.0, np.full(n, 1000.0), (acc / 80.0 + 1.5) * 1000.0, temp, np.array(gr),
+                     np.array(pid))
 
 
 def _files(tmp_path: Path, rec_sensor: str, temp: float) -> tuple[Path, Path]:
     from fbg_accel_driver.thermal_model import ThermalCalibration
 
     write_recording(tmp_path / "r.mcap", _multipos(temp), {"sensor_id": rec_sensor}, sensor_id=rec_sensor)
-    ThermalCalibration(M=80.0 * np.eye(3)[None], b=np.zeros((1, 3)), temperature_range_c=(20.0, 25.0),
+    ThermalCalibration(M=80.0 * np.eye(3)[None], b=np.full((1, 3), -120.0), temperature_range_c=(20.0, 25.0),
                        sensor_id="acc-A").save(tmp_path / "c.yaml")
     return tmp_path / "r.mcap", tmp_path / "c.yaml"
 

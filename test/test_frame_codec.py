@@ -245,3 +245,33 @@ def test_v2_aux_above_12_bits_is_invalid() -> None:
     dec = StreamDecoder()
     assert dec.feed(encode_frame(a) + encode_frame(b) + encode_frame(c)) == [a, c]
     assert (dec.stats.invalid_frames, dec.stats.lost_frames) == (1, 1)
+
+
+def test_adc_rails_and_clipped_readings_at_their_edges() -> None:
+    """A channel sits at a rail at exactly 0 or from ADC_MAX up (not at 1 or ADC_MAX - 1); a reading is clipped when the
+    reference is at least LOW_REFERENCE_COUNTS (a dark reference is another matter) and the reference is at its top or
+    any one axis at a rail, each on its own."""
+    import numpy as np
+
+    from fbg_accel_driver.frame_codec import at_adc_rail, clipped_reading
+    from fbg_accel_driver.sensor_constants import LOW_REFERENCE_COUNTS
+
+    counts = np.array([0, 1, ADC_MAX - 1, ADC_MAX, ADC_MAX + 1])
+    assert at_adc_rail(counts).tolist() == [True, False, False, True, True]
+    mid, lo = 2000, LOW_REFERENCE_COUNTS
+    cases = {  # (ref, x, y, z): clipped
+        (lo, 0, mid, mid): True, (lo - 1, 0, mid, mid): False, (mid, mid, mid, mid): False,
+        (ADC_MAX, mid, mid, mid): True, (ADC_MAX - 1, mid, mid, mid): False,
+        (mid, ADC_MAX, mid, mid): True, (mid, mid, 0, mid): True, (mid, mid, mid, ADC_MAX): True,
+    }
+    ref, x, y, z = (np.array(v) for v in zip(*cases, strict=True))
+    assert clipped_reading(ref, x, y, z).tolist() == list(cases.values())
+
+
+def test_a_frame_whose_aux_does_not_fit_its_version_is_refused_with_the_reason() -> None:
+    with_aux = Frame(1, 10, 900, 1000, 1500, 1100, 2300, 0, aux=5)
+    without = Frame(1, 10, 900, 1000, 1500, 1100, 2300, 0)
+    with pytest.raises(ValueError, match=r"^a version-1 frame has no aux field: encode with version=2 or clear aux$"):
+        encode_frame(with_aux, version=PROTOCOL_VERSION)
+    with pytest.raises(ValueError, match=r"^a version-2 frame needs aux counts$"):
+        encode_frame(without, version=PROTOCOL_VERSION_V2)

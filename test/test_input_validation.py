@@ -402,3 +402,142 @@ def test_a_bag_directory_and_its_own_file_are_one_recording_given_twice(tmp_path
         line = one_line(err)
         assert rc == 2 and str(first) in line and str(second) in line, line
         assert not (tmp_path / "twice.yaml").exists()
+
+
+# ---------------------------------------------------------------------------- one check of the samples, every route
+LEVELS_C = (16.0, 24.0, 45.0)
+
+
+def _campaign(tmp_path: Path, kind: str, damage=None) -> list[Path]:
+    """Three temperature levels of six poses (test_fit_streaming.make_run), one file each, as MCAP or CSV; ``damage``
+    changes the runs first."""
+    from test_fit_streaming import make_run
+
+    runs = [make_run(i, t, n_poses=6, t0_s=i * 100.0) for i, t in enumerate(LEVELS_C)]
+    if damage is not None:
+        damage(runs)
+    paths = []
+    for i, r in enumerate(runs):
+        path = tmp_path / f"run_{i}.{kind}"
+        if kind == "mcap":
+            write_recording(path, r, {"sensor_id": "fbg-test"})
+        else:
+            g = np.where(np.isfinite(r.gref_mps2), r.gref_mps2, 0.0)  # a CSV row between poses: pose -1, any reference
+            t = ["" if not np.isfinite(v) else f"{v:.3f}" for v in r.temp_c]
+            path.write_text(HEADER + "".join(
+                f"{r.t_s[k]:.3f},{r.ref[k]:.4f},{r.xyz[k, 0]:.4f},{r.xyz[k, 1]:.4f},{r.xyz[k, 2]:.4f},"
+                f"{g[k, 0]:.6f},{g[k, 1]:.6f},{g[k, 2]:.6f},{t[k]},{r.pose_id[k]}\n" for k in range(len(r))))
+        paths.append(path)
+    return paths
+
+
+def _fit(paths: list[Path], capsys: pytest.CaptureFixture[str]) -> tuple[object, list[str]]:
+    """fit_files in process, numpy warnings as errors: (calibration, the WARNING lines of stderr without file names)."""
+    import warnings
+
+    from fbg_accel_calibration.fit_pipeline import fit_files
+
+    capsys.readouterr()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        cal = fit_files(paths).calibration
+    err = capsys.readouterr().err
+    lines = [ln.split(": ", 2)[2] for ln in err.splitlines() if ln.startswith("WARNING: ") and "samples" in ln]
+    return cal, lines
+
+
+@pytest.fixture(scope="module")
+def clean_fit(tmp_path_factory: pytest.TempPathFactory) -> object:
+    from fbg_accel_calibration.fit_pipeline import fit_files
+
+    return fit_files(_campaign(tmp_path_factory.mktemp("clean"), "mcap")).calibration
+
+
+def test_one_absurd_count_drops_its_sample_not_its_file(tmp_path: Path, clean_fit, capsys) -> None:
+    """One count of 1e308 in a static pose of the middle level: before, the whole file (every sample of that level)
+    left the fit, the degree dropped from 2 to 1, the warning spoke of 3000 samples of one visit, and numpy printed
+    13 RuntimeWarnings. Now that sample alone is dropped, and the line says so."""
+    def damage(runs):
+        k = int(np.flatnonzero(runs[1].pose_id == 3)[20])
+        runs[1].xyz[k, 0] = 1e308
+
+    cal, lines = _fit(_campaign(tmp_path, "mcap", damage), capsys)
+    assert any(ln.startswith("1 of ") and "samples dropped: ADC counts outside the 12-bit range" in ln
+               and "x_counts = 1e+308 is beyond the 12-bit ADC range 0 .. 4095 counts" in ln for ln in lines), lines
+    assert cal.degree == clean_fit.degree and cal.fit["temperature_levels_c"] == clean_fit.fit["temperature_levels_c"]
+    assert clean_fit.fit["samples_used"] - cal.fit["samples_used"] < 50, (cal.fit["samples_used"],
+                                                                            clean_fit.fit["samples_used"])
+
+
+@pytest.mark.parametrize("kind", ["mcap", "csv"])
+def test_a_level_s_reference_in_g_is_named_the_same_way_on_every_route(tmp_path: Path, kind: str, capsys) -> None:
+    """The middle level's reference gravity in g (another node publishing ``calibration/reference_gravity`` in g):
+    before, the MCAP route fitted it (exit 0, m/s^2 off the truth). CSV or MCAP, the same check and the same line."""
+    def damage(runs):
+        runs[1].gref_mps2 /= 9.80665
+
+    cal, lines = _fit(_campaign(tmp_path, kind, damage), capsys)
+    assert [round(t) for t in cal.fit["temperature_levels_c"]] == [16, 45]  # the level without a usable reference
+    hits = [ln for ln in lines if "not fitted: a reference gravity |g_ref| outside 9.7 .. 9.9 m/s^2 (gravity in g?" in ln]
+    assert len(hits) == 1 and "(first: 1)" in hits[0], lines
+
+
+def _junk_readings(runs) -> None:
+    """30 single readings and a burst of 5 of 85 degC (the AHT10's top) in the first level's run."""
+    t = runs[0].temp_c
+    idx = np.flatnonzero(np.isfinite(t))
+    t[idx[10:610:20]] = 85.0
+    t[idx[700:705]] = 85.0
+
+
+def _all_nan(runs) -> None:
+    runs[2].temp_c[:] = np.nan
+
+
+@pytest.mark.parametrize(("case", "damage", "line", "levels"), [
+    ("kelvin", lambda runs: runs[1].temp_c.__iadd__(273.15), "not fitted: a temperature outside the AHT10 range "
+     "-40 .. 85 degC (first: 297", [16, 45]),
+    ("1e300", lambda runs: runs[2].temp_c.__setitem__(slice(None), 1e300), "not fitted: a temperature outside the "
+     "AHT10 range -40 .. 85 degC (first: 1e+300)", [16, 24]),
+    ("junk 85 degC", _junk_readings, "35 of", [16, 24, 45]),
+    ("all NaN", _all_nan, "none of its", [16, 24]),
+    ("x = -500", lambda runs: runs[0].xyz.__setitem__((int(np.flatnonzero(runs[0].pose_id == 2)[10]), 0), -500.0),
+     "1 of", [16, 24, 45]),
+], ids=["kelvin", "1e300", "junk 85 degC", "all NaN", "x = -500"])
+def test_temperatures_and_counts_no_sensor_gives_are_named_not_fitted(tmp_path: Path, capsys, case: str, damage,
+                                                                      line: str, levels: list[int]) -> None:
+    """Before, each of these went into the fit with exit 0: a level in kelvin or at 1e300 degC gave a YAML its own
+    loader refused; 85 degC junk readings gave a claimed range of 16-85 degC and degree 3; a file without a single
+    temperature contributed nothing, silently; x = -500 counts on one pose moved the calibration by m/s^2."""
+    cal, lines = _fit(_campaign(tmp_path, "mcap", damage), capsys)
+    assert any(line in ln for ln in lines), lines
+    assert [round(t) for t in cal.fit["temperature_levels_c"]] == levels
+    assert cal.temperature_range_c[1] < 46.0
+    if case == "kelvin":
+        assert any("it looks like kelvin" in ln for ln in lines), lines
+
+
+def test_a_junk_reading_at_a_block_end_is_judged_with_the_next_block() -> None:
+    """The last readings of a block wait for the next one (``SampleCheck.apply`` holds them back): cut anywhere, the
+    samples blanked are those of the run in one block."""
+    from fbg_accel_calibration.input_validation import SampleCheck
+    from fbg_accel_calibration.recording import Recording, join_blocks, without_samples
+
+    n = 400
+    temp = 24.0 + 0.01 * np.round(np.sin(np.arange(n) / 50.0) * 10)
+    temp[[99, 100, 101, 250]] = 85.0  # a burst across the cut at 100, and a single reading
+    temp[300:] += 3.0  # a real step that stays: not a spike
+    rec = Recording(np.arange(n) * 0.01, np.full(n, 870.0), np.full((n, 3), 1000.0), temp, np.full((n, 3), np.nan),
+                    np.full(n, -1))
+
+    def blanked(block_rows: int) -> np.ndarray:
+        check = SampleCheck()
+        blocks = [rec.select(slice(i, i + block_rows)) for i in range(0, n, block_rows)]
+        out = join_blocks(list(without_samples(iter(blocks), block_rows, check.apply)))
+        assert len(out) == n and check.dropped["temperature_spike"] == 4
+        return np.isnan(out.temp_c)
+
+    whole = blanked(n)
+    assert np.flatnonzero(whole).tolist() == [99, 100, 101, 250]
+    for rows in (100, 101, 37):
+        assert np.array_equal(blanked(rows), whole), rows

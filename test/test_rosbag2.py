@@ -556,3 +556,19 @@ def test_a_file_compressed_bag_is_refused_for_its_compression(tmp_path: Path) ->
     for call in (lambda: check_inputs([bag]), lambda: read_recording(bag)):
         with pytest.raises(ValueError, match=r"compression_mode 'FILE' \(zstd\).*not read.*ros2 bag"):
             call()
+
+
+def test_a_bag_that_lists_a_file_twice_reads_it_once_with_a_note(tmp_path: Path) -> None:
+    """``relative_file_paths`` naming ``run_0.mcap`` twice (a hand-edited or merged metadata.yaml): every sample was
+    fitted twice (1651 + 1651) and the warning guessed a driver restart. The file is read once, and a note says so."""
+    bag = tmp_path / "twice"
+    bag.mkdir()
+    write_foreign(bag / "run_0.mcap", driver_events(1000))
+    write_foreign(bag / "run_1.mcap", driver_events(1000, t0=T0 + 20_000_000_000))
+    _bag(bag, ["run_0.mcap", "run_1.mcap", "./run_0.mcap"])
+    rec = read_recording(bag)
+    assert len(rec) == 2000
+    lines = mcap_io.read_warnings(bag, rec.metadata["read_report"])
+    hits = [ln for ln in lines if "run_0.mcap" in ln]
+    assert len(hits) == 1 and "twice" in hits[0] and "read once" in hits[0], lines
+    assert not [ln for ln in lines if "go back" in ln], lines

@@ -299,6 +299,10 @@ def test_non_bytes_input_is_ignored_without_raising(bad: object) -> None:
     assert dec.feed(wire(make_frames(1))) == make_frames(1)
 
 
+def test_no_reset_is_marked_before_the_first_chunk() -> None:
+    assert StreamDecoder().resets_at == []
+
+
 def test_empty_chunk() -> None:
     dec = StreamDecoder()
     assert dec.feed(b"") == []
@@ -368,7 +372,7 @@ def test_impossible_headers_are_rejected_without_waiting(header: bytes) -> None:
 
 def test_unknown_version_frame_is_skipped_whole() -> None:
     frames = make_frames(4)
-    v3 = future_frame(bytes(range(30)) + SYNC + bytes(10))  # body with a sync inside: must be skipped as a unit
+    v3 = future_frame(bytes(range(30)) + SYNC + bytes(10))  # body with a sync inside: none of its bytes is a frame
     dec, out = run([encode_frame(frames[0]) + encode_frame(frames[1]) + v3 + encode_frame(frames[2]) + encode_frame(frames[3])])
     assert out == frames
     s = dec.stats
@@ -382,6 +386,57 @@ def test_adc_counts_above_12_bits_are_invalid_and_lost() -> None:
     dec, out = run([wire([a, b_bad, c])])
     assert out == [a, c]
     assert (dec.stats.invalid_frames, dec.stats.crc_errors, dec.stats.lost_frames) == (1, 0, 1)
+
+
+@pytest.mark.parametrize(("channel", "aux"), [(c, None) for c in ("ref", "x", "y", "z")]
+                         + [(c, 100) for c in ("ref", "x", "y", "z", "aux")])
+def test_every_adc_channel_is_range_checked(channel: str, aux: int | None) -> None:
+    """Each 12-bit count on its own above 4095 (a CRC-valid frame from a board whose firmware packs a wider value)
+    makes the frame invalid, in both versions (aux None: version 1): a check that forgot one axis would publish it."""
+    a, b, c = (replace(f, aux=aux) for f in make_frames(3))
+    for value in (ADC_MAX, ADC_MAX + 1, 0xFFFF):
+        bad = replace(b, **{channel: value})
+        dec, out = run_any([wire([a, bad, c])])
+        invalid = value > ADC_MAX
+        assert out == ([a, c] if invalid else [a, bad, c]), (channel, value)
+        assert (dec.stats.invalid_frames, dec.stats.lost_frames) == ((1, 1) if invalid else (0, 0))
+
+
+def run_any(chunks: list[bytes]) -> tuple[StreamDecoder, list[Frame]]:
+    """``chunks`` fed to a new decoder (frames of any version: no version-1 byte balance)."""
+    dec = StreamDecoder()
+    out = [f for chunk in chunks for f in dec.feed(chunk)]
+    return dec, out
+
+
+def test_several_unknown_version_frames_and_garbage_stretches_are_each_counted() -> None:
+    """Counters add up over several events: three CRC-valid frames of unknown versions (3, 7, 200) of different
+    lengths, and garbage of 5, 1 and 11 bytes, each counted once and in full."""
+    frames = make_frames(6)
+    unknown = [future_frame(bytes(12), 3), future_frame(bytes(range(40)), 7), future_frame(bytes(3), 200)]
+    garbage = [b"\x00\x11\x22\x33\x44", b"\x99", bytes(range(100, 111))]
+    stream = (encode_frame(frames[0]) + unknown[0] + encode_frame(frames[1]) + garbage[0] + unknown[1]
+              + encode_frame(frames[2]) + garbage[1] + encode_frame(frames[3]) + unknown[2] + garbage[2]
+              + encode_frame(frames[4]) + encode_frame(frames[5]))
+    dec, out = run([stream])
+    assert out == frames
+    s = dec.stats
+    assert (s.unsupported_version, s.crc_errors, s.lost_frames, s.frames) == (3, 0, 0, 6)
+    assert s.bytes_discarded == sum(map(len, unknown)) + sum(map(len, garbage))
+
+
+def test_intact_frames_inside_a_frame_of_unknown_version_are_recovered() -> None:
+    """A CRC-valid frame of a version this decoder does not know, whose body holds intact version-1 frames (a CRC that
+    came out right by chance over a stretch of the stream, or a forged one): the decoder looks inside it as it does
+    inside a candidate whose CRC failed, so the inner frames come out instead of being skipped with their container."""
+    frames = make_frames(10)
+    inner = wire(frames[1:8])  # 7 frames, 189 bytes: a body of at most 200 bytes
+    container = future_frame(b"\x01" + inner + b"\x02", 9)
+    dec, out = run([encode_frame(frames[0]) + container + encode_frame(frames[8]) + encode_frame(frames[9])])
+    assert out == frames
+    s = dec.stats
+    assert (s.unsupported_version, s.lost_frames, s.crc_errors) == (1, 0, 0)
+    assert s.bytes_discarded == len(container) - len(inner)
 
 
 def test_a_frame_whose_board_clock_did_not_advance_is_invalid() -> None:
@@ -529,7 +584,7 @@ def catch_up_frames(n: int, late_k: int, late_us: int, dt: int = 1_000, read_us:
 
 
 @pytest.mark.parametrize("catch_up_before", [False, True])
-@pytest.mark.parametrize("gap", [1_000, 65_535, 65_536, 70_000, 200_000])
+@pytest.mark.parametrize("gap", [1_000, 65_535, 65_536, 70_000, 100_000, 200_000])
 def test_an_outage_of_a_sequence_period_or_more_is_counted_in_full(gap: int, catch_up_before: bool) -> None:
     """A link outage of ``gap`` samples at 1 kHz (the board keeps sampling and counting seq; docs/firmware.md: the
     missing samples are counted as lost_frames after a reconnect). The u16 seq alone counted 65536 lost samples as 0 and
@@ -543,3 +598,19 @@ def test_an_outage_of_a_sequence_period_or_more_is_counted_in_full(gap: int, cat
     dec, out = run([wire(kept)])
     assert out == kept
     assert (dec.stats.lost_frames, dec.stats.resets, dec.stats.duplicates) == (gap, 0, 0)
+
+
+def test_the_sample_interval_forgets_its_oldest_step_first() -> None:
+    """The ring of the last INTERVAL_WINDOW steps is first in, first out: after 7 steps (five of 1000 us, two of
+    3000 us) and three of 2000 us, the window holds 2000 x3, 1000 x2, 3000 x2 (median 2000); a ring that overwrote
+    its newest steps first would hold 1000 x4 and read 1000."""
+    from fbg_accel_driver.stream_decoder import INTERVAL_WINDOW, SampleInterval
+
+    assert INTERVAL_WINDOW == 7
+    interval = SampleInterval()
+    for step in (1000, 1000, 1000, 1000, 1000, 3000, 3000):
+        interval.add(step, 0)
+    assert interval.us == 1000
+    for _ in range(3):
+        interval.add(2000, 0)
+    assert interval.us == 2000

@@ -25,9 +25,10 @@ G = 9.80665
 
 
 def _truth(degree: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 28 coefficients near the paper's linear fit (section 3.6; b negative: Psi at rest is positive, as counts are)."""
     M = [np.diag([80.0, 78.0, 107.0]) + rng.normal(0.0, 2.0, (3, 3))]
     M += [rng.normal(0.0, 1.0, (3, 3)) / k for k in range(1, degree + 1)]
-    b = [np.array([-101.0, 153.0, -137.0])] + [rng.normal(0.0, 1.0, 3) / k for k in range(1, degree + 1)]
+    b = [np.array([-101.0, -153.0, -137.0])] + [rng.normal(0.0, 1.0, 3) / k for k in range(1, degree + 1)]
     return np.array(M), np.array(b)
 
 
@@ -123,7 +124,8 @@ def test_degree_not_identified_by_levels_is_refused() -> None:
     M, b = _truth(1, rng)
     rec = _simulate(M, b, (16.0, 24.0, 45.0), center=30.5, scale=14.5)
     fit_thermal(rec, 2, usable=np.ones(len(rec), bool))  # degree 2 < 3 levels: fine
-    with pytest.raises(NotIdentifiedError, match="degree 3 in temperature is not identified by 3 temperature level"):
+    with pytest.raises(NotIdentifiedError, match=r"degree 3 in temperature is not identified by 3 temperature level.*"
+                       r"use degree <= 2 or record more temperature levels$"):
         fit_thermal(rec, 3, usable=np.ones(len(rec), bool))
     one = rec.select(rec.run_id == 0)
     with pytest.raises(NotIdentifiedError, match="not identified by 1 temperature level"):
@@ -305,3 +307,94 @@ def test_repeated_visits_of_a_pose_keep_the_noise_floor_of_one_visit() -> None:
     expected = 1e-4 * np.sqrt((M[0] ** 2).sum(axis=1))
     np.testing.assert_allclose(floor_once, expected, rtol=0.15)
     np.testing.assert_allclose(floor, floor_once, rtol=0.1)
+
+
+def test_four_orientations_are_enough_and_three_are_not() -> None:
+    """At the ``n_poses < 4`` boundary: each axis' row of M and its b are 4 unknowns, one equation per orientation, so 4
+    non-coplanar orientations determine a degree-0 model and 3 do not; a check that wanted 5 refused a valid campaign."""
+    M, b = _truth(0, np.random.default_rng(4))
+    rec = _simulate(M, b, (24.0,), center=24.0, scale=1.0, n_poses=4, n=80, psi_noise=1e-6, seed=5)
+    cal = fit_thermal(rec, 0, usable=np.ones(len(rec), bool))
+    assert cal.fit["poses"] == 4 and cal.fit["samples_used"] == len(rec)
+    np.testing.assert_allclose(cal.M[0], M[0], rtol=1e-3, atol=1e-2)
+    three = rec.select(rec.pose_id < 3)
+    with pytest.raises(NotIdentifiedError, match="3 orientation"):
+        fit_thermal(three, 0, usable=np.ones(len(three), bool))
+
+
+@pytest.mark.parametrize("convention", ["sign flipped", "x and y swapped"])
+def test_a_level_whose_reference_follows_another_convention_is_refused(convention: str) -> None:
+    """One level of three with its reference gravity sign-flipped, or x and y swapped (a node of another convention
+    publishing ``calibration/reference_gravity``): a degree-2 polynomial passes through any 3 levels, so the fit gave a
+    small in-sample RMSE and exit 0 with 2.9 - 6.5 m/s^2 of error against the truth. That level's own M differs from
+    the others' by 100-200 %, where temperature moves it by a few %."""
+    M, b = _truth(2, np.random.default_rng(6))
+    rec = _simulate(M, b, (16.0, 24.0, 45.0), center=30.5, scale=14.5)
+    fit_thermal(rec, 2, usable=np.ones(len(rec), bool))  # as recorded: fitted
+    mid = rec.run_id == 1
+    rec.gref_mps2[mid] = -rec.gref_mps2[mid] if convention == "sign flipped" else rec.gref_mps2[mid][:, [1, 0, 2]]
+    with pytest.raises(NotIdentifiedError, match=r"level\(s\) at 24.0 degC \(\d+ %\) give an M that differs from the "
+                       r"other levels' by more than 30 % \(the others: within \d %\), far beyond what temperature "
+                       r"changes \(a few %\): gravity in g\? a sign or axis convention of that level's reference gravity\?$"):
+        fit_thermal(rec, 2, usable=np.ones(len(rec), bool))
+
+
+def _planar(rec: Recording) -> Recording:
+    """``rec`` with only the poses whose reference lies within 25 deg of the table's x-y plane, projected onto it: a
+    run whose poses never tilt z (coplanar), with the signal the simulation gave them."""
+    g = rec.gref_mps2
+    keep = (rec.pose_id >= 0) & (np.abs(g[:, 2]) < 0.42 * np.linalg.norm(g, axis=1))
+    out = rec.select(keep)
+    out.gref_mps2[:, 2] = 0.0
+    return out
+
+
+def test_a_level_whose_poses_are_coplanar_does_not_count_for_the_temperature_degree() -> None:
+    """Degree 1 needs two levels whose own poses span the frame: with the second level's poses all in the x-y plane,
+    the z rows of the temperature terms are not determined, and degree 1 is refused naming that level."""
+    from fbg_accel_calibration.thermal_fit import check_level_excitation, level_excitation
+
+    M, b = _truth(1, np.random.default_rng(9))
+    full = _simulate(M, b, (16.0, 45.0), center=30.5, scale=14.5, n_poses=40, seed=9)
+    flat = Recording.concatenate([full.select(full.run_id == 0), _planar(full.select(full.run_id == 1))])
+    stats = prepare(flat, 1, usable=np.ones(len(flat), bool)).stats
+    ok, notes = level_excitation(stats)
+    assert ok == 1 and len(notes) == 1 and notes[0].startswith("temperature level 1:"), notes
+    check_level_excitation(stats, 0)
+    with pytest.raises(NotIdentifiedError, match=r"degree 1 in temperature needs 2 temperature levels whose poses span "
+                       r"the table frame, only 1 do \(temperature level 1: its \d+ poses do not tilt the table direction "
+                       r".*\); use degree <= 0 or repeat the pose plan at that level$"):
+        check_level_excitation(stats, 1)
+    assert level_excitation(prepare(full, 1, usable=np.ones(len(full), bool)).stats)[0] == 2
+
+
+def test_reference_reach_names_each_axis_and_way_the_poses_never_reached() -> None:
+    from fbg_accel_calibration.thermal_fit import reference_reach_warnings
+
+    assert reference_reach_warnings([[-9.8, 9.8], [-9.8, 9.8], [-9.8, 9.8]]) == []
+    lines = reference_reach_warnings([[-1.36, 1.36], [-9.8, 9.8], [-9.8, 2.0]])
+    assert len(lines) == 2
+    assert "table x axis down or up (their reference along it spans -1.36 .. +1.36" in lines[0]
+    assert "table z axis up (" in lines[1] and lines[1].endswith("record poses with z up")
+
+
+def test_the_recording_excitation_check_takes_the_posed_samples_only() -> None:
+    """``diagnose``'s cheap check before its long computation: coplanar poses are refused, a recording whose
+    samples lack a pose is refused as such, and samples between poses (a reference and a temperature, no pose id) do
+    not enter it."""
+    from fbg_accel_calibration.thermal_fit import check_recording_excitation
+
+    M, b = _truth(0, np.random.default_rng(10))
+    rec = _simulate(M, b, (24.0,), center=24.0, scale=1.0, n_poses=30, seed=10)
+    assert np.all(check_recording_excitation(rec) > 1.0)
+    with pytest.raises(NotIdentifiedError, match=r"so the z row of M and b would be fitted to a constant \(a dead axis\); "
+                       "record poses that tilt that axis too"):
+        check_recording_excitation(_planar(rec))
+    # between poses: no pose id, and a reference that is not one (a CSV row between poses carries any)
+    moving = Recording(rec.t_s, rec.ref, rec.xyz, rec.temp_c, np.tile([0.0, 0.0, 9.80665], (len(rec), 1)),
+                       np.full(len(rec), -1))
+    with pytest.raises(NotIdentifiedError, match="no sample has a pose"):
+        check_recording_excitation(moving)
+    flat_and_moving = Recording.concatenate([_planar(rec), moving])
+    with pytest.raises(NotIdentifiedError, match="coplanar"):
+        check_recording_excitation(flat_and_moving)

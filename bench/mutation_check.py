@@ -1,0 +1,212 @@
+#!/usr/bin/env python3
+"""Mutation testing of the pure core against its fast tests (mutmut 3, configured in pyproject.toml [tool.mutmut]).
+
+Not a test and not in CI: every mutant is a pytest run (about 0.3 mutants/s on the 2-core build machine; the five
+modules hold ~3400 mutants, hours for all). This script runs mutmut on the mutants of the modules asked for, all of
+them or a seeded random sample per module (``--sample N``), reads mutmut's results and writes a page: per module the
+mutants checked, killed and surviving (score = killed / checked; a mutant no test reaches counts as surviving), and
+each survivor with its diff and, when it is one, the reason it is equivalent (:data:`EQUIVALENT`: a mutant that
+cannot change what a user gets, so no test can kill it).
+
+Modules and the tests that judge them (``pytest_add_cli_args_test_selection``; mutmut runs, for each mutant, the
+tests of that selection that execute the mutated function):
+
+* ``fbg_accel_driver.frame_codec``  -- test_frame_codec.py
+* ``fbg_accel_driver.stream_decoder`` -- test_stream_decoder.py
+* ``fbg_accel_driver.clock_sync`` -- test_clock_sync.py
+* ``fbg_accel_driver.thermal_model`` (the calibration model and its loader) -- test_thermal_model.py,
+  test_calibration_contract.py
+* ``fbg_accel_calibration.thermal_fit`` (the eq. 28 fit) -- test_thermal_fit.py
+
+Usage::
+
+    .venv/bin/python bench/mutation_check.py --sample 40                  # writes /tmp/mutation.md
+    .venv/bin/python bench/mutation_check.py --modules frame_codec        # every mutant of one module
+    .venv/bin/python bench/mutation_check.py --recheck-survivors          # the survivors again, after new tests
+    .venv/bin/python bench/mutation_check.py --report-only --update-results  # the page from the results so far
+
+The first run generates the mutants under ``mutants/`` (git-ignored) and collects which tests reach which function
+(minutes); later runs reuse both for the files that did not change.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import random
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+MUTMUT = [sys.executable, "-m", "mutmut"]
+MODULES = {
+    "frame_codec": "fbg_accel_driver/frame_codec.py",
+    "stream_decoder": "fbg_accel_driver/stream_decoder.py",
+    "clock_sync": "fbg_accel_driver/clock_sync.py",
+    "thermal_model": "fbg_accel_driver/thermal_model.py",
+    "thermal_fit": "fbg_accel_calibration/thermal_fit.py",
+}
+KILLED = {1, 3, 36, 37, -24, 24, 152, 255, -11, -9}  # test failure, pytest error, timeout, crash (mutmut/stats.py)
+# Survivors that cannot change what a user gets, with the reason (mutant name -> reason); names are mutmut's, valid
+# for the source as committed with this table.
+EQUIVALENT: dict[str, str] = {
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁcorrection_sum__mutmut_15": (
+        "np.asarray(t_s, None) for np.asarray(t_s, float): every caller passes board times as a float array already"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁexpected_reference_counts__mutmut_1": (
+        "the cache not read: the same value is worked out again, only slower"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁ_coefficients_of__mutmut_10": (
+        "equal_nan=None for True: temperatures with NaN then miss the cache and are worked out again, to the same "
+        "values"),
+    "fbg_accel_driver.thermal_model.x_normalise__mutmut_5": (
+        "the reference without dtype=float: np.where with NaN makes it float either way"),
+    "fbg_accel_calibration.thermal_fit.xǁCellAccumulatorǁadd__mutmut_91": (
+        "argsort kind 'STABLE' for 'stable': numpy reads the kind without regard to case"),
+    "fbg_accel_calibration.thermal_fit.xǁCellAccumulatorǁ_add_visits__mutmut_9": (
+        "reduceat without axis=0: 0 is its default"),
+    "fbg_accel_calibration.thermal_fit.xǁCellAccumulatorǁfinish__mutmut_9": (
+        "the cell keys without dtype=int64: Python ints become int64 on the 64-bit platforms the project runs on"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁfrom_dict__mutmut_117": (
+        "finite=None for finite=False: the flag is only tested for truth"),
+    "fbg_accel_calibration.thermal_fit.xǁTemperatureClustersǁfinish__mutmut_19": (
+        "zip(strict=None) for strict=True: the two sequences have one entry per cluster by construction"),
+    "fbg_accel_calibration.thermal_fit.x_accumulate_cells__mutmut_14": (
+        "a chunk of 2 rows for 1 when there are no rows: nothing is accumulated either way"),
+    "fbg_accel_calibration.thermal_fit.x_check_level_consistency__mutmut_74": (
+        "< for <= at the 30 % bound: a relative change exactly equal to the bound has no weight (a real-valued "
+        "decision), and no test may decide at a threshold (project rule)"),
+    "fbg_accel_calibration.thermal_fit.x_check_pose_excitation__mutmut_5": (
+        "the sample counts as integers instead of floats: every use divides by them, giving floats either way"),
+    "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ_accept__mutmut_15": (
+        "<= for < on the board clock: a frame at the last frame's t_us never gets there (a duplicate or a stuck "
+        "clock is handled before; with BOOT it is a reset either way)"),
+    "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ__init____mutmut_4": (
+        "\"\" for None as the last board time: it is read only once a last seq exists, and both are set together"),
+    "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_39": (
+        "< for <= when a hull point is collinear with its neighbours: keeping it splits one edge into two of the "
+        "same slope, so the slope at the mean board time is the same"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁobserve__mutmut_37": (
+        "another integer base for the offsets (steady - 1001 t_us for steady - 1000 t_us at the first frame): every "
+        "offset is taken relative to it and every stamp adds it back, so it cancels"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁobserve__mutmut_84": (
+        "<= for < between bin indices: an equal index took the branch before"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁ_clear__mutmut_12": (
+        "1 for 0 as the steady time of the first observation before there is one: it is set with that observation, "
+        "and read only after it"),
+}
+
+
+def meta_results(path: str) -> dict[str, int | None]:
+    """mutmut's exit code per mutant of one source file (None: not checked yet)."""
+    meta = ROOT / "mutants" / (path + ".meta")
+    if not meta.is_file():
+        return {}
+    return json.loads(meta.read_text())["exit_code_by_key"]
+
+
+def forget(path: str, names: set[str]) -> None:
+    """Mark the mutants ``names`` of one source file as not checked: mutmut keeps a result until the function's source
+    changes, so a survivor is judged again by new tests only once forgotten."""
+    meta = ROOT / "mutants" / (path + ".meta")
+    data = json.loads(meta.read_text())
+    for name in names & data["exit_code_by_key"].keys():
+        data["exit_code_by_key"][name] = None
+    meta.write_text(json.dumps(data))
+
+
+def run_mutmut(names: list[str]) -> None:
+    """``mutmut run`` on ``names`` (all mutants of the configured modules when empty), 200 names a call."""
+    batches = [names[i:i + 200] for i in range(0, len(names), 200)] or [[]]
+    for batch in batches:
+        subprocess.run([*MUTMUT, "run", *batch], cwd=ROOT, check=False, stdout=subprocess.DEVNULL)
+
+
+def diff_of(name: str) -> str:
+    """The mutated lines of mutant ``name`` (``mutmut show``)."""
+    out = subprocess.run([*MUTMUT, "show", name], cwd=ROOT, capture_output=True, text=True, check=False).stdout
+    return "\n".join(ln for ln in out.splitlines() if ln[:1] in "+-" and not ln.startswith(("+++", "---")))
+
+
+def page(rows: list[dict], survivors: list[tuple[str, str]], command: str) -> str:
+    lines = ["# Mutation testing of the pure core", "", f"Regenerate: `{command}`", "",
+             "Run with mutmut 3.8.1 (pyproject.toml `[tool.mutmut]`) on the 2-core build machine, against the fast tests "
+             "named in bench/mutation_check.py. Score = killed / checked; a mutant no test reaches counts as surviving; "
+             "`checked` is how many of the module's mutants were drawn (seeded samples) and checked.", "",
+             "| module | mutants | checked | killed | survived | of them equivalent | score | score without the "
+             "equivalent |", "|---|---|---|---|---|---|---|---|"]
+    for r in [*rows, {"module": "**all**", **{k: sum(r[k] for r in rows) for k in ("total", "checked", "killed",
+                                                                                    "survived", "equivalent")}}]:
+        c, k, e = r["checked"], r["killed"], r["equivalent"]
+        score = f"{100 * k / c:.1f} %" if c else "-"
+        clean = f"{100 * k / (c - e):.1f} %" if c > e else "-"
+        lines.append(f"| {r['module']} | {r['total']} | {c} | {k} | {r['survived']} | {e} | {score} | {clean} |")
+    total = sum(r["total"] for r in rows)
+    checked = sum(r["checked"] for r in rows)
+    if checked < total:
+        lines += ["", f"{checked} of the {total} mutants ({100 * checked / total:.0f} %) were checked: the figures are "
+                  "those of seeded random samples, not of every mutant (a full run takes hours on this machine)."]
+    lines += ["", "## Survivors", "", "Equivalent ones carry the reason no test can kill them; the others are gaps of "
+              "the tests still open.", ""]
+    for name, diff in survivors:
+        reason = EQUIVALENT.get(name)
+        lines += [f"- `{name}`: " + (f"equivalent: {reason}" if reason else "**not killed yet**"), "", "  ```diff",
+                  *[f"  {ln}" for ln in diff.splitlines()], "  ```", ""]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--modules", nargs="+", choices=sorted(MODULES), default=sorted(MODULES))
+    ap.add_argument("--sample", type=int, default=0, help="mutants drawn per module (0: all)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--report-only", action="store_true", help="no mutmut run: the page from the results so far")
+    ap.add_argument("--recheck-survivors", action="store_true",
+                    help="run the survivors so far again (after tests were added), nothing else")
+    ap.add_argument("--output", type=Path, default=Path(tempfile.gettempdir()) / "mutation.md")
+    ap.add_argument("--update-results", action="store_true", help="write docs/results/mutation.md")
+    args = ap.parse_args()
+    if args.recheck_survivors:
+        (ROOT / "mutants" / "mutmut-stats.json").unlink(missing_ok=True)  # which tests reach what: the new ones too
+        again = []
+        for m in args.modules:
+            names = {k for k, v in meta_results(MODULES[m]).items() if v is not None and v not in KILLED}
+            forget(MODULES[m], names)
+            again += sorted(names)
+        run_mutmut(again)
+    elif not args.report_only:
+        if not all(meta_results(MODULES[m]) for m in args.modules):
+            run_mutmut(["__generate_only__"])  # generates every mutant and the test map; no name matches
+        names: list[str] = []
+        for m in args.modules:
+            keys = sorted(meta_results(MODULES[m]))
+            if args.sample and len(keys) > args.sample:
+                keys = sorted(random.Random(f"{args.seed}:{m}").sample(keys, args.sample))
+            names += keys
+        run_mutmut(names)
+    rows, survivors = [], []
+    for m in args.modules:
+        results = meta_results(MODULES[m])
+        checked = {k: v for k, v in results.items() if v is not None}
+        killed = sum(v in KILLED for v in checked.values())
+        rows.append({"module": m, "total": len(results), "checked": len(checked), "killed": killed,
+                     "survived": len(checked) - killed,
+                     "equivalent": sum(k in EQUIVALENT for k, v in checked.items() if v not in KILLED)})
+        survivors += [(k, diff_of(k)) for k, v in sorted(checked.items()) if v not in KILLED]
+    command = "python bench/mutation_check.py " + " ".join(a for a in sys.argv[1:] if a != "--update-results")
+    if args.report_only:
+        command = ("python bench/mutation_check.py --modules frame_codec; python bench/mutation_check.py --modules "
+                   "stream_decoder clock_sync thermal_model thermal_fit --sample 40; the same with --sample 30 --seed 1; "
+                   "python bench/mutation_check.py --recheck-survivors (after the tests that kill survivors were added); "
+                   "python bench/mutation_check.py --report-only")
+    text = page(rows, survivors, command.strip())
+    out = ROOT / "docs/results/mutation.md" if args.update_results else args.output
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text)
+    print(text.split("## Survivors")[0])
+    print(f"written {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
