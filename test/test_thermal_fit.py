@@ -393,7 +393,8 @@ def test_the_recording_excitation_check_takes_the_posed_samples_only() -> None:
     # between poses: no pose id, and a reference that is not one (a CSV row between poses carries any)
     moving = Recording(rec.t_s, rec.ref, rec.xyz, rec.temp_c, np.tile([0.0, 0.0, 9.80665], (len(rec), 1)),
                        np.full(len(rec), -1))
-    with pytest.raises(NotIdentifiedError, match=r"no pose was held: every one of the \d+ samples was taken while the table moved"):
+    with pytest.raises(NotIdentifiedError,
+                       match=r"no pose was held: every one of the \d+ samples was taken while the table moved"):
         check_recording_excitation(moving)
     flat_and_moving = Recording.concatenate([_planar(rec), moving])
     with pytest.raises(NotIdentifiedError, match="coplanar"):
