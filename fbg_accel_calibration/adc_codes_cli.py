@@ -121,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
     from fbg_accel_driver.adc_code_table import save_table
 
     from .adc_codes import code_table, recording_code_widths
-    from .atomic_output import atomic_path, check_outputs
+    from .atomic_output import check_outputs, committed_outputs
     from .input_files import load_recording
 
     outputs = [p for p in (args.plot, args.json, args.output) if p is not None]
@@ -151,15 +151,13 @@ def run(args: argparse.Namespace) -> int:
     if widths.pooled is not None:
         print("pooled widths (code mod 16 = 0..15): " + " ".join(f"{v:.2f}" for v in widths.pooled.pattern))
         print("their 95 % intervals (+-):           " + " ".join(f"{v:.2f}" for v in widths.pooled.pattern_u95))
-    if args.plot is not None:
-        with atomic_path(args.plot) as tmp:
-            plot(widths, table, tmp)
-    if args.json is not None:
-        with atomic_path(args.json) as tmp:
-            tmp.write_text(json.dumps(_as_json(widths), indent=1), encoding="utf-8")
-    if args.output is not None:
-        with atomic_path(args.output) as tmp:
-            save_table(table, tmp)
+    with committed_outputs() as outs:  # the plot, JSON and table together or none of them
+        if args.plot is not None:
+            plot(widths, table, outs.path(args.plot))
+        if args.json is not None:
+            outs.path(args.json).write_text(json.dumps(_as_json(widths), indent=1), encoding="utf-8")
+        if args.output is not None:
+            save_table(table, outs.path(args.output))
     for p in outputs:
         print(f"wrote {p}")
     return 0

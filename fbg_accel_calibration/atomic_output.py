@@ -1,4 +1,4 @@
-"""Outputs of the offline tools and nodes that never destroy data (issues 11 and 42, "Data destroyed").
+"""Outputs of the offline tools and nodes that never destroy data.
 
 Rules, checked *before* any computation (:func:`check_outputs`):
 

@@ -172,6 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p.add_argument("--csv", type=Path, default=DEFAULT_CSV, help=f"measured CSV (default {DEFAULT_CSV}, relative to the cwd)")
     p.add_argument("--md", type=Path, default=UNCERTAINTY_MD, help=f"markdown output (default {UNCERTAINTY_MD})")
+    _add_force(p)
     p.set_defaults(func=cmd_uncertainty_measured)
 
     p = sub.add_parser("dynamic", help="slide run to the chain's dynamics (calibration 'dynamic' section, Bode plot)")
@@ -243,7 +244,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from .recording import low_reference_warning
     from .thermal_fit import FULL_SCALE_MPS2, reference_reach_warnings
 
-    check_outputs([args.output], args.inputs, args.force)  # the inputs are checked first thing by fit_files
+    # the inputs are checked first thing by fit_files; the code table read is an input too
+    check_outputs([args.output], [*args.inputs, *([args.adc_codes] if args.adc_codes is not None else [])], args.force)
     from fbg_accel_driver.adc_code_table import load_table
 
     table = load_table(args.adc_codes) if args.adc_codes is not None else None
@@ -558,7 +560,7 @@ def cmd_field_check(args: argparse.Namespace) -> int:
 def cmd_uncertainty_measured(args: argparse.Namespace) -> int:
     from .measured_uncertainty import main_args
 
-    return main_args(args.csv, args.md, argv=getattr(args, "argv", None))
+    return main_args(args.csv, args.md, argv=getattr(args, "argv", None), force=args.force)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,5 +1,5 @@
 """Entry point of the ``fbg-accel-calib`` console script: Ctrl-C and SIGTERM are handled from the first instant
-(``command_line.exit_quietly_on_interrupt``) before the tool's modules (numpy, scipy: ~0.8 s) are imported; then
+(``command_line.exit_quietly_on_interrupt``) before the tool's heavy modules (numpy, scipy) are imported; then
 they interrupt the run and ``cli.main`` removes its partial outputs (exit 130 / 143, one line). No heavy import
 at module level."""
 

@@ -95,8 +95,9 @@ def check_diagnose_outputs(args: argparse.Namespace) -> None:
     """Before any computation: outputs are not inputs, exist only with --force, and their directories exist."""
     from .atomic_output import check_output_dir, check_outputs
 
-    check_outputs([args.out], args.inputs, args.force, create_dirs=True)  # the report's directory is created
-    check_outputs([args.yaml], args.inputs, args.force)
+    inputs = [*args.inputs, *([args.adc_codes] if getattr(args, "adc_codes", None) is not None else [])]
+    check_outputs([args.out], inputs, args.force, create_dirs=True)  # the report's directory is created
+    check_outputs([args.yaml], inputs, args.force)
     if args.out is not None and args.yaml is not None:
         check_outputs([args.out, args.yaml], [], True, create_dirs=True)  # not the same file twice
     img = _img_dir(args)

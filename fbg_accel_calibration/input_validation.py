@@ -2,7 +2,7 @@
 
 Pure Python and numpy. Each bound is what the instrument or the file format can physically hold; a value
 outside it is a typo or a corrupted file, and accepting it wrote wrong calibrations with exit 0
-(issue 11): ``--g -9.81`` inverts the calibration, ``--g nan`` makes every sample "moving",
+: ``--g -9.81`` inverts the calibration, ``--g nan`` makes every sample "moving",
 ``--level-gap -1`` splits one temperature into 31 "levels" and defeats the over-fitting guard,
 ``--alpha nan`` flips the diagnosis' verdict, counts of 60880 cannot come from a 12-bit ADC.
 

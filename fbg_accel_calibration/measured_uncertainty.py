@@ -127,12 +127,13 @@ def report_markdown(fit: MeasuredFit, c: dict, command: str) -> str:
     return "\n".join(lines)
 
 
-def main_args(csv_path: Path, md_path: Path, argv: list[str] | None = None) -> int:
-    """CLI body of ``uncertainty-measured``: exit 2 with one line when the data is absent or the output refused."""
+def main_args(csv_path: Path, md_path: Path, argv: list[str] | None = None, force: bool = False) -> int:
+    """CLI body of ``uncertainty-measured``: exit 2 with one line when the data is absent or the output refused (an
+    existing page is replaced only with ``force``)."""
     argv = sys.argv[1:] if argv is None else argv
     command = ".venv/bin/fbg-accel-calib uncertainty-measured" + "".join(" " + shlex.quote(str(a)) for a in argv[1:])
     try:
-        check_outputs([md_path], [csv_path], force=True, create_dirs=True)
+        check_outputs([md_path], [csv_path], force=force, create_dirs=True)
         fit = fit_measured(csv_path)
         c = compare(fit)
         md_path.parent.mkdir(parents=True, exist_ok=True)

@@ -13,9 +13,9 @@ holds what a dynamic calibration measured, **per channel** (the counts before eq
 
 An output axis is eq. 28's ``M`` applied to the three channels, so its response is ``M diag(H_channel) M^-1``
 (a mix of the three channels' poles, not one first-order stage when their cut-offs differ). Section format 2
-(``fbg-accel-calib dynamic`` since issue 37) identifies the values per channel; format 1 fitted one first-order
+(``fbg-accel-calib dynamic``) identifies the values per channel; format 1 fitted one first-order
 stage per output axis and wrote those as the channels' values (right only when the channels' cut-offs are
-equal): it still loads, as before, and :attr:`ChainDynamics.identified_per_axis` says so.
+equal): it still loads, and :attr:`ChainDynamics.identified_per_axis` says so.
 
 Two live compensations (driver parameter ``chain_compensation``):
 
@@ -53,7 +53,7 @@ import numpy as np
 from .mapping_fields import format_version, number, refuse_unknown, same_values
 from .noise_model import filtered_mean_variance_factor, geometric_length
 
-DYNAMIC_FORMAT_VERSION = 2  # 2: identified per channel (issue 37); 1: one stage fitted per output axis
+DYNAMIC_FORMAT_VERSION = 2  # 2: identified per channel; 1: one stage fitted per output axis
 READS_DYNAMIC_FORMAT_VERSIONS = (1, 2)
 CHANNELS = ("reference", "x", "y", "z")
 AXES = ("x", "y", "z")

@@ -123,7 +123,7 @@ def interrupted_status(exc: KeyboardInterrupt) -> int:
 
 
 def exit_quietly_on_interrupt(prog: str) -> None:
-    """First thing in an entry point, before its heavy imports (numpy, matplotlib, rclpy: up to ~1 s): Ctrl-C or
+    """First thing in an entry point, before its heavy imports (numpy, matplotlib, rclpy): Ctrl-C or
     SIGTERM then ends the process at once with one line and status 130 / 143 instead of a ``KeyboardInterrupt``
     traceback out of some import. Nothing is written yet at that stage, so nothing needs cleaning up."""
     import os

@@ -824,7 +824,7 @@ class BoardSimulator:
         """``_adc_input`` of the four channels, with the codes' unequal widths when ``effects.adc_code_widths`` is on
         (and adc_quantisation): the ESP32's SAR ADC has differential non-linearity (Espressif, ESP32 datasheet, "ADC
         characteristics": DNL up to +-7 LSB, INL up to +-12 LSB); the measured series reads codes 16k 1.5-2.4x and
-        16k + 8 3-6x less often than an even spread on every axis channel (issue 38), a pattern periodic in the code
+        16k + 8 3-6x less often than an even spread on every axis channel, a pattern periodic in the code
         (``fbg_accel_driver.adc_code_table.pattern_codes``). The widths are 1 + scale (w - 1) for the configured
         ``widths`` w (one period, summing to the period); one converter is multiplexed over the channels."""
         cw = self.cfg.get("effects.adc_code_widths")

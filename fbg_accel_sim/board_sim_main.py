@@ -1,6 +1,6 @@
 """Entry point of the ``board_sim`` console script: Ctrl-C and SIGTERM are handled from the first instant
-(``command_line.exit_quietly_on_interrupt``: one line, exit 130 / 143) while the simulator's modules (numpy:
-~0.15 s) are imported and the configuration is read; ``board_sim.main`` then installs its own handlers, which
+(``command_line.exit_quietly_on_interrupt``: one line, exit 130 / 143) while the simulator's modules (numpy)
+are imported and the configuration is read; ``board_sim.main`` then installs its own handlers, which
 end the run in order. No heavy import at module level."""
 
 from __future__ import annotations

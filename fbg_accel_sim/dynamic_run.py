@@ -60,7 +60,7 @@ def simulated_tone_check(plan: Any, cal: Any, rate_hz: float = 100.0, seed: int 
 
 def random_channel_chain(seed: int, cutoff_range_hz: tuple[float, float] = (0.5, 5.0),
                          delay_range_s: tuple[float, float] = (0.0, 0.05)) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
-    """A chain whose axis channels differ, as hand-built TIA stages with loose parts do (issue 37): the x, y, z
+    """A chain whose axis channels differ, as hand-built TIA stages with loose parts do: the x, y, z
     channels' TIA cut-offs (Hz) and pure delays (s) drawn uniformly from the ranges by ``default_rng(seed)``, and the
     simulator overrides that make it (reference channel at its configured cut-off; the common
     ``channel_delay.delay_s`` 0, each channel's delay in ``axis_channel_extra_s``). Returns (cut-offs, delays,

@@ -184,6 +184,11 @@ def test_measured_series_pattern_is_found_and_fit_carries_the_table_it_was_fitte
     assert table.provenance["pattern"].startswith("found")
     widths = np.diff(table.edges[1, 1024:1041])  # x: codes 1024..1039, one period
     assert widths[0] > 1.3 and widths[8] < 0.6, widths.round(2)
+    kept = table_path.read_bytes()  # the table read is an input: never written over, even with --force
+    for cmd in (["fit", str(MEASURED)], ["diagnose", str(MEASURED), "--out", str(tmp_path / "d.md")]):
+        out = ["-o" if cmd[0] == "fit" else "--yaml", str(table_path)]
+        assert calib_main([*cmd, *common, "--adc-codes", str(table_path), *out, "--force"]) == 2
+        assert table_path.read_bytes() == kept
     assert calib_main(["fit", str(MEASURED), *common, "--adc-codes", str(table_path), "-o", str(cal_path)]) == 0
     cal = ThermalCalibration.load(cal_path)
     assert cal.adc_codes == table

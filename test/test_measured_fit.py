@@ -120,7 +120,10 @@ def test_uncertainty_measured_command(tmp_path: Path, capsys: pytest.CaptureFixt
     assert cli_main(["uncertainty-measured", "--csv", str(CSV), "--md", str(md)]) == 0
     text = md.read_text()
     assert "u by visit" in text and "81.60" in text and "12 of 12" in text
-    assert cli_main(["uncertainty-measured", "--csv", str(tmp_path / "nope.csv"), "--md", str(md)]) == 2
+    assert cli_main(["uncertainty-measured", "--csv", str(tmp_path / "nope.csv"), "--md", str(md), "--force"]) == 2
     assert "measured data not found" in capsys.readouterr().err
+    md.write_text("kept")  # an existing page is replaced only with --force
+    assert cli_main(["uncertainty-measured", "--csv", str(CSV), "--md", str(md)]) == 2 and md.read_text() == "kept"
+    assert "--force" in capsys.readouterr().err
     assert cli_main(["uncertainty-measured", "--csv", str(CSV), "--md", str(CSV)]) == 2  # never over its input
     assert CSV.is_file()
