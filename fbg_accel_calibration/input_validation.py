@@ -1,8 +1,8 @@
 """Bounds of every number that enters the offline tools from outside (CLI options, CSV columns, MCAP and bag values).
 
 Pure Python and numpy. Each bound is what the instrument or the file format can physically hold; a value
-outside it is a typo or a corrupted file, and accepting it wrote wrong calibrations with exit 0
-: ``--g -9.81`` inverts the calibration, ``--g nan`` makes every sample "moving",
+outside it is a typo or a corrupted file, and accepting it would write wrong calibrations with exit 0:
+``--g -9.81`` inverts the calibration, ``--g nan`` makes every sample "moving",
 ``--level-gap -1`` splits one temperature into 31 "levels" and defeats the over-fitting guard,
 ``--alpha nan`` flips the diagnosis' verdict, counts of 60880 cannot come from a 12-bit ADC.
 
