@@ -356,6 +356,12 @@ class Inputs:
         return np.arange(len(self.t_s)) if self.index is None else self.index
 
 
+MODEL_TERM = "model term"  # a term of eq. 28's calibration file, applied by the driver
+NOISE_REMEDY = "noise remedy"  # a filter against noise, written to the calibration file, reported apart
+PER_RUN = "per-run property"  # a property of each recording: fitted, reported, not in the calibration file
+ROLES = (MODEL_TERM, NOISE_REMEDY, PER_RUN)
+
+
 class Effect:
     """Base class of a candidate effect. Subclasses set the class attributes and override hooks."""
 
@@ -367,31 +373,48 @@ class Effect:
     # for an effect that is not void there (reference_dark_offset at d_ref = 0 keeps its channel offsets)
     hyper_null: float | None = None
     title: str = ""
-    noise_remedy: bool = False  # a filter against noise (not a model effect): reported apart from the added effects
-    per_run: bool = False  # a property of each recording (run_offset, run_drift): fitted, reported, not in the YAML
-    pointwise: bool = False  # columns() computes each row from that row's inputs alone (may be given some rows only)
-    reference_only: bool = False  # transform() changes only the reference (and valid): eq. 28's columns stay the same
-    # a function of time alone (time_drift): it must also predict contiguous blocks of time held out to be added
-    # (diagnose.time_block_check): between visits interleaved in time any smooth function of time interpolates
-    time_function: bool = False
-    # its contribution can follow a one-time step of the response (a connector knocked mid-run): a function of time
-    # (time_drift), of the temperature's history, which a cycled run ties to time (thermal_lag: eq. 28 read at a
-    # delayed temperature, a correction that changes sign with the rate; thermal_hysteresis: a branch held between
-    # the turns), or of the reference counts, which a step of the reference arm's loss moves once
-    # (reference_dark_offset). A significant one is set against the best step before it is added (diagnose.step_check). Not the
-    # per-run terms: properties of the recording like the step, never in the calibration file (a step at a run's start
-    # is a run offset)
-    follows_a_step: bool = False
-    # for follows_a_step: what it would be as a property of the sensor, and the measurement that tells it from a step
+    # what adding it means (``ROLES``): a term of the calibration file, a filter against noise reported apart from the
+    # added effects, or a property of each recording (run_offset, run_drift) fitted so that it does not bias eq. 28,
+    # reported, never written to the YAML (the driver does not know runs)
+    role: str = MODEL_TERM
+    # its physical bound and the source of that bound: a fit beyond it is refused by :meth:`implausible`; where no
+    # refusal is implemented, what bounds the fit (its search grid) and why
+    bound: str = ""
+    # the checks a candidate must pass beyond its held-out test, by name, in the order they run
+    # (``diagnosis.checks.CHECKS``, each saying when it runs: at every step, when the candidate is about to be added,
+    # or on the final model):
+    # "reading_jump": its contribution can follow a one-time move of eq. 28's output, which a jump of the temperature
+    #   reading makes (a function of time or of the temperature's history);
+    # "time_blocks": a function of time alone must also predict contiguous blocks of time held out (between visits
+    #   interleaved in time any smooth function of time interpolates; ``diagnosis.search.time_block_check``);
+    # "step" (at every step) / "step_when_chosen" (when about to be added): its contribution can follow a one-time step
+    #   of the response (a connector knocked mid-run): a function of time (time_drift), of the temperature's history,
+    #   which a cycled run ties to time (thermal_lag: eq. 28 read at a delayed temperature; thermal_hysteresis: a
+    #   branch held between the turns), or of the reference counts, which a step of the reference arm's loss moves
+    #   once (reference_dark_offset); it is set against the best step (``diagnosis.search.step_check``). Not the
+    #   per-run terms: properties of the recording like the step, never in the calibration file;
+    # "table_angles": a function of the direction of gravity in the sensor alone (spectral_nonlinearity) can stand in
+    #   for an effect of the table's angles on a plan whose directions and angles go together: the final model's
+    #   residual between visits of one direction is looked at.
+    checks: tuple[str, ...] = ()
+    # for the step checks: what it would be as a property of the sensor, and the measurement that tells it from a step
     sensor_property: str = ""
     tells_it_from_a_step: str = ""
-    # a function of the direction of gravity in the sensor alone (spectral_nonlinearity): it can stand in for an effect
-    # of the table's angles on a plan whose directions and angles go together (diagnose warns when what remains differs
-    # between visits of one direction)
-    orientation_function: bool = False
+    pointwise: bool = False  # columns() computes each row from that row's inputs alone (may be given some rows only)
+    reference_only: bool = False  # transform() changes only the reference (and valid): eq. 28's columns stay the same
     # its columns are switched_columns() from the sample index h on and zero before (h: a grid of sample indices, no
     # values between them): diagnose searches h from sums over the samples (switch_profile), without refinement
     switched: bool = False
+
+    @property
+    def noise_remedy(self) -> bool:
+        """A filter against noise, not a model effect (``role``)."""
+        return self.role == NOISE_REMEDY
+
+    @property
+    def per_run(self) -> bool:
+        """A property of each recording, not of the sensor (``role``)."""
+        return self.role == PER_RUN
 
     def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
         """Whether the data can show this effect at all (e.g. temperature must vary)."""
@@ -448,7 +471,9 @@ class ReferenceReadNoiseEffect(Effect):
     # (each fold's best time constant). A second, stricter rule on the final value (visits as the only units) took
     # tau back to 0 for a read noise that test found worth +11 %: the remedy was added and filtered nothing.
     title = "read noise of the reference channel (low-pass it before eq. 24)"
-    noise_remedy = True
+    role = NOISE_REMEDY
+    bound = ("tau_ref within its search grid: up to 50 sample intervals and ReferenceLowpass.MAX_TIME_CONSTANT_S (a "
+             "filter, not a property of the sensor: no refusal beyond it)")
 
     def void(self, h: float | None) -> bool:
         return not h
@@ -483,8 +508,8 @@ class ReferenceDarkOffsetEffect(Effect):
     """Offsets of the detectors (dark current, TIA output offset, ADC zero): Psi' = c / (ref - d) and the regressor
     1 / (ref - d) with coefficients k = -M0 c0 (c0 the axis channels' offsets, counts; k in m/s^2 counts).
 
-    It can follow a step (``Effect.follows_a_step``): its column is a function of the reference counts, and a one-time
-    change of the reference arm's loss (its connector knocked or re-mated, the fibre to its photodetector bent; the
+    It can follow a step (its ``checks`` hold "step_when_chosen"): its column is a function of the reference counts,
+    and a one-time change of the reference arm's loss (its connector knocked or re-mated, the fibre to its photodetector bent; the
     paper's reference FBG path, §3.5) is a step of those counts by a factor g, so of 1 / ref by 1 / g. The same step
     multiplies every Psi = axis / ref by 1 / g: the output moves by (1/g - 1) M Psi, mostly the offset (1/g - 1) M Psi_rest,
     and k / ref moves by (1/g - 1) k / ref: with k = -M c0 it follows the offset step exactly for c0 = -c_rest. A
@@ -497,7 +522,10 @@ class ReferenceDarkOffsetEffect(Effect):
 
     name = "reference_dark_offset"
     pointwise = True
-    follows_a_step = True
+    checks = ("reading_jump", "step_when_chosen")
+    bound = ("the reference offset and the implied axis-channel offsets each at most MAX_CHANNEL_OFFSET_FRACTION (25 %) "
+             "of the channel's counts: dark current and ADC zero offset are tens of counts (sim_default.yaml; "
+             "../shared/docs/sensor_facts.md), a quarter of the signal undoes eq. 24")
     sensor_property = "a dark offset of the detectors"
     tells_it_from_a_step = ("record the detectors dark (source off) to measure the offsets, or change the source power "
                             "at fixed poses: a dark offset follows every change of the reference counts, a step of "
@@ -553,7 +581,9 @@ class ReferenceDarkOffsetEffect(Effect):
 class ThermalLagEffect(Effect):
     name = "thermal_lag"
     stage = 30
-    follows_a_step = True
+    checks = ("reading_jump", "step_when_chosen")
+    bound = ("|tau| within its search grid, up to a third of the recording (not refused beyond it: a lag longer than "
+             "the recording is not told from a drift)")
     sensor_property = "a thermal lag"
     tells_it_from_a_step = ("hold each temperature until the housing has settled and change it again: a lag comes back "
                             "with every change of the temperature, a step happens once")
@@ -636,7 +666,10 @@ def nonlinearity_bound_mps2(a_mps2: float) -> float:
 class SpectralNonlinearityEffect(Effect):
     name = "spectral_nonlinearity"
     pointwise = True
-    orientation_function = True
+    checks = ("table_angles",)
+    bound = ("the non-linear part over the poses at most NONLINEARITY_MARGIN x NONLINEARITY_AT_1G of the output at 1 "
+             "g, growing as |a|^2 (sensor_facts.md and the paper's Fig. 12: up to 6.6 % of full scale at 180 m/s^2; "
+             "the overlap model curved by 1.6 % at 1 g, bench/results/optics_linearity.json)")
     stage = 50
     title = "acceleration non-linearity of the spectral overlap"
 
@@ -742,8 +775,9 @@ def orientation_share_of_visit_times(data: DiagnosisData) -> float:
 class TimeDriftEffect(Effect):
     name = "time_drift"
     pointwise = True
-    time_function = True
-    follows_a_step = True
+    checks = ("reading_jump", "time_blocks", "step")
+    bound = ("warm-up amplitude and creep over the run each at most MAX_DRIFT_MPS2, 5 % of full scale (±20 g, paper "
+             "§3.4)")
     sensor_property = "a warm-up or creep"
     tells_it_from_a_step = "visit the poses again after a power-on to tell a warm-up from a step"
     stage = 70
@@ -797,6 +831,8 @@ class TimeDriftEffect(Effect):
 class ChannelDelayEffect(Effect):
     name = "channel_delay"
     reference_only = True
+    bound = ("D within its search grid, 0 to 12 sample intervals and at least MIN_DELAY_SEARCH_S (a delay of the chain "
+             "is tens of ms, sim_default.yaml; not refused beyond it)")
     stage = 1
     hyper_name = "D"
     hyper_unit = "s"
@@ -845,6 +881,8 @@ class ChannelDelayEffect(Effect):
 class TiaLowpassEffect(Effect):
     name = "tia_lowpass"
     reference_only = True
+    bound = ("the time constants within the search grid, up to 30 samples and at least MIN_TIA_SCALE_SEARCH x the "
+             "paper's Table 1 cut-offs (not refused beyond it)")
     stage = 2
     hyper_name = "tau_scale"
     hyper_unit = "x Table 1"
@@ -970,7 +1008,8 @@ def _same_memory(a: np.ndarray, b: np.ndarray) -> bool:
 class ThermalHysteresisEffect(Effect):
     name = "thermal_hysteresis"
     stage = 80
-    follows_a_step = True
+    checks = ("reading_jump", "step_when_chosen")
+    bound = "the rate filter within its search grid; no bound on the half gap yet (not refused)"
     sensor_property = "a hysteresis between heating and cooling"
     tells_it_from_a_step = ("cycle the temperature up and down twice: a hysteresis comes back at every turn, a step "
                             "happens once")
@@ -1010,7 +1049,8 @@ class _PerRunEffect(Effect):
     """Base of the per-run terms: one column per run (``run_offset``: every run but the first, whose offset is
     eq. 28's b) whose coefficients are m/s^2 per axis. Runs count where ``use`` has samples."""
 
-    per_run = True
+    role = PER_RUN
+    bound = "each run's term at most MAX_DRIFT_MPS2, 5 % of full scale (±20 g, paper §3.4)"
     stage = 80
     skip_first = False
     unit_text = ""
@@ -1114,7 +1154,7 @@ class RunDriftEffect(_PerRunEffect):
 
 class ResponseStepEffect(Effect):
     """Not a candidate (not in ``LIBRARY``): the alternative a function of time or of the temperature's history
-    (``Effect.follows_a_step``) must beat (``diagnose.step_check``).
+    (an ``Effect`` whose ``checks`` hold a step check) must beat (``diagnose.step_check``).
     The linear response changes once, for good: from the first sample of one visit on, every axis gets an offset and
     a slope on each Psi (about its mean) of its own (eq. 25 refitted after the step). A connector knocked or re-mated,
     a fibre bent or a knock on the mount does this to the response (a channel's loss changes the counts it reads by a

@@ -1,5 +1,6 @@
 """The noise floor a residual is judged against: the within-visit noise and how it correlates (``within_visit_noise``,
-``VisitNoise``), visits noisier than the rest, and the settling transient after a table move.
+``VisitNoise``), visits noisier than the rest, the settling transient after a table move, and the floor of a
+recording measured with them (``measure_floor``).
 """
 
 from __future__ import annotations
@@ -14,12 +15,12 @@ from scipy import stats
 
 from ..effects import (
     TIA_TAU_S,
+    DiagnosisData,
     finite_rows,
     take_rows,
 )
-
-# ============================================================================ data preparation
-
+from ..periodic_disturbance import PeriodicDisturbance, find_periodic_disturbance
+from ..search_lanes import beside
 
 # ============================================================================ noise floor, settling, degree
 # Settling window after a table move, from the measuring chain's physics: every TIA is a first-order
@@ -602,3 +603,83 @@ def _first_kept_age(window_s: float, resolved: bool, age_s: np.ndarray) -> float
 
 def _fmt3(v: np.ndarray) -> str:
     return " / ".join(f"{x:.3f}" for x in v)
+
+
+@dataclass
+class FloorMeasurement:
+    """The noise floor a residual is judged against and how it was measured: ``noise`` (3,) m/s^2 per axis, its model
+    (``VisitNoise``), the settled samples it is worked out on (``settled`` (N,)), the windows left out at the start
+    (``settle_s``) and end (``end_s``, None: none) of each visit, the settling transient, and a periodic disturbance
+    of the visits (when found, ``noise`` is the floor without it)."""
+
+    noise: np.ndarray
+    noise_model: VisitNoise
+    settled: np.ndarray
+    settle_s: float
+    end_s: float | None
+    settling: SettlingTransient
+    disturbance: PeriodicDisturbance
+
+
+def measure_floor(data: DiagnosisData, res0: np.ndarray, rows: np.ndarray, settle_s: float | None,
+                  side_by_side: bool) -> FloorMeasurement:
+    """The noise floor of the declared model's residual ``res0`` (N, 3) m/s^2 on the samples ``rows`` (fitted, at a
+    pose): the scatter within visits over settled samples (``within_visit_noise``), the settling windows by the rule
+    of ``SETTLE_NOISE_FRACTION`` at either end (``settle_s`` given: the start is fixed; the end is trimmed only where
+    it is measured disturbed), a periodic disturbance named and taken out (``periodic_disturbance``). With
+    ``side_by_side`` the settling transient is measured on a thread beside the first floor."""
+    groups = data.group
+    settling_later = beside(settling_transient, res0, data.t_s, groups, rows, thread=side_by_side)
+    auto_start = settle_s is None
+    settle_s = 0.0 if settle_s is None else float(settle_s)
+
+    def floor(start_s: float, stop_s: float | None) -> tuple[float, float | None, VisitNoise]:
+        return start_s, stop_s, within_visit_noise(res0, groups, settled_mask(data.t_s, groups, rows, start_s, stop_s),
+                                                   data.t_s)
+
+    # the last floor worked out, at (settle_s, end_s): meanwhile the transient is measured, the first one with the end
+    # kept (as it is unless the end is disturbed)
+    floor_at: tuple[float, float | None, VisitNoise] | None = floor(settle_s, None) if side_by_side else None
+    settling = settling_later.result()
+    end_s = 0.0 if settling.end_detected else None
+    for _ in range(4):
+        if not auto_start and end_s is None:
+            break
+        if floor_at is None or floor_at[:2] != (settle_s, end_s):
+            floor_at = floor(settle_s, end_s)
+        sigma = floor_at[2].sigma
+        grew = False
+        if auto_start and (nxt := settle_window(settling, sigma)) > settle_s * (1 + 1e-3):
+            settle_s, grew = nxt, True
+        if end_s is not None and (nxt := settle_window(settling, sigma, end=True)) > end_s * (1 + 1e-3):
+            end_s, grew = nxt, True
+        if not grew:
+            break
+    settled = settled_mask(data.t_s, groups, rows, settle_s, end_s)
+    # the windows that did not grow are those of the last floor worked out: that floor, not the same one again
+    noise_model = (floor_at[2] if floor_at is not None and floor_at[:2] == (settle_s, end_s)
+                   else within_visit_noise(res0, groups, settled, data.t_s))
+    noise = noise_model.sigma
+    if not np.all(np.isfinite(noise)) or np.any(noise <= 0):
+        raise ValueError(f"no noise floor: {int(settled.sum())} settled samples (every visit shorter than "
+                         f"{settle_s:.3g} s plus one sample?); lower settle_s")
+    # a periodic disturbance during the visits (a table that sways, a fan) is no noise of the sensor: named, and the
+    # floor is the scatter without it (its floor with it reported beside: PeriodicDisturbance.floor_with_lines)
+    disturbance = find_periodic_disturbance(res0, data.t_s, groups, data.run_id, settled)
+    if disturbance.found:
+        disturbance.floor_with_lines = noise
+        noise_model = within_visit_noise(res0 - disturbance.model(data.t_s, data.run_id), groups, settled, data.t_s)
+        noise = noise_model.sigma
+    settling.settle_s, settling.n_dropped = float(settle_s), int((rows & ~settled).sum())
+    settling.end_settle_s = end_s
+    settling.end_n_dropped = int((settled_mask(data.t_s, groups, rows, settle_s) & ~settled).sum())
+    # what may still reach the floor: the decay at the window's edge, for an unresolved one (window: the first, or
+    # last, sample) its bound at the next position, the first kept
+    if settling.detected and np.isfinite(settling.tau_s) and settling.tau_s > 0:
+        kept = _first_kept_age(settle_s, settling.tau_resolved, settling.age_s)
+        settling.residual_after_settle_mps2 = settling.amplitude_mps2 * np.exp(-max(kept, 1e-12) / settling.tau_s)
+    if end_s is not None and np.isfinite(settling.end_tau_s) and settling.end_tau_s > 0:
+        kept = _first_kept_age(end_s, settling.end_tau_resolved, settling.end_age_s)
+        settling.end_residual_after_settle_mps2 = (settling.end_amplitude_mps2
+                                                   * np.exp(-max(kept, 1e-12) / settling.end_tau_s))
+    return FloorMeasurement(noise, noise_model, settled, settle_s, end_s, settling, disturbance)

@@ -1,0 +1,128 @@
+"""The checks a candidate declares beyond its held-out test (``Effect.checks``), by name, each with when it runs.
+
+The forward selection (``diagnosis.selection``) asks each candidate for its checks and runs them; no check is tied to
+an effect's name. A check that runs during the search takes the candidate's result (``CandidateResult``) and may
+refuse it (``significant`` False, why in its ``detail``); a check on the final model returns a :class:`Finding`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..effects import DiagnosisData, Effect
+from ..search_lanes import Lanes
+from .cv import check_folds, make_folds
+from .design import ModelSpec
+from .findings import Finding
+from .search import CandidateResult, Evaluator, judge_step, time_block_check
+from .structure import SMALL_RATIO, ResidualStructure
+
+EACH_STEP = "each step"  # on every significant result of every step, in the order the effect declares them
+WHEN_CHOSEN = "when chosen"  # on the best significant candidate, when it is about to be added
+ON_FINAL_MODEL = "on the final model"  # on the residual of the final model, for an effect in it: a Finding
+
+
+@dataclass
+class SearchChecks:
+    """What the checks during the search need: the data, the lanes the searches run on, the model the candidates are
+    tried on top of and the step's level."""
+
+    data: DiagnosisData
+    lanes: Lanes[Evaluator]
+    folds: int  # folds over visits (the contiguous blocks of time are as many)
+    every: np.ndarray  # the samples searched (indices)
+    weights: np.ndarray  # (3,) 1 / floor^2
+    min_rel_gain: float
+    reselect_up_to: int | None  # largest degree of eq. 28 chosen again beside a step; None: not chosen again
+    reading_jumped: bool  # the temperature reading jumps and eq. 28 reads it
+    spec: ModelSpec | None = None  # the current model (set at each step)
+    alpha_each: float = 0.0  # the step's level per candidate (set at each step)
+    step_confounded: dict[str, str] = field(default_factory=dict)  # a candidate that a step fits as well: why
+    _time_folds: np.ndarray | None = None  # contiguous blocks of time, made when first needed
+
+    def time_folds(self) -> np.ndarray:
+        if self._time_folds is None:
+            d = self.data
+            self._time_folds = check_folds(d, d.group, make_folds(d.group, d.use, self.folds, time_blocks=True))[0]
+        return self._time_folds
+
+
+def reading_jump(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
+    """A jump of the temperature reading moves eq. 28's output once, which this candidate can follow: what it would
+    write is the reading's fault, not the sensor's (test_a_fault_of_the_temperature_reading_...)."""
+    if ctx.reading_jumped:
+        r.significant = False
+        r.detail += ("; not added: the AHT10 reading jumps (a sensor re-seated, a spike, a frozen reading), "
+                     "and eq. 28 evaluated at it moves the output once, which this candidate can follow")
+
+
+def time_blocks(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
+    """A function of time must also predict contiguous blocks of time held out (``search.time_block_check``)."""
+    g, p = r.time_block = time_block_check(ctx.data, ctx.spec, eff, r.hyper, ctx.every, ctx.time_folds(), ctx.weights,
+                                           ctx.alpha_each)
+    if p < ctx.alpha_each and g >= ctx.min_rel_gain:
+        r.detail += f"; it also predicts contiguous blocks of time held out (gain {100 * g:+.1f} %, p = {p:.2g})"
+    else:
+        r.significant = False
+        r.detail += (f"; not added: it does not predict contiguous blocks of time held out (gain "
+                     f"{100 * g:+.1f} %, p = {p:.2g}): it follows a slow wander of the residual between "
+                     "visits, not a drift it can extrapolate")
+
+
+def step(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
+    """Set against the best step of the response at one time (``search.judge_step``)."""
+    judge_step(ctx.lanes, ctx.spec, r, eff, ctx.alpha_each, ctx.min_rel_gain, ctx.reselect_up_to,
+               ctx.step_confounded)
+
+
+def table_angles(eff: Effect, structure: ResidualStructure, alpha: float) -> Finding | None:
+    """An added function of the orientation with a residual left that is not one (visits of one direction disagree),
+    and not small (the slow part of the noise, bias instability between visits minutes apart, makes a small one
+    common)."""
+    axes = [a for j, a in enumerate("xyz") if structure.pose_chi2_p[j] < alpha / 3
+            and structure.other_pose_chi2_p[j] < alpha / 3 and structure.ratio[j] > SMALL_RATIO]
+    if not axes:
+        return None
+    p = [structure.other_pose_chi2_p["xyz".index(a)] for a in axes]
+    separates = "turn the sensor by 90 degrees on the table and compare"
+    return Finding("table_angles", f"{eff.name} is a function of the orientation, but what remains on {'/'.join(axes)} "
+                   "differs between the poses of one direction of gravity (p " + ", ".join(f"{v:.1e}" for v in p)
+                   + "): on a plan whose directions and table angles go together it may stand in for an effect of the "
+                   "table's angles (a cable the table drags, the table's geometry) that is no property of the sensor; "
+                   + separates, effect=eff.name, numbers={"axes": axes, "p_other_poses": p}, separates=separates)
+
+
+@dataclass(frozen=True)
+class Check:
+    when: str  # EACH_STEP, WHEN_CHOSEN or ON_FINAL_MODEL
+    run: Callable  # (SearchChecks, CandidateResult, Effect) -> None; on the final model (Effect, structure, alpha)
+
+
+CHECKS: dict[str, Check] = {
+    "reading_jump": Check(EACH_STEP, reading_jump),
+    "time_blocks": Check(EACH_STEP, time_blocks),
+    "step": Check(EACH_STEP, step),
+    "step_when_chosen": Check(WHEN_CHOSEN, step),
+    "table_angles": Check(ON_FINAL_MODEL, table_angles),
+}
+
+
+def run_checks(when: str, ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
+    """The checks ``eff`` declares that run ``when``, in its order, while ``r`` is still significant."""
+    for name in eff.checks:
+        check = CHECKS[name]
+        if check.when == when and r.significant:
+            check.run(ctx, r, eff)
+
+
+def final_model_findings(spec: ModelSpec, structure: ResidualStructure, alpha: float) -> list[Finding]:
+    """The findings of the checks the effects of the final model declare on it."""
+    out = []
+    for eff, _ in spec.effects:
+        for name in eff.checks:
+            if CHECKS[name].when == ON_FINAL_MODEL and (f := CHECKS[name].run(eff, structure, alpha)) is not None:
+                out.append(f)
+    return out

@@ -1,0 +1,296 @@
+"""Forward selection over the candidate effects by nested cross-validation over visits (the diagnosis' search).
+
+``declared_model``: eq. 28 at the degree cross-validation over visits chooses, and the folds. ``forward_selection``:
+every candidate on top of the current model (``search.Evaluator``: hyper-parameter nested in each training fold,
+held-out gain per visit, one-sided test over visits, Bonferroni over the candidates the data can show), the checks
+each candidate declares (``checks``), confounding among the significant ones; the best is added, eq. 28's degree
+chosen again, until none is significant or gains less than ``min_rel_gain``. The searches run on ``Lanes`` (its
+``map`` is the one seam of the parallel execution: serial with one lane, the same results with any number).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any
+
+import numpy as np
+
+from ..effects import DiagnosisData, Effect, finite_rows, separating_measurement
+from ..heap_trim import return_free_memory
+from ..search_lanes import Lanes, beside, default_lane_count
+from ..thermal_fit import NotIdentifiedError, temperature_scaling
+from . import checks
+from .cv import check_folds, make_folds
+from .design import ModelSpec, fitted_output
+from .findings import Finding
+from .floor import FloorMeasurement
+from .search import (
+    LANE_SEARCH_ROWS,
+    CandidateResult,
+    Evaluator,
+    _corr,
+    _evaluate_on,
+    cross_correlation_delay,
+    paired_gain_test,
+    reselect_degree,
+    search_samples,
+    select_degree,
+)
+
+
+@dataclass
+class Confounding:
+    a: str
+    b: str
+    corr_contributions: float
+    p_b_beyond_a: float
+    p_a_beyond_b: float
+    verdict: str
+    gain_b_beyond_a: float
+    gain_a_beyond_b: float  # "confounded", "<a> explains <b>", "both"
+    separating_measurement: str
+
+
+@dataclass
+class StepResult:
+    step: int
+    model: list[str]
+    candidates: list[CandidateResult]
+    chosen: str | None
+    alpha_each: float
+    confounding: list[Confounding]
+    degree_table: list[dict[str, Any]] = field(default_factory=list)  # degree re-selected after adding ``chosen``
+    degree_note: str = ""
+    degree_after: int | None = None  # the re-selected degree
+
+
+@dataclass
+class Rules:
+    """The selection's rules: family-wise level per step, least held-out gain, most effects added, largest degree of
+    eq. 28 and whether it is chosen again after each added effect, folds over visits."""
+
+    alpha: float
+    min_rel_gain: float
+    max_effects: int
+    max_degree: int
+    reselect_degree: bool
+    folds: int
+
+
+@dataclass
+class Selection:
+    """What the forward selection found: the final model, its steps, what the design cannot show (a Finding or
+    None), the candidates a step of the response fits as well (name -> why) and how far the search was thinned."""
+
+    spec: ModelSpec
+    steps: list[StepResult]
+    detection_limit: Finding | None
+    step_confounded: dict[str, str]
+    n_search: int | None  # samples searched when thinned, else None
+    step: int  # every step-th fitted sample searched
+    kept: float  # information of a visit mean the thinned search keeps
+    n_lanes: int  # searches that ran side by side
+
+    def confounded(self) -> dict[str, list[str]]:
+        """Added effect -> the candidates it was confounded with when added (only those with any)."""
+        out = {st.chosen: [c.b if c.a == st.chosen else c.a for c in st.confounding
+                           if c.verdict == "confounded" and st.chosen in (c.a, c.b)] for st in self.steps if st.chosen}
+        return {k: v for k, v in out.items() if v}
+
+
+def declared_model(data: DiagnosisData, library: tuple[Effect, ...], max_degree: int, degree: int | None, folds: int,
+                   seed: int, side_by_side: bool) -> tuple[ModelSpec, list[dict[str, Any]], np.ndarray, list[str]]:
+    """Eq. 28 at the degree held-out cross-validation over visits chooses (or ``degree``), its degree table, the folds
+    over visits and their notes (``check_folds``). With ``side_by_side`` the folds, and the constants of the recording
+    the first searches ask for (``DiagnosisData.once``), are worked out on a thread beside the degree selection."""
+    def folds_and_constants() -> tuple[np.ndarray, list[str]]:
+        out = check_folds(data, data.group, make_folds(data.group, data.use, folds, seed))
+        if side_by_side:
+            for e in library:
+                e.applicable(data)
+            data.static_psi_map()
+            data.run_steps()
+        return out
+
+    folds_later = beside(folds_and_constants, thread=side_by_side)
+    n_levels = data.temperature_level_count()
+    try:
+        sel_degree, degree_table = select_degree(data, max_degree)
+    except Exception:
+        folds_later.result()  # a recording the folds cannot be drawn on says so first
+        raise
+    fold, fold_notes = folds_later.result()
+    if degree is not None:
+        if degree >= n_levels:
+            raise NotIdentifiedError(f"degree {degree} is not identified by {n_levels} temperature level(s)")
+        sel_degree = degree
+    c, s = temperature_scaling(data.temp_c[data.use])
+    return ModelSpec(sel_degree, c, s), degree_table, fold, fold_notes
+
+
+def _detection_limit(tested: list[CandidateResult], alpha: float, alpha_each: float) -> Finding | None:
+    """When the campaign has too few visits for the signed-rank test to reach the level each candidate needs."""
+    n_vis = max((r.n_groups for r in tested), default=0)
+    if not tested or 0.5 ** n_vis < alpha_each:
+        return None
+    detectable = [r.detectable_gain for r in tested if np.isfinite(r.detectable_gain)]
+    need = math.ceil(-math.log2(alpha_each)) + 1
+    return Finding("detection_limit", f"this campaign has {n_vis} visits: the one-sided signed-rank test over visits "
+                   f"cannot go below p = 2^-{n_vis} = {0.5 ** n_vis:.2g}, above the {alpha_each:.2g} each candidate "
+                   f"needs (alpha {alpha:g} over {len(tested)} candidates); at least {need} visits are needed for it "
+                   "(repeat the poses, or visit more orientations). "
+                   + (f"Candidates are tested with a one-sided paired t-test over the visits instead (df "
+                      f"{n_vis - 1}; it assumes normally distributed per-visit differences): with the "
+                      f"scatter of these visits the smallest held-out gain it detects with 80 % power is "
+                      f"{100 * min(detectable):.3g} % (median over the candidates "
+                      f"{100 * float(np.median(detectable)):.3g} %)" if detectable else
+                      "Too few visits for a paired t-test as well: no effect can be added whatever its size"),
+                   numbers={"visits": n_vis, "visits_needed": need, "alpha_each": alpha_each},
+                   separates="repeat the poses, or visit more orientations")
+
+
+def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: FloorMeasurement,
+                      library: tuple[Effect, ...], rules: Rules, search_rows: int | None, lanes: int | None,
+                      fitted_all: np.ndarray, progress: Callable[[str], None] | None) -> Selection:
+    """Add the best significant candidate on top of ``spec`` and repeat (see the module docstring). ``fitted_all``
+    (N, 3): the declared model's in-sample fit on every sample (the channel delay's cross-correlation). Above
+    ``search_rows`` fitted samples the candidates are evaluated on every k-th one (``search_samples``); ``lanes``:
+    searches side by side (None: ``default_lane_count()`` from ``LANE_SEARCH_ROWS`` searched samples on)."""
+    groups, weights = data.group, 1.0 / np.maximum(floor.noise, 1e-12) ** 2
+    fit_rows = data.use & (fold != -1)  # fitted (also the visits never held out, fold -2)
+    # a search thinned to fewer rows keeps most of what a visit's samples tell of its mean (the noise is correlated)
+    per_visit = np.bincount(groups[fit_rows & (groups >= 0)], minlength=1)
+    per_visit = per_visit[per_visit > 0]
+    every, step, kept = search_samples(fit_rows, fold, search_rows, floor.noise_model,
+                                       float(np.median(per_visit)) if per_visit.size else math.inf)
+    # a thinned search's corrected reference is small beside the correction of the whole series it saves: it keeps a
+    # search's grid of them for the next model
+    sel = Evaluator(data, fold, weights, groups, every, references=24 if step > 1 else 4)
+    n_lanes = (default_lane_count() if len(every) >= LANE_SEARCH_ROWS else 1) if lanes is None else int(lanes)
+    # the heap's free pages given back after each batch of searches side by side: what each search made and dropped
+    searchers = Lanes([sel] + [sel.lane() for _ in range(n_lanes - 1)], after_map=return_free_memory)
+    des_s, cv_s = sel.cv(spec)
+    base = (cv_s.heldout, cv_s.fitted_full, des_s.G)
+    del des_s, cv_s
+    base_coefficients: np.ndarray | None = None  # the current model's coefficients when fitted_all is not worked out
+    n_levels = data.temperature_level_count()
+    ctx = checks.SearchChecks(data, searchers, rules.folds, every, weights, rules.min_rel_gain,
+                              rules.max_degree if rules.reselect_degree else None,
+                              bool(data.temperature_jumps) and n_levels >= 2)
+    steps: list[StepResult] = []
+    detection_limit = None
+    remaining = list(library)
+    seconds: dict[str, float] = {}  # what each candidate's evaluation took (the order they start in: Lanes.map)
+    while remaining and len(spec.effects) < rules.max_effects:
+        # Bonferroni over the candidates the data can show at all (known before any is evaluated)
+        ctx.spec, ctx.alpha_each = spec, rules.alpha / max(sum(e.applicable(data)[0] for e in remaining), 1)
+        xcorr_later = None  # the channel delay's cross-check, of the current model alone, beside the searches
+        if any(e.name == "channel_delay" and e.applicable(data)[0] for e in remaining):
+            xcorr_later = beside(cross_correlation_delay, data, fitted_output(data, spec, base_coefficients)
+                                 if fitted_all is None else fitted_all, thread=n_lanes > 1)
+        fitted_all = None
+        # the candidates side by side, the longest first (what each took at the step before)
+        results = searchers.map(partial(_evaluate_on, spec, *base, ctx.alpha_each, seconds), remaining,
+                                None if progress is None else lambda r: progress(r.name),
+                                cost=lambda e, model=spec: 0.0 if sel.remembers(model, e) else seconds.get(e.name, 0.0))
+        if xcorr_later is not None:
+            for r in results:
+                if r.name == "channel_delay" and r.applicable:
+                    r.cross_correlation_delay_s = xcorr_later.result()
+        tested = [r for r in results if r.applicable]
+        if not steps:
+            detection_limit = _detection_limit(tested, rules.alpha, ctx.alpha_each)
+        effect_of = {e.name: e for e in remaining}
+        for r in tested:
+            ctx.step_confounded.pop(r.name, None)  # the last step's word on it
+            r.significant = r.p_value < ctx.alpha_each and r.rel_gain >= rules.min_rel_gain and not r.implausible
+            if r.significant and effect_of[r.name].void(r.hyper):
+                r.significant = False  # its value on all samples changes nothing: there is nothing to add
+                r.detail += "; not added: its value on all samples changes nothing"
+            checks.run_checks(checks.EACH_STEP, ctx, r, effect_of[r.name])
+        results.sort(key=lambda r: (not r.applicable, -r.rel_gain))
+        # the checks of a candidate about to be added (the best significant one left), not of every significant one
+        checked: set[str] = set()
+        while (best := next((r for r in results if r.significant), None)) is not None and best.name not in checked:
+            checked.add(best.name)
+            checks.run_checks(checks.WHEN_CHOSEN, ctx, best, effect_of[best.name])
+        sig = [r for r in results if r.significant]
+        conf = confounding(searchers, spec, sig, ctx.alpha_each, rules.min_rel_gain, library) if len(sig) >= 2 else []
+        chosen = sig[0].name if sig else None
+        for r in results:  # per-sample arrays (N, 3) are kept only where the report plots them: first step's deltas
+            r.delta, r.delta_rows = (None, None) if steps else (r.delta, sel.sub)
+        steps.append(StepResult(len(steps) + 1, spec.names, results, chosen, ctx.alpha_each, conf))
+        if chosen is None:
+            break
+        spec = spec.plus(effect_of[chosen], sig[0].hyper)
+        remaining = [e for e in remaining if e.name != chosen]
+        if rules.reselect_degree:  # with one level only degree 0 is identified: nothing to re-select
+            was = spec.degree
+            spec, steps[-1].degree_table, notes = reselect_degree(searchers, spec, rules.max_degree)
+            steps[-1].degree_after = spec.degree
+            steps[-1].degree_note = (f"degree of eq. 28 re-selected with {chosen} in the model: "
+                                     + (f"{was} -> {spec.degree}" if spec.degree != was else f"{was}, unchanged")
+                                     + "".join(f"; {n}" for n in notes))
+        des_c, cv_c = sel.cv(spec)
+        searchers.each(lambda ev, model=spec: ev.forget(model))
+        return_free_memory()  # what the step's searches dropped, before the next step's are made
+        base, base_coefficients = (cv_c.heldout, cv_c.fitted_full, des_c.G), cv_c.A_full
+        del des_c, cv_c  # the design (n x p) is not held beyond the evaluator's own caches
+    n_search = len(sel.folds) if step > 1 else None
+    return Selection(spec, steps, detection_limit, ctx.step_confounded, n_search, step, kept, n_lanes)
+
+
+def confounding(lanes: Lanes[Evaluator], spec: ModelSpec, sig: list[CandidateResult], alpha_each: float,
+                min_rel_gain: float, library: tuple[Effect, ...]) -> list[Confounding]:
+    """The candidate about to be added (``sig[0]``, the largest gain) against each of the next three significant
+    ones: does each still gain on top of the other? (Pairs among the others are judged at the next step, on top
+    of the one added, so they are not worked out here.) The searches of each on top of the other run side by side
+    on ``lanes``."""
+    lib = {e.name: e for e in library}
+    out = []
+    a = sig[0]
+    ea = lib[a.name]
+    ev = lanes.lanes[0]
+    a_ho = ev.cv(spec.plus(ea, a.hyper), remember=True)[1].heldout  # the next step's starting model
+
+    # each on top of the other (the added one's hyper-parameter searched again, nested), compared with the other
+    # alone at its final hyper-parameter, as the forward selection does
+    def on_top(lane: Evaluator, task: tuple[CandidateResult, bool]) -> tuple[np.ndarray, ...]:
+        b, b_on_a = task
+        eb = lib[b.name]
+        if b_on_a:
+            b_ho = lane.cv(spec.plus(eb, b.hyper))[1].heldout
+            return b_ho, lane.fit_hyper(spec.plus(ea, a.hyper), eb, remember=True)[1]  # evaluated again next step
+        return (lane.nested_heldout(spec.plus(eb, b.hyper), ea),)
+
+    done = lanes.map(on_top, [(b, b_on_a) for b in sig[1:4] for b_on_a in (True, False)])
+    for i, b in enumerate(sig[1:4]):
+        (b_ho, ho_b_on_a), (ho_a_on_b,) = done[2 * i], done[2 * i + 1]
+        rows = ev.rows.copy()
+        for arr in (a_ho, b_ho, ho_b_on_a, ho_a_on_b):
+            rows &= finite_rows(arr)
+        g_b, p_b = paired_gain_test(a_ho, ho_b_on_a, ev.groups, rows, ev.weights, alpha_each)[:2]
+        g_a, p_a = paired_gain_test(b_ho, ho_a_on_b, ev.groups, rows, ev.weights, alpha_each)[:2]
+        r = rows & finite_rows(a.delta) & finite_rows(b.delta)
+        cc = _corr((a.delta[r] * np.sqrt(ev.weights)).ravel(), (b.delta[r] * np.sqrt(ev.weights)).ravel())
+        b_adds = p_b < alpha_each and g_b >= min_rel_gain
+        a_adds = p_a < alpha_each and g_a >= min_rel_gain
+        if a_adds and b_adds:
+            verdict = "both"
+        elif a_adds or b_adds:
+            verdict = f"{a.name} explains {b.name}" if a_adds else f"{b.name} explains {a.name}"
+        else:
+            # neither adds beyond the other: does one fit significantly better head to head?
+            g_ab, p_ab = paired_gain_test(b_ho, a_ho, ev.groups, rows, ev.weights, alpha_each)[:2]
+            g_ba, p_ba = paired_gain_test(a_ho, b_ho, ev.groups, rows, ev.weights, alpha_each)[:2]
+            if p_ab < alpha_each and g_ab >= min_rel_gain:
+                verdict = f"{a.name} explains {b.name}"
+            elif p_ba < alpha_each and g_ba >= min_rel_gain:
+                verdict = f"{b.name} explains {a.name}"
+            else:
+                verdict = "confounded"
+        out.append(Confounding(a.name, b.name, cc, p_b, p_a, verdict, g_b, g_a, separating_measurement(a.name, b.name)))
+    return out
