@@ -31,8 +31,8 @@ from fbg_accel_calibration.adc_codes_cli import visits_of
 from fbg_accel_calibration.csv_import import import_csv
 from fbg_accel_calibration.diagnose import diagnose
 from fbg_accel_calibration.diagnosis.design import ModelSpec, build_design, prepare_data
+from fbg_accel_calibration.diagnosis.library import LIBRARY
 from fbg_accel_calibration.diagnosis.search import paired_gain_test
-from fbg_accel_calibration.effects import LIBRARY
 from fbg_accel_calibration.measured_report import G_MPS2, TEMPERATURE_C
 from fbg_accel_calibration.recording import Recording
 

@@ -52,7 +52,7 @@ def visits_of(rec) -> tuple[np.ndarray, np.ndarray]:
     """(groups, rows) of a recording for the code-density estimate: the table's poses held for at least ``MIN_RUN``
     samples (visit labels ``effects.visit_ids``); a recording without poses (a static or slow-ramp run): every sample,
     each run one visit (cut into pieces by ``adc_codes.pieces``). Clipped samples and a dark reference are left out."""
-    from .effects import visit_ids
+    from .diagnosis.data import visit_ids
 
     good = ~rec.clipped() & ~rec.low_reference() & np.isfinite(rec.ref) & np.all(np.isfinite(rec.xyz), axis=1)
     if np.any(rec.pose_id >= 0):

@@ -53,20 +53,22 @@ from .adc_codes import HeldCode
 from .blas_threads import single_blas_thread
 from .diagnosis.checks import final_model_findings
 from .diagnosis.cv import cross_validate
+from .diagnosis.data import DiagnosisData
 from .diagnosis.design import build_design, prepare_data
 from .diagnosis.final_model import fit_final
 from .diagnosis.findings import (
     Finding,
-    disturbance_warning,
+    disturbance_finding,
     held_code_findings,
     model_findings,
     recording_findings,
 )
 from .diagnosis.floor import SettlingTransient, measure_floor
+from .diagnosis.library import LIBRARY
 from .diagnosis.search import LANE_SEARCH_ROWS, SEARCH_ROWS, CandidateResult, check_search_rows
 from .diagnosis.selection import Rules, StepResult, declared_model, forward_selection
 from .diagnosis.structure import ResidualStructure
-from .effects import LIBRARY, DiagnosisData, Effect
+from .effects import Effect
 from .heap_trim import return_free_memory
 from .periodic_disturbance import PeriodicDisturbance
 from .recording import Recording, time_axis_label
@@ -179,11 +181,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     findings += final_model_findings(sel.spec, final.structure, alpha)
     findings += [final.flagged] if final.flagged else []
     if floor.disturbance.found:
-        d, r = floor.disturbance, final.r_eval
-        lines_ho = d.refit(final.heldout, data.t_s, data.group, data.run_id, floor.settled & r)
-        d.heldout_without_lines = np.sqrt(np.mean((final.heldout - lines_ho)[r] ** 2, axis=0))
-        findings.append(Finding("periodic_disturbance", disturbance_warning(d, floor.noise, final.after_ho),
-                                numbers={"floor_with_lines_mps2": d.floor_with_lines}))
+        findings.append(disturbance_finding(data, floor.disturbance, final.heldout, floor.settled & final.r_eval,
+                                            final.r_eval, floor.noise, final.after_ho))
     held, held_found = held_code_findings(data, final.heldout, data.group, floor.settled, final.r_eval,
                                           final.noise_after, alpha)
     findings += held_found

@@ -102,7 +102,7 @@ def check_diagnose_outputs(args: argparse.Namespace) -> None:
         check_outputs([args.out, args.yaml], [], True, create_dirs=True)  # not the same file twice
     img = _img_dir(args)
     if img is not None:
-        from .effects import LIBRARY
+        from .diagnosis.library import LIBRARY
 
         candidates = tuple(f"candidate_{e.name}.png" for e in LIBRARY)  # whichever the run plots: any library effect
         check_output_dir(img, (*PLOT_FILES, *candidates), args.inputs, args.force)

@@ -15,8 +15,9 @@ from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 
 from .atomic_output import OutputSet, committed_outputs
 from .diagnose import DiagnosisResult
+from .diagnosis.data import finite_rows
+from .diagnosis.library import library_by_name
 from .diagnosis.search import CandidateResult
-from .effects import finite_rows, library_by_name
 
 AXES = "xyz"
 

@@ -28,10 +28,6 @@ driver evaluates identically. The rationale of every candidate is in ``docs/effe
 from __future__ import annotations
 
 import math
-import threading
-from collections import OrderedDict
-from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -41,16 +37,28 @@ from fbg_accel_driver.correction_terms import (
     ChannelOffset,
     ReferenceDarkOffset,
     ReferenceLowpass,
-    SampleSteps,
     SpectralNonlinearity,
     ThermalHysteresis,
     ThermalLag,
     TimeDrift,
     first_order_lowpass,
     quadratic_features,
-    sample_steps,
 )
 from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
+
+from .diagnosis.data import (
+    DiagnosisData,
+    Inputs,
+    direction_labels,
+    expected_psi_map,
+    fill_reference_gaps,
+    finite_rows,
+    input_run_steps,
+    interp_columns,
+    rows_by_run,
+    take_rows,
+    visit_means,
+)
 
 # Table 1 of the paper: TIA cut-off frequencies (Hz) of ref, x, y, z (static-test build).
 TIA_CUTOFF_HZ = np.array([1.0, 1.7, 1.3, 1.3])
@@ -72,288 +80,6 @@ MAX_DRIFT_MPS2 = 0.05 * 20.0 * 9.80665  # warm-up amplitude or creep over the ru
 # one orientation at different board times: above this share of the visits' board-time variance explained by their
 # orientation it is not testable (``orientation_share_of_visit_times``)
 MAX_TIME_ORIENTATION_SHARE = 0.99
-
-
-@dataclass
-class DiagnosisData:
-    """The arrays a candidate needs, all (N,) or (N, 3), time-ordered within each run.
-
-    ``use`` marks the static samples that enter fits and residuals; ``gref_filled`` is the
-    reference with the gaps between poses linearly interpolated in time (an approximation of the
-    table's motion, used only to re-align the reference in time for ``channel_delay``).
-
-    Two keys identify where a sample was taken: ``pose_id`` is the *orientation* (the commanded
-    pose; the same id when the table comes back to it), ``group`` the *visit* (``visit_ids``: one
-    contiguous static interval of one pose id within one run). Visits are the unit of the noise
-    floor, of the cross-validation folds and of the significance tests; a change between two visits
-    of one orientation (repeat, another temperature level or run) is not noise.
-    """
-
-    t_s: np.ndarray
-    ref: np.ndarray
-    xyz: np.ndarray
-    temp_c: np.ndarray
-    gref: np.ndarray
-    pose_id: np.ndarray
-    run_id: np.ndarray
-    use: np.ndarray
-    gref_filled: np.ndarray = field(default=None)  # type: ignore[assignment]
-    group: np.ndarray = field(default=None)  # type: ignore[assignment]  # visit label (``visit_ids``)
-    n_clipped_samples: int = 0  # samples at a pose left out with their visit for a clipped channel (``prepare_data``)
-    n_clipped_visits: int = 0  # those visits
-    n_low_reference: int = 0  # samples taken out for a reference too low (``Recording.low_reference``, ``prepare_data``)
-    low_reference_note: str = ""  # how many, where (``recording.low_reference_warning``); empty when none
-    # jumps of the temperature reading no temperature makes (``temperature_reading.reading_jumps``, ``prepare_data``)
-    temperature_jumps: list = field(default_factory=list)
-
-    _memo: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
-    _recent: OrderedDict[tuple, np.ndarray] = field(default_factory=OrderedDict, init=False, repr=False, compare=False)
-    _lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
-
-    def runs(self) -> list[slice | np.ndarray]:
-        """The samples of each run, together every sample (computed once; every filter restarts at a run's first
-        sample): a slice where the run is contiguous, as runs are (indexing gives views, not copies), else indices."""
-        def find() -> list[slice | np.ndarray]:
-            out: list[slice | np.ndarray] = []
-            for r in np.unique(self.run_id):
-                idx = np.flatnonzero(self.run_id == r)
-                out.append(slice(int(idx[0]), int(idx[-1]) + 1) if idx[-1] - idx[0] + 1 == len(idx) else idx)
-            return out
-
-        return self.once("runs", find)
-
-    def once(self, key: str, compute: Callable[[], Any]) -> Any:
-        """``compute()`` the first time ``key`` is asked for, the kept value after (a constant of the recording). Two
-        searches that run side by side (``search_lanes``) and ask at once may both compute it; the first kept is the
-        one both get."""
-        if key not in self._memo:
-            return self._memo.setdefault(key, compute())
-        return self._memo[key]
-
-    def recent(self, key: tuple, compute: Callable[[], np.ndarray], keep: int = 4) -> np.ndarray:
-        """``compute()`` (an array that depends on the recording and ``key`` alone, made read-only), kept for the
-        next ``keep`` distinct keys: a correction that a search repeats unchanged on every trial (the thermal lag
-        of the model while another effect is searched) is worked out once (by lanes side by side: as ``once``)."""
-        with self._lock:
-            hit = self._recent.get(key)
-            if hit is not None:
-                self._recent.move_to_end(key)
-                return hit
-        value = compute()
-        value.flags.writeable = False
-        with self._lock:
-            hit = self._recent.setdefault(key, value)
-            self._recent.move_to_end(key)
-            while len(self._recent) > keep:
-                self._recent.popitem(last=False)
-        return hit
-
-    def drop_recent(self) -> None:
-        """Forget what :meth:`recent` keeps (when no search follows)."""
-        self._recent.clear()
-
-    def run_steps(self) -> list[SampleSteps]:
-        """``sample_steps`` of each run's board times (``runs``), computed once: the low-pass filters of the input
-        corrections start afresh at each run, once per trial value of a search."""
-        return self.once("run_steps", lambda: [sample_steps(self.t_s[idx]) for idx in self.runs()])
-
-    def static_psi_map(self) -> tuple[np.ndarray, np.ndarray]:
-        """``expected_psi_map`` of the recorded counts (computed once)."""
-        return self.once("static_psi_map", lambda: expected_psi_map(self, Inputs.of(self)))
-
-    def __post_init__(self) -> None:
-        if self.gref_filled is None:
-            self.gref_filled = fill_reference_gaps(self.t_s, self.gref, self.runs())
-        if self.group is None:
-            self.group = visit_ids(self.pose_id, self.run_id)
-
-    @property
-    def dt_s(self) -> float:
-        d = np.diff(self.t_s)
-        d = d[d > 0]
-        return float(np.median(d)) if d.size else 1.0
-
-    @property
-    def duration_s(self) -> float:
-        return float(np.ptp(self.t_s)) if self.t_s.size else 0.0
-
-    def temperature_level_count(self) -> int:
-        """Temperature levels among the fitted samples (``thermal_fit.temperature_levels``), at least 1: eq. 28's
-        degree is below it, so with one level the model has no temperature term."""
-        from .thermal_fit import temperature_levels
-
-        # asked by every candidate's ``applicable`` at every step: clustered once per recording
-        return self.once("temperature_level_count", lambda: max(len(temperature_levels(self.temp_c[self.use])[1]), 1))
-
-    def temperature_span_c(self) -> float:
-        t = self.temp_c[self.use]
-        t = t[np.isfinite(t)]
-        return float(np.ptp(t)) if t.size else 0.0
-
-
-def motion_groups(pose_id: np.ndarray, run_id: np.ndarray) -> np.ndarray:
-    """Orientation key (N,) of every sample: its pose id; a sample taken while the table moves
-    belongs to the pose the table moves to (the previous one at the end of a run), -1 if none.
-    (The visit, ``visit_ids``, is the grouping unit of the diagnosis; this is the orientation.)"""
-    pose_id = np.asarray(pose_id)
-    out = np.array(pose_id, copy=True)
-    for r in np.unique(run_id):
-        idx = np.flatnonzero(run_id == r)
-        p = pose_id[idx]
-        n = len(p)
-        pos = np.where(p >= 0, np.arange(n), n)
-        nxt = np.minimum.accumulate(pos[::-1])[::-1]  # index of the next pose sample (n if none)
-        prv = np.maximum.accumulate(np.where(p >= 0, np.arange(n), -1))
-        fill = np.where(nxt < n, p[np.minimum(nxt, n - 1)], np.where(prv >= 0, p[np.maximum(prv, 0)], -1))
-        out[idx] = np.where(p >= 0, p, fill)
-    return out
-
-
-def visit_ids(pose_id: np.ndarray, run_id: np.ndarray) -> np.ndarray:
-    """Visit label (N,) of every sample, numbered 0, 1, ... in time order.
-
-    A visit is one contiguous static interval of one pose id (>= 0) within one run: it starts where
-    the pose id or the run changes, so a second visit of the same orientation (a repeat, another
-    temperature level, another file) is a new visit. A sample taken while the table moves (pose id
-    -1) belongs to the visit the table moves to (the previous one at the end of a run), as in
-    ``motion_groups``; -1 if the run has no pose at all.
-    """
-    pose_id = np.asarray(pose_id)
-    run_id = np.asarray(run_id)
-    n = len(pose_id)
-    if n == 0:
-        return np.zeros(0, int)
-    start = np.r_[True, (np.diff(pose_id) != 0) | (np.diff(run_id) != 0)]
-    static_start = start & (pose_id >= 0)
-    label = np.cumsum(static_start) - 1
-    label = np.where(pose_id >= 0, label, -1)
-    return motion_groups(label, run_id)
-
-
-def take_rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """``a[idx]`` for integer indices ``idx`` (``np.take`` along the first axis, the same values): numpy's fancy
-    indexing copies the rows of an (N, 3) array one by one, about three times slower at 10^5 rows of 10^6."""
-    return np.take(a, idx, axis=0)
-
-
-def interp_columns(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, block: int = 1 << 16) -> np.ndarray:
-    """``np.interp(x, xp, fp[:, j])`` (len(x), k) for every column j of ``fp`` (len(xp), k) at once, the same values
-    bit for bit: ``x`` is looked up in ``xp`` (increasing) once for the k columns, where ``np.interp`` looks it up
-    again for each (the channel delay's search interpolates the three reference axes at the same times on every
-    trial). As ``np.interp``: below ``xp[0]`` the first row, from ``xp[-1]`` on the last, at a point of ``xp`` its
-    row, else the slope of the interval times the distance from its left end plus its left value (from the right
-    end where that is NaN); NaN where ``x`` is (but for a single point). Worked out ``block`` values at a time
-    (bounded temporaries)."""
-    x = np.asarray(x, dtype=float)
-    out = np.empty((len(x), fp.shape[1]))
-    n = len(xp)
-    for lo in range(0, len(x), block):
-        xs = x[lo:lo + block]
-        j = np.searchsorted(xp, xs, side="right") - 1
-        jj = np.clip(j, 0, max(n - 2, 0))
-        x0, f0 = xp[jj], take_rows(fp, jj)
-        if n >= 2:
-            x1, f1 = xp[jj + 1], take_rows(fp, jj + 1)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                slope = (f1 - f0) / (x1 - x0)[:, None]
-                part = slope * (xs - x0)[:, None] + f0
-                nan = np.isnan(part)
-                if nan.any():  # np.interp's fallbacks: from the right end, then the common value of a flat interval
-                    part = np.where(nan, slope * (xs - x1)[:, None] + f1, part)
-                    part = np.where(nan & np.isnan(part) & (f0 == f1), f0, part)
-        else:
-            part = f0.copy()
-        at = (j >= n - 1) | (xs == x0)  # from the last point on, or at a point of xp: its row
-        part[at] = take_rows(fp, np.minimum(j[at], n - 1))
-        part[j < 0] = fp[0]
-        if n >= 2:  # (np.interp gives a single point's row even at NaN)
-            part[np.isnan(xs)] = np.nan
-        out[lo:lo + block] = part
-    return out
-
-
-def finite_rows(a: np.ndarray) -> np.ndarray:
-    """Rows (N,) of ``a`` (N, k) whose values are all finite (``np.all(np.isfinite(a), axis=1)``, exactly). Column by
-    column where the columns are few or contiguous: numpy's reduction along a short row axis is several times
-    slower, and the diagnosis asks this of every design and residual."""
-    if a.ndim == 1:
-        return np.isfinite(a)
-    if a.shape[1] == 0 or (a.shape[1] > 4 and not a.flags.f_contiguous):
-        return np.all(np.isfinite(a), axis=1)
-    out = np.isfinite(a[:, 0])
-    for j in range(1, a.shape[1]):
-        out &= np.isfinite(a[:, j])
-    return out
-
-
-def fill_reference_gaps(t_s: np.ndarray, gref: np.ndarray, runs: list[slice | np.ndarray]) -> np.ndarray:
-    """Reference (N, 3) with NaN gaps linearly interpolated in time within each run (``runs``: the samples of
-    each run, ``DiagnosisData.runs``); a run without gaps is copied as it is. A reference without any gap (the
-    simulator's, known in motion too; one the channel delay has interpolated) is returned itself, not a copy
-    (24 MB at 10^6 samples): its callers only read it."""
-    if finite_rows(gref).all():
-        return np.asarray(gref, dtype=float)
-    out = np.array(gref, dtype=float, copy=True)
-    for idx in runs:
-        g = out[idx]
-        ok = finite_rows(g)
-        if ok.all() or ok.sum() < 2:
-            continue
-        t = t_s[idx]
-        for j in range(3):
-            out[idx, j] = np.interp(t, t[ok], g[ok, j])
-    return out
-
-
-@dataclass
-class Inputs:
-    """What eq. 28 is fed with after the input corrections, plus the reference it is compared to."""
-
-    ref: np.ndarray
-    xyz: np.ndarray
-    temp_c: np.ndarray
-    t_s: np.ndarray
-    gref: np.ndarray
-    valid: np.ndarray
-    gref_moved: bool = False  # an earlier transform changed the reference (else it is data.gref)
-    counts_changed: bool = False  # an earlier transform changed ref or xyz (else psi is the data's)
-    temp_changed: bool = False  # an earlier transform changed the temperature (else it is data.temp_c)
-    index: np.ndarray | None = None  # (n,) the sample index of each row in the recording (None: row i is sample i)
-
-    @property
-    def psi(self) -> np.ndarray:
-        return self.normalised(self.xyz, self.ref)
-
-    @staticmethod
-    def normalised(xyz: np.ndarray, ref: np.ndarray) -> np.ndarray:
-        """Psi (N, 3) of eq. 24: the axis counts over the reference counts (NaN where the reference is not > 0)."""
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return xyz / np.where(ref > 0, ref, np.nan)[:, None]
-
-    @classmethod
-    def of(cls, data: DiagnosisData) -> Inputs:
-        """Uncorrected inputs of ``data``: read-only views of its arrays (a correction that wrote into one instead
-        of replacing it would raise), only ``valid`` is new."""
-        def read_only(a: np.ndarray) -> np.ndarray:
-            v = np.asarray(a, dtype=float).view()
-            v.flags.writeable = False
-            return v
-
-        return cls(read_only(data.ref), read_only(data.xyz), read_only(data.temp_c), read_only(data.t_s),
-                   read_only(data.gref), np.ones(len(data.t_s), bool))
-
-    def at(self, idx: np.ndarray, take: Callable[[np.ndarray], np.ndarray] | None = None) -> Inputs:
-        """These inputs at the samples ``idx`` only (for what is computed sample by sample); ``take(a)``, if
-        given, returns ``a[idx]`` for the arrays other than ``valid`` (which the corrections change in place)."""
-        pick = take if take is not None else (lambda a: a[idx])
-        return Inputs(pick(self.ref), pick(self.xyz), pick(self.temp_c), pick(self.t_s), pick(self.gref),
-                      self.valid[idx], self.gref_moved, self.counts_changed, self.temp_changed,
-                      np.asarray(idx) if self.index is None else self.index[idx])
-
-    @property
-    def sample_index(self) -> np.ndarray:
-        """(n,) the sample index of each row in the recording."""
-        return np.arange(len(self.t_s)) if self.index is None else self.index
 
 
 MODEL_TERM = "model term"  # a term of eq. 28's calibration file, applied by the driver
@@ -491,7 +217,7 @@ class ReferenceReadNoiseEffect(Effect):
         if not h:
             return
         ref = np.array(inp.ref, dtype=float, copy=True)
-        for idx, steps in zip(data.runs(), _run_steps(data, inp), strict=True):
+        for idx, steps in zip(data.runs(), input_run_steps(data, inp), strict=True):
             ref[idx] = first_order_lowpass(inp.ref[idx], inp.t_s[idx], float(h), {}, steps)
         inp.ref = ref
         inp.counts_changed = True
@@ -628,7 +354,7 @@ class ThermalLagEffect(Effect):
         def lagged() -> np.ndarray:
             term = ThermalLag(float(h))
             out = np.array(inp.temp_c, copy=True)
-            for idx, steps in zip(data.runs(), _run_steps(data, inp), strict=True):
+            for idx, steps in zip(data.runs(), input_run_steps(data, inp), strict=True):
                 out[idx] = term.effective_temperature(inp.temp_c[idx], inp.t_s[idx], {}, steps)
             return out
 
@@ -721,31 +447,6 @@ class SpectralNonlinearityEffect(Effect):
                     f"{NONLINEARITY_MARGIN:.0f}): an effect of the orientation, of the table's angles or of the pose "
                     "history, not the spectral overlap")
         return ""
-
-
-def visit_means(groups: np.ndarray, rows: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Mean of ``values`` (N, k) over each visit (``groups`` id >= 0) of the samples ``rows`` (N,) bool: (V, k), in
-    ascending visit id."""
-    sel = rows & (groups >= 0)
-    _, inv = np.unique(groups[sel], return_inverse=True)
-    n = np.bincount(inv).astype(float)
-    return np.column_stack([np.bincount(inv, weights=v, minlength=len(n)) for v in values[sel].T]) / n[:, None]
-
-
-def direction_labels(g: np.ndarray) -> np.ndarray:
-    """Label (V,) of the direction of each reference ``g`` (V, 3) m/s^2: directions closer than
-    ``thermal_fit.ORIENTATION_TOLERANCE_DEG`` to the first of a label share it (greedy, in the order given)."""
-    from .thermal_fit import ORIENTATION_TOLERANCE_DEG
-
-    u = g / np.maximum(np.linalg.norm(g, axis=1), 1e-300)[:, None]
-    cos_tol = math.cos(math.radians(ORIENTATION_TOLERANCE_DEG))
-    label, seen = np.empty(len(u), int), []
-    for i, v in enumerate(u):
-        j = next((k for k, w in enumerate(seen) if float(v @ w) > cos_tol), len(seen))
-        if j == len(seen):
-            seen.append(v)
-        label[i] = j
-    return label
 
 
 def orientation_share_of_visit_times(data: DiagnosisData) -> float:
@@ -845,12 +546,12 @@ class ChannelDelayEffect(Effect):
 
     def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
         if float(h) != 0:
-            inp.gref, inp.valid = self._delayed(data, inp, float(h), None, _rows_by_run(data, None))
+            inp.gref, inp.valid = self._delayed(data, inp, float(h), None, rows_by_run(data, None))
             inp.gref_moved = True
 
     def reference_at(self, data: DiagnosisData, inp: Inputs, h: float | None,
                      rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        pieces = _rows_by_run(data, rows)
+        pieces = rows_by_run(data, rows)
         if pieces is None or float(h) == 0:
             return super().reference_at(data, inp, h, rows)
         return self._delayed(data, inp, float(h), rows, pieces)
@@ -858,7 +559,7 @@ class ChannelDelayEffect(Effect):
     @staticmethod
     def _delayed(data: DiagnosisData, inp: Inputs, D: float, rows: np.ndarray | None,
                  pieces: list[tuple[slice | np.ndarray, Any, Any]]) -> tuple[np.ndarray, np.ndarray]:
-        """(reference (n, 3), valid (n,)) at ``rows`` (None: every sample; ``pieces``: ``_rows_by_run``): the
+        """(reference (n, 3), valid (n,)) at ``rows`` (None: every sample; ``pieces``: ``rows_by_run``): the
         sample taken at t shows the table at t - D, so it is compared with the reference at t - D (each sample
         interpolated on its own)."""
         g, valid = ((np.array(inp.gref, copy=True), np.array(inp.valid, copy=True)) if rows is None
@@ -899,18 +600,18 @@ class TiaLowpassEffect(Effect):
         return TIA_TAU_S * float(h)
 
     def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
-        inp.gref, inp.valid = self._corrected(data, inp, float(h), None, _rows_by_run(data, None))
+        inp.gref, inp.valid = self._corrected(data, inp, float(h), None, rows_by_run(data, None))
 
     def reference_at(self, data: DiagnosisData, inp: Inputs, h: float | None,
                      rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        pieces = _rows_by_run(data, rows)
+        pieces = rows_by_run(data, rows)
         if pieces is None:
             return super().reference_at(data, inp, h, rows)
         return self._corrected(data, inp, float(h), rows, pieces)
 
     def _corrected(self, data: DiagnosisData, inp: Inputs, h: float, rows: np.ndarray | None,
                    pieces: list[tuple[slice | np.ndarray, Any, Any]]) -> tuple[np.ndarray, np.ndarray]:
-        """(reference (n, 3), valid (n,)) at ``rows`` (None: every sample; ``pieces``: ``_rows_by_run``). The filters
+        """(reference (n, 3), valid (n,)) at ``rows`` (None: every sample; ``pieces``: ``rows_by_run``). The filters
         run over every sample; the rest only at ``rows`` (a product row by row: the rows of the whole product)."""
         # Filter the noise-free reference, not the noisy signal: the sensor shows LPF(Psi_true), so the
         # reference it must match is the one whose expected Psi went through the same filters. Inverting
@@ -926,7 +627,7 @@ class TiaLowpassEffect(Effect):
             psi_hat = data.once("static_psi_hat", lambda: g @ P.T + q)
         d = np.empty((len(g) if rows is None else len(rows), 3))
         tau = self.taus(h)
-        for (run, sel, local), steps in zip(pieces, _run_steps(data, inp), strict=True):
+        for (run, sel, local), steps in zip(pieces, input_run_steps(data, inp), strict=True):
             for j in range(3):
                 # the column copied first: scipy's filter runs about twice as slow on a strided one
                 d[sel, j] = first_order_lowpass(np.ascontiguousarray(psi_hat[run, j]), inp.t_s[run], tau[j + 1], {},
@@ -943,66 +644,6 @@ class TiaLowpassEffect(Effect):
     def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
         t = self.taus(float(h))
         return f"scale = {h:.3g} x Table 1: tau x/y/z = {t[1]:.3g}/{t[2]:.3g}/{t[3]:.3g} s"
-
-
-def expected_psi_map(data: DiagnosisData, inp: Inputs) -> tuple[np.ndarray, np.ndarray]:
-    """Linear map Psi ~ P g + q (P (3, 3), q (3,)) fitted on the static samples (eq. 25 inverted):
-    the noise-free Psi the sensor shows for a reference g."""
-    # the static samples with a reference, their [g, 1] and its Gram matrix (constants of the recording), then
-    # those with a finite Psi (a correction that changed the counts asks again on every trial of a search)
-    static = data.once("static_with_reference", lambda: np.flatnonzero(data.use & finite_rows(data.gref)))
-    xyz = data.once("static_xyz", lambda: np.asarray(data.xyz, dtype=float)[static]) if _same_memory(inp.xyz, data.xyz) \
-        else inp.xyz[static]
-    psi = Inputs.normalised(xyz, inp.ref[static])
-    ok = finite_rows(psi)
-    if ok.all():
-        X, XtX = data.once("static_design", lambda: _with_gram(np.column_stack([data.gref[static], np.ones(len(static))])))
-        Y = psi
-    else:
-        X = np.column_stack([data.gref[static[ok]], np.ones(int(ok.sum()))])
-        XtX, Y = X.T @ X, psi[ok]
-    try:  # 4 x 4 normal equations (well conditioned: |g| ~ 9.8 m/s^2 against 1), not an SVD of the N x 4 matrix
-        coef = np.linalg.solve(XtX, X.T @ Y)
-    except np.linalg.LinAlgError:  # the reference never changes direction: the minimum-norm solution
-        coef = np.linalg.lstsq(X, Y, rcond=None)[0]
-    return coef[:3].T, coef[3]
-
-
-def _rows_by_run(data: DiagnosisData, rows: np.ndarray | None) -> list[tuple[slice | np.ndarray, Any, Any]] | None:
-    """For each run (``DiagnosisData.runs``): (its samples, where its part of ``rows`` goes in an array of ``rows``,
-    the positions of that part in the run). ``rows`` None: every sample, (run, run, every position). None when ``rows``
-    are given and a run is not contiguous (then every sample is worked out and the rows taken)."""
-    runs = data.runs()
-    if rows is None:
-        return [(run, run, slice(None)) for run in runs]
-    if not all(isinstance(r, slice) for r in runs):
-        return None
-    out = []
-    for run in runs:
-        sel = np.flatnonzero((rows >= run.start) & (rows < run.stop))
-        out.append((run, sel, rows[sel] - run.start))
-    return out
-
-
-def _run_steps(data: DiagnosisData, inp: Inputs) -> list[SampleSteps | None]:
-    """The sampling steps of each run for ``first_order_lowpass`` (``DiagnosisData.run_steps``) when the inputs'
-    times are the recording's (None per run otherwise)."""
-    return data.run_steps() if _same_memory(inp.t_s, data.t_s) else [None] * len(data.runs())
-
-
-def _with_gram(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return X, X.T @ X
-
-
-def memory_key(a: np.ndarray) -> tuple:
-    """What identifies the values of a read-only array: its memory, shape, strides and type. Views of the same
-    memory (``Inputs.of`` makes one of each recorded array per design) have the same key."""
-    return a.__array_interface__["data"][0], a.shape, a.strides, a.dtype.str
-
-
-def _same_memory(a: np.ndarray, b: np.ndarray) -> bool:
-    """``a`` is ``b`` or a float64 view of all of it (``Inputs.of``): the recorded array, not a corrected one."""
-    return a.dtype == np.float64 and memory_key(a) == memory_key(b)
 
 
 class ThermalHysteresisEffect(Effect):
@@ -1031,7 +672,7 @@ class ThermalHysteresisEffect(Effect):
 
     def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
         out = np.zeros(len(inp.t_s))
-        for idx, steps in zip(data.runs(), _run_steps(data, inp), strict=True):
+        for idx, steps in zip(data.runs(), input_run_steps(data, inp), strict=True):
             st = ThermalHysteresis(np.zeros(3), float(h), self.deadband(float(h))).new_state()
             out[idx] = ThermalHysteresis.branch(inp.temp_c[idx], inp.t_s[idx], float(h), self.deadband(float(h)), st,
                                                 steps)
@@ -1043,271 +684,3 @@ class ThermalHysteresisEffect(Effect):
     def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
         c = np.asarray(coeff)[:, 0] if coeff is not None else np.zeros(3)
         return f"rate filter {h:.4g} s; half gap heating-cooling [{c[0]:.3g}, {c[1]:.3g}, {c[2]:.3g}] m/s^2"
-
-
-class _PerRunEffect(Effect):
-    """Base of the per-run terms: one column per run (``run_offset``: every run but the first, whose offset is
-    eq. 28's b) whose coefficients are m/s^2 per axis. Runs count where ``use`` has samples."""
-
-    role = PER_RUN
-    bound = "each run's term at most MAX_DRIFT_MPS2, 5 % of full scale (±20 g, paper §3.4)"
-    stage = 80
-    skip_first = False
-    unit_text = ""
-
-    def _runs(self, data: DiagnosisData) -> list[np.ndarray]:
-        return [idx for idx in data.runs() if data.use[idx].any()]
-
-    def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
-        if len(self._runs(data)) < 2:
-            return False, "one run (file / temperature level) in this recording"
-        return True, ""
-
-    def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
-        runs = self._runs(data)[1 if self.skip_first else 0:]
-        out = np.zeros((len(inp.t_s), len(runs)))
-        for j, idx in enumerate(runs):
-            out[idx, j] = self._shape(inp.t_s[idx])
-        return out
-
-    def _shape(self, t_s: np.ndarray) -> np.ndarray:
-        raise NotImplementedError
-
-    def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
-        c = np.asarray(coeff) if coeff is not None else np.zeros((3, 0))
-        first = 2 if self.skip_first else 1
-        return f"{self.unit_text}: " + "; ".join(f"run {first + j}: [{c[0, j]:.3g}, {c[1, j]:.3g}, {c[2, j]:.3g}]"
-                                                  for j in range(c.shape[1])) + " m/s^2 (not in the calibration file)"
-
-    def implausible(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData, M0: np.ndarray) -> str:
-        if coeff is not None and np.any(np.abs(coeff) > MAX_DRIFT_MPS2):
-            return (f"a per-run term of {np.max(np.abs(coeff)):.3g} m/s^2 exceeds {MAX_DRIFT_MPS2:.3g} m/s^2 (5 % of "
-                    "full scale): terms that cancel, not a drift")
-        return ""
-
-
-class RunOffsetEffect(_PerRunEffect):
-    name = "run_offset"
-    title = "bias offset of each run (file / temperature level) of its own"
-    unit_text = "correction added to the output, against run 1, x/y/z"
-    skip_first = True
-
-    def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
-        ok, why = super().applicable(data)
-        apart = data.once("runs_apart_by_level", lambda: runs_apart_by_levels(data)) if ok else []
-        if apart:
-            first = int(np.min(data.run_id[data.use])) + 1
-            who = ("no temperature level is shared by any two runs" if not _any_level_shared(data) else
-                   f"run(s) {', '.join(str(r + 1) for r in apart)} share no temperature level with run {first} or "
-                   "the runs that share one with it")
-            return False, (f"not identified on this data: {who}, so an offset of each run cannot be told from the "
-                           "temperature dependence of eq. 28's b (record a temperature level twice, in two runs)")
-        return ok, why
-
-    def _shape(self, t_s: np.ndarray) -> np.ndarray:
-        return np.ones(len(t_s))
-
-
-def _run_level_pairs(data: DiagnosisData) -> np.ndarray:
-    """(k, 2) the distinct (run id, temperature level label) of the fitted samples (``thermal_fit.temperature_levels``)."""
-    from .thermal_fit import temperature_levels
-
-    use = data.use & np.isfinite(data.temp_c)
-    labels = temperature_levels(data.temp_c[use])[0]
-    return np.unique(np.stack([data.run_id[use], labels], axis=1), axis=0)
-
-
-def _any_level_shared(data: DiagnosisData) -> bool:
-    """Whether two runs have fitted samples at one temperature level."""
-    pairs = _run_level_pairs(data)
-    return bool(len(np.unique(pairs[:, 1])) < len(pairs))
-
-
-def runs_apart_by_levels(data: DiagnosisData) -> list[int]:
-    """The run ids (ascending) that shared temperature levels do not connect to the first run with fitted samples (two
-    runs are linked when both have samples at one level). Only runs all connected let an offset of each run be told
-    from a bias that depends on the level: with one level per run (one file per chamber temperature) the offsets
-    would take over eq. 28's b(T), and leave the calibration file without it. Empty: all connected."""
-    pairs = _run_level_pairs(data)
-    runs = np.unique(pairs[:, 0])
-    if len(runs) < 2:
-        return []
-    linked = {int(runs[0])}
-    grew = True
-    while grew:  # grow the set of runs reachable from the first one through levels they share
-        levels = pairs[np.isin(pairs[:, 0], list(linked)), 1]
-        reach = {int(r) for r in pairs[np.isin(pairs[:, 1], levels), 0]}
-        grew = not reach <= linked
-        linked |= reach
-    return sorted(int(r) for r in runs if int(r) not in linked)
-
-
-class RunDriftEffect(_PerRunEffect):
-    name = "run_drift"
-    title = "linear drift of each run (file / temperature level) of its own"
-    unit_text = "correction added to the output over each run (end minus start), x/y/z"
-
-    def _shape(self, t_s: np.ndarray) -> np.ndarray:
-        span = float(np.ptp(t_s)) if len(t_s) else 0.0
-        return (t_s - 0.5 * (t_s.min() + t_s.max())) / span if span > 0 else np.zeros(len(t_s))
-
-
-class ResponseStepEffect(Effect):
-    """Not a candidate (not in ``LIBRARY``): the alternative a function of time or of the temperature's history
-    (an ``Effect`` whose ``checks`` hold a step check) must beat (``diagnose.step_check``).
-    The linear response changes once, for good: from the first sample of one visit on, every axis gets an offset and
-    a slope on each Psi (about its mean) of its own (eq. 25 refitted after the step). A connector knocked or re-mated,
-    a fibre bent or a knock on the mount does this to the response (a channel's loss changes the counts it reads by a
-    factor), and a warm-up with creep follows such a step across contiguous blocks of time as well: it passes
-    ``diagnose.time_block_check``. A property of the recording, never a term of the calibration. Its columns carry no
-    temperature: a loss step g of channel j changes the output by (g - 1) M(T) e_j Psi_j, whose part that depends on
-    the temperature is (g - 1) times eq. 28's (small) temperature coefficient of M; what the step needs of the
-    temperature is eq. 28's own degree, chosen again with the step in the model (``diagnose.step_check``). (On a run
-    cycled twice, x knocked at 250 s, at degree 1: x held out 0.239 m/s^2 with these columns, 0.241 with them times
-    each power of the temperature as well; at degree 0, 0.355, the rest following the temperature.)
-    Hyper-parameter: the index of the first sample after the step (the first sample of a visit in recording order,
-    at least ``MIN_VISITS_EACH_SIDE`` visits on either side, so that both sides span the orientations)."""
-
-    name = "response_step"
-    stage = 90
-    hyper_name = "first sample after the step"
-    title = "a step of the response at one time (connector, fibre, knock)"
-    MIN_VISITS_EACH_SIDE = 4
-
-    def _starts(self, data: DiagnosisData) -> np.ndarray:
-        """Index of the first fitted sample of every visit, in recording order."""
-        def compute() -> np.ndarray:
-            idx = np.flatnonzero(data.use & (data.group >= 0))
-            _, first = np.unique(data.group[idx], return_index=True)
-            return np.sort(idx[first])
-
-        return data.once("visit_start_samples", compute)
-
-    def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
-        if len(self._starts(data)) < 2 * self.MIN_VISITS_EACH_SIDE:
-            return False, f"fewer than {2 * self.MIN_VISITS_EACH_SIDE} visits"
-        if not len(self.hyper_grid(data)):
-            return False, "no time at which the visits before and after each span the table frame"
-        return True, ""
-
-    def visit_table(self, data: DiagnosisData) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(first fitted sample (V,), visit-mean reference (V, 3) m/s^2 in the table frame, visit id (V,)) of the
-        fitted visits with a finite reference, in recording order."""
-        def compute() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            idx = np.flatnonzero(data.use & (data.group >= 0) & finite_rows(data.gref))
-            ids, first, inv = np.unique(data.group[idx], return_index=True, return_inverse=True)
-            cnt = np.bincount(inv, minlength=len(ids)).astype(float)
-            g = np.stack([np.bincount(inv, weights=data.gref[idx, j], minlength=len(ids)) / cnt for j in range(3)], axis=1)
-            order = np.argsort(idx[first], kind="stable")
-            return idx[first][order], g[order], ids[order]
-
-        return data.once("step_visit_table", compute)
-
-    def sides_span(self, data: DiagnosisData, grid: np.ndarray, trained: np.ndarray) -> np.ndarray:
-        """(k, m) bool: for each of k training sets (``trained`` (k, V), the visits of :meth:`visit_table` trained on)
-        and each step time of ``grid`` (m,) sample indices, whether the visits trained on before the step and those
-        after it each span the table frame: the weakest direction of their visit-mean reference keeps
-        ``MIN_SPAN_FRACTION`` of the whole data's spread (the identifiability ``diagnose.check_folds`` asks of every
-        fold). The step gives the side after it a linear response of its own, so each side alone must identify one:
-        on a grid run whose first visits all sit at z up (the inner angle turns, gravity does not), a step after them
-        left the side before it one direction, fitted by coefficients that cancel across the step, and a visit held
-        out there was predicted wildly (``test_a_step_s_side_that_does_not_span_the_frame_is_not_tried``)."""
-        start, g, _ = self.visit_table(data)
-        trained = np.atleast_2d(np.asarray(trained, bool))
-        before = np.searchsorted(start, np.asarray(grid, float), side="left")  # visits that start before the step
-
-        def weakest_var(n: np.ndarray, s1: np.ndarray, s2: np.ndarray) -> np.ndarray:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                m = s1 / n[..., None]
-                cov = s2 / n[..., None, None] - m[..., :, None] * m[..., None, :]
-            cov = np.where((n >= 2)[..., None, None], np.nan_to_num(cov), 0.0)
-            return np.where(n >= 2, np.linalg.eigvalsh(cov)[..., 0], 0.0)
-
-        w = trained.astype(float)  # (k, V)
-        outer = g[:, :, None] * g[:, None, :]
-        pad = [(0, 0), (1, 0)]
-        c0 = np.pad(np.cumsum(w, axis=1), pad)  # (k, V + 1) prefix sums over the visits in recording order
-        c1 = np.pad(np.cumsum(w[:, :, None] * g[None], axis=1), [*pad, (0, 0)])
-        c2 = np.pad(np.cumsum(w[:, :, None, None] * outer[None], axis=1), [*pad, (0, 0), (0, 0)])
-        full = weakest_var(np.array(len(g), float), g.sum(axis=0), outer.sum(axis=0))
-        limit = (MIN_SPAN_FRACTION ** 2) * max(float(full), 0.0)
-        n_b, s1_b, s2_b = c0[:, before], c1[:, before], c2[:, before]
-        n_a, s1_a, s2_a = c0[:, -1:] - n_b, c1[:, -1:] - s1_b, c2[:, -1:] - s2_b
-        return (weakest_var(n_b, s1_b, s2_b) >= limit) & (weakest_var(n_a, s1_a, s2_a) >= limit) & (limit > 0)
-
-    # the columns are ``switched_columns`` from the first sample ``h`` on, zero before: a search of ``h`` is one pass
-    # over the samples (diagnose.switch_profile), not a cross-validation of every value
-    switched = True
-    pointwise = True
-
-    def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
-        """The visit starts with ``MIN_VISITS_EACH_SIDE`` visits on either side, each side's visits spanning the
-        table frame (:meth:`sides_span`; every fold is held to it too, ``diagnose.Evaluator``)."""
-        def compute() -> np.ndarray:
-            m = self.MIN_VISITS_EACH_SIDE
-            starts = self._starts(data)
-            grid = starts[m:len(starts) - m + 1].astype(float)
-            return grid[self.sides_span(data, grid, np.ones(len(self.visit_table(data)[0]), bool))[0]]
-
-        return data.once("step_grid", compute)
-
-    def switched_columns(self, data: DiagnosisData, inp: Inputs) -> np.ndarray:
-        """(n, 4) the columns once switched on: 1 and Psi about its mean static value (uncentred, a slope column is
-        nearly the offset column times the rest Psi)."""
-        psi0 = SpectralNonlinearityEffect()._psi0(data)
-        return np.column_stack([np.ones(len(inp.t_s)), inp.psi - psi0[None, :]])
-
-    def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
-        after = (inp.sample_index >= float(h)).astype(float)
-        return after[:, None] * self.switched_columns(data, inp)
-
-
-LIBRARY: tuple[Effect, ...] = (
-    ReferenceReadNoiseEffect(),
-    ReferenceDarkOffsetEffect(),
-    ThermalLagEffect(),
-    SpectralNonlinearityEffect(),
-    TimeDriftEffect(),
-    ChannelDelayEffect(),
-    TiaLowpassEffect(),
-    ThermalHysteresisEffect(),
-    RunOffsetEffect(),
-    RunDriftEffect(),
-)
-
-
-def library_by_name() -> dict[str, Effect]:
-    return {e.name: e for e in LIBRARY}
-
-
-# What measurement separates two candidates that this data cannot tell apart (for the report).
-SEPARATING_MEASUREMENT: dict[frozenset[str], str] = {
-    frozenset({"reference_dark_offset", "time_drift"}): (
-        "change the source power independently of time (step the SLD drive current or insert a calibrated "
-        "attenuator after the source at fixed poses, and repeat the pose sequence in reverse order): a dark "
-        "offset follows the reference counts, a drift follows the clock; also record the detectors dark "
-        "(source off) to measure d directly"),
-    frozenset({"channel_delay", "tia_lowpass"}): (
-        "record the transitions at a higher sample rate (or a fast tilt step) and compare the step response: "
-        "a delay is a shifted step, the TIA low-pass an exponential approach; a sine sweep separates them by "
-        "the phase (linear in frequency for a delay, arctan for a first-order low-pass)"),
-    frozenset({"thermal_lag", "thermal_hysteresis"}): (
-        "hold temperature plateaus long enough (> 5 time constants) after heating and after cooling: a lag "
-        "decays on the plateau, hysteresis stays"),
-    frozenset({"thermal_lag", "time_drift"}): (
-        "repeat the run with a different temperature profile (e.g. a plateau then a ramp): a thermal lag "
-        "follows the temperature rate, a drift follows time since power-on"),
-    frozenset({"run_drift", "time_drift"}): (
-        "record each run after the same warm-up from power-on: a drift shared by all runs follows the time since "
-        "power-on, a per-run drift comes back at every run start"),
-    frozenset({"run_offset", "thermal_lag"}): (
-        "hold each chamber level longer, until the housing temperature has settled: a lag ends, a run offset stays"),
-    frozenset({"time_drift", "thermal_hysteresis"}): (
-        "cycle the temperature up and down twice: hysteresis repeats with the branch, drift does not"),
-}
-
-
-def separating_measurement(a: str, b: str) -> str:
-    return SEPARATING_MEASUREMENT.get(frozenset({a, b}), (
-        "repeat the calibration with the two explanatory variables decorrelated (randomised pose order, "
-        "temperature and power changes at different times)"))

@@ -24,18 +24,13 @@ from fbg_accel_calibration.diagnosis.cv import (
     search_batches,
     weighted_rss,
 )
+from fbg_accel_calibration.diagnosis.data import fill_reference_gaps, finite_rows, interp_columns
 from fbg_accel_calibration.diagnosis.design import DesignCache, ModelSpec, build_design, fitted_output, prepare_data
 from fbg_accel_calibration.diagnosis.floor import detrended_lag_matrix
+from fbg_accel_calibration.diagnosis.library import LIBRARY, library_by_name
+from fbg_accel_calibration.diagnosis.response_step import ResponseStepEffect
 from fbg_accel_calibration.diagnosis.search import Evaluator, paired_gain_test
-from fbg_accel_calibration.effects import (
-    LIBRARY,
-    Effect,
-    ResponseStepEffect,
-    fill_reference_gaps,
-    finite_rows,
-    interp_columns,
-    library_by_name,
-)
+from fbg_accel_calibration.effects import Effect
 from fbg_accel_calibration.recording import Recording, time_axis_label
 from fbg_accel_calibration.table_geometry import table_specific_force
 from fbg_accel_driver.thermal_model import ThermalCalibration

@@ -14,9 +14,9 @@ import pytest
 from fbg_accel_calibration.diagnose import diagnose
 from fbg_accel_calibration.diagnose_report import markdown
 from fbg_accel_calibration.diagnosis.cv import check_folds, make_folds
+from fbg_accel_calibration.diagnosis.data import visit_ids
 from fbg_accel_calibration.diagnosis.design import prepare_data
 from fbg_accel_calibration.diagnosis.floor import settled_mask
-from fbg_accel_calibration.effects import visit_ids
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_calibration.table_geometry import table_specific_force
 

@@ -12,9 +12,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..effects import DiagnosisData, Effect
+from ..effects import Effect
 from ..search_lanes import Lanes
 from .cv import check_folds, make_folds
+from .data import DiagnosisData
 from .design import ModelSpec
 from .findings import Finding
 from .search import CandidateResult, Evaluator, judge_step, time_block_check

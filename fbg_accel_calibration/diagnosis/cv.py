@@ -11,17 +11,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..effects import (
-    MIN_SPAN_FRACTION,
-    DiagnosisData,
-    finite_rows,
-)
+from ..effects import MIN_SPAN_FRACTION
 from ..thermal_fit import (
     NotIdentifiedError,
     scaled_condition,
     solve_normal_equations,
     temperature_levels,
 )
+from .data import DiagnosisData, finite_rows
 
 # ============================================================================ data preparation
 from .design import (

@@ -11,15 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from ..effects import (
-    DiagnosisData,
-    Effect,
-    Inputs,
-    finite_rows,
-    memory_key,
-    motion_groups,
-    visit_ids,
-)
+from ..effects import Effect
 from ..recording import LowReference, Recording
 from ..search_lanes import beside
 from ..static_detector import calibration_samples
@@ -28,6 +20,7 @@ from ..thermal_fit import (
     design_matrix,
     n_params,
 )
+from .data import DiagnosisData, Inputs, finite_rows, memory_key, motion_groups, visit_ids
 
 # ============================================================================ data preparation
 

@@ -12,10 +12,10 @@ import numpy as np
 
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
-from ..effects import DiagnosisData, finite_rows
 from ..search_lanes import beside
 from ..thermal_fit import coefficients_to_model, n_params, temperature_levels
 from .cv import CvResult, cross_validate, gram_conditioning
+from .data import DiagnosisData, finite_rows
 from .design import Design, ModelSpec, build_design
 from .findings import Finding, flagged_visits
 from .floor import FloorMeasurement, VisitNoise, within_visit_noise

@@ -12,11 +12,11 @@ from typing import Any
 import numpy as np
 
 from ..adc_codes import HeldCode, held_codes
-from ..effects import DiagnosisData, finite_rows, visit_means
 from ..periodic_disturbance import PeriodicDisturbance
 from ..temperature_reading import jump_warning
 from ..thermal_fit import reference_reach_warnings
 from .cv import COLLINEAR_CORR, CvResult, cross_validate
+from .data import DiagnosisData, finite_rows, visit_means
 from .design import Design
 from .floor import FLOOR_VISIT_ALPHA, FLOOR_VISIT_RATIO, VisitNoise, _fmt3
 
@@ -47,6 +47,19 @@ def disturbance_warning(d: PeriodicDisturbance, floor: np.ndarray, heldout: np.n
             f"(with it {_fmt3(d.floor_with_lines)}); the held-out error {_fmt3(heldout)} m/s^2 holds it "
             f"({_fmt3(d.heldout_without_lines)} without it), so the ratios to the floor count it as a residual of this "
             "recording, not of the sensor: find what shook the table or chamber, and record again")
+
+
+def disturbance_finding(data: DiagnosisData, d: PeriodicDisturbance, heldout: np.ndarray, settled: np.ndarray,
+                        rows: np.ndarray, floor: np.ndarray, after_ho: np.ndarray) -> Finding:
+    """The finding for a periodic disturbance found in the visits: its lines refitted on the final model's held-out
+    residual ``heldout`` (N, 3) m/s^2 over the ``settled`` samples, the held-out error without them over ``rows``
+    (kept in ``d.heldout_without_lines``), next to the ``floor`` and the held-out error ``after_ho`` (3,) m/s^2."""
+    lines_ho = d.refit(heldout, data.t_s, data.group, data.run_id, settled)
+    d.heldout_without_lines = np.sqrt(np.mean((heldout - lines_ho)[rows] ** 2, axis=0))
+    return Finding("periodic_disturbance", disturbance_warning(d, floor, after_ho),
+                   numbers={"floor_with_lines_mps2": d.floor_with_lines,
+                            "heldout_without_lines_mps2": d.heldout_without_lines},
+                   separates="find what shook the table or chamber, and record again")
 
 
 def flagged_visits(data: DiagnosisData, groups: np.ndarray, models: list[VisitNoise], des: Design, cv: CvResult,

@@ -20,12 +20,7 @@ from scipy import optimize, stats
 from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 
 from ..dynamic_analysis import peak_offset
-from ..effects import (
-    DiagnosisData,
-    Effect,
-    ResponseStepEffect,
-    finite_rows,
-)
+from ..effects import Effect
 from ..model_selection import DegreeScores, choose_degree
 from ..model_selection import select_degree as calibration_select_degree
 from ..recording import Recording
@@ -46,6 +41,7 @@ from .cv import (
     switch_profile,
     weighted_rss,
 )
+from .data import DiagnosisData, finite_rows
 
 # ============================================================================ data preparation
 from .design import (
@@ -57,6 +53,7 @@ from .design import (
 from .floor import (
     VisitNoise,
 )
+from .response_step import ResponseStepEffect
 
 # searched samples from which the searches run side by side by default (``search_lanes``): bench_calibration --lanes 1/2
 # at 3e4 samples (2.2e4 searched): 2.5 / 2.3 s, at 1e4: 0.6 / 0.7 s (threads cost more than they save on small designs)

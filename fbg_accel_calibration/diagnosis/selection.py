@@ -18,15 +18,17 @@ from typing import Any
 
 import numpy as np
 
-from ..effects import DiagnosisData, Effect, finite_rows, separating_measurement
+from ..effects import Effect
 from ..heap_trim import return_free_memory
 from ..search_lanes import Lanes, beside, default_lane_count
 from ..thermal_fit import NotIdentifiedError, temperature_scaling
 from . import checks
 from .cv import check_folds, make_folds
+from .data import DiagnosisData, finite_rows
 from .design import ModelSpec, fitted_output
 from .findings import Finding
 from .floor import FloorMeasurement
+from .library import separating_measurement
 from .search import (
     LANE_SEARCH_ROWS,
     CandidateResult,

@@ -10,11 +10,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from ..effects import (
-    DiagnosisData,
-    direction_labels,
-    finite_rows,
-)
+from .data import DiagnosisData, direction_labels, finite_rows
 
 # ============================================================================ data preparation
 from .floor import (

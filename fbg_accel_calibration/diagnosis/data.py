@@ -1,0 +1,387 @@
+"""The data a candidate effect sees (pure numpy): the recording's arrays with their visits and runs
+(:class:`DiagnosisData`, with its constants worked out once), the inputs eq. 28 is fed with after the input
+corrections (:class:`Inputs`), and the helpers over visits and runs the candidates and the diagnosis share.
+
+Two keys identify where a sample was taken: ``pose_id`` is the *orientation* (the commanded pose), ``group`` the
+*visit* (``visit_ids``: one contiguous static interval of one pose id within one run).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fbg_accel_driver.correction_terms import SampleSteps, sample_steps
+
+
+@dataclass
+class DiagnosisData:
+    """The arrays a candidate needs, all (N,) or (N, 3), time-ordered within each run.
+
+    ``use`` marks the static samples that enter fits and residuals; ``gref_filled`` is the
+    reference with the gaps between poses linearly interpolated in time (an approximation of the
+    table's motion, used only to re-align the reference in time for ``channel_delay``).
+
+    Two keys identify where a sample was taken: ``pose_id`` is the *orientation* (the commanded
+    pose; the same id when the table comes back to it), ``group`` the *visit* (``visit_ids``: one
+    contiguous static interval of one pose id within one run). Visits are the unit of the noise
+    floor, of the cross-validation folds and of the significance tests; a change between two visits
+    of one orientation (repeat, another temperature level or run) is not noise.
+    """
+
+    t_s: np.ndarray
+    ref: np.ndarray
+    xyz: np.ndarray
+    temp_c: np.ndarray
+    gref: np.ndarray
+    pose_id: np.ndarray
+    run_id: np.ndarray
+    use: np.ndarray
+    gref_filled: np.ndarray = field(default=None)  # type: ignore[assignment]
+    group: np.ndarray = field(default=None)  # type: ignore[assignment]  # visit label (``visit_ids``)
+    n_clipped_samples: int = 0  # samples at a pose left out with their visit for a clipped channel (``prepare_data``)
+    n_clipped_visits: int = 0  # those visits
+    n_low_reference: int = 0  # samples taken out for a reference too low (``Recording.low_reference``, ``prepare_data``)
+    low_reference_note: str = ""  # how many, where (``recording.low_reference_warning``); empty when none
+    # jumps of the temperature reading no temperature makes (``temperature_reading.reading_jumps``, ``prepare_data``)
+    temperature_jumps: list = field(default_factory=list)
+
+    _memo: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
+    _recent: OrderedDict[tuple, np.ndarray] = field(default_factory=OrderedDict, init=False, repr=False, compare=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
+
+    def runs(self) -> list[slice | np.ndarray]:
+        """The samples of each run, together every sample (computed once; every filter restarts at a run's first
+        sample): a slice where the run is contiguous, as runs are (indexing gives views, not copies), else indices."""
+        def find() -> list[slice | np.ndarray]:
+            out: list[slice | np.ndarray] = []
+            for r in np.unique(self.run_id):
+                idx = np.flatnonzero(self.run_id == r)
+                out.append(slice(int(idx[0]), int(idx[-1]) + 1) if idx[-1] - idx[0] + 1 == len(idx) else idx)
+            return out
+
+        return self.once("runs", find)
+
+    def once(self, key: str, compute: Callable[[], Any]) -> Any:
+        """``compute()`` the first time ``key`` is asked for, the kept value after (a constant of the recording). Two
+        searches that run side by side (``search_lanes``) and ask at once may both compute it; the first kept is the
+        one both get."""
+        if key not in self._memo:
+            return self._memo.setdefault(key, compute())
+        return self._memo[key]
+
+    def recent(self, key: tuple, compute: Callable[[], np.ndarray], keep: int = 4) -> np.ndarray:
+        """``compute()`` (an array that depends on the recording and ``key`` alone, made read-only), kept for the
+        next ``keep`` distinct keys: a correction that a search repeats unchanged on every trial (the thermal lag
+        of the model while another effect is searched) is worked out once (by lanes side by side: as ``once``)."""
+        with self._lock:
+            hit = self._recent.get(key)
+            if hit is not None:
+                self._recent.move_to_end(key)
+                return hit
+        value = compute()
+        value.flags.writeable = False
+        with self._lock:
+            hit = self._recent.setdefault(key, value)
+            self._recent.move_to_end(key)
+            while len(self._recent) > keep:
+                self._recent.popitem(last=False)
+        return hit
+
+    def drop_recent(self) -> None:
+        """Forget what :meth:`recent` keeps (when no search follows)."""
+        self._recent.clear()
+
+    def run_steps(self) -> list[SampleSteps]:
+        """``sample_steps`` of each run's board times (``runs``), computed once: the low-pass filters of the input
+        corrections start afresh at each run, once per trial value of a search."""
+        return self.once("run_steps", lambda: [sample_steps(self.t_s[idx]) for idx in self.runs()])
+
+    def static_psi_map(self) -> tuple[np.ndarray, np.ndarray]:
+        """``expected_psi_map`` of the recorded counts (computed once)."""
+        return self.once("static_psi_map", lambda: expected_psi_map(self, Inputs.of(self)))
+
+    def __post_init__(self) -> None:
+        if self.gref_filled is None:
+            self.gref_filled = fill_reference_gaps(self.t_s, self.gref, self.runs())
+        if self.group is None:
+            self.group = visit_ids(self.pose_id, self.run_id)
+
+    @property
+    def dt_s(self) -> float:
+        d = np.diff(self.t_s)
+        d = d[d > 0]
+        return float(np.median(d)) if d.size else 1.0
+
+    @property
+    def duration_s(self) -> float:
+        return float(np.ptp(self.t_s)) if self.t_s.size else 0.0
+
+    def temperature_level_count(self) -> int:
+        """Temperature levels among the fitted samples (``thermal_fit.temperature_levels``), at least 1: eq. 28's
+        degree is below it, so with one level the model has no temperature term."""
+        from ..thermal_fit import temperature_levels
+
+        # asked by every candidate's ``applicable`` at every step: clustered once per recording
+        return self.once("temperature_level_count", lambda: max(len(temperature_levels(self.temp_c[self.use])[1]), 1))
+
+    def temperature_span_c(self) -> float:
+        t = self.temp_c[self.use]
+        t = t[np.isfinite(t)]
+        return float(np.ptp(t)) if t.size else 0.0
+
+
+def motion_groups(pose_id: np.ndarray, run_id: np.ndarray) -> np.ndarray:
+    """Orientation key (N,) of every sample: its pose id; a sample taken while the table moves
+    belongs to the pose the table moves to (the previous one at the end of a run), -1 if none.
+    (The visit, ``visit_ids``, is the grouping unit of the diagnosis; this is the orientation.)"""
+    pose_id = np.asarray(pose_id)
+    out = np.array(pose_id, copy=True)
+    for r in np.unique(run_id):
+        idx = np.flatnonzero(run_id == r)
+        p = pose_id[idx]
+        n = len(p)
+        pos = np.where(p >= 0, np.arange(n), n)
+        nxt = np.minimum.accumulate(pos[::-1])[::-1]  # index of the next pose sample (n if none)
+        prv = np.maximum.accumulate(np.where(p >= 0, np.arange(n), -1))
+        fill = np.where(nxt < n, p[np.minimum(nxt, n - 1)], np.where(prv >= 0, p[np.maximum(prv, 0)], -1))
+        out[idx] = np.where(p >= 0, p, fill)
+    return out
+
+
+def visit_ids(pose_id: np.ndarray, run_id: np.ndarray) -> np.ndarray:
+    """Visit label (N,) of every sample, numbered 0, 1, ... in time order.
+
+    A visit is one contiguous static interval of one pose id (>= 0) within one run: it starts where
+    the pose id or the run changes, so a second visit of the same orientation (a repeat, another
+    temperature level, another file) is a new visit. A sample taken while the table moves (pose id
+    -1) belongs to the visit the table moves to (the previous one at the end of a run), as in
+    ``motion_groups``; -1 if the run has no pose at all.
+    """
+    pose_id = np.asarray(pose_id)
+    run_id = np.asarray(run_id)
+    n = len(pose_id)
+    if n == 0:
+        return np.zeros(0, int)
+    start = np.r_[True, (np.diff(pose_id) != 0) | (np.diff(run_id) != 0)]
+    static_start = start & (pose_id >= 0)
+    label = np.cumsum(static_start) - 1
+    label = np.where(pose_id >= 0, label, -1)
+    return motion_groups(label, run_id)
+
+
+def take_rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """``a[idx]`` for integer indices ``idx`` (``np.take`` along the first axis, the same values): numpy's fancy
+    indexing copies the rows of an (N, 3) array one by one, about three times slower at 10^5 rows of 10^6."""
+    return np.take(a, idx, axis=0)
+
+
+def interp_columns(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, block: int = 1 << 16) -> np.ndarray:
+    """``np.interp(x, xp, fp[:, j])`` (len(x), k) for every column j of ``fp`` (len(xp), k) at once, the same values
+    bit for bit: ``x`` is looked up in ``xp`` (increasing) once for the k columns, where ``np.interp`` looks it up
+    again for each (the channel delay's search interpolates the three reference axes at the same times on every
+    trial). As ``np.interp``: below ``xp[0]`` the first row, from ``xp[-1]`` on the last, at a point of ``xp`` its
+    row, else the slope of the interval times the distance from its left end plus its left value (from the right
+    end where that is NaN); NaN where ``x`` is (but for a single point). Worked out ``block`` values at a time
+    (bounded temporaries)."""
+    x = np.asarray(x, dtype=float)
+    out = np.empty((len(x), fp.shape[1]))
+    n = len(xp)
+    for lo in range(0, len(x), block):
+        xs = x[lo:lo + block]
+        j = np.searchsorted(xp, xs, side="right") - 1
+        jj = np.clip(j, 0, max(n - 2, 0))
+        x0, f0 = xp[jj], take_rows(fp, jj)
+        if n >= 2:
+            x1, f1 = xp[jj + 1], take_rows(fp, jj + 1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                slope = (f1 - f0) / (x1 - x0)[:, None]
+                part = slope * (xs - x0)[:, None] + f0
+                nan = np.isnan(part)
+                if nan.any():  # np.interp's fallbacks: from the right end, then the common value of a flat interval
+                    part = np.where(nan, slope * (xs - x1)[:, None] + f1, part)
+                    part = np.where(nan & np.isnan(part) & (f0 == f1), f0, part)
+        else:
+            part = f0.copy()
+        at = (j >= n - 1) | (xs == x0)  # from the last point on, or at a point of xp: its row
+        part[at] = take_rows(fp, np.minimum(j[at], n - 1))
+        part[j < 0] = fp[0]
+        if n >= 2:  # (np.interp gives a single point's row even at NaN)
+            part[np.isnan(xs)] = np.nan
+        out[lo:lo + block] = part
+    return out
+
+
+def finite_rows(a: np.ndarray) -> np.ndarray:
+    """Rows (N,) of ``a`` (N, k) whose values are all finite (``np.all(np.isfinite(a), axis=1)``, exactly). Column by
+    column where the columns are few or contiguous: numpy's reduction along a short row axis is several times
+    slower, and the diagnosis asks this of every design and residual."""
+    if a.ndim == 1:
+        return np.isfinite(a)
+    if a.shape[1] == 0 or (a.shape[1] > 4 and not a.flags.f_contiguous):
+        return np.all(np.isfinite(a), axis=1)
+    out = np.isfinite(a[:, 0])
+    for j in range(1, a.shape[1]):
+        out &= np.isfinite(a[:, j])
+    return out
+
+
+def fill_reference_gaps(t_s: np.ndarray, gref: np.ndarray, runs: list[slice | np.ndarray]) -> np.ndarray:
+    """Reference (N, 3) with NaN gaps linearly interpolated in time within each run (``runs``: the samples of
+    each run, ``DiagnosisData.runs``); a run without gaps is copied as it is. A reference without any gap (the
+    simulator's, known in motion too; one the channel delay has interpolated) is returned itself, not a copy
+    (24 MB at 10^6 samples): its callers only read it."""
+    if finite_rows(gref).all():
+        return np.asarray(gref, dtype=float)
+    out = np.array(gref, dtype=float, copy=True)
+    for idx in runs:
+        g = out[idx]
+        ok = finite_rows(g)
+        if ok.all() or ok.sum() < 2:
+            continue
+        t = t_s[idx]
+        for j in range(3):
+            out[idx, j] = np.interp(t, t[ok], g[ok, j])
+    return out
+
+
+@dataclass
+class Inputs:
+    """What eq. 28 is fed with after the input corrections, plus the reference it is compared to."""
+
+    ref: np.ndarray
+    xyz: np.ndarray
+    temp_c: np.ndarray
+    t_s: np.ndarray
+    gref: np.ndarray
+    valid: np.ndarray
+    gref_moved: bool = False  # an earlier transform changed the reference (else it is data.gref)
+    counts_changed: bool = False  # an earlier transform changed ref or xyz (else psi is the data's)
+    temp_changed: bool = False  # an earlier transform changed the temperature (else it is data.temp_c)
+    index: np.ndarray | None = None  # (n,) the sample index of each row in the recording (None: row i is sample i)
+
+    @property
+    def psi(self) -> np.ndarray:
+        return self.normalised(self.xyz, self.ref)
+
+    @staticmethod
+    def normalised(xyz: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        """Psi (N, 3) of eq. 24: the axis counts over the reference counts (NaN where the reference is not > 0)."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return xyz / np.where(ref > 0, ref, np.nan)[:, None]
+
+    @classmethod
+    def of(cls, data: DiagnosisData) -> Inputs:
+        """Uncorrected inputs of ``data``: read-only views of its arrays (a correction that wrote into one instead
+        of replacing it would raise), only ``valid`` is new."""
+        def read_only(a: np.ndarray) -> np.ndarray:
+            v = np.asarray(a, dtype=float).view()
+            v.flags.writeable = False
+            return v
+
+        return cls(read_only(data.ref), read_only(data.xyz), read_only(data.temp_c), read_only(data.t_s),
+                   read_only(data.gref), np.ones(len(data.t_s), bool))
+
+    def at(self, idx: np.ndarray, take: Callable[[np.ndarray], np.ndarray] | None = None) -> Inputs:
+        """These inputs at the samples ``idx`` only (for what is computed sample by sample); ``take(a)``, if
+        given, returns ``a[idx]`` for the arrays other than ``valid`` (which the corrections change in place)."""
+        pick = take if take is not None else (lambda a: a[idx])
+        return Inputs(pick(self.ref), pick(self.xyz), pick(self.temp_c), pick(self.t_s), pick(self.gref),
+                      self.valid[idx], self.gref_moved, self.counts_changed, self.temp_changed,
+                      np.asarray(idx) if self.index is None else self.index[idx])
+
+    @property
+    def sample_index(self) -> np.ndarray:
+        """(n,) the sample index of each row in the recording."""
+        return np.arange(len(self.t_s)) if self.index is None else self.index
+
+
+def visit_means(groups: np.ndarray, rows: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Mean of ``values`` (N, k) over each visit (``groups`` id >= 0) of the samples ``rows`` (N,) bool: (V, k), in
+    ascending visit id."""
+    sel = rows & (groups >= 0)
+    _, inv = np.unique(groups[sel], return_inverse=True)
+    n = np.bincount(inv).astype(float)
+    return np.column_stack([np.bincount(inv, weights=v, minlength=len(n)) for v in values[sel].T]) / n[:, None]
+
+
+def direction_labels(g: np.ndarray) -> np.ndarray:
+    """Label (V,) of the direction of each reference ``g`` (V, 3) m/s^2: directions closer than
+    ``thermal_fit.ORIENTATION_TOLERANCE_DEG`` to the first of a label share it (greedy, in the order given)."""
+    from ..thermal_fit import ORIENTATION_TOLERANCE_DEG
+
+    u = g / np.maximum(np.linalg.norm(g, axis=1), 1e-300)[:, None]
+    cos_tol = math.cos(math.radians(ORIENTATION_TOLERANCE_DEG))
+    label, seen = np.empty(len(u), int), []
+    for i, v in enumerate(u):
+        j = next((k for k, w in enumerate(seen) if float(v @ w) > cos_tol), len(seen))
+        if j == len(seen):
+            seen.append(v)
+        label[i] = j
+    return label
+
+
+def expected_psi_map(data: DiagnosisData, inp: Inputs) -> tuple[np.ndarray, np.ndarray]:
+    """Linear map Psi ~ P g + q (P (3, 3), q (3,)) fitted on the static samples (eq. 25 inverted):
+    the noise-free Psi the sensor shows for a reference g."""
+    # the static samples with a reference, their [g, 1] and its Gram matrix (constants of the recording), then
+    # those with a finite Psi (a correction that changed the counts asks again on every trial of a search)
+    static = data.once("static_with_reference", lambda: np.flatnonzero(data.use & finite_rows(data.gref)))
+    xyz = data.once("static_xyz", lambda: np.asarray(data.xyz, dtype=float)[static]) if same_memory(inp.xyz, data.xyz) \
+        else inp.xyz[static]
+    psi = Inputs.normalised(xyz, inp.ref[static])
+    ok = finite_rows(psi)
+    if ok.all():
+        X, XtX = data.once("static_design", lambda: with_gram(np.column_stack([data.gref[static], np.ones(len(static))])))
+        Y = psi
+    else:
+        X = np.column_stack([data.gref[static[ok]], np.ones(int(ok.sum()))])
+        XtX, Y = X.T @ X, psi[ok]
+    try:  # 4 x 4 normal equations (well conditioned: |g| ~ 9.8 m/s^2 against 1), not an SVD of the N x 4 matrix
+        coef = np.linalg.solve(XtX, X.T @ Y)
+    except np.linalg.LinAlgError:  # the reference never changes direction: the minimum-norm solution
+        coef = np.linalg.lstsq(X, Y, rcond=None)[0]
+    return coef[:3].T, coef[3]
+
+
+def rows_by_run(data: DiagnosisData, rows: np.ndarray | None) -> list[tuple[slice | np.ndarray, Any, Any]] | None:
+    """For each run (``DiagnosisData.runs``): (its samples, where its part of ``rows`` goes in an array of ``rows``,
+    the positions of that part in the run). ``rows`` None: every sample, (run, run, every position). None when ``rows``
+    are given and a run is not contiguous (then every sample is worked out and the rows taken)."""
+    runs = data.runs()
+    if rows is None:
+        return [(run, run, slice(None)) for run in runs]
+    if not all(isinstance(r, slice) for r in runs):
+        return None
+    out = []
+    for run in runs:
+        sel = np.flatnonzero((rows >= run.start) & (rows < run.stop))
+        out.append((run, sel, rows[sel] - run.start))
+    return out
+
+
+def input_run_steps(data: DiagnosisData, inp: Inputs) -> list[SampleSteps | None]:
+    """The sampling steps of each run for ``first_order_lowpass`` (``DiagnosisData.run_steps``) when the inputs'
+    times are the recording's (None per run otherwise)."""
+    return data.run_steps() if same_memory(inp.t_s, data.t_s) else [None] * len(data.runs())
+
+
+def with_gram(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return X, X.T @ X
+
+
+def memory_key(a: np.ndarray) -> tuple:
+    """What identifies the values of a read-only array: its memory, shape, strides and type. Views of the same
+    memory (``Inputs.of`` makes one of each recorded array per design) have the same key."""
+    return a.__array_interface__["data"][0], a.shape, a.strides, a.dtype.str
+
+
+def same_memory(a: np.ndarray, b: np.ndarray) -> bool:
+    """``a`` is ``b`` or a float64 view of all of it (``Inputs.of``): the recorded array, not a corrected one."""
+    return a.dtype == np.float64 and memory_key(a) == memory_key(b)
