@@ -17,11 +17,11 @@ from fbg_accel_driver.yaml_input import file_kind
 
 from .table_geometry import STANDARD_GRAVITY
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-
 
 def check_mcap(path: Path) -> None:
     """Refuse a file that is not an MCAP (by its magic bytes) with a message saying what to give instead."""
+    from .mcap_io import MCAP_MAGIC  # the format's own module, imported here: a CSV input loads no MCAP reader
+
     with open(path, "rb") as fh:
         head = fh.read(len(MCAP_MAGIC))
     if head != MCAP_MAGIC:

@@ -72,9 +72,10 @@ from fbg_accel_driver.driver_core import RAW_AUX_NAME, RAW_NAMES
 
 from . import ros2_cdr
 from .atomic_output import create_exclusive
-from .input_files import MCAP_MAGIC
 from .recording import Recording
 from .rosbag2_input import BagInputError, bag_files, offered_qos_yaml
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"  # first bytes of an MCAP file (mcap.dev specification)
 
 LOG = logging.getLogger(__name__)
 
