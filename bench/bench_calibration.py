@@ -56,8 +56,8 @@ from output_paths import add_update_results, results_dir  # noqa: E402
 from fbg_accel_calibration.diagnose import diagnose  # noqa: E402
 from fbg_accel_calibration.diagnose_report import write_report  # noqa: E402
 from fbg_accel_calibration.diagnosis.search import SEARCH_ROWS  # noqa: E402
+from fbg_accel_calibration.fit_pipeline import fit_thermal  # noqa: E402
 from fbg_accel_calibration.mcap_io import read_recording, write_recording  # noqa: E402
-from fbg_accel_calibration.thermal_fit import fit_thermal  # noqa: E402
 from fbg_accel_driver.frame_codec import link_frame_rate_limit  # noqa: E402
 from fbg_accel_sim.board_physics import simulate_recording  # noqa: E402
 from fbg_accel_sim.sim_config import SimConfig  # noqa: E402

@@ -143,9 +143,9 @@ def fitted_calibration(seed: int, degree: int = 2, settle_s: float = 2.0, repeat
     level, so that the covariance rests on 18 ``repeat`` visits (with one, 18 visits for 12 coefficients per axis leave
     6 degrees of freedom: the estimate is then so uncertain itself that a normalised error's mean is 3 x 6 / (6 - 4) =
     9, not 3, although unbiased, Hotelling's T^2)."""
+    from fbg_accel_calibration.fit_pipeline import fit_thermal
     from fbg_accel_calibration.fit_stream import prepare
     from fbg_accel_calibration.noise_correlation import from_recording, within_visit_factor
-    from fbg_accel_calibration.thermal_fit import fit_thermal
     from fbg_accel_sim.make_default_calibration import calibration_runs, static_mask
 
     rec = calibration_runs(SimConfig.default().with_overrides(overrides or {}), seed, repeat=repeat)

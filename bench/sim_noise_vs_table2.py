@@ -30,7 +30,7 @@ import numpy as np
 from output_paths import add_update_results, results_dir
 
 from fbg_accel_calibration.allan import allan_deviation
-from fbg_accel_calibration.thermal_fit import fit_thermal
+from fbg_accel_calibration.fit_pipeline import fit_thermal
 from fbg_accel_sim.board_physics import BoardSimulator, SimConfig, simulate_recording
 
 CASES = {

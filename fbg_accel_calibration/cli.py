@@ -239,10 +239,12 @@ def cmd_import(args: argparse.Namespace) -> int:
 def cmd_fit(args: argparse.Namespace) -> int:
     """Fit from the files (``fit_pipeline.fit_files``: MCAP streamed, memory bounded by one block,
     docs/calibration_fit.md; ``--in-memory`` loads every sample first)."""
+    from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
+
     from .cli_progress import enabled
     from .fit_pipeline import FitOptions, fit_files
     from .recording import low_reference_warning
-    from .thermal_fit import FULL_SCALE_MPS2, reference_reach_warnings
+    from .thermal_fit import reference_reach_warnings
 
     # the inputs are checked first thing by fit_files; the code table read is an input too
     check_outputs([args.output], [*args.inputs, *([args.adc_codes] if args.adc_codes is not None else [])], args.force)

@@ -16,11 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
+from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
 
 from .model_selection import SelectionResult
 from .recording import Recording
-from .thermal_fit import FULL_SCALE_MPS2
 
 AXES = ("x", "y", "z")
 COLORS = ("tab:red", "tab:green", "tab:blue")

@@ -31,16 +31,17 @@ from typing import Any
 
 import numpy as np
 
+from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 from fbg_accel_driver.thermal_model import normalise
 
 from .atomic_output import OutputError, check_outputs, committed_outputs
 from .csv_import import import_csv
+from .fit_pipeline import fit_thermal
 from .fit_report import AXES, PoseStats, plot_calibrated_vs_reference, pose_statistics
 from .fit_stream import fit_valid, prepare
 from .model_selection import SelectionResult, held_out_predictions, select_degree
 from .recording import Recording
 from .static_detector import calibration_samples
-from .thermal_fit import FULL_SCALE_MPS2, fit_thermal
 
 DEFAULT_CSV = Path("../shared/data/measured/fig13_multiposition_23C.csv")
 DEFAULT_MD = Path("docs/results/measured_fit.md")

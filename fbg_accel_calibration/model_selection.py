@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 from fbg_accel_driver.thermal_model import normalise
 
 from .fit_stream import FitData, fit_valid, prepare
@@ -51,7 +52,6 @@ from .static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW
 from .thermal_fit import (
     DEFAULT_CHUNK,
     DEFAULT_LEVEL_GAP_C,
-    FULL_SCALE_MPS2,
     CellStats,
     NotIdentifiedError,
     check_pose_excitation,

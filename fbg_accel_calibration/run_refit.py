@@ -14,12 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
+from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .atomic_output import atomic_path, check_outputs
 from .fit_pipeline import DEFAULT_MAX_DEGREE, fit_files
 from .model_selection import SelectionResult
-from .thermal_fit import FULL_SCALE_MPS2, reference_reach_warnings
+from .thermal_fit import reference_reach_warnings
 
 
 class RefitError(ValueError):

@@ -31,26 +31,18 @@ unique), so a degree n >= L is refused with :class:`NotIdentifiedError`.
 
 from __future__ import annotations
 
-import datetime as _dt
 import itertools
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fbg_accel_driver.coefficient_covariance import CoefficientCovariance
 from fbg_accel_driver.command_line import printable
-from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2, STANDARD_GRAVITY
+from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
 from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
 
 from .recording import Recording
-from .static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW
 
-if TYPE_CHECKING:
-    from .fit_stream import FitData
-
-# Table 4 RMSE is normalised by the full scale (re-exported for the reports)
 DEFAULT_LEVEL_GAP_C = 1.0  # degC: sorted temperatures further apart than this belong to different levels
 DEFAULT_LEVEL_WIDTH_C = 3.0  # degC: a wider cluster (a sweep, not a set-point) is split into bins this wide
 DEFAULT_CHUNK = 65536
@@ -649,78 +641,6 @@ def check_identified(degree: int, n_levels: int) -> None:
             f"degree {degree} in temperature is not identified by {n_levels} temperature level(s): "
             f"a polynomial of degree >= L through L levels is not unique; use degree <= {n_levels - 1} "
             "or record more temperature levels")
-
-
-def fit_thermal(rec: Recording | FitData, degree: int, *, sensor_id: str | None = None,
-                window: int = DEFAULT_WINDOW, min_interval: int = DEFAULT_MIN_INTERVAL,
-                level_gap_c: float = DEFAULT_LEVEL_GAP_C, chunk: int = DEFAULT_CHUNK,
-                usable: np.ndarray | None = None) -> ThermalCalibration:
-    """Fit eq. 28 of degree ``degree`` to a recording, or to the data ``fit_stream.prepare`` or
-    ``fit_stream.prepare_stream`` prepared (:class:`fit_stream.FitData`, accumulated at a degree >= ``degree``).
-
-    The result's ``fit`` dict holds sample counts, temperature levels, the in-sample RMSE per axis
-    (m/s^2 and normalised by the 20 g full scale), the within-pose noise floor of the calibrated
-    output and the condition number. ``noise_sigma_mps2`` is that within-pose noise floor.
-    """
-    if isinstance(rec, Recording):
-        from .fit_stream import prepare  # the preparation builds on this module's sums
-
-        data = prepare(rec, degree, window, min_interval, level_gap_c, usable, chunk)
-    else:
-        data = rec
-    if len(data) == 0:
-        raise NotIdentifiedError("no usable static samples (check pose ids, reference and the static detector)")
-    check_identified(degree, len(data.level_means_c))
-    if data.n_poses < 4:
-        raise NotIdentifiedError(f"{data.n_poses} orientation(s): at least 4 non-coplanar poses are needed for M and b")
-    center, scale = data.t_center_c, data.t_scale_c
-    stats = data.cell_stats(degree, chunk)
-    spread = check_pose_excitation(stats)
-    check_level_excitation(stats, degree)
-    check_level_consistency(stats, data.level_means_c)
-    xtx, xtg, _, n = stats.select(np.ones(len(stats.count), bool), degree)
-    A, cond = solve_normal_equations(xtx, xtg)
-    rss = stats.cell_rss(A, degree).sum(axis=0)
-    rmse = np.sqrt(rss / n)
-    noise = np.sqrt(stats.visit_scatter(A, degree) / max(n - stats.n_visits, 1.0))
-    M, b = coefficients_to_model(A, degree)
-    from .coefficient_uncertainty import cluster_covariance  # builds on this module's sums
-
-    cov, cov_method, clusters = cluster_covariance(stats, A, degree)
-    src = rec.metadata.get("sources", rec.metadata.get("source")) if isinstance(rec, Recording) else None
-    fit_info = {
-        "method": "least squares, eq. 28-30, streamed normal equations",
-        "degree": degree,
-        "samples_used": int(n),
-        "samples_total": data.n_total,
-        "samples_excluded_in_motion": data.n_excluded_motion,
-        "samples_excluded_invalid": data.n_excluded_other,
-        "samples_excluded_clipped": data.n_excluded_clipped,  # their visit has a channel at an ADC rail
-        "visits_excluded_clipped": data.n_clipped_visits,
-        "samples_excluded_low_reference": data.n_excluded_low_reference,  # no source light (Recording.low_reference)
-        "poses": data.n_poses,
-        "temperature_levels_c": [round(float(v), 3) for v in data.level_means_c],
-        "rmse_mps2": rmse.tolist(),
-        "rmse_over_full_scale": (rmse / FULL_SCALE_MPS2).tolist(),
-        "within_pose_noise_mps2": noise.tolist(),
-        "condition_number_scaled": cond,
-        "pose_spread_mps2": spread.tolist(),
-        "reference_range_mps2": np.round(reference_range(stats), 4).tolist(),  # per table axis: (lowest, highest)
-        "static_detector": data.detector,
-    }
-    if data.n_excluded_low_reference:
-        fit_info["low_reference"] = data.low_reference.as_dict()  # how many, where (recording.low_reference_warning)
-    if data.n_rejected:  # per source: the samples the input check dropped, by reason (input_validation.SampleCheck)
-        fit_info["samples_rejected"] = [c.as_dict() for c in data.checks]
-    if src is not None:
-        fit_info["sources"] = src
-    return ThermalCalibration(
-        M=M, b=b, temperature_range_c=data.temperature_range_c,
-        sensor_id=sensor_id or (sensor_id_of(rec.metadata) if isinstance(rec, Recording) else None) or "unknown",
-        t_center_c=center, t_scale_c=scale, noise_sigma_mps2=noise,
-        created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), fit=fit_info,
-        reference_level_temperature_c=data.level_means_c, reference_level_counts=data.level_reference_counts,
-        coefficient_covariance=CoefficientCovariance(cov, cov_method, clusters))
 
 
 UNNAMED_SENSOR_IDS = frozenset({"", "unknown"})  # the calibration node's and import's default: names no sensor

@@ -21,11 +21,11 @@ from test_diagnose_sim import _config
 from fbg_accel_calibration.cli import main as cli_main
 from fbg_accel_calibration.diagnose import diagnose
 from fbg_accel_calibration.diagnosis.design import SAMPLE_SELECTIONS, prepare_data
+from fbg_accel_calibration.fit_pipeline import fit_thermal
 from fbg_accel_calibration.fit_stream import SampleBlockSource, prepare_stream
 from fbg_accel_calibration.mcap_io import McapSampleStream, read_recording, write_recording
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_calibration.static_detector import calibration_samples
-from fbg_accel_calibration.thermal_fit import fit_thermal
 from fbg_accel_driver.frame_codec import ADC_MAX
 from fbg_accel_sim.board_physics import simulate_recording
 

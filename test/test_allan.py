@@ -68,7 +68,7 @@ def test_simulated_static_hour_reproduces_the_configured_noise() -> None:
     x uses VRW 1.2 m/s/sqrt(h) instead of Table 2's 3.96: with 3.96 and 0.54 mg the floor of the
     simulator's x noise lies at tau = 1614 s, which one hour cannot show (the minimum search stops at
     length/20 = 180 s; the paper used 6 h); 1.2 puts it at 119 s. y and z use Table 2 as configured."""
-    from fbg_accel_calibration.thermal_fit import fit_thermal
+    from fbg_accel_calibration.fit_pipeline import fit_thermal
     from fbg_accel_sim.board_physics import BoardSimulator, SimConfig, simulate_recording
 
     off = {f"effects.{k}.scale": 0.0 for k in ("time_drift", "reference_dark_offset", "source_power_wander",

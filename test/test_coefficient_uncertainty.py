@@ -11,9 +11,10 @@ from fbg_accel_calibration.coefficient_uncertainty import (
     cluster_covariance,
     naive_covariance,
 )
+from fbg_accel_calibration.fit_pipeline import fit_thermal
 from fbg_accel_calibration.fit_stream import prepare
 from fbg_accel_calibration.recording import Recording
-from fbg_accel_calibration.thermal_fit import fit_thermal, model_to_coefficients
+from fbg_accel_calibration.thermal_fit import model_to_coefficients
 from fbg_accel_driver.coefficient_covariance import CoefficientCovariance, output_covariance
 from fbg_accel_driver.thermal_model import CalibrationFileError, ThermalCalibration
 from fbg_accel_sim.eq28_campaign import campaign

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from fbg_accel_calibration.cli import main as cli_main
+from fbg_accel_calibration.fit_pipeline import fit_thermal
 from fbg_accel_calibration.fit_report import pose_statistics
 from fbg_accel_calibration.mcap_io import read_recording, write_recording
 from fbg_accel_calibration.static_detector import calibration_samples
-from fbg_accel_calibration.thermal_fit import fit_thermal
 from fbg_accel_driver.correction_terms import TimeDrift
 from fbg_accel_sim.board_physics import SimConfig, simulate_recording
 

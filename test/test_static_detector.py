@@ -173,7 +173,7 @@ def test_an_oversampled_quantised_signal_keeps_its_still_samples_and_its_noise_f
     median window variance (the noise floor) is near zero; the floor is never taken below the rounding to whole
     counts (``quantisation_var``), so a window in which a code changes is not called moving. Before: 76 % of the
     settled samples rejected at 400 Hz (54 % at 1 kHz), and the fitted noise floor taken from the quietest windows."""
-    from fbg_accel_calibration.thermal_fit import fit_thermal
+    from fbg_accel_calibration.fit_pipeline import fit_thermal
     from fbg_accel_driver.thermal_model import normalise
     from fbg_accel_sim.board_physics import SimConfig, simulate_recording
 

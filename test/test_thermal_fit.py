@@ -5,20 +5,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fbg_accel_calibration.fit_pipeline import fit_thermal
 from fbg_accel_calibration.fit_stream import prepare
 from fbg_accel_calibration.model_selection import held_out_predictions, select_degree
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_calibration.thermal_fit import (
-    FULL_SCALE_MPS2,
     NotIdentifiedError,
     accumulate_cells,
     coefficients_to_model,
     design_matrix,
-    fit_thermal,
     model_to_coefficients,
     residuals,
     temperature_levels,
 )
+from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
 
 G = 9.80665
