@@ -278,7 +278,7 @@ def chain_calibration(mode: str, workdir: Path) -> str:
     import yaml
 
     from fbg_accel_driver.chain_compensation import ChainDynamics
-    from fbg_accel_driver.driver_main import default_calibration_path
+    from fbg_accel_driver.driver_parameters import default_calibration_path
     from fbg_accel_driver.thermal_model import ThermalCalibration
 
     cutoffs = yaml.safe_load((ROOT / "config" / "sim_default.yaml").read_text())["electronics"]["tia_cutoff_hz"]

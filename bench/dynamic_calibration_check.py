@@ -43,7 +43,7 @@ from fbg_accel_calibration.chain_model import axis_response_along  # noqa: E402
 from fbg_accel_calibration.dynamic_calibration import MISFIT_Z, DynamicCalibrationError, run_dynamic  # noqa: E402
 from fbg_accel_calibration.dynamic_check import step_check  # noqa: E402
 from fbg_accel_calibration.excitation_plan import ExcitationPlan  # noqa: E402
-from fbg_accel_driver.driver_main import default_calibration_path  # noqa: E402
+from fbg_accel_driver.driver_parameters import default_calibration_path  # noqa: E402
 from fbg_accel_driver.thermal_model import ThermalCalibration  # noqa: E402
 from fbg_accel_sim.dynamic_run import random_channel_chain, simulate_dynamic_run, simulated_tone_check  # noqa: E402
 from fbg_accel_sim.sim_config import SimConfig  # noqa: E402

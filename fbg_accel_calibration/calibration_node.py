@@ -39,7 +39,13 @@ from fbg_accel_driver.node_support import declare_parameters, init_ros, refuse_u
 from fbg_accel_driver.yaml_input import YamlFileError, read_yaml_file
 
 from .atomic_output import OutputError, check_outputs
-from .calibration_main import EXIT_FIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_RECORDING_FAILED, PARAMETERS
+from .calibration_parameters import (
+    EXIT_FIT_FAILED,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_RECORDING_FAILED,
+    PARAMETERS,
+)
 from .dynamic_recorder import DynamicRunRecorder
 from .excitation_plan import FORMAT_NAME as EXCITATION_FORMAT
 from .excitation_plan import ExcitationPlan, ExcitationPlanError

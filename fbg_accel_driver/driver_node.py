@@ -48,7 +48,7 @@ from .chain_compensation import MODES as CHAIN_MODES
 from .command_line import StartupError, first_line, one_line
 from .driver_core import COVARIANCE_SOURCES, CoreConfig, CoreOutput, DriverCore
 from .driver_diagnostics import DiagnosticsSnapshot, DriverDiagnostics, calibration_uncertainty_values
-from .driver_main import (
+from .driver_parameters import (
     CALIBRATION_NONE,
     CALIBRATION_SIM,
     DEFAULT_CALIBRATION,

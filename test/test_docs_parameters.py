@@ -16,8 +16,8 @@ from typing import Any
 import pytest
 import yaml
 
-from fbg_accel_calibration.calibration_main import PARAMETERS as CALIBRATION_PARAMETERS
-from fbg_accel_driver.driver_main import PARAMETERS as DRIVER_PARAMETERS
+from fbg_accel_calibration.calibration_parameters import PARAMETERS as CALIBRATION_PARAMETERS
+from fbg_accel_driver.driver_parameters import PARAMETERS as DRIVER_PARAMETERS
 
 REPO = Path(__file__).resolve().parents[1]
 DOC_TYPES = {"string": "string", "int": "integer", "integer": "integer", "double": "double", "bool": "bool",

@@ -16,7 +16,7 @@ from test_driver_process import REPO, Listener, stamp_ns, start_driver, start_si
 
 from fbg_accel_driver.chain_compensation import ChainDynamics
 from fbg_accel_driver.driver_core import RAW_AUX_NAME
-from fbg_accel_driver.driver_main import default_calibration_path
+from fbg_accel_driver.driver_parameters import default_calibration_path
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 

@@ -19,7 +19,7 @@ from fbg_accel_calibration.dynamic_check import step_check
 from fbg_accel_calibration.dynamic_csv import DynamicCsvError, read_dynamic_csv, write_dynamic_csv
 from fbg_accel_calibration.excitation_plan import ExcitationPlan
 from fbg_accel_driver.driver_core import RAW_AUX_NAME, RAW_NAMES
-from fbg_accel_driver.driver_main import default_calibration_path
+from fbg_accel_driver.driver_parameters import default_calibration_path
 from fbg_accel_driver.frame_codec import ADC_MAX
 from fbg_accel_driver.thermal_model import ThermalCalibration
 from fbg_accel_sim.dynamic_run import simulate_dynamic_run, simulated_tone_check

@@ -15,7 +15,7 @@ from fbg_accel_calibration.cli import main as calib_main
 from fbg_accel_calibration.dynamic_calibration import MISFIT_Z, run_dynamic
 from fbg_accel_calibration.dynamic_csv import write_dynamic_csv
 from fbg_accel_calibration.excitation_plan import ExcitationPlan
-from fbg_accel_driver.driver_main import default_calibration_path
+from fbg_accel_driver.driver_parameters import default_calibration_path
 from fbg_accel_driver.thermal_model import ThermalCalibration
 from fbg_accel_sim.dynamic_run import random_channel_chain, simulate_dynamic_run, simulated_tone_check
 

@@ -19,9 +19,9 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
 
-from fbg_accel_calibration import calibration_main
+from fbg_accel_calibration import calibration_parameters
 from fbg_accel_calibration.calibration_node import CalibrationNode
-from fbg_accel_driver import driver_main
+from fbg_accel_driver import driver_parameters
 from fbg_accel_driver.command_line import StartupError
 from fbg_accel_driver.driver_node import DriverNode, ManagedDriverNode
 
@@ -65,18 +65,18 @@ def publishers(node: Node) -> dict[str, Any]:
 # ----------------------------------------------------------------------------- driver
 def test_driver_declares_every_parameter_with_its_default_and_descriptor(make_driver: Any, port: str) -> None:
     node = make_driver(calibration_file="sim")
-    for name, (typ, default, desc) in driver_main.PARAMETERS.items():
+    for name, (typ, default, desc) in driver_parameters.PARAMETERS.items():
         expected = {"port": port, "calibration_file": "sim"}.get(name, default)
         assert node.get_parameter(name).value == expected, name
         d = node.describe_parameter(name)
         assert (d.description, d.type) == (desc, TYPE_CODES[typ]), name
-        assert d.read_only is (name not in driver_main.RUNTIME_PARAMETERS), name
+        assert d.read_only is (name not in driver_parameters.RUNTIME_PARAMETERS), name
     decimation = node.describe_parameter("decimation").integer_range[0]
     assert (decimation.from_value, decimation.to_value, decimation.step) == (1, 10000, 1)
     assert node.describe_parameter("covariance_source").additional_constraints == "one of calibration, parameter, unknown"
     # the values reached the core and the link
     assert node.core is not None and node.core.config.decimation == 1
-    assert node.link is not None and node.cal_info["calibration_file"] == str(driver_main.default_calibration_path())
+    assert node.link is not None and node.cal_info["calibration_file"] == str(driver_parameters.default_calibration_path())
 
 
 def test_driver_publishes_the_data_topics_with_the_system_default_reliable_qos(make_driver: Any) -> None:
@@ -134,7 +134,7 @@ def test_calibration_node_recording_failure_ends_with_status_recording_failed(ma
     node = make_calibration(output_dir=str(tmp_path / "out"))
     assert node.mcap_path.is_file()
     shutil.rmtree(tmp_path / "out")
-    assert node.finish() == calibration_main.EXIT_RECORDING_FAILED
+    assert node.finish() == calibration_parameters.EXIT_RECORDING_FAILED
     assert "ENOENT" in node.recorder.write_error and not node.yaml_path.exists()
 
 
@@ -269,7 +269,7 @@ def test_calibration_node_declares_its_parameters_and_subscribes_best_effort(mak
     node = make_calibration(temperature_level=0)
     given = {"plan_file": str(PLAN), "output_dir": str(tmp_path), "run_label": "inproc", "progress": False,
              "temperature_level": 0}
-    for name, (typ, default, _desc) in calibration_main.PARAMETERS.items():
+    for name, (typ, default, _desc) in calibration_parameters.PARAMETERS.items():
         assert node.p[name] == given.get(name, default), name  # None: declared by type only, unset
         d = node.describe_parameter(name)
         assert d.read_only and d.type == TYPE_CODES[typ], name
@@ -285,7 +285,7 @@ def test_calibration_node_declares_its_parameters_and_subscribes_best_effort(mak
 def test_calibration_node_aborted_run_closes_its_recording_with_status_interrupted(make_calibration: Any) -> None:
     node = make_calibration()
     node.recorder.abort("in-process test")
-    assert node.finish() == calibration_main.EXIT_INTERRUPTED
+    assert node.finish() == calibration_parameters.EXIT_INTERRUPTED
     assert node.mcap_path.read_bytes()[-8:] == b"\x89MCAP0\r\n"  # footer magic: a complete file
     assert not node.yaml_path.exists()
 
@@ -381,7 +381,7 @@ def test_calibration_node_parameters_hostile_values_start_or_refuse_in_one_line(
     work.mkdir(parents=True)
     monkeypatch.chdir(work)
     n = 0
-    for name, (typ, _default, _desc) in calibration_main.PARAMETERS.items():
+    for name, (typ, _default, _desc) in calibration_parameters.PARAMETERS.items():
         for value in HOSTILE_BY_TYPE[typ]:
             n += 1
             if isinstance(value, str):

@@ -69,9 +69,9 @@ def _launch_arguments(name: str) -> set[str]:
 
 def _node_parameters(exe: str) -> set[str]:
     if exe == "driver":
-        from fbg_accel_driver.driver_main import PARAMETERS
+        from fbg_accel_driver.driver_parameters import PARAMETERS
     else:
-        from fbg_accel_calibration.calibration_main import PARAMETERS
+        from fbg_accel_calibration.calibration_parameters import PARAMETERS
     return set(PARAMETERS) | {"use_sim_time"}
 
 

@@ -17,7 +17,7 @@ import yaml
 from test_cli_hostile_inputs import HEADER, base_rows
 
 from fbg_accel_calibration.cli import main
-from fbg_accel_driver.driver_main import default_calibration_path
+from fbg_accel_driver.driver_parameters import default_calibration_path
 
 
 def run(argv: list[str]) -> tuple[int, str]:
