@@ -19,6 +19,11 @@ non-linear in a parameter, one hyper-parameter found by a 1-D search (grid, then
 * ``run_offset`` / ``run_drift``: each run (file, temperature level) has its own bias offset / its own linear
   drift in time. Properties of the recordings, not of the sensor: fitted so that they do not bias
   eq. 28, reported, never written to the calibration (the driver cannot know runs). No hyper.
+  (``diagnosis/run_effects.py``.)
+
+Every effect declares what the diagnosis asks of it (``Effect``): its role (model term, noise remedy, per-run
+property), its physical bound with the bound's source, and the checks it must pass beyond its held-out test
+(``diagnosis.checks``). The candidates are registered in one place, ``diagnosis.library.LIBRARY``.
 
 The regressors are built with the same code as the run-time terms in
 ``fbg_accel_driver.correction_terms``, so a fitted candidate becomes declared terms that the
