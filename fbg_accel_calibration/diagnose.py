@@ -16,7 +16,7 @@ Pure numpy/scipy engine behind ``fbg-accel-calib diagnose``. Steps:
    A visit is one contiguous static interval of one pose id in one run (``effects.visit_ids``); the
    pose id is the orientation. Folds that would lose a direction of the table frame are split or
    their visit kept in training (``check_folds``).
-3. Every candidate of ``effects.LIBRARY`` on top of the current model: hyper-parameter by a 1-D
+3. Every candidate of ``diagnosis.library.LIBRARY`` on top of the current model: hyper-parameter by a 1-D
    search (grid; nested inside each training fold for the held-out figures, then refined on all
    data for the final value); held-out residuals by K-fold cross-validation over visits;
    per-visit paired gain in noise-weighted held-out MSE; one-sided Wilcoxon signed-rank test over
@@ -196,7 +196,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         before_heldout_rmse=final.before_ho, before_insample_rmse=final.before_in, after_heldout_rmse=final.after_ho,
         after_insample_rmse=final.after_in, steps=sel.steps, added=final.added, calibration=final.cal,
         base_calibration=final.base_cal, residual_before=residual_before, residual_after=final.heldout,
-        structure=final.structure, consistency_max_abs_mps2=consistency, n_static=final.n_rows_fitted,
+        structure=final.structure, consistency_max_abs_mps2=consistency, n_static=final.n_static,
         n_groups=len(np.unique(data.group[final.r_eval])), moving_residual_rms=moving, settling=floor.settling,
         fold_notes=fold_notes, n_floor_samples=int(floor.settled.sum()), noise_remedies=final.remedies,
         noise_floor_after=final.noise_after if final.remedies else None, findings=findings,

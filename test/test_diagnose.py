@@ -777,3 +777,22 @@ def test_a_campaign_with_no_pose_held_is_refused_saying_every_sample_moved(tmp_p
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "taken while the table moved" in err[0], err
     assert not (tmp_path / "d.md").exists()
+
+
+def test_every_candidate_declares_its_role_bound_and_checks() -> None:
+    """The selection asks each candidate what it is and what it must pass (``Effect.role``, ``bound``, ``checks``):
+    every role is one of the three, every check one the selection knows, every candidate states its bound with its
+    source, and the candidates are registered once each."""
+    from fbg_accel_calibration.diagnosis.checks import CHECKS
+    from fbg_accel_calibration.effects import ROLES
+
+    names = [e.name for e in LIBRARY]
+    assert len(names) == len(set(names)), names
+    for e in LIBRARY:
+        assert e.role in ROLES, (e.name, e.role)
+        assert set(e.checks) <= set(CHECKS), (e.name, e.checks)
+        assert e.bound, e.name
+    roles = {e.name: e.role for e in LIBRARY}
+    assert roles["reference_read_noise"] == "noise remedy" and roles["run_offset"] == "per-run property"
+    assert roles["time_drift"] == "model term"
+    assert library_by_name()["time_drift"].checks == ("reading_jump", "time_blocks", "step")

@@ -36,7 +36,7 @@ class FinalModel:
     run_terms: list[Added]  # per-run properties
     heldout: np.ndarray  # (N, 3) held-out residual, m/s^2
     r_eval: np.ndarray  # (N,) the samples the held-out errors are judged on
-    n_rows_fitted: int
+    n_static: int  # samples of r_eval
     noise_after: np.ndarray  # (3,) the floor of the final model (lower once a noise remedy is in)
     noise_model_after: VisitNoise
     before_ho: np.ndarray
@@ -100,7 +100,10 @@ def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: Flo
     fit_var = coefficient_mean_variance(des_f.X, fit_rows & des_f.valid, groups, cv_f.sums.XtX, noise_model_after,
                                         int(fold.max()) + 1)
     del des_f  # its design matrix (N x p) is let go once cv_f's held-out residual is worked out
-    rms = lambda r: np.sqrt(np.mean(r[r_eval] ** 2, axis=0))  # noqa: E731
+
+    def rms(r: np.ndarray) -> np.ndarray:
+        return np.sqrt(np.mean(r[r_eval] ** 2, axis=0))
+
     structure = residual_structure(data, cv_f.heldout, r_eval, groups, noise_model_after, alpha, fit_var=fit_var)
     cond, column_corr = gram_conditioning(cv_f.sums.XtX, cv_f.sums.xsum, len(cv_f.sums.idx), blocks_f)
     return FinalModel(cal, base_cal, added, remedies, run_terms, cv_f.heldout, r_eval, int(r_eval.sum()), noise_after,

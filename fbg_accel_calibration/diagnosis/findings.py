@@ -34,6 +34,10 @@ class Finding:
     numbers: dict[str, Any] = field(default_factory=dict)
     separates: str = ""
 
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"unknown kind of finding {self.kind!r}; the kinds: {', '.join(KINDS)}")
+
 
 KINDS = ("detection_limit", "step_confounded", "table_angles", "noisy_visits", "periodic_disturbance", "held_code",
          "visit_ends", "reference_reach", "low_reference", "temperature_jumps", "clipped", "collinear",
