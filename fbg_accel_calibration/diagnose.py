@@ -50,6 +50,8 @@ import numpy as np
 
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
+from .adc_code_candidate import code_width_step
+from .adc_code_candidate import describe as describe_code_table
 from .adc_codes import HeldCode, held_codes
 from .blas_threads import single_blas_thread
 from .diagnosis.cv import (
@@ -447,6 +449,11 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     return_free_memory()  # the search's corrected series and designs, before the final design (N x p) is built
     des_f = build_design(data, spec)  # no cache: written straight into its design
     cv_f = cross_validate(des_f, fit_rows, fold, weights)
+    codes = code_width_step(data, spec, fold, weights, cv_f.heldout, steps[0].alpha_each if steps else alpha, min_rel_gain)
+    steps.append(StepResult(len(steps) + 1, spec.names, [codes.result], codes.result.name if codes.added else None,
+                            codes.alpha_each, []))
+    if codes.added:  # the final model on the mapped counts (adc_code_candidate)
+        des_f, cv_f = codes.design, codes.cv
     rows_f = data.use & des_f.valid & (fold >= 0)
     confounded = {st.chosen: [c.b if c.a == st.chosen else c.a for c in st.confounding
                               if c.verdict == "confounded" and st.chosen in (c.a, c.b)] for st in steps if st.chosen}
@@ -457,6 +464,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     remedies = [a for a in added if a[0] in remedy_names]
     run_terms = [a for a in added if a[0] in per_run_names]
     added = [a for a in added if a[0] not in remedy_names | per_run_names]
+    if codes.added:
+        cal.adc_codes, added = codes.table, [*added, (codes.result.name, None, describe_code_table(codes))]
     noise_after, noise_model_after = noise, noise_model
     if remedies:  # the filtered output is less noisy: its own floor, on the same settled samples
         res_f = des_f.G - cv_f.fitted_full
