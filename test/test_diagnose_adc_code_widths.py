@@ -46,8 +46,11 @@ def evaluate(rec):
 
 
 def test_an_injected_width_pattern_is_named_with_each_fold_s_table_blind_to_the_visits_it_predicts(monkeypatch) -> None:
-    """Seed 1: gain +13 %, p 1e-15 (the rule: p < 1.1e-3 and 2 %; seed 2 +8 %, p 1e-6), asserted with margin. The
-    table of fold f is estimated from samples none of which is in fold f (no leak into the visits held out)."""
+    """Seed 1: gain +18.6 %, p 2.5e-15 against the rule's p < 1.1e-3 and 2 %, asserted with margin (seeds 2 and 3: +9.4 %,
+    p 1e-5 and +3.5 %, p 0.2: the pattern's bias depends on where the visits' inputs fall between codes, so the test's
+    power on 156 visits is not 1; the rate over 10 seeds through the whole diagnosis: bench/diagnose_adc_codes_check.py).
+    The table of each fold is estimated from samples none of which is in that fold (no leak into the visits held
+    out)."""
     seen: list[np.ndarray] = []
     real = cand.fold_table
 
@@ -63,9 +66,12 @@ def test_an_injected_width_pattern_is_named_with_each_fold_s_table_blind_to_the_
     # the table the calibration would carry holds the pattern: code 16k wide, 16k + 8 narrow (injected 2.2 / 0.35)
     w = np.diff(step.table.edges[1, 1600:1617])
     assert w[0] > 1.6 and w[8] < 0.6, w.round(2)
-    assert len(seen) == FOLDS
-    for f, train in enumerate(seen):
-        assert train.any() and not np.any(train & (fold == f)), f
+    left_out = []  # each table's training samples: every fold but one, none of that one
+    for train in seen:
+        missing = [f for f in range(FOLDS) if not np.any(train & (fold == f))]
+        assert len(missing) == 1 and train.any(), missing
+        left_out.append(missing[0])
+    assert sorted(left_out) == list(range(FOLDS))
 
 
 @pytest.mark.parametrize("seed", [1, 2])
