@@ -272,7 +272,7 @@ def main(argv: list[str] | None = None) -> int:
             f"Most of x's gain comes from `time_drift` (warm-up and creep, added at step 1: held-out gain "
             f"{100 * drift.rel_gain:+.1f} %; x held out {res.before_heldout_rmse[0]:.3f} m/s^2 before, "
             f"{drift.heldout_rmse[0]:.3f} with it alone, {res.after_heldout_rmse[0]:.3f} with the final model). "
-            "A single step of the response {drift.step_check.when} fits the data as "
+            f"A single step of the response {drift.step_check.when} fits the data as "
             f"well: the drift gains {100 * drift.step_check.gain_time_beyond:+.1f} % beyond the step (p = "
             f"{drift.step_check.p_time_beyond:.2g}), the step {100 * drift.step_check.gain_step_beyond:+.1f} % beyond "
             f"the drift (p = {drift.step_check.p_step_beyond:.2g}), neither passing the step's rule: these data do not "

@@ -42,10 +42,13 @@ NAME = "adc_code_widths"
 TITLE = "unequal widths of the ADC's codes (a code table of the counts before eq. 24)"
 DNL_MAX_LSB = 7.0  # Espressif ESP32 datasheet, ADC characteristics: DNL up to +-7 LSB (a width up to 8 counts)
 INL_MAX_LSB = 12.0  # same table: INL up to +-12 LSB
-# samples the estimate of the whole recording's pattern is made on at most (every k-th of the visits' samples above):
-# a few hundred visits decide the pattern (the measured series: 145 visits, p = 2e-22); a long recording's millions of
-# correlated samples add little and would cost seconds per diagnosis
+# samples a table is estimated from at most (every k-th of the visits' samples above): a few hundred visits decide the
+# pattern (the measured series: 145 visits, p = 2e-22); a long recording's millions of correlated samples add little
+# and would cost seconds per fit
 MAX_WIDTH_SAMPLES = 10_000
+# samples the whole recording's test for a pattern is made on at most: every diagnosis of integer counts pays it, and
+# 3000 samples find the measured pattern by far (the simulated one of the tests at p < 1e-30)
+GATE_SAMPLES = 3_000
 
 
 @dataclass
@@ -134,7 +137,8 @@ def code_width_step(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, weig
                                              "averaged data)")
         return step
     try:
-        whole = recording_code_widths(_counts(data), data.group, _thinned(width_rows(data)), per_channel=False)
+        whole = recording_code_widths(_counts(data), data.group, _thinned(width_rows(data), GATE_SAMPLES),
+                                      per_channel=False)
     except ValueError as exc:  # too few visits or codes: no estimate at all
         out.applicable, out.reason = False, str(exc).split(": ", 1)[-1]
         return step
@@ -164,11 +168,11 @@ def code_width_step(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, weig
         heldout[at] = res
     rows = data.use & (fold >= 0) & finite_rows(base_heldout) & finite_rows(heldout)
     gain, pv, ng, out.detectable_gain = paired_gain_test(base_heldout, heldout, data.group, rows, weights, alpha_each)
-    table = code_table(whole, {"source": "the diagnosed recording (fbg-accel-calib diagnose)"})
     out.rel_gain, out.p_value, out.n_groups = gain, pv, ng
     out.heldout_rmse = np.sqrt(np.mean(heldout[rows] ** 2, axis=0))
     change = base_heldout - heldout  # the change of the held-out prediction the table makes
     out.corr_with_residual = np.array([_corr(base_heldout[rows, j], change[rows, j]) for j in range(3)])
+    table = code_table(whole, {})  # the pattern tested: its bound (the table the file would carry is made below)
     inl = table.centres - np.arange(ADC_CODES)[None, :]
     out.detail = (f"{test}; widths of k mod {p.period} = 0..{p.period - 1}: "
                   + " ".join(f"{w:.2f}" for w in p.pattern)
@@ -183,8 +187,8 @@ def code_width_step(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, weig
             out.detail += (f"; not added: the table's held-out gain {100 * gain:+.1f} % (p = {pv:.2g}) does not reach "
                            f"p < {alpha_each:.2g} with a gain of {100 * min_rel_gain:.0f} % or more")
         return step
-    step.table = table
-    step.design = build_design(mapped_data(data, table), spec)
+    step.table = fold_table(data, fit_rows, "the diagnosed recording (fbg-accel-calib diagnose), its fitted visits")
+    step.design = build_design(mapped_data(data, step.table), spec)
     step.cv = _FoldTableHeldOut(cross_validate(step.design, fit_rows, fold, weights), heldout)
     return step
 

@@ -51,11 +51,11 @@ def test_an_injected_width_pattern_is_named_with_each_fold_s_table_blind_to_the_
     power on 156 visits is not 1; the rate over 10 seeds through the whole diagnosis: bench/diagnose_adc_codes_check.py).
     The table of each fold is estimated from samples none of which is in that fold (no leak into the visits held
     out)."""
-    seen: list[np.ndarray] = []
+    seen: list[tuple[str, np.ndarray]] = []
     real = cand.fold_table
 
     def spy(data, train, source):
-        seen.append(train.copy())
+        seen.append((source, train.copy()))
         return real(data, train, source)
 
     monkeypatch.setattr(cand, "fold_table", spy)
@@ -66,12 +66,13 @@ def test_an_injected_width_pattern_is_named_with_each_fold_s_table_blind_to_the_
     # the table the calibration would carry holds the pattern: code 16k wide, 16k + 8 narrow (injected 2.2 / 0.35)
     w = np.diff(step.table.edges[1, 1600:1617])
     assert w[0] > 1.6 and w[8] < 0.6, w.round(2)
-    left_out = []  # each table's training samples: every fold but one, none of that one
-    for train in seen:
+    left_out = []  # each fold's table: its training samples are every fold but one, none of that one
+    for _, train in seen[:-1]:
         missing = [f for f in range(FOLDS) if not np.any(train & (fold == f))]
         assert len(missing) == 1 and train.any(), missing
         left_out.append(missing[0])
     assert sorted(left_out) == list(range(FOLDS))
+    assert "diagnosed recording" in seen[-1][0] and all(np.any(seen[-1][1] & (fold == f)) for f in range(FOLDS))
 
 
 @pytest.mark.parametrize("seed", [1, 2])
