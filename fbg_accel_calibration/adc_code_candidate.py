@@ -16,6 +16,8 @@ the pattern pooled over the channels), so each fold's table is estimated from th
 visits held out are mapped through a table that never saw them (no leak). It is tested once, on top of the final model
 (the strictest place: it must gain beyond every effect added), and only when the whole recording shows a pattern at
 all (the pattern's own test, ``CodeWidths.pattern_found``): a recording without one claims nothing and costs one fit.
+A table is estimated without two of the diagnosis' folds at a time and predicts both (half the fits of a table per
+fold, each still blind to the visits it predicts).
 
 Bound: the fitted widths must be those of a converter within its datasheet: no width beyond 1 + ``DNL_MAX_LSB``
 counts, and the table's integral non-linearity (a code's centre minus the code) within ``INL_MAX_LSB``; a fit beyond
@@ -49,6 +51,7 @@ MAX_WIDTH_SAMPLES = 10_000
 # samples the whole recording's test for a pattern is made on at most: every diagnosis of integer counts pays it, and
 # 3000 samples find the measured pattern by far (the simulated one of the tests at p < 1e-30)
 GATE_SAMPLES = 3_000
+TABLE_FOLD_GROUP = 2  # folds left out of each table together (``code_width_step``)
 
 
 @dataclass
@@ -153,16 +156,21 @@ def code_width_step(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, weig
     fit_rows = data.use & (fold != -1)
     K = int(fold[fold >= 0].max()) + 1 if np.any(fold >= 0) else 0
     heldout = np.full((len(fold), 3), np.nan)
-    two = default_lane_count() > 1  # the folds' tables two at a time on a machine of two cores or more (same results)
+    # one table for each pair of folds (2k, 2k + 1), estimated without either: fold f is predicted through the table of
+    # its pair, which never saw its visits, while the model is fitted on the same training visits as the final model's
+    # held-out residual (a fair pair); half the estimates of a table per fold
+    pair = np.where(fold >= 0, fold // TABLE_FOLD_GROUP, -1)
+    n_pairs = (K + TABLE_FOLD_GROUP - 1) // TABLE_FOLD_GROUP
+    two = default_lane_count() > 1  # two tables at a time on a machine of two cores or more (the same results)
     tables: list[AdcCodeTable] = []
-    for f in range(0, K, 2):
-        later = beside(fold_table, data, fit_rows & (fold != f + 1), f"training visits of fold {f + 1}",
-                       thread=two) if f + 1 < K else None
-        tables.append(fold_table(data, fit_rows & (fold != f), f"training visits of fold {f}"))
+    for k in range(0, n_pairs, 2):
+        later = beside(fold_table, data, fit_rows & (pair != k + 1), f"training visits of fold pair {k + 1}",
+                       thread=two) if k + 1 < n_pairs else None
+        tables.append(fold_table(data, fit_rows & (pair != k), f"training visits of fold pair {k}"))
         if later is not None:
             tables.append(later.result())
-    for f, table_f in enumerate(tables):
-        des = build_design(mapped_data(data, table_f), spec)
+    for f in range(K):
+        des = build_design(mapped_data(data, tables[f // TABLE_FOLD_GROUP]), spec)
         one = np.where(fold == f, 0, np.where(fold == -1, -1, -2))  # fold f held out, every other fitted row trained on
         at, res = cross_validate(des, fit_rows, one, weights).fold_heldout(0)
         heldout[at] = res
