@@ -259,7 +259,8 @@ def main(argv: list[str] | None = None) -> int:
         "",
         f"`fbg-accel-calib diagnose` tests the table itself as a candidate on top of its final model "
         f"({', '.join(n for n, _, _ in [*res.added, *res.noise_remedies, *res.run_terms]) or 'the declared model'}), "
-        "with each of its 10 folds' tables estimated from that fold's training visits only "
+        "each of its 10 folds predicted through a table estimated without that fold and its pair (never the visits "
+        "it predicts) "
         f"(fbg_accel_calibration/adc_code_candidate.py): held-out gain {100 * cand.rel_gain:+.1f} %, p = "
         f"{cand.p_value:.2g} over {cand.n_groups} visits against the level {cand_level:.2g}, held-out RMSE "
         + " / ".join(f"{v:.3f}" for v in (cand.heldout_rmse if cand.heldout_rmse is not None else [np.nan] * 3))
@@ -287,7 +288,8 @@ def main(argv: list[str] | None = None) -> int:
         "Related measurements: the driver's cost per frame with and without the table, "
         "`.venv/bin/python bench/bench_driver_stages.py --core-only [--adc-codes TABLE.yaml]` (docs/benchmarks.md); "
         "the simulator's injected pattern recovered over 10 seeds, `.venv/bin/python bench/adc_code_widths_check.py` "
-        "(bench/results/adc_code_widths_check.json).",
+        "(bench/results/adc_code_widths_check.json); the diagnosis' candidate on simulated campaigns with and without "
+        "the pattern, `.venv/bin/python bench/diagnose_adc_codes_check.py` (bench/results/diagnose_adc_codes_check.json).",
         "",
     ])
     print(text)
