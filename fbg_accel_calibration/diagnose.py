@@ -172,8 +172,12 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     data.drop_recent()
     return_free_memory()  # the search's corrected series and designs, before the final design (N x p) is built
     # 3. the final model on every sample, judged against the floor
+    code_rule = (sel.steps[0].alpha_each if sel.steps else alpha, min_rel_gain)
     final = fit_final(data, sel.spec, fold, floor, sensor_id, sel.confounded(), residual_before, res0, alpha,
-                      thread=sel.n_lanes > 1)
+                      code_rule, thread=sel.n_lanes > 1)
+    code = final.code_step  # its row in the step table, after the library's steps
+    sel.steps.append(StepResult(len(sel.steps) + 1, sel.spec.names, [code.result],
+                                code.result.name if code.added else None, code.alpha_each, []))
     # 4. findings: what the reader must not take at face value, in the report's order
     findings = [sel.detection_limit] if sel.detection_limit else []
     findings += [Finding("step_confounded", why, effect=e.name, separates=e.tells_it_from_a_step)

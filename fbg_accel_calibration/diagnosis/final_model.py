@@ -14,6 +14,8 @@ from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from ..search_lanes import beside
 from ..thermal_fit import coefficients_to_model, n_params, temperature_levels
+from .adc_code_candidate import CodeWidthStep, code_width_step
+from .adc_code_candidate import describe as describe_code_table
 from .cv import CvResult, cross_validate, gram_conditioning
 from .data import DiagnosisData, finite_rows
 from .design import Design, ModelSpec, build_design
@@ -47,6 +49,7 @@ class FinalModel:
     condition_number: float
     column_correlation: dict[str, float]
     flagged: Finding | None  # visits left out of the noise floor
+    code_step: CodeWidthStep  # the ADC code-width candidate, tested on top of this model (``adc_code_candidate``)
     _calibrated: Future
     _fitted_sensor: np.ndarray
     _rows_f: np.ndarray
@@ -62,22 +65,30 @@ class FinalModel:
 
 def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: FloorMeasurement, sensor_id: str,
               confounded: dict[str, list[str]], residual_before: np.ndarray, res0: np.ndarray, alpha: float,
-              thread: bool) -> FinalModel:
+              code_rule: tuple[float, float], thread: bool) -> FinalModel:
     """Fit ``spec`` on every sample (folds ``fold``, weights from ``floor``), write its calibration, and judge it:
     before (``residual_before``: the declared model's held-out residual, ``res0`` its in-sample one) and after, the
-    floor after a noise remedy, the residual's structure at level ``alpha``. ``thread``: the driver's path over every
+    floor after a noise remedy, the residual's structure at level ``alpha``. ``code_rule``: (level, least relative gain)
+    the ADC code-width candidate is tested at on top of ``spec`` (when added, the model is fitted on the mapped
+    counts and the file carries the table). ``thread``: the driver's path over every
     sample runs beside the rest."""
     groups, noise, settled = data.group, floor.noise, floor.settled
     weights = 1.0 / np.maximum(noise, 1e-12) ** 2
     fit_rows = data.use & (fold != -1)
     des_f = build_design(data, spec)  # no cache: written straight into its design
     cv_f = cross_validate(des_f, fit_rows, fold, weights)
+    code_step = code_width_step(data, spec, fold, weights, cv_f.heldout, *code_rule)
+    if code_step.added:  # the final model on the mapped counts
+        des_f, cv_f = code_step.design, code_step.cv
     rows_f = data.use & des_f.valid & (fold >= 0)
     cal, base_cal, added = calibration_from(spec, des_f, cv_f, data, noise, sensor_id, confounded)
     role = {e.name: e for e, _ in spec.effects}
     remedies = [a for a in added if role[a[0]].noise_remedy]
     run_terms = [a for a in added if role[a[0]].per_run]
     added = [a for a in added if not (role[a[0]].noise_remedy or role[a[0]].per_run)]
+    if code_step.added:
+        cal.adc_codes = code_step.table
+        added.append((code_step.result.name, None, describe_code_table(code_step)))
     noise_after, noise_model_after = noise, floor.noise_model
     if remedies:  # the filtered output is less noisy: its own floor, on the same settled samples
         res_f = des_f.G - cv_f.fitted_full
@@ -108,7 +119,7 @@ def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: Flo
     cond, column_corr = gram_conditioning(cv_f.sums.XtX, cv_f.sums.xsum, len(cv_f.sums.idx), blocks_f)
     return FinalModel(cal, base_cal, added, remedies, run_terms, cv_f.heldout, r_eval, int(r_eval.sum()), noise_after,
                       noise_model_after, rms(residual_before), rms(res0), rms(cv_f.heldout),
-                      rms(G_f - cv_f.fitted_full), structure, cond, column_corr, flagged, calibrated_later,
+                      rms(G_f - cv_f.fitted_full), structure, cond, column_corr, flagged, code_step, calibrated_later,
                       fitted_sensor, rows_f)
 
 
