@@ -25,20 +25,23 @@ HELP_RUNS = {
 
 _PROBE = """
 import contextlib, importlib, io, json, sys
-module, argv = sys.argv[1], json.loads(sys.argv[2])
-with contextlib.redirect_stdout(io.StringIO()) as out:
-    try:
-        loaded = importlib.import_module(module)
-        code = loaded.main(argv) if argv is not None else 0
-    except SystemExit as exc:
-        code = exc.code
-print(json.dumps({"code": code, "help": out.getvalue(), "modules": sorted(sys.modules)}))
+module, runs = sys.argv[1], json.loads(sys.argv[2])
+loaded, results = importlib.import_module(module), []
+for argv in runs:  # every --help of one command in one interpreter: what any of them loads stays in sys.modules
+    with contextlib.redirect_stdout(io.StringIO()) as out:
+        try:
+            code = loaded.main(argv)
+        except SystemExit as exc:
+            code = exc.code
+    results.append({"code": code, "help": out.getvalue()})
+print(json.dumps({"runs": results, "modules": sorted(sys.modules)}))
 """
 
 
-def _loaded(module: str, argv: list[str] | None) -> dict:
-    """Exit code, stdout and loaded modules of ``module.main(argv)`` (``argv`` None: the import alone)."""
-    run = subprocess.run([sys.executable, "-c", _PROBE, module, json.dumps(argv)], capture_output=True, text=True,
+def _loaded(module: str, runs: list[list[str]]) -> dict:
+    """Exit code and stdout of each ``module.main(argv)`` of ``runs``, and the modules loaded by the import and all
+    of them (``runs`` empty: the import alone)."""
+    run = subprocess.run([sys.executable, "-c", _PROBE, module, json.dumps(runs)], capture_output=True, text=True,
                          timeout=120, check=True)
     return json.loads(run.stdout)
 
@@ -46,10 +49,10 @@ def _loaded(module: str, argv: list[str] | None) -> dict:
 @pytest.mark.parametrize("command", sorted(HELP_RUNS))
 def test_help_loads_no_heavy_library(command: str) -> None:
     module, runs, heavy = HELP_RUNS[command]
-    for argv in runs:
-        got = _loaded(module, argv)
-        assert got["code"] in (0, None) and "usage" in got["help"], (command, argv, got["code"])
-        assert not set(heavy) & set(got["modules"]), (command, argv, sorted(set(heavy) & set(got["modules"])))
+    got = _loaded(module, runs)
+    for argv, res in zip(runs, got["runs"], strict=True):
+        assert res["code"] in (0, None) and "usage" in res["help"], (command, argv, res["code"])
+    assert not set(heavy) & set(got["modules"]), (command, sorted(set(heavy) & set(got["modules"])))
 
 
 def test_parser_module_alone_loads_no_heavy_library() -> None:
@@ -63,4 +66,4 @@ def test_parser_module_alone_loads_no_heavy_library() -> None:
 
 def test_the_probe_sees_a_heavy_import() -> None:
     """The check is able to fail: a module that does load numpy is seen loading it."""
-    assert "numpy" in _loaded("fbg_accel_calibration.table_geometry", None)["modules"]
+    assert "numpy" in _loaded("fbg_accel_calibration.table_geometry", [])["modules"]
