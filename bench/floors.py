@@ -1,0 +1,195 @@
+#!/usr/bin/env python3
+"""The floors of issue 36 beside the project's own figures, measured in the same run, so that each ratio is one command.
+
+Every measure is a pair of child processes run alternately (floor, project, floor, project, ...), so that the other
+load of a shared machine falls on both alike; a child's CPU time (user + system, all its threads) and peak resident
+set come from ``os.wait4``. A ratio is the median of the per-pair ratios of CPU time. The load average before and after
+the run is in the results.
+
+* ``startup``: each command's ``--help`` against ``python -c pass`` (``bench/startup.py``); goal <= 0.2 s.
+* ``fit``: ``fbg-accel-calib fit`` of N samples from MCAP files (one per temperature level, written by the node's
+  writer) against the floor: a plain-numpy process that loads the same N samples (uncompressed ``.npy``, the cheapest
+  read), fits eq. 28 at degree 2 (36 coefficients) by least squares and runs a 10-fold cross-validation by visit
+  from per-fold X^T X and X^T Y. Goal: <= 2x.
+
+The data: ``fbg_accel_sim.eq28_campaign`` (eq. 28 holds exactly; three chamber levels, 24 poses visited twice, TIA
+low-passed noise), sized to N samples.
+
+    .venv/bin/python bench/floors.py                          # all, N = 10^6, scratch results
+    .venv/bin/python bench/floors.py --only fit --pairs 5
+    .venv/bin/python bench/floors.py --update-results         # bench/results/floors.json, docs/results/performance.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from machine_info import machine, results_doc, write_results
+from output_paths import RESULTS_PAGES, add_update_results, results_dir
+
+HERE = Path(__file__).resolve().parent
+FIT_GOAL = 2.0
+LEVELS, POSES, REPEATS, RATE_HZ = 3, 24, 2, 100.0  # eq28_campaign's levels and rate
+
+
+def run_child(argv: list[str]) -> dict:
+    """CPU s, wall s and peak RSS MiB of one child process (output discarded; a failure stops the benchmark)."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    err = proc.stderr.read()  # type: ignore[union-attr]
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise SystemExit(f"{argv} failed: {err.decode(errors='replace')[-2000:]}")
+    return {"cpu_s": usage.ru_utime + usage.ru_stime, "wall_s": wall, "rss_mib": usage.ru_maxrss / 1024}
+
+
+def interleaved(floor_argv: list[str], project_argv: list[str], pairs: int) -> dict:
+    """Median figures of ``pairs`` alternate runs and the median per-pair CPU ratio project / floor."""
+    floor, project = [], []
+    for _ in range(pairs):
+        floor.append(run_child(floor_argv))
+        project.append(run_child(project_argv))
+
+    def med(runs: list[dict]) -> dict:
+        return {k: round(statistics.median(r[k] for r in runs), 3) for k in runs[0]}
+
+    ratios = [p["cpu_s"] / f["cpu_s"] for p, f in zip(project, floor, strict=True)]
+    return {"floor": med(floor), "project": med(project), "cpu_ratio": round(statistics.median(ratios), 2),
+            "cpu_ratio_range": [round(min(ratios), 2), round(max(ratios), 2)], "pairs": pairs}
+
+
+# -- fit
+def campaign_files(n: int, folder: Path) -> tuple[list[Path], Path]:
+    """The MCAP files (one per level) and the floor's .npz of an N-sample campaign, written once into ``folder``."""
+    files = [folder / f"level{i}.mcap" for i in range(LEVELS)]
+    arrays = folder / "samples.npz"
+    stamp = folder / f"samples_{n}.done"
+    if stamp.exists() and arrays.exists() and all(f.exists() for f in files):
+        return files, arrays
+    import numpy as np
+
+    from fbg_accel_calibration.mcap_io import write_recording
+    from fbg_accel_sim.eq28_campaign import campaign
+
+    rec, _ = campaign(0, degree=2, n_poses=POSES, repeats=REPEATS, visit_s=n / (LEVELS * POSES * REPEATS * RATE_HZ))
+    for i, path in enumerate(files):
+        part = rec.select(rec.run_id == i)
+        part.run_id[:] = 0
+        write_recording(path, part, {"sensor_id": "bench"})
+    np.savez(arrays, ref=rec.ref, xyz=rec.xyz, temp_c=rec.temp_c, gref=rec.gref_mps2, pose=rec.pose_id, run=rec.run_id)
+    stamp.touch()
+    return files, arrays
+
+
+def fit_floor(arrays: Path, degree: int = 2, folds: int = 10) -> None:
+    """The floor of ``fit`` (in its own process): load, eq. 28 least squares, 10-fold CV by visit from sums."""
+    import numpy as np
+
+    d = np.load(arrays)
+    psi = d["xyz"] / d["ref"][:, None]
+    temp = d["temp_c"]
+    tau = (temp - (temp.min() + temp.max()) / 2) / ((temp.max() - temp.min()) / 2)
+    powers = tau[:, None] ** np.arange(degree + 1)  # (N, n+1)
+    X = np.column_stack([(psi[:, :, None] * powers[:, None, :]).reshape(len(tau), -1), powers])  # (N, 4(n+1))
+    Y = d["gref"]
+    A = np.linalg.lstsq(X, Y, rcond=None)[0]  # (12, 3): 36 coefficients
+    change = np.r_[True, (np.diff(d["pose"]) != 0) | (np.diff(d["run"]) != 0)]
+    visit = np.cumsum(change) - 1
+    fold = np.random.default_rng(0).permutation(visit[-1] + 1)[visit] % folds
+    xtx = np.stack([X[fold == f].T @ X[fold == f] for f in range(folds)])
+    xty = np.stack([X[fold == f].T @ Y[fold == f] for f in range(folds)])
+    yty = np.stack([np.einsum("ij,ij->j", Y[fold == f], Y[fold == f]) for f in range(folds)])
+    rss = np.zeros(3)
+    for f in range(folds):
+        Af = np.linalg.solve(xtx.sum(0) - xtx[f], xty.sum(0) - xty[f])
+        rss += yty[f] - 2 * np.einsum("ij,ij->j", Af, xty[f]) + np.einsum("ij,ik,kj->j", Af, xtx[f], Af)
+    assert np.all(np.isfinite(A)) and np.all(rss > 0)
+
+
+def measure_fit(n: int, pairs: int, folder: Path) -> dict:
+    files, arrays = campaign_files(n, folder)
+    out = folder / "fit_out.yaml"
+    project = [sys.executable, "-c", "import sys; from fbg_accel_calibration.cli_main import main; sys.exit(main())",
+               "fit", *map(str, files), "-o", str(out), "--force", "--no-progress"]
+    floor = [sys.executable, str(Path(__file__).resolve()), "--fit-floor", str(arrays)]
+    run_child(project)  # page cache and .pyc files
+    res = interleaved(floor, project, pairs)
+    res.update(samples=n, files=len(files), file_mb=round(sum(f.stat().st_size for f in files) / 2**20, 1),
+               goal=FIT_GOAL, goal_met=res["cpu_ratio"] <= FIT_GOAL,
+               command="fbg-accel-calib fit level0.mcap level1.mcap level2.mcap -o cal.yaml")
+    print(f"fit {n} samples: project CPU {res['project']['cpu_s']:.2f} s ({res['project']['rss_mib']:.0f} MiB), floor "
+          f"{res['floor']['cpu_s']:.2f} s ({res['floor']['rss_mib']:.0f} MiB): {res['cpu_ratio']:.2f}x (goal <= "
+          f"{FIT_GOAL}x: {'met' if res['goal_met'] else 'NOT met'})", flush=True)
+    return res
+
+
+# -- results page
+def page(doc: dict) -> str:
+    m = doc["machine"]
+    lines = ["# Performance against the floors", "",
+             f"Generated by `{doc['command']}` on {doc['date_utc']}. Machine: {m['cpu']}, {m['logical_cpus']} logical "
+             f"CPUs, {m['ram_gib']} GiB, Python {m['python']}, numpy {m['numpy']}; load average before "
+             f"{doc['load_average_before']}, after {m['load_average_1_5_15']} (other work on the machine: CPU times, "
+             "interleaved pairs, median of the per-pair ratios). Method: the docstring of `bench/floors.py`.", "",
+             "| measure | project CPU | floor | floor CPU | ratio (range) | goal |", "|---|---|---|---|---|---|"]
+    for row in doc.get("startup", []):
+        lines.append(f"| `{row['command']}` | {row['cpu_s']:.3f} s, {row['rss_mib']:.0f} MiB | `python -c pass` | "
+                     f"{row['floor_cpu_s']:.3f} s | {row['cpu_ratio']:.1f}x | <= 0.2 s: "
+                     f"{'met' if row['goal_met'] else 'not met'} |")
+    if "fit" in doc:
+        f = doc["fit"]
+        lines.append(f"| `fbg-accel-calib fit`, {f['samples']:.0e} samples from {f['files']} MCAP files "
+                     f"({f['file_mb']} MiB) | {f['project']['cpu_s']:.2f} s, {f['project']['rss_mib']:.0f} MiB | "
+                     "eq. 28 degree 2 least squares + 10-fold CV by visit, numpy, samples from .npy | "
+                     f"{f['floor']['cpu_s']:.2f} s, {f['floor']['rss_mib']:.0f} MiB | {f['cpu_ratio']:.2f}x "
+                     f"({f['cpu_ratio_range'][0]}-{f['cpu_ratio_range'][1]}) | <= {f['goal']}x: "
+                     f"{'met' if f['goal_met'] else 'not met'} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--only", default="startup,fit", help="comma-separated measures (startup, fit)")
+    ap.add_argument("--samples", type=float, default=1e6, help="samples of the fit's campaign (default 10^6)")
+    ap.add_argument("--pairs", type=int, default=3, help="interleaved pairs of the fit (startup: 5x as many)")
+    ap.add_argument("--dir", type=Path, default=None, help="keep the campaign's files here (reused by later runs)")
+    ap.add_argument("--output", type=Path, default=None, help="results JSON (default: floors.json in the results dir)")
+    ap.add_argument("--fit-floor", type=Path, default=None, help=argparse.SUPPRESS)
+    add_update_results(ap)
+    args = ap.parse_args(argv)
+    if args.fit_floor is not None:
+        fit_floor(args.fit_floor)
+        return 0
+    only = set(args.only.split(","))
+    load_before = [round(v, 2) for v in os.getloadavg()]
+    doc = results_doc("floors.py", argv, benchmark="floors", load_average_before=load_before)
+    if "startup" in only:
+        from startup import measure
+
+        doc["startup"] = measure(5 * args.pairs)
+    if "fit" in only:
+        tmp = tempfile.TemporaryDirectory() if args.dir is None else None
+        folder = Path(tmp.name) if tmp else args.dir
+        folder.mkdir(parents=True, exist_ok=True)
+        doc["fit"] = measure_fit(int(args.samples), args.pairs, folder)
+        if tmp:
+            tmp.cleanup()
+    doc["machine"] = machine()  # the load average after
+    out = args.output or results_dir(args.update_results) / "floors.json"
+    write_results(out, doc)
+    md = (RESULTS_PAGES if args.update_results else out.parent) / "performance.md"
+    md.write_text(page(doc), encoding="utf-8")
+    print(f"page written to {md}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
