@@ -13,7 +13,8 @@ the run is in the results.
   from per-fold X^T X and X^T Y. Goal: <= 2x.
 
 The data: ``fbg_accel_sim.eq28_campaign`` (eq. 28 holds exactly; three chamber levels, 24 poses visited twice, TIA
-low-passed noise), sized to N samples.
+low-passed noise), sized to N samples, its temperatures read as an AHT10 reads them (0.01 degC steps, 0.02 degC noise:
+a chamber level held to the last bit for minutes is not what the sensor gives).
 
     .venv/bin/python bench/floors.py                          # all, N = 10^6, scratch results
     .venv/bin/python bench/floors.py --only fit --pairs 5
@@ -37,6 +38,7 @@ from output_paths import RESULTS_PAGES, add_update_results, results_dir
 HERE = Path(__file__).resolve().parent
 FIT_GOAL = 2.0
 LEVELS, POSES, REPEATS, RATE_HZ = 3, 24, 2, 100.0  # eq28_campaign's levels and rate
+AHT10_STEP_C, AHT10_NOISE_C = 0.01, 0.02
 
 
 def run_child(argv: list[str]) -> dict:
@@ -80,6 +82,9 @@ def campaign_files(n: int, folder: Path) -> tuple[list[Path], Path]:
     from fbg_accel_sim.eq28_campaign import campaign
 
     rec, _ = campaign(0, degree=2, n_poses=POSES, repeats=REPEATS, visit_s=n / (LEVELS * POSES * REPEATS * RATE_HZ))
+    # the chamber's temperature as the AHT10 reads it: 0.01 degC steps (../shared/docs/sensor_facts.md), 0.02 degC noise
+    noise = np.random.default_rng(1).normal(0.0, AHT10_NOISE_C, len(rec))
+    rec.temp_c[:] = np.round((rec.temp_c + noise) / AHT10_STEP_C) * AHT10_STEP_C
     for i, path in enumerate(files):
         part = rec.select(rec.run_id == i)
         part.run_id[:] = 0

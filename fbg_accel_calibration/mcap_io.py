@@ -239,49 +239,53 @@ class TopicSelection:
 
 def _summary_topics(path: Path) -> dict[str, str] | None:
     """Topic -> type from an MCAP file's summary section (None when it has none, e.g. a truncated file)."""
-    from mcap.reader import make_reader
-
     try:
         with open(path, "rb") as fh:
-            if not _summary_plausible(fh):
-                return None
-            summary = make_reader(fh).get_summary()
+            records = _summary_records(fh)
     except Exception:  # no or damaged summary: the readers find the topics while reading
         return None
-    if summary is None or not summary.channels:
+    if not records:
         return None
-    return {c.topic: (summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "no schema")
-            for c in summary.channels.values()}
+    schemas = {r.id: r.name for r in records if isinstance(r, Schema)}
+    channels = {r.id: r for r in records if isinstance(r, Channel)}
+    if not channels:
+        return None
+    return {c.topic: schemas.get(c.schema_id, "no schema") for c in channels.values()}
 
 
 _SUMMARY_OPCODES = frozenset((Opcode.SCHEMA, Opcode.CHANNEL, Opcode.CHUNK_INDEX, Opcode.ATTACHMENT_INDEX,
                               Opcode.METADATA_INDEX, Opcode.STATISTICS, Opcode.SUMMARY_OFFSET))
 
 
-def _summary_plausible(fh: Any) -> bool:
-    """Whether the records from the footer's ``summary_start`` to the footer are summary records (MCAP spec) that
-    tile that stretch exactly, walked by their framing alone. The mcap library reads what lies there, chunks
-    included, one record at a time in Python: a footer pointing at a chunk of zeros made it loop over millions of
-    9-byte records before the reader proper (with its bounds, :func:`_chunk_bytes`) saw the file."""
+def _summary_records(fh: Any) -> list[Any] | None:
+    """The schema and channel records of the summary section (MCAP spec), or None unless the records from the
+    footer's ``summary_start`` to the footer are summary records that tile that stretch exactly, walked by their
+    framing alone (a footer pointing at a chunk of zeros is no summary: it must not start a walk over millions of
+    9-byte records); the other summary records (chunk indexes, statistics, ...) are passed over unparsed."""
     size = fh.seek(0, io.SEEK_END)
     footer_at = size - len(MCAP_MAGIC) - 9 - 20
     if footer_at < len(MCAP_MAGIC):
-        return False
+        return None
     fh.seek(footer_at)
     head = fh.read(9 + 8)
     if head[0] != Opcode.FOOTER:
-        return False
+        return None
     (pos,) = struct.unpack_from("<Q", head, 9)
-    if pos == 0:
-        return True  # no summary: the library says so without reading any
-    while pos < footer_at:
-        fh.seek(pos)
-        rec = fh.read(9)
-        if len(rec) < 9 or rec[0] not in _SUMMARY_OPCODES:
-            return False
-        pos += 9 + struct.unpack_from("<Q", rec, 1)[0]
-    fh.seek(0)
-    return pos == footer_at
+    if pos == 0 or pos > footer_at:
+        return None  # no summary
+    fh.seek(pos)
+    data = fh.read(footer_at - pos)
+    at, end, records = 0, len(data), []
+    while at < end:
+        if at + 9 > end or data[at] not in _SUMMARY_OPCODES:
+            return None
+        opcode, length = _RECORD_HEAD.unpack_from(data, at)
+        if at + 9 + length > end:
+            return None
+        if opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
+            records.append(_PARSED[opcode].read(ReadDataStream(io.BytesIO(data[at + 9:at + 9 + length]))))
+        at += 9 + length
+    return records
 
 
 def recording_files(path: str | Path, namespace: str | None = None, raw_topic: str | None = None
