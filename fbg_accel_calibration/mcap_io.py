@@ -50,8 +50,6 @@ import os
 import re
 import struct
 import sys
-import tempfile
-import weakref
 import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -75,6 +73,7 @@ from fbg_accel_driver.driver_core import RAW_AUX_NAME, RAW_NAMES
 from . import ros2_cdr
 from .atomic_output import create_exclusive
 from .input_files import MCAP_MAGIC
+from .pass_spill import PassSpill
 from .recording import Recording
 from .rosbag2_input import BagInputError, bag_files, offered_qos_yaml
 
@@ -95,6 +94,7 @@ ROLE_TYPES = dict(zip(ROLES, (TYPE_RAW, TYPE_TEMPERATURE, TYPE_REFERENCE_GRAVITY
 POSE_STATES = ("moving", "settling", "recording", "done")
 TABLE_FRAME = "calibration_table"
 DEFAULT_CHUNK_BYTES = 32 * 1024
+REPLAY_ROWS = 1 << 16  # rows per batch of the samples a later pass takes from the first one (McapSampleStream)
 BACKWARDS_TOLERANCE_NS = 1_000_000  # raw stamps going back less than this are jitter, read without a note
 
 _PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32",
@@ -1037,53 +1037,6 @@ class StreamOrderError(McapRecordingError):
     (:func:`read_file` sorts such a file in memory)."""
 
 
-class _SampleSpill:
-    """The ``imu/raw`` samples of one pass over a stream's files, ``(stamps, values)`` batches, kept in an unlinked
-    temporary file (in the page cache while there is room) so that the later passes of the fit need not read,
-    decompress and check the MCAP again: one read of each file per stream, memory independent of the number of
-    samples. Replayed batches hold the same values in the same order; their lengths may differ from the pass's."""
-
-    REPLAY_ROWS = 1 << 16  # rows per replayed batch
-
-    def __init__(self) -> None:
-        self._stamps = tempfile.TemporaryFile(prefix="fbg_accel_stamps_")
-        self._values = tempfile.TemporaryFile(prefix="fbg_accel_values_")
-        self._closer = weakref.finalize(self, _close_all, self._stamps, self._values)  # with the stream, not later
-        self.rows = 0
-        self.width: int | None = None
-        self.report: FileReadReport | None = None
-
-    def add(self, stamps: np.ndarray, values: np.ndarray) -> None:
-        if self.width is None:
-            self.width = values.shape[1]
-        elif values.shape[1] != self.width:  # the name list is checked per message: cannot happen in a read pass
-            raise McapRecordingError("imu/raw changes its number of values")
-        self._stamps.write(np.ascontiguousarray(stamps, dtype=np.int64).data)
-        self._values.write(np.ascontiguousarray(values, dtype=float).data)
-        self.rows += len(stamps)
-
-    def batches(self):
-        """The kept batches again, at most :attr:`REPLAY_ROWS` rows each."""
-        self._stamps.seek(0)
-        self._values.seek(0)
-        done = 0
-        while done < self.rows:
-            n = min(self.REPLAY_ROWS, self.rows - done)
-            stamps, values = np.empty(n, np.int64), np.empty((n, self.width or 0))
-            if self._stamps.readinto(stamps) != stamps.nbytes or self._values.readinto(values) != values.nbytes:
-                raise OSError("the temporary copy of the samples read back short")
-            done += n
-            yield stamps, values
-
-    def close(self) -> None:
-        self._closer()
-
-
-def _close_all(*files: Any) -> None:
-    for f in files:
-        f.close()
-
-
 class McapSampleStream:
     """The reader of a calibration MCAP (or rosbag2 bag): block by block for the streaming fit, or every
     sample at once (:meth:`all_rows`, behind :func:`read_file`).
@@ -1114,7 +1067,8 @@ class McapSampleStream:
         self._temp_v: list[float] = []
         self._pose_log: list[tuple[int, int, str]] = []  # the pose events at their log time (read_warnings)
         self._log_offset: int | None = None  # log time - stamp of the last raw message read (first pass)
-        self._spill: _SampleSpill | None = None  # the samples of the first pass that read the files to their end
+        self._spill: PassSpill | None = None  # the samples of the first pass that read the files to their end
+        self._spill_report = self.report
 
     def _raw_clock(self, log_time: int, stamp: int) -> None:
         """Note the raw messages' log-time-minus-stamp offset (the recorder's clock against the driver's): a
@@ -1132,16 +1086,17 @@ class McapSampleStream:
         report becomes ``self.report`` when the pass ends: a pass its consumer closes early (the fit's second look at
         a run's first samples) read only part of the file and must not stand for it.
 
-        The files are read once: the first pass that reaches the end keeps its samples (:class:`_SampleSpill`), and
-        every later pass gives them back from there, the same values in the same order, with that pass's report."""
+        The files are read once: the first pass that reaches the end keeps its samples (``pass_spill.PassSpill``), and
+        every later pass gives them back from there, the same values in the same order (in batches of
+        :data:`REPLAY_ROWS`), with that pass's report."""
         if self._spill is not None:
-            yield from self._spill.batches()
-            self.report = self._spill.report
+            yield from self._spill.pieces(REPLAY_ROWS)
+            self.report = self._spill_report
             return
         report = FileReadReport(str(self.path), notes=list(self._notes))
         complete = True
         seen: dict[bytes, str] = {}  # chunk digests of the pass: a chunk repeated in a file or across files is read once
-        spill = _SampleSpill()
+        spill = PassSpill((np.int64, float))
         try:
             for path in self.files:
                 report.complete = False
@@ -1153,7 +1108,7 @@ class McapSampleStream:
             spill.close()
             raise
         report.complete = complete
-        self.report = spill.report = report
+        self.report = self._spill_report = report
         self._spill = spill
 
     def _file_batches(self, path: Path, report: FileReadReport, collect_events: bool, seen: dict[bytes, str]):
