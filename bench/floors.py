@@ -11,6 +11,10 @@ the run is in the results.
   writer) against the floor: a plain-numpy process that loads the same N samples (uncompressed ``.npy``, the cheapest
   read), fits eq. 28 at degree 2 (36 coefficients) by least squares and runs a 10-fold cross-validation by visit
   from per-fold X^T X and X^T Y. Goal: <= 2x.
+* ``driver``: CPU of the ``driver`` process (all threads, /proc/<pid>/stat) over a window of frames written to a pty
+  at 100 Hz and 1 kHz (the simulator's clean frames, one write per frame, paced), against the floor node
+  (:func:`driver_floor`, a minimal rclpy node publishing the same three messages per frame) fed the same way,
+  alternately. No subscriber in either case. Goal: <= 1.5x.
 
 The data: ``fbg_accel_sim.eq28_campaign`` (eq. 28 holds exactly; three chamber levels, 24 poses visited twice, TIA
 low-passed noise), sized to N samples, its temperatures read as an AHT10 reads them (0.01 degC steps, 0.02 degC noise:
@@ -136,6 +140,142 @@ def measure_fit(n: int, pairs: int, folder: Path) -> dict:
     return res
 
 
+# -- driver
+DRIVER_RATES_HZ = (100.0, 1000.0)
+DRIVER_GOAL = 1.5
+
+
+def driver_floor(port: str) -> None:
+    """The floor of the driver (in its own process): a minimal rclpy node that reads the port as the bytes come, finds
+    the 27-byte version-1 frames (sync, CRC-16/CCITT-FALSE), stamps each with the ROS clock and publishes what the
+    driver publishes per frame (imu/raw JointState, imu/temperature, imu/data_raw with eq. 24 through one fixed 3x3
+    matrix), with the driver's QoS (reliable, keep-last 100). No clock mapping, decimation, covariance, diagnostics or
+    reconnection: the essential work only."""
+    import binascii
+    import signal
+    import struct
+
+    import rclpy
+    import serial
+    from rclpy.qos import QoSProfile
+    from sensor_msgs.msg import Imu, JointState, Temperature
+
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    rclpy.init()
+    node = rclpy.create_node("floor_driver")
+    qos = QoSProfile(depth=100)
+    pub_raw, pub_temp, pub_imu = (node.create_publisher(t, n, qos) for t, n in
+                                  ((JointState, "imu/raw"), (Temperature, "imu/temperature"), (Imu, "imu/data_raw")))
+    names = ["ref_counts", "x_counts", "y_counts", "z_counts", "temperature_c", "temperature_valid", "status", "seq",
+             "board_time_s"]
+    body = struct.Struct("<HQHHHHhB")
+    m = ((80.0, 0.0, 0.0), (0.0, 78.0, 0.0), (0.0, 0.0, 107.0))
+    ser = serial.Serial(port, 921600, timeout=0.5)
+    buf = bytearray()
+    clock = node.get_clock()
+    while True:
+        buf += ser.read(max(1, ser.in_waiting))
+        while len(buf) >= 27:
+            i = buf.find(b"\xa5\x5a")
+            if i < 0:
+                del buf[:-1]
+                break
+            del buf[:i]
+            if len(buf) < 27:
+                break
+            if binascii.crc_hqx(bytes(buf[2:25]), 0xFFFF) != buf[25] | buf[26] << 8:
+                del buf[:1]
+                continue
+            seq, t_us, ref, x, y, z, temp_cc, status = body.unpack_from(buf, 4)
+            del buf[:27]
+            stamp = clock.now().to_msg()
+            raw = JointState(name=names, position=[float(ref), float(x), float(y), float(z), temp_cc / 100.0, 1.0,
+                                                   float(status), float(seq), t_us * 1e-6])
+            raw.header.stamp = stamp
+            pub_raw.publish(raw)
+            temp = Temperature(temperature=temp_cc / 100.0)
+            temp.header.stamp = stamp
+            pub_temp.publish(temp)
+            psi = (x / ref, y / ref, z / ref)
+            imu = Imu()
+            imu.header.stamp = stamp
+            imu.linear_acceleration.x, imu.linear_acceleration.y, imu.linear_acceleration.z = (
+                sum(a * b for a, b in zip(row, psi, strict=True)) for row in m)
+            imu.orientation_covariance[0] = imu.angular_velocity_covariance[0] = -1.0
+            pub_imu.publish(imu)
+
+
+def node_cpu(argv: list[str], rate_hz: float, window_s: float, frames: list[bytes]) -> float:
+    """CPU (% of one core) of the node ``argv`` (``{port}`` in it: the pty's path) over ``window_s`` of frames written
+    at ``rate_hz``, one write per frame paced on the monotonic clock, after a 3 s warm-up."""
+    from fbg_accel_sim.pty_server import PtyEndpoint
+
+    ep = PtyEndpoint(None)
+    path = ep.open(hold=False)
+    proc = subprocess.Popen([a.replace("{port}", path) for a in argv], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while not ep.client_present():
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise SystemExit(f"{argv} did not open the pty")
+            time.sleep(0.05)
+        time.sleep(0.2)
+        ep.hold_slave()
+        period, t0, k, start = 1.0 / rate_hz, time.monotonic(), 0, None
+        warm = round(3.0 * rate_hz)
+        end = warm + round(window_s * rate_hz)
+        while k < end:
+            if k == warm:
+                start = (time.monotonic(), _proc_cpu_s(proc.pid))
+            ep.write(frames[k % len(frames)])
+            k += 1
+            delay = t0 + k * period - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+        wall, cpu = time.monotonic() - start[0], _proc_cpu_s(proc.pid) - start[1]  # type: ignore[index]
+        return 100.0 * cpu / wall
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        ep.close()
+
+
+def _proc_cpu_s(pid: int) -> float:
+    """utime + stime of all threads of ``pid`` (/proc/<pid>/stat), s."""
+    with open(f"/proc/{pid}/stat") as fh:
+        fields = fh.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def measure_driver(pairs: int, window_s: float) -> list[dict]:
+    from bench_driver_ingest import make_frames
+
+    rows = []
+    for rate in DRIVER_RATES_HZ:
+        frames = make_frames(rate, round((window_s + 3.0) * rate) + 10, seed=0)[0]
+        driver = [sys.executable, "-m", "fbg_accel_driver.driver_main", "--ros-args", "-p", "port:={port}",
+                  "-p", "calibration_file:=sim"]
+        floor = [sys.executable, str(Path(__file__).resolve()), "--driver-floor", "{port}"]
+        f_cpu, d_cpu = [], []
+        for _ in range(pairs):
+            f_cpu.append(node_cpu(floor, rate, window_s, frames))
+            d_cpu.append(node_cpu(driver, rate, window_s, frames))
+        ratios = [d / f for d, f in zip(d_cpu, f_cpu, strict=True)]
+        row = {"rate_hz": rate, "window_s": window_s, "pairs": pairs, "driver_cpu_pct": round(statistics.median(d_cpu), 1),
+               "floor_cpu_pct": round(statistics.median(f_cpu), 1), "cpu_ratio": round(statistics.median(ratios), 2),
+               "cpu_ratio_range": [round(min(ratios), 2), round(max(ratios), 2)], "goal": DRIVER_GOAL}
+        row["goal_met"] = row["cpu_ratio"] <= DRIVER_GOAL
+        rows.append(row)
+        print(f"driver at {rate:g} Hz: CPU {row['driver_cpu_pct']} % of a core, floor node {row['floor_cpu_pct']} %: "
+              f"{row['cpu_ratio']}x (goal <= {DRIVER_GOAL}x: {'met' if row['goal_met'] else 'NOT met'})", flush=True)
+    return rows
+
+
 # -- results page
 def page(doc: dict) -> str:
     m = doc["machine"]
@@ -157,21 +297,32 @@ def page(doc: dict) -> str:
                      f"{f['floor']['cpu_s']:.2f} s, {f['floor']['rss_mib']:.0f} MiB | {f['cpu_ratio']:.2f}x "
                      f"({f['cpu_ratio_range'][0]}-{f['cpu_ratio_range'][1]}) | <= {f['goal']}x: "
                      f"{'met' if f['goal_met'] else 'not met'} |")
+    for row in doc.get("driver", []):
+        lines.append(f"| `driver` at {row['rate_hz']:g} Hz (pty, default parameters, calibration 'sim'), "
+                     f"{row['window_s']:g} s | {row['driver_cpu_pct']} % of a core | minimal rclpy node: read, "
+                     f"CRC, publish imu/raw, imu/temperature, imu/data_raw | {row['floor_cpu_pct']} % | "
+                     f"{row['cpu_ratio']:.2f}x ({row['cpu_ratio_range'][0]}-{row['cpu_ratio_range'][1]}) | <= "
+                     f"{row['goal']}x: {'met' if row['goal_met'] else 'not met'} |")
     return "\n".join(lines) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--only", default="startup,fit", help="comma-separated measures (startup, fit)")
+    ap.add_argument("--only", default="startup,fit,driver", help="comma-separated measures (startup, fit, driver)")
     ap.add_argument("--samples", type=float, default=1e6, help="samples of the fit's campaign (default 10^6)")
     ap.add_argument("--pairs", type=int, default=3, help="interleaved pairs of the fit (startup: 5x as many)")
     ap.add_argument("--dir", type=Path, default=None, help="keep the campaign's files here (reused by later runs)")
     ap.add_argument("--output", type=Path, default=None, help="results JSON (default: floors.json in the results dir)")
+    ap.add_argument("--driver-window", type=float, default=10.0, help="seconds each driver run is measured")
     ap.add_argument("--fit-floor", type=Path, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--driver-floor", default=None, help=argparse.SUPPRESS)
     add_update_results(ap)
     args = ap.parse_args(argv)
     if args.fit_floor is not None:
         fit_floor(args.fit_floor)
+        return 0
+    if args.driver_floor is not None:
+        driver_floor(args.driver_floor)
         return 0
     only = set(args.only.split(","))
     load_before = [round(v, 2) for v in os.getloadavg()]
@@ -187,6 +338,8 @@ def main(argv: list[str] | None = None) -> int:
         doc["fit"] = measure_fit(int(args.samples), args.pairs, folder)
         if tmp:
             tmp.cleanup()
+    if "driver" in only:
+        doc["driver"] = measure_driver(max(1, args.pairs - 1), args.driver_window)
     doc["machine"] = machine()  # the load average after
     out = args.output or results_dir(args.update_results) / "floors.json"
     write_results(out, doc)
