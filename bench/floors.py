@@ -14,7 +14,7 @@ the run is in the results.
 * ``driver``: CPU of the ``driver`` process (all threads, /proc/<pid>/stat) over a window of frames written to a pty
   at 100 Hz and 1 kHz (the simulator's clean frames, one write per frame, paced), against the floor node
   (:func:`driver_floor`, a minimal rclpy node publishing the same three messages per frame) fed the same way,
-  alternately. No subscriber in either case. Goal: <= 1.5x.
+  alternately; with a subscriber process (:func:`subscriber`, sensor-data QoS) and without. Goal: <= 1.5x.
 
 The data: ``fbg_accel_sim.eq28_campaign`` (eq. 28 holds exactly; three chamber levels, 24 poses visited twice, TIA
 low-passed noise), sized to N samples, its temperatures read as an AHT10 reads them (0.01 degC steps, 0.02 degC noise:
@@ -28,6 +28,7 @@ a chamber level held to the last bit for minutes is not what the sensor gives).
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
 import statistics
 import subprocess
@@ -206,13 +207,32 @@ def driver_floor(port: str) -> None:
             pub_imu.publish(imu)
 
 
-def node_cpu(argv: list[str], rate_hz: float, window_s: float, frames: list[bytes]) -> float:
+def subscriber() -> None:
+    """A consumer of the three data topics (sensor-data QoS, as docs/topics.md tells consumers), in its own process:
+    what a navigation filter beside the driver does with the messages, nothing more."""
+    import signal
+
+    import rclpy
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import Imu, JointState, Temperature
+
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    rclpy.init()
+    node = rclpy.create_node("floor_subscriber")
+    for t, n in ((JointState, "imu/raw"), (Temperature, "imu/temperature"), (Imu, "imu/data_raw")):
+        node.create_subscription(t, n, lambda msg: None, qos_profile_sensor_data)
+    rclpy.spin(node)
+
+
+def node_cpu(argv: list[str], rate_hz: float, window_s: float, frames: list[bytes], with_subscriber: bool) -> float:
     """CPU (% of one core) of the node ``argv`` (``{port}`` in it: the pty's path) over ``window_s`` of frames written
     at ``rate_hz``, one write per frame paced on the monotonic clock, after a 3 s warm-up."""
     from fbg_accel_sim.pty_server import PtyEndpoint
 
     ep = PtyEndpoint(None)
     path = ep.open(hold=False)
+    sub = (subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--subscriber"], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL) if with_subscriber else None)
     proc = subprocess.Popen([a.replace("{port}", path) for a in argv], stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     try:
@@ -237,12 +257,15 @@ def node_cpu(argv: list[str], rate_hz: float, window_s: float, frames: list[byte
         wall, cpu = time.monotonic() - start[0], _proc_cpu_s(proc.pid) - start[1]  # type: ignore[index]
         return 100.0 * cpu / wall
     finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        for p in (proc, sub):
+            if p is None:
+                continue
+            p.terminate()
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
         ep.close()
 
 
@@ -257,22 +280,24 @@ def measure_driver(pairs: int, window_s: float) -> list[dict]:
     from bench_driver_ingest import make_frames
 
     rows = []
-    for rate in DRIVER_RATES_HZ:
+    for rate, with_subscriber in itertools.product(DRIVER_RATES_HZ, (True, False)):
         frames = make_frames(rate, round((window_s + 3.0) * rate) + 10, seed=0)[0]
         driver = [sys.executable, "-m", "fbg_accel_driver.driver_main", "--ros-args", "-p", "port:={port}",
                   "-p", "calibration_file:=sim"]
         floor = [sys.executable, str(Path(__file__).resolve()), "--driver-floor", "{port}"]
         f_cpu, d_cpu = [], []
         for _ in range(pairs):
-            f_cpu.append(node_cpu(floor, rate, window_s, frames))
-            d_cpu.append(node_cpu(driver, rate, window_s, frames))
+            f_cpu.append(node_cpu(floor, rate, window_s, frames, with_subscriber))
+            d_cpu.append(node_cpu(driver, rate, window_s, frames, with_subscriber))
         ratios = [d / f for d, f in zip(d_cpu, f_cpu, strict=True)]
-        row = {"rate_hz": rate, "window_s": window_s, "pairs": pairs, "driver_cpu_pct": round(statistics.median(d_cpu), 1),
+        row = {"rate_hz": rate, "subscriber": with_subscriber, "window_s": window_s, "pairs": pairs,
+               "driver_cpu_pct": round(statistics.median(d_cpu), 1),
                "floor_cpu_pct": round(statistics.median(f_cpu), 1), "cpu_ratio": round(statistics.median(ratios), 2),
                "cpu_ratio_range": [round(min(ratios), 2), round(max(ratios), 2)], "goal": DRIVER_GOAL}
         row["goal_met"] = row["cpu_ratio"] <= DRIVER_GOAL
         rows.append(row)
-        print(f"driver at {rate:g} Hz: CPU {row['driver_cpu_pct']} % of a core, floor node {row['floor_cpu_pct']} %: "
+        print(f"driver at {rate:g} Hz, {'a' if with_subscriber else 'no'} subscriber: CPU {row['driver_cpu_pct']} % "
+              f"of a core, floor node {row['floor_cpu_pct']} %: "
               f"{row['cpu_ratio']}x (goal <= {DRIVER_GOAL}x: {'met' if row['goal_met'] else 'NOT met'})", flush=True)
     return rows
 
@@ -300,7 +325,8 @@ def page(doc: dict) -> str:
                      f"{'met' if f['goal_met'] else 'not met'} |")
     for row in doc.get("driver", []):
         lines.append(f"| `driver` at {row['rate_hz']:g} Hz (pty, default parameters, calibration 'sim'), "
-                     f"{row['window_s']:g} s | {row['driver_cpu_pct']} % of a core | minimal rclpy node: read, "
+                     f"{'a subscriber process' if row['subscriber'] else 'no subscriber'}, {row['window_s']:g} s | "
+                     f"{row['driver_cpu_pct']} % of a core | minimal rclpy node: read, "
                      f"CRC, publish imu/raw, imu/temperature, imu/data_raw | {row['floor_cpu_pct']} % | "
                      f"{row['cpu_ratio']:.2f}x ({row['cpu_ratio_range'][0]}-{row['cpu_ratio_range'][1]}) | <= "
                      f"{row['goal']}x: {'met' if row['goal_met'] else 'not met'} |")
@@ -310,7 +336,8 @@ def page(doc: dict) -> str:
               "XᵀX and XᵀY; for the driver, a minimal rclpy node (`floors.driver_floor`: read what is waiting, find "
               "the frames, check the CRC, stamp with the ROS clock, publish imu/raw, imu/temperature and "
               "imu/data_raw through a fixed matrix; no clock mapping, covariance, diagnostics or reconnection), fed "
-              "the simulator's clean frames on a pty exactly as the driver is, with no subscriber in either case. "
+              "the simulator's clean frames on a pty exactly as the driver is, with the same subscriber process (sensor-data "
+              "QoS) or none. "
               "The fit's samples: `fbg_accel_sim.eq28_campaign`, three chamber levels, 24 poses visited twice, "
               "temperatures in the AHT10's 0.01 degC steps; the command's calibration is bit for bit the one before "
               "the changes that brought it near its floor (`test/test_fit_streaming.py`).",
@@ -329,6 +356,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--driver-window", type=float, default=10.0, help="seconds each driver run is measured")
     ap.add_argument("--fit-floor", type=Path, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--driver-floor", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--subscriber", action="store_true", help=argparse.SUPPRESS)
     add_update_results(ap)
     args = ap.parse_args(argv)
     if args.fit_floor is not None:
@@ -336,6 +364,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.driver_floor is not None:
         driver_floor(args.driver_floor)
+        return 0
+    if args.subscriber:
+        subscriber()
         return 0
     only = set(args.only.split(","))
     load_before = [round(v, 2) for v in os.getloadavg()]
