@@ -1080,7 +1080,7 @@ class McapSampleStream:
         self._log_offset = offset
 
     # -- record level
-    def _batches(self, collect_events: bool):
+    def _batches(self, collect_events: bool, keep: bool = True):
         """Yield ``(stamps (k,) int64 ns, values (k, n))`` batches of ``imu/raw`` in file order, the files of
         a bag one after the other (``report.complete`` only when every file was read to its footer). The pass's
         report becomes ``self.report`` when the pass ends: a pass its consumer closes early (the fit's second look at
@@ -1088,7 +1088,7 @@ class McapSampleStream:
 
         The files are read once: the first pass that reaches the end keeps its samples (``pass_spill.PassSpill``), and
         every later pass gives them back from there, the same values in the same order (in batches of
-        :data:`REPLAY_ROWS`), with that pass's report."""
+        :data:`REPLAY_ROWS`), with that pass's report. ``keep`` False: a single pass (:meth:`all_rows`), nothing kept."""
         if self._spill is not None:
             yield from self._spill.pieces(REPLAY_ROWS)
             self.report = self._spill_report
@@ -1096,16 +1096,18 @@ class McapSampleStream:
         report = FileReadReport(str(self.path), notes=list(self._notes))
         complete = True
         seen: dict[bytes, str] = {}  # chunk digests of the pass: a chunk repeated in a file or across files is read once
-        spill = PassSpill((np.int64, float))
+        spill = PassSpill((np.int64, float)) if keep else None
         try:
             for path in self.files:
                 report.complete = False
                 for stamps, values in self._file_batches(path, report, collect_events, seen):
-                    spill.add(stamps, values)
+                    if spill is not None:
+                        spill.add(stamps, values)
                     yield stamps, values
                 complete &= report.complete
         except BaseException:  # an error, or a pass closed early: what was kept is not the whole file
-            spill.close()
+            if spill is not None:
+                spill.close()
             raise
         report.complete = complete
         self.report = self._spill_report = report
@@ -1269,7 +1271,7 @@ class McapSampleStream:
         """Every ``imu/raw`` sample in file order, ``(stamps (N,) int64 ns, values (N, k))``, in one pass that
         also collects the events (for a reader that holds the whole recording; stamps may go backwards)."""
         collect = self._start_pass()
-        batches = [(s, v) for s, v in self._batches(collect) if len(s)]
+        batches = [(s, v) for s, v in self._batches(collect, keep=False) if len(s)]
         self._end_pass(collect, sum(len(s) for s, _ in batches))  # no samples: raises
         # one width: a message whose name list differs from the first one's already raised in _file_batches
         return np.concatenate([s for s, _ in batches]), np.concatenate([v for _, v in batches])
