@@ -19,10 +19,12 @@ import json
 import shlex
 import sys
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from . import input_validation as iv
+
+if TYPE_CHECKING:
+    import numpy as np
 
 MIN_RUN = 5  # a visit of fewer samples is not used (as diagnose's "table" selection)
 
@@ -52,6 +54,8 @@ def visits_of(rec) -> tuple[np.ndarray, np.ndarray]:
     """(groups, rows) of a recording for the code-density estimate: the table's poses held for at least ``MIN_RUN``
     samples (visit labels ``effects.visit_ids``); a recording without poses (a static or slow-ramp run): every sample,
     each run one visit (cut into pieces by ``adc_codes.pieces``). Clipped samples and a dark reference are left out."""
+    import numpy as np
+
     from .diagnosis.data import visit_ids
 
     good = ~rec.clipped() & ~rec.low_reference() & np.isfinite(rec.ref) & np.all(np.isfinite(rec.xyz), axis=1)
@@ -66,6 +70,7 @@ def visits_of(rec) -> tuple[np.ndarray, np.ndarray]:
 def plot(widths, table, path: Path) -> None:
     """Widths (pooled and per channel, 95 % intervals) against the code mod the period, and the INL per channel."""
     import matplotlib
+    import numpy as np
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -118,6 +123,8 @@ def _as_json(widths) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from fbg_accel_driver.adc_code_table import save_table
 
     from .adc_codes import code_table, recording_code_widths

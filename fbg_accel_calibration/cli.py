@@ -32,8 +32,7 @@ import json
 import shlex
 import sys
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from fbg_accel_driver.command_line import OneLineErrorParser, Terminated, interrupted_status, printable, version_line
 from fbg_accel_driver.sensor_constants import AHT10_SIGMA_C
@@ -41,39 +40,14 @@ from fbg_accel_driver.sensor_constants import AHT10_SIGMA_C
 from . import adc_codes_cli, diagnose_cli
 from . import input_validation as iv
 from .atomic_output import atomic_path, check_output_dir, check_outputs, committed_outputs
+from .cli_options import add_csv_options, add_detector_options, add_force, add_topic_options
 from .cli_progress import add_progress_option
-from .input_files import check_input, load_recording
-from .table_geometry import STANDARD_GRAVITY
+from .measured_paths import FIT_MD, FIT_PNG, MEASURED_CSV, UNCERTAINTY_MD
 
+if TYPE_CHECKING:
+    import numpy as np
 
-def _add_force(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--force", action="store_true", help="replace existing output files (default: refuse)")
-
-
-def _add_csv_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--rate", type=iv.rate_hz, default=None,
-                   help="CSV without t_s: sample rate in Hz (time = sample index / rate)")
-    p.add_argument("--temperature", type=iv.temperature_c, default=None,
-                   help="CSV without temperature_c: temperature of every sample, degC")
-    p.add_argument("--g", type=iv.gravity_mps2, default=STANDARD_GRAVITY,
-                   help="gravity for psi/theta references, m/s^2 (default 9.80665)")
-
-
-def _add_detector_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--window", type=iv.window_samples, default=5, help="static detector window, samples (default 5)")
-    p.add_argument("--min-interval", type=iv.min_interval_samples, default=5,
-                   help="shortest static interval kept, samples (default 5)")
-    p.add_argument("--level-gap", type=iv.level_gap_c, default=1.0,
-                   help="temperatures further apart than this (degC) are different temperature levels (default 1)")
-
-
-def add_topic_options(p: argparse.ArgumentParser) -> None:
-    """``--namespace``/``--topic``: which raw topic of an MCAP file or rosbag2 bag directory to read."""
-    p.add_argument("--namespace", default=None, metavar="NS",
-                   help="read NS/imu/raw and NS/calibration/* (e.g. /veh1; default: the single .../imu/raw of type "
-                        "sensor_msgs/msg/JointState)")
-    p.add_argument("--topic", default=None, metavar="TOPIC",
-                   help="full name of the raw JointState topic (e.g. /veh1/imu/raw; default: see --namespace)")
+# numpy and every numerical module are imported by the commands that compute (building the parser, --help, needs none)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -84,7 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("import", help="CSV (interchange format) to a calibration MCAP")
     p.add_argument("csv", type=Path)
     p.add_argument("-o", "--output", type=Path, required=True, help="MCAP file to write")
-    _add_csv_options(p)
+    add_csv_options(p)
     p.add_argument("--drop-bad-rows", action="store_true",
                    help="import the good rows and list every rejected line (default: reject the file)")
     p.add_argument("--sensor-id", type=iv.sensor_id, default="unknown",
@@ -93,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--start-time", type=iv.start_time_ns, default=None,
                    help="ROS time of the first row: ISO 8601 with zone (2026-11-20T09:30:00Z) or seconds since 1970; "
                         "default: the file's own t_s (absolute if it is)")
-    _add_force(p)
+    add_force(p)
     add_progress_option(p)
     p.set_defaults(func=cmd_import)
 
@@ -111,9 +85,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--adc-codes", type=Path, default=None,
                    help="code table YAML (fbg-accel-calib adc-codes -o): counts mapped to their codes' centres before "
                         "eq. 24, the table written into the calibration (reads every sample into memory)")
-    _add_force(p)
-    _add_detector_options(p)
-    _add_csv_options(p)
+    add_force(p)
+    add_detector_options(p)
+    add_csv_options(p)
     add_progress_option(p)
     p.set_defaults(func=cmd_fit)
 
@@ -124,8 +98,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", type=Path, default=None, help="write the figures as JSON here")
     p.add_argument("--skip", type=iv.skip_s, default=0.0, help="seconds to drop at the start (warm-up)")
     add_topic_options(p)
-    _add_force(p)
-    _add_csv_options(p)
+    add_force(p)
+    add_csv_options(p)
     p.set_defaults(func=cmd_allan)
 
     p = sub.add_parser("field-check", help="still periods of a recording against local gravity: bias and scale per axis")
@@ -140,9 +114,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, default=None,
                    help="write the calibration updated with the identified bias and scale here (never over an input)")
     add_topic_options(p)
-    _add_force(p)
-    _add_detector_options(p)
-    _add_csv_options(p)
+    add_force(p)
+    add_detector_options(p)
+    add_csv_options(p)
     p.set_defaults(func=cmd_field_check)
 
     p = sub.add_parser("report", help="tables and plots of a fit")
@@ -152,27 +126,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-degree", type=iv.degree, default=iv.DEFAULT_MAX_DEGREE,
                    help="largest degree scored in the report's degree table (default %(default)s)")
     add_topic_options(p)
-    _add_force(p)
-    _add_detector_options(p)
-    _add_csv_options(p)
+    add_force(p)
+    add_detector_options(p)
+    add_csv_options(p)
     p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("report-measured", help="fit the paper's measured series (../shared) and write its report")
-    from .measured_report import DEFAULT_CSV, DEFAULT_MD, DEFAULT_PNG
-
-    p.add_argument("--csv", type=Path, default=DEFAULT_CSV, help=f"measured CSV (default {DEFAULT_CSV}, relative to the cwd)")
-    p.add_argument("--md", type=Path, default=DEFAULT_MD, help=f"markdown output (default {DEFAULT_MD})")
-    p.add_argument("--png", type=Path, default=DEFAULT_PNG, help=f"plot output (default {DEFAULT_PNG})")
-    _add_force(p)
+    p.add_argument("--csv", type=Path, default=MEASURED_CSV,
+                   help=f"measured CSV (default {MEASURED_CSV}, relative to the cwd)")
+    p.add_argument("--md", type=Path, default=FIT_MD, help=f"markdown output (default {FIT_MD})")
+    p.add_argument("--png", type=Path, default=FIT_PNG, help=f"plot output (default {FIT_PNG})")
+    add_force(p)
     p.set_defaults(func=cmd_report_measured)
 
     p = sub.add_parser("uncertainty-measured", help="coefficient uncertainty of the linear model on the measured series "
                        "(../shared) next to the paper's matrix")
-    from .measured_uncertainty import DEFAULT_MD as UNCERTAINTY_MD
-
-    p.add_argument("--csv", type=Path, default=DEFAULT_CSV, help=f"measured CSV (default {DEFAULT_CSV}, relative to the cwd)")
+    p.add_argument("--csv", type=Path, default=MEASURED_CSV,
+                   help=f"measured CSV (default {MEASURED_CSV}, relative to the cwd)")
     p.add_argument("--md", type=Path, default=UNCERTAINTY_MD, help=f"markdown output (default {UNCERTAINTY_MD})")
-    _add_force(p)
+    add_force(p)
     p.set_defaults(func=cmd_uncertainty_measured)
 
     p = sub.add_parser("dynamic", help="slide run to the chain's dynamics (calibration 'dynamic' section, Bode plot)")
@@ -199,7 +171,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write the calibration even when the per-channel model misses the measured axes beyond their "
                         "uncertainty (the report's axis check; docs/dynamic_calibration.md)")
     add_topic_options(p)
-    _add_force(p)
+    add_force(p)
     p.set_defaults(func=cmd_dynamic)
 
     diagnose_cli.register(sub)
@@ -209,6 +181,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _load(paths: list[Path], args: argparse.Namespace):
     """``load_recording`` with a subcommand's input options."""
+    from .input_files import load_recording
+
     return load_recording(paths, rate=args.rate, temperature=args.temperature, g=args.g,
                           namespace=getattr(args, "namespace", None), topic=getattr(args, "topic", None))
 
@@ -239,6 +213,8 @@ def cmd_import(args: argparse.Namespace) -> int:
 def cmd_fit(args: argparse.Namespace) -> int:
     """Fit from the files (``fit_pipeline.fit_files``: MCAP streamed, memory bounded by one block,
     docs/calibration_fit.md; ``--in-memory`` loads every sample first)."""
+    import numpy as np
+
     from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 
     from .cli_progress import enabled
@@ -294,6 +270,7 @@ def cmd_dynamic(args: argparse.Namespace) -> int:
     from .dynamic_calibration import run_dynamic
     from .dynamic_csv import read_dynamic_csv
     from .excitation_plan import ExcitationPlan
+    from .input_files import check_input
     from .mcap_io import read_recording, read_warnings
 
     outputs = [o for o in (args.output, args.bode, args.json) if o is not None]
@@ -378,6 +355,8 @@ def calibration_match_warnings(cal, rec) -> list[str]:
     samples outside the calibrated temperature range by more than the driver's margin (``AHT10_SIGMA_C``; count, fraction,
     range; of the samples that are data: those with
     a reference too low to be data, ``Recording.low_reference``, are not counted)."""
+    import numpy as np
+
     out = []
     other = another_sensor(cal, rec.metadata)
     if other:
@@ -400,6 +379,8 @@ def time_base_segments(t_s: np.ndarray, kept: np.ndarray) -> tuple[float, list[n
     ``kept`` marks the samples used (after --skip and without invalid ones). A break is a step of the time stamps
     <= 0 (board time restarting: a reboot), a step longer than 1.5 sample periods (a gap), or dropped samples
     between two kept ones. No ADEV cluster spans a break (``allan_deviation`` pools the segments)."""
+    import numpy as np
+
     idx = np.flatnonzero(kept)
     t = t_s[idx]
     dt = np.diff(t)
@@ -426,6 +407,8 @@ def time_base_segments(t_s: np.ndarray, kept: np.ndarray) -> tuple[float, list[n
 def cmd_allan(args: argparse.Namespace) -> int:
     """ADEV of a static recording. Breaks in the time base (board time restarting, gaps, dropped invalid samples)
     split it into continuous segments whose clusters are pooled; none spans a break (each break is named)."""
+    import numpy as np
+
     from fbg_accel_driver.thermal_model import ThermalCalibration
 
     from .allan import AXES, allan_deviation, plot_allan
@@ -478,6 +461,8 @@ def cmd_allan(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from fbg_accel_driver.thermal_model import ThermalCalibration
 
     from .fit_report import fit_report_markdown, plot_calibrated_vs_reference, plot_residuals_per_degree, pose_statistics
@@ -527,6 +512,8 @@ def cmd_report_measured(args: argparse.Namespace) -> int:
 def cmd_field_check(args: argparse.Namespace) -> int:
     """Still periods at unknown orientations against local gravity (``field_check``); the updated calibration only
     with ``--output``."""
+    import numpy as np
+
     from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
     from fbg_accel_driver.thermal_model import ThermalCalibration
 

@@ -11,9 +11,10 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from tqdm import tqdm
+if TYPE_CHECKING:
+    from tqdm import tqdm
 
 
 def add_progress_option(p: argparse.ArgumentParser) -> None:
@@ -30,6 +31,8 @@ def enabled(args: argparse.Namespace) -> bool:
 
 def bar(on: bool, desc: str, total: int | None = None, unit: str = "samples") -> tqdm:
     """A tqdm bar on stderr (a no-op object when ``on`` is false)."""
+    from tqdm import tqdm  # here: the parsers import this module for its options, and --help needs no tqdm
+
     return tqdm(total=total, desc=desc, unit=unit, unit_scale=True, file=sys.stderr, disable=not on,
                 leave=False, dynamic_ncols=True, mininterval=0.2)
 

@@ -21,6 +21,7 @@ from pathlib import Path
 from fbg_accel_driver.command_line import printable
 
 from . import input_validation as iv
+from .cli_options import add_topic_options
 from .cli_progress import add_progress_option
 
 
@@ -35,8 +36,6 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     )
     p.add_argument("inputs", nargs="+", help="recordings: .csv (interchange format, docs/csv_interchange.md), .mcap "
                    "or a rosbag2 bag directory (ros2 bag record -s mcap)")
-    from .cli import add_topic_options
-
     add_topic_options(p)
     p.add_argument("--rate", type=iv.rate_hz, default=None,
                    help="CSV without t_s: sample rate in Hz (time = sample index / rate); no default, as for the "

@@ -18,6 +18,7 @@ import numpy as np
 from fbg_accel_driver.thermal_model import normalise
 
 from .input_validation import SampleCheck
+from .pass_spill import PassSpill
 from .recording import LowReference, Recording, without_low_reference, without_samples
 from .static_detector import (
     BLOCK_ROWS,
@@ -158,8 +159,9 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
        ``2 min_interval`` samples carried between blocks) select the fit samples; their temperatures
        go into the exact gap clustering (``thermal_fit.TemperatureClusters``) and the min/max that give the
        temperature levels and the scaling tau = (T - centre)/scale;
-    3. sums: the same selection again, now with tau and the level of each sample, into
-       :class:`CellAccumulator`, in chunks of ``chunk`` selected rows across blocks and runs.
+    3. sums: the same selection again (the detector's decisions of step 2 kept per block, ``pass_spill.PassSpill``),
+       now with tau and the level of each sample, into :class:`CellAccumulator`, in chunks of ``chunk`` selected
+       rows across blocks and runs.
 
     ``usable`` (one (N_i,) bool mask per source): the fit's samples given, no static detection (step 1 skipped).
 
@@ -237,12 +239,26 @@ def prepare_stream(sources: list[SampleBlockSource], degree: int, window: int = 
                 blk, use = blk.select(~low), use[~low]
             yield blk, normalise(blk.xyz, blk.ref), use, np.zeros(len(blk), bool)
 
+    # per source: each block's (usable, clipped) as the detector decided them in the first pass over it (steps 2, 3)
+    selections: list[PassSpill | None] = [None] * len(sources)
+
     def kept_blocks(count: bool = False):
         for i, src in enumerate(sources):
             src.count = count
+            kept = selections[i]
+            if kept is not None:  # the same blocks again: the detector's decisions kept, not made again
+                for blk, (use, clipped) in zip(src.blocks(BLOCK_ROWS, True), kept.pieces(), strict=True):
+                    psi = normalise(blk.xyz, blk.ref)
+                    valid = fit_valid(blk, psi)
+                    yield i, blk, psi, use, valid, use & valid, clipped
+                continue
+            spill = PassSpill((bool, bool), keep_lengths=True) if usable is None else None
             for blk, psi, use, clipped in detected(src, i):
+                if spill is not None:
+                    spill.add(use, clipped)
                 valid = fit_valid(blk, psi)
                 yield i, blk, psi, use, valid, use & valid, clipped
+            selections[i] = spill
 
     clusters = TemperatureClusters(level_gap_c)
     n_total = n_motion = n_other = n_clipped = 0

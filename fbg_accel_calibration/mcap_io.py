@@ -72,6 +72,7 @@ from fbg_accel_driver.driver_core import RAW_AUX_NAME, RAW_NAMES
 
 from . import ros2_cdr
 from .atomic_output import create_exclusive
+from .pass_spill import PassSpill
 from .recording import Recording
 from .rosbag2_input import BagInputError, bag_files, offered_qos_yaml
 
@@ -94,6 +95,7 @@ ROLE_TYPES = dict(zip(ROLES, (TYPE_RAW, TYPE_TEMPERATURE, TYPE_REFERENCE_GRAVITY
 POSE_STATES = ("moving", "settling", "recording", "done")
 TABLE_FRAME = "calibration_table"
 DEFAULT_CHUNK_BYTES = 32 * 1024
+REPLAY_ROWS = 1 << 16  # rows per batch of the samples a later pass takes from the first one (McapSampleStream)
 BACKWARDS_TOLERANCE_NS = 1_000_000  # raw stamps going back less than this are jitter, read without a note
 
 _PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32",
@@ -238,49 +240,53 @@ class TopicSelection:
 
 def _summary_topics(path: Path) -> dict[str, str] | None:
     """Topic -> type from an MCAP file's summary section (None when it has none, e.g. a truncated file)."""
-    from mcap.reader import make_reader
-
     try:
         with open(path, "rb") as fh:
-            if not _summary_plausible(fh):
-                return None
-            summary = make_reader(fh).get_summary()
+            records = _summary_records(fh)
     except Exception:  # no or damaged summary: the readers find the topics while reading
         return None
-    if summary is None or not summary.channels:
+    if not records:
         return None
-    return {c.topic: (summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "no schema")
-            for c in summary.channels.values()}
+    schemas = {r.id: r.name for r in records if isinstance(r, Schema)}
+    channels = {r.id: r for r in records if isinstance(r, Channel)}
+    if not channels:
+        return None
+    return {c.topic: schemas.get(c.schema_id, "no schema") for c in channels.values()}
 
 
 _SUMMARY_OPCODES = frozenset((Opcode.SCHEMA, Opcode.CHANNEL, Opcode.CHUNK_INDEX, Opcode.ATTACHMENT_INDEX,
                               Opcode.METADATA_INDEX, Opcode.STATISTICS, Opcode.SUMMARY_OFFSET))
 
 
-def _summary_plausible(fh: Any) -> bool:
-    """Whether the records from the footer's ``summary_start`` to the footer are summary records (MCAP spec) that
-    tile that stretch exactly, walked by their framing alone. The mcap library reads what lies there, chunks
-    included, one record at a time in Python: a footer pointing at a chunk of zeros made it loop over millions of
-    9-byte records before the reader proper (with its bounds, :func:`_chunk_bytes`) saw the file."""
+def _summary_records(fh: Any) -> list[Any] | None:
+    """The schema and channel records of the summary section (MCAP spec), or None unless the records from the
+    footer's ``summary_start`` to the footer are summary records that tile that stretch exactly, walked by their
+    framing alone (a footer pointing at a chunk of zeros is no summary: it must not start a walk over millions of
+    9-byte records); the other summary records (chunk indexes, statistics, ...) are passed over unparsed."""
     size = fh.seek(0, io.SEEK_END)
     footer_at = size - len(MCAP_MAGIC) - 9 - 20
     if footer_at < len(MCAP_MAGIC):
-        return False
+        return None
     fh.seek(footer_at)
     head = fh.read(9 + 8)
     if head[0] != Opcode.FOOTER:
-        return False
+        return None
     (pos,) = struct.unpack_from("<Q", head, 9)
-    if pos == 0:
-        return True  # no summary: the library says so without reading any
-    while pos < footer_at:
-        fh.seek(pos)
-        rec = fh.read(9)
-        if len(rec) < 9 or rec[0] not in _SUMMARY_OPCODES:
-            return False
-        pos += 9 + struct.unpack_from("<Q", rec, 1)[0]
-    fh.seek(0)
-    return pos == footer_at
+    if pos == 0 or pos > footer_at:
+        return None  # no summary
+    fh.seek(pos)
+    data = fh.read(footer_at - pos)
+    at, end, records = 0, len(data), []
+    while at < end:
+        if at + 9 > end or data[at] not in _SUMMARY_OPCODES:
+            return None
+        opcode, length = _RECORD_HEAD.unpack_from(data, at)
+        if at + 9 + length > end:
+            return None
+        if opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
+            records.append(_PARSED[opcode].read(ReadDataStream(io.BytesIO(data[at + 9:at + 9 + length]))))
+        at += 9 + length
+    return records
 
 
 def recording_files(path: str | Path, namespace: str | None = None, raw_topic: str | None = None
@@ -1062,6 +1068,8 @@ class McapSampleStream:
         self._temp_v: list[float] = []
         self._pose_log: list[tuple[int, int, str]] = []  # the pose events at their log time (read_warnings)
         self._log_offset: int | None = None  # log time - stamp of the last raw message read (first pass)
+        self._spill: PassSpill | None = None  # the samples of the first pass that read the files to their end
+        self._spill_report = self.report
 
     def _raw_clock(self, log_time: int, stamp: int) -> None:
         """Note the raw messages' log-time-minus-stamp offset (the recorder's clock against the driver's): a
@@ -1073,20 +1081,38 @@ class McapSampleStream:
         self._log_offset = offset
 
     # -- record level
-    def _batches(self, collect_events: bool):
+    def _batches(self, collect_events: bool, keep: bool = True):
         """Yield ``(stamps (k,) int64 ns, values (k, n))`` batches of ``imu/raw`` in file order, the files of
         a bag one after the other (``report.complete`` only when every file was read to its footer). The pass's
         report becomes ``self.report`` when the pass ends: a pass its consumer closes early (the fit's second look at
-        a run's first samples) read only part of the file and must not stand for it."""
+        a run's first samples) read only part of the file and must not stand for it.
+
+        The files are read once: the first pass that reaches the end keeps its samples (``pass_spill.PassSpill``), and
+        every later pass gives them back from there, the same values in the same order (in batches of
+        :data:`REPLAY_ROWS`), with that pass's report. ``keep`` False: a single pass (:meth:`all_rows`), nothing kept."""
+        if self._spill is not None:
+            yield from self._spill.pieces(REPLAY_ROWS)
+            self.report = self._spill_report
+            return
         report = FileReadReport(str(self.path), notes=list(self._notes))
         complete = True
         seen: dict[bytes, str] = {}  # chunk digests of the pass: a chunk repeated in a file or across files is read once
-        for path in self.files:
-            report.complete = False
-            yield from self._file_batches(path, report, collect_events, seen)
-            complete &= report.complete
+        spill = PassSpill((np.int64, float)) if keep else None
+        try:
+            for path in self.files:
+                report.complete = False
+                for stamps, values in self._file_batches(path, report, collect_events, seen):
+                    if spill is not None:
+                        spill.add(stamps, values)
+                    yield stamps, values
+                complete &= report.complete
+        except BaseException:  # an error, or a pass closed early: what was kept is not the whole file
+            if spill is not None:
+                spill.close()
+            raise
         report.complete = complete
-        self.report = report
+        self.report = self._spill_report = report
+        self._spill = spill
 
     def _file_batches(self, path: Path, report: FileReadReport, collect_events: bool, seen: dict[bytes, str]):
         """:meth:`_batches` of one MCAP file (channel and schema ids are per file)."""
@@ -1246,7 +1272,7 @@ class McapSampleStream:
         """Every ``imu/raw`` sample in file order, ``(stamps (N,) int64 ns, values (N, k))``, in one pass that
         also collects the events (for a reader that holds the whole recording; stamps may go backwards)."""
         collect = self._start_pass()
-        batches = [(s, v) for s, v in self._batches(collect) if len(s)]
+        batches = [(s, v) for s, v in self._batches(collect, keep=False) if len(s)]
         self._end_pass(collect, sum(len(s) for s, _ in batches))  # no samples: raises
         # one width: a message whose name list differs from the first one's already raised in _file_batches
         return np.concatenate([s for s, _ in batches]), np.concatenate([v for _, v in batches])

@@ -39,13 +39,13 @@ from .csv_import import import_csv
 from .fit_pipeline import fit_thermal
 from .fit_report import AXES, PoseStats, plot_calibrated_vs_reference, pose_statistics
 from .fit_stream import fit_valid, prepare
+from .measured_paths import FIT_MD as DEFAULT_MD
+from .measured_paths import FIT_PNG as DEFAULT_PNG
+from .measured_paths import MEASURED_CSV as DEFAULT_CSV
 from .model_selection import SelectionResult, held_out_predictions, select_degree
 from .recording import Recording
 from .static_detector import calibration_samples
 
-DEFAULT_CSV = Path("../shared/data/measured/fig13_multiposition_23C.csv")
-DEFAULT_MD = Path("docs/results/measured_fit.md")
-DEFAULT_PNG = Path("docs/img/measured_fit.png")
 TEMPERATURE_C = 23.4  # data README: held at about 23.4 degC, not in the series
 G_MPS2 = 9.81  # data README: g ~ 9.81 m/s^2
 WINDOW = 3

@@ -32,7 +32,6 @@ from .coefficient_uncertainty import bootstrap_covariance, cluster_covariance
 from .measured_report import PAPER_B_ABS, PAPER_M, MeasuredDataMissingError, MeasuredFit, fit_measured
 from .thermal_fit import model_to_coefficients
 
-DEFAULT_MD = Path("docs/results/calibration_uncertainty.md")
 SWEEP_VISITS = 12  # psi steps 0..330 deg by 30: one sweep of the inner table axis at one theta (data README)
 U_ROUND = 0.005 / math.sqrt(3.0)  # two decimals published: rectangular +-0.005
 COVERAGE_K = 2.0

@@ -224,7 +224,11 @@ def without_samples(blocks: Iterator[Recording], block_rows: int,
             blk, back = join_blocks([back, blk]), None
         blk, drop, hold = flags(blk, following is None)
         if hold.any():
-            back, blk, drop = blk.select(hold), blk.select(~hold), drop[~hold]
+            first = int(np.argmax(hold))
+            if hold[first:].all():  # a held tail (the usual): views of the block, not copies
+                back, blk, drop = blk.select(slice(first, None)), blk.select(slice(0, first)), drop[:first]
+            else:
+                back, blk, drop = blk.select(hold), blk.select(~hold), drop[~hold]
         if not held and not drop.any() and back is None:
             yield blk
             blk = following

@@ -52,8 +52,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import norm
-from scipy.stats import t as student_t
 
 DEFAULT_FALSE_ALARM_PER_RUN = 1e-3
 DEFAULT_ENTER_EXCEEDANCE = 0.05
@@ -302,6 +300,9 @@ class StillnessMonitor:
         self.enter_threshold = self.expected_variance * np.array(
             [ratio_quantile(enter_exceedance, weights[j], floor.dof[j]) for j in range(k)])
         mean_var = floor.variance * np.array([acf_matrix(floor.acf[j], self.window).sum() for j in range(k)]) / self.window**2
+        from scipy.stats import norm  # here, not at import: the node's --help reads this module's defaults
+        from scipy.stats import t as student_t
+
         quantile = np.array([float(student_t.isf(self.per_window_false_alarm / 2.0, d)) if math.isfinite(d)
                              else float(norm.isf(self.per_window_false_alarm / 2.0)) for d in floor.dof])
         # Psi units: a window mean this far from the one at the start of the hold restarts the hold

@@ -32,8 +32,6 @@ from pathlib import Path
 from fbg_accel_calibration import input_validation as iv
 from fbg_accel_driver.command_line import OneLineErrorParser, one_line, printable, version_line
 
-from .board_physics import BoardSimulator
-from .pty_server import TruthRecorder, serve_pty
 from .sim_config import SimConfig, SimConfigError, parse_set_argument
 
 # Bounds of the options (a hostile value is refused in one line, never a traceback or a run without end): frames
@@ -110,6 +108,9 @@ def main(argv: list[str] | None = None) -> int:
     from fbg_accel_calibration.atomic_output import committed_outputs
 
     args = build_parser().parse_args(argv)
+    from .board_physics import BoardSimulator  # numpy: only once --help and --version have answered
+    from .pty_server import TruthRecorder, serve_pty
+
     try:
         check_outputs(args)
         cfg = load_config(args)

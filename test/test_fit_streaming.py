@@ -122,6 +122,30 @@ def test_files_read_whole_or_block_by_block_give_the_same_preparation(runs: list
     assert sel.as_dict() == select_degree(sd, 3).as_dict()
 
 
+def test_the_detector_decides_each_block_once_and_the_sums_are_those_of_deciding_it_again(
+        runs: list[Path], small_blocks: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """After the noise floor, the static detector's decisions of the first pass over a run are kept for the next one
+    (``pass_spill.PassSpill``): the preparation is bit for bit the one that runs the detector in both passes."""
+    calls: list[int] = []
+    original = fit_stream.usable_blocks
+
+    def counted(*args: object, **kwargs: object):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(fit_stream, "usable_blocks", counted)
+    kept = prepare_stream([McapSampleStream(p) for p in runs], 3, chunk=700)
+    assert len(calls) == len(runs)
+    with monkeypatch.context() as m:
+        m.setattr(fit_stream, "PassSpill", lambda *args, **kwargs: None)  # nothing kept: decided in both passes
+        again = prepare_stream([McapSampleStream(p) for p in runs], 3, chunk=700)
+    assert len(calls) == 3 * len(runs)
+    assert (kept.n_used, kept.n_total, kept.n_excluded_motion, kept.detector) == (
+        again.n_used, again.n_total, again.n_excluded_motion, again.detector)
+    for name in ("pose", "level", "xtx", "xtg", "gtg", "xsum", "gsum", "count"):
+        assert np.array_equal(getattr(kept.stats, name), getattr(again.stats, name)), name
+
+
 def test_cli_fit_streams_the_files_and_writes_the_in_memory_result(runs: list[Path], tmp_path: Path,
                                                                    monkeypatch: pytest.MonkeyPatch,
                                                                    capsys: pytest.CaptureFixture[str]) -> None:
@@ -133,10 +157,20 @@ def test_cli_fit_streams_the_files_and_writes_the_in_memory_result(runs: list[Pa
 
     monkeypatch.setattr(mcap_io, "read_file", no_whole_file)
     monkeypatch.setattr(mcap_io, "read_recording", no_whole_file)
+    reads: list[Path] = []  # the passes after the first take the samples it kept: each file is read once
+    original = McapSampleStream._file_batches
+
+    def counted(self: McapSampleStream, path: Path, *args: object):
+        reads.append(path)
+        return original(self, path, *args)
+
+    monkeypatch.setattr(McapSampleStream, "_file_batches", counted)
+    monkeypatch.setattr(mcap_io, "REPLAY_ROWS", 777)  # kept batches given back cut elsewhere than read
     capsys.readouterr()
     assert cli_main(["fit", *files, "-o", str(tmp_path / "stream.yaml")]) == 0
+    assert sorted(reads) == sorted(runs)
     err = capsys.readouterr().err
-    assert f"warning: {runs[-1]} is truncated" in err
+    assert f"warning: {runs[-1]} is truncated" in err  # the first pass's report stands for the truncated file
     mem, streamed = ThermalCalibration.load(tmp_path / "mem.yaml"), ThermalCalibration.load(tmp_path / "stream.yaml")
     assert streamed.sensor_id == mem.sensor_id == "fbg-test"
     assert streamed.fit["degree"] == mem.fit["degree"]

@@ -58,12 +58,6 @@ def test_the_checker_sees_local_relative_and_string_imports(tmp_path: Path) -> N
     assert imported_packages(src, "fbg_accel_driver") == {"fbg_accel_sim", "fbg_accel_driver", "fbg_accel_calibration"}
 
 
-# Modules that import each other, left while another change breaks them up (docs/architecture.md): each entry is one
-# circle, and the test fails once it is gone too, so the entry goes with it.
-KNOWN_CIRCLES: set[frozenset[str]] = {
-    frozenset({"fbg_accel_calibration.cli", "fbg_accel_calibration.diagnose_cli"}),
-}
-
 
 def _module_name(path: Path, root: Path) -> str:
     parts = list(path.relative_to(root).with_suffix("").parts)
@@ -136,8 +130,7 @@ def import_circles(graph: dict[str, set[str]]) -> set[frozenset[str]]:
 
 def test_no_module_imports_itself_round_a_circle() -> None:
     circles = import_circles(module_imports(ROOT, ORDER))
-    assert circles - KNOWN_CIRCLES == set(), sorted(sorted(c) for c in circles - KNOWN_CIRCLES)
-    assert KNOWN_CIRCLES <= circles, f"gone, take them out of KNOWN_CIRCLES: {sorted(sorted(c) for c in KNOWN_CIRCLES - circles)}"
+    assert circles == set(), sorted(sorted(c) for c in circles)
 
 
 def test_the_circle_check_sees_local_relative_and_type_checking_imports(tmp_path: Path) -> None:
