@@ -451,6 +451,17 @@ def combined_standard_uncertainty(components: Sequence[BudgetComponent]) -> floa
     return float(math.sqrt(sum(c.standard_uncertainty**2 for c in components)))
 
 
+def effective_degrees_of_freedom(components: Sequence[BudgetComponent], type_a_dof: float) -> float:
+    """Welch-Satterthwaite effective degrees of freedom of the combined uncertainty (GUM, JCGM 100:2008 G.4.1):
+    ``u_c^4 / sum(u_i^4 / nu_i)``, with ``type_a_dof`` for the type-A components (a standard deviation of the mean
+    over k repeats: k - 1) and infinitely many for type B (the budget's B components are taken as known). A budget
+    with no type-A part, or ``type_a_dof`` infinite, has infinitely many."""
+    denom = sum(c.standard_uncertainty**4 / type_a_dof for c in components if c.kind == "A" and c.standard_uncertainty > 0)
+    if not denom > 0:
+        return math.inf
+    return combined_standard_uncertainty(components) ** 4 / denom
+
+
 def resolution_components(fs_hz: float, f_hz: float) -> tuple[BudgetComponent, BudgetComponent]:
     """Resolution of the delay and phase from the sampling rate (seed 2.4, Table 3).
 
@@ -539,6 +550,13 @@ class DynamicPoint:
     def response(self) -> complex:
         """Measured complex response ``sensitivity * exp(j phase)`` (unitless)."""
         return complex(self.sensitivity * np.exp(1j * np.deg2rad(self.phase_deg)))
+
+    def degrees_of_freedom(self, quantity: Literal["sensitivity", "phase", "delay"]) -> float:
+        """Effective degrees of freedom of ``u_<quantity>`` (:func:`effective_degrees_of_freedom`): the repeatability
+        is a standard deviation over ``n_repeats`` estimates, k - 1 degrees of freedom (2 to 7 for sub-blocks of one
+        segment); the sine fits' covariance of a single estimate rests on its many samples (infinite here)."""
+        budget = {"sensitivity": self.budget_sensitivity, "phase": self.budget_phase, "delay": self.budget_delay}[quantity]
+        return effective_degrees_of_freedom(budget, self.n_repeats - 1 if self.n_repeats >= 2 else math.inf)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)  # the budgets as lists of dicts

@@ -77,12 +77,10 @@ def test_dynamic_plan_recorded_to_the_end_and_killed_half_way(ros: Context, tmp_
     assert part.t_s[-1] - part.t_s[0] >= 9.0  # killed after 10 s: everything but the chunk in progress (<= 1 s)
 
     out = tmp_path / "cal.yaml"
-    # the recording's processing is under test here, not the axis check (test_dynamic_per_channel.py): on this short
-    # three-tone plan the check's prediction, which leaves out the static calibration's own error in M, can miss the
-    # x axis by a few standard uncertainties, and the file is then written only with --accept-misfit
     res = subprocess.run([BIN / "fbg-accel-calib", "dynamic", tmp_path / "full.mcap", "--plan", tmp_path / "plan.yaml",
-                          "--calibration", default_calibration_path(), "-o", out, "--accept-misfit"],
+                          "--calibration", default_calibration_path(), "-o", out],
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stdout + res.stderr
     section = yaml.safe_load(out.read_text())["dynamic"]
+    assert section["fit"]["axis_check"]["misfit"] is False
     assert 1.2 < section["cutoff_hz"]["x"] < 2.2 and 0.9 < section["cutoff_hz"]["y"] < 1.7  # 3 frequencies only

@@ -11,8 +11,10 @@ import numpy as np
 import pytest
 from scipy import signal
 
+from fbg_accel_calibration.chain_model import ChainModel, response
 from fbg_accel_calibration.cli import main as calib_main
-from fbg_accel_calibration.dynamic_calibration import MISFIT_Z, run_dynamic
+from fbg_accel_calibration.dynamic_analysis import BudgetComponent, DynamicPoint
+from fbg_accel_calibration.dynamic_calibration import MISFIT_Z, check_axes, run_dynamic
 from fbg_accel_calibration.dynamic_csv import write_dynamic_csv
 from fbg_accel_calibration.excitation_plan import ExcitationPlan
 from fbg_accel_driver.driver_main import default_calibration_path
@@ -91,3 +93,34 @@ def test_a_second_order_stage_on_one_channel_is_flagged_and_not_written_unless_a
     assert len(err) == 1 and "--accept-misfit" in err[0] and not out.exists()
     assert calib_main([*args, "--accept-misfit"]) == 0
     assert ThermalCalibration.load(out).dynamic.fit["axis_check"]["misfit"] is True
+
+
+def _point(axis: int, h: complex, u_a: float, u_b: float, repeats: int, off: float) -> DynamicPoint:
+    """A measured axis point at 1 Hz of response ``h``, its sensitivity ``off`` standard uncertainties above ``|h|``;
+    the sensitivity's and phase's uncertainties have a type-A part ``u_a`` (relative to ``|h|``; a standard deviation
+    over ``repeats`` sub-blocks) and a type-B part ``u_b``."""
+    s = abs(h) * (1.0 + off * float(np.hypot(u_a, u_b)))
+    p = DynamicPoint(f_hz=1.0, axis="xyz"[axis], axis_index=axis, direction_component=3 ** -0.5, n_repeats=repeats,
+                     sensitivity=s, phase_deg=float(np.degrees(np.angle(h))))
+    p.budget_sensitivity = [BudgetComponent.standard("repeatability", u_a * abs(h), "1", "A", ""),
+                            BudgetComponent.standard("reference", u_b * abs(h), "1", "B", "")]
+    p.budget_phase = [BudgetComponent.standard("repeatability", np.degrees(u_a), "deg", "A", ""),
+                      BudgetComponent.standard("reference", np.degrees(u_b), "deg", "B", "")]
+    p.u_sensitivity = float(np.hypot(u_a, u_b) * abs(h))
+    p.u_phase_deg = float(np.degrees(np.hypot(u_a, u_b)))
+    return p
+
+
+@pytest.mark.parametrize(("u_a", "u_b", "repeats", "flagged"), [(0.02, 0.001, 3, False), (0.001, 0.02, 3, True),
+                                                                 (0.02, 0.001, 10_000, True)])
+def test_the_axis_check_reads_a_repeatability_with_its_degrees_of_freedom(u_a, u_b, repeats, flagged):
+    """A sensitivity 5 standard uncertainties off the channel models' prediction: a misfit when the uncertainty is
+    known (type B, or a repeatability over many repeats), not when it is a standard deviation over 3 sub-blocks (2
+    degrees of freedom, Student's t: 5 is then a normal deviate of 2.1). Before, a raw |z| 3.6 from 5 sub-blocks
+    failed the 3-tone process plan's run (test/test_calibration_dynamic_process.py)."""
+    model = ChainModel(gain=1.0, cutoff_hz=2.0, delay_s=0.02)
+    h = complex(response(model, 1.0))
+    points = [_point(j, h, u_a, u_b, repeats, 5.0 if j == 0 else 0.0) for j in range(3)]
+    check = check_axes(points, np.eye(3), dict.fromkeys("xyz", model), np.ones(3))
+    assert abs(float(check.rows[0]["z_sensitivity"]) + 5.0) < 1e-9 and check.misfit is flagged, check.verdict()
+    assert check.max_abs_z > 1.5 * MISFIT_Z if flagged else check.max_abs_z < 0.75 * MISFIT_Z
