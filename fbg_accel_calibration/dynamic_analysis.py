@@ -552,11 +552,14 @@ class DynamicPoint:
         return complex(self.sensitivity * np.exp(1j * np.deg2rad(self.phase_deg)))
 
     def degrees_of_freedom(self, quantity: Literal["sensitivity", "phase", "delay"]) -> float:
-        """Effective degrees of freedom of ``u_<quantity>`` (:func:`effective_degrees_of_freedom`): the repeatability
-        is a standard deviation over ``n_repeats`` estimates, k - 1 degrees of freedom (2 to 7 for sub-blocks of one
-        segment); the sine fits' covariance of a single estimate rests on its many samples (infinite here)."""
+        """Effective degrees of freedom of ``u_<quantity>`` (:func:`effective_degrees_of_freedom`). The repeatability
+        rests on ``n_repeats`` = k estimates: the sensitivity's and the phase's are one pooled scatter of amplitude and
+        phase, 2(k - 1) degrees of freedom (4 to 14 for 3 to 8 sub-blocks of one segment), the delay's k - 1; the sine
+        fits' covariance of a single estimate rests on its many samples (infinite here). The ratio of a standard
+        deviation to the true one spreads by about 1/sqrt(2 nu): 50 % for nu = 2, 35 % for 4."""
         budget = {"sensitivity": self.budget_sensitivity, "phase": self.budget_phase, "delay": self.budget_delay}[quantity]
-        return effective_degrees_of_freedom(budget, self.n_repeats - 1 if self.n_repeats >= 2 else math.inf)
+        k = self.n_repeats
+        return effective_degrees_of_freedom(budget, math.inf if k < 2 else (k - 1) * (1 if quantity == "delay" else 2))
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)  # the budgets as lists of dicts
@@ -745,11 +748,17 @@ def _fill_point(p: DynamicPoint, whole: list[_Estimate], reps: list[_Estimate], 
 
     # Repeatability (type A): standard deviation of the mean over k repeats (seed 2.4).
     if k >= 2:
-        s_rel = float(np.std([abs(e.h) for e in reps], ddof=1)) / p.sensitivity / math.sqrt(k)
-        ph = np.array([math.degrees(_wrap(float(np.angle(e.h / Hm)))) for e in reps])
-        s_ph = float(np.std(ph, ddof=1)) / math.sqrt(k)
+        # Additive stationary noise on a tone is circular: over whole periods its in-phase and quadrature parts have one
+        # variance, so the relative scatter of |H| and the scatter of arg H (rad) estimate one quantity (the slide's own
+        # amplitude and phase wander cancel in the ratio H). Pooled, k repeats give 2(k - 1) degrees of freedom instead
+        # of k - 1 each: from 3 sub-blocks either alone can read the scatter several times low (see
+        # DynamicPoint.degrees_of_freedom).
+        s_amp = float(np.std([abs(e.h) for e in reps], ddof=1)) / p.sensitivity / math.sqrt(k)
+        s_arg = float(np.std([_wrap(float(np.angle(e.h / Hm))) for e in reps], ddof=1)) / math.sqrt(k)
+        s_rel = math.sqrt(0.5 * (s_amp**2 + s_arg**2))
+        s_ph = math.degrees(s_rel)
         s_d = float(np.std([e.delay_xcorr_s for e in reps], ddof=1)) / math.sqrt(k)
-        note = f"std of the mean over {k} repeats"
+        note = f"std of the mean over {k} repeats, amplitude and phase pooled"
     else:  # analyse_run refuses a single period; kept for a caller passing one estimate
         e = whole[0]
         s_rel = e.u_h_rel

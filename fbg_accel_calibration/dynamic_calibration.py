@@ -79,13 +79,14 @@ class AxisCheck:
 
     ``rows``: per tone and output axis, the measured sensitivity and phase (deg) with their combined standard
     uncertainties and those uncertainties' effective degrees of freedom (``dof_sensitivity``, ``dof_phase``;
-    Welch-Satterthwaite: the repeatability is a standard deviation over 3-8 sub-blocks), the model's prediction
+    Welch-Satterthwaite: the repeatability is a standard deviation over 3-8 sub-blocks,
+    :meth:`DynamicPoint.degrees_of_freedom`), the model's prediction
     ``(M diag(H) M^-1 d)_i / d_i``, the differences in units of the uncertainties (``z_sensitivity``, ``z_phase``;
     the phase difference wrapped to +-180 deg) and the same read as normal deviates of equal tail probability
     (``normal_z_sensitivity``, ``normal_z_phase``: :func:`normal_equivalent`). The decision is on the latter: a
-    standard deviation from 5 sub-blocks is itself uncertain (its ratio to the true one spreads by about 35 %), so
-    a raw z beyond 3 is not rare on a plan of short segments. ``threshold``: the largest normal deviate that is not
-    a misfit."""
+    standard deviation from 3 sub-blocks is itself uncertain (its ratio to the true one spreads by about 35 % on the
+    4 degrees of freedom of amplitude and phase pooled), so a raw z beyond 3 is not rare on a plan of short segments.
+    ``threshold``: the largest normal deviate that is not a misfit."""
 
     rows: list[dict[str, float | str]]
     threshold: float = MISFIT_Z
