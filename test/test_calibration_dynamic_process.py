@@ -25,13 +25,7 @@ from fbg_accel_driver.driver_main import default_calibration_path
 
 BIN = Path(sys.executable).parent
 RATE_HZ = 200
-PLAN = {"format": "fbg_accel_excitation_plan", "format_version": 1, "name": "short_process_test",
-        "direction": [0.5, -0.5, 0.70710678], "start_s": 3.0, "gap_s": 0.5, "ramp_cycles": 1.0, "settle_s": 0.5,
-        "reference": {"type": "ldv", "sensitivity_counts_per_mps": 2500.0, "offset_counts": 2048.0,
-                      "ac_coupling_hz": 0.5},
-        "segments": [{"freq_hz": 1.0, "amplitude_mps2": 2.5, "duration_s": 6.0},
-                     {"freq_hz": 2.0, "amplitude_mps2": 8.0, "duration_s": 4.0},
-                     {"freq_hz": 5.0, "amplitude_mps2": 19.6, "duration_s": 3.0}]}
+PLAN = yaml.safe_load((Path(__file__).parent / "fixtures" / "excitation_plan_three_tone.yaml").read_text())
 LENGTH_S = 3.0 + 6.0 + 4.0 + 3.0 + 2 * 0.5 + 2.0  # start + segments + gaps + the recorder's tail
 
 
