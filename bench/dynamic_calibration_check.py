@@ -453,6 +453,9 @@ def markdown(doc: dict, report: str, png: str) -> str:
         what = (f"{st['axis_check_max_abs_z']:.1f} ({st['axis_check_max_raw_z']:.1f})" if "axis_check_max_abs_z" in st
                 else st["reason"])
         lines.append(f"| {st['f0_hz']:g} | {st['q']:g} | {st['outcome']} | {what} |")
+    lines += ["", "A stage far above the plan's band (20 Hz) acts on it as a pure delay and is identified as one; "
+              "one inside it is refused by the fit's plausibility limit (the model misses its points by more than "
+              "10 standard uncertainties rms); between them the axis check flags it."]
     lines += ["", "The same stages on the y channel of every swept chain:", "",
               "| chain | " + " | ".join(f"{f0:g} Hz Q {q:g}" for f0, q in DETECT_STAGES) + " |",
               "|---:|" + "---|" * len(DETECT_STAGES)]
@@ -469,10 +472,7 @@ def markdown(doc: dict, report: str, png: str) -> str:
         lines.append(f"| {100 * pm['relative_error']:g} % | " + " / ".join(f"{v:+.2f}" for v in pm["gain_change_pct"])
                      + " | " + " / ".join(f"{v:+.3f}" for v in pm["cutoff_change_pct"])
                      + f" | {pm['max_abs_z']:.3f} ({pm['max_abs_z_change']:+.1g}) |")
-    lines += ["", "A stage far above the plan's band (20 Hz) acts on it as a pure delay and is identified as one; "
-              "one inside it is refused by the fit's plausibility limit (the model misses its points by more than "
-              "10 standard uncertainties rms); between them the axis check flags it.",
-              "", "## Chain 1000: channels and axes", "", f"![Bode plot](../img/{png})", "", "```", report, "```", ""]
+    lines += ["", "## Chain 1000: channels and axes", "", f"![Bode plot](../img/{png})", "", "```", report, "```", ""]
     return "\n".join(lines)
 
 

@@ -453,9 +453,9 @@ def combined_standard_uncertainty(components: Sequence[BudgetComponent]) -> floa
 
 def effective_degrees_of_freedom(components: Sequence[BudgetComponent], type_a_dof: float) -> float:
     """Welch-Satterthwaite effective degrees of freedom of the combined uncertainty (GUM, JCGM 100:2008 G.4.1):
-    ``u_c^4 / sum(u_i^4 / nu_i)``, with ``type_a_dof`` for the type-A components (a standard deviation of the mean
-    over k repeats: k - 1) and infinitely many for type B (the budget's B components are taken as known). A budget
-    with no type-A part, or ``type_a_dof`` infinite, has infinitely many."""
+    ``u_c^4 / sum(u_i^4 / nu_i)``, with ``type_a_dof`` for the type-A components (a repeatability over k repeats:
+    :meth:`DynamicPoint.degrees_of_freedom`) and infinitely many for type B (the budget's B components are taken as
+    known). A budget with no type-A part, or ``type_a_dof`` infinite, has infinitely many."""
     denom = sum(c.standard_uncertainty**4 / type_a_dof for c in components if c.kind == "A" and c.standard_uncertainty > 0)
     if not denom > 0:
         return math.inf
