@@ -209,7 +209,10 @@ class DynamicCalibrationResult:
                                                        if math.isnan(ref) else f"{ref:g} Hz (given)"))
         lines += ["", "Per output axis (eq. 28's output against the slide's acceleration along the axis), measured and "
                   "as the channel models predict it, M diag(H_channel) M^-1:", "", points_table_markdown(self.points),
-                  "", self.check.markdown(), "", self.check.verdict()]
+                  "", self.check.markdown(), "", self.check.verdict(),
+                  "(z: difference / standard uncertainty, on the uncertainty's effective degrees of freedom; the static "
+                  "calibration's own error in M is not in it: the axes are M times the channels through the same M, "
+                  "and an error of M changes only the channels' gains)"]
         lines += [f"note: {n}" for n in self.notes]
         return "\n".join(lines)
 
