@@ -318,8 +318,9 @@ def cmd_dynamic(args: argparse.Namespace) -> int:
         print(f"wrote {path}")
     if misfit:
         raise ValueError(f"{args.output} not written: the per-channel chain model misses the measured axes by "
-                         f"{result.check.max_abs_z:.2g} standard uncertainties (beyond {result.check.threshold:g}; the "
-                         "report's axis check): find the cause, or give --accept-misfit to write it anyway")
+                         f"{result.check.max_abs_z:.2g} standard uncertainties as a normal deviate (beyond "
+                         f"{result.check.threshold:g}; the report's axis check): find the cause, or give --accept-misfit "
+                         "to write it anyway")
     return 0
 
 

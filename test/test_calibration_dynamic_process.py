@@ -25,13 +25,7 @@ from fbg_accel_driver.driver_parameters import default_calibration_path
 
 BIN = Path(sys.executable).parent
 RATE_HZ = 200
-PLAN = {"format": "fbg_accel_excitation_plan", "format_version": 1, "name": "short_process_test",
-        "direction": [0.5, -0.5, 0.70710678], "start_s": 3.0, "gap_s": 0.5, "ramp_cycles": 1.0, "settle_s": 0.5,
-        "reference": {"type": "ldv", "sensitivity_counts_per_mps": 2500.0, "offset_counts": 2048.0,
-                      "ac_coupling_hz": 0.5},
-        "segments": [{"freq_hz": 1.0, "amplitude_mps2": 2.5, "duration_s": 6.0},
-                     {"freq_hz": 2.0, "amplitude_mps2": 8.0, "duration_s": 4.0},
-                     {"freq_hz": 5.0, "amplitude_mps2": 19.6, "duration_s": 3.0}]}
+PLAN = yaml.safe_load((Path(__file__).parent / "fixtures" / "excitation_plan_three_tone.yaml").read_text())
 LENGTH_S = 3.0 + 6.0 + 4.0 + 3.0 + 2 * 0.5 + 2.0  # start + segments + gaps + the recorder's tail
 
 
@@ -77,12 +71,10 @@ def test_dynamic_plan_recorded_to_the_end_and_killed_half_way(ros: Context, tmp_
     assert part.t_s[-1] - part.t_s[0] >= 9.0  # killed after 10 s: everything but the chunk in progress (<= 1 s)
 
     out = tmp_path / "cal.yaml"
-    # the recording's processing is under test here, not the axis check (test_dynamic_per_channel.py): on this short
-    # three-tone plan the check's prediction, which leaves out the static calibration's own error in M, can miss the
-    # x axis by a few standard uncertainties, and the file is then written only with --accept-misfit
     res = subprocess.run([BIN / "fbg-accel-calib", "dynamic", tmp_path / "full.mcap", "--plan", tmp_path / "plan.yaml",
-                          "--calibration", default_calibration_path(), "-o", out, "--accept-misfit"],
+                          "--calibration", default_calibration_path(), "-o", out],
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stdout + res.stderr
     section = yaml.safe_load(out.read_text())["dynamic"]
+    assert section["fit"]["axis_check"]["misfit"] is False
     assert 1.2 < section["cutoff_hz"]["x"] < 2.2 and 0.9 < section["cutoff_hz"]["y"] < 1.7  # 3 frequencies only
