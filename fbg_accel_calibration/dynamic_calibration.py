@@ -53,10 +53,10 @@ from .dynamic_analysis import (
     points_table_markdown,
     sampling_rate,
     uniformly_sampled,
-    whole_period_length,
 )
 from .excitation_plan import ExcitationPlan, find_slide_start, reference_acceleration
 from .recording import Recording
+from .tone_delay import whole_period_length
 
 MAX_CHI2_PER_DOF = 100.0  # a chain fit missing its points by > 10 standard uncertainties (rms) is refused
 MISFIT_Z = 3.0  # an axis point the channel models miss beyond this normal deviate (AxisCheck): a misfit

@@ -25,14 +25,12 @@ from fbg_accel_calibration.dynamic_analysis import (
     ReferenceUncertainty,
     analyse_run,
     budget_table_markdown,
-    delay_by_cross_correlation,
-    delay_by_cross_spectrum,
     fft_amplitude_phase,
     points_table_markdown,
     resolution_components,
     sine_approximation,
-    whole_period_length,
 )
+from fbg_accel_calibration.tone_delay import delay_by_cross_correlation, delay_by_cross_spectrum, whole_period_length
 
 FS = 1000.0
 FREQS = (0.5, 1.0, 2.0, 5.0, 10.0, 20.0)

@@ -19,7 +19,6 @@ from scipy import optimize, stats
 
 from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 
-from ..dynamic_analysis import peak_offset
 from ..effects import Effect
 from ..model_selection import DegreeScores, choose_degree
 from ..model_selection import select_degree as calibration_select_degree
@@ -29,6 +28,7 @@ from ..thermal_fit import (
     NotIdentifiedError,
     temperature_levels,
 )
+from ..tone_delay import peak_offset
 from .cv import (
     RSS_TIE_RTOL,
     CvResult,
