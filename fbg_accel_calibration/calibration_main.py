@@ -14,8 +14,7 @@ from fbg_accel_driver.command_line import (
     parameter_help,
     print_help_or_version,
 )
-
-from .stillness_monitor import DEFAULT_FALSE_ALARM_PER_RUN, DEFAULT_NOISE_CORR_S
+from fbg_accel_driver.stillness_monitor import DEFAULT_FALSE_ALARM_PER_RUN, DEFAULT_NOISE_CORR_S
 
 PACKAGE = "fbg_accel_driver"
 EXIT_OK, EXIT_FIT_FAILED, EXIT_STARTUP, EXIT_INTERRUPTED, EXIT_RECORDING_FAILED = 0, 1, 2, 3, 4

@@ -1,7 +1,9 @@
-"""Live stillness test of the calibration node, with a stated false-alarm rate per run.
+"""Live stillness test, with a stated false-alarm rate per run: one implementation for the calibration node and the
+driver's gravity check (``gravity_check``), here at the lowest layer both import.
 
-Pure numpy. The node feeds Psi = counts / reference (paper eq. 24) one board sample at a time
-and asks whether the sensor is still; the pose sequencer records a pose only while it is.
+Pure numpy and scipy. The calibration node feeds Psi = counts / reference (paper eq. 24) one board sample at a time
+and asks whether the sensor is still; the pose sequencer records a pose only while it is. The driver feeds its
+calibrated output (m/s^2) with a floor from the calibration's noise model.
 
 The statistic is the variance (ddof=1) of each component over the trailing ``window`` samples, as in
 the static detector of multi-position IMU calibration (Tedaldi, Pretto & Menegatti, ICRA 2014). What
