@@ -50,6 +50,7 @@ Hysteresis (a Schmitt trigger with a hold):
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -274,6 +275,17 @@ def ratio_quantile(exceedance: float, weights: np.ndarray, nu_floor: float) -> f
     return math.sqrt(lo * hi)
 
 
+@functools.lru_cache(maxsize=256)
+def _ratio_quantile_cached(exceedance: float, weights: tuple[float, ...], nu_floor: float) -> float:
+    return ratio_quantile(exceedance, np.array(weights), nu_floor)
+
+
+def _ratio_quantile_of(exceedance: float, weights: np.ndarray, nu_floor: float) -> float:
+    """:func:`ratio_quantile`, remembered for the same arguments: a monitor of the same floor (every driver core of one
+    calibration) does not solve its thresholds again (about 0.1 s each)."""
+    return _ratio_quantile_cached(float(exceedance), tuple(np.asarray(weights, float).tolist()), float(nu_floor))
+
+
 class StillnessMonitor:
     """Streaming stillness test (module docstring): feed samples, ask :attr:`is_still`.
 
@@ -300,9 +312,9 @@ class StillnessMonitor:
         weights = [window_variance_weights(floor.acf[j], self.window) for j in range(k)]
         self.expected_variance = floor.variance * np.array([lam.sum() for lam in weights])
         self.leave_threshold = self.expected_variance * np.array(
-            [ratio_quantile(self.per_window_false_alarm, weights[j], floor.dof[j]) for j in range(k)])
+            [_ratio_quantile_of(self.per_window_false_alarm, weights[j], floor.dof[j]) for j in range(k)])
         self.enter_threshold = self.expected_variance * np.array(
-            [ratio_quantile(enter_exceedance, weights[j], floor.dof[j]) for j in range(k)])
+            [_ratio_quantile_of(enter_exceedance, weights[j], floor.dof[j]) for j in range(k)])
         mean_var = floor.variance * np.array([acf_matrix(floor.acf[j], self.window).sum() for j in range(k)]) / self.window**2
         quantile = np.array([float(student_t.isf(self.per_window_false_alarm / 2.0, d)) if math.isfinite(d)
                              else float(norm.isf(self.per_window_false_alarm / 2.0)) for d in floor.dof])
