@@ -44,7 +44,7 @@ from .thermal_model import ThermalCalibration
 # still stretches of this many seconds (s) per test: long enough that the noise of the mean (~0.01 m/s^2 on the
 # simulated sensor) is well below the tolerance, short enough that a drift is flagged within a minute of standing still
 DEFAULT_PERIOD_S = 20.0
-DEFAULT_TOLERANCE_MPS2 = 0.1
+DEFAULT_TOLERANCE_MPS2 = 0.15
 DEFAULT_FALSE_ALARM_PER_TEST = 1e-4  # of the noise and J Sigma J^T part alone (k = 3.89)
 WINDOW_S = 0.25  # the stillness monitor's window (s): the calibration node's
 MAX_WINDOW = 128  # samples (the window's law is an eigenproblem of its size: 0.25 s up to 512 Hz, shorter above)

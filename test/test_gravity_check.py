@@ -51,7 +51,7 @@ def test_a_still_block_is_tested_against_noise_and_the_calibration_s_own_uncerta
     c = np.array(output_covariance(cal.calibration_weights_at(23.4), *psi))[[0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(3, 3)
     assert t.sigma_calibration_mps2 == pytest.approx(math.sqrt(u @ c @ u), rel=1e-3)  # u from the noisy mean
     assert t.sigma_noise_mps2 == pytest.approx(math.sqrt(np.sum(u**2 * cal.noise_sigma_mps2**2) / 400), rel=1e-3)
-    assert t.threshold_mps2 == pytest.approx(0.1 + 3.89 * math.hypot(t.sigma_noise_mps2, t.sigma_calibration_mps2),
+    assert t.threshold_mps2 == pytest.approx(0.15 + 3.89 * math.hypot(t.sigma_noise_mps2, t.sigma_calibration_mps2),
                                              rel=1e-3)
     assert not any(x.failed for x in tests) and abs(t.discrepancy_mps2) < 0.01
     without = feed(GravityCheck(make_cal(noise_correlated_fraction=np.zeros(3), noise_time_constant_s=np.zeros(3)),
@@ -61,11 +61,11 @@ def test_a_still_block_is_tested_against_noise_and_the_calibration_s_own_uncerta
 
 def test_a_discrepancy_beyond_the_threshold_fails_and_a_moving_sensor_is_never_tested() -> None:
     cal = make_cal(noise_correlated_fraction=np.zeros(3), noise_time_constant_s=np.zeros(3))
-    a_true = np.array([0.0, 0.0, STANDARD_GRAVITY + 0.3])  # 0.3 m/s^2 off: twice the tolerance + k sigma
+    a_true = np.array([0.0, 0.0, STANDARD_GRAVITY + 0.3])  # 0.3 m/s^2 off: twice the tolerance
     acc, psi = still_samples(cal, 700, a_true)
     tests = feed(GravityCheck(cal, GravityCheckConfig(STANDARD_GRAVITY, period_s=4.0), DT), acc, psi)
     assert [t.failed for t in tests] == [True]
-    assert tests[0].discrepancy_mps2 == pytest.approx(0.3, abs=0.02) and tests[0].threshold_mps2 < 0.12
+    assert tests[0].discrepancy_mps2 == pytest.approx(0.3, abs=0.02) and tests[0].threshold_mps2 < 0.17
     moving = acc + np.outer(np.sin(np.arange(len(acc)) * 2 * np.pi * 0.5 * DT), [3.0, 0.0, 0.0])  # a 0.5 Hz sway
     check = GravityCheck(cal, GravityCheckConfig(STANDARD_GRAVITY, period_s=4.0), DT)
     assert feed(check, moving, psi) == [] and check.tests == 0
@@ -98,7 +98,9 @@ def test_settings_are_checked_with_the_tools_gravity_bound() -> None:
 def _sim_core(drift_mps2: float, seconds: float, seed: int) -> DriverCore:
     """The driver core fed the simulator's bytes: still, z up, at 24 degC, the shipped calibration, the z axis's bias
     stepped by ``drift_mps2`` before the run (``effects.bias_step``) and without the simulator's flicker floor (its
-    slow bias wander, +-0.1 m/s^2 from run to run on z, is what the tolerance is for: the bench measures it)."""
+    slow bias wander, +-0.1 m/s^2 from run to run on z, is what the tolerance is for: the bench measures the rates at
+    the default tolerance, 0.15, which this drift straddles). Tolerance 0.1: the decision is the wire path's, with
+    margin."""
     over = {"scenario.poses.mode": "list", "scenario.poses.list": [[0.0, 0.0]], "scenario.poses.dwell_s": 1e4,
             "scenario.poses.repeat": 1, "scenario.temperature.initial_c": 24.0, "effects.bias_instability.scale": 0.0,
             "effects.bias_step.scale": 1.0, "effects.bias_step.at_s": 0.0,
@@ -107,7 +109,8 @@ def _sim_core(drift_mps2: float, seconds: float, seed: int) -> DriverCore:
     n = sim.samples_for(seconds)
     blk = sim.step(n)
     pieces = blk.wire_pieces()
-    core = DriverCore(ThermalCalibration.load(config_dir() / "calibration_sim.yaml"), CoreConfig(gravity_mps2=G_SIM))
+    core = DriverCore(ThermalCalibration.load(config_dir() / "calibration_sim.yaml"),
+                      CoreConfig(gravity_mps2=G_SIM, gravity_tolerance_mps2=0.1))
     for k in range(0, n, 10):
         last = min(k + 10, n) - 1
         core.feed(b"".join(pieces[k:last + 1]), round(float(blk.t_s[last] + 0.002) * 1e9))
