@@ -24,10 +24,11 @@ serial, no rclpy). ``--calibration-uncertainty`` times ``core_feed`` with a cali
 ``reported`` (only the last sample's point kept for the diagnostics) or ``included``
 (``covariance_includes_calibration``: J Sigma J^T per published sample). ``--adc-codes TABLE``: the calibration
 carries that code table (``fbg-accel-calib adc-codes -o``), so its cost shows against a run without.
+``--gravity-check``: the live gravity check on (``gravity_mps2`` set), its cost against a run without.
 
     ROS_DOMAIN_ID=31 .venv/bin/python bench/bench_driver_stages.py
     .venv/bin/python bench/bench_driver_stages.py --core-only --calibration-uncertainty included
-    .venv/bin/python bench/bench_driver_stages.py --core-only [--adc-codes TABLE.yaml]
+    .venv/bin/python bench/bench_driver_stages.py --core-only [--adc-codes TABLE.yaml] [--gravity-check]
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ import queue
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +53,7 @@ from output_paths import add_update_results, results_dir  # noqa: E402
 from fbg_accel_driver.coefficient_covariance import CoefficientCovariance  # noqa: E402
 from fbg_accel_driver.driver_core import CoreConfig, DriverCore  # noqa: E402
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, link_frame_rate_limit  # noqa: E402
+from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY  # noqa: E402
 from fbg_accel_driver.thermal_model import ThermalCalibration  # noqa: E402
 from fbg_accel_sim.board_physics import BoardSimulator, SimConfig  # noqa: E402
 
@@ -232,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--calibration-uncertainty", choices=["absent", "reported", "included"], default="absent",
                     help="the calibration's coefficient_covariance: absent, reported in the diagnostics only, or "
                     "included in the covariance (covariance_includes_calibration)")
+    ap.add_argument("--gravity-check", action="store_true", help="with the live gravity check on (gravity_mps2 set)")
     ap.add_argument("--core-only", action="store_true", help="time core_feed only, back to back (no serial, no rclpy)")
     ap.add_argument("--adc-codes", type=Path, default=None, help="code table YAML the calibration carries")
     args = ap.parse_args(argv)
@@ -248,7 +252,9 @@ def main(argv: list[str] | None = None) -> int:
         p = 12 * (cal.degree + 1)
         cal.coefficient_covariance = CoefficientCovariance(np.eye(p) * 1e-4 + 1e-5, "bench", 18)
         config = CoreConfig(covariance_includes_calibration=args.calibration_uncertainty == "included")
-    results: dict = {"calibration_uncertainty": args.calibration_uncertainty,
+    if args.gravity_check:
+        config = replace(config or CoreConfig(), gravity_mps2=STANDARD_GRAVITY)
+    results: dict = {"calibration_uncertainty": args.calibration_uncertainty, "gravity_check": args.gravity_check,
                      "adc_codes": str(args.adc_codes) if args.adc_codes else None}
     n100 = min(args.frames, 300)
     rates = {"back_to_back": None} if args.core_only else RATES

@@ -1,4 +1,4 @@
-"""False alarms of the calibration node's live stillness detector (fbg_accel_calibration.stillness_monitor).
+"""False alarms of the calibration node's live stillness detector (fbg_accel_driver.stillness_monitor).
 
 Long static recordings of the board simulator (no ROS), cut into runs as the node sees them: the noise
 floor is learnt from the first ``learn_s`` seconds of each run, then the next 60 s are tested. Two figures:
@@ -24,7 +24,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from output_paths import add_update_results, results_dir
 
-from fbg_accel_calibration.stillness_monitor import (
+from fbg_accel_driver.stillness_monitor import (
     StillnessMonitor,
     learn_noise_floor,
     ratio_quantile,

@@ -6,8 +6,7 @@ entry point (``calibration_main``), whose ``--help`` answers without rclpy.
 from __future__ import annotations
 
 from fbg_accel_driver.command_line import ParameterTable
-
-from .stillness_monitor import DEFAULT_FALSE_ALARM_PER_RUN, DEFAULT_NOISE_CORR_S
+from fbg_accel_driver.stillness_monitor import DEFAULT_FALSE_ALARM_PER_RUN, DEFAULT_NOISE_CORR_S
 
 EXIT_OK, EXIT_FIT_FAILED, EXIT_STARTUP, EXIT_INTERRUPTED, EXIT_RECORDING_FAILED = 0, 1, 2, 3, 4
 # name: (type, default, description), ROS-free so that --help needs no ROS (command_line.ParameterTable;

@@ -25,11 +25,11 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from fbg_accel_driver.frame_codec import ADC_MAX
-from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2  # noqa: F401  (iv.FULL_SCALE_MPS2 for the CSV bounds)
+from fbg_accel_driver.sensor_constants import (
+    FULL_SCALE_MPS2,  # noqa: F401  (iv.FULL_SCALE_MPS2 for the CSV bounds)
+    GRAVITY_RANGE_MPS2,  # one bound for the tools and the driver's check
+)
 
-# Local gravity on the Earth's surface: WGS-84 normal gravity 9.780 m/s^2 (equator) .. 9.832 m/s^2
-# (poles), minus 3.1e-6 m/s^2 per metre of altitude; 9.7 .. 9.9 leaves room for local anomalies.
-GRAVITY_RANGE_MPS2 = (9.7, 9.9)
 # AHT10 operating range -40 .. 85 degC (AHT10 datasheet, Aosong); the sensor cannot report outside it.
 TEMPERATURE_RANGE_C = (-40.0, 85.0)
 # a reference beyond the sensor's range (+-20 g, FULL_SCALE_MPS2) is not a table pose
@@ -95,6 +95,7 @@ gravity_mps2 = float_in(*GRAVITY_RANGE_MPS2, "m/s^2", what=" (local gravity on t
 temperature_c = float_in(*TEMPERATURE_RANGE_C, "degC", what=" (AHT10 range)")
 level_gap_c = float_in(0.0, 100.0, "degC", lo_open=True)
 skip_s = float_in(0.0, TIME_RANGE_S[1], "s")
+period_s = float_in(0.0, TIME_RANGE_S[1], "s", lo_open=True)
 probability = float_in(0.0, 1.0, lo_open=True, hi_open=True)
 fraction = float_in(0.0, 1.0, hi_open=True)
 degree = int_in(0, MAX_DEGREE)

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .stillness_monitor import cut_at_first_nonpositive
+from fbg_accel_driver.stillness_monitor import cut_at_first_nonpositive
 
 if TYPE_CHECKING:
     from fbg_accel_driver.thermal_model import ThermalCalibration

@@ -6,7 +6,7 @@ The node hands every ``imu/raw`` message to :meth:`RunRecorder.on_raw` and every
 1. writes each message to the run's MCAP at once (:class:`~fbg_accel_calibration.mcap_io.RecordingWriter`,
    incremental, so a killed run leaves a readable file; the chunk is also ended after every pose);
 2. computes Psi = counts / reference (paper eq. 24) and feeds it to the static-interval detector
-   (:class:`~fbg_accel_calibration.stillness_monitor.StillnessMonitor`), whose verdict drives the
+   (:class:`~fbg_accel_driver.stillness_monitor.StillnessMonitor`), whose verdict drives the
    :class:`~fbg_accel_calibration.pose_sequencer.PoseSequencer`;
 3. tells the sequencer whether the signal has *left the pose*: the mean Psi of the detector's trailing
    window further from the pose's mean Psi than the detector's level threshold, on ``DEPART_CONFIRM_WINDOWS``
@@ -25,14 +25,14 @@ The node hands every ``imu/raw`` message to :meth:`RunRecorder.on_raw` and every
 
 Detector settings (:class:`DetectorSettings`). The window and the hold time are given in seconds
 and turned into samples with the board rate measured at the start of the run. The noise floor of
-Psi (per-sample variance and autocorrelation, :class:`~fbg_accel_calibration.stillness_monitor.NoiseFloor`)
+Psi (per-sample variance and autocorrelation, :class:`~fbg_accel_driver.stillness_monitor.NoiseFloor`)
 is either given (``noise_std`` per axis, low-passed with correlation time ``noise_corr_s``) or learnt
-during the first ``learn_s`` seconds of the run (:func:`~fbg_accel_calibration.stillness_monitor.learn_noise_floor`;
+during the first ``learn_s`` seconds of the run (:func:`~fbg_accel_driver.stillness_monitor.learn_noise_floor`;
 the sensor must be still then: the table at the first pose, whose dwell the plan can lengthen; if
 the means of the four quarters of that period differ by more than ``LEARN_SHIFT_LIMIT`` noise
 sigmas the table moved: service mode learns again, auto mode aborts the run because the pose
 sequence is out of step). It never goes below the ADC quantisation floor of Psi,
-(1 / ref)^2 / 12 per axis. The detector (:class:`~fbg_accel_calibration.stillness_monitor.StillnessMonitor`)
+(1 / ref)^2 / 12 per axis. The detector (:class:`~fbg_accel_driver.stillness_monitor.StillnessMonitor`)
 spends ``false_alarm_per_run`` over the plan's nominal duration: a still sensor is declared moving
 at most that many times per run in expectation.
 """
@@ -50,13 +50,7 @@ from typing import Any
 import numpy as np
 
 from fbg_accel_driver.frame_codec import ADC_MAX, clipped_reading
-
-from .board_stream import BoardStream, StreamStep
-from .mcap_io import RecordingLostError, RecordingWriter
-from .pose_plan import PosePlan
-from .pose_sequencer import Mode, Phase, PoseSequencer, SequencerEvent
-from .static_detector import estimate_noise_var, moving_variance, quantisation_var
-from .stillness_monitor import (
+from fbg_accel_driver.stillness_monitor import (
     DEFAULT_FALSE_ALARM_PER_RUN,
     DEFAULT_NOISE_CORR_S,
     NoiseFloor,
@@ -65,6 +59,12 @@ from .stillness_monitor import (
     first_order_noise_floor,
     learn_noise_floor,
 )
+
+from .board_stream import BoardStream, StreamStep
+from .mcap_io import RecordingLostError, RecordingWriter
+from .pose_plan import PosePlan
+from .pose_sequencer import Mode, Phase, PoseSequencer, SequencerEvent
+from .static_detector import estimate_noise_var, moving_variance, quantisation_var
 
 LEARN_BLOCKS = 4  # the learning period is cut into this many blocks whose means must agree
 LEARN_SHIFT_LIMIT = 8.0  # largest block-mean difference (in noise sigmas) accepted as "still" while learning

@@ -4,7 +4,7 @@ Pure numpy/scipy. Used offline by the fit to exclude samples taken while the tab
 (:func:`calibration_samples` on a recording in memory, ``fit_stream.prepare_stream`` on files: each run
 read block by block either way), and by the noise model of the calibrated output to find still
 intervals. The calibration node's live test, which must hold a false-alarm rate per run on correlated
-noise, is :mod:`fbg_accel_calibration.stillness_monitor`.
+noise, is :mod:`fbg_accel_driver.stillness_monitor`.
 
 Method (the static detector of multi-position IMU calibration, e.g. Tedaldi, Pretto & Menegatti,
 "A robust and easy to implement method for IMU calibration without external equipments", ICRA

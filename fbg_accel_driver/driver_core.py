@@ -49,6 +49,11 @@ Sample policies (documented in docs/topics.md; each has a counter and a diagnost
 * With ``covariance_source`` ``unknown`` the covariance is all zeros (REP 145 "unknown") for every sample: the
   policies above still flag and count, but there is no variance to inflate, and a single inflated entry would state
   the other axes exactly known.
+* **Gravity check** (``gravity_mps2`` set to the local gravity; 0, the default, is off; ``gravity_check``): every
+  published, unflagged sample is fed to the live check, which tests each ``gravity_check_period_s`` of stillness: |mean
+  a| against ``gravity_mps2``, within ``gravity_tolerance_mps2`` plus k sigma of the noise and of J Sigma J^T
+  (:meth:`DriverCore.gravity_status`, the ``gravity check`` diagnostic). A flagged or dropped sample, or a board reset,
+  ends the still stretch.
 * **Non-finite output** (cannot happen with a validated calibration, kept as a last guard): the
   sample is dropped (``non_finite_dropped``). Nothing non-finite ever reaches a topic, except the
   documented NaN temperature in the raw record before the first valid reading.
@@ -90,6 +95,7 @@ from .clock_sync import ClockSync, ClockSyncConfig
 from .coefficient_covariance import output_covariance
 from .correction_terms import TiaInverseFilter
 from .frame_codec import ADC_MAX, SEQ_MODULO, Frame, Status, at_adc_rail
+from .gravity_check import DEFAULT_PERIOD_S, DEFAULT_TOLERANCE_MPS2, GravityCheck, GravityCheckConfig
 from .noise_model import mean_variance_factor
 from .sensor_constants import AHT10_SIGMA_C, LOW_REFERENCE_COUNTS, STANDARD_GRAVITY
 from .stream_decoder import SampleInterval, StreamDecoder
@@ -103,6 +109,9 @@ COVARIANCE_SOURCES = ("calibration", "parameter", "unknown")
 # board time (lost frames, an outage) ends it like a board reset.
 MAX_BLOCK_SPAN_WINDOWS = 2.0
 _OVERRUN = int(Status.ADC_OVERRUN)
+# board sample intervals (us) the gravity check runs at: 2 kHz .. 1 Hz (a board clock that crawls, or one sample a
+# minute, gives no stillness window of a quarter second of sensible size)
+GRAVITY_CHECK_INTERVAL_US = (500, 1_000_000)
 # ``imu/raw`` (sensor_msgs/JointState): ``name`` of each ``position`` entry of a RawRecord, in order.
 RAW_NAMES = ("ref_counts", "x_counts", "y_counts", "z_counts", "temperature_c", "temperature_valid",
              "status", "seq", "board_time_s")
@@ -130,6 +139,16 @@ class CoreConfig:
     equalise_bandwidth_hz: float = 10.0  # common low-pass the equaliser leaves in place of the TIA stages
     # add the calibration's J Sigma J^T (a bias, correlated in time: docs/topics.md) to the published covariance
     covariance_includes_calibration: bool = False
+    # the live gravity check (gravity_check): local gravity (m/s^2; 0, the default, = off: the check needs the site's
+    # gravity and costs about as much per sample as the rest of the core), the discrepancy allowed beyond the noise and
+    # J Sigma J^T (m/s^2), the still stretch each test averages (s)
+    gravity_mps2: float = 0.0
+    gravity_tolerance_mps2: float = DEFAULT_TOLERANCE_MPS2
+    gravity_check_period_s: float = DEFAULT_PERIOD_S
+
+    @property
+    def gravity_check(self) -> GravityCheckConfig:
+        return GravityCheckConfig(self.gravity_mps2, self.gravity_tolerance_mps2, self.gravity_check_period_s)
 
     def validate(self) -> None:
         """Raise ValueError with a message naming the bad setting."""
@@ -155,6 +174,7 @@ class CoreConfig:
             raise ValueError(f"chain_compensation must be one of {CHAIN_MODES}, got '{self.chain_compensation}'")
         if not (math.isfinite(self.equalise_bandwidth_hz) and self.equalise_bandwidth_hz > 0):
             raise ValueError(f"equalise_bandwidth_hz must be > 0, got {self.equalise_bandwidth_hz}")
+        self.gravity_check.validate()
 
 
 @dataclass(frozen=True, slots=True)
@@ -279,6 +299,9 @@ class DriverCore:
         self._eq_cache: dict[int, tuple[int, tuple[float, float, float]]] = {}  # dt_us -> (delay ns, var factors)
         self._eq_mean_cache: dict[tuple[int, int], tuple[float, float, float]] = {}  # (dt_us, n) -> mean factors
         self._has_ref_level = calibration is not None and len(calibration.reference_level_counts) > 0
+        # the live gravity check, built at the first calibrated sample after the board's sample interval is known
+        self._gravity: GravityCheck | None = None
+        self._gravity_on = calibration is not None and self.config.gravity_check.enabled
 
     def _base_sigma(self) -> np.ndarray:
         src = self.config.covariance_source
@@ -347,6 +370,7 @@ class DriverCore:
 
     def _on_reset(self) -> None:
         self.counters.board_resets += 1
+        self._gravity_interrupt()
         self.clock.reset()
         self._discard_pending()  # never average across a reboot
         self._prev_frame = None
@@ -360,6 +384,32 @@ class DriverCore:
         record, so they are counted in ``decimation_discarded``, not in ``samples_calibrated``."""
         self.counters.decimation_discarded += len(self._pending)
         self._pending = []
+
+    def _gravity_interrupt(self) -> None:
+        if self._gravity is not None:
+            self._gravity.interrupt()
+
+    def gravity_status(self) -> dict[str, float | int | bool | str]:
+        """The live gravity check (``gravity_check``) for the diagnostics: its settings, whether the sensor is still,
+        the tests and failures so far and the last test's figures (m/s^2, degC); empty without a calibration."""
+        if self.cal is None:
+            return {}
+        cfg = self.config.gravity_check
+        if not cfg.enabled:
+            return {"state": "off"}
+        g = self._gravity
+        out: dict[str, float | int | bool | str] = {
+            "state": "on", "gravity_mps2": cfg.gravity_mps2, "tolerance_mps2": cfg.tolerance_mps2,
+            "period_s": cfg.period_s, "still": bool(g is not None and g.still),
+            "tests": g.tests if g is not None else 0, "failures": g.failures if g is not None else 0}
+        last = g.last if g is not None else None
+        if last is not None:
+            out.update({"discrepancy_mps2": round(last.discrepancy_mps2, 4), "threshold_mps2": round(last.threshold_mps2, 4),
+                        "sigma_noise_mps2": round(last.sigma_noise_mps2, 4),
+                        "sigma_calibration_mps2": round(last.sigma_calibration_mps2, 4),
+                        "last_failed": last.failed, "temperature_c": round(last.temperature_c, 2),
+                        "k_sigma": round(g.k, 2)})
+        return out
 
     def clock_status(self) -> dict[str, float | int | bool]:
         """The board clock's mapping onto host time (``ClockSync.status``), for the diagnostics."""
@@ -500,11 +550,13 @@ class DriverCore:
                 (ref, cx, cy, cz), delay_ns, vfac = read, self._delay_ns, unit
             if f.ref < cfg.min_reference_counts or ref < MIN_REFERENCE_COUNTS:
                 counters.reference_low += 1
+                self._gravity_interrupt()
                 continue
             if not valid:
                 age = self.temperature_age_s
                 if temp is None or age is None or age > cfg.temperature_hold_s:
                     counters.temperature_stale_dropped += 1
+                    self._gravity_interrupt()
                     continue
                 counters.temperature_held += 1
             base = cal.acceleration_at(cx / ref, cy / ref, cz / ref, temp)
@@ -520,6 +572,10 @@ class DriverCore:
         last = used[-1]
         self._last_cal_point = (last[6][1] / last[6][0], last[6][2] / last[6][0], last[6][3] / last[6][0], last[2])
         with_cal_cov = self._with_cal_cov
+        gravity = self._gravity
+        lo_us, hi_us = GRAVITY_CHECK_INTERVAL_US
+        if gravity is None and self._gravity_on and lo_us <= self._interval.us <= hi_us:
+            gravity = self._gravity = GravityCheck(cal, cfg.gravity_check, self._interval.us * 1e-6)
         extra = beyond = None
         if cal.corrections:  # declared correction terms (diagnose): vectorised, with their stream state, fed the
             counts = np.array([u[6] for u in used], dtype=float)  # same counts as eq. 28 (equalised or not)
@@ -568,7 +624,13 @@ class DriverCore:
                 var = [0.0, 0.0, 0.0]  # entry would state the other axes exactly known (the flags still count)
             if not all(math.isfinite(v) for v in (*accel, *var)):
                 counters.non_finite_dropped += 1
+                self._gravity_interrupt()
                 continue
+            if gravity is not None:  # a flagged sample is no clean still sample: it ends the still stretch
+                if flags:
+                    gravity.interrupt()
+                else:
+                    gravity.update(accel, (cx / ref, cy / ref, cz / ref), temp)
             pending = self._pending
             board_dt_us = self._interval.us
             if pending and board_dt_us > 0 and (

@@ -31,6 +31,10 @@ clock mapping              OK (drift estimate, restarts, steps of ROS time); WAR
                            its clamp (``ClockSyncConfig.max_drift``): the mapping is not tracking; WARN when the
                            stamps stepped since the previous report (a step of ROS time, of the mapping, or
                            stamps held 1 ns apart because they would have gone back)
+gravity check              OK while every test of a still stretch finds |a| within its threshold of gravity_mps2
+                           (stating the last discrepancy), or before the first test, or off; WARN when the last test,
+                           or one since the previous report, found |a| - g beyond the threshold: the calibration no
+                           longer holds (message: the discrepancy, the threshold and its parts)
 chain compensation         OK, stating the mode and its cost; WARN in ``delay`` mode when the frequency above which
                            the stamp shift makes a tone's error larger than none lies inside the calibrated band
 =========================  =====================================================================
@@ -77,6 +81,7 @@ class DiagnosticsSnapshot:
     clock: dict[str, Any] = field(default_factory=dict)  # DriverCore.clock_status(); empty: no entry
     # calibration_uncertainty_values(); empty: raw only, no entry
     calibration_uncertainty: dict[str, Any] = field(default_factory=dict)
+    gravity: dict[str, Any] = field(default_factory=dict)  # DriverCore.gravity_status(); empty: raw only, no entry
 
 
 class DriverDiagnostics:
@@ -254,6 +259,10 @@ class DriverDiagnostics:
                        + " linear_acceleration_covariance")
             entries.append(self._entry(OK, "calibration uncertainty", msg, u))
 
+        # the live gravity check: |a| of each still stretch against local gravity (gravity_check)
+        if snap.gravity:
+            entries.append(self._gravity_entry(snap.gravity, prev.gravity if prev else {}))
+
         # the board clock's mapping onto ROS time (clock_sync): a drift estimate at its clamp means it is not tracking
         if snap.clock:
             c = snap.clock
@@ -273,6 +282,23 @@ class DriverDiagnostics:
 
         self._prev = snap
         return entries
+
+    def _gravity_entry(self, g: dict[str, Any], old: dict[str, Any]) -> DiagnosticEntry:
+        if g["state"] == "off":
+            return self._entry(OK, "gravity check", "off (gravity_mps2 is 0)", g)
+        if "discrepancy_mps2" not in g:
+            return self._entry(OK, "gravity check", f"no still stretch of {g['period_s']:g} s yet "
+                               f"({'still now' if g['still'] else 'not still'})", g)
+        new_failures = int(g["failures"]) - int(old.get("failures", 0))
+        figures = (f"|a| - g = {g['discrepancy_mps2']:+.3f} m/s^2 over {g['period_s']:g} s still at "
+                   f"{g['temperature_c']:.1f} degC, threshold {g['threshold_mps2']:.3f} m/s^2 (tolerance "
+                   f"{g['tolerance_mps2']:g} + {g['k_sigma']:g} sigma; sigma noise {g['sigma_noise_mps2']:.3f}, "
+                   f"calibration {g['sigma_calibration_mps2']:.3f})")
+        if g["last_failed"] or new_failures > 0:
+            which = "the last still stretch" if g["last_failed"] else f"{new_failures} still stretch(es) since last report"
+            return self._entry(WARN, "gravity check", f"calibration no longer holds ({which}): {figures}; recalibrate, "
+                               "or estimate the drift with fbg-accel-calib field-check", g)
+        return self._entry(OK, "gravity check", f"calibration holds: {figures}", g)
 
     def _entry(self, level: int, what: str, message: str, values: dict[str, Any]) -> DiagnosticEntry:
         return DiagnosticEntry(level, self._name(what), message, tuple((str(k), str(v)) for k, v in values.items()))

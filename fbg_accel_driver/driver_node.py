@@ -71,7 +71,8 @@ INTEGER_RANGES = {"baud": (1200, 4_000_000), "decimation": (1, 10000), "min_refe
 FLOAT_RANGES = {"temperature_hold_s": (0.0, 3600.0), "out_of_range_variance_factor": (1.0, 1e6),
                 "temperature_range_margin_c": (0.0, 50.0), "reference_level_tolerance": (1e-6, 1.0),
                 "reconnect_backoff_max_s": (0.1, 60.0), "accel_stddev_mps2": (0.0, 1000.0),
-                "silence_timeout_s": (0.0, 3600.0), "equalise_bandwidth_hz": (0.01, 1e5)}
+                "silence_timeout_s": (0.0, 3600.0), "equalise_bandwidth_hz": (0.01, 1e5),
+                "gravity_mps2": (0.0, 9.9), "gravity_tolerance_mps2": (0.0, 10.0), "gravity_check_period_s": (1.0, 3600.0)}
 CONSTRAINTS = {"covariance_source": "one of " + ", ".join(COVARIANCE_SOURCES),
                "chain_compensation": "one of auto, " + ", ".join(CHAIN_MODES)}
 
@@ -193,7 +194,8 @@ class DriverNode(Node):
             **{name: p[name] for name in ("decimation", "min_reference_counts", "temperature_hold_s", "covariance_source",
                                           "accel_stddev_mps2", "out_of_range_variance_factor", "temperature_range_margin_c",
                                           "reference_level_tolerance", "equalise_bandwidth_hz",
-                                          "covariance_includes_calibration")})
+                                          "covariance_includes_calibration", "gravity_mps2", "gravity_tolerance_mps2",
+                                          "gravity_check_period_s")})
         try:
             core = DriverCore(self.calibration, core_cfg)
         except ValueError as exc:
@@ -265,7 +267,8 @@ class DriverNode(Node):
         if not fid or fid.startswith("/") or any(c.isspace() for c in fid):
             raise StartupError(f"invalid parameter 'frame_id': {fid!r} (non-empty, no leading '/', no spaces)")
         for name in ("temperature_hold_s", "out_of_range_variance_factor", "temperature_range_margin_c",
-                     "reference_level_tolerance", "accel_stddev_mps2"):
+                     "reference_level_tolerance", "accel_stddev_mps2", "gravity_mps2", "gravity_tolerance_mps2",
+                     "gravity_check_period_s"):
             if not math.isfinite(values[name]):
                 raise StartupError(f"invalid parameter '{name}': {values[name]} is not finite")
         return values
@@ -381,7 +384,8 @@ class DriverNode(Node):
             chain=core.chain_status(), clock=core.clock_status(),
             calibration_uncertainty={} if self.calibration is None else calibration_uncertainty_values(
                 core.calibration_uncertainty(), self.calibration.coefficient_covariance is not None,
-                core.config.covariance_includes_calibration))
+                core.config.covariance_includes_calibration),
+            gravity=core.gravity_status())
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
         for e in self.diag.report(snap):

@@ -42,6 +42,13 @@ PARAMETERS: ParameterTable = {
         "add the calibration's own uncertainty (J Sigma J^T from its coefficient_covariance) to "
         "linear_acceleration_covariance; a bias, correlated in time (docs/topics.md)",
     ),
+    "gravity_mps2": ("double", 0.0,
+                     "local gravity (m/s^2, 9.7..9.9) the live gravity check compares |a| with while the sensor stands "
+                     "still; 0 (default) = check off (docs/topics.md, gravity check)"),
+    "gravity_tolerance_mps2": ("double", 0.15,
+                               "discrepancy of |a| from gravity_mps2 allowed beyond the noise and the calibration's "
+                               "J Sigma J^T (m/s^2, 0..10)"),
+    "gravity_check_period_s": ("double", 20.0, "seconds of stillness each gravity test averages (1..3600)"),
     "chain_compensation": (
         "string",
         "auto",

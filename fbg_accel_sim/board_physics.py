@@ -645,7 +645,8 @@ class BoardSimulator:
     def _axis_biases(self, t: np.ndarray, T_opt: np.ndarray, psi_felt_deg: np.ndarray) -> np.ndarray:
         """Equivalent acceleration biases (N, 3) on the axis inputs, m/s^2: time drift (warm-up and creep of the pair
         separation: bond relaxation, not characterised in the paper), thermal hysteresis (bond/mount stress; play
-        operator on the optics temperature ``T_opt``, degC) and the unmodelled cable torque ~ sin(harmonic psi) (fibre
+        operator on the optics temperature ``T_opt``, degC), a step of the bias at one time (``bias_step``: the calibration
+        stops holding, what the driver's gravity check must see) and the unmodelled cable torque ~ sin(harmonic psi) (fibre
         pigtail drag at the felt inner angle ``psi_felt_deg``); amplitudes ASSUMPTION (config/sim_default.yaml)."""
         eff = self.cfg.get("effects")
         bias = np.zeros((t.shape[0], 3))
@@ -657,6 +658,9 @@ class BoardSimulator:
         if float(hy["scale"]) != 0.0:
             branch = self._hysteresis_branch(T_opt, float(hy["play_width_c"]))
             bias += float(hy["scale"]) * branch[:, None] * np.asarray(hy["amplitude_mps2"], float)
+        bs = eff["bias_step"]
+        if float(bs["scale"]) != 0.0:  # the response steps once after calibration (a knock, a mount shift; ASSUMPTION)
+            bias += float(bs["scale"]) * (t >= float(bs["at_s"]))[:, None] * np.asarray(bs["amplitude_mps2"], float)
         ct = eff["unmodelled_cable_torque"]
         if float(ct["scale"]) != 0.0:
             ang = np.radians(float(ct["harmonic"]) * psi_felt_deg + float(ct["phase_deg"]))

@@ -185,7 +185,9 @@ def test_wire_faults_gravity_temperature_stamps(ros: Context, tmp_path: Path) ->
     truth_file = tmp_path / "truth.npz"
     listener = Listener("test_wire_faults", ros)
     # The driver starts first, on a port that does not exist yet: it must retry until it appears.
-    driver = start_driver({"port": str(link), "reconnect_backoff_max_s": 0.2}, tmp_path / "driver.log")
+    # the gravity check on, with 1 s blocks: the still board gives a test within 3.25 s before and after its reset
+    driver = start_driver({"port": str(link), "reconnect_backoff_max_s": 0.2, "gravity_mps2": 9.80665,
+                           "gravity_check_period_s": 1.0}, tmp_path / "driver.log")
     sim = None
     try:
         listener.wait_until(listener.matched, 30, "driver publishers discovered and diagnostics received")
@@ -208,6 +210,8 @@ def test_wire_faults_gravity_temperature_stamps(ros: Context, tmp_path: Path) ->
                             f"{expected['frames']} frames counted and published")
         assert_counters(listener, expected)  # diagnostics count exactly what was injected
         assert int(listener.last("board resets")[2]["resets"]) == 1
+        gravity = listener.last("gravity check")  # the sensor has not drifted: tested, and it holds
+        assert gravity[0] == 0 and int(gravity[2]["tests"]) >= 1 and int(gravity[2]["failures"]) == 0, gravity
         assert any(d["frames"][0] == 1 for d in listener.diag), "no WARN for the injected CRC errors"
         assert stop(driver) == 0, (tmp_path / "driver.log").read_text()
     finally:

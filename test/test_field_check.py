@@ -118,3 +118,17 @@ def test_field_check_command_on_a_simulated_recording(tmp_path, capsys) -> None:
     assert new.fit["field_check"]["not_identified"] == []
     assert cli_main([*args, "-o", str(tmp_path / "cal.yaml"), "--force"]) == 2  # never over an input
     assert "input" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("option", "value"), [("--min-period", "nan"), ("--min-period", "0"), ("--gravity", "9.95")])
+def test_a_bad_period_or_gravity_is_refused_in_one_line(option: str, value: str, tmp_path, capsys) -> None:
+    """``--min-period nan`` used to select no period without a word; ``--gravity`` is bounded by the input-validation
+    layer's local-gravity range (the one bound of the tools and the driver's check), before any file is read."""
+    from fbg_accel_calibration.cli import main as cli_main
+
+    with pytest.raises(SystemExit) as exc:
+        cli_main(["field-check", str(tmp_path / "absent.mcap"), "--calibration", str(tmp_path / "absent.yaml"),
+                  option, value])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and option in err and value in err and "Traceback" not in err

@@ -7,7 +7,7 @@ import pytest
 
 from fbg_accel_calibration.pose_plan import PosePlan
 from fbg_accel_calibration.pose_sequencer import Mode, Phase, PoseSequencer
-from fbg_accel_calibration.stillness_monitor import StillnessMonitor, first_order_noise_floor
+from fbg_accel_driver.stillness_monitor import StillnessMonitor, first_order_noise_floor
 
 RATE_HZ = 100.0
 

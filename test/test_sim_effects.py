@@ -15,7 +15,7 @@ from fbg_accel_sim.make_default_calibration import fit_eq28
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
 
 NAMED = ("reference_dark_offset", "thermal_lag", "spectral_nonlinearity", "time_drift", "channel_delay", "tia_lowpass",
-         "thermal_hysteresis", "unmodelled_cable_torque")
+         "thermal_hysteresis", "unmodelled_cable_torque", "bias_step")
 CHAIN = ("source_power_thermal", "source_wavelength_drift", "source_power_wander", "coupler_thermal", "photodetector_thermal",
          "fbg_pair_thermal_mismatch", "white_noise", "bias_instability", "adc_quantisation", "aht10_error")
 QUIET = {f"effects.{k}.scale": 0.0 for k in ("white_noise", "bias_instability", "adc_quantisation", "aht10_error",

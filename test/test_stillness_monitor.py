@@ -1,4 +1,4 @@
-"""Live stillness detector (fbg_accel_calibration.stillness_monitor): its law, its learnt floor, its
+"""Live stillness detector (fbg_accel_driver.stillness_monitor): its law, its learnt floor, its
 hysteresis, and its false-alarm rate per run on long simulated static recordings (issue 11).
 
 The simulator is the physics-based board model (TIA low-pass of paper Table 1, Table 2 noise, ADC), so
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from fbg_accel_calibration.stillness_monitor import (
+from fbg_accel_driver.stillness_monitor import (
     NoiseFloor,
     StillnessMonitor,
     first_order_noise_floor,

@@ -1,7 +1,9 @@
-"""Live stillness test of the calibration node, with a stated false-alarm rate per run.
+"""Live stillness test, with a stated false-alarm rate per run: one implementation for the calibration node and the
+driver's gravity check (``gravity_check``), here at the lowest layer both import.
 
-Pure numpy. The node feeds Psi = counts / reference (paper eq. 24) one board sample at a time
-and asks whether the sensor is still; the pose sequencer records a pose only while it is.
+Pure numpy and scipy. The calibration node feeds Psi = counts / reference (paper eq. 24) one board sample at a time
+and asks whether the sensor is still; the pose sequencer records a pose only while it is. The driver feeds its
+calibrated output (m/s^2) with a floor from the calibration's noise model.
 
 The statistic is the variance (ddof=1) of each component over the trailing ``window`` samples, as in
 the static detector of multi-position IMU calibration (Tedaldi, Pretto & Menegatti, ICRA 2014). What
@@ -48,6 +50,7 @@ Hysteresis (a Schmitt trigger with a hold):
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -270,6 +273,17 @@ def ratio_quantile(exceedance: float, weights: np.ndarray, nu_floor: float) -> f
     return math.sqrt(lo * hi)
 
 
+@functools.lru_cache(maxsize=256)
+def _ratio_quantile_cached(exceedance: float, weights: tuple[float, ...], nu_floor: float) -> float:
+    return ratio_quantile(exceedance, np.array(weights), nu_floor)
+
+
+def _ratio_quantile_of(exceedance: float, weights: np.ndarray, nu_floor: float) -> float:
+    """:func:`ratio_quantile`, remembered for the same arguments: a monitor of the same floor (every driver core of one
+    calibration) does not solve its thresholds again (about 0.1 s each)."""
+    return _ratio_quantile_cached(float(exceedance), tuple(np.asarray(weights, float).tolist()), float(nu_floor))
+
+
 class StillnessMonitor:
     """Streaming stillness test (module docstring): feed samples, ask :attr:`is_still`.
 
@@ -296,9 +310,9 @@ class StillnessMonitor:
         weights = [window_variance_weights(floor.acf[j], self.window) for j in range(k)]
         self.expected_variance = floor.variance * np.array([lam.sum() for lam in weights])
         self.leave_threshold = self.expected_variance * np.array(
-            [ratio_quantile(self.per_window_false_alarm, weights[j], floor.dof[j]) for j in range(k)])
+            [_ratio_quantile_of(self.per_window_false_alarm, weights[j], floor.dof[j]) for j in range(k)])
         self.enter_threshold = self.expected_variance * np.array(
-            [ratio_quantile(enter_exceedance, weights[j], floor.dof[j]) for j in range(k)])
+            [_ratio_quantile_of(enter_exceedance, weights[j], floor.dof[j]) for j in range(k)])
         mean_var = floor.variance * np.array([acf_matrix(floor.acf[j], self.window).sum() for j in range(k)]) / self.window**2
         from scipy.stats import norm  # here, not at import: the node's --help reads this module's defaults
         from scipy.stats import t as student_t
