@@ -606,6 +606,57 @@ def test_a_reference_offset_beyond_the_bound_is_not_a_dark_offset() -> None:
     assert "not a dark offset" in why and "limit 25 %" in why
 
 
+def _bounds() -> dict[str, tuple]:
+    """Per candidate whose bound had been only its search grid: (h within, coeff within, h beyond, coeff beyond), the
+    beyond values 5x the bound or more (synthetic(): 10 Hz)."""
+    from fbg_accel_calibration.effects import (
+        MAX_CHANNEL_DELAY_S,
+        MAX_DRIFT_MPS2,
+        MAX_THERMAL_LAG_S,
+        MAX_TIA_SCALE,
+    )
+    from fbg_accel_driver.correction_terms import ReferenceLowpass
+
+    small, large = np.full((3, 1), 0.1), np.array([[0.0], [-5 * MAX_DRIFT_MPS2], [0.0]])
+    return {
+        "thermal_lag": (-900.0, None, 5 * MAX_THERMAL_LAG_S, None),
+        "channel_delay": (0.04, None, 5 * MAX_CHANNEL_DELAY_S + 1.0, None),
+        "tia_lowpass": (1.0, None, 5 * MAX_TIA_SCALE, None),
+        "reference_read_noise": (2.0, None, 5 * ReferenceLowpass.MAX_TIME_CONSTANT_S, None),
+        "thermal_hysteresis": (60.0, small, 60.0, large),
+    }
+
+
+@pytest.mark.parametrize("name", ["thermal_lag", "channel_delay", "tia_lowpass", "reference_read_noise",
+                                  "thermal_hysteresis"])
+def test_a_fit_beyond_a_candidate_s_physical_bound_is_refused_as_not_physical(name: str) -> None:
+    """Issue 41: these candidates stated only their search grid as their bound, and nothing refused a fit beyond it (a
+    lag longer than the housing's time constant, a delay of seconds, a TIA slower than its parts, a filter slower than
+    the source's wander, a hysteresis of several m/s^2). Each now declares its bound (``Effect.hyper_limits`` /
+    ``implausible``), and ``Effect.refusal`` refuses a fit beyond it, on the one path the search asks of every effect."""
+    eff = library_by_name()[name]
+    data = prepare_data(synthetic(4))
+    h_in, c_in, h_out, c_out = _bounds()[name]
+    assert eff.refusal(h_in, c_in, data, np.eye(3)) == ""
+    why = eff.refusal(h_out, c_out, data, np.eye(3))
+    assert why.startswith("not physical"), why
+
+
+def test_the_search_refuses_a_candidate_whose_every_value_is_beyond_its_bound() -> None:
+    """The loop's side of the bound: candidates whose searched values all lie well beyond their physical bound (a
+    crafted grid) are fitted, marked REFUSED as not physical and never added, whatever their gain."""
+    from fbg_accel_calibration.effects import ChannelDelayEffect, ReferenceReadNoiseEffect, TiaLowpassEffect
+
+    crafted = []
+    for base in (ChannelDelayEffect, TiaLowpassEffect, ReferenceReadNoiseEffect):
+        beyond = _bounds()[base.name][2]
+        crafted.append(type(base.__name__, (base,), {"hyper_grid": lambda self, data, b=beyond: np.array([b, 1.5 * b])})())
+    res = diagnose(synthetic(4), static="table", library=tuple(crafted))
+    assert res.added == [] and res.noise_remedies == [], (res.added, res.noise_remedies)
+    for c in res.steps[0].candidates:
+        assert c.applicable and "REFUSED: not physical" in c.detail and not c.significant, (c.name, c.detail)
+
+
 @pytest.mark.parametrize(("n", "lags", "model_lags", "line"),
                          [(12, 4, 4, True), (12, 5, 15, True), (7, 3, 3, False), (3, 5, 2, True), (2, 2, 2, True),
                           (1, 1, 1, False), (40, 20, 39, True)])
