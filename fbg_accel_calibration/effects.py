@@ -105,7 +105,8 @@ MAX_TIME_ORIENTATION_SHARE = 0.99
 MODEL_TERM = "model term"  # a term of eq. 28's calibration file, applied by the driver
 NOISE_REMEDY = "noise remedy"  # a filter against noise, written to the calibration file, reported apart
 PER_RUN = "per-run property"  # a property of each recording: fitted, reported, not in the calibration file
-ROLES = (MODEL_TERM, NOISE_REMEDY, PER_RUN)
+RIG = "rig property"  # a property of the rig (the table's angles): fitted, reported, not in the calibration file
+ROLES = (MODEL_TERM, NOISE_REMEDY, PER_RUN, RIG)
 
 
 class Effect:
@@ -161,6 +162,11 @@ class Effect:
     def per_run(self) -> bool:
         """A property of each recording, not of the sensor (``role``)."""
         return self.role == PER_RUN
+
+    @property
+    def rig(self) -> bool:
+        """A property of the rig (the table), not of the sensor (``role``)."""
+        return self.role == RIG
 
     def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
         """Whether the data can show this effect at all (e.g. temperature must vary)."""
