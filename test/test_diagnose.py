@@ -113,7 +113,7 @@ def test_nothing_injected_nothing_added(seed: int) -> None:
 def test_an_offset_of_the_table_s_theta_is_named_a_rig_property_not_a_sensor_term(seed: int) -> None:
     """Issue 41 §8: a theta encoder that reads 1.5 degrees low was written to the calibration as
     spectral_nonlinearity, a property of the sensor. With the table's angles in the recording, the offset is a
-    candidate of the rig (``table_theta_offset``): found by its held-out gain (+90 %, p 8e-14, delta 1.494-1.502 deg
+    candidate of the rig (``table_theta_offset``): found by its held-out gain (+80 %, p 8e-14, delta 1.494-1.502 deg
     on these seeds), the reference corrected for it, the sensor model free of it and the report naming it with the
     measurement that tells it from a sensor effect."""
     res = diagnose(synthetic(seed, theta_offset=1.5), static="table")

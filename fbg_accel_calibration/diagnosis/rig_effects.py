@@ -16,7 +16,7 @@ from .data import DiagnosisData, Inputs
 # A two-axis table's zero is set against its index mark or a level to a small fraction of a degree; an offset of
 # several degrees is seen by eye on the table (ASSUMPTION: no rig figure is published). The search spans the bound.
 MAX_TABLE_OFFSET_DEG = 5.0
-TABLE_OFFSET_GRID_DEG = np.linspace(-MAX_TABLE_OFFSET_DEG, MAX_TABLE_OFFSET_DEG, 21)  # 0.5 deg steps, 0 included
+TABLE_OFFSET_GRID_DEG = np.linspace(-MAX_TABLE_OFFSET_DEG, MAX_TABLE_OFFSET_DEG, 11)  # 1 deg steps (then refined), 0 included
 
 TELLS_IT_FROM_THE_SENSOR = ("check the table's theta zero against a level, or turn the sensor 90 degrees about the "
                             "table's z axis on its mount and repeat: a table offset stays with the table's axis, an "
