@@ -121,8 +121,8 @@ class Effect:
     hyper_null: float | None = None
     title: str = ""
     # what adding it means (``ROLES``): a term of the calibration file, a filter against noise reported apart from the
-    # added effects, or a property of each recording (run_offset, run_drift) fitted so that it does not bias eq. 28,
-    # reported, never written to the YAML (the driver does not know runs)
+    # added effects, a property of each recording (run_offset, run_drift) or of the rig (table_theta_offset) fitted so
+    # that it does not bias eq. 28, reported, never written to the YAML (the driver knows neither runs nor the table)
     role: str = MODEL_TERM
     # its physical bound and the source of that bound: a fit beyond it is refused as not physical (:meth:`refusal`:
     # its hyper-parameter outside :meth:`hyper_limits`, its fitted values beyond :meth:`implausible`)
@@ -238,9 +238,9 @@ class ReferenceReadNoiseEffect(Effect):
     # tau back to 0 for a read noise that test found worth +11 %: the remedy was added and filtered nothing.
     title = "read noise of the reference channel (low-pass it before eq. 24)"
     role = NOISE_REMEDY
-    bound = ("tau_ref at most ReferenceLowpass.MAX_TIME_CONSTANT_S (100 s): the source's power wanders over minutes "
-             "(the SLD, paper 3.5), which the reference must follow for eq. 24 to cancel it; the driver refuses a "
-             "slower filter in the calibration file")
+    bound = ("tau_ref at most ReferenceLowpass.MAX_TIME_CONSTANT_S (100 s): the source's power (the SLD, paper 3.5) "
+             "wanders over minutes (ReferenceLowpass), which the reference must follow for eq. 24 to cancel it; the "
+             "driver refuses a slower filter in the calibration file")
 
     def void(self, h: float | None) -> bool:
         return not h
