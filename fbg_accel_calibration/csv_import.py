@@ -132,7 +132,8 @@ class CsvBlocks:
     """
 
     REQUIRED = COUNT_COLUMNS  # column names the header of this format holds (the delimiter check looks for them)
-    WIDTH = 10  # values of a parsed row: t_s (s), ref, x, y, z (counts), temperature (degC), then the format's own
+    WIDTH = 12  # values of a parsed row: t_s (s), ref, x, y, z (counts), temperature (degC), then the format's own
+    # (here the reference (3), the pose id and the table angles psi, theta (deg; NaN when the reference is a vector))
     REMEDY = "fbg-accel-calib import --drop-bad-rows imports the others into an MCAP to give here instead"
 
     def __init__(self, path: str | Path, *, rate_hz: float | None = None, temperature_c: float | None = None,
@@ -337,7 +338,7 @@ class CsvBlocks:
         else:
             r = [iv.check_range(c, self._value(fields, c), -iv.FULL_SCALE_MPS2, iv.FULL_SCALE_MPS2, "m/s^2 (+-20 g)")
                  for c in GREF_COLUMNS]
-        return [t, *counts, temp, *r, _pose(fields, col)]
+        return [t, *counts, temp, *r, _pose(fields, col), math.nan, math.nan]
 
     def _value(self, fields: list[str], name: str, allow_empty: bool = False) -> float:
         """The number in column ``name`` (NaN for an empty or NaN cell if ``allow_empty``); ValueError naming it."""
@@ -377,6 +378,7 @@ class CsvBlocks:
         from changes of the reference."""
         if self.use_angles:
             g = tuple(float(v) for v in table_specific_force(np.array([row[6]]), np.array([row[7]]), self.g_mps2)[0])
+            row[10:12] = row[6:8]  # the angles themselves, kept beside the reference (Recording.table_deg)
             row[6:9] = g
         else:
             g = (row[6], row[7], row[8])
@@ -401,7 +403,8 @@ class CsvBlocks:
 
     def _block(self, data: np.ndarray) -> Recording:
         return Recording(data[:, 0].copy(), data[:, 1].copy(), data[:, 2:5].copy(), data[:, 5].copy(),
-                         data[:, 6:9].copy(), data[:, 9].astype(int), metadata={"source": str(self.path)})
+                         data[:, 6:9].copy(), data[:, 9].astype(int), metadata={"source": str(self.path)},
+                         table_deg=data[:, 10:12].copy() if self.use_angles else None)
 
     def check(self, drop_bad_rows: bool, *, drop_option: bool = False) -> None:
         """After a full pass: fail like :func:`import_csv` on rejected rows (unless ``drop_bad_rows``),

@@ -109,6 +109,7 @@ class DiagnosisResult:
     column_correlation: dict[str, float] = field(default_factory=dict)  # added effect -> max |corr| with the others
     final_degree: int = -1  # degree of eq. 28 in the final model (re-selected after each added effect)
     run_terms: list[tuple[str, float | None, str]] = field(default_factory=list)  # per-run terms (not in the YAML)
+    rig_terms: list[tuple[str, float | None, str]] = field(default_factory=list)  # the rig's (not in the YAML)
     held_codes: list[HeldCode] = field(default_factory=list)  # ADC codes that held whole visits (adc_codes)
     # a periodic disturbance found in the visits (periodic_disturbance): when found, the floors above are without it
     disturbance: PeriodicDisturbance = field(default_factory=lambda: PeriodicDisturbance([], (math.nan, math.nan), 0,
@@ -205,7 +206,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
         fold_notes=fold_notes, n_floor_samples=int(floor.settled.sum()), noise_remedies=final.remedies,
         noise_floor_after=final.noise_after if final.remedies else None, findings=findings,
         condition_number=final.condition_number, column_correlation=final.column_correlation,
-        final_degree=sel.spec.degree, run_terms=final.run_terms, held_codes=held, disturbance=floor.disturbance,
+        final_degree=sel.spec.degree, run_terms=final.run_terms, rig_terms=final.rig_terms, held_codes=held,
+        disturbance=floor.disturbance,
         settings={"static": static if not isinstance(rec, DiagnosisData) else "given", "folds": int(fold.max()) + 1,
                   "alpha": alpha, "min_rel_gain": min_rel_gain, "max_effects": max_effects, "seed": seed,
                   "search_rows": sel.n_search, "search_step": sel.step, "search_information": sel.kept,

@@ -84,7 +84,8 @@ def summary(res: DiagnosisResult, img_prefix: str = "img/") -> list[str]:
                         f"over {', '.join(conf)}** (it was taken for its slightly larger held-out gain; see below)")
             out.append(f"- **Added: {name}** ({desc}){how}.")
     else:
-        out.append("- **Nothing added**: no candidate improves the held-out error significantly.")
+        out.append("- **Nothing added**" + (" to the sensor model" if res.rig_terms or res.run_terms else
+                                            ": no candidate improves the held-out error significantly") + ".")
     for name, _, desc in res.noise_remedies:
         out.append(f"- **Noise remedy: {name}** ({desc}): a filter, not a model effect; the floor of the filtered "
                    f"output is {_v(res.final_floor)} m/s^2.")
@@ -92,6 +93,9 @@ def summary(res: DiagnosisResult, img_prefix: str = "img/") -> list[str]:
         out.append(f"- **Per-run term: {name}** ({desc}): a property of these recordings, not of the sensor; fitted so "
                    "that it does not bias eq. 28, not in the calibration file. Expect a run of your own to carry a "
                    "term of this size that no calibration removes.")
+    for name, _, desc in res.rig_terms:
+        out.append(f"- **Rig property: {name}** ({desc}): the reference was corrected for it so that it does not bias "
+                   "eq. 28; not in the calibration file.")
     out.append("- Held-out RMSE per axis x/y/z: before " + _v(res.before_heldout_rmse) + " m/s^2, after "
                + _v(res.after_heldout_rmse) + " m/s^2; noise floor " + _v(res.noise_floor) + " m/s^2.")
     out += [f"- **Warning:** {f.text}." for f in res.findings]
@@ -383,6 +387,8 @@ def text(res: DiagnosisResult) -> str:
         out.append(f"noise remedy: {n} ({d}); floor of the filtered output {_v(res.final_floor)} m/s^2")
     for n, _, d in res.run_terms:
         out.append(f"per-run term (fitted, not in the calibration file): {n} ({d})")
+    for n, _, d in res.rig_terms:
+        out.append(f"rig property (fitted, not in the calibration file): {n} ({d})")
     for j, a in enumerate(AXES):
         out.append(f"axis {a}: held-out RMSE before {res.before_heldout_rmse[j]:.3f} -> after {res.after_heldout_rmse[j]:.3f} "
                    f"m/s^2, noise floor {res.final_floor[j]:.3f} m/s^2")

@@ -81,6 +81,21 @@ MIN_SPAN_FRACTION = 0.1
 MAX_CHANNEL_OFFSET_FRACTION = 0.25  # axis-channel offset / the channel's mean counts: dark current + ADC zero
 # offset are tens of counts (sim_default.yaml, reference_dark_offset); a quarter of the signal undoes eq. 24
 MAX_DRIFT_MPS2 = 0.05 * 20.0 * 9.80665  # warm-up amplitude or creep over the run: 5 % of full scale (1 g)
+# The whole assembly settled from 45 to 23.4 degC in about 7 h, some 5 time constants of the housing (paper 4.4;
+# sim_default.yaml thermal.optics_time_constant_s 5000 s): the AHT10 and the optics both sit inside that sealed housing
+# (paper 3.5), so neither can lag the other by more than the housing's own time constant.
+MAX_THERMAL_LAG_S = 7.0 * 3600.0 / 5.0
+# A pure delay of the sensor channels behind the table's angles: the board converts the four channels one after the
+# other within a sample interval and stamps the sample on its clock (ESP32 one-shot conversion, sim_default.yaml
+# electronics), and the analogue delay of the chain is the TIA low-pass (tia_lowpass); the simulator's 20 ms is an
+# ASSUMPTION of tens of ms. Beyond one sample interval plus this, the table's and the board's clocks disagree: a
+# misalignment of the rig's records, no property of the sensor.
+MAX_CHANNEL_DELAY_S = 0.1
+# The TIA's time constants are R_tr C_tr of the parts of the paper's Table 1 (the values used give its cut-offs):
+# common tolerances (a capacitor +-20 %, a resistor +-5 %; ASSUMPTION, the paper gives the values, not the
+# tolerances) move them by at most about 26 %; twice Table 1 is slower than any such part. (The flight build's
+# ~50 Hz, paper 3.5, is faster: within.)
+MAX_TIA_SCALE = 2.0
 # A function of board time shared by the runs (time_drift) is told from an effect of the orientation only by visits of
 # one orientation at different board times: above this share of the visits' board-time variance explained by their
 # orientation it is not testable (``orientation_share_of_visit_times``)
@@ -90,7 +105,8 @@ MAX_TIME_ORIENTATION_SHARE = 0.99
 MODEL_TERM = "model term"  # a term of eq. 28's calibration file, applied by the driver
 NOISE_REMEDY = "noise remedy"  # a filter against noise, written to the calibration file, reported apart
 PER_RUN = "per-run property"  # a property of each recording: fitted, reported, not in the calibration file
-ROLES = (MODEL_TERM, NOISE_REMEDY, PER_RUN)
+RIG = "rig property"  # a property of the rig (the table's angles): fitted, reported, not in the calibration file
+ROLES = (MODEL_TERM, NOISE_REMEDY, PER_RUN, RIG)
 
 
 class Effect:
@@ -105,11 +121,11 @@ class Effect:
     hyper_null: float | None = None
     title: str = ""
     # what adding it means (``ROLES``): a term of the calibration file, a filter against noise reported apart from the
-    # added effects, or a property of each recording (run_offset, run_drift) fitted so that it does not bias eq. 28,
-    # reported, never written to the YAML (the driver does not know runs)
+    # added effects, a property of each recording (run_offset, run_drift) or of the rig (table_theta_offset) fitted so
+    # that it does not bias eq. 28, reported, never written to the YAML (the driver knows neither runs nor the table)
     role: str = MODEL_TERM
-    # its physical bound and the source of that bound: a fit beyond it is refused by :meth:`implausible`; where no
-    # refusal is implemented, what bounds the fit (its search grid) and why
+    # its physical bound and the source of that bound: a fit beyond it is refused as not physical (:meth:`refusal`:
+    # its hyper-parameter outside :meth:`hyper_limits`, its fitted values beyond :meth:`implausible`)
     bound: str = ""
     # the checks a candidate must pass beyond its held-out test, by name, in the order they run
     # (``diagnosis.checks.CHECKS``, each saying when it runs: at every step, when the candidate is about to be added,
@@ -147,6 +163,11 @@ class Effect:
         """A property of each recording, not of the sensor (``role``)."""
         return self.role == PER_RUN
 
+    @property
+    def rig(self) -> bool:
+        """A property of the rig (the table), not of the sensor (``role``)."""
+        return self.role == RIG
+
     def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
         """Whether the data can show this effect at all (e.g. temperature must vary)."""
         return True, ""
@@ -183,10 +204,24 @@ class Effect:
         """One line with the fitted parameter values, for the report."""
         return "" if h is None else f"{self.hyper_name} = {h:.4g} {self.hyper_unit}"
 
+    def hyper_limits(self, data: DiagnosisData) -> tuple[float, float] | None:
+        """The physical range (lowest, highest; ``hyper_unit``) of the hyper-parameter that ``bound`` states; None:
+        the hyper-parameter itself is not bounded (its fitted values may be, :meth:`implausible`)."""
+        return None
+
     def implausible(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData, M0: np.ndarray) -> str:
         """Why the fitted values are not physical (empty if they are): such a fit is refused, not added.
         ``M0`` (3, 3) is the model's matrix at the mean temperature (m/s^2 per unit Psi)."""
         return ""
+
+    def refusal(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData, M0: np.ndarray) -> str:
+        """Why the fit at ``h`` with ``coeff`` is not physical, "" when it is: the one question the search asks of
+        every effect. A hyper-parameter outside :meth:`hyper_limits`, then :meth:`implausible`."""
+        limits = None if h is None else self.hyper_limits(data)
+        if limits is not None and not limits[0] <= float(h) <= limits[1]:
+            return (f"not physical: {self.hyper_name} = {float(h):.4g} {self.hyper_unit} is outside "
+                    f"[{limits[0]:.4g}, {limits[1]:.4g}] {self.hyper_unit}, the bound of {self.name} ({self.bound})")
+        return self.implausible(h, coeff, data, M0)
 
 
 class ReferenceReadNoiseEffect(Effect):
@@ -203,8 +238,9 @@ class ReferenceReadNoiseEffect(Effect):
     # tau back to 0 for a read noise that test found worth +11 %: the remedy was added and filtered nothing.
     title = "read noise of the reference channel (low-pass it before eq. 24)"
     role = NOISE_REMEDY
-    bound = ("tau_ref within its search grid: up to 50 sample intervals and ReferenceLowpass.MAX_TIME_CONSTANT_S (a "
-             "filter, not a property of the sensor: no refusal beyond it)")
+    bound = ("tau_ref at most ReferenceLowpass.MAX_TIME_CONSTANT_S (100 s): the source's power (the SLD, paper 3.5) "
+             "wanders over minutes (ReferenceLowpass), which the reference must follow for eq. 24 to cancel it; the "
+             "driver refuses a slower filter in the calibration file")
 
     def void(self, h: float | None) -> bool:
         return not h
@@ -213,6 +249,9 @@ class ReferenceReadNoiseEffect(Effect):
         if not data.dt_s > 0:
             return False, "no time base"
         return True, ""
+
+    def hyper_limits(self, data: DiagnosisData) -> tuple[float, float]:
+        return 0.0, ReferenceLowpass.MAX_TIME_CONSTANT_S
 
     def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
         hi = min(ReferenceLowpass.MAX_TIME_CONSTANT_S, 50.0 * data.dt_s)
@@ -313,8 +352,8 @@ class ThermalLagEffect(Effect):
     name = "thermal_lag"
     stage = 30
     checks = ("reading_jump", "step_when_chosen")
-    bound = ("|tau| within its search grid, up to a third of the recording (not refused beyond it: a lag longer than "
-             "the recording is not told from a drift)")
+    bound = ("|tau| at most MAX_THERMAL_LAG_S (5040 s): the housing's time constant, the assembly settled in about 7 h "
+             "(5 time constants, paper 4.4) with the AHT10 and the optics inside it (paper 3.5)")
     sensor_property = "a thermal lag"
     tells_it_from_a_step = ("hold each temperature until the housing has settled and change it again: a lag comes back "
                             "with every change of the temperature, a step happens once")
@@ -349,6 +388,9 @@ class ThermalLagEffect(Effect):
                                                                  data.t_s[idx], {}, steps)
                 reach = max(reach, float(np.max(np.abs(lagged - temp)[use])))
         return reach
+
+    def hyper_limits(self, data: DiagnosisData) -> tuple[float, float]:
+        return -MAX_THERMAL_LAG_S, MAX_THERMAL_LAG_S
 
     def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
         lo, hi = max(5 * data.dt_s, data.duration_s / 2000), max(data.duration_s / 3, 10 * data.dt_s)
@@ -537,12 +579,16 @@ class TimeDriftEffect(Effect):
 class ChannelDelayEffect(Effect):
     name = "channel_delay"
     reference_only = True
-    bound = ("D within its search grid, 0 to 12 sample intervals and at least MIN_DELAY_SEARCH_S (a delay of the chain "
-             "is tens of ms, sim_default.yaml; not refused beyond it)")
+    bound = ("D from 0 to one sample interval plus MAX_CHANNEL_DELAY_S (100 ms): the board converts and stamps the "
+             "four channels within a sample, the chain's analogue delay is the TIA's (a delay of the chain is tens of "
+             "ms, sim_default.yaml); a longer one is the table's and the board's clocks disagreeing")
     stage = 1
     hyper_name = "D"
     hyper_unit = "s"
     title = "delay of the sensor channels against the reference angles"
+
+    def hyper_limits(self, data: DiagnosisData) -> tuple[float, float]:
+        return 0.0, MAX_CHANNEL_DELAY_S + max(data.dt_s, 0.0)
 
     def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
         # 0 to 12 steps of the grid's unit, a sample or, above 120 Hz, 1/12 of MIN_DELAY_SEARCH_S: a delay of the chain
@@ -587,12 +633,15 @@ class ChannelDelayEffect(Effect):
 class TiaLowpassEffect(Effect):
     name = "tia_lowpass"
     reference_only = True
-    bound = ("the time constants within the search grid, up to 30 samples and at least MIN_TIA_SCALE_SEARCH x the "
-             "paper's Table 1 cut-offs (not refused beyond it)")
+    bound = ("the time constants at most MAX_TIA_SCALE (2) x those of the paper's Table 1: R_tr C_tr of its parts, "
+             "which common tolerances move by about 26 % at most")
     stage = 2
     hyper_name = "tau_scale"
     hyper_unit = "x Table 1"
     title = "TIA first-order low-pass of the axis channels"
+
+    def hyper_limits(self, data: DiagnosisData) -> tuple[float, float]:
+        return 0.0, MAX_TIA_SCALE
 
     def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
         # axis time constants from 0.05 sample to ~30 samples (Table 1 ratios between channels), and at least to
@@ -655,7 +704,8 @@ class ThermalHysteresisEffect(Effect):
     name = "thermal_hysteresis"
     stage = 80
     checks = ("reading_jump", "step_when_chosen")
-    bound = "the rate filter within its search grid; no bound on the half gap yet (not refused)"
+    bound = ("the half gap between heating and cooling at most MAX_DRIFT_MPS2 (5 % of full scale, paper 3.4) on each "
+             "axis: the stress of the same bonds (cyanoacrylate, epoxy, paper 3.1) as a warm-up or creep, bounded alike")
     sensor_property = "a hysteresis between heating and cooling"
     tells_it_from_a_step = ("cycle the temperature up and down twice: a hysteresis comes back at every turn, a step "
                             "happens once")
@@ -689,3 +739,12 @@ class ThermalHysteresisEffect(Effect):
     def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
         c = np.asarray(coeff)[:, 0] if coeff is not None else np.zeros(3)
         return f"rate filter {h:.4g} s; half gap heating-cooling [{c[0]:.3g}, {c[1]:.3g}, {c[2]:.3g}] m/s^2"
+
+    def implausible(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData, M0: np.ndarray) -> str:
+        if coeff is None:
+            return ""
+        half = np.abs(np.asarray(coeff)[:, 0])
+        if np.any(half > MAX_DRIFT_MPS2):
+            return (f"not physical: half gap heating-cooling up to {half.max():.3g} m/s^2, beyond {MAX_DRIFT_MPS2:.3g} "
+                    "m/s^2 (5 % of full scale) that the bonds' stress can move the bias by")
+        return ""

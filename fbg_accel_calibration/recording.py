@@ -32,6 +32,8 @@ class Recording:
     * ``metadata``: free-form run information (sensor id, plan, operator notes, source files).
     * ``aux`` (N,) or None: auxiliary ADC counts (protocol version 2: the reference transducer of a
       dynamic calibration, same board clock); None when the source has no such channel.
+    * ``table_deg`` (N, 2) or None: the table's angle readings psi (inner axis), theta (outer axis), degrees, that
+      ``gref_mps2`` was computed from (``table_geometry``); None when the source gives the reference as a vector.
     """
 
     t_s: np.ndarray
@@ -43,6 +45,7 @@ class Recording:
     run_id: np.ndarray | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
     aux: np.ndarray | None = None
+    table_deg: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.t_s = np.asarray(self.t_s, dtype=float)
@@ -55,6 +58,8 @@ class Recording:
         self.run_id = np.zeros(n, dtype=int) if self.run_id is None else np.asarray(self.run_id, int).reshape(n)
         if self.aux is not None:
             self.aux = np.asarray(self.aux, dtype=float).reshape(n)
+        if self.table_deg is not None:
+            self.table_deg = np.asarray(self.table_deg, dtype=float).reshape(n, 2)
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -75,7 +80,8 @@ class Recording:
     def select(self, mask: np.ndarray) -> Recording:
         """A new recording with the samples ``mask`` selects (a boolean mask, indices or a slice; order kept)."""
         return Recording(*(getattr(self, name)[mask] for name in _SAMPLE_FIELDS), self.run_id[mask], dict(self.metadata),
-                         None if self.aux is None else self.aux[mask])
+                         None if self.aux is None else self.aux[mask],
+                         None if self.table_deg is None else self.table_deg[mask])
 
     def runs(self) -> list[Recording]:
         """Each run (``run_id``) as its own recording (views of these arrays but the temperature, which a
@@ -107,7 +113,9 @@ class Recording:
 def _joined(parts: list[Recording], run_id: np.ndarray, metadata: dict[str, Any]) -> Recording:
     """The samples of ``parts`` one after the other, under ``run_id`` and ``metadata``."""
     aux = np.concatenate([p.aux for p in parts]) if all(p.aux is not None for p in parts) else None
-    return Recording(*(np.concatenate([getattr(p, name) for p in parts]) for name in _SAMPLE_FIELDS), run_id, metadata, aux)
+    table = (np.concatenate([p.table_deg for p in parts]) if all(p.table_deg is not None for p in parts) else None)
+    return Recording(*(np.concatenate([getattr(p, name) for p in parts]) for name in _SAMPLE_FIELDS), run_id, metadata, aux,
+                     table)
 
 
 def join_blocks(parts: list[Recording]) -> Recording:

@@ -34,3 +34,13 @@ def table_specific_force(psi_deg: np.ndarray, theta_deg: np.ndarray, g: float = 
     rz_t = np.swapaxes(rot_z(psi), -1, -2)
     rx_t = np.swapaxes(rot_x(theta), -1, -2)
     return np.einsum("nij,njk,k->ni", rz_t, rx_t, up)
+
+
+def outer_angle_offset(gref_mps2: np.ndarray, psi_deg: np.ndarray, delta_deg: float) -> np.ndarray:
+    """The specific force (N, 3, m/s^2) at an outer angle ``delta_deg`` (deg) larger than the one ``gref_mps2`` (N, 3)
+    was computed at: f(theta + delta) = Rz(psi)^T Rx(delta)^T Rz(psi) f(theta), a rotation about the outer axis as it
+    lies in the table frame, which the inner angle ``psi_deg`` (N,) alone places (theta need not be known)."""
+    rz = rot_z(np.radians(np.asarray(psi_deg, dtype=float)))
+    v = np.einsum("nij,nj->ni", rz, np.asarray(gref_mps2, dtype=float))  # Rz(psi) f, row by row
+    v = v @ rot_x(np.radians(float(delta_deg)))  # Rx(delta)^T v, row by row
+    return np.einsum("nji,nj->ni", rz, v)  # Rz(psi)^T v

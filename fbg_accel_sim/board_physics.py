@@ -1120,4 +1120,4 @@ def simulate_recording(cfg: SimConfig | None = None, seed: int = 0, duration_s: 
     }
     return Recording(t_s=t_board[keep], ref=a["counts_float"][keep, 0], xyz=a["counts_float"][keep, 1:], temp_c=temp[keep],
                      gref_mps2=a["gref_mps2"][keep], pose_id=a["pose_id"][keep], run_id=np.full(int(keep.sum()), run_id),
-                     metadata=meta)
+                     metadata=meta, table_deg=np.column_stack([a["psi_deg"], a["theta_deg"]])[keep])

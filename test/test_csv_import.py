@@ -38,6 +38,7 @@ def test_full_format(tmp_path: Path) -> None:
     assert np.isnan(rec.temp_c[1]) and rec.temp_c[2] == 23.5  # empty cell: no valid reading
     np.testing.assert_array_equal(rec.pose_id, [0, 0, 1])
     assert report.ignored_columns == ["comment"]
+    assert rec.table_deg is None  # a reference given as a vector: no table angles
     assert report.comment_or_blank_lines == 2
 
 
@@ -57,6 +58,8 @@ def test_angles_rate_and_constant_temperature(tmp_path: Path) -> None:
     np.testing.assert_allclose(rec.gref_mps2, expected)
     np.testing.assert_array_equal(rec.pose_id, [0, 0, 1, 2, 2])  # a new pose at every change of the reference
     assert "sample column / 100.0 Hz" in report.time_base
+    # the angles themselves are kept for the diagnosis (a table offset is a suspect: table_theta_offset)
+    np.testing.assert_array_equal(rec.table_deg, [[0, 0], [0, 0], [15, 30], [30, 30], [30, 30]])
 
 
 def test_malformed_rows_are_reported_with_line_numbers(tmp_path: Path) -> None:

@@ -41,7 +41,8 @@ B_TRUE = np.array([-101.08, -153.59, -137.16])
 
 
 def synthetic(seed: int, *, dark: float = 0.0, pose_disturbance: float = 0.0, dwell: int = 40, move: int = 4,
-              sigma: float = 0.05, channel_dark: float = 0.0, power_ramp: float = 0.0) -> Recording:
+              sigma: float = 0.05, channel_dark: float = 0.0, power_ramp: float = 0.0,
+              theta_offset: float = 0.0) -> Recording:
     """Multi-position run (theta 0..330 step 30, psi 0..330 step 60), linear sensor, white noise.
 
     ``dark``: offset (counts) added to the reference ADC while the source power wanders by +-1 %,
@@ -49,6 +50,8 @@ def synthetic(seed: int, *, dark: float = 0.0, pose_disturbance: float = 0.0, dw
     constant in every pose, that no library effect describes. ``channel_dark``: offset (counts) on
     the three axis channels; ``power_ramp``: relative source-power change over the run, linear in time
     (instead of the +-1 % wander), which makes a normalisation offset look exactly like a drift.
+    ``theta_offset`` (deg): the table's theta encoder reads this much less than the table's angle; the recording
+    carries the readings (``table_deg``) and the reference computed from them.
     """
     rng = np.random.default_rng(seed)
     poses = [(p, t) for t in range(0, 360, 30) for p in range(0, 360, 60)]
@@ -76,8 +79,10 @@ def synthetic(seed: int, *, dark: float = 0.0, pose_disturbance: float = 0.0, dw
     xyz += rng.normal(0, 1.0, (n, 3)) * sigma / np.diag(M_TRUE) * 870.0
     xyz += channel_dark
     ref = ref_true + dark
-    gref = np.where(pid[:, None] >= 0, g, np.nan)
-    return Recording(np.arange(n) * 0.1, ref, xyz, 23.4 + rng.normal(0, 0.01, n), gref, pid)
+    read = th - theta_offset
+    gref = np.where(pid[:, None] >= 0, table_specific_force(psi, read, 9.81), np.nan)
+    return Recording(np.arange(n) * 0.1, ref, xyz, 23.4 + rng.normal(0, 0.01, n), gref, pid,
+                     table_deg=np.column_stack([psi, read]))
 
 
 def test_injected_dark_offset_is_found_and_fixed() -> None:
@@ -99,6 +104,29 @@ def test_nothing_injected_nothing_added(seed: int) -> None:
     assert res.steps[0].chosen is None
     assert not res.structure.significant
     assert res.calibration.corrections == []
+    # the table's angles are in the recording, and no offset of theta is claimed (issue 41: the rig is a suspect too)
+    rig = next(c for c in res.steps[0].candidates if c.name == "table_theta_offset")
+    assert rig.applicable and rig.p_value > 0.1 and res.rig_terms == [], rig.detail
+
+
+@pytest.mark.parametrize("seed", [2, 3, 4])
+def test_an_offset_of_the_table_s_theta_is_named_a_rig_property_not_a_sensor_term(seed: int) -> None:
+    """Issue 41 §8: a theta encoder that reads 1.5 degrees low was written to the calibration as
+    spectral_nonlinearity, a property of the sensor. With the table's angles in the recording, the offset is a
+    candidate of the rig (``table_theta_offset``): found by its held-out gain (+80 %, p 8e-14, delta 1.494-1.502 deg
+    on these seeds), the reference corrected for it, the sensor model free of it and the report naming it with the
+    measurement that tells it from a sensor effect."""
+    res = diagnose(synthetic(seed, theta_offset=1.5), static="table")
+    assert res.added == [] and res.calibration.corrections == [], res.added
+    assert [t[0] for t in res.rig_terms] == ["table_theta_offset"], res.rig_terms
+    assert abs(res.rig_terms[0][1] - 1.5) < 0.1, res.rig_terms
+    assert "table_theta_offset" not in res.calibration.fit["added_effects"]
+    assert res.calibration.fit["rig_properties_fitted_not_applied"].keys() == {"table_theta_offset"}
+    assert np.all(res.after_heldout_rmse < 1.1 * res.noise_floor) and not res.structure.significant
+    md = markdown(res)
+    said = re.search(r"\*\*Rig property: table_theta_offset\*\* \(the table's theta reads ([0-9.]+) deg less", md)
+    assert said and abs(float(said.group(1)) - 1.5) < 0.1, md[:2000]
+    assert "turn the sensor 90 degrees" in md and "table-angle offset" in md
 
 
 def test_unlisted_pose_disturbance_is_reported_not_claimed() -> None:
@@ -604,6 +632,57 @@ def test_a_reference_offset_beyond_the_bound_is_not_a_dark_offset() -> None:
     assert eff.implausible(0.5 * MAX_CHANNEL_OFFSET_FRACTION * ref, None, data, M0) == ""
     why = eff.implausible(-1.2 * MAX_CHANNEL_OFFSET_FRACTION * ref, None, data, M0)
     assert "not a dark offset" in why and "limit 25 %" in why
+
+
+def _bounds() -> dict[str, tuple]:
+    """Per candidate whose bound had been only its search grid: (h within, coeff within, h beyond, coeff beyond), the
+    beyond values 5x the bound or more (synthetic(): 10 Hz)."""
+    from fbg_accel_calibration.effects import (
+        MAX_CHANNEL_DELAY_S,
+        MAX_DRIFT_MPS2,
+        MAX_THERMAL_LAG_S,
+        MAX_TIA_SCALE,
+    )
+    from fbg_accel_driver.correction_terms import ReferenceLowpass
+
+    small, large = np.full((3, 1), 0.1), np.array([[0.0], [-5 * MAX_DRIFT_MPS2], [0.0]])
+    return {
+        "thermal_lag": (-900.0, None, 5 * MAX_THERMAL_LAG_S, None),
+        "channel_delay": (0.04, None, 5 * MAX_CHANNEL_DELAY_S + 1.0, None),
+        "tia_lowpass": (1.0, None, 5 * MAX_TIA_SCALE, None),
+        "reference_read_noise": (2.0, None, 5 * ReferenceLowpass.MAX_TIME_CONSTANT_S, None),
+        "thermal_hysteresis": (60.0, small, 60.0, large),
+    }
+
+
+@pytest.mark.parametrize("name", ["thermal_lag", "channel_delay", "tia_lowpass", "reference_read_noise",
+                                  "thermal_hysteresis"])
+def test_a_fit_beyond_a_candidate_s_physical_bound_is_refused_as_not_physical(name: str) -> None:
+    """Issue 41: these candidates stated only their search grid as their bound, and nothing refused a fit beyond it (a
+    lag longer than the housing's time constant, a delay of seconds, a TIA slower than its parts, a filter slower than
+    the source's wander, a hysteresis of several m/s^2). Each now declares its bound (``Effect.hyper_limits`` /
+    ``implausible``), and ``Effect.refusal`` refuses a fit beyond it, on the one path the search asks of every effect."""
+    eff = library_by_name()[name]
+    data = prepare_data(synthetic(4))
+    h_in, c_in, h_out, c_out = _bounds()[name]
+    assert eff.refusal(h_in, c_in, data, np.eye(3)) == ""
+    why = eff.refusal(h_out, c_out, data, np.eye(3))
+    assert why.startswith("not physical"), why
+
+
+def test_the_search_refuses_a_candidate_whose_every_value_is_beyond_its_bound() -> None:
+    """The loop's side of the bound: candidates whose searched values all lie well beyond their physical bound (a
+    crafted grid) are fitted, marked REFUSED as not physical and never added, whatever their gain."""
+    from fbg_accel_calibration.effects import ChannelDelayEffect, ReferenceReadNoiseEffect, TiaLowpassEffect
+
+    crafted = []
+    for base in (ChannelDelayEffect, TiaLowpassEffect, ReferenceReadNoiseEffect):
+        beyond = _bounds()[base.name][2]
+        crafted.append(type(base.__name__, (base,), {"hyper_grid": lambda self, data, b=beyond: np.array([b, 1.5 * b])})())
+    res = diagnose(synthetic(4), static="table", library=tuple(crafted))
+    assert res.added == [] and res.noise_remedies == [], (res.added, res.noise_remedies)
+    for c in res.steps[0].candidates:
+        assert c.applicable and "REFUSED: not physical" in c.detail and not c.significant, (c.name, c.detail)
 
 
 @pytest.mark.parametrize(("n", "lags", "model_lags", "line"),

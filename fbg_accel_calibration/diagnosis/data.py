@@ -51,6 +51,7 @@ class DiagnosisData:
     low_reference_note: str = ""  # how many, where (``recording.low_reference_warning``); empty when none
     # jumps of the temperature reading no temperature makes (``temperature_reading.reading_jumps``, ``prepare_data``)
     temperature_jumps: list = field(default_factory=list)
+    table_deg: np.ndarray | None = None  # (N, 2) the table's angle readings psi, theta (deg); None: not in the recording
 
     _memo: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
     _recent: OrderedDict[tuple, np.ndarray] = field(default_factory=OrderedDict, init=False, repr=False, compare=False)

@@ -92,7 +92,7 @@ def prepare_data(rec: Recording, static: str = "table", beside_thread: bool = Fa
     return DiagnosisData(rec.t_s, rec.ref, rec.xyz, rec.temp_c, rec.gref_mps2, rec.pose_id, rec.run_id, use,
                          group=visit, n_clipped_samples=int(left_out.sum()), n_clipped_visits=len(clipped),
                          n_low_reference=dark.count, low_reference_note=dark.warning(),
-                         temperature_jumps=jumps.result())
+                         temperature_jumps=jumps.result(), table_deg=rec.table_deg)
 
 
 # ============================================================================ model specification

@@ -36,6 +36,7 @@ class FinalModel:
     added: list[Added]  # model terms
     remedies: list[Added]  # noise remedies
     run_terms: list[Added]  # per-run properties
+    rig_terms: list[Added]  # properties of the rig (the table's angles)
     heldout: np.ndarray  # (N, 3) held-out residual, m/s^2
     r_eval: np.ndarray  # (N,) the samples the held-out errors are judged on
     n_static: int  # samples of r_eval
@@ -85,7 +86,8 @@ def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: Flo
     role = {e.name: e for e, _ in spec.effects}
     remedies = [a for a in added if role[a[0]].noise_remedy]
     run_terms = [a for a in added if role[a[0]].per_run]
-    added = [a for a in added if not (role[a[0]].noise_remedy or role[a[0]].per_run)]
+    rig_terms = [a for a in added if role[a[0]].rig]
+    added = [a for a in added if not (role[a[0]].noise_remedy or role[a[0]].per_run or role[a[0]].rig)]
     if code_step.added:
         cal.adc_codes = code_step.table
         added.append((code_step.result.name, None, describe_code_table(code_step)))
@@ -117,7 +119,7 @@ def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: Flo
 
     structure = residual_structure(data, cv_f.heldout, r_eval, groups, noise_model_after, alpha, fit_var=fit_var)
     cond, column_corr = gram_conditioning(cv_f.sums.XtX, cv_f.sums.xsum, len(cv_f.sums.idx), blocks_f)
-    return FinalModel(cal, base_cal, added, remedies, run_terms, cv_f.heldout, r_eval, int(r_eval.sum()), noise_after,
+    return FinalModel(cal, base_cal, added, remedies, run_terms, rig_terms, cv_f.heldout, r_eval, int(r_eval.sum()), noise_after,
                       noise_model_after, rms(residual_before), rms(res0), rms(cv_f.heldout),
                       rms(G_f - cv_f.fitted_full), structure, cond, column_corr, flagged, code_step, calibrated_later,
                       fitted_sensor, rows_f)
@@ -139,11 +141,14 @@ def calibration_from(spec: ModelSpec, des: Design, cv: CvResult, data: Diagnosis
         terms.extend(eff.make_terms(h, coeff, data))
         added.append((eff.name, h, eff.describe(h, coeff)))
     per_run = [e.name for e, _ in spec.effects if e.per_run]
+    rig = {e.name: h for e, h in spec.effects if e.rig}
     fit = {"tool": "fbg-accel-calib diagnose", "degree": n,
-           "added_effects": [a[0] for a in added if a[0] not in per_run],
-           "hyper_parameters": {a[0]: a[1] for a in added if a[0] not in per_run}}
+           "added_effects": [a[0] for a in added if a[0] not in per_run and a[0] not in rig],
+           "hyper_parameters": {a[0]: a[1] for a in added if a[0] not in per_run and a[0] not in rig}}
     if per_run:  # fitted so that they do not bias eq. 28; the driver cannot apply them (it does not know runs)
         fit["per_run_terms_fitted_not_applied"] = per_run
+    if rig:  # the reference was corrected for them: the rig's, never the sensor's
+        fit["rig_properties_fitted_not_applied"] = rig
     if confounded:
         fit["confounded_with"] = confounded
     delay = [h for e, h in spec.effects if e.name == "channel_delay"]

@@ -18,6 +18,7 @@ from ..effects import (
     TiaLowpassEffect,
     TimeDriftEffect,
 )
+from .rig_effects import TableThetaOffsetEffect
 from .run_effects import RunDriftEffect, RunOffsetEffect
 
 LIBRARY: tuple[Effect, ...] = (
@@ -31,6 +32,7 @@ LIBRARY: tuple[Effect, ...] = (
     ThermalHysteresisEffect(),
     RunOffsetEffect(),
     RunDriftEffect(),
+    TableThetaOffsetEffect(),
 )
 
 
@@ -60,6 +62,9 @@ SEPARATING_MEASUREMENT: dict[frozenset[str], str] = {
         "power-on, a per-run drift comes back at every run start"),
     frozenset({"run_offset", "thermal_lag"}): (
         "hold each chamber level longer, until the housing temperature has settled: a lag ends, a run offset stays"),
+    frozenset({"spectral_nonlinearity", "table_theta_offset"}): (
+        "turn the sensor 90 degrees about the table's z axis on its mount and repeat, or check the table's theta zero "
+        "against a level: a table offset stays with the table's axis, a non-linearity turns with the sensor"),
     frozenset({"time_drift", "thermal_hysteresis"}): (
         "cycle the temperature up and down twice: hysteresis repeats with the branch, drift does not"),
 }

@@ -522,9 +522,10 @@ class Evaluator:
 
     def implausible(self, eff: Effect, h: float | None, des: Design, cvr: CvResult) -> str:
         """Why the fit of ``eff`` at ``h`` (design ``des``, fit ``cvr`` on all rows) is not physical, or "": the
-        effect's own bounds (``Effect.implausible``) or columns that cancel (``cancelling_terms``)."""
+        effect's own bound (``Effect.refusal``: its hyper-parameter's range, its fitted values) or columns that cancel
+        (``cancelling_terms``)."""
         coeff = cvr.A_full[des.blocks[eff.name]].T if eff.name in des.blocks else None
-        return (eff.implausible(h, coeff, self.data, self.model_matrix)
+        return (eff.refusal(h, coeff, self.data, self.model_matrix)
                 or cancelling_terms(des, cvr, eff.name))
 
     def evaluate(self, spec: ModelSpec, eff: Effect, base_heldout: np.ndarray, base_fitted: np.ndarray,
