@@ -134,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
     level = theta_levels(args.csv, len(rec))
     res = diagnose(rec)
     by_name = {e.name: e for e in LIBRARY}
-    effects = [(by_name[name], h) for name, h, _ in [*res.added, *res.noise_remedies, *res.run_terms]]
+    terms = [*res.added, *res.noise_remedies, *res.run_terms, *res.rig_terms]  # every effect the diagnosis ends with
+    effects = [(by_name[name], h) for name, h, _ in terms]
 
     def linear(data):
         return ModelSpec(0, 0.0, 1.0)
@@ -148,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
                        {"source": str(args.csv)})
     floor = res.noise_floor
     rows_md = []
-    diag_name = "diagnosed model (" + (", ".join(n for n, _, _ in [*res.added, *res.noise_remedies, *res.run_terms])
+    diag_name = "diagnosed model (" + (", ".join(n for n, _, _ in terms)
                                        or "no effect") + ")"
     tilts: dict[tuple[str, str], float] = {}
     tests: dict[str, tuple[float, float]] = {}
@@ -216,7 +217,10 @@ def main(argv: list[str] | None = None) -> int:
         "",
         "The diagnosed model's effects and hyper-parameters are the diagnosis' on the whole series (without the table); "
         "each fold refits their coefficients. A pose is one visit of the table (a pose id within one theta level); its "
-        "angle is that between the mean held-out calibrated vector and the mean reference over its samples.",
+        "angle is that between the mean held-out calibrated vector and the mean reference over its samples."
+        + (" A property of the rig among them (" + ", ".join(n for n, _, _ in res.rig_terms) + ") corrects that "
+           "reference, as the diagnosis does; the paper's model is judged against the table's readings."
+           if res.rig_terms else ""),
         "",
         "## Verdict",
         "",
@@ -258,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
         "## The diagnosis' code-width candidate",
         "",
         f"`fbg-accel-calib diagnose` tests the table itself as a candidate on top of its final model "
-        f"({', '.join(n for n, _, _ in [*res.added, *res.noise_remedies, *res.run_terms]) or 'the declared model'}), "
+        f"({', '.join(n for n, _, _ in terms) or 'the declared model'}), "
         "each of its 10 folds predicted through a table estimated without that fold and its pair (never the visits "
         "it predicts) "
         f"(fbg_accel_calibration/diagnosis/adc_code_candidate.py): held-out gain {100 * cand.rel_gain:+.1f} %, p = "
