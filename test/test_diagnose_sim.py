@@ -563,11 +563,13 @@ def test_an_orientation_term_that_stands_in_for_a_table_angle_effect_is_said_to_
     something else. What remains differs between the visits at z up and z down (the inner angle turns, the direction
     does not): the report now says the orientation term may stand in for an effect of the table's angles. A genuine
     second-order sensitivity (K2 = 0.004 per m/s^2 on x) is added with nothing left over, and no such warning."""
-    # the reference given as a vector (no table angles, so no table_theta_offset): on this seed spectral_nonlinearity
-    # is added at p 0.0017, at its level (0.01 / 6 candidates); one candidate more and it is not
-    rec = simulate_recording(_config({"effects.unmodelled_cable_torque.scale": 3.0}), seed=2)
+    # the reference given as a vector (no table angles, so no table_theta_offset). What is tested is the warning once
+    # the term is in, not the selection's threshold: this small grid's signed-rank test gives p 6e-4 .. 4e-3 over
+    # seeds 1-4, around the default level (0.01 / 6 candidates), so the level is 0.05 / 6 = 8.3e-3, 13x the p of
+    # seed 1 (6.3e-4)
+    rec = simulate_recording(_config({"effects.unmodelled_cable_torque.scale": 3.0}), seed=1)
     rec.table_deg = None
-    res = diagnose(rec)
+    res = diagnose(rec, alpha=0.05)
     assert "spectral_nonlinearity" in [a[0] for a in res.added], res.added
     assert any(w.startswith("spectral_nonlinearity is a function of the orientation") for w in res.warnings), res.warnings
     rec = simulate_recording(_config({}), seed=1)
