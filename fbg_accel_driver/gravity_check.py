@@ -31,9 +31,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from statistics import NormalDist
 
 import numpy as np
-from scipy.stats import norm
 
 from .coefficient_covariance import output_covariance
 from .noise_model import mean_variance_factor
@@ -106,7 +106,7 @@ class GravityCheck:
         self.cal = calibration
         self.config = config
         self.dt_s = float(dt_s)
-        self.k = float(norm.isf(config.false_alarm_per_test / 2.0))
+        self.k = NormalDist().inv_cdf(1.0 - config.false_alarm_per_test / 2.0)  # the driver loads no scipy
         sigma = np.asarray(calibration.noise_sigma_mps2, float)
         frac = np.asarray(calibration.noise_correlated_fraction, float)
         tau = np.asarray(calibration.noise_time_constant_s, float)

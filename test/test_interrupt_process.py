@@ -85,5 +85,6 @@ def test_an_interrupt_at_any_moment_is_one_line_and_leaves_nothing(tmp_path: Pat
     lines = err.strip().splitlines()
     assert rc == 128 + sig, (rc, err[-2000:])
     assert len(lines) == 1 and "Traceback" not in err and prog in lines[0], err[-2000:]
-    assert ("terminated" if sig == signal.SIGTERM and when == "writing" and prog != "board_sim" else "interrupted") \
-        in lines[0], lines[0]
+    # fbg-accel-calib loads numpy only in the command, after its handlers are set: a SIGTERM while it loads is the
+    # command's "terminated"; board_sim says "interrupted" for both signals
+    assert ("terminated" if sig == signal.SIGTERM and prog != "board_sim" else "interrupted") in lines[0], lines[0]
