@@ -442,7 +442,7 @@ def _figure(rows: int, cols: int, size_in: tuple[float, float], **margins: float
 
 
 def _scatter(ax, x: np.ndarray, y: np.ndarray, idx: np.ndarray, **kw) -> None:
-    """``y[idx]`` against ``x[idx]`` as dots, a sample per occupied pixel (``plotted``)."""
+    """``y[idx]`` against ``x[idx]`` as dots, a sample per occupied cell of ``PLOT_GRID`` (``plotted``)."""
     shown = plotted(idx, x, y)
     ax.plot(x[shown], y[shown], ".", ms=2, **kw)
 
@@ -461,29 +461,41 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
         written.append(out_dir / name)
         fig.savefig(written[-1], dpi=PLOT_DPI)
 
-    # candidates: residual of the current model (held out) against the candidate's contribution
-    for c in plotted_candidates(res):
-        # evaluated on the search's samples (search_samples: the fitted ones, or every k-th): those plotted
-        delta = c.delta_of_every_sample(len(d.t_s))
+    # candidates: residual of the current model (held out) against the candidate's contribution. One figure, its
+    # artists given each candidate's data in turn: its axes and ticks are made once, not once per candidate.
+    cands = plotted_candidates(res)
+    if cands:
         fig, axs = _figure(1, 4, (15, 3.6), left=0.05, right=0.99, bottom=0.15, top=0.83, wspace=0.33)
         axs = axs[0]
+        dots = [axs[j].plot([], [], ".", ms=2, alpha=0.4)[0] for j in range(3)]
+        diagonal = [axs[j].plot([], [], "k--", lw=0.8)[0] for j in range(3)]
         for j in range(3):
-            _scatter(axs[j], delta[:, j], res.residual_before[:, j], ri, alpha=0.4)
-            lim = np.nanmax(np.abs(delta[r, j])) if np.any(r) else 1
-            axs[j].plot([-lim, lim], [-lim, lim], "k--", lw=0.8)
             axs[j].set_xlabel(f"candidate contribution {AXES[j]} [m/s^2]")
             axs[j].set_ylabel(f"held-out residual {AXES[j]} [m/s^2]")
+        profile = axs[3].plot([], [], "o-")[0]
+        chosen = axs[3].axvline(0.0, color="r", lw=0.8)
+        axs[3].set_ylabel("weighted training RSS")
+    for c in cands:
+        # evaluated on the search's samples (search_samples: the fitted ones, or every k-th): those plotted
+        delta = c.delta_of_every_sample(len(d.t_s))
+        for j in range(3):
+            shown = plotted(ri, delta[:, j], res.residual_before[:, j])
+            dots[j].set_data(delta[shown, j], res.residual_before[shown, j])
+            lim = np.nanmax(np.abs(delta[r, j])) if np.any(r) else 1
+            diagonal[j].set_data([-lim, lim], [-lim, lim])
             axs[j].set_title(f"corr {c.corr_with_residual[j]:+.2f}")
+        axs[3].set_visible(bool(c.hyper_profile))
         if c.hyper_profile:
             h, v = np.array(c.hyper_profile).T
-            axs[3].plot(h, v, "o-")
+            profile.set_data(h, v)
+            chosen.set_visible(c.hyper is not None)
             if c.hyper is not None:
-                axs[3].axvline(c.hyper, color="r", lw=0.8)
+                chosen.set_xdata([c.hyper, c.hyper])
             eff = library_by_name().get(c.name)
             axs[3].set_xlabel(f"{eff.hyper_name} [{eff.hyper_unit}]" if eff is not None and eff.hyper_name else "hyper-parameter")
-            axs[3].set_ylabel("weighted training RSS")
-        else:
-            axs[3].axis("off")
+        for ax in axs:
+            ax.relim(visible_only=True)
+            ax.autoscale_view()
         fig.suptitle(f"{c.name}: held-out gain {100 * c.rel_gain:+.1f} %, p = {_p(c.p_value)}")
         save(fig, f"candidate_{c.name}.png")
 
