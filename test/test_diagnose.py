@@ -12,8 +12,16 @@ import pytest
 from fbg_accel_calibration.csv_import import import_csv
 from fbg_accel_calibration.diagnose import diagnose
 from fbg_accel_calibration.diagnose_cli import main as diagnose_main
-from fbg_accel_calibration.diagnose_report import CAND_HEAD, PLOT_GRID, markdown, plotted, write_report
+from fbg_accel_calibration.diagnose_report import (
+    CAND_HEAD,
+    PLOT_GRID,
+    markdown,
+    plotted,
+    plotted_candidates,
+    write_report,
+)
 from fbg_accel_calibration.diagnose_report import text as report_text
+from fbg_accel_calibration.diagnosis.adc_code_candidate import NAME as ADC_CODES_NAME
 from fbg_accel_calibration.diagnosis.cv import (
     CANCEL_RATIO,
     COLLINEAR_CORR,
@@ -29,7 +37,7 @@ from fbg_accel_calibration.diagnosis.design import DesignCache, ModelSpec, build
 from fbg_accel_calibration.diagnosis.floor import detrended_lag_matrix
 from fbg_accel_calibration.diagnosis.library import LIBRARY, library_by_name
 from fbg_accel_calibration.diagnosis.response_step import ResponseStepEffect
-from fbg_accel_calibration.diagnosis.search import Evaluator, paired_gain_test
+from fbg_accel_calibration.diagnosis.search import CandidateResult, Evaluator, paired_gain_test
 from fbg_accel_calibration.effects import Effect
 from fbg_accel_calibration.recording import Recording, time_axis_label
 from fbg_accel_calibration.table_geometry import table_specific_force
@@ -90,6 +98,23 @@ def test_injected_dark_offset_is_found_and_fixed() -> None:
     assert np.all(res.after_heldout_rmse < 1.2 * res.noise_floor)
     assert not res.structure.significant
     assert res.consistency_max_abs_mps2 < 1e-9
+    # the report links a figure of the candidates that write_plots draws, and of no other: the ADC code-width
+    # candidate (tested last, on the final model) has no contribution figure, so when added it links none
+    drawn = {"before_after.png", "residual_structure.png", *(f"candidate_{c.name}.png" for c in plotted_candidates(res))}
+    assert "candidate_reference_dark_offset.png" in drawn and set(_linked_figures(markdown(res))) == drawn
+    code = res.steps[-1]
+    assert [c.name for c in code.candidates] == [ADC_CODES_NAME]
+    code.candidates = [CandidateResult(ADC_CODES_NAME, "code widths", True, rel_gain=0.2, p_value=1e-9, n_groups=40,
+                                       corr_with_residual=np.full(3, 0.5), significant=True)]
+    code.chosen = ADC_CODES_NAME
+    res.added.append((ADC_CODES_NAME, None, "counts mapped to their codes' centres"))
+    md = markdown(res)
+    assert f"**Added: {ADC_CODES_NAME}**" in md and set(_linked_figures(md)) == drawn
+
+
+def _linked_figures(md: str) -> list[str]:
+    """The file names of the figures a markdown report links, in the text or as images (``img/<name>.png``)."""
+    return re.findall(r"img/([\w.]+\.png)", md)
 
 
 @pytest.mark.parametrize("seed", [2, 3, 4])
@@ -159,6 +184,7 @@ def test_cli_writes_report_yaml_and_plots(tmp_path: Path) -> None:
     assert "reference_dark_offset" in text and "Before and after" in text
     assert f"fbg-accel-calib diagnose {csv} --static table" in text  # the argv given to main, not sys.argv
     assert (out.parent / "img" / "before_after.png").stat().st_size > 1000
+    assert set(_linked_figures(text)) == {p.name for p in (out.parent / "img").glob("*.png")}  # each one drawn
     cal = ThermalCalibration.load(yml)
     assert [t.kind for t in cal.corrections] == ["reference_dark_offset", "channel_offset"]
     assert diagnose_main(["diagnose", str(tmp_path / "missing.csv")]) == 2
