@@ -115,11 +115,12 @@ def forget(path: str, names: set[str]) -> None:
     meta.write_text(json.dumps(data))
 
 
-def run_mutmut(names: list[str]) -> None:
-    """``mutmut run`` on ``names`` (all mutants of the configured modules when empty), 200 names a call."""
-    batches = [names[i:i + 200] for i in range(0, len(names), 200)] or [[]]
-    for batch in batches:
-        subprocess.run([*MUTMUT, "run", *batch], cwd=ROOT, check=False, stdout=subprocess.DEVNULL)
+def run_mutmut(names: list[str], max_children: int) -> None:
+    """``mutmut run`` on ``names`` (all mutants of the configured modules when empty), in one call (one clean run
+    of the tests they need, then one fork per mutant; mutmut records each result as it comes, so an interrupted
+    run loses at most the mutants in flight)."""
+    subprocess.run([*MUTMUT, "run", "--max-children", str(max_children), *names], cwd=ROOT, check=False,
+                   stdout=subprocess.DEVNULL)
 
 
 def diff_of(name: str) -> str:
@@ -157,9 +158,11 @@ def page(rows: list[dict], survivors: list[tuple[str, str]], command: str) -> st
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--modules", nargs="+", choices=sorted(MODULES), default=sorted(MODULES))
+    ap.add_argument("--modules", nargs="+", choices=list(MODULES), default=list(MODULES),
+                    help="run in this order, one mutmut call each (default: all, the fast ones first)")
     ap.add_argument("--sample", type=int, default=0, help="mutants drawn per module (0: all)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--max-children", type=int, default=1, help="mutants checked at once (the build machine: 1)")
     ap.add_argument("--report-only", action="store_true", help="no mutmut run: the page from the results so far")
     ap.add_argument("--recheck-survivors", action="store_true",
                     help="run the survivors so far again (after tests were added), nothing else")
@@ -173,17 +176,18 @@ def main() -> int:
             names = {k for k, v in meta_results(MODULES[m]).items() if v is not None and v not in KILLED}
             forget(MODULES[m], names)
             again += sorted(names)
-        run_mutmut(again)
+        run_mutmut(again, args.max_children)
     elif not args.report_only:
         if not all(meta_results(MODULES[m]) for m in args.modules):
-            run_mutmut(["__generate_only__"])  # generates every mutant and the test map; no name matches
-        names: list[str] = []
-        for m in args.modules:
-            keys = sorted(meta_results(MODULES[m]))
+            run_mutmut(["__generate_only__"], args.max_children)  # every mutant and the test map; no name matches
+        for m in args.modules:  # module by module; a mutant with a result is not run again (resumes a stopped run)
+            results = meta_results(MODULES[m])
+            keys = sorted(results)
             if args.sample and len(keys) > args.sample:
                 keys = sorted(random.Random(f"{args.seed}:{m}").sample(keys, args.sample))
-            names += keys
-        run_mutmut(names)
+            todo = [k for k in keys if results[k] is None]
+            if todo:
+                run_mutmut(todo, args.max_children)
     rows, survivors = [], []
     for m in args.modules:
         results = meta_results(MODULES[m])
