@@ -37,10 +37,25 @@ def pytest_report_header(config: pytest.Config) -> str:
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Under mutation testing (``bench/mutation_check.py``: mutmut names the mutant in ``MUTANT_UNDER_TEST`` and runs
     in ``mutants/`` beside its ``mutmut-stats.json``), the tests a mutant reaches run fastest first: pytest stops at the
-    first failure (-x), so a mutant is killed by its cheapest killer instead of after the slowest tests. Which tests
-    run, and what they assert, is unchanged; outside mutation testing nothing is reordered."""
+    first failure (-x), so a mutant is killed by its cheapest killer instead of after the slowest tests; and the slow
+    tests the bench script leaves out of the mutation run (``MUTATION_LEAVE_OUT``, node-id prefixes separated by
+    ``;``) are deselected, and a hypothesis property that fails is not shrunk. What the tests assert is unchanged;
+    outside mutation testing nothing is touched."""
     if os.environ.get("MUTANT_UNDER_TEST", "") in ("", "stats", "list_all_tests", "mutant_generation"):
         return
+    leave_out = tuple(t for t in os.environ.get("MUTATION_LEAVE_OUT", "").split(";") if t)  # named by the bench script
+    if leave_out:
+        left = [item for item in items if item.nodeid.startswith(leave_out)]
+        if left:
+            config.hook.pytest_deselected(items=left)
+            items[:] = [item for item in items if not item.nodeid.startswith(leave_out)]
+    from hypothesis import Phase, settings
+
+    for item in items:  # a property that fails is not shrunk: the verdict is the same, minutes sooner
+        test = getattr(item, "obj", None)
+        if hasattr(test, "_hypothesis_internal_use_settings"):
+            test._hypothesis_internal_use_settings = settings(
+                test._hypothesis_internal_use_settings, phases=[Phase.explicit, Phase.reuse, Phase.generate])
     stats = Path("mutmut-stats.json")
     if stats.is_file():
         seconds = json.loads(stats.read_text())["duration_by_test"]
