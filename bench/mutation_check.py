@@ -90,6 +90,26 @@ EQUIVALENT: dict[str, str] = {
     "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ_accept__mutmut_15": (
         "<= for < on the board clock: a frame at the last frame's t_us never gets there (a duplicate or a stuck "
         "clock is handled before; with BOOT it is a reset either way)"),
+    "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ_accept__mutmut_4": (
+        "or for and between 'a last seq' and 'a last board time': both are None until the first frame and set "
+        "together with every frame after it"),
+    "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ_accept__mutmut_35": (
+        "dt > 1 for dt > 0: the nominal interval differs only at 1 us, which no board gives (a read alone is an ADC "
+        "conversion of ~40 us)"),
+    "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ_accept__mutmut_36": (
+        ">= for > in the wrap test: at equality the step is half a wrap over, and round(0.5) adds 0 wraps"),
+    "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ_accept__mutmut_37": (
+        "/ dt for * dt in the wrap test: the test only spares the rounding below it, where the wraps added round to "
+        "0 (max(0, round(x)) is 0 for x <= 0.5, and the test is x > 0.5)"),
+    "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ_accept__mutmut_38": (
+        "step - HALF_WRAP for step + HALF_WRAP in the wrap test: the same reason (below the true test the wraps "
+        "added round to 0)"),
+    "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ_accept__mutmut_46": (
+        "max(1, ...) for max(0, ...) of the wraps added: the branch is taken only when the step is more than half a "
+        "wrap over, where the rounded count is at least 1"),
+    "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁfeed__mutmut_40": (
+        ">= for > before counting the bytes ahead of a sync word: at equality it adds 0 bytes and moves pos to "
+        "where it is"),
     "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ__init____mutmut_4": (
         "\"\" for None as the last board time: it is read only once a last seq exists, and both are set together"),
     "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_39": (

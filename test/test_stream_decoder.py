@@ -616,6 +616,23 @@ def test_the_sample_interval_forgets_its_oldest_step_first() -> None:
     assert interval.us == 2000
 
 
+def test_a_header_that_cannot_start_a_frame_is_dropped_once_complete_and_an_empty_body_is_no_candidate() -> None:
+    """A complete 4-byte header that cannot start a frame (version 0) is discarded as soon as it has arrived, not
+    held waiting for more bytes (the diagnostics' discarded-byte count is up to date); a header announcing an empty
+    body is no candidate, even of an unknown version with a valid CRC (counted neither as an unsupported version nor
+    as a CRC error), while a one-byte body of an unknown version is one: its wrong CRC is counted."""
+    dec = StreamDecoder()
+    assert dec.feed(SYNC + bytes([0, 10])) == []
+    assert (dec.stats.bytes_discarded, dec.buffered) == (HEADER_SIZE, 0)
+    empty = bytes([9, 0])
+    dec = StreamDecoder()
+    assert dec.feed(SYNC + empty + crc16(empty).to_bytes(CRC_SIZE, "little")) == []
+    assert (dec.stats.unsupported_version, dec.stats.crc_errors) == (0, 0)
+    one = bytes([9, 1, 0x33])
+    dec = StreamDecoder()
+    assert dec.feed(SYNC + one + (crc16(one) ^ 1).to_bytes(CRC_SIZE, "little")) == []
+    assert (dec.stats.unsupported_version, dec.stats.crc_errors) == (0, 1)
+
 def test_the_sample_interval_is_the_upper_median_of_the_last_window_of_on_time_steps() -> None:
     """Against the definition, step by step over 400 random steps (the nominal 1000 us, its neighbours, a catch-up's
     40 us, an outage's long step; one in eight at an ADC_OVERRUN frame, ignored): after each step :attr:`us` is the
