@@ -1,12 +1,17 @@
 #!/usr/bin/env python3
 """Mutation testing of the pure core against its fast tests (mutmut 3, configured in pyproject.toml [tool.mutmut]).
 
-Not a test and not in CI: every mutant is a pytest run (about 0.3 mutants/s on the 2-core build machine; the five
-modules hold ~3400 mutants, hours for all). This script runs mutmut on the mutants of the modules asked for, all of
-them or a seeded random sample per module (``--sample N``), reads mutmut's results and writes a page: per module the
-mutants checked, killed and surviving (score = killed / checked; a mutant no test reaches counts as surviving), and
-each survivor with its diff and, when it is one, the reason it is equivalent (:data:`EQUIVALENT`: a mutant that
-cannot change what a user gets, so no test can kill it).
+Not a test and not in CI: every mutant is a pytest run of the tests that reach the mutated function (the five modules
+hold ~3700 mutants: a killed one takes well under a second, a survivor runs all its tests, one that hangs runs into
+mutmut's timeout; hours for all on the 2-core build machine). This script runs mutmut module by module (one mutmut
+call each, one mutant at a time by default) on the mutants of the modules asked for that have no result yet, all of
+them or a seeded random sample per module (``--sample N``); stopped, it resumes where it was. It reads mutmut's
+results and writes a page: per module the mutants checked, killed and surviving (score = killed / checked; a mutant
+no test reaches counts as surviving), and each survivor with its diff and, when it is one, the reason it is
+equivalent (:data:`EQUIVALENT`: a mutant that cannot change what a user gets, so no test can kill it).
+
+Each mutant's tests run fastest first and stop at the first failure, a failing hypothesis property is not shrunk,
+and the slow tests of :data:`LEAVE_OUT` are not run (test/conftest.py, only under mutmut).
 
 Modules and the tests that judge them (``pytest_add_cli_args_test_selection``; mutmut runs, for each mutant, the
 tests of that selection that execute the mutated function):
@@ -20,8 +25,9 @@ tests of that selection that execute the mutated function):
 
 Usage::
 
-    .venv/bin/python bench/mutation_check.py --sample 40                  # writes /tmp/mutation.md
+    nice -n 19 .venv/bin/python bench/mutation_check.py                   # every mutant; writes /tmp/mutation.md
     .venv/bin/python bench/mutation_check.py --modules frame_codec        # every mutant of one module
+    .venv/bin/python bench/mutation_check.py --sample 40                  # 40 drawn per module
     .venv/bin/python bench/mutation_check.py --recheck-survivors          # the survivors again, after new tests
     .venv/bin/python bench/mutation_check.py --report-only --update-results  # the page from the results so far
 
@@ -161,8 +167,9 @@ def diff_of(name: str) -> str:
 def page(rows: list[dict], survivors: list[tuple[str, str]], command: str) -> str:
     lines = ["# Mutation testing of the pure core", "", f"Regenerate: `{command}`", "",
              "Run with mutmut 3.8.1 (pyproject.toml `[tool.mutmut]`) on the 2-core build machine, against the fast tests "
-             "named in bench/mutation_check.py. Score = killed / checked; a mutant no test reaches counts as surviving; "
-             "`checked` is how many of the module's mutants were drawn (seeded samples) and checked.", "",
+             "named in bench/mutation_check.py (left out of the run there: "
+             + ", ".join(f"`{t.split('::')[-1]}`" for t in LEAVE_OUT) + "). Score = killed / checked; a mutant no "
+             "test reaches counts as surviving; a mutant that hangs is killed by mutmut's timeout.", "",
              "| module | mutants | checked | killed | survived | of them equivalent | score | score without the "
              "equivalent |", "|---|---|---|---|---|---|---|---|"]
     for r in [*rows, {"module": "**all**", **{k: sum(r[k] for r in rows) for k in ("total", "checked", "killed",
@@ -174,8 +181,8 @@ def page(rows: list[dict], survivors: list[tuple[str, str]], command: str) -> st
     total = sum(r["total"] for r in rows)
     checked = sum(r["checked"] for r in rows)
     if checked < total:
-        lines += ["", f"{checked} of the {total} mutants ({100 * checked / total:.0f} %) were checked: the figures are "
-                  "those of seeded random samples, not of every mutant (a full run takes hours on this machine)."]
+        lines += ["", f"{checked} of the {total} mutants ({100 * checked / total:.0f} %) have a result: a module's "
+                  "figures are over all its mutants only where checked = mutants; the others have not been run (yet)."]
     lines += ["", "## Survivors", "", "Equivalent ones carry the reason no test can kill them; the others are gaps of "
               "the tests still open.", ""]
     for name, diff in survivors:
@@ -228,10 +235,9 @@ def main() -> int:
         survivors += [(k, diff_of(k)) for k, v in sorted(checked.items()) if v not in KILLED]
     command = "python bench/mutation_check.py " + " ".join(a for a in sys.argv[1:] if a != "--update-results")
     if args.report_only:
-        command = ("python bench/mutation_check.py --modules frame_codec; python bench/mutation_check.py --modules "
-                   "stream_decoder clock_sync thermal_model thermal_fit --sample 40; the same with --sample 30 --seed 1; "
-                   "python bench/mutation_check.py --recheck-survivors (after the tests that kill survivors were added); "
-                   "python bench/mutation_check.py --report-only")
+        command = ("nice -n 19 python bench/mutation_check.py (every mutant, module by module; resumes when stopped); "
+                   "python bench/mutation_check.py --recheck-survivors (after the tests that kill survivors were "
+                   "added); python bench/mutation_check.py --report-only")
     text = page(rows, survivors, command.strip())
     out = ROOT / "docs/results/mutation.md" if args.update_results else args.output
     out.parent.mkdir(parents=True, exist_ok=True)
