@@ -39,8 +39,9 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     in ``mutants/`` beside its ``mutmut-stats.json``), the tests a mutant reaches run fastest first: pytest stops at the
     first failure (-x), so a mutant is killed by its cheapest killer instead of after the slowest tests; and the slow
     tests the bench script leaves out of the mutation run (``MUTATION_LEAVE_OUT``, node-id prefixes separated by
-    ``;``) are deselected, and a hypothesis property that fails is not shrunk. What the tests assert is unchanged;
-    outside mutation testing nothing is touched."""
+    ``;``) are deselected, a hypothesis property that fails is not shrunk, and a test that takes 30 times its clean
+    duration + 10 s fails (mutmut's own timeout, 15 times the clean duration of all the mutant's tests, stays the
+    backstop). What the tests assert is unchanged; outside mutation testing nothing is touched."""
     if os.environ.get("MUTANT_UNDER_TEST", "") in ("", "stats", "list_all_tests", "mutant_generation"):
         return
     leave_out = tuple(t for t in os.environ.get("MUTATION_LEAVE_OUT", "").split(";") if t)  # named by the bench script
@@ -60,3 +61,5 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     if stats.is_file():
         seconds = json.loads(stats.read_text())["duration_by_test"]
         items.sort(key=lambda item: seconds.get(item.nodeid, 0.0))
+        for item in items:  # a mutant that hangs (a loop that never advances) fails its first test, not minutes later
+            item.add_marker(pytest.mark.timeout(10.0 + 30.0 * seconds.get(item.nodeid, 1.0)))
