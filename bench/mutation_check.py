@@ -116,6 +116,9 @@ EQUIVALENT: dict[str, str] = {
     "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁfeed__mutmut_40": (
         ">= for > before counting the bytes ahead of a sync word: at equality it adds 0 bytes and moves pos to "
         "where it is"),
+    "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ__init____mutmut_3": (
+        "\"\" for None as the last seq: every use reads it together with the last board time, None until the "
+        "first frame, and both are set together"),
     "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ__init____mutmut_4": (
         "\"\" for None as the last board time: it is read only once a last seq exists, and both are set together"),
     "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_39": (
@@ -206,7 +209,7 @@ def main() -> int:
     ap.add_argument("--update-results", action="store_true", help="write docs/results/mutation.md")
     args = ap.parse_args()
     if args.recheck_survivors:
-        (ROOT / "mutants" / "mutmut-stats.json").unlink(missing_ok=True)  # which tests reach what: the new ones too
+        # mutmut finds the tests added since its last run and maps which functions they reach before it runs
         again = []
         for m in args.modules:
             names = {k for k, v in meta_results(MODULES[m]).items() if v is not None and v not in KILLED}
