@@ -119,8 +119,26 @@ EQUIVALENT: dict[str, str] = {
     "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ__init____mutmut_3": (
         "\"\" for None as the last seq: every use reads it together with the last board time, None until the "
         "first frame, and both are set together"),
+    "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ__init____mutmut_5": (
+        "None for 0 as the ADC_OVERRUN flag of the previous frame before there is one: the first frame sets it "
+        "before any step reads it"),
+    "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ__init____mutmut_6": (
+        "1 for 0 as the ADC_OVERRUN flag of the previous frame before there is one: the same reason"),
     "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ__init____mutmut_4": (
         "\"\" for None as the last board time: it is read only once a last seq exists, and both are set together"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁstatus__mutmut_9": (
+        "the rate scaled by 1e6 + 1 for 1e6: the figure moves by a millionth of itself (2e-5 ppm at 20 ppm, 5e-4 at "
+        "the 500 ppm clamp), below the 0.01 ppm it is rounded to; it can change the last digit only when within "
+        "that of a rounding boundary"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_7": (
+        "and for or between 'no applied offset' and 'no board time it refers to': both are None after a (re)start "
+        "and set together at every stamp"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_24": (
+        ">= for > at the step threshold: an offset error of a real-valued clock difference exactly at 50 ms has no "
+        "weight, and no test may decide at a threshold (project rule)"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_33": (
+        "<= for < at the end of the warm-up: a board time exactly warmup_s after the start has no weight (the same "
+        "rule)"),
     "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_39": (
         "< for <= when a hull point is collinear with its neighbours: keeping it splits one edge into two of the "
         "same slope, so the slope at the mean board time is the same"),

@@ -282,6 +282,21 @@ def test_the_status_states_the_drift_and_whether_it_sits_at_its_clamp() -> None:
     assert clamped.status()["drift_at_limit"] and clamped.status()["board_clock_ppm"] == -50.0
 
 
+def test_the_status_counts_every_restart_and_mapping_step_and_gives_the_rate_to_a_hundredth_of_a_ppm() -> None:
+    """The counters of ``clock mapping`` count every event, not only the first: two board restarts are 2, two steps
+    back of a host clock without a steady clock (each taken at once as a step of the mapping) are 2; and the board
+    clock's rate is given to 0.01 ppm (-19.99 for an estimate of -19.985..., not -20 nor -19.985)."""
+    sync, _, _ = run(6000, drift=20e-6)
+    ppm = sync.status()["board_clock_ppm"]
+    assert ppm == round(-sync.drift * 1e6, 2) and ppm != round(ppm) and ppm != round(-sync.drift * 1e6, 3)
+    sync.reset()
+    sync.reset()
+    assert sync.status()["restarts"] == 2
+    sync, _, _ = run(1000)
+    for k in (1, 2):
+        sync, _, _ = run(500, sync=sync, board_start_s=10.0 * k, offset_s=OFFSET_S - k, seed=3 + k)
+        assert sync.status()["mapping_steps"] == k
+
 @pytest.mark.parametrize("base_ppm", [100.0, -100.0])
 def test_a_board_crystal_drifting_with_temperature_keeps_the_stamps(base_ppm: float) -> None:
     """The board's crystal is ``base_ppm`` off and its rate moves with temperature: +40 ppm over 5 min (a board
