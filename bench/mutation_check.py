@@ -139,6 +139,17 @@ EQUIVALENT: dict[str, str] = {
     "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_33": (
         "<= for < at the end of the warm-up: a board time exactly warmup_s after the start has no weight (the same "
         "rule)"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_61": (
+        ">= for > between a change of ROS-minus-steady (integer ns) and the 50 ms step threshold: a change of exactly "
+        "50 000 000 ns has no weight (project rule: no test at a threshold)"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_63": (
+        "the step threshold scaled by 1e9 + 1 for 1e9: 50 000 000.05 ns instead of 50 000 000 ns, compared with an "
+        "integer number of ns: the same decision for every integer"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_71": (
+        "the read-jitter band scaled by 1e9 + 1 for 1e9: 2 000 000.002 ns instead of 2 000 000 ns; compared with and "
+        "subtracted from integer ns and rounded, it gives the same decision and the same integer"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_75": (
+        ">= for > at the band: at exactly the band the offset moves by round(beyond - band) = 0"),
     "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_39": (
         "< for <= when a hull point is collinear with its neighbours: keeping it splits one edge into two of the "
         "same slope, so the slope at the mean board time is the same"),

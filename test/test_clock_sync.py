@@ -284,8 +284,9 @@ def test_the_status_states_the_drift_and_whether_it_sits_at_its_clamp() -> None:
 
 def test_the_status_counts_every_restart_and_mapping_step_and_gives_the_rate_to_a_hundredth_of_a_ppm() -> None:
     """The counters of ``clock mapping`` count every event, not only the first: two board restarts are 2, two steps
-    back of a host clock without a steady clock (each taken at once as a step of the mapping) are 2; and the board
-    clock's rate is given to 0.01 ppm (-19.99 for an estimate of -19.985..., not -20 nor -19.985)."""
+    back of a host clock without a steady clock (each taken at once as a step of the mapping) are 2, and with one two
+    steps of ROS time; and the board clock's rate is given to 0.01 ppm (-19.99 for an estimate of -19.985..., not
+    -20 nor -19.985)."""
     sync, _, _ = run(6000, drift=20e-6)
     ppm = sync.status()["board_clock_ppm"]
     assert ppm == round(-sync.drift * 1e6, 2) and ppm != round(ppm) and ppm != round(-sync.drift * 1e6, 3)
@@ -296,6 +297,30 @@ def test_the_status_counts_every_restart_and_mapping_step_and_gives_the_rate_to_
     for k in (1, 2):
         sync, _, _ = run(500, sync=sync, board_start_s=10.0 * k, offset_s=OFFSET_S - k, seed=3 + k)
         assert sync.status()["mapping_steps"] == k
+    sync, _, _ = run(1000, steady=True)  # with a steady clock the same steps are steps of ROS time
+    for k in (1, 2):
+        sync, _, _ = run(500, sync=sync, board_start_s=10.0 * k, offset_s=OFFSET_S - k, seed=3 + k, steady=True)
+        assert sync.status()["ros_time_steps"] == k
+
+
+def test_ros_time_slewed_within_the_read_jitter_band_is_followed_at_the_slew_rate() -> None:
+    """ntpd slews ROS time by 1.5 ms at 50 ppm (within the 2 ms band kept for the read jitter of the host and steady
+    clocks): the applied host-minus-steady offset follows it at up to max_slew, so the stamps stay within 0.5 ms of ROS
+    time (measured: 0.16 ms). An offset that never moved inside the band would leave them 1.35 ms behind at the end."""
+    n = 6000
+    rng = np.random.default_rng(1)
+    t = np.arange(n) / RATE_HZ
+    slew = 1.5e-3 * np.clip((t - 20.0) / 30.0, 0.0, 1.0)  # ROS minus steady, s, against true time
+    steady = OFFSET_S + t + 150e-6 + rng.exponential(2e-3, n)
+    sync = ClockSync()
+    stamps = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        steady_ns = round(steady[i] * 1e9)
+        sync.observe(round(t[i] * 1e6), steady_ns + round(float(np.interp(steady[i] - OFFSET_S, t, slew)) * 1e9),
+                     steady_ns)
+        stamps[i] = sync.stamp(round(t[i] * 1e6))
+    err = errors_s(stamps, OFFSET_S + t + slew)
+    assert np.abs(err[1000:]).max() < 0.5e-3, np.abs(err[1000:]).max()
 
 @pytest.mark.parametrize("base_ppm", [100.0, -100.0])
 def test_a_board_crystal_drifting_with_temperature_keeps_the_stamps(base_ppm: float) -> None:
