@@ -150,6 +150,12 @@ EQUIVALENT: dict[str, str] = {
         "subtracted from integer ns and rounded, it gives the same decision and the same integer"),
     "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_75": (
         ">= for > at the band: at exactly the band the offset moves by round(beyond - band) = 0"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_96": (
+        "the in-band slew limit scaled by 1e9 + 1 for 1e9: 5 000.000005 ns instead of 5 000 ns per sample at 100 Hz, "
+        "which the rounding to integer ns takes away"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_117": (
+        "(base or 1) for (base or 0): the integer base is set at the first observation, before any stamp, and is 0 "
+        "only if the steady clock read exactly 1000 x the board's t_us then; the stamp would then move by 1 ns"),
     "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_39": (
         "< for <= when a hull point is collinear with its neighbours: keeping it splits one edge into two of the "
         "same slope, so the slope at the mean board time is the same"),

@@ -322,6 +322,31 @@ def test_ros_time_slewed_within_the_read_jitter_band_is_followed_at_the_slew_rat
     err = errors_s(stamps, OFFSET_S + t + slew)
     assert np.abs(err[1000:]).max() < 0.5e-3, np.abs(err[1000:]).max()
 
+@pytest.mark.parametrize("size_s", [0.01, -0.01])
+def test_a_small_step_of_ros_time_is_reached_from_the_side_the_stamps_were_on(size_s: float) -> None:
+    """ROS time steps by 10 ms (below the 50 ms step threshold, beyond the 2 ms read-jitter band) with a steady clock
+    beside it: the applied offset jumps to within the band short of the new ROS time, then slews the rest, so the
+    stamps approach it from the side they were on and never pass it by more than the transport floor (measured:
+    -1.80..+0.16 ms after a step forward, +0.15..+2.10 ms after a step back). An offset that overshot by the band
+    would put them 2 ms past it on the other side."""
+    n = 6000
+    rng = np.random.default_rng(2)
+    t = np.arange(n) / RATE_HZ
+    steady = OFFSET_S + t + 150e-6 + rng.exponential(2e-3, n)
+    sync = ClockSync()
+    stamps = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        steady_ns = round(steady[i] * 1e9)
+        sync.observe(round(t[i] * 1e6), steady_ns + (round(size_s * 1e9) if steady[i] - OFFSET_S >= 30.0 else 0),
+                     steady_ns)
+        stamps[i] = sync.stamp(round(t[i] * 1e6))
+    err = errors_s(stamps, OFFSET_S + t + np.where(t >= 30.0, size_s, 0.0))[t >= 30.1]
+    assert np.abs(err).max() < 2.5e-3, np.abs(err).max()
+    if size_s > 0:
+        assert err.max() < 0.5e-3, err.max()
+    else:
+        assert err.min() > -0.5e-3, err.min()
+
 @pytest.mark.parametrize("base_ppm", [100.0, -100.0])
 def test_a_board_crystal_drifting_with_temperature_keeps_the_stamps(base_ppm: float) -> None:
     """The board's crystal is ``base_ppm`` off and its rate moves with temperature: +40 ppm over 5 min (a board
