@@ -156,6 +156,13 @@ EQUIVALENT: dict[str, str] = {
     "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_117": (
         "(base or 1) for (base or 0): the integer base is set at the first observation, before any stamp, and is 0 "
         "only if the steady clock read exactly 1000 x the board's t_us then; the stamp would then move by 1 ns"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_120": (
+        "the applied offset scaled by 1e9 + 1 for 1e9 ns/s: it is the offset left after the integer base (board drift "
+        "x elapsed time, tens of ms over hours), so the stamp moves by under 1 ns"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_123": (
+        "< for <= in the never-back guard: it differs only for a stamp equal to the previous one to the ns, which "
+        "needs two frames at the same board time (the decoder drops them before stamping: a duplicate or a stuck "
+        "clock) or a 1-in-10^7 coincidence as a hold ends; any stamp below the previous one is held either way"),
     "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_39": (
         "< for <= when a hull point is collinear with its neighbours: keeping it splits one edge into two of the "
         "same slope, so the slope at the mean board time is the same"),

@@ -347,6 +347,17 @@ def test_a_small_step_of_ros_time_is_reached_from_the_side_the_stamps_were_on(si
     else:
         assert err.min() > -0.5e-3, err.min()
 
+def test_stamps_held_back_by_a_step_back_of_ros_time_are_1_ns_apart_and_counted() -> None:
+    """ROS time steps back by 0.5 s (steady clock beside it): stamps never go back, so the next half second of samples
+    is held 1 ns after the last stamp published, each 1 ns after the one before, and ``held_stamps`` counts every one
+    of them; the others keep the board's 10 ms spacing."""
+    sync, s1, _ = run(1000, steady=True)
+    sync, s2, _ = run(500, sync=sync, board_start_s=10.0, offset_s=OFFSET_S - 0.5, seed=3, steady=True)
+    spacing = np.diff(np.concatenate([s1, s2]))
+    held = int(np.sum(spacing == 1))
+    assert 40 <= held <= 60 and np.all((spacing == 1) | (spacing > 5_000_000)), held
+    assert sync.status()["held_stamps"] == held
+
 @pytest.mark.parametrize("base_ppm", [100.0, -100.0])
 def test_a_board_crystal_drifting_with_temperature_keeps_the_stamps(base_ppm: float) -> None:
     """The board's crystal is ``base_ppm`` off and its rate moves with temperature: +40 ppm over 5 min (a board
