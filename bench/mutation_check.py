@@ -163,6 +163,13 @@ EQUIVALENT: dict[str, str] = {
         "< for <= in the never-back guard: it differs only for a stamp equal to the previous one to the ns, which "
         "needs two frames at the same board time (the decoder drops them before stamping: a duplicate or a stuck "
         "clock) or a 1-in-10^7 coincidence as a hold ends; any stamp below the previous one is held either way"),
+    "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_4": (
+        "zip(strict=None) for strict=True: the two lists are made from the same bins, one entry each"),
+    "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_7": ("zip without strict=True: the same reason"),
+    "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_8": ("zip(strict=False): the same reason"),
+    "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_48": (
+        ">= for > between consecutive hull x: they are the board times of different bins (one bin per time slot), "
+        "strictly increasing, so never equal"),
     "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_39": (
         "< for <= when a hull point is collinear with its neighbours: keeping it splits one edge into two of the "
         "same slope, so the slope at the mean board time is the same"),
