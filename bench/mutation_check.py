@@ -170,6 +170,35 @@ EQUIVALENT: dict[str, str] = {
     "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_48": (
         ">= for > between consecutive hull x: they are the board times of different bins (one bin per time slot), "
         "strictly increasing, so never equal"),
+    "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_52": (
+        "1.0 for 0.0 after the loop: never reached, the hull keeps the first and the last point (x strictly "
+        "increasing, at least 3 bins), and the last pair ends at the largest x, at or right of the mean"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁ__init____mutmut_5": (
+        "None for 0 as the latest host-minus-steady offset: every observation sets it, and only stamp, which follows "
+        "an observation, reads it"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁ__init____mutmut_6": (
+        '1 for 0 as the latest host-minus-steady offset: the same reason'),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁ__init____mutmut_8": (
+        "None for 0 as the agreed host-minus-steady offset: the first observation is a new read and sets it before "
+        "stamp reads it"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁ__init____mutmut_9": (
+        '1 for 0 as the agreed host-minus-steady offset: the same reason'),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁ_clear__mutmut_3": (
+        "None for 0.0 as the line's offset after a (re)start: the first observation after it makes a bin and refits, "
+        "setting it before anything reads it"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁ_clear__mutmut_4": (
+        "1.0 for 0.0 as the line's offset after a (re)start: the same reason"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁ_clear__mutmut_7": (
+        "\"\" for None as the applied offset: it is tested together with the board time it refers to (None until the "
+        "first stamp), and both are set together"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁ_clear__mutmut_9": (
+        "\"\" for None as the board time of the first observation: it is read with the last observation's time, None "
+        "until that first observation sets both"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁ_clear__mutmut_10": (
+        '"" for None as the last observation\'s board time: the same reason (primed reads the two together)'),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁ_clear__mutmut_11": (
+        "None for 0 as the steady time of the first observation: set with that observation, read only after it (as "
+        "_clear__mutmut_12)"),
     "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_39": (
         "< for <= when a hull point is collinear with its neighbours: keeping it splits one edge into two of the "
         "same slope, so the slope at the mean board time is the same"),
