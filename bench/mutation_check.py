@@ -199,6 +199,10 @@ EQUIVALENT: dict[str, str] = {
     "fbg_accel_driver.clock_sync.xǁClockSyncǁ_clear__mutmut_11": (
         "None for 0 as the steady time of the first observation: set with that observation, read only after it (as "
         "_clear__mutmut_12)"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁ_clear__mutmut_13": (
+        "None for 0 as the steady time of the last observation: every observation sets it, and primed reads it only "
+        "once there was one"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁ_clear__mutmut_14": ("1 for 0 there: the same reason"),
     "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_39": (
         "< for <= when a hull point is collinear with its neighbours: keeping it splits one edge into two of the "
         "same slope, so the slope at the mean board time is the same"),
