@@ -358,6 +358,59 @@ def test_stamps_held_back_by_a_step_back_of_ros_time_are_1_ns_apart_and_counted(
     assert 40 <= held <= 60 and np.all((spacing == 1) | (spacing > 5_000_000)), held
     assert sync.status()["held_stamps"] == held
 
+@pytest.mark.parametrize("drift", [-400e-6, 400e-6])
+def test_a_link_of_constant_delay_is_stamped_at_its_floor_once_the_drift_is_known(drift: float) -> None:
+    """Every frame arrives exactly 150 us after it was taken, from a board whose clock starts at 0 (a board just
+    powered up) and runs 400 ppm slow or fast: the lower envelope is exact, so from 1.5 s on (three 0.5 s bins) every
+    stamp is the true time plus that 150 us (measured: within 0.3 us). Board time 0 is a valid reference: a reference
+    taken as 1 s when it is 0 puts the line 400 us off."""
+    _, stamps, true_host = run(1000, drift=drift, delay_mean_s=0.0)
+    err = errors_s(stamps, true_host)[150:] - 150e-6
+    assert np.abs(err).max() < 20e-6, np.abs(err).max()
+
+
+def test_a_thread_switch_on_the_first_read_lets_no_later_single_one_through() -> None:
+    """The host-minus-steady offset is read 3 ms off at the very first read and then at one read in a hundred (a
+    thread switch between the two clock reads): a single read off is never two of the last three, so after the
+    first one is slewed out the stamps stay at the transport floor (measured: 0.14..0.16 ms from 10 s on). A window
+    of reads that kept the first one would take each later single one as agreed and step the stamps by 1 ms."""
+    n = 3000
+    rng = np.random.default_rng(4)
+    t = np.arange(n) / RATE_HZ
+    steady = OFFSET_S + t + 150e-6 + rng.exponential(2e-3, n)
+    off = np.zeros(n, dtype=np.int64)
+    off[0] = off[100::100] = 3_000_000
+    sync = ClockSync()
+    stamps = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        steady_ns = round(steady[i] * 1e9)
+        sync.observe(round(t[i] * 1e6), steady_ns + int(off[i]), steady_ns)
+        stamps[i] = sync.stamp(round(t[i] * 1e6))
+    err = errors_s(stamps, OFFSET_S + t)[1000:]
+    assert err.min() > 0.0 and err.max() < 0.5e-3, (err.min(), err.max())
+
+def test_a_change_of_the_crystal_rate_leaves_the_window_with_its_bins() -> None:
+    """The board's crystal runs 100 ppm fast, then 140 ppm from 300 s on (a board warming up), read at 10 Hz: once the
+    200 s window holds only bins after the change, the drift estimate is the new rate and the stamps are back at the
+    floor (measured: 139.95 ppm, within 7 us from 550 s). A window that kept its first bin for ever would stay
+    anchored to the old rate: 126.8 ppm and stamps 0.19 ms late."""
+    rate_hz = 10.0
+    n = int(900 * rate_hz)
+    t = np.arange(n) / rate_hz
+    ppm = np.where(t < 300.0, 100.0, 140.0)
+    board = np.concatenate([[0.0], np.cumsum((1.0 + ppm[:-1] * 1e-6) / rate_hz)])
+    arrive = np.maximum.accumulate(OFFSET_S + t + 150e-6 + np.random.default_rng(2).exponential(2e-3, n))
+    sync = ClockSync()
+    t_us = np.round(board * 1e6).astype(np.int64).tolist()
+    stamps = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        host_ns = round(arrive[i] * 1e9)
+        sync.observe(t_us[i], host_ns, host_ns)
+        stamps[i] = sync.stamp(t_us[i])
+    err = errors_s(stamps, OFFSET_S + t)[t >= 550.0] - 150e-6
+    assert np.abs(err).max() < 50e-6, np.abs(err).max()
+    assert abs(sync.status()["board_clock_ppm"] - 140.0) < 3.0, sync.status()
+
 @pytest.mark.parametrize("base_ppm", [100.0, -100.0])
 def test_a_board_crystal_drifting_with_temperature_keeps_the_stamps(base_ppm: float) -> None:
     """The board's crystal is ``base_ppm`` off and its rate moves with temperature: +40 ppm over 5 min (a board
