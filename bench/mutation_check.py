@@ -38,6 +38,7 @@ The first run generates the mutants under ``mutants/`` (git-ignored) and collect
 from __future__ import annotations
 
 import argparse
+import fnmatch
 import json
 import os
 import random
@@ -286,15 +287,19 @@ def main() -> int:
     ap.add_argument("--max-children", type=int, default=1, help="mutants checked at once (the build machine: 1)")
     ap.add_argument("--report-only", action="store_true", help="no mutmut run: the page from the results so far")
     ap.add_argument("--recheck-survivors", action="store_true",
-                    help="run the survivors so far again (after tests were added), nothing else")
+                    help="run the survivors so far not listed as equivalent again (after tests were added), nothing else")
+    ap.add_argument("--only", nargs="+", default=[], metavar="PATTERN",
+                    help="with --recheck-survivors: only the survivors whose name matches one of these (fnmatch)")
     ap.add_argument("--output", type=Path, default=Path(tempfile.gettempdir()) / "mutation.md")
     ap.add_argument("--update-results", action="store_true", help="write docs/results/mutation.md")
     args = ap.parse_args()
     if args.recheck_survivors:
         # mutmut finds the tests added since its last run and maps which functions they reach before it runs
         again = []
-        for m in args.modules:
-            names = {k for k, v in meta_results(MODULES[m]).items() if v is not None and v not in KILLED}
+        for m in args.modules:  # the equivalent ones would only survive again
+            names = {k for k, v in meta_results(MODULES[m]).items()
+                     if v is not None and v not in KILLED and k not in EQUIVALENT
+                     and (not args.only or any(fnmatch.fnmatch(k, pat) for pat in args.only))}
             forget(MODULES[m], names)
             again += sorted(names)
         run_mutmut(again, args.max_children)

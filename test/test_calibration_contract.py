@@ -194,6 +194,25 @@ def test_a_descriptive_key_that_disagrees_with_the_term_is_refused(tmp_path: Pat
     assert f"corrections[0].{key} is {value!r}, but this {term['kind']} term is {written!r}" in refused(write(tmp_path, good))
 
 
+def test_a_descriptive_number_agrees_to_1e9_relative_and_names_given_as_numbers_disagree(tmp_path: Path,
+                                                                                         good: dict[str, Any]) -> None:
+    """``group_delay_s`` as the file gives it may be a hand-computed sum: within 1e-10 relative of what the term writes
+    it is accepted, 1e-8 or 10 % off it is refused (to 1e-9 relative: neither to exact equality nor to numpy's default
+    1e-5); ``channels`` given as numbers is refused with the message, like any other disagreement."""
+    term = {"kind": "chain_dynamics", "tia_tau_s": [0.1] * 4, "delay_s": 0.0}
+    good["corrections"] = [term]
+    written = np.asarray(ThermalCalibration.from_dict(good).corrections[0].to_dict()["group_delay_s"], dtype=float)
+    assert np.all((written > 0.01) & (written < 1.0))
+    good["corrections"] = [{**term, "group_delay_s": (written * (1.0 + 1e-10)).tolist()}]
+    ThermalCalibration.from_dict(good)
+    for rel in (1e-8, 0.1):
+        good["corrections"] = [{**term, "group_delay_s": (written * (1.0 + rel)).tolist()}]
+        assert "corrections[0].group_delay_s is [" in refused(write(tmp_path, good))
+    tia = {"kind": "tia_inverse_filter", "tau_s": [0.09, 0.12, 0.12, 0.16]}
+    good["corrections"] = [{**tia, "channels": [1, 2, 3, 4]}]
+    assert "corrections[0].channels is [1, 2, 3, 4], but this tia_inverse_filter term is" in \
+        refused(write(tmp_path, good))
+
 @pytest.mark.parametrize("line, where", [("delay_s: {x: 2e-3, y: 0.0, z: 0.0}", "delay"),
                                          ("cutoff_hz: {reference: null, x: 17e-1, y: 1.3, z: 1.3}", "cutoff"),
                                          *((kind, kind) for kind in TERMS)])
