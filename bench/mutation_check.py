@@ -298,9 +298,16 @@ def run_mutmut(names: list[str], max_children: int) -> None:
                    stdout=subprocess.DEVNULL, env={**os.environ, "MUTATION_LEAVE_OUT": ";".join(LEAVE_OUT)})
 
 
-def diff_of(name: str) -> str:
-    """The mutated lines of mutant ``name`` (``mutmut show``)."""
-    out = subprocess.run([*MUTMUT, "show", name], cwd=ROOT, capture_output=True, text=True, check=False).stdout
+def diff_of(name: str, path: str) -> str:
+    """The mutated lines of mutant ``name`` of source file ``path`` (what ``mutmut show`` prints, in this process)."""
+    from mutmut.mutation.diff_apply import get_diff_for_mutant
+
+    cwd = os.getcwd()
+    os.chdir(ROOT)
+    try:
+        out = get_diff_for_mutant(name, path=path)
+    finally:
+        os.chdir(cwd)
     return "\n".join(ln for ln in out.splitlines() if ln[:1] in "+-" and not ln.startswith(("+++", "---")))
 
 
@@ -376,7 +383,7 @@ def main() -> int:
         rows.append({"module": m, "total": len(results), "checked": len(checked), "killed": killed,
                      "survived": len(checked) - killed,
                      "equivalent": sum(k in EQUIVALENT for k, v in checked.items() if v not in KILLED)})
-        survivors += [(k, diff_of(k)) for k, v in sorted(checked.items()) if v not in KILLED]
+        survivors += [(k, diff_of(k, MODULES[m])) for k, v in sorted(checked.items()) if v not in KILLED]
     command = "python bench/mutation_check.py " + " ".join(a for a in sys.argv[1:] if a != "--update-results")
     if args.report_only:
         command = ("nice -n 19 python bench/mutation_check.py (every mutant, module by module; resumes when stopped); "
