@@ -258,6 +258,12 @@ EQUIVALENT: dict[str, str] = {
         "width=101 for 100: the same reason"),
     "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁsave__mutmut_22": (
         "encoding \"UTF-8\" for \"utf-8\": Python reads codec names without regard to case"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁsave__mutmut_17": (
+        "encoding=None (the locale's) for utf-8: safe_dump escapes every character outside ASCII (allow_unicode is "
+        "off) and the header is ASCII, so the text is the same bytes in any encoding "
+        "(test_a_saved_file_is_utf8_whatever_the_locale_... writes a degree sign under LC_ALL=C)"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁsave__mutmut_19": (
+        "no encoding for utf-8: the same reason"),
     "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_39": (
         "< for <= when a hull point is collinear with its neighbours: keeping it splits one edge into two of the "
         "same slope, so the slope at the mean board time is the same"),

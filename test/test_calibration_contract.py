@@ -282,6 +282,17 @@ def test_a_saved_file_is_utf8_whatever_the_locale_dated_in_utc_and_without_empty
     assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\+00:00", doc["created"]), doc["created"]
     assert "noise_correlation" not in doc and "reference_level" not in doc, list(doc)
 
+@pytest.mark.parametrize("fields", [
+    {"temperature_range_c": (-100.0, 200.0)}, {"temperature_range_c": (24.0, 24.0)},
+    {"t_center_c": -100.0}, {"t_center_c": 200.0}, {"t_scale_c": 1e-3}, {"t_scale_c": 1e3},
+])
+def test_values_exactly_at_their_documented_limits_are_accepted(fields: dict[str, Any]) -> None:
+    """The limits of section 5 are inclusive, as documented: values a user types at a limit (a temperature range of
+    exactly -100..200 degC, a single temperature, a centre at -100 or 200 degC, a scale of 1e-3 or 1e3 degC) pass."""
+    cal = ThermalCalibration(M=80.0 * np.eye(3)[None], b=np.full((1, 3), -120.0),
+                             **{"temperature_range_c": (20.0, 25.0), **fields})
+    assert check_plausible(cal) == ""
+
 def test_a_saved_calibration_loads_equal_to_itself(tmp_path: Path) -> None:
     cal = ThermalCalibration.load(REPO / "config" / "calibration_sim.yaml")
     cal.dynamic = ChainDynamics((math.nan, 1.7, 1.3, 1.3), (0.002, 0.0, 0.0), {"sigma": math.nan})
