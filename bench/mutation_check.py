@@ -264,6 +264,31 @@ EQUIVALENT: dict[str, str] = {
         "(test_a_saved_file_is_utf8_whatever_the_locale_... writes a degree sign under LC_ALL=C)"),
     "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁsave__mutmut_19": (
         "no encoding for utf-8: the same reason"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁ__eq____mutmut_11": (
+        "array_equal without equal_nan=True: no array field can hold NaN (the constructor refuses NaN in M, b, the "
+        "noise terms and the reference levels), so NaN never meets NaN"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁ__eq____mutmut_14": (
+        "array_equal without equal_nan=True: no array field can hold NaN (the constructor refuses NaN in M, b, the "
+        "noise terms and the reference levels), so NaN never meets NaN"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁ__eq____mutmut_23": (
+        "array_equal without equal_nan=True: no array field can hold NaN (the constructor refuses NaN in M, b, the "
+        "noise terms and the reference levels), so NaN never meets NaN"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁcoefficients_at__mutmut_1": (
+        "the cache not read: the same coefficients are worked out again, only slower"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁcoefficients_at__mutmut_2": (
+        "the cache read under None: a miss, the same coefficients worked out again"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁcoefficients_at__mutmut_4": (
+        "the cache emptied above 256 entries instead of at 256: one entry more of memory, the same values"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁcoefficients_at__mutmut_5": (
+        "the cache emptied at 257 entries: the same reason"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁexpected_reference_counts__mutmut_2": (
+        "the cache read under None: a miss, the same level worked out again"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁexpected_reference_counts__mutmut_17": (
+        "the cache emptied above 256 entries instead of at 256: one entry more of memory, the same values"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁexpected_reference_counts__mutmut_18": (
+        "the cache emptied at 257 entries: the same reason"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁexpected_reference_counts__mutmut_19": (
+        "None cached for the level: the next call reads None as a miss and works the same level out again"),
     "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_39": (
         "< for <= when a hull point is collinear with its neighbours: keeping it splits one edge into two of the "
         "same slope, so the slope at the mean board time is the same"),

@@ -293,6 +293,18 @@ def test_values_exactly_at_their_documented_limits_are_accepted(fields: dict[str
                              **{"temperature_range_c": (20.0, 25.0), **fields})
     assert check_plausible(cal) == ""
 
+def test_calibrations_that_differ_in_one_coefficient_are_not_equal() -> None:
+    """``==`` (what a reload is checked with) is coefficients and metadata: two calibrations that differ only in one
+    entry of M are different, whatever else they share."""
+    def make(m01: float) -> ThermalCalibration:
+        m = 80.0 * np.eye(3)[None]
+        m[0, 0, 1] = m01
+        return ThermalCalibration(M=m, b=np.full((1, 3), -120.0), temperature_range_c=(20.0, 25.0),
+                                  created="2026-11-29T00:00:00+00:00")
+    assert make(0.5) == make(0.5)
+    assert make(0.5) != make(0.6)
+
+
 def test_a_saved_calibration_loads_equal_to_itself(tmp_path: Path) -> None:
     cal = ThermalCalibration.load(REPO / "config" / "calibration_sim.yaml")
     cal.dynamic = ChainDynamics((math.nan, 1.7, 1.3, 1.3), (0.002, 0.0, 0.0), {"sigma": math.nan})
