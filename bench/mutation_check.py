@@ -289,6 +289,25 @@ EQUIVALENT: dict[str, str] = {
         "the cache emptied at 257 entries: the same reason"),
     "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁexpected_reference_counts__mutmut_19": (
         "None cached for the level: the next call reads None as a miss and works the same level out again"),
+    "fbg_accel_driver.thermal_model.x__insensitive__mutmut_3": (
+        "4096 for 4095 counts in the span of Psi: scales a real-valued span by 1.0002 against its bound; a span "
+        "within 0.02 % of the bound has no weight (project rule: no test at a threshold)"),
+    "fbg_accel_driver.thermal_model.x__insensitive__mutmut_13": (
+        "zip(strict=None) for strict=True: one M(T) per temperature by construction"),
+    "fbg_accel_driver.thermal_model.x__insensitive__mutmut_16": (
+        "zip without strict=True: the same reason"),
+    "fbg_accel_driver.thermal_model.x__insensitive__mutmut_17": (
+        "zip(strict=False): the same reason"),
+    "fbg_accel_driver.thermal_model.x__insensitive__mutmut_29": (
+        "> for >= at the 5 g span bound: a real-valued span exactly at the bound has no weight (the same rule)"),
+    "fbg_accel_driver.thermal_model.x__insensitive__mutmut_31": (
+        "/ sign for * sign: the sign of the largest entry of a unit vector is +1 or -1, never 0, and dividing by +-1 "
+        "is multiplying by it"),
+    "fbg_accel_driver.thermal_model.x__insensitive__mutmut_51": (
+        ">= for > at 0.99 (the direction named by its axis): a real-valued component exactly at 0.99 has no weight "
+        "(the same rule)"),
+    "fbg_accel_driver.thermal_model.x_check_plausible__mutmut_104": (
+        ">= for > at the output bound: a real-valued output exactly at the bound has no weight (the same rule)"),
     "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_39": (
         "< for <= when a hull point is collinear with its neighbours: keeping it splits one edge into two of the "
         "same slope, so the slope at the mean board time is the same"),

@@ -305,6 +305,14 @@ def test_calibrations_that_differ_in_one_coefficient_are_not_equal() -> None:
     assert make(0.5) != make(0.6)
 
 
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_a_zero_row_of_m_is_named_by_its_axis(axis: int) -> None:
+    """M with the row of one axis zero: the reason names that axis as the least sensitive direction."""
+    m = 80.0 * np.eye(3)[None]
+    m[0, axis] = 0.0
+    reason = check_plausible(ThermalCalibration(M=m, b=np.full((1, 3), -120.0), temperature_range_c=(20.0, 25.0)))
+    assert f"along its least sensitive direction {'xyz'[axis]} the output changes by at most" in reason, reason
+
 def test_a_saved_calibration_loads_equal_to_itself(tmp_path: Path) -> None:
     cal = ThermalCalibration.load(REPO / "config" / "calibration_sim.yaml")
     cal.dynamic = ChainDynamics((math.nan, 1.7, 1.3, 1.3), (0.002, 0.0, 0.0), {"sigma": math.nan})
