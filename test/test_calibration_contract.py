@@ -313,6 +313,15 @@ def test_a_zero_row_of_m_is_named_by_its_axis(axis: int) -> None:
     reason = check_plausible(ThermalCalibration(M=m, b=np.full((1, 3), -120.0), temperature_range_c=(20.0, 25.0)))
     assert f"along its least sensitive direction {'xyz'[axis]} the output changes by at most" in reason, reason
 
+def test_a_model_with_non_finite_output_is_refused_with_the_whole_reason() -> None:
+    """Finite entries whose products overflow: the reason, word for word as docs/calibration_file.md gives it, names
+    the AHT10 range the driver can read and what would happen to every such sample."""
+    cal = ThermalCalibration(M=np.full((1, 3, 3), 1e308), b=np.full((1, 3), -120.0), temperature_range_c=(20.0, 25.0))
+    assert check_plausible(cal) == (
+        "the model gives a non-finite acceleration at temperatures the driver can read (-40..85 degC) and 12-bit "
+        "counts: every such sample would be dropped (coefficients, temperature scaling or a correction term out of "
+        "range)")
+
 def test_a_saved_calibration_loads_equal_to_itself(tmp_path: Path) -> None:
     cal = ThermalCalibration.load(REPO / "config" / "calibration_sim.yaml")
     cal.dynamic = ChainDynamics((math.nan, 1.7, 1.3, 1.3), (0.002, 0.0, 0.0), {"sigma": math.nan})
