@@ -388,7 +388,9 @@ def main(argv: list[str] | None = None) -> int:
     out = args.output or results_dir(args.update_results) / "floors.json"
     write_results(out, doc)
     md = (RESULTS_PAGES if args.update_results else out.parent) / "performance.md"
-    md.write_text(page(doc), encoding="utf-8")
+    old = md.read_text(encoding="utf-8") if md.exists() else ""
+    others = old[old.index("\n## ") + 1:] if "\n## " in old else ""  # sections other benches add (none of its own)
+    md.write_text(page(doc) + ("\n" + others if others else ""), encoding="utf-8")
     print(f"page written to {md}")
     return 0
 

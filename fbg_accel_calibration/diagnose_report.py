@@ -69,6 +69,7 @@ def channel_offsets_counts(res: DiagnosisResult) -> np.ndarray | None:
 def summary(res: DiagnosisResult, img_prefix: str = "img/") -> list[str]:
     """Bullet points: which effect, how it was traced, before/after per axis, floor, confounding, what remains."""
     out = []
+    drawn = {c.name for c in plotted_candidates(res)}
     if res.added:
         for name, _, desc in res.added:
             c = next((c for st in res.steps for c in st.candidates if c.name == name and st.chosen == name), None)
@@ -76,7 +77,7 @@ def summary(res: DiagnosisResult, img_prefix: str = "img/") -> list[str]:
             if c is not None:
                 how = (f"; traced by its held-out gain {100 * c.rel_gain:.1f} % (p = {_p(c.p_value)} over {c.n_groups} "
                        f"groups) and the correlation {_v(c.corr_with_residual, '{:+.2f}')} (x/y/z) of its contribution with "
-                       f"the residual, plot `{img_prefix}candidate_{name}.png`")
+                       "the residual" + (f", plot `{img_prefix}candidate_{name}.png`" if name in drawn else ""))
             conf = [c.b if c.a == name else c.a for st in res.steps if st.chosen == name for c in st.confounding
                     if c.verdict == "confounded" and name in (c.a, c.b)]
             if conf:
@@ -357,9 +358,8 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
     lines += [f"Driver check: `ThermalCalibration.apply_counts` with the added terms, streamed with state, reproduces "
               f"the fit's prediction to {res.consistency_max_abs_mps2:.1e} m/s^2.", ""]
     lines += ["## Residual versus candidates", ""]
-    for c in res.ranked:
-        if c.applicable:
-            lines += [f"![{c.name}]({img_prefix}candidate_{c.name}.png)", ""]
+    for c in plotted_candidates(res):
+        lines += [f"![{c.name}]({img_prefix}candidate_{c.name}.png)", ""]
     return "\n".join(lines) + "\n"
 
 
@@ -401,92 +401,130 @@ def text(res: DiagnosisResult) -> str:
 
 
 # ----------------------------------------------------------------------------- plots
-# Samples drawn per scatter series at most; beyond it evenly spaced ones. At 90 dpi a panel is a few hundred
-# pixels wide, so more points show nothing more, and each 10^6-point series costs seconds to draw.
-PLOT_POINTS = 20_000
+PLOT_DPI = 90
+# The grid (columns, rows) a scatter series is thinned on: finer than any panel's pixels at PLOT_DPI (the widest panel,
+# a third of a 15-inch figure, is under 400 pixels wide and 250 high), so a sample left out falls within a pixel of
+# one drawn: 10^6 points show nothing more than the few thousand cells they occupy, and cost seconds to draw.
+PLOT_GRID = (512, 384)
 
 
-def plotted(mask: np.ndarray) -> np.ndarray:
-    """Indices of the samples of ``mask`` (N,) that a scatter draws: all of them, or ``PLOT_POINTS`` evenly
-    spaced ones (the first and the last included) when there are more."""
-    idx = np.flatnonzero(mask)
-    if len(idx) > PLOT_POINTS:
-        idx = idx[np.linspace(0, len(idx) - 1, PLOT_POINTS).round().astype(int)]
-    return idx
+def plotted(idx: np.ndarray, x: np.ndarray, y: np.ndarray, grid: tuple[int, int] = PLOT_GRID) -> np.ndarray:
+    """The samples ``idx`` (indices into ``x`` and ``y``, in order) of a scatter of ``y`` against ``x`` that are drawn:
+    the first of them in each occupied cell of ``grid`` (columns, rows) spanning the series' finite range, in their
+    order; the non-finite ones left out."""
+    xs, ys = x[idx], y[idx]
+    ok = np.isfinite(xs) & np.isfinite(ys)
+    idx, xs, ys = idx[ok], xs[ok], ys[ok]
+    if len(idx) == 0:
+        return idx
+
+    def cell(v: np.ndarray, n: int) -> np.ndarray:
+        lo, span = float(np.min(v)), float(np.max(v)) - float(np.min(v))
+        if not span > 0:
+            return np.zeros(len(v), np.int64)
+        return np.minimum(((v - lo) * (n / span)).astype(np.int64), n - 1)
+
+    _, first = np.unique(cell(xs, grid[0]) * grid[1] + cell(ys, grid[1]), return_index=True)
+    return idx[np.sort(first)]
 
 
-def _shown(n_drawn: int, mask: np.ndarray) -> str:
-    n = int(np.count_nonzero(mask))
-    return f" ({n_drawn} of {n} samples drawn, evenly spaced)" if n_drawn < n else ""
+def plotted_candidates(res: DiagnosisResult) -> list[CandidateResult]:
+    """The candidates whose residual-versus-contribution figure (``candidate_<name>.png``) the report links and
+    :func:`write_plots` draws: those of the first step with a contribution."""
+    return [c for c in res.ranked if c.applicable and c.delta is not None]
+
+
+def _figure(rows: int, cols: int, size_in: tuple[float, float], **margins: float):
+    """A figure of ``rows`` x ``cols`` panels on the Agg canvas (no pyplot state), laid out once by fixed margins
+    (fractions of the figure) instead of a tight layout that renders every label to measure it."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=size_in, dpi=PLOT_DPI)
+    FigureCanvasAgg(fig)
+    axs = fig.subplots(rows, cols, squeeze=False)
+    fig.subplots_adjust(**margins)
+    return fig, axs
+
+
+def _scatter(ax, x: np.ndarray, y: np.ndarray, idx: np.ndarray, **kw) -> None:
+    """``y[idx]`` against ``x[idx]`` as dots, a sample per occupied cell of ``PLOT_GRID`` (``plotted``)."""
+    shown = plotted(idx, x, y)
+    ax.plot(x[shown], y[shown], ".", ms=2, **kw)
 
 
 def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    """The PNG figures the report links (``markdown``) into ``out_dir``: ``candidate_<name>.png`` for each of
+    :func:`plotted_candidates`, ``before_after.png`` and ``residual_structure.png``; returns their paths."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     d = res.data
     r = d.use & finite_rows(res.residual_before)
-    rp = plotted(r)
+    ri = np.flatnonzero(r)
     written: list[Path] = []
 
-    def save(fig: plt.Figure, name: str) -> None:
-        fig.tight_layout()
+    def save(fig, name: str) -> None:
         written.append(out_dir / name)
-        fig.savefig(written[-1], dpi=90)
-        plt.close(fig)
+        fig.savefig(written[-1], dpi=PLOT_DPI)
 
-    # candidates: residual of the current model (held out) against the candidate's contribution
-    for c in res.ranked:
-        delta = c.delta_of_every_sample(len(d.t_s)) if c.applicable else None
-        if delta is None:
-            continue
-        # evaluated on the search's samples (search_samples: the fitted ones, or every k-th): those plotted
-        rc = plotted(r & np.isfinite(delta[:, 0]))
-        fig, axs = plt.subplots(1, 4, figsize=(15, 3.6))
+    # candidates: residual of the current model (held out) against the candidate's contribution. One figure, its
+    # artists given each candidate's data in turn: its axes and ticks are made once, not once per candidate.
+    cands = plotted_candidates(res)
+    if cands:
+        fig, axs = _figure(1, 4, (15, 3.6), left=0.05, right=0.99, bottom=0.15, top=0.83, wspace=0.33)
+        axs = axs[0]
+        dots = [axs[j].plot([], [], ".", ms=2, alpha=0.4)[0] for j in range(3)]
+        diagonal = [axs[j].plot([], [], "k--", lw=0.8)[0] for j in range(3)]
         for j in range(3):
-            axs[j].plot(delta[rc, j], res.residual_before[rc, j], ".", ms=2, alpha=0.4)
-            lim = np.nanmax(np.abs(delta[r, j])) if np.any(r) else 1
-            axs[j].plot([-lim, lim], [-lim, lim], "k--", lw=0.8)
             axs[j].set_xlabel(f"candidate contribution {AXES[j]} [m/s^2]")
             axs[j].set_ylabel(f"held-out residual {AXES[j]} [m/s^2]")
+        profile = axs[3].plot([], [], "o-")[0]
+        chosen = axs[3].axvline(0.0, color="r", lw=0.8)
+        axs[3].set_ylabel("weighted training RSS")
+    for c in cands:
+        # evaluated on the search's samples (search_samples: the fitted ones, or every k-th): those plotted
+        delta = c.delta_of_every_sample(len(d.t_s))
+        for j in range(3):
+            shown = plotted(ri, delta[:, j], res.residual_before[:, j])
+            dots[j].set_data(delta[shown, j], res.residual_before[shown, j])
+            lim = np.nanmax(np.abs(delta[r, j])) if np.any(r) else 1
+            diagonal[j].set_data([-lim, lim], [-lim, lim])
             axs[j].set_title(f"corr {c.corr_with_residual[j]:+.2f}")
+        axs[3].set_visible(bool(c.hyper_profile))
         if c.hyper_profile:
             h, v = np.array(c.hyper_profile).T
-            axs[3].plot(h, v, "o-")
+            profile.set_data(h, v)
+            chosen.set_visible(c.hyper is not None)
             if c.hyper is not None:
-                axs[3].axvline(c.hyper, color="r", lw=0.8)
+                chosen.set_xdata([c.hyper, c.hyper])
             eff = library_by_name().get(c.name)
             axs[3].set_xlabel(f"{eff.hyper_name} [{eff.hyper_unit}]" if eff is not None and eff.hyper_name else "hyper-parameter")
-            axs[3].set_ylabel("weighted training RSS")
-        else:
-            axs[3].axis("off")
-        fig.suptitle(f"{c.name}: held-out gain {100 * c.rel_gain:+.1f} %, p = {_p(c.p_value)}{_shown(len(rp), r)}")
+        for ax in axs:
+            ax.relim(visible_only=True)
+            ax.autoscale_view()
+        fig.suptitle(f"{c.name}: held-out gain {100 * c.rel_gain:+.1f} %, p = {_p(c.p_value)}")
         save(fig, f"candidate_{c.name}.png")
 
     # before / after
-    t0 = float(np.min(d.t_s))  # the time axis starts at the first sample, as the tables (a CSV may be in epoch seconds)
-    fig, axs = plt.subplots(2, 3, figsize=(15, 6.5))
-    ra = plotted(r & finite_rows(res.residual_after))
+    t = d.t_s - float(np.min(d.t_s))  # the time axis starts at the first sample, as the tables (a CSV: epoch seconds)
+    fig, axs = _figure(2, 3, (15, 6.5), left=0.05, right=0.99, bottom=0.08, top=0.91, wspace=0.25, hspace=0.28)
+    ra = np.flatnonzero(r & finite_rows(res.residual_after))
     for j in range(3):
         ax = axs[0, j]
-        ax.plot(d.t_s[rp] - t0, res.residual_before[rp, j], ".", ms=2, alpha=0.5, label="declared model (held out)")
-        ax.plot(d.t_s[ra] - t0, res.residual_after[ra, j], ".", ms=2, alpha=0.5, label="with added effects (held out)")
+        _scatter(ax, t, res.residual_before[:, j], ri, alpha=0.5, label="declared model (held out)")
+        _scatter(ax, t, res.residual_after[:, j], ra, alpha=0.5, label="with added effects (held out)")
         ax.axhline(res.noise_floor[j], color="k", lw=0.6, ls=":")
         ax.axhline(-res.noise_floor[j], color="k", lw=0.6, ls=":")
         ax.set_xlabel(res.settings.get("time_label", "time [s]"))
         ax.set_ylabel(f"residual {AXES[j]} [m/s^2]")
         ax.legend(fontsize=7)
         ax = axs[1, j]
-        ax.plot(d.ref[rp], res.residual_before[rp, j], ".", ms=2, alpha=0.5, label="declared model")
-        ax.plot(d.ref[ra], res.residual_after[ra, j], ".", ms=2, alpha=0.5, label="with added effects")
+        _scatter(ax, d.ref, res.residual_before[:, j], ri, alpha=0.5, label="declared model")
+        _scatter(ax, d.ref, res.residual_after[:, j], ra, alpha=0.5, label="with added effects")
         ax.set_xlabel("reference counts")
         ax.set_ylabel(f"residual {AXES[j]} [m/s^2]")
     fig.suptitle("held-out residual before/after; dotted: ± noise floor. RMSE x/y/z before "
-                 f"{_v(res.before_heldout_rmse)} -> after {_v(res.after_heldout_rmse)} m/s^2{_shown(len(rp), r)}")
+                 f"{_v(res.before_heldout_rmse)} -> after {_v(res.after_heldout_rmse)} m/s^2")
     save(fig, "before_after.png")
 
     # structure of what remains: pose means vs time, temperature and orientation
@@ -495,7 +533,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
     pt = np.array([q["t_s"] for q in s.per_pose])
     pT = np.array([q["temp_c"] for q in s.per_pose])
     pg = np.array([q["gref_mps2"] for q in s.per_pose])
-    fig, axs = plt.subplots(3, 3, figsize=(15, 9))
+    fig, axs = _figure(3, 3, (15, 9), left=0.05, right=0.99, bottom=0.06, top=0.94, wspace=0.3, hspace=0.3)
     for j in range(3):
         axs[0, j].plot(pt, pm[:, j], "o", ms=3)
         axs[0, j].set_xlabel(res.settings.get("time_label", "time [s]"))

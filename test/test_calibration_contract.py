@@ -72,8 +72,11 @@ def test_sizes_are_bounded_before_parsing(tmp_path: Path, good: dict[str, Any]) 
     term = {"kind": "reference_dark_offset", "ref_offset_counts": 1.0}
     good["corrections"] = [dict(term) for _ in range(33)]
     assert "33 correction terms, at most 32 are accepted" in refused(write(tmp_path, good))
-    # 100 000 terms (21.7 s and 658 MB before): refused on its size, the YAML is never parsed
-    big = yaml.safe_dump(dict(good, corrections=[dict(term) for _ in range(100_000)]))
+    # 100 000 terms (21.7 s and 658 MB before): refused on its size, the YAML is never parsed. The file is the
+    # one-term file with that term's lines repeated (what safe_dump writes for 100 000 terms, without its 5 s)
+    one, item = yaml.safe_dump(dict(good, corrections=[term])), yaml.safe_dump([term])
+    assert one.count(item) == 1
+    big = one.replace(item, item * 100_000)
     assert len(big) > MAX_FILE_BYTES
     parsed: list[int] = []
     real_load = yaml.load
@@ -191,6 +194,25 @@ def test_a_descriptive_key_that_disagrees_with_the_term_is_refused(tmp_path: Pat
     assert f"corrections[0].{key} is {value!r}, but this {term['kind']} term is {written!r}" in refused(write(tmp_path, good))
 
 
+def test_a_descriptive_number_agrees_to_1e9_relative_and_names_given_as_numbers_disagree(tmp_path: Path,
+                                                                                         good: dict[str, Any]) -> None:
+    """``group_delay_s`` as the file gives it may be a hand-computed sum: within 1e-10 relative of what the term writes
+    it is accepted, 1e-8 or 10 % off it is refused (to 1e-9 relative: neither to exact equality nor to numpy's default
+    1e-5); ``channels`` given as numbers is refused with the message, like any other disagreement."""
+    term = {"kind": "chain_dynamics", "tia_tau_s": [0.1] * 4, "delay_s": 0.0}
+    good["corrections"] = [term]
+    written = np.asarray(ThermalCalibration.from_dict(good).corrections[0].to_dict()["group_delay_s"], dtype=float)
+    assert np.all((written > 0.01) & (written < 1.0))
+    good["corrections"] = [{**term, "group_delay_s": (written * (1.0 + 1e-10)).tolist()}]
+    ThermalCalibration.from_dict(good)
+    for rel in (1e-8, 0.1):
+        good["corrections"] = [{**term, "group_delay_s": (written * (1.0 + rel)).tolist()}]
+        assert "corrections[0].group_delay_s is [" in refused(write(tmp_path, good))
+    tia = {"kind": "tia_inverse_filter", "tau_s": [0.09, 0.12, 0.12, 0.16]}
+    good["corrections"] = [{**tia, "channels": [1, 2, 3, 4]}]
+    assert "corrections[0].channels is [1, 2, 3, 4], but this tia_inverse_filter term is" in \
+        refused(write(tmp_path, good))
+
 @pytest.mark.parametrize("line, where", [("delay_s: {x: 2e-3, y: 0.0, z: 0.0}", "delay"),
                                          ("cutoff_hz: {reference: null, x: 17e-1, y: 1.3, z: 1.3}", "cutoff"),
                                          *((kind, kind) for kind in TERMS)])
@@ -241,6 +263,64 @@ def test_a_utf8_file_loads_whatever_the_locale(tmp_path: Path) -> None:
     run = subprocess.run([sys.executable, "-c", code, str(p)], env=env, capture_output=True, text=True, check=False)
     assert run.stdout.strip() == ascii("25 \u00b0C"), run.stderr[-400:]
 
+
+def test_a_saved_file_is_utf8_whatever_the_locale_dated_in_utc_and_without_empty_sections(tmp_path: Path) -> None:
+    """The writer's side of section 5: saved under LC_ALL=C without UTF-8 mode, a note with a degree sign is written
+    as UTF-8 and loads back; ``created`` is UTC and says so (+00:00), not the host's local time without a zone; a
+    white-noise calibration without reference levels writes no noise_correlation or reference_level section."""
+    code = ("import sys, numpy as np; from fbg_accel_driver.thermal_model import ThermalCalibration as T; "
+            "T(M=80.0 * np.eye(3)[None], b=np.full((1, 3), -120.0), temperature_range_c=(20.0, 25.0), "
+            "notes='25 \\u00b0C').save(sys.argv[1])")
+    env = {**os.environ, "LC_ALL": "C", "PYTHONUTF8": "0", "PYTHONCOERCECLOCALE": "0",
+           "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    run = subprocess.run([sys.executable, "-c", code, str(tmp_path / "c.yaml")], env=env, capture_output=True,
+                         text=True, check=False)
+    assert run.returncode == 0, run.stderr[-400:]
+    cal = ThermalCalibration.load(tmp_path / "c.yaml")
+    assert cal.notes == "25 \u00b0C"
+    doc = yaml.safe_load((tmp_path / "c.yaml").read_text(encoding="utf-8"))
+    assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\+00:00", doc["created"]), doc["created"]
+    assert "noise_correlation" not in doc and "reference_level" not in doc, list(doc)
+
+@pytest.mark.parametrize("fields", [
+    {"temperature_range_c": (-100.0, 200.0)}, {"temperature_range_c": (24.0, 24.0)},
+    {"t_center_c": -100.0}, {"t_center_c": 200.0}, {"t_scale_c": 1e-3}, {"t_scale_c": 1e3},
+])
+def test_values_exactly_at_their_documented_limits_are_accepted(fields: dict[str, Any]) -> None:
+    """The limits of section 5 are inclusive, as documented: values a user types at a limit (a temperature range of
+    exactly -100..200 degC, a single temperature, a centre at -100 or 200 degC, a scale of 1e-3 or 1e3 degC) pass."""
+    cal = ThermalCalibration(M=80.0 * np.eye(3)[None], b=np.full((1, 3), -120.0),
+                             **{"temperature_range_c": (20.0, 25.0), **fields})
+    assert check_plausible(cal) == ""
+
+def test_calibrations_that_differ_in_one_coefficient_are_not_equal() -> None:
+    """``==`` (what a reload is checked with) is coefficients and metadata: two calibrations that differ only in one
+    entry of M are different, whatever else they share."""
+    def make(m01: float) -> ThermalCalibration:
+        m = 80.0 * np.eye(3)[None]
+        m[0, 0, 1] = m01
+        return ThermalCalibration(M=m, b=np.full((1, 3), -120.0), temperature_range_c=(20.0, 25.0),
+                                  created="2026-11-29T00:00:00+00:00")
+    assert make(0.5) == make(0.5)
+    assert make(0.5) != make(0.6)
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_a_zero_row_of_m_is_named_by_its_axis(axis: int) -> None:
+    """M with the row of one axis zero: the reason names that axis as the least sensitive direction."""
+    m = 80.0 * np.eye(3)[None]
+    m[0, axis] = 0.0
+    reason = check_plausible(ThermalCalibration(M=m, b=np.full((1, 3), -120.0), temperature_range_c=(20.0, 25.0)))
+    assert f"along its least sensitive direction {'xyz'[axis]} the output changes by at most" in reason, reason
+
+def test_a_model_with_non_finite_output_is_refused_with_the_whole_reason() -> None:
+    """Finite entries whose products overflow: the reason, word for word as docs/calibration_file.md gives it, names
+    the AHT10 range the driver can read and what would happen to every such sample."""
+    cal = ThermalCalibration(M=np.full((1, 3, 3), 1e308), b=np.full((1, 3), -120.0), temperature_range_c=(20.0, 25.0))
+    assert check_plausible(cal) == (
+        "the model gives a non-finite acceleration at temperatures the driver can read (-40..85 degC) and 12-bit "
+        "counts: every such sample would be dropped (coefficients, temperature scaling or a correction term out of "
+        "range)")
 
 def test_a_saved_calibration_loads_equal_to_itself(tmp_path: Path) -> None:
     cal = ThermalCalibration.load(REPO / "config" / "calibration_sim.yaml")

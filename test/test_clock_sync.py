@@ -282,6 +282,135 @@ def test_the_status_states_the_drift_and_whether_it_sits_at_its_clamp() -> None:
     assert clamped.status()["drift_at_limit"] and clamped.status()["board_clock_ppm"] == -50.0
 
 
+def test_the_status_counts_every_restart_and_mapping_step_and_gives_the_rate_to_a_hundredth_of_a_ppm() -> None:
+    """The counters of ``clock mapping`` count every event, not only the first: two board restarts are 2, two steps
+    back of a host clock without a steady clock (each taken at once as a step of the mapping) are 2, and with one two
+    steps of ROS time; and the board clock's rate is given to 0.01 ppm (-19.99 for an estimate of -19.985..., not
+    -20 nor -19.985)."""
+    sync, _, _ = run(6000, drift=20e-6)
+    ppm = sync.status()["board_clock_ppm"]
+    assert ppm == round(-sync.drift * 1e6, 2) and ppm != round(ppm) and ppm != round(-sync.drift * 1e6, 3)
+    sync.reset()
+    sync.reset()
+    assert sync.status()["restarts"] == 2
+    sync, _, _ = run(1000)
+    for k in (1, 2):
+        sync, _, _ = run(500, sync=sync, board_start_s=10.0 * k, offset_s=OFFSET_S - k, seed=3 + k)
+        assert sync.status()["mapping_steps"] == k
+    sync, _, _ = run(1000, steady=True)  # with a steady clock the same steps are steps of ROS time
+    for k in (1, 2):
+        sync, _, _ = run(500, sync=sync, board_start_s=10.0 * k, offset_s=OFFSET_S - k, seed=3 + k, steady=True)
+        assert sync.status()["ros_time_steps"] == k
+
+
+def test_ros_time_slewed_within_the_read_jitter_band_is_followed_at_the_slew_rate() -> None:
+    """ntpd slews ROS time by 1.5 ms at 50 ppm (within the 2 ms band kept for the read jitter of the host and steady
+    clocks): the applied host-minus-steady offset follows it at up to max_slew, so the stamps stay within 0.5 ms of ROS
+    time (measured: 0.16 ms). An offset that never moved inside the band would leave them 1.35 ms behind at the end."""
+    n = 6000
+    rng = np.random.default_rng(1)
+    t = np.arange(n) / RATE_HZ
+    slew = 1.5e-3 * np.clip((t - 20.0) / 30.0, 0.0, 1.0)  # ROS minus steady, s, against true time
+    steady = OFFSET_S + t + 150e-6 + rng.exponential(2e-3, n)
+    sync = ClockSync()
+    stamps = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        steady_ns = round(steady[i] * 1e9)
+        sync.observe(round(t[i] * 1e6), steady_ns + round(float(np.interp(steady[i] - OFFSET_S, t, slew)) * 1e9),
+                     steady_ns)
+        stamps[i] = sync.stamp(round(t[i] * 1e6))
+    err = errors_s(stamps, OFFSET_S + t + slew)
+    assert np.abs(err[1000:]).max() < 0.5e-3, np.abs(err[1000:]).max()
+
+@pytest.mark.parametrize("size_s", [0.01, -0.01])
+def test_a_small_step_of_ros_time_is_reached_from_the_side_the_stamps_were_on(size_s: float) -> None:
+    """ROS time steps by 10 ms (below the 50 ms step threshold, beyond the 2 ms read-jitter band) with a steady clock
+    beside it: the applied offset jumps to within the band short of the new ROS time, then slews the rest, so the
+    stamps approach it from the side they were on and never pass it by more than the transport floor (measured:
+    -1.80..+0.16 ms after a step forward, +0.15..+2.10 ms after a step back). An offset that overshot by the band
+    would put them 2 ms past it on the other side."""
+    n = 6000
+    rng = np.random.default_rng(2)
+    t = np.arange(n) / RATE_HZ
+    steady = OFFSET_S + t + 150e-6 + rng.exponential(2e-3, n)
+    sync = ClockSync()
+    stamps = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        steady_ns = round(steady[i] * 1e9)
+        sync.observe(round(t[i] * 1e6), steady_ns + (round(size_s * 1e9) if steady[i] - OFFSET_S >= 30.0 else 0),
+                     steady_ns)
+        stamps[i] = sync.stamp(round(t[i] * 1e6))
+    err = errors_s(stamps, OFFSET_S + t + np.where(t >= 30.0, size_s, 0.0))[t >= 30.1]
+    assert np.abs(err).max() < 2.5e-3, np.abs(err).max()
+    if size_s > 0:
+        assert err.max() < 0.5e-3, err.max()
+    else:
+        assert err.min() > -0.5e-3, err.min()
+
+def test_stamps_held_back_by_a_step_back_of_ros_time_are_1_ns_apart_and_counted() -> None:
+    """ROS time steps back by 0.5 s (steady clock beside it): stamps never go back, so the next half second of samples
+    is held 1 ns after the last stamp published, each 1 ns after the one before, and ``held_stamps`` counts every one
+    of them; the others keep the board's 10 ms spacing."""
+    sync, s1, _ = run(1000, steady=True)
+    sync, s2, _ = run(500, sync=sync, board_start_s=10.0, offset_s=OFFSET_S - 0.5, seed=3, steady=True)
+    spacing = np.diff(np.concatenate([s1, s2]))
+    held = int(np.sum(spacing == 1))
+    assert 40 <= held <= 60 and np.all((spacing == 1) | (spacing > 5_000_000)), held
+    assert sync.status()["held_stamps"] == held
+
+@pytest.mark.parametrize("drift", [-400e-6, 400e-6])
+def test_a_link_of_constant_delay_is_stamped_at_its_floor_once_the_drift_is_known(drift: float) -> None:
+    """Every frame arrives exactly 150 us after it was taken, from a board whose clock starts at 0 (a board just
+    powered up) and runs 400 ppm slow or fast: the lower envelope is exact, so from 1.5 s on (three 0.5 s bins) every
+    stamp is the true time plus that 150 us (measured: within 0.3 us). Board time 0 is a valid reference: a reference
+    taken as 1 s when it is 0 puts the line 400 us off."""
+    _, stamps, true_host = run(1000, drift=drift, delay_mean_s=0.0)
+    err = errors_s(stamps, true_host)[150:] - 150e-6
+    assert np.abs(err).max() < 20e-6, np.abs(err).max()
+
+
+def test_a_thread_switch_on_the_first_read_lets_no_later_single_one_through() -> None:
+    """The host-minus-steady offset is read 3 ms off at the very first read and then at one read in a hundred (a
+    thread switch between the two clock reads): a single read off is never two of the last three, so after the
+    first one is slewed out the stamps stay at the transport floor (measured: 0.14..0.16 ms from 10 s on). A window
+    of reads that kept the first one would take each later single one as agreed and step the stamps by 1 ms."""
+    n = 3000
+    rng = np.random.default_rng(4)
+    t = np.arange(n) / RATE_HZ
+    steady = OFFSET_S + t + 150e-6 + rng.exponential(2e-3, n)
+    off = np.zeros(n, dtype=np.int64)
+    off[0] = off[100::100] = 3_000_000
+    sync = ClockSync()
+    stamps = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        steady_ns = round(steady[i] * 1e9)
+        sync.observe(round(t[i] * 1e6), steady_ns + int(off[i]), steady_ns)
+        stamps[i] = sync.stamp(round(t[i] * 1e6))
+    err = errors_s(stamps, OFFSET_S + t)[1000:]
+    assert err.min() > 0.0 and err.max() < 0.5e-3, (err.min(), err.max())
+
+def test_a_change_of_the_crystal_rate_leaves_the_window_with_its_bins() -> None:
+    """The board's crystal runs 100 ppm fast, then 140 ppm from 300 s on (a board warming up), read at 10 Hz: once the
+    200 s window holds only bins after the change, the drift estimate is the new rate and the stamps are back at the
+    floor (measured: 139.95 ppm, within 7 us from 550 s). A window that kept its first bin for ever would stay
+    anchored to the old rate: 126.8 ppm and stamps 0.19 ms late."""
+    rate_hz = 10.0
+    n = int(900 * rate_hz)
+    t = np.arange(n) / rate_hz
+    ppm = np.where(t < 300.0, 100.0, 140.0)
+    board = np.concatenate([[0.0], np.cumsum((1.0 + ppm[:-1] * 1e-6) / rate_hz)])
+    arrive = np.maximum.accumulate(OFFSET_S + t + 150e-6 + np.random.default_rng(2).exponential(2e-3, n))
+    sync = ClockSync()
+    t_us = np.round(board * 1e6).astype(np.int64).tolist()
+    stamps = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        host_ns = round(arrive[i] * 1e9)
+        sync.observe(t_us[i], host_ns, host_ns)
+        stamps[i] = sync.stamp(t_us[i])
+    err = errors_s(stamps, OFFSET_S + t)[t >= 550.0] - 150e-6
+    assert np.abs(err).max() < 50e-6, np.abs(err).max()
+    assert abs(sync.status()["board_clock_ppm"] - 140.0) < 3.0, sync.status()
+
 @pytest.mark.parametrize("base_ppm", [100.0, -100.0])
 def test_a_board_crystal_drifting_with_temperature_keeps_the_stamps(base_ppm: float) -> None:
     """The board's crystal is ``base_ppm`` off and its rate moves with temperature: +40 ppm over 5 min (a board

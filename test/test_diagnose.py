@@ -12,8 +12,16 @@ import pytest
 from fbg_accel_calibration.csv_import import import_csv
 from fbg_accel_calibration.diagnose import diagnose
 from fbg_accel_calibration.diagnose_cli import main as diagnose_main
-from fbg_accel_calibration.diagnose_report import CAND_HEAD, PLOT_POINTS, markdown, plotted, write_report
+from fbg_accel_calibration.diagnose_report import (
+    CAND_HEAD,
+    PLOT_GRID,
+    markdown,
+    plotted,
+    plotted_candidates,
+    write_report,
+)
 from fbg_accel_calibration.diagnose_report import text as report_text
+from fbg_accel_calibration.diagnosis.adc_code_candidate import NAME as ADC_CODES_NAME
 from fbg_accel_calibration.diagnosis.cv import (
     CANCEL_RATIO,
     COLLINEAR_CORR,
@@ -29,7 +37,7 @@ from fbg_accel_calibration.diagnosis.design import DesignCache, ModelSpec, build
 from fbg_accel_calibration.diagnosis.floor import detrended_lag_matrix
 from fbg_accel_calibration.diagnosis.library import LIBRARY, library_by_name
 from fbg_accel_calibration.diagnosis.response_step import ResponseStepEffect
-from fbg_accel_calibration.diagnosis.search import Evaluator, paired_gain_test
+from fbg_accel_calibration.diagnosis.search import CandidateResult, Evaluator, paired_gain_test
 from fbg_accel_calibration.effects import Effect
 from fbg_accel_calibration.recording import Recording, time_axis_label
 from fbg_accel_calibration.table_geometry import table_specific_force
@@ -95,6 +103,23 @@ def test_injected_dark_offset_is_found_and_fixed() -> None:
     assert np.all(res.after_heldout_rmse < 1.2 * res.noise_floor)
     assert not res.structure.significant
     assert res.consistency_max_abs_mps2 < 1e-9
+    # the report links a figure of the candidates that write_plots draws, and of no other: the ADC code-width
+    # candidate (tested last, on the final model) has no contribution figure, so when added it links none
+    drawn = {"before_after.png", "residual_structure.png", *(f"candidate_{c.name}.png" for c in plotted_candidates(res))}
+    assert "candidate_reference_dark_offset.png" in drawn and set(_linked_figures(markdown(res))) == drawn
+    code = res.steps[-1]
+    assert [c.name for c in code.candidates] == [ADC_CODES_NAME]
+    code.candidates = [CandidateResult(ADC_CODES_NAME, "code widths", True, rel_gain=0.2, p_value=1e-9, n_groups=40,
+                                       corr_with_residual=np.full(3, 0.5), significant=True)]
+    code.chosen = ADC_CODES_NAME
+    res.added.append((ADC_CODES_NAME, None, "counts mapped to their codes' centres"))
+    md = markdown(res)
+    assert f"**Added: {ADC_CODES_NAME}**" in md and set(_linked_figures(md)) == drawn
+
+
+def _linked_figures(md: str) -> list[str]:
+    """The file names of the figures a markdown report links, in the text or as images (``img/<name>.png``)."""
+    return re.findall(r"img/([\w.]+\.png)", md)
 
 
 @pytest.mark.parametrize("seed", [2, 3, 4])
@@ -187,6 +212,7 @@ def test_cli_writes_report_yaml_and_plots(tmp_path: Path) -> None:
     assert "reference_dark_offset" in text and "Before and after" in text
     assert f"fbg-accel-calib diagnose {csv} --static table" in text  # the argv given to main, not sys.argv
     assert (out.parent / "img" / "before_after.png").stat().st_size > 1000
+    assert set(_linked_figures(text)) == {p.name for p in (out.parent / "img").glob("*.png")}  # each one drawn
     cal = ThermalCalibration.load(yml)
     assert [t.kind for t in cal.corrections] == ["reference_dark_offset", "channel_offset"]
     assert diagnose_main(["diagnose", str(tmp_path / "missing.csv")]) == 2
@@ -587,19 +613,30 @@ def test_finite_rows_is_exactly_every_value_of_the_row_finite(k: int, order: str
     np.testing.assert_array_equal(finite_rows(a[:, 0] if k else np.zeros(0)), np.isfinite(a[:, 0]) if k else np.zeros(0, bool))
 
 
-def test_scatters_draw_at_most_plot_points_evenly_spaced() -> None:
-    """A report on 10^6 samples draws each scatter series from PLOT_POINTS evenly spaced samples (first and last
-    included); a smaller selection is drawn whole."""
-    mask = np.zeros(10 * PLOT_POINTS, bool)
-    mask[::3] = True
-    idx = plotted(mask)
-    chosen = np.flatnonzero(mask)
-    assert len(idx) == PLOT_POINTS and idx[0] == chosen[0] and idx[-1] == chosen[-1]
-    assert mask[idx].all() and np.all(np.diff(idx) > 0)
-    assert np.ptp(np.diff(idx)) <= 3  # every 1.67th selected sample: gaps of 3 or 6
-    small = np.zeros(100, bool)
-    small[5:50] = True
-    np.testing.assert_array_equal(plotted(small), np.arange(5, 50))
+def test_a_scatter_draws_one_sample_per_occupied_cell_of_a_grid_finer_than_its_pixels() -> None:
+    """A report on 10^6 samples draws each scatter series from at most one sample per cell of PLOT_GRID (finer than
+    a panel's pixels): every sample left out shares its cell with one drawn, in their order, the non-finite ones
+    left out; a series of fewer samples than cells in distinct cells is drawn whole."""
+    rng = np.random.default_rng(0)
+    n = 10**6
+    x, y = rng.normal(size=n), rng.normal(size=n)
+    y[7] = np.nan
+    idx = np.flatnonzero(np.arange(n) % 3 != 1)  # a selection of the samples
+    shown = plotted(idx, x, y)
+    assert 1000 < len(shown) < PLOT_GRID[0] * PLOT_GRID[1] < len(idx) / 2
+    assert np.all(np.diff(shown) > 0) and np.isin(shown, idx).all() and 7 not in shown
+
+    def cells(i: np.ndarray) -> np.ndarray:
+        ok = idx[np.isfinite(y[idx])]
+        cx = np.minimum(((x[i] - x[ok].min()) / np.ptp(x[ok]) * PLOT_GRID[0]).astype(int), PLOT_GRID[0] - 1)
+        cy = np.minimum(((y[i] - y[ok].min()) / np.ptp(y[ok]) * PLOT_GRID[1]).astype(int), PLOT_GRID[1] - 1)
+        return cx * PLOT_GRID[1] + cy
+
+    finite = idx[np.isfinite(y[idx])]
+    assert len(np.unique(cells(shown))) == len(shown)  # one per cell
+    assert np.isin(cells(finite), cells(shown)).all()  # every occupied cell drawn
+    line = np.arange(100.0)
+    np.testing.assert_array_equal(plotted(np.arange(5, 50), line, -line), np.arange(5, 50))
 
 
 def test_the_degree_table_puts_the_rule_on_the_degree_it_chose_and_says_when_the_degree_was_given() -> None:

@@ -568,15 +568,17 @@ def test_property_chunking_does_not_change_anything(b: Built, sizes: list[int]) 
     assert chunked.buffered == whole.buffered
 
 
-def catch_up_frames(n: int, late_k: int, late_us: int, dt: int = 1_000, read_us: int = 40, t0: int = 1_000_000,
-                    seq0: int = 0) -> list[Frame]:
-    """``n`` frames of a board whose read ``late_k`` is taken ``late_us`` late, then the reads already due back to back,
+def catch_up_frames(n: int, late_k: int | tuple[int, ...], late_us: int, dt: int = 1_000, read_us: int = 40,
+                    t0: int = 1_000_000, seq0: int = 0) -> list[Frame]:
+    """``n`` frames of a board whose read ``late_k`` (or each of them) is taken ``late_us`` late, then the reads already
+    due back to back,
     ``read_us`` apart, with ADC_OVERRUN on each read taken at or after the next read's time: the firmware's catch-up
     (firmware/core/fbg_scheduler.c fbg_sched_take, firmware/host/fbg_board_host.c). Nothing is skipped or lost."""
     frames = make_frames(n, seq0=seq0, t0=t0, dt=dt)
+    late_ks = {late_k} if isinstance(late_k, int) else set(late_k)
     read = -read_us
     for k, f in enumerate(frames):
-        due = t0 + k * dt + (late_us if k == late_k else 0)
+        due = t0 + k * dt + (late_us if k in late_ks else 0)
         read = max(due, read + read_us)
         late = read >= t0 + (k + 1) * dt
         frames[k] = replace(f, t_us=read, status=f.status | (int(Status.ADC_OVERRUN) if late else 0))
@@ -600,6 +602,31 @@ def test_an_outage_of_a_sequence_period_or_more_is_counted_in_full(gap: int, cat
     assert (dec.stats.lost_frames, dec.stats.resets, dec.stats.duplicates) == (gap, 0, 0)
 
 
+def test_two_catch_ups_just_before_an_outage_leave_the_nominal_interval() -> None:
+    """Two late reads 6 samples apart, each followed by its catch-up, and an outage of 100 000 samples just after: every
+    step that starts or ends at an ADC_OVERRUN frame (into a late read, out of its catch-up) is left out of the
+    nominal interval, so the window holds one irregular step per late read and the outage is counted in full. A
+    decoder that left out only the steps between two ADC_OVERRUN frames would take 4500 us into a late read and 40 us
+    out of its catch-up as sample intervals (4 of the last 7 steps irregular), take 380 us for the interval and count
+    231 072 lost samples (2 x 65536 too many)."""
+    gap = 100_000
+    frames = catch_up_frames(56 + gap + 5, late_k=(45, 51), late_us=3_500)
+    assert [f.t_us - 1_000_000 for f in frames[50:56]] == [50_000, 54_500, 54_540, 54_580, 54_620, 55_000]
+    assert sum(bool(f.status & Status.ADC_OVERRUN) for f in frames[:56]) == 6
+    kept = frames[:56] + frames[56 + gap:]
+    dec, out = run([wire(kept)])
+    assert out == kept
+    assert (dec.stats.lost_frames, dec.stats.resets) == (gap, 0)
+
+def test_an_outage_after_the_first_two_frames_is_counted_in_full() -> None:
+    """The link drops for 70 000 samples right after the first two frames of a session: their one step is the nominal
+    interval already (the first frame is on time), so the outage is counted in full, not as 70 000 mod 65536."""
+    frames = make_frames(2 + 70_000 + 3, dt=1_000)
+    kept = frames[:2] + frames[2 + 70_000:]
+    dec, out = run([wire(kept)])
+    assert out == kept
+    assert dec.stats.lost_frames == 70_000
+
 def test_the_sample_interval_forgets_its_oldest_step_first() -> None:
     """The ring of the last INTERVAL_WINDOW steps is first in, first out: after 7 steps (five of 1000 us, two of
     3000 us) and three of 2000 us, the window holds 2000 x3, 1000 x2, 3000 x2 (median 2000); a ring that overwrote
@@ -614,3 +641,38 @@ def test_the_sample_interval_forgets_its_oldest_step_first() -> None:
     for _ in range(3):
         interval.add(2000, 0)
     assert interval.us == 2000
+
+
+def test_a_header_that_cannot_start_a_frame_is_dropped_once_complete_and_an_empty_body_is_no_candidate() -> None:
+    """A complete 4-byte header that cannot start a frame (version 0) is discarded as soon as it has arrived, not
+    held waiting for more bytes (the diagnostics' discarded-byte count is up to date); a header announcing an empty
+    body is no candidate, even of an unknown version with a valid CRC (counted neither as an unsupported version nor
+    as a CRC error), while a one-byte body of an unknown version is one: its wrong CRC is counted."""
+    dec = StreamDecoder()
+    assert dec.feed(SYNC + bytes([0, 10])) == []
+    assert (dec.stats.bytes_discarded, dec.buffered) == (HEADER_SIZE, 0)
+    empty = bytes([9, 0])
+    dec = StreamDecoder()
+    assert dec.feed(SYNC + empty + crc16(empty).to_bytes(CRC_SIZE, "little")) == []
+    assert (dec.stats.unsupported_version, dec.stats.crc_errors) == (0, 0)
+    one = bytes([9, 1, 0x33])
+    dec = StreamDecoder()
+    assert dec.feed(SYNC + one + (crc16(one) ^ 1).to_bytes(CRC_SIZE, "little")) == []
+    assert (dec.stats.unsupported_version, dec.stats.crc_errors) == (0, 1)
+
+def test_the_sample_interval_is_the_upper_median_of_the_last_window_of_on_time_steps() -> None:
+    """Against the definition, step by step over 400 random steps (the nominal 1000 us, its neighbours, a catch-up's
+    40 us, an outage's long step; one in eight at an ADC_OVERRUN frame, ignored): after each step :attr:`us` is the
+    upper median of the last INTERVAL_WINDOW steps taken. A window one step too long, a ring overwritten out of order
+    or a lower quantile read as the median each differ within the first few dozen steps."""
+    from fbg_accel_driver.stream_decoder import INTERVAL_WINDOW, SampleInterval
+
+    rng = np.random.default_rng(7)
+    interval, taken = SampleInterval(), []
+    for step, overrun in zip(rng.choice([40, 990, 1000, 1010, 2000, 50_000], 400).tolist(),
+                             (rng.random(400) < 0.125).tolist(), strict=True):
+        interval.add(step, int(overrun))
+        if not overrun:
+            taken.append(step)
+        window = sorted(taken[-INTERVAL_WINDOW:])
+        assert interval.us == (window[len(window) // 2] if window else 0), (taken[-INTERVAL_WINDOW:], interval.us)
