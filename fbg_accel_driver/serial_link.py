@@ -263,10 +263,10 @@ class _ReadReady:
     then one ``os.read`` of all that is waiting, up to ``max_bytes``; ``b""`` on timeout.
 
     pyserial's own ``read(n)`` costs a ``select``, a timeout object and a loop per call, and taking what is waiting
-    with it needs ``in_waiting`` (an ioctl) before and after a ``read(1)``: four calls into the port for each frame
-    at 1 kHz, where this makes two. pyserial still opens, configures, locks and closes the port (its file
-    descriptor is non-blocking, ``O_NONBLOCK``). As in pyserial, a port that reports readiness but gives no data
-    (a device gone) raises, and EAGAIN/EINTR are an empty read."""
+    with it needs ``in_waiting`` (an ioctl) before and after a ``read(1)``: six system calls for each frame at 1 kHz
+    (ioctl, select, read, ioctl, select, read), where this makes two (poll, read). pyserial still opens,
+    configures, locks and closes the port (its file descriptor is non-blocking, ``O_NONBLOCK``). As in pyserial, a
+    port that reports readiness but gives no data (a device gone) raises, and EAGAIN/EINTR are an empty read."""
 
     __slots__ = ("_fd", "_poll", "_timeout_ms")
 
