@@ -36,6 +36,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.guard_condition import GuardCondition
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -56,7 +57,14 @@ from .driver_parameters import (
     RUNTIME_PARAMETERS,
     default_calibration_path,
 )
-from .node_support import c_stderr_held, declare_parameters, init_ros, refuse_unknown_parameters, signals_to
+from .node_support import (
+    ShutdownSignal,
+    c_stderr_held,
+    declare_parameters,
+    init_ros,
+    refuse_unknown_parameters,
+    signals_to,
+)
 from .ros_messages import DriverMessages
 from .serial_link import LinkState, SerialLink
 from .thermal_model import CalibrationFileError, ThermalCalibration
@@ -108,17 +116,35 @@ def run(argv: list[str], managed: bool = False) -> int:
             node.shutdown_signalled = shutdown.wait
             executor = SingleThreadedExecutor()
             executor.add_node(node)
+            woken = node.create_guard_condition(lambda: None)
+            threading.Thread(target=_wake_on_signal, args=(shutdown, woken, stop), name="signal wake-up",
+                             daemon=True).start()
             try:
                 while not stop.is_set() and rclpy.ok():
-                    executor.spin_once(timeout_sec=0.1)  # a signal is seen within 0.1 s
+                    executor.spin_once(timeout_sec=1.0)  # a signal wakes it at once (_wake_on_signal)
             except ExternalShutdownException:
                 pass
             return 0
         finally:
+            stop.set()  # ends _wake_on_signal
             if node is not None:
                 node.close()  # reader and publisher threads end here, while the context is still valid
                 node.destroy_node()
             rclpy.try_shutdown()
+
+
+def _wake_on_signal(shutdown: ShutdownSignal, woken: GuardCondition, stop: threading.Event) -> None:
+    """Trigger ``woken`` (a guard condition of the executor's node) as soon as SIGINT/SIGTERM arrives, so that the
+    executor returns and the main thread runs the Python signal handler: the executor can then wait up to 1 s
+    instead of waking every 0.1 s to look for a signal (each of those empty ``spin_once`` cost ~0.1 ms of CPU, about
+    0.1 % of a core, a twentieth of the driver's whole cost at 100 Hz). Wakes once a second to see ``stop``."""
+    while not stop.is_set():
+        if shutdown.wait(1.0):
+            try:
+                woken.trigger()
+            except Exception:  # the node is being destroyed: the executor loop is ending anyway
+                pass
+            return
 
 
 class DriverNode(Node):
