@@ -10,8 +10,8 @@ Topics (see docs/topics.md): ``imu/data_raw`` (sensor_msgs/Imu), ``imu/temperatu
 parameters (rclpy ``QoSOverridingOptions``); consumers subscribe with the sensor-data profile (or
 any reliable profile: ``ros2 topic echo`` without flags works).
 
-Shutdown: SIGINT/SIGTERM only set a flag; the main loop then stops the serial reader and the
-publisher thread *before* the ROS context is shut down, so no publish races a dead context. A link
+Shutdown: SIGINT/SIGTERM only set a flag (and wake the executor, ``_wake_on_signal``); the main loop then stops the
+serial reader and the publisher thread *before* the ROS context is shut down, so no publish races a dead context. A link
 that ends at most ``LINK_CLOSE_AT_SHUTDOWN_S`` before a signal arrives (the simulator of a launch file
 stopped by the same Ctrl-C) is logged as closed at shutdown (INFO), a link lost otherwise as an ERROR
 once that time has passed (checked by the diagnostics timer; ``/diagnostics`` reports the link at once).
