@@ -135,11 +135,15 @@ def run(argv: list[str], managed: bool = False) -> int:
 
 def _wake_on_signal(shutdown: ShutdownSignal, woken: GuardCondition, stop: threading.Event) -> None:
     """Trigger ``woken`` (a guard condition of the executor's node) as soon as SIGINT/SIGTERM arrives, so that the
-    executor returns and the main thread runs the Python signal handler: the executor can then wait up to 1 s
-    instead of waking every 0.1 s to look for a signal (each of those empty ``spin_once`` cost ~0.1 ms of CPU, about
-    0.1 % of a core, a twentieth of the driver's whole cost at 100 Hz). Wakes once a second to see ``stop``."""
+    executor returns and the main thread runs the Python signal handler. The executor then needs no short timeout to
+    see a signal: an empty ``spin_once`` costs ~0.1 ms of CPU, and ten a second would be a twentieth of the driver's
+    cost at 100 Hz (bench/floors.py). Looks at ``stop`` once a second; ends with it or once the pipe is closed."""
     while not stop.is_set():
-        if shutdown.wait(1.0):
+        try:
+            signalled = shutdown.wait(1.0)
+        except (OSError, ValueError):  # the wake-up pipe closed meanwhile: the run is over
+            return
+        if signalled:
             try:
                 woken.trigger()
             except Exception:  # the node is being destroyed: the executor loop is ending anyway
