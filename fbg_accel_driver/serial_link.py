@@ -1,7 +1,8 @@
 """Serial link to the acquisition board: a pyserial reader in its own thread (no ROS).
 
-The reader thread owns the port. It opens it, reads whatever bytes are available (a read that
-woke on one byte also takes what arrived with it, so a frame is one chunk, not 1 + 26 bytes) and
+The reader thread owns the port. It opens it, reads whatever bytes are available (it waits for the first byte and
+takes all that arrived with it in the same read, so a frame is one chunk, not 1 + 26 bytes, and a backlog of
+many frames is one chunk too) and
 puts ``(host_ns, bytes, steady_ns)`` chunks on a bounded queue (``chunk_queue.ChunkQueue``: the oldest chunks
 are dropped and counted when a consumer falls ``max_queued_bytes`` behind), stamped with the host
 time right after the read returned (the clock is injectable so the ROS node can pass its ROS clock) and the steady
@@ -26,6 +27,7 @@ from __future__ import annotations
 import enum
 import errno
 import os
+import select
 import termios
 import threading
 import time
@@ -218,9 +220,9 @@ class SerialLink:
             got_data = False
             last_data = last_target_check = time.monotonic()
             try:
+                read_ready = _ReadReady(ser)
                 while not self._stop.is_set():
-                    waiting = ser.in_waiting
-                    data = ser.read(min(max(waiting, 1), self._max_chunk))
+                    data = read_ready(self._max_chunk)
                     now = time.monotonic()
                     if now - last_target_check >= self._read_timeout:  # also while data flows: the old device may
                         last_target_check = now                          # stream on after the name moved
@@ -231,11 +233,8 @@ class SerialLink:
                         if self._silence_timeout > 0 and silent >= self._silence_timeout:
                             raise _StaleLinkError(f"no data for {silent:.1f} s")
                         continue
-                    rest = ser.in_waiting  # read(1) woke on a frame's first byte: take the rest of it too
-                    if rest and len(data) < self._max_chunk:
-                        data += ser.read(min(rest, self._max_chunk - len(data)))
-                    host_ns, steady_ns = self._read_clocks()
-                    last_data = time.monotonic()
+                    host_ns, steady_ns = self._read_clocks()  # every byte of ``data`` had arrived by then
+                    last_data = now
                     with self._lock:
                         self._bytes += len(data)
                     self.queue.put(host_ns, data, steady_ns)
@@ -257,6 +256,41 @@ class SerialLink:
             if self._stop.wait(backoff if not self._stop.is_set() else 0):
                 break
             backoff = min(backoff * 2.0, self._backoff_max)
+
+
+class _ReadReady:
+    """Whatever the open port ``ser`` holds, in one read: wait up to its timeout for the first byte (``poll``),
+    then one ``os.read`` of all that is waiting, up to ``max_bytes``; ``b""`` on timeout.
+
+    pyserial's own ``read(n)`` costs a ``select``, a timeout object and a loop per call, and taking what is waiting
+    with it needs ``in_waiting`` (an ioctl) before and after a ``read(1)``: six system calls for each frame at 1 kHz
+    (ioctl, select, read, ioctl, select, read), where this makes two (poll, read). pyserial still opens,
+    configures, locks and closes the port (its file descriptor is non-blocking, ``O_NONBLOCK``). As in pyserial, a
+    port that reports readiness but gives no data (a device gone) raises, and EAGAIN/EINTR are an empty read."""
+
+    __slots__ = ("_fd", "_poll", "_timeout_ms")
+
+    def __init__(self, ser: serial.Serial) -> None:
+        self._fd = ser.fileno()
+        self._poll = select.poll()
+        self._poll.register(self._fd, select.POLLIN)
+        timeout = ser.timeout
+        self._timeout_ms = None if timeout is None else max(0, round(timeout * 1000))
+
+    def __call__(self, max_bytes: int) -> bytes:
+        events = self._poll.poll(self._timeout_ms)
+        if not events:
+            return b""
+        if events[0][1] & select.POLLNVAL:
+            raise serial.SerialException("the port was closed")
+        try:
+            data = os.read(self._fd, max_bytes)
+        except (BlockingIOError, InterruptedError):
+            return b""
+        if not data:
+            raise serial.SerialException("device reports readiness to read but returned no data "
+                                         "(device disconnected or multiple access on port?)")
+        return data
 
 
 class _StaleLinkError(Exception):
