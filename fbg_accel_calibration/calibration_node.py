@@ -35,7 +35,13 @@ from std_srvs.srv import Trigger
 
 from fbg_accel_driver.command_line import StartupError, check_name_text
 from fbg_accel_driver.driver_core import RAW_AUX_NAME
-from fbg_accel_driver.node_support import declare_parameters, init_ros, refuse_unknown_parameters, signals_to
+from fbg_accel_driver.node_support import (
+    declare_parameters,
+    init_ros,
+    refuse_unknown_parameters,
+    signal_wakes_executor,
+    signals_to,
+)
 from fbg_accel_driver.yaml_input import YamlFileError, read_yaml_file
 
 from .atomic_output import OutputError, check_outputs
@@ -83,13 +89,15 @@ def run(argv: list[str], stopped_ok: bool = False) -> int:
     # Own handlers: a signal only sets a flag, the loop below then closes the MCAP in order.
     init_ros("calibration", argv)
     node: CalibrationNode | None = None
-    with signals_to(lambda signum: stop.append(signal.Signals(signum).name)):
+    with signals_to(lambda signum: stop.append(signal.Signals(signum).name)) as shutdown:
         try:
             node = CalibrationNode()
             executor = SingleThreadedExecutor()
             executor.add_node(node)
-            while not stop and not (node.recorder.finished and node.exit_when_done):
-                executor.spin_once(timeout_sec=0.1)
+            # spin_once returns at once on a signal, and after the callback that finishes the run
+            with signal_wakes_executor(node, shutdown):
+                while not stop and not (node.recorder.finished and node.exit_when_done):
+                    executor.spin_once(timeout_sec=1.0)
             executor.remove_node(node)
             if stop:
                 node.recorder.abort(f"{stop[0]} received")

@@ -10,11 +10,11 @@ Topics (see docs/topics.md): ``imu/data_raw`` (sensor_msgs/Imu), ``imu/temperatu
 parameters (rclpy ``QoSOverridingOptions``); consumers subscribe with the sensor-data profile (or
 any reliable profile: ``ros2 topic echo`` without flags works).
 
-Shutdown: SIGINT/SIGTERM only set a flag (and wake the executor, ``_wake_on_signal``); the main loop then stops the
-serial reader and the publisher thread *before* the ROS context is shut down, so no publish races a dead context. A link
-that ends at most ``LINK_CLOSE_AT_SHUTDOWN_S`` before a signal arrives (the simulator of a launch file
-stopped by the same Ctrl-C) is logged as closed at shutdown (INFO), a link lost otherwise as an ERROR
-once that time has passed (checked by the diagnostics timer; ``/diagnostics`` reports the link at once).
+Shutdown: SIGINT/SIGTERM only set a flag (and wake the executor, ``node_support.signal_wakes_executor``); the main
+loop then stops the serial reader and the publisher thread *before* the ROS context is shut down, so no publish races
+a dead context. A link that ends at most ``LINK_CLOSE_AT_SHUTDOWN_S`` before a signal arrives (the simulator of a
+launch file stopped by the same Ctrl-C) is logged as closed at shutdown (INFO), a link lost otherwise as an ERROR once
+that time has passed (checked by the diagnostics timer; ``/diagnostics`` reports the link at once).
 
 Threads: ``SerialLink``'s reader thread owns the port and queues byte chunks; a publisher thread
 blocks on that queue, runs ``DriverCore`` and publishes (rclpy publishers may be used from any
@@ -36,7 +36,6 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.guard_condition import GuardCondition
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -58,11 +57,11 @@ from .driver_parameters import (
     default_calibration_path,
 )
 from .node_support import (
-    ShutdownSignal,
     c_stderr_held,
     declare_parameters,
     init_ros,
     refuse_unknown_parameters,
+    signal_wakes_executor,
     signals_to,
 )
 from .ros_messages import DriverMessages
@@ -117,39 +116,18 @@ def run(argv: list[str], managed: bool = False) -> int:
             node.shutdown_signalled = shutdown.wait
             executor = SingleThreadedExecutor()
             executor.add_node(node)
-            woken = node.create_guard_condition(lambda: None)
-            threading.Thread(target=_wake_on_signal, args=(shutdown, woken, stop), name="signal wake-up",
-                             daemon=True).start()
-            try:
-                while not stop.is_set() and rclpy.ok():
-                    executor.spin_once(timeout_sec=1.0)  # a signal wakes it at once (_wake_on_signal)
-            except ExternalShutdownException:
-                pass
+            with signal_wakes_executor(node, shutdown):
+                try:
+                    while not stop.is_set() and rclpy.ok():
+                        executor.spin_once(timeout_sec=1.0)  # a signal wakes it at once
+                except ExternalShutdownException:
+                    pass
             return 0
         finally:
-            stop.set()  # ends _wake_on_signal
             if node is not None:
                 node.close()  # reader and publisher threads end here, while the context is still valid
                 node.destroy_node()
             rclpy.try_shutdown()
-
-
-def _wake_on_signal(shutdown: ShutdownSignal, woken: GuardCondition, stop: threading.Event) -> None:
-    """Trigger ``woken`` (a guard condition of the executor's node) as soon as SIGINT/SIGTERM arrives, so that the
-    executor returns and the main thread runs the Python signal handler. The executor then needs no short timeout to
-    see a signal: an empty ``spin_once`` costs ~0.1 ms of CPU, and ten a second would be a twentieth of the driver's
-    cost at 100 Hz (bench/floors.py). Looks at ``stop`` once a second; ends with it or once the pipe is closed."""
-    while not stop.is_set():
-        try:
-            signalled = shutdown.wait(1.0)
-        except (OSError, ValueError):  # the wake-up pipe closed meanwhile: the run is over
-            return
-        if signalled:
-            try:
-                woken.trigger()
-            except Exception:  # the node is being destroyed: the executor loop is ending anyway
-                pass
-            return
 
 
 class DriverNode(Node):
