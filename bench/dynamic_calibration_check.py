@@ -37,7 +37,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from scipy import signal
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -52,7 +51,12 @@ from fbg_accel_calibration.dynamic_check import step_check  # noqa: E402
 from fbg_accel_calibration.excitation_plan import ExcitationPlan  # noqa: E402
 from fbg_accel_driver.driver_parameters import default_calibration_path  # noqa: E402
 from fbg_accel_driver.thermal_model import ThermalCalibration  # noqa: E402
-from fbg_accel_sim.dynamic_run import random_channel_chain, simulate_dynamic_run, simulated_tone_check  # noqa: E402
+from fbg_accel_sim.dynamic_run import (  # noqa: E402
+    random_channel_chain,
+    simulate_dynamic_run,
+    simulated_tone_check,
+    with_second_order_stage,
+)
 from fbg_accel_sim.sim_config import SimConfig  # noqa: E402
 
 PLAN_FILE = ROOT / "config" / "excitation_plan_stepped_sine.yaml"
@@ -89,16 +93,6 @@ def raw_z(check: object) -> float:
     """The largest |difference| / standard uncertainty of an axis check, before it is read with its degrees of
     freedom (the figure the check decided on before)."""
     return max((max(abs(float(r["z_sensitivity"])), abs(float(r["z_phase"]))) for r in check.rows), default=0.0)
-
-
-def with_second_order_stage(rec: object, rate: float, f0_hz: float, q: float, channel: int = 1) -> object:
-    """``rec`` with a second-order low-pass (``f0_hz``, ``q``; bilinear at ``rate`` Hz) on one axis channel's counts."""
-    w0 = 2 * np.pi * f0_hz
-    b, a = signal.bilinear([w0**2], [1.0, w0 / q, w0**2], fs=rate)
-    bad = rec.select(np.ones(len(rec), dtype=bool))
-    y = bad.xyz[:, channel].copy()
-    bad.xyz[:, channel] = signal.lfilter(b, a, y, zi=signal.lfilter_zi(b, a) * y[0])[0]
-    return bad
 
 
 def stage_outcome(rec: object, plan: ExcitationPlan, static: ThermalCalibration, f0: float, q: float) -> dict:

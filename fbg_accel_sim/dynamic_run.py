@@ -72,3 +72,19 @@ def random_channel_chain(seed: int, cutoff_range_hz: tuple[float, float] = (0.5,
     return fc, delay, {"electronics.tia_cutoff_hz": [ref_fc, *(float(v) for v in fc)],
                        "effects.channel_delay.delay_s": 0.0,
                        "effects.channel_delay.axis_channel_extra_s": [float(v) for v in delay]}
+
+
+def with_second_order_stage(rec: Any, rate_hz: float, f0_hz: float, q: float, channel: int = 1) -> Any:
+    """A copy of ``rec`` with a second-order low-pass (natural frequency ``f0_hz`` [Hz], quality factor ``q``;
+    bilinear transform at ``rate_hz`` [Hz], started at rest on the first sample) on one axis channel's counts
+    (``channel`` 0/1/2 = x/y/z): a stage that the per-channel model (first-order low-pass + pure delay) does not
+    represent, as an extra filter pole pair or a resonant mount would add. What the dynamic calibration's axis check
+    must flag (docs/dynamic_calibration.md)."""
+    from scipy import signal
+
+    w0 = 2 * np.pi * f0_hz
+    b, a = signal.bilinear([w0**2], [1.0, w0 / q, w0**2], fs=rate_hz)
+    out = rec.select(np.ones(len(rec), dtype=bool))
+    y = out.xyz[:, channel].copy()
+    out.xyz[:, channel] = signal.lfilter(b, a, y, zi=signal.lfilter_zi(b, a) * y[0])[0]
+    return out

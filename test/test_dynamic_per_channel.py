@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy import signal
 
 from fbg_accel_calibration.chain_model import ChainModel, response
 from fbg_accel_calibration.cli import main as calib_main
@@ -20,7 +19,12 @@ from fbg_accel_calibration.dynamic_csv import write_dynamic_csv
 from fbg_accel_calibration.excitation_plan import ExcitationPlan
 from fbg_accel_driver.driver_parameters import default_calibration_path
 from fbg_accel_driver.thermal_model import ThermalCalibration
-from fbg_accel_sim.dynamic_run import random_channel_chain, simulate_dynamic_run, simulated_tone_check
+from fbg_accel_sim.dynamic_run import (
+    random_channel_chain,
+    simulate_dynamic_run,
+    simulated_tone_check,
+    with_second_order_stage,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 PLAN_FILE = REPO / "config" / "excitation_plan_stepped_sine.yaml"
@@ -77,23 +81,12 @@ def test_the_three_tone_process_run_is_identified_within_its_uncertainty_and_pas
     assert not res.check.misfit and res.check.max_abs_z < 0.75 * MISFIT_Z, res.check.verdict()
 
 
-def _with_second_order_stage(rec, channel: int, f0_hz: float, q: float):
-    """``rec`` with a second-order low-pass (f0, Q; bilinear at the recording's rate) added to one axis channel's
-    counts: a stage no first-order low-pass + delay represents."""
-    w0 = 2 * np.pi * f0_hz
-    b, a = signal.bilinear([w0**2], [1.0, w0 / q, w0**2], fs=RATE_HZ)
-    out = rec.select(np.ones(len(rec), dtype=bool))
-    y = out.xyz[:, channel].copy()
-    out.xyz[:, channel] = signal.lfilter(b, a, y, zi=signal.lfilter_zi(b, a) * y[0])[0]
-    return out
-
-
 def test_a_second_order_stage_on_one_channel_is_flagged_and_not_written_unless_accepted(static_cal, tmp_path, capsys):
     """A 25 Hz second-order stage (Q 0.7) on y: the per-channel fit still passes its plausibility limits, but the axes
     it predicts miss the measured ones by several times the check's limit; the CLI then writes no calibration unless
     --accept-misfit (one line, exit 2), and writes it with it."""
     rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=3)
-    bad = _with_second_order_stage(rec, 1, 25.0, 0.7)
+    bad = with_second_order_stage(rec, RATE_HZ, 25.0, 0.7, channel=1)
     csv = tmp_path / "run.csv"
     write_dynamic_csv(csv, bad)
     out, points = tmp_path / "cal.yaml", tmp_path / "points.json"
