@@ -89,19 +89,6 @@ def cluster_covariance(stats: CellStats, A: np.ndarray, degree: int,
     return 0.5 * (cov + cov.T), method, len(u)
 
 
-def naive_covariance(stats: CellStats, A: np.ndarray, degree: int) -> np.ndarray:
-    """The textbook covariance sigma^2 (X^T X)^-1 per axis (independent samples; no correlation between axes): what
-    the cluster-robust estimate replaces, for comparison only (it ignores what a visit shares)."""
-    xtx, _, _, n = stats.select(np.ones(len(stats.count), bool), degree)
-    rss = stats.cell_rss(A, degree).sum(axis=0)
-    p = xtx.shape[0]
-    inv = np.linalg.inv(xtx)
-    cov = np.zeros((3 * p, 3 * p))
-    for i in range(3):
-        cov[i::3, i::3] = inv * rss[i] / max(n - p, 1.0)
-    return cov
-
-
 def bootstrap_covariance(stats: CellStats, degree: int, n_boot: int = 400, seed: int = 0) -> tuple[np.ndarray, int]:
     """Covariance (3p, 3p) of the coefficients over ``n_boot`` refits on visits drawn with replacement within each
     temperature level (a level keeps its number of visits); returns ``(covariance, refits that were identified)``.

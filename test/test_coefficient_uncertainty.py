@@ -9,12 +9,11 @@ import pytest
 from fbg_accel_calibration.coefficient_uncertainty import (
     bootstrap_covariance,
     cluster_covariance,
-    naive_covariance,
 )
 from fbg_accel_calibration.fit_pipeline import fit_thermal
 from fbg_accel_calibration.fit_stream import prepare
 from fbg_accel_calibration.recording import Recording
-from fbg_accel_calibration.thermal_fit import model_to_coefficients
+from fbg_accel_calibration.thermal_fit import CellStats, model_to_coefficients
 from fbg_accel_driver.coefficient_covariance import CoefficientCovariance, output_covariance
 from fbg_accel_driver.thermal_model import CalibrationFileError, ThermalCalibration
 from fbg_accel_sim.eq28_campaign import campaign
@@ -23,6 +22,19 @@ from fbg_accel_sim.eq28_campaign import campaign
 def _fit(rec: Recording, degree: int = 1):
     data = prepare(rec, degree, usable=np.ones(len(rec), bool))
     return fit_thermal(data, degree), data
+
+
+def naive_covariance(stats: CellStats, A: np.ndarray, degree: int) -> np.ndarray:
+    """The textbook covariance sigma^2 (X^T X)^-1 per axis (independent samples; no correlation between axes): what
+    the cluster-robust estimate replaces, the baseline these tests compare with (it ignores what a visit shares)."""
+    xtx, _, _, n = stats.select(np.ones(len(stats.count), bool), degree)
+    rss = stats.cell_rss(A, degree).sum(axis=0)
+    p = xtx.shape[0]
+    inv = np.linalg.inv(xtx)
+    cov = np.zeros((3 * p, 3 * p))
+    for i in range(3):
+        cov[i::3, i::3] = inv * rss[i] / max(n - p, 1.0)
+    return cov
 
 
 def test_visit_sums_add_up_to_the_cell_sums_and_count_every_visit() -> None:
