@@ -26,7 +26,6 @@ from . import input_validation as iv
 if TYPE_CHECKING:
     import numpy as np
 
-MIN_RUN = 5  # a visit of fewer samples is not used (as diagnose's "table" selection)
 
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -51,19 +50,17 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 
 def visits_of(rec) -> tuple[np.ndarray, np.ndarray]:
-    """(groups, rows) of a recording for the code-density estimate: the table's poses held for at least ``MIN_RUN``
-    samples (visit labels ``effects.visit_ids``); a recording without poses (a static or slow-ramp run): every sample,
-    each run one visit (cut into pieces by ``adc_codes.pieces``). Clipped samples and a dark reference are left out."""
+    """(groups, rows) of a recording for the code-density estimate: the table's poses held for at least
+    ``diagnosis.data.MIN_HELD_SAMPLES`` samples (visit labels ``visit_ids``); a recording without poses (a static or
+    slow-ramp run): every sample, each run one visit (cut into pieces by ``adc_codes.pieces``). Clipped samples and a
+    dark reference are left out."""
     import numpy as np
 
-    from .diagnosis.data import visit_ids
+    from .diagnosis.data import held_poses, visit_ids
 
     good = ~rec.clipped() & ~rec.low_reference() & np.isfinite(rec.ref) & np.all(np.isfinite(rec.xyz), axis=1)
     if np.any(rec.pose_id >= 0):
-        groups = visit_ids(rec.pose_id, rec.run_id)
-        change = np.r_[True, (np.diff(rec.pose_id) != 0) | (np.diff(rec.run_id) != 0)]
-        seg = np.cumsum(change) - 1
-        return groups, good & (rec.pose_id >= 0) & (np.bincount(seg)[seg] >= MIN_RUN)
+        return visit_ids(rec.pose_id, rec.run_id), good & held_poses(rec.pose_id, rec.run_id)
     return rec.run_id.astype(np.int64), good
 
 

@@ -177,6 +177,21 @@ def visit_ids(pose_id: np.ndarray, run_id: np.ndarray) -> np.ndarray:
     return motion_groups(label, run_id)
 
 
+# a pose the table held for fewer consecutive samples is no static visit (its reference is a passing angle)
+MIN_HELD_SAMPLES = 5
+
+
+def held_poses(pose_id: np.ndarray, run_id: np.ndarray) -> np.ndarray:
+    """Mask (N,) of the samples at a pose (id >= 0) that the table held for at least :data:`MIN_HELD_SAMPLES`
+    consecutive samples within one run: the samples whose reference is known and constant."""
+    pose_id, run_id = np.asarray(pose_id), np.asarray(run_id)
+    if len(pose_id) == 0:
+        return np.zeros(0, dtype=bool)
+    change = np.r_[True, (np.diff(pose_id) != 0) | (np.diff(run_id) != 0)]
+    seg = np.cumsum(change) - 1
+    return (pose_id >= 0) & (np.bincount(seg)[seg] >= MIN_HELD_SAMPLES)
+
+
 def take_rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """``a[idx]`` for integer indices ``idx`` (``np.take`` along the first axis, the same values): numpy's fancy
     indexing copies the rows of an (N, 3) array one by one, about three times slower at 10^5 rows of 10^6."""

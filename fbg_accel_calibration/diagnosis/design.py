@@ -20,7 +20,7 @@ from ..thermal_fit import (
     design_matrix,
     n_params,
 )
-from .data import DiagnosisData, Inputs, finite_rows, memory_key, motion_groups, visit_ids
+from .data import MIN_HELD_SAMPLES, DiagnosisData, Inputs, finite_rows, held_poses, memory_key, motion_groups, visit_ids
 
 # ============================================================================ data preparation
 
@@ -37,15 +37,15 @@ def _too_few_static(rec: Recording, n_use: int, static: str) -> str:
         return (f"{why}: no pose was held: every one of the {len(rec.pose_id)} samples was taken while the table "
                 "moved; record with the table stopped at each pose")
     if static == "table":
-        return (f"{why}: {posed} of the {len(rec.pose_id)} samples are at a held pose, but no pose was held for 5 "
-                "samples in a row with a finite reference and unclipped channels")
+        return (f"{why}: {posed} of the {len(rec.pose_id)} samples are at a held pose, but no pose was held for "
+                f"{MIN_HELD_SAMPLES} samples in a row with a finite reference and unclipped channels")
     return f"{why} (sample selection {static!r}; {posed} of the {len(rec.pose_id)} samples at a held pose)"
 
 
 def prepare_data(rec: Recording, static: str = "table", beside_thread: bool = False) -> DiagnosisData:
     """Diagnosis arrays from a recording. ``static`` selects the samples that are fitted and judged:
 
-    * ``"table"`` (default): every sample of a pose the table held for at least 5 samples (the
+    * ``"table"`` (default): every sample of a pose the table held for at least ``MIN_HELD_SAMPLES`` (5) samples (the
       reference is known and constant). Chain dynamics that outlast the stop stay visible.
     * ``"detector"``: the fit's static-interval detector (signal still AND reference constant); it
       removes settling samples, so it hides most of the chain dynamics.
@@ -82,11 +82,7 @@ def prepare_data(rec: Recording, static: str = "table", beside_thread: bool = Fa
         usable, _ = calibration_samples(rec)
         use = usable & finite & (rec.pose_id >= 0)
     else:
-        finite &= rec.pose_id >= 0
-        # every sample of a pose the table held for at least 5 consecutive samples
-        change = np.r_[True, (np.diff(rec.pose_id) != 0) | (np.diff(rec.run_id) != 0)]
-        seg = np.cumsum(change) - 1
-        use = finite & (np.bincount(seg)[seg] >= 5)
+        use = finite & held_poses(rec.pose_id, rec.run_id)
     if use.sum() < 20:
         raise ValueError(_too_few_static(rec, int(use.sum()), static))
     return DiagnosisData(rec.t_s, rec.ref, rec.xyz, rec.temp_c, rec.gref_mps2, rec.pose_id, rec.run_id, use,
