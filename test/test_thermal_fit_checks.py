@@ -4,6 +4,7 @@ sums worked out row by row, the temperature levels, the normal equations and the
 from __future__ import annotations
 
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -289,6 +290,11 @@ def test_the_normal_equations_give_their_scaled_condition_and_refuse_a_singular_
     with pytest.raises(NotIdentifiedError) as err:  # not positive definite: no least-squares problem has it
         solve_normal_equations(np.array([[1.0, 2.0], [2.0, 1.0]]), np.ones((2, 3)))
     assert str(err.value) == "normal equations are singular (condition number inf)"
+    with warnings.catch_warnings():  # two equal regressors: refused as such, without a numpy division warning
+        warnings.simplefilter("error")
+        with pytest.raises(NotIdentifiedError) as err:
+            solve_normal_equations(np.array([[1.0, 1.0], [1.0, 1.0]]), np.ones((2, 3)))
+    assert str(err.value) == "normal equations are singular (condition number inf)"
     with pytest.raises(NotIdentifiedError) as err:
         solve_normal_equations(np.diag([1.0, 0.0, 1.0]), xtg)
     assert str(err.value) == "a regressor is identically zero on the data"
@@ -413,6 +419,11 @@ def test_interleaved_cells_and_the_one_run_form_give_the_same_sums() -> None:
     mixed = {key: v[k] for key, v in one.items()}
     mixed["visit"] = np.cumsum(np.r_[0, (np.diff(mixed["pose"]) != 0) | (np.diff(mixed["level"]) != 0)])
     _check_sums(accumulate_cells(mixed["psi"], mixed["tau"], mixed["gref"], mixed["pose"], mixed["level"], 1), mixed)
+    # chunks larger than the default one (65536 rows) and than the samples
+    n = 70000
+    big = accumulate_cells(np.ones((n, 3)), np.zeros(n), np.ones((n, 3)), np.arange(n) // 35000, np.zeros(n, int), 0,
+                           chunk=100000)
+    assert big.count.tolist() == [35000, 35000]
 
 
 def test_each_visit_s_sums_are_kept_up_to_the_limit_and_dropped_beyond(monkeypatch: pytest.MonkeyPatch) -> None:
