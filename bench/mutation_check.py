@@ -21,7 +21,7 @@ tests of that selection that execute the mutated function):
 * ``fbg_accel_driver.clock_sync`` -- test_clock_sync.py
 * ``fbg_accel_driver.thermal_model`` (the calibration model and its loader) -- test_thermal_model.py,
   test_calibration_contract.py
-* ``fbg_accel_calibration.thermal_fit`` (the eq. 28 fit) -- test_thermal_fit.py, test_thermal_fit_checks.py
+* ``fbg_accel_calibration.thermal_fit`` (the eq. 28 fit) -- test_thermal_fit.py
 
 Usage::
 
