@@ -440,6 +440,13 @@ EQUIVALENT: dict[str, str] = {
         "x_sensor_id_of__mutmut_21": (
             "part.get('source') even for a part that is no dict: reached only for a part that names a sensor, which "
             "only a dict does (_recorded_sensor_id)"),
+        "x_check_pose_excitation__mutmut_6": (
+            "and for or between 'no cells' and 'no samples': a cell exists only for the rows that fall in it, so the "
+            "samples are none exactly when the cells are none"),
+        "x_check_pose_excitation__mutmut_9": ("count.sum() < 0 for <= 0: the same reason (a sum of 0 means no cells)"),
+        "xǁCellAccumulatorǁadd__mutmut_104": (
+            "each sorted key compared with the first instead of its predecessor: every row after the first cell then "
+            "becomes its own piece, added to the cell its own key names: the same sums, in more additions"),
         "x_count_orientations__mutmut_7": (
             "gsum * count for gsum / count: a cell's direction is the same (count^2 > 0 times its mean)"),
         "x_count_orientations__mutmut_8": (
