@@ -389,7 +389,6 @@ EQUIVALENT: dict[str, str] = {
         "xǁCellAccumulatorǁ_add_visit_sums__mutmut_15": ("zip without strict=True: the same reason"),
         "xǁCellAccumulatorǁ_add_visit_sums__mutmut_16": ("zip(strict=False): the same reason"),
         # the same values by another way (memory, speed, the order of additions only)
-        "x_design_matrix__mutmut_18": ("a new matrix even when a buffer is given: the same values, more memory"),
         "xǁCellAccumulatorǁ__init____mutmut_4": ("no buffer: design_matrix makes a new matrix per chunk, the same values"),
         "xǁCellAccumulatorǁadd__mutmut_7": ("the buffer not passed (out=None): the same reason"),
         "xǁCellAccumulatorǁadd__mutmut_11": ("the buffer not passed: the same reason"),
