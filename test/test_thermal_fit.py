@@ -377,7 +377,7 @@ def _planar(rec: Recording) -> Recording:
 def test_a_level_whose_poses_are_coplanar_does_not_count_for_the_temperature_degree() -> None:
     """Degree 1 needs two levels whose own poses span the frame: with the second level's poses all in the x-y plane,
     the z rows of the temperature terms are not determined, and degree 1 is refused naming that level."""
-    from fbg_accel_calibration.thermal_fit import check_level_excitation, level_excitation
+    from fbg_accel_calibration.thermal_fit import level_excitation
 
     M, b = _truth(1, np.random.default_rng(9))
     full = _simulate(M, b, (16.0, 45.0), center=30.5, scale=14.5, n_poses=40, seed=9)
@@ -397,8 +397,6 @@ def test_the_recording_excitation_check_takes_the_posed_samples_only() -> None:
     """``diagnose``'s cheap check before its long computation: coplanar poses are refused, a recording whose
     samples lack a pose is refused as such, and samples between poses (a reference and a temperature, no pose id) do
     not enter it."""
-    from fbg_accel_calibration.thermal_fit import check_recording_excitation
-
     M, b = _truth(0, np.random.default_rng(10))
     rec = _simulate(M, b, (24.0,), center=24.0, scale=1.0, n_poses=30, seed=10)
     assert np.all(check_recording_excitation(rec) > 1.0)
