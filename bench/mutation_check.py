@@ -79,23 +79,8 @@ EQUIVALENT: dict[str, str] = {
         "values"),
     "fbg_accel_driver.thermal_model.x_normalise__mutmut_5": (
         "the reference without dtype=float: np.where with NaN makes it float either way"),
-    "fbg_accel_calibration.thermal_fit.xǁCellAccumulatorǁadd__mutmut_91": (
-        "argsort kind 'STABLE' for 'stable': numpy reads the kind without regard to case"),
-    "fbg_accel_calibration.thermal_fit.xǁCellAccumulatorǁ_add_visits__mutmut_9": (
-        "reduceat without axis=0: 0 is its default"),
-    "fbg_accel_calibration.thermal_fit.xǁCellAccumulatorǁfinish__mutmut_9": (
-        "the cell keys without dtype=int64: Python ints become int64 on the 64-bit platforms the project runs on"),
     "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁfrom_dict__mutmut_117": (
         "finite=None for finite=False: the flag is only tested for truth"),
-    "fbg_accel_calibration.thermal_fit.xǁTemperatureClustersǁfinish__mutmut_19": (
-        "zip(strict=None) for strict=True: the two sequences have one entry per cluster by construction"),
-    "fbg_accel_calibration.thermal_fit.x_accumulate_cells__mutmut_14": (
-        "a chunk of 2 rows for 1 when there are no rows: nothing is accumulated either way"),
-    "fbg_accel_calibration.thermal_fit.x_check_level_consistency__mutmut_74": (
-        "< for <= at the 30 % bound: a relative change exactly equal to the bound has no weight (a real-valued "
-        "decision), and no test may decide at a threshold (project rule)"),
-    "fbg_accel_calibration.thermal_fit.x_check_pose_excitation__mutmut_5": (
-        "the sample counts as integers instead of floats: every use divides by them, giving floats either way"),
     "fbg_accel_driver.stream_decoder.xǁStreamDecoderǁ_accept__mutmut_15": (
         "<= for < on the board clock: a frame at the last frame's t_us never gets there (a duplicate or a stuck "
         "clock is handled before; with BOOT it is a reset either way)"),
@@ -321,6 +306,177 @@ EQUIVALENT: dict[str, str] = {
     "fbg_accel_driver.clock_sync.xǁClockSyncǁ_clear__mutmut_12": (
         "1 for 0 as the steady time of the first observation before there is one: it is set with that observation, "
         "and read only after it"),
+    # --- fbg_accel_calibration.thermal_fit (the eq. 28 fit) ---
+    **{f"fbg_accel_calibration.thermal_fit.{name}": reason for name, reason in {
+        # conversions that change nothing: what they convert is already of that type, or converted where it is used
+        "x_check_pose_excitation__mutmut_3": (
+            "the cells' sample counts without dtype=float: they are floats already (CellAccumulator.finish), and every "
+            "use sums them or divides by them"),
+        "x_check_pose_excitation__mutmut_5": ("the counts without dtype: the same reason"),
+        "x_check_level_consistency__mutmut_11": ("a level's sample counts with dtype=None: the same reason"),
+        "x_check_level_consistency__mutmut_13": ("a level's sample counts without dtype: the same reason"),
+        "x_level_excitation__mutmut_12": ("a level's sample counts with dtype=None: the same reason"),
+        "x_level_excitation__mutmut_14": ("a level's sample counts without dtype: the same reason"),
+        "x_count_orientations__mutmut_3": ("the sample counts with dtype=None: the same reason"),
+        "x_count_orientations__mutmut_5": ("the sample counts without dtype: the same reason"),
+        "x_reference_range__mutmut_3": ("the sample counts with dtype=None: the same reason"),
+        "x_reference_range__mutmut_5": ("the sample counts without dtype: the same reason"),
+        "x_design_matrix__mutmut_3": (
+            "Psi with dtype=None: it is written into the float matrix X, which converts it; callers pass floats"),
+        "x_design_matrix__mutmut_5": ("Psi without dtype: the same reason"),
+        "x_design_matrix__mutmut_8": (
+            "tau with dtype=None: it is multiplied into the float matrix X (np.multiply out=X), which converts it"),
+        "x_design_matrix__mutmut_10": ("tau without dtype: the same reason"),
+        "x_reference_reach_warnings__mutmut_8": (
+            "the reference range with dtype=None: its bounds are only compared and printed with .2f, the same for "
+            "integers; the YAML and reference_range give floats"),
+        "x_reference_reach_warnings__mutmut_10": ("the reference range without dtype: the same reason"),
+        "x_temperature_levels__mutmut_3": (
+            "the temperatures with dtype=None: np.isfinite, TemperatureClusters (np.asarray float) and the bincount "
+            "weights read integers as the same values; callers pass floats"),
+        "x_temperature_levels__mutmut_5": ("the temperatures without dtype: the same reason"),
+        "x_temperature_levels__mutmut_9": ("the labels' dtype=None: np.full of -1 is int64 by default"),
+        "x_temperature_levels__mutmut_12": ("the labels without dtype: the same reason"),
+        "xǁTemperatureClustersǁadd__mutmut_4": (
+            "the temperatures with dtype=None: sorted and compared the same, and stored next to the float clusters "
+            "(np.r_ makes them float)"),
+        "xǁTemperatureClustersǁadd__mutmut_6": ("the temperatures without dtype: the same reason"),
+        "xǁTemperatureClustersǁfinish__mutmut_3": ("the bin counts with dtype=None: a list of Python ints is int64"),
+        "xǁTemperatureClustersǁfinish__mutmut_5": ("the bin counts without dtype: the same reason"),
+        "xǁTemperatureClustersǁlabels__mutmut_3": (
+            "the temperatures with dtype=None: searchsorted and the bin arithmetic give the same for integers"),
+        "xǁTemperatureClustersǁlabels__mutmut_5": ("the temperatures without dtype: the same reason"),
+        "xǁCellAccumulatorǁadd__mutmut_14": (
+            "the references with dtype=None: every caller passes floats (Recording, fit_stream's float buffers), and "
+            "the sums of integers would be the same floats"),
+        "xǁCellAccumulatorǁadd__mutmut_16": ("the references without dtype: the same reason"),
+        "xǁCellAccumulatorǁadd__mutmut_19": (
+            "the pose ids with dtype=None: every caller passes int64 (Recording.pose_id is dtype int, fit_stream's "
+            "buffers are int64)"),
+        "xǁCellAccumulatorǁadd__mutmut_21": ("the pose ids without dtype: the same reason"),
+        "xǁCellAccumulatorǁadd__mutmut_24": (
+            "the level labels with dtype=None: every caller passes int64 (temperature_levels, fit_stream's buffers, "
+            "check_recording_excitation)"),
+        "xǁCellAccumulatorǁadd__mutmut_26": ("the level labels without dtype: the same reason"),
+        "xǁCellAccumulatorǁadd__mutmut_45": ("the run ids with dtype=None: fit_stream, the one caller that gives runs, "
+                                             "passes int64"),
+        "xǁCellAccumulatorǁadd__mutmut_47": ("the run ids without dtype: the same reason"),
+        "xǁCellAccumulatorǁfinish__mutmut_27": ("the sums with dtype=None: lists of float arrays are float"),
+        "xǁCellAccumulatorǁfinish__mutmut_29": ("the sums without dtype: the same reason"),
+        "xǁCellAccumulatorǁfinish__mutmut_78": (
+            "the visit lengths with dtype=None: a list of ints is int64; only an empty one (no sample added) becomes "
+            "float, and the fit refuses 'no usable static samples' before it reads them"),
+        "xǁCellAccumulatorǁfinish__mutmut_80": ("the visit lengths without dtype: the same reason"),
+        "xǁCellAccumulatorǁfinish__mutmut_11": ("reshape(-2, 3) for reshape(-1, 3): numpy infers any negative size"),
+        "xǁCellAccumulatorǁfinish__mutmut_31": ("reshape(-2, ...) of the sums: the same reason"),
+        "x_scaled_condition__mutmut_30": ('float("INF") for float("inf"): Python reads it without regard to case'),
+        "x_check_recording_excitation__mutmut_55": (
+            "the level labels as float zeros: CellAccumulator.add converts them to int64"),
+        "x_check_recording_excitation__mutmut_57": ("the same, without dtype"),
+        "x_check_recording_excitation__mutmut_59": (
+            "degree 1 for 0 with tau = 0: the added columns Psi tau and tau are zero, and the check reads only the "
+            "reference sums, the counts and the Psi columns, which are the same"),
+        # zip(strict=...): the sequences have one entry each by construction
+        "xǁTemperatureClustersǁadd__mutmut_32": ("zip(strict=None) for strict=True: lo and hi have one entry per "
+                                                 "cluster by construction"),
+        "xǁTemperatureClustersǁadd__mutmut_35": ("zip without strict=True: the same reason"),
+        "xǁTemperatureClustersǁadd__mutmut_38": ("zip(strict=False): the same reason"),
+        "xǁTemperatureClustersǁfinish__mutmut_19": ("zip(strict=None) for strict=True: the same reason"),
+        "xǁTemperatureClustersǁfinish__mutmut_22": ("zip without strict=True: the same reason"),
+        "xǁTemperatureClustersǁfinish__mutmut_23": ("zip(strict=False): the same reason"),
+        "xǁCellAccumulatorǁ_add_visit_sums__mutmut_12": (
+            "zip(strict=None) for strict=True: the starts and ends of the visits have one entry each by construction"),
+        "xǁCellAccumulatorǁ_add_visit_sums__mutmut_15": ("zip without strict=True: the same reason"),
+        "xǁCellAccumulatorǁ_add_visit_sums__mutmut_16": ("zip(strict=False): the same reason"),
+        # the same values by another way (memory, speed, the order of additions only)
+        "xǁCellAccumulatorǁ__init____mutmut_4": ("no buffer: design_matrix makes a new matrix per chunk, the same values"),
+        "xǁCellAccumulatorǁadd__mutmut_7": ("the buffer not passed (out=None): the same reason"),
+        "xǁCellAccumulatorǁadd__mutmut_11": ("the buffer not passed: the same reason"),
+        "x_accumulate_cells__mutmut_14": (
+            "a chunk of 2 rows for 1 when there are no rows: nothing is accumulated either way"),
+        "xǁCellAccumulatorǁadd__mutmut_69": (
+            "<= for < in the choice between contiguous slices and a stable sort to group the rows by cell: both give "
+            "each cell the same rows, so the same sums (up to the order of the additions)"),
+        "xǁCellAccumulatorǁadd__mutmut_70": ("/ 64 for // 64 in that choice: the same reason"),
+        "xǁCellAccumulatorǁadd__mutmut_71": ("// 65 for // 64 in that choice: the same reason"),
+        "xǁCellAccumulatorǁadd__mutmut_86": (
+            "a piece's X^T X and X^T G worked out again instead of taken from the visit sums: the same values"),
+        "xǁCellAccumulatorǁadd__mutmut_118": ("the same (worked out again)"),
+        "xǁCellAccumulatorǁ_add_visit_sums__mutmut_18": (
+            "None for a piece's sums: add() then works them out again from the same rows"),
+        "xǁCellAccumulatorǁadd__mutmut_93": (
+            "argsort kind None for 'stable' when grouping interleaved rows: only the order of a cell's rows within "
+            "its sums changes (the order of the additions)"),
+        "xǁCellAccumulatorǁadd__mutmut_95": ("argsort without kind: the same reason"),
+        "xǁCellAccumulatorǁadd__mutmut_97": ("argsort kind 'STABLE': numpy reads the kind without regard to case"),
+        "xǁTemperatureClustersǁadd__mutmut_22": (
+            "argsort kind None for 'stable' over the clusters' lowest temperatures: clusters with equal lowest "
+            "temperatures are merged (taking the larger highest), whatever their order"),
+        "xǁTemperatureClustersǁadd__mutmut_24": ("argsort without kind: the same reason"),
+        "xǁTemperatureClustersǁadd__mutmut_26": ("argsort kind 'STABLE': numpy reads the kind without regard to case"),
+        "xǁCellAccumulatorǁadd__mutmut_140": ('einsum "NI,NI->I" for "ni,ni->i": the same contraction'),
+        "xǁCellStatsǁcell_rss__mutmut_18": ('einsum subscripts in upper case: the same contraction'),
+        "xǁCellStatsǁcell_rss__mutmut_27": ('einsum subscripts in upper case: the same contraction'),
+        "xǁCellStatsǁvisit_scatter__mutmut_31": ('einsum subscripts in upper case: the same contraction'),
+        "xǁCellAccumulatorǁ_add_visits__mutmut_9": ("reduceat without axis=0: 0 is its default"),
+        "xǁCellAccumulatorǁ_add_visits__mutmut_36": (
+            "len(starts) >= 1 for > 1: with one start there is no closed visit, and the branch adds a zero matrix and "
+            "no length"),
+        # state that is set before it is read
+        "xǁCellAccumulatorǁ__init____mutmut_29": (
+            "None for zeros as the open visit's sum before there is one: read only while a visit is open (the first "
+            "chunk opens one and sets it with the visit)"),
+        "xǁCellAccumulatorǁ__init____mutmut_31": ("None for 0 as the open visit's length: the same reason"),
+        "xǁCellAccumulatorǁ__init____mutmut_32": ("1 for 0 as the open visit's length: the same reason"),
+        "xǁCellAccumulatorǁ_close_visit__mutmut_10": (
+            "\"\" for None as the open visit once closed: _add_visits sets the next open visit right after, and finish "
+            "is the accumulator's last call"),
+        "xǁCellAccumulatorǁadd__mutmut_40": (
+            "run label 1 for 0 when no runs are given: the label only groups the cells, and without runs every row of "
+            "every chunk gets the same one (accumulate_cells, the one caller without runs)"),
+        "x_sensor_id_of__mutmut_10": (
+            "\"\" for None as the first recorded id: '' or sid is sid (or None) as None or sid is, from the first part"),
+        "x_sensor_id_of__mutmut_21": (
+            "part.get('source') even for a part that is no dict: reached only for a part that names a sensor, which "
+            "only a dict does (_recorded_sensor_id)"),
+        "x_check_pose_excitation__mutmut_6": (
+            "and for or between 'no cells' and 'no samples': a cell exists only for the rows that fall in it, so the "
+            "samples are none exactly when the cells are none"),
+        "x_check_pose_excitation__mutmut_9": ("count.sum() < 0 for <= 0: the same reason (a sum of 0 means no cells)"),
+        "xǁCellAccumulatorǁadd__mutmut_104": (
+            "each sorted key compared with the first instead of its predecessor: every row after the first cell then "
+            "becomes its own piece, added to the cell its own key names: the same sums, in more additions"),
+        "x_count_orientations__mutmut_7": (
+            "gsum * count for gsum / count: a cell's direction is the same (count^2 > 0 times its mean)"),
+        "x_count_orientations__mutmut_8": (
+            "count >= 0 for > 0: a cell exists only for the rows that fall in it, so every count is >= 1"),
+        "x_count_orientations__mutmut_10": ("the same, in the other mask of that line"),
+        "x_reference_range__mutmut_8": ("count >= 0 for > 0: the same reason"),
+        "x_reference_range__mutmut_10": ("the same, in the other mask of that line"),
+        "xǁTemperatureClustersǁlabels__mutmut_19": (
+            "bins >= 1 for > 1: a cluster of one bin then adds min(..., bins - 1) = 0 to its labels"),
+        "x__direction_text__mutmut_2": (
+            "/ sign for * sign: the sign of the largest component of a unit vector is +1 or -1, never 0"),
+        "x_check_level_consistency__mutmut_102": (
+            "the bound printed as 101 x 0.3 = 30.3 % with .0f: '30' either way"),
+        # real-valued decisions at their threshold: no weight, and no test may decide there (project rule)
+        "x__direction_text__mutmut_14": ("<= for < at 5e-3 (a component printed as 0.00): a real-valued component "
+                                         "exactly at 5e-3 has no weight, and no test may decide at a threshold"),
+        "x_check_level_consistency__mutmut_15": ("<= for < at the level's pose-spread bound: the same rule"),
+        "x_check_level_consistency__mutmut_74": ("< for <= at the 30 % bound: the same rule"),
+        "x_check_pose_excitation__mutmut_21": ("> for >= at the pose-spread bound: the same rule"),
+        "x_check_pose_excitation__mutmut_37": ("<= for < in naming the shape (coincide): the same rule"),
+        "x_check_pose_excitation__mutmut_43": ("<= for < in naming the shape (collinear): the same rule"),
+        "x_check_pose_excitation__mutmut_69": (">= for > at the 1e-9 Psi spread of identical samples: the same rule"),
+        "x_count_orientations__mutmut_31": (">= for > at the cosine of the orientation tolerance: the same rule"),
+        "x_level_excitation__mutmut_16": ("> for >= at the pose-spread bound: the same rule"),
+        "x_reference_reach_warnings__mutmut_16": (">= for > at half of g down: the same rule"),
+        "x_reference_reach_warnings__mutmut_20": ("<= for < at half of g up: the same rule"),
+        "x_solve_normal_equations__mutmut_5": ("<= for < at 1 / rcond: the same rule"),
+        "x_temperature_scaling__mutmut_15": (">= for > at a half-range of 0.5 degC: the same rule"),
+        "xǁTemperatureClustersǁadd__mutmut_12": (">= for > at the level gap within a part: the same rule"),
+        "xǁTemperatureClustersǁadd__mutmut_42": (">= for > at the level gap between parts: the same rule"),
+    }.items()},
 }
 
 

@@ -1,22 +1,42 @@
-"""Thermal model fit (eq. 28-30) and degree selection by held-out cross-validation."""
+"""Thermal model fit (eq. 28-30) and degree selection by held-out cross-validation; the fit's building blocks on exact
+synthetic data: the refusals and their words, the per-cell sums against sums worked out row by row, the temperature
+levels, the normal equations and the sensor a recording names."""
 
 from __future__ import annotations
+
+import re
+import warnings
 
 import numpy as np
 import pytest
 
+from fbg_accel_calibration import thermal_fit as tf
 from fbg_accel_calibration.fit_pipeline import fit_thermal
 from fbg_accel_calibration.fit_stream import prepare
 from fbg_accel_calibration.model_selection import held_out_predictions, select_degree
 from fbg_accel_calibration.recording import Recording
 from fbg_accel_calibration.thermal_fit import (
+    CellAccumulator,
     NotIdentifiedError,
+    TemperatureClusters,
     accumulate_cells,
+    check_identified,
+    check_level_consistency,
+    check_level_excitation,
+    check_pose_excitation,
+    check_recording_excitation,
     coefficients_to_model,
+    count_orientations,
     design_matrix,
     model_to_coefficients,
+    reference_range,
+    reference_reach_warnings,
     residuals,
+    sensor_id_of,
+    solve_normal_equations,
+    sub_columns,
     temperature_levels,
+    temperature_scaling,
 )
 from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
@@ -68,6 +88,11 @@ def test_design_matrix_matches_eq_29_and_coefficients_round_trip() -> None:
     X = design_matrix(psi, tau, 2)
     expected = np.hstack([psi, psi * tau[:, None], psi * tau[:, None] ** 2, np.ones((5, 1)), tau[:, None], tau[:, None] ** 2])
     np.testing.assert_allclose(X, expected)
+    # into a given buffer, in place (diagnosis fills the first columns of its wider matrix so)
+    buffer = np.full((7, 3 * 4 + 2), np.nan)
+    design_matrix(psi, tau, 2, out=buffer[:, :12])
+    np.testing.assert_allclose(buffer[:5, :12], expected)
+    assert np.isnan(buffer[5:]).all() and np.isnan(buffer[:, 12:]).all()
     M, b = _truth(2, rng)
     A = model_to_coefficients(M, b)
     M2, b2 = coefficients_to_model(A, 2)
@@ -352,7 +377,7 @@ def _planar(rec: Recording) -> Recording:
 def test_a_level_whose_poses_are_coplanar_does_not_count_for_the_temperature_degree() -> None:
     """Degree 1 needs two levels whose own poses span the frame: with the second level's poses all in the x-y plane,
     the z rows of the temperature terms are not determined, and degree 1 is refused naming that level."""
-    from fbg_accel_calibration.thermal_fit import check_level_excitation, level_excitation
+    from fbg_accel_calibration.thermal_fit import level_excitation
 
     M, b = _truth(1, np.random.default_rng(9))
     full = _simulate(M, b, (16.0, 45.0), center=30.5, scale=14.5, n_poses=40, seed=9)
@@ -368,22 +393,10 @@ def test_a_level_whose_poses_are_coplanar_does_not_count_for_the_temperature_deg
     assert level_excitation(prepare(full, 1, usable=np.ones(len(full), bool)).stats)[0] == 2
 
 
-def test_reference_reach_names_each_axis_and_way_the_poses_never_reached() -> None:
-    from fbg_accel_calibration.thermal_fit import reference_reach_warnings
-
-    assert reference_reach_warnings([[-9.8, 9.8], [-9.8, 9.8], [-9.8, 9.8]]) == []
-    lines = reference_reach_warnings([[-1.36, 1.36], [-9.8, 9.8], [-9.8, 2.0]])
-    assert len(lines) == 2
-    assert "table x axis down or up (their reference along it spans -1.36 .. +1.36" in lines[0]
-    assert "table z axis up (" in lines[1] and lines[1].endswith("record poses with z up")
-
-
 def test_the_recording_excitation_check_takes_the_posed_samples_only() -> None:
     """``diagnose``'s cheap check before its long computation: coplanar poses are refused, a recording whose
     samples lack a pose is refused as such, and samples between poses (a reference and a temperature, no pose id) do
     not enter it."""
-    from fbg_accel_calibration.thermal_fit import check_recording_excitation
-
     M, b = _truth(0, np.random.default_rng(10))
     rec = _simulate(M, b, (24.0,), center=24.0, scale=1.0, n_poses=30, seed=10)
     assert np.all(check_recording_excitation(rec) > 1.0)
@@ -399,3 +412,453 @@ def test_the_recording_excitation_check_takes_the_posed_samples_only() -> None:
     flat_and_moving = Recording.concatenate([_planar(rec), moving])
     with pytest.raises(NotIdentifiedError, match="coplanar"):
         check_recording_excitation(flat_and_moving)
+
+
+# --- the building blocks on exact synthetic data ---------------------------------------------------------------------
+M0 = np.array([[80.0, 1.5, -2.0], [0.5, 78.0, 1.0], [-1.0, 2.5, 107.0]])  # near the paper's linear fit (section 3.6)
+B0 = np.array([-101.0, -153.0, -137.0])
+SIX = G * np.vstack([np.eye(3), -np.eye(3)])  # the six-position plan's references, m/s^2
+REFUSAL_TAIL = ("so the {axis} row of M and b would be fitted to a constant (a dead axis); record poses that tilt that "
+                "axis too (at least 4 non-coplanar poses, e.g. the six-position plan)")
+NUMBER = r"([-+0-9.e]+)"
+
+
+def _rows(poses: np.ndarray, counts: list[int] | int, M: np.ndarray = M0, b: np.ndarray = B0
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Psi (N, 3), reference (N, 3) and pose ids (N,) of ``counts`` samples at each reference of ``poses``, with the Psi
+    that eq. 28 of degree 0 (M, b) maps exactly onto it."""
+    counts = [counts] * len(poses) if isinstance(counts, int) else counts
+    gref = np.repeat(poses, counts, axis=0)
+    psi = np.linalg.solve(M, (gref - b).T).T
+    return psi, gref, np.repeat(np.arange(len(poses)), counts)
+
+
+def _stats(poses: np.ndarray, counts: list[int] | int = 5, psi: np.ndarray | None = None) -> tf.CellStats:
+    exact, gref, pose = _rows(poses, counts)
+    n = len(gref)
+    return accumulate_cells(exact if psi is None else psi, np.zeros(n), gref, pose, np.zeros(n, np.int64), 0)
+
+
+def _plane(normal: np.ndarray, n: int = 5) -> np.ndarray:
+    """``n`` references of magnitude g in the plane through 0 normal to ``normal``."""
+    normal = normal / np.linalg.norm(normal)
+    e1 = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    ang = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False) + 0.3
+    return G * (np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2)
+
+
+def _levels(models: list[np.ndarray], poses: list[np.ndarray], noise: float = 0.0, dead: tuple[int, ...] = ()
+            ) -> tf.CellStats:
+    """Degree-0 sums of one temperature level per model (M of that level, b = B0 at all) with that level's poses (5
+    samples each); ``noise`` (Psi units) added to the levels whose poses are not the six positions; at the levels
+    ``dead`` the x channel reads the same in every pose."""
+    rng = np.random.default_rng(3)
+    parts = []
+    for lev, (M, pz) in enumerate(zip(models, poses, strict=True)):
+        psi, gref, pose = _rows(pz, 5, M)
+        if pz is not SIX:
+            psi = psi + rng.normal(0.0, noise, psi.shape)
+        if lev in dead:
+            psi[:, 0] = 0.11
+        parts.append((psi, gref, pose, np.full(len(pose), lev)))
+    psi, gref, pose, level = (np.concatenate(x) for x in zip(*parts, strict=True))
+    return accumulate_cells(psi, np.zeros(len(pose)), gref, pose, level, 0)
+
+
+# --- what a recording's metadata names -----------------------------------------------------------------------------
+
+
+def test_the_sensor_a_recording_names_comes_from_its_run_record_then_its_top_level() -> None:
+    assert sensor_id_of({"run": {"sensor_id": "acc4"}}) == "acc4"
+    assert sensor_id_of({"sensor_id": "acc5"}) == "acc5"
+    assert sensor_id_of({"run": {"sensor_id": "acc4"}, "sensor_id": "acc5"}) == "acc4"
+    assert sensor_id_of({"run": {"sensor_id": ""}, "sensor_id": "acc5"}) == "acc5"  # an empty id names nothing
+    assert sensor_id_of({"run": "acc4"}) is None
+    assert sensor_id_of({}) is None
+    # several parts: the one sensor they name, 'unknown' (the default of the node and import) naming none
+    assert sensor_id_of({"parts": [{"run": {"sensor_id": "unknown"}}, {"run": {"sensor_id": "acc4"}}]}) == "acc4"
+    assert sensor_id_of({"parts": [{"run": {"sensor_id": "acc4"}}, "not a part", {"sensor_id": "acc4"}]}) == "acc4"
+    assert sensor_id_of({"parts": [{"run": {"sensor_id": "unknown"}}, {}]}) == "unknown"
+    assert sensor_id_of({"parts": [{"source": "a.mcap"}], "sensor_id": "acc6"}) == "acc6"
+    # parts that are no list of parts: the metadata itself is the one part
+    assert sensor_id_of({"parts": [], "sensor_id": "acc6"}) == "acc6"
+    assert sensor_id_of({"parts": ({"sensor_id": "a"}, {"sensor_id": "b"}), "sensor_id": "acc6"}) == "acc6"
+
+
+def test_recordings_of_two_sensors_are_refused_naming_each_sensor_s_inputs() -> None:
+    md = {"parts": [{"run": {"sensor_id": "acc4"}, "source": "runs/a.mcap"}, {"run": {"sensor_id": "acc7"}},
+                    {"run": {"sensor_id": "unknown"}, "source": "runs/c.mcap"},
+                    {"sensor_id": "acc4", "source": "runs/d.mcap"}]}
+    with pytest.raises(ValueError) as err:
+        sensor_id_of(md)
+    assert str(err.value) == ("the recordings are of 2 different sensors (sensor 'acc4': runs/a.mcap, runs/d.mcap; "
+                              "sensor 'acc7': input 2); a calibration describes one sensor: give the recordings of one "
+                              "sensor only")
+
+
+# --- the poses and the signal must span the frame ------------------------------------------------------------------
+
+
+def test_the_pose_spreads_are_the_rms_spreads_of_the_cells_references_weighted_by_their_samples() -> None:
+    """Six positions with 10 or 20 samples: the count-weighted mean is -g/9 on every axis, the scatter
+    g^2/81 (27 I - 1 1^T), whose principal RMS spreads are g sqrt(24)/9 along (1, 1, 1) and g sqrt(27)/9 twice."""
+    spread = check_pose_excitation(_stats(SIX, [10, 10, 10, 20, 20, 20]))
+    np.testing.assert_allclose(spread, G * np.sqrt([24.0, 27.0, 27.0]) / 9.0, rtol=1e-12)
+
+
+def test_poses_that_do_not_span_the_frame_are_refused_naming_their_shape_direction_and_number() -> None:
+    empty = accumulate_cells(np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64),
+                             np.zeros(0, np.int64), 0)
+    with pytest.raises(NotIdentifiedError) as err:
+        check_pose_excitation(empty)
+    assert str(err.value) == "no usable static samples"
+    one = _stats(SIX[:1], 1)  # one sample: a cell of one pose
+    with pytest.raises(NotIdentifiedError, match=r"^the 1 poses' reference specific forces coincide: "):
+        check_pose_excitation(one)
+    with pytest.raises(NotIdentifiedError, match=r"^the 2 poses' reference specific forces are collinear: .* the [xy] "
+                       r"row of M and b would be fitted to a constant"):
+        check_pose_excitation(_stats(SIX[[2, 5]]))
+    # five poses in the plane normal to a direction off every axis; its small y component prints as 0.00, not -0.00
+    normal = np.array([-0.6, -0.003, 0.8])
+    with pytest.raises(NotIdentifiedError) as err:
+        check_pose_excitation(_stats(_plane(normal)))
+    msg = re.fullmatch(r"the 5 poses' reference specific forces are coplanar: their RMS spread along the table "
+                       rf"direction \(-0\.60, 0\.00, 0\.80\) is {NUMBER} m/s\^2 \(< 0\.49\), "
+                       + re.escape(REFUSAL_TAIL.format(axis="z")), str(err.value))
+    assert msg, str(err.value)
+    assert float(msg[1]) < 1e-5  # the spread along the normal, not along the plane
+
+
+def test_a_dead_or_copied_channel_is_refused_and_a_weak_one_is_not() -> None:
+    exact, _, _ = _rows(SIX, 5)
+    dead = exact.copy()
+    dead[:, 0] = 0.11  # the x channel reads the same in every pose
+    with pytest.raises(NotIdentifiedError) as err:
+        check_pose_excitation(_stats(SIX, psi=dead))
+    msg = re.fullmatch(rf"the sensor's Psi = counts / ref barely changes along \(1\.00, 0\.00, 0\.00\) between poses "
+                       rf"\({NUMBER}, vs {NUMBER} along the strongest direction\): a channel is dead, saturated or copied, "
+                       r"so M cannot be determined; check the x/y/z_counts columns and the fibre connections",
+                       str(err.value))
+    assert msg, str(err.value)
+    assert float(msg[1]) < 1e-6 and float(msg[2]) > 0.03
+    with pytest.raises(NotIdentifiedError) as err:
+        check_pose_excitation(_stats(SIX, psi=np.tile([0.1, 0.2, 0.3], (30, 1))))
+    assert str(err.value) == ("the counts give the same Psi = counts / ref in every pose (identical samples?): a channel "
+                              "is dead, saturated or copied, so M cannot be determined; check the x/y/z_counts columns "
+                              "and the fibre connections")
+    # an x channel 50 times less sensitive than the others (Psi spread 1.4e-3 against 0.07) is a sensor, not a dead one
+    weak, gref, pose = _rows(SIX, 5, M=np.diag([4000.0, 78.0, 107.0]))
+    spread = check_pose_excitation(accumulate_cells(weak, np.zeros(30), gref, pose, np.zeros(30, np.int64), 0))
+    np.testing.assert_allclose(spread, G / np.sqrt(3.0), rtol=1e-12)
+
+
+def test_the_recording_check_takes_every_usable_posed_sample_and_only_those() -> None:
+    """Pose 0 (the only one tilting z), a sample without a reference, one with NaN counts and one without source
+    light: the check keeps pose 0 and leaves the three bad samples out."""
+    poses = np.vstack([SIX[2], SIX[[0, 1, 3, 4]]])
+    psi, gref, pose = _rows(poses, 6)
+    ref = np.full(len(pose), 880.0)
+    xyz = psi * ref[:, None]
+    gref[7] = np.nan
+    xyz[13] = np.nan
+    ref[19] = 10.0  # below LOW_REFERENCE_COUNTS: no source light
+    rec = Recording(np.arange(len(pose)) * 0.01, ref, xyz, np.full(len(pose), 24.0), gref, pose)
+    spread = check_recording_excitation(rec)
+    assert spread[0] > 1.0
+    only_zero = Recording(rec.t_s, rec.ref, rec.xyz, rec.temp_c, rec.gref_mps2, np.where(pose == 0, 0, -1))
+    with pytest.raises(NotIdentifiedError, match=r"^the 1 poses' reference specific forces coincide"):
+        check_recording_excitation(only_zero)
+    no_temperature = Recording(rec.t_s, rec.ref, rec.xyz, np.full(len(pose), np.nan), rec.gref_mps2, pose)
+    with pytest.raises(NotIdentifiedError) as err:
+        check_recording_excitation(no_temperature)
+    assert str(err.value) == "no sample has a pose, a finite reference, a valid temperature and finite counts"
+
+
+def test_reference_range_and_orientations_are_those_of_the_cells_means() -> None:
+    """A cell of one sample counts; a cell whose mean reference is zero has no direction; a small reference is a
+    direction all the same; two cells within the tolerance (0.5 deg apart) are one orientation."""
+    tilt = np.radians(0.5)
+    poses = np.array([[0.0, 0.0, G], [0.0, G * np.sin(tilt), G * np.cos(tilt)], [0.0, G, 0.0], [0.5, 0.0, 0.0],
+                      [0.0, 0.0, 0.0], [-3.0, 4.0, 0.0]])
+    psi = np.random.default_rng(1).normal(size=(11, 3))
+    gref = np.repeat(poses, [3, 2, 1, 2, 1, 2], axis=0)
+    pose = np.repeat(np.arange(6), [3, 2, 1, 2, 1, 2])
+    stats = accumulate_cells(psi, np.zeros(11), gref, pose, np.zeros(11, np.int64), 0)
+    assert count_orientations(stats) == 4
+    np.testing.assert_allclose(reference_range(stats), [[-3.0, 0.5], [0.0, G], [0.0, G]], rtol=1e-12, atol=1e-12)
+
+
+def test_reference_reach_lines_word_for_word() -> None:
+    assert reference_reach_warnings([[-9.8, 9.8], [-9.8, 9.8], [-9.8, 9.8]]) == []
+    lines = reference_reach_warnings([[-1.36, 1.36], [-9.8, 9.8], [-9.8, 2.0]])
+    assert lines == [
+        "the poses never reach 4.90 m/s^2 (half of g) with the table x axis down or up (their reference along it spans "
+        "-1.36 .. +1.36 m/s^2): beyond that the calibration extrapolates eq. 28 over a response it never saw, which the "
+        "held-out figures cannot show; record poses with x down and up",
+        "the poses never reach 4.90 m/s^2 (half of g) with the table z axis up (their reference along it spans -9.80 .. "
+        "+2.00 m/s^2): beyond that the calibration extrapolates eq. 28 over a response it never saw, which the held-out "
+        "figures cannot show; record poses with z up"]
+
+
+# --- temperature levels: the degree they identify and their consistency ----------------------------------------------
+
+
+def test_the_degree_refusal_lists_every_level_whose_poses_do_not_span_the_frame() -> None:
+    flat = _plane(np.array([0.0, 0.0, 1.0]))
+    stats = _levels([M0] * 4, [SIX, flat, flat, SIX], noise=1e-4)
+    check_level_excitation(stats, 1)
+    with pytest.raises(NotIdentifiedError) as err:
+        check_level_excitation(stats, 2)
+    note = (r"temperature level {}: its 5 poses do not tilt the table direction \(0\.00, 0\.00, 1\.00\) "
+            rf"\(spread {NUMBER} m/s\^2\)")
+    msg = re.fullmatch(r"degree 2 in temperature needs 3 temperature levels whose poses span the table frame, only 2 do "
+                       rf"\({note.format(1)}; {note.format(2)}\); use degree <= 1 or repeat the pose plan at that level",
+                       str(err.value))
+    assert msg, str(err.value)
+    assert float(msg[1]) < 1e-5 and float(msg[2]) < 1e-5
+
+
+def test_a_level_far_from_the_others_is_refused_with_its_own_and_the_others_change() -> None:
+    """Exact sums: each level's M is known, so are the relative changes the message gives (b alike at every level)."""
+    levels_c = np.array([16.0, 24.0, 45.0])
+    with pytest.raises(NotIdentifiedError) as err:
+        check_level_consistency(_levels([M0, 1.2448 * M0, -1.5 * M0], [SIX] * 3), levels_c)
+    assert str(err.value) == ("the temperature level(s) at 45.0 degC (250 %) give an M that differs from the other "
+                              "levels' by more than 30 % (the others: within 24 %), far beyond what temperature changes "
+                              "(a few %): gravity in g? a sign or axis convention of that level's reference gravity?")
+    check_level_consistency(_levels([M0, 1.02 * M0, 0.99 * M0], [SIX] * 3), levels_c)
+    # two levels: each against the other, both beyond the bound
+    with pytest.raises(NotIdentifiedError) as err:
+        check_level_consistency(_levels([M0, 1.5 * M0], [SIX] * 2), levels_c[:2])
+    assert str(err.value) == ("the temperature level(s) at 16.0 degC (33 %), 24.0 degC (50 %) give an M that differs from "
+                              "the other level's by more than 30 %, far beyond what temperature changes (a few %): "
+                              "gravity in g? a sign or axis convention of that level's reference gravity?")
+    check_level_consistency(_levels([M0, 1.1 * M0], [SIX] * 2), levels_c[:2])
+
+
+def test_levels_whose_poses_cannot_determine_m_are_left_out_of_the_consistency_check() -> None:
+    """Level 0's poses are coplanar (their M along the normal is noise), level 1's x channel is dead (singular normal
+    equations): both are skipped, and levels 2 and 3, 50 % apart, are still compared and refused."""
+    levels_c = np.array([10.0, 20.0, 30.0, 40.0])
+    flat = _plane(np.array([0.0, 0.0, 1.0]))
+    stats = _levels([M0, M0, M0, 1.5 * M0], [flat, SIX, SIX, SIX], noise=1e-4, dead=(1,))
+    with pytest.raises(NotIdentifiedError) as err:
+        check_level_consistency(stats, levels_c)
+    assert str(err.value).startswith("the temperature level(s) at 30.0 degC (33 %), 40.0 degC (50 %) give an M that "
+                                     "differs from the other level's by")
+
+
+# --- normal equations -----------------------------------------------------------------------------------------------
+
+
+def test_the_normal_equations_give_their_scaled_condition_and_refuse_a_singular_or_zero_regressor() -> None:
+    """Scaled X^T X [[1, .5, 0], [.5, 1, 0], [0, 0, 1]] (eigenvalues 0.5, 1, 1.5): condition 3 whatever the columns'
+    scale."""
+    s = np.array([[1.0, 0.5, 0.0], [0.5, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    d = np.array([2.0, 3.0, 5.0])
+    xtg = np.arange(9.0).reshape(3, 3)
+    for scale in (1.0, 1e-4):
+        xtx = scale * s * np.outer(d, d)
+        A, cond = solve_normal_equations(xtx, xtg)
+        assert cond == pytest.approx(3.0, rel=1e-12)
+        np.testing.assert_allclose(A, np.linalg.solve(xtx, xtg), rtol=1e-12)
+    solve_normal_equations(s, xtg, rcond=0.25)  # condition 3 < 4
+    with pytest.raises(NotIdentifiedError) as err:
+        solve_normal_equations(s, xtg, rcond=0.5)  # condition 3 >= 2
+    assert str(err.value) == "normal equations are singular (condition number 3)"
+    with pytest.raises(NotIdentifiedError) as err:  # not positive definite: no least-squares problem has it
+        solve_normal_equations(np.array([[1.0, 2.0], [2.0, 1.0]]), np.ones((2, 3)))
+    assert str(err.value) == "normal equations are singular (condition number inf)"
+    with warnings.catch_warnings():  # two equal regressors: refused as such, without a numpy division warning
+        warnings.simplefilter("error")
+        with pytest.raises(NotIdentifiedError) as err:
+            solve_normal_equations(np.array([[1.0, 1.0], [1.0, 1.0]]), np.ones((2, 3)))
+    assert str(err.value) == "normal equations are singular (condition number inf)"
+    with pytest.raises(NotIdentifiedError) as err:
+        solve_normal_equations(np.diag([1.0, 0.0, 1.0]), xtg)
+    assert str(err.value) == "a regressor is identically zero on the data"
+
+
+def test_a_negative_degree_and_a_sub_model_above_its_model_are_refused() -> None:
+    with pytest.raises(NotIdentifiedError) as err:
+        check_identified(-1, 3)
+    assert str(err.value) == "degree must be >= 0, got -1"
+    with pytest.raises(ValueError) as err:
+        sub_columns(3, 2)
+    assert str(err.value) == "degree 3 > 2"
+
+
+# --- temperature levels and scaling ---------------------------------------------------------------------------------
+
+
+def test_temperature_scaling_maps_the_range_onto_plus_minus_one_and_one_level_onto_scale_one() -> None:
+    assert temperature_scaling(np.array([20.0, 22.4, 21.0])) == pytest.approx((21.2, 1.2), rel=1e-12)
+    assert temperature_scaling(np.array([24.0, 24.6])) == pytest.approx((24.3, 1.0), rel=1e-12)
+
+
+def test_temperature_levels_follow_the_gap_and_the_width_asked_for() -> None:
+    labels, means = temperature_levels(np.array([np.nan, np.nan]))
+    assert labels.tolist() == [-1, -1] and means.shape == (0,)
+    labels, means = temperature_levels(np.array([24.0, 16.3, 16.0, 24.4]))
+    assert labels.tolist() == [1, 0, 0, 1]
+    np.testing.assert_allclose(means, [16.15, 24.2], rtol=1e-12)
+    assert len(temperature_levels(np.array([20.0, 20.2, 22.0, 22.1]), gap_c=1.0)[1]) == 2  # 1.8 degC apart
+    assert len(temperature_levels(np.array([20.0, 20.2, 22.0, 22.1]), gap_c=2.0)[1]) == 1
+    # a sweep wider than the width is split into equal bins: 9 degC into 3 of 3 degC, or 2 of 4.5
+    sweep = np.linspace(40.0, 49.0, 50)
+    assert len(temperature_levels(sweep)[1]) == 3
+    assert len(temperature_levels(sweep, max_width_c=5.0)[1]) == 2
+    five = np.linspace(40.0, 45.0, 12)  # 2 bins of 2.5 degC
+    assert temperature_levels(five)[0].tolist() == [0] * 6 + [1] * 6
+    fine = 20.05 + 0.1 * np.arange(12)  # 1.1 degC at a width of 0.5: 3 bins of 0.367 degC
+    assert temperature_levels(fine, max_width_c=0.5)[0].tolist() == [0] * 4 + [1] * 4 + [2] * 4
+
+
+def test_temperature_clusters_added_in_parts_are_those_of_the_whole() -> None:
+    """As the streamed fit adds them, block by block: a block of one sample counts, and a cluster's highest
+    temperature decides whether the next block's samples join it."""
+    clusters = TemperatureClusters(1.0)
+    clusters.add(np.array([24.0, 16.3, 16.0, 24.4]))
+    np.testing.assert_array_equal(clusters.lo, [16.0, 24.0])
+    np.testing.assert_array_equal(clusters.hi, [16.3, 24.4])
+    clusters.add(np.array([25.2]))  # 0.8 degC above 24.4: the same level
+    clusters.add(np.array([]))
+    clusters.add(np.array([40.0]))
+    np.testing.assert_array_equal(clusters.lo, [16.0, 24.0, 40.0])
+    np.testing.assert_array_equal(clusters.hi, [16.3, 25.2, 40.0])
+
+
+# --- the per-cell sums ------------------------------------------------------------------------------------------------
+
+
+def _campaign(seed: int = 2) -> dict[str, np.ndarray]:
+    """640 rows in 8 visits of unequal length over two runs: pose 7 is visited twice in run 0 (one cell, two visits),
+    and pose 3 at level 1 goes on from run 0 into run 1 (two cells, two visits)."""
+    rng = np.random.default_rng(seed)
+    lengths = [90, 50, 120, 70, 100, 60, 80, 70]
+    pose_of = [7, 2, 7, 5, 3, 3, 0, 2]
+    level_of = [0, 0, 0, 1, 1, 1, 1, 0]
+    run_of = [0, 0, 0, 0, 0, 1, 1, 1]
+    n = sum(lengths)
+    return {"psi": rng.normal(size=(n, 3)), "tau": rng.uniform(-1.0, 1.0, n), "gref": rng.normal(size=(n, 3)),
+            "pose": np.repeat(pose_of, lengths), "level": np.repeat(level_of, lengths),
+            "run": np.repeat(run_of, lengths), "visit": np.repeat(np.arange(8), lengths)}
+
+
+def _accumulated(c: dict[str, np.ndarray], chunk: int, degree: int = 1) -> tf.CellStats:
+    acc = CellAccumulator(degree, chunk)
+    for a in range(0, len(c["tau"]), chunk):
+        sl = slice(a, a + chunk)
+        acc.add(c["psi"][sl], c["tau"][sl], c["gref"][sl], c["pose"][sl], c["level"][sl], c["run"][sl])
+    return acc.finish()
+
+
+def _check_sums(stats: tf.CellStats, c: dict[str, np.ndarray], degree: int = 1, visits: bool = True) -> None:
+    X, G_ = design_matrix(c["psi"], c["tau"], degree), c["gref"]
+    cells = sorted({(p, lv, r) for p, lv, r in zip(c["pose"], c["level"], c["run"], strict=True)})
+    assert list(zip(stats.pose.tolist(), stats.level.tolist(), strict=True)) == [(p, lv) for p, lv, _ in cells]
+    for i, (p, lv, r) in enumerate(cells):
+        m = (c["pose"] == p) & (c["level"] == lv) & (c["run"] == r)
+        np.testing.assert_allclose(stats.xtx[i], X[m].T @ X[m], rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(stats.xtg[i], X[m].T @ G_[m], rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(stats.gtg[i], (G_[m] ** 2).sum(axis=0), rtol=1e-10)
+        np.testing.assert_allclose(stats.xsum[i], X[m].sum(axis=0), rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(stats.gsum[i], G_[m].sum(axis=0), rtol=1e-10, atol=1e-10)
+        assert stats.count[i] == m.sum()
+    v = c["visit"]
+    lengths = np.bincount(v)
+    assert stats.visit_lengths.tolist() == lengths.tolist()
+    xsum_v = np.array([X[v == k].sum(axis=0) for k in range(len(lengths))])
+    np.testing.assert_allclose(stats.visit_outer, (xsum_v / lengths[:, None]).T @ xsum_v, rtol=1e-10, atol=1e-10)
+    if visits:  # each visit's own sums, in the order the visits ended, and its cell
+        np.testing.assert_allclose(stats.visit_xtx, [X[v == k].T @ X[v == k] for k in range(len(lengths))],
+                                   rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(stats.visit_xtg, [X[v == k].T @ G_[v == k] for k in range(len(lengths))],
+                                   rtol=1e-10, atol=1e-10)
+        first = [int(np.flatnonzero(v == k)[0]) for k in range(len(lengths))]
+        assert stats.visit_cell.tolist() == [cells.index((c["pose"][f], c["level"][f], c["run"][f])) for f in first]
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 639, 640])
+def test_the_cell_sums_are_the_rows_sums_whatever_the_chunks(chunk: int) -> None:
+    """Cells ordered by (pose, level, run), every sum equal to the one over its rows; visits joined across chunks and
+    ended where the cell or the run changes (one row per chunk, a last chunk of one row, one chunk for all)."""
+    c = _campaign()
+    _check_sums(_accumulated(c, chunk), c)
+
+
+def test_interleaved_cells_and_the_one_run_form_give_the_same_sums() -> None:
+    c = _campaign()
+    one = {k: v[c["run"] == 0] for k, v in c.items()}
+    stats = accumulate_cells(one["psi"], one["tau"], one["gref"], one["pose"], one["level"], 1, chunk=7)
+    _check_sums(stats, one)
+    # every row its own visit, the cells interleaved: grouped by sorting
+    rng = np.random.default_rng(5)
+    k = rng.permutation(len(one["tau"]))[:200]
+    mixed = {key: v[k] for key, v in one.items()}
+    mixed["visit"] = np.cumsum(np.r_[0, (np.diff(mixed["pose"]) != 0) | (np.diff(mixed["level"]) != 0)])
+    _check_sums(accumulate_cells(mixed["psi"], mixed["tau"], mixed["gref"], mixed["pose"], mixed["level"], 1), mixed)
+    # chunks larger than the default one (65536 rows) and than the samples
+    n = 70000
+    big = accumulate_cells(np.ones((n, 3)), np.zeros(n), np.ones((n, 3)), np.arange(n) // 35000, np.zeros(n, int), 0,
+                           chunk=100000)
+    assert big.count.tolist() == [35000, 35000]
+
+
+def test_each_visit_s_sums_are_kept_up_to_the_limit_and_dropped_beyond(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Beyond MAX_VISIT_SUMS visits the coefficient covariance clusters by cell; the cells' sums stay exact."""
+    c = _campaign()
+    monkeypatch.setattr(tf, "MAX_VISIT_SUMS", 8)
+    _check_sums(_accumulated(c, 640), c)
+    monkeypatch.setattr(tf, "MAX_VISIT_SUMS", 7)
+    stats = _accumulated(c, 640)
+    _check_sums(stats, c, visits=False)
+    p = tf.n_params(1)
+    assert stats.visit_xtx.shape == (0, p, p) and stats.visit_xtg.shape == (0, p, 3) and stats.visit_cell.shape == (0,)
+    assert stats.visit_cell.dtype.kind == "i"  # indexes the cells (coefficient_uncertainty)
+
+
+def test_level_labels_are_relabelled_at_the_end_and_refused_outside_their_range() -> None:
+    psi, gref = np.ones((4, 3)), np.ones((4, 3))
+    acc = CellAccumulator(0, 8)
+    acc.add(psi, np.zeros(4), gref, np.array([0, 0, 1, 1]), np.array([-65536, 65535, 1, 0]))
+    stats = acc.finish()
+    assert list(zip(stats.pose.tolist(), stats.level.tolist(), strict=True)) == [(0, -65536), (0, 65535), (1, 0), (1, 1)]
+    acc = CellAccumulator(0, 8)
+    acc.add(psi, np.zeros(4), gref, np.array([0, 0, 1, 1]), np.array([0, 1, 1, 0]))
+    stats = acc.finish(level_map=np.array([9, 4]))
+    assert list(zip(stats.pose.tolist(), stats.level.tolist(), strict=True)) == [(0, 4), (0, 9), (1, 4), (1, 9)]
+    for bad in (65536, -65537):
+        with pytest.raises(ValueError) as err:
+            CellAccumulator(0, 8).add(psi[:1], np.zeros(1), gref[:1], np.zeros(1, np.int64), np.array([bad]))
+        assert str(err.value) == "temperature level labels must lie in [-65536, 65536)"
+    # nothing added (every sample unusable): empty integer labels, relabelled like any others
+    empty = CellAccumulator(0, 8).finish(level_map=np.zeros(1, np.int64))
+    assert empty.pose.shape == empty.level.shape == (0,) and empty.level.dtype.kind == "i"
+
+
+def test_selected_sums_and_the_within_visit_scatter_at_a_lower_degree() -> None:
+    c = _campaign()
+    stats = _accumulated(c, 640)
+    cells = stats.level == 1
+    xtx, xtg, gtg, n = stats.select(cells, 0)
+    rows = c["level"] == 1
+    X0 = design_matrix(c["psi"], c["tau"], 0)
+    np.testing.assert_allclose(xtx, X0[rows].T @ X0[rows], rtol=1e-10)
+    np.testing.assert_allclose(xtg, X0[rows].T @ c["gref"][rows], rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(gtg, (c["gref"][rows] ** 2).sum(axis=0), rtol=1e-10)
+    assert n == rows.sum()
+    A = np.random.default_rng(0).normal(size=(4, 3))
+    out = X0 @ A
+    scatter = sum(((out[c["visit"] == k] - out[c["visit"] == k].mean(axis=0)) ** 2).sum(axis=0) for k in range(8))
+    np.testing.assert_allclose(stats.visit_scatter(A, 0), scatter, rtol=1e-9)
+
+
+def test_residuals_are_those_of_the_masked_samples() -> None:
+    psi, gref, pose = _rows(SIX, 4)
+    rec = Recording(np.arange(24) * 0.01, np.full(24, 880.0), psi * 880.0, np.full(24, 24.0), gref + 0.01, pose)
+    cal = ThermalCalibration(M=M0[None], b=B0[None], temperature_range_c=(20.0, 30.0))
+    mask = pose == 2
+    np.testing.assert_allclose(residuals(cal, rec, mask), np.full((4, 3), -0.01), atol=1e-9)
