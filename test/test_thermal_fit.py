@@ -716,6 +716,19 @@ def test_temperature_levels_follow_the_gap_and_the_width_asked_for() -> None:
     assert temperature_levels(fine, max_width_c=0.5)[0].tolist() == [0] * 4 + [1] * 4 + [2] * 4
 
 
+def test_temperatures_exactly_one_gap_apart_are_one_level_whole_or_in_parts() -> None:
+    """The documented rule is "merged wherever the gap is <= gap_c": readings of a 0.5 degC-resolution sensor are
+    often exactly one gap apart (20.0 and 21.0 at the default 1 degC), and they are one level, whether they come in
+    one array or in two blocks of the streamed fit."""
+    assert len(temperature_levels(np.array([21.0, 20.0, 21.0]))[1]) == 1
+    assert len(temperature_levels(np.array([20.0, 21.5]))[1]) == 2
+    clusters = TemperatureClusters(1.0)
+    clusters.add(np.array([20.0]))
+    clusters.add(np.array([21.0]))
+    np.testing.assert_array_equal(clusters.lo, [20.0])
+    np.testing.assert_array_equal(clusters.hi, [21.0])
+
+
 def test_temperature_clusters_added_in_parts_are_those_of_the_whole() -> None:
     """As the streamed fit adds them, block by block: a block of one sample counts, and a cluster's highest
     temperature decides whether the next block's samples join it."""
