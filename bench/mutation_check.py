@@ -122,14 +122,12 @@ EQUIVALENT: dict[str, str] = {
         "and for or between 'no applied offset' and 'no board time it refers to': both are None after a (re)start "
         "and set together at every stamp"),
     "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_24": (
-        ">= for > at the step threshold: an offset error of a real-valued clock difference exactly at 50 ms has no "
-        "weight, and no test may decide at a threshold (project rule)"),
+        ">= for > at the step threshold of the mapping's error: the error is a float difference of the fitted line and the "
+        "observations (ppm slopes, means), equal to 50 ms only on inputs of measure zero; no recording reads differently"),
     "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_33": (
-        "<= for < at the end of the warm-up: a board time exactly warmup_s after the start has no weight (the same "
-        "rule)"),
-    "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_61": (
-        ">= for > between a change of ROS-minus-steady (integer ns) and the 50 ms step threshold: a change of exactly "
-        "50 000 000 ns has no weight (project rule: no test at a threshold)"),
+        "<= for < at the end of the warm-up: only a frame whose board time (t_us x 1e-6, a float) lies exactly "
+        "warmup_s after the start's differs; that one frame may then slew by the warm-up's limit, at most "
+        "(5e-3 - 5e-4) x 10 ms = 45 us more at 100 Hz, inside the stamps' stated error"),
     "fbg_accel_driver.clock_sync.xǁClockSyncǁstamp__mutmut_63": (
         "the step threshold scaled by 1e9 + 1 for 1e9: 50 000 000.05 ns instead of 50 000 000 ns, compared with an "
         "integer number of ns: the same decision for every integer"),
@@ -196,8 +194,8 @@ EQUIVALENT: dict[str, str] = {
         "cancels (every offset is taken relative to it, every stamp adds it back); the offsets then sit near -2 t0 "
         "(hours at most), still far below a ns of float spacing"),
     "fbg_accel_driver.clock_sync.xǁClockSyncǁobserve__mutmut_48": (
-        "<= for < at the restart threshold (an observation 50 ms below the line): a real-valued offset exactly at the"
-        " threshold has no weight (project rule: no test at a threshold)"),
+        "<= for < at the restart threshold (an observation 50 ms below the line): the distance is a float difference of "
+        "the fitted line and an observation, equal to the threshold only on inputs of measure zero"),
     "fbg_accel_driver.clock_sync.xǁClockSyncǁobserve__mutmut_58": (
         "/ for // in the bin index: the board time since the reference is never negative (a board time going back is "
         "a reset, which clears the reference), and int() of a positive quotient is its floor"),
@@ -277,8 +275,9 @@ EQUIVALENT: dict[str, str] = {
     "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁexpected_reference_counts__mutmut_19": (
         "None cached for the level: the next call reads None as a miss and works the same level out again"),
     "fbg_accel_driver.thermal_model.x__insensitive__mutmut_3": (
-        "4096 for 4095 counts in the span of Psi: scales a real-valued span by 1.0002 against its bound; a span "
-        "within 0.02 % of the bound has no weight (project rule: no test at a threshold)"),
+        "4096 for 4095 counts in the span of Psi: scales a real-valued span by 1.0002 against its bound; only a "
+        "calibration whose sensitivity lies within 0.02 % of the bound reads differently, and the bound is a "
+        "plausibility limit orders of magnitude from any real sensor's (docs/calibration_file.md)"),
     "fbg_accel_driver.thermal_model.x__insensitive__mutmut_13": (
         "zip(strict=None) for strict=True: one M(T) per temperature by construction"),
     "fbg_accel_driver.thermal_model.x__insensitive__mutmut_16": (

@@ -519,3 +519,19 @@ def test_a_small_host_offset_change_adds_to_the_offset_already_followed() -> Non
     err = errors_s(stamps[1:], truth[1:])  # the first read of the new offset alone is not followed (no agreement yet)
     assert np.all(np.abs(err) < 3e-3), np.abs(err).max()
     assert sync.host_steps == 0  # followed within the band, not stepped
+
+
+@pytest.mark.parametrize("change_ns, stepped", [(50_000_000, False), (50_000_001, True)])
+def test_a_change_of_ros_time_is_a_step_only_beyond_the_threshold(change_ns: int, stepped: bool) -> None:
+    """ROS time (the host clock) moving against the steady clock by exactly ``step_threshold_s`` (50 ms, integer ns
+    both) is no step: it is followed once three reads agree and is not counted; one nanosecond more is a step, taken
+    at once and counted in ``ros_time_steps`` ("beyond the threshold", docs/topics.md)."""
+    sync = ClockSync()
+    t0_ns = 1_700_000_000_250_000_000
+    for k in range(200):  # 2 s of frames at 100 Hz, a read per frame, ROS time = steady + t0
+        t_us = 10_000 * k
+        steady = 1_000_000 + 1000 * t_us + 2_000_000
+        host = t0_ns + steady + (change_ns if k >= 100 else 0)
+        sync.observe(t_us, host, steady)
+        sync.stamp(t_us)
+    assert sync.status()["ros_time_steps"] == int(stepped)
