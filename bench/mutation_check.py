@@ -504,6 +504,17 @@ def forget(path: str, names: set[str]) -> None:
     meta.write_text(json.dumps(data))
 
 
+def mutants_out_of_date(modules: list[str]) -> bool:
+    """Whether a module has no mutants yet or its source changed since they were made: mutmut then regenerates them
+    (keeping the results of the functions whose source did not change), which a run of named mutants alone does
+    not do."""
+    for m in modules:
+        made = ROOT / "mutants" / (MODULES[m] + ".meta")
+        if not made.is_file() or (ROOT / MODULES[m]).stat().st_mtime > made.stat().st_mtime:
+            return True
+    return False
+
+
 def run_mutmut(names: list[str], max_children: int) -> None:
     """``mutmut run`` on ``names`` (all mutants of the configured modules when empty), in one call (one clean run
     of the tests they need, then one fork per mutant; mutmut records each result as it comes, so an interrupted
@@ -568,6 +579,8 @@ def main() -> int:
     ap.add_argument("--output", type=Path, default=Path(tempfile.gettempdir()) / "mutation.md")
     ap.add_argument("--update-results", action="store_true", help="write docs/results/mutation.md")
     args = ap.parse_args()
+    if not args.report_only and mutants_out_of_date(args.modules):
+        run_mutmut(["__generate_only__"], args.max_children)  # every mutant and the test map; no name matches
     if args.recheck_survivors:
         # mutmut finds the tests added since its last run and maps which functions they reach before it runs
         again = []
@@ -579,8 +592,6 @@ def main() -> int:
             again += sorted(names)
         run_mutmut(again, args.max_children)
     elif not args.report_only:
-        if not all(meta_results(MODULES[m]) for m in args.modules):
-            run_mutmut(["__generate_only__"], args.max_children)  # every mutant and the test map; no name matches
         for m in args.modules:  # module by module; a mutant with a result is not run again (resumes a stopped run)
             results = meta_results(MODULES[m])
             keys = sorted(results)
