@@ -285,6 +285,21 @@ def test_a_saved_file_is_dated_in_utc_and_has_no_empty_sections(tmp_path: Path) 
 
 
 # ----------------------------------------------------------------------------- the model's values
+def test_single_precision_inputs_give_the_double_precision_output() -> None:
+    """Counts and temperatures given as float32 (a recording's columns) are evaluated as the same values in double
+    precision: with a reference dark offset (subtracted from the reference) and at temperatures off the centre."""
+    cal = make_cal(degree=2)
+    cal.corrections = [correction_terms.ReferenceDarkOffset(12.345)]
+    rng = np.random.default_rng(7)
+    ref, xyz = rng.integers(800, 4096, 20).astype(np.float32), rng.integers(0, 4096, (20, 3)).astype(np.float32)
+    temp = rng.uniform(15.0, 45.0, 20).astype(np.float32)
+    t = np.arange(20) * 0.01
+    np.testing.assert_array_equal(cal.apply_counts(ref, xyz, temp, t),
+                                  cal.apply_counts(ref.astype(float), xyz.astype(float), temp.astype(float), t))
+    for got, want in zip(cal.coefficients(temp), cal.coefficients(temp.astype(float)), strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
 class _ReusesItsArray:
     """Test-only term: evaluates eq. 28 at the batch's temperatures + 1 degC, then + 2 degC in the same array changed
     in place, and adds the difference (what a term that reuses a work array sees)."""
@@ -397,8 +412,10 @@ class _Probe:
 
 def test_the_plausibility_grid_is_the_documented_one() -> None:
     """docs/calibration_file.md, section 5: reference counts 256, 1024, 2048 and 4095; axis counts 0, 2048 and 4095 on
-    each axis (27 combinations); 5 temperatures across the calibrated range, then 8 across the AHT10's -40..85 degC;
-    each grid point held for 0.5 s of 100 Hz samples and judged on its last sample."""
+    each axis (27 combinations, x slowest); 5 temperatures across the calibrated range, then 8 across the AHT10's
+    -40..85 degC (its ends first); each grid point held for 0.5 s of 100 Hz samples and judged on its last sample. The
+    order is part of it: a thermal lag of tens of seconds has not settled within a point, so which combination meets
+    which lagged temperature follows from it."""
     cal = ThermalCalibration(M=M_SENSOR[None], b=np.full((1, 3), -100.0), temperature_range_c=(20.0, 30.0))
     probe = _Probe(0.0)
     cal.corrections = [probe]
@@ -410,11 +427,12 @@ def test_the_plausibility_grid_is_the_documented_one() -> None:
     assert np.all(held.reshape(-1, 50, 5) == held[::50, None, :])  # runs of 50 samples
     points = held[::50]
     assert len(points) == 4 * 27 * 5 and len(temp_wide) == 4 * 27 * 8 * 50
-    assert set(points[:, 0]) == {256.0, 1024.0, 2048.0, 4095.0}
-    assert {tuple(p) for p in points[:, 1:4]} == {(x, y, z) for x in (0.0, 2048.0, 4095.0)
-                                                  for y in (0.0, 2048.0, 4095.0) for z in (0.0, 2048.0, 4095.0)}
-    np.testing.assert_allclose(sorted(set(points[:, 4])), [20.0, 22.5, 25.0, 27.5, 30.0], rtol=1e-12)
-    np.testing.assert_allclose(sorted(set(temp_wide)), [-40.0, -15.0, 10.0, 35.0, 60.0, 85.0], rtol=1e-12)
+    levels = (0.0, 2048.0, 4095.0)
+    np.testing.assert_array_equal(points[:27, 1:4], [(x, y, z) for x in levels for y in levels for z in levels])
+    np.testing.assert_array_equal(points[:, 1:4], np.tile(points[:27, 1:4], (4 * 5, 1)))
+    np.testing.assert_array_equal(points[::27, 0], np.tile([256.0, 1024.0, 2048.0, 4095.0], 5))
+    np.testing.assert_allclose(points[::108, 4], [20.0, 22.5, 25.0, 27.5, 30.0], rtol=1e-12)
+    np.testing.assert_allclose(temp_wide[::108 * 50], [-40.0, 85.0, -40.0, -15.0, 10.0, 35.0, 60.0, 85.0], rtol=1e-12)
     # judged 0.49 s after each step: 1e6 x 1.49 (eq. 28 adds at most 1.4e3 m/s^2)
     cal.corrections = [_Probe(1e6)]
     assert check_plausible(cal).startswith("the model gives |a| up to 1.49e+06 m/s^2 inside its calibrated range")
