@@ -20,7 +20,7 @@ tests of that selection that execute the mutated function):
 * ``fbg_accel_driver.stream_decoder`` -- test_stream_decoder.py
 * ``fbg_accel_driver.clock_sync`` -- test_clock_sync.py
 * ``fbg_accel_driver.thermal_model`` (the calibration model and its loader) -- test_thermal_model.py,
-  test_calibration_contract.py
+  test_calibration_contract.py, test_thermal_model_edges.py
 * ``fbg_accel_calibration.thermal_fit`` (the eq. 28 fit) -- test_thermal_fit.py
 
 Usage::
@@ -294,6 +294,85 @@ EQUIVALENT: dict[str, str] = {
         "(the same rule)"),
     "fbg_accel_driver.thermal_model.x_check_plausible__mutmut_104": (
         ">= for > at the output bound: a real-valued output exactly at the bound has no weight (the same rule)"),
+    # the calibration model and its loader: survivors of test_thermal_model_edges.py and the tests before it
+    "fbg_accel_driver.thermal_model.x__evaluate_grid__mutmut_3": (
+        "each grid point held for 50 samples also without correction terms: eq. 24 and eq. 28 alone are stateless, "
+        "so every sample of a point gives the same output and the judged one is unchanged (only slower)"),
+    "fbg_accel_driver.thermal_model.x__evaluate_grid__mutmut_5": (
+        "each grid point held for 2 samples without correction terms: eq. 24 and eq. 28 alone are stateless, so the "
+        "judged output is unchanged"),
+    "fbg_accel_driver.thermal_model.x__insensitive__mutmut_5": (
+        "errstate(all=None) around the sensitivity check: it runs only after check_plausible evaluated the same M(T) "
+        "at the same temperatures to finite outputs (an overflow there gives inf or NaN and an earlier refusal), and "
+        "numpy ignores underflow by default, so no floating-point warning can arise in it"),
+    "fbg_accel_driver.thermal_model.x__insensitive__mutmut_68": (
+        "max_line_width=None (numpy's 75) for 1000 when printing M(T): a row of three entries printed to 4 decimals "
+        "is at most ~42 characters (-1.2346e+300), so no row wraps either way"),
+    "fbg_accel_driver.thermal_model.x__insensitive__mutmut_71": (
+        "max_line_width left out (75) when printing M(T): a row printed to 4 decimals is at most ~42 characters, no "
+        "row wraps either way"),
+    "fbg_accel_driver.thermal_model.x__insensitive__mutmut_73": (
+        "max_line_width 1001 for 1000 when printing M(T): a row printed to 4 decimals is at most ~42 characters"),
+    "fbg_accel_driver.thermal_model.x__section__mutmut_30": (
+        "finite=None for finite=False: the flag is only tested for truth"),
+    "fbg_accel_driver.thermal_model.x__text__mutmut_3": (
+        "d.get(key, None) for d.get(key, \"\"): an absent key then gives None, which the next line turns into \"\" as "
+        "it does an empty key"),
+    "fbg_accel_driver.thermal_model.x__text__mutmut_5": (
+        "d.get(key) for d.get(key, \"\"): an absent key gives None, which the next line turns into \"\""),
+    "fbg_accel_driver.thermal_model.x_check_plausible__mutmut_47": (
+        "reshape(-2, 3) for reshape(-1, 3): numpy (2.x) takes any negative size as the one to infer, the same array"),
+    "fbg_accel_driver.thermal_model.x_migrate__mutmut_15": (
+        "exact=None for exact=False: the flag is only tested for truth"),
+    "fbg_accel_driver.thermal_model.x_normalise__mutmut_3": (
+        "the reference without dtype=float: the division by it is in float64 either way (the axis counts are made "
+        "float64), of the same values"),
+    "fbg_accel_driver.thermal_model.x_normalise__mutmut_16": (
+        "the axis counts without dtype=float: divided by the float64 reference, in float64, the same values"),
+    "fbg_accel_driver.thermal_model.x_normalise__mutmut_18": (
+        "the axis counts without dtype=float: divided by the float64 reference, in float64, the same values"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁ_coefficients_of__mutmut_13": (
+        "equal_nan left out (False): temperatures with NaN miss the cache and are worked out again, to the same "
+        "values"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁ_coefficients_of__mutmut_15": (
+        "equal_nan=False: temperatures with NaN miss the cache and are worked out again, to the same values"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁ_coefficients_of__mutmut_18": (
+        "None for () while the batch's coefficients are worked out: nothing reads it before it is set two lines "
+        "below (coefficients() does not), and apply_counts sets None when it returns either way"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁ_coefficients_of__mutmut_25": (
+        "np.array(temp_c) for np.array(temp_c, copy=True): copying is np.array's default"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁapply_counts__mutmut_9": (
+        "the axis counts not made float here: every use makes them float64 before any arithmetic (map_counts, "
+        "normalise, the terms with np.asarray(..., float) or beside the float64 reference)"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁapply_counts__mutmut_11": (
+        "the axis counts without dtype=float: every use makes them float64 before any arithmetic (map_counts, "
+        "normalise, the terms with np.asarray(..., float) or beside the float64 reference)"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁapply_counts__mutmut_20": (
+        "the temperatures not made float here: base_acceleration and every term that reads them (thermal_lag, "
+        "thermal_hysteresis) make them float64 before any arithmetic"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁapply_counts__mutmut_22": (
+        "the temperatures without dtype=float: base_acceleration and the terms that read them make them float64 "
+        "before any arithmetic"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁbase_acceleration__mutmut_4": (
+        "Psi not made float here: einsum casts it to float64 beside M(T) before multiplying, the same products"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁbase_acceleration__mutmut_6": (
+        "Psi without dtype=float: einsum casts it to float64 beside M(T) before multiplying, the same products"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁbase_acceleration__mutmut_14": (
+        "the temperatures not made float here: scaled_temperature makes them float64 before any arithmetic"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁbase_acceleration__mutmut_16": (
+        "the temperatures without dtype=float: scaled_temperature makes them float64 before any arithmetic"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁbase_acceleration__mutmut_26": (
+        "einsum subscripts in capitals: the same contraction (subscripts are letters of either case)"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁcoefficients__mutmut_16": (
+        "einsum subscripts in capitals: the same contraction (subscripts are letters of either case)"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁfrom_dict__mutmut_8": (
+        "finite=None for finite=False: the flag is only tested for truth"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁfrom_dict__mutmut_93": (
+        "finite=None for finite=False: the flag is only tested for truth"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁfrom_dict__mutmut_105": (
+        "finite=None for finite=False: the flag is only tested for truth"),
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁload__mutmut_35": (
+        "encoding 'UTF-8' for 'utf-8': Python's codec names are case-insensitive"),
     "fbg_accel_driver.clock_sync.x_lower_envelope_slope__mutmut_39": (
         "< for <= when a hull point is collinear with its neighbours: keeping it splits one edge into two of the "
         "same slope, so the slope at the mean board time is the same"),
