@@ -58,6 +58,7 @@ from .diagnosis.design import build_design, prepare_data
 from .diagnosis.final_model import fit_final
 from .diagnosis.findings import (
     Finding,
+    cannot_reveal,
     disturbance_finding,
     held_code_findings,
     model_findings,
@@ -181,6 +182,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                                 code.result.name if code.added else None, code.alpha_each, []))
     # 4. findings: what the reader must not take at face value, in the report's order
     findings = [sel.detection_limit] if sel.detection_limit else []
+    findings += cannot_reveal(sel.steps[0].candidates if sel.steps else [], {e.name: e.title for e in library})
     findings += [Finding("step_confounded", why, effect=e.name, separates=e.tells_it_from_a_step)
                  for e, _ in sel.spec.effects if (why := sel.step_confounded.get(e.name))]
     findings += final_model_findings(sel.spec, final.structure, alpha)
