@@ -51,6 +51,7 @@ from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .adc_codes import HeldCode
 from .blas_threads import single_blas_thread
+from .diagnosis.approach import approach_findings, approach_signature
 from .diagnosis.checks import final_model_findings
 from .diagnosis.cv import cross_validate
 from .diagnosis.data import DiagnosisData
@@ -186,6 +187,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     findings += [Finding("step_confounded", why, effect=e.name, separates=e.tells_it_from_a_step)
                  for e, _ in sel.spec.effects if (why := sel.step_confounded.get(e.name))]
     findings += final_model_findings(sel.spec, final.structure, alpha)
+    findings += approach_findings(approach_signature(data, final.heldout, final.r_eval), alpha, sel.spec.names)
     findings += [final.flagged] if final.flagged else []
     if floor.disturbance.found:
         findings.append(disturbance_finding(data, floor.disturbance, final.heldout, floor.settled & final.r_eval,

@@ -40,9 +40,9 @@ class Finding:
             raise ValueError(f"unknown kind of finding {self.kind!r}; the kinds: {', '.join(KINDS)}")
 
 
-KINDS = ("detection_limit", "cannot_reveal", "step_confounded", "table_angles", "noisy_visits", "periodic_disturbance",
-         "held_code", "visit_ends", "reference_reach", "low_reference", "temperature_jumps", "clipped", "collinear",
-         "below_floor")
+KINDS = ("detection_limit", "cannot_reveal", "step_confounded", "table_angles", "approach_direction", "noisy_visits",
+         "periodic_disturbance", "held_code", "visit_ends", "reference_reach", "low_reference", "temperature_jumps",
+         "clipped", "collinear", "below_floor")
 
 
 def cannot_reveal(candidates: list[CandidateResult], titles: dict[str, str]) -> list[Finding]:
