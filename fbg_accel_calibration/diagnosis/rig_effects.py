@@ -160,7 +160,9 @@ class MountChangeEffect(Effect):
         out = np.zeros((len(inp.t_s), 3 * len(runs)))
         for j, (r, _) in enumerate(runs):
             at = data.run_id == r
-            out[at, 3 * j:3 * j + 3] = inp.gref[at]
+            # the table's reference as recorded (gaps between poses filled): a design's columns do not read the
+            # corrections of the reference alone (design.build_design), which move it by far less than a re-seat does
+            out[at, 3 * j:3 * j + 3] = data.gref_filled[at]
         return out
 
     @staticmethod
