@@ -134,11 +134,12 @@ def test_a_motion_history_hysteresis_is_named_by_the_side_each_pose_was_approach
 
 @pytest.mark.parametrize("seed", [1, 3])
 def test_clean_data_visited_from_both_sides_shows_no_approach_signature(seed: int) -> None:
-    """The same shuffled grid with nothing injected: the side of approach explains nothing (p over 0.4 on every axis,
-    over 100x the finding's level), and the campaign is said to be able to reveal a hysteresis (no finding either way)."""
+    """The same shuffled grid with nothing injected: the side of approach explains nothing (p 0.43-0.94 on every axis
+    of these seeds; asserted over 0.1, 30x the finding's level 3.3e-3), and the campaign can reveal a hysteresis (no
+    finding either way)."""
     from fbg_accel_calibration.diagnosis.approach import approach_signature
 
     res = diagnose(_shuffled_grid(seed, 0.0))
     assert not [f for f in res.findings if f.effect == "motion_hysteresis"], res.findings
     sig = approach_signature(res.data, res.residual_after, res.data.use)
-    assert sig.testable and np.all(sig.p > 0.4), sig.p
+    assert sig.testable and np.all(sig.p > 0.1), sig.p

@@ -96,16 +96,16 @@ TELLS_A_REMOUNT_FROM_THE_SENSOR = (
 
 
 class MountChangeEffect(Effect):
-    """The sensor was re-seated on its mount between runs: each run r but the first holds the sensor turned by a small
-    rotation R_r against the first run's seat. Eq. 28 fitted on the first seat then gives R_r g in run r, so the
-    output misses the reference g by (R_r - I) g, a linear map C_r of the reference (3 columns per run, the reference
-    in that run: 9 coefficients). Only a rotation (C_r antisymmetric, up to ``MAX_REMOUNT_DEG``) is a re-seat
-    (:meth:`implausible`); a map with a symmetric part as large is a change of the sensor's response.
+    """The sensor was re-seated on its mount between runs: a run holds the sensor turned by a small rotation R_r
+    against the seat of the run it is compared with (the first of the runs that shared temperature levels connect to
+    it, ``level_linked_runs``). Eq. 28 fitted on that seat then gives R_r g in run r, so the output misses the
+    reference g by (R_r - I) g, a linear map C_r of the reference (3 columns per run, the reference in that run: 9
+    coefficients). Only a rotation (C_r antisymmetric, up to ``MAX_REMOUNT_DEG``) is a re-seat (:meth:`implausible`); a
+    map with a symmetric part as large is a change of the sensor's response.
 
-    Identified only for runs that shared temperature levels connect to the first run (``runs_apart_by_levels``), each
-    spanning the three directions of the table frame: a run at a level of its own leaves its rotation to eq. 28's M(T)
-    at that level, which a higher degree takes without a trace (the campaign cannot reveal the re-seat: a level
-    repeated after re-seating, in a run of its own, does)."""
+    A run at a level no other run shares leaves its rotation to eq. 28's M(T) at that level, which a higher degree takes
+    without a trace: the campaign cannot reveal the re-seat (``applicable`` says so); a level repeated after re-seating,
+    in a run of its own that visits every direction twice, does."""
 
     name = "mount_change"
     role = RIG
