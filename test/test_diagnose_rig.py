@@ -120,8 +120,8 @@ def _shuffled_grid(seed: int, hysteresis: float) -> Recording:
 def test_a_motion_history_hysteresis_is_named_by_the_side_each_pose_was_approached_from(seed: int) -> None:
     """A hysteresis of 0.4 m/s^2 (0.04 g) set by the side each axis' specific force last changed from, on a shuffled
     grid: no candidate represents it, and on the unchanged code the report named nothing but "significant unexplained
-    residual" (1.5-2.3x the floor), the signature never tested. Now the report names it a motion-history hysteresis on
-    every axis by the side of approach (half gap 0.17-0.19 m/s^2 against the 0.2 injected, p 1e-7 .. 1e-27 against
+    residual" (1.5-2.4x the floor), the signature never tested. Now the report names it a motion-history hysteresis on
+    every axis by the side of approach (half gap 0.17-0.19 m/s^2 against the 0.2 injected, p 6e-7 .. 3e-41 against
     the 3.3e-3 of the finding), adds neither a drift nor a non-linearity for it, and says what separates them."""
     res = diagnose(_shuffled_grid(seed, 1.0))
     found = [f for f in res.findings if f.kind == "approach_direction"]
