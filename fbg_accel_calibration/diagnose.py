@@ -124,8 +124,9 @@ class DiagnosisResult:
 
     @property
     def warnings(self) -> list[str]:
-        """The sentences of the findings, in the report's order."""
-        return [f.text for f in self.findings]
+        """The sentences of the findings, in the report's order, but those of what the campaign cannot reveal
+        (``cannot_reveal``: no warning about this data, a limit of its design)."""
+        return [f.text for f in self.findings if f.kind != "cannot_reveal"]
 
     @property
     def ranked(self) -> list[CandidateResult]:
