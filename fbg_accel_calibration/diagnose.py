@@ -51,6 +51,7 @@ from fbg_accel_driver.thermal_model import ThermalCalibration
 
 from .adc_codes import HeldCode
 from .blas_threads import single_blas_thread
+from .diagnosis.approach import approach_findings, approach_signature
 from .diagnosis.checks import final_model_findings
 from .diagnosis.cv import cross_validate
 from .diagnosis.data import DiagnosisData
@@ -58,6 +59,7 @@ from .diagnosis.design import build_design, prepare_data
 from .diagnosis.final_model import fit_final
 from .diagnosis.findings import (
     Finding,
+    cannot_reveal,
     disturbance_finding,
     held_code_findings,
     model_findings,
@@ -122,8 +124,9 @@ class DiagnosisResult:
 
     @property
     def warnings(self) -> list[str]:
-        """The sentences of the findings, in the report's order."""
-        return [f.text for f in self.findings]
+        """The sentences of the findings, in the report's order, but those of what the campaign cannot reveal
+        (``cannot_reveal``: no warning about this data, a limit of its design)."""
+        return [f.text for f in self.findings if f.kind != "cannot_reveal"]
 
     @property
     def ranked(self) -> list[CandidateResult]:
@@ -181,9 +184,11 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
                                 code.result.name if code.added else None, code.alpha_each, []))
     # 4. findings: what the reader must not take at face value, in the report's order
     findings = [sel.detection_limit] if sel.detection_limit else []
+    findings += cannot_reveal(sel.steps[0].candidates if sel.steps else [], {e.name: e.title for e in library})
     findings += [Finding("step_confounded", why, effect=e.name, separates=e.tells_it_from_a_step)
                  for e, _ in sel.spec.effects if (why := sel.step_confounded.get(e.name))]
     findings += final_model_findings(sel.spec, final.structure, alpha)
+    findings += approach_findings(approach_signature(data, final.heldout, final.r_eval), alpha, sel.spec.names)
     findings += [final.flagged] if final.flagged else []
     if floor.disturbance.found:
         findings.append(disturbance_finding(data, floor.disturbance, final.heldout, floor.settled & final.r_eval,

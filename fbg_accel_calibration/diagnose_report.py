@@ -99,7 +99,7 @@ def summary(res: DiagnosisResult, img_prefix: str = "img/") -> list[str]:
                    "eq. 28; not in the calibration file.")
     out.append("- Held-out RMSE per axis x/y/z: before " + _v(res.before_heldout_rmse) + " m/s^2, after "
                + _v(res.after_heldout_rmse) + " m/s^2; noise floor " + _v(res.noise_floor) + " m/s^2.")
-    out += [f"- **Warning:** {f.text}." for f in res.findings]
+    out += [f"- **{'Out of reach' if f.kind == 'cannot_reveal' else 'Warning'}:** {f.text}." for f in res.findings]
     out.append(f"- Conditioning of the final model: condition number {res.condition_number:.3g} (scaled normal "
                "matrix)" + ("; largest |correlation| of each added effect's columns with the model's others: "
                             + ", ".join(f"{n} {c:.3f}" for n, c in res.column_correlation.items())
@@ -392,7 +392,7 @@ def text(res: DiagnosisResult) -> str:
     for j, a in enumerate(AXES):
         out.append(f"axis {a}: held-out RMSE before {res.before_heldout_rmse[j]:.3f} -> after {res.after_heldout_rmse[j]:.3f} "
                    f"m/s^2, noise floor {res.final_floor[j]:.3f} m/s^2")
-    out += [f"WARNING: {f.text}" for f in res.findings]
+    out += [f"{'OUT OF REACH' if f.kind == 'cannot_reveal' else 'WARNING'}: {f.text}" for f in res.findings]
     out.append(f"condition number of the final model {res.condition_number:.3g}"
                + "".join(f"; {n}: max |corr| with the model {c:.3f}" for n, c in res.column_correlation.items()))
     out.append(res.structure.verdict)

@@ -204,6 +204,11 @@ class Effect:
         """One line with the fitted parameter values, for the report."""
         return "" if h is None else f"{self.hyper_name} = {h:.4g} {self.hyper_unit}"
 
+    def describe_on(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> str:
+        """The line of :meth:`describe` for a fit on ``data``: the same, unless the line needs the data (which runs a
+        term of some runs only is of)."""
+        return self.describe(h, coeff)
+
     def hyper_limits(self, data: DiagnosisData) -> tuple[float, float] | None:
         """The physical range (lowest, highest; ``hyper_unit``) of the hyper-parameter that ``bound`` states; None:
         the hyper-parameter itself is not bounded (its fitted values may be, :meth:`implausible`)."""

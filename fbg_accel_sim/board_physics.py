@@ -11,7 +11,7 @@ Signal chain per sample (docs/simulator.md has the equations and the source of e
 
     table angles (t - delay) -> specific force f (table frame) -> mount rotation + vibration + slide
        (dynamic inputs through the mechanical resonance; channel j evaluated j x ADC skew later)
-    -> axis inputs u = A f + equivalent biases (time drift, hysteresis, cable torque)
+    -> axis inputs u = A f + equivalent biases (time drift, thermal and motion-history hysteresis, cable torque)
     -> FBG pair separation d = d0 - S u + thermal mismatch -> super-Gaussian spectral overlap (eq. 13)
     -> optical power x source power (temperature, wander, dropout) x chain gains (SLD wavelength
        drift, couplers, photodiodes) -> counts at rest scale -> TIA first-order low-pass
@@ -440,6 +440,7 @@ class BoardSimulator:
         self._T_opt = np.array([float(t_init) if t_init is not None else t0])
         self._T_sen = self._T_opt.copy()
         self._play = float(self._T_opt[0])
+        self._force_play: np.ndarray | None = None  # motion_hysteresis: each axis' play output (m/s^2), from chunk to chunk
         self._tia_state: np.ndarray | None = None
         nm = self.noise_model
         self._white_bank = GaussMarkovBank([ax.white_q for ax in nm.axes], [ax.white_rho for ax in nm.axes], rng)
@@ -566,6 +567,8 @@ class BoardSimulator:
         slide, table = self._linear_slide(t, delay, table)
         temps = self._temperatures(t)
         bias = self._axis_biases(t, temps.optics_c, table.psi_felt_deg)
+        if self.cfg.scale("motion_hysteresis") != 0.0:
+            bias += self._motion_hysteresis(table.felt_mps2)
         u = self._axis_inputs(t, delay, table.felt_mps2, bias)
         resp = self._optical_response(u, temps.delta_ref_c)
         signal = self._source_and_gains(t, temps.delta_ref_c, resp, self._rng(ci, _STREAM_SOURCE))
@@ -666,6 +669,29 @@ class BoardSimulator:
             ang = np.radians(float(ct["harmonic"]) * psi_felt_deg + float(ct["phase_deg"]))
             bias += float(ct["scale"]) * np.sin(ang)[:, None] * np.asarray(ct["amplitude_mps2"], float)
         return bias
+
+    def _motion_hysteresis(self, felt: np.ndarray) -> np.ndarray:
+        """Motion-history (mechanical) hysteresis, bias (N, 3) m/s^2 on the axis inputs: per axis, the play operator
+        (backlash of ``play_width_mps2``) on the felt specific force ``felt`` (N, 3) m/s^2, sensor frame, its branch
+        (f - play(f)) / width in [-1/2, 1/2] times ``amplitude_mps2`` times the scale: a force last raised reads
+        half the amplitude high, one last lowered half low (the bonds of the fibre segments, paper 3.1; ASSUMPTION,
+        config/sim_default.yaml). The play's output carries from chunk to chunk (``self._force_play``)."""
+        mh = self.cfg.get("effects.motion_hysteresis")
+        width = float(mh["play_width_mps2"])
+        if not width > 0:
+            raise ValueError("effects.motion_hysteresis.play_width_mps2 must be > 0")
+        p = (np.asarray(felt[0], float) if self._force_play is None else self._force_play).tolist()
+        out = np.empty(felt.shape)
+        half = 0.5 * width
+        for i, row in enumerate(np.asarray(felt, float).tolist()):
+            for j in range(3):
+                if row[j] - p[j] > half:
+                    p[j] = row[j] - half
+                elif p[j] - row[j] > half:
+                    p[j] = row[j] + half
+            out[i] = p
+        self._force_play = np.array(p)
+        return self.cfg.scale("motion_hysteresis") * (felt - out) / width * np.asarray(mh["amplitude_mps2"], float)
 
     def _hysteresis_branch(self, T_opt: np.ndarray, width: float) -> np.ndarray:
         """Thermal hysteresis branch in [-1/2, 1/2]: (T_opt - play(T_opt)) / width, the play operator (backlash of

@@ -15,7 +15,7 @@ from fbg_accel_sim.make_default_calibration import fit_eq28
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
 
 NAMED = ("reference_dark_offset", "thermal_lag", "spectral_nonlinearity", "time_drift", "channel_delay", "tia_lowpass",
-         "thermal_hysteresis", "unmodelled_cable_torque", "bias_step")
+         "thermal_hysteresis", "unmodelled_cable_torque", "bias_step", "motion_hysteresis")
 CHAIN = ("source_power_thermal", "source_wavelength_drift", "source_power_wander", "coupler_thermal", "photodetector_thermal",
          "fbg_pair_thermal_mismatch", "white_noise", "bias_instability", "adc_quantisation", "aht10_error")
 QUIET = {f"effects.{k}.scale": 0.0 for k in ("white_noise", "bias_instability", "adc_quantisation", "aht10_error",
@@ -104,6 +104,25 @@ def test_hysteresis_branches_differ_by_the_amplitude() -> None:
     heating, cooling = (rate > 0.05) & (topt > 25), (rate < -0.05) & (topt > 25)
     # d is read through the published M, while the chain's gain at 25-35 degC differs by a few %: 15 %
     np.testing.assert_allclose(np.median(d[heating], 0) - np.median(d[cooling], 0), amp, rtol=0.15)
+
+
+def test_a_motion_history_hysteresis_reads_a_pose_by_the_side_it_was_approached_from() -> None:
+    """The play operator on each axis' felt specific force: at a still pose, an axis whose force last rose reads
+    +amplitude / 2, one whose force last fell -amplitude / 2 (once the change exceeded the play's width)."""
+    amp = np.array([0.4, 0.3, 0.2])
+    rec = simulate_recording(_baseline(**QUIET, **{"effects.motion_hysteresis.scale": 1.0,
+                                                   "effects.motion_hysteresis.amplitude_mps2": amp.tolist()}), seed=0)
+    ref = simulate_recording(_baseline(**QUIET), seed=0)
+    d = (normalise(rec.xyz, rec.ref) - normalise(ref.xyz, ref.ref)) @ np.array(SimConfig.default().get("optics.published_M")).T
+    truth = rec.metadata["truth"]
+    still = (rec.pose_id >= 0) & (truth["time_at_pose_s"] > 0.5)
+    f = rec.gref_mps2  # the sensor's frame is the table's (no mount rotation)
+    for j in range(3):
+        came_up = still & (f[:, j] - np.interp(rec.t_s - 1.6, rec.t_s, np.nan_to_num(f[:, j])) > 2.0)
+        came_down = still & (f[:, j] - np.interp(rec.t_s - 1.6, rec.t_s, np.nan_to_num(f[:, j])) < -2.0)
+        assert came_up.sum() > 20 and came_down.sum() > 20
+        # d is read through the published M, while the chain's gain differs from it by a few %: 15 %
+        np.testing.assert_allclose(np.median(d[came_up, j]) - np.median(d[came_down, j]), amp[j], rtol=0.15)
 
 
 def test_cable_torque_follows_sin_2psi() -> None:

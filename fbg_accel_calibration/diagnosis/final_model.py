@@ -103,7 +103,7 @@ def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: Flo
     calibrated_later = beside(calibrated_output, cal, data, thread=thread)  # the driver's path, meanwhile the rest
     fitted_sensor = cv_f.fitted_full.copy()  # what the calibration file reproduces: without the per-run terms
     for e, _ in spec.effects:
-        if e.per_run:
+        if (e.per_run or e.rig) and e.name in des_f.blocks:  # the runs' and the rig's columns: not the sensor's
             sl = des_f.blocks[e.name]
             fitted_sensor -= des_f.X[:, sl] @ cv_f.A_full[sl]
     flagged = flagged_visits(data, groups, [floor.noise_model] + ([noise_model_after] if remedies else []),
@@ -139,7 +139,7 @@ def calibration_from(spec: ModelSpec, des: Design, cv: CvResult, data: Diagnosis
     for eff, h in sorted(spec.effects, key=lambda eh: eh[0].stage):
         coeff = A[des.blocks[eff.name]].T if eff.name in des.blocks else None
         terms.extend(eff.make_terms(h, coeff, data))
-        added.append((eff.name, h, eff.describe(h, coeff)))
+        added.append((eff.name, h, eff.describe_on(h, coeff, data)))
     per_run = [e.name for e, _ in spec.effects if e.per_run]
     rig = {e.name: h for e, h in spec.effects if e.rig}
     fit = {"tool": "fbg-accel-calib diagnose", "degree": n,

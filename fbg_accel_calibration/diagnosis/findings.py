@@ -19,6 +19,7 @@ from .cv import COLLINEAR_CORR, CvResult, cross_validate
 from .data import DiagnosisData, finite_rows, visit_means
 from .design import Design
 from .floor import FLOOR_VISIT_ALPHA, FLOOR_VISIT_RATIO, VisitNoise, _fmt3
+from .search import CandidateResult
 
 
 @dataclass
@@ -39,9 +40,17 @@ class Finding:
             raise ValueError(f"unknown kind of finding {self.kind!r}; the kinds: {', '.join(KINDS)}")
 
 
-KINDS = ("detection_limit", "step_confounded", "table_angles", "noisy_visits", "periodic_disturbance", "held_code",
-         "visit_ends", "reference_reach", "low_reference", "temperature_jumps", "clipped", "collinear",
-         "below_floor")
+KINDS = ("detection_limit", "cannot_reveal", "step_confounded", "table_angles", "approach_direction", "noisy_visits",
+         "periodic_disturbance", "held_code", "visit_ends", "reference_reach", "low_reference", "temperature_jumps",
+         "clipped", "collinear", "below_floor")
+
+
+def cannot_reveal(candidates: list[CandidateResult], titles: dict[str, str]) -> list[Finding]:
+    """What this campaign cannot reveal, one finding per candidate the data cannot show at all (not testable: its
+    ``Effect.applicable`` reason says why and which measurement would show it), so that its absence from the model is
+    not read as the sensor's lacking it. ``titles``: candidate name -> what it is (``Effect.title``)."""
+    return [Finding("cannot_reveal", f"this campaign cannot reveal {c.name} ({titles.get(c.name, c.name)}): {c.reason}",
+                    effect=c.name) for c in candidates if not c.applicable]
 
 
 def disturbance_warning(d: PeriodicDisturbance, floor: np.ndarray, heldout: np.ndarray) -> str:

@@ -18,7 +18,7 @@ from ..effects import (
     TiaLowpassEffect,
     TimeDriftEffect,
 )
-from .rig_effects import TableThetaOffsetEffect
+from .rig_effects import TELLS_A_REMOUNT_FROM_THE_SENSOR, MountChangeEffect, TableThetaOffsetEffect
 from .run_effects import RunDriftEffect, RunOffsetEffect
 
 LIBRARY: tuple[Effect, ...] = (
@@ -33,6 +33,7 @@ LIBRARY: tuple[Effect, ...] = (
     RunOffsetEffect(),
     RunDriftEffect(),
     TableThetaOffsetEffect(),
+    MountChangeEffect(),
 )
 
 
@@ -65,6 +66,9 @@ SEPARATING_MEASUREMENT: dict[frozenset[str], str] = {
     frozenset({"spectral_nonlinearity", "table_theta_offset"}): (
         "turn the sensor 90 degrees about the table's z axis on its mount and repeat, or check the table's theta zero "
         "against a level: a table offset stays with the table's axis, a non-linearity turns with the sensor"),
+    frozenset({"mount_change", "run_offset"}): TELLS_A_REMOUNT_FROM_THE_SENSOR,
+    frozenset({"mount_change", "spectral_nonlinearity"}): TELLS_A_REMOUNT_FROM_THE_SENSOR,
+    frozenset({"mount_change", "thermal_lag"}): TELLS_A_REMOUNT_FROM_THE_SENSOR,
     frozenset({"time_drift", "thermal_hysteresis"}): (
         "cycle the temperature up and down twice: hysteresis repeats with the branch, drift does not"),
 }

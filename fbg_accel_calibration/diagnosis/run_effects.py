@@ -89,23 +89,31 @@ def _any_level_shared(data: DiagnosisData) -> bool:
     return bool(len(np.unique(pairs[:, 1])) < len(pairs))
 
 
+def level_linked_runs(data: DiagnosisData) -> list[list[int]]:
+    """The run ids with fitted samples in sets that shared temperature levels connect (two runs are linked when both
+    have samples at one level), each set ascending, the sets in the order of their first run."""
+    pairs = _run_level_pairs(data)
+    left = [int(r) for r in np.unique(pairs[:, 0])]
+    out = []
+    while left:
+        linked, grew = {left[0]}, True
+        while grew:  # grow the set of runs reachable from its first one through levels they share
+            levels = pairs[np.isin(pairs[:, 0], list(linked)), 1]
+            reach = {int(r) for r in pairs[np.isin(pairs[:, 1], levels), 0]}
+            grew = not reach <= linked
+            linked |= reach
+        out.append(sorted(linked))
+        left = [r for r in left if r not in linked]
+    return out
+
+
 def runs_apart_by_levels(data: DiagnosisData) -> list[int]:
     """The run ids (ascending) that shared temperature levels do not connect to the first run with fitted samples (two
     runs are linked when both have samples at one level). Only runs all connected let an offset of each run be told
     from a bias that depends on the level: with one level per run (one file per chamber temperature) the offsets
     would take over eq. 28's b(T), and leave the calibration file without it. Empty: all connected."""
-    pairs = _run_level_pairs(data)
-    runs = np.unique(pairs[:, 0])
-    if len(runs) < 2:
-        return []
-    linked = {int(runs[0])}
-    grew = True
-    while grew:  # grow the set of runs reachable from the first one through levels they share
-        levels = pairs[np.isin(pairs[:, 0], list(linked)), 1]
-        reach = {int(r) for r in pairs[np.isin(pairs[:, 1], levels), 0]}
-        grew = not reach <= linked
-        linked |= reach
-    return sorted(int(r) for r in runs if int(r) not in linked)
+    sets = level_linked_runs(data)
+    return sorted(r for linked in sets[1:] for r in linked)
 
 
 class RunDriftEffect(_PerRunEffect):

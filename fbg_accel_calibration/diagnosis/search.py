@@ -553,7 +553,7 @@ class Evaluator:
         out.rel_gain, out.p_value, out.n_groups = gain, p, ng
         out.corr_with_residual = corr
         coeff = cvr.A_full[des.blocks[eff.name]].T if eff.name in des.blocks else None
-        out.detail = eff.describe(h, coeff)
+        out.detail = eff.describe_on(h, coeff, self.data)
         out.implausible = self.implausible(eff, h, des, cvr)
         if out.implausible:
             out.detail += f"; REFUSED: {out.implausible}"
