@@ -3,6 +3,7 @@ diagnosis baseline (test/fixtures/sim_diagnosis_baseline.yaml) makes the declare
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,7 @@ from fbg_accel_sim.make_default_calibration import fit_eq28
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
 
 NAMED = ("reference_dark_offset", "thermal_lag", "spectral_nonlinearity", "time_drift", "channel_delay", "tia_lowpass",
-         "thermal_hysteresis", "unmodelled_cable_torque", "bias_step")
+         "thermal_hysteresis", "unmodelled_cable_torque", "bias_step", "motion_hysteresis")
 CHAIN = ("source_power_thermal", "source_wavelength_drift", "source_power_wander", "coupler_thermal", "photodetector_thermal",
          "fbg_pair_thermal_mismatch", "white_noise", "bias_instability", "adc_quantisation", "aht10_error")
 QUIET = {f"effects.{k}.scale": 0.0 for k in ("white_noise", "bias_instability", "adc_quantisation", "aht10_error",
@@ -82,6 +83,39 @@ def test_thermal_lag_is_a_first_order_lag_of_the_aht10_behind_the_optics() -> No
     ts, to = blk.temp_sensor_true_c, blk.temp_optics_c
     np.testing.assert_allclose(ts[1:], a * ts[:-1] + (1 - a) * to[1:], atol=1e-9)  # tau dTs/dt = To - Ts
     assert np.max(np.abs(ts - to)) > 1.0  # and it matters on this profile
+
+
+def test_a_reading_that_leads_has_the_optics_lag_the_aht10() -> None:
+    """``thermal_lag.reading_leads``: the die follows the chamber through the housing, the optics follow the die."""
+    tau = 30.0
+    blk = _run(_baseline(**QUIET, **{"effects.thermal_lag.scale": 1.0, "effects.thermal_lag.time_constant_s": tau,
+                                      "effects.thermal_lag.reading_leads": True}))
+    a = np.exp(-np.diff(blk.t_s) / tau)
+    ts, to = blk.temp_sensor_true_c, blk.temp_optics_c
+    np.testing.assert_allclose(to[1:], a * to[:-1] + (1 - a) * ts[1:], atol=1e-9)  # tau dTo/dt = Ts - To
+    assert np.max(np.abs(ts - to)) > 1.0
+
+
+def test_motion_hysteresis_sets_each_axis_by_the_sign_of_its_last_change_of_force() -> None:
+    """Each axis' bias is +amplitude/2 after its felt force rose by more than the play width, -amplitude/2 after it
+    fell: two visits of one pose differ by the amplitude when they were approached from opposite sides."""
+    on = _run(_baseline(**QUIET, **{"effects.motion_hysteresis.scale": 1.0}))
+    off = _run(_baseline(**QUIET))
+    M = np.array(SimConfig.default().get("optics.published_M"))
+    d = (normalise(on.counts_float[:, 1:], on.counts_float[:, 0]) - normalise(off.counts_float[:, 1:],
+                                                                            off.counts_float[:, 0])) @ M.T
+    f = on.accel_true_mps2
+    still = (on.pose_id >= 0) & (on.time_at_pose_s > 1.0)
+    starts = np.flatnonzero(np.diff(on.visit) != 0) + 1
+    for j in range(3):
+        seen = {+1: [], -1: []}
+        for a, b in itertools.pairwise(starts):
+            change = f[a, j] - f[a - 1 - int(1.0 * 20), j]  # the move before the visit (1 s at 20 Hz)
+            if abs(change) > 3.0:  # well beyond the play width (1 m/s^2): the branch is set
+                seen[int(np.sign(change))].append(np.median(d[a:b][still[a:b], j]))
+        assert seen[+1] and seen[-1]
+        # d is read through the published M (gain a few % off the chain's): 15 %
+        np.testing.assert_allclose(np.median(seen[+1]) - np.median(seen[-1]), 0.1, rtol=0.15)
 
 
 def test_channel_delay_shifts_the_sensor_against_the_table() -> None:
