@@ -36,27 +36,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "test"))
 
 from output_paths import RESULTS_PAGES, scratch_dir  # noqa: E402
-from test_diagnose_sim import SCENARIOS, _config  # noqa: E402
+from test_diagnose_sim import DARK_UNDER_DRIFT, LAG, LAG_S, LEAD, RAMPS, SCENARIOS, _config  # noqa: E402
 
 from fbg_accel_calibration.diagnose import DiagnosisResult, diagnose  # noqa: E402
 from fbg_accel_sim.board_physics import simulate_recording  # noqa: E402
 
 RATIO = 1.2  # held-out error / noise floor a named effect must end within
 TAU_TOLERANCE = 0.10  # relative error of a thermal lag's tau
-RAMP_S = 600.0  # each way
-LAG_S = 120.0  # the thermal lag's tau (the simulator's nominal)
-# 15 -> 45 -> 15 degC through a fast housing (60 s, so the ramps are minutes, not hours), 10 Hz, the grid of
-# test_diagnose_sim.py (42 poses, 3 s dwell, 1 s moves) repeated through the whole run
-RAMPS = {"scenario.rate_hz": 10.0, "scenario.poses.repeat": int(2 * RAMP_S / 168.0) + 1,
-         "thermal.optics_time_constant_s": 60.0, "scenario.temperature.initial_c": 15.0,
-         "thermal.initial_optics_c": 15.0, "scenario.duration_s": 2 * RAMP_S,
-         "scenario.temperature.profile": [{"ramp_to_c": 45.0, "duration_s": RAMP_S},
-                                          {"ramp_to_c": 15.0, "duration_s": RAMP_S}]}
-LAG = {"effects.thermal_lag.scale": 1.0, "effects.thermal_lag.time_constant_s": LAG_S}
-LEAD = {**LAG, "effects.thermal_lag.reading_leads": True}
-DARK_UNDER_DRIFT = {"effects.reference_dark_offset.scale": 4.0, "effects.source_power_wander.relative_sigma": 0.04}
-
-
 @dataclass
 class Case:
     name: str
