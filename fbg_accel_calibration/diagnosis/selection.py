@@ -271,15 +271,21 @@ def drop_explained(lanes: Lanes[Evaluator], spec: ModelSpec, chosen: str, alpha_
     def without(i: int) -> ModelSpec:
         return ModelSpec(spec.degree, spec.t_center_c, spec.t_scale_c, [x for j, x in enumerate(before) if j != i])
 
-    def beyond(lane: Evaluator, i: int) -> tuple[ModelSpec, np.ndarray, np.ndarray, np.ndarray]:
-        rest = without(i)
-        rest = rest.plus(last, lane.fit_hyper(rest, last)[0])
-        des, cvr = lane.cv(rest)
-        return rest, des.valid, cvr.heldout, lane.nested_heldout(rest, before[i][0])
+    def beyond(lane: Evaluator, i: int) -> tuple[ModelSpec, np.ndarray, np.ndarray, np.ndarray] | None:
+        try:
+            rest = without(i)
+            rest = rest.plus(last, lane.fit_hyper(rest, last)[0])
+            des, cvr = lane.cv(rest)
+            return rest, des.valid, cvr.heldout, lane.nested_heldout(rest, before[i][0])
+        except NotIdentifiedError:  # the model without it is not identified on this data: it stays
+            return None
 
     ev = lanes.lanes[0]
     weakest: tuple[float, float, int, ModelSpec] | None = None  # (p, -gain, index, model without it): least gain
-    for i, (rest, valid, ho_rest, ho_with) in enumerate(lanes.map(beyond, range(len(before)))):
+    for i, done in enumerate(lanes.map(beyond, range(len(before)))):
+        if done is None:
+            continue
+        rest, valid, ho_rest, ho_with = done
         gain, p = paired_gain_test(ho_rest, ho_with, ev.groups, ev.rows & valid, ev.weights, alpha_each)[:2]
         if not (p < alpha_each and gain >= min_rel_gain) and (weakest is None or (p, -gain) > weakest[:2]):
             weakest = (p, -gain, i, rest)
