@@ -23,7 +23,8 @@ Pure numpy/scipy engine behind ``fbg-accel-calib diagnose``. Steps:
    visits (Bonferroni over the candidates of the step); correlation of the candidate's
    contribution with the held-out residual; pairwise confounding among the significant ones (each
    added on top of the other: does it still gain?).
-4. Forward selection: add the best significant candidate, repeat; stop when no candidate is
+4. Forward selection: add the best significant candidate, then take out again an effect added before it that no
+   longer gains on top of the others (``selection.drop_explained``), repeat; stop when no candidate is
    significant or gains less than ``min_rel_gain`` of the held-out MSE (so nothing is added when
    nothing is significant). Above ``SEARCH_ROWS`` fitted samples, steps 3-4 run on every k-th fitted
    sample (the same visits and folds; ``search_samples``: k no larger than keeps ``MIN_SEARCH_INFORMATION``

@@ -294,6 +294,8 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
         if st.degree_note:
             lines += [st.degree_note[0].upper() + st.degree_note[1:] + ".", "",
                       degree_table(st.degree_table, st.degree_after), ""]
+        if st.removed_note:
+            lines += [st.removed_note[0].upper() + st.removed_note[1:] + ".", ""]
         for c in st.candidates:
             if c.name == "channel_delay" and c.cross_correlation_delay_s is not None:
                 lines += [f"Cross-correlation delay of the model output against the reference (finddelay): "
@@ -382,6 +384,8 @@ def text(res: DiagnosisResult) -> str:
         out.append(f"  chosen: {st.chosen or 'nothing'}")
         if st.degree_note:
             out.append(f"  {st.degree_note}")
+        if st.removed_note:
+            out.append(f"  {st.removed_note}")
     out.append("added: " + (", ".join(f"{n} ({d})" for n, _, d in res.added) if res.added else "nothing"))
     for n, _, d in res.noise_remedies:
         out.append(f"noise remedy: {n} ({d}); floor of the filtered output {_v(res.final_floor)} m/s^2")

@@ -423,24 +423,41 @@ class ThermalLag(_Base):
     """The optics and the AHT10 are not at the same temperature while it changes (paper §3.6).
 
     ``tau_s`` > 0: the optics lag the sensor, T_optics = LPF_tau(T). ``tau_s`` < 0: the sensor lags
-    the optics (AHT10 on the PCB): T_optics = T + |tau| dT/dt, with the rate estimated as
-    (T - LPF_s(T)) / s, ``s = rate_smoothing_s`` (default |tau|/4); exact on a ramp after ~3 s, and
-    it amplifies the AHT10 noise by about |tau|/s. Eq. 28 is evaluated at T_optics. State: filter.
+    the optics (AHT10 on the PCB) by a first-order lag, whose exact inverse is T_optics = T + |tau| dT/dt. The rate
+    is estimated causally, with ``s = rate_smoothing_s`` (default |tau|/4) and r = |tau|/s:
+
+    * ``rate_order`` 2 (what the diagnosis writes): T_optics = (1 + 2r) T - 3r LPF_s(T) + r LPF_s(LPF_s(T)), the
+      transfer (1 + (tau + 2s) p + (2 s tau + s^2) p^2) / (1 + s p)^2 = 1 + |tau| p - |tau| s^2 p^3 / (1 + s p)^2:
+      exact to the second derivative of T, so a turn of a ramp no longer leaves an error of |tau| s d^2T/dt^2; it
+      amplifies the AHT10 noise by about 1 + 2r (9).
+    * ``rate_order`` 1 (a file without the key: what older diagnoses wrote): the rate (T - LPF_s(T)) / s, transfer
+      1 + |tau| p / (1 + s p): exact on a ramp after ~3 s, but at a turn short by |tau| s d^2T/dt^2 (a fit then takes
+      tau some 10-20 % long and leaves a residual); noise amplified by about 1 + r.
+
+    Eq. 28 is evaluated at T_optics. State: the filters.
     """
 
     kind = "thermal_lag"
+    RATE_ORDERS = (1, 2)
 
-    def __init__(self, tau_s: float, rate_smoothing_s: float | None = None) -> None:
+    def __init__(self, tau_s: float, rate_smoothing_s: float | None = None, rate_order: int = 2) -> None:
         self.tau_s = float(tau_s)
         self.rate_smoothing_s = float(rate_smoothing_s) if rate_smoothing_s is not None else abs(self.tau_s) / 4.0
+        if rate_order not in self.RATE_ORDERS:
+            raise ValueError(f"{self.kind}: parameter 'rate_order' must be 1 or 2, got {rate_order!r}")
+        self.rate_order = int(rate_order)
 
     @classmethod
     def from_dict(cls, d: dict) -> ThermalLag:
         tau = _scalar(d, "tau_s", cls.kind, nonzero=True)
-        return cls(tau, _scalar(d, "rate_smoothing_s", cls.kind, positive=True, default=abs(tau) / 4.0))
+        order = d.get("rate_order", 1)  # a file written before the second-order estimate has its first-order one
+        if isinstance(order, bool) or order not in cls.RATE_ORDERS:
+            raise ValueError(f"{cls.kind}: parameter 'rate_order' must be 1 or 2, got {order!r}")
+        return cls(tau, _scalar(d, "rate_smoothing_s", cls.kind, positive=True, default=abs(tau) / 4.0), int(order))
 
     def to_dict(self) -> dict[str, Any]:
-        return {"kind": self.kind, "tau_s": self.tau_s, "rate_smoothing_s": self.rate_smoothing_s}
+        return {"kind": self.kind, "tau_s": self.tau_s, "rate_smoothing_s": self.rate_smoothing_s,
+                "rate_order": self.rate_order}
 
     def new_state(self) -> dict:
         return {}
@@ -453,8 +470,14 @@ class ThermalLag(_Base):
         if self.tau_s > 0:
             return first_order_lowpass(temp_c, t_s, self.tau_s, state, steps)
         s = self.rate_smoothing_s
-        lp = first_order_lowpass(temp_c, t_s, s, state, steps)
-        return temp_c + (abs(self.tau_s) / s) * (temp_c - lp)
+        r = abs(self.tau_s) / s
+        if self.rate_order == 1:
+            lp = first_order_lowpass(temp_c, t_s, s, state, steps)
+            return temp_c + r * (temp_c - lp)
+        st = state if state is not None else {}
+        lp = first_order_lowpass(temp_c, t_s, s, st.setdefault("lowpass", {}), steps)
+        lp2 = first_order_lowpass(lp, t_s, s, st.setdefault("lowpass2", {}), steps)
+        return temp_c + r * (2.0 * (temp_c - lp) - (lp - lp2))
 
     def contribution(self, cal: BaseModel, inputs: TermInputs, state: dict | None) -> np.ndarray:
         t_eff = self.effective_temperature(inputs.temp_c, inputs.t_s, state if state is not None else {})

@@ -11,7 +11,7 @@ Signal chain per sample (docs/simulator.md has the equations and the source of e
 
     table angles (t - delay) -> specific force f (table frame) -> mount rotation + vibration + slide
        (dynamic inputs through the mechanical resonance; channel j evaluated j x ADC skew later)
-    -> axis inputs u = A f + equivalent biases (time drift, thermal and motion-history hysteresis, cable torque)
+    -> axis inputs u = A f + equivalent biases (time drift, hysteresis, cable torque, motion hysteresis)
     -> FBG pair separation d = d0 - S u + thermal mismatch -> super-Gaussian spectral overlap (eq. 13)
     -> optical power x source power (temperature, wander, dropout) x chain gains (SLD wavelength
        drift, couplers, photodiodes) -> counts at rest scale -> TIA first-order low-pass
@@ -89,6 +89,21 @@ def _lowpass(x: np.ndarray, tau_s: float, dt_s: float, y_prev: float, x_prev: fl
     else:
         y = first_order_filter(x, a, -math.expm1(-dt_s / tau_s), y_prev)
     return y, float(y[-1]), float(x[-1])
+
+
+def _play_branch(x: np.ndarray, width: float, p: float) -> tuple[np.ndarray, float]:
+    """Branch (x - play(x)) / width in [-1/2, 1/2] of a play operator (backlash of ``width``, in the unit of ``x``) that
+    starts at ``p``, and its last output: +1/2 after a rise of ``x`` by more than the width, -1/2 after a fall, in
+    between on a reversal smaller than the width. Zeros when ``width`` is 0."""
+    u_play = np.empty(x.shape[0])
+    half = 0.5 * width
+    for i, v in enumerate(x.tolist()):
+        if v - p > half:
+            p = v - half
+        elif p - v > half:
+            p = v + half
+        u_play[i] = p
+    return ((x - u_play) / width if width > 0 else np.zeros(x.shape[0])), p
 
 
 class _TableMotion(NamedTuple):
@@ -437,10 +452,10 @@ class BoardSimulator:
         self.aht_offset = float(off) if off is not None else float(rng.uniform(-acc, acc))
         t_init = c.get("thermal.initial_optics_c")
         t0 = float(self.chamber(np.array([0.0]))[0])
-        self._T_opt = np.array([float(t_init) if t_init is not None else t0])
-        self._T_sen = self._T_opt.copy()
-        self._play = float(self._T_opt[0])
-        self._force_play: np.ndarray | None = None  # motion_hysteresis: each axis' play output (m/s^2), from chunk to chunk
+        self._T_housing = np.array([float(t_init) if t_init is not None else t0])  # first stage: the housing
+        self._T_inner = self._T_housing.copy()  # second stage: the part that lags it (thermal_lag)
+        self._play = float(self._T_housing[0])
+        self._force_play: np.ndarray | None = None  # play operator of each axis' specific force (motion_hysteresis)
         self._tia_state: np.ndarray | None = None
         nm = self.noise_model
         self._white_bank = GaussMarkovBank([ax.white_q for ax in nm.axes], [ax.white_rho for ax in nm.axes], rng)
@@ -566,9 +581,7 @@ class BoardSimulator:
         table = self._table_motion(t, delay)
         slide, table = self._linear_slide(t, delay, table)
         temps = self._temperatures(t)
-        bias = self._axis_biases(t, temps.optics_c, table.psi_felt_deg)
-        if self.cfg.scale("motion_hysteresis") != 0.0:
-            bias += self._motion_hysteresis(table.felt_mps2)
+        bias = self._axis_biases(t, temps.optics_c, table.psi_felt_deg, table.felt_mps2)
         u = self._axis_inputs(t, delay, table.felt_mps2, bias)
         resp = self._optical_response(u, temps.delta_ref_c)
         signal = self._source_and_gains(t, temps.delta_ref_c, resp, self._rng(ci, _STREAM_SOURCE))
@@ -638,19 +651,24 @@ class BoardSimulator:
         c = self.cfg
         T_ch = self.chamber(t)
         a_opt = math.exp(-self.dt_true / float(c.get("thermal.optics_time_constant_s")))
-        T_opt, self._T_opt = _first_order(T_ch, a_opt, self._T_opt)
+        housing, self._T_housing = _first_order(T_ch, a_opt, self._T_housing)
         thermal_lag = c.get("effects.thermal_lag")
         lag = float(thermal_lag["scale"]) * float(thermal_lag["time_constant_s"])
         a_lag = math.exp(-self.dt_true / lag) if lag > 0 else 0.0
-        T_sen, self._T_sen = _first_order(T_opt, a_lag, self._T_sen)
+        inner, self._T_inner = _first_order(housing, a_lag, self._T_inner)
+        # the AHT10 die lags the optics (it sits on the PCB behind them), or with reading_leads the optics lag the die
+        # (the die nearer the chamber air than the optics bonded inside the housing)
+        T_opt, T_sen = (inner, housing) if thermal_lag.get("reading_leads", False) else (housing, inner)
         return _Temperatures(T_ch, T_opt, T_sen, T_opt - self.T_ref)
 
-    def _axis_biases(self, t: np.ndarray, T_opt: np.ndarray, psi_felt_deg: np.ndarray) -> np.ndarray:
+    def _axis_biases(self, t: np.ndarray, T_opt: np.ndarray, psi_felt_deg: np.ndarray, felt: np.ndarray) -> np.ndarray:
         """Equivalent acceleration biases (N, 3) on the axis inputs, m/s^2: time drift (warm-up and creep of the pair
         separation: bond relaxation, not characterised in the paper), thermal hysteresis (bond/mount stress; play
         operator on the optics temperature ``T_opt``, degC), a step of the bias at one time (``bias_step``: the calibration
         stops holding, what the driver's gravity check must see) and the unmodelled cable torque ~ sin(harmonic psi) (fibre
-        pigtail drag at the felt inner angle ``psi_felt_deg``); amplitudes ASSUMPTION (config/sim_default.yaml)."""
+        pigtail drag at the felt inner angle ``psi_felt_deg``) and a motion-history hysteresis (each axis' branch set by the
+        sign of the last change of the specific force it feels, ``felt`` (N, 3) m/s^2); amplitudes ASSUMPTION
+        (config/sim_default.yaml)."""
         eff = self.cfg.get("effects")
         bias = np.zeros((t.shape[0], 3))
         td = eff["time_drift"]
@@ -668,45 +686,28 @@ class BoardSimulator:
         if float(ct["scale"]) != 0.0:
             ang = np.radians(float(ct["harmonic"]) * psi_felt_deg + float(ct["phase_deg"]))
             bias += float(ct["scale"]) * np.sin(ang)[:, None] * np.asarray(ct["amplitude_mps2"], float)
+        mh = eff["motion_hysteresis"]
+        if float(mh["scale"]) != 0.0:  # friction in the suspension and bonds (ASSUMPTION): the force's last change
+            branch = self._motion_branches(felt, float(mh["play_width_mps2"]))
+            bias += float(mh["scale"]) * branch * np.asarray(mh["amplitude_mps2"], float)
         return bias
 
-    def _motion_hysteresis(self, felt: np.ndarray) -> np.ndarray:
-        """Motion-history (mechanical) hysteresis, bias (N, 3) m/s^2 on the axis inputs: per axis, the play operator
-        (backlash of ``play_width_mps2``) on the felt specific force ``felt`` (N, 3) m/s^2, sensor frame, its branch
-        (f - play(f)) / width in [-1/2, 1/2] times ``amplitude_mps2`` times the scale: a force last raised reads
-        half the amplitude high, one last lowered half low (the bonds of the fibre segments, paper 3.1; ASSUMPTION,
-        config/sim_default.yaml). The play's output carries from chunk to chunk (``self._force_play``)."""
-        mh = self.cfg.get("effects.motion_hysteresis")
-        width = float(mh["play_width_mps2"])
-        if not width > 0:
-            raise ValueError("effects.motion_hysteresis.play_width_mps2 must be > 0")
-        p = (np.asarray(felt[0], float) if self._force_play is None else self._force_play).tolist()
-        out = np.empty(felt.shape)
-        half = 0.5 * width
-        for i, row in enumerate(np.asarray(felt, float).tolist()):
-            for j in range(3):
-                if row[j] - p[j] > half:
-                    p[j] = row[j] - half
-                elif p[j] - row[j] > half:
-                    p[j] = row[j] + half
-            out[i] = p
-        self._force_play = np.array(p)
-        return self.cfg.scale("motion_hysteresis") * (felt - out) / width * np.asarray(mh["amplitude_mps2"], float)
-
     def _hysteresis_branch(self, T_opt: np.ndarray, width: float) -> np.ndarray:
-        """Thermal hysteresis branch in [-1/2, 1/2]: (T_opt - play(T_opt)) / width, the play operator (backlash of
-        ``width`` degC) keeping its output in ``self._play`` from chunk to chunk."""
-        u_play = np.empty(T_opt.shape[0])
-        p = self._play
-        half = 0.5 * width
-        for i, temp in enumerate(T_opt.tolist()):
-            if temp - p > half:
-                p = temp - half
-            elif p - temp > half:
-                p = temp + half
-            u_play[i] = p
-        self._play = p
-        return (T_opt - u_play) / width if width > 0 else np.zeros(T_opt.shape[0])  # in [-1/2, 1/2]
+        """Thermal hysteresis branch in [-1/2, 1/2] (``_play_branch`` of the optics temperature, ``width`` degC), the
+        play operator's output kept in ``self._play`` from chunk to chunk."""
+        branch, self._play = _play_branch(T_opt, width, self._play)
+        return branch
+
+    def _motion_branches(self, felt: np.ndarray, width: float) -> np.ndarray:
+        """Motion-history branch (N, 3) in [-1/2, 1/2] of each axis: ``_play_branch`` of the specific force the axis
+        feels (``felt``, m/s^2, sensor frame; ``width`` m/s^2), so it is set by the sign of the force's last change
+        larger than the width; the play operators' outputs carry from chunk to chunk."""
+        if self._force_play is None:
+            self._force_play = np.array(felt[0], dtype=float)
+        out = np.empty_like(felt)
+        for j in range(3):
+            out[:, j], self._force_play[j] = _play_branch(felt[:, j], width, float(self._force_play[j]))
+        return out
 
     def _axis_inputs(self, t: np.ndarray, delay: float, felt: np.ndarray, bias: np.ndarray) -> np.ndarray:
         """Axis inputs u = A f + bias (N, 3), m/s^2, with A the cross-axis coupling derived from the published

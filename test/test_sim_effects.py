@@ -84,6 +84,17 @@ def test_thermal_lag_is_a_first_order_lag_of_the_aht10_behind_the_optics() -> No
     assert np.max(np.abs(ts - to)) > 1.0  # and it matters on this profile
 
 
+def test_a_reading_that_leads_has_the_optics_lag_the_aht10() -> None:
+    """``thermal_lag.reading_leads``: the die follows the chamber through the housing, the optics follow the die."""
+    tau = 30.0
+    blk = _run(_baseline(**QUIET, **{"effects.thermal_lag.scale": 1.0, "effects.thermal_lag.time_constant_s": tau,
+                                      "effects.thermal_lag.reading_leads": True}))
+    a = np.exp(-np.diff(blk.t_s) / tau)
+    ts, to = blk.temp_sensor_true_c, blk.temp_optics_c
+    np.testing.assert_allclose(to[1:], a * to[:-1] + (1 - a) * ts[1:], atol=1e-9)  # tau dTo/dt = Ts - To
+    assert np.max(np.abs(ts - to)) > 1.0
+
+
 def test_channel_delay_shifts_the_sensor_against_the_table() -> None:
     base = _baseline(**QUIET, **{"scenario.rate_hz": 100.0})
     a = BoardSimulator(base, seed=0, wire=False).step(3000)

@@ -4,7 +4,8 @@
 every candidate on top of the current model (``search.Evaluator``: hyper-parameter nested in each training fold,
 held-out gain per visit, one-sided test over visits, Bonferroni over the candidates the data can show), the checks
 each candidate declares (``checks``), confounding among the significant ones; the best is added, eq. 28's degree
-chosen again, until none is significant or gains less than ``min_rel_gain``. The searches run on ``Lanes`` (its
+chosen again, and an effect added earlier that no longer gains on top of the others taken out again
+(``drop_explained``), until none is significant or gains less than ``min_rel_gain``. The searches run on ``Lanes`` (its
 ``map`` is the one seam of the parallel execution: serial with one lane, the same results with any number).
 """
 
@@ -67,6 +68,7 @@ class StepResult:
     degree_table: list[dict[str, Any]] = field(default_factory=list)  # degree re-selected after adding ``chosen``
     degree_note: str = ""
     degree_after: int | None = None  # the re-selected degree
+    removed_note: str = ""  # an effect added earlier taken out again after ``chosen`` was added (``drop_explained``)
 
 
 @dataclass
@@ -99,7 +101,8 @@ class Selection:
     def confounded(self) -> dict[str, list[str]]:
         """Added effect -> the candidates it was confounded with when added (only those with any)."""
         out = {st.chosen: [c.b if c.a == st.chosen else c.a for c in st.confounding
-                           if c.verdict == "confounded" and st.chosen in (c.a, c.b)] for st in self.steps if st.chosen}
+                           if c.verdict == "confounded" and st.chosen in (c.a, c.b)] for st in self.steps
+               if st.chosen in self.spec.names}  # not one taken out again (drop_explained)
         return {k: v for k, v in out.items() if v}
 
 
@@ -236,6 +239,13 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
             steps[-1].degree_note = (f"degree of eq. 28 re-selected with {chosen} in the model: "
                                      + (f"{was} -> {spec.degree}" if spec.degree != was else f"{was}, unchanged")
                                      + "".join(f"; {n}" for n in notes))
+        if len(spec.effects) >= 2:  # a term added earlier that those after it explain is taken out again
+            spec, steps[-1].removed_note = drop_explained(searchers, spec, chosen, ctx.alpha_each, rules.min_rel_gain)
+            if steps[-1].removed_note and rules.reselect_degree:
+                was = spec.degree
+                spec, _, notes = reselect_degree(searchers, spec, rules.max_degree)
+                steps[-1].removed_note += (f"; degree of eq. 28 re-selected without it: {was} -> {spec.degree}"
+                                           if spec.degree != was else "") + "".join(f"; {n}" for n in notes)
         des_c, cv_c = sel.cv(spec)
         searchers.each(lambda ev, model=spec: ev.forget(model))
         return_free_memory()  # what the step's searches dropped, before the next step's are made
@@ -243,6 +253,48 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
         del des_c, cv_c  # the design (n x p) is not held beyond the evaluator's own caches
     n_search = len(sel.folds) if step > 1 else None
     return Selection(spec, steps, detection_limit, ctx.step_confounded, n_search, step, kept, n_lanes)
+
+
+def drop_explained(lanes: Lanes[Evaluator], spec: ModelSpec, chosen: str, alpha_each: float,
+                   min_rel_gain: float) -> tuple[ModelSpec, str]:
+    """The backward step after ``chosen`` (the last of ``spec.effects``) was added: does each effect added before it
+    still gain on top of all the others? Without it, ``chosen``'s hyper-parameter is searched again (it was chosen
+    beside the one now in question: a thermal lag's tau came out 10 % long beside a time drift that took part of its
+    residual), then the effect in question is tried on top, nested, with the forward step's test, level and least gain.
+    The one that gains least of those that no longer do is taken out: the model without it and a note for the report;
+    ``spec`` and "" when every one still earns its place. Forward selection alone keeps a term chosen first for a
+    residual that effects added after it share out between them (on ramps with a thermal lag and reference dark
+    offsets under a source drift, a time drift fits more of the declared model's residual than either, and stayed
+    beside both). The searches for each effect in question run side by side on ``lanes``."""
+    *before, (last, _) = spec.effects
+
+    def without(i: int) -> ModelSpec:
+        return ModelSpec(spec.degree, spec.t_center_c, spec.t_scale_c, [x for j, x in enumerate(before) if j != i])
+
+    def beyond(lane: Evaluator, i: int) -> tuple[ModelSpec, np.ndarray, np.ndarray, np.ndarray] | None:
+        try:
+            rest = without(i)
+            rest = rest.plus(last, lane.fit_hyper(rest, last)[0])
+            des, cvr = lane.cv(rest)
+            return rest, des.valid, cvr.heldout, lane.nested_heldout(rest, before[i][0])
+        except NotIdentifiedError:  # the model without it is not identified on this data: it stays
+            return None
+
+    ev = lanes.lanes[0]
+    weakest: tuple[float, float, int, ModelSpec] | None = None  # (p, -gain, index, model without it): least gain
+    for i, done in enumerate(lanes.map(beyond, range(len(before)))):
+        if done is None:
+            continue
+        rest, valid, ho_rest, ho_with = done
+        gain, p = paired_gain_test(ho_rest, ho_with, ev.groups, ev.rows & valid, ev.weights, alpha_each)[:2]
+        if not (p < alpha_each and gain >= min_rel_gain) and (weakest is None or (p, -gain) > weakest[:2]):
+            weakest = (p, -gain, i, rest)
+    if weakest is None:
+        return spec, ""
+    p, gain, i, rest = weakest[0], -weakest[1], weakest[2], weakest[3]
+    return rest, (f"{before[i][0].name} taken out again: with {chosen} in the model it gains {100 * gain:+.1f} % on "
+                  f"top of the others (p {p:.2g}; it needs p < {alpha_each:.2g} and {100 * min_rel_gain:g} %): the "
+                  f"effects added after it explain what it took")
 
 
 def confounding(lanes: Lanes[Evaluator], spec: ModelSpec, sig: list[CandidateResult], alpha_each: float,
