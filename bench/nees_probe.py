@@ -146,6 +146,7 @@ def fitted_calibration(seed: int, degree: int = 2, settle_s: float = 2.0, repeat
     from fbg_accel_calibration.fit_pipeline import fit_thermal
     from fbg_accel_calibration.fit_stream import prepare
     from fbg_accel_calibration.noise_correlation import from_recording, within_visit_factor
+    from fbg_accel_calibration.slow_error import attach as attach_slow_error
     from fbg_accel_sim.make_default_calibration import calibration_runs, static_mask
 
     rec = calibration_runs(SimConfig.default().with_overrides(overrides or {}), seed, repeat=repeat)
@@ -154,6 +155,7 @@ def fitted_calibration(seed: int, degree: int = 2, settle_s: float = 2.0, repeat
     corr = from_recording(rec.select(rec.run_id == rec.run_id[0]), cal)
     cal.noise_correlated_fraction, cal.noise_time_constant_s = corr.correlated_fraction, corr.time_constant_s
     cal.noise_sigma_mps2 = cal.noise_sigma_mps2 / np.sqrt(within_visit_factor(corr, corr.dt_s, data.stats.visit_lengths))
+    attach_slow_error(cal, data.stats, corr.dt_s)
     return cal
 
 

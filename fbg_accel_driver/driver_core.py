@@ -266,8 +266,8 @@ class DriverCore:
                                   tuple[float, float, float] | None]] = []
         # the calibration's uncertainty: at each emitted sample (covariance_includes_calibration), and at the last
         # calibrated sample's (Psi, temperature) for the diagnostics
-        self._with_cal_cov = (calibration is not None and calibration.coefficient_covariance is not None
-                              and self.config.covariance_includes_calibration
+        self._with_cal_cov = (calibration is not None and self.config.covariance_includes_calibration
+                              and (calibration.coefficient_covariance is not None or calibration.slow_error is not None)
                               and self.config.covariance_source != "unknown")
         self._last_cal_point: tuple[float, float, float, float] | None = None
         self._prev_frame: tuple[int, int, int] | None = None  # (seq, t_us, ADC_OVERRUN) of the previous frame of this run
@@ -407,6 +407,7 @@ class DriverCore:
             out.update({"discrepancy_mps2": round(last.discrepancy_mps2, 4), "threshold_mps2": round(last.threshold_mps2, 4),
                         "sigma_noise_mps2": round(last.sigma_noise_mps2, 4),
                         "sigma_calibration_mps2": round(last.sigma_calibration_mps2, 4),
+                        "sigma_slow_mps2": round(last.sigma_slow_mps2, 4),
                         "last_failed": last.failed, "temperature_c": round(last.temperature_c, 2),
                         "k_sigma": round(g.k, 2)})
         return out
@@ -645,6 +646,17 @@ class DriverCore:
             if len(self._pending) >= cfg.decimation:
                 out.imu.append(self._emit())
 
+    def _calibration_bias(self, psi: tuple[float, float, float],
+                          temp: float) -> tuple[float, float, float, float, float, float]:
+        """(xx, xy, xz, yy, yz, zz), (m/s^2)^2, of the calibration's bias at ``psi`` and ``temp`` (degC): J Sigma J^T of
+        the ``coefficient_covariance`` section plus the ``slow_error`` section's matrix (each 0 when absent)."""
+        cal = self.cal
+        c = (output_covariance(cal.calibration_weights_at(round(temp, 2)), *psi)
+             if cal.coefficient_covariance is not None else (0.0,) * 6)
+        if cal.slow_error is not None:
+            c = tuple(a + b for a, b in zip(c, cal.slow_error.entries(), strict=True))
+        return c  # type: ignore[return-value]
+
     def _mean_variance_factors(self, n: int, dt_s: float) -> tuple[float, float, float]:
         """var(mean of ``n`` consecutive published samples) / var(one published sample) per axis (x, y, z of
         the sensor frame), for samples ``dt_s`` (s) apart, from the correlation of the noise *as published*:
@@ -689,8 +701,8 @@ class DriverCore:
         self._pending = []
         if psi is None:
             cov = (float(var[0]), 0.0, 0.0, 0.0, float(var[1]), 0.0, 0.0, 0.0, float(var[2]))
-        else:  # the calibration's bias, once for the block: J at its mean Psi and temperature (AHT10 steps: 0.01 degC)
-            xx, xy, xz, yy, yz, zz = output_covariance(self.cal.calibration_weights_at(round(temp, 2)), *psi)
+        else:  # the calibration's bias, once for the block: J at its mean Psi and temperature (AHT10 steps: 0.01 degC),
+            xx, xy, xz, yy, yz, zz = self._calibration_bias(psi, temp)  # and the slow error
             cov = (float(var[0] + xx), xy, xz, xy, float(var[1] + yy), yz, xz, yz, float(var[2] + zz))
         self.counters.imu_published += 1
         self.counters.samples_calibrated += n

@@ -83,7 +83,8 @@ class GravityCheckConfig:
 class GravityTest:
     """One test of a still block: its discrepancy |a_bar| - g (m/s^2), the standard deviations of that discrepancy
     from the noise and from the calibration's coefficients (m/s^2), the threshold on |discrepancy| (m/s^2), whether
-    it failed, the block's samples and mean temperature (degC)."""
+    it failed, the block's samples and mean temperature (degC), and the standard deviation from the calibration's
+    slow error (m/s^2)."""
 
     discrepancy_mps2: float
     sigma_noise_mps2: float
@@ -92,6 +93,7 @@ class GravityTest:
     failed: bool
     samples: int
     temperature_c: float
+    sigma_slow_mps2: float = 0.0
 
 
 class GravityCheck:
@@ -162,16 +164,19 @@ class GravityCheck:
         var0, frac, tau = self._noise
         factors = np.array([mean_variance_factor(n, float(frac[a]), float(tau[a]), self.dt_s) for a in range(3)])
         var_noise = float(np.sum(u**2 * var0 * factors))
-        var_cal = 0.0
+        var_cal = var_slow = 0.0
         cc = self.cal.coefficient_covariance
         if cc is not None:
             xx, xy, xz, yy, yz, zz = output_covariance(self.cal.calibration_weights_at(round(temp, 2)), *psi.tolist())
             c = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
             var_cal = max(float(u @ c @ u), 0.0)
+        if self.cal.slow_error is not None:
+            var_slow = max(float(u @ self.cal.slow_error.matrix @ u), 0.0)
         r = norm_a - self.config.gravity_mps2
-        threshold = self.config.tolerance_mps2 + self.k * math.sqrt(var_noise + var_cal)
+        threshold = self.config.tolerance_mps2 + self.k * math.sqrt(var_noise + var_cal + var_slow)
         failed = abs(r) > threshold
         self.tests += 1
         self.failures += int(failed)
-        self.last = GravityTest(r, math.sqrt(var_noise), math.sqrt(var_cal), threshold, failed, n, temp)
+        self.last = GravityTest(r, math.sqrt(var_noise), math.sqrt(var_cal), threshold, failed, n, temp,
+                                math.sqrt(var_slow))
         return self.last
