@@ -45,13 +45,15 @@ Sample policies (documented in docs/topics.md; each has a counter and a diagnost
   (``coefficient_covariance.output_covariance``; outside the calibrated range the powers of tau make it grow), is
   added to the covariance, all nine entries, when ``covariance_includes_calibration`` is set. It is a bias, the same
   error for every sample: a decimated sample gets it once, at the block's mean Psi and temperature, not divided by
-  the block's size. Always reported in the diagnostics (:meth:`DriverCore.calibration_uncertainty`).
+  the block's size. Always reported in the diagnostics (:meth:`DriverCore.calibration_uncertainty`). The file's
+  ``slow_error`` section (the slow error of a pose mean beyond noise and coefficients, ``slow_error``) is added with it,
+  in the same way: a bias, once per published message.
 * With ``covariance_source`` ``unknown`` the covariance is all zeros (REP 145 "unknown") for every sample: the
   policies above still flag and count, but there is no variance to inflate, and a single inflated entry would state
   the other axes exactly known.
 * **Gravity check** (``gravity_mps2`` set to the local gravity; 0, the default, is off; ``gravity_check``): every
   published, unflagged sample is fed to the live check, which tests each ``gravity_check_period_s`` of stillness: |mean
-  a| against ``gravity_mps2``, within ``gravity_tolerance_mps2`` plus k sigma of the noise and of J Sigma J^T
+  a| against ``gravity_mps2``, within ``gravity_tolerance_mps2`` plus k sigma of the noise, J Sigma J^T and the slow error
   (:meth:`DriverCore.gravity_status`, the ``gravity check`` diagnostic). A flagged or dropped sample, or a board reset,
   ends the still stretch.
 * **Non-finite output** (cannot happen with a validated calibration, kept as a last guard): the

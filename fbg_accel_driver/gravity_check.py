@@ -14,15 +14,16 @@ temperature, a correction beyond its span, the reference off its level) end a st
 Test: every ``period_s`` of uninterrupted stillness the block's mean a_bar (m/s^2, sensor frame) gives the
 discrepancy r = |a_bar| - g. Its standard deviation under "the calibration holds" is
 
-    sigma^2 = u^T (C_noise + C_cal) u,    u = a_bar / |a_bar|
+    sigma^2 = u^T (C_noise + C_cal + S) u,    u = a_bar / |a_bar|
 
 with C_noise the variance of the mean of n samples of the calibration's noise model
-(``noise_model.mean_variance_factor``, diagonal) and C_cal the calibration's own uncertainty J Sigma J^T at the block's
-mean Psi and temperature (``coefficient_covariance``; 0 when the file has no such section). The calibration no longer
-holds when |r| > ``tolerance_mps2`` + k sigma, k the two-sided normal quantile of ``false_alarm_per_test``. The
-tolerance is what neither term contains: effects eq. 28 does not model make a fresh calibration's pose means miss the
-truth by 0.06-0.07 m/s^2 rms on the full simulator (docs/results/calibration_consistency.md), and a ``gravity_mps2``
-left at standard gravity is off local gravity by up to 0.03 m/s^2 (9.780 at the equator .. 9.832 at the poles). What
+(``noise_model.mean_variance_factor``, diagonal), C_cal the calibration's own uncertainty J Sigma J^T at the block's
+mean Psi and temperature (``coefficient_covariance``; 0 when the file has no such section) and S the slow error of a
+pose mean (``slow_error``: bias wander and eq. 28's misfit, which make a fresh calibration's pose means miss the truth
+by 0.06-0.07 m/s^2 rms on the full simulator; 0 when the file has no such section). The calibration no longer holds
+when |r| > ``tolerance_mps2`` + k sigma, k the two-sided normal quantile of ``false_alarm_per_test``. The tolerance
+is what no term contains: a ``gravity_mps2`` left at standard gravity is off local gravity by up to 0.03 m/s^2 (9.780
+at the equator .. 9.832 at the poles), and with a file without ``slow_error`` the slow error itself. What
 the check sees of a drift is its component along gravity: a bias on a horizontal axis leaves |a| unchanged to first
 order. False alarms and detection on the simulator: ``bench/gravity_check_false_alarm.py`` (docs/topics.md).
 """
