@@ -118,11 +118,12 @@ def test_the_gravity_check_widens_its_threshold_by_the_slow_error_along_gravity(
     a_true = np.array([1.0, -2.0, 9.5])
     a_true *= STANDARD_GRAVITY / np.linalg.norm(a_true)
     acc, psi = still_samples(cal, 500, a_true)
-    acc = acc + np.array([0.0, 0.0, 0.2])  # a drift of 0.2 m/s^2 on z, nearly along gravity
+    drift = np.array([0.0, 0.0, 0.2])  # a drift of 0.2 m/s^2 on z, nearly along gravity
+    acc = acc + drift
     cfg = GravityCheckConfig(STANDARD_GRAVITY, tolerance_mps2=0.0, period_s=2.0)  # one test: 2.25 s hold, a 2 s block
     plain = feed(GravityCheck(cal, cfg, DT), acc, psi)
     wide = feed(GravityCheck(slow, cfg, DT), acc, psi)
-    u = (a_true + [0, 0, 0.2]) / np.linalg.norm(a_true + [0, 0, 0.2])
+    u = (a_true + drift) / np.linalg.norm(a_true + drift)
     assert wide[0].sigma_slow_mps2 == pytest.approx(math.sqrt(u @ SLOW @ u), rel=1e-3) and plain[0].sigma_slow_mps2 == 0
     assert wide[0].threshold_mps2 == pytest.approx(
         3.89 * math.sqrt(wide[0].sigma_noise_mps2**2 + wide[0].sigma_slow_mps2**2), rel=1e-3)
