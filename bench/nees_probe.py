@@ -17,8 +17,9 @@ stamp - 2 ms, linearly interpolated). Per axis and case it reports
 N seeds a calibration campaign is simulated and fitted (six poses at 16 / 24 / 45 degC, ``fit_thermal`` with its
 coefficient covariance), the driver core runs it on the twelve poses above at ``--calibration-temps``, and the mean
 error of each static pose against the simulator's truth is normalised by the covariance of that mean, with and without
-the calibration's J Sigma J^T (NEES, 3 degrees of freedom; the mean of S seeds' NEES of one pose lies in
-[chi2_0.025(3S), chi2_0.975(3S)] / S when the covariance is right).
+the calibration's terms as the driver publishes them with ``covariance_includes_calibration`` (J Sigma J^T and the slow
+error; NEES, 3 degrees of freedom; the mean of S seeds' NEES of one pose lies in [chi2_0.025(3S), chi2_0.975(3S)] / S
+when the covariance is right). ``--calibration-runs-per-level 2`` fits campaigns of two separate runs per level.
 
     .venv/bin/python bench/nees_probe.py --calibration-seeds 20 --json /tmp/nees_calibration.json   # about 4 min
 
@@ -138,7 +139,7 @@ def shipped_calibration(dynamic: bool = False) -> ThermalCalibration:
 def fitted_calibration(seed: int, degree: int = 2, settle_s: float = 2.0, repeat: int = 3,
                        overrides: dict[str, Any] | None = None, runs_per_level: int = 1) -> ThermalCalibration:
     """A calibration fitted as ``fbg-accel-calib fit`` does (eq. 28 with its coefficient covariance, the noise model and
-    its within-visit correction) on the simulator's six-pose campaign at 16 / 24 / 45 degC of ``seed``, with the
+    its within-visit correction, the slow error) on the simulator's six-pose campaign at 16 / 24 / 45 degC of ``seed``, with the
     static samples (at rest ``settle_s``) given by the simulator's truth; the six poses visited ``repeat`` times per
     level, so that the covariance rests on 18 ``repeat`` visits (with one, 18 visits for 12 coefficients per axis leave
     6 degrees of freedom: the estimate is then so uncertain itself that a normalised error's mean is 3 x 6 / (6 - 4) =
@@ -162,7 +163,7 @@ def fitted_calibration(seed: int, degree: int = 2, settle_s: float = 2.0, repeat
     corr = from_recording(rec.select(rec.run_id == rec.run_id[0]), cal)
     cal.noise_correlated_fraction, cal.noise_time_constant_s = corr.correlated_fraction, corr.time_constant_s
     cal.noise_sigma_mps2 = cal.noise_sigma_mps2 / np.sqrt(within_visit_factor(corr, corr.dt_s, data.stats.visit_lengths))
-    attach_slow_error(cal, data.stats, corr.dt_s)
+    attach_slow_error(cal, data.stats, corr.dt_s)  # the slow error, as fit_pipeline.fit_files writes it
     return cal
 
 
