@@ -111,6 +111,8 @@ def attach(cal: ThermalCalibration, stats: CellStats, dt_s: float) -> SlowError 
     est = visit_component(stats, model_to_coefficients(cal.M, cal.b), cal.degree, cal.noise_sigma_mps2,
                           cal.noise_correlated_fraction, cal.noise_time_constant_s, dt_s)
     if est is None:
+        cal.fit["slow_error"] = {"not_estimated": "the visits' own sums were not kept, or fewer than "
+                                 f"{MIN_DOF:g} visits are left over the coefficients: repeat the poses"}
         return None
     cal.slow_error = SlowErrorSection(est.matrix, METHOD, est.visits)
     cal.fit["slow_error"] = {"sigma_mps2": [round(float(v), 5) for v in est.sigma_mps2],
