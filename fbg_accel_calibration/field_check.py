@@ -47,7 +47,7 @@ BLOCK_S = 1.0  # a still period is cut into blocks this long; neighbours whose m
 BLOCK_SIGMAS = 6.0  # ... by more than this many standard deviations of a difference of two block means
 BLOCK_FLOOR_MPS2 = 0.03  # ... and by more than this (a slow turn the variance test cannot see moves |a| by ~g/10)
 # a parameter further than this many standard deviations from 0 has drifted (six parameters tested: a false warning
-# in about 0.16 % of checks of an undrifted sensor if the uncertainties are right)
+# in about 0.3 % of checks of an undrifted sensor if the uncertainties are right: 6 x 4.7e-4)
 DRIFT_SIGMAS = 3.5
 GROSS_FRACTION = 0.2  # a period whose |a| is further than this from g is no still period (a move, a shock)
 
