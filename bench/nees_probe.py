@@ -17,8 +17,9 @@ stamp - 2 ms, linearly interpolated). Per axis and case it reports
 N seeds a calibration campaign is simulated and fitted (six poses at 16 / 24 / 45 degC, ``fit_thermal`` with its
 coefficient covariance), the driver core runs it on the twelve poses above at ``--calibration-temps``, and the mean
 error of each static pose against the simulator's truth is normalised by the covariance of that mean, with and without
-the calibration's J Sigma J^T (NEES, 3 degrees of freedom; the mean of S seeds' NEES of one pose lies in
-[chi2_0.025(3S), chi2_0.975(3S)] / S when the covariance is right).
+the calibration's terms as the driver publishes them with ``covariance_includes_calibration`` (J Sigma J^T and the slow
+error; NEES, 3 degrees of freedom; the mean of S seeds' NEES of one pose lies in [chi2_0.025(3S), chi2_0.975(3S)] / S
+when the covariance is right). ``--calibration-runs-per-level 2`` fits campaigns of two separate runs per level.
 
     .venv/bin/python bench/nees_probe.py --calibration-seeds 20 --json /tmp/nees_calibration.json   # about 4 min
 
@@ -136,24 +137,33 @@ def shipped_calibration(dynamic: bool = False) -> ThermalCalibration:
 
 
 def fitted_calibration(seed: int, degree: int = 2, settle_s: float = 2.0, repeat: int = 3,
-                       overrides: dict[str, Any] | None = None) -> ThermalCalibration:
+                       overrides: dict[str, Any] | None = None, runs_per_level: int = 1) -> ThermalCalibration:
     """A calibration fitted as ``fbg-accel-calib fit`` does (eq. 28 with its coefficient covariance, the noise model and
-    its within-visit correction) on the simulator's six-pose campaign at 16 / 24 / 45 degC of ``seed``, with the
+    its within-visit correction, the slow error) on the simulator's six-pose campaign at 16 / 24 / 45 degC of ``seed``, with the
     static samples (at rest ``settle_s``) given by the simulator's truth; the six poses visited ``repeat`` times per
     level, so that the covariance rests on 18 ``repeat`` visits (with one, 18 visits for 12 coefficients per axis leave
     6 degrees of freedom: the estimate is then so uncertain itself that a normalised error's mean is 3 x 6 / (6 - 4) =
-    9, not 3, although unbiased, Hotelling's T^2)."""
+    9, not 3, although unbiased, Hotelling's T^2). ``runs_per_level`` > 1: that many separate runs (sessions, each with
+    its own state of the slow processes) at each level, so that a wander constant over a run is not absorbed by b(T)."""
     from fbg_accel_calibration.fit_pipeline import fit_thermal
     from fbg_accel_calibration.fit_stream import prepare
     from fbg_accel_calibration.noise_correlation import from_recording, within_visit_factor
+    from fbg_accel_calibration.recording import Recording
+    from fbg_accel_calibration.slow_error import attach as attach_slow_error
     from fbg_accel_sim.make_default_calibration import calibration_runs, static_mask
 
-    rec = calibration_runs(SimConfig.default().with_overrides(overrides or {}), seed, repeat=repeat)
+    cfg = SimConfig.default().with_overrides(overrides or {})
+    parts = [calibration_runs(cfg, seed + 500 * k, repeat=repeat) for k in range(runs_per_level)]
+    rec = parts[0] if len(parts) == 1 else Recording.concatenate(parts)
+    if len(parts) > 1:
+        rec.metadata["truth"] = {k: np.concatenate([p.metadata["truth"][k] for p in parts]) for k in parts[0].metadata["truth"]}
+        rec.metadata["sensor_id"] = parts[0].metadata["sensor_id"]
     data = prepare(rec, degree, usable=static_mask(rec, settle_s))
     cal = fit_thermal(data, degree)
     corr = from_recording(rec.select(rec.run_id == rec.run_id[0]), cal)
     cal.noise_correlated_fraction, cal.noise_time_constant_s = corr.correlated_fraction, corr.time_constant_s
     cal.noise_sigma_mps2 = cal.noise_sigma_mps2 / np.sqrt(within_visit_factor(corr, corr.dt_s, data.stats.visit_lengths))
+    attach_slow_error(cal, data.stats, corr.dt_s)  # the slow error, as fit_pipeline.fit_files writes it
     return cal
 
 
@@ -180,7 +190,7 @@ def pose_means(res: dict[str, np.ndarray], settle_s: float) -> tuple[np.ndarray,
 
 
 def calibration_consistency(seeds: int, temps: list[float], settle_s: float, first_seed: int = 100,
-                            effects_off: list[str] | None = None) -> dict[str, Any]:
+                            effects_off: list[str] | None = None, runs_per_level: int = 1) -> dict[str, Any]:
     """NEES of the static pose means with and without the calibration's uncertainty over ``seeds`` fitted
     calibrations (module docstring); ``effects_off``: simulator effects switched off (``effects.<name>.scale`` 0) in the
     campaign and in the check."""
@@ -191,7 +201,7 @@ def calibration_consistency(seeds: int, temps: list[float], settle_s: float, fir
     nees_without: dict[str, list[np.ndarray]] = {f"{t:g}": [] for t in temps}
     sigma_cal: dict[str, list[np.ndarray]] = {f"{t:g}": [] for t in temps}
     for s in range(first_seed, first_seed + seeds):
-        cal = fitted_calibration(s, overrides=over)
+        cal = fitted_calibration(s, overrides=over, runs_per_level=runs_per_level)
         for t in temps:
             res = run_case({**pose_plan(t), **over}, cal, CoreConfig(), seed=s + 7919)
             res["cov_with"] = run_case({**pose_plan(t), **over}, cal, CoreConfig(covariance_includes_calibration=True),
@@ -205,7 +215,7 @@ def calibration_consistency(seeds: int, temps: list[float], settle_s: float, fir
                   f"{nees_without[f'{t:g}'][-1].mean():.1f}", flush=True)
     lo, hi = chi2.ppf(0.025, 3 * seeds) / seeds, chi2.ppf(0.975, 3 * seeds) / seeds
     out: dict[str, Any] = {"seeds": seeds, "first_seed": first_seed, "settle_s": settle_s, "dof": 3,
-                           "effects_off": effects_off or [],
+                           "effects_off": effects_off or [], "campaign_runs_per_level": runs_per_level,
                            "band_95_of_mean_over_seeds": [round(lo, 3), round(hi, 3)],
                            "poses": [f"psi={p[0]:g} theta={p[1]:g}" for p in POSES], "temperatures": {}}
     for key in nees_with:
@@ -253,12 +263,15 @@ def main(argv: list[str] | None = None) -> int:
                    help="check the calibration's uncertainty on this many fitted calibrations instead (>= 20)")
     p.add_argument("--calibration-effects-off", nargs="*", default=[],
                    help="simulator effects switched off for the check (config/sim_default.yaml effects), e.g. bias_instability")
+    p.add_argument("--calibration-runs-per-level", type=int, default=1,
+                   help="separate campaign runs (sessions) per temperature level; default 1")
     p.add_argument("--calibration-temps", type=float, nargs="+", default=[24.0, 45.0, 52.0],
                    help="chamber temperatures (degC) of the check; the campaign's are 16, 24, 45")
     args = p.parse_args(argv)
     if args.calibration_seeds:
         out = calibration_consistency(args.calibration_seeds, args.calibration_temps, args.settle,
-                                      effects_off=args.calibration_effects_off)
+                                      effects_off=args.calibration_effects_off,
+                                      runs_per_level=args.calibration_runs_per_level)
         print(json.dumps(out, indent=1))
         if args.json:
             Path(args.json).write_text(json.dumps(out, indent=1) + "\n")

@@ -518,7 +518,15 @@ def cmd_field_check(args: argparse.Namespace) -> int:
     from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
     from fbg_accel_driver.thermal_model import ThermalCalibration
 
-    from .field_check import PARAMETERS, estimate, normal_gravity, still_periods, updated_calibration
+    from .field_check import (
+        DRIFT_SIGMAS,
+        PARAMETERS,
+        drifted,
+        estimate,
+        normal_gravity,
+        still_periods,
+        updated_calibration,
+    )
     from .static_detector import calibration_samples
 
     check_outputs([args.output], [*args.inputs, args.calibration], args.force)
@@ -528,7 +536,7 @@ def cmd_field_check(args: argparse.Namespace) -> int:
     rec = _load(args.inputs, args)
     still = calibration_samples(rec, args.window, args.min_interval)[1]  # the signal alone is still
     periods = still_periods(rec, cal, still, args.min_period)
-    fc = estimate(periods, g)
+    fc = estimate(periods, g, slow_error=None if cal.slow_error is None else cal.slow_error.matrix)
     units = ("m/s^2",) * 3 + ("",) * 3
     print(f"{len(periods.mean)} still period(s), {int(periods.samples.sum())} samples; g = {g:.6f} m/s^2; "
           f"| |a| - g | before: rms {np.sqrt(np.mean(fc.residual_before_mps2**2)):.4f} m/s^2, after "
@@ -538,6 +546,12 @@ def cmd_field_check(args: argparse.Namespace) -> int:
         print(f"  {name:8s} " + (f"{v:+.4f} +- {sd:.4f} {unit}" if ok else "not identified by these orientations"))
     for note in fc.notes:
         print(f"note: {note}")
+    moved = drifted(fc)
+    slow = "" if cal.slow_error is None else ", the calibration's slow error included"
+    if moved:
+        print(f"WARNING: the calibration has moved: {', '.join(moved)} beyond {DRIFT_SIGMAS:g} sigma{slow}")
+    else:
+        print(f"no drift beyond {DRIFT_SIGMAS:g} sigma{slow}")
     if args.output is not None:
         with atomic_path(args.output) as tmp:
             updated_calibration(cal, fc).save(tmp)

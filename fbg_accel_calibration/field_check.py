@@ -46,6 +46,9 @@ MIN_PERIOD_S = 2.0  # still periods shorter than this are not used (the TIA sett
 BLOCK_S = 1.0  # a still period is cut into blocks this long; neighbours whose means differ are not one period
 BLOCK_SIGMAS = 6.0  # ... by more than this many standard deviations of a difference of two block means
 BLOCK_FLOOR_MPS2 = 0.03  # ... and by more than this (a slow turn the variance test cannot see moves |a| by ~g/10)
+# a parameter further than this many standard deviations from 0 has drifted (six parameters tested: a false warning
+# in about 0.3 % of checks of an undrifted sensor if the uncertainties are right: 6 x 4.7e-4)
+DRIFT_SIGMAS = 3.5
 GROSS_FRACTION = 0.2  # a period whose |a| is further than this from g is no still period (a move, a shock)
 
 
@@ -154,8 +157,12 @@ def _residual_and_jacobian(p: np.ndarray, a: np.ndarray, g: float) -> tuple[np.n
     return norm - g, J
 
 
-def estimate(periods: StillPeriods, g_mps2: float, iterations: int = 10) -> FieldCheck:
-    """Bias and scale per axis from the still periods (module docstring); raises ``ValueError`` without any period."""
+def estimate(periods: StillPeriods, g_mps2: float, iterations: int = 10, slow_error: np.ndarray | None = None) -> FieldCheck:
+    """Bias and scale per axis from the still periods (module docstring); raises ``ValueError`` without any period.
+
+    ``slow_error`` (3, 3) (m/s^2)^2, optional: the calibration's slow error of a pose mean (its ``slow_error`` section):
+    a bias the sensor wanders by without having drifted, shared by the periods of one recording, so it is added to the
+    identified biases' covariance: the estimate is of the drift, and the drift is known no better than that."""
     notes: list[str] = []
     gross = np.abs(np.linalg.norm(periods.mean, axis=1) - g_mps2) > GROSS_FRACTION * g_mps2
     if gross.any():
@@ -199,6 +206,9 @@ def estimate(periods: StillPeriods, g_mps2: float, iterations: int = 10) -> Fiel
         birge = math.sqrt(chi2 / dof) if dof > 0 else math.nan
         inflate = max(1.0, birge**2) if dof > 0 else 1.0
         cov[np.ix_(cols, cols)] = np.linalg.inv(Jw.T @ Jw) * inflate
+        if slow_error is not None:
+            seen = np.flatnonzero(identified[:3])
+            cov[np.ix_(seen, seen)] += np.asarray(slow_error, float)[np.ix_(seen, seen)]
         if dof <= 0:
             notes.append(f"{len(a)} still period(s) for {len(cols)} parameter(s): no residual left to check the fit "
                          "(its uncertainty is the noise's only)")
@@ -209,6 +219,14 @@ def estimate(periods: StillPeriods, g_mps2: float, iterations: int = 10) -> Fiel
         notes.append(f"the orientations seen do not identify {', '.join(missing)} (held at 0): record still periods "
                      "with each axis up and down, or tilted well away from the others")
     return FieldCheck(p[:3], p[3:], cov, identified, r, r0, g_mps2, birge, notes)
+
+
+def drifted(fc: FieldCheck, k_sigma: float = DRIFT_SIGMAS) -> list[str]:
+    """The identified parameters estimated further from 0 than ``k_sigma`` of their uncertainty: the calibration has
+    moved (``[]``: no drift shown)."""
+    values = np.r_[fc.bias, fc.scale]
+    return [p for p, v, sd, ok in zip(PARAMETERS, values, fc.sigma, fc.identified, strict=True)
+            if ok and abs(v) > k_sigma * sd]
 
 
 def updated_calibration(cal: ThermalCalibration, fc: FieldCheck) -> ThermalCalibration:

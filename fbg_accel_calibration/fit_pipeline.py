@@ -28,6 +28,7 @@ from .fit_stream import FitData, prepare, prepare_stream
 from .input_validation import DEFAULT_MAX_DEGREE
 from .model_selection import SelectionResult, select_degree
 from .recording import Recording
+from .slow_error import attach as attach_slow_error
 from .static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW
 from .thermal_fit import (
     DEFAULT_CHUNK,
@@ -245,6 +246,7 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
     factor = within_visit_factor(corr, corr.dt_s, data.stats.visit_lengths)
     cal.noise_sigma_mps2 = np.asarray(cal.noise_sigma_mps2) / np.sqrt(factor)
     cal.fit["noise_sigma_correction"] = [round(float(v), 4) for v in 1.0 / np.sqrt(factor)]
+    attach_slow_error(cal, data.stats, corr.dt_s)  # with the final noise model: what the visits carry beyond it
     cal.fit["sources"] = [str(p) for p in paths]
     cal.fit["degree_selection"] = selection.as_dict()
     cal.adc_codes = opt.adc_codes  # after everything above has evaluated the model on the mapped counts

@@ -45,13 +45,15 @@ Sample policies (documented in docs/topics.md; each has a counter and a diagnost
   (``coefficient_covariance.output_covariance``; outside the calibrated range the powers of tau make it grow), is
   added to the covariance, all nine entries, when ``covariance_includes_calibration`` is set. It is a bias, the same
   error for every sample: a decimated sample gets it once, at the block's mean Psi and temperature, not divided by
-  the block's size. Always reported in the diagnostics (:meth:`DriverCore.calibration_uncertainty`).
+  the block's size. Always reported in the diagnostics (:meth:`DriverCore.calibration_uncertainty`). The file's
+  ``slow_error`` section (the slow error of a pose mean beyond noise and coefficients, ``slow_error``) is added with it,
+  in the same way: a bias, once per published message.
 * With ``covariance_source`` ``unknown`` the covariance is all zeros (REP 145 "unknown") for every sample: the
   policies above still flag and count, but there is no variance to inflate, and a single inflated entry would state
   the other axes exactly known.
 * **Gravity check** (``gravity_mps2`` set to the local gravity; 0, the default, is off; ``gravity_check``): every
   published, unflagged sample is fed to the live check, which tests each ``gravity_check_period_s`` of stillness: |mean
-  a| against ``gravity_mps2``, within ``gravity_tolerance_mps2`` plus k sigma of the noise and of J Sigma J^T
+  a| against ``gravity_mps2``, within ``gravity_tolerance_mps2`` plus k sigma of the noise, J Sigma J^T and the slow error
   (:meth:`DriverCore.gravity_status`, the ``gravity check`` diagnostic). A flagged or dropped sample, or a board reset,
   ends the still stretch.
 * **Non-finite output** (cannot happen with a validated calibration, kept as a last guard): the
@@ -266,8 +268,8 @@ class DriverCore:
                                   tuple[float, float, float] | None]] = []
         # the calibration's uncertainty: at each emitted sample (covariance_includes_calibration), and at the last
         # calibrated sample's (Psi, temperature) for the diagnostics
-        self._with_cal_cov = (calibration is not None and calibration.coefficient_covariance is not None
-                              and self.config.covariance_includes_calibration
+        self._with_cal_cov = (calibration is not None and self.config.covariance_includes_calibration
+                              and (calibration.coefficient_covariance is not None or calibration.slow_error is not None)
                               and self.config.covariance_source != "unknown")
         self._last_cal_point: tuple[float, float, float, float] | None = None
         self._prev_frame: tuple[int, int, int] | None = None  # (seq, t_us, ADC_OVERRUN) of the previous frame of this run
@@ -407,6 +409,7 @@ class DriverCore:
             out.update({"discrepancy_mps2": round(last.discrepancy_mps2, 4), "threshold_mps2": round(last.threshold_mps2, 4),
                         "sigma_noise_mps2": round(last.sigma_noise_mps2, 4),
                         "sigma_calibration_mps2": round(last.sigma_calibration_mps2, 4),
+                        "sigma_slow_mps2": round(last.sigma_slow_mps2, 4),
                         "last_failed": last.failed, "temperature_c": round(last.temperature_c, 2),
                         "k_sigma": round(g.k, 2)})
         return out
@@ -645,6 +648,17 @@ class DriverCore:
             if len(self._pending) >= cfg.decimation:
                 out.imu.append(self._emit())
 
+    def _calibration_bias(self, psi: tuple[float, float, float],
+                          temp: float) -> tuple[float, float, float, float, float, float]:
+        """(xx, xy, xz, yy, yz, zz), (m/s^2)^2, of the calibration's bias at ``psi`` and ``temp`` (degC): J Sigma J^T of
+        the ``coefficient_covariance`` section plus the ``slow_error`` section's matrix (each 0 when absent)."""
+        cal = self.cal
+        c = (output_covariance(cal.calibration_weights_at(round(temp, 2)), *psi)
+             if cal.coefficient_covariance is not None else (0.0,) * 6)
+        if cal.slow_error is not None:
+            c = tuple(a + b for a, b in zip(c, cal.slow_error.entries(), strict=True))
+        return c  # type: ignore[return-value]
+
     def _mean_variance_factors(self, n: int, dt_s: float) -> tuple[float, float, float]:
         """var(mean of ``n`` consecutive published samples) / var(one published sample) per axis (x, y, z of
         the sensor frame), for samples ``dt_s`` (s) apart, from the correlation of the noise *as published*:
@@ -689,8 +703,8 @@ class DriverCore:
         self._pending = []
         if psi is None:
             cov = (float(var[0]), 0.0, 0.0, 0.0, float(var[1]), 0.0, 0.0, 0.0, float(var[2]))
-        else:  # the calibration's bias, once for the block: J at its mean Psi and temperature (AHT10 steps: 0.01 degC)
-            xx, xy, xz, yy, yz, zz = output_covariance(self.cal.calibration_weights_at(round(temp, 2)), *psi)
+        else:  # the calibration's bias, once for the block: J at its mean Psi and temperature (AHT10 steps: 0.01 degC),
+            xx, xy, xz, yy, yz, zz = self._calibration_bias(psi, temp)  # and the slow error
             cov = (float(var[0] + xx), xy, xz, xy, float(var[1] + yy), yz, xz, yz, float(var[2] + zz))
         self.counters.imu_published += 1
         self.counters.samples_calibrated += n

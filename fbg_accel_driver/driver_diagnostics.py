@@ -249,7 +249,7 @@ class DriverDiagnostics:
             u = snap.calibration_uncertainty
             if u.get("coefficient_covariance") == "absent":
                 msg = ("not known: the calibration file has no coefficient_covariance section (refit with this version "
-                       "of fbg-accel-calib fit); the covariance is the noise only")
+                       "of fbg-accel-calib fit)" + ("" if "slow_sigma_x_mps2" in u else "; the covariance is the noise only"))
             elif "sigma_x_mps2" not in u:
                 msg = "no calibrated sample yet"
             else:
@@ -257,6 +257,11 @@ class DriverDiagnostics:
                        f"at {u['temperature_c']:.2f} degC, a bias common to all samples; "
                        + ("included in" if u["included_in_covariance"] else "not included in")
                        + " linear_acceleration_covariance")
+            if "slow_sigma_x_mps2" in u:
+                msg += (f"; slow error of a still mean {u['slow_sigma_x_mps2']:.3g}/{u['slow_sigma_y_mps2']:.3g}/"
+                        f"{u['slow_sigma_z_mps2']:.3g} m/s^2 (x/y/z, 1 sigma, a bias), "
+                        + ("included in" if u["included_in_covariance"] else "not included in")
+                        + " linear_acceleration_covariance")
             entries.append(self._entry(OK, "calibration uncertainty", msg, u))
 
         # the live gravity check: |a| of each still stretch against local gravity (gravity_check)
@@ -293,7 +298,7 @@ class DriverDiagnostics:
         figures = (f"|a| - g = {g['discrepancy_mps2']:+.3f} m/s^2 over {g['period_s']:g} s still at "
                    f"{g['temperature_c']:.1f} degC, threshold {g['threshold_mps2']:.3f} m/s^2 (tolerance "
                    f"{g['tolerance_mps2']:g} + {g['k_sigma']:g} sigma; sigma noise {g['sigma_noise_mps2']:.3f}, "
-                   f"calibration {g['sigma_calibration_mps2']:.3f})")
+                   f"calibration {g['sigma_calibration_mps2']:.3f}, slow error {g.get('sigma_slow_mps2', 0.0):.3f})")
         if g["last_failed"] or new_failures > 0:
             which = "the last still stretch" if g["last_failed"] else f"{new_failures} still stretch(es) since last report"
             return self._entry(WARN, "gravity check", f"calibration no longer holds ({which}): {figures}; recalibrate, "
@@ -305,12 +310,16 @@ class DriverDiagnostics:
 
 
 def calibration_uncertainty_values(point: tuple[float, float, float, float] | None, has_section: bool,
-                                   included: bool) -> dict[str, Any]:
+                                   included: bool, slow_sigma_mps2: Any = None) -> dict[str, Any]:
     """The diagnostic's values from ``DriverCore.calibration_uncertainty()`` (``point``), whether the calibration has a
-    ``coefficient_covariance`` section and whether the term is in the published covariance."""
+    ``coefficient_covariance`` section, whether the terms are in the published covariance, and the ``slow_error``
+    section's standard deviations (x, y, z m/s^2; None without the section)."""
+    slow: dict[str, Any] = {}
+    if slow_sigma_mps2 is not None:
+        slow = {f"slow_sigma_{a}_mps2": round(float(v), 6) for a, v in zip("xyz", slow_sigma_mps2, strict=True)}
     if not has_section:
-        return {"coefficient_covariance": "absent", "included_in_covariance": False}
-    out: dict[str, Any] = {"coefficient_covariance": "present", "included_in_covariance": included}
+        return {"coefficient_covariance": "absent", "included_in_covariance": included and bool(slow), **slow}
+    out: dict[str, Any] = {"coefficient_covariance": "present", "included_in_covariance": included, **slow}
     if point is not None:
         out.update({"sigma_x_mps2": round(point[0], 6), "sigma_y_mps2": round(point[1], 6),
                     "sigma_z_mps2": round(point[2], 6), "temperature_c": round(point[3], 2)})

@@ -14,15 +14,16 @@ temperature, a correction beyond its span, the reference off its level) end a st
 Test: every ``period_s`` of uninterrupted stillness the block's mean a_bar (m/s^2, sensor frame) gives the
 discrepancy r = |a_bar| - g. Its standard deviation under "the calibration holds" is
 
-    sigma^2 = u^T (C_noise + C_cal) u,    u = a_bar / |a_bar|
+    sigma^2 = u^T (C_noise + C_cal + S) u,    u = a_bar / |a_bar|
 
 with C_noise the variance of the mean of n samples of the calibration's noise model
-(``noise_model.mean_variance_factor``, diagonal) and C_cal the calibration's own uncertainty J Sigma J^T at the block's
-mean Psi and temperature (``coefficient_covariance``; 0 when the file has no such section). The calibration no longer
-holds when |r| > ``tolerance_mps2`` + k sigma, k the two-sided normal quantile of ``false_alarm_per_test``. The
-tolerance is what neither term contains: effects eq. 28 does not model make a fresh calibration's pose means miss the
-truth by 0.06-0.07 m/s^2 rms on the full simulator (docs/results/calibration_consistency.md), and a ``gravity_mps2``
-left at standard gravity is off local gravity by up to 0.03 m/s^2 (9.780 at the equator .. 9.832 at the poles). What
+(``noise_model.mean_variance_factor``, diagonal), C_cal the calibration's own uncertainty J Sigma J^T at the block's
+mean Psi and temperature (``coefficient_covariance``; 0 when the file has no such section) and S the slow error of a
+pose mean (``slow_error``: bias wander and eq. 28's misfit, which make a fresh calibration's pose means miss the truth
+by 0.06-0.07 m/s^2 rms on the full simulator; 0 when the file has no such section). The calibration no longer holds
+when |r| > ``tolerance_mps2`` + k sigma, k the two-sided normal quantile of ``false_alarm_per_test``. The tolerance
+is what no term contains: a ``gravity_mps2`` left at standard gravity is off local gravity by up to 0.03 m/s^2 (9.780
+at the equator .. 9.832 at the poles), and with a file without ``slow_error`` the slow error itself. What
 the check sees of a drift is its component along gravity: a bias on a horizontal axis leaves |a| unchanged to first
 order. False alarms and detection on the simulator: ``bench/gravity_check_false_alarm.py`` (docs/topics.md).
 """
@@ -83,7 +84,8 @@ class GravityCheckConfig:
 class GravityTest:
     """One test of a still block: its discrepancy |a_bar| - g (m/s^2), the standard deviations of that discrepancy
     from the noise and from the calibration's coefficients (m/s^2), the threshold on |discrepancy| (m/s^2), whether
-    it failed, the block's samples and mean temperature (degC)."""
+    it failed, the block's samples and mean temperature (degC), and the standard deviation from the calibration's
+    slow error (m/s^2)."""
 
     discrepancy_mps2: float
     sigma_noise_mps2: float
@@ -92,6 +94,7 @@ class GravityTest:
     failed: bool
     samples: int
     temperature_c: float
+    sigma_slow_mps2: float = 0.0
 
 
 class GravityCheck:
@@ -162,16 +165,19 @@ class GravityCheck:
         var0, frac, tau = self._noise
         factors = np.array([mean_variance_factor(n, float(frac[a]), float(tau[a]), self.dt_s) for a in range(3)])
         var_noise = float(np.sum(u**2 * var0 * factors))
-        var_cal = 0.0
+        var_cal = var_slow = 0.0
         cc = self.cal.coefficient_covariance
         if cc is not None:
             xx, xy, xz, yy, yz, zz = output_covariance(self.cal.calibration_weights_at(round(temp, 2)), *psi.tolist())
             c = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
             var_cal = max(float(u @ c @ u), 0.0)
+        if self.cal.slow_error is not None:
+            var_slow = max(float(u @ self.cal.slow_error.matrix @ u), 0.0)
         r = norm_a - self.config.gravity_mps2
-        threshold = self.config.tolerance_mps2 + self.k * math.sqrt(var_noise + var_cal)
+        threshold = self.config.tolerance_mps2 + self.k * math.sqrt(var_noise + var_cal + var_slow)
         failed = abs(r) > threshold
         self.tests += 1
         self.failures += int(failed)
-        self.last = GravityTest(r, math.sqrt(var_noise), math.sqrt(var_cal), threshold, failed, n, temp)
+        self.last = GravityTest(r, math.sqrt(var_noise), math.sqrt(var_cal), threshold, failed, n, temp,
+                                math.sqrt(var_slow))
         return self.last

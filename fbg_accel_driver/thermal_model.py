@@ -38,6 +38,7 @@ from .command_line import check_name_text
 from .correction_terms import CorrectionTerm, TermInputs, correction_from_dict
 from .mapping_fields import format_version, number, number_array, refuse_unknown, same_values
 from .sensor_constants import AHT10_SIGMA_C, FULL_SCALE_MPS2
+from .slow_error import SlowErrorSection
 from .yaml_input import StrictSafeLoader, YamlFileError, file_kind, load_yaml
 
 FORMAT_NAME = "fbg_accel_calibration"
@@ -49,7 +50,7 @@ MIN_REFERENCE_COUNTS = 1  # a reference of 0 counts would divide by zero; see no
 TOP_LEVEL_KEYS = ("format", "format_version", "units", "model", "sensor_id", "created", "degree",
                   "temperature_center_c", "temperature_scale_c", "temperature_range_c", "M", "b",
                   "noise_sigma_mps2", "noise_correlation", "reference_level", "dynamic", "fit", "corrections", "notes",
-                  "coefficient_covariance", "adc_codes")
+                  "coefficient_covariance", "slow_error", "adc_codes")
 NOISE_CORRELATION_KEYS = ("correlated_fraction", "time_constant_s")
 REFERENCE_LEVEL_KEYS = ("temperature_c", "counts")
 MAX_REFERENCE_LEVELS = 64  # one entry per temperature level of the fit (the paper's campaign has three)
@@ -118,6 +119,8 @@ class ThermalCalibration:
     dynamic: ChainDynamics | None = None
     # covariance of eq. 28's coefficients (optional ``coefficient_covariance`` section; coefficient_covariance module)
     coefficient_covariance: CoefficientCovariance | None = None
+    # the slow error of a pose mean beyond noise and coefficients (optional ``slow_error`` section; slow_error module)
+    slow_error: SlowErrorSection | None = None
     # reference counts of the fit's samples per temperature level (optional ``reference_level`` section)
     reference_level_temperature_c: np.ndarray = field(default_factory=lambda: np.zeros(0))
     reference_level_counts: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -153,6 +156,7 @@ class ThermalCalibration:
                           (other.temperature_range_c, other.sensor_id, other.t_center_c, other.t_scale_c, other.created,
                            other.notes, other.fit, [t.to_dict() for t in other.corrections]))
                 and self.dynamic == other.dynamic and self.coefficient_covariance == other.coefficient_covariance
+                and self.slow_error == other.slow_error
                 and self.adc_codes == other.adc_codes)
 
     __hash__ = None  # type: ignore[assignment]  # mutable, as the dataclass-generated __eq__ made it
@@ -319,6 +323,7 @@ class ThermalCalibration:
             **({"dynamic": _plain(self.dynamic.to_dict())} if self.dynamic is not None else {}),
             **({"coefficient_covariance": self.coefficient_covariance.to_dict()}
                if self.coefficient_covariance is not None else {}),
+            **({"slow_error": self.slow_error.to_dict()} if self.slow_error is not None else {}),
             "fit": _plain(self.fit),
             "corrections": [term.to_dict() for term in self.corrections],
             **({"notes": self.notes} if self.notes else {}),
@@ -393,6 +398,7 @@ class ThermalCalibration:
         dynamic = ChainDynamics.from_dict(d["dynamic"], fail) if "dynamic" in d else None
         coef_cov = (CoefficientCovariance.from_dict(d["coefficient_covariance"], degree, fail)
                     if d.get("coefficient_covariance") is not None else None)
+        slow = SlowErrorSection.from_dict(d["slow_error"], fail) if d.get("slow_error") is not None else None
         adc_codes = AdcCodeTable.from_dict(d["adc_codes"], fail) if d.get("adc_codes") is not None else None
 
         corrections_raw = _optional(d, "corrections", [])
@@ -426,7 +432,7 @@ class ThermalCalibration:
                       noise_sigma_mps2=noise, created=texts["created"], fit=dict(fit), corrections=corrections,
                       notes=texts["notes"], noise_correlated_fraction=corr_f, noise_time_constant_s=corr_tau,
                       dynamic=dynamic, reference_level_temperature_c=ref_t, reference_level_counts=ref_c,
-                      coefficient_covariance=coef_cov, adc_codes=adc_codes)
+                      coefficient_covariance=coef_cov, slow_error=slow, adc_codes=adc_codes)
         except (TypeError, ValueError, OverflowError) as exc:
             if isinstance(exc, CalibrationFileError):
                 raise

@@ -170,3 +170,9 @@ def test_the_fit_finds_the_chain_s_noise_correlation_on_a_table_run_with_slow_mo
     truth = 1.0 / (2.0 * np.pi * np.asarray(SIM_DYNAMICS.cutoff_hz[1:]))
     np.testing.assert_allclose(cal.noise_time_constant_s, truth, rtol=0.3)
     assert np.all(cal.noise_correlated_fraction > 0.7), cal.noise_correlated_fraction
+    # and the slow error of its visits' means beyond that noise model (fbg_accel_calibration.slow_error), written when
+    # visits are left over the coefficients (the grid's 26; six visits for four coefficients per axis leave too few)
+    if plan == "grid_100hz":
+        assert cal.slow_error is not None and cal.slow_error.visits > 20 and "by visit" in cal.slow_error.method
+    else:
+        assert cal.slow_error is None and "repeat the poses" in cal.fit["slow_error"]["not_estimated"]

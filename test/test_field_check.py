@@ -109,6 +109,8 @@ def test_field_check_command_on_a_simulated_recording(tmp_path, capsys) -> None:
     # 0.2 injected, plus the shipped calibration's own error at 24 degC (0.03-0.08 rms), which the residuals' scatter
     # puts into the uncertainty (measured: +0.28 +- 0.06)
     assert abs(bias_x - 0.2) < 3 * sigma_x and sigma_x < 0.1
+    warning = next(line for line in out.splitlines() if line.startswith(("WARNING", "no drift")))
+    assert warning.startswith("WARNING: the calibration has moved: ") and "bias_x" in warning  # +0.28: 4.7 sigma
     assert cli_main([*args, "-o", str(tmp_path / "new.yaml")]) == 0
     new = ThermalCalibration.load(tmp_path / "new.yaml")
     psi = np.array([[1.27, 1.88, 1.45], [1.18, 1.93, 1.27]])  # about z up and z down (ref 870 counts)
@@ -132,3 +134,21 @@ def test_a_bad_period_or_gravity_is_refused_in_one_line(option: str, value: str,
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and option in err and value in err and "Traceback" not in err
+
+
+def test_the_calibration_s_slow_error_widens_the_bias_and_decides_the_warning() -> None:
+    """The slow error (the calibration's ``slow_error`` section) is a bias the sensor wanders by without drifting: it
+    is added to the identified biases' covariance, and a drift is named only beyond DRIFT_SIGMAS of the total."""
+    from fbg_accel_calibration.field_check import DRIFT_SIGMAS, drifted
+
+    p = periods(SIX_PLUS, np.array([0.2, 0.0, 0.0]), 7)
+    plain = estimate(p, G)
+    slow = np.diag([0.08, 0.03, 0.04]) ** 2
+    wide = estimate(p, G, slow_error=slow)
+    np.testing.assert_allclose(wide.cov[:3, :3], plain.cov[:3, :3] + slow, rtol=1e-9, atol=1e-15)
+    np.testing.assert_array_equal(wide.cov[3:, 3:], plain.cov[3:, 3:])
+    np.testing.assert_array_equal(np.r_[wide.bias, wide.scale], np.r_[plain.bias, plain.scale])
+    # 0.2 on x: about 20 sigma of the noise, 2.5 sigma of a slow error of 0.08: named only without it
+    assert drifted(plain) == ["bias_x"] and drifted(wide) == [] and 0.2 / 0.08 < DRIFT_SIGMAS
+    z_up = np.array([[0.0, 0.0, 1.0]] * 3 + [[0.01, 0.0, 1.0]])
+    assert "bias_x" not in drifted(estimate(periods(z_up, np.array([0.5, 0.0, 0.0]), 8), G, slow_error=slow))

@@ -1,0 +1,101 @@
+"""The calibration file's ``slow_error`` section: the slow error of a pose mean beyond noise and coefficients (pure numpy).
+
+A pose mean carries, besides the noise model's part and the coefficients' J Sigma J^T (``coefficient_covariance``),
+what wanders slowly (bias instability, source-power wander through a dark offset, warm-up drift) and what eq. 28 does
+not contain at the poses visited. The fit estimates it from its own campaign, as the visits' mean residuals' scatter
+beyond the noise model (``fbg_accel_calibration.slow_error``: a variance component by visit, method of moments), and
+writes its covariance S (3, 3) in (m/s^2)^2, sensor frame. It is the same for every sample of a still stretch: a bias,
+correlated in time, added as such (with ``covariance_includes_calibration``, once per published message) and used by
+the live gravity check's threshold (docs/topics.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .coefficient_covariance import MAX_METHOD_CHARS, check_matrix
+from .mapping_fields import format_version, number, number_array, refuse_unknown
+
+SECTION_VERSION = 1
+SECTION_KEYS = ("format_version", "method", "visits", "matrix")
+MAX_SIGMA_MPS2 = 10.0  # a slow error above 1 g is no calibration
+
+
+@dataclass
+class SlowErrorSection:
+    """Covariance ``matrix`` (3, 3) (m/s^2)^2 of the slow error of a pose mean, the ``method`` that estimated it and the
+    number of ``visits`` it rests on."""
+
+    matrix: np.ndarray
+    method: str
+    visits: int
+
+    def __post_init__(self) -> None:
+        self.matrix = np.asarray(self.matrix, dtype=float)
+        problem = check_3x3(self.matrix)
+        if problem:
+            raise ValueError(f"slow_error.matrix {problem}")
+        if not isinstance(self.visits, int) or isinstance(self.visits, bool) or self.visits < 1:
+            raise ValueError(f"slow_error.visits must be a positive integer, got {self.visits!r}")
+
+    def __eq__(self, other: object) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        return np.array_equal(self.matrix, other.matrix) and self.method == other.method and self.visits == other.visits
+
+    __hash__ = None  # type: ignore[assignment]
+
+    @property
+    def sigma_mps2(self) -> np.ndarray:
+        """Standard deviation (3,) m/s^2 per axis (x, y, z)."""
+        return np.sqrt(np.clip(np.diag(self.matrix), 0.0, None))
+
+    def entries(self) -> tuple[float, float, float, float, float, float]:
+        """(xx, xy, xz, yy, yz, zz) of the matrix, (m/s^2)^2, as ``coefficient_covariance.output_covariance``."""
+        m = self.matrix
+        return (float(m[0, 0]), float(m[0, 1]), float(m[0, 2]), float(m[1, 1]), float(m[1, 2]), float(m[2, 2]))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"format_version": SECTION_VERSION, "method": self.method, "visits": int(self.visits),
+                "matrix": [[float(v) for v in row] for row in self.matrix]}
+
+    @classmethod
+    def from_dict(cls, d: Any, fail: Callable[[str], Exception]) -> SlowErrorSection:
+        """The section of a parsed file; ``fail(message)`` makes the error to raise."""
+        if not isinstance(d, dict):
+            raise fail(f"'slow_error' must be a mapping, got {type(d).__name__}")
+        refuse_unknown(d, SECTION_KEYS, "slow_error.", fail)
+        for key in SECTION_KEYS:
+            if key not in d:
+                raise fail(f"missing key 'slow_error.{key}'")
+        format_version(d["format_version"], "slow_error.format_version", fail, reads=SECTION_VERSION)
+        method = d["method"]
+        if not isinstance(method, str) or not method or len(method) > MAX_METHOD_CHARS:
+            raise fail(f"slow_error.method must be a text of 1..{MAX_METHOD_CHARS} characters")
+        visits = number(d["visits"], "slow_error.visits", fail, minimum=1)
+        if visits != int(visits):
+            raise fail(f"slow_error.visits must be an integer, got {d['visits']!r}")
+        matrix = number_array(d["matrix"], "slow_error.matrix", fail)
+        problem = check_3x3(matrix)
+        if problem:
+            raise fail(f"slow_error.matrix {problem}")
+        return cls(matrix, method, int(visits))
+
+
+def check_3x3(m: np.ndarray) -> str:
+    """Why ``m`` is not the covariance of a slow error (3 x 3, finite, symmetric, positive semi-definite, each standard
+    deviation at most :data:`MAX_SIGMA_MPS2`), or ``""``."""
+    if m.shape != (3, 3):
+        return f"must be 3 x 3, got shape {m.shape}"
+    if not np.all(np.isfinite(m)):
+        return "contains NaN or infinite values"
+    if np.any(np.diag(m) > MAX_SIGMA_MPS2**2):
+        return f"has a standard deviation above {MAX_SIGMA_MPS2:g} m/s^2"
+    scale = float(np.max(np.abs(m)))
+    if scale == 0.0:
+        return ""
+    return check_matrix(np.kron(m, np.eye(4)))  # symmetric and positive semi-definite, as the coefficients' (12 x 12)

@@ -1,0 +1,131 @@
+"""The slow error of a pose mean beyond noise and coefficients: estimated by visit from the campaign, written to the
+calibration file's ``slow_error`` section, added by the driver as a bias and used by the gravity check's threshold."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from test_driver_core import feed_frames, frame, make_cal, snapshot
+from test_gravity_check import DT, feed, still_samples
+
+from fbg_accel_calibration.fit_pipeline import fit_thermal
+from fbg_accel_calibration.fit_stream import prepare
+from fbg_accel_calibration.slow_error import attach, visit_component
+from fbg_accel_calibration.thermal_fit import model_to_coefficients
+from fbg_accel_driver.driver_core import CoreConfig, DriverCore
+from fbg_accel_driver.driver_diagnostics import DriverDiagnostics, calibration_uncertainty_values
+from fbg_accel_driver.gravity_check import GravityCheck, GravityCheckConfig
+from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
+from fbg_accel_driver.slow_error import SlowErrorSection
+from fbg_accel_driver.thermal_model import CalibrationFileError, ThermalCalibration
+from fbg_accel_sim.eq28_campaign import G, campaign
+
+TILT_DEG = 0.3
+NOISE = 0.05
+TAU_S = 0.15
+
+
+def estimated_variance(seed: int, tilt_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """The slow error's variance per axis (3,) on an eq. 28 campaign whose visits are each off by a random tilt of the
+    table (sigma ``tilt_deg``), with the campaign's true noise model (first-order, 0.15 s); and the true variance (3,)
+    of that tilt's error over the campaign's samples: a tilt theta about a random axis a moves the mean by theta
+    (a x g), per axis variance theta^2 (G^2 - g_i^2) / 3."""
+    rec, _ = campaign(seed, tilt_sigma_deg=tilt_deg, noise_mps2=NOISE, tau_s=TAU_S, visit_s=2.0)
+    truth = math.radians(tilt_deg) ** 2 * (G**2 - rec.gref_mps2**2).mean(axis=0) / 3.0
+    data = prepare(rec, 1, usable=np.ones(len(rec), bool))
+    cal = fit_thermal(data, 1)
+    est = visit_component(data.stats, model_to_coefficients(cal.M, cal.b), 1, np.full(3, NOISE), np.ones(3),
+                          np.full(3, TAU_S), 0.01)
+    assert est.visits == 48 and 38.0 < est.dof < 41.0  # 48 visits, 8 coefficients per axis
+    return np.diag(est.matrix), truth
+
+
+def test_the_visit_component_reads_a_known_visit_error_and_nothing_without_one() -> None:
+    """A table tilt of 0.3 deg per visit (about 0.024 m/s^2 per axis) is read back beside the noise of a 2 s visit's
+    mean (0.019 m/s^2), which the noise model takes out; without tilt nothing is left."""
+    est, truth = (np.array(x) for x in zip(*(estimated_variance(s, TILT_DEG) for s in range(12)), strict=True))
+    without = np.array([estimated_variance(s, 0.0)[0] for s in range(12)])
+    ratio = est.sum() / truth.sum()
+    # 12 campaigns x 3 axes x 40 degrees of freedom (a random tilt's error is heavier-tailed than normal): measured
+    # 1.03-1.17 over eight such groups of 12 seeds (this one the first)
+    assert 0.7 < ratio < 1.4, ratio
+    # without a visit error the estimate is noise about 0, clipped at 0: measured 0.06-0.11 of the tilt case's
+    assert without.sum() < 0.25 * truth.sum(), without.sum() / truth.sum()
+
+
+def test_fit_writes_the_section_and_it_round_trips(tmp_path) -> None:
+    rec, _ = campaign(3)
+    data = prepare(rec, 1, usable=np.ones(len(rec), bool))
+    cal = fit_thermal(data, 1)
+    est = attach(cal, data.stats, 0.01)
+    assert est is not None and cal.slow_error.visits == 48 and "by visit" in cal.slow_error.method
+    assert cal.fit["slow_error"]["sigma_mps2"] == [round(float(v), 5) for v in est.sigma_mps2]
+    cal.save(tmp_path / "cal.yaml")
+    back = ThermalCalibration.load(tmp_path / "cal.yaml")
+    assert back == cal and back.slow_error == cal.slow_error
+    old = cal.to_dict()
+    del old["slow_error"]
+    assert ThermalCalibration.from_dict(old).slow_error is None  # a file without it loads as before
+
+
+@pytest.mark.parametrize(("key", "value", "message"), [
+    ("format_version", 2, "not supported"), ("format_version", True, "not supported"), ("method", "", "method"),
+    ("visits", 0, "visits"), ("visits", 2.5, "integer"), ("extra", 1, "unknown key"),
+    ("matrix", [[1.0, 0.0], [0.0, 1.0]], "3 x 3"), ("matrix", [[1e-3, 2e-3, 0], [2e-3, 1e-3, 0], [0, 0, 1e-3]],
+                                                  "positive semi-definite"),
+    ("matrix", [[1e-3, 1e-4, 0], [0, 1e-3, 0], [0, 0, 1e-3]], "not symmetric"),
+    ("matrix", [[200.0, 0, 0], [0, 1e-3, 0], [0, 0, 1e-3]], "above 10"),
+    ("matrix", [[math.nan, 0, 0], [0, 1e-3, 0], [0, 0, 1e-3]], "finite"),
+])
+def test_the_section_is_a_strict_contract(key, value, message) -> None:
+    d = make_cal(slow_error=SlowErrorSection(np.diag([1e-3, 2e-3, 3e-3]), "test", 30)).to_dict()
+    d["slow_error"][key] = value
+    with pytest.raises(CalibrationFileError, match=message):
+        ThermalCalibration.from_dict(d)
+
+
+SLOW = np.array([[4e-3, 1e-3, 0.0], [1e-3, 2e-3, 0.0], [0.0, 0.0, 9e-3]])
+
+
+def test_the_driver_adds_it_as_a_bias_once_per_message() -> None:
+    """With covariance_includes_calibration the slow error is added in full (off-diagonal too), once per published
+    message: a decimated message gets it undivided, the noise part 1/N of it; off by default."""
+    cal = make_cal(slow_error=SlowErrorSection(SLOW, "test", 40))
+    frames = [frame(i, xyz=(1100 + 3 * i, 1600, 1100 - 2 * i)) for i in range(40)]
+    noise = np.diag(cal.noise_sigma_mps2**2)
+    for n in (1, 10):
+        plain = feed_frames(DriverCore(cal, CoreConfig(decimation=n)), frames)[1]
+        withs = feed_frames(DriverCore(cal, CoreConfig(decimation=n, covariance_includes_calibration=True)), frames)[1]
+        assert len(withs) == 40 // n
+        for p, w in zip(plain, withs, strict=True):
+            np.testing.assert_allclose(np.array(p.covariance).reshape(3, 3), noise / n, rtol=1e-9)
+            np.testing.assert_allclose(np.array(w.covariance).reshape(3, 3) - np.array(p.covariance).reshape(3, 3),
+                                       SLOW, rtol=1e-9, atol=1e-15)
+    snap_values = calibration_uncertainty_values(None, False, True, cal.slow_error.sigma_mps2)
+    assert snap_values["slow_sigma_z_mps2"] == round(math.sqrt(9e-3), 6) and snap_values["included_in_covariance"]
+    snap = snapshot(1.0)
+    snap.calibration_uncertainty = snap_values
+    msg = next(e for e in DriverDiagnostics().report(snap) if e.name.endswith("calibration uncertainty")).message
+    assert "slow error of a still mean" in msg and "0.0949" in msg
+
+
+def test_the_gravity_check_widens_its_threshold_by_the_slow_error_along_gravity() -> None:
+    cal = make_cal(noise_correlated_fraction=np.zeros(3), noise_time_constant_s=np.zeros(3))
+    slow = make_cal(noise_correlated_fraction=np.zeros(3), noise_time_constant_s=np.zeros(3),
+                    slow_error=SlowErrorSection(SLOW, "test", 40))
+    a_true = np.array([1.0, -2.0, 9.5])
+    a_true *= STANDARD_GRAVITY / np.linalg.norm(a_true)
+    acc, psi = still_samples(cal, 500, a_true)
+    drift = np.array([0.0, 0.0, 0.2])  # a drift of 0.2 m/s^2 on z, nearly along gravity
+    acc = acc + drift
+    cfg = GravityCheckConfig(STANDARD_GRAVITY, tolerance_mps2=0.0, period_s=2.0)  # one test: 2.25 s hold, a 2 s block
+    plain = feed(GravityCheck(cal, cfg, DT), acc, psi)
+    wide = feed(GravityCheck(slow, cfg, DT), acc, psi)
+    u = (a_true + drift) / np.linalg.norm(a_true + drift)
+    assert wide[0].sigma_slow_mps2 == pytest.approx(math.sqrt(u @ SLOW @ u), rel=1e-3) and plain[0].sigma_slow_mps2 == 0
+    assert wide[0].threshold_mps2 == pytest.approx(
+        3.89 * math.sqrt(wide[0].sigma_noise_mps2**2 + wide[0].sigma_slow_mps2**2), rel=1e-3)
+    # the drift (0.196 along gravity) is 70 noise sigmas but 2 of this slow error (0.095): flagged only without it
+    assert len(plain) == len(wide) == 1 and plain[0].failed and not wide[0].failed
