@@ -11,7 +11,7 @@ import numpy as np
 
 from ..effects import RIG, Effect
 from ..table_geometry import outer_angle_offset
-from .data import DiagnosisData, Inputs
+from .data import DiagnosisData, Inputs, take_rows
 
 # A two-axis table's zero is set against its index mark or a level to a small fraction of a degree; an offset of
 # several degrees is seen by eye on the table (ASSUMPTION: no rig figure is published). The search spans the bound.
@@ -65,6 +65,15 @@ class TableThetaOffsetEffect(Effect):
         psi = data.table_deg[:, 0] if inp.index is None else data.table_deg[inp.index, 0]
         inp.gref = outer_angle_offset(inp.gref, psi, float(h))
         inp.gref_moved = True
+
+    def reference_at(self, data: DiagnosisData, inp: Inputs, h: float | None,
+                     rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The turned reference at the samples ``rows`` alone (each sample's turn is its own: the same values as
+        those rows of the whole series' turn)."""
+        if rows is None or not h:
+            return super().reference_at(data, inp, h, rows)
+        psi = data.table_deg[:, 0] if inp.index is None else data.table_deg[inp.index, 0]
+        return outer_angle_offset(take_rows(inp.gref, rows), psi[rows], float(h)), inp.valid[rows]
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
         return []  # the rig's, not the sensor's: nothing for the driver
