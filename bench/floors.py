@@ -11,6 +11,11 @@ the run is in the results.
   writer) against the floor: a plain-numpy process that loads the same N samples (uncompressed ``.npy``, the cheapest
   read), fits eq. 28 at degree 2 (36 coefficients) by least squares and runs a 10-fold cross-validation by visit
   from per-fold X^T X and X^T Y. Goal: <= 2x.
+* ``diagnose``: the diagnosis alone (``bench/diagnose_command.py --diagnosis-alone``: import the engine, read the
+  recording from MCAP, ``diagnose()`` with the command's defaults) on the simulator's benchmark run
+  (``bench_calibration.scenario``, every effect at its default) of N samples, against the same floor as ``fit``
+  (least squares of eq. 28 at degree 2 and a 10-fold cross-validation by visit) on the same samples (those with a
+  reference, from ``.npz``). Goals: CPU <= 10x, peak RSS <= 600 MiB.
 * ``driver``: CPU of the ``driver`` process (all threads, /proc/<pid>/stat) over a window of frames written to a pty
   at 100 Hz and 1 kHz (the simulator's clean frames, one write per frame, paced), against the floor node
   (:func:`driver_floor`, a minimal rclpy node publishing the same three messages per frame) fed the same way,
@@ -42,6 +47,7 @@ from output_paths import RESULTS_PAGES, add_update_results, results_dir
 
 HERE = Path(__file__).resolve().parent
 FIT_GOAL = 2.0
+DIAGNOSE_GOAL, DIAGNOSE_RSS_GOAL_MIB = 10.0, 600.0
 LEVELS, POSES, REPEATS, RATE_HZ = 3, 24, 2, 100.0  # eq28_campaign's levels and rate
 AHT10_STEP_C, AHT10_NOISE_C = 0.01, 0.02
 
@@ -104,7 +110,10 @@ def fit_floor(arrays: Path, degree: int = 2, folds: int = 10) -> None:
     """The floor of ``fit`` (in its own process): load, eq. 28 least squares, 10-fold CV by visit from sums."""
     import numpy as np
 
-    d = np.load(arrays)
+    d = dict(np.load(arrays))
+    keep = np.all(np.isfinite(d["gref"]), axis=1)  # the samples at a pose (a diagnosis' recording has moves too)
+    if not keep.all():
+        d = {k: v[keep] for k, v in d.items()}
     psi = d["xyz"] / d["ref"][:, None]
     temp = d["temp_c"]
     tau = (temp - (temp.min() + temp.max()) / 2) / ((temp.max() - temp.min()) / 2)
@@ -139,6 +148,42 @@ def measure_fit(n: int, pairs: int, folder: Path) -> dict:
     print(f"fit {n} samples: project CPU {res['project']['cpu_s']:.2f} s ({res['project']['rss_mib']:.0f} MiB), floor "
           f"{res['floor']['cpu_s']:.2f} s ({res['floor']['rss_mib']:.0f} MiB): {res['cpu_ratio']:.2f}x (goal <= "
           f"{FIT_GOAL}x: {'met' if res['goal_met'] else 'NOT met'})", flush=True)
+    return res
+
+
+# -- diagnose
+def diagnose_files(n: int, folder: Path) -> tuple[Path, Path]:
+    """The benchmark run of ``n`` samples as MCAP (``diagnose_command.recording``) and the same samples, read back
+    from it, as the floor's .npz (written once into ``folder``)."""
+    from diagnose_command import recording
+
+    path = recording(n, folder)
+    arrays = folder / f"diagnose_{n}.npz"
+    if not arrays.exists():
+        import numpy as np
+
+        from fbg_accel_calibration.input_files import load_recording
+
+        rec = load_recording([str(path)], rate=None, temperature=None, g=None, namespace=None, topic=None)
+        np.savez(arrays, ref=rec.ref, xyz=rec.xyz, temp_c=rec.temp_c, gref=rec.gref_mps2, pose=rec.pose_id,
+                 run=rec.run_id)
+    return path, arrays
+
+
+def measure_diagnose(n: int, pairs: int, folder: Path) -> dict:
+    path, arrays = diagnose_files(n, folder)
+    project = [sys.executable, str(HERE / "diagnose_command.py"), "--diagnosis-alone", str(path)]
+    floor = [sys.executable, str(Path(__file__).resolve()), "--fit-floor", str(arrays)]
+    run_child(floor)  # page cache and .pyc files
+    res = interleaved(floor, project, pairs)
+    rss = res["project"]["rss_mib"]
+    res.update(samples=n, goal=DIAGNOSE_GOAL, rss_goal_mib=DIAGNOSE_RSS_GOAL_MIB,
+               goal_met=res["cpu_ratio"] <= DIAGNOSE_GOAL, rss_goal_met=rss <= DIAGNOSE_RSS_GOAL_MIB,
+               command="diagnose() of the recording read from MCAP (bench/diagnose_command.py --diagnosis-alone)")
+    print(f"diagnose {n} samples: diagnosis CPU {res['project']['cpu_s']:.2f} s ({rss:.0f} MiB), floor "
+          f"{res['floor']['cpu_s']:.2f} s: {res['cpu_ratio']:.2f}x (goal <= {DIAGNOSE_GOAL:g}x: "
+          f"{'met' if res['goal_met'] else 'NOT met'}; RSS goal <= {DIAGNOSE_RSS_GOAL_MIB:g} MiB: "
+          f"{'met' if res['rss_goal_met'] else 'NOT met'})", flush=True)
     return res
 
 
@@ -323,6 +368,15 @@ def page(doc: dict) -> str:
                      f"{f['floor']['cpu_s']:.2f} s, {f['floor']['rss_mib']:.0f} MiB | {f['cpu_ratio']:.2f}x "
                      f"({f['cpu_ratio_range'][0]}-{f['cpu_ratio_range'][1]}) | <= {f['goal']}x: "
                      f"{'met' if f['goal_met'] else 'not met'} |")
+    if "diagnose" in doc:
+        f = doc["diagnose"]
+        lines.append(f"| the diagnosis alone (`diagnose()` of a recording read from MCAP), {f['samples']:.0e} samples "
+                     f"of the simulator's benchmark run | {f['project']['cpu_s']:.2f} s, "
+                     f"{f['project']['rss_mib']:.0f} MiB | the same floor as `fit`, on the same samples | "
+                     f"{f['floor']['cpu_s']:.2f} s, {f['floor']['rss_mib']:.0f} MiB | {f['cpu_ratio']:.2f}x "
+                     f"({f['cpu_ratio_range'][0]}-{f['cpu_ratio_range'][1]}) | <= {f['goal']:g}x: "
+                     f"{'met' if f['goal_met'] else 'not met'}; <= {f['rss_goal_mib']:g} MiB: "
+                     f"{'met' if f['rss_goal_met'] else 'not met'} |")
     for row in doc.get("driver", []):
         lines.append(f"| `driver` at {row['rate_hz']:g} Hz (pty, default parameters, calibration 'sim'), "
                      f"{'a subscriber process' if row['subscriber'] else 'no subscriber'}, {row['window_s']:g} s | "
@@ -333,7 +387,9 @@ def page(doc: dict) -> str:
     lines += ["", "The floors: `python -c pass` (the interpreter's own start); for `fit`, a plain-numpy process that loads "
               "the same samples from an uncompressed `.npy`, builds eq. 28's degree-2 design (12 columns per axis, 36 "
               "coefficients), solves it by least squares and runs a 10-fold cross-validation by visit from per-fold "
-              "XᵀX and XᵀY; for the driver, a minimal rclpy node (`floors.driver_floor`: read what is waiting, find "
+              "XᵀX and XᵀY; for the diagnosis, the same floor on the samples of the diagnosed run that have a "
+              "reference (those at a pose), read from an `.npz` of what the diagnosis reads from MCAP; for the driver, "
+              "a minimal rclpy node (`floors.driver_floor`: read what is waiting, find "
               "the frames, check the CRC, stamp with the ROS clock, publish imu/raw, imu/temperature and "
               "imu/data_raw through a fixed matrix; no clock mapping, covariance, diagnostics or reconnection), fed "
               "the simulator's clean frames on a pty exactly as the driver is, with the same subscriber process (sensor-data "
@@ -348,8 +404,10 @@ def page(doc: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--only", default="startup,fit,driver", help="comma-separated measures (startup, fit, driver)")
-    ap.add_argument("--samples", type=float, default=1e6, help="samples of the fit's campaign (default 10^6)")
+    ap.add_argument("--only", default="startup,fit,diagnose,driver",
+                    help="comma-separated measures (startup, fit, diagnose, driver)")
+    ap.add_argument("--samples", type=float, default=1e6,
+                    help="samples of the fit's campaign and of the diagnosed run (default 10^6)")
     ap.add_argument("--pairs", type=int, default=3, help="interleaved pairs of the fit (startup: 5x as many)")
     ap.add_argument("--dir", type=Path, default=None, help="keep the campaign's files here (reused by later runs)")
     ap.add_argument("--output", type=Path, default=None, help="results JSON (default: floors.json in the results dir)")
@@ -375,11 +433,14 @@ def main(argv: list[str] | None = None) -> int:
         from startup import measure
 
         doc["startup"] = measure(5 * args.pairs)
-    if "fit" in only:
+    if only & {"fit", "diagnose"}:
         tmp = tempfile.TemporaryDirectory() if args.dir is None else None
         folder = Path(tmp.name) if tmp else args.dir
         folder.mkdir(parents=True, exist_ok=True)
-        doc["fit"] = measure_fit(int(args.samples), args.pairs, folder)
+        if "fit" in only:
+            doc["fit"] = measure_fit(int(args.samples), args.pairs, folder)
+        if "diagnose" in only:
+            doc["diagnose"] = measure_diagnose(int(args.samples), args.pairs, folder)
         if tmp:
             tmp.cleanup()
     if "driver" in only:

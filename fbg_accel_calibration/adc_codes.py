@@ -157,6 +157,10 @@ MAX_NEWTON_STEPS = 100  # the fit converges in ~10
 NEWTON_TOL = 1e-4  # log-likelihood: a step that gains less ends the fit
 SIGMA_FLOOR = 0.05  # counts: the least noise a piece is given
 Z95 = 1.959963984540054  # two-sided 95 % normal quantile: the stated uncertainty of a width is its 95 % interval
+# standard scores beyond which the normal CDF (scipy.special.ndtr) is exactly 0.0 (below -37.7) and exactly 1.0 (above
+# 8.3) in double precision: a code whose two edges are both out of a sample's reach gets exactly 0.0 of it
+CDF_ZERO_BELOW, CDF_ONE_ABOVE = -40.0, 10.0
+EXPECTED_BLOCK = 4096  # samples whose probabilities are summed together before they are added to the total
 
 
 def _log_cell(z_lo: np.ndarray, z_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -372,18 +376,36 @@ class _WidthModel:
 
     def expected(self, theta: np.ndarray, codes: np.ndarray) -> np.ndarray:
         """Expected samples at each code of ``codes`` (K,) under the fitted model: every sample's own density."""
-        from scipy.special import ndtr
-
         vis = self.vis
         w, sigma, dm, slope = self.unpack(theta)
         m = vis.mean0[vis.visit] + dm[vis.visit] + slope[vis.visit] * vis.u
-        sg = sigma[vis.visit]
-        edges = pattern_edges(w, np.append(codes, codes[-1] + 1))
-        out = np.zeros(len(codes))
-        for lo in range(0, len(m), 4096):  # (block, K + 1) at a time
-            cdf = ndtr((edges[None, :] - m[lo:lo + 4096, None]) / sg[lo:lo + 4096, None])
-            out += np.diff(cdf, axis=1).sum(axis=0)
-        return out
+        return expected_hits(pattern_edges(w, np.append(codes, codes[-1] + 1)), m, sigma[vis.visit])
+
+
+def expected_hits(edges: np.ndarray, m: np.ndarray, sg: np.ndarray) -> np.ndarray:
+    """Expected samples at each of K codes (K,): the sum over the samples of the probability that a normal reading
+    of mean ``m`` (n,) and standard deviation ``sg`` (n,) falls between the code's edges ``edges`` (K + 1,),
+    increasing, counts. Only the edges within a sample's reach (standard scores from ``CDF_ZERO_BELOW`` to
+    ``CDF_ONE_ABOVE``, and one more on each side) are evaluated: beyond them the CDF is exactly 0.0 or 1.0, so every
+    code left out would add an exact 0.0. Each code's sum runs over the samples in their order, a block of
+    ``EXPECTED_BLOCK`` samples at a time, the blocks' sums added in turn: the figures of the (samples x codes) table
+    of CDFs summed down its columns, bit for bit, at a cost in proportion to the samples times the codes each
+    reaches (a few dozen) instead of all K."""
+    from scipy.special import ndtr
+
+    K = len(edges) - 1
+    out = np.zeros(K)
+    for b in range(0, len(m), EXPECTED_BLOCK):
+        mb, sb = m[b:b + EXPECTED_BLOCK], sg[b:b + EXPECTED_BLOCK]
+        first = np.maximum(np.searchsorted(edges, mb + CDF_ZERO_BELOW * sb, "left") - 1, 0)
+        stop = np.minimum(np.searchsorted(edges, mb + CDF_ONE_ABOVE * sb, "right") + 1, K + 1)
+        span = np.maximum(stop - first, 0)  # edges of each sample evaluated
+        sample = np.repeat(np.arange(len(mb)), span)
+        edge = np.arange(len(sample)) - np.repeat(np.cumsum(span) - span, span) + first[sample]
+        cdf = ndtr((edges[edge] - mb[sample]) / sb[sample])
+        inside = sample[1:] == sample[:-1]  # a code: two consecutive edges of one sample
+        out += np.bincount(edge[:-1][inside], (cdf[1:] - cdf[:-1])[inside], K)  # in sample order, from 0.0
+    return out
 
 
 @dataclass
@@ -501,9 +523,10 @@ def code_widths(col: np.ndarray, groups: np.ndarray, rows: np.ndarray, channel: 
         raise ValueError(f"channel {channel or '?'}: {len(np.unique(vis.code))} distinct codes read; the width pattern "
                          f"needs at least {2 * period} (each of its {period} widths seen at two codes)")
     hits = np.bincount(vis.code - codes[0], minlength=len(codes)).astype(float)
-    full = _WidthModel(vis, period)
-    model, theta = full, full.fit()
-    odd = _odd_codes(codes, hits, model.expected(theta, codes), model.unpack(theta)[0])
+    model = _WidthModel(vis, period)
+    theta = model.fit()
+    expected = model.expected(theta, codes)  # of every piece (refitted below when the pattern is fitted again)
+    odd = _odd_codes(codes, hits, expected, model.unpack(theta)[0])
     if odd:  # the pattern again without the pieces near an odd code
         _, sigma, dm, _ = model.unpack(theta)
         level = vis.mean0 + dm
@@ -516,7 +539,8 @@ def code_widths(col: np.ndarray, groups: np.ndarray, rows: np.ndarray, channel: 
             sub = _Visits(vis.code[keep], visit, vis.u[keep], vis.mean0[~near], int((~near).sum()), vis.cluster[keep])
             model = _WidthModel(sub, period)
             theta = model.fit()
-            odd = _odd_codes(codes, hits, _expected_all(vis, theta, period, codes), model.unpack(theta)[0])
+            expected = _expected_all(vis, theta, period, codes)
+            odd = _odd_codes(codes, hits, expected, model.unpack(theta)[0])
     w, sigma = model.unpack(theta)[:2]
     G = period - 1
     h_inv = np.linalg.pinv(model.profile_hessian(theta))
@@ -531,7 +555,6 @@ def code_widths(col: np.ndarray, groups: np.ndarray, rows: np.ndarray, channel: 
 
     # Hotelling's T^2 with a covariance estimated from n_c clusters: F(G, n_c - G)
     p = float(f_dist.sf(chi2 * (n_c - G) / (G * (n_c - 1.0)), G, n_c - G))
-    expected = model.expected(theta, codes) if model is full else _expected_all(vis, theta, period, codes)
     return CodeWidths(channel, period, w, np.sqrt(np.maximum(np.diag(w_cov), 0.0)), chi2, G, p,
                       float(np.median(sigma)), len(model.vis.code), n_c, codes, hits, expected, odd, alpha)
 

@@ -683,12 +683,14 @@ class TiaLowpassEffect(Effect):
             psi_hat = g @ P.T
             psi_hat += q  # in place: one array of N x 3, not two
         else:
-            psi_hat = data.once("static_psi_hat", lambda: g @ P.T + q)
+            # kept column by column (an (N, 3) view of a C-ordered (3, N)): each run's column is filtered in place of
+            # a copy on every trial
+            psi_hat = data.once("static_psi_hat_columns", lambda: np.ascontiguousarray((g @ P.T + q).T)).T
         d = np.empty((len(g) if rows is None else len(rows), 3))
         tau = self.taus(h)
         for (run, sel, local), steps in zip(pieces, input_run_steps(data, inp), strict=True):
             for j in range(3):
-                # the column copied first: scipy's filter runs about twice as slow on a strided one
+                # a strided column copied first: scipy's filter runs about twice as slow on one
                 d[sel, j] = first_order_lowpass(np.ascontiguousarray(psi_hat[run, j]), inp.t_s[run], tau[j + 1], {},
                                                 steps)[local]
         d -= psi_hat if rows is None else take_rows(psi_hat, rows)

@@ -14,16 +14,25 @@ import numpy as np
 from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
 
 
-def rot_x(angle_rad: np.ndarray) -> np.ndarray:
+def _rotation(angle_rad: np.ndarray, axis: int) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) by ``angle_rad`` (...) about the frame's axis ``axis`` (0: x, 2: z), filled in
+    place (one array, where stacking rows of rows copies every sample's matrix several times)."""
     c, s = np.cos(angle_rad), np.sin(angle_rad)
-    o, z = np.ones_like(c), np.zeros_like(c)
-    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
+    i, j = [k for k in range(3) if k != axis]
+    out = np.zeros((*np.shape(c), 3, 3))
+    out[..., axis, axis] = 1.0
+    out[..., i, i], out[..., i, j], out[..., j, i], out[..., j, j] = c, -s, s, c
+    return out
+
+
+def rot_x(angle_rad: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) about x by ``angle_rad`` (...)."""
+    return _rotation(angle_rad, 0)
 
 
 def rot_z(angle_rad: np.ndarray) -> np.ndarray:
-    c, s = np.cos(angle_rad), np.sin(angle_rad)
-    o, z = np.ones_like(c), np.zeros_like(c)
-    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+    """Rotation matrices (..., 3, 3) about z by ``angle_rad`` (...)."""
+    return _rotation(angle_rad, 2)
 
 
 def table_specific_force(psi_deg: np.ndarray, theta_deg: np.ndarray, g: float = STANDARD_GRAVITY) -> np.ndarray:

@@ -42,6 +42,29 @@ def test_equal_widths_are_the_nominal_codes_and_a_pattern_reads_each_input_in_it
     assert np.all(e[k] <= x) and np.all(x < e[k + 1])
 
 
+def test_expected_hits_from_each_sample_s_reach_are_the_sums_of_the_whole_table_bit_for_bit() -> None:
+    """``expected_hits`` evaluates only the edges within a sample's reach; the figures are those of every sample's CDF
+    at every edge summed down the codes, a block of ``EXPECTED_BLOCK`` samples at a time, to the last bit: for noise
+    far below a code (a piece reading one code), of a few counts, and wider than the codes read (every edge in reach),
+    over more samples than one block, and for samples beyond either end of the codes."""
+    from scipy.special import ndtr
+
+    from fbg_accel_calibration.adc_codes import EXPECTED_BLOCK, expected_hits
+
+    rng = np.random.default_rng(4)
+    for sigma_log in ((-20.0, 1.0), (-3.0, 2.0), (3.0, 5.0)):
+        codes = np.arange(900, 1200)
+        edges = pattern_edges(PATTERN, np.append(codes, codes[-1] + 1))
+        n = EXPECTED_BLOCK + 1500
+        m = rng.uniform(860.0, 1240.0, n)
+        sg = 0.05 + np.exp(rng.uniform(*sigma_log, n))
+        whole = np.zeros(len(codes))
+        for b in range(0, n, EXPECTED_BLOCK):
+            cdf = ndtr((edges[None, :] - m[b:b + EXPECTED_BLOCK, None]) / sg[b:b + EXPECTED_BLOCK, None])
+            whole += np.diff(cdf, axis=1).sum(axis=0)
+        np.testing.assert_array_equal(expected_hits(edges, m, sg), whole)
+
+
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_an_injected_pattern_is_recovered_within_its_stated_uncertainty(seed: int) -> None:
     """95 % intervals: about 15 of 16 widths in each; 12 leaves the margin. The pattern is found by far."""

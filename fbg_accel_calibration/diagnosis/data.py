@@ -116,9 +116,13 @@ class DiagnosisData:
 
     @property
     def dt_s(self) -> float:
-        d = np.diff(self.t_s)
-        d = d[d > 0]
-        return float(np.median(d)) if d.size else 1.0
+        """The median step between samples (s; 1 without one), worked out once: every search asks for it."""
+        def median_step() -> float:
+            d = np.diff(self.t_s)
+            d = d[d > 0]
+            return float(np.median(d)) if d.size else 1.0
+
+        return self.once("dt_s", median_step)
 
     @property
     def duration_s(self) -> float:

@@ -304,7 +304,7 @@ def _corrected_reference(data: DiagnosisData, corrections: list[tuple[Effect, fl
     names = tuple((eff.name, h) for eff, h in corrections)
     hit = cache.references.hit(names)
     if hit is None:
-        inp = _corrected_inputs(data, corrections[:-1])
+        inp = _reference_prefix(data, corrections[:-1], names[:-1], cache)
         last, h = corrections[-1]  # a correction of the reference alone (build_design): at the rows only
         hit = last.reference_at(data, inp, h, sub)
         for a in hit:
@@ -312,6 +312,21 @@ def _corrected_reference(data: DiagnosisData, corrections: list[tuple[Effect, fl
         cache.references.put(names, hit)
         cache.references.trim()
     return hit
+
+
+def _reference_prefix(data: DiagnosisData, corrections: list[tuple[Effect, float | None]], names: tuple,
+                      cache: DesignCache) -> Inputs:
+    """A private copy (``_private``) of the inputs after ``corrections``, the ones before a correction of the reference
+    alone, kept among the cache's ``prefixes`` (``names``: their (name, hyper-parameter)): every trial value of a
+    search over that correction starts from the same inputs (a TIA low-pass of the model filters the whole series)."""
+    if not corrections:
+        return Inputs.of(data)
+    hit = cache.prefixes.hit(names)
+    if hit is None:
+        cache.prefixes.trim(room=1)
+        hit = _corrected_inputs(data, corrections)
+        cache.prefixes.put(names, hit)
+    return _private(hit)
 
 
 def _design_matrix(data: DiagnosisData, spec: ModelSpec, ordered: list[tuple[Effect, float | None]], inp: Inputs,

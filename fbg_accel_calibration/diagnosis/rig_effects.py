@@ -12,7 +12,7 @@ import numpy as np
 
 from ..effects import MIN_SPAN_FRACTION, RIG, Effect
 from ..table_geometry import outer_angle_offset
-from .data import DiagnosisData, Inputs, direction_labels, visit_means
+from .data import DiagnosisData, Inputs, direction_labels, take_rows, visit_means
 from .run_effects import level_linked_runs
 
 # A two-axis table's zero is set against its index mark or a level to a small fraction of a degree; an offset of
@@ -67,6 +67,15 @@ class TableThetaOffsetEffect(Effect):
         psi = data.table_deg[:, 0] if inp.index is None else data.table_deg[inp.index, 0]
         inp.gref = outer_angle_offset(inp.gref, psi, float(h))
         inp.gref_moved = True
+
+    def reference_at(self, data: DiagnosisData, inp: Inputs, h: float | None,
+                     rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The turned reference at the samples ``rows`` alone (each sample's turn is its own: the same values as
+        those rows of the whole series' turn)."""
+        if rows is None or not h:
+            return super().reference_at(data, inp, h, rows)
+        psi = data.table_deg[:, 0] if inp.index is None else data.table_deg[inp.index, 0]
+        return outer_angle_offset(take_rows(inp.gref, rows), psi[rows], float(h)), inp.valid[rows]
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
         return []  # the rig's, not the sensor's: nothing for the driver
