@@ -112,13 +112,12 @@ def heldout_mean_covariance(X: np.ndarray, fit_rows: np.ndarray, eval_rows: np.n
         return None
     p = X.shape[1]
     cnt_a = np.bincount(inv_a).astype(float)
-    Xa = X[fa]
-    S = np.stack([np.bincount(inv_a, weights=Xa[:, c], minlength=len(ua)) for c in range(p)], axis=1)  # (Va, p)
+    # column by column: no copy of the design's rows (N x p)
+    S = np.stack([np.bincount(inv_a, weights=X[fa, c], minlength=len(ua)) for c in range(p)], axis=1)  # (Va, p)
     fold_a = np.zeros(len(ua), int)
     fold_a[inv_a] = fold[fa]
     cnt_b = np.bincount(inv_b).astype(float)
-    Xb = X[rb]
-    xbar = np.stack([np.bincount(inv_b, weights=Xb[:, c], minlength=len(ub)) for c in range(p)], axis=1) / cnt_b[:, None]
+    xbar = np.stack([np.bincount(inv_b, weights=X[rb, c], minlength=len(ub)) for c in range(p)], axis=1) / cnt_b[:, None]
     fold_b = fold_a[own]
     folds = np.unique(fold_a)  # the held-out folds and -2 (never held out)
     at_a = [fold_a == k for k in folds]
