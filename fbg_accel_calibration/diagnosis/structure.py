@@ -112,12 +112,11 @@ def heldout_mean_covariance(X: np.ndarray, fit_rows: np.ndarray, eval_rows: np.n
         return None
     p = X.shape[1]
     cnt_a = np.bincount(inv_a).astype(float)
-    # column by column: no copy of the design's rows (N x p)
-    S = np.stack([np.bincount(inv_a, weights=X[fa, c], minlength=len(ua)) for c in range(p)], axis=1)  # (Va, p)
+    S = _visit_sums(X, fa, inv_a, len(ua))  # (Va, p)
     fold_a = np.zeros(len(ua), int)
     fold_a[inv_a] = fold[fa]
     cnt_b = np.bincount(inv_b).astype(float)
-    xbar = np.stack([np.bincount(inv_b, weights=X[rb, c], minlength=len(ub)) for c in range(p)], axis=1) / cnt_b[:, None]
+    xbar = _visit_sums(X, rb, inv_b, len(ub)) / cnt_b[:, None]
     fold_b = fold_a[own]
     folds = np.unique(fold_a)  # the held-out folds and -2 (never held out)
     at_a = [fold_a == k for k in folds]
@@ -240,6 +239,20 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
     split = _direction_disagreement(means, noise_model.mean_variance(cnt), g_mean, t_mean, pose_of, dof)
     return ResidualStructure(significant, verdict, ho, noise, ratio, p, excess, per_pose, pose_rms, corr_t, corr_T, r2,
                              lag1, serial, noise_model.correlation_samples, dof, small, *split)
+
+
+def _visit_sums(X: np.ndarray, rows: np.ndarray, inv: np.ndarray, n: int, block: int = 1 << 15) -> np.ndarray:
+    """(n, p): the rows ``rows`` of ``X`` (N, p) summed by visit (``inv``: each selected row's visit index), a block of
+    rows at a time (no copy of the design's rows)."""
+    idx = np.flatnonzero(rows)
+    out = np.zeros((n, X.shape[1]))
+    for lo in range(0, len(idx), block):
+        v = inv[lo:lo + block]
+        order = np.argsort(v, kind="stable")
+        v = v[order]
+        starts = np.flatnonzero(np.r_[True, v[1:] != v[:-1]])
+        out[v[starts]] += np.add.reduceat(X[idx[lo:lo + block][order]], starts, axis=0)
+    return out
 
 
 def visit_mean_test(means: np.ndarray, cov: np.ndarray, dof: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
