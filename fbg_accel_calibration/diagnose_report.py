@@ -326,7 +326,8 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
               f"(variance of a visit mean from the floor's autocorrelation: lag-1 {_v(s.lag1_autocorr, '{:.2f}')}, "
               f"integrated correlation time {_v(s.noise_corr_samples, '{:.1f}')} samples, known to "
               f"{_v(s.noise_mean_dof, '{:.0f}')} degrees of freedom, plus what the error of the coefficients that "
-              "predict a held-out visit adds to its mean: chi^2/df against F(df, dof))",
+              "predict a held-out visit adds to its mean and the correlation it gives the visits: chi^2/df against "
+              "F(df, dof), df by Satterthwaite)",
               f"- Spearman correlation of pose means with time: {_v(s.corr_time, '{:+.2f}')}, "
               f"with temperature: {_v(s.corr_temperature, '{:+.2f}')}",
               f"- correlation of consecutive pose means in time order (slow wander gives values near 1, a pose- or "

@@ -21,7 +21,7 @@ from .data import DiagnosisData, finite_rows
 from .design import Design, ModelSpec, build_design
 from .findings import Finding, flagged_visits
 from .floor import FloorMeasurement, VisitNoise, within_visit_noise
-from .structure import ResidualStructure, coefficient_mean_variance, residual_structure
+from .structure import ResidualStructure, heldout_mean_covariance, residual_structure
 
 Added = tuple[str, float | None, str]  # effect name, hyper-parameter, description
 
@@ -110,14 +110,14 @@ def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: Flo
                              des_f, cv_f, fit_rows, rows_f, fold, weights)
     G_f, blocks_f = des_f.G, des_f.blocks
     r_eval = rows_f & finite_rows(residual_before) & finite_rows(cv_f.heldout)
-    fit_var = coefficient_mean_variance(des_f.X, fit_rows & des_f.valid, groups, cv_f.sums.XtX, noise_model_after,
-                                        int(fold.max()) + 1)
+    null = heldout_mean_covariance(des_f.X, fit_rows & des_f.valid, r_eval, groups, fold, cv_f.sums.xtx,
+                                   cv_f.sums.XtX, noise_model_after)
     del des_f  # its design matrix (N x p) is let go once cv_f's held-out residual is worked out
 
     def rms(r: np.ndarray) -> np.ndarray:
         return np.sqrt(np.mean(r[r_eval] ** 2, axis=0))
 
-    structure = residual_structure(data, cv_f.heldout, r_eval, groups, noise_model_after, alpha, fit_var=fit_var)
+    structure = residual_structure(data, cv_f.heldout, r_eval, groups, noise_model_after, alpha, null=null)
     cond, column_corr = gram_conditioning(cv_f.sums.XtX, cv_f.sums.xsum, len(cv_f.sums.idx), blocks_f)
     return FinalModel(cal, base_cal, added, remedies, run_terms, rig_terms, cv_f.heldout, r_eval, int(r_eval.sum()), noise_after,
                       noise_model_after, rms(residual_before), rms(res0), rms(cv_f.heldout),

@@ -58,52 +58,124 @@ class ResidualStructure:
     same_pose_span_s: float = 0.0
 
 
-def coefficient_mean_variance(X: np.ndarray, rows: np.ndarray, groups: np.ndarray, XtX: np.ndarray,
-                              noise_model: VisitNoise, n_folds: int) -> dict[int, np.ndarray]:
-    """Variance (3,) in (m/s^2)^2, by visit id, that the error of the fitted coefficients adds to a visit's mean
-    held-out residual: x_v^T Cov(A) x_v per axis, x_v the visit's mean design row. A held-out visit is predicted by
-    coefficients fitted on the other folds, whose own error the noise alone does not contain (36 coefficients fitted
-    on ~100 visits add ~a third to a visit mean's variance). Cov(A) is the sandwich (X^T X)^-1 B (X^T X)^-1 with
-    visits as the independent units, B = sum_v n_v^2 var(mean_v) x_v x_v^T (the noise model's variance of each
-    visit's mean: the null hypothesis of the test, not the residual), scaled by K / (K - 1) for the fold held out.
-    ``rows``: the fitted samples (X finite there)."""
-    sel = rows & (groups >= 0)
-    ug, inv = np.unique(groups[sel], return_inverse=True)
-    if not len(ug):
-        return {}
-    cnt = np.bincount(inv).astype(float)
-    Xs = X[sel]
-    sums = np.stack([np.bincount(inv, weights=Xs[:, c], minlength=len(ug)) for c in range(X.shape[1])], axis=1)
-    xbar = sums / cnt[:, None]
-    d = np.sqrt(np.maximum(np.diag(XtX), 1e-300))
-    try:
-        # (X^T X)^-1 x_v for every visit, Jacobi-scaled as the fit solves it
-        Wx = (np.linalg.solve(XtX / d[:, None] / d[None, :], (xbar / d).T) / d[:, None]).T
-    except np.linalg.LinAlgError:
-        return {}
-    var = noise_model.mean_variance(cnt.astype(int))  # (V, 3)
-    P = Wx @ sums.T  # (V, V): x_v^T (X^T X)^-1 (n_u x_u)
-    out = (P ** 2) @ var * (n_folds / max(n_folds - 1, 1))  # (V, 3): sum_u P_vu^2 var_u
-    return {int(g): out[i] for i, g in enumerate(ug)}
+@dataclass
+class HeldoutMeanNull:
+    """The covariance of the held-out visit means of the residual under the null hypothesis (the model is right and
+    the floor's noise is all there is; ``heldout_mean_covariance``): ``visits`` (V,) the held-out visit ids, ``cov``
+    (3, V, V) in (m/s^2)^2 per axis."""
+
+    visits: np.ndarray
+    cov: np.ndarray
+
+    def for_visits(self, ug: np.ndarray, diag: np.ndarray) -> np.ndarray:
+        """(3, len(ug), len(ug)) for the visits ``ug``; a visit it does not hold gets ``diag`` (len(ug), 3) alone."""
+        out = np.zeros((3, len(ug), len(ug)))
+        pos = np.searchsorted(self.visits, ug)
+        known = (pos < len(self.visits)) & (self.visits[np.minimum(pos, len(self.visits) - 1)] == ug)
+        k = np.flatnonzero(known)
+        out[:, k[:, None], k[None, :]] = self.cov[:, pos[k][:, None], pos[k][None, :]]
+        u = np.flatnonzero(~known)
+        out[:, u, u] = diag[u].T
+        return out
+
+
+def heldout_mean_covariance(X: np.ndarray, fit_rows: np.ndarray, eval_rows: np.ndarray, groups: np.ndarray,
+                            fold: np.ndarray, fold_xtx: np.ndarray, XtX: np.ndarray,
+                            noise_model: VisitNoise) -> HeldoutMeanNull | None:
+    """Covariance (3, V, V) of the held-out residual's visit means under the null hypothesis, V the visits of
+    ``eval_rows`` (held out, fold >= 0).
+
+    A held-out visit v of fold k is predicted by the coefficients fitted on the other folds' rows, whose error is
+    G_k t_k with G_k = (X^T X - X_k^T X_k)^-1 and t_k = sum_{u not in k} X_u^T e_u (e_u the noise of visit u's rows;
+    visits never held out, fold -2, are in every training set). Its mean residual is m_v = ebar_v - a_v^T t_k, a_v =
+    G_k x_v (x_v its mean design row, ebar_v its mean noise), so
+    Cov(m_v, m_w) = var_v [v = w] - (a_v . s_w) var_w [k(w) != k(v)] - (a_w . s_v) var_v [k(v) != k(w)]
+    + a_v^T Cov(t_k(v), t_k(w)) a_w, with Cov(t_k, t_l) = sum of B_u over the visits in neither fold, B_u = Cov(X_u^T
+    e_u) = var_u s_u s_u^T + n_u var_u (X_u^T X_u - s_u s_u^T / n_u), s_u = X_u^T 1 and var_u the noise model's
+    variance of the visit's mean (``VisitNoise.mean_variance``: the null hypothesis, not the residual). B_u is exact
+    for white noise and for a design constant within a visit; its within-visit part takes n_u var_u as the median
+    over the visits (the fold's X^T X carries that part summed). The diagonal adds to a visit mean's variance what the
+    coefficients' error gives it (36 coefficients fitted on 42 visits: ~a third); off the diagonal, the held-out
+    visits of one fold share one set of coefficients and so one error, and a visit of another fold was in their
+    training set: the sum of squared z over a campaign's visits is more dispersed than chi^2(V) (``visit_mean_test``).
+    ``fit_rows``: the fitted samples (X finite there, ``fold`` != -1); ``fold_xtx`` (K, p, p) X^T X of each fold's
+    fitted rows, ``XtX`` (p, p) over all of them (as ``cross_validate`` sums them). None when there is nothing to hold
+    out or a training set is singular."""
+    fa = fit_rows & (groups >= 0)
+    ua, inv_a = np.unique(groups[fa], return_inverse=True)
+    rb = eval_rows & (groups >= 0) & (fold >= 0)
+    ub, inv_b = np.unique(groups[rb], return_inverse=True)
+    if not len(ua) or not len(ub):
+        return None
+    own = np.minimum(np.searchsorted(ua, ub), len(ua) - 1)  # each held-out visit among the fitted ones
+    if not np.array_equal(ua[own], ub):
+        return None
+    p = X.shape[1]
+    cnt_a = np.bincount(inv_a).astype(float)
+    S = _visit_sums(X, fa, inv_a, len(ua))  # (Va, p)
+    fold_a = np.zeros(len(ua), int)
+    fold_a[inv_a] = fold[fa]
+    cnt_b = np.bincount(inv_b).astype(float)
+    xbar = _visit_sums(X, rb, inv_b, len(ub)) / cnt_b[:, None]
+    fold_b = fold_a[own]
+    folds = np.unique(fold_a)  # the held-out folds and -2 (never held out)
+    at_a = [fold_a == k for k in folds]
+    kb = np.searchsorted(folds, fold_b)
+    xtx = np.stack([fold_xtx[k] if k >= 0 else XtX - fold_xtx.sum(axis=0) for k in folds])  # (F, p, p)
+    a = np.empty((len(ub), p))  # G_k x_v
+    for i in range(len(folds)):
+        at = kb == i
+        if not at.any():
+            continue
+        Ak = XtX - xtx[i]
+        d = np.sqrt(np.maximum(np.diag(Ak), 1e-300))  # Jacobi-scaled, as the fit solves it
+        try:
+            a[at] = (np.linalg.solve(Ak / d[:, None] / d[None, :], (xbar[at] / d).T) / d[:, None]).T
+        except np.linalg.LinAlgError:
+            return None
+    var = noise_model.mean_variance(cnt_a.astype(int))  # (Va, 3)
+    Sn = np.stack([(S[at] / cnt_a[at, None]).T @ S[at] for at in at_a])  # (F, p, p) sum of s_u s_u^T / n_u
+    same = kb[:, None] == kb[None, :]
+    a_s = np.where(same, 0.0, a @ S[own].T)  # a_v . s_w for w of another fold
+    cov = np.empty((3, len(ub), len(ub)))
+    for j in range(3):
+        phi = float(np.median(cnt_a * var[:, j]))
+        B = np.stack([(S[at] * var[at, j][:, None]).T @ S[at] for at in at_a]) + phi * (xtx - Sn)  # (F, p, p)
+        c = np.einsum("vpq,vq->vp", B[kb], a)  # B_k(v) a_v
+        ca = c @ a.T
+        qde = a_s * var[own, j][None, :]
+        cov[j] = a @ B.sum(axis=0) @ a.T - ca - ca.T + np.where(same, ca, 0.0) - qde - qde.T
+        cov[j][np.diag_indices(len(ub))] += var[own, j]
+    return HeldoutMeanNull(ub, cov)
 
 
 def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, groups: np.ndarray,
                        noise_model: VisitNoise, alpha: float = 0.01, ratio_limit: float = SMALL_RATIO,
-                       fit_var: dict[int, np.ndarray] | None = None) -> ResidualStructure:
+                       null: HeldoutMeanNull | None = None) -> ResidualStructure:
     """Is there a significant residual left, and what does it depend on?
 
-    Test: visit means of the held-out residual against what the noise alone gives, chi^2 with the variance of
-    each visit's mean from the floor's own autocorrelation (``VisitNoise.mean_variance``: the same estimate as
-    the floor, so that floor and test agree on what the noise is; a first-order count of effective samples from
-    the lag-1 correlation counted 2-4 times too many for this noise and flagged clean data), plus what the error of
-    the coefficients that predict a held-out visit adds to its mean (``fit_var``: ``coefficient_mean_variance``, by
-    visit id; without it the test flagged a fifth of clean campaigns at a nominal 1 %).
+    The statistic, per axis: chi = sum_v z_v^2 over the V held-out visits, z_v = m_v / sd(m_v), m_v the visit's mean
+    held-out residual and sd(m_v) its standard deviation under the null hypothesis (the model is right, the floor's
+    noise is all there is). ``null`` (``heldout_mean_covariance``) gives the covariance C (V, V) of the m_v: the noise
+    of each visit's mean from the floor's own autocorrelation (``VisitNoise.mean_variance``: the same estimate as the
+    floor, so that floor and test agree on what the noise is), what the error of the coefficients that predict a
+    held-out visit adds to it, and the correlation that error gives the visits of one fold (one set of coefficients)
+    and of the others (in its training set). Without it (None) C is the noise's diagonal alone.
+    Its distribution: with R = C's correlation matrix, chi = sum_i lambda_i chi^2_1 (lambda the eigenvalues of R, sum V)
+    for Gaussian noise; referred to c chi^2(h) of the same mean and variance (Satterthwaite 1946: h = V^2 / tr R^2,
+    c = V / h), chi / V is chi^2(h) / h. The variance of a visit mean is itself estimated (nu = ``noise_model.mean_dof``
+    degrees of freedom, a common factor for every visit), so chi / V is referred to F(h, nu), taking nu at least
+    ``MIN_MEAN_DOF`` (below it the F test could reject nothing at any size). With the diagonal alone and chi^2(V) the
+    test fired on 5-6.5 % of clean simulated campaigns at a nominal 1 % (the 36 coefficients of eq. 28 fitted on
+    42 visits: h ~ 37; ``bench/residual_false_alarm.py``, ``docs/results/diagnosis_false_alarms.md``).
+    What the null does not hold: noise slower than a visit (the sensor's bias instability, a low-pass of the
+    reference longer than a visit) moves the visit means without being in the floor; on the simulator it adds about a
+    tenth to the z axis's chi (Table 2's bias instability, 1.9 mg).
+
     Significant = p < ``alpha`` / 3 on some axis (Bonferroni over the axes): the test's answer, whatever the size.
     The size is reported beside it: a systematic residual does not average out as the per-sample noise does, so
     one well below the per-sample floor (held-out RMSE within ``ratio_limit`` x floor: "small") is still a residual
-    the model lacks; the verdict then gives its pose-mean RMS and the visit that shows it most. The degrees of
-    freedom nu of the floor's mean variance are taken as at least ``MIN_MEAN_DOF``: below it the F test could
-    reject nothing at any size.
+    the model lacks; the verdict then gives its pose-mean RMS and the visit that shows it most.
     """
     noise = noise_model.sigma
     r = rows & finite_rows(res)
@@ -111,15 +183,11 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
     cnt = np.bincount(inv)
     x = res[r]
     means = np.stack([np.bincount(inv, weights=x[:, j]) / cnt for j in range(3)], axis=1)
-    mean_var = noise_model.mean_variance(cnt)
-    if fit_var:
-        mean_var = mean_var + np.stack([fit_var.get(int(g), np.zeros(3)) for g in ug])
-    z = means / np.sqrt(np.maximum(mean_var, 1e-300))
-    chi = np.sum(z**2, axis=0)
-    # the variance of a visit mean is itself estimated (nu = noise_model.mean_dof degrees of freedom, a common factor
-    # for every visit): chi / df is then F(df, nu) under the noise alone, the chi^2 law when it is known (nu = inf)
+    noise_var = noise_model.mean_variance(cnt)
+    cov = (null.for_visits(ug, noise_var) if null is not None
+           else np.stack([np.diag(noise_var[:, j]) for j in range(3)]))
     dof = np.maximum(noise_model.mean_dof, MIN_MEAN_DOF)
-    p = _visit_chi2_p(chi, len(ug), dof)
+    z, p = visit_mean_test(means, cov, dof)
     ho = np.sqrt(np.mean(x**2, axis=0))
     ratio = ho / np.maximum(noise, 1e-12)
     excess = np.sqrt(np.maximum(ho**2 - noise**2, 0.0))
@@ -173,7 +241,35 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
                              lag1, serial, noise_model.correlation_samples, dof, small, *split)
 
 
-def _visit_chi2_p(chi: np.ndarray, df: int, dof: np.ndarray) -> np.ndarray:
+def _visit_sums(X: np.ndarray, rows: np.ndarray, inv: np.ndarray, n: int, block: int = 1 << 15) -> np.ndarray:
+    """(n, p): the rows ``rows`` of ``X`` (N, p) summed by visit (``inv``: each selected row's visit index), a block of
+    rows at a time (no copy of the design's rows)."""
+    idx = np.flatnonzero(rows)
+    out = np.zeros((n, X.shape[1]))
+    for lo in range(0, len(idx), block):
+        v = inv[lo:lo + block]
+        order = np.argsort(v, kind="stable")
+        v = v[order]
+        starts = np.flatnonzero(np.r_[True, v[1:] != v[:-1]])
+        out[v[starts]] += np.add.reduceat(X[idx[lo:lo + block][order]], starts, axis=0)
+    return out
+
+
+def visit_mean_test(means: np.ndarray, cov: np.ndarray, dof: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The test of ``residual_structure``: visit means ``means`` (V, 3) m/s^2 against their covariance ``cov``
+    (3, V, V) under the null hypothesis, known to ``dof`` (3,) degrees of freedom. Returns (z (V, 3): each mean over
+    its standard deviation, p (3,)): chi = sum_v z_v^2 referred to c chi^2(h), h = V^2 / tr R^2 (R the correlation
+    matrix of ``cov``: Satterthwaite's two moments of sum_i lambda_i chi^2_1), chi / V to F(h, dof)."""
+    V = means.shape[0]
+    var = np.maximum(np.diagonal(cov, axis1=1, axis2=2).T, 1e-300)  # (V, 3)
+    z = means / np.sqrt(var)
+    chi = np.sum(z**2, axis=0)
+    sd = np.sqrt(var.T)  # (3, V)
+    h = V**2 / np.maximum(np.sum((cov / sd[:, :, None] / sd[:, None, :]) ** 2, axis=(1, 2)), 1e-300)
+    return z, _visit_chi2_p(chi * h / max(V, 1), h, dof)
+
+
+def _visit_chi2_p(chi: np.ndarray, df: float | np.ndarray, dof: np.ndarray) -> np.ndarray:
     """p (3,) of ``chi`` (3,), a sum of ``df`` squared visit means over their variance under the noise alone: chi / df
     is F(df, ``dof``) when that variance is estimated with ``dof`` (3,) degrees of freedom, chi^2(df) when known (inf)."""
     return np.where(np.isfinite(dof), stats.f.sf(chi / df, df, np.where(np.isfinite(dof), dof, 1.0)),
