@@ -598,8 +598,10 @@ def run_mutmut(names: list[str], max_children: int) -> None:
     """``mutmut run`` on ``names`` (all mutants of the configured modules when empty), in one call (one clean run
     of the tests they need, then one fork per mutant; mutmut records each result as it comes, so an interrupted
     run loses at most the mutants in flight)."""
+    generate_only = names == ["__generate_only__"]  # no mutant has that name: mutmut generates, maps, then says so
     subprocess.run([*MUTMUT, "run", "--max-children", str(max_children), *names], cwd=ROOT, check=False,
-                   stdout=subprocess.DEVNULL, env={**os.environ, "MUTATION_LEAVE_OUT": ";".join(LEAVE_OUT)})
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL if generate_only else None,
+                   env={**os.environ, "MUTATION_LEAVE_OUT": ";".join(LEAVE_OUT)})
 
 
 def diff_of(name: str, path: str) -> str:
