@@ -249,13 +249,13 @@ EQUIVALENT: dict[str, str] = {
         "(test_a_saved_file_is_utf8_whatever_the_locale_... writes a degree sign under LC_ALL=C)"),
     "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁsave__mutmut_19": (
         "no encoding for utf-8: the same reason"),
-    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁ__eq____mutmut_11": (
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁ__eq____mutmut_12": (
         "array_equal without equal_nan=True: no array field can hold NaN (the constructor refuses NaN in M, b, the "
         "noise terms and the reference levels), so NaN never meets NaN"),
-    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁ__eq____mutmut_14": (
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁ__eq____mutmut_15": (
         "array_equal without equal_nan=True: no array field can hold NaN (the constructor refuses NaN in M, b, the "
         "noise terms and the reference levels), so NaN never meets NaN"),
-    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁ__eq____mutmut_23": (
+    "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁ__eq____mutmut_24": (
         "array_equal without equal_nan=True: no array field can hold NaN (the constructor refuses NaN in M, b, the "
         "noise terms and the reference levels), so NaN never meets NaN"),
     "fbg_accel_driver.thermal_model.xǁThermalCalibrationǁcoefficients_at__mutmut_1": (

@@ -2,8 +2,9 @@
 
 What a user gets that the other tests of the module left unchecked: the defaults of every optional key of a file,
 the limits of section 5 at and one past their value, each refusal's whole message, the optional sections
-(``coefficient_covariance``, ``adc_codes``) written and read back, and the model's values where it has to hold them (a
-term that changes its arrays, the extrapolation of fitted terms, the plausibility grid of section 5 and its corners).
+(``coefficient_covariance``, ``slow_error``, ``adc_codes``) written and read back, and the model's values where it has
+to hold them (a term that changes its arrays, the extrapolation of fitted terms, the plausibility grid of section 5 and
+its corners).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from fbg_accel_driver import correction_terms, thermal_model
 from fbg_accel_driver.adc_code_table import ADC_CODES, AdcCodeTable
 from fbg_accel_driver.coefficient_covariance import CoefficientCovariance
 from fbg_accel_driver.correction_terms import TimeDrift
+from fbg_accel_driver.slow_error import SlowErrorSection
 from fbg_accel_driver.thermal_model import (
     FORMAT_NAME,
     MAX_REFERENCE_LEVELS,
@@ -159,6 +161,21 @@ def test_the_covariance_and_the_adc_table_go_through_the_file_s_content() -> Non
     mapped = plain.apply_counts(*cal.adc_codes.map_counts(np.array(ref), np.array(xyz)), temp, t)
     np.testing.assert_array_equal(back.apply_counts(ref, xyz, temp, t), mapped)
     assert np.max(np.abs(mapped - plain.apply_counts(ref, xyz, temp, t))) > 1e-3
+
+
+def test_the_slow_error_goes_through_the_file_s_content_and_is_refused_with_its_message() -> None:
+    """The ``slow_error`` section (the bias a still mean carries beyond the noise) is written under its key, read back
+    equal, and a file without it has none; a section that breaks its contract is refused naming the file."""
+    cal = make_cal(degree=1)
+    cal.slow_error = SlowErrorSection(np.diag([1e-3, 2e-3, 3e-3]), "test", 30)
+    doc = cal.to_dict()
+    assert doc["slow_error"] == cal.slow_error.to_dict()
+    back = ThermalCalibration.from_dict(doc)
+    assert back == cal and back.slow_error == cal.slow_error
+    np.testing.assert_allclose(back.slow_error.sigma_mps2, np.sqrt([1e-3, 2e-3, 3e-3]))
+    assert ThermalCalibration.from_dict({k: v for k, v in doc.items() if k != "slow_error"}).slow_error is None
+    doc["slow_error"] = {**doc["slow_error"], "visits": 2.5}
+    assert message(doc) == "cal.yaml: slow_error.visits must be an integer, got 2.5"
 
 
 def test_the_optional_sections_are_refused_with_their_messages() -> None:
