@@ -44,8 +44,8 @@ setup(
         "console_scripts": [
             "driver = fbg_accel_driver.driver_main:main",
             "board_sim = fbg_accel_sim.board_sim_main:main",
-            "calibration = fbg_accel_calibration.calibration_main:main",
-            "fbg-accel-calib = fbg_accel_calibration.cli_main:main",
+            "calibration = fbg_accel_calibration.recorder.calibration_main:main",
+            "fbg-accel-calib = fbg_accel_calibration.commands.cli_main:main",
         ],
     },
 )

@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 import output_paths
 
-from fbg_accel_calibration.adc_codes import code_table, recording_code_widths
 from fbg_accel_calibration.diagnosis.data import visit_ids
+from fbg_accel_calibration.fit.adc_codes import code_table, recording_code_widths
 from fbg_accel_sim.board_physics import simulate_recording
 from fbg_accel_sim.sim_config import SimConfig
 

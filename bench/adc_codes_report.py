@@ -29,16 +29,16 @@ from pathlib import Path
 import numpy as np
 import output_paths
 
-from fbg_accel_calibration.adc_codes import code_table, mapped_recording, recording_code_widths
-from fbg_accel_calibration.adc_codes_cli import visits_of
-from fbg_accel_calibration.csv_import import import_csv
-from fbg_accel_calibration.diagnose import diagnose
+from fbg_accel_calibration.commands.adc_codes_cli import visits_of
 from fbg_accel_calibration.diagnosis.adc_code_candidate import NAME as CODE_CANDIDATE
 from fbg_accel_calibration.diagnosis.design import ModelSpec, build_design, prepare_data
+from fbg_accel_calibration.diagnosis.diagnose import diagnose
 from fbg_accel_calibration.diagnosis.library import LIBRARY
 from fbg_accel_calibration.diagnosis.search import paired_gain_test
-from fbg_accel_calibration.measured_report import G_MPS2, TEMPERATURE_C
-from fbg_accel_calibration.recording import Recording
+from fbg_accel_calibration.fit.adc_codes import code_table, mapped_recording, recording_code_widths
+from fbg_accel_calibration.io.csv_import import import_csv
+from fbg_accel_calibration.io.recording import Recording
+from fbg_accel_calibration.reports.measured_report import G_MPS2, TEMPERATURE_C
 
 REPO = Path(__file__).resolve().parents[1]
 # ../shared next to the repository (a worktree one level deeper finds it one level up)

@@ -38,9 +38,9 @@ import output_paths  # noqa: E402
 from adc_code_widths_check import campaign  # noqa: E402
 from test_diagnose_sim import SCENARIOS, _config  # noqa: E402
 
-from fbg_accel_calibration import adc_codes  # noqa: E402
 from fbg_accel_calibration.diagnosis import adc_code_candidate as cand  # noqa: E402
 from fbg_accel_calibration.diagnosis.design import prepare_data  # noqa: E402
+from fbg_accel_calibration.fit import adc_codes  # noqa: E402
 from fbg_accel_driver.adc_code_table import pattern_edges  # noqa: E402
 from fbg_accel_sim.board_physics import simulate_recording  # noqa: E402
 

@@ -18,8 +18,8 @@ import json
 import numpy as np
 from output_paths import output_dir_from_command_line
 
-from fbg_accel_calibration.allan import BI_FACTOR, MG_TO_MPS2, allan_deviation
-from fbg_accel_calibration.fit_pipeline import fit_thermal
+from fbg_accel_calibration.fit.allan import BI_FACTOR, MG_TO_MPS2, allan_deviation
+from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
 from fbg_accel_sim.board_physics import BoardSimulator, SimConfig, simulate_recording
 from fbg_accel_sim.noise import flicker_noise
 

@@ -31,8 +31,8 @@ from residual_false_alarm import NAMED, wilson
 def one(seed: int, hysteresis: float) -> dict:
     import numpy as np
 
-    from fbg_accel_calibration.diagnose import diagnose
     from fbg_accel_calibration.diagnosis.approach import approach_signature
+    from fbg_accel_calibration.diagnosis.diagnose import diagnose
     from fbg_accel_sim.board_physics import simulate_recording
     from fbg_accel_sim.scenario import grid_poses
     from fbg_accel_sim.sim_config import SimConfig

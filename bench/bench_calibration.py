@@ -53,11 +53,11 @@ sys.path.insert(0, str(ROOT))
 from machine_info import results_doc, write_results  # noqa: E402
 from output_paths import add_update_results, results_dir  # noqa: E402
 
-from fbg_accel_calibration.diagnose import diagnose  # noqa: E402
-from fbg_accel_calibration.diagnose_report import write_report  # noqa: E402
+from fbg_accel_calibration.diagnosis.diagnose import diagnose  # noqa: E402
 from fbg_accel_calibration.diagnosis.search import SEARCH_ROWS  # noqa: E402
-from fbg_accel_calibration.fit_pipeline import fit_thermal  # noqa: E402
-from fbg_accel_calibration.mcap_io import read_recording, write_recording  # noqa: E402
+from fbg_accel_calibration.fit.fit_pipeline import fit_thermal  # noqa: E402
+from fbg_accel_calibration.io.mcap_io import read_recording, write_recording  # noqa: E402
+from fbg_accel_calibration.reports.diagnose_report import write_report  # noqa: E402
 from fbg_accel_driver.frame_codec import link_frame_rate_limit  # noqa: E402
 from fbg_accel_sim.board_physics import simulate_recording  # noqa: E402
 from fbg_accel_sim.sim_config import SimConfig  # noqa: E402
@@ -151,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     add_update_results(ap)
     args = ap.parse_args(argv)
     args.output = args.output or results_dir(args.update_results) / "calibration.json"
-    from fbg_accel_calibration.heap_trim import set_process_heap_policy
+    from fbg_accel_calibration.diagnosis.heap_trim import set_process_heap_policy
 
     set_process_heap_policy()  # as the diagnose command sets it (its entry point's policy)
 

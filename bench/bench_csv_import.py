@@ -61,7 +61,8 @@ def write_csv(path: Path, mb: float) -> int:
 
 CHILD = """
 import resource, sys, time
-from fbg_accel_calibration import cli, csv_import, mcap_io  # noqa: F401
+from fbg_accel_calibration.commands import cli
+from fbg_accel_calibration.io import csv_import, mcap_io  # noqa: F401
 mode, csv, out = sys.argv[1], sys.argv[2], sys.argv[3]
 t0 = time.perf_counter()
 if mode == "import":

@@ -30,11 +30,11 @@ import numpy as np
 from machine_info import machine
 from output_paths import add_update_results, results_dir
 
-from fbg_accel_calibration.fit_pipeline import fit_thermal
-from fbg_accel_calibration.mcap_io import read_recording, write_recording
-from fbg_accel_calibration.model_selection import select_degree
-from fbg_accel_calibration.recording import Recording
-from fbg_accel_calibration.thermal_fit import n_params
+from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
+from fbg_accel_calibration.fit.model_selection import select_degree
+from fbg_accel_calibration.fit.thermal_fit import n_params
+from fbg_accel_calibration.io.mcap_io import read_recording, write_recording
+from fbg_accel_calibration.io.recording import Recording
 
 G = 9.80665
 

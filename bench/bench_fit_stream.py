@@ -52,11 +52,11 @@ def child(mode: str, files: list[str], out: str, trace: bool) -> None:
     import io
     import tracemalloc
 
-    import fbg_accel_calibration.csv_import
-    import fbg_accel_calibration.mcap_io
-    import fbg_accel_calibration.model_selection
-    import fbg_accel_calibration.thermal_fit  # noqa: F401  (imports outside the measured region)
-    from fbg_accel_calibration.cli import main as cli_main
+    import fbg_accel_calibration.fit.model_selection
+    import fbg_accel_calibration.fit.thermal_fit
+    import fbg_accel_calibration.io.csv_import
+    import fbg_accel_calibration.io.mcap_io  # noqa: F401  (imports outside the measured region)
+    from fbg_accel_calibration.commands.cli import main as cli_main
 
     page = os.sysconf("SC_PAGE_SIZE")
 
@@ -119,9 +119,9 @@ def main() -> None:
     sys.path.insert(0, str(HERE))
     from bench_fit import make_recording
 
-    from fbg_accel_calibration.mcap_io import write_recording
-    from fbg_accel_calibration.static_detector import BLOCK_ROWS
-    from fbg_accel_calibration.thermal_fit import DEFAULT_CHUNK, n_params
+    from fbg_accel_calibration.fit.static_detector import BLOCK_ROWS
+    from fbg_accel_calibration.fit.thermal_fit import DEFAULT_CHUNK, n_params
+    from fbg_accel_calibration.io.mcap_io import write_recording
     from fbg_accel_driver.thermal_model import ThermalCalibration
 
     tmp = tempfile.TemporaryDirectory() if args.dir is None else None

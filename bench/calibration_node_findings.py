@@ -24,9 +24,9 @@ import numpy as np
 import yaml
 from output_paths import add_update_results, results_dir
 
-from fbg_accel_calibration.fit_pipeline import fit_thermal
-from fbg_accel_calibration.recording import Recording
-from fbg_accel_calibration.static_detector import estimate_noise_var, moving_variance, variance_threshold
+from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
+from fbg_accel_calibration.fit.static_detector import estimate_noise_var, moving_variance, variance_threshold
+from fbg_accel_calibration.io.recording import Recording
 from fbg_accel_sim.board_physics import BoardSimulator, SimConfig, simulate_recording
 
 ROOT = Path(__file__).resolve().parents[1]

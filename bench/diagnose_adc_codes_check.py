@@ -25,8 +25,8 @@ from pathlib import Path
 import output_paths
 from adc_code_widths_check import NOISE_SCALE, campaign
 
-from fbg_accel_calibration.diagnose import diagnose
 from fbg_accel_calibration.diagnosis.adc_code_candidate import NAME
+from fbg_accel_calibration.diagnosis.diagnose import diagnose
 
 RESULTS = output_paths.COMMITTED / "diagnose_adc_codes_check.json"
 

@@ -45,7 +45,7 @@ def recording(n: int, folder: Path) -> Path:
     if not path.exists():
         from bench_calibration import scenario
 
-        from fbg_accel_calibration.mcap_io import write_recording
+        from fbg_accel_calibration.io.mcap_io import write_recording
         from fbg_accel_sim.board_physics import simulate_recording
 
         cfg, duration = scenario(n)
@@ -54,16 +54,16 @@ def recording(n: int, folder: Path) -> Path:
 
 
 def command_argv(path: Path, out: Path) -> list[str]:
-    return [sys.executable, "-c", "import sys; from fbg_accel_calibration.cli_main import main; sys.exit(main())",
+    return [sys.executable, "-c", "import sys; from fbg_accel_calibration.commands.cli_main import main; sys.exit(main())",
             "diagnose", str(path), "--out", str(out / "report.md"), "--yaml", str(out / "cal.yaml"), "--force",
             "--no-progress"]
 
 
 def diagnosis_alone(path: str) -> None:
     """The floor (in its own process): read the recording and diagnose it as the command does, nothing written."""
-    from fbg_accel_calibration.diagnose import diagnose
-    from fbg_accel_calibration.heap_trim import set_process_heap_policy
-    from fbg_accel_calibration.input_files import load_recording
+    from fbg_accel_calibration.diagnosis.diagnose import diagnose
+    from fbg_accel_calibration.diagnosis.heap_trim import set_process_heap_policy
+    from fbg_accel_calibration.io.input_files import load_recording
 
     set_process_heap_policy()
     rec = load_recording([path], rate=None, temperature=None, g=None, namespace=None, topic=None)
@@ -81,9 +81,9 @@ def breakdown(path: str, out: str) -> None:
         stages[name] = round(now - t, 3)
         t = now
 
-    from fbg_accel_calibration.diagnose import diagnose
-    from fbg_accel_calibration.heap_trim import set_process_heap_policy
-    from fbg_accel_calibration.input_files import load_recording
+    from fbg_accel_calibration.diagnosis.diagnose import diagnose
+    from fbg_accel_calibration.diagnosis.heap_trim import set_process_heap_policy
+    from fbg_accel_calibration.io.input_files import load_recording
 
     set_process_heap_policy()
     lap("import the engine")
@@ -91,7 +91,7 @@ def breakdown(path: str, out: str) -> None:
     lap("read the recording")
     res = diagnose(rec, sensor_id="bench")
     lap("diagnosis")
-    from fbg_accel_calibration import diagnose_report as report
+    from fbg_accel_calibration.reports import diagnose_report as report
 
     report.text(res)
     report.markdown(res)

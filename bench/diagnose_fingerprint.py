@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from bench_calibration import scenario  # noqa: E402
 
-from fbg_accel_calibration.diagnose import diagnose  # noqa: E402
+from fbg_accel_calibration.diagnosis.diagnose import diagnose  # noqa: E402
 from fbg_accel_sim.board_physics import simulate_recording  # noqa: E402
 
 

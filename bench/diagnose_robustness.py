@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT / "test"))
 from output_paths import RESULTS_PAGES, scratch_dir  # noqa: E402
 from test_diagnose_sim import DARK_UNDER_DRIFT, LAG, LAG_S, LEAD, RAMPS, SCENARIOS, _config  # noqa: E402
 
-from fbg_accel_calibration.diagnose import DiagnosisResult, diagnose  # noqa: E402
+from fbg_accel_calibration.diagnosis.diagnose import DiagnosisResult, diagnose  # noqa: E402
 from fbg_accel_sim.board_physics import simulate_recording  # noqa: E402
 
 RATIO = 1.2  # held-out error / noise floor a named effect must end within

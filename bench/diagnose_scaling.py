@@ -37,13 +37,13 @@ from output_paths import add_update_results, results_dir  # noqa: E402
 def run_command(n: int, tmp: Path) -> dict:
     """``fbg-accel-calib diagnose`` on the benchmark's simulated run of ``n`` samples written as MCAP:
     {wall seconds, peak RSS MiB} of that one process."""
-    from fbg_accel_calibration.mcap_io import write_recording
+    from fbg_accel_calibration.io.mcap_io import write_recording
     from fbg_accel_sim.board_physics import simulate_recording
 
     cfg, duration = scenario(n)
     path = tmp / f"{n}.mcap"
     write_recording(path, simulate_recording(cfg, seed=0, duration_s=duration), metadata={"sensor_id": "bench"})
-    cmd = [sys.executable, "-m", "fbg_accel_calibration.cli", "diagnose", str(path), "--out", str(tmp / f"{n}.md"),
+    cmd = [sys.executable, "-m", "fbg_accel_calibration.commands.cli", "diagnose", str(path), "--out", str(tmp / f"{n}.md"),
            "--yaml", str(tmp / f"{n}.yaml"), "--force", "--no-progress"]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL)

@@ -44,11 +44,11 @@ sys.path.insert(0, str(ROOT))
 import output_paths  # noqa: E402
 from machine_info import results_doc, write_results  # noqa: E402
 
-from fbg_accel_calibration.bode_plot import plot_bode  # noqa: E402
-from fbg_accel_calibration.chain_model import axis_response_along  # noqa: E402
-from fbg_accel_calibration.dynamic_calibration import MISFIT_Z, DynamicCalibrationError, run_dynamic  # noqa: E402
-from fbg_accel_calibration.dynamic_check import step_check  # noqa: E402
-from fbg_accel_calibration.excitation_plan import ExcitationPlan  # noqa: E402
+from fbg_accel_calibration.dynamic.bode_plot import plot_bode  # noqa: E402
+from fbg_accel_calibration.dynamic.chain_model import axis_response_along  # noqa: E402
+from fbg_accel_calibration.dynamic.dynamic_calibration import MISFIT_Z, DynamicCalibrationError, run_dynamic  # noqa: E402
+from fbg_accel_calibration.dynamic.dynamic_check import step_check  # noqa: E402
+from fbg_accel_calibration.dynamic.excitation_plan import ExcitationPlan  # noqa: E402
 from fbg_accel_driver.driver_parameters import default_calibration_path  # noqa: E402
 from fbg_accel_driver.thermal_model import ThermalCalibration  # noqa: E402
 from fbg_accel_sim.dynamic_run import (  # noqa: E402

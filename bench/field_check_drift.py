@@ -29,8 +29,8 @@ from machine_info import machine
 from nees_probe import fitted_calibration
 from output_paths import add_update_results, results_dir
 
-from fbg_accel_calibration.field_check import DRIFT_SIGMAS, drifted, estimate, still_periods
-from fbg_accel_calibration.static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW, calibration_samples
+from fbg_accel_calibration.fit.field_check import DRIFT_SIGMAS, drifted, estimate, still_periods
+from fbg_accel_calibration.fit.static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW, calibration_samples
 from fbg_accel_sim.board_physics import SimConfig, simulate_recording
 
 ORIENTATIONS = [[0.0, 0.0], [0.0, 180.0], [0.0, 90.0], [180.0, 90.0], [90.0, 90.0], [270.0, 90.0], [45.0, 45.0],

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from output_paths import output_dir_from_command_line
 
-from fbg_accel_calibration.fit_pipeline import fit_thermal
+from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
 from fbg_accel_driver.thermal_model import normalise
 from fbg_accel_sim.board_physics import SimConfig, simulate_recording
 

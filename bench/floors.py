@@ -90,7 +90,7 @@ def campaign_files(n: int, folder: Path) -> tuple[list[Path], Path]:
         return files, arrays
     import numpy as np
 
-    from fbg_accel_calibration.mcap_io import write_recording
+    from fbg_accel_calibration.io.mcap_io import write_recording
     from fbg_accel_sim.eq28_campaign import campaign
 
     rec, _ = campaign(0, degree=2, n_poses=POSES, repeats=REPEATS, visit_s=n / (LEVELS * POSES * REPEATS * RATE_HZ))
@@ -137,7 +137,7 @@ def fit_floor(arrays: Path, degree: int = 2, folds: int = 10) -> None:
 def measure_fit(n: int, pairs: int, folder: Path) -> dict:
     files, arrays = campaign_files(n, folder)
     out = folder / "fit_out.yaml"
-    project = [sys.executable, "-c", "import sys; from fbg_accel_calibration.cli_main import main; sys.exit(main())",
+    project = [sys.executable, "-c", "import sys; from fbg_accel_calibration.commands.cli_main import main; sys.exit(main())",
                "fit", *map(str, files), "-o", str(out), "--force", "--no-progress"]
     floor = [sys.executable, str(Path(__file__).resolve()), "--fit-floor", str(arrays)]
     run_child(project)  # page cache and .pyc files
@@ -162,7 +162,7 @@ def diagnose_files(n: int, folder: Path) -> tuple[Path, Path]:
     if not arrays.exists():
         import numpy as np
 
-        from fbg_accel_calibration.input_files import load_recording
+        from fbg_accel_calibration.io.input_files import load_recording
 
         rec = load_recording([str(path)], rate=None, temperature=None, g=None, namespace=None, topic=None)
         np.savez(arrays, ref=rec.ref, xyz=rec.xyz, temp_c=rec.temp_c, gref=rec.gref_mps2, pose=rec.pose_id,

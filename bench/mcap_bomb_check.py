@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from machine_info import machine  # noqa: E402
 
-from fbg_accel_calibration import mcap_io  # noqa: E402
+from fbg_accel_calibration.io import mcap_io  # noqa: E402
 
 
 def chunk_record(data: bytes, compression: str, uncompressed_size: int) -> bytes:

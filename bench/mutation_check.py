@@ -21,7 +21,7 @@ tests of that selection that execute the mutated function):
 * ``fbg_accel_driver.clock_sync`` -- test_clock_sync.py
 * ``fbg_accel_driver.thermal_model`` (the calibration model and its loader) -- test_thermal_model.py,
   test_calibration_contract.py, test_thermal_model_edges.py
-* ``fbg_accel_calibration.thermal_fit`` (the eq. 28 fit) -- test_thermal_fit.py
+* ``fbg_accel_calibration.fit.thermal_fit`` (the eq. 28 fit) -- test_thermal_fit.py
 
 Usage::
 
@@ -54,7 +54,7 @@ MODULES = {
     "stream_decoder": "fbg_accel_driver/stream_decoder.py",
     "clock_sync": "fbg_accel_driver/clock_sync.py",
     "thermal_model": "fbg_accel_driver/thermal_model.py",
-    "thermal_fit": "fbg_accel_calibration/thermal_fit.py",
+    "thermal_fit": "fbg_accel_calibration/fit/thermal_fit.py",
 }
 # Slow tests left out of the mutation run (node-id prefix -> why the mutants they reach are judged without them); the
 # conftest deselects them when mutmut runs a mutant. A survivor they alone would kill shows as a survivor here.
@@ -384,8 +384,8 @@ EQUIVALENT: dict[str, str] = {
     "fbg_accel_driver.clock_sync.xǁClockSyncǁ_clear__mutmut_12": (
         "1 for 0 as the steady time of the first observation before there is one: it is set with that observation, "
         "and read only after it"),
-    # --- fbg_accel_calibration.thermal_fit (the eq. 28 fit) ---
-    **{f"fbg_accel_calibration.thermal_fit.{name}": reason for name, reason in {
+    # --- fbg_accel_calibration.fit.thermal_fit (the eq. 28 fit) ---
+    **{f"fbg_accel_calibration.fit.thermal_fit.{name}": reason for name, reason in {
         # conversions that change nothing: what they convert is already of that type, or converted where it is used
         "x_check_pose_excitation__mutmut_3": (
             "the cells' sample counts without dtype=float: they are floats already (CellAccumulator.finish), and every "

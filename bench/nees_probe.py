@@ -145,11 +145,11 @@ def fitted_calibration(seed: int, degree: int = 2, settle_s: float = 2.0, repeat
     6 degrees of freedom: the estimate is then so uncertain itself that a normalised error's mean is 3 x 6 / (6 - 4) =
     9, not 3, although unbiased, Hotelling's T^2). ``runs_per_level`` > 1: that many separate runs (sessions, each with
     its own state of the slow processes) at each level, so that a wander constant over a run is not absorbed by b(T)."""
-    from fbg_accel_calibration.fit_pipeline import fit_thermal
-    from fbg_accel_calibration.fit_stream import prepare
-    from fbg_accel_calibration.noise_correlation import from_recording, within_visit_factor
-    from fbg_accel_calibration.recording import Recording
-    from fbg_accel_calibration.slow_error import attach as attach_slow_error
+    from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
+    from fbg_accel_calibration.fit.fit_stream import prepare
+    from fbg_accel_calibration.fit.noise_correlation import from_recording, within_visit_factor
+    from fbg_accel_calibration.fit.slow_error import attach as attach_slow_error
+    from fbg_accel_calibration.io.recording import Recording
     from fbg_accel_sim.make_default_calibration import calibration_runs, static_mask
 
     cfg = SimConfig.default().with_overrides(overrides or {})

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from output_paths import output_dir_from_command_line
 
-from fbg_accel_calibration.table_geometry import table_specific_force
+from fbg_accel_calibration.io.table_geometry import table_specific_force
 from fbg_accel_driver.thermal_model import ThermalCalibration
 from fbg_accel_sim import optics
 from fbg_accel_sim.board_physics import SimConfig, simulate_recording

@@ -56,7 +56,7 @@ NOMINAL = {
 
 def one(args: tuple[int, float, int, dict]) -> dict:
     seed, ref_noise, max_effects, extra = args
-    from fbg_accel_calibration.diagnose import diagnose
+    from fbg_accel_calibration.diagnosis.diagnose import diagnose
     from fbg_accel_sim.board_physics import simulate_recording
     from fbg_accel_sim.sim_config import SimConfig
 

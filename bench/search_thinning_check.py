@@ -39,9 +39,9 @@ from machine_info import machine  # noqa: E402
 from output_paths import add_update_results, results_dir  # noqa: E402
 from test_diagnose_sim import SCENARIOS, _config  # noqa: E402
 
-from fbg_accel_calibration.diagnose import DiagnosisResult, diagnose  # noqa: E402
+from fbg_accel_calibration.diagnosis.diagnose import DiagnosisResult, diagnose  # noqa: E402
 from fbg_accel_calibration.diagnosis.search import SEARCH_ROWS  # noqa: E402
-from fbg_accel_calibration.recording import Recording  # noqa: E402
+from fbg_accel_calibration.io.recording import Recording  # noqa: E402
 from fbg_accel_sim.board_physics import simulate_recording  # noqa: E402
 
 OLD_SEARCH_ROWS = 100_000  # SEARCH_ROWS before 2026-11-27

@@ -13,7 +13,7 @@ moves the calibrated output away from Table 2:
 * ``reference_noise_1``: ``noise.reference_noise_counts`` 1.0 (the measured board's read noise).
 
 Each: calibrated on a short multi-position run (seed 1), static run at 23.4 degC (seed 2) of ``--hours``,
-``fbg_accel_calibration.allan``: VRW and bias instability read against the configured Table 2 values,
+``fbg_accel_calibration.fit.allan``: VRW and bias instability read against the configured Table 2 values,
 and the ratio read / expected (``NoiseModel.expected_adev``) at a few cluster times. Writes
 bench/results/sim_noise_vs_table2.json::
 
@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 from output_paths import add_update_results, results_dir
 
-from fbg_accel_calibration.allan import allan_deviation
-from fbg_accel_calibration.fit_pipeline import fit_thermal
+from fbg_accel_calibration.fit.allan import allan_deviation
+from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
 from fbg_accel_sim.board_physics import BoardSimulator, SimConfig, simulate_recording
 
 CASES = {

@@ -23,8 +23,8 @@ from pathlib import Path
 from machine_info import results_doc, write_results
 from output_paths import add_update_results, results_dir
 
-ENTRY = {"fbg-accel-calib": "fbg_accel_calibration.cli_main", "driver": "fbg_accel_driver.driver_main",
-         "calibration": "fbg_accel_calibration.calibration_main", "board_sim": "fbg_accel_sim.board_sim_main"}
+ENTRY = {"fbg-accel-calib": "fbg_accel_calibration.commands.cli_main", "driver": "fbg_accel_driver.driver_main",
+         "calibration": "fbg_accel_calibration.recorder.calibration_main", "board_sim": "fbg_accel_sim.board_sim_main"}
 COMMANDS = [("fbg-accel-calib", ["--help"]), ("fbg-accel-calib", ["fit", "--help"]),
             ("fbg-accel-calib", ["diagnose", "--help"]), ("fbg-accel-calib", ["report-measured", "--help"]),
             ("driver", ["--help"]), ("calibration", ["--help"]), ("board_sim", ["--help"])]

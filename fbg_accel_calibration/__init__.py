@@ -1,1 +1,2 @@
-"""Calibration toolchain: recording, fitting, degree selection, noise and diagnosis."""
+"""Calibration toolchain, one room (subpackage) per job: io, fit, dynamic, diagnosis, reports, recorder, commands
+(docs/architecture.md, "Package graph")."""

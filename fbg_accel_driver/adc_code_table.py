@@ -5,7 +5,7 @@ non-linearity; Espressif's ESP32 datasheet, "ADC characteristics": DNL up to +-7
 a code stands for the range of inputs it reads, not for its own number. The table gives, per channel (ref, x, y, z),
 the lower edge of every code's input interval (``ADC_CODES + 1`` edges: the last is the top code's upper edge, in
 counts of input, nominal c - 0.5); a reading is replaced by the centre of its code's interval before eq. 24. Tables
-are measured from recordings (``fbg-accel-calib adc-codes``; ``fbg_accel_calibration.adc_codes``).
+are measured from recordings (``fbg-accel-calib adc-codes``; ``fbg_accel_calibration.fit.adc_codes``).
 
 The one implementation of the mapping: :meth:`AdcCodeTable.values` (the driver, one frame at a time, plain floats)
 and :meth:`AdcCodeTable.map_counts` (arrays: the fit, the diagnosis, ``ThermalCalibration.apply_counts``) read the

@@ -1,6 +1,6 @@
 """The calibration file's ``coefficient_covariance`` section and what it gives at the output (pure numpy, no ROS).
 
-The fit (``fbg_accel_calibration.coefficient_uncertainty``) writes the covariance Sigma (3p, 3p) of eq. 28's
+The fit (``fbg_accel_calibration.fit.coefficient_uncertainty``) writes the covariance Sigma (3p, 3p) of eq. 28's
 coefficients, p = 4(n+1), ordered row-major over A (p, 3): index ``3 k + i`` is regressor k of eq. 29 for output axis
 i, where regressor ``3 m + j`` (m = 0..n, j = 0..2) is tau^m Psi_j (so A[3m + j, i] = M_m[i, j]) and regressor
 ``3(n+1) + m`` is tau^m (A[3(n+1) + m, i] = b_m[i]). The output is a_i = x . A[:, i] with x the regressor row, so

@@ -26,7 +26,7 @@ a span (files written before spans existed) is evaluated as written and reports 
 
 Stateful terms (filters) keep everything they need from the previous batch in their state, so a
 stream processed in one batch or in many consecutive batches with the same state gives the same
-result (``test/test_correction_terms.py``). ``fbg_accel_calibration.effects`` builds the same
+result (``test/test_correction_terms.py``). ``fbg_accel_calibration.diagnosis.effects`` builds the same
 regressors for the fit, from these very classes, so the driver and the offline model agree.
 """
 

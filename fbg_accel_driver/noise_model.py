@@ -10,7 +10,7 @@ about 0.9, and averaging N of them (the driver's ``decimation``) cuts the varian
 
 with sigma = ``noise_sigma_mps2``, f = ``noise_correlation.correlated_fraction`` and tau =
 ``noise_correlation.time_constant_s`` of the calibration file (fitted from the static intervals of the
-calibration recording: ``fbg_accel_calibration/noise_correlation.py``), dt the board's sample interval.
+calibration recording: ``fbg_accel_calibration/fit/noise_correlation.py``), dt the board's sample interval.
 For the mean of N consecutive samples
 
     var(mean) / sigma^2 = (1 - f) / N + f * g(N, rho),   g = (1 + 2 sum_{k=1}^{N-1} (1 - k/N) rho^k) / N

@@ -45,7 +45,7 @@ Hysteresis (a Schmitt trigger with a hold):
   ``false_alarm_per_run / (run_samples * components)`` (Bonferroni over every sample of the run and
   every component), so a still sensor is declared moving at most ``false_alarm_per_run`` times per run
   of ``run_samples`` samples in expectation. Real table moves (a 90 deg turn raises the window variance
-  about 50-fold) cross it; small moves are the pose-level test's job (``run_recorder``).
+  about 50-fold) cross it; small moves are the pose-level test's job (``pose_recorder``).
 """
 
 from __future__ import annotations

@@ -32,7 +32,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from fbg_accel_calibration.table_geometry import table_specific_force
+from fbg_accel_calibration.io.table_geometry import table_specific_force
 from fbg_accel_driver.adc_code_table import pattern_codes
 from fbg_accel_driver.frame_codec import BODY_LEN_BY_VERSION, SEQ_MODULO, Frame, Status, crc16, frame_size
 
@@ -1125,7 +1125,7 @@ def simulate_recording(cfg: SimConfig | None = None, seed: int = 0, duration_s: 
     angle reading (defined while moving too); ``pose_id`` is -1 while the table moves. The truth of
     the kept samples is in ``metadata["truth"]``.
     """
-    from fbg_accel_calibration.recording import Recording
+    from fbg_accel_calibration.io.recording import Recording
 
     sim = BoardSimulator(cfg, seed=seed, wire=False)
     duration_s = duration_s if duration_s is not None else sim.duration_s

@@ -7,7 +7,7 @@ counters (what a decoder must report). On a pty, SIGTERM/SIGINT end the run clea
 with ``--output`` they abandon it (exit 130 / 143, neither file written: a shortened stream is not the
 run asked for).
 
-Outputs never destroy data (``fbg_accel_calibration.atomic_output``): ``--output`` and ``--truth`` are
+Outputs never destroy data (``fbg_accel_calibration.io.atomic_output``): ``--output`` and ``--truth`` are
 refused if they exist (unless ``--force``), name an input (``--config``, ``--dynamic-plan``) or each
 other, and are written to temporary files renamed together at the end; ``--link`` is refused if
 something other than a symbolic link is at its path (it is replaced by a link and removed at exit).
@@ -29,7 +29,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from fbg_accel_calibration import input_validation as iv
+from fbg_accel_calibration.io import input_validation as iv
 from fbg_accel_driver.command_line import OneLineErrorParser, one_line, printable, version_line
 
 from .sim_config import SimConfig, SimConfigError, parse_set_argument
@@ -71,7 +71,7 @@ def load_config(args: argparse.Namespace) -> SimConfig:
     cfg = SimConfig.load(args.config) if args.config else SimConfig.default()
     overrides: dict = {}
     if args.dynamic_plan:
-        from fbg_accel_calibration.excitation_plan import ExcitationPlan, ExcitationPlanError
+        from fbg_accel_calibration.dynamic.excitation_plan import ExcitationPlan, ExcitationPlanError
 
         try:
             plan = ExcitationPlan.load(args.dynamic_plan)
@@ -93,8 +93,8 @@ def load_config(args: argparse.Namespace) -> SimConfig:
 
 def check_outputs(args: argparse.Namespace) -> None:
     """Before any simulation: the outputs destroy nothing (module docstring). Raises ``OutputError``."""
-    from fbg_accel_calibration.atomic_output import OutputError
-    from fbg_accel_calibration.atomic_output import check_outputs as check
+    from fbg_accel_calibration.io.atomic_output import OutputError
+    from fbg_accel_calibration.io.atomic_output import check_outputs as check
 
     inputs = [p for p in (args.config, args.dynamic_plan) if p]
     check([p and Path(p) for p in (args.output, args.truth)], inputs, args.force)
@@ -105,7 +105,7 @@ def check_outputs(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fbg_accel_calibration.atomic_output import committed_outputs
+    from fbg_accel_calibration.io.atomic_output import committed_outputs
 
     args = build_parser().parse_args(argv)
     from .board_physics import BoardSimulator  # numpy: only once --help and --version have answered

@@ -24,7 +24,7 @@ def simulate_dynamic_run(plan: Any, rate_hz: float = 500.0, seed: int = 0, overr
     recording's ``t_s`` is the board clock (s), ``aux`` the decoded aux counts; frames lost or corrupted
     on the simulated link are simply absent, as for a real recording.
     """
-    from fbg_accel_calibration.recording import Recording  # the simulator's existing dependency direction
+    from fbg_accel_calibration.io.recording import Recording  # the simulator's existing dependency direction
 
     cfg = SimConfig.default().with_overrides({**plan.sim_overrides(), "scenario.rate_hz": float(rate_hz),
                                               **(overrides or {})})
@@ -50,7 +50,7 @@ def simulated_tone_check(plan: Any, cal: Any, rate_hz: float = 100.0, seed: int 
     """``dynamic_check.tone_check`` of ``cal`` on a simulated run of the one-tone ``plan``
     (``ExcitationPlan.with_tone``), over the tone's steady window; ``overrides`` as for :func:`simulate_dynamic_run`
     (the chain the run goes through)."""
-    from fbg_accel_calibration.dynamic_check import tone_check
+    from fbg_accel_calibration.dynamic.dynamic_check import tone_check
 
     _, block, _ = simulate_dynamic_run(plan, rate_hz=rate_hz, seed=seed, overrides=overrides)
     _, a, b = plan.steady_windows(plan.start_s)[0]

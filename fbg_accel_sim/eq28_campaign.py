@@ -2,7 +2,7 @@
 
 Pure numpy. The physics simulator (``board_physics``) has effects eq. 28 does not contain (the spectral
 non-linearity, the time drift), so its "true coefficients" are not defined; this campaign's are, and what is left is
-what the coefficient covariance (``fbg_accel_calibration.coefficient_uncertainty``) must account for:
+what the coefficient covariance (``fbg_accel_calibration.fit.coefficient_uncertainty``) must account for:
 
 * the table's pose error, shared by all samples of one visit: a random tilt of the true specific force (sigma
   ``tilt_sigma_deg``; a rotation table's repeatability is of the order of 0.1 deg, and the measured series' poses are
@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fbg_accel_calibration.recording import Recording
-from fbg_accel_calibration.thermal_fit import model_to_coefficients
+from fbg_accel_calibration.fit.thermal_fit import model_to_coefficients
+from fbg_accel_calibration.io.recording import Recording
 
 G = 9.80665
 LEVELS_C = (15.0, 25.0, 35.0)  # centre 25, half-range 10: the fit's own tau scaling

@@ -10,7 +10,7 @@ low-pass has settled), with the AHT10 reading as temperature, centred and scaled
 (tau = (T - t_center_c) / t_scale_c) for conditioning. ``noise_sigma_mps2`` is the within-pose
 standard deviation of the calibrated output (white noise at the board rate) and
 ``temperature_range_c`` the span of the temperatures the fit saw; ``noise_correlation`` the white +
-first-order model of that noise fitted to the same visits (``fbg_accel_calibration.noise_correlation``);
+first-order model of that noise fitted to the same visits (``fbg_accel_calibration.fit.noise_correlation``);
 ``reference_level`` the mean reference counts and temperature of those samples per chamber level (as ``fit``).
 """
 
@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fbg_accel_calibration.atomic_output import OutputError, atomic_path, check_outputs
-from fbg_accel_calibration.recording import Recording
-from fbg_accel_calibration.thermal_fit import coefficients_to_model, design_matrix, solve_normal_equations
+from fbg_accel_calibration.fit.thermal_fit import coefficients_to_model, design_matrix, solve_normal_equations
+from fbg_accel_calibration.io.atomic_output import OutputError, atomic_path, check_outputs
+from fbg_accel_calibration.io.recording import Recording
 from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
 
 from .board_physics import simulate_recording
@@ -84,7 +84,7 @@ def make_calibration(cfg: SimConfig | None = None, seed: int = 0, degree: int = 
         sel = visit == v
         within[sel] -= within[sel].mean(axis=0)
     cal.noise_sigma_mps2 = within.std(axis=0)
-    from fbg_accel_calibration.noise_correlation import estimate
+    from fbg_accel_calibration.fit.noise_correlation import estimate
 
     segments = [within[visit == v] for v in np.unique(visit)]
     corr = estimate(segments, float(np.median(np.diff(rec.t_s))))

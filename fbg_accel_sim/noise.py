@@ -37,7 +37,7 @@ import numpy as np
 MG_TO_MPS2 = 9.80665e-3
 # min ADEV / BI of a bias-instability (flicker) floor, sqrt(2 ln 2 / pi) = 0.6643 (IEEE Std 952, PSD B^2/(2 pi f)).
 # Paper eq. 27 prints it rounded to 0.66: 0.6 % apart, inside Table 2's own rounding (0.54 mg is +-0.9 %). The
-# Allan tool (fbg_accel_calibration.allan) uses 0.664 and 9.80665 too, so it reads Table 2 back from the simulator.
+# Allan tool (fbg_accel_calibration.fit.allan) uses 0.664 and 9.80665 too, so it reads Table 2 back from the simulator.
 BI_ADEV_FACTOR = 0.664
 VRW_TAU_S = 1.0  # paper eq. 26: VRW = 60 * ADEV(1 s)
 BI_VARIANCE_EXPONENT = 0.5  # q_j ~ T_j ** 0.5: slowly rising floor, so min ADEV is a true minimum

@@ -330,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if not (args.report or args.scan_orders):
         p.error("nothing to do: give --report and/or --scan-orders")
-    from fbg_accel_calibration.atomic_output import atomic_path, check_outputs
+    from fbg_accel_calibration.io.atomic_output import atomic_path, check_outputs
 
     try:
         check_outputs([args.json], [args.config] if args.config else [], args.force)

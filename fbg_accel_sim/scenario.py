@@ -6,7 +6,7 @@ it at any sample (and at ``t - delay`` for the channel-delay effect) without sta
 Table motion: the table holds each pose for ``dwell_s`` and moves to the next one in ``move_s``
 with a raised-cosine profile on both angles, so a sample taken while moving carries an
 intermediate angle (as in the measured run, ../shared/data/measured/README.md). Angles follow
-the table convention of ``fbg_accel_calibration.table_geometry``.
+the table convention of ``fbg_accel_calibration.io.table_geometry``.
 """
 
 from __future__ import annotations
@@ -120,7 +120,7 @@ def build_trajectory(poses_cfg: dict[str, Any]) -> PoseTrajectory:
         g = poses_cfg.get("grid") or {}
         pts = grid_poses(float(g.get("theta_step_deg", 30.0)), float(g.get("psi_step_deg", 30.0)))
     elif mode == "plan_file":
-        from fbg_accel_calibration.pose_plan import PosePlan  # pure module; local import keeps sim importable alone
+        from fbg_accel_calibration.recorder.pose_plan import PosePlan  # pure module; local import keeps sim importable alone
 
         path = poses_cfg.get("plan_file")
         if not path:

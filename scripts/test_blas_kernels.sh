@@ -19,7 +19,7 @@ tests=$(ls test/test_diagnose*.py test/test_*fit*.py test/test_thermal_*.py test
   test/test_static_detector.py test/test_coefficient_uncertainty.py test/test_calibration_covariance_driver.py \
   test/test_field_check.py 2>/dev/null | grep -v '_process\.py$')
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 101 ))}
-corename='from fbg_accel_calibration.blas_threads import blas_core_names; import numpy as np
+corename='from fbg_accel_calibration.diagnosis.blas_threads import blas_core_names; import numpy as np
 np.ones(2) @ np.ones(2); print(",".join(blas_core_names()))'
 seen=" "
 status=0

@@ -28,7 +28,7 @@ def pytest_report_header(config: pytest.Config) -> str:
     each one the CPU has): a failure that only one kernel shows is a result decided by rounding."""
     import numpy as np
 
-    from fbg_accel_calibration.blas_threads import blas_core_names
+    from fbg_accel_calibration.diagnosis.blas_threads import blas_core_names
 
     np.ones((2, 2)) @ np.ones((2, 2))  # the library is loaded with numpy
     return f"OpenBLAS kernel: {', '.join(blas_core_names()) or 'none found'}"

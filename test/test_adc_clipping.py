@@ -18,14 +18,14 @@ import numpy as np
 import pytest
 from test_diagnose_sim import _config
 
-from fbg_accel_calibration.cli import main as cli_main
-from fbg_accel_calibration.diagnose import diagnose
+from fbg_accel_calibration.commands.cli import main as cli_main
 from fbg_accel_calibration.diagnosis.design import SAMPLE_SELECTIONS, prepare_data
-from fbg_accel_calibration.fit_pipeline import fit_thermal
-from fbg_accel_calibration.fit_stream import SampleBlockSource, prepare_stream
-from fbg_accel_calibration.mcap_io import McapSampleStream, read_recording, write_recording
-from fbg_accel_calibration.recording import Recording
-from fbg_accel_calibration.static_detector import calibration_samples
+from fbg_accel_calibration.diagnosis.diagnose import diagnose
+from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
+from fbg_accel_calibration.fit.fit_stream import SampleBlockSource, prepare_stream
+from fbg_accel_calibration.fit.static_detector import calibration_samples
+from fbg_accel_calibration.io.mcap_io import McapSampleStream, read_recording, write_recording
+from fbg_accel_calibration.io.recording import Recording
 from fbg_accel_driver.frame_codec import ADC_MAX
 from fbg_accel_sim.board_physics import simulate_recording
 
@@ -85,7 +85,7 @@ def test_a_visit_with_a_clipped_sample_is_left_out_whole(clean: Recording, rail:
 def test_visits_across_blocks_are_left_out_as_in_one_block(saturated: Recording, monkeypatch: pytest.MonkeyPatch) -> None:
     """The visits are numbered block after block (a file is read so): blocks that cut the clipped visits
     leave out the same samples as one block."""
-    import fbg_accel_calibration.static_detector as sd
+    import fbg_accel_calibration.fit.static_detector as sd
 
     whole = calibration_samples(saturated)[0]
     monkeypatch.setattr(sd, "BLOCK_ROWS", 97)  # cuts most visits (a visit is 300 samples)

@@ -1,4 +1,4 @@
-"""The ESP32 ADC's code widths (issue 38): the code-density estimate (``fbg_accel_calibration.adc_codes``), the
+"""The ESP32 ADC's code widths (issue 38): the code-density estimate (``fbg_accel_calibration.fit.adc_codes``), the
 simulator's periodic width pattern, the calibration's code table (``fbg_accel_driver.adc_code_table``) in the file,
 ``apply_counts`` and the driver. The 10-seed recovery on the simulator is ``bench/adc_code_widths_check.py``."""
 
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from test_driver_core import T0_NS, frame, make_cal
 
-from fbg_accel_calibration.adc_codes import code_table, code_widths, recording_code_widths
-from fbg_accel_calibration.cli import main as calib_main
+from fbg_accel_calibration.commands.cli import main as calib_main
+from fbg_accel_calibration.fit.adc_codes import code_table, code_widths, recording_code_widths
 from fbg_accel_driver.adc_code_table import ADC_CODES, AdcCodeTable, load_table, pattern_codes, pattern_edges
 from fbg_accel_driver.driver_core import DriverCore
 from fbg_accel_driver.frame_codec import encode_frame
@@ -49,7 +49,7 @@ def test_expected_hits_from_each_sample_s_reach_are_the_sums_of_the_whole_table_
     over more samples than one block, and for samples beyond either end of the codes."""
     from scipy.special import ndtr
 
-    from fbg_accel_calibration.adc_codes import EXPECTED_BLOCK, expected_hits
+    from fbg_accel_calibration.fit.adc_codes import EXPECTED_BLOCK, expected_hits
 
     rng = np.random.default_rng(4)
     for sigma_log in ((-20.0, 1.0), (-3.0, 2.0), (3.0, 5.0)):
@@ -95,7 +95,7 @@ def test_the_simulated_pattern_is_recovered_and_its_table_removes_the_bias() -> 
             "noise.reference_noise_counts": 1.0, "effects.white_noise.scale": 3.0}
     on = simulate_recording(SimConfig.default().with_overrides({**base, "effects.adc_code_widths.scale": 1.0}), seed=5)
     off = simulate_recording(SimConfig.default().with_overrides(base), seed=5)
-    from fbg_accel_calibration.adc_codes_cli import visits_of
+    from fbg_accel_calibration.commands.adc_codes_cli import visits_of
 
     groups, rows = visits_of(on)
     res = recording_code_widths(np.column_stack([on.ref, on.xyz]), groups, rows, per_channel=False)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fbg_accel_calibration.blas_threads import blas_thread_counts, blas_threads, single_blas_thread
+from fbg_accel_calibration.diagnosis.blas_threads import blas_thread_counts, blas_threads, single_blas_thread
 
 
 def test_block_runs_with_one_thread_and_the_counts_come_back() -> None:

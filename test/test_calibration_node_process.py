@@ -29,9 +29,9 @@ import yaml
 from process_harness import ChildProcess, Notifier
 from ros2_mcap import ros2_messages
 
-from fbg_accel_calibration.mcap_io import read_file, read_recording
-from fbg_accel_calibration.pose_plan import PosePlan
-from fbg_accel_calibration.table_geometry import table_specific_force
+from fbg_accel_calibration.io.mcap_io import read_file, read_recording
+from fbg_accel_calibration.io.table_geometry import table_specific_force
+from fbg_accel_calibration.recorder.pose_plan import PosePlan
 
 ROOT = Path(__file__).resolve().parents[1]
 CALIBRATION_EXE = Path(sys.executable).parent / "calibration"

@@ -27,7 +27,7 @@ import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from fbg_accel_calibration.cli import main
+from fbg_accel_calibration.commands.cli import main
 
 HEADER = ["t_s", "ref_counts", "x_counts", "y_counts", "z_counts", "gref_x_mps2", "gref_y_mps2", "gref_z_mps2",
           "temperature_c", "pose"]

@@ -6,14 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fbg_accel_calibration.coefficient_uncertainty import (
+from fbg_accel_calibration.fit.coefficient_uncertainty import (
     bootstrap_covariance,
     cluster_covariance,
 )
-from fbg_accel_calibration.fit_pipeline import fit_thermal
-from fbg_accel_calibration.fit_stream import prepare
-from fbg_accel_calibration.recording import Recording
-from fbg_accel_calibration.thermal_fit import CellStats, model_to_coefficients
+from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
+from fbg_accel_calibration.fit.fit_stream import prepare
+from fbg_accel_calibration.fit.thermal_fit import CellStats, model_to_coefficients
+from fbg_accel_calibration.io.recording import Recording
 from fbg_accel_driver.coefficient_covariance import CoefficientCovariance, output_covariance
 from fbg_accel_driver.thermal_model import CalibrationFileError, ThermalCalibration
 from fbg_accel_sim.eq28_campaign import campaign
@@ -55,7 +55,7 @@ def test_cr2_from_the_sums_equals_its_definition_on_the_samples() -> None:
     cal, data = _fit(rec)
     A = model_to_coefficients(cal.M, cal.b)
     cov, _, clusters = cluster_covariance(data.stats, A, 1)
-    from fbg_accel_calibration.thermal_fit import design_matrix
+    from fbg_accel_calibration.fit.thermal_fit import design_matrix
     from fbg_accel_driver.thermal_model import normalise
 
     X = design_matrix(normalise(rec.xyz, rec.ref), (rec.temp_c - 25.0) / 10.0, 1)
@@ -120,7 +120,7 @@ def test_output_covariance_is_j_sigma_jt() -> None:
     for idx in range(A.size):
         d = np.zeros(A.size)
         d[idx] = 1e-3
-        from fbg_accel_calibration.thermal_fit import coefficients_to_model
+        from fbg_accel_calibration.fit.thermal_fit import coefficients_to_model
         M2, b2 = coefficients_to_model(A + d.reshape(A.shape), 1)
         moved = ThermalCalibration(M=M2, b=b2, temperature_range_c=cal.temperature_range_c,
                                    t_center_c=cal.t_center_c, t_scale_c=cal.t_scale_c)
@@ -230,7 +230,7 @@ def test_the_driver_s_calibration_term_is_consistent_with_its_error_over_seeds()
 def test_too_many_visits_fall_back_to_the_cells_as_clusters(monkeypatch) -> None:
     """Beyond MAX_VISIT_SUMS visits their sums are not kept (memory): the covariance is clustered by cell, and says so;
     with one visit per cell it is then the same covariance."""
-    from fbg_accel_calibration import thermal_fit
+    from fbg_accel_calibration.fit import thermal_fit
 
     rec, _ = campaign(8, repeats=1)
     by_visit, _ = _fit(rec)

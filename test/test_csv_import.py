@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbg_accel_calibration.cli import main as cli_main
-from fbg_accel_calibration.csv_import import CsvImportError, import_csv
-from fbg_accel_calibration.mcap_io import read_recording
-from fbg_accel_calibration.table_geometry import table_specific_force
+from fbg_accel_calibration.commands.cli import main as cli_main
+from fbg_accel_calibration.io.csv_import import CsvImportError, import_csv
+from fbg_accel_calibration.io.mcap_io import read_recording
+from fbg_accel_calibration.io.table_geometry import table_specific_force
 
 
 def _write(tmp_path: Path, text: str, name: str = "in.csv") -> Path:
@@ -173,7 +173,7 @@ def test_import_start_time_places_the_recording_in_real_time(tmp_path: Path, cap
 
 def test_import_and_diagnose_have_the_same_rate_rule(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """issue 10: a CSV without t_s needs --rate in every subcommand (diagnose silently assumed 1 Hz)."""
-    from fbg_accel_calibration.diagnose_cli import main as diagnose_main
+    from fbg_accel_calibration.commands.diagnose_cli import main as diagnose_main
 
     lines = [ln for ln in GOOD.splitlines() if ln and not ln.startswith("#")]
     keep = [i for i, c in enumerate(lines[0].split(",")) if c != "t_s"]

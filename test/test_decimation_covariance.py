@@ -2,7 +2,7 @@
 
 The simulated sensor's noise goes through the transimpedance low-passes (paper section 3.5), so its
 consecutive samples correlate; the calibration file's ``noise_correlation`` (fitted by
-``make_default_calibration`` with ``fbg_accel_calibration.noise_correlation``) lets the driver publish the
+``make_default_calibration`` with ``fbg_accel_calibration.fit.noise_correlation``) lets the driver publish the
 variance of the *mean* (``noise_model.mean_variance_factor``). Checked against the empirical variance of
 the driver's own decimated output on a long static simulated run, estimated from first differences of
 consecutive outputs (half their variance), which slow drifts (bias instability, temperature) do not
@@ -119,7 +119,7 @@ def test_estimator_recovers_a_known_white_plus_first_order_noise() -> None:
     """Synthetic segments of 3 s at 100 Hz (as calibration dwells, 60 000 samples): f and tau back within
     20 % (the estimator's own spread at this size is about 10 %, measured over seeds; with 3000-sample
     segments it is the same, so the mean-removal bias is corrected); white noise gives f = 0."""
-    from fbg_accel_calibration.noise_correlation import estimate
+    from fbg_accel_calibration.fit.noise_correlation import estimate
 
     rng = np.random.default_rng(3)
     dt, f, tau = 0.01, np.array([0.9, 0.7, 0.5]), np.array([0.15, 0.10, 0.20])
@@ -157,8 +157,8 @@ def test_the_fit_finds_the_chain_s_noise_correlation_on_a_table_run_with_slow_mo
     1 kHz the whole six-position run was one interval, f = 1 and tau 18-51 s).
     The poses of the recording say where the table stood: the fit's noise model now comes from those samples,
     streamed or in memory alike, and is the chain's (the TIA low-passes, SIM_DYNAMICS)."""
-    from fbg_accel_calibration.cli import main as cli_main
-    from fbg_accel_calibration.mcap_io import write_recording
+    from fbg_accel_calibration.commands.cli import main as cli_main
+    from fbg_accel_calibration.io.mcap_io import write_recording
     from fbg_accel_sim.board_physics import simulate_recording
 
     cfg = SimConfig.default().with_overrides(SLOW_MOVES[plan])
@@ -170,7 +170,7 @@ def test_the_fit_finds_the_chain_s_noise_correlation_on_a_table_run_with_slow_mo
     truth = 1.0 / (2.0 * np.pi * np.asarray(SIM_DYNAMICS.cutoff_hz[1:]))
     np.testing.assert_allclose(cal.noise_time_constant_s, truth, rtol=0.3)
     assert np.all(cal.noise_correlated_fraction > 0.7), cal.noise_correlated_fraction
-    # and the slow error of its visits' means beyond that noise model (fbg_accel_calibration.slow_error), written when
+    # and the slow error of its visits' means beyond that noise model (fbg_accel_calibration.fit.slow_error), written when
     # visits are left over the coefficients (the grid's 26; six visits for four coefficients per axis leave too few)
     if plan == "grid_100hz":
         assert cal.slow_error is not None and cal.slow_error.visits > 20 and "by visit" in cal.slow_error.method

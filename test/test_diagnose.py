@@ -9,18 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbg_accel_calibration.csv_import import import_csv
-from fbg_accel_calibration.diagnose import diagnose
-from fbg_accel_calibration.diagnose_cli import main as diagnose_main
-from fbg_accel_calibration.diagnose_report import (
-    CAND_HEAD,
-    PLOT_GRID,
-    markdown,
-    plotted,
-    plotted_candidates,
-    write_report,
-)
-from fbg_accel_calibration.diagnose_report import text as report_text
+from fbg_accel_calibration.commands.diagnose_cli import main as diagnose_main
 from fbg_accel_calibration.diagnosis.adc_code_candidate import NAME as ADC_CODES_NAME
 from fbg_accel_calibration.diagnosis.cv import (
     CANCEL_RATIO,
@@ -34,13 +23,24 @@ from fbg_accel_calibration.diagnosis.cv import (
 )
 from fbg_accel_calibration.diagnosis.data import fill_reference_gaps, finite_rows, interp_columns
 from fbg_accel_calibration.diagnosis.design import DesignCache, ModelSpec, build_design, fitted_output, prepare_data
+from fbg_accel_calibration.diagnosis.diagnose import diagnose
+from fbg_accel_calibration.diagnosis.effects import Effect
 from fbg_accel_calibration.diagnosis.floor import detrended_lag_matrix
 from fbg_accel_calibration.diagnosis.library import LIBRARY, library_by_name
 from fbg_accel_calibration.diagnosis.response_step import ResponseStepEffect
 from fbg_accel_calibration.diagnosis.search import CandidateResult, Evaluator, paired_gain_test
-from fbg_accel_calibration.effects import Effect
-from fbg_accel_calibration.recording import Recording, time_axis_label
-from fbg_accel_calibration.table_geometry import table_specific_force
+from fbg_accel_calibration.io.csv_import import import_csv
+from fbg_accel_calibration.io.recording import Recording, time_axis_label
+from fbg_accel_calibration.io.table_geometry import table_specific_force
+from fbg_accel_calibration.reports.diagnose_report import (
+    CAND_HEAD,
+    PLOT_GRID,
+    markdown,
+    plotted,
+    plotted_candidates,
+    write_report,
+)
+from fbg_accel_calibration.reports.diagnose_report import text as report_text
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 MEASURED = Path(__file__).resolve().parents[2] / "shared" / "data" / "measured" / "fig13_multiposition_23C.csv"
@@ -642,9 +642,9 @@ def test_a_scatter_draws_one_sample_per_occupied_cell_of_a_grid_finer_than_its_p
 def test_the_degree_table_puts_the_rule_on_the_degree_it_chose_and_says_when_the_degree_was_given() -> None:
     """The rule's criterion stood on every row (so on row 0 while row 1 was chosen), and with ``--degree`` the
     given degree was marked "chosen; lowest degree within one standard error ..." though the rule chose another."""
-    from fbg_accel_calibration.diagnose_report import degree_table
     from fbg_accel_calibration.diagnosis.search import _degree_rows
-    from fbg_accel_calibration.model_selection import DegreeScores
+    from fbg_accel_calibration.fit.model_selection import DegreeScores
+    from fbg_accel_calibration.reports.diagnose_report import degree_table
 
     one = np.ones(3)
     scores = [DegreeScores(0, True, 2 * one, 2 * one, 2 * one), DegreeScores(1, True, one, one, one),
@@ -661,7 +661,7 @@ def test_a_reference_offset_beyond_the_bound_is_not_a_dark_offset() -> None:
     """Issue 8 §1, every fitted parameter bounded: the axis channels' implied offsets were bounded (25 % of their
     counts), the reference's own offset d_ref was not, so a search could settle on d_ref = -300 counts (a third
     of the reference) and call it a dark offset."""
-    from fbg_accel_calibration.effects import MAX_CHANNEL_OFFSET_FRACTION, ReferenceDarkOffsetEffect
+    from fbg_accel_calibration.diagnosis.effects import MAX_CHANNEL_OFFSET_FRACTION, ReferenceDarkOffsetEffect
 
     data = prepare_data(synthetic(4, dark=30.0))
     ref = float(np.mean(np.abs(data.ref[data.use])))
@@ -674,7 +674,7 @@ def test_a_reference_offset_beyond_the_bound_is_not_a_dark_offset() -> None:
 def _bounds() -> dict[str, tuple]:
     """Per candidate whose bound had been only its search grid: (h within, coeff within, h beyond, coeff beyond), the
     beyond values 5x the bound or more (synthetic(): 10 Hz)."""
-    from fbg_accel_calibration.effects import (
+    from fbg_accel_calibration.diagnosis.effects import (
         MAX_CHANNEL_DELAY_S,
         MAX_DRIFT_MPS2,
         MAX_THERMAL_LAG_S,
@@ -710,7 +710,7 @@ def test_a_fit_beyond_a_candidate_s_physical_bound_is_refused_as_not_physical(na
 def test_the_search_refuses_a_candidate_whose_every_value_is_beyond_its_bound() -> None:
     """The loop's side of the bound: candidates whose searched values all lie well beyond their physical bound (a
     crafted grid) are fitted, marked REFUSED as not physical and never added, whatever their gain."""
-    from fbg_accel_calibration.effects import ChannelDelayEffect, ReferenceReadNoiseEffect, TiaLowpassEffect
+    from fbg_accel_calibration.diagnosis.effects import ChannelDelayEffect, ReferenceReadNoiseEffect, TiaLowpassEffect
 
     crafted = []
     for base in (ChannelDelayEffect, TiaLowpassEffect, ReferenceReadNoiseEffect):
@@ -900,7 +900,7 @@ def test_every_candidate_declares_its_role_bound_and_checks() -> None:
     every role is one of the three, every check one the selection knows, every candidate states its bound with its
     source, and the candidates are registered once each."""
     from fbg_accel_calibration.diagnosis.checks import CHECKS
-    from fbg_accel_calibration.effects import ROLES
+    from fbg_accel_calibration.diagnosis.effects import ROLES
 
     names = [e.name for e in LIBRARY]
     assert len(names) == len(set(names)), names

@@ -12,7 +12,7 @@ from fbg_accel_calibration.diagnosis import adc_code_candidate as cand
 from fbg_accel_calibration.diagnosis.adc_code_candidate import code_width_step, implausible
 from fbg_accel_calibration.diagnosis.cv import check_folds, cross_validate, make_folds
 from fbg_accel_calibration.diagnosis.design import ModelSpec, build_design, prepare_data
-from fbg_accel_calibration.thermal_fit import temperature_scaling
+from fbg_accel_calibration.fit.thermal_fit import temperature_scaling
 from fbg_accel_driver.adc_code_table import ADC_CODES, AdcCodeTable, pattern_edges
 from fbg_accel_sim.board_physics import simulate_recording
 from fbg_accel_sim.sim_config import SimConfig

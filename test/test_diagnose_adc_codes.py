@@ -1,4 +1,4 @@
-"""ADC codes that hold whole visits and carry the residual (``fbg_accel_calibration.adc_codes``; no open issue: found on
+"""ADC codes that hold whole visits and carry the residual (``fbg_accel_calibration.fit.adc_codes``; no open issue: found on
 the measured series, where the y channel reads 1535 through the five visits the model fits worst and the codes
 1536-1543 never occur: a wide code of the ESP32's ADC). The measured case is asserted in ``test_diagnose.py``."""
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from test_diagnose_sim import _config
 
-from fbg_accel_calibration.adc_codes import held_codes
-from fbg_accel_calibration.diagnose import diagnose
+from fbg_accel_calibration.diagnosis.diagnose import diagnose
+from fbg_accel_calibration.fit.adc_codes import held_codes
 from fbg_accel_sim.board_physics import simulate_recording
 
 V, N = 80, 12  # visits, samples each

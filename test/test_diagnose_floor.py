@@ -17,7 +17,7 @@ import pytest
 from scipy.signal import lfilter
 from test_diagnose_sim import THERMAL, _config
 
-from fbg_accel_calibration.diagnose import diagnose
+from fbg_accel_calibration.diagnosis.diagnose import diagnose
 from fbg_accel_calibration.diagnosis.floor import _lag_products, settled_mask, visit_index, within_visit_noise
 from fbg_accel_sim.board_physics import simulate_recording
 

@@ -17,10 +17,10 @@ import pytest
 from test_diagnose import MEASURED
 from test_diagnose_sim import _config, _output
 
-from fbg_accel_calibration.csv_import import import_csv
-from fbg_accel_calibration.diagnose import diagnose
-from fbg_accel_calibration.diagnose_report import markdown
-from fbg_accel_calibration.periodic_disturbance import PERIODIC_ALPHA, find_periodic_disturbance
+from fbg_accel_calibration.diagnosis.diagnose import diagnose
+from fbg_accel_calibration.diagnosis.periodic_disturbance import PERIODIC_ALPHA, find_periodic_disturbance
+from fbg_accel_calibration.io.csv_import import import_csv
+from fbg_accel_calibration.reports.diagnose_report import markdown
 from fbg_accel_sim.board_physics import simulate_recording
 
 QUIET = {"effects.white_noise.scale": 0.0, "effects.adc_quantisation.scale": 0.0}

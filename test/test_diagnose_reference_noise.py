@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from test_diagnose_sim import _config
 
-from fbg_accel_calibration.diagnose import diagnose
-from fbg_accel_calibration.effects import ReferenceDarkOffsetEffect, SpectralNonlinearityEffect
+from fbg_accel_calibration.diagnosis.diagnose import diagnose
+from fbg_accel_calibration.diagnosis.effects import ReferenceDarkOffsetEffect, SpectralNonlinearityEffect
 from fbg_accel_driver.correction_terms import ReferenceLowpass
 from fbg_accel_sim.board_physics import simulate_recording
 
@@ -74,7 +74,7 @@ def test_an_offset_term_that_undoes_the_normalisation_is_refused(seed):
 
 def test_a_held_out_error_below_the_floor_is_called_out():
     """Forcing the refused term in (as the old tool did) ends below the floor: the report says so."""
-    from fbg_accel_calibration import effects
+    from fbg_accel_calibration.diagnosis import effects
 
     rec = simulate_recording(_config({"noise.reference_noise_counts": 2.0}), seed=22)
 
@@ -104,7 +104,7 @@ def test_a_faint_read_noise_that_wins_is_filtered_not_added_at_tau_zero():
 def test_a_significant_candidate_whose_value_changes_nothing_is_not_added():
     """The guard behind it: a candidate that wins its held-out test but whose value on all samples is void (here
     declared void at every value) is reported, not added."""
-    from fbg_accel_calibration.effects import ReferenceReadNoiseEffect
+    from fbg_accel_calibration.diagnosis.effects import ReferenceReadNoiseEffect
 
     class VoidReadNoise(ReferenceReadNoiseEffect):
         def void(self, h: float | None) -> bool:

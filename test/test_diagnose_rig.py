@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from test_diagnose_sim import BASELINE, GRID, _with_acceleration_error
 
-from fbg_accel_calibration.diagnose import diagnose
-from fbg_accel_calibration.recording import Recording
+from fbg_accel_calibration.diagnosis.diagnose import diagnose
+from fbg_accel_calibration.io.recording import Recording
 from fbg_accel_sim.board_physics import simulate_recording
 from fbg_accel_sim.scenario import grid_poses
 from fbg_accel_sim.sim_config import SimConfig
@@ -90,7 +90,7 @@ def test_the_paper_s_campaign_says_it_cannot_reveal_a_lag_as_a_finding_the_repor
     said "not testable", and neither the summary nor the findings said what the campaign cannot reveal. Now each
     candidate out of reach is a finding (kind ``cannot_reveal``) with why and the measurement that would reveal it,
     and the report renders it in its summary."""
-    from fbg_accel_calibration.diagnose_report import markdown
+    from fbg_accel_calibration.reports.diagnose_report import markdown
     from fbg_accel_sim.make_default_calibration import calibration_runs
 
     res = diagnose(calibration_runs(SimConfig.default().with_overrides(BASELINE), seed=1, dwell_s=1.0, move_s=3.0))

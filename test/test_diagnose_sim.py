@@ -23,12 +23,12 @@ import numpy as np
 import pytest
 import yaml
 
-from fbg_accel_calibration.diagnose import diagnose
-from fbg_accel_calibration.diagnose_report import markdown, ordinal, settling_measurements, write_plots
+from fbg_accel_calibration.diagnosis.diagnose import diagnose
 from fbg_accel_calibration.diagnosis.floor import VisitNoise
 from fbg_accel_calibration.diagnosis.search import MIN_SEARCH_INFORMATION, search_samples
-from fbg_accel_calibration.recording import Recording
-from fbg_accel_calibration.table_geometry import table_specific_force
+from fbg_accel_calibration.io.recording import Recording
+from fbg_accel_calibration.io.table_geometry import table_specific_force
+from fbg_accel_calibration.reports.diagnose_report import markdown, ordinal, settling_measurements, write_plots
 from fbg_accel_driver.correction_terms import ReferenceLowpass
 from fbg_accel_driver.thermal_model import ThermalCalibration
 from fbg_accel_sim.board_physics import simulate_recording
@@ -255,9 +255,9 @@ def test_the_command_s_search_rows_option_thins_the_search_or_searches_every_sam
     """``--search-rows N`` thins the search above N fitted samples, ``--search-rows 0`` searches on every one (an
     effect seen only in the first tenths of a second of each visit keeps all its samples), and the help names the
     default and the guard the diagnosis uses."""
-    from fbg_accel_calibration.cli import main
+    from fbg_accel_calibration.commands.cli import main
     from fbg_accel_calibration.diagnosis.search import SEARCH_ROWS
-    from fbg_accel_calibration.mcap_io import write_recording
+    from fbg_accel_calibration.io.mcap_io import write_recording
 
     mcap = tmp_path / "run.mcap"
     scale, extra, _ = SCENARIOS["tia_lowpass"]
@@ -278,7 +278,7 @@ def test_the_command_s_search_rows_option_thins_the_search_or_searches_every_sam
 @pytest.fixture(scope="module")
 def chamber_levels():
     """The usual campaign: one six-position run (one file) per chamber level, 16, 24 and 45 degC, nothing injected."""
-    from fbg_accel_calibration.recording import Recording
+    from fbg_accel_calibration.io.recording import Recording
 
     runs = []
     for i, level in enumerate((16.0, 24.0, 45.0)):
@@ -802,7 +802,7 @@ def test_an_effect_chosen_first_that_two_later_ones_explain_is_taken_out_again()
     each earlier effect whether it still gains on top of the others (the later ones' hyper-parameters searched again
     without it): the time drift gains +0.2 % (it needs 2 %) and is taken out. The library is the three candidates
     in question, to keep the test short."""
-    from fbg_accel_calibration.effects import ReferenceDarkOffsetEffect, ThermalLagEffect, TimeDriftEffect
+    from fbg_accel_calibration.diagnosis.effects import ReferenceDarkOffsetEffect, ThermalLagEffect, TimeDriftEffect
 
     rec = simulate_recording(_config({**RAMPS, **LAG, **DARK_UNDER_DRIFT}), seed=40)
     res = diagnose(rec, library=(ReferenceDarkOffsetEffect(), ThermalLagEffect(), TimeDriftEffect()))

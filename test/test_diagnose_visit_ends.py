@@ -19,10 +19,10 @@ import pytest
 from test_diagnose_sim import _config
 from test_diagnose_visits import M_TRUE, campaign
 
-from fbg_accel_calibration.diagnose import diagnose
-from fbg_accel_calibration.diagnose_report import markdown, text
+from fbg_accel_calibration.diagnosis.diagnose import diagnose
 from fbg_accel_calibration.diagnosis.floor import settle_window, settled_mask, settling_transient
-from fbg_accel_calibration.recording import Recording
+from fbg_accel_calibration.io.recording import Recording
+from fbg_accel_calibration.reports.diagnose_report import markdown, text
 from fbg_accel_sim.board_physics import simulate_recording
 
 END_WORDS = "ends of visits disturbed"

@@ -11,14 +11,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fbg_accel_calibration.diagnose import diagnose
-from fbg_accel_calibration.diagnose_report import markdown
 from fbg_accel_calibration.diagnosis.cv import check_folds, make_folds
 from fbg_accel_calibration.diagnosis.data import visit_ids
 from fbg_accel_calibration.diagnosis.design import prepare_data
+from fbg_accel_calibration.diagnosis.diagnose import diagnose
 from fbg_accel_calibration.diagnosis.floor import settled_mask
-from fbg_accel_calibration.recording import Recording
-from fbg_accel_calibration.table_geometry import table_specific_force
+from fbg_accel_calibration.io.recording import Recording
+from fbg_accel_calibration.io.table_geometry import table_specific_force
+from fbg_accel_calibration.reports.diagnose_report import markdown
 
 M_TRUE = np.array([[81.60, 2.89, 0.71], [1.59, 77.66, 3.75], [0.24, 1.23, 107.66]])
 B_TRUE = np.array([-101.08, -153.59, -137.16])

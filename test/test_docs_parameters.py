@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 import yaml
 
-from fbg_accel_calibration.calibration_parameters import PARAMETERS as CALIBRATION_PARAMETERS
+from fbg_accel_calibration.recorder.calibration_parameters import PARAMETERS as CALIBRATION_PARAMETERS
 from fbg_accel_driver.driver_parameters import PARAMETERS as DRIVER_PARAMETERS
 
 REPO = Path(__file__).resolve().parents[1]
@@ -97,7 +97,7 @@ def test_help_lists_every_parameter_in_aligned_columns(node: str) -> None:
     """``driver --help`` and ``calibration --help`` list each parameter as ``name type default ...``, the types in
     one column. Before: ``still_false_alarm_per_run``'s 25 characters overran the calibration node's 20-character
     name column, so its type and default stood 6 columns right of every other row's."""
-    from fbg_accel_calibration.calibration_main import _usage as calibration_usage
+    from fbg_accel_calibration.recorder.calibration_main import _usage as calibration_usage
     from fbg_accel_driver.driver_main import USAGE
 
     text = USAGE if node == "driver" else calibration_usage()

@@ -220,8 +220,8 @@ def test_a_delay_shift_that_makes_tones_in_the_calibrated_band_worse_is_warned_a
     it (better than none) and above it (worse)."""
     from test_driver_core import levels, snapshot, values
 
-    from fbg_accel_calibration.dynamic_check import tone_check
-    from fbg_accel_calibration.excitation_plan import ExcitationPlan
+    from fbg_accel_calibration.dynamic.dynamic_check import tone_check
+    from fbg_accel_calibration.dynamic.excitation_plan import ExcitationPlan
     from fbg_accel_driver.driver_diagnostics import WARN, DriverDiagnostics
     from fbg_accel_driver.driver_parameters import default_calibration_path
     from fbg_accel_sim.dynamic_run import simulate_dynamic_run

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from fbg_accel_calibration.bode_plot import plot_bode
-from fbg_accel_calibration.chain_model import (
+from fbg_accel_calibration.dynamic.bode_plot import plot_bode
+from fbg_accel_calibration.dynamic.chain_model import (
     ChainModel,
     fit_chain_model,
     fit_chain_models,
@@ -20,7 +20,7 @@ from fbg_accel_calibration.chain_model import (
     phase_delay_s,
     response,
 )
-from fbg_accel_calibration.dynamic_analysis import (
+from fbg_accel_calibration.dynamic.tone_analysis import (
     DynamicPoint,
     ReferenceUncertainty,
     analyse_run,
@@ -30,7 +30,7 @@ from fbg_accel_calibration.dynamic_analysis import (
     resolution_components,
     sine_approximation,
 )
-from fbg_accel_calibration.tone_delay import delay_by_cross_correlation, delay_by_cross_spectrum, whole_period_length
+from fbg_accel_calibration.dynamic.tone_delay import delay_by_cross_correlation, delay_by_cross_spectrum, whole_period_length
 
 FS = 1000.0
 FREQS = (0.5, 1.0, 2.0, 5.0, 10.0, 20.0)

@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 import yaml
 
-from fbg_accel_calibration.dynamic_analysis import uniformly_sampled
-from fbg_accel_calibration.dynamic_calibration import DynamicCalibrationError, run_dynamic
-from fbg_accel_calibration.dynamic_check import step_check
-from fbg_accel_calibration.dynamic_csv import DynamicCsvError, read_dynamic_csv, write_dynamic_csv
-from fbg_accel_calibration.excitation_plan import ExcitationPlan
+from fbg_accel_calibration.dynamic.dynamic_calibration import DynamicCalibrationError, run_dynamic
+from fbg_accel_calibration.dynamic.dynamic_check import step_check
+from fbg_accel_calibration.dynamic.excitation_plan import ExcitationPlan
+from fbg_accel_calibration.dynamic.tone_analysis import uniformly_sampled
+from fbg_accel_calibration.io.dynamic_csv import DynamicCsvError, read_dynamic_csv, write_dynamic_csv
 from fbg_accel_driver.driver_core import RAW_AUX_NAME, RAW_NAMES
 from fbg_accel_driver.driver_parameters import default_calibration_path
 from fbg_accel_driver.frame_codec import ADC_MAX
@@ -247,8 +247,8 @@ def test_an_implausible_chain_fit_is_refused_with_the_reason(static_cal, monkeyp
     """A fit that ran away (fc 2e-17 Hz, gain 8e16: what the wrong phase branch gave for a 20-80 Hz plan)
     or that does not describe its points is refused by name instead of failing in ChainDynamics' range
     check ('cutoff_hz of x must be in 0.001..100000 Hz')."""
-    import fbg_accel_calibration.dynamic_calibration as dc
-    from fbg_accel_calibration.chain_model import ChainModel
+    import fbg_accel_calibration.dynamic.dynamic_calibration as dc
+    from fbg_accel_calibration.dynamic.chain_model import ChainModel
 
     rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=1)
     fit = dc.fit_chain_models

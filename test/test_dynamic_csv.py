@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from test_csv_import import SPREADSHEET_EXPORTS, _write
 
-from fbg_accel_calibration.dynamic_csv import DynamicCsvError, read_dynamic_csv, write_dynamic_csv
+from fbg_accel_calibration.io.dynamic_csv import DynamicCsvError, read_dynamic_csv, write_dynamic_csv
 
 # a slide run at 500 Hz: 40 rows, one comment line, one blank line, the temperature column last
 ROWS = [f"{0.002 * i:.3f},2000,{1500 + i},{1600 - i},1700,{2048 + 3 * i},{24.0 + 0.01 * i:.2f}" for i in range(40)]

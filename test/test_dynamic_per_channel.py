@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbg_accel_calibration.chain_model import ChainModel, response
-from fbg_accel_calibration.cli import main as calib_main
-from fbg_accel_calibration.dynamic_analysis import BudgetComponent, DynamicPoint
-from fbg_accel_calibration.dynamic_calibration import MISFIT_Z, check_axes, run_dynamic
-from fbg_accel_calibration.dynamic_csv import write_dynamic_csv
-from fbg_accel_calibration.excitation_plan import ExcitationPlan
+from fbg_accel_calibration.commands.cli import main as calib_main
+from fbg_accel_calibration.dynamic.chain_model import ChainModel, response
+from fbg_accel_calibration.dynamic.dynamic_calibration import MISFIT_Z, check_axes, run_dynamic
+from fbg_accel_calibration.dynamic.excitation_plan import ExcitationPlan
+from fbg_accel_calibration.dynamic.tone_analysis import BudgetComponent, DynamicPoint
+from fbg_accel_calibration.io.dynamic_csv import write_dynamic_csv
 from fbg_accel_driver.driver_parameters import default_calibration_path
 from fbg_accel_driver.thermal_model import ThermalCalibration
 from fbg_accel_sim.dynamic_run import (

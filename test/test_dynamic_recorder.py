@@ -6,10 +6,10 @@ from pathlib import Path
 
 from ros2_mcap import frames_by_topic
 
-from fbg_accel_calibration.dynamic_recorder import DynamicRunRecorder
-from fbg_accel_calibration.excitation_plan import ExcitationPlan
-from fbg_accel_calibration.mcap_io import RecordingWriter
-from fbg_accel_calibration.run_recorder import RawSample
+from fbg_accel_calibration.dynamic.excitation_plan import ExcitationPlan
+from fbg_accel_calibration.io.mcap_io import RecordingWriter
+from fbg_accel_calibration.recorder.dynamic_recorder import DynamicRunRecorder
+from fbg_accel_calibration.recorder.pose_recorder import RawSample
 from fbg_accel_driver.frame_codec import Status
 
 RATE = 100.0
@@ -56,7 +56,7 @@ def test_disk_full_aborts_a_dynamic_run_without_raising(tmp_path, monkeypatch):
     again. The run ends aborted with a warning naming the error; close() returns the summary."""
     import errno
 
-    from fbg_accel_calibration import mcap_io
+    from fbg_accel_calibration.io import mcap_io
 
     orig = mcap_io._UnbufferedSink.write
 

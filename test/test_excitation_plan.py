@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from fbg_accel_calibration.excitation_plan import (
+from fbg_accel_calibration.dynamic.excitation_plan import (
     ExcitationPlan,
     ExcitationPlanError,
     find_slide_start,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fbg_accel_calibration.field_check import (
+from fbg_accel_calibration.fit.field_check import (
     PARAMETERS,
     StillPeriods,
     estimate,
@@ -85,8 +85,8 @@ def test_field_check_command_on_a_simulated_recording(tmp_path, capsys) -> None:
     import dataclasses
     import re
 
-    from fbg_accel_calibration.cli import main as cli_main
-    from fbg_accel_calibration.mcap_io import write_recording
+    from fbg_accel_calibration.commands.cli import main as cli_main
+    from fbg_accel_calibration.io.mcap_io import write_recording
     from fbg_accel_sim.board_physics import SimConfig, simulate_recording
     from fbg_accel_sim.sim_config import config_dir
 
@@ -126,7 +126,7 @@ def test_field_check_command_on_a_simulated_recording(tmp_path, capsys) -> None:
 def test_a_bad_period_or_gravity_is_refused_in_one_line(option: str, value: str, tmp_path, capsys) -> None:
     """``--min-period nan`` used to select no period without a word; ``--gravity`` is bounded by the input-validation
     layer's local-gravity range (the one bound of the tools and the driver's check), before any file is read."""
-    from fbg_accel_calibration.cli import main as cli_main
+    from fbg_accel_calibration.commands.cli import main as cli_main
 
     with pytest.raises(SystemExit) as exc:
         cli_main(["field-check", str(tmp_path / "absent.mcap"), "--calibration", str(tmp_path / "absent.yaml"),
@@ -139,7 +139,7 @@ def test_a_bad_period_or_gravity_is_refused_in_one_line(option: str, value: str,
 def test_the_calibration_s_slow_error_widens_the_bias_and_decides_the_warning() -> None:
     """The slow error (the calibration's ``slow_error`` section) is a bias the sensor wanders by without drifting: it
     is added to the identified biases' covariance, and a drift is named only beyond DRIFT_SIGMAS of the total."""
-    from fbg_accel_calibration.field_check import DRIFT_SIGMAS, drifted
+    from fbg_accel_calibration.fit.field_check import DRIFT_SIGMAS, drifted
 
     p = periods(SIX_PLUS, np.array([0.2, 0.0, 0.0]), 7)
     plain = estimate(p, G)

@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbg_accel_calibration.cli import main as cli_main
-from fbg_accel_calibration.fit_pipeline import fit_thermal
-from fbg_accel_calibration.fit_report import pose_statistics
-from fbg_accel_calibration.mcap_io import read_recording, write_recording
-from fbg_accel_calibration.static_detector import calibration_samples
+from fbg_accel_calibration.commands.cli import main as cli_main
+from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
+from fbg_accel_calibration.fit.static_detector import calibration_samples
+from fbg_accel_calibration.io.mcap_io import read_recording, write_recording
+from fbg_accel_calibration.reports.fit_report import pose_statistics
 from fbg_accel_driver.correction_terms import TimeDrift
 from fbg_accel_sim.board_physics import SimConfig, simulate_recording
 
@@ -49,7 +49,7 @@ G = 9.80665
 
 
 def _multipos(temp: float):
-    from fbg_accel_calibration.recording import Recording
+    from fbg_accel_calibration.io.recording import Recording
 
     rng = np.random.default_rng(0)
     grefs = np.array([[0, 0, G], [0, 0, -G], [G, 0, 0], [-G, 0, 0], [0, G, 0], [0, -G, 0]])

@@ -12,13 +12,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbg_accel_calibration import fit_stream, mcap_io, noise_correlation, static_detector
-from fbg_accel_calibration.cli import main as cli_main
-from fbg_accel_calibration.fit_stream import prepare, prepare_stream
-from fbg_accel_calibration.mcap_io import McapSampleStream, RecordingWriter, StreamOrderError, read_recording, write_recording
-from fbg_accel_calibration.model_selection import select_degree
-from fbg_accel_calibration.recording import Recording
-from fbg_accel_calibration.thermal_fit import TemperatureClusters, temperature_levels
+from fbg_accel_calibration.commands.cli import main as cli_main
+from fbg_accel_calibration.fit import fit_stream, noise_correlation, static_detector
+from fbg_accel_calibration.fit.fit_stream import prepare, prepare_stream
+from fbg_accel_calibration.fit.model_selection import select_degree
+from fbg_accel_calibration.fit.thermal_fit import TemperatureClusters, temperature_levels
+from fbg_accel_calibration.io import mcap_io
+from fbg_accel_calibration.io.mcap_io import McapSampleStream, RecordingWriter, StreamOrderError, read_recording, write_recording
+from fbg_accel_calibration.io.recording import Recording
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 G = 9.80665
@@ -305,7 +306,7 @@ def test_the_within_visit_factor_is_what_the_pooled_scatter_of_correlated_noise_
     than 1/n of it. The pooled within-visit variance (n_v - 1 degrees of freedom each, as the fit divides) over
     sigma^2 matches the factor; the fit's published sigma is divided by its square root (``fit_pipeline``). White
     noise: 1. The fit had published that scatter as the noise variance."""
-    from fbg_accel_calibration.noise_correlation import NoiseCorrelation, within_visit_factor
+    from fbg_accel_calibration.fit.noise_correlation import NoiseCorrelation, within_visit_factor
 
     rng = np.random.default_rng(7)
     f, tau, dt, n, visits = 0.9, 0.08, 0.01, 60, 4000

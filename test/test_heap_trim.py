@@ -7,7 +7,7 @@ import platform
 
 import numpy as np
 
-from fbg_accel_calibration.heap_trim import keep_freed_pages, return_free_memory, share_one_heap
+from fbg_accel_calibration.diagnosis.heap_trim import keep_freed_pages, return_free_memory, share_one_heap
 
 GLIBC = platform.libc_ver()[0] == "glibc"
 

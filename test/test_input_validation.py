@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import yaml
 
-from fbg_accel_calibration.cli import main
-from fbg_accel_calibration.csv_import import import_csv
-from fbg_accel_calibration.mcap_io import write_recording
+from fbg_accel_calibration.commands.cli import main
+from fbg_accel_calibration.io.csv_import import import_csv
+from fbg_accel_calibration.io.mcap_io import write_recording
 from fbg_accel_sim.board_physics import simulate_recording
 from fbg_accel_sim.sim_config import SimConfig
 
@@ -299,8 +299,8 @@ def test_non_mcap_file_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[st
 
 def test_streamed_import_equals_the_in_memory_import(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """`import` now streams the CSV into the MCAP; the file reads back as the whole-file import wrote it."""
-    from fbg_accel_calibration.csv_import import CsvBlocks
-    from fbg_accel_calibration.mcap_io import read_recording
+    from fbg_accel_calibration.io.csv_import import CsvBlocks
+    from fbg_accel_calibration.io.mcap_io import read_recording
 
     csv = six_pose_csv(tmp_path / "in.csv")
     rec, _ = import_csv(csv)
@@ -379,7 +379,7 @@ def test_a_bag_directory_and_its_own_file_are_one_recording_given_twice(tmp_path
 
     import yaml
 
-    from fbg_accel_calibration.input_files import check_inputs
+    from fbg_accel_calibration.io.input_files import check_inputs
 
     rows = _six_pose_rows()
     csv = tmp_path / "run.csv"
@@ -435,7 +435,7 @@ def _fit(paths: list[Path], capsys: pytest.CaptureFixture[str]) -> tuple[object,
     """fit_files in process, numpy warnings as errors: (calibration, the WARNING lines of stderr without file names)."""
     import warnings
 
-    from fbg_accel_calibration.fit_pipeline import fit_files
+    from fbg_accel_calibration.fit.fit_pipeline import fit_files
 
     capsys.readouterr()
     with warnings.catch_warnings():
@@ -448,7 +448,7 @@ def _fit(paths: list[Path], capsys: pytest.CaptureFixture[str]) -> tuple[object,
 
 @pytest.fixture(scope="module")
 def clean_fit(tmp_path_factory: pytest.TempPathFactory) -> object:
-    from fbg_accel_calibration.fit_pipeline import fit_files
+    from fbg_accel_calibration.fit.fit_pipeline import fit_files
 
     return fit_files(_campaign(tmp_path_factory.mktemp("clean"), "mcap")).calibration
 
@@ -520,8 +520,8 @@ def test_temperatures_and_counts_no_sensor_gives_are_named_not_fitted(tmp_path: 
 def test_a_junk_reading_at_a_block_end_is_judged_with_the_next_block() -> None:
     """The last readings of a block wait for the next one (``SampleCheck.apply`` holds them back): cut anywhere, the
     samples blanked are those of the run in one block."""
-    from fbg_accel_calibration.input_validation import SampleCheck
-    from fbg_accel_calibration.recording import Recording, join_blocks, without_samples
+    from fbg_accel_calibration.io.input_validation import SampleCheck
+    from fbg_accel_calibration.io.recording import Recording, join_blocks, without_samples
 
     n = 400
     temp = 24.0 + 0.01 * np.round(np.sin(np.arange(n) / 50.0) * 10)

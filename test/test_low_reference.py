@@ -17,15 +17,15 @@ import numpy as np
 import pytest
 from test_diagnose_sim import _config
 
-from fbg_accel_calibration import fit_stream, static_detector
-from fbg_accel_calibration.cli import main as cli_main
-from fbg_accel_calibration.diagnose import diagnose
+from fbg_accel_calibration.commands.cli import main as cli_main
 from fbg_accel_calibration.diagnosis.design import SAMPLE_SELECTIONS, prepare_data
-from fbg_accel_calibration.fit_pipeline import fit_thermal
-from fbg_accel_calibration.fit_stream import prepare, prepare_stream
-from fbg_accel_calibration.mcap_io import McapSampleStream, read_recording, write_recording
-from fbg_accel_calibration.recording import Recording
-from fbg_accel_calibration.static_detector import calibration_samples
+from fbg_accel_calibration.diagnosis.diagnose import diagnose
+from fbg_accel_calibration.fit import fit_stream, static_detector
+from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
+from fbg_accel_calibration.fit.fit_stream import prepare, prepare_stream
+from fbg_accel_calibration.fit.static_detector import calibration_samples
+from fbg_accel_calibration.io.mcap_io import McapSampleStream, read_recording, write_recording
+from fbg_accel_calibration.io.recording import Recording
 from fbg_accel_driver.driver_core import CoreConfig
 from fbg_accel_driver.driver_parameters import PARAMETERS
 from fbg_accel_driver.sensor_constants import LOW_REFERENCE_COUNTS

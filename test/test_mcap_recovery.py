@@ -19,9 +19,9 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from test_fit_streaming import make_run
 
-from fbg_accel_calibration import mcap_io
-from fbg_accel_calibration.mcap_io import McapRecordingError, McapSampleStream, read_recording, write_recording
-from fbg_accel_calibration.recording import Recording
+from fbg_accel_calibration.io import mcap_io
+from fbg_accel_calibration.io.mcap_io import McapRecordingError, McapSampleStream, read_recording, write_recording
+from fbg_accel_calibration.io.recording import Recording
 
 BIN = Path(sys.executable).parent
 LEVELS_C = (15.0, 25.0, 35.0)

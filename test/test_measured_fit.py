@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbg_accel_calibration.cli import main as cli_main
-from fbg_accel_calibration.measured_report import PAPER_B_ABS, PAPER_M, fit_measured
+from fbg_accel_calibration.commands.cli import main as cli_main
+from fbg_accel_calibration.reports.measured_report import PAPER_B_ABS, PAPER_M, fit_measured
 
 CSV = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "measured" / "fig13_multiposition_23C.csv"
 
@@ -77,7 +77,7 @@ def test_report_measured_is_atomic_and_never_writes_over_its_input(tmp_path: Pat
         pytest.fail(f"measured data missing: {CSV}")
     import shutil
 
-    import fbg_accel_calibration.measured_report as mr
+    import fbg_accel_calibration.reports.measured_report as mr
 
     csv = tmp_path / "m.csv"
     shutil.copy(CSV, csv)
@@ -103,7 +103,7 @@ def test_report_measured_is_atomic_and_never_writes_over_its_input(tmp_path: Pat
 def test_coefficient_uncertainty_of_the_measured_fit(measured) -> None:
     """The by-visit covariance (what a calibration file carries) agrees with the bootstrap over visits, and the
     paper's published matrix lies within two combined standard uncertainties of this fit (measured: |z| <= 1.2)."""
-    from fbg_accel_calibration.measured_uncertainty import compare
+    from fbg_accel_calibration.reports.measured_uncertainty import compare
 
     c = compare(measured)
     assert c["visits"] == len(measured.stats.pose) and c["bootstrap_draws"] >= 990

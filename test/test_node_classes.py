@@ -19,8 +19,8 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
 
-from fbg_accel_calibration import calibration_parameters
-from fbg_accel_calibration.calibration_node import CalibrationNode
+from fbg_accel_calibration.recorder import calibration_parameters
+from fbg_accel_calibration.recorder.calibration_node import CalibrationNode
 from fbg_accel_driver import driver_parameters
 from fbg_accel_driver.command_line import StartupError
 from fbg_accel_driver.driver_node import DriverNode, ManagedDriverNode
@@ -349,8 +349,8 @@ def test_calibration_node_never_writes_its_calibration_over_a_recording_or_an_ex
 
 def test_refit_refuses_an_input_or_an_existing_output_at_the_end_of_the_run(tmp_path: Path) -> None:
     """The end-of-run fit checks again (a file may have appeared during the run)."""
-    from fbg_accel_calibration.atomic_output import OutputError
-    from fbg_accel_calibration.run_refit import refit
+    from fbg_accel_calibration.io.atomic_output import OutputError
+    from fbg_accel_calibration.recorder.run_refit import refit
 
     run = tmp_path / "run.mcap"
     run.write_bytes(b"recording")

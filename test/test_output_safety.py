@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 from test_input_validation import run, six_pose_csv
 
-from fbg_accel_calibration import atomic_output
-from fbg_accel_calibration.mcap_io import RecordingWriter, read_recording
+from fbg_accel_calibration.io import atomic_output
+from fbg_accel_calibration.io.mcap_io import RecordingWriter, read_recording
 
 
 def leftovers(d: Path) -> list[str]:
@@ -84,7 +84,8 @@ def test_ctrl_c_during_import_leaves_no_stub(tmp_path: Path, capsys: pytest.Capt
 def test_missing_output_directory_is_found_before_the_computation(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     csv = six_pose_csv(tmp_path / "s.csv")
-    from fbg_accel_calibration import csv_import, diagnose
+    from fbg_accel_calibration.diagnosis import diagnose
+    from fbg_accel_calibration.io import csv_import
 
     def never(*a, **k):
         raise AssertionError("computation started before the output was checked")
@@ -203,7 +204,7 @@ def test_the_outputs_of_one_run_are_committed_together_or_not_at_all(tmp_path: P
 def test_diagnose_interrupted_while_writing_replaces_none_of_its_outputs(tmp_path: Path,
                                                                        capsys: pytest.CaptureFixture[str],
                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
-    from fbg_accel_calibration import diagnose_report
+    from fbg_accel_calibration.reports import diagnose_report
 
     csv = six_pose_csv(tmp_path / "s.csv")
     img = tmp_path / "img"
@@ -240,7 +241,7 @@ def test_a_read_only_directory_is_found_before_the_computation_and_named(tmp_pat
     """Found only after the fit, naming the hidden temporary file. /sys takes no new file, even for root."""
     if not Path("/sys").is_dir() or _creatable("/sys"):
         pytest.skip("no read-only directory here")
-    from fbg_accel_calibration import csv_import
+    from fbg_accel_calibration.io import csv_import
 
     def never(*a, **k):
         raise AssertionError("computation started before the output was checked")

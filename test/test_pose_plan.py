@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import yaml
 
-from fbg_accel_calibration.pose_plan import PosePlan, PosePlanError
-from fbg_accel_calibration.run_recorder import DetectorSettings
-from fbg_accel_calibration.table_geometry import STANDARD_GRAVITY, table_specific_force
+from fbg_accel_calibration.io.table_geometry import STANDARD_GRAVITY, table_specific_force
+from fbg_accel_calibration.recorder.pose_plan import PosePlan, PosePlanError
+from fbg_accel_calibration.recorder.pose_recorder import DetectorSettings
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 
@@ -136,7 +136,7 @@ def test_temperature_level_out_of_range():
 
 def test_plans_and_the_simulator_config_share_the_calibration_files_yaml_loader(tmp_path):
     """Duplicate keys were last-wins, 2e-3 a string and format_version: true version 1 in every file people write."""
-    from fbg_accel_calibration.excitation_plan import ExcitationPlan, ExcitationPlanError
+    from fbg_accel_calibration.dynamic.excitation_plan import ExcitationPlan, ExcitationPlanError
     from fbg_accel_sim.sim_config import SimConfig, SimConfigError, parse_set_argument
 
     plan = tmp_path / "plan.yaml"

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fbg_accel_calibration.pose_plan import PosePlan
-from fbg_accel_calibration.pose_sequencer import Mode, Phase, PoseSequencer
+from fbg_accel_calibration.recorder.pose_plan import PosePlan
+from fbg_accel_calibration.recorder.pose_sequencer import Mode, Phase, PoseSequencer
 from fbg_accel_driver.stillness_monitor import StillnessMonitor, first_order_noise_floor
 
 RATE_HZ = 100.0
@@ -283,7 +283,7 @@ def test_with_the_static_detector_on_a_synthetic_signal_only_static_samples_of_t
 
 # ------------------------------------------------------------------ progress display
 def test_progress_line_shows_pose_stillness_samples_and_temperature():
-    from fbg_accel_calibration.progress_display import format_progress
+    from fbg_accel_calibration.recorder.progress_display import format_progress
 
     seq = PoseSequencer(_plan(samples=10), Mode.SERVICE)
     Feeder(seq).feed(5, True)
@@ -299,7 +299,7 @@ def test_progress_line_after_a_recorded_pose_asks_the_operator_only_in_service_m
     Found in a simulated six-position campaign (auto mode, 2026-11-26): every pose's progress line read
     ``recorded, next pose?`` for the rest of its 30 s dwell, as if the operator had to press ``next_pose``.
     """
-    from fbg_accel_calibration.progress_display import format_progress
+    from fbg_accel_calibration.recorder.progress_display import format_progress
 
     for mode, phrase in ((Mode.SERVICE, "| recorded, next pose? |"),
                          (Mode.AUTO, "| recorded, advancing when the table moves |")):
@@ -312,7 +312,7 @@ def test_progress_line_after_a_recorded_pose_asks_the_operator_only_in_service_m
 def test_progress_display_plain_text_when_not_a_tty_only_on_change():
     import io
 
-    from fbg_accel_calibration.progress_display import ProgressDisplay
+    from fbg_accel_calibration.recorder.progress_display import ProgressDisplay
 
     now = [0.0]
     out = io.StringIO()
@@ -336,7 +336,7 @@ def test_progress_display_plain_text_when_not_a_tty_only_on_change():
 def test_progress_display_redraws_in_place_on_a_tty():
     import io
 
-    from fbg_accel_calibration.progress_display import ProgressDisplay
+    from fbg_accel_calibration.recorder.progress_display import ProgressDisplay
 
     now = [0.0]
     out = io.StringIO()

@@ -71,12 +71,12 @@ def _node_parameters(exe: str) -> set[str]:
     if exe == "driver":
         from fbg_accel_driver.driver_parameters import PARAMETERS
     else:
-        from fbg_accel_calibration.calibration_parameters import PARAMETERS
+        from fbg_accel_calibration.recorder.calibration_parameters import PARAMETERS
     return set(PARAMETERS) | {"use_sim_time"}
 
 
 def _check_command(tokens: list[str]) -> list[str]:
-    from fbg_accel_calibration.cli import build_parser
+    from fbg_accel_calibration.commands.cli import build_parser
 
     problems = []
     for t in tokens:  # repository files named as arguments

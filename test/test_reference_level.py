@@ -117,7 +117,7 @@ def test_the_reference_level_round_trips_and_a_bad_one_is_refused(tmp_path: Path
 def test_the_fit_records_the_reference_level_of_its_samples() -> None:
     """``fbg-accel-calib fit`` (``fit_thermal``, the streamed preparation's per-level sums) writes the mean
     reference counts of the samples it fitted at each temperature level."""
-    from fbg_accel_calibration.fit_pipeline import fit_thermal
+    from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
     from fbg_accel_sim.board_physics import simulate_recording
 
     cfg = SimConfig.default().with_overrides({"scenario.poses.mode": "six_position", "scenario.poses.dwell_s": 8.0,

@@ -22,9 +22,15 @@ from rosbags.rosbag2.storage_mcap import McapReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from test_fit_streaming import make_run
 
-from fbg_accel_calibration import mcap_io
-from fbg_accel_calibration.mcap_io import McapRecordingError, McapSampleStream, RecordingWriter, read_recording, write_recording
-from fbg_accel_calibration.recording import Recording
+from fbg_accel_calibration.io import mcap_io
+from fbg_accel_calibration.io.mcap_io import (
+    McapRecordingError,
+    McapSampleStream,
+    RecordingWriter,
+    read_recording,
+    write_recording,
+)
+from fbg_accel_calibration.io.recording import Recording
 from fbg_accel_driver.driver_core import RAW_NAMES
 
 BIN = Path(sys.executable).parent
@@ -286,7 +292,7 @@ def test_allan_report_and_diagnose_read_the_bag(fitted: tuple[Path, Path, Path],
     res = run_cli("report", str(bag), "--calibration", str(cal), "-o", str(tmp_path / "rep"), "--max-degree", "2")
     assert res.returncode == 0, res.stderr
     assert (tmp_path / "rep" / "report.md").is_file()
-    from fbg_accel_calibration.input_files import load_recording
+    from fbg_accel_calibration.io.input_files import load_recording
 
     _same_samples(load_recording([bag], namespace="/veh1"), read_recording(ours))
 
@@ -386,7 +392,7 @@ def driver_events(n: int, pose_len: int = 500, move_len: int = 100, t0: int = T0
     """``(relative topic, stamp, CDR)`` of a driver + table run: a ``moving`` event, then after ``move_len``
     samples a reference and a ``recording`` event of the next pose; raw sample i has ref_counts 1e6 + i (and its
     stamp moved by ``shift[i]`` ns)."""
-    from fbg_accel_calibration import ros2_cdr
+    from fbg_accel_calibration.io import ros2_cdr
 
     codec = ros2_cdr.FixedJointStateCodec("fbg_accel_link", RAW_NAMES)
     out = []
@@ -414,7 +420,7 @@ def write_foreign(path: Path, evs: list[tuple[str, int, bytes]], types: dict[str
     schemas ``defs`` (default the installed definitions), log time = stamp + ``log_offset_ns``."""
     from mcap.writer import CompressionType
 
-    from fbg_accel_calibration.rosbag2_input import offered_qos_yaml
+    from fbg_accel_calibration.io.rosbag2_input import offered_qos_yaml
 
     types = {**TYPES, **(types or {})}
     with open(path, "wb") as fh:
@@ -467,7 +473,7 @@ def test_a_type_of_the_same_name_with_another_definition_is_one_line(tmp_path: P
                                                                      capsys: pytest.CaptureFixture[str]) -> None:
     """Same type name, another definition (a renamed field, same CDR layout): was an AttributeError, and a
     traceback from ``fbg-accel-calib``; now one line naming the file, the topic, the type and the field."""
-    from fbg_accel_calibration.cli import main
+    from fbg_accel_calibration.commands.cli import main
 
     definition = mcap_io.message_definition(TYPES[rel])
     assert old in definition
@@ -546,7 +552,7 @@ def test_a_file_compressed_bag_is_refused_for_its_compression(tmp_path: Path) ->
     recording (magic bytes)', which sends the user looking for a damaged file."""
     import zstandard
 
-    from fbg_accel_calibration.input_files import check_inputs
+    from fbg_accel_calibration.io.input_files import check_inputs
 
     bag = tmp_path / "compressed"
     bag.mkdir()

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from ros2_mcap import frames_by_topic
 
-from fbg_accel_calibration import mcap_io
-from fbg_accel_calibration.mcap_io import RecordingWriter, read_file
-from fbg_accel_calibration.pose_plan import PosePlan
-from fbg_accel_calibration.pose_sequencer import Mode, Phase
-from fbg_accel_calibration.run_recorder import DetectorSettings, RawSample, RunRecorder, learning_shift
-from fbg_accel_calibration.table_geometry import table_specific_force
+from fbg_accel_calibration.io import mcap_io
+from fbg_accel_calibration.io.mcap_io import RecordingWriter, read_file
+from fbg_accel_calibration.io.table_geometry import table_specific_force
+from fbg_accel_calibration.recorder.pose_plan import PosePlan
+from fbg_accel_calibration.recorder.pose_recorder import DetectorSettings, RawSample, RunRecorder, learning_shift
+from fbg_accel_calibration.recorder.pose_sequencer import Mode, Phase
 from fbg_accel_driver.frame_codec import ADC_MAX
 
 RATE = 100.0
@@ -526,7 +526,7 @@ def _recorded_run(tmp_path, name: str, temp_c: float, seed: int):
 
 
 def test_refit_of_two_runs_writes_a_driver_calibration_with_a_report(tmp_path):
-    from fbg_accel_calibration.run_refit import expand_sources, refit
+    from fbg_accel_calibration.recorder.run_refit import expand_sources, refit
     from fbg_accel_driver.thermal_model import ThermalCalibration
 
     a = _recorded_run(tmp_path, "L0", 20.0, 1)
@@ -546,7 +546,7 @@ def test_refit_of_two_runs_writes_a_driver_calibration_with_a_report(tmp_path):
 
 
 def test_refit_refuses_missing_sources_and_too_few_poses(tmp_path):
-    from fbg_accel_calibration.run_refit import RefitError, expand_sources, refit
+    from fbg_accel_calibration.recorder.run_refit import RefitError, expand_sources, refit
 
     with pytest.raises(RefitError, match="matches no file"):
         expand_sources(tmp_path / "a.mcap", [str(tmp_path / "none*.mcap")])
@@ -566,7 +566,7 @@ def test_refit_refuses_missing_sources_and_too_few_poses(tmp_path):
 def test_refit_writes_the_calibration_atomically(tmp_path, monkeypatch):
     """A refit cut off while writing (SIGINT, full disk) leaves the previous calibration file
     untouched and no partial or temporary file beside it (issue 11)."""
-    from fbg_accel_calibration.run_refit import refit
+    from fbg_accel_calibration.recorder.run_refit import refit
     from fbg_accel_driver.thermal_model import ThermalCalibration
 
     a = _recorded_run(tmp_path, "L0", 20.0, 1)

@@ -16,7 +16,7 @@ import pytest
 import yaml
 from test_cli_hostile_inputs import HEADER, base_rows
 
-from fbg_accel_calibration.cli import main
+from fbg_accel_calibration.commands.cli import main
 from fbg_accel_driver.driver_parameters import default_calibration_path
 
 
@@ -116,7 +116,7 @@ def test_a_sensor_id_with_control_characters_is_refused_never_echoed_raw(tmp_pat
     """Issue 42, item 14: ``--sensor-id`` with an ANSI escape sequence or a line break was stored and echoed raw
     (recolouring the terminal, forging log lines). The tools, the calibration file and the node refuse it, and
     every message shows it escaped."""
-    from fbg_accel_calibration.input_validation import sensor_id as parse_sensor_id
+    from fbg_accel_calibration.io.input_validation import sensor_id as parse_sensor_id
     from fbg_accel_driver.thermal_model import CalibrationFileError, ThermalCalibration
 
     csv = tmp_path / "s.csv"
@@ -143,7 +143,7 @@ def test_a_sensor_id_with_control_characters_is_refused_never_echoed_raw(tmp_pat
 def test_a_hostile_sensor_id_inside_a_recording_is_escaped(tmp_path: Path) -> None:
     """A recording written before (or by another tool) that names its sensor with escape sequences: the fit's
     messages and its calibration carry the id escaped, and the calibration loads."""
-    from fbg_accel_calibration.thermal_fit import sensor_id_of
+    from fbg_accel_calibration.fit.thermal_fit import sensor_id_of
 
     assert sensor_id_of({"run": {"sensor_id": "acc\x1b[31m4\n"}}) == "acc\\x1b[31m4\\n"
     assert sensor_id_of({"run": {"sensor_id": "acc4"}}) == "acc4"

@@ -202,7 +202,7 @@ def test_board_sim_on_a_pty_keeps_streaming_after_the_dynamic_plan(tmp_path) -> 
     rest until killed; a file (``--output``) still ends 2 s after the plan."""
     from pathlib import Path
 
-    from fbg_accel_calibration.excitation_plan import ExcitationPlan
+    from fbg_accel_calibration.dynamic.excitation_plan import ExcitationPlan
     from fbg_accel_sim.board_sim import build_parser, load_config
 
     plan_file = str(Path(__file__).resolve().parents[1] / "config" / "excitation_plan_stepped_sine.yaml")

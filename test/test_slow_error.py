@@ -10,10 +10,10 @@ import pytest
 from test_driver_core import feed_frames, frame, make_cal, snapshot
 from test_gravity_check import DT, feed, still_samples
 
-from fbg_accel_calibration.fit_pipeline import fit_thermal
-from fbg_accel_calibration.fit_stream import prepare
-from fbg_accel_calibration.slow_error import attach, visit_component
-from fbg_accel_calibration.thermal_fit import model_to_coefficients
+from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
+from fbg_accel_calibration.fit.fit_stream import prepare
+from fbg_accel_calibration.fit.slow_error import attach, visit_component
+from fbg_accel_calibration.fit.thermal_fit import model_to_coefficients
 from fbg_accel_driver.driver_core import CoreConfig, DriverCore
 from fbg_accel_driver.driver_diagnostics import DriverDiagnostics, calibration_uncertainty_values
 from fbg_accel_driver.gravity_check import GravityCheck, GravityCheckConfig

@@ -14,12 +14,12 @@ HEAVY = ("numpy", "scipy", "scipy.stats", "matplotlib", "mcap", "rclpy", "tqdm")
 
 # each command's --help as its console script runs it; the modules it must not load
 HELP_RUNS = {
-    "fbg-accel-calib": ("fbg_accel_calibration.cli_main", [["--help"], ["fit", "--help"], ["diagnose", "--help"],
+    "fbg-accel-calib": ("fbg_accel_calibration.commands.cli_main", [["--help"], ["fit", "--help"], ["diagnose", "--help"],
                                                            ["report-measured", "--help"], ["adc-codes", "--help"],
                                                            ["import", "--help"], ["dynamic", "--help"]], HEAVY),
     "driver": ("fbg_accel_driver.driver_main", [["--help"]], HEAVY),
     # its parameter table shows the stillness monitor's defaults, kept in their owner (a numpy module): numpy, no scipy
-    "calibration": ("fbg_accel_calibration.calibration_main", [["--help"]], tuple(m for m in HEAVY if m != "numpy")),
+    "calibration": ("fbg_accel_calibration.recorder.calibration_main", [["--help"]], tuple(m for m in HEAVY if m != "numpy")),
     "board_sim": ("fbg_accel_sim.board_sim_main", [["--help"]], HEAVY),
 }
 
@@ -57,8 +57,8 @@ def test_help_loads_no_heavy_library(command: str) -> None:
 
 def test_parser_module_alone_loads_no_heavy_library() -> None:
     """Importing the parser modules and building the parser (what the README's check and the docs tests do)."""
-    probe = ("import json, sys\nfrom fbg_accel_calibration.cli import build_parser\nbuild_parser()\n"
-             "import fbg_accel_calibration.diagnose_cli, fbg_accel_calibration.adc_codes_cli\n"
+    probe = ("import json, sys\nfrom fbg_accel_calibration.commands.cli import build_parser\nbuild_parser()\n"
+             "import fbg_accel_calibration.commands.diagnose_cli, fbg_accel_calibration.commands.adc_codes_cli\n"
              "print(json.dumps(sorted(sys.modules)))")
     run = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=True)
     assert not set(HEAVY) & set(json.loads(run.stdout))
@@ -66,4 +66,4 @@ def test_parser_module_alone_loads_no_heavy_library() -> None:
 
 def test_the_probe_sees_a_heavy_import() -> None:
     """The check is able to fail: a module that does load numpy is seen loading it."""
-    assert "numpy" in _loaded("fbg_accel_calibration.table_geometry", [])["modules"]
+    assert "numpy" in _loaded("fbg_accel_calibration.io.table_geometry", [])["modules"]

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fbg_accel_calibration.recording import Recording
-from fbg_accel_calibration.static_detector import (
+from fbg_accel_calibration.fit.static_detector import (
     calibration_samples,
     estimate_noise_var,
     moving_variance,
     variance_threshold,
 )
+from fbg_accel_calibration.io.recording import Recording
 
 
 def _staircase(rng: np.random.Generator, levels: np.ndarray, dwell: int, move: int, sigma: float):
@@ -139,7 +139,7 @@ def test_bad_parameters() -> None:
 
 
 def test_blocked_moving_variance_equals_one_block(monkeypatch: pytest.MonkeyPatch) -> None:
-    import fbg_accel_calibration.static_detector as sd
+    import fbg_accel_calibration.fit.static_detector as sd
 
     rng = np.random.default_rng(7)
     x = rng.normal(size=(1000, 3)) + 500.0
@@ -153,7 +153,7 @@ def test_blocked_moving_variance_equals_one_block(monkeypatch: pytest.MonkeyPatc
 
 def test_interval_rules_keep_only_long_enough_runs_of_one_pose() -> None:
     """The interval rule of the detector (static_detector.usable_samples), which it applies block by block."""
-    from fbg_accel_calibration.static_detector import long_runs, usable_samples
+    from fbg_accel_calibration.fit.static_detector import long_runs, usable_samples
 
     still = np.array([1, 1, 1, 0, 1, 1, 1, 1, 0, 1], bool)
     np.testing.assert_array_equal(long_runs(still, 3), [1, 1, 1, 0, 1, 1, 1, 1, 0, 0])
@@ -173,7 +173,7 @@ def test_an_oversampled_quantised_signal_keeps_its_still_samples_and_its_noise_f
     median window variance (the noise floor) is near zero; the floor is never taken below the rounding to whole
     counts (``quantisation_var``), so a window in which a code changes is not called moving. Before: 76 % of the
     settled samples rejected at 400 Hz (54 % at 1 kHz), and the fitted noise floor taken from the quietest windows."""
-    from fbg_accel_calibration.fit_pipeline import fit_thermal
+    from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
     from fbg_accel_driver.thermal_model import normalise
     from fbg_accel_sim.board_physics import SimConfig, simulate_recording
 
@@ -201,7 +201,7 @@ def test_the_chi_square_quantile_is_scipy_stats_own_to_the_bit() -> None:
     second of every fit's start-up): the same bits as scipy.stats.chi2 for the windows and levels used."""
     from scipy.stats import chi2
 
-    from fbg_accel_calibration.static_detector import chi2_quantile
+    from fbg_accel_calibration.fit.static_detector import chi2_quantile
 
     dof = np.arange(1, 200)
     for p in (0.5, 1 - 1e-2, 1 - 1e-3, 1 - 1e-4, 1 - 1e-6, 1 - 1e-9):

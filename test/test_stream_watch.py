@@ -1,4 +1,4 @@
-"""The calibration node's watch of the sample stream (``fbg_accel_calibration.stream_watch``; no open issue: a dynamic
+"""The calibration node's watch of the sample stream (``fbg_accel_calibration.recorder.stream_watch``; no open issue: a dynamic
 run whose node started a few seconds after the board waited forever once the board's stream had ended, its file open,
 and said nothing). The node runs it once a second; its process test is in ``test_calibration_node_process.py``."""
 
@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from fbg_accel_calibration.stream_watch import STALL_WARN_S, StreamWatch
+from fbg_accel_calibration.recorder.stream_watch import STALL_WARN_S, StreamWatch
 
 
 def test_a_stall_is_reported_once_and_its_end_too_and_by_default_the_run_waits() -> None:

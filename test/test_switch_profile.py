@@ -12,7 +12,7 @@ import pytest
 
 from fbg_accel_calibration.diagnosis.cv import cross_validate, switch_profile
 from fbg_accel_calibration.diagnosis.design import Design
-from fbg_accel_calibration.thermal_fit import NotIdentifiedError
+from fbg_accel_calibration.fit.thermal_fit import NotIdentifiedError
 
 
 def _case(seed: int, n: int = 3000, p: int = 7, q: int = 4, k: int = 6):

@@ -10,12 +10,11 @@ import warnings
 import numpy as np
 import pytest
 
-from fbg_accel_calibration import thermal_fit as tf
-from fbg_accel_calibration.fit_pipeline import fit_thermal
-from fbg_accel_calibration.fit_stream import prepare
-from fbg_accel_calibration.model_selection import held_out_predictions, select_degree
-from fbg_accel_calibration.recording import Recording
-from fbg_accel_calibration.thermal_fit import (
+from fbg_accel_calibration.fit import thermal_fit as tf
+from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
+from fbg_accel_calibration.fit.fit_stream import prepare
+from fbg_accel_calibration.fit.model_selection import held_out_predictions, select_degree
+from fbg_accel_calibration.fit.thermal_fit import (
     CellAccumulator,
     NotIdentifiedError,
     TemperatureClusters,
@@ -38,6 +37,7 @@ from fbg_accel_calibration.thermal_fit import (
     temperature_levels,
     temperature_scaling,
 )
+from fbg_accel_calibration.io.recording import Recording
 from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 from fbg_accel_driver.thermal_model import ThermalCalibration, normalise
 
@@ -274,8 +274,8 @@ def test_runs_whose_pose_ids_name_other_orientations_keep_the_noise_floor(tmp_pa
     the two orientations behind one id inflated it about 25-fold); fit and model agree with each run's."""
     from test_diagnose_sim import _config
 
-    from fbg_accel_calibration.fit_stream import prepare_stream
-    from fbg_accel_calibration.mcap_io import McapSampleStream, write_recording
+    from fbg_accel_calibration.fit.fit_stream import prepare_stream
+    from fbg_accel_calibration.io.mcap_io import McapSampleStream, write_recording
     from fbg_accel_sim.board_physics import simulate_recording
 
     a = simulate_recording(_config({}), seed=11)  # 60-degree grid
@@ -377,7 +377,7 @@ def _planar(rec: Recording) -> Recording:
 def test_a_level_whose_poses_are_coplanar_does_not_count_for_the_temperature_degree() -> None:
     """Degree 1 needs two levels whose own poses span the frame: with the second level's poses all in the x-y plane,
     the z rows of the temperature terms are not determined, and degree 1 is refused naming that level."""
-    from fbg_accel_calibration.thermal_fit import level_excitation
+    from fbg_accel_calibration.fit.thermal_fit import level_excitation
 
     M, b = _truth(1, np.random.default_rng(9))
     full = _simulate(M, b, (16.0, 45.0), center=30.5, scale=14.5, n_poses=40, seed=9)

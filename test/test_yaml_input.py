@@ -15,10 +15,10 @@ from typing import Any
 import pytest
 import yaml
 
-from fbg_accel_calibration.calibration_node import plan_format
-from fbg_accel_calibration.excitation_plan import ExcitationPlan
-from fbg_accel_calibration.pose_plan import PosePlan
-from fbg_accel_calibration.rosbag2_input import bag_files
+from fbg_accel_calibration.dynamic.excitation_plan import ExcitationPlan
+from fbg_accel_calibration.io.rosbag2_input import bag_files
+from fbg_accel_calibration.recorder.calibration_node import plan_format
+from fbg_accel_calibration.recorder.pose_plan import PosePlan
 from fbg_accel_driver.thermal_model import ThermalCalibration
 from fbg_accel_driver.yaml_input import MAX_DEPTH, load_yaml, read_yaml_file
 from fbg_accel_sim.sim_config import SimConfig, parse_set_argument
@@ -169,7 +169,7 @@ def test_tools_answer_a_hostile_yaml_with_one_line_and_exit_2(tmp_path: Path, ar
     deep = write(tmp_path / "deep.yaml", DEEP)
     date = write(tmp_path / "date.yaml", "format: fbg_accel_excitation_plan\nx: 2026-13-45\nformat_version: [\n")
     args = [a.format(deep=deep, date=date) for a in argv]
-    module = {"board_sim": "fbg_accel_sim.board_sim", "fbg-accel-calib": "fbg_accel_calibration.cli"}[args[0]]
+    module = {"board_sim": "fbg_accel_sim.board_sim", "fbg-accel-calib": "fbg_accel_calibration.commands.cli"}[args[0]]
     proc = subprocess.run([sys.executable, "-m", module, *args[1:]], cwd=tmp_path, capture_output=True, text=True,
                           timeout=120)
     lines = proc.stderr.strip().splitlines()
@@ -179,7 +179,7 @@ def test_tools_answer_a_hostile_yaml_with_one_line_and_exit_2(tmp_path: Path, ar
 
 def test_a_recording_input_that_is_a_fifo_or_a_device_is_named_as_such(tmp_path: Path) -> None:
     """``fit FIFO`` and ``fit /dev/zero`` said "file not found"."""
-    from fbg_accel_calibration.input_files import check_input
+    from fbg_accel_calibration.io.input_files import check_input
 
     fifo = tmp_path / "run.mcap"
     os.mkfifo(fifo)

@@ -33,12 +33,12 @@ import numpy as np
 
 from fbg_accel_driver.adc_code_table import ADC_CODES, AdcCodeTable
 
-from ..adc_codes import CHANNEL_NAMES, code_table, recording_code_widths
-from ..search_lanes import beside, default_lane_count
+from ..fit.adc_codes import CHANNEL_NAMES, code_table, recording_code_widths
 from .cv import CvResult, cross_validate
 from .data import DiagnosisData, finite_rows
 from .design import Design, ModelSpec, build_design
 from .search import CandidateResult, _corr, paired_gain_test
+from .search_lanes import beside, default_lane_count
 
 NAME = "adc_code_widths"
 TITLE = "unequal widths of the ADC's codes (a code table of the counts before eq. 24)"

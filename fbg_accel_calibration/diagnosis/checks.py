@@ -12,13 +12,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..effects import Effect
-from ..search_lanes import Lanes
 from .cv import check_folds, make_folds
 from .data import DiagnosisData
 from .design import ModelSpec
+from .effects import Effect
 from .findings import Finding
 from .search import CandidateResult, Evaluator, judge_step, time_block_check
+from .search_lanes import Lanes
 from .structure import SMALL_RATIO, ResidualStructure
 
 EACH_STEP = "each step"  # on every significant result of every step, in the order the effect declares them

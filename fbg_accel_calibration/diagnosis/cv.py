@@ -11,8 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..effects import MIN_SPAN_FRACTION
-from ..thermal_fit import (
+from ..fit.thermal_fit import (
     NotIdentifiedError,
     scaled_condition,
     solve_normal_equations,
@@ -24,6 +23,7 @@ from .data import DiagnosisData, finite_rows
 from .design import (
     Design,
 )
+from .effects import MIN_SPAN_FRACTION
 
 
 # ============================================================================ cross-validation

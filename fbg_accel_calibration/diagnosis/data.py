@@ -131,7 +131,7 @@ class DiagnosisData:
     def temperature_level_count(self) -> int:
         """Temperature levels among the fitted samples (``thermal_fit.temperature_levels``), at least 1: eq. 28's
         degree is below it, so with one level the model has no temperature term."""
-        from ..thermal_fit import temperature_levels
+        from ..fit.thermal_fit import temperature_levels
 
         # asked by every candidate's ``applicable`` at every step: clustered once per recording
         return self.once("temperature_level_count", lambda: max(len(temperature_levels(self.temp_c[self.use])[1]), 1))
@@ -334,7 +334,7 @@ def visit_means(groups: np.ndarray, rows: np.ndarray, values: np.ndarray) -> np.
 def direction_labels(g: np.ndarray) -> np.ndarray:
     """Label (V,) of the direction of each reference ``g`` (V, 3) m/s^2: directions closer than
     ``thermal_fit.ORIENTATION_TOLERANCE_DEG`` to the first of a label share it (greedy, in the order given)."""
-    from ..thermal_fit import ORIENTATION_TOLERANCE_DEG
+    from ..fit.thermal_fit import ORIENTATION_TOLERANCE_DEG
 
     u = g / np.maximum(np.linalg.norm(g, axis=1), 1e-300)[:, None]
     cos_tol = math.cos(math.radians(ORIENTATION_TOLERANCE_DEG))

@@ -11,16 +11,16 @@ from typing import Any
 
 import numpy as np
 
-from ..effects import Effect
-from ..recording import LowReference, Recording
-from ..search_lanes import beside
-from ..static_detector import calibration_samples
-from ..temperature_reading import reading_jumps
-from ..thermal_fit import (
+from ..fit.static_detector import calibration_samples
+from ..fit.thermal_fit import (
     design_matrix,
     n_params,
 )
+from ..io.recording import LowReference, Recording
 from .data import MIN_HELD_SAMPLES, DiagnosisData, Inputs, finite_rows, held_poses, memory_key, motion_groups, visit_ids
+from .effects import Effect
+from .search_lanes import beside
+from .temperature_reading import reading_jumps
 
 # ============================================================================ data preparation
 

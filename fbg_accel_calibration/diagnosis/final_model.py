@@ -12,8 +12,7 @@ import numpy as np
 
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
-from ..search_lanes import beside
-from ..thermal_fit import coefficients_to_model, n_params, temperature_levels
+from ..fit.thermal_fit import coefficients_to_model, n_params, temperature_levels
 from .adc_code_candidate import CodeWidthStep, code_width_step
 from .adc_code_candidate import describe as describe_code_table
 from .cv import CvResult, cross_validate, gram_conditioning
@@ -21,6 +20,7 @@ from .data import DiagnosisData, finite_rows
 from .design import Design, ModelSpec, build_design
 from .findings import Finding, flagged_visits
 from .floor import FloorMeasurement, VisitNoise, within_visit_noise
+from .search_lanes import beside
 from .structure import ResidualStructure, heldout_mean_covariance, residual_structure
 
 Added = tuple[str, float | None, str]  # effect name, hyper-parameter, description

@@ -11,15 +11,15 @@ from typing import Any
 
 import numpy as np
 
-from ..adc_codes import HeldCode, held_codes
-from ..periodic_disturbance import PeriodicDisturbance
-from ..temperature_reading import jump_warning
-from ..thermal_fit import reference_reach_warnings
+from ..fit.adc_codes import HeldCode, held_codes
+from ..fit.thermal_fit import reference_reach_warnings
 from .cv import COLLINEAR_CORR, CvResult, cross_validate
 from .data import DiagnosisData, finite_rows, visit_means
 from .design import Design
 from .floor import FLOOR_VISIT_ALPHA, FLOOR_VISIT_RATIO, VisitNoise, _fmt3
+from .periodic_disturbance import PeriodicDisturbance
 from .search import CandidateResult
+from .temperature_reading import jump_warning
 
 
 @dataclass

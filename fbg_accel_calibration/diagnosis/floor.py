@@ -13,10 +13,10 @@ import numpy as np
 from scipy import fft as scipy_fft
 from scipy import stats
 
-from ..effects import TIA_TAU_S
-from ..periodic_disturbance import PeriodicDisturbance, find_periodic_disturbance
-from ..search_lanes import beside
 from .data import DiagnosisData, finite_rows, take_rows
+from .effects import TIA_TAU_S
+from .periodic_disturbance import PeriodicDisturbance, find_periodic_disturbance
+from .search_lanes import beside
 
 # ============================================================================ noise floor, settling, degree
 # Settling window after a table move, from the measuring chain's physics: every TIA is a first-order

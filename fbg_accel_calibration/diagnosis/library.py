@@ -7,7 +7,7 @@ hooks declared on the class, ``docs/effects.md``), added to ``LIBRARY`` here.
 
 from __future__ import annotations
 
-from ..effects import (
+from .effects import (
     ChannelDelayEffect,
     Effect,
     ReferenceDarkOffsetEffect,

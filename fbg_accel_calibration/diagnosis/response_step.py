@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..effects import MIN_SPAN_FRACTION, Effect, SpectralNonlinearityEffect
 from .data import DiagnosisData, Inputs, finite_rows
+from .effects import MIN_SPAN_FRACTION, Effect, SpectralNonlinearityEffect
 
 
 class ResponseStepEffect(Effect):

@@ -10,9 +10,9 @@ from typing import Any
 
 import numpy as np
 
-from ..effects import MIN_SPAN_FRACTION, RIG, Effect
-from ..table_geometry import outer_angle_offset
+from ..io.table_geometry import outer_angle_offset
 from .data import DiagnosisData, Inputs, direction_labels, take_rows, visit_means
+from .effects import MIN_SPAN_FRACTION, RIG, Effect
 from .run_effects import level_linked_runs
 
 # A two-axis table's zero is set against its index mark or a level to a small fraction of a degree; an offset of

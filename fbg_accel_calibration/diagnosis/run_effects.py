@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..effects import MAX_DRIFT_MPS2, PER_RUN, Effect
 from .data import DiagnosisData, Inputs
+from .effects import MAX_DRIFT_MPS2, PER_RUN, Effect
 
 
 class _PerRunEffect(Effect):
@@ -76,7 +76,7 @@ class RunOffsetEffect(_PerRunEffect):
 
 def _run_level_pairs(data: DiagnosisData) -> np.ndarray:
     """(k, 2) the distinct (run id, temperature level label) of the fitted samples (``thermal_fit.temperature_levels``)."""
-    from ..thermal_fit import temperature_levels
+    from ..fit.thermal_fit import temperature_levels
 
     use = data.use & np.isfinite(data.temp_c)
     labels = temperature_levels(data.temp_c[use])[0]

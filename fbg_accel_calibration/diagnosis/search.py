@@ -19,16 +19,14 @@ from scipy import optimize, stats
 
 from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 
-from ..effects import Effect
-from ..model_selection import DegreeScores, choose_degree
-from ..model_selection import select_degree as calibration_select_degree
-from ..recording import Recording
-from ..search_lanes import Lanes, idle_lanes
-from ..thermal_fit import (
+from ..dynamic.tone_delay import peak_offset
+from ..fit.model_selection import DegreeScores, choose_degree
+from ..fit.model_selection import select_degree as calibration_select_degree
+from ..fit.thermal_fit import (
     NotIdentifiedError,
     temperature_levels,
 )
-from ..tone_delay import peak_offset
+from ..io.recording import Recording
 from .cv import (
     RSS_TIE_RTOL,
     CvResult,
@@ -50,10 +48,12 @@ from .design import (
     ModelSpec,
     build_design,
 )
+from .effects import Effect
 from .floor import (
     VisitNoise,
 )
 from .response_step import ResponseStepEffect
+from .search_lanes import Lanes, idle_lanes
 
 # searched samples from which the searches run side by side by default (``search_lanes``): bench_calibration --lanes 1/2
 # at 3e4 samples (2.2e4 searched): 2.5 / 2.3 s, at 1e4: 0.6 / 0.7 s (threads cost more than they save on small designs)

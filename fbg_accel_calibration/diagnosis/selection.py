@@ -19,16 +19,15 @@ from typing import Any
 
 import numpy as np
 
-from ..effects import Effect
-from ..heap_trim import return_free_memory
-from ..search_lanes import Lanes, beside, default_lane_count
-from ..thermal_fit import NotIdentifiedError, temperature_scaling
+from ..fit.thermal_fit import NotIdentifiedError, temperature_scaling
 from . import checks
 from .cv import check_folds, make_folds
 from .data import DiagnosisData, finite_rows
 from .design import ModelSpec, fitted_output
+from .effects import Effect
 from .findings import Finding
 from .floor import FloorMeasurement
+from .heap_trim import return_free_memory
 from .library import separating_measurement
 from .search import (
     LANE_SEARCH_ROWS,
@@ -42,6 +41,7 @@ from .search import (
     search_samples,
     select_degree,
 )
+from .search_lanes import Lanes, beside, default_lane_count
 
 
 @dataclass

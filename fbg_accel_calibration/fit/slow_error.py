@@ -1,0 +1,121 @@
+"""The slow error of a pose mean beyond the noise model: a variance component by visit (pure numpy).
+
+A pose mean (the mean of a still stretch) carries more than the noise model's white + first-order part and the
+coefficients' own uncertainty (``coefficient_uncertainty``): what wanders slowly -- bias instability (flicker-like,
+correlation times from seconds to hours), the source power's wander where a dark offset keeps eq. 24 from cancelling
+it, warm-up drift -- and what eq. 28 does not contain at the poses visited. The calibration's own campaign shows it:
+the visits' mean residuals scatter more than the noise model says they should. Model, per output axis i, for the mean
+residual r_v of visit v (m/s^2)::
+
+    r = (I - H) (u + eta),    u_v ~ (0, S) the visit's slow error,  eta_v ~ (0, sigma_i^2 c_v) the noise of its mean
+
+with H the fit's hat matrix at the visit level, H_vw = xbar_v^T B^-1 s_w (s_w the visit's sum of regressor rows,
+xbar_v = s_v / n_v, B = X^T X), and c_v the noise model's variance factor of a mean of n_v samples
+(``noise_model.mean_variance_factor``). The method of moments (Henderson's method III; Searle, Casella & McCulloch,
+"Variance Components", Wiley 1992, ch. 5) equates sum_v r_v r_v^T with its expectation::
+
+    E[sum_v r_v r_v^T] = S tr((I - H)(I - H)^T) + diag_i(sigma_i^2 sum_{v,w} (I - H)_vw^2 c_w)
+
+and solves for S (3, 3), projected onto the positive semi-definite matrices. It is written to the calibration file's
+``slow_error`` section; the driver adds it to the published covariance as a bias with the calibration's J Sigma J^T
+(``covariance_includes_calibration``) and the live gravity check widens its threshold by it.
+
+What it cannot see: a slow error that is constant over a whole temperature level is absorbed by b(T) (three levels,
+degree 2: one offset per level), so a campaign whose levels are each one short run reads only the part of the wander
+that changes within a run. Visits of one pose repeated within a run, spread over its length, are what this estimate
+rests on.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from fbg_accel_driver.noise_model import mean_variance_factor
+
+from .thermal_fit import CellStats, sub_columns
+
+if TYPE_CHECKING:
+    from fbg_accel_driver.thermal_model import ThermalCalibration
+
+METHOD = ("variance component by visit beyond the noise model (method of moments on the visits' mean residuals, "
+          "Henderson III; fbg_accel_calibration/fit/slow_error.py)")
+MIN_DOF = 3.0  # visits left over the coefficients: fewer leave no scatter to estimate from
+
+
+@dataclass(frozen=True)
+class SlowError:
+    """Covariance ``matrix`` (3, 3) (m/s^2)^2 of the slow error of a pose mean, the ``visits`` it rests on and the
+    degrees of freedom left by the fit (tr((I - H)(I - H)^T)); ``excess`` (3,) the visits' residual scatter over what
+    the noise model expects of it (1: none beyond the noise)."""
+
+    matrix: np.ndarray
+    visits: int
+    dof: float
+    excess: np.ndarray
+
+    @property
+    def sigma_mps2(self) -> np.ndarray:
+        return np.sqrt(np.clip(np.diag(self.matrix), 0.0, None))
+
+
+def visit_component(stats: CellStats, A: np.ndarray, degree: int, noise_sigma_mps2: np.ndarray,
+                    correlated_fraction: np.ndarray, time_constant_s: np.ndarray, dt_s: float) -> SlowError | None:
+    """The slow error (module docstring) of coefficients ``A`` (p, 3) fitted at ``degree`` on ``stats``, with the
+    noise model (per-sample sigma m/s^2, correlated fraction, time constant s; samples ``dt_s`` s apart). None when
+    the visits' own sums were not kept (``thermal_fit.MAX_VISIT_SUMS``) or too few visits are left over the
+    coefficients (:data:`MIN_DOF`)."""
+    if len(stats.visit_cell) == 0:
+        return None
+    cols = sub_columns(degree, stats.degree)
+    xtx = stats.visit_xtx[:, cols][:, :, cols]
+    xtg = stats.visit_xtg[:, cols]
+    q = 3 * (degree + 1)  # the constant regressor: its row of a visit's X^T X is the visit's sum of regressor rows
+    s = xtx[:, :, q]  # (V, p)
+    n = s[:, q]  # (V,) samples
+    keep = n >= 1
+    s, n, xtg = s[keep], n[keep], xtg[keep]
+    V = len(n)
+    B = stats.visit_xtx[:, cols][:, :, cols].sum(axis=0)
+    d = np.sqrt(np.diag(B))  # Jacobi scaling: the regressors differ by orders of magnitude
+    Binv_s = np.linalg.solve(B / np.outer(d, d), (s / d).T) / d[:, None]  # B^-1 s_w, (p, V)
+    H = (s / n[:, None]) @ Binv_s  # H_vw = xbar_v^T B^-1 s_w
+    Mres = np.eye(V) - H
+    r = (xtg[:, q] - s @ A) / n[:, None]  # (V, 3) mean residual of each visit
+    m2 = Mres**2
+    dof = float(m2.sum())
+    if dof < MIN_DOF:
+        return None
+    sigma2 = np.asarray(noise_sigma_mps2, float) ** 2
+    c = np.array([[mean_variance_factor(int(nv), float(correlated_fraction[i]), float(time_constant_s[i]), dt_s)
+                   for i in range(3)] for nv in n])  # (V, 3)
+    noise_part = sigma2 * (m2 @ c).sum(axis=0)  # (3,)
+    Q = r.T @ r
+    S = (Q - np.diag(noise_part)) / dof
+    w, v = np.linalg.eigh(0.5 * (S + S.T))
+    S = (v * np.clip(w, 0.0, None)) @ v.T
+    excess = np.diag(Q) / np.maximum(noise_part, 1e-300)
+    return SlowError(S, V, dof, excess)
+
+
+def attach(cal: ThermalCalibration, stats: CellStats, dt_s: float) -> SlowError | None:
+    """Estimate the slow error of ``cal`` (its coefficients, degree and final noise model) on the fit's ``stats`` and
+    set ``cal.slow_error`` (the file's ``slow_error`` section) and ``cal.fit["slow_error"]`` (figures for people);
+    ``dt_s`` the sample interval (s) of the noise model. Returns the estimate (None: nothing set)."""
+    from fbg_accel_driver.slow_error import SlowErrorSection
+
+    from .thermal_fit import model_to_coefficients
+
+    est = visit_component(stats, model_to_coefficients(cal.M, cal.b), cal.degree, cal.noise_sigma_mps2,
+                          cal.noise_correlated_fraction, cal.noise_time_constant_s, dt_s)
+    if est is None:
+        cal.fit["slow_error"] = {"not_estimated": "the visits' own sums were not kept, or fewer than "
+                                 f"{MIN_DOF:g} visits are left over the coefficients: repeat the poses"}
+        return None
+    cal.slow_error = SlowErrorSection(est.matrix, METHOD, est.visits)
+    cal.fit["slow_error"] = {"sigma_mps2": [round(float(v), 5) for v in est.sigma_mps2],
+                             "scatter_over_noise": [round(float(v), 3) for v in est.excess],
+                             "dof": round(est.dof, 2)}
+    return est
