@@ -303,3 +303,16 @@ def test_board_sim_outputs_destroy_nothing(tmp_path: Path, capsys: pytest.Captur
     rc, err = board_sim(["--config", cfg, "--output", out, "--truth", truth, "--duration", "0.2", "--force"], capsys)
     assert rc == 0, err
     assert out.stat().st_size > 100 and truth.stat().st_size > 100 and not leftovers(tmp_path)
+
+
+def test_a_signal_between_a_block_and_its_commit_leaves_no_temporary_file(tmp_path: Path) -> None:
+    """A Ctrl-C that lands after a ``committed_outputs`` block's body, inside ``contextlib``'s ``__exit__`` before the
+    generator resumes, leaves the generator suspended with its temporary file on disk; the command's interrupt
+    handler then removes every such file (``discard_open_outputs``), and nothing is written."""
+    manager = atomic_output.committed_outputs()
+    outs = manager.__enter__()  # the body ran; its __exit__ (the commit) never will
+    tmp = outs.path(tmp_path / "cal.yaml")
+    tmp.write_text("partial")
+    atomic_output.discard_open_outputs()
+    assert list(tmp_path.iterdir()) == []
+    atomic_output.discard_open_outputs()  # nothing left to do: no error

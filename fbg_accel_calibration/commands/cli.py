@@ -39,7 +39,7 @@ from fbg_accel_driver.command_line import OneLineErrorParser, Terminated, interr
 from fbg_accel_driver.sensor_constants import AHT10_SIGMA_C
 
 from ..io import input_validation as iv
-from ..io.atomic_output import atomic_path, check_output_dir, check_outputs, committed_outputs
+from ..io.atomic_output import atomic_path, check_output_dir, check_outputs, committed_outputs, discard_open_outputs
 from ..io.source_progress import add_progress_option
 from ..reports.measured_paths import FIT_MD, FIT_PNG, MEASURED_CSV, UNCERTAINTY_MD
 from . import adc_codes_cli, diagnose_cli
@@ -576,6 +576,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fbg-accel-calib {args.command}: {printable(str(exc))}", file=sys.stderr)  # a path's ESC escaped
         return 2
     except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM through cli_main (Terminated): outputs rolled back
+        discard_open_outputs()
         print(f"fbg-accel-calib {args.command}: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}; "
               "no output written", file=sys.stderr)
         return interrupted_status(exc)

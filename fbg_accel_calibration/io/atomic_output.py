@@ -148,6 +148,7 @@ class OutputSet:
             except OSError as exc:  # named by the user's path, not the temporary one
                 raise OutputError(f"{output}: cannot write in {output.parent} ({exc.strerror or exc})") from None
             tmp = self._staged[output] = Path(tmp_name)
+            _OPEN.add(self)
             os.close(fd)
         os.chmod(tmp, 0o644)  # mkstemp makes it 0600; the output gets the usual permissions
         return tmp
@@ -187,6 +188,7 @@ class OutputSet:
             with contextlib.suppress(OSError):
                 tmp.unlink()
         self._staged.clear()
+        _OPEN.discard(self)
 
     def temporary_to_output(self, exc: OSError) -> OSError:
         """``exc`` naming the output instead of its temporary file (a writer's "No space left: '/d/.c.x.part.yaml'")."""
@@ -194,6 +196,20 @@ class OutputSet:
         if exc.filename in names:
             return type(exc)(exc.errno, exc.strerror, names[exc.filename])
         return exc
+
+
+# the output sets with temporary files not yet renamed or removed (a set leaves it at its commit or discard)
+_OPEN: set[OutputSet] = set()
+
+
+def discard_open_outputs() -> None:
+    """Remove the temporary files of every output set not yet committed or discarded: what a command's interrupt
+    handler calls last. A signal that arrives after a ``committed_outputs`` block's body but before its generator
+    resumes (inside ``contextlib``'s ``__exit__``) raises there, so the generator's own clean-up runs only when the
+    generator is collected, which may be never before the process exits."""
+    with _signals_held():
+        for outs in list(_OPEN):
+            outs.discard()
 
 
 def _backup(output: Path) -> Path | None:
