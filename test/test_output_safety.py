@@ -316,3 +316,21 @@ def test_a_signal_between_a_block_and_its_commit_leaves_no_temporary_file(tmp_pa
     atomic_output.discard_open_outputs()
     assert list(tmp_path.iterdir()) == []
     atomic_output.discard_open_outputs()  # nothing left to do: no error
+
+
+def test_an_interrupt_right_after_a_temporary_file_is_created_leaves_nothing(tmp_path: Path, monkeypatch) -> None:
+    """SIGINT/SIGTERM blocked in the main thread still reach a process with other threads (a BLAS worker takes the
+    signal, the handler then runs in the main thread at once), so the handler may run just after the temporary file
+    was created and before it was recorded: the name is recorded first, and nothing stays behind."""
+    real_open = os.open
+
+    def open_then_interrupt(path, flags, mode=0o777, *args, **kwargs):
+        os.close(real_open(path, flags, mode, *args, **kwargs))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "open", open_then_interrupt)
+    with pytest.raises(KeyboardInterrupt), atomic_output.committed_outputs() as outs:
+        outs.path(tmp_path / "cal.yaml")
+    monkeypatch.undo()
+    atomic_output.discard_open_outputs()
+    assert list(tmp_path.iterdir()) == []

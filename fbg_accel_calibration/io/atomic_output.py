@@ -26,9 +26,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import secrets
 import signal
 import stat
-import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -97,16 +97,28 @@ def is_stream(path: Path | str) -> bool:
     return stat.S_ISCHR(mode) or stat.S_ISFIFO(mode)
 
 
+# a new file only, never through a link, not inherited by child processes
+_EXCLUSIVE = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+
+
+def _new_temporary(directory: Path, prefix: str, suffix: str) -> Path:
+    """A hidden name in ``directory`` that no file has (128 random bits: a clash is not to be expected; the exclusive
+    creation refuses one all the same)."""
+    return directory / f"{prefix}{secrets.token_hex(16)}{suffix}"
+
+
 def _check_writable(out: Path) -> None:
     """Refuse ``out`` when its directory takes no new file (read-only directory or file system, no permission),
     by trying: ``os.access`` says yes to root on a read-only mount."""
-    with _signals_held():  # the probe never stays behind
+    probe = _new_temporary(out.parent, ".write-check.", "")
+    with _signals_held():  # the probe never stays behind, even when the handler runs inside this block
         try:
-            fd, probe = tempfile.mkstemp(prefix=".write-check.", dir=out.parent)
+            os.close(os.open(probe, _EXCLUSIVE, 0o600))
         except OSError as exc:
             raise OutputError(f"{out}: cannot write in {out.parent} ({exc.strerror or exc})") from None
-        os.close(fd)
-        os.unlink(probe)
+        finally:
+            with contextlib.suppress(OSError):
+                os.unlink(probe)
 
 
 def check_output_dir(out_dir: Path, files: Iterable[str], inputs: Iterable[Path | str], force: bool = False) -> None:
@@ -141,16 +153,19 @@ class OutputSet:
             return self._staged[output]
         if is_stream(output):
             return output  # /dev/null, a FIFO: written through (a rename would replace the device node)
-        with _signals_held():  # a Ctrl-C between creating the file and recording it here would leave it behind
-            try:
-                fd, tmp_name = tempfile.mkstemp(prefix=f".{output.stem}.", suffix=f".part{output.suffix}",
-                                                dir=output.parent)
-            except OSError as exc:  # named by the user's path, not the temporary one
-                raise OutputError(f"{output}: cannot write in {output.parent} ({exc.strerror or exc})") from None
-            tmp = self._staged[output] = Path(tmp_name)
+        # The name is recorded before the file is created, so that an interrupt at any point after the creation
+        # finds it to remove: blocking SIGINT/SIGTERM here is not enough, since another thread of the process (a
+        # BLAS worker) takes the signal and the handler then runs in this thread at once.
+        with _signals_held():
+            tmp = self._staged[output] = _new_temporary(output.parent, f".{output.stem}.", f".part{output.suffix}")
             _OPEN.add(self)
+            try:
+                fd = os.open(tmp, _EXCLUSIVE, 0o600)
+            except OSError as exc:  # named by the user's path, not the temporary one
+                del self._staged[output]
+                raise OutputError(f"{output}: cannot write in {output.parent} ({exc.strerror or exc})") from None
             os.close(fd)
-        os.chmod(tmp, 0o644)  # mkstemp makes it 0600; the output gets the usual permissions
+        os.chmod(tmp, 0o644)  # the output gets the usual permissions, whatever the umask
         return tmp
 
     def commit(self) -> None:
@@ -159,12 +174,14 @@ class OutputSet:
         backups: dict[Path, Path | None] = {}
         done: list[Path] = []
         try:
-            with _signals_held():  # no backup link left behind by a Ctrl-C between its creation and this record
+            with _signals_held():  # each backup's name is recorded before its link exists: none is left behind
                 for output in self._staged:
-                    backups[output] = _backup(output)
+                    backups[output] = _new_temporary(output.parent, f".{output.name}.", ".previous")
+                    if not _backup(output, backups[output]):  # type: ignore[arg-type]
+                        backups[output] = None
             for output, tmp in self._staged.items():
+                done.append(output)  # first: an interrupt right after the rename still rolls this output back
                 os.replace(tmp, output)
-                done.append(output)
         except BaseException:
             with _signals_held():
                 for output in done:
@@ -212,16 +229,13 @@ def discard_open_outputs() -> None:
             outs.discard()
 
 
-def _backup(output: Path) -> Path | None:
-    """A hard link to ``output``'s current content under a hidden name (None if there is no output yet), so that
-    a commit can put it back; the output stays in place meanwhile."""
+def _backup(output: Path, name: Path) -> bool:
+    """A hard link ``name`` to ``output``'s current content, so that a commit can put it back; the output stays in
+    place meanwhile. False (and no link) if there is no output yet."""
     if not os.path.lexists(output):
-        return None
-    fd, name = tempfile.mkstemp(prefix=f".{output.name}.", suffix=".previous", dir=output.parent)
-    os.close(fd)
-    os.unlink(name)
+        return False
     os.link(output, name, follow_symlinks=False)
-    return Path(name)
+    return True
 
 
 @contextlib.contextmanager
