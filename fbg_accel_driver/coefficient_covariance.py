@@ -28,7 +28,7 @@ import numpy as np
 from .mapping_fields import format_version, number, number_array, refuse_unknown
 
 SECTION_VERSION = 1
-SECTION_KEYS = ("format_version", "method", "clusters", "matrix")
+SECTION_KEYS = ("format_version", "method", "clusters", "matrix")  # read_section's order
 MAX_METHOD_CHARS = 512
 # eigenvalues down to -tol * largest are rounding (a covariance written to 17 digits and read back)
 PSD_TOLERANCE = 1e-9
@@ -103,20 +103,7 @@ class CoefficientCovariance:
     @classmethod
     def from_dict(cls, d: Any, degree: int, fail: Callable[[str], Exception]) -> CoefficientCovariance:
         """The section of a file whose model has ``degree``; ``fail(message)`` makes the error to raise."""
-        if not isinstance(d, dict):
-            raise fail(f"'coefficient_covariance' must be a mapping, got {type(d).__name__}")
-        refuse_unknown(d, SECTION_KEYS, "coefficient_covariance.", fail)
-        for key in SECTION_KEYS:
-            if key not in d:
-                raise fail(f"missing key 'coefficient_covariance.{key}'")
-        format_version(d["format_version"], "coefficient_covariance.format_version", fail, reads=SECTION_VERSION)
-        method = d["method"]
-        if not isinstance(method, str) or not method or len(method) > MAX_METHOD_CHARS:
-            raise fail(f"coefficient_covariance.method must be a text of 1..{MAX_METHOD_CHARS} characters")
-        clusters = number(d["clusters"], "coefficient_covariance.clusters", fail, minimum=1)
-        if clusters != int(clusters):
-            raise fail(f"coefficient_covariance.clusters must be an integer, got {d['clusters']!r}")
-        matrix = number_array(d["matrix"], "coefficient_covariance.matrix", fail)
+        method, clusters, matrix = read_section(d, "coefficient_covariance", SECTION_KEYS, SECTION_VERSION, fail)
         size = 12 * (degree + 1)
         if matrix.shape != (size, size):
             raise fail(f"coefficient_covariance.matrix has shape {matrix.shape}, expected {(size, size)} for degree "
@@ -125,6 +112,30 @@ class CoefficientCovariance:
         if problem:
             raise fail(f"coefficient_covariance.matrix {problem}")
         return cls(matrix, method, int(clusters))
+
+
+def read_section(d: Any, section: str, keys: tuple[str, str, str, str], version: int,
+                 fail: Callable[[str], Exception]) -> tuple[str, int, np.ndarray]:
+    """``(method, count, matrix)`` of a covariance section of a calibration file (this module's and the slow
+    error's): a mapping of exactly ``keys`` -- format_version (``version``), method (a text of 1..
+    :data:`MAX_METHOD_CHARS` characters), a count (an integer >= 1: the clusters or visits it rests on) and matrix
+    (numbers) -- each refusal through ``fail(message)`` naming ``section``. The matrix's shape and values are the
+    section's own check."""
+    if not isinstance(d, dict):
+        raise fail(f"'{section}' must be a mapping, got {type(d).__name__}")
+    refuse_unknown(d, keys, f"{section}.", fail)
+    for key in keys:
+        if key not in d:
+            raise fail(f"missing key '{section}.{key}'")
+    version_key, method_key, count_key, matrix_key = keys
+    format_version(d[version_key], f"{section}.{version_key}", fail, reads=version)
+    method = d[method_key]
+    if not isinstance(method, str) or not method or len(method) > MAX_METHOD_CHARS:
+        raise fail(f"{section}.{method_key} must be a text of 1..{MAX_METHOD_CHARS} characters")
+    count = number(d[count_key], f"{section}.{count_key}", fail, minimum=1)
+    if count != int(count):
+        raise fail(f"{section}.{count_key} must be an integer, got {d[count_key]!r}")
+    return method, int(count), number_array(d[matrix_key], f"{section}.{matrix_key}", fail)
 
 
 def check_matrix(m: np.ndarray) -> str:

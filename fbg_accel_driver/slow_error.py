@@ -17,11 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from .coefficient_covariance import MAX_METHOD_CHARS, check_matrix
-from .mapping_fields import format_version, number, number_array, refuse_unknown
+from .coefficient_covariance import check_matrix, read_section
 
 SECTION_VERSION = 1
-SECTION_KEYS = ("format_version", "method", "visits", "matrix")
+SECTION_KEYS = ("format_version", "method", "visits", "matrix")  # read_section's order
 MAX_SIGMA_MPS2 = 10.0  # a slow error above 1 g is no calibration
 
 
@@ -66,24 +65,11 @@ class SlowErrorSection:
     @classmethod
     def from_dict(cls, d: Any, fail: Callable[[str], Exception]) -> SlowErrorSection:
         """The section of a parsed file; ``fail(message)`` makes the error to raise."""
-        if not isinstance(d, dict):
-            raise fail(f"'slow_error' must be a mapping, got {type(d).__name__}")
-        refuse_unknown(d, SECTION_KEYS, "slow_error.", fail)
-        for key in SECTION_KEYS:
-            if key not in d:
-                raise fail(f"missing key 'slow_error.{key}'")
-        format_version(d["format_version"], "slow_error.format_version", fail, reads=SECTION_VERSION)
-        method = d["method"]
-        if not isinstance(method, str) or not method or len(method) > MAX_METHOD_CHARS:
-            raise fail(f"slow_error.method must be a text of 1..{MAX_METHOD_CHARS} characters")
-        visits = number(d["visits"], "slow_error.visits", fail, minimum=1)
-        if visits != int(visits):
-            raise fail(f"slow_error.visits must be an integer, got {d['visits']!r}")
-        matrix = number_array(d["matrix"], "slow_error.matrix", fail)
+        method, visits, matrix = read_section(d, "slow_error", SECTION_KEYS, SECTION_VERSION, fail)
         problem = check_3x3(matrix)
         if problem:
             raise fail(f"slow_error.matrix {problem}")
-        return cls(matrix, method, int(visits))
+        return cls(matrix, method, visits)
 
 
 def check_3x3(m: np.ndarray) -> str:
