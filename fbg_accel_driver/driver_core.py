@@ -272,6 +272,9 @@ class DriverCore:
                               and (calibration.coefficient_covariance is not None or calibration.slow_error is not None)
                               and self.config.covariance_source != "unknown")
         self._last_cal_point: tuple[float, float, float, float] | None = None
+        # the slow error's (xx, xy, xz, yy, yz, zz), the same for every message
+        self._slow_entries = (calibration.slow_error.entries()
+                              if calibration is not None and calibration.slow_error is not None else None)
         self._prev_frame: tuple[int, int, int] | None = None  # (seq, t_us, ADC_OVERRUN) of the previous frame of this run
         # the board's nominal sample interval (us): median of recent t_us steps between frames of consecutive seq, a late
         # read's catch-up left out (SampleInterval); one step is no estimate (catch-up reads are ~40 us apart)
@@ -655,8 +658,8 @@ class DriverCore:
         cal = self.cal
         c = (output_covariance(cal.calibration_weights_at(round(temp, 2)), *psi)
              if cal.coefficient_covariance is not None else (0.0,) * 6)
-        if cal.slow_error is not None:
-            c = tuple(a + b for a, b in zip(c, cal.slow_error.entries(), strict=True))
+        if self._slow_entries is not None:
+            c = tuple(a + b for a, b in zip(c, self._slow_entries, strict=True))
         return c  # type: ignore[return-value]
 
     def _mean_variance_factors(self, n: int, dt_s: float) -> tuple[float, float, float]:
