@@ -35,7 +35,7 @@ import numpy as np
 
 from fbg_accel_driver.noise_model import mean_variance_factor
 
-from .thermal_fit import CellStats, sub_columns
+from .thermal_fit import CellStats, model_to_coefficients, sub_columns
 
 if TYPE_CHECKING:
     from fbg_accel_driver.thermal_model import ThermalCalibration
@@ -78,7 +78,7 @@ def visit_component(stats: CellStats, A: np.ndarray, degree: int, noise_sigma_mp
     keep = n >= 1
     s, n, xtg = s[keep], n[keep], xtg[keep]
     V = len(n)
-    B = stats.visit_xtx[:, cols][:, :, cols].sum(axis=0)
+    B = xtx.sum(axis=0)
     d = np.sqrt(np.diag(B))  # Jacobi scaling: the regressors differ by orders of magnitude
     Binv_s = np.linalg.solve(B / np.outer(d, d), (s / d).T) / d[:, None]  # B^-1 s_w, (p, V)
     H = (s / n[:, None]) @ Binv_s  # H_vw = xbar_v^T B^-1 s_w
@@ -105,8 +105,6 @@ def attach(cal: ThermalCalibration, stats: CellStats, dt_s: float) -> SlowError 
     set ``cal.slow_error`` (the file's ``slow_error`` section) and ``cal.fit["slow_error"]`` (figures for people);
     ``dt_s`` the sample interval (s) of the noise model. Returns the estimate (None: nothing set)."""
     from fbg_accel_driver.slow_error import SlowErrorSection
-
-    from .thermal_fit import model_to_coefficients
 
     est = visit_component(stats, model_to_coefficients(cal.M, cal.b), cal.degree, cal.noise_sigma_mps2,
                           cal.noise_correlated_fraction, cal.noise_time_constant_s, dt_s)
