@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
+from ..fit.thermal_fit import jacobi_solve
 from .data import DiagnosisData, direction_labels, finite_rows
 
 # ============================================================================ data preparation
@@ -128,9 +129,8 @@ def heldout_mean_covariance(X: np.ndarray, fit_rows: np.ndarray, eval_rows: np.n
         if not at.any():
             continue
         Ak = XtX - xtx[i]
-        d = np.sqrt(np.maximum(np.diag(Ak), 1e-300))  # Jacobi-scaled, as the fit solves it
-        try:
-            a[at] = (np.linalg.solve(Ak / d[:, None] / d[None, :], (xbar[at] / d).T) / d[:, None]).T
+        try:  # Jacobi-scaled, as the fit solves it; a regressor the training set lacks: singular, not zero division
+            a[at] = jacobi_solve(Ak, xbar[at].T, min_diagonal=1e-300).T
         except np.linalg.LinAlgError:
             return None
     var = noise_model.mean_variance(cnt_a.astype(int))  # (Va, 3)

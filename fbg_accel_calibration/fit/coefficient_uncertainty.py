@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .thermal_fit import CellStats, solve_normal_equations, sub_columns
+from .thermal_fit import CellStats, jacobi_scaling, solve_normal_equations, sub_columns
 
 METHOD = ("cluster-robust sandwich, visits as clusters, CR2 small-sample correction (Bell & McCaffrey 2002); "
           "vec row-major over A (p, 3) of eq. 29 regressors x output axes")
@@ -77,8 +77,8 @@ def cluster_covariance(stats: CellStats, A: np.ndarray, degree: int,
         cl = Clusters(xtx, xtg, np.zeros(len(labels), int), False)
         method = METHOD.replace("visits as clusters", "groups of visits as clusters")
     B = cl.xtx.sum(axis=0)
-    d = np.sqrt(np.diag(B))  # Jacobi scaling, as solve_normal_equations: the regressors differ by orders of magnitude
-    W = _inverse_sqrt(B / np.outer(d, d))  # Bs^(-1/2)
+    d, Bs = jacobi_scaling(B)  # as the fit solves it: the regressors differ by orders of magnitude
+    W = _inverse_sqrt(Bs)  # Bs^(-1/2)
     scores = (cl.xtg - cl.xtx @ A) / d[None, :, None]  # scaled s_v (V, p, 3)
     S = W @ (cl.xtx / np.outer(d, d)) @ W  # W Ms_v W: the visit's leverage, eigenvalues in [0, 1]
     w, v = np.linalg.eigh(S)

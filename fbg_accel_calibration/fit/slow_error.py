@@ -35,7 +35,7 @@ import numpy as np
 
 from fbg_accel_driver.noise_model import mean_variance_factor
 
-from .thermal_fit import CellStats, model_to_coefficients, sub_columns
+from .thermal_fit import CellStats, jacobi_solve, model_to_coefficients, sub_columns
 
 if TYPE_CHECKING:
     from fbg_accel_driver.thermal_model import ThermalCalibration
@@ -79,8 +79,7 @@ def visit_component(stats: CellStats, A: np.ndarray, degree: int, noise_sigma_mp
     s, n, xtg = s[keep], n[keep], xtg[keep]
     V = len(n)
     B = xtx.sum(axis=0)
-    d = np.sqrt(np.diag(B))  # Jacobi scaling: the regressors differ by orders of magnitude
-    Binv_s = np.linalg.solve(B / np.outer(d, d), (s / d).T) / d[:, None]  # B^-1 s_w, (p, V)
+    Binv_s = jacobi_solve(B, s.T)  # B^-1 s_w, (p, V)
     H = (s / n[:, None]) @ Binv_s  # H_vw = xbar_v^T B^-1 s_w
     Mres = np.eye(V) - H
     r = (xtg[:, q] - s @ A) / n[:, None]  # (V, 3) mean residual of each visit

@@ -603,26 +603,48 @@ def check_recording_excitation(rec: Recording) -> np.ndarray:
     return check_pose_excitation(stats)
 
 
-def scaled_condition(xtx: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Jacobi scaling of X^T X: (column norms d, scaled matrix, its condition number; inf if singular)."""
-    d = np.sqrt(np.diag(xtx))
+def jacobi_scaling(xtx: np.ndarray, min_diagonal: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobi (column) scaling of a normal matrix X^T X (p, p): the column norms d = sqrt(diag(X^T X)) (p,) and the
+    scaled matrix X^T X / (d d^T), whose diagonal is 1. Why: eq. 28's regressors differ by orders of magnitude (counts
+    ratios near 1 against their products with powers of the scaled temperature, an effect's column in m/s^2 or
+    seconds), so X^T X itself is ill-conditioned by its units alone; scaled, its condition number measures only how
+    nearly collinear the regressors are, and the solve loses no digits to the units. ``min_diagonal`` > 0: the
+    diagonal is floored there first (a held-out training set may lack a regressor; the solve then fails on the
+    singular matrix, not on a division by zero). Raises :class:`NotIdentifiedError` when a column is zero."""
+    diag = np.diag(xtx)
+    d = np.sqrt(np.maximum(diag, min_diagonal) if min_diagonal > 0.0 else diag)
     if np.any(d <= 0.0):
         raise NotIdentifiedError("a regressor is identically zero on the data")
-    s = xtx / np.outer(d, d)
+    return d, xtx / np.outer(d, d)
+
+
+def jacobi_solve(xtx: np.ndarray, rhs: np.ndarray, min_diagonal: float = 0.0) -> np.ndarray:
+    """Z with X^T X Z = ``rhs`` (p, k), solved on the Jacobi-scaled matrix (:func:`jacobi_scaling`, the reason and
+    ``min_diagonal`` there): Z = D^-1 S^-1 D^-1 rhs with S = D^-1 X^T X D^-1, D = diag(d). ``rhs`` = X^T G gives the
+    least-squares coefficients of eq. 28 (:func:`solve_normal_equations`); other right-hand sides give B^-1 applied
+    to a design's column sums (the slow error, the held-out residual's null covariance). No check of the condition
+    number (``solve_normal_equations`` does it); ``np.linalg.LinAlgError`` when S is exactly singular."""
+    d, s = jacobi_scaling(xtx, min_diagonal)
+    return np.linalg.solve(s, rhs / d[:, None]) / d[:, None]
+
+
+def scaled_condition(xtx: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Jacobi scaling of X^T X: (column norms d, scaled matrix, its condition number; inf if singular)."""
+    d, s = jacobi_scaling(xtx)
     eig = np.linalg.eigvalsh(s)
     return d, s, float(eig[-1] / eig[0]) if eig[0] > 0 else float("inf")
 
 
 def solve_normal_equations(xtx: np.ndarray, xtg: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, float]:
-    """Solve (X^T X) A = X^T G with Jacobi scaling; returns (A, condition number of the scaled X^T X).
+    """Solve (X^T X) A = X^T G with Jacobi scaling (:func:`jacobi_solve`); returns (A, condition number of the scaled
+    X^T X).
 
     Raises :class:`NotIdentifiedError` when the scaled matrix is (numerically) singular.
     """
-    d, s, cond = scaled_condition(xtx)
+    cond = scaled_condition(xtx)[2]
     if not cond < 1.0 / rcond:
         raise NotIdentifiedError(f"normal equations are singular (condition number {cond:.3g})")
-    A = np.linalg.solve(s, xtg / d[:, None]) / d[:, None]
-    return A, cond
+    return jacobi_solve(xtx, xtg), cond
 
 
 def temperature_scaling(temp_c: np.ndarray) -> tuple[float, float]:
