@@ -56,7 +56,8 @@ from output_paths import add_update_results, results_dir  # noqa: E402
 from fbg_accel_calibration.diagnosis.diagnose import diagnose  # noqa: E402
 from fbg_accel_calibration.diagnosis.search import SEARCH_ROWS  # noqa: E402
 from fbg_accel_calibration.fit.fit_pipeline import fit_thermal  # noqa: E402
-from fbg_accel_calibration.io.mcap_io import read_recording, write_recording  # noqa: E402
+from fbg_accel_calibration.io.mcap_reader import read_recording  # noqa: E402
+from fbg_accel_calibration.io.mcap_writer import write_recording  # noqa: E402
 from fbg_accel_calibration.reports.diagnose_report import write_report  # noqa: E402
 from fbg_accel_driver.frame_codec import link_frame_rate_limit  # noqa: E402
 from fbg_accel_sim.board_physics import simulate_recording  # noqa: E402

@@ -62,7 +62,7 @@ def write_csv(path: Path, mb: float) -> int:
 CHILD = """
 import resource, sys, time
 from fbg_accel_calibration.commands import cli
-from fbg_accel_calibration.io import csv_import, mcap_io  # noqa: F401
+from fbg_accel_calibration.io import csv_import, mcap_writer  # noqa: F401
 mode, csv, out = sys.argv[1], sys.argv[2], sys.argv[3]
 t0 = time.perf_counter()
 if mode == "import":
@@ -72,7 +72,7 @@ elif mode == "fit":
     rc = cli.main(["fit", csv, "-o", out.replace(".mcap", ".yaml"), "--degree", "0", "--max-degree", "0", "--force"])
     assert rc == 0
 elif mode == "baseline":  # the fixed cost: modules, ROS 2 message definitions, one empty MCAP writer
-    with mcap_io.RecordingWriter(out, {"sensor_id": "baseline"}):
+    with mcap_writer.RecordingWriter(out, {"sensor_id": "baseline"}):
         pass
 elif mode == "import_csv":
     rec, _ = csv_import.import_csv(csv)

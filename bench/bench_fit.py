@@ -33,7 +33,8 @@ from output_paths import add_update_results, results_dir
 from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
 from fbg_accel_calibration.fit.model_selection import select_degree
 from fbg_accel_calibration.fit.thermal_fit import n_params
-from fbg_accel_calibration.io.mcap_io import read_recording, write_recording
+from fbg_accel_calibration.io.mcap_reader import read_recording
+from fbg_accel_calibration.io.mcap_writer import write_recording
 from fbg_accel_calibration.io.recording import Recording
 
 G = 9.80665

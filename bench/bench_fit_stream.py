@@ -55,7 +55,8 @@ def child(mode: str, files: list[str], out: str, trace: bool) -> None:
     import fbg_accel_calibration.fit.model_selection
     import fbg_accel_calibration.fit.thermal_fit
     import fbg_accel_calibration.io.csv_import
-    import fbg_accel_calibration.io.mcap_io  # noqa: F401  (imports outside the measured region)
+    import fbg_accel_calibration.io.mcap_reader
+    import fbg_accel_calibration.io.mcap_writer  # noqa: F401  (imports outside the measured region)
     from fbg_accel_calibration.commands.cli import main as cli_main
 
     page = os.sysconf("SC_PAGE_SIZE")
@@ -121,7 +122,7 @@ def main() -> None:
 
     from fbg_accel_calibration.fit.static_detector import BLOCK_ROWS
     from fbg_accel_calibration.fit.thermal_fit import DEFAULT_CHUNK, n_params
-    from fbg_accel_calibration.io.mcap_io import write_recording
+    from fbg_accel_calibration.io.mcap_writer import write_recording
     from fbg_accel_driver.thermal_model import ThermalCalibration
 
     tmp = tempfile.TemporaryDirectory() if args.dir is None else None

@@ -45,7 +45,7 @@ def recording(n: int, folder: Path) -> Path:
     if not path.exists():
         from bench_calibration import scenario
 
-        from fbg_accel_calibration.io.mcap_io import write_recording
+        from fbg_accel_calibration.io.mcap_writer import write_recording
         from fbg_accel_sim.board_physics import simulate_recording
 
         cfg, duration = scenario(n)

@@ -37,7 +37,7 @@ from output_paths import add_update_results, results_dir  # noqa: E402
 def run_command(n: int, tmp: Path) -> dict:
     """``fbg-accel-calib diagnose`` on the benchmark's simulated run of ``n`` samples written as MCAP:
     {wall seconds, peak RSS MiB} of that one process."""
-    from fbg_accel_calibration.io.mcap_io import write_recording
+    from fbg_accel_calibration.io.mcap_writer import write_recording
     from fbg_accel_sim.board_physics import simulate_recording
 
     cfg, duration = scenario(n)

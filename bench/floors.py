@@ -90,7 +90,7 @@ def campaign_files(n: int, folder: Path) -> tuple[list[Path], Path]:
         return files, arrays
     import numpy as np
 
-    from fbg_accel_calibration.io.mcap_io import write_recording
+    from fbg_accel_calibration.io.mcap_writer import write_recording
     from fbg_accel_sim.eq28_campaign import campaign
 
     rec, _ = campaign(0, degree=2, n_poses=POSES, repeats=REPEATS, visit_s=n / (LEVELS * POSES * REPEATS * RATE_HZ))

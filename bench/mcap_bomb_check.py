@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from machine_info import machine  # noqa: E402
 
-from fbg_accel_calibration.io import mcap_io  # noqa: E402
+from fbg_accel_calibration.io import mcap_reader, mcap_writer  # noqa: E402
 
 
 def chunk_record(data: bytes, compression: str, uncompressed_size: int) -> bytes:
@@ -66,7 +66,7 @@ def read_s(path: Path, repeats: int) -> tuple[float, int, int]:
     best = float("inf")
     for _ in range(repeats):
         t = time.perf_counter()
-        src = mcap_io.McapSampleStream(path)
+        src = mcap_reader.McapSampleStream(path)
         n = sum(len(b) for b in src.blocks(10_000, with_poses=False))
         best = min(best, time.perf_counter() - t)
     return best, n, len(src.report.skipped)
@@ -81,7 +81,7 @@ def main() -> int:
     out = ROOT / "bench/results/mcap_bomb.json" if args.update_results else args.output
     with tempfile.TemporaryDirectory() as tmp:
         clean = Path(tmp) / "clean.mcap"
-        with mcap_io.RecordingWriter(clean, {"sensor_id": "bench"}) as w:
+        with mcap_writer.RecordingWriter(clean, {"sensor_id": "bench"}) as w:
             for i in range(60):
                 w.write_raw(1_000_000_000 + i * 10_000_000, 870.0 + i % 3, [1100.0, 1600.0 + i % 5, 1100.0],
                             temperature_c=25.0, temperature_valid=True, seq=i % 65536, board_time_s=i * 0.01)

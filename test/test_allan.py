@@ -95,7 +95,7 @@ def test_cli_allan_on_a_recording(tmp_path: Path) -> None:
     import json
 
     from fbg_accel_calibration.commands.cli import main as cli_main
-    from fbg_accel_calibration.io.mcap_io import write_recording
+    from fbg_accel_calibration.io.mcap_writer import write_recording
     from fbg_accel_calibration.io.recording import Recording
     from fbg_accel_driver.thermal_model import ThermalCalibration
 
@@ -180,7 +180,7 @@ def test_white_noise_vrw_behind_the_amplifier_low_pass() -> None:
 
 def _static_mcap(path: Path, accel: np.ndarray, board_t: np.ndarray, sensor: str = "acc-A",
                  temp: float | np.ndarray = 23.0, ref: np.ndarray | None = None) -> None:
-    from fbg_accel_calibration.io.mcap_io import RecordingWriter
+    from fbg_accel_calibration.io.mcap_writer import RecordingWriter
 
     temps = np.broadcast_to(np.asarray(temp, float), (len(accel),))
     with RecordingWriter(path, {"sensor_id": sensor}) as w:

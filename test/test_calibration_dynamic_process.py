@@ -20,7 +20,7 @@ from process_harness import ChildProcess
 from rclpy.context import Context
 from test_driver_process import Listener, start_driver, start_sim, stop_all
 
-from fbg_accel_calibration.io.mcap_io import read_file
+from fbg_accel_calibration.io.mcap_reader import read_file
 from fbg_accel_driver.driver_parameters import default_calibration_path
 
 BIN = Path(sys.executable).parent

@@ -43,7 +43,7 @@ import numpy as np
 import pytest
 from process_harness import ChildProcess
 
-from fbg_accel_calibration.io.mcap_io import read_recording
+from fbg_accel_calibration.io.mcap_reader import read_recording
 from fbg_accel_calibration.recorder.pose_plan import PosePlan
 from fbg_accel_driver.thermal_model import ThermalCalibration
 

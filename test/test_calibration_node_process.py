@@ -29,7 +29,7 @@ import yaml
 from process_harness import ChildProcess, Notifier
 from ros2_mcap import ros2_messages
 
-from fbg_accel_calibration.io.mcap_io import read_file, read_recording
+from fbg_accel_calibration.io.mcap_reader import read_file, read_recording
 from fbg_accel_calibration.io.table_geometry import table_specific_force
 from fbg_accel_calibration.recorder.pose_plan import PosePlan
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 from test_fit_streaming import make_run
 
-from fbg_accel_calibration.io.mcap_io import write_recording
+from fbg_accel_calibration.io.mcap_writer import write_recording
 
 BIN = Path(sys.executable).parent
 

@@ -9,7 +9,7 @@ import pytest
 
 from fbg_accel_calibration.commands.cli import main as cli_main
 from fbg_accel_calibration.io.csv_import import CsvImportError, import_csv
-from fbg_accel_calibration.io.mcap_io import read_recording
+from fbg_accel_calibration.io.mcap_reader import read_recording
 from fbg_accel_calibration.io.table_geometry import table_specific_force
 
 

@@ -158,7 +158,7 @@ def test_the_fit_finds_the_chain_s_noise_correlation_on_a_table_run_with_slow_mo
     The poses of the recording say where the table stood: the fit's noise model now comes from those samples,
     streamed or in memory alike, and is the chain's (the TIA low-passes, SIM_DYNAMICS)."""
     from fbg_accel_calibration.commands.cli import main as cli_main
-    from fbg_accel_calibration.io.mcap_io import write_recording
+    from fbg_accel_calibration.io.mcap_writer import write_recording
     from fbg_accel_sim.board_physics import simulate_recording
 
     cfg = SimConfig.default().with_overrides(SLOW_MOVES[plan])

@@ -257,7 +257,7 @@ def test_the_command_s_search_rows_option_thins_the_search_or_searches_every_sam
     default and the guard the diagnosis uses."""
     from fbg_accel_calibration.commands.cli import main
     from fbg_accel_calibration.diagnosis.search import SEARCH_ROWS
-    from fbg_accel_calibration.io.mcap_io import write_recording
+    from fbg_accel_calibration.io.mcap_writer import write_recording
 
     mcap = tmp_path / "run.mcap"
     scale, extra, _ = SCENARIOS["tia_lowpass"]

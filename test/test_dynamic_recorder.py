@@ -7,7 +7,7 @@ from pathlib import Path
 from ros2_mcap import frames_by_topic
 
 from fbg_accel_calibration.dynamic.excitation_plan import ExcitationPlan
-from fbg_accel_calibration.io.mcap_io import RecordingWriter
+from fbg_accel_calibration.io.mcap_writer import RecordingWriter
 from fbg_accel_calibration.recorder.dynamic_recorder import DynamicRunRecorder
 from fbg_accel_calibration.recorder.pose_recorder import RawSample
 from fbg_accel_driver.frame_codec import Status
@@ -56,16 +56,16 @@ def test_disk_full_aborts_a_dynamic_run_without_raising(tmp_path, monkeypatch):
     again. The run ends aborted with a warning naming the error; close() returns the summary."""
     import errno
 
-    from fbg_accel_calibration.io import mcap_io
+    from fbg_accel_calibration.io import mcap_writer
 
-    orig = mcap_io._UnbufferedSink.write
+    orig = mcap_writer._UnbufferedSink.write
 
     def full(self, data):
         if self._pos + len(data) > 20_000:
             raise OSError(errno.ENOSPC, "No space left on device")
         return orig(self, data)
 
-    monkeypatch.setattr(mcap_io._UnbufferedSink, "write", full)
+    monkeypatch.setattr(mcap_writer._UnbufferedSink, "write", full)
     rec = DynamicRunRecorder(ExcitationPlan.load(PLAN), RecordingWriter(tmp_path / "dyn.mcap", {}), sensor_id="t")
     n = 0
     while not rec.finished and n < 20_000:

@@ -86,7 +86,7 @@ def test_field_check_command_on_a_simulated_recording(tmp_path, capsys) -> None:
     import re
 
     from fbg_accel_calibration.commands.cli import main as cli_main
-    from fbg_accel_calibration.io.mcap_io import write_recording
+    from fbg_accel_calibration.io.mcap_writer import write_recording
     from fbg_accel_sim.board_physics import SimConfig, simulate_recording
     from fbg_accel_sim.sim_config import config_dir
 

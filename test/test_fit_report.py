@@ -11,7 +11,8 @@ import pytest
 from fbg_accel_calibration.commands.cli import main as cli_main
 from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
 from fbg_accel_calibration.fit.static_detector import calibration_samples
-from fbg_accel_calibration.io.mcap_io import read_recording, write_recording
+from fbg_accel_calibration.io.mcap_reader import read_recording
+from fbg_accel_calibration.io.mcap_writer import write_recording
 from fbg_accel_calibration.reports.fit_report import pose_statistics
 from fbg_accel_driver.correction_terms import TimeDrift
 from fbg_accel_sim.board_physics import SimConfig, simulate_recording

@@ -1,4 +1,4 @@
-"""The streamed fit from MCAP (``fit_stream.prepare_stream`` + ``mcap_io.McapSampleStream``) equals the
+"""The streamed fit from MCAP (``fit_stream.prepare_stream`` + ``mcap_reader.McapSampleStream``) equals the
 in-memory fit (``read_recording`` + ``prepare`` + ``select_degree`` + ``fit_thermal``) on generated files,
 including a truncated one, and its memory does not grow with the number of samples."""
 
@@ -17,8 +17,9 @@ from fbg_accel_calibration.fit import fit_stream, noise_correlation, static_dete
 from fbg_accel_calibration.fit.fit_stream import prepare, prepare_stream
 from fbg_accel_calibration.fit.model_selection import select_degree
 from fbg_accel_calibration.fit.thermal_fit import TemperatureClusters, temperature_levels
-from fbg_accel_calibration.io import mcap_io
-from fbg_accel_calibration.io.mcap_io import McapSampleStream, RecordingWriter, StreamOrderError, read_recording, write_recording
+from fbg_accel_calibration.io import mcap_reader
+from fbg_accel_calibration.io.mcap_reader import McapSampleStream, StreamOrderError, read_recording
+from fbg_accel_calibration.io.mcap_writer import RecordingWriter, write_recording
 from fbg_accel_calibration.io.recording import Recording
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
@@ -54,7 +55,7 @@ def make_run(seed: int, temp_c: float, n_poses: int = 10, sweep_c: float = 0.0, 
 def small_blocks(monkeypatch: pytest.MonkeyPatch) -> int:
     """Blocks of 301 samples in both paths, so every file spans many blocks and carries between them;
     decompressed chunks are split 16 KiB at a time (instead of 1 MiB) so the small files exceed it."""
-    monkeypatch.setattr(mcap_io, "_JOIN_BYTES", 1 << 14)
+    monkeypatch.setattr(mcap_reader, "_JOIN_BYTES", 1 << 14)
     monkeypatch.setattr(static_detector, "BLOCK_ROWS", 301)
     monkeypatch.setattr(fit_stream, "BLOCK_ROWS", 301)
     return 301
@@ -156,8 +157,8 @@ def test_cli_fit_streams_the_files_and_writes_the_in_memory_result(runs: list[Pa
     def no_whole_file(*args: object, **kwargs: object) -> None:
         raise AssertionError("the streaming fit must not read a whole file")
 
-    monkeypatch.setattr(mcap_io, "read_file", no_whole_file)
-    monkeypatch.setattr(mcap_io, "read_recording", no_whole_file)
+    monkeypatch.setattr(mcap_reader, "read_file", no_whole_file)
+    monkeypatch.setattr(mcap_reader, "read_recording", no_whole_file)
     reads: list[Path] = []  # the passes after the first take the samples it kept: each file is read once
     original = McapSampleStream._file_batches
 
@@ -166,7 +167,7 @@ def test_cli_fit_streams_the_files_and_writes_the_in_memory_result(runs: list[Pa
         return original(self, path, *args)
 
     monkeypatch.setattr(McapSampleStream, "_file_batches", counted)
-    monkeypatch.setattr(mcap_io, "REPLAY_ROWS", 777)  # kept batches given back cut elsewhere than read
+    monkeypatch.setattr(mcap_reader, "REPLAY_ROWS", 777)  # kept batches given back cut elsewhere than read
     capsys.readouterr()
     assert cli_main(["fit", *files, "-o", str(tmp_path / "stream.yaml")]) == 0
     assert sorted(reads) == sorted(runs)

@@ -11,7 +11,7 @@ import yaml
 
 from fbg_accel_calibration.commands.cli import main
 from fbg_accel_calibration.io.csv_import import import_csv
-from fbg_accel_calibration.io.mcap_io import write_recording
+from fbg_accel_calibration.io.mcap_writer import write_recording
 from fbg_accel_sim.board_physics import simulate_recording
 from fbg_accel_sim.sim_config import SimConfig
 
@@ -300,7 +300,7 @@ def test_non_mcap_file_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[st
 def test_streamed_import_equals_the_in_memory_import(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """`import` now streams the CSV into the MCAP; the file reads back as the whole-file import wrote it."""
     from fbg_accel_calibration.io.csv_import import CsvBlocks
-    from fbg_accel_calibration.io.mcap_io import read_recording
+    from fbg_accel_calibration.io.mcap_reader import read_recording
 
     csv = six_pose_csv(tmp_path / "in.csv")
     rec, _ = import_csv(csv)

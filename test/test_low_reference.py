@@ -24,7 +24,8 @@ from fbg_accel_calibration.fit import fit_stream, static_detector
 from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
 from fbg_accel_calibration.fit.fit_stream import prepare, prepare_stream
 from fbg_accel_calibration.fit.static_detector import calibration_samples
-from fbg_accel_calibration.io.mcap_io import McapSampleStream, read_recording, write_recording
+from fbg_accel_calibration.io.mcap_reader import McapSampleStream, read_recording
+from fbg_accel_calibration.io.mcap_writer import write_recording
 from fbg_accel_calibration.io.recording import Recording
 from fbg_accel_driver.driver_core import CoreConfig
 from fbg_accel_driver.driver_parameters import PARAMETERS

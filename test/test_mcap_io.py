@@ -15,19 +15,18 @@ import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from fbg_accel_calibration.io.mcap_io import (
-    RAW_NAMES,
+from fbg_accel_calibration.io.mcap_format import (
     TOPIC_POSE,
     TOPIC_RAW,
     TOPIC_REFERENCE_GRAVITY,
     TOPIC_TEMPERATURE,
     McapRecordingError,
-    RecordingWriter,
-    message_definition,
-    read_recording,
-    write_recording,
 )
+from fbg_accel_calibration.io.mcap_reader import read_recording
+from fbg_accel_calibration.io.mcap_schemas import message_definition
+from fbg_accel_calibration.io.mcap_writer import RecordingWriter, write_recording
 from fbg_accel_calibration.io.recording import Recording
+from fbg_accel_driver.driver_core import RAW_NAMES
 
 T0 = 1_700_000_000_000_000_000  # ns
 
@@ -169,7 +168,7 @@ def test_truncated_file_reads_up_to_last_complete_chunk(tmp_path: Path) -> None:
 
 _KILL_CHILD = r"""
 import sys
-from fbg_accel_calibration.io.mcap_io import RecordingWriter
+from fbg_accel_calibration.io.mcap_writer import RecordingWriter
 w = RecordingWriter(sys.argv[1], {"sensor_id": "killed"}, chunk_bytes=4096)
 w.write_reference_gravity(0, (0.0, 0.0, 9.80665))
 w.write_pose(0, 0, "recording")
@@ -208,7 +207,7 @@ def test_a_moving_reference_is_no_pose_event_and_reads_back_as_moving(tmp_path: 
     sample: the moving samples' reference is not written. A recorded pose whose reference changes is an event.
     Written in one go or block by block (the CSV importer), the events are the same. write_recording's round trip:
     counts, temperatures (a NaN among them) and times read back as written."""
-    from fbg_accel_calibration.io.mcap_io import pose_events
+    from fbg_accel_calibration.io.mcap_writer import pose_events
 
     n = 60
     rng = np.random.default_rng(4)
@@ -263,7 +262,7 @@ def test_each_message_is_byte_identical_to_the_ros2_encoder(tmp_path: Path) -> N
     from mcap_ros2.writer import Writer
 
     from fbg_accel_calibration.io import ros2_cdr
-    from fbg_accel_calibration.io.mcap_io import TYPE_POSE, TYPE_RAW, TYPE_REFERENCE_GRAVITY, TYPE_TEMPERATURE
+    from fbg_accel_calibration.io.mcap_format import TYPE_POSE, TYPE_RAW, TYPE_REFERENCE_GRAVITY, TYPE_TEMPERATURE
 
     rng = np.random.default_rng(7)
     cases = []  # (datatype, dict for mcap_ros2, our bytes)
@@ -307,7 +306,7 @@ def test_reads_raw_messages_written_by_another_ros2_writer(tmp_path: Path) -> No
     the reader's fast path and its generic fallback give the same values."""
     from mcap_ros2.writer import Writer
 
-    from fbg_accel_calibration.io.mcap_io import TYPE_RAW
+    from fbg_accel_calibration.io.mcap_format import TYPE_RAW
 
     path = tmp_path / "other.mcap"
     with open(path, "wb") as fh:
@@ -330,7 +329,7 @@ def test_reads_raw_messages_written_by_another_ros2_writer(tmp_path: Path) -> No
 def test_writer_notices_that_its_path_no_longer_names_the_file_it_writes(tmp_path: Path) -> None:
     """Writes into a deleted (unlinked) file succeed on Linux: a removed output directory went unnoticed
     until the run was over. flush() and close() check the path against the open file (device, inode)."""
-    from fbg_accel_calibration.io.mcap_io import RecordingLostError
+    from fbg_accel_calibration.io.mcap_writer import RecordingLostError
 
     w = RecordingWriter(tmp_path / "a.mcap", {"sensor_id": "t"})
     w.write_temperature(1, 24.0)

@@ -19,8 +19,10 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from test_fit_streaming import make_run
 
-from fbg_accel_calibration.io import mcap_io
-from fbg_accel_calibration.io.mcap_io import McapRecordingError, McapSampleStream, read_recording, write_recording
+from fbg_accel_calibration.io import mcap_records, mcap_writer
+from fbg_accel_calibration.io.mcap_format import McapRecordingError
+from fbg_accel_calibration.io.mcap_reader import McapSampleStream, read_recording
+from fbg_accel_calibration.io.mcap_writer import write_recording
 from fbg_accel_calibration.io.recording import Recording
 
 BIN = Path(sys.executable).parent
@@ -66,7 +68,7 @@ def raw_stamps(path: Path) -> np.ndarray:
         return np.array([m.log_time for _, ch, m in messages], dtype=np.int64)
 
 
-def stream_count(path: Path) -> tuple[int, mcap_io.FileReadReport]:
+def stream_count(path: Path) -> tuple[int, mcap_records.FileReadReport]:
     src = McapSampleStream(path)
     n = sum(len(b) for b in src.blocks(1000, with_poses=False))
     return n, src.report
@@ -193,9 +195,9 @@ def test_wrong_raw_type_or_malformed_schema_is_one_line(tmp_path: Path, schema: 
     assert not (tmp_path / "cal.yaml").exists()
 
 
-def _plain_run(path: Path, rec: Recording, chunk_bytes: int = mcap_io.DEFAULT_CHUNK_BYTES) -> None:
+def _plain_run(path: Path, rec: Recording, chunk_bytes: int = mcap_writer.DEFAULT_CHUNK_BYTES) -> None:
     """``rec`` written as raw messages, uncompressed (a chunk's records can be cut in the bytes)."""
-    with mcap_io.RecordingWriter(path, {"sensor_id": "x"}, compression="none", chunk_bytes=chunk_bytes) as w:
+    with mcap_writer.RecordingWriter(path, {"sensor_id": "x"}, compression="none", chunk_bytes=chunk_bytes) as w:
         for i in range(len(rec)):
             w.write_raw(int(rec.t_s[i] * 1e9) + 1, rec.ref[i], rec.xyz[i].tolist(), temperature_c=rec.temp_c[i],
                         temperature_valid=True, seq=i, board_time_s=rec.t_s[i])

@@ -10,7 +10,8 @@ import pytest
 from test_input_validation import run, six_pose_csv
 
 from fbg_accel_calibration.io import atomic_output
-from fbg_accel_calibration.io.mcap_io import RecordingWriter, read_recording
+from fbg_accel_calibration.io.mcap_reader import read_recording
+from fbg_accel_calibration.io.mcap_writer import RecordingWriter
 
 
 def leftovers(d: Path) -> list[str]:

@@ -22,19 +22,15 @@ from rosbags.rosbag2.storage_mcap import McapReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from test_fit_streaming import make_run
 
-from fbg_accel_calibration.io import mcap_io
-from fbg_accel_calibration.io.mcap_io import (
-    McapRecordingError,
-    McapSampleStream,
-    RecordingWriter,
-    read_recording,
-    write_recording,
-)
+from fbg_accel_calibration.io import mcap_format, mcap_reader, mcap_records, mcap_schemas
+from fbg_accel_calibration.io.mcap_format import McapRecordingError
+from fbg_accel_calibration.io.mcap_reader import McapSampleStream, read_recording
+from fbg_accel_calibration.io.mcap_writer import RecordingWriter, write_recording
 from fbg_accel_calibration.io.recording import Recording
 from fbg_accel_driver.driver_core import RAW_NAMES
 
 BIN = Path(sys.executable).parent
-TYPES = mcap_io.ROLE_TYPES  # relative topic -> type (docs/topics.md)
+TYPES = mcap_format.ROLE_TYPES  # relative topic -> type (docs/topics.md)
 TOPICS = tuple(TYPES)
 TS = get_typestore(Stores.ROS2_JAZZY)
 RELIABLE = Qos(QosHistory.KEEP_LAST, 10, QosReliability.RELIABLE, QosDurability.VOLATILE, QosTime(0, 0),
@@ -58,7 +54,7 @@ def stamps_of(rec: Recording) -> list[int]:
 
 def events(rec: Recording):
     """``(relative topic, stamp_ns, kind, payload)`` of a calibration run in this project's layout, written
-    here from docs/topics.md and mcap_io's module docstring, not with RecordingWriter: a reference and a
+    here from docs/topics.md and mcap_format's module docstring, not with RecordingWriter: a reference and a
     ``recording`` pose event when the pose starts, a ``moving`` event when the table leaves it, then the
     sample (imu/raw JointState, names RAW_NAMES)."""
     known = np.all(np.isfinite(rec.gref_mps2), axis=1)
@@ -184,7 +180,7 @@ def test_a_namespaced_file_cut_before_its_summary_still_reads(tmp_path: Path, sa
     np.testing.assert_array_equal(rec.pose_id, samples.pose_id[: len(rec)])
     src = McapSampleStream(cut, namespace="/veh1")
     assert sum(len(b) for b in src.blocks(500, with_poses=False)) == len(rec)
-    with pytest.raises(mcap_io.McapRecordingError, match=r"no readable imu/raw messages \(expected topic /veh2/imu/raw"
+    with pytest.raises(McapRecordingError, match=r"no readable imu/raw messages \(expected topic /veh2/imu/raw"
                        r".*topics found: .*/veh1/imu/raw \(sensor_msgs/msg/JointState\)"):
         read_recording(cut, namespace="/veh2")
 
@@ -199,7 +195,7 @@ def _write_relative_names(path: Path, rec: Recording) -> None:
         for rel, stamp, kind, payload in events(rec):
             msgtype, msg = rosbags_message(kind, stamp, payload)
             if msgtype not in schemas:
-                schemas[msgtype] = w.register_msgdef(msgtype, mcap_io.message_definition(msgtype))
+                schemas[msgtype] = w.register_msgdef(msgtype, mcap_schemas.message_definition(msgtype))
             w.write_message(rel, schemas[msgtype], _as_dict(msg), log_time=stamp, publish_time=stamp)
         w.finish()
 
@@ -376,7 +372,7 @@ def test_a_bag_whose_metadata_lists_no_topics_is_read_choosing_while_reading(fit
     ref = read_recording(ours)
     _same_samples(read_recording(copy), ref)
     _same_samples(read_recording(copy, namespace="/veh1"), ref)
-    with pytest.raises(mcap_io.McapRecordingError, match=r"expected topic /veh2/imu/raw.*/veh1/imu/data \(sensor_msgs/msg/Imu\)"):
+    with pytest.raises(McapRecordingError, match=r"expected topic /veh2/imu/raw.*/veh1/imu/data \(sensor_msgs/msg/Imu\)"):
         read_recording(copy, namespace="/veh2")
 
 
@@ -428,7 +424,7 @@ def write_foreign(path: Path, evs: list[tuple[str, int, bytes]], types: dict[str
         w.start(profile="ros2", library="rosbag2-like")
         chans = {}
         for rel, ty in types.items():
-            sid = w.register_schema(ty, "ros2msg", (defs or {}).get(rel, mcap_io.message_definition(ty)).encode())
+            sid = w.register_schema(ty, "ros2msg", (defs or {}).get(rel, mcap_schemas.message_definition(ty)).encode())
             chans[rel] = w.register_channel(f"/fbg/{rel}", "cdr", sid, metadata={"offered_qos_profiles": offered_qos_yaml()})
         for rel, st, data in evs:
             w.add_message(chans[rel], log_time=st + log_offset_ns, publish_time=st + log_offset_ns, data=data)
@@ -452,9 +448,9 @@ def test_a_sibling_topic_of_another_type_is_ignored_with_a_warning(tmp_path: Pat
     other topics, never decoded, with one warning line naming the file, the topic and its type."""
     evs = [(r, st, payload if r == rel else d) for r, st, d in driver_events(1000)]
     path = write_foreign(tmp_path / "other_type.mcap", evs, types={rel: other_type})
-    for rec in (read_recording(path), mcap_io.read_file(path)[0]):
+    for rec in (read_recording(path), mcap_reader.read_file(path)[0]):
         assert np.array_equal(rec.ref, 1e6 + np.arange(1000))
-        lines = mcap_io.read_warnings(path, rec.metadata["read_report"], rec.metadata["pose_events"])
+        lines = mcap_records.read_warnings(path, rec.metadata["read_report"], rec.metadata["pose_events"])
         hits = [ln for ln in lines if f"/fbg/{rel}" in ln]
         assert len(hits) == 1 and str(path) in hits[0] and other_type in hits[0] and "ignored" in hits[0], lines
     stream = McapSampleStream(path)
@@ -475,13 +471,13 @@ def test_a_type_of_the_same_name_with_another_definition_is_one_line(tmp_path: P
     traceback from ``fbg-accel-calib``; now one line naming the file, the topic, the type and the field."""
     from fbg_accel_calibration.commands.cli import main
 
-    definition = mcap_io.message_definition(TYPES[rel])
+    definition = mcap_schemas.message_definition(TYPES[rel])
     assert old in definition
     path = write_foreign(tmp_path / "other_definition.mcap", driver_events(1000), defs={rel: definition.replace(old, new)})
     field = old.split()[1]
     pattern = rf"other_definition\.mcap: topic /fbg/{rel}'s schema {TYPES[rel]} lacks field \S*{field} \(a different definition\)"
     with pytest.raises(McapRecordingError, match=pattern):
-        mcap_io.read_file(path)
+        mcap_reader.read_file(path)
     with pytest.raises(McapRecordingError, match=pattern):
         list(McapSampleStream(path).blocks(256, False))
     assert main(["fit", str(path), "-o", str(tmp_path / "cal.yaml")]) == 2
@@ -496,10 +492,10 @@ def test_pose_events_follow_the_samples_when_the_recorder_clock_is_offset(tmp_pa
     3000 samples got another pose. Pose events now go on the samples' clock; a file whose log time is the stamp
     (the calibration node's) reads as before."""
     evs = driver_events(3000)
-    same, _ = mcap_io.read_file(write_foreign(tmp_path / "same_clock.mcap", evs))
+    same, _ = mcap_reader.read_file(write_foreign(tmp_path / "same_clock.mcap", evs))
     assert sorted(set(same.pose_id.tolist())) == [-1, 0, 1, 2, 3, 4] and np.sum(same.pose_id == -1) == 500
     offset = write_foreign(tmp_path / "recorder_ahead.mcap", evs, log_offset_ns=int(offset_s * 1e9))
-    rec, _ = mcap_io.read_file(offset)
+    rec, _ = mcap_reader.read_file(offset)
     assert np.array_equal(rec.pose_id, same.pose_id)
     assert np.array_equal(rec.gref_mps2, same.gref_mps2, equal_nan=True)
     stream = McapSampleStream(offset)
@@ -522,14 +518,15 @@ def test_stamps_going_backwards_are_named_in_a_warning(tmp_path: Path) -> None:
     stretches without a word. It still sorts, and now says where the stamps went back."""
     evs = driver_events(1000) + driver_events(1000, t0=T0 + 5_000_000_000)
     path = write_foreign(tmp_path / "restarted.mcap", evs)
-    rec, _ = mcap_io.read_file(path)
+    rec, _ = mcap_reader.read_file(path)
     assert len(rec) == 2000
-    lines = mcap_io.read_warnings(path, rec.metadata["read_report"], rec.metadata["pose_events"])
+    lines = mcap_records.read_warnings(path, rec.metadata["read_report"], rec.metadata["pose_events"])
     hits = [ln for ln in lines if "go back" in ln]
     assert len(hits) == 1 and str(path) in hits[0] and "sample 1000" in hits[0] and "go back 4.990 s" in hits[0], lines
     jitter = write_foreign(tmp_path / "jitter.mcap", driver_events(1000, shift={501: -10_500_000}))  # 0.5 ms back
-    rec, _ = mcap_io.read_file(jitter)
-    assert len(rec) == 1000 and not [ln for ln in mcap_io.read_warnings(jitter, rec.metadata["read_report"]) if "go back" in ln]
+    rec, _ = mcap_reader.read_file(jitter)
+    lines = mcap_records.read_warnings(jitter, rec.metadata["read_report"])
+    assert len(rec) == 1000 and not [ln for ln in lines if "go back" in ln]
 
 
 def test_an_mcap_file_the_bag_metadata_does_not_list_is_named(tmp_path: Path) -> None:
@@ -542,7 +539,7 @@ def test_an_mcap_file_the_bag_metadata_does_not_list_is_named(tmp_path: Path) ->
     _bag(bag, ["killed_0.mcap"])
     rec = read_recording(bag)
     assert len(rec) == 1000
-    lines = mcap_io.read_warnings(bag, rec.metadata["read_report"])
+    lines = mcap_records.read_warnings(bag, rec.metadata["read_report"])
     hits = [ln for ln in lines if "killed_1.mcap" in ln]
     assert len(hits) == 1 and "ros2 bag reindex" in hits[0] and "not listed" in hits[0], lines
 
@@ -574,7 +571,7 @@ def test_a_bag_that_lists_a_file_twice_reads_it_once_with_a_note(tmp_path: Path)
     _bag(bag, ["run_0.mcap", "run_1.mcap", "./run_0.mcap"])
     rec = read_recording(bag)
     assert len(rec) == 2000
-    lines = mcap_io.read_warnings(bag, rec.metadata["read_report"])
+    lines = mcap_records.read_warnings(bag, rec.metadata["read_report"])
     hits = [ln for ln in lines if "run_0.mcap" in ln]
     assert len(hits) == 1 and "twice" in hits[0] and "read once" in hits[0], lines
     assert not [ln for ln in lines if "go back" in ln], lines

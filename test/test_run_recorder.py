@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from ros2_mcap import frames_by_topic
 
-from fbg_accel_calibration.io import mcap_io
-from fbg_accel_calibration.io.mcap_io import RecordingWriter, read_file
+from fbg_accel_calibration.io import mcap_writer
+from fbg_accel_calibration.io.mcap_reader import read_file
+from fbg_accel_calibration.io.mcap_writer import RecordingWriter
 from fbg_accel_calibration.io.table_geometry import table_specific_force
 from fbg_accel_calibration.recorder.pose_plan import PosePlan
 from fbg_accel_calibration.recorder.pose_recorder import DetectorSettings, RawSample, RunRecorder, learning_shift
@@ -222,14 +223,14 @@ def test_disk_full_mid_run_aborts_with_a_warning_and_closes_without_raising(tmp_
     status 1, "fit failed") after the sequencer had counted the unwritten sample, and close() raised again.
     The run must end aborted with a warning naming the error and what is on disk; the completed pose reads."""
     limit = 20_000
-    orig = mcap_io._UnbufferedSink.write
+    orig = mcap_writer._UnbufferedSink.write
 
     def full(self, data):
         if self._pos + len(data) > limit:
             raise OSError(errno.ENOSPC, "No space left on device")
         return orig(self, data)
 
-    monkeypatch.setattr(mcap_io._UnbufferedSink, "write", full)
+    monkeypatch.setattr(mcap_writer._UnbufferedSink, "write", full)
     plan = _plan3()
     rec = _recorder(tmp_path, plan)
     stream = _stream([("hold", 400, (0, 0, 0)), ("move", 200, (0, 0, 0, 180)), ("hold", 300, (0, 180, 1)),

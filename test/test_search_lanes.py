@@ -19,7 +19,7 @@ from fbg_accel_calibration.diagnosis.diagnose import diagnose
 from fbg_accel_calibration.diagnosis.search import Evaluator
 from fbg_accel_calibration.diagnosis.search_lanes import Lanes, beside, idle_lanes
 from fbg_accel_calibration.fit.thermal_fit import NotIdentifiedError
-from fbg_accel_calibration.io.mcap_io import write_recording
+from fbg_accel_calibration.io.mcap_writer import write_recording
 from fbg_accel_calibration.reports.diagnose_report import markdown
 from fbg_accel_sim.board_physics import simulate_recording
 

@@ -275,7 +275,8 @@ def test_runs_whose_pose_ids_name_other_orientations_keep_the_noise_floor(tmp_pa
     from test_diagnose_sim import _config
 
     from fbg_accel_calibration.fit.fit_stream import prepare_stream
-    from fbg_accel_calibration.io.mcap_io import McapSampleStream, write_recording
+    from fbg_accel_calibration.io.mcap_reader import McapSampleStream
+    from fbg_accel_calibration.io.mcap_writer import write_recording
     from fbg_accel_sim.board_physics import simulate_recording
 
     a = simulate_recording(_config({}), seed=11)  # 60-degree grid

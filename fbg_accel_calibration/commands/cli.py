@@ -272,7 +272,8 @@ def cmd_dynamic(args: argparse.Namespace) -> int:
     from ..dynamic.excitation_plan import ExcitationPlan
     from ..io.dynamic_csv import read_dynamic_csv
     from ..io.input_files import check_input
-    from ..io.mcap_io import read_recording, read_warnings
+    from ..io.mcap_reader import read_recording
+    from ..io.mcap_records import read_warnings
 
     outputs = [o for o in (args.output, args.bode, args.json) if o is not None]
     check_outputs(outputs, [args.recording, args.plan, args.calibration], args.force)

@@ -123,7 +123,7 @@ class FitOptions:
     rate_hz: float | None = None  # CSV without a time column
     temperature_c: float | None = None  # CSV without a temperature column
     g_mps2: float = STANDARD_GRAVITY  # local gravity for a CSV's pose columns, m/s^2
-    namespace: str | None = None  # raw topic of MCAP inputs (mcap_io.TopicSelection)
+    namespace: str | None = None  # raw topic of MCAP inputs (mcap_format.TopicSelection)
     topic: str | None = None
     in_memory: bool = False
     progress: bool = False  # progress bars on stderr
@@ -140,7 +140,7 @@ class FitOutcome:
 
 def _source(path: Path, opt: FitOptions):
     from ..io.csv_import import CsvSampleSource
-    from ..io.mcap_io import McapSampleStream
+    from ..io.mcap_reader import McapSampleStream
 
     if path.suffix.lower() == ".csv" and path.is_file():
         return CsvSampleSource(path, rate_hz=opt.rate_hz, temperature_c=opt.temperature_c, g_mps2=opt.g_mps2)
@@ -152,7 +152,8 @@ def _warn(line: str) -> None:
 
 
 def _streamed(paths: list[Path], max_degree: int, opt: FitOptions):
-    from ..io.mcap_io import McapSampleStream, read_warnings
+    from ..io.mcap_reader import McapSampleStream
+    from ..io.mcap_records import read_warnings
     from ..io.source_progress import CountedSource
 
     sources = [CountedSource(_source(p, opt), f"fit {p.name}", opt.progress) for p in paths]
@@ -188,7 +189,7 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
     calibration. The damaged-file warnings and notes go to stderr.
     """
     from ..io.input_files import check_inputs, load_recording
-    from ..io.mcap_io import StreamOrderError
+    from ..io.mcap_reader import StreamOrderError
     from .noise_correlation import from_recording, within_visit_factor
 
     opt = options or FitOptions()

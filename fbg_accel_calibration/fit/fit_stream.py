@@ -2,7 +2,7 @@
 
 :func:`prepare_stream` selects the fit's samples (static detector), finds the temperature levels and scaling and
 accumulates the per-cell sums of eq. 28 and the sample counts, for runs served by a :class:`SampleBlockSource`
-(``mcap_io.McapSampleStream``, ``csv_import.CsvSampleSource``, or a ``Recording`` in memory: :func:`prepare`), in
+(``mcap_reader.McapSampleStream``, ``csv_import.CsvSampleSource``, or a ``Recording`` in memory: :func:`prepare`), in
 a few passes with memory independent of their length. ``thermal_fit.fit_thermal`` and
 ``model_selection.select_degree`` take the result (:class:`FitData`).
 """
@@ -43,7 +43,7 @@ from .thermal_fit import (
 
 
 class SampleBlockSource(Protocol):
-    """One run (one file) served block by block; see :class:`fbg_accel_calibration.io.mcap_io.McapSampleStream`."""
+    """One run (one file) served block by block; see :class:`fbg_accel_calibration.io.mcap_reader.McapSampleStream`."""
 
     def blocks(self, block_rows: int, with_poses: bool) -> Iterator[Recording]:
         """Consecutive blocks of ``block_rows`` samples (the last one shorter) of the run, in time order.

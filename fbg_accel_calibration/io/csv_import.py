@@ -476,7 +476,7 @@ def _pose(fields: list[str], col: dict[str, int]) -> float:
 
 def write_mcap(src: CsvBlocks, path: str | Path, metadata: dict[str, Any], sensor_id: str = "",
                drop_bad_rows: bool = False, start_ns: int | None = None) -> tuple[int, int, float | None]:
-    """Stream a CSV into a calibration MCAP at ``path`` (as :func:`mcap_io.write_recording` writes a
+    """Stream a CSV into a calibration MCAP at ``path`` (as :func:`mcap_writer.write_recording` writes a
     Recording: a pose event at every change of pose or of a recorded pose's reference, ``pose_events``).
     Stamps are the file's own ``t_s * 1e9`` ns, or with ``start_ns`` (``import --start-time``) ``start_ns``
     plus the time since the first row;
@@ -487,7 +487,7 @@ def write_mcap(src: CsvBlocks, path: str | Path, metadata: dict[str, Any], senso
     record (``metadata`` plus the import report) is written at the end. Returns (messages written, poses,
     the first row's ``t_s`` in s or None for an empty file).
     """
-    from .mcap_io import RecordingWriter, write_samples
+    from .mcap_writer import RecordingWriter, write_samples
 
     n_poses = max((int(blk.pose_id.max()) + 1 for blk in src.blocks() if len(blk)), default=0)
     src.check(drop_bad_rows, drop_option=True)

@@ -20,7 +20,7 @@ from .table_geometry import STANDARD_GRAVITY
 
 def check_mcap(path: Path) -> None:
     """Refuse a file that is not an MCAP (by its magic bytes) with a message saying what to give instead."""
-    from .mcap_io import MCAP_MAGIC  # the format's own module, imported here: a CSV input loads no MCAP reader
+    from .mcap_format import MCAP_MAGIC  # the format's own module, imported here: a CSV input loads no MCAP reader
 
     with open(path, "rb") as fh:
         head = fh.read(len(MCAP_MAGIC))
@@ -88,10 +88,11 @@ def load_recording(paths: list[Path] | list[str], *, rate: float | None = None, 
                    g: float | None = None, namespace: str | None = None, topic: str | None = None):
     """Recording from CSV and/or MCAP files and/or rosbag2 bag directories (one run per input); ``rate``,
     ``temperature`` and ``g`` (m/s^2, default standard gravity) complete a CSV, ``namespace``/``topic``
-    choose the raw topic of MCAP inputs (``mcap_io.TopicSelection``). Damaged-file warnings go to stderr."""
+    choose the raw topic of MCAP inputs (``mcap_format.TopicSelection``). Damaged-file warnings go to stderr."""
     from ..fit.thermal_fit import sensor_id_of
     from .csv_import import import_csv
-    from .mcap_io import read_recording, read_warnings
+    from .mcap_reader import read_recording
+    from .mcap_records import read_warnings
     from .recording import Recording
 
     check_inputs(paths)

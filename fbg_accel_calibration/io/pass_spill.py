@@ -2,7 +2,7 @@
 files (the page cache holds them while there is room), so that the memory of a streamed fit stays independent of the
 number of samples and a later pass need not compute them again.
 
-Pure Python + numpy. Used by ``mcap_io.McapSampleStream`` (the decoded ``imu/raw`` samples: each file is read once)
+Pure Python + numpy. Used by ``mcap_reader.McapSampleStream`` (the decoded ``imu/raw`` samples: each file is read once)
 and ``fit_stream.prepare_stream`` (each block's selection: the static detector runs once per block after the noise
 floor)."""
 

@@ -1,6 +1,6 @@
 """In-memory calibration recording: the arrays every fitting and diagnosis step works on.
 
-Pure numpy. Produced by the MCAP reader (``mcap_io``), the CSV importer and the simulator's
+Pure numpy. Produced by the MCAP reader (``mcap_reader``), the CSV importer and the simulator's
 batch API, so the fit and the diagnosis never care where the data came from.
 """
 

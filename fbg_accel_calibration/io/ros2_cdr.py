@@ -1,5 +1,5 @@
 """CDR encoding (XCDR1, little endian: the ROS 2 default) of the four message types a calibration
-recording holds, written by :class:`mcap_io.RecordingWriter`.
+recording holds, written by :class:`mcap_writer.RecordingWriter`.
 
 Pure Python. The layouts are those of the ROS 2 middleware (and of the ``mcap_ros2`` encoder,
 byte for byte: ``test_mcap_io`` compares each with messages written through ``mcap_ros2``'s public
@@ -80,7 +80,7 @@ def diagnostic_status(level: int, name: str, message: str, hardware_id: str,
 class FixedJointStateCodec:
     """``sensor_msgs/msg/JointState`` messages whose frame_id and name list are fixed and whose
     velocity/effort are empty -- the ``imu/raw`` layout: encoded by filling the stamp and positions into
-    precomputed bytes (``mcap_io`` reads runs of them as one numpy record array)."""
+    precomputed bytes (``mcap_records`` reads runs of them as one numpy record array)."""
 
     def __init__(self, frame_id: str, names: tuple[str, ...]) -> None:
         w = CdrWriter()

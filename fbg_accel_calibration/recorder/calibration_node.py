@@ -34,7 +34,7 @@ from sensor_msgs.msg import JointState, Temperature
 from std_srvs.srv import Trigger
 
 from fbg_accel_driver.command_line import StartupError, check_name_text
-from fbg_accel_driver.driver_core import RAW_AUX_NAME
+from fbg_accel_driver.driver_core import RAW_AUX_NAME, RAW_NAMES
 from fbg_accel_driver.node_support import (
     declare_parameters,
     init_ros,
@@ -47,7 +47,8 @@ from fbg_accel_driver.yaml_input import YamlFileError, read_yaml_file
 from ..dynamic.excitation_plan import FORMAT_NAME as EXCITATION_FORMAT
 from ..dynamic.excitation_plan import ExcitationPlan, ExcitationPlanError
 from ..io.atomic_output import OutputError, check_outputs
-from ..io.mcap_io import RAW_NAMES, TOPIC_RAW, TOPIC_TEMPERATURE, RecordingWriter, full_topic_name
+from ..io.mcap_format import TOPIC_RAW, TOPIC_TEMPERATURE, full_topic_name
+from ..io.mcap_writer import RecordingWriter
 from .calibration_parameters import (
     EXIT_FIT_FAILED,
     EXIT_INTERRUPTED,

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from ..dynamic.excitation_plan import ExcitationPlan
-from ..io.mcap_io import RecordingWriter
+from ..io.mcap_writer import RecordingWriter
 from .board_stream import BoardStream
 from .pose_recorder import GuardedRecording, RawSample, RunCounters
 from .pose_sequencer import SequencerEvent

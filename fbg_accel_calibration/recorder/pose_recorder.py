@@ -3,7 +3,7 @@
 The node hands every ``imu/raw`` message to :meth:`RunRecorder.on_raw` and every
 ``imu/temperature`` message to :meth:`RunRecorder.on_temperature`. The recorder
 
-1. writes each message to the run's MCAP at once (:class:`~fbg_accel_calibration.io.mcap_io.RecordingWriter`,
+1. writes each message to the run's MCAP at once (:class:`~fbg_accel_calibration.io.mcap_writer.RecordingWriter`,
    incremental, so a killed run leaves a readable file; the chunk is also ended after every pose);
 2. computes Psi = counts / reference (paper eq. 24) and feeds it to the static-interval detector
    (:class:`~fbg_accel_driver.stillness_monitor.StillnessMonitor`), whose verdict drives the
@@ -61,7 +61,7 @@ from fbg_accel_driver.stillness_monitor import (
 )
 
 from ..fit.static_detector import estimate_noise_var, moving_variance, quantisation_var
-from ..io.mcap_io import RecordingLostError, RecordingWriter
+from ..io.mcap_writer import RecordingLostError, RecordingWriter
 from .board_stream import BoardStream, StreamStep
 from .pose_plan import PosePlan
 from .pose_sequencer import Mode, Phase, PoseSequencer, SequencerEvent
