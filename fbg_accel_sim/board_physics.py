@@ -32,20 +32,21 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from fbg_accel_calibration.io.table_geometry import table_specific_force
-from fbg_accel_driver.adc_code_table import pattern_codes
-from fbg_accel_driver.frame_codec import BODY_LEN_BY_VERSION, SEQ_MODULO, Frame, Status, crc16, frame_size
+from fbg_accel_driver.frame_codec import BODY_LEN_BY_VERSION, Frame, crc16, frame_size
 
 from . import faults as fz
-from .noise import GaussMarkovBank, NoiseModel, first_order_filter
-from .optics import STANDARD_G, PairOverlap, grating_sigma_nm, relative_response, source_factor
-from .scenario import TemperatureProfile, build_slide, build_trajectory, second_order_response, vibration
+from .adc import CHANNELS, _AdcStages
+from .board_framing import _BoardFraming
+from .detector_tia import _TiaStages
+from .mechanics import _MechanicsStages
+from .noise import GaussMarkovBank, NoiseModel
+from .optical_signal import _OpticalStages
+from .optics import STANDARD_G, PairOverlap, grating_sigma_nm, source_factor
+from .scenario import TemperatureProfile, build_slide, build_trajectory, second_order_response
 from .sim_config import SimConfig
+from .temperatures import _TemperatureStages
 
 CHUNK = 2048  # samples per generation chunk (fixed: determinism does not depend on step sizes)
-# firmware/core/fbg_scheduler.h FBG_SCHED_MAX_CATCH_UP: more reads due than this are skipped, not caught up
-FIRMWARE_MAX_CATCH_UP = 4
-CHANNELS = ("ref", "x", "y", "z")
 _COUNT_COLUMNS: dict[str, int | slice] = {**{c: j for j, c in enumerate(CHANNELS)}, "xyz": slice(1, None)}
 _STREAM_NOISE, _STREAM_SOURCE, _STREAM_AHT, _STREAM_WIRE, _STREAM_REFNOISE, _STREAM_AUX = 1, 2, 3, 4, 5, 6
 
@@ -60,102 +61,6 @@ def _rot(axis: int, deg: float) -> np.ndarray:
     if axis == 1:
         m[i, j], m[j, i] = s, -s
     return m
-
-
-def _first_order(x: np.ndarray, alpha: float, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """y[k] = alpha y[k-1] + (1 - alpha) x[k] along axis 0 (columns independent); returns (y, new state)."""
-    if alpha <= 0.0:
-        return x.copy(), np.atleast_1d(x[-1]).copy()
-    y = first_order_filter(x, alpha, -math.expm1(math.log(alpha)), np.asarray(state, float).reshape(x.shape[1:]))
-    return y, np.atleast_1d(y[-1]).copy()
-
-
-def _lowpass(x: np.ndarray, tau_s: float, dt_s: float, y_prev: float, x_prev: float,
-             linear: bool) -> tuple[np.ndarray, float, float]:
-    """First-order low-pass 1/(1 + s tau) of a 1-D sampled signal; returns (y, last y, last x).
-
-    ``linear``: exact response to an input linear between samples (first-order hold, no phase error);
-    else the input is held over each interval (y[k] = a y[k-1] + (1 - a) x[k]). ``tau_s`` 0: y = x.
-    """
-    x = np.asarray(x, float)
-    if tau_s <= 0.0:
-        return x.copy(), float(x[-1]), float(x[-1])
-    a = math.exp(-dt_s / tau_s)
-    if linear:
-        r = tau_s / dt_s * -math.expm1(-dt_s / tau_s)  # tau/dt (1 - a)
-        prev = np.concatenate([[x_prev], x[:-1]])
-        v = (1.0 - r) * x + (r - a) * prev
-        y = first_order_filter(v, a, 1.0, y_prev)
-    else:
-        y = first_order_filter(x, a, -math.expm1(-dt_s / tau_s), y_prev)
-    return y, float(y[-1]), float(x[-1])
-
-
-def _play_branch(x: np.ndarray, width: float, p: float) -> tuple[np.ndarray, float]:
-    """Branch (x - play(x)) / width in [-1/2, 1/2] of a play operator (backlash of ``width``, in the unit of ``x``) that
-    starts at ``p``, and its last output: +1/2 after a rise of ``x`` by more than the width, -1/2 after a fall, in
-    between on a reversal smaller than the width. Zeros when ``width`` is 0."""
-    u_play = np.empty(x.shape[0])
-    half = 0.5 * width
-    for i, v in enumerate(x.tolist()):
-        if v - p > half:
-            p = v - half
-        elif p - v > half:
-            p = v + half
-        u_play[i] = p
-    return ((x - u_play) / width if width > 0 else np.zeros(x.shape[0])), p
-
-
-class _TableMotion(NamedTuple):
-    """Table stage of a chunk: readings at t, and what the seismic mass feels (arrays over the samples)."""
-
-    psi_deg: np.ndarray  # table angle readings at t (deg)
-    theta_deg: np.ndarray
-    pose_id: np.ndarray
-    in_motion: np.ndarray
-    visit: np.ndarray
-    time_at_pose_s: np.ndarray
-    gref_mps2: np.ndarray  # (N, 3) table reference specific force at the reading (m/s^2)
-    accel_true_mps2: np.ndarray  # (N, 3) true specific force at t, sensor frame (m/s^2)
-    felt_mps2: np.ndarray  # (N, 3) felt by the mass: at t - delay, dynamic parts through the resonance (m/s^2)
-    psi_felt_deg: np.ndarray  # inner angle at t - delay (deg): drives the cable torque
-
-
-class _Slide(NamedTuple):
-    """True linear-slide motion along its direction (arrays over the samples; segment -1 = at rest or no slide)."""
-
-    displacement_m: np.ndarray
-    velocity_mps: np.ndarray
-    accel_mps2: np.ndarray
-    segment: np.ndarray
-
-
-class _Temperatures(NamedTuple):
-    """Chamber, optics and AHT10 die temperatures (degC) and the optics' offset from the reference temperature."""
-
-    chamber_c: np.ndarray
-    optics_c: np.ndarray
-    sensor_c: np.ndarray
-    delta_ref_c: np.ndarray  # optics - thermal.reference_temperature_c
-
-
-class _TemperatureWord(NamedTuple):
-    """Temperature field of the frames: temp_cc (0.01 degC) and the TEMP_PRESENT / TEMP_VALID flags."""
-
-    temp_cc: np.ndarray
-    present: np.ndarray
-    valid: np.ndarray
-
-
-class _Framing(NamedTuple):
-    """Board side of the frames: board clock (s, us), sequence, status bits, sent flag, first sample after a reset."""
-
-    board_t_s: np.ndarray
-    t_us: np.ndarray
-    seq: np.ndarray
-    status: np.ndarray
-    sent: np.ndarray
-    reset_start: np.ndarray
 
 
 class _WireFaults(NamedTuple):
@@ -230,8 +135,12 @@ class SimBlock:
         return out
 
 
-class BoardSimulator:
-    """Streaming simulator of the board: ``step(n) -> SimBlock`` (deterministic for a seed)."""
+class BoardSimulator(_MechanicsStages, _TemperatureStages, _OpticalStages, _TiaStages, _AdcStages, _BoardFraming):
+    """Streaming simulator of the board: ``step(n) -> SimBlock`` (deterministic for a seed).
+
+    The stages of the signal chain are methods of the classes it is made of, one module per job: ``mechanics``,
+    ``temperatures``, ``optical_signal``, ``detector_tia``, ``adc``, ``board_framing``; here the set-up, the public
+    API, the generation of a chunk through those stages in order, the wire bytes and the counters."""
 
     def __init__(self, cfg: SimConfig | None = None, seed: int = 0, wire: bool = True) -> None:
         """``wire=False`` skips building the byte stream (faster batch runs; ``expected_bytes_discarded``
@@ -303,15 +212,6 @@ class BoardSimulator:
         self.ldv_hp_tau = 1.0 / (2.0 * math.pi * float(hp)) if hp else 0.0
         self._aux_lp: tuple[float, float] | None = None  # LDV AC-coupling state: (low-pass y, last input)
         self._tia_xprev: np.ndarray | None = None  # last TIA input per channel (linear discretisation)
-
-    def _sensed_force(self, tt: np.ndarray) -> np.ndarray:
-        """Specific force (N, 3) m/s^2, sensor frame, that the seismic mass feels at times ``tt`` (s): table
-        gravity + vibration + slide, dynamic parts through the mechanical resonance."""
-        psi, theta, *_ = self.trajectory.evaluate(tt)
-        f = table_specific_force(psi, theta, self.gravity) @ self.R_mount.T + vibration(tt, self.sines, self.resonance)
-        if self.slide is not None:
-            f = f + self.slide.kinematics(tt, self.resonance)[2][:, None] * self.slide.direction[None, :]
-        return f
 
     def _setup_optics(self) -> None:
         c = self.cfg
@@ -388,60 +288,6 @@ class BoardSimulator:
         self.temp_absent_from_boot = bool(f["temperature_absent"].get("from_boot", False))
         self.reading_faults = f["temperature_reading"]
         self._setup_late_reads(f["late_reads"])
-
-    def _setup_late_reads(self, spec: dict[str, Any]) -> None:
-        """``faults.late_reads``: the sampler misses a deadline and the firmware catches up, as
-        firmware/core/fbg_scheduler.c ``fbg_sched_take`` with firmware/host/fbg_board_host.c ``--late``: the read at
-        each ``at_s`` is taken ``late_s`` late; each following read starts when it is due or when the previous read is
-        done (``read_s`` later), whichever is later, until one is on time again. A read taken at or after the next
-        read's due time carries ADC_OVERRUN. Nothing is lost (``late_s`` must stay below FBG_SCHED_MAX_CATCH_UP
-        periods: the firmware's skip-ahead is not modelled). Stored per sample index: how late (board s) it is read."""
-        period = 1.0 / self.rate_hz
-        late_s, read_s = float(spec.get("late_s", 0.0)), float(spec.get("read_s", 4e-5))
-        at = sorted(float(t) for t in (spec.get("at_s") or []))
-        offsets: dict[int, float] = {}
-        overrun: set[int] = set()
-        if at and not (0.0 < late_s < FIRMWARE_MAX_CATCH_UP * period and 0.0 < read_s < period):
-            raise ValueError(f"faults.late_reads: late_s must be in (0, {FIRMWARE_MAX_CATCH_UP} periods) and read_s in "
-                             f"(0, 1 period), got {late_s!r}, {read_s!r}")
-        for t in at:
-            k, off = math.ceil(t * self.rate_true_hz - 1e-9), late_s
-            while off > 0.0:  # late by off: read at k P + off; the next read starts read_s after it, if it is due
-                offsets[k] = max(off, offsets.get(k, 0.0))  # two events on one read: the later one
-                if off >= period:
-                    overrun.add(k)
-                off += read_s - period
-                k += 1
-        self._late_k = np.array(sorted(offsets), dtype=np.int64)
-        self._late_off_s = np.array([offsets[k] for k in self._late_k.tolist()], dtype=float)
-        self._overrun_k = np.array(sorted(overrun), dtype=np.int64)
-
-    def _late_offsets(self, k: np.ndarray) -> np.ndarray:
-        """How late (board s) each sample ``k`` (consecutive indices) is read (faults.late_reads; 0 on time)."""
-        off = np.zeros(k.shape[0])
-        if self._late_k.size:
-            sel = (self._late_k >= k[0]) & (self._late_k <= k[-1])
-            off[self._late_k[sel] - k[0]] = self._late_off_s[sel]
-        return off
-
-    def _first_sent_k(self, start: int, end: int) -> int:
-        """First sample index in [start, end) outside every disconnect window, or -1."""
-        k, moved = start, True
-        while moved:
-            moved = False
-            for a0, b0 in self._disc_k:
-                if a0 <= k < b0:
-                    k, moved = b0, True
-        return k if k < end else -1
-
-    def _unsent(self, k: np.ndarray | int) -> np.ndarray:
-        """Whether the board never sends sample(s) ``k``: in the boot gap after a reset, or in a disconnect window."""
-        out = np.zeros(np.shape(k), bool)
-        for r in self.reset_k:
-            out |= (k >= r) & (k < r + self.gap_n)
-        for a0, b0 in self._disc_k:
-            out |= (k >= a0) & (k < b0)
-        return out
 
     def _setup_state(self) -> None:
         c = self.cfg
@@ -563,10 +409,6 @@ class BoardSimulator:
         """Samples at ``t`` (s) inside the fault window ``{start_s, duration_s}`` (start included, end excluded)."""
         return (t >= float(wdw["start_s"])) & (t < float(wdw["start_s"]) + float(wdw["duration_s"]))
 
-    def _codes(self, x: np.ndarray) -> np.ndarray:
-        """ADC codes (int64, 0..adc_max) of counts ``x`` before the integer conversion."""
-        return np.clip(np.round(x), 0, self.adc_max).astype(np.int64)
-
     def _generate(self, ci: int) -> _Chunk:
         """Chunk ``ci`` through the signal chain of the module docstring, one stage per physical effect. Each random
         stream ``(seed, chunk, stream)`` feeds a single stage, which draws from it in a fixed order."""
@@ -612,365 +454,7 @@ class BoardSimulator:
         }
         return _Chunk(arrays, wire)
 
-    # ------------------------------------------------------------------ stages of the signal chain
-    def _table_motion(self, t: np.ndarray, delay: float) -> _TableMotion:
-        """Table angle readings at ``t`` (s, deg) and the specific force (m/s^2, sensor frame) the seismic mass feels
-        ``delay`` s later (channel_delay effect, ASSUMPTION): gravity through the table geometry and the mount rotation
-        plus the vibration sines, whose dynamic part goes through the mechanical resonance (paper 3.4, facts)."""
-        psi, theta, pose_id, moving, visit = self.trajectory.evaluate(t)
-        arrival = self.trajectory.arrival_time(t)
-        gref = table_specific_force(psi, theta, self.gravity)
-        vib_true = vibration(t, self.sines)
-        if delay != 0.0:
-            psi_d, theta_d, *_ = self.trajectory.evaluate(t - delay)
-            f_phys_table = table_specific_force(psi_d, theta_d, self.gravity)
-        else:
-            psi_d, f_phys_table = psi, gref
-        vib_phys = vibration(t - delay, self.sines, self.resonance) if delay != 0.0 or self.resonance else vib_true
-        accel_true = gref @ self.R_mount.T + vib_true
-        f_phys = f_phys_table @ self.R_mount.T + vib_phys
-        return _TableMotion(psi, theta, pose_id, moving, visit, arrival, gref, accel_true, f_phys, psi_d)
-
-    def _linear_slide(self, t: np.ndarray, delay: float, table: _TableMotion) -> tuple[_Slide, _TableMotion]:
-        """Linear slide of a dynamic calibration (seed 2, section 2): its true motion at ``t`` along the slide direction
-        (m, m/s, m/s^2; truth and reference transducer) and ``table`` with the slide's acceleration added, true at ``t``
-        and felt at ``t - delay`` through the resonance (m/s^2). Without a slide: zeros, segment -1, ``table`` as is."""
-        if self.slide is None:
-            zero = np.zeros(t.shape[0])
-            return _Slide(zero, zero, zero, np.full(t.shape[0], -1, dtype=np.int64)), table
-        sl_x, sl_v, sl_a = self.slide.kinematics(t)
-        accel_true = table.accel_true_mps2 + sl_a[:, None] * self.slide.direction[None, :]
-        felt = table.felt_mps2 + self.slide.kinematics(t - delay, self.resonance)[2][:, None] * self.slide.direction[None, :]
-        return (_Slide(sl_x, sl_v, sl_a, self.slide.segment_index(t)),
-                table._replace(accel_true_mps2=accel_true, felt_mps2=felt))
-
-    def _temperatures(self, t: np.ndarray) -> _Temperatures:
-        """Chamber profile -> optics (first-order thermal inertia, paper 4.4: tau ~ 5000 s) -> AHT10 die (thermal_lag
-        effect, paper 3.5; tau ASSUMPTION), degC at ``t`` (s); ``delta_ref_c`` = optics - reference temperature (paper 4.3).
-        The optics and die filter states carry from chunk to chunk on the object."""
-        c = self.cfg
-        T_ch = self.chamber(t)
-        a_opt = math.exp(-self.dt_true / float(c.get("thermal.optics_time_constant_s")))
-        housing, self._T_housing = _first_order(T_ch, a_opt, self._T_housing)
-        thermal_lag = c.get("effects.thermal_lag")
-        lag = float(thermal_lag["scale"]) * float(thermal_lag["time_constant_s"])
-        a_lag = math.exp(-self.dt_true / lag) if lag > 0 else 0.0
-        inner, self._T_inner = _first_order(housing, a_lag, self._T_inner)
-        # the AHT10 die lags the optics (it sits on the PCB behind them), or with reading_leads the optics lag the die
-        # (the die nearer the chamber air than the optics bonded inside the housing)
-        T_opt, T_sen = (inner, housing) if thermal_lag.get("reading_leads", False) else (housing, inner)
-        return _Temperatures(T_ch, T_opt, T_sen, T_opt - self.T_ref)
-
-    def _axis_biases(self, t: np.ndarray, T_opt: np.ndarray, psi_felt_deg: np.ndarray, felt: np.ndarray) -> np.ndarray:
-        """Equivalent acceleration biases (N, 3) on the axis inputs, m/s^2: time drift (warm-up and creep of the pair
-        separation: bond relaxation, not characterised in the paper), thermal hysteresis (bond/mount stress; play
-        operator on the optics temperature ``T_opt``, degC), a step of the bias at one time (``bias_step``: the calibration
-        stops holding, what the driver's gravity check must see) and the unmodelled cable torque ~ sin(harmonic psi) (fibre
-        pigtail drag at the felt inner angle ``psi_felt_deg``) and a motion-history hysteresis (each axis' branch set by the
-        sign of the last change of the specific force it feels, ``felt`` (N, 3) m/s^2); amplitudes ASSUMPTION
-        (config/sim_default.yaml)."""
-        eff = self.cfg.get("effects")
-        bias = np.zeros((t.shape[0], 3))
-        td = eff["time_drift"]
-        if float(td["scale"]) != 0.0:
-            w = np.asarray(td["warmup_amplitude_mps2"], float) * -np.expm1(-t / float(td["warmup_time_constant_s"]))[:, None]
-            bias += float(td["scale"]) * (w + np.asarray(td["creep_mps2_per_h"], float) * (t / 3600.0)[:, None])
-        hy = eff["thermal_hysteresis"]
-        if float(hy["scale"]) != 0.0:
-            branch = self._hysteresis_branch(T_opt, float(hy["play_width_c"]))
-            bias += float(hy["scale"]) * branch[:, None] * np.asarray(hy["amplitude_mps2"], float)
-        bs = eff["bias_step"]
-        if float(bs["scale"]) != 0.0:  # the response steps once after calibration (a knock, a mount shift; ASSUMPTION)
-            bias += float(bs["scale"]) * (t >= float(bs["at_s"]))[:, None] * np.asarray(bs["amplitude_mps2"], float)
-        ct = eff["unmodelled_cable_torque"]
-        if float(ct["scale"]) != 0.0:
-            ang = np.radians(float(ct["harmonic"]) * psi_felt_deg + float(ct["phase_deg"]))
-            bias += float(ct["scale"]) * np.sin(ang)[:, None] * np.asarray(ct["amplitude_mps2"], float)
-        mh = eff["motion_hysteresis"]
-        if float(mh["scale"]) != 0.0:  # friction in the suspension and bonds (ASSUMPTION): the force's last change
-            branch = self._motion_branches(felt, float(mh["play_width_mps2"]))
-            bias += float(mh["scale"]) * branch * np.asarray(mh["amplitude_mps2"], float)
-        return bias
-
-    def _hysteresis_branch(self, T_opt: np.ndarray, width: float) -> np.ndarray:
-        """Thermal hysteresis branch in [-1/2, 1/2] (``_play_branch`` of the optics temperature, ``width`` degC), the
-        play operator's output kept in ``self._play`` from chunk to chunk."""
-        branch, self._play = _play_branch(T_opt, width, self._play)
-        return branch
-
-    def _motion_branches(self, felt: np.ndarray, width: float) -> np.ndarray:
-        """Motion-history branch (N, 3) in [-1/2, 1/2] of each axis: ``_play_branch`` of the specific force the axis
-        feels (``felt``, m/s^2, sensor frame; ``width`` m/s^2), so it is set by the sign of the force's last change
-        larger than the width; the play operators' outputs carry from chunk to chunk."""
-        if self._force_play is None:
-            self._force_play = np.array(felt[0], dtype=float)
-        out = np.empty_like(felt)
-        for j in range(3):
-            out[:, j], self._force_play[j] = _play_branch(felt[:, j], width, float(self._force_play[j]))
-        return out
-
-    def _axis_inputs(self, t: np.ndarray, delay: float, felt: np.ndarray, bias: np.ndarray) -> np.ndarray:
-        """Axis inputs u = A f + bias (N, 3), m/s^2, with A the cross-axis coupling derived from the published
-        calibration matrix (paper eq. 31a). With a channel skew (board.adc_channel_skew_us), the ESP32 one-shot
-        sequential conversion (ESP-IDF adc_oneshot_read) makes each axis see its own, later instant."""
-        u = felt @ self.A.T + bias
-        if self.skew_s > 0.0 or np.any(self.channel_extra_delay_s):
-            # ESP32 one-shot sequential conversion: axis channel j (x, y, z = 1, 2, 3 after ref) is converted
-            # j skews after t_us, so it sees the input of that later instant (an LTI chain commutes with the shift);
-            # an axis channel's own extra delay (axis_channel_extra_s) moves it the other way
-            for j in range(3):
-                u[:, j] = self._sensed_force(self._channel_time(t, delay, j)) @ self.A[j] + bias[:, j]
-        return u
-
-    def _channel_time(self, t: np.ndarray, delay: float, j: int) -> np.ndarray:
-        """The instant (s) axis channel ``j`` (0..2: x, y, z) senses at sample time ``t``: the common channel delay,
-        the channel's own extra delay and its ADC conversion skew."""
-        return t - delay - float(self.channel_extra_delay_s[j]) + (j + 1) * self.skew_s
-
-    def _optical_response(self, u: np.ndarray, dT: np.ndarray) -> np.ndarray:
-        """Relative optical response (N, 3) of the axis pairs to the inputs ``u`` (m/s^2): pair separation
-        d = d0 - S u (nm; S = 112 pm/g, paper eq. 21) + thermal mismatch (fbg_pair_thermal_mismatch, paper 4.4; ``dT``
-        degC) through the super-Gaussian spectral overlap (paper eq. 13, 22; spectral_nonlinearity 0 = linearised)."""
-        eff = self.cfg.get("effects")
-        mm = eff["fbg_pair_thermal_mismatch"]
-        d_extra = float(mm["scale"]) * dT[:, None] * np.asarray(mm["pm_per_c"], float)[None, :] * 1e-3
-        return relative_response(u, self.d0, self.S, self.pair, float(eff["spectral_nonlinearity"]["scale"]), d_extra,
-                                 self.rest_log_slope)
-
-    def _source_and_gains(self, t: np.ndarray, dT: np.ndarray, resp: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Optical signal (N, 4) in ADC counts before the TIA: rest counts x SLD power (tempco, paper 3.3, 3.6.2;
-        slow wander drawn from ``rng``, the chunk's source stream; source_dropout windows) x chain gains (coupler and
-        photodetector tempcos, SLD wavelength drift relative to the gratings: paper 3.6.2, 4.5; a connector's loss step,
-        ASSUMPTION) x the axes' ``resp``."""
-        eff = self.cfg.get("effects")
-        n = t.shape[0]
-        sp = eff["source_power_thermal"]
-        p_src = 1.0 + float(sp["scale"]) * float(sp["tempco_per_c"]) * dT
-        wander = self._wander_bank.step(rng, n)[:, 0] * float(eff["source_power_wander"]["scale"])
-        p_src = p_src * (1.0 + wander)
-        for wdw in self.windows["source_dropout"]:
-            p_src = np.where(self._inside(t, wdw), p_src * float(wdw.get("level", 0.0)), p_src)
-        gain = np.ones((n, 4))
-        for name in ("coupler_thermal", "photodetector_thermal"):
-            e = eff[name]
-            gain *= 1.0 + float(e["scale"]) * dT[:, None] * np.asarray(e["tempco_per_c"], float)[None, :]
-        cs = eff["connector_loss_step"]
-        if float(cs["scale"]) != 0.0:  # a channel's loss steps once (connector knocked or re-mated; ASSUMPTION)
-            after = (t >= float(cs["at_s"]))[:, None]
-            loss = 10.0 ** (-0.1 * float(cs["scale"]) * np.asarray(cs["loss_db"], float))[None, :]
-            gain *= np.where(after, loss, 1.0)
-        sw = eff["source_wavelength_drift"]
-        shift = float(sw["scale"]) * float(sw["drift_nm_per_c"]) * dT - self.fbg_thermal_nm * dT  # source minus gratings
-        off = (self.pair_center - self.source_center)[None, :] - shift[:, None]
-        gain[:, 1:] *= source_factor(off, self.sigma_g, self.sigma_s) / self.src0
-        signal = self.rest_counts[None, :] * p_src[:, None] * gain
-        signal[:, 1:] *= resp
-        return signal
-
-    def _tia_vibration_correction(self, t: np.ndarray, delay: float, u: np.ndarray, dT: np.ndarray,
-                                  base: np.ndarray) -> np.ndarray:
-        """What the analogue TIA does to the vibration sines beyond what its discrete form on the samples does (N, 3),
-        axis-channel counts. The TIA (paper 3.5, Table 1) low-passes the photocurrent before the ADC samples it, so a
-        sine above the Nyquist frequency reaches the counts at |H(f)| = 1/|1 + i 2 pi f tau| of its amplitude; filtering
-        the samples instead aliases it first and passes it at the alias's gain (a 100.3 Hz vibration at 100 Hz came
-        through like a 0.3 Hz one, 59x too strong on x). Per sine and axis channel j, in the small-signal response
-        (``base`` (N, 3) x d resp / d u_j: counts per m/s^2 of axis input, the optics linearised at the sample's
-        operating point ``u`` (N, 3), ``dT``): slope x Im((H_c - H_d) P e^(i w t)), H_c the analogue response, H_d the
-        discrete filter's (``electronics.filter_discretisation``) to the sampled sine, P the sine's axis-input phasor
-        (sensor frame, resonance, cross-axis coupling A, felt at t - delay like ``_axis_inputs``). Exact for the linear part;
-        the optics' rectification (its mean) and harmonics stay as evaluated at the samples."""
-        out = np.zeros((t.shape[0], 3))
-        eps = 1e-3  # m/s^2: the response is smooth on this scale (pair separation changes by 1e-5 nm)
-        slope = base * (self._optical_response(u + eps, dT) - self._optical_response(u - eps, dT)) / (2.0 * eps)
-        tia_scale = self.cfg.scale("tia_lowpass")
-        dt = self.dt_true
-        for sine in self.sines:
-            f = float(sine["freq_hz"])
-            w = 2.0 * math.pi * f
-            h_res = complex(self.resonance(f)) if self.resonance else 1.0
-            amp = np.asarray(sine.get("amplitude_mps2", [0.0, 0.0, 0.0]), float).reshape(3)
-            phasor = self.A @ (amp * h_res * np.exp(1j * math.radians(float(sine.get("phase_deg", 0.0)))))  # sensor frame
-            zinv = np.exp(-1j * w * dt)
-            for j in range(3):
-                tau = tia_scale * self.tia_tau[j + 1]
-                if tau <= 0.0:
-                    continue
-                a = math.exp(-dt / tau)
-                if self.linear_filters:
-                    r = tau / dt * -math.expm1(-dt / tau)
-                    h_d = ((1.0 - r) + (r - a) * zinv) / (1.0 - a * zinv)
-                else:
-                    h_d = (1.0 - a) / (1.0 - a * zinv)
-                h_c = 1.0 / (1.0 + 1j * w * tau)
-                t_j = self._channel_time(t, delay, j)
-                out[:, j] = slope[:, j] * np.imag((h_c - h_d) * phasor[j] * np.exp(1j * w * t_j))
-        return out
-
-    def _tia_lowpass(self, signal: np.ndarray) -> np.ndarray:
-        """TIA first-order low-pass (N, 4) per channel, counts in and out (paper 3.5, Table 1; cut-offs in
-        electronics.tia_cutoff_hz, time constants scaled by the tia_lowpass effect). Filter states stay on the object."""
-        tia_scale = self.cfg.scale("tia_lowpass")
-        if self._tia_state is None:
-            self._tia_state, self._tia_xprev = signal[0].copy(), signal[0].copy()
-        filtered = np.empty_like(signal)
-        for j in range(4):
-            tau = tia_scale * self.tia_tau[j]
-            if self.linear_filters:  # exact for an input linear between samples (dynamic runs)
-                filtered[:, j], self._tia_state[j], self._tia_xprev[j] = _lowpass(
-                    signal[:, j], tau, self.dt_true, float(self._tia_state[j]), float(self._tia_xprev[j]), linear=True)
-            else:
-                alpha = math.exp(-self.dt_true / tau) if tau > 0 else 0.0
-                filtered[:, j], st = _first_order(signal[:, j], alpha, self._tia_state[j:j + 1])
-                self._tia_state[j] = st[0]
-        return filtered
-
-    def _output_noise(self, filtered: np.ndarray, rng_noise: np.random.Generator,
-                      rng_ref: np.random.Generator) -> np.ndarray:
-        """``filtered`` (N, 4 counts) with noise added in place: the axes' white (VRW) and bias-instability noise of paper
-        Table 2, defined on the calibrated output (m/s^2) and injected through the small-signal slope (``rng_noise``:
-        white, then bias instability), and the reference channel's ADC read noise (counts rms; ``rng_ref``)."""
-        n = filtered.shape[0]
-        n_a = self.white_scale * self._white_bank.step(rng_noise, n)
-        bi = self._bi_bank.step(rng_noise, n).reshape(n, 3, -1).sum(axis=2)
-        n_a = n_a + self.bi_scale * bi
-        filtered[:, 1:] += (n_a @ self.A.T) * self.counts_per_mps2[None, :]
-        if self.ref_noise > 0:
-            filtered[:, 0] += rng_ref.standard_normal(n) * self.ref_noise
-        return filtered
-
-    def _adc(self, filtered: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Dark offsets (detector dark current + ESP32 ADC zero offset, counts; ASSUMPTION) and the ESP32 12-bit ADC
-        (paper 3.5): adc_saturation windows force full scale, clip to 0..adc_max, round when adc_quantisation is on.
-        Returns (counts before the integer conversion, codes), both (N, 4)."""
-        do = self.cfg.get("effects.reference_dark_offset")
-        counts_f = filtered + float(do["scale"]) * np.asarray(do["counts"], float)[None, :]
-        for wdw in self.windows["adc_saturation"]:
-            inside = self._inside(t, wdw)
-            for chn in wdw.get("channels", ["x"]):
-                counts_f[inside, CHANNELS.index(chn)] = float(self.adc_max)
-        counts_f = self._wide_codes(self._code_widths(counts_f))
-        return counts_f, self._codes(counts_f)
-
-    def _code_widths(self, x: np.ndarray) -> np.ndarray:
-        """``_adc_input`` of the four channels, with the codes' unequal widths when ``effects.adc_code_widths`` is on
-        (and adc_quantisation): the ESP32's SAR ADC has differential non-linearity (Espressif, ESP32 datasheet, "ADC
-        characteristics": DNL up to +-7 LSB, INL up to +-12 LSB); the measured series reads codes 16k 1.5-2.4x and
-        16k + 8 3-6x less often than an even spread on every axis channel, a pattern periodic in the code
-        (``fbg_accel_driver.adc_code_table.pattern_codes``). The widths are 1 + scale (w - 1) for the configured
-        ``widths`` w (one period, summing to the period); one converter is multiplexed over the channels."""
-        cw = self.cfg.get("effects.adc_code_widths")
-        scale = float(cw["scale"])
-        if scale == 0.0 or self.cfg.scale("adc_quantisation") == 0.0:
-            return self._adc_input(x)
-        w = 1.0 + scale * (np.asarray(cw["widths"], float) - 1.0)
-        return pattern_codes(np.clip(x, 0.0, float(self.adc_max)), w, self.adc_max)
-
-    def _adc_input(self, x: np.ndarray) -> np.ndarray:
-        """Counts ``x`` clipped to the ADC range 0..adc_max and rounded when adc_quantisation is on."""
-        x = np.clip(x, 0.0, float(self.adc_max))
-        return np.round(x) if self.cfg.scale("adc_quantisation") != 0.0 else x
-
-    def _wide_codes(self, counts_f: np.ndarray) -> np.ndarray:
-        """Wide codes of the ESP32's SAR ADC (differential non-linearity; one value read over a range of input voltages:
-        esp32.com forum, "Strange ADC Measurements", viewtopic.php?t=18674; the measured series reads y = 1535 through
-        five whole visits while the codes 1536-1543 never occur). Each ``[code, width]`` of ``effects.adc_wide_codes``
-        reads every input from code - 0.5 to code + width - 0.5 counts as ``code`` (the next width - 1 codes are
-        missing), on every channel: one converter is multiplexed over them. Off unless the scale is non-zero."""
-        wide = self.cfg.get("effects.adc_wide_codes")
-        if float(wide["scale"]) == 0.0 or not wide["codes"]:
-            return counts_f
-        out = counts_f.copy()
-        for code, width in wide["codes"]:
-            out[(counts_f >= code - 0.5) & (counts_f < code + width - 0.5)] = float(code)
-        return out
-
-    def _aht10_reading(self, t: np.ndarray, T_sen: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """AHT10 reading (degC) of the die temperature ``T_sen``: sample-and-hold at aht10.read_rate_hz (ASSUMPTION),
-        per-device offset (accuracy +-0.3 degC, paper 3.5) + noise (AHT10 datasheet repeatability; drawn from ``rng``)
-        and 0.01 degC resolution (paper 3.5, AHT10 datasheet) when aht10_error is on. The hold stays on the object."""
-        aht = self.cfg.get("aht10")
-        ae = self.cfg.scale("aht10_error")
-        n = t.shape[0]
-        r_idx = np.floor(t * float(aht["read_rate_hz"])).astype(np.int64)
-        noise_aht = rng.standard_normal(n) * float(aht["noise_c"]) * ae
-        raw = T_sen + ae * self.aht_offset + noise_aht
-        prev_idx = np.concatenate([[self._aht_last[0]], r_idx[:-1]])
-        change = r_idx != prev_idx
-        pos = np.where(change, np.arange(n), -1)
-        held_pos = np.maximum.accumulate(pos)
-        reading = np.where(held_pos >= 0, raw[np.maximum(held_pos, 0)], self._aht_last[1])
-        self._aht_last = (int(r_idx[-1]), float(reading[-1]))
-        if ae > 0:
-            res = float(aht["resolution_c"])
-            reading = np.round(reading / res) * res
-        return reading
-
-    def _reading_faults(self, t: np.ndarray, reading: np.ndarray) -> np.ndarray:
-        """The AHT10 reading (degC) as the firmware delivers it, with the unflagged faults of
-        ``faults.temperature_reading`` (config/sim_default.yaml cites each): a step from ``at_s`` on (sensor re-seated),
-        one read off by ``size_c`` (a bit of the 20-bit word flipped; AHT10 datasheet T = S_T / 2^20 x 200 - 50 degC) and
-        a frozen stretch repeating the last delivered value (a conversion that never completes read again). No random
-        draw: without a fault the reading is returned unchanged."""
-        spec = self.reading_faults
-        if not (spec.get("steps") or spec.get("frozen") or (spec.get("spikes") or {}).get("at_s")):
-            return reading  # none configured (the default): no copy and no masks on every chunk
-        out = reading.copy()
-        for st in spec.get("steps") or []:
-            out[t >= float(st["at_s"])] += float(st["step_c"])
-        sp = spec.get("spikes") or {}
-        rate = float(self.cfg.get("aht10")["read_rate_hz"])
-        for at in sp.get("at_s") or []:
-            out[np.floor(t * rate) == math.floor(float(at) * rate)] += float(sp["size_c"])
-        frozen = np.zeros(len(t), bool)
-        for wdw in spec.get("frozen") or []:
-            frozen |= self._inside(t, wdw)
-        if frozen.any():
-            last = np.maximum.accumulate(np.where(~frozen, np.arange(len(t)), -1))
-            held = self._delivered_last if self._delivered_last is not None else float(out[0])
-            out = np.where(frozen, np.where(last >= 0, out[np.maximum(last, 0)], held), out)
-        self._delivered_last = float(out[-1])
-        return out
-
-    def _temperature_word(self, t: np.ndarray, reading: np.ndarray) -> _TemperatureWord:
-        """Temperature field of the frames (docs/protocol.md): ``reading`` (degC) in 0.01 degC, TEMP_PRESENT and
-        TEMP_VALID per sample (faults temperature_absent, temperature_invalid). Invalid: the firmware keeps sending the
-        last valid value (kept on the object across chunks); absent: 0."""
-        n = t.shape[0]
-        temp_cc = np.round(reading * 100.0).astype(np.int64)
-        present = np.full(n, not self.temp_absent_from_boot)
-        valid = present.copy()
-        for wdw in self.windows["temperature_absent"]:
-            present &= ~self._inside(t, wdw)
-        valid &= present
-        for wdw in self.windows["temperature_invalid"]:
-            valid &= ~self._inside(t, wdw)
-        vpos = np.maximum.accumulate(np.where(valid, np.arange(n), -1))
-        held_cc = np.where(vpos >= 0, temp_cc[np.maximum(vpos, 0)], self._last_valid_cc)
-        if valid.any():
-            self._last_valid_cc = int(temp_cc[np.flatnonzero(valid)[-1]])
-        return _TemperatureWord(np.where(valid, temp_cc, np.where(present, held_cc, 0)), present, valid)
-
-    def _board_framing(self, k: np.ndarray, t: np.ndarray, present: np.ndarray, valid: np.ndarray,
-                       late: np.ndarray) -> _Framing:
-        """Board side of each sample ``k`` (true time ``t``, s): epoch between resets (faults.resets), sequence number,
-        board clock t_us (crystal error board.clock_ppm; restarts at each reset), status bits (docs/protocol.md) and
-        whether it is sent at all (not during a boot gap, board.boot_gap_s, nor a disconnect); BOOT on the first sample
-        of each epoch that is sent (``boot_k``)."""
-        epoch = np.searchsorted(self.epoch_start, k, side="right") - 1
-        start = self.epoch_start[epoch]
-        seq = (k - start) % SEQ_MODULO
-        reset_t = np.concatenate([[0.0], self.reset_k * self.dt_true])
-        t_epoch0 = reset_t[epoch]
-        board_t = np.where(epoch > 0, (t - t_epoch0) * (1.0 + self.clock_ppm * 1e-6), k / self.rate_hz + late)
-        t_us = np.round(board_t * 1e6).astype(np.int64)
-        sent = ~self._unsent(k)
-        status = np.where(present, int(Status.TEMP_PRESENT), 0) | np.where(valid, int(Status.TEMP_VALID), 0)
-        status = status | np.where(k == self.boot_k[epoch], int(Status.BOOT), 0)  # first SENT frame of the epoch
-        for wdw in self.windows["adc_overrun"]:
-            status = status | np.where(self._inside(t, wdw), int(Status.ADC_OVERRUN), 0)
-        status = status | np.where(np.isin(k, self._overrun_k), int(Status.ADC_OVERRUN), 0)  # faults.late_reads
-        return _Framing(board_t, t_us, seq, status.astype(np.int64), sent, (k == start) & (epoch > 0))
-
+    # ------------------------------------------------------------------ wire faults of a chunk
     def _wire_faults(self, ci: int, rng: np.random.Generator) -> _WireFaults:
         """Wire faults scheduled (faults.schedule_faults) in chunk ``ci``, per sample: fault code, garbage burst length
         (bytes) before it and nominal truncation length (bytes); the bit to flip, truncation lengths and garbage bytes
@@ -997,34 +481,6 @@ class BoardSimulator:
         trunc_arr = np.zeros(n, np.int64)
         trunc_arr[list(trunc_len)] = list(trunc_len.values())
         return _WireFaults(wire_fault, garbage_len, trunc_arr, flip_bit, trunc_len, garbage)
-
-    def _aux_counts(self, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Aux channel (N,) counts before rounding: the reference transducer measuring the true slide motion,
-        converted 4 skews after t_us (after ref, x, y, z), clipped to the ADC range (rounded if quantised)."""
-        n = t.shape[0]
-        rc = self.ref_cfg
-        if self.ref_type == "none":
-            return np.zeros(n)
-        if self.slide is not None:
-            _, vel, acc = self.slide.kinematics(t + 4.0 * self.skew_s)
-        else:
-            vel = acc = np.zeros(n)
-        if self.ref_type == "ldv":  # velocity output (seed 2, 2.1), AC coupling of the input (seed 2, Fig. 5)
-            sig = vel
-            if self.ldv_hp_tau > 0.0:
-                if self._aux_lp is None:
-                    self._aux_lp = (float(sig[0]), float(sig[0]))
-                lp, ylast, xlast = _lowpass(sig, self.ldv_hp_tau, self.dt_true, *self._aux_lp, linear=self.linear_filters)
-                self._aux_lp = (ylast, xlast)
-                sig = sig - lp  # first-order high-pass = input - low-pass
-            out = float(rc["ldv"]["offset_counts"]) + float(rc["ldv"]["sensitivity_counts_per_mps"]) * sig
-        else:  # reference accelerometer, DC coupled
-            out = (float(rc["accelerometer"]["offset_counts"])
-                   + float(rc["accelerometer"]["sensitivity_counts_per_mps2"]) * acc)
-        noise = float(rc["noise_counts"])
-        if noise > 0:
-            out = out + rng.standard_normal(n) * noise
-        return self._adc_input(out)
 
     # ------------------------------------------------------------------ wire
     def _wire_pieces(self, ch: _Chunk, ci: int) -> list[bytes]:
