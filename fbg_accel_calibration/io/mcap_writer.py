@@ -104,8 +104,7 @@ class RecordingWriter:
             raise McapRecordingError(f"compression must be one of {sorted(comp)}, got {compression!r}")
         self._sink = _UnbufferedSink(self.path, exclusive)
         self._writer = McapWriter(self._sink, chunk_size=chunk_bytes, compression=comp[compression])
-        # the header's library field as every recording so far carries it (the writer's module before it had its own)
-        self._writer.start(profile="ros2", library="fbg_accel_calibration.io.mcap_io")
+        self._writer.start(profile="ros2", library="fbg_accel_calibration")
         self._channels: dict[str, int] = {}
         self._closed = False
         self.message_count = 0
