@@ -137,14 +137,17 @@ def shipped_calibration(dynamic: bool = False) -> ThermalCalibration:
 
 
 def fitted_calibration(seed: int, degree: int = 2, settle_s: float = 2.0, repeat: int = 3,
-                       overrides: dict[str, Any] | None = None, runs_per_level: int = 1) -> ThermalCalibration:
+                       overrides: dict[str, Any] | None = None, runs_per_level: int = 1,
+                      repeat_levels: list[float] | None = None) -> ThermalCalibration:
     """A calibration fitted as ``fbg-accel-calib fit`` does (eq. 28 with its coefficient covariance, the noise model and
     its within-visit correction, the slow error) on the simulator's six-pose campaign at 16 / 24 / 45 degC of ``seed``, with the
     static samples (at rest ``settle_s``) given by the simulator's truth; the six poses visited ``repeat`` times per
     level, so that the covariance rests on 18 ``repeat`` visits (with one, 18 visits for 12 coefficients per axis leave
     6 degrees of freedom: the estimate is then so uncertain itself that a normalised error's mean is 3 x 6 / (6 - 4) =
     9, not 3, although unbiased, Hotelling's T^2). ``runs_per_level`` > 1: that many separate runs (sessions, each with
-    its own state of the slow processes) at each level, so that a wander constant over a run is not absorbed by b(T)."""
+    its own state of the slow processes) at each level, so that a wander constant over a run is not absorbed by b(T);
+    ``repeat_levels``: levels (degC, of 16 / 24 / 45) given one more run each (the cheapest design that identifies
+    the run-to-run part of the slow error)."""
     from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
     from fbg_accel_calibration.fit.fit_stream import prepare
     from fbg_accel_calibration.fit.noise_correlation import from_recording, within_visit_factor
@@ -154,6 +157,8 @@ def fitted_calibration(seed: int, degree: int = 2, settle_s: float = 2.0, repeat
 
     cfg = SimConfig.default().with_overrides(overrides or {})
     parts = [calibration_runs(cfg, seed + 500 * k, repeat=repeat) for k in range(runs_per_level)]
+    if repeat_levels:
+        parts.append(calibration_runs(cfg, seed + 500 * runs_per_level, levels_c=tuple(repeat_levels), repeat=repeat))
     rec = parts[0] if len(parts) == 1 else Recording.concatenate(parts)
     if len(parts) > 1:
         rec.metadata["truth"] = {k: np.concatenate([p.metadata["truth"][k] for p in parts]) for k in parts[0].metadata["truth"]}
@@ -190,7 +195,8 @@ def pose_means(res: dict[str, np.ndarray], settle_s: float) -> tuple[np.ndarray,
 
 
 def calibration_consistency(seeds: int, temps: list[float], settle_s: float, first_seed: int = 100,
-                            effects_off: list[str] | None = None, runs_per_level: int = 1) -> dict[str, Any]:
+                            effects_off: list[str] | None = None, runs_per_level: int = 1,
+                            repeat_levels: list[float] | None = None) -> dict[str, Any]:
     """NEES of the static pose means with and without the calibration's uncertainty over ``seeds`` fitted
     calibrations (module docstring); ``effects_off``: simulator effects switched off (``effects.<name>.scale`` 0) in the
     campaign and in the check."""
@@ -201,7 +207,7 @@ def calibration_consistency(seeds: int, temps: list[float], settle_s: float, fir
     nees_without: dict[str, list[np.ndarray]] = {f"{t:g}": [] for t in temps}
     sigma_cal: dict[str, list[np.ndarray]] = {f"{t:g}": [] for t in temps}
     for s in range(first_seed, first_seed + seeds):
-        cal = fitted_calibration(s, overrides=over, runs_per_level=runs_per_level)
+        cal = fitted_calibration(s, overrides=over, runs_per_level=runs_per_level, repeat_levels=repeat_levels)
         for t in temps:
             res = run_case({**pose_plan(t), **over}, cal, CoreConfig(), seed=s + 7919)
             res["cov_with"] = run_case({**pose_plan(t), **over}, cal, CoreConfig(covariance_includes_calibration=True),
@@ -216,6 +222,7 @@ def calibration_consistency(seeds: int, temps: list[float], settle_s: float, fir
     lo, hi = chi2.ppf(0.025, 3 * seeds) / seeds, chi2.ppf(0.975, 3 * seeds) / seeds
     out: dict[str, Any] = {"seeds": seeds, "first_seed": first_seed, "settle_s": settle_s, "dof": 3,
                            "effects_off": effects_off or [], "campaign_runs_per_level": runs_per_level,
+                           "campaign_repeated_levels_c": repeat_levels or [],
                            "band_95_of_mean_over_seeds": [round(lo, 3), round(hi, 3)],
                            "poses": [f"psi={p[0]:g} theta={p[1]:g}" for p in POSES], "temperatures": {}}
     for key in nees_with:
@@ -265,13 +272,16 @@ def main(argv: list[str] | None = None) -> int:
                    help="simulator effects switched off for the check (config/sim_default.yaml effects), e.g. bias_instability")
     p.add_argument("--calibration-runs-per-level", type=int, default=1,
                    help="separate campaign runs (sessions) per temperature level; default 1")
+    p.add_argument("--calibration-repeat-levels", type=float, nargs="*", default=[],
+                   help="campaign levels (degC, of 16 24 45) given one more run each, e.g. 24")
     p.add_argument("--calibration-temps", type=float, nargs="+", default=[24.0, 45.0, 52.0],
                    help="chamber temperatures (degC) of the check; the campaign's are 16, 24, 45")
     args = p.parse_args(argv)
     if args.calibration_seeds:
         out = calibration_consistency(args.calibration_seeds, args.calibration_temps, args.settle,
                                       effects_off=args.calibration_effects_off,
-                                      runs_per_level=args.calibration_runs_per_level)
+                                      runs_per_level=args.calibration_runs_per_level,
+                                      repeat_levels=args.calibration_repeat_levels)
         print(json.dumps(out, indent=1))
         if args.json:
             Path(args.json).write_text(json.dumps(out, indent=1) + "\n")

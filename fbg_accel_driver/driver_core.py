@@ -413,6 +413,7 @@ class DriverCore:
                         "sigma_noise_mps2": round(last.sigma_noise_mps2, 4),
                         "sigma_calibration_mps2": round(last.sigma_calibration_mps2, 4),
                         "sigma_slow_mps2": round(last.sigma_slow_mps2, 4),
+                        "unstated_slow_error_mps2": last.unstated_slow_error_mps2,
                         "last_failed": last.failed, "temperature_c": round(last.temperature_c, 2),
                         "k_sigma": round(g.k, 2)})
         return out
