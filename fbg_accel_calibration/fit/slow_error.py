@@ -1,4 +1,4 @@
-"""The slow error of a pose mean beyond the noise model: a variance component by visit (pure numpy).
+"""The slow error of a pose mean beyond the noise model: variance components by visit and by run (pure numpy).
 
 A pose mean (the mean of a still stretch) carries more than the noise model's white + first-order part and the
 coefficients' own uncertainty (``coefficient_uncertainty``): what wanders slowly -- bias instability (flicker-like,
