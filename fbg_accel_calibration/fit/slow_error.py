@@ -31,7 +31,7 @@ two quadratic forms of the residuals, the total sum r^T r and the between-run su
 give two moment equations for S and R (Henderson III with two components). R is identified only when the fit leaves
 part of a run's constant in the residuals, i.e. when some temperature level has two or more runs: with one run per
 level, b(T) (degree 2 through three levels: one offset per level) absorbs each run's constant exactly, and no
-campaign of that design can tell its run-to-run part from its b(T) (``run_identified`` False; the file's method says
+campaign of that design can tell its run-to-run part from its b(T) (``run_matrix`` None; the file's method says
 so). The published slow error is that of a pose mean in a *new* run, S + R (1 + h), h = |H Z|_F^2 / V the share of a
 run's constant that the coefficients took up (their cluster-by-visit covariance does not hold it).
 """
