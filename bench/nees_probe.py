@@ -19,7 +19,10 @@ coefficient covariance), the driver core runs it on the twelve poses above at ``
 error of each static pose against the simulator's truth is normalised by the covariance of that mean, with and without
 the calibration's terms as the driver publishes them with ``covariance_includes_calibration`` (J Sigma J^T and the slow
 error; NEES, 3 degrees of freedom; the mean of S seeds' NEES of one pose lies in [chi2_0.025(3S), chi2_0.975(3S)] / S
-when the covariance is right). ``--calibration-runs-per-level 2`` fits campaigns of two separate runs per level.
+when the covariance is right). ``--calibration-runs-per-level 2`` fits campaigns of two separate runs per level,
+``--calibration-repeat-levels 24`` gives one level a second run, ``--calibration-levels 24`` makes a single-level
+campaign (degree 0 in temperature). The result goes to the scratch directory (``nees_<design>.json``), ``--json`` or,
+with ``--update-results``, to bench/results/ and the design's table on docs/results/calibration_consistency.md.
 
     .venv/bin/python bench/nees_probe.py --calibration-seeds 20 --json /tmp/nees_calibration.json   # about 4 min
 
