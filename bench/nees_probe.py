@@ -19,7 +19,10 @@ coefficient covariance), the driver core runs it on the twelve poses above at ``
 error of each static pose against the simulator's truth is normalised by the covariance of that mean, with and without
 the calibration's terms as the driver publishes them with ``covariance_includes_calibration`` (J Sigma J^T and the slow
 error; NEES, 3 degrees of freedom; the mean of S seeds' NEES of one pose lies in [chi2_0.025(3S), chi2_0.975(3S)] / S
-when the covariance is right). ``--calibration-runs-per-level 2`` fits campaigns of two separate runs per level.
+when the covariance is right). ``--calibration-runs-per-level 2`` fits campaigns of two separate runs per level,
+``--calibration-repeat-levels 24`` gives one level a second run, ``--calibration-levels 24`` makes a single-level
+campaign (degree 0 in temperature). The result goes to the scratch directory (``nees_<design>.json``), ``--json`` or,
+with ``--update-results``, to bench/results/ and the design's table on docs/results/calibration_consistency.md.
 
     .venv/bin/python bench/nees_probe.py --calibration-seeds 20 --json /tmp/nees_calibration.json   # about 4 min
 
@@ -38,6 +41,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine_info import machine
+from output_paths import add_update_results, results_dir
 
 from fbg_accel_driver.chain_compensation import ChainDynamics
 from fbg_accel_driver.driver_core import CoreConfig, DriverCore
@@ -137,23 +144,31 @@ def shipped_calibration(dynamic: bool = False) -> ThermalCalibration:
 
 
 def fitted_calibration(seed: int, degree: int = 2, settle_s: float = 2.0, repeat: int = 3,
-                       overrides: dict[str, Any] | None = None, runs_per_level: int = 1) -> ThermalCalibration:
+                       overrides: dict[str, Any] | None = None, runs_per_level: int = 1,
+                      repeat_levels: list[float] | None = None, levels: list[float] | None = None) -> ThermalCalibration:
     """A calibration fitted as ``fbg-accel-calib fit`` does (eq. 28 with its coefficient covariance, the noise model and
     its within-visit correction, the slow error) on the simulator's six-pose campaign at 16 / 24 / 45 degC of ``seed``, with the
     static samples (at rest ``settle_s``) given by the simulator's truth; the six poses visited ``repeat`` times per
     level, so that the covariance rests on 18 ``repeat`` visits (with one, 18 visits for 12 coefficients per axis leave
     6 degrees of freedom: the estimate is then so uncertain itself that a normalised error's mean is 3 x 6 / (6 - 4) =
     9, not 3, although unbiased, Hotelling's T^2). ``runs_per_level`` > 1: that many separate runs (sessions, each with
-    its own state of the slow processes) at each level, so that a wander constant over a run is not absorbed by b(T)."""
+    its own state of the slow processes) at each level, so that a wander constant over a run is not absorbed by b(T);
+    ``repeat_levels``: levels (degC, of 16 / 24 / 45) given one more run each (the cheapest design that identifies
+    the run-to-run part of the slow error); ``levels``: the campaign's levels (degC, default 16 / 24 / 45; the degree is
+    then at most one less than their number)."""
     from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
     from fbg_accel_calibration.fit.fit_stream import prepare
     from fbg_accel_calibration.fit.noise_correlation import from_recording, within_visit_factor
     from fbg_accel_calibration.fit.slow_error import attach as attach_slow_error
     from fbg_accel_calibration.io.recording import Recording
-    from fbg_accel_sim.make_default_calibration import calibration_runs, static_mask
+    from fbg_accel_sim.make_default_calibration import LEVELS_C, calibration_runs, static_mask
 
     cfg = SimConfig.default().with_overrides(overrides or {})
-    parts = [calibration_runs(cfg, seed + 500 * k, repeat=repeat) for k in range(runs_per_level)]
+    lv = tuple(levels) if levels else LEVELS_C
+    degree = min(degree, len(lv) - 1)
+    parts = [calibration_runs(cfg, seed + 500 * k, levels_c=lv, repeat=repeat) for k in range(runs_per_level)]
+    if repeat_levels:
+        parts.append(calibration_runs(cfg, seed + 500 * runs_per_level, levels_c=tuple(repeat_levels), repeat=repeat))
     rec = parts[0] if len(parts) == 1 else Recording.concatenate(parts)
     if len(parts) > 1:
         rec.metadata["truth"] = {k: np.concatenate([p.metadata["truth"][k] for p in parts]) for k in parts[0].metadata["truth"]}
@@ -190,7 +205,9 @@ def pose_means(res: dict[str, np.ndarray], settle_s: float) -> tuple[np.ndarray,
 
 
 def calibration_consistency(seeds: int, temps: list[float], settle_s: float, first_seed: int = 100,
-                            effects_off: list[str] | None = None, runs_per_level: int = 1) -> dict[str, Any]:
+                            effects_off: list[str] | None = None, runs_per_level: int = 1,
+                            repeat_levels: list[float] | None = None, levels: list[float] | None = None
+                            ) -> dict[str, Any]:
     """NEES of the static pose means with and without the calibration's uncertainty over ``seeds`` fitted
     calibrations (module docstring); ``effects_off``: simulator effects switched off (``effects.<name>.scale`` 0) in the
     campaign and in the check."""
@@ -201,7 +218,8 @@ def calibration_consistency(seeds: int, temps: list[float], settle_s: float, fir
     nees_without: dict[str, list[np.ndarray]] = {f"{t:g}": [] for t in temps}
     sigma_cal: dict[str, list[np.ndarray]] = {f"{t:g}": [] for t in temps}
     for s in range(first_seed, first_seed + seeds):
-        cal = fitted_calibration(s, overrides=over, runs_per_level=runs_per_level)
+        cal = fitted_calibration(s, overrides=over, runs_per_level=runs_per_level, repeat_levels=repeat_levels,
+                                 levels=levels)
         for t in temps:
             res = run_case({**pose_plan(t), **over}, cal, CoreConfig(), seed=s + 7919)
             res["cov_with"] = run_case({**pose_plan(t), **over}, cal, CoreConfig(covariance_includes_calibration=True),
@@ -216,6 +234,8 @@ def calibration_consistency(seeds: int, temps: list[float], settle_s: float, fir
     lo, hi = chi2.ppf(0.025, 3 * seeds) / seeds, chi2.ppf(0.975, 3 * seeds) / seeds
     out: dict[str, Any] = {"seeds": seeds, "first_seed": first_seed, "settle_s": settle_s, "dof": 3,
                            "effects_off": effects_off or [], "campaign_runs_per_level": runs_per_level,
+                           "campaign_repeated_levels_c": repeat_levels or [],
+                           "campaign_levels_c": levels or [16.0, 24.0, 45.0],
                            "band_95_of_mean_over_seeds": [round(lo, 3), round(hi, 3)],
                            "poses": [f"psi={p[0]:g} theta={p[1]:g}" for p in POSES], "temperatures": {}}
     for key in nees_with:
@@ -232,6 +252,43 @@ def calibration_consistency(seeds: int, temps: list[float], settle_s: float, fir
             "fraction_below_chi2_95_without": round(float((wo < chi2.ppf(0.95, 3)).mean()), 3),
             "median_sigma_calibration_mps2": np.round(np.median(np.concatenate(sigma_cal[key]), axis=0), 4).tolist()}
     return out
+
+
+def design_tag(out: dict[str, Any]) -> str:
+    """A name for the campaign design and simulator of a ``calibration_consistency`` result (file and page marker)."""
+    levels = out["campaign_levels_c"]
+    tag = "levels_" + "_".join(f"{v:g}" for v in levels) if levels != [16.0, 24.0, 45.0] else "paper_levels"
+    tag += f"_runs{out['campaign_runs_per_level']}"
+    if out["campaign_repeated_levels_c"]:
+        tag += "_repeat_" + "_".join(f"{v:g}" for v in out["campaign_repeated_levels_c"])
+    return tag + ("_effects_off" if out["effects_off"] else "")
+
+
+def table_markdown(out: dict[str, Any]) -> str:
+    """The results page's table of a ``calibration_consistency`` result."""
+    lo, hi = out["band_95_of_mean_over_seeds"]
+    rows = [f"{out['seeds']} seeds; band of a right covariance for the mean over seeds [{lo:.2f}, {hi:.2f}]", "",
+            "| chamber °C | mean NEES with / without | poses in band with / without (of 12) | within χ²₀.₉₅(3) with / "
+            "without | median σ of the calibration terms x / y / z [m/s²] |", "|---|---|---|---|---|"]
+    for t, r in out["temperatures"].items():
+        sig = " / ".join(f"{v:.4f}" for v in r["median_sigma_calibration_mps2"])
+        rows.append(f"| {t} | {r['mean_nees_all_with']:.2f} / {r['mean_nees_all_without']:.2f} | "
+                    f"{r['poses_in_band_with']} / {r['poses_in_band_without']} | "
+                    f"{r['fraction_below_chi2_95_with']:.0%} / {r['fraction_below_chi2_95_without']:.0%} | {sig} |")
+    return "\n".join(rows)
+
+
+def update_page(out: dict[str, Any], page: Path) -> bool:
+    """Replace the table between ``<!-- nees TAG -->`` and ``<!-- /nees TAG -->`` on the results page; False when the
+    page has no such markers (the table is then only printed)."""
+    tag = design_tag(out)
+    text = page.read_text(encoding="utf-8")
+    start, end = f"<!-- nees {tag} -->", f"<!-- /nees {tag} -->"
+    if start not in text or end not in text:
+        return False
+    head, rest = text.split(start, 1)
+    page.write_text(head + start + "\n" + table_markdown(out) + "\n" + end + rest.split(end, 1)[1], encoding="utf-8")
+    return True
 
 
 def cases() -> dict[str, list[tuple[str, dict[str, Any], dict[str, Any], float | None]]]:
@@ -265,16 +322,30 @@ def main(argv: list[str] | None = None) -> int:
                    help="simulator effects switched off for the check (config/sim_default.yaml effects), e.g. bias_instability")
     p.add_argument("--calibration-runs-per-level", type=int, default=1,
                    help="separate campaign runs (sessions) per temperature level; default 1")
+    p.add_argument("--calibration-repeat-levels", type=float, nargs="*", default=[],
+                   help="campaign levels (degC, of 16 24 45) given one more run each, e.g. 24")
+    p.add_argument("--calibration-levels", type=float, nargs="+", default=None,
+                   help="the campaign's levels (degC; default 16 24 45; one level: degree 0 in temperature)")
     p.add_argument("--calibration-temps", type=float, nargs="+", default=[24.0, 45.0, 52.0],
                    help="chamber temperatures (degC) of the check; the campaign's are 16, 24, 45")
+    add_update_results(p)
     args = p.parse_args(argv)
     if args.calibration_seeds:
         out = calibration_consistency(args.calibration_seeds, args.calibration_temps, args.settle,
                                       effects_off=args.calibration_effects_off,
-                                      runs_per_level=args.calibration_runs_per_level)
+                                      runs_per_level=args.calibration_runs_per_level,
+                                      repeat_levels=args.calibration_repeat_levels,
+                                      levels=args.calibration_levels)
+        out["command"] = "python bench/nees_probe.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        out["machine"] = machine()
         print(json.dumps(out, indent=1))
-        if args.json:
-            Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
+        path = Path(args.json) if args.json else results_dir(args.update_results) / f"nees_{design_tag(out)}.json"
+        path.write_text(json.dumps(out, indent=1) + "\n")
+        print(table_markdown(out))
+        if args.update_results:
+            page = REPO / "docs" / "results" / "calibration_consistency.md"
+            print(f"{page}: {'table updated' if update_page(out, page) else 'no markers for ' + design_tag(out)}")
+        print(f"wrote {path}")
         return 0
     all_cases = cases()
     if args.list:

@@ -295,9 +295,11 @@ class DriverDiagnostics:
             return self._entry(OK, "gravity check", f"no still stretch of {g['period_s']:g} s yet "
                                f"({'still now' if g['still'] else 'not still'})", g)
         new_failures = int(g["failures"]) - int(old.get("failures", 0))
+        allow = float(g.get("unstated_slow_error_mps2", 0.0))
+        unstated = f" + {allow:g} for the slow error the calibration does not state" if allow else ""
         figures = (f"|a| - g = {g['discrepancy_mps2']:+.3f} m/s^2 over {g['period_s']:g} s still at "
                    f"{g['temperature_c']:.1f} degC, threshold {g['threshold_mps2']:.3f} m/s^2 (tolerance "
-                   f"{g['tolerance_mps2']:g} + {g['k_sigma']:g} sigma; sigma noise {g['sigma_noise_mps2']:.3f}, "
+                   f"{g['tolerance_mps2']:g}{unstated} + {g['k_sigma']:g} sigma; sigma noise {g['sigma_noise_mps2']:.3f}, "
                    f"calibration {g['sigma_calibration_mps2']:.3f}, slow error {g.get('sigma_slow_mps2', 0.0):.3f})")
         if g["last_failed"] or new_failures > 0:
             which = "the last still stretch" if g["last_failed"] else f"{new_failures} still stretch(es) since last report"

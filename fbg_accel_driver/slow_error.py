@@ -3,8 +3,9 @@
 A pose mean carries, besides the noise model's part and the coefficients' J Sigma J^T (``coefficient_covariance``),
 what wanders slowly (bias instability, source-power wander through a dark offset, warm-up drift) and what eq. 28 does
 not contain at the poses visited. The fit estimates it from its own campaign, as the visits' mean residuals' scatter
-beyond the noise model (``fbg_accel_calibration.fit.slow_error``: a variance component by visit, method of moments), and
-writes its covariance S (3, 3) in (m/s^2)^2, sensor frame. It is the same for every sample of a still stretch: a bias,
+beyond the noise model and, when a level has two runs, the runs' (``fbg_accel_calibration.fit.slow_error``: variance
+components by visit and by run, method of moments), and writes its covariance S (3, 3) in (m/s^2)^2, sensor frame.
+It is the same for every sample of a still stretch: a bias,
 correlated in time, added as such (with ``covariance_includes_calibration``, once per published message) and used by
 the live gravity check's threshold (docs/topics.md).
 """

@@ -9,10 +9,13 @@ what the coefficient covariance (``fbg_accel_calibration.fit.coefficient_uncerta
   read back to whole degrees, ../shared/data/measured/README.md), so the reference is wrong by a constant per visit;
 * the detector noise low-passed by the transimpedance stage: first-order (AR(1)) noise of time constant ``tau_s``
   (0.15 s: the paper's TIA stages cut off at 1-1.7 Hz, paper Table 1 / docs/simulator.md), so the samples of one
-  visit are correlated.
+  visit are correlated;
+* optionally a run's own constant bias (``run_offset_mps2`` per axis, a new one per run; ``runs_per_level`` runs at
+  each level): what a sensor keeps over one run and changes from turn-on to turn-on (the slow error's run-to-run part,
+  ``fbg_accel_calibration.fit.slow_error``).
 
-Returns a ``Recording`` (one run per temperature level, poses visited ``repeats`` times in turn) and the true
-coefficients A (p, 3) in the fit's tau scaling (levels 15/25/35 degC: centre 25, half-range 10).
+Returns a ``Recording`` (``runs_per_level`` runs per temperature level, default one, poses visited ``repeats`` times
+in turn) and the true coefficients A (p, 3) in the fit's tau scaling (levels 15/25/35 degC: centre 25, half-range 10).
 """
 
 from __future__ import annotations
@@ -37,13 +40,17 @@ def _truth(degree: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def campaign(seed: int, degree: int = 1, n_poses: int = 8, repeats: int = 2, visit_s: float = 3.0,
-             tilt_sigma_deg: float = 0.3, noise_mps2: float = 0.05, tau_s: float = 0.15) -> tuple[Recording, np.ndarray]:
+             tilt_sigma_deg: float = 0.3, noise_mps2: float = 0.05, tau_s: float = 0.15, runs_per_level: int = 1,
+             run_offset_mps2: float = 0.0) -> tuple[Recording, np.ndarray]:
     """Counts that eq. 28 with known (M, b) maps onto random poses at three chamber levels, each pose visited
     ``repeats`` times. Per visit the table's pose is off by a random tilt (sigma ``tilt_sigma_deg``, shared by the
     visit's samples: the reference is wrong by a constant), and the output carries first-order low-passed noise
     (sigma ``noise_mps2``, time constant ``tau_s``), as the TIA stages low-pass the detector noise. Returns the
-    recording and the true coefficients A (p, 3) in the fit's tau scaling."""
+    recording and the true coefficients A (p, 3) in the fit's tau scaling. ``runs_per_level`` runs at each level, each
+    with its own constant bias (sigma ``run_offset_mps2`` per axis, drawn from a stream of its own so that the
+    campaign without it is unchanged)."""
     rng = np.random.default_rng(seed)
+    offsets = np.random.default_rng([seed, 1]).normal(0.0, run_offset_mps2, (len(LEVELS_C) * runs_per_level, 3))
     M, b = _truth(degree)
     poses = rng.normal(size=(n_poses, 3))
     poses = G * poses / np.linalg.norm(poses, axis=1)[:, None]
@@ -54,17 +61,20 @@ def campaign(seed: int, degree: int = 1, n_poses: int = 8, repeats: int = 2, vis
         tau = (temp_c - 25.0) / 10.0
         Mt = sum(M[k] * tau**k for k in range(degree + 1))
         bt = sum(b[k] * tau**k for k in range(degree + 1))
-        for _ in range(repeats):
-            for p in range(n_poses):
-                axis = rng.normal(size=3)
-                tilt = np.radians(tilt_sigma_deg) * rng.normal()
-                true_g = poses[p] + tilt * np.cross(axis / np.linalg.norm(axis), poses[p])  # small rotation
-                w = rng.normal(0.0, noise_mps2 * np.sqrt(1 - phi**2), (n, 3))
-                w[0] = rng.normal(0.0, noise_mps2, 3)
-                for i in range(1, n):
-                    w[i] += phi * w[i - 1]
-                psi = np.linalg.solve(Mt, (true_g + w - bt).T).T
-                parts.append((psi, np.full(n, temp_c), np.repeat(poses[p][None], n, 0), np.full(n, p), np.full(n, li)))
+        for k in range(runs_per_level):
+            run_id = li * runs_per_level + k
+            for _ in range(repeats):
+                for p in range(n_poses):
+                    axis = rng.normal(size=3)
+                    tilt = np.radians(tilt_sigma_deg) * rng.normal()
+                    true_g = poses[p] + tilt * np.cross(axis / np.linalg.norm(axis), poses[p])  # small rotation
+                    w = rng.normal(0.0, noise_mps2 * np.sqrt(1 - phi**2), (n, 3))
+                    w[0] = rng.normal(0.0, noise_mps2, 3)
+                    for i in range(1, n):
+                        w[i] += phi * w[i - 1]
+                    psi = np.linalg.solve(Mt, (true_g + w + offsets[run_id] - bt).T).T
+                    parts.append((psi, np.full(n, temp_c), np.repeat(poses[p][None], n, 0), np.full(n, p),
+                                  np.full(n, run_id)))
     psi, temp, gref, pose, run = (np.concatenate(x) for x in zip(*parts, strict=True))
     ref = np.full(len(temp), 880.0)
     t = np.arange(len(temp)) / RATE_HZ

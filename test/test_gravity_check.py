@@ -16,6 +16,7 @@ from fbg_accel_driver.driver_core import CoreConfig, DriverCore
 from fbg_accel_driver.driver_diagnostics import OK, WARN, DiagnosticsSnapshot, DriverDiagnostics
 from fbg_accel_driver.gravity_check import GravityCheck, GravityCheckConfig
 from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
+from fbg_accel_driver.slow_error import SlowErrorSection
 from fbg_accel_driver.thermal_model import ThermalCalibration
 from fbg_accel_sim.board_physics import BoardSimulator, SimConfig
 from fbg_accel_sim.sim_config import config_dir
@@ -98,9 +99,9 @@ def test_settings_are_checked_with_the_tools_gravity_bound() -> None:
 def _sim_core(drift_mps2: float, seconds: float, seed: int) -> DriverCore:
     """The driver core fed the simulator's bytes: still, z up, at 24 degC, the shipped calibration, the z axis's bias
     stepped by ``drift_mps2`` before the run (``effects.bias_step``) and without the simulator's flicker floor (its
-    slow bias wander, +-0.1 m/s^2 from run to run on z, is what the tolerance is for: the bench measures the rates at
-    the default tolerance, 0.15, which this drift straddles). Tolerance 0.1: the decision is the wire path's, with
-    margin."""
+    slow bias wander, +-0.1 m/s^2 from run to run on z, is what the slow error is for: the bench measures the rates).
+    The calibration states a slow error of 0 (a ``slow_error`` section, so no allowance for an unstated one) and the
+    tolerance is 0.1: the decision is the wire path's, with margin."""
     over = {"scenario.poses.mode": "list", "scenario.poses.list": [[0.0, 0.0]], "scenario.poses.dwell_s": 1e4,
             "scenario.poses.repeat": 1, "scenario.temperature.initial_c": 24.0, "effects.bias_instability.scale": 0.0,
             "effects.bias_step.scale": 1.0, "effects.bias_step.at_s": 0.0,
@@ -109,8 +110,9 @@ def _sim_core(drift_mps2: float, seconds: float, seed: int) -> DriverCore:
     n = sim.samples_for(seconds)
     blk = sim.step(n)
     pieces = blk.wire_pieces()
-    core = DriverCore(ThermalCalibration.load(config_dir() / "calibration_sim.yaml"),
-                      CoreConfig(gravity_mps2=G_SIM, gravity_tolerance_mps2=0.1))
+    cal = ThermalCalibration.load(config_dir() / "calibration_sim.yaml")
+    cal.slow_error = SlowErrorSection(np.zeros((3, 3)), "none stated (test)", 1)
+    core = DriverCore(cal, CoreConfig(gravity_mps2=G_SIM, gravity_tolerance_mps2=0.1))
     for k in range(0, n, 10):
         last = min(k + 10, n) - 1
         core.feed(b"".join(pieces[k:last + 1]), round(float(blk.t_s[last] + 0.002) * 1e9))

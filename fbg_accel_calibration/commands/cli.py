@@ -252,6 +252,11 @@ def cmd_fit(args: argparse.Namespace) -> int:
           + " / ".join(f"{v:.4f}" for v in cal.noise_sigma_mps2) + " m/s^2")
     print(f"temperature range {cal.temperature_range_c[0]:.2f} .. {cal.temperature_range_c[1]:.2f} degC; "
           f"{cal.fit['samples_used']} of {cal.fit['samples_total']} samples used")
+    slow = cal.fit.get("slow_error", {})
+    if "sigma_mps2" in slow:  # the run-to-run part is a number, or the reason it is not one
+        run = slow["run_to_run_sigma_mps2"]
+        print("slow error of a pose mean x/y/z " + " / ".join(f"{v:.4f}" for v in slow["sigma_mps2"]) + " m/s^2; "
+              + ("run to run " + " / ".join(f"{v:.4f}" for v in run) + " m/s^2" if isinstance(run, list) else run))
     if cal.fit["visits_excluded_clipped"]:
         print(f"warning: {cal.fit['samples_excluded_clipped']} samples of {cal.fit['visits_excluded_clipped']} visit(s) "
               "left out: a channel at a rail of the ADC (an axis at 0 or 4095 counts, or the reference at 4095) in "

@@ -1,4 +1,4 @@
-"""The slow error of a pose mean beyond the noise model: a variance component by visit (pure numpy).
+"""The slow error of a pose mean beyond the noise model: variance components by visit and by run (pure numpy).
 
 A pose mean (the mean of a still stretch) carries more than the noise model's white + first-order part and the
 coefficients' own uncertainty (``coefficient_uncertainty``): what wanders slowly -- bias instability (flicker-like,
@@ -20,10 +20,20 @@ and solves for S (3, 3), projected onto the positive semi-definite matrices. It 
 ``slow_error`` section; the driver adds it to the published covariance as a bias with the calibration's J Sigma J^T
 (``covariance_includes_calibration``) and the live gravity check widens its threshold by it.
 
-What it cannot see: a slow error that is constant over a whole temperature level is absorbed by b(T) (three levels,
-degree 2: one offset per level), so a campaign whose levels are each one short run reads only the part of the wander
-that changes within a run. Visits of one pose repeated within a run, spread over its length, are what this estimate
-rests on.
+Run to run (turn-on to turn-on, the bias repeatability of IEEE Std 1293 beside the in-run stability): what a run keeps
+constant -- the bias instability's parts of 10^3-10^4 s correlation time, which a run of some minutes does not see
+wander -- differs between runs, so a later run's pose means miss the calibration by it although no visit of the
+campaign scatters by it. With the runs as a second random effect w_r ~ (0, R), Z (V, runs) the visits' run indicators::
+
+    r = (I - H)(u + Z w + eta)
+
+two quadratic forms of the residuals, the total sum r^T r and the between-run sum r^T P r (P = Z (Z^T Z)^-1 Z^T),
+give two moment equations for S and R (Henderson III with two components). R is identified only when the fit leaves
+part of a run's constant in the residuals, i.e. when some temperature level has two or more runs: with one run per
+level, b(T) (degree 2 through three levels: one offset per level) absorbs each run's constant exactly, and no
+campaign of that design can tell its run-to-run part from its b(T) (``run_matrix`` None; the file's method says
+so). The published slow error is that of a pose mean in a *new* run, S + R (1 + h), h = |H Z|_F^2 / V the share of a
+run's constant that the coefficients took up (their cluster-by-visit covariance does not hold it).
 """
 
 from __future__ import annotations
@@ -43,18 +53,34 @@ if TYPE_CHECKING:
 METHOD = ("variance component by visit beyond the noise model (method of moments on the visits' mean residuals, "
           "Henderson III; fbg_accel_calibration/fit/slow_error.py)")
 MIN_DOF = 3.0  # visits left over the coefficients: fewer leave no scatter to estimate from
+# fraction of the runs' constants the fit leaves in the residuals, |(I - H) Z|_F^2 / V, below which the run-to-run
+# component is not identified (one run per level: 0 up to the temperature's slight wander within a run)
+MIN_RUN_RESIDUAL = 0.01
+RUN_NOT_IDENTIFIED = ("run-to-run component not identified (one run per temperature level: b(T) absorbs each run's "
+                      "constant); repeat a level in a second run")
 
 
 @dataclass(frozen=True)
 class SlowError:
     """Covariance ``matrix`` (3, 3) (m/s^2)^2 of the slow error of a pose mean, the ``visits`` it rests on and the
     degrees of freedom left by the fit (tr((I - H)(I - H)^T)); ``excess`` (3,) the visits' residual scatter over what
-    the noise model expects of it (1: none beyond the noise)."""
+    the noise model expects of it (1: none beyond the noise). ``matrix`` is the published total, visit and run parts
+    (module docstring); ``run_matrix`` (3, 3) the run-to-run component R (None: not identified) over ``runs`` runs."""
 
     matrix: np.ndarray
     visits: int
     dof: float
     excess: np.ndarray
+    runs: int = 1
+    run_matrix: np.ndarray | None = None
+
+    @property
+    def method(self) -> str:
+        """The file's method text: :data:`METHOD` and how the run-to-run component was treated."""
+        if self.run_matrix is None:
+            return f"{METHOD}; {RUN_NOT_IDENTIFIED}"
+        return (f"{METHOD}; plus the run-to-run component (a second variance component, the runs as its random "
+                f"effect; {self.runs} runs)")
 
     @property
     def sigma_mps2(self) -> np.ndarray:
@@ -92,11 +118,34 @@ def visit_component(stats: CellStats, A: np.ndarray, degree: int, noise_sigma_mp
                    for i in range(3)] for nv in n])  # (V, 3)
     noise_part = sigma2 * (m2 @ c).sum(axis=0)  # (3,)
     Q = r.T @ r
-    S = (Q - np.diag(noise_part)) / dof
-    w, v = np.linalg.eigh(0.5 * (S + S.T))
-    S = (v * np.clip(w, 0.0, None)) @ v.T
     excess = np.diag(Q) / np.maximum(noise_part, 1e-300)
-    return SlowError(S, V, dof, excess)
+    run = stats.visit_run[keep] if len(stats.visit_run) == len(keep) else np.zeros(V, np.int64)
+    labels, inverse = np.unique(run, return_inverse=True)
+    Z = np.zeros((V, len(labels)))
+    Z[np.arange(V), inverse] = 1.0
+    MZ = Mres @ Z
+    b1 = float((MZ**2).sum())
+    if len(labels) < 2 or b1 < MIN_RUN_RESIDUAL * V:
+        return SlowError(_psd((Q - np.diag(noise_part)) / dof), V, dof, excess, len(labels))
+    # the between-run sum r^T P r and its expectation's coefficients (module docstring)
+    nr = Z.sum(axis=0)
+    ZtM = Z.T @ Mres  # (R, V)
+    a2 = float(((ZtM**2) / nr[:, None]).sum())
+    b2 = float((((ZtM @ Z) ** 2) / nr[:, None]).sum())
+    noise2 = sigma2 * (((ZtM**2) / nr[:, None]).sum(axis=0) @ c)
+    Q2 = (Z.T @ r).T @ ((Z.T @ r) / nr[:, None])
+    lhs1, lhs2 = Q - np.diag(noise_part), Q2 - np.diag(noise2)
+    det = dof * b2 - a2 * b1
+    S = _psd((b2 * lhs1 - b1 * lhs2) / det)
+    R = _psd((dof * lhs2 - a2 * lhs1) / det)
+    h = float(((Z - MZ) ** 2).sum()) / V  # |H Z|_F^2 / V
+    return SlowError(S + (1.0 + h) * R, V, dof, excess, len(labels), R)
+
+
+def _psd(m: np.ndarray) -> np.ndarray:
+    """The nearest positive semi-definite matrix (eigenvalues clipped at 0) of the symmetric part of ``m``."""
+    w, v = np.linalg.eigh(0.5 * (m + m.T))
+    return (v * np.clip(w, 0.0, None)) @ v.T
 
 
 def attach(cal: ThermalCalibration, stats: CellStats, dt_s: float) -> SlowError | None:
@@ -111,8 +160,10 @@ def attach(cal: ThermalCalibration, stats: CellStats, dt_s: float) -> SlowError 
         cal.fit["slow_error"] = {"not_estimated": "the visits' own sums were not kept, or fewer than "
                                  f"{MIN_DOF:g} visits are left over the coefficients: repeat the poses"}
         return None
-    cal.slow_error = SlowErrorSection(est.matrix, METHOD, est.visits)
+    cal.slow_error = SlowErrorSection(est.matrix, est.method, est.visits)
     cal.fit["slow_error"] = {"sigma_mps2": [round(float(v), 5) for v in est.sigma_mps2],
                              "scatter_over_noise": [round(float(v), 3) for v in est.excess],
-                             "dof": round(est.dof, 2)}
+                             "dof": round(est.dof, 2), "runs": est.runs,
+                             "run_to_run_sigma_mps2": RUN_NOT_IDENTIFIED if est.run_matrix is None else
+                             [round(float(v), 5) for v in np.sqrt(np.clip(np.diag(est.run_matrix), 0.0, None))]}
     return est

@@ -201,9 +201,10 @@ class CellStats:
     ``visit_lengths`` their n_v (``n_visits`` their number): the noise floor is the scatter within a visit
     (:meth:`visit_scatter`), not the difference between two visits of one cell.
 
-    ``visit_xtx`` (V, p, p), ``visit_xtg`` (V, p, 3) and ``visit_cell`` (V,) are each visit's own X^T X, X^T G and
-    cell (index into the cells above), in the order the visits ended: the clusters of the coefficient covariance
-    (``coefficient_uncertainty``). Empty (V = 0) when the visits were more than :data:`MAX_VISIT_SUMS`.
+    ``visit_xtx`` (V, p, p), ``visit_xtg`` (V, p, 3), ``visit_cell`` (V,) and ``visit_run`` (V,) are each visit's own
+    X^T X, X^T G, cell (index into the cells above) and run id, in the order the visits ended: the clusters of the
+    coefficient covariance (``coefficient_uncertainty``) and the runs of the slow error (``slow_error``).
+    Empty (V = 0) when the visits were more than :data:`MAX_VISIT_SUMS`.
     """
 
     degree: int
@@ -220,6 +221,7 @@ class CellStats:
     visit_xtx: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0)))
     visit_xtg: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3)))
     visit_cell: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    visit_run: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (V,) the run of each visit
 
     @property
     def n_visits(self) -> int:
@@ -393,10 +395,12 @@ class CellAccumulator:
             visit_xtx = np.array([v[0] for v in self._visit_sums])
             visit_xtg = np.array([v[1] for v in self._visit_sums])
             visit_cell = rank[[self._index[k] for k in self._visit_keys]]
+            visit_run = np.array([k[0] for k in self._visit_keys], np.int64)
         else:
             visit_xtx, visit_xtg, visit_cell = np.zeros((0, p, p)), np.zeros((0, p, 3)), np.zeros(0, np.int64)
+            visit_run = np.zeros(0, np.int64)
         return CellStats(self.degree, keys[order, 0], keys[order, 1], *sums, self._visit_outer.copy(),
-                         np.asarray(self._visit_n, dtype=np.int64), visit_xtx, visit_xtg, visit_cell)
+                         np.asarray(self._visit_n, dtype=np.int64), visit_xtx, visit_xtg, visit_cell, visit_run)
 
 
 def _runs_of(run: np.ndarray) -> list[tuple[int, int, int]]:
