@@ -202,7 +202,7 @@ def test_the_fit_command_says_whether_the_run_to_run_part_is_in_the_slow_error(t
     """One run per level: ``fit`` prints the slow error and that its run-to-run part is not identified, so the user of
     the paper's design learns it from the command, not only from the file."""
     from fbg_accel_calibration.commands.cli import main as cli_main
-    from fbg_accel_calibration.io.mcap_io import write_recording
+    from fbg_accel_calibration.io.mcap_writer import write_recording
 
     rec, _ = campaign(5, degree=2, tilt_sigma_deg=0.0, noise_mps2=NOISE, tau_s=TAU_S, visit_s=1.0)
     write_recording(tmp_path / "run.mcap", rec)
