@@ -68,7 +68,10 @@ class HeldoutMeanNull:
     cov: np.ndarray
 
     def for_visits(self, ug: np.ndarray, diag: np.ndarray) -> np.ndarray:
-        """(3, len(ug), len(ug)) for the visits ``ug``; a visit it does not hold gets ``diag`` (len(ug), 3) alone."""
+        """(3, len(ug), len(ug)) for the visits ``ug``; a visit it does not hold gets ``diag`` (len(ug), 3) alone. For
+        its own visits, ``cov`` itself (not a copy: 3 V^2 values, 150 MiB for the 2500 visits of 10^6 samples)."""
+        if np.array_equal(ug, self.visits):
+            return self.cov
         out = np.zeros((3, len(ug), len(ug)))
         pos = np.searchsorted(self.visits, ug)
         known = (pos < len(self.visits)) & (self.visits[np.minimum(pos, len(self.visits) - 1)] == ug)
@@ -291,7 +294,10 @@ def visit_mean_test(means: np.ndarray, cov: np.ndarray, dof: np.ndarray) -> tupl
     z = means / np.sqrt(var)
     chi = np.sum(z**2, axis=0)
     sd = np.sqrt(var.T)  # (3, V)
-    h = V**2 / np.maximum(np.sum((cov / sd[:, :, None] / sd[:, None, :]) ** 2, axis=(1, 2)), 1e-300)
+    r = cov / sd[:, :, None]  # the correlation matrix R, squared in place: one (3, V, V) temporary, not three
+    r /= sd[:, None, :]
+    np.square(r, out=r)
+    h = V**2 / np.maximum(np.sum(r, axis=(1, 2)), 1e-300)
     return z, _visit_chi2_p(chi * h / max(V, 1), h, dof)
 
 
