@@ -11,6 +11,16 @@ MCAP, in its own process: its wall time (reading, diagnosis, report, YAML and pl
 Run on an idle machine:
 
     .venv/bin/python bench/diagnose_scaling.py [--sizes 10000 100000 1000000]
+
+``--trials N [N ...]``: instead, where the diagnosis of the same run spends its CPU time, on one lane, per size: each
+hyper-parameter search (``Evaluator._fit_hyper``) by the phase it runs in (a candidate on top of the model, the
+confounding pairs, the backward step, the step check) and by candidate, with its grid's size, the designs it built
+(its trials: grid values visited, the refinement's values, the parsimony check) and their CPU time; and the
+diagnosis's CPU outside the searches. It says how the cost grows with N, with the number of candidates (each step
+searches every candidate left, the confounding check the best against up to three others) and with each grid
+(``search_batches`` visits every 4th value then the neighbours of the folds' bests; the refinement up to 25 more):
+
+    .venv/bin/python bench/diagnose_scaling.py --trials 100000 1000000
 """
 
 from __future__ import annotations
@@ -56,12 +66,97 @@ def run_command(n: int, tmp: Path) -> dict:
     return {"command_seconds": round(wall, 1), "command_peak_rss_mib": round(usage.ru_maxrss / 1024)}
 
 
+SEARCH_PHASES = ("step_check", "confounding", "drop_explained", "_evaluate_on")  # innermost first
+
+
+def trial_costs(n: int) -> dict:
+    """CPU seconds of the diagnosis of the benchmark run of ``n`` samples on one lane, split by hyper-parameter search
+    (phase, candidate): searches, grid size, designs built, CPU (see the module docstring). In this process."""
+    import traceback
+
+    from fbg_accel_calibration.diagnosis import search
+    from fbg_accel_calibration.diagnosis.diagnose import diagnose
+    from fbg_accel_sim.board_physics import simulate_recording
+
+    cfg, duration = scenario(n)
+    rec = simulate_recording(cfg, seed=0, duration_s=duration)
+    rows: dict[tuple[str, str], dict] = {}
+    running: list[tuple[str, str]] = []
+    designs = {"outside searches": 0}
+    fit_hyper, build_design = search.Evaluator._fit_hyper, search.build_design
+
+    def timed_fit_hyper(self, spec, eff, final=True):
+        names = [f.name for f in traceback.extract_stack()]
+        phase = next((p for p in SEARCH_PHASES if p in names), "other")
+        key = (phase.lstrip("_").replace("evaluate_on", "candidate on top of the model"), eff.name)
+        grid = eff.hyper_grid(self.data)
+        row = rows.setdefault(key, {"searches": 0, "grid": 0 if grid is None else len(grid), "designs": 0, "cpu_s": 0.0})
+        running.append(key)
+        t0 = time.process_time()
+        try:
+            return fit_hyper(self, spec, eff, final)
+        finally:
+            running.pop()
+            row["searches"] += 1
+            row["cpu_s"] += time.process_time() - t0
+
+    def counted_build_design(*a, **kw):
+        if running:
+            rows[running[-1]]["designs"] += 1
+        else:
+            designs["outside searches"] += 1
+        return build_design(*a, **kw)
+
+    search.Evaluator._fit_hyper, search.build_design = timed_fit_hyper, counted_build_design
+    try:
+        t0 = time.process_time()
+        diagnose(rec, sensor_id="bench", lanes=1)
+        total = time.process_time() - t0
+    finally:
+        search.Evaluator._fit_hyper, search.build_design = fit_hyper, build_design
+    searches = sorted(({"phase": k[0], "candidate": k[1], **{f: round(v, 3) if isinstance(v, float) else v
+                                                            for f, v in r.items()}} for k, r in rows.items()),
+                      key=lambda r: -r["cpu_s"])
+    in_searches = sum(r["cpu_s"] for r in searches)
+    by_phase: dict[str, float] = {}
+    for r in searches:
+        by_phase[r["phase"]] = round(by_phase.get(r["phase"], 0.0) + r["cpu_s"], 3)
+    return {"diagnose_cpu_s": round(total, 3), "in_searches_cpu_s": round(in_searches, 3),
+            "designs_in_searches": sum(r["designs"] for r in searches),
+            "designs_outside_searches": designs["outside searches"], "by_phase_cpu_s": by_phase, "searches": searches}
+
+
+def print_trials(n: int, res: dict) -> None:
+    print(f"{n} samples: diagnose {res['diagnose_cpu_s']:.2f} s CPU, {res['in_searches_cpu_s']:.2f} s in "
+          f"{sum(r['searches'] for r in res['searches'])} searches ({res['designs_in_searches']} designs; "
+          f"{res['designs_outside_searches']} outside them); by phase {res['by_phase_cpu_s']}")
+    print("| phase | candidate | searches | grid | designs | CPU s | per design ms |")
+    print("|---|---|---|---|---|---|---|")
+    for r in res["searches"]:
+        print(f"| {r['phase']} | {r['candidate']} | {r['searches']} | {r['grid']} | {r['designs']} | {r['cpu_s']:.2f} | "
+              f"{1e3 * r['cpu_s'] / max(r['designs'], 1):.0f} |")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000])
+    ap.add_argument("--trials", type=int, nargs="+", default=None,
+                    help="sizes at which to split the diagnosis's CPU by search (module docstring)")
     ap.add_argument("--output", type=Path, help="output file (default: diagnose_scaling.json in the scratch/results directory)")
     add_update_results(ap)
     args = ap.parse_args(argv)
+    if args.trials:
+        args.output = args.output or results_dir(args.update_results) / "diagnose_trials.json"
+        runs = {}
+        for n in args.trials:
+            runs[str(n)] = trial_costs(n)
+            print_trials(n, runs[str(n)])
+        write_results(args.output, results_doc(
+            "diagnose_scaling.py", argv,
+            what="CPU time of diagnose() on one lane (lanes=1) of bench_calibration.scenario(N), seed 0, in this "
+                 "process, split by hyper-parameter search (Evaluator._fit_hyper: phase, candidate) with the designs "
+                 "each built (build_design calls: its trials)", runs=runs), indent=1)
+        return 0
     args.output = args.output or results_dir(args.update_results) / "diagnose_scaling.json"
     runs: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="diagnose_scaling_") as tmp:

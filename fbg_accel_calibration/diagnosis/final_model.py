@@ -21,7 +21,7 @@ from .design import Design, ModelSpec, build_design
 from .findings import Finding, flagged_visits
 from .floor import FloorMeasurement, VisitNoise, within_visit_noise
 from .search_lanes import beside
-from .structure import ResidualStructure, heldout_mean_covariance, residual_structure
+from .structure import ResidualStructure, heldout_mean_null, heldout_visit_sums, residual_structure
 
 Added = tuple[str, float | None, str]  # effect name, hyper-parameter, description
 
@@ -110,9 +110,10 @@ def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: Flo
                              des_f, cv_f, fit_rows, rows_f, fold, weights)
     G_f, blocks_f = des_f.G, des_f.blocks
     r_eval = rows_f & finite_rows(residual_before) & finite_rows(cv_f.heldout)
-    null = heldout_mean_covariance(des_f.X, fit_rows & des_f.valid, r_eval, groups, fold, cv_f.sums.xtx,
-                                   cv_f.sums.XtX, noise_model_after)
-    del des_f  # its design matrix (N x p) is let go once cv_f's held-out residual is worked out
+    visit_sums = heldout_visit_sums(des_f.X, fit_rows & des_f.valid, r_eval, groups, fold)
+    del des_f  # its design matrix (N x p) is let go before the (V, V) covariances of the visit means are made
+    null = None if visit_sums is None else heldout_mean_null(visit_sums, cv_f.sums.xtx, cv_f.sums.XtX,
+                                                             noise_model_after)
 
     def rms(r: np.ndarray) -> np.ndarray:
         return np.sqrt(np.mean(r[r_eval] ** 2, axis=0))

@@ -69,7 +69,10 @@ class HeldoutMeanNull:
     cov: np.ndarray
 
     def for_visits(self, ug: np.ndarray, diag: np.ndarray) -> np.ndarray:
-        """(3, len(ug), len(ug)) for the visits ``ug``; a visit it does not hold gets ``diag`` (len(ug), 3) alone."""
+        """(3, len(ug), len(ug)) for the visits ``ug``; a visit it does not hold gets ``diag`` (len(ug), 3) alone. For
+        its own visits, ``cov`` itself (not a copy: 3 V^2 values, 150 MiB for the 2500 visits of 10^6 samples)."""
+        if np.array_equal(ug, self.visits):
+            return self.cov
         out = np.zeros((3, len(ug), len(ug)))
         pos = np.searchsorted(self.visits, ug)
         known = (pos < len(self.visits)) & (self.visits[np.minimum(pos, len(self.visits) - 1)] == ug)
@@ -78,6 +81,39 @@ class HeldoutMeanNull:
         u = np.flatnonzero(~known)
         out[:, u, u] = diag[u].T
         return out
+
+
+@dataclass
+class HeldoutVisitSums:
+    """What ``heldout_mean_null`` needs of the final design (N, p): its rows summed by visit, small beside it (the
+    design is let go before the (V, V) covariances are made: ``final_model``)."""
+
+    visits: np.ndarray  # (V,) the held-out visit ids
+    own: np.ndarray  # (V,) each held-out visit's index among the fitted visits
+    counts: np.ndarray  # (Va,) fitted samples of each fitted visit
+    fold: np.ndarray  # (Va,) each fitted visit's fold (-2: never held out)
+    S: np.ndarray  # (Va, p) each fitted visit's design rows summed
+    xbar: np.ndarray  # (V, p) each held-out visit's mean design row
+
+
+def heldout_visit_sums(X: np.ndarray, fit_rows: np.ndarray, eval_rows: np.ndarray, groups: np.ndarray,
+                       fold: np.ndarray) -> HeldoutVisitSums | None:
+    """The visit sums of ``X`` (N, p) that ``heldout_mean_null`` works from (arguments as ``heldout_mean_covariance``);
+    None when there is nothing to hold out."""
+    fa = fit_rows & (groups >= 0)
+    ua, inv_a = np.unique(groups[fa], return_inverse=True)
+    rb = eval_rows & (groups >= 0) & (fold >= 0)
+    ub, inv_b = np.unique(groups[rb], return_inverse=True)
+    if not len(ua) or not len(ub):
+        return None
+    own = np.minimum(np.searchsorted(ua, ub), len(ua) - 1)  # each held-out visit among the fitted ones
+    if not np.array_equal(ua[own], ub):
+        return None
+    fold_a = np.zeros(len(ua), int)
+    fold_a[inv_a] = fold[fa]
+    cnt_b = np.bincount(inv_b).astype(float)
+    return HeldoutVisitSums(ub, own, np.bincount(inv_a).astype(float), fold_a, _visit_sums(X, fa, inv_a, len(ua)),
+                            _visit_sums(X, rb, inv_b, len(ub)) / cnt_b[:, None])
 
 
 def heldout_mean_covariance(X: np.ndarray, fit_rows: np.ndarray, eval_rows: np.ndarray, groups: np.ndarray,
@@ -102,22 +138,15 @@ def heldout_mean_covariance(X: np.ndarray, fit_rows: np.ndarray, eval_rows: np.n
     ``fit_rows``: the fitted samples (X finite there, ``fold`` != -1); ``fold_xtx`` (K, p, p) X^T X of each fold's
     fitted rows, ``XtX`` (p, p) over all of them (as ``cross_validate`` sums them). None when there is nothing to hold
     out or a training set is singular."""
-    fa = fit_rows & (groups >= 0)
-    ua, inv_a = np.unique(groups[fa], return_inverse=True)
-    rb = eval_rows & (groups >= 0) & (fold >= 0)
-    ub, inv_b = np.unique(groups[rb], return_inverse=True)
-    if not len(ua) or not len(ub):
-        return None
-    own = np.minimum(np.searchsorted(ua, ub), len(ua) - 1)  # each held-out visit among the fitted ones
-    if not np.array_equal(ua[own], ub):
-        return None
-    p = X.shape[1]
-    cnt_a = np.bincount(inv_a).astype(float)
-    S = _visit_sums(X, fa, inv_a, len(ua))  # (Va, p)
-    fold_a = np.zeros(len(ua), int)
-    fold_a[inv_a] = fold[fa]
-    cnt_b = np.bincount(inv_b).astype(float)
-    xbar = _visit_sums(X, rb, inv_b, len(ub)) / cnt_b[:, None]
+    sums = heldout_visit_sums(X, fit_rows, eval_rows, groups, fold)
+    return None if sums is None else heldout_mean_null(sums, fold_xtx, XtX, noise_model)
+
+
+def heldout_mean_null(sums: HeldoutVisitSums, fold_xtx: np.ndarray, XtX: np.ndarray,
+                      noise_model: VisitNoise) -> HeldoutMeanNull | None:
+    """``heldout_mean_covariance`` from the design's visit sums (``heldout_visit_sums``)."""
+    ub, own, cnt_a, fold_a, S, xbar = sums.visits, sums.own, sums.counts, sums.fold, sums.S, sums.xbar
+    p = S.shape[1]
     fold_b = fold_a[own]
     folds = np.unique(fold_a)  # the held-out folds and -2 (never held out)
     at_a = [fold_a == k for k in folds]
@@ -265,7 +294,10 @@ def visit_mean_test(means: np.ndarray, cov: np.ndarray, dof: np.ndarray) -> tupl
     z = means / np.sqrt(var)
     chi = np.sum(z**2, axis=0)
     sd = np.sqrt(var.T)  # (3, V)
-    h = V**2 / np.maximum(np.sum((cov / sd[:, :, None] / sd[:, None, :]) ** 2, axis=(1, 2)), 1e-300)
+    r = cov / sd[:, :, None]  # the correlation matrix R, squared in place: one (3, V, V) temporary, not three
+    r /= sd[:, None, :]
+    np.square(r, out=r)
+    h = V**2 / np.maximum(np.sum(r, axis=(1, 2)), 1e-300)
     return z, _visit_chi2_p(chi * h / max(V, 1), h, dof)
 
 
