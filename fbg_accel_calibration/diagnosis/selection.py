@@ -5,7 +5,9 @@ every candidate on top of the current model (``search.Evaluator``: hyper-paramet
 held-out gain per visit, one-sided test over visits, Bonferroni over the candidates the data can show), the checks
 each candidate declares (``checks``), confounding among the significant ones; the best is added, eq. 28's degree
 chosen again, and an effect added earlier that no longer gains on top of the others taken out again
-(``drop_explained``), until none is significant or gains less than ``min_rel_gain``. The searches run on ``Lanes`` (its
+(``drop_explained``), until none is significant or gains less than ``min_rel_gain``. A model whose residual still
+keeps a structure no term of it represents claims none of its terms (``checks.stand_ins``: they would stand in for an
+effect outside the library). The searches run on ``Lanes`` (its
 ``map`` is the one seam of the parallel execution: serial with one lane, the same results with any number).
 """
 
@@ -87,7 +89,8 @@ class Rules:
 @dataclass
 class Selection:
     """What the forward selection found: the final model, its steps, what the design cannot show (a Finding or
-    None), the candidates a step of the response fits as well (name -> why) and how far the search was thinned."""
+    None), the candidates a step of the response fits as well (name -> why), how far the search was thinned and the
+    terms taken out again as stand-ins for an effect outside the library."""
 
     spec: ModelSpec
     steps: list[StepResult]
@@ -97,6 +100,7 @@ class Selection:
     step: int  # every step-th fitted sample searched
     kept: float  # information of a visit mean the thinned search keeps
     n_lanes: int  # searches that ran side by side
+    stand_ins: list[Finding] = field(default_factory=list)  # terms not claimed: stand-ins (``checks.stand_ins``)
 
     def confounded(self) -> dict[str, list[str]]:
         """Added effect -> the candidates it was confounded with when added (only those with any)."""
@@ -251,8 +255,16 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
         return_free_memory()  # what the step's searches dropped, before the next step's are made
         base, base_coefficients = (cv_c.heldout, cv_c.fitted_full, des_c.G), cv_c.A_full
         del des_c, cv_c  # the design (n x p) is not held beyond the evaluator's own caches
+    # a term whose residual keeps structure no term has is a stand-in for an effect outside the library: not claimed
+    spec, refused = checks.stand_ins(searchers, spec, floor.noise_model, rules.alpha)
+    if refused:
+        if rules.reselect_degree:
+            spec = reselect_degree(searchers, spec, rules.max_degree)[0]
+        steps[-1].removed_note += ("; " if steps[-1].removed_note else "") + (
+            f"{', '.join(f.effect for f in refused)} not claimed: the residual keeps a structure no term represents "
+            f"(stand-ins for an effect outside the library); degree of eq. 28 without them {spec.degree}")
     n_search = len(sel.folds) if step > 1 else None
-    return Selection(spec, steps, detection_limit, ctx.step_confounded, n_search, step, kept, n_lanes)
+    return Selection(spec, steps, detection_limit, ctx.step_confounded, n_search, step, kept, n_lanes, refused)
 
 
 def drop_explained(lanes: Lanes[Evaluator], spec: ModelSpec, chosen: str, alpha_each: float,
