@@ -124,6 +124,24 @@ def test_effect_outside_the_library_is_reported_as_unexplained() -> None:
     assert "Measurements that would settle it" in markdown(res)
 
 
+@pytest.mark.parametrize(("extra", "seed"), [({"effects.unmodelled_cable_torque.scale": 3.0}, 4),
+                                             ({"effects.motion_hysteresis.scale": 0.75}, 12)],
+                         ids=["cable-torque", "motion-hysteresis"])
+def test_an_effect_outside_the_library_claims_no_term_that_would_stand_in_for_it(extra: dict, seed: int) -> None:
+    """Issue 41: a cable the table drags (sin 2 psi, x3) or a motion-history hysteresis (0.3 m/s^2) on the grid. On
+    the unchanged code a library term took part of each and was written to the calibration (spectral_nonlinearity
+    +18-22 % for the cable; time_drift tau ~20 s or a dark offset for the hysteresis) while the residual stayed
+    significant (1.1-1.3x the floor). With the term in, the visits of one direction of gravity still disagree (p
+    1e-13 .. 1e-26 on these seeds, against the refusal's 1e-6; the library effects alone leave 7e-4 at the lowest):
+    no term is claimed, each refused one is a finding naming what separates them, and the residual is "unexplained"."""
+    res = diagnose(simulate_recording(_config(extra), seed=seed))
+    assert res.added == [] and res.rig_terms == [], res.added
+    refused = [f for f in res.findings if f.kind == "stand_in"]
+    assert refused and all("turn the sensor 90 degrees" in f.separates for f in refused), res.findings
+    assert res.structure.significant and "significant unexplained residual" in res.structure.verdict
+    assert "not claimed" in markdown(res)
+
+
 def test_an_implausible_best_hyper_value_does_not_hide_a_plausible_one() -> None:
     """Issue 8: the warm-up time constant that fits best on this seed gives a warm-up of 13 m/s^2 cancelled by a
     creep, refused by the plausibility bound; the whole drift was then refused and a dark offset added in its
