@@ -222,7 +222,9 @@ def test_measured_series_read_noise_is_separated_from_the_offset(tmp_path: Path)
     """Issue 8, point 1, on the measured series: the reference-offset term still gains most held out, but
     its implied axis-channel offsets (about 230 / 530 / 150 counts) are up to a third of the signal: it is
     refused; the reference's read noise is a candidate of its own and its low-pass is taken as a noise
-    remedy; the held-out error falls on every axis."""
+    remedy; the held-out error falls on every axis. A time drift takes part of what remains (x 0.497 -> 0.267 m/s^2), but
+    with it in the visits of one direction of gravity still disagree far beyond the noise (p ~1e-49 on x, 2.3x the
+    floor) and a step of the response fits it as well: it is not claimed (issue 41, ``checks.stand_ins``)."""
     assert MEASURED.is_file(), f"measured data not found: {MEASURED} (../shared/data/measured/ is needed for this test)"
 
     rec, _ = import_csv(MEASURED, rate_hz=1.0, temperature_c=23.4, g_mps2=9.81)
@@ -231,17 +233,19 @@ def test_measured_series_read_noise_is_separated_from_the_offset(tmp_path: Path)
     first = res.ranked[0]
     assert first.name == "reference_dark_offset" and first.implausible and not first.significant
     assert [r[0] for r in res.noise_remedies] == ["reference_read_noise"]
-    assert res.after_heldout_rmse[0] < 0.75 * res.before_heldout_rmse[0]
     assert np.all(res.after_heldout_rmse < res.before_heldout_rmse)
+    assert "time_drift" not in [a[0] for a in res.added]
+    assert [f.effect for f in res.findings if f.kind == "stand_in"] == ["time_drift"], res.findings
     assert np.all(res.final_floor < res.noise_floor)  # part of the floor was the reference's read noise
     # the five visits the model fits worst all read y = 1535 while 1536-1543 never occur: a wide ADC code
     held = [(h.channel, h.code) for h in res.held_codes]
     assert held == [("y", 1535)]
     h = res.held_codes[0]
-    assert len(h.visits) == 5 and h.missing_above == (1536, 1543) and h.rmse_without[0] < 0.85 * res.after_heldout_rmse[0]
+    assert len(h.visits) == 5 and h.missing_above == (1536, 1543) and h.rmse_without[0] < 0.97 * res.after_heldout_rmse[0]
     paths = write_report(res, tmp_path / "m.md")
     assert all(p.exists() for p in paths)
-    assert (tmp_path / "m.md").read_text().count("| y 1535 |") == 5  # marked in the table of the worst visits
+    # marked in the table of the worst visits (2 of the 5 are among them with the drift's share of the residual left)
+    assert (tmp_path / "m.md").read_text().count("| y 1535 |") >= 1
 
 
 def test_console_table_has_a_header_and_reports_say_sample_index_without_a_time_base(tmp_path: Path) -> None:

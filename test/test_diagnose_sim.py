@@ -124,6 +124,24 @@ def test_effect_outside_the_library_is_reported_as_unexplained() -> None:
     assert "Measurements that would settle it" in markdown(res)
 
 
+@pytest.mark.parametrize(("extra", "seed"), [({"effects.unmodelled_cable_torque.scale": 3.0}, 4),
+                                             ({"effects.motion_hysteresis.scale": 0.75}, 12)],
+                         ids=["cable-torque", "motion-hysteresis"])
+def test_an_effect_outside_the_library_claims_no_term_that_would_stand_in_for_it(extra: dict, seed: int) -> None:
+    """Issue 41: a cable the table drags (sin 2 psi, x3) or a motion-history hysteresis (0.3 m/s^2) on the grid. On
+    the unchanged code a library term took part of each and was written to the calibration (spectral_nonlinearity
+    +18-22 % for the cable; time_drift tau ~20 s or a dark offset for the hysteresis) while the residual stayed
+    significant (1.1-1.3x the floor). With the term in, the visits of one direction of gravity still disagree (p
+    1e-13 .. 1e-26 on these seeds, against the refusal's 1e-6; the library effects alone leave 7e-4 at the lowest):
+    no term is claimed, each refused one is a finding naming what separates them, and the residual is "unexplained"."""
+    res = diagnose(simulate_recording(_config(extra), seed=seed))
+    assert res.added == [] and res.rig_terms == [], res.added
+    refused = [f for f in res.findings if f.kind == "stand_in"]
+    assert refused and all("turn the sensor 90 degrees" in f.separates for f in refused), res.findings
+    assert res.structure.significant and "significant unexplained residual" in res.structure.verdict
+    assert "not claimed" in markdown(res)
+
+
 def test_an_implausible_best_hyper_value_does_not_hide_a_plausible_one() -> None:
     """Issue 8: the warm-up time constant that fits best on this seed gives a warm-up of 13 m/s^2 cancelled by a
     creep, refused by the plausibility bound; the whole drift was then refused and a dark offset added in its
@@ -574,8 +592,9 @@ def test_an_orientation_term_that_stands_in_for_a_table_angle_effect_is_said_to_
     this grid a quadratic in Psi predicts it wherever theta is not 0 or 180 degrees, and spectral_nonlinearity was added
     (+17.7 %, p 1.7e-3) and written to the YAML as a property of the sensor, with no word that it may stand in for
     something else. What remains differs between the visits at z up and z down (the inner angle turns, the direction
-    does not): the report now says the orientation term may stand in for an effect of the table's angles. A genuine
-    second-order sensitivity (K2 = 0.004 per m/s^2 on x) is added with nothing left over, and no such warning."""
+    does not), far beyond the noise: the orientation term is not claimed (issue 41, ``checks.stand_ins``) and the
+    finding says it would stand in for an effect of the table's angles. A genuine second-order sensitivity (K2 =
+    0.004 per m/s^2 on x) is added with nothing left over, and no such warning."""
     # the reference given as a vector (no table angles, so no table_theta_offset). What is tested is the warning once
     # the term is in, not the selection's threshold: this small grid's signed-rank test gives p 6e-4 .. 4e-3 over
     # seeds 1-4, around the default level (0.01 / 6 candidates), so the level is 0.05 / 6 = 8.3e-3, 13x the p of
@@ -583,8 +602,9 @@ def test_an_orientation_term_that_stands_in_for_a_table_angle_effect_is_said_to_
     rec = simulate_recording(_config({"effects.unmodelled_cable_torque.scale": 3.0}), seed=1)
     rec.table_deg = None
     res = diagnose(rec, alpha=0.05)
-    assert "spectral_nonlinearity" in [a[0] for a in res.added], res.added
-    assert any(w.startswith("spectral_nonlinearity is a function of the orientation") for w in res.warnings), res.warnings
+    assert res.steps[0].chosen == "spectral_nonlinearity", res.steps[0].chosen  # the case at all
+    assert "spectral_nonlinearity" not in [a[0] for a in res.added], res.added
+    assert [f.effect for f in res.findings if f.kind == "stand_in"] == ["spectral_nonlinearity"], res.findings
     rec = simulate_recording(_config({}), seed=1)
     da = np.zeros_like(rec.gref_mps2)
     da[:, 0] = 0.004 * np.nan_to_num(rec.gref_mps2[:, 0]) ** 2
@@ -811,3 +831,21 @@ def test_an_effect_chosen_first_that_two_later_ones_explain_is_taken_out_again()
     assert any(st.removed_note.startswith("time_drift taken out again") for st in res.steps)
     tau = next(a[1] for a in res.added if a[0] == "thermal_lag")
     assert abs(tau / -LAG_S - 1.0) < 0.05, tau  # the reading lags the optics by 120 s
+
+
+def test_a_term_added_before_another_has_its_hyper_parameter_searched_again_beside_it() -> None:
+    """Issue 41, defect 2: the same ramps on another seed. The dark offsets are refused at step 1 (eq. 28 of degree 1,
+    which the two missing effects held the declared model to, makes their implied axis offsets 27 % of the counts),
+    so the thermal lag enters first, with tau 161.5 s (35 % long); the dark offset follows and takes eq. 28 to degree
+    2, and on the unchanged code the lag kept its tau and a time drift was added third for what it left. After each
+    term enters, those before it are searched again beside it: tau comes back to 118.7 s (1 % of the 120 s
+    injected, asserted within 5 %), and nothing else is added."""
+    from fbg_accel_calibration.diagnosis.effects import ReferenceDarkOffsetEffect, ThermalLagEffect, TimeDriftEffect
+
+    rec = simulate_recording(_config({**RAMPS, **LAG, **DARK_UNDER_DRIFT}), seed=43)
+    res = diagnose(rec, library=(ReferenceDarkOffsetEffect(), ThermalLagEffect(), TimeDriftEffect()))
+    assert res.steps[0].chosen == "thermal_lag", [(c.name, round(c.rel_gain, 3)) for c in res.ranked]  # the case at all
+    assert sorted(a[0] for a in res.added) == ["reference_dark_offset", "thermal_lag"], res.added
+    tau = next(a[1] for a in res.added if a[0] == "thermal_lag")
+    assert abs(tau / -LAG_S - 1.0) < 0.05, tau
+    assert res.final_degree == 2 and any("searched again beside it" in st.degree_note for st in res.steps)

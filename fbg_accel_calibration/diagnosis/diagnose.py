@@ -26,8 +26,10 @@ Pure numpy/scipy engine behind ``fbg-accel-calib diagnose``. Steps:
 4. Forward selection: add the best significant candidate, then take out again an effect added before it that no
    longer gains on top of the others (``selection.drop_explained``), repeat; stop when no candidate is
    significant or gains less than ``min_rel_gain`` of the held-out MSE (so nothing is added when
-   nothing is significant). Above ``SEARCH_ROWS`` fitted samples, steps 3-4 run on every k-th fitted
-   sample (the same visits and folds; ``search_samples``: k no larger than keeps ``MIN_SEARCH_INFORMATION``
+   nothing is significant). When the selected model's residual still differs between visits of one direction of
+   gravity far beyond the noise, its terms are not claimed: they would stand in for an effect outside the library
+   (``checks.stand_ins``), and the report says "unexplained". Above ``SEARCH_ROWS`` fitted samples, steps 3-4 run
+   on every k-th fitted sample (the same visits and folds; ``search_samples``: k no larger than keeps ``MIN_SEARCH_INFORMATION``
    of what a visit's samples tell of its mean) and only the chosen model is fitted on all.
 5. Refit with the winners as declared ``corrections`` of a ``ThermalCalibration``; check that the
    driver's ``apply_counts`` reproduces the fit's prediction; before/after held-out RMSE per axis
@@ -188,7 +190,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     findings += cannot_reveal(sel.steps[0].candidates if sel.steps else [], {e.name: e.title for e in library})
     findings += [Finding("step_confounded", why, effect=e.name, separates=e.tells_it_from_a_step)
                  for e, _ in sel.spec.effects if (why := sel.step_confounded.get(e.name))]
-    findings += final_model_findings(sel.spec, final.structure, alpha)
+    findings += sel.stand_ins + final_model_findings(sel.spec, final.structure, alpha)
     findings += approach_findings(approach_signature(data, final.heldout, final.r_eval), alpha, sel.spec.names)
     findings += [final.flagged] if final.flagged else []
     if floor.disturbance.found:

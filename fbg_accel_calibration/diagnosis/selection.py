@@ -5,7 +5,9 @@ every candidate on top of the current model (``search.Evaluator``: hyper-paramet
 held-out gain per visit, one-sided test over visits, Bonferroni over the candidates the data can show), the checks
 each candidate declares (``checks``), confounding among the significant ones; the best is added, eq. 28's degree
 chosen again, and an effect added earlier that no longer gains on top of the others taken out again
-(``drop_explained``), until none is significant or gains less than ``min_rel_gain``. The searches run on ``Lanes`` (its
+(``drop_explained``), until none is significant or gains less than ``min_rel_gain``. A model whose residual still
+keeps a structure no term of it represents claims none of its terms (``checks.stand_ins``: they would stand in for an
+effect outside the library). The searches run on ``Lanes`` (its
 ``map`` is the one seam of the parallel execution: serial with one lane, the same results with any number).
 """
 
@@ -87,7 +89,8 @@ class Rules:
 @dataclass
 class Selection:
     """What the forward selection found: the final model, its steps, what the design cannot show (a Finding or
-    None), the candidates a step of the response fits as well (name -> why) and how far the search was thinned."""
+    None), the candidates a step of the response fits as well (name -> why), how far the search was thinned and the
+    terms taken out again as stand-ins for an effect outside the library."""
 
     spec: ModelSpec
     steps: list[StepResult]
@@ -97,6 +100,7 @@ class Selection:
     step: int  # every step-th fitted sample searched
     kept: float  # information of a visit mean the thinned search keeps
     n_lanes: int  # searches that ran side by side
+    stand_ins: list[Finding] = field(default_factory=list)  # terms not claimed: stand-ins (``checks.stand_ins``)
 
     def confounded(self) -> dict[str, list[str]]:
         """Added effect -> the candidates it was confounded with when added (only those with any)."""
@@ -239,6 +243,9 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
             steps[-1].degree_note = (f"degree of eq. 28 re-selected with {chosen} in the model: "
                                      + (f"{was} -> {spec.degree}" if spec.degree != was else f"{was}, unchanged")
                                      + "".join(f"; {n}" for n in notes))
+        if len(spec.effects) >= 2:  # the terms added before it searched again beside it (and eq. 28's degree)
+            spec, refit_note = refit_earlier(searchers, spec, rules.max_degree if rules.reselect_degree else None)
+            steps[-1].degree_note += refit_note
         if len(spec.effects) >= 2:  # a term added earlier that those after it explain is taken out again
             spec, steps[-1].removed_note = drop_explained(searchers, spec, chosen, ctx.alpha_each, rules.min_rel_gain)
             if steps[-1].removed_note and rules.reselect_degree:
@@ -251,8 +258,55 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
         return_free_memory()  # what the step's searches dropped, before the next step's are made
         base, base_coefficients = (cv_c.heldout, cv_c.fitted_full, des_c.G), cv_c.A_full
         del des_c, cv_c  # the design (n x p) is not held beyond the evaluator's own caches
+    # a term whose residual keeps structure no term has is a stand-in for an effect outside the library: not claimed
+    spec, refused = checks.stand_ins(searchers, spec, floor.noise_model, rules.alpha)
+    if refused:
+        if rules.reselect_degree:
+            spec = reselect_degree(searchers, spec, rules.max_degree)[0]
+        steps[-1].removed_note += ("; " if steps[-1].removed_note else "") + (
+            f"{', '.join(f.effect for f in refused)} not claimed: the residual keeps a structure no term represents "
+            f"(stand-ins for an effect outside the library); degree of eq. 28 without them {spec.degree}")
     n_search = len(sel.folds) if step > 1 else None
-    return Selection(spec, steps, detection_limit, ctx.step_confounded, n_search, step, kept, n_lanes)
+    return Selection(spec, steps, detection_limit, ctx.step_confounded, n_search, step, kept, n_lanes, refused)
+
+
+def refit_earlier(lanes: Lanes[Evaluator], spec: ModelSpec, max_degree: int | None) -> tuple[ModelSpec, str]:
+    """After a term entered (the last of ``spec.effects``): the hyper-parameter of each term added before it searched
+    again on top of all the others (``Evaluator.fit_hyper``, nested, then refined on all rows), then, with ``max_degree``
+    (None: not re-selected), eq. 28's degree chosen again with the new values. Each value was chosen beside another
+    model: on ramps with a thermal lag and dark offsets under a source drift, the lag entered first at the degree
+    its missing partner held eq. 28 to (1) with tau 35 % long, stayed so once the dark offset took the degree to 2,
+    and a drift took what the wrong tau left. Returns the model and a note ("" when nothing moved). The searches run
+    side by side on ``lanes``."""
+    data = lanes.lanes[0].data
+    todo = [i for i, (e, h) in enumerate(spec.effects[:-1]) if h is not None and e.hyper_grid(data) is not None]
+    if not todo:
+        return spec, ""
+
+    def again(lane: Evaluator, i: int) -> float | None:
+        rest = ModelSpec(spec.degree, spec.t_center_c, spec.t_scale_c, [x for j, x in enumerate(spec.effects) if j != i])
+        try:
+            return lane.fit_hyper(rest, spec.effects[i][0])[0]
+        except NotIdentifiedError:  # the model without it is not identified on this data: it keeps its value
+            return None
+
+    effects, notes = list(spec.effects), []
+    for i, h in zip(todo, lanes.map(again, todo), strict=True):
+        eff, was = effects[i]
+        if h is None or float(h) == float(was):
+            continue
+        effects[i] = (eff, float(h))
+        notes.append(f"{eff.name} {eff.hyper_name} searched again beside it: {float(was):.4g} -> {float(h):.4g} "
+                     f"{eff.hyper_unit}")
+    if not notes:
+        return spec, ""
+    out = ModelSpec(spec.degree, spec.t_center_c, spec.t_scale_c, effects)
+    if max_degree is not None:
+        was_degree = out.degree
+        out = reselect_degree(lanes, out, max_degree)[0]
+        if out.degree != was_degree:
+            notes.append(f"degree of eq. 28 chosen again with it: {was_degree} -> {out.degree}")
+    return out, "".join(f"; {n}" for n in notes)
 
 
 def drop_explained(lanes: Lanes[Evaluator], spec: ModelSpec, chosen: str, alpha_each: float,
