@@ -15,6 +15,7 @@ keep the test short; nominal sizes need hours of data.
 
 from __future__ import annotations
 
+import json
 import math
 import re
 from pathlib import Path
@@ -76,6 +77,27 @@ def _config(extra: dict) -> SimConfig:
     return SimConfig.default().with_overrides({**BASELINE, **GRID, **extra})
 
 
+_DIAGNOSED: dict[str, object] = {}
+
+
+def _diagnosed(extra: dict, seed: int, **kwargs):
+    """``diagnose(simulate_recording(_config(extra), seed=seed), **kwargs)``, computed once per test run: several tests
+    check different things of the same simulated campaign's diagnosis (each only reads the result)."""
+    key = json.dumps([extra, seed, kwargs], sort_keys=True)
+    if key not in _DIAGNOSED:
+        _DIAGNOSED[key] = diagnose(simulate_recording(_config(extra), seed=seed), **kwargs)
+    return _DIAGNOSED[key]
+
+
+@pytest.fixture(scope="module")
+def settled_levels_campaign():
+    """Three six-position runs (16 / 24 / 45 degC, 10 s dwells), each from power-on, and their diagnosis."""
+    from fbg_accel_sim.make_default_calibration import calibration_runs
+
+    rec = calibration_runs(SimConfig.default(), seed=1, dwell_s=10.0, move_s=3.0)
+    return rec, diagnose(rec)
+
+
 @pytest.mark.parametrize("effect", list(SCENARIOS))
 def test_injected_effect_is_ranked_first_added_and_brings_error_to_the_floor(effect: str) -> None:
     scale, extra, static = SCENARIOS[effect]
@@ -96,7 +118,7 @@ def test_injected_effect_is_ranked_first_added_and_brings_error_to_the_floor(eff
 def test_nothing_injected_nothing_added(seed: int) -> None:
     """No model effect is added. The reference's own ADC rounding (0.29 count rms on ~870 counts, about 0.05 m/s^2
     through eq. 24) is noise in every recording: its remedy, the reference low-pass, may be (+5-6 % held out)."""
-    res = diagnose(simulate_recording(_config({}), seed=seed))
+    res = _diagnosed({}, seed)
     assert res.added == [], [(c.name, round(c.rel_gain, 3), c.p_value) for c in res.ranked]
     assert all(isinstance(t, ReferenceLowpass) for t in res.calibration.corrections), res.calibration.corrections
     assert not res.structure.significant, res.structure.verdict
@@ -147,8 +169,7 @@ def test_an_implausible_best_hyper_value_does_not_hide_a_plausible_one() -> None
     creep, refused by the plausibility bound; the whole drift was then refused and a dark offset added in its
     place. The hyper-parameter search now keeps to plausible values when there are any."""
     scale, extra, static = SCENARIOS["time_drift"]
-    rec = simulate_recording(_config({**extra, "effects.time_drift.scale": scale}), seed=3)
-    res = diagnose(rec, static=static)
+    res = _diagnosed({**extra, "effects.time_drift.scale": scale}, 3, static=static)
     first = res.ranked[0]
     assert first.name == "time_drift" and not first.implausible, first.detail
     assert res.added[0][0] == "time_drift"
@@ -160,8 +181,7 @@ def test_the_empirical_terms_carry_the_span_they_were_fitted_on() -> None:
     to hours after power-on or a quadratic to many g; on the calibration data itself nothing is held."""
     for eff in ("time_drift", "spectral_nonlinearity"):
         scale, extra, static = SCENARIOS[eff]
-        rec = simulate_recording(_config({**extra, f"effects.{eff}.scale": scale}), seed=3)
-        res = diagnose(rec, static=static)
+        res = _diagnosed({**extra, f"effects.{eff}.scale": scale}, 3, static=static)
         term = next(t for t in res.calibration.corrections if t.kind == eff)
         used = res.data.use
         if eff == "time_drift":
@@ -403,7 +423,8 @@ def _with_acceleration_error(rec: Recording, da: np.ndarray) -> Recording:
     return out
 
 
-def test_a_drift_is_not_tested_when_every_run_visits_each_orientation_at_the_same_board_time() -> None:
+def test_a_drift_is_not_tested_when_every_run_visits_each_orientation_at_the_same_board_time(
+        settled_levels_campaign) -> None:
     """Three six-position runs (16 / 24 / 45 degC), each from power-on (board time 0), with one plan: every run
     visits x down at the same board time, so a function of board time shared by the runs fits whatever depends on
     the orientation there (here the spectral non-linearity: +0.1 m/s^2 on x at x up and x down). On the unchanged
@@ -413,10 +434,7 @@ def test_a_drift_is_not_tested_when_every_run_visits_each_orientation_at_the_sam
     further from the simulator's truth on x (0.15 against 0.046 m/s^2 RMS over a 30-degree grid of poses).
     The candidate is not testable on such data, and says why; the same runs recorded one after the other on one
     board clock do test it."""
-    from fbg_accel_sim.make_default_calibration import calibration_runs
-
-    rec = calibration_runs(SimConfig.default(), seed=1, dwell_s=10.0, move_s=3.0)
-    res = diagnose(rec)
+    rec, res = settled_levels_campaign
     assert "time_drift" not in [a[0] for a in res.added], res.added
     drift = next(c for c in res.ranked if c.name == "time_drift")
     assert not drift.applicable and "same board time" in drift.reason, drift.reason
@@ -544,7 +562,7 @@ def test_a_real_thermal_hysteresis_passes_the_step_check(profile, seed: int) -> 
     extra = {**THERMAL, "effects.thermal_hysteresis.scale": 10.0}
     if profile is not None:
         extra["scenario.temperature.profile"] = profile
-    res = diagnose(simulate_recording(_config(extra), seed=seed))
+    res = _diagnosed(extra, seed)
     hyst = next(c for c in res.steps[0].candidates if c.name == "thermal_hysteresis")
     assert hyst.step_check is not None and not hyst.step_check.explained, hyst.detail
     assert res.added and res.added[0][0] == "thermal_hysteresis", res.added
@@ -583,7 +601,7 @@ def test_a_residual_that_differs_at_one_direction_of_gravity_is_named_a_table_an
 
 def test_clean_data_shows_no_disagreement_at_one_direction_of_gravity() -> None:
     """The signature of the test above on a recording with nothing injected: no axis below the per-axis level."""
-    res = diagnose(simulate_recording(_config({}), seed=11))
+    res = _diagnosed({}, 11)
     assert np.all(res.structure.direction_chi2_p > 0.01 / 3), res.structure.direction_chi2_p
 
 
@@ -614,8 +632,7 @@ def test_an_orientation_term_that_stands_in_for_a_table_angle_effect_is_said_to_
     # the simulator's own non-linearity on a seed that leaves a small residual (1.03x the floor, visits of one
     # direction apart at p 4e-4: the bias instability between visits minutes apart): small, so no warning
     scale, extra, static = SCENARIOS["spectral_nonlinearity"]
-    res = diagnose(simulate_recording(_config({**extra, "effects.spectral_nonlinearity.scale": scale}), seed=3),
-                   static=static)
+    res = _diagnosed({**extra, "effects.spectral_nonlinearity.scale": scale}, 3, static=static)
     assert res.added[0][0] == "spectral_nonlinearity" and np.all(res.structure.ratio < 1.1), res.structure.ratio
     assert not any("function of the orientation" in w for w in res.warnings), res.warnings
 
@@ -768,7 +785,7 @@ def test_a_clean_temperature_reading_is_not_called_a_fault(seed: int) -> None:
     resolution, held at 2 Hz) and the run held at four levels (10 degC in 30 s) never depart from their recent course
     by 0.2 degC: no warning, and the simulator's hysteresis x10 on the levels is still added."""
     for extra in (THERMAL, {**THERMAL, "scenario.temperature.profile": LEVELS, "effects.thermal_hysteresis.scale": 10.0}):
-        res = diagnose(simulate_recording(_config(extra), seed=seed))
+        res = _diagnosed(extra, seed)
         assert _jumps_named(res.warnings) == [], res.warnings
 
 
@@ -789,18 +806,15 @@ def test_a_quadratic_of_the_orientation_beyond_what_the_spectral_overlap_can_ben
     assert res.structure.significant, res.structure.verdict
 
 
-def test_a_campaign_of_settled_levels_is_said_to_be_unable_to_reveal_a_lag() -> None:
+def test_a_campaign_of_settled_levels_is_said_to_be_unable_to_reveal_a_lag(settled_levels_campaign) -> None:
     """The paper's campaign design (six poses at each of three levels, 16 / 24 / 45 degC, each level recorded once the
     chamber had settled): no fitted sample sees the temperature change, so no lag between the optics and the AHT10
     can show, whatever its time constant. On the unchanged code thermal_lag was searched and ranked like any
     candidate, and the report said nothing of what the design cannot see; now it is not testable, and says why and
     what measurement would test it. A campaign recorded during ramps (THERMAL) still tests it."""
-    from fbg_accel_sim.make_default_calibration import calibration_runs
-
-    rec = calibration_runs(SimConfig.default(), seed=1, dwell_s=10.0, move_s=3.0)
-    lag = next(c for c in diagnose(rec).ranked if c.name == "thermal_lag")
+    lag = next(c for c in settled_levels_campaign[1].ranked if c.name == "thermal_lag")
     assert not lag.applicable and "cannot reveal a lag" in lag.reason and "ramps" in lag.reason, lag.reason
-    ramped = next(c for c in diagnose(simulate_recording(_config(THERMAL), seed=1)).ranked if c.name == "thermal_lag")
+    ramped = next(c for c in _diagnosed(THERMAL, 1).ranked if c.name == "thermal_lag")
     assert ramped.applicable, ramped.reason
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_diagnose_sim import _config
+from test_diagnose_sim import _config, _diagnosed
 from test_diagnose_visits import M_TRUE, campaign
 
 from fbg_accel_calibration.diagnosis.diagnose import diagnose
@@ -114,7 +114,7 @@ def test_clean_synthetic_recordings_trim_no_end() -> None:
 def test_clean_simulated_recordings_trim_no_end() -> None:
     """The simulator with every named effect off (4 seeds): no end reported or trimmed, the summary says so."""
     for seed in range(1, 5):
-        res = diagnose(_sim(seed))
+        res = _diagnosed({}, seed)
         st = res.settling
         assert not st.end_detected and st.end_n_dropped == 0, (seed, st.summary())
         assert "first or the last sample" in st.summary(), st.summary()
@@ -126,9 +126,8 @@ def test_clean_simulated_recordings_trim_no_end() -> None:
 def test_simulated_table_readings_late_do_not_raise_the_floor(seed: int, lag: int) -> None:
     """The simulator's grid with the readings 0.1 or 0.3 s late: the floor stays within 15 % of the clean recording's
     (it went from 0.094 to 0.41 m/s^2 on y at 0.3 s) and, where the end holds more than the noise, it is reported."""
-    rec = _sim(seed)
-    clean = diagnose(rec)
-    res = diagnose(_readings_late(rec, lag))
+    clean = _diagnosed({}, seed)  # the clean recording's diagnosis, shared with the test above
+    res = diagnose(_readings_late(_sim(seed), lag))
     assert np.all(res.noise_floor < 1.15 * clean.noise_floor), (res.noise_floor, clean.noise_floor,
                                                                 res.settling.summary())
     if lag == 30:
