@@ -85,6 +85,9 @@ def test_a_one_run_recalibration_carries_the_earlier_run_to_run_component(files,
     constants), to the visit part this campaign estimates; the method names the file, its date and hash."""
     earlier = ThermalCalibration.load(files / "earlier.yaml")
     assert fit(files, "plain.yaml") == 0
+    # without the option, fit tells the user of the paper's design that the run-to-run part is not in the slow error
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("slow error of a pose mean"))
+    assert "run-to-run component not identified (one run per temperature level" in line
     assert fit(files, "carried.yaml", "--run-to-run-from", str(files / "earlier.yaml")) == 0
     out = capsys.readouterr().out
     plain, carried = (ThermalCalibration.load(files / n).slow_error for n in ("plain.yaml", "carried.yaml"))

@@ -122,9 +122,9 @@ def carried_run_to_run(path: Path) -> CarriedRunToRun:
         raise ValueError(f"--run-to-run-from {path}: {has} (its campaign did not identify it); give the calibration "
                          "of a campaign with a temperature level run twice")
     digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()[:12]
-    created = f"created {earlier.created}, " if earlier.created else ""
-    return CarriedRunToRun(earlier.slow_error.run_to_run, earlier.sensor_id,
-                           f"{Path(path).name[:120]} ({created}sha256 {digest})")
+    created = f"created {earlier.created[:40]}, " if earlier.created else ""
+    name = "".join(c if c.isprintable() else "?" for c in Path(path).name[:120])  # the method text stays one line
+    return CarriedRunToRun(earlier.slow_error.run_to_run, earlier.sensor_id, f"{name} ({created}sha256 {digest})")
 
 
 def check_same_sensor(carried: CarriedRunToRun, sensor_id: str) -> str:
