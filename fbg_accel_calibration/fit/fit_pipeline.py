@@ -29,7 +29,7 @@ from .coefficient_uncertainty import cluster_covariance
 from .fit_stream import FitData, prepare, prepare_stream
 from .model_selection import SelectionResult, select_degree
 from .slow_error import attach as attach_slow_error
-from .slow_error import carried_ignored, check_same_sensor
+from .slow_error import check_same_sensor
 from .static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW
 from .thermal_fit import (
     DEFAULT_CHUNK,
@@ -256,9 +256,9 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
     cal.noise_sigma_mps2 = np.asarray(cal.noise_sigma_mps2) / np.sqrt(factor)
     cal.fit["noise_sigma_correction"] = [round(float(v), 4) for v in 1.0 / np.sqrt(factor)]
     # with the final noise model: what the visits carry beyond it
-    slow = attach_slow_error(cal, data.stats, corr.dt_s, opt.run_to_run_from)
-    if opt.run_to_run_from is not None and slow is not None and slow.carried_from is None and slow.run_matrix is not None:
-        _warn(f"note: {carried_ignored(opt.run_to_run_from)}")
+    attach_slow_error(cal, data.stats, corr.dt_s, opt.run_to_run_from)
+    if "run_to_run_not_carried" in cal.fit.get("slow_error", {}):
+        _warn(f"note: {cal.fit['slow_error']['run_to_run_not_carried']}")
     cal.fit["sources"] = [str(p) for p in paths]
     cal.fit["degree_selection"] = selection.as_dict()
     cal.adc_codes = opt.adc_codes  # after everything above has evaluated the model on the mapped counts

@@ -230,11 +230,11 @@ def attach(cal: ThermalCalibration, stats: CellStats, dt_s: float,
     if est.carried_from is not None:
         cal.fit["slow_error"]["run_to_run_carried_from"] = est.carried_from
     elif carried is not None:
-        cal.fit["slow_error"]["run_to_run_not_carried"] = carried_ignored(carried)
+        cal.fit["slow_error"]["run_to_run_not_carried"] = _carried_ignored(carried)
     return est
 
 
-def carried_ignored(carried: CarriedRunToRun) -> str:
+def _carried_ignored(carried: CarriedRunToRun) -> str:
     """Why an earlier calibration's run-to-run component was not used: this campaign identified its own."""
     return (f"--run-to-run-from {carried.source} not used: this campaign identifies its own run-to-run component "
             "(a temperature level with two or more runs), which is the sensor's now")
