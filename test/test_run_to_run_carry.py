@@ -137,3 +137,14 @@ def test_a_campaign_that_identifies_its_own_keeps_it_and_says_the_earlier_one_wa
     assert "note: --run-to-run-from earlier.yaml (created " in err
     assert (") not used: this campaign identifies its own run-to-run component (a temperature level with two or more "
             "runs), which is the sensor's now") in err
+
+
+def test_an_unknown_sensor_id_cannot_be_checked_and_is_said_so(files, capsys) -> None:
+    """The campaign's recordings name no sensor and no --sensor-id is given: R is carried, with a note that the match
+    of the sensors could not be checked."""
+    assert cli_main(["fit", str(files / "later.mcap"), "--degree", "2", "-o", str(files / "anon.yaml"),
+                     "--run-to-run-from", str(files / "earlier.yaml")]) == 0
+    err = capsys.readouterr().err
+    assert ThermalCalibration.load(files / "anon.yaml").slow_error.run_to_run is not None
+    assert ": the sensor ids ('SN-A', this campaign 'unknown') do not tell whether it is the same sensor; its " \
+           "run-to-run component is used" in err
