@@ -21,8 +21,11 @@ the calibration's terms as the driver publishes them with ``covariance_includes_
 error; NEES, 3 degrees of freedom; the mean of S seeds' NEES of one pose lies in [chi2_0.025(3S), chi2_0.975(3S)] / S
 when the covariance is right). ``--calibration-runs-per-level 2`` fits campaigns of two separate runs per level,
 ``--calibration-repeat-levels 24`` gives one level a second run, ``--calibration-levels 24`` makes a single-level
-campaign (degree 0 in temperature). The result goes to the scratch directory (``nees_<design>.json``), ``--json`` or,
-with ``--update-results``, to bench/results/ and the design's table on docs/results/calibration_consistency.md.
+campaign (degree 0 in temperature). ``--calibration-carry-runs-per-level 2`` fits, for each seed, first an earlier
+calibration of the same simulated sensor with two runs per level (on seed + 1000) and carries its run-to-run component
+into the seed's campaign (``fit --run-to-run-from``), which then cannot identify its own. The result goes to the
+scratch directory (``nees_<design>.json``), ``--json`` or, with ``--update-results``, to bench/results/ and the
+design's table on docs/results/calibration_consistency.md.
 
     .venv/bin/python bench/nees_probe.py --calibration-seeds 20 --json /tmp/nees_calibration.json   # about 4 min
 
@@ -145,7 +148,8 @@ def shipped_calibration(dynamic: bool = False) -> ThermalCalibration:
 
 def fitted_calibration(seed: int, degree: int = 2, settle_s: float = 2.0, repeat: int = 3,
                        overrides: dict[str, Any] | None = None, runs_per_level: int = 1,
-                      repeat_levels: list[float] | None = None, levels: list[float] | None = None) -> ThermalCalibration:
+                      repeat_levels: list[float] | None = None, levels: list[float] | None = None,
+                       carried: Any = None) -> ThermalCalibration:
     """A calibration fitted as ``fbg-accel-calib fit`` does (eq. 28 with its coefficient covariance, the noise model and
     its within-visit correction, the slow error) on the simulator's six-pose campaign at 16 / 24 / 45 degC of ``seed``, with the
     static samples (at rest ``settle_s``) given by the simulator's truth; the six poses visited ``repeat`` times per
@@ -155,7 +159,8 @@ def fitted_calibration(seed: int, degree: int = 2, settle_s: float = 2.0, repeat
     its own state of the slow processes) at each level, so that a wander constant over a run is not absorbed by b(T);
     ``repeat_levels``: levels (degC, of 16 / 24 / 45) given one more run each (the cheapest design that identifies
     the run-to-run part of the slow error); ``levels``: the campaign's levels (degC, default 16 / 24 / 45; the degree is
-    then at most one less than their number)."""
+    then at most one less than their number); ``carried`` (``slow_error.CarriedRunToRun``): the run-to-run component of
+    an earlier calibration, used when this campaign does not identify its own."""
     from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
     from fbg_accel_calibration.fit.fit_stream import prepare
     from fbg_accel_calibration.fit.noise_correlation import from_recording, within_visit_factor
@@ -178,7 +183,7 @@ def fitted_calibration(seed: int, degree: int = 2, settle_s: float = 2.0, repeat
     corr = from_recording(rec.select(rec.run_id == rec.run_id[0]), cal)
     cal.noise_correlated_fraction, cal.noise_time_constant_s = corr.correlated_fraction, corr.time_constant_s
     cal.noise_sigma_mps2 = cal.noise_sigma_mps2 / np.sqrt(within_visit_factor(corr, corr.dt_s, data.stats.visit_lengths))
-    attach_slow_error(cal, data.stats, corr.dt_s)  # the slow error, as fit_pipeline.fit_files writes it
+    attach_slow_error(cal, data.stats, corr.dt_s, carried)  # the slow error, as fit_pipeline.fit_files writes it
     return cal
 
 
@@ -206,20 +211,29 @@ def pose_means(res: dict[str, np.ndarray], settle_s: float) -> tuple[np.ndarray,
 
 def calibration_consistency(seeds: int, temps: list[float], settle_s: float, first_seed: int = 100,
                             effects_off: list[str] | None = None, runs_per_level: int = 1,
-                            repeat_levels: list[float] | None = None, levels: list[float] | None = None
-                            ) -> dict[str, Any]:
+                            repeat_levels: list[float] | None = None, levels: list[float] | None = None,
+                            carry_runs_per_level: int = 0) -> dict[str, Any]:
     """NEES of the static pose means with and without the calibration's uncertainty over ``seeds`` fitted
     calibrations (module docstring); ``effects_off``: simulator effects switched off (``effects.<name>.scale`` 0) in the
-    campaign and in the check."""
+    campaign and in the check; ``carry_runs_per_level`` > 0: each seed's calibration carries the run-to-run component
+    of an earlier one with that many runs per level (seed + 1000)."""
     from scipy.stats import chi2
+
+    from fbg_accel_calibration.fit.slow_error import CarriedRunToRun
 
     over = {f"effects.{e}.scale": 0.0 for e in effects_off or []}
     nees_with: dict[str, list[np.ndarray]] = {f"{t:g}": [] for t in temps}
     nees_without: dict[str, list[np.ndarray]] = {f"{t:g}": [] for t in temps}
     sigma_cal: dict[str, list[np.ndarray]] = {f"{t:g}": [] for t in temps}
     for s in range(first_seed, first_seed + seeds):
+        carried = None
+        if carry_runs_per_level:
+            earlier = fitted_calibration(s + 1000, overrides=over, runs_per_level=carry_runs_per_level, levels=levels)
+            if earlier.slow_error is None or earlier.slow_error.run_to_run is None:
+                raise SystemExit(f"seed {s + 1000}: the earlier campaign did not identify its run-to-run component")
+            carried = CarriedRunToRun(earlier.slow_error.run_to_run, earlier.sensor_id, f"seed {s + 1000}")
         cal = fitted_calibration(s, overrides=over, runs_per_level=runs_per_level, repeat_levels=repeat_levels,
-                                 levels=levels)
+                                 levels=levels, carried=carried)
         for t in temps:
             res = run_case({**pose_plan(t), **over}, cal, CoreConfig(), seed=s + 7919)
             res["cov_with"] = run_case({**pose_plan(t), **over}, cal, CoreConfig(covariance_includes_calibration=True),
@@ -235,6 +249,7 @@ def calibration_consistency(seeds: int, temps: list[float], settle_s: float, fir
     out: dict[str, Any] = {"seeds": seeds, "first_seed": first_seed, "settle_s": settle_s, "dof": 3,
                            "effects_off": effects_off or [], "campaign_runs_per_level": runs_per_level,
                            "campaign_repeated_levels_c": repeat_levels or [],
+                           "run_to_run_carried_from_runs_per_level": carry_runs_per_level,
                            "campaign_levels_c": levels or [16.0, 24.0, 45.0],
                            "band_95_of_mean_over_seeds": [round(lo, 3), round(hi, 3)],
                            "poses": [f"psi={p[0]:g} theta={p[1]:g}" for p in POSES], "temperatures": {}}
@@ -261,6 +276,8 @@ def design_tag(out: dict[str, Any]) -> str:
     tag += f"_runs{out['campaign_runs_per_level']}"
     if out["campaign_repeated_levels_c"]:
         tag += "_repeat_" + "_".join(f"{v:g}" for v in out["campaign_repeated_levels_c"])
+    if out.get("run_to_run_carried_from_runs_per_level"):
+        tag += f"_carried_from_runs{out['run_to_run_carried_from_runs_per_level']}"
     return tag + ("_effects_off" if out["effects_off"] else "")
 
 
@@ -324,6 +341,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="separate campaign runs (sessions) per temperature level; default 1")
     p.add_argument("--calibration-repeat-levels", type=float, nargs="*", default=[],
                    help="campaign levels (degC, of 16 24 45) given one more run each, e.g. 24")
+    p.add_argument("--calibration-carry-runs-per-level", type=int, default=0,
+                   help="carry the run-to-run component of an earlier calibration (seed + 1000) with this many runs per "
+                        "level into each seed's (fit --run-to-run-from); default 0: none")
     p.add_argument("--calibration-levels", type=float, nargs="+", default=None,
                    help="the campaign's levels (degC; default 16 24 45; one level: degree 0 in temperature)")
     p.add_argument("--calibration-temps", type=float, nargs="+", default=[24.0, 45.0, 52.0],
@@ -335,7 +355,8 @@ def main(argv: list[str] | None = None) -> int:
                                       effects_off=args.calibration_effects_off,
                                       runs_per_level=args.calibration_runs_per_level,
                                       repeat_levels=args.calibration_repeat_levels,
-                                      levels=args.calibration_levels)
+                                      levels=args.calibration_levels,
+                                      carry_runs_per_level=args.calibration_carry_runs_per_level)
         out["command"] = "python bench/nees_probe.py " + " ".join(argv if argv is not None else sys.argv[1:])
         out["machine"] = machine()
         print(json.dumps(out, indent=1))

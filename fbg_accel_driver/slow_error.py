@@ -4,10 +4,12 @@ A pose mean carries, besides the noise model's part and the coefficients' J Sigm
 what wanders slowly (bias instability, source-power wander through a dark offset, warm-up drift) and what eq. 28 does
 not contain at the poses visited. The fit estimates it from its own campaign, as the visits' mean residuals' scatter
 beyond the noise model and, when a level has two runs, the runs' (``fbg_accel_calibration.fit.slow_error``: variance
-components by visit and by run, method of moments), and writes its covariance S (3, 3) in (m/s^2)^2, sensor frame.
-It is the same for every sample of a still stretch: a bias,
-correlated in time, added as such (with ``covariance_includes_calibration``, once per published message) and used by
-the live gravity check's threshold (docs/topics.md).
+components by visit and by run, method of moments), and writes its covariance S (3, 3) in (m/s^2)^2, sensor frame,
+and, when the run-to-run component R is known (identified by the campaign, or carried from an earlier calibration of the
+sensor: ``fit --run-to-run-from``), R itself (3, 3) in (m/s^2)^2, sensor frame, as the optional ``run_to_run_matrix``:
+a later one-run recalibration, which cannot identify it, takes it from there. It is the same for every sample of a
+still stretch: a bias, correlated in time, added as such (with ``covariance_includes_calibration``, once per
+published message) and used by the live gravity check's threshold (docs/topics.md).
 """
 
 from __future__ import annotations
@@ -19,33 +21,46 @@ from typing import Any
 import numpy as np
 
 from .coefficient_covariance import check_matrix, read_section
+from .mapping_fields import number_array, refuse_unknown
 
 SECTION_VERSION = 1
 SECTION_KEYS = ("format_version", "method", "visits", "matrix")  # read_section's order
+RUN_KEY = "run_to_run_matrix"  # optional: the run-to-run component R (3, 3) (m/s^2)^2, when known
 MAX_SIGMA_MPS2 = 10.0  # a slow error above 1 g is no calibration
 
 
 @dataclass
 class SlowErrorSection:
     """Covariance ``matrix`` (3, 3) (m/s^2)^2 of the slow error of a pose mean, the ``method`` that estimated it and the
-    number of ``visits`` it rests on."""
+    number of ``visits`` it rests on; ``run_to_run`` (3, 3) (m/s^2)^2 the run-to-run component R within ``matrix``
+    (sensor frame; None: not known, i.e. not identified by the campaign and not carried from an earlier one)."""
 
     matrix: np.ndarray
     method: str
     visits: int
+    run_to_run: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.matrix = np.asarray(self.matrix, dtype=float)
         problem = check_3x3(self.matrix)
         if problem:
             raise ValueError(f"slow_error.matrix {problem}")
+        if self.run_to_run is not None:
+            self.run_to_run = np.asarray(self.run_to_run, dtype=float)
+            problem = check_3x3(self.run_to_run)
+            if problem:
+                raise ValueError(f"slow_error.{RUN_KEY} {problem}")
         if not isinstance(self.visits, int) or isinstance(self.visits, bool) or self.visits < 1:
             raise ValueError(f"slow_error.visits must be a positive integer, got {self.visits!r}")
 
     def __eq__(self, other: object) -> bool:
         if type(other) is not type(self):
             return NotImplemented
-        return np.array_equal(self.matrix, other.matrix) and self.method == other.method and self.visits == other.visits
+        same_run = (self.run_to_run is None and other.run_to_run is None) or (
+            self.run_to_run is not None and other.run_to_run is not None
+            and np.array_equal(self.run_to_run, other.run_to_run))
+        return (np.array_equal(self.matrix, other.matrix) and self.method == other.method
+                and self.visits == other.visits and same_run)
 
     __hash__ = None  # type: ignore[assignment]
 
@@ -61,16 +76,27 @@ class SlowErrorSection:
 
     def to_dict(self) -> dict[str, Any]:
         return {"format_version": SECTION_VERSION, "method": self.method, "visits": int(self.visits),
-                "matrix": [[float(v) for v in row] for row in self.matrix]}
+                "matrix": [[float(v) for v in row] for row in self.matrix],
+                **({RUN_KEY: [[float(v) for v in row] for row in self.run_to_run]}
+                   if self.run_to_run is not None else {})}
 
     @classmethod
     def from_dict(cls, d: Any, fail: Callable[[str], Exception]) -> SlowErrorSection:
         """The section of a parsed file; ``fail(message)`` makes the error to raise."""
+        run = None
+        if isinstance(d, dict):  # the optional key among the known ones, so a misspelling of it is named as such
+            refuse_unknown(d, (*SECTION_KEYS, RUN_KEY), "slow_error.", fail)
+        if isinstance(d, dict) and RUN_KEY in d:  # optional: read here, the other keys exactly by read_section
+            run = number_array(d[RUN_KEY], f"slow_error.{RUN_KEY}", fail)
+            problem = check_3x3(run)
+            if problem:
+                raise fail(f"slow_error.{RUN_KEY} {problem}")
+            d = {k: v for k, v in d.items() if k != RUN_KEY}
         method, visits, matrix = read_section(d, "slow_error", SECTION_KEYS, SECTION_VERSION, fail)
         problem = check_3x3(matrix)
         if problem:
             raise fail(f"slow_error.matrix {problem}")
-        return cls(matrix, method, visits)
+        return cls(matrix, method, visits, run)
 
 
 def check_3x3(m: np.ndarray) -> str:

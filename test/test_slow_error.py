@@ -196,16 +196,3 @@ def test_the_default_tolerance_is_gravity_s_and_a_file_without_slow_error_gets_t
     assert stated.unstated_slow_error_mps2 == 0.0 and stated.threshold_mps2 == pytest.approx(0.03 + k_sigma, rel=1e-3)
     assert unstated.unstated_slow_error_mps2 == 0.12
     assert unstated.threshold_mps2 == pytest.approx(0.15 + 3.89 * unstated.sigma_noise_mps2, rel=1e-3)
-
-
-def test_the_fit_command_says_whether_the_run_to_run_part_is_in_the_slow_error(tmp_path, capsys) -> None:
-    """One run per level: ``fit`` prints the slow error and that its run-to-run part is not identified, so the user of
-    the paper's design learns it from the command, not only from the file."""
-    from fbg_accel_calibration.commands.cli import main as cli_main
-    from fbg_accel_calibration.io.mcap_writer import write_recording
-
-    rec, _ = campaign(5, degree=2, tilt_sigma_deg=0.0, noise_mps2=NOISE, tau_s=TAU_S, visit_s=1.0)
-    write_recording(tmp_path / "run.mcap", rec)
-    assert cli_main(["fit", str(tmp_path / "run.mcap"), "--degree", "2", "-o", str(tmp_path / "cal.yaml")]) == 0
-    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("slow error of a pose mean"))
-    assert "run-to-run component not identified (one run per temperature level" in line

@@ -86,6 +86,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--adc-codes", type=Path, default=None,
                    help="code table YAML (fbg-accel-calib adc-codes -o): counts mapped to their codes' centres before "
                         "eq. 24, the table written into the calibration (reads every sample into memory)")
+    p.add_argument("--run-to-run-from", type=Path, default=None, metavar="EARLIER.yaml",
+                   help="an earlier calibration of the same sensor whose slow_error holds its run-to-run component: "
+                        "used when this campaign cannot identify it (one run per temperature level); a campaign that "
+                        "identifies its own keeps it and says so (docs/calibration_fit.md)")
     add_force(p)
     add_detector_options(p)
     add_csv_options(p)
@@ -224,13 +228,17 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from ..io.source_progress import enabled
 
     # the inputs are checked first thing by fit_files; the code table read is an input too
-    check_outputs([args.output], [*args.inputs, *([args.adc_codes] if args.adc_codes is not None else [])], args.force)
+    extra = [f for f in (args.adc_codes, args.run_to_run_from) if f is not None]
+    check_outputs([args.output], [*args.inputs, *extra], args.force)
     from fbg_accel_driver.adc_code_table import load_table
 
+    from ..fit.slow_error import carried_run_to_run
+
     table = load_table(args.adc_codes) if args.adc_codes is not None else None
+    carried = carried_run_to_run(args.run_to_run_from) if args.run_to_run_from is not None else None
     options = FitOptions(args.window, args.min_interval, args.level_gap, args.rate, args.temperature, args.g,
                          getattr(args, "namespace", None), getattr(args, "topic", None), args.in_memory, enabled(args),
-                         table)
+                         table, carried)
     out = fit_files(args.inputs, degree=args.degree, max_degree=args.max_degree, sensor_id=args.sensor_id,
                     options=options)
     selection, cal = out.selection, out.calibration
@@ -255,8 +263,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
     slow = cal.fit.get("slow_error", {})
     if "sigma_mps2" in slow:  # the run-to-run part is a number, or the reason it is not one
         run = slow["run_to_run_sigma_mps2"]
+        carried = f" (carried from {slow['run_to_run_carried_from']})" if "run_to_run_carried_from" in slow else ""
         print("slow error of a pose mean x/y/z " + " / ".join(f"{v:.4f}" for v in slow["sigma_mps2"]) + " m/s^2; "
-              + ("run to run " + " / ".join(f"{v:.4f}" for v in run) + " m/s^2" if isinstance(run, list) else run))
+              + ("run to run " + " / ".join(f"{v:.4f}" for v in run) + f" m/s^2{carried}" if isinstance(run, list)
+                 else run))
     if cal.fit["visits_excluded_clipped"]:
         print(f"warning: {cal.fit['samples_excluded_clipped']} samples of {cal.fit['visits_excluded_clipped']} visit(s) "
               "left out: a channel at a rail of the ADC (an axis at 0 or 4095 counts, or the reference at 4095) in "

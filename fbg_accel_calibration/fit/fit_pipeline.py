@@ -29,6 +29,7 @@ from .coefficient_uncertainty import cluster_covariance
 from .fit_stream import FitData, prepare, prepare_stream
 from .model_selection import SelectionResult, select_degree
 from .slow_error import attach as attach_slow_error
+from .slow_error import check_same_sensor
 from .static_detector import DEFAULT_MIN_INTERVAL, DEFAULT_WINDOW
 from .thermal_fit import (
     DEFAULT_CHUNK,
@@ -130,6 +131,9 @@ class FitOptions:
     # the ADC's code table (fbg_accel_driver.adc_code_table): the counts mapped before eq. 24 and the table written
     # into the calibration; the samples are then read into memory
     adc_codes: Any = None
+    # the run-to-run component of an earlier calibration of the sensor (slow_error.CarriedRunToRun), used when this
+    # campaign does not identify it (one run per temperature level)
+    run_to_run_from: Any = None
 
 
 @dataclass
@@ -236,6 +240,10 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
     elif not selection.scores[degree].identified:
         raise NotIdentifiedError(f"degree {degree}: {selection.scores[degree].note}")
     cal = fit_thermal(data, degree, sensor_id=sensor_id or recorded_sensor)
+    if opt.run_to_run_from is not None:
+        note = check_same_sensor(opt.run_to_run_from, cal.sensor_id)
+        if note:
+            _warn(note)
     # the noise model from the first input's first samples, the same whether streamed or not
     if rec is not None:
         first = rec.select(rec.run_id == rec.run_id[0])
@@ -247,7 +255,10 @@ def fit_files(paths: list[Path], *, degree: int | None = None, max_degree: int =
     factor = within_visit_factor(corr, corr.dt_s, data.stats.visit_lengths)
     cal.noise_sigma_mps2 = np.asarray(cal.noise_sigma_mps2) / np.sqrt(factor)
     cal.fit["noise_sigma_correction"] = [round(float(v), 4) for v in 1.0 / np.sqrt(factor)]
-    attach_slow_error(cal, data.stats, corr.dt_s)  # with the final noise model: what the visits carry beyond it
+    # with the final noise model: what the visits carry beyond it
+    attach_slow_error(cal, data.stats, corr.dt_s, opt.run_to_run_from)
+    if "run_to_run_not_carried" in cal.fit.get("slow_error", {}):
+        _warn(f"note: {cal.fit['slow_error']['run_to_run_not_carried']}")
     cal.fit["sources"] = [str(p) for p in paths]
     cal.fit["degree_selection"] = selection.as_dict()
     cal.adc_codes = opt.adc_codes  # after everything above has evaluated the model on the mapped counts

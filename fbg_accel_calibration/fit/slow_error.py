@@ -34,11 +34,18 @@ level, b(T) (degree 2 through three levels: one offset per level) absorbs each r
 campaign of that design can tell its run-to-run part from its b(T) (``run_matrix`` None; the file's method says
 so). The published slow error is that of a pose mean in a *new* run, S + R (1 + h), h = |H Z|_F^2 / V the share of a
 run's constant that the coefficients took up (their cluster-by-visit covariance does not hold it).
+
+R is a property of the sensor (its bias repeatability), not of the campaign: a later recalibration of one run per level
+takes it from an earlier calibration of the same sensor that identified it (``fit --run-to-run-from``,
+:func:`carried_run_to_run`), with its own S and h (1 there: b(T) took up each run's constant). A campaign that
+identifies R itself keeps its own (the sensor now, from this data) and says that the earlier one was not used.
 """
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -73,12 +80,16 @@ class SlowError:
     excess: np.ndarray
     runs: int = 1
     run_matrix: np.ndarray | None = None
+    carried_from: str | None = None  # where ``run_matrix`` came from when this campaign did not identify it
 
     @property
     def method(self) -> str:
         """The file's method text: :data:`METHOD` and how the run-to-run component was treated."""
         if self.run_matrix is None:
             return f"{METHOD}; {RUN_NOT_IDENTIFIED}"
+        if self.carried_from is not None:
+            return (f"{METHOD}; plus the run-to-run component carried from {self.carried_from} (not identified by "
+                    f"this campaign: one run per temperature level)")
         return (f"{METHOD}; plus the run-to-run component (a second variance component, the runs as its random "
                 f"effect; {self.runs} runs)")
 
@@ -87,12 +98,55 @@ class SlowError:
         return np.sqrt(np.clip(np.diag(self.matrix), 0.0, None))
 
 
+@dataclass(frozen=True)
+class CarriedRunToRun:
+    """The run-to-run component ``matrix`` R (3, 3) (m/s^2)^2, sensor frame, of an earlier calibration of sensor
+    ``sensor_id``, and ``source``: that file's name, its ``created`` time and the start of its SHA-256."""
+
+    matrix: np.ndarray
+    sensor_id: str
+    source: str
+
+
+def carried_run_to_run(path: Path) -> CarriedRunToRun:
+    """R of the calibration file ``path`` (its ``slow_error.run_to_run_matrix``). Raises ``ValueError`` (one line,
+    naming ``--run-to-run-from``) when the file does not load or holds no run-to-run component."""
+    from fbg_accel_driver.thermal_model import ThermalCalibration
+
+    try:
+        earlier = ThermalCalibration.load(path)
+    except ValueError as exc:
+        raise ValueError(f"--run-to-run-from: {exc}") from None
+    if earlier.slow_error is None or earlier.slow_error.run_to_run is None:
+        has = "no slow_error section" if earlier.slow_error is None else "no run-to-run component in its slow_error"
+        raise ValueError(f"--run-to-run-from {path}: {has} (its campaign did not identify it); give the calibration "
+                         "of a campaign with a temperature level run twice")
+    digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()[:12]
+    created = f"created {earlier.created[:40]}, " if earlier.created else ""
+    name = "".join(c if c.isprintable() else "?" for c in Path(path).name[:120])  # the method text stays one line
+    return CarriedRunToRun(earlier.slow_error.run_to_run, earlier.sensor_id, f"{name} ({created}sha256 {digest})")
+
+
+def check_same_sensor(carried: CarriedRunToRun, sensor_id: str) -> str:
+    """Refuses (``ValueError``, one line) an R carried from another sensor than ``sensor_id`` (this campaign's);
+    returns a note (or ``""``) when either id is ``unknown`` and the match cannot be checked."""
+    if "unknown" in (carried.sensor_id, sensor_id):
+        return (f"note: --run-to-run-from {carried.source}: the sensor ids ('{carried.sensor_id}', this campaign "
+                f"'{sensor_id}') do not tell whether it is the same sensor; its run-to-run component is used")
+    if carried.sensor_id != sensor_id:
+        raise ValueError(f"--run-to-run-from: {carried.source} is a calibration of sensor '{carried.sensor_id}', this "
+                         f"campaign is of sensor '{sensor_id}': the run-to-run component belongs to one sensor")
+    return ""
+
+
 def visit_component(stats: CellStats, A: np.ndarray, degree: int, noise_sigma_mps2: np.ndarray,
-                    correlated_fraction: np.ndarray, time_constant_s: np.ndarray, dt_s: float) -> SlowError | None:
+                    correlated_fraction: np.ndarray, time_constant_s: np.ndarray, dt_s: float,
+                    carried: CarriedRunToRun | None = None) -> SlowError | None:
     """The slow error (module docstring) of coefficients ``A`` (p, 3) fitted at ``degree`` on ``stats``, with the
     noise model (per-sample sigma m/s^2, correlated fraction, time constant s; samples ``dt_s`` s apart). None when
     the visits' own sums were not kept (``thermal_fit.MAX_VISIT_SUMS``) or too few visits are left over the
-    coefficients (:data:`MIN_DOF`)."""
+    coefficients (:data:`MIN_DOF`). ``carried``: the run-to-run component of an earlier calibration, used when this
+    campaign does not identify its own."""
     if len(stats.visit_cell) == 0:
         return None
     cols = sub_columns(degree, stats.degree)
@@ -125,8 +179,13 @@ def visit_component(stats: CellStats, A: np.ndarray, degree: int, noise_sigma_mp
     Z[np.arange(V), inverse] = 1.0
     MZ = Mres @ Z
     b1 = float((MZ**2).sum())
+    h = float(((Z - MZ) ** 2).sum()) / V  # |H Z|_F^2 / V
     if len(labels) < 2 or b1 < MIN_RUN_RESIDUAL * V:
-        return SlowError(_psd((Q - np.diag(noise_part)) / dof), V, dof, excess, len(labels))
+        S = _psd((Q - np.diag(noise_part)) / dof)
+        if carried is None:
+            return SlowError(S, V, dof, excess, len(labels))
+        R = np.asarray(carried.matrix, float)
+        return SlowError(S + (1.0 + h) * R, V, dof, excess, len(labels), R, carried.source)
     # the between-run sum r^T P r and its expectation's coefficients (module docstring)
     nr = Z.sum(axis=0)
     ZtM = Z.T @ Mres  # (R, V)
@@ -138,7 +197,6 @@ def visit_component(stats: CellStats, A: np.ndarray, degree: int, noise_sigma_mp
     det = dof * b2 - a2 * b1
     S = _psd((b2 * lhs1 - b1 * lhs2) / det)
     R = _psd((dof * lhs2 - a2 * lhs1) / det)
-    h = float(((Z - MZ) ** 2).sum()) / V  # |H Z|_F^2 / V
     return SlowError(S + (1.0 + h) * R, V, dof, excess, len(labels), R)
 
 
@@ -148,22 +206,35 @@ def _psd(m: np.ndarray) -> np.ndarray:
     return (v * np.clip(w, 0.0, None)) @ v.T
 
 
-def attach(cal: ThermalCalibration, stats: CellStats, dt_s: float) -> SlowError | None:
+def attach(cal: ThermalCalibration, stats: CellStats, dt_s: float,
+           carried: CarriedRunToRun | None = None) -> SlowError | None:
     """Estimate the slow error of ``cal`` (its coefficients, degree and final noise model) on the fit's ``stats`` and
     set ``cal.slow_error`` (the file's ``slow_error`` section) and ``cal.fit["slow_error"]`` (figures for people);
-    ``dt_s`` the sample interval (s) of the noise model. Returns the estimate (None: nothing set)."""
+    ``dt_s`` the sample interval (s) of the noise model; ``carried`` the run-to-run component of an earlier
+    calibration of the sensor (used when this campaign does not identify it). Returns the estimate (None: nothing
+    set)."""
     from fbg_accel_driver.slow_error import SlowErrorSection
 
     est = visit_component(stats, model_to_coefficients(cal.M, cal.b), cal.degree, cal.noise_sigma_mps2,
-                          cal.noise_correlated_fraction, cal.noise_time_constant_s, dt_s)
+                          cal.noise_correlated_fraction, cal.noise_time_constant_s, dt_s, carried)
     if est is None:
         cal.fit["slow_error"] = {"not_estimated": "the visits' own sums were not kept, or fewer than "
                                  f"{MIN_DOF:g} visits are left over the coefficients: repeat the poses"}
         return None
-    cal.slow_error = SlowErrorSection(est.matrix, est.method, est.visits)
+    cal.slow_error = SlowErrorSection(est.matrix, est.method, est.visits, est.run_matrix)
     cal.fit["slow_error"] = {"sigma_mps2": [round(float(v), 5) for v in est.sigma_mps2],
                              "scatter_over_noise": [round(float(v), 3) for v in est.excess],
                              "dof": round(est.dof, 2), "runs": est.runs,
                              "run_to_run_sigma_mps2": RUN_NOT_IDENTIFIED if est.run_matrix is None else
                              [round(float(v), 5) for v in np.sqrt(np.clip(np.diag(est.run_matrix), 0.0, None))]}
+    if est.carried_from is not None:
+        cal.fit["slow_error"]["run_to_run_carried_from"] = est.carried_from
+    elif carried is not None:
+        cal.fit["slow_error"]["run_to_run_not_carried"] = _carried_ignored(carried)
     return est
+
+
+def _carried_ignored(carried: CarriedRunToRun) -> str:
+    """Why an earlier calibration's run-to-run component was not used: this campaign identified its own."""
+    return (f"--run-to-run-from {carried.source} not used: this campaign identifies its own run-to-run component "
+            "(a temperature level with two or more runs), which is the sensor's now")
