@@ -233,6 +233,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from fbg_accel_driver.adc_code_table import load_table
 
     from ..fit.slow_error import carried_run_to_run
+    from ..fit.slow_error import summary_line as slow_error_line
 
     table = load_table(args.adc_codes) if args.adc_codes is not None else None
     carried = carried_run_to_run(args.run_to_run_from) if args.run_to_run_from is not None else None
@@ -260,13 +261,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
           + " / ".join(f"{v:.4f}" for v in cal.noise_sigma_mps2) + " m/s^2")
     print(f"temperature range {cal.temperature_range_c[0]:.2f} .. {cal.temperature_range_c[1]:.2f} degC; "
           f"{cal.fit['samples_used']} of {cal.fit['samples_total']} samples used")
-    slow = cal.fit.get("slow_error", {})
-    if "sigma_mps2" in slow:  # the run-to-run part is a number, or the reason it is not one
-        run = slow["run_to_run_sigma_mps2"]
-        carried = f" (carried from {slow['run_to_run_carried_from']})" if "run_to_run_carried_from" in slow else ""
-        print("slow error of a pose mean x/y/z " + " / ".join(f"{v:.4f}" for v in slow["sigma_mps2"]) + " m/s^2; "
-              + ("run to run " + " / ".join(f"{v:.4f}" for v in run) + f" m/s^2{carried}" if isinstance(run, list)
-                 else run))
+    slow = slow_error_line(cal.fit.get("slow_error", {}))  # the run-to-run part is a number, or why it is not one
+    if slow is not None:
+        print(slow)
     if cal.fit["visits_excluded_clipped"]:
         print(f"warning: {cal.fit['samples_excluded_clipped']} samples of {cal.fit['visits_excluded_clipped']} visit(s) "
               "left out: a channel at a rail of the ADC (an axis at 0 or 4095 counts, or the reference at 4095) in "

@@ -106,35 +106,40 @@ class CarriedRunToRun:
     matrix: np.ndarray
     sensor_id: str
     source: str
+    option: str = "--run-to-run-from"  # how the user gave it (the CLI option, the node's parameter): named in messages
 
 
-def carried_run_to_run(path: Path) -> CarriedRunToRun:
-    """R of the calibration file ``path`` (its ``slow_error.run_to_run_matrix``). Raises ``ValueError`` (one line,
-    naming ``--run-to-run-from``) when the file does not load or holds no run-to-run component."""
+def carried_run_to_run(path: Path | str, option: str = "--run-to-run-from") -> CarriedRunToRun:
+    """R of the calibration file ``path`` (its ``slow_error.run_to_run_matrix``), given as ``option`` (``fit``'s
+    option, the calibration node's ``run_to_run_from`` parameter). Raises ``ValueError`` (one line, naming
+    ``option``) when the file does not load or holds no run-to-run component."""
     from fbg_accel_driver.thermal_model import ThermalCalibration
 
     try:
         earlier = ThermalCalibration.load(path)
+        digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()[:12]
+    except OSError as exc:  # a name too long for the file system; the file gone between load and hash
+        raise ValueError(f"{option}: {path}: calibration file cannot be read ({exc.strerror or exc})") from None
     except ValueError as exc:
-        raise ValueError(f"--run-to-run-from: {exc}") from None
+        raise ValueError(f"{option}: {exc}") from None
     if earlier.slow_error is None or earlier.slow_error.run_to_run is None:
         has = "no slow_error section" if earlier.slow_error is None else "no run-to-run component in its slow_error"
-        raise ValueError(f"--run-to-run-from {path}: {has} (its campaign did not identify it); give the calibration "
+        raise ValueError(f"{option} {path}: {has} (its campaign did not identify it); give the calibration "
                          "of a campaign with a temperature level run twice")
-    digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()[:12]
     created = f"created {earlier.created[:40]}, " if earlier.created else ""
     name = "".join(c if c.isprintable() else "?" for c in Path(path).name[:120])  # the method text stays one line
-    return CarriedRunToRun(earlier.slow_error.run_to_run, earlier.sensor_id, f"{name} ({created}sha256 {digest})")
+    return CarriedRunToRun(earlier.slow_error.run_to_run, earlier.sensor_id, f"{name} ({created}sha256 {digest})",
+                           option)
 
 
 def check_same_sensor(carried: CarriedRunToRun, sensor_id: str) -> str:
     """Refuses (``ValueError``, one line) an R carried from another sensor than ``sensor_id`` (this campaign's);
     returns a note (or ``""``) when either id is ``unknown`` and the match cannot be checked."""
     if "unknown" in (carried.sensor_id, sensor_id):
-        return (f"note: --run-to-run-from {carried.source}: the sensor ids ('{carried.sensor_id}', this campaign "
+        return (f"note: {carried.option} {carried.source}: the sensor ids ('{carried.sensor_id}', this campaign "
                 f"'{sensor_id}') do not tell whether it is the same sensor; its run-to-run component is used")
     if carried.sensor_id != sensor_id:
-        raise ValueError(f"--run-to-run-from: {carried.source} is a calibration of sensor '{carried.sensor_id}', this "
+        raise ValueError(f"{carried.option}: {carried.source} is a calibration of sensor '{carried.sensor_id}', this "
                          f"campaign is of sensor '{sensor_id}': the run-to-run component belongs to one sensor")
     return ""
 
@@ -236,5 +241,18 @@ def attach(cal: ThermalCalibration, stats: CellStats, dt_s: float,
 
 def _carried_ignored(carried: CarriedRunToRun) -> str:
     """Why an earlier calibration's run-to-run component was not used: this campaign identified its own."""
-    return (f"--run-to-run-from {carried.source} not used: this campaign identifies its own run-to-run component "
+    return (f"{carried.option} {carried.source} not used: this campaign identifies its own run-to-run component "
             "(a temperature level with two or more runs), which is the sensor's now")
+
+
+def summary_line(figures: dict) -> str | None:
+    """The printed "slow error" line of the fit's figures (``cal.fit["slow_error"]``, set by :func:`attach`): the
+    published sigma per axis and the run-to-run part, with where it was carried from, or why it is not a number.
+    None when the slow error was not estimated."""
+    if "sigma_mps2" not in figures:
+        return None
+    run = figures["run_to_run_sigma_mps2"]
+    carried = f" (carried from {figures['run_to_run_carried_from']})" if "run_to_run_carried_from" in figures else ""
+    return ("slow error of a pose mean x/y/z " + " / ".join(f"{v:.4f}" for v in figures["sigma_mps2"]) + " m/s^2; "
+            + ("run to run " + " / ".join(f"{v:.4f}" for v in run) + f" m/s^2{carried}" if isinstance(run, list)
+               else run))
