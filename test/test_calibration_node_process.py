@@ -449,10 +449,11 @@ def test_sigkill_mid_recording_leaves_a_file_read_up_to_its_last_chunk_that_the_
         (["plan_file:=/etc/hostname"], "pose plan rejected"),
         (["plan_file:=/nonexistent/plan.yaml"], "pose plan file not found"),
         (["mode:=sometimes"], "invalid parameter 'mode'"),
-        (["fit_degree:=9"], "invalid parameter 'fit_degree'"),
         (["temperature_level:=4"], "no 'chamber' section"),
         (["still_window_s:=-1.0"], "invalid parameter 'still_window_s'"),
         (["still_noise_std:=[1.0, 2.0]"], "noise_std must be 3 positive numbers"),
+        (["run_to_run_from:=/nonexistent/r2r.yaml"], "invalid parameter 'run_to_run_from': run_to_run_from: "
+                                                       "/nonexistent/r2r.yaml: calibration file not found"),
     ],
 )
 def test_bad_start_up_input_gives_one_clear_error(plan_dir, params, message):

@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from rcl_interfaces.msg import ParameterType
 from rclpy.context import Context
@@ -298,6 +299,8 @@ def test_calibration_node_aborted_run_closes_its_recording_with_status_interrupt
     ({"fit": "yes"}, "invalid parameter 'fit': "),
     ({"run_label": "a/b"}, "invalid parameter 'run_label': 'a/b'"),
     ({"fit_degre": 2}, "unknown parameter 'fit_degre' (did you mean 'fit_degree'?)"),
+    ({"run_to_run_from": "/nonexistent/r2r.yaml"},
+     "invalid parameter 'run_to_run_from': run_to_run_from: /nonexistent/r2r.yaml: calibration file not found"),
     ({"sensor_id": "acc\x1b[31m4\nforged"}, "invalid parameter 'sensor_id': sensor id 'acc\\x1b[31m4\\nforged' holds "
                                               "control characters"),
 ])
@@ -345,6 +348,73 @@ def test_calibration_node_never_writes_its_calibration_over_a_recording_or_an_ex
     dynamic = make_calibration(plan_file=str(REPO / "config" / "excitation_plan_stepped_sine.yaml"), run_label="dyn",
                                calibration_file=str(prev))  # a dynamic run writes no calibration: nothing to refuse
     assert dynamic.dynamic
+
+
+def test_calibration_node_reads_run_to_run_from_at_start_up_and_refuses_a_file_that_cannot_give_r(
+        make_calibration: Any, tmp_path: Path) -> None:
+    """``run_to_run_from`` is read when the node starts, not by the end-of-run fit after the recording: a file without
+    R, that is no calibration, or of another sensor stops start-up in one line before the recording is created; a
+    good one is kept (its R, name and hash) for the end-of-run fit."""
+    from test_driver_core import make_cal
+
+    from fbg_accel_driver.slow_error import SlowErrorSection
+
+    R = np.diag([1e-3, 2e-3, 3e-3])
+    make_cal(sensor_id="SN-A", slow_error=SlowErrorSection(2 * R, "test", 30, R)).save(tmp_path / "with_r.yaml")
+    make_cal(sensor_id="SN-A", slow_error=SlowErrorSection(2 * R, "test", 30)).save(tmp_path / "no_r.yaml")
+    make_cal(sensor_id="SN-A").save(tmp_path / "no_section.yaml")
+    cases = [({"run_to_run_from": str(tmp_path / "no_r.yaml")}, "no run-to-run component in its slow_error"),
+             ({"run_to_run_from": str(tmp_path / "no_section.yaml")}, "no slow_error section"),
+             ({"run_to_run_from": str(tmp_path)}, "a directory, not a calibration file"),
+             ({"run_to_run_from": str(tmp_path / "with_r.yaml"), "sensor_id": "SN-B"},
+              "is a calibration of sensor 'SN-A', this campaign is of sensor 'SN-B'")]
+    for values, message in cases:
+        with pytest.raises(StartupError) as err:
+            make_calibration(**values)
+        msg = str(err.value)
+        assert msg.startswith("invalid parameter 'run_to_run_from': ") and message in msg and "\n" not in msg, msg
+        assert not (tmp_path / "inproc.mcap").exists()
+    for sensor in ("SN-A", "unknown"):  # unknown: the match cannot be checked, R is used (with a warning)
+        node = make_calibration(run_to_run_from=str(tmp_path / "with_r.yaml"), sensor_id=sensor, run_label=sensor)
+        assert node.run_to_run.matrix.tolist() == R.tolist() and node.run_to_run.source.startswith("with_r.yaml (")
+    assert make_calibration(run_label="off").run_to_run is None  # default: none
+
+
+def test_calibration_node_end_of_run_fit_carries_the_run_to_run_component(make_calibration: Any,
+                                                                           tmp_path: Path) -> None:
+    """A complete run with ``fit_with`` an earlier level (one run per level, degree 1: b(T) takes up each run's
+    constant and R is not identified) and
+    ``run_to_run_from``: the node's own fit writes the carried R and names its file. Before, the node had no such
+    parameter and its fit wrote "not identified" (and a slow error without R)."""
+    import yaml
+    from test_driver_core import make_cal
+    from test_run_recorder import _recorded_run, _samples
+
+    from fbg_accel_calibration.recorder.pose_plan import PosePlan
+    from fbg_accel_driver.slow_error import SlowErrorSection
+    from fbg_accel_driver.thermal_model import ThermalCalibration
+
+    R = np.diag([1e-3, 2e-3, 3e-3])
+    make_cal(sensor_id="t", slow_error=SlowErrorSection(2 * R, "test", 30, R)).save(tmp_path / "earlier.yaml")
+    earlier_level = _recorded_run(tmp_path, "L1", 30.0, 2)  # five of the poses at another temperature
+    plan = {"format": "fbg_accel_pose_plan", "format_version": 1, "name": "r2r", "dwell_s": 1.5, "move_s": 0.6,
+            "samples_per_pose": 40,
+            "poses": [{"name": "z_up", "psi_deg": 0, "theta_deg": 0, "dwell_s": 2.5},
+                      {"name": "z_down", "psi_deg": 0, "theta_deg": 180},
+                      {"name": "x_up", "psi_deg": 90, "theta_deg": 90}, {"name": "y_up", "psi_deg": 0, "theta_deg": 90},
+                      {"name": "x_down", "psi_deg": 270, "theta_deg": 90},
+                      {"name": "y_down", "psi_deg": 180, "theta_deg": 90}]}
+    (tmp_path / "plan.yaml").write_text(yaml.safe_dump(plan))
+    node = make_calibration(plan_file=str(tmp_path / "plan.yaml"), mode="auto", sensor_id="t", fit_degree=1,
+                            noise_learn_s=1.0, still_hold_s=0.5, fit_with=[str(earlier_level)],
+                            run_to_run_from=str(tmp_path / "earlier.yaml"))
+    for sample, _ in _samples(PosePlan.load(tmp_path / "plan.yaml"), seed=1, temp_c=20.0):
+        node.recorder.on_raw(sample)
+    assert node.recorder.done
+    assert node.finish() == calibration_parameters.EXIT_OK
+    slow = ThermalCalibration.load(node.yaml_path).slow_error
+    assert slow.run_to_run.tolist() == R.tolist()
+    assert "plus the run-to-run component carried from earlier.yaml (created " in slow.method
 
 
 def test_refit_refuses_an_input_or_an_existing_output_at_the_end_of_the_run(tmp_path: Path) -> None:

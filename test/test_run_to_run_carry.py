@@ -148,3 +148,27 @@ def test_an_unknown_sensor_id_cannot_be_checked_and_is_said_so(files, capsys) ->
     assert ThermalCalibration.load(files / "anon.yaml").slow_error.run_to_run is not None
     assert ": the sensor ids ('SN-A', this campaign 'unknown') do not tell whether it is the same sensor; its " \
            "run-to-run component is used" in err
+
+
+def test_the_calibration_node_end_of_run_fit_carries_r_as_the_fit_command_does(files, capsys) -> None:
+    """The node's end-of-run fit (``run_refit.refit``, parameter ``run_to_run_from``) goes through the same fit
+    pipeline as ``fit --run-to-run-from``: the same slow error, R carried and named, and its report says where R came
+    from. Before, ``refit`` took no R: a one-run-per-level refit by the node wrote "not identified"."""
+    from fbg_accel_calibration.fit.slow_error import carried_run_to_run
+    from fbg_accel_calibration.recorder.run_refit import refit
+
+    earlier = ThermalCalibration.load(files / "earlier.yaml").slow_error.run_to_run
+    assert fit(files, "cli_carried.yaml", "--run-to-run-from", str(files / "earlier.yaml")) == 0
+    carried = carried_run_to_run(files / "earlier.yaml", option="run_to_run_from")
+    result = refit([str(files / "later.mcap")], files / "node.yaml", degree=2, sensor_id="SN-A",
+                   run_to_run_from=carried)
+    capsys.readouterr()
+    node, cli = (ThermalCalibration.load(files / n).slow_error for n in ("node.yaml", "cli_carried.yaml"))
+    np.testing.assert_array_equal(node.run_to_run, earlier)
+    np.testing.assert_allclose(node.matrix, cli.matrix, rtol=1e-9, atol=1e-15)
+    assert node.method == cli.method and "carried from earlier.yaml (created " in node.method
+    line = next(x for x in result.report().splitlines() if x.startswith("slow error of a pose mean"))
+    assert line.endswith(f"m/s^2 (carried from {carried.source})")
+    plain = refit([str(files / "later.mcap")], files / "node_plain.yaml", degree=2, sensor_id="SN-A")
+    assert "run-to-run component not identified (one run per temperature level" in plain.report()
+    assert plain.calibration.slow_error.run_to_run is None

@@ -46,6 +46,7 @@ from fbg_accel_driver.yaml_input import YamlFileError, read_yaml_file
 
 from ..dynamic.excitation_plan import FORMAT_NAME as EXCITATION_FORMAT
 from ..dynamic.excitation_plan import ExcitationPlan, ExcitationPlanError
+from ..fit.slow_error import CarriedRunToRun, carried_run_to_run, check_same_sensor
 from ..io.atomic_output import OutputError, check_outputs
 from ..io.mcap_format import TOPIC_RAW, TOPIC_TEMPERATURE, full_topic_name
 from ..io.mcap_writer import RecordingWriter
@@ -206,8 +207,10 @@ class CalibrationNode(Node):
             raise StartupError(f"invalid parameter 'output_dir' or 'run_label': {self.mcap_path}: {exc}") from None
         if taken:
             raise StartupError(f"{self.mcap_path} exists; choose another run_label (a recording is never overwritten)")
+        self.run_to_run: CarriedRunToRun | None = None  # R for the end-of-run fit (run_to_run_from)
         if p["fit"] and not self.dynamic:
             self._check_calibration_file(p)
+            self.run_to_run = self._load_run_to_run(p)
         try:
             out_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -235,6 +238,23 @@ class CalibrationNode(Node):
         except (OutputError, OSError, ValueError) as exc:  # OSError, ValueError: a name too long, a NUL
             msg = str(exc).replace("give --force", "set force:=true")
             raise StartupError(f"invalid parameter 'calibration_file': {msg}") from None
+
+    def _load_run_to_run(self, p: dict[str, Any]) -> CarriedRunToRun | None:
+        """Before the run: the run-to-run component R of ``run_to_run_from`` (an earlier calibration of this sensor
+        that identified it), read now so that a file missing, unreadable, without R or of another sensor stops
+        start-up (StartupError) instead of the end-of-run fit; R is then kept for that fit (None: not given)."""
+        if not p["run_to_run_from"]:
+            return None
+        try:
+            carried = carried_run_to_run(p["run_to_run_from"], option="run_to_run_from")
+            note = check_same_sensor(carried, p["sensor_id"])
+        except ValueError as exc:
+            raise StartupError(f"invalid parameter 'run_to_run_from': {exc}") from None
+        if note:
+            self.get_logger().warning(note.removeprefix("note: "))
+        self.get_logger().info(f"run-to-run component R taken from {carried.source} for the end-of-run fit (used "
+                               "when this campaign's runs do not identify their own: one run per temperature level)")
+        return carried
 
     def _recorded_namespace(self) -> str:
         """The namespace the recording names its topics under: that of the topics the node subscribes to, after
@@ -435,13 +455,15 @@ class CalibrationNode(Node):
         if summary["lost_messages"]:
             log.warning(f"{summary['lost_messages']} imu/raw messages missing (gaps in seq): driver/DDS losses")
         if not complete:
-            log.warning(f"run not complete: no fit. Fit later with: fbg-accel-calib fit {self.mcap_path} ...")
+            carry = f" --run-to-run-from {self.p['run_to_run_from']}" if self.run_to_run is not None else ""
+            log.warning(f"run not complete: no fit. Fit later with: fbg-accel-calib fit {self.mcap_path} ...{carry}")
             return EXIT_INTERRUPTED
         if not self.p["fit"]:
             return EXIT_OK
         try:
             sources = expand_sources(self.mcap_path, self.fit_with)
-            result = refit(sources, self.yaml_path, self.degree, sensor_id=self.p["sensor_id"], force=self.p["force"])
+            result = refit(sources, self.yaml_path, self.degree, sensor_id=self.p["sensor_id"], force=self.p["force"],
+                           run_to_run_from=self.run_to_run)
         except (RefitError, ValueError, OSError) as exc:
             kept = (f"the recording {self.mcap_path} is kept" if self.mcap_path.exists() else
                     f"the recording {self.mcap_path} no longer exists")

@@ -25,6 +25,8 @@ PARAMETERS: ParameterTable = {
     "fit_with": ("string_array", None, "earlier runs' MCAP files or glob patterns fitted together with this run"),
     "calibration_file": ("string", "", "output calibration YAML (empty: <output_dir>/<run_label>_calibration.yaml); "
                          "never one of the fitted recordings"),
+    "run_to_run_from": ("string", "", "earlier calibration YAML of this sensor whose run-to-run component R the "
+                        "end-of-run fit carries when its runs do not identify R (one run per level; empty: none)"),
     "force": ("bool", False, "replace an existing calibration_file (default: refuse it at start-up)"),
     "still_window_s": ("double", 0.25, "static detector moving window (s)"),
     "still_hold_s": ("double", 1.0, "continuous stillness (s) required before a pose is recorded (covers TIA settling)"),
