@@ -3,6 +3,7 @@ carried into a later one-run-per-level recalibration of the same sensor (``fit -
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import re
 
@@ -14,7 +15,7 @@ from test_driver_core import make_cal
 from fbg_accel_calibration.commands.cli import main as cli_main
 from fbg_accel_calibration.fit.fit_pipeline import fit_thermal
 from fbg_accel_calibration.fit.fit_stream import prepare
-from fbg_accel_calibration.fit.slow_error import attach
+from fbg_accel_calibration.fit.slow_error import attach, carried_run_to_run
 from fbg_accel_calibration.io.mcap_writer import write_recording
 from fbg_accel_driver.slow_error import SlowErrorSection
 from fbg_accel_driver.thermal_model import CalibrationFileError, ThermalCalibration
@@ -137,6 +138,20 @@ def test_a_campaign_that_identifies_its_own_keeps_it_and_says_the_earlier_one_wa
     assert "note: --run-to-run-from earlier.yaml (created " in err
     assert (") not used: this campaign identifies its own run-to-run component (a temperature level with two or more "
             "runs), which is the sensor's now") in err
+
+
+def test_a_carried_component_that_cannot_be_used_is_said_so(files) -> None:
+    """A campaign whose slow error is not estimated (here: the visits' own sums were not kept) cannot
+    take an earlier R either: the fit's figures say so instead of dropping it without a word."""
+    rec, _ = campaign(15, degree=2, tilt_sigma_deg=0.0, noise_mps2=NOISE, tau_s=TAU_S, visit_s=1.0, repeats=1)
+    data = prepare(rec, 2, usable=np.ones(len(rec), bool))
+    cal = fit_thermal(data, 2, sensor_id="SN-A")
+    earlier = carried_run_to_run(files / "earlier.yaml")
+    kept_none = dataclasses.replace(data.stats, visit_cell=np.zeros(0, np.int64))  # the visits' own sums not kept
+    assert attach(cal, kept_none, 0.01, earlier) is None and cal.slow_error is None
+    note = cal.fit["slow_error"]["run_to_run_not_carried"]
+    assert note.startswith("--run-to-run-from earlier.yaml (created ")
+    assert "not used: this campaign's slow error is not estimated (the visits' own sums were not kept" in note
 
 
 def test_an_unknown_sensor_id_cannot_be_checked_and_is_said_so(files, capsys) -> None:

@@ -225,6 +225,10 @@ def attach(cal: ThermalCalibration, stats: CellStats, dt_s: float,
     if est is None:
         cal.fit["slow_error"] = {"not_estimated": "the visits' own sums were not kept, or fewer than "
                                  f"{MIN_DOF:g} visits are left over the coefficients: repeat the poses"}
+        if carried is not None:
+            cal.fit["slow_error"]["run_to_run_not_carried"] = (
+                f"{carried.option} {carried.source} not used: this campaign's slow error is not estimated ("
+                + cal.fit["slow_error"]["not_estimated"] + ")")
         return None
     cal.slow_error = SlowErrorSection(est.matrix, est.method, est.visits, est.run_matrix)
     cal.fit["slow_error"] = {"sigma_mps2": [round(float(v), 5) for v in est.sigma_mps2],
