@@ -212,10 +212,8 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
     pose_of[inv] = data.pose_id[r]  # orientation of each visit (samples in motion: -1 may overwrite; fixed below)
     static_r = r & (data.pose_id >= 0)
     pose_of[np.searchsorted(ug, groups[static_r])] = data.pose_id[static_r]
-    slow = slow_visit_error(means, cov, slow_unit, pose_of, data.run_id[r][np.unique(inv, return_index=True)[1]])
-    cov = cov + slow.variance[:, None, None] * slow_unit[None]
-    dof = slow.test_dof(cov, slow_unit, noise_dof)
-    z, p = visit_mean_test(means, cov, dof)
+    run_of = data.run_id[r][np.unique(inv, return_index=True)[1]]
+    z, p, dof, slow = slow_visit_test(means, cov, slow_unit, pose_of, run_of, noise_dof)
     ho = np.sqrt(np.mean(x**2, axis=0))
     ratio = ho / np.maximum(noise, 1e-12)
     excess = np.sqrt(np.maximum(ho**2 - noise**2, 0.0))
@@ -266,6 +264,28 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
                              slow_sigma=np.sqrt(slow.variance), slow_dof=slow.dof, slow_revisits=slow.revisits)
 
 
+def slow_visit_test(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray, pose: np.ndarray, run: np.ndarray,
+                    noise_dof: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, SlowVisitError]:
+    """The test of ``residual_structure`` with the slow error in its null hypothesis: visit means ``means`` (V, 3)
+    m/s^2, their covariance ``cov`` (3, V, V) under the noise and the coefficients' error (known to ``noise_dof``
+    (3,) degrees of freedom), ``slow_unit`` (V, V) that of a unit slow error, ``pose`` and ``run`` (V,) each visit's.
+    The slow error's variance comes from the revisits of a (pose, run) (``slow_visit_error``); their scatter is then
+    its estimate, not evidence, so the test is of the means of each (pose, run)'s visits (a visit not revisited
+    alone) against their covariance, slow error included, referred to F with the degrees of freedom of both
+    estimates (``SlowVisitError.test_dof``). Without revisits it is ``visit_mean_test`` of the visit means. Returns
+    (z (V, 3) each visit mean over its standard deviation, p (3,), degrees of freedom (3,) of a visit mean's variance,
+    the slow error)."""
+    slow = slow_visit_error(means, cov, slow_unit, pose, run)
+    if not slow.revisits:
+        return (*visit_mean_test(means, cov, noise_dof), noise_dof, slow)
+    cov = cov + slow.variance[:, None, None] * slow_unit[None]
+    L = slow.pooling()
+    cov_g, unit_g = L @ cov @ L.T, L @ slow_unit @ L.T
+    p = visit_mean_test(L @ means, cov_g, slow.test_dof(cov_g, unit_g, noise_dof))[1]
+    z = means / np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2).T, 1e-300))
+    return z, p, slow.test_dof(cov, slow_unit, noise_dof), slow
+
+
 @dataclass
 class SlowVisitError:
     """Noise slower than a visit (``slow_visit_error``): ``variance`` (3,) (m/s^2)^2 of a visit mean's slow error,
@@ -274,6 +294,13 @@ class SlowVisitError:
     variance: np.ndarray
     dof: np.ndarray
     revisits: int
+    group: np.ndarray | None = None  # (V,) each visit's (pose, run) group, 0..G-1 (a visit not revisited: its own)
+
+    def pooling(self) -> np.ndarray:
+        """(G, V): the mean of each group's visits."""
+        g = self.group if self.group is not None else np.zeros(0, int)
+        L = (np.arange(int(g.max()) + 1 if g.size else 0)[:, None] == g[None, :]).astype(float)
+        return L / L.sum(axis=1, keepdims=True)
 
     def test_dof(self, cov: np.ndarray, slow_unit: np.ndarray, noise_dof: np.ndarray) -> np.ndarray:
         """Degrees of freedom (3,) of a visit mean's variance in ``cov`` (3, V, V), the noise's (known to
@@ -321,7 +348,8 @@ def slow_visit_error(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray, 
         if var[j] > 0:
             PT = PC + var[j] * PU
             dof[j] = 2.0 * var[j] ** 2 / (2.0 * float(np.sum(PT * PT.T)) / tr_pu**2)
-    return SlowVisitError(var, dof, revisits)
+    group = np.unique(np.where(rep, key, -2 - np.arange(len(key))), return_inverse=True)[1]
+    return SlowVisitError(var, dof, revisits, group)
 
 
 def _visit_sums(X: np.ndarray, rows: np.ndarray, inv: np.ndarray, n: int, block: int = 1 << 15) -> np.ndarray:
