@@ -258,7 +258,8 @@ def test_a_slow_error_of_the_visit_means_is_estimated_from_revisits_and_kept_apa
     (one value per visit, 1.5x the noise's standard deviation: a real sensor's bias wander). Its variance is estimated
     from the revisits, without bias, and put in the test's null hypothesis, the test holds its level; with the noise
     alone in the null (the test before) it fires on most draws. An effect of the pose (the same in every revisit: the
-    table angles) is not taken into the estimate and is still found."""
+    table angles) is not taken into the estimate and is still found; so are revisits that differ by far more than the
+    sensor's bias wander (``SLOW_ERROR_BOUND_MPS2``)."""
     from fbg_accel_calibration.diagnosis.structure import slow_visit_test, visit_mean_test
 
     rng = np.random.default_rng(3)
@@ -266,7 +267,7 @@ def test_a_slow_error_of_the_visit_means_is_estimated_from_revisits_and_kept_apa
     V = poses * revisits
     pose = np.tile(np.arange(poses), revisits)
     run = np.zeros(V, int)
-    noise_var = np.array([1.0, 2.0, 4.0])
+    noise_var = 1e-4 * np.array([1.0, 2.0, 4.0])  # (m/s^2)^2: sd 0.01-0.02 m/s^2, a slow error of 0.015-0.03
     cov = np.stack([np.eye(V) * v for v in noise_var])
     unit = np.eye(V)
     known = np.full(3, np.inf)
@@ -286,6 +287,9 @@ def test_a_slow_error_of_the_visit_means_is_estimated_from_revisits_and_kept_apa
     assert np.mean(p_clean < 0.01) < 0.025  # 900 p-values: at 1 % the binomial standard error is 0.0033
     assert np.mean(p_noise_only < 0.01) > 0.9
     assert np.mean(p_effect < 0.01) > 0.9
+    # revisits that differ far beyond the sensor's bias wander (0.5 m/s^2, 10-100x Table 2's) are evidence
+    m = rng.normal(size=(V, 3)) * np.sqrt(noise_var + 0.25)
+    assert np.all(slow_visit_test(m, cov, unit, pose, run, known)[1] < 1e-6)
 
 
 def test_the_noisy_visit_check_reads_its_tail_from_the_noise_it_is_given() -> None:

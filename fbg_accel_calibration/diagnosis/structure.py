@@ -21,6 +21,13 @@ from .search import (
     _corr,
 )
 
+# Bias instability of paper Table 2 (§4.4; ../shared/docs/sensor_facts.md: min Allan deviation / 0.664), x / y / z, mg
+TABLE2_BIAS_INSTABILITY_MG = np.array([0.54, 1.10, 1.87])
+# The largest slow error of a visit mean the residual test's null hypothesis holds (m/s^2): ten times Table 2's bias
+# instability. A flicker wander of Allan floor 0.664 B over 10^4 of its correlation times has a standard deviation of
+# about 1.7 B; the rest is margin for what else moves a visit mean slowly on a real sensor (the simulator's clean ramps
+# at 10 Hz: up to 4.7x B on x, 2.5x on y, 1.7x on z, median). Revisits that differ by more are evidence, not noise.
+SLOW_ERROR_BOUND_MPS2 = 10.0 * TABLE2_BIAS_INSTABILITY_MG * 9.80665e-3
 SMALL_RATIO = 1.1  # a significant residual whose held-out RMSE is within this x the per-sample floor is "small"
 
 
@@ -281,12 +288,15 @@ def slow_visit_test(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray, p
     slow = slow_visit_error(means, cov, slow_unit, pose, run)
     if not slow.revisits:
         return (*visit_mean_test(means, cov, noise_dof), noise_dof, slow)
-    cov = cov + slow.variance[:, None, None] * slow_unit[None]
-    L = slow.pooling()
+    bound = SLOW_ERROR_BOUND_MPS2**2
+    p_rev = slow.beyond(means, cov, slow_unit, bound)  # revisits that differ more than the sensor's wander can
+    held = SlowVisitError(np.minimum(slow.variance, bound), slow.dof, slow.revisits, slow.group)
+    cov = cov + held.variance[:, None, None] * slow_unit[None]
+    L = held.pooling()
     cov_g, unit_g = L @ cov @ L.T, L @ slow_unit @ L.T
-    p = visit_mean_test(L @ means, cov_g, slow.test_dof(cov_g, unit_g, noise_dof))[1]
+    p_pool = visit_mean_test(L @ means, cov_g, held.test_dof(cov_g, unit_g, noise_dof))[1]
     z = means / np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2).T, 1e-300))
-    return z, p, slow.test_dof(cov, slow_unit, noise_dof), slow
+    return z, np.minimum(2.0 * np.minimum(p_pool, p_rev), 1.0), held.test_dof(cov, slow_unit, noise_dof), slow
 
 
 @dataclass
@@ -298,6 +308,23 @@ class SlowVisitError:
     dof: np.ndarray
     revisits: int
     group: np.ndarray | None = None  # (V,) each visit's (pose, run) group, 0..G-1 (a visit not revisited: its own)
+
+    def beyond(self, means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray, bound: np.ndarray) -> np.ndarray:
+        """p (3,) of the revisits' scatter |P m|^2 (``slow_visit_error``) under a slow error of variance ``bound``
+        (3,) (m/s^2)^2: Satterthwaite's chi^2 of its mean tr(P C_b) and variance 2 tr((P C_b)^2),
+        C_b = C + bound U. Small: the revisits of a pose differ more than a slow error of that size explains."""
+        g = self.group if self.group is not None else np.zeros(0, int)
+        rep = np.bincount(g)[g] >= 2
+        idx = np.flatnonzero(rep)
+        P = np.eye(len(idx)) - (g[idx][:, None] == g[idx][None, :]) / np.bincount(g[idx])[g[idx]][None, :]
+        p = np.ones(3)
+        for j in range(3):
+            pm = P @ means[idx, j]
+            PC = P @ (cov[j] + bound[j] * slow_unit)[np.ix_(idx, idx)]
+            e, v = float(np.trace(PC)), 2.0 * float(np.sum(PC * PC.T))
+            h = 2.0 * e**2 / max(v, 1e-300)
+            p[j] = stats.chi2.sf(float(pm @ pm) * h / max(e, 1e-300), h)
+        return p
 
     def pooling(self) -> np.ndarray:
         """(G, V): the mean of each group's visits."""
