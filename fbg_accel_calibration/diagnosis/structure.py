@@ -281,8 +281,10 @@ def slow_visit_test(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray, p
     (3,) degrees of freedom), ``slow_unit`` (V, V) that of a unit slow error, ``pose`` and ``run`` (V,) each visit's.
     The slow error's variance comes from the revisits of a (pose, run) (``slow_visit_error``); their scatter is then
     its estimate, not evidence, so the test is of the means of each (pose, run)'s visits (a visit not revisited
-    alone) against their covariance, slow error included, referred to F with the degrees of freedom of both
-    estimates (``SlowVisitError.test_dof``). Without revisits it is ``visit_mean_test`` of the visit means. Returns
+    alone) against their covariance, slow error included (at most ``SLOW_ERROR_BOUND_MPS2``), referred to F with the
+    degrees of freedom of both estimates (``SlowVisitError.test_dof``); and the revisits' scatter is tested against
+    a slow error at that bound (``SlowVisitError.beyond``): p is twice the smaller of the two (Bonferroni). Without
+    revisits it is ``visit_mean_test`` of the visit means. Returns
     (z (V, 3) each visit mean over its standard deviation, p (3,), degrees of freedom (3,) of a visit mean's variance,
     the slow error)."""
     slow = slow_visit_error(means, cov, slow_unit, pose, run)
