@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     lam = lam[lam > 1e-10]
     c1, c2 = float(lam.sum()), float(np.sum(lam**2))
     nu_s, nu_b = c1**2 / c2, c1 / (1.0 + 2.0 * float(np.sum(acf1[1:] ** 2)))
-    names = ("the check (median scale)", "Satterthwaite, true scale", "Bartlett, true scale",
+    names = ("the check (median scale, Bartlett)", "Satterthwaite, true scale", "Bartlett, true scale",
              "Liu-Tang-Zhang, true scale")
     hits, total = np.zeros((len(names), len(QS))), 0
     for _ in range(a.batches):

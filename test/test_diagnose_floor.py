@@ -291,36 +291,3 @@ def test_a_slow_error_of_the_visit_means_is_estimated_from_revisits_and_kept_apa
     m = rng.normal(size=(V, 3)) * np.sqrt(noise_var + 0.25)
     assert np.all(slow_visit_test(m, cov, unit, pose, run, known)[1] < 1e-6)
 
-
-def test_the_noisy_visit_check_reads_its_tail_from_the_noise_it_is_given() -> None:
-    """``noisy_visits`` is read at about 1e-4 per visit and axis (1 %, Bonferroni over visits and axes). A visit of
-    300 samples of the sensor's noise (white plus a 0.12 s first-order low-pass at 100 Hz, mean and line removed)
-    whose sum of squares is at the exact 1e-4 quantile (Imhof's inversion of the sum of lambda_i chi^2_1), among
-    visits at the exact median: chi^2 with Bartlett's effective degrees of freedom put it at p 4.3e-5, and clean
-    campaigns had visits left out on 2-5 of 100 at a nominal 1 %; matched on four cumulants, 7e-5."""
-    from scipy import integrate, optimize
-
-    from fbg_accel_calibration.diagnosis.floor import noisy_visits
-
-    n = 300
-    lag = np.arange(n)
-    phi = np.exp(-1.0 / 12.0)
-    acf1 = (phi**lag + 0.09 * (lag == 0)) / 1.09
-    acf1[200:] = 0.0
-    q = np.linalg.qr(np.column_stack([np.ones(n), lag - (n - 1) / 2.0]))[0]
-    proj = np.eye(n) - q @ q.T
-    lam = np.linalg.eigvalsh(proj @ acf1[np.abs(lag[:, None] - lag[None, :])] @ proj)
-    lam = lam[lam > 1e-12]
-
-    def sf(x: float) -> float:  # Imhof (1961): P(sum lambda_i chi^2_1 > x)
-        def f(u: float) -> float:
-            return (np.sin(0.5 * np.sum(np.arctan(lam * u)) - 0.5 * x * u)
-                    / (u * np.exp(0.25 * np.sum(np.log1p((lam * u) ** 2)))))
-        return 0.5 + integrate.quad(f, 0.0, np.inf, limit=500)[0] / np.pi
-
-    median = optimize.brentq(lambda x: sf(x) - 0.5, 0.5 * lam.sum(), 2.0 * lam.sum())
-    q4 = optimize.brentq(lambda x: sf(x) - 1e-4, lam.sum(), 4.0 * lam.sum())
-    lag0 = np.full((401, 3), median)
-    lag0[0] = q4
-    p = noisy_visits(lag0, np.full(401, n), np.ones(401, bool), np.tile(acf1[:200], (3, 1)))[1][0]
-    assert np.all((p > 0.6e-4) & (p < 1.6e-4)), p

@@ -369,92 +369,20 @@ def noisy_visits(lag0: np.ndarray, n: np.ndarray, line: np.ndarray, acf: np.ndar
     residuals, ``n`` (V,) samples, ``line`` (V,) a line in time removed too) and axis: the ratio (V, 3) of its
     variance to the robust centre of the visits' variances, and the p-value (V, 3) of that ratio under the noise.
 
-    Under Gaussian noise a visit's sum of squares is sigma^2 sum_i lambda_i chi^2_1, lambda the eigenvalues of the
-    detrended correlation matrix (I - H) R (I - H) (``quadratic_form_cumulants``); it is referred to the chi^2 that
-    matches its first four cumulants (Liu, Tang & Zhang 2009, Comput. Stat. Data Anal. 53, 853-856), not only two:
-    the check is read at about 1e-4 per visit and axis (Bonferroni), where chi^2(nu) with Bartlett's effective degrees
-    of freedom gave p < q about 1.9x as often as q, Liu-Tang-Zhang's 1.2x (``bench/noisy_visit_tail.py``, the true
-    autocorrelation given), and clean campaigns had visits left out on 2-5 of 100 at a nominal 1 %. sigma^2 is the
-    median over the visits of the sum of squares over the median of its own distribution. A visit's variance is its
-    sum of squares over E = sum_i lambda_i (``detrended_lag_matrix``), its ratio that over sigma^2; one-sided: a
-    quieter visit does not dominate the pooled floor."""
+    A visit's variance is its sum of squares over E = the sum expected per unit variance after the detrending under
+    the floor's autocorrelation ``acf`` (3, L + 1) (``detrended_lag_matrix``); the centre is their median (over the
+    median of chi^2(nu) / nu, so that it is unbiased for a visit of median length). Under the noise the sum is
+    about sigma^2 chi^2(nu) / nu E with the effective degrees of freedom of a variance from correlated samples,
+    nu = E / (1 + 2 sum_l rho_l^2) (Bartlett); one-sided: a quieter visit does not dominate the pooled floor."""
+    lag = acf.shape[1] - 1
     kinds, kind = np.unique(np.column_stack([n, line]), axis=0, return_inverse=True)
-    kind = kind.ravel()
-    cum = np.array([quadratic_form_cumulants(int(k), bool(h), acf) for k, h in kinds])  # (kinds, 4, 3)
-    fit = _ltz_fit(cum)
-    E = np.maximum(cum[kind, 0], 1e-12)
-    sigma2 = np.median(lag0 / np.maximum(_ltz_median(fit, kind), 1e-12), axis=0)
-    ratio = lag0 / E / np.maximum(sigma2, 1e-300)
-    return ratio, _ltz_sf(lag0 / np.maximum(sigma2, 1e-300), fit, kind)
-
-
-DENSE_MAX_SAMPLES = 512  # longer visits: the detrended correlation matrix's spectrum from its circulant approximation
-
-
-def quadratic_form_cumulants(n: int, line: bool, acf: np.ndarray) -> np.ndarray:
-    """(4, 3): sum_i lambda_i^k, k = 1..4, per axis, lambda the eigenvalues of (I - H) R (I - H), R (n, n) the
-    correlation matrix of ``n`` consecutive samples (``acf`` (3, L + 1), zero beyond L), H the projection on their
-    mean and, with ``line``, their line: the cumulants / 2^(k-1) (k - 1)! of the detrended sum of squares per unit
-    variance. Exact up to ``DENSE_MAX_SAMPLES`` samples; beyond, R's eigenvalues are the spectrum at the n Fourier
-    frequencies (circulant approximation, error O(L / n)) less the lowest one or two (what H removes), scaled to the
-    exact sum (``detrended_lag_matrix``)."""
-    L = acf.shape[1] - 1
-    out = np.empty((4, 3))
-    exact = detrended_lag_matrix(n, 0, L, line)[0] @ acf.T  # (3,) sum_i lambda_i
-    r = 1 + int(line and n >= 2)
-    for j in range(3):
-        if n <= max(DENSE_MAX_SAMPLES, 2 * L + 1):
-            row = np.zeros(n)
-            row[: min(n, L + 1)] = acf[j, : min(n, L + 1)]
-            R = row[np.abs(np.arange(n)[:, None] - np.arange(n)[None, :])]
-            q = np.column_stack([np.ones(n), np.arange(n) - (n - 1) / 2.0][:r])
-            q = np.linalg.qr(q)[0]
-            M = R - q @ (q.T @ R)
-            M = M - (M @ q) @ q.T
-            M2 = M @ M
-            out[:, j] = [np.trace(M), float(np.sum(M * M.T)), float(np.sum(M2 * M.T)), float(np.sum(M2 * M2.T))]
-        else:
-            c = np.zeros(n)
-            c[: L + 1] = acf[j]
-            c[n - L:] = acf[j, 1:][::-1]
-            lam = np.maximum(np.fft.rfft(c).real, 0.0)  # one of each +-f pair, weighted below
-            w = np.full(len(lam), 2.0)
-            w[0] = 0.0  # the mean takes the zero frequency
-            if n % 2 == 0:
-                w[-1] = 1.0
-            if r == 2:
-                w[1] -= 1.0  # the line: about one of the lowest nonzero frequency's pair
-            scale = exact[j] / max(float(np.sum(w * lam)), 1e-300)
-            out[:, j] = [float(np.sum(w * (scale * lam) ** k)) for k in (1, 2, 3, 4)]
-    out[0] = exact
-    return out
-
-
-def _ltz_fit(cum: np.ndarray) -> dict[str, np.ndarray]:
-    """Liu, Tang & Zhang's chi^2 (central case) for sums of lambda_i chi^2_1 with power sums ``cum`` (K, 4, 3)."""
-    c1, c2, c3, c4 = (np.maximum(cum[:, k], 1e-300) for k in range(4))
-    s1, s2 = c3 / c2**1.5, c4 / c2**2
-    big = s1**2 > s2
-    a = np.where(big, 1.0 / (s1 - np.sqrt(np.maximum(s1**2 - s2, 0.0))), 1.0 / s1)
-    delta = np.where(big, s1 * a**3 - a**2, 0.0)
-    df = np.where(big, a**2 - 2.0 * delta, 1.0 / s1**2)
-    return {"c1": c1, "sd": np.sqrt(2.0 * c2), "a": a, "delta": np.maximum(delta, 0.0), "df": np.maximum(df, 1e-6)}
-
-
-def _ltz_sf(q: np.ndarray, fit: dict[str, np.ndarray], kind: np.ndarray) -> np.ndarray:
-    """P(Q > q) (V, 3) for ``q`` (V, 3), each visit's Q of its ``kind``'s fit (``_ltz_fit``)."""
-    f = {k: v[kind] for k, v in fit.items()}
-    x = (q - f["c1"]) / f["sd"] * np.sqrt(2.0) * f["a"] + f["df"] + f["delta"]
-    return np.where(f["delta"] > 0, stats.ncx2.sf(x, f["df"], np.maximum(f["delta"], 1e-300)),
-                    stats.chi2.sf(x, f["df"]))
-
-
-def _ltz_median(fit: dict[str, np.ndarray], kind: np.ndarray) -> np.ndarray:
-    """The median (V, 3) of each visit's Q (``_ltz_fit``)."""
-    f = {k: v[kind] for k, v in fit.items()}
-    x = np.where(f["delta"] > 0, stats.ncx2.median(f["df"], np.maximum(f["delta"], 1e-300)),
-                 stats.chi2.median(f["df"]))
-    return f["c1"] + (x - f["df"] - f["delta"]) * f["sd"] / (np.sqrt(2.0) * f["a"])
+    expect = np.array([detrended_lag_matrix(int(k), 0, lag, bool(h))[0] @ acf.T for k, h in kinds])  # (kinds, 3)
+    E = np.maximum(expect[kind.ravel()], 1e-12)
+    nu = np.maximum(E / (1.0 + 2.0 * np.sum(acf[:, 1:] ** 2, axis=1)), 1.0)
+    var = lag0 / E
+    centre = np.median(var, axis=0) / (stats.chi2.median(np.median(nu, axis=0)) / np.median(nu, axis=0))
+    ratio = var / np.maximum(centre, 1e-300)
+    return ratio, stats.chi2.sf(nu * ratio, nu)
 
 
 @dataclass
