@@ -15,6 +15,7 @@ calibrated test gives p < q on a fraction q of the campaigns, per axis).
     nice -n 19 .venv/bin/python bench/residual_false_alarm.py --seeds 100                  # ~4 min on 2 cores
     nice -n 19 .venv/bin/python bench/residual_false_alarm.py --seeds 100 --update-results # rewrites the page
     nice -n 19 .venv/bin/python bench/residual_false_alarm.py --seeds 100 --max-effects 0  # the declared model alone
+    nice -n 19 .venv/bin/python bench/residual_false_alarm.py --seeds 100 --campaign ramps --update-results
 
 Writes the per-seed verdicts as JSON to ``--output`` (default: the scratch directory, ``output_paths``), and with
 ``--update-results`` the page docs/results/diagnosis_false_alarms.md.
@@ -31,6 +32,7 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 
+import numpy as np
 import yaml
 from output_paths import RESULTS_PAGES, scratch_dir
 
@@ -39,7 +41,7 @@ NAMED = ("reference_dark_offset", "thermal_lag", "spectral_nonlinearity", "time_
 # 7 x 6 poses (theta and psi in 60 degree steps), 3 s dwell, 1 s moves: the measured run's table, shortened
 GRID = {"scenario.poses.mode": "grid", "scenario.poses.dwell_s": 3.0, "scenario.poses.move_s": 1.0,
         "scenario.poses.grid.theta_step_deg": 60.0, "scenario.poses.grid.psi_step_deg": 60.0}
-PAGE = RESULTS_PAGES / "diagnosis_false_alarms.md"
+PAGES = {"grid": RESULTS_PAGES / "diagnosis_false_alarms.md", "ramps": RESULTS_PAGES / "diagnosis_false_alarms_ramps.md"}
 # verdict -> (nominal level, where it is stated)
 NOMINAL = {
     "significant unexplained residual": (0.01, "alpha, Bonferroni over the axes (diagnosis/structure.py)"),
@@ -51,6 +53,20 @@ NOMINAL = {
     "a periodic disturbance": (0.001, "periodic_disturbance.py"),
     "a settling transient after the moves": (0.004, "3 standard errors, normal approximation (diagnosis/floor.py)"),
     "a disturbed visit end (visit_ends)": (0.004, "as the settling transient"),
+}
+
+
+# continuous ramps with a turning point (15 -> 45 -> 15 degC, 600 s each way through a fast 60 s housing, 10 Hz), the
+# grid repeated through the run: every pose revisited ~8 times (test/test_diagnose_sim.py's RAMPS)
+RAMPS = {"scenario.rate_hz": 10.0, "scenario.poses.repeat": 8, "thermal.optics_time_constant_s": 60.0,
+         "scenario.temperature.initial_c": 15.0, "thermal.initial_optics_c": 15.0, "scenario.duration_s": 1200.0,
+         "scenario.temperature.profile": [{"ramp_to_c": 45.0, "duration_s": 600.0},
+                                          {"ramp_to_c": 15.0, "duration_s": 600.0}]}
+CAMPAIGNS = {"grid": {}, "ramps": RAMPS}
+CAMPAIGN_TEXT = {
+    "grid": "the simulator's clean grid (7 x 6 poses, 3 s dwell, 1 s moves, 100 Hz, each pose visited once",
+    "ramps": "the simulator's clean continuous ramps (15 -> 45 -> 15 degC, 600 s each way, a 60 s housing, 10 Hz; the "
+             "7 x 6 grid of 3 s dwells and 1 s moves repeated through the run: each pose visited ~8 times",
 }
 
 
@@ -77,7 +93,8 @@ def one(args: tuple[int, float, int, dict]) -> dict:
     return {"seed": seed, "verdicts": verdicts, "p": [float(v) for v in res.structure.pose_chi2_p],
             "added": [a[0] for a in res.added + res.run_terms + res.rig_terms],
             "remedies": [a[0] for a in res.noise_remedies], "findings": kinds,
-            "ratio": [float(v) for v in res.structure.ratio]}
+            "ratio": [float(v) for v in res.structure.ratio],
+            "slow_sigma": [float(v) for v in res.structure.slow_sigma], "slow_revisits": res.structure.slow_revisits}
 
 
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -115,14 +132,14 @@ def axis_calibration(rows: list[dict]) -> list[tuple[float, list[float]]]:
     return [(q, [sum(r["p"][j] < q for r in rows) / len(rows) for j in range(3)]) for q in (0.1, 0.05, 0.01, 0.0033)]
 
 
-def page(rows: list[dict], argv: list[str], header: str, seconds: float) -> str:
+def page(rows: list[dict], argv: list[str], header: str, seconds: float, campaign: str = "grid") -> str:
     n = len(rows)
     lines = ["# False alarms of the diagnosis' verdicts on clean campaigns", "",
              "Produced by:", "", "```",
              "nice -n 19 .venv/bin/python bench/residual_false_alarm.py " + " ".join(argv), "```", "",
              f"{header}; {seconds:.0f} s on {platform.machine()} ({os.cpu_count()} cores, shared), Python "
              f"{platform.python_version()}.", "",
-             "Each campaign is the simulator's clean grid (7 x 6 poses, 3 s dwell, 1 s moves, 100 Hz; every named "
+             f"Each campaign is {CAMPAIGN_TEXT[campaign]}; every named "
              "effect off, so eq. 28 is exact up to Table 2's noise) with the measured board's reference read noise, "
              "diagnosed with the defaults (up to 3 effects, remedies included). A verdict holds its level when its "
              "nominal level is within or above the 95 % (Wilson) interval of its rate.", "",
@@ -139,10 +156,16 @@ def page(rows: list[dict], argv: list[str], header: str, seconds: float) -> str:
               "The residual test's p-value per axis (a calibrated test gives p < q on a fraction q of the campaigns):",
               "", "| q | x | y | z |", "|---|---|---|---|"]
     lines += [f"| {q:g} | " + " | ".join(f"{f:.2f}" for f in fr) + " |" for q, fr in axis_calibration(rows)]
-    lines += ["", "How the residual test's statistic and its reference distribution are made, and what its null "
-              "hypothesis leaves out (noise slower than a visit: the sensor's bias instability, largest on z), is in "
-              "[docs/effects.md](../effects.md) (\"What remains\"). With `--set effects.bias_instability.scale=0` the "
-              "same run tells the share of that slow noise. Seeds with a verdict: "
+    slow = [r["slow_sigma"] for r in rows if r.get("slow_revisits")]
+    lines += ["", "How the residual test's statistic and its reference distribution are made is in "
+              "[docs/effects.md](../effects.md) (\"What remains\"). Its null hypothesis holds noise slower than a "
+              "visit (the sensor's bias instability) when the campaign revisits its poses: estimated from the "
+              "revisits' scatter (`diagnosis/structure.py`, `slow_visit_error`)"
+              + (f"; here on {len(slow)} of {n} campaigns, median slow error of a visit mean x / y / z "
+                 + " / ".join(f"{1e3 * v:.2f}" for v in np.median(np.array(slow), axis=0)) + " mm/s^2"
+                 if slow else "; no pose is revisited here, so it is not identifiable and not in the null")
+              + ". With `--set effects.bias_instability.scale=0` the same run tells the share of that slow noise. "
+              "Seeds with a verdict: "
               + (", ".join(f"{r['seed']} ({'; '.join(k for k, v in r['verdicts'].items() if v)})"
                            for r in rows if any(r["verdicts"].values())) or "none") + "."]
     return "\n".join(lines) + "\n"
@@ -154,22 +177,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--first-seed", type=int, default=1)
     ap.add_argument("--reference-noise", type=float, default=1.0, help="reference read noise, counts rms")
     ap.add_argument("--max-effects", type=int, default=3)
+    ap.add_argument("--campaign", choices=sorted(CAMPAIGNS), default="grid",
+                    help="grid: each pose visited once; ramps: temperature ramps, each pose revisited")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a simulator setting (YAML value), e.g. effects.bias_instability.scale=0")
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     ap.add_argument("--output", default=None, help="the per-seed JSON (default: the scratch directory)")
-    ap.add_argument("--update-results", action="store_true", help=f"also write {PAGE.relative_to(PAGE.parents[2])}")
+    ap.add_argument("--update-results", action="store_true", help="also write docs/results/diagnosis_false_alarms.md (grid) or "
+                         "diagnosis_false_alarms_ramps.md (ramps)")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
-    extra = {k: yaml.safe_load(v) for k, v in (item.split("=", 1) for item in a.set)}
+    extra = {**CAMPAIGNS[a.campaign], **{k: yaml.safe_load(v) for k, v in (item.split("=", 1) for item in a.set)}}
     jobs = [(s, a.reference_noise, a.max_effects, extra) for s in range(a.first_seed, a.first_seed + a.seeds)]
     with ProcessPoolExecutor(a.workers) as pool:
         rows = list(pool.map(one, jobs))
     seconds = time.perf_counter() - t0
     n = len(rows)
-    header = (f"{n} clean campaigns (seeds {a.first_seed}-{a.first_seed + n - 1}, reference read noise "
+    header = (f"{n} clean {a.campaign} campaigns (seeds {a.first_seed}-{a.first_seed + n - 1}, reference read noise "
               f"{a.reference_noise:g} counts, max_effects {a.max_effects}"
-              + "".join(f", {k} = {v}" for k, v in extra.items()) + ")")
+              + "".join(f", {k} = {v}" for k, v in extra.items() if k not in CAMPAIGNS[a.campaign]) + ")")
     print(f"{header}, {seconds:.0f} s")
     for s in summary(rows):
         nominal = "" if s["nominal"] is None else f", nominal {100 * s['nominal']:g} %"
@@ -179,15 +205,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"residual test p < {q:g} per axis: " + " / ".join(f"{f:.2f}" for f in fr))
     added = [r for r in rows if r["added"]]
     print(f"terms added: {len(added)} / {n}: " + ", ".join(f"seed {r['seed']}: {r['added']}" for r in added))
-    out = a.output or str(scratch_dir() / "residual_false_alarm.json")
+    out = a.output or str(scratch_dir() / f"residual_false_alarm_{a.campaign}.json")
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     with open(out, "w", encoding="utf-8") as f:
         json.dump({"argv": sys.argv[1:], "rows": rows}, f, indent=1)
     print(f"per seed: {out}")
     if a.update_results:
         shown = [v for v in (argv if argv is not None else sys.argv[1:]) if v != "--update-results"]
-        PAGE.write_text(page(rows, [*shown, "--update-results"], header, seconds), encoding="utf-8")
-        print(f"wrote {PAGE}")
+        PAGES[a.campaign].write_text(page(rows, [*shown, "--update-results"], header, seconds, a.campaign),
+                                     encoding="utf-8")
+        print(f"wrote {PAGES[a.campaign]}")
     return 0
 
 

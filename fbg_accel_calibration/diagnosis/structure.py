@@ -22,6 +22,13 @@ from .search import (
     _corr,
 )
 
+# Bias instability of paper Table 2 (§4.4; ../shared/docs/sensor_facts.md: min Allan deviation / 0.664), x / y / z, mg
+TABLE2_BIAS_INSTABILITY_MG = np.array([0.54, 1.10, 1.87])
+# The largest slow error of a visit mean the residual test's null hypothesis holds (m/s^2): ten times Table 2's bias
+# instability. A flicker wander of Allan floor 0.664 B over 10^4 of its correlation times has a standard deviation of
+# about 1.7 B; the rest is margin for what else moves a visit mean slowly on a real sensor (the simulator's clean ramps
+# at 10 Hz: up to 4.7x B on x, 2.5x on y, 1.7x on z, median). Revisits that differ by more are evidence, not noise.
+SLOW_ERROR_BOUND_MPS2 = 10.0 * TABLE2_BIAS_INSTABILITY_MG * 9.80665e-3
 SMALL_RATIO = 1.1  # a significant residual whose held-out RMSE is within this x the per-sample floor is "small"
 
 
@@ -57,30 +64,46 @@ class ResidualStructure:
     same_pose_chi2_p: np.ndarray = field(default_factory=lambda: np.ones(3))
     other_pose_chi2_p: np.ndarray = field(default_factory=lambda: np.ones(3))
     same_pose_span_s: float = 0.0
+    # noise slower than a visit, in the test's null hypothesis (``slow_visit_error``): standard deviation (3,) m/s^2 of
+    # a visit mean's slow error, its degrees of freedom (3,), and the revisits it rests on (0: not identifiable)
+    slow_sigma: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    slow_dof: np.ndarray = field(default_factory=lambda: np.full(3, np.inf))
+    slow_revisits: int = 0
 
 
 @dataclass
 class HeldoutMeanNull:
     """The covariance of the held-out visit means of the residual under the null hypothesis (the model is right and
     the floor's noise is all there is; ``heldout_mean_covariance``): ``visits`` (V,) the held-out visit ids, ``cov``
-    (3, V, V) in (m/s^2)^2 per axis."""
+    (3, V, V) in (m/s^2)^2 per axis; ``slow`` (V, V) that of a slow error of unit variance, one value per visit,
+    independent between visits (``SlowVisitError``), through the same cross-validation: the held-out visit's own
+    value less what the coefficients fitted on the other folds took of theirs (dimensionless; None: not worked
+    out)."""
 
     visits: np.ndarray
     cov: np.ndarray
+    slow: np.ndarray | None = None
 
-    def for_visits(self, ug: np.ndarray, diag: np.ndarray) -> np.ndarray:
-        """(3, len(ug), len(ug)) for the visits ``ug``; a visit it does not hold gets ``diag`` (len(ug), 3) alone. For
-        its own visits, ``cov`` itself (not a copy: 3 V^2 values, 150 MiB for the 2500 visits of 10^6 samples)."""
+    def for_visits(self, ug: np.ndarray, diag: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(3, len(ug), len(ug)) for the visits ``ug``; a visit it does not hold gets ``diag`` (len(ug), 3) alone;
+        and the slow error's (len(ug), len(ug)) (a visit it does not hold: 1 alone). For its own visits, ``cov`` and
+        ``slow`` themselves (not copies: 3 V^2 values, 150 MiB for the 2500 visits of 10^6 samples)."""
         if np.array_equal(ug, self.visits):
-            return self.cov
+            return self.cov, (self.slow if self.slow is not None else np.eye(len(ug)))
         out = np.zeros((3, len(ug), len(ug)))
+        slow = np.zeros((len(ug), len(ug)))
         pos = np.searchsorted(self.visits, ug)
         known = (pos < len(self.visits)) & (self.visits[np.minimum(pos, len(self.visits) - 1)] == ug)
         k = np.flatnonzero(known)
         out[:, k[:, None], k[None, :]] = self.cov[:, pos[k][:, None], pos[k][None, :]]
         u = np.flatnonzero(~known)
         out[:, u, u] = diag[u].T
-        return out
+        slow[u, u] = 1.0
+        if self.slow is not None:
+            slow[k[:, None], k[None, :]] = self.slow[pos[k][:, None], pos[k][None, :]]
+        else:
+            slow[k, k] = 1.0
+        return out, slow
 
 
 @dataclass
@@ -166,16 +189,21 @@ def heldout_mean_null(sums: HeldoutVisitSums, fold_xtx: np.ndarray, XtX: np.ndar
     Sn = np.stack([(S[at] / cnt_a[at, None]).T @ S[at] for at in at_a])  # (F, p, p) sum of s_u s_u^T / n_u
     same = kb[:, None] == kb[None, :]
     a_s = np.where(same, 0.0, a @ S[own].T)  # a_v . s_w for w of another fold
-    cov = np.empty((3, len(ub), len(ub)))
-    for j in range(3):
-        phi = float(np.median(cnt_a * var[:, j]))
-        B = np.stack([(S[at] * var[at, j][:, None]).T @ S[at] for at in at_a]) + phi * (xtx - Sn)  # (F, p, p)
+    cov = np.empty((4, len(ub), len(ub)))  # the three axes' noise, then a slow error of unit variance per visit
+    for j in range(4):
+        if j < 3:
+            phi = float(np.median(cnt_a * var[:, j]))
+            vj = var[:, j]
+            B = np.stack([(S[at] * vj[at][:, None]).T @ S[at] for at in at_a]) + phi * (xtx - Sn)  # (F, p, p)
+        else:  # one value per visit: nothing within a visit
+            vj = np.ones(len(cnt_a))
+            B = np.stack([S[at].T @ S[at] for at in at_a])
         c = np.einsum("vpq,vq->vp", B[kb], a)  # B_k(v) a_v
         ca = c @ a.T
-        qde = a_s * var[own, j][None, :]
+        qde = a_s * vj[own][None, :]
         cov[j] = a @ B.sum(axis=0) @ a.T - ca - ca.T + np.where(same, ca, 0.0) - qde - qde.T
-        cov[j][np.diag_indices(len(ub))] += var[own, j]
-    return HeldoutMeanNull(ub, cov)
+        cov[j][np.diag_indices(len(ub))] += vj[own]
+    return HeldoutMeanNull(ub, cov[:3], cov[3])
 
 
 def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, groups: np.ndarray,
@@ -197,9 +225,12 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
     ``MIN_MEAN_DOF`` (below it the F test could reject nothing at any size). With the diagonal alone and chi^2(V) the
     test fired on 5-6.5 % of clean simulated campaigns at a nominal 1 % (the 36 coefficients of eq. 28 fitted on
     42 visits: h ~ 37; ``bench/residual_false_alarm.py``, ``docs/results/diagnosis_false_alarms.md``).
-    What the null does not hold: noise slower than a visit (the sensor's bias instability, a low-pass of the
-    reference longer than a visit) moves the visit means without being in the floor; on the simulator it adds about a
-    tenth to the z axis's chi (Table 2's bias instability, 1.9 mg).
+    Noise slower than a visit (the sensor's bias instability, Table 2: 0.5-1.9 mg) moves the visit means without
+    being in the floor. When poses are revisited in a run, its variance is estimated from the revisits' scatter and
+    put in the null, and the test is of each pose's mean over its visits (``slow_visit_test``): on clean continuous
+    ramps (every pose ~8 times) the noise alone in the null gave "significant" on 7 of 10 seeds. A campaign that
+    visits each pose once cannot tell it from an effect of the pose, and it stays out of the null there (on the
+    simulator's clean grid it adds about a tenth to the z axis's chi).
 
     Significant = p < ``alpha`` / 3 on some axis (Bonferroni over the axes): the test's answer, whatever the size.
     The size is reported beside it: a systematic residual does not average out as the per-sample noise does, so
@@ -213,10 +244,15 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
     x = res[r]
     means = np.stack([np.bincount(inv, weights=x[:, j]) / cnt for j in range(3)], axis=1)
     noise_var = noise_model.mean_variance(cnt)
-    cov = (null.for_visits(ug, noise_var) if null is not None
-           else np.stack([np.diag(noise_var[:, j]) for j in range(3)]))
-    dof = np.maximum(noise_model.mean_dof, MIN_MEAN_DOF)
-    z, p = visit_mean_test(means, cov, dof)
+    cov, slow_unit = (null.for_visits(ug, noise_var) if null is not None
+                      else (np.stack([np.diag(noise_var[:, j]) for j in range(3)]), np.eye(len(ug))))
+    noise_dof = np.maximum(noise_model.mean_dof, MIN_MEAN_DOF)
+    pose_of = np.zeros(len(ug), int)
+    pose_of[inv] = data.pose_id[r]  # orientation of each visit (samples in motion: -1 may overwrite; fixed below)
+    static_r = r & (data.pose_id >= 0)
+    pose_of[np.searchsorted(ug, groups[static_r])] = data.pose_id[static_r]
+    run_of = data.run_id[r][np.unique(inv, return_index=True)[1]]
+    z, p, dof, slow = slow_visit_test(means, cov, slow_unit, pose_of, run_of, noise_dof)
     ho = np.sqrt(np.mean(x**2, axis=0))
     ratio = ho / np.maximum(noise, 1e-12)
     excess = np.sqrt(np.maximum(ho**2 - noise**2, 0.0))
@@ -240,10 +276,6 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
             coef = np.linalg.lstsq(Q, means[:, j], rcond=None)[0]
             tot = np.sum((means[:, j] - means[:, j].mean()) ** 2)
             r2[j] = 1 - np.sum((means[:, j] - Q @ coef) ** 2) / tot if tot > 0 else 0.0
-    pose_of = np.zeros(len(ug), int)
-    pose_of[inv] = data.pose_id[r]  # orientation of each visit (samples in motion: -1 may overwrite; fixed below)
-    static_r = r & (data.pose_id >= 0)
-    pose_of[np.searchsorted(ug, groups[static_r])] = data.pose_id[static_r]
     t0 = float(np.min(data.t_s))  # visits are placed from the first sample: a CSV may be timed in epoch seconds
     per_pose = [{"visit": int(ug[i]), "pose": int(pose_of[i]), "n": int(cnt[i]), "mean_mps2": means[i], "z": z[i],
                  "gref_mps2": g_mean[i], "t_s": float(t_mean[i] - t0), "temp_c": float(temp_mean[i])}
@@ -265,9 +297,120 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
         verdict = ("no significant unexplained residual: held-out RMSE within "
                    + ", ".join(f"{ratio[j]:.2f}x" for j in range(3)) + " of the noise floor")
     lag1 = noise_model.acf[:, 1] if noise_model.acf.shape[1] > 1 else np.zeros(3)
-    split = _direction_disagreement(means, noise_model.mean_variance(cnt), g_mean, t_mean, pose_of, dof)
+    split = _direction_disagreement(means, noise_model.mean_variance(cnt), g_mean, t_mean, pose_of, noise_dof)
     return ResidualStructure(significant, verdict, ho, noise, ratio, p, excess, per_pose, pose_rms, corr_t, corr_T, r2,
-                             lag1, serial, noise_model.correlation_samples, dof, small, *split)
+                             lag1, serial, noise_model.correlation_samples, dof, small, *split,
+                             slow_sigma=np.sqrt(slow.variance), slow_dof=slow.dof, slow_revisits=slow.revisits)
+
+
+def slow_visit_test(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray, pose: np.ndarray, run: np.ndarray,
+                    noise_dof: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, SlowVisitError]:
+    """The test of ``residual_structure`` with the slow error in its null hypothesis: visit means ``means`` (V, 3)
+    m/s^2, their covariance ``cov`` (3, V, V) under the noise and the coefficients' error (known to ``noise_dof``
+    (3,) degrees of freedom), ``slow_unit`` (V, V) that of a unit slow error, ``pose`` and ``run`` (V,) each visit's.
+    The slow error's variance comes from the revisits of a (pose, run) (``slow_visit_error``); their scatter is then
+    its estimate, not evidence, so the test is of the means of each (pose, run)'s visits (a visit not revisited
+    alone) against their covariance, slow error included (at most ``SLOW_ERROR_BOUND_MPS2``), referred to F with the
+    degrees of freedom of both estimates (``SlowVisitError.test_dof``); and the revisits' scatter is tested against
+    a slow error at that bound (``SlowVisitError.beyond``): p is twice the smaller of the two (Bonferroni). Without
+    revisits it is ``visit_mean_test`` of the visit means. Returns
+    (z (V, 3) each visit mean over its standard deviation, p (3,), degrees of freedom (3,) of a visit mean's variance,
+    the slow error)."""
+    slow = slow_visit_error(means, cov, slow_unit, pose, run)
+    if not slow.revisits:
+        return (*visit_mean_test(means, cov, noise_dof), noise_dof, slow)
+    bound = SLOW_ERROR_BOUND_MPS2**2
+    p_rev = slow.beyond(means, cov, slow_unit, bound)  # revisits that differ more than the sensor's wander can
+    held = SlowVisitError(np.minimum(slow.variance, bound), slow.dof, slow.revisits, slow.group)
+    cov = cov + held.variance[:, None, None] * slow_unit[None]
+    L = held.pooling()
+    cov_g, unit_g = L @ cov @ L.T, L @ slow_unit @ L.T
+    p_pool = visit_mean_test(L @ means, cov_g, held.test_dof(cov_g, unit_g, noise_dof))[1]
+    z = means / np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2).T, 1e-300))
+    return z, np.minimum(2.0 * np.minimum(p_pool, p_rev), 1.0), held.test_dof(cov, slow_unit, noise_dof), slow
+
+
+@dataclass
+class SlowVisitError:
+    """Noise slower than a visit (``slow_visit_error``): ``variance`` (3,) (m/s^2)^2 of a visit mean's slow error,
+    its degrees of freedom ``dof`` (3,) as an estimate (inf when 0 by construction), the ``revisits`` it rests on."""
+
+    variance: np.ndarray
+    dof: np.ndarray
+    revisits: int
+    group: np.ndarray | None = None  # (V,) each visit's (pose, run) group, 0..G-1 (a visit not revisited: its own)
+
+    def beyond(self, means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray, bound: np.ndarray) -> np.ndarray:
+        """p (3,) of the revisits' scatter |P m|^2 (``slow_visit_error``) under a slow error of variance ``bound``
+        (3,) (m/s^2)^2: Satterthwaite's chi^2 of its mean tr(P C_b) and variance 2 tr((P C_b)^2),
+        C_b = C + bound U. Small: the revisits of a pose differ more than a slow error of that size explains."""
+        g = self.group if self.group is not None else np.zeros(0, int)
+        rep = np.bincount(g)[g] >= 2
+        idx = np.flatnonzero(rep)
+        P = np.eye(len(idx)) - (g[idx][:, None] == g[idx][None, :]) / np.bincount(g[idx])[g[idx]][None, :]
+        p = np.ones(3)
+        for j in range(3):
+            pm = P @ means[idx, j]
+            PC = P @ (cov[j] + bound[j] * slow_unit)[np.ix_(idx, idx)]
+            e, v = float(np.trace(PC)), 2.0 * float(np.sum(PC * PC.T))
+            h = 2.0 * e**2 / max(v, 1e-300)
+            p[j] = stats.chi2.sf(float(pm @ pm) * h / max(e, 1e-300), h)
+        return p
+
+    def pooling(self) -> np.ndarray:
+        """(G, V): the mean of each group's visits."""
+        g = self.group if self.group is not None else np.zeros(0, int)
+        L = (np.arange(int(g.max()) + 1 if g.size else 0)[:, None] == g[None, :]).astype(float)
+        return L / L.sum(axis=1, keepdims=True)
+
+    def test_dof(self, cov: np.ndarray, slow_unit: np.ndarray, noise_dof: np.ndarray) -> np.ndarray:
+        """Degrees of freedom (3,) of a visit mean's variance in ``cov`` (3, V, V), the noise's (known to
+        ``noise_dof``) plus this slow error's (``slow_unit`` (V, V) for a unit variance): Satterthwaite's for a sum
+        of two independent estimates, on the visits' mean variance."""
+        b = self.variance * float(np.mean(np.diag(slow_unit)))
+        a = np.maximum(np.mean(np.diagonal(cov, axis1=1, axis2=2), axis=1) - b, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dof = (a + b) ** 2 / (a**2 / noise_dof + np.where(b > 0, b**2 / self.dof, 0.0))
+        return np.where(np.isfinite(dof) & (dof > 0), np.maximum(dof, MIN_MEAN_DOF), noise_dof)
+
+
+def slow_visit_error(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray, pose: np.ndarray,
+                     run: np.ndarray) -> SlowVisitError:
+    """The slow error of a visit mean that the floor cannot see, from the visits of one pose of one run (the same
+    table angles) about their pose's mean: a real sensor's bias wanders slowly (flicker-like bias instability,
+    correlation times from seconds to hours; paper Table 2: 0.5-1.9 mg), which the floor (a mean and a line removed
+    per visit) never sees, and moves the visit means. Model, per axis: the held-out visit means m (V,) are Gaussian
+    with covariance C + s^2 U, C (``cov``, (3, V, V)) that of the noise and the coefficients' error
+    (``heldout_mean_covariance``) and U (``slow_unit``) that of a slow error of unit variance, one value per visit
+    (``HeldoutMeanNull.slow``). With P the projection onto the contrasts of revisits (each visit about its (pose,
+    run)'s mean), the method of moments on Q = |P m|^2 (Henderson's method III, as ``fit.slow_error``):
+    E[Q] = tr(P C) + s^2 tr(P U), so s^2 = max(0, (Q - tr(P C)) / tr(P U)), with Var(Q) = 2 tr((P (C + s^2 U))^2)
+    and dof = 2 s^4 / Var(s^2). What depends on the pose (its table angles, the order of a repeated sequence of poses)
+    is the same in every revisit and is not taken into it: the test still sees an effect of the orientation, the
+    table or the motion history of a repeated sequence. A campaign whose poses are each visited once cannot tell a
+    slow error from an effect of the pose (0, not identifiable; ``means`` (V, 3) m/s^2, ``pose`` (V,) pose ids, -1 in
+    motion, ``run`` (V,) run ids)."""
+    key = np.where(pose >= 0, pose.astype(np.int64) * 1_000_003 + run.astype(np.int64), -1)
+    lab, cnt = np.unique(key, return_inverse=True, return_counts=True)[1:]
+    rep = (key >= 0) & (cnt[lab] >= 2)
+    revisits = int(rep.sum() - len(np.unique(key[rep])))
+    if revisits < 2:
+        return SlowVisitError(np.zeros(3), np.full(3, np.inf), 0)
+    idx = np.flatnonzero(rep)
+    g = np.unique(key[idx], return_inverse=True)[1]
+    P = np.eye(len(idx)) - (g[:, None] == g[None, :]) / np.bincount(g)[g][None, :]  # symmetric: one group's mean
+    PU = P @ slow_unit[np.ix_(idx, idx)]
+    tr_pu = float(np.trace(PU))
+    var, dof = np.zeros(3), np.full(3, np.inf)
+    for j in range(3):
+        pm = P @ means[idx, j]
+        PC = P @ cov[j][np.ix_(idx, idx)]
+        var[j] = max((float(pm @ pm) - float(np.trace(PC))) / max(tr_pu, 1e-300), 0.0)
+        if var[j] > 0:
+            PT = PC + var[j] * PU
+            dof[j] = 2.0 * var[j] ** 2 / (2.0 * float(np.sum(PT * PT.T)) / tr_pu**2)
+    group = np.unique(np.where(rep, key, -2 - np.arange(len(key))), return_inverse=True)[1]
+    return SlowVisitError(var, dof, revisits, group)
 
 
 def _visit_sums(X: np.ndarray, rows: np.ndarray, inv: np.ndarray, n: int, block: int = 1 << 15) -> np.ndarray:

@@ -328,6 +328,11 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
               f"{_v(s.noise_mean_dof, '{:.0f}')} degrees of freedom, plus what the error of the coefficients that "
               "predict a held-out visit adds to its mean and the correlation it gives the visits: chi^2/df against "
               "F(df, dof), df by Satterthwaite)",
+              (f"- noise slower than a visit (bias wander), in the test's null hypothesis: a visit mean's slow error "
+               f"{_v(s.slow_sigma, '{:.3g}')} m/s^2 (x/y/z), from the scatter of {s.slow_revisits} revisits of a "
+               "pose (the test is then of each pose's mean over its visits)" if s.slow_revisits else
+               "- noise slower than a visit (bias wander): not in the test's null hypothesis, no pose is revisited "
+               "in a run (a slow error cannot be told from an effect of the pose; revisit poses to separate them)"),
               f"- Spearman correlation of pose means with time: {_v(s.corr_time, '{:+.2f}')}, "
               f"with temperature: {_v(s.corr_temperature, '{:+.2f}')}",
               f"- correlation of consecutive pose means in time order (slow wander gives values near 1, a pose- or "
