@@ -134,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
     level = theta_levels(args.csv, len(rec))
     res = diagnose(rec)
     by_name = {e.name: e for e in LIBRARY}
-    terms = [*res.added, *res.noise_remedies, *res.run_terms, *res.rig_terms]  # every effect the diagnosis ends with
+    # every effect the diagnosis ends with but the code table, which is this report's "code table" rows
+    terms = [t for t in (*res.added, *res.noise_remedies, *res.run_terms, *res.rig_terms) if t[0] != CODE_CANDIDATE]
     effects = [(by_name[name], h) for name, h, _ in terms]
 
     def linear(data):
