@@ -160,7 +160,7 @@ def page(rows: list[dict], argv: list[str], header: str, seconds: float, campaig
     lines += ["", "How the residual test's statistic and its reference distribution are made is in "
               "[docs/effects.md](../effects.md) (\"What remains\"). Its null hypothesis holds noise slower than a "
               "visit (the sensor's bias instability) when the campaign revisits its poses: estimated from the "
-              "revisits' scatter (`diagnosis/structure.py`, `slow_visit_error`)"
+              "revisits' scatter (`fbg_accel_calibration/diagnosis/structure.py`, `slow_visit_error`)"
               + (f"; here on {len(slow)} of {n} campaigns, median slow error of a visit mean x / y / z "
                  + " / ".join(f"{1e3 * v:.2f}" for v in np.median(np.array(slow), axis=0)) + " mm/s^2"
                  if slow else "; no pose is revisited here, so it is not identifiable and not in the null")
