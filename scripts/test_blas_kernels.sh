@@ -3,6 +3,7 @@
 # family this CPU can run, forced with OPENBLAS_CORETYPE. The kernels round differently; a test that passes under one
 # and fails under another asserts a result decided by rounding, which a user on another machine would not get.
 # Usage: scripts/test_blas_kernels.sh [KERNEL ...]   (default: Prescott Haswell SkylakeX Zen; .ci/run calls it)
+# The tests run on pytest-xdist workers, one per CPU (at most 4; TEST_WORKERS=N sets the number, 0 for none).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/bootstrap.sh
@@ -18,6 +19,7 @@ tests=$(ls test/test_diagnose*.py test/test_*fit*.py test/test_thermal_*.py test
   test/test_driver_chain_compensation.py test/test_low_reference.py test/test_reference_level.py \
   test/test_static_detector.py test/test_coefficient_uncertainty.py test/test_calibration_covariance_driver.py \
   test/test_field_check.py 2>/dev/null | grep -v '_process\.py$')
+workers=$(scripts/test_workers.sh cpus)  # each worker on its own DDS domain: base..base+workers-1 (test/conftest.py)
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 101 ))}
 corename='from fbg_accel_calibration.diagnosis.blas_threads import blas_core_names; import numpy as np
 np.ones(2) @ np.ones(2); print(",".join(blas_core_names()))'
@@ -40,7 +42,8 @@ for k in "${kernels[@]}"; do
   fi
   seen="$seen$core "
   echo "test_blas_kernels: OPENBLAS_CORETYPE=$k ($core kernels)"
+  # the workers inherit OPENBLAS_CORETYPE; test/conftest.py fails the run if one computes with another kernel
   # shellcheck disable=SC2086
-  OPENBLAS_CORETYPE=$k .venv/bin/python -m pytest -p no:cacheprovider $tests || status=1
+  OPENBLAS_CORETYPE=$k .venv/bin/python -m pytest -p no:cacheprovider -n "$workers" --dist loadfile $tests || status=1
 done
 exit $status

@@ -10,6 +10,58 @@ from typing import Any
 
 import pytest
 
+# Fast DDS derives its UDP ports from the domain: 0..232 fit below 65536 (scripts/test.sh picks 1..101).
+MAX_DOMAIN_ID = 232
+
+
+def worker_domain_id(base: str, worker: str) -> str:
+    """The DDS domain of pytest-xdist worker ``worker`` ("gw0", "gw1", ...) in a run whose domain is ``base``: base + the
+    worker's number (wrapped into 0..MAX_DOMAIN_ID), so the workers' nodes and processes never see each other's."""
+    return str((int(base) + int(worker.removeprefix("gw"))) % (MAX_DOMAIN_ID + 1))
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Under pytest-xdist each worker gets its own ROS_DOMAIN_ID (the run's + its number) before any test module is
+    collected, so before any rclpy context or child process starts; without workers nothing changes."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if worker and "ROS_DOMAIN_ID" in os.environ:
+        os.environ["ROS_DOMAIN_ID"] = worker_domain_id(os.environ["ROS_DOMAIN_ID"], worker)
+    if hasattr(config, "workeroutput"):  # read back by the controller (pytest_testnodedown)
+        config.workeroutput["blas_kernel"] = _blas_kernel()
+        config.workeroutput["ros_domain_id"] = os.environ.get("ROS_DOMAIN_ID", "unset")
+
+
+_WORKERS: dict[str, dict[str, str]] = {}
+
+
+def pytest_testnodedown(node: Any, error: Any) -> None:
+    """Under pytest-xdist (controller side): what each worker computed with and which DDS domain it used."""
+    out = getattr(node, "workeroutput", None) or {}
+    if "blas_kernel" in out:
+        _WORKERS[node.gateway.id] = out
+
+
+def _workers_on_another_kernel() -> list[str]:
+    mine = _blas_kernel()
+    return sorted(w for w, o in _WORKERS.items() if o["blas_kernel"] != mine)
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    """A worker computing with another OpenBLAS kernel than this process (so than OPENBLAS_CORETYPE asks for,
+    ``scripts/test_blas_kernels.sh``) fails the run even when its tests passed."""
+    if _workers_on_another_kernel() and exitstatus == 0:
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pytest.Config) -> None:
+    """Under pytest-xdist, one line per worker: its OpenBLAS kernel and DDS domain."""
+    for w, o in sorted(_WORKERS.items()):
+        terminalreporter.write_line(f"worker {w}: OpenBLAS kernel {o['blas_kernel']}, ROS_DOMAIN_ID {o['ros_domain_id']}")
+    wrong = _workers_on_another_kernel()
+    if wrong:
+        terminalreporter.write_line(f"ERROR: workers {', '.join(wrong)} did not compute with this run's OpenBLAS kernel "
+                                    f"({_blas_kernel()})", red=True)
+
 
 @pytest.fixture(scope="module")
 def ros() -> Iterator[Any]:
@@ -26,12 +78,17 @@ def ros() -> Iterator[Any]:
 def pytest_report_header(config: pytest.Config) -> str:
     """Which OpenBLAS kernel this run computes with (``scripts/test_blas_kernels.sh`` runs the numerical tests under
     each one the CPU has): a failure that only one kernel shows is a result decided by rounding."""
+    return f"OpenBLAS kernel: {_blas_kernel()}"
+
+
+def _blas_kernel() -> str:
+    """The OpenBLAS kernel(s) this process computes with (after one product: the library is loaded with numpy)."""
     import numpy as np
 
     from fbg_accel_calibration.diagnosis.blas_threads import blas_core_names
 
-    np.ones((2, 2)) @ np.ones((2, 2))  # the library is loaded with numpy
-    return f"OpenBLAS kernel: {', '.join(blas_core_names()) or 'none found'}"
+    np.ones((2, 2)) @ np.ones((2, 2))
+    return ", ".join(blas_core_names()) or "none found"
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
