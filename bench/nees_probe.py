@@ -47,7 +47,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine_info import machine
-from output_paths import add_update_results, results_dir
+from output_paths import RESULTS_PAGES, add_update_results, results_dir
 
 from fbg_accel_driver.chain_compensation import ChainDynamics
 from fbg_accel_driver.driver_core import CoreConfig, DriverCore
@@ -364,7 +364,7 @@ def main(argv: list[str] | None = None) -> int:
         path.write_text(json.dumps(out, indent=1) + "\n")
         print(table_markdown(out))
         if args.update_results:
-            page = REPO / "docs" / "results" / "calibration_consistency.md"
+            page = RESULTS_PAGES / "calibration_consistency.md"
             print(f"{page}: {'table updated' if update_page(out, page) else 'no markers for ' + design_tag(out)}")
         print(f"wrote {path}")
         return 0

@@ -34,6 +34,7 @@ def pytest_configure(config: pytest.Config) -> None:
 _WORKERS: dict[str, dict[str, str]] = {}
 
 
+@pytest.hookimpl(optionalhook=True)  # an xdist hook: without the plugin pytest must not refuse it
 def pytest_testnodedown(node: Any, error: Any) -> None:
     """Under pytest-xdist (controller side): what each worker computed with and which DDS domain it used."""
     out = getattr(node, "workeroutput", None) or {}
