@@ -156,13 +156,19 @@ def test_the_driver_adds_it_as_a_bias_once_per_message() -> None:
     assert "slow error of a still mean" in msg and "0.0949" in msg
 
 
-def test_the_gravity_check_widens_its_threshold_by_the_slow_error_along_gravity() -> None:
+def still_with_and_without_slow_error():
+    """A calibration without a slow_error section, the same with SLOW, the gravity direction (m/s^2, sensor frame)
+    and 500 still samples (m/s^2) with their Psi, uncorrelated noise."""
     cal = make_cal(noise_correlated_fraction=np.zeros(3), noise_time_constant_s=np.zeros(3))
     slow = make_cal(noise_correlated_fraction=np.zeros(3), noise_time_constant_s=np.zeros(3),
                     slow_error=SlowErrorSection(SLOW, "test", 40))
     a_true = np.array([1.0, -2.0, 9.5])
     a_true *= STANDARD_GRAVITY / np.linalg.norm(a_true)
-    acc, psi = still_samples(cal, 500, a_true)
+    return (cal, slow, a_true, *still_samples(cal, 500, a_true))
+
+
+def test_the_gravity_check_widens_its_threshold_by_the_slow_error_along_gravity() -> None:
+    cal, slow, a_true, acc, psi = still_with_and_without_slow_error()
     drift = np.array([0.0, 0.0, 0.2])  # a drift of 0.2 m/s^2 on z, nearly along gravity
     acc = acc + drift
     cfg = GravityCheckConfig(STANDARD_GRAVITY, tolerance_mps2=0.0, period_s=2.0)  # one test: 2.25 s hold, a 2 s block
@@ -179,17 +185,12 @@ def test_the_gravity_check_widens_its_threshold_by_the_slow_error_along_gravity(
 def test_the_default_tolerance_is_gravity_s_and_a_file_without_slow_error_gets_the_stated_allowance() -> None:
     """The default gravity_tolerance_mps2 is standard gravity's error (0.03) alone when the file states its slow error;
     a file without the section does not, and the check allows UNSTATED_SLOW_ERROR_MPS2 (0.12) for it, named in the
-    test's figures. Before, 0.15 was added whether or not the slow error was already in sigma (threshold about 0.35
+    test's figures: a fixed allowance added on top of a stated slow error would count it twice (threshold about 0.35
     m/s^2 with the simulated campaigns' slow error: 8 % of the 0.2 m/s^2 drifts flagged)."""
     from fbg_accel_driver.gravity_check import DEFAULT_TOLERANCE_MPS2, UNSTATED_SLOW_ERROR_MPS2
 
     assert DEFAULT_TOLERANCE_MPS2 == CoreConfig().gravity_tolerance_mps2 == 0.03 and UNSTATED_SLOW_ERROR_MPS2 == 0.12
-    cal = make_cal(noise_correlated_fraction=np.zeros(3), noise_time_constant_s=np.zeros(3))
-    slow = make_cal(noise_correlated_fraction=np.zeros(3), noise_time_constant_s=np.zeros(3),
-                    slow_error=SlowErrorSection(SLOW, "test", 40))
-    a_true = np.array([1.0, -2.0, 9.5])
-    a_true *= STANDARD_GRAVITY / np.linalg.norm(a_true)
-    acc, psi = still_samples(cal, 500, a_true)
+    cal, slow, _, acc, psi = still_with_and_without_slow_error()
     cfg = GravityCheckConfig(STANDARD_GRAVITY, period_s=2.0)
     stated, unstated = feed(GravityCheck(slow, cfg, DT), acc, psi)[0], feed(GravityCheck(cal, cfg, DT), acc, psi)[0]
     k_sigma = 3.89 * math.sqrt(stated.sigma_noise_mps2**2 + stated.sigma_slow_mps2**2)
