@@ -51,6 +51,7 @@ DIAGNOSE_OPTIONS = {
     "--max-effects": ["-1", "0", "1"],
     "--seed": ["-1", "0", "99999999999"],
     "--static": ["table", "detector", "all", "bogus"],
+    "--figures": ["report", "all", "none", "bogus"],
 }
 FEW = [0, 0, 0, 0, 1, 1, 2, 4]  # mutations per kind: most inputs keep most of the file valid, so deep code runs
 # HOSTILE_EXAMPLES=500 (environment) for a longer, randomised search; the default run is short and fixed

@@ -3,13 +3,17 @@ series of the paper (the driver's output with the terms diagnose adds: test_driv
 
 from __future__ import annotations
 
+import argparse
 import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from fbg_accel_calibration.commands.diagnose_cli import FIGURES as CLI_FIGURES
 from fbg_accel_calibration.commands.diagnose_cli import main as diagnose_main
+from fbg_accel_calibration.commands.diagnose_cli import register as register_diagnose
+from fbg_accel_calibration.commands.diagnose_cli import write_outputs
 from fbg_accel_calibration.diagnosis.adc_code_candidate import NAME as ADC_CODES_NAME
 from fbg_accel_calibration.diagnosis.cv import (
     CANCEL_RATIO,
@@ -34,6 +38,7 @@ from fbg_accel_calibration.io.recording import Recording, time_axis_label
 from fbg_accel_calibration.io.table_geometry import table_specific_force
 from fbg_accel_calibration.reports.diagnose_report import (
     CAND_HEAD,
+    FIGURES,
     PLOT_GRID,
     markdown,
     plotted,
@@ -93,7 +98,7 @@ def synthetic(seed: int, *, dark: float = 0.0, pose_disturbance: float = 0.0, dw
                      table_deg=np.column_stack([psi, read]))
 
 
-def test_injected_dark_offset_is_found_and_fixed() -> None:
+def test_injected_dark_offset_is_found_and_fixed(tmp_path: Path) -> None:
     rec = synthetic(1, dark=-150.0)
     res = diagnose(rec, static="table")
     assert res.ranked[0].name == "reference_dark_offset"
@@ -115,6 +120,17 @@ def test_injected_dark_offset_is_found_and_fixed() -> None:
     res.added.append((ADC_CODES_NAME, None, "counts mapped to their codes' centres"))
     md = markdown(res)
     assert f"**Added: {ADC_CODES_NAME}**" in md and set(_linked_figures(md)) == drawn
+    # the command's --figures: 'all' draws and links every candidate's figure, 'none' draws and links none (issue 36)
+    every = {"before_after.png", "residual_structure.png", *(f"candidate_{c.name}.png" for c in res.ranked
+                                                             if c.applicable and c.delta is not None)}
+    assert len(every) > len(drawn) + 2 and CLI_FIGURES == FIGURES  # the CLI's choices: those the report draws
+    parser = argparse.ArgumentParser()
+    register_diagnose(parser.add_subparsers())
+    for figures, expected in (("all", every), ("none", set())):
+        args = parser.parse_args(["diagnose", "run.csv", "--out", str(tmp_path / figures / "d.md"), "--figures", figures])
+        write_outputs(res, args, "")
+        written = {p.name for p in tmp_path.glob(f"{figures}/img/*.png")}
+        assert set(_linked_figures((tmp_path / figures / "d.md").read_text())) == written == expected, figures
 
 
 def _linked_figures(md: str) -> list[str]:
@@ -212,7 +228,9 @@ def test_cli_writes_report_yaml_and_plots(tmp_path: Path) -> None:
     assert "reference_dark_offset" in text and "Before and after" in text
     assert f"fbg-accel-calib diagnose {csv} --static table" in text  # the argv given to main, not sys.argv
     assert (out.parent / "img" / "before_after.png").stat().st_size > 1000
-    assert set(_linked_figures(text)) == {p.name for p in (out.parent / "img").glob("*.png")}  # each one drawn
+    # by default the figures the report links and no other: of the candidates, only the one added (issue 36)
+    assert set(_linked_figures(text)) == {p.name for p in (out.parent / "img").glob("*.png")} == {
+        "before_after.png", "candidate_reference_dark_offset.png", "residual_structure.png"}
     cal = ThermalCalibration.load(yml)
     assert [t.kind for t in cal.corrections] == ["reference_dark_offset", "channel_offset"]
     assert diagnose_main(["diagnose", str(tmp_path / "missing.csv")]) == 2
@@ -244,6 +262,11 @@ def test_measured_series_read_noise_is_separated_from_the_offset(tmp_path: Path)
     assert len(h.visits) == 5 and h.missing_above == (1536, 1543) and h.rmse_without[0] < 0.97 * res.after_heldout_rmse[0]
     paths = write_report(res, tmp_path / "m.md")
     assert all(p.exists() for p in paths)
+    # the figures the report links, and no other (issue 36): the remedy's and the stand-in's, not the refused offset's
+    drawn = {p.name for p in (tmp_path / "img").glob("*.png")}
+    assert set(_linked_figures((tmp_path / "m.md").read_text())) == drawn, drawn
+    assert {"candidate_reference_read_noise.png", "candidate_time_drift.png"} <= drawn
+    assert "candidate_reference_dark_offset.png" not in drawn and "candidate_channel_delay.png" not in drawn
     # marked in the table of the worst visits (2 of the 5 are among them with the drift's share of the residual left)
     assert (tmp_path / "m.md").read_text().count("| y 1535 |") >= 1
 

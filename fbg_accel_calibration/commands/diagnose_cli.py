@@ -71,6 +71,10 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="sensor id written into --yaml (default: the recordings' own, else unknown)")
     p.add_argument("--out", type=Path, default=None, help="markdown report (PNG plots go to --img-dir)")
     p.add_argument("--img-dir", type=Path, default=None, help="directory for the PNG plots (default: <out dir>/img)")
+    p.add_argument("--figures", choices=FIGURES, default=FIGURES[0],
+                   help="PNG plots of --out: 'report' (default) before/after, the residual's structure and a figure of "
+                        "each candidate effect the summary names (added, remedy, per-run, rig, stand-in, confounded); "
+                        "'all' also every other candidate's of the first step; 'none' no plots")
     p.add_argument("--yaml", type=Path, default=None, help="write the refitted calibration (with the added terms) here")
     p.add_argument("--force", action="store_true", help="replace existing output files (default: refuse)")
     add_progress_option(p)
@@ -82,6 +86,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 
 PLOT_FILES = ("before_after.png", "residual_structure.png")  # plus candidate_<effect>.png
+FIGURES = ("report", "all", "none")  # diagnose_report.FIGURES (not imported here: it loads the diagnosis for --help)
 
 
 def _img_dir(args: argparse.Namespace) -> Path | None:
@@ -100,7 +105,7 @@ def check_diagnose_outputs(args: argparse.Namespace) -> None:
     if args.out is not None and args.yaml is not None:
         check_outputs([args.out, args.yaml], [], True, create_dirs=True)  # not the same file twice
     img = _img_dir(args)
-    if img is not None:
+    if img is not None and args.figures != "none":
         from ..diagnosis.library import LIBRARY
 
         candidates = tuple(f"candidate_{e.name}.png" for e in LIBRARY)  # whichever the run plots: any library effect
@@ -116,7 +121,8 @@ def write_outputs(res, args: argparse.Namespace, command: str) -> list[Path]:
     written: list[Path] = []
     with committed_outputs() as outs:
         if args.out is not None:
-            written += write_report(res, args.out, _img_dir(args), command, outs)
+            written += write_report(res, args.out, _img_dir(args), command, outs,
+                                    figures=args.figures)
         if args.yaml is not None:
             res.calibration.fit.setdefault("source", [str(p) for p in args.inputs])
             res.calibration.save(outs.path(args.yaml))

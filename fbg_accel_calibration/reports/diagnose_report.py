@@ -66,10 +66,11 @@ def channel_offsets_counts(res: DiagnosisResult) -> np.ndarray | None:
     return None
 
 
-def summary(res: DiagnosisResult, img_prefix: str = "img/") -> list[str]:
-    """Bullet points: which effect, how it was traced, before/after per axis, floor, confounding, what remains."""
+def summary(res: DiagnosisResult, img_prefix: str = "img/", figures: str = "report") -> list[str]:
+    """Bullet points: which effect, how it was traced, before/after per axis, floor, confounding, what remains; an
+    added effect links its figure when ``figures`` (``FIGURES``) draws it."""
     out = []
-    drawn = {c.name for c in plotted_candidates(res)}
+    drawn = {c.name for c in plotted_candidates(res, figures)}
     if res.added:
         for name, _, desc in res.added:
             c = next((c for st in res.steps for c in st.candidates if c.name == name and st.chosen == name), None)
@@ -246,7 +247,9 @@ def periodic_section(res: DiagnosisResult) -> list[str]:
     return [*out, ""]
 
 
-def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") -> str:
+def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/", figures: str = "report") -> str:
+    """The markdown report; it links the figures that :func:`write_plots` draws with the same ``figures``
+    (``FIGURES``) under ``img_prefix``, and no other."""
     s = res.structure
     lines = ["# Residual diagnosis", ""]
     if command:
@@ -262,7 +265,7 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
                  if res.settings.get("search_rows") else "") + ", "
               f"temperature levels: {res.n_levels} ({np.nanmin(d.temp_c[d.use]):.2f}-{np.nanmax(d.temp_c[d.use]):.2f} degC), "
               f"time span {d.duration_s:.4g} s.", ""]
-    lines += ["## Summary", "", *summary(res, img_prefix), ""]
+    lines += ["## Summary", "", *summary(res, img_prefix, figures), ""]
     lines += ["## Declared model and degree (eq. 28)", ""]
     lines += [degree_table(res.degree_table, res.degree, bool(res.settings.get("degree_forced"))), ""]
     lines += ["Noise floor (per-sample standard deviation of the declared model's residual within visits over the "
@@ -318,7 +321,8 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
                      f"{res.after_heldout_rmse[j] / FULL_SCALE_MPS2:.1e}"])
     lines += [_md_table(["axis", "before in-sample [m/s^2]", "before held-out [m/s^2]", "after in-sample [m/s^2]",
                          "after held-out [m/s^2]", "noise floor [m/s^2]", "after / floor", "after / 20 g"], rows), ""]
-    lines += [f"![before/after]({img_prefix}before_after.png)", ""]
+    if figures != "none":
+        lines += [f"![before/after]({img_prefix}before_after.png)", ""]
     lines += ["## What remains", "", f"**{s.verdict}**", "",
               f"- pose-mean RMS of the held-out residual: {_v(s.pose_mean_rms)} m/s^2 (x/y/z)",
               f"- excess over the floor sqrt(RMSE^2 - floor^2): {_v(s.excess_rms)} m/s^2",
@@ -359,14 +363,21 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/") 
               _md_table(["visit / pose", "n", "mean residual x/y/z [m/s^2]", "z-score x/y/z", "reference x/y/z [m/s^2]",
                          res.settings.get("time_label", "time [s]"), "temp [degC]"]
                         + (["held on ADC code"] if held else []), rows), ""]
-    lines += [f"![residual structure]({img_prefix}residual_structure.png)", ""]
+    if figures != "none":
+        lines += [f"![residual structure]({img_prefix}residual_structure.png)", ""]
     if res.moving_residual_rms is not None:
         lines += [f"Samples not used (moving or settling), final model against the time-interpolated reference: "
                   f"RMS {_v(res.moving_residual_rms)} m/s^2 (these carry table motion, not calibration error).", ""]
     lines += [f"Driver check: `ThermalCalibration.apply_counts` with the added terms, streamed with state, reproduces "
               f"the fit's prediction to {res.consistency_max_abs_mps2:.1e} m/s^2.", ""]
     lines += ["## Residual versus candidates", ""]
-    for c in plotted_candidates(res):
+    drawn = plotted_candidates(res, figures)
+    left = [c.name for c in plotted_candidates(res, "all") if c.name not in {d.name for d in drawn}]
+    if left:  # figures not drawn: say which and how to draw them
+        lines += [("No figures drawn (`--figures none`)" if figures == "none" else
+                   "The candidates the summary names" + ("" if drawn else ": none")) + f"; not drawn: {', '.join(left)} "
+                  "(`--figures all` draws every candidate's).", ""]
+    for c in drawn:
         lines += [f"![{c.name}]({img_prefix}candidate_{c.name}.png)", ""]
     return "\n".join(lines) + "\n"
 
@@ -438,10 +449,27 @@ def plotted(idx: np.ndarray, x: np.ndarray, y: np.ndarray, grid: tuple[int, int]
     return idx[np.sort(first)]
 
 
-def plotted_candidates(res: DiagnosisResult) -> list[CandidateResult]:
+FIGURES = ("report", "all", "none")  # which figures a report draws and links (``--figures``); the first the default
+
+
+def named_effects(res: DiagnosisResult) -> set[str]:
+    """The effects the report's summary names as taken into the fit or kept out of it: the added terms, the noise
+    remedies, the per-run and rig terms, the stand-ins not claimed and the effects confounded with another."""
+    names = {n for n, _, _ in (*res.added, *res.noise_remedies, *res.run_terms, *res.rig_terms)}
+    names |= {f.effect for f in res.findings if f.kind == "stand_in"}
+    return names | {e for st in res.steps for c in st.confounding if c.verdict == "confounded" for e in (c.a, c.b)}
+
+
+def plotted_candidates(res: DiagnosisResult, figures: str = "report") -> list[CandidateResult]:
     """The candidates whose residual-versus-contribution figure (``candidate_<name>.png``) the report links and
-    :func:`write_plots` draws: those of the first step with a contribution."""
-    return [c for c in res.ranked if c.applicable and c.delta is not None]
+    :func:`write_plots` draws, of those of the first step with a contribution: the ones the summary names
+    (:func:`named_effects`) for ``figures`` "report", all for "all", none for "none"."""
+    if figures not in FIGURES:
+        raise ValueError(f"figures must be one of {', '.join(FIGURES)}, got {figures!r}")
+    if figures == "none":
+        return []
+    named = named_effects(res) if figures == "report" else None
+    return [c for c in res.ranked if c.applicable and c.delta is not None and (named is None or c.name in named)]
 
 
 def _figure(rows: int, cols: int, size_in: tuple[float, float], **margins: float):
@@ -463,9 +491,13 @@ def _scatter(ax, x: np.ndarray, y: np.ndarray, idx: np.ndarray, **kw) -> None:
     ax.plot(x[shown], y[shown], ".", ms=2, **kw)
 
 
-def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
-    """The PNG figures the report links (``markdown``) into ``out_dir``: ``candidate_<name>.png`` for each of
-    :func:`plotted_candidates`, ``before_after.png`` and ``residual_structure.png``; returns their paths."""
+def write_plots(res: DiagnosisResult, out_dir: str | Path, figures: str = "report") -> list[Path]:
+    """The PNG figures the report links (``markdown`` with the same ``figures``) into ``out_dir``:
+    ``candidate_<name>.png`` for each of :func:`plotted_candidates`, ``before_after.png`` and
+    ``residual_structure.png``, none for ``figures`` "none"; returns their paths."""
+    cands = plotted_candidates(res, figures)
+    if figures == "none":
+        return []
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     d = res.data
@@ -479,7 +511,6 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
 
     # candidates: residual of the current model (held out) against the candidate's contribution. One figure, its
     # artists given each candidate's data in turn: its axes and ticks are made once, not once per candidate.
-    cands = plotted_candidates(res)
     if cands:
         fig, axs = _figure(1, 4, (15, 3.6), left=0.05, right=0.99, bottom=0.15, top=0.83, wspace=0.33)
         axs = axs[0]
@@ -562,24 +593,26 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path) -> list[Path]:
 
 
 def write_report(res: DiagnosisResult, md_path: str | Path, img_dir: str | Path | None = None, command: str = "",
-                 outs: OutputSet | None = None) -> list[Path]:
-    """Markdown report at ``md_path`` with its PNGs in ``img_dir`` (default: ``<md dir>/img``), staged in ``outs``
-    (``atomic_output``: renamed with the run's other outputs when it commits), or committed here together."""
+                 outs: OutputSet | None = None, figures: str = "report") -> list[Path]:
+    """Markdown report at ``md_path`` with its PNGs in ``img_dir`` (default: ``<md dir>/img``; those of ``figures``,
+    ``FIGURES``), staged in ``outs`` (``atomic_output``: renamed with the run's other outputs when it commits), or
+    committed here together."""
     import os
     import tempfile
 
     if outs is None:
         with committed_outputs() as own:
-            return write_report(res, md_path, img_dir, command, own)
+            return write_report(res, md_path, img_dir, command, own, figures)
     md_path = Path(md_path)
     img_dir = Path(img_dir) if img_dir is not None else md_path.parent / "img"
     md_path.parent.mkdir(parents=True, exist_ok=True)
-    img_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
-    with tempfile.TemporaryDirectory(dir=img_dir, prefix=".plots.") as tmp_dir:
-        for p in write_plots(res, tmp_dir):
-            os.replace(p, outs.path(img_dir / p.name))
-            written.append(img_dir / p.name)
+    if figures != "none":
+        img_dir.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=img_dir, prefix=".plots.") as tmp_dir:
+            for p in write_plots(res, tmp_dir, figures):
+                os.replace(p, outs.path(img_dir / p.name))
+                written.append(img_dir / p.name)
     rel = os.path.relpath(img_dir, md_path.parent).replace(os.sep, "/")
-    outs.path(md_path).write_text(markdown(res, command, img_prefix=f"{rel}/"), encoding="utf-8")
+    outs.path(md_path).write_text(markdown(res, command, img_prefix=f"{rel}/", figures=figures), encoding="utf-8")
     return [md_path, *written]
