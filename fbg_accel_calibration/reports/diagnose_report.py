@@ -422,7 +422,12 @@ def text(res: DiagnosisResult) -> str:
 
 
 # ----------------------------------------------------------------------------- plots
-PLOT_DPI = 90
+# What a figure costs is its axes, ticks and text, not its points: drawn at 80 dpi (10-point text 11 pixels high), at
+# most PLOT_TICKS + 1 ticks an axis (each tick is a line, a label and their layout), the PNG compressed at zlib level 1
+# (a few times faster to write than the default 6, files about a third larger).
+PLOT_DPI = 80
+PLOT_TICKS = 4
+PNG_OPTIONS = {"compress_level": 1}
 # The grid (columns, rows) a scatter series is thinned on: finer than any panel's pixels at PLOT_DPI (the widest panel,
 # a third of a 15-inch figure, is under 400 pixels wide and 250 high), so a sample left out falls within a pixel of
 # one drawn: 10^6 points show nothing more than the few thousand cells they occupy, and cost seconds to draw.
@@ -474,7 +479,8 @@ def plotted_candidates(res: DiagnosisResult, figures: str = "report") -> list[Ca
 
 def _figure(rows: int, cols: int, size_in: tuple[float, float], **margins: float):
     """A figure of ``rows`` x ``cols`` panels on the Agg canvas (no pyplot state), laid out once by fixed margins
-    (fractions of the figure) instead of a tight layout that renders every label to measure it."""
+    (fractions of the figure) instead of a tight layout that renders every label to measure it, each axis with at most
+    ``PLOT_TICKS`` intervals."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -482,7 +488,16 @@ def _figure(rows: int, cols: int, size_in: tuple[float, float], **margins: float
     FigureCanvasAgg(fig)
     axs = fig.subplots(rows, cols, squeeze=False)
     fig.subplots_adjust(**margins)
+    for ax in axs.flat:
+        ax.locator_params(nbins=PLOT_TICKS)
     return fig, axs
+
+
+def _thinning_note(fig, y: float) -> None:
+    """Says on ``fig``, at its right edge and height ``y`` (a fraction of the figure), how its scatters are thinned
+    (``plotted``)."""
+    fig.text(0.995, y, f"dots: one sample per occupied cell of a {PLOT_GRID[0]} x {PLOT_GRID[1]} grid over a panel",
+             ha="right", va="top" if y > 0.5 else "bottom", fontsize=7)
 
 
 def _scatter(ax, x: np.ndarray, y: np.ndarray, idx: np.ndarray, **kw) -> None:
@@ -507,7 +522,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path, figures: str = "repor
 
     def save(fig, name: str) -> None:
         written.append(out_dir / name)
-        fig.savefig(written[-1], dpi=PLOT_DPI)
+        fig.savefig(written[-1], dpi=PLOT_DPI, pil_kwargs=PNG_OPTIONS)
 
     # candidates: residual of the current model (held out) against the candidate's contribution. One figure, its
     # artists given each candidate's data in turn: its axes and ticks are made once, not once per candidate.
@@ -522,6 +537,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path, figures: str = "repor
         profile = axs[3].plot([], [], "o-")[0]
         chosen = axs[3].axvline(0.0, color="r", lw=0.8)
         axs[3].set_ylabel("weighted training RSS")
+        _thinning_note(fig, 0.995)
     for c in cands:
         # evaluated on the search's samples (search_samples: the fitted ones, or every k-th): those plotted
         delta = c.delta_of_every_sample(len(d.t_s))
@@ -548,7 +564,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path, figures: str = "repor
 
     # before / after
     t = d.t_s - float(np.min(d.t_s))  # the time axis starts at the first sample, as the tables (a CSV: epoch seconds)
-    fig, axs = _figure(2, 3, (15, 6.5), left=0.05, right=0.99, bottom=0.08, top=0.91, wspace=0.25, hspace=0.28)
+    fig, axs = _figure(2, 3, (15, 6.5), left=0.05, right=0.99, bottom=0.1, top=0.91, wspace=0.25, hspace=0.3)
     ra = np.flatnonzero(r & finite_rows(res.residual_after))
     for j in range(3):
         ax = axs[0, j]
@@ -564,29 +580,36 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path, figures: str = "repor
         _scatter(ax, d.ref, res.residual_after[:, j], ra, alpha=0.5, label="with added effects")
         ax.set_xlabel("reference counts")
         ax.set_ylabel(f"residual {AXES[j]} [m/s^2]")
+    _thinning_note(fig, 0.003)
     fig.suptitle("held-out residual before/after; dotted: ± noise floor. RMSE x/y/z before "
                  f"{_v(res.before_heldout_rmse)} -> after {_v(res.after_heldout_rmse)} m/s^2")
     save(fig, "before_after.png")
 
     # structure of what remains: pose means vs time, temperature and orientation
+    from matplotlib.ticker import MaxNLocator
+
     s = res.structure
     pm = np.array([q["mean_mps2"] for q in s.per_pose])
     pt = np.array([q["t_s"] for q in s.per_pose])
     pT = np.array([q["temp_c"] for q in s.per_pose])
     pg = np.array([q["gref_mps2"] for q in s.per_pose])
-    fig, axs = _figure(3, 3, (15, 9), left=0.05, right=0.99, bottom=0.06, top=0.94, wspace=0.3, hspace=0.3)
+    fig, axs = _figure(3, 3, (15, 9), left=0.05, right=0.92, bottom=0.06, top=0.94, wspace=0.3, hspace=0.3)
+    # the orientation panels share one colour scale, symmetric about 0 (white) and the same on x/y/z: one colour bar
+    top = float(np.nanmax(np.abs(pm))) if np.any(np.isfinite(pm)) else 1.0
+    top = top if top > 0 else 1.0
     for j in range(3):
         axs[0, j].plot(pt, pm[:, j], "o", ms=3)
         axs[0, j].set_xlabel(res.settings.get("time_label", "time [s]"))
         axs[1, j].plot(pT, pm[:, j], "o", ms=3)
         axs[1, j].set_xlabel("temperature [degC]")
-        sc = axs[2, j].scatter(pg[:, 0], pg[:, 1], c=pm[:, j], cmap="coolwarm", s=18)
-        axs[2, j].set_xlabel("reference x [m/s^2]")
+        sc = axs[2, j].scatter(pg[:, 0], pg[:, 1], c=pm[:, j], cmap="coolwarm", vmin=-top, vmax=top, s=18)
+        axs[2, j].set_xlabel(f"reference x [m/s^2]; colour: pose-mean residual {AXES[j]}")
         axs[2, j].set_ylabel("reference y [m/s^2]")
-        fig.colorbar(sc, ax=axs[2, j], label=f"pose mean {AXES[j]} [m/s^2]")
         for i in range(2):
             axs[i, j].set_ylabel(f"pose-mean residual {AXES[j]} [m/s^2]")
             axs[i, j].axhline(0, color="k", lw=0.5)
+    bar = fig.colorbar(sc, cax=fig.add_axes((0.935, 0.06, 0.008, 0.22)), label="pose-mean residual [m/s^2]")
+    bar.locator = MaxNLocator(PLOT_TICKS)
     fig.suptitle(s.verdict[:150])
     save(fig, "residual_structure.png")
     return written
