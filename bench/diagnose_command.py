@@ -5,7 +5,8 @@ Goal: the command's CPU time <= 1.5x that of the diagnosis alone. Both are child
 command, diagnosis, ...; ``floors.interleaved``): their CPU times (user + system, all threads, ``os.wait4``) and the
 median of the per-pair ratios. The diagnosis alone (``--diagnosis-alone``) imports the engine, reads the recording
 and calls ``diagnose()`` with the command's defaults; the command adds its argument parsing, the report text on
-stdout, the markdown report with its PNG figures (``--out``) and the refitted calibration (``--yaml``).
+stdout, the markdown report with its PNG figures (``--out``; by default those the report shows, ``--figures report``)
+and the refitted calibration (``--yaml``).
 
 Then one more child (``--breakdown``) says where the command's time goes, in CPU seconds of one process: importing
 the engine, reading, the diagnosis, the report text and markdown, importing matplotlib, each figure, the YAML.
@@ -107,7 +108,7 @@ def breakdown(path: str, out: str) -> None:
         lap(f"figure {Path(name).name}")
 
     matplotlib.figure.Figure.savefig = timed
-    report.write_plots(res, out)
+    report.write_plots(res, out)  # the command's default: the figures the report shows
     lap("(between figures)")
     res.calibration.save(Path(out) / "cal.yaml")
     lap("YAML")
