@@ -574,7 +574,8 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path, figures: str = "repor
         ax.axhline(-res.noise_floor[j], color="k", lw=0.6, ls=":")
         ax.set_xlabel(res.settings.get("time_label", "time [s]"))
         ax.set_ylabel(f"residual {AXES[j]} [m/s^2]")
-        ax.legend(fontsize=7)
+        if j == 0:  # the same two series in every panel: one legend
+            ax.legend(fontsize=7)
         ax = axs[1, j]
         _scatter(ax, d.ref, res.residual_before[:, j], ri, alpha=0.5, label="declared model")
         _scatter(ax, d.ref, res.residual_after[:, j], ra, alpha=0.5, label="with added effects")
