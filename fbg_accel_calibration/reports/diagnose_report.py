@@ -375,7 +375,7 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/", 
     left = [c.name for c in plotted_candidates(res, "all") if c.name not in {d.name for d in drawn}]
     if left:  # figures not drawn: say which and how to draw them
         lines += [("No figures drawn (`--figures none`)" if figures == "none" else
-                   "The candidates the summary names" + ("" if drawn else ": none")) + f"; not drawn: {', '.join(left)} "
+                   "Figures of the candidates the summary names" + ("" if drawn else ": none")) + f"; not drawn: {', '.join(left)} "
                   "(`--figures all` draws every candidate's).", ""]
     for c in drawn:
         lines += [f"![{c.name}]({img_prefix}candidate_{c.name}.png)", ""]
