@@ -16,6 +16,7 @@ written as a calibration MCAP into ``--dir`` (a temporary directory by default).
 
     .venv/bin/python bench/diagnose_command.py                        # 10^4 and 10^5 samples, scratch results
     .venv/bin/python bench/diagnose_command.py --sizes 10000 --pairs 3
+    .venv/bin/python bench/diagnose_command.py --sizes 10000 --figures none   # the command without its figures
     .venv/bin/python bench/diagnose_command.py --update-results       # bench/results/, a section of performance.md
 """
 
@@ -54,10 +55,10 @@ def recording(n: int, folder: Path) -> Path:
     return path
 
 
-def command_argv(path: Path, out: Path) -> list[str]:
+def command_argv(path: Path, out: Path, figures: str = "report") -> list[str]:
     return [sys.executable, "-c", "import sys; from fbg_accel_calibration.commands.cli_main import main; sys.exit(main())",
             "diagnose", str(path), "--out", str(out / "report.md"), "--yaml", str(out / "cal.yaml"), "--force",
-            "--no-progress"]
+            "--no-progress", "--figures", figures]
 
 
 def diagnosis_alone(path: str) -> None:
@@ -71,7 +72,7 @@ def diagnosis_alone(path: str) -> None:
     diagnose(rec, sensor_id="bench")
 
 
-def breakdown(path: str, out: str) -> None:
+def breakdown(path: str, out: str, figures: str = "report") -> None:
     """CPU seconds of each stage of the command in this process, as JSON on stdout."""
     stages: dict[str, float] = {}
     t = time.process_time()
@@ -97,34 +98,37 @@ def breakdown(path: str, out: str) -> None:
     report.text(res)
     report.markdown(res)
     lap("report text and markdown")
-    import matplotlib.backends.backend_agg
-    import matplotlib.figure
+    if figures != "none":  # as the command: matplotlib only for figures
+        import matplotlib.backends.backend_agg
+        import matplotlib.figure
 
-    lap("import matplotlib")
-    real = matplotlib.figure.Figure.savefig
+        lap("import matplotlib")
+        real = matplotlib.figure.Figure.savefig
 
-    def timed(fig, name, *a, **kw):  # each figure: from the end of the previous one to its file written
-        real(fig, name, *a, **kw)
-        lap(f"figure {Path(name).name}")
+        def timed(fig, name, *a, **kw):  # each figure: from the end of the previous one to its file written
+            real(fig, name, *a, **kw)
+            lap(f"figure {Path(name).name}")
 
-    matplotlib.figure.Figure.savefig = timed
-    report.write_plots(res, out)  # the command's default: the figures the report shows
-    lap("(between figures)")
+        matplotlib.figure.Figure.savefig = timed
+        report.write_plots(res, out, figures)
+        lap("(between figures)")
     res.calibration.save(Path(out) / "cal.yaml")
     lap("YAML")
     print(json.dumps(stages))
 
 
-def measure(n: int, pairs: int, folder: Path) -> dict:
+def measure(n: int, pairs: int, folder: Path, figures: str = "report") -> dict:
     path = recording(n, folder)
     out = folder / f"out_{n}"
     out.mkdir(exist_ok=True)
+    for old in out.glob("img/*.png"):  # a --dir kept from a run with other --figures
+        old.unlink()
     floor = [sys.executable, str(HERE), "--diagnosis-alone", str(path)]
-    project = command_argv(path, out)
+    project = command_argv(path, out, figures)
     run_child(project)  # page cache and .pyc files
     res = interleaved(floor, project, pairs)
-    proc = subprocess.run([sys.executable, str(HERE), "--breakdown", str(path), str(out)], capture_output=True,
-                          text=True, check=True)
+    proc = subprocess.run([sys.executable, str(HERE), "--breakdown", str(path), str(out), "--figures", figures],
+                          capture_output=True, text=True, check=True)
     stages = json.loads(proc.stdout.strip().splitlines()[-1])
     res.update(samples=n, goal=GOAL, goal_met=res["cpu_ratio"] <= GOAL, breakdown_cpu_s=stages,
                figures=sorted(p.name for p in out.glob("img/*.png")))
@@ -170,6 +174,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pairs", type=int, default=5, help="interleaved pairs per size (default %(default)s)")
     ap.add_argument("--dir", type=Path, default=None, help="keep the recordings here (default: a temporary directory)")
     ap.add_argument("--output", type=Path, default=None, help="results JSON (default: scratch diagnose_command.json)")
+    ap.add_argument("--figures", choices=("report", "all", "none"), default="report",
+                    help="the command's --figures (default %(default)s, the command's own)")
     ap.add_argument("--diagnosis-alone", metavar="MCAP", help=argparse.SUPPRESS)
     ap.add_argument("--breakdown", nargs=2, metavar=("MCAP", "DIR"), help=argparse.SUPPRESS)
     add_update_results(ap)
@@ -178,14 +184,14 @@ def main(argv: list[str] | None = None) -> int:
         diagnosis_alone(args.diagnosis_alone)
         return 0
     if args.breakdown:
-        breakdown(*args.breakdown)
+        breakdown(*args.breakdown, args.figures)
         return 0
     load_before = [round(v, 2) for v in os.getloadavg()]
     doc = results_doc("diagnose_command.py", argv, benchmark="diagnose_command", load_average_before=load_before)
     with tempfile.TemporaryDirectory() as tmp:
         folder = args.dir or Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
-        doc["sizes"] = [measure(n, args.pairs, folder) for n in args.sizes]
+        doc["sizes"] = [measure(n, args.pairs, folder, args.figures) for n in args.sizes]
     doc["machine"] = machine()  # the load average after
     out = args.output or results_dir(args.update_results) / "diagnose_command.json"
     write_results(out, doc)
