@@ -424,7 +424,7 @@ def text(res: DiagnosisResult) -> str:
 # ----------------------------------------------------------------------------- plots
 # What a figure costs is its axes, ticks and text, not its points: drawn at 80 dpi (10-point text 11 pixels high), at
 # most PLOT_TICKS + 1 ticks an axis (each tick is a line, a label and their layout), the PNG compressed at zlib level 1
-# (a few times faster to write than the default 6, files about a third larger).
+# (faster to write than the default 6, the files somewhat larger).
 PLOT_DPI = 80
 PLOT_TICKS = 4
 PNG_OPTIONS = {"compress_level": 1}
