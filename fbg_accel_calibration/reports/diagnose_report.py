@@ -374,9 +374,9 @@ def markdown(res: DiagnosisResult, command: str = "", img_prefix: str = "img/", 
     drawn = plotted_candidates(res, figures)
     left = [c.name for c in plotted_candidates(res, "all") if c.name not in {d.name for d in drawn}]
     if left:  # figures not drawn: say which and how to draw them
-        lines += [("No figures drawn (`--figures none`)" if figures == "none" else
-                   "Figures of the candidates the summary names" + ("" if drawn else ": none")) + f"; not drawn: {', '.join(left)} "
-                  "(`--figures all` draws every candidate's).", ""]
+        head = ("No figures drawn (`--figures none`)" if figures == "none" else
+                "Figures of the candidates the summary names" + ("" if drawn else ": none"))
+        lines += [f"{head}; not drawn: {', '.join(left)} (`--figures all` draws every candidate's).", ""]
     for c in drawn:
         lines += [f"![{c.name}]({img_prefix}candidate_{c.name}.png)", ""]
     return "\n".join(lines) + "\n"
