@@ -251,7 +251,7 @@ def test_a_search_on_thinned_samples_chooses_what_the_full_search_chooses(effect
     plotted = [c.delta_of_every_sample(len(rec)) for c in thin.steps[0].candidates if c.delta is not None]
     assert plotted and all(d.shape == (len(rec), 3) for d in plotted)
     assert all(0 < np.isfinite(d[:, 0]).sum() <= thin.settings["search_rows"] for d in plotted)
-    drawn = {p.name for p in write_plots(thin, tmp_path)}
+    drawn = {p.name for p in write_plots(thin, tmp_path, "all")}
     assert {f"candidate_{c.name}.png" for c in thin.steps[0].candidates if c.delta is not None} <= drawn, drawn
 
 
