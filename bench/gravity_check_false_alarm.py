@@ -92,6 +92,9 @@ def sigma_of(test: Any, tolerance: float, k: float) -> float:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", type=int, default=40)
+    ap.add_argument("--first-seed", type=int, default=0,
+                    help="seed index of the first run (runs s use simulator seeds 1000 + s, 2000 + s, 3000 + s): a "
+                    "later batch of independent hours")
     ap.add_argument("--hours", type=float, default=1.0, help="still time per seed without drift (h)")
     ap.add_argument("--drift", type=float, nargs="+", default=[0.2],
                     help="bias step(s) (m/s^2) for the detection runs, one run per seed and value")
@@ -126,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
             for i in range(args.fitted_calibrations)] or [None]
     quiet: dict[str, list] = {"tests": [], "seed": []}
     detect: dict[float, dict[str, list]] = {b: {"first_s": [], "tests": [], "projection": []} for b in args.drift}
-    for s in range(args.seeds):
+    for s in range(args.first_seed, args.first_seed + args.seeds):
         cal = cals[s % len(cals)]
         tests = still_run(1000 + s, POSES[s % len(POSES)], args.hours * 3600.0, off, cal, args.tolerance)
         quiet["tests"] += tests
@@ -211,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {
         "command": "python bench/gravity_check_false_alarm.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "machine": machine(), "seconds": round(time.perf_counter() - started, 1),
-        "seeds": args.seeds, "hours_per_seed": args.hours, "effects_off": args.effects_off,
+        "seeds": args.seeds, "first_seed": args.first_seed, "hours_per_seed": args.hours, "effects_off": args.effects_off,
         "bias_instability_scale": args.bias_instability_scale,
         "calibration": (f"{len(cals)} fitted (bench/nees_probe.py fitted_calibration, seeds 100..)" if cals[0] is not None
                         else "config/calibration_sim.yaml (no coefficient_covariance, no slow_error: sigma is the noise "

@@ -27,7 +27,8 @@ by 0.06-0.07 m/s^2 rms on the full simulator). The calibration no longer holds w
 
 k the two-sided normal quantile of ``false_alarm_per_test``. The tolerance is what no term contains: a
 ``gravity_mps2`` left at standard gravity is off local gravity by up to 0.03 m/s^2 (9.780 at the equator .. 9.832 at
-the poles), its default (0 for a measured local gravity). A file without ``slow_error`` does not say how far its pose
+the poles), its default, which also covers, measured, the slow bias wander a campaign's ``slow_error`` cannot state
+(docs/topics.md: keep it with a measured local gravity too). A file without ``slow_error`` does not say how far its pose
 means miss the truth, so the check allows :data:`UNSTATED_SLOW_ERROR_MPS2` for it, what the simulated sensor's shipped
 calibration needs (its |a| - g has 0.081 m/s^2 rms; the threshold is then 0.15 + k sigma_noise).
 
