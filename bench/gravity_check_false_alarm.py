@@ -14,7 +14,8 @@ goes through ``GravityCheck.update`` in order, as ``DriverCore`` feeds it.
   tabulated against its projection on gravity b cos(phi) (what |a| sees of it to first order). Several ``--drift``
   values: detection for each (the trade-off and the per-run discrepancies for the first);
 * **budget**: the parts of each test's sigma (noise, J Sigma J^T, stated slow error; medians), the undrifted
-  discrepancy's rms where the drifts are drawn, and the simulator's truth of what no term states: the stationary
+  discrepancy's rms where the drifts are drawn, the drift runs' first test less the drift's projection (the sensor's own
+  |a| - g there), and the simulator's truth of what no term states: the stationary
   standard deviation of its bias instability per axis (a bias with correlation times up to 10^4 s, drawn afresh each run,
   as a sensor's is long after its calibration);
 * **trade-off**: both again for each tolerance of ``--tolerances`` and multiple of sigma of ``--k-sigmas`` (from the same
