@@ -396,7 +396,9 @@ class DriverCore:
 
     def gravity_status(self) -> dict[str, float | int | bool | str]:
         """The live gravity check (``gravity_check``) for the diagnostics: its settings, whether the sensor is still,
-        the tests and failures so far and the last test's figures (m/s^2, degC); empty without a calibration."""
+        the tests and failures so far, the last test's figures (m/s^2, degC) and, per sensor axis, the fraction of a bias
+        on it that the orientations tested so far see (``seen_x/y/z``; ``unseen_axes`` those below
+        ``gravity_check.SEEN_FRACTION``); empty without a calibration."""
         if self.cal is None:
             return {}
         cfg = self.config.gravity_check
@@ -415,7 +417,9 @@ class DriverCore:
                         "sigma_slow_mps2": round(last.sigma_slow_mps2, 4),
                         "unstated_slow_error_mps2": last.unstated_slow_error_mps2,
                         "last_failed": last.failed, "temperature_c": round(last.temperature_c, 2),
-                        "k_sigma": round(g.k, 2)})
+                        "k_sigma": round(g.k, 2), "seen_x": round(float(g.seen[0]), 2),
+                        "seen_y": round(float(g.seen[1]), 2), "seen_z": round(float(g.seen[2]), 2),
+                        "unseen_axes": ", ".join(g.unseen_axes())})
         return out
 
     def clock_status(self) -> dict[str, float | int | bool]:

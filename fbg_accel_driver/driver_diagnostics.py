@@ -34,7 +34,8 @@ clock mapping              OK (drift estimate, restarts, steps of ROS time); WAR
 gravity check              OK while every test of a still stretch finds |a| within its threshold of gravity_mps2
                            (stating the last discrepancy), or before the first test, or off; WARN when the last test,
                            or one since the previous report, found |a| - g beyond the threshold: the calibration no
-                           longer holds (message: the discrepancy, the threshold and its parts)
+                           longer holds (message: the discrepancy, the threshold and its parts, and the sensor
+                           axes a bias on which no orientation still so far has seen)
 chain compensation         OK, stating the mode and its cost; WARN in ``delay`` mode when the frequency above which
                            the stamp shift makes a tone's error larger than none lies inside the calibrated band
 =========================  =====================================================================
@@ -301,6 +302,9 @@ class DriverDiagnostics:
                    f"{g['temperature_c']:.1f} degC, threshold {g['threshold_mps2']:.3f} m/s^2 (tolerance "
                    f"{g['tolerance_mps2']:g}{unstated} + {g['k_sigma']:g} sigma; sigma noise {g['sigma_noise_mps2']:.3f}, "
                    f"calibration {g['sigma_calibration_mps2']:.3f}, slow error {g.get('sigma_slow_mps2', 0.0):.3f})")
+        if g.get("unseen_axes"):  # what one orientation cannot see (gravity_check: a drift perpendicular to gravity)
+            figures += (f"; a bias on {g['unseen_axes']} is not seen from the orientations still so far (|a| changes by it "
+                        "to second order only)")
         if g["last_failed"] or new_failures > 0:
             which = "the last still stretch" if g["last_failed"] else f"{new_failures} still stretch(es) since last report"
             return self._entry(WARN, "gravity check", f"calibration no longer holds ({which}): {figures}; recalibrate, "

@@ -72,6 +72,28 @@ def test_a_discrepancy_beyond_the_threshold_fails_and_a_moving_sensor_is_never_t
     assert feed(check, moving, psi) == [] and check.tests == 0
 
 
+def test_a_drift_is_seen_by_its_projection_on_gravity_and_the_axes_not_yet_seen_are_named() -> None:
+    """A bias of 0.5 m/s^2 on x, far above what the check flags along gravity (0.3 fails above), changes |a| by
+    0.5^2 / 2g = 0.013 m/s^2 with z up: not flagged, and x and y are named as not seen; still with x along gravity the
+    same bias is the whole discrepancy and is flagged, y alone is then unseen."""
+    cal = make_cal(noise_correlated_fraction=np.zeros(3), noise_time_constant_s=np.zeros(3))
+    drift = np.array([0.5, 0.0, 0.0])
+    check = GravityCheck(cal, GravityCheckConfig(STANDARD_GRAVITY, period_s=4.0), DT)
+    assert check.unseen_axes() == ["x", "y", "z"]  # nothing tested yet
+    acc, psi = still_samples(cal, 700, np.array([0.0, 0.0, STANDARD_GRAVITY]) + drift)
+    level = feed(check, acc, psi)
+    assert [t.failed for t in level] == [False]
+    assert level[0].discrepancy_mps2 == pytest.approx(0.5**2 / (2 * STANDARD_GRAVITY), abs=0.01)
+    assert level[0].threshold_mps2 > 0.1  # the second-order change is far inside it, whatever the threshold's parts
+    assert level[0].direction == pytest.approx((0.05, 0.0, 1.0), abs=0.01)
+    assert check.unseen_axes() == ["x", "y"]
+    check.interrupt()  # the sensor moves and stands still again, x up
+    acc, psi = still_samples(cal, 700, np.array([STANDARD_GRAVITY, 0.0, 0.0]) + drift, seed=1)
+    tilted = feed(check, acc, psi)
+    assert [t.failed for t in tilted] == [True] and tilted[0].discrepancy_mps2 == pytest.approx(0.5, abs=0.02)
+    assert check.unseen_axes() == ["y"] and check.seen == pytest.approx([1.0, 0.0, 1.0], abs=0.06)
+
+
 def test_an_interruption_restarts_the_hold_and_the_block() -> None:
     cal = make_cal(noise_correlated_fraction=np.zeros(3), noise_time_constant_s=np.zeros(3))
     acc, psi = still_samples(cal, 1200, np.array([0.0, 0.0, STANDARD_GRAVITY]))
@@ -138,6 +160,8 @@ def test_on_the_simulator_a_drift_of_0_2_is_flagged_within_a_minute_and_none_wit
     entry = _diagnostic(core)
     assert entry.level == WARN and "calibration no longer holds" in entry.message
     assert f"|a| - g = {drifted['discrepancy_mps2']:+.3f} m/s^2" in entry.message
+    assert drifted["unseen_axes"] == "x, y" and drifted["seen_z"] > 0.99  # z up: only z is checked
+    assert "a bias on x, y is not seen from the orientations still so far" in entry.message
     core = _sim_core(0.0, 25.0, seed=3)
     quiet = core.gravity_status()
     assert quiet["tests"] == 1 and quiet["failures"] == 0
