@@ -17,8 +17,9 @@ the input moves. So:
 
 The cost of a trial is that of the samples in motion plus the holds and rows, not of the whole series. The values are
 those of the recursion over every sample up to rounding (the powers c^L for L multiplications, the scan's order of
-products): ``test/test_held_lowpass.py`` sets them against ``first_order_lowpass``; ``bench/search_thinning_check.py``
-style: ``bench/held_lowpass_check.py`` says how far the diagnosis' numbers move.
+products): ``test/test_held_lowpass.py`` sets them against ``first_order_lowpass``; ``bench/fingerprint_compare.py``
+says how far the diagnosis' numbers move (docs/diagnose_speed.md). A row's value does not depend on which other rows
+are asked for: the holds are the input's, the rows only read them.
 """
 
 from __future__ import annotations
