@@ -28,12 +28,14 @@ a chamber level held to the last bit for minutes is not what the sensor gives).
     .venv/bin/python bench/floors.py                          # all, N = 10^6, scratch results
     .venv/bin/python bench/floors.py --only fit --pairs 5
     .venv/bin/python bench/floors.py --update-results         # bench/results/floors.json, docs/results/performance.md
+    .venv/bin/python bench/floors.py --only diagnose --pairs 2 --update-results   # the other rows kept from before
 """
 
 from __future__ import annotations
 
 import argparse
 import itertools
+import json
 import os
 import statistics
 import subprocess
@@ -48,6 +50,7 @@ from output_paths import RESULTS_PAGES, add_update_results, results_dir
 HERE = Path(__file__).resolve().parent
 FIT_GOAL = 2.0
 DIAGNOSE_GOAL, DIAGNOSE_RSS_GOAL_MIB = 10.0, 600.0
+MEASURES = ("startup", "fit", "diagnose", "driver")
 LEVELS, POSES, REPEATS, RATE_HZ = 3, 24, 2, 100.0  # eq28_campaign's levels and rate
 AHT10_STEP_C, AHT10_NOISE_C = 0.01, 0.02
 
@@ -355,6 +358,9 @@ def page(doc: dict) -> str:
              f"CPUs, {m['ram_gib']} GiB, Python {m['python']}, numpy {m['numpy']}; load average before "
              f"{doc['load_average_before']}, after {m['load_average_1_5_15']} (other work on the machine: CPU times, "
              "interleaved pairs, median of the per-pair ratios). Method: the docstring of `bench/floors.py`.", "",
+             *([f"The rows of {', '.join(doc['kept']['measures'])} are those of `{doc['kept']['command']}` on "
+                f"{doc['kept']['date_utc']} (`--update-results` with `--only` keeps the measures it did not run).", ""]
+               if "kept" in doc else []),
              "| measure | project CPU | floor | floor CPU | ratio (range) | goal |", "|---|---|---|---|---|---|"]
     for row in doc.get("startup", []):
         lines.append(f"| `{row['command']}` | {row['cpu_s']:.3f} s | `python -c pass` | "
@@ -404,7 +410,7 @@ def page(doc: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--only", default="startup,fit,diagnose,driver",
+    ap.add_argument("--only", default=",".join(MEASURES),
                     help="comma-separated measures (startup, fit, diagnose, driver)")
     ap.add_argument("--samples", type=float, default=1e6,
                     help="samples of the fit's campaign and of the diagnosed run (default 10^6)")
@@ -427,6 +433,8 @@ def main(argv: list[str] | None = None) -> int:
         subscriber()
         return 0
     only = set(args.only.split(","))
+    if only - set(MEASURES):
+        ap.error(f"--only: unknown measure(s) {sorted(only - set(MEASURES))}; known: {','.join(MEASURES)}")
     load_before = [round(v, 2) for v in os.getloadavg()]
     doc = results_doc("floors.py", argv, benchmark="floors", load_average_before=load_before)
     if "startup" in only:
@@ -447,6 +455,14 @@ def main(argv: list[str] | None = None) -> int:
         doc["driver"] = measure_driver(max(1, args.pairs - 1), args.driver_window)
     doc["machine"] = machine()  # the load average after
     out = args.output or results_dir(args.update_results) / "floors.json"
+    if args.update_results and out.exists():  # the measures not run (--only) are kept from the results before
+        old_doc = json.loads(out.read_text(encoding="utf-8"))
+        kept = [k for k in MEASURES if k not in doc and k in old_doc]
+        for k in kept:
+            doc[k] = old_doc[k]
+        if kept:
+            doc["kept"] = {"measures": kept, "command": old_doc.get("kept", {}).get("command", old_doc["command"]),
+                           "date_utc": old_doc.get("kept", {}).get("date_utc", old_doc["date_utc"])}
     write_results(out, doc)
     md = (RESULTS_PAGES if args.update_results else out.parent) / "performance.md"
     old = md.read_text(encoding="utf-8") if md.exists() else ""

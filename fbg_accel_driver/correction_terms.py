@@ -201,6 +201,14 @@ def _coefficient_cuts(dt: np.ndarray, tau_s: float, steps: SampleSteps | None,
     return a_start, np.concatenate([[0], cut, [dt.size]])
 
 
+def uniform_coefficient(tau_s: float, steps: SampleSteps) -> float | None:
+    """The coefficient a (y[n] = a x[n] + (1 - a) y[n-1]) that :func:`first_order_lowpass`, started afresh on finite
+    input with ``steps``, uses at every sample after the first, when that is one coefficient for the whole series (it
+    starts at y[0] = x[0]); None when the sampling makes it change (then only the filter itself knows the runs)."""
+    a_start, bounds = _coefficient_cuts(steps.dt, tau_s, steps, steps.resolution_s)
+    return float(a_start[1]) if len(bounds) == 3 and bounds[1] == 1 else None
+
+
 def first_order_lowpass(x: np.ndarray, t_s: np.ndarray, tau_s: float, state: dict | None,
                         steps: SampleSteps | None = None) -> np.ndarray:
     """Exact first-order low-pass y' = (x - y)/tau for a piecewise-constant input sampled at ``t_s``.

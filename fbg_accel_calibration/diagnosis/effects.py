@@ -48,6 +48,7 @@ from fbg_accel_driver.correction_terms import (
     TimeDrift,
     first_order_lowpass,
     quadratic_features,
+    uniform_coefficient,
 )
 from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
 
@@ -64,6 +65,7 @@ from .data import (
     take_rows,
     visit_means,
 )
+from .held_lowpass import HeldRows, held_lowpass, held_rows
 
 # Table 1 of the paper: TIA cut-off frequencies (Hz) of ref, x, y, z (static-test build).
 TIA_CUTOFF_HZ = np.array([1.0, 1.7, 1.3, 1.3])
@@ -635,6 +637,15 @@ class ChannelDelayEffect(Effect):
         return f"D = {h:.4g} s (sensor channels late against the reference)"
 
 
+def _affine(row: np.ndarray, offset: float, cols: np.ndarray | list[np.ndarray]) -> np.ndarray:
+    """``row @ cols + offset`` for a row of 3 and 3 columns (3, n), written out term by term."""
+    out = row[0] * cols[0]
+    out += row[1] * cols[1]
+    out += row[2] * cols[2]
+    out += offset
+    return out
+
+
 class TiaLowpassEffect(Effect):
     name = "tia_lowpass"
     reference_only = True
@@ -670,8 +681,13 @@ class TiaLowpassEffect(Effect):
 
     def _corrected(self, data: DiagnosisData, inp: Inputs, h: float, rows: np.ndarray | None,
                    pieces: list[tuple[slice | np.ndarray, Any, Any]]) -> tuple[np.ndarray, np.ndarray]:
-        """(reference (n, 3), valid (n,)) at ``rows`` (None: every sample; ``pieces``: ``rows_by_run``). The filters
-        run over every sample; the rest only at ``rows`` (a product row by row: the rows of the whole product)."""
+        """(reference (n, 3), valid (n,)) at ``rows`` (None: every sample; ``pieces``: ``rows_by_run``). Of the
+        recorded reference, the filters run over the samples in motion only (``_held_at_rows``: at a search's rows the
+        cost of a trial is the motion's and the rows', not the series'); else over every sample, and the rest only at
+        ``rows`` (a product row by row: the rows of the whole product)."""
+        held = self._held_at_rows(data, inp, h, rows, pieces)
+        if held is not None:
+            return held
         # Filter the noise-free reference, not the noisy signal: the sensor shows LPF(Psi_true), so the
         # reference it must match is the one whose expected Psi went through the same filters. Inverting
         # the filter on the counts instead would amplify the (already filtered) noise by ~1/a.
@@ -698,6 +714,48 @@ class TiaLowpassEffect(Effect):
         gref = d @ np.ascontiguousarray(np.linalg.inv(P).T)
         gref += g if rows is None else take_rows(g, rows)
         return gref, (inp.valid if rows is None else inp.valid[rows]) & finite_rows(gref)
+
+    def _held_at_rows(self, data: DiagnosisData, inp: Inputs, h: float, rows: np.ndarray | None,
+                      pieces: list[tuple[slice | np.ndarray, Any, Any]]) -> tuple[np.ndarray, np.ndarray] | None:
+        """``_corrected`` at ``rows`` (None: every sample) with the filters worked out by ``held_lowpass``: the
+        expected Psi holds its value wherever the recorded reference does (every pose), so each trial filters the
+        samples in motion and works out the holds and the rows in closed form: the values of the recursion over every
+        sample up to rounding (``test/test_held_lowpass.py``), and each row's value the same bit for bit whichever
+        rows are asked for (a search's, or every sample's when the reference is corrected again after it). None where
+        that does not apply: the reference moved by an earlier correction (the channel delay), a gap in it, a run
+        whose sampling changes the filter's coefficient."""
+        g = data.gref_filled
+        if inp.gref_moved or not all(isinstance(run, slice) for run, _, _ in pieces) \
+                or not data.once("gref_filled_finite", lambda: bool(finite_rows(g).all())):
+            return None
+        tau = self.taus(h)
+        coeff = [[None if st is None else uniform_coefficient(float(t), st) for t in tau[1:]]
+                 for st in input_run_steps(data, inp)]
+        if any(a is None for per in coeff for a in per):
+            return None
+        P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
+        P_inv = np.linalg.inv(P)
+        rows_key = None if rows is None else f"{len(rows)} {hash(np.ascontiguousarray(rows).tobytes())}"
+        gref = np.empty((len(g) if rows is None else len(rows), 3))
+        for (run, sel, local), per in zip(pieces, coeff, strict=True):
+            if rows_key is None:  # every sample (a correction of the reference after it, the final model): not kept
+                held, g_at, g_rows = self._held_reference(g[run], np.arange(run.stop - run.start))
+            else:
+                held, g_at, g_rows = data.once(f"held_reference {run.start} {run.stop} {rows_key}",
+                                               lambda run=run, local=local: self._held_reference(g[run], local))
+            # the expected Psi and its filtered value column by column, a 3 x 3 map written out (no matrix product
+            # of a few hundred thousand rows by 3: BLAS's start costs more than the arithmetic)
+            d = [held_lowpass(held, _affine(P[j], q[j], g_at), per[j]) - _affine(P[j], q[j], g_rows) for j in range(3)]
+            for k in range(3):
+                gref[sel, k] = _affine(P_inv[k], 0.0, d) + g_rows[k]
+        return gref, (inp.valid if rows is None else inp.valid[rows]) & finite_rows(gref)
+
+    @staticmethod
+    def _held_reference(g: np.ndarray, rows: np.ndarray) -> tuple[HeldRows, np.ndarray, np.ndarray]:
+        """(the holds of a run's reference ``g`` (n, 3) and where ``rows`` (local) fall, the reference where the filter
+        reads it and at ``rows``, each (3, k) by column): what every trial of ``_held_at_rows`` shares."""
+        held = held_rows(g, rows)
+        return held, np.ascontiguousarray(g[held.samples].T), np.ascontiguousarray(g[rows].T)
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
         return [ChainDynamics(self.taus(float(h)), 0.0)]

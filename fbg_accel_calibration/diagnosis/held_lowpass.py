@@ -1,0 +1,135 @@
+"""A first-order low-pass of a signal that holds its value for long stretches, worked out at chosen rows only.
+
+The filter is ``correction_terms.first_order_lowpass``'s: y[0] = x[0], then y[n] = a x[n] + c y[n-1] with c = 1 - a
+(a run of uniform sampling: one coefficient a). A search tries many time constants on one recording and needs the
+output at its searched rows only (every k-th fitted sample), while the input (the table's reference, so the Psi it
+expects) holds its value through every pose. Over a hold of L samples of value v the recursion is, exactly,
+y_end = v + c^L (y_before - v), and at its m-th sample v + c^m (y_before - v): the filter needs every sample only where
+the input moves. So:
+
+1. the samples outside the holds (the motion between poses, short stretches; ``HeldRows.busy``) are filtered as one
+   series by ``lfilter``, each stretch starting from the state the stretch before it left, as if the holds between
+   them were not there;
+2. the state entering each hold follows from the one entering the hold before it by an affine map (the hold's c^L,
+   then the stretch after it, whose own start the map corrects by c^k times the difference of the true state and the
+   one ``lfilter`` carried in); the maps are composed by a prefix scan (log2 of the number of holds numpy passes);
+3. each row is then the closed form of its hold, or ``lfilter``'s value plus the decayed correction of its stretch.
+
+The cost of a trial is that of the samples in motion plus the holds and rows, not of the whole series. The values are
+those of the recursion over every sample up to rounding (the powers c^L for L multiplications, the scan's order of
+products): ``test/test_held_lowpass.py`` sets them against ``first_order_lowpass``; ``bench/fingerprint_compare.py``
+says how far the diagnosis' numbers move (docs/diagnose_speed.md). A row's value does not depend on which other rows
+are asked for: the holds are the input's, the rows only read them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# holds shorter than this are filtered with the samples in motion: an lfilter step costs a few ns, a hold in the scan
+# and the closed forms some tens
+MIN_HOLD = 16
+
+
+@dataclass(frozen=True)
+class HeldRows:
+    """A run's samples (local indices 0..n-1) split into the holds of its input and the rest, and where the rows fall
+    (``held_rows``): what a search's trials share, whatever the time constant."""
+
+    busy: np.ndarray  # (b,) the samples outside the holds, ascending; 0 (where the filter starts) first
+    start: np.ndarray  # (m,) each hold's first sample (>= 1)
+    length: np.ndarray  # (m,) its samples (float: an exponent)
+    before: np.ndarray  # (m,) position in ``busy`` of the last sample before the hold
+    n_after: np.ndarray  # (m,) samples of ``busy`` between the hold and the next one or the run's end (float)
+    rows: np.ndarray  # (q,) the rows asked for (local)
+    busy_at: np.ndarray  # (q,) each row's position in ``busy`` (used for the rows outside the holds)
+    in_hold: np.ndarray  # (i,) the positions in ``rows`` of the rows in a hold
+    in_hold_of: np.ndarray  # (i,) their hold
+    in_hold_steps: np.ndarray  # (i,) filter steps from their hold's start (float)
+    after: np.ndarray  # (j,) the positions of the rows outside the holds with a hold before them
+    after_of: np.ndarray  # (j,) that hold (the last before them)
+    after_steps: np.ndarray  # (j,) filter steps from the start of the stretch after it (float)
+
+    @property
+    def samples(self) -> np.ndarray:
+        """(b + m,) the samples where the input is read: ``busy`` then each hold's first sample (its value)."""
+        return np.concatenate([self.busy, self.start])
+
+
+def held_rows(x: np.ndarray, rows: np.ndarray, min_hold: int = MIN_HOLD) -> HeldRows:
+    """:class:`HeldRows` of the input ``x`` (n,) or (n, k) (a hold: at least ``min_hold`` consecutive samples, from
+    the second on, where every column keeps its value) for the rows ``rows`` (local indices, ascending)."""
+    x = np.asarray(x)
+    n = len(x)
+    rows = np.asarray(rows, dtype=np.intp)
+    moved = x[1:] != x[:-1]
+    if moved.ndim > 1:
+        moved = moved.any(axis=1)
+    s = np.concatenate([[0], np.flatnonzero(moved) + 1])  # the constant stretches
+    e = np.append(s[1:], n)
+    s = np.maximum(s, 1)  # sample 0 starts the filter: never in a hold
+    keep = e - s >= min_hold
+    start, stop = s[keep], e[keep]
+    mark = np.zeros(n + 1, np.int8)
+    mark[start] += 1
+    mark[stop] -= 1
+    busy = np.flatnonzero(np.cumsum(mark[:n]) == 0)
+    before = np.searchsorted(busy, start) - 1
+    n_after = np.searchsorted(busy, np.append(start[1:], n)) - (before + 1)
+    hold = np.searchsorted(start, rows, side="right") - 1
+    h = np.maximum(hold, 0)
+    first, last = (start[h], stop[h]) if len(start) else (np.zeros_like(rows), np.zeros_like(rows))
+    in_hold = (hold >= 0) & (rows < last)
+    busy_at = np.minimum(np.searchsorted(busy, rows), len(busy) - 1)
+    inside, after = np.flatnonzero(in_hold), np.flatnonzero(~in_hold & (hold >= 0))
+    return HeldRows(busy, start, (stop - start).astype(float), before, n_after.astype(float), rows, busy_at,
+                    inside, hold[inside], (rows[inside] - first[inside] + 1).astype(float),
+                    after, hold[after], (rows[after] - last[after] + 1).astype(float))
+
+
+def _scan(alpha: np.ndarray, beta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Prefix compositions of the affine maps s -> alpha_i s + beta_i: (A_i, B_i) with f_i o ... o f_0 = A_i s + B_i,
+    by doubling (log2(m) passes)."""
+    a, b = alpha.copy(), beta.copy()
+    d = 1
+    while d < len(a):
+        b[d:] = a[d:] * b[:-d] + b[d:]  # right side first: both use the maps composed so far
+        a[d:] = a[d:] * a[:-d]
+        d *= 2
+    return a, b
+
+
+def held_lowpass(held: HeldRows, x_at: np.ndarray, a: float) -> np.ndarray:
+    """y (q,) at ``held.rows`` of the low-pass y[0] = x[0], y[n] = a x[n] + (1 - a) y[n-1], from the input at
+    ``held.samples`` only (``x_at``: the values there, (b + m,)): see the module docstring."""
+    from scipy.signal import lfilter
+
+    b = len(held.busy)
+    xb, v = x_at[:b], x_at[b:]
+    c = 1.0 - a
+    yb = np.empty(b)
+    yb[0] = xb[0]
+    if b > 1:
+        yb[1:] = lfilter([a], [1.0, a - 1.0], xb[1:], zi=[c * xb[0]])[0]
+    m = len(v)
+    out = yb[held.busy_at]
+    if not m:
+        return out
+    c_hold = np.power(c, held.length)
+    c_after = np.power(c, held.n_after)
+    end = held.before + held.n_after.astype(np.intp)  # the last sample of the stretch after each hold (else ``before``)
+    into = v * (1.0 - c_hold)  # what the hold's value brings in
+    # state entering hold i + 1 from the one entering hold i: c_after (c_hold s + into - yb[before]) + yb[end]
+    alpha = c_after * c_hold
+    beta = np.where(held.n_after > 0, yb[end] + c_after * (into - yb[held.before]), into)
+    A, B = _scan(alpha, beta)
+    s_in = np.empty(m)  # the true state entering each hold
+    s_in[0] = yb[held.before[0]]
+    s_in[1:] = A[:-1] * s_in[0] + B[:-1]
+    delta = v + c_hold * (s_in - v) - yb[held.before]  # true minus carried state where the stretch after a hold starts
+    h = held.in_hold_of
+    out[held.in_hold] = v[h] + np.power(c, held.in_hold_steps) * (s_in[h] - v[h])
+    out[held.after] += np.power(c, held.after_steps) * delta[held.after_of]
+    return out

@@ -1,0 +1,146 @@
+"""The low-pass of a held signal at chosen rows (``diagnosis.held_lowpass``) against the filter over every sample
+(``correction_terms.first_order_lowpass``), and the TIA candidate's reference worked out with it against the same
+reference worked out over every sample."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fbg_accel_calibration.diagnosis.data import DiagnosisData, Inputs, expected_psi_map
+from fbg_accel_calibration.diagnosis.effects import ReferenceReadNoiseEffect, TiaLowpassEffect
+from fbg_accel_calibration.diagnosis.held_lowpass import held_lowpass, held_rows
+from fbg_accel_driver.correction_terms import first_order_lowpass, sample_steps, uniform_coefficient
+
+DT = 0.01
+
+
+def held_signal(rng: np.random.Generator, n: int, first_held: bool, last_held: bool) -> np.ndarray:
+    """(n,) holds of 1-300 samples (some back to back) between stretches that move every sample, as the table's
+    reference between poses; starting and ending with a hold or with motion."""
+    parts: list[np.ndarray] = []
+    held = first_held
+    while sum(len(p) for p in parts) < n:
+        if held:
+            parts.append(np.full(int(rng.integers(1, 300)), rng.normal()))
+            held = rng.random() < 0.3  # two holds of other values back to back
+        else:
+            parts.append(rng.normal(size=int(rng.integers(1, 40))))
+            held = True
+    x = 5.0 + 3.0 * np.concatenate(parts)[:n]
+    if last_held:
+        x[-40:] = x[-40]
+    return x
+
+
+@pytest.mark.parametrize("first_held,last_held", [(True, True), (False, False), (True, False), (False, True)])
+@pytest.mark.parametrize("min_hold", [1, 2, 16, 1000])
+def test_the_rows_of_a_held_signal_are_those_of_the_filter_over_every_sample(first_held: bool, last_held: bool,
+                                                                             min_hold: int) -> None:
+    rng = np.random.default_rng(min_hold + 10 * first_held + 20 * last_held)
+    n = 3000
+    x = held_signal(rng, n, first_held, last_held)
+    t = 100.0 + DT * np.arange(n)
+    steps = sample_steps(t)
+    every = np.arange(n)
+    # the edge rows (the first and last sample, each hold's first and last sample, the sample after a hold), a thinned
+    # set (every k-th) and every sample
+    edges = np.flatnonzero(np.diff(x) != 0)
+    for rows in (np.unique(np.concatenate([[0, 1, n - 1], edges, edges + 1, edges[edges > 0] - 1])), every[::15],
+                 every[7::4], every):
+        held = held_rows(x, rows, min_hold)
+        assert held.busy[0] == 0 and (min_hold > 300 or len(held.start) > 0)  # holds are at most 300 long
+        for tau in (1e-4, 0.003, DT, 0.05, 0.3, 3.0, 100.0):  # from 1e-2 to 1e4 samples
+            a = uniform_coefficient(tau, steps)
+            assert a is not None
+            want = first_order_lowpass(x, t, tau, {}, steps)[rows]
+            got = held_lowpass(held, x[held.samples], a)
+            # the same recursion but for rounding: c^L for L multiplications, the scan's order of products
+            np.testing.assert_allclose(got, want, rtol=0, atol=1e-13 * np.max(np.abs(x)))
+
+
+def test_a_signal_without_a_hold_and_a_signal_that_is_one_hold() -> None:
+    t = DT * np.arange(500)
+    steps = sample_steps(t)
+    rows = np.arange(0, 500, 7)
+    for x in (np.random.default_rng(3).normal(size=500), np.full(500, 2.5), np.r_[1.0, np.full(499, 2.5)]):
+        held = held_rows(x, rows)
+        for tau in (0.02, 1.0):
+            got = held_lowpass(held, x[held.samples], uniform_coefficient(tau, steps))
+            np.testing.assert_allclose(got, first_order_lowpass(x, t, tau, {}, steps)[rows], rtol=0, atol=1e-13 * 2.5)
+
+
+def test_a_sampling_that_changes_the_coefficient_has_none() -> None:
+    t = np.r_[DT * np.arange(100), 1.0 + 0.02 * np.arange(1, 100)]
+    assert uniform_coefficient(0.1, sample_steps(t)) is None
+    assert uniform_coefficient(0.1, sample_steps(DT * np.arange(100))) == pytest.approx(1 - np.exp(-DT / 0.1), rel=1e-12)
+
+
+def tia_data() -> DiagnosisData:
+    """Two runs of poses held 150-400 samples with the table's motion between them (the reference moves every
+    sample), a reference of counts with read noise."""
+    rng = np.random.default_rng(5)
+    g, pose, run = [], [], []
+    for r in range(2):
+        for p in range(12):
+            u = rng.normal(size=3)
+            u *= 9.80665 / np.linalg.norm(u)
+            move = int(rng.integers(20, 60))
+            start = g[-1][-1] if g else u
+            g.append(start + np.linspace(0, 1, move)[:, None] * (u - start))
+            pose.append(np.full(move, -1))
+            hold = int(rng.integers(150, 400))
+            g.append(np.tile(u, (hold, 1)))
+            pose.append(np.full(hold, p))
+            run.append(np.full(move + hold, r))
+    gref = np.concatenate(g)
+    pose_id, run_id = np.concatenate(pose), np.concatenate(run)
+    n = len(gref)
+    M = np.array([[2e-3, 1e-4, 0.0], [0.0, 2.1e-3, 2e-4], [1e-4, 0.0, 1.9e-3]])
+    ref = 3000.0 + rng.normal(0, 5, n)
+    xyz = (gref @ M.T + 0.5) * ref[:, None] + rng.normal(0, 0.5, (n, 3))
+    t = DT * np.arange(n)
+    t[run_id == 1] += 50.0  # the second run later on the board's clock
+    use = pose_id >= 0
+    return DiagnosisData(t, ref, xyz, np.full(n, 25.0), np.where(use[:, None], gref, np.nan), pose_id, run_id, use,
+                         gref_filled=gref)
+
+
+def tia_reference_over_every_sample(data: DiagnosisData, inp: Inputs, h: float) -> np.ndarray:
+    """The TIA candidate's reference (N, 3) by its definition: the expected Psi of the reference, each column through
+    its low-pass over every sample of each run, mapped back."""
+    P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
+    g = data.gref_filled
+    psi = g @ P.T + q
+    lp = np.empty_like(psi)
+    tau = TiaLowpassEffect().taus(h)
+    for run in data.runs():
+        for j in range(3):
+            lp[run, j] = first_order_lowpass(np.ascontiguousarray(psi[run, j]), data.t_s[run], tau[j + 1], {})
+    return g + (lp - psi) @ np.linalg.inv(P).T
+
+
+@pytest.mark.parametrize("read_noise", [None, 0.05])
+def test_the_tia_reference_at_the_searched_rows_is_the_one_over_every_sample(read_noise: float | None) -> None:
+    """The TIA candidate filters the samples in motion only (the holds in closed form): the reference of filtering
+    every sample, up to rounding, with the recorded counts and with the counts an earlier correction changed (the
+    reference's read-noise filter: another expected Psi); and a row's value is the same bit for bit at a search's
+    rows and when every sample is asked for (a correction of the reference after it reads every sample)."""
+    data = tia_data()
+    eff = TiaLowpassEffect()
+    rows = np.flatnonzero(data.use)[::9]
+    largest = 0.0
+    for h in (*eff.hyper_grid(data)[::4], 1.0):
+        inp = [Inputs.of(data), Inputs.of(data)]
+        if read_noise is not None:
+            for i in inp:
+                ReferenceReadNoiseEffect().transform(data, i, read_noise)
+        got = eff.reference_at(data, inp[0], h, rows)
+        assert any(k.startswith("held_reference") for k in data._memo)  # the held path was taken
+        np.testing.assert_allclose(got[0], tia_reference_over_every_sample(data, inp[0], float(h))[rows], rtol=0,
+                                   atol=1e-12)
+        eff.transform(data, inp[1], h)
+        np.testing.assert_array_equal(got[0], inp[1].gref[rows])
+        np.testing.assert_array_equal(got[1], inp[1].valid[rows])
+        largest = max(largest, float(np.max(np.abs(got[0] - data.gref_filled[rows]))))
+    assert largest > 0.1  # m/s^2: the filter corrects the reference (a test of the filter, not of the reference alone)
