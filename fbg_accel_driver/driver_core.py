@@ -53,8 +53,8 @@ Sample policies (documented in docs/topics.md; each has a counter and a diagnost
   the other axes exactly known.
 * **Gravity check** (``gravity_mps2`` set to the local gravity; 0, the default, is off; ``gravity_check``): every
   published, unflagged sample is fed to the live check, which tests each ``gravity_check_period_s`` of stillness: |mean
-  a| against ``gravity_mps2``, within ``gravity_tolerance_mps2`` (plus ``UNSTATED_SLOW_ERROR_MPS2`` for a file without
-  ``slow_error``) plus k sigma of the noise, J Sigma J^T and the slow error (:meth:`DriverCore.gravity_status`,
+  a| against ``gravity_mps2``, within ``gravity_tolerance_mps2`` (plus ``gravity_check.unstated_allowance`` for the slow
+  error the file does not state) plus k sigma of the noise, J Sigma J^T and the slow error (:meth:`DriverCore.gravity_status`,
   the ``gravity check`` diagnostic). A flagged or dropped sample, or a board reset, ends the still stretch.
 * **Non-finite output** (cannot happen with a validated calibration, kept as a last guard): the
   sample is dropped (``non_finite_dropped``). Nothing non-finite ever reaches a topic, except the

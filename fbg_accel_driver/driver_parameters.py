@@ -47,9 +47,9 @@ PARAMETERS: ParameterTable = {
                      "still; 0 (default) = check off (docs/topics.md, gravity check)"),
     "gravity_tolerance_mps2": ("double", 0.03,
                                "discrepancy of |a| from gravity_mps2 allowed beyond the noise, the calibration's "
-                               "J Sigma J^T and its slow_error (m/s^2, 0..10; 0.03: standard gravity's error and the slow "
-                               "bias wander a slow_error cannot state, also with a measured local gravity; a file "
-                               "without slow_error adds 0.12, docs/topics.md)"),
+                               "J Sigma J^T and its slow_error (m/s^2, 0..10; 0.03: standard gravity's error, kept also "
+                               "with a measured local gravity; a slow_error without its run-to-run part adds 0.05, a "
+                               "file without slow_error 0.12, docs/topics.md)"),
     "gravity_check_period_s": ("double", 20.0, "seconds of stillness each gravity test averages (1..3600)"),
     "chain_compensation": (
         "string",

@@ -149,14 +149,15 @@ def _diagnostic(core: DriverCore):
     return next(e for e in DriverDiagnostics().report(snap) if e.name.endswith("gravity check"))
 
 
-def test_on_the_simulator_a_drift_of_0_2_is_flagged_within_a_minute_and_none_without() -> None:
-    """The real core on the simulator's wire: 0.2 m/s^2 along gravity is flagged by the first test (22.25 s after the
-    start of the stillness: the 0.25 s window, the 2 s hold, the 20 s block), the WARN stating the discrepancy; the same
-    sensor undrifted passes with its discrepancy far inside the threshold."""
-    core = _sim_core(0.2, 25.0, seed=3)
+def test_on_the_simulator_a_drift_of_0_4_is_flagged_within_a_minute_and_none_without() -> None:
+    """The real core on the simulator's wire: 0.4 m/s^2 along gravity (the drift the check flags within a minute
+    whatever the sensor's own slow wander, docs/topics.md) is flagged by the first test (22.25 s after the start of the
+    stillness: the 0.25 s window, the 2 s hold, the 20 s block), the WARN stating the discrepancy; the same sensor
+    undrifted passes with its discrepancy far inside the threshold."""
+    core = _sim_core(0.4, 25.0, seed=3)
     drifted = core.gravity_status()
     assert drifted["tests"] == 1 and drifted["failures"] == 1 and drifted["last_failed"]
-    assert abs(drifted["discrepancy_mps2"] - 0.2) < 0.06 and drifted["discrepancy_mps2"] > drifted["threshold_mps2"] + 0.02
+    assert abs(drifted["discrepancy_mps2"] - 0.4) < 0.06 and drifted["discrepancy_mps2"] > drifted["threshold_mps2"] + 0.1
     entry = _diagnostic(core)
     assert entry.level == WARN and "calibration no longer holds" in entry.message
     assert f"|a| - g = {drifted['discrepancy_mps2']:+.3f} m/s^2" in entry.message

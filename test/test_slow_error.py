@@ -157,11 +157,11 @@ def test_the_driver_adds_it_as_a_bias_once_per_message() -> None:
 
 
 def still_with_and_without_slow_error():
-    """A calibration without a slow_error section, the same with SLOW, the gravity direction (m/s^2, sensor frame)
-    and 500 still samples (m/s^2) with their Psi, uncorrelated noise."""
+    """A calibration without a slow_error section, the same with SLOW (its run-to-run part known: half of it), the
+    gravity direction (m/s^2, sensor frame) and 500 still samples (m/s^2) with their Psi, uncorrelated noise."""
     cal = make_cal(noise_correlated_fraction=np.zeros(3), noise_time_constant_s=np.zeros(3))
     slow = make_cal(noise_correlated_fraction=np.zeros(3), noise_time_constant_s=np.zeros(3),
-                    slow_error=SlowErrorSection(SLOW, "test", 40))
+                    slow_error=SlowErrorSection(SLOW, "test", 40, run_to_run=SLOW / 2))
     a_true = np.array([1.0, -2.0, 9.5])
     a_true *= STANDARD_GRAVITY / np.linalg.norm(a_true)
     return (cal, slow, a_true, *still_samples(cal, 500, a_true))
@@ -182,18 +182,29 @@ def test_the_gravity_check_widens_its_threshold_by_the_slow_error_along_gravity(
     assert len(plain) == len(wide) == 1 and plain[0].failed and not wide[0].failed
 
 
-def test_the_default_tolerance_is_gravity_s_and_a_file_without_slow_error_gets_the_stated_allowance() -> None:
-    """The default gravity_tolerance_mps2 is standard gravity's error (0.03) alone when the file states its slow error;
-    a file without the section does not, and the check allows UNSTATED_SLOW_ERROR_MPS2 (0.12) for it, named in the
-    test's figures: a fixed allowance added on top of a stated slow error would count it twice (threshold about 0.35
-    m/s^2 with the simulated campaigns' slow error: 8 % of the 0.2 m/s^2 drifts flagged)."""
-    from fbg_accel_driver.gravity_check import DEFAULT_TOLERANCE_MPS2, UNSTATED_SLOW_ERROR_MPS2
+def test_the_default_tolerance_is_gravity_s_and_a_file_gets_an_allowance_for_what_its_slow_error_does_not_state() -> None:
+    """The default gravity_tolerance_mps2 is standard gravity's error (0.03) alone when the file states its slow error
+    with its run-to-run part; a section without that part (one run per level) gets UNSTATED_RUN_TO_RUN_MPS2 (0.05) for
+    it, a file without the section UNSTATED_SLOW_ERROR_MPS2 (0.12), each named in the test's figures: a fixed allowance
+    added on top of a fully stated slow error would count it twice (threshold about 0.35 m/s^2 with the simulated
+    campaigns' slow error: 8 % of the 0.2 m/s^2 drifts flagged)."""
+    from fbg_accel_driver.gravity_check import (
+        DEFAULT_TOLERANCE_MPS2,
+        UNSTATED_RUN_TO_RUN_MPS2,
+        UNSTATED_SLOW_ERROR_MPS2,
+    )
 
     assert DEFAULT_TOLERANCE_MPS2 == CoreConfig().gravity_tolerance_mps2 == 0.03 and UNSTATED_SLOW_ERROR_MPS2 == 0.12
+    assert UNSTATED_RUN_TO_RUN_MPS2 == 0.05
     cal, slow, _, acc, psi = still_with_and_without_slow_error()
+    no_r = make_cal(noise_correlated_fraction=np.zeros(3), noise_time_constant_s=np.zeros(3),
+                    slow_error=SlowErrorSection(SLOW, "test", 40))
     cfg = GravityCheckConfig(STANDARD_GRAVITY, period_s=2.0)
     stated, unstated = feed(GravityCheck(slow, cfg, DT), acc, psi)[0], feed(GravityCheck(cal, cfg, DT), acc, psi)[0]
     k_sigma = 3.89 * math.sqrt(stated.sigma_noise_mps2**2 + stated.sigma_slow_mps2**2)
     assert stated.unstated_slow_error_mps2 == 0.0 and stated.threshold_mps2 == pytest.approx(0.03 + k_sigma, rel=1e-3)
+    without_r = feed(GravityCheck(no_r, cfg, DT), acc, psi)[0]
+    assert without_r.sigma_slow_mps2 == stated.sigma_slow_mps2 and without_r.unstated_slow_error_mps2 == 0.05
+    assert without_r.threshold_mps2 == pytest.approx(stated.threshold_mps2 + 0.05, rel=1e-6)
     assert unstated.unstated_slow_error_mps2 == 0.12
     assert unstated.threshold_mps2 == pytest.approx(0.15 + 3.89 * unstated.sigma_noise_mps2, rel=1e-3)
