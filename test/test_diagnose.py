@@ -220,18 +220,21 @@ def test_cli_writes_report_yaml_and_plots(tmp_path: Path) -> None:
 
 def test_measured_series_read_noise_is_separated_from_the_offset(tmp_path: Path) -> None:
     """Issue 8, point 1, on the measured series: the reference-offset term still gains most held out, but
-    its implied axis-channel offsets (about 230 / 530 / 150 counts) are up to a third of the signal: it is
-    refused; the reference's read noise is a candidate of its own and its low-pass is taken as a noise
-    remedy; the held-out error falls on every axis. A time drift takes part of what remains (x 0.497 -> 0.267 m/s^2), but
-    with it in the visits of one direction of gravity still disagree far beyond the noise (p ~1e-49 on x, 2.3x the
-    floor) and a step of the response fits it as well: it is not claimed (issue 41, ``checks.stand_ins``)."""
+    its implied axis-channel offsets (about 230 / 530 / 150 counts) are up to a third of the signal (128 % of the
+    bound, with a standard error of 15 % over the folds: beyond it by less than its uncertainty, so the bound does
+    not decide, issue 41) and a step of the response explains it: it is not added; the reference's read noise is a
+    candidate of its own and its low-pass is taken as a noise remedy; the held-out error falls on every axis. A time
+    drift takes part of what remains (x 0.497 -> 0.267 m/s^2), but with it in the visits of one direction of gravity
+    still disagree far beyond the noise (p ~1e-49 on x, 2.3x the floor) and a step of the response fits it as well:
+    it is not claimed (issue 41, ``checks.stand_ins``)."""
     assert MEASURED.is_file(), f"measured data not found: {MEASURED} (../shared/data/measured/ is needed for this test)"
 
     rec, _ = import_csv(MEASURED, rate_hz=1.0, temperature_c=23.4, g_mps2=9.81)
     res = diagnose(rec)
     assert res.degree == 0  # one temperature level: no temperature term is identified
     first = res.ranked[0]
-    assert first.name == "reference_dark_offset" and first.implausible and not first.significant
+    assert first.name == "reference_dark_offset" and not first.significant
+    assert "the bound does not decide" in first.detail and "explains it" in first.detail, first.detail
     assert [r[0] for r in res.noise_remedies] == ["reference_read_noise"]
     assert np.all(res.after_heldout_rmse < res.before_heldout_rmse)
     assert "time_drift" not in [a[0] for a in res.added]

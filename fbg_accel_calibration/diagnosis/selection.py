@@ -101,7 +101,7 @@ class Selection:
     kept: float  # information of a visit mean the thinned search keeps
     n_lanes: int  # searches that ran side by side
     stand_ins: list[Finding] = field(default_factory=list)  # terms not claimed: stand-ins (``checks.stand_ins``)
-    at_bound: list[Finding] = field(default_factory=list)  # terms whose bound this fit does not decide (``bounds_undecided``)
+    beyond_bound: list[Finding] = field(default_factory=list)  # terms not claimed (``beyond_bound_at_the_end``)
 
     def confounded(self) -> dict[str, list[str]]:
         """Added effect -> the candidates it was confounded with when added (only those with any)."""
@@ -279,23 +279,39 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
         steps[-1].removed_note += ("; " if steps[-1].removed_note else "") + (
             f"{', '.join(f.effect for f in refused)} not claimed: the residual keeps a structure no term represents "
             f"(stand-ins for an effect outside the library); degree of eq. 28 without them {spec.degree}")
+    # a term let in while its bound was not decided must be within it in the selected model
+    spec, beyond = beyond_bound_at_the_end(sel, spec)
+    if beyond:
+        if rules.reselect_degree:
+            spec = reselect_degree(searchers, spec, rules.max_degree)[0]
+        steps[-1].removed_note += ("; " if steps[-1].removed_note else "") + (
+            f"{', '.join(f.effect for f in beyond)} not claimed: beyond its bound in the selected model; degree of eq. "
+            f"28 without it {spec.degree}")
     n_search = len(sel.folds) if step > 1 else None
-    return Selection(spec, steps, detection_limit, ctx.step_confounded, n_search, step, kept, n_lanes, refused,
-                     bounds_undecided(sel, spec))
+    return Selection(spec, steps, detection_limit, ctx.step_confounded, n_search, step, kept, n_lanes, refused, beyond)
 
 
-def bounds_undecided(ev: Evaluator, spec: ModelSpec) -> list[Finding]:
-    """One Finding per effect of the selected model ``spec`` whose fitted value is beyond its bound by less than its
-    uncertainty (``Effect.at_bound``), on the search's samples: it was not refused, since the data do not show it
-    beyond, but neither do they show it within; the Finding says so and which measurement gives the value."""
+def beyond_bound_at_the_end(ev: Evaluator, spec: ModelSpec) -> tuple[ModelSpec, list[Finding]]:
+    """The selected model ``spec`` without the terms whose bound is judged with the fit's uncertainty
+    (``Effect.bound_ratios``) and that are beyond it on the fit in ``spec`` (on the search's samples), and a Finding
+    each. Such a term may have entered while its bound was not decided (beyond it by less than its uncertainty,
+    ``Effect.refusal``: beside an effect not yet in the model, the dark offsets' implied x offset was 103 % of its
+    bound, and 3 % of the counts once the lag was in); in the model that explains the rest its value must be within
+    the bound, or it is not claimed: the data never showed it physical."""
     des, cvr = ev.cv(spec)
-    out = []
+    kept, out = [], []
     for eff, h in spec.effects:
         coeff, folds = ev.coefficients(eff, des, cvr)
-        if why := eff.at_bound(h, coeff, ev.data, ev.model_matrix, folds):
-            out.append(Finding("at_bound", f"{eff.name} ({eff.title}) is in the model, but {why}; "
-                               f"{eff.measures_its_value}", effect=eff.name, separates=eff.measures_its_value))
-    return out
+        bounded = coeff is not None and eff.bound_ratios(h, coeff, ev.data, ev.model_matrix) is not None
+        why = eff.implausible(h, coeff, ev.data, ev.model_matrix) if bounded else ""
+        if not why:
+            kept.append((eff, h))
+            continue
+        undecided = eff.at_bound(h, coeff, ev.data, ev.model_matrix, folds)
+        out.append(Finding("at_bound", f"{eff.name} ({eff.title}) is not claimed: in the selected model {why}"
+                           + (f"; {undecided}" if undecided else "") + f"; {eff.measures_its_value}",
+                           effect=eff.name, separates=eff.measures_its_value))
+    return ModelSpec(spec.degree, spec.t_center_c, spec.t_scale_c, kept), out
 
 
 def _gains(ctx: checks.SearchChecks, r: CandidateResult) -> bool:
