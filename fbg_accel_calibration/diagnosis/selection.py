@@ -5,7 +5,10 @@ every candidate on top of the current model (``search.Evaluator``: hyper-paramet
 held-out gain per visit, one-sided test over visits, Bonferroni over the candidates the data can show), the checks
 each candidate declares (``checks``), confounding among the significant ones; the best is added, eq. 28's degree
 chosen again, and an effect added earlier that no longer gains on top of the others taken out again
-(``drop_explained``), until none is significant or gains less than ``min_rel_gain``. A model whose residual still
+(``drop_explained``), until none is significant or gains less than ``min_rel_gain``. A candidate that gains but is
+refused or fails a check at the model's degree is judged again at the higher degree chosen with it in
+(``judged_at_its_degree``); a term let in while its bound was not decided must be within it in the selected model
+(``beyond_bound_at_the_end``). A model whose residual still
 keeps a structure no term of it represents claims none of its terms (``checks.stand_ins``: they would stand in for an
 effect outside the library). The searches run on ``Lanes`` (its
 ``map`` is the one seam of the parallel execution: serial with one lane, the same results with any number).
