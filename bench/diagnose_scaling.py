@@ -13,9 +13,10 @@ Run on an idle machine:
     .venv/bin/python bench/diagnose_scaling.py [--sizes 10000 100000 1000000]
 
 ``--trials N [N ...]``: instead, where the diagnosis of the same run spends its CPU time, on one lane, per size: each
-hyper-parameter search (``Evaluator._fit_hyper``) by the phase it runs in (a candidate on top of the model, the
-confounding pairs, the backward step, the step check) and by candidate, with its grid's size, the designs it built
-(its trials: grid values visited, the refinement's values, the parsimony check) and their CPU time; and the
+hyper-parameter search (``Evaluator._fit_hyper``) by the phase it runs in (a candidate on top of the model, one
+judged again at the degree chosen with it in, the confounding pairs, the backward step, the step check) and by
+candidate, with its grid's size, the designs it built (its trials: grid values visited, the refinement's values, the
+parsimony check) and their CPU time; and the
 diagnosis's CPU outside the searches. It says how the cost grows with N, with the number of candidates (each step
 searches every candidate left, the confounding check the best against up to three others) and with each grid
 (``search_batches`` visits every 4th value then the neighbours of the folds' bests; the refinement up to 25 more):
@@ -66,7 +67,8 @@ def run_command(n: int, tmp: Path) -> dict:
     return {"command_seconds": round(wall, 1), "command_peak_rss_mib": round(usage.ru_maxrss / 1024)}
 
 
-SEARCH_PHASES = ("step_check", "confounding", "drop_explained", "_evaluate_on")  # innermost first
+# innermost first; judged_at_its_degree: a refused candidate judged again at the degree chosen with it in
+SEARCH_PHASES = ("step_check", "confounding", "drop_explained", "judged_at_its_degree", "_evaluate_on")
 
 
 def trial_costs(n: int) -> dict:

@@ -223,6 +223,11 @@ class CvResult:
         return self._heldout
 
     @property
+    def fold_coefficients(self) -> np.ndarray:
+        """(K, p, 3) each fold's training coefficients (the fit without that fold's visits)."""
+        return self._A_folds
+
+    @property
     def fitted_full(self) -> np.ndarray:
         """(N, 3) in-sample prediction with ``A_full``."""
         design = self._design

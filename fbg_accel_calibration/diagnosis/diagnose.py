@@ -190,7 +190,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     findings += cannot_reveal(sel.steps[0].candidates if sel.steps else [], {e.name: e.title for e in library})
     findings += [Finding("step_confounded", why, effect=e.name, separates=e.tells_it_from_a_step)
                  for e, _ in sel.spec.effects if (why := sel.step_confounded.get(e.name))]
-    findings += sel.stand_ins + final_model_findings(sel.spec, final.structure, alpha)
+    findings += sel.stand_ins + sel.beyond_bound + final_model_findings(sel.spec, final.structure, alpha)
     findings += approach_findings(approach_signature(data, final.heldout, final.r_eval), alpha, sel.spec.names)
     findings += [final.flagged] if final.flagged else []
     if floor.disturbance.found:

@@ -36,6 +36,7 @@ import math
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
 from fbg_accel_driver.correction_terms import (
     ChainDynamics,
@@ -102,6 +103,10 @@ MAX_TIA_SCALE = 2.0
 # one orientation at different board times: above this share of the visits' board-time variance explained by their
 # orientation it is not testable (``orientation_share_of_visit_times``)
 MAX_TIME_ORIENTATION_SHARE = 0.99
+# A fitted value is refused as beyond its bound only when the data show it beyond, at the diagnosis' own level: the
+# one-sided test of "within the bound" over the folds' estimates (``Effect.refusal``) rejects at this level. Between,
+# the bound is not decided by this fit (the value is beyond it by less than its uncertainty).
+BOUND_LEVEL = 0.01
 
 
 MODEL_TERM = "model term"  # a term of eq. 28's calibration file, applied by the driver
@@ -149,6 +154,9 @@ class Effect:
     # for the step checks: what it would be as a property of the sensor, and the measurement that tells it from a step
     sensor_property: str = ""
     tells_it_from_a_step: str = ""
+    # with :meth:`bound_ratios`: the measurement that gives its value directly rather than by a fit (for a fit its
+    # bound does not decide, :meth:`at_bound`)
+    measures_its_value: str = ""
     pointwise: bool = False  # columns() computes each row from that row's inputs alone (may be given some rows only)
     reference_only: bool = False  # transform() changes only the reference (and valid): eq. 28's columns stay the same
     # its columns are switched_columns() from the sample index h on and zero before (h: a grid of sample indices, no
@@ -221,14 +229,62 @@ class Effect:
         ``M0`` (3, 3) is the model's matrix at the mean temperature (m/s^2 per unit Psi)."""
         return ""
 
-    def refusal(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData, M0: np.ndarray) -> str:
+    def bound_ratios(self, h: float | None, coeff: np.ndarray, data: DiagnosisData, M0: np.ndarray) -> np.ndarray | None:
+        """Every value :meth:`implausible` bounds, each as its magnitude over its limit (1 at the bound; any shape),
+        for the coefficients ``coeff``: the bound is then judged with the fit's uncertainty (:meth:`refusal`). None:
+        its bound is judged on the fit alone."""
+        return None
+
+    def bound_margin(self, h: float | None, coeff: np.ndarray, coeff_folds: np.ndarray, data: DiagnosisData,
+                     M0: np.ndarray) -> tuple[float, float, float] | None:
+        """(ratio, its standard error, the ratio the one-sided test at ``BOUND_LEVEL`` cannot exclude below) of the
+        bounded value (:meth:`bound_ratios`) that is furthest beyond its bound by that lower limit; None when the
+        effect bounds no fitted value this way. The standard error is the delete-a-group jackknife over the folds'
+        training fits (``coeff_folds`` (K, 3, k): each fold's coefficients without its visits): folds are groups of
+        visits, so it holds under the noise's correlation within a visit and the slow noise between visits, which a
+        sample-level standard error does not; the limit is the one-sided t quantile with K - 1 degrees of freedom."""
+        full = self.bound_ratios(h, coeff, data, M0)
+        if full is None or len(coeff_folds) < 3:
+            return None
+        folds = np.array([self.bound_ratios(h, c, data, M0) for c in coeff_folds])
+        k = len(folds)
+        se = np.sqrt((k - 1) / k * np.sum((folds - folds.mean(axis=0)) ** 2, axis=0))
+        lower = full - stats.t.ppf(1.0 - BOUND_LEVEL, k - 1) * se
+        i = int(np.argmax(lower))
+        return float(full.flat[i]), float(se.flat[i]), float(lower.flat[i])
+
+    def refusal(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData, M0: np.ndarray,
+                coeff_folds: np.ndarray | None = None) -> str:
         """Why the fit at ``h`` with ``coeff`` is not physical, "" when it is: the one question the search asks of
-        every effect. A hyper-parameter outside :meth:`hyper_limits`, then :meth:`implausible`."""
+        every effect. A hyper-parameter outside :meth:`hyper_limits`, then :meth:`implausible`; with ``coeff_folds``
+        (the folds' training coefficients, (K, 3, k)) a fitted value that :meth:`bound_ratios` gives is refused only when
+        it is beyond its bound by more than its uncertainty (:meth:`bound_margin`): a value beyond it by less is no
+        decision of this fit, and :meth:`at_bound` says so."""
         limits = None if h is None else self.hyper_limits(data)
         if limits is not None and not limits[0] <= float(h) <= limits[1]:
             return (f"not physical: {self.hyper_name} = {float(h):.4g} {self.hyper_unit} is outside "
                     f"[{limits[0]:.4g}, {limits[1]:.4g}] {self.hyper_unit}, the bound of {self.name} ({self.bound})")
-        return self.implausible(h, coeff, data, M0)
+        why = self.implausible(h, coeff, data, M0)
+        if why and coeff is not None and coeff_folds is not None:
+            margin = self.bound_margin(h, coeff, coeff_folds, data, M0)
+            if margin is not None and margin[2] <= 1.0:
+                return ""
+        return why
+
+    def at_bound(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData, M0: np.ndarray,
+                 coeff_folds: np.ndarray | None) -> str:
+        """For a fit :meth:`refusal` does not refuse: why its bound is not decided ("" when it is), a value beyond
+        its bound by less than its uncertainty (:meth:`bound_margin`)."""
+        if coeff is None or coeff_folds is None or not self.implausible(h, coeff, data, M0):
+            return ""
+        margin = self.bound_margin(h, coeff, coeff_folds, data, M0)
+        if margin is None or margin[2] > 1.0:  # none, or refused
+            return ""
+        ratio, se, lower = margin
+        return (f"its fitted value is {100 * ratio:.0f} % of its bound (standard error {100 * se:.1f} % over the "
+                f"folds): beyond it by less than its uncertainty (the one-sided {100 * (1 - BOUND_LEVEL):g} % "
+                f"limit is {100 * lower:.0f} %), so the bound does not decide: a large {self.title} and a term that "
+                "stands in for another effect both fit")
 
 
 class ReferenceReadNoiseEffect(Effect):
@@ -304,6 +360,7 @@ class ReferenceDarkOffsetEffect(Effect):
              "of the channel's counts: dark current and ADC zero offset are tens of counts (sim_default.yaml; "
              "../shared/docs/sensor_facts.md), a quarter of the signal undoes eq. 24")
     sensor_property = "a dark offset of the detectors"
+    measures_its_value = "record the detectors dark (source off): the offsets are then measured, not fitted"
     tells_it_from_a_step = ("record the detectors dark (source off) to measure the offsets, or change the source power "
                             "at fixed poses: a dark offset follows every change of the reference counts, a step of "
                             "the reference's connector happens once")
@@ -334,18 +391,30 @@ class ReferenceDarkOffsetEffect(Effect):
         return (f"reference offset d_ref = {h:.1f} counts; axis-channel offsets via k = [{k[0]:.4g}, {k[1]:.4g}, {k[2]:.4g}] "
                 "m/s^2·counts (regressor 1/(ref - d_ref))")
 
+    def _channel_offsets(self, coeff: np.ndarray, data: DiagnosisData, M0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(the implied axis-channel offsets c0 (3,) counts, each as a fraction of its channel's mean counts): the
+        regressor k/ref is the model's M0 applied to them, k = -M0 c0."""
+        c0 = -np.linalg.solve(M0, np.asarray(coeff)[:, 0])
+        mean_counts = data.once("mean_abs_counts", lambda: np.nanmean(np.abs(data.xyz[data.use]), axis=0))
+        return c0, np.abs(c0) / np.maximum(mean_counts, 1e-9)
+
+    def bound_ratios(self, h: float | None, coeff: np.ndarray, data: DiagnosisData, M0: np.ndarray) -> np.ndarray:
+        ref = abs(float(h or 0.0)) / self._ref_counts(data)  # the same in every fold: it is not fitted there
+        return np.concatenate([[ref], self._channel_offsets(coeff, data, M0)[1]]) / MAX_CHANNEL_OFFSET_FRACTION
+
+    @staticmethod
+    def _ref_counts(data: DiagnosisData) -> float:
+        return data.once("mean_abs_ref", lambda: float(np.nanmean(np.abs(data.ref[data.use]))))
+
     def implausible(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData, M0: np.ndarray) -> str:
         # the reference's own offset: the same bound as the axis channels' (a dark offset is tens of counts)
-        ref_counts = data.once("mean_abs_ref", lambda: float(np.nanmean(np.abs(data.ref[data.use]))))
+        ref_counts = self._ref_counts(data)
         if h is not None and abs(float(h)) > MAX_CHANNEL_OFFSET_FRACTION * ref_counts:
             return (f"the reference offset d_ref = {float(h):.0f} counts is {100 * abs(float(h)) / ref_counts:.0f} % of "
                     f"the reference's counts (limit {100 * MAX_CHANNEL_OFFSET_FRACTION:.0f} %): not a dark offset")
-        # the regressor k/ref is the model's M0 applied to axis-channel offsets c0: k = -M0 c0
         if coeff is None:
             return ""
-        c0 = -np.linalg.solve(M0, np.asarray(coeff)[:, 0])
-        mean_counts = data.once("mean_abs_counts", lambda: np.nanmean(np.abs(data.xyz[data.use]), axis=0))
-        frac = np.abs(c0) / np.maximum(mean_counts, 1e-9)
+        c0, frac = self._channel_offsets(coeff, data, M0)
         if np.any(frac > MAX_CHANNEL_OFFSET_FRACTION):
             return (f"implied axis-channel offsets {', '.join(f'{v:.0f}' for v in c0)} counts are "
                     f"{', '.join(f'{100 * v:.0f}' for v in frac)} % of the channels' counts (limit "

@@ -42,7 +42,7 @@ class Finding:
 
 KINDS = ("detection_limit", "cannot_reveal", "step_confounded", "table_angles", "approach_direction", "noisy_visits",
          "periodic_disturbance", "held_code", "visit_ends", "reference_reach", "low_reference", "temperature_jumps",
-         "clipped", "collinear", "below_floor", "stand_in")
+         "clipped", "collinear", "below_floor", "stand_in", "at_bound")
 
 
 def cannot_reveal(candidates: list[CandidateResult], titles: dict[str, str]) -> list[Finding]:

@@ -161,6 +161,9 @@ class CandidateResult:
     detectable_gain: float = math.nan  # small campaigns: gain the paired t-test finds with 80 % power
     time_block: tuple[float, float] | None = None  # a time function's (gain, p) over contiguous blocks of time held out
     step_check: StepCheck | None = None  # a candidate that can follow a step, against the best step (``step_check``)
+    # eq. 28's degree it was judged at, chosen again with it in, where that is above the model's (None: the model's;
+    # ``selection.judged_at_its_degree``)
+    degree: int | None = None
 
     def delta_of_every_sample(self, n: int) -> np.ndarray | None:
         """``delta`` (N, 3) on every one of the recording's ``n`` samples, NaN where it was not evaluated (for the
@@ -524,9 +527,18 @@ class Evaluator:
         """Why the fit of ``eff`` at ``h`` (design ``des``, fit ``cvr`` on all rows) is not physical, or "": the
         effect's own bound (``Effect.refusal``: its hyper-parameter's range, its fitted values) or columns that cancel
         (``cancelling_terms``)."""
-        coeff = cvr.A_full[des.blocks[eff.name]].T if eff.name in des.blocks else None
-        return (eff.refusal(h, coeff, self.data, self.model_matrix)
+        coeff, folds = self.coefficients(eff, des, cvr)
+        return (eff.refusal(h, coeff, self.data, self.model_matrix, folds)
                 or cancelling_terms(des, cvr, eff.name))
+
+    @staticmethod
+    def coefficients(eff: Effect, des: Design, cvr: CvResult) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """``eff``'s coefficients (3, k) on all rows and in each fold's training fit (K, 3, k); None, None when it
+        has no columns."""
+        if eff.name not in des.blocks:
+            return None, None
+        blk = des.blocks[eff.name]
+        return cvr.A_full[blk].T, np.swapaxes(cvr.fold_coefficients[:, blk, :], 1, 2)
 
     def evaluate(self, spec: ModelSpec, eff: Effect, base_heldout: np.ndarray, base_fitted: np.ndarray,
                  base_G: np.ndarray, alpha: float | None = None) -> CandidateResult:
@@ -557,6 +569,9 @@ class Evaluator:
         out.implausible = self.implausible(eff, h, des, cvr)
         if out.implausible:
             out.detail += f"; REFUSED: {out.implausible}"
+        else:
+            at_bound = eff.at_bound(h, coeff, self.data, self.model_matrix, self.coefficients(eff, des, cvr)[1])
+            out.detail += f"; not refused: {at_bound}" if at_bound else ""
         out.delta = delta.astype(np.float32)  # for the plots and a correlation only
         return out
 

@@ -5,7 +5,10 @@ every candidate on top of the current model (``search.Evaluator``: hyper-paramet
 held-out gain per visit, one-sided test over visits, Bonferroni over the candidates the data can show), the checks
 each candidate declares (``checks``), confounding among the significant ones; the best is added, eq. 28's degree
 chosen again, and an effect added earlier that no longer gains on top of the others taken out again
-(``drop_explained``), until none is significant or gains less than ``min_rel_gain``. A model whose residual still
+(``drop_explained``), until none is significant or gains less than ``min_rel_gain``. A candidate that gains but is
+refused or fails a check at the model's degree is judged again at the higher degree chosen with it in
+(``judged_at_its_degree``); a term let in while its bound was not decided must be within it in the selected model
+(``beyond_bound_at_the_end``). A model whose residual still
 keeps a structure no term of it represents claims none of its terms (``checks.stand_ins``: they would stand in for an
 effect outside the library). The searches run on ``Lanes`` (its
 ``map`` is the one seam of the parallel execution: serial with one lane, the same results with any number).
@@ -101,6 +104,7 @@ class Selection:
     kept: float  # information of a visit mean the thinned search keeps
     n_lanes: int  # searches that ran side by side
     stand_ins: list[Finding] = field(default_factory=list)  # terms not claimed: stand-ins (``checks.stand_ins``)
+    beyond_bound: list[Finding] = field(default_factory=list)  # terms not claimed (``beyond_bound_at_the_end``)
 
     def confounded(self) -> dict[str, list[str]]:
         """Added effect -> the candidates it was confounded with when added (only those with any)."""
@@ -213,19 +217,31 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
         if not steps:
             detection_limit = _detection_limit(tested, rules.alpha, ctx.alpha_each)
         effect_of = {e.name: e for e in remaining}
+        up_to = rules.max_degree if rules.reselect_degree else None
         for r in tested:
             ctx.step_confounded.pop(r.name, None)  # the last step's word on it
-            r.significant = r.p_value < ctx.alpha_each and r.rel_gain >= rules.min_rel_gain and not r.implausible
-            if r.significant and effect_of[r.name].void(r.hyper):
-                r.significant = False  # its value on all samples changes nothing: there is nothing to add
-                r.detail += "; not added: its value on all samples changes nothing"
-            checks.run_checks(checks.EACH_STEP, ctx, r, effect_of[r.name])
+            _judge(ctx, spec, r, effect_of[r.name])
+        # one that gains but is refused or fails a check at the model's degree: judged at the degree chosen with it in
+        retry = [r for r in tested if not r.significant and _gains(ctx, r)] if up_to is not None else []
+        for r, again in zip(retry, searchers.map(partial(judged_at_its_degree, spec, ctx.alpha_each, up_to),
+                                                 [(r, effect_of[r.name]) for r in retry]), strict=True):
+            if again is not None:
+                _in_place_of(results, r, again)
+                _judge(ctx, spec, again, effect_of[r.name])
         results.sort(key=lambda r: (not r.applicable, -r.rel_gain))
         # the checks of a candidate about to be added (the best significant one left), not of every significant one
-        checked: set[str] = set()
-        while (best := next((r for r in results if r.significant), None)) is not None and best.name not in checked:
-            checked.add(best.name)
+        checked: set[tuple[str, int | None]] = set()
+        while ((best := next((r for r in results if r.significant), None)) is not None
+               and (best.name, best.degree) not in checked):
+            checked.add((best.name, best.degree))
+            ctx.spec = at_its_degree(spec, best)
             checks.run_checks(checks.WHEN_CHOSEN, ctx, best, effect_of[best.name])
+            if not best.significant and up_to is not None and best.degree is None:
+                again = judged_at_its_degree(spec, ctx.alpha_each, up_to, sel, (best, effect_of[best.name]))
+                if again is not None:
+                    _in_place_of(results, best, again)
+                    _judge(ctx, spec, again, effect_of[best.name])
+                    results.sort(key=lambda r: (not r.applicable, -r.rel_gain))
         sig = [r for r in results if r.significant]
         conf = confounding(searchers, spec, sig, ctx.alpha_each, rules.min_rel_gain, library) if len(sig) >= 2 else []
         chosen = sig[0].name if sig else None
@@ -234,10 +250,10 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
         steps.append(StepResult(len(steps) + 1, spec.names, results, chosen, ctx.alpha_each, conf))
         if chosen is None:
             break
-        spec = spec.plus(effect_of[chosen], sig[0].hyper)
+        was = spec.degree
+        spec = at_its_degree(spec, sig[0]).plus(effect_of[chosen], sig[0].hyper)
         remaining = [e for e in remaining if e.name != chosen]
         if rules.reselect_degree:  # with one level only degree 0 is identified: nothing to re-select
-            was = spec.degree
             spec, steps[-1].degree_table, notes = reselect_degree(searchers, spec, rules.max_degree)
             steps[-1].degree_after = spec.degree
             steps[-1].degree_note = (f"degree of eq. 28 re-selected with {chosen} in the model: "
@@ -266,8 +282,99 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
         steps[-1].removed_note += ("; " if steps[-1].removed_note else "") + (
             f"{', '.join(f.effect for f in refused)} not claimed: the residual keeps a structure no term represents "
             f"(stand-ins for an effect outside the library); degree of eq. 28 without them {spec.degree}")
+    # a term let in while its bound was not decided must be within it in the selected model
+    spec, beyond = beyond_bound_at_the_end(sel, spec)
+    if beyond:
+        if rules.reselect_degree:
+            spec = reselect_degree(searchers, spec, rules.max_degree)[0]
+        steps[-1].removed_note += ("; " if steps[-1].removed_note else "") + (
+            f"{', '.join(f.effect for f in beyond)} not claimed: beyond its bound in the selected model; degree of eq. "
+            f"28 without it {spec.degree}")
     n_search = len(sel.folds) if step > 1 else None
-    return Selection(spec, steps, detection_limit, ctx.step_confounded, n_search, step, kept, n_lanes, refused)
+    return Selection(spec, steps, detection_limit, ctx.step_confounded, n_search, step, kept, n_lanes, refused, beyond)
+
+
+def beyond_bound_at_the_end(ev: Evaluator, spec: ModelSpec) -> tuple[ModelSpec, list[Finding]]:
+    """The selected model ``spec`` without the terms whose bound is judged with the fit's uncertainty
+    (``Effect.bound_ratios``) and that are beyond it on the fit in ``spec`` (on the search's samples), and a Finding
+    each. Such a term may have entered while its bound was not decided (beyond it by less than its uncertainty,
+    ``Effect.refusal``: beside an effect not yet in the model, the dark offsets' implied x offset was 103 % of its
+    bound, and 3 % of the counts once the lag was in); in the model that explains the rest its value must be within
+    the bound, or it is not claimed: the data never showed it physical."""
+    des, cvr = ev.cv(spec)
+    kept, out = [], []
+    for eff, h in spec.effects:
+        coeff, folds = ev.coefficients(eff, des, cvr)
+        bounded = coeff is not None and eff.bound_ratios(h, coeff, ev.data, ev.model_matrix) is not None
+        why = eff.implausible(h, coeff, ev.data, ev.model_matrix) if bounded else ""
+        if not why:
+            kept.append((eff, h))
+            continue
+        undecided = eff.at_bound(h, coeff, ev.data, ev.model_matrix, folds)
+        out.append(Finding("at_bound", f"{eff.name} ({eff.title}) is not claimed: in the selected model {why}"
+                           + (f"; {undecided}" if undecided else "") + f"; {eff.measures_its_value}",
+                           effect=eff.name, separates=eff.measures_its_value))
+    return ModelSpec(spec.degree, spec.t_center_c, spec.t_scale_c, kept), out
+
+
+def _gains(ctx: checks.SearchChecks, r: CandidateResult) -> bool:
+    """``r`` passes the step's test and least gain."""
+    return r.p_value < ctx.alpha_each and r.rel_gain >= ctx.min_rel_gain
+
+
+def _judge(ctx: checks.SearchChecks, spec: ModelSpec, r: CandidateResult, eff: Effect) -> None:
+    """Whether ``r`` (of ``eff`` on top of ``spec``) is significant: its test and bound, then the checks ``eff``
+    declares for every step, on the model it was judged on."""
+    r.significant = _gains(ctx, r) and not r.implausible
+    if r.significant and eff.void(r.hyper):
+        r.significant = False  # its value on all samples changes nothing: there is nothing to add
+        r.detail += "; not added: its value on all samples changes nothing"
+    ctx.spec = at_its_degree(spec, r)
+    checks.run_checks(checks.EACH_STEP, ctx, r, eff)
+
+
+def _in_place_of(results: list[CandidateResult], r: CandidateResult, again: CandidateResult) -> None:
+    results[next(i for i, x in enumerate(results) if x is r)] = again
+
+
+def at_its_degree(spec: ModelSpec, r: CandidateResult) -> ModelSpec:
+    """``spec`` at eq. 28's degree the candidate ``r`` was judged at (``judged_at_its_degree``)."""
+    return spec if r.degree is None else ModelSpec(r.degree, spec.t_center_c, spec.t_scale_c, spec.effects)
+
+
+def judged_at_its_degree(spec: ModelSpec, alpha: float, max_degree: int, ev: Evaluator,
+                         item: tuple[CandidateResult, Effect]) -> CandidateResult | None:
+    """The candidate ``item`` (its result on top of ``spec`` and its effect), refused or failing a check at the
+    model's degree although it gains, judged again at eq. 28's degree chosen with it in the model (``reselect_degree``,
+    the rule used once an effect is added): its hyper-parameter searched again, its gain, test and bound
+    (``Evaluator.evaluate``) on top of the model at that degree (``CandidateResult.degree``); the caller runs its checks
+    there. None when that degree is not above the model's. The model's degree was chosen with what the candidate
+    explains still in the residual, and an effect missing from the model makes a higher degree overfit: on 15 -> 45 ->
+    15 degC ramps with a thermal lag and dark offsets under a source drift eq. 28 comes out of degree 1 where the
+    sensor needs 2. Not below: at a lower degree the candidate is judged on a model with less of eq. 28's temperature
+    dependence, which a function of time or of the temperature's history on ramps can take (a time drift that fails
+    the contiguous blocks of time at degree 2 passed them at degree 1, and on another seed, judged there, it was added
+    first and a wrong lag followed). A candidate that passes at the model's degree is judged there: at another degree
+    its gain is over another model, and the candidates of a step are ranked by their gains. A task of ``Lanes.map``
+    once the first two arguments are bound."""
+    first, eff = item
+    try:
+        degree = reselect_degree(Lanes([ev]), spec.plus(eff, first.hyper), max_degree)[0].degree
+        if degree <= spec.degree:
+            return None
+        at = ModelSpec(degree, spec.t_center_c, spec.t_scale_c, spec.effects)
+        des, cvr = ev.cv(at)
+        again = ev.evaluate(at, eff, cvr.heldout, cvr.fitted_full, des.G, alpha)
+    except NotIdentifiedError:  # not identified at that degree: judged at the model's
+        return None
+    if not again.applicable:
+        return None
+    why = first.implausible or (first.detail.rsplit("not added: ", 1)[1] if "not added: " in first.detail else "")
+    again.degree = degree
+    again.detail += (f"; judged on eq. 28 of degree {degree}, chosen again with it in (at the model's degree "
+                     f"{spec.degree} it gained {100 * first.rel_gain:+.1f} %, p = {first.p_value:.2g}, but "
+                     f"{why or 'was not added'})")
+    return again
 
 
 def refit_earlier(lanes: Lanes[Evaluator], spec: ModelSpec, max_degree: int | None) -> tuple[ModelSpec, str]:
@@ -362,7 +469,7 @@ def confounding(lanes: Lanes[Evaluator], spec: ModelSpec, sig: list[CandidateRes
     a = sig[0]
     ea = lib[a.name]
     ev = lanes.lanes[0]
-    a_ho = ev.cv(spec.plus(ea, a.hyper), remember=True)[1].heldout  # the next step's starting model
+    a_ho = ev.cv(at_its_degree(spec, a).plus(ea, a.hyper), remember=True)[1].heldout  # the next step's starting model
 
     # each on top of the other (the added one's hyper-parameter searched again, nested), compared with the other
     # alone at its final hyper-parameter, as the forward selection does
@@ -370,9 +477,10 @@ def confounding(lanes: Lanes[Evaluator], spec: ModelSpec, sig: list[CandidateRes
         b, b_on_a = task
         eb = lib[b.name]
         if b_on_a:
-            b_ho = lane.cv(spec.plus(eb, b.hyper))[1].heldout
-            return b_ho, lane.fit_hyper(spec.plus(ea, a.hyper), eb, remember=True)[1]  # evaluated again next step
-        return (lane.nested_heldout(spec.plus(eb, b.hyper), ea),)
+            b_ho = lane.cv(at_its_degree(spec, b).plus(eb, b.hyper))[1].heldout
+            # evaluated again next step
+            return b_ho, lane.fit_hyper(at_its_degree(spec, a).plus(ea, a.hyper), eb, remember=True)[1]
+        return (lane.nested_heldout(at_its_degree(spec, b).plus(eb, b.hyper), ea),)
 
     done = lanes.map(on_top, [(b, b_on_a) for b in sig[1:4] for b_on_a in (True, False)])
     for i, b in enumerate(sig[1:4]):
