@@ -114,6 +114,14 @@ def test_two_sensors_on_one_vehicle_do_not_cross_talk(ros: Context, tmp_path: Pa
 
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 100)
     try:
+        # the recorders first, subscribed before either board starts: A's reboot and B's unplugging are at fixed board
+        # times, and a recorder started after the drivers came up (seconds of start-up on a busy CPU) missed A's reboot
+        procs["calibration"] = _recorder("calibration", "acc_a", tmp_path, ["-r", "__ns:=/acc_a"])
+        # B recorded by a node left at the root, pointed at B by topic remaps (not by a namespace)
+        procs["calibration_b"] = _recorder("calibration_b", "acc_b", tmp_path, [
+            "-r", "imu/raw:=/acc_b/imu/raw", "-r", "imu/temperature:=/acc_b/imu/temperature"])
+        for name in ("calibration", "calibration_b"):
+            procs[name].wait_line("recording to ", 60)
         procs["sim_a"] = ChildProcess("sim_a", [BIN / "board_sim", "--link", link["acc_a"], "--seed", "1", "--rate", "100",
                                                 "--set", f"faults.resets.at_s=[{RESET_AT_S}]",
                                                 "--set", f"board.boot_gap_s={BOOT_GAP_S}"])
@@ -126,10 +134,6 @@ def test_two_sensors_on_one_vehicle_do_not_cross_talk(ros: Context, tmp_path: Pa
         for ns in NAMESPACES:
             procs[ns] = _driver(ns, ns, link[ns], cals[ns])
         procs["acc_a"].wait_line("serial link up", 60)
-        procs["calibration"] = _recorder("calibration", "acc_a", tmp_path, ["-r", "__ns:=/acc_a"])
-        # B recorded by a node left at the root, pointed at B by topic remaps (not by a namespace)
-        procs["calibration_b"] = _recorder("calibration_b", "acc_b", tmp_path, [
-            "-r", "imu/raw:=/acc_b/imu/raw", "-r", "imu/temperature:=/acc_b/imu/temperature"])
         spin_until(lambda: all(len(imu[ns]) >= 50 for ns in NAMESPACES), 40, "both drivers' imu/data_raw")
 
         # a third driver given A's port: refused with the reason, A streams on
