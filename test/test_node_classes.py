@@ -62,10 +62,11 @@ def built_or_refused(make: Callable[[], Node], built: list[Any]) -> Any:
 
 
 def nodes_left(ros: Context, name: str) -> list[str]:
-    """The nodes called ``name`` still in ``ros``'s graph (this process's own nodes are in it at once)."""
+    """The nodes ``/name`` (the root namespace, where these tests build them) still in ``ros``'s graph: this
+    process's own nodes are in it at once; the run's DDS domain is its own (scripts/test.sh, conftest.py)."""
     probe = Node("nodes_left_probe", context=ros)
     try:
-        return [n for n in probe.get_node_names() if n == name]
+        return [f"{ns}{n}" for n, ns in probe.get_node_names_and_namespaces() if (n, ns) == (name, "/")]
     finally:
         probe.destroy_node()
 
