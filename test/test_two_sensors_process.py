@@ -107,10 +107,15 @@ def test_two_sensors_on_one_vehicle_do_not_cross_talk(ros: Context, tmp_path: Pa
         node.create_subscription(JointState, f"/{ns}/imu/raw", raw[ns].append, qos)
     statuses: list[tuple[float, str, str, int, str]] = []  # arrival, name, hardware_id, level, message
 
+    errors: list[tuple[str, float, str]] = []  # each ERROR status: name, the array's stamp (its driver's ROS time), message
+
     def on_diag(msg: DiagnosticArray) -> None:
         now = time.monotonic()
-        statuses.extend((now, s.name, s.hardware_id, s.level[0] if isinstance(s.level, bytes) else int(s.level), s.message)
-                        for s in msg.status)
+        for s in msg.status:
+            level = s.level[0] if isinstance(s.level, bytes) else int(s.level)
+            statuses.append((now, s.name, s.hardware_id, level, s.message))
+            if level == 2:
+                errors.append((s.name, stamp_s(msg), s.message))
 
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 100)
     try:
@@ -222,16 +227,30 @@ def test_two_sensors_on_one_vehicle_do_not_cross_talk(ros: Context, tmp_path: Pa
         # either fault's silence (1.5 s reboot, 2 s unplugged)
         gaps = {ns: sorted(((stamp_s(b) - stamp_s(a), stamp_s(a), t) for (t, a), (_, b) in itertools.pairwise(imu[ns])
                             if t > t_c), reverse=True) for ns in NAMESPACES}
-        (a_len, a_at, a_heard), (b_len, b_at, b_heard) = gaps["acc_a"][0], gaps["acc_b"][0]
+        (a_len, a_at, _), (b_len, b_at, b_heard) = gaps["acc_a"][0], gaps["acc_b"][0]
         assert a_len >= 0.9 * BOOT_GAP_S and b_len >= 0.9 * UNPLUG_S, (a_len, b_len)
-        assert abs((b_at - a_at) - (UNPLUG_AT_S - RESET_AT_S)) < 1.5, (a_at, b_at)  # the faults, not a stall
+        # the faults, not a stall: each break begins at its fault's board time (imu/raw's board_time_s of the sample
+        # stamped there), not by the distance between the two breaks' stamps, which holds how much later one driver
+        # than the other opened its port and so started its board (seconds apart on a busy CPU)
+        def board_time_at(ns: str, stamp: float) -> float:
+            m = min(raw[ns], key=lambda r: abs(stamp_s(r) - stamp))
+            return m.position[list(m.name).index("board_time_s")]
+
+        at_board = (board_time_at("acc_a", a_at), board_time_at("acc_b", b_at))
+        assert abs(at_board[0] - RESET_AT_S) < 0.5 and abs(at_board[1] - UNPLUG_AT_S) < 0.5, at_board
         assert gaps["acc_a"][1][0] < STALL_S and gaps["acc_b"][1][0] < STALL_S, (gaps["acc_a"][:3], gaps["acc_b"][:3])
         link_errors = {ns: [t for t, name, _, level, _ in statuses if name == f"{ns}/fbg_accel_driver: serial link"
                             and level == 2 and t > t_c] for ns in ("acc_a", "acc_b", "acc_c")}  # once streaming
         assert [t for t in link_errors["acc_b"] if t > b_heard], "B's serial link ERROR while unplugged"
-        assert not link_errors["acc_a"], ("A's serial link said ERROR", [(t - a_heard, m) for t, n, _, lv, m in statuses
-                                                                          if n == "acc_a/fbg_accel_driver: serial link"
-                                                                          and lv == 2])
+        # B's unplugging does not touch A's link: A's port is never lost, and while B's board is silent A's link says
+        # no ERROR. By stamps (the drivers' ROS time), not arrivals: this probe's queues can lag the drivers by seconds
+        # on a busy CPU. (Elsewhere A's link may rightly say ERROR: inside A's own reboot, BOOT_GAP_S is longer than
+        # the driver's 1 s without frames, and on a starved CPU its reader can go a second without a frame.)
+        a_link, a_streaming = "acc_a/fbg_accel_driver: serial link", stamp_s(imu["acc_a"][0][1])
+        assert not [m for n, st, m in errors if n == a_link and st > a_streaming and m.startswith("disconnected")], \
+            "A's port lost"
+        a_errors = [st for n, st, _ in errors if n == a_link and b_at <= st <= b_at + b_len]
+        assert not a_errors, ("A's serial link said ERROR while B was unplugged", [round(st - b_at, 3) for st in a_errors])
         assert link_errors["acc_c"], "the refused driver's serial link is ERROR"
 
         # life cycle: the third driver SIGINT, A SIGTERM, A restarted on its port resumes; the recorder SIGTERM
