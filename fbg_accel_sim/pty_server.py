@@ -81,7 +81,7 @@ class PtyEndpoint:
         while not self.client_present():
             if should_stop():
                 return False
-            time.sleep(0.005)
+            time.sleep(poll_s)
         return True
 
     def hold_slave(self) -> None:
