@@ -457,3 +457,10 @@ class ManagedDriverNode(DriverNode, LifecycleNode):
         """A transition raised something unexpected: leave nothing running before rclpy returns to unconfigured."""
         self._cleanup()
         return super().on_error(state)
+
+    def destroy_node(self) -> None:
+        """Destroy the node now, as a plain node's ``destroy_node`` does: rclpy's LifecycleNode leaves its state
+        machine, which holds the rcl node, to the garbage collector, so a managed driver built in a process that goes
+        on (composition, tests) stayed in the ROS graph, its lifecycle services answering, after it was destroyed."""
+        super().destroy_node()
+        self._state_machine.destroy_when_not_in_use()

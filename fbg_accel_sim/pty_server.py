@@ -132,34 +132,34 @@ class PtyEndpoint:
         return written
 
     def unread_bytes(self) -> int:
-        """Bytes written but not yet read by the client (TIOCINQ on the slave)."""
+        """Bytes written but not yet read by the client: TIOCINQ on the slave, after a poll of the slave.
+
+        Bytes written to the master reach the slave's read queue through the tty flip buffer, pushed by a
+        kernel work item (Linux drivers/tty/tty_buffer.c, flush_to_ldisc): until it has run, TIOCINQ does not
+        count them (right after a write it often reads 0). Polling the slave for input when its queue looks
+        empty makes the kernel finish that work item first (drivers/tty/n_tty.c, n_tty_poll calls
+        tty_buffer_flush_work), so the count that follows holds every byte written before the call, at any
+        CPU load; nothing is taken from the queue."""
         if self.slave < 0:
             return 0
         try:
+            poller = select.poll()
+            poller.register(self.slave, select.POLLIN)
+            poller.poll(0)
             return struct.unpack("i", fcntl.ioctl(self.slave, termios.TIOCINQ, b"\0\0\0\0"))[0]
         except OSError:
             return 0
-
-    # Bytes written to the master reach the slave's read queue through the tty flip buffer, pushed by a
-    # kernel work item (Linux tty_buffer.c, flush_to_ldisc): until then TIOCINQ does not count them. An empty
-    # queue means "all read" only once it has stayed empty this long.
-    DRAINED_QUIET_S = 0.05
 
     def linger(self, timeout_s: float, grace_s: float) -> None:
         """Give the client up to ``timeout_s`` to read what was sent (before an unplug, at the end of a run),
         then ``grace_s`` more: a reader blocked in ``read(n)`` with a timeout holds bytes it has taken from
         the pty until the call returns, and pyserial discards them if the port vanishes meanwhile. Done
-        when nothing is pending and the slave's queue has been empty for ``DRAINED_QUIET_S``."""
+        when nothing is pending here and nothing is unread in the slave's queue (``unread_bytes``)."""
         deadline = time.monotonic() + timeout_s
-        quiet_since: float | None = None
-        while (now := time.monotonic()) < deadline:
+        while time.monotonic() < deadline:
             if self._pending:
                 self.write(b"")
-            if self._pending or self.unread_bytes() > 0:
-                quiet_since = None
-            elif quiet_since is None:
-                quiet_since = now
-            elif now - quiet_since >= self.DRAINED_QUIET_S:
+            if not self._pending and self.unread_bytes() == 0:
                 break
             time.sleep(0.005)
         time.sleep(grace_s)

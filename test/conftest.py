@@ -92,14 +92,37 @@ def _blas_kernel() -> str:
     return ", ".join(blas_core_names()) or "none found"
 
 
+# The test files that wait longest on the wall clock (real-time process tests: simulated boards streaming to driver and
+# calibration processes over DDS), longest first, from `scripts/test.sh --durations=40`. They run first, so that on
+# pytest-xdist workers (`--dist loadfile --no-loadscope-reorder`, scripts/test.sh) the short tests fill the other
+# worker meanwhile instead of one of these starting last and running alone at the end of the run.
+LONG_FIRST = (
+    "test_calibration_e2e.py",
+    "test_two_sensors_process.py",
+    "test_calibration_dynamic_process.py",
+)
+
+
+def run_long_tests_first(items: list[pytest.Item]) -> None:
+    """Order ``items`` (in place, stably): the files of LONG_FIRST first, in its order; a name there that is no file of
+    this directory is a usage error (a renamed file would silently go back to its place)."""
+    missing = [name for name in LONG_FIRST if not (Path(__file__).parent / name).is_file()]
+    if missing:
+        raise pytest.UsageError(f"test/conftest.py LONG_FIRST names no test file: {', '.join(missing)}")
+    rank = {name: i for i, name in enumerate(LONG_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FIRST)))
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Under mutation testing (``bench/mutation_check.py``: mutmut names the mutant in ``MUTANT_UNDER_TEST`` and runs
-    in ``mutants/`` beside its ``mutmut-stats.json``), the tests a mutant reaches run fastest first: pytest stops at the
-    first failure (-x), so a mutant is killed by its cheapest killer instead of after the slowest tests; and the slow
-    tests the bench script leaves out of the mutation run (``MUTATION_LEAVE_OUT``, node-id prefixes separated by
-    ``;``) are deselected, a hypothesis property that fails is not shrunk, and a test that takes 30 times its clean
-    duration + 10 s fails (mutmut's own timeout, 15 times the clean duration of all the mutant's tests, stays the
-    backstop). What the tests assert is unchanged; outside mutation testing nothing is touched."""
+    """The long tests first (``run_long_tests_first``). Under mutation testing (``bench/mutation_check.py``: mutmut
+    names the mutant in ``MUTANT_UNDER_TEST`` and runs in ``mutants/`` beside its ``mutmut-stats.json``), the tests
+    a mutant reaches run fastest first: pytest stops at the first failure (-x), so a mutant is killed by its cheapest
+    killer instead of after the slowest tests; and the slow tests the bench script leaves out of the mutation run
+    (``MUTATION_LEAVE_OUT``, node-id prefixes separated by ``;``) are deselected, a hypothesis property that fails is
+    not shrunk, and a test that takes 30 times its clean duration + 10 s fails (mutmut's own timeout, 15 times the
+    clean duration of all the mutant's tests, stays the backstop). What the tests assert is unchanged; outside
+    mutation testing nothing else is touched."""
+    run_long_tests_first(items)
     if os.environ.get("MUTANT_UNDER_TEST", "") in ("", "stats", "list_all_tests", "mutant_generation"):
         return
     leave_out = tuple(t for t in os.environ.get("MUTATION_LEAVE_OUT", "").split(";") if t)  # named by the bench script

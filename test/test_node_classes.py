@@ -7,7 +7,7 @@ The process tests (test_driver_process, test_calibration_node_process, ...) cove
 from __future__ import annotations
 
 import shutil
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -20,9 +20,9 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
 
-from fbg_accel_calibration.recorder import calibration_parameters
+from fbg_accel_calibration.recorder import calibration_node, calibration_parameters
 from fbg_accel_calibration.recorder.calibration_node import CalibrationNode
-from fbg_accel_driver import driver_parameters
+from fbg_accel_driver import driver_node, driver_parameters
 from fbg_accel_driver.command_line import StartupError
 from fbg_accel_driver.driver_node import DriverNode, ManagedDriverNode
 
@@ -43,20 +43,50 @@ def port(tmp_path: Path) -> str:
     return str(tmp_path / "no_board_here")
 
 
+def built_or_refused(make: Callable[[], Node], built: list[Any]) -> Any:
+    """``make()``'s node, kept in ``built`` for the fixture to end; a node whose constructor raised (a refused
+    parameter) is kept too, taken from the exception's frames: rclpy made it (parameter services, a rosout publisher,
+    perhaps a reader thread) before the refusal, and only ``destroy_node`` ends it."""
+    try:
+        node = make()
+    except Exception as exc:
+        tb = exc.__traceback__
+        while tb is not None:
+            half = tb.tb_frame.f_locals.get("self")
+            if isinstance(half, Node) and half not in built:
+                built.append(half)
+            tb = tb.tb_next
+        raise
+    built.append(node)
+    return node
+
+
+def nodes_left(ros: Context, name: str) -> list[str]:
+    """The nodes ``/name`` (the root namespace, where these tests build them) still in ``ros``'s graph: this
+    process's own nodes are in it at once; the run's DDS domain is its own (scripts/test.sh, conftest.py)."""
+    probe = Node("nodes_left_probe", context=ros)
+    try:
+        return [f"{ns}{n}" for n, ns in probe.get_node_names_and_namespaces() if (n, ns) == (name, "/")]
+    finally:
+        probe.destroy_node()
+
+
 @pytest.fixture
 def make_driver(ros: Context, port: str) -> Iterator[Any]:
-    """Build a driver node class with overrides (port: nowhere); every node built is closed and destroyed."""
+    """Build a driver node class with overrides (port: nowhere); every node built, also one whose constructor
+    raised, is closed and destroyed: none is left logging or answering after its test."""
     built: list[DriverNode] = []
 
     def make(cls: type[DriverNode] = DriverNode, **values: Any) -> DriverNode:
-        node = cls(context=ros, parameter_overrides=overrides(**({"port": port} | values)))
-        built.append(node)
-        return node
+        return built_or_refused(lambda: cls(context=ros, parameter_overrides=overrides(**({"port": port} | values))),
+                                built)
 
     yield make
     for node in built:
-        node.close()
+        if getattr(node, "link", None) is not None:
+            node.close()
         node.destroy_node()
+    assert not nodes_left(ros, driver_node.NODE_NAME)
 
 
 def publishers(node: Node) -> dict[str, Any]:
@@ -253,16 +283,17 @@ def make_calibration(ros: Context, tmp_path: Path) -> Iterator[Any]:
 
     def make(**values: Any) -> CalibrationNode:
         base = {"plan_file": str(PLAN), "output_dir": str(tmp_path), "run_label": "inproc", "progress": False}
-        node = CalibrationNode(context=ros, parameter_overrides=overrides(**(base | values)))
-        built.append(node)
-        return node
+        return built_or_refused(lambda: CalibrationNode(context=ros, parameter_overrides=overrides(**(base | values))),
+                                built)
 
     yield make
     for node in built:
-        if not node.recorder.finished:
-            node.recorder.abort("test over")
+        recorder = getattr(node, "recorder", None)
+        if recorder is not None and not recorder.finished:
+            recorder.abort("test over")
             node.finish()
         node.destroy_node()
+    assert not nodes_left(ros, calibration_node.NODE_NAME)
 
 
 def test_calibration_node_declares_its_parameters_and_subscribes_best_effort(make_calibration: Any,
