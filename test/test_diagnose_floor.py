@@ -276,11 +276,11 @@ def test_a_slow_error_of_the_visit_means_is_estimated_from_revisits_and_kept_apa
     est, p_clean, p_noise_only, p_effect, est_effect = (np.empty((draws, 3)) for _ in range(5))
     for d in range(draws):
         m = rng.normal(size=(V, 3)) * np.sqrt(noise_var + slow_var)
-        _, p_clean[d], _, slow = slow_visit_test(m, cov, unit, pose, run, known)
+        _, p_clean[d], _, slow, _ = slow_visit_test(m, cov, unit, pose, run, known)
         est[d] = slow.variance
         p_noise_only[d] = visit_mean_test(m, cov, known)[1]
         m_eff = m + effect[pose]
-        _, p_effect[d], _, slow = slow_visit_test(m_eff, cov, unit, pose, run, known)
+        _, p_effect[d], _, slow, _ = slow_visit_test(m_eff, cov, unit, pose, run, known)
         est_effect[d] = slow.variance
     np.testing.assert_allclose(np.mean(est, axis=0) / slow_var, 1.0, atol=0.06)  # standard error ~0.015 (300 draws, 63 revisits)
     np.testing.assert_allclose(np.mean(est_effect, axis=0) / slow_var, 1.0, atol=0.06)
