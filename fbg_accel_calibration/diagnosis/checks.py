@@ -45,7 +45,6 @@ class SearchChecks:
     alpha_each: float = 0.0  # the step's level per candidate (set at each step)
     step_confounded: dict[str, str] = field(default_factory=dict)  # a candidate that a step fits as well: why
     noise_model: VisitNoise | None = None  # the floor's noise (the slow wander is measured against it)
-    _wander: dict = field(default_factory=dict)  # model key -> weighted slow-wander variance of its held-out visit means
     _time_folds: np.ndarray | None = None  # contiguous blocks of time, made when first needed
 
     def time_folds(self) -> np.ndarray:
@@ -65,45 +64,41 @@ def reading_jump(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
 
 
 def wander_gain(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
-    """Does the candidate gain more than the sensor's slow bias wander could give it? A function of time, of the
+    """Does the candidate gain more than the sensor's slow bias wander left beside it? A function of time, of the
     temperature's history (tied to time on a cycled run) or of the reference counts (the source wanders in time)
-    predicts a held-out visit from the visits around it in time, and so predicts the wander of the bias between
-    visits (Table 2's bias instability: flicker-like, correlation times up to hours), which the floor (a mean and a
-    line removed per visit) never sees: on the simulator's clean ramps such a term was added on 4 of 100 campaigns
-    (``bench/residual_false_alarm.py``). Under the null hypothesis "no effect, noise and slow wander", what a term can
-    take from a held-out visit's mean squared error is at most the wander's variance there, s^2 per axis (it cannot
-    predict more than all of it); s^2 is estimated from the revisits of the current model's held-out residual
-    (``structure.slow_wander``, 0 without revisits). So the paired test over visits is of the per-visit gains less
-    sum_j w_j s_j^2 (the weights of the search): a one-sided Wilcoxon signed-rank test at the step's level. Refused
-    (``significant`` False) when the gain is not beyond that."""
+    predicts a held-out visit from the visits around it in time, and so predicts part of the wander of the bias
+    between visits (Table 2's bias instability: flicker-like, correlation times up to hours), which the floor (a mean
+    and a line removed per visit) never sees: on the simulator's clean ramps such a term was added on 4 of 100
+    campaigns (``bench/residual_false_alarm.py``). The wander's variance is measured on the revisits of a pose in the
+    candidate model's held-out residual (``structure.slow_wander``; 0 without revisits): a term that explains an
+    effect of time leaves the revisits agreeing to within the wander, one that follows the wander takes part of it and
+    leaves the rest there. Its gain on a held-out visit must be beyond that rest, s^2 per axis: the paired test over
+    visits is of the per-visit gains less sum_j w_j s_j^2 (the search's weights), one-sided Wilcoxon signed-rank at
+    the step's level. Refused (``significant`` False) when the gain is not beyond it."""
     ev = ctx.lanes.lanes[0]
     data = ev.data
-    key = ctx.spec.key
-    if key not in ctx._wander:
-        ho0 = ev.cv(ctx.spec)[1].heldout
-        full = np.full((len(data.t_s), 3), np.nan)
-        full[ev.sub] = ho0
-        rows = np.zeros(len(data.t_s), bool)
-        rows[ev.sub] = ev.rows
-        slow = (slow_wander(data, full, rows, data.group, ctx.noise_model) if ctx.noise_model is not None
-                else None)
-        ctx._wander.clear()  # one model per step
-        ctx._wander[key] = (0.0 if slow is None or not slow.revisits else float(np.sum(slow.variance * ev.weights)),
-                            ho0)
-    shift, ho0 = ctx._wander[key]
-    if shift <= 0.0:
+    if ctx.noise_model is None:
         return
     ho1 = ev.cv(ctx.spec.plus(eff, r.hyper))[1].heldout
-    rows = ev.rows & finite_rows(ho0) & finite_rows(ho1)
-    d = _group_mse(ho0, ev.groups, rows, ev.weights)[1] - _group_mse(ho1, ev.groups, rows, ev.weights)[1] - shift
+    full = np.full((len(data.t_s), 3), np.nan)
+    full[ev.sub] = ho1
+    rows = np.zeros(len(data.t_s), bool)
+    rows[ev.sub] = ev.rows
+    slow = slow_wander(data, full, rows, data.group, ctx.noise_model)
+    shift = float(np.sum(slow.variance * ev.weights)) if slow.revisits else 0.0
+    if shift <= 0.0:
+        return
+    ho0 = ev.cv(ctx.spec)[1].heldout
+    ok = ev.rows & finite_rows(ho0) & finite_rows(ho1)
+    d = _group_mse(ho0, ev.groups, ok, ev.weights)[1] - _group_mse(ho1, ev.groups, ok, ev.weights)[1] - shift
     p = float(stats.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue) if len(d) >= 5 else 1.0
     if p < ctx.alpha_each:
-        r.detail += f"; it gains beyond what the slow wander of the bias between revisits could give (p = {p:.2g})"
+        r.detail += f"; it gains beyond the slow wander of the bias its revisits keep (p = {p:.2g})"
     else:
         r.significant = False
-        r.detail += (f"; not added: its gain is not beyond what the slow wander of the bias between revisits of a "
-                     f"pose could give (that wander's variance taken off every visit's gain, p = {p:.2g}): it may "
-                     "follow the sensor's bias instability, not an effect it can extrapolate")
+        r.detail += (f"; not added: its gain is not beyond the slow wander of the bias that the revisits of a pose "
+                     f"keep with it in the model (that wander's variance taken off every visit's gain, p = {p:.2g}): "
+                     "it may follow the sensor's bias instability, not an effect it can extrapolate")
 
 
 def time_blocks(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
