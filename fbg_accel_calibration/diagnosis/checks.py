@@ -21,7 +21,7 @@ from .findings import Finding
 from .floor import VisitNoise
 from .search import CandidateResult, Evaluator, _group_mse, judge_step, time_block_check
 from .search_lanes import Lanes
-from .structure import SMALL_RATIO, ResidualStructure, residual_structure, slow_wander
+from .structure import SLOW_ERROR_BOUND_MPS2, SMALL_RATIO, ResidualStructure, residual_structure, slow_wander
 
 EACH_STEP = "each step"  # on every significant result of every step, in the order the effect declares them
 WHEN_CHOSEN = "when chosen"  # on the best significant candidate, when it is about to be added
@@ -72,7 +72,10 @@ def wander_gain(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
     campaigns (``bench/residual_false_alarm.py``). The wander's variance is measured on the revisits of a pose in the
     candidate model's held-out residual (``structure.slow_wander``; 0 without revisits): a term that explains an
     effect of time leaves the revisits agreeing to within the wander, one that follows the wander takes part of it and
-    leaves the rest there. Its gain on a held-out visit must be beyond that rest, s^2 per axis: the paired test over
+    leaves the rest there. That rest is the sensor's wander up to its bound (``SLOW_ERROR_BOUND_MPS2``, as in the
+    residual test's null): revisits that differ by more hold another effect still outside the model (two effects of
+    time at once: a lag and dark offsets under a source drift), which no wander of the sensor is. Its gain on a
+    held-out visit must be beyond that rest, s^2 per axis (at most the bound's square): the paired test over
     visits is of the per-visit gains less sum_j w_j s_j^2 (the search's weights), one-sided Wilcoxon signed-rank at
     the step's level. Refused (``significant`` False) when the gain is not beyond it."""
     ev = ctx.lanes.lanes[0]
@@ -85,7 +88,7 @@ def wander_gain(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
     rows = np.zeros(len(data.t_s), bool)
     rows[ev.sub] = ev.rows
     slow = slow_wander(data, full, rows, data.group, ctx.noise_model)
-    shift = float(np.sum(slow.variance * ev.weights)) if slow.revisits else 0.0
+    shift = float(np.sum(np.minimum(slow.variance, SLOW_ERROR_BOUND_MPS2**2) * ev.weights)) if slow.revisits else 0.0
     if shift <= 0.0:
         return
     ho0 = ev.cv(ctx.spec)[1].heldout
