@@ -531,7 +531,7 @@ def orientation_share_of_visit_times(data: DiagnosisData) -> float:
 class TimeDriftEffect(Effect):
     name = "time_drift"
     pointwise = True
-    checks = ("reading_jump", "slow_wander", "time_blocks", "step")
+    checks = ("reading_jump", "time_blocks", "slow_wander", "step")
     bound = ("warm-up amplitude and creep over the run each at most MAX_DRIFT_MPS2, 5 % of full scale (±20 g, paper "
              "§3.4)")
     sensor_property = "a warm-up or creep"

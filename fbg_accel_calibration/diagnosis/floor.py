@@ -372,9 +372,10 @@ def reference_noise_scale(reference: np.ndarray, inv: np.ndarray, cnt: np.ndarra
     the axis channels' counts over the reference channel's (eq. 24), and the detectors' and ADCs' noise is in counts
     (paper Table 2's noise is injected on the counts through the small-signal slope; the reference's read noise is
     counts rms), so the output's noise scales as 1 / reference: its variance as the mean of 1 / reference^2 over the
-    visit's samples. On the simulator's clean ramps (15 -> 45 -> 15 degC) the reference falls by ~12 % with the
-    temperature and the hot visits' variance rises by up to ~40 %, which a variance common to every visit left to
-    the check as noisy visits (5 of 100 campaigns at a nominal 1 %). ``reference`` (n,) counts of the rows, ``inv``
+    visit's samples. On the simulator's clean ramps (15 -> 45 -> 15 degC) the reference falls by ~12 % when hot and
+    the visits' variance follows 1 / reference^2 (seed 20: x +40 % from the coldest to the hottest visit, by a fit
+    of the visit variances on it), which a variance common to every visit leaves to the check as noisy hot visits.
+    ``reference`` (n,) counts of the rows, ``inv``
     (n,) each row's visit, ``cnt`` (V,) rows per visit; a visit without a positive finite reference counts as the
     median. None when no visit has one."""
     ok = np.isfinite(reference) & (reference > 0)
