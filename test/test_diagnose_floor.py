@@ -118,6 +118,29 @@ def test_false_alarm_rate_of_the_visit_check_stays_near_its_level() -> None:
     assert flagged <= 4, flagged  # 1 expected at 0.01; 5 or more has probability 0.4 % under Poisson(1)
 
 
+def test_a_visit_is_judged_noisy_against_the_noise_its_reference_level_gives_it() -> None:
+    """The detectors' noise is in counts, so the output (counts over the reference's counts) is noisier where the
+    reference is lower: a reference that falls from 1000 to 500 counts through a run (a source losing power; on the
+    simulator's clean ramps it falls ~12 % with the temperature) doubles the noise's standard deviation. Judged
+    against one variance for every visit, the last visits were flagged as noisy on every recording (50 of 50 here);
+    judged against what each visit's reference level makes its variance (``floor.reference_noise_scale``), a recording
+    flags a visit at about the check's level (1 %)."""
+    rng = np.random.default_rng(2)
+    visits, n = 40, 100
+    groups = np.repeat(np.arange(visits), n)
+    t = np.arange(visits * n) / 25.0
+    ref = np.linspace(1000.0, 500.0, visits * n)
+    rows = np.ones(visits * n, bool)
+    flagged, flagged_one_variance = 0, 0
+    for k in range(50):
+        res = rng.normal(0.0, 0.1, (visits * n, 3)) * (1000.0 / ref)[:, None]
+        flagged += len(within_visit_noise(res, groups, rows, t, jackknife=False, reference=ref).flagged) > 0
+        if k < 5:
+            flagged_one_variance += len(within_visit_noise(res, groups, rows, t, jackknife=False).flagged) > 0
+    assert flagged_one_variance == 5  # the defect this guards against
+    assert flagged <= 3, flagged  # 0.5 expected at 1 %; 4 or more has probability 0.2 % under Poisson(0.5)
+
+
 def test_a_small_but_highly_significant_residual_is_called_significant_with_its_size() -> None:
     """A bias of +-0.06 m/s^2 on x, set by the pose (the same at every revisit: the table angles, a cable), is left at
     chi^2 p < 1e-10 on x, held-out RMSE ~1.06x the per-sample floor: significant, and said to be small. A bias of
@@ -276,11 +299,11 @@ def test_a_slow_error_of_the_visit_means_is_estimated_from_revisits_and_kept_apa
     est, p_clean, p_noise_only, p_effect, est_effect = (np.empty((draws, 3)) for _ in range(5))
     for d in range(draws):
         m = rng.normal(size=(V, 3)) * np.sqrt(noise_var + slow_var)
-        _, p_clean[d], _, slow = slow_visit_test(m, cov, unit, pose, run, known)
+        _, p_clean[d], _, slow, _ = slow_visit_test(m, cov, unit, pose, run, known)
         est[d] = slow.variance
         p_noise_only[d] = visit_mean_test(m, cov, known)[1]
         m_eff = m + effect[pose]
-        _, p_effect[d], _, slow = slow_visit_test(m_eff, cov, unit, pose, run, known)
+        _, p_effect[d], _, slow, _ = slow_visit_test(m_eff, cov, unit, pose, run, known)
         est_effect[d] = slow.variance
     np.testing.assert_allclose(np.mean(est, axis=0) / slow_var, 1.0, atol=0.06)  # standard error ~0.015 (300 draws, 63 revisits)
     np.testing.assert_allclose(np.mean(est_effect, axis=0) / slow_var, 1.0, atol=0.06)

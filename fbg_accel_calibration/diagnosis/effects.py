@@ -139,6 +139,9 @@ class Effect:
     # or on the final model):
     # "reading_jump": its contribution can follow a one-time move of eq. 28's output, which a jump of the temperature
     #   reading makes (a function of time or of the temperature's history);
+    # "slow_wander": such a function predicts the slow wander of the bias between visits from the visits around them in
+    #   time: its gain must be beyond what that wander, measured on the revisits, could give
+    #   (``diagnosis.checks.wander_gain``);
     # "time_blocks": a function of time alone must also predict contiguous blocks of time held out (between visits
     #   interleaved in time any smooth function of time interpolates; ``diagnosis.search.time_block_check``);
     # "step" (at every step) / "step_when_chosen" (when about to be added): its contribution can follow a one-time step
@@ -355,7 +358,7 @@ class ReferenceDarkOffsetEffect(Effect):
 
     name = "reference_dark_offset"
     pointwise = True
-    checks = ("reading_jump", "step_when_chosen")
+    checks = ("reading_jump", "slow_wander", "step_when_chosen")
     bound = ("the reference offset and the implied axis-channel offsets each at most MAX_CHANNEL_OFFSET_FRACTION (25 %) "
              "of the channel's counts: dark current and ADC zero offset are tens of counts (sim_default.yaml; "
              "../shared/docs/sensor_facts.md), a quarter of the signal undoes eq. 24")
@@ -427,7 +430,7 @@ class ReferenceDarkOffsetEffect(Effect):
 class ThermalLagEffect(Effect):
     name = "thermal_lag"
     stage = 30
-    checks = ("reading_jump", "step_when_chosen")
+    checks = ("reading_jump", "slow_wander", "step_when_chosen")
     bound = ("|tau| at most MAX_THERMAL_LAG_S (5040 s): the housing's time constant, the assembly settled in about 7 h "
              "(5 time constants, paper 4.4) with the AHT10 and the optics inside it (paper 3.5)")
     sensor_property = "a thermal lag"
@@ -599,7 +602,7 @@ def orientation_share_of_visit_times(data: DiagnosisData) -> float:
 class TimeDriftEffect(Effect):
     name = "time_drift"
     pointwise = True
-    checks = ("reading_jump", "time_blocks", "step")
+    checks = ("reading_jump", "time_blocks", "slow_wander", "step")
     bound = ("warm-up amplitude and creep over the run each at most MAX_DRIFT_MPS2, 5 % of full scale (±20 g, paper "
              "§3.4)")
     sensor_property = "a warm-up or creep"
@@ -837,7 +840,7 @@ class TiaLowpassEffect(Effect):
 class ThermalHysteresisEffect(Effect):
     name = "thermal_hysteresis"
     stage = 80
-    checks = ("reading_jump", "step_when_chosen")
+    checks = ("reading_jump", "slow_wander", "step_when_chosen")
     bound = ("the half gap between heating and cooling at most MAX_DRIFT_MPS2 (5 % of full scale, paper 3.4) on each "
              "axis: the stress of the same bonds (cyanoacrylate, epoxy, paper 3.1) as a warm-up or creep, bounded alike")
     sensor_property = "a hysteresis between heating and cooling"

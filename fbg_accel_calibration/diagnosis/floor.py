@@ -258,7 +258,7 @@ def _lag_products(dev: np.ndarray, n_v: np.ndarray, lags: int, batch: int = 256)
 
 
 def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_s: np.ndarray | None = None,
-                       jackknife: bool = True) -> VisitNoise:
+                       jackknife: bool = True, reference: np.ndarray | None = None) -> VisitNoise:
     """The noise floor (3,) m/s^2 of a residual (N, 3) m/s^2, table frame, and its autocorrelation (see above).
 
     ``groups`` are visits (``DiagnosisData.group``), ``rows`` the samples that count (settled ones: see ``settled_mask``).
@@ -276,6 +276,8 @@ def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
     How well the variance of a visit mean is known (``VisitNoise.mean_dof``) is measured by a grouped jackknife over
     the visits (``JACKKNIFE_GROUPS``): short visits tell little about the correlation at long lags, on which it rests.
     ``jackknife`` False: not measured (``mean_dof`` stays inf), for a caller that needs the floor alone.
+    ``reference`` (N,) the reference channel's counts: a visit's noise is judged by the check for a noisy visit
+    (``noisy_visits``) against what its reference level makes it (``reference_noise_scale``).
     """
     r = rows & finite_rows(res)
     if not r.any():
@@ -335,9 +337,10 @@ def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
     noise = estimate(every)
     if noise is None:
         return VisitNoise(np.full(3, np.nan), np.ones((3, 1)))
+    level = None if reference is None else reference_noise_scale(reference[idx], inv, cnt)
     flagged = np.zeros(len(n_v), bool)
     for _ in range(3):  # the autocorrelation the check uses is refitted without the visits it flags
-        ratio, p = noisy_visits(prods[:, 0], n_v, stt > 0, noise.acf)
+        ratio, p = noisy_visits(prods[:, 0], n_v, stt > 0, noise.acf, level)
         now = np.any((p < FLOOR_VISIT_ALPHA / (3 * len(n_v))) & (ratio > FLOOR_VISIT_RATIO), axis=1)
         if np.array_equal(now, flagged) or now.all():
             break
@@ -364,7 +367,30 @@ def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
     return noise
 
 
-def noisy_visits(lag0: np.ndarray, n: np.ndarray, line: np.ndarray, acf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def reference_noise_scale(reference: np.ndarray, inv: np.ndarray, cnt: np.ndarray) -> np.ndarray | None:
+    """(V,) each visit's noise variance relative to the visits' median, as its reference level sets it: the output is
+    the axis channels' counts over the reference channel's (eq. 24), and the detectors' and ADCs' noise is in counts
+    (paper Table 2's noise is injected on the counts through the small-signal slope; the reference's read noise is
+    counts rms), so the output's noise scales as 1 / reference: its variance as the mean of 1 / reference^2 over the
+    visit's samples. On the simulator's clean ramps (15 -> 45 -> 15 degC) the reference falls by ~12 % when hot and
+    the visits' variance follows 1 / reference^2 (seed 20: x +40 % from the coldest to the hottest visit, by a fit
+    of the visit variances on it), which a variance common to every visit leaves to the check as noisy hot visits.
+    ``reference`` (n,) counts of the rows, ``inv``
+    (n,) each row's visit, ``cnt`` (V,) rows per visit; a visit without a positive finite reference counts as the
+    median. None when no visit has one."""
+    ok = np.isfinite(reference) & (reference > 0)
+    n_ok = np.bincount(inv, weights=ok.astype(float), minlength=len(cnt))
+    if not np.any(n_ok > 0):
+        return None
+    inv_sq = np.bincount(inv, weights=np.where(ok, 1.0 / np.where(ok, reference, 1.0).astype(float) ** 2, 0.0),
+                         minlength=len(cnt))
+    rel = np.where(n_ok > 0, inv_sq / np.maximum(n_ok, 1.0), np.nan)
+    rel /= np.nanmedian(rel)
+    return np.where(np.isfinite(rel), rel, 1.0)
+
+
+def noisy_visits(lag0: np.ndarray, n: np.ndarray, line: np.ndarray, acf: np.ndarray,
+                 level: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Is a visit's scatter far beyond the others'? For every visit (``lag0`` (V, 3) its sum of squared detrended
     residuals, ``n`` (V,) samples, ``line`` (V,) a line in time removed too) and axis: the ratio (V, 3) of its
     variance to the robust centre of the visits' variances, and the p-value (V, 3) of that ratio under the noise.
@@ -373,13 +399,17 @@ def noisy_visits(lag0: np.ndarray, n: np.ndarray, line: np.ndarray, acf: np.ndar
     the floor's autocorrelation ``acf`` (3, L + 1) (``detrended_lag_matrix``); the centre is their median (over the
     median of chi^2(nu) / nu, so that it is unbiased for a visit of median length). Under the noise the sum is
     about sigma^2 chi^2(nu) / nu E with the effective degrees of freedom of a variance from correlated samples,
-    nu = E / (1 + 2 sum_l rho_l^2) (Bartlett); one-sided: a quieter visit does not dominate the pooled floor."""
+    nu = E / (1 + 2 sum_l rho_l^2) (Bartlett); one-sided: a quieter visit does not dominate the pooled floor.
+    ``level`` (V,): each visit's expected variance relative to the others' (``reference_noise_scale``); its variance
+    is divided by it (None: the same for every visit)."""
     lag = acf.shape[1] - 1
     kinds, kind = np.unique(np.column_stack([n, line]), axis=0, return_inverse=True)
     expect = np.array([detrended_lag_matrix(int(k), 0, lag, bool(h))[0] @ acf.T for k, h in kinds])  # (kinds, 3)
     E = np.maximum(expect[kind.ravel()], 1e-12)
     nu = np.maximum(E / (1.0 + 2.0 * np.sum(acf[:, 1:] ** 2, axis=1)), 1.0)
     var = lag0 / E
+    if level is not None:
+        var = var / level[:, None]
     centre = np.median(var, axis=0) / (stats.chi2.median(np.median(nu, axis=0)) / np.median(nu, axis=0))
     ratio = var / np.maximum(centre, 1e-300)
     return ratio, stats.chi2.sf(nu * ratio, nu)
@@ -631,7 +661,7 @@ def measure_floor(data: DiagnosisData, res0: np.ndarray, rows: np.ndarray, settl
 
     def floor(start_s: float, stop_s: float | None) -> tuple[float, float | None, VisitNoise]:
         return start_s, stop_s, within_visit_noise(res0, groups, settled_mask(data.t_s, groups, rows, start_s, stop_s),
-                                                   data.t_s)
+                                                   data.t_s, reference=data.ref)
 
     # the last floor worked out, at (settle_s, end_s): meanwhile the transient is measured, the first one with the end
     # kept (as it is unless the end is disturbed)
@@ -654,7 +684,7 @@ def measure_floor(data: DiagnosisData, res0: np.ndarray, rows: np.ndarray, settl
     settled = settled_mask(data.t_s, groups, rows, settle_s, end_s)
     # the windows that did not grow are those of the last floor worked out: that floor, not the same one again
     noise_model = (floor_at[2] if floor_at is not None and floor_at[:2] == (settle_s, end_s)
-                   else within_visit_noise(res0, groups, settled, data.t_s))
+                   else within_visit_noise(res0, groups, settled, data.t_s, reference=data.ref))
     noise = noise_model.sigma
     if not np.all(np.isfinite(noise)) or np.any(noise <= 0):
         raise ValueError(f"no noise floor: {int(settled.sum())} settled samples (every visit shorter than "
@@ -664,7 +694,8 @@ def measure_floor(data: DiagnosisData, res0: np.ndarray, rows: np.ndarray, settl
     disturbance = find_periodic_disturbance(res0, data.t_s, groups, data.run_id, settled)
     if disturbance.found:
         disturbance.floor_with_lines = noise
-        noise_model = within_visit_noise(res0 - disturbance.model(data.t_s, data.run_id), groups, settled, data.t_s)
+        noise_model = within_visit_noise(res0 - disturbance.model(data.t_s, data.run_id), groups, settled, data.t_s,
+                                         reference=data.ref)
         noise = noise_model.sigma
     settling.settle_s, settling.n_dropped = float(settle_s), int((rows & ~settled).sum())
     settling.end_settle_s = end_s

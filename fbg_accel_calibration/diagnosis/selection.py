@@ -192,7 +192,7 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
     n_levels = data.temperature_level_count()
     ctx = checks.SearchChecks(data, searchers, rules.folds, every, weights, rules.min_rel_gain,
                               rules.max_degree if rules.reselect_degree else None,
-                              bool(data.temperature_jumps) and n_levels >= 2)
+                              bool(data.temperature_jumps) and n_levels >= 2, noise_model=floor.noise_model)
     steps: list[StepResult] = []
     detection_limit = None
     remaining = list(library)

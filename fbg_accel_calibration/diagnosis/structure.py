@@ -238,21 +238,13 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
     the model lacks; the verdict then gives its pose-mean RMS and the visit that shows it most.
     """
     noise = noise_model.sigma
-    r = rows & finite_rows(res)
-    ug, inv = np.unique(groups[r], return_inverse=True)
-    cnt = np.bincount(inv)
+    r, ug, inv, cnt, means, pose_of, run_of = _visit_means(data, res, rows, groups)
     x = res[r]
-    means = np.stack([np.bincount(inv, weights=x[:, j]) / cnt for j in range(3)], axis=1)
     noise_var = noise_model.mean_variance(cnt)
     cov, slow_unit = (null.for_visits(ug, noise_var) if null is not None
                       else (np.stack([np.diag(noise_var[:, j]) for j in range(3)]), np.eye(len(ug))))
     noise_dof = np.maximum(noise_model.mean_dof, MIN_MEAN_DOF)
-    pose_of = np.zeros(len(ug), int)
-    pose_of[inv] = data.pose_id[r]  # orientation of each visit (samples in motion: -1 may overwrite; fixed below)
-    static_r = r & (data.pose_id >= 0)
-    pose_of[np.searchsorted(ug, groups[static_r])] = data.pose_id[static_r]
-    run_of = data.run_id[r][np.unique(inv, return_index=True)[1]]
-    z, p, dof, slow = slow_visit_test(means, cov, slow_unit, pose_of, run_of, noise_dof)
+    z, p, dof, slow, p_revisits = slow_visit_test(means, cov, slow_unit, pose_of, run_of, noise_dof)
     ho = np.sqrt(np.mean(x**2, axis=0))
     ratio = ho / np.maximum(noise, 1e-12)
     excess = np.sqrt(np.maximum(ho**2 - noise**2, 0.0))
@@ -297,10 +289,39 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
         verdict = ("no significant unexplained residual: held-out RMSE within "
                    + ", ".join(f"{ratio[j]:.2f}x" for j in range(3)) + " of the noise floor")
     lag1 = noise_model.acf[:, 1] if noise_model.acf.shape[1] > 1 else np.zeros(3)
-    split = _direction_disagreement(means, noise_model.mean_variance(cnt), g_mean, t_mean, pose_of, noise_dof)
+    split = list(_direction_disagreement(means, noise_model.mean_variance(cnt), g_mean, t_mean, pose_of, noise_dof))
+    if slow.revisits:  # visits of one pose against the test's null, the slow wander and the coefficients' error in it
+        split[3] = p_revisits
     return ResidualStructure(significant, verdict, ho, noise, ratio, p, excess, per_pose, pose_rms, corr_t, corr_T, r2,
                              lag1, serial, noise_model.correlation_samples, dof, small, *split,
                              slow_sigma=np.sqrt(slow.variance), slow_dof=slow.dof, slow_revisits=slow.revisits)
+
+
+def _visit_means(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(rows used (N,), visit ids (V,), each used row's visit index, samples (V,), mean residual (V, 3) m/s^2, pose id
+    (V,), run id (V,)) of the finite rows ``rows`` of ``res`` (N, 3) by visit ``groups``."""
+    r = rows & finite_rows(res)
+    ug, inv = np.unique(groups[r], return_inverse=True)
+    cnt = np.bincount(inv)
+    x = res[r]
+    means = np.stack([np.bincount(inv, weights=x[:, j]) / cnt for j in range(3)], axis=1)
+    pose_of = np.zeros(len(ug), int)
+    pose_of[inv] = data.pose_id[r]  # orientation of each visit (samples in motion: -1 may overwrite; fixed below)
+    static_r = r & (data.pose_id >= 0)
+    pose_of[np.searchsorted(ug, groups[static_r])] = data.pose_id[static_r]
+    run_of = data.run_id[r][np.unique(inv, return_index=True)[1]]
+    return r, ug, inv, cnt, means, pose_of, run_of
+
+
+def slow_wander(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, groups: np.ndarray,
+                noise_model: VisitNoise) -> SlowVisitError:
+    """The slow error of a visit mean (``slow_visit_error``) in the held-out residual ``res`` (N, 3) of a model, from
+    the revisits of its poses, against the noise of each visit mean alone (the coefficients' error, which no term
+    predicts, is left in it: an estimate on the large side); zero without revisits."""
+    _, _, _, cnt, means, pose_of, run_of = _visit_means(data, res, rows, groups)
+    var = noise_model.mean_variance(cnt)
+    return slow_visit_error(means, np.stack([np.diag(var[:, j]) for j in range(3)]), np.eye(len(cnt)), pose_of,
+                            run_of)
 
 
 def slow_visit_test(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray, pose: np.ndarray, run: np.ndarray,
@@ -315,10 +336,11 @@ def slow_visit_test(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray, p
     a slow error at that bound (``SlowVisitError.beyond``): p is twice the smaller of the two (Bonferroni). Without
     revisits it is ``visit_mean_test`` of the visit means. Returns
     (z (V, 3) each visit mean over its standard deviation, p (3,), degrees of freedom (3,) of a visit mean's variance,
-    the slow error)."""
+    the slow error, p (3,) of the revisits of a (pose, run) against each other under that null: ``SlowVisitError.beyond``
+    at the bound; ones without revisits)."""
     slow = slow_visit_error(means, cov, slow_unit, pose, run)
     if not slow.revisits:
-        return (*visit_mean_test(means, cov, noise_dof), noise_dof, slow)
+        return (*visit_mean_test(means, cov, noise_dof), noise_dof, slow, np.ones(3))
     bound = SLOW_ERROR_BOUND_MPS2**2
     p_rev = slow.beyond(means, cov, slow_unit, bound)  # revisits that differ more than the sensor's wander can
     held = SlowVisitError(np.minimum(slow.variance, bound), slow.dof, slow.revisits, slow.group)
@@ -327,7 +349,7 @@ def slow_visit_test(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray, p
     cov_g, unit_g = L @ cov @ L.T, L @ slow_unit @ L.T
     p_pool = visit_mean_test(L @ means, cov_g, held.test_dof(cov_g, unit_g, noise_dof))[1]
     z = means / np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2).T, 1e-300))
-    return z, np.minimum(2.0 * np.minimum(p_pool, p_rev), 1.0), held.test_dof(cov, slow_unit, noise_dof), slow
+    return z, np.minimum(2.0 * np.minimum(p_pool, p_rev), 1.0), held.test_dof(cov, slow_unit, noise_dof), slow, p_rev
 
 
 @dataclass
