@@ -974,4 +974,4 @@ def test_every_candidate_declares_its_role_bound_and_checks() -> None:
     roles = {e.name: e.role for e in LIBRARY}
     assert roles["reference_read_noise"] == "noise remedy" and roles["run_offset"] == "per-run property"
     assert roles["time_drift"] == "model term"
-    assert library_by_name()["time_drift"].checks == ("reading_jump", "time_blocks", "step")
+    assert library_by_name()["time_drift"].checks == ("reading_jump", "time_blocks", "slow_wander", "step")

@@ -700,12 +700,19 @@ def test_a_small_step_of_the_reference_is_not_written_as_a_dark_offset(extra: di
     counts and is refused by the plausibility bound, a small one fits within it. On the unchanged code it was added
     and written to the YAML as a property of the sensor (``reference_dark_offset`` + ``channel_offset``), never set
     against a step: grid run 0.01 dB seed 3 +36.4 % (p 5.8e-7, k = 2.0e4 / 2.9e4 / 2.8e4 m/s^2 counts); run cycled
-    twice 0.01 dB seed 3 +33.5 % (p 1.1e-9); 0.02 dB seed 1 +20.0 % (p 1.7e-5). Now it is set against the best step."""
+    twice 0.01 dB seed 3 +33.5 % (p 1.1e-9); 0.02 dB seed 1 +20.0 % (p 1.7e-5). Now it is set against the best step;
+    on the cycled runs, whose poses are revisited, it is first set against the slow wander of the bias between the
+    revisits: the step moves the output by 0.02-0.05 m/s^2, inside the wander the sensor may have (its bound is 10x
+    Table 2's bias instability), so either answer is right and neither claims a sensor property."""
     res = diagnose(simulate_recording(_config(_reference_step(extra, loss_db, at_s)), seed=seed))
     assert "reference_dark_offset" not in [a[0] for a in res.added], res.added
     assert not {"reference_dark_offset", "channel_offset"} & {t.kind for t in res.calibration.corrections}, \
         res.calibration.corrections
-    offset = next(c for st in res.steps for c in st.candidates if c.name == "reference_dark_offset" and c.step_check)
+    tried = [c for st in res.steps for c in st.candidates if c.name == "reference_dark_offset"]
+    if extra and not any(c.step_check for c in tried):
+        assert any("slow wander of the bias" in c.detail for c in tried), [c.detail for c in tried]
+        return
+    offset = next(c for c in tried if c.step_check)
     assert offset.step_check.explained and _brackets(offset.step_check, at_s), offset.detail
     assert "not a dark offset of the detectors" in offset.detail, offset.detail
     assert any(_said_at(m, at_s, "a step of the response") for m in settling_measurements(res)), \
