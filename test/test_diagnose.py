@@ -773,7 +773,8 @@ def test_a_fit_beyond_a_candidate_s_physical_bound_is_refused_as_not_physical(na
 def test_the_search_refuses_a_candidate_whose_every_value_is_beyond_its_bound() -> None:
     """The loop's side of the bound: candidates whose searched values all lie well beyond their physical bound (a
     crafted grid) are fitted, marked REFUSED as not physical and never added, whatever their gain."""
-    from fbg_accel_calibration.diagnosis.effects import ChannelDelayEffect, ReferenceReadNoiseEffect, TiaLowpassEffect
+    from fbg_accel_calibration.diagnosis.chain_effects import ChannelDelayEffect, TiaLowpassEffect
+    from fbg_accel_calibration.diagnosis.effects import ReferenceReadNoiseEffect
 
     crafted = []
     for base in (ChannelDelayEffect, TiaLowpassEffect, ReferenceReadNoiseEffect):

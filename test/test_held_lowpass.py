@@ -7,8 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fbg_accel_calibration.diagnosis.chain_effects import TiaLowpassEffect
 from fbg_accel_calibration.diagnosis.data import DiagnosisData, Inputs, expected_psi_map
-from fbg_accel_calibration.diagnosis.effects import ReferenceReadNoiseEffect, TiaLowpassEffect
+from fbg_accel_calibration.diagnosis.effects import ReferenceReadNoiseEffect
 from fbg_accel_calibration.diagnosis.held_lowpass import held_lowpass, held_rows
 from fbg_accel_driver.correction_terms import first_order_lowpass, sample_steps, uniform_coefficient
 

@@ -7,15 +7,14 @@ hooks declared on the class, ``docs/effects.md``), added to ``LIBRARY`` here.
 
 from __future__ import annotations
 
+from .chain_effects import ChannelDelayEffect, TiaLowpassEffect
 from .effects import (
-    ChannelDelayEffect,
     Effect,
     ReferenceDarkOffsetEffect,
     ReferenceReadNoiseEffect,
     SpectralNonlinearityEffect,
     ThermalHysteresisEffect,
     ThermalLagEffect,
-    TiaLowpassEffect,
     TimeDriftEffect,
 )
 from .rig_effects import TELLS_A_REMOUNT_FROM_THE_SENSOR, MountChangeEffect, TableThetaOffsetEffect

@@ -1,0 +1,216 @@
+"""Candidates of the measuring chain's dynamics: the axis channels late against the reference (``channel_delay``) and
+the TIA first-order low-pass of paper Table 1 (``tia_lowpass``), each applied to the counts before eq. 24 as the
+driver's ``ChainDynamics`` term does. Their bounds (``MAX_CHANNEL_DELAY_S``, ``MAX_TIA_SCALE``) and Table 1's time
+constants are with the other effects' in ``diagnosis.effects``; the candidates are registered in
+``diagnosis.library.LIBRARY``."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from fbg_accel_driver.correction_terms import ChainDynamics, first_order_lowpass, uniform_coefficient
+
+from .data import (
+    DiagnosisData,
+    Inputs,
+    expected_psi_map,
+    fill_reference_gaps,
+    finite_rows,
+    input_run_steps,
+    interp_columns,
+    rows_by_run,
+    take_rows,
+)
+from .effects import (
+    MAX_CHANNEL_DELAY_S,
+    MAX_TIA_SCALE,
+    MIN_DELAY_SEARCH_S,
+    MIN_TIA_SCALE_SEARCH,
+    TIA_TAU_S,
+    Effect,
+)
+from .held_lowpass import HeldRows, held_lowpass, held_rows
+
+
+class ChannelDelayEffect(Effect):
+    name = "channel_delay"
+    reference_only = True
+    bound = ("D from 0 to one sample interval plus MAX_CHANNEL_DELAY_S (100 ms): the board converts and stamps the "
+             "four channels within a sample, the chain's analogue delay is the TIA's (a delay of the chain is tens of "
+             "ms, sim_default.yaml); a longer one is the table's and the board's clocks disagreeing")
+    stage = 1
+    hyper_name = "D"
+    hyper_unit = "s"
+    title = "delay of the sensor channels against the reference angles"
+
+    def hyper_limits(self, data: DiagnosisData) -> tuple[float, float]:
+        return 0.0, MAX_CHANNEL_DELAY_S + max(data.dt_s, 0.0)
+
+    def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
+        # 0 to 12 steps of the grid's unit, a sample or, above 120 Hz, 1/12 of MIN_DELAY_SEARCH_S: a delay of the chain
+        # is a time (tens of ms, sim_default.yaml), and 12 samples at 500 Hz (24 ms) stopped short of a 40 ms one
+        return np.arange(0.0, 12.5, 0.5) * max(data.dt_s, MIN_DELAY_SEARCH_S / 12)
+
+    def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
+        if float(h) != 0:
+            inp.gref, inp.valid = self._delayed(data, inp, float(h), None, rows_by_run(data, None))
+            inp.gref_moved = True
+
+    def reference_at(self, data: DiagnosisData, inp: Inputs, h: float | None,
+                     rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        pieces = rows_by_run(data, rows)
+        if pieces is None or float(h) == 0:
+            return super().reference_at(data, inp, h, rows)
+        return self._delayed(data, inp, float(h), rows, pieces)
+
+    @staticmethod
+    def _delayed(data: DiagnosisData, inp: Inputs, D: float, rows: np.ndarray | None,
+                 pieces: list[tuple[slice | np.ndarray, Any, Any]]) -> tuple[np.ndarray, np.ndarray]:
+        """(reference (n, 3), valid (n,)) at ``rows`` (None: every sample; ``pieces``: ``rows_by_run``): the
+        sample taken at t shows the table at t - D, so it is compared with the reference at t - D (each sample
+        interpolated on its own)."""
+        g, valid = ((np.array(inp.gref, copy=True), np.array(inp.valid, copy=True)) if rows is None
+                    else (take_rows(inp.gref, rows), inp.valid[rows]))  # copies either way
+        for run, sel, local in pieces:
+            t = data.t_s[run]
+            tq = t[local] - D
+            g[sel] = interp_columns(tq, t, data.gref_filled[run])
+            valid[sel] &= tq >= t[0]
+        return g, valid
+
+    def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
+        # a pure delay is a time-stamp correction, not an acceleration term (see docs/effects.md)
+        return [ChainDynamics(np.zeros(4), float(h))]
+
+    def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
+        return f"D = {h:.4g} s (sensor channels late against the reference)"
+
+
+def _affine(row: np.ndarray, offset: float, cols: np.ndarray | list[np.ndarray]) -> np.ndarray:
+    """``row @ cols + offset`` for a row of 3 and 3 columns (3, n), written out term by term."""
+    out = row[0] * cols[0]
+    out += row[1] * cols[1]
+    out += row[2] * cols[2]
+    out += offset
+    return out
+
+
+class TiaLowpassEffect(Effect):
+    name = "tia_lowpass"
+    reference_only = True
+    bound = ("the time constants at most MAX_TIA_SCALE (2) x those of the paper's Table 1: R_tr C_tr of its parts, "
+             "which common tolerances move by about 26 % at most")
+    stage = 2
+    hyper_name = "tau_scale"
+    hyper_unit = "x Table 1"
+    title = "TIA first-order low-pass of the axis channels"
+
+    def hyper_limits(self, data: DiagnosisData) -> tuple[float, float]:
+        return 0.0, MAX_TIA_SCALE
+
+    def hyper_grid(self, data: DiagnosisData) -> np.ndarray:
+        # axis time constants from 0.05 sample to ~30 samples (Table 1 ratios between channels), and at least to
+        # MIN_TIA_SCALE_SEARCH x Table 1: the stages are a time, and 30 samples at 500 Hz stopped at 0.64 x Table 1
+        lo = 0.05 * data.dt_s / TIA_TAU_S[1:].min()
+        hi = max(30 * data.dt_s, MIN_TIA_SCALE_SEARCH * TIA_TAU_S[1:].min()) / TIA_TAU_S[1:].min()
+        return np.geomspace(lo, hi, 22)
+
+    def taus(self, h: float) -> np.ndarray:
+        return TIA_TAU_S * float(h)
+
+    def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
+        inp.gref, inp.valid = self._corrected(data, inp, float(h), None, rows_by_run(data, None))
+
+    def reference_at(self, data: DiagnosisData, inp: Inputs, h: float | None,
+                     rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        pieces = rows_by_run(data, rows)
+        if pieces is None:
+            return super().reference_at(data, inp, h, rows)
+        return self._corrected(data, inp, float(h), rows, pieces)
+
+    def _corrected(self, data: DiagnosisData, inp: Inputs, h: float, rows: np.ndarray | None,
+                   pieces: list[tuple[slice | np.ndarray, Any, Any]]) -> tuple[np.ndarray, np.ndarray]:
+        """(reference (n, 3), valid (n,)) at ``rows`` (None: every sample; ``pieces``: ``rows_by_run``). Of the
+        recorded reference, the filters run over the samples in motion only (``_held_at_rows``: at a search's rows the
+        cost of a trial is the motion's and the rows', not the series'); else over every sample, and the rest only at
+        ``rows`` (a product row by row: the rows of the whole product)."""
+        held = self._held_at_rows(data, inp, h, rows, pieces)
+        if held is not None:
+            return held
+        # Filter the noise-free reference, not the noisy signal: the sensor shows LPF(Psi_true), so the
+        # reference it must match is the one whose expected Psi went through the same filters. Inverting
+        # the filter on the counts instead would amplify the (already filtered) noise by ~1/a.
+        # Neither depends on the time constant: reuse the data's own when no earlier stage changed the inputs
+        # (the hyper-parameter search calls this for every trial value).
+        g = fill_reference_gaps(inp.t_s, inp.gref, data.runs()) if inp.gref_moved else data.gref_filled
+        P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
+        if inp.gref_moved or inp.counts_changed:
+            psi_hat = g @ P.T
+            psi_hat += q  # in place: one array of N x 3, not two
+        else:
+            # kept column by column (an (N, 3) view of a C-ordered (3, N)): each run's column is filtered in place of
+            # a copy on every trial
+            psi_hat = data.once("static_psi_hat_columns", lambda: np.ascontiguousarray((g @ P.T + q).T)).T
+        d = np.empty((len(g) if rows is None else len(rows), 3))
+        tau = self.taus(h)
+        for (run, sel, local), steps in zip(pieces, input_run_steps(data, inp), strict=True):
+            for j in range(3):
+                # a strided column copied first: scipy's filter runs about twice as slow on one
+                d[sel, j] = first_order_lowpass(np.ascontiguousarray(psi_hat[run, j]), inp.t_s[run], tau[j + 1], {},
+                                                steps)[local]
+        d -= psi_hat if rows is None else take_rows(psi_hat, rows)
+        # P is 3 x 3: one product, not a solve with N sides (a contiguous right side: numpy's fast product)
+        gref = d @ np.ascontiguousarray(np.linalg.inv(P).T)
+        gref += g if rows is None else take_rows(g, rows)
+        return gref, (inp.valid if rows is None else inp.valid[rows]) & finite_rows(gref)
+
+    def _held_at_rows(self, data: DiagnosisData, inp: Inputs, h: float, rows: np.ndarray | None,
+                      pieces: list[tuple[slice | np.ndarray, Any, Any]]) -> tuple[np.ndarray, np.ndarray] | None:
+        """``_corrected`` at ``rows`` (None: every sample) with the filters worked out by ``held_lowpass``: the
+        expected Psi holds its value wherever the recorded reference does (every pose), so each trial filters the
+        samples in motion and works out the holds and the rows in closed form: the values of the recursion over every
+        sample up to rounding (``test/test_held_lowpass.py``), and each row's value the same bit for bit whichever
+        rows are asked for (a search's, or every sample's when the reference is corrected again after it). None where
+        that does not apply: the reference moved by an earlier correction (the channel delay), a gap in it, a run
+        whose sampling changes the filter's coefficient."""
+        g = data.gref_filled
+        if inp.gref_moved or not all(isinstance(run, slice) for run, _, _ in pieces) \
+                or not data.once("gref_filled_finite", lambda: bool(finite_rows(g).all())):
+            return None
+        tau = self.taus(h)
+        coeff = [[None if st is None else uniform_coefficient(float(t), st) for t in tau[1:]]
+                 for st in input_run_steps(data, inp)]
+        if any(a is None for per in coeff for a in per):
+            return None
+        P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
+        P_inv = np.linalg.inv(P)
+        rows_key = None if rows is None else f"{len(rows)} {hash(np.ascontiguousarray(rows).tobytes())}"
+        gref = np.empty((len(g) if rows is None else len(rows), 3))
+        for (run, sel, local), per in zip(pieces, coeff, strict=True):
+            if rows_key is None:  # every sample (a correction of the reference after it, the final model): not kept
+                held, g_at, g_rows = self._held_reference(g[run], np.arange(run.stop - run.start))
+            else:
+                held, g_at, g_rows = data.once(f"held_reference {run.start} {run.stop} {rows_key}",
+                                               lambda run=run, local=local: self._held_reference(g[run], local))
+            # the expected Psi and its filtered value column by column, a 3 x 3 map written out (no matrix product
+            # of a few hundred thousand rows by 3: BLAS's start costs more than the arithmetic)
+            d = [held_lowpass(held, _affine(P[j], q[j], g_at), per[j]) - _affine(P[j], q[j], g_rows) for j in range(3)]
+            for k in range(3):
+                gref[sel, k] = _affine(P_inv[k], 0.0, d) + g_rows[k]
+        return gref, (inp.valid if rows is None else inp.valid[rows]) & finite_rows(gref)
+
+    @staticmethod
+    def _held_reference(g: np.ndarray, rows: np.ndarray) -> tuple[HeldRows, np.ndarray, np.ndarray]:
+        """(the holds of a run's reference ``g`` (n, 3) and where ``rows`` (local) fall, the reference where the filter
+        reads it and at ``rows``, each (3, k) by column): what every trial of ``_held_at_rows`` shares."""
+        held = held_rows(g, rows)
+        return held, np.ascontiguousarray(g[held.samples].T), np.ascontiguousarray(g[rows].T)
+
+    def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
+        return [ChainDynamics(self.taus(float(h)), 0.0)]
+
+    def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
+        t = self.taus(float(h))
+        return f"scale = {h:.3g} x Table 1: tau x/y/z = {t[1]:.3g}/{t[2]:.3g}/{t[3]:.3g} s"
