@@ -6,6 +6,7 @@ constants are with the other effects' in ``diagnosis.effects``; the candidates a
 
 from __future__ import annotations
 
+from hashlib import blake2b
 from typing import Any
 
 import numpy as np
@@ -186,7 +187,8 @@ class TiaLowpassEffect(Effect):
             return None
         P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
         P_inv = np.linalg.inv(P)
-        rows_key = None if rows is None else f"{len(rows)} {hash(np.ascontiguousarray(rows).tobytes())}"
+        # the rows by a cryptographic digest of their bytes: two sets of rows never share a kept value
+        rows_key = None if rows is None else f"{len(rows)} {blake2b(np.ascontiguousarray(rows).tobytes()).hexdigest()}"
         gref = np.empty((len(g) if rows is None else len(rows), 3))
         for (run, sel, local), per in zip(pieces, coeff, strict=True):
             if rows_key is None:  # every sample (a correction of the reference after it, the final model): not kept

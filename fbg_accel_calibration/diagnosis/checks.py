@@ -19,7 +19,7 @@ from .design import ModelSpec
 from .effects import MODEL_TERM, Effect
 from .findings import Finding
 from .floor import VisitNoise
-from .search import CandidateResult, Evaluator, _group_mse, judge_step, time_block_check
+from .search import CandidateResult, Evaluator, group_mse, judge_step, time_block_check
 from .search_lanes import Lanes
 from .structure import SLOW_ERROR_BOUND_MPS2, SMALL_RATIO, ResidualStructure, residual_structure, slow_wander
 
@@ -93,7 +93,7 @@ def wander_gain(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
         return
     ho0 = ev.cv(ctx.spec)[1].heldout
     ok = ev.rows & finite_rows(ho0) & finite_rows(ho1)
-    d = _group_mse(ho0, ev.groups, ok, ev.weights)[1] - _group_mse(ho1, ev.groups, ok, ev.weights)[1] - shift
+    d = group_mse(ho0, ev.groups, ok, ev.weights)[1] - group_mse(ho1, ev.groups, ok, ev.weights)[1] - shift
     p = float(stats.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue) if len(d) >= 5 else 1.0
     if p < ctx.alpha_each:
         r.detail += f"; it gains beyond the slow wander of the bias its revisits keep (p = {p:.2g})"

@@ -126,12 +126,12 @@ def reselect_degree(lanes: Lanes[Evaluator], spec: ModelSpec,
                 level_ho = np.sqrt(np.mean(lv[rl] ** 2, axis=0))
             except NotIdentifiedError:  # a fold without one level cannot fit this degree
                 pass
-        return DegreeScores(n, True, ins, ho, level_ho), _group_mse(cv.heldout, lane.groups, r, np.full(3, 1.0 / 3))[1]
+        return DegreeScores(n, True, ins, ho, level_ho), group_mse(cv.heldout, lane.groups, r, np.full(3, 1.0 / 3))[1]
 
     done = lanes.map(score, range(max_degree + 1))
     scores = [sc for sc, _ in done]
-    group_mse = {sc.degree: m for sc, m in done if m is not None}
-    chosen, criterion, notes = choose_degree(scores, group_mse, by_level, unit="visit")
+    mse_by_degree = {sc.degree: m for sc, m in done if m is not None}
+    chosen, criterion, notes = choose_degree(scores, mse_by_degree, by_level, unit="visit")
     table = _degree_rows(scores, lambda sc: sc.held_out_pose, criterion, chosen)
     if chosen is None:
         return spec, table, ["no degree could be validated with the added effects: degree kept", *notes]
@@ -175,7 +175,9 @@ class CandidateResult:
         return out
 
 
-def _group_mse(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def group_mse(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The groups (visits) of ``rows`` with a finite residual ``res`` (N, 3) m/s^2, and each group's mean of the
+    per-sample squared residual weighted over the axes by ``weights`` (3,): (groups, (groups,) (m/s^2)^2)."""
     r = rows & finite_rows(res)
     ug, inv = np.unique(groups[r], return_inverse=True)
     e = np.sum(res[r] ** 2 * weights, axis=1)
@@ -193,8 +195,8 @@ def paired_gain_test(res0: np.ndarray, res1: np.ndarray, groups: np.ndarray, row
     per-group differences), and the detectable gain is the relative gain it finds with 80 % power at ``alpha``
     given the scatter of these differences (NaN where the signed-rank test is used)."""
     r = rows & finite_rows(res0) & finite_rows(res1)
-    _, m0 = _group_mse(res0, groups, r, weights)
-    _, m1 = _group_mse(res1, groups, r, weights)
+    _, m0 = group_mse(res0, groups, r, weights)
+    _, m1 = group_mse(res1, groups, r, weights)
     d = m0 - m1
     n = len(d)
     tot0 = float(np.sum(res0[r] ** 2 * weights))
