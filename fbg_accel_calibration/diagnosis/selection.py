@@ -276,24 +276,25 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
         del des_c, cv_c  # the design (n x p) is not held beyond the evaluator's own caches
     # a term whose residual keeps structure no term has is a stand-in for an effect outside the library: not claimed
     spec, refused = checks.stand_ins(searchers, spec, floor.noise_model, rules.alpha)
-    spec = _not_claimed(searchers, spec, refused, rules, steps[-1], "the residual keeps a structure no term represents "
+    spec = _not_claimed(searchers, spec, refused, rules, steps, "the residual keeps a structure no term represents "
                         "(stand-ins for an effect outside the library); degree of eq. 28 without them")
     # a term let in while its bound was not decided must be within it in the selected model
     spec, beyond = beyond_bound_at_the_end(sel, spec)
-    spec = _not_claimed(searchers, spec, beyond, rules, steps[-1],
+    spec = _not_claimed(searchers, spec, beyond, rules, steps,
                         "beyond its bound in the selected model; degree of eq. 28 without it")
     n_search = len(sel.folds) if step > 1 else None
     return Selection(spec, steps, detection_limit, ctx.step_confounded, n_search, step, kept, n_lanes, refused, beyond)
 
 
-def _not_claimed(lanes: Lanes[Evaluator], spec: ModelSpec, left_out: list[Finding], rules: Rules, step: StepResult,
+def _not_claimed(lanes: Lanes[Evaluator], spec: ModelSpec, left_out: list[Finding], rules: Rules, steps: list[StepResult],
                  why: str) -> ModelSpec:
     """``spec`` (the terms of ``left_out`` already taken out) with eq. 28's degree chosen again when the rules
-    re-select it, the last ``step``'s note saying which terms are not claimed, ``why``, and the degree."""
+    re-select it, the last of ``steps``' note saying which terms are not claimed, ``why``, and the degree."""
     if not left_out:
         return spec
     if rules.reselect_degree:
         spec = reselect_degree(lanes, spec, rules.max_degree)[0]
+    step = steps[-1]  # there is one: a term left out was added at a step
     step.removed_note += ("; " if step.removed_note else "") + (
         f"{', '.join(f.effect for f in left_out)} not claimed: {why} {spec.degree}")
     return spec
