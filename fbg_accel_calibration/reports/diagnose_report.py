@@ -629,10 +629,9 @@ def write_report(res: DiagnosisResult, md_path: str | Path, img_dir: str | Path 
             return write_report(res, md_path, img_dir, command, own, figures)
     md_path = Path(md_path)
     img_dir = Path(img_dir) if img_dir is not None else md_path.parent / "img"
-    md_path.parent.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     if figures != "none":
-        img_dir.mkdir(parents=True, exist_ok=True)
+        outs.directory(img_dir)  # the plots are drawn in it first (made with the outputs: gone again if they fail)
         with tempfile.TemporaryDirectory(dir=img_dir, prefix=".plots.") as tmp_dir:
             for p in write_plots(res, tmp_dir, figures):
                 os.replace(p, outs.path(img_dir / p.name))
