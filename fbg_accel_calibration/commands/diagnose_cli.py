@@ -88,9 +88,6 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
 FIGURES = ("report", "all", "none")  # diagnose_report.FIGURES (not imported here: it loads the diagnosis for --help)
 
 
-PLOT_FILES = ("before_after.png", "residual_structure.png")  # plus candidate_<effect>.png
-
-
 def _img_dir(args: argparse.Namespace) -> Path | None:
     if args.out is None:
         return None
@@ -105,11 +102,11 @@ def check_diagnose_outputs(args: argparse.Namespace) -> None:
     inputs = [*args.inputs, *([args.adc_codes] if getattr(args, "adc_codes", None) is not None else [])]
     check_outputs([args.out, args.yaml], inputs, args.force)
     img = _img_dir(args)
-    if img is not None and args.figures != "none":
-        from ..diagnosis.library import LIBRARY
+    # whichever figures the run draws, or removes as those of an earlier run the new report does not show
+    if img is not None and (args.figures != "none" or img.is_dir()):
+        from ..reports.diagnose_report import figure_files
 
-        candidates = tuple(f"candidate_{e.name}.png" for e in LIBRARY)  # whichever the run plots: any library effect
-        check_output_dir(img, (*PLOT_FILES, *candidates), args.inputs, args.force)
+        check_output_dir(img, figure_files(), args.inputs, args.force)
 
 
 def write_outputs(res, args: argparse.Namespace, command: str) -> list[Path]:

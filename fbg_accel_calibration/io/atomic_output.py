@@ -157,6 +157,12 @@ class OutputSet:
     def __init__(self) -> None:
         self._staged: dict[Path, Path] = {}  # output -> its temporary file
         self._made: list[Path] = []  # directories this set created, parents first: removed again if it fails
+        self._removed: list[Path] = []  # files an output of this run supersedes: removed when it commits
+
+    def remove(self, path: Path | str) -> None:
+        """Remove ``path`` when the set commits, after its outputs are in place (a file of an earlier run that the new
+        outputs supersede); kept when the run fails."""
+        self._removed.append(Path(path))
 
     def directory(self, path: Path | str) -> Path:
         """``path`` as a directory, created with its missing parents (each removed again, if empty, when the set is
@@ -211,6 +217,10 @@ class OutputSet:
                 done.append(output)  # first: an interrupt right after the rename still rolls this output back
                 os.replace(tmp, output)
             self._made.clear()  # committed: the directories now hold the outputs
+            with _signals_held():
+                for path in self._removed:
+                    with contextlib.suppress(FileNotFoundError):
+                        path.unlink()
         except BaseException:
             with _signals_held():
                 for output in done:
@@ -239,6 +249,7 @@ class OutputSet:
             with contextlib.suppress(OSError):
                 d.rmdir()
         self._made.clear()
+        self._removed.clear()
         _OPEN.discard(self)
 
     def temporary_to_output(self, exc: OSError) -> OSError:
