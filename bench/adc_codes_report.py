@@ -120,6 +120,14 @@ def noise_tilt(pred: np.ndarray, G: np.ndarray, rows: np.ndarray, pose: np.ndarr
     return np.array(out)
 
 
+def _why_not(cand) -> str:
+    """Why the code-table candidate is not added, from its fields: not physical, refused (``refusal_why``), or what
+    its detail or, not testable, its reason says."""
+    if cand.implausible:
+        return f"REFUSED: {cand.implausible}"
+    return cand.refusal_why or cand.detail or cand.reason
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--csv", type=Path, default=DEFAULT_CSV)
@@ -270,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{cand.p_value:.2g} over {cand.n_groups} visits against the level {cand_level:.2g}, held-out RMSE "
         + " / ".join(f"{v:.3f}" for v in (cand.heldout_rmse if cand.heldout_rmse is not None else [np.nan] * 3))
         + " m/s^2 with it: " + ("**added**." if cand.significant else
-                               f"**refused**: {(cand.detail or cand.reason).split('; ')[-1]}."),
+                               f"**refused**: {_why_not(cand)}."),
         "",
         *([] if drift is None else [
             "## time_drift or a step of the response",

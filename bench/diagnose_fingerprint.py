@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Every result of one diagnosis at full precision, to check that a speed-up changed none of them.
 
-Not a test. Diagnoses the calibration benchmark's simulated run (``bench_calibration.scenario``, seed 0) of
+Not a test. Diagnoses the calibration benchmark's simulated run (``bench_calibration.scenario``, ``--seed``, 0) of
 ``--samples`` samples and writes, as JSON with every float at full precision (``repr``): the effects added
 with their hyper-parameters, each step's candidates (held-out gain, p-value, hyper-parameter, plausibility
 verdict) and confounding verdicts (gains and p-values both ways, correlation), the held-out error and the
@@ -49,9 +49,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--samples", type=int, default=100_000)
     ap.add_argument("--output", type=Path, required=True)
     ap.add_argument("--lanes", type=int, default=None, help="searches side by side (default: diagnose's own choice)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the simulated run (default 0)")
     args = ap.parse_args(argv)
     cfg, duration = scenario(args.samples)
-    res = diagnose(simulate_recording(cfg, seed=0, duration_s=duration), lanes=args.lanes)
+    res = diagnose(simulate_recording(cfg, seed=args.seed, duration_s=duration), lanes=args.lanes)
     doc = {
         "samples": args.samples,
         "added": exact(res.added),

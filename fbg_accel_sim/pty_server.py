@@ -11,7 +11,10 @@ with pyserial exactly as it opens /dev/ttyUSB0. The server
   adapter) and after the down time opens a new one, re-pointing the ``--link`` symlink (as
   /dev/serial/by-id does) so a reconnecting client finds it under the same name; with
   ``faults.disconnects.remove_link`` the name is removed while the link is down (an rfcomm device
-  that exists only while the Bluetooth connection is up),
+  that exists only while the Bluetooth connection is up), else it dangles (``UNPLUGGED``). The link
+  never names a pty the server does not hold: it is re-pointed or removed before the pty is closed
+  (the kernel gives a closed pty's number to the next process that opens one: a client reconnecting
+  through a link left on it would open another process' terminal),
 * by default waits until a client opens the port before the board starts (an ESP32 board
   reboots when its USB-serial port is opened: DTR auto-reset); bytes written to a pty that no
   client ever opened are garbled by the line discipline, so nothing is written before,
@@ -36,6 +39,18 @@ from pathlib import Path
 import numpy as np
 
 from .board_physics import BoardSimulator, SimBlock
+
+# what the link names while the board is unplugged: no file, and never a pty (devpts names its terminals by number)
+UNPLUGGED = "/dev/pts/unplugged"
+
+
+def _point_link(link: str, target: str) -> None:
+    """Make ``link`` a symlink to ``target`` in one step (a new link renamed over it)."""
+    tmp = f"{link}.tmp{os.getpid()}"
+    if os.path.lexists(tmp):
+        os.unlink(tmp)
+    os.symlink(target, tmp)
+    os.replace(tmp, link)
 
 
 class PtyEndpoint:
@@ -63,11 +78,7 @@ class PtyEndpoint:
             os.close(slave)
             self.slave = -1
         if self.link:
-            tmp = f"{self.link}.tmp{os.getpid()}"
-            if os.path.lexists(tmp):
-                os.unlink(tmp)
-            os.symlink(self.path, tmp)
-            os.replace(tmp, self.link)  # atomic re-point
+            _point_link(self.link, self.path)  # the new pty is open before the link names it
         return self.path
 
     def client_present(self) -> bool:
@@ -89,6 +100,16 @@ class PtyEndpoint:
         if self.slave < 0:
             self.slave = os.open(self.path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
 
+    def unplug(self, remove_link: bool) -> None:
+        """The board unplugged: the link removed (``remove_link``) or re-pointed to ``UNPLUGGED``, then the pty
+        closed (the client's reads fail). In that order: once the pty is closed its number is free for any process,
+        and the link must not name it then."""
+        if remove_link:
+            self.remove_link()
+        elif self._names_ours():
+            _point_link(self.link, UNPLUGGED)
+        self.close()
+
     def close(self) -> None:
         for fd in (self.master, self.slave):
             if fd >= 0:
@@ -98,13 +119,21 @@ class PtyEndpoint:
                     pass
         self.master = self.slave = -1
 
+    def _names_ours(self) -> bool:
+        """The link exists and names this endpoint's pty (not one re-pointed by someone else since)."""
+        try:
+            return bool(self.link) and os.path.islink(self.link) and os.readlink(self.link) == self.path
+        except OSError:
+            return False
+
     def remove_link(self) -> None:
-        if self.link and os.path.islink(self.link):
-            try:
-                if os.readlink(self.link) == self.path:
-                    os.unlink(self.link)
-            except OSError:
-                pass
+        """Remove the link if it names this endpoint's pty (or ``UNPLUGGED``: the board is unplugged)."""
+        try:
+            if self._names_ours() or (self.link and os.path.islink(self.link)
+                                      and os.readlink(self.link) == UNPLUGGED):
+                os.unlink(self.link)
+        except OSError:
+            pass
 
     def write(self, data: bytes) -> int:
         """Write without blocking; bytes that do not fit are dropped and counted. Returns bytes written."""
@@ -223,8 +252,8 @@ def serve_pty(sim: BoardSimulator, duration_s: float, link: str | None, truth: T
              "unplug_unread_bytes": 0}
     if wait_client:
         if not ep.wait_client(should_stop):
-            ep.close()
             ep.remove_link()
+            ep.close()
             return stats
         time.sleep(client_settle_s)
         ep.hold_slave()
@@ -251,9 +280,8 @@ def serve_pty(sim: BoardSimulator, duration_s: float, link: str | None, truth: T
                 if state == "open":  # let the client take what was sent before the "unplug"
                     ep.linger(unplug_linger_s, 0.0)
                     stats["unplug_unread_bytes"] += ep.unread_bytes() + len(ep._pending)
-                ep.close()
-                if sim.disconnect_removes_link:  # the device name vanishes with the link (rfcomm-like)
-                    ep.remove_link()
+                # the device name vanishes with the link (rfcomm-like), or the link dangles
+                ep.unplug(remove_link=sim.disconnect_removes_link)
                 state = "down"
                 print("DISCONNECT", file=sys.stderr, flush=True)
             now = time.monotonic()
@@ -289,6 +317,6 @@ def serve_pty(sim: BoardSimulator, duration_s: float, link: str | None, truth: T
             ep.linger(linger_s, grace_s)
     finally:
         stats["overflow_bytes"] = ep.overflow_bytes
+        ep.remove_link()  # first: a closed pty's number is free for another process
         ep.close()
-        ep.remove_link()
     return stats

@@ -7,7 +7,7 @@ import os
 from pathlib import Path
 
 import pytest
-from test_input_validation import run, six_pose_csv
+from test_input_validation import one_line, run, six_pose_csv
 
 from fbg_accel_calibration.io import atomic_output
 from fbg_accel_calibration.io.mcap_reader import read_recording
@@ -82,8 +82,8 @@ def test_ctrl_c_during_import_leaves_no_stub(tmp_path: Path, capsys: pytest.Capt
     assert out.read_bytes() == b"precious" and not leftovers(tmp_path)
 
 
-def test_missing_output_directory_is_found_before_the_computation(tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+def test_an_output_directory_that_cannot_be_made_is_found_before_the_computation(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
     csv = six_pose_csv(tmp_path / "s.csv")
     from fbg_accel_calibration.diagnosis import diagnose
     from fbg_accel_calibration.io import csv_import
@@ -93,13 +93,71 @@ def test_missing_output_directory_is_found_before_the_computation(tmp_path: Path
 
     monkeypatch.setattr(csv_import.CsvBlocks, "blocks", never)
     monkeypatch.setattr(diagnose, "diagnose", never)
-    rc, err = run(["fit", csv, "-o", tmp_path / "nodir" / "c.yaml"], capsys)
-    assert rc == 2 and "output directory" in err and "does not exist" in err
-    rc, err = run(["diagnose", csv, "--yaml", tmp_path / "nodir" / "c.yaml"], capsys)
-    assert rc == 2 and "output directory" in err and "does not exist" in err
     (tmp_path / "file").write_text("x")
-    rc, err = run(["diagnose", csv, "--out", tmp_path / "file" / "r" / "d.md"], capsys)
-    assert rc == 2 and "cannot be created" in err
+    for argv in (["fit", csv, "-o"], ["diagnose", csv, "--yaml"], ["diagnose", csv, "--out"]):
+        rc, err = run([*argv, tmp_path / "file" / "r" / "d.md"], capsys)
+        assert rc == 2 and "cannot be created (a file is in its path)" in one_line(err)
+
+
+# every fbg-accel-calib option that names a path, by subcommand: the files it writes, the directories it writes into,
+# the files it reads (a new path option must be put in one of them: test_every_output_makes_its_directory_or_...)
+FILE_OUTPUTS = {"import": ["--output"], "fit": ["--output"], "allan": ["--output", "--json"],
+                "field-check": ["--output"], "report-measured": ["--md", "--png"], "uncertainty-measured": ["--md"],
+                "dynamic": ["--output", "--bode", "--json"], "diagnose": ["--out", "--yaml"],
+                "adc-codes": ["--plot", "--json", "--output"]}
+DIRECTORY_OUTPUTS = {"report": ["--output-dir"], "diagnose": ["--img-dir"]}
+PATH_INPUTS = {"fit": ["--adc-codes", "--run-to-run-from"], "allan": ["--calibration"],
+               "field-check": ["--calibration"], "report": ["--calibration"], "report-measured": ["--csv"],
+               "uncertainty-measured": ["--csv"], "dynamic": ["--plan", "--calibration"], "diagnose": ["--adc-codes"]}
+
+
+def _path_options() -> dict[str, set[str]]:
+    """Subcommand -> its options of type Path (their long names), from the parser itself."""
+    import argparse
+
+    from fbg_accel_calibration.commands.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return {name: {max(a.option_strings, key=len) for a in p._actions if a.option_strings and a.type is Path}
+            for name, p in sub.choices.items()}
+
+
+def test_every_output_makes_its_directory_or_is_refused_before_the_computation(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """One rule for every output of every subcommand: a missing directory is made when the outputs are written (as
+    the report's always was), and one that cannot be made (a file in its path) is refused before any input is read,
+    in one line, exit 2, nothing created. `diagnose --out X/r.md --yaml X/c.yaml` made X for the report and refused
+    it for the YAML ("create it first")."""
+    found = _path_options()
+    for name, options in found.items():
+        said = [*FILE_OUTPUTS.get(name, []), *DIRECTORY_OUTPUTS.get(name, []), *PATH_INPUTS.get(name, [])]
+        assert options == set(said), (name, options, said)  # each path option is an output or an input
+    data = six_pose_csv(tmp_path / "s.csv")
+    needs = {"import": [data], "fit": [data], "allan": [data, "--calibration", data],
+             "field-check": [data, "--calibration", data], "report-measured": ["--csv", data],
+             "uncertainty-measured": ["--csv", data], "dynamic": [data, "--plan", data, "--calibration", data],
+             "diagnose": [data], "adc-codes": [data], "report": [data, "--calibration", data]}
+    (tmp_path / "file").write_text("x")
+    blocked = tmp_path / "file" / "d"
+    for name, options in [*FILE_OUTPUTS.items(), *DIRECTORY_OUTPUTS.items()]:
+        for option in options:
+            rest = list(needs[name])
+            if name == "dynamic" and option != "--output":  # its calibration output is required
+                rest += ["-o", tmp_path / "o.yaml"]
+            if name == "report-measured":  # both outputs have defaults in the repository: the other one here
+                rest += ["--png" if option == "--md" else "--md", tmp_path / "other.x"]
+            if option == "--img-dir":
+                rest += ["--out", tmp_path / "r.md"]
+            rc, err = run([name, *rest, option, blocked / "f.x"], capsys)
+            assert rc == 2 and "cannot be created (a file is in its path)" in one_line(err), (name, option, err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "s.csv"]  # nothing written, nothing half-written
+    # made when written: the YAML's directory as the report's, and a failed run takes away what it made
+    out = tmp_path / "new" / "deeper"
+    rc, err = run(["fit", data, "-o", out / "c.yaml"], capsys)
+    assert rc == 0 and (out / "c.yaml").is_file(), err
+    bad = six_pose_csv(tmp_path / "bad.csv", "9.99,880,abc,1,1,0,0,9.8,23.4,5", at=-1)
+    rc, err = run(["import", bad, "-o", tmp_path / "gone" / "deeper" / "x.mcap"], capsys)
+    assert rc == 2 and "malformed" in one_line(err) and not (tmp_path / "gone").exists()
 
 
 def test_fit_writes_through_a_temporary_file(tmp_path: Path, capsys: pytest.CaptureFixture[str],
@@ -169,6 +227,45 @@ def test_an_existing_candidate_plot_of_diagnose_needs_force(tmp_path: Path, caps
     rc, err = run(["diagnose", csv, "--out", tmp_path / "d.md", "--img-dir", img], capsys)
     assert rc == 2 and "candidate_time_drift.png: exists; give --force" in err and plot.read_bytes() == b"precious"
     assert not (tmp_path / "d.md").exists()
+
+
+def test_a_rerun_of_diagnose_leaves_only_the_figures_its_report_shows(tmp_path: Path) -> None:
+    """`diagnose --force` after a `--figures all` run left the earlier candidate_*.png beside a report that does not
+    link them. A re-run removes the figures a diagnosis wrote that its report does not show, and no other file: the
+    user's own (a PNG, a file under one of a figure's names that the tool did not write) stay. (One diagnosis, its
+    outputs written as the command writes them, with each --figures.)"""
+    import argparse
+    import re
+
+    from fbg_accel_calibration.commands.diagnose_cli import register, write_outputs
+    from fbg_accel_calibration.diagnosis.diagnose import diagnose
+    from fbg_accel_calibration.diagnosis.library import LIBRARY
+    from fbg_accel_calibration.io.input_files import load_recording
+
+    csv = six_pose_csv(tmp_path / "s.csv")
+    res = diagnose(load_recording([csv]), static="table")
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    md, img = tmp_path / "d.md", tmp_path / "img"
+    img.mkdir()
+    own = {img / "holiday.png": b"\x89PNG\r\n\x1a\n the user's", img / "notes.txt": b"the user's"}
+    for path, data in own.items():
+        path.write_bytes(data)
+    drawn: set[str] = set()
+    for figures in ("all", "report", "none"):
+        write_outputs(res, parser.parse_args(["diagnose", str(csv), "--out", str(md), "--figures", figures, "--force"]),
+                      "")
+        shown = set(re.findall(r"img/([\w.]+\.png)", md.read_text()))
+        assert {p.name for p in img.iterdir()} == shown | {p.name for p in own}, figures
+        assert {p: p.read_bytes() for p in own} == own
+        if figures == "all":
+            drawn = {n for n in shown if n.startswith("candidate_")}
+            assert len(drawn) >= 3, drawn
+            spare = img / next(f"candidate_{e.name}.png" for e in LIBRARY if f"candidate_{e.name}.png" not in drawn)
+            own[spare] = b"\x89PNG\r\n\x1a\n the user's, under a figure's name"
+            spare.write_bytes(own[spare])
+        else:
+            assert bool(shown) == (figures == "report") and drawn - shown  # earlier figures this report does not show
 
 
 # ---------------------------------------------------------------------------- issue 42: one commit for all writers

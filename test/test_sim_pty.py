@@ -58,7 +58,7 @@ def test_pty_frames_through_pyserial_match_the_truth_exactly(tmp_path: Path) -> 
     assert s.crc_errors == int(t["injected_crc_errors"]) == 11
     assert s.lost_frames == int(t["expected_lost_frames"]) and s.duplicates == 3 and s.resets == 1
     assert s.bytes_discarded == int(t["expected_bytes_discarded"])
-    assert not link.exists()  # the link is removed at exit
+    assert not os.path.lexists(link)  # removed before the pty closed, so before the read above failed
     # the decoded values are the simulator's
     sent = t["sent"] & ~np.isin(t["wire_fault"], (1, 3, 4))
     np.testing.assert_array_equal([f.x for f in frames], t["counts"][sent, 1])
@@ -77,6 +77,7 @@ def test_disconnect_repoints_the_link_and_serving_continues(tmp_path: Path) -> N
         _read_until_exit(port, dec, 30.0)  # ends when the port vanishes (unplug, then end of run)
         port.close()
         if len(opened) == 1:  # wait for the board to announce the new port (stderr), then reopen by the link
+            assert not _link_names_a_pty_taken_since(link, first)
             line = proc.stderr.readline()
             while line and not line.startswith("RECONNECT"):
                 line = proc.stderr.readline()
@@ -87,6 +88,21 @@ def test_disconnect_repoints_the_link_and_serving_continues(tmp_path: Path) -> N
     assert int(t["unplug_unread_bytes"]) == 0  # the client read everything sent before the unplug
     assert dec.stats.frames == int(t["expected_frames"])
     assert dec.stats.lost_frames == int(t["expected_lost_frames"]) >= 100  # 0.5 s at 200 Hz unsent
+
+
+def _link_names_a_pty_taken_since(link: Path, unplugged: str) -> bool:
+    """Right after the board's pty ``unplugged`` was closed: take its number as another process would (the kernel
+    gives the lowest free one: ptys are opened until that one comes, at most 64) and say whether ``link`` names one of
+    the ptys taken. A driver reconnecting through it would open this process' terminal."""
+    held: list[tuple[int, int]] = []
+    try:
+        while len(held) < 64 and (not held or os.ttyname(held[-1][1]) != unplugged):
+            held.append(os.openpty())
+        return os.path.realpath(link) in {os.ttyname(slave) for _, slave in held}
+    finally:
+        for fds in held:
+            for fd in fds:
+                os.close(fd)
 
 
 def test_output_file_equals_the_batch_api_and_sigterm_exits_cleanly(tmp_path: Path) -> None:

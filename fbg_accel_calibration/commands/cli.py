@@ -495,7 +495,6 @@ def cmd_report(args: argparse.Namespace) -> int:
     if data.low_reference.count:  # left out of the selection and the statistics, as by the fit
         print("warning: " + data.low_reference.warning(), file=sys.stderr)
     selection = select_degree(data, max_degree=args.max_degree)
-    out.mkdir(parents=True, exist_ok=True)
     stats = pose_statistics(cal, rec, usable & np.isfinite(rec.temp_c))
     report_md, vs_reference_png, per_degree_png = REPORT_FILES
     warnings = calibration_match_warnings(cal, rec)

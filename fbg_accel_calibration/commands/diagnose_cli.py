@@ -85,7 +85,6 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     return p
 
 
-PLOT_FILES = ("before_after.png", "residual_structure.png")  # plus candidate_<effect>.png
 FIGURES = ("report", "all", "none")  # diagnose_report.FIGURES (not imported here: it loads the diagnosis for --help)
 
 
@@ -96,20 +95,18 @@ def _img_dir(args: argparse.Namespace) -> Path | None:
 
 
 def check_diagnose_outputs(args: argparse.Namespace) -> None:
-    """Before any computation: outputs are not inputs, exist only with --force, and their directories exist."""
+    """Before any computation: outputs are not inputs, exist only with --force, and their directories exist or can
+    be made (``atomic_output``: made when the outputs are written, as for every command)."""
     from ..io.atomic_output import check_output_dir, check_outputs
 
     inputs = [*args.inputs, *([args.adc_codes] if getattr(args, "adc_codes", None) is not None else [])]
-    check_outputs([args.out], inputs, args.force, create_dirs=True)  # the report's directory is created
-    check_outputs([args.yaml], inputs, args.force)
-    if args.out is not None and args.yaml is not None:
-        check_outputs([args.out, args.yaml], [], True, create_dirs=True)  # not the same file twice
+    check_outputs([args.out, args.yaml], inputs, args.force)
     img = _img_dir(args)
-    if img is not None and args.figures != "none":
-        from ..diagnosis.library import LIBRARY
+    # whichever figures the run draws, or removes as those of an earlier run the new report does not show
+    if img is not None and (args.figures != "none" or img.is_dir()):
+        from ..reports.diagnose_report import figure_files
 
-        candidates = tuple(f"candidate_{e.name}.png" for e in LIBRARY)  # whichever the run plots: any library effect
-        check_output_dir(img, (*PLOT_FILES, *candidates), args.inputs, args.force)
+        check_output_dir(img, figure_files(), args.inputs, args.force)
 
 
 def write_outputs(res, args: argparse.Namespace, command: str) -> list[Path]:

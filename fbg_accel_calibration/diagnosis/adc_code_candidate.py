@@ -37,7 +37,7 @@ from ..fit.adc_codes import CHANNEL_NAMES, code_table, recording_code_widths
 from .cv import CvResult, cross_validate
 from .data import DiagnosisData, finite_rows
 from .design import Design, ModelSpec, build_design
-from .search import CandidateResult, _corr, paired_gain_test
+from .search import CandidateResult, Refusal, _corr, paired_gain_test
 from .search_lanes import beside, default_lane_count
 
 NAME = "adc_code_widths"
@@ -192,8 +192,8 @@ def code_width_step(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, weig
     out.significant = pv < alpha_each and gain >= min_rel_gain and not out.implausible
     if not out.significant:
         if not out.implausible:
-            out.detail += (f"; not added: the table's held-out gain {100 * gain:+.1f} % (p = {pv:.2g}) does not reach "
-                           f"p < {alpha_each:.2g} with a gain of {100 * min_rel_gain:.0f} % or more")
+            out.refuse(Refusal.NO_GAIN, f"the table's held-out gain {100 * gain:+.1f} % (p = {pv:.2g}) does not "
+                       f"reach p < {alpha_each:.2g} with a gain of {100 * min_rel_gain:.0f} % or more")
         return step
     step.table = fold_table(data, fit_rows, "the diagnosed recording (fbg-accel-calib diagnose), its fitted visits")
     step.design = build_design(mapped_data(data, step.table), spec)

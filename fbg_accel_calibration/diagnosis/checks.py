@@ -2,7 +2,7 @@
 
 The forward selection (``diagnosis.selection``) asks each candidate for its checks and runs them; no check is tied to
 an effect's name. A check that runs during the search takes the candidate's result (``CandidateResult``) and may
-refuse it (``significant`` False, why in its ``detail``); a check on the final model returns a :class:`Finding`.
+refuse it (``CandidateResult.refuse``: why as data); a check on the final model returns a :class:`Finding`.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from .design import ModelSpec
 from .effects import MODEL_TERM, Effect
 from .findings import Finding
 from .floor import VisitNoise
-from .search import CandidateResult, Evaluator, group_mse, judge_step, time_block_check
+from .search import CandidateResult, Evaluator, Refusal, group_mse, judge_step, time_block_check
 from .search_lanes import Lanes
 from .structure import SLOW_ERROR_BOUND_MPS2, SMALL_RATIO, ResidualStructure, residual_structure, slow_wander
 
@@ -58,9 +58,8 @@ def reading_jump(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
     """A jump of the temperature reading moves eq. 28's output once, which this candidate can follow: what it would
     write is the reading's fault, not the sensor's (test_a_fault_of_the_temperature_reading_...)."""
     if ctx.reading_jumped:
-        r.significant = False
-        r.detail += ("; not added: the AHT10 reading jumps (a sensor re-seated, a spike, a frozen reading), "
-                     "and eq. 28 evaluated at it moves the output once, which this candidate can follow")
+        r.refuse(Refusal.READING_JUMP, "the AHT10 reading jumps (a sensor re-seated, a spike, a frozen reading), and "
+                 "eq. 28 evaluated at it moves the output once, which this candidate can follow")
 
 
 def wander_gain(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
@@ -98,10 +97,9 @@ def wander_gain(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
     if p < ctx.alpha_each:
         r.detail += f"; it gains beyond the slow wander of the bias its revisits keep (p = {p:.2g})"
     else:
-        r.significant = False
-        r.detail += (f"; not added: its gain is not beyond the slow wander of the bias that the revisits of a pose "
-                     f"keep with it in the model (that wander's variance taken off every visit's gain, p = {p:.2g}): "
-                     "it may follow the sensor's bias instability, not an effect it can extrapolate")
+        r.refuse(Refusal.SLOW_WANDER, f"its gain is not beyond the slow wander of the bias that the revisits of a "
+                 f"pose keep with it in the model (that wander's variance taken off every visit's gain, p = {p:.2g}): "
+                 "it may follow the sensor's bias instability, not an effect it can extrapolate")
 
 
 def time_blocks(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
@@ -111,10 +109,9 @@ def time_blocks(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
     if p < ctx.alpha_each and g >= ctx.min_rel_gain:
         r.detail += f"; it also predicts contiguous blocks of time held out (gain {100 * g:+.1f} %, p = {p:.2g})"
     else:
-        r.significant = False
-        r.detail += (f"; not added: it does not predict contiguous blocks of time held out (gain "
-                     f"{100 * g:+.1f} %, p = {p:.2g}): it follows a slow wander of the residual between "
-                     "visits, not a drift it can extrapolate")
+        r.refuse(Refusal.TIME_BLOCKS, f"it does not predict contiguous blocks of time held out (gain {100 * g:+.1f} "
+                 f"%, p = {p:.2g}): it follows a slow wander of the residual between visits, not a drift it can "
+                 "extrapolate")
 
 
 def step(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:

@@ -7,6 +7,7 @@ response (``step_check``).
 from __future__ import annotations
 
 import copy
+import enum
 import math
 import time
 from collections.abc import Callable
@@ -139,6 +140,18 @@ def reselect_degree(lanes: Lanes[Evaluator], spec: ModelSpec,
 
 
 # ============================================================================ candidate evaluation
+class Refusal(enum.Enum):
+    """Why a candidate is not added although its test was reached or passed (``CandidateResult.refuse``): the
+    check that refused it, by the name it is declared under (``checks.CHECKS``), or what else stopped it."""
+
+    VOID = "void"  # its value on all samples changes nothing (``Effect.void``)
+    READING_JUMP = "reading_jump"  # the temperature reading jumps and the candidate can follow it
+    SLOW_WANDER = "slow_wander"  # its gain is not beyond the bias wander its revisits keep
+    TIME_BLOCKS = "time_blocks"  # it does not predict contiguous blocks of time held out
+    STEP = "step"  # a step of the response at one time explains it
+    NO_GAIN = "no_gain"  # its held-out gain does not reach the level (the ADC code table, tested on its own)
+
+
 @dataclass
 class CandidateResult:
     name: str
@@ -164,6 +177,15 @@ class CandidateResult:
     # eq. 28's degree it was judged at, chosen again with it in, where that is above the model's (None: the model's;
     # ``selection.judged_at_its_degree``)
     degree: int | None = None
+    refusal: Refusal | None = None  # why it is not added although it gains (``refuse``); None: not refused so
+    refusal_why: str = ""  # that reason in words (what its ``detail`` says after "not added: ")
+
+    def refuse(self, refusal: Refusal, why: str) -> None:
+        """Not added, for ``refusal`` (``why``: its reason in words, from the check's numbers): not significant, the
+        reason kept as data, and said in ``detail`` (the report's words come from it, nothing reads them back)."""
+        self.significant = False
+        self.refusal, self.refusal_why = refusal, why
+        self.detail += f"; not added: {why}"
 
     def delta_of_every_sample(self, n: int) -> np.ndarray | None:
         """``delta`` (N, 3) on every one of the recording's ``n`` samples, NaN where it was not evaluated (for the
@@ -682,18 +704,17 @@ def judge_step(lanes: Lanes[Evaluator], spec: ModelSpec, r: CandidateResult, eff
                min_rel_gain: float, max_degree: int | None, step_confounded: dict[str, str]) -> None:
     """Set the significant candidate ``r`` (of ``eff_r``, ``Effect.follows_a_step``) on top of ``spec`` against the best
     step of the response (``step_check``; ``max_degree`` None: eq. 28's degree is not chosen again): refused (``r``
-    no longer significant, why in its detail) if the step explains it; if the step fits as well, the warning for the
+    no longer significant, ``Refusal.STEP``) if the step explains it; if the step fits as well, the warning for the
     report is put in ``step_confounded`` under its name."""
     sc = r.step_check = step_check(lanes, spec, eff_r, r.hyper, alpha_each, min_rel_gain, max_degree)
     at_degree = f", eq. 28 of degree {sc.degree}" if sc is not None and sc.degree != spec.degree else ""
     if sc is not None and sc.explained:
-        r.significant = False
-        r.detail += (f"; not added: a step of the response {sc.when} explains "
-                     f"it: the step gains {100 * sc.gain_step_beyond:+.1f} % beyond it (p = "
-                     f"{sc.p_step_beyond:.2g}), it gains {100 * sc.gain_time_beyond:+.1f} % beyond the step "
-                     f"(p = {sc.p_time_beyond:.2g}{at_degree}): the response changed once (a connector "
-                     f"knocked or re-mated, a fibre bent, a knock), not {eff_r.sensor_property} the driver "
-                     "could apply")
+        r.refuse(Refusal.STEP, f"a step of the response {sc.when} explains "
+                 f"it: the step gains {100 * sc.gain_step_beyond:+.1f} % beyond it (p = "
+                 f"{sc.p_step_beyond:.2g}), it gains {100 * sc.gain_time_beyond:+.1f} % beyond the step "
+                 f"(p = {sc.p_time_beyond:.2g}{at_degree}): the response changed once (a connector "
+                 f"knocked or re-mated, a fibre bent, a knock), not {eff_r.sensor_property} the driver "
+                 "could apply")
     elif sc is not None and sc.p_time_beyond < alpha_each and sc.gain_time_beyond >= min_rel_gain:
         r.detail += (f"; it gains {100 * sc.gain_time_beyond:+.1f} % beyond the best step of the response "
                      f"at one time ({sc.when}, p = {sc.p_time_beyond:.2g}{at_degree})")

@@ -38,6 +38,7 @@ from .search import (
     LANE_SEARCH_ROWS,
     CandidateResult,
     Evaluator,
+    Refusal,
     _corr,
     _evaluate_on,
     cross_correlation_delay,
@@ -332,9 +333,8 @@ def _judge(ctx: checks.SearchChecks, spec: ModelSpec, r: CandidateResult, eff: E
     """Whether ``r`` (of ``eff`` on top of ``spec``) is significant: its test and bound, then the checks ``eff``
     declares for every step, on the model it was judged on."""
     r.significant = _gains(ctx, r) and not r.implausible
-    if r.significant and eff.void(r.hyper):
-        r.significant = False  # its value on all samples changes nothing: there is nothing to add
-        r.detail += "; not added: its value on all samples changes nothing"
+    if r.significant and eff.void(r.hyper):  # there is nothing to add
+        r.refuse(Refusal.VOID, "its value on all samples changes nothing")
     ctx.spec = at_its_degree(spec, r)
     checks.run_checks(checks.EACH_STEP, ctx, r, eff)
 
@@ -375,7 +375,7 @@ def judged_at_its_degree(spec: ModelSpec, alpha: float, max_degree: int, ev: Eva
         return None
     if not again.applicable:
         return None
-    why = first.implausible or (first.detail.rsplit("not added: ", 1)[1] if "not added: " in first.detail else "")
+    why = first.implausible or first.refusal_why
     again.degree = degree
     again.detail += (f"; judged on eq. 28 of degree {degree}, chosen again with it in (at the model's degree "
                      f"{spec.degree} it gained {100 * first.rel_gain:+.1f} %, p = {first.p_value:.2g}, but "

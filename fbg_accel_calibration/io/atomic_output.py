@@ -5,8 +5,10 @@ Rules, checked *before* any computation (:func:`check_outputs`):
 * an output may not be one of the inputs (same file by ``os.path.samefile`` or by resolved path),
   nor two outputs the same file;
 * an existing output is refused unless ``--force`` (a node: its ``force`` parameter) is given;
-* the output's directory must exist (a missing directory is found before minutes of fitting) and take a new
-  file (a read-only directory is found then too, and named, not the temporary file that would have failed);
+* the output's directory must take a new file: a missing one is made (with its parents) when the outputs are
+  written, if it can be (its nearest existing ancestor is a directory that takes a new one), and refused before
+  minutes of fitting if not; a read-only directory is found then too, and named, not the temporary file that would
+  have failed. Every output of every command follows this one rule;
 * a character device (``/dev/null``) or a FIFO is written through, never replaced.
 
 Writing (:class:`OutputSet`, :func:`committed_outputs`; :func:`atomic_path` for one file): each writer gets a
@@ -16,7 +18,7 @@ written they are renamed over their outputs together; on any failure -- exceptio
 (``KeyboardInterrupt``), SIGTERM (``command_line.Terminated``, a ``KeyboardInterrupt``), ``SystemExit`` -- before
 or during those renames, the temporaries are removed and the outputs already renamed are put back as they were.
 An existing output is therefore either untouched or replaced together with the run's other outputs, and a failed
-run leaves no stub.
+run leaves no stub, nor a directory it made.
 
 Also :func:`create_exclusive`: open a new file with ``O_CREAT | O_EXCL | O_NOFOLLOW`` so that an
 existing file *or a symbolic link* (dangling or not) at the path is refused instead of followed.
@@ -44,18 +46,22 @@ def _same(a: Path, b: Path) -> bool:
     return os.path.realpath(a) == os.path.realpath(b)
 
 
+def _existing_ancestor(d: Path) -> Path | None:
+    """``d`` or its nearest ancestor that exists, None if none does."""
+    return next((anc for anc in (d, *d.parents) if anc.exists()), None)
+
+
 def _creatable_dir(d: Path) -> bool:
     """True if ``d`` is a directory or could be created (its nearest existing ancestor is a directory)."""
-    for anc in (d, *d.parents):
-        if anc.exists():
-            return anc.is_dir()
-    return False
+    anc = _existing_ancestor(d)
+    return anc is not None and anc.is_dir()
 
 
 def check_outputs(outputs: Iterable[Path | None], inputs: Iterable[Path | str], force: bool = False,
-                  create_dirs: bool = False) -> None:
-    """Refuse unsafe outputs (see module docstring); ``None`` outputs are skipped. With ``create_dirs`` a
-    missing directory is accepted if it can be created (the caller creates it when writing).
+                  create_dirs: bool = True) -> None:
+    """Refuse unsafe outputs (see module docstring); ``None`` outputs are skipped. A missing directory is accepted
+    if it can be created (:meth:`OutputSet.path` creates it when writing); without ``create_dirs`` it is refused (the
+    calibration node: a calibration file outside its own output directory).
     Raises :class:`OutputError`."""
     ins = [Path(p) for p in inputs]
     outs = [Path(p) for p in outputs if p is not None]
@@ -71,6 +77,10 @@ def check_outputs(outputs: Iterable[Path | None], inputs: Iterable[Path | str], 
         if create_dirs and not parent.exists():
             if not _creatable_dir(parent):
                 raise OutputError(f"{out}: output directory {parent} cannot be created (a file is in its path)")
+            anc = _existing_ancestor(parent)
+            if anc not in writable:
+                _check_writable(out, anc)  # type: ignore[arg-type]
+                writable.add(anc)  # type: ignore[arg-type]
             continue
         if not parent.is_dir():
             raise OutputError(f"{out}: output directory {parent} does not exist; create it first")
@@ -107,15 +117,16 @@ def _new_temporary(directory: Path, prefix: str, suffix: str) -> Path:
     return directory / f"{prefix}{secrets.token_hex(16)}{suffix}"
 
 
-def _check_writable(out: Path) -> None:
-    """Refuse ``out`` when its directory takes no new file (read-only directory or file system, no permission),
-    by trying: ``os.access`` says yes to root on a read-only mount."""
-    probe = _new_temporary(out.parent, ".write-check.", "")
+def _check_writable(out: Path, directory: Path | None = None) -> None:
+    """Refuse ``out`` when ``directory`` (default: its own) takes no new file (read-only directory or file system,
+    no permission), by trying: ``os.access`` says yes to root on a read-only mount."""
+    directory = out.parent if directory is None else directory
+    probe = _new_temporary(directory, ".write-check.", "")
     with _signals_held():  # the probe never stays behind, even when the handler runs inside this block
         try:
             os.close(os.open(probe, _EXCLUSIVE, 0o600))
         except OSError as exc:
-            raise OutputError(f"{out}: cannot write in {out.parent} ({exc.strerror or exc})") from None
+            raise OutputError(f"{out}: cannot write in {directory} ({exc.strerror or exc})") from None
         finally:
             with contextlib.suppress(OSError):
                 os.unlink(probe)
@@ -145,6 +156,28 @@ class OutputSet:
 
     def __init__(self) -> None:
         self._staged: dict[Path, Path] = {}  # output -> its temporary file
+        self._made: list[Path] = []  # directories this set created, parents first: removed again if it fails
+        self._removed: list[Path] = []  # files an output of this run supersedes: removed when it commits
+
+    def remove(self, path: Path | str) -> None:
+        """Remove ``path`` when the set commits, after its outputs are in place (a file of an earlier run that the new
+        outputs supersede); kept when the run fails."""
+        self._removed.append(Path(path))
+
+    def directory(self, path: Path | str) -> Path:
+        """``path`` as a directory, created with its missing parents (each removed again, if empty, when the set is
+        discarded instead of committed)."""
+        path = Path(path)
+        missing = [d for d in (path, *path.parents) if not d.exists()][::-1]
+        with _signals_held():
+            _OPEN.add(self)
+            for d in missing:
+                try:
+                    d.mkdir()
+                except FileExistsError:
+                    continue  # made meanwhile by another process: not ours to remove
+                self._made.append(d)
+        return path
 
     def path(self, output: Path | str) -> Path:
         """A new temporary file next to ``output`` (same suffix) that :meth:`commit` renames to ``output``."""
@@ -153,6 +186,7 @@ class OutputSet:
             return self._staged[output]
         if is_stream(output):
             return output  # /dev/null, a FIFO: written through (a rename would replace the device node)
+        self.directory(output.parent)
         # The name is recorded before the file is created, so that an interrupt at any point after the creation
         # finds it to remove: blocking SIGINT/SIGTERM here is not enough, since another thread of the process (a
         # BLAS worker) takes the signal and the handler then runs in this thread at once.
@@ -182,6 +216,11 @@ class OutputSet:
             for output, tmp in self._staged.items():
                 done.append(output)  # first: an interrupt right after the rename still rolls this output back
                 os.replace(tmp, output)
+            self._made.clear()  # committed: the directories now hold the outputs
+            with _signals_held():
+                for path in self._removed:
+                    with contextlib.suppress(FileNotFoundError):
+                        path.unlink()
         except BaseException:
             with _signals_held():
                 for output in done:
@@ -200,11 +239,17 @@ class OutputSet:
                 self.discard()
 
     def discard(self) -> None:
-        """Remove the temporary files not renamed (all of them before :meth:`commit`)."""
+        """Remove the temporary files not renamed (all of them before :meth:`commit`) and the directories made for
+        them that are empty."""
         for tmp in self._staged.values():
             with contextlib.suppress(OSError):
                 tmp.unlink()
         self._staged.clear()
+        for d in reversed(self._made):
+            with contextlib.suppress(OSError):
+                d.rmdir()
+        self._made.clear()
+        self._removed.clear()
         _OPEN.discard(self)
 
     def temporary_to_output(self, exc: OSError) -> OSError:

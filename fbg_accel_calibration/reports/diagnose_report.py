@@ -7,6 +7,9 @@ coefficient to counts (c0 = -M0^-1 k) for reading.
 
 from __future__ import annotations
 
+import contextlib
+import struct
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +18,7 @@ from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 
 from ..diagnosis.data import finite_rows
 from ..diagnosis.diagnose import DiagnosisResult
-from ..diagnosis.library import library_by_name
+from ..diagnosis.library import LIBRARY, library_by_name
 from ..diagnosis.search import CandidateResult
 from ..io.atomic_output import OutputSet, committed_outputs
 
@@ -428,6 +431,9 @@ def text(res: DiagnosisResult) -> str:
 PLOT_DPI = 80
 PLOT_TICKS = 4
 PNG_OPTIONS = {"compress_level": 1}
+# the PNG text chunk "Software" of every figure a diagnosis writes: a re-run removes its earlier figures that the new
+# report does not show, and only those (``stale_figures``), never a file of another writer under one of their names
+FIGURE_SOFTWARE = "fbg-accel-calib diagnose"
 # The grid (columns, rows) a scatter series is thinned on: finer than any panel's pixels at PLOT_DPI (the widest panel,
 # a third of a 15-inch figure, is under 400 pixels wide and 250 high), so a sample left out falls within a pixel of
 # one drawn: 10^6 points show nothing more than the few thousand cells they occupy, and cost seconds to draw.
@@ -522,7 +528,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path, figures: str = "repor
 
     def save(fig, name: str) -> None:
         written.append(out_dir / name)
-        fig.savefig(written[-1], dpi=PLOT_DPI, pil_kwargs=PNG_OPTIONS)
+        fig.savefig(written[-1], dpi=PLOT_DPI, pil_kwargs=PNG_OPTIONS, metadata={"Software": FIGURE_SOFTWARE})
 
     # candidates: residual of the current model (held out) against the candidate's contribution. One figure, its
     # artists given each candidate's data in turn: its axes and ticks are made once, not once per candidate.
@@ -616,11 +622,47 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path, figures: str = "repor
     return written
 
 
+def figure_files() -> tuple[str, ...]:
+    """Every name a figure of a diagnosis may have (:func:`write_plots`): the before/after, the residual's structure
+    and each library candidate's."""
+    return ("before_after.png", "residual_structure.png", *(f"candidate_{e.name}.png" for e in LIBRARY))
+
+
+def png_software(path: Path) -> str | None:
+    """The "Software" text of the PNG file ``path`` (its chunks before the image data), None when it has none or is
+    no PNG."""
+    with contextlib.suppress(OSError), open(path, "rb") as fh:
+        if fh.read(8) != b"\x89PNG\r\n\x1a\n":
+            return None
+        while len(head := fh.read(8)) == 8:
+            size, kind = struct.unpack(">I4s", head)
+            if kind in (b"IDAT", b"IEND"):
+                return None
+            if kind == b"tEXt" and size <= 4096:
+                key, _, value = fh.read(size).partition(b"\0")
+                if key == b"Software":
+                    return value.decode("latin-1")
+                fh.seek(4, 1)  # its CRC
+            else:
+                fh.seek(size + 4, 1)
+    return None
+
+
+def stale_figures(img_dir: Path, shown: Iterable[str]) -> list[Path]:
+    """The figures in ``img_dir`` that a diagnosis wrote (:data:`FIGURE_SOFTWARE`, under one of
+    :func:`figure_files`' names) and that are not ``shown``: beside a new report that does not link them they would
+    be taken for its own. Any other file there is the user's: never listed."""
+    shown = set(shown)
+    return [img_dir / n for n in figure_files() if n not in shown and (img_dir / n).is_file()
+            and png_software(img_dir / n) == FIGURE_SOFTWARE]
+
+
 def write_report(res: DiagnosisResult, md_path: str | Path, img_dir: str | Path | None = None, command: str = "",
                  outs: OutputSet | None = None, figures: str = "report") -> list[Path]:
     """Markdown report at ``md_path`` with its PNGs in ``img_dir`` (default: ``<md dir>/img``; those of ``figures``,
     ``FIGURES``), staged in ``outs`` (``atomic_output``: renamed with the run's other outputs when it commits), or
-    committed here together."""
+    committed here together. The figures of an earlier diagnosis in ``img_dir`` that this report does not show are
+    removed when it commits (``stale_figures``): the directory then holds the report's figures and the user's files."""
     import os
     import tempfile
 
@@ -629,14 +671,15 @@ def write_report(res: DiagnosisResult, md_path: str | Path, img_dir: str | Path 
             return write_report(res, md_path, img_dir, command, own, figures)
     md_path = Path(md_path)
     img_dir = Path(img_dir) if img_dir is not None else md_path.parent / "img"
-    md_path.parent.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     if figures != "none":
-        img_dir.mkdir(parents=True, exist_ok=True)
+        outs.directory(img_dir)  # the plots are drawn in it first (made with the outputs: gone again if they fail)
         with tempfile.TemporaryDirectory(dir=img_dir, prefix=".plots.") as tmp_dir:
             for p in write_plots(res, tmp_dir, figures):
                 os.replace(p, outs.path(img_dir / p.name))
                 written.append(img_dir / p.name)
+    for stale in stale_figures(img_dir, (p.name for p in written)):
+        outs.remove(stale)
     rel = os.path.relpath(img_dir, md_path.parent).replace(os.sep, "/")
     outs.path(md_path).write_text(markdown(res, command, img_prefix=f"{rel}/", figures=figures), encoding="utf-8")
     return [md_path, *written]

@@ -232,9 +232,7 @@ def run_report(csv_path: Path = DEFAULT_CSV, md_path: Path = DEFAULT_MD, png_pat
 
     cal = ThermalCalibration(M=fit.M[None], b=fit.b[None], temperature_range_c=(TEMPERATURE_C, TEMPERATURE_C))
     md_path, png_path = Path(md_path), Path(png_path)
-    for p in (md_path, png_path):
-        p.parent.mkdir(parents=True, exist_ok=True)
-    try:
+    try:  # resolved as paths (the directories are made with the outputs)
         png_rel = str(png_path.resolve().relative_to(md_path.parent.resolve()))
     except ValueError:
         png_rel = str(png_path)
@@ -254,7 +252,7 @@ def main_args(csv_path: Path, md_path: Path, png_path: Path, argv: list[str] | N
     argv = sys.argv[1:] if argv is None else argv
     command = "fbg-accel-calib report-measured" + ("".join(" " + shlex.quote(str(a)) for a in argv[1:]))
     try:  # existing pages (the committed results included) are replaced only with --force
-        check_outputs([md_path, png_path], [csv_path], force=force, create_dirs=True)
+        check_outputs([md_path, png_path], [csv_path], force=force)
         fit = run_report(csv_path, md_path, png_path, command=".venv/bin/" + command)
     except (OutputError, MeasuredDataMissingError) as exc:
         print(f"fbg-accel-calib report-measured: {exc}", file=sys.stderr)

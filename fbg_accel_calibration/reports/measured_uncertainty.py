@@ -132,10 +132,9 @@ def main_args(csv_path: Path, md_path: Path, argv: list[str] | None = None, forc
     argv = sys.argv[1:] if argv is None else argv
     command = ".venv/bin/fbg-accel-calib uncertainty-measured" + "".join(" " + shlex.quote(str(a)) for a in argv[1:])
     try:
-        check_outputs([md_path], [csv_path], force=force, create_dirs=True)
+        check_outputs([md_path], [csv_path], force=force)
         fit = fit_measured(csv_path)
         c = compare(fit)
-        md_path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(md_path) as tmp:
             tmp.write_text(report_markdown(fit, c, command), encoding="utf-8")
     except (OutputError, MeasuredDataMissingError) as exc:
