@@ -588,7 +588,7 @@ def _draw_plots(res: DiagnosisResult, out_dir: Path, cands: list[CandidateResult
             dots[j].set_data(delta[shown, j], res.residual_before[shown, j])
             lim = np.nanmax(np.abs(delta[r, j])) if np.any(r) else 1
             diagonal[j].set_data([-lim, lim], [-lim, lim])
-            axs[j].set_title(f"corr {c.corr_with_residual[j]:+.2f}")
+            axs[j].set_title(f"corr {c.corr_with_residual[j]:+.2f}", y=1.0)  # no ticks on top: no measuring
         axs[3].set_visible(bool(c.hyper_profile))
         if c.hyper_profile:
             h, v = np.array(c.hyper_profile).T
