@@ -1,31 +1,34 @@
-"""``fbg-accel-calib`` leaves the interpreter's last garbage collections nothing to walk: the objects alive when it
-exits (its libraries' modules, a diagnosis' results) are frozen out of them (``cli_main.main``), once however often
-``main`` runs in the process. Checked in a fresh interpreter, as a user's command runs."""
+"""``fbg-accel-calib`` leaves the interpreter's last garbage collections nothing to walk: ``cli_main.main`` registers
+an exit handler, once however often it runs in one process, that freezes the objects then alive (its libraries'
+modules, a diagnosis' results) out of them."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
+import atexit
+import gc
 
-# an exit handler registered before main() runs after main's own (last in, first out): it sees what the
-# interpreter's final collections will see, and how often the objects were frozen
-_PROBE = """
-import atexit, contextlib, gc, io
-freeze, calls = gc.freeze, []
-gc.freeze = lambda: calls.append(1) or freeze()
-atexit.register(lambda: print("frozen", gc.get_freeze_count(), "times", len(calls)))
-from fbg_accel_calibration.commands.cli_main import main
-for _ in range(2):
-    with contextlib.redirect_stdout(io.StringIO()):
-        try:
-            main(["--help"])
-        except SystemExit:
-            pass
-"""
+import pytest
+
+from fbg_accel_calibration.commands import cli_main
 
 
-def test_the_command_freezes_what_is_left_at_exit_once() -> None:
-    out = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, text=True, check=True, timeout=120)
-    words = out.stdout.split()
-    assert words[0] == "frozen" and int(words[1]) > 1000, out.stdout  # the modules' objects, not a handful
-    assert words[2:] == ["times", "1"], out.stdout  # one exit handler for two runs of main()
+def test_the_command_freezes_what_is_left_at_exit_once(monkeypatch: pytest.MonkeyPatch,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    handlers: list = []
+
+    def unregister(func) -> None:
+        handlers[:] = [h for h in handlers if h is not func]
+
+    monkeypatch.setattr(atexit, "register", handlers.append)
+    monkeypatch.setattr(atexit, "unregister", unregister)
+    for _ in range(2):
+        with pytest.raises(SystemExit):
+            cli_main.main(["--help"])
+    assert "usage" in capsys.readouterr().out
+    assert handlers == [cli_main._freeze_at_exit]  # one for the two runs
+    before = gc.get_freeze_count()
+    try:
+        handlers[0]()
+        assert gc.get_freeze_count() > before + 1000  # the modules' objects, not a handful
+    finally:
+        gc.unfreeze()
