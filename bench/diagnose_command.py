@@ -6,7 +6,10 @@ command, diagnosis, ...; ``floors.interleaved``): their CPU times (user + system
 median of the per-pair ratios. The diagnosis alone (``--diagnosis-alone``) imports the engine, reads the recording
 and calls ``diagnose()`` with the command's defaults; the command adds its argument parsing, the report text on
 stdout, the markdown report with its PNG figures (``--out``; by default those the report shows, ``--figures report``)
-and the refitted calibration (``--yaml``).
+and the refitted calibration (``--yaml``). The command freezes what is alive at its end out of the interpreter's last
+garbage collections (``cli_main._freeze_at_exit``), a plain script does not: so the command is also set against the
+diagnosis alone exiting the same way (``--exit-frozen``, interleaved with the command in pairs of their own), the
+ratio of what the command adds to the diagnosis alone, its exit aside.
 
 Then one more child (``--breakdown``) says where the command's time goes, in CPU seconds of one process: importing
 the engine, reading, the diagnosis, the report text and markdown, importing matplotlib, each figure, the YAML.
@@ -61,8 +64,10 @@ def command_argv(path: Path, out: Path, figures: str = "report") -> list[str]:
             "--no-progress", "--figures", figures]
 
 
-def diagnosis_alone(path: str) -> None:
-    """The floor (in its own process): read the recording and diagnose it as the command does, nothing written."""
+def diagnosis_alone(path: str, exit_frozen: bool = False) -> None:
+    """The floor (in its own process): read the recording and diagnose it as the command does, nothing written; with
+    ``exit_frozen`` what is alive at the end frozen out of the interpreter's last collections, as the command does
+    (``cli_main._freeze_at_exit``)."""
     from fbg_accel_calibration.diagnosis.diagnose import diagnose
     from fbg_accel_calibration.diagnosis.heap_trim import set_process_heap_policy
     from fbg_accel_calibration.io.input_files import load_recording
@@ -70,6 +75,10 @@ def diagnosis_alone(path: str) -> None:
     set_process_heap_policy()
     rec = load_recording([path], rate=None, temperature=None, g=None, namespace=None, topic=None)
     diagnose(rec, sensor_id="bench")
+    if exit_frozen:
+        import gc
+
+        gc.freeze()
 
 
 def breakdown(path: str, out: str, figures: str = "report") -> None:
@@ -127,6 +136,9 @@ def measure(n: int, pairs: int, folder: Path, figures: str = "report") -> dict:
     project = command_argv(path, out, figures)
     run_child(project)  # page cache and .pyc files
     res = interleaved(floor, project, pairs)
+    frozen = interleaved([*floor, "--exit-frozen"], project, pairs)  # the floor exiting as the command does
+    res.update(floor_exit_frozen=frozen["floor"], cpu_ratio_exit_frozen=frozen["cpu_ratio"],
+               cpu_ratio_exit_frozen_range=frozen["cpu_ratio_range"])
     proc = subprocess.run([sys.executable, str(HERE), "--breakdown", str(path), str(out), "--figures", figures],
                           capture_output=True, text=True, check=True)
     stages = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -134,7 +146,8 @@ def measure(n: int, pairs: int, folder: Path, figures: str = "report") -> dict:
                figures=sorted(p.name for p in out.glob("img/*.png")))
     print(f"diagnose {n} samples: command CPU {res['project']['cpu_s']:.2f} s, diagnosis alone "
           f"{res['floor']['cpu_s']:.2f} s: {res['cpu_ratio']:.2f}x (range {res['cpu_ratio_range']}; goal <= {GOAL}x: "
-          f"{'met' if res['goal_met'] else 'NOT met'})", flush=True)
+          f"{'met' if res['goal_met'] else 'NOT met'}); against the diagnosis alone exiting as the command does "
+          f"{res['floor_exit_frozen']['cpu_s']:.2f} s: {res['cpu_ratio_exit_frozen']:.2f}x", flush=True)
     print("  breakdown (CPU s): " + ", ".join(f"{k} {v}" for k, v in stages.items()), flush=True)
     return res
 
@@ -146,11 +159,14 @@ def section(doc: dict) -> str:
              f"CPUs; load average before {doc['load_average_before']}, after {m['load_average_1_5_15']}. Method: the "
              "docstring of `bench/diagnose_command.py` (the simulator's benchmark run as MCAP; CPU times of child "
              "processes, interleaved pairs, median of the per-pair ratios).", "",
-             "| samples | command CPU | diagnosis alone CPU | ratio (range) | goal |", "|---|---|---|---|---|"]
+             "| samples | command CPU | diagnosis alone CPU | ratio (range) | goal | diagnosis alone, exiting as the "
+             "command (frozen) | ratio (range) |", "|---|---|---|---|---|---|---|"]
     for r in doc["sizes"]:
         lines.append(f"| {r['samples']:.0e} | {r['project']['cpu_s']:.2f} s | {r['floor']['cpu_s']:.2f} s | "
                      f"{r['cpu_ratio']:.2f}x ({r['cpu_ratio_range'][0]:.2f}-{r['cpu_ratio_range'][1]:.2f}) | "
-                     f"<= {GOAL}x: {'met' if r['goal_met'] else 'not met'} |")
+                     f"<= {GOAL}x: {'met' if r['goal_met'] else 'not met'} | {r['floor_exit_frozen']['cpu_s']:.2f} s | "
+                     f"{r['cpu_ratio_exit_frozen']:.2f}x ({r['cpu_ratio_exit_frozen_range'][0]:.2f}-"
+                     f"{r['cpu_ratio_exit_frozen_range'][1]:.2f}) |")
     lines += ["", "Where the command's time goes (CPU seconds of one process, `--breakdown`):", "",
               "| stage | " + " | ".join(f"{r['samples']:.0e}" for r in doc["sizes"]) + " |",
               "|---|" + "---|" * len(doc["sizes"])]
@@ -177,11 +193,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--figures", choices=("report", "all", "none"), default="report",
                     help="the command's --figures (default %(default)s, the command's own)")
     ap.add_argument("--diagnosis-alone", metavar="MCAP", help=argparse.SUPPRESS)
+    ap.add_argument("--exit-frozen", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--breakdown", nargs=2, metavar=("MCAP", "DIR"), help=argparse.SUPPRESS)
     add_update_results(ap)
     args = ap.parse_args(argv)
     if args.diagnosis_alone:
-        diagnosis_alone(args.diagnosis_alone)
+        diagnosis_alone(args.diagnosis_alone, args.exit_frozen)
         return 0
     if args.breakdown:
         breakdown(*args.breakdown, args.figures)

@@ -40,6 +40,7 @@ from fbg_accel_calibration.reports.diagnose_report import (
     CAND_HEAD,
     FIGURES,
     PLOT_GRID,
+    _draw_plots,
     markdown,
     plotted,
     plotted_candidates,
@@ -131,6 +132,10 @@ def test_injected_dark_offset_is_found_and_fixed(tmp_path: Path) -> None:
         write_outputs(res, args, "")
         written = {p.name for p in tmp_path.glob(f"{figures}/img/*.png")}
         assert set(_linked_figures((tmp_path / figures / "d.md").read_text())) == written == expected, figures
+    # the figures are drawn in turn on the same panels: each the same, pixel for pixel, whether every candidate's were
+    # drawn before it ('all') or none
+    for p in _draw_plots(res, tmp_path / "first", []):
+        assert p.read_bytes() == (tmp_path / "all/img" / p.name).read_bytes(), p.name
 
 
 def _linked_figures(md: str) -> list[str]:

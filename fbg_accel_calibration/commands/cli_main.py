@@ -5,6 +5,8 @@ at module level."""
 
 from __future__ import annotations
 
+import atexit
+import gc
 import sys
 
 from fbg_accel_driver.command_line import exit_quietly_on_interrupt, interrupted_status, raise_on_interrupt
@@ -12,8 +14,17 @@ from fbg_accel_driver.command_line import exit_quietly_on_interrupt, interrupted
 PROG = "fbg-accel-calib"
 
 
+def _freeze_at_exit() -> None:
+    """At exit, the interpreter's last garbage collections walk every object still alive (numpy's, scipy's and
+    matplotlib's modules, a diagnosis' results): 0.1-0.2 s CPU of a command (bench/diagnose_command.py). Frozen out of
+    them instead, the objects go with the process's memory; every output is closed (and renamed) before main returns."""
+    gc.freeze()
+
+
 def main(argv: list[str] | None = None) -> int:
     exit_quietly_on_interrupt(PROG)
+    atexit.unregister(_freeze_at_exit)  # once however often main() runs in one process
+    atexit.register(_freeze_at_exit)
     from .cli import main as cli_main
 
     raise_on_interrupt()

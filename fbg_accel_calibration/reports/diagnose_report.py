@@ -434,6 +434,9 @@ PNG_OPTIONS = {"compress_level": 1}
 # the PNG text chunk "Software" of every figure a diagnosis writes: a re-run removes its earlier figures that the new
 # report does not show, and only those (``stale_figures``), never a file of another writer under one of their names
 FIGURE_SOFTWARE = "fbg-accel-calib diagnose"
+# matplotlib's settings while the figures are drawn: glyphs rendered unhinted (matplotlib's default, FreeType's
+# autohinter, redoes its work for every glyph drawn; at 80 dpi the text reads the same).
+PLOT_RC = {"text.hinting": "no_hinting"}
 # The grid (columns, rows) a scatter series is thinned on: finer than any panel's pixels at PLOT_DPI (the widest panel,
 # a third of a 15-inch figure, is under 400 pixels wide and 250 high), so a sample left out falls within a pixel of
 # one drawn: 10^6 points show nothing more than the few thousand cells they occupy, and cost seconds to draw.
@@ -483,27 +486,57 @@ def plotted_candidates(res: DiagnosisResult, figures: str = "report") -> list[Ca
     return [c for c in res.ranked if c.applicable and c.delta is not None and (named is None or c.name in named)]
 
 
-def _figure(rows: int, cols: int, size_in: tuple[float, float], **margins: float):
-    """A figure of ``rows`` x ``cols`` panels on the Agg canvas (no pyplot state), laid out once by fixed margins
-    (fractions of the figure) instead of a tight layout that renders every label to measure it, each axis with at most
-    ``PLOT_TICKS`` intervals."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+class _Panels:
+    """The report's figures drawn one after another on one figure of the Agg canvas (no pyplot state): each
+    :meth:`layout` takes the panels it needs from those of the figures before it (an axis and its ticks are made once,
+    not once per figure), places them by fixed margins (fractions of the figure) instead of a tight layout that renders
+    every label to measure it, clears what the figure before drew and hides the panels it does not use. Each axis has
+    at most ``PLOT_TICKS`` intervals."""
 
-    fig = Figure(figsize=size_in, dpi=PLOT_DPI)
-    FigureCanvasAgg(fig)
-    axs = fig.subplots(rows, cols, squeeze=False)
-    fig.subplots_adjust(**margins)
-    for ax in axs.flat:
-        ax.locator_params(nbins=PLOT_TICKS)
-    return fig, axs
+    def __init__(self) -> None:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        self.fig = Figure(dpi=PLOT_DPI)
+        FigureCanvasAgg(self.fig)
+        self.axes: list = []
+        self.extra: list = []  # the current figure's own artists beside its panels (notes, a colour bar's axis)
+
+    def layout(self, rows: int, cols: int, size_in: tuple[float, float], **margins: float) -> np.ndarray:
+        """``rows`` x ``cols`` empty panels (an array of axes) on the figure, resized to ``size_in`` inches."""
+        from matplotlib.gridspec import GridSpec
+
+        for artist in self.extra:
+            artist.remove()
+        self.extra = []
+        self.fig.set_size_inches(size_in)
+        self.fig.suptitle("")
+        grid = GridSpec(rows, cols, figure=self.fig, **margins)
+        while len(self.axes) < rows * cols:
+            self.axes.append(self.fig.add_subplot(grid[len(self.axes) // cols, len(self.axes) % cols]))
+            self.axes[-1].locator_params(nbins=PLOT_TICKS)
+        for k, ax in enumerate(self.axes):
+            ax.set_visible(k < rows * cols)
+            if k < rows * cols:
+                ax.set_subplotspec(grid[k // cols, k % cols])
+            for artist in (*ax.lines, *ax.collections, *ax.patches, *ax.texts):
+                artist.remove()
+            if ax.legend_ is not None:
+                ax.legend_.remove()
+            ax.set_title("")
+            ax.set_xlabel("")
+            ax.set_ylabel("")
+            ax.set_prop_cycle(None)  # the first series of each figure in the first colour of the cycle
+            ax.relim()
+        return np.array(self.axes[: rows * cols], dtype=object).reshape(rows, cols)
 
 
-def _thinning_note(fig, y: float) -> None:
-    """Says on ``fig``, at its right edge and height ``y`` (a fraction of the figure), how its scatters are thinned
+def _thinning_note(panels: _Panels, y: float) -> None:
+    """Says on the figure, at its right edge and height ``y`` (a fraction of the figure), how its scatters are thinned
     (``plotted``)."""
-    fig.text(0.995, y, f"dots: one sample per occupied cell of a {PLOT_GRID[0]} x {PLOT_GRID[1]} grid over a panel",
-             ha="right", va="top" if y > 0.5 else "bottom", fontsize=7)
+    panels.extra.append(panels.fig.text(
+        0.995, y, f"dots: one sample per occupied cell of a {PLOT_GRID[0]} x {PLOT_GRID[1]} grid over a panel",
+        ha="right", va="top" if y > 0.5 else "bottom", fontsize=7))
 
 
 def _scatter(ax, x: np.ndarray, y: np.ndarray, idx: np.ndarray, **kw) -> None:
@@ -519,22 +552,31 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path, figures: str = "repor
     cands = plotted_candidates(res, figures)
     if figures == "none":
         return []
-    out_dir = Path(out_dir)
+    return _draw_plots(res, Path(out_dir), cands)
+
+
+def _draw_plots(res: DiagnosisResult, out_dir: Path, cands: list[CandidateResult]) -> list[Path]:
+    """:func:`write_plots` of the candidates ``cands``."""
+    from matplotlib import rc_context
+
     out_dir.mkdir(parents=True, exist_ok=True)
     d = res.data
     r = d.use & finite_rows(res.residual_before)
     ri = np.flatnonzero(r)
     written: list[Path] = []
 
-    def save(fig, name: str) -> None:
+    panels = _Panels()
+    fig = panels.fig
+
+    def save(name: str) -> None:
         written.append(out_dir / name)
-        fig.savefig(written[-1], dpi=PLOT_DPI, pil_kwargs=PNG_OPTIONS, metadata={"Software": FIGURE_SOFTWARE})
+        with rc_context(PLOT_RC):  # the text is laid out and rendered when the figure is drawn, here
+            fig.savefig(written[-1], dpi=PLOT_DPI, pil_kwargs=PNG_OPTIONS, metadata={"Software": FIGURE_SOFTWARE})
 
     # candidates: residual of the current model (held out) against the candidate's contribution. One figure, its
     # artists given each candidate's data in turn: its axes and ticks are made once, not once per candidate.
     if cands:
-        fig, axs = _figure(1, 4, (15, 3.6), left=0.05, right=0.99, bottom=0.15, top=0.83, wspace=0.33)
-        axs = axs[0]
+        axs = panels.layout(1, 4, (15, 3.6), left=0.05, right=0.99, bottom=0.15, top=0.83, wspace=0.33)[0]
         dots = [axs[j].plot([], [], ".", ms=2, alpha=0.4)[0] for j in range(3)]
         diagonal = [axs[j].plot([], [], "k--", lw=0.8)[0] for j in range(3)]
         for j in range(3):
@@ -543,7 +585,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path, figures: str = "repor
         profile = axs[3].plot([], [], "o-")[0]
         chosen = axs[3].axvline(0.0, color="r", lw=0.8)
         axs[3].set_ylabel("weighted training RSS")
-        _thinning_note(fig, 0.995)
+        _thinning_note(panels, 0.995)
     for c in cands:
         # evaluated on the search's samples (search_samples: the fitted ones, or every k-th): those plotted
         delta = c.delta_of_every_sample(len(d.t_s))
@@ -552,7 +594,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path, figures: str = "repor
             dots[j].set_data(delta[shown, j], res.residual_before[shown, j])
             lim = np.nanmax(np.abs(delta[r, j])) if np.any(r) else 1
             diagonal[j].set_data([-lim, lim], [-lim, lim])
-            axs[j].set_title(f"corr {c.corr_with_residual[j]:+.2f}")
+            axs[j].set_title(f"corr {c.corr_with_residual[j]:+.2f}", y=1.0)  # no ticks on top: no measuring
         axs[3].set_visible(bool(c.hyper_profile))
         if c.hyper_profile:
             h, v = np.array(c.hyper_profile).T
@@ -566,11 +608,11 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path, figures: str = "repor
             ax.relim(visible_only=True)
             ax.autoscale_view()
         fig.suptitle(f"{c.name}: held-out gain {100 * c.rel_gain:+.1f} %, p = {_p(c.p_value)}")
-        save(fig, f"candidate_{c.name}.png")
+        save(f"candidate_{c.name}.png")
 
     # before / after
     t = d.t_s - float(np.min(d.t_s))  # the time axis starts at the first sample, as the tables (a CSV: epoch seconds)
-    fig, axs = _figure(2, 3, (15, 6.5), left=0.05, right=0.99, bottom=0.1, top=0.91, wspace=0.25, hspace=0.3)
+    axs = panels.layout(2, 3, (15, 6.5), left=0.05, right=0.99, bottom=0.1, top=0.91, wspace=0.25, hspace=0.3)
     ra = np.flatnonzero(r & finite_rows(res.residual_after))
     for j in range(3):
         ax = axs[0, j]
@@ -587,10 +629,10 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path, figures: str = "repor
         _scatter(ax, d.ref, res.residual_after[:, j], ra, alpha=0.5, label="with added effects")
         ax.set_xlabel("reference counts")
         ax.set_ylabel(f"residual {AXES[j]} [m/s^2]")
-    _thinning_note(fig, 0.003)
+    _thinning_note(panels, 0.003)
     fig.suptitle("held-out residual before/after; dotted: ± noise floor. RMSE x/y/z before "
                  f"{_v(res.before_heldout_rmse)} -> after {_v(res.after_heldout_rmse)} m/s^2")
-    save(fig, "before_after.png")
+    save("before_after.png")
 
     # structure of what remains: pose means vs time, temperature and orientation
     from matplotlib.ticker import MaxNLocator
@@ -600,7 +642,7 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path, figures: str = "repor
     pt = np.array([q["t_s"] for q in s.per_pose])
     pT = np.array([q["temp_c"] for q in s.per_pose])
     pg = np.array([q["gref_mps2"] for q in s.per_pose])
-    fig, axs = _figure(3, 3, (15, 9), left=0.05, right=0.92, bottom=0.06, top=0.94, wspace=0.3, hspace=0.3)
+    axs = panels.layout(3, 3, (15, 9), left=0.05, right=0.92, bottom=0.06, top=0.94, wspace=0.3, hspace=0.3)
     # the orientation panels share one colour scale, symmetric about 0 (white) and the same on x/y/z: one colour bar
     top = float(np.nanmax(np.abs(pm))) if np.any(np.isfinite(pm)) else 1.0
     top = top if top > 0 else 1.0
@@ -615,10 +657,11 @@ def write_plots(res: DiagnosisResult, out_dir: str | Path, figures: str = "repor
         for i in range(2):
             axs[i, j].set_ylabel(f"pose-mean residual {AXES[j]} [m/s^2]")
             axs[i, j].axhline(0, color="k", lw=0.5)
-    bar = fig.colorbar(sc, cax=fig.add_axes((0.935, 0.06, 0.008, 0.22)), label="pose-mean residual [m/s^2]")
+    panels.extra.append(fig.add_axes((0.935, 0.06, 0.008, 0.22)))
+    bar = fig.colorbar(sc, cax=panels.extra[-1], label="pose-mean residual [m/s^2]")
     bar.locator = MaxNLocator(PLOT_TICKS)
     fig.suptitle(s.verdict[:150])
-    save(fig, "residual_structure.png")
+    save("residual_structure.png")
     return written
 
 
