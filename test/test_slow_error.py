@@ -136,8 +136,9 @@ SLOW = np.array([[4e-3, 1e-3, 0.0], [1e-3, 2e-3, 0.0], [0.0, 0.0, 9e-3]])
 
 def test_the_driver_adds_it_as_a_bias_once_per_message() -> None:
     """With covariance_includes_calibration the slow error is added in full (off-diagonal too), once per published
-    message: a decimated message gets it undivided, the noise part 1/N of it; off by default."""
-    cal = make_cal(slow_error=SlowErrorSection(SLOW, "test", 40))
+    message: a decimated message gets it undivided, the noise part 1/N of it; off by default. (A section with its
+    run-to-run part: one without it gets an allowance too, next test.)"""
+    cal = make_cal(slow_error=SlowErrorSection(SLOW, "test", 40, run_to_run=SLOW / 2))
     frames = [frame(i, xyz=(1100 + 3 * i, 1600, 1100 - 2 * i)) for i in range(40)]
     noise = np.diag(cal.noise_sigma_mps2**2)
     for n in (1, 10):
@@ -154,6 +155,46 @@ def test_the_driver_adds_it_as_a_bias_once_per_message() -> None:
     snap.calibration_uncertainty = snap_values
     msg = next(e for e in DriverDiagnostics().report(snap) if e.name.endswith("calibration uncertainty")).message
     assert "slow error of a still mean" in msg and "0.0949" in msg
+
+
+def published_calibration_part(cal) -> np.ndarray:
+    """The calibration's part (3, 3) (m/s^2)^2 of the covariance the driver publishes for ``cal`` with
+    covariance_includes_calibration: the message's covariance less the one without the parameter."""
+    frames = [frame(i, xyz=(1100 + 3 * i, 1600, 1100 - 2 * i)) for i in range(10)]
+    plain = feed_frames(DriverCore(cal, CoreConfig()), frames)[1][-1]
+    withs = feed_frames(DriverCore(cal, CoreConfig(covariance_includes_calibration=True)), frames)[1][-1]
+    return np.array(withs.covariance).reshape(3, 3) - np.array(plain.covariance).reshape(3, 3)
+
+
+def test_a_slow_error_without_its_run_to_run_part_is_published_with_the_allowance_the_gravity_check_gives_it(
+        monkeypatch) -> None:
+    """A one-run-per-level file's slow error lacks the run-to-run part (b(T) took it up): the published covariance adds
+    UNSTATED_RUN_TO_RUN_MPS2 squared on each axis (isotropic: the gravity check allows the same along any direction of
+    gravity), the diagnostic names it; a section with R gets nothing more. One constant for both: changed in its one
+    place (``fbg_accel_driver.slow_error``), the covariance and the gravity check's allowance follow it."""
+    import fbg_accel_driver.slow_error as slow_error_module
+    from fbg_accel_driver.gravity_check import unstated_allowance
+
+    no_r = make_cal(slow_error=SlowErrorSection(SLOW, "test", 40))
+    with_r = make_cal(slow_error=SlowErrorSection(SLOW, "test", 40, run_to_run=SLOW / 2))
+    a = slow_error_module.UNSTATED_RUN_TO_RUN_MPS2
+    assert a == 0.05
+    np.testing.assert_allclose(published_calibration_part(no_r), SLOW + a**2 * np.eye(3), rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(published_calibration_part(with_r), SLOW, rtol=1e-9, atol=1e-15)
+    assert unstated_allowance(no_r) == a and unstated_allowance(with_r) == 0.0
+    monkeypatch.setattr(slow_error_module, "UNSTATED_RUN_TO_RUN_MPS2", 0.07)
+    np.testing.assert_allclose(published_calibration_part(no_r), SLOW + 0.07**2 * np.eye(3), rtol=1e-9, atol=1e-15)
+    assert unstated_allowance(no_r) == 0.07
+    monkeypatch.undo()
+    values = calibration_uncertainty_values(None, False, True, no_r.slow_error.sigma_mps2,
+                                            no_r.slow_error.unstated_run_to_run_mps2)
+    assert values["unstated_run_to_run_sigma_mps2"] == a and values["slow_sigma_z_mps2"] == round(math.sqrt(9e-3), 6)
+    assert "unstated_run_to_run_sigma_mps2" not in calibration_uncertainty_values(
+        None, False, True, with_r.slow_error.sigma_mps2, with_r.slow_error.unstated_run_to_run_mps2)
+    snap = snapshot(1.0)
+    snap.calibration_uncertainty = values
+    msg = next(e for e in DriverDiagnostics().report(snap) if e.name.endswith("calibration uncertainty")).message
+    assert "0.05 m/s^2 per axis for the run-to-run part the file does not state" in msg
 
 
 def still_with_and_without_slow_error():
@@ -188,11 +229,8 @@ def test_the_default_tolerance_is_gravity_s_and_a_file_gets_an_allowance_for_wha
     it, a file without the section UNSTATED_SLOW_ERROR_MPS2 (0.12), each named in the test's figures: a fixed allowance
     added on top of a fully stated slow error would count it twice (threshold about 0.35 m/s^2 with the simulated
     campaigns' slow error: 8 % of the 0.2 m/s^2 drifts flagged)."""
-    from fbg_accel_driver.gravity_check import (
-        DEFAULT_TOLERANCE_MPS2,
-        UNSTATED_RUN_TO_RUN_MPS2,
-        UNSTATED_SLOW_ERROR_MPS2,
-    )
+    from fbg_accel_driver.gravity_check import DEFAULT_TOLERANCE_MPS2, UNSTATED_SLOW_ERROR_MPS2
+    from fbg_accel_driver.slow_error import UNSTATED_RUN_TO_RUN_MPS2
 
     assert DEFAULT_TOLERANCE_MPS2 == CoreConfig().gravity_tolerance_mps2 == 0.03 and UNSTATED_SLOW_ERROR_MPS2 == 0.12
     assert UNSTATED_RUN_TO_RUN_MPS2 == 0.05
