@@ -48,7 +48,7 @@ Sample policies (documented in docs/topics.md; each has a counter and a diagnost
   the block's size. Always reported in the diagnostics (:meth:`DriverCore.calibration_uncertainty`). The file's
   ``slow_error`` section (the slow error of a pose mean beyond noise and coefficients, ``slow_error``) is added with it,
   in the same way: a bias, once per published message; a section without its run-to-run part (one run per level) with
-  ``slow_error.UNSTATED_RUN_TO_RUN_MPS2`` squared on each axis for that part (``SlowErrorSection.published_matrix``).
+  ``slow_error.UNSTATED_RUN_TO_RUN_SIGMA_MPS2`` squared on each axis for that part (``SlowErrorSection.published_matrix``).
 * With ``covariance_source`` ``unknown`` the covariance is all zeros (REP 145 "unknown") for every sample: the
   policies above still flag and count, but there is no variance to inflate, and a single inflated entry would state
   the other axes exactly known.

@@ -262,7 +262,7 @@ class DriverDiagnostics:
                 unstated = u.get("unstated_run_to_run_sigma_mps2")
                 msg += (f"; slow error of a still mean {u['slow_sigma_x_mps2']:.3g}/{u['slow_sigma_y_mps2']:.3g}/"
                         f"{u['slow_sigma_z_mps2']:.3g} m/s^2 (x/y/z, 1 sigma, a bias)"
-                        + (f" plus {unstated:g} m/s^2 per axis for the run-to-run part the file does not state (one "
+                        + (f" plus {unstated:.3g} m/s^2 per axis for the run-to-run part the file does not state (one "
                            "run per temperature level)" if unstated else "") + ", "
                         + ("included in" if u["included_in_covariance"] else "not included in")
                         + " linear_acceleration_covariance")
