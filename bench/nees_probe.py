@@ -245,7 +245,7 @@ def calibration_consistency(seeds: int, temps: list[float], settle_s: float, fir
             carried = CarriedRunToRun(earlier.slow_error.run_to_run, earlier.sensor_id, f"seed {s + 1000}")
         cal = fitted_calibration(s, overrides=over, runs_per_level=runs_per_level, repeat_levels=repeat_levels,
                                  levels=levels, carried=carried)
-        allow = 0.0 if cal.slow_error is None else cal.slow_error.unstated_run_to_run_mps2
+        allow = 0.0 if cal.slow_error is None else cal.slow_error.unstated_run_to_run_sigma_mps2
         allowances.append(allow)
         for t in temps:
             res = run_case({**pose_plan(t), **over}, cal, CoreConfig(), seed=s + 7919)

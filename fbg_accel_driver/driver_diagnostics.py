@@ -320,16 +320,16 @@ class DriverDiagnostics:
 
 def calibration_uncertainty_values(point: tuple[float, float, float, float] | None, has_section: bool,
                                    included: bool, slow_sigma_mps2: Any = None,
-                                   unstated_run_to_run_mps2: float = 0.0) -> dict[str, Any]:
+                                   unstated_run_to_run_sigma_mps2: float = 0.0) -> dict[str, Any]:
     """The diagnostic's values from ``DriverCore.calibration_uncertainty()`` (``point``), whether the calibration has a
     ``coefficient_covariance`` section, whether the terms are in the published covariance, the ``slow_error``
     section's standard deviations (x, y, z m/s^2; None without the section) and the allowance (m/s^2, 1 sigma per axis)
-    for the run-to-run part it does not state (``SlowErrorSection.unstated_run_to_run_mps2``; 0: none)."""
+    for the run-to-run part it does not state (``SlowErrorSection.unstated_run_to_run_sigma_mps2``; 0: none)."""
     slow: dict[str, Any] = {}
     if slow_sigma_mps2 is not None:
         slow = {f"slow_sigma_{a}_mps2": round(float(v), 6) for a, v in zip("xyz", slow_sigma_mps2, strict=True)}
-        if unstated_run_to_run_mps2:
-            slow["unstated_run_to_run_sigma_mps2"] = float(unstated_run_to_run_mps2)
+        if unstated_run_to_run_sigma_mps2:
+            slow["unstated_run_to_run_sigma_mps2"] = float(unstated_run_to_run_sigma_mps2)
     if not has_section:
         return {"coefficient_covariance": "absent", "included_in_covariance": included and bool(slow), **slow}
     out: dict[str, Any] = {"coefficient_covariance": "present", "included_in_covariance": included, **slow}

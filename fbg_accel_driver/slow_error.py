@@ -32,22 +32,24 @@ import numpy as np
 
 from .coefficient_covariance import check_matrix, read_section
 from .mapping_fields import number_array, refuse_unknown
+from .sensor_constants import STANDARD_GRAVITY
 
 SECTION_VERSION = 1
 SECTION_KEYS = ("format_version", "method", "visits", "matrix")  # read_section's order
 RUN_KEY = "run_to_run_matrix"  # optional: the run-to-run component R (3, 3) (m/s^2)^2, when known
 MAX_SIGMA_MPS2 = 10.0  # a slow error above 1 g is no calibration
 # paper Table 2's largest bias instability (z, 1.87 mg; ../shared/docs/sensor_facts.md), m/s^2
-TABLE2_BIAS_INSTABILITY_MPS2 = 1.87e-3 * 9.80665
+TABLE2_BIAS_INSTABILITY_MPS2 = 1.87e-3 * STANDARD_GRAVITY
 PLAN_RUN_S = 240.0  # s, one run of the paper's six-position plan (config/pose_plan_six_position.yaml: 6 x (30 + 10) s)
 USE_LAG_S = 365.25 * 86400.0  # s, a calibration used for up to a year
 
 
 def flicker_run_to_run_sigma_mps2(bias_instability_mps2: float, run_s: float, lag_s: float) -> float:
-    """Standard deviation (m/s^2) of the difference between a flicker bias' mean over a run of ``run_s`` s and its value
-    ``lag_s`` s later (lag >> run), for the bias instability B (m/s^2) of an Allan deviation flat at 0.664 B: the
-    integral of the PSD B^2 / (2 pi f) (IEEE Std 952-1997, annex C) times |1 - e^(2 pi i f lag)|^2 sinc^2(pi f run),
-    (B^2 / pi) (ln(lag / run) + 3/2) (checked against the integral done numerically, test/test_slow_error.py)."""
+    """Standard deviation (m/s^2) of the difference between a flicker bias' means over two runs of ``run_s`` s,
+    ``lag_s`` s apart (lag >> run: the campaign's run, which b(T) took up, and a run on the vehicle), for the bias
+    instability B (m/s^2) of an Allan deviation flat at 0.664 B: the integral of the PSD B^2 / (2 pi f) (IEEE Std
+    952-1997, annex C) times |1 - e^(2 pi i f lag)|^2 sinc^2(pi f run), (B^2 / pi) (ln(lag / run) + 3/2) (checked
+    against the integral done numerically, test/test_slow_error.py)."""
     return math.sqrt(bias_instability_mps2**2 / math.pi * (math.log(lag_s / run_s) + 1.5))
 
 
@@ -103,7 +105,7 @@ class SlowErrorSection:
         return np.sqrt(np.clip(np.diag(self.matrix), 0.0, None))
 
     @property
-    def unstated_run_to_run_mps2(self) -> float:
+    def unstated_run_to_run_sigma_mps2(self) -> float:
         """The allowance (m/s^2, 1 sigma per axis) for the run-to-run part this section does not state:
         :data:`UNSTATED_RUN_TO_RUN_SIGMA_MPS2` without R, 0 with it (identified by the campaign or carried)."""
         return UNSTATED_RUN_TO_RUN_SIGMA_MPS2 if self.run_to_run is None else 0.0
@@ -111,8 +113,8 @@ class SlowErrorSection:
     @property
     def published_matrix(self) -> np.ndarray:
         """What the driver publishes for the slow error (3, 3) (m/s^2)^2: ``matrix`` plus the square of
-        :attr:`unstated_run_to_run_mps2` on each axis."""
-        return self.matrix + self.unstated_run_to_run_mps2**2 * np.eye(3)
+        :attr:`unstated_run_to_run_sigma_mps2` on each axis."""
+        return self.matrix + self.unstated_run_to_run_sigma_mps2**2 * np.eye(3)
 
     def published_entries(self) -> tuple[float, float, float, float, float, float]:
         """(xx, xy, xz, yy, yz, zz) of :attr:`published_matrix`, (m/s^2)^2, as
