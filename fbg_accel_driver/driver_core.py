@@ -47,7 +47,8 @@ Sample policies (documented in docs/topics.md; each has a counter and a diagnost
   error for every sample: a decimated sample gets it once, at the block's mean Psi and temperature, not divided by
   the block's size. Always reported in the diagnostics (:meth:`DriverCore.calibration_uncertainty`). The file's
   ``slow_error`` section (the slow error of a pose mean beyond noise and coefficients, ``slow_error``) is added with it,
-  in the same way: a bias, once per published message.
+  in the same way: a bias, once per published message; a section without its run-to-run part (one run per level) with
+  ``slow_error.UNSTATED_RUN_TO_RUN_SIGMA_MPS2`` squared on each axis for that part (``SlowErrorSection.published_matrix``).
 * With ``covariance_source`` ``unknown`` the covariance is all zeros (REP 145 "unknown") for every sample: the
   policies above still flag and count, but there is no variance to inflate, and a single inflated entry would state
   the other axes exactly known.
@@ -272,8 +273,9 @@ class DriverCore:
                               and (calibration.coefficient_covariance is not None or calibration.slow_error is not None)
                               and self.config.covariance_source != "unknown")
         self._last_cal_point: tuple[float, float, float, float] | None = None
-        # the slow error's (xx, xy, xz, yy, yz, zz), the same for every message
-        self._slow_entries = (calibration.slow_error.entries()
+        # the slow error's (xx, xy, xz, yy, yz, zz) as published (with the allowance for an unstated run-to-run part),
+        # the same for every message
+        self._slow_entries = (calibration.slow_error.published_entries()
                               if calibration is not None and calibration.slow_error is not None else None)
         self._prev_frame: tuple[int, int, int] | None = None  # (seq, t_us, ADC_OVERRUN) of the previous frame of this run
         # the board's nominal sample interval (us): median of recent t_us steps between frames of consecutive seq, a late
@@ -659,7 +661,7 @@ class DriverCore:
     def _calibration_bias(self, psi: tuple[float, float, float],
                           temp: float) -> tuple[float, float, float, float, float, float]:
         """(xx, xy, xz, yy, yz, zz), (m/s^2)^2, of the calibration's bias at ``psi`` and ``temp`` (degC): J Sigma J^T of
-        the ``coefficient_covariance`` section plus the ``slow_error`` section's matrix (each 0 when absent)."""
+        the ``coefficient_covariance`` section plus the ``slow_error`` section's published matrix (each 0 when absent)."""
         cal = self.cal
         c = (output_covariance(cal.calibration_weights_at(round(temp, 2)), *psi)
              if cal.coefficient_covariance is not None else (0.0,) * 6)

@@ -259,8 +259,11 @@ class DriverDiagnostics:
                        + ("included in" if u["included_in_covariance"] else "not included in")
                        + " linear_acceleration_covariance")
             if "slow_sigma_x_mps2" in u:
+                unstated = u.get("unstated_run_to_run_sigma_mps2")
                 msg += (f"; slow error of a still mean {u['slow_sigma_x_mps2']:.3g}/{u['slow_sigma_y_mps2']:.3g}/"
-                        f"{u['slow_sigma_z_mps2']:.3g} m/s^2 (x/y/z, 1 sigma, a bias), "
+                        f"{u['slow_sigma_z_mps2']:.3g} m/s^2 (x/y/z, 1 sigma, a bias)"
+                        + (f" plus {unstated:.3g} m/s^2 per axis for the run-to-run part the file does not state (one "
+                           "run per temperature level)" if unstated else "") + ", "
                         + ("included in" if u["included_in_covariance"] else "not included in")
                         + " linear_acceleration_covariance")
             entries.append(self._entry(OK, "calibration uncertainty", msg, u))
@@ -316,13 +319,17 @@ class DriverDiagnostics:
 
 
 def calibration_uncertainty_values(point: tuple[float, float, float, float] | None, has_section: bool,
-                                   included: bool, slow_sigma_mps2: Any = None) -> dict[str, Any]:
+                                   included: bool, slow_sigma_mps2: Any = None,
+                                   unstated_run_to_run_sigma_mps2: float = 0.0) -> dict[str, Any]:
     """The diagnostic's values from ``DriverCore.calibration_uncertainty()`` (``point``), whether the calibration has a
-    ``coefficient_covariance`` section, whether the terms are in the published covariance, and the ``slow_error``
-    section's standard deviations (x, y, z m/s^2; None without the section)."""
+    ``coefficient_covariance`` section, whether the terms are in the published covariance, the ``slow_error``
+    section's standard deviations (x, y, z m/s^2; None without the section) and the allowance (m/s^2, 1 sigma per axis)
+    for the run-to-run part it does not state (``SlowErrorSection.unstated_run_to_run_sigma_mps2``; 0: none)."""
     slow: dict[str, Any] = {}
     if slow_sigma_mps2 is not None:
         slow = {f"slow_sigma_{a}_mps2": round(float(v), 6) for a, v in zip("xyz", slow_sigma_mps2, strict=True)}
+        if unstated_run_to_run_sigma_mps2:
+            slow["unstated_run_to_run_sigma_mps2"] = float(unstated_run_to_run_sigma_mps2)
     if not has_section:
         return {"coefficient_covariance": "absent", "included_in_covariance": included and bool(slow), **slow}
     out: dict[str, Any] = {"coefficient_covariance": "present", "included_in_covariance": included, **slow}

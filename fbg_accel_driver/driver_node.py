@@ -393,7 +393,8 @@ class DriverNode(Node):
             calibration_uncertainty={} if self.calibration is None else calibration_uncertainty_values(
                 core.calibration_uncertainty(), self.calibration.coefficient_covariance is not None,
                 core.config.covariance_includes_calibration,
-                None if self.calibration.slow_error is None else self.calibration.slow_error.sigma_mps2),
+                None if self.calibration.slow_error is None else self.calibration.slow_error.sigma_mps2,
+                0.0 if self.calibration.slow_error is None else self.calibration.slow_error.unstated_run_to_run_sigma_mps2),
             gravity=core.gravity_status())
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()

@@ -10,10 +10,20 @@ sensor: ``fit --run-to-run-from``), R itself (3, 3) in (m/s^2)^2, sensor frame, 
 a later one-run recalibration, which cannot identify it, takes it from there. It is the same for every sample of a
 still stretch: a bias, correlated in time, added as such (with ``covariance_includes_calibration``, once per
 published message) and used by the live gravity check's threshold (docs/topics.md).
+
+A section without R (each temperature level recorded once, nothing carried) states S without the run-to-run part: the
+bias instability's slowest components are constant through a run, taken up by b(T), and drawn afresh by the time the
+sensor is on the vehicle. No campaign of that design can measure them (its revisits of a pose are minutes apart, the
+components hours: docs/calibration_fit.md, *Run to run*), so the published covariance allows
+:data:`UNSTATED_RUN_TO_RUN_SIGMA_MPS2` for it, a standard deviation on each axis from the sensor's bias instability
+(:attr:`SlowErrorSection.published_matrix`), as the gravity check allows a margin for it
+(``gravity_check.unstated_allowance``). The file itself is unchanged: a section without ``run_to_run_matrix`` is what
+says that R is not known.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -22,11 +32,36 @@ import numpy as np
 
 from .coefficient_covariance import check_matrix, read_section
 from .mapping_fields import number_array, refuse_unknown
+from .sensor_constants import STANDARD_GRAVITY
 
 SECTION_VERSION = 1
 SECTION_KEYS = ("format_version", "method", "visits", "matrix")  # read_section's order
 RUN_KEY = "run_to_run_matrix"  # optional: the run-to-run component R (3, 3) (m/s^2)^2, when known
 MAX_SIGMA_MPS2 = 10.0  # a slow error above 1 g is no calibration
+# paper Table 2's largest bias instability (z, 1.87 mg; ../shared/docs/sensor_facts.md), m/s^2
+TABLE2_BIAS_INSTABILITY_MPS2 = 1.87e-3 * STANDARD_GRAVITY
+PLAN_RUN_S = 240.0  # s, one run of the paper's six-position plan (config/pose_plan_six_position.yaml: 6 x (30 + 10) s)
+USE_LAG_S = 365.25 * 86400.0  # s, a calibration used for up to a year
+
+
+def flicker_run_to_run_sigma_mps2(bias_instability_mps2: float, run_s: float, lag_s: float) -> float:
+    """Standard deviation (m/s^2) of the difference between a flicker bias' means over two runs of ``run_s`` s,
+    ``lag_s`` s apart (lag >> run: the campaign's run, which b(T) took up, and a run on the vehicle), for the bias
+    instability B (m/s^2) of an Allan deviation flat at 0.664 B: the integral of the PSD B^2 / (2 pi f) (IEEE Std
+    952-1997, annex C) times |1 - e^(2 pi i f lag)|^2 sinc^2(pi f run), (B^2 / pi) (ln(lag / run) + 3/2) (checked
+    against the integral done numerically, test/test_slow_error.py)."""
+    return math.sqrt(bias_instability_mps2**2 / math.pi * (math.log(lag_s / run_s) + 1.5))
+
+
+# the run-to-run part (m/s^2, one standard deviation per axis, sensor frame) that a section without R does not state,
+# added squared on each axis to the published covariance (isotropic: every axis' bias is drawn afresh, and which axis
+# is the sensor's worst is not in the file): Table 2's largest bias instability as a flicker floor, between one run
+# of the paper's plan and a use a year later, 0.038 m/s^2 (0.028 a day later, 0.041 ten years later: the logarithm
+# makes the lag matter little). A real sensor's is its own: repeat a level, or carry R (``fit --run-to-run-from``),
+# and this is not used (docs/calibration_fit.md). Not the gravity check's allowance for the same part
+# (``gravity_check.UNSTATED_RUN_TO_RUN_MPS2``, 0.05 m/s^2 added to a threshold, measured against false alarms): that is
+# a setting of a decision, this a statement of a standard deviation (docs/topics.md)
+UNSTATED_RUN_TO_RUN_SIGMA_MPS2 = flicker_run_to_run_sigma_mps2(TABLE2_BIAS_INSTABILITY_MPS2, PLAN_RUN_S, USE_LAG_S)
 
 
 @dataclass
@@ -69,9 +104,22 @@ class SlowErrorSection:
         """Standard deviation (3,) m/s^2 per axis (x, y, z)."""
         return np.sqrt(np.clip(np.diag(self.matrix), 0.0, None))
 
-    def entries(self) -> tuple[float, float, float, float, float, float]:
-        """(xx, xy, xz, yy, yz, zz) of the matrix, (m/s^2)^2, as ``coefficient_covariance.output_covariance``."""
-        m = self.matrix
+    @property
+    def unstated_run_to_run_sigma_mps2(self) -> float:
+        """The allowance (m/s^2, 1 sigma per axis) for the run-to-run part this section does not state:
+        :data:`UNSTATED_RUN_TO_RUN_SIGMA_MPS2` without R, 0 with it (identified by the campaign or carried)."""
+        return UNSTATED_RUN_TO_RUN_SIGMA_MPS2 if self.run_to_run is None else 0.0
+
+    @property
+    def published_matrix(self) -> np.ndarray:
+        """What the driver publishes for the slow error (3, 3) (m/s^2)^2: ``matrix`` plus the square of
+        :attr:`unstated_run_to_run_sigma_mps2` on each axis."""
+        return self.matrix + self.unstated_run_to_run_sigma_mps2**2 * np.eye(3)
+
+    def published_entries(self) -> tuple[float, float, float, float, float, float]:
+        """(xx, xy, xz, yy, yz, zz) of :attr:`published_matrix`, (m/s^2)^2, as
+        ``coefficient_covariance.output_covariance``."""
+        m = self.published_matrix
         return (float(m[0, 0]), float(m[0, 1]), float(m[0, 2]), float(m[1, 1]), float(m[1, 2]), float(m[2, 2]))
 
     def to_dict(self) -> dict[str, Any]:

@@ -136,8 +136,9 @@ SLOW = np.array([[4e-3, 1e-3, 0.0], [1e-3, 2e-3, 0.0], [0.0, 0.0, 9e-3]])
 
 def test_the_driver_adds_it_as_a_bias_once_per_message() -> None:
     """With covariance_includes_calibration the slow error is added in full (off-diagonal too), once per published
-    message: a decimated message gets it undivided, the noise part 1/N of it; off by default."""
-    cal = make_cal(slow_error=SlowErrorSection(SLOW, "test", 40))
+    message: a decimated message gets it undivided, the noise part 1/N of it; off by default. (A section with its
+    run-to-run part: one without it gets an allowance too, next test.)"""
+    cal = make_cal(slow_error=SlowErrorSection(SLOW, "test", 40, run_to_run=SLOW / 2))
     frames = [frame(i, xyz=(1100 + 3 * i, 1600, 1100 - 2 * i)) for i in range(40)]
     noise = np.diag(cal.noise_sigma_mps2**2)
     for n in (1, 10):
@@ -154,6 +155,59 @@ def test_the_driver_adds_it_as_a_bias_once_per_message() -> None:
     snap.calibration_uncertainty = snap_values
     msg = next(e for e in DriverDiagnostics().report(snap) if e.name.endswith("calibration uncertainty")).message
     assert "slow error of a still mean" in msg and "0.0949" in msg
+
+
+def published_calibration_part(cal) -> np.ndarray:
+    """The calibration's part (3, 3) (m/s^2)^2 of the covariance the driver publishes for ``cal`` with
+    covariance_includes_calibration: the message's covariance less the one without the parameter."""
+    frames = [frame(i, xyz=(1100 + 3 * i, 1600, 1100 - 2 * i)) for i in range(10)]
+    plain = feed_frames(DriverCore(cal, CoreConfig()), frames)[1][-1]
+    withs = feed_frames(DriverCore(cal, CoreConfig(covariance_includes_calibration=True)), frames)[1][-1]
+    return np.array(withs.covariance).reshape(3, 3) - np.array(plain.covariance).reshape(3, 3)
+
+
+def test_a_slow_error_without_its_run_to_run_part_is_published_with_an_allowance_for_it(monkeypatch) -> None:
+    """A one-run-per-level file's slow error lacks the run-to-run part (b(T) took it up): the published covariance adds
+    UNSTATED_RUN_TO_RUN_SIGMA_MPS2 squared on each axis (isotropic), the diagnostic names it; a section with R gets
+    nothing more. The driver reads the constant from its one place (``fbg_accel_driver.slow_error``); the gravity
+    check keeps its own margin for such a file (a threshold setting, not a standard deviation)."""
+    import fbg_accel_driver.slow_error as slow_error_module
+    from fbg_accel_driver.gravity_check import UNSTATED_RUN_TO_RUN_MPS2, unstated_allowance
+
+    no_r = make_cal(slow_error=SlowErrorSection(SLOW, "test", 40))
+    with_r = make_cal(slow_error=SlowErrorSection(SLOW, "test", 40, run_to_run=SLOW / 2))
+    a = slow_error_module.UNSTATED_RUN_TO_RUN_SIGMA_MPS2
+    assert 0.03 < a < 0.045  # Table 2's z bias instability as a flicker floor, a 240 s run, a year later: 0.038
+    np.testing.assert_allclose(published_calibration_part(no_r), SLOW + a**2 * np.eye(3), rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(published_calibration_part(with_r), SLOW, rtol=1e-9, atol=1e-15)
+    monkeypatch.setattr(slow_error_module, "UNSTATED_RUN_TO_RUN_SIGMA_MPS2", 0.07)
+    np.testing.assert_allclose(published_calibration_part(no_r), SLOW + 0.07**2 * np.eye(3), rtol=1e-9, atol=1e-15)
+    monkeypatch.undo()
+    assert unstated_allowance(no_r) == UNSTATED_RUN_TO_RUN_MPS2 and unstated_allowance(with_r) == 0.0
+    values = calibration_uncertainty_values(None, False, True, no_r.slow_error.sigma_mps2,
+                                            no_r.slow_error.unstated_run_to_run_sigma_mps2)
+    assert values["unstated_run_to_run_sigma_mps2"] == a and values["slow_sigma_z_mps2"] == round(math.sqrt(9e-3), 6)
+    assert "unstated_run_to_run_sigma_mps2" not in calibration_uncertainty_values(
+        None, False, True, with_r.slow_error.sigma_mps2, with_r.slow_error.unstated_run_to_run_sigma_mps2)
+    snap = snapshot(1.0)
+    snap.calibration_uncertainty = values
+    msg = next(e for e in DriverDiagnostics().report(snap) if e.name.endswith("calibration uncertainty")).message
+    assert f"plus {a:.3g} m/s^2 per axis for the run-to-run part the file does not state" in msg
+
+
+@pytest.mark.parametrize("lag_s", [86400.0, 365.25 * 86400.0])
+def test_the_flicker_run_to_run_formula_is_the_integral_of_its_psd(lag_s) -> None:
+    """(B^2 / pi)(ln(lag / run) + 3/2) against the integral of B^2 / (2 pi f) |1 - e^(2 pi i f lag)|^2 sinc^2(pi f run),
+    done numerically (the fast sine averaged to 2 where f lag > 200): within 0.5 % in variance."""
+    from fbg_accel_driver.slow_error import flicker_run_to_run_sigma_mps2
+
+    run_s, b = 240.0, 0.0183
+    f = np.logspace(-14, 3, 200_001)
+    h = np.where(f * lag_s > 200, 2.0, 4 * np.sin(np.pi * f * lag_s) ** 2) * np.sinc(f * run_s) ** 2
+    integral = np.trapezoid(b**2 / (2 * np.pi * f) * h, f)
+    assert flicker_run_to_run_sigma_mps2(b, run_s, lag_s) ** 2 == pytest.approx(integral, rel=5e-3)
+    assert flicker_run_to_run_sigma_mps2(b, run_s, lag_s) ** 2 != pytest.approx(b**2 / np.pi * np.log(lag_s / run_s),
+                                                                                rel=0.05)  # the 3/2 matters
 
 
 def still_with_and_without_slow_error():
