@@ -49,7 +49,7 @@ def check(cal: Any, seed: int, n_orient: int, drift: np.ndarray) -> dict[str, An
     periods = still_periods(rec, cal, calibration_samples(rec, DEFAULT_WINDOW, DEFAULT_MIN_INTERVAL)[1])
     truth = np.r_[drift, np.zeros(3)]
     out: dict[str, Any] = {"periods": len(periods.mean)}
-    for label, slow in (("with", cal.slow_error.matrix), ("without", None)):
+    for label, slow in (("with", cal.slow_error.published_matrix), ("without", None)):
         fc = estimate(periods, G_SIM, slow_error=slow)
         values = np.r_[fc.bias, fc.scale]
         out[label] = {"z": np.where(fc.identified, (values - truth) / np.where(fc.sigma > 0, fc.sigma, np.inf),

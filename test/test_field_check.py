@@ -12,6 +12,7 @@ from fbg_accel_calibration.fit.field_check import (
     normal_gravity,
     updated_calibration,
 )
+from fbg_accel_driver.slow_error import UNSTATED_RUN_TO_RUN_SIGMA_MPS2, SlowErrorSection
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
 G = 9.80665
@@ -120,6 +121,17 @@ def test_field_check_command_on_a_simulated_recording(tmp_path, capsys) -> None:
     assert new.fit["field_check"]["not_identified"] == []
     assert cli_main([*args, "-o", str(tmp_path / "cal.yaml"), "--force"]) == 2  # never over an input
     assert "input" in capsys.readouterr().err
+    # the calibration's slow error as the driver publishes it: a section without its run-to-run part (one run per
+    # level) carries the allowance for that part, one with R (here 0) none
+    sigma = {}
+    for label, run in (("without R", None), ("with R", np.zeros((3, 3)))):
+        slow = SlowErrorSection(np.diag([0.02, 0.01, 0.015]) ** 2, "test", 18, run)
+        dataclasses.replace(cal, b=drifted, slow_error=slow).save(tmp_path / f"{label}.yaml")
+        assert cli_main(["field-check", str(tmp_path / "run.mcap"), "--calibration", str(tmp_path / f"{label}.yaml")]) == 0
+        found = re.search(r"bias_x\s+[+-][0-9.]+ \+- ([0-9.]+)", capsys.readouterr().out)
+        sigma[label] = float(found.group(1))
+    added = sigma["without R"] ** 2 - sigma["with R"] ** 2
+    assert 0.5 * UNSTATED_RUN_TO_RUN_SIGMA_MPS2**2 < added < 1.5 * UNSTATED_RUN_TO_RUN_SIGMA_MPS2**2
 
 
 @pytest.mark.parametrize(("option", "value"), [("--min-period", "nan"), ("--min-period", "0"), ("--gravity", "9.95")])

@@ -549,7 +549,7 @@ def cmd_field_check(args: argparse.Namespace) -> int:
     rec = _load(args.inputs, args)
     still = calibration_samples(rec, args.window, args.min_interval)[1]  # the signal alone is still
     periods = still_periods(rec, cal, still, args.min_period)
-    fc = estimate(periods, g, slow_error=None if cal.slow_error is None else cal.slow_error.matrix)
+    fc = estimate(periods, g, slow_error=None if cal.slow_error is None else cal.slow_error.published_matrix)
     units = ("m/s^2",) * 3 + ("",) * 3
     print(f"{len(periods.mean)} still period(s), {int(periods.samples.sum())} samples; g = {g:.6f} m/s^2; "
           f"| |a| - g | before: rms {np.sqrt(np.mean(fc.residual_before_mps2**2)):.4f} m/s^2, after "
