@@ -188,8 +188,10 @@ def heldout_mean_null(sums: HeldoutVisitSums, fold_xtx: np.ndarray, XtX: np.ndar
     var = noise_model.mean_variance(cnt_a.astype(int))  # (Va, 3)
     Sn = np.stack([(S[at] / cnt_a[at, None]).T @ S[at] for at in at_a])  # (F, p, p) sum of s_u s_u^T / n_u
     same = kb[:, None] == kb[None, :]
-    a_s = np.where(same, 0.0, a @ S[own].T)  # a_v . s_w for w of another fold
+    a_s = a @ S[own].T  # a_v . s_w for w of another fold
+    a_s[same] = 0.0
     cov = np.empty((4, len(ub), len(ub)))  # the three axes' noise, then a slow error of unit variance per visit
+    qde = np.empty_like(a_s)
     for j in range(4):
         if j < 3:
             phi = float(np.median(cnt_a * var[:, j]))
@@ -200,9 +202,19 @@ def heldout_mean_null(sums: HeldoutVisitSums, fold_xtx: np.ndarray, XtX: np.ndar
             B = np.stack([S[at].T @ S[at] for at in at_a])
         c = np.einsum("vpq,vq->vp", B[kb], a)  # B_k(v) a_v
         ca = c @ a.T
-        qde = a_s * vj[own][None, :]
-        cov[j] = a @ B.sum(axis=0) @ a.T - ca - ca.T + np.where(same, ca, 0.0) - qde - qde.T
-        cov[j][np.diag_indices(len(ub))] += vj[own]
+        # a B a^T - ca - ca^T + [same fold] ca - qde - qde^T, qde = a_s diag(v): worked out in place, term by term in
+        # this order (V x V temporaries are 50 MB each at 2500 visits)
+        out = cov[j]
+        np.matmul(a @ B.sum(axis=0), a.T, out=out)
+        out -= ca
+        out -= ca.T
+        np.multiply(ca, same, out=ca)
+        out += ca
+        np.multiply(a_s, vj[own][None, :], out=qde)
+        out -= qde
+        out -= qde.T
+        del ca
+        out[np.diag_indices(len(ub))] += vj[own]
     return HeldoutMeanNull(ub, cov[:3], cov[3])
 
 
@@ -358,6 +370,11 @@ def slow_visit_test(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray | 
     return z, np.minimum(2.0 * np.minimum(p_pool, p_rev), 1.0), held.test_dof(var, slow_unit, noise_dof), slow, p_rev
 
 
+def _square_part(M: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """``M[np.ix_(idx, idx)]`` of ``M`` (n, n) for ascending ``idx``: ``M`` itself when ``idx`` is every row (no copy)."""
+    return M if len(idx) == len(M) else M[np.ix_(idx, idx)]
+
+
 def _variances(cov: np.ndarray) -> np.ndarray:
     """(3, V) the variances of the visit means in ``cov``: (3, V, V), or (3, V) when they are independent (its
     diagonal alone)."""
@@ -400,20 +417,21 @@ class _Groups:
 
     def contrasts(self, M: np.ndarray) -> np.ndarray:
         """P M: each row of ``M`` (n, ...) less its group's mean."""
-        return M - self.means(M)[self.labels]
+        out = self.means(M)[self.labels]
+        np.negative(out, out=out)
+        out += M
+        return out
 
-    def trace(self, C: np.ndarray) -> float:
-        """tr(P C) of ``C`` (n, n)."""
-        return float(np.trace(C)) - float(np.sum(self.means(C)[self.labels, np.arange(len(self.labels))]))
+    def contrast_traces(self, C: np.ndarray, PU: np.ndarray) -> tuple[float, float, float]:
+        """(tr(P C), tr(P C P C), tr(P C P U)) of a symmetric ``C`` (n, n), ``PU`` = P U (n, n) of a symmetric U: with
+        tr(P U) and tr(P U P U), the traces of P (C + s U) and of its square for any s (linear in C and U: no third
+        n x n array is made)."""
+        PC = self.contrasts(C)
+        return float(np.trace(PC)), float(np.einsum("ij,ji->", PC, PC)), float(np.einsum("ij,ji->", PC, PU))
 
     def trace_diagonal(self, d: np.ndarray) -> float:
         """tr(P D), D = diag(``d``) (n,)."""
         return float(np.sum(d * (1.0 - 1.0 / self.size[self.labels])))
-
-    def trace_square(self, A: np.ndarray) -> float:
-        """tr(P A P A) of a symmetric ``A`` (n, n): sum((P A) * (P A)^T)."""
-        PA = self.contrasts(A)
-        return float(np.einsum("ij,ji->", PA, PA))
 
     def trace_square_diagonal(self, d: np.ndarray) -> float:
         """tr(P D P D), D = diag(``d``) (n,): sum_ij P_ij^2 d_i d_j, P_ij = [i = j] - [same group] / n_g."""
@@ -440,15 +458,18 @@ class SlowVisitError:
         rep = np.bincount(g)[g] >= 2
         idx = np.flatnonzero(rep)
         P = _Groups(np.unique(g[idx], return_inverse=True)[1])
+        if slow_unit is not None:
+            PU = P.contrasts(_square_part(slow_unit, idx))
+            tr_u, uu = float(np.trace(PU)), float(np.einsum("ij,ji->", PU, PU))
         p = np.ones(3)
         for j in range(3):
             pm = P.contrasts(means[idx, j])
             if slow_unit is None:  # independent visit means: C and U diagonal
                 d = cov[j][idx] + bound[j]
                 e, v = P.trace_diagonal(d), 2.0 * P.trace_square_diagonal(d)
-            else:
-                A = (cov[j] + bound[j] * slow_unit)[np.ix_(idx, idx)]
-                e, v = P.trace(A), 2.0 * P.trace_square(A)
+            else:  # C_b = C + bound U
+                tr_c, cc, cu = P.contrast_traces(_square_part(cov[j], idx), PU)
+                e, v = tr_c + bound[j] * tr_u, 2.0 * (cc + 2.0 * bound[j] * cu + bound[j] ** 2 * uu)
             h = 2.0 * e**2 / max(v, 1e-300)
             p[j] = stats.chi2.sf(float(pm @ pm) * h / max(e, 1e-300), h)
         return p
@@ -496,17 +517,20 @@ def slow_visit_error(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray |
         unit = np.ones(len(idx))
         tr_pu = P.trace_diagonal(unit)
     else:
-        unit = slow_unit[np.ix_(idx, idx)]
-        tr_pu = P.trace(unit)
+        PU = P.contrasts(_square_part(slow_unit, idx))
+        tr_pu, uu = float(np.trace(PU)), float(np.einsum("ij,ji->", PU, PU))
     var, dof = np.zeros(3), np.full(3, np.inf)
     for j in range(3):
         pm = P.contrasts(means[idx, j])
-        C = cov[j][idx] if diagonal else cov[j][np.ix_(idx, idx)]
-        tr_pc = P.trace_diagonal(C) if diagonal else P.trace(C)
+        if diagonal:
+            C = cov[j][idx]
+            tr_pc = P.trace_diagonal(C)
+        else:
+            tr_pc, cc, cu = P.contrast_traces(_square_part(cov[j], idx), PU)
         var[j] = max((float(pm @ pm) - tr_pc) / max(tr_pu, 1e-300), 0.0)
-        if var[j] > 0:
-            A = C + var[j] * unit  # P A = P C + s^2 P U
-            sq = P.trace_square_diagonal(A) if diagonal else P.trace_square(A)
+        if var[j] > 0:  # tr((P (C + s^2 U))^2)
+            sq = (P.trace_square_diagonal(C + var[j] * unit) if diagonal
+                  else cc + 2.0 * var[j] * cu + var[j] ** 2 * uu)
             dof[j] = 2.0 * var[j] ** 2 / (2.0 * sq / tr_pu**2)
     group = np.unique(np.where(rep, key, -2 - np.arange(len(key))), return_inverse=True)[1]
     return SlowVisitError(var, dof, revisits, group)
