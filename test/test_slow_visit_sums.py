@@ -38,7 +38,8 @@ def _campaign(seed: int, dense: bool):
     if dense:
         B = rng.normal(size=(3, V, V)) / np.sqrt(V)
         cov = np.einsum("jab,jcb->jac", B, B) * sd[:, None, None] ** 2 + np.eye(V) * sd[:, None, None] ** 2
-        unit = np.eye(V) + 0.1 * (rng.normal(size=(V, V)) @ rng.normal(size=(V, V)).T) / V
+        R = rng.normal(size=(V, V))
+        unit = np.eye(V) + 0.1 * (R @ R.T) / V  # symmetric, as every covariance
     else:
         cov = np.stack([np.diag(rng.uniform(0.5, 2.0, V) * s**2) for s in sd])
         unit = np.eye(V)

@@ -391,9 +391,9 @@ def _unit_diagonal(slow_unit: np.ndarray | None, n: int) -> np.ndarray:
 
 class _Groups:
     """Visits in groups (``labels`` (n,): 0..G-1), and the operators of ``slow_visit_error`` on them without their
-    dense n x n matrices: L (G, n), the mean of each group's visits, and P = I - L^T-spread L, each visit about its
-    group's mean (symmetric, idempotent). A product with a sparse L costs n x (columns) instead of the dense
-    products' n^2 x (columns): O(V^2) for a V x V covariance, O(V) for a diagonal one."""
+    dense n x n matrices: L (G, n), the mean of each group's visits, and P = I - E, E_ij = [same group] / n_g, each
+    visit about its group's mean (symmetric, idempotent). A product with a sparse L costs n x (columns) instead of the
+    dense products' n^2 x (columns): O(V^2) for a V x V covariance (symmetric), O(V) for a diagonal one."""
 
     def __init__(self, labels: np.ndarray) -> None:
         from scipy.sparse import csr_array
@@ -415,19 +415,23 @@ class _Groups:
         """The diagonal (G,) of L D L^T, D = diag(``d``) (n,) (the whole of it: it is diagonal)."""
         return np.bincount(self.labels, weights=d, minlength=len(self.size)) / self.size**2
 
-    def contrasts(self, M: np.ndarray) -> np.ndarray:
-        """P M: each row of ``M`` (n, ...) less its group's mean."""
-        out = self.means(M)[self.labels]
-        np.negative(out, out=out)
-        out += M
-        return out
+    def contrasts(self, m: np.ndarray) -> np.ndarray:
+        """P m: each value of ``m`` (n,) less its group's mean."""
+        return m - self.means(m)[self.labels]
 
-    def contrast_traces(self, C: np.ndarray, PU: np.ndarray) -> tuple[float, float, float]:
-        """(tr(P C), tr(P C P C), tr(P C P U)) of a symmetric ``C`` (n, n), ``PU`` = P U (n, n) of a symmetric U: with
-        tr(P U) and tr(P U P U), the traces of P (C + s U) and of its square for any s (linear in C and U: no third
-        n x n array is made)."""
-        PC = self.contrasts(C)
-        return float(np.trace(PC)), float(np.einsum("ij,ji->", PC, PC)), float(np.einsum("ij,ji->", PC, PU))
+    def parts(self, C: np.ndarray) -> _SymmetricParts:
+        """What the traces with P of a symmetric ``C`` (n, n) are made of (``trace_product``): no n x n array."""
+        LC = self.means(C)
+        return _SymmetricParts(C, LC, self.means(LC.T),
+                               float(np.trace(C)) - float(np.sum(LC[self.labels, np.arange(len(self.labels))])))
+
+    def trace_product(self, X: _SymmetricParts, Y: _SymmetricParts) -> float:
+        """tr(P X P Y) of two symmetric matrices: with E = I - P (E_ij = [same group] / n_g), tr(X Y) - 2 tr(E X Y)
+        + tr(E X E Y), tr(E X Y) = sum_g n_g (L X)_g . (L Y)_g and tr(E X E Y) = sum_gh n_g n_h (L X L^T)_gh
+        (L Y L^T)_gh: sums over the groups and one pass over X and Y, no n x n temporary."""
+        w = self.size
+        return (float(np.einsum("ij,ij->", X.matrix, Y.matrix)) - 2.0 * float(np.sum(w[:, None] * X.L * Y.L))
+                + float(np.sum((w[:, None] * w[None, :]) * X.pooled * Y.pooled)))
 
     def trace_diagonal(self, d: np.ndarray) -> float:
         """tr(P D), D = diag(``d``) (n,)."""
@@ -437,6 +441,16 @@ class _Groups:
         """tr(P D P D), D = diag(``d``) (n,): sum_ij P_ij^2 d_i d_j, P_ij = [i = j] - [same group] / n_g."""
         s = np.bincount(self.labels, weights=d, minlength=len(self.size))
         return float(np.sum(d**2 * (1.0 - 2.0 / self.size[self.labels])) + np.sum(s**2 / self.size**2))
+
+
+@dataclass
+class _SymmetricParts:
+    """A symmetric ``matrix`` C (n, n) with L C (G, n), L C L^T (G, G) and tr(P C) of its ``_Groups``."""
+
+    matrix: np.ndarray
+    L: np.ndarray
+    pooled: np.ndarray
+    trace: float
 
 
 @dataclass
@@ -459,17 +473,18 @@ class SlowVisitError:
         idx = np.flatnonzero(rep)
         P = _Groups(np.unique(g[idx], return_inverse=True)[1])
         if slow_unit is not None:
-            PU = P.contrasts(_square_part(slow_unit, idx))
-            tr_u, uu = float(np.trace(PU)), float(np.einsum("ij,ji->", PU, PU))
+            U = P.parts(_square_part(slow_unit, idx))
+            uu = P.trace_product(U, U)
         p = np.ones(3)
         for j in range(3):
             pm = P.contrasts(means[idx, j])
             if slow_unit is None:  # independent visit means: C and U diagonal
                 d = cov[j][idx] + bound[j]
                 e, v = P.trace_diagonal(d), 2.0 * P.trace_square_diagonal(d)
-            else:  # C_b = C + bound U
-                tr_c, cc, cu = P.contrast_traces(_square_part(cov[j], idx), PU)
-                e, v = tr_c + bound[j] * tr_u, 2.0 * (cc + 2.0 * bound[j] * cu + bound[j] ** 2 * uu)
+            else:  # C_b = C + bound U: tr(P C_b) and tr((P C_b)^2) from those of C and U (no third n x n array)
+                C = P.parts(_square_part(cov[j], idx))
+                cc, cu = P.trace_product(C, C), P.trace_product(C, U)
+                e, v = C.trace + bound[j] * U.trace, 2.0 * (cc + 2.0 * bound[j] * cu + bound[j] ** 2 * uu)
             h = 2.0 * e**2 / max(v, 1e-300)
             p[j] = stats.chi2.sf(float(pm @ pm) * h / max(e, 1e-300), h)
         return p
@@ -517,8 +532,8 @@ def slow_visit_error(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray |
         unit = np.ones(len(idx))
         tr_pu = P.trace_diagonal(unit)
     else:
-        PU = P.contrasts(_square_part(slow_unit, idx))
-        tr_pu, uu = float(np.trace(PU)), float(np.einsum("ij,ji->", PU, PU))
+        U = P.parts(_square_part(slow_unit, idx))
+        tr_pu, uu = U.trace, P.trace_product(U, U)
     var, dof = np.zeros(3), np.full(3, np.inf)
     for j in range(3):
         pm = P.contrasts(means[idx, j])
@@ -526,7 +541,8 @@ def slow_visit_error(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray |
             C = cov[j][idx]
             tr_pc = P.trace_diagonal(C)
         else:
-            tr_pc, cc, cu = P.contrast_traces(_square_part(cov[j], idx), PU)
+            Cj = P.parts(_square_part(cov[j], idx))
+            tr_pc, cc, cu = Cj.trace, P.trace_product(Cj, Cj), P.trace_product(Cj, U)
         var[j] = max((float(pm @ pm) - tr_pc) / max(tr_pu, 1e-300), 0.0)
         if var[j] > 0:  # tr((P (C + s^2 U))^2)
             sq = (P.trace_square_diagonal(C + var[j] * unit) if diagonal
