@@ -191,7 +191,7 @@ def heldout_mean_null(sums: HeldoutVisitSums, fold_xtx: np.ndarray, XtX: np.ndar
     a_s = a @ S[own].T  # a_v . s_w for w of another fold
     a_s[same] = 0.0
     cov = np.empty((4, len(ub), len(ub)))  # the three axes' noise, then a slow error of unit variance per visit
-    qde = np.empty_like(a_s)
+    buf = np.empty_like(a_s)  # c a^T, then qde, in turn: one (V, V) temporary
     for j in range(4):
         if j < 3:
             phi = float(np.median(cnt_a * var[:, j]))
@@ -201,19 +201,18 @@ def heldout_mean_null(sums: HeldoutVisitSums, fold_xtx: np.ndarray, XtX: np.ndar
             vj = np.ones(len(cnt_a))
             B = np.stack([S[at].T @ S[at] for at in at_a])
         c = np.einsum("vpq,vq->vp", B[kb], a)  # B_k(v) a_v
-        ca = c @ a.T
-        # a B a^T - ca - ca^T + [same fold] ca - qde - qde^T, qde = a_s diag(v): worked out in place, term by term in
-        # this order (V x V temporaries are 50 MB each at 2500 visits)
+        # a B a^T - ca - ca^T + [same fold] ca - qde - qde^T, ca = c a^T, qde = a_s diag(v): worked out in place, term
+        # by term in this order (a V x V array is 50 MB at 2500 visits)
         out = cov[j]
         np.matmul(a @ B.sum(axis=0), a.T, out=out)
+        ca = np.matmul(c, a.T, out=buf)
         out -= ca
         out -= ca.T
         np.multiply(ca, same, out=ca)
         out += ca
-        np.multiply(a_s, vj[own][None, :], out=qde)
+        qde = np.multiply(a_s, vj[own][None, :], out=buf)
         out -= qde
         out -= qde.T
-        del ca
         out[np.diag_indices(len(ub))] += vj[own]
     return HeldoutMeanNull(ub, cov[:3], cov[3])
 
