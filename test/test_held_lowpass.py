@@ -145,3 +145,30 @@ def test_the_tia_reference_at_the_searched_rows_is_the_one_over_every_sample(rea
         np.testing.assert_array_equal(got[1], inp[1].valid[rows])
         largest = max(largest, float(np.max(np.abs(got[0] - data.gref_filled[rows]))))
     assert largest > 0.1  # m/s^2: the filter corrects the reference (a test of the filter, not of the reference alone)
+
+
+def test_the_delayed_reference_is_interpolated_where_it_moved_only_and_is_the_same_bit_for_bit() -> None:
+    """The channel delay's reference (``ChannelDelayEffect``) interpolated near the table's moves only, elsewhere the
+    held value itself: the values of ``interp_columns`` at t - D over every sample, bit for bit, for delays of a
+    fraction of a sample to many samples, at a search's rows and at every sample (both runs)."""
+    from fbg_accel_calibration.diagnosis.chain_effects import ChannelDelayEffect
+    from fbg_accel_calibration.diagnosis.data import interp_columns
+
+    data = tia_data()
+    eff = ChannelDelayEffect()
+    rows = np.flatnonzero(data.use)[::9]
+    for D in (1e-9, 0.3 * DT, DT, 2.5 * DT, 0.1, 1.7):
+        want, want_valid = np.empty((len(data.t_s), 3)), np.ones(len(data.t_s), bool)
+        for run in data.runs():
+            t = data.t_s[run]
+            want[run] = interp_columns(t - D, t, data.gref_filled[run])
+            want_valid[run] = t - D >= t[0]
+        every, valid = eff.reference_at(data, Inputs.of(data), D, None)
+        assert np.array_equal(every, want) and np.array_equal(valid, want_valid & Inputs.of(data).valid)
+        at_rows, valid_rows = eff.reference_at(data, Inputs.of(data), D, rows)
+        assert np.array_equal(at_rows, want[rows]) and np.array_equal(valid_rows, (want_valid & Inputs.of(data).valid)[rows])
+        inp = Inputs.of(data)
+        eff.transform(data, inp, D)
+        assert np.array_equal(inp.gref, want)
+    moved = ChannelDelayEffect._near_a_move(data, data.runs()[0], DT)
+    assert 0 < moved.mean() < 0.5  # the held samples are not interpolated

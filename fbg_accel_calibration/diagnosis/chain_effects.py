@@ -77,9 +77,41 @@ class ChannelDelayEffect(Effect):
         for run, sel, local in pieces:
             t = data.t_s[run]
             tq = t[local] - D
-            g[sel] = interp_columns(tq, t, data.gref_filled[run])
+            moved = ChannelDelayEffect._near_a_move(data, run, D)
+            f = data.gref_filled[run]
+            if moved is None:
+                g[sel] = interp_columns(tq, t, f)
+            else:  # the reference's own value where it held still over the delay, interpolated where it moved
+                at = moved[local]
+                g[sel] = f[local]
+                part = np.flatnonzero(at)
+                g[sel[part] if rows is not None else run.start + part] = interp_columns(tq[part], t, f)
             valid[sel] &= tq >= t[0]
         return g, valid
+
+    @staticmethod
+    def _near_a_move(data: DiagnosisData, run: slice | np.ndarray, D: float) -> np.ndarray | None:
+        """(n,) of a run's samples, those whose reference delayed by ``D`` (s) is not their own: where the filled
+        reference (``gref_filled``) moved within the delay before them. Elsewhere ``interp_columns`` at t - D reads two
+        samples of one held value and gives that value, bit for bit (a zero slope): the table holds every pose for
+        seconds and moves a quarter of the time, so a trial interpolates that quarter only. Each move from sample c to
+        c + 1 reaches the samples after it up to t[c + 1] + D, and one more (a margin of a sample for the rounding of
+        t - D). None where this does not apply (a run that is not contiguous, times not increasing)."""
+        if not isinstance(run, slice):
+            return None
+        t = data.t_s[run]
+        ok = data.once(f"times_increasing {run.start} {run.stop}", lambda: bool(np.all(np.diff(t) > 0)))
+        if not ok:
+            return None
+        f = data.gref_filled[run]
+        # a move: the next sample differs in an axis (or is NaN: never the same)
+        c = data.once(f"reference_moves {run.start} {run.stop}",
+                      lambda: np.flatnonzero(~np.all(f[1:] == f[:-1], axis=1)))
+        n = len(t)
+        reach = np.minimum(np.searchsorted(t, t[c + 1] + D, side="right") + 1, n)
+        edges = np.bincount(c + 1, minlength=n + 1)
+        edges[: n + 1] -= np.bincount(reach, minlength=n + 1)
+        return np.cumsum(edges[:n]) > 0
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
         # a pure delay is a time-stamp correction, not an acceleration term (see docs/effects.md)

@@ -20,6 +20,7 @@ from .data import DiagnosisData, finite_rows
 from .design import Design, ModelSpec, build_design
 from .findings import Finding, flagged_visits
 from .floor import FloorMeasurement, VisitNoise, within_visit_noise
+from .heap_trim import return_free_memory
 from .search_lanes import beside
 from .structure import ResidualStructure, heldout_mean_null, heldout_visit_sums, residual_structure
 
@@ -112,6 +113,7 @@ def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: Flo
     r_eval = rows_f & finite_rows(residual_before) & finite_rows(cv_f.heldout)
     visit_sums = heldout_visit_sums(des_f.X, fit_rows & des_f.valid, r_eval, groups, fold)
     del des_f  # its design matrix (N x p) is let go before the (V, V) covariances of the visit means are made
+    return_free_memory()  # and its pages given back (heap_trim): they would sit under the (V, V) covariances
     null = None if visit_sums is None else heldout_mean_null(visit_sums, cv_f.sums.xtx, cv_f.sums.XtX,
                                                              noise_model_after)
 

@@ -188,8 +188,10 @@ def heldout_mean_null(sums: HeldoutVisitSums, fold_xtx: np.ndarray, XtX: np.ndar
     var = noise_model.mean_variance(cnt_a.astype(int))  # (Va, 3)
     Sn = np.stack([(S[at] / cnt_a[at, None]).T @ S[at] for at in at_a])  # (F, p, p) sum of s_u s_u^T / n_u
     same = kb[:, None] == kb[None, :]
-    a_s = np.where(same, 0.0, a @ S[own].T)  # a_v . s_w for w of another fold
+    a_s = a @ S[own].T  # a_v . s_w for w of another fold
+    a_s[same] = 0.0
     cov = np.empty((4, len(ub), len(ub)))  # the three axes' noise, then a slow error of unit variance per visit
+    buf = np.empty_like(a_s)  # c a^T, then qde, in turn: one (V, V) temporary
     for j in range(4):
         if j < 3:
             phi = float(np.median(cnt_a * var[:, j]))
@@ -199,10 +201,19 @@ def heldout_mean_null(sums: HeldoutVisitSums, fold_xtx: np.ndarray, XtX: np.ndar
             vj = np.ones(len(cnt_a))
             B = np.stack([S[at].T @ S[at] for at in at_a])
         c = np.einsum("vpq,vq->vp", B[kb], a)  # B_k(v) a_v
-        ca = c @ a.T
-        qde = a_s * vj[own][None, :]
-        cov[j] = a @ B.sum(axis=0) @ a.T - ca - ca.T + np.where(same, ca, 0.0) - qde - qde.T
-        cov[j][np.diag_indices(len(ub))] += vj[own]
+        # a B a^T - ca - ca^T + [same fold] ca - qde - qde^T, ca = c a^T, qde = a_s diag(v): worked out in place, term
+        # by term in this order (a V x V array is 50 MB at 2500 visits)
+        out = cov[j]
+        np.matmul(a @ B.sum(axis=0), a.T, out=out)
+        ca = np.matmul(c, a.T, out=buf)
+        out -= ca
+        out -= ca.T
+        np.multiply(ca, same, out=ca)
+        out += ca
+        qde = np.multiply(a_s, vj[own][None, :], out=buf)
+        out -= qde
+        out -= qde.T
+        out[np.diag_indices(len(ub))] += vj[own]
     return HeldoutMeanNull(ub, cov[:3], cov[3])
 
 
@@ -241,8 +252,8 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
     r, ug, inv, cnt, means, pose_of, run_of = _visit_means(data, res, rows, groups)
     x = res[r]
     noise_var = noise_model.mean_variance(cnt)
-    cov, slow_unit = (null.for_visits(ug, noise_var) if null is not None
-                      else (np.stack([np.diag(noise_var[:, j]) for j in range(3)]), np.eye(len(ug))))
+    # without ``null``: independent visit means, their covariance given by its diagonal (no V x V matrix)
+    cov, slow_unit = null.for_visits(ug, noise_var) if null is not None else (noise_var.T, None)
     noise_dof = np.maximum(noise_model.mean_dof, MIN_MEAN_DOF)
     z, p, dof, slow, p_revisits = slow_visit_test(means, cov, slow_unit, pose_of, run_of, noise_dof)
     ho = np.sqrt(np.mean(x**2, axis=0))
@@ -317,39 +328,128 @@ def slow_wander(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, groups: 
                 noise_model: VisitNoise) -> SlowVisitError:
     """The slow error of a visit mean (``slow_visit_error``) in the held-out residual ``res`` (N, 3) of a model, from
     the revisits of its poses, against the noise of each visit mean alone (the coefficients' error, which no term
-    predicts, is left in it: an estimate on the large side); zero without revisits."""
+    predicts, is left in it: an estimate on the large side); zero without revisits. The noise of the visit means is
+    independent between visits: their covariance is given by its diagonal (no V x V matrix)."""
     _, _, _, cnt, means, pose_of, run_of = _visit_means(data, res, rows, groups)
-    var = noise_model.mean_variance(cnt)
-    return slow_visit_error(means, np.stack([np.diag(var[:, j]) for j in range(3)]), np.eye(len(cnt)), pose_of,
-                            run_of)
+    return slow_visit_error(means, noise_model.mean_variance(cnt).T, None, pose_of, run_of)
 
 
-def slow_visit_test(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray, pose: np.ndarray, run: np.ndarray,
-                    noise_dof: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, SlowVisitError]:
-    """The test of ``residual_structure`` with the slow error in its null hypothesis: visit means ``means`` (V, 3)
-    m/s^2, their covariance ``cov`` (3, V, V) under the noise and the coefficients' error (known to ``noise_dof``
-    (3,) degrees of freedom), ``slow_unit`` (V, V) that of a unit slow error, ``pose`` and ``run`` (V,) each visit's.
-    The slow error's variance comes from the revisits of a (pose, run) (``slow_visit_error``); their scatter is then
-    its estimate, not evidence, so the test is of the means of each (pose, run)'s visits (a visit not revisited
-    alone) against their covariance, slow error included (at most ``SLOW_ERROR_BOUND_MPS2``), referred to F with the
-    degrees of freedom of both estimates (``SlowVisitError.test_dof``); and the revisits' scatter is tested against
-    a slow error at that bound (``SlowVisitError.beyond``): p is twice the smaller of the two (Bonferroni). Without
-    revisits it is ``visit_mean_test`` of the visit means. Returns
-    (z (V, 3) each visit mean over its standard deviation, p (3,), degrees of freedom (3,) of a visit mean's variance,
-    the slow error, p (3,) of the revisits of a (pose, run) against each other under that null: ``SlowVisitError.beyond``
-    at the bound; ones without revisits)."""
+def slow_visit_test(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray | None, pose: np.ndarray,
+                    run: np.ndarray, noise_dof: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, SlowVisitError]:
+    """The test of ``residual_structure`` with the slow error in its null hypothesis: visit means ``means`` (V, 3) m/s^2,
+    their covariance ``cov`` (3, V, V) under the noise and the coefficients' error (known to ``noise_dof`` (3,) degrees
+    of freedom), ``slow_unit`` (V, V) that of a unit slow error, ``pose`` and ``run`` (V,) each visit's (visit means
+    independent of each other: ``cov`` (3, V) their variances and ``slow_unit`` None). The slow error's variance comes
+    from the revisits of a (pose, run) (``slow_visit_error``); their scatter is then its estimate, not evidence, so the
+    test is of the means of each (pose, run)'s visits (a visit not revisited alone) against their covariance, slow error
+    included (at most ``SLOW_ERROR_BOUND_MPS2``), referred to F with the degrees of freedom of both estimates
+    (``SlowVisitError.test_dof``); and the revisits' scatter is tested against a slow error at that bound
+    (``SlowVisitError.beyond``): p is twice the smaller of the two (Bonferroni). Without revisits it is
+    ``visit_mean_test`` of the visit means. Returns (z (V, 3) each visit mean over its standard deviation, p (3,),
+    degrees of freedom (3,) of a visit mean's variance, the slow error, p (3,) of the revisits of a (pose, run) against
+    each other under that null: ``SlowVisitError.beyond`` at the bound; ones without revisits)."""
     slow = slow_visit_error(means, cov, slow_unit, pose, run)
     if not slow.revisits:
         return (*visit_mean_test(means, cov, noise_dof), noise_dof, slow, np.ones(3))
     bound = SLOW_ERROR_BOUND_MPS2**2
     p_rev = slow.beyond(means, cov, slow_unit, bound)  # revisits that differ more than the sensor's wander can
     held = SlowVisitError(np.minimum(slow.variance, bound), slow.dof, slow.revisits, slow.group)
-    cov = cov + held.variance[:, None, None] * slow_unit[None]
-    L = held.pooling()
-    cov_g, unit_g = L @ cov @ L.T, L @ slow_unit @ L.T
-    p_pool = visit_mean_test(L @ means, cov_g, held.test_dof(cov_g, unit_g, noise_dof))[1]
-    z = means / np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2).T, 1e-300))
-    return z, np.minimum(2.0 * np.minimum(p_pool, p_rev), 1.0), held.test_dof(cov, slow_unit, noise_dof), slow, p_rev
+    # the null's covariance C + s^2 U, linear in both: its pooled form and its diagonal from theirs (no third array
+    # of 3 V^2 values); L C L^T by sums over the groups
+    pool = _Groups(held.group)
+    var = _variances(cov) + held.variance[:, None] * _unit_diagonal(slow_unit, len(means))[None, :]
+    if slow_unit is None:  # diagonal: so are the pooled covariances
+        unit_g = pool.pooled_diagonal(np.ones(len(means)))
+        cov_g = np.stack([pool.pooled_diagonal(v) for v in var])
+    else:
+        unit_g = pool.pooled(slow_unit)
+        cov_g = np.stack([pool.pooled(c) + s * unit_g for c, s in zip(cov, held.variance, strict=True)])
+    p_pool = visit_mean_test(pool.means(means), cov_g, held.test_dof(cov_g, unit_g, noise_dof))[1]
+    z = means / np.sqrt(np.maximum(var.T, 1e-300))
+    return z, np.minimum(2.0 * np.minimum(p_pool, p_rev), 1.0), held.test_dof(var, slow_unit, noise_dof), slow, p_rev
+
+
+def _square_part(M: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """``M[np.ix_(idx, idx)]`` of ``M`` (n, n) for ascending ``idx``: ``M`` itself when ``idx`` is every row (no copy)."""
+    return M if len(idx) == len(M) else M[np.ix_(idx, idx)]
+
+
+def _variances(cov: np.ndarray) -> np.ndarray:
+    """(3, V) the variances of the visit means in ``cov``: (3, V, V), or (3, V) when they are independent (its
+    diagonal alone)."""
+    return cov if cov.ndim == 2 else np.diagonal(cov, axis1=1, axis2=2)
+
+
+def _unit_diagonal(slow_unit: np.ndarray | None, n: int) -> np.ndarray:
+    """(n,) the diagonal of the slow error's unit covariance ``slow_unit`` ((n, n); (n,): a diagonal one, given by its
+    diagonal; None: the identity)."""
+    if slow_unit is None:
+        return np.ones(n)
+    return slow_unit if slow_unit.ndim == 1 else np.diagonal(slow_unit)
+
+
+class _Groups:
+    """Visits in groups (``labels`` (n,): 0..G-1), and the operators of ``slow_visit_error`` on them without their
+    dense n x n matrices: L (G, n), the mean of each group's visits, and P = I - E, E_ij = [same group] / n_g, each
+    visit about its group's mean (symmetric, idempotent). A product with a sparse L costs n x (columns) instead of the
+    dense products' n^2 x (columns): O(V^2) for a V x V covariance (symmetric), O(V) for a diagonal one."""
+
+    def __init__(self, labels: np.ndarray) -> None:
+        from scipy.sparse import csr_array
+
+        self.labels = np.asarray(labels)
+        n = len(self.labels)
+        self.size = np.bincount(self.labels).astype(float)  # (G,) visits of each group
+        self.L = csr_array((1.0 / self.size[self.labels], (self.labels, np.arange(n))), shape=(len(self.size), n))
+
+    def means(self, M: np.ndarray) -> np.ndarray:
+        """L M: (G, ...) the mean of each group's rows of ``M`` (n, ...)."""
+        return self.L @ M
+
+    def pooled(self, C: np.ndarray) -> np.ndarray:
+        """L C L^T (G, G) of a symmetric ``C`` (n, n)."""
+        return self.means(self.means(C).T)
+
+    def pooled_diagonal(self, d: np.ndarray) -> np.ndarray:
+        """The diagonal (G,) of L D L^T, D = diag(``d``) (n,) (the whole of it: it is diagonal)."""
+        return np.bincount(self.labels, weights=d, minlength=len(self.size)) / self.size**2
+
+    def contrasts(self, m: np.ndarray) -> np.ndarray:
+        """P m: each value of ``m`` (n,) less its group's mean."""
+        return m - self.means(m)[self.labels]
+
+    def parts(self, C: np.ndarray) -> _SymmetricParts:
+        """What the traces with P of a symmetric ``C`` (n, n) are made of (``trace_product``): no n x n array."""
+        LC = self.means(C)
+        return _SymmetricParts(C, LC, self.means(LC.T),
+                               float(np.trace(C)) - float(np.sum(LC[self.labels, np.arange(len(self.labels))])))
+
+    def trace_product(self, X: _SymmetricParts, Y: _SymmetricParts) -> float:
+        """tr(P X P Y) of two symmetric matrices: with E = I - P (E_ij = [same group] / n_g), tr(X Y) - 2 tr(E X Y)
+        + tr(E X E Y), tr(E X Y) = sum_g n_g (L X)_g . (L Y)_g and tr(E X E Y) = sum_gh n_g n_h (L X L^T)_gh
+        (L Y L^T)_gh: sums over the groups and one pass over X and Y, no n x n temporary."""
+        w = self.size
+        return (float(np.einsum("ij,ij->", X.matrix, Y.matrix)) - 2.0 * float(np.sum(w[:, None] * X.L * Y.L))
+                + float(np.sum((w[:, None] * w[None, :]) * X.pooled * Y.pooled)))
+
+    def trace_diagonal(self, d: np.ndarray) -> float:
+        """tr(P D), D = diag(``d``) (n,)."""
+        return float(np.sum(d * (1.0 - 1.0 / self.size[self.labels])))
+
+    def trace_square_diagonal(self, d: np.ndarray) -> float:
+        """tr(P D P D), D = diag(``d``) (n,): sum_ij P_ij^2 d_i d_j, P_ij = [i = j] - [same group] / n_g."""
+        s = np.bincount(self.labels, weights=d, minlength=len(self.size))
+        return float(np.sum(d**2 * (1.0 - 2.0 / self.size[self.labels])) + np.sum(s**2 / self.size**2))
+
+
+@dataclass
+class _SymmetricParts:
+    """A symmetric ``matrix`` C (n, n) with L C (G, n), L C L^T (G, G) and tr(P C) of its ``_Groups``."""
+
+    matrix: np.ndarray
+    L: np.ndarray
+    pooled: np.ndarray
+    trace: float
 
 
 @dataclass
@@ -362,41 +462,45 @@ class SlowVisitError:
     revisits: int
     group: np.ndarray | None = None  # (V,) each visit's (pose, run) group, 0..G-1 (a visit not revisited: its own)
 
-    def beyond(self, means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray, bound: np.ndarray) -> np.ndarray:
+    def beyond(self, means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray | None,
+               bound: np.ndarray) -> np.ndarray:
         """p (3,) of the revisits' scatter |P m|^2 (``slow_visit_error``) under a slow error of variance ``bound``
         (3,) (m/s^2)^2: Satterthwaite's chi^2 of its mean tr(P C_b) and variance 2 tr((P C_b)^2),
         C_b = C + bound U. Small: the revisits of a pose differ more than a slow error of that size explains."""
         g = self.group if self.group is not None else np.zeros(0, int)
         rep = np.bincount(g)[g] >= 2
         idx = np.flatnonzero(rep)
-        P = np.eye(len(idx)) - (g[idx][:, None] == g[idx][None, :]) / np.bincount(g[idx])[g[idx]][None, :]
+        P = _Groups(np.unique(g[idx], return_inverse=True)[1])
+        if slow_unit is not None:
+            U = P.parts(_square_part(slow_unit, idx))
+            uu = P.trace_product(U, U)
         p = np.ones(3)
         for j in range(3):
-            pm = P @ means[idx, j]
-            PC = P @ (cov[j] + bound[j] * slow_unit)[np.ix_(idx, idx)]
-            e, v = float(np.trace(PC)), 2.0 * float(np.sum(PC * PC.T))
+            pm = P.contrasts(means[idx, j])
+            if slow_unit is None:  # independent visit means: C and U diagonal
+                d = cov[j][idx] + bound[j]
+                e, v = P.trace_diagonal(d), 2.0 * P.trace_square_diagonal(d)
+            else:  # C_b = C + bound U: tr(P C_b) and tr((P C_b)^2) from those of C and U (no third n x n array)
+                C = P.parts(_square_part(cov[j], idx))
+                cc, cu = P.trace_product(C, C), P.trace_product(C, U)
+                e, v = C.trace + bound[j] * U.trace, 2.0 * (cc + 2.0 * bound[j] * cu + bound[j] ** 2 * uu)
             h = 2.0 * e**2 / max(v, 1e-300)
             p[j] = stats.chi2.sf(float(pm @ pm) * h / max(e, 1e-300), h)
         return p
 
-    def pooling(self) -> np.ndarray:
-        """(G, V): the mean of each group's visits."""
-        g = self.group if self.group is not None else np.zeros(0, int)
-        L = (np.arange(int(g.max()) + 1 if g.size else 0)[:, None] == g[None, :]).astype(float)
-        return L / L.sum(axis=1, keepdims=True)
-
-    def test_dof(self, cov: np.ndarray, slow_unit: np.ndarray, noise_dof: np.ndarray) -> np.ndarray:
-        """Degrees of freedom (3,) of a visit mean's variance in ``cov`` (3, V, V), the noise's (known to
-        ``noise_dof``) plus this slow error's (``slow_unit`` (V, V) for a unit variance): Satterthwaite's for a sum
-        of two independent estimates, on the visits' mean variance."""
-        b = self.variance * float(np.mean(np.diag(slow_unit)))
-        a = np.maximum(np.mean(np.diagonal(cov, axis1=1, axis2=2), axis=1) - b, 0.0)
+    def test_dof(self, cov: np.ndarray, slow_unit: np.ndarray | None, noise_dof: np.ndarray) -> np.ndarray:
+        """Degrees of freedom (3,) of a visit mean's variance in ``cov`` (3, V, V), or (3, V) its diagonal, the
+        noise's (known to ``noise_dof``) plus this slow error's (``slow_unit`` (V, V) for a unit variance; None: the
+        identity): Satterthwaite's for a sum of two independent estimates, on the visits' mean variance."""
+        var = _variances(cov)
+        b = self.variance * float(np.mean(_unit_diagonal(slow_unit, var.shape[1])))
+        a = np.maximum(np.mean(var, axis=1) - b, 0.0)
         with np.errstate(divide="ignore", invalid="ignore"):
             dof = (a + b) ** 2 / (a**2 / noise_dof + np.where(b > 0, b**2 / self.dof, 0.0))
         return np.where(np.isfinite(dof) & (dof > 0), np.maximum(dof, MIN_MEAN_DOF), noise_dof)
 
 
-def slow_visit_error(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray, pose: np.ndarray,
+def slow_visit_error(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray | None, pose: np.ndarray,
                      run: np.ndarray) -> SlowVisitError:
     """The slow error of a visit mean that the floor cannot see, from the visits of one pose of one run (the same
     table angles) about their pose's mean: a real sensor's bias wanders slowly (flicker-like bias instability,
@@ -411,7 +515,9 @@ def slow_visit_error(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray, 
     is the same in every revisit and is not taken into it: the test still sees an effect of the orientation, the
     table or the motion history of a repeated sequence. A campaign whose poses are each visited once cannot tell a
     slow error from an effect of the pose (0, not identifiable; ``means`` (V, 3) m/s^2, ``pose`` (V,) pose ids, -1 in
-    motion, ``run`` (V,) run ids)."""
+    motion, ``run`` (V,) run ids). ``cov`` may be (3, V), the variances of visit means independent of each other (a
+    diagonal C) with ``slow_unit`` None (U = I): the same figures from O(V) sums. P is never made: its products are
+    sums over the groups (``_Groups``), O(V^2) for a dense C."""
     key = np.where(pose >= 0, pose.astype(np.int64) * 1_000_003 + run.astype(np.int64), -1)
     lab, cnt = np.unique(key, return_inverse=True, return_counts=True)[1:]
     rep = (key >= 0) & (cnt[lab] >= 2)
@@ -419,18 +525,28 @@ def slow_visit_error(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray, 
     if revisits < 2:
         return SlowVisitError(np.zeros(3), np.full(3, np.inf), 0)
     idx = np.flatnonzero(rep)
-    g = np.unique(key[idx], return_inverse=True)[1]
-    P = np.eye(len(idx)) - (g[:, None] == g[None, :]) / np.bincount(g)[g][None, :]  # symmetric: one group's mean
-    PU = P @ slow_unit[np.ix_(idx, idx)]
-    tr_pu = float(np.trace(PU))
+    P = _Groups(np.unique(key[idx], return_inverse=True)[1])  # one group's mean: P is never made (n x n)
+    diagonal = slow_unit is None
+    if diagonal:
+        unit = np.ones(len(idx))
+        tr_pu = P.trace_diagonal(unit)
+    else:
+        U = P.parts(_square_part(slow_unit, idx))
+        tr_pu, uu = U.trace, P.trace_product(U, U)
     var, dof = np.zeros(3), np.full(3, np.inf)
     for j in range(3):
-        pm = P @ means[idx, j]
-        PC = P @ cov[j][np.ix_(idx, idx)]
-        var[j] = max((float(pm @ pm) - float(np.trace(PC))) / max(tr_pu, 1e-300), 0.0)
-        if var[j] > 0:
-            PT = PC + var[j] * PU
-            dof[j] = 2.0 * var[j] ** 2 / (2.0 * float(np.sum(PT * PT.T)) / tr_pu**2)
+        pm = P.contrasts(means[idx, j])
+        if diagonal:
+            C = cov[j][idx]
+            tr_pc = P.trace_diagonal(C)
+        else:
+            Cj = P.parts(_square_part(cov[j], idx))
+            tr_pc, cc, cu = Cj.trace, P.trace_product(Cj, Cj), P.trace_product(Cj, U)
+        var[j] = max((float(pm @ pm) - tr_pc) / max(tr_pu, 1e-300), 0.0)
+        if var[j] > 0:  # tr((P (C + s^2 U))^2)
+            sq = (P.trace_square_diagonal(C + var[j] * unit) if diagonal
+                  else cc + 2.0 * var[j] * cu + var[j] ** 2 * uu)
+            dof[j] = 2.0 * var[j] ** 2 / (2.0 * sq / tr_pu**2)
     group = np.unique(np.where(rep, key, -2 - np.arange(len(key))), return_inverse=True)[1]
     return SlowVisitError(var, dof, revisits, group)
 
@@ -451,18 +567,22 @@ def _visit_sums(X: np.ndarray, rows: np.ndarray, inv: np.ndarray, n: int, block:
 
 def visit_mean_test(means: np.ndarray, cov: np.ndarray, dof: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The test of ``residual_structure``: visit means ``means`` (V, 3) m/s^2 against their covariance ``cov``
-    (3, V, V) under the null hypothesis, known to ``dof`` (3,) degrees of freedom. Returns (z (V, 3): each mean over
+    (3, V, V) under the null hypothesis (or (3, V): independent means, their variances), known to ``dof`` (3,) degrees
+    of freedom. Returns (z (V, 3): each mean over
     its standard deviation, p (3,)): chi = sum_v z_v^2 referred to c chi^2(h), h = V^2 / tr R^2 (R the correlation
     matrix of ``cov``: Satterthwaite's two moments of sum_i lambda_i chi^2_1), chi / V to F(h, dof)."""
     V = means.shape[0]
-    var = np.maximum(np.diagonal(cov, axis1=1, axis2=2).T, 1e-300)  # (V, 3)
+    var = np.maximum(_variances(cov).T, 1e-300)  # (V, 3)
     z = means / np.sqrt(var)
     chi = np.sum(z**2, axis=0)
     sd = np.sqrt(var.T)  # (3, V)
-    r = cov / sd[:, :, None]  # the correlation matrix R, squared in place: one (3, V, V) temporary, not three
-    r /= sd[:, None, :]
-    np.square(r, out=r)
-    h = V**2 / np.maximum(np.sum(r, axis=(1, 2)), 1e-300)
+    h = np.full(3, float(V))  # independent visit means (cov (3, V)): R = I, tr R^2 = V
+    if cov.ndim == 3:
+        for j in range(3):  # the correlation matrix R, squared in place: one (V, V) temporary at a time
+            r = cov[j] / sd[j][:, None]
+            r /= sd[j][None, :]
+            np.square(r, out=r)
+            h[j] = V**2 / max(float(np.sum(r)), 1e-300)
     return z, _visit_chi2_p(chi * h / max(V, 1), h, dof)
 
 
