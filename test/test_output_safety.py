@@ -229,6 +229,18 @@ def test_an_existing_candidate_plot_of_diagnose_needs_force(tmp_path: Path, caps
     assert not (tmp_path / "d.md").exists()
 
 
+@pytest.mark.parametrize("option", [["--img-dir", "img"], ["--figures", "all"], ["--figures", "report"]])
+def test_a_figure_option_without_a_report_is_refused(option: list[str], tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """The figures belong to the markdown report (--out): given without it, --img-dir or --figures used to be ignored
+    without a word, the user left looking for figures that were never drawn."""
+    csv = six_pose_csv(tmp_path / "s.csv")
+    value = str(tmp_path / option[1]) if option[0] == "--img-dir" else option[1]
+    rc, err = run(["diagnose", csv, option[0], value, "--yaml", tmp_path / "c.yaml"], capsys)
+    assert rc == 2 and option[0] in err and "--out" in err and one_line(err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.csv"]
+
+
 def test_a_rerun_of_diagnose_leaves_only_the_figures_its_report_shows(tmp_path: Path) -> None:
     """`diagnose --force` after a `--figures all` run left the earlier candidate_*.png beside a report that does not
     link them. A re-run removes the figures a diagnosis wrote that its report does not show, and no other file: the

@@ -71,7 +71,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="sensor id written into --yaml (default: the recordings' own, else unknown)")
     p.add_argument("--out", type=Path, default=None, help="markdown report (PNG plots go to --img-dir)")
     p.add_argument("--img-dir", type=Path, default=None, help="directory for the PNG plots (default: <out dir>/img)")
-    p.add_argument("--figures", choices=FIGURES, default=FIGURES[0],
+    p.add_argument("--figures", choices=FIGURES, default=None,
                    help="PNG plots of --out: 'report' (default) before/after, the residual's structure and a figure of "
                         "each candidate effect the summary names (added, remedy, per-run, rig, stand-in, confounded); "
                         "'all' also every other candidate's of the first step; 'none' no plots")
@@ -88,6 +88,10 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
 FIGURES = ("report", "all", "none")  # diagnose_report.FIGURES (not imported here: it loads the diagnosis for --help)
 
 
+def _figures(args: argparse.Namespace) -> str:
+    return FIGURES[0] if args.figures is None else args.figures
+
+
 def _img_dir(args: argparse.Namespace) -> Path | None:
     if args.out is None:
         return None
@@ -97,13 +101,17 @@ def _img_dir(args: argparse.Namespace) -> Path | None:
 def check_diagnose_outputs(args: argparse.Namespace) -> None:
     """Before any computation: outputs are not inputs, exist only with --force, and their directories exist or can
     be made (``atomic_output``: made when the outputs are written, as for every command)."""
-    from ..io.atomic_output import check_output_dir, check_outputs
+    from ..io.atomic_output import OutputError, check_output_dir, check_outputs
 
+    if args.out is None:  # the figures belong to the report: an option of theirs alone would draw nothing, silently
+        for option, value in (("--img-dir", args.img_dir), ("--figures", args.figures)):
+            if value is not None:
+                raise OutputError(f"{option} {value}: the figures belong to the report; give --out too")
     inputs = [*args.inputs, *([args.adc_codes] if getattr(args, "adc_codes", None) is not None else [])]
     check_outputs([args.out, args.yaml], inputs, args.force)
     img = _img_dir(args)
     # whichever figures the run draws, or removes as those of an earlier run the new report does not show
-    if img is not None and (args.figures != "none" or img.is_dir()):
+    if img is not None and (_figures(args) != "none" or img.is_dir()):
         from ..reports.diagnose_report import figure_files
 
         check_output_dir(img, figure_files(), args.inputs, args.force)
@@ -119,7 +127,7 @@ def write_outputs(res, args: argparse.Namespace, command: str) -> list[Path]:
     with committed_outputs() as outs:
         if args.out is not None:
             written += write_report(res, args.out, _img_dir(args), command, outs,
-                                    figures=args.figures)
+                                    figures=_figures(args))
         if args.yaml is not None:
             res.calibration.fit.setdefault("source", [str(p) for p in args.inputs])
             res.calibration.save(outs.path(args.yaml))
