@@ -6,8 +6,9 @@ says otherwise), diagnoses each with its defaults (remedies included), and count
 against its nominal level: "significant unexplained residual" (``alpha`` = 1 %, Bonferroni over the axes), an effect
 added (a model term, a per-run or a rig term: ``alpha`` per step, Bonferroni over the candidates), a step the chosen
 effect is confounded with, visits left out of the floor as noisier than the rest (1 %, Bonferroni over visits and
-axes), a periodic disturbance (0.1 %), a settling transient or a disturbed visit end (3 standard errors: ~0.4 %
-each, under the normal approximation), and any other warning. A consistent test fires on about its level: each rate
+axes), one direction of gravity read differently by the side it was approached from (the motion-history note, 1 %,
+Bonferroni over the axes), a periodic disturbance (0.1 %), a settling transient or a disturbed visit end (3 standard
+errors: ~0.4 % each, under the normal approximation), and any other warning. A consistent test fires on about its level: each rate
 is printed with its 95 % (Wilson) binomial interval. The noise remedy is counted apart: the read noise it filters is
 simulated, so adding it is the right answer, not a false alarm. Also the residual test's p-values per axis (a
 calibrated test gives p < q on a fraction q of the campaigns, per axis).
@@ -53,6 +54,8 @@ NOMINAL = {
     "a periodic disturbance": (0.001, "periodic_disturbance.py"),
     "a settling transient after the moves": (0.004, "3 standard errors, normal approximation (diagnosis/floor.py)"),
     "a disturbed visit end (visit_ends)": (0.004, "as the settling transient"),
+    "a direction read differently by its side of approach (approach_direction)": (
+        0.01, "alpha, Bonferroni over the axes (diagnosis/approach.py)"),
 }
 
 
@@ -89,6 +92,7 @@ def one(args: tuple[int, float, int, dict]) -> dict:
         "a periodic disturbance": bool(res.disturbance.found),
         "a settling transient after the moves": bool(res.settling is not None and res.settling.detected),
         "a disturbed visit end (visit_ends)": "visit_ends" in kinds,
+        "a direction read differently by its side of approach (approach_direction)": "approach_direction" in kinds,
     }
     return {"seed": seed, "verdicts": verdicts, "p": [float(v) for v in res.structure.pose_chi2_p],
             "added": [a[0] for a in res.added + res.run_terms + res.rig_terms],
@@ -117,7 +121,8 @@ def summary(rows: list[dict]) -> list[dict]:
         lo, hi = wilson(k, n)
         out.append({"verdict": name, "k": k, "n": n, "rate": k / n, "lo": lo, "hi": hi, "nominal": level,
                     "where": where, "holds": lo <= level})
-    counted = {"step_confounded", "noisy_visits", "visit_ends", "periodic_disturbance"}  # rows of their own above
+    counted = {"step_confounded", "noisy_visits", "visit_ends", "periodic_disturbance",
+               "approach_direction"}  # rows of their own above
     seen = sorted({f for r in rows for f in r["findings"]} - counted)
     for kind in seen:
         k = sum(kind in r["findings"] for r in rows)
