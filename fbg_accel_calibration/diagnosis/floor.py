@@ -380,10 +380,10 @@ def visit_noise_levels(reference: np.ndarray, axis_counts: np.ndarray | None, in
     through the small-signal slope), column 1 (with ``axis_counts``) its mean of Psi_j^2 / r^2 (the reference's noise,
     carried into every axis in proportion to its ratio). On the simulator's clean ramps (15 -> 45 -> 15 degC) the
     reference falls by ~12 % when hot (x +40 % from the coldest to the hottest visit, seed 20), and the read noise makes
-    a visit's variance rise with the specific force along the axis (x / y / z 0.93 / 0.90 / 0.91 at -1 g to 1.06 / 1.09 /
-    1.09 at +1 g of the median, 40 seeds), and between poses beyond that: against one variance for every visit (1 / r^2
-    alone), the 3 s visits at 10 Hz (~24 degrees of freedom, read at ~1e-5 per visit and axis, where a variance 9 % above
-    what it is judged against is flagged 6 x as often) were left out on 6 of 100 clean campaigns. ``reference`` (n,)
+    a visit's variance rise with the specific force along the axis (by -7 to -12 % at -1 g, +5 to +9 % at +1 g,
+    ``bench/noisy_visit_levels.py``): against 1 / r^2 alone, the 3 s visits at 10 Hz (~24 degrees of freedom, read at
+    ~1e-5 per visit and axis, where a variance 9 % above what it is judged against is flagged 6 x as often) were left
+    out on 6 of 100 clean campaigns. ``reference`` (n,)
     counts of the rows, ``axis_counts`` (n, 3) (None: column 0 alone), ``inv`` (n,) each row's visit, ``cnt`` (V,) rows
     per visit; each column over its median visit; a visit without a positive finite reference counts as the median.
     None when no visit has one."""
