@@ -380,7 +380,7 @@ def visit_noise_levels(reference: np.ndarray, axis_counts: np.ndarray | None, in
     through the small-signal slope), column 1 (with ``axis_counts``) its mean of Psi_j^2 / r^2 (the reference's noise,
     carried into every axis in proportion to its ratio). On the simulator's clean ramps (15 -> 45 -> 15 degC) the
     reference falls by ~12 % when hot (x +40 % from the coldest to the hottest visit, seed 20), and the read noise makes
-    a visit's variance rise with the specific force along the axis (by -7 to -12 % at -1 g, +5 to +9 % at +1 g,
+    a visit's variance rise with the specific force along the axis (by -7 to -10 % at -1 g, +6 to +9 % at +1 g,
     ``bench/noisy_visit_levels.py``): against 1 / r^2 alone, the 3 s visits at 10 Hz (~24 degrees of freedom, read at
     ~1e-5 per visit and axis, where a variance 9 % above what it is judged against is flagged 6 x as often) were left
     out on 6 of 100 clean campaigns. ``reference`` (n,)
