@@ -383,10 +383,9 @@ def visit_noise_levels(reference: np.ndarray, axis_counts: np.ndarray | None, in
     a visit's variance rise with the specific force along the axis (by -7 to -10 % at -1 g, +6 to +9 % at +1 g,
     ``bench/noisy_visit_levels.py``): against 1 / r^2 alone, the 3 s visits at 10 Hz (~24 degrees of freedom, read at
     ~1e-5 per visit and axis, where a variance 9 % above what it is judged against is flagged 6 x as often) were left
-    out on 6 of 100 clean campaigns. ``reference`` (n,)
-    counts of the rows, ``axis_counts`` (n, 3) (None: column 0 alone), ``inv`` (n,) each row's visit, ``cnt`` (V,) rows
-    per visit; each column over its median visit; a visit without a positive finite reference counts as the median.
-    None when no visit has one."""
+    out on 6 of 100 clean campaigns. ``reference`` (n,) counts of the rows, ``axis_counts`` (n, 3) (None: column 0
+    alone), ``inv`` (n,) each row's visit, ``cnt`` (V,) rows per visit; each column over its median visit; a visit
+    without a positive finite reference counts as the median. None when no visit has one."""
     ok = np.isfinite(reference) & (reference > 0)
     r = np.where(ok, reference, 1.0).astype(float)
     cols = [np.broadcast_to((1.0 / r**2)[:, None], (len(r), 3))]
