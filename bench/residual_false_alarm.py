@@ -6,8 +6,9 @@ says otherwise), diagnoses each with its defaults (remedies included), and count
 against its nominal level: "significant unexplained residual" (``alpha`` = 1 %, Bonferroni over the axes), an effect
 added (a model term, a per-run or a rig term: ``alpha`` per step, Bonferroni over the candidates), a step the chosen
 effect is confounded with, visits left out of the floor as noisier than the rest (1 %, Bonferroni over visits and
-axes), a periodic disturbance (0.1 %), a settling transient or a disturbed visit end (3 standard errors: ~0.4 %
-each, under the normal approximation), and any other warning. A consistent test fires on about its level: each rate
+axes), one direction of gravity read differently by the side it was approached from (the motion-history note, 1 %,
+Bonferroni over the axes), a periodic disturbance (0.1 %), a settling transient or a disturbed visit end (3 standard
+errors: ~0.4 % each, under the normal approximation), and any other warning. A consistent test fires on about its level: each rate
 is printed with its 95 % (Wilson) binomial interval. The noise remedy is counted apart: the read noise it filters is
 simulated, so adding it is the right answer, not a false alarm. Also the residual test's p-values per axis (a
 calibrated test gives p < q on a fraction q of the campaigns, per axis).
@@ -53,6 +54,8 @@ NOMINAL = {
     "a periodic disturbance": (0.001, "periodic_disturbance.py"),
     "a settling transient after the moves": (0.004, "3 standard errors, normal approximation (diagnosis/floor.py)"),
     "a disturbed visit end (visit_ends)": (0.004, "as the settling transient"),
+    "a direction read differently by its side of approach (approach_direction)": (
+        0.01, "alpha, Bonferroni over the axes (diagnosis/approach.py)"),
 }
 
 
@@ -89,8 +92,10 @@ def one(args: tuple[int, float, int, dict]) -> dict:
         "a periodic disturbance": bool(res.disturbance.found),
         "a settling transient after the moves": bool(res.settling is not None and res.settling.detected),
         "a disturbed visit end (visit_ends)": "visit_ends" in kinds,
+        "a direction read differently by its side of approach (approach_direction)": "approach_direction" in kinds,
     }
     return {"seed": seed, "verdicts": verdicts, "p": [float(v) for v in res.structure.pose_chi2_p],
+            "other_pose_p": [float(v) for v in res.structure.other_pose_chi2_p],
             "added": [a[0] for a in res.added + res.run_terms + res.rig_terms],
             "remedies": [a[0] for a in res.noise_remedies], "findings": kinds,
             "ratio": [float(v) for v in res.structure.ratio],
@@ -117,7 +122,8 @@ def summary(rows: list[dict]) -> list[dict]:
         lo, hi = wilson(k, n)
         out.append({"verdict": name, "k": k, "n": n, "rate": k / n, "lo": lo, "hi": hi, "nominal": level,
                     "where": where, "holds": lo <= level})
-    counted = {"step_confounded", "noisy_visits", "visit_ends", "periodic_disturbance"}  # rows of their own above
+    counted = {"step_confounded", "noisy_visits", "visit_ends", "periodic_disturbance",
+               "approach_direction"}  # rows of their own above
     seen = sorted({f for r in rows for f in r["findings"]} - counted)
     for kind in seen:
         k = sum(kind in r["findings"] for r in rows)
@@ -127,9 +133,13 @@ def summary(rows: list[dict]) -> list[dict]:
     return out
 
 
-def axis_calibration(rows: list[dict]) -> list[tuple[float, list[float]]]:
-    """Fraction of campaigns with the residual test's p below q, per axis, for a few q (a calibrated test: ~q)."""
-    return [(q, [sum(r["p"][j] < q for r in rows) / len(rows) for j in range(3)]) for q in (0.1, 0.05, 0.01, 0.0033)]
+def axis_calibration(rows: list[dict], key: str = "p") -> list[tuple[float, list[float]]]:
+    """Fraction of campaigns with a test's p (``key``: the residual test's; ``other_pose_p``: the poses of one
+    direction of gravity against each other, ``checks.table_angles`` and ``checks.stand_ins``) below q, per axis, for a
+    few q (a calibrated test: ~q)."""
+    rows = [r for r in rows if key in r]
+    return [(q, [sum(r[key][j] < q for r in rows) / max(len(rows), 1) for j in range(3)])
+            for q in (0.1, 0.05, 0.01, 0.0033)]
 
 
 def page(rows: list[dict], argv: list[str], header: str, seconds: float, campaign: str = "grid") -> str:
@@ -156,6 +166,13 @@ def page(rows: list[dict], argv: list[str], header: str, seconds: float, campaig
               "The residual test's p-value per axis (a calibrated test gives p < q on a fraction q of the campaigns):",
               "", "| q | x | y | z |", "|---|---|---|---|"]
     lines += [f"| {q:g} | " + " | ".join(f"{f:.2f}" for f in fr) + " |" for q, fr in axis_calibration(rows)]
+    if any("other_pose_p" in r for r in rows):
+        lines += ["", "The poses of one direction of gravity against each other (other table angles: the table-angle "
+                  "note and the stand-in rule, `diagnosis/checks.py`, read it at alpha / 3 and 1e-6), p per axis; "
+                  "like the residual test's before it counted the fitted model's own error, it refers the held-out "
+                  "visit means to the noise alone:", "", "| q | x | y | z |", "|---|---|---|---|"]
+        lines += [f"| {q:g} | " + " | ".join(f"{f:.2f}" for f in fr) + " |"
+                  for q, fr in axis_calibration(rows, "other_pose_p")]
     slow = [r["slow_sigma"] for r in rows if r.get("slow_revisits")]
     lines += ["", "How the residual test's statistic and its reference distribution are made is in "
               "[docs/effects.md](../effects.md) (\"What remains\"). Its null hypothesis holds noise slower than a "
@@ -203,6 +220,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{100 * s['hi']:.1f} %{nominal})" + ("" if s["holds"] is None else f" holds: {s['holds']}"))
     for q, fr in axis_calibration(rows):
         print(f"residual test p < {q:g} per axis: " + " / ".join(f"{f:.2f}" for f in fr))
+    for q, fr in axis_calibration(rows, "other_pose_p"):
+        print(f"poses of one direction p < {q:g} per axis: " + " / ".join(f"{f:.2f}" for f in fr))
     added = [r for r in rows if r["added"]]
     print(f"terms added: {len(added)} / {n}: " + ", ".join(f"seed {r['seed']}: {r['added']}" for r in added))
     out = a.output or str(scratch_dir() / f"residual_false_alarm_{a.campaign}.json")

@@ -97,7 +97,8 @@ def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: Flo
         res_f = des_f.G - cv_f.fitted_full
         if floor.disturbance.found:  # the filtered output carries the lines too (refitted on it)
             res_f -= floor.disturbance.refit(res_f, data.t_s, groups, data.run_id, settled & rows_f)
-        noise_model_after = within_visit_noise(res_f, groups, settled & rows_f, data.t_s, reference=data.ref)
+        noise_model_after = within_visit_noise(res_f, groups, settled & rows_f, data.t_s, reference=data.ref,
+                                               axis_counts=data.xyz)
         del res_f
         noise_after = noise_model_after.sigma
         cal.noise_sigma_mps2 = noise_after

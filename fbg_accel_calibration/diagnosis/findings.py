@@ -113,7 +113,8 @@ def flagged_visits(data: DiagnosisData, groups: np.ndarray, models: list[VisitNo
     n_v = max(m.n_checked for m in models)
     separates = "cut that stretch and run again"
     return Finding("noisy_visits", f"{len(labels)} visit(s) left out of the noise floor, their scatter far beyond the "
-                   f"other visits' (variance over {FLOOR_VISIT_RATIO:g}x the visits' median and p < "
+                   f"other visits' (variance over {FLOOR_VISIT_RATIO:g}x what the visits' variances make it, at its "
+                   f"reference level and ratios, and p < "
                    f"{FLOOR_VISIT_ALPHA:g} / (3 x {n_v} visits) each): " + "; ".join(names) + f". They stay in the "
                    f"fit: {shift}; a burst of outliers or a dead channel there? Cut that stretch and run again if the "
                    "change matters", numbers={"visits": labels.tolist(), "scatter_x_floor": [seen[g] for g in labels],

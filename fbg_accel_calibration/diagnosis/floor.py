@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import fft as scipy_fft
-from scipy import stats
+from scipy import optimize, stats
 
 from .data import DiagnosisData, finite_rows, take_rows
 from .effects import TIA_TAU_S
@@ -258,7 +258,8 @@ def _lag_products(dev: np.ndarray, n_v: np.ndarray, lags: int, batch: int = 256)
 
 
 def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_s: np.ndarray | None = None,
-                       jackknife: bool = True, reference: np.ndarray | None = None) -> VisitNoise:
+                       jackknife: bool = True, reference: np.ndarray | None = None,
+                       axis_counts: np.ndarray | None = None) -> VisitNoise:
     """The noise floor (3,) m/s^2 of a residual (N, 3) m/s^2, table frame, and its autocorrelation (see above).
 
     ``groups`` are visits (``DiagnosisData.group``), ``rows`` the samples that count (settled ones: see ``settled_mask``).
@@ -276,8 +277,9 @@ def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
     How well the variance of a visit mean is known (``VisitNoise.mean_dof``) is measured by a grouped jackknife over
     the visits (``JACKKNIFE_GROUPS``): short visits tell little about the correlation at long lags, on which it rests.
     ``jackknife`` False: not measured (``mean_dof`` stays inf), for a caller that needs the floor alone.
-    ``reference`` (N,) the reference channel's counts: a visit's noise is judged by the check for a noisy visit
-    (``noisy_visits``) against what its reference level makes it (``reference_noise_scale``).
+    ``reference`` (N,) the reference channel's counts and ``axis_counts`` (N, 3) the axis channels': a visit's noise is
+    judged by the check for a noisy visit (``noisy_visits``) against what its reference level and its ratios make it
+    (``visit_noise_levels``).
     """
     r = rows & finite_rows(res)
     if not r.any():
@@ -337,7 +339,8 @@ def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
     noise = estimate(every)
     if noise is None:
         return VisitNoise(np.full(3, np.nan), np.ones((3, 1)))
-    level = None if reference is None else reference_noise_scale(reference[idx], inv, cnt)
+    level = None if reference is None else visit_noise_levels(
+        reference[idx], None if axis_counts is None else take_rows(axis_counts, idx), inv, cnt)
     flagged = np.zeros(len(n_v), bool)
     for _ in range(3):  # the autocorrelation the check uses is refitted without the visits it flags
         ratio, p = noisy_visits(prods[:, 0], n_v, stt > 0, noise.acf, level)
@@ -367,52 +370,99 @@ def within_visit_noise(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, t_
     return noise
 
 
-def reference_noise_scale(reference: np.ndarray, inv: np.ndarray, cnt: np.ndarray) -> np.ndarray | None:
-    """(V,) each visit's noise variance relative to the visits' median, as its reference level sets it: the output is
-    the axis channels' counts over the reference channel's (eq. 24), and the detectors' and ADCs' noise is in counts
-    (paper Table 2's noise is injected on the counts through the small-signal slope; the reference's read noise is
-    counts rms), so the output's noise scales as 1 / reference: its variance as the mean of 1 / reference^2 over the
-    visit's samples. On the simulator's clean ramps (15 -> 45 -> 15 degC) the reference falls by ~12 % when hot and
-    the visits' variance follows 1 / reference^2 (seed 20: x +40 % from the coldest to the hottest visit, by a fit
-    of the visit variances on it), which a variance common to every visit leaves to the check as noisy hot visits.
-    ``reference`` (n,) counts of the rows, ``inv``
-    (n,) each row's visit, ``cnt`` (V,) rows per visit; a visit without a positive finite reference counts as the
-    median. None when no visit has one."""
+def visit_noise_levels(reference: np.ndarray, axis_counts: np.ndarray | None, inv: np.ndarray,
+                       cnt: np.ndarray) -> np.ndarray | None:
+    """(V, 3, B) what each visit's noise variance on each axis is made of, as its counts set it (``noisy_visits`` fits
+    how much of each there is): the output is the axis channels' counts x_j over the reference channel's r (eq. 24),
+    Psi_j = x_j / r, so a count noise of variance s_x^2 on x_j and s_r^2 on r (the reference's read noise: ~1 count rms
+    on the measured board) gives Psi_j the variance (s_x^2 + Psi_j^2 s_r^2) / r^2. Column 0 is the visit's mean of
+    1 / r^2 (the axis channels' noise: the detectors and ADCs count it, paper Table 2's noise is injected on the counts
+    through the small-signal slope), column 1 (with ``axis_counts``) its mean of Psi_j^2 / r^2 (the reference's noise,
+    carried into every axis in proportion to its ratio). On the simulator's clean ramps (15 -> 45 -> 15 degC) the
+    reference falls by ~12 % when hot (x +40 % from the coldest to the hottest visit, seed 20), and the read noise makes
+    a visit's variance rise with the specific force along the axis (by -7 to -10 % at -1 g, +6 to +9 % at +1 g,
+    ``bench/noisy_visit_levels.py``): against 1 / r^2 alone, the 3 s visits at 10 Hz (~24 degrees of freedom, read at
+    ~1e-5 per visit and axis, where a variance 9 % above what it is judged against is flagged 6 x as often) were left
+    out on 6 of 100 clean campaigns. ``reference`` (n,) counts of the rows, ``axis_counts`` (n, 3) (None: column 0
+    alone), ``inv`` (n,) each row's visit, ``cnt`` (V,) rows per visit; each column over its median visit; a visit
+    without a positive finite reference counts as the median. None when no visit has one."""
     ok = np.isfinite(reference) & (reference > 0)
+    r = np.where(ok, reference, 1.0).astype(float)
+    cols = [np.broadcast_to((1.0 / r**2)[:, None], (len(r), 3))]
+    if axis_counts is not None:
+        ok &= np.all(np.isfinite(axis_counts), axis=1)
+        cols.append(np.where(ok[:, None], axis_counts, 0.0) ** 2 / r[:, None] ** 4)
     n_ok = np.bincount(inv, weights=ok.astype(float), minlength=len(cnt))
     if not np.any(n_ok > 0):
         return None
-    inv_sq = np.bincount(inv, weights=np.where(ok, 1.0 / np.where(ok, reference, 1.0).astype(float) ** 2, 0.0),
-                         minlength=len(cnt))
-    rel = np.where(n_ok > 0, inv_sq / np.maximum(n_ok, 1.0), np.nan)
-    rel /= np.nanmedian(rel)
-    return np.where(np.isfinite(rel), rel, 1.0)
+    out = np.stack([np.stack([np.bincount(inv, weights=np.where(ok, c[:, j], 0.0), minlength=len(cnt))
+                              for j in range(3)], axis=1) for c in cols], axis=-1) / np.maximum(n_ok, 1.0)[:, None, None]
+    out[n_ok == 0] = np.nan
+    out /= np.nanmedian(out, axis=0)
+    return np.where(np.isfinite(out), out, 1.0)
+
+
+TRIM_P = 1e-3  # visits beyond this upper tail are left out of the fit of what the others' variance is
+
+
+def expected_visit_variance(var: np.ndarray, nu: np.ndarray, basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What each visit's variance (``var`` (V,), as estimates of chi^2(``nu``) / nu x their expectation) is expected to
+    be, e = basis c (``basis`` (V, B), c >= 0 by non-negative least squares weighted by nu / 2 e^2, the inverse
+    variance of each estimate), and the degrees of freedom (V,) of e as an estimate, 2 e^2 / var(e). Robust: a visit
+    beyond ``TRIM_P`` of its upper tail is left out of the fit (three passes), and the kept visits are fitted by their
+    mean below that tail, so that the rest is not biased low."""
+    cut = stats.chi2.isf(TRIM_P, nu)
+    below = stats.chi2.cdf(cut, nu + 2.0) / np.maximum(stats.chi2.cdf(cut, nu), 1e-300)  # E[x | kept], x ~ chi2/nu
+    keep = np.ones(len(var), bool)
+    e = np.full(len(var), max(float(np.median(var)), 1e-300))
+    for _ in range(3):
+        w = np.sqrt(nu / 2.0) / np.maximum(e, 1e-300)
+        c = optimize.nnls(basis[keep] * w[keep, None], var[keep] / below[keep] * w[keep])[0]
+        e = np.maximum(basis @ c, 1e-300)
+        now = nu * var / e <= cut
+        if np.array_equal(now, keep) or now.sum() < basis.shape[1] + 1:
+            break
+        keep = now
+    # var(e_v) = b_v' (B' W B)^-1 b_v over the kept visits and the columns in use, from the SVD of W^1/2 B (a column
+    # that nearly repeats another, a reference that never changes, adds no variance)
+    w = np.sqrt(np.where(keep, nu / 2.0, 0.0)) / e
+    used = basis[:, c > 0]
+    _, sv, vt = np.linalg.svd(used * w[:, None], full_matrices=False)
+    big = sv > (sv[0] * 1e-8 if sv.size else 0.0)
+    proj = used @ (vt[big].T / sv[big])  # rows b_v' V S^-1: var(e_v) = |row|^2
+    var_e = np.sum(proj**2, axis=1)
+    return e, 2.0 * e**2 / np.maximum(var_e, 1e-300 * e**2)
 
 
 def noisy_visits(lag0: np.ndarray, n: np.ndarray, line: np.ndarray, acf: np.ndarray,
                  level: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Is a visit's scatter far beyond the others'? For every visit (``lag0`` (V, 3) its sum of squared detrended
     residuals, ``n`` (V,) samples, ``line`` (V,) a line in time removed too) and axis: the ratio (V, 3) of its
-    variance to the robust centre of the visits' variances, and the p-value (V, 3) of that ratio under the noise.
+    variance to what the visits' variances make it expected to be, and the p-value (V, 3) of that ratio under the noise.
 
     A visit's variance is its sum of squares over E = the sum expected per unit variance after the detrending under
-    the floor's autocorrelation ``acf`` (3, L + 1) (``detrended_lag_matrix``); the centre is their median (over the
-    median of chi^2(nu) / nu, so that it is unbiased for a visit of median length). Under the noise the sum is
-    about sigma^2 chi^2(nu) / nu E with the effective degrees of freedom of a variance from correlated samples,
-    nu = E / (1 + 2 sum_l rho_l^2) (Bartlett); one-sided: a quieter visit does not dominate the pooled floor.
-    ``level`` (V,): each visit's expected variance relative to the others' (``reference_noise_scale``); its variance
-    is divided by it (None: the same for every visit)."""
+    the floor's autocorrelation ``acf`` (3, L + 1) (``detrended_lag_matrix``). Under the noise the sum is about
+    sigma^2 chi^2(nu) / nu E with the effective degrees of freedom of a variance from correlated samples,
+    nu = E / (1 + 2 sum_l rho_l^2) (Bartlett; on 29-sample visits with the ramps' autocorrelation its tail holds to
+    1e-5). What it is expected to be is fitted to the visits' variances (``expected_visit_variance``) on ``level``
+    (V, 3, B), what each visit's counts make of its variance (``visit_noise_levels``; (V,) one column; None: the same
+    for every visit); that fit is an estimate too (its degrees of freedom nu_e), so the ratio is referred to
+    F(nu, nu_e): read at 1e-5, the tail of chi^2(24) / 24 is 1.1-1.3 x too thin against a centre known to 2-3 %.
+    One-sided: a quieter visit does not dominate the pooled floor."""
     lag = acf.shape[1] - 1
     kinds, kind = np.unique(np.column_stack([n, line]), axis=0, return_inverse=True)
     expect = np.array([detrended_lag_matrix(int(k), 0, lag, bool(h))[0] @ acf.T for k, h in kinds])  # (kinds, 3)
     E = np.maximum(expect[kind.ravel()], 1e-12)
     nu = np.maximum(E / (1.0 + 2.0 * np.sum(acf[:, 1:] ** 2, axis=1)), 1.0)
     var = lag0 / E
-    if level is not None:
-        var = var / level[:, None]
-    centre = np.median(var, axis=0) / (stats.chi2.median(np.median(nu, axis=0)) / np.median(nu, axis=0))
-    ratio = var / np.maximum(centre, 1e-300)
-    return ratio, stats.chi2.sf(nu * ratio, nu)
+    basis = np.ones((len(var), 3, 1)) if level is None else (
+        np.broadcast_to(level[:, None, None], (len(var), 3, 1)) if level.ndim == 1 else level)
+    ratio, p = np.empty_like(var), np.empty_like(var)
+    for j in range(3):
+        e, nu_e = expected_visit_variance(var[:, j], nu[:, j], basis[:, j])
+        ratio[:, j] = var[:, j] / e
+        p[:, j] = stats.f.sf(ratio[:, j], nu[:, j], nu_e)
+    return ratio, p
 
 
 @dataclass
@@ -661,7 +711,7 @@ def measure_floor(data: DiagnosisData, res0: np.ndarray, rows: np.ndarray, settl
 
     def floor(start_s: float, stop_s: float | None) -> tuple[float, float | None, VisitNoise]:
         return start_s, stop_s, within_visit_noise(res0, groups, settled_mask(data.t_s, groups, rows, start_s, stop_s),
-                                                   data.t_s, reference=data.ref)
+                                                   data.t_s, reference=data.ref, axis_counts=data.xyz)
 
     # the last floor worked out, at (settle_s, end_s): meanwhile the transient is measured, the first one with the end
     # kept (as it is unless the end is disturbed)
@@ -684,7 +734,8 @@ def measure_floor(data: DiagnosisData, res0: np.ndarray, rows: np.ndarray, settl
     settled = settled_mask(data.t_s, groups, rows, settle_s, end_s)
     # the windows that did not grow are those of the last floor worked out: that floor, not the same one again
     noise_model = (floor_at[2] if floor_at is not None and floor_at[:2] == (settle_s, end_s)
-                   else within_visit_noise(res0, groups, settled, data.t_s, reference=data.ref))
+                   else within_visit_noise(res0, groups, settled, data.t_s, reference=data.ref,
+                                           axis_counts=data.xyz))
     noise = noise_model.sigma
     if not np.all(np.isfinite(noise)) or np.any(noise <= 0):
         raise ValueError(f"no noise floor: {int(settled.sum())} settled samples (every visit shorter than "
@@ -695,7 +746,7 @@ def measure_floor(data: DiagnosisData, res0: np.ndarray, rows: np.ndarray, settl
     if disturbance.found:
         disturbance.floor_with_lines = noise
         noise_model = within_visit_noise(res0 - disturbance.model(data.t_s, data.run_id), groups, settled, data.t_s,
-                                         reference=data.ref)
+                                         reference=data.ref, axis_counts=data.xyz)
         noise = noise_model.sigma
     settling.settle_s, settling.n_dropped = float(settle_s), int((rows & ~settled).sum())
     settling.end_settle_s = end_s
