@@ -20,6 +20,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -300,9 +301,11 @@ def run_refused(*params: str, remaps: tuple[str, ...] = (), timeout: float = 60)
 def refused_side_by_side(cases: dict[str, tuple[tuple[str, ...], tuple[str, ...]]],
                          timeout: float = 60) -> dict[str, subprocess.CompletedProcess]:
     """The node started once per case (its ``params`` (-p) and ``remaps`` (-r)), every case at once: each must refuse
-    to start, exit 2. A refusal costs the start-up of rclpy (~1 s of CPU): side by side the cases take about the time
-    of one per core, not of all of them one after the other."""
+    to start, exit 2, within ``timeout`` s per case (all of them together: the budget of the cases one after the
+    other). A refusal costs the start-up of rclpy (~1 s of CPU): side by side the cases take about the time of one
+    per core, not of all of them one after the other."""
     procs = {}
+    deadline = time.monotonic() + timeout * len(cases)
     try:
         for name, (params, remaps) in cases.items():
             args = [str(CALIBRATION_EXE), "--ros-args", *[a for r in remaps for a in ("-r", r)],
@@ -310,7 +313,7 @@ def refused_side_by_side(cases: dict[str, tuple[tuple[str, ...], tuple[str, ...]
             procs[name] = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         out = {}
         for name, proc in procs.items():
-            stdout, stderr = proc.communicate(timeout=timeout)
+            stdout, stderr = proc.communicate(timeout=max(1.0, deadline - time.monotonic()))
             assert proc.returncode == 2, (name, stdout + stderr)
             out[name] = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
         return out
