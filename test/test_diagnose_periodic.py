@@ -14,12 +14,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_diagnose import MEASURED
+from test_diagnose import measured_diagnosis
 from test_diagnose_sim import _config, _diagnosed, _output
 
 from fbg_accel_calibration.diagnosis.diagnose import diagnose
 from fbg_accel_calibration.diagnosis.periodic_disturbance import PERIODIC_ALPHA, find_periodic_disturbance
-from fbg_accel_calibration.io.csv_import import import_csv
 from fbg_accel_calibration.reports.diagnose_report import markdown
 from fbg_accel_sim.board_physics import simulate_recording
 
@@ -143,9 +142,7 @@ def test_a_line_in_gapped_noise_is_found_at_its_frequency_and_amplitude() -> Non
 def test_measured_series_names_no_disturbance_and_keeps_its_figures(tmp_path: Path) -> None:
     """The measured multi-position series (1 Hz, 1560 samples): no line is found, so every figure stays what it was
     (the floor and held-out errors are those of ``test_diagnose``'s measured test, unchanged by the search)."""
-    assert MEASURED.is_file(), f"measured data not found: {MEASURED} (../shared/data/measured/ is needed for this test)"
-    rec, _ = import_csv(MEASURED, rate_hz=1.0, temperature_c=23.4, g_mps2=9.81)
-    res = diagnose(rec)
+    res = measured_diagnosis()  # diagnose(import_csv(MEASURED, ...)), shared with test_diagnose's measured test
     assert not res.disturbance.found, res.disturbance.summary()
     assert res.disturbance.floor_with_lines is None and res.disturbance.heldout_without_lines is None
     assert not [w for w in res.warnings if "periodic disturbance" in w]
