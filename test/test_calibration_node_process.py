@@ -20,6 +20,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -294,11 +295,33 @@ def assert_raw_matches_published(decoded: list, stream: Stream) -> None:
 
 def run_refused(*params: str, remaps: tuple[str, ...] = (), timeout: float = 60) -> subprocess.CompletedProcess:
     """The node started with ``remaps`` (-r) and ``params`` (-p): it must refuse to start, exit 2."""
-    args = [str(CALIBRATION_EXE), "--ros-args", *[a for r in remaps for a in ("-r", r)],
-            *[a for p in params for a in ("-p", p)]]
-    res = subprocess.run(args, capture_output=True, text=True, timeout=timeout)
-    assert res.returncode == 2, res.stdout + res.stderr
-    return res
+    return refused_side_by_side({"": (params, remaps)}, timeout)[""]
+
+
+def refused_side_by_side(cases: dict[str, tuple[tuple[str, ...], tuple[str, ...]]],
+                         timeout: float = 60) -> dict[str, subprocess.CompletedProcess]:
+    """The node started once per case (its ``params`` (-p) and ``remaps`` (-r)), every case at once: each must refuse
+    to start, exit 2, within ``timeout`` s per case (all of them together: the budget of the cases one after the
+    other). A refusal costs the start-up of rclpy (~1 s of CPU): side by side the cases take about the time of one
+    per core, not of all of them one after the other."""
+    procs = {}
+    deadline = time.monotonic() + timeout * len(cases)
+    try:
+        for name, (params, remaps) in cases.items():
+            args = [str(CALIBRATION_EXE), "--ros-args", *[a for r in remaps for a in ("-r", r)],
+                    *[a for p in params for a in ("-p", p)]]
+            procs[name] = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        out = {}
+        for name, proc in procs.items():
+            stdout, stderr = proc.communicate(timeout=max(1.0, deadline - time.monotonic()))
+            assert proc.returncode == 2, (name, stdout + stderr)
+            out[name] = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
+        return out
+    finally:
+        for proc in procs.values():
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(timeout=10)
 
 
 def _stream_and_plan(plan_dir: Path, seed: int = 0) -> tuple[PosePlan, Stream]:
@@ -442,43 +465,51 @@ def test_sigkill_mid_recording_leaves_a_file_read_up_to_its_last_chunk_that_the_
     assert np.sqrt(np.mean((est - psi_to_accel(rec.ref[sel], rec.xyz[sel])) ** 2)) < 0.05
 
 
-@pytest.mark.parametrize(
-    ("params", "message"),
-    [
-        ([], "parameter 'plan_file' is required"),
-        (["plan_file:=/etc/hostname"], "pose plan rejected"),
-        (["plan_file:=/nonexistent/plan.yaml"], "pose plan file not found"),
-        (["mode:=sometimes"], "invalid parameter 'mode'"),
-        (["temperature_level:=4"], "no 'chamber' section"),
-        (["still_window_s:=-1.0"], "invalid parameter 'still_window_s'"),
-        (["still_noise_std:=[1.0, 2.0]"], "noise_std must be 3 positive numbers"),
-        (["run_to_run_from:=/nonexistent/r2r.yaml"], "invalid parameter 'run_to_run_from': run_to_run_from: "
-                                                       "/nonexistent/r2r.yaml: calibration file not found"),
-    ],
-)
-def test_bad_start_up_input_gives_one_clear_error(plan_dir, params, message):
-    plan = [f"plan_file:={plan_dir / 'plan.yaml'}"] if params and not any(p.startswith("plan_file:=") for p in params) else []
-    res = run_refused(f"output_dir:={plan_dir}", *plan, *params)
-    assert message in res.stderr, res.stderr
-    assert not list(plan_dir.glob("*.mcap")), "no recording may be started on bad input"
+# case: (-p parameters besides output_dir (and plan_file, unless given or the case has none), message). The process's
+# side of a refusal (exit 2, the message on stderr, no recording) and a parameter read from its command line; the
+# rules of the other refusals (a file that is no plan, a bad mode, still_window_s, run_to_run_from) are tested on the
+# node class in process (test_node_classes.py), where a case costs no start-up of rclpy.
+BAD_START_UP = {
+    "no plan_file": ([], "parameter 'plan_file' is required"),
+    "plan missing": (["plan_file:=/nonexistent/plan.yaml"], "pose plan file not found"),
+    "no chamber": (["temperature_level:=4"], "no 'chamber' section"),
+    "still_noise_std": (["still_noise_std:=[1.0, 2.0]"], "noise_std must be 3 positive numbers"),
+}
 
 
-@pytest.mark.parametrize(
-    ("remaps", "message"),
-    [
-        (["imu/raw:=/acc_b/imu/raw"], "imu/temperature resolves to /imu/temperature"),
-        (["imu/raw:=/acc_b/raw_counts", "imu/temperature:=/acc_b/temperature"], "imu/raw resolves to /acc_b/raw_counts"),
-    ],
-)
-def test_remaps_the_recording_cannot_name_are_refused_with_the_reason(plan_dir, remaps, message):
+def test_bad_start_up_input_gives_one_clear_error(tmp_path):
+    """Each case of BAD_START_UP, a process of its own in a directory of its own (all started at once)."""
+    dirs, cases = {}, {}
+    for name, (params, _) in BAD_START_UP.items():
+        dirs[name] = tmp_path / f"case{len(dirs)}"
+        dirs[name].mkdir()
+        (dirs[name] / "plan.yaml").write_text(yaml.safe_dump(PLAN, sort_keys=False))
+        plan = [f"plan_file:={dirs[name] / 'plan.yaml'}"] if params and not any(p.startswith("plan_file:=")
+                                                                               for p in params) else []
+        cases[name] = ((f"output_dir:={dirs[name]}", *plan, *params), ())
+    for name, res in refused_side_by_side(cases).items():
+        assert BAD_START_UP[name][1] in res.stderr, (name, res.stderr)
+        assert not list(dirs[name].glob("*.mcap")), f"{name}: no recording may be started on bad input"
+
+
+REMAPS_REFUSED = {  # case: (-r remaps, message)
+    "one topic moved": (("imu/raw:=/acc_b/imu/raw",), "imu/temperature resolves to /imu/temperature"),
+    "raw renamed": (("imu/raw:=/acc_b/raw_counts", "imu/temperature:=/acc_b/temperature"),
+                    "imu/raw resolves to /acc_b/raw_counts"),
+}
+
+
+def test_remaps_the_recording_cannot_name_are_refused_with_the_reason(plan_dir):
     """A recording names its topics ``<namespace>/imu/raw``, ``<namespace>/imu/temperature``, ... (the fit finds a
     run's topics by that namespace). A node whose two subscriptions resolve into different namespaces, or to a
     raw topic not named ``imu/raw``, cannot write what it records under the names it recorded: on the unchanged
     code it started (no exit within the 20 s timeout, both cases) and wrote /acc_b's messages as /imu/raw (the
     names of its own namespace: test_two_sensors_process.py)."""
-    res = run_refused(f"output_dir:={plan_dir}", f"plan_file:={plan_dir / 'plan.yaml'}", remaps=tuple(remaps),
-                      timeout=20)  # a refusal takes ~1 s
-    assert message in res.stderr, res.stderr
+    params = (f"output_dir:={plan_dir}", f"plan_file:={plan_dir / 'plan.yaml'}")
+    results = refused_side_by_side({name: (params, remaps) for name, (remaps, _) in REMAPS_REFUSED.items()},
+                                   timeout=20)  # a refusal takes ~1 s
+    for name, res in results.items():
+        assert REMAPS_REFUSED[name][1] in res.stderr, (name, res.stderr)
     assert not list(plan_dir.glob("*.mcap")), "no recording may be started on bad input"
 
 

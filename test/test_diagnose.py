@@ -4,6 +4,7 @@ series of the paper (the driver's output with the terms diagnose adds: test_driv
 from __future__ import annotations
 
 import argparse
+import functools
 import re
 from pathlib import Path
 
@@ -27,7 +28,7 @@ from fbg_accel_calibration.diagnosis.cv import (
 )
 from fbg_accel_calibration.diagnosis.data import fill_reference_gaps, finite_rows, interp_columns
 from fbg_accel_calibration.diagnosis.design import DesignCache, ModelSpec, build_design, fitted_output, prepare_data
-from fbg_accel_calibration.diagnosis.diagnose import diagnose
+from fbg_accel_calibration.diagnosis.diagnose import DiagnosisResult, diagnose
 from fbg_accel_calibration.diagnosis.effects import Effect
 from fbg_accel_calibration.diagnosis.floor import detrended_lag_matrix
 from fbg_accel_calibration.diagnosis.library import LIBRARY, library_by_name
@@ -241,6 +242,15 @@ def test_cli_writes_report_yaml_and_plots(tmp_path: Path) -> None:
     assert diagnose_main(["diagnose", str(tmp_path / "missing.csv")]) == 2
 
 
+@functools.cache
+def measured_diagnosis() -> DiagnosisResult:
+    """``diagnose`` of the measured series with its defaults, once per test run (``test_diagnose_periodic`` reads it
+    too; the tests only read it)."""
+    assert MEASURED.is_file(), f"measured data not found: {MEASURED} (../shared/data/measured/ is needed for this test)"
+    rec, _ = import_csv(MEASURED, rate_hz=1.0, temperature_c=23.4, g_mps2=9.81)
+    return diagnose(rec)
+
+
 def test_measured_series_read_noise_is_separated_from_the_offset(tmp_path: Path) -> None:
     """Issue 8, point 1, on the measured series: the reference-offset term still gains most held out, but
     its implied axis-channel offsets (about 230 / 530 / 150 counts) are up to a third of the signal (128 % of the
@@ -250,10 +260,7 @@ def test_measured_series_read_noise_is_separated_from_the_offset(tmp_path: Path)
     drift takes part of what remains (x 0.497 -> 0.267 m/s^2), but with it in the visits of one direction of gravity
     still disagree far beyond the noise (p ~1e-49 on x, 2.3x the floor) and a step of the response fits it as well:
     it is not claimed (issue 41, ``checks.stand_ins``)."""
-    assert MEASURED.is_file(), f"measured data not found: {MEASURED} (../shared/data/measured/ is needed for this test)"
-
-    rec, _ = import_csv(MEASURED, rate_hz=1.0, temperature_c=23.4, g_mps2=9.81)
-    res = diagnose(rec)
+    res = measured_diagnosis()
     assert res.degree == 0  # one temperature level: no temperature term is identified
     first = res.ranked[0]
     assert first.name == "reference_dark_offset" and not first.significant

@@ -4,6 +4,7 @@ it (seed Fig. 12's check on a frequency the fit did not use; a step on the refer
 
 from __future__ import annotations
 
+import functools
 import math
 import subprocess
 import sys
@@ -13,11 +14,12 @@ import numpy as np
 import pytest
 import yaml
 
-from fbg_accel_calibration.dynamic.dynamic_calibration import DynamicCalibrationError, run_dynamic
+from fbg_accel_calibration.dynamic.dynamic_calibration import DynamicCalibrationError, DynamicCalibrationResult, run_dynamic
 from fbg_accel_calibration.dynamic.dynamic_check import step_check
 from fbg_accel_calibration.dynamic.excitation_plan import ExcitationPlan
 from fbg_accel_calibration.dynamic.tone_analysis import uniformly_sampled
 from fbg_accel_calibration.io.dynamic_csv import DynamicCsvError, read_dynamic_csv, write_dynamic_csv
+from fbg_accel_calibration.io.recording import Recording
 from fbg_accel_driver.driver_core import RAW_AUX_NAME, RAW_NAMES
 from fbg_accel_driver.driver_parameters import default_calibration_path
 from fbg_accel_driver.frame_codec import ADC_MAX
@@ -44,9 +46,27 @@ def static_cal() -> ThermalCalibration:
     return ThermalCalibration.load(default_calibration_path())
 
 
+@functools.cache
+def simulated(seed: int) -> Recording:
+    """The simulated slide run of PLAN at RATE_HZ (``simulate_dynamic_run``), built once per test run: several tests
+    read the same run. Its arrays are read-only, so a test that changed them in place, instead of a copy
+    (``Recording.select`` with a mask), would fail instead of changing what the tests after it read."""
+    rec = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=seed)[0]
+    for value in vars(rec).values():
+        if isinstance(value, np.ndarray):
+            value.flags.writeable = False
+    return rec
+
+
+@functools.cache
+def calibrated(seed: int) -> DynamicCalibrationResult:
+    """``run_dynamic`` of ``simulated(seed)`` with the shipped calibration, once per test run (tests only read it)."""
+    return run_dynamic(simulated(seed), PLAN, ThermalCalibration.load(default_calibration_path()))
+
+
 @pytest.mark.parametrize("seed", [1, 2])
 def test_cli_recovers_the_simulated_chain(tmp_path, static_cal, seed):
-    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=seed)
+    rec = simulated(seed)
     csv = tmp_path / "run.csv"
     write_dynamic_csv(csv, rec)
     out = tmp_path / "cal.yaml"
@@ -72,7 +92,7 @@ def test_cli_recovers_the_simulated_chain(tmp_path, static_cal, seed):
 def test_compensation_cuts_the_error_at_a_frequency_the_fit_did_not_use(static_cal):
     """Seed Fig. 12: the RMS difference to the reference over whole periods falls by >= 25 % with the
     correction on (equalise); the delay-only correction is reported as it is."""
-    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=3)
+    rec = simulated(3)
     res = run_dynamic(rec, PLAN, static_cal, reference_cutoff_hz=1.0)
     assert 3.0 not in res.dynamics.fit["frequencies_hz"]
     cal = ThermalCalibration.from_dict({**static_cal.to_dict(), "dynamic": res.dynamics.to_dict()})
@@ -96,7 +116,7 @@ def test_a_step_appears_within_one_sample_period_once_equalised(static_cal):
 
 
 def test_runs_it_cannot_use_are_refused_with_the_reason(static_cal, tmp_path):
-    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=1)
+    rec = simulated(1)
     no_aux = rec.select(np.ones(len(rec), bool))
     no_aux.aux = None
     with pytest.raises(DynamicCalibrationError, match="no aux channel"):
@@ -126,8 +146,7 @@ def test_a_segment_with_a_clipped_reading_is_left_out_with_a_note(static_cal):
     """A sine whose peaks hit a rail of the ADC reads a smaller amplitude and a shifted phase: the segment
     that holds a clipped sample (x here, moved up until its peaks clip at 4095) is left out, the rest of the
     run gives the same points as without it."""
-    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=1)
-    clean = run_dynamic(rec, PLAN, static_cal)
+    rec, clean = simulated(1), calibrated(1)
     f_hit, a, b = clean.windows[3]
     inside = (rec.t_s >= a) & (rec.t_s <= b)
     x = rec.xyz[:, 0].copy()
@@ -145,8 +164,7 @@ def test_a_segment_with_the_reference_dark_is_left_out_with_a_note(static_cal):
     """A moment without source light (reference below LOW_REFERENCE_COUNTS: the driver publishes nothing then, the
     static fit leaves such samples out) inside a segment's steady part: Psi = counts / ref is no measurement, so that
     segment is left out, with a note, and the rest of the run gives the same points as without it."""
-    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=1)
-    clean = run_dynamic(rec, PLAN, static_cal)
+    rec, clean = simulated(1), calibrated(1)
     f_hit, a, b = clean.windows[3]  # not the sensitivity's reference frequency, which every point is compared with
     dark = rec.select(np.ones(len(rec), bool))
     dark.ref[np.flatnonzero((rec.t_s >= a) & (rec.t_s <= b))[:5]] = 3.0
@@ -165,7 +183,7 @@ def test_a_ros2_bag_of_imu_raw_with_aux_counts_is_read(tmp_path, static_cal):
 
     ts = get_typestore(Stores.ROS2_JAZZY)
     t = ts.types
-    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=2)
+    rec = simulated(2)
     bag = tmp_path / "bag"
     names = [*RAW_NAMES, RAW_AUX_NAME]
     with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
@@ -214,8 +232,7 @@ def test_a_lost_frame_is_harmless_at_rest_and_shortens_its_segment(static_cal):
     made the whole run fail ('time base is not uniformly sampled'); later the segment was left out whole, so four
     lost frames in four steady parts refused the run
     (``test_lost_frames_in_the_steady_parts_keep_their_segments_on_the_longest_uniform_stretch``)."""
-    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=1)
-    clean = run_dynamic(rec, PLAN, static_cal)
+    rec, clean = simulated(1), calibrated(1)
     at_rest = run_dynamic(rec.select(np.arange(len(rec)) != 1000), PLAN, static_cal)  # t = 2 s
     assert at_rest.slide_start_s == pytest.approx(clean.slide_start_s, abs=1e-9)
     assert [p.to_dict() for p in at_rest.points] == [p.to_dict() for p in clean.points]
@@ -234,7 +251,7 @@ def test_fitted_highpass_leaves_the_yaml_and_report_group_delay_equal(static_cal
     """--fit-highpass: the YAML's dynamic.fit.models.<axis>.group_delay_dc_s, the report's 'group delay at
     DC' and the driver's per-axis group delay are one number (the YAML's had the reference high-pass's
     group delay subtracted: -223 ms against the report's +114 ms for x)."""
-    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=0)
+    rec = simulated(0)
     res = run_dynamic(rec, PLAN, static_cal, fit_highpass=True)
     report = res.report()
     for a, ax in enumerate("xyz"):
@@ -250,7 +267,7 @@ def test_an_implausible_chain_fit_is_refused_with_the_reason(static_cal, monkeyp
     import fbg_accel_calibration.dynamic.dynamic_calibration as dc
     from fbg_accel_calibration.dynamic.chain_model import ChainModel
 
-    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=1)
+    rec = simulated(1)
     fit = dc.fit_chain_models
 
     def runaway(points, **kw):
@@ -313,11 +330,11 @@ def test_lost_frames_in_the_steady_parts_keep_their_segments_on_the_longest_unif
     that named neither the lost frames nor the segments they cost. Now a steady part with a lost frame keeps its
     longest stretch without one (a note says so): every frequency stays, and the recovered cut-offs and delays hold
     the simulator's within 3 of their standard uncertainties."""
-    clean = run_dynamic(simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=3)[0], PLAN, static_cal)
+    clean = run_dynamic(simulated(3), PLAN, static_cal)
     hit = [clean.windows[i] for i in (0, 2, 3, 5)]
     rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=3,
                                      overrides={"faults.dropped.at_s": [0.5 * (a + b) for _, a, b in hit]})
-    assert len(rec) == len(simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=3)[0]) - 4
+    assert len(rec) == len(simulated(3)) - 4
     res = run_dynamic(rec, PLAN, static_cal)
     assert res.dynamics.fit["frequencies_hz"] == clean.dynamics.fit["frequencies_hz"]
     note = next(n for n in res.notes if "lost frame" in n)
@@ -338,7 +355,7 @@ def test_a_run_refused_for_too_few_segments_says_what_cost_them(static_cal):
     20 Hz remain and the run is refused. Before, the message was "only 2 steady segment(s) in the recording: the chain
     model needs at least 3 frequencies" (the plan has 6; why they went was only in the notes, which a refusal never
     shows). Now the refusal carries the notes: the lost frames and the segments they cost."""
-    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=3)
+    rec = simulated(3)
     t0 = PLAN.start_s
     every = np.arange(len(rec)) % 150 != 75  # one frame in 150 (0.3 s at 500 Hz) lost
     with pytest.raises(DynamicCalibrationError) as info:
@@ -353,7 +370,7 @@ def test_the_report_says_where_the_delay_mode_stops_being_a_correction(static_ca
     delay, a correction only below about 2.3 fc. On the static-test build (fc 1.3-1.7 Hz) that limit, 4.0 Hz, lies
     inside the measured 0.5-20 Hz, and before the report said nothing of it (the driver's diagnostic was OK too);
     now a note states it, as the driver's diagnostic does. The flight build (fc 50 Hz) gets no such note."""
-    res = run_dynamic(simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=1)[0], PLAN, static_cal)
+    res = calibrated(1)
     lim = min(res.dynamics.delay_helps_below_hz())
     assert 0.5 < lim < 20.0
     assert [n for n in res.notes if "'delay'" in n and f"below {lim:.3g} Hz" in n], res.notes

@@ -329,6 +329,8 @@ def test_calibration_node_aborted_run_closes_its_recording_with_status_interrupt
     ({"still_hold_s": 0.0}, "invalid parameter 'still_hold_s': 0.0 (must be > 0)"),
     ({"fit": "yes"}, "invalid parameter 'fit': "),
     ({"run_label": "a/b"}, "invalid parameter 'run_label': 'a/b'"),
+    ({"plan_file": "/etc/hostname"}, "pose plan rejected"),
+    ({"still_window_s": -1.0}, "invalid parameter 'still_window_s'"),
     ({"fit_degre": 2}, "unknown parameter 'fit_degre' (did you mean 'fit_degree'?)"),
     ({"run_to_run_from": "/nonexistent/r2r.yaml"},
      "invalid parameter 'run_to_run_from': run_to_run_from: /nonexistent/r2r.yaml: calibration file not found"),
