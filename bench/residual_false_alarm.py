@@ -168,7 +168,8 @@ def page(rows: list[dict], argv: list[str], header: str, seconds: float, campaig
     lines += [f"| {q:g} | " + " | ".join(f"{f:.2f}" for f in fr) + " |" for q, fr in axis_calibration(rows)]
     if any("other_pose_p" in r for r in rows):
         lines += ["", "The poses of one direction of gravity against each other (other table angles: the table-angle "
-                  "note and the stand-in rule, `fbg_accel_calibration/diagnosis/checks.py`, read it at alpha / 3 and 1e-6), p per axis; "
+                  "note and the stand-in rule, `fbg_accel_calibration/diagnosis/checks.py`, read it at alpha / 3 "
+                  "and 1e-6), p per axis; "
                   "like the residual test's before it counted the fitted model's own error, it refers the held-out "
                   "visit means to the noise alone:", "", "| q | x | y | z |", "|---|---|---|---|"]
         lines += [f"| {q:g} | " + " | ".join(f"{f:.2f}" for f in fr) + " |"
