@@ -205,9 +205,14 @@ def test_wire_faults_gravity_temperature_stamps(ros: Context, tmp_path: Path) ->
         truth = np.load(truth_file)
         expected = expected_counters(truth)
         assert expected["crc_errors"] == 7 and expected["resets"] == 1 and expected["duplicates"] == 3
+        temps = int(truth["temp_valid"][delivered_mask(truth)].sum())
+        # every topic's last messages in: each is delivered on its own, so imu/raw complete says nothing of the others
         listener.wait_until(lambda: bool(listener.diag) and int(listener.last("frames")[2]["frames"]) >= expected["frames"]
-                            and len(listener.raw) >= expected["frames"], 15,
-                            f"{expected['frames']} frames counted and published")
+                            and len(listener.raw) >= expected["frames"] and len(listener.imu) >= expected["frames"]
+                            and len(listener.temp) >= temps, 15,
+                            lambda: f"{expected['frames']} frames counted and published on imu/raw and imu/data_raw, "
+                                    f"{temps} temperatures (got {len(listener.raw)}, {len(listener.imu)}, "
+                                    f"{len(listener.temp)})")
         assert_counters(listener, expected)  # diagnostics count exactly what was injected
         assert int(listener.last("board resets")[2]["resets"]) == 1
         gravity = listener.last("gravity check")  # the sensor has not drifted: tested, and it holds
