@@ -25,6 +25,7 @@ with pyserial exactly as it opens /dev/ttyUSB0. The server
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import os
@@ -119,21 +120,22 @@ class PtyEndpoint:
                     pass
         self.master = self.slave = -1
 
+    def _link_target(self) -> str | None:
+        """What the link names, None when there is no link (or it is not a symlink)."""
+        try:
+            return os.readlink(self.link) if self.link and os.path.islink(self.link) else None
+        except OSError:
+            return None
+
     def _names_ours(self) -> bool:
         """The link exists and names this endpoint's pty (not one re-pointed by someone else since)."""
-        try:
-            return bool(self.link) and os.path.islink(self.link) and os.readlink(self.link) == self.path
-        except OSError:
-            return False
+        return self._link_target() == self.path
 
     def remove_link(self) -> None:
         """Remove the link if it names this endpoint's pty (or ``UNPLUGGED``: the board is unplugged)."""
-        try:
-            if self._names_ours() or (self.link and os.path.islink(self.link)
-                                      and os.readlink(self.link) == UNPLUGGED):
+        if self._link_target() in (self.path, UNPLUGGED):
+            with contextlib.suppress(OSError):
                 os.unlink(self.link)
-        except OSError:
-            pass
 
     def write(self, data: bytes) -> int:
         """Write without blocking; bytes that do not fit are dropped and counted. Returns bytes written."""
