@@ -76,7 +76,7 @@ def _estimates(data, rows_gate: np.ndarray, rows_fold: np.ndarray) -> tuple[dict
     for name, rows in (("gate", rows_gate), ("fold_table", rows_fold)):
         t = time.process_time()
         try:
-            res = adc_codes.recording_code_widths(cand._counts(data), data.group, rows, per_channel=False)
+            res = cand.pooled_widths(data, rows)
             out[name] = _fields(res.pooled) or res.reasons.get("pooled")
         except ValueError as exc:
             out[name] = str(exc)

@@ -4,9 +4,10 @@
 Not a test. Diagnoses the calibration benchmark's simulated run (``bench_calibration.scenario``, ``--seed``, 0) of
 ``--samples`` samples and writes, as JSON with every float at full precision (``repr``): the effects added
 with their hyper-parameters, each step's candidates (held-out gain, p-value, hyper-parameter, plausibility
-verdict) and confounding verdicts (gains and p-values both ways, correlation), the held-out error and the
-calibration (M, b). Run it before and after a change and compare the two files byte for byte (``cmp``); with
-``--lanes 1`` and ``--lanes 2``, the diagnosis with its searches one after the other and side by side:
+verdict) and confounding verdicts (gains and p-values both ways, correlation), the held-out error, the
+calibration (M, b), the final residual's structure (its test's verdict and p-values) and the findings' texts. Run it
+before and after a change and compare the two files byte for byte (``cmp``); with ``--lanes 1`` and ``--lanes 2``,
+the diagnosis with its searches one after the other and side by side:
 
     .venv/bin/python bench/diagnose_fingerprint.py --samples 100000 --output before.json
 """
@@ -63,6 +64,9 @@ def main(argv: list[str] | None = None) -> int:
                                           c.p_a_beyond_b, c.corr_contributions]) for c in st.confounding]}
                   for st in res.steps],
         "heldout_rmse_after_mps2": exact(res.after_heldout_rmse),
+        "structure": exact([res.structure.significant, res.structure.verdict, res.structure.pose_chi2_p,
+                             res.structure.direction_chi2_p, res.structure.pose_mean_rms, res.structure.excess_rms]),
+        "findings": [f.text for f in res.findings],
         "M": exact(res.calibration.M),
         "b": exact(res.calibration.b),
     }

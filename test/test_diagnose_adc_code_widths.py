@@ -97,3 +97,34 @@ def test_a_pattern_beyond_the_datasheet_s_dnl_or_inl_is_refused() -> None:
     edges[1, 2040:] += 30.0
     msg = implausible(AdcCodeTable(edges), np.ones(16))
     assert "INL" in msg and "beyond the ESP32's 12 LSB" in msg, msg
+
+
+def test_the_pooled_widths_read_the_chosen_samples_alone_and_equal_the_estimate_over_every_sample() -> None:
+    """``pooled_widths`` takes its samples out before it estimates (its arrays are of those rows, not of the whole
+    recording): the same pattern, test and pieces, bit for bit, as ``recording_code_widths`` over every sample with
+    the rows as a mask, and a sample outside the rows, however wild, changes nothing."""
+    from fbg_accel_calibration.fit.adc_codes import recording_code_widths
+
+    data = prepare_data(campaign(1, True))
+    rows = cand._thinned(cand.width_rows(data), cand.GATE_SAMPLES)
+    assert 0 < rows.sum() < cand.width_rows(data).sum()  # thinned: samples of the visits left out
+    whole = recording_code_widths(np.column_stack([data.ref, data.xyz]), data.group, rows, per_channel=False).pooled
+    got = cand.pooled_widths(data, rows).pooled
+    assert got is not None and whole is not None and got.pattern_found
+    for field in ("pattern", "pattern_sd", "expected", "codes", "hits"):
+        np.testing.assert_array_equal(getattr(got, field), getattr(whole, field))
+    assert (got.chi2, got.p_value, got.sigma_counts, got.n_visits) == (whole.chi2, whole.p_value, whole.sigma_counts,
+                                                                         whole.n_visits)
+    wild = replace_counts(data, ~rows)
+    again = cand.pooled_widths(wild, rows).pooled
+    np.testing.assert_array_equal(again.pattern, got.pattern)
+    assert again.p_value == got.p_value
+
+
+def replace_counts(data, where: np.ndarray):
+    """``data`` with the counts of the samples ``where`` set to codes no visit reads."""
+    from dataclasses import replace
+
+    ref, xyz = data.ref.copy(), data.xyz.copy()
+    ref[where], xyz[where] = 7.0, 4000.0
+    return replace(data, ref=ref, xyz=xyz)

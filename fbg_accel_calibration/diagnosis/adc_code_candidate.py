@@ -33,7 +33,7 @@ import numpy as np
 
 from fbg_accel_driver.adc_code_table import ADC_CODES, AdcCodeTable
 
-from ..fit.adc_codes import CHANNEL_NAMES, code_table, recording_code_widths
+from ..fit.adc_codes import CHANNEL_NAMES, RecordingWidths, code_table, recording_code_widths
 from .cv import CvResult, cross_validate
 from .data import DiagnosisData, finite_rows
 from .design import Design, ModelSpec, build_design
@@ -82,13 +82,27 @@ class _FoldTableHeldOut(CvResult):
         return self._own_heldout
 
 
-def _counts(data: DiagnosisData) -> np.ndarray:
-    return np.column_stack([data.ref, data.xyz])
+def _counts(data: DiagnosisData, idx: np.ndarray) -> np.ndarray:
+    """(n, 4) the counts ref, x, y, z of the samples ``idx`` (indices or a mask of the recording's samples)."""
+    return np.column_stack([data.ref[idx], data.xyz[idx]])
 
 
 def width_rows(data: DiagnosisData) -> np.ndarray:
     """The samples the widths are estimated from: those fitted at a pose (still inputs)."""
-    return data.use & (data.pose_id >= 0) & (data.group >= 0) & np.all(np.isfinite(_counts(data)), axis=1)
+    return data.use & (data.pose_id >= 0) & (data.group >= 0) & np.isfinite(data.ref) & finite_rows(data.xyz)
+
+
+def pooled_widths(data: DiagnosisData, rows: np.ndarray) -> RecordingWidths:
+    """``recording_code_widths`` pooled over the channels, of the samples ``rows`` (N,) bool alone. They are taken out
+    first: the estimate reads nothing else (each visit's samples in time order), and its arrays of four channels are
+    then of a few thousand samples, not of the recording's 10^6 (which sat beside the final model's design)."""
+    idx = np.flatnonzero(rows)
+    return recording_code_widths(_counts(data, idx), data.group[idx], np.ones(len(idx), bool), per_channel=False)
+
+
+def _integer_codes(data: DiagnosisData, rows: np.ndarray) -> bool:
+    """Whether every count of the samples ``rows`` is an integer (an ADC code), channel by channel."""
+    return all(np.all(c == np.round(c)) for c in (data.ref[rows], *(data.xyz[rows, j] for j in range(3))))
 
 
 def _thinned(rows: np.ndarray, cap: int = MAX_WIDTH_SAMPLES) -> np.ndarray:
@@ -122,8 +136,7 @@ def mapped_data(data: DiagnosisData, table: AdcCodeTable) -> DiagnosisData:
 def fold_table(data: DiagnosisData, train: np.ndarray, source: str) -> AdcCodeTable:
     """The code table estimated from the samples ``train`` (N,) alone (the pooled pattern; nominal widths when
     ``train`` does not show one)."""
-    rows = _thinned(width_rows(data) & train)
-    return code_table(recording_code_widths(_counts(data), data.group, rows, per_channel=False), {"source": source})
+    return code_table(pooled_widths(data, _thinned(width_rows(data) & train)), {"source": source})
 
 
 def code_width_step(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, weights: np.ndarray,
@@ -134,14 +147,12 @@ def code_width_step(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, weig
     of at least ``min_rel_gain``."""
     out = CandidateResult(NAME, TITLE, True)
     step = CodeWidthStep(out, alpha_each)
-    counts = _counts(data)[width_rows(data)]
-    if np.any(counts != np.round(counts)):
+    if not _integer_codes(data, width_rows(data)):
         out.applicable, out.reason = False, ("the counts are not integer codes (a code table already applied, or "
                                              "averaged data)")
         return step
     try:
-        whole = recording_code_widths(_counts(data), data.group, _thinned(width_rows(data), GATE_SAMPLES),
-                                      per_channel=False)
+        whole = pooled_widths(data, _thinned(width_rows(data), GATE_SAMPLES))
     except ValueError as exc:  # too few visits or codes: no estimate at all
         out.applicable, out.reason = False, str(exc).split(": ", 1)[-1]
         return step

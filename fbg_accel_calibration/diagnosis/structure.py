@@ -188,10 +188,9 @@ def heldout_mean_null(sums: HeldoutVisitSums, fold_xtx: np.ndarray, XtX: np.ndar
     var = noise_model.mean_variance(cnt_a.astype(int))  # (Va, 3)
     Sn = np.stack([(S[at] / cnt_a[at, None]).T @ S[at] for at in at_a])  # (F, p, p) sum of s_u s_u^T / n_u
     same = kb[:, None] == kb[None, :]
-    a_s = a @ S[own].T  # a_v . s_w for w of another fold
-    a_s[same] = 0.0
+    s_own_t = S[own].T
     cov = np.empty((4, len(ub), len(ub)))  # the three axes' noise, then a slow error of unit variance per visit
-    buf = np.empty_like(a_s)  # c a^T, then qde, in turn: one (V, V) temporary
+    buf = np.empty((len(ub), len(ub)))  # c a^T, then qde, in turn: the one (V, V) temporary
     for j in range(4):
         if j < 3:
             phi = float(np.median(cnt_a * var[:, j]))
@@ -210,6 +209,10 @@ def heldout_mean_null(sums: HeldoutVisitSums, fold_xtx: np.ndarray, XtX: np.ndar
         out -= ca.T
         np.multiply(ca, same, out=ca)
         out += ca
+        # a_s = a_v . s_w for w of another fold (0 in the same fold), made again for each axis in place of a fifth (V, V)
+        # array kept through the loop (the same product: the same values)
+        a_s = np.matmul(a, s_own_t, out=buf)
+        a_s[same] = 0.0
         qde = np.multiply(a_s, vj[own][None, :], out=buf)
         out -= qde
         out -= qde.T
