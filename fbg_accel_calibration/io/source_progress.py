@@ -29,12 +29,28 @@ def enabled(args: argparse.Namespace) -> bool:
     return sys.stderr.isatty() if flag is None else bool(flag)
 
 
-def bar(on: bool, desc: str, total: int | None = None, unit: str = "samples") -> tqdm:
-    """A tqdm bar on stderr (a no-op object when ``on`` is false)."""
+class NoBar:
+    """What a command sees of a bar that is off: it counts nothing, draws nothing and starts no thread (a disabled
+    tqdm still starts its monitor thread)."""
+
+    def update(self, n: int = 1) -> None:
+        pass
+
+    def __enter__(self) -> NoBar:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        pass
+
+
+def bar(on: bool, desc: str, total: int | None = None, unit: str = "samples") -> tqdm | NoBar:
+    """A tqdm bar on stderr; a :class:`NoBar` when ``on`` is false (tqdm is then not imported)."""
+    if not on:
+        return NoBar()
     from tqdm import tqdm  # here: the parsers import this module for its options, and --help needs no tqdm
 
-    return tqdm(total=total, desc=desc, unit=unit, unit_scale=True, file=sys.stderr, disable=not on,
-                leave=False, dynamic_ncols=True, mininterval=0.2)
+    return tqdm(total=total, desc=desc, unit=unit, unit_scale=True, file=sys.stderr, leave=False, dynamic_ncols=True,
+                mininterval=0.2)
 
 
 class CountedSource:
