@@ -312,8 +312,13 @@ class TiaLowpassEffect(Effect):
         address is not it). A writable array is worked out on each call."""
         if g.flags.writeable or g.base is not None:
             return self._held_reference(g[run], rows)
-        return data.recent(("held_reference", id(g), run.start, run.stop, rows_key),
-                           lambda: (weakref.ref(g), *self._held_reference(g[run], rows)),
+
+        def find() -> tuple[Any, ...]:
+            held, g_at, g_rows = self._held_reference(g[run], rows)
+            g_at.flags.writeable = g_rows.flags.writeable = False  # shared by the trials
+            return weakref.ref(g), held, g_at, g_rows
+
+        return data.recent(("held_reference", id(g), run.start, run.stop, rows_key), find,
                            fresh=lambda hit: hit[0]() is g)[1:]
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
