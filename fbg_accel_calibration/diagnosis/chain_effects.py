@@ -33,7 +33,7 @@ from .effects import (
     TIA_TAU_S,
     Effect,
 )
-from .held_lowpass import HeldRows, held_lowpass, held_rows
+from .held_lowpass import HeldRows, held_lowpass, held_rows, stretch_indices
 
 
 class ChannelDelayEffect(Effect):
@@ -90,7 +90,7 @@ class ChannelDelayEffect(Effect):
             # the reference's own value where it held still over the delay (already in g), interpolated where it moved
             start, stop = near
             if rows is None:
-                part = _stretches(start, stop)
+                part = stretch_indices(start, stop)
                 at = run.start + part
             else:
                 k = np.searchsorted(stop, local, side="right")
@@ -147,17 +147,6 @@ class ChannelDelayEffect(Effect):
 
     def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
         return f"D = {h:.4g} s (sensor channels late against the reference)"
-
-
-def _stretches(start: np.ndarray, stop: np.ndarray) -> np.ndarray:
-    """The indices of the stretches [start, stop) (disjoint, ascending), in order: ``np.r_`` of their ranges."""
-    length = stop - start
-    out = np.ones(int(length.sum()), dtype=np.intp)
-    if len(out):
-        ends = np.cumsum(length)[:-1]
-        out[0] = start[0]
-        out[ends] = start[1:] - stop[:-1] + 1  # from the last of one stretch to the first of the next
-    return np.cumsum(out)
 
 
 def _delay_start(t: np.ndarray, D: float) -> int:
