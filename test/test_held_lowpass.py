@@ -4,6 +4,8 @@ reference worked out over every sample."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -108,10 +110,11 @@ def tia_data() -> DiagnosisData:
 
 
 def tia_reference_over_every_sample(data: DiagnosisData, inp: Inputs, h: float) -> np.ndarray:
-    """The TIA candidate's reference (N, 3) by its definition: the expected Psi of the reference, each column through
-    its low-pass over every sample of each run, mapped back."""
+    """The TIA candidate's reference (N, 3) by its definition: the expected Psi of the reference (the recorded one, or
+    the one an earlier correction moved), each column through its low-pass over every sample of each run, mapped
+    back."""
     P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
-    g = data.gref_filled
+    g = inp.gref if inp.gref_moved else data.gref_filled
     psi = g @ P.T + q
     lp = np.empty_like(psi)
     tau = TiaLowpassEffect().taus(h)
@@ -170,5 +173,55 @@ def test_the_delayed_reference_is_interpolated_where_it_moved_only_and_is_the_sa
         inp = Inputs.of(data)
         eff.transform(data, inp, D)
         assert np.array_equal(inp.gref, want)
-    moved = ChannelDelayEffect._near_a_move(data, data.runs()[0], DT)
-    assert 0 < moved.mean() < 0.5  # the held samples are not interpolated
+        for run in data.runs():  # a stretch per motion: the samples each move reaches, and those only
+            t, f = data.t_s[run], data.gref_filled[run]
+            c = np.flatnonzero(np.any(f[1:] != f[:-1], axis=1))
+            reach = np.minimum(np.searchsorted(t, t[c + 1] + D, side="right") + 1, len(t))
+            by_move = np.zeros(len(t), bool)
+            for a, b in zip(c + 1, reach, strict=True):
+                by_move[a:b] = True
+            start, stop = ChannelDelayEffect._near_a_move(data, run, D)
+            near = np.zeros(len(t), bool)
+            for a, b in zip(start, stop, strict=True):
+                assert not near[a:b].any()  # disjoint
+                near[a:b] = True
+            assert np.array_equal(near, by_move) and np.all(np.diff(start) > 0)
+            if D == DT:
+                assert 0 < near.mean() < 0.5  # the held samples are not interpolated
+
+
+@pytest.mark.parametrize("D", [0.3 * DT, 2.5 * DT, 0.1])
+def test_the_tia_reference_on_a_delayed_reference_is_the_one_over_every_sample(D: float) -> None:
+    """On the channel delay's reference (its holds shortened by the delay after each move) the TIA candidate filters
+    the samples in motion only too: the reference of filtering every sample of the delayed reference, up to rounding,
+    at a search's rows and at every sample, a row the same bit for bit both ways; the holds found once for a delayed
+    reference and kept while it lives (a TIA search on top of a delay asks on every trial), not for another."""
+    from fbg_accel_calibration.diagnosis.chain_effects import ChannelDelayEffect
+
+    data = tia_data()
+    eff, delay = TiaLowpassEffect(), ChannelDelayEffect()
+    rows = np.flatnonzero(data.use)[::9]
+    delayed = Inputs.of(data)
+    delay.transform(data, delayed, D)
+    assert delayed.gref_moved and not np.array_equal(delayed.gref, data.gref_filled)
+    largest = 0.0
+    for h in (*eff.hyper_grid(data)[::5], 1.0):
+        inp = replace(delayed, valid=delayed.valid.copy())  # as a search's trials: the same delayed reference
+        got = eff.reference_at(data, inp, h, rows)
+        kept = [k for k in data._recent if k[0] == "held_reference"]
+        assert [k[1] for k in kept] == [id(delayed.gref)] * len(data.runs())  # the held path, its holds kept
+        want = tia_reference_over_every_sample(data, delayed, float(h))
+        np.testing.assert_allclose(got[0], want[rows], rtol=0, atol=1e-12)
+        every = replace(delayed, valid=delayed.valid.copy())
+        eff.transform(data, every, h)
+        np.testing.assert_allclose(every.gref, want, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(got[0], every.gref[rows])
+        np.testing.assert_array_equal(got[1], every.valid[rows])
+        np.testing.assert_array_equal(got[1], delayed.valid[rows])
+        largest = max(largest, float(np.max(np.abs(got[0] - delayed.gref[rows]))))
+    assert largest > 0.1  # m/s^2: the filter corrects the delayed reference
+    # another delay: its own holds, not those kept for the first
+    other = Inputs.of(data)
+    delay.transform(data, other, 2 * D)
+    got = eff.reference_at(data, other, 1.0, rows)
+    np.testing.assert_allclose(got[0], tia_reference_over_every_sample(data, other, 1.0)[rows], rtol=0, atol=1e-12)

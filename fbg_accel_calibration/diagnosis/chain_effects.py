@@ -6,6 +6,7 @@ constants are with the other effects' in ``diagnosis.effects``; the candidates a
 
 from __future__ import annotations
 
+import weakref
 from hashlib import blake2b
 from typing import Any
 
@@ -32,7 +33,7 @@ from .effects import (
     TIA_TAU_S,
     Effect,
 )
-from .held_lowpass import HeldRows, held_lowpass, held_rows
+from .held_lowpass import HeldRows, held_lowpass, held_rows, stretch_indices
 
 
 class ChannelDelayEffect(Effect):
@@ -57,6 +58,9 @@ class ChannelDelayEffect(Effect):
     def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
         if float(h) != 0:
             inp.gref, inp.valid = self._delayed(data, inp, float(h), None, rows_by_run(data, None))
+            # never written after (a correction after it replaces it): the TIA low-pass keeps the holds it finds in it
+            # by the array itself (``TiaLowpassEffect._moved_held_reference``)
+            inp.gref.flags.writeable = False
             inp.gref_moved = True
 
     def reference_at(self, data: DiagnosisData, inp: Inputs, h: float | None,
@@ -69,49 +73,73 @@ class ChannelDelayEffect(Effect):
     @staticmethod
     def _delayed(data: DiagnosisData, inp: Inputs, D: float, rows: np.ndarray | None,
                  pieces: list[tuple[slice | np.ndarray, Any, Any]]) -> tuple[np.ndarray, np.ndarray]:
-        """(reference (n, 3), valid (n,)) at ``rows`` (None: every sample; ``pieces``: ``rows_by_run``): the
-        sample taken at t shows the table at t - D, so it is compared with the reference at t - D (each sample
-        interpolated on its own)."""
-        g, valid = ((np.array(inp.gref, copy=True), np.array(inp.valid, copy=True)) if rows is None
-                    else (take_rows(inp.gref, rows), inp.valid[rows]))  # copies either way
+        """(reference (n, 3), valid (n,)) at ``rows`` (None: every sample; ``pieces``: ``rows_by_run``, whose runs
+        hold every sample): the sample taken at t shows the table at t - D, so it is compared with the reference at
+        t - D (each sample interpolated on its own), valid where t - D is not before its run's first sample."""
+        f_all = data.gref_filled
+        g, valid = ((np.array(f_all, dtype=float, copy=True), np.array(inp.valid, copy=True)) if rows is None
+                    else (take_rows(f_all, rows), inp.valid[rows]))  # copies either way
         for run, sel, local in pieces:
             t = data.t_s[run]
-            tq = t[local] - D
-            moved = ChannelDelayEffect._near_a_move(data, run, D)
-            f = data.gref_filled[run]
-            if moved is None:
-                g[sel] = interp_columns(tq, t, f)
-            else:  # the reference's own value where it held still over the delay, interpolated where it moved
-                at = moved[local]
-                g[sel] = f[local]
-                part = np.flatnonzero(at)
-                g[sel[part] if rows is not None else run.start + part] = interp_columns(tq[part], t, f)
-            valid[sel] &= tq >= t[0]
+            near = ChannelDelayEffect._near_a_move(data, run, D)
+            if near is None:
+                tq = t[local] - D
+                g[sel] = interp_columns(tq, t, f_all[run])
+                valid[sel] &= tq >= t[0]
+                continue
+            # the reference's own value where it held still over the delay (already in g), interpolated where it moved
+            start, stop = near
+            if rows is None:
+                part = stretch_indices(start, stop)
+                at = run.start + part
+            else:
+                k = np.searchsorted(stop, local, side="right")
+                inside = k < len(stop)
+                inside[inside] = start[k[inside]] <= local[inside]
+                part = local[inside]
+                at = sel[inside]
+            g[at] = interp_columns(t[part] - D, t, f_all[run])
+            first = _delay_start(t, D)
+            if rows is None:
+                valid[run.start:run.start + first] = False
+            else:
+                valid[sel] &= local >= first
         return g, valid
 
     @staticmethod
-    def _near_a_move(data: DiagnosisData, run: slice | np.ndarray, D: float) -> np.ndarray | None:
-        """(n,) of a run's samples, those whose reference delayed by ``D`` (s) is not their own: where the filled
-        reference (``gref_filled``) moved within the delay before them. Elsewhere ``interp_columns`` at t - D reads two
-        samples of one held value and gives that value, bit for bit (a zero slope): the table holds every pose for
-        seconds and moves a quarter of the time, so a trial interpolates that quarter only. Each move from sample c to
-        c + 1 reaches the samples after it up to t[c + 1] + D, and one more (a margin of a sample for the rounding of
-        t - D). None where this does not apply (a run that is not contiguous, times not increasing)."""
+    def _near_a_move(data: DiagnosisData, run: slice | np.ndarray, D: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """(start, stop) of the stretches [start, stop) of a run's samples (local, ascending, disjoint) whose reference
+        delayed by ``D`` (s) is not their own: where the filled reference (``gref_filled``) moved within the delay
+        before them. Elsewhere ``interp_columns`` at t - D reads two samples of one held value and gives that value,
+        bit for bit (a zero slope): the table holds every pose for seconds and moves a quarter of the time, so a trial
+        interpolates that quarter only. Each move from sample c to c + 1 reaches the samples after it up to
+        t[c + 1] + D, and one more (a margin of a sample for the rounding of t - D); the moves of one motion, from
+        sample to sample, reach as far as their last one does, so each motion is one stretch, worked out once (not
+        per move, nor per sample). None where this does not apply (a run that is not contiguous, times not
+        increasing)."""
         if not isinstance(run, slice):
             return None
         t = data.t_s[run]
         ok = data.once(f"times_increasing {run.start} {run.stop}", lambda: bool(np.all(np.diff(t) > 0)))
         if not ok:
             return None
-        f = data.gref_filled[run]
-        # a move: the next sample differs in an axis (or is NaN: never the same)
-        c = data.once(f"reference_moves {run.start} {run.stop}",
-                      lambda: np.flatnonzero(~np.all(f[1:] == f[:-1], axis=1)))
+
+        def motions() -> tuple[np.ndarray, np.ndarray]:
+            # a move: the next sample differs in an axis (or is NaN: never the same); a motion: moves back to back
+            f = data.gref_filled[run]
+            c = np.flatnonzero(~np.all(f[1:] == f[:-1], axis=1))
+            if not len(c):
+                return c, c
+            cut = np.flatnonzero(np.diff(c) > 1)
+            return c[np.r_[0, cut + 1]] + 1, c[np.r_[cut, len(c) - 1]] + 1  # (c + 1 of its first move, of its last)
+
+        first, last = data.once(f"reference_motions {run.start} {run.stop}", motions)
         n = len(t)
-        reach = np.minimum(np.searchsorted(t, t[c + 1] + D, side="right") + 1, n)
-        edges = np.bincount(c + 1, minlength=n + 1)
-        edges[: n + 1] -= np.bincount(reach, minlength=n + 1)
-        return np.cumsum(edges[:n]) > 0
+        reach = np.minimum(np.searchsorted(t, t[last] + D, side="right") + 1, n)
+        # a motion's stretch can reach into the next one's: start each where the one before ends (reach increases)
+        start = np.maximum(first, np.r_[0, reach[:-1]]) if len(first) else first
+        keep = start < reach
+        return start[keep], reach[keep]
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
         # a pure delay is a time-stamp correction, not an acceleration term (see docs/effects.md)
@@ -119,6 +147,19 @@ class ChannelDelayEffect(Effect):
 
     def describe(self, h: float | None, coeff: np.ndarray | None) -> str:
         return f"D = {h:.4g} s (sensor channels late against the reference)"
+
+
+def _delay_start(t: np.ndarray, D: float) -> int:
+    """The first sample i of a run whose times ``t`` increase where t[i] - D (s; rounded as an array's difference) is
+    not before t[0]: by bisection, about log2(n) samples, not n (t - D increases with t, rounded too)."""
+    lo, hi = 0, len(t)
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if t[mid] - D >= t[0]:
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
 
 
 def _affine(row: np.ndarray, offset: float, cols: np.ndarray | list[np.ndarray]) -> np.ndarray:
@@ -165,10 +206,11 @@ class TiaLowpassEffect(Effect):
 
     def _corrected(self, data: DiagnosisData, inp: Inputs, h: float, rows: np.ndarray | None,
                    pieces: list[tuple[slice | np.ndarray, Any, Any]]) -> tuple[np.ndarray, np.ndarray]:
-        """(reference (n, 3), valid (n,)) at ``rows`` (None: every sample; ``pieces``: ``rows_by_run``). Of the
-        recorded reference, the filters run over the samples in motion only (``_held_at_rows``: at a search's rows the
-        cost of a trial is the motion's and the rows', not the series'); else over every sample, and the rest only at
-        ``rows`` (a product row by row: the rows of the whole product)."""
+        """(reference (n, 3), valid (n,)) at ``rows`` (None: every sample; ``pieces``: ``rows_by_run``). Of a
+        reference without gaps (the recorded one or the channel delay's), the filters run over the samples in motion
+        only (``_held_at_rows``: at a search's rows the cost of a trial is the motion's and the rows', not the
+        series'); else over every sample, and the rest only at ``rows`` (a product row by row: the rows of the whole
+        product)."""
         held = self._held_at_rows(data, inp, h, rows, pieces)
         if held is not None:
             return held
@@ -202,32 +244,40 @@ class TiaLowpassEffect(Effect):
     def _held_at_rows(self, data: DiagnosisData, inp: Inputs, h: float, rows: np.ndarray | None,
                       pieces: list[tuple[slice | np.ndarray, Any, Any]]) -> tuple[np.ndarray, np.ndarray] | None:
         """``_corrected`` at ``rows`` (None: every sample) with the filters worked out by ``held_lowpass``: the
-        expected Psi holds its value wherever the recorded reference does (every pose), so each trial filters the
-        samples in motion and works out the holds and the rows in closed form: the values of the recursion over every
-        sample up to rounding (``test/test_held_lowpass.py``), and each row's value the same bit for bit whichever
-        rows are asked for (a search's, or every sample's when the reference is corrected again after it). None where
-        that does not apply: the reference moved by an earlier correction (the channel delay), a gap in it, a run
-        whose sampling changes the filter's coefficient."""
-        g = data.gref_filled
-        if inp.gref_moved or not all(isinstance(run, slice) for run, _, _ in pieces) \
-                or not data.once("gref_filled_finite", lambda: bool(finite_rows(g).all())):
+        expected Psi holds its value wherever the reference does (every pose; the channel delay's reference too, its
+        holds shortened by the delay after each move), so each trial filters the samples in motion and works out the
+        holds and the rows in closed form: the values of the recursion over every sample up to rounding
+        (``test/test_held_lowpass.py``), and each row's value the same bit for bit whichever rows are asked for (a
+        search's, or every sample's when the reference is corrected again after it). None where that does not apply:
+        a gap in the reference, a run whose sampling changes the filter's coefficient."""
+        moved = inp.gref_moved
+        g = inp.gref if moved else data.gref_filled
+        if not all(isinstance(run, slice) for run, _, _ in pieces) \
+                or not (moved or data.once("gref_filled_finite", lambda: bool(finite_rows(g).all()))):
             return None
         tau = self.taus(h)
         coeff = [[None if st is None else uniform_coefficient(float(t), st) for t in tau[1:]]
                  for st in input_run_steps(data, inp)]
         if any(a is None for per in coeff for a in per):
             return None
-        P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
-        P_inv = np.linalg.inv(P)
         # the rows by a cryptographic digest of their bytes: two sets of rows never share a kept value
         rows_key = None if rows is None else f"{len(rows)} {blake2b(np.ascontiguousarray(rows).tobytes()).hexdigest()}"
-        gref = np.empty((len(g) if rows is None else len(rows), 3))
-        for (run, sel, local), per in zip(pieces, coeff, strict=True):
+        found = []
+        for run, _, local in pieces:
             if rows_key is None:  # every sample (a correction of the reference after it, the final model): not kept
-                held, g_at, g_rows = self._held_reference(g[run], np.arange(run.stop - run.start))
+                found.append(self._held_reference(g[run], np.arange(run.stop - run.start)))
+            elif moved:
+                found.append(self._moved_held_reference(data, g, run, local, rows_key))
             else:
-                held, g_at, g_rows = data.once(f"held_reference {run.start} {run.stop} {rows_key}",
-                                               lambda run=run, local=local: self._held_reference(g[run], local))
+                found.append(data.once(f"held_reference {run.start} {run.stop} {rows_key}",
+                                       lambda run=run, local=local: self._held_reference(g[run], local)))
+            # a moved reference with a gap (never in a hold: NaN is not the sample before it): over every sample
+            if moved and not finite_rows(found[-1][1].T).all():
+                return None
+        P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
+        P_inv = np.linalg.inv(P)
+        gref = np.empty((len(g) if rows is None else len(rows), 3))
+        for (_, sel, _), per, (held, g_at, g_rows) in zip(pieces, coeff, found, strict=True):
             # the expected Psi and its filtered value column by column, a 3 x 3 map written out (no matrix product
             # of a few hundred thousand rows by 3: BLAS's start costs more than the arithmetic)
             d = [held_lowpass(held, _affine(P[j], q[j], g_at), per[j]) - _affine(P[j], q[j], g_rows) for j in range(3)]
@@ -241,6 +291,24 @@ class TiaLowpassEffect(Effect):
         reads it and at ``rows``, each (3, k) by column): what every trial of ``_held_at_rows`` shares."""
         held = held_rows(g, rows)
         return held, np.ascontiguousarray(g[held.samples].T), np.ascontiguousarray(g[rows].T)
+
+    def _moved_held_reference(self, data: DiagnosisData, g: np.ndarray, run: slice, rows: np.ndarray,
+                              rows_key: str) -> tuple[HeldRows, np.ndarray, np.ndarray]:
+        """``_held_reference`` of a run of the reference ``g`` (N, 3) an earlier correction moved (the channel delay),
+        at ``rows`` (local; ``rows_key`` their digest). Kept for the next searches' trials (``DiagnosisData.recent``:
+        a search of the TIA on top of a delay asks on every trial) by the array itself, read-only: ``g``'s identity
+        and a weak reference to it, so the kept holds neither keep the array nor outlive it (a new array at its
+        address is not it). A writable array is worked out on each call."""
+        if g.flags.writeable or g.base is not None:
+            return self._held_reference(g[run], rows)
+
+        def find() -> tuple[Any, ...]:
+            held, g_at, g_rows = self._held_reference(g[run], rows)
+            g_at.flags.writeable = g_rows.flags.writeable = False  # shared by the trials
+            return weakref.ref(g), held, g_at, g_rows
+
+        return data.recent(("held_reference", id(g), run.start, run.stop, rows_key), find,
+                           fresh=lambda hit: hit[0]() is g)[1:]
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
         return [ChainDynamics(self.taus(float(h)), 0.0)]

@@ -54,7 +54,7 @@ class DiagnosisData:
     table_deg: np.ndarray | None = None  # (N, 2) the table's angle readings psi, theta (deg); None: not in the recording
 
     _memo: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
-    _recent: OrderedDict[tuple, np.ndarray] = field(default_factory=OrderedDict, init=False, repr=False, compare=False)
+    _recent: OrderedDict[tuple, Any] = field(default_factory=OrderedDict, init=False, repr=False, compare=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
 
     def runs(self) -> list[slice | np.ndarray]:
@@ -77,19 +77,24 @@ class DiagnosisData:
             return self._memo.setdefault(key, compute())
         return self._memo[key]
 
-    def recent(self, key: tuple, compute: Callable[[], np.ndarray], keep: int = 4) -> np.ndarray:
-        """``compute()`` (an array that depends on the recording and ``key`` alone, made read-only), kept for the
-        next ``keep`` distinct keys: a correction that a search repeats unchanged on every trial (the thermal lag
-        of the model while another effect is searched) is worked out once (by lanes side by side: as ``once``)."""
+    def recent(self, key: tuple, compute: Callable[[], Any], keep: int = 4,
+               fresh: Callable[[Any], bool] | None = None) -> Any:
+        """``compute()`` (a value that depends on the recording and ``key`` alone; an array is made read-only), kept
+        for the next ``keep`` distinct keys: a correction that a search repeats unchanged on every trial (the thermal
+        lag of the model while another effect is searched) is worked out once (by lanes side by side: as ``once``).
+        ``fresh(value)`` false: a kept value no longer stands for ``key`` (what it was made of is gone), made again."""
         with self._lock:
             hit = self._recent.get(key)
-            if hit is not None:
+            if hit is not None and (fresh is None or fresh(hit)):
                 self._recent.move_to_end(key)
                 return hit
         value = compute()
-        value.flags.writeable = False
+        if isinstance(value, np.ndarray):
+            value.flags.writeable = False
         with self._lock:
-            hit = self._recent.setdefault(key, value)
+            hit = self._recent.get(key)
+            if hit is None or (fresh is not None and not fresh(hit)):
+                hit = self._recent[key] = value
             self._recent.move_to_end(key)
             while len(self._recent) > keep:
                 self._recent.popitem(last=False)

@@ -64,18 +64,18 @@ def held_rows(x: np.ndarray, rows: np.ndarray, min_hold: int = MIN_HOLD) -> Held
     x = np.asarray(x)
     n = len(x)
     rows = np.asarray(rows, dtype=np.intp)
-    moved = x[1:] != x[:-1]
-    if moved.ndim > 1:
-        moved = moved.any(axis=1)
+    if x.ndim > 1:  # column by column: numpy's reduction along a row of 3 costs more than the comparisons
+        moved = x[1:, 0] != x[:-1, 0]
+        for j in range(1, x.shape[1]):
+            moved |= x[1:, j] != x[:-1, j]
+    else:
+        moved = x[1:] != x[:-1]
     s = np.concatenate([[0], np.flatnonzero(moved) + 1])  # the constant stretches
     e = np.append(s[1:], n)
     s = np.maximum(s, 1)  # sample 0 starts the filter: never in a hold
     keep = e - s >= min_hold
     start, stop = s[keep], e[keep]
-    mark = np.zeros(n + 1, np.int8)
-    mark[start] += 1
-    mark[stop] -= 1
-    busy = np.flatnonzero(np.cumsum(mark[:n]) == 0)
+    busy = stretch_indices(np.r_[0, stop], np.r_[start, n])  # between the holds (before the first, after the last)
     before = np.searchsorted(busy, start) - 1
     n_after = np.searchsorted(busy, np.append(start[1:], n)) - (before + 1)
     hold = np.searchsorted(start, rows, side="right") - 1
@@ -87,6 +87,19 @@ def held_rows(x: np.ndarray, rows: np.ndarray, min_hold: int = MIN_HOLD) -> Held
     return HeldRows(busy, start, (stop - start).astype(float), before, n_after.astype(float), rows, busy_at,
                     inside, hold[inside], (rows[inside] - first[inside] + 1).astype(float),
                     after, hold[after], (rows[after] - last[after] + 1).astype(float))
+
+
+def stretch_indices(start: np.ndarray, stop: np.ndarray) -> np.ndarray:
+    """The indices of the stretches [start, stop) (ascending, disjoint; an empty one, start = stop, adds none), in
+    order: ``np.r_`` of their ranges, at the cost of the indices it gives, not of the span they cover."""
+    keep = stop > start
+    start, stop = start[keep], stop[keep]
+    length = stop - start
+    out = np.ones(int(length.sum()), dtype=np.intp)
+    if len(out):
+        out[0] = start[0]
+        out[np.cumsum(length)[:-1]] = start[1:] - stop[:-1] + 1  # from the last of one stretch to the first of the next
+    return np.cumsum(out)
 
 
 def _scan(alpha: np.ndarray, beta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
