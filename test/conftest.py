@@ -22,14 +22,14 @@ def worker_domain_id(base: str, worker: str) -> str:
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--sweeps", action="store_true",
-                     help="also run the cases marked 'sweep' (further seeds of a test; bench/test_sweeps.py runs them)")
+                     help="also run the cases marked 'sweep' (further seeds of a test; bench/seed_sweeps.py runs them)")
 
 
 def pytest_configure(config: pytest.Config) -> None:
     """Under pytest-xdist each worker gets its own ROS_DOMAIN_ID (the run's + its number) before any test module is
     collected, so before any rclpy context or child process starts; without workers nothing changes."""
     config.addinivalue_line("markers", "sweep: a further seed of a test whose representative cases the suite runs; "
-                                       "deselected unless --sweeps (bench/test_sweeps.py)")
+                                       "deselected unless --sweeps (bench/seed_sweeps.py)")
     worker = os.environ.get("PYTEST_XDIST_WORKER")
     if worker and "ROS_DOMAIN_ID" in os.environ:
         os.environ["ROS_DOMAIN_ID"] = worker_domain_id(os.environ["ROS_DOMAIN_ID"], worker)
@@ -122,7 +122,7 @@ def run_long_tests_first(items: list[pytest.Item]) -> None:
 
 def leave_out_sweeps(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Deselect the cases marked ``sweep`` unless ``--sweeps``: a test over seeds keeps one or two representative cases
-    in the suite (each still fails on the defect it was written for); its other seeds run in bench/test_sweeps.py."""
+    in the suite (each still fails on the defect it was written for); its other seeds run in bench/seed_sweeps.py."""
     if config.getoption("--sweeps"):
         return
     swept = [item for item in items if item.get_closest_marker("sweep")]

@@ -74,7 +74,7 @@ DARK_UNDER_DRIFT = {"effects.reference_dark_offset.scale": 4.0, "effects.source_
 
 
 # Further seeds of a test whose first seed(s) the suite runs (test/conftest.py ``leave_out_sweeps``): each test keeps a
-# representative case that fails on the defect it was written for; bench/test_sweeps.py runs every seed.
+# representative case that fails on the defect it was written for; bench/seed_sweeps.py runs every seed.
 SWEEP = pytest.mark.sweep
 
 

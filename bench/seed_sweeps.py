@@ -3,8 +3,8 @@
 
 A test over seeds keeps one or two representative cases in the suite (scripts/test.sh), each still failing on the
 defect it was written for; the other seeds it ran before are marked ``pytest.mark.sweep`` and run here, with the
-same assertions. This replaces, in the suite (about 35 s of its serial time), these cases of
-test/test_diagnose_sim.py:
+same assertions. This replaces, in the suite, these cases of test/test_diagnose_sim.py (28 s of the file's 128 s
+on the project's 2-core machine at a load of about 1: ``pytest test/test_diagnose_sim.py --durations=0``):
 
 * ``test_nothing_injected_nothing_added`` seeds 12, 13 (the suite runs seed 11);
 * ``test_a_real_thermal_hysteresis_passes_the_step_check`` cycled seeds 2, 3 and held levels seed 2 (the suite:
@@ -18,12 +18,12 @@ test/test_diagnose_sim.py:
 
 Usage::
 
-    .venv/bin/python bench/test_sweeps.py                    # every sweep case of test/, page in the scratch dir
-    .venv/bin/python bench/test_sweeps.py test/test_diagnose_sim.py
-    .venv/bin/python bench/test_sweeps.py --update-results   # docs/results/test_sweeps.md
+    .venv/bin/python bench/seed_sweeps.py                    # every sweep case of test/, page in the scratch dir
+    .venv/bin/python bench/seed_sweeps.py test/test_diagnose_sim.py
+    .venv/bin/python bench/seed_sweeps.py --update-results   # docs/results/seed_sweeps.md
 
 Writes a page with each case's outcome and seconds (to the scratch directory of bench/output_paths.py, or with
-``--update-results`` to docs/results/test_sweeps.md); exit status 1 when a case fails. Run it after a change to
+``--update-results`` to docs/results/seed_sweeps.md); exit status 1 when a case fails. Run it after a change to
 what the swept tests guard (the diagnosis's checks); it takes a few minutes on 2 cores (``nice`` it on a shared
 machine).
 """
@@ -68,7 +68,7 @@ def page(rows: list[tuple[str, str, float]], targets: list[str], status: int) ->
     lines = [
         "# Further seeds of the tests (sweep cases)",
         "",
-        f"Regenerate: `.venv/bin/python bench/test_sweeps.py {' '.join(targets)} --update-results`".replace("  ", " "),
+        f"Regenerate: `.venv/bin/python bench/seed_sweeps.py {' '.join(targets)} --update-results`".replace("  ", " "),
         "",
         "The cases marked `sweep` in the tests (test/conftest.py `leave_out_sweeps`): further seeds of tests whose "
         "representative cases the suite runs. Same assertions as in the suite.",
@@ -93,13 +93,13 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     out_dir = scratch_dir()
     out_dir.mkdir(parents=True, exist_ok=True)
-    junit = out_dir / "test_sweeps.xml"
+    junit = out_dir / "seed_sweeps.xml"
     status = run(args.targets, junit)
     if not junit.is_file():
         print(f"pytest wrote no results (exit {status})", file=sys.stderr)
         return 2
     rows = cases(junit)
-    md = RESULTS_PAGES / "test_sweeps.md" if args.update_results else out_dir / "test_sweeps.md"
+    md = RESULTS_PAGES / "seed_sweeps.md" if args.update_results else out_dir / "seed_sweeps.md"
     md.write_text(page(rows, args.targets if args.targets != ["test/"] else [], status))
     print(f"{sum(o == 'passed' for _, o, _ in rows)} of {len(rows)} sweep cases passed; wrote {md}")
     return 0 if status == 0 else 1
