@@ -20,9 +20,16 @@ def worker_domain_id(base: str, worker: str) -> str:
     return str((int(base) + int(worker.removeprefix("gw"))) % (MAX_DOMAIN_ID + 1))
 
 
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--sweeps", action="store_true",
+                     help="also run the cases marked 'sweep' (further seeds of a test; bench/seed_sweeps.py runs them)")
+
+
 def pytest_configure(config: pytest.Config) -> None:
     """Under pytest-xdist each worker gets its own ROS_DOMAIN_ID (the run's + its number) before any test module is
     collected, so before any rclpy context or child process starts; without workers nothing changes."""
+    config.addinivalue_line("markers", "sweep: a further seed of a test whose representative cases the suite runs; "
+                                       "deselected unless --sweeps (bench/seed_sweeps.py)")
     worker = os.environ.get("PYTEST_XDIST_WORKER")
     if worker and "ROS_DOMAIN_ID" in os.environ:
         os.environ["ROS_DOMAIN_ID"] = worker_domain_id(os.environ["ROS_DOMAIN_ID"], worker)
@@ -113,16 +120,28 @@ def run_long_tests_first(items: list[pytest.Item]) -> None:
     items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FIRST)))
 
 
+def leave_out_sweeps(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Deselect the cases marked ``sweep`` unless ``--sweeps``: a test over seeds keeps one or two representative cases
+    in the suite (each still fails on the defect it was written for); its other seeds run in bench/seed_sweeps.py."""
+    if config.getoption("--sweeps"):
+        return
+    swept = [item for item in items if item.get_closest_marker("sweep")]
+    if swept:
+        config.hook.pytest_deselected(items=swept)
+        items[:] = [item for item in items if not item.get_closest_marker("sweep")]
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The long tests first (``run_long_tests_first``). Under mutation testing (``bench/mutation_check.py``: mutmut
-    names the mutant in ``MUTANT_UNDER_TEST`` and runs in ``mutants/`` beside its ``mutmut-stats.json``), the tests
-    a mutant reaches run fastest first: pytest stops at the first failure (-x), so a mutant is killed by its cheapest
-    killer instead of after the slowest tests; and the slow tests the bench script leaves out of the mutation run
-    (``MUTATION_LEAVE_OUT``, node-id prefixes separated by ``;``) are deselected, a hypothesis property that fails is
-    not shrunk, and a test that takes 30 times its clean duration + 10 s fails (mutmut's own timeout, 15 times the
-    clean duration of all the mutant's tests, stays the backstop). What the tests assert is unchanged; outside
-    mutation testing nothing else is touched."""
+    """The long tests first (``run_long_tests_first``), the sweeps' further seeds left out (``leave_out_sweeps``). Under
+    mutation testing (``bench/mutation_check.py``: mutmut names the mutant in ``MUTANT_UNDER_TEST`` and runs in
+    ``mutants/`` beside its ``mutmut-stats.json``), the tests a mutant reaches run fastest first: pytest stops at the
+    first failure (-x), so a mutant is killed by its cheapest killer instead of after the slowest tests; and the slow
+    tests the bench script leaves out of the mutation run (``MUTATION_LEAVE_OUT``, node-id prefixes separated by ``;``)
+    are deselected, a hypothesis property that fails is not shrunk, and a test that takes 30 times its clean duration +
+    10 s fails (mutmut's own timeout, 15 times the clean duration of all the mutant's tests, stays the backstop). What
+    the tests assert is unchanged; outside mutation testing nothing else is touched."""
     run_long_tests_first(items)
+    leave_out_sweeps(config, items)
     if os.environ.get("MUTANT_UNDER_TEST", "") in ("", "stats", "list_all_tests", "mutant_generation"):
         return
     leave_out = tuple(t for t in os.environ.get("MUTATION_LEAVE_OUT", "").split(";") if t)  # named by the bench script

@@ -73,6 +73,11 @@ LEAD = {**LAG, "effects.thermal_lag.reading_leads": True}
 DARK_UNDER_DRIFT = {"effects.reference_dark_offset.scale": 4.0, "effects.source_power_wander.relative_sigma": 0.04}
 
 
+# Further seeds of a test whose first seed(s) the suite runs (test/conftest.py ``leave_out_sweeps``): each test keeps a
+# representative case that fails on the defect it was written for; bench/seed_sweeps.py runs every seed.
+SWEEP = pytest.mark.sweep
+
+
 def _config(extra: dict) -> SimConfig:
     return SimConfig.default().with_overrides({**BASELINE, **GRID, **extra})
 
@@ -115,7 +120,7 @@ def test_injected_effect_is_ranked_first_added_and_brings_error_to_the_floor(eff
     assert res.consistency_max_abs_mps2 < 1e-6  # the YAML terms reproduce the fit (driver = offline)
 
 
-@pytest.mark.parametrize("seed", [11, 12, 13])
+@pytest.mark.parametrize("seed", [11, pytest.param(12, marks=SWEEP), pytest.param(13, marks=SWEEP)])
 def test_nothing_injected_nothing_added(seed: int) -> None:
     """No model effect is added. The reference's own ADC rounding (0.29 count rms on ~870 counts, about 0.05 m/s^2
     through eq. 24) is noise in every recording: its remedy, the reference low-pass, may be (+5-6 % held out)."""
@@ -584,7 +589,8 @@ def test_a_step_in_a_temperature_cycled_run_is_not_written_as_a_drift_lag_or_hys
         settling_measurements(res)
 
 
-@pytest.mark.parametrize(("profile", "seed"), [(None, 1), (None, 2), (None, 3), (LEVELS, 1), (LEVELS, 2)])
+@pytest.mark.parametrize(("profile", "seed"), [(None, 1), pytest.param(None, 2, marks=SWEEP), pytest.param(None, 3, marks=SWEEP),
+                                               (LEVELS, 1), pytest.param(LEVELS, 2, marks=SWEEP)])
 def test_a_real_thermal_hysteresis_passes_the_step_check(profile, seed: int) -> None:
     """The simulator's hysteresis (x10: half gaps 0.1 / 0.075 / 0.125 m/s^2, play 1 degC) on a run cycled twice or held
     at four levels, no step: the hysteresis is set against the best step (on the unchanged code it was never checked:
@@ -720,7 +726,7 @@ def test_a_small_step_of_the_reference_is_not_written_as_a_dark_offset(extra: di
         settling_measurements(res)
 
 
-@pytest.mark.parametrize("seed", [4, 7, 8])
+@pytest.mark.parametrize("seed", [pytest.param(4, marks=SWEEP), pytest.param(7, marks=SWEEP), 8])
 def test_a_step_s_side_that_does_not_span_the_frame_is_not_tried(seed: int) -> None:
     """The real dark offset (``SCENARIOS``, no step) set against the best step: the grid run's first visits are all at
     z up (psi turns, gravity does not), so a step placed after them leaves the side before it one direction of gravity;
@@ -741,7 +747,8 @@ def test_a_step_s_side_that_does_not_span_the_frame_is_not_tried(seed: int) -> N
     assert not any("a step of the response" in w for w in res.warnings), res.warnings
 
 
-@pytest.mark.parametrize(("extra", "at_s", "seed"), [({}, 83.0, 1), ({}, 83.0, 2), ({}, 83.0, 3), (THERMAL, 120.0, 1)],
+@pytest.mark.parametrize(("extra", "at_s", "seed"), [({}, 83.0, 1), pytest.param({}, 83.0, 2, marks=SWEEP),
+                                                     pytest.param({}, 83.0, 3, marks=SWEEP), (THERMAL, 120.0, 1)],
                          ids=["grid-1", "grid-2", "grid-3", "cycled-1"])
 def test_a_3_percent_step_of_the_reference_is_reported_not_written(extra: dict, at_s: float, seed: int) -> None:
     """The reference's connector knocked by 0.13 dB (3 %): every Psi rises 3 %, the output moves 1.5-2 m/s^2 on each
@@ -762,7 +769,8 @@ def test_a_3_percent_step_of_the_reference_is_reported_not_written(extra: dict, 
         settling_measurements(res)
 
 
-@pytest.mark.parametrize(("extra", "at_s", "seed"), [({}, 83.0, 1), ({}, 83.0, 2), (THERMAL, 250.0, 1), (THERMAL, 250.0, 3)],
+@pytest.mark.parametrize(("extra", "at_s", "seed"), [({}, 83.0, 1), pytest.param({}, 83.0, 2, marks=SWEEP),
+                                                     (THERMAL, 250.0, 1), pytest.param(THERMAL, 250.0, 3, marks=SWEEP)],
                          ids=["grid-1", "grid-2", "cycled-1", "cycled-3"])
 def test_a_step_of_the_source_s_power_adds_nothing(extra: dict, at_s: float, seed: int) -> None:
     """All four channels lose 0.13 dB at once (a connector between the source and the coupler): eq. 24 divides the
@@ -792,8 +800,9 @@ def _jumps_named(warnings: list[str]) -> list[float]:
 
 
 @pytest.mark.parametrize(("fault", "seed", "at_s"),
-                         [(READING_STEP, 1, [250.0]), (READING_STEP, 2, [250.0]), (READING_FROZEN, 1, [240.0]),
-                          (READING_FROZEN, 2, [240.0]), (READING_SPIKES, 1, [40.5, 140.5, 300.5, 380.5, 460.5])],
+                         [(READING_STEP, 1, [250.0]), pytest.param(READING_STEP, 2, [250.0], marks=SWEEP),
+                          (READING_FROZEN, 1, [240.0]), pytest.param(READING_FROZEN, 2, [240.0], marks=SWEEP),
+                          (READING_SPIKES, 1, [40.5, 140.5, 300.5, 380.5, 460.5])],
                          ids=["step-1", "step-2", "frozen-1", "frozen-2", "spikes-1"])
 def test_a_fault_of_the_temperature_reading_is_not_written_as_a_property_of_the_sensor(fault, seed: int,
                                                                                         at_s: list[float]) -> None:
@@ -816,7 +825,7 @@ def test_a_fault_of_the_temperature_reading_is_not_written_as_a_property_of_the_
     assert all(any(abs(n - t) < 1.0 for t in at_s) for n in named), (named, at_s)
 
 
-@pytest.mark.parametrize("seed", [1, 2, 3])
+@pytest.mark.parametrize("seed", [1, pytest.param(2, marks=SWEEP), pytest.param(3, marks=SWEEP)])
 def test_a_clean_temperature_reading_is_not_called_a_fault(seed: int) -> None:
     """The cycled run's own reading (ramps of 5 degC/min through a 60 s housing, AHT10 noise 0.03 degC, 0.01 degC
     resolution, held at 2 Hz) and the run held at four levels (10 degC in 30 s) never depart from their recent course

@@ -210,9 +210,14 @@ def test_the_diagnosis_on_two_lanes_is_the_diagnosis_on_one(search_rows: int | N
     assert np.array_equal(one.residual_after, two.residual_after, equal_nan=True)
 
 
+# The command's plumbing of --lanes, on a grid run (167 s at 100 Hz) with the TIA low-pass: its candidates are searched
+# and judged on the lanes like any campaign's; every part of the diagnosis on lanes is the test above's
+GRID_EFFECT = _config({"effects.tia_lowpass.scale": 1.0})
+
+
 def test_the_command_s_lanes_option_changes_nothing_it_writes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     mcap = tmp_path / "run.mcap"
-    write_recording(mcap, simulate_recording(THERMAL_EFFECTS, seed=2))
+    write_recording(mcap, simulate_recording(GRID_EFFECT, seed=2))
     outputs = []
     for n in ("1", "2"):
         (tmp_path / n).mkdir()
