@@ -125,10 +125,11 @@ def leave_out_sweeps(config: pytest.Config, items: list[pytest.Item]) -> None:
     in the suite (each still fails on the defect it was written for); its other seeds run in bench/seed_sweeps.py."""
     if config.getoption("--sweeps"):
         return
-    swept = [item for item in items if item.get_closest_marker("sweep")]
+    named = {a for a in config.args if "::" in a}  # a case asked for by its node id runs, sweep or not
+    swept = [item for item in items if item.get_closest_marker("sweep") and item.nodeid not in named]
     if swept:
         config.hook.pytest_deselected(items=swept)
-        items[:] = [item for item in items if not item.get_closest_marker("sweep")]
+        items[:] = [item for item in items if item not in swept]
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -25,8 +25,8 @@ from fbg_accel_driver.driver_parameters import default_calibration_path
 
 BIN = Path(sys.executable).parent
 RATE_HZ = 200
-# the fixture's plan, its still start shortened from 3 s to 1.5 s: the board starts once both nodes subscribed, so the
-# start need only hold find_slide_start's 0.5 s envelope window and the LDV's 0.5 Hz AC coupling settling (5 x 0.32 s)
+# the fixture's plan with a still start of 1.5 s: the board starts once both nodes subscribed, so the start need only
+# hold find_slide_start's 0.5 s envelope window (the table is at rest until the slide: no step for the LDV's AC coupling)
 PLAN = {**yaml.safe_load((Path(__file__).parent / "fixtures" / "excitation_plan_three_tone.yaml").read_text()),
         "start_s": 1.5}
 LENGTH_S = 1.5 + 6.0 + 4.0 + 3.0 + 2 * 0.5 + 2.0  # start + segments + gaps + the recorder's tail

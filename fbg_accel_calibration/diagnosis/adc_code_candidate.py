@@ -95,7 +95,7 @@ def width_rows(data: DiagnosisData) -> np.ndarray:
 def pooled_widths(data: DiagnosisData, rows: np.ndarray) -> RecordingWidths:
     """``recording_code_widths`` pooled over the channels, of the samples ``rows`` (N,) bool alone. They are taken out
     first: the estimate reads nothing else (each visit's samples in time order), and its arrays of four channels are
-    then of a few thousand samples, not of the recording's 10^6 (which sat beside the final model's design)."""
+    then of a few thousand samples, not of the recording's 10^6."""
     idx = np.flatnonzero(rows)
     return recording_code_widths(_counts(data, idx), data.group[idx], np.ones(len(idx), bool), per_channel=False)
 

@@ -245,8 +245,8 @@ class TiaLowpassEffect(Effect):
                       pieces: list[tuple[slice | np.ndarray, Any, Any]]) -> tuple[np.ndarray, np.ndarray] | None:
         """``_corrected`` at ``rows`` (None: every sample) with the filters worked out by ``held_lowpass``: the
         expected Psi holds its value wherever the reference does (every pose; the channel delay's reference too, its
-        holds shortened by the delay after each move), so each trial filters the samples in motion and works out the
-        holds and the rows in closed form: the values of the recursion over every sample up to rounding
+        holds shifted by the delay, the run's last cut short at its end), so each trial filters the samples in motion
+        and works out the holds and the rows in closed form: the values of the recursion over every sample up to rounding
         (``test/test_held_lowpass.py``), and each row's value the same bit for bit whichever rows are asked for (a
         search's, or every sample's when the reference is corrected again after it). None where that does not apply:
         a gap in the reference, a run whose sampling changes the filter's coefficient."""
@@ -297,8 +297,9 @@ class TiaLowpassEffect(Effect):
         """``_held_reference`` of a run of the reference ``g`` (N, 3) an earlier correction moved (the channel delay),
         at ``rows`` (local; ``rows_key`` their digest). Kept for the next searches' trials (``DiagnosisData.recent``:
         a search of the TIA on top of a delay asks on every trial) by the array itself, read-only: ``g``'s identity
-        and a weak reference to it, so the kept holds neither keep the array nor outlive it (a new array at its
-        address is not it). A writable array is worked out on each call."""
+        and a weak reference to it: the kept holds do not keep the array alive and are never served for another (a new
+        array at its address is not it), though they stay among ``recent``'s few entries until pushed out. A writable
+        array is worked out on each call."""
         if g.flags.writeable or g.base is not None:
             return self._held_reference(g[run], rows)
 

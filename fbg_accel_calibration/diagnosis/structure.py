@@ -190,7 +190,7 @@ def heldout_mean_null(sums: HeldoutVisitSums, fold_xtx: np.ndarray, XtX: np.ndar
     same = kb[:, None] == kb[None, :]
     s_own_t = S[own].T
     cov = np.empty((4, len(ub), len(ub)))  # the three axes' noise, then a slow error of unit variance per visit
-    buf = np.empty((len(ub), len(ub)))  # c a^T, then qde, in turn: the one (V, V) temporary
+    buf = np.empty((len(ub), len(ub)))  # c a^T, then a_s and qde, in turn: the one (V, V) temporary
     for j in range(4):
         if j < 3:
             phi = float(np.median(cnt_a * var[:, j]))
