@@ -36,7 +36,7 @@ def _sine_amplitude(x: np.ndarray, t: np.ndarray, freq: float) -> np.ndarray:
     return np.hypot(c[0], c[1])
 
 
-@pytest.mark.parametrize("seed", [1, 2])
+@pytest.mark.parametrize("seed", [1, pytest.param(2, marks=pytest.mark.sweep)])  # seed 2: bench/seed_sweeps.py
 @pytest.mark.parametrize("case", range(len(SWAY)))
 def test_a_table_sway_is_named_and_kept_out_of_the_noise_floor(case: int, seed: int) -> None:
     """On the code before (e6af7cc): no ``disturbance`` on the result, no warning, and the floor x / y / z against the

@@ -64,7 +64,7 @@ def calibrated(seed: int) -> DynamicCalibrationResult:
     return run_dynamic(simulated(seed), PLAN, ThermalCalibration.load(default_calibration_path()))
 
 
-@pytest.mark.parametrize("seed", [1, 2])
+@pytest.mark.parametrize("seed", [1, pytest.param(2, marks=pytest.mark.sweep)])  # seed 2: bench/seed_sweeps.py
 def test_cli_recovers_the_simulated_chain(tmp_path, static_cal, seed):
     rec = simulated(seed)
     csv = tmp_path / "run.csv"
