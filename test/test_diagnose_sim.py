@@ -26,7 +26,7 @@ import yaml
 
 from fbg_accel_calibration.diagnosis.diagnose import diagnose
 from fbg_accel_calibration.diagnosis.floor import VisitNoise
-from fbg_accel_calibration.diagnosis.search import MIN_SEARCH_INFORMATION, search_samples
+from fbg_accel_calibration.diagnosis.search import MIN_SEARCH_INFORMATION, Refusal, search_samples
 from fbg_accel_calibration.io.recording import Recording
 from fbg_accel_calibration.io.table_geometry import table_specific_force
 from fbg_accel_calibration.reports.diagnose_report import markdown, ordinal, settling_measurements, write_plots
@@ -819,6 +819,11 @@ def test_a_fault_of_the_temperature_reading_is_not_written_as_a_property_of_the_
     nothing that reads time or the temperature's history is added on a run of two temperature levels or more."""
     res = diagnose(simulate_recording(_config({**THERMAL, "faults.temperature_reading": fault}), seed=seed))
     assert not READING_ABSORBERS & {a[0] for a in res.added}, res.added
+    # and it is the reading that keeps them out: each absorber refused is refused for the jump (the check runs first;
+    # the checks after it refuse some of them too, so the outcome alone would not show the jump's check at work)
+    refused = [(c.name, c.refusal) for st in res.steps for c in st.candidates
+               if c.name in READING_ABSORBERS and c.refusal is not None]
+    assert refused and all(why is Refusal.READING_JUMP for _, why in refused), refused
     assert not READING_ABSORBERS & {t.kind for t in res.calibration.corrections}, res.calibration.corrections
     named = _jumps_named(res.warnings)
     assert named and all(any(abs(n - t) < 1.0 for n in named) for t in at_s), (named, res.warnings)
