@@ -103,11 +103,12 @@ def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: Flo
         noise_after = noise_model_after.sigma
         cal.noise_sigma_mps2 = noise_after
     calibrated_later = beside(calibrated_output, cal, data, thread=thread)  # the driver's path, meanwhile the rest
-    fitted_sensor = cv_f.fitted_full.copy()  # what the calibration file reproduces: without the per-run terms
-    for e, _ in spec.effects:
-        if (e.per_run or e.rig) and e.name in des_f.blocks:  # the runs' and the rig's columns: not the sensor's
-            sl = des_f.blocks[e.name]
-            fitted_sensor -= des_f.X[:, sl] @ cv_f.A_full[sl]
+    # what the calibration file reproduces: the fit without the runs' and the rig's columns (not the sensor's); the
+    # fit itself when there are none (only read: no copy of N x 3 beside the null's covariances)
+    not_sensor = [des_f.blocks[e.name] for e, _ in spec.effects if (e.per_run or e.rig) and e.name in des_f.blocks]
+    fitted_sensor = cv_f.fitted_full.copy() if not_sensor else cv_f.fitted_full
+    for sl in not_sensor:
+        fitted_sensor -= des_f.X[:, sl] @ cv_f.A_full[sl]
     flagged = flagged_visits(data, groups, [floor.noise_model] + ([noise_model_after] if remedies else []),
                              des_f, cv_f, fit_rows, rows_f, fold, weights)
     G_f, blocks_f = des_f.G, des_f.blocks
