@@ -305,7 +305,8 @@ class TiaLowpassEffect(Effect):
 
         def find() -> tuple[Any, ...]:
             held, g_at, g_rows = self._held_reference(g[run], rows)
-            g_at.flags.writeable = g_rows.flags.writeable = False  # shared by the trials
+            for a in (g_at, g_rows, *vars(held).values()):  # shared by the trials, of either lane
+                a.flags.writeable = False
             return weakref.ref(g), held, g_at, g_rows
 
         return data.recent(("held_reference", id(g), run.start, run.stop, rows_key), find,
