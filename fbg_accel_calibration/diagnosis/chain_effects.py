@@ -33,7 +33,7 @@ from .effects import (
     TIA_TAU_S,
     Effect,
 )
-from .held_lowpass import HeldRows, held_lowpass, held_rows, stretch_indices
+from .held_lowpass import HeldRows, held_lowpass, held_rows, moves, stretch_indices
 
 
 class ChannelDelayEffect(Effect):
@@ -125,9 +125,8 @@ class ChannelDelayEffect(Effect):
             return None
 
         def motions() -> tuple[np.ndarray, np.ndarray]:
-            # a move: the next sample differs in an axis (or is NaN: never the same); a motion: moves back to back
-            f = data.gref_filled[run]
-            c = np.flatnonzero(~np.all(f[1:] == f[:-1], axis=1))
+            # a motion: moves of the reference back to back
+            c = np.flatnonzero(moves(data.gref_filled[run]))
             if not len(c):
                 return c, c
             cut = np.flatnonzero(np.diff(c) > 1)

@@ -390,7 +390,7 @@ def visit_noise_levels(reference: np.ndarray, axis_counts: np.ndarray | None, in
     r = np.where(ok, reference, 1.0).astype(float)
     cols = [np.broadcast_to((1.0 / r**2)[:, None], (len(r), 3))]
     if axis_counts is not None:
-        ok &= np.all(np.isfinite(axis_counts), axis=1)
+        ok &= finite_rows(axis_counts)
         cols.append(np.where(ok[:, None], axis_counts, 0.0) ** 2 / r[:, None] ** 4)
     n_ok = np.bincount(inv, weights=ok.astype(float), minlength=len(cnt))
     if not np.any(n_ok > 0):

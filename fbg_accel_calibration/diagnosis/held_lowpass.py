@@ -64,13 +64,7 @@ def held_rows(x: np.ndarray, rows: np.ndarray, min_hold: int = MIN_HOLD) -> Held
     x = np.asarray(x)
     n = len(x)
     rows = np.asarray(rows, dtype=np.intp)
-    if x.ndim > 1:  # column by column: numpy's reduction along a row of 3 costs more than the comparisons
-        moved = x[1:, 0] != x[:-1, 0]
-        for j in range(1, x.shape[1]):
-            moved |= x[1:, j] != x[:-1, j]
-    else:
-        moved = x[1:] != x[:-1]
-    s = np.concatenate([[0], np.flatnonzero(moved) + 1])  # the constant stretches
+    s = np.concatenate([[0], np.flatnonzero(moves(x)) + 1])  # the constant stretches
     e = np.append(s[1:], n)
     s = np.maximum(s, 1)  # sample 0 starts the filter: never in a hold
     keep = e - s >= min_hold
@@ -87,6 +81,17 @@ def held_rows(x: np.ndarray, rows: np.ndarray, min_hold: int = MIN_HOLD) -> Held
     return HeldRows(busy, start, (stop - start).astype(float), before, n_after.astype(float), rows, busy_at,
                     inside, hold[inside], (rows[inside] - first[inside] + 1).astype(float),
                     after, hold[after], (rows[after] - last[after] + 1).astype(float))
+
+
+def moves(x: np.ndarray) -> np.ndarray:
+    """(n - 1,) bool: where the input ``x`` (n,) or (n, k) moves from one sample to the next (a column differs, or is
+    NaN: never the same). Column by column: numpy's reduction along a row of 3 costs more than the comparisons."""
+    if x.ndim == 1:
+        return x[1:] != x[:-1]
+    out = x[1:, 0] != x[:-1, 0]
+    for j in range(1, x.shape[1]):
+        out |= x[1:, j] != x[:-1, j]
+    return out
 
 
 def stretch_indices(start: np.ndarray, stop: np.ndarray) -> np.ndarray:
