@@ -18,7 +18,7 @@ tests=$(ls test/test_diagnose*.py test/test_*fit*.py test/test_thermal_*.py test
   test/test_switch_profile.py test/test_search_lanes.py test/test_correction_terms.py test/test_chain_compensation.py \
   test/test_driver_chain_compensation.py test/test_low_reference.py test/test_reference_level.py \
   test/test_static_detector.py test/test_coefficient_uncertainty.py test/test_calibration_covariance_driver.py \
-  test/test_field_check.py 2>/dev/null | grep -v '_process\.py$')
+  test/test_field_check.py test/test_held_lowpass.py 2>/dev/null | grep -v '_process\.py$')
 workers=$(scripts/test_workers.sh cpus)  # each worker on its own DDS domain: base..base+workers-1 (test/conftest.py)
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 101 ))}
 corename='from fbg_accel_calibration.diagnosis.blas_threads import blas_core_names; import numpy as np

@@ -12,7 +12,7 @@ import pytest
 from fbg_accel_calibration.diagnosis.chain_effects import TiaLowpassEffect
 from fbg_accel_calibration.diagnosis.data import DiagnosisData, Inputs, expected_psi_map
 from fbg_accel_calibration.diagnosis.effects import ReferenceReadNoiseEffect
-from fbg_accel_calibration.diagnosis.held_lowpass import held_lowpass, held_rows
+from fbg_accel_calibration.diagnosis.held_lowpass import held_cascade, held_lowpass, held_rows
 from fbg_accel_driver.correction_terms import first_order_lowpass, sample_steps, uniform_coefficient
 
 DT = 0.01
@@ -60,6 +60,31 @@ def test_the_rows_of_a_held_signal_are_those_of_the_filter_over_every_sample(fir
             got = held_lowpass(held, x[held.samples], a)
             # the same recursion but for rounding: c^L for L multiplications, the scan's order of products
             np.testing.assert_allclose(got, want, rtol=0, atol=1e-13 * np.max(np.abs(x)))
+
+
+@pytest.mark.parametrize("first_held,last_held", [(True, True), (False, False)])
+@pytest.mark.parametrize("min_hold", [1, 16])
+def test_two_low_passes_in_cascade_at_the_rows_are_those_over_every_sample(first_held: bool, last_held: bool,
+                                                                           min_hold: int) -> None:
+    """``held_cascade``: the low-pass and the same low-pass of it (the thermal lag's rate estimate) at a search's rows,
+    from the holds in closed form, against both filters over every sample; its first output is ``held_lowpass``'s."""
+    rng = np.random.default_rng(7 + min_hold + 10 * first_held)
+    n = 3000
+    x = held_signal(rng, n, first_held, last_held)
+    t = DT * np.arange(n)
+    steps = sample_steps(t)
+    edges = np.flatnonzero(np.diff(x) != 0)
+    for rows in (np.unique(np.concatenate([[0, 1, n - 1], edges, edges + 1])), np.arange(n)[5::11], np.arange(n)):
+        held = held_rows(x, rows, min_hold)
+        for tau in (1e-4, DT, 0.3, 100.0):
+            a = uniform_coefficient(tau, steps)
+            y = first_order_lowpass(x, t, tau, {}, steps)
+            z = first_order_lowpass(y, t, tau, {}, steps)
+            got_y, got_z = held_cascade(held, x[held.samples], a)
+            assert np.array_equal(got_y, held_lowpass(held, x[held.samples], a))
+            np.testing.assert_allclose(got_z, z[rows], rtol=0, atol=1e-13 * np.max(np.abs(x)))
+            if DT <= tau <= 1.0:  # the second filter changes something to get right
+                assert np.max(np.abs(z - y)) > 1e-3
 
 
 def test_a_signal_without_a_hold_and_a_signal_that_is_one_hold() -> None:
@@ -225,3 +250,43 @@ def test_the_tia_reference_on_a_delayed_reference_is_the_one_over_every_sample(D
     delay.transform(data, other, 2 * D)
     got = eff.reference_at(data, other, 1.0, rows)
     np.testing.assert_allclose(got[0], tia_reference_over_every_sample(data, other, 1.0)[rows], rtol=0, atol=1e-12)
+
+
+def lag_data() -> DiagnosisData:
+    """Two runs of a temperature reading at the AHT10's resolution (0.01 degC) ramping up and down through 4 degC, with
+    its reading noise (holds of a few samples to hundreds between its changes)."""
+    rng = np.random.default_rng(11)
+    data = tia_data()
+    n = len(data.t_s)
+    temp = np.round(25.0 + 2.0 * np.sin(np.arange(n) / 900.0) + rng.normal(0, 0.004, n), 2)
+    return replace(data, temp_c=temp)
+
+
+def test_the_thermal_lag_at_the_searched_rows_is_the_one_over_every_sample() -> None:
+    """The thermal lag of the temperature reading at a search's rows alone (``ThermalLagEffect.transform_rows``: its
+    filters over the reading's holds in closed form) against ``transform`` over every sample, for the optics lagging
+    (one low-pass) and the AHT10 lagging (the rate through two in cascade), in both runs; and a design whose
+    columns read only its rows takes it (the same design up to rounding), one with the hysteresis's branch (which
+    reads every sample) does not."""
+    from fbg_accel_calibration.diagnosis.design import DesignCache, ModelSpec, build_design
+    from fbg_accel_calibration.diagnosis.effects import ThermalHysteresisEffect, ThermalLagEffect
+
+    data = lag_data()
+    eff = ThermalLagEffect()
+    rows = np.flatnonzero(data.use)[::9]
+    assert np.count_nonzero(np.diff(data.temp_c)) > 0.05 * len(data.t_s)  # the reading moves, the holds are short
+    for h in (-40.0, -3.0, -0.2, 0.05, 2.0, 60.0):
+        full, part = Inputs.of(data), Inputs.of(data).at(rows)
+        eff.transform(data, full, h)
+        assert eff.transform_rows(data, Inputs.of(data), part, h, rows)
+        np.testing.assert_allclose(part.temp_c, full.temp_c[rows], rtol=0, atol=1e-11)
+        assert part.temp_changed and np.max(np.abs(full.temp_c - data.temp_c)) > 0.01  # the lag moves the reading
+        spec = ModelSpec(2, 25.0, 5.0).plus(eff, h)
+        want = build_design(data, spec, None, rows).X
+        cache = DesignCache()
+        np.testing.assert_allclose(build_design(data, spec, cache, rows).X, want, rtol=1e-9, atol=1e-12)
+        assert next(iter(cache.inputs.values()))[0] is None  # the rows alone were corrected
+        both = spec.plus(ThermalHysteresisEffect(), 10.0)
+        cache = DesignCache()
+        np.testing.assert_array_equal(build_design(data, both, cache, rows).X, build_design(data, both, None, rows).X)
+        assert next(iter(cache.inputs.values()))[0] is not None  # the whole series was corrected

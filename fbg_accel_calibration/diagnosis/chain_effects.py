@@ -7,7 +7,6 @@ constants are with the other effects' in ``diagnosis.effects``; the candidates a
 from __future__ import annotations
 
 import weakref
-from hashlib import blake2b
 from typing import Any
 
 import numpy as np
@@ -23,6 +22,7 @@ from .data import (
     input_run_steps,
     interp_columns,
     rows_by_run,
+    rows_digest,
     take_rows,
 )
 from .effects import (
@@ -259,8 +259,7 @@ class TiaLowpassEffect(Effect):
                  for st in input_run_steps(data, inp)]
         if any(a is None for per in coeff for a in per):
             return None
-        # the rows by a cryptographic digest of their bytes: two sets of rows never share a kept value
-        rows_key = None if rows is None else f"{len(rows)} {blake2b(np.ascontiguousarray(rows).tobytes()).hexdigest()}"
+        rows_key = None if rows is None else rows_digest(rows)
         found = []
         for run, _, local in pieces:
             if rows_key is None:  # every sample (a correction of the reference after it, the final model): not kept

@@ -13,6 +13,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from hashlib import blake2b
 from typing import Any
 
 import numpy as np
@@ -393,6 +394,12 @@ def rows_by_run(data: DiagnosisData, rows: np.ndarray | None) -> list[tuple[slic
         sel = np.flatnonzero((rows >= run.start) & (rows < run.stop))
         out.append((run, sel, rows[sel] - run.start))
     return out
+
+
+def rows_digest(rows: np.ndarray) -> str:
+    """A key for a set of rows (sample indices): their number and a cryptographic digest of their bytes, so that two
+    sets of rows never share what is kept for one (``DiagnosisData.once``)."""
+    return f"{len(rows)} {blake2b(np.ascontiguousarray(rows).tobytes()).hexdigest()}"
 
 
 def input_run_steps(data: DiagnosisData, inp: Inputs) -> list[SampleSteps | None]:

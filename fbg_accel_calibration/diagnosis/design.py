@@ -127,6 +127,11 @@ def _transforms_inputs(eff: Effect) -> bool:
     return type(eff).transform is not Effect.transform
 
 
+def _reads_every_sample(eff: Effect) -> bool:
+    """Whether ``eff``'s columns read the corrected inputs of every sample (not only the design's rows)."""
+    return type(eff).columns is not Effect.columns and not eff.pointwise
+
+
 class _Recent(OrderedDict):
     """At most ``size`` entries once trimmed, the least recently used dropped first. Its methods hold a lock: the
     corrected references are shared by the lanes of a search (``DesignCache.for_another_lane``)."""
@@ -219,7 +224,8 @@ def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None
     The input corrections (``Effect.transform``) run first in stage order, on the whole time series; every
     effect's columns are then computed from the fully corrected inputs. ``sub`` (sample indices): the design
     of those rows only (the corrections still see every sample; eq. 28's columns and the columns of a
-    ``pointwise`` effect are computed on those rows alone). ``cache`` keeps the corrected inputs of a set of
+    ``pointwise`` effect are computed on those rows alone; where no effect's columns read other samples, the last
+    correction may work out those rows alone, ``Effect.transform_rows``). ``cache`` keeps the corrected inputs of a set of
     corrections, and the design matrix of a model but for its corrections of the reference alone, for the
     next design that has the same (the arrays it holds are never written).
     """
@@ -232,7 +238,8 @@ def build_design(data: DiagnosisData, spec: ModelSpec, cache: DesignCache | None
     else:
         # The corrections of the reference alone (Effect.reference_only) are worked out apart, with the corrections
         # before them: no other correction reads the reference, and they read only what comes before them.
-        inp, part = _corrected(data, [c for c in corrections if not c[0].reference_only], cache, sub)
+        rows_only = sub is not None and not any(_reads_every_sample(e) for e, _ in ordered)
+        inp, part = _corrected(data, [c for c in corrections if not c[0].reference_only], cache, sub, rows_only)
         gref, valid = part.gref, part.valid
         last = max((i + 1 for i, (e, _) in enumerate(corrections) if e.reference_only), default=0)
         if last:
@@ -275,24 +282,41 @@ def _corrected_inputs(data: DiagnosisData, corrections: list[tuple[Effect, float
 
 
 def _corrected(data: DiagnosisData, corrections: list[tuple[Effect, float | None]], cache: DesignCache,
-               sub: np.ndarray | None) -> tuple[Inputs, Inputs]:
-    """(the inputs after ``corrections``, those at the design's rows ``sub``), from ``cache`` when it has them."""
+               sub: np.ndarray | None, rows_only: bool = False) -> tuple[Inputs | None, Inputs]:
+    """(the inputs after ``corrections``, those at the design's rows ``sub``), from ``cache`` when it has them.
+    ``rows_only``: nothing reads the corrected inputs but at ``sub``, so the last correction may correct those rows
+    alone (``Effect.transform_rows``); the first is then None."""
     names = tuple((eff.name, h) for eff, h in corrections)
-    hit = cache.inputs.hit(names)
+    on_rows = rows_only and sub is not None and bool(corrections)
+    key = (*names, "rows") if on_rows else names  # a design that reads every sample needs the whole series
+    hit = cache.inputs.hit(key)
     if hit is not None:
         return hit
     cache.inputs.trim(room=1)
     done, inp = cache.prefix(names)
     if inp is None:
         inp = Inputs.of(data)
-    for i in range(done, len(corrections)):
-        if i == len(corrections) - 1 and i > done:
-            cache.prefixes[names[:i]] = _private(inp)  # all but the last: what a search over the last one repeats
-            cache.prefixes.trim()
-        eff, h = corrections[i]
+    last = len(corrections) - 1
+    for eff, h in corrections[done:last]:
         eff.transform(data, inp, h)
-    part = inp if sub is None else inp.at(sub, lambda a: cache.take(a, sub))  # the design's rows
-    cache.inputs[names] = (inp, part)
+    if last > done:
+        cache.prefixes[names[:last]] = _private(inp)  # all but the last: what a search over the last one repeats
+        cache.prefixes.trim()
+
+    def rows_of(inp: Inputs) -> Inputs:
+        return inp if sub is None else inp.at(sub, lambda a: cache.take(a, sub))  # the design's rows
+
+    if on_rows:
+        eff, h = corrections[last]
+        part = rows_of(inp)
+        if eff.transform_rows(data, inp, part, h, sub):
+            cache.inputs[key] = (None, part)
+            return None, part
+    if corrections:
+        eff, h = corrections[last]
+        eff.transform(data, inp, h)
+    part = rows_of(inp)
+    cache.inputs[key] = (inp, part)
     return inp, part
 
 
@@ -329,10 +353,12 @@ def _reference_prefix(data: DiagnosisData, corrections: list[tuple[Effect, float
     return _private(hit)
 
 
-def _design_matrix(data: DiagnosisData, spec: ModelSpec, ordered: list[tuple[Effect, float | None]], inp: Inputs,
-                   part: Inputs, sub: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, dict[str, slice]]:
+def _design_matrix(data: DiagnosisData, spec: ModelSpec, ordered: list[tuple[Effect, float | None]],
+                   inp: Inputs | None, part: Inputs,
+                   sub: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, dict[str, slice]]:
     """(X (n, p): eq. 28's columns then each effect's, its finite rows (n,), each effect's block of columns) of
-    ``build_design``: ``inp`` the corrected inputs, ``part`` those at the design's rows."""
+    ``build_design``: ``inp`` the corrected inputs (None: known at the design's rows alone, where no effect's columns
+    read other samples), ``part`` those at the design's rows."""
     n_base = n_params(spec.degree)
     extra, blocks, p = [], {}, n_base
     for eff, h in ordered:

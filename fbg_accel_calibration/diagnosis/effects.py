@@ -49,6 +49,7 @@ from fbg_accel_driver.correction_terms import (
     TimeDrift,
     first_order_lowpass,
     quadratic_features,
+    uniform_coefficient,
 )
 from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
 
@@ -57,8 +58,11 @@ from .data import (
     Inputs,
     direction_labels,
     input_run_steps,
+    rows_by_run,
+    rows_digest,
     visit_means,
 )
+from .held_lowpass import HeldRows, held_cascade, held_lowpass, held_rows
 
 # Table 1 of the paper: TIA cut-off frequencies (Hz) of ref, x, y, z (static-test build).
 TIA_CUTOFF_HZ = np.array([1.0, 1.7, 1.3, 1.3])
@@ -187,6 +191,13 @@ class Effect:
 
     def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
         """Input corrections: modify ``inp`` in place (counts, temperature, reference alignment)."""
+
+    def transform_rows(self, data: DiagnosisData, inp: Inputs, part: Inputs, h: float | None, rows: np.ndarray) -> bool:
+        """:meth:`transform` at the samples ``rows`` alone, ``part`` (``inp`` at ``rows``) changed in place, for the last
+        input correction of a design that reads no other sample of the corrected inputs (``build_design``): the
+        values of ``transform`` there up to rounding. Whether it could (False: nothing changed, ``transform`` is
+        used)."""
+        return False
 
     def reference_at(self, data: DiagnosisData, inp: Inputs, h: float | None,
                      rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -480,6 +491,55 @@ class ThermalLagEffect(Effect):
         # repeats the model's lag on every trial)
         inp.temp_c = lagged() if inp.temp_changed else data.recent((self.name, float(h)), lagged)
         inp.temp_changed = True
+
+    def transform_rows(self, data: DiagnosisData, inp: Inputs, part: Inputs, h: float | None, rows: np.ndarray) -> bool:
+        """The lagged temperature at ``rows`` alone, its filters worked out over the holds of the reading in closed form
+        (``held_lowpass``: the AHT10's reading changes on a few percent of the samples), so a trial costs the changes
+        and the rows, not the series. Where the recorded temperature is what is lagged, every run's sampling keeps one
+        filter coefficient and the reading is finite (else False: ``transform`` over every sample)."""
+        if inp.temp_changed or not data.once("temp_c_finite", lambda: bool(np.isfinite(data.temp_c).all())):
+            return False
+        pieces = rows_by_run(data, rows)
+        if pieces is None:
+            return False
+        term = ThermalLag(float(h))
+        tau = term.tau_s if term.tau_s > 0 else term.rate_smoothing_s
+        coeff = [None if st is None else uniform_coefficient(tau, st) for st in input_run_steps(data, inp)]
+        if any(a is None for a in coeff):
+            return False
+        key = rows_digest(rows)
+
+        def lagged() -> np.ndarray:
+            out = np.empty(len(rows))
+            for (run, sel, local), a in zip(pieces, coeff, strict=True):
+                held, x_at = data.once(f"temperature holds {run.start} {run.stop} {key}",
+                                       lambda run=run, local=local: self._holds(data.temp_c[run], local))
+                if term.tau_s > 0:
+                    out[sel] = held_lowpass(held, x_at, a)
+                    continue
+                # ThermalLag.effective_temperature's rate estimate, term by term in its order
+                temp, r = part.temp_c[sel], abs(term.tau_s) / term.rate_smoothing_s
+                if term.rate_order == 1:
+                    out[sel] = temp + r * (temp - held_lowpass(held, x_at, a))
+                else:
+                    lp, lp2 = held_cascade(held, x_at, a)
+                    out[sel] = temp + r * (2.0 * (temp - lp) - (lp - lp2))
+            return out
+
+        # once per tau and rows, as ``transform`` (a search over another effect repeats the model's lag on every trial)
+        part.temp_c = data.recent((self.name, float(h), key), lagged)
+        part.temp_changed = True
+        return True
+
+    @staticmethod
+    def _holds(temp: np.ndarray, rows: np.ndarray) -> tuple[HeldRows, np.ndarray]:
+        """(the holds of a run's temperature reading ``temp`` and where ``rows`` (local) fall, the reading where the
+        filters read it): what every trial shares."""
+        held = held_rows(temp, rows)
+        x_at = temp[held.samples]
+        for arr in (x_at, *vars(held).values()):
+            arr.flags.writeable = False
+        return held, x_at
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
         return [ThermalLag(float(h))]

@@ -122,6 +122,67 @@ def _scan(alpha: np.ndarray, beta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def held_lowpass(held: HeldRows, x_at: np.ndarray, a: float) -> np.ndarray:
     """y (q,) at ``held.rows`` of the low-pass y[0] = x[0], y[n] = a x[n] + (1 - a) y[n-1], from the input at
     ``held.samples`` only (``x_at``: the values there, (b + m,)): see the module docstring."""
+    return _first_stage(held, x_at, a)[0]
+
+
+def held_cascade(held: HeldRows, x_at: np.ndarray, a: float) -> tuple[np.ndarray, np.ndarray]:
+    """(y, z) (q,) each at ``held.rows``: y the low-pass of ``held_lowpass``, z the same low-pass of y (z[0] = y[0],
+    z[n] = a y[n] + c z[n-1], c = 1 - a: two filters of one time constant in cascade), from the input at
+    ``held.samples`` only.
+
+    Over a hold of value v entered with the states (y0, z0), m steps in: y = v + c^m (y0 - v) and, the cascade's
+    double pole, z = v + c^m (z0 - v) + m a c^m (y0 - v). The samples outside the holds go through both filters as
+    one series; where a stretch of them starts after a hold, the states ``lfilter`` carried in differ from the true
+    ones by (d, e), and that difference decays through the stretch as the filters' own response, k steps on
+    (c^k d, c^k e + k a c^k d). So z's state entering each hold follows from the one before by an affine map of the
+    same factor as y's, and one more prefix scan gives it once y's states are known."""
+    from scipy.signal import lfilter
+
+    y, st = _first_stage(held, x_at, a)
+    c = 1.0 - a
+    zb = np.empty(len(held.busy))
+    zb[0] = st.yb[0]
+    if len(zb) > 1:
+        zb[1:] = lfilter([a], [1.0, a - 1.0], st.yb[1:], zi=[c * st.yb[0]])[0]
+    z = zb[held.busy_at]
+    if st.v is None:
+        return y, z
+    v, y_in, d = st.v, st.s_in, st.delta
+    L, n = held.length, held.n_after
+    end = held.before + n.astype(np.intp)
+    # z's state entering hold i + 1 from the one entering hold i (y's known): the hold, then the stretch after it
+    into = v * (1.0 - st.c_hold) + L * a * st.c_hold * (y_in - v)
+    beta = np.where(n > 0, zb[end] + st.c_after * (into - zb[held.before]) + n * a * st.c_after * d, into)
+    A, B = _scan(st.c_after * st.c_hold, beta)
+    z_in = np.empty(len(v))
+    z_in[0] = zb[held.before[0]]
+    z_in[1:] = A[:-1] * z_in[0] + B[:-1]
+    e = v + st.c_hold * (z_in - v) + L * a * st.c_hold * (y_in - v) - zb[held.before]
+    h, m = held.in_hold_of, held.in_hold_steps
+    c_m = np.power(c, m)
+    z[held.in_hold] = v[h] + c_m * (z_in[h] - v[h]) + m * a * c_m * (y_in[h] - v[h])
+    j, k = held.after_of, held.after_steps
+    c_k = np.power(c, k)
+    z[held.after] += c_k * e[j] + k * a * c_k * d[j]
+    return y, z
+
+
+@dataclass(frozen=True)
+class _Stage:
+    """What ``held_cascade`` reads of the first filter: its values at ``busy`` (b,), and per hold (m,; None: no hold)
+    the hold's value, its c^L, the c^n of the stretch after it, the true state entering it and the difference of the
+    true and the carried state where the stretch after it starts."""
+
+    yb: np.ndarray
+    v: np.ndarray | None = None
+    c_hold: np.ndarray | None = None
+    c_after: np.ndarray | None = None
+    s_in: np.ndarray | None = None
+    delta: np.ndarray | None = None
+
+
+def _first_stage(held: HeldRows, x_at: np.ndarray, a: float) -> tuple[np.ndarray, _Stage]:
+    """(y (q,) at ``held.rows``, what the filter left at ``held``'s samples and holds) of ``held_lowpass``."""
     from scipy.signal import lfilter
 
     b = len(held.busy)
@@ -134,7 +195,7 @@ def held_lowpass(held: HeldRows, x_at: np.ndarray, a: float) -> np.ndarray:
     m = len(v)
     out = yb[held.busy_at]
     if not m:
-        return out
+        return out, _Stage(yb)
     c_hold = np.power(c, held.length)
     c_after = np.power(c, held.n_after)
     end = held.before + held.n_after.astype(np.intp)  # the last sample of the stretch after each hold (else ``before``)
@@ -150,4 +211,4 @@ def held_lowpass(held: HeldRows, x_at: np.ndarray, a: float) -> np.ndarray:
     h = held.in_hold_of
     out[held.in_hold] = v[h] + np.power(c, held.in_hold_steps) * (s_in[h] - v[h])
     out[held.after] += np.power(c, held.after_steps) * delta[held.after_of]
-    return out
+    return out, _Stage(yb, v, c_hold, c_after, s_in, delta)
