@@ -171,11 +171,15 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     res0 = des0.G - cv0.fitted_full
     floor = measure_floor(data, res0, data.use & des0.valid & (data.pose_id >= 0), settle_s, side_by_side)
     residual_before = cv0.heldout  # worked out now: with it and the fit, the result lets go of the design (N x p)
-    del des0  # the declared model's design matrix (N x p) is not needed again
+    reference0 = des0.G  # a view of the recording's reference
+    # the declared model's design matrix (N x p) is not needed again; its in-sample residual (N x 3) is made again
+    # from the same arrays after the searches, which keep the fit (the channel delay's cross-check)
+    del des0, res0
     # 2. forward selection over the candidates by nested cross-validation over visits, with their checks
     rules = Rules(alpha, min_rel_gain, max_effects, max_degree, degree is None and n_levels >= 2, folds)
     sel = forward_selection(data, spec, fold, floor, library, rules, search_rows, lanes, cv0.fitted_full, progress)
-    del cv0
+    res0 = reference0 - cv0.fitted_full
+    del cv0, reference0
     data.drop_recent()
     return_free_memory()  # the search's corrected series and designs, before the final design (N x p) is built
     # 3. the final model on every sample, judged against the floor
