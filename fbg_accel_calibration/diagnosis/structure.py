@@ -146,8 +146,8 @@ def heldout_visit_sums(X: np.ndarray, fit_rows: np.ndarray, eval_rows: np.ndarra
 def heldout_mean_covariance(X: np.ndarray, fit_rows: np.ndarray, eval_rows: np.ndarray, groups: np.ndarray,
                             fold: np.ndarray, fold_xtx: np.ndarray, XtX: np.ndarray,
                             noise_model: VisitNoise) -> HeldoutMeanNull | None:
-    """Covariance (3, V, V) of the held-out residual's visit means under the null hypothesis, V the visits of
-    ``eval_rows`` (held out, fold >= 0).
+    """Covariance of the held-out residual's visit means under the null hypothesis, per axis (V, V) given by its
+    factors (``HeldoutMeanNull``), V the visits of ``eval_rows`` (held out, fold >= 0).
 
     A held-out visit v of fold k is predicted by the coefficients fitted on the other folds' rows, whose error is
     G_k t_k with G_k = (X^T X - X_k^T X_k)^-1 and t_k = sum_{u not in k} X_u^T e_u (e_u the noise of visit u's rows;
