@@ -104,9 +104,8 @@ def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: Flo
         del res_f
         noise_after = noise_model_after.sigma
         cal.noise_sigma_mps2 = noise_after
-    calibrated_later = beside(calibrated_output, cal, data, thread=thread)  # the driver's path, meanwhile the rest
     # what the calibration file reproduces: the fit without the runs' and the rig's columns (not the sensor's); the
-    # fit itself when there are none (only read: no copy of N x 3 beside the null's covariances)
+    # fit itself when there are none (only read: no copy of N x 3)
     not_sensor = [des_f.blocks[e.name] for e, _ in spec.effects if (e.per_run or e.rig) and e.name in des_f.blocks]
     fitted_sensor = cv_f.fitted_full.copy() if not_sensor else cv_f.fitted_full
     for sl in not_sensor:
@@ -116,8 +115,10 @@ def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: Flo
     G_f, blocks_f = des_f.G, des_f.blocks
     r_eval = rows_f & finite_rows(residual_before) & finite_rows(cv_f.heldout)
     visit_sums = heldout_visit_sums(des_f.X, fit_rows & des_f.valid, r_eval, groups, fold)
-    del des_f  # its design matrix (N x p) is let go before the (V, V) covariances of the visit means are made
-    return_free_memory()  # and its pages given back (heap_trim): they would sit under the (V, V) covariances
+    del des_f  # its design matrix (N x p) is let go before the residual's test
+    return_free_memory()  # and its pages given back (heap_trim)
+    # the driver's path over every sample (N x 3), meanwhile the rest: not beside the design
+    calibrated_later = beside(calibrated_output, cal, data, thread=thread)
     null = None if visit_sums is None else heldout_mean_null(visit_sums, cv_f.sums.xtx, cv_f.sums.XtX,
                                                              noise_model_after)
 
