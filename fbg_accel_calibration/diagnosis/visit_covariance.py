@@ -5,7 +5,7 @@ visit means (2500 visits at 10^6 samples: a V x V array is 48 MiB, and the null 
 diagonals, traces and sums over rows: the traces with the revisits' projector, the pooled covariance of groups of
 visits, the squared correlations. So a covariance here is what makes any block of its rows on demand
 (``RowCovariance.rows``), and those sums are taken a block of ``ROW_BLOCK`` rows at a time: the held-out null's
-(``HeldoutCovariance``) from its factors (V x p each, p the design's columns), a dense array's (``DenseCovariance``)
+(``HeldoutCovariance``) from its factors (V x 2p each, p the design's columns), a dense array's (``DenseCovariance``)
 from the array itself.
 """
 
@@ -32,10 +32,6 @@ class RowCovariance:
         """(len(i), n) its rows ``i``."""
         raise NotImplementedError
 
-    def take(self, idx: np.ndarray) -> RowCovariance:
-        """The covariance of the visits ``idx`` (ascending) alone: its ``idx`` x ``idx`` part."""
-        raise NotImplementedError
-
     def blocks(self) -> Iterator[slice]:
         """Its rows, ``block_rows`` at a time."""
         for lo in range(0, self.n, self.block_rows):
@@ -51,16 +47,14 @@ class DenseCovariance(RowCovariance):
 
     def __init__(self, matrix: np.ndarray) -> None:
         self.matrix = matrix
-        self.n = self.block_rows = len(matrix)
+        self.n = len(matrix)
+        self.block_rows = max(self.n, 1)
 
     def diagonal(self) -> np.ndarray:
         return np.diagonal(self.matrix)
 
     def rows(self, i: np.ndarray | slice) -> np.ndarray:
         return self.matrix[i]
-
-    def take(self, idx: np.ndarray) -> RowCovariance:
-        return self if len(idx) == self.n else DenseCovariance(self.matrix[np.ix_(idx, idx)])
 
 
 class HeldoutCovariance(RowCovariance):
@@ -101,12 +95,6 @@ class HeldoutCovariance(RowCovariance):
         out[np.arange(len(r)), r] += self.d[r]
         return out
 
-    def take(self, idx: np.ndarray) -> RowCovariance:
-        if len(idx) == self.n:
-            return self
-        return HeldoutCovariance(self.left[idx], self.right[idx], self.left_other[idx], self.right_other[idx],
-                                 self.fold[idx], self.d[idx])
-
     def for_visits(self, pos: np.ndarray, known: np.ndarray, d: np.ndarray) -> HeldoutCovariance:
         """The covariance of other visits: visit i is this one's ``pos[i]`` where ``known[i]``, else a visit of
         variance ``d[i]`` independent of the others."""
@@ -136,9 +124,6 @@ class DiagonalCovariance(RowCovariance):
         out = np.zeros((len(r), self.n))
         out[np.arange(len(r)), r] = self.d[r]
         return out
-
-    def take(self, idx: np.ndarray) -> RowCovariance:
-        return DiagonalCovariance(self.d[idx])
 
 
 def as_covariance(m: np.ndarray | RowCovariance) -> RowCovariance:
