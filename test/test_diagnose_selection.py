@@ -89,3 +89,23 @@ def test_a_term_beyond_its_bound_in_the_selected_model_is_not_claimed(offset_fra
         assert ratio > 2.0 and kept.names == [] and kept.degree == spec.degree, ratio
         assert [(f.kind, f.effect, f.separates) for f in findings] == [("at_bound", eff.name, eff.measures_its_value)]
         assert "is not claimed: in the selected model implied axis-channel offsets" in findings[0].text
+
+
+def test_the_constants_kept_for_the_trials_are_let_go_when_the_searches_end_and_made_again_the_same() -> None:
+    """``DiagnosisData.once(..., for_trials=True)``: the expected Psi map's constants of the static samples (arrays of
+    up to 10^6 samples kept to spare each trial of a search their making) are forgotten by ``drop_recent`` once the
+    searches end, not held through the final model; asked for again, they are made again with the same values. The
+    recording's other constants are kept."""
+    from fbg_accel_calibration.diagnosis.data import Inputs, expected_psi_map
+
+    data = dark_offset_data(0.05)
+    P, q = expected_psi_map(data, Inputs.of(data))
+    kept = {k: v for k, v in data._memo.items() if k.startswith("static_")}
+    assert {"static_with_reference", "static_xyz", "static_design"} <= set(kept)
+    runs = data.runs()
+    data.drop_recent()
+    assert not any(k.startswith("static_") for k in data._memo)
+    assert data.runs() is runs  # a constant not kept for the trials alone
+    P2, q2 = expected_psi_map(data, Inputs.of(data))
+    assert np.array_equal(P, P2) and np.array_equal(q, q2)
+    assert np.array_equal(data._memo["static_xyz"], kept["static_xyz"])

@@ -112,3 +112,97 @@ def test_independent_visit_means_are_tested_from_their_variances_alone() -> None
     for a, b in zip(dense[:3], diag[:3], strict=True):
         np.testing.assert_allclose(b, a, rtol=1e-9)
     np.testing.assert_allclose(diag[4], dense[4], rtol=1e-9)
+
+
+def _held_out_campaign(V: int, seed: int = 2):
+    """A design of V visits of 8-30 samples, 30 columns that vary a little within a visit, 10 folds; white noise of
+    standard deviations (0.5, 1, 2): the held-out null of ``heldout_mean_covariance`` and, for white noise, the exact
+    covariance of the held-out visit means sigma^2 L L^T (L: the refits of cross-validation, visit means by sample)."""
+    from fbg_accel_calibration.diagnosis.floor import VisitNoise
+    from fbg_accel_calibration.diagnosis.structure import heldout_mean_covariance
+
+    rng = np.random.default_rng(seed)
+    K, P = 10, 30
+    n_v = rng.integers(8, 31, size=V)
+    groups = np.repeat(np.arange(V), n_v)
+    N = len(groups)
+    X = np.column_stack([np.ones(N), rng.normal(size=(V, P - 1))[groups] + 0.1 * rng.normal(size=(N, P - 1))])
+    fold_v = rng.permutation(V) % K
+    fold = fold_v[groups]
+    rows = np.ones(N, bool)
+    sigma = np.array([0.5, 1.0, 2.0])
+    null = heldout_mean_covariance(X, rows, rows, groups, fold,
+                                   np.stack([X[fold == k].T @ X[fold == k] for k in range(K)]), X.T @ X,
+                                   VisitNoise(sigma, np.column_stack([np.ones(3), np.zeros(3)])))
+    return null, X, groups, fold, fold_v, n_v, sigma
+
+
+def test_the_held_out_null_from_its_factors_is_the_exact_covariance_of_white_noise() -> None:
+    """``heldout_mean_covariance`` gives each axis' covariance by its factors (``visit_covariance.HeldoutCovariance``):
+    its rows (any of them, in any order) and its diagonal are those of sigma^2 L L^T, the covariance of the held-out
+    visit means by the refits of cross-validation, which it is exactly for white noise; a visit the null does not hold
+    gets the variance it is given, alone (``HeldoutMeanNull.for_visits``)."""
+    null, X, groups, fold, fold_v, n_v, sigma = _held_out_campaign(60)
+    V = len(n_v)
+    L = np.zeros((V, len(groups)))
+    for k in range(10):
+        train = fold != k
+        H = X[fold == k] @ np.linalg.solve(X[train].T @ X[train], X[train].T)
+        for v in np.flatnonzero(fold_v == k):
+            L[v, groups == v] += 1.0 / n_v[v]
+            L[v, train] -= H[groups[fold == k] == v].mean(axis=0)
+    exact = sigma[:, None, None] ** 2 * (L @ L.T)[None]
+    np.testing.assert_allclose(null.dense(), exact, rtol=1e-9, atol=1e-12 * np.max(exact))
+    for j, c in enumerate(null.cov):
+        np.testing.assert_allclose(c.diagonal(), np.diagonal(exact[j]), rtol=1e-9)
+        some = np.array([41, 3, 8, 59])  # rows in any order
+        np.testing.assert_allclose(c.rows(some), exact[j][some], rtol=1e-9, atol=1e-12 * np.max(exact))
+    ug = np.array([2, 3, 100, 7, 200])  # two visits it does not hold
+    diag = np.arange(15.0).reshape(5, 3) + 1.0
+    cov, slow = null.for_visits(ug, diag)
+    for j in range(3):
+        got = cov[j].dense()
+        known = [0, 1, 3]
+        np.testing.assert_allclose(got[np.ix_(known, known)], exact[j][np.ix_([2, 3, 7], [2, 3, 7])], rtol=1e-9)
+        assert np.array_equal(got[[2, 4]][:, [2, 4]], np.diag(diag[[2, 4], j]))
+        assert not got[[2, 4]][:, known].any()
+    assert np.array_equal(slow.dense()[[2, 4]][:, [2, 4]], np.eye(2))
+
+
+def test_the_residual_test_on_the_held_out_null_makes_no_visit_by_visit_array() -> None:
+    """The revisits' test (``slow_visit_test``) on the null of 1500 held-out visits reads its covariances a block of
+    rows at a time: the whole of it (the null made, its factors V x 2p, the slow error, its test and the pooled test)
+    stays below two V x V arrays (36 MiB; the null as arrays was four and a temporary), and its p-values and slow error
+    are those of the dense covariances."""
+    import tracemalloc
+
+    from fbg_accel_calibration.diagnosis.structure import heldout_mean_covariance, slow_visit_test
+
+    null, X, groups, fold, *_ = _held_out_campaign(1500, seed=4)
+    V = len(null.visits)
+    rng = np.random.default_rng(5)
+    pose = np.where(rng.random(V) < 0.05, -1, rng.integers(0, 40, V))  # revisited poses, some visits in motion
+    run = (np.arange(V) >= V // 2).astype(int)
+    means = rng.normal(size=(V, 3)) * [0.02, 0.04, 0.08]
+    dof = np.full(3, 50.0)
+    rows = np.ones(len(groups), bool)
+    fold_xtx, XtX = np.stack([X[fold == k].T @ X[fold == k] for k in range(10)]), X.T @ X
+    from fbg_accel_calibration.diagnosis.floor import VisitNoise
+
+    noise = VisitNoise(np.array([0.5, 1.0, 2.0]), np.column_stack([np.ones(3), np.zeros(3)]))
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        tracemalloc.reset_peak()
+        small = heldout_mean_covariance(X, rows, rows, groups, fold, fold_xtx, XtX, noise)
+        got = slow_visit_test(means, small.cov, small.slow, pose, run, dof)
+        peak = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    assert peak < 2 * 8 * V * V, peak / 2**20
+    want = slow_visit_test(means, null.dense(), null.slow.dense(), pose, run, dof)
+    assert got[3].revisits > 0
+    for a, b in zip(got[:3], want[:3], strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-10)
+    np.testing.assert_allclose(got[3].variance, want[3].variance, rtol=1e-10)
+    np.testing.assert_allclose(got[4], want[4], rtol=1e-10)

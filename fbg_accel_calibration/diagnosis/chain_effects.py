@@ -226,7 +226,7 @@ class TiaLowpassEffect(Effect):
         else:
             # kept column by column (an (N, 3) view of a C-ordered (3, N)): each run's column is filtered in place of
             # a copy on every trial
-            psi_hat = data.once("static_psi_hat_columns", lambda: np.ascontiguousarray((g @ P.T + q).T)).T
+            psi_hat = data.once("static_psi_hat_columns", lambda: np.ascontiguousarray((g @ P.T + q).T), True).T
         d = np.empty((len(g) if rows is None else len(rows), 3))
         tau = self.taus(h)
         for (run, sel, local), steps in zip(pieces, input_run_steps(data, inp), strict=True):

@@ -57,6 +57,7 @@ class DiagnosisData:
     _memo: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
     _recent: OrderedDict[tuple, Any] = field(default_factory=OrderedDict, init=False, repr=False, compare=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
+    _for_trials: set[str] = field(default_factory=set, init=False, repr=False, compare=False)
 
     def runs(self) -> list[slice | np.ndarray]:
         """The samples of each run, together every sample (computed once; every filter restarts at a run's first
@@ -70,11 +71,14 @@ class DiagnosisData:
 
         return self.once("runs", find)
 
-    def once(self, key: str, compute: Callable[[], Any]) -> Any:
+    def once(self, key: str, compute: Callable[[], Any], for_trials: bool = False) -> Any:
         """``compute()`` the first time ``key`` is asked for, the kept value after (a constant of the recording). Two
         searches that run side by side (``search_lanes``) and ask at once may both compute it; the first kept is the
-        one both get."""
+        one both get. ``for_trials``: a constant kept only to spare the searches' trials its making (an array of up
+        to 10^6 samples), forgotten with what ``recent`` keeps (``drop_recent``) and made again if asked for after."""
         if key not in self._memo:
+            if for_trials:
+                self._for_trials.add(key)
             return self._memo.setdefault(key, compute())
         return self._memo[key]
 
@@ -102,8 +106,11 @@ class DiagnosisData:
         return hit
 
     def drop_recent(self) -> None:
-        """Forget what :meth:`recent` keeps (when no search follows)."""
+        """Forget what :meth:`recent` keeps and the constants ``once`` keeps for the trials (when no search follows)."""
         self._recent.clear()
+        for key in self._for_trials:
+            self._memo.pop(key, None)
+        self._for_trials.clear()
 
     def run_steps(self) -> list[SampleSteps]:
         """``sample_steps`` of each run's board times (``runs``), computed once: the low-pass filters of the input
@@ -362,13 +369,14 @@ def expected_psi_map(data: DiagnosisData, inp: Inputs) -> tuple[np.ndarray, np.n
     the noise-free Psi the sensor shows for a reference g."""
     # the static samples with a reference, their [g, 1] and its Gram matrix (constants of the recording), then
     # those with a finite Psi (a correction that changed the counts asks again on every trial of a search)
-    static = data.once("static_with_reference", lambda: np.flatnonzero(data.use & finite_rows(data.gref)))
-    xyz = data.once("static_xyz", lambda: np.asarray(data.xyz, dtype=float)[static]) if same_memory(inp.xyz, data.xyz) \
+    static = data.once("static_with_reference", lambda: np.flatnonzero(data.use & finite_rows(data.gref)), True)
+    xyz = data.once("static_xyz", lambda: np.asarray(data.xyz, dtype=float)[static], True) if same_memory(inp.xyz, data.xyz) \
         else inp.xyz[static]
     psi = Inputs.normalised(xyz, inp.ref[static])
     ok = finite_rows(psi)
     if ok.all():
-        X, XtX = data.once("static_design", lambda: with_gram(np.column_stack([data.gref[static], np.ones(len(static))])))
+        X, XtX = data.once("static_design",
+                           lambda: with_gram(np.column_stack([data.gref[static], np.ones(len(static))])), True)
         Y = psi
     else:
         X = np.column_stack([data.gref[static[ok]], np.ones(int(ok.sum()))])

@@ -169,18 +169,23 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     des0 = build_design(data, spec)
     cv0 = cross_validate(des0, data.use, fold, np.ones(3))
     res0 = des0.G - cv0.fitted_full
-    floor = measure_floor(data, res0, data.use & des0.valid & (data.pose_id >= 0), settle_s, side_by_side)
     residual_before = cv0.heldout  # worked out now: with it and the fit, the result lets go of the design (N x p)
-    del des0  # the declared model's design matrix (N x p) is not needed again
+    floor_rows, reference0 = data.use & des0.valid & (data.pose_id >= 0), des0.G  # (a view of the recording's)
+    del des0  # the declared model's design matrix (N x p, 92 MiB at 10^6 samples) is let go before the floor
+    floor = measure_floor(data, res0, floor_rows, settle_s, side_by_side)
+    # its in-sample residual (N x 3) is not held: the final model takes it at its rows from the reference and the fit,
+    # which the searches keep (the channel delay's cross-check)
+    del res0, floor_rows
     # 2. forward selection over the candidates by nested cross-validation over visits, with their checks
     rules = Rules(alpha, min_rel_gain, max_effects, max_degree, degree is None and n_levels >= 2, folds)
     sel = forward_selection(data, spec, fold, floor, library, rules, search_rows, lanes, cv0.fitted_full, progress)
-    del cv0
+    fit_before = (reference0, cv0.fitted_full)
+    del cv0, reference0
     data.drop_recent()
     return_free_memory()  # the search's corrected series and designs, before the final design (N x p) is built
     # 3. the final model on every sample, judged against the floor
     code_rule = (sel.steps[0].alpha_each if sel.steps else alpha, min_rel_gain)
-    final = fit_final(data, sel.spec, fold, floor, sensor_id, sel.confounded(), residual_before, res0, alpha,
+    final = fit_final(data, sel.spec, fold, floor, sensor_id, sel.confounded(), residual_before, fit_before, alpha,
                       code_rule, thread=sel.n_lanes > 1)
     code = final.code_step  # its row in the step table, after the library's steps
     sel.steps.append(StepResult(len(sel.steps) + 1, sel.spec.names, [code.result],

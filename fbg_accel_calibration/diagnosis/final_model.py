@@ -66,10 +66,12 @@ class FinalModel:
 
 
 def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: FloorMeasurement, sensor_id: str,
-              confounded: dict[str, list[str]], residual_before: np.ndarray, res0: np.ndarray, alpha: float,
+              confounded: dict[str, list[str]], residual_before: np.ndarray,
+              fit_before: tuple[np.ndarray, np.ndarray], alpha: float,
               code_rule: tuple[float, float], thread: bool) -> FinalModel:
     """Fit ``spec`` on every sample (folds ``fold``, weights from ``floor``), write its calibration, and judge it:
-    before (``residual_before``: the declared model's held-out residual, ``res0`` its in-sample one) and after, the
+    before (``residual_before``: the declared model's held-out residual; ``fit_before``: (the reference, its fit) (N, 3)
+    each, whose difference is its in-sample residual, taken at the evaluated rows only) and after, the
     floor after a noise remedy, the residual's structure at level ``alpha``. ``code_rule``: (level, least relative gain)
     the ADC code-width candidate is tested at on top of ``spec`` (when added, the model is fitted on the mapped
     counts and the file carries the table). ``thread``: the driver's path over every
@@ -102,9 +104,8 @@ def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: Flo
         del res_f
         noise_after = noise_model_after.sigma
         cal.noise_sigma_mps2 = noise_after
-    calibrated_later = beside(calibrated_output, cal, data, thread=thread)  # the driver's path, meanwhile the rest
     # what the calibration file reproduces: the fit without the runs' and the rig's columns (not the sensor's); the
-    # fit itself when there are none (only read: no copy of N x 3 beside the null's covariances)
+    # fit itself when there are none (only read: no copy of N x 3)
     not_sensor = [des_f.blocks[e.name] for e, _ in spec.effects if (e.per_run or e.rig) and e.name in des_f.blocks]
     fitted_sensor = cv_f.fitted_full.copy() if not_sensor else cv_f.fitted_full
     for sl in not_sensor:
@@ -114,18 +115,23 @@ def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: Flo
     G_f, blocks_f = des_f.G, des_f.blocks
     r_eval = rows_f & finite_rows(residual_before) & finite_rows(cv_f.heldout)
     visit_sums = heldout_visit_sums(des_f.X, fit_rows & des_f.valid, r_eval, groups, fold)
-    del des_f  # its design matrix (N x p) is let go before the (V, V) covariances of the visit means are made
-    return_free_memory()  # and its pages given back (heap_trim): they would sit under the (V, V) covariances
+    del des_f  # its design matrix (N x p) is let go before the residual's test
+    return_free_memory()  # and its pages given back (heap_trim)
+    # the driver's path over every sample (N x 3), meanwhile the rest: not beside the design
+    calibrated_later = beside(calibrated_output, cal, data, thread=thread)
     null = None if visit_sums is None else heldout_mean_null(visit_sums, cv_f.sums.xtx, cv_f.sums.XtX,
                                                              noise_model_after)
 
     def rms(r: np.ndarray) -> np.ndarray:
         return np.sqrt(np.mean(r[r_eval] ** 2, axis=0))
 
+    def rms_of_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # rms(a - b), a - b made at r_eval alone
+        return np.sqrt(np.mean((a[r_eval] - b[r_eval]) ** 2, axis=0))
+
     structure = residual_structure(data, cv_f.heldout, r_eval, groups, noise_model_after, alpha, null=null)
     cond, column_corr = gram_conditioning(cv_f.sums.XtX, cv_f.sums.xsum, len(cv_f.sums.idx), blocks_f)
     return FinalModel(cal, base_cal, added, remedies, run_terms, rig_terms, cv_f.heldout, r_eval, int(r_eval.sum()), noise_after,
-                      noise_model_after, rms(residual_before), rms(res0), rms(cv_f.heldout),
+                      noise_model_after, rms(residual_before), rms_of_difference(*fit_before), rms(cv_f.heldout),
                       rms(G_f - cv_f.fitted_full), structure, cond, column_corr, flagged, code_step, calibrated_later,
                       fitted_sensor, rows_f)
 

@@ -21,6 +21,13 @@ from .floor import (
 from .search import (
     _corr,
 )
+from .visit_covariance import (
+    DiagonalCovariance,
+    HeldoutCovariance,
+    RowCovariance,
+    as_covariance,
+    squared_correlation_sum,
+)
 
 # Bias instability of paper Table 2 (§4.4; ../shared/docs/sensor_facts.md: min Allan deviation / 0.664), x / y / z, mg
 TABLE2_BIAS_INSTABILITY_MG = np.array([0.54, 1.10, 1.87])
@@ -75,35 +82,32 @@ class ResidualStructure:
 class HeldoutMeanNull:
     """The covariance of the held-out visit means of the residual under the null hypothesis (the model is right and
     the floor's noise is all there is; ``heldout_mean_covariance``): ``visits`` (V,) the held-out visit ids, ``cov``
-    (3, V, V) in (m/s^2)^2 per axis; ``slow`` (V, V) that of a slow error of unit variance, one value per visit,
-    independent between visits (``SlowVisitError``), through the same cross-validation: the held-out visit's own
-    value less what the coefficients fitted on the other folds took of theirs (dimensionless; None: not worked
-    out)."""
+    (3,) per axis the (V, V) covariance in (m/s^2)^2; ``slow`` the (V, V) one of a slow error of unit variance, one
+    value per visit, independent between visits (``SlowVisitError``), through the same cross-validation: the held-out
+    visit's own value less what the coefficients fitted on the other folds took of theirs (dimensionless; None: not
+    worked out). Each is given by its factors (``visit_covariance.HeldoutCovariance``: V x p arrays), never as a
+    V x V array (48 MiB each at the 2500 visits of 10^6 samples)."""
 
     visits: np.ndarray
-    cov: np.ndarray
-    slow: np.ndarray | None = None
+    cov: tuple[HeldoutCovariance, ...]
+    slow: HeldoutCovariance | None = None
 
-    def for_visits(self, ug: np.ndarray, diag: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(3, len(ug), len(ug)) for the visits ``ug``; a visit it does not hold gets ``diag`` (len(ug), 3) alone;
-        and the slow error's (len(ug), len(ug)) (a visit it does not hold: 1 alone). For its own visits, ``cov`` and
-        ``slow`` themselves (not copies: 3 V^2 values, 150 MiB for the 2500 visits of 10^6 samples)."""
+    def for_visits(self, ug: np.ndarray, diag: np.ndarray) -> tuple[list[RowCovariance], RowCovariance]:
+        """The three axes' covariances of the visits ``ug`` (a visit it does not hold gets ``diag`` (len(ug), 3)
+        alone), and the slow error's (a visit it does not hold: 1 alone). For its own visits, its own."""
+        unit = np.ones(len(ug))
         if np.array_equal(ug, self.visits):
-            return self.cov, (self.slow if self.slow is not None else np.eye(len(ug)))
-        out = np.zeros((3, len(ug), len(ug)))
-        slow = np.zeros((len(ug), len(ug)))
+            return list(self.cov), (self.slow if self.slow is not None else DiagonalCovariance(unit))
         pos = np.searchsorted(self.visits, ug)
         known = (pos < len(self.visits)) & (self.visits[np.minimum(pos, len(self.visits) - 1)] == ug)
-        k = np.flatnonzero(known)
-        out[:, k[:, None], k[None, :]] = self.cov[:, pos[k][:, None], pos[k][None, :]]
-        u = np.flatnonzero(~known)
-        out[:, u, u] = diag[u].T
-        slow[u, u] = 1.0
-        if self.slow is not None:
-            slow[k[:, None], k[None, :]] = self.slow[pos[k][:, None], pos[k][None, :]]
-        else:
-            slow[k, k] = 1.0
-        return out, slow
+        pos = np.where(known, pos, 0)
+        slow = (self.slow.for_visits(pos, known, unit) if self.slow is not None
+                else DiagonalCovariance(unit))
+        return [c.for_visits(pos, known, diag[:, j]) for j, c in enumerate(self.cov)], slow
+
+    def dense(self) -> np.ndarray:
+        """(3, V, V) the axes' covariances as arrays (for small V: checks and tests)."""
+        return np.stack([c.dense() for c in self.cov])
 
 
 @dataclass
@@ -142,8 +146,8 @@ def heldout_visit_sums(X: np.ndarray, fit_rows: np.ndarray, eval_rows: np.ndarra
 def heldout_mean_covariance(X: np.ndarray, fit_rows: np.ndarray, eval_rows: np.ndarray, groups: np.ndarray,
                             fold: np.ndarray, fold_xtx: np.ndarray, XtX: np.ndarray,
                             noise_model: VisitNoise) -> HeldoutMeanNull | None:
-    """Covariance (3, V, V) of the held-out residual's visit means under the null hypothesis, V the visits of
-    ``eval_rows`` (held out, fold >= 0).
+    """Covariance of the held-out residual's visit means under the null hypothesis, per axis (V, V) given by its
+    factors (``HeldoutMeanNull``), V the visits of ``eval_rows`` (held out, fold >= 0).
 
     A held-out visit v of fold k is predicted by the coefficients fitted on the other folds' rows, whose error is
     G_k t_k with G_k = (X^T X - X_k^T X_k)^-1 and t_k = sum_{u not in k} X_u^T e_u (e_u the noise of visit u's rows;
@@ -187,10 +191,7 @@ def heldout_mean_null(sums: HeldoutVisitSums, fold_xtx: np.ndarray, XtX: np.ndar
             return None
     var = noise_model.mean_variance(cnt_a.astype(int))  # (Va, 3)
     Sn = np.stack([(S[at] / cnt_a[at, None]).T @ S[at] for at in at_a])  # (F, p, p) sum of s_u s_u^T / n_u
-    same = kb[:, None] == kb[None, :]
-    s_own_t = S[own].T
-    cov = np.empty((4, len(ub), len(ub)))  # the three axes' noise, then a slow error of unit variance per visit
-    buf = np.empty((len(ub), len(ub)))  # c a^T, then a_s and qde, in turn: the one (V, V) temporary
+    s_own, cov = S[own], []  # the three axes' noise, then a slow error of unit variance per visit
     for j in range(4):
         if j < 3:
             phi = float(np.median(cnt_a * var[:, j]))
@@ -199,25 +200,11 @@ def heldout_mean_null(sums: HeldoutVisitSums, fold_xtx: np.ndarray, XtX: np.ndar
         else:  # one value per visit: nothing within a visit
             vj = np.ones(len(cnt_a))
             B = np.stack([S[at].T @ S[at] for at in at_a])
-        c = np.einsum("vpq,vq->vp", B[kb], a)  # B_k(v) a_v
-        # a B a^T - ca - ca^T + [same fold] ca - qde - qde^T, ca = c a^T, qde = a_s diag(v): worked out in place, term
-        # by term in this order (a V x V array is 50 MB at 2500 visits)
-        out = cov[j]
-        np.matmul(a @ B.sum(axis=0), a.T, out=out)
-        ca = np.matmul(c, a.T, out=buf)
-        out -= ca
-        out -= ca.T
-        np.multiply(ca, same, out=ca)
-        out += ca
-        # a_s = a_v . s_w for w of another fold (0 in the same fold), made again for each axis in place of a fifth (V, V)
-        # array kept through the loop (the same product: the same values)
-        a_s = np.matmul(a, s_own_t, out=buf)
-        a_s[same] = 0.0
-        qde = np.multiply(a_s, vj[own][None, :], out=buf)
-        out -= qde
-        out -= qde.T
-        out[np.diag_indices(len(ub))] += vj[own]
-    return HeldoutMeanNull(ub, cov[:3], cov[3])
+        c = np.empty_like(a)  # B_k(v) a_v
+        for i in range(len(folds)):
+            c[kb == i] = a[kb == i] @ B[i].T
+        cov.append(HeldoutCovariance.of(a, B.sum(axis=0), c, s_own, vj[own], kb, vj[own]))
+    return HeldoutMeanNull(ub, tuple(cov[:3]), cov[3])
 
 
 def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, groups: np.ndarray,
@@ -351,43 +338,51 @@ def slow_visit_test(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray | 
     ``visit_mean_test`` of the visit means. Returns (z (V, 3) each visit mean over its standard deviation, p (3,),
     degrees of freedom (3,) of a visit mean's variance, the slow error, p (3,) of the revisits of a (pose, run) against
     each other under that null: ``SlowVisitError.beyond`` at the bound; ones without revisits)."""
+    cov, slow_unit = _covariances(cov), None if slow_unit is None else as_covariance(slow_unit)
     slow = slow_visit_error(means, cov, slow_unit, pose, run)
     if not slow.revisits:
         return (*visit_mean_test(means, cov, noise_dof), noise_dof, slow, np.ones(3))
     bound = SLOW_ERROR_BOUND_MPS2**2
     p_rev = slow.beyond(means, cov, slow_unit, bound)  # revisits that differ more than the sensor's wander can
-    held = SlowVisitError(np.minimum(slow.variance, bound), slow.dof, slow.revisits, slow.group)
-    # the null's covariance C + s^2 U, linear in both: its pooled form and its diagonal from theirs (no third array
-    # of 3 V^2 values); L C L^T by sums over the groups
+    held = SlowVisitError(np.minimum(slow.variance, bound), slow.dof, slow.revisits, slow.group, slow.sums)
+    # the null's covariance C + s^2 U, linear in both: its pooled form and its diagonal from theirs; L C L^T by sums
+    # over the groups, (G, G) for G groups
     pool = _Groups(held.group)
     var = _variances(cov) + held.variance[:, None] * _unit_diagonal(slow_unit, len(means))[None, :]
     if slow_unit is None:  # diagonal: so are the pooled covariances
         unit_g = pool.pooled_diagonal(np.ones(len(means)))
         cov_g = np.stack([pool.pooled_diagonal(v) for v in var])
     else:
-        unit_g = pool.pooled(slow_unit)
-        cov_g = np.stack([pool.pooled(c) + s * unit_g for c, s in zip(cov, held.variance, strict=True)])
+        unit_g, *pooled = held.sums_of(cov, slow_unit).pooled
+        cov_g = np.stack([c + s * unit_g for c, s in zip(pooled, held.variance, strict=True)])
     p_pool = visit_mean_test(pool.means(means), cov_g, held.test_dof(cov_g, unit_g, noise_dof))[1]
     z = means / np.sqrt(np.maximum(var.T, 1e-300))
     return z, np.minimum(2.0 * np.minimum(p_pool, p_rev), 1.0), held.test_dof(var, slow_unit, noise_dof), slow, p_rev
 
 
-def _square_part(M: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """``M[np.ix_(idx, idx)]`` of ``M`` (n, n) for ascending ``idx``: ``M`` itself when ``idx`` is every row (no copy)."""
-    return M if len(idx) == len(M) else M[np.ix_(idx, idx)]
+def _covariances(cov: np.ndarray | list[RowCovariance]) -> np.ndarray | list[RowCovariance]:
+    """The three axes' covariances of the visit means ``cov``: (3, V) their variances (independent means) as they are,
+    (3, V, V) arrays or ``RowCovariance``s as a list of ``RowCovariance``."""
+    if isinstance(cov, np.ndarray) and cov.ndim == 2:
+        return cov
+    return cov if isinstance(cov, list) and all(isinstance(c, RowCovariance) for c in cov) else [
+        as_covariance(c) for c in cov]
 
 
-def _variances(cov: np.ndarray) -> np.ndarray:
-    """(3, V) the variances of the visit means in ``cov``: (3, V, V), or (3, V) when they are independent (its
-    diagonal alone)."""
-    return cov if cov.ndim == 2 else np.diagonal(cov, axis1=1, axis2=2)
+def _variances(cov: np.ndarray | list[RowCovariance]) -> np.ndarray:
+    """(3, V) the variances of the visit means in ``cov`` (``_covariances``)."""
+    if isinstance(cov, np.ndarray):
+        return cov if cov.ndim == 2 else np.diagonal(cov, axis1=1, axis2=2)
+    return np.stack([c.diagonal() for c in cov])
 
 
-def _unit_diagonal(slow_unit: np.ndarray | None, n: int) -> np.ndarray:
-    """(n,) the diagonal of the slow error's unit covariance ``slow_unit`` ((n, n); (n,): a diagonal one, given by its
-    diagonal; None: the identity)."""
+def _unit_diagonal(slow_unit: np.ndarray | RowCovariance | None, n: int) -> np.ndarray:
+    """(n,) the diagonal of the slow error's unit covariance ``slow_unit`` ((n, n) or a ``RowCovariance``; (n,): a
+    diagonal one, given by its diagonal; None: the identity)."""
     if slow_unit is None:
         return np.ones(n)
+    if isinstance(slow_unit, RowCovariance):
+        return slow_unit.diagonal()
     return slow_unit if slow_unit.ndim == 1 else np.diagonal(slow_unit)
 
 
@@ -395,23 +390,27 @@ class _Groups:
     """Visits in groups (``labels`` (n,): 0..G-1), and the operators of ``slow_visit_error`` on them without their
     dense n x n matrices: L (G, n), the mean of each group's visits, and P = I - E, E_ij = [same group] / n_g, each
     visit about its group's mean (symmetric, idempotent). A product with a sparse L costs n x (columns) instead of the
-    dense products' n^2 x (columns): O(V^2) for a V x V covariance (symmetric), O(V) for a diagonal one."""
+    dense products' n^2 x (columns); a covariance (``visit_covariance.RowCovariance``) is read a block of whole groups'
+    rows at a time: O(V^2) for a V x V covariance, O(V) for a diagonal one, and never a V x V array."""
 
     def __init__(self, labels: np.ndarray) -> None:
         from scipy.sparse import csr_array
 
         self.labels = np.asarray(labels)
         n = len(self.labels)
-        self.size = np.bincount(self.labels).astype(float)  # (G,) visits of each group
+        self.count = np.bincount(self.labels)
+        self.size = self.count.astype(float)  # (G,) visits of each group
         self.L = csr_array((1.0 / self.size[self.labels], (self.labels, np.arange(n))), shape=(len(self.size), n))
+        self.order = np.argsort(self.labels, kind="stable")  # the visits group by group
+        self.start = np.r_[0, np.cumsum(self.count)]  # (G + 1,) where each group's visits start in ``order``
 
     def means(self, M: np.ndarray) -> np.ndarray:
         """L M: (G, ...) the mean of each group's rows of ``M`` (n, ...)."""
         return self.L @ M
 
-    def pooled(self, C: np.ndarray) -> np.ndarray:
+    def pooled(self, C: np.ndarray | RowCovariance) -> np.ndarray:
         """L C L^T (G, G) of a symmetric ``C`` (n, n)."""
-        return self.means(self.means(C).T)
+        return self.sums([as_covariance(C)]).pooled[0]
 
     def pooled_diagonal(self, d: np.ndarray) -> np.ndarray:
         """The diagonal (G,) of L D L^T, D = diag(``d``) (n,) (the whole of it: it is diagonal)."""
@@ -421,19 +420,43 @@ class _Groups:
         """P m: each value of ``m`` (n,) less its group's mean."""
         return m - self.means(m)[self.labels]
 
-    def parts(self, C: np.ndarray) -> _SymmetricParts:
-        """What the traces with P of a symmetric ``C`` (n, n) are made of (``trace_product``): no n x n array."""
-        LC = self.means(C)
-        return _SymmetricParts(C, LC, self.means(LC.T),
-                               float(np.trace(C)) - float(np.sum(LC[self.labels, np.arange(len(self.labels))])))
-
-    def trace_product(self, X: _SymmetricParts, Y: _SymmetricParts) -> float:
-        """tr(P X P Y) of two symmetric matrices: with E = I - P (E_ij = [same group] / n_g), tr(X Y) - 2 tr(E X Y)
-        + tr(E X E Y), tr(E X Y) = sum_g n_g (L X)_g . (L Y)_g and tr(E X E Y) = sum_gh n_g n_h (L X L^T)_gh
-        (L Y L^T)_gh: sums over the groups and one pass over X and Y, no n x n temporary."""
-        w = self.size
-        return (float(np.einsum("ij,ij->", X.matrix, Y.matrix)) - 2.0 * float(np.sum(w[:, None] * X.L * Y.L))
-                + float(np.sum((w[:, None] * w[None, :]) * X.pooled * Y.pooled)))
+    def sums(self, mats: list[RowCovariance]) -> _GroupSums:
+        """What the tests of the revisits read of the symmetric covariances (n, n) ``mats`` (m of them), in one pass
+        over their rows, whole groups at a time: L X L^T (G, G) of each X, and with P the projector of the groups of
+        more than one visit (the revisits: their visits alone, each about its group's mean), tr(P X) (m,) and
+        tr(P X P Y) (m, m). With E = I - P (E_ij = [same group] / n_g): tr(P X) = tr(X) - sum_i (L X)_{g(i) i},
+        tr(P X P Y) = tr(X Y) - 2 tr(E X Y) + tr(E X E Y), tr(E X Y) = sum_g n_g (L X)_g . (L Y)_g and tr(E X E Y) =
+        sum_gh n_g n_h (L X L^T)_gh (L Y L^T)_gh, over the revisits' rows and columns."""
+        m, G, w = len(mats), len(self.size), self.size
+        rep = self.count >= 2
+        idx = np.flatnonzero(rep[self.labels])  # the revisits' visits
+        every = len(idx) == len(self.labels)  # every visit a revisit: no columns to leave out
+        pooled = np.empty((m, G, G))
+        trace, product = np.zeros(m), np.zeros((m, m))
+        per = min(c.block_rows for c in mats)
+        g0 = 0
+        while g0 < G:  # whole groups of at most ``per`` visits (one group more if alone)
+            g1 = min(G, max(g0 + 1, int(np.searchsorted(self.start, self.start[g0] + per, side="right")) - 1))
+            rows = self.order[self.start[g0]:self.start[g1]]  # their visits, group by group
+            X = np.empty((m, len(rows), len(self.labels)))  # (m, rows, n)
+            for k, c in enumerate(mats):
+                X[k] = c.rows(rows)
+            LX = np.add.reduceat(X, self.start[g0:g1] - self.start[g0], axis=1) / w[g0:g1, None]  # (m, g1 - g0, n)
+            for k in range(m):
+                pooled[k, g0:g1] = self.means(LX[k].T).T  # (L X L^T)'s rows: (L X)'s by L^T
+            r = np.flatnonzero(rep[self.labels[rows]])
+            if len(r):
+                vis = rows[r]
+                trace += X[:, r, vis].sum(axis=1) - LX[:, self.labels[vis] - g0, vis].sum(axis=1)
+                Xr = (X if len(r) == len(rows) else X[:, r]) if every else X[:, r][:, :, idx]
+                Xr = Xr.reshape(m, -1)
+                product += Xr @ Xr.T
+                LXr = LX[:, rep[g0:g1]] if every else LX[:, rep[g0:g1]][:, :, idx]
+                product -= 2.0 * (LXr * w[g0:g1][rep[g0:g1], None]).reshape(m, -1) @ LXr.reshape(m, -1).T
+            g0 = g1
+        Pr = pooled[:, rep][:, :, rep]
+        product += (Pr * (w[rep][:, None] * w[rep][None, :])).reshape(m, -1) @ Pr.reshape(m, -1).T
+        return _GroupSums(mats, pooled, trace, product)
 
     def trace_diagonal(self, d: np.ndarray) -> float:
         """tr(P D), D = diag(``d``) (n,)."""
@@ -446,13 +469,18 @@ class _Groups:
 
 
 @dataclass
-class _SymmetricParts:
-    """A symmetric ``matrix`` C (n, n) with L C (G, n), L C L^T (G, G) and tr(P C) of its ``_Groups``."""
+class _GroupSums:
+    """``_Groups.sums`` of the covariances ``mats``: ``pooled`` (m, G, G), and of the revisits' projector P ``trace``
+    tr(P X) (m,) and ``product`` tr(P X P Y) (m, m)."""
 
-    matrix: np.ndarray
-    L: np.ndarray
+    mats: list[RowCovariance]
     pooled: np.ndarray
-    trace: float
+    trace: np.ndarray
+    product: np.ndarray
+
+    def of(self, mats: list[RowCovariance]) -> bool:
+        """Whether these are the sums of ``mats`` (the same objects)."""
+        return len(mats) == len(self.mats) and all(a is b for a, b in zip(mats, self.mats, strict=True))
 
 
 @dataclass
@@ -464,6 +492,7 @@ class SlowVisitError:
     dof: np.ndarray
     revisits: int
     group: np.ndarray | None = None  # (V,) each visit's (pose, run) group, 0..G-1 (a visit not revisited: its own)
+    sums: _GroupSums | None = None  # of the covariances it was estimated against, unit's first, by ``group``
 
     def beyond(self, means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray | None,
                bound: np.ndarray) -> np.ndarray:
@@ -474,22 +503,29 @@ class SlowVisitError:
         rep = np.bincount(g)[g] >= 2
         idx = np.flatnonzero(rep)
         P = _Groups(np.unique(g[idx], return_inverse=True)[1])
+        cov = _covariances(cov)
         if slow_unit is not None:
-            U = P.parts(_square_part(slow_unit, idx))
-            uu = P.trace_product(U, U)
+            m = self.sums_of(cov, slow_unit)
         p = np.ones(3)
         for j in range(3):
             pm = P.contrasts(means[idx, j])
             if slow_unit is None:  # independent visit means: C and U diagonal
                 d = cov[j][idx] + bound[j]
                 e, v = P.trace_diagonal(d), 2.0 * P.trace_square_diagonal(d)
-            else:  # C_b = C + bound U: tr(P C_b) and tr((P C_b)^2) from those of C and U (no third n x n array)
-                C = P.parts(_square_part(cov[j], idx))
-                cc, cu = P.trace_product(C, C), P.trace_product(C, U)
-                e, v = C.trace + bound[j] * U.trace, 2.0 * (cc + 2.0 * bound[j] * cu + bound[j] ** 2 * uu)
+            else:  # C_b = C + bound U: tr(P C_b) and tr((P C_b)^2) from those of C and U
+                cc, cu, uu = m.product[j + 1, j + 1], m.product[j + 1, 0], m.product[0, 0]
+                e = m.trace[j + 1] + bound[j] * m.trace[0]
+                v = 2.0 * (cc + 2.0 * bound[j] * cu + bound[j] ** 2 * uu)
             h = 2.0 * e**2 / max(v, 1e-300)
             p[j] = stats.chi2.sf(float(pm @ pm) * h / max(e, 1e-300), h)
         return p
+
+    def sums_of(self, cov: list[RowCovariance], slow_unit: np.ndarray | RowCovariance) -> _GroupSums:
+        """``_Groups.sums`` of ``slow_unit`` and ``cov`` by ``group``: those it was estimated against if they are."""
+        mats = [as_covariance(slow_unit), *cov]
+        if self.sums is not None and self.sums.of(mats):
+            return self.sums
+        return _Groups(self.group if self.group is not None else np.zeros(0, int)).sums(mats)
 
     def test_dof(self, cov: np.ndarray, slow_unit: np.ndarray | None, noise_dof: np.ndarray) -> np.ndarray:
         """Degrees of freedom (3,) of a visit mean's variance in ``cov`` (3, V, V), or (3, V) its diagonal, the
@@ -520,7 +556,8 @@ def slow_visit_error(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray |
     slow error from an effect of the pose (0, not identifiable; ``means`` (V, 3) m/s^2, ``pose`` (V,) pose ids, -1 in
     motion, ``run`` (V,) run ids). ``cov`` may be (3, V), the variances of visit means independent of each other (a
     diagonal C) with ``slow_unit`` None (U = I): the same figures from O(V) sums. P is never made: its products are
-    sums over the groups (``_Groups``), O(V^2) for a dense C."""
+    sums over the groups (``_Groups.sums``), a block of C's rows at a time: O(V^2 p) for the held-out null's
+    factored C, which is never made whole (``visit_covariance``)."""
     key = np.where(pose >= 0, pose.astype(np.int64) * 1_000_003 + run.astype(np.int64), -1)
     lab, cnt = np.unique(key, return_inverse=True, return_counts=True)[1:]
     rep = (key >= 0) & (cnt[lab] >= 2)
@@ -529,13 +566,15 @@ def slow_visit_error(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray |
         return SlowVisitError(np.zeros(3), np.full(3, np.inf), 0)
     idx = np.flatnonzero(rep)
     P = _Groups(np.unique(key[idx], return_inverse=True)[1])  # one group's mean: P is never made (n x n)
+    group = np.unique(np.where(rep, key, -2 - np.arange(len(key))), return_inverse=True)[1]
+    cov, sums = _covariances(cov), None
     diagonal = slow_unit is None
     if diagonal:
         unit = np.ones(len(idx))
         tr_pu = P.trace_diagonal(unit)
-    else:
-        U = P.parts(_square_part(slow_unit, idx))
-        tr_pu, uu = U.trace, P.trace_product(U, U)
+    else:  # one pass over the rows of U and C, which the pooled test reads too (``slow_visit_test``)
+        sums = _Groups(group).sums([as_covariance(slow_unit), *cov])
+        tr_pu, uu = sums.trace[0], sums.product[0, 0]
     var, dof = np.zeros(3), np.full(3, np.inf)
     for j in range(3):
         pm = P.contrasts(means[idx, j])
@@ -543,15 +582,13 @@ def slow_visit_error(means: np.ndarray, cov: np.ndarray, slow_unit: np.ndarray |
             C = cov[j][idx]
             tr_pc = P.trace_diagonal(C)
         else:
-            Cj = P.parts(_square_part(cov[j], idx))
-            tr_pc, cc, cu = Cj.trace, P.trace_product(Cj, Cj), P.trace_product(Cj, U)
+            tr_pc, cc, cu = sums.trace[j + 1], sums.product[j + 1, j + 1], sums.product[j + 1, 0]
         var[j] = max((float(pm @ pm) - tr_pc) / max(tr_pu, 1e-300), 0.0)
         if var[j] > 0:  # tr((P (C + s^2 U))^2)
             sq = (P.trace_square_diagonal(C + var[j] * unit) if diagonal
                   else cc + 2.0 * var[j] * cu + var[j] ** 2 * uu)
             dof[j] = 2.0 * var[j] ** 2 / (2.0 * sq / tr_pu**2)
-    group = np.unique(np.where(rep, key, -2 - np.arange(len(key))), return_inverse=True)[1]
-    return SlowVisitError(var, dof, revisits, group)
+    return SlowVisitError(var, dof, revisits, group, sums)
 
 
 def _visit_sums(X: np.ndarray, rows: np.ndarray, inv: np.ndarray, n: int, block: int = 1 << 15) -> np.ndarray:
@@ -575,17 +612,15 @@ def visit_mean_test(means: np.ndarray, cov: np.ndarray, dof: np.ndarray) -> tupl
     its standard deviation, p (3,)): chi = sum_v z_v^2 referred to c chi^2(h), h = V^2 / tr R^2 (R the correlation
     matrix of ``cov``: Satterthwaite's two moments of sum_i lambda_i chi^2_1), chi / V to F(h, dof)."""
     V = means.shape[0]
+    cov = _covariances(cov)
     var = np.maximum(_variances(cov).T, 1e-300)  # (V, 3)
     z = means / np.sqrt(var)
     chi = np.sum(z**2, axis=0)
     sd = np.sqrt(var.T)  # (3, V)
     h = np.full(3, float(V))  # independent visit means (cov (3, V)): R = I, tr R^2 = V
-    if cov.ndim == 3:
-        for j in range(3):  # the correlation matrix R, squared in place: one (V, V) temporary at a time
-            r = cov[j] / sd[j][:, None]
-            r /= sd[j][None, :]
-            np.square(r, out=r)
-            h[j] = V**2 / max(float(np.sum(r)), 1e-300)
+    if not isinstance(cov, np.ndarray):
+        for j in range(3):  # the correlation matrix R squared, a block of its rows at a time
+            h[j] = V**2 / max(squared_correlation_sum(cov[j], sd[j]), 1e-300)
     return z, _visit_chi2_p(chi * h / max(V, 1), h, dof)
 
 
