@@ -32,6 +32,8 @@ import pytest
 import yaml
 from process_harness import ChildProcess
 
+pytestmark = pytest.mark.real_time  # starts processes / ptys (test/conftest.py)
+
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 LAUNCH_FILES = ("driver.launch.py", "calibration.launch.py", "sim.launch.py")

@@ -32,6 +32,8 @@ from fbg_accel_driver.thermal_model import (
     migrate,
 )
 
+pytestmark = pytest.mark.real_time  # starts processes / ptys (test/conftest.py)
+
 REPO = Path(__file__).resolve().parents[1]
 
 
