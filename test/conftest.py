@@ -117,9 +117,16 @@ _PROCESS_EVENTS = frozenset({"subprocess.Popen", "os.fork", "os.forkpty", "os.po
 _real_time_seen: set[str] = set()  # what the running test did that makes it real-time (cleared at each setup)
 
 
-def _audit(event: str, _args: tuple) -> None:
+# What libraries run to look something up, not part of what a test waits on: ``ctypes.util.find_library`` runs
+# ``ldconfig -p`` (the diagnosis finds the C library to return freed memory with it).
+_LOOKUP_PROGRAMS = frozenset({"ldconfig"})
+
+
+def _audit(event: str, args: tuple) -> None:
     if event in _PROCESS_EVENTS:
-        _real_time_seen.add("starts a child process")
+        program = args[0] if event == "subprocess.Popen" and args else None
+        if program is None or Path(os.fsdecode(program)).name not in _LOOKUP_PROGRAMS:
+            _real_time_seen.add("starts a child process")
 
 
 def _watch_real_time_starts() -> None:
