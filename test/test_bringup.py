@@ -32,7 +32,7 @@ import pytest
 import yaml
 from process_harness import ChildProcess
 
-pytestmark = pytest.mark.real_time  # starts processes / ptys (test/conftest.py)
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent

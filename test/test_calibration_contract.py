@@ -32,7 +32,7 @@ from fbg_accel_driver.thermal_model import (
     migrate,
 )
 
-pytestmark = pytest.mark.real_time  # starts processes / ptys (test/conftest.py)
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -24,7 +24,7 @@ from test_driver_process import Listener, start_driver, start_sim, stop_all
 from fbg_accel_calibration.io.mcap_reader import read_file
 from fbg_accel_driver.driver_parameters import default_calibration_path
 
-pytestmark = pytest.mark.real_time  # starts processes / ptys (test/conftest.py)
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
 
 BIN = Path(sys.executable).parent
 RATE_HZ = 200

@@ -37,7 +37,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, JointState, Temperature
 
-pytestmark = pytest.mark.real_time  # starts processes / ptys (test/conftest.py)
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
 
 BIN = Path(sys.executable).parent
 RATE_HZ = 100.0

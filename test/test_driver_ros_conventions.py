@@ -27,7 +27,7 @@ from rclpy.qos import ReliabilityPolicy
 from sensor_msgs.msg import Imu
 from test_driver_process import REPO, Listener, start_driver, start_sim, stop
 
-pytestmark = pytest.mark.real_time  # starts processes / ptys (test/conftest.py)
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
 
 
 def _call(listener: Listener, future, what: str):

@@ -34,7 +34,7 @@ from test_driver_process import (
     stop_all,
 )
 
-pytestmark = pytest.mark.real_time  # starts processes / ptys (test/conftest.py)
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
 
 
 def test_rfcomm_like_device_removed_and_recreated(ros, tmp_path: Path) -> None:

@@ -18,7 +18,7 @@ from process_harness import Notifier
 
 from fbg_accel_driver.serial_link import LinkState, SerialLink, steady_clock_ns
 
-pytestmark = pytest.mark.real_time  # starts processes / ptys (test/conftest.py)
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
 
 
 class Notified(Notifier):

@@ -17,7 +17,7 @@ import serial
 from fbg_accel_driver.stream_decoder import StreamDecoder
 from fbg_accel_sim.board_physics import BoardSimulator, SimConfig
 
-pytestmark = pytest.mark.real_time  # starts processes / ptys (test/conftest.py)
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
 
 BOARD_SIM = [sys.executable, "-m", "fbg_accel_sim.board_sim"]
 

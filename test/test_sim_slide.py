@@ -19,7 +19,7 @@ from fbg_accel_driver.stream_decoder import StreamDecoder
 from fbg_accel_sim.board_physics import BoardSimulator, SimConfig
 from fbg_accel_sim.scenario import SlidePlan, SlideSegment, second_order_response
 
-pytestmark = pytest.mark.real_time  # starts processes / ptys (test/conftest.py)
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
 
 DIRECTION = np.array([0.5, -0.5, math.sqrt(0.5)])  # seed 2 eqs. 1-3
 QUIET = {  # everything that is not the dynamic chain off: noise, quantisation, slow drifts, delay, curvature

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-pytestmark = pytest.mark.real_time  # starts processes / ptys (test/conftest.py)
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
 
 
 def test_a_bar_that_is_off_starts_no_thread_and_imports_no_tqdm() -> None:

@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-pytestmark = pytest.mark.real_time  # starts processes / ptys (test/conftest.py)
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
 
 HEAVY = ("numpy", "scipy", "scipy.stats", "matplotlib", "mcap", "rclpy", "tqdm")
 

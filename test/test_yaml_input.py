@@ -23,7 +23,7 @@ from fbg_accel_driver.thermal_model import ThermalCalibration
 from fbg_accel_driver.yaml_input import MAX_DEPTH, load_yaml, read_yaml_file
 from fbg_accel_sim.sim_config import SimConfig, parse_set_argument
 
-pytestmark = pytest.mark.real_time  # starts processes / ptys (test/conftest.py)
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
 
 REPO = Path(__file__).resolve().parents[1]
 DEEP = "[" * 3000 + "]" * 3000
