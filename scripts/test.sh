@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Set up (if needed) and run the whole test suite: lint, then pytest. Usage: scripts/test.sh [pytest args]
-# The tests run on two pytest-xdist workers (one on a single CPU: all in the pytest process); TEST_WORKERS=N sets the
-# number, 0 for none (scripts/test_workers.sh). The real-time files (processes, ptys, DDS) run on one worker one after
-# another as in a serial run, beside the other worker's files (test/conftest.py; docs/architecture.md).
+# The tests run on two pytest-xdist workers (none on a single CPU: all tests in the pytest process); TEST_WORKERS=N
+# sets the number, 0 for none (scripts/test_workers.sh). The real-time files (processes, ptys, DDS) run on one worker
+# one after another as in a serial run, beside the other worker's files (test/conftest.py; docs/architecture.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/bootstrap.sh
