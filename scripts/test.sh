@@ -11,7 +11,7 @@ workers=$(scripts/test_workers.sh cpus 2)
 # Each test run gets its own DDS domain so parallel runs on one machine do not cross-talk; each worker uses the
 # run's domain + its number (test/conftest.py), so the run takes domains base..base+workers-1, within 1..101.
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( (RANDOM % (101 - (workers > 1 ? workers - 1 : 0))) + 1 ))}
-# a test file's tests stay in one worker, so its module fixtures (one board, one diagnosis) are built once, and the
-# real-time files are one xdist group, one work unit (test/conftest.py pytest_xdist_make_scheduler); units go out in
-# collection order, the real-time group first (test/conftest.py run_real_time_first), not by their number of tests
+# a test file's tests stay in one worker, so its module fixtures (one board, one diagnosis) are built once, and all
+# real-time files are one work unit (test/conftest.py pytest_xdist_make_scheduler); units go out in collection order,
+# the real-time unit first (test/conftest.py run_real_time_first), not by their number of tests
 exec .venv/bin/python -m pytest -n "$workers" --dist loadfile --no-loadscope-reorder "$@"
