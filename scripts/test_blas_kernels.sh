@@ -3,7 +3,8 @@
 # family this CPU can run, forced with OPENBLAS_CORETYPE. The kernels round differently; a test that passes under one
 # and fails under another asserts a result decided by rounding, which a user on another machine would not get.
 # Usage: scripts/test_blas_kernels.sh [KERNEL ...]   (default: Prescott Haswell SkylakeX Zen; .ci/run calls it)
-# The tests run on pytest-xdist workers, one per CPU (at most 4; TEST_WORKERS=N sets the number, 0 for none).
+# The tests run on pytest-xdist workers, one per CPU (at most 4, none on a single CPU; TEST_WORKERS=N sets the number,
+# 0 for none).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/bootstrap.sh

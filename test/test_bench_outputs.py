@@ -15,6 +15,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 REPO = Path(__file__).resolve().parents[1]
 BENCH = REPO / "bench"
 # Converted to the same convention separately (its own rework is under way); drop it from here once it is.

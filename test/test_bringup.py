@@ -32,6 +32,8 @@ import pytest
 import yaml
 from process_harness import ChildProcess
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 LAUNCH_FILES = ("driver.launch.py", "calibration.launch.py", "sim.launch.py")
@@ -396,7 +398,8 @@ def test_declared_dependencies_match_imports() -> None:
 # What the tests use beyond the exec_depends: test module -> rosdep key (with its PyPI distribution when rosdistro
 # lacks the key), and the tools they run (pytest plugins, colcon, pip/wheel, the C compiler of the firmware tests).
 TEST_MODULES = {"pytest": ("python3-pytest", None), "hypothesis": ("python3-hypothesis", None),
-                "rosbags": ("python3-rosbags-pip", "rosbags"), "lifecycle_msgs": ("lifecycle_msgs", None)}
+                "rosbags": ("python3-rosbags-pip", "rosbags"), "lifecycle_msgs": ("lifecycle_msgs", None),
+                "xdist": ("python3-pytest-xdist-pip", "pytest-xdist")}
 TEST_TOOLS = {"python3-pytest-timeout", "python3-colcon-common-extensions", "python3-pip", "python3-wheel", "gcc"}
 
 

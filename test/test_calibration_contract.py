@@ -32,6 +32,8 @@ from fbg_accel_driver.thermal_model import (
     migrate,
 )
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 REPO = Path(__file__).resolve().parents[1]
 
 

@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
 from process_harness import ChildProcess
 from rclpy.context import Context
@@ -22,6 +23,8 @@ from test_driver_process import Listener, start_driver, start_sim, stop_all
 
 from fbg_accel_calibration.io.mcap_reader import read_file
 from fbg_accel_driver.driver_parameters import default_calibration_path
+
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
 
 BIN = Path(sys.executable).parent
 RATE_HZ = 200

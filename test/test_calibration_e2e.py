@@ -71,7 +71,7 @@ LEAD_IN_DWELL_S = 1.0
 SETTLED_S = 1.2  # s after arrival: the TIA low-pass (Table 1, >= 1 Hz) has settled to far below the noise
 NOISE_FACTOR = 1.5
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = [pytest.mark.real_time, pytest.mark.timeout(240)]
 
 
 @pytest.fixture()

@@ -56,7 +56,7 @@ PLAN = {
     ],
 }
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.real_time, pytest.mark.timeout(120)]
 
 
 # ---------------------------------------------------------------------------- synthetic stream

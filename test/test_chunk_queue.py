@@ -14,6 +14,8 @@ import pytest
 from fbg_accel_driver.chunk_queue import ChunkQueue
 from fbg_accel_driver.serial_link import LinkState, SerialLink
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 
 def test_bound_keeps_newest_and_counts_drops() -> None:
     q = ChunkQueue(max_bytes=100)

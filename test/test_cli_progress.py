@@ -8,9 +8,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from test_fit_streaming import make_run
 
 from fbg_accel_calibration.io.mcap_writer import write_recording
+
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
 
 BIN = Path(sys.executable).parent
 

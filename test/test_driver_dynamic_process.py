@@ -19,6 +19,8 @@ from fbg_accel_driver.driver_core import RAW_AUX_NAME
 from fbg_accel_driver.driver_parameters import default_calibration_path
 from fbg_accel_driver.thermal_model import ThermalCalibration
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 
 def test_version2_board_aux_on_imu_raw_and_equalised_stamps(ros: Context, tmp_path: Path) -> None:
     cal = ThermalCalibration.load(default_calibration_path())

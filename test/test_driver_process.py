@@ -37,6 +37,8 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, JointState, Temperature
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 BIN = Path(sys.executable).parent
 RATE_HZ = 100.0
 FULL_SCALE_VAR = (20 * 9.80665) ** 2

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 import yaml
 from rcl_interfaces.msg import ParameterType
 from rclpy.context import Context
@@ -25,6 +26,8 @@ from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import ReliabilityPolicy
 from sensor_msgs.msg import Imu
 from test_driver_process import REPO, Listener, start_driver, start_sim, stop
+
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
 
 
 def _call(listener: Listener, future, what: str):

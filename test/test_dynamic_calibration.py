@@ -27,6 +27,8 @@ from fbg_accel_driver.thermal_model import ThermalCalibration
 from fbg_accel_sim.dynamic_run import simulate_dynamic_run, simulated_tone_check
 from fbg_accel_sim.sim_config import SimConfig
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 REPO = Path(__file__).resolve().parents[1]
 PLAN = ExcitationPlan.load(REPO / "config" / "excitation_plan_stepped_sine.yaml")
 CLI = str(Path(sys.executable).parent / "fbg-accel-calib")

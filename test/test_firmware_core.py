@@ -32,6 +32,8 @@ from hypothesis import strategies as st
 from fbg_accel_driver.frame_codec import FRAME_SIZE_V1, FRAME_SIZE_V2, SEQ_MODULO, Frame, Status, encode_frame
 from fbg_accel_driver.stream_decoder import StreamDecoder
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 TEMP_BITS = int(Status.TEMP_VALID | Status.TEMP_PRESENT)
 
 

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 BIN = Path(sys.executable).parent
 HEADER = "t_s,ref_counts,x_counts,y_counts,z_counts,gref_x_mps2,gref_y_mps2,gref_z_mps2,temperature_c,pose\n"
 POSES = ["0,0,9.8", "0,0,-9.8", "9.8,0,0", "-9.8,0,0", "0,9.8,0", "0,-9.8,0"]

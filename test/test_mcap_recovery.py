@@ -25,6 +25,8 @@ from fbg_accel_calibration.io.mcap_reader import McapSampleStream, read_recordin
 from fbg_accel_calibration.io.mcap_writer import write_recording
 from fbg_accel_calibration.io.recording import Recording
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 BIN = Path(sys.executable).parent
 LEVELS_C = (15.0, 25.0, 35.0)
 

@@ -26,6 +26,8 @@ from fbg_accel_driver import driver_node, driver_parameters
 from fbg_accel_driver.command_line import StartupError
 from fbg_accel_driver.driver_node import DriverNode, ManagedDriverNode
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 REPO = Path(__file__).resolve().parents[1]
 DATA_TOPICS = {"/imu/data_raw", "/imu/temperature", "/imu/raw"}
 PLAN = REPO / "config" / "pose_plan_six_position.yaml"

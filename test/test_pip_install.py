@@ -21,6 +21,8 @@ from pathlib import Path
 import pytest
 from process_harness import ChildProcess
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 REPO = Path(__file__).resolve().parents[1]
 SOURCE_ITEMS = ("setup.py", "setup.cfg", "package.xml", "resource", "config", "launch",
                 "fbg_accel_driver", "fbg_accel_calibration", "fbg_accel_sim")

@@ -8,6 +8,8 @@ import threading
 import pytest
 from process_harness import ChildProcess, Notifier
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 
 def test_a_notification_from_another_thread_ends_the_wait() -> None:
     notifier, state = Notifier(), {"done": False}

@@ -21,6 +21,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+import pytest
 from test_driver_process import (
     Listener,
     assert_counters,
@@ -32,6 +33,8 @@ from test_driver_process import (
     stop,
     stop_all,
 )
+
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
 
 
 def test_rfcomm_like_device_removed_and_recreated(ros, tmp_path: Path) -> None:

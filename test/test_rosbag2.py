@@ -29,6 +29,8 @@ from fbg_accel_calibration.io.mcap_writer import RecordingWriter, write_recordin
 from fbg_accel_calibration.io.recording import Recording
 from fbg_accel_driver.driver_core import RAW_NAMES
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 BIN = Path(sys.executable).parent
 TYPES = mcap_format.ROLE_TYPES  # relative topic -> type (docs/topics.md)
 TOPICS = tuple(TYPES)

@@ -18,6 +18,8 @@ from process_harness import Notifier
 
 from fbg_accel_driver.serial_link import LinkState, SerialLink, steady_clock_ns
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 
 class Notified(Notifier):
     """The link's ``notify`` callback (called on every queued chunk and every state change), counting its calls: a

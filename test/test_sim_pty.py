@@ -11,10 +11,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 import serial
 
 from fbg_accel_driver.stream_decoder import StreamDecoder
 from fbg_accel_sim.board_physics import BoardSimulator, SimConfig
+
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
 
 BOARD_SIM = [sys.executable, "-m", "fbg_accel_sim.board_sim"]
 

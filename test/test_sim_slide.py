@@ -19,6 +19,8 @@ from fbg_accel_driver.stream_decoder import StreamDecoder
 from fbg_accel_sim.board_physics import BoardSimulator, SimConfig
 from fbg_accel_sim.scenario import SlidePlan, SlideSegment, second_order_response
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 DIRECTION = np.array([0.5, -0.5, math.sqrt(0.5)])  # seed 2 eqs. 1-3
 QUIET = {  # everything that is not the dynamic chain off: noise, quantisation, slow drifts, delay, curvature
     "effects.white_noise.scale": 0.0, "effects.bias_instability.scale": 0.0, "effects.adc_quantisation.scale": 0.0,

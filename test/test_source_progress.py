@@ -5,6 +5,10 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
+
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 
 def test_a_bar_that_is_off_starts_no_thread_and_imports_no_tqdm() -> None:
     """``--no-progress`` (or stderr not a terminal): every pass of a counted source and the diagnosis' bar go through

@@ -10,6 +10,8 @@ import sys
 
 import pytest
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 HEAVY = ("numpy", "scipy", "scipy.stats", "matplotlib", "mcap", "rclpy", "tqdm")
 
 # each command's --help as its console script runs it; the modules it must not load

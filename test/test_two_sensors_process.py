@@ -36,6 +36,8 @@ from ros2_mcap import frames_by_topic, ros2_messages
 from sensor_msgs.msg import Imu, JointState
 from test_driver_process import REPO
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 BIN = Path(sys.executable).parent
 NAMESPACES = ("acc_a", "acc_b")
 RESET_AT_S, UNPLUG_AT_S, UNPLUG_S = 10.0, 13.0, 2.0  # board times (s) of A's reboot and B's disconnect

@@ -23,6 +23,8 @@ from fbg_accel_driver.thermal_model import ThermalCalibration
 from fbg_accel_driver.yaml_input import MAX_DEPTH, load_yaml, read_yaml_file
 from fbg_accel_sim.sim_config import SimConfig, parse_set_argument
 
+pytestmark = pytest.mark.real_time  # waits on processes, ptys or DDS (test/conftest.py)
+
 REPO = Path(__file__).resolve().parents[1]
 DEEP = "[" * 3000 + "]" * 3000
 DEEP_MAPPING = "".join(f"{' ' * i}k{i}:\n" for i in range(300)) + " " * 300 + "x: 1\n"
