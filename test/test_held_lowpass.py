@@ -9,6 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from fbg_accel_calibration.diagnosis import chain_effects
 from fbg_accel_calibration.diagnosis.chain_effects import TiaLowpassEffect
 from fbg_accel_calibration.diagnosis.data import DiagnosisData, Inputs, expected_psi_map
 from fbg_accel_calibration.diagnosis.effects import ReferenceReadNoiseEffect
@@ -149,12 +150,22 @@ def tia_reference_over_every_sample(data: DiagnosisData, inp: Inputs, h: float) 
     return g + (lp - psi) @ np.linalg.inv(P).T
 
 
+@pytest.fixture(params=[97, None], ids=["blocks", "one_block"])
+def row_block(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The rows the TIA's reference over every sample is worked out at a time: blocks that split its runs (and their
+    holds) anywhere, and the default (None: a block longer than these runs)."""
+    if request.param is not None:
+        monkeypatch.setattr(chain_effects, "ROW_BLOCK", request.param)
+
+
 @pytest.mark.parametrize("read_noise", [None, 0.05])
-def test_the_tia_reference_at_the_searched_rows_is_the_one_over_every_sample(read_noise: float | None) -> None:
+def test_the_tia_reference_at_the_searched_rows_is_the_one_over_every_sample(read_noise: float | None,
+                                                                             row_block: None) -> None:
     """The TIA candidate filters the samples in motion only (the holds in closed form): the reference of filtering
     every sample, up to rounding, with the recorded counts and with the counts an earlier correction changed (the
     reference's read-noise filter: another expected Psi); and a row's value is the same bit for bit at a search's
-    rows and when every sample is asked for (a correction of the reference after it reads every sample)."""
+    rows and when every sample is asked for (a correction of the reference after it reads every sample), whatever
+    blocks of rows the latter is worked out in."""
     data = tia_data()
     eff = TiaLowpassEffect()
     rows = np.flatnonzero(data.use)[::9]
@@ -173,6 +184,31 @@ def test_the_tia_reference_at_the_searched_rows_is_the_one_over_every_sample(rea
         np.testing.assert_array_equal(got[1], inp[1].valid[rows])
         largest = max(largest, float(np.max(np.abs(got[0] - data.gref_filled[rows]))))
     assert largest > 0.1  # m/s^2: the filter corrects the reference (a test of the filter, not of the reference alone)
+
+
+def test_the_tia_reference_over_every_sample_makes_no_array_of_its_length_but_the_result(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Over every sample (the final model's design, a correction of the reference after the TIA's) the reference is
+    worked out a block of rows at a time: the memory it takes beyond its result (N, 3) is a block's and the holds',
+    not arrays of the series' length (at 10^6 samples each is 8-24 MiB, and a dozen of them were the searches' peak)."""
+    import tracemalloc
+
+    monkeypatch.setattr(chain_effects, "ROW_BLOCK", 256, raising=False)
+    data = replace(tia_data(), temp_c=np.full(len(tia_data().t_s), 25.0))
+    eff = TiaLowpassEffect()
+    eff.transform(data, Inputs.of(data), 0.5)  # the recording's constants it keeps (the expected Psi's map, ...)
+    inp = Inputs.of(data)
+    tracemalloc.start()
+    try:
+        eff.transform(data, inp, 1.0)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    # beyond the result: a block's arrays, and the holds and the filter's states there, in proportion to the samples
+    # in motion (an eighth of these); arrays of every sample (the rows' places in the holds, the reference at them,
+    # each column filtered) took about 5x the result
+    result = inp.gref.nbytes + inp.valid.nbytes
+    assert peak < 2.5 * result, (peak, result)
 
 
 def test_the_delayed_reference_is_interpolated_where_it_moved_only_and_is_the_same_bit_for_bit() -> None:
@@ -216,7 +252,7 @@ def test_the_delayed_reference_is_interpolated_where_it_moved_only_and_is_the_sa
 
 
 @pytest.mark.parametrize("D", [0.3 * DT, 2.5 * DT, 0.1])
-def test_the_tia_reference_on_a_delayed_reference_is_the_one_over_every_sample(D: float) -> None:
+def test_the_tia_reference_on_a_delayed_reference_is_the_one_over_every_sample(D: float, row_block: None) -> None:
     """On the channel delay's reference (its holds shortened by the delay after each move) the TIA candidate filters
     the samples in motion only too: the reference of filtering every sample of the delayed reference, up to rounding,
     at a search's rows and at every sample, a row the same bit for bit both ways; the holds found once for a delayed

@@ -33,7 +33,11 @@ from .effects import (
     TIA_TAU_S,
     Effect,
 )
-from .held_lowpass import HeldRows, held_lowpass, held_rows, moves, stretch_indices
+from .held_lowpass import HeldRows, held_lowpass, held_rows, lowpass_at, lowpass_states, moves, stretch_indices
+
+# rows of the TIA's reference worked out at a time over every sample (``TiaLowpassEffect._held_every_sample``): the
+# arrays of one block (a dozen of its length) stay a few MiB, not hundreds at 10^6 samples
+ROW_BLOCK = 1 << 16
 
 
 class ChannelDelayEffect(Effect):
@@ -259,12 +263,19 @@ class TiaLowpassEffect(Effect):
                  for st in input_run_steps(data, inp)]
         if any(a is None for per in coeff for a in per):
             return None
-        rows_key = None if rows is None else rows_digest(rows)
+        if rows is None:  # every sample (a correction of the reference after it, the final model): not kept
+            runs = [run for run, _, _ in pieces]
+            holds = [self._held_reference(g[run], np.zeros(0, dtype=np.intp))[:2] for run in runs]
+            # a moved reference with a gap (never in a hold: NaN is not the sample before it): over every sample
+            if moved and not all(finite_rows(g_at.T).all() for _, g_at in holds):
+                return None
+            P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
+            gref = self._held_every_sample(g, runs, holds, coeff, P, q)
+            return gref, inp.valid & finite_rows(gref)
+        rows_key = rows_digest(rows)
         found = []
         for run, _, local in pieces:
-            if rows_key is None:  # every sample (a correction of the reference after it, the final model): not kept
-                found.append(self._held_reference(g[run], np.arange(run.stop - run.start)))
-            elif moved:
+            if moved:
                 found.append(self._moved_held_reference(data, g, run, local, rows_key))
             else:
                 found.append(data.once(f"held_reference {run.start} {run.stop} {rows_key}",
@@ -274,14 +285,35 @@ class TiaLowpassEffect(Effect):
                 return None
         P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
         P_inv = np.linalg.inv(P)
-        gref = np.empty((len(g) if rows is None else len(rows), 3))
+        gref = np.empty((len(rows), 3))
         for (_, sel, _), per, (held, g_at, g_rows) in zip(pieces, coeff, found, strict=True):
             # the expected Psi and its filtered value column by column, a 3 x 3 map written out (no matrix product
             # of a few hundred thousand rows by 3: BLAS's start costs more than the arithmetic)
             d = [held_lowpass(held, _affine(P[j], q[j], g_at), per[j]) - _affine(P[j], q[j], g_rows) for j in range(3)]
             for k in range(3):
                 gref[sel, k] = _affine(P_inv[k], 0.0, d) + g_rows[k]
-        return gref, (inp.valid if rows is None else inp.valid[rows]) & finite_rows(gref)
+        return gref, inp.valid[rows] & finite_rows(gref)
+
+    @staticmethod
+    def _held_every_sample(g: np.ndarray, runs: list[slice], holds: list[tuple[HeldRows, np.ndarray]],
+                           coeff: list[list[float]], P: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """``_held_at_rows``'s reference (N, 3) at every sample of the reference ``g`` (N, 3), from each run's holds
+        and the reference where the filter reads it (``holds``, of ``_held_reference`` with no rows), ``ROW_BLOCK``
+        rows at a time: each filter's states at the holds are worked out once per run (``lowpass_states``) and each
+        block's rows from them, so no array of the run's length is made but the result. The values are those of the
+        rows asked for all at once, bit for bit: a row's value depends on the holds and on it alone."""
+        P_inv = np.linalg.inv(P)
+        gref = np.empty((len(g), 3))
+        for run, (held, g_at), per in zip(runs, holds, coeff, strict=True):
+            x, out = g[run], gref[run]
+            states = [lowpass_states(held, _affine(P[j], q[j], g_at), per[j]) for j in range(3)]
+            for lo in range(0, len(x), ROW_BLOCK):
+                block = held.at(np.arange(lo, min(lo + ROW_BLOCK, len(x))))
+                g_rows = np.ascontiguousarray(x[lo:lo + ROW_BLOCK].T)
+                d = [lowpass_at(block, states[j], per[j]) - _affine(P[j], q[j], g_rows) for j in range(3)]
+                for k in range(3):
+                    out[lo:lo + ROW_BLOCK, k] = _affine(P_inv[k], 0.0, d) + g_rows[k]
+        return gref
 
     @staticmethod
     def _held_reference(g: np.ndarray, rows: np.ndarray) -> tuple[HeldRows, np.ndarray, np.ndarray]:

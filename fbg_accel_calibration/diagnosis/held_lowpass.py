@@ -24,7 +24,7 @@ are asked for: the holds are the input's, the rows only read them.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -40,6 +40,7 @@ class HeldRows:
 
     busy: np.ndarray  # (b,) the samples outside the holds, ascending; 0 (where the filter starts) first
     start: np.ndarray  # (m,) each hold's first sample (>= 1)
+    stop: np.ndarray  # (m,) the sample after its last
     length: np.ndarray  # (m,) its samples (float: an exponent)
     before: np.ndarray  # (m,) position in ``busy`` of the last sample before the hold
     n_after: np.ndarray  # (m,) samples of ``busy`` between the hold and the next one or the run's end (float)
@@ -57,13 +58,26 @@ class HeldRows:
         """(b + m,) the samples where the input is read: ``busy`` then each hold's first sample (its value)."""
         return np.concatenate([self.busy, self.start])
 
+    def at(self, rows: np.ndarray) -> HeldRows:
+        """The same holds, for the rows ``rows`` (local indices, ascending) instead: a row's entries depend on the
+        holds and on it alone, so the rows of a long run can be asked for a block at a time."""
+        rows = np.asarray(rows, dtype=np.intp)
+        hold = np.searchsorted(self.start, rows, side="right") - 1
+        h = np.maximum(hold, 0)
+        first, last = (self.start[h], self.stop[h]) if len(self.start) else (np.zeros_like(rows), np.zeros_like(rows))
+        in_hold = (hold >= 0) & (rows < last)
+        busy_at = np.minimum(np.searchsorted(self.busy, rows), len(self.busy) - 1)
+        inside, after = np.flatnonzero(in_hold), np.flatnonzero(~in_hold & (hold >= 0))
+        return replace(self, rows=rows, busy_at=busy_at, in_hold=inside, in_hold_of=hold[inside],
+                       in_hold_steps=(rows[inside] - first[inside] + 1).astype(float), after=after,
+                       after_of=hold[after], after_steps=(rows[after] - last[after] + 1).astype(float))
+
 
 def held_rows(x: np.ndarray, rows: np.ndarray, min_hold: int = MIN_HOLD) -> HeldRows:
     """:class:`HeldRows` of the input ``x`` (n,) or (n, k) (a hold: at least ``min_hold`` consecutive samples, from
     the second on, where every column keeps its value) for the rows ``rows`` (local indices, ascending)."""
     x = np.asarray(x)
     n = len(x)
-    rows = np.asarray(rows, dtype=np.intp)
     s = np.concatenate([[0], np.flatnonzero(moves(x)) + 1])  # the constant stretches
     e = np.append(s[1:], n)
     s = np.maximum(s, 1)  # sample 0 starts the filter: never in a hold
@@ -72,15 +86,10 @@ def held_rows(x: np.ndarray, rows: np.ndarray, min_hold: int = MIN_HOLD) -> Held
     busy = stretch_indices(np.r_[0, stop], np.r_[start, n])  # between the holds (before the first, after the last)
     before = np.searchsorted(busy, start) - 1
     n_after = np.searchsorted(busy, np.append(start[1:], n)) - (before + 1)
-    hold = np.searchsorted(start, rows, side="right") - 1
-    h = np.maximum(hold, 0)
-    first, last = (start[h], stop[h]) if len(start) else (np.zeros_like(rows), np.zeros_like(rows))
-    in_hold = (hold >= 0) & (rows < last)
-    busy_at = np.minimum(np.searchsorted(busy, rows), len(busy) - 1)
-    inside, after = np.flatnonzero(in_hold), np.flatnonzero(~in_hold & (hold >= 0))
-    return HeldRows(busy, start, (stop - start).astype(float), before, n_after.astype(float), rows, busy_at,
-                    inside, hold[inside], (rows[inside] - first[inside] + 1).astype(float),
-                    after, hold[after], (rows[after] - last[after] + 1).astype(float))
+    none = np.zeros(0, dtype=np.intp)
+    holds = HeldRows(busy, start, stop, (stop - start).astype(float), before, n_after.astype(float), none, none, none,
+                     none, none.astype(float), none, none, none.astype(float))
+    return holds.at(rows)
 
 
 def moves(x: np.ndarray) -> np.ndarray:
@@ -168,7 +177,7 @@ def held_cascade(held: HeldRows, x_at: np.ndarray, a: float) -> tuple[np.ndarray
 
 
 @dataclass(frozen=True)
-class _Stage:
+class FilterStates:
     """What ``held_cascade`` reads of the first filter: its values at ``busy`` (b,), and per hold (m,; None: no hold)
     the hold's value, its c^L, the c^n of the stretch after it, the true state entering it and the difference of the
     true and the carried state where the stretch after it starts."""
@@ -181,8 +190,15 @@ class _Stage:
     delta: np.ndarray | None = None
 
 
-def _first_stage(held: HeldRows, x_at: np.ndarray, a: float) -> tuple[np.ndarray, _Stage]:
+def _first_stage(held: HeldRows, x_at: np.ndarray, a: float) -> tuple[np.ndarray, FilterStates]:
     """(y (q,) at ``held.rows``, what the filter left at ``held``'s samples and holds) of ``held_lowpass``."""
+    st = lowpass_states(held, x_at, a)
+    return lowpass_at(held, st, a), st
+
+
+def lowpass_states(held: HeldRows, x_at: np.ndarray, a: float) -> FilterStates:
+    """What ``held_lowpass``'s filter leaves at ``held``'s samples and holds (whatever rows ``held`` is for): with it,
+    ``lowpass_at`` gives the output at the rows of any ``held.at(rows)``."""
     from scipy.signal import lfilter
 
     b = len(held.busy)
@@ -193,9 +209,8 @@ def _first_stage(held: HeldRows, x_at: np.ndarray, a: float) -> tuple[np.ndarray
     if b > 1:
         yb[1:] = lfilter([a], [1.0, a - 1.0], xb[1:], zi=[c * xb[0]])[0]
     m = len(v)
-    out = yb[held.busy_at]
     if not m:
-        return out, _Stage(yb)
+        return FilterStates(yb)
     c_hold = np.power(c, held.length)
     c_after = np.power(c, held.n_after)
     end = held.before + held.n_after.astype(np.intp)  # the last sample of the stretch after each hold (else ``before``)
@@ -208,7 +223,17 @@ def _first_stage(held: HeldRows, x_at: np.ndarray, a: float) -> tuple[np.ndarray
     s_in[0] = yb[held.before[0]]
     s_in[1:] = A[:-1] * s_in[0] + B[:-1]
     delta = v + c_hold * (s_in - v) - yb[held.before]  # true minus carried state where the stretch after a hold starts
+    return FilterStates(yb, v, c_hold, c_after, s_in, delta)
+
+
+def lowpass_at(held: HeldRows, st: FilterStates, a: float) -> np.ndarray:
+    """y (q,) at ``held.rows`` of the filter whose states at the holds are ``st`` (``lowpass_states`` of the same
+    holds): each row's value from its hold's closed form or its stretch's, alone."""
+    out = st.yb[held.busy_at]
+    if st.v is None:
+        return out
+    c = 1.0 - a
     h = held.in_hold_of
-    out[held.in_hold] = v[h] + np.power(c, held.in_hold_steps) * (s_in[h] - v[h])
-    out[held.after] += np.power(c, held.after_steps) * delta[held.after_of]
-    return out, _Stage(yb, v, c_hold, c_after, s_in, delta)
+    out[held.in_hold] = st.v[h] + np.power(c, held.in_hold_steps) * (st.s_in[h] - st.v[h])
+    out[held.after] += np.power(c, held.after_steps) * st.delta[held.after_of]
+    return out
