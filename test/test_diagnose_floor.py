@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from held_out_campaign import held_out_campaign
 from scipy.signal import lfilter
 from test_diagnose_sim import THERMAL, _config, _diagnosed
 
@@ -232,29 +233,12 @@ def test_the_held_out_visit_means_covariance_is_what_refits_show_and_the_residua
     test before, fired on 5-6.5 % of clean simulated campaigns at a nominal 1 % (bench/residual_false_alarm.py)."""
     from scipy import stats
 
-    from fbg_accel_calibration.diagnosis.floor import VisitNoise
-    from fbg_accel_calibration.diagnosis.structure import heldout_mean_covariance, visit_mean_test
+    from fbg_accel_calibration.diagnosis.structure import visit_mean_test
 
-    rng = np.random.default_rng(7)
-    V, K, P, draws = 42, 10, 30, 1500
-    n_v = rng.integers(20, 61, size=V)
-    groups = np.repeat(np.arange(V), n_v)
-    N = len(groups)
-    X = np.column_stack([np.ones(N), rng.normal(size=(V, P - 1))[groups] + 0.1 * rng.normal(size=(N, P - 1))])
-    fold_v = rng.permutation(V) % K
-    fold = fold_v[groups]
-    sigma = np.array([0.5, 1.0, 2.0])
-    rows = np.ones(N, bool)
-    null = heldout_mean_covariance(X, rows, rows, groups, fold,
-                                   np.stack([X[fold == k].T @ X[fold == k] for k in range(K)]), X.T @ X,
-                                   VisitNoise(sigma, np.column_stack([np.ones(3), np.zeros(3)])))
-    L = np.zeros((V, N))  # held-out visit means = L @ noise, by the refits of cross-validation
-    for k in range(K):
-        train = fold != k
-        H = X[fold == k] @ np.linalg.solve(X[train].T @ X[train], X[train].T)
-        for v in np.flatnonzero(fold_v == k):
-            L[v, groups == v] += 1.0 / n_v[v]
-            L[v, train] -= H[groups[fold == k] == v].mean(axis=0)
+    draws = 1500
+    campaign = held_out_campaign(42, seed=7, visit_samples=(20, 60))
+    null, rng, sigma, V, N = campaign.null, campaign.rng, campaign.sigma, len(campaign.n_v), len(campaign.groups)
+    L = campaign.refits()  # held-out visit means = L @ noise, by the refits of cross-validation
     m = np.einsum("vn,ndj->djv", L, rng.normal(size=(N, draws, 3)) * sigma)  # (draws, 3, V)
     measured = np.einsum("djv,dju->jvu", m, m) / draws
 

@@ -5,6 +5,7 @@ and for a diagonal one given as its diagonal (``slow_wander``: no V x V matrix).
 from __future__ import annotations
 
 import numpy as np
+from held_out_campaign import held_out_campaign
 from scipy import stats
 
 
@@ -114,44 +115,14 @@ def test_independent_visit_means_are_tested_from_their_variances_alone() -> None
     np.testing.assert_allclose(diag[4], dense[4], rtol=1e-9)
 
 
-def _held_out_campaign(V: int, seed: int = 2):
-    """A design of V visits of 8-30 samples, 30 columns that vary a little within a visit, 10 folds; white noise of
-    standard deviations (0.5, 1, 2): the held-out null of ``heldout_mean_covariance`` and, for white noise, the exact
-    covariance of the held-out visit means sigma^2 L L^T (L: the refits of cross-validation, visit means by sample)."""
-    from fbg_accel_calibration.diagnosis.floor import VisitNoise
-    from fbg_accel_calibration.diagnosis.structure import heldout_mean_covariance
-
-    rng = np.random.default_rng(seed)
-    K, P = 10, 30
-    n_v = rng.integers(8, 31, size=V)
-    groups = np.repeat(np.arange(V), n_v)
-    N = len(groups)
-    X = np.column_stack([np.ones(N), rng.normal(size=(V, P - 1))[groups] + 0.1 * rng.normal(size=(N, P - 1))])
-    fold_v = rng.permutation(V) % K
-    fold = fold_v[groups]
-    rows = np.ones(N, bool)
-    sigma = np.array([0.5, 1.0, 2.0])
-    null = heldout_mean_covariance(X, rows, rows, groups, fold,
-                                   np.stack([X[fold == k].T @ X[fold == k] for k in range(K)]), X.T @ X,
-                                   VisitNoise(sigma, np.column_stack([np.ones(3), np.zeros(3)])))
-    return null, X, groups, fold, fold_v, n_v, sigma
-
-
 def test_the_held_out_null_from_its_factors_is_the_exact_covariance_of_white_noise() -> None:
     """``heldout_mean_covariance`` gives each axis' covariance by its factors (``visit_covariance.HeldoutCovariance``):
     its rows (any of them, in any order) and its diagonal are those of sigma^2 L L^T, the covariance of the held-out
     visit means by the refits of cross-validation, which it is exactly for white noise; a visit the null does not hold
     gets the variance it is given, alone (``HeldoutMeanNull.for_visits``)."""
-    null, X, groups, fold, fold_v, n_v, sigma = _held_out_campaign(60)
-    V = len(n_v)
-    L = np.zeros((V, len(groups)))
-    for k in range(10):
-        train = fold != k
-        H = X[fold == k] @ np.linalg.solve(X[train].T @ X[train], X[train].T)
-        for v in np.flatnonzero(fold_v == k):
-            L[v, groups == v] += 1.0 / n_v[v]
-            L[v, train] -= H[groups[fold == k] == v].mean(axis=0)
-    exact = sigma[:, None, None] ** 2 * (L @ L.T)[None]
+    campaign = held_out_campaign(60, seed=2, visit_samples=(8, 30))
+    null, L = campaign.null, campaign.refits()
+    exact = campaign.sigma[:, None, None] ** 2 * (L @ L.T)[None]
     np.testing.assert_allclose(null.dense(), exact, rtol=1e-9, atol=1e-12 * np.max(exact))
     for j, c in enumerate(null.cov):
         np.testing.assert_allclose(c.diagonal(), np.diagonal(exact[j]), rtol=1e-9)
@@ -178,7 +149,8 @@ def test_the_residual_test_on_the_held_out_null_makes_no_visit_by_visit_array() 
 
     from fbg_accel_calibration.diagnosis.structure import heldout_mean_covariance, slow_visit_test
 
-    null, X, groups, fold, *_ = _held_out_campaign(1500, seed=4)
+    campaign = held_out_campaign(1500, seed=4, visit_samples=(8, 30))
+    null, X, groups, fold = campaign.null, campaign.X, campaign.groups, campaign.fold
     V = len(null.visits)
     rng = np.random.default_rng(5)
     pose = np.where(rng.random(V) < 0.05, -1, rng.integers(0, 40, V))  # revisited poses, some visits in motion
