@@ -326,3 +326,27 @@ def test_the_thermal_lag_at_the_searched_rows_is_the_one_over_every_sample() -> 
         cache = DesignCache()
         np.testing.assert_array_equal(build_design(data, both, cache, rows).X, build_design(data, both, None, rows).X)
         assert next(iter(cache.inputs.values()))[0] is not None  # the whole series was corrected
+
+
+def test_the_holds_at_the_searched_rows_are_let_go_when_the_searches_end() -> None:
+    """The holds the TIA's reference and the thermal lag keep for a search's rows (read by every trial of the search)
+    are constants for the trials alone (``DiagnosisData.once(..., for_trials=True)``): ``drop_recent``, when the
+    searches end, forgets them; asked for again they are made again, the values the same."""
+    from fbg_accel_calibration.diagnosis.effects import ThermalLagEffect
+
+    data = lag_data()
+    rows = np.flatnonzero(data.use)[::9]
+    tia, lag = TiaLowpassEffect(), ThermalLagEffect()
+    ref = tia.reference_at(data, Inputs.of(data), 1.0, rows)[0]
+    part = Inputs.of(data).at(rows)
+    assert lag.transform_rows(data, Inputs.of(data), part, 2.0, rows)
+    kinds = ("held_reference", "temperature holds")
+    assert all(any(k.startswith(kind) for k in data._memo) for kind in kinds)
+    runs = data.runs()
+    data.drop_recent()
+    assert not any(k.startswith(kinds) for k in data._memo)
+    assert data.runs() is runs  # a constant of the recording, not of the trials alone, is kept
+    again = Inputs.of(data).at(rows)
+    assert lag.transform_rows(data, Inputs.of(data), again, 2.0, rows)
+    assert np.array_equal(tia.reference_at(data, Inputs.of(data), 1.0, rows)[0], ref)
+    assert np.array_equal(again.temp_c, part.temp_c)

@@ -279,7 +279,7 @@ class TiaLowpassEffect(Effect):
                 found.append(self._moved_held_reference(data, g, run, local, rows_key))
             else:
                 found.append(data.once(f"held_reference {run.start} {run.stop} {rows_key}",
-                                       lambda run=run, local=local: self._held_reference(g[run], local)))
+                                       lambda run=run, local=local: self._held_reference(g[run], local), True))
             # a moved reference with a gap (never in a hold: NaN is not the sample before it): over every sample
             if moved and not finite_rows(found[-1][1].T).all():
                 return None

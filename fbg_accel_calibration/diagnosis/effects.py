@@ -513,7 +513,7 @@ class ThermalLagEffect(Effect):
             out = np.empty(len(rows))
             for (run, sel, local), a in zip(pieces, coeff, strict=True):
                 held, x_at = data.once(f"temperature holds {run.start} {run.stop} {key}",
-                                       lambda run=run, local=local: self._holds(data.temp_c[run], local))
+                                       lambda run=run, local=local: self._holds(data.temp_c[run], local), True)
                 if term.tau_s > 0:
                     out[sel] = held_lowpass(held, x_at, a)
                     continue
