@@ -109,3 +109,34 @@ def test_the_constants_kept_for_the_trials_are_let_go_when_the_searches_end_and_
     P2, q2 = expected_psi_map(data, Inputs.of(data))
     assert np.array_equal(P, P2) and np.array_equal(q, q2)
     assert np.array_equal(data._memo["static_xyz"], kept["static_xyz"])
+
+
+def test_a_search_judged_lets_go_of_its_trials() -> None:
+    """Once a candidate's search is judged (``Evaluator.evaluate``, ``nested_heldout``), the lane's cache keeps nothing
+    of the models with that candidate in (the corrected series of its trial values, their prefixes and design
+    matrices: at 10^6 samples each series is tens of MiB, and they stayed beside the next searches' own); the lane
+    judges it again the same."""
+    from fbg_accel_calibration.diagnosis.effects import ReferenceReadNoiseEffect
+
+    data = dark_offset_data(0.05)
+    fold = check_folds(data, data.group, make_folds(data.group, data.use, 10, 0))[0]
+    ev = Evaluator(data, fold, np.ones(3), data.group, np.flatnonzero(data.use & (fold != -1)))
+    for base, eff in ((ModelSpec(0, 25.0, 1.0, [(ReferenceDarkOffsetEffect(), 30.0)]), ReferenceReadNoiseEffect()),
+                      (ModelSpec(0, 25.0, 1.0, []), ReferenceDarkOffsetEffect())):
+        des, cvr = ev.cv(base)
+        judged = []
+        for _ in range(2):
+            r = ev.evaluate(base, eff, cvr.heldout, cvr.fitted_full, des.G)
+            assert r.hyper is not None and not _named(ev, eff.name)
+            held = ev.nested_heldout(base, eff)
+            assert not _named(ev, eff.name)
+            judged.append((r.hyper, r.rel_gain, r.p_value, held))
+        (h0, g0, p0, ho0), (h1, g1, p1, ho1) = judged
+        assert h0 == h1 and g0 == g1 and p0 == p1 and np.array_equal(ho0, ho1, equal_nan=True)
+        ev.cv(base.plus(eff, r.hyper))  # a model with it: kept again
+        assert _named(ev, eff.name)
+
+
+def _named(ev: Evaluator, name: str) -> list:
+    """The keys of ``ev``'s own caches (inputs, prefixes, design matrices) of models with the effect ``name``."""
+    return [k for c in (ev.designs.inputs, ev.designs.prefixes, ev.designs.matrices) for k in c if name in repr(k)]

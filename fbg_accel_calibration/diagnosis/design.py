@@ -188,6 +188,19 @@ class DesignCache:
         other.references = self.references
         return other
 
+    def forget(self, name: str) -> None:
+        """Drop what this lane's cache keeps of models with the effect ``name`` (its corrected inputs, prefixes and
+        matrices; the references it shares with other lanes stay): once a search over that effect on top of a model
+        is judged, the trial values' series of 10^6 samples are of no use to the searches after it, and would stay
+        beside their arrays until pushed out."""
+        def named(key: tuple) -> bool:
+            return any(isinstance(k, tuple) and (k[:1] == (name,) or named(k)) for k in key)
+
+        for kept in (self.inputs, self.prefixes, self.matrices):
+            with kept._lock:
+                for key in [k for k in kept if named(k)]:
+                    del kept[key]
+
     def prefix(self, names: tuple) -> tuple[int, Inputs | None]:
         """(number of corrections done, a private copy of the inputs after them) for the longest cached prefix
         of ``names`` (the (name, hyper-parameter) of each correction in stage order); (0, None) if none."""

@@ -416,8 +416,18 @@ class Evaluator:
 
     def nested_heldout(self, spec: ModelSpec, eff: Effect) -> np.ndarray:
         """The held-out residual (N, 3) of :meth:`fit_hyper` alone: the final value is not worked out (its
-        refinement on all rows, which the held-out residual does not depend on, is skipped)."""
-        return self._fit_hyper(spec, eff, final=False)[1]
+        refinement on all rows, which the held-out residual does not depend on, is skipped); what the lane's cache
+        kept of the trials is let go after it (:meth:`forget_trials`)."""
+        try:
+            return self._fit_hyper(spec, eff, final=False)[1]
+        finally:
+            self.forget_trials(eff)
+
+    def forget_trials(self, eff: Effect) -> None:
+        """Let go of what this lane's cache keeps of models with ``eff`` (``DesignCache.forget``): called once a search
+        over ``eff`` is judged, when the searches after it ask for other models (the series of 10^6 samples of its
+        trial values would stay beside theirs until pushed out)."""
+        self.designs.forget(eff.name)
 
     def _fit_hyper(self, spec: ModelSpec, eff: Effect,
                    final: bool = True) -> tuple[float | None, np.ndarray, list[tuple[float, float]]]:
@@ -568,7 +578,16 @@ class Evaluator:
                  base_G: np.ndarray, alpha: float | None = None) -> CandidateResult:
         """Held-out gain and significance of ``eff`` on top of ``spec``, whose held-out residual, in-sample fit and
         reference (each (n, 3), this evaluator's samples) are the ``base_*`` (``alpha``: the candidate's level,
-        which decides the test on small campaigns, ``paired_gain_test``)."""
+        which decides the test on small campaigns, ``paired_gain_test``); what the lane's cache kept of the search's
+        trials is let go after it (:meth:`forget_trials`)."""
+        try:
+            return self._evaluate(spec, eff, base_heldout, base_fitted, base_G, alpha)
+        finally:
+            self.forget_trials(eff)
+
+    def _evaluate(self, spec: ModelSpec, eff: Effect, base_heldout: np.ndarray, base_fitted: np.ndarray,
+                  base_G: np.ndarray, alpha: float | None) -> CandidateResult:
+        """:meth:`evaluate`."""
         ok, why = eff.applicable(self.data)
         out = CandidateResult(eff.name, eff.title, ok, why)
         if not ok:

@@ -402,6 +402,8 @@ def refit_earlier(lanes: Lanes[Evaluator], spec: ModelSpec, max_degree: int | No
             return lane.fit_hyper(rest, spec.effects[i][0])[0]
         except NotIdentifiedError:  # the model without it is not identified on this data: it keeps its value
             return None
+        finally:
+            lane.forget_trials(spec.effects[i][0])
 
     effects, notes = list(spec.effects), []
     for i, h in zip(todo, lanes.map(again, todo), strict=True):
@@ -485,7 +487,9 @@ def confounding(lanes: Lanes[Evaluator], spec: ModelSpec, sig: list[CandidateRes
         if b_on_a:
             b_ho = lane.cv(at_its_degree(spec, b).plus(eb, b.hyper))[1].heldout
             # evaluated again next step
-            return b_ho, lane.fit_hyper(at_its_degree(spec, a).plus(ea, a.hyper), eb, remember=True)[1]
+            b_on_a = lane.fit_hyper(at_its_degree(spec, a).plus(ea, a.hyper), eb, remember=True)[1]
+            lane.forget_trials(eb)
+            return b_ho, b_on_a
         return (lane.nested_heldout(at_its_degree(spec, b).plus(eb, b.hyper), ea),)
 
     done = lanes.map(on_top, [(b, b_on_a) for b in sig[1:4] for b_on_a in (True, False)])
