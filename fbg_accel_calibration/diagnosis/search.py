@@ -312,6 +312,9 @@ class Evaluator:
 
     def __init__(self, data: DiagnosisData, folds: np.ndarray, weights: np.ndarray, groups: np.ndarray,
                  sub: np.ndarray, references: int = 4) -> None:
+        # the rows read-only, of their own memory: their digest is worked out once (``data.rows_digest``)
+        sub = np.array(sub, copy=True)
+        sub.flags.writeable = False
         self.data, self.weights, self.sub = data, weights, sub
         self.folds, self.groups = self.at(folds), self.at(groups)
         self.rows = self.at(data.use) & (self.folds >= 0)  # held out and judged
