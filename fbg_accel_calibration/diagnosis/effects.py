@@ -504,7 +504,12 @@ class ThermalLagEffect(Effect):
             return False
         term = ThermalLag(float(h))
         tau = term.tau_s if term.tau_s > 0 else term.rate_smoothing_s
-        coeff = [None if st is None else uniform_coefficient(tau, st) for st in input_run_steps(data, inp)]
+        # a run's coefficient depends on tau and the recording's steps alone (input_run_steps: the data's or None), and
+        # costs a pass over the run's steps where tau is long: once per run and tau (every trial of a search over
+        # another effect asks again for the model's lag)
+        coeff = [None if st is None else data.once(f"uniform coefficient {i} {tau!r}",
+                                                   lambda st=st: uniform_coefficient(tau, st))
+                 for i, st in enumerate(input_run_steps(data, inp))]
         if any(a is None for a in coeff):
             return False
         key = rows_digest(rows)
