@@ -143,3 +143,29 @@ def test_the_held_filters_with_looked_up_powers_are_those_with_every_power_worke
     want = (held_lowpass(held, x[held.samples], a), *held_cascade(held, x[held.samples], a))
     for g, w in zip(got, want, strict=True):
         assert g.tobytes() == w.tobytes()
+
+
+def test_the_paired_gain_test_s_visit_means_are_group_mse_s() -> None:
+    """``paired_gain_test`` works out the groups and the weighted squares of both residuals once: its gain and p-value
+    are those from ``group_mse`` of each residual on the rows where both are finite, bit for bit."""
+    from scipy import stats
+
+    from fbg_accel_calibration.diagnosis.data import finite_rows
+    from fbg_accel_calibration.diagnosis.search import group_mse, paired_gain_test
+
+    rng = np.random.default_rng(2)
+    n = 4000
+    groups = np.repeat(np.arange(40), 100)
+    res0 = rng.normal(0, 1.0, (n, 3))
+    res1 = res0 * 0.9 + rng.normal(0, 0.2, (n, 3))
+    res0[rng.random(n) < 0.05, 1] = np.nan
+    res1[rng.random(n) < 0.05, 2] = np.nan
+    rows = rng.random(n) < 0.9
+    weights = np.array([1.0, 2.0, 0.5])
+    r = rows & finite_rows(res0) & finite_rows(res1)
+    d = group_mse(res0, groups, r, weights)[1] - group_mse(res1, groups, r, weights)[1]
+    tot0 = float(np.sum(res0[r] ** 2 * weights))
+    gain = (tot0 - float(np.sum(res1[r] ** 2 * weights))) / tot0
+    p = float(stats.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue)
+    got = paired_gain_test(res0, res1, groups, rows, weights, 0.01)
+    assert got[0] == gain and got[1] == p and got[2] == 40
