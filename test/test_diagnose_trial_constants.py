@@ -169,3 +169,31 @@ def test_the_paired_gain_test_s_visit_means_are_group_mse_s() -> None:
     p = float(stats.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue)
     got = paired_gain_test(res0, res1, groups, rows, weights, 0.01)
     assert got[0] == gain and got[1] == p and got[2] == 40
+
+
+def test_the_dark_offset_at_the_searched_rows_is_the_one_over_every_sample() -> None:
+    """A design whose last correction of the inputs is the reference's dark offset and whose columns read only its
+    rows subtracts the offset at those rows alone (``ReferenceDarkOffsetEffect.transform_rows``): the same design,
+    valid rows and inputs there bit for bit as the offset subtracted at every sample; after the read-noise filter
+    too, and with an offset that leaves some references at or below 0 (those rows not valid)."""
+    from fbg_accel_calibration.diagnosis.design import DesignCache, ModelSpec, _corrected_inputs, build_design
+    from fbg_accel_calibration.diagnosis.effects import ReferenceDarkOffsetEffect, ReferenceReadNoiseEffect
+
+    data = two_rate_lag_data()
+    rows = np.flatnonzero(data.use)[::4]
+    dark = ReferenceDarkOffsetEffect()
+    low = float(np.sort(data.ref[rows])[10])
+    for before in ([], [(ReferenceReadNoiseEffect(), 0.05)]):
+        for h in (-200.0, 0.0, 35.5, low, 3000.0):
+            spec = ModelSpec(1, 25.0, 2.0, [*before, (dark, h)])
+            want = build_design(data, spec, None, rows)
+            cache = DesignCache()
+            got = build_design(data, spec, cache, rows)
+            assert got.X.tobytes() == want.X.tobytes() and np.array_equal(got.valid, want.valid)
+            assert got.G.tobytes() == want.G.tobytes()
+            inp, part = next(iter(cache.inputs.values()))
+            assert inp is None and part.counts_changed  # the rows alone were corrected
+            full = _corrected_inputs(data, spec.effects)
+            assert np.array_equal(part.valid, full.valid[rows]) and part.ref.tobytes() == full.ref[rows].tobytes()
+            if h == 3000.0 or (h == low and not before):
+                assert not want.valid.all()

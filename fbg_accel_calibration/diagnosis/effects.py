@@ -385,6 +385,14 @@ class ReferenceDarkOffsetEffect(Effect):
         inp.counts_changed = True
         inp.valid &= inp.ref > 0
 
+    def transform_rows(self, data: DiagnosisData, inp: Inputs, part: Inputs, h: float | None, rows: np.ndarray) -> bool:
+        """:meth:`transform` at ``rows`` alone: each sample's offset is its own, so these are its values bit for bit,
+        and a trial of the search subtracts the offset at the searched rows, not at every sample."""
+        part.ref = part.ref - float(h)
+        part.counts_changed = True
+        part.valid &= part.ref > 0
+        return True
+
     def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
         with np.errstate(divide="ignore", invalid="ignore"):
             return (1.0 / np.where(inp.ref > 0, inp.ref, np.nan))[:, None]
