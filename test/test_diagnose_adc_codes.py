@@ -77,3 +77,24 @@ def test_the_simulator_wide_code_is_found_where_it_holds_the_extreme_visits() ->
     h = res.held_codes[0]
     assert len(h.visits) >= 3 and h.rmse_without[1] < 0.9 * res.after_heldout_rmse[1]  # y carries it (sim y axis)
     assert any(w.startswith(f"ADC code {int(low)} of channel y") for w in res.warnings)
+
+
+def test_the_modal_code_of_every_visit_at_once_is_np_unique_s_of_each() -> None:
+    """``adc_codes.modal_codes`` (every visit's most read code and its count, from one sort) against ``np.unique`` of
+    each visit's counts, its first most counted code: ties to the smallest code, visits of one sample, gaps between
+    the visits, codes far apart, zeros of both signs."""
+    from fbg_accel_calibration.fit.adc_codes import modal_codes
+
+    rng = np.random.default_rng(0)
+    for trial in range(200):
+        m = int(rng.integers(1, 40))
+        n = rng.integers(1, 30, m)
+        starts = np.cumsum(np.r_[0, (n + rng.integers(0, 5, m))[:-1]]) + int(rng.integers(0, 3))
+        v = rng.integers(-3, 4, int(starts[-1] + n[-1] + 5)).astype(float) * float(rng.choice([1.0, 1000.0]))
+        if trial % 3 == 0:
+            v[rng.random(len(v)) < 0.2] = -0.0
+        each = [np.unique(v[s:s + k], return_counts=True) for s, k in zip(starts, n, strict=True)]
+        codes, at_code = modal_codes(v, starts, n)
+        assert codes.tolist() == [int(u[np.argmax(c)]) for u, c in each]
+        assert at_code.tolist() == [int(c.max()) for _, c in each]
+    assert [len(a) for a in modal_codes(np.zeros(3), np.zeros(0, int), np.zeros(0, int))] == [0, 0]

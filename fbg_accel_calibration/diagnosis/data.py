@@ -406,8 +406,36 @@ def rows_by_run(data: DiagnosisData, rows: np.ndarray | None) -> list[tuple[slic
 
 def rows_digest(rows: np.ndarray) -> str:
     """A key for a set of rows (sample indices): their number and a cryptographic digest of their bytes, so that two
-    sets of rows never share what is kept for one (``DiagnosisData.once``)."""
+    sets of rows never share what is kept for one (``DiagnosisData.once``).
+
+    The digest of a read-only array that owns its memory (a search's rows, ``search.Evaluator``: asked on every trial
+    of the TIA and the thermal lag, about 1 ms at 10^6 samples) is kept with the array, for the last
+    :data:`_DIGESTS_KEPT` such arrays: the array itself is the key (its identity, the entry holding it so that no
+    other array takes its identity while the entry stands), and its values cannot change while it stays read-only
+    (an array that is written, or a view, whose memory another array may write, is digested on every call)."""
+    if rows.flags.writeable or rows.base is not None:
+        return _digest(rows)
+    with _digests_lock:
+        hit = _digests.get(id(rows))
+        if hit is not None and hit[0] is rows and not rows.flags.writeable:
+            _digests.move_to_end(id(rows))
+            return hit[1]
+    key = _digest(rows)
+    with _digests_lock:
+        _digests[id(rows)] = (rows, key)
+        _digests.move_to_end(id(rows))
+        while len(_digests) > _DIGESTS_KEPT:
+            _digests.popitem(last=False)
+    return key
+
+
+def _digest(rows: np.ndarray) -> str:
     return f"{len(rows)} {blake2b(np.ascontiguousarray(rows).tobytes()).hexdigest()}"
+
+
+_DIGESTS_KEPT = 4  # the read-only rows whose digest ``rows_digest`` keeps (one search's rows at a time, a few tests')
+_digests: OrderedDict[int, tuple[np.ndarray, str]] = OrderedDict()
+_digests_lock = threading.Lock()
 
 
 def input_run_steps(data: DiagnosisData, inp: Inputs) -> list[SampleSteps | None]:

@@ -385,6 +385,14 @@ class ReferenceDarkOffsetEffect(Effect):
         inp.counts_changed = True
         inp.valid &= inp.ref > 0
 
+    def transform_rows(self, data: DiagnosisData, inp: Inputs, part: Inputs, h: float | None, rows: np.ndarray) -> bool:
+        """:meth:`transform` at ``rows`` alone: each sample's offset is its own, so these are its values bit for bit,
+        and a trial of the search subtracts the offset at the searched rows, not at every sample."""
+        part.ref = part.ref - float(h)
+        part.counts_changed = True
+        part.valid &= part.ref > 0
+        return True
+
     def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
         with np.errstate(divide="ignore", invalid="ignore"):
             return (1.0 / np.where(inp.ref > 0, inp.ref, np.nan))[:, None]
@@ -504,7 +512,12 @@ class ThermalLagEffect(Effect):
             return False
         term = ThermalLag(float(h))
         tau = term.tau_s if term.tau_s > 0 else term.rate_smoothing_s
-        coeff = [None if st is None else uniform_coefficient(tau, st) for st in input_run_steps(data, inp)]
+        # a run's coefficient depends on tau and the recording's steps alone (input_run_steps: the data's or None), and
+        # costs a pass over the run's steps where tau is long: once per run and tau (every trial of a search over
+        # another effect asks again for the model's lag)
+        coeff = [None if st is None else data.once(f"uniform coefficient {i} {tau!r}",
+                                                   lambda st=st: uniform_coefficient(tau, st))
+                 for i, st in enumerate(input_run_steps(data, inp))]
         if any(a is None for a in coeff):
             return False
         key = rows_digest(rows)

@@ -168,12 +168,23 @@ def held_cascade(held: HeldRows, x_at: np.ndarray, a: float) -> tuple[np.ndarray
     z_in[1:] = A[:-1] * z_in[0] + B[:-1]
     e = v + st.c_hold * (z_in - v) + L * a * st.c_hold * (y_in - v) - zb[held.before]
     h, m = held.in_hold_of, held.in_hold_steps
-    c_m = np.power(c, m)
+    c_m = _powers(c, m)
     z[held.in_hold] = v[h] + c_m * (z_in[h] - v[h]) + m * a * c_m * (y_in[h] - v[h])
     j, k = held.after_of, held.after_steps
-    c_k = np.power(c, k)
+    c_k = _powers(c, k)
     z[held.after] += c_k * e[j] + k * a * c_k * d[j]
     return y, z
+
+
+def _powers(c: float, k: np.ndarray) -> np.ndarray:
+    """``np.power(c, k)`` for the whole numbers ``k`` (float; the rows' steps into a hold or a stretch), the same values
+    bit for bit: where there are more of them than their largest value, the powers c^0..c^max are worked out once and
+    looked up (the rows of a search fall some tens of thousands into holds of at most a few thousand samples: a power
+    costs some tens of ns, a lookup a few)."""
+    top = int(k.max()) if len(k) else 0
+    if len(k) <= 2 * (top + 1):
+        return np.power(c, k)
+    return np.power(c, np.arange(top + 1, dtype=float))[k.astype(np.intp)]
 
 
 @dataclass(frozen=True)
@@ -234,6 +245,6 @@ def lowpass_at(held: HeldRows, st: FilterStates, a: float) -> np.ndarray:
         return out
     c = 1.0 - a
     h = held.in_hold_of
-    out[held.in_hold] = st.v[h] + np.power(c, held.in_hold_steps) * (st.s_in[h] - st.v[h])
-    out[held.after] += np.power(c, held.after_steps) * st.delta[held.after_of]
+    out[held.in_hold] = st.v[h] + _powers(c, held.in_hold_steps) * (st.s_in[h] - st.v[h])
+    out[held.after] += _powers(c, held.after_steps) * st.delta[held.after_of]
     return out

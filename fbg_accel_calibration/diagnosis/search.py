@@ -217,12 +217,17 @@ def paired_gain_test(res0: np.ndarray, res1: np.ndarray, groups: np.ndarray, row
     per-group differences), and the detectable gain is the relative gain it finds with 80 % power at ``alpha``
     given the scatter of these differences (NaN where the signed-rank test is used)."""
     r = rows & finite_rows(res0) & finite_rows(res1)
-    _, m0 = group_mse(res0, groups, r, weights)
-    _, m1 = group_mse(res1, groups, r, weights)
+    # group_mse of each residual on the rows where both are finite: the groups and each residual's weighted squares
+    # worked out once for the means and the totals (the same values)
+    _, inv = np.unique(groups[r], return_inverse=True)
+    count = np.bincount(inv)
+    e0, e1 = res0[r] ** 2 * weights, res1[r] ** 2 * weights
+    m0 = np.bincount(inv, weights=np.sum(e0, axis=1)) / count
+    m1 = np.bincount(inv, weights=np.sum(e1, axis=1)) / count
     d = m0 - m1
     n = len(d)
-    tot0 = float(np.sum(res0[r] ** 2 * weights))
-    gain = (tot0 - float(np.sum(res1[r] ** 2 * weights))) / tot0 if tot0 > 0 else 0.0
+    tot0 = float(np.sum(e0))
+    gain = (tot0 - float(np.sum(e1))) / tot0 if tot0 > 0 else 0.0
     if alpha is not None and 0.5**n >= alpha:  # small campaign: the rank test cannot reach alpha
         sd = float(np.std(d, ddof=1)) if n >= 3 else 0.0
         if sd <= 0:
@@ -312,6 +317,9 @@ class Evaluator:
 
     def __init__(self, data: DiagnosisData, folds: np.ndarray, weights: np.ndarray, groups: np.ndarray,
                  sub: np.ndarray, references: int = 4) -> None:
+        # the rows read-only, of their own memory: their digest is worked out once (``data.rows_digest``)
+        sub = np.array(sub, copy=True)
+        sub.flags.writeable = False
         self.data, self.weights, self.sub = data, weights, sub
         self.folds, self.groups = self.at(folds), self.at(groups)
         self.rows = self.at(data.use) & (self.folds >= 0)  # held out and judged

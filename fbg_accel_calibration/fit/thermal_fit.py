@@ -628,7 +628,11 @@ def jacobi_solve(xtx: np.ndarray, rhs: np.ndarray, min_diagonal: float = 0.0) ->
     least-squares coefficients of eq. 28 (:func:`solve_normal_equations`); other right-hand sides give B^-1 applied
     to a design's column sums (the slow error, the held-out residual's null covariance). No check of the condition
     number (``solve_normal_equations`` does it); ``np.linalg.LinAlgError`` when S is exactly singular."""
-    d, s = jacobi_scaling(xtx, min_diagonal)
+    return _scaled_solve(*jacobi_scaling(xtx, min_diagonal), rhs)
+
+
+def _scaled_solve(d: np.ndarray, s: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """:func:`jacobi_solve` given the scaling (d, S) of X^T X (:func:`jacobi_scaling`)."""
     return np.linalg.solve(s, rhs / d[:, None]) / d[:, None]
 
 
@@ -645,10 +649,10 @@ def solve_normal_equations(xtx: np.ndarray, xtg: np.ndarray, rcond: float = 1e-1
 
     Raises :class:`NotIdentifiedError` when the scaled matrix is (numerically) singular.
     """
-    cond = scaled_condition(xtx)[2]
+    d, s, cond = scaled_condition(xtx)
     if not cond < 1.0 / rcond:
         raise NotIdentifiedError(f"normal equations are singular (condition number {cond:.3g})")
-    return jacobi_solve(xtx, xtg), cond
+    return _scaled_solve(d, s, xtg), cond  # jacobi_solve on the scaling the condition number was taken of
 
 
 def temperature_scaling(temp_c: np.ndarray) -> tuple[float, float]:

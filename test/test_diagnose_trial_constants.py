@@ -1,0 +1,199 @@
+"""What the diagnosis keeps across a search's trials to spare their CPU (the digest of a search's rows, the thermal
+lag's filter coefficient of each run, the powers of the held low-pass's closed forms): the values it would work out
+again, bit for bit, and never a value kept for other inputs."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from fbg_accel_calibration.diagnosis.data import DiagnosisData, Inputs, rows_digest
+from fbg_accel_calibration.diagnosis.effects import ThermalLagEffect
+from fbg_accel_calibration.diagnosis.held_lowpass import _powers, held_cascade, held_lowpass, held_rows
+from fbg_accel_driver.correction_terms import sample_steps, uniform_coefficient
+
+DT = 0.01
+
+
+def fresh_digest(rows: np.ndarray) -> str:
+    """The digest of ``rows``' values, worked out from a new writable copy (never kept)."""
+    return rows_digest(np.array(rows, copy=True))
+
+
+def test_the_digest_kept_for_read_only_rows_is_theirs_and_never_another_array_s() -> None:
+    rows = np.arange(0, 3000, 7)
+    rows.flags.writeable = False
+    key = rows_digest(rows)
+    assert key == fresh_digest(rows) and rows_digest(rows) == key
+    # arrays made and dropped one after the other (numpy reuses their memory, so their address): each its own digest
+    for k in range(1, 40):
+        other = np.arange(0, 3000, 7) + k
+        other.flags.writeable = False
+        assert rows_digest(other) == fresh_digest(other) != key
+        del other
+    # the same values in another array: the same key (what is kept by the key is shared)
+    same = np.arange(0, 3000, 7)
+    same.flags.writeable = False
+    assert rows_digest(same) == key
+
+
+def test_rows_that_can_change_are_digested_on_every_call() -> None:
+    rows = np.arange(0, 3000, 7)
+    key = rows_digest(rows)
+    rows[5] += 1  # written in place: a writable array is digested again
+    assert rows_digest(rows) == fresh_digest(rows) != key
+    base = np.arange(0, 3000, 7)
+    view = base[:]
+    view.flags.writeable = False  # read-only, but its memory is written through ``base``
+    key = rows_digest(view)
+    base[0] = 1
+    assert rows_digest(view) == fresh_digest(view) != key
+
+
+def test_a_read_only_array_made_writable_again_is_digested_again() -> None:
+    rows = np.arange(0, 3000, 7)
+    rows.flags.writeable = False
+    key = rows_digest(rows)
+    rows.flags.writeable = True
+    rows[0] = 2
+    assert rows_digest(rows) == fresh_digest(rows) != key
+
+
+def test_the_search_evaluator_keeps_its_rows_read_only_in_its_own_memory() -> None:
+    from fbg_accel_calibration.diagnosis.search import Evaluator
+
+    data = two_rate_lag_data()
+    sub = np.flatnonzero(data.use)[::5]
+    ev = Evaluator(data, np.zeros(len(data.t_s), int), np.ones(3), data.group, sub)
+    assert not ev.sub.flags.writeable and ev.sub.base is None and np.array_equal(ev.sub, sub)
+    sub[0] = 1  # the caller's array is its own
+    assert ev.sub[0] != 1
+
+
+def two_rate_lag_data() -> DiagnosisData:
+    """Two runs of a temperature reading at the AHT10's resolution, the second sampled twice as slowly (another filter
+    coefficient for the same time constant), poses held 150-400 samples between moves."""
+    rng = np.random.default_rng(3)
+    pose, run = [], []
+    for r in range(2):
+        for p in range(8):
+            move, hold = int(rng.integers(20, 60)), int(rng.integers(150, 400))
+            pose.append(np.r_[np.full(move, -1), np.full(hold, p)])
+            run.append(np.full(move + hold, r))
+    pose_id, run_id = np.concatenate(pose), np.concatenate(run)
+    n = len(pose_id)
+    t = np.empty(n)
+    for r, step in ((0, DT), (1, 2 * DT)):
+        at = run_id == r
+        t[at] = 100.0 * r + step * np.arange(np.count_nonzero(at))
+    temp = np.round(25.0 + 2.0 * np.sin(np.arange(n) / 300.0) + rng.normal(0, 0.004, n), 2)
+    gref = np.tile([0.0, 0.0, 9.80665], (n, 1))
+    ref = 3000.0 + rng.normal(0, 5, n)
+    return DiagnosisData(t, ref, gref * ref[:, None] * 1e-3, temp, gref, pose_id, run_id, pose_id >= 0)
+
+
+def test_the_thermal_lag_s_kept_coefficients_are_those_of_each_run_and_time_constant() -> None:
+    """``ThermalLagEffect.transform_rows`` keeps each run's filter coefficient per time constant: trials of several
+    time constants on one recording whose runs are sampled differently give, bit for bit, what each gives on a
+    recording that has kept nothing, and each run its own coefficient (the filter over every sample)."""
+    data = two_rate_lag_data()
+    steps = data.run_steps()
+    assert uniform_coefficient(2.0, steps[0]) != uniform_coefficient(2.0, steps[1])
+    eff = ThermalLagEffect()
+    rows = np.flatnonzero(data.use)[::3]
+    for h in (2.0, 0.5, -3.0, 2.0, -0.4, 400.0, 0.5):
+        part = Inputs.of(data).at(rows)
+        assert eff.transform_rows(data, Inputs.of(data), part, h, rows)
+        cold_data = replace(data)  # the same arrays, nothing kept
+        cold = Inputs.of(cold_data).at(rows)
+        assert eff.transform_rows(cold_data, Inputs.of(cold_data), cold, h, rows)
+        assert part.temp_c.tobytes() == cold.temp_c.tobytes()
+        full = Inputs.of(data)
+        eff.transform(data, full, h)
+        np.testing.assert_allclose(part.temp_c, full.temp_c[rows], rtol=0, atol=1e-11)
+        data.drop_recent()  # the lagged reading itself is kept per time constant: this test is of the coefficients
+
+
+@pytest.mark.parametrize("c", [0.0, 0.1, 0.5, 0.9, 0.999, 1.0 - 1e-9, 1.0])
+def test_the_powers_looked_up_are_those_worked_out(c: float) -> None:
+    rng = np.random.default_rng(int(c * 1000))
+    for k in (rng.integers(0, 3000, 50_000).astype(float), np.arange(5.0), np.zeros(0), np.zeros(10),
+              rng.integers(0, 10**6, 100).astype(float), np.full(1000, 2999.0)):
+        assert _powers(c, k).tobytes() == np.power(c, k).tobytes()
+
+
+def test_the_held_filters_with_looked_up_powers_are_those_with_every_power_worked_out(monkeypatch) -> None:
+    """``held_lowpass`` and ``held_cascade`` give the same values bit for bit with every power of the closed forms
+    worked out (``np.power``), on rows that fall some thousands into holds of some hundreds of samples."""
+    rng = np.random.default_rng(8)
+    parts = []
+    for _ in range(30):
+        parts += [rng.normal(size=int(rng.integers(5, 40))), np.full(int(rng.integers(100, 600)), rng.normal())]
+    x = np.concatenate(parts)
+    rows = np.arange(len(x))[::2]
+    held = held_rows(x, rows)
+    assert len(held.in_hold) > 2 * (held.in_hold_steps.max() + 1)  # the lookup is taken
+    a = uniform_coefficient(0.05, sample_steps(DT * np.arange(len(x))))
+    got = (held_lowpass(held, x[held.samples], a), *held_cascade(held, x[held.samples], a))
+    from fbg_accel_calibration.diagnosis import held_lowpass as module
+
+    monkeypatch.setattr(module, "_powers", np.power)
+    want = (held_lowpass(held, x[held.samples], a), *held_cascade(held, x[held.samples], a))
+    for g, w in zip(got, want, strict=True):
+        assert g.tobytes() == w.tobytes()
+
+
+def test_the_paired_gain_test_s_visit_means_are_group_mse_s() -> None:
+    """``paired_gain_test`` works out the groups and the weighted squares of both residuals once: its gain and p-value
+    are those from ``group_mse`` of each residual on the rows where both are finite, bit for bit."""
+    from scipy import stats
+
+    from fbg_accel_calibration.diagnosis.data import finite_rows
+    from fbg_accel_calibration.diagnosis.search import group_mse, paired_gain_test
+
+    rng = np.random.default_rng(2)
+    n = 4000
+    groups = np.repeat(np.arange(40), 100)
+    res0 = rng.normal(0, 1.0, (n, 3))
+    res1 = res0 * 0.9 + rng.normal(0, 0.2, (n, 3))
+    res0[rng.random(n) < 0.05, 1] = np.nan
+    res1[rng.random(n) < 0.05, 2] = np.nan
+    rows = rng.random(n) < 0.9
+    weights = np.array([1.0, 2.0, 0.5])
+    r = rows & finite_rows(res0) & finite_rows(res1)
+    d = group_mse(res0, groups, r, weights)[1] - group_mse(res1, groups, r, weights)[1]
+    tot0 = float(np.sum(res0[r] ** 2 * weights))
+    gain = (tot0 - float(np.sum(res1[r] ** 2 * weights))) / tot0
+    p = float(stats.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue)
+    got = paired_gain_test(res0, res1, groups, rows, weights, 0.01)
+    assert got[0] == gain and got[1] == p and got[2] == 40
+
+
+def test_the_dark_offset_at_the_searched_rows_is_the_one_over_every_sample() -> None:
+    """A design whose last correction of the inputs is the reference's dark offset and whose columns read only its
+    rows subtracts the offset at those rows alone (``ReferenceDarkOffsetEffect.transform_rows``): the same design,
+    valid rows and inputs there bit for bit as the offset subtracted at every sample; after the read-noise filter
+    too, and with an offset that leaves some references at or below 0 (those rows not valid)."""
+    from fbg_accel_calibration.diagnosis.design import DesignCache, ModelSpec, _corrected_inputs, build_design
+    from fbg_accel_calibration.diagnosis.effects import ReferenceDarkOffsetEffect, ReferenceReadNoiseEffect
+
+    data = two_rate_lag_data()
+    rows = np.flatnonzero(data.use)[::4]
+    dark = ReferenceDarkOffsetEffect()
+    low = float(np.sort(data.ref[rows])[10])
+    for before in ([], [(ReferenceReadNoiseEffect(), 0.05)]):
+        for h in (-200.0, 0.0, 35.5, low, 3000.0):
+            spec = ModelSpec(1, 25.0, 2.0, [*before, (dark, h)])
+            want = build_design(data, spec, None, rows)
+            cache = DesignCache()
+            got = build_design(data, spec, cache, rows)
+            assert got.X.tobytes() == want.X.tobytes() and np.array_equal(got.valid, want.valid)
+            assert got.G.tobytes() == want.G.tobytes()
+            inp, part = next(iter(cache.inputs.values()))
+            assert inp is None and part.counts_changed  # the rows alone were corrected
+            full = _corrected_inputs(data, spec.effects)
+            assert np.array_equal(part.valid, full.valid[rows]) and part.ref.tobytes() == full.ref[rows].tobytes()
+            if h == 3000.0 or (h == low and not before):
+                assert not want.valid.all()
