@@ -189,9 +189,10 @@ def _powers(c: float, k: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class FilterStates:
-    """What ``held_cascade`` reads of the first filter: its values at ``busy`` (b,), and per hold (m,; None: no hold)
-    the hold's value, its c^L, the c^n of the stretch after it, the true state entering it and the difference of the
-    true and the carried state where the stretch after it starts."""
+    """What the low-pass leaves at a run's holds (``lowpass_states``), which ``lowpass_at`` and ``held_cascade`` read:
+    its values at ``busy`` (b,), and per hold (m,; None: no hold) the hold's value, its c^L, the c^n of the stretch
+    after it, the true state entering it and the difference of the true and the carried state where the stretch after
+    it starts."""
 
     yb: np.ndarray
     v: np.ndarray | None = None
