@@ -128,6 +128,7 @@ def test_a_search_judged_lets_go_of_its_trials() -> None:
         for _ in range(2):
             r = ev.evaluate(base, eff, cvr.heldout, cvr.fitted_full, des.G)
             assert r.hyper is not None and not _named(ev, eff.name)
+            assert not ev.designs._taken  # nor the arrays it took rows of (it holds them)
             held = ev.nested_heldout(base, eff)
             assert not _named(ev, eff.name)
             judged.append((r.hyper, r.rel_gain, r.p_value, held))

@@ -190,7 +190,7 @@ class DesignCache:
 
     def forget(self, name: str) -> None:
         """Drop what this lane's cache keeps of models with the effect ``name`` (its corrected inputs, prefixes and
-        matrices; the references it shares with other lanes stay): once a search over that effect on top of a model
+        matrices, and the arrays it took rows of; the references it shares with other lanes stay): once a search over that effect on top of a model
         is judged, the trial values' series of 10^6 samples are of no use to the searches after it, and would stay
         beside their arrays until pushed out."""
         def named(key: tuple) -> bool:
@@ -200,6 +200,8 @@ class DesignCache:
             with kept._lock:
                 for key in [k for k in kept if named(k)]:
                     del kept[key]
+        with self._taken._lock:  # the rows taken of their arrays, which it holds: made again at the next design
+            self._taken.clear()
 
     def prefix(self, names: tuple) -> tuple[int, Inputs | None]:
         """(number of corrections done, a private copy of the inputs after them) for the longest cached prefix
