@@ -12,10 +12,12 @@ the run is in the results.
   read), fits eq. 28 at degree 2 (36 coefficients) by least squares and runs a 10-fold cross-validation by visit
   from per-fold X^T X and X^T Y. Goal: <= 2x.
 * ``diagnose``: the diagnosis alone (``bench/diagnose_command.py --diagnosis-alone``: import the engine, read the
-  recording from MCAP, ``diagnose()`` with the command's defaults) on the simulator's benchmark run
-  (``bench_calibration.scenario``, every effect at its default) of N samples, against the same floor as ``fit``
-  (least squares of eq. 28 at degree 2 and a 10-fold cross-validation by visit) on the same samples (those with a
-  reference, from ``.npz``). Goals: CPU <= 10x, peak RSS <= 600 MiB.
+  recording from MCAP, ``diagnose()`` with the command's defaults but one lane, the goal's measure) on the
+  simulator's benchmark run (``bench_calibration.scenario``, every effect at its default) of N samples, against the
+  same floor as ``fit`` (least squares of eq. 28 at degree 2 and a 10-fold cross-validation by visit) on the same
+  samples (those with a reference, from ``.npz``). Goals: CPU <= 10x, peak RSS <= 600 MiB. Then the same with the
+  command's default lanes (two searches side by side on a machine of two cores or more: less wall time, more CPU
+  and memory), in pairs of their own with the floor.
 * ``driver``: CPU of the ``driver`` process (all threads, /proc/<pid>/stat) over a window of frames written to a pty
   at 100 Hz and 1 kHz (the simulator's clean frames, one write per frame, paced), against the floor node
   (:func:`driver_floor`, a minimal rclpy node publishing the same three messages per frame) fed the same way,
@@ -174,20 +176,29 @@ def diagnose_files(n: int, folder: Path) -> tuple[Path, Path]:
 
 
 def measure_diagnose(n: int, pairs: int, folder: Path) -> dict:
+    """The diagnosis alone with one lane against the floor (the goal's measure), then with the default lanes (the
+    result's ``default_lanes``)."""
     path, arrays = diagnose_files(n, folder)
     project = [sys.executable, str(HERE / "diagnose_command.py"), "--diagnosis-alone", str(path)]
     floor = [sys.executable, str(Path(__file__).resolve()), "--fit-floor", str(arrays)]
     run_child(floor)  # page cache and .pyc files
-    res = interleaved(floor, project, pairs)
-    rss = res["project"]["rss_mib"]
-    res.update(samples=n, goal=DIAGNOSE_GOAL, rss_goal_mib=DIAGNOSE_RSS_GOAL_MIB,
-               goal_met=res["cpu_ratio"] <= DIAGNOSE_GOAL, rss_goal_met=rss <= DIAGNOSE_RSS_GOAL_MIB,
-               command="diagnose() of the recording read from MCAP (bench/diagnose_command.py --diagnosis-alone)")
-    print(f"diagnose {n} samples: diagnosis CPU {res['project']['cpu_s']:.2f} s ({rss:.0f} MiB), floor "
-          f"{res['floor']['cpu_s']:.2f} s: {res['cpu_ratio']:.2f}x (goal <= {DIAGNOSE_GOAL:g}x: "
-          f"{'met' if res['goal_met'] else 'NOT met'}; RSS goal <= {DIAGNOSE_RSS_GOAL_MIB:g} MiB: "
-          f"{'met' if res['rss_goal_met'] else 'NOT met'})", flush=True)
-    return res
+    out: dict = {}
+    for lanes, argv in (("one lane", [*project, "--lanes", "1"]), ("default lanes", project)):
+        res = interleaved(floor, argv, pairs)
+        rss = res["project"]["rss_mib"]
+        res.update(samples=n, goal=DIAGNOSE_GOAL, rss_goal_mib=DIAGNOSE_RSS_GOAL_MIB, lanes=lanes,
+                   goal_met=res["cpu_ratio"] <= DIAGNOSE_GOAL, rss_goal_met=rss <= DIAGNOSE_RSS_GOAL_MIB,
+                   command="diagnose() of the recording read from MCAP (bench/diagnose_command.py "
+                           f"--diagnosis-alone{' --lanes 1' if lanes == 'one lane' else ''})")
+        print(f"diagnose {n} samples, {lanes}: diagnosis CPU {res['project']['cpu_s']:.2f} s ({rss:.0f} MiB), floor "
+              f"{res['floor']['cpu_s']:.2f} s: {res['cpu_ratio']:.2f}x (goal <= {DIAGNOSE_GOAL:g}x: "
+              f"{'met' if res['goal_met'] else 'NOT met'}; RSS goal <= {DIAGNOSE_RSS_GOAL_MIB:g} MiB: "
+              f"{'met' if res['rss_goal_met'] else 'NOT met'})", flush=True)
+        if out:
+            out["default_lanes"] = res
+        else:
+            out = res
+    return out
 
 
 # -- driver
@@ -374,10 +385,11 @@ def page(doc: dict) -> str:
                      f"{f['floor']['cpu_s']:.2f} s, {f['floor']['rss_mib']:.0f} MiB | {f['cpu_ratio']:.2f}x "
                      f"({f['cpu_ratio_range'][0]}-{f['cpu_ratio_range'][1]}) | <= {f['goal']}x: "
                      f"{'met' if f['goal_met'] else 'not met'} |")
-    if "diagnose" in doc:
-        f = doc["diagnose"]
-        lines.append(f"| the diagnosis alone (`diagnose()` of a recording read from MCAP), {f['samples']:.0e} samples "
-                     f"of the simulator's benchmark run | {f['project']['cpu_s']:.2f} s, "
+    diag = doc.get("diagnose")
+    for f in [] if diag is None else [diag, *([diag["default_lanes"]] if "default_lanes" in diag else [])]:
+        lanes = f" ({f['lanes']})" if "lanes" in f else ""
+        lines.append(f"| the diagnosis alone (`diagnose()` of a recording read from MCAP{lanes}), {f['samples']:.0e} "
+                     f"samples of the simulator's benchmark run | {f['project']['cpu_s']:.2f} s, "
                      f"{f['project']['rss_mib']:.0f} MiB | the same floor as `fit`, on the same samples | "
                      f"{f['floor']['cpu_s']:.2f} s, {f['floor']['rss_mib']:.0f} MiB | {f['cpu_ratio']:.2f}x "
                      f"({f['cpu_ratio_range'][0]}-{f['cpu_ratio_range'][1]}) | <= {f['goal']:g}x: "
