@@ -190,9 +190,9 @@ class DesignCache:
 
     def forget(self, name: str) -> None:
         """Drop what this lane's cache keeps of models with the effect ``name`` (its corrected inputs, prefixes and
-        matrices, and the arrays it took rows of; the references it shares with other lanes stay): once a search over that effect on top of a model
-        is judged, the trial values' series of 10^6 samples are of no use to the searches after it, and would stay
-        beside their arrays until pushed out."""
+        matrices, and the arrays it took rows of; the references it shares with other lanes stay): once a search over
+        that effect on top of a model is judged, the trial values' series of 10^6 samples are of no use to the
+        searches after it, and would stay beside their arrays until pushed out."""
         def named(key: tuple) -> bool:
             return any(isinstance(k, tuple) and (k[:1] == (name,) or named(k)) for k in key)
 
