@@ -23,42 +23,46 @@ def fresh_digest(rows: np.ndarray) -> str:
 
 
 def test_the_digest_kept_for_read_only_rows_is_theirs_and_never_another_array_s() -> None:
+    data = two_rate_lag_data()
     rows = np.arange(0, 3000, 7)
     rows.flags.writeable = False
-    key = rows_digest(rows)
-    assert key == fresh_digest(rows) and rows_digest(rows) == key
+    key = data.rows_key(rows)
+    assert key == fresh_digest(rows) and data.rows_key(rows) == key
+    assert data._row_keys[id(rows)] == (rows, key)  # kept with the array, by the recording's cache
     # arrays made and dropped one after the other (numpy reuses their memory, so their address): each its own digest
     for k in range(1, 40):
         other = np.arange(0, 3000, 7) + k
         other.flags.writeable = False
-        assert rows_digest(other) == fresh_digest(other) != key
+        assert data.rows_key(other) == fresh_digest(other) != key
         del other
     # the same values in another array: the same key (what is kept by the key is shared)
     same = np.arange(0, 3000, 7)
     same.flags.writeable = False
-    assert rows_digest(same) == key
+    assert data.rows_key(same) == key
 
 
 def test_rows_that_can_change_are_digested_on_every_call() -> None:
+    data = two_rate_lag_data()
     rows = np.arange(0, 3000, 7)
-    key = rows_digest(rows)
+    key = data.rows_key(rows)
     rows[5] += 1  # written in place: a writable array is digested again
-    assert rows_digest(rows) == fresh_digest(rows) != key
+    assert data.rows_key(rows) == fresh_digest(rows) != key
     base = np.arange(0, 3000, 7)
     view = base[:]
     view.flags.writeable = False  # read-only, but its memory is written through ``base``
-    key = rows_digest(view)
+    key = data.rows_key(view)
     base[0] = 1
-    assert rows_digest(view) == fresh_digest(view) != key
+    assert data.rows_key(view) == fresh_digest(view) != key
 
 
 def test_a_read_only_array_made_writable_again_is_digested_again() -> None:
+    data = two_rate_lag_data()
     rows = np.arange(0, 3000, 7)
     rows.flags.writeable = False
-    key = rows_digest(rows)
+    key = data.rows_key(rows)
     rows.flags.writeable = True
     rows[0] = 2
-    assert rows_digest(rows) == fresh_digest(rows) != key
+    assert data.rows_key(rows) == fresh_digest(rows) != key
 
 
 def test_the_search_evaluator_keeps_its_rows_read_only_in_its_own_memory() -> None:

@@ -22,7 +22,6 @@ from .data import (
     input_run_steps,
     interp_columns,
     rows_by_run,
-    rows_digest,
     take_rows,
 )
 from .effects import (
@@ -272,7 +271,7 @@ class TiaLowpassEffect(Effect):
             P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
             gref = self._held_every_sample(g, runs, holds, coeff, P, q)
             return gref, inp.valid & finite_rows(gref)
-        rows_key = rows_digest(rows)
+        rows_key = data.rows_key(rows)
         found = []
         for run, _, local in pieces:
             if moved:

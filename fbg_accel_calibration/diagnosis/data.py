@@ -20,6 +20,8 @@ import numpy as np
 
 from fbg_accel_driver.correction_terms import SampleSteps, sample_steps
 
+ROW_KEYS_KEPT = 4  # the read-only rows whose digest ``DiagnosisData.rows_key`` keeps (a search's rows, a few tests')
+
 
 @dataclass
 class DiagnosisData:
@@ -58,6 +60,8 @@ class DiagnosisData:
     _recent: OrderedDict[tuple, Any] = field(default_factory=OrderedDict, init=False, repr=False, compare=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
     _for_trials: set[str] = field(default_factory=set, init=False, repr=False, compare=False)
+    _row_keys: OrderedDict[int, tuple[np.ndarray, str]] = field(default_factory=OrderedDict, init=False, repr=False,
+                                                                compare=False)
 
     def runs(self) -> list[slice | np.ndarray]:
         """The samples of each run, together every sample (computed once; every filter restarts at a run's first
@@ -104,6 +108,27 @@ class DiagnosisData:
             while len(self._recent) > keep:
                 self._recent.popitem(last=False)
         return hit
+
+    def rows_key(self, rows: np.ndarray) -> str:
+        """``rows_digest(rows)``, kept with the array for the last ``ROW_KEYS_KEPT`` read-only arrays that own their
+        memory (a search's rows, ``search.Evaluator``: asked on every trial of the TIA and the thermal lag, about 1 ms
+        at 10^6 samples). The array itself is the key: its identity, the entry holding it so that no other array takes
+        its identity while the entry stands; its values cannot change while it stays read-only. An array that can be
+        written, or a view (whose memory another array may write), is digested on every call."""
+        if rows.flags.writeable or rows.base is not None:
+            return rows_digest(rows)
+        with self._lock:
+            hit = self._row_keys.get(id(rows))
+            if hit is not None and hit[0] is rows and not rows.flags.writeable:
+                self._row_keys.move_to_end(id(rows))
+                return hit[1]
+        key = rows_digest(rows)
+        with self._lock:
+            self._row_keys[id(rows)] = (rows, key)
+            self._row_keys.move_to_end(id(rows))
+            while len(self._row_keys) > ROW_KEYS_KEPT:
+                self._row_keys.popitem(last=False)
+        return key
 
     def drop_recent(self) -> None:
         """Forget what :meth:`recent` keeps and the constants ``once`` keeps for the trials (when no search follows)."""
@@ -406,36 +431,8 @@ def rows_by_run(data: DiagnosisData, rows: np.ndarray | None) -> list[tuple[slic
 
 def rows_digest(rows: np.ndarray) -> str:
     """A key for a set of rows (sample indices): their number and a cryptographic digest of their bytes, so that two
-    sets of rows never share what is kept for one (``DiagnosisData.once``).
-
-    The digest of a read-only array that owns its memory (a search's rows, ``search.Evaluator``: asked on every trial
-    of the TIA and the thermal lag, about 1 ms at 10^6 samples) is kept with the array, for the last
-    :data:`_DIGESTS_KEPT` such arrays: the array itself is the key (its identity, the entry holding it so that no
-    other array takes its identity while the entry stands), and its values cannot change while it stays read-only
-    (an array that is written, or a view, whose memory another array may write, is digested on every call)."""
-    if rows.flags.writeable or rows.base is not None:
-        return _digest(rows)
-    with _digests_lock:
-        hit = _digests.get(id(rows))
-        if hit is not None and hit[0] is rows and not rows.flags.writeable:
-            _digests.move_to_end(id(rows))
-            return hit[1]
-    key = _digest(rows)
-    with _digests_lock:
-        _digests[id(rows)] = (rows, key)
-        _digests.move_to_end(id(rows))
-        while len(_digests) > _DIGESTS_KEPT:
-            _digests.popitem(last=False)
-    return key
-
-
-def _digest(rows: np.ndarray) -> str:
+    sets of rows never share what is kept for one (``DiagnosisData.once``; kept per array: ``DiagnosisData.rows_key``)."""
     return f"{len(rows)} {blake2b(np.ascontiguousarray(rows).tobytes()).hexdigest()}"
-
-
-_DIGESTS_KEPT = 4  # the read-only rows whose digest ``rows_digest`` keeps (one search's rows at a time, a few tests')
-_digests: OrderedDict[int, tuple[np.ndarray, str]] = OrderedDict()
-_digests_lock = threading.Lock()
 
 
 def input_run_steps(data: DiagnosisData, inp: Inputs) -> list[SampleSteps | None]:

@@ -59,7 +59,6 @@ from .data import (
     direction_labels,
     input_run_steps,
     rows_by_run,
-    rows_digest,
     visit_means,
 )
 from .held_lowpass import HeldRows, held_cascade, held_lowpass, held_rows
@@ -520,7 +519,7 @@ class ThermalLagEffect(Effect):
                  for i, st in enumerate(input_run_steps(data, inp))]
         if any(a is None for a in coeff):
             return False
-        key = rows_digest(rows)
+        key = data.rows_key(rows)
 
         def lagged() -> np.ndarray:
             out = np.empty(len(rows))

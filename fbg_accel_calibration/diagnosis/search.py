@@ -317,7 +317,7 @@ class Evaluator:
 
     def __init__(self, data: DiagnosisData, folds: np.ndarray, weights: np.ndarray, groups: np.ndarray,
                  sub: np.ndarray, references: int = 4) -> None:
-        # the rows read-only, of their own memory: their digest is worked out once (``data.rows_digest``)
+        # the rows read-only, of their own memory: their digest is worked out once (``DiagnosisData.rows_key``)
         sub = np.array(sub, copy=True)
         sub.flags.writeable = False
         self.data, self.weights, self.sub = data, weights, sub
