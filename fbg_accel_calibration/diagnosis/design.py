@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -153,6 +154,12 @@ class _Recent(OrderedDict):
         with self._lock:
             self[key] = value
 
+    def drop(self, which: Callable[[tuple], bool]) -> None:
+        """Drop the entries whose key ``which`` says."""
+        with self._lock:
+            for key in [k for k in self if which(k)]:
+                del self[key]
+
     def trim(self, room: int = 0) -> None:
         """Drop the oldest entries until ``room`` more fit: called with 1 before a new entry is computed, so that the
         arrays it replaces are not held beside the new ones while they are built."""
@@ -197,11 +204,8 @@ class DesignCache:
             return any(isinstance(k, tuple) and (k[:1] == (name,) or named(k)) for k in key)
 
         for kept in (self.inputs, self.prefixes, self.matrices):
-            with kept._lock:
-                for key in [k for k in kept if named(k)]:
-                    del kept[key]
-        with self._taken._lock:  # the rows taken of their arrays, which it holds: made again at the next design
-            self._taken.clear()
+            kept.drop(named)
+        self._taken.drop(lambda _: True)  # the rows taken of their arrays, which it holds: made again when asked
 
     def prefix(self, names: tuple) -> tuple[int, Inputs | None]:
         """(number of corrections done, a private copy of the inputs after them) for the longest cached prefix
