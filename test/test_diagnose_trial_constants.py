@@ -201,3 +201,25 @@ def test_the_dark_offset_at_the_searched_rows_is_the_one_over_every_sample() -> 
             assert np.array_equal(part.valid, full.valid[rows]) and part.ref.tobytes() == full.ref[rows].tobytes()
             if h == 3000.0 or (h == low and not before):
                 assert not want.valid.all()
+
+
+def test_a_kept_value_no_longer_fresh_is_let_go_on_the_next_call_for_any_key() -> None:
+    """``DiagnosisData.recent``: an entry whose ``fresh`` says it no longer stands for its key (what it was made of is
+    gone) is dropped on the next call, whatever key that call asks for, before its value is made; one still fresh
+    is served as kept."""
+    data = two_rate_lag_data()
+    made: list[str] = []
+
+    def make(name: str) -> str:
+        made.append(name)
+        return name
+
+    alive = {"a": True}
+    assert data.recent(("a",), lambda: make("a"), fresh=lambda _: alive["a"]) == "a"
+    assert data.recent(("b",), lambda: make("b")) == "b"
+    assert data.recent(("a",), lambda: make("a"), fresh=lambda _: alive["a"]) == "a" and made == ["a", "b"]
+    alive["a"] = False
+    seen_by_b: list[list[tuple]] = []
+    data.recent(("c",), lambda: seen_by_b.append(list(data._recent)) or make("c"))
+    assert seen_by_b == [[("b",)]]  # gone before "c" was made
+    assert list(data._recent) == [("b",), ("c",)]

@@ -288,6 +288,25 @@ def test_the_tia_reference_on_a_delayed_reference_is_the_one_over_every_sample(D
     np.testing.assert_allclose(got[0], tia_reference_over_every_sample(data, other, 1.0)[rows], rtol=0, atol=1e-12)
 
 
+
+def test_the_holds_kept_for_a_delayed_reference_go_with_it() -> None:
+    """The holds a TIA trial keeps for a delayed reference (``DiagnosisData.recent``) are let go once that reference
+    is gone, before the next trial's are made: a search over the delay under the TIA (a new delayed series on each
+    trial) holds the holds of the series it works on, not those of the trials before it beside them."""
+    from fbg_accel_calibration.diagnosis.chain_effects import ChannelDelayEffect
+
+    data = tia_data()
+    eff, delay = TiaLowpassEffect(), ChannelDelayEffect()
+    rows = np.flatnonzero(data.use)[::9]
+    for D in (0.3 * DT, 2.5 * DT, 0.1, 0.2):
+        delayed = Inputs.of(data)  # the trial before's series is dropped here, as a search's cache drops it
+        delay.transform(data, delayed, D)
+        got = eff.reference_at(data, delayed, 1.0, rows)
+        kept = [k for k in data._recent if k[0] == "held_reference"]
+        assert [k[1] for k in kept] == [id(delayed.gref)] * len(data.runs())
+        want = tia_reference_over_every_sample(data, delayed, 1.0)
+        np.testing.assert_allclose(got[0], want[rows], rtol=0, atol=1e-12)
+
 def lag_data() -> DiagnosisData:
     """Two runs of a temperature reading at the AHT10's resolution (0.01 degC) ramping up and down through 4 degC, with
     its reading noise (holds of a few samples to hundreds between its changes)."""

@@ -326,8 +326,8 @@ class TiaLowpassEffect(Effect):
         """``_held_reference`` of a run of the reference ``g`` (N, 3) an earlier correction moved (the channel delay),
         at ``rows`` (local; ``rows_key`` their digest). Kept for the next searches' trials (``DiagnosisData.recent``:
         a search of the TIA on top of a delay asks on every trial) by the array itself, read-only: ``g``'s identity
-        and a weak reference to it: the kept holds do not keep the array alive and are never served for another (a new
-        array at its address is not it), though they stay among ``recent``'s few entries until pushed out. A writable
+        and a weak reference to it: the kept holds do not keep the array alive, are let go once it is gone (before the
+        next trial's are made) and are never served for another (a new array at its address is not it). A writable
         array is worked out on each call."""
         if g.flags.writeable or g.base is not None:
             return self._held_reference(g[run], rows)
@@ -338,8 +338,9 @@ class TiaLowpassEffect(Effect):
                 a.flags.writeable = False
             return weakref.ref(g), held, g_at, g_rows
 
+        # the predicate holds no reference to g: the entry stands while g lives, and g alone has its identity then
         return data.recent(("held_reference", id(g), run.start, run.stop, rows_key), find,
-                           fresh=lambda hit: hit[0]() is g)[1:]
+                           fresh=lambda hit: hit[0]() is not None)[1:]
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
         return [ChainDynamics(self.taus(float(h)), 0.0)]

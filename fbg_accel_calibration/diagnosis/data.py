@@ -57,7 +57,9 @@ class DiagnosisData:
     table_deg: np.ndarray | None = None  # (N, 2) the table's angle readings psi, theta (deg); None: not in the recording
 
     _memo: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
-    _recent: OrderedDict[tuple, Any] = field(default_factory=OrderedDict, init=False, repr=False, compare=False)
+    # recent's entries: (value, fresh)
+    _recent: OrderedDict[tuple, tuple[Any, Callable[[Any], bool] | None]] = field(default_factory=OrderedDict, init=False,
+                                                                                repr=False, compare=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
     _for_trials: set[str] = field(default_factory=set, init=False, repr=False, compare=False)
     _row_keys: OrderedDict[int, tuple[np.ndarray, str]] = field(default_factory=OrderedDict, init=False, repr=False,
@@ -91,23 +93,32 @@ class DiagnosisData:
         """``compute()`` (a value that depends on the recording and ``key`` alone; an array is made read-only), kept
         for the next ``keep`` distinct keys: a correction that a search repeats unchanged on every trial (the thermal
         lag of the model while another effect is searched) is worked out once (by lanes side by side: as ``once``).
-        ``fresh(value)`` false: a kept value no longer stands for ``key`` (what it was made of is gone), made again."""
+        ``fresh(value)`` false: a kept value no longer stands for ``key`` (what it was made of is gone); it is let go
+        on the next call for any key, before anything is made (the holds of a trial's delayed reference once the
+        trial's series is dropped: not kept beside the next trial's), and made again if asked for."""
         with self._lock:
-            hit = self._recent.get(key)
-            if hit is not None and (fresh is None or fresh(hit)):
+            self._drop_stale()
+            kept = self._recent.get(key)
+            if kept is not None:
                 self._recent.move_to_end(key)
-                return hit
+                return kept[0]
         value = compute()
         if isinstance(value, np.ndarray):
             value.flags.writeable = False
         with self._lock:
-            hit = self._recent.get(key)
-            if hit is None or (fresh is not None and not fresh(hit)):
-                hit = self._recent[key] = value
+            self._drop_stale()
+            kept = self._recent.get(key)
+            if kept is None:
+                kept = self._recent[key] = (value, fresh)
             self._recent.move_to_end(key)
             while len(self._recent) > keep:
                 self._recent.popitem(last=False)
-        return hit
+        return kept[0]
+
+    def _drop_stale(self) -> None:
+        """Drop the entries of ``recent`` whose ``fresh`` says they no longer stand for their key (under the lock)."""
+        for key in [k for k, (value, fresh) in self._recent.items() if fresh is not None and not fresh(value)]:
+            del self._recent[key]
 
     def rows_key(self, rows: np.ndarray) -> str:
         """``rows_digest(rows)``, kept with the array for the last ``ROW_KEYS_KEPT`` read-only arrays that own their
