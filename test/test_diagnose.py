@@ -332,6 +332,22 @@ def test_cached_designs_equal_designs_built_afresh() -> None:
     assert cache.prefixes  # the searches over dark offset and thermal lag started from a cached prefix
 
 
+
+def test_a_delay_search_under_the_tia_holds_one_delayed_series_at_a_time() -> None:
+    """Under a model with the TIA low-pass, each trial of a search over the channel delay corrects the reference over
+    every sample before the TIA filters it (a prefix of the corrections, ``DesignCache.prefixes``): the cache holds the
+    trial's series alone, the one before it let go before it is made, and the designs are those built afresh."""
+    data = prepare_data(synthetic(4, dark=30.0))
+    lib = library_by_name()
+    cache = DesignCache()
+    base = ModelSpec(1, 23.4, 1.0, [(lib["tia_lowpass"], 1.0)])
+    for h in (0.0, 0.01, 0.02, 0.03):
+        spec = base.plus(lib["channel_delay"], h)
+        got, fresh = build_design(data, spec, cache), build_design(data, spec)
+        np.testing.assert_array_equal(got.G, fresh.G)
+        np.testing.assert_array_equal(got.valid, fresh.valid)
+        assert list(cache.prefixes) == [((lib["channel_delay"].name, h),)]
+
 def test_interp_columns_is_np_interp_of_each_column_bit_for_bit() -> None:
     """The channel delay's search interpolates the three reference axes at once (``interp_columns``: one lookup of the
     times for all three): the same bits as ``np.interp`` of each axis, at points of the grid, outside it, at repeated

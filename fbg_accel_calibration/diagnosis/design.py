@@ -180,7 +180,7 @@ class DesignCache:
     as it was: a search over one reuses the matrix, and ``cross_validate`` its sums. Only for one recording.
     """
 
-    def __init__(self, size: int = 1, prefixes: int = 2, matrices: int = 2, references: int = 4) -> None:
+    def __init__(self, size: int = 1, prefixes: int = 1, matrices: int = 2, references: int = 4) -> None:
         self.inputs = _Recent(size)  # (the inputs after a set of corrections, those at the design's rows)
         self.prefixes = _Recent(prefixes)  # the inputs after the first corrections of a set (``prefix``)
         self.matrices = _Recent(matrices)  # (X (n, p) read-only, its finite rows (n,), effect blocks) (``build_design``)
