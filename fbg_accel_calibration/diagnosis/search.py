@@ -241,16 +241,29 @@ def paired_gain_test(res0: np.ndarray, res1: np.ndarray, groups: np.ndarray, row
     return gain, p, n, math.nan
 
 
-def cross_correlation_delay(data: DiagnosisData, fitted: np.ndarray, max_lag: int = 12) -> float:
+def sample_changes(data: DiagnosisData, x: np.ndarray, block: int = 65_536) -> np.ndarray:
+    """First differences (N - 1, k) of ``x`` (N, k) over the samples, NaN read as 0 (``np.nan_to_num``), 0 across a
+    change of run: ``np.diff(np.nan_to_num(x), axis=0)`` bit for bit, made ``block`` rows at a time into the one
+    result (no copy of ``x``)."""
+    out = np.empty((max(len(x) - 1, 0), *x.shape[1:]))
+    for lo in range(0, len(out), block):
+        hi = min(lo + block, len(out))
+        np.subtract(np.nan_to_num(x[lo + 1:hi + 1]), np.nan_to_num(x[lo:hi]), out=out[lo:hi])
+    out[data.run_id[1:] != data.run_id[:-1]] = 0.0
+    return out
+
+
+def cross_correlation_delay(data: DiagnosisData, fitted_changes: np.ndarray, max_lag: int = 12) -> float:
     """Delay (s) of the model output against the (gap-filled) reference by cross-correlation of their
-    first differences (finddelay of D'Emilia et al. 2019), with parabolic sub-sample interpolation."""
+    first differences (finddelay of D'Emilia et al. 2019), with parabolic sub-sample interpolation.
+    ``fitted_changes``: ``sample_changes`` of the model's output (N, 3) m/s^2, taken by the caller so that the output
+    itself need not be held beside the reference's changes and their products (three arrays of N x 3 here)."""
     best_lag, best_val, vals = 0, -np.inf, {}
-    a = np.diff(np.nan_to_num(fitted), axis=0)
-    g = np.diff(np.nan_to_num(data.gref_filled), axis=0)
-    same_run = data.run_id[1:] == data.run_id[:-1]
-    a[~same_run], g[~same_run] = 0.0, 0.0
+    a, g = fitted_changes, sample_changes(data, data.gref_filled)
+    product = np.empty_like(g)  # each lag's products, in one array
     for lag in range(0, max_lag + 1):
-        v = float(np.sum(a[lag:] * g[: len(g) - lag]))
+        n = len(g) - lag
+        v = float(np.sum(np.multiply(a[lag:], g[:n], out=product[:n])))
         vals[lag] = v
         if v > best_val:
             best_lag, best_val = lag, v
@@ -451,8 +464,15 @@ class Evaluator:
         # best (the first such value on a tie), kept as the grid is walked: one (N, 3) array, not one per value.
         # Values whose fit on all rows is not physical (Effect.implausible: e.g. a warm-up of 13 m/s^2 cancelled
         # by a creep) are searched apart and used only when no value is plausible: the hypothesis is a
-        # physical effect, and the best implausible value must not hide a plausible one.
-        heldout = {ok: np.full((len(self.folds), 3), np.nan) for ok in (True, False)}
+        # physical effect, and the best implausible value must not hide a plausible one. Each kind's (N, 3) array
+        # is made when a value of that kind first fits a fold best: a search with no implausible value holds one.
+        heldout: dict[bool, np.ndarray] = {}
+
+        def heldout_of(ok: bool) -> np.ndarray:
+            if ok not in heldout:
+                heldout[ok] = np.full((len(self.folds), 3), np.nan)
+            return heldout[ok]
+
         best_train = {ok: np.full(K, np.inf) for ok in (True, False)}
         best_at = {ok: np.full(K, len(grid)) for ok in (True, False)}  # grid index of each fold's best value
         seen: dict[int, tuple[bool | None, float]] = {}  # grid index -> (plausible, mean training RSS); None: not identified
@@ -476,9 +496,10 @@ class Evaluator:
                 better &= fold_ok[:, i]
             for f in np.flatnonzero(better):
                 best_train[ok][f], best_at[ok][f] = cvr.train_rss[f], i
-                heldout[ok][fold_rows[f]] = np.nan  # those of the fold not fitted at this value
+                out = heldout_of(ok)
+                out[fold_rows[f]] = np.nan  # those of the fold not fitted at this value
                 at, res = cvr.fold_heldout(f)
-                heldout[ok][at] = res
+                out[at] = res
             seen[i] = (ok, float(np.sum(cvr.train_rss) / max(K - 1, 1)))
 
         def visit_all(batch: list[int]) -> None:
@@ -505,7 +526,7 @@ class Evaluator:
         hi = grid[min(j + 1, len(grid) - 1)]
         h_best = float(grid[j])
         if not final:
-            return h_best, heldout[use_ok], profile
+            return h_best, heldout_of(use_ok), profile
 
         rss_at: dict[float, float] = {}  # the refinement and the parsimony check ask for some values again
 
@@ -532,7 +553,7 @@ class Evaluator:
             n_groups = len(np.unique(self.groups[self.rows]))
             if (rss_null - rss_best) / max(rss_best / n_groups, 1e-300) < stats.chi2.ppf(0.99, 1):
                 h_best = float(eff.hyper_null)
-        return h_best, heldout[use_ok], profile
+        return h_best, heldout_of(use_ok), profile
 
     def _step_sides(self, eff: Effect, grid: np.ndarray, K: int) -> np.ndarray:
         """(K, m) bool: whether fold f's training visits before and after the step at each value of ``grid`` each

@@ -44,6 +44,7 @@ from .search import (
     cross_correlation_delay,
     paired_gain_test,
     reselect_degree,
+    sample_changes,
     search_samples,
     select_degree,
 )
@@ -203,8 +204,11 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
         ctx.spec, ctx.alpha_each = spec, rules.alpha / max(sum(e.applicable(data)[0] for e in remaining), 1)
         xcorr_later = None  # the channel delay's cross-check, of the current model alone, beside the searches
         if any(e.name == "channel_delay" and e.applicable(data)[0] for e in remaining):
-            xcorr_later = beside(cross_correlation_delay, data, fitted_output(data, spec, base_coefficients)
-                                 if fitted_all is None else fitted_all, thread=n_lanes > 1)
+            # the output's changes, not the output, are held while the reference's are worked out
+            changes = sample_changes(data, fitted_output(data, spec, base_coefficients)
+                                     if fitted_all is None else fitted_all)
+            xcorr_later = beside(cross_correlation_delay, data, changes, thread=n_lanes > 1)
+            del changes
         fitted_all = None
         # the candidates side by side, the longest first (what each took at the step before)
         results = searchers.map(partial(_evaluate_on, spec, *base, ctx.alpha_each, seconds), remaining,
