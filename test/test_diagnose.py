@@ -473,6 +473,24 @@ def test_cross_validation_of_a_design_in_fold_order_equals_that_of_the_time_orde
     np.testing.assert_allclose(b.train_rss, a.train_rss, rtol=1e-7)  # from the normal equations: some cancellation
 
 
+
+def test_a_cross_validation_let_go_and_read_from_its_design_built_again_gives_what_it_gave() -> None:
+    """The declared model's cross-validation lets go of its design, fit and held-out residual while the searches run
+    (``CvResult.let_go``) and reads them from its design built again after them (``CvResult.on``): bit for bit those
+    of the first design, which is then no longer held."""
+    data = prepare_data(synthetic(4, dark=30.0))
+    folds = check_folds(data, data.group, make_folds(data.group, data.use, 5))[0]
+    spec = ModelSpec(2, 23.4, 1.0)
+    first = build_design(data, spec)
+    whole = cross_validate(first, data.use, folds, np.ones(3))
+    kept = cross_validate(first, data.use, folds, np.ones(3))
+    kept.let_go()
+    assert kept._design is None and kept._heldout is None and kept._fitted is None
+    again = kept.on(build_design(data, spec))
+    np.testing.assert_array_equal(again.heldout, whole.heldout)
+    np.testing.assert_array_equal(again.fitted_full, whole.fitted_full)
+    assert again._design is None  # both worked out: the design built again is let go too
+
 def test_sums_kept_while_only_the_reference_changes_give_the_cross_validation_worked_out_afresh() -> None:
     """Trials of a search over a correction of the reference alone share one design matrix (``DesignCache``):
     ``cross_validate`` and ``weighted_rss`` reuse its sums, and give, bit for bit, what they give without;

@@ -240,6 +240,17 @@ class CvResult:
         if self._heldout is not None and self._fitted is not None:
             self._design = None
 
+    def let_go(self) -> None:
+        """Drop the design and what was worked out of it (the held-out residual, the fit); the coefficients, training
+        RSS and sums stay (``on``)."""
+        self._design = self._heldout = self._fitted = None
+
+    def on(self, des: Design) -> CvResult:
+        """This cross-validation read from ``des``, the design it was of built again (the same matrix, bit for bit):
+        its held-out residual and fit worked out from it as they would have been from the first, once the first was let
+        go (``let_go``: the declared model's, while the searches run)."""
+        return CvResult(self.train_rss, self.A_full, self.sums, des.X, des.G, self._start, self._A_folds)
+
 
 def _fold_part(idx: np.ndarray, lo: int, hi: int, of: np.ndarray) -> np.ndarray:
     """``of`` at the rows ``idx[lo:hi]`` (``cross_validate``'s rows in fold order): a view when they are consecutive

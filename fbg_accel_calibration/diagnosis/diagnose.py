@@ -76,7 +76,7 @@ from .library import LIBRARY
 from .periodic_disturbance import PeriodicDisturbance
 from .search import LANE_SEARCH_ROWS, SEARCH_ROWS, CandidateResult, check_search_rows
 from .search_lanes import default_lane_count
-from .selection import Rules, StepResult, declared_model, forward_selection
+from .selection import Rules, StepResult, declared_model, delay_cross_check, forward_selection
 from .structure import ResidualStructure
 
 
@@ -169,20 +169,24 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     des0 = build_design(data, spec)
     cv0 = cross_validate(des0, data.use, fold, np.ones(3))
     res0 = des0.G - cv0.fitted_full
-    residual_before = cv0.heldout  # worked out now: with it and the fit, the result lets go of the design (N x p)
-    floor_rows, reference0 = data.use & des0.valid & (data.pose_id >= 0), des0.G  # (a view of the recording's)
-    del des0  # the declared model's design matrix (N x p, 92 MiB at 10^6 samples) is let go before the floor
+    # the first step's channel delay cross-check of its fit (beside the floor, or now), then neither the declared
+    # model's design (N x p, 92 MiB at 10^6 samples) nor its fit nor its held-out residual (N x 3 each) is held
+    # through the floor and the searches: they are worked out again after them from the design built anew
+    first_delay_check = delay_cross_check(data, library, lambda: cv0.fitted_full, side_by_side)
+    floor_rows = data.use & des0.valid & (data.pose_id >= 0)
+    cv0.let_go()
+    del des0
     floor = measure_floor(data, res0, floor_rows, settle_s, side_by_side)
-    # its in-sample residual (N x 3) is not held: the final model takes it at its rows from the reference and the fit,
-    # which the searches keep (the channel delay's cross-check)
     del res0, floor_rows
     # 2. forward selection over the candidates by nested cross-validation over visits, with their checks
     rules = Rules(alpha, min_rel_gain, max_effects, max_degree, degree is None and n_levels >= 2, folds)
-    sel = forward_selection(data, spec, fold, floor, library, rules, search_rows, lanes, cv0.fitted_full, progress)
-    fit_before = (reference0, cv0.fitted_full)
-    del cv0, reference0
+    sel = forward_selection(data, spec, fold, floor, library, rules, search_rows, lanes, first_delay_check, progress)
     data.drop_recent()
-    return_free_memory()  # the search's corrected series and designs, before the final design (N x p) is built
+    return_free_memory()  # the search's corrected series and designs, before the declared model's design is rebuilt
+    des0 = build_design(data, spec)  # the same matrix, bit for bit
+    cv0 = cv0.on(des0)  # lets go of the design once both are worked out
+    residual_before, fit_before = cv0.heldout, (des0.G, cv0.fitted_full)  # (the reference: a view of the recording's)
+    del des0  # before the final design (N x p) is built
     # 3. the final model on every sample, judged against the floor
     code_rule = (sel.steps[0].alpha_each if sel.steps else alpha, min_rel_gain)
     final = fit_final(data, sel.spec, fold, floor, sensor_id, sel.confounded(), residual_before, fit_before, alpha,

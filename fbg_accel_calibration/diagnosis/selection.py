@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
@@ -167,11 +168,23 @@ def _detection_limit(tested: list[CandidateResult], alpha: float, alpha_each: fl
                    separates="repeat the poses, or visit more orientations")
 
 
+def delay_cross_check(data: DiagnosisData, candidates: list[Effect] | tuple[Effect, ...],
+                      output: Callable[[], np.ndarray], thread: bool) -> Future[float] | None:
+    """The channel delay's cross-check of a model (``cross_correlation_delay``) whose output on every sample (N, 3)
+    m/s^2 ``output()`` gives, on a thread of its own beside the caller's work (``thread``) or now; the output's
+    changes are what the check holds, not the output. None when the channel delay is not among the ``candidates``
+    the data can show."""
+    if not any(e.name == "channel_delay" and e.applicable(data)[0] for e in candidates):
+        return None
+    return beside(cross_correlation_delay, data, sample_changes(data, output()), thread=thread)
+
+
 def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: FloorMeasurement,
                       library: tuple[Effect, ...], rules: Rules, search_rows: int | None, lanes: int | None,
-                      fitted_all: np.ndarray, progress: Callable[[str], None] | None) -> Selection:
-    """Add the best significant candidate on top of ``spec`` and repeat (see the module docstring). ``fitted_all``
-    (N, 3): the declared model's in-sample fit on every sample (the channel delay's cross-correlation). Above
+                      first_delay_check: Future[float] | None, progress: Callable[[str], None] | None) -> Selection:
+    """Add the best significant candidate on top of ``spec`` and repeat (see the module docstring).
+    ``first_delay_check``: the channel delay's cross-check of ``spec`` (``delay_cross_check`` of the declared model's
+    in-sample fit on every sample), None when the channel delay is not a candidate. Above
     ``search_rows`` fitted samples the candidates are evaluated on every k-th one (``search_samples``); ``lanes``:
     searches side by side (None: ``default_lane_count()`` from ``LANE_SEARCH_ROWS`` searched samples on)."""
     groups, weights = data.group, 1.0 / np.maximum(floor.noise, 1e-12) ** 2
@@ -190,7 +203,7 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
     des_s, cv_s = sel.cv(spec)
     base = (cv_s.heldout, cv_s.fitted_full, des_s.G)
     del des_s, cv_s
-    base_coefficients: np.ndarray | None = None  # the current model's coefficients when fitted_all is not worked out
+    base_coefficients: np.ndarray | None = None  # the current model's coefficients (after the first step)
     n_levels = data.temperature_level_count()
     ctx = checks.SearchChecks(data, searchers, rules.folds, every, weights, rules.min_rel_gain,
                               rules.max_degree if rules.reselect_degree else None,
@@ -202,14 +215,9 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
     while remaining and len(spec.effects) < rules.max_effects:
         # Bonferroni over the candidates the data can show at all (known before any is evaluated)
         ctx.spec, ctx.alpha_each = spec, rules.alpha / max(sum(e.applicable(data)[0] for e in remaining), 1)
-        xcorr_later = None  # the channel delay's cross-check, of the current model alone, beside the searches
-        if any(e.name == "channel_delay" and e.applicable(data)[0] for e in remaining):
-            # the output's changes, not the output, are held while the reference's are worked out
-            changes = sample_changes(data, fitted_output(data, spec, base_coefficients)
-                                     if fitted_all is None else fitted_all)
-            xcorr_later = beside(cross_correlation_delay, data, changes, thread=n_lanes > 1)
-            del changes
-        fitted_all = None
+        # the channel delay's cross-check, of the current model alone, beside the searches
+        xcorr_later = first_delay_check if not steps else delay_cross_check(
+            data, remaining, lambda model=spec, coeff=base_coefficients: fitted_output(data, model, coeff), n_lanes > 1)
         # the candidates side by side, the longest first (what each took at the step before)
         results = searchers.map(partial(_evaluate_on, spec, *base, ctx.alpha_each, seconds), remaining,
                                 None if progress is None else lambda r: progress(r.name),
