@@ -354,3 +354,22 @@ def test_an_exact_duplicate_chunk_is_read_once_with_a_note(tmp_path: Path) -> No
     assert len(notes) == 1 and "2 chunks" in notes[0] and "exact copies" in notes[0] and "read once" in notes[0], notes
     n, report = stream_count(bad)
     assert n == len(truth) and report.notes == notes
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_run_s_limit_is_the_first_later_chunk_end_between_records_of_a_full_scan(seed: int) -> None:
+    """Where a run of fixed-layout messages must stop (``_first_misaligned_end``, read in growing windows of the later
+    chunk ends) is where a scan of every later end finds it: the first end that is not a whole number of records
+    after the run's position, the file's size when there is none."""
+    rng = np.random.default_rng(seed)
+    rec_size = 57
+    for _ in range(200):
+        n = int(rng.integers(1, 700))
+        step = np.where(rng.random(n) < rng.uniform(0.0, 0.05), rng.integers(1, 300, n), rec_size * rng.integers(1, 9, n))
+        ends = np.cumsum(step)
+        size = int(ends[-1])
+        pos = int(rng.integers(0, size))
+        later = ends[ends > pos]
+        misaligned = np.flatnonzero((later - pos) % rec_size)
+        want = int(later[misaligned[0]]) if misaligned.size else size
+        assert mcap_records._first_misaligned_end(ends, pos, rec_size, size) == want

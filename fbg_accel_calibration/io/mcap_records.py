@@ -414,6 +414,20 @@ _FAST_RUN_MIN = 64
 _FAST_RUN_MAX = 16384  # records checked at once for a run of fixed-layout raw messages
 
 
+def _first_misaligned_end(ends: np.ndarray, pos: int, rec_size: int, size: int, window: int = 64) -> int:
+    """The first of the chunk ends ``ends`` (ascending) after ``pos`` that does not fall a whole number of records of
+    ``rec_size`` bytes after it; ``size`` when none does. Looked for in windows growing x4 from the next end: a run
+    usually stops within a few chunks, so a file's runs do not each read every later end."""
+    lo = int(np.searchsorted(ends, pos, side="right"))
+    while lo < len(ends):
+        later = ends[lo:lo + window]
+        misaligned = np.flatnonzero((later - pos) % rec_size)
+        if misaligned.size:
+            return int(later[misaligned[0]])
+        lo, window = lo + window, 4 * window
+    return size
+
+
 def _split_chunks(bodies: list[bytes], fast: dict[str, Any]):
     """Records of decompressed chunks ``bodies``, split together: ``(stamps, values)`` for each run of consecutive
     fixed-layout raw messages (one numpy view), ``(channel_id, log_time, data)`` for other messages, and parsed
@@ -431,9 +445,7 @@ def _split_chunks(bodies: list[bytes], fast: dict[str, Any]):
         if rec_size is not None:  # a run stops at the first chunk end that does not fall between two of its records
             limit = chunk_end
             if (chunk_end - pos) % rec_size == 0:  # its chunk ends between two records: look at the later ends
-                later = ends[ends > pos]
-                misaligned = np.flatnonzero((later - pos) % rec_size)
-                limit = int(later[misaligned[0]]) if misaligned.size else size
+                limit = _first_misaligned_end(ends, pos, rec_size, size)
         start = pos
         k = _FAST_RUN_MIN
         while rec_size is not None:  # windows growing x4 while every record matches the raw layout
