@@ -201,3 +201,38 @@ def test_the_dark_offset_at_the_searched_rows_is_the_one_over_every_sample() -> 
             assert np.array_equal(part.valid, full.valid[rows]) and part.ref.tobytes() == full.ref[rows].tobytes()
             if h == 3000.0 or (h == low and not before):
                 assert not want.valid.all()
+
+
+def test_the_read_noise_filter_kept_per_time_constant_is_that_of_the_recorded_counts() -> None:
+    """``ReferenceReadNoiseEffect.transform`` keeps the filtered reference counts of the recording per time constant
+    (``DiagnosisData.recent``): asked again with a value kept, the same array (read-only) with the values of a
+    recording that has kept nothing, bit for bit, and each run filtered from its own start; a time constant not kept
+    and counts that are not the recording's (an earlier correction's) are filtered afresh, never served the kept ones."""
+    from fbg_accel_calibration.diagnosis.effects import ReferenceReadNoiseEffect
+    from fbg_accel_driver.correction_terms import first_order_lowpass
+
+    data = two_rate_lag_data()
+    eff = ReferenceReadNoiseEffect()
+
+    def filtered(d: DiagnosisData, h: float, inp: Inputs | None = None) -> Inputs:
+        inp = Inputs.of(d) if inp is None else inp
+        eff.transform(d, inp, h)
+        return inp
+
+    first = filtered(data, 0.05)
+    assert not first.ref.flags.writeable and first.counts_changed
+    for h in (0.05, 0.2, 0.05, 0.2):
+        got = filtered(data, h)
+        cold = filtered(replace(data), h)  # the same arrays, nothing kept
+        assert got.ref.tobytes() == cold.ref.tobytes() and np.array_equal(got.valid, cold.valid)
+        run = data.runs()[1]  # the second run filtered from its own first sample
+        want = first_order_lowpass(data.ref[run], data.t_s[run], h, {})
+        np.testing.assert_allclose(got.ref[run], want, rtol=1e-13)
+    assert filtered(data, 0.05).ref is filtered(data, 0.05).ref  # kept, not filtered again
+    assert filtered(data, 0.05).ref.tobytes() != filtered(data, 0.2).ref.tobytes()
+    # counts an earlier correction changed (a copy of other values): filtered from those, not the kept ones
+    other = Inputs.of(data)
+    other.ref = data.ref * 1.5
+    got = filtered(data, 0.05, other)
+    assert got.ref.tobytes() == filtered(replace(data), 0.05, replace(Inputs.of(data), ref=data.ref * 1.5)).ref.tobytes()
+    assert got.ref.tobytes() != filtered(data, 0.05).ref.tobytes()

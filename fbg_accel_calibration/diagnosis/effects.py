@@ -59,6 +59,7 @@ from .data import (
     direction_labels,
     input_run_steps,
     rows_by_run,
+    same_memory,
     visit_means,
 )
 from .held_lowpass import HeldRows, held_cascade, held_lowpass, held_rows
@@ -328,9 +329,18 @@ class ReferenceReadNoiseEffect(Effect):
     def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
         if not h:
             return
-        ref = np.array(inp.ref, dtype=float, copy=True)
-        for idx, steps in zip(data.runs(), input_run_steps(data, inp), strict=True):
-            ref[idx] = first_order_lowpass(inp.ref[idx], inp.t_s[idx], float(h), {}, steps)
+
+        def filtered() -> np.ndarray:
+            ref = np.array(inp.ref, dtype=float, copy=True)
+            for idx, steps in zip(data.runs(), input_run_steps(data, inp), strict=True):
+                ref[idx] = first_order_lowpass(inp.ref[idx], inp.t_s[idx], float(h), {}, steps)
+            return ref
+
+        # of the recorded reference counts and times, the filtered counts depend on tau alone: once per tau while
+        # kept (``DiagnosisData.recent``, read-only), where a search's trial corrects the inputs of its design and of
+        # the reference before the TIA low-pass with the same value, and a search on top of the model repeats it
+        recorded = same_memory(inp.ref, data.ref) and same_memory(inp.t_s, data.t_s)
+        ref = data.recent((self.name, float(h)), filtered) if recorded else filtered()
         inp.ref = ref
         inp.counts_changed = True
         inp.valid &= np.isfinite(ref) & (ref > 0)
