@@ -327,6 +327,10 @@ class Inputs:
     counts_changed: bool = False  # an earlier transform changed ref or xyz (else psi is the data's)
     temp_changed: bool = False  # an earlier transform changed the temperature (else it is data.temp_c)
     index: np.ndarray | None = None  # (n,) the sample index of each row in the recording (None: row i is sample i)
+    # (the input corrections that made the counts, as (name, hyper-parameter) in stage order; the ref and xyz arrays
+    # they made) where the design cache names them (``design._reference_prefix``): ``psi_map_of`` keeps their expected
+    # Psi map under that name while ref and xyz are those arrays (a correction that replaces one makes it void)
+    counts_of: tuple[tuple, np.ndarray, np.ndarray] | None = None
 
     @property
     def psi(self) -> np.ndarray:
@@ -411,6 +415,21 @@ def expected_psi_map(data: DiagnosisData, inp: Inputs) -> tuple[np.ndarray, np.n
     except np.linalg.LinAlgError:  # the reference never changes direction: the minimum-norm solution
         coef = np.linalg.lstsq(X, Y, rcond=None)[0]
     return coef[:3].T, coef[3]
+
+
+def psi_map_of(data: DiagnosisData, inp: Inputs) -> tuple[np.ndarray, np.ndarray]:
+    """``expected_psi_map`` of the counts of ``inp``: the recording's (``DiagnosisData.static_psi_map``) where no
+    correction changed them; where the corrections that made them are named (``Inputs.counts_of``), kept per those
+    corrections for the trials (``DiagnosisData.once``, dropped with the searches' constants): the trials of a search
+    over the TIA low-pass on top of the read-noise filter, and a search over the filter on top of the TIA searched
+    again beside another model, ask for the map of the same filtered counts (a fit over the static samples, about
+    18 ms at 10^6 samples); else worked out."""
+    if not inp.counts_changed:
+        return data.static_psi_map()
+    made = inp.counts_of
+    if made is None or made[1] is not inp.ref or made[2] is not inp.xyz:
+        return expected_psi_map(data, inp)
+    return data.once(f"expected_psi_map {made[0]!r}", lambda: expected_psi_map(data, inp), for_trials=True)
 
 
 def rows_by_run(data: DiagnosisData, rows: np.ndarray | None) -> list[tuple[slice | np.ndarray, Any, Any]] | None:
