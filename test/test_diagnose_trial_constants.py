@@ -236,3 +236,67 @@ def test_the_read_noise_filter_kept_per_time_constant_is_that_of_the_recorded_co
     got = filtered(data, 0.05, other)
     assert got.ref.tobytes() == filtered(replace(data), 0.05, replace(Inputs.of(data), ref=data.ref * 1.5)).ref.tobytes()
     assert got.ref.tobytes() != filtered(data, 0.05).ref.tobytes()
+
+
+def test_the_fitted_temperature_levels_are_clustered_once_and_are_those_of_the_fitted_samples() -> None:
+    """``DiagnosisData.fitted_temperature_levels`` (what the degree chosen again after each added effect reads):
+    ``thermal_fit.temperature_levels`` of the fitted samples' temperatures, the same arrays (read-only) on every call,
+    and the level count the candidates read is theirs."""
+    from fbg_accel_calibration.fit.thermal_fit import temperature_levels
+
+    data = two_rate_lag_data()
+    data.temp_c[~data.use] = 80.0  # a level the samples in motion alone would make: not one of the fitted samples'
+    labels, means = data.fitted_temperature_levels()
+    want = temperature_levels(data.temp_c[data.use])
+    assert labels.tobytes() == want[0].tobytes() and means.tobytes() == want[1].tobytes()
+    assert not labels.flags.writeable and not means.flags.writeable
+    again = data.fitted_temperature_levels()
+    assert again[0] is labels and again[1] is means
+    assert data.temperature_level_count() == max(len(want[1]), 1) >= 2
+
+
+def test_the_spectral_nonlinearity_s_visit_means_kept_give_its_verdicts_bit_for_bit() -> None:
+    """``SpectralNonlinearityEffect``'s non-linear part and bound read the visits' mean Psi and mean reference, kept
+    once per recording: for fits of several coefficients, the same parts bit for bit and the same verdicts as
+    worked out from every sample on a recording that has kept nothing."""
+    import math
+
+    from fbg_accel_calibration.diagnosis.data import visit_means
+    from fbg_accel_calibration.diagnosis.effects import SpectralNonlinearityEffect, nonlinearity_bound_mps2
+    from fbg_accel_driver.correction_terms import quadratic_features
+
+    rng = np.random.default_rng(11)
+    pose, g = [], []
+    for p in range(14):
+        u = rng.normal(size=3)
+        pose.append(np.r_[np.full(15, -1), np.full(120, p)])
+        g.append(np.tile(9.80665 * u / np.linalg.norm(u), (135, 1)))
+    pose_id, gref = np.concatenate(pose), np.concatenate(g)
+    n = len(pose_id)
+    ref = 3000.0 + rng.normal(0, 5, n)
+    xyz = (gref * 2e-3 + 0.5) * ref[:, None] + rng.normal(0, 0.5, (n, 3))
+    data = DiagnosisData(DT * np.arange(n), ref, xyz, np.full(n, 25.0), gref, pose_id, np.zeros(n, int), pose_id >= 0)
+    eff = SpectralNonlinearityEffect()
+
+    def by_every_sample(d: DiagnosisData, coeff: np.ndarray) -> tuple[np.ndarray, float]:
+        rows = d.use & (d.group >= 0)
+        psi = visit_means(d.group, rows, Inputs.normalised(d.xyz, d.ref))
+        psi = psi[np.all(np.isfinite(psi), axis=1)]
+        contrib = quadratic_features(psi, eff._psi0(d)) @ coeff.T
+        A = np.column_stack([np.ones(len(psi)), psi])
+        gm = visit_means(d.group, rows & np.all(np.isfinite(d.gref), axis=1), d.gref)
+        bound = nonlinearity_bound_mps2(float(np.max(np.linalg.norm(gm, axis=1)))) if len(gm) else math.inf
+        return contrib - A @ np.linalg.lstsq(A, contrib, rcond=None)[0], bound
+
+    M0 = np.eye(3)
+    verdicts = set()
+    for scale in (1e-3, 1.0, 1e3, 1e-3, 30.0):
+        coeff = scale * rng.normal(size=(3, 6))
+        want, bound = by_every_sample(replace(data), coeff)
+        assert eff.nonlinear_part(coeff, data).tobytes() == want.tobytes()
+        verdict = eff.implausible(None, coeff, data, M0)
+        assert verdict == eff.implausible(None, coeff, replace(data), M0)
+        assert bool(verdict) == bool(np.any(np.max(np.abs(want), axis=0) > bound))
+        verdicts.add(bool(verdict))
+    assert verdicts == {True, False}
+    assert {"visit_mean_psi", "nonlinearity_bound_mps2"} <= set(data._memo)  # kept, not worked out on every fit
