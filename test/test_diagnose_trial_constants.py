@@ -300,3 +300,32 @@ def test_the_spectral_nonlinearity_s_visit_means_kept_give_its_verdicts_bit_for_
         verdicts.add(bool(verdict))
     assert verdicts == {True, False}
     assert {"visit_mean_psi", "nonlinearity_bound_mps2"} <= set(data._memo)  # kept, not worked out on every fit
+
+
+def test_the_recorded_psi_kept_at_a_search_s_rows_is_theirs_and_only_for_recorded_counts() -> None:
+    """``DiagnosisData.psi_at``: the recorded counts' Psi at read-only rows, kept per rows (the same array on the next
+    call, another for other rows) and the values of ``Inputs.normalised`` at them bit for bit; writable rows are worked
+    out on every call. A design at a search's rows takes it only where its corrections leave the counts as recorded:
+    with a dark offset of the reference, or its read-noise filter, its columns are those of the corrected counts (the
+    design over every sample at those rows, bit for bit)."""
+    from fbg_accel_calibration.diagnosis.design import DesignCache, ModelSpec, build_design
+    from fbg_accel_calibration.diagnosis.effects import ReferenceDarkOffsetEffect, ReferenceReadNoiseEffect
+
+    data = two_rate_lag_data()
+    rows = np.array(np.flatnonzero(data.use)[::3])  # of their own memory, as a search's (``search.Evaluator``)
+    rows.flags.writeable = False
+    other = np.array(np.flatnonzero(data.use)[1::3])
+    other.flags.writeable = False
+    want = Inputs.normalised(data.xyz[rows], data.ref[rows])
+    psi = data.psi_at(rows)
+    assert psi.tobytes() == want.tobytes() and not psi.flags.writeable and data.psi_at(rows) is psi
+    assert data.psi_at(other).tobytes() == Inputs.normalised(data.xyz[other], data.ref[other]).tobytes()
+    writable = np.array(rows, copy=True)
+    assert data.psi_at(writable).tobytes() == want.tobytes() and data.psi_at(writable) is not psi
+    for effects in ([], [(ReferenceDarkOffsetEffect(), 40.0)], [(ReferenceReadNoiseEffect(), 0.05)]):
+        spec = ModelSpec(1, 25.0, 2.0, effects)
+        got = build_design(data, spec, DesignCache(), rows)
+        every = build_design(replace(data), spec, None, None)
+        assert np.ascontiguousarray(got.X).tobytes() == np.ascontiguousarray(every.X[rows]).tobytes()
+        assert np.array_equal(got.valid, every.valid[rows])
+    assert sum(k.startswith("psi_at") for k in data._memo) == 2  # the two read-only rows' (the designs' among them)

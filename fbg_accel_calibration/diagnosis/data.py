@@ -137,6 +137,21 @@ class DiagnosisData:
             self._memo.pop(key, None)
         self._for_trials.clear()
 
+    def psi_at(self, rows: np.ndarray) -> np.ndarray:
+        """Psi (n, 3) of the recorded counts at the samples ``rows`` (``Inputs.normalised``). Kept (read-only, dropped
+        with the searches' constants) for the read-only rows of a search (``rows_key``): every design of a model whose
+        corrections leave the counts as recorded reads the same Psi at them (a search over the thermal lag, the TIA
+        low-pass, a time function); worked out on every call for other rows."""
+        def make() -> np.ndarray:
+            psi = Inputs.normalised(take_rows(np.asarray(self.xyz, dtype=float), rows),
+                                    np.asarray(self.ref, dtype=float)[rows])
+            psi.flags.writeable = False
+            return psi
+
+        if rows.flags.writeable or rows.base is not None:
+            return make()
+        return self.once(f"psi_at {self.rows_key(rows)}", make, for_trials=True)
+
     def run_steps(self) -> list[SampleSteps]:
         """``sample_steps`` of each run's board times (``runs``), computed once: the low-pass filters of the input
         corrections start afresh at each run, once per trial value of a search."""

@@ -392,7 +392,9 @@ def _design_matrix(data: DiagnosisData, spec: ModelSpec, ordered: list[tuple[Eff
             p += c.shape[1]
     X = np.empty((p, len(part.valid))).T  # column-major, filled in place: no concatenation copy
     tau = (part.temp_c - spec.t_center_c) / spec.t_scale_c
-    design_matrix(part.psi, tau, spec.degree, out=X[:, :n_base])
+    # the recorded counts at the design's rows: their Psi kept for the search's rows (``DiagnosisData.psi_at``)
+    recorded = sub is not None and part.index is sub and not part.counts_changed
+    design_matrix(data.psi_at(sub) if recorded else part.psi, tau, spec.degree, out=X[:, :n_base])
     ok = finite_rows(X[:, :n_base])
     for c, sl in zip(extra, blocks.values(), strict=True):
         X[:, sl] = c
