@@ -248,7 +248,7 @@ def test_the_fitted_temperature_levels_are_clustered_once_and_are_those_of_the_f
     data.temp_c[~data.use] = 80.0  # a level the samples in motion alone would make: not one of the fitted samples'
     labels, means = data.fitted_temperature_levels()
     want = temperature_levels(data.temp_c[data.use])
-    assert labels.tobytes() == want[0].tobytes() and means.tobytes() == want[1].tobytes()
+    assert labels.dtype == np.int32 and np.array_equal(labels, want[0]) and means.tobytes() == want[1].tobytes()
     assert not labels.flags.writeable and not means.flags.writeable
     again = data.fitted_temperature_levels()
     assert again[0] is labels and again[1] is means

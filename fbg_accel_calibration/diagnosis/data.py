@@ -189,17 +189,19 @@ class DiagnosisData:
 
     def fitted_temperature_levels(self) -> tuple[np.ndarray, np.ndarray]:
         """``thermal_fit.temperature_levels`` of the fitted samples' temperatures (``temp_c[use]``): (the level label of
-        each, the levels' mean temperatures degC), read-only, clustered once per recording (the degree of eq. 28 is
-        chosen again after every effect added, about 50 ms at 10^6 samples each time)."""
+        each, as int32, the levels' mean temperatures degC), read-only, clustered once for the searches (the degree of
+        eq. 28 is chosen again after every effect added, about 50 ms at 10^6 samples each time; dropped with the
+        searches' constants)."""
         from ..fit.thermal_fit import temperature_levels
 
         def cluster() -> tuple[np.ndarray, np.ndarray]:
-            labels, means = (np.asarray(a) for a in temperature_levels(self.temp_c[self.use]))
+            labels, means = temperature_levels(self.temp_c[self.use])
+            labels, means = np.asarray(labels, dtype=np.int32), np.asarray(means)  # labels: -1 and 0 .. levels - 1
             for a in (labels, means):
                 a.flags.writeable = False
             return labels, means
 
-        return self.once("fitted_temperature_levels", cluster)
+        return self.once("fitted_temperature_levels", cluster, for_trials=True)
 
     def temperature_span_c(self) -> float:
         t = self.temp_c[self.use]
