@@ -19,7 +19,7 @@ def moving_data(n: int, seed: int = 2) -> DiagnosisData:
     run_id = (np.arange(n) >= n // 2).astype(int)
     t = DT * np.arange(n) + 50.0 * run_id
     steps = np.where(rng.random((n, 3)) < 0.02, rng.normal(0.0, 2.0, (n, 3)), 0.0)
-    gref = np.cumsum(steps, axis=0) + [0.0, 0.0, 9.8]
+    gref = np.cumsum(steps, axis=0) + np.array([0.0, 0.0, 9.8])
     gref[n // 5:n // 5 + 7] = np.nan
     pose_id = np.zeros(n, int)
     return DiagnosisData(t, np.full(n, 3000.0), gref * 3.0, np.full(n, 25.0), gref, pose_id, run_id, np.ones(n, bool))

@@ -98,3 +98,26 @@ def test_the_modal_code_of_every_visit_at_once_is_np_unique_s_of_each() -> None:
         assert codes.tolist() == [int(u[np.argmax(c)]) for u, c in each]
         assert at_code.tolist() == [int(c.max()) for _, c in each]
     assert [len(a) for a in modal_codes(np.zeros(3), np.zeros(0, int), np.zeros(0, int))] == [0, 0]
+
+
+
+def test_a_held_code_s_noise_is_the_median_of_every_visit_s_scatter_on_its_channel(monkeypatch) -> None:
+    """The noise a held code reports (``HeldCode.sigma_counts``) is the median standard deviation of every visit's
+    counts on its channel (the held visits and the others), worked out only for a channel where a code held a visit:
+    the channels without one cost no pass over their visits."""
+    from fbg_accel_calibration.fit import adc_codes
+
+    counts, groups, rows, score = campaign(1, held_score=40.0)
+    passes = []  # the loops over a channel's visits (each zips their starts and lengths)
+
+    def counted(starts: np.ndarray, n: np.ndarray, strict: bool) -> zip:
+        passes.append(len(starts))
+        return zip(starts, n, strict=strict)
+
+    monkeypatch.setattr(adc_codes, "zip", counted, raising=False)
+    found = held_codes(counts, groups, rows, score)
+    monkeypatch.undo()
+    assert [h.channel for h in found] == ["y"]
+    y = counts[:, 2]
+    assert found[0].sigma_counts == float(np.median([y[groups == g].std() for g in range(V)]))
+    assert passes == [V]  # over the one channel where a code held visits

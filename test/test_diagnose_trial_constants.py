@@ -203,6 +203,133 @@ def test_the_dark_offset_at_the_searched_rows_is_the_one_over_every_sample() -> 
                 assert not want.valid.all()
 
 
+def test_the_read_noise_filter_kept_per_time_constant_is_that_of_the_recorded_counts() -> None:
+    """``ReferenceReadNoiseEffect.transform`` keeps the filtered reference counts of the recording per time constant
+    (``DiagnosisData.recent``): asked again with a value kept, the same array (read-only) with the values of a
+    recording that has kept nothing, bit for bit, and each run filtered from its own start; a time constant not kept
+    and counts that are not the recording's (an earlier correction's) are filtered afresh, never served the kept ones."""
+    from fbg_accel_calibration.diagnosis.effects import ReferenceReadNoiseEffect
+    from fbg_accel_driver.correction_terms import first_order_lowpass
+
+    data = two_rate_lag_data()
+    eff = ReferenceReadNoiseEffect()
+
+    def filtered(d: DiagnosisData, h: float, inp: Inputs | None = None) -> Inputs:
+        inp = Inputs.of(d) if inp is None else inp
+        eff.transform(d, inp, h)
+        return inp
+
+    first = filtered(data, 0.05)
+    assert not first.ref.flags.writeable and first.counts_changed
+    for h in (0.05, 0.2, 0.05, 0.2):
+        got = filtered(data, h)
+        cold = filtered(replace(data), h)  # the same arrays, nothing kept
+        assert got.ref.tobytes() == cold.ref.tobytes() and np.array_equal(got.valid, cold.valid)
+        run = data.runs()[1]  # the second run filtered from its own first sample
+        want = first_order_lowpass(data.ref[run], data.t_s[run], h, {})
+        np.testing.assert_allclose(got.ref[run], want, rtol=1e-13)
+    assert filtered(data, 0.05).ref is filtered(data, 0.05).ref  # kept, not filtered again
+    assert filtered(data, 0.05).ref.tobytes() != filtered(data, 0.2).ref.tobytes()
+    # counts an earlier correction changed (a copy of other values): filtered from those, not the kept ones
+    other = Inputs.of(data)
+    other.ref = data.ref * 1.5
+    got = filtered(data, 0.05, other)
+    assert got.ref.tobytes() == filtered(replace(data), 0.05, replace(Inputs.of(data), ref=data.ref * 1.5)).ref.tobytes()
+    assert got.ref.tobytes() != filtered(data, 0.05).ref.tobytes()
+
+
+def test_the_fitted_temperature_levels_are_clustered_once_and_are_those_of_the_fitted_samples() -> None:
+    """``DiagnosisData.fitted_temperature_levels`` (what the degree chosen again after each added effect reads):
+    ``thermal_fit.temperature_levels`` of the fitted samples' temperatures, the same arrays (read-only) on every call,
+    and the level count the candidates read is theirs."""
+    from fbg_accel_calibration.fit.thermal_fit import temperature_levels
+
+    data = two_rate_lag_data()
+    data.temp_c[~data.use] = 80.0  # a level the samples in motion alone would make: not one of the fitted samples'
+    labels, means = data.fitted_temperature_levels()
+    want = temperature_levels(data.temp_c[data.use])
+    assert labels.dtype == np.int32 and np.array_equal(labels, want[0]) and means.tobytes() == want[1].tobytes()
+    assert not labels.flags.writeable and not means.flags.writeable
+    again = data.fitted_temperature_levels()
+    assert again[0] is labels and again[1] is means
+    assert data.temperature_level_count() == max(len(want[1]), 1) >= 2
+
+
+def test_the_spectral_nonlinearity_s_visit_means_kept_give_its_verdicts_bit_for_bit() -> None:
+    """``SpectralNonlinearityEffect``'s non-linear part and bound read the visits' mean Psi and mean reference, kept
+    once per recording: for fits of several coefficients, the same parts bit for bit and the same verdicts as
+    worked out from every sample on a recording that has kept nothing."""
+    import math
+
+    from fbg_accel_calibration.diagnosis.data import visit_means
+    from fbg_accel_calibration.diagnosis.effects import SpectralNonlinearityEffect, nonlinearity_bound_mps2
+    from fbg_accel_driver.correction_terms import quadratic_features
+
+    rng = np.random.default_rng(11)
+    pose, g = [], []
+    for p in range(14):
+        u = rng.normal(size=3)
+        pose.append(np.r_[np.full(15, -1), np.full(120, p)])
+        g.append(np.tile(9.80665 * u / np.linalg.norm(u), (135, 1)))
+    pose_id, gref = np.concatenate(pose), np.concatenate(g)
+    n = len(pose_id)
+    ref = 3000.0 + rng.normal(0, 5, n)
+    xyz = (gref * 2e-3 + 0.5) * ref[:, None] + rng.normal(0, 0.5, (n, 3))
+    data = DiagnosisData(DT * np.arange(n), ref, xyz, np.full(n, 25.0), gref, pose_id, np.zeros(n, int), pose_id >= 0)
+    eff = SpectralNonlinearityEffect()
+
+    def by_every_sample(d: DiagnosisData, coeff: np.ndarray) -> tuple[np.ndarray, float]:
+        rows = d.use & (d.group >= 0)
+        psi = visit_means(d.group, rows, Inputs.normalised(d.xyz, d.ref))
+        psi = psi[np.all(np.isfinite(psi), axis=1)]
+        contrib = quadratic_features(psi, eff._psi0(d)) @ coeff.T
+        A = np.column_stack([np.ones(len(psi)), psi])
+        gm = visit_means(d.group, rows & np.all(np.isfinite(d.gref), axis=1), d.gref)
+        bound = nonlinearity_bound_mps2(float(np.max(np.linalg.norm(gm, axis=1)))) if len(gm) else math.inf
+        return contrib - A @ np.linalg.lstsq(A, contrib, rcond=None)[0], bound
+
+    M0 = np.eye(3)
+    verdicts = set()
+    for scale in (1e-3, 1.0, 1e3, 1e-3, 30.0):
+        coeff = scale * rng.normal(size=(3, 6))
+        want, bound = by_every_sample(replace(data), coeff)
+        assert eff.nonlinear_part(coeff, data).tobytes() == want.tobytes()
+        verdict = eff.implausible(None, coeff, data, M0)
+        assert verdict == eff.implausible(None, coeff, replace(data), M0)
+        assert bool(verdict) == bool(np.any(np.max(np.abs(want), axis=0) > bound))
+        verdicts.add(bool(verdict))
+    assert verdicts == {True, False}
+    assert {"visit_mean_psi", "nonlinearity_bound_mps2"} <= set(data._memo)  # kept, not worked out on every fit
+
+
+def test_the_recorded_psi_kept_at_a_search_s_rows_is_theirs_and_only_for_recorded_counts() -> None:
+    """``DiagnosisData.psi_at``: the recorded counts' Psi at read-only rows, kept per rows (the same array on the next
+    call, another for other rows) and the values of ``Inputs.normalised`` at them bit for bit; writable rows are worked
+    out on every call. A design at a search's rows takes it only where its corrections leave the counts as recorded:
+    with a dark offset of the reference, or its read-noise filter, its columns are those of the corrected counts (the
+    design over every sample at those rows, bit for bit)."""
+    from fbg_accel_calibration.diagnosis.design import DesignCache, ModelSpec, build_design
+    from fbg_accel_calibration.diagnosis.effects import ReferenceDarkOffsetEffect, ReferenceReadNoiseEffect
+
+    data = two_rate_lag_data()
+    rows = np.array(np.flatnonzero(data.use)[::3])  # of their own memory, as a search's (``search.Evaluator``)
+    rows.flags.writeable = False
+    other = np.array(np.flatnonzero(data.use)[1::3])
+    other.flags.writeable = False
+    want = Inputs.normalised(data.xyz[rows], data.ref[rows])
+    psi = data.psi_at(rows)
+    assert psi.tobytes() == want.tobytes() and not psi.flags.writeable and data.psi_at(rows) is psi
+    assert data.psi_at(other).tobytes() == Inputs.normalised(data.xyz[other], data.ref[other]).tobytes()
+    writable = np.array(rows, copy=True)
+    assert data.psi_at(writable).tobytes() == want.tobytes() and data.psi_at(writable) is not psi
+    for effects in ([], [(ReferenceDarkOffsetEffect(), 40.0)], [(ReferenceReadNoiseEffect(), 0.05)]):
+        spec = ModelSpec(1, 25.0, 2.0, effects)
+        got = build_design(data, spec, DesignCache(), rows)
+        every = build_design(replace(data), spec, None, None)
+        assert np.ascontiguousarray(got.X).tobytes() == np.ascontiguousarray(every.X[rows]).tobytes()
+        assert np.array_equal(got.valid, every.valid[rows])
+    assert sum(k.startswith("psi_at") for k in data._memo) == 2  # the two read-only rows' (the designs' among them)
+
 def test_a_kept_value_no_longer_fresh_is_let_go_on_the_next_call_for_any_key() -> None:
     """``DiagnosisData.recent``: an entry whose ``fresh`` says it no longer stands for its key (what it was made of is
     gone) is dropped on the next call, whatever key that call asks for, before its value is made; one still fresh

@@ -369,3 +369,37 @@ def test_the_holds_at_the_searched_rows_are_let_go_when_the_searches_end() -> No
     assert lag.transform_rows(data, Inputs.of(data), again, 2.0, rows)
     assert np.array_equal(tia.reference_at(data, Inputs.of(data), 1.0, rows)[0], ref)
     assert np.array_equal(again.temp_c, part.temp_c)
+
+
+def test_the_expected_psi_map_kept_per_correction_is_that_of_those_counts() -> None:
+    """The TIA's reference on top of the read-noise filter in a cached design (``design._corrected_reference``) takes
+    the expected Psi map of the filtered counts kept under the filter's (name, tau) (``data.psi_map_of``): the same
+    designs bit for bit as on a recording that has kept nothing, for several filters asked in turn and again, each
+    its own map; inputs whose counts were replaced after they were named are never served the named map."""
+    from fbg_accel_calibration.diagnosis.data import psi_map_of
+    from fbg_accel_calibration.diagnosis.design import DesignCache, ModelSpec, build_design
+
+    data = tia_data()
+    rows = np.flatnonzero(data.use)[::7]
+    rows.flags.writeable = False
+    noise, tia = ReferenceReadNoiseEffect(), TiaLowpassEffect()
+    cache = DesignCache(references=1)  # every reference worked out again from the kept maps
+    for tau_ref, h in ((0.05, 1.0), (0.2, 1.0), (0.05, 0.5), (0.2, 2.0), (0.05, 1.0)):
+        spec = ModelSpec(1, 25.0, 2.0, [(noise, tau_ref), (tia, h)])
+        got = build_design(data, spec, cache, rows)
+        cold_data = replace(data)  # the same arrays, nothing kept
+        want = build_design(cold_data, spec, None, rows)  # every sample filtered, no cache
+        assert got.G.tobytes() == want.G.tobytes() and np.array_equal(got.valid, want.valid)
+        assert not any(k.startswith("expected_psi_map") for k in cold_data._memo)
+    kept = sorted(k for k in data._memo if k.startswith("expected_psi_map"))
+    assert len(kept) == 2  # one map per filter, worked out once
+    # counts named, then replaced: the map of the new counts
+    inp = Inputs.of(data)
+    noise.transform(data, inp, 0.05)
+    inp.counts_of = ((("reference_read_noise", 0.05),), inp.ref, inp.xyz)
+    assert psi_map_of(data, inp)[0].tobytes() == expected_psi_map(data, inp)[0].tobytes()
+    inp.ref = inp.ref * 1.01 + 3.0
+    want = expected_psi_map(data, inp)
+    got = psi_map_of(data, inp)
+    assert got[0].tobytes() == want[0].tobytes() and got[1].tobytes() == want[1].tobytes()
+    assert got[1].tobytes() != psi_map_of(data, replace(Inputs.of(data), ref=data.ref))[1].tobytes()

@@ -16,11 +16,11 @@ from fbg_accel_driver.correction_terms import ChainDynamics, first_order_lowpass
 from .data import (
     DiagnosisData,
     Inputs,
-    expected_psi_map,
     fill_reference_gaps,
     finite_rows,
     input_run_steps,
     interp_columns,
+    psi_map_of,
     rows_by_run,
     take_rows,
 )
@@ -222,7 +222,7 @@ class TiaLowpassEffect(Effect):
         # Neither depends on the time constant: reuse the data's own when no earlier stage changed the inputs
         # (the hyper-parameter search calls this for every trial value).
         g = fill_reference_gaps(inp.t_s, inp.gref, data.runs()) if inp.gref_moved else data.gref_filled
-        P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
+        P, q = psi_map_of(data, inp)
         if inp.gref_moved or inp.counts_changed:
             psi_hat = g @ P.T
             psi_hat += q  # in place: one array of N x 3, not two
@@ -268,7 +268,7 @@ class TiaLowpassEffect(Effect):
             # a moved reference with a gap (never in a hold: NaN is not the sample before it): over every sample
             if moved and not all(finite_rows(g_at.T).all() for _, g_at in holds):
                 return None
-            P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
+            P, q = psi_map_of(data, inp)
             gref = self._held_every_sample(g, runs, holds, coeff, P, q)
             return gref, inp.valid & finite_rows(gref)
         rows_key = data.rows_key(rows)
@@ -282,7 +282,7 @@ class TiaLowpassEffect(Effect):
             # a moved reference with a gap (never in a hold: NaN is not the sample before it): over every sample
             if moved and not finite_rows(found[-1][1].T).all():
                 return None
-        P, q = expected_psi_map(data, inp) if inp.counts_changed else data.static_psi_map()
+        P, q = psi_map_of(data, inp)
         P_inv = np.linalg.inv(P)
         gref = np.empty((len(rows), 3))
         for (_, sel, _), per, (held, g_at, g_rows) in zip(pieces, coeff, found, strict=True):

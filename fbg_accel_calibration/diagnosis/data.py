@@ -148,6 +148,21 @@ class DiagnosisData:
             self._memo.pop(key, None)
         self._for_trials.clear()
 
+    def psi_at(self, rows: np.ndarray) -> np.ndarray:
+        """Psi (n, 3) of the recorded counts at the samples ``rows`` (``Inputs.normalised``). Kept (read-only, dropped
+        with the searches' constants) for the read-only rows of a search (``rows_key``): every design of a model whose
+        corrections leave the counts as recorded reads the same Psi at them (a search over the thermal lag, the TIA
+        low-pass, a time function); worked out on every call for other rows."""
+        def make() -> np.ndarray:
+            psi = Inputs.normalised(take_rows(np.asarray(self.xyz, dtype=float), rows),
+                                    np.asarray(self.ref, dtype=float)[rows])
+            psi.flags.writeable = False
+            return psi
+
+        if rows.flags.writeable or rows.base is not None:
+            return make()
+        return self.once(f"psi_at {self.rows_key(rows)}", make, for_trials=True)
+
     def run_steps(self) -> list[SampleSteps]:
         """``sample_steps`` of each run's board times (``runs``), computed once: the low-pass filters of the input
         corrections start afresh at each run, once per trial value of a search."""
@@ -180,10 +195,24 @@ class DiagnosisData:
     def temperature_level_count(self) -> int:
         """Temperature levels among the fitted samples (``thermal_fit.temperature_levels``), at least 1: eq. 28's
         degree is below it, so with one level the model has no temperature term."""
+        # asked by every candidate's ``applicable`` at every step: clustered once per recording
+        return self.once("temperature_level_count", lambda: max(len(self.fitted_temperature_levels()[1]), 1))
+
+    def fitted_temperature_levels(self) -> tuple[np.ndarray, np.ndarray]:
+        """``thermal_fit.temperature_levels`` of the fitted samples' temperatures (``temp_c[use]``): (the level label of
+        each, as int32, the levels' mean temperatures degC), read-only, clustered once for the searches (the degree of
+        eq. 28 is chosen again after every effect added, about 50 ms at 10^6 samples each time; dropped with the
+        searches' constants)."""
         from ..fit.thermal_fit import temperature_levels
 
-        # asked by every candidate's ``applicable`` at every step: clustered once per recording
-        return self.once("temperature_level_count", lambda: max(len(temperature_levels(self.temp_c[self.use])[1]), 1))
+        def cluster() -> tuple[np.ndarray, np.ndarray]:
+            labels, means = temperature_levels(self.temp_c[self.use])
+            labels, means = np.asarray(labels, dtype=np.int32), np.asarray(means)  # labels: -1 and 0 .. levels - 1
+            for a in (labels, means):
+                a.flags.writeable = False
+            return labels, means
+
+        return self.once("fitted_temperature_levels", cluster, for_trials=True)
 
     def temperature_span_c(self) -> float:
         t = self.temp_c[self.use]
@@ -338,6 +367,10 @@ class Inputs:
     counts_changed: bool = False  # an earlier transform changed ref or xyz (else psi is the data's)
     temp_changed: bool = False  # an earlier transform changed the temperature (else it is data.temp_c)
     index: np.ndarray | None = None  # (n,) the sample index of each row in the recording (None: row i is sample i)
+    # (the input corrections that made the counts, as (name, hyper-parameter) in stage order; the ref and xyz arrays
+    # they made) where the design cache names them (``design._reference_prefix``): ``psi_map_of`` keeps their expected
+    # Psi map under that name while ref and xyz are those arrays (a correction that replaces one makes it void)
+    counts_of: tuple[tuple, np.ndarray, np.ndarray] | None = None
 
     @property
     def psi(self) -> np.ndarray:
@@ -422,6 +455,21 @@ def expected_psi_map(data: DiagnosisData, inp: Inputs) -> tuple[np.ndarray, np.n
     except np.linalg.LinAlgError:  # the reference never changes direction: the minimum-norm solution
         coef = np.linalg.lstsq(X, Y, rcond=None)[0]
     return coef[:3].T, coef[3]
+
+
+def psi_map_of(data: DiagnosisData, inp: Inputs) -> tuple[np.ndarray, np.ndarray]:
+    """``expected_psi_map`` of the counts of ``inp``: the recording's (``DiagnosisData.static_psi_map``) where no
+    correction changed them; where the corrections that made them are named (``Inputs.counts_of``), kept per those
+    corrections for the trials (``DiagnosisData.once``, dropped with the searches' constants): the trials of a search
+    over the TIA low-pass on top of the read-noise filter, and a search over the filter on top of the TIA searched
+    again beside another model, ask for the map of the same filtered counts (a fit over the static samples, about
+    18 ms at 10^6 samples); else worked out."""
+    if not inp.counts_changed:
+        return data.static_psi_map()
+    made = inp.counts_of
+    if made is None or made[1] is not inp.ref or made[2] is not inp.xyz:
+        return expected_psi_map(data, inp)
+    return data.once(f"expected_psi_map {made[0]!r}", lambda: expected_psi_map(data, inp), for_trials=True)
 
 
 def rows_by_run(data: DiagnosisData, rows: np.ndarray | None) -> list[tuple[slice | np.ndarray, Any, Any]] | None:

@@ -361,7 +361,8 @@ def _reference_prefix(data: DiagnosisData, corrections: list[tuple[Effect, float
                       cache: DesignCache) -> Inputs:
     """A private copy (``_private``) of the inputs after ``corrections``, the ones before a correction of the reference
     alone, kept among the cache's ``prefixes`` (``names``: their (name, hyper-parameter)): every trial value of a
-    search over that correction starts from the same inputs (a TIA low-pass of the model filters the whole series)."""
+    search over that correction starts from the same inputs (a TIA low-pass of the model filters the whole series).
+    The copy's counts are named by ``names`` (``Inputs.counts_of``): their expected Psi map is kept under them."""
     if not corrections:
         return Inputs.of(data)
     hit = cache.prefixes.hit(names)
@@ -369,7 +370,9 @@ def _reference_prefix(data: DiagnosisData, corrections: list[tuple[Effect, float
         cache.prefixes.trim(room=1)
         hit = _corrected_inputs(data, corrections)
         cache.prefixes.put(names, hit)
-    return _private(hit)
+    out = _private(hit)
+    out.counts_of = (names, out.ref, out.xyz)  # their counts named by the corrections (``data.psi_map_of``)
+    return out
 
 
 def _design_matrix(data: DiagnosisData, spec: ModelSpec, ordered: list[tuple[Effect, float | None]],
@@ -389,7 +392,9 @@ def _design_matrix(data: DiagnosisData, spec: ModelSpec, ordered: list[tuple[Eff
             p += c.shape[1]
     X = np.empty((p, len(part.valid))).T  # column-major, filled in place: no concatenation copy
     tau = (part.temp_c - spec.t_center_c) / spec.t_scale_c
-    design_matrix(part.psi, tau, spec.degree, out=X[:, :n_base])
+    # the recorded counts at the design's rows: their Psi kept for the search's rows (``DiagnosisData.psi_at``)
+    recorded = sub is not None and part.index is sub and not part.counts_changed
+    design_matrix(data.psi_at(sub) if recorded else part.psi, tau, spec.degree, out=X[:, :n_base])
     ok = finite_rows(X[:, :n_base])
     for c, sl in zip(extra, blocks.values(), strict=True):
         X[:, sl] = c

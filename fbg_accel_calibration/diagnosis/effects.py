@@ -59,6 +59,7 @@ from .data import (
     direction_labels,
     input_run_steps,
     rows_by_run,
+    same_memory,
     visit_means,
 )
 from .held_lowpass import HeldRows, held_cascade, held_lowpass, held_rows
@@ -328,9 +329,18 @@ class ReferenceReadNoiseEffect(Effect):
     def transform(self, data: DiagnosisData, inp: Inputs, h: float | None) -> None:
         if not h:
             return
-        ref = np.array(inp.ref, dtype=float, copy=True)
-        for idx, steps in zip(data.runs(), input_run_steps(data, inp), strict=True):
-            ref[idx] = first_order_lowpass(inp.ref[idx], inp.t_s[idx], float(h), {}, steps)
+
+        def filtered() -> np.ndarray:
+            ref = np.array(inp.ref, dtype=float, copy=True)
+            for idx, steps in zip(data.runs(), input_run_steps(data, inp), strict=True):
+                ref[idx] = first_order_lowpass(inp.ref[idx], inp.t_s[idx], float(h), {}, steps)
+            return ref
+
+        # of the recorded reference counts and times, the filtered counts depend on tau alone: once per tau while
+        # kept (``DiagnosisData.recent``, read-only), where a search's trial corrects the inputs of its design and of
+        # the reference before the TIA low-pass with the same value, and a search on top of the model repeats it
+        recorded = same_memory(inp.ref, data.ref) and same_memory(inp.t_s, data.t_s)
+        ref = data.recent((self.name, float(h)), filtered) if recorded else filtered()
         inp.ref = ref
         inp.counts_changed = True
         inp.valid &= np.isfinite(ref) & (ref > 0)
@@ -608,13 +618,22 @@ class SpectralNonlinearityEffect(Effect):
         c = np.asarray(coeff) if coeff is not None else np.zeros((3, 6))
         return "largest quadratic coefficient per axis = " + ", ".join(f"{v:.3g}" for v in np.max(np.abs(c), axis=1)) + " m/s^2"
 
+    @staticmethod
+    def _visit_psi(data: DiagnosisData) -> np.ndarray:
+        """(V', 3) the mean recorded Psi of each static visit where it is finite, in ascending visit id (read-only):
+        worked out once per recording (a pass over every sample, asked of every fit the search checks)."""
+        def means() -> np.ndarray:
+            psi = visit_means(data.group, data.use & (data.group >= 0), Inputs.normalised(data.xyz, data.ref))
+            psi = psi[np.all(np.isfinite(psi), axis=1)]
+            psi.flags.writeable = False
+            return psi
+
+        return data.once("visit_mean_psi", means)
+
     def nonlinear_part(self, coeff: np.ndarray, data: DiagnosisData) -> np.ndarray:
         """(V, 3) m/s^2: what the quadratic terms ``coeff`` (3, 6) add to each static visit's mean output beyond the
         best affine function of Psi over the visits (eq. 28 takes any affine part in Psi)."""
-        rows = data.use & (data.group >= 0)
-        psi = visit_means(data.group, rows, Inputs.normalised(data.xyz, data.ref))
-        ok = np.all(np.isfinite(psi), axis=1)
-        psi = psi[ok]
+        psi = self._visit_psi(data)
         contrib = quadratic_features(psi, self._psi0(data)) @ np.asarray(coeff, float).T
         A = np.column_stack([np.ones(len(psi)), psi])
         if len(psi) <= A.shape[1]:
@@ -627,8 +646,14 @@ class SpectralNonlinearityEffect(Effect):
         part = self.nonlinear_part(np.asarray(coeff), data)
         if not part.size:
             return ""
-        g = visit_means(data.group, data.use & (data.group >= 0) & np.all(np.isfinite(data.gref), axis=1), data.gref)
-        bound = nonlinearity_bound_mps2(float(np.max(np.linalg.norm(g, axis=1)))) if len(g) else math.inf
+
+        def largest_bound() -> float:
+            g = visit_means(data.group, data.use & (data.group >= 0) & np.all(np.isfinite(data.gref), axis=1),
+                            data.gref)
+            return nonlinearity_bound_mps2(float(np.max(np.linalg.norm(g, axis=1)))) if len(g) else math.inf
+
+        # of the visits' mean reference alone: once per recording (asked of every fit the search checks)
+        bound = data.once("nonlinearity_bound_mps2", largest_bound)
         worst = np.max(np.abs(part), axis=0)
         if np.any(worst > bound):
             return (f"its non-linear part reaches {', '.join(f'{v:.3g}' for v in worst)} m/s^2 (x/y/z) over the poses, "

@@ -23,10 +23,7 @@ from fbg_accel_driver.sensor_constants import FULL_SCALE_MPS2
 from ..dynamic.tone_delay import peak_offset
 from ..fit.model_selection import DegreeScores, choose_degree
 from ..fit.model_selection import select_degree as calibration_select_degree
-from ..fit.thermal_fit import (
-    NotIdentifiedError,
-    temperature_levels,
-)
+from ..fit.thermal_fit import NotIdentifiedError
 from ..io.recording import Recording
 from .cv import (
     RSS_TIE_RTOL,
@@ -102,7 +99,7 @@ def reselect_degree(lanes: Lanes[Evaluator], spec: ModelSpec,
     ev = lanes.lanes[0]
     data = ev.data
     labels = np.full(len(data.t_s), -1)
-    labels[data.use], means = temperature_levels(data.temp_c[data.use])
+    labels[data.use], means = data.fitted_temperature_levels()
     n_levels = max(len(means), 1)
     by_level = n_levels >= 2
     labels = ev.at(labels)

@@ -134,12 +134,17 @@ def held_codes(counts: np.ndarray, groups: np.ndarray, rows: np.ndarray, score: 
         v = col[order]
         if not np.all(np.isfinite(v)) or np.any(v != np.round(v)):
             continue
-        sd = np.array([v[s:s + k].std() for s, k in zip(starts, n, strict=True)])
         codes, at_code = modal_codes(v, starts, n)
         held = at_code >= HELD_SHARE * n
-        for code in np.unique(codes[held]):
+        found = np.unique(codes[held])
+        if not len(found):  # no code held a visit: the channel's noise is not asked for
+            continue
+        # the channel's noise, the median of its visits' standard deviations: worked out for a channel with a
+        # candidate only (some 2500 visits at 10^6 samples, one call each)
+        sigma = float(np.median([v[s:s + k].std() for s, k in zip(starts, n, strict=True)]))
+        for code in found:
             at = np.flatnonzero(held & (codes == code))
-            candidates.append((j, int(code), at, int(at_code[at].sum()), float(np.median(sd))))
+            candidates.append((j, int(code), at, int(at_code[at].sum()), sigma))
     out = []
     rng = np.random.default_rng(0)
     for j, code, at, n_at, sigma in candidates:
