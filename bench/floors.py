@@ -59,7 +59,8 @@ AHT10_STEP_C, AHT10_NOISE_C = 0.01, 0.02
 
 def run_child(argv: list[str]) -> dict:
     """CPU s, wall s and peak RSS MiB of one child process (output discarded; a failure stops the benchmark). The RSS
-    includes the parent's resident set at the fork (``ru_maxrss``), tens of MiB: it tells only of larger figures."""
+    includes the parent's resident set at the fork (``ru_maxrss``), tens of MiB (the files measured are made in a
+    child of their own, ``made_in_a_child``): it tells only of larger figures."""
     t0 = time.perf_counter()
     proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     err = proc.stderr.read()  # type: ignore[union-attr]
@@ -139,7 +140,15 @@ def fit_floor(arrays: Path, degree: int = 2, folds: int = 10) -> None:
     assert np.all(np.isfinite(A)) and np.all(rss > 0)
 
 
+def made_in_a_child(kind: str, n: int, folder: Path) -> None:
+    """Write the files of ``kind`` ("fit": ``campaign_files``, "diagnose": ``diagnose_files``) in a process of their
+    own: a child's peak RSS (``ru_maxrss``) counts the parent's resident set at the fork, so the parent must not grow
+    by simulating and writing 10^6 samples before it measures."""
+    run_child([sys.executable, str(Path(__file__).resolve()), "--make-files", kind, str(n), str(folder)])
+
+
 def measure_fit(n: int, pairs: int, folder: Path) -> dict:
+    made_in_a_child("fit", n, folder)
     files, arrays = campaign_files(n, folder)
     out = folder / "fit_out.yaml"
     project = [sys.executable, "-c", "import sys; from fbg_accel_calibration.commands.cli_main import main; sys.exit(main())",
@@ -178,6 +187,7 @@ def diagnose_files(n: int, folder: Path) -> tuple[Path, Path]:
 def measure_diagnose(n: int, pairs: int, folder: Path) -> dict:
     """The diagnosis alone with one lane against the floor (the goal's measure), then with the default lanes (the
     result's ``default_lanes``)."""
+    made_in_a_child("diagnose", n, folder)
     path, arrays = diagnose_files(n, folder)
     project = [sys.executable, str(HERE / "diagnose_command.py"), "--diagnosis-alone", str(path)]
     floor = [sys.executable, str(Path(__file__).resolve()), "--fit-floor", str(arrays)]
@@ -433,8 +443,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fit-floor", type=Path, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--driver-floor", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--subscriber", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--make-files", nargs=3, default=None, help=argparse.SUPPRESS)  # kind, samples, folder
     add_update_results(ap)
     args = ap.parse_args(argv)
+    if args.make_files is not None:
+        kind, n, folder = args.make_files
+        (campaign_files if kind == "fit" else diagnose_files)(int(n), Path(folder))
+        return 0
     if args.fit_floor is not None:
         fit_floor(args.fit_floor)
         return 0
