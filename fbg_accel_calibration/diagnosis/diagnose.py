@@ -169,13 +169,16 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     des0 = build_design(data, spec)
     cv0 = cross_validate(des0, data.use, fold, np.ones(3))
     res0 = des0.G - cv0.fitted_full
-    # the first step's channel delay cross-check of its fit (beside the floor, or now), then neither the declared
-    # model's design (N x p, 92 MiB at 10^6 samples) nor its fit nor its held-out residual (N x 3 each) is held
-    # through the floor and the searches: they are worked out again after them from the design built anew
-    first_delay_check = delay_cross_check(data, library, lambda: cv0.fitted_full, side_by_side)
+    # neither the declared model's design (N x p, 92 MiB at 10^6 samples) nor its fit nor its held-out residual
+    # (N x 3 each) is held through the floor and the searches: they are worked out again after them from the design
+    # built anew. The first step's channel delay cross-check of the fit is worked out now, once the design is let go
+    # (beside the floor its arrays would add to the floor's)
     floor_rows = data.use & des0.valid & (data.pose_id >= 0)
+    fitted0 = cv0.fitted_full
     cv0.let_go()
     del des0
+    first_delay_check = delay_cross_check(data, library, lambda: fitted0, thread=False)
+    fitted0 = None
     floor = measure_floor(data, res0, floor_rows, settle_s, side_by_side)
     del res0, floor_rows
     # 2. forward selection over the candidates by nested cross-validation over visits, with their checks
