@@ -199,8 +199,13 @@ def group_mse(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, weights: np
     per-sample squared residual weighted over the axes by ``weights`` (3,): (groups, (groups,) (m/s^2)^2)."""
     r = rows & finite_rows(res)
     ug, inv = np.unique(groups[r], return_inverse=True)
-    e = np.sum(res[r] ** 2 * weights, axis=1)
-    return ug, np.bincount(inv, weights=e) / np.bincount(inv)
+    return ug, _group_means(inv, np.bincount(inv), res[r] ** 2 * weights)
+
+
+def _group_means(inv: np.ndarray, count: np.ndarray, squares: np.ndarray) -> np.ndarray:
+    """Each group's mean of its rows' ``squares`` (n, 3) summed over the axes: ``inv`` (n,) the row's group, ``count``
+    the rows of each group."""
+    return np.bincount(inv, weights=np.sum(squares, axis=1)) / count
 
 
 def paired_gain_test(res0: np.ndarray, res1: np.ndarray, groups: np.ndarray, rows: np.ndarray,
@@ -219,8 +224,7 @@ def paired_gain_test(res0: np.ndarray, res1: np.ndarray, groups: np.ndarray, row
     _, inv = np.unique(groups[r], return_inverse=True)
     count = np.bincount(inv)
     e0, e1 = res0[r] ** 2 * weights, res1[r] ** 2 * weights
-    m0 = np.bincount(inv, weights=np.sum(e0, axis=1)) / count
-    m1 = np.bincount(inv, weights=np.sum(e1, axis=1)) / count
+    m0, m1 = _group_means(inv, count, e0), _group_means(inv, count, e1)
     d = m0 - m1
     n = len(d)
     tot0 = float(np.sum(e0))
