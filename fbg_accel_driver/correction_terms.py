@@ -698,6 +698,18 @@ class ThermalHysteresis(_Base):
                steps: SampleSteps | None = None) -> np.ndarray:
         """(N,) branch indicator +1/-1 (0 before the first decision); updates ``state``. ``steps``: those of
         ``t_s`` for the rate filter (``first_order_lowpass``; the result is the same without them)."""
+        decision = ThermalHysteresis.decisions(temp_c, t_s, rate_tau_s, deadband, state, steps)
+        out = ThermalHysteresis.held(decision, state["branch"])
+        if out.shape[0]:
+            state["branch"] = float(out[-1])
+        return out
+
+    @staticmethod
+    def decisions(temp_c: np.ndarray, t_s: np.ndarray, rate_tau_s: float, deadband: float, state: dict,
+                  steps: SampleSteps | None = None) -> np.ndarray:
+        """(N,) int8: +1 / -1 where the smoothed rate (degC/s) passes ``deadband`` up / down, 0 where the branch is
+        held (:meth:`branch`'s decisions, before :meth:`held` carries them on); updates ``state`` but for its branch.
+        ``steps``: those of ``t_s`` (:meth:`branch`)."""
         t_s = np.asarray(t_s, float).reshape(-1)
         lp = first_order_lowpass(np.asarray(temp_c, float), t_s, rate_tau_s, state["lp"], steps)
         n = lp.shape[0]
@@ -707,26 +719,52 @@ class ThermalHysteresis(_Base):
         if n and (good is None or good.size):
             lp_g, t_g = (lp, t_s) if good is None else (lp[good], t_s[good])
             # the rate from the previous finite sample (the state's across batches), where time moves on
-            dt, dlp = np.empty_like(t_g), np.empty_like(lp_g)
-            dt[0] = t_g[0] - (state["tprev"] if state["tprev"] is not None else np.nan)
+            dlp = np.empty_like(lp_g)
             dlp[0] = lp_g[0] - (state["lpprev"] if state["lpprev"] is not None else np.nan)
-            np.subtract(t_g[1:], t_g[:-1], out=dt[1:])
             np.subtract(lp_g[1:], lp_g[:-1], out=dlp[1:])
+            if good is None and state["tprev"] is None and steps is not None and steps.dt.size == n:
+                # the steps' dt: t_s's steps where time moves on, 0 at the first sample and where it does not (there
+                # the step is NaN or negative here otherwise): where time moves on, the same; elsewhere no decision
+                dt = steps.dt
+            else:
+                dt = np.empty_like(t_g)
+                dt[0] = t_g[0] - (state["tprev"] if state["tprev"] is not None else np.nan)
+                np.subtract(t_g[1:], t_g[:-1], out=dt[1:])
             with np.errstate(invalid="ignore", divide="ignore"):
                 rate = np.divide(dlp, dt, out=dlp)
             moving = dt > 0
             d = decision if good is None else np.zeros(good.size, np.int8)
-            d[(rate > deadband) & moving] = 1
-            d[(rate < -deadband) & moving] = -1
+            if deadband >= 0:  # up and down exclusive: +1 - 0, 0 - 1 or 0 (a NaN rate neither), no masked writes
+                up = np.greater(rate, deadband)
+                up &= moving
+                down = np.less(rate, -deadband)
+                down &= moving
+                np.subtract(up.view(np.int8), down.view(np.int8), out=d)
+            else:  # both where the rate is within the negative band: down wins
+                d[(rate > deadband) & moving] = 1
+                d[(rate < -deadband) & moving] = -1
             if good is not None:
                 decision[good] = d
             state["tprev"], state["lpprev"] = float(t_g[-1]), float(lp_g[-1])
-        # forward-fill the last decision (the hysteresis memory), starting from the stored branch
-        idx = np.where(decision != 0, np.arange(n), -1)
-        np.maximum.accumulate(idx, out=idx)
-        out = np.where(idx >= 0, decision[np.maximum(idx, 0)], state["branch"])
-        if n:
-            state["branch"] = float(out[-1])
+        return decision
+
+    @staticmethod
+    def held(decision: np.ndarray, start: float, rows: np.ndarray | None = None) -> np.ndarray:
+        """(N,) float, or (len(rows),) at the samples ``rows``: the last nonzero ``decision`` (int8, :meth:`decisions`)
+        up to each sample, ``start`` (the branch before them) where none is (the hysteresis's memory)."""
+        n = decision.shape[0]
+        # the index of the last decision up to each sample, -1 before the first (arithmetic, not a select on the mask)
+        last = np.arange(1, n + 1)
+        last *= decision != 0
+        last -= 1
+        np.maximum.accumulate(last, out=last)
+        if rows is not None:
+            at = last[rows]
+            return np.where(at >= 0, decision[np.maximum(at, 0)], start)
+        out = np.empty(n, np.result_type(decision.dtype, start))  # np.where's type: float for a float start
+        first = int(np.searchsorted(last, 0))  # ascending: the samples before the first decision
+        out[:first] = start
+        out[first:] = decision.take(last[first:])
         return out
 
     def contribution(self, cal: BaseModel, inputs: TermInputs, state: dict | None) -> np.ndarray:

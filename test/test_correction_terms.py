@@ -3,6 +3,7 @@ same result whether a stream is processed in one batch or in consecutive batches
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import replace
 
@@ -214,6 +215,59 @@ def test_hysteresis_branch_and_thermal_lag_are_the_same_with_steps_and_without_a
         for lag in (ThermalLag(tau), ThermalLag(-tau)):  # the thermal lag's filter takes the same steps
             assert np.array_equal(lag.effective_temperature(temp, t, {}, sample_steps(t)),
                                   lag.effective_temperature(temp, t, {}))
+
+
+def _branch_sample_by_sample(temp: np.ndarray, t: np.ndarray, tau: float, deadband: float, state: dict) -> np.ndarray:
+    """``ThermalHysteresis.branch`` as its docstring says it, one sample at a time: the rate of the filtered temperature
+    from the previous finite sample (the state's across batches) where time moves on decides +1 above ``deadband``,
+    -1 below ``-deadband`` (the latter where both hold), and the branch holds its last decision (the state's before)."""
+    lp = first_order_lowpass(temp, t, tau, state["lp"])  # the filter itself is tested on its own
+    out = np.empty(len(lp))
+    for i, (y, ti) in enumerate(zip(lp.tolist(), np.asarray(t, float).tolist(), strict=True)):
+        if math.isfinite(y):
+            if state["tprev"] is not None and ti - state["tprev"] > 0:
+                rate = (y - state["lpprev"]) / (ti - state["tprev"])
+                if rate < -deadband:
+                    state["branch"] = -1.0
+                elif rate > deadband:
+                    state["branch"] = 1.0
+            state["tprev"], state["lpprev"] = ti, y
+        out[i] = state["branch"]
+    return out
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_hysteresis_branch_is_its_rule_sample_by_sample_and_at_any_rows(seed: int) -> None:
+    # the branch is worked out by whole arrays (its decisions, then each carried on by the index of the last one, from
+    # the steps of the diagnosis's times where given): the rule applied sample by sample, bit for bit and batch by
+    # batch, over repeated and backward times, gaps of the reading, a deadband of 0 or negative, any branch before;
+    # and its value at some rows alone (``held`` with rows: a search's) is the branch of every sample at those rows
+    rng = np.random.default_rng(seed)
+    n = 3000
+    t = np.cumsum(rng.choice([1.0, 0.5, 2.0, 0.0, -0.5], n, p=[0.96, 0.01, 0.01, 0.01, 0.01]))
+    temp = np.round(25 + np.cumsum(rng.normal(0, 0.03, n)), 2)
+    if seed % 2:
+        temp[rng.integers(0, n, 40)] = np.nan
+        temp[1000:1200] = np.nan
+    for tau, deadband in ((5.0, 1e-3), (60.0, 0.0), (2.0, -1e-3), (20.0, 1e-2)):
+        for branch0 in (0.0, 1.0, -1.0):
+            new = {"lp": {}, "branch": branch0, "tprev": None, "lpprev": None}
+            want = _branch_sample_by_sample(temp, t, tau, deadband, dict(new, lp={}))
+            assert {-1.0, 1.0} <= set(want.tolist())
+            got = ThermalHysteresis.branch(temp, t, tau, deadband, dict(new, lp={}))
+            assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+            assert ThermalHysteresis.branch(temp, t, tau, deadband, dict(new, lp={}), sample_steps(t)).tobytes() \
+                == want.tobytes()
+            st = dict(new, lp={})
+            cuts = np.r_[0, np.sort(rng.integers(0, n, 3)), n]
+            by_batch = np.concatenate([ThermalHysteresis.branch(temp[a:b], t[a:b], tau, deadband, st)
+                                       for a, b in itertools.pairwise(cuts)])
+            assert by_batch.tobytes() == want.tobytes()
+            rows = rng.permutation(n)[:500]
+            st = dict(new, lp={})
+            decision = ThermalHysteresis.decisions(temp, t, tau, deadband, st, sample_steps(t))
+            assert ThermalHysteresis.held(decision, branch0, rows).tobytes() == want[rows].tobytes()
+            assert ThermalHysteresis.held(decision, branch0).tobytes() == want.tobytes()
 
 
 # A step of 1e-7 tau (tau 1 s) at which a step 5e-11 longer gives a = 1 - exp(-dt/tau) one rounding step (1e-9 of
