@@ -384,9 +384,8 @@ def _design_matrix(data: DiagnosisData, spec: ModelSpec, ordered: list[tuple[Eff
     n_base = n_params(spec.degree)
     extra, blocks, p = [], {}, n_base
     for eff, h in ordered:
-        c = eff.columns(data, part if eff.pointwise else inp, h)
+        c = eff.columns(data, part, h) if eff.pointwise else eff.columns_at(data, inp, h, sub)
         if c is not None:
-            c = c if eff.pointwise or sub is None else c[sub]
             blocks[eff.name] = slice(p, p + c.shape[1])
             extra.append(c)
             p += c.shape[1]
