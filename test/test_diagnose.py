@@ -26,7 +26,7 @@ from fbg_accel_calibration.diagnosis.cv import (
     search_batches,
     weighted_rss,
 )
-from fbg_accel_calibration.diagnosis.data import fill_reference_gaps, finite_rows, interp_columns
+from fbg_accel_calibration.diagnosis.data import fill_reference_gaps, finite_rows, interp_columns, interval_of
 from fbg_accel_calibration.diagnosis.design import DesignCache, ModelSpec, build_design, fitted_output, prepare_data
 from fbg_accel_calibration.diagnosis.diagnose import DiagnosisResult, diagnose
 from fbg_accel_calibration.diagnosis.effects import Effect
@@ -367,6 +367,43 @@ def test_interp_columns_is_np_interp_of_each_column_bit_for_bit() -> None:
         nan = np.isnan(want)
         assert np.array_equal(np.isnan(got), nan), trial
         assert np.array_equal(got[~nan].view(np.int64), want[~nan].view(np.int64)), trial
+
+
+def test_the_interval_from_a_guess_is_searchsorted_s_and_searched_only_where_the_guess_is_off(monkeypatch) -> None:
+    """``interval_of`` takes a guess of each point's interval where it, or the interval before or after it, is the one
+    (the channel delay's t - D, about D / step samples before its own): ``np.searchsorted``'s index, bit for bit, at
+    points of the grid, repeated grid times, outside it, at NaN and infinities, guesses off by up to 3 or out of range;
+    ``interp_columns`` with the guesses gives ``np.interp``'s bits; and only the points whose guess is off by more than
+    one interval are searched for."""
+    rng = np.random.default_rng(5)
+    for trial in range(600):
+        n = int(rng.integers(1, 40))
+        xp = np.sort(rng.normal(size=n)) if trial % 3 else np.cumsum(rng.integers(0, 3, n)).astype(float)
+        fp = rng.normal(size=(n, 3)) * 10
+        x = np.r_[rng.normal(size=30) * 2, xp[rng.integers(0, n, 8)], xp[0] - 1, xp[-1] + 1, -0.0, np.nan, np.inf,
+                  -np.inf]
+        want = np.searchsorted(xp, x, side="right") - 1
+        near = want + rng.integers(-3, 4, len(x))
+        near[:3] = [-5, n + 5, 10**9]
+        got = interval_of(xp, x, near)
+        assert got.dtype == want.dtype and np.array_equal(got, want), trial
+        assert np.array_equal(interval_of(xp, x), want)
+        with_guess = interp_columns(x, xp, fp, block=7, near=near)
+        plain = np.column_stack([np.interp(x, xp, fp[:, j]) for j in range(3)])
+        assert with_guess.tobytes() == plain.tobytes(), trial
+    searched = []
+    real = np.searchsorted
+
+    def spy(a, v, *args, **kwargs):
+        searched.append(np.size(v))
+        return real(a, v, *args, **kwargs)
+
+    xp = np.arange(10_000) * 0.01
+    x = xp[100:] - 0.03  # three steps back, rounded: the guess or the interval next to it
+    with monkeypatch.context() as m:
+        m.setattr(np, "searchsorted", spy)
+        got = interval_of(xp, x, np.arange(100, 10_000) - 3)
+    assert np.array_equal(got, real(xp, x, side="right") - 1) and sum(searched) < 10
 
 
 def test_a_design_of_some_rows_is_those_rows_of_the_whole_design() -> None:

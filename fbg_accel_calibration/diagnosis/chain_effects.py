@@ -101,7 +101,10 @@ class ChannelDelayEffect(Effect):
                 inside[inside] = start[k[inside]] <= local[inside]
                 part = local[inside]
                 at = sel[inside]
-            g[at] = interp_columns(t[part] - D, t, f_all[run])
+            # where t - D falls (times increasing, ``_near_a_move``): about D / step samples before each sample's own,
+            # a guess that ``interval_of`` checks
+            lag = round(float(D * (len(t) - 1) / (t[-1] - t[0]))) if len(t) > 1 else 0
+            g[at] = interp_columns(t[part] - D, t, f_all[run], near=part - lag)
             first = _delay_start(t, D)
             if rows is None:
                 valid[run.start:run.start + first] = False

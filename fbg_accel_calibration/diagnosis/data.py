@@ -284,20 +284,44 @@ def take_rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return np.take(a, idx, axis=0)
 
 
-def interp_columns(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, block: int = 1 << 16) -> np.ndarray:
+def interval_of(xp: np.ndarray, x: np.ndarray, near: np.ndarray | None = None) -> np.ndarray:
+    """``np.searchsorted(xp, x, side="right") - 1`` (``xp`` increasing, without NaN): the index j of the interval
+    xp[j] <= x < xp[j + 1] of each ``x`` (-1 below ``xp[0]``, len(xp) - 1 from ``xp[-1]`` on). ``near`` (len(x),
+    indices): a guess of each j, taken where it, the index before or the one after it is j by those two comparisons
+    (then no other index is: ``xp`` is sorted), searched for elsewhere (a guess off by more, NaN, the ends): the same
+    indices, a few comparisons each instead of a bisection of ``xp`` (the channel delay's t - D falls about
+    D / step samples before its own, on every trial)."""
+    x = np.asarray(x, dtype=float)
+    n = len(xp)
+    if near is None or n < 3:
+        return np.searchsorted(xp, x, side="right") - 1
+    j = np.clip(near, 1, n - 3)  # j - 1 .. j + 2 within xp
+    below, above = xp[j] <= x, x < xp[j + 1]
+    j[~below] -= 1  # x < xp[j]: the interval before, where xp[j - 1] <= x
+    low = ~above
+    j[low] += 1  # xp[j + 1] <= x: the interval after, where x < xp[j + 2]
+    ok = (below & above) | (~below & (xp[j] <= x)) | (low & (x < xp[np.minimum(j + 1, n - 1)]))
+    bad = np.flatnonzero(~ok)
+    if len(bad):
+        j[bad] = np.searchsorted(xp, x[bad], side="right") - 1
+    return j
+
+
+def interp_columns(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, block: int = 1 << 16,
+                   near: np.ndarray | None = None) -> np.ndarray:
     """``np.interp(x, xp, fp[:, j])`` (len(x), k) for every column j of ``fp`` (len(xp), k) at once, the same values
     bit for bit: ``x`` is looked up in ``xp`` (increasing) once for the k columns, where ``np.interp`` looks it up
     again for each (the channel delay's search interpolates the three reference axes at the same times on every
     trial). As ``np.interp``: below ``xp[0]`` the first row, from ``xp[-1]`` on the last, at a point of ``xp`` its
     row, else the slope of the interval times the distance from its left end plus its left value (from the right
     end where that is NaN); NaN where ``x`` is (but for a single point). Worked out ``block`` values at a time
-    (bounded temporaries)."""
+    (bounded temporaries). ``near``: a guess of each x's interval (``interval_of``; the same values)."""
     x = np.asarray(x, dtype=float)
     out = np.empty((len(x), fp.shape[1]))
     n = len(xp)
     for lo in range(0, len(x), block):
         xs = x[lo:lo + block]
-        j = np.searchsorted(xp, xs, side="right") - 1
+        j = interval_of(xp, xs, None if near is None else near[lo:lo + block])
         jj = np.clip(j, 0, max(n - 2, 0))
         x0, f0 = xp[jj], take_rows(fp, jj)
         if n >= 2:
