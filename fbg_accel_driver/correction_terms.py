@@ -209,6 +209,33 @@ def uniform_coefficient(tau_s: float, steps: SampleSteps) -> float | None:
     return float(a_start[1]) if len(bounds) == 3 and bounds[1] == 1 else None
 
 
+def _same_bits(a: float, b: float) -> bool:
+    return np.float64(a).tobytes() == np.float64(b).tobytes()
+
+
+def _first_sample_then_one_run(xs: np.ndarray, a_start: np.ndarray, bounds: np.ndarray,
+                               y_prev: float) -> np.ndarray | None:
+    """``first_order_lowpass``'s output of ``xs`` when its runs of one coefficient (``a_start``, ``bounds``) are the
+    first sample alone and the rest (a filter started afresh: no step before the first sample, a = 0), from one
+    ``lfilter`` call over every sample instead of one per run copied into a third array; None where that does not
+    give the same bits. The call starts from a state z0 for which its first output and its state after it are, bit
+    for bit, the first run's output and the state the second run starts from (checked on the first sample by the
+    filter itself): from there on it is the second run's recursion, with its coefficient, on its samples."""
+    from scipy.signal import lfilter
+
+    if len(a_start) != 2 or bounds[1] != 1 or len(xs) < 2:
+        return None
+    a0, a1 = float(a_start[0]), float(a_start[1])
+    first, _ = lfilter([a0], [1.0, a0 - 1.0], xs[:1], zi=[(1.0 - a0) * y_prev])  # the first run, as the loop does it
+    y0 = float(first[0])
+    z0 = y0 - a1 * y0  # so that y0 = a1 x0 + z0 where x0 = y0 (a fresh start: y_prev = x0)
+    got, zf = lfilter([a1], [1.0, a1 - 1.0], xs[:1], zi=[z0])
+    if not (_same_bits(float(got[0]), y0) and _same_bits(float(zf[0]), (1.0 - a1) * y0)):
+        return None
+    out, _ = lfilter([a1], [1.0, a1 - 1.0], xs, zi=[z0])
+    return out
+
+
 def first_order_lowpass(x: np.ndarray, t_s: np.ndarray, tau_s: float, state: dict | None,
                         steps: SampleSteps | None = None) -> np.ndarray:
     """Exact first-order low-pass y' = (x - y)/tau for a piecewise-constant input sampled at ``t_s``.
@@ -244,11 +271,15 @@ def first_order_lowpass(x: np.ndarray, t_s: np.ndarray, tau_s: float, state: dic
     # split into runs of (nearly) constant coefficient a (uniform sampling) and filter each run at once
     resolution = steps.resolution_s if steps is not None else time_resolution(ts[0], ts[-1], t_prev)
     a_start, bounds = _coefficient_cuts(dt, tau_s, steps, resolution)
-    ys = np.empty_like(xs)
-    for ai, (i, j) in zip(a_start, itertools.pairwise(bounds), strict=True):
-        seg, _ = lfilter([ai], [1.0, ai - 1.0], xs[i:j], zi=[(1.0 - ai) * y_prev])
-        ys[i:j] = seg
-        y_prev = float(seg[-1])
+    ys = _first_sample_then_one_run(xs, a_start, bounds, y_prev)
+    if ys is not None:
+        y_prev = float(ys[-1])
+    else:
+        ys = np.empty_like(xs)
+        for ai, (i, j) in zip(a_start, itertools.pairwise(bounds), strict=True):
+            seg, _ = lfilter([ai], [1.0, ai - 1.0], xs[i:j], zi=[(1.0 - ai) * y_prev])
+            ys[i:j] = seg
+            y_prev = float(seg[-1])
     st["y"], st["t"] = y_prev, float(ts[-1])
     if good is None:
         return ys

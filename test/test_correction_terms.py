@@ -294,6 +294,46 @@ def test_lowpass_with_steps_worked_out_once_equals_it_without(case: str) -> None
         np.testing.assert_array_equal(first_order_lowpass(x, t, tau, {}, steps), first_order_lowpass(x, t, tau, {}))
 
 
+@pytest.mark.parametrize("case", ["uniform", "jittered", "gaps", "irregular", "tiny_steps", "one_sample"])
+def test_lowpass_started_afresh_is_one_pass_of_the_filter_with_the_bits_of_its_runs(case: str, monkeypatch) -> None:
+    # started afresh (the first sample alone, a = 0, then one coefficient) the filter is one lfilter call over every
+    # sample from a state checked to give the first run's output and the second run's start: the same bits as the
+    # loop over the runs (that call's output itself, not copied into a third array), with steps or without, from
+    # counts of thousands, signed zeros (-0.0: the check declines, the loop runs) or a gap too
+    from scipy import signal
+
+    from fbg_accel_driver import correction_terms
+
+    rng = np.random.default_rng(11)
+    n = 1 if case == "one_sample" else 3000
+    t = {"uniform": np.arange(n) * 0.01 + 1.7e9, "jittered": np.arange(n) / 97.0 + 1e6, "one_sample": np.zeros(1),
+         "gaps": np.cumsum(np.where(rng.random(n) < 0.01, 0.5, 0.01)),
+         "irregular": np.cumsum(rng.choice([0.01, 0.02, 0.0], n)), "tiny_steps": np.arange(n) * 1e-9}[case]
+    calls: list[tuple[int, np.ndarray]] = []
+    lfilter = signal.lfilter
+
+    def spy(*args, **kwargs):
+        out = lfilter(*args, **kwargs)
+        calls.append((len(args[2]), out[0]))
+        return out
+
+    monkeypatch.setattr(signal, "lfilter", spy)
+    for x0 in (3000.0, -0.0, 0.0, 1e-300, -7.3e5):
+        x = x0 + np.cumsum(rng.normal(0, 1, n)) * (abs(x0) * 1e-3 + 1e-3)
+        x[0] = x0
+        for tau in (1e-6, 0.003, 0.05, 1.0, 40.0):
+            for steps in (sample_steps(t), None):
+                calls.clear()
+                got = first_order_lowpass(x, t, tau, {}, steps)
+                one_pass = [out for size, out in calls if size == n]
+                with monkeypatch.context() as m:
+                    m.setattr(correction_terms, "_first_sample_then_one_run", lambda *a: None)
+                    want = first_order_lowpass(x, t, tau, {}, steps)
+                assert got.tobytes() == want.tobytes(), (x0, tau)
+                if case in ("uniform", "jittered", "tiny_steps") and tau > 1e-6 and str(x0) != "-0.0":
+                    assert len(one_pass) == 1 and got is one_pass[0], (x0, tau)  # the call's own array
+
+
 # ----------------------------------------------------------------------------- fitted spans
 def _span_terms() -> list:
     """The empirical additive terms with the span of inputs they were fitted on."""
