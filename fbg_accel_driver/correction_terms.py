@@ -216,23 +216,35 @@ def _same_bits(a: float, b: float) -> bool:
 def _first_sample_then_one_run(xs: np.ndarray, a_start: np.ndarray, bounds: np.ndarray,
                                y_prev: float) -> np.ndarray | None:
     """``first_order_lowpass``'s output of ``xs`` when its runs of one coefficient (``a_start``, ``bounds``) are the
-    first sample alone and the rest (a filter started afresh: no step before the first sample, a = 0), from one
-    ``lfilter`` call over every sample instead of one per run copied into a third array; None where that does not
-    give the same bits. The call starts from a state z0 for which its first output and its state after it are, bit
-    for bit, the first run's output and the state the second run starts from (checked on the first sample by the
-    filter itself): from there on it is the second run's recursion, with its coefficient, on its samples."""
+    first sample alone and the rest (a filter started afresh: no step before the first sample, a = 0): the first run
+    as the loop works it out, the rest by ``lowpass_after_first`` (one ``lfilter`` call over every sample where it
+    gives the same bits); None for other runs."""
     from scipy.signal import lfilter
 
-    if len(a_start) != 2 or bounds[1] != 1 or len(xs) < 2:
+    if len(a_start) != 2 or bounds[1] != 1:
         return None
-    a0, a1 = float(a_start[0]), float(a_start[1])
+    a0 = a_start[0]
     first, _ = lfilter([a0], [1.0, a0 - 1.0], xs[:1], zi=[(1.0 - a0) * y_prev])  # the first run, as the loop does it
-    y0 = float(first[0])
-    z0 = y0 - a1 * y0  # so that y0 = a1 x0 + z0 where x0 = y0 (a fresh start: y_prev = x0)
-    got, zf = lfilter([a1], [1.0, a1 - 1.0], xs[:1], zi=[z0])
-    if not (_same_bits(float(got[0]), y0) and _same_bits(float(zf[0]), (1.0 - a1) * y0)):
-        return None
-    out, _ = lfilter([a1], [1.0, a1 - 1.0], xs, zi=[z0])
+    return lowpass_after_first(xs, a_start[1], float(first[0]))
+
+
+def lowpass_after_first(x: np.ndarray, a: float, y0: float) -> np.ndarray:
+    """(n,) y[0] = ``y0``, then y[k] = a x[k] + (1 - a) y[k - 1]: ``lfilter`` over x[1:] from the state (1 - a) y0,
+    bit for bit, without the copy of its output into a third array: one call over every sample of ``x`` from a state
+    z0 for which its first output and its state after it are, bit for bit, y0 and (1 - a) y0 (checked on the first
+    sample by the filter itself; from there on it is the same recursion on the same samples); else the two pieces."""
+    from scipy.signal import lfilter
+
+    num, den = [a], [1.0, a - 1.0]
+    if len(x) >= 2:
+        z0 = y0 - a * float(x[0])  # y0 = a x[0] + z0, up to rounding: checked
+        got, zf = lfilter(num, den, x[:1], zi=[z0])
+        if _same_bits(float(got[0]), y0) and _same_bits(float(zf[0]), (1.0 - a) * y0):
+            return lfilter(num, den, x, zi=[z0])[0]
+    out = np.empty(len(x))
+    out[0] = y0
+    if len(x) > 1:
+        out[1:] = lfilter(num, den, x[1:], zi=[(1.0 - a) * y0])[0]
     return out
 
 

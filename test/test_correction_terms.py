@@ -334,6 +334,40 @@ def test_lowpass_started_afresh_is_one_pass_of_the_filter_with_the_bits_of_its_r
                     assert len(one_pass) == 1 and got is one_pass[0], (x0, tau)  # the call's own array
 
 
+def test_lowpass_after_a_given_first_value_is_lfilter_of_the_rest_bit_for_bit(monkeypatch) -> None:
+    # lowpass_after_first (the low-pass started afresh; the held low-pass's series in motion and its cascade's):
+    # y[0] given, then lfilter over the rest from (1 - a) y[0], the same bits, from one call over every sample where
+    # the state it starts from checks out (its output, not a copy), else from the two pieces
+    from scipy import signal
+
+    from fbg_accel_driver.correction_terms import lowpass_after_first
+
+    rng = np.random.default_rng(12)
+    lfilter, made = signal.lfilter, []
+
+    def spy(*args, **kwargs):
+        made.append(lfilter(*args, **kwargs)[0])
+        return made[-1], lfilter(*args, **kwargs)[1]
+
+    one_call = 0
+    for trial in range(400):
+        n = int(rng.integers(1, 50))
+        x = rng.normal(size=n) * 10.0 ** rng.uniform(-300, 300) + rng.choice([0.0, 3000.0, -2e5])
+        a = float(10.0 ** rng.uniform(-12, 0))
+        y0 = float(x[0]) if trial % 3 else float(rng.choice([x[0] * 1.5, -0.0, 0.0, 1e300]))
+        want = np.empty(n)
+        want[0] = y0
+        if n > 1:
+            want[1:] = lfilter([a], [1.0, a - 1.0], x[1:], zi=[(1.0 - a) * y0])[0]
+        made.clear()
+        with monkeypatch.context() as m:
+            m.setattr(signal, "lfilter", spy)
+            got = lowpass_after_first(x, a, y0)
+        assert got.tobytes() == want.tobytes(), trial
+        one_call += any(got is out for out in made)
+    assert one_call > 200  # the usual case: one call
+
+
 # ----------------------------------------------------------------------------- fitted spans
 def _span_terms() -> list:
     """The empirical additive terms with the span of inputs they were fitted on."""
