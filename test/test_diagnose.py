@@ -406,6 +406,40 @@ def test_the_interval_from_a_guess_is_searchsorted_s_and_searched_only_where_the
     assert np.array_equal(got, real(xp, x, side="right") - 1) and sum(searched) < 10
 
 
+def test_rows_taken_whole_are_the_indexed_rows_bit_for_bit(monkeypatch) -> None:
+    """``rows_at`` (the rows of the references, residuals and inputs a search's trials gather: the fitted rows of
+    the refinement's reference, a fold's rows, the design's rows of a corrected input) is ``a[rows]`` bit for bit,
+    shape and memory order alike, for C-ordered, F-ordered and strided arrays of 1-3 columns, 1-D arrays, integer
+    indices (repeated, unsorted, none) and boolean masks (none, all); a C-ordered array's rows are copied whole
+    (``np.take`` / ``np.compress``), not through numpy's indexing."""
+    from fbg_accel_calibration.diagnosis.data import rows_at
+
+    rng = np.random.default_rng(9)
+    for trial in range(300):
+        n, k = int(rng.integers(1, 60)), int(rng.integers(1, 4))
+        base = rng.normal(size=(n, 2 * k))
+        base[rng.random(base.shape) < 0.05] = np.nan
+        arrays = [np.ascontiguousarray(base[:, :k]), np.asfortranarray(base[:, :k]), base[:, ::2], base[:, 0],
+                  np.ascontiguousarray(base[:, :k].T).T]
+        picks = [rng.integers(0, n, int(rng.integers(0, 2 * n))), np.flatnonzero(rng.random(n) < 0.7),
+                 rng.random(n) < 0.5, np.zeros(n, bool), np.ones(n, bool), np.zeros(0, dtype=np.intp)]
+        for a in arrays:
+            for rows in picks:
+                want, got = a[rows], rows_at(a, rows)
+                assert got.shape == want.shape and got.strides == want.strides and got.dtype == want.dtype, trial
+                assert got.tobytes() == want.tobytes(), trial
+    indexed = []
+
+    class Rows(np.ndarray):  # a C-ordered array that tells when numpy's indexing copies its rows
+        def __getitem__(self, key):
+            indexed.append(key)
+            return super().__getitem__(key)
+
+    a = np.arange(30.0).reshape(10, 3).view(Rows)
+    rows_at(a, np.array([1, 5, 5])), rows_at(a, np.arange(10) % 2 == 0)
+    assert not indexed
+
+
 def test_a_design_of_some_rows_is_those_rows_of_the_whole_design() -> None:
     """The thinned search builds designs of every k-th sample (``sub``): the corrections still run on the whole
     series, eq. 28's columns and pointwise effects' columns are computed on those rows alone, the others on

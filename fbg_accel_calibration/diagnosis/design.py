@@ -18,7 +18,17 @@ from ..fit.thermal_fit import (
     n_params,
 )
 from ..io.recording import LowReference, Recording
-from .data import MIN_HELD_SAMPLES, DiagnosisData, Inputs, finite_rows, held_poses, memory_key, motion_groups, visit_ids
+from .data import (
+    MIN_HELD_SAMPLES,
+    DiagnosisData,
+    Inputs,
+    finite_rows,
+    held_poses,
+    memory_key,
+    motion_groups,
+    rows_at,
+    visit_ids,
+)
 from .effects import Effect
 from .search_lanes import beside
 from .temperature_reading import reading_jumps
@@ -221,11 +231,11 @@ class DesignCache:
         (the recorded inputs, a correction a search repeats unchanged, ``DiagnosisData.recent``) while it is among
         the last few such arrays asked for: most trials of a search change one input array and share the rest."""
         if a.flags.writeable:
-            return a[idx]
+            return rows_at(a, idx)
         key = memory_key(a)  # the same memory, read-only
         hit = self._taken.hit(key)
         if hit is None:
-            hit = self._taken[key] = (a, a[idx])  # a is kept: its memory cannot be reused for another array
+            hit = self._taken[key] = (a, rows_at(a, idx))  # a is kept: its memory cannot be reused for another array
             self._taken.trim()
         return hit[1]
 
