@@ -21,6 +21,7 @@ from .data import (
     input_run_steps,
     interp_columns,
     psi_map_of,
+    rows_at,
     rows_by_run,
     take_rows,
 )
@@ -322,7 +323,7 @@ class TiaLowpassEffect(Effect):
         """(the holds of a run's reference ``g`` (n, 3) and where ``rows`` (local) fall, the reference where the filter
         reads it and at ``rows``, each (3, k) by column): what every trial of ``_held_at_rows`` shares."""
         held = held_rows(g, rows)
-        return held, np.ascontiguousarray(g[held.samples].T), np.ascontiguousarray(g[rows].T)
+        return held, np.ascontiguousarray(rows_at(g, held.samples).T), np.ascontiguousarray(rows_at(g, rows).T)
 
     def _moved_held_reference(self, data: DiagnosisData, g: np.ndarray, run: slice, rows: np.ndarray,
                               rows_key: str) -> tuple[HeldRows, np.ndarray, np.ndarray]:

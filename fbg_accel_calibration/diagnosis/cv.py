@@ -420,7 +420,7 @@ def switch_profile(X: np.ndarray, G: np.ndarray, Z: np.ndarray, index: np.ndarra
     xtx, xtg, gtg = np.zeros((K + 1, p, p)), np.zeros((K + 1, p, 3)), np.zeros((K + 1, 3))
     for lo in range(0, len(idx), chunk):
         r = idx[lo:lo + chunk]
-        W = np.concatenate([X[r], Z[r], G[r]], axis=1)
+        W = np.concatenate([X[r], Z[r], rows_at(G, r)], axis=1)
         k = key[lo:lo + chunk]
         starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
         T[k[starts]] += np.add.reduceat(Z[r][:, :, None] * W[:, None, :], starts, axis=0)

@@ -58,6 +58,7 @@ from .data import (
     Inputs,
     direction_labels,
     input_run_steps,
+    rows_at,
     rows_by_run,
     same_memory,
     visit_means,
@@ -205,7 +206,7 @@ class Effect:
         correction of the reference alone (``reference_only``) that no correction follows: one may work out those
         rows only (the same values); ``inp`` may be left changed."""
         self.transform(data, inp, h)
-        return (inp.gref, inp.valid) if rows is None else (inp.gref[rows], inp.valid[rows])
+        return (inp.gref, inp.valid) if rows is None else (rows_at(inp.gref, rows), inp.valid[rows])
 
     def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray | None:
         """Extra regressors (N, k) computed from the corrected inputs, each with 3 coefficients (one per axis);
