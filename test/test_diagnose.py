@@ -440,6 +440,43 @@ def test_rows_taken_whole_are_the_indexed_rows_bit_for_bit(monkeypatch) -> None:
     assert not indexed
 
 
+def test_rows_written_whole_are_those_indexed_assignment_writes(monkeypatch) -> None:
+    """``set_rows`` (a search's held-out residual of each fold's best value, written into its (n, 3) array on every
+    trial): ``out[rows] = values`` bit for bit, for rows (unsorted, none, all), arrays of 1-3 columns, values of rows,
+    NaN, a signed zero, float32 and F-ordered values, and arrays it does not write whole (F-ordered, 1-D); an
+    C-ordered float array's rows are written whole, not through numpy's indexed assignment."""
+    from fbg_accel_calibration.diagnosis.data import set_rows
+
+    rng = np.random.default_rng(10)
+    for trial in range(300):
+        n, k = int(rng.integers(1, 40)), int(rng.integers(1, 4))
+        base = rng.normal(size=(n, k))
+        base[rng.random(base.shape) < 0.1] = np.nan
+        rows = rng.permutation(n)[:int(rng.integers(0, n + 1))]
+        for values in (rng.normal(size=(len(rows), k)), np.nan, -0.0, rng.normal(size=(len(rows), k)).astype(np.float32),
+                       np.asfortranarray(rng.normal(size=(len(rows), k)))):
+            for make in (np.ascontiguousarray, np.asfortranarray):
+                want, got = make(base.copy()), make(base.copy())
+                want[rows] = values
+                set_rows(got, rows, values)
+                assert got.tobytes() == want.tobytes() and got.strides == want.strides, trial
+        flat_want, flat_got = base[:, 0].copy(), base[:, 0].copy()
+        flat_want[rows] = 1.5
+        set_rows(flat_got, rows, 1.5)
+        assert flat_got.tobytes() == flat_want.tobytes()
+    written = []
+
+    class Rows(np.ndarray):  # a C-ordered array that tells when numpy's indexed assignment writes its rows
+        def __setitem__(self, key, value):
+            written.append(key)
+            super().__setitem__(key, value)
+
+    a = np.zeros((10, 3)).view(Rows)
+    set_rows(a, np.array([1, 5]), np.ones((2, 3)))
+    set_rows(a, np.array([2]), np.nan)
+    assert not written and np.isnan(a[2]).all() and (a[[1, 5]] == 1).all()
+
+
 def test_a_design_of_some_rows_is_those_rows_of_the_whole_design() -> None:
     """The thinned search builds designs of every k-th sample (``sub``): the corrections still run on the whole
     series, eq. 28's columns and pointwise effects' columns are computed on those rows alone, the others on

@@ -298,6 +298,27 @@ def rows_at(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return np.take(a, rows, axis=0)
 
 
+def set_rows(out: np.ndarray, rows: np.ndarray, values: np.ndarray | float) -> None:
+    """``out[rows] = values`` (``rows``: integer indices; ``values``: (len(rows), k) or one value for every element),
+    the same bits: for a C-ordered (N, k) float64 ``out`` each row is written whole, as one element of k * 8 bytes
+    (numpy's indexed assignment writes an (N, 3) array's rows value by value, about twice as slow); else by
+    indexing."""
+    if out.ndim != 2 or not out.flags.c_contiguous or out.dtype != np.float64 or not out.flags.writeable:
+        out[rows] = values
+        return
+    k = out.shape[1]
+    whole = np.dtype((np.void, 8 * k))
+    if np.ndim(values) == 0:
+        row = np.ascontiguousarray(np.broadcast_to(np.asarray(values, dtype=np.float64), (1, k)))
+        np.asarray(out).view(whole).reshape(len(out))[rows] = row.view(whole)[0, 0]
+        return
+    values = np.ascontiguousarray(values, dtype=np.float64)
+    if values.shape != (len(rows), k):
+        out[rows] = values  # broadcasting (or its error) as indexing does it
+        return
+    np.asarray(out).view(whole).reshape(len(out))[rows] = values.view(whole).reshape(len(rows))
+
+
 def interval_of(xp: np.ndarray, x: np.ndarray, near: np.ndarray | None = None) -> np.ndarray:
     """``np.searchsorted(xp, x, side="right") - 1`` (``xp`` increasing, without NaN): the index j of the interval
     xp[j] <= x < xp[j + 1] of each ``x`` (-1 below ``xp[0]``, len(xp) - 1 from ``xp[-1]`` on). ``near`` (len(x),

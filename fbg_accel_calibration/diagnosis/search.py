@@ -37,7 +37,7 @@ from .cv import (
     switch_profile,
     weighted_rss,
 )
-from .data import DiagnosisData, finite_rows, rows_at
+from .data import DiagnosisData, finite_rows, rows_at, set_rows
 
 # ============================================================================ data preparation
 from .design import (
@@ -498,9 +498,9 @@ class Evaluator:
             for f in np.flatnonzero(better):
                 best_train[ok][f], best_at[ok][f] = cvr.train_rss[f], i
                 out = heldout_of(ok)
-                out[fold_rows[f]] = np.nan  # those of the fold not fitted at this value
+                set_rows(out, fold_rows[f], np.nan)  # those of the fold not fitted at this value
                 at, res = cvr.fold_heldout(f)
-                out[at] = res
+                set_rows(out, at, res)
             seen[i] = (ok, float(np.sum(cvr.train_rss) / max(K - 1, 1)))
 
         def visit_all(batch: list[int]) -> None:
