@@ -23,6 +23,7 @@ from .data import (
     psi_map_of,
     rows_at,
     rows_by_run,
+    set_rows,
     take_rows,
 )
 from .effects import (
@@ -105,7 +106,7 @@ class ChannelDelayEffect(Effect):
             # where t - D falls (times increasing, ``_near_a_move``): about D / step samples before each sample's own,
             # a guess that ``interval_of`` checks
             lag = round(float(D * (len(t) - 1) / (t[-1] - t[0]))) if len(t) > 1 else 0
-            g[at] = interp_columns(t[part] - D, t, f_all[run], near=part - lag)
+            set_rows(g, at, interp_columns(t[part] - D, t, f_all[run], near=part - lag))  # whole rows: g[at] = ...
             first = _delay_start(t, D)
             if rows is None:
                 valid[run.start:run.start + first] = False

@@ -370,8 +370,8 @@ def interp_columns(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, block: int = 1
                     part = np.where(nan & np.isnan(part) & (f0 == f1), f0, part)
         else:
             part = f0.copy()
-        at = (j >= n - 1) | (xs == x0)  # from the last point on, or at a point of xp: its row
-        part[at] = take_rows(fp, np.minimum(j[at], n - 1))
+        at = np.flatnonzero((j >= n - 1) | (xs == x0))  # from the last point on, or at a point of xp: its row
+        set_rows(part, at, take_rows(fp, np.minimum(j[at], n - 1)))  # whole rows (a delay of whole steps: most)
         part[j < 0] = fp[0]
         if n >= 2:  # (np.interp gives a single point's row even at NaN)
             part[np.isnan(xs)] = np.nan
