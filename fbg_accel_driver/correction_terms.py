@@ -209,6 +209,45 @@ def uniform_coefficient(tau_s: float, steps: SampleSteps) -> float | None:
     return float(a_start[1]) if len(bounds) == 3 and bounds[1] == 1 else None
 
 
+def _same_bits(a: float, b: float) -> bool:
+    return np.float64(a).tobytes() == np.float64(b).tobytes()
+
+
+def _first_sample_then_one_run(xs: np.ndarray, a_start: np.ndarray, bounds: np.ndarray,
+                               y_prev: float) -> np.ndarray | None:
+    """``first_order_lowpass``'s output of ``xs`` when its runs of one coefficient (``a_start``, ``bounds``) are the
+    first sample alone and the rest (a filter started afresh: no step before the first sample, a = 0): the first run
+    as the loop works it out, the rest by ``lowpass_after_first`` (one ``lfilter`` call over every sample where it
+    gives the same bits); None for other runs."""
+    from scipy.signal import lfilter
+
+    if len(a_start) != 2 or bounds[1] != 1:
+        return None
+    a0 = a_start[0]
+    first, _ = lfilter([a0], [1.0, a0 - 1.0], xs[:1], zi=[(1.0 - a0) * y_prev])  # the first run, as the loop does it
+    return lowpass_after_first(xs, a_start[1], float(first[0]))
+
+
+def lowpass_after_first(x: np.ndarray, a: float, y0: float) -> np.ndarray:
+    """(n,) y[0] = ``y0``, then y[k] = a x[k] + (1 - a) y[k - 1]: ``lfilter`` over x[1:] from the state (1 - a) y0,
+    bit for bit, without the copy of its output into a third array: one call over every sample of ``x`` from a state
+    z0 for which its first output and its state after it are, bit for bit, y0 and (1 - a) y0 (checked on the first
+    sample by the filter itself; from there on it is the same recursion on the same samples); else the two pieces."""
+    from scipy.signal import lfilter
+
+    num, den = [a], [1.0, a - 1.0]
+    if len(x) >= 2:
+        z0 = y0 - a * float(x[0])  # y0 = a x[0] + z0, up to rounding: checked
+        got, zf = lfilter(num, den, x[:1], zi=[z0])
+        if _same_bits(float(got[0]), y0) and _same_bits(float(zf[0]), (1.0 - a) * y0):
+            return lfilter(num, den, x, zi=[z0])[0]
+    out = np.empty(len(x))
+    out[0] = y0
+    if len(x) > 1:
+        out[1:] = lfilter(num, den, x[1:], zi=[(1.0 - a) * y0])[0]
+    return out
+
+
 def first_order_lowpass(x: np.ndarray, t_s: np.ndarray, tau_s: float, state: dict | None,
                         steps: SampleSteps | None = None) -> np.ndarray:
     """Exact first-order low-pass y' = (x - y)/tau for a piecewise-constant input sampled at ``t_s``.
@@ -244,11 +283,15 @@ def first_order_lowpass(x: np.ndarray, t_s: np.ndarray, tau_s: float, state: dic
     # split into runs of (nearly) constant coefficient a (uniform sampling) and filter each run at once
     resolution = steps.resolution_s if steps is not None else time_resolution(ts[0], ts[-1], t_prev)
     a_start, bounds = _coefficient_cuts(dt, tau_s, steps, resolution)
-    ys = np.empty_like(xs)
-    for ai, (i, j) in zip(a_start, itertools.pairwise(bounds), strict=True):
-        seg, _ = lfilter([ai], [1.0, ai - 1.0], xs[i:j], zi=[(1.0 - ai) * y_prev])
-        ys[i:j] = seg
-        y_prev = float(seg[-1])
+    ys = _first_sample_then_one_run(xs, a_start, bounds, y_prev)
+    if ys is not None:
+        y_prev = float(ys[-1])
+    else:
+        ys = np.empty_like(xs)
+        for ai, (i, j) in zip(a_start, itertools.pairwise(bounds), strict=True):
+            seg, _ = lfilter([ai], [1.0, ai - 1.0], xs[i:j], zi=[(1.0 - ai) * y_prev])
+            ys[i:j] = seg
+            y_prev = float(seg[-1])
     st["y"], st["t"] = y_prev, float(ts[-1])
     if good is None:
         return ys
@@ -698,6 +741,18 @@ class ThermalHysteresis(_Base):
                steps: SampleSteps | None = None) -> np.ndarray:
         """(N,) branch indicator +1/-1 (0 before the first decision); updates ``state``. ``steps``: those of
         ``t_s`` for the rate filter (``first_order_lowpass``; the result is the same without them)."""
+        decision = ThermalHysteresis.decisions(temp_c, t_s, rate_tau_s, deadband, state, steps)
+        out = ThermalHysteresis.held(decision, state["branch"])
+        if out.shape[0]:
+            state["branch"] = float(out[-1])
+        return out
+
+    @staticmethod
+    def decisions(temp_c: np.ndarray, t_s: np.ndarray, rate_tau_s: float, deadband: float, state: dict,
+                  steps: SampleSteps | None = None) -> np.ndarray:
+        """(N,) int8: +1 / -1 where the smoothed rate (degC/s) passes ``deadband`` up / down, 0 where the branch is
+        held (:meth:`branch`'s decisions, before :meth:`held` carries them on); updates ``state`` but for its branch.
+        ``steps``: those of ``t_s`` (:meth:`branch`)."""
         t_s = np.asarray(t_s, float).reshape(-1)
         lp = first_order_lowpass(np.asarray(temp_c, float), t_s, rate_tau_s, state["lp"], steps)
         n = lp.shape[0]
@@ -707,26 +762,52 @@ class ThermalHysteresis(_Base):
         if n and (good is None or good.size):
             lp_g, t_g = (lp, t_s) if good is None else (lp[good], t_s[good])
             # the rate from the previous finite sample (the state's across batches), where time moves on
-            dt, dlp = np.empty_like(t_g), np.empty_like(lp_g)
-            dt[0] = t_g[0] - (state["tprev"] if state["tprev"] is not None else np.nan)
+            dlp = np.empty_like(lp_g)
             dlp[0] = lp_g[0] - (state["lpprev"] if state["lpprev"] is not None else np.nan)
-            np.subtract(t_g[1:], t_g[:-1], out=dt[1:])
             np.subtract(lp_g[1:], lp_g[:-1], out=dlp[1:])
+            if good is None and state["tprev"] is None and steps is not None and steps.dt.size == n:
+                # the steps' dt: t_s's steps where time moves on, 0 at the first sample and where it does not (there
+                # the step is NaN or negative here otherwise): where time moves on, the same; elsewhere no decision
+                dt = steps.dt
+            else:
+                dt = np.empty_like(t_g)
+                dt[0] = t_g[0] - (state["tprev"] if state["tprev"] is not None else np.nan)
+                np.subtract(t_g[1:], t_g[:-1], out=dt[1:])
             with np.errstate(invalid="ignore", divide="ignore"):
                 rate = np.divide(dlp, dt, out=dlp)
             moving = dt > 0
             d = decision if good is None else np.zeros(good.size, np.int8)
-            d[(rate > deadband) & moving] = 1
-            d[(rate < -deadband) & moving] = -1
+            if deadband >= 0:  # up and down exclusive: +1 - 0, 0 - 1 or 0 (a NaN rate neither), no masked writes
+                up = np.greater(rate, deadband)
+                up &= moving
+                down = np.less(rate, -deadband)
+                down &= moving
+                np.subtract(up.view(np.int8), down.view(np.int8), out=d)
+            else:  # both where the rate is within the negative band: down wins
+                d[(rate > deadband) & moving] = 1
+                d[(rate < -deadband) & moving] = -1
             if good is not None:
                 decision[good] = d
             state["tprev"], state["lpprev"] = float(t_g[-1]), float(lp_g[-1])
-        # forward-fill the last decision (the hysteresis memory), starting from the stored branch
-        idx = np.where(decision != 0, np.arange(n), -1)
-        np.maximum.accumulate(idx, out=idx)
-        out = np.where(idx >= 0, decision[np.maximum(idx, 0)], state["branch"])
-        if n:
-            state["branch"] = float(out[-1])
+        return decision
+
+    @staticmethod
+    def held(decision: np.ndarray, start: float, rows: np.ndarray | None = None) -> np.ndarray:
+        """(N,) float, or (len(rows),) at the samples ``rows``: the last nonzero ``decision`` (int8, :meth:`decisions`)
+        up to each sample, ``start`` (the branch before them) where none is (the hysteresis's memory)."""
+        n = decision.shape[0]
+        # the index of the last decision up to each sample, -1 before the first (arithmetic, not a select on the mask)
+        last = np.arange(1, n + 1)
+        last *= decision != 0
+        last -= 1
+        np.maximum.accumulate(last, out=last)
+        if rows is not None:
+            at = last[rows]
+            return np.where(at >= 0, decision[np.maximum(at, 0)], start)
+        out = np.empty(n, np.result_type(decision.dtype, start))  # np.where's type: float for a float start
+        first = int(np.searchsorted(last, 0))  # ascending: the samples before the first decision
+        out[:first] = start
+        out[first:] = decision.take(last[first:])
         return out
 
     def contribution(self, cal: BaseModel, inputs: TermInputs, state: dict | None) -> np.ndarray:

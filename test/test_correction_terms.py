@@ -3,6 +3,7 @@ same result whether a stream is processed in one batch or in consecutive batches
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import replace
 
@@ -216,6 +217,59 @@ def test_hysteresis_branch_and_thermal_lag_are_the_same_with_steps_and_without_a
                                   lag.effective_temperature(temp, t, {}))
 
 
+def _branch_sample_by_sample(temp: np.ndarray, t: np.ndarray, tau: float, deadband: float, state: dict) -> np.ndarray:
+    """``ThermalHysteresis.branch`` as its docstring says it, one sample at a time: the rate of the filtered temperature
+    from the previous finite sample (the state's across batches) where time moves on decides +1 above ``deadband``,
+    -1 below ``-deadband`` (the latter where both hold), and the branch holds its last decision (the state's before)."""
+    lp = first_order_lowpass(temp, t, tau, state["lp"])  # the filter itself is tested on its own
+    out = np.empty(len(lp))
+    for i, (y, ti) in enumerate(zip(lp.tolist(), np.asarray(t, float).tolist(), strict=True)):
+        if math.isfinite(y):
+            if state["tprev"] is not None and ti - state["tprev"] > 0:
+                rate = (y - state["lpprev"]) / (ti - state["tprev"])
+                if rate < -deadband:
+                    state["branch"] = -1.0
+                elif rate > deadband:
+                    state["branch"] = 1.0
+            state["tprev"], state["lpprev"] = ti, y
+        out[i] = state["branch"]
+    return out
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_hysteresis_branch_is_its_rule_sample_by_sample_and_at_any_rows(seed: int) -> None:
+    # the branch is worked out by whole arrays (its decisions, then each carried on by the index of the last one, from
+    # the steps of the diagnosis's times where given): the rule applied sample by sample, bit for bit and batch by
+    # batch, over repeated and backward times, gaps of the reading, a deadband of 0 or negative, any branch before;
+    # and its value at some rows alone (``held`` with rows: a search's) is the branch of every sample at those rows
+    rng = np.random.default_rng(seed)
+    n = 3000
+    t = np.cumsum(rng.choice([1.0, 0.5, 2.0, 0.0, -0.5], n, p=[0.96, 0.01, 0.01, 0.01, 0.01]))
+    temp = np.round(25 + np.cumsum(rng.normal(0, 0.03, n)), 2)
+    if seed % 2:
+        temp[rng.integers(0, n, 40)] = np.nan
+        temp[1000:1200] = np.nan
+    for tau, deadband in ((5.0, 1e-3), (60.0, 0.0), (2.0, -1e-3), (20.0, 1e-2)):
+        for branch0 in (0.0, 1.0, -1.0):
+            new = {"lp": {}, "branch": branch0, "tprev": None, "lpprev": None}
+            want = _branch_sample_by_sample(temp, t, tau, deadband, dict(new, lp={}))
+            assert {-1.0, 1.0} <= set(want.tolist())
+            got = ThermalHysteresis.branch(temp, t, tau, deadband, dict(new, lp={}))
+            assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+            assert ThermalHysteresis.branch(temp, t, tau, deadband, dict(new, lp={}), sample_steps(t)).tobytes() \
+                == want.tobytes()
+            st = dict(new, lp={})
+            cuts = np.r_[0, np.sort(rng.integers(0, n, 3)), n]
+            by_batch = np.concatenate([ThermalHysteresis.branch(temp[a:b], t[a:b], tau, deadband, st)
+                                       for a, b in itertools.pairwise(cuts)])
+            assert by_batch.tobytes() == want.tobytes()
+            rows = rng.permutation(n)[:500]
+            st = dict(new, lp={})
+            decision = ThermalHysteresis.decisions(temp, t, tau, deadband, st, sample_steps(t))
+            assert ThermalHysteresis.held(decision, branch0, rows).tobytes() == want[rows].tobytes()
+            assert ThermalHysteresis.held(decision, branch0).tobytes() == want.tobytes()
+
+
 # A step of 1e-7 tau (tau 1 s) at which a step 5e-11 longer gives a = 1 - exp(-dt/tau) one rounding step (1e-9 of
 # it) apart: a filter coefficient that changes although the step hardly does (found by trying steps 1e-9 apart).
 _D1 = next(d for d in 1e-7 * (1 + np.arange(1000) * 1e-9)
@@ -238,6 +292,80 @@ def test_lowpass_with_steps_worked_out_once_equals_it_without(case: str) -> None
     steps = sample_steps(t)
     for tau in (1e-6, 0.003, 0.05, 0.12, 1.0, 40.0):
         np.testing.assert_array_equal(first_order_lowpass(x, t, tau, {}, steps), first_order_lowpass(x, t, tau, {}))
+
+
+@pytest.mark.parametrize("case", ["uniform", "jittered", "gaps", "irregular", "tiny_steps", "one_sample"])
+def test_lowpass_started_afresh_is_one_pass_of_the_filter_with_the_bits_of_its_runs(case: str, monkeypatch) -> None:
+    # started afresh (the first sample alone, a = 0, then one coefficient) the filter is one lfilter call over every
+    # sample from a state checked to give the first run's output and the second run's start: the same bits as the
+    # loop over the runs (that call's output itself, not copied into a third array), with steps or without, from
+    # counts of thousands, signed zeros (-0.0: the check declines, the loop runs) or a gap too
+    from scipy import signal
+
+    from fbg_accel_driver import correction_terms
+
+    rng = np.random.default_rng(11)
+    n = 1 if case == "one_sample" else 3000
+    t = {"uniform": np.arange(n) * 0.01 + 1.7e9, "jittered": np.arange(n) / 97.0 + 1e6, "one_sample": np.zeros(1),
+         "gaps": np.cumsum(np.where(rng.random(n) < 0.01, 0.5, 0.01)),
+         "irregular": np.cumsum(rng.choice([0.01, 0.02, 0.0], n)), "tiny_steps": np.arange(n) * 1e-9}[case]
+    calls: list[tuple[int, np.ndarray]] = []
+    lfilter = signal.lfilter
+
+    def spy(*args, **kwargs):
+        out = lfilter(*args, **kwargs)
+        calls.append((len(args[2]), out[0]))
+        return out
+
+    monkeypatch.setattr(signal, "lfilter", spy)
+    for x0 in (3000.0, -0.0, 0.0, 1e-300, -7.3e5):
+        x = x0 + np.cumsum(rng.normal(0, 1, n)) * (abs(x0) * 1e-3 + 1e-3)
+        x[0] = x0
+        for tau in (1e-6, 0.003, 0.05, 1.0, 40.0):
+            for steps in (sample_steps(t), None):
+                calls.clear()
+                got = first_order_lowpass(x, t, tau, {}, steps)
+                one_pass = [out for size, out in calls if size == n]
+                with monkeypatch.context() as m:
+                    m.setattr(correction_terms, "_first_sample_then_one_run", lambda *a: None)
+                    want = first_order_lowpass(x, t, tau, {}, steps)
+                assert got.tobytes() == want.tobytes(), (x0, tau)
+                if case in ("uniform", "jittered", "tiny_steps") and tau > 1e-6 and str(x0) != "-0.0":
+                    assert len(one_pass) == 1 and got is one_pass[0], (x0, tau)  # the call's own array
+
+
+def test_lowpass_after_a_given_first_value_is_lfilter_of_the_rest_bit_for_bit(monkeypatch) -> None:
+    # lowpass_after_first (the low-pass started afresh; the held low-pass's series in motion and its cascade's):
+    # y[0] given, then lfilter over the rest from (1 - a) y[0], the same bits, from one call over every sample where
+    # the state it starts from checks out (its output, not a copy), else from the two pieces
+    from scipy import signal
+
+    from fbg_accel_driver.correction_terms import lowpass_after_first
+
+    rng = np.random.default_rng(12)
+    lfilter, made = signal.lfilter, []
+
+    def spy(*args, **kwargs):
+        made.append(lfilter(*args, **kwargs)[0])
+        return made[-1], lfilter(*args, **kwargs)[1]
+
+    one_call = 0
+    for trial in range(400):
+        n = int(rng.integers(1, 50))
+        x = rng.normal(size=n) * 10.0 ** rng.uniform(-300, 300) + rng.choice([0.0, 3000.0, -2e5])
+        a = float(10.0 ** rng.uniform(-12, 0))
+        y0 = float(x[0]) if trial % 3 else float(rng.choice([x[0] * 1.5, -0.0, 0.0, 1e300]))
+        want = np.empty(n)
+        want[0] = y0
+        if n > 1:
+            want[1:] = lfilter([a], [1.0, a - 1.0], x[1:], zi=[(1.0 - a) * y0])[0]
+        made.clear()
+        with monkeypatch.context() as m:
+            m.setattr(signal, "lfilter", spy)
+            got = lowpass_after_first(x, a, y0)
+        assert got.tobytes() == want.tobytes(), trial
+        one_call += any(got is out for out in made)
+    assert one_call > 200  # the usual case: one call
 
 
 # ----------------------------------------------------------------------------- fitted spans

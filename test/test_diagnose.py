@@ -26,7 +26,7 @@ from fbg_accel_calibration.diagnosis.cv import (
     search_batches,
     weighted_rss,
 )
-from fbg_accel_calibration.diagnosis.data import fill_reference_gaps, finite_rows, interp_columns
+from fbg_accel_calibration.diagnosis.data import fill_reference_gaps, finite_rows, interp_columns, interval_of
 from fbg_accel_calibration.diagnosis.design import DesignCache, ModelSpec, build_design, fitted_output, prepare_data
 from fbg_accel_calibration.diagnosis.diagnose import DiagnosisResult, diagnose
 from fbg_accel_calibration.diagnosis.effects import Effect
@@ -367,6 +367,114 @@ def test_interp_columns_is_np_interp_of_each_column_bit_for_bit() -> None:
         nan = np.isnan(want)
         assert np.array_equal(np.isnan(got), nan), trial
         assert np.array_equal(got[~nan].view(np.int64), want[~nan].view(np.int64)), trial
+
+
+def test_the_interval_from_a_guess_is_searchsorted_s_and_searched_only_where_the_guess_is_off(monkeypatch) -> None:
+    """``interval_of`` takes a guess of each point's interval where it, or the interval before or after it, is the one
+    (the channel delay's t - D, about D / step samples before its own): ``np.searchsorted``'s index, bit for bit, at
+    points of the grid, repeated grid times, outside it, at NaN and infinities, guesses off by up to 3 or out of range;
+    ``interp_columns`` with the guesses gives ``np.interp``'s bits; and only the points whose guess is off by more than
+    one interval are searched for."""
+    rng = np.random.default_rng(5)
+    for trial in range(600):
+        n = int(rng.integers(1, 40))
+        xp = np.sort(rng.normal(size=n)) if trial % 3 else np.cumsum(rng.integers(0, 3, n)).astype(float)
+        fp = rng.normal(size=(n, 3)) * 10
+        x = np.r_[rng.normal(size=30) * 2, xp[rng.integers(0, n, 8)], xp[0] - 1, xp[-1] + 1, -0.0, np.nan, np.inf,
+                  -np.inf]
+        want = np.searchsorted(xp, x, side="right") - 1
+        near = want + rng.integers(-3, 4, len(x))
+        near[:3] = [-5, n + 5, 10**9]
+        got = interval_of(xp, x, near)
+        assert got.dtype == want.dtype and np.array_equal(got, want), trial
+        assert np.array_equal(interval_of(xp, x), want)
+        with_guess = interp_columns(x, xp, fp, block=7, near=near)
+        plain = np.column_stack([np.interp(x, xp, fp[:, j]) for j in range(3)])
+        assert with_guess.tobytes() == plain.tobytes(), trial
+    searched = []
+    real = np.searchsorted
+
+    def spy(a, v, *args, **kwargs):
+        searched.append(np.size(v))
+        return real(a, v, *args, **kwargs)
+
+    xp = np.arange(10_000) * 0.01
+    x = xp[100:] - 0.03  # three steps back, rounded: the guess or the interval next to it
+    with monkeypatch.context() as m:
+        m.setattr(np, "searchsorted", spy)
+        got = interval_of(xp, x, np.arange(100, 10_000) - 3)
+    assert np.array_equal(got, real(xp, x, side="right") - 1) and sum(searched) < 10
+
+
+def test_rows_taken_whole_are_the_indexed_rows_bit_for_bit(monkeypatch) -> None:
+    """``rows_at`` (the rows of the references, residuals and inputs a search's trials gather: the fitted rows of
+    the refinement's reference, a fold's rows, the design's rows of a corrected input) is ``a[rows]`` bit for bit,
+    shape and memory order alike, for C-ordered, F-ordered and strided arrays of 1-3 columns, 1-D arrays, integer
+    indices (repeated, unsorted, none) and boolean masks (none, all); a C-ordered array's rows are copied whole
+    (``np.take`` / ``np.compress``), not through numpy's indexing."""
+    from fbg_accel_calibration.diagnosis.data import rows_at
+
+    rng = np.random.default_rng(9)
+    for trial in range(300):
+        n, k = int(rng.integers(1, 60)), int(rng.integers(1, 4))
+        base = rng.normal(size=(n, 2 * k))
+        base[rng.random(base.shape) < 0.05] = np.nan
+        arrays = [np.ascontiguousarray(base[:, :k]), np.asfortranarray(base[:, :k]), base[:, ::2], base[:, 0],
+                  np.ascontiguousarray(base[:, :k].T).T]
+        picks = [rng.integers(0, n, int(rng.integers(0, 2 * n))), np.flatnonzero(rng.random(n) < 0.7),
+                 rng.random(n) < 0.5, np.zeros(n, bool), np.ones(n, bool), np.zeros(0, dtype=np.intp)]
+        for a in arrays:
+            for rows in picks:
+                want, got = a[rows], rows_at(a, rows)
+                assert got.shape == want.shape and got.strides == want.strides and got.dtype == want.dtype, trial
+                assert got.tobytes() == want.tobytes(), trial
+    indexed = []
+
+    class Rows(np.ndarray):  # a C-ordered array that tells when numpy's indexing copies its rows
+        def __getitem__(self, key):
+            indexed.append(key)
+            return super().__getitem__(key)
+
+    a = np.arange(30.0).reshape(10, 3).view(Rows)
+    rows_at(a, np.array([1, 5, 5])), rows_at(a, np.arange(10) % 2 == 0)
+    assert not indexed
+
+
+def test_rows_written_whole_are_those_indexed_assignment_writes(monkeypatch) -> None:
+    """``set_rows`` (a search's held-out residual of each fold's best value, written into its (n, 3) array on every
+    trial): ``out[rows] = values`` bit for bit, for rows (unsorted, none, all), arrays of 1-3 columns, values of rows,
+    NaN, a signed zero, float32 and F-ordered values, and arrays it does not write whole (F-ordered, 1-D); an
+    C-ordered float array's rows are written whole, not through numpy's indexed assignment."""
+    from fbg_accel_calibration.diagnosis.data import set_rows
+
+    rng = np.random.default_rng(10)
+    for trial in range(300):
+        n, k = int(rng.integers(1, 40)), int(rng.integers(1, 4))
+        base = rng.normal(size=(n, k))
+        base[rng.random(base.shape) < 0.1] = np.nan
+        rows = rng.permutation(n)[:int(rng.integers(0, n + 1))]
+        for values in (rng.normal(size=(len(rows), k)), np.nan, -0.0, rng.normal(size=(len(rows), k)).astype(np.float32),
+                       np.asfortranarray(rng.normal(size=(len(rows), k)))):
+            for make in (np.ascontiguousarray, np.asfortranarray):
+                want, got = make(base.copy()), make(base.copy())
+                want[rows] = values
+                set_rows(got, rows, values)
+                assert got.tobytes() == want.tobytes() and got.strides == want.strides, trial
+        flat_want, flat_got = base[:, 0].copy(), base[:, 0].copy()
+        flat_want[rows] = 1.5
+        set_rows(flat_got, rows, 1.5)
+        assert flat_got.tobytes() == flat_want.tobytes()
+    written = []
+
+    class Rows(np.ndarray):  # a C-ordered array that tells when numpy's indexed assignment writes its rows
+        def __setitem__(self, key, value):
+            written.append(key)
+            super().__setitem__(key, value)
+
+    a = np.zeros((10, 3)).view(Rows)
+    set_rows(a, np.array([1, 5]), np.ones((2, 3)))
+    set_rows(a, np.array([2]), np.nan)
+    assert not written and np.isnan(a[2]).all() and (a[[1, 5]] == 1).all()
 
 
 def test_a_design_of_some_rows_is_those_rows_of_the_whole_design() -> None:

@@ -350,3 +350,62 @@ def test_a_kept_value_no_longer_fresh_is_let_go_on_the_next_call_for_any_key() -
     data.recent(("c",), lambda: seen_by_b.append(list(data._recent)) or make("c"))
     assert seen_by_b == [[("b",)]]  # gone before "c" was made
     assert list(data._recent) == [("b",), ("c",)]
+
+
+def test_the_hysteresis_column_at_a_search_s_rows_is_its_column_of_every_sample_there(monkeypatch) -> None:
+    """``ThermalHysteresisEffect.columns_at`` carries each run's decisions on to a search's rows alone (no branch of
+    every sample made, ``ThermalHysteresis.branch`` not called): bit for bit the column of every sample at those rows,
+    rows in any order, of one run or both, and the driver's branch of each run from its own start; so is the block of
+    a design built on those rows."""
+    from fbg_accel_calibration.diagnosis.design import ModelSpec, build_design
+    from fbg_accel_calibration.diagnosis.effects import ThermalHysteresisEffect
+    from fbg_accel_driver.correction_terms import ThermalHysteresis
+
+    data = two_rate_lag_data()
+    eff = ThermalHysteresisEffect()
+    inp = Inputs.of(data)
+    rng = np.random.default_rng(4)
+    rows = np.flatnonzero(data.use)[::3]
+    for h in (0.05, 0.3, 2.0):
+        every = eff.columns(data, inp, h)
+        driver = np.concatenate([ThermalHysteresis.branch(data.temp_c[run], data.t_s[run], h, eff.deadband(h),
+                                                          ThermalHysteresis(np.zeros(3), h, 1.0).new_state())
+                                 for run in data.runs()])
+        assert every.shape == (len(data.t_s), 1) and every[:, 0].tobytes() == driver.tobytes()
+        assert {-1.0, 1.0} <= set(every[rows, 0].tolist())
+        with monkeypatch.context() as m:
+            m.setattr(ThermalHysteresis, "branch", None)  # the rows' values without the branch of every sample
+            for at in (rows, rng.permutation(rows), rows[rows < data.runs()[0].stop], rows[rows >= data.runs()[1].start]):
+                got = eff.columns_at(data, inp, h, at)
+                assert got.shape == (len(at), 1) and got.tobytes() == every[at].tobytes()
+            spec = ModelSpec(0, 25.0, 1.0, [(eff, h)])
+            des = build_design(data, spec, sub=rows)
+        assert des.X[:, des.blocks[eff.name]].tobytes() == np.ascontiguousarray(every[rows]).tobytes()
+
+
+def test_the_read_noise_filter_of_one_run_is_the_filter_s_own_output(monkeypatch) -> None:
+    """Of a recording of one run, ``ReferenceReadNoiseEffect.transform`` gives the filter's output array itself (no
+    copy of every sample into another array); of several runs each run filtered from its own start, every sample
+    written (``test_the_read_noise_filter_kept_per_time_constant_is_that_of_the_recorded_counts``)."""
+    from fbg_accel_calibration.diagnosis import effects
+    from fbg_accel_calibration.diagnosis.effects import ReferenceReadNoiseEffect
+
+    two = two_rate_lag_data()
+    one = replace(two, run_id=np.zeros_like(two.run_id), group=None)
+    assert len(one.runs()) == 1
+    made = []
+
+    def spy(*args, **kwargs) -> np.ndarray:
+        made.append(effects.first_order_lowpass.__wrapped__(*args, **kwargs))
+        return made[-1]
+
+    spy.__wrapped__ = effects.first_order_lowpass
+    monkeypatch.setattr(effects, "first_order_lowpass", spy)
+    inp = Inputs.of(one)
+    ReferenceReadNoiseEffect().transform(one, inp, 0.05)
+    assert len(made) == 1 and inp.ref is made[0]
+    want = spy.__wrapped__(one.ref, one.t_s, 0.05, {})
+    assert inp.ref.tobytes() == want.tobytes()
+    inp = Inputs.of(two)
+    ReferenceReadNoiseEffect().transform(two, inp, 0.05)
+    assert inp.ref.tobytes() == np.concatenate(made[1:]).tobytes() and len(made) == 3

@@ -251,6 +251,35 @@ def test_the_delayed_reference_is_interpolated_where_it_moved_only_and_is_the_sa
                 assert 0 < near.mean() < 0.5  # the held samples are not interpolated
 
 
+def test_the_delayed_reference_looks_its_times_up_from_the_delay_s_steps_not_by_search(monkeypatch) -> None:
+    """A trial of the channel delay finds where each t - D falls from the samples D is (``interval_of``'s guess),
+    checked by comparisons: the points ``np.searchsorted`` bisects for are the motions' few (their reach), not the
+    samples interpolated near the moves (the same values: the test above)."""
+    from fbg_accel_calibration.diagnosis.chain_effects import ChannelDelayEffect
+
+    data = tia_data()
+    eff = ChannelDelayEffect()
+    rows = np.flatnonzero(data.use)[::9]
+    real = np.searchsorted
+    searched: list[int] = []
+
+    def spy(a, v, *args, **kwargs):
+        searched.append(np.size(v))
+        return real(a, v, *args, **kwargs)
+
+    for D in (0.3 * DT, DT, 2.5 * DT, 0.1):
+        data = replace(data)  # nothing kept of another delay
+        searched.clear()
+        with monkeypatch.context() as m:
+            m.setattr(np, "searchsorted", spy)
+            eff.reference_at(data, Inputs.of(data), D, None)
+            eff.reference_at(data, Inputs.of(data), D, rows)
+        interpolated = sum(int(np.sum(b - a)) for run in data.runs()
+                           for a, b in zip(*ChannelDelayEffect._near_a_move(data, run, D), strict=True))
+        motions = sum(len(ChannelDelayEffect._near_a_move(data, run, D)[0]) for run in data.runs())
+        assert interpolated > 20 * motions and sum(searched) <= 4 * motions + len(rows), (sum(searched), motions)
+
+
 @pytest.mark.parametrize("D", [0.3 * DT, 2.5 * DT, 0.1])
 def test_the_tia_reference_on_a_delayed_reference_is_the_one_over_every_sample(D: float, row_block: None) -> None:
     """On the channel delay's reference (its holds shortened by the delay after each move) the TIA candidate filters

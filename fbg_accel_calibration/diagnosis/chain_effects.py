@@ -21,7 +21,9 @@ from .data import (
     input_run_steps,
     interp_columns,
     psi_map_of,
+    rows_at,
     rows_by_run,
+    set_rows,
     take_rows,
 )
 from .effects import (
@@ -101,7 +103,10 @@ class ChannelDelayEffect(Effect):
                 inside[inside] = start[k[inside]] <= local[inside]
                 part = local[inside]
                 at = sel[inside]
-            g[at] = interp_columns(t[part] - D, t, f_all[run])
+            # where t - D falls (times increasing, ``_near_a_move``): about D / step samples before each sample's own,
+            # a guess that ``interval_of`` checks
+            lag = round(float(D * (len(t) - 1) / (t[-1] - t[0]))) if len(t) > 1 else 0
+            set_rows(g, at, interp_columns(t[part] - D, t, f_all[run], near=part - lag))  # whole rows: g[at] = ...
             first = _delay_start(t, D)
             if rows is None:
                 valid[run.start:run.start + first] = False
@@ -319,7 +324,7 @@ class TiaLowpassEffect(Effect):
         """(the holds of a run's reference ``g`` (n, 3) and where ``rows`` (local) fall, the reference where the filter
         reads it and at ``rows``, each (3, k) by column): what every trial of ``_held_at_rows`` shares."""
         held = held_rows(g, rows)
-        return held, np.ascontiguousarray(g[held.samples].T), np.ascontiguousarray(g[rows].T)
+        return held, np.ascontiguousarray(rows_at(g, held.samples).T), np.ascontiguousarray(rows_at(g, rows).T)
 
     def _moved_held_reference(self, data: DiagnosisData, g: np.ndarray, run: slice, rows: np.ndarray,
                               rows_key: str) -> tuple[HeldRows, np.ndarray, np.ndarray]:

@@ -17,7 +17,7 @@ from ..fit.thermal_fit import (
     solve_normal_equations,
     temperature_levels,
 )
-from .data import DiagnosisData, finite_rows
+from .data import DiagnosisData, finite_rows, rows_at
 
 # ============================================================================ data preparation
 from .design import (
@@ -205,7 +205,7 @@ class CvResult:
         rows = self.sums.idx[lo:hi]
         design = self._design
         if design is None:
-            return rows, self.heldout[rows]
+            return rows, rows_at(self.heldout, rows)
         X, G = design
         return rows, _fold_part(self.sums.idx, lo, hi, G) - _fold_part(self.sums.idx, lo, hi, X) @ self._A_folds[f]
 
@@ -258,7 +258,7 @@ def _fold_part(idx: np.ndarray, lo: int, hi: int, of: np.ndarray) -> np.ndarray:
     rows = idx[lo:hi]
     if hi > lo and rows[-1] - rows[0] == hi - lo - 1:
         return of[rows[0]:rows[-1] + 1]
-    return of[rows]
+    return rows_at(of, rows)
 SEARCH_STRIDE = 4  # a hyper-parameter search visits every 4th grid value first, then walks from the best (search_batches)
 
 
@@ -386,7 +386,7 @@ def weighted_rss(des: Design, rows: np.ndarray, weights: np.ndarray,
     if sums is None or sums.X() is not des.X or not np.array_equal(sums.rows, r):
         Xr = des.X[r]  # one copy, not three
         sums = RssSums(weakref.ref(des.X), r, Xr, Xr.T @ Xr)
-    X, G = sums.Xr, des.G[r]
+    X, G = sums.Xr, rows_at(des.G, r)
     A = solve_normal_equations(sums.XtX, X.T @ G)[0]
     res = G - X @ A
     return float(np.sum(res**2 * weights)), sums
@@ -420,7 +420,7 @@ def switch_profile(X: np.ndarray, G: np.ndarray, Z: np.ndarray, index: np.ndarra
     xtx, xtg, gtg = np.zeros((K + 1, p, p)), np.zeros((K + 1, p, 3)), np.zeros((K + 1, 3))
     for lo in range(0, len(idx), chunk):
         r = idx[lo:lo + chunk]
-        W = np.concatenate([X[r], Z[r], G[r]], axis=1)
+        W = np.concatenate([X[r], Z[r], rows_at(G, r)], axis=1)
         k = key[lo:lo + chunk]
         starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
         T[k[starts]] += np.add.reduceat(Z[r][:, :, None] * W[:, None, :], starts, axis=0)

@@ -284,20 +284,79 @@ def take_rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return np.take(a, idx, axis=0)
 
 
-def interp_columns(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, block: int = 1 << 16) -> np.ndarray:
+def rows_at(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``a[rows]`` (``rows``: integer indices, or a boolean mask of ``a``'s rows), the same array bit for bit (values,
+    shape, C order): for a C-ordered (N, k) array by ``np.take`` / ``np.compress`` along the first axis, which copy
+    whole rows (numpy's indexing copies an (N, 3) array's rows value by value, 4-5 times slower); else by indexing
+    (an F-ordered design matrix: indexing makes its C-ordered copy faster)."""
+    if a.ndim != 2 or not a.flags.c_contiguous:
+        return a[rows]
+    if rows.dtype == bool:
+        if rows.ndim != 1 or len(rows) != len(a):
+            return a[rows]  # IndexError as indexing raises it
+        return np.compress(rows, a, axis=0)
+    return np.take(a, rows, axis=0)
+
+
+def set_rows(out: np.ndarray, rows: np.ndarray, values: np.ndarray | float) -> None:
+    """``out[rows] = values`` (``rows``: integer indices; ``values``: (len(rows), k) or one value for every element),
+    the same bits: for a C-ordered (N, k) float64 ``out`` each row is written whole, as one element of k * 8 bytes
+    (numpy's indexed assignment writes an (N, 3) array's rows value by value, about twice as slow); else by
+    indexing."""
+    if out.ndim != 2 or not out.flags.c_contiguous or out.dtype != np.float64 or not out.flags.writeable:
+        out[rows] = values
+        return
+    k = out.shape[1]
+    whole = np.dtype((np.void, 8 * k))
+    if np.ndim(values) == 0:
+        row = np.ascontiguousarray(np.broadcast_to(np.asarray(values, dtype=np.float64), (1, k)))
+        np.asarray(out).view(whole).reshape(len(out))[rows] = row.view(whole)[0, 0]
+        return
+    values = np.ascontiguousarray(values, dtype=np.float64)
+    if values.shape != (len(rows), k):
+        out[rows] = values  # broadcasting (or its error) as indexing does it
+        return
+    np.asarray(out).view(whole).reshape(len(out))[rows] = values.view(whole).reshape(len(rows))
+
+
+def interval_of(xp: np.ndarray, x: np.ndarray, near: np.ndarray | None = None) -> np.ndarray:
+    """``np.searchsorted(xp, x, side="right") - 1`` (``xp`` increasing, without NaN): the index j of the interval
+    xp[j] <= x < xp[j + 1] of each ``x`` (-1 below ``xp[0]``, len(xp) - 1 from ``xp[-1]`` on). ``near`` (len(x),
+    indices): a guess of each j, taken where it, the index before or the one after it is j by those two comparisons
+    (then no other index is: ``xp`` is sorted), searched for elsewhere (a guess off by more, NaN, the ends): the same
+    indices, a few comparisons each instead of a bisection of ``xp`` (the channel delay's t - D falls about
+    D / step samples before its own, on every trial)."""
+    x = np.asarray(x, dtype=float)
+    n = len(xp)
+    if near is None or n < 3:
+        return np.searchsorted(xp, x, side="right") - 1
+    j = np.clip(near, 1, n - 3)  # j - 1 .. j + 2 within xp
+    below, above = xp[j] <= x, x < xp[j + 1]
+    j[~below] -= 1  # x < xp[j]: the interval before, where xp[j - 1] <= x
+    low = ~above
+    j[low] += 1  # xp[j + 1] <= x: the interval after, where x < xp[j + 2]
+    ok = (below & above) | (~below & (xp[j] <= x)) | (low & (x < xp[np.minimum(j + 1, n - 1)]))
+    bad = np.flatnonzero(~ok)
+    if len(bad):
+        j[bad] = np.searchsorted(xp, x[bad], side="right") - 1
+    return j
+
+
+def interp_columns(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, block: int = 1 << 16,
+                   near: np.ndarray | None = None) -> np.ndarray:
     """``np.interp(x, xp, fp[:, j])`` (len(x), k) for every column j of ``fp`` (len(xp), k) at once, the same values
     bit for bit: ``x`` is looked up in ``xp`` (increasing) once for the k columns, where ``np.interp`` looks it up
     again for each (the channel delay's search interpolates the three reference axes at the same times on every
     trial). As ``np.interp``: below ``xp[0]`` the first row, from ``xp[-1]`` on the last, at a point of ``xp`` its
     row, else the slope of the interval times the distance from its left end plus its left value (from the right
     end where that is NaN); NaN where ``x`` is (but for a single point). Worked out ``block`` values at a time
-    (bounded temporaries)."""
+    (bounded temporaries). ``near``: a guess of each x's interval (``interval_of``; the same values)."""
     x = np.asarray(x, dtype=float)
     out = np.empty((len(x), fp.shape[1]))
     n = len(xp)
     for lo in range(0, len(x), block):
         xs = x[lo:lo + block]
-        j = np.searchsorted(xp, xs, side="right") - 1
+        j = interval_of(xp, xs, None if near is None else near[lo:lo + block])
         jj = np.clip(j, 0, max(n - 2, 0))
         x0, f0 = xp[jj], take_rows(fp, jj)
         if n >= 2:
@@ -311,8 +370,8 @@ def interp_columns(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, block: int = 1
                     part = np.where(nan & np.isnan(part) & (f0 == f1), f0, part)
         else:
             part = f0.copy()
-        at = (j >= n - 1) | (xs == x0)  # from the last point on, or at a point of xp: its row
-        part[at] = take_rows(fp, np.minimum(j[at], n - 1))
+        at = np.flatnonzero((j >= n - 1) | (xs == x0))  # from the last point on, or at a point of xp: its row
+        set_rows(part, at, take_rows(fp, np.minimum(j[at], n - 1)))  # whole rows (a delay of whole steps: most)
         part[j < 0] = fp[0]
         if n >= 2:  # (np.interp gives a single point's row even at NaN)
             part[np.isnan(xs)] = np.nan
@@ -397,7 +456,7 @@ class Inputs:
     def at(self, idx: np.ndarray, take: Callable[[np.ndarray], np.ndarray] | None = None) -> Inputs:
         """These inputs at the samples ``idx`` only (for what is computed sample by sample); ``take(a)``, if
         given, returns ``a[idx]`` for the arrays other than ``valid`` (which the corrections change in place)."""
-        pick = take if take is not None else (lambda a: a[idx])
+        pick = take if take is not None else (lambda a: rows_at(a, idx))
         return Inputs(pick(self.ref), pick(self.xyz), pick(self.temp_c), pick(self.t_s), pick(self.gref),
                       self.valid[idx], self.gref_moved, self.counts_changed, self.temp_changed,
                       np.asarray(idx) if self.index is None else self.index[idx])

@@ -18,7 +18,17 @@ from ..fit.thermal_fit import (
     n_params,
 )
 from ..io.recording import LowReference, Recording
-from .data import MIN_HELD_SAMPLES, DiagnosisData, Inputs, finite_rows, held_poses, memory_key, motion_groups, visit_ids
+from .data import (
+    MIN_HELD_SAMPLES,
+    DiagnosisData,
+    Inputs,
+    finite_rows,
+    held_poses,
+    memory_key,
+    motion_groups,
+    rows_at,
+    visit_ids,
+)
 from .effects import Effect
 from .search_lanes import beside
 from .temperature_reading import reading_jumps
@@ -221,11 +231,11 @@ class DesignCache:
         (the recorded inputs, a correction a search repeats unchanged, ``DiagnosisData.recent``) while it is among
         the last few such arrays asked for: most trials of a search change one input array and share the rest."""
         if a.flags.writeable:
-            return a[idx]
+            return rows_at(a, idx)
         key = memory_key(a)  # the same memory, read-only
         hit = self._taken.hit(key)
         if hit is None:
-            hit = self._taken[key] = (a, a[idx])  # a is kept: its memory cannot be reused for another array
+            hit = self._taken[key] = (a, rows_at(a, idx))  # a is kept: its memory cannot be reused for another array
             self._taken.trim()
         return hit[1]
 
@@ -384,9 +394,8 @@ def _design_matrix(data: DiagnosisData, spec: ModelSpec, ordered: list[tuple[Eff
     n_base = n_params(spec.degree)
     extra, blocks, p = [], {}, n_base
     for eff, h in ordered:
-        c = eff.columns(data, part if eff.pointwise else inp, h)
+        c = eff.columns(data, part, h) if eff.pointwise else eff.columns_at(data, inp, h, sub)
         if c is not None:
-            c = c if eff.pointwise or sub is None else c[sub]
             blocks[eff.name] = slice(p, p + c.shape[1])
             extra.append(c)
             p += c.shape[1]

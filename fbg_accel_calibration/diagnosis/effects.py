@@ -58,6 +58,7 @@ from .data import (
     Inputs,
     direction_labels,
     input_run_steps,
+    rows_at,
     rows_by_run,
     same_memory,
     visit_means,
@@ -205,12 +206,19 @@ class Effect:
         correction of the reference alone (``reference_only``) that no correction follows: one may work out those
         rows only (the same values); ``inp`` may be left changed."""
         self.transform(data, inp, h)
-        return (inp.gref, inp.valid) if rows is None else (inp.gref[rows], inp.valid[rows])
+        return (inp.gref, inp.valid) if rows is None else (rows_at(inp.gref, rows), inp.valid[rows])
 
     def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray | None:
         """Extra regressors (N, k) computed from the corrected inputs, each with 3 coefficients (one per axis);
         None if none."""
         return None
+
+    def columns_at(self, data: DiagnosisData, inp: Inputs, h: float | None, rows: np.ndarray | None) -> np.ndarray | None:
+        """:meth:`columns` at the samples ``rows`` (None: every sample) of the corrected inputs ``inp`` of every
+        sample, for an effect that is not ``pointwise`` (its rows read other samples): the same values; an effect may
+        work out what it needs at those rows alone."""
+        c = self.columns(data, inp, h)
+        return c if c is None or rows is None else c[rows]
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
         """Declared correction terms for the calibration YAML; ``coeff`` (3, k) m/s^2 per unit."""
@@ -331,8 +339,11 @@ class ReferenceReadNoiseEffect(Effect):
             return
 
         def filtered() -> np.ndarray:
-            ref = np.array(inp.ref, dtype=float, copy=True)
-            for idx, steps in zip(data.runs(), input_run_steps(data, inp), strict=True):
+            runs, run_steps = data.runs(), input_run_steps(data, inp)
+            if len(runs) == 1:  # one run holds every sample: the filter's own output, not copied into another array
+                return first_order_lowpass(inp.ref[runs[0]], inp.t_s[runs[0]], float(h), {}, run_steps[0])
+            ref = np.empty(len(inp.ref))  # every sample is in one run: each written below
+            for idx, steps in zip(runs, run_steps, strict=True):
                 ref[idx] = first_order_lowpass(inp.ref[idx], inp.t_s[idx], float(h), {}, steps)
             return ref
 
@@ -770,12 +781,23 @@ class ThermalHysteresisEffect(Effect):
         return 2 * AHT10_RESOLUTION_C / float(h)
 
     def columns(self, data: DiagnosisData, inp: Inputs, h: float | None) -> np.ndarray:
-        out = np.zeros(len(inp.t_s))
-        for idx, steps in zip(data.runs(), input_run_steps(data, inp), strict=True):
+        return self.columns_at(data, inp, h, None)
+
+    def columns_at(self, data: DiagnosisData, inp: Inputs, h: float | None, rows: np.ndarray | None) -> np.ndarray:
+        """The branch of each run (``ThermalHysteresis.branch``) at ``rows`` (None: every sample): its decisions over
+        every sample of the run, carried on to those rows alone (a search's rows: no series of every sample made)."""
+        pieces = None if rows is None else rows_by_run(data, rows)
+        out = np.zeros(len(inp.t_s) if pieces is None else len(rows))
+        for k, (idx, steps) in enumerate(zip(data.runs(), input_run_steps(data, inp), strict=True)):
             st = ThermalHysteresis(np.zeros(3), float(h), self.deadband(float(h))).new_state()
-            out[idx] = ThermalHysteresis.branch(inp.temp_c[idx], inp.t_s[idx], float(h), self.deadband(float(h)), st,
-                                                steps)
-        return out[:, None]
+            decision = ThermalHysteresis.decisions(inp.temp_c[idx], inp.t_s[idx], float(h), self.deadband(float(h)),
+                                                   st, steps)
+            if pieces is None:
+                out[idx] = ThermalHysteresis.held(decision, st["branch"])
+            else:
+                _, sel, local = pieces[k]
+                out[sel] = ThermalHysteresis.held(decision, st["branch"], local)
+        return out[:, None] if rows is None or pieces is not None else out[rows][:, None]
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
         return [ThermalHysteresis(np.asarray(coeff)[:, 0], float(h), self.deadband(float(h)))]

@@ -28,6 +28,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from fbg_accel_driver.correction_terms import lowpass_after_first
+
 # holds shorter than this are filtered with the samples in motion: an lfilter step costs a few ns, a hold in the scan
 # and the closed forms some tens
 MIN_HOLD = 16
@@ -145,14 +147,9 @@ def held_cascade(held: HeldRows, x_at: np.ndarray, a: float) -> tuple[np.ndarray
     ones by (d, e), and that difference decays through the stretch as the filters' own response, k steps on
     (c^k d, c^k e + k a c^k d). So z's state entering each hold follows from the one before by an affine map of the
     same factor as y's, and one more prefix scan gives it once y's states are known."""
-    from scipy.signal import lfilter
-
     y, st = _first_stage(held, x_at, a)
     c = 1.0 - a
-    zb = np.empty(len(held.busy))
-    zb[0] = st.yb[0]
-    if len(zb) > 1:
-        zb[1:] = lfilter([a], [1.0, a - 1.0], st.yb[1:], zi=[c * st.yb[0]])[0]
+    zb = lowpass_after_first(st.yb, a, float(st.yb[0]))  # z[0] = y[0], then lfilter from c y[0]
     z = zb[held.busy_at]
     if st.v is None:
         return y, z
@@ -211,15 +208,10 @@ def _first_stage(held: HeldRows, x_at: np.ndarray, a: float) -> tuple[np.ndarray
 def lowpass_states(held: HeldRows, x_at: np.ndarray, a: float) -> FilterStates:
     """What ``held_lowpass``'s filter leaves at ``held``'s samples and holds (whatever rows ``held`` is for): with it,
     ``lowpass_at`` gives the output at the rows of any ``held.at(rows)``."""
-    from scipy.signal import lfilter
-
     b = len(held.busy)
     xb, v = x_at[:b], x_at[b:]
     c = 1.0 - a
-    yb = np.empty(b)
-    yb[0] = xb[0]
-    if b > 1:
-        yb[1:] = lfilter([a], [1.0, a - 1.0], xb[1:], zi=[c * xb[0]])[0]
+    yb = lowpass_after_first(xb, a, float(xb[0]))  # y[0] = x[0], then lfilter from c x[0]
     m = len(v)
     if not m:
         return FilterStates(yb)

@@ -37,7 +37,7 @@ from .cv import (
     switch_profile,
     weighted_rss,
 )
-from .data import DiagnosisData, finite_rows
+from .data import DiagnosisData, finite_rows, rows_at, set_rows
 
 # ============================================================================ data preparation
 from .design import (
@@ -114,8 +114,8 @@ def reselect_degree(lanes: Lanes[Evaluator], spec: ModelSpec,
         except NotIdentifiedError as exc:
             return DegreeScores(n, False, nan3, nan3, nan3, f"not identified: {exc}"), None
         r = lane.rows & des.valid & finite_rows(cv.heldout)
-        ho = np.sqrt(np.mean(cv.heldout[r] ** 2, axis=0))
-        ins = np.sqrt(np.mean((des.G - cv.fitted_full)[r] ** 2, axis=0))
+        ho = np.sqrt(np.mean(rows_at(cv.heldout, r) ** 2, axis=0))
+        ins = np.sqrt(np.mean(rows_at(des.G - cv.fitted_full, r) ** 2, axis=0))
         level_ho = nan3
         if by_level and n < n_levels - 1:  # a fold trains on the other levels: degree n needs n + 1 of them
             try:
@@ -199,7 +199,7 @@ def group_mse(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, weights: np
     per-sample squared residual weighted over the axes by ``weights`` (3,): (groups, (groups,) (m/s^2)^2)."""
     r = rows & finite_rows(res)
     ug, inv = np.unique(groups[r], return_inverse=True)
-    return ug, _group_means(inv, np.bincount(inv), res[r] ** 2 * weights)
+    return ug, _group_means(inv, np.bincount(inv), rows_at(res, r) ** 2 * weights)
 
 
 def _group_means(inv: np.ndarray, count: np.ndarray, squares: np.ndarray) -> np.ndarray:
@@ -223,7 +223,7 @@ def paired_gain_test(res0: np.ndarray, res1: np.ndarray, groups: np.ndarray, row
     # worked out once for the means and the totals (the same values)
     _, inv = np.unique(groups[r], return_inverse=True)
     count = np.bincount(inv)
-    e0, e1 = res0[r] ** 2 * weights, res1[r] ** 2 * weights
+    e0, e1 = rows_at(res0, r) ** 2 * weights, rows_at(res1, r) ** 2 * weights
     m0, m1 = _group_means(inv, count, e0), _group_means(inv, count, e1)
     d = m0 - m1
     n = len(d)
@@ -498,9 +498,9 @@ class Evaluator:
             for f in np.flatnonzero(better):
                 best_train[ok][f], best_at[ok][f] = cvr.train_rss[f], i
                 out = heldout_of(ok)
-                out[fold_rows[f]] = np.nan  # those of the fold not fitted at this value
+                set_rows(out, fold_rows[f], np.nan)  # those of the fold not fitted at this value
                 at, res = cvr.fold_heldout(f)
-                out[at] = res
+                set_rows(out, at, res)
             seen[i] = (ok, float(np.sum(cvr.train_rss) / max(K - 1, 1)))
 
         def visit_all(batch: list[int]) -> None:
@@ -634,7 +634,7 @@ class Evaluator:
         delta = (base_G - des.G) + (cvr.fitted_full - base_fitted)
         corr = np.array([_corr(base_heldout[r, j], delta[r, j]) for j in range(3)])
         out.hyper, out.hyper_profile = h, profile
-        out.heldout_rmse = np.sqrt(np.mean(heldout[r] ** 2, axis=0))
+        out.heldout_rmse = np.sqrt(np.mean(rows_at(heldout, r) ** 2, axis=0))
         out.rel_gain, out.p_value, out.n_groups = gain, p, ng
         out.corr_with_residual = corr
         coeff = cvr.A_full[des.blocks[eff.name]].T if eff.name in des.blocks else None
