@@ -483,7 +483,9 @@ def test_a_drift_is_not_tested_when_every_run_visits_each_orientation_at_the_sam
     assert drift.applicable, drift.reason
 
 
-@pytest.mark.parametrize("seed", [2, 3])
+# seed 3: bench/seed_sweeps.py (the same case: time_drift p 1.6e-5 / 5.9e-6 over random visits, refused over time
+# blocks, x/y 1.6x / 2.0x the floor on seeds 2 / 3)
+@pytest.mark.parametrize("seed", [2, pytest.param(3, marks=SWEEP)])
 def test_a_slow_wander_that_is_no_drift_is_not_written_as_time_drift(seed: int) -> None:
     """A 20-minute oscillation of the x/y bias (a chamber's air-conditioning cycle; not in the library) is not a
     warm-up or creep. With visits held out at random, their neighbours in time on both sides let any smooth
