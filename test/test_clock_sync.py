@@ -411,7 +411,9 @@ def test_a_change_of_the_crystal_rate_leaves_the_window_with_its_bins() -> None:
     assert np.abs(err).max() < 50e-6, np.abs(err).max()
     assert abs(sync.status()["board_clock_ppm"] - 140.0) < 3.0, sync.status()
 
-@pytest.mark.parametrize("base_ppm", [100.0, -100.0])
+# -100 ppm: bench/seed_sweeps.py (the sign of the crystal's offset moves neither statistic: ramp 13.68 / 13.66 ppm,
+# cycle -0.324 / -0.325 ms at +100 / -100 ppm; the offset's sign is tested by the drift tests above)
+@pytest.mark.parametrize("base_ppm", [100.0, pytest.param(-100.0, marks=pytest.mark.sweep)])
 def test_a_board_crystal_drifting_with_temperature_keeps_the_stamps(base_ppm: float) -> None:
     """The board's crystal is ``base_ppm`` off and its rate moves with temperature: +40 ppm over 5 min (a board
     warming up; an AT-cut crystal moves by tens of ppm over its range), or +-10 ppm in a 20-min cycle. The 200 s

@@ -117,7 +117,9 @@ def _shuffled_grid(seed: int, hysteresis: float, extra: dict | None = None) -> R
     return simulate_recording(cfg, seed=seed)
 
 
-@pytest.mark.parametrize("seed", [1, 2])
+# seed 2: bench/seed_sweeps.py (the same statistics: p at most 6.0e-7 / 3.6e-7 against 1e-5, half gaps 0.168-0.185 /
+# 0.187-0.189 m/s^2 on seeds 1 / 2)
+@pytest.mark.parametrize("seed", [1, pytest.param(2, marks=pytest.mark.sweep)])
 def test_a_motion_history_hysteresis_is_named_by_the_side_each_pose_was_approached_from(seed: int) -> None:
     """A hysteresis of 0.4 m/s^2 (0.04 g) set by the side each axis' specific force last changed from, on a shuffled
     grid: no candidate represents it, and on the unchanged code the report named nothing but "significant unexplained

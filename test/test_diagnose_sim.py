@@ -26,7 +26,7 @@ import yaml
 
 from fbg_accel_calibration.diagnosis.diagnose import diagnose
 from fbg_accel_calibration.diagnosis.floor import VisitNoise
-from fbg_accel_calibration.diagnosis.search import MIN_SEARCH_INFORMATION, Refusal, search_samples
+from fbg_accel_calibration.diagnosis.search import MIN_SEARCH_INFORMATION, SEARCH_ROWS, Refusal, search_samples
 from fbg_accel_calibration.io.recording import Recording
 from fbg_accel_calibration.io.table_geometry import table_specific_force
 from fbg_accel_calibration.reports.diagnose_report import markdown, ordinal, settling_measurements, write_plots
@@ -264,7 +264,10 @@ def test_a_search_on_thinned_samples_chooses_what_the_full_search_chooses(effect
     was evaluated, and the plots are drawn."""
     scale, extra, static = SCENARIOS[effect]
     rec = simulate_recording(_config({**extra, f"effects.{effect}.scale": scale}), seed=1)
-    full = diagnose(rec, static=static, search_rows=None)
+    # the full search: below SEARCH_ROWS fitted samples the default searches on every one, so it is the diagnosis of
+    # test_injected_effect_is_ranked_first_added_and_brings_error_to_the_floor (computed once, ``_diagnosed``)
+    assert len(rec) < SEARCH_ROWS
+    full = _diagnosed({**extra, f"effects.{effect}.scale": scale}, 1, **({} if static == "table" else {"static": static}))
     thin = diagnose(rec, static=static, search_rows=2000)
     assert full.settings["search_rows"] is None and full.settings["search_step"] == 1
     assert thin.settings["search_step"] >= 2 and thin.settings["search_rows"] <= len(rec) / 2, thin.settings
@@ -329,7 +332,6 @@ def test_the_command_s_search_rows_option_thins_the_search_or_searches_every_sam
     effect seen only in the first tenths of a second of each visit keeps all its samples), and the help names the
     default and the guard the diagnosis uses."""
     from fbg_accel_calibration.commands.cli import main
-    from fbg_accel_calibration.diagnosis.search import SEARCH_ROWS
     from fbg_accel_calibration.io.mcap_writer import write_recording
 
     mcap = tmp_path / "run.mcap"
@@ -481,7 +483,9 @@ def test_a_drift_is_not_tested_when_every_run_visits_each_orientation_at_the_sam
     assert drift.applicable, drift.reason
 
 
-@pytest.mark.parametrize("seed", [2, 3])
+# seed 3: bench/seed_sweeps.py (the same case: time_drift p 1.6e-5 / 5.9e-6 over random visits, refused over time
+# blocks, x/y 1.6x / 2.0x the floor on seeds 2 / 3)
+@pytest.mark.parametrize("seed", [2, pytest.param(3, marks=SWEEP)])
 def test_a_slow_wander_that_is_no_drift_is_not_written_as_time_drift(seed: int) -> None:
     """A 20-minute oscillation of the x/y bias (a chamber's air-conditioning cycle; not in the library) is not a
     warm-up or creep. With visits held out at random, their neighbours in time on both sides let any smooth

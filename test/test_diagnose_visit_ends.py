@@ -67,7 +67,8 @@ def test_settled_mask_drops_the_end_of_a_visit_when_asked() -> None:
                                   [False, False, True, False, False, False, False, True, False, False])
 
 
-@pytest.mark.parametrize("seed", [1, 2, 3])
+# seeds 2 and 3: bench/seed_sweeps.py (further synthetic campaigns of the same design)
+@pytest.mark.parametrize("seed", [1, pytest.param(2, marks=pytest.mark.sweep), pytest.param(3, marks=pytest.mark.sweep)])
 @pytest.mark.parametrize("lag", [4, 8])
 def test_readings_late_against_the_signal_are_trimmed_and_reported(seed: int, lag: int) -> None:
     """Readings 80 or 160 ms late (moves of 200 ms): the end of every visit holds part of the next move. The floor
@@ -121,7 +122,10 @@ def test_clean_simulated_recordings_trim_no_end() -> None:
         assert not any(END_WORDS in w for w in res.warnings), res.warnings
 
 
-@pytest.mark.parametrize("seed", [1, 2])
+# seed 1: bench/seed_sweeps.py. The two seeds tell the same (largest floor / clean floor 1.038 / 1.029 at 0.1 s late,
+# 1.011 / 1.015 at 0.3 s, ends detected at 0.3 s on both); seed 1's 0.1 s case also fits the reference low-pass, which
+# costs 5 s of its 7 and plays no part in the floor
+@pytest.mark.parametrize("seed", [pytest.param(1, marks=pytest.mark.sweep), 2])
 @pytest.mark.parametrize("lag", [10, 30])
 def test_simulated_table_readings_late_do_not_raise_the_floor(seed: int, lag: int) -> None:
     """The simulator's grid with the readings 0.1 or 0.3 s late: the floor stays within 15 % of the clean recording's

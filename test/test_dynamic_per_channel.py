@@ -5,6 +5,7 @@ bench/dynamic_calibration_check.py; these are its smallest cases, with margin.""
 
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 
@@ -37,14 +38,23 @@ def static_cal() -> ThermalCalibration:
     return ThermalCalibration.load(default_calibration_path())
 
 
+@functools.cache
+def identified(chain_seed: int):
+    """(cut-offs (3,) Hz, delays (3,) s, the simulator overrides, ``run_dynamic``'s result) of the random per-channel
+    chain ``chain_seed`` on the stepped-sine plan at RATE_HZ (board seed ``chain_seed`` - 1000), worked out once per
+    test run: two tests read the same identification (neither changes it)."""
+    fc, delay, overrides = random_channel_chain(chain_seed)
+    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=chain_seed - 1000, overrides=overrides)
+    res = run_dynamic(rec, PLAN, ThermalCalibration.load(default_calibration_path()), reference_cutoff_hz=1.0)
+    return fc, delay, overrides, res
+
+
 @pytest.mark.parametrize("chain_seed", [1000, 1001])
-def test_channels_with_different_cutoffs_and_delays_are_identified_per_channel(static_cal, chain_seed):
+def test_channels_with_different_cutoffs_and_delays_are_identified_per_channel(chain_seed):
     """Random per-channel cut-offs (0.5-5 Hz) and delays (0-50 ms): every channel within 5 % and 1 ms (a per-axis
     first-order fit was 7-11 % off on an axis whose channels differ), each error inside 2 stated uncertainties,
     the axis check quiet, and the dynamic section the driver's equalise inverts holds exactly the channel fits."""
-    fc, delay, overrides = random_channel_chain(chain_seed)
-    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=chain_seed - 1000, overrides=overrides)
-    res = run_dynamic(rec, PLAN, static_cal, reference_cutoff_hz=1.0)
+    fc, delay, _, res = identified(chain_seed)
     for j, ax in enumerate("xyz"):
         m = res.models[ax]
         assert abs(m.cutoff_hz / fc[j] - 1.0) < 0.05, (ax, m.cutoff_hz, fc[j])
@@ -59,9 +69,7 @@ def test_channels_with_different_cutoffs_and_delays_are_identified_per_channel(s
 def test_equalise_cuts_the_error_of_a_tone_the_fit_did_not_use_on_channels_that_differ(static_cal):
     """Seed Fig. 12 on a chain whose channels differ: a 3 Hz tone through DriverCore, RMS error cut >= 80 % per
     axis with equalise (each channel's own low-pass inverted and the channels aligned to one delay)."""
-    *_, overrides = random_channel_chain(1000)
-    rec, _, _ = simulate_dynamic_run(PLAN, rate_hz=RATE_HZ, seed=0, overrides=overrides)
-    res = run_dynamic(rec, PLAN, static_cal, reference_cutoff_hz=1.0)
+    *_, overrides, res = identified(1000)  # the chain and identification of the test above (board seed 0)
     cal = ThermalCalibration.from_dict({**static_cal.to_dict(), "dynamic": res.dynamics.to_dict()})
     chk = simulated_tone_check(PLAN.with_tone(3.0, 8.0, 14.0), cal, rate_hz=100.0, seed=100, overrides=overrides,
                                modes=("none", "equalise"))
