@@ -282,15 +282,32 @@ def raw_with_mcap_ros2(path: Path, ns: str, complete: bool = True) -> list:
     return [(t, m) for t, _, m in raw]
 
 
-def assert_raw_matches_published(decoded: list, stream: Stream) -> None:
-    """Message for message: stamp, frame, names and every position value equal what was published."""
+def assert_raw_matches_published(decoded: list, stream: Stream) -> np.ndarray:
+    """Message for message: each recorded message is the published one with its stamp (its log time too), in the
+    order published, with its frame, names and every position value. Returns the published index of each (the
+    stream's sample, in the recording's order). The topic is best effort (the driver's QoS, REP 2003): on a loaded
+    machine a message may be dropped on its way (none on an idle one), which the node counts from the gaps in ``seq``
+    (``lost_messages``, ``missing_between``); what it records must still be exactly what was published."""
     assert len(decoded) > 0
-    for i, (log_time, msg) in enumerate(decoded):
+    published = {int(ns): i for i, ns in enumerate(stream.stamps_ns)}
+    at = np.empty(len(decoded), np.int64)
+    for k, (log_time, msg) in enumerate(decoded):
         ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        assert ns == stream.stamps_ns[i] == log_time, f"message {i}: stamp {ns} != published {stream.stamps_ns[i]}"
+        assert ns == log_time, f"message {k}: stamp {ns} != its log time {log_time}"
+        i = published.get(ns)
+        assert i is not None, f"message {k}: stamp {ns} was never published"
+        assert k == 0 or i > at[k - 1], f"message {k}: sample {i} recorded after sample {at[k - 1]}"
         assert msg.header.frame_id == "fbg_accel_link"
         assert list(msg.name)[:4] == ["ref_counts", "x_counts", "y_counts", "z_counts"]
-        np.testing.assert_array_equal(np.asarray(msg.position), stream.positions[i], err_msg=f"message {i}")
+        np.testing.assert_array_equal(np.asarray(msg.position), stream.positions[i], err_msg=f"message {k}")
+        at[k] = i
+    return at
+
+
+def missing_between(at: np.ndarray) -> int:
+    """The published messages not recorded between the first and the last recorded (``at``: their published indices,
+    ascending): what the node counts lost from the gaps in ``seq``."""
+    return int(at[-1] - at[0] + 1 - len(at))
 
 
 def run_refused(*params: str, remaps: tuple[str, ...] = (), timeout: float = 60) -> subprocess.CompletedProcess:
@@ -344,23 +361,29 @@ def test_mcap_round_trips_message_for_message_and_the_run_is_fitted(ros, plan_di
     temp = [(t, m) for topic, t, _, m in ros2_messages(node.mcap) if topic == f"/{node.ns}/imu/temperature"]
     n = len(raw)
     assert n <= ros.published and n > 0.8 * len(stream.stamps_ns)
-    assert_raw_matches_published(raw, stream)
-    # the temperatures recorded are the published ones, in order, up to at least the last raw sample's stamp (the
-    # last one may race the end of the run); the two topics are delivered apart, so a few published after the
-    # last raw sample may have been taken before the run ended (4 in 1 run of 4 on an idle 2-core machine)
-    assert [(lt, m.temperature) for lt, m in temp] == ros.published_temperature[: len(temp)]
-    assert len(temp) >= sum(t[0] <= stream.stamps_ns[n - 1] for t in ros.published_temperature) - 1
+    at = assert_raw_matches_published(raw, stream)
+    # the temperatures recorded are published ones, in order, up to at least the last raw sample's stamp but for those
+    # dropped on the way (best effort, as imu/raw; the last one may race the end of the run); the two topics are
+    # delivered apart, so a few published after the last raw sample may have been taken before the run ended (4 in 1
+    # run of 4 on an idle 2-core machine)
+    recorded_temp = [(lt, m.temperature) for lt, m in temp]
+    published_temp = iter(ros.published_temperature)
+    assert all(any(t == p for p in published_temp) for t in recorded_temp), "temperatures not published, or reordered"
+    expected_temp = sum(t[0] <= stream.stamps_ns[at[-1]] for t in ros.published_temperature)
+    assert len(temp) >= 0.8 * expected_temp - 1, (len(temp), expected_temp)
 
     # (2) poses: exactly N samples each, taken only while the table stood at that pose, with its reference
     rec = read_recording(node.mcap)
     assert rec.metadata["read_report"]["complete"]
     assert rec.metadata["run"]["sensor_id"] == "synthetic" and rec.metadata["run"]["operator_notes"] == "process test"
     assert PosePlan.from_dict(yaml.safe_load(rec.metadata["run"]["plan"])).gref_mps2.shape == (5, 3)
-    assert rec.metadata["run_end"]["lost_messages"] == "0" and rec.metadata["run_end"]["result"] == "done"
+    assert len(rec) == n  # the recording's samples are the raw messages above, in their order
+    assert rec.metadata["run_end"]["lost_messages"] == str(missing_between(at))
+    assert rec.metadata["run_end"]["result"] == "done"
     for k, pose in enumerate(plan.poses):
         idx = np.flatnonzero(rec.pose_id == k)
         assert len(idx) == pose.samples, f"pose {k}: {len(idx)} samples"
-        assert np.all(stream.pose_of_sample[idx] == k), f"pose {k} labelled samples outside the pose"
+        assert np.all(stream.pose_of_sample[at[idx]] == k), f"pose {k} labelled samples outside the pose"
         np.testing.assert_allclose(rec.gref_mps2[idx], np.repeat(pose.gref_mps2[None], len(idx), 0))
     # (3) the fitted calibration is the driver's format and recovers the known sensor
     from fbg_accel_driver.thermal_model import ThermalCalibration
@@ -446,7 +469,8 @@ def test_sigkill_mid_recording_leaves_a_file_read_up_to_its_last_chunk_that_the_
     rec, report = read_file(node.mcap)
     assert not report.complete, "a SIGKILLed writer cannot have written the footer"
     assert report.messages > 0
-    # everything recovered is exactly the published prefix, by the mcap library's own stream reader too
+    # everything recovered is exactly what was published (a prefix but for what best effort dropped on the way), by the
+    # mcap library's own stream reader too
     raw = raw_with_mcap_ros2(node.mcap, node.ns, complete=False)
     assert_raw_matches_published(raw, stream)
     assert len(raw) == len(rec)
