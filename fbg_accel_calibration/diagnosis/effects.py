@@ -787,17 +787,19 @@ class ThermalHysteresisEffect(Effect):
         """The branch of each run (``ThermalHysteresis.branch``) at ``rows`` (None: every sample): its decisions over
         every sample of the run, carried on to those rows alone (a search's rows: no series of every sample made)."""
         pieces = None if rows is None else rows_by_run(data, rows)
-        out = np.zeros(len(inp.t_s) if pieces is None else len(rows))
+        if rows is not None and pieces is None:  # rows not in runs of their own: every sample's branch, then theirs
+            return self.columns_at(data, inp, h, None)[rows]
+        out = np.zeros(len(inp.t_s) if rows is None else len(rows))
         for k, (idx, steps) in enumerate(zip(data.runs(), input_run_steps(data, inp), strict=True)):
             st = ThermalHysteresis(np.zeros(3), float(h), self.deadband(float(h))).new_state()
             decision = ThermalHysteresis.decisions(inp.temp_c[idx], inp.t_s[idx], float(h), self.deadband(float(h)),
                                                    st, steps)
-            if pieces is None:
+            if rows is None:
                 out[idx] = ThermalHysteresis.held(decision, st["branch"])
             else:
                 _, sel, local = pieces[k]
                 out[sel] = ThermalHysteresis.held(decision, st["branch"], local)
-        return out[:, None] if rows is None or pieces is not None else out[rows][:, None]
+        return out[:, None]
 
     def make_terms(self, h: float | None, coeff: np.ndarray | None, data: DiagnosisData) -> list[Any]:
         return [ThermalHysteresis(np.asarray(coeff)[:, 0], float(h), self.deadband(float(h)))]
