@@ -1,8 +1,9 @@
 """The analytic Hessian of the code-width model (``adc_codes._WidthModel._hessian_parts``) against central differences
-of its analytic gradient (``_WidthModel.nll``), column by column, at start points, random points, the fitted point,
-and a point with pieces far out in the tails (some of their cells at the probability floor) and pieces whose noise
-parameter sits beyond either end of its clip. The fitted results of the analytic Hessian against those of the
-finite-difference one it replaced, on the bench campaigns and the measured series: ``bench/adc_hessian_check.py``."""
+of its analytic gradient (``_WidthModel.nll``), column by column, at start points, random points, the fitted point, a
+point with pieces far out in the tails (some of their cells at the probability floor) and one with pieces whose noise
+parameter sits beyond either end of its clip (apart: the tails' entries are far larger than the others). The fitted
+results of the analytic Hessian against those of the finite-difference one it replaced, on the bench campaigns and
+the measured series: ``bench/adc_hessian_check.py``."""
 
 from __future__ import annotations
 
@@ -45,9 +46,11 @@ def _points() -> dict[str, np.ndarray]:
     sigma = m.unpack(fit)[1]
     for v, z in enumerate((10.0, -25.0, 35.0, -37.5)):  # the line this many of its sigmas off the codes read
         tails[G + v] += z * sigma[v]
-    tails[G + 2 * V + 5] = LOG_SIGMA_RANGE[0] - 5.0  # clipped: sigma at its floor, s does not move it
-    tails[G + 2 * V + 6] = LOG_SIGMA_RANGE[1] + 1.0  # clipped above
-    out["tails and clips"] = tails
+    out["tails"] = tails
+    clips = fit.copy()
+    clips[G + 2 * V + 5] = LOG_SIGMA_RANGE[0] - 5.0  # clipped: sigma at its floor, s does not move it
+    clips[G + 2 * V + 6] = LOG_SIGMA_RANGE[1] + 1.0  # clipped above
+    out["clips"] = clips
     return out
 
 
@@ -100,10 +103,10 @@ def test_the_analytic_hessian_is_the_gradient_s_jacobian(name: str) -> None:
 def test_the_points_reach_the_tails_the_clips_and_the_probability_floor() -> None:
     """The cases the Hessian's special terms are for are in the points checked above."""
     m = MODEL
-    live = m._terms(POINTS["tails and clips"])[-1]
-    z = np.concatenate(m._terms(POINTS["tails and clips"])[4:6])
+    terms = m._terms(POINTS["tails"])
+    live, z = terms[-1], np.concatenate(terms[4:6])
     assert (~live).sum() > 0 and live.sum() > 0 and np.max(np.abs(z[np.isfinite(z)])) > 30.0
-    s = POINTS["tails and clips"][m.G + 2 * m.V:]
+    s = POINTS["clips"][m.G + 2 * m.V:]
     assert np.any(s < LOG_SIGMA_RANGE[0]) and np.any(s > LOG_SIGMA_RANGE[1])
     fit = POINTS["fitted"]
     assert np.max(np.abs(m.nll(fit)[1][:m.G])) < 1.0 < np.max(np.abs(m.nll(POINTS["start"])[1][:m.G]))
