@@ -90,7 +90,7 @@ def test_the_analytic_hessian_is_the_gradient_s_jacobian(name: str) -> None:
     parts = m._hessian_parts(theta)
     got = _assemble(m, *parts)
     ref = (4.0 * _differences(m, theta, STEP / 2.0) - _differences(m, theta, STEP)) / 3.0
-    tol = RTOL * np.max(np.abs(ref), axis=0)[None, :] + ATOL * np.max(np.abs(ref))
+    tol = np.broadcast_to(RTOL * np.max(np.abs(ref), axis=0) + ATOL * np.max(np.abs(ref)), ref.shape)
     err = np.abs(got - ref)
     worst = np.unravel_index(np.argmax(err / tol), err.shape)
     assert np.all(err <= tol), (name, worst, got[worst], ref[worst], tol[worst])
