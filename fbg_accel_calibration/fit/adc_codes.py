@@ -187,19 +187,31 @@ Z95 = 1.959963984540054  # two-sided 95 % normal quantile: the stated uncertaint
 # 8.3) in double precision: a code whose two edges are both out of a sample's reach gets exactly 0.0 of it
 CDF_ZERO_BELOW, CDF_ONE_ABOVE = -40.0, 10.0
 EXPECTED_BLOCK = 4096  # samples whose probabilities are summed together before they are added to the total
+P_FLOOR = 1e-300  # the least probability of a cell (its log stays finite)
+LOG_SIGMA_RANGE = (-20.0, 5.0)  # the pieces' log noise parameters are clipped to this range (sigma - SIGMA_FLOOR)
 
 
-def _log_cell(z_lo: np.ndarray, z_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """log P(z_lo <= Z < z_hi) for a standard normal Z, and phi(z_lo)/P, phi(z_hi)/P (from the side with the smaller
-    tail, so that cells far out keep their precision)."""
+def _cell(z_lo: np.ndarray, z_hi: np.ndarray) -> tuple[np.ndarray, ...]:
+    """log P(z_lo <= Z < z_hi) for a standard normal Z, phi(z_lo)/P and phi(z_hi)/P (from the side with the smaller
+    tail, so that cells far out keep their precision), and whether P is above its floor ``P_FLOOR`` (where it is not,
+    P is held at the floor and does not move with the edges)."""
     from scipy.special import ndtr
 
     flip = z_lo > 0
     a = np.where(flip, -z_hi, z_lo)
     b = np.where(flip, -z_lo, z_hi)
-    p = np.maximum(ndtr(b) - ndtr(a), 1e-300)
+    raw = ndtr(b) - ndtr(a)
+    p = np.maximum(raw, P_FLOOR)
     c = 1.0 / np.sqrt(2.0 * np.pi)
-    return np.log(p), c * np.exp(-0.5 * z_lo ** 2) / p, c * np.exp(-0.5 * z_hi ** 2) / p
+    return np.log(p), c * np.exp(-0.5 * z_lo ** 2) / p, c * np.exp(-0.5 * z_hi ** 2) / p, raw > P_FLOOR
+
+
+def _cell_curvature(z_lo: np.ndarray, z_hi: np.ndarray, g_lo: np.ndarray, g_hi: np.ndarray,
+                    live: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Second derivatives of log P(z_lo <= Z < z_hi) (``_cell``) in (z_lo, z_hi): d2/dz_lo2, d2/dz_lo dz_hi,
+    d2/dz_hi2, from the same ratios ``g_lo`` = phi(z_lo)/P and ``g_hi`` = phi(z_hi)/P as the first derivatives
+    (-g_lo, g_hi); where P sits at its floor (``live`` False) only the densities move."""
+    return z_lo * g_lo - live * g_lo ** 2, live * g_lo * g_hi, -z_hi * g_hi - live * g_hi ** 2
 
 
 @dataclass
@@ -292,9 +304,10 @@ class _WidthModel:
         a = np.concatenate([[0.0], theta[:G]])
         e = np.exp(a - a.max())
         loc = theta[G:].reshape(self.L, V)
-        return self.P * e / e.sum(), SIGMA_FLOOR + np.exp(np.clip(loc[2], -20.0, 5.0)), loc[0], loc[1]
+        return self.P * e / e.sum(), SIGMA_FLOOR + np.exp(np.clip(loc[2], *LOG_SIGMA_RANGE)), loc[0], loc[1]
 
     def _terms(self, theta: np.ndarray) -> tuple[np.ndarray, ...]:
+        """(w, sigma, each sample's sigma, log P, z_lo, z_hi, phi(z_lo)/P, phi(z_hi)/P, P above its floor)."""
         vis = self.vis
         w, sigma, dm, slope = self.unpack(theta)
         low, shift = pattern_offsets(w)
@@ -302,8 +315,16 @@ class _WidthModel:
         m = vis.mean0[vis.visit] + dm[vis.visit] + slope[vis.visit] * vis.u
         sg = sigma[vis.visit]
         z_lo, z_hi = (e_lo - m) / sg, (e_lo + w[self.r] - m) / sg
-        logp, g_lo, g_hi = _log_cell(z_lo, z_hi)
-        return w, sigma, sg, logp, z_lo, z_hi, g_lo, g_hi
+        logp, g_lo, g_hi, live = _cell(z_lo, z_hi)
+        return w, sigma, sg, logp, z_lo, z_hi, g_lo, g_hi, live
+
+    def _grad_w(self, d_lo: np.ndarray, d_hi: np.ndarray) -> np.ndarray:
+        """d logL / d w (P,) from each sample's d logp / d (lower, upper edge) ``d_lo``, ``d_hi`` (n,): a sample of
+        residue r has its lower edge at ``base + low[r] - shift`` and its upper one ``w[r]`` above it."""
+        s = d_lo + d_hi
+        by_r = np.bincount(self.r, s, self.P)
+        above = np.concatenate([np.cumsum(by_r[::-1])[::-1][1:], [0.0]])  # sum over the samples with r > s
+        return above - s.sum() * self.k + np.bincount(self.r, d_hi, self.P)
 
     def _sample_scores_a(self, w: np.ndarray, sg: np.ndarray, g_lo: np.ndarray, g_hi: np.ndarray) -> np.ndarray:
         """d logp / d a[1:] of each sample (n, G)."""
@@ -315,14 +336,10 @@ class _WidthModel:
 
     def nll(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
         vis, V = self.vis, self.V
-        w, sigma, sg, logp, z_lo, z_hi, g_lo, g_hi = self._terms(theta)
+        w, sigma, sg, logp, z_lo, z_hi, g_lo, g_hi, _ = self._terms(theta)
         d_m = (g_lo - g_hi) / sg  # d logp / d m
         d_s = -(z_hi * g_hi - z_lo * g_lo) / sg  # d logp / d sigma
-        d_lo, d_hi = -g_lo / sg, g_hi / sg
-        s = d_lo + d_hi
-        by_r = np.bincount(self.r, s, self.P)
-        above = np.concatenate([np.cumsum(by_r[::-1])[::-1][1:], [0.0]])  # sum over the samples with r > s
-        g_w = above - s.sum() * self.k + np.bincount(self.r, d_hi, self.P)
+        g_w = self._grad_w(-g_lo / sg, g_hi / sg)
         g_a = w * (g_w - np.dot(g_w, w) / self.P)
         grad = np.concatenate([g_a[1:], np.bincount(vis.visit, d_m, V), np.bincount(vis.visit, d_m * vis.u, V),
                                np.bincount(vis.visit, d_s, V) * (sigma - SIGMA_FLOOR)])
@@ -331,7 +348,7 @@ class _WidthModel:
     def cluster_scores(self, theta: np.ndarray, cluster: np.ndarray) -> np.ndarray:
         """The score in a[1:] summed over each cluster's samples (C, G): at the fit the pieces' own scores are zero, so
         these are the efficient scores of the robust (sandwich) covariance."""
-        w, _, sg, _, _, _, g_lo, g_hi = self._terms(theta)
+        w, _, sg, _, _, _, g_lo, g_hi, _ = self._terms(theta)
         per = self._sample_scores_a(w, sg, g_lo, g_hi)
         _, c = np.unique(cluster, return_inverse=True)
         return np.stack([np.bincount(c, per[:, j]) for j in range(self.G)], axis=1)
@@ -372,29 +389,66 @@ class _WidthModel:
                 break
         return theta
 
-    def _hessian_parts(self, theta: np.ndarray, local_only: bool = False, h: float = 1e-5) -> tuple[np.ndarray, ...]:
-        """The NLL's Hessian at ``theta`` from its gradient by central differences: the global block (G, G), its
-        cross terms with the pieces' parameters (G, V, L), and each piece's block (V, L, L). A piece's parameters meet
-        only its own samples, so the local blocks are read off by moving one kind of every piece's parameters at
-        once. ``local_only``: the global block is the identity and the cross terms zero (not worked out)."""
-        G, V, L = self.G, self.V, self.L
+    def _hessian_parts(self, theta: np.ndarray, local_only: bool = False) -> tuple[np.ndarray, ...]:
+        """The NLL's Hessian at ``theta``, analytic: the global block (G, G), its cross terms with the pieces'
+        parameters (G, V, L), and each piece's block (V, L, L). ``local_only``: the global block is the identity and
+        the cross terms zero (not worked out).
 
-        def column(direction: np.ndarray) -> np.ndarray:
-            return (self.nll(theta + h * direction)[1] - self.nll(theta - h * direction)[1]) / (2 * h)
-
-        n = len(theta)
-        h_ll = np.zeros((V, L, L))
-        for k in range(L):
-            d = np.zeros(n)
-            d[G + k * V:G + (k + 1) * V] = 1.0
-            c = column(d)[G:].reshape(L, V)  # (L, V): d grad_j / d kind k
-            h_ll[:, :, k] = c.T
-        h_ll = 0.5 * (h_ll + h_ll.transpose(0, 2, 1))
+        A sample's log P depends on its cell's edges (e_lo, e_hi), its piece's line m = mean0 + dm + slope u and
+        noise sigma; its second derivatives in these come from those in (z_lo, z_hi) (``_cell_curvature``). The edges
+        depend on the pattern through the sample's residue r alone and are linear in w, so the global block and the
+        cross terms are sums per residue (and per piece and residue) times d e / d a, plus the gradient in w times the
+        softmax's second derivative. sigma = SIGMA_FLOOR + exp(clip(s)): the gradient takes d sigma / d s as
+        sigma - SIGMA_FLOOR also where the clip holds s; the Hessian is the gradient's Jacobian, made symmetric (its
+        two off-diagonal halves averaged where the clip makes them differ)."""
+        vis, G, V, P = self.vis, self.G, self.V, self.P
+        w, sigma, sg, _, z_lo, z_hi, g_lo, g_hi, live = self._terms(theta)
+        f_ll, f_lh, f_hh = _cell_curvature(z_lo, z_hi, g_lo, g_hi, live)
+        delta = g_lo - g_hi
+        x_lo, x_hi = f_ll * z_lo + f_lh * z_hi, f_lh * z_lo + f_hh * z_hi
+        inv2 = 1.0 / sg ** 2
+        # second derivatives of log P per sample: (m, m), (m, sigma), (sigma, sigma), and d log P / d sigma
+        mm = (z_lo * g_lo - z_hi * g_hi - live * delta ** 2) * inv2
+        ms = (x_lo + x_hi - delta) * inv2
+        ss = (z_lo * x_lo + z_hi * x_hi - 2.0 * (z_lo * g_lo - z_hi * g_hi)) * inv2
+        d_s = -(z_hi * g_hi - z_lo * g_lo) / sg
+        s_loc = theta[G + 2 * V:]
+        e = sigma - SIGMA_FLOOR  # d sigma / d s as the gradient takes it
+        inside = (s_loc > LOG_SIGMA_RANGE[0]) & (s_loc < LOG_SIGMA_RANGE[1])  # where the clip lets s move sigma
+        e_cross = e * (1.0 + inside) / 2.0
+        v, u = vis.visit, vis.u
+        h_ll = np.empty((V, 3, 3))
+        h_ll[:, 0, 0] = np.bincount(v, mm, V)
+        h_ll[:, 0, 1] = h_ll[:, 1, 0] = np.bincount(v, mm * u, V)
+        h_ll[:, 1, 1] = np.bincount(v, mm * u * u, V)
+        h_ll[:, 0, 2] = h_ll[:, 2, 0] = np.bincount(v, ms, V) * e_cross
+        h_ll[:, 1, 2] = h_ll[:, 2, 1] = np.bincount(v, ms * u, V) * e_cross
+        h_ll[:, 2, 2] = (np.bincount(v, ss, V) * e ** 2 + np.bincount(v, d_s, V) * e) * inside
+        h_ll = -h_ll
         if local_only:
-            return np.eye(G), np.zeros((G, V, L)), h_ll
-        cols = np.column_stack([column(np.eye(1, n, i)[0]) for i in range(G)])  # (n, G)
-        b = cols[G:].reshape(L, V, G).transpose(2, 1, 0)  # (G, V, L)
-        return 0.5 * (cols[:G] + cols[:G].T), b, h_ll
+            return np.eye(G), np.zeros((G, V, self.L)), h_ll
+        # d e_lo / d w and d e_hi / d w of a sample of residue r (rows r), then in a[1:] through dw/da
+        idx = np.arange(P)
+        de_lo = (idx[None, :] < idx[:, None]) - self.k[None, :]
+        jac = np.diag(w) - np.outer(w, w) / P  # d w / d a
+        c_lo, c_hi = (de_lo @ jac)[:, 1:], ((de_lo + np.eye(P)) @ jac)[:, 1:]  # (P, G)
+        r = self.r
+        s_ll, s_lh, s_hh = (np.bincount(r, f * inv2, P)[:, None] for f in (f_ll, f_lh, f_hh))
+        h_aa = c_lo.T @ (s_ll * c_lo) + c_lo.T @ (s_lh * c_hi) + c_hi.T @ (s_lh * c_lo) + c_hi.T @ (s_hh * c_hi)
+        g_w = self._grad_w(-g_lo / sg, g_hi / sg)
+        g_a = w * (g_w - np.dot(g_w, w) / P)
+        h_aa += (np.diag(g_a) - (np.outer(w, g_a) + np.outer(g_a, w)) / P)[1:, 1:]  # gradient x d2 w / da2
+        # cross terms: per (piece, residue) sums of the edges' second derivatives with m and sigma
+        vr = v * P + r
+        lo_m, hi_m = -g_lo * (z_lo - live * delta) * inv2, -g_hi * (live * delta - z_hi) * inv2
+        lo_s, hi_s = (g_lo - x_lo) * inv2, (-g_hi - x_hi) * inv2
+        b = np.empty((G, V, self.L))
+        for j, (lo, hi) in enumerate(((lo_m, hi_m), (lo_m * u, hi_m * u), (lo_s, hi_s))):
+            by_lo = np.bincount(vr, lo, V * P).reshape(V, P)
+            by_hi = np.bincount(vr, hi, V * P).reshape(V, P)
+            b[:, :, j] = (by_lo @ c_lo + by_hi @ c_hi).T
+        b[:, :, 2] *= e_cross[None, :]
+        return -0.5 * (h_aa + h_aa.T), -b, h_ll
 
     def profile_hessian(self, theta: np.ndarray) -> np.ndarray:
         """Hessian (G, G) of the NLL in a[1:] with the pieces' own parameters profiled out (the Schur complement)."""
