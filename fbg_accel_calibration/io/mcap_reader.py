@@ -42,8 +42,9 @@ from .mcap_records import (
     _set_fast,
     _split_chunks,
     _summary_topics,
+    run_rows,
 )
-from .mcap_schemas import _check_fields, _decode, _decoder_for
+from .mcap_schemas import _check_fields, _decode, _decoder_for, standard_event_schema
 from .pass_spill import PassSpill
 from .recording import Recording
 from .rosbag2_input import BagInputError, bag_files
@@ -133,24 +134,20 @@ def assign_poses(stamps_ns: np.ndarray, pose_events: list[tuple[int, int, str]],
     Other samples get pose id -1 and a NaN reference.
     """
     n = len(stamps_ns)
-    pose_id = np.full(n, -1, dtype=int)
-    gref = np.full((n, 3), np.nan)
     if not pose_events:
-        return pose_id, gref
+        return np.full(n, -1, dtype=int), np.full((n, 3), np.nan)
     pe = sorted(pose_events, key=lambda e: e[0])
     pt = np.asarray([e[0] for e in pe], dtype=np.int64)
-    pid = np.asarray([e[1] if e[2] == "recording" else -1 for e in pe], dtype=int)
-    k = np.searchsorted(pt, stamps_ns, side="right") - 1
-    has = k >= 0
-    pose_id[has] = pid[k[has]]
-    if gref_events:
-        ge = sorted(gref_events, key=lambda e: e[0])
-        gt = np.asarray([e[0] for e in ge], dtype=np.int64)
-        gv = np.asarray([e[1] for e in ge], dtype=float)
-        j = np.searchsorted(gt, stamps_ns, side="right") - 1
-        ok = (j >= 0) & (pose_id >= 0)
-        gref[ok] = gv[j[ok]]
-    return pose_id, gref
+    pid = np.asarray([-1] + [e[1] if e[2] == "recording" else -1 for e in pe], dtype=int)  # [0]: before the first
+    pose_id = pid[np.searchsorted(pt, stamps_ns, side="right")]
+    if not gref_events:
+        return pose_id, np.full((n, 3), np.nan)
+    ge = sorted(gref_events, key=lambda e: e[0])
+    gt = np.asarray([e[0] for e in ge], dtype=np.int64)
+    gv = np.asarray([(np.nan, np.nan, np.nan)] + [e[1] for e in ge], dtype=float)  # [0]: no reference
+    j = np.searchsorted(gt, stamps_ns, side="right")  # 1 + the latest reference at or before, 0 for none
+    j[pose_id < 0] = 0
+    return pose_id, gv[j]
 
 
 def read_recording(paths: str | Path | list[str | Path], namespace: str | None = None,
@@ -261,6 +258,7 @@ class McapSampleStream:
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
         decoders: dict[int, Any] = {}
+        readers: dict[int, Any] = {}  # channel id -> the event reader of ros2_cdr's layout (_event_reader), or None
         fast: dict[str, Any] = {}
 
         def count(topic: str, n: int) -> None:
@@ -301,16 +299,24 @@ class McapSampleStream:
                     self._raw_clock(log_time, stamp)
                 return np.asarray([stamp], dtype=np.int64), np.asarray(msg.position, dtype=float).reshape(1, -1)
             if collect_events and role is not None:
-                msg = _decode(path, decoder_of(channel, role), channel, data)
+                reader = readers.get(channel_id)
+                fields = reader(data) if reader is not None else None
+                msg = None
+                if fields is None:  # not in the layout ros2_cdr reads: the decoder of the channel's schema
+                    msg = _decode(path, decoder_of(channel, role), channel, data)
                 try:
+                    if msg is not None:
+                        fields = _event_fields(role, msg)
+                        if channel_id not in readers:
+                            readers[channel_id] = _event_reader(role, schemas.get(channel.schema_id), msg)
                     if role == TOPIC_TEMPERATURE:
-                        self._temp_t.append(_stamp_ns(msg.header))
-                        self._temp_v.append(float(msg.temperature))
+                        self._temp_t.append(fields[0])
+                        self._temp_v.append(fields[1])
                     elif role == TOPIC_REFERENCE_GRAVITY:
-                        self._gref_events.append((_stamp_ns(msg.header), (msg.vector.x, msg.vector.y, msg.vector.z)))
+                        self._gref_events.append(fields)
                     elif role == TOPIC_POSE:
-                        values = {kv.key: kv.value for kv in msg.values}
-                        event = (int(values.get("pose_id", "-1")), values.get("state", msg.message))
+                        values, text = fields
+                        event = (int(values.get("pose_id", "-1")), values.get("state", text))
                         self._pose_events.append((log_time - (self._log_offset or 0), *event))
                         self._pose_log.append((log_time, *event))
                 except (AttributeError, TypeError, ValueError) as exc:  # e.g. a pose_id that is not a number
@@ -320,20 +326,27 @@ class McapSampleStream:
             return None
 
         def emit(items: Iterable[Any]):
+            runs: list[np.ndarray] = []  # runs of fixed-layout raw records not yet converted (at once, run_rows)
             for item in items:
-                if isinstance(item, tuple) and len(item) == 2:  # a run of fixed-layout raw records
-                    count(report.raw_topic, len(item[0]))
+                if isinstance(item, np.ndarray):  # a run of fixed-layout raw records
+                    count(report.raw_topic, len(item))
                     if collect_events:
-                        self._raw_clock(fast["last_log"], item[0][-1])
-                    yield item
+                        last = item[-1]
+                        self._raw_clock(int(last["log"]), int(last["sec"]) * 1_000_000_000 + int(last["nanosec"]))
+                    runs.append(item)
                 elif isinstance(item, tuple):
                     out = message(*item)
                     if out is not None:
+                        if runs:
+                            yield run_rows(runs)
+                            runs = []
                         yield out
                 elif isinstance(item, SkippedRange):  # PARTIAL_RECORD, or a chunk of records it cannot hold
                     report.skipped.append(SkippedRange(item.offset, item.end_offset, item.reason))
                 else:
                     _note_record(item, schemas, channels, report)
+            if runs:
+                yield run_rows(runs)
 
         joined: list[bytes] = []
         joined_bytes = 0
@@ -465,6 +478,42 @@ class McapSampleStream:
         md["read_report"] = self.report.as_dict()
         md["pose_events"] = list(self._pose_log)  # at log time, as the chunk ranges read_warnings compares them to
         return md
+
+
+def _event_fields(role: str, msg: Any) -> tuple[Any, Any]:
+    """What the reader takes of an event message decoded by ``mcap_ros2``: ``(stamp ns, temperature degC)``,
+    ``(stamp ns, (x, y, z) m/s^2)`` or ``({key: value}, message)`` for a pose event."""
+    if role == TOPIC_TEMPERATURE:
+        return _stamp_ns(msg.header), float(msg.temperature)
+    if role == TOPIC_REFERENCE_GRAVITY:
+        return _stamp_ns(msg.header), (msg.vector.x, msg.vector.y, msg.vector.z)
+    return {kv.key: kv.value for kv in msg.values}, msg.message
+
+
+def _event_reader(role: str, schema: Schema | None, msg: Any) -> Any:
+    """The reader of an event topic's later messages straight from their bytes, giving :func:`_event_fields`, or
+    None when its schema is not the standard definition (``mcap_schemas.standard_event_schema``); it returns None
+    for a message not in the layout ``ros2_cdr`` writes (that one goes through the schema's decoder). ``msg``: the
+    channel's first message, decoded (its frame id is that of the fixed layouts)."""
+    if not standard_event_schema(schema, role):
+        return None
+    if role == TOPIC_POSE:
+        def pose(data: bytes) -> tuple[dict[str, str], str] | None:
+            got = ros2_cdr.read_diagnostic_status(data)
+            return None if got is None else (dict(got[4]), got[2])
+        return pose
+    frame_id = msg.header.frame_id
+    if not isinstance(frame_id, str):
+        return None
+    if role == TOPIC_TEMPERATURE:
+        codec = ros2_cdr.FixedStampedCodec(frame_id, 2)
+
+        def temperature(data: bytes) -> tuple[int, float] | None:
+            got = codec.read(data)
+            return None if got is None else (got[0], got[1][0])
+        return temperature
+    codec = ros2_cdr.FixedStampedCodec(frame_id, 3)
+    return codec.read
 
 
 def _note_record(rec: Any, schemas: dict[int, Schema], channels: dict[int, Channel], report: FileReadReport) -> None:
