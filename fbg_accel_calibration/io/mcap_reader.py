@@ -350,6 +350,7 @@ class McapSampleStream:
 
         joined: list[bytes] = []
         joined_bytes = 0
+        scratch = bytearray()  # where the joined chunks are split, reused (_split_chunks)
         with open(path, "rb", buffering=1 << 20) as fh:
             if fh.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
                 raise McapRecordingError(f"{path}: not an MCAP file (bad magic)")
@@ -369,7 +370,7 @@ class McapSampleStream:
                     if joined_bytes < _JOIN_BYTES:
                         continue
                 if joined:
-                    yield from emit(_split_chunks(joined, fast))
+                    yield from emit(_split_chunks(joined, fast, scratch))
                     joined, joined_bytes = [], 0
                 if opcode != Opcode.CHUNK:
                     try:
@@ -379,7 +380,7 @@ class McapSampleStream:
                         break
                     yield from emit([item])
         if joined:
-            yield from emit(_split_chunks(joined, fast))
+            yield from emit(_split_chunks(joined, fast, scratch))
 
     def blocks(self, block_rows: int, with_poses: bool) -> Any:
         """Yield :class:`Recording` blocks of ``block_rows`` samples (run_id 0) in file order.

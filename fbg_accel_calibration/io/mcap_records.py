@@ -337,7 +337,7 @@ PARTIAL_RECORD = SkippedRange(-1, -1, "a record cut short at the end of a chunk 
                                       "the records after it in that chunk are lost")
 
 
-def _record_at(data: bytes, pos: int, size: int) -> tuple[Any, int]:
+def _record_at(data: bytes | memoryview, pos: int, size: int) -> tuple[Any, int]:
     """The record at ``pos`` of decompressed chunk data (:func:`_parse_record`) and the next position."""
     if pos + 9 > size:
         raise _PartialRecordError("record header overruns its chunk")
@@ -348,7 +348,7 @@ def _record_at(data: bytes, pos: int, size: int) -> tuple[Any, int]:
     end = pos + 9 + length
     if end > size:
         raise _PartialRecordError("record overruns its chunk")
-    return _parse_record(opcode, data[pos + 9:end]), end
+    return _parse_record(opcode, bytes(data[pos + 9:end])), end
 
 
 def _parse_record(opcode: int, body: bytes) -> Any:
@@ -382,6 +382,7 @@ def _set_fast(fast: dict[str, Any], channel_id: int, codec: ros2_cdr.FixedJointS
     fast["channel"] = channel_id
     fast["dtype"] = dtype
     fast["size"] = size
+    fast["head"] = head
     fast["h0"], fast["h1"] = struct.unpack_from("<Q", head, 0)[0], struct.unpack_from("<I", head, 7)[0]
     fast["enc"] = np.frombuffer(ros2_cdr.ENCAPSULATION, dtype="<u4")[0]
     fast["mid"] = np.frombuffer(codec.middle, dtype="<u8")
@@ -437,7 +438,7 @@ def _first_misaligned_end(ends: np.ndarray, pos: int, rec_size: int, size: int, 
     return size
 
 
-def _split_chunks(bodies: list[bytes], fast: dict[str, Any]):
+def _split_chunks(bodies: list[bytes], fast: dict[str, Any], scratch: bytearray | None = None):
     """Records of decompressed chunks ``bodies``, split together: for each run of consecutive fixed-layout raw
     messages a structured numpy view of its records (``fast["dtype"]``; :func:`run_rows` gives their stamps and
     values), ``(channel_id, log_time, data)`` for other messages, and parsed Schema/Channel/Metadata records. No
@@ -447,11 +448,27 @@ def _split_chunks(bodies: list[bytes], fast: dict[str, Any]):
 
     A run is checked in one window of up to :data:`_FAST_RUN_MIN` records (a recording's runs between two events),
     then in windows growing x4; every record of a run has the raw layout's opcode, length, channel, encapsulation
-    and middle (frame id and names)."""
-    data = b"".join(bodies)
+    and middle (frame id and names).
+
+    ``scratch``: where the chunks are joined, the caller's, reused from one split to the next (a fresh megabyte for
+    each split costs more in page faults than the copy); the views of a split must be gone (:func:`run_rows`)
+    before the next one, which overwrites it. None: a new buffer."""
     ends = list(accumulate(len(b) for b in bodies))
+    size = ends[-1] if ends else 0
+    if len(bodies) == 1:
+        data: bytes | bytearray = bodies[0]
+    elif scratch is None:
+        data = b"".join(bodies)
+    else:
+        if len(scratch) < size:
+            scratch.extend(bytes(size - len(scratch)))  # a view of the last split still alive: BufferError
+        at = 0
+        for body in bodies:
+            scratch[at:at + len(body)] = body
+            at += len(body)
+        data = scratch
+    view = memoryview(data)
     ends_array: np.ndarray | None = None  # for the look at many later ends (_first_misaligned_end)
-    size = len(data)
     pos = 0
     ci = 0  # the chunk pos is in: the first with ends[ci] > pos
     while pos < size:
@@ -459,7 +476,7 @@ def _split_chunks(bodies: list[bytes], fast: dict[str, Any]):
             ci += 1
         chunk_end = ends[ci]
         rec_size = fast.get("size")
-        if rec_size is not None:
+        if rec_size is not None and view[pos:pos + 11] == fast["head"]:  # a raw record's opcode, length, channel
             limit = chunk_end
             if (chunk_end - pos) % rec_size == 0:  # its chunk ends between two records: the first later end that
                 limit = size                       # does not, when it is among the next few; else looked for in windows
@@ -476,12 +493,9 @@ def _split_chunks(bodies: list[bytes], fast: dict[str, Any]):
             window = _FAST_RUN_MIN
             while left:  # windows growing x4 while every record matches the raw layout
                 kk = min(left, window)
-                arr = np.frombuffer(data, dtype=fast["dtype"], count=kk, offset=pos)
-                ok = (arr["h0"] == fast["h0"]) & (arr["h1"] == fast["h1"]) & (arr["enc"] == fast["enc"])
-                ok &= np.all(arr["mid"] == fast["mid"], axis=1)
-                n_ok = kk if ok.all() else int(ok.argmin())
+                n_ok = _run_length(data, pos, kk, fast)
                 if n_ok:
-                    yield arr if n_ok == kk else arr[:n_ok]
+                    yield np.frombuffer(data, dtype=fast["dtype"], count=n_ok, offset=pos)
                     pos += n_ok * rec_size
                 if n_ok < kk:
                     break
@@ -493,7 +507,7 @@ def _split_chunks(bodies: list[bytes], fast: dict[str, Any]):
                 ci += 1
             chunk_end = ends[ci]
         try:
-            item, pos = _record_at(data, pos, chunk_end)
+            item, pos = _record_at(view, pos, chunk_end)
         except _PartialRecordError:
             yield PARTIAL_RECORD
             pos = chunk_end
@@ -504,6 +518,39 @@ def _split_chunks(bodies: list[bytes], fast: dict[str, Any]):
             continue
         if item is not None:
             yield item
+
+
+def _run_length(data: bytes | bytearray, pos: int, n: int, fast: dict[str, Any]) -> int:
+    """How many of the ``n`` records of ``fast["size"]`` bytes from ``pos`` on are, one after the other, raw records of
+    the fixed layout: the opcode, length and channel (``fast["head"]``), the encapsulation and the middle (frame id
+    and names) of each equal to the layout's. Each field of the ``n`` records is copied out in one piece and compared
+    in one piece with the field repeated ``n`` times; where they differ, the first differing byte says which record
+    ends the run."""
+    rec = fast["size"]
+    for offset, part in ((0, fast["head"]), (31, ros2_cdr.ENCAPSULATION), (43, fast["codec"].middle)):
+        if n == 0:
+            break
+        width = len(part)
+        got = np.ndarray((n, width), np.uint8, data, pos + offset, (rec, 1)).tobytes()
+        want = _repeated(fast, part, n)
+        if got != want:
+            n = _first_difference(got, want) // width
+    return n
+
+
+def _repeated(fast: dict[str, Any], field: bytes, n: int) -> bytes:
+    """``field`` repeated ``n`` times (kept in ``fast`` for the largest ``n`` asked so far)."""
+    key = ("repeated", field)
+    have = fast.get(key, b"")
+    if len(have) < n * len(field):
+        have = fast[key] = field * max(n, _FAST_RUN_MIN)
+    return have[:n * len(field)]
+
+
+def _first_difference(a: bytes, b: bytes) -> int:
+    """The index of the first byte where ``a`` and ``b`` (of one length, not equal) differ."""
+    x = int.from_bytes(a, "little") ^ int.from_bytes(b, "little")
+    return ((x & -x).bit_length() - 1) // 8
 
 
 def run_rows(runs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
