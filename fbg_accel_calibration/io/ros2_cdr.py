@@ -141,33 +141,33 @@ def read_diagnostic_status(data: bytes) -> tuple[int, str, str, str, list[tuple[
     size = len(data)
     if size < 5 or data[:4] != ENCAPSULATION:
         return None
+    unpack = _COUNT.unpack_from
+    texts: list[str] = []
+    wanted = 3  # name, message, hardware_id; then the pair count, and two strings a pair
+    counted = False
     at = 5
-
-    def count() -> int:
-        nonlocal at
-        pad = -(at - 4) % 4
-        if pad and data[at:at + pad] != _ZEROS[pad]:
-            raise ValueError("padding")
-        (n,) = _COUNT.unpack_from(data, at + pad)
-        at += pad + 4
-        return n
-
-    def text() -> str:
-        nonlocal at
-        n = count()
-        if n == 0 or at + n > size or data[at + n - 1] != 0:
-            raise ValueError("string")
-        at += n
-        return data[at - n:at - 1].decode()
-
     try:
-        name, message, hardware_id = text(), text(), text()
-        n = count()
-        if 8 * n > size - at:  # each pair takes 8 bytes at least
-            return None
-        pairs = [(text(), text()) for _ in range(n)]
-    except (struct.error, ValueError):  # UnicodeDecodeError is a ValueError
+        while True:
+            pad = -at % 4  # a uint32 (a count, a string's length) aligned to 4 from the body (offset 4)
+            if pad and data[at:at + pad] != _ZEROS[pad]:
+                return None
+            (n,) = unpack(data, at + pad)
+            at += pad + 4
+            if len(texts) == wanted:  # the pair count
+                if 8 * n > size - at:  # each pair takes 8 bytes at least
+                    return None
+                wanted += 2 * n
+                counted = True
+            else:
+                end = at + n
+                if n == 0 or end > size or data[end - 1] != 0:
+                    return None
+                texts.append(data[at:end - 1].decode())
+                at = end
+            if counted and len(texts) == wanted:
+                break
+    except (struct.error, UnicodeDecodeError):
         return None
     if at != size:
         return None
-    return data[4], name, message, hardware_id, pairs
+    return data[4], texts[0], texts[1], texts[2], list(zip(texts[3::2], texts[4::2], strict=True))
