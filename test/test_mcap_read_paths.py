@@ -4,6 +4,7 @@ reading of the same bytes, and an event schema of another layout read by its dec
 
 from __future__ import annotations
 
+import bisect
 import random
 import struct
 from pathlib import Path
@@ -207,8 +208,18 @@ def test_a_recording_of_many_splits_reads_as_the_ros2_decoder_reads_it(tmp_path:
     np.testing.assert_array_equal(rec.t_s, values[:, names.index("board_time_s")])
     stamps = np.array([m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in raws])
     np.testing.assert_array_equal(stamps, T0 + np.arange(n) * 1_000_000)
-    events = [(t, m) for topic, t, _, m in ros2_messages(path) if topic.endswith(TOPIC_POSE)]
-    assert [(t, int({kv.key: kv.value for kv in m.values}["pose_id"])) for t, m in events] == \
-        [(t, p) for t, p, _ in rec.metadata["pose_events"]]
-    recording = np.flatnonzero(rec.pose_id >= 0)
-    assert len(recording) and np.isfinite(rec.gref_mps2[recording]).all()
+    messages = ros2_messages(path)
+    poses = [(t, int({kv.key: kv.value for kv in m.values}["pose_id"]), m.message) for topic, t, _, m in messages
+             if topic.endswith(TOPIC_POSE)]
+    assert poses == rec.metadata["pose_events"]
+    refs = [(t, (m.vector.x, m.vector.y, m.vector.z)) for topic, t, _, m in messages
+            if topic.endswith(TOPIC_REFERENCE_GRAVITY)]
+    want_pose, want_gref = np.full(n, -1), np.full((n, 3), np.nan)
+    for i, stamp in enumerate(stamps):  # the latest event at or before each sample (log time = stamp here)
+        k = bisect.bisect_right([e[0] for e in poses], stamp)
+        if k and poses[k - 1][2] == "recording":
+            want_pose[i] = poses[k - 1][1]
+            want_gref[i] = refs[bisect.bisect_right([t for t, _ in refs], stamp) - 1][1]
+    assert (want_pose >= 0).any() and (want_pose < 0).any()
+    np.testing.assert_array_equal(rec.pose_id, want_pose)
+    np.testing.assert_array_equal(rec.gref_mps2, want_gref)
