@@ -12,7 +12,7 @@ Two reads are measured:
   without poses, then a pass with poses (replayed from the first pass's spill).
 
 Equality, for each file and read, old against new: every array of the Recording(s) (``np.array_equal`` with NaN
-equal to NaN, same dtype and shape), its metadata (the read report, pose events, ...), the stream's report, and
+equal to NaN, same dtype, shape and C-contiguity), its metadata (the read report, pose events, ...), the stream's report, and
 the lines written to stderr; an error, if the read raises, must be the same type and message. Prints every run and
 the medians, and writes them as JSON (``--output``, default the scratch directory's ``mcap_read_check.json``).
 
@@ -99,6 +99,8 @@ def same(a: Any, b: Any, where: str = "") -> list[str]:
         if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray)) or a.dtype != b.dtype or a.shape != b.shape:
             return [f"{where}: {getattr(a, 'dtype', type(a))}{getattr(a, 'shape', '')} vs "
                     f"{getattr(b, 'dtype', type(b))}{getattr(b, 'shape', '')}"]
+        if a.flags.c_contiguous != b.flags.c_contiguous:
+            return [f"{where}: C-contiguous {a.flags.c_contiguous} vs {b.flags.c_contiguous}"]
         eq = np.array_equal(a, b, equal_nan=a.dtype.kind in "fc")
         return [] if eq else [f"{where}: values differ"]
     if isinstance(a, dict) and isinstance(b, dict):

@@ -108,7 +108,8 @@ def read_file(path: str | Path, namespace: str | None = None, topic: str | None 
     samples are put in stamp order, so a file whose stamps go backwards is read too (a note in the report when
     they go back by more than :data:`BACKWARDS_TOLERANCE_NS`, naming the first sample where they do)."""
     stream = McapSampleStream(path, namespace, topic)
-    stamps, rows = stream.all_rows()
+    stamps, batches = stream.all_batches()
+    rows: np.ndarray | list[np.ndarray] = batches  # the columns are taken from the batches (no joined copy of them)
     if np.any(stamps[1:] < stamps[:-1]):  # only then reorder (a stable sort of sorted stamps changes nothing)
         step = np.diff(stamps)
         back = np.flatnonzero(step < -BACKWARDS_TOLERANCE_NS)
@@ -119,8 +120,8 @@ def read_file(path: str | Path, namespace: str | None = None, topic: str | None 
                                "order, so the stretches before and after are interleaved (a driver restart or a "
                                "clock step?)")
         order = np.argsort(stamps, kind="stable")
-        stamps, rows = stamps[order], rows[order]
-    rec = stream.block(stamps, rows, with_poses=True)
+        stamps, rows = stamps[order], np.concatenate(batches)[order]
+    rec = stream.block(stamps, rows, with_poses=True, copy=False)
     rec.metadata = stream.metadata()
     return rec, stream.report
 
@@ -436,11 +437,17 @@ class McapSampleStream:
     def all_rows(self) -> tuple[np.ndarray, np.ndarray]:
         """Every ``imu/raw`` sample in file order, ``(stamps (N,) int64 ns, values (N, k))``, in one pass that
         also collects the events (for a reader that holds the whole recording; stamps may go backwards)."""
+        stamps, batches = self.all_batches()
+        return stamps, np.concatenate(batches)
+
+    def all_batches(self) -> tuple[np.ndarray, list[np.ndarray]]:
+        """:meth:`all_rows` with the values in the batches they were read in, ``(stamps (N,) int64 ns, [values
+        (n_i, k), ...])``: :meth:`block` takes its columns from them without a joined copy of every value."""
         collect = self._start_pass()
         batches = [(s, v) for s, v in self._batches(collect, keep=False) if len(s)]
         self._end_pass(collect, sum(len(s) for s, _ in batches))  # no samples: raises
         # one width: a message whose name list differs from the first one's already raised in _file_batches
-        return np.concatenate([s for s, _ in batches]), np.concatenate([v for _, v in batches])
+        return np.concatenate([s for s, _ in batches]), [v for _, v in batches]
 
     def _start_pass(self) -> bool:
         """Whether this pass collects the events (the first complete one); resets them if so."""
@@ -459,15 +466,24 @@ class McapSampleStream:
         if total == 0:
             raise self.report.no_raw_error(self.path, self.selection)
 
-    def block(self, stamps: np.ndarray, rows: np.ndarray, with_poses: bool) -> Recording:
-        """A Recording of copies (the caller reuses ``stamps`` and ``rows``)."""
-        stamps = stamps.copy()
+    def block(self, stamps: np.ndarray, rows: np.ndarray | list[np.ndarray], with_poses: bool,
+              copy: bool = True) -> Recording:
+        """A Recording of copies (the caller reuses ``stamps`` and ``rows``; ``copy`` False: ``stamps`` is the
+        caller's to give away). ``rows``: the values (N, k), or the batches of them in order (:meth:`all_batches`)."""
+        if copy:
+            stamps = stamps.copy()
         col = {n: i for i, n in enumerate(self.names or ())}
-        xyz = rows[:, [col["x_counts"], col["y_counts"], col["z_counts"]]]
+
+        def take(part: Any) -> np.ndarray:
+            """``part(rows)``, for batches their parts joined."""
+            return part(rows) if isinstance(rows, np.ndarray) else np.concatenate([part(b) for b in rows])
+
+        xyz_cols = [col["x_counts"], col["y_counts"], col["z_counts"]]
+        xyz = take(lambda r: r[:, xyz_cols])
         if "temperature_c" in col:
-            temp = rows[:, col["temperature_c"]].copy()
+            temp = take(lambda r: r[:, col["temperature_c"]].copy())
             if "temperature_valid" in col:
-                temp[rows[:, col["temperature_valid"]] < 0.5] = np.nan
+                temp[take(lambda r: r[:, col["temperature_valid"]] < 0.5)] = np.nan
         elif self._temp_t:
             ts = np.asarray(self._temp_t, dtype=np.int64)
             o = np.argsort(ts, kind="stable")
@@ -475,13 +491,14 @@ class McapSampleStream:
             temp = np.where(idx >= 0, np.asarray(self._temp_v)[o][np.clip(idx, 0, None)], np.nan)
         else:
             temp = np.full(len(stamps), np.nan)
-        t_s = rows[:, col["board_time_s"]].copy() if "board_time_s" in col else stamps * 1e-9
+        t_s = take(lambda r: r[:, col["board_time_s"]].copy()) if "board_time_s" in col else stamps * 1e-9
         if with_poses:
             pose_id, gref = assign_poses(stamps, self._pose_events, self._gref_events)
         else:
             pose_id, gref = np.full(len(stamps), -1, dtype=int), np.full((len(stamps), 3), np.nan)
-        return Recording(t_s=t_s, ref=rows[:, col["ref_counts"]].copy(), xyz=xyz, temp_c=temp, gref_mps2=gref,
-                         pose_id=pose_id, aux=rows[:, col[RAW_AUX_NAME]].copy() if RAW_AUX_NAME in col else None)
+        return Recording(t_s=t_s, ref=take(lambda r: r[:, col["ref_counts"]].copy()), xyz=xyz, temp_c=temp,
+                         gref_mps2=gref, pose_id=pose_id,
+                         aux=take(lambda r: r[:, col[RAW_AUX_NAME]].copy()) if RAW_AUX_NAME in col else None)
 
     def metadata(self) -> dict[str, Any]:
         """Run metadata and the read report, as :func:`read_file` puts them in ``Recording.metadata``."""
