@@ -134,7 +134,8 @@ def _count_at_or_before(times: np.ndarray, stamps_ns: np.ndarray) -> np.ndarray:
     if n < 2 or not np.all(stamps_ns[1:] >= stamps_ns[:-1]):
         return np.searchsorted(times, stamps_ns, side="right")
     first = np.searchsorted(stamps_ns, times, side="left")  # the first sample at or after each time
-    return np.cumsum(np.bincount(first, minlength=n + 1)[:n])
+    counts = np.bincount(first, minlength=n + 1)[:n]
+    return np.cumsum(counts, out=counts)  # in place: no second array of a million
 
 
 def assign_poses(stamps_ns: np.ndarray, pose_events: list[tuple[int, int, str]],
