@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from mcap.opcode import Opcode
 from mcap.records import Channel, Metadata, Schema
 from mcap_ros2.decoder import DecoderFactory
 
@@ -34,6 +33,7 @@ from .mcap_format import (
     _absolute,
 )
 from .mcap_records import (
+    _CHUNK,
     FileReadReport,
     SkippedRange,
     _file_records,
@@ -377,7 +377,7 @@ class McapSampleStream:
                 except Exception as exc:  # truncated or corrupt tail: keep what was read
                     report.stopped_at = f"{type(exc).__name__} {exc}".strip()
                     break
-                if opcode == Opcode.CHUNK:  # records never span chunks: split several chunks at once
+                if opcode == _CHUNK:  # records never span chunks: split several chunks at once
                     joined.append(body)
                     joined_bytes += len(body)
                     if joined_bytes < _JOIN_BYTES:
@@ -385,7 +385,7 @@ class McapSampleStream:
                 if joined:
                     yield from emit(_split_chunks(joined, fast, scratch))
                     joined, joined_bytes = [], 0
-                if opcode != Opcode.CHUNK:
+                if opcode != _CHUNK:
                     try:
                         item = _parse_record(opcode, body)
                     except _PartialRecordError as exc:

@@ -29,8 +29,11 @@ from .mcap_format import MCAP_MAGIC, TOPIC_RAW, TYPE_RAW, McapRecordingError, To
 _RECORD_HEAD = struct.Struct("<BQ")
 _MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 _CHUNK_HEAD = struct.Struct("<QQQI")  # message start/end time, uncompressed size, uncompressed CRC
-_SKIPPED = {Opcode.MESSAGE_INDEX, Opcode.CHUNK_INDEX, Opcode.ATTACHMENT, Opcode.ATTACHMENT_INDEX, Opcode.STATISTICS,
-            Opcode.METADATA_INDEX, Opcode.SUMMARY_OFFSET, Opcode.DATA_END, Opcode.HEADER}
+_SKIPPED = frozenset(int(o) for o in (Opcode.MESSAGE_INDEX, Opcode.CHUNK_INDEX, Opcode.ATTACHMENT,
+                                      Opcode.ATTACHMENT_INDEX, Opcode.STATISTICS, Opcode.METADATA_INDEX,
+                                      Opcode.SUMMARY_OFFSET, Opcode.DATA_END, Opcode.HEADER))
+_FOOTER, _MESSAGE_INDEX, _CHUNK, _MESSAGE = (int(o) for o in (Opcode.FOOTER, Opcode.MESSAGE_INDEX, Opcode.CHUNK,
+                                                              Opcode.MESSAGE))  # plain ints: compared per record
 _PARSED = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel, Opcode.METADATA: Metadata}
 
 
@@ -268,9 +271,9 @@ def _file_records_walk(fh: Any, report: FileReadReport, seen: dict[bytes, str], 
             last_skip = None
             fh.seek(resume)
             continue
-        if opcode == Opcode.FOOTER:
+        if opcode == _FOOTER:
             return
-        if opcode == Opcode.MESSAGE_INDEX and last_skip is not None:  # the lost chunk's index: count its messages
+        if opcode == _MESSAGE_INDEX and last_skip is not None:  # the lost chunk's index: count its messages
             body = _read_exact(fh, length)
             if len(body) >= 6:
                 channel_id, nbytes = struct.unpack_from("<HI", body, 0)  # the index's records: 16 bytes a message
@@ -281,7 +284,7 @@ def _file_records_walk(fh: Any, report: FileReadReport, seen: dict[bytes, str], 
             fh.seek(length, io.SEEK_CUR)
             continue
         body = _read_exact(fh, length)
-        if opcode == Opcode.CHUNK:
+        if opcode == _CHUNK:
             digest = hashlib.blake2b(body, digest_size=16).digest()
             if digest in seen:
                 copies.append((start, seen[digest]))
@@ -354,7 +357,7 @@ def _record_at(data: bytes | memoryview, pos: int, size: int) -> tuple[Any, int]
 def _parse_record(opcode: int, body: bytes) -> Any:
     """A record, in a chunk or not: a message ``(channel_id, log_time, data)``, a parsed Schema/Channel/Metadata,
     or None for other opcodes."""
-    if opcode == Opcode.MESSAGE:
+    if opcode == _MESSAGE:
         if len(body) < _MESSAGE_HEAD.size:
             raise _PartialRecordError("message record shorter than its header")
         channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(body, 0)
