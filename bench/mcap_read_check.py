@@ -66,6 +66,13 @@ def child(tree: str, mode: str, path: str, out: str) -> None:
     from fbg_accel_calibration.io.mcap_reader import McapSampleStream
 
     assert Path(input_files.__file__).resolve().is_relative_to(Path(tree).resolve()), input_files.__file__
+    if path.startswith("@"):  # a list of files, one a line: their results in one pickle (equality only)
+        results = {}
+        for line in Path(path[1:]).read_text().splitlines():
+            child(tree, mode, line, out)
+            results[line] = pickle.loads(Path(out).read_bytes())
+        Path(out).write_bytes(pickle.dumps(results))
+        return
     err = io.StringIO()
     result: dict[str, Any] = {}
     cpu0, wall0 = time.process_time(), time.perf_counter()
@@ -142,6 +149,28 @@ def main() -> int:
     failures = 0
     with tempfile.TemporaryDirectory(prefix="mcap_read_check_") as tmp:
         trees = {"old": base_tree(args.base, Path(tmp)), "new": ROOT}
+        if args.equal_only and len(args.files) > 4:  # many files: one child per tree and read reads them all
+            listing = Path(tmp) / "files.txt"
+            listing.write_text("\n".join(str(f) for f in args.files))
+            for mode in args.modes.split(","):
+                outs = {k: Path(tmp) / f"{k}.pkl" for k in trees}
+                for name in trees:
+                    run(trees[name], mode, Path("@" + str(listing)), outs[name])
+                loaded = {k: pickle.loads(outs[k].read_bytes()) for k in trees}
+                for path in args.files:
+                    diffs = same(loaded["old"][str(path)], loaded["new"][str(path)], mode)
+                    failures += bool(diffs)
+                    err = loaded["new"][str(path)].get("error")
+                    report["files"].setdefault(str(path), {})[mode] = {"equal": not diffs, "error": err}
+                    if diffs:
+                        print(f"{path} {mode}: DIFFERENT", *diffs[:20], sep="\n    ")
+                n_err = sum(1 for v in report["files"].values() if v[mode]["error"])
+                print(f"{mode}: {len(args.files)} inputs, {len(args.files) - failures} equal ({n_err} raise the same "
+                      "error in both)", flush=True)
+            out = args.output or results_dir(False) / "mcap_read_check.json"
+            out.write_text(json.dumps(report, indent=1))
+            print(f"wrote {out}; {'all equal' if not failures else f'{failures} DIFFERENT'}")
+            return 1 if failures else 0
         for path in args.files:
             for mode in args.modes.split(","):
                 times: dict[str, list[dict[str, float]]] = {"old": [], "new": []}
