@@ -200,8 +200,10 @@ class McapSampleStream:
     (only for raw messages without a temperature field) temperature events, O(poses) values.
 
     ``imu/raw`` messages in the fixed layout of :class:`ros2_cdr.FixedJointStateCodec` are split out of each
-    decompressed chunk with one numpy view per run of equal records (no Python object per message);
-    other messages go through the ``mcap_ros2`` decoder. A truncated file is read up to its last
+    decompressed chunk with one numpy view per run of equal records (no Python object per message), converted
+    to stamps and values once per split; event messages of a topic whose schema is the standard definition are read
+    in the layouts ``ros2_cdr`` writes (:func:`_event_reader`), every other message (and an event in another layout)
+    through the ``mcap_ros2`` decoder. A truncated file is read up to its last
     complete chunk; ``report`` tells what the last pass that read to its end read.
     """
 

@@ -6,6 +6,9 @@ byte for byte: ``test_mcap_io`` compares each with messages written through ``mc
 writer): a 4-byte encapsulation header, then the fields in order, each primitive aligned to its own
 size counted from the end of that header; a string is a uint32 length (with its NUL) and the bytes
 with the NUL; a sequence is a uint32 count and its elements.
+
+The reader reads the event messages back in exactly these layouts (:class:`FixedStampedCodec`,
+:func:`read_diagnostic_status`), bytes of any other layout being left to the ``mcap_ros2`` decoder.
 """
 
 from __future__ import annotations
