@@ -527,8 +527,8 @@ def _run_length(data: bytes | bytearray, pos: int, n: int, fast: dict[str, Any])
     """How many of the ``n`` records of ``fast["size"]`` bytes from ``pos`` on are, one after the other, raw records of
     the fixed layout: the opcode, length and channel (``fast["head"]``), the encapsulation and the middle (frame id
     and names) of each equal to the layout's. Each field of the ``n`` records is copied out in one piece and compared
-    in one piece with the field repeated ``n`` times; where they differ, the first differing byte says which record
-    ends the run."""
+    in one piece with the field repeated; where they differ, the first differing byte says which record ends the
+    run."""
     rec = fast["size"]
     for offset, part in ((0, fast["head"]), (31, ros2_cdr.ENCAPSULATION), (43, fast["codec"].middle)):
         if n == 0:
@@ -536,18 +536,18 @@ def _run_length(data: bytes | bytearray, pos: int, n: int, fast: dict[str, Any])
         width = len(part)
         got = np.ndarray((n, width), np.uint8, data, pos + offset, (rec, 1)).tobytes()
         want = _repeated(fast, part, n)
-        if got != want:
-            n = _first_difference(got, want) // width
+        if not want.startswith(got):  # (compared in place: no copy of the first n of the repeats)
+            n = _first_difference(got, want[:len(got)]) // width
     return n
 
 
 def _repeated(fast: dict[str, Any], field: bytes, n: int) -> bytes:
-    """``field`` repeated ``n`` times (kept in ``fast`` for the largest ``n`` asked so far)."""
+    """``field`` repeated ``n`` times or more (kept in ``fast`` for the largest ``n`` asked so far)."""
     key = ("repeated", field)
     have = fast.get(key, b"")
     if len(have) < n * len(field):
         have = fast[key] = field * max(n, _FAST_RUN_MIN)
-    return have[:n * len(field)]
+    return have
 
 
 def _first_difference(a: bytes, b: bytes) -> int:
