@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from mcap.opcode import Opcode
 from mcap.records import Channel, Metadata, Schema
 from mcap_ros2.decoder import DecoderFactory
 
@@ -34,6 +33,7 @@ from .mcap_format import (
     _absolute,
 )
 from .mcap_records import (
+    _CHUNK,
     FileReadReport,
     SkippedRange,
     _file_records,
@@ -42,8 +42,9 @@ from .mcap_records import (
     _set_fast,
     _split_chunks,
     _summary_topics,
+    run_rows,
 )
-from .mcap_schemas import _check_fields, _decode, _decoder_for
+from .mcap_schemas import _check_fields, _decode, _decoder_for, standard_event_schema
 from .pass_spill import PassSpill
 from .recording import Recording
 from .rosbag2_input import BagInputError, bag_files
@@ -107,7 +108,8 @@ def read_file(path: str | Path, namespace: str | None = None, topic: str | None 
     samples are put in stamp order, so a file whose stamps go backwards is read too (a note in the report when
     they go back by more than :data:`BACKWARDS_TOLERANCE_NS`, naming the first sample where they do)."""
     stream = McapSampleStream(path, namespace, topic)
-    stamps, rows = stream.all_rows()
+    stamps, batches = stream.all_batches()
+    rows: np.ndarray | list[np.ndarray] = batches  # the columns are taken from the batches (no joined copy of them)
     if np.any(stamps[1:] < stamps[:-1]):  # only then reorder (a stable sort of sorted stamps changes nothing)
         step = np.diff(stamps)
         back = np.flatnonzero(step < -BACKWARDS_TOLERANCE_NS)
@@ -118,10 +120,22 @@ def read_file(path: str | Path, namespace: str | None = None, topic: str | None 
                                "order, so the stretches before and after are interleaved (a driver restart or a "
                                "clock step?)")
         order = np.argsort(stamps, kind="stable")
-        stamps, rows = stamps[order], rows[order]
-    rec = stream.block(stamps, rows, with_poses=True)
+        stamps, rows = stamps[order], np.concatenate(batches)[order]
+    rec = stream.block(stamps, rows, with_poses=True, copy=False)
     rec.metadata = stream.metadata()
     return rec, stream.report
+
+
+def _count_at_or_before(times: np.ndarray, stamps_ns: np.ndarray) -> np.ndarray:
+    """For each stamp, how many of the sorted ``times`` are at or before it (``np.searchsorted(times, stamps_ns,
+    side="right")``); for stamps in order, by the place of each time among the stamps (a few thousand events
+    searched among a million samples, not the other way)."""
+    n = len(stamps_ns)
+    if n < 2 or not np.all(stamps_ns[1:] >= stamps_ns[:-1]):
+        return np.searchsorted(times, stamps_ns, side="right")
+    first = np.searchsorted(stamps_ns, times, side="left")  # the first sample at or after each time
+    counts = np.bincount(first, minlength=n + 1)[:n]
+    return np.cumsum(counts, out=counts)  # in place: no second array of a million
 
 
 def assign_poses(stamps_ns: np.ndarray, pose_events: list[tuple[int, int, str]],
@@ -133,24 +147,20 @@ def assign_poses(stamps_ns: np.ndarray, pose_events: list[tuple[int, int, str]],
     Other samples get pose id -1 and a NaN reference.
     """
     n = len(stamps_ns)
-    pose_id = np.full(n, -1, dtype=int)
-    gref = np.full((n, 3), np.nan)
     if not pose_events:
-        return pose_id, gref
+        return np.full(n, -1, dtype=int), np.full((n, 3), np.nan)
     pe = sorted(pose_events, key=lambda e: e[0])
     pt = np.asarray([e[0] for e in pe], dtype=np.int64)
-    pid = np.asarray([e[1] if e[2] == "recording" else -1 for e in pe], dtype=int)
-    k = np.searchsorted(pt, stamps_ns, side="right") - 1
-    has = k >= 0
-    pose_id[has] = pid[k[has]]
-    if gref_events:
-        ge = sorted(gref_events, key=lambda e: e[0])
-        gt = np.asarray([e[0] for e in ge], dtype=np.int64)
-        gv = np.asarray([e[1] for e in ge], dtype=float)
-        j = np.searchsorted(gt, stamps_ns, side="right") - 1
-        ok = (j >= 0) & (pose_id >= 0)
-        gref[ok] = gv[j[ok]]
-    return pose_id, gref
+    pid = np.asarray([-1] + [e[1] if e[2] == "recording" else -1 for e in pe], dtype=int)  # [0]: before the first
+    pose_id = pid[_count_at_or_before(pt, stamps_ns)]
+    if not gref_events:
+        return pose_id, np.full((n, 3), np.nan)
+    ge = sorted(gref_events, key=lambda e: e[0])
+    gt = np.asarray([e[0] for e in ge], dtype=np.int64)
+    gv = np.asarray([(np.nan, np.nan, np.nan)] + [e[1] for e in ge], dtype=float)  # [0]: no reference
+    j = _count_at_or_before(gt, stamps_ns)  # 1 + the latest reference at or before, 0 for none
+    j[pose_id < 0] = 0
+    return pose_id, gv[j]
 
 
 def read_recording(paths: str | Path | list[str | Path], namespace: str | None = None,
@@ -190,8 +200,10 @@ class McapSampleStream:
     (only for raw messages without a temperature field) temperature events, O(poses) values.
 
     ``imu/raw`` messages in the fixed layout of :class:`ros2_cdr.FixedJointStateCodec` are split out of each
-    decompressed chunk with one numpy view per run of equal records (no Python object per message);
-    other messages go through the ``mcap_ros2`` decoder. A truncated file is read up to its last
+    decompressed chunk with one numpy view per run of equal records (no Python object per message), converted
+    to stamps and values once per split; event messages of a topic whose schema is the standard definition are read
+    in the layouts ``ros2_cdr`` writes (:func:`_event_reader`), every other message (and an event in another layout)
+    through the ``mcap_ros2`` decoder. A truncated file is read up to its last
     complete chunk; ``report`` tells what the last pass that read to its end read.
     """
 
@@ -261,6 +273,7 @@ class McapSampleStream:
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
         decoders: dict[int, Any] = {}
+        readers: dict[int, Any] = {}  # channel id -> the event reader of ros2_cdr's layout (_event_reader), or None
         fast: dict[str, Any] = {}
 
         def count(topic: str, n: int) -> None:
@@ -301,16 +314,24 @@ class McapSampleStream:
                     self._raw_clock(log_time, stamp)
                 return np.asarray([stamp], dtype=np.int64), np.asarray(msg.position, dtype=float).reshape(1, -1)
             if collect_events and role is not None:
-                msg = _decode(path, decoder_of(channel, role), channel, data)
+                reader = readers.get(channel_id)
+                fields = reader(data) if reader is not None else None
+                msg = None
+                if fields is None:  # not in the layout ros2_cdr reads: the decoder of the channel's schema
+                    msg = _decode(path, decoder_of(channel, role), channel, data)
                 try:
+                    if msg is not None:
+                        fields = _event_fields(role, msg)
+                        if channel_id not in readers:
+                            readers[channel_id] = _event_reader(role, schemas.get(channel.schema_id), msg)
                     if role == TOPIC_TEMPERATURE:
-                        self._temp_t.append(_stamp_ns(msg.header))
-                        self._temp_v.append(float(msg.temperature))
+                        self._temp_t.append(fields[0])
+                        self._temp_v.append(fields[1])
                     elif role == TOPIC_REFERENCE_GRAVITY:
-                        self._gref_events.append((_stamp_ns(msg.header), (msg.vector.x, msg.vector.y, msg.vector.z)))
+                        self._gref_events.append(fields)
                     elif role == TOPIC_POSE:
-                        values = {kv.key: kv.value for kv in msg.values}
-                        event = (int(values.get("pose_id", "-1")), values.get("state", msg.message))
+                        values, text = fields
+                        event = (int(values.get("pose_id", "-1")), values.get("state", text))
                         self._pose_events.append((log_time - (self._log_offset or 0), *event))
                         self._pose_log.append((log_time, *event))
                 except (AttributeError, TypeError, ValueError) as exc:  # e.g. a pose_id that is not a number
@@ -320,23 +341,31 @@ class McapSampleStream:
             return None
 
         def emit(items: Iterable[Any]):
+            runs: list[np.ndarray] = []  # runs of fixed-layout raw records not yet converted (at once, run_rows)
             for item in items:
-                if isinstance(item, tuple) and len(item) == 2:  # a run of fixed-layout raw records
-                    count(report.raw_topic, len(item[0]))
+                if isinstance(item, np.ndarray):  # a run of fixed-layout raw records
+                    count(report.raw_topic, len(item))
                     if collect_events:
-                        self._raw_clock(fast["last_log"], item[0][-1])
-                    yield item
+                        last = item[-1]
+                        self._raw_clock(int(last["log"]), int(last["sec"]) * 1_000_000_000 + int(last["nanosec"]))
+                    runs.append(item)
                 elif isinstance(item, tuple):
                     out = message(*item)
                     if out is not None:
+                        if runs:
+                            yield run_rows(runs)
+                            runs = []
                         yield out
                 elif isinstance(item, SkippedRange):  # PARTIAL_RECORD, or a chunk of records it cannot hold
                     report.skipped.append(SkippedRange(item.offset, item.end_offset, item.reason))
                 else:
                     _note_record(item, schemas, channels, report)
+            if runs:
+                yield run_rows(runs)
 
         joined: list[bytes] = []
         joined_bytes = 0
+        scratch = bytearray()  # where the joined chunks are split, reused (_split_chunks)
         with open(path, "rb", buffering=1 << 20) as fh:
             if fh.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
                 raise McapRecordingError(f"{path}: not an MCAP file (bad magic)")
@@ -350,15 +379,15 @@ class McapSampleStream:
                 except Exception as exc:  # truncated or corrupt tail: keep what was read
                     report.stopped_at = f"{type(exc).__name__} {exc}".strip()
                     break
-                if opcode == Opcode.CHUNK:  # records never span chunks: split several chunks at once
+                if opcode == _CHUNK:  # records never span chunks: split several chunks at once
                     joined.append(body)
                     joined_bytes += len(body)
                     if joined_bytes < _JOIN_BYTES:
                         continue
                 if joined:
-                    yield from emit(_split_chunks(joined, fast))
+                    yield from emit(_split_chunks(joined, fast, scratch))
                     joined, joined_bytes = [], 0
-                if opcode != Opcode.CHUNK:
+                if opcode != _CHUNK:
                     try:
                         item = _parse_record(opcode, body)
                     except _PartialRecordError as exc:
@@ -366,7 +395,7 @@ class McapSampleStream:
                         break
                     yield from emit([item])
         if joined:
-            yield from emit(_split_chunks(joined, fast))
+            yield from emit(_split_chunks(joined, fast, scratch))
 
     def blocks(self, block_rows: int, with_poses: bool) -> Any:
         """Yield :class:`Recording` blocks of ``block_rows`` samples (run_id 0) in file order.
@@ -411,11 +440,17 @@ class McapSampleStream:
     def all_rows(self) -> tuple[np.ndarray, np.ndarray]:
         """Every ``imu/raw`` sample in file order, ``(stamps (N,) int64 ns, values (N, k))``, in one pass that
         also collects the events (for a reader that holds the whole recording; stamps may go backwards)."""
+        stamps, batches = self.all_batches()
+        return stamps, np.concatenate(batches)
+
+    def all_batches(self) -> tuple[np.ndarray, list[np.ndarray]]:
+        """:meth:`all_rows` with the values in the batches they were read in, ``(stamps (N,) int64 ns, [values
+        (n_i, k), ...])``: :meth:`block` takes its columns from them without a joined copy of every value."""
         collect = self._start_pass()
         batches = [(s, v) for s, v in self._batches(collect, keep=False) if len(s)]
         self._end_pass(collect, sum(len(s) for s, _ in batches))  # no samples: raises
         # one width: a message whose name list differs from the first one's already raised in _file_batches
-        return np.concatenate([s for s, _ in batches]), np.concatenate([v for _, v in batches])
+        return np.concatenate([s for s, _ in batches]), [v for _, v in batches]
 
     def _start_pass(self) -> bool:
         """Whether this pass collects the events (the first complete one); resets them if so."""
@@ -434,15 +469,24 @@ class McapSampleStream:
         if total == 0:
             raise self.report.no_raw_error(self.path, self.selection)
 
-    def block(self, stamps: np.ndarray, rows: np.ndarray, with_poses: bool) -> Recording:
-        """A Recording of copies (the caller reuses ``stamps`` and ``rows``)."""
-        stamps = stamps.copy()
+    def block(self, stamps: np.ndarray, rows: np.ndarray | list[np.ndarray], with_poses: bool,
+              copy: bool = True) -> Recording:
+        """A Recording of copies (the caller reuses ``stamps`` and ``rows``; ``copy`` False: ``stamps`` is the
+        caller's to give away). ``rows``: the values (N, k), or the batches of them in order (:meth:`all_batches`)."""
+        if copy:
+            stamps = stamps.copy()
         col = {n: i for i, n in enumerate(self.names or ())}
-        xyz = rows[:, [col["x_counts"], col["y_counts"], col["z_counts"]]]
+
+        def take(part: Any) -> np.ndarray:
+            """``part(rows)``, for batches their parts joined."""
+            return part(rows) if isinstance(rows, np.ndarray) else np.concatenate([part(b) for b in rows])
+
+        xyz_cols = [col["x_counts"], col["y_counts"], col["z_counts"]]
+        xyz = take(lambda r: r[:, xyz_cols])
         if "temperature_c" in col:
-            temp = rows[:, col["temperature_c"]].copy()
+            temp = take(lambda r: r[:, col["temperature_c"]].copy())
             if "temperature_valid" in col:
-                temp[rows[:, col["temperature_valid"]] < 0.5] = np.nan
+                temp[take(lambda r: r[:, col["temperature_valid"]] < 0.5)] = np.nan
         elif self._temp_t:
             ts = np.asarray(self._temp_t, dtype=np.int64)
             o = np.argsort(ts, kind="stable")
@@ -450,13 +494,14 @@ class McapSampleStream:
             temp = np.where(idx >= 0, np.asarray(self._temp_v)[o][np.clip(idx, 0, None)], np.nan)
         else:
             temp = np.full(len(stamps), np.nan)
-        t_s = rows[:, col["board_time_s"]].copy() if "board_time_s" in col else stamps * 1e-9
+        t_s = take(lambda r: r[:, col["board_time_s"]].copy()) if "board_time_s" in col else stamps * 1e-9
         if with_poses:
             pose_id, gref = assign_poses(stamps, self._pose_events, self._gref_events)
         else:
             pose_id, gref = np.full(len(stamps), -1, dtype=int), np.full((len(stamps), 3), np.nan)
-        return Recording(t_s=t_s, ref=rows[:, col["ref_counts"]].copy(), xyz=xyz, temp_c=temp, gref_mps2=gref,
-                         pose_id=pose_id, aux=rows[:, col[RAW_AUX_NAME]].copy() if RAW_AUX_NAME in col else None)
+        return Recording(t_s=t_s, ref=take(lambda r: r[:, col["ref_counts"]].copy()), xyz=xyz, temp_c=temp,
+                         gref_mps2=gref, pose_id=pose_id,
+                         aux=take(lambda r: r[:, col[RAW_AUX_NAME]].copy()) if RAW_AUX_NAME in col else None)
 
     def metadata(self) -> dict[str, Any]:
         """Run metadata and the read report, as :func:`read_file` puts them in ``Recording.metadata``."""
@@ -465,6 +510,42 @@ class McapSampleStream:
         md["read_report"] = self.report.as_dict()
         md["pose_events"] = list(self._pose_log)  # at log time, as the chunk ranges read_warnings compares them to
         return md
+
+
+def _event_fields(role: str, msg: Any) -> tuple[Any, Any]:
+    """What the reader takes of an event message decoded by ``mcap_ros2``: ``(stamp ns, temperature degC)``,
+    ``(stamp ns, (x, y, z) m/s^2)`` or ``({key: value}, message)`` for a pose event."""
+    if role == TOPIC_TEMPERATURE:
+        return _stamp_ns(msg.header), float(msg.temperature)
+    if role == TOPIC_REFERENCE_GRAVITY:
+        return _stamp_ns(msg.header), (msg.vector.x, msg.vector.y, msg.vector.z)
+    return {kv.key: kv.value for kv in msg.values}, msg.message
+
+
+def _event_reader(role: str, schema: Schema | None, msg: Any) -> Any:
+    """The reader of an event topic's later messages straight from their bytes, giving :func:`_event_fields`, or
+    None when its schema is not the standard definition (``mcap_schemas.standard_event_schema``); it returns None
+    for a message not in the layout ``ros2_cdr`` writes (that one goes through the schema's decoder). ``msg``: the
+    channel's first message, decoded (its frame id is that of the fixed layouts)."""
+    if not standard_event_schema(schema, role):
+        return None
+    if role == TOPIC_POSE:
+        def pose(data: bytes) -> tuple[dict[str, str], str] | None:
+            got = ros2_cdr.read_diagnostic_status(data)
+            return None if got is None else (dict(got[4]), got[2])
+        return pose
+    frame_id = msg.header.frame_id
+    if not isinstance(frame_id, str):
+        return None
+    if role == TOPIC_TEMPERATURE:
+        codec = ros2_cdr.FixedStampedCodec(frame_id, 2)
+
+        def temperature(data: bytes) -> tuple[int, float] | None:
+            got = codec.read(data)
+            return None if got is None else (got[0], got[1][0])
+        return temperature
+    codec = ros2_cdr.FixedStampedCodec(frame_id, 3)
+    return codec.read
 
 
 def _note_record(rec: Any, schemas: dict[int, Schema], channels: dict[int, Channel], report: FileReadReport) -> None:

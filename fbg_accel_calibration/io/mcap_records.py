@@ -12,6 +12,7 @@ import io
 import struct
 import zlib
 from dataclasses import dataclass, field
+from itertools import accumulate
 from pathlib import Path
 from typing import Any
 
@@ -28,8 +29,11 @@ from .mcap_format import MCAP_MAGIC, TOPIC_RAW, TYPE_RAW, McapRecordingError, To
 _RECORD_HEAD = struct.Struct("<BQ")
 _MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 _CHUNK_HEAD = struct.Struct("<QQQI")  # message start/end time, uncompressed size, uncompressed CRC
-_SKIPPED = {Opcode.MESSAGE_INDEX, Opcode.CHUNK_INDEX, Opcode.ATTACHMENT, Opcode.ATTACHMENT_INDEX, Opcode.STATISTICS,
-            Opcode.METADATA_INDEX, Opcode.SUMMARY_OFFSET, Opcode.DATA_END, Opcode.HEADER}
+_SKIPPED = frozenset(int(o) for o in (Opcode.MESSAGE_INDEX, Opcode.CHUNK_INDEX, Opcode.ATTACHMENT,
+                                      Opcode.ATTACHMENT_INDEX, Opcode.STATISTICS, Opcode.METADATA_INDEX,
+                                      Opcode.SUMMARY_OFFSET, Opcode.DATA_END, Opcode.HEADER))
+_FOOTER, _MESSAGE_INDEX, _CHUNK, _MESSAGE = (int(o) for o in (Opcode.FOOTER, Opcode.MESSAGE_INDEX, Opcode.CHUNK,
+                                                              Opcode.MESSAGE))  # plain ints: compared per record
 _PARSED = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel, Opcode.METADATA: Metadata}
 
 
@@ -267,9 +271,9 @@ def _file_records_walk(fh: Any, report: FileReadReport, seen: dict[bytes, str], 
             last_skip = None
             fh.seek(resume)
             continue
-        if opcode == Opcode.FOOTER:
+        if opcode == _FOOTER:
             return
-        if opcode == Opcode.MESSAGE_INDEX and last_skip is not None:  # the lost chunk's index: count its messages
+        if opcode == _MESSAGE_INDEX and last_skip is not None:  # the lost chunk's index: count its messages
             body = _read_exact(fh, length)
             if len(body) >= 6:
                 channel_id, nbytes = struct.unpack_from("<HI", body, 0)  # the index's records: 16 bytes a message
@@ -280,7 +284,7 @@ def _file_records_walk(fh: Any, report: FileReadReport, seen: dict[bytes, str], 
             fh.seek(length, io.SEEK_CUR)
             continue
         body = _read_exact(fh, length)
-        if opcode == Opcode.CHUNK:
+        if opcode == _CHUNK:
             digest = hashlib.blake2b(body, digest_size=16).digest()
             if digest in seen:
                 copies.append((start, seen[digest]))
@@ -336,7 +340,7 @@ PARTIAL_RECORD = SkippedRange(-1, -1, "a record cut short at the end of a chunk 
                                       "the records after it in that chunk are lost")
 
 
-def _record_at(data: bytes, pos: int, size: int) -> tuple[Any, int]:
+def _record_at(data: bytes | memoryview, pos: int, size: int) -> tuple[Any, int]:
     """The record at ``pos`` of decompressed chunk data (:func:`_parse_record`) and the next position."""
     if pos + 9 > size:
         raise _PartialRecordError("record header overruns its chunk")
@@ -347,13 +351,13 @@ def _record_at(data: bytes, pos: int, size: int) -> tuple[Any, int]:
     end = pos + 9 + length
     if end > size:
         raise _PartialRecordError("record overruns its chunk")
-    return _parse_record(opcode, data[pos + 9:end]), end
+    return _parse_record(opcode, bytes(data[pos + 9:end])), end
 
 
 def _parse_record(opcode: int, body: bytes) -> Any:
     """A record, in a chunk or not: a message ``(channel_id, log_time, data)``, a parsed Schema/Channel/Metadata,
     or None for other opcodes."""
-    if opcode == Opcode.MESSAGE:
+    if opcode == _MESSAGE:
         if len(body) < _MESSAGE_HEAD.size:
             raise _PartialRecordError("message record shorter than its header")
         channel_id, _seq, log_time, _pub = _MESSAGE_HEAD.unpack_from(body, 0)
@@ -364,17 +368,25 @@ def _parse_record(opcode: int, body: bytes) -> Any:
 
 
 def _set_fast(fast: dict[str, Any], channel_id: int, codec: ros2_cdr.FixedJointStateCodec) -> None:
-    """Record layout of one fixed-layout raw message inside a chunk (opcode, length, message header, CDR)."""
+    """Record layout of one fixed-layout raw message inside a chunk (opcode, length, message header, CDR), as the
+    fields :func:`_split_chunks` checks and reads: ``h0`` and ``h1`` (overlapping) hold the opcode, length and
+    channel id, ``log`` the log time (ns), ``enc`` the encapsulation, ``sec``/``nanosec`` the stamp, ``mid`` the frame
+    id and names (as uint64 words), ``values`` the positions."""
     words = len(codec.middle) // 8  # the middle (frame_id, names) ends 8-aligned: compare it as uint64 words
-    msg = np.dtype([("enc", "<u4"), ("sec", "<i4"), ("nanosec", "<u4"), ("mid", "<u8", (words,)),
-                    ("values", "<f8", (codec.n_values,)), ("tail", f"V{len(codec.tail)}")])
-    if len(codec.middle) % 8 or msg.itemsize != codec.size:
+    if len(codec.middle) % 8 or 12 + len(codec.middle) + 8 * codec.n_values + len(codec.tail) != codec.size:
         return  # unexpected layout: no fast path, every message decoded one by one
+    size = 9 + 22 + codec.size
+    mid = 9 + 22 + 12
+    dtype = np.dtype({"names": ["h0", "h1", "log", "enc", "sec", "nanosec", "mid", "values"],
+                      "formats": ["<u8", "<u4", "<u8", "<u4", "<i4", "<u4", ("<u8", (words,)), ("<f8", (codec.n_values,))],
+                      "offsets": [0, 7, 15, 31, 35, 39, mid, mid + len(codec.middle)], "itemsize": size})
+    head = _RECORD_HEAD.pack(Opcode.MESSAGE, size - 9) + struct.pack("<H", channel_id)  # opcode, length, channel
     fast["codec"] = codec
     fast["channel"] = channel_id
-    fast["dtype"] = np.dtype([("op", "u1"), ("len", "<u8"), ("ch", "<u2"), ("seq", "<u4"), ("log", "<u8"),
-                              ("pub", "<u8"), ("msg", msg)])
-    fast["size"] = 9 + 22 + codec.size
+    fast["dtype"] = dtype
+    fast["size"] = size
+    fast["head"] = head
+    fast["h0"], fast["h1"] = struct.unpack_from("<Q", head, 0)[0], struct.unpack_from("<I", head, 7)[0]
     fast["enc"] = np.frombuffer(ros2_cdr.ENCAPSULATION, dtype="<u4")[0]
     fast["mid"] = np.frombuffer(codec.middle, dtype="<u8")
 
@@ -410,7 +422,8 @@ _ZSTD = zstandard.ZstdDecompressor()
 # damaged, before it is decompressed: the work and memory of a file stay within 200x its size.
 MAX_CHUNK_RATIO = 200
 _CHUNK_OPCODES = frozenset((Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE))  # what a chunk holds (MCAP spec)
-_FAST_RUN_MIN = 64
+_FAST_RUN_MIN = 512  # records checked at once first: a recording's run between two events is shorter
+_NEAR_ENDS = 4  # later chunk ends looked at one by one for the end of a run (then _first_misaligned_end)
 _FAST_RUN_MAX = 16384  # records checked at once for a run of fixed-layout raw messages
 
 
@@ -428,48 +441,76 @@ def _first_misaligned_end(ends: np.ndarray, pos: int, rec_size: int, size: int, 
     return size
 
 
-def _split_chunks(bodies: list[bytes], fast: dict[str, Any]):
-    """Records of decompressed chunks ``bodies``, split together: ``(stamps, values)`` for each run of consecutive
-    fixed-layout raw messages (one numpy view), ``(channel_id, log_time, data)`` for other messages, and parsed
-    Schema/Channel/Metadata records. No record is read across the end of its chunk (records never span chunks): a
-    run goes on into the next chunk only where its chunk ends between two of its records, and a chunk that ends
-    inside a record (an interrupted writer that still checksummed it) yields :data:`PARTIAL_RECORD` there and the
-    split goes on at the next chunk's start."""
-    data = b"".join(bodies)
-    ends = np.cumsum([len(b) for b in bodies])
-    size = len(data)
+def _split_chunks(bodies: list[bytes], fast: dict[str, Any], scratch: bytearray | None = None):
+    """Records of decompressed chunks ``bodies``, split together: for each run of consecutive fixed-layout raw
+    messages a structured numpy view of its records (``fast["dtype"]``; :func:`run_rows` gives their stamps and
+    values), ``(channel_id, log_time, data)`` for other messages, and parsed Schema/Channel/Metadata records. No
+    record is read across the end of its chunk (records never span chunks): a run goes on into the next chunk only
+    where its chunk ends between two of its records, and a chunk that ends inside a record (an interrupted writer
+    that still checksummed it) yields :data:`PARTIAL_RECORD` there and the split goes on at the next chunk's start.
+
+    A run is checked in one window of up to :data:`_FAST_RUN_MIN` records (a recording's runs between two events),
+    then in windows growing x4; every record of a run has the raw layout's opcode, length, channel, encapsulation
+    and middle (frame id and names).
+
+    ``scratch``: where the chunks are joined, the caller's, reused from one split to the next (a fresh megabyte for
+    each split costs more in page faults than the copy); the views of a split must be gone (:func:`run_rows`)
+    before the next one, which overwrites it. None: a new buffer."""
+    ends = list(accumulate(len(b) for b in bodies))
+    size = ends[-1] if ends else 0
+    if len(bodies) == 1:
+        data: bytes | bytearray = bodies[0]
+    elif scratch is None:
+        data = b"".join(bodies)
+    else:
+        if len(scratch) < size:
+            scratch.extend(bytes(size - len(scratch)))  # a view of the last split still alive: BufferError
+        at = 0
+        for body in bodies:
+            scratch[at:at + len(body)] = body
+            at += len(body)
+        data = scratch
+    view = memoryview(data)
+    ends_array: np.ndarray | None = None  # for the look at many later ends (_first_misaligned_end)
     pos = 0
+    ci = 0  # the chunk pos is in: the first with ends[ci] > pos
     while pos < size:
-        chunk_end = int(ends[np.searchsorted(ends, pos, side="right")])  # the end of the chunk pos is in
+        while ends[ci] <= pos:
+            ci += 1
+        chunk_end = ends[ci]
         rec_size = fast.get("size")
-        if rec_size is not None:  # a run stops at the first chunk end that does not fall between two of its records
+        if rec_size is not None and view[pos:pos + 11] == fast["head"]:  # a raw record's opcode, length, channel
             limit = chunk_end
-            if (chunk_end - pos) % rec_size == 0:  # its chunk ends between two records: look at the later ends
-                limit = _first_misaligned_end(ends, pos, rec_size, size)
-        start = pos
-        k = _FAST_RUN_MIN
-        while rec_size is not None:  # windows growing x4 while every record matches the raw layout
-            kk = min((limit - pos) // rec_size, k)
-            if kk == 0:
+            if (chunk_end - pos) % rec_size == 0:  # its chunk ends between two records: the first later end that
+                limit = size                       # does not, when it is among the next few; else looked for in windows
+                for later in ends[ci + 1:ci + 1 + _NEAR_ENDS]:
+                    if (later - pos) % rec_size:
+                        limit = later
+                        break
+                else:
+                    if len(ends) > ci + 1 + _NEAR_ENDS:
+                        if ends_array is None:
+                            ends_array = np.asarray(ends)
+                        limit = _first_misaligned_end(ends_array, pos, rec_size, size)
+            left = (limit - pos) // rec_size
+            window = _FAST_RUN_MIN
+            while left:  # windows growing x4 while every record matches the raw layout
+                kk = min(left, window)
+                n_ok = _run_length(data, pos, kk, fast)
+                if n_ok:
+                    yield np.frombuffer(data, dtype=fast["dtype"], count=n_ok, offset=pos)
+                    pos += n_ok * rec_size
+                if n_ok < kk:
+                    break
+                left -= kk
+                window = min(4 * window, _FAST_RUN_MAX)
+            if pos >= size:
                 break
-            arr = np.frombuffer(data, dtype=fast["dtype"], count=kk, offset=pos)
-            ok = (arr["op"] == Opcode.MESSAGE) & (arr["len"] == rec_size - 9) & (arr["ch"] == fast["channel"])
-            ok &= (arr["msg"]["enc"] == fast["enc"]) & np.all(arr["msg"]["mid"] == fast["mid"], axis=1)
-            n_ok = kk if ok.all() else int(np.argmin(ok))
-            if n_ok:
-                msg = arr["msg"][:n_ok]
-                fast["last_log"] = int(arr["log"][n_ok - 1])  # the run's last log time (the recorder's clock)
-                yield msg["sec"].astype(np.int64) * 1_000_000_000 + msg["nanosec"].astype(np.int64), msg["values"].astype(float)
-                pos += n_ok * rec_size
-            if n_ok < kk:
-                break
-            k = min(4 * k, _FAST_RUN_MAX)
-        if pos >= size:
-            break
-        if pos != start:  # a run moved it
-            chunk_end = int(ends[np.searchsorted(ends, pos, side="right")])
+            while ends[ci] <= pos:
+                ci += 1
+            chunk_end = ends[ci]
         try:
-            item, pos = _record_at(data, pos, chunk_end)
+            item, pos = _record_at(view, pos, chunk_end)
         except _PartialRecordError:
             yield PARTIAL_RECORD
             pos = chunk_end
@@ -480,3 +521,47 @@ def _split_chunks(bodies: list[bytes], fast: dict[str, Any]):
             continue
         if item is not None:
             yield item
+
+
+def _run_length(data: bytes | bytearray, pos: int, n: int, fast: dict[str, Any]) -> int:
+    """How many of the ``n`` records of ``fast["size"]`` bytes from ``pos`` on are, one after the other, raw records of
+    the fixed layout: the opcode, length and channel (``fast["head"]``), the encapsulation and the middle (frame id
+    and names) of each equal to the layout's. Each field of the ``n`` records is copied out in one piece and compared
+    in one piece with the field repeated; where they differ, the first differing byte says which record ends the
+    run."""
+    rec = fast["size"]
+    for offset, part in ((0, fast["head"]), (31, ros2_cdr.ENCAPSULATION), (43, fast["codec"].middle)):
+        if n == 0:
+            break
+        width = len(part)
+        got = np.ndarray((n, width), np.uint8, data, pos + offset, (rec, 1)).tobytes()
+        want = _repeated(fast, part, n)
+        if not want.startswith(got):  # (compared in place: no copy of the first n of the repeats)
+            n = _first_difference(got, want[:len(got)]) // width
+    return n
+
+
+def _repeated(fast: dict[str, Any], field: bytes, n: int) -> bytes:
+    """``field`` repeated ``n`` times or more (kept in ``fast`` for the largest ``n`` asked so far)."""
+    key = ("repeated", field)
+    have = fast.get(key, b"")
+    if len(have) < n * len(field):
+        have = fast[key] = field * max(n, _FAST_RUN_MIN)
+    return have
+
+
+def _first_difference(a: bytes, b: bytes) -> int:
+    """The index of the first byte where ``a`` and ``b`` (of one length, not equal) differ."""
+    x = int.from_bytes(a, "little") ^ int.from_bytes(b, "little")
+    return ((x & -x).bit_length() - 1) // 8
+
+
+def run_rows(runs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """``(stamps (k,) int64 ns, values (k, n) float)`` of consecutive runs of fixed-layout raw records (the views
+    :func:`_split_chunks` yields), in order, converted at once."""
+    if len(runs) == 1:
+        recs = runs[0]
+    else:  # joined as records of plain bytes: a concatenation of the structured dtype compares its fields run by run
+        plain = np.dtype((np.void, runs[0].dtype.itemsize))
+        recs = np.concatenate([r.view(plain) for r in runs]).view(runs[0].dtype)
+    return recs["sec"].astype(np.int64) * 1_000_000_000 + recs["nanosec"].astype(np.int64), recs["values"].astype(float)

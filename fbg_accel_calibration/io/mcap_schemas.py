@@ -128,6 +128,54 @@ def _schema_fields(name: str, text: str) -> dict[str, set[str]]:
     return out
 
 
+def _schema_layout(name: str, text: str) -> dict[str, list[tuple[str, str]]]:
+    """The fields ``(type, name)`` in order of each type in a ros2msg schema text (its own type under ``name``, then
+    every ``MSG:`` section), constants left out; a type without a package is of its section's package."""
+    out: dict[str, list[tuple[str, str]]] = {}
+    current = _short_type(name)
+    for section in re.split(r"^={3,}\s*$", text, flags=re.MULTILINE):
+        lines = section.strip().splitlines()
+        if lines and lines[0].startswith("MSG:"):
+            current = _short_type(lines[0][4:])
+            lines = lines[1:]
+        fields = out.setdefault(current, [])
+        for raw_line in lines:
+            line = raw_line.split("#", 1)[0].strip()
+            parts = line.split()
+            if len(parts) >= 2 and not _CONSTANT.match(line):
+                kind = parts[0]
+                if "/" not in kind and re.sub(r"\[.*$", "", kind) not in _PRIMITIVES:
+                    kind = f"{current.split('/')[0]}/{kind}"
+                fields.append((kind, parts[1]))
+    return out
+
+
+_STAMPED = {"std_msgs/Header": [("builtin_interfaces/Time", "stamp"), ("string", "frame_id")],
+            "builtin_interfaces/Time": [("int32", "sec"), ("uint32", "nanosec")]}
+_EVENT_LAYOUTS = {  # the standard definitions of the event types: their messages are read by ros2_cdr's layouts
+    TOPIC_TEMPERATURE: {"sensor_msgs/Temperature": [("std_msgs/Header", "header"), ("float64", "temperature"),
+                                                    ("float64", "variance")], **_STAMPED},
+    TOPIC_REFERENCE_GRAVITY: {"geometry_msgs/Vector3Stamped": [("std_msgs/Header", "header"),
+                                                               ("geometry_msgs/Vector3", "vector")],
+                              "geometry_msgs/Vector3": [("float64", "x"), ("float64", "y"), ("float64", "z")],
+                              **_STAMPED},
+    TOPIC_POSE: {"diagnostic_msgs/DiagnosticStatus": [("byte", "level"), ("string", "name"), ("string", "message"),
+                                                      ("string", "hardware_id"),
+                                                      ("diagnostic_msgs/KeyValue[]", "values")],
+                 "diagnostic_msgs/KeyValue": [("string", "key"), ("string", "value")]},
+}
+
+
+def standard_event_schema(schema: Schema | None, role: str) -> bool:
+    """Whether an event topic's schema is the standard definition of its type, field for field (comments, constants
+    and the order of its sections aside): then every message in the layout ``ros2_cdr`` writes decodes as
+    ``ros2_cdr`` reads it."""
+    want = _EVENT_LAYOUTS.get(role)
+    if schema is None or want is None:
+        return False
+    return _schema_layout(schema.name, schema.data.decode("utf-8", "replace")) == want
+
+
 def _check_fields(path: Path | str, channel: Channel, schema: Schema | None, role: str) -> None:
     """One line when a role's schema has the type name this reader expects but not the fields it reads (another
     definition under that name, e.g. a renamed field): the messages would decode into objects without them."""
