@@ -190,7 +190,7 @@ class StreamOrderError(McapRecordingError):
 
 class McapSampleStream:
     """The reader of a calibration MCAP (or rosbag2 bag): block by block for the streaming fit, or every
-    sample at once (:meth:`all_rows`, behind :func:`read_file`).
+    sample at once (:meth:`all_batches`, behind :func:`read_file`).
 
     :meth:`blocks` yields :class:`Recording` blocks of exactly ``block_rows`` samples (the last one
     shorter) in file order: temperature from the ``imu/raw`` field (or the latest ``imu/temperature``
@@ -241,7 +241,7 @@ class McapSampleStream:
 
         The files are read once: the first pass that reaches the end keeps its samples (``pass_spill.PassSpill``), and
         every later pass gives them back from there, the same values in the same order (in batches of
-        :data:`REPLAY_ROWS`), with that pass's report. ``keep`` False: a single pass (:meth:`all_rows`), nothing kept."""
+        :data:`REPLAY_ROWS`), with that pass's report. ``keep`` False: a single pass (:meth:`all_batches`), nothing kept."""
         if self._spill is not None:
             yield from self._spill.pieces(REPLAY_ROWS)
             self.report = self._spill_report
@@ -437,15 +437,11 @@ class McapSampleStream:
             total += fill
         self._end_pass(collect, total)
 
-    def all_rows(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every ``imu/raw`` sample in file order, ``(stamps (N,) int64 ns, values (N, k))``, in one pass that
-        also collects the events (for a reader that holds the whole recording; stamps may go backwards)."""
-        stamps, batches = self.all_batches()
-        return stamps, np.concatenate(batches)
-
     def all_batches(self) -> tuple[np.ndarray, list[np.ndarray]]:
-        """:meth:`all_rows` with the values in the batches they were read in, ``(stamps (N,) int64 ns, [values
-        (n_i, k), ...])``: :meth:`block` takes its columns from them without a joined copy of every value."""
+        """Every ``imu/raw`` sample in file order, ``(stamps (N,) int64 ns, [values (n_i, k), ...])``: the values in
+        the batches they were read in (:meth:`block` takes its columns from them without a joined copy of every value),
+        in one pass that also collects the events (for a reader that holds the whole recording; stamps may go
+        backwards)."""
         collect = self._start_pass()
         batches = [(s, v) for s, v in self._batches(collect, keep=False) if len(s)]
         self._end_pass(collect, sum(len(s) for s, _ in batches))  # no samples: raises
