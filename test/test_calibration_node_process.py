@@ -316,11 +316,6 @@ def missing_between(at: np.ndarray) -> int:
     return int(at[-1] - at[0] + 1 - len(at))
 
 
-def run_refused(*params: str, remaps: tuple[str, ...] = (), timeout: float = 60) -> subprocess.CompletedProcess:
-    """The node started with ``remaps`` (-r) and ``params`` (-p): it must refuse to start, exit 2."""
-    return refused_side_by_side({"": (params, remaps)}, timeout)[""]
-
-
 def refused_side_by_side(cases: dict[str, tuple[tuple[str, ...], tuple[str, ...]]],
                          timeout: float = 60) -> dict[str, subprocess.CompletedProcess]:
     """The node started once per case (its ``params`` (-p) and ``remaps`` (-r)), every case at once: each must refuse
@@ -499,8 +494,9 @@ def test_sigkill_mid_recording_leaves_a_file_read_up_to_its_last_chunk_that_the_
 
 # case: (-p parameters besides output_dir (and plan_file, unless given or the case has none), message). The process's
 # side of a refusal (exit 2, the message on stderr, no recording) and a parameter read from its command line; the
-# rules of the other refusals (a file that is no plan, a bad mode, still_window_s, run_to_run_from) are tested on the
-# node class in process (test_node_classes.py), where a case costs no start-up of rclpy.
+# rules of the other refusals (a file that is no plan, a bad mode, still_window_s, run_to_run_from, a recording or a
+# dangling link already at the recording's name) are tested on the node class in process (test_node_classes.py), where a
+# case costs no start-up of rclpy.
 BAD_START_UP = {
     "no plan_file": ([], "parameter 'plan_file' is required"),
     "plan missing": (["plan_file:=/nonexistent/plan.yaml"], "pose plan file not found"),
@@ -543,23 +539,6 @@ def test_remaps_the_recording_cannot_name_are_refused_with_the_reason(plan_dir):
     for name, res in results.items():
         assert REMAPS_REFUSED[name][1] in res.stderr, (name, res.stderr)
     assert not list(plan_dir.glob("*.mcap")), "no recording may be started on bad input"
-
-
-def test_an_existing_recording_is_never_overwritten(plan_dir):
-    (plan_dir / "keep.mcap").write_bytes(b"precious")
-    res = run_refused(f"plan_file:={plan_dir / 'plan.yaml'}", f"output_dir:={plan_dir}", "run_label:=keep")
-    assert "never overwritten" in res.stderr
-    assert (plan_dir / "keep.mcap").read_bytes() == b"precious"
-
-
-def test_a_dangling_symlink_in_output_dir_is_not_followed(plan_dir, tmp_path):
-    """The never-overwrite check followed a dangling link and wrote the recording outside output_dir."""
-    outside = tmp_path / "outside"
-    outside.mkdir()
-    (plan_dir / "keep.mcap").symlink_to(outside / "victim.mcap")
-    res = run_refused(f"plan_file:={plan_dir / 'plan.yaml'}", f"output_dir:={plan_dir}", "run_label:=keep")
-    assert "never overwritten" in res.stderr, res.stderr
-    assert not (outside / "victim.mcap").exists() and (plan_dir / "keep.mcap").is_symlink()
 
 
 def test_help_needs_no_ros():

@@ -355,6 +355,18 @@ def test_calibration_node_never_overwrites_a_recording(make_calibration: Any, tm
     assert (tmp_path / "taken.mcap").read_bytes() == b"earlier run"
 
 
+def test_calibration_node_never_records_through_a_dangling_link(make_calibration: Any, tmp_path: Path) -> None:
+    """A dangling link at the recording's name is a name taken: the never-overwrite check followed it and the recording
+    was written outside output_dir. Refused by that check, before any file is opened (the exclusive open behind it,
+    which refuses a link too, is test_output_safety.py's)."""
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (tmp_path / "keep.mcap").symlink_to(outside / "victim.mcap")
+    with pytest.raises(StartupError, match=r"keep\.mcap exists; choose another run_label"):
+        make_calibration(run_label="keep")
+    assert not (outside / "victim.mcap").exists() and (tmp_path / "keep.mcap").is_symlink()
+
+
 def test_calibration_node_never_writes_its_calibration_over_a_recording_or_an_existing_file(
         make_calibration: Any, tmp_path: Path) -> None:
     """Issue 42, item 1: ``-p fit_with:=[prev.mcap] -p calibration_file:=prev.mcap`` ended with "calibration
