@@ -151,12 +151,15 @@ def test_the_bias_wander_between_revisits_is_not_written_as_a_drift_but_a_hyster
     time_drift was added (p 8e-8 against a step level of 1.3e-3; 4 of 100 such campaigns had a term added,
     bench/residual_false_alarm.py). Its gain must now be beyond the wander its revisits keep (``checks.wander_gain``):
     here far from it (p ~1). A real thermal hysteresis (0.2 m/s^2 between the branches) on the same ramps is still
-    added, far beyond its wander (p ~1e-45)."""
+    added, far beyond its wander (p ~1e-45), on the ramps sampled at 5 Hz: the check compares visits' held-out gains,
+    which the rate barely moves (its p 4.8e-46 at 5 Hz, 8.5e-46 at 10 Hz; with the wander taken off 10 times, 5.4e-33
+    and 4.4e-30), and the diagnosis takes 3 s instead of 15."""
     clean = diagnose(simulate_recording(_config({**RAMPS, "noise.reference_noise_counts": 1.0}), seed=69), lanes=1)
     assert [a[0] for a in clean.added] == [], clean.added
     followed = [c for st in clean.steps for c in st.candidates if "not beyond the slow wander" in c.detail]
     assert {c.name for c in followed} >= {"time_drift"}, [(c.name, c.detail) for c in clean.ranked]
-    hyst = diagnose(simulate_recording(_config({**RAMPS, "effects.thermal_hysteresis.scale": 10.0}), seed=2), lanes=1)
+    hyst = diagnose(simulate_recording(_config({**RAMPS, "scenario.rate_hz": 5.0, "effects.thermal_hysteresis.scale": 10.0}),
+                                       seed=2), lanes=1)
     assert "thermal_hysteresis" in [a[0] for a in hyst.added], hyst.added
     assert np.all(hyst.after_heldout_rmse < 1.1 * hyst.final_floor)
 

@@ -283,10 +283,12 @@ def test_managed_driver_configure_that_fails_late_leaves_nothing_behind(make_dri
 def make_calibration(ros: Context, tmp_path: Path) -> Iterator[Any]:
     built: list[CalibrationNode] = []
 
-    def make(**values: Any) -> CalibrationNode:
+    def make(remaps: tuple[str, ...] = (), **values: Any) -> CalibrationNode:
+        """The node with parameter ``values`` and the command line's topic ``remaps`` (``-r from:=to``)."""
         base = {"plan_file": str(PLAN), "output_dir": str(tmp_path), "run_label": "inproc", "progress": False}
-        return built_or_refused(lambda: CalibrationNode(context=ros, parameter_overrides=overrides(**(base | values))),
-                                built)
+        args = {"cli_args": ["--ros-args", *[a for r in remaps for a in ("-r", r)]]} if remaps else {}
+        return built_or_refused(lambda: CalibrationNode(context=ros, parameter_overrides=overrides(**(base | values)),
+                                                        **args), built)
 
     yield make
     for node in built:
@@ -348,11 +350,39 @@ def test_calibration_node_refuses_a_bad_parameter_with_one_clear_message(make_ca
         assert not any(tmp_path.glob("*.mcap"))
 
 
+@pytest.mark.parametrize(("remaps", "message"), [
+    (("imu/raw:=/acc_b/imu/raw",), "imu/temperature resolves to /imu/temperature"),
+    (("imu/raw:=/acc_b/raw_counts", "imu/temperature:=/acc_b/temperature"), "imu/raw resolves to /acc_b/raw_counts"),
+], ids=["one-topic-moved", "raw-renamed"])
+def test_calibration_node_refuses_remaps_the_recording_cannot_name(make_calibration: Any, remaps: tuple[str, ...],
+                                                                  message: str, tmp_path: Path) -> None:
+    """A recording names its topics ``<namespace>/imu/raw``, ``<namespace>/imu/temperature``, ... (the fit finds a
+    run's topics by that namespace). A node whose two subscriptions resolve into different namespaces, or to a raw
+    topic not named ``imu/raw``, cannot write what it records under the names it recorded: on the unchanged code it
+    started and wrote /acc_b's messages as /imu/raw (the names of its own namespace: test_two_sensors_process.py)."""
+    with pytest.raises(StartupError) as err:
+        make_calibration(remaps=remaps)
+    assert message in str(err.value)
+    assert not any(tmp_path.glob("*.mcap")), "no recording may be started on bad input"
+
+
 def test_calibration_node_never_overwrites_a_recording(make_calibration: Any, tmp_path: Path) -> None:
     (tmp_path / "taken.mcap").write_bytes(b"earlier run")
     with pytest.raises(StartupError, match=r"taken\.mcap exists; choose another run_label"):
         make_calibration(run_label="taken")
     assert (tmp_path / "taken.mcap").read_bytes() == b"earlier run"
+
+
+def test_calibration_node_never_records_through_a_dangling_link(make_calibration: Any, tmp_path: Path) -> None:
+    """A dangling link at the recording's name is a name taken: the never-overwrite check followed it and the recording
+    was written outside output_dir. Refused by that check, before any file is opened (the exclusive open behind it,
+    which refuses a link too, is test_output_safety.py's)."""
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (tmp_path / "keep.mcap").symlink_to(outside / "victim.mcap")
+    with pytest.raises(StartupError, match=r"keep\.mcap exists; choose another run_label"):
+        make_calibration(run_label="keep")
+    assert not (outside / "victim.mcap").exists() and (tmp_path / "keep.mcap").is_symlink()
 
 
 def test_calibration_node_never_writes_its_calibration_over_a_recording_or_an_existing_file(
