@@ -368,27 +368,20 @@ def _parse_record(opcode: int, body: bytes) -> Any:
 
 
 def _set_fast(fast: dict[str, Any], channel_id: int, codec: ros2_cdr.FixedJointStateCodec) -> None:
-    """Record layout of one fixed-layout raw message inside a chunk (opcode, length, message header, CDR), as the
-    fields :func:`_split_chunks` checks and reads: ``h0`` and ``h1`` (overlapping) hold the opcode, length and
-    channel id, ``log`` the log time (ns), ``enc`` the encapsulation, ``sec``/``nanosec`` the stamp, ``mid`` the frame
-    id and names (as uint64 words), ``values`` the positions."""
-    words = len(codec.middle) // 8  # the middle (frame_id, names) ends 8-aligned: compare it as uint64 words
+    """Record layout of one fixed-layout raw message inside a chunk (opcode, length, message header, CDR): ``head``
+    its opcode, length and channel id as bytes (what :func:`_split_chunks` looks for), ``size`` its bytes, ``dtype``
+    the fields a run's records are read by (``log`` the log time (ns), ``sec``/``nanosec`` the stamp, ``values`` the
+    positions; :func:`run_rows`)."""
     if len(codec.middle) % 8 or 12 + len(codec.middle) + 8 * codec.n_values + len(codec.tail) != codec.size:
-        return  # unexpected layout: no fast path, every message decoded one by one
+        return  # not the layout the writer makes (its middle ends 8-aligned): every message decoded one by one
     size = 9 + 22 + codec.size
-    mid = 9 + 22 + 12
-    dtype = np.dtype({"names": ["h0", "h1", "log", "enc", "sec", "nanosec", "mid", "values"],
-                      "formats": ["<u8", "<u4", "<u8", "<u4", "<i4", "<u4", ("<u8", (words,)), ("<f8", (codec.n_values,))],
-                      "offsets": [0, 7, 15, 31, 35, 39, mid, mid + len(codec.middle)], "itemsize": size})
-    head = _RECORD_HEAD.pack(Opcode.MESSAGE, size - 9) + struct.pack("<H", channel_id)  # opcode, length, channel
+    values_at = 9 + 22 + 12 + len(codec.middle)  # after the record's and message's heads, the stamp and the middle
     fast["codec"] = codec
-    fast["channel"] = channel_id
-    fast["dtype"] = dtype
     fast["size"] = size
-    fast["head"] = head
-    fast["h0"], fast["h1"] = struct.unpack_from("<Q", head, 0)[0], struct.unpack_from("<I", head, 7)[0]
-    fast["enc"] = np.frombuffer(ros2_cdr.ENCAPSULATION, dtype="<u4")[0]
-    fast["mid"] = np.frombuffer(codec.middle, dtype="<u8")
+    fast["head"] = _RECORD_HEAD.pack(Opcode.MESSAGE, size - 9) + struct.pack("<H", channel_id)
+    fast["dtype"] = np.dtype({"names": ["log", "sec", "nanosec", "values"],
+                              "formats": ["<u8", "<i4", "<u4", ("<f8", (codec.n_values,))],
+                              "offsets": [15, 35, 39, values_at], "itemsize": size})
 
 
 def _chunk_bytes(body: bytes) -> bytes:
