@@ -25,6 +25,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +42,7 @@ from test_diagnose_sim import SCENARIOS, _config  # noqa: E402
 from fbg_accel_calibration.diagnosis import adc_code_candidate as cand  # noqa: E402
 from fbg_accel_calibration.diagnosis.design import prepare_data  # noqa: E402
 from fbg_accel_calibration.fit import adc_codes  # noqa: E402
+from fbg_accel_calibration.io.recording import Recording  # noqa: E402
 from fbg_accel_driver.adc_code_table import pattern_edges  # noqa: E402
 from fbg_accel_sim.board_physics import simulate_recording  # noqa: E402
 
@@ -111,20 +113,24 @@ def compare(label: str, rec) -> dict:
     return row
 
 
+def campaigns(seeds: int) -> Iterator[tuple[str, Recording]]:
+    """(label, recording) of each campaign checked: those of ``bench/diagnose_adc_codes_check.py`` for ``seeds`` seeds,
+    the measured width pattern on and off, then the clean campaigns of ``test/test_diagnose_sim.py`` (seed 1)."""
+    for seed in range(1, seeds + 1):
+        for pattern in (True, False):
+            yield f"diagnose_adc_codes_check seed {seed} pattern {'on' if pattern else 'off'}", campaign(seed, pattern)
+    yield "test_diagnose_sim baseline (every named effect off)", simulate_recording(_config({}), seed=1)
+    for effect, (scale, extra, _) in SCENARIOS.items():
+        yield (f"test_diagnose_sim {effect}",
+               simulate_recording(_config({**extra, f"effects.{effect}.scale": scale}), seed=1))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--output", type=Path, default=output_paths.scratch_dir() / "adc_gate_check.json")
     args = ap.parse_args(argv)
-    rows = []
-    for seed in range(1, args.seeds + 1):
-        for pattern in (True, False):
-            rows.append(compare(f"diagnose_adc_codes_check seed {seed} pattern {'on' if pattern else 'off'}",
-                                campaign(seed, pattern)))
-    rows.append(compare("test_diagnose_sim baseline (every named effect off)", simulate_recording(_config({}), seed=1)))
-    for effect, (scale, extra, _) in SCENARIOS.items():
-        rows.append(compare(f"test_diagnose_sim {effect}",
-                            simulate_recording(_config({**extra, f"effects.{effect}.scale": scale}), seed=1)))
+    rows = [compare(label, rec) for label, rec in campaigns(args.seeds)]
     same = sum(r["identical"] for r in rows)
     print(f"identical in {same} of {len(rows)} campaigns")
     args.output.parent.mkdir(parents=True, exist_ok=True)

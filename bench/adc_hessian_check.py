@@ -44,12 +44,11 @@ sys.path.insert(0, str(ROOT / "test"))
 
 import output_paths  # noqa: E402
 from adc_code_widths_check import campaign  # noqa: E402
-from test_diagnose_sim import SCENARIOS, _config  # noqa: E402
+from adc_gate_check import campaigns as gate_campaigns  # noqa: E402
 
 from fbg_accel_calibration.diagnosis import adc_code_candidate as cand  # noqa: E402
 from fbg_accel_calibration.diagnosis.design import prepare_data  # noqa: E402
 from fbg_accel_calibration.fit import adc_codes  # noqa: E402
-from fbg_accel_sim.board_physics import simulate_recording  # noqa: E402
 
 MEASURED = next((p / "shared" / "data" / "measured" / "fig13_multiposition_23C.csv" for p in ROOT.parents[:2]
                  if (p / "shared" / "data" / "measured" / "fig13_multiposition_23C.csv").is_file()), None)
@@ -223,16 +222,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--diagnose-seeds", type=int, default=1)
     ap.add_argument("--output", type=Path, default=output_paths.scratch_dir() / "adc_hessian_check.json")
     args = ap.parse_args(argv)
-    rows = []
-    for seed in range(1, args.seeds + 1):
-        for pattern in (True, False):
-            rows.append(compare(f"diagnose_adc_codes_check seed {seed} pattern {'on' if pattern else 'off'}",
-                                _candidate_estimates(campaign(seed, pattern))))
-    rows.append(compare("test_diagnose_sim baseline (every named effect off)",
-                        _candidate_estimates(simulate_recording(_config({}), seed=1))))
-    for effect, (scale, extra, _) in SCENARIOS.items():
-        rows.append(compare(f"test_diagnose_sim {effect}", _candidate_estimates(
-            simulate_recording(_config({**extra, f"effects.{effect}.scale": scale}), seed=1))))
+    rows = [compare(label, _candidate_estimates(rec)) for label, rec in gate_campaigns(args.seeds)]
     measured = None
     if MEASURED is not None:
         from fbg_accel_calibration.io.input_files import load_recording

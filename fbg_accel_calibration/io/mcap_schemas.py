@@ -110,22 +110,8 @@ def _short_type(name: str) -> str:
 
 
 def _schema_fields(name: str, text: str) -> dict[str, set[str]]:
-    """Field names of each type in a ros2msg schema text (its own type under ``name``, then every ``MSG:``
-    section), constants left out."""
-    out: dict[str, set[str]] = {}
-    current = _short_type(name)
-    for section in re.split(r"^={3,}\s*$", text, flags=re.MULTILINE):
-        lines = section.strip().splitlines()
-        if lines and lines[0].startswith("MSG:"):
-            current = _short_type(lines[0][4:])
-            lines = lines[1:]
-        fields = out.setdefault(current, set())
-        for raw_line in lines:
-            line = raw_line.split("#", 1)[0].strip()
-            parts = line.split()
-            if len(parts) >= 2 and not _CONSTANT.match(line):
-                fields.add(parts[1])
-    return out
+    """Field names of each type in a ros2msg schema text (:func:`_schema_layout`'s fields, their names alone)."""
+    return {kind: {field for _, field in fields} for kind, fields in _schema_layout(name, text).items()}
 
 
 def _schema_layout(name: str, text: str) -> dict[str, list[tuple[str, str]]]:
