@@ -13,8 +13,8 @@ Run on an idle machine:
     .venv/bin/python bench/diagnose_scaling.py [--sizes 10000 100000 1000000]
 
 ``--trials N [N ...]``: instead, where the diagnosis of the same run spends its CPU time, on one lane, per size: each
-hyper-parameter search (``Evaluator._fit_hyper``) by the phase it runs in (a candidate on top of the model, one
-judged again at the degree chosen with it in, the confounding pairs, the backward step, the step check) and by
+hyper-parameter search (``Evaluator._grid_search`` and ``final_value``) by the phase it runs in (a candidate on top
+of the model, one judged again at the degree chosen with it in, the confounding pairs, the backward step, the step check) and by
 candidate, with its grid's size, the designs it built (its trials: grid values visited, the refinement's values, the
 parsimony check) and their CPU time; and the
 diagnosis's CPU outside the searches. It says how the cost grows with N, with the number of candidates (each step
@@ -85,22 +85,27 @@ def trial_costs(n: int) -> dict:
     rows: dict[tuple[str, str], dict] = {}
     running: list[tuple[str, str]] = []
     designs = {"outside searches": 0}
-    fit_hyper, build_design = search.Evaluator._fit_hyper, search.build_design
+    grid_search, final_value, build_design = (search.Evaluator._grid_search, search.Evaluator.final_value,
+                                              search.build_design)
 
-    def timed_fit_hyper(self, spec, eff, final=True):
-        names = [f.name for f in traceback.extract_stack()]
-        phase = next((p for p in SEARCH_PHASES if p in names), "other")
-        key = (phase.lstrip("_").replace("evaluate_on", "candidate on top of the model"), eff.name)
-        grid = eff.hyper_grid(self.data)
-        row = rows.setdefault(key, {"searches": 0, "grid": 0 if grid is None else len(grid), "designs": 0, "cpu_s": 0.0})
-        running.append(key)
-        t0 = time.process_time()
-        try:
-            return fit_hyper(self, spec, eff, final)
-        finally:
-            running.pop()
-            row["searches"] += 1
-            row["cpu_s"] += time.process_time() - t0
+    def timed(searches: int, method):
+        """``method`` (the grid search, or the final value worked out of it) timed under its phase and candidate."""
+        def run(self, spec, eff, *a, **kw):
+            names = [f.name for f in traceback.extract_stack()]
+            phase = next((p for p in SEARCH_PHASES if p in names), "other")
+            key = (phase.lstrip("_").replace("evaluate_on", "candidate on top of the model"), eff.name)
+            grid = eff.hyper_grid(self.data)
+            row = rows.setdefault(key, {"searches": 0, "grid": 0 if grid is None else len(grid), "designs": 0,
+                                        "cpu_s": 0.0})
+            running.append(key)
+            t0 = time.process_time()
+            try:
+                return method(self, spec, eff, *a, **kw)
+            finally:
+                running.pop()
+                row["searches"] += searches
+                row["cpu_s"] += time.process_time() - t0
+        return run
 
     def counted_build_design(*a, **kw):
         if running:
@@ -109,13 +114,15 @@ def trial_costs(n: int) -> dict:
             designs["outside searches"] += 1
         return build_design(*a, **kw)
 
-    search.Evaluator._fit_hyper, search.build_design = timed_fit_hyper, counted_build_design
+    search.Evaluator._grid_search, search.Evaluator.final_value = timed(1, grid_search), timed(0, final_value)
+    search.build_design = counted_build_design
     try:
         t0 = time.process_time()
         diagnose(rec, sensor_id="bench", lanes=1)
         total = time.process_time() - t0
     finally:
-        search.Evaluator._fit_hyper, search.build_design = fit_hyper, build_design
+        search.Evaluator._grid_search, search.Evaluator.final_value = grid_search, final_value
+        search.build_design = build_design
     searches = sorted(({"phase": k[0], "candidate": k[1], **{f: round(v, 3) if isinstance(v, float) else v
                                                             for f, v in r.items()}} for k, r in rows.items()),
                       key=lambda r: -r["cpu_s"])
@@ -156,8 +163,8 @@ def main(argv: list[str] | None = None) -> int:
         write_results(args.output, results_doc(
             "diagnose_scaling.py", argv,
             what="CPU time of diagnose() on one lane (lanes=1) of bench_calibration.scenario(N), seed 0, in this "
-                 "process, split by hyper-parameter search (Evaluator._fit_hyper: phase, candidate) with the designs "
-                 "each built (build_design calls: its trials)", runs=runs), indent=1)
+                 "process, split by hyper-parameter search (Evaluator._grid_search and final_value: phase, "
+                 "candidate) with the designs each built (build_design calls: its trials)", runs=runs), indent=1)
         return 0
     args.output = args.output or results_dir(args.update_results) / "diagnose_scaling.json"
     runs: dict[str, dict] = {}

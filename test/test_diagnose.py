@@ -777,16 +777,46 @@ def test_no_hyper_parameter_search_is_done_twice_for_the_same_model(monkeypatch:
     """The confounding check works out each candidate on top of the one about to be added; the next step needs
     exactly those again. They are remembered, so no (model, effect) search runs twice (issue 8 §7)."""
     seen: list[tuple] = []
-    real = Evaluator._fit_hyper
+    real = Evaluator._grid_search
 
-    def counted(self, spec, eff, final=True):
+    def counted(self, spec, eff):
         seen.append((spec.key, eff.name))  # a search for the held-out residual alone counts too
-        return real(self, spec, eff, final)
+        return real(self, spec, eff)
 
-    monkeypatch.setattr(Evaluator, "_fit_hyper", counted)
+    monkeypatch.setattr(Evaluator, "_grid_search", counted)
     res = diagnose(synthetic(9, channel_dark=300.0, power_ramp=-0.05), static="table")
     assert res.steps[0].confounding and len(res.steps) >= 2  # the case: a confounding check, then a next step
     assert len(seen) == len(set(seen)), [k for k in set(seen) if seen.count(k) > 1]
+
+
+def test_only_a_candidate_that_passes_its_test_is_refined_and_nothing_decided_depends_on_it() -> None:
+    """A candidate's hyper-parameter is refined between its grid neighbours only when the candidate passes its step's
+    test (``Evaluator.evaluate``); the others report their grid's best value (or the null value the parsimony check
+    keeps). Refining every candidate (``refine_every_candidate``) adds the same effects with the same values, fits the
+    same calibration bit for bit and judges every candidate the same; the gains differ at most by the rows a
+    value's design leaves valid."""
+    rec = synthetic(9, channel_dark=300.0, power_ramp=-0.05)
+    every = diagnose(rec, static="table", refine_every_candidate=True)
+    res = diagnose(rec, static="table")
+    assert res.added == every.added and res.added
+    np.testing.assert_array_equal(res.calibration.M, every.calibration.M)
+    np.testing.assert_array_equal(res.calibration.b, every.calibration.b)
+    got = {(st.step, c.name): c for st in res.steps for c in st.candidates if c.applicable}
+    ref = {(st.step, c.name): c for st in every.steps for c in st.candidates if c.applicable}
+    assert got.keys() == ref.keys()
+    assert all(c.hyper_refined for c in ref.values())
+    alpha = {st.step: st.alpha_each for st in res.steps}
+    left = [k for k, c in got.items() if not c.hyper_refined]
+    assert left, "the case: candidates that do not pass their test"
+    for k, c in got.items():
+        assert c.significant == ref[k].significant, k
+        np.testing.assert_allclose([c.rel_gain, c.p_value], [ref[k].rel_gain, ref[k].p_value], rtol=1e-6, err_msg=str(k))
+        passes = c.p_value < alpha[k[0]] and c.rel_gain >= 0.02
+        assert c.hyper_refined or not passes, k
+        if c.hyper_refined:
+            assert c.hyper == ref[k].hyper, k
+        elif c.hyper is not None:
+            assert c.hyper in {h for h, _ in c.hyper_profile} | {library_by_name()[k[1]].hyper_null}, k
 
 
 @pytest.mark.parametrize("k", [0, 1, 3, 4, 5, 24])
@@ -1006,7 +1036,7 @@ def search_walk(n: int, seen: dict, best_at: np.ndarray):
 
 def _walk(n: int, train: np.ndarray, plausible: np.ndarray, walk) -> tuple[dict, np.ndarray, int, list[int]]:
     """Run a search walk over the grid of ``n`` values whose training RSS per fold is ``train`` (n, K), NaN where
-    a value is not identified, plausibility ``plausible`` (n,): as ``Evaluator._fit_hyper`` keeps its results
+    a value is not identified, plausibility ``plausible`` (n,): as ``Evaluator._grid_search`` keeps its results
     (the first value in grid order wins a tie). Returns (seen, each fold's best, best mean, visit order)."""
     K = train.shape[1]
     seen: dict[int, tuple[bool | None, float]] = {}

@@ -141,7 +141,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
              alpha: float = 0.01, min_rel_gain: float = 0.02, max_effects: int = 3, library: tuple[Effect, ...] = LIBRARY,
              degree: int | None = None, sensor_id: str = "unknown", seed: int = 0,
              progress: Callable[[str], None] | None = None, settle_s: float | None = None,
-             search_rows: int | None = SEARCH_ROWS, lanes: int | None = None) -> DiagnosisResult:
+             search_rows: int | None = SEARCH_ROWS, lanes: int | None = None,
+             refine_every_candidate: bool = False) -> DiagnosisResult:
     """Run the whole diagnosis on a recording (see the module docstring). ``progress`` (optional) is called
     with the candidate's name after each candidate evaluation (the CLI's progress bar). ``settle_s`` (s):
     samples this close to the start of a visit are left out of the noise floor (``settled_mask``); None: the
@@ -153,6 +154,9 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     than one (or, with None, from ``LANE_SEARCH_ROWS`` samples of the recording on, on a machine of two cores or more),
     the work before the first search uses a second thread too. The process's heap policy is its entry point's
     (``heap_trim.set_process_heap_policy``: the command line sets it; the results do not depend on it).
+    ``refine_every_candidate``: every candidate's hyper-parameter refined between its grid neighbours, not only those
+    of the candidates that pass their step's test (``Evaluator.evaluate``; the others then report their grid's best
+    value: nothing the diagnosis decides or fits depends on it, ``bench/refinement_check.py``).
 
     The algorithm: measure the floor; forward selection over the candidates by nested cross-validation over visits,
     with the checks each candidate declares; the final model on every sample; findings; the result the report
@@ -183,7 +187,8 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     del res0, floor_rows
     # 2. forward selection over the candidates by nested cross-validation over visits, with their checks
     rules = Rules(alpha, min_rel_gain, max_effects, max_degree, degree is None and n_levels >= 2, folds)
-    sel = forward_selection(data, spec, fold, floor, library, rules, search_rows, lanes, first_delay_check, progress)
+    sel = forward_selection(data, spec, fold, floor, library, rules, search_rows, lanes, first_delay_check, progress,
+                            refine_every_candidate)
     data.drop_recent()
     return_free_memory()  # the search's corrected series and designs, before the declared model's design is rebuilt
     des0 = build_design(data, spec)  # the same matrix, bit for bit

@@ -156,6 +156,9 @@ class CandidateResult:
     applicable: bool
     reason: str = ""
     hyper: float | None = None
+    # hyper refined between its grid neighbours (``Evaluator.final_value``); False: the best value of its grid, for a
+    # candidate that does not pass its step's test (``Evaluator.evaluate``)
+    hyper_refined: bool = True
     hyper_profile: list[tuple[float, float]] = field(default_factory=list)  # (h, weighted RSS)
     heldout_rmse: np.ndarray | None = None  # (3,)
     rel_gain: float = 0.0  # fraction of the weighted held-out MSE removed
@@ -321,27 +324,47 @@ def search_samples(fit_rows: np.ndarray, folds: np.ndarray, search_rows: int | N
     return every[np.argsort(folds[every], kind="stable")], k, kept
 
 
+@dataclass
+class GridSearch:
+    """One hyper-parameter's search on top of a model over its grid, nested in the folds (``Evaluator.grid_search``).
+
+    ``heldout`` (N, 3): each fold's held-out residual at the value that fits the other folds best; ``profile``: (value,
+    mean training RSS over the folds) of every value visited that is identified; ``values`` (ascending) and ``rss``:
+    those the final value is chosen among (the plausible ones, or every one when none is: ``plausible``); empty for an
+    effect without a hyper-parameter. ``final`` (refined or not -> value) and ``rss_at`` (value -> in-sample RSS on all
+    rows): what ``Evaluator.final_value`` worked out of it."""
+
+    heldout: np.ndarray
+    profile: list[tuple[float, float]]
+    values: np.ndarray
+    rss: np.ndarray
+    plausible: bool
+    final: dict[bool, float] = field(default_factory=dict)
+    rss_at: dict[float, float] = field(default_factory=dict)
+
+
 class Evaluator:
     """Evaluates specs on the samples ``sub`` (indices, ``search_samples``) of one recording with fixed folds,
     rows and noise weights (cached designs): ``diagnose`` evaluates the candidates and chooses the model on it
     (hyper-parameters, held-out gains, tests over the visits), then fits the chosen model on every sample.
     Designs, folds, groups and held-out arrays are of ``sub``'s length; the input corrections still run on the
-    whole time series. ``references``: the corrected references a search keeps (``DesignCache``).
+    whole time series. ``references``: the corrected references a search keeps (``DesignCache``); ``refine_every``:
+    :meth:`evaluate` refines every candidate's hyper-parameter, not only those of the candidates that pass the test.
     """
 
     def __init__(self, data: DiagnosisData, folds: np.ndarray, weights: np.ndarray, groups: np.ndarray,
-                 sub: np.ndarray, references: int = 4) -> None:
+                 sub: np.ndarray, references: int = 4, refine_every: bool = False) -> None:
         # the rows read-only, of their own memory: their digest is worked out once (``DiagnosisData.rows_key``)
         sub = np.array(sub, copy=True)
         sub.flags.writeable = False
-        self.data, self.weights, self.sub = data, weights, sub
+        self.data, self.weights, self.sub, self.refine_every = data, weights, sub, refine_every
         self.folds, self.groups = self.at(folds), self.at(groups)
         self.rows = self.at(data.use) & (self.folds >= 0)  # held out and judged
         self.fit_rows = self.at(data.use) & (self.folds != -1)  # fitted (also the visits never held out, fold -2)
         self.designs = DesignCache(references=references)
         # results worked out by the confounding check that the next step needs again (see ``forget``)
         self._cv_memo: dict[tuple, tuple[Design, CvResult]] = {}
-        self._hyper_memo: dict[tuple, tuple[float | None, np.ndarray, list[tuple[float, float]]]] = {}
+        self._hyper_memo: dict[tuple, GridSearch] = {}
         self._last_cv: tuple[tuple, tuple[Design, CvResult]] | None = None
         self._sums: FoldSums | None = None
         self._rss_sums: RssSums | None = None
@@ -422,26 +445,33 @@ class Evaluator:
     def fit_hyper(self, spec: ModelSpec, eff: Effect,
                   remember: bool = False) -> tuple[float | None, np.ndarray, list[tuple[float, float]]]:
         """Hyper-parameter of ``eff`` added to ``spec``: nested grid choice per fold for the held-out
-        residual, and grid + bounded refinement on all rows for the final value. Returns (value, held-out
-        residual (N, 3), profile of (value, mean training RSS)). ``remember``: keep the result (``forget``)."""
+        residual (:meth:`grid_search`), and grid + bounded refinement on all rows for the final value
+        (:meth:`final_value`). Returns (value, held-out residual (N, 3), profile of (value, mean training RSS)).
+        ``remember``: keep the search (``forget``)."""
+        search = self.grid_search(spec, eff, remember)
+        return self.final_value(spec, eff, search), search.heldout, search.profile
+
+    def grid_search(self, spec: ModelSpec, eff: Effect, remember: bool = False) -> GridSearch:
+        """The search of ``eff``'s hyper-parameter on top of ``spec`` over its grid, nested in the folds
+        (``GridSearch``); ``remember``: keep it for a later call (``forget``), with the final values worked out of it."""
         key = (spec.key, eff.name)
         if key in self._hyper_memo:
             return self._hyper_memo[key]
-        out = self._fit_hyper(spec, eff)
+        out = self._grid_search(spec, eff)
         if remember:
             self._hyper_memo[key] = out
         return out
 
     def remembers(self, spec: ModelSpec, eff: Effect) -> bool:
-        """Whether :meth:`fit_hyper` of ``eff`` on top of ``spec`` is remembered (costs nothing)."""
+        """Whether :meth:`grid_search` of ``eff`` on top of ``spec`` is remembered (costs nothing)."""
         return (spec.key, eff.name) in self._hyper_memo
 
     def nested_heldout(self, spec: ModelSpec, eff: Effect) -> np.ndarray:
-        """The held-out residual (N, 3) of :meth:`fit_hyper` alone: the final value is not worked out (its
-        refinement on all rows, which the held-out residual does not depend on, is skipped); what the lane's cache
-        kept of the trials is let go after it (:meth:`forget_trials`)."""
+        """The held-out residual (N, 3) of :meth:`grid_search` alone: the final value is not worked out (the held-out
+        residual does not depend on it); what the lane's cache kept of the trials is let go after it
+        (:meth:`forget_trials`)."""
         try:
-            return self._fit_hyper(spec, eff, final=False)[1]
+            return self.grid_search(spec, eff).heldout
         finally:
             self.forget_trials(eff)
 
@@ -451,13 +481,11 @@ class Evaluator:
         trial values would stay beside theirs until pushed out)."""
         self.designs.forget(eff.name)
 
-    def _fit_hyper(self, spec: ModelSpec, eff: Effect,
-                   final: bool = True) -> tuple[float | None, np.ndarray, list[tuple[float, float]]]:
-        """:meth:`fit_hyper`; ``final`` False: the value returned is the best grid value, not refined (see
-        :meth:`nested_heldout`)."""
+    def _grid_search(self, spec: ModelSpec, eff: Effect) -> GridSearch:
+        """:meth:`grid_search`."""
         if eff.hyper_grid(self.data) is None:
             _, cvr = self.cv(spec.plus(eff, None))
-            return None, cvr.heldout, []
+            return GridSearch(cvr.heldout, [], np.empty(0), np.empty(0), True)
         grid = eff.hyper_grid(self.data)
         K = int(self.folds[self.rows].max()) + 1
         fold_rows = [np.flatnonzero(self.rows & (self.folds == f)) for f in range(K)]  # indices: a fold is taken often
@@ -515,21 +543,27 @@ class Evaluator:
         order = sorted(i for i in seen if seen[i][0] is not None)
         if not order:
             raise NotIdentifiedError("no value of the grid is identified (" + unidentified[0] + ")")
-        kept = [float(grid[i]) for i in order]
-        plausible = [bool(seen[i][0]) for i in order]
-        profile = [(float(grid[i]), seen[i][1]) for i in order]
-        use_ok = any(plausible)
-        grid = np.asarray([h for h, ok in zip(kept, plausible, strict=True) if ok == use_ok])
-        rss_grid = [p[1] for p, ok in zip(profile, plausible, strict=True) if ok == use_ok]
-        # final value on all rows: best grid point then bounded scalar refinement between its neighbours
-        j = first_min(np.asarray(rss_grid))
+        use_ok = any(seen[i][0] for i in order)
+        chosen = [i for i in order if seen[i][0] == use_ok]
+        return GridSearch(heldout_of(use_ok), [(float(grid[i]), seen[i][1]) for i in order],
+                          np.asarray([float(grid[i]) for i in chosen]), np.asarray([seen[i][1] for i in chosen]), use_ok)
+
+    def final_value(self, spec: ModelSpec, eff: Effect, search: GridSearch, refine: bool = True) -> float | None:
+        """The value of ``eff``'s hyper-parameter on top of ``spec`` (None: it has none): the best of ``search``'s
+        values (of the kind it chose: plausible ones when any), with ``refine`` the bounded scalar refinement of the
+        in-sample RSS on all rows between that value's neighbours (a plausible one when the search chose among
+        plausible ones), then the parsimony check against the effect's null value. Kept in ``search``: a remembered
+        search works each out once."""
+        if not len(search.values):
+            return None
+        if refine in search.final:
+            return search.final[refine]
+        grid = search.values
+        j = first_min(search.rss)
         lo = grid[max(j - 1, 0)]
         hi = grid[min(j + 1, len(grid) - 1)]
         h_best = float(grid[j])
-        if not final:
-            return h_best, heldout_of(use_ok), profile
-
-        rss_at: dict[float, float] = {}  # the refinement and the parsimony check ask for some values again
+        rss_at = search.rss_at  # the refinement and the parsimony check ask for some values again
 
         def obj(h: float) -> float:
             if float(h) not in rss_at:
@@ -540,12 +574,12 @@ class Evaluator:
                     rss_at[float(h)] = math.inf
             return rss_at[float(h)]
 
-        if hi > lo and not eff.switched:  # a switched effect's values are sample indices: none between them
+        if refine and hi > lo and not eff.switched:  # a switched effect's values are sample indices: none between them
             res = optimize.minimize_scalar(obj, bounds=(float(lo), float(hi)), method="bounded",
                                            options={"xatol": 1e-3 * (hi - lo), "maxiter": 25})
             if res.success and res.fun <= obj(h_best):
                 h_ref = float(res.x)
-                if not (use_ok and self.implausible(eff, h_ref, *self.cv(spec.plus(eff, h_ref)))):
+                if not (search.plausible and self.implausible(eff, h_ref, *self.cv(spec.plus(eff, h_ref)))):
                     h_best = h_ref
         if eff.hyper_null is not None:
             # parsimony: keep the null value unless moving away from it is a significant improvement,
@@ -554,7 +588,8 @@ class Evaluator:
             n_groups = len(np.unique(self.groups[self.rows]))
             if (rss_null - rss_best) / max(rss_best / n_groups, 1e-300) < stats.chi2.ppf(0.99, 1):
                 h_best = float(eff.hyper_null)
-        return h_best, heldout_of(use_ok), profile
+        search.final[refine] = h_best
+        return h_best
 
     def _step_sides(self, eff: Effect, grid: np.ndarray, K: int) -> np.ndarray:
         """(K, m) bool: whether fold f's training visits before and after the step at each value of ``grid`` each
@@ -605,31 +640,43 @@ class Evaluator:
         return cvr.A_full[blk].T, np.swapaxes(cvr.fold_coefficients[:, blk, :], 1, 2)
 
     def evaluate(self, spec: ModelSpec, eff: Effect, base_heldout: np.ndarray, base_fitted: np.ndarray,
-                 base_G: np.ndarray, alpha: float | None = None) -> CandidateResult:
+                 base_G: np.ndarray, alpha: float | None = None, min_rel_gain: float = 0.0) -> CandidateResult:
         """Held-out gain and significance of ``eff`` on top of ``spec``, whose held-out residual, in-sample fit and
         reference (each (n, 3), this evaluator's samples) are the ``base_*`` (``alpha``: the candidate's level,
         which decides the test on small campaigns, ``paired_gain_test``); what the lane's cache kept of the search's
-        trials is let go after it (:meth:`forget_trials`)."""
+        trials is let go after it (:meth:`forget_trials`). The hyper-parameter is refined between its grid neighbours
+        (:meth:`final_value`) for a candidate that passes the test (p below ``alpha``, gain at least ``min_rel_gain``;
+        ``alpha`` None or ``refine_every``: always): the held-out gain and its test do not depend on it
+        (``GridSearch.heldout``), and a candidate that does not pass them is never added, so its value is the best of
+        its grid (``CandidateResult.hyper_refined`` False)."""
         try:
-            return self._evaluate(spec, eff, base_heldout, base_fitted, base_G, alpha)
+            return self._evaluate(spec, eff, base_heldout, base_fitted, base_G, alpha, min_rel_gain)
         finally:
             self.forget_trials(eff)
 
     def _evaluate(self, spec: ModelSpec, eff: Effect, base_heldout: np.ndarray, base_fitted: np.ndarray,
-                  base_G: np.ndarray, alpha: float | None) -> CandidateResult:
+                  base_G: np.ndarray, alpha: float | None, min_rel_gain: float) -> CandidateResult:
         """:meth:`evaluate`."""
         ok, why = eff.applicable(self.data)
         out = CandidateResult(eff.name, eff.title, ok, why)
         if not ok:
             return out
         try:
-            h, heldout, profile = self.fit_hyper(spec, eff)
+            search = self.grid_search(spec, eff)
+            refined = alpha is None or self.refine_every or True in search.final
+            h = self.final_value(spec, eff, search, refine=refined)
             des, cvr = self.cv(spec.plus(eff, h))
+            test = self._gain_test(des, search.heldout, base_heldout, alpha)
+            if not refined and test[1][1] < alpha and test[1][0] >= min_rel_gain:  # it passes: its value refined
+                refined, h = True, self.final_value(spec, eff, search)
+                des, cvr = self.cv(spec.plus(eff, h))
+                test = self._gain_test(des, search.heldout, base_heldout, alpha)
         except NotIdentifiedError as exc:  # the data cannot tell its columns from the model's: say so
             out.applicable, out.reason = False, f"not identified on this data: {exc}"
             return out
-        r = self.rows & des.valid & finite_rows(heldout) & finite_rows(base_heldout)
-        gain, p, ng, out.detectable_gain = paired_gain_test(base_heldout, heldout, self.groups, r, self.weights, alpha)
+        heldout, profile = search.heldout, search.profile
+        r, (gain, p, ng, out.detectable_gain) = test
+        out.hyper_refined = refined
         # what the candidate explains of the current residual (reference changes count too: delay, TIA)
         delta = (base_G - des.G) + (cvr.fitted_full - base_fitted)
         corr = np.array([_corr(base_heldout[r, j], delta[r, j]) for j in range(3)])
@@ -639,6 +686,8 @@ class Evaluator:
         out.corr_with_residual = corr
         coeff = cvr.A_full[des.blocks[eff.name]].T if eff.name in des.blocks else None
         out.detail = eff.describe_on(h, coeff, self.data)
+        if not refined and h is not None and h != eff.hyper_null:
+            out.detail += " (its grid's best value: refined only for a candidate that passes the test)"
         out.implausible = self.implausible(eff, h, des, cvr)
         if out.implausible:
             out.detail += f"; REFUSED: {out.implausible}"
@@ -648,13 +697,20 @@ class Evaluator:
         out.delta = delta.astype(np.float32)  # for the plots and a correlation only
         return out
 
+    def _gain_test(self, des: Design, heldout: np.ndarray, base_heldout: np.ndarray,
+                   alpha: float | None) -> tuple[np.ndarray, tuple[float, float, int, float]]:
+        """(the rows (n,) compared, ``paired_gain_test`` of ``heldout`` against ``base_heldout`` on them): the rows
+        judged that ``des`` leaves valid and both residuals have."""
+        r = self.rows & des.valid & finite_rows(heldout) & finite_rows(base_heldout)
+        return r, paired_gain_test(base_heldout, heldout, self.groups, r, self.weights, alpha)
+
 
 def _evaluate_on(spec: ModelSpec, base_heldout: np.ndarray, base_fitted: np.ndarray, base_G: np.ndarray, alpha: float,
-                 seconds: dict[str, float], ev: Evaluator, eff: Effect) -> CandidateResult:
+                 min_rel_gain: float, seconds: dict[str, float], ev: Evaluator, eff: Effect) -> CandidateResult:
     """``ev.evaluate(spec, eff, ...)``: a task of ``Lanes.map`` (lane, item) once the step's arguments are bound; the
     time it took goes into ``seconds`` (by the candidate's name: the order the next step's candidates start in)."""
     t0 = time.perf_counter()
-    out = ev.evaluate(spec, eff, base_heldout, base_fitted, base_G, alpha)
+    out = ev.evaluate(spec, eff, base_heldout, base_fitted, base_G, alpha, min_rel_gain)
     seconds[eff.name] = time.perf_counter() - t0
     return out
 
@@ -720,7 +776,7 @@ def step_check(lanes: Lanes[Evaluator], spec: ModelSpec, eff: Effect, h: float |
     def on_top(lane: Evaluator, base_eff: tuple[ModelSpec, Effect]) -> CandidateResult:
         base, e = base_eff
         des, cvr = lane.cv(base)
-        return lane.evaluate(base, e, cvr.heldout, cvr.fitted_full, des.G, alpha)
+        return lane.evaluate(base, e, cvr.heldout, cvr.fitted_full, des.G, alpha, min_rel_gain)
 
     def gains(r: CandidateResult) -> bool:
         return r.applicable and r.p_value < alpha and r.rel_gain >= min_rel_gain and not r.implausible

@@ -181,12 +181,14 @@ def delay_cross_check(data: DiagnosisData, candidates: list[Effect] | tuple[Effe
 
 def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: FloorMeasurement,
                       library: tuple[Effect, ...], rules: Rules, search_rows: int | None, lanes: int | None,
-                      first_delay_check: Future[float] | None, progress: Callable[[str], None] | None) -> Selection:
+                      first_delay_check: Future[float] | None, progress: Callable[[str], None] | None,
+                      refine_every_candidate: bool = False) -> Selection:
     """Add the best significant candidate on top of ``spec`` and repeat (see the module docstring).
     ``first_delay_check``: the channel delay's cross-check of ``spec`` (``delay_cross_check`` of the declared model's
     in-sample fit on every sample), None when the channel delay is not a candidate. Above
     ``search_rows`` fitted samples the candidates are evaluated on every k-th one (``search_samples``); ``lanes``:
-    searches side by side (None: ``default_lane_count()`` from ``LANE_SEARCH_ROWS`` searched samples on)."""
+    searches side by side (None: ``default_lane_count()`` from ``LANE_SEARCH_ROWS`` searched samples on);
+    ``refine_every_candidate``: ``Evaluator.refine_every``."""
     groups, weights = data.group, 1.0 / np.maximum(floor.noise, 1e-12) ** 2
     fit_rows = data.use & (fold != -1)  # fitted (also the visits never held out, fold -2)
     # a search thinned to fewer rows keeps most of what a visit's samples tell of its mean (the noise is correlated)
@@ -196,7 +198,8 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
                                        float(np.median(per_visit)) if per_visit.size else math.inf)
     # a thinned search's corrected reference is small beside the correction of the whole series it saves: it keeps a
     # search's grid of them for the next model
-    sel = Evaluator(data, fold, weights, groups, every, references=24 if step > 1 else 4)
+    sel = Evaluator(data, fold, weights, groups, every, references=24 if step > 1 else 4,
+                    refine_every=refine_every_candidate)
     n_lanes = (default_lane_count() if len(every) >= LANE_SEARCH_ROWS else 1) if lanes is None else int(lanes)
     # the heap's free pages given back after each batch of searches side by side: what each search made and dropped
     searchers = Lanes([sel] + [sel.lane() for _ in range(n_lanes - 1)], after_map=return_free_memory)
@@ -219,7 +222,7 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
         xcorr_later = first_delay_check if not steps else delay_cross_check(
             data, remaining, lambda model=spec, coeff=base_coefficients: fitted_output(data, model, coeff), n_lanes > 1)
         # the candidates side by side, the longest first (what each took at the step before)
-        results = searchers.map(partial(_evaluate_on, spec, *base, ctx.alpha_each, seconds), remaining,
+        results = searchers.map(partial(_evaluate_on, spec, *base, ctx.alpha_each, rules.min_rel_gain, seconds), remaining,
                                 None if progress is None else lambda r: progress(r.name),
                                 cost=lambda e, model=spec: 0.0 if sel.remembers(model, e) else seconds.get(e.name, 0.0))
         if xcorr_later is not None:
@@ -236,7 +239,7 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
             _judge(ctx, spec, r, effect_of[r.name])
         # one that gains but is refused or fails a check at the model's degree: judged at the degree chosen with it in
         retry = [r for r in tested if not r.significant and _gains(ctx, r)] if up_to is not None else []
-        for r, again in zip(retry, searchers.map(partial(judged_at_its_degree, spec, ctx.alpha_each, up_to),
+        for r, again in zip(retry, searchers.map(partial(judged_at_its_degree, spec, ctx.alpha_each, ctx.min_rel_gain, up_to),
                                                  [(r, effect_of[r.name]) for r in retry]), strict=True):
             if again is not None:
                 _in_place_of(results, r, again)
@@ -250,7 +253,8 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
             ctx.spec = at_its_degree(spec, best)
             checks.run_checks(checks.WHEN_CHOSEN, ctx, best, effect_of[best.name])
             if not best.significant and up_to is not None and best.degree is None:
-                again = judged_at_its_degree(spec, ctx.alpha_each, up_to, sel, (best, effect_of[best.name]))
+                again = judged_at_its_degree(spec, ctx.alpha_each, ctx.min_rel_gain, up_to, sel,
+                                             (best, effect_of[best.name]))
                 if again is not None:
                     _in_place_of(results, best, again)
                     _judge(ctx, spec, again, effect_of[best.name])
@@ -360,7 +364,7 @@ def at_its_degree(spec: ModelSpec, r: CandidateResult) -> ModelSpec:
     return spec if r.degree is None else ModelSpec(r.degree, spec.t_center_c, spec.t_scale_c, spec.effects)
 
 
-def judged_at_its_degree(spec: ModelSpec, alpha: float, max_degree: int, ev: Evaluator,
+def judged_at_its_degree(spec: ModelSpec, alpha: float, min_rel_gain: float, max_degree: int, ev: Evaluator,
                          item: tuple[CandidateResult, Effect]) -> CandidateResult | None:
     """The candidate ``item`` (its result on top of ``spec`` and its effect), refused or failing a check at the
     model's degree although it gains, judged again at eq. 28's degree chosen with it in the model (``reselect_degree``,
@@ -382,7 +386,7 @@ def judged_at_its_degree(spec: ModelSpec, alpha: float, max_degree: int, ev: Eva
             return None
         at = ModelSpec(degree, spec.t_center_c, spec.t_scale_c, spec.effects)
         des, cvr = ev.cv(at)
-        again = ev.evaluate(at, eff, cvr.heldout, cvr.fitted_full, des.G, alpha)
+        again = ev.evaluate(at, eff, cvr.heldout, cvr.fitted_full, des.G, alpha, min_rel_gain)
     except NotIdentifiedError:  # not identified at that degree: judged at the model's
         return None
     if not again.applicable:
@@ -499,7 +503,7 @@ def confounding(lanes: Lanes[Evaluator], spec: ModelSpec, sig: list[CandidateRes
         if b_on_a:
             b_ho = lane.cv(at_its_degree(spec, b).plus(eb, b.hyper))[1].heldout
             # evaluated again next step
-            b_on_a = lane.fit_hyper(at_its_degree(spec, a).plus(ea, a.hyper), eb, remember=True)[1]
+            b_on_a = lane.grid_search(at_its_degree(spec, a).plus(ea, a.hyper), eb, remember=True).heldout
             lane.forget_trials(eb)
             return b_ho, b_on_a
         return (lane.nested_heldout(at_its_degree(spec, b).plus(eb, b.hyper), ea),)

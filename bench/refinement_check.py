@@ -1,0 +1,122 @@
+#!/usr/bin/env python3
+"""Does refining only the candidates that pass their step's test change what the diagnosis decides? (not a test)
+
+Each search ends by refining the best grid value of its hyper-parameter between its grid neighbours (a bounded
+scalar minimisation of the in-sample RSS, about ten designs: ``Evaluator.final_value``). The held-out gain and its
+test come from the values nested in the folds (``GridSearch.heldout``), not from that refinement, so by default a
+candidate is refined only when it passes its step's test (p below the step's level, gain at least the least gain:
+``Evaluator.evaluate``); the others report their grid's best value. Compared with every candidate refined
+(``diagnose(..., refine_every_candidate=True)``), on one lane, on
+
+* the benchmark run (``bench_calibration.scenario``: every nominal effect, four chamber levels) at each of
+  ``--samples``, seeds ``--seeds``;
+* each one-effect scenario of ``test/test_diagnose_sim.py``, seeds ``--scenario-seeds``.
+
+A row: whether the two add the same effects with the same hyper-parameters (bit for bit), every candidate's held-out
+gain, p-value and verdict the same, the calibration's largest difference, the candidates left at their grid value and
+the largest relative difference of their values from the refined ones, and each diagnosis's CPU time. Writes
+refinement_check.md (``--update-results``: in bench/results).
+
+    .venv/bin/python bench/refinement_check.py [--samples 100000 1000000] [--seeds 0 1] [--scenario-seeds 2 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "test"))
+
+from bench_calibration import scenario  # noqa: E402
+from machine_info import machine  # noqa: E402
+from output_paths import add_update_results, results_dir  # noqa: E402
+from test_diagnose_sim import SCENARIOS, _config  # noqa: E402
+
+from fbg_accel_calibration.diagnosis.diagnose import DiagnosisResult, diagnose  # noqa: E402
+from fbg_accel_calibration.io.recording import Recording  # noqa: E402
+from fbg_accel_sim.board_physics import simulate_recording  # noqa: E402
+
+HEAD = ("| recording | samples | added (every candidate refined) | same added, same values | same gains, p-values, "
+        "verdicts | calibration's largest difference | candidates left at a grid value | their largest relative "
+        "difference | CPU: every one refined | CPU: default |")
+
+
+def _candidates(res: DiagnosisResult) -> dict[tuple[int, str], object]:
+    return {(st.step, c.name): c for st in res.steps for c in st.candidates}
+
+
+def compare(every: DiagnosisResult, default: DiagnosisResult) -> dict:
+    """What differs between the diagnosis with every candidate refined and the default."""
+    a, b = _candidates(every), _candidates(default)
+    same_decisions = a.keys() == b.keys() and all(
+        (x.rel_gain, x.p_value, x.significant, x.applicable) == (b[k].rel_gain, b[k].p_value, b[k].significant,
+                                                                 b[k].applicable)
+        for k, x in a.items())
+    left = [(k, a[k].hyper, b[k].hyper) for k in a.keys() & b.keys()
+            if b[k].applicable and not b[k].hyper_refined and b[k].hyper is not None]
+    rel = [abs(d - r) / max(abs(r), 1e-12) for _, r, d in left if r is not None]
+    cal = max(float(np.max(np.abs(np.asarray(every.calibration.M) - np.asarray(default.calibration.M)))),
+              float(np.max(np.abs(np.asarray(every.calibration.b) - np.asarray(default.calibration.b)))))
+    return {"same_added": [tuple(x[:2]) for x in every.added] == [tuple(x[:2]) for x in default.added],
+            "same_decisions": same_decisions, "calibration": cal, "left": len(left), "of": len(a),
+            "rel": max(rel, default=0.0)}
+
+
+def check(name: str, rec: Recording, static: str) -> tuple[str, bool]:
+    """One row of the table (Markdown) and whether the default decided and fitted what refining every candidate did."""
+    t0 = time.process_time()
+    every = diagnose(rec, static=static, lanes=1, refine_every_candidate=True)
+    t1 = time.process_time()
+    default = diagnose(rec, static=static, lanes=1)
+    t2 = time.process_time()
+    d = compare(every, default)
+    ok = d["same_added"] and d["same_decisions"] and d["calibration"] == 0.0
+    row = (f"| {name} | {len(rec)} | {', '.join(a[0] for a in every.added) or '-'} | "
+           f"{'yes' if d['same_added'] else 'NO'} | {'yes' if d['same_decisions'] else 'NO'} | {d['calibration']:.3g} | "
+           f"{d['left']} of {d['of']} | {100 * d['rel']:.3g} % | {t1 - t0:.1f} s | {t2 - t1:.1f} s |")
+    print(row, flush=True)
+    return row, ok
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--samples", type=int, nargs="+", default=[100_000, 1_000_000], help="samples of the benchmark runs")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="seeds of the benchmark runs")
+    ap.add_argument("--scenario-seeds", type=int, nargs="*", default=[2, 3], help="seeds of the one-effect scenarios")
+    ap.add_argument("--output", type=Path, help="output (default: refinement_check.md in the scratch/results directory)")
+    add_update_results(ap)
+    args = ap.parse_args()
+    args.output = args.output or results_dir(args.update_results) / "refinement_check.md"
+    rows = []
+    for n in args.samples:
+        cfg, duration = scenario(n)
+        for seed in args.seeds:
+            rows.append(check(f"benchmark run, seed {seed}", simulate_recording(cfg, seed=seed, duration_s=duration),
+                              "table"))
+    for eff, (scale, extra, static) in SCENARIOS.items():
+        for seed in args.scenario_seeds:
+            rows.append(check(f"{eff} x{scale:g}, seed {seed}",
+                              simulate_recording(_config({**extra, f"effects.{eff}.scale": scale}), seed=seed), static))
+    command = "python bench/refinement_check.py " + " ".join(sys.argv[1:])
+    m = machine()
+    text = (f"# Refining the candidates that pass their test against refining every one\n\nProduced by "
+            f"`{command.strip()}` ({dt.datetime.now(dt.UTC).isoformat(timespec='seconds')}; {m['cpu']}, "
+            f"{m['logical_cpus']} logical CPUs, load {m['load_average_1_5_15']}).\n\n"
+            f"The same effects added with the same values, every candidate's gain, p-value and verdict the same and the "
+            f"same calibration bit for bit: {sum(ok for _, ok in rows)} of {len(rows)}.\n\n"
+            + "\n".join([HEAD, "|" + "---|" * 10, *(r for r, _ in rows)]) + "\n")
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(text)
+    print(f"wrote {args.output}")
+    return 0 if all(ok for _, ok in rows) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
