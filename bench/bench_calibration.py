@@ -19,8 +19,8 @@ Not a test. Steps (wall clock, one process, numpy may use both cores for its BLA
   and the ratio to the 3413 messages/s the driver publishes on ``imu/raw`` at the 921600-baud link
   limit; the file is read back with ``read_recording`` and the sample count checked.
 
-Peak resident memory (ru_maxrss) after each step is reported. ``--profile-diagnose`` runs the
-diagnosis under cProfile and stores its top functions (where the diagnosis spends its time). cProfile sees the
+Peak resident memory (ru_maxrss) after each step is reported. ``--profile-diagnose [TOP]`` runs the
+diagnosis under cProfile and stores its top functions (15 unless TOP; where the diagnosis spends its time). cProfile sees the
 calling thread only: with the searches side by side (two lanes, the default at 10^6 samples) their own time is not
 in it, only the wait for them (``Lanes.map``); ``--lanes 1`` profiles them too.
 ``--memory-diagnose`` runs it under tracemalloc and stores, for the moment its traced memory peaked,
@@ -144,8 +144,9 @@ def main(argv: list[str] | None = None) -> int:
                          "library's): to measure what a smaller search set saves and what it changes")
     ap.add_argument("--lanes", type=int, default=None,
                     help="searches of the diagnosis side by side (default: diagnose's own choice, one per core up to two)")
-    ap.add_argument("--profile-diagnose", action="store_true",
-                    help="run the diagnosis under cProfile; its top functions (cumulative and own time) go into the JSON")
+    ap.add_argument("--profile-diagnose", type=int, nargs="?", const=15, default=None, metavar="TOP",
+                    help="run the diagnosis under cProfile; its TOP (default 15) functions by cumulative and by own "
+                         "time go into the JSON")
     ap.add_argument("--memory-diagnose", action="store_true",
                     help="run the diagnosis under tracemalloc; what it holds at its peak goes into the JSON")
     ap.add_argument("--output", type=Path, help="output file (default: calibration.json in the scratch or results directory)")
@@ -197,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
                              "ranked": [c.name for c in res.ranked][:5], "added": [a[0] for a in res.added],
                              "noise_floor_mps2": [float(v) for v in res.noise_floor], "peak_rss_mib": peak_rss_mib()}
         if profiler is not None:
-            steps["diagnose"]["profile_top"] = profile_top(profiler)
+            steps["diagnose"]["profile_top"] = profile_top(profiler, args.profile_diagnose)
         if memory is not None:
             steps["diagnose"]["memory_at_peak"] = memory
         with tempfile.TemporaryDirectory(prefix="bench_report_") as tmp:

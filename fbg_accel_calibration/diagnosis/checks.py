@@ -7,19 +7,22 @@ refuse it (``CandidateResult.refuse``: why as data); a check on the final model 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import stats
 
-from .cv import check_folds, make_folds
+from ..fit.thermal_fit import NotIdentifiedError
+from .cv import check_folds, cross_validate, make_folds
 from .data import DiagnosisData, finite_rows
-from .design import ModelSpec
+from .design import ModelSpec, build_design
 from .effects import MODEL_TERM, Effect
 from .findings import Finding
 from .floor import VisitNoise
-from .search import CandidateResult, Evaluator, Refusal, group_mse, judge_step, time_block_check
+from .response_step import ResponseStepEffect
+from .search import CandidateResult, Evaluator, Refusal, StepCheck, group_mse, paired_gain_test, reselect_degree
 from .search_lanes import Lanes
 from .structure import SLOW_ERROR_BOUND_MPS2, SMALL_RATIO, ResidualStructure, residual_structure, slow_wander
 
@@ -103,7 +106,7 @@ def wander_gain(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
 
 
 def time_blocks(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
-    """A function of time must also predict contiguous blocks of time held out (``search.time_block_check``)."""
+    """A function of time must also predict contiguous blocks of time held out (``time_block_check``)."""
     g, p = r.time_block = time_block_check(ctx.data, ctx.spec, eff, r.hyper, ctx.every, ctx.time_folds(), ctx.weights,
                                            ctx.alpha_each)
     if p < ctx.alpha_each and g >= ctx.min_rel_gain:
@@ -115,7 +118,7 @@ def time_blocks(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
 
 
 def step(ctx: SearchChecks, r: CandidateResult, eff: Effect) -> None:
-    """Set against the best step of the response at one time (``search.judge_step``)."""
+    """Set against the best step of the response at one time (``judge_step``)."""
     judge_step(ctx.lanes, ctx.spec, r, eff, ctx.alpha_each, ctx.min_rel_gain, ctx.reselect_up_to,
                ctx.step_confounded)
 
@@ -222,3 +225,100 @@ def stand_ins(lanes: Lanes[Evaluator], spec: ModelSpec, noise_model: VisitNoise,
                                       "ratio": s.ratio}, separates=TELLS_A_STAND_IN))
     kept = [(e, h) for e, h in spec.effects if e.role != MODEL_TERM]
     return ModelSpec(spec.degree, spec.t_center_c, spec.t_scale_c, kept), out
+
+
+def time_block_check(data: DiagnosisData, spec: ModelSpec, eff: Effect, h: float | None, sub: np.ndarray,
+                     folds: np.ndarray, weights: np.ndarray, alpha: float) -> tuple[float, float]:
+    """(held-out gain, one-sided p over visits: ``paired_gain_test``) of ``eff`` at ``h`` on top of ``spec`` when the
+    folds are contiguous blocks of time (``folds``: ``make_folds``' time blocks made identifiable by ``check_folds``), on
+    the samples ``sub`` (indices; the search's). A function of time (``Effect.time_function``) that only gains
+    between visits interleaved in time follows a slow wander of the residual, which it cannot extrapolate: the
+    driver would apply it after every power-on. A model not identified on these folds has gain -inf, p 1."""
+    f = folds[sub]
+    fit, judged = data.use[sub] & (f != -1), data.use[sub] & (f >= 0)
+    try:
+        ho = [cross_validate(build_design(data, s, sub=sub), fit, f, weights).heldout for s in (spec, spec.plus(eff, h))]
+    except NotIdentifiedError:
+        return -math.inf, 1.0
+    r = judged & finite_rows(ho[0]) & finite_rows(ho[1])
+    gain, p = paired_gain_test(ho[0], ho[1], data.group[sub], r, weights, alpha)[:2]
+    return gain, p
+
+
+def step_check(lanes: Lanes[Evaluator], spec: ModelSpec, eff: Effect, h: float | None, alpha: float,
+               min_rel_gain: float, max_degree: int | None = None) -> StepCheck | None:
+    """Does a step of the response at one time explain what ``eff`` (at ``h``; ``Effect.follows_a_step``) fits on top
+    of ``spec``? A warm-up with creep follows a step (a connector knocked mid-run) across contiguous blocks of time too,
+    so ``time_block_check`` passes it; on a temperature-cycled run a hysteresis branch or a thermal lag follows it as
+    well, since the temperature's history is tied to time; written to the calibration, the driver applies it for good.
+    The step (its time found like any hyper-parameter, nested in the folds) and ``eff`` are each added on top of the
+    other, as in the confounding check: if the step gains beyond ``eff`` (``alpha``, ``min_rel_gain``) and ``eff`` not
+    beyond the step, ``eff`` is a stand-in. ``max_degree`` (None: the degree is forced, or one temperature level): eq.
+    28's degree is first chosen again with both in the model (``reselect_degree``), as it is after any effect is added,
+    and both are compared at it: a degree chosen with the step in the residual can be too low for the step's model, and
+    the temperature dependence it leaves then passes for a drift or a hysteresis. None when the recording has too few
+    visits for a step. The two candidates on top of each other run side by side on ``lanes``."""
+    step = ResponseStepEffect()
+    ev = lanes.lanes[0]
+    if not step.applicable(ev.data)[0]:
+        return None
+
+    def on_top(lane: Evaluator, base_eff: tuple[ModelSpec, Effect]) -> CandidateResult:
+        base, e = base_eff
+        des, cvr = lane.cv(base)
+        return lane.evaluate(base, e, cvr.heldout, cvr.fitted_full, des.G, alpha, min_rel_gain)
+
+    def gains(r: CandidateResult) -> bool:
+        return r.applicable and r.p_value < alpha and r.rel_gain >= min_rel_gain and not r.implausible
+
+    try:
+        # the step that fits best in place of the candidate, not beside it; kept: every candidate checked at this
+        # step (a drift, a dark offset, a temperature history) is set against the same best step
+        with lanes.lending():  # ev (the first lane) searches it, the other lanes work its trials out beside it
+            h_step = ev.fit_hyper(spec, step, remember=True)[0]
+        if max_degree is not None:
+            degree = reselect_degree(lanes, spec.plus(eff, h).plus(step, h_step), max_degree)[0].degree
+            # the step's time, set by the jump rather than by the temperature terms, is kept (a search of it is
+            # most of the check's cost)
+            spec = ModelSpec(degree, spec.t_center_c, spec.t_scale_c, spec.effects)
+    except NotIdentifiedError:
+        return None
+    beyond_time, beyond_step = lanes.map(on_top, [(spec.plus(eff, h), step), (spec.plus(step, h_step), eff)])
+    if not beyond_time.applicable:
+        return None
+    i = min(math.ceil(float(h_step)), len(ev.data.t_s) - 1)
+    fitted = np.flatnonzero(ev.data.use[:i] & (ev.data.group[:i] >= 0))
+    t_before = float(ev.data.t_s[fitted[-1]]) if fitted.size else math.nan
+    return StepCheck(float(ev.data.t_s[i]), t_before, int(ev.data.run_id[i]), beyond_time.rel_gain, beyond_time.p_value,
+                     beyond_step.rel_gain if beyond_step.applicable else -math.inf,
+                     beyond_step.p_value if beyond_step.applicable else 1.0,
+                     gains(beyond_time) and not gains(beyond_step), spec.degree)
+
+
+def judge_step(lanes: Lanes[Evaluator], spec: ModelSpec, r: CandidateResult, eff_r: Effect, alpha_each: float,
+               min_rel_gain: float, max_degree: int | None, step_confounded: dict[str, str]) -> None:
+    """Set the significant candidate ``r`` (of ``eff_r``, ``Effect.follows_a_step``) on top of ``spec`` against the best
+    step of the response (``step_check``; ``max_degree`` None: eq. 28's degree is not chosen again): refused (``r``
+    no longer significant, ``Refusal.STEP``) if the step explains it; if the step fits as well, the warning for the
+    report is put in ``step_confounded`` under its name."""
+    sc = r.step_check = step_check(lanes, spec, eff_r, r.hyper, alpha_each, min_rel_gain, max_degree)
+    at_degree = f", eq. 28 of degree {sc.degree}" if sc is not None and sc.degree != spec.degree else ""
+    if sc is not None and sc.explained:
+        r.refuse(Refusal.STEP, f"a step of the response {sc.when} explains "
+                 f"it: the step gains {100 * sc.gain_step_beyond:+.1f} % beyond it (p = "
+                 f"{sc.p_step_beyond:.2g}), it gains {100 * sc.gain_time_beyond:+.1f} % beyond the step "
+                 f"(p = {sc.p_time_beyond:.2g}{at_degree}): the response changed once (a connector "
+                 f"knocked or re-mated, a fibre bent, a knock), not {eff_r.sensor_property} the driver "
+                 "could apply")
+    elif sc is not None and sc.p_time_beyond < alpha_each and sc.gain_time_beyond >= min_rel_gain:
+        r.detail += (f"; it gains {100 * sc.gain_time_beyond:+.1f} % beyond the best step of the response "
+                     f"at one time ({sc.when}, p = {sc.p_time_beyond:.2g}{at_degree})")
+    elif sc is not None:  # neither beyond the other: the data do not tell a step from this candidate
+        r.detail += (f"; a step of the response {sc.when} fits as well: it "
+                     f"gains {100 * sc.gain_time_beyond:+.1f} % beyond the step (p = {sc.p_time_beyond:.2g}), "
+                     f"the step {100 * sc.gain_step_beyond:+.1f} % beyond it (p = {sc.p_step_beyond:.2g}"
+                     f"{at_degree})")
+        step_confounded[r.name] = (f"{r.name} is in the calibration, but a step of the response {sc.when} (a "
+                                   "connector, a fibre, a knock) fits this "
+                                   "data as well, and a step is no property of the sensor: "
+                                   f"{eff_r.tells_it_from_a_step}")

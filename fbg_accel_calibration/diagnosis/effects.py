@@ -140,12 +140,12 @@ class Effect:
     #   time: its gain must be beyond what that wander, measured on the revisits, could give
     #   (``diagnosis.checks.wander_gain``);
     # "time_blocks": a function of time alone must also predict contiguous blocks of time held out (between visits
-    #   interleaved in time any smooth function of time interpolates; ``diagnosis.search.time_block_check``);
+    #   interleaved in time any smooth function of time interpolates; ``diagnosis.checks.time_block_check``);
     # "step" (at every step) / "step_when_chosen" (when about to be added): its contribution can follow a one-time step
     #   of the response (a connector knocked mid-run): a function of time (time_drift), of the temperature's history,
     #   which a cycled run ties to time (thermal_lag: eq. 28 read at a delayed temperature; thermal_hysteresis: a
     #   branch held between the turns), or of the reference counts, which a step of the reference arm's loss moves
-    #   once (reference_dark_offset); it is set against the best step (``diagnosis.search.step_check``). Not the
+    #   once (reference_dark_offset); it is set against the best step (``diagnosis.checks.step_check``). Not the
     #   per-run terms: properties of the recording like the step, never in the calibration file;
     # "table_angles": a function of the direction of gravity in the sensor alone (spectral_nonlinearity) can stand in
     #   for an effect of the table's angles on a plan whose directions and angles go together: the final model's

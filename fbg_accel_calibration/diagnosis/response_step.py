@@ -1,5 +1,5 @@
 """The step of the response at one time: not a candidate (not in ``effects.LIBRARY``), the alternative a candidate
-that can follow a step (its ``Effect.checks`` hold a step check) must beat (``diagnosis.search.step_check``).
+that can follow a step (its ``Effect.checks`` hold a step check) must beat (``diagnosis.checks.step_check``).
 """
 
 from __future__ import annotations
