@@ -661,19 +661,19 @@ class Evaluator:
             return out
         try:
             search = self.grid_search(spec, eff)
-            refined = alpha is None or self.refine_every or True in search.final
+            # nothing to refine without a hyper-parameter; a remembered search may hold its refined value already
+            refined = alpha is None or self.refine_every or True in search.final or not len(search.values)
             h = self.final_value(spec, eff, search, refine=refined)
             des, cvr = self.cv(spec.plus(eff, h))
-            test = self._gain_test(des, search.heldout, base_heldout, alpha)
-            if not refined and test[1][1] < alpha and test[1][0] >= min_rel_gain:  # it passes: its value refined
+            r, (gain, p, ng, out.detectable_gain) = self._gain_test(des, search.heldout, base_heldout, alpha)
+            if not refined and p < alpha and gain >= min_rel_gain:  # it passes: its value refined, judged there
                 refined, h = True, self.final_value(spec, eff, search)
                 des, cvr = self.cv(spec.plus(eff, h))
-                test = self._gain_test(des, search.heldout, base_heldout, alpha)
+                r, (gain, p, ng, out.detectable_gain) = self._gain_test(des, search.heldout, base_heldout, alpha)
         except NotIdentifiedError as exc:  # the data cannot tell its columns from the model's: say so
             out.applicable, out.reason = False, f"not identified on this data: {exc}"
             return out
         heldout, profile = search.heldout, search.profile
-        r, (gain, p, ng, out.detectable_gain) = test
         out.hyper_refined = refined
         # what the candidate explains of the current residual (reference changes count too: delay, TIA)
         delta = (base_G - des.G) + (cvr.fitted_full - base_fitted)
