@@ -378,7 +378,7 @@ def judged_at_its_degree(spec: ModelSpec, alpha: float, min_rel_gain: float, max
     the contiguous blocks of time at degree 2 passed them at degree 1, and on another seed, judged there, it was added
     first and a wrong lag followed). A candidate that passes at the model's degree is judged there: at another degree
     its gain is over another model, and the candidates of a step are ranked by their gains. A task of ``Lanes.map``
-    once the first two arguments are bound."""
+    once the arguments before ``ev`` are bound."""
     first, eff = item
     try:
         degree = reselect_degree(Lanes([ev]), spec.plus(eff, first.hyper), max_degree)[0].degree
