@@ -35,14 +35,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "test"))
 
-from bench_calibration import scenario  # noqa: E402
 from machine_info import machine  # noqa: E402
 from output_paths import add_update_results, results_dir  # noqa: E402
-from test_diagnose_sim import SCENARIOS, _config  # noqa: E402
+from search_thinning_check import benchmark_runs, one_effect_runs  # noqa: E402
 
 from fbg_accel_calibration.diagnosis.diagnose import DiagnosisResult, diagnose  # noqa: E402
 from fbg_accel_calibration.io.recording import Recording  # noqa: E402
-from fbg_accel_sim.board_physics import simulate_recording  # noqa: E402
 
 HEAD = ("| recording | samples | added (every candidate refined) | same added, same values | same verdicts | "
         "calibration's largest difference | gains' largest relative difference | p-values' | candidates left at a grid "
@@ -100,16 +98,8 @@ def main() -> int:
     add_update_results(ap)
     args = ap.parse_args()
     args.output = args.output or results_dir(args.update_results) / "refinement_check.md"
-    rows = []
-    for n in args.samples:
-        cfg, duration = scenario(n)
-        for seed in args.seeds:
-            rows.append(check(f"benchmark run, seed {seed}", simulate_recording(cfg, seed=seed, duration_s=duration),
-                              "table"))
-    for eff, (scale, extra, static) in SCENARIOS.items():
-        for seed in args.scenario_seeds:
-            rows.append(check(f"{eff} x{scale:g}, seed {seed}",
-                              simulate_recording(_config({**extra, f"effects.{eff}.scale": scale}), seed=seed), static))
+    rows = [check(name, rec, "table") for name, rec in benchmark_runs(args.samples, args.seeds)]
+    rows += [check(name, rec, static) for name, rec, static in one_effect_runs(args.scenario_seeds)]
     command = "python bench/refinement_check.py " + " ".join(sys.argv[1:])
     m = machine()
     text = (f"# Refining the candidates that pass their test against refining every one\n\nProduced by "

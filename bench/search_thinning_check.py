@@ -25,7 +25,7 @@ import argparse
 import datetime as dt
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +56,23 @@ def _differences(full: DiagnosisResult, thin: DiagnosisResult) -> tuple[bool, fl
              if f[0] == t[0] and f[1] is not None and t[1] is not None]
     rmse = np.abs(thin.after_heldout_rmse - full.after_heldout_rmse) / full.after_heldout_rmse
     return same, max(hyper, default=0.0), float(rmse.max())
+
+
+def benchmark_runs(samples: list[int], seeds: list[int]) -> Iterator[tuple[str, Recording]]:
+    """(name, recording) of the benchmark run (``bench_calibration.scenario``) at each of ``samples``, each seed."""
+    for n in samples:
+        cfg, duration = scenario(n)
+        for seed in seeds:
+            yield f"benchmark run, seed {seed}", simulate_recording(cfg, seed=seed, duration_s=duration)
+
+
+def one_effect_runs(seeds: Iterable[int]) -> Iterator[tuple[str, Recording, str]]:
+    """(name, recording, its static detection) of each one-effect scenario of ``test/test_diagnose_sim.py``, each
+    seed."""
+    for eff, (scale, extra, static) in SCENARIOS.items():
+        for seed in seeds:
+            yield (f"{eff} x{scale:g}, seed {seed}",
+                   simulate_recording(_config({**extra, f"effects.{eff}.scale": scale}), seed=seed), static)
 
 
 def check(name: str, rec: Recording, static: str, thinned: Callable[[int], list[int]]) -> tuple[str, list[bool]]:
@@ -98,18 +115,10 @@ def main() -> int:
     add_update_results(ap)
     args = ap.parse_args()
     args.output = args.output or results_dir(args.update_results) / "search_thinning_check.md"
-    runs = []
-    for n in args.samples:
-        cfg, duration = scenario(n)
-        for seed in args.seeds:
-            runs.append(check(f"benchmark run, seed {seed}", simulate_recording(cfg, seed=seed, duration_s=duration),
-                              "table", lambda _: [OLD_SEARCH_ROWS, SEARCH_ROWS]))
-    stress = []
-    for eff, (scale, extra, static) in SCENARIOS.items():
-        for seed in range(2, 5):
-            rec = simulate_recording(_config({**extra, f"effects.{eff}.scale": scale}), seed=seed)
-            stress.append(check(f"{eff} x{scale:g}, seed {seed}", rec, static,
-                                lambda n_fit: [n_fit // k for k in FORCED_STEPS]))
+    runs = [check(name, rec, "table", lambda _: [OLD_SEARCH_ROWS, SEARCH_ROWS])
+            for name, rec in benchmark_runs(args.samples, args.seeds)]
+    stress = [check(name, rec, static, lambda n_fit: [n_fit // k for k in FORCED_STEPS])
+              for name, rec, static in one_effect_runs(range(2, 5))]
     command = "python bench/search_thinning_check.py " + " ".join(sys.argv[1:])
     m = machine()
     text = (f"# Thinned search against the full search\n\nProduced by `{command.strip()}` "
