@@ -328,8 +328,9 @@ def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np
     X, G = des.X, des.G
     idx = np.flatnonzero(rows & des.valid)
     f_idx = folds[idx].astype(np.int16)  # a few folds: numpy's stable sort of int16 is a radix sort
-    order = np.argsort(f_idx, kind="stable")
-    idx, f_idx = idx[order], f_idx[order]
+    if np.any(f_idx[1:] < f_idx[:-1]):  # a search's rows come in fold order (``search_samples``): nothing to move
+        order = np.argsort(f_idx, kind="stable")
+        idx, f_idx = idx[order], f_idx[order]
     K = int(f_idx[-1]) + 1
     start = np.searchsorted(f_idx, np.arange(-2, K + 1))  # [-2, -1, 0, .., K]: fold f is start[f+2]:start[f+3]
 
