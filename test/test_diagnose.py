@@ -819,6 +819,52 @@ def test_only_a_candidate_that_passes_its_test_is_refined_and_nothing_decided_de
             assert c.hyper in {h for h, _ in c.hyper_profile} | {library_by_name()[k[1]].hyper_null}, k
 
 
+def test_an_evaluation_builds_the_value_its_search_chose_once_and_finds_what_building_it_again_finds(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A search's chosen grid value (asked for again by its final value's in-sample fit and by the candidate's
+    evaluation) and its refinement's best value (asked for again by the plausibility check) are kept for that
+    evaluation (``Evaluator._keep``), not built again: with them built again (``_keep`` doing nothing) the diagnosis
+    adds the same effects, fits the same calibration and gives every candidate the same gain, p-value and value, bit
+    for bit, with more designs built."""
+    from fbg_accel_calibration.diagnosis import search as search_module
+
+    rec = synthetic(9, channel_dark=300.0, power_ramp=-0.05)
+    built: list[tuple] = []
+    build = search_module.build_design
+
+    def counted(data, spec, cache=None, sub=None):
+        built.append(spec.key)
+        return build(data, spec, cache, sub)
+
+    chosen_builds: list[tuple[str, int]] = []
+    evaluate = Evaluator.evaluate
+
+    def watched(self, spec, eff, *args, **kwargs):
+        start = len(built)
+        out = evaluate(self, spec, eff, *args, **kwargs)
+        if out.applicable and out.hyper is not None:
+            chosen_builds.append((eff.name, built[start:].count(spec.plus(eff, out.hyper).key)))
+        return out
+
+    monkeypatch.setattr(search_module, "build_design", counted)
+    monkeypatch.setattr(Evaluator, "evaluate", watched)
+    kept = diagnose(rec, static="table", lanes=1)
+    n_kept, kept_chosen = len(built), list(chosen_builds)
+    built.clear()
+    chosen_builds.clear()
+    monkeypatch.setattr(Evaluator, "_keep", lambda *args: None)
+    again = diagnose(rec, static="table", lanes=1)
+    assert kept.added == again.added and kept.added
+    np.testing.assert_array_equal(kept.calibration.M, again.calibration.M)
+    np.testing.assert_array_equal(kept.calibration.b, again.calibration.b)
+    got = [(st.step, c.name, c.applicable, c.rel_gain, c.p_value, c.hyper) for st in kept.steps for c in st.candidates]
+    ref = [(st.step, c.name, c.applicable, c.rel_gain, c.p_value, c.hyper) for st in again.steps for c in st.candidates]
+    assert got == ref
+    assert n_kept < len(built)
+    assert kept_chosen and all(n <= 1 for _, n in kept_chosen), kept_chosen  # a remembered search: 0
+    assert any(n > 1 for _, n in chosen_builds), chosen_builds  # the case: built again without the kept trials
+
+
 @pytest.mark.parametrize("k", [0, 1, 3, 4, 5, 24])
 @pytest.mark.parametrize("order", ["C", "F"])
 def test_finite_rows_is_exactly_every_value_of_the_row_finite(k: int, order: str) -> None:

@@ -364,6 +364,10 @@ class Evaluator:
         self._cv_memo: dict[tuple, tuple[Design, CvResult]] = {}
         self._hyper_memo: dict[tuple, GridSearch] = {}
         self._last_cv: tuple[tuple, tuple[Design, CvResult]] | None = None
+        # the trials a search's evaluation asks for again (``_keep``): the chosen grid value's design and fit, the
+        # refinement's best value's design, the null value's; by slot ("walk", "refine", "null"): (model key,
+        # design, fit or None)
+        self._kept: dict[str, tuple[tuple, Design, CvResult | None]] = {}
         self._sums: FoldSums | None = None
         self._rss_sums: RssSums | None = None
 
@@ -377,7 +381,23 @@ class Evaluator:
         return np.linalg.inv(self.data.static_psi_map()[0])
 
     def design(self, spec: ModelSpec) -> Design:
-        return build_design(self.data, spec, self.designs, self.sub)
+        kept = self._kept_trial(spec)
+        return kept[0] if kept is not None else build_design(self.data, spec, self.designs, self.sub)
+
+    def _keep(self, slot: str, spec: ModelSpec, des: Design, cvr: CvResult | None) -> None:
+        """Keep a search's trial (``des`` and its cross-validation ``cvr``, None: not worked out) in ``slot`` until the
+        next search starts or its evaluation ends (``forget_trials``): the value a search chose is asked for again by
+        its final value's in-sample fit and by the candidate's evaluation, the refinement's best by its plausibility
+        check, the null value by the evaluation when the parsimony check keeps it. The same arrays, so the same
+        results, bit for bit; one design a slot."""
+        self._kept[slot] = (spec.key, des, cvr)
+
+    def _kept_trial(self, spec: ModelSpec) -> tuple[Design, CvResult | None] | None:
+        """The kept trial (``_keep``) of the model ``spec``, if any."""
+        for key, des, cvr in self._kept.values():
+            if key == spec.key:
+                return des, cvr
+        return None
 
     def cv(self, spec: ModelSpec, remember: bool = False) -> tuple[Design, CvResult]:
         """Design and cross-validation of ``spec``; ``remember``: keep them for a later call (``forget``). The
@@ -388,9 +408,13 @@ class Evaluator:
         if hit is not None:
             return hit
         self._last_cv = None  # not held while the next design is built
-        des = self.design(spec)
-        out = des, cross_validate(des, self.fit_rows, self.folds, self.weights, self._sums)
-        self._sums = out[1].sums  # a search over the reference alone asks again with the same matrix
+        kept = self._kept_trial(spec)
+        if kept is not None and kept[1] is not None:
+            out = kept
+        else:
+            des = self.design(spec)
+            out = des, cross_validate(des, self.fit_rows, self.folds, self.weights, self._sums)
+            self._sums = out[1].sums  # a search over the reference alone asks again with the same matrix
         if remember:
             self._cv_memo[spec.key] = out
         self._last_cv = (spec.key, out)
@@ -438,6 +462,7 @@ class Evaluator:
         other = copy.copy(self)
         other.designs = self.designs.for_another_lane()
         other._last_cv = other._sums = other._rss_sums = None
+        other._kept = {}
         return other
 
     def fit_hyper(self, spec: ModelSpec, eff: Effect,
@@ -478,9 +503,11 @@ class Evaluator:
         over ``eff`` is judged, when the searches after it ask for other models (the series of 10^6 samples of its
         trial values would stay beside theirs until pushed out)."""
         self.designs.forget(eff.name)
+        self._kept.clear()
 
     def _grid_search(self, spec: ModelSpec, eff: Effect) -> GridSearch:
         """:meth:`grid_search`."""
+        self._kept.clear()  # another search's trials
         if eff.hyper_grid(self.data) is None:
             _, cvr = self.cv(spec.plus(eff, None))
             return GridSearch(cvr.heldout, [], np.empty(0), np.empty(0), True)
@@ -503,6 +530,7 @@ class Evaluator:
         best_train = {ok: np.full(K, np.inf) for ok in (True, False)}
         best_at = {ok: np.full(K, len(grid)) for ok in (True, False)}  # grid index of each fold's best value
         seen: dict[int, tuple[bool | None, float]] = {}  # grid index -> (plausible, mean training RSS); None: not identified
+        lowest: dict[bool, tuple[float, int, Design, CvResult]] = {}  # of each kind, the visited value of least mean
         unidentified: list[str] = []
         # a step's time is a fold's choice only where that fold's training visits on each side span the frame
         fold_ok = self._step_sides(eff, grid, K) if eff.switched else None
@@ -528,6 +556,8 @@ class Evaluator:
                 at, res = cvr.fold_heldout(f)
                 set_rows(out, at, res)
             seen[i] = (ok, float(np.sum(cvr.train_rss) / max(K - 1, 1)))
+            if ok not in lowest or seen[i][1] < lowest[ok][0]:
+                lowest[ok] = (seen[i][1], i, des, cvr)
 
         def visit_all(batch: list[int]) -> None:
             todo = [i for i in batch if i not in seen]
@@ -543,6 +573,9 @@ class Evaluator:
             raise NotIdentifiedError("no value of the grid is identified (" + unidentified[0] + ")")
         use_ok = any(seen[i][0] for i in order)
         chosen = [i for i in order if seen[i][0] == use_ok]
+        best = chosen[first_min(np.asarray([seen[i][1] for i in chosen]))]  # the value ``final_value`` starts from
+        if lowest[use_ok][1] == best:
+            self._keep("walk", spec.plus(eff, float(grid[best])), *lowest[use_ok][2:])
         return GridSearch(heldout_of(use_ok), [(float(grid[i]), seen[i][1]) for i in order],
                           np.asarray([float(grid[i]) for i in chosen]), np.asarray([seen[i][1] for i in chosen]), use_ok)
 
@@ -562,14 +595,22 @@ class Evaluator:
         hi = grid[min(j + 1, len(grid) - 1)]
         h_best = float(grid[j])
         rss_at = search.rss_at  # the refinement and the parsimony check ask for some values again
+        least = [math.inf]  # the least in-sample RSS of a design worked out here, kept (``_keep``)
 
         def obj(h: float) -> float:
             if float(h) not in rss_at:
+                at = spec.plus(eff, float(h))
                 try:
-                    rss_at[float(h)], self._rss_sums = weighted_rss(self.design(spec.plus(eff, float(h))), self.fit_rows,
-                                                                    self.weights, self._rss_sums)
+                    des = self.design(at)
+                    rss_at[float(h)], self._rss_sums = weighted_rss(des, self.fit_rows, self.weights, self._rss_sums)
                 except NotIdentifiedError:
                     rss_at[float(h)] = math.inf
+                else:
+                    if eff.hyper_null is not None and float(h) == float(eff.hyper_null):
+                        self._keep("null", at, des, None)  # the value the parsimony check may keep
+                    elif rss_at[float(h)] < least[0]:
+                        least[0] = rss_at[float(h)]
+                        self._keep("refine", at, des, None)
             return rss_at[float(h)]
 
         if refine and hi > lo and not eff.switched:  # a switched effect's values are sample indices: none between them
