@@ -59,6 +59,7 @@ from .driver_parameters import (
 from .node_support import (
     c_stderr_held,
     declare_parameters,
+    destroyed_if_refused,
     init_ros,
     refuse_unknown_parameters,
     signal_wakes_executor,
@@ -141,8 +142,6 @@ class DriverNode(Node):
 
     def __init__(self, **node_options: Any) -> None:
         super().__init__(NODE_NAME, **node_options)
-        declare_parameters(self, PARAMETERS, writable=RUNTIME_PARAMETERS, integer_ranges=INTEGER_RANGES,
-                           float_ranges=FLOAT_RANGES, constraints=CONSTRAINTS)
         self.core: DriverCore | None = None
         self.link: SerialLink | None = None
         self.pub_imu: Publisher | None = None
@@ -151,10 +150,13 @@ class DriverNode(Node):
         self.pub_diag: Publisher | None = None
         self.timer: Any = None
         self._publishing = False
-        self.add_on_set_parameters_callback(self._on_set_parameters)
-        if not self.managed:
-            self._configure()
-            self._publishing = True
+        with destroyed_if_refused(self, self._cleanup):
+            declare_parameters(self, PARAMETERS, writable=RUNTIME_PARAMETERS, integer_ranges=INTEGER_RANGES,
+                               float_ranges=FLOAT_RANGES, constraints=CONSTRAINTS)
+            self.add_on_set_parameters_callback(self._on_set_parameters)
+            if not self.managed:
+                self._configure()
+                self._publishing = True
 
     def _data_publisher(self, msg_type: Any, topic: str) -> Publisher:
         return self.create_publisher(msg_type, topic, data_qos(), qos_overriding_options=_overridable())

@@ -1,6 +1,6 @@
 """What the two ROS shells (``driver_node`` here and the calibration package's ``calibration_node``) share:
-ROS start-up with a clear error, signals that only set a flag and wake the executor, and declaring a parameter table
-with descriptors.
+ROS start-up with a clear error, a node refused at start-up destroyed at once, signals that only set a flag and
+wake the executor, and declaring a parameter table with descriptors.
 
 Only the node modules import this (it imports rclpy); the ROS-free conventions (``StartupError``,
 ``--help``/``--version``, unknown-parameter messages) are in ``command_line``.
@@ -47,6 +47,24 @@ def init_ros(prog: str, argv: list[str]) -> None:
             rclpy.init(args=[prog, *argv], signal_handler_options=SignalHandlerOptions.NO)
     except Exception as exc:  # RCLError (not exported): its text is the only useful part
         raise StartupError(f"invalid ROS arguments {argv}: {first_line(exc)}") from None
+
+
+@contextmanager
+def destroyed_if_refused(node: Node, cleanup: Callable[[], None] | None = None) -> Iterator[None]:
+    """The body of a node's constructor after rclpy's own: if it raises (a refused parameter or plan), ``cleanup``
+    (the threads the body started) and ``destroy_node`` end what rclpy already made (parameter services, a rosout
+    publisher) before the exception leaves the constructor. Nothing else would: the half-built node is held only by
+    the exception's frames, and the garbage collector destroys it whenever they go, in a process perhaps after its
+    context has shut down, where Fast DDS can hang on handles destroyed out of order (rclpy issue #456)."""
+    try:
+        yield
+    except BaseException:
+        try:
+            if cleanup is not None:
+                cleanup()
+        finally:
+            node.destroy_node()
+        raise
 
 
 class ShutdownSignal:

@@ -318,11 +318,12 @@ def missing_between(at: np.ndarray) -> int:
 
 
 def refused_side_by_side(cases: dict[str, tuple[tuple[str, ...], tuple[str, ...]]],
-                         timeout: float = 60) -> dict[str, subprocess.CompletedProcess]:
+                         timeout: float = 20) -> dict[str, subprocess.CompletedProcess]:
     """The node started once per case (its ``params`` (-p) and ``remaps`` (-r)), every case at once: each must refuse
     to start, exit 2, within ``timeout`` s per case (all of them together: the budget of the cases one after the
-    other). A refusal costs the start-up of rclpy (~1 s of CPU): side by side the cases take about the time of one
-    per core, not of all of them one after the other."""
+    other, within the module's pytest timeout, so that a case that never exits is named with what it printed). A
+    refusal costs the start-up of rclpy (~1 s of CPU): side by side the cases take about the time of one per core,
+    not of all of them one after the other."""
     procs = {}
     deadline = time.monotonic() + timeout * len(cases)
     try:
@@ -332,7 +333,13 @@ def refused_side_by_side(cases: dict[str, tuple[tuple[str, ...], tuple[str, ...]
             procs[name] = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         out = {}
         for name, proc in procs.items():
-            stdout, stderr = proc.communicate(timeout=max(1.0, deadline - time.monotonic()))
+            try:
+                stdout, stderr = proc.communicate(timeout=max(1.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                stdout, stderr = proc.communicate(timeout=10)
+                raise AssertionError(f"{name}: still running {timeout * len(cases):g} s after the start of "
+                                     f"{len(cases)} refusals side by side; it printed:\n{stdout + stderr}") from None
             assert proc.returncode == 2, (name, stdout + stderr)
             out[name] = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
         return out

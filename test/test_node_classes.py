@@ -45,19 +45,18 @@ def port(tmp_path: Path) -> str:
     return str(tmp_path / "no_board_here")
 
 
-def built_or_refused(make: Callable[[], Node], built: list[Any]) -> Any:
-    """``make()``'s node, kept in ``built`` for the fixture to end; a node whose constructor raised (a refused
-    parameter) is kept too, taken from the exception's frames: rclpy made it (parameter services, a rosout publisher,
-    perhaps a reader thread) before the refusal, and only ``destroy_node`` ends it."""
+def built_or_refused(make: Callable[[], Node], built: list[Any], ros: Context, name: str) -> Any:
+    """``make()``'s node, kept in ``built`` for the fixture to end. A node whose constructor raised (a refused
+    parameter) must already have left ``ros``'s graph when the refusal reaches the caller, while the exception (whose
+    frames hold the half-built node) is still held: rclpy made it (parameter services, a rosout publisher, perhaps a
+    reader thread) before the refusal. Left to the garbage collector, it was destroyed whenever the exception went,
+    in a process after its context had shut down, where Fast DDS could hang (a refused ``calibration`` process that
+    printed its error and never exited)."""
+    before = len(nodes_left(ros, name))  # the nodes of this name built earlier in the test and still alive
     try:
         node = make()
-    except Exception as exc:
-        tb = exc.__traceback__
-        while tb is not None:
-            half = tb.tb_frame.f_locals.get("self")
-            if isinstance(half, Node) and half not in built:
-                built.append(half)
-            tb = tb.tb_next
+    except Exception:
+        assert len(nodes_left(ros, name)) == before, f"a refused {name} node is still in the graph"
         raise
     built.append(node)
     return node
@@ -81,7 +80,7 @@ def make_driver(ros: Context, port: str) -> Iterator[Any]:
 
     def make(cls: type[DriverNode] = DriverNode, **values: Any) -> DriverNode:
         return built_or_refused(lambda: cls(context=ros, parameter_overrides=overrides(**({"port": port} | values))),
-                                built)
+                                built, ros, driver_node.NODE_NAME)
 
     yield make
     for node in built:
@@ -288,7 +287,7 @@ def make_calibration(ros: Context, tmp_path: Path) -> Iterator[Any]:
         base = {"plan_file": str(PLAN), "output_dir": str(tmp_path), "run_label": "inproc", "progress": False}
         args = {"cli_args": ["--ros-args", *[a for r in remaps for a in ("-r", r)]]} if remaps else {}
         return built_or_refused(lambda: CalibrationNode(context=ros, parameter_overrides=overrides(**(base | values)),
-                                                        **args), built)
+                                                        **args), built, ros, calibration_node.NODE_NAME)
 
     yield make
     for node in built:

@@ -37,6 +37,7 @@ from fbg_accel_driver.command_line import StartupError, check_name_text
 from fbg_accel_driver.driver_core import RAW_AUX_NAME, RAW_NAMES
 from fbg_accel_driver.node_support import (
     declare_parameters,
+    destroyed_if_refused,
     init_ros,
     refuse_unknown_parameters,
     signal_wakes_executor,
@@ -119,6 +120,11 @@ class CalibrationNode(Node):
 
     def __init__(self, **node_options: Any) -> None:
         super().__init__(NODE_NAME, **node_options)
+        with destroyed_if_refused(self):
+            self._start()
+
+    def _start(self) -> None:
+        """Read and check the parameters, load the plan, open the recording and subscribe (StartupError if refused)."""
         self.p = p = self._read_parameters()
         self.end_reason = ""  # why the node itself ended the run (the stream stopped), for the run_end record
         try:
