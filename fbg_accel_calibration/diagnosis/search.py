@@ -412,7 +412,7 @@ class Evaluator:
         if kept is not None and kept[1] is not None:
             out = kept
         else:
-            des = self.design(spec)
+            des = kept[0] if kept is not None else build_design(self.data, spec, self.designs, self.sub)
             out = des, cross_validate(des, self.fit_rows, self.folds, self.weights, self._sums)
             self._sums = out[1].sums  # a search over the reference alone asks again with the same matrix
         if remember:
@@ -595,23 +595,25 @@ class Evaluator:
         hi = grid[min(j + 1, len(grid) - 1)]
         h_best = float(grid[j])
         rss_at = search.rss_at  # the refinement and the parsimony check ask for some values again
-        least = [math.inf]  # the least in-sample RSS of a design worked out here, kept (``_keep``)
+        least = math.inf  # the least in-sample RSS of a design worked out here, kept (``_keep``)
 
         def obj(h: float) -> float:
-            if float(h) not in rss_at:
-                at = spec.plus(eff, float(h))
+            nonlocal least
+            h = float(h)
+            if h not in rss_at:
+                at = spec.plus(eff, h)
                 try:
                     des = self.design(at)
-                    rss_at[float(h)], self._rss_sums = weighted_rss(des, self.fit_rows, self.weights, self._rss_sums)
+                    rss_at[h], self._rss_sums = weighted_rss(des, self.fit_rows, self.weights, self._rss_sums)
                 except NotIdentifiedError:
-                    rss_at[float(h)] = math.inf
+                    rss_at[h] = math.inf
                 else:
-                    if eff.hyper_null is not None and float(h) == float(eff.hyper_null):
+                    if eff.hyper_null is not None and h == float(eff.hyper_null):
                         self._keep("null", at, des, None)  # the value the parsimony check may keep
-                    elif rss_at[float(h)] < least[0]:
-                        least[0] = rss_at[float(h)]
+                    elif rss_at[h] < least:
+                        least = rss_at[h]
                         self._keep("refine", at, des, None)
-            return rss_at[float(h)]
+            return rss_at[h]
 
         if refine and hi > lo and not eff.switched:  # a switched effect's values are sample indices: none between them
             res = optimize.minimize_scalar(obj, bounds=(float(lo), float(hi)), method="bounded",
