@@ -47,17 +47,19 @@ HEAD = ("| recording | samples | added (every candidate refined) | same added, s
         "value | their values' largest relative difference | CPU: every one refined | CPU: default |")
 
 
-def _candidates(res: DiagnosisResult) -> dict[tuple[int, str], object]:
+def candidates_by_step(res: DiagnosisResult) -> dict[tuple[int, str], object]:
+    """Every candidate of every step, by (step, name)."""
     return {(st.step, c.name): c for st in res.steps for c in st.candidates}
 
 
-def _rel(a: float, b: float) -> float:
+def relative_difference(a: float, b: float) -> float:
+    """|a - b| relative to the larger of the two (0 when equal)."""
     return 0.0 if a == b else abs(a - b) / max(abs(a), abs(b))
 
 
 def compare(every: DiagnosisResult, default: DiagnosisResult) -> dict:
     """What differs between the diagnosis with every candidate refined and the default."""
-    a, b = _candidates(every), _candidates(default)
+    a, b = candidates_by_step(every), candidates_by_step(default)
     same_verdicts = a.keys() == b.keys() and all(
         (x.applicable, x.significant, bool(x.implausible), x.refusal)
         == (b[k].applicable, b[k].significant, bool(b[k].implausible), b[k].refusal) for k, x in a.items())
@@ -67,9 +69,9 @@ def compare(every: DiagnosisResult, default: DiagnosisResult) -> dict:
               float(np.max(np.abs(np.asarray(every.calibration.b) - np.asarray(default.calibration.b)))))
     return {"same_added": [tuple(x[:2]) for x in every.added] == [tuple(x[:2]) for x in default.added],
             "same_verdicts": same_verdicts, "calibration": cal, "left": len(left), "of": len(tested),
-            "gain": max((_rel(a[k].rel_gain, b[k].rel_gain) for k in tested), default=0.0),
-            "p": max((_rel(a[k].p_value, b[k].p_value) for k in tested), default=0.0),
-            "hyper": max((_rel(a[k].hyper, b[k].hyper) for k in left), default=0.0)}
+            "gain": max((relative_difference(a[k].rel_gain, b[k].rel_gain) for k in tested), default=0.0),
+            "p": max((relative_difference(a[k].p_value, b[k].p_value) for k in tested), default=0.0),
+            "hyper": max((relative_difference(a[k].hyper, b[k].hyper) for k in left), default=0.0)}
 
 
 def check(name: str, rec: Recording, static: str) -> tuple[str, bool]:

@@ -1074,9 +1074,10 @@ def _worst_visit_times(md: str) -> list[float]:
     return [float(row.strip("|").split("|")[col]) for row in table[2:]]
 
 
-def search_walk(n: int, seen: dict, best_at: np.ndarray):
-    """The indices of ``search_batches`` one by one (each batch is made once the one before is visited)."""
-    for batch in search_batches(n, seen, best_at):
+def search_walk(n: int, seen: dict, best_at: np.ndarray, start: tuple[int, ...] = ()):
+    """The indices of ``search_batches`` (from ``start``) one by one (each batch is made once the one before is
+    visited)."""
+    for batch in search_batches(n, seen, best_at, start):
         yield from batch
 
 
@@ -1108,13 +1109,15 @@ def _neighbours(seen: dict, b: int) -> tuple[int | None, int | None]:
     return (ok[j - 1] if j else None), (ok[j + 1] if j + 1 < len(ok) else None)
 
 
+@pytest.mark.parametrize("start", ["stride", "elsewhere"])
 @pytest.mark.parametrize("seed", range(40))
-def test_the_search_walk_finds_what_visiting_every_value_finds(seed: int) -> None:
-    """Issue 8 §7: a hyper-parameter search visits every 4th grid value, then walks from the best ones
-    (``search_batches``). On the grids the diagnosis uses (10 to 37 values, 10 folds), with each fold's training RSS
-    falling then rising over the plausible values (their minima spread over the grid, ties, values that are not
-    plausible or not identified inside and at the ends), each fold's best value, the best mean and its plausible
-    neighbours (the refinement's bracket) are those of a visit of every value, in fewer visits."""
+def test_the_search_walk_finds_what_visiting_every_value_finds(seed: int, start: str) -> None:
+    """Issue 8 §7: a hyper-parameter search visits every 4th grid value, or the values where a search of the same
+    effect on the step before ended (issue 36), then walks from the best ones (``search_batches``). On the grids the
+    diagnosis uses (10 to 37 values, 10 folds), with each fold's training RSS falling then rising over the plausible
+    values (their minima spread over the grid, ties, values that are not plausible or not identified inside and at the
+    ends), each fold's best value, the best mean and its plausible neighbours (the refinement's bracket) are those of a
+    visit of every value, from any start (here one to three values anywhere on the grid, plausible or not)."""
     rng = np.random.default_rng(seed)
     n, K = int(rng.choice([10, 16, 22, 25, 28, 37])), 10
     plausible = rng.random(n) > (0.3 if seed % 3 == 0 else 0.0)
@@ -1135,7 +1138,8 @@ def test_the_search_walk_finds_what_visiting_every_value_finds(seed: int) -> Non
     if seed % 6 == 3:
         train[rng.choice(not_plausible, min(2, len(not_plausible)), replace=False) if len(not_plausible) else []] = np.nan
     every = _walk(n, train, plausible, lambda n, seen, best: iter(range(n)))
-    walked = _walk(n, train, plausible, search_walk)
+    begin = tuple(int(i) for i in rng.choice(n, rng.integers(1, 4), replace=False)) if start == "elsewhere" else ()
+    walked = _walk(n, train, plausible, lambda n, seen, best: search_walk(n, seen, best, begin))
     np.testing.assert_array_equal(walked[1], every[1])
     assert walked[2] == every[2]
     assert _neighbours(walked[0], walked[2]) == _neighbours(every[0], every[2])
@@ -1152,6 +1156,36 @@ def test_the_search_walk_visits_about_half_the_grid_when_the_folds_agree(n: int)
         assert len(visits) <= len(range(0, n, 4)) + 1 + 6, (centre, visits)
 
 
+@pytest.mark.parametrize("n", [16, 22, 25, 28, 37])
+def test_a_search_walk_from_where_the_last_one_ended_visits_that_range_and_one_value_on_each_side(n: int) -> None:
+    """A candidate's search on the next step's model starts where its last search ended (each fold's best and the best
+    mean: ``GridSearch.walked_to``). Where its minima have not moved, the walk visits the values from the lowest of
+    them to the highest and one more on each side, wherever they lie on the grid: a few values, not every 4th."""
+    rng = np.random.default_rng(n)
+    for centre in np.linspace(-1.0, n, 23):
+        train = (np.arange(n)[:, None] - centre - rng.normal(0.0, 0.3, 10)) ** 2
+        _, best, mean_best, _ = _walk(n, train, np.ones(n, bool), search_walk)
+        ended = tuple(sorted(set(best.tolist()) | {mean_best}))
+        again = _walk(n, train, np.ones(n, bool), lambda n, seen, b, ended=ended: search_walk(n, seen, b, ended))
+        np.testing.assert_array_equal(again[1], best)
+        assert sorted(again[3]) == list(range(max(ended[0] - 1, 0), min(ended[-1] + 2, n))), (centre, ended, again[3])
+
+
+def test_a_search_walk_from_values_none_of_them_plausible_goes_on_from_every_4th_value() -> None:
+    """Where no value a search starts from is plausible on the new model, it visits every 4th value next, as a search
+    with no start does, and every value when none of those is plausible either."""
+    n = 25
+    plausible = np.ones(n, bool)
+    plausible[:6] = False
+    train = (np.arange(n)[:, None] - 17.0) ** 2 * np.ones((1, 10))
+    _, best, _, visits = _walk(n, train, plausible, lambda n, seen, b: search_walk(n, seen, b, (2, 3)))
+    assert visits[:2] == [2, 3] and visits[2:9] == [0, 4, 8, 12, 16, 20, 24] and set(best) == {17}
+    plausible[:] = False
+    plausible[13] = True
+    _, best, _, visits = _walk(n, np.ones((n, 10)), plausible, lambda n, seen, b: search_walk(n, seen, b, (2,)))
+    assert sorted(visits) == list(range(n)) and set(best) == {13}
+
+
 def test_a_search_walk_without_a_plausible_first_value_visits_every_value() -> None:
     """With no plausible value among the first visited, the search visits them all: it falls back on the
     implausible values only when the whole grid has none, and a narrow plausible range may lie between."""
@@ -1164,13 +1198,14 @@ def test_a_search_walk_without_a_plausible_first_value_visits_every_value() -> N
 
 
 def test_the_diagnosis_with_the_search_walk_is_the_diagnosis_visiting_every_grid_value(monkeypatch) -> None:
-    """The walk changes no result of a diagnosis (issue 8 §7): the same effects, hyper-parameters, gains, p-values
-    and calibration to the last bit as with every grid value visited, on a case with two steps of searches."""
+    """The walk from every 4th value changes no result of a diagnosis (issue 8 §7): the same effects,
+    hyper-parameters, gains, p-values and calibration to the last bit as with every grid value visited, on a case with
+    two steps of searches."""
     import fbg_accel_calibration.diagnosis.search as engine
 
     rec = synthetic(9, channel_dark=300.0, power_ramp=-0.05)
-    walked = confounded_diagnosis()  # diagnose(rec, static="table"), with the walk (before the patch below)
-    monkeypatch.setattr(engine, "search_batches", lambda n, seen, best: iter([list(range(n))]))
+    walked = diagnose(rec, static="table", walk_from_last_step=False)  # with the walk (before the patch below)
+    monkeypatch.setattr(engine, "search_batches", lambda n, seen, best, start=(): iter([list(range(n))]))
     every = diagnose(rec, static="table")
     assert walked.added and walked.added == every.added and len(walked.steps) >= 2
     for a, b in zip(walked.steps, every.steps, strict=True):
@@ -1178,6 +1213,40 @@ def test_the_diagnosis_with_the_search_walk_is_the_diagnosis_visiting_every_grid
             [(c.name, c.hyper, c.rel_gain, c.p_value) for c in b.candidates]
     np.testing.assert_array_equal(walked.calibration.M, every.calibration.M)
     np.testing.assert_array_equal(walked.calibration.b, every.calibration.b)
+
+
+def test_searches_that_start_where_the_last_step_ended_decide_and_fit_what_searches_from_every_4th_value_do(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 36: after the first step, a candidate's searches walk its grid from where its search of the step before
+    ended (``walk_from_last_step``), not from every 4th value. On a case with two steps of searches: the same effects
+    with the same values, the same calibration bit for bit, every candidate judged the same and valued the same, in
+    fewer designs. (A fold whose training RSS has two minima can end at the other one: the held-out gain of a
+    candidate that does not pass its test may then differ, which ``bench/walk_start_check.py`` measures.)"""
+    from fbg_accel_calibration.diagnosis import search as search_module
+
+    rec = synthetic(9, channel_dark=300.0, power_ramp=-0.05)
+    built: list[int] = []
+    build = search_module.build_design
+
+    def counted(data, spec, cache=None, sub=None):
+        built.append(1)
+        return build(data, spec, cache, sub)
+
+    monkeypatch.setattr(search_module, "build_design", counted)
+    warm = diagnose(rec, static="table", lanes=1)
+    n_warm = len(built)
+    built.clear()
+    cold = diagnose(rec, static="table", lanes=1, walk_from_last_step=False)
+    assert warm.added == cold.added and warm.added and len(warm.steps) >= 2
+    np.testing.assert_array_equal(warm.calibration.M, cold.calibration.M)
+    np.testing.assert_array_equal(warm.calibration.b, cold.calibration.b)
+
+    def judged(res: DiagnosisResult) -> list[tuple]:
+        return [(st.step, c.name, c.applicable, c.significant, c.implausible, c.hyper)
+                for st in res.steps for c in st.candidates]
+
+    assert judged(warm) == judged(cold)
+    assert n_warm < len(built), (n_warm, len(built))
 
 
 def test_a_campaign_with_no_pose_held_is_refused_saying_every_sample_moved(tmp_path: Path, capsys) -> None:

@@ -259,7 +259,7 @@ def _fold_part(idx: np.ndarray, lo: int, hi: int, of: np.ndarray) -> np.ndarray:
     if hi > lo and rows[-1] - rows[0] == hi - lo - 1:
         return of[rows[0]:rows[-1] + 1]
     return rows_at(of, rows)
-SEARCH_STRIDE = 4  # a hyper-parameter search visits every 4th grid value first, then walks from the best (search_batches)
+SEARCH_STRIDE = 4  # a search with no start visits every 4th grid value first, then walks from the best (search_batches)
 
 
 # training RSS that differ by less than this fraction are equal up to rounding: the same fit computed in another
@@ -279,21 +279,29 @@ def first_min(values: np.ndarray) -> int:
     return int(np.flatnonzero(finite & (v <= lo + RSS_TIE_RTOL * abs(lo)))[0])
 
 
-def search_batches(n: int, seen: dict[int, tuple[bool | None, float]], best_at: np.ndarray) -> Iterator[list[int]]:
+def search_batches(n: int, seen: dict[int, tuple[bool | None, float]], best_at: np.ndarray,
+                   start: tuple[int, ...] = ()) -> Iterator[list[int]]:
     """Indices of a grid of ``n`` hyper-parameter values for a search to visit, chosen from what it has found so far,
     a batch at a time (the values of a batch do not depend on each other's results: ``Evaluator.cv_each``).
 
     The caller updates, after each index of a batch, ``seen`` (index -> (plausible, mean training RSS over the folds); plausible
     is None for a value that does not identify the model) and ``best_at`` ((K,) the index of the plausible value each
-    training fold fits best, ``n`` while none). First every ``SEARCH_STRIDE``-th value and the last one; then, batch
-    by batch, the nearest plausible value not yet visited on each side of each fold's best and of the best mean
-    (values not plausible or not identified are stepped over), until those are all visited. With no plausible value
-    among the first ones, every value is visited (the search then falls back on the implausible ones, which need the
-    whole grid). Each fold's best value, the best mean and its plausible neighbours are then those of a visit of
-    every value whenever each training RSS, over the plausible values in grid order, falls and then rises (one
-    minimum; ``test_the_search_walk_finds_what_visiting_every_value_finds``) with about half the visits on the
-    diagnosis's grids (a trial is a design and its cross-validation)."""
-    yield list(range(0, n, SEARCH_STRIDE)) + ([n - 1] if (n - 1) % SEARCH_STRIDE else [])
+    training fold fits best, ``n`` while none). First the values ``start`` (where a search of the same effect on
+    another model ended: ``GridSearch.walked_to``), or, with none, every ``SEARCH_STRIDE``-th value and the last one;
+    then, batch by batch, the nearest plausible value not yet visited on each side of each fold's best and of the
+    best mean (values not plausible or not identified are stepped over), until those are all visited. With no
+    plausible value among the ``start`` values, every ``SEARCH_STRIDE``-th value next; with none among those either,
+    every value (the search then falls back on the implausible ones, which need the whole grid). Each fold's best
+    value, the best mean and its plausible neighbours are then those of a visit of every value, from any start,
+    whenever each training RSS, over the plausible values in grid order, falls and then rises (one minimum;
+    ``test_the_search_walk_finds_what_visiting_every_value_finds``) with about half the visits on the diagnosis's
+    grids from the stride, and about a quarter from where the last search ended (a trial is a design and its
+    cross-validation)."""
+    stride = list(range(0, n, SEARCH_STRIDE)) + ([n - 1] if (n - 1) % SEARCH_STRIDE else [])
+    first = sorted({int(i) for i in start if 0 <= i < n})
+    yield first or stride
+    if first and not any(ok for ok, _ in seen.values()):
+        yield [i for i in stride if i not in seen]
     if not any(ok for ok, _ in seen.values()):
         yield [i for i in range(n) if i not in seen]
         return

@@ -142,7 +142,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
              degree: int | None = None, sensor_id: str = "unknown", seed: int = 0,
              progress: Callable[[str], None] | None = None, settle_s: float | None = None,
              search_rows: int | None = SEARCH_ROWS, lanes: int | None = None,
-             refine_every_candidate: bool = False) -> DiagnosisResult:
+             refine_every_candidate: bool = False, walk_from_last_step: bool = True) -> DiagnosisResult:
     """Run the whole diagnosis on a recording (see the module docstring). ``progress`` (optional) is called
     with the candidate's name after each candidate evaluation (the CLI's progress bar). ``settle_s`` (s):
     samples this close to the start of a visit are left out of the noise floor (``settled_mask``); None: the
@@ -157,6 +157,9 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     ``refine_every_candidate``: every candidate's hyper-parameter refined between its grid neighbours, not only those
     of the candidates that pass their step's test (``Evaluator.evaluate``; the others then report their grid's best
     value: nothing the diagnosis decides or fits depends on it, ``bench/refinement_check.py``).
+    ``walk_from_last_step``: a candidate's searches after the first step walk its grid from where its search of the
+    step before ended, not from every 4th value (the same values wherever each fold's training RSS has one minimum
+    over the grid; ``bench/walk_start_check.py`` compares the two).
 
     The algorithm: measure the floor; forward selection over the candidates by nested cross-validation over visits,
     with the checks each candidate declares; the final model on every sample; findings; the result the report
@@ -188,7 +191,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     # 2. forward selection over the candidates by nested cross-validation over visits, with their checks
     rules = Rules(alpha, min_rel_gain, max_effects, max_degree, degree is None and n_levels >= 2, folds)
     sel = forward_selection(data, spec, fold, floor, library, rules, search_rows, lanes, first_delay_check, progress,
-                            refine_every_candidate)
+                            refine_every_candidate, walk_from_last_step)
     data.drop_recent()
     return_free_memory()  # the search's corrected series and designs, before the declared model's design is rebuilt
     des0 = build_design(data, spec)  # the same matrix, bit for bit

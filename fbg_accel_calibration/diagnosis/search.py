@@ -158,6 +158,7 @@ class CandidateResult:
     # candidate that does not pass its step's test (``Evaluator.evaluate``)
     hyper_refined: bool = True
     hyper_profile: list[tuple[float, float]] = field(default_factory=list)  # (h, weighted RSS)
+    walked_to: tuple[int, ...] = ()  # where its search's walk over the grid ended (``GridSearch.walked_to``)
     heldout_rmse: np.ndarray | None = None  # (3,)
     rel_gain: float = 0.0  # fraction of the weighted held-out MSE removed
     p_value: float = 1.0
@@ -330,13 +331,16 @@ class GridSearch:
     mean training RSS over the folds) of every value visited that is identified; ``values`` (ascending) and ``rss``:
     those the final value is chosen among (the plausible ones, or every one when none is: ``plausible``); empty for an
     effect without a hyper-parameter. ``final`` (refined or not -> value) and ``rss_at`` (value -> in-sample RSS on all
-    rows): what ``Evaluator.final_value`` worked out of it."""
+    rows): what ``Evaluator.final_value`` worked out of it. ``walked_to``: the grid indices the walk ended at (each
+    fold's best plausible value and the best mean), where a search of the same effect on the next step's model starts
+    (``search_batches``)."""
 
     heldout: np.ndarray
     profile: list[tuple[float, float]]
     values: np.ndarray
     rss: np.ndarray
     plausible: bool
+    walked_to: tuple[int, ...] = ()
     final: dict[bool, float] = field(default_factory=dict)
     rss_at: dict[float, float] = field(default_factory=dict)
 
@@ -368,6 +372,9 @@ class Evaluator:
         # refinement's best value's design, the null value's; by slot ("walk", "refine", "null"): (model key,
         # design, fit or None)
         self._kept: dict[str, tuple[tuple, Design, CvResult | None]] = {}
+        # by effect name, the grid indices a search of it starts its walk from (``search_batches``): where its last
+        # step's search ended (``GridSearch.walked_to``), set between steps by ``forward_selection``; the lanes share it
+        self.walk_starts: dict[str, tuple[int, ...]] = {}
         self._sums: FoldSums | None = None
         self._rss_sums: RssSums | None = None
 
@@ -566,7 +573,7 @@ class Evaluator:
         picks = self._switch_picks(spec, eff, grid, fold_ok) if eff.switched else None
         visit_all(picks or [])
         if picks is None or not all(ok for ok, _ in seen.values()):  # an implausible or unidentified pick: the walk
-            for batch in search_batches(len(grid), seen, best_at[True]):
+            for batch in search_batches(len(grid), seen, best_at[True], self.walk_starts.get(eff.name, ())):
                 visit_all(batch)
         order = sorted(i for i in seen if seen[i][0] is not None)
         if not order:
@@ -576,8 +583,10 @@ class Evaluator:
         best = chosen[first_min(np.asarray([seen[i][1] for i in chosen]))]  # the value ``final_value`` starts from
         if lowest[use_ok][1] == best:
             self._keep("walk", spec.plus(eff, float(grid[best])), *lowest[use_ok][2:])
+        walked_to = tuple(sorted({int(b) for b in best_at[True] if b < len(grid)} | {best}))
         return GridSearch(heldout_of(use_ok), [(float(grid[i]), seen[i][1]) for i in order],
-                          np.asarray([float(grid[i]) for i in chosen]), np.asarray([seen[i][1] for i in chosen]), use_ok)
+                          np.asarray([float(grid[i]) for i in chosen]), np.asarray([seen[i][1] for i in chosen]), use_ok,
+                          walked_to)
 
     def final_value(self, spec: ModelSpec, eff: Effect, search: GridSearch, refine: bool = True) -> float | None:
         """The value of ``eff``'s hyper-parameter on top of ``spec`` (None: it has none): the best of ``search``'s
@@ -721,7 +730,7 @@ class Evaluator:
         # what the candidate explains of the current residual (reference changes count too: delay, TIA)
         delta = (base_G - des.G) + (cvr.fitted_full - base_fitted)
         corr = np.array([_corr(base_heldout[r, j], delta[r, j]) for j in range(3)])
-        out.hyper, out.hyper_profile = h, profile
+        out.hyper, out.hyper_profile, out.walked_to = h, profile, search.walked_to
         out.heldout_rmse = np.sqrt(np.mean(rows_at(heldout, r) ** 2, axis=0))
         out.rel_gain, out.p_value, out.n_groups = gain, p, ng
         out.corr_with_residual = corr

@@ -182,13 +182,15 @@ def delay_cross_check(data: DiagnosisData, candidates: list[Effect] | tuple[Effe
 def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: FloorMeasurement,
                       library: tuple[Effect, ...], rules: Rules, search_rows: int | None, lanes: int | None,
                       first_delay_check: Future[float] | None, progress: Callable[[str], None] | None,
-                      refine_every_candidate: bool = False) -> Selection:
+                      refine_every_candidate: bool = False, walk_from_last_step: bool = True) -> Selection:
     """Add the best significant candidate on top of ``spec`` and repeat (see the module docstring).
     ``first_delay_check``: the channel delay's cross-check of ``spec`` (``delay_cross_check`` of the declared model's
     in-sample fit on every sample), None when the channel delay is not a candidate. Above
     ``search_rows`` fitted samples the candidates are evaluated on every k-th one (``search_samples``); ``lanes``:
     searches side by side (None: ``default_lane_count()`` from ``LANE_SEARCH_ROWS`` searched samples on);
-    ``refine_every_candidate``: ``Evaluator.refine_every``."""
+    ``refine_every_candidate``: ``Evaluator.refine_every``. ``walk_from_last_step``: a candidate's searches after the
+    first step start their walk over the grid where its search of the step before ended (``Evaluator.walk_starts``);
+    False: every search starts from every 4th grid value."""
     groups, weights = data.group, 1.0 / np.maximum(floor.noise, 1e-12) ** 2
     fit_rows = data.use & (fold != -1)  # fitted (also the visits never held out, fold -2)
     # a search thinned to fewer rows keeps most of what a visit's samples tell of its mean (the noise is correlated)
@@ -225,6 +227,8 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
         results = searchers.map(partial(_evaluate_on, spec, *base, ctx.alpha_each, rules.min_rel_gain, seconds), remaining,
                                 None if progress is None else lambda r: progress(r.name),
                                 cost=lambda e, model=spec: 0.0 if sel.remembers(model, e) else seconds.get(e.name, 0.0))
+        if walk_from_last_step:  # each candidate's next searches start where this one ended (the lanes share them)
+            sel.walk_starts.update({r.name: r.walked_to for r in results if r.walked_to})
         if xcorr_later is not None:
             for r in results:
                 if r.name == "channel_delay" and r.applicable:
