@@ -1171,6 +1171,19 @@ def test_a_search_walk_from_where_the_last_one_ended_visits_that_range_and_one_v
         assert sorted(again[3]) == list(range(max(ended[0] - 1, 0), min(ended[-1] + 2, n))), (centre, ended, again[3])
 
 
+@pytest.mark.parametrize("n", [16, 22, 25, 28, 37])
+def test_a_search_walk_whose_minimum_moved_far_from_its_start_visits_every_4th_value_not_each_between(n: int) -> None:
+    """On the next step's model a candidate's minimum can move across the grid (a channel delay on top of the TIA
+    low-pass, which explains what it took): once the walk's bests are two values from where it started, it visits
+    every 4th value with its next batch, then walks from the best of those, as a search with no start does."""
+    for far in (1.0, 0.4 * n):
+        train = (np.arange(n)[:, None] - far + np.linspace(-0.3, 0.3, 10)) ** 2
+        _, best, _, visits = _walk(n, train, np.ones(n, bool), lambda n, seen, b: search_walk(n, seen, b, (n - 2,)))
+        every = _walk(n, train, np.ones(n, bool), lambda n, seen, b: iter(range(n)))
+        np.testing.assert_array_equal(best, every[1])
+        assert len(visits) <= 3 + len(range(0, n, 4)) + 1 + 4, (far, visits)
+
+
 def test_a_search_walk_from_values_none_of_them_plausible_goes_on_from_every_4th_value() -> None:
     """Where no value a search starts from is plausible on the new model, it visits every 4th value next, as a search
     with no start does, and every value when none of those is plausible either."""

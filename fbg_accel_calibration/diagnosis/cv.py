@@ -291,7 +291,8 @@ def search_batches(n: int, seen: dict[int, tuple[bool | None, float]], best_at: 
     then, batch by batch, the nearest plausible value not yet visited on each side of each fold's best and of the
     best mean (values not plausible or not identified are stepped over), until those are all visited. With no
     plausible value among the ``start`` values, every ``SEARCH_STRIDE``-th value next; with none among those either,
-    every value (the search then falls back on the implausible ones, which need the whole grid). Each fold's best
+    every value (the search then falls back on the implausible ones, which need the whole grid). A walk from ``start``
+    whose bests have moved two values from it visits every ``SEARCH_STRIDE``-th value with its next batch. Each fold's best
     value, the best mean and its plausible neighbours are then those of a visit of every value, from any start,
     whenever each training RSS, over the plausible values in grid order, falls and then rises (one minimum;
     ``test_the_search_walk_finds_what_visiting_every_value_finds``) with about half the visits on the diagnosis's
@@ -300,8 +301,10 @@ def search_batches(n: int, seen: dict[int, tuple[bool | None, float]], best_at: 
     stride = list(range(0, n, SEARCH_STRIDE)) + ([n - 1] if (n - 1) % SEARCH_STRIDE else [])
     first = sorted({int(i) for i in start if 0 <= i < n})
     yield first or stride
-    if first and not any(ok for ok, _ in seen.values()):
+    strided = not first
+    if not strided and not any(ok for ok, _ in seen.values()):
         yield [i for i in stride if i not in seen]
+        strided = True
     if not any(ok for ok, _ in seen.values()):
         yield [i for i in range(n) if i not in seen]
         return
@@ -316,6 +319,10 @@ def search_batches(n: int, seen: dict[int, tuple[bool | None, float]], best_at: 
                     i += step
                 if 0 <= i < n and i not in seen:
                     todo.add(i)
+        if not strided and any(min(abs(b - f) for f in first) >= 2 for b in starts):
+            # a minimum moved on the new model: the stride finds its neighbourhood in one batch, not a value a batch
+            todo |= {i for i in stride if i not in seen}
+            strided = True
         if not todo:
             return
         yield sorted(todo)
