@@ -291,13 +291,13 @@ def search_batches(n: int, seen: dict[int, tuple[bool | None, float]], best_at: 
     then, batch by batch, the nearest plausible value not yet visited on each side of each fold's best and of the
     best mean (values not plausible or not identified are stepped over), until those are all visited. With no
     plausible value among the ``start`` values, every ``SEARCH_STRIDE``-th value next; with none among those either,
-    every value (the search then falls back on the implausible ones, which need the whole grid). A walk from ``start``
-    whose bests have moved two values from it visits every ``SEARCH_STRIDE``-th value with its next batch. Each fold's best
-    value, the best mean and its plausible neighbours are then those of a visit of every value, from any start,
-    whenever each training RSS, over the plausible values in grid order, falls and then rises (one minimum;
-    ``test_the_search_walk_finds_what_visiting_every_value_finds``) with about half the visits on the diagnosis's
-    grids from the stride, and about a quarter from where the last search ended (a trial is a design and its
-    cross-validation)."""
+    every value (the search then falls back on the implausible ones, which need the whole grid). A walk from
+    ``start`` whose bests have moved two values from it visits every ``SEARCH_STRIDE``-th value with its next batch.
+    Each fold's best value, the best mean and its plausible neighbours are then those of a visit of every value, from
+    any start, whenever each training RSS, over the plausible values in grid order, falls and then rises (one minimum;
+    ``test_the_search_walk_finds_what_visiting_every_value_finds``): from the stride in about half the visits on the
+    diagnosis's grids, from where the last search ended in 3-4 where its minimum has not moved (a trial is a design
+    and its cross-validation)."""
     stride = list(range(0, n, SEARCH_STRIDE)) + ([n - 1] if (n - 1) % SEARCH_STRIDE else [])
     first = sorted({int(i) for i in start if 0 <= i < n})
     yield first or stride
