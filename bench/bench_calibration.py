@@ -153,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     add_update_results(ap)
     args = ap.parse_args(argv)
     args.output = args.output or results_dir(args.update_results) / "calibration.json"
-    from fbg_accel_calibration.diagnosis.heap_trim import set_process_heap_policy
+    from fbg_accel_calibration.diagnosis.heap_policy import set_process_heap_policy
 
     set_process_heap_policy()  # as the diagnose command sets it (its entry point's policy)
 
@@ -192,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
         sec, use1 = time.perf_counter() - t0, resource.getrusage(resource.RUSAGE_SELF)
         steps["diagnose"] = {"seconds": sec, "samples_per_s": len(rec) / sec, "search_rows": args.search_rows,
                              "lanes": args.lanes, "user_seconds": use1.ru_utime - use0.ru_utime,
-                             "system_seconds": use1.ru_stime - use0.ru_stime,  # mostly page faults (heap_trim)
+                             "system_seconds": use1.ru_stime - use0.ru_stime,  # mostly page faults (heap_policy)
                              "page_faults": use1.ru_minflt - use0.ru_minflt,
                              "degree": res.degree,
                              "ranked": [c.name for c in res.ranked][:5], "added": [a[0] for a in res.added],

@@ -69,7 +69,7 @@ def diagnosis_alone(path: str, exit_frozen: bool = False, lanes: int | None = No
     ``exit_frozen`` what is alive at the end frozen out of the interpreter's last collections, as the command does
     (``cli_main._freeze_at_exit``); ``lanes``: the searches side by side (None: the command's default)."""
     from fbg_accel_calibration.diagnosis.diagnose import diagnose
-    from fbg_accel_calibration.diagnosis.heap_trim import set_process_heap_policy
+    from fbg_accel_calibration.diagnosis.heap_policy import set_process_heap_policy
     from fbg_accel_calibration.io.input_files import load_recording
 
     set_process_heap_policy()
@@ -93,7 +93,7 @@ def breakdown(path: str, out: str, figures: str = "report") -> None:
         t = now
 
     from fbg_accel_calibration.diagnosis.diagnose import diagnose
-    from fbg_accel_calibration.diagnosis.heap_trim import set_process_heap_policy
+    from fbg_accel_calibration.diagnosis.heap_policy import set_process_heap_policy
     from fbg_accel_calibration.io.input_files import load_recording
 
     set_process_heap_policy()

@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     from diagnose_command import recording
 
     from fbg_accel_calibration.diagnosis.diagnose import diagnose
-    from fbg_accel_calibration.diagnosis.heap_trim import set_process_heap_policy
+    from fbg_accel_calibration.diagnosis.heap_policy import set_process_heap_policy
     from fbg_accel_calibration.io.input_files import load_recording
 
     with tempfile.TemporaryDirectory() as tmp:

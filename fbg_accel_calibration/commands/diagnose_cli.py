@@ -139,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ..diagnosis.diagnose import diagnose
-    from ..diagnosis.heap_trim import set_process_heap_policy
+    from ..diagnosis.heap_policy import set_process_heap_policy
     from ..diagnosis.search import SEARCH_ROWS
     from ..fit.thermal_fit import check_recording_excitation
     from ..reports.diagnose_report import text

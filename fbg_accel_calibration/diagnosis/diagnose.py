@@ -71,7 +71,7 @@ from .findings import (
     recording_findings,
 )
 from .floor import SettlingTransient, measure_floor
-from .heap_trim import return_free_memory
+from .heap_policy import return_free_memory
 from .library import LIBRARY
 from .periodic_disturbance import PeriodicDisturbance
 from .search import LANE_SEARCH_ROWS, SEARCH_ROWS, CandidateResult, check_search_rows
@@ -153,7 +153,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     None: ``default_lane_count()`` when at least ``LANE_SEARCH_ROWS`` samples are searched, one otherwise. With more
     than one (or, with None, from ``LANE_SEARCH_ROWS`` samples of the recording on, on a machine of two cores or more),
     the work before the first search uses a second thread too. The process's heap policy is its entry point's
-    (``heap_trim.set_process_heap_policy``: the command line sets it; the results do not depend on it).
+    (``heap_policy.set_process_heap_policy``: the command line sets it; the results do not depend on it).
     ``refine_every_candidate``: every candidate's hyper-parameter refined between its grid neighbours, not only those
     of the candidates that pass their step's test (``Evaluator.evaluate``; the others then report their grid's best
     value: nothing the diagnosis decides or fits depends on it, ``bench/refinement_check.py``).
@@ -166,7 +166,6 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     renders. It runs with one BLAS thread (``blas_threads``): its products of tall, narrow matrices gain nothing from more,
     and lose much when another process holds a core."""
     check_search_rows(search_rows)  # before seconds of work at 10^6 samples, not after
-    return_free_memory()  # what the caller dropped (a simulation, an MCAP read), before the diagnosis's arrays are made
     # a large recording's searches run side by side: until they start, the other core takes what it can
     side_by_side = (default_lane_count() > 1 and len(rec.t_s) >= LANE_SEARCH_ROWS) if lanes is None else int(lanes) > 1
     data = rec if isinstance(rec, DiagnosisData) else prepare_data(rec, static, beside_thread=side_by_side)
@@ -193,7 +192,7 @@ def diagnose(rec: Recording | DiagnosisData, *, static: str = "table", max_degre
     sel = forward_selection(data, spec, fold, floor, library, rules, search_rows, lanes, first_delay_check, progress,
                             refine_every_candidate, walk_from_last_step)
     data.drop_recent()
-    return_free_memory()  # the search's corrected series and designs, before the declared model's design is rebuilt
+    return_free_memory()  # the searches' free pages, before the final phase's designs of every sample (N x p) are mapped
     des0 = build_design(data, spec)  # the same matrix, bit for bit
     cv0 = cv0.on(des0)  # lets go of the design once both are worked out
     residual_before, fit_before = cv0.heldout, (des0.G, cv0.fitted_full)  # (the reference: a view of the recording's)

@@ -20,7 +20,6 @@ from .data import DiagnosisData, finite_rows
 from .design import Design, ModelSpec, build_design
 from .findings import Finding, flagged_visits
 from .floor import FloorMeasurement, VisitNoise, within_visit_noise
-from .heap_trim import return_free_memory
 from .search_lanes import beside
 from .structure import ResidualStructure, heldout_mean_null, heldout_visit_sums, residual_structure
 
@@ -116,7 +115,6 @@ def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: Flo
     r_eval = rows_f & finite_rows(residual_before) & finite_rows(cv_f.heldout)
     visit_sums = heldout_visit_sums(des_f.X, fit_rows & des_f.valid, r_eval, groups, fold)
     del des_f  # its design matrix (N x p) is let go before the residual's test
-    return_free_memory()  # and its pages given back (heap_trim)
     # the driver's path over every sample (N x 3), meanwhile the rest: not beside the design
     calibrated_later = beside(calibrated_output, cal, data, thread=thread)
     null = None if visit_sums is None else heldout_mean_null(visit_sums, cv_f.sums.xtx, cv_f.sums.XtX,

@@ -42,11 +42,10 @@ class Lanes(Generic[L]):
     the caller's thread, one after the other; more: each ``map`` starts as many threads as there are lanes and ends
     them before it returns (no thread outlives a map, none is left behind by an exception)."""
 
-    def __init__(self, lanes: list[L], after_map: Callable[[], object] | None = None) -> None:
+    def __init__(self, lanes: list[L]) -> None:
         if not lanes:
             raise ValueError("at least one lane")
         self.lanes = list(lanes)
-        self._after_map = after_map  # called once the tasks of a map of more than one lane have ended
 
     def map(self, task: Callable[[L, T], R], items: Iterable[T], done: Callable[[R], None] | None = None,
             cost: Callable[[T], float] | None = None) -> list[R]:
@@ -91,8 +90,6 @@ class Lanes(Generic[L]):
                     out.append(f.result())
                     if done is not None:
                         done(out[-1])
-        if self._after_map is not None:
-            self._after_map()
         if failed is not None:
             raise failed
         return out

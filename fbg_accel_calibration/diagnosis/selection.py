@@ -33,7 +33,6 @@ from .design import ModelSpec, fitted_output
 from .effects import Effect
 from .findings import Finding
 from .floor import FloorMeasurement
-from .heap_trim import return_free_memory
 from .library import separating_measurement
 from .search import (
     LANE_SEARCH_ROWS,
@@ -203,8 +202,7 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
     sel = Evaluator(data, fold, weights, groups, every, references=24 if step > 1 else 4,
                     refine_every=refine_every_candidate)
     n_lanes = (default_lane_count() if len(every) >= LANE_SEARCH_ROWS else 1) if lanes is None else int(lanes)
-    # the heap's free pages given back after each batch of searches side by side: what each search made and dropped
-    searchers = Lanes([sel] + [sel.lane() for _ in range(n_lanes - 1)], after_map=return_free_memory)
+    searchers = Lanes([sel] + [sel.lane() for _ in range(n_lanes - 1)])
     des_s, cv_s = sel.cv(spec)
     base = (cv_s.heldout, cv_s.fitted_full, des_s.G)
     del des_s, cv_s
@@ -292,7 +290,6 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
                                            if spec.degree != was else "") + "".join(f"; {n}" for n in notes)
         des_c, cv_c = sel.cv(spec)
         searchers.each(lambda ev, model=spec: ev.forget(model))
-        return_free_memory()  # what the step's searches dropped, before the next step's are made
         base, base_coefficients = (cv_c.heldout, cv_c.fitted_full, des_c.G), cv_c.A_full
         del des_c, cv_c  # the design (n x p) is not held beyond the evaluator's own caches
     # a term whose residual keeps structure no term has is a stand-in for an effect outside the library: not claimed

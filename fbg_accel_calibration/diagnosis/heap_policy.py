@@ -1,22 +1,19 @@
-"""Keep a diagnosis's resident memory near what it holds (glibc): hand the heap's free pages back to the system where
-it lets go of much at once (``malloc_trim``), let its threads share one heap (``M_ARENA_MAX``), and let that heap
-use the pages of freed arrays again instead of faulting in fresh ones (``M_MMAP_THRESHOLD``, ``M_TRIM_THRESHOLD``).
-
-numpy's arrays of up to 32 MiB come from the C heap once glibc has raised its mmap threshold (it does after the
-first large array is freed), and the heap keeps their pages when they are freed: after a search has made and dropped
-many corrected series of 10^6 samples, the process holds hundreds of MiB it no longer uses, and the next phase's
-arrays add to them (the peak resident memory). ``malloc_trim(0)`` gives back every free page of every arena, in
-about 10 ms. A thread that allocates while another does gets a heap (arena) of its own, whose free pages sit beside
-the first one's: the searches that run side by side (``search_lanes``) share one instead (bench_calibration at 10^6
-samples, three runs each: peak RSS 981-1044 MiB with an arena per thread, 951-973 MiB with one; the same time, the
-arrays being few and large).
+"""The heap policy of a process that diagnoses (glibc): its threads share one heap (``M_ARENA_MAX``), and that heap
+serves a freed array's pages to the next one instead of giving them back to be faulted in again (``M_MMAP_THRESHOLD``,
+``M_TRIM_THRESHOLD``). Set once by the entry point (the ``diagnose`` command; ``bench/``'s scripts that time or weigh
+the diagnosis as it runs there): a library call does not change its caller's allocator, and the diagnosis's results do
+not depend on it.
 
 A search makes and drops arrays of 10^5 to 10^6 samples by the thousand (designs of up to 40 MiB, corrected series of
 24 MiB). An array glibc maps on its own (above its mmap threshold, which it raises to 32 MiB at most) and every page
-a trim gave back are new pages the next array faults in, zeroed by the kernel (``bench_calibration.py`` reports the
-diagnosis's page faults and system time). ``keep_freed_pages`` sets the threshold to 64 MiB and lets the heap keep up
-to 64 MiB free at its top: the pages of what a search drops serve its next trial, and the trims after each batch of
-searches keep what the heap holds between batches from adding to the peak. Elsewhere than on glibc these do nothing.
+the heap gives back are new pages the next array faults in, zeroed by the kernel: system time, a few microseconds a
+page (``bench_calibration.py`` reports the diagnosis's page faults and system time). ``keep_freed_pages`` takes arrays
+of up to 64 MiB from the heap and lets it keep up to ``HEAP_TOP_BYTES`` free at its top, so that what a search drops
+serves its next trial. The peak resident memory is the peak of what the diagnosis holds, plus the heap's
+fragmentation: the heap grows only when what is alive outgrows it, and a search takes its arrays from the pages the
+one before freed (``bench/floors.py --only diagnose``: the peak at 10^6 samples against the 600 MiB goal). A thread
+that allocates while another does gets a heap (arena) of its own, whose free pages sit beside the first one's: the
+searches that run side by side (``search_lanes``) share one instead. Elsewhere than on glibc these do nothing.
 """
 
 from __future__ import annotations
@@ -30,7 +27,7 @@ _M_ARENA_MAX = -8  # glibc's mallopt parameters (malloc.h)
 _M_MMAP_THRESHOLD = -3
 _M_TRIM_THRESHOLD = -1
 HEAP_ARRAY_BYTES = 64 << 20  # arrays up to this size come from the heap (keep_freed_pages)
-HEAP_TOP_BYTES = 64 << 20  # free memory the heap keeps at its top (more would fault less but hold more at the peak)
+HEAP_TOP_BYTES = 256 << 20  # free memory the heap keeps at its top: a phase after a larger one takes its pages from it
 
 
 @functools.cache
