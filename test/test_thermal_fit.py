@@ -211,6 +211,20 @@ def test_cross_validation_chooses_the_true_degree_and_matches_explicit_refits() 
                                rtol=1e-6)
 
 
+def test_the_rss_of_some_cells_is_that_of_every_cell_at_those_cells_bit_for_bit() -> None:
+    """The held-out scores take the RSS of a fold's held-out cells alone: each cell's value from its own sums, the same
+    bits as among every cell's (the degree's choice compares them at no tolerance)."""
+    rng = np.random.default_rng(7)
+    M, b = _truth(2, rng)
+    rec = _simulate(M, b, (10.0, 20.0, 30.0, 40.0), center=25.0, scale=15.0, psi_noise=1e-4, n=30)
+    stats = prepare(rec, 3, usable=np.ones(len(rec), bool)).cell_stats(3)
+    for degree in range(4):
+        A = tf.solve_normal_equations(*stats.select(np.ones(len(stats.count), bool), degree)[:2])[0]
+        every = stats.cell_rss(A, degree)
+        for cells in [stats.pose == stats.pose[0], stats.level == stats.level[-1], rng.random(len(every)) < 0.3]:
+            assert np.array_equal(stats.cell_rss(A, degree, cells), every[cells])
+
+
 def test_three_levels_like_the_paper_never_pick_degree_three() -> None:
     rng = np.random.default_rng(5)
     M, b = _truth(3, rng)

@@ -134,7 +134,7 @@ def _held_out(stats: CellStats, groups: np.ndarray, degree: int, min_levels: int
             A = _fit_cells(stats, train, degree)
         except NotIdentifiedError:
             return np.full(3, np.nan), np.full(1, np.nan)
-        g_rss = stats.cell_rss(A, degree)[test].sum(axis=0)
+        g_rss = stats.cell_rss(A, degree, test).sum(axis=0)  # the held-out cells' alone
         g_n = stats.count[test].sum()
         rss += g_rss
         n += g_n

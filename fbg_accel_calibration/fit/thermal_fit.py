@@ -234,14 +234,17 @@ class CellStats:
         xtg = self.xtg[cells].sum(axis=0)[cols]
         return xtx, xtg, self.gtg[cells].sum(axis=0), float(self.count[cells].sum())
 
-    def cell_rss(self, A: np.ndarray, degree: int) -> np.ndarray:
-        """Residual sum of squares (C, 3) of coefficients A (degree ``degree``) on each cell."""
+    def cell_rss(self, A: np.ndarray, degree: int, cells: np.ndarray | None = None) -> np.ndarray:
+        """Residual sum of squares (C, 3) of coefficients A (degree ``degree``) on each cell; of the boolean ``cells``
+        alone (their values the same bit for bit: each cell's is its own sums'), None: of every cell."""
         cols = sub_columns(degree, self.degree)
-        xtx = self.xtx[:, cols][:, :, cols]
-        xtg = self.xtg[:, cols]
+        xtx, xtg, gtg = (self.xtx, self.xtg, self.gtg) if cells is None else (
+            self.xtx[cells], self.xtg[cells], self.gtg[cells])
+        xtx = xtx[:, cols][:, :, cols]
+        xtg = xtg[:, cols]
         quad = np.einsum("pi,cpq,qi->ci", A, xtx, A)
         lin = np.einsum("pi,cpi->ci", A, xtg)
-        return np.maximum(self.gtg - 2.0 * lin + quad, 0.0)
+        return np.maximum(gtg - 2.0 * lin + quad, 0.0)
 
     def visit_scatter(self, A: np.ndarray, degree: int) -> np.ndarray:
         """Sum of squared deviations (3,) of the calibrated output x A from the mean of its visit:
