@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import functools
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -636,6 +637,23 @@ def test_sums_kept_while_only_the_reference_changes_give_the_cross_validation_wo
     np.testing.assert_array_equal(cross_validate(designs[0], fewer, folds, w, cv_sums).heldout,
                                   cross_validate(designs[0], fewer, folds, w).heldout)
     assert weighted_rss(designs[0], fewer, w, rss_sums)[0] == weighted_rss(designs[0], fewer, w)[0]
+
+
+def test_the_rss_of_every_row_is_taken_of_the_design_itself_and_is_that_of_its_copy() -> None:
+    """A search's fitted rows are mostly every row of its design: the in-sample RSS then reads the matrix itself, not a
+    copy of its rows (14 MiB a trial at 5 x 10^4 rows), and gives what the copy's (C-ordered) products give."""
+    data = prepare_data(synthetic(4, dark=30.0))
+    spec = ModelSpec(1, 23.4, 1.0, [(library_by_name()["time_drift"], 300.0)])
+    des = build_design(data, spec, sub=np.flatnonzero(build_design(data, spec).valid))  # a search's: valid rows
+    rows = des.valid.copy()
+    assert rows.all()
+    w = np.array([1.0, 2.0, 3.0])
+    rss, sums = weighted_rss(des, rows, w)
+    assert sums.Xr is des.X
+    copied = replace(des, X=np.ascontiguousarray(des.X[rows]), G=des.G[rows], valid=np.ones(int(rows.sum()), bool))
+    assert rss == weighted_rss(copied, np.ones(int(rows.sum()), bool), w)[0]
+    some = rows & (np.arange(len(rows)) % 3 > 0)
+    assert weighted_rss(des, some, w)[1].Xr is not des.X
 
 
 def test_a_candidate_the_data_cannot_identify_is_reported_not_regularised() -> None:

@@ -388,9 +388,9 @@ class RssSums:
     """The fitted rows of one design matrix and their X^T X (``weighted_rss``), kept while a search changes the
     reference alone (the same matrix, ``DesignCache``)."""
 
-    X: weakref.ref  # the design matrix (N, p), compared by identity (not kept alive)
+    X: weakref.ref  # the design matrix (N, p), compared by identity
     rows: np.ndarray  # (N,) the fitted rows
-    Xr: np.ndarray  # (n, p) the matrix at those rows
+    Xr: np.ndarray  # (n, p) the matrix at those rows (the matrix itself when they are every row: then kept alive)
     XtX: np.ndarray  # (p, p)
 
 
@@ -399,10 +399,11 @@ def weighted_rss(des: Design, rows: np.ndarray, weights: np.ndarray,
     """Weighted in-sample RSS of the least-squares fit of ``des`` on ``rows`` (noise ``weights`` (3,) per axis),
     and the sums it used (``sums``: an earlier call's, used again when they are of the same matrix and rows)."""
     r = rows & des.valid
+    every = bool(r.all())  # every row (a search's fitted rows, mostly): the arrays themselves, no copy
     if sums is None or sums.X() is not des.X or not np.array_equal(sums.rows, r):
-        Xr = des.X[r]  # one copy, not three
+        Xr = des.X if every else des.X[r]  # one copy, not three (the products of either layout: the same bits)
         sums = RssSums(weakref.ref(des.X), r, Xr, Xr.T @ Xr)
-    X, G = sums.Xr, rows_at(des.G, r)
+    X, G = sums.Xr, des.G if every else rows_at(des.G, r)
     A = solve_normal_equations(sums.XtX, X.T @ G)[0]
     res = G - X @ A
     return float(np.sum(res**2 * weights)), sums
