@@ -11,7 +11,10 @@ page (``bench_calibration.py`` reports the diagnosis's page faults and system ti
 of up to 64 MiB from the heap and lets it keep up to ``HEAP_TOP_BYTES`` free at its top, so that what a search drops
 serves its next trial. The peak resident memory is the peak of what the diagnosis holds, plus the heap's
 fragmentation: the heap grows only when what is alive outgrows it, and a search takes its arrays from the pages the
-one before freed (``bench/floors.py --only diagnose``: the peak at 10^6 samples against the 600 MiB goal). A thread
+one before freed (``bench/floors.py --only diagnose``: the peak at 10^6 samples against the 600 MiB goal). One
+exception: ``diagnose`` gives the heap's free pages back once (``return_free_memory``), after its searches, before its
+final phase maps its designs of every sample on their own (N x p, above ``HEAP_ARRAY_BYTES``): kept, the searches'
+free pages would stand beside them at the peak (``bench/diagnose_memory.py``: 617 MiB without it, 545 MiB with). A thread
 that allocates while another does gets a heap (arena) of its own, whose free pages sit beside the first one's: the
 searches that run side by side (``search_lanes``) share one instead. Elsewhere than on glibc these do nothing.
 """
