@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fbg_accel_calibration.diagnosis.data import DiagnosisData, Inputs, rows_digest
+from fbg_accel_calibration.diagnosis.data import DiagnosisData, Inputs, group_index, rows_digest
 from fbg_accel_calibration.diagnosis.effects import ThermalLagEffect
 from fbg_accel_calibration.diagnosis.held_lowpass import _powers, held_cascade, held_lowpass, held_rows
 from fbg_accel_driver.correction_terms import sample_steps, uniform_coefficient
@@ -147,6 +147,20 @@ def test_the_held_filters_with_looked_up_powers_are_those_with_every_power_worke
     want = (held_lowpass(held, x[held.samples], a), *held_cascade(held, x[held.samples], a))
     for g, w in zip(got, want, strict=True):
         assert g.tobytes() == w.tobytes()
+
+
+@pytest.mark.parametrize("high", [3, 400, 10**8])
+def test_the_groups_counted_are_those_a_sort_finds(high: int) -> None:
+    """The gain tests group the searched rows (fold order, visit ids) by counting each id, not by sorting: the same
+    groups and the same row-to-group map as ``np.unique``, whatever the ids (a sparse or a negative one: by the sort)."""
+    rng = np.random.default_rng(high)
+    for n in (0, 1, 7, 5000):
+        for low in (0, -2):
+            labels = rng.integers(low, high, n)
+            want, got = np.unique(labels, return_inverse=True), group_index(labels)
+            assert got[0].dtype == want[0].dtype and got[1].dtype == want[1].dtype
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])
 
 
 def test_the_paired_gain_test_s_visit_means_are_group_mse_s() -> None:

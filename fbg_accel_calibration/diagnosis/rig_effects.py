@@ -153,7 +153,8 @@ class MountChangeEffect(Effect):
         return data.once("mount_change_runs", find)
 
     def applicable(self, data: DiagnosisData) -> tuple[bool, str]:
-        if len(np.unique(data.run_id[data.use])) < 2:
+        runs = data.run_id[data.use]
+        if not len(runs) or bool(np.all(runs == runs[0])):  # fewer than two runs
             return False, ("one run: a re-seat of the sensor between its temperature levels would be taken up by eq. "
                            "28's M(T) without a trace; record each level in a run of its own and repeat a level after "
                            "any re-seat")

@@ -36,7 +36,7 @@ from .cv import (
     switch_profile,
     weighted_rss,
 )
-from .data import DiagnosisData, finite_rows, rows_at, set_rows
+from .data import DiagnosisData, finite_rows, group_index, rows_at, set_rows
 
 # ============================================================================ data preparation
 from .design import (
@@ -200,7 +200,7 @@ def group_mse(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, weights: np
     """The groups (visits) of ``rows`` with a finite residual ``res`` (N, 3) m/s^2, and each group's mean of the
     per-sample squared residual weighted over the axes by ``weights`` (3,): (groups, (groups,) (m/s^2)^2)."""
     r = rows & finite_rows(res)
-    ug, inv = np.unique(groups[r], return_inverse=True)
+    ug, inv = group_index(groups[r])
     return ug, _group_means(inv, np.bincount(inv), rows_at(res, r) ** 2 * weights)
 
 
@@ -223,7 +223,7 @@ def paired_gain_test(res0: np.ndarray, res1: np.ndarray, groups: np.ndarray, row
     r = rows & finite_rows(res0) & finite_rows(res1)
     # group_mse of each residual on the rows where both are finite: the groups and each residual's weighted squares
     # worked out once for the means and the totals (the same values)
-    _, inv = np.unique(groups[r], return_inverse=True)
+    _, inv = group_index(groups[r])
     count = np.bincount(inv)
     e0, e1 = rows_at(res0, r) ** 2 * weights, rows_at(res1, r) ** 2 * weights
     m0, m1 = _group_means(inv, count, e0), _group_means(inv, count, e1)

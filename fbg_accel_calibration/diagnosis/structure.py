@@ -11,7 +11,7 @@ import numpy as np
 from scipy import stats
 
 from ..fit.thermal_fit import jacobi_solve
-from .data import DiagnosisData, direction_labels, finite_rows
+from .data import DiagnosisData, direction_labels, finite_rows, group_index
 
 # ============================================================================ data preparation
 from .floor import (
@@ -128,9 +128,9 @@ def heldout_visit_sums(X: np.ndarray, fit_rows: np.ndarray, eval_rows: np.ndarra
     """The visit sums of ``X`` (N, p) that ``heldout_mean_null`` works from (arguments as ``heldout_mean_covariance``);
     None when there is nothing to hold out."""
     fa = fit_rows & (groups >= 0)
-    ua, inv_a = np.unique(groups[fa], return_inverse=True)
+    ua, inv_a = group_index(groups[fa])
     rb = eval_rows & (groups >= 0) & (fold >= 0)
-    ub, inv_b = np.unique(groups[rb], return_inverse=True)
+    ub, inv_b = group_index(groups[rb])
     if not len(ua) or not len(ub):
         return None
     own = np.minimum(np.searchsorted(ua, ub), len(ua) - 1)  # each held-out visit among the fitted ones
@@ -302,7 +302,7 @@ def _visit_means(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, groups:
     """(rows used (N,), visit ids (V,), each used row's visit index, samples (V,), mean residual (V, 3) m/s^2, pose id
     (V,), run id (V,)) of the finite rows ``rows`` of ``res`` (N, 3) by visit ``groups``."""
     r = rows & finite_rows(res)
-    ug, inv = np.unique(groups[r], return_inverse=True)
+    ug, inv = group_index(groups[r])
     cnt = np.bincount(inv)
     x = res[r]
     means = np.stack([np.bincount(inv, weights=x[:, j]) / cnt for j in range(3)], axis=1)
