@@ -42,8 +42,9 @@ def relative_difference(a: float, b: float) -> float:
 def decided_alike(full: DiagnosisResult, default: DiagnosisResult) -> dict:
     """What both checks compare: the same effects added with the same values (``same_added``), every candidate's
     verdict the same (``same_verdicts``), the calibration's largest difference (``calibration``), the candidates of
-    both (``a``, ``b``: :func:`candidates_by_step`) and those tested in both (``tested``); ``ok``: the first two and
-    the calibration bit for bit."""
+    both (``a``, ``b``: :func:`candidates_by_step`), those tested in both (``tested``) and the largest relative
+    differences of their held-out gains (``gain``) and p-values (``p``); ``ok``: the first two and the calibration bit
+    for bit."""
     a, b = candidates_by_step(full), candidates_by_step(default)
     same_verdicts = a.keys() == b.keys() and all(
         (x.applicable, x.significant, bool(x.implausible), x.refusal)
@@ -53,7 +54,9 @@ def decided_alike(full: DiagnosisResult, default: DiagnosisResult) -> dict:
               float(np.max(np.abs(np.asarray(full.calibration.b) - np.asarray(default.calibration.b)))))
     same_added = [tuple(x[:2]) for x in full.added] == [tuple(x[:2]) for x in default.added]
     return {"same_added": same_added, "same_verdicts": same_verdicts, "calibration": cal, "a": a, "b": b,
-            "tested": tested, "ok": same_added and same_verdicts and cal == 0.0}
+            "tested": tested, "ok": same_added and same_verdicts and cal == 0.0,
+            "gain": max((relative_difference(a[k].rel_gain, b[k].rel_gain) for k in tested), default=0.0),
+            "p": max((relative_difference(a[k].p_value, b[k].p_value) for k in tested), default=0.0)}
 
 
 def run(doc: str, script: str, title: str, remark: str, head: str,

@@ -6,11 +6,9 @@ best mean have both neighbours visited (``cv.search_batches``). The first step's
 value; after it, by default, a candidate's searches start where its search of the step before ended
 (``GridSearch.walked_to``). Both find what visiting every value finds wherever each fold's training RSS has one
 minimum over the grid; where one has two, they can end at different ones. Compared with every search started from
-every 4th value (``diagnose(..., walk_from_last_step=False)``), on one lane, on
-
-* the benchmark run (``bench_calibration.scenario``: every nominal effect, four chamber levels) at each of
-  ``--samples``, seeds ``--seeds``;
-* each one-effect scenario of ``test/test_diagnose_sim.py``, seeds ``--scenario-seeds``.
+every 4th value (``diagnose(..., walk_from_last_step=False)``), on one lane, on the recordings of
+``diagnosis_variants`` (the benchmark run at each of ``--samples``, seeds ``--seeds``; each one-effect scenario of
+``test/test_diagnose_sim.py``, seeds ``--scenario-seeds``).
 
 A row: whether the two add the same effects with the same hyper-parameters (bit for bit), every candidate's verdict
 the same, the calibration's largest difference, the candidates whose held-out gain, p-value or value differ and
@@ -41,8 +39,6 @@ def compare(cold: DiagnosisResult, warm: DiagnosisResult) -> dict:
     a, b, tested = d["a"], d["b"], d["tested"]
     valued = [k for k in tested if a[k].hyper is not None and b[k].hyper is not None]
     return {**d, "of": len(tested), "moved": sum(a[k].rel_gain != b[k].rel_gain for k in tested),
-            "gain": max((relative_difference(a[k].rel_gain, b[k].rel_gain) for k in tested), default=0.0),
-            "p": max((relative_difference(a[k].p_value, b[k].p_value) for k in tested), default=0.0),
             "hyper": max((relative_difference(a[k].hyper, b[k].hyper) for k in valued), default=0.0)}
 
 
