@@ -169,6 +169,25 @@ def _delay_start(t: np.ndarray, D: float) -> int:
     return lo
 
 
+def _expected_psi(kept: dict, P: np.ndarray, q: np.ndarray, g_at: np.ndarray,
+                  g_rows: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The expected Psi = P g + q (eq. 25 inverted) of each axis where the TIA's filter reads a run's reference
+    (``g_at``) and at the rows (``g_rows``, each (3, k) by column), a 3 x 3 map written out (no matrix product of a
+    few hundred thousand rows by 3: BLAS's start costs more than the arithmetic). Kept in ``kept`` (the entry of the
+    run's holds) for the map ``P``, ``q`` alone, by their bits: the trials of a search over the time constant read the
+    same; a search over a correction of the counts before it changes the map on every trial (then each is worked out
+    and replaces the last)."""
+    key = P.tobytes() + q.tobytes()
+    hit = kept.get(key)
+    if hit is None:
+        hit = ([_affine(P[j], q[j], g_at) for j in range(3)], [_affine(P[j], q[j], g_rows) for j in range(3)])
+        for a in (*hit[0], *hit[1]):  # shared by the trials, of either lane
+            a.flags.writeable = False
+        kept.clear()
+        kept[key] = hit
+    return hit
+
+
 def _affine(row: np.ndarray, offset: float, cols: np.ndarray | list[np.ndarray]) -> np.ndarray:
     """``row @ cols + offset`` for a row of 3 and 3 columns (3, n), written out term by term."""
     out = row[0] * cols[0]
@@ -290,10 +309,9 @@ class TiaLowpassEffect(Effect):
         P, q = psi_map_of(data, inp)
         P_inv = np.linalg.inv(P)
         gref = np.empty((len(rows), 3))
-        for (_, sel, _), per, (held, g_at, g_rows) in zip(pieces, coeff, found, strict=True):
-            # the expected Psi and its filtered value column by column, a 3 x 3 map written out (no matrix product
-            # of a few hundred thousand rows by 3: BLAS's start costs more than the arithmetic)
-            d = [held_lowpass(held, _affine(P[j], q[j], g_at), per[j]) - _affine(P[j], q[j], g_rows) for j in range(3)]
+        for (_, sel, _), per, (held, g_at, g_rows, kept) in zip(pieces, coeff, found, strict=True):
+            psi_at, psi_rows = _expected_psi(kept, P, q, g_at, g_rows)
+            d = [held_lowpass(held, psi_at[j], per[j]) - psi_rows[j] for j in range(3)]
             for k in range(3):
                 gref[sel, k] = _affine(P_inv[k], 0.0, d) + g_rows[k]
         return gref, inp.valid[rows] & finite_rows(gref)
@@ -320,14 +338,15 @@ class TiaLowpassEffect(Effect):
         return gref
 
     @staticmethod
-    def _held_reference(g: np.ndarray, rows: np.ndarray) -> tuple[HeldRows, np.ndarray, np.ndarray]:
+    def _held_reference(g: np.ndarray, rows: np.ndarray) -> tuple[HeldRows, np.ndarray, np.ndarray, dict]:
         """(the holds of a run's reference ``g`` (n, 3) and where ``rows`` (local) fall, the reference where the filter
-        reads it and at ``rows``, each (3, k) by column): what every trial of ``_held_at_rows`` shares."""
+        reads it and at ``rows``, each (3, k) by column, and where ``_expected_psi`` keeps the Psi they expect): what
+        every trial of ``_held_at_rows`` shares."""
         held = held_rows(g, rows)
-        return held, np.ascontiguousarray(rows_at(g, held.samples).T), np.ascontiguousarray(rows_at(g, rows).T)
+        return held, np.ascontiguousarray(rows_at(g, held.samples).T), np.ascontiguousarray(rows_at(g, rows).T), {}
 
     def _moved_held_reference(self, data: DiagnosisData, g: np.ndarray, run: slice, rows: np.ndarray,
-                              rows_key: str) -> tuple[HeldRows, np.ndarray, np.ndarray]:
+                              rows_key: str) -> tuple[HeldRows, np.ndarray, np.ndarray, dict]:
         """``_held_reference`` of a run of the reference ``g`` (N, 3) an earlier correction moved (the channel delay),
         at ``rows`` (local; ``rows_key`` their digest). Kept for the next searches' trials (``DiagnosisData.recent``:
         a search of the TIA on top of a delay asks on every trial) by the array itself, read-only: ``g``'s identity
@@ -338,10 +357,10 @@ class TiaLowpassEffect(Effect):
             return self._held_reference(g[run], rows)
 
         def find() -> tuple[Any, ...]:
-            held, g_at, g_rows = self._held_reference(g[run], rows)
+            held, g_at, g_rows, kept = self._held_reference(g[run], rows)
             for a in (g_at, g_rows, *vars(held).values()):  # shared by the trials, of either lane
                 a.flags.writeable = False
-            return weakref.ref(g), held, g_at, g_rows
+            return weakref.ref(g), held, g_at, g_rows, kept
 
         # the predicate holds no reference to g: the entry stands while g lives, and g alone has its identity then
         return data.recent(("held_reference", id(g), run.start, run.stop, rows_key), find,
