@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import functools
 import re
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -27,7 +28,7 @@ from fbg_accel_calibration.diagnosis.cv import (
     search_batches,
     weighted_rss,
 )
-from fbg_accel_calibration.diagnosis.data import fill_reference_gaps, finite_rows, interp_columns, interval_of
+from fbg_accel_calibration.diagnosis.data import column_rms, fill_reference_gaps, finite_rows, interp_columns, interval_of
 from fbg_accel_calibration.diagnosis.design import DesignCache, ModelSpec, build_design, fitted_output, prepare_data
 from fbg_accel_calibration.diagnosis.diagnose import DiagnosisResult, diagnose
 from fbg_accel_calibration.diagnosis.effects import Effect
@@ -413,6 +414,26 @@ def test_the_interval_from_a_guess_is_searchsorted_s_and_searched_only_where_the
         m.setattr(np, "searchsorted", spy)
         got = interval_of(xp, x, np.arange(100, 10_000) - 3)
     assert np.array_equal(got, real(xp, x, side="right") - 1) and sum(searched) < 10
+
+
+def test_the_rms_of_each_column_is_numpy_s_mean_bit_for_bit() -> None:
+    """``column_rms`` (the held-out and in-sample RMS of every degree scored, candidate evaluated and final model) is
+    ``np.sqrt(np.mean(a ** 2, axis=0))`` bit for bit: C-ordered tables of 2 to 5 columns of any length (numpy adds their
+    rows one after another), a single column and other layouts (numpy sums a contiguous column pairwise), NaN and
+    infinite values, no rows."""
+    rng = np.random.default_rng(1)
+    for n in [*range(0, 40), 1000, 65_537, 300_001]:
+        for k in (1, 2, 3, 5):
+            a = rng.normal(size=(n, k)) * rng.uniform(1e-3, 1e3)
+            if n > 5:
+                a[rng.integers(0, n, 2), 0] = np.nan
+                a[rng.integers(0, n, 1), -1] = np.inf
+            for x in (a, np.asfortranarray(a), a[::2]):
+                with np.errstate(invalid="ignore"), warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)  # the mean of no rows
+                    want = np.sqrt(np.mean(x**2, axis=0))
+                    got = column_rms(x)
+                assert got.tobytes() == want.tobytes(), (n, k)
 
 
 def test_rows_taken_whole_are_the_indexed_rows_bit_for_bit(monkeypatch) -> None:

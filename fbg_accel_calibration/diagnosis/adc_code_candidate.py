@@ -35,7 +35,7 @@ from fbg_accel_driver.adc_code_table import ADC_CODES, AdcCodeTable
 
 from ..fit.adc_codes import CHANNEL_NAMES, RecordingWidths, code_table, recording_code_widths
 from .cv import CvResult, cross_validate
-from .data import DiagnosisData, finite_rows
+from .data import DiagnosisData, column_rms, finite_rows
 from .design import Design, ModelSpec, build_design
 from .search import CandidateResult, Refusal, _corr, paired_gain_test
 from .search_lanes import beside, default_lane_count
@@ -188,7 +188,7 @@ def code_width_step(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, weig
     rows = data.use & (fold >= 0) & finite_rows(base_heldout) & finite_rows(heldout)
     gain, pv, ng, out.detectable_gain = paired_gain_test(base_heldout, heldout, data.group, rows, weights, alpha_each)
     out.rel_gain, out.p_value, out.n_groups = gain, pv, ng
-    out.heldout_rmse = np.sqrt(np.mean(heldout[rows] ** 2, axis=0))
+    out.heldout_rmse = column_rms(heldout[rows])
     change = base_heldout - heldout  # the change of the held-out prediction the table makes
     out.corr_with_residual = np.array([_corr(base_heldout[rows, j], change[rows, j]) for j in range(3)])
     table = code_table(whole, {})  # the pattern tested: its bound (the table the file would carry is made below)

@@ -16,7 +16,7 @@ from ..fit.thermal_fit import coefficients_to_model, n_params, temperature_level
 from .adc_code_candidate import CodeWidthStep, code_width_step
 from .adc_code_candidate import describe as describe_code_table
 from .cv import CvResult, cross_validate, gram_conditioning
-from .data import DiagnosisData, finite_rows
+from .data import DiagnosisData, column_rms, finite_rows
 from .design import Design, ModelSpec, build_design
 from .findings import Finding, flagged_visits
 from .floor import FloorMeasurement, VisitNoise, within_visit_noise
@@ -121,10 +121,10 @@ def fit_final(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, floor: Flo
                                                              noise_model_after)
 
     def rms(r: np.ndarray) -> np.ndarray:
-        return np.sqrt(np.mean(r[r_eval] ** 2, axis=0))
+        return column_rms(r[r_eval])
 
     def rms_of_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # rms(a - b), a - b made at r_eval alone
-        return np.sqrt(np.mean((a[r_eval] - b[r_eval]) ** 2, axis=0))
+        return column_rms(a[r_eval] - b[r_eval])
 
     structure = residual_structure(data, cv_f.heldout, r_eval, groups, noise_model_after, alpha, null=null)
     cond, column_corr = gram_conditioning(cv_f.sums.XtX, cv_f.sums.xsum, len(cv_f.sums.idx), blocks_f)
@@ -202,4 +202,4 @@ def moving_residual(data: DiagnosisData, calibrated: np.ndarray) -> np.ndarray |
         return None
     d = calibrated[m] - data.gref_filled[m]
     d = d[finite_rows(d)]
-    return np.sqrt(np.mean(d**2, axis=0)) if len(d) else None
+    return column_rms(d) if len(d) else None

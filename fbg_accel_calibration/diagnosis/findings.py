@@ -14,7 +14,7 @@ import numpy as np
 from ..fit.adc_codes import HeldCode, held_codes
 from ..fit.thermal_fit import reference_reach_warnings
 from .cv import COLLINEAR_CORR, CvResult, cross_validate
-from .data import DiagnosisData, finite_rows, visit_means
+from .data import DiagnosisData, column_rms, finite_rows, visit_means
 from .design import Design
 from .floor import FLOOR_VISIT_ALPHA, FLOOR_VISIT_RATIO, VisitNoise, _fmt3
 from .periodic_disturbance import PeriodicDisturbance
@@ -68,7 +68,7 @@ def disturbance_finding(data: DiagnosisData, d: PeriodicDisturbance, heldout: np
     residual ``heldout`` (N, 3) m/s^2 over the ``settled`` samples, the held-out error without them over ``rows``
     (kept in ``d.heldout_without_lines``), next to the ``floor`` and the held-out error ``after_ho`` (3,) m/s^2."""
     lines_ho = d.refit(heldout, data.t_s, data.group, data.run_id, settled)
-    d.heldout_without_lines = np.sqrt(np.mean((heldout - lines_ho)[rows] ** 2, axis=0))
+    d.heldout_without_lines = column_rms((heldout - lines_ho)[rows])
     return Finding("periodic_disturbance", disturbance_warning(d, floor, after_ho),
                    numbers={"floor_with_lines_mps2": d.floor_with_lines,
                             "heldout_without_lines_mps2": d.heldout_without_lines},
@@ -178,7 +178,7 @@ def held_code_findings(data: DiagnosisData, heldout: np.ndarray, groups: np.ndar
         means = np.array([heldout[r_eval & (groups == v)].mean(axis=0) for v in h.visits])
         h.worst_offset = means[np.argmax(np.abs(means), axis=0), np.arange(3)]
         rest = r_eval & ~np.isin(groups, h.visits)
-        h.rmse_without = np.sqrt(np.mean(heldout[rest] ** 2, axis=0))
+        h.rmse_without = column_rms(heldout[rest])
     return held, [Finding("held_code", h.sentence(), numbers={"worst_offset_mps2": h.worst_offset,
                                                               "rmse_without_mps2": h.rmse_without}) for h in held]
 

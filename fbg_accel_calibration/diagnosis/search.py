@@ -36,7 +36,7 @@ from .cv import (
     switch_profile,
     weighted_rss,
 )
-from .data import DiagnosisData, finite_rows, group_index, rows_at, set_rows
+from .data import DiagnosisData, column_rms, finite_rows, group_index, rows_at, set_rows
 
 # ============================================================================ data preparation
 from .design import (
@@ -112,14 +112,14 @@ def reselect_degree(lanes: Lanes[Evaluator], spec: ModelSpec,
         except NotIdentifiedError as exc:
             return DegreeScores(n, False, nan3, nan3, nan3, f"not identified: {exc}"), None
         r = lane.rows & des.valid & finite_rows(cv.heldout)
-        ho = np.sqrt(np.mean(rows_at(cv.heldout, r) ** 2, axis=0))
-        ins = np.sqrt(np.mean(rows_at(des.G - cv.fitted_full, r) ** 2, axis=0))
+        ho = column_rms(rows_at(cv.heldout, r))
+        ins = column_rms(rows_at(des.G - cv.fitted_full, r))
         level_ho = nan3
         if by_level and n < n_levels - 1:  # a fold trains on the other levels: degree n needs n + 1 of them
             try:
                 lv = cross_validate(des, level_rows, labels, lane.weights).heldout
                 rl = level_rows & des.valid & finite_rows(lv)
-                level_ho = np.sqrt(np.mean(lv[rl] ** 2, axis=0))
+                level_ho = column_rms(lv[rl])
             except NotIdentifiedError:  # a fold without one level cannot fit this degree
                 pass
         return DegreeScores(n, True, ins, ho, level_ho), group_mse(cv.heldout, lane.groups, r, np.full(3, 1.0 / 3))[1]
@@ -731,7 +731,7 @@ class Evaluator:
         delta = (base_G - des.G) + (cvr.fitted_full - base_fitted)
         corr = np.array([_corr(base_heldout[r, j], delta[r, j]) for j in range(3)])
         out.hyper, out.hyper_profile, out.walked_to = h, profile, search.walked_to
-        out.heldout_rmse = np.sqrt(np.mean(rows_at(heldout, r) ** 2, axis=0))
+        out.heldout_rmse = column_rms(rows_at(heldout, r))
         out.rel_gain, out.p_value, out.n_groups = gain, p, ng
         out.corr_with_residual = corr
         coeff = cvr.A_full[des.blocks[eff.name]].T if eff.name in des.blocks else None

@@ -11,7 +11,7 @@ import numpy as np
 from scipy import stats
 
 from ..fit.thermal_fit import jacobi_solve
-from .data import DiagnosisData, direction_labels, finite_rows, group_index
+from .data import DiagnosisData, column_rms, direction_labels, finite_rows, group_index
 
 # ============================================================================ data preparation
 from .floor import (
@@ -246,7 +246,7 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
     cov, slow_unit = null.for_visits(ug, noise_var) if null is not None else (noise_var.T, None)
     noise_dof = np.maximum(noise_model.mean_dof, MIN_MEAN_DOF)
     z, p, dof, slow, p_revisits = slow_visit_test(means, cov, slow_unit, pose_of, run_of, noise_dof)
-    ho = np.sqrt(np.mean(x**2, axis=0))
+    ho = column_rms(x)
     ratio = ho / np.maximum(noise, 1e-12)
     excess = np.sqrt(np.maximum(ho**2 - noise**2, 0.0))
     sig_axis = p < alpha / 3.0  # Bonferroni over the axes: a recording of noise alone is called significant at alpha
@@ -274,7 +274,7 @@ def residual_structure(data: DiagnosisData, res: np.ndarray, rows: np.ndarray, g
                  "gref_mps2": g_mean[i], "t_s": float(t_mean[i] - t0), "temp_c": float(temp_mean[i])}
                 for i in range(len(ug))]
     per_pose.sort(key=lambda d: -float(np.max(np.abs(d["z"]))))
-    pose_rms = np.sqrt(np.mean(means**2, axis=0))
+    pose_rms = column_rms(means)
     if significant:
         axes = [a for j, a in enumerate("xyz") if sig_axis[j]]
         verdict = (f"significant unexplained residual on axis {', '.join(axes)}: held-out RMSE "
