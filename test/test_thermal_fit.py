@@ -33,6 +33,7 @@ from fbg_accel_calibration.fit.thermal_fit import (
     residuals,
     sensor_id_of,
     solve_normal_equations,
+    solve_normal_equations_each,
     sub_columns,
     temperature_levels,
     temperature_scaling,
@@ -694,6 +695,49 @@ def test_the_normal_equations_give_their_scaled_condition_and_refuse_a_singular_
     with pytest.raises(NotIdentifiedError) as err:
         solve_normal_equations(np.diag([1.0, 0.0, 1.0]), xtg)
     assert str(err.value) == "a regressor is identically zero on the data"
+
+
+def test_a_stack_of_normal_equations_is_solved_as_each_alone_bit_for_bit_with_the_same_error() -> None:
+    """``solve_normal_equations_each`` (a cross-validation's folds) gives each fold's ``solve_normal_equations``
+    coefficients bit for bit, for stacks of 1 to 12 systems of 1 to 30 regressors whose columns differ by orders of
+    magnitude; where one fold is singular, lacks a regressor or holds NaN, it raises what solving them one by one
+    raises first (that fold's message), without a numpy warning."""
+    rng = np.random.default_rng(11)
+
+    def one_by_one(xtx: np.ndarray, xtg: np.ndarray) -> np.ndarray | str:
+        try:
+            return np.stack([solve_normal_equations(a, b)[0] for a, b in zip(xtx, xtg, strict=True)])
+        except (NotIdentifiedError, np.linalg.LinAlgError) as exc:
+            return f"{type(exc).__name__}: {exc}"
+
+    kinds = ("fine", "singular", "zero", "nan", "indefinite")
+    for trial in range(300):
+        K, p = int(rng.integers(1, 13)), int(rng.integers(1, 31))
+        scale = 10.0 ** rng.uniform(-6, 6, p)
+        X = rng.standard_normal((K, 3 * p + 5, p)) * scale
+        xtx, xtg = np.einsum("kni,knj->kij", X, X), np.einsum("kni,knj->kij", X, rng.standard_normal((K, 3 * p + 5, 3)))
+        for f in rng.choice(K, size=int(rng.integers(0, min(K, 3) + 1)), replace=False):
+            kind = kinds[int(rng.integers(1, len(kinds)))] if p > 1 else "zero"
+            if kind == "singular":  # two equal regressors
+                xtx[f, :, -1], xtx[f, -1, :] = xtx[f, :, 0], xtx[f, 0, :]
+                xtx[f, -1, -1] = xtx[f, 0, 0]
+            elif kind == "zero":
+                xtx[f, :, -1] = xtx[f, -1, :] = 0.0
+            elif kind == "nan":
+                xtx[f, 0, 0] = np.nan
+            elif kind == "indefinite":  # a correlation beyond 1 between two regressors: no least-squares problem
+                xtx[f, 0, -1] = xtx[f, -1, 0] = 2.0 * np.sqrt(xtx[f, 0, 0] * xtx[f, -1, -1])
+        want = one_by_one(xtx, xtg)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            try:
+                got = solve_normal_equations_each(xtx, xtg)
+            except (NotIdentifiedError, np.linalg.LinAlgError) as exc:
+                got = f"{type(exc).__name__}: {exc}"
+        if isinstance(want, str):
+            assert got == want, trial
+        else:
+            assert not isinstance(got, str) and got.shape == want.shape and got.tobytes() == want.tobytes(), trial
 
 
 def test_the_jacobi_scaled_solve_is_the_fits_and_floors_a_missing_regressor_on_request() -> None:

@@ -15,6 +15,7 @@ from ..fit.thermal_fit import (
     NotIdentifiedError,
     scaled_condition,
     solve_normal_equations,
+    solve_normal_equations_each,
     temperature_levels,
 )
 from .data import DiagnosisData, finite_rows, rows_at
@@ -372,12 +373,12 @@ def cross_validate(des: Design, rows: np.ndarray, folds: np.ndarray, weights: np
             xsum += Xa.sum(axis=0)
         sums = FoldSums(weakref.ref(X), weakref.ref(folds), idx, xtx, XtX, xsum)
     XtX = sums.XtX
+    Xt, Gt = XtX - xtx, XtG - xtg  # each fold's training sums (K, p, p), (K, p, 3)
+    A_folds = solve_normal_equations_each(Xt, Gt)
     train_rss = np.zeros(K)
-    A_folds = np.empty((K, p, 3))
     for f in range(K):
-        Xt, Gt = XtX - xtx[f], XtG - xtg[f]
-        A = A_folds[f] = solve_normal_equations(Xt, Gt)[0]
-        rss = GtG - gtg[f] - 2 * np.einsum("pi,pi->i", A, Gt) + np.einsum("pi,pq,qi->i", A, Xt, A)
+        A = A_folds[f]
+        rss = GtG - gtg[f] - 2 * np.einsum("pi,pi->i", A, Gt[f]) + np.einsum("pi,pq,qi->i", A, Xt[f], A)
         train_rss[f] = float(np.sum(rss * weights))
     A_full = solve_normal_equations(XtX, XtG)[0]
     return CvResult(train_rss, A_full, sums, X, G, start, A_folds)

@@ -658,6 +658,25 @@ def solve_normal_equations(xtx: np.ndarray, xtg: np.ndarray, rcond: float = 1e-1
     return _scaled_solve(d, s, xtg), cond  # jacobi_solve on the scaling the condition number was taken of
 
 
+def solve_normal_equations_each(xtx: np.ndarray, xtg: np.ndarray, rcond: float = 1e-12) -> np.ndarray:
+    """``solve_normal_equations(xtx[k], xtg[k])[0]`` of each of a stack of normal equations (``xtx`` (K, p, p),
+    ``xtg`` (K, p, q)): (K, p, q), the same bits, and the error of the first of them that raises. numpy's linear
+    algebra works each matrix of a stack by the same LAPACK call as it does one alone, so the K folds of a
+    cross-validation cost one call of each step, not K (the solve of a dozen coefficients is mostly numpy's own
+    overhead). A stack of which one would raise is solved one by one, so that the same one raises."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = np.sqrt(np.diagonal(xtx, axis1=1, axis2=2))  # the Jacobi scaling of each, as jacobi_scaling works it out
+        if np.all(d > 0.0):
+            s = xtx / (d[:, :, None] * d[:, None, :])
+            try:
+                eig = np.linalg.eigvalsh(s)
+                if np.all(eig[:, 0] > 0) and np.all(eig[:, -1] / eig[:, 0] < 1.0 / rcond):  # scaled_condition's
+                    return np.linalg.solve(s, xtg / d[:, :, None]) / d[:, :, None]
+            except np.linalg.LinAlgError:
+                pass
+    return np.stack([solve_normal_equations(a, b, rcond)[0] for a, b in zip(xtx, xtg, strict=True)])
+
+
 def temperature_scaling(temp_c: np.ndarray) -> tuple[float, float]:
     """Centre and half-range (degC) mapping the data's temperatures onto [-1, 1] (scale 1 for one level)."""
     lo, hi = float(np.min(temp_c)), float(np.max(temp_c))
