@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from test_diagnose_sim import BASELINE, GRID, _with_acceleration_error
 
+from fbg_accel_calibration.diagnosis.data import DiagnosisData
 from fbg_accel_calibration.diagnosis.diagnose import diagnose
 from fbg_accel_calibration.io.recording import Recording
 from fbg_accel_sim.board_physics import simulate_recording
@@ -160,3 +161,52 @@ def test_an_effect_of_the_table_s_angles_or_of_time_is_not_named_a_motion_histor
     res = diagnose(_shuffled_grid(1, 0.0, extra))
     assert not [f for f in res.findings if f.kind == "approach_direction"], res.findings
     assert np.all(approach_signature(res.data, res.residual_after, res.data.use).p > 0.05)
+
+
+def _walked_back_signs(gref: np.ndarray, run_id: np.ndarray, g_mean: np.ndarray, first: np.ndarray,
+                       run: np.ndarray) -> np.ndarray:
+    """The side of approach as its definition reads: for each visit of a run after its first, the path walked back
+    sample by sample from the visit's first sample to the first of the visit before it (its run's, finite), then the
+    earlier visits walked back, the first whose reference differs by more than the threshold giving the side."""
+    from fbg_accel_calibration.diagnosis.approach import MIN_APPROACH_CHANGE_MPS2
+
+    out = np.zeros(g_mean.shape, dtype=int)
+    for r in np.unique(run):
+        idx = [int(v) for v in sorted(np.flatnonzero(run == r), key=lambda v: first[v])]
+        for k in range(1, len(idx)):
+            v = idx[k]
+            for j in range(3):
+                steps = [g_mean[v, j] - gref[s, j] for s in range(first[v] - 1, first[idx[k - 1]] - 1, -1)
+                         if run_id[s] == r and np.all(np.isfinite(gref[s]))]
+                steps += [g_mean[v, j] - g_mean[e, j] for e in reversed(idx[:k])]
+                out[v, j] = next((int(np.sign(d)) for d in steps if abs(d) > MIN_APPROACH_CHANGE_MPS2), 0)
+    return out
+
+
+def test_the_side_of_approach_is_the_last_reference_before_the_visit_that_differs() -> None:
+    """``approach_signs`` (one pass over each run for every visit's path) gives the sides of walking each visit's path
+    back sample by sample, then the earlier visits: on random paths with NaN gaps, samples of another run inside a path,
+    paths that never leave the visit's value (the earlier visits decide, or nothing does), several runs, one visit."""
+    from fbg_accel_calibration.diagnosis.approach import approach_signs
+
+    rng = np.random.default_rng(8)
+    for trial in range(60):
+        n_runs, v_per_run = int(rng.integers(1, 4)), int(rng.integers(1, 9))
+        lengths = rng.integers(1, 30, n_runs * v_per_run)
+        n = int(lengths.sum()) + 5
+        first = np.concatenate([[0], np.cumsum(lengths)[:-1]]) + int(rng.integers(0, 5))
+        run = np.repeat(np.arange(n_runs), v_per_run)
+        run_id = np.repeat(run, lengths)
+        run_id = np.concatenate([np.zeros(first[0], int), run_id, np.full(n - first[0] - len(run_id), n_runs - 1)])
+        levels = rng.choice([-9.8, -4.9, 0.0, 0.3, 4.9, 9.8], size=(n_runs * v_per_run, 3))
+        gref = np.repeat(levels, lengths, axis=0) + rng.normal(0, 0.4, (int(lengths.sum()), 3)) * (rng.random() < 0.5)
+        gref = np.concatenate([rng.normal(0, 5, (first[0], 3)), gref, np.zeros((n - first[0] - len(gref), 3))])
+        gref[rng.random(n) < 0.1] = np.nan
+        run_id[rng.random(n) < 0.05] = n_runs + 1  # a sample of another run inside a path
+        data = DiagnosisData(np.arange(n) * 0.01, np.ones(n), np.ones((n, 3)), np.full(n, 25.0), gref,
+                             np.zeros(n, int), run_id, np.ones(n, bool))
+        g_mean = levels + rng.normal(0, 0.2, levels.shape)
+        order = rng.permutation(len(first))  # visits in any order
+        got = approach_signs(data, g_mean[order], first[order], run[order])
+        want = _walked_back_signs(gref, run_id, g_mean[order], first[order], run[order])
+        assert np.array_equal(got, want), trial

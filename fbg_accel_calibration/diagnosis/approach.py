@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from .data import DiagnosisData, direction_labels
+from .data import DiagnosisData, direction_labels, finite_rows, group_index
 from .findings import Finding
 
 # A change of an axis' reference between visits smaller than this (m/s^2) is no approach from either side: the table's
@@ -59,17 +59,27 @@ def approach_signs(data: DiagnosisData, g_mean: np.ndarray, first: np.ndarray, r
     for r in np.unique(run):
         idx = np.flatnonzero(run == r)
         idx = idx[np.argsort(first[idx], kind="stable")]
-        for k in range(1, len(idx)):
-            v, lo = idx[k], first[idx[k - 1]]
-            path = data.gref[lo:first[v]]
-            path = path[(data.run_id[lo:first[v]] == r) & np.all(np.isfinite(path), axis=1)][::-1]  # latest first
-            for j in range(3):
-                for earlier in (path[:, j], g_mean[idx[:k][::-1], j]):
-                    d = g_mean[v, j] - earlier
-                    moved = np.flatnonzero(np.abs(d) > MIN_APPROACH_CHANGE_MPS2)
-                    if moved.size:
-                        out[v, j] = int(np.sign(d[moved[0]]))
-                        break
+        if len(idx) < 2:
+            continue
+        # visit idx[k + 1]'s path: the samples from the first of the visit before it to its own first, one pass over
+        # the run for all of them (the paths follow one another)
+        start, end = first[idx[:-1]], first[idx[1:]]
+        lo = int(start[0])
+        g = data.gref[lo:end[-1]]
+        ok = (data.run_id[lo:end[-1]] == r) & finite_rows(g)
+        path_of = np.repeat(np.arange(len(idx) - 1), end - start)  # each sample's path
+        for j in range(3):
+            d = g_mean[idx[1:], j][path_of] - g[:, j]
+            moved = np.flatnonzero(ok & (np.abs(d) > MIN_APPROACH_CHANGE_MPS2))
+            last = np.searchsorted(moved, end - lo) - 1  # the latest sample of each path that differs
+            found = last >= 0
+            found[found] = moved[last[found]] >= start[found] - lo
+            out[idx[1:][found], j] = np.sign(d[moved[last[found]]]).astype(int)
+            for k in np.flatnonzero(~found):  # none on its path: the earlier visits, latest first
+                d_visits = g_mean[idx[k + 1], j] - g_mean[idx[:k + 1][::-1], j]
+                differs = np.flatnonzero(np.abs(d_visits) > MIN_APPROACH_CHANGE_MPS2)
+                if differs.size:
+                    out[idx[k + 1], j] = int(np.sign(d_visits[differs[0]]))
     return out
 
 
@@ -79,8 +89,8 @@ def approach_signature(data: DiagnosisData, res: np.ndarray, rows: np.ndarray) -
     the scatter of the visit means themselves (a bias instability between visits minutes apart, the fit's own error
     are in it) as the t test's error, and a line in time beside it: a plan run forward then backward approaches each
     pose from one side per pass, and a drift between the passes is no hysteresis."""
-    r = rows & (data.group >= 0) & np.all(np.isfinite(res), axis=1) & np.all(np.isfinite(data.gref), axis=1)
-    ug, inv = np.unique(data.group[r], return_inverse=True)
+    r = rows & (data.group >= 0) & finite_rows(res) & finite_rows(data.gref)
+    ug, inv = group_index(data.group[r])
     n = np.bincount(inv).astype(float)
 
     def means(x: np.ndarray) -> np.ndarray:
