@@ -36,7 +36,7 @@ from .cv import (
     switch_profile,
     weighted_rss,
 )
-from .data import DiagnosisData, column_rms, finite_rows, group_index, rows_at, set_rows
+from .data import DiagnosisData, column_rms, finite_rows, group_index, row_sums, rows_at, set_rows
 
 # ============================================================================ data preparation
 from .design import (
@@ -207,7 +207,7 @@ def group_mse(res: np.ndarray, groups: np.ndarray, rows: np.ndarray, weights: np
 def _group_means(inv: np.ndarray, count: np.ndarray, squares: np.ndarray) -> np.ndarray:
     """Each group's mean of its rows' ``squares`` (n, 3) summed over the axes: ``inv`` (n,) the row's group, ``count``
     the rows of each group."""
-    return np.bincount(inv, weights=np.sum(squares, axis=1)) / count
+    return np.bincount(inv, weights=row_sums(squares)) / count
 
 
 def paired_gain_test(res0: np.ndarray, res1: np.ndarray, groups: np.ndarray, rows: np.ndarray,
