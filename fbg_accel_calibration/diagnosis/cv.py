@@ -18,7 +18,7 @@ from ..fit.thermal_fit import (
     solve_normal_equations_each,
     temperature_levels,
 )
-from .data import DiagnosisData, finite_rows, rows_at
+from .data import DiagnosisData, finite_rows, rows_at, set_rows
 
 # ============================================================================ data preparation
 from .design import (
@@ -218,7 +218,10 @@ class CvResult:
             out = np.full(design[1].shape, np.nan)
             for f in range(len(self._A_folds)):
                 rows, res = self.fold_heldout(f)
-                out[rows] = res
+                if len(rows) and rows[-1] - rows[0] == len(rows) - 1:  # a design in fold order: one block
+                    out[rows[0]:rows[-1] + 1] = res
+                else:
+                    set_rows(out, rows, res)
             self._heldout = out  # assigned once whole: lanes that share the result read it whole or work it out too
             self._release()
         return self._heldout
