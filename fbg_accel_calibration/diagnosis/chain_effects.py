@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from fbg_accel_driver.correction_terms import ChainDynamics, first_order_lowpass, uniform_coefficient
+from fbg_accel_driver.correction_terms import ChainDynamics, first_order_lowpass
 
 from .data import (
     DiagnosisData,
@@ -23,6 +23,7 @@ from .data import (
     psi_map_of,
     rows_at,
     rows_by_run,
+    run_coefficients,
     set_rows,
     take_rows,
 )
@@ -282,8 +283,7 @@ class TiaLowpassEffect(Effect):
                 or not (moved or data.once("gref_filled_finite", lambda: bool(finite_rows(g).all()))):
             return None
         tau = self.taus(h)
-        coeff = [[None if st is None else uniform_coefficient(float(t), st) for t in tau[1:]]
-                 for st in input_run_steps(data, inp)]
+        coeff = [list(per) for per in zip(*(run_coefficients(data, inp, t) for t in tau[1:]), strict=True)]
         if any(a is None for per in coeff for a in per):
             return None
         if rows is None:  # every sample (a correction of the reference after it, the final model): not kept

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from fbg_accel_driver.correction_terms import SampleSteps, sample_steps
+from fbg_accel_driver.correction_terms import SampleSteps, sample_steps, uniform_coefficient
 
 ROW_KEYS_KEPT = 4  # the read-only rows whose digest ``DiagnosisData.rows_key`` keeps (a search's rows, a few tests')
 
@@ -595,6 +595,18 @@ def input_run_steps(data: DiagnosisData, inp: Inputs) -> list[SampleSteps | None
     """The sampling steps of each run for ``first_order_lowpass`` (``DiagnosisData.run_steps``) when the inputs'
     times are the recording's (None per run otherwise)."""
     return data.run_steps() if same_memory(inp.t_s, data.t_s) else [None] * len(data.runs())
+
+
+def run_coefficients(data: DiagnosisData, inp: Inputs, tau_s: float) -> list[float | None]:
+    """The one coefficient of a first-order low-pass of time constant ``tau_s`` (s) over each run of the inputs
+    (``uniform_coefficient`` of ``input_run_steps``; None where the inputs' times are not the recording's or the
+    sampling changes it), kept per run and time constant by its bits: working it out is a pass over the run's steps,
+    and every trial of a search over another effect asks again for the model's filters, every search of one for its
+    grid's."""
+    tau_s = float(tau_s)
+    return [None if st is None else data.once(f"uniform coefficient {k} {tau_s!r}",
+                                              lambda st=st: uniform_coefficient(tau_s, st))
+            for k, st in enumerate(input_run_steps(data, inp))]
 
 
 def with_gram(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

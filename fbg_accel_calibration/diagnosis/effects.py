@@ -49,7 +49,6 @@ from fbg_accel_driver.correction_terms import (
     TimeDrift,
     first_order_lowpass,
     quadratic_features,
-    uniform_coefficient,
 )
 from fbg_accel_driver.sensor_constants import STANDARD_GRAVITY
 
@@ -60,6 +59,7 @@ from .data import (
     input_run_steps,
     rows_at,
     rows_by_run,
+    run_coefficients,
     same_memory,
     visit_means,
 )
@@ -532,12 +532,7 @@ class ThermalLagEffect(Effect):
             return False
         term = ThermalLag(float(h))
         tau = term.tau_s if term.tau_s > 0 else term.rate_smoothing_s
-        # a run's coefficient depends on tau and the recording's steps alone (input_run_steps: the data's or None), and
-        # costs a pass over the run's steps where tau is long: once per run and tau (every trial of a search over
-        # another effect asks again for the model's lag)
-        coeff = [None if st is None else data.once(f"uniform coefficient {i} {tau!r}",
-                                                   lambda st=st: uniform_coefficient(tau, st))
-                 for i, st in enumerate(input_run_steps(data, inp))]
+        coeff = run_coefficients(data, inp, tau)
         if any(a is None for a in coeff):
             return False
         key = data.rows_key(rows)
