@@ -141,3 +141,31 @@ def test_a_search_judged_lets_go_of_its_trials() -> None:
 def _named(ev: Evaluator, name: str) -> list:
     """The keys of ``ev``'s own caches (inputs, prefixes, design matrices) of models with the effect ``name``."""
     return [k for c in (ev.designs.inputs, ev.designs.prefixes, ev.designs.matrices) for k in c if name in repr(k)]
+
+
+def test_a_refined_value_asked_for_again_is_the_search_s_not_a_new_search(monkeypatch) -> None:
+    """``Evaluator.hyper_value`` (the backward step's search of the newest term without an earlier one, a search the
+    step before made): the value ``fit_hyper`` refined, bit for bit, with no second search, on every lane; a model or an
+    effect not searched before is searched."""
+    from fbg_accel_calibration.diagnosis.effects import ReferenceReadNoiseEffect
+
+    data = dark_offset_data(0.05)
+    fold = check_folds(data, data.group, make_folds(data.group, data.use, 10, 0))[0]
+    ev = Evaluator(data, fold, np.ones(3), data.group, np.flatnonzero(data.use & (fold != -1)))
+    noise, dark = ReferenceReadNoiseEffect(), ReferenceDarkOffsetEffect()
+    base = ModelSpec(0, 25.0, 1.0, [])
+    searched: list[tuple] = []
+    real = Evaluator._grid_search
+
+    def spy(self, spec, eff):
+        searched.append((spec.key, eff.name))
+        return real(self, spec, eff)
+
+    monkeypatch.setattr(Evaluator, "_grid_search", spy)
+    h = ev.fit_hyper(base, noise)[0]
+    assert searched == [(base.key, noise.name)]
+    for lane in (ev, ev.lane()):
+        got = lane.hyper_value(base, noise)
+        assert np.float64(got).tobytes() == np.float64(h).tobytes() and len(searched) == 1
+    other = base.plus(dark, 30.0)
+    assert ev.hyper_value(other, noise) == ev.fit_hyper(other, noise)[0] and searched[1:] == [(other.key, noise.name)] * 2

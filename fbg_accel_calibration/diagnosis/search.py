@@ -367,6 +367,9 @@ class Evaluator:
         # results worked out by the confounding check that the next step needs again (see ``forget``)
         self._cv_memo: dict[tuple, tuple[Design, CvResult]] = {}
         self._hyper_memo: dict[tuple, GridSearch] = {}
+        # the refined value of every search made (``final_value``), by model and effect, for the diagnosis: the backward
+        # step asks again for a search the step before made (``hyper_value``); a float each, the lanes share them
+        self._final_values: dict[tuple, float] = {}
         self._last_cv: tuple[tuple, tuple[Design, CvResult]] | None = None
         # the trials a search's evaluation asks for again (``_keep``): the chosen grid value's design and fit, the
         # refinement's best value's design, the null value's; by slot ("walk", "refine", "null"): (model key,
@@ -639,7 +642,17 @@ class Evaluator:
             if (rss_null - rss_best) / max(rss_best / n_groups, 1e-300) < stats.chi2.ppf(0.99, 1):
                 h_best = float(eff.hyper_null)
         search.final[refine] = h_best
+        if refine:
+            self._final_values[(spec.key, eff.name)] = h_best
         return h_best
+
+    def hyper_value(self, spec: ModelSpec, eff: Effect) -> float | None:
+        """``fit_hyper(spec, eff)[0]``: the refined value of ``eff``'s hyper-parameter on top of ``spec``, that of the
+        search made before where there was one (``final_value`` keeps it), else searched now. A search asked again
+        would walk its grid from where the effect's last search ended, not from where this one started: the same
+        value wherever each fold's training RSS has one minimum over the grid (``bench/walk_start_check.py``)."""
+        key = (spec.key, eff.name)
+        return self._final_values[key] if key in self._final_values else self.fit_hyper(spec, eff)[0]
 
     def _step_sides(self, eff: Effect, grid: np.ndarray, K: int) -> np.ndarray:
         """(K, m) bool: whether fold f's training visits before and after the step at each value of ``grid`` each

@@ -460,7 +460,7 @@ def drop_explained(lanes: Lanes[Evaluator], spec: ModelSpec, chosen: str, alpha_
     def beyond(lane: Evaluator, i: int) -> tuple[ModelSpec, np.ndarray, np.ndarray, np.ndarray] | None:
         try:
             rest = without(i)
-            rest = rest.plus(last, lane.fit_hyper(rest, last)[0])
+            rest = rest.plus(last, lane.hyper_value(rest, last))
             des, cvr = lane.cv(rest)
             return rest, des.valid, cvr.heldout, lane.nested_heldout(rest, before[i][0])
         except NotIdentifiedError:  # the model without it is not identified on this data: it stays
