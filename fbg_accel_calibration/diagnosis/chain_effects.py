@@ -170,22 +170,23 @@ def _delay_start(t: np.ndarray, D: float) -> int:
     return lo
 
 
-def _expected_psi(kept: dict, P: np.ndarray, q: np.ndarray, g_at: np.ndarray,
+def _expected_psi(kept: dict | None, P: np.ndarray, q: np.ndarray, g_at: np.ndarray,
                   g_rows: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """The expected Psi = P g + q (eq. 25 inverted) of each axis where the TIA's filter reads a run's reference
     (``g_at``) and at the rows (``g_rows``, each (3, k) by column), a 3 x 3 map written out (no matrix product of a
     few hundred thousand rows by 3: BLAS's start costs more than the arithmetic). Kept in ``kept`` (the entry of the
-    run's holds) for the map ``P``, ``q`` alone, by their bits: the trials of a search over the time constant read the
-    same; a search over a correction of the counts before it changes the map on every trial (then each is worked out
-    and replaces the last)."""
+    recorded reference's holds; None: not kept) for the map ``P``, ``q`` alone, by their bits: the trials of a search
+    over the time constant read the same; a search over a correction of the counts before it changes the map on every
+    trial (then each is worked out and replaces the last)."""
     key = P.tobytes() + q.tobytes()
-    hit = kept.get(key)
+    hit = None if kept is None else kept.get(key)
     if hit is None:
         hit = ([_affine(P[j], q[j], g_at) for j in range(3)], [_affine(P[j], q[j], g_rows) for j in range(3)])
-        for a in (*hit[0], *hit[1]):  # shared by the trials, of either lane
-            a.flags.writeable = False
-        kept.clear()
-        kept[key] = hit
+        if kept is not None:
+            for a in (*hit[0], *hit[1]):  # shared by the trials, of either lane
+                a.flags.writeable = False
+            kept.clear()
+            kept[key] = hit
     return hit
 
 
@@ -301,8 +302,9 @@ class TiaLowpassEffect(Effect):
             if moved:
                 found.append(self._moved_held_reference(data, g, run, local, rows_key))
             else:
+                # the recorded reference's holds, and where the Psi they expect is kept (``_expected_psi``)
                 found.append(data.once(f"held_reference {run.start} {run.stop} {rows_key}",
-                                       lambda run=run, local=local: self._held_reference(g[run], local), True))
+                                       lambda run=run, local=local: (*self._held_reference(g[run], local), {}), True))
             # a moved reference with a gap (never in a hold: NaN is not the sample before it): over every sample
             if moved and not finite_rows(found[-1][1].T).all():
                 return None
@@ -338,29 +340,28 @@ class TiaLowpassEffect(Effect):
         return gref
 
     @staticmethod
-    def _held_reference(g: np.ndarray, rows: np.ndarray) -> tuple[HeldRows, np.ndarray, np.ndarray, dict]:
+    def _held_reference(g: np.ndarray, rows: np.ndarray) -> tuple[HeldRows, np.ndarray, np.ndarray]:
         """(the holds of a run's reference ``g`` (n, 3) and where ``rows`` (local) fall, the reference where the filter
-        reads it and at ``rows``, each (3, k) by column, and where ``_expected_psi`` keeps the Psi they expect): what
-        every trial of ``_held_at_rows`` shares."""
+        reads it and at ``rows``, each (3, k) by column): what every trial of ``_held_at_rows`` shares."""
         held = held_rows(g, rows)
-        return held, np.ascontiguousarray(rows_at(g, held.samples).T), np.ascontiguousarray(rows_at(g, rows).T), {}
+        return held, np.ascontiguousarray(rows_at(g, held.samples).T), np.ascontiguousarray(rows_at(g, rows).T)
 
     def _moved_held_reference(self, data: DiagnosisData, g: np.ndarray, run: slice, rows: np.ndarray,
-                              rows_key: str) -> tuple[HeldRows, np.ndarray, np.ndarray, dict]:
+                              rows_key: str) -> tuple[HeldRows, np.ndarray, np.ndarray, None]:
         """``_held_reference`` of a run of the reference ``g`` (N, 3) an earlier correction moved (the channel delay),
         at ``rows`` (local; ``rows_key`` their digest). Kept for the next searches' trials (``DiagnosisData.recent``:
         a search of the TIA on top of a delay asks on every trial) by the array itself, read-only: ``g``'s identity
         and a weak reference to it: the kept holds do not keep the array alive, are let go once it is gone (before the
         next trial's are made) and are never served for another (a new array at its address is not it). A writable
-        array is worked out on each call."""
+        array is worked out on each call. The Psi it expects is not kept (None): a trial's delay makes a new array."""
         if g.flags.writeable or g.base is not None:
-            return self._held_reference(g[run], rows)
+            return *self._held_reference(g[run], rows), None
 
         def find() -> tuple[Any, ...]:
-            held, g_at, g_rows, kept = self._held_reference(g[run], rows)
+            held, g_at, g_rows = self._held_reference(g[run], rows)
             for a in (g_at, g_rows, *vars(held).values()):  # shared by the trials, of either lane
                 a.flags.writeable = False
-            return weakref.ref(g), held, g_at, g_rows, kept
+            return weakref.ref(g), held, g_at, g_rows, None
 
         # the predicate holds no reference to g: the entry stands while g lives, and g alone has its identity then
         return data.recent(("held_reference", id(g), run.start, run.stop, rows_key), find,
