@@ -300,7 +300,7 @@ class TiaLowpassEffect(Effect):
         found = []
         for run, _, local in pieces:
             if moved:
-                found.append(self._moved_held_reference(data, g, run, local, rows_key))
+                found.append((*self._moved_held_reference(data, g, run, local, rows_key), None))  # Psi not kept
             else:
                 # the recorded reference's holds, and where the Psi they expect is kept (``_expected_psi``)
                 found.append(data.once(f"held_reference {run.start} {run.stop} {rows_key}",
@@ -347,21 +347,21 @@ class TiaLowpassEffect(Effect):
         return held, np.ascontiguousarray(rows_at(g, held.samples).T), np.ascontiguousarray(rows_at(g, rows).T)
 
     def _moved_held_reference(self, data: DiagnosisData, g: np.ndarray, run: slice, rows: np.ndarray,
-                              rows_key: str) -> tuple[HeldRows, np.ndarray, np.ndarray, None]:
+                              rows_key: str) -> tuple[HeldRows, np.ndarray, np.ndarray]:
         """``_held_reference`` of a run of the reference ``g`` (N, 3) an earlier correction moved (the channel delay),
         at ``rows`` (local; ``rows_key`` their digest). Kept for the next searches' trials (``DiagnosisData.recent``:
         a search of the TIA on top of a delay asks on every trial) by the array itself, read-only: ``g``'s identity
         and a weak reference to it: the kept holds do not keep the array alive, are let go once it is gone (before the
         next trial's are made) and are never served for another (a new array at its address is not it). A writable
-        array is worked out on each call. The Psi it expects is not kept (None): a trial's delay makes a new array."""
+        array is worked out on each call."""
         if g.flags.writeable or g.base is not None:
-            return *self._held_reference(g[run], rows), None
+            return self._held_reference(g[run], rows)
 
         def find() -> tuple[Any, ...]:
             held, g_at, g_rows = self._held_reference(g[run], rows)
             for a in (g_at, g_rows, *vars(held).values()):  # shared by the trials, of either lane
                 a.flags.writeable = False
-            return weakref.ref(g), held, g_at, g_rows, None
+            return weakref.ref(g), held, g_at, g_rows
 
         # the predicate holds no reference to g: the entry stands while g lives, and g alone has its identity then
         return data.recent(("held_reference", id(g), run.start, run.stop, rows_key), find,

@@ -618,11 +618,11 @@ def jacobi_scaling(xtx: np.ndarray, min_diagonal: float = 0.0) -> tuple[np.ndarr
     nearly collinear the regressors are, and the solve loses no digits to the units. ``min_diagonal`` > 0: the
     diagonal is floored there first (a held-out training set may lack a regressor; the solve then fails on the
     singular matrix, not on a division by zero). Raises :class:`NotIdentifiedError` when a column is zero."""
-    diag = np.diag(xtx)
+    diag = np.diagonal(xtx, axis1=-2, axis2=-1)  # (a stack of them: each one's, ``solve_normal_equations_each``)
     d = np.sqrt(np.maximum(diag, min_diagonal) if min_diagonal > 0.0 else diag)
     if np.any(d <= 0.0):
         raise NotIdentifiedError("a regressor is identically zero on the data")
-    return d, xtx / np.outer(d, d)
+    return d, xtx / (d[..., :, None] * d[..., None, :])
 
 
 def jacobi_solve(xtx: np.ndarray, rhs: np.ndarray, min_diagonal: float = 0.0) -> np.ndarray:
@@ -636,7 +636,7 @@ def jacobi_solve(xtx: np.ndarray, rhs: np.ndarray, min_diagonal: float = 0.0) ->
 
 def _scaled_solve(d: np.ndarray, s: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """:func:`jacobi_solve` given the scaling (d, S) of X^T X (:func:`jacobi_scaling`)."""
-    return np.linalg.solve(s, rhs / d[:, None]) / d[:, None]
+    return np.linalg.solve(s, rhs / d[..., None]) / d[..., None]
 
 
 def scaled_condition(xtx: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -665,15 +665,13 @@ def solve_normal_equations_each(xtx: np.ndarray, xtg: np.ndarray, rcond: float =
     cross-validation cost one call of each step, not K (the solve of a dozen coefficients is mostly numpy's own
     overhead). A stack of which one would raise is solved one by one, so that the same one raises."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        d = np.sqrt(np.diagonal(xtx, axis1=1, axis2=2))  # the Jacobi scaling of each, as jacobi_scaling works it out
-        if np.all(d > 0.0):
-            s = xtx / (d[:, :, None] * d[:, None, :])
-            try:
-                eig = np.linalg.eigvalsh(s)
-                if np.all(eig[:, 0] > 0) and np.all(eig[:, -1] / eig[:, 0] < 1.0 / rcond):  # scaled_condition's
-                    return np.linalg.solve(s, xtg / d[:, :, None]) / d[:, :, None]
-            except np.linalg.LinAlgError:
-                pass
+        try:
+            d, s = jacobi_scaling(xtx)
+            eig = np.linalg.eigvalsh(s)
+            if np.all(eig[:, 0] > 0) and np.all(eig[:, -1] / eig[:, 0] < 1.0 / rcond):  # scaled_condition's test
+                return _scaled_solve(d, s, xtg)
+        except (NotIdentifiedError, np.linalg.LinAlgError):
+            pass
     return np.stack([solve_normal_equations(a, b, rcond)[0] for a, b in zip(xtx, xtg, strict=True)])
 
 
