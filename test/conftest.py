@@ -118,8 +118,9 @@ _real_time_seen: set[str] = set()  # what the running test did that makes it rea
 
 
 # What libraries run to look something up, not part of what a test waits on: ``ctypes.util.find_library`` runs
-# ``ldconfig -p`` (the diagnosis finds the C library to return freed memory with it).
-_LOOKUP_PROGRAMS = frozenset({"ldconfig"})
+# ``ldconfig -p`` (the diagnosis finds the C library to return freed memory with it); matplotlib's font manager runs
+# ``fc-list`` once, to build its font cache on a machine that has none (a fresh CI machine's first test that draws).
+_LOOKUP_PROGRAMS = frozenset({"ldconfig", "fc-list"})
 
 
 def _audit(event: str, args: tuple) -> None:

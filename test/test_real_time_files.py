@@ -37,6 +37,19 @@ def test_a_file_that_starts_a_process_or_opens_a_pty_without_declaring_it_fails_
     assert "test_declared.py::test_runs PASSED" in run.stdout and "test_declared.py::test_opens PASSED" in run.stdout
 
 
+def test_a_library_s_lookups_are_not_processes_a_test_waits_on(tmp_path: Path) -> None:
+    """Programs a library runs once to look something up do not make a file real-time: matplotlib's font manager runs
+    ``fc-list`` to build its font cache on a machine that has none (a fresh CI machine: its first test that draws),
+    ``ctypes.util.find_library`` runs ``ldconfig -p``."""
+    cache = tmp_path / "mplconfig"  # empty: matplotlib builds its font cache there, asking fontconfig
+    lookups = (f"def test_fonts():\n    os.environ['MPLCONFIGDIR'] = {str(cache)!r}\n"
+               "    import matplotlib.font_manager\n    assert matplotlib.font_manager.fontManager.ttflist\n\n\n"
+               "def test_library():\n    import ctypes.util\n    ctypes.util.find_library('c')\n")
+    run = _pytest(tmp_path, {"test_lookups.py": lookups})
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert any(cache.glob("fontlist-*.json"))  # the cache was built here
+
+
 def test_a_mark_on_one_test_is_refused_as_it_would_not_group_its_file(tmp_path: Path) -> None:
     run = _pytest(tmp_path, {"test_one.py": "@pytest.mark.real_time\ndef test_one():\n    pass\n"})
     assert run.returncode == pytest.ExitCode.USAGE_ERROR, run.stdout + run.stderr
