@@ -493,6 +493,38 @@ def test_rows_taken_whole_are_the_indexed_rows_bit_for_bit(monkeypatch) -> None:
     assert not indexed
 
 
+def test_rows_in_the_array_s_order_are_the_indexed_rows_laid_out_as_the_array() -> None:
+    """``rows_in_order`` (a design's rows for its fold sums and in-sample RSS): the values of ``a[rows]``, F-ordered
+    when ``a``'s columns are contiguous (an F-ordered design, a slice of its rows), else ``rows_at``'s copy; integer
+    indices (repeated, unsorted, none) and boolean masks (none, all, of the wrong length: numpy's IndexError). Its
+    products are the array's own: X^T X and X^T G of the rows taken are those of the same rows sliced, bit for bit."""
+    from fbg_accel_calibration.diagnosis.data import rows_in_order
+
+    rng = np.random.default_rng(11)
+    for trial in range(200):
+        n, k = int(rng.integers(1, 60)), int(rng.integers(1, 6))
+        base = rng.normal(size=(n + 1, 2 * k))
+        arrays = [np.asfortranarray(base[:n, :k]), np.asfortranarray(base)[1:], np.ascontiguousarray(base[:n, :k]),
+                  base[:n, ::2], base[:n, 0]]
+        picks = [rng.integers(0, n, int(rng.integers(0, 2 * n))), np.flatnonzero(rng.random(n) < 0.7),
+                 rng.random(n) < 0.5, np.zeros(n, bool), np.ones(n, bool), np.zeros(0, dtype=np.intp)]
+        for a in arrays:
+            columns = a.ndim == 2 and a.shape[1] > 1 and a.strides[0] == a.itemsize
+            for rows in picks:
+                if rows.dtype == bool and len(rows) != len(a):
+                    continue
+                want, got = a[rows], rows_in_order(a, rows)
+                assert got.shape == want.shape and got.tobytes() == want.tobytes(), trial  # tobytes: C order
+                assert got.flags.f_contiguous if columns and got.ndim == 2 else got.strides == want.strides, trial
+    with pytest.raises(IndexError):
+        rows_in_order(np.asfortranarray(np.ones((5, 3))), np.ones(4, bool))
+    X = np.asfortranarray(rng.normal(size=(3000, 10)) * np.logspace(0, 6, 10))
+    G = rng.normal(size=(3000, 3))
+    taken = rows_in_order(X, np.arange(100, 2900))
+    assert (taken.T @ taken).tobytes() == (X[100:2900].T @ X[100:2900]).tobytes()
+    assert (taken.T @ G[100:2900]).tobytes() == (X[100:2900].T @ G[100:2900]).tobytes()
+
+
 def test_rows_written_whole_are_those_indexed_assignment_writes(monkeypatch) -> None:
     """``set_rows`` (a search's held-out residual of each fold's best value, written into its (n, 3) array on every
     trial): ``out[rows] = values`` bit for bit, for rows (unsorted, none, all), arrays of 1-3 columns, values of rows,
@@ -685,7 +717,9 @@ def test_sums_kept_while_only_the_reference_changes_give_the_cross_validation_wo
 
 def test_the_rss_of_every_row_is_taken_of_the_design_itself_and_is_that_of_its_copy() -> None:
     """A search's fitted rows are mostly every row of its design: the in-sample RSS then reads the matrix itself, not a
-    copy of its rows (14 MiB a trial at 5 x 10^4 rows), and gives what the copy's (C-ordered) products give."""
+    copy of its rows (14 MiB a trial at 5 x 10^4 rows), and gives what a copy of its rows gives: one in the matrix's
+    layout, as the RSS of fewer rows takes it (``rows_in_order``; AVX-512 kernels sum X^T G of another layout in
+    another order)."""
     data = prepare_data(synthetic(4, dark=30.0))
     spec = ModelSpec(1, 23.4, 1.0, [(library_by_name()["time_drift"], 300.0)])
     des = build_design(data, spec, sub=np.flatnonzero(build_design(data, spec).valid))  # a search's: valid rows
@@ -694,10 +728,14 @@ def test_the_rss_of_every_row_is_taken_of_the_design_itself_and_is_that_of_its_c
     w = np.array([1.0, 2.0, 3.0])
     rss, sums = weighted_rss(des, rows, w)
     assert sums.Xr is des.X
-    copied = replace(des, X=np.ascontiguousarray(des.X[rows]), G=des.G[rows], valid=np.ones(int(rows.sum()), bool))
+    assert des.X.flags.f_contiguous
+    copied = replace(des, X=np.asfortranarray(des.X[rows]), G=des.G[rows], valid=np.ones(int(rows.sum()), bool))
     assert rss == weighted_rss(copied, np.ones(int(rows.sum()), bool), w)[0]
     some = rows & (np.arange(len(rows)) % 3 > 0)
-    assert weighted_rss(des, some, w)[1].Xr is not des.X
+    rss_some, sums_some = weighted_rss(des, some, w)
+    assert sums_some.Xr is not des.X and sums_some.Xr.flags.f_contiguous
+    fewer = replace(des, X=np.asfortranarray(des.X[some]), G=des.G[some], valid=np.ones(int(some.sum()), bool))
+    assert rss_some == weighted_rss(fewer, np.ones(int(some.sum()), bool), w)[0]
 
 
 def test_a_candidate_the_data_cannot_identify_is_reported_not_regularised() -> None:

@@ -18,7 +18,7 @@ from ..fit.thermal_fit import (
     solve_normal_equations_each,
     temperature_levels,
 )
-from .data import DiagnosisData, finite_rows, rows_at, set_rows
+from .data import DiagnosisData, finite_rows, rows_at, rows_in_order, set_rows
 
 # ============================================================================ data preparation
 from .design import (
@@ -258,11 +258,12 @@ class CvResult:
 
 def _fold_part(idx: np.ndarray, lo: int, hi: int, of: np.ndarray) -> np.ndarray:
     """``of`` at the rows ``idx[lo:hi]`` (``cross_validate``'s rows in fold order): a view when they are consecutive
-    (a design in fold order), else a copy."""
+    (a design in fold order), else a copy in the same layout (``rows_in_order``: the products of either, the same
+    bits)."""
     rows = idx[lo:hi]
     if hi > lo and rows[-1] - rows[0] == hi - lo - 1:
         return of[rows[0]:rows[-1] + 1]
-    return rows_at(of, rows)
+    return rows_in_order(of, rows)
 SEARCH_STRIDE = 4  # a search with no start visits every 4th grid value first, then walks from the best (search_batches)
 
 
@@ -405,7 +406,7 @@ def weighted_rss(des: Design, rows: np.ndarray, weights: np.ndarray,
     r = rows & des.valid
     every = bool(r.all())  # every row (a search's fitted rows, mostly): the arrays themselves, no copy
     if sums is None or sums.X() is not des.X or not np.array_equal(sums.rows, r):
-        Xr = des.X if every else des.X[r]  # one copy, not three (the products of either layout: the same bits)
+        Xr = des.X if every else rows_in_order(des.X, r)  # a copy in the matrix's layout: the same products
         sums = RssSums(weakref.ref(des.X), r, Xr, Xr.T @ Xr)
     X, G = sums.Xr, des.G if every else rows_at(des.G, r)
     A = solve_normal_equations(sums.XtX, X.T @ G)[0]

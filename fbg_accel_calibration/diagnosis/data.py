@@ -298,6 +298,23 @@ def rows_at(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return np.take(a, rows, axis=0)
 
 
+def rows_in_order(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``a[rows]`` (``rows``: integer indices, or a boolean mask of ``a``'s rows) laid out as ``a`` is: an (N, p) array
+    with its columns contiguous (a design matrix, or a slice of its rows) gives an F-ordered copy, column by column;
+    any other array ``rows_at``'s C-ordered copy. The copy's products (X^T X, X^T G) then run the BLAS kernels of the
+    array itself: OpenBLAS's AVX-512 kernels (SkylakeX) sum X^T G of an F- and of a C-ordered X in another order."""
+    if a.ndim != 2 or a.shape[1] < 2 or a.strides[0] != a.itemsize:
+        return rows_at(a, rows)
+    if rows.dtype == bool:
+        if rows.ndim != 1 or len(rows) != len(a):
+            return a[rows]  # IndexError as indexing raises it
+        rows = np.flatnonzero(rows)  # then a column's np.take: np.compress of a column is 4 times slower
+    out = np.empty((len(rows), a.shape[1]), dtype=a.dtype, order="F")
+    for j in range(a.shape[1]):
+        np.take(a[:, j], rows, out=out[:, j])
+    return out
+
+
 def set_rows(out: np.ndarray, rows: np.ndarray, values: np.ndarray | float) -> None:
     """``out[rows] = values`` (``rows``: integer indices; ``values``: (len(rows), k) or one value for every element),
     the same bits: for a C-ordered (N, k) float64 ``out`` each row is written whole, as one element of k * 8 bytes
