@@ -218,8 +218,9 @@ class CvResult:
             out = np.full(design[1].shape, np.nan)
             for f in range(len(self._A_folds)):
                 rows, res = self.fold_heldout(f)
-                if len(rows) and rows[-1] - rows[0] == len(rows) - 1:  # a design in fold order: one block
-                    out[rows[0]:rows[-1] + 1] = res
+                block = _block(rows)
+                if block is not None:  # a design in fold order: one block
+                    out[block] = res
                 else:
                     set_rows(out, rows, res)
             self._heldout = out  # assigned once whole: lanes that share the result read it whole or work it out too
@@ -256,14 +257,22 @@ class CvResult:
         return CvResult(self.train_rss, self.A_full, self.sums, des.X, des.G, self._start, self._A_folds)
 
 
+def _block(rows: np.ndarray) -> slice | None:
+    """The slice of ``rows`` (ascending, each once: a fold's rows in ``cross_validate``'s order) when they are
+    consecutive (a design in fold order), else None."""
+    if len(rows) and rows[-1] - rows[0] == len(rows) - 1:
+        return slice(int(rows[0]), int(rows[-1]) + 1)
+    return None
+
+
 def _fold_part(idx: np.ndarray, lo: int, hi: int, of: np.ndarray) -> np.ndarray:
     """``of`` at the rows ``idx[lo:hi]`` (``cross_validate``'s rows in fold order): a view when they are consecutive
-    (a design in fold order), else a copy in the same layout (``rows_in_order``: the products of either, the same
-    bits)."""
+    (``_block``), else a copy in the same layout (``rows_in_order``: the products of either, the same bits)."""
     rows = idx[lo:hi]
-    if hi > lo and rows[-1] - rows[0] == hi - lo - 1:
-        return of[rows[0]:rows[-1] + 1]
-    return rows_in_order(of, rows)
+    block = _block(rows)
+    return of[block] if block is not None else rows_in_order(of, rows)
+
+
 SEARCH_STRIDE = 4  # a search with no start visits every 4th grid value first, then walks from the best (search_batches)
 
 
