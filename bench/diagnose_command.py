@@ -64,15 +64,21 @@ def command_argv(path: Path, out: Path, figures: str = "report") -> list[str]:
             "--no-progress", "--figures", figures]
 
 
-def diagnosis_alone(path: str, exit_frozen: bool = False, lanes: int | None = None) -> None:
+def diagnosis_alone(path: str, exit_frozen: bool = False, lanes: int | None = None,
+                    numpy_huge_pages: bool = False) -> None:
     """The floor (in its own process): read the recording and diagnose it as the command does, nothing written; with
     ``exit_frozen`` what is alive at the end frozen out of the interpreter's last collections, as the command does
-    (``cli_main._freeze_at_exit``); ``lanes``: the searches side by side (None: the command's default)."""
+    (``cli_main._freeze_at_exit``); ``lanes``: the searches side by side (None: the command's default);
+    ``numpy_huge_pages``: numpy's huge-page advice left on (``bench/huge_pages.py``), the rest of the heap policy set."""
     from fbg_accel_calibration.diagnosis.diagnose import diagnose
     from fbg_accel_calibration.diagnosis.heap_policy import set_process_heap_policy
     from fbg_accel_calibration.io.input_files import load_recording
 
     set_process_heap_policy()
+    if numpy_huge_pages:
+        from numpy._core import multiarray
+
+        multiarray._set_madvise_hugepage(True)
     rec = load_recording([path], rate=None, temperature=None, g=None, namespace=None, topic=None)
     diagnose(rec, sensor_id="bench", lanes=lanes)
     if exit_frozen:
@@ -194,12 +200,13 @@ def main(argv: list[str] | None = None) -> int:
                     help="the command's --figures (default %(default)s, the command's own)")
     ap.add_argument("--diagnosis-alone", metavar="MCAP", help=argparse.SUPPRESS)
     ap.add_argument("--exit-frozen", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--numpy-huge-pages", action="store_true", help=argparse.SUPPRESS)  # of --diagnosis-alone
     ap.add_argument("--lanes", type=int, default=None, help=argparse.SUPPRESS)  # of --diagnosis-alone
     ap.add_argument("--breakdown", nargs=2, metavar=("MCAP", "DIR"), help=argparse.SUPPRESS)
     add_update_results(ap)
     args = ap.parse_args(argv)
     if args.diagnosis_alone:
-        diagnosis_alone(args.diagnosis_alone, args.exit_frozen, args.lanes)
+        diagnosis_alone(args.diagnosis_alone, args.exit_frozen, args.lanes, args.numpy_huge_pages)
         return 0
     if args.breakdown:
         breakdown(*args.breakdown, args.figures)

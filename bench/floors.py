@@ -15,9 +15,12 @@ the run is in the results.
   recording from MCAP, ``diagnose()`` with the command's defaults but one lane, the goal's measure) on the
   simulator's benchmark run (``bench_calibration.scenario``, every effect at its default) of N samples, against the
   same floor as ``fit`` (least squares of eq. 28 at degree 2 and a 10-fold cross-validation by visit) on the same
-  samples (those with a reference, from ``.npz``). Goals: CPU <= 10x, peak RSS <= 600 MiB. Then the same with the
-  command's default lanes (two searches side by side on a machine of two cores or more: less wall time, more CPU
-  and memory), in pairs of their own with the floor.
+  samples (those with a reference, from ``.npz``). Goals: CPU <= 10x, peak RSS <= 600 MiB. The floor runs as numpy
+  does by default, its products on every core, and the waits of OpenBLAS's threads count in its CPU time (half again
+  its CPU time on one thread, or more: docs/results/performance.md): each pair of the one-lane measure also runs it
+  with OpenBLAS on one thread, as the diagnosis runs its own products, and gives that ratio beside the goal's. Then the
+  same with the command's default lanes (two searches side by side on a machine of two cores or more: less wall
+  time, more CPU and memory), in pairs of their own with the floor.
 * ``driver``: CPU of the ``driver`` process (all threads, /proc/<pid>/stat) over a window of frames written to a pty
   at 100 Hz and 1 kHz (the simulator's clean frames, one write per frame, paced), against the floor node
   (:func:`driver_floor`, a minimal rclpy node publishing the same three messages per frame) fed the same way,
@@ -55,35 +58,50 @@ DIAGNOSE_GOAL, DIAGNOSE_RSS_GOAL_MIB = 10.0, 600.0
 MEASURES = ("startup", "fit", "diagnose", "driver")
 LEVELS, POSES, REPEATS, RATE_HZ = 3, 24, 2, 100.0  # eq28_campaign's levels and rate
 AHT10_STEP_C, AHT10_NOISE_C = 0.01, 0.02
+ONE_BLAS_THREAD = {"OPENBLAS_NUM_THREADS": "1"}  # numpy's OpenBLAS (its wheels') on one thread
 
 
-def run_child(argv: list[str]) -> dict:
-    """CPU s, wall s and peak RSS MiB of one child process (output discarded; a failure stops the benchmark). The RSS
-    includes the parent's resident set at the fork (``ru_maxrss``), tens of MiB (the files measured are made in a
-    child of their own, ``made_in_a_child``): it tells only of larger figures."""
+def run_child(argv: list[str], env: dict[str, str] | None = None) -> dict:
+    """CPU s (user + system; and system alone), wall s and peak RSS MiB of one child process (output discarded; a
+    failure stops the benchmark; ``env``: variables set for it on top of this process's). The RSS includes the
+    parent's resident set at the fork (``ru_maxrss``), tens of MiB (the files measured are made in a child of their
+    own, ``made_in_a_child``): it tells only of larger figures."""
     t0 = time.perf_counter()
-    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            env=None if env is None else {**os.environ, **env})
     err = proc.stderr.read()  # type: ignore[union-attr]
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
     if os.waitstatus_to_exitcode(status) != 0:
         raise SystemExit(f"{argv} failed: {err.decode(errors='replace')[-2000:]}")
-    return {"cpu_s": usage.ru_utime + usage.ru_stime, "wall_s": wall, "rss_mib": usage.ru_maxrss / 1024}
+    return {"cpu_s": usage.ru_utime + usage.ru_stime, "sys_s": usage.ru_stime, "wall_s": wall,
+            "rss_mib": usage.ru_maxrss / 1024}
 
 
-def interleaved(floor_argv: list[str], project_argv: list[str], pairs: int) -> dict:
-    """Median figures of ``pairs`` alternate runs and the median per-pair CPU ratio project / floor."""
-    floor, project = [], []
+def interleaved(floor_argv: list[str], project_argv: list[str], pairs: int, one_blas_thread: bool = False) -> dict:
+    """Median figures of ``pairs`` alternate runs and the median per-pair CPU ratio project / floor. ``one_blas_thread``:
+    each pair also runs the floor with OpenBLAS on one thread (``floor_one_blas_thread``, ``cpu_ratio_one_blas_thread``):
+    numpy's default uses every core for the floor's products, and the waits of its threads count as CPU time."""
+    floor, alone, project = [], [], []
     for _ in range(pairs):
         floor.append(run_child(floor_argv))
+        if one_blas_thread:
+            alone.append(run_child(floor_argv, env=ONE_BLAS_THREAD))
         project.append(run_child(project_argv))
 
     def med(runs: list[dict]) -> dict:
         return {k: round(statistics.median(r[k] for r in runs), 3) for k in runs[0]}
 
-    ratios = [p["cpu_s"] / f["cpu_s"] for p, f in zip(project, floor, strict=True)]
-    return {"floor": med(floor), "project": med(project), "cpu_ratio": round(statistics.median(ratios), 2),
-            "cpu_ratio_range": [round(min(ratios), 2), round(max(ratios), 2)], "pairs": pairs}
+    def ratios(floors: list[dict]) -> list[float]:
+        return [p["cpu_s"] / f["cpu_s"] for p, f in zip(project, floors, strict=True)]
+
+    out = {"floor": med(floor), "project": med(project), "cpu_ratio": round(statistics.median(ratios(floor)), 2),
+           "cpu_ratio_range": [round(min(ratios(floor)), 2), round(max(ratios(floor)), 2)], "pairs": pairs}
+    if one_blas_thread:
+        r = ratios(alone)
+        out.update(floor_one_blas_thread=med(alone), cpu_ratio_one_blas_thread=round(statistics.median(r), 2),
+                   cpu_ratio_one_blas_thread_range=[round(min(r), 2), round(max(r), 2)])
+    return out
 
 
 # -- fit
@@ -194,7 +212,7 @@ def measure_diagnose(n: int, pairs: int, folder: Path) -> dict:
     run_child(floor)  # page cache and .pyc files
     out: dict = {}
     for lanes, argv in (("one lane", [*project, "--lanes", "1"]), ("default lanes", project)):
-        res = interleaved(floor, argv, pairs)
+        res = interleaved(floor, argv, pairs, one_blas_thread=lanes == "one lane")
         rss = res["project"]["rss_mib"]
         res.update(samples=n, goal=DIAGNOSE_GOAL, rss_goal_mib=DIAGNOSE_RSS_GOAL_MIB, lanes=lanes,
                    goal_met=res["cpu_ratio"] <= DIAGNOSE_GOAL, rss_goal_met=rss <= DIAGNOSE_RSS_GOAL_MIB,
@@ -204,6 +222,9 @@ def measure_diagnose(n: int, pairs: int, folder: Path) -> dict:
               f"{res['floor']['cpu_s']:.2f} s: {res['cpu_ratio']:.2f}x (goal <= {DIAGNOSE_GOAL:g}x: "
               f"{'met' if res['goal_met'] else 'NOT met'}; RSS goal <= {DIAGNOSE_RSS_GOAL_MIB:g} MiB: "
               f"{'met' if res['rss_goal_met'] else 'NOT met'})", flush=True)
+        if "floor_one_blas_thread" in res:
+            print(f"  the floor with OpenBLAS on one thread: {res['floor_one_blas_thread']['cpu_s']:.2f} s: "
+                  f"{res['cpu_ratio_one_blas_thread']:.2f}x", flush=True)
         if out:
             out["default_lanes"] = res
         else:
@@ -405,6 +426,12 @@ def page(doc: dict) -> str:
                      f"({f['cpu_ratio_range'][0]}-{f['cpu_ratio_range'][1]}) | <= {f['goal']:g}x: "
                      f"{'met' if f['goal_met'] else 'not met'}; <= {f['rss_goal_mib']:g} MiB: "
                      f"{'met' if f['rss_goal_met'] else 'not met'} |")
+        if "floor_one_blas_thread" in f:
+            one = f["floor_one_blas_thread"]
+            lines.append(f"| the same, one lane | | the same floor, OpenBLAS on one thread | {one['cpu_s']:.2f} s, "
+                         f"{one['rss_mib']:.0f} MiB | {f['cpu_ratio_one_blas_thread']:.2f}x "
+                         f"({f['cpu_ratio_one_blas_thread_range'][0]}-{f['cpu_ratio_one_blas_thread_range'][1]}) | "
+                         "(for comparison) |")
     for row in doc.get("driver", []):
         lines.append(f"| `driver` at {row['rate_hz']:g} Hz (pty, default parameters, calibration 'sim'), "
                      f"{'a subscriber process' if row['subscriber'] else 'no subscriber'}, {row['window_s']:g} s | "
@@ -416,7 +443,10 @@ def page(doc: dict) -> str:
               "the same samples from an uncompressed `.npy`, builds eq. 28's degree-2 design (12 columns per axis, 36 "
               "coefficients), solves it by least squares and runs a 10-fold cross-validation by visit from per-fold "
               "XᵀX and XᵀY; for the diagnosis, the same floor on the samples of the diagnosed run that have a "
-              "reference (those at a pose), read from an `.npz` of what the diagnosis reads from MCAP; for the driver, "
+              "reference (those at a pose), read from an `.npz` of what the diagnosis reads from MCAP, as numpy runs it "
+              "by default (its products on every core: the waits of OpenBLAS's threads count in its CPU time) and, "
+              "for comparison with one lane, with OpenBLAS on one thread (`OPENBLAS_NUM_THREADS=1`), as the diagnosis "
+              "runs its products; for the driver, "
               "a minimal rclpy node (`floors.driver_floor`: read what is waiting, find "
               "the frames, check the CRC, stamp with the ROS clock, publish imu/raw, imu/temperature and "
               "imu/data_raw through a fixed matrix; no clock mapping, covariance, diagnostics or reconnection), fed "
