@@ -1,5 +1,5 @@
 """The heap policy of a process that diagnoses (``heap_policy``; glibc, the machines this project runs on): one heap for
-its threads, and the pages of freed arrays kept for the next ones."""
+its threads, the pages of freed arrays kept for the next ones, and no huge-page advice for numpy's arrays."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import resource
 
 import numpy as np
 
-from fbg_accel_calibration.diagnosis.heap_policy import keep_freed_pages, share_one_heap
+from fbg_accel_calibration.diagnosis.heap_policy import keep_freed_pages, share_one_heap, small_pages_for_arrays
 
 GLIBC = platform.libc_ver()[0] == "glibc"
 
@@ -50,3 +50,17 @@ def test_the_pages_of_many_arrays_freed_at_once_serve_the_next_ones() -> None:
     faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
     assert sum(float(a[0]) for a in arrays) == count
     assert faults < pages // 10 if GLIBC else faults >= 0, (faults, pages)
+
+
+def test_numpy_can_be_told_not_to_advise_its_arrays_for_huge_pages() -> None:
+    """``small_pages_for_arrays`` reaches numpy's own switch (the one ``NUMPY_MADVISE_HUGEPAGE`` sets at import): off
+    after it, and this test process's setting put back after."""
+    from numpy._core import multiarray
+
+    before = multiarray._get_madvise_hugepage()
+    try:
+        multiarray._set_madvise_hugepage(True)
+        assert small_pages_for_arrays()
+        assert multiarray._get_madvise_hugepage() is False
+    finally:
+        multiarray._set_madvise_hugepage(before)
