@@ -23,9 +23,9 @@ more for transparent huge pages (``madvise(MADV_HUGEPAGE)``, its default on Linu
 advice (``/sys/kernel/mm/transparent_hugepage/enabled`` set to ``madvise``, the usual default) a fault in such an array
 zeroes a 2 MiB page, compacting memory to find one (``defrag`` set to ``madvise``). On a heap whose freed pages serve
 the next arrays, few faults are left for huge pages to save and each costs more: without the advice the diagnosis's
-system time is about halved and its CPU time a few per cent lower, the fewer misses of the processor's page table
-cache aside (``bench/huge_pages.py``: docs/diagnose_speed.md). Where the kernel backs every mapping with huge pages
-(``always``) or none (``never``) the advice changes nothing.
+system time is about halved and its CPU time a few per cent lower, though its own work takes a little longer on small
+pages (more misses of the processor's page-table cache) (``bench/huge_pages.py``: docs/diagnose_speed.md). Where the
+kernel backs every mapping with huge pages (``always``) or none (``never``) the advice changes nothing.
 """
 
 from __future__ import annotations
