@@ -50,6 +50,14 @@ from .search import (
 )
 from .search_lanes import Lanes, beside, default_lane_count
 
+# the corrected references a thinned search keeps (``DesignCache``, shared by its lanes; 1.2 MiB each at
+# ``SEARCH_ROWS``, small beside the correction of the whole series each saves; an unthinned search keeps 4): a step's
+# searches, its confounding check and the next step ask again for the grids of the reference's corrections on top of
+# one model (the channel delay's on the TIA's, the TIA's again when an earlier effect is refitted), up to some 80 trials
+# apart at 10^6 samples. With one lane 48 keep most of them; with more, the lanes' own caches take that room under the
+# 600 MiB the diagnosis of 10^6 samples is held to (``bench/floors.py``: docs/diagnose_speed.md)
+REFERENCES_KEPT_ONE_LANE, REFERENCES_KEPT = 48, 24
+
 
 @dataclass
 class Confounding:
@@ -197,11 +205,9 @@ def forward_selection(data: DiagnosisData, spec: ModelSpec, fold: np.ndarray, fl
     per_visit = per_visit[per_visit > 0]
     every, step, kept = search_samples(fit_rows, fold, search_rows, floor.noise_model,
                                        float(np.median(per_visit)) if per_visit.size else math.inf)
-    # a thinned search's corrected reference is small beside the correction of the whole series it saves: it keeps a
-    # search's grid of them for the next model
-    sel = Evaluator(data, fold, weights, groups, every, references=24 if step > 1 else 4,
-                    refine_every=refine_every_candidate)
     n_lanes = (default_lane_count() if len(every) >= LANE_SEARCH_ROWS else 1) if lanes is None else int(lanes)
+    references = (REFERENCES_KEPT_ONE_LANE if n_lanes == 1 else REFERENCES_KEPT) if step > 1 else 4
+    sel = Evaluator(data, fold, weights, groups, every, references=references, refine_every=refine_every_candidate)
     searchers = Lanes([sel] + [sel.lane() for _ in range(n_lanes - 1)])
     des_s, cv_s = sel.cv(spec)
     base = (cv_s.heldout, cv_s.fitted_full, des_s.G)
