@@ -71,14 +71,12 @@ def diagnosis_alone(path: str, exit_frozen: bool = False, lanes: int | None = No
     (``cli_main._freeze_at_exit``); ``lanes``: the searches side by side (None: the command's default);
     ``numpy_huge_pages``: numpy's huge-page advice left on (``bench/huge_pages.py``), the rest of the heap policy set."""
     from fbg_accel_calibration.diagnosis.diagnose import diagnose
-    from fbg_accel_calibration.diagnosis.heap_policy import set_process_heap_policy
+    from fbg_accel_calibration.diagnosis.heap_policy import set_process_heap_policy, small_pages_for_arrays
     from fbg_accel_calibration.io.input_files import load_recording
 
     set_process_heap_policy()
     if numpy_huge_pages:
-        from numpy._core import multiarray
-
-        multiarray._set_madvise_hugepage(True)
+        small_pages_for_arrays(False)
     rec = load_recording([path], rate=None, temperature=None, g=None, namespace=None, topic=None)
     diagnose(rec, sensor_id="bench", lanes=lanes)
     if exit_frozen:

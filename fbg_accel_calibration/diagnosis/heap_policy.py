@@ -76,10 +76,11 @@ def keep_freed_pages() -> bool:
         mallopt(_M_TRIM_THRESHOLD, HEAP_TOP_BYTES))
 
 
-def small_pages_for_arrays() -> bool:
+def small_pages_for_arrays(small: bool = True) -> bool:
     """From now on (for all of the process), numpy does not advise its large arrays for transparent huge pages (its
     documented ``NUMPY_MADVISE_HUGEPAGE=0``, which it reads at import only, set at run time through the call numpy's own
-    import makes); whether it could (a numpy that has the call)."""
+    import makes; ``small`` false: its advice again, as ``bench/huge_pages.py`` compares); whether it could (a numpy
+    that has the call)."""
     import importlib
 
     for module in ("numpy._core.multiarray", "numpy.core.multiarray"):  # numpy 2, numpy 1
@@ -88,7 +89,7 @@ def small_pages_for_arrays() -> bool:
         except ImportError:
             continue
         if advise is not None:
-            advise(False)
+            advise(not small)
             return True
     return False
 
